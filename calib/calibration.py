@@ -1,0 +1,89 @@
+"""A rig's calibration: an ordered set of :class:`~calib.camera.Camera` objects."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+
+from calib.camera import Camera
+
+__all__ = ["Calibration"]
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Cameras of one rig in a common world frame.
+
+    Parameters
+    ----------
+    cameras : tuple of Camera
+        In rig order; names must be unique.
+    units : str
+        Unit of the world frame and of every ``t`` ("mm" for our rigs).
+    meta : dict
+        Free-form provenance (method, errors, board, date...), JSON-serializable.
+    """
+
+    cameras: tuple[Camera, ...]
+    units: str = "mm"
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        cams = tuple(self.cameras)
+        if not cams:
+            raise ValueError("cameras must not be empty")
+        for c in cams:
+            if not isinstance(c, Camera):
+                raise ValueError(f"cameras must hold Camera objects, got {type(c).__name__}")
+        names = [c.name for c in cams]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"cameras: duplicate camera names {sorted(dup)}")
+        object.__setattr__(self, "cameras", cams)
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __iter__(self) -> Iterator[Camera]:
+        return iter(self.cameras)
+
+    def __getitem__(self, key: int | str) -> Camera:
+        if isinstance(key, str):
+            for c in self.cameras:
+                if c.name == key:
+                    return c
+            raise KeyError(f"no camera named {key!r} (cameras: {', '.join(self.names)})")
+        return self.cameras[key]
+
+    def centers(self) -> np.ndarray:
+        """(C, 3) camera centres."""
+        return np.stack([c.center for c in self.cameras])
+
+    def to_dict(self) -> dict:
+        return {
+            "format": "capture-stage/calibration@1",
+            "units": self.units,
+            "cameras": [c.to_dict() for c in self.cameras],
+            "meta": dict(self.meta),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Calibration":
+        if not isinstance(data, dict) or "cameras" not in data:
+            raise ValueError("calibration dictionary needs a 'cameras' list")
+        return cls(
+            cameras=tuple(Camera.from_dict(c) for c in data["cameras"]),
+            units=str(data.get("units", "mm")),
+            meta=dict(data.get("meta", {})),
+        )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Calibration):
+            return NotImplemented
+        return self.units == other.units and self.cameras == other.cameras

@@ -1,0 +1,1 @@
+"""The worker pipeline: visual hull -> surface -> per-frame skeletons -> spine (Brostow et al. 2004)."""

@@ -1,0 +1,1 @@
+"""Benchmarks run by ``stage bench NAME``; one module per benchmark."""
