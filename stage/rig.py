@@ -161,10 +161,16 @@ class Rig(_Strict):
         return int(0.5e9 / self.fps)
 
 
+_DRIVERS = {"fake", "opencv", "depthai"}
+
+
 def _format_errors(exc: ValidationError, source: str) -> str:
     lines = [f"{source}: invalid rig file"]
     for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"])
+        parts = list(err["loc"])
+        # drop the discriminator tag pydantic inserts after a camera's list index
+        parts = [p for i, p in enumerate(parts) if not (i > 0 and isinstance(parts[i - 1], int) and p in _DRIVERS)]
+        loc = ".".join(str(p) for p in parts)
         if err["type"] == "extra_forbidden":
             lines.append(f"  unknown key {loc!r}")
         else:
