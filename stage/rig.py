@@ -103,7 +103,7 @@ class OpenCVCameraConfig(_CameraBase):
 
     driver: Literal["opencv"]
     device: int | str = 0
-    exposure: float | None = None
+    exposure: float | None = None  # manual exposure in milliseconds; None = auto
     mjpg: bool = True
     loop: bool = False
 

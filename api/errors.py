@@ -1,0 +1,118 @@
+"""Errors as JSON: ``{"detail": "clear message"}`` with the right status, never a stack trace.
+
+Library code raises plain domain errors (``ValueError`` subclasses, ``KeyError``
+subclasses); the handlers here map them to HTTP statuses. Routes may raise
+``HTTPException`` themselves.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from api.jobs.runner import WorkUnavailableError
+from api.jobs.store import JobNotFoundError, JobStateError
+from api.paths import InvalidIdError, OutsideDataRootError
+
+__all__ = ["NotFoundError", "ConflictError", "UploadTooLargeError", "UnavailableError", "install_handlers"]
+
+log = logging.getLogger(__name__)
+
+
+class NotFoundError(LookupError):
+    """A take, camera, frame, calibration or result that does not exist (404)."""
+
+
+class ConflictError(RuntimeError):
+    """The resource is busy or already exists (409)."""
+
+
+class UploadTooLargeError(ValueError):
+    """An upload larger than ``max_upload_bytes`` (413)."""
+
+
+class UnavailableError(RuntimeError):
+    """A feature that needs a missing component (503): no rig file, no driver, no processing module."""
+
+
+def _scrub(request: Request, message: str) -> str:
+    """Never show the server's own paths: the data root becomes ``DATA``."""
+    settings = getattr(request.app.state, "settings", None)
+    if settings is not None:
+        message = message.replace(str(settings.data), "DATA")
+    return message
+
+
+def _json(status: int, message: str, headers: dict | None = None, request: Request | None = None) -> JSONResponse:
+    if request is not None:
+        message = _scrub(request, message)
+    return JSONResponse({"detail": message}, status_code=status, headers=headers)
+
+
+def install_handlers(app: FastAPI) -> None:
+    """Register the exception handlers on ``app``."""
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        return _json(exc.status_code, str(exc.detail), getattr(exc, "headers", None))
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = []
+        for e in exc.errors():
+            loc = ".".join(str(p) for p in e.get("loc", ()))
+            errors.append({"loc": loc, "msg": e.get("msg", "invalid")})
+        msg = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors) or "invalid request"
+        # a malformed id in the URL (e.g. a path traversal attempt) is a bad request, not an unprocessable body
+        code = 400 if errors and all(e["loc"].startswith("path") for e in errors) else 422
+        return JSONResponse({"detail": msg, "errors": errors}, status_code=code)
+
+    @app.exception_handler(InvalidIdError)
+    @app.exception_handler(OutsideDataRootError)
+    async def _bad_id(request: Request, exc: Exception) -> JSONResponse:
+        return _json(400, str(exc), request=request)
+
+    @app.exception_handler(UploadTooLargeError)
+    async def _too_large(request: Request, exc: Exception) -> JSONResponse:
+        return _json(413, str(exc), request=request)
+
+    @app.exception_handler(JobNotFoundError)
+    @app.exception_handler(NotFoundError)
+    @app.exception_handler(FileNotFoundError)
+    async def _not_found(request: Request, exc: Exception) -> JSONResponse:
+        msg = str(exc) if not isinstance(exc, FileNotFoundError) else "not found"
+        return _json(404, msg, request=request)
+
+    @app.exception_handler(JobStateError)
+    @app.exception_handler(ConflictError)
+    async def _conflict(request: Request, exc: Exception) -> JSONResponse:
+        return _json(409, str(exc), request=request)
+
+    @app.exception_handler(WorkUnavailableError)
+    @app.exception_handler(UnavailableError)
+    async def _unavailable(request: Request, exc: Exception) -> JSONResponse:
+        return _json(503, str(exc), request=request)
+
+    from stage.drivers.base import CameraError
+    from stage.rig import RigError
+
+    @app.exception_handler(RigError)
+    async def _rig(request: Request, exc: Exception) -> JSONResponse:
+        return _json(503, f"the rig file is not usable: {exc}", request=request)
+
+    @app.exception_handler(CameraError)
+    async def _camera(request: Request, exc: Exception) -> JSONResponse:
+        return _json(503, f"camera error: {exc}", request=request)
+
+    @app.exception_handler(ValueError)
+    async def _value(request: Request, exc: ValueError) -> JSONResponse:
+        return _json(400, str(exc), request=request)
+
+    @app.exception_handler(Exception)
+    async def _internal(request: Request, exc: Exception) -> JSONResponse:
+        log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+        return _json(500, f"internal server error ({type(exc).__name__})", request=request)

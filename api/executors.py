@@ -1,0 +1,139 @@
+"""Where the per-frame work runs: one ``concurrent.futures.Executor`` interface.
+
+* default: an embedded local process pool (nothing to install or start);
+* ``dask="tcp://host:8786"``: an existing Dask distributed cluster, through
+  ``distributed.Client(address).get_executor()``. Workers open takes by path, so
+  the data root must be on a filesystem they share with the server;
+* ``dask="local"``: a Dask ``LocalCluster`` started here (benchmarks, tests).
+
+Dask is an optional extra (``pip install 'capture-stage[dask]'``).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import multiprocessing
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = ["ExecutorHandle", "DaskUnavailableError", "make_executor", "local_pool", "dask_executor", "dask_available"]
+
+log = logging.getLogger(__name__)
+
+
+class DaskUnavailableError(RuntimeError):
+    """Dask was asked for but ``dask[distributed]`` is not installed."""
+
+
+def dask_available() -> bool:
+    """Whether ``distributed`` can be imported."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@dataclass
+class ExecutorHandle:
+    """An executor and what must be closed with it.
+
+    Attributes
+    ----------
+    executor : concurrent.futures.Executor
+        ``submit``/``map``/``shutdown``; futures are ``concurrent.futures.Future``.
+    kind : str
+        ``"local"`` or ``"dask"``.
+    description : str
+        Human-readable (pool size or scheduler address).
+    """
+
+    executor: cf.Executor
+    kind: str
+    description: str
+    _closers: list[Any] = field(default_factory=list, repr=False)
+
+    def close(self) -> None:
+        """Shut the executor down and close the Dask client/cluster if we opened them."""
+        try:
+            self.executor.shutdown(wait=False, cancel_futures=True)
+        except TypeError:  # executors without cancel_futures
+            self.executor.shutdown(wait=False)
+        for c in reversed(self._closers):
+            try:
+                c.close()
+            except Exception as exc:  # closing best-effort: log, keep closing the rest
+                log.warning("closing %s failed: %s", type(c).__name__, exc)
+        self._closers.clear()
+
+
+def _exit_with(parent_pid: int, interval_s: float = 1.0) -> None:
+    """Pool-worker initializer: exit when the server process is gone (e.g. killed with SIGKILL).
+
+    Without it the workers of a killed server would live on, blocked on their queue.
+    """
+
+    def watch() -> None:
+        while True:
+            time.sleep(interval_s)
+            try:
+                os.kill(parent_pid, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except PermissionError:  # the pid was reused by another user's process: ours is gone
+                os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def local_pool(workers: int | None = None) -> ExecutorHandle:
+    """A process pool of ``workers`` processes (default: CPU count) started with ``forkserver``.
+
+    ``forkserver`` (not ``fork``) because the server process runs threads. Workers
+    exit by themselves when the server process dies.
+    """
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    n = workers or os.cpu_count() or 1
+    ctx = multiprocessing.get_context("forkserver")
+    pool = cf.ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_exit_with, initargs=(os.getpid(),))
+    return ExecutorHandle(pool, "local", f"local process pool ({n} workers)")
+
+
+def dask_executor(address: str, *, n_workers: int = 2, threads_per_worker: int = 1) -> ExecutorHandle:
+    """An executor on a Dask cluster: ``address`` of a scheduler, or ``"local"`` for a new ``LocalCluster``.
+
+    Raises
+    ------
+    DaskUnavailableError
+        When ``dask[distributed]`` is not installed.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise DaskUnavailableError(
+            "Dask is not installed: pip install 'dask[distributed]' (the [dask] extra of capture-stage)"
+        ) from None
+    closers: list[Any] = []
+    if address == "local":
+        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker, processes=True,
+                               dashboard_address=None, host="127.0.0.1")
+        closers.append(cluster)
+        client = Client(cluster)
+        desc = f"dask LocalCluster ({n_workers} workers)"
+    else:
+        client = Client(address, timeout=30)
+        desc = f"dask cluster at {address}"
+    closers.append(client)
+    return ExecutorHandle(client.get_executor(), "dask", desc, closers)
+
+
+def make_executor(*, dask: str | None = None, workers: int | None = None) -> ExecutorHandle:
+    """The executor the settings ask for: Dask when ``dask`` is set, else the local pool."""
+    if dask:
+        return dask_executor(dask)
+    return local_pool(workers)

@@ -1,0 +1,362 @@
+"""The job runner: takes queued jobs from the :class:`~api.jobs.store.JobStore` and runs them.
+
+A dispatcher thread polls the store; each claimed job runs in its own thread,
+which calls the *work* function (by default :func:`stage.process.process_take`)
+with the shared executor, a progress callback that writes to the store, and a
+cancel event. The work function persists per-frame results in the job's output
+folder and resumes from the unfinished frames when called again on it, so a job
+interrupted by a killed server is simply queued again (its heartbeat goes stale)
+and run again.
+
+Hook for tests and plug-ins: ``JobRunner(..., work=fn)`` or the setting
+``work = "module:function"``; ``fn`` has the signature of ``process_take``::
+
+    fn(take, out, *, steps, params, executor, progress, cancel) -> result
+
+If the function's module defines ``ProcessParams`` (a pydantic model) the job's
+``parameters`` are validated into it, and ``STEPS`` (a tuple) lists the allowed steps.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+from concurrent.futures.process import BrokenProcessPool
+import dataclasses
+import importlib
+import json
+import logging
+import threading
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from api.executors import ExecutorHandle, make_executor
+from api.jobs.store import JobRecord, JobStore
+
+__all__ = ["JobRunner", "WorkSpec", "WorkUnavailableError", "load_work", "DEFAULT_STEPS"]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_STEPS = ("key", "surface", "spine")
+
+
+class WorkUnavailableError(RuntimeError):
+    """The work function cannot be imported (maps to 503)."""
+
+
+@dataclass(frozen=True)
+class WorkSpec:
+    """A work function with what is needed to validate a job for it."""
+
+    fn: Callable[..., Any]
+    steps: tuple[str, ...] = DEFAULT_STEPS
+    params_model: Any = None
+
+    def validate(self, steps: Sequence[str] | None, params: dict | None) -> tuple[tuple[str, ...], dict]:
+        """Check ``steps`` and ``params``; return them normalized (steps in canonical order, params as JSON dict).
+
+        Raises
+        ------
+        ValueError
+            Naming the unknown step or the bad parameter.
+        """
+        steps = tuple(self.steps if steps is None else steps)
+        if not steps:
+            raise ValueError("steps must not be empty")
+        unknown = [s for s in steps if s not in self.steps]
+        if unknown:
+            raise ValueError(f"steps: unknown step(s) {unknown}; allowed: {list(self.steps)}")
+        if len(set(steps)) != len(steps):
+            raise ValueError("steps: duplicate steps")
+        params = dict(params or {})
+        if self.params_model is not None:
+            from pydantic import ValidationError
+
+            try:
+                model = self.params_model.model_validate(params)
+            except ValidationError as exc:
+                msgs = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'parameters'}: {e['msg']}" for e in exc.errors())
+                raise ValueError(f"parameters: {msgs}") from None
+            params = json.loads(model.model_dump_json(exclude_defaults=True))
+        return tuple(s for s in self.steps if s in steps), params
+
+    def to_params(self, params: dict) -> Any:
+        """The object handed to the work function as ``params``."""
+        if self.params_model is None:
+            return params or None
+        return self.params_model.model_validate(params)
+
+
+def load_work(spec: str | Callable[..., Any]) -> WorkSpec:
+    """Resolve ``"module:function"`` (or a callable) into a :class:`WorkSpec`.
+
+    Raises
+    ------
+    WorkUnavailableError
+        When the module or function cannot be imported.
+    """
+    if callable(spec):
+        mod = importlib.import_module(spec.__module__) if getattr(spec, "__module__", None) else None
+        fn = spec
+    else:
+        modname, _, fname = str(spec).partition(":")
+        if not modname or not fname:
+            raise ValueError(f"work must be 'module:function', got {spec!r}")
+        try:
+            mod = importlib.import_module(modname)
+            fn = getattr(mod, fname)
+        except (ImportError, AttributeError) as exc:
+            raise WorkUnavailableError(f"processing is not available: cannot import {spec} ({exc})") from None
+    steps = tuple(getattr(mod, "STEPS", DEFAULT_STEPS)) if mod is not None else DEFAULT_STEPS
+    model = getattr(mod, "ProcessParams", None) if mod is not None else None
+    if model is not None and not hasattr(model, "model_validate"):
+        model = None
+    return WorkSpec(fn=fn, steps=steps, params_model=model)
+
+
+def _jsonable(obj: Any) -> Any:
+    if obj is None:
+        return None
+    if hasattr(obj, "to_dict"):
+        obj = obj.to_dict()
+    elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        obj = dataclasses.asdict(obj)
+    elif hasattr(obj, "model_dump"):
+        obj = obj.model_dump(mode="json")
+    try:
+        return json.loads(json.dumps(obj, default=str))
+    except (TypeError, ValueError):
+        return {"repr": repr(obj)}
+
+
+class JobRunner:
+    """Runs queued jobs; survives restarts through the store.
+
+    Parameters
+    ----------
+    store : JobStore
+    takes_dir, jobs_dir : Path
+        Where takes are read (``<take>.h5``) and results written (``<job>/``).
+    work : str or callable
+        The work function (see module docstring).
+    executor : ExecutorHandle or callable returning one, optional
+        Default: :func:`api.executors.make_executor` with ``dask``/``workers``; created on first use.
+    dask, workers
+        Passed to :func:`~api.executors.make_executor`.
+    heartbeat_s, stale_after_s, max_attempts, max_concurrent, poll_s
+        See :class:`api.settings.Settings`.
+    """
+
+    def __init__(
+        self,
+        store: JobStore,
+        *,
+        takes_dir: Path,
+        jobs_dir: Path,
+        work: str | Callable[..., Any] = "stage.process:process_take",
+        executor: ExecutorHandle | Callable[[], ExecutorHandle] | None = None,
+        dask: str | None = None,
+        workers: int | None = None,
+        heartbeat_s: float = 2.0,
+        stale_after_s: float = 10.0,
+        max_attempts: int = 5,
+        max_concurrent: int = 1,
+        poll_s: float = 0.25,
+        handlers: dict[str, Callable[..., Any]] | None = None,
+    ) -> None:
+        if heartbeat_s <= 0 or stale_after_s <= heartbeat_s:
+            raise ValueError("stale_after_s must be larger than heartbeat_s > 0")
+        self.store = store
+        self.takes_dir = Path(takes_dir)
+        self.jobs_dir = Path(jobs_dir)
+        self.work = work
+        self.handlers = dict(handlers or {})
+        self._executor_arg = executor
+        self._dask, self._workers = dask, workers
+        self.heartbeat_s, self.stale_after_s = heartbeat_s, stale_after_s
+        self.max_attempts, self.max_concurrent, self.poll_s = max_attempts, max_concurrent, poll_s
+        self.owner = uuid.uuid4().hex
+        self._handle: ExecutorHandle | None = None
+        self._handle_lock = threading.Lock()
+        self._active: dict[str, tuple[threading.Thread, threading.Event]] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- public ------------------------------------------------------------------------------
+    def work_spec(self) -> WorkSpec:
+        """The resolved work function (raises :class:`WorkUnavailableError`)."""
+        return load_work(self.work)
+
+    def executor(self) -> ExecutorHandle:
+        """The shared executor, created on first use."""
+        with self._handle_lock:
+            if self._handle is None:
+                arg = self._executor_arg
+                if isinstance(arg, ExecutorHandle):
+                    self._handle = arg
+                elif callable(arg):
+                    self._handle = arg()
+                else:
+                    self._handle = make_executor(dask=self._dask, workers=self._workers)
+                log.info("jobs run on %s", self._handle.description)
+            return self._handle
+
+    def start(self) -> None:
+        """Start the dispatcher thread (idempotent)."""
+        if self._thread is not None and self._thread.is_alive():
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._loop, name="job-dispatcher", daemon=True)
+        self._thread.start()
+
+    def wake(self) -> None:
+        """Look for queued jobs now rather than at the next poll."""
+        self._wake.set()
+
+    def stop(self, *, timeout: float = 30.0) -> None:
+        """Stop: running jobs are asked to stop and go back to the queue (they resume on the next start)."""
+        self._stop.set()
+        self._wake.set()
+        with self._lock:
+            active = list(self._active.items())
+        for _, (_, ev) in active:
+            ev.set()
+        for _, (th, _) in active:
+            th.join(timeout)
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+        with self._handle_lock:
+            if self._handle is not None and not isinstance(self._executor_arg, ExecutorHandle):
+                self._handle.close()
+            self._handle = None
+
+    @property
+    def active(self) -> list[str]:
+        with self._lock:
+            return list(self._active)
+
+    # -- dispatcher --------------------------------------------------------------------------
+    def _loop(self) -> None:
+        import time
+
+        last_beat = 0.0
+        while not self._stop.is_set():
+            try:
+                now = time.monotonic()
+                if now - last_beat >= self.heartbeat_s:
+                    last_beat = now
+                    self._beat()
+                    again = self.store.requeue_stale(stale_after_s=self.stale_after_s, max_attempts=self.max_attempts)
+                    for jid in again:
+                        log.warning("job %s was interrupted; queued again to resume", jid)
+                self._reap()
+                while len(self.active) < self.max_concurrent and not self._stop.is_set():
+                    rec = self.store.claim(self.owner)
+                    if rec is None:
+                        break
+                    self._launch(rec)
+            except Exception:  # the dispatcher must outlive a failing poll (e.g. a locked database)
+                log.exception("job dispatcher poll failed")
+            self._wake.wait(min(self.poll_s, self.heartbeat_s))
+            self._wake.clear()
+
+    def _beat(self) -> None:
+        ids = self.active
+        if not ids:
+            return
+        cancelled = self.store.heartbeat(ids, self.owner)
+        with self._lock:
+            for jid in cancelled:
+                if jid in self._active:
+                    self._active[jid][1].set()
+
+    def _reap(self) -> None:
+        with self._lock:
+            for jid in [j for j, (th, _) in self._active.items() if not th.is_alive()]:
+                del self._active[jid]
+
+    def _launch(self, rec: JobRecord) -> None:
+        ev = threading.Event()
+        if rec.cancel_requested:
+            ev.set()
+        th = threading.Thread(target=self._run, args=(rec, ev), name=f"job-{rec.id[:8]}", daemon=True)
+        with self._lock:
+            self._active[rec.id] = (th, ev)
+        th.start()
+
+    def _run(self, rec: JobRecord, cancel: threading.Event) -> None:
+        jid = rec.id
+        log.info("job %s: %s on take %s (attempt %d)", jid, "/".join(rec.steps), rec.take, rec.attempts)
+        try:
+            take = self.takes_dir / f"{rec.take}.h5"
+            if not take.is_file():
+                raise FileNotFoundError(f"take {rec.take!r} not found")
+            out = self.jobs_dir / jid
+            out.mkdir(parents=True, exist_ok=True)
+
+            def progress(step: str, done: int, total: int) -> None:
+                self.store.progress(jid, str(step), int(done), int(total))
+
+            if rec.kind == "process":
+                spec = self.work_spec()
+                result = spec.fn(
+                    take, out, steps=tuple(rec.steps), params=spec.to_params(rec.params),
+                    executor=self.executor().executor, progress=progress, cancel=cancel,
+                )
+            elif rec.kind in self.handlers:
+                result = self.handlers[rec.kind](take, out, params=rec.params, progress=progress, cancel=cancel,
+                                                 job_id=jid, take_id=rec.take)
+            else:
+                raise ValueError(f"unknown job kind {rec.kind!r}")
+        except BrokenProcessPool as exc:
+            self._reset_executor()
+            self._after_stop_or_fail(jid, cancel, f"worker pool broke: {exc}", requeue=True)
+            return
+        except (ValueError, FileNotFoundError, WorkUnavailableError) as exc:
+            self._after_stop_or_fail(jid, cancel, str(exc))
+            return
+        except Exception as exc:  # any failure of the work must end the job with a message, not kill the runner
+            log.exception("job %s failed", jid)
+            self._after_stop_or_fail(jid, cancel, f"internal error: {type(exc).__name__}: {exc}")
+            return
+        if cancel.is_set() and not self._user_cancelled(jid):
+            self._requeue(jid)
+        elif cancel.is_set():
+            self.store.finish(jid, "cancelled", result=_jsonable(result))
+        else:
+            self.store.finish(jid, "done", result=_jsonable(result))
+            log.info("job %s done", jid)
+
+    def _user_cancelled(self, jid: str) -> bool:
+        try:
+            return self.store.get(jid).cancel_requested
+        except KeyError:
+            return True
+
+    def _requeue(self, jid: str) -> None:
+        # server shutting down: back to the queue, resumes on the next start
+        self.store.requeue(jid)
+        log.info("job %s stopped with the server; queued to resume", jid)
+
+    def _after_stop_or_fail(self, jid: str, cancel: threading.Event, error: str, *, requeue: bool = False) -> None:
+        error = error.replace(str(self.takes_dir.parent), "DATA")  # never show the server's paths
+        if cancel.is_set():
+            if self._user_cancelled(jid):
+                self.store.finish(jid, "cancelled")
+            else:
+                self._requeue(jid)
+        elif requeue:
+            self._requeue(jid)
+        else:
+            self.store.finish(jid, "failed", error=error)
+            log.warning("job %s failed: %s", jid, error)
+
+    def _reset_executor(self) -> None:
+        with self._handle_lock:
+            if self._handle is not None and not isinstance(self._executor_arg, ExecutorHandle):
+                self._handle.close()
+                self._handle = None

@@ -1,0 +1,276 @@
+"""The takes under the data root (``DATA/takes/<take>.h5``): list, read, import, delete.
+
+Reading goes through helper B's :class:`stage.store.TakeReader`; this module only
+adds id validation, the data-root confinement and upload handling.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, AsyncIterator
+
+import numpy as np
+
+from api.errors import ConflictError, NotFoundError, UnavailableError, UploadTooLargeError
+from api.paths import TAKE_ID, check_id, inside
+
+__all__ = ["TakeLibrary", "HDF5_SIGNATURE", "InvalidTakeError"]
+
+log = logging.getLogger(__name__)
+
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+class InvalidTakeError(ValueError):
+    """A file that is not a readable take (400)."""
+
+
+def _is_hdf5(path: Path) -> bool:
+    # the superblock signature sits at 0, 512, 1024, 2048... (HDF5 file format spec, section II.A)
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        off = 0
+        while off + 8 <= size and off <= 1 << 20:
+            f.seek(off)
+            if f.read(8) == HDF5_SIGNATURE:
+                return True
+            off = 512 if off == 0 else off * 2
+    return False
+
+
+def _open_reader(path: Path):
+    try:
+        from stage.store import TakeReader
+    except ImportError as exc:
+        raise UnavailableError(f"reading takes needs stage.store ({exc})") from None
+    return TakeReader(path)
+
+
+@contextmanager
+def _reading(path: Path, take_id: str):
+    """A TakeReader whose errors name the take id, not the server's path."""
+    try:
+        with _open_reader(path) as r:
+            yield r
+    except (OSError, ValueError) as exc:
+        if isinstance(exc, (NotFoundError, UnavailableError)):
+            raise
+        msg = str(exc).replace(f"{path}: ", "").replace(str(path), take_id)
+        raise InvalidTakeError(f"take {take_id!r}: {msg}") from None
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (np.integer, np.floating, np.bool_)):
+        return v.item()
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if hasattr(v, "to_dict"):
+        return _jsonable(v.to_dict())
+    if hasattr(v, "model_dump"):
+        return _jsonable(v.model_dump(mode="json"))
+    if hasattr(v, "__dataclass_fields__"):
+        import dataclasses
+
+        return _jsonable(dataclasses.asdict(v))
+    return v
+
+
+class TakeLibrary:
+    """Takes of one data root.
+
+    Parameters
+    ----------
+    takes_dir : Path
+        ``DATA/takes``.
+    max_upload_bytes : int
+        Largest accepted upload.
+    """
+
+    def __init__(self, takes_dir: Path, *, max_upload_bytes: int, data_root: Path | None = None) -> None:
+        self.takes_dir = Path(takes_dir).resolve()
+        self.data_root = Path(data_root).resolve() if data_root is not None else self.takes_dir.parent
+        self.max_upload_bytes = int(max_upload_bytes)
+
+    # -- lookup ------------------------------------------------------------------------------
+    def path(self, take_id: str) -> Path:
+        """The file of an existing take (raises :class:`NotFoundError` / :class:`InvalidIdError`)."""
+        check_id(take_id, pattern=TAKE_ID, name="take id")
+        p = inside(self.takes_dir, f"{take_id}.h5")
+        if not p.is_file():
+            raise NotFoundError(f"no take {take_id!r}")
+        return p
+
+    def list(self) -> list[dict[str, Any]]:
+        """``[{"id", "size_bytes", "modified"}]`` sorted by id."""
+        out = []
+        if self.takes_dir.is_dir():
+            for p in sorted(self.takes_dir.glob("*.h5")):
+                tid = p.stem
+                try:
+                    check_id(tid)
+                except ValueError:
+                    continue
+                st = p.stat()
+                out.append({"id": tid, "size_bytes": st.st_size, "modified": st.st_mtime})
+        return out
+
+    def info(self, take_id: str) -> dict[str, Any]:
+        """Cameras, frame count, sync statistics and calibration of a take."""
+        p = self.path(take_id)
+        st = p.stat()
+        out: dict[str, Any] = {"id": take_id, "size_bytes": st.st_size, "modified": st.st_mtime}
+        with _reading(p, take_id) as r:
+            out.update(_describe(r))
+        return out
+
+    def image(self, take_id: str, index: int, camera: str, *, kind: str, fmt: str) -> bytes:
+        """Frame ``index`` of ``camera`` (``kind="image"``) or its mask (``"mask"``), encoded as PNG or JPEG."""
+        import cv2
+
+        if kind not in ("image", "mask"):
+            raise ValueError(f"kind must be 'image' or 'mask', got {kind!r}")
+        if fmt not in ("png", "jpg", "jpeg"):
+            raise ValueError(f"format must be png or jpg, got {fmt!r}")
+        if index < 0:
+            raise ValueError("frame index must be >= 0")
+        p = self.path(take_id)
+        with _reading(p, take_id) as r:
+            arr = _read_view(r, index, camera, kind)
+        if arr.dtype == bool:
+            arr = arr.astype(np.uint8) * 255
+        ok, buf = cv2.imencode(".png" if fmt == "png" else ".jpg", arr)
+        if not ok:
+            raise ValueError("could not encode the image")
+        return buf.tobytes()
+
+    # -- changes -----------------------------------------------------------------------------
+    def _target(self, take_id: str) -> Path:
+        check_id(take_id, pattern=TAKE_ID, name="take id")
+        p = inside(self.takes_dir, f"{take_id}.h5")
+        if p.exists():
+            raise ConflictError(f"take {take_id!r} already exists")
+        return p
+
+    def _tmp(self) -> Path:
+        self.takes_dir.mkdir(parents=True, exist_ok=True)
+        return self.takes_dir / f".upload-{uuid.uuid4().hex}.part"
+
+    def _finish(self, tmp: Path, take_id: str) -> dict[str, Any]:
+        try:
+            if not _is_hdf5(tmp):
+                raise InvalidTakeError("the upload is not an HDF5 take file")
+            try:
+                with _open_reader(tmp) as r:
+                    _describe(r)
+            except UnavailableError:
+                pass  # cannot check deeper without stage.store; the signature was checked
+            except (OSError, KeyError, ValueError) as exc:
+                msg = str(exc).replace(str(tmp), "upload").replace(f"{tmp}: ", "")
+                raise InvalidTakeError(f"the upload is not a readable take: {msg}") from None
+            target = self._target(take_id)
+            os.replace(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
+        log.info("imported take %s", take_id)
+        return {"id": take_id, "size_bytes": target.stat().st_size}
+
+    async def import_stream(self, take_id: str, chunks: AsyncIterator[bytes]) -> dict[str, Any]:
+        """Write an uploaded take (raw HDF5 bytes) under ``take_id``, enforcing the size limit."""
+        self._target(take_id)  # fail early on bad or existing ids
+        tmp = self._tmp()
+        n = 0
+        try:
+            with open(tmp, "wb") as f:
+                async for chunk in chunks:
+                    n += len(chunk)
+                    if n > self.max_upload_bytes:
+                        raise UploadTooLargeError(f"upload larger than the limit of {self.max_upload_bytes} bytes")
+                    f.write(chunk)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return self._finish(tmp, take_id)
+
+    def import_file(self, take_id: str, fileobj) -> dict[str, Any]:
+        """Write an uploaded take from a file object (multipart upload), enforcing the size limit."""
+        self._target(take_id)
+        tmp = self._tmp()
+        n = 0
+        try:
+            with open(tmp, "wb") as f:
+                while chunk := fileobj.read(1 << 20):
+                    n += len(chunk)
+                    if n > self.max_upload_bytes:
+                        raise UploadTooLargeError(f"upload larger than the limit of {self.max_upload_bytes} bytes")
+                    f.write(chunk)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return self._finish(tmp, take_id)
+
+    def import_path(self, take_id: str, rel_path: str) -> dict[str, Any]:
+        """Copy a take file from ``rel_path`` (relative to the data root, never outside it)."""
+        if not rel_path or Path(rel_path).is_absolute():
+            raise ValueError("path must be relative to the data root")
+        src = inside(self.data_root, rel_path)
+        if not src.is_file():
+            raise NotFoundError(f"no file {rel_path!r} in the data root")
+        if src.stat().st_size > self.max_upload_bytes:
+            raise UploadTooLargeError(f"file larger than the limit of {self.max_upload_bytes} bytes")
+        self._target(take_id)
+        tmp = self._tmp()
+        shutil.copyfile(src, tmp)
+        return self._finish(tmp, take_id)
+
+    def delete(self, take_id: str) -> None:
+        p = self.path(take_id)
+        p.unlink()
+        log.info("deleted take %s", take_id)
+
+
+def _describe(r: Any) -> dict[str, Any]:
+    """What a :class:`stage.store.TakeReader` tells about its take."""
+    cal = r.calibration
+    return {
+        "cameras": [
+            {"id": c, "frames": r.n_frames(c), **{k: _jsonable(v) for k, v in r.camera_info(c).items()}}
+            for c in r.cameras
+        ],
+        "frames": int(r.n_sets),
+        "complete": bool(r.complete),
+        "fps": r.fps,
+        "measured_fps": r.measured_fps(),
+        "duration_s": r.duration_s,
+        "compression": r.compression,
+        "sync": _jsonable(r.sync_stats),
+        "masks": r.masks_present(),
+        "calibration": cal.to_dict() if cal is not None else None,
+    }
+
+
+def _read_view(r: Any, index: int, camera: str, kind: str) -> np.ndarray:
+    """Image (H, W, 3) uint8 or mask (H, W) bool of ``camera`` in frame set ``index``."""
+    if camera not in r.cameras:
+        raise NotFoundError(f"no camera {camera!r} in this take (cameras: {', '.join(r.cameras)})")
+    if not 0 <= index < r.n_sets:
+        raise NotFoundError(f"no frame {index} (the take has {r.n_sets} frames)")
+    row = r.set_rows(index)[camera]
+    if row < 0:
+        raise NotFoundError(f"camera {camera!r} has no frame in frame set {index} (dropped)")
+    if kind == "image":
+        return np.asarray(r.frame(camera, row))
+    masks = r.masks(camera)
+    if masks is None:
+        raise NotFoundError(f"camera {camera!r} has no masks (run keying first)")
+    if row >= masks.shape[0]:
+        raise NotFoundError(f"no mask for frame {index} of camera {camera!r}")
+    return masks[row]

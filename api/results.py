@@ -1,0 +1,141 @@
+"""Result files of a job (``DATA/jobs/<job>/``): listing and safe lookup, PLY -> GLB conversion.
+
+What :func:`stage.process.process_take` writes: ``spine.json``, ``report.json``,
+``meshes/frame_NNNNNN.ply``.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+from api.errors import NotFoundError, UnavailableError
+from api.paths import JOB_ID, check_id, inside
+
+__all__ = ["listing", "result_file", "mesh", "spine_glb", "ply_to_glb"]
+
+_MESH = re.compile(r"^(?:frame_)?([0-9]{1,6})\.(ply|glb)$")
+
+
+def _job_dir(jobs_dir: Path, job_id: str) -> Path:
+    check_id(job_id, pattern=JOB_ID, name="job id")
+    return inside(jobs_dir, job_id)
+
+
+def listing(jobs_dir: Path, job_id: str) -> dict[str, Any]:
+    """``{"files": [...], "meshes": [frame indices], "links": {...}}`` of what exists now."""
+    d = _job_dir(jobs_dir, job_id)
+    files = [n for n in ("spine.json", "report.json") if (d / n).is_file()]
+    meshes = []
+    mdir = d / "meshes"
+    if mdir.is_dir():
+        for p in sorted(mdir.glob("frame_*.ply")):
+            m = _MESH.match(p.name)
+            if m:
+                meshes.append(int(m.group(1)))
+    links = {n: f"/jobs/{job_id}/results/{n}" for n in files}
+    if "spine.json" in files:
+        links["spine.glb"] = f"/jobs/{job_id}/results/spine.glb"
+    return {"files": files, "meshes": meshes, "mesh_url": f"/jobs/{job_id}/results/meshes/frame_{{index:06d}}.ply",
+            "links": links}
+
+
+def result_file(jobs_dir: Path, job_id: str, name: str) -> Path | None:
+    """Path of ``spine.json`` / ``report.json`` when it exists."""
+    if name not in ("spine.json", "report.json"):
+        raise ValueError(f"unknown result {name!r}")
+    p = inside(_job_dir(jobs_dir, job_id), name)
+    return p if p.is_file() else None
+
+
+def ply_to_glb(path: Path) -> bytes:
+    """A PLY mesh as binary glTF."""
+    import trimesh
+
+    mesh = trimesh.load(path, file_type="ply", force="mesh", process=False)
+    return trimesh.Scene(mesh).export(file_type="glb")
+
+
+def mesh(jobs_dir: Path, job_id: str, name: str) -> tuple[Path | bytes, str]:
+    """The mesh of one frame: ``(path, media type)`` for PLY, ``(bytes, media type)`` for GLB.
+
+    Raises
+    ------
+    NotFoundError
+        When the frame has no mesh (yet).
+    """
+    m = _MESH.match(name)
+    if m is None:
+        raise ValueError(f"mesh name {name!r} must look like frame_000003.ply or 3.glb")
+    index, ext = int(m.group(1)), m.group(2)
+    p = inside(_job_dir(jobs_dir, job_id), "meshes", f"frame_{index:06d}.ply")
+    if not p.is_file():
+        raise NotFoundError(f"no mesh for frame {index} (yet)")
+    if ext == "ply":
+        return p, "application/octet-stream"
+    return ply_to_glb(p), "model/gltf-binary"
+
+
+def spine_glb(jobs_dir: Path, job_id: str) -> bytes:
+    """The spines of all frames as binary glTF (one tube mesh per frame's spine, as a scene node)."""
+    import json
+
+    p = inside(_job_dir(jobs_dir, job_id), "spine.json")
+    if not p.is_file():
+        raise NotFoundError("spine.json is not available (yet)")
+    data = json.loads(p.read_text(encoding="utf-8"))
+    try:
+        from pipeline.meshio import spine_to_glb  # helper G's exporter, when present
+    except ImportError:
+        spine_to_glb = None
+    if spine_to_glb is not None:
+        return spine_to_glb(data)
+    return _generic_spine_glb(data)
+
+
+def _polylines(data: Any) -> list[tuple[int, list]]:
+    """(frame, polyline) pairs from a spine.json: frames[*].limbs[*].points or frames[*].edges/nodes."""
+    out: list[tuple[int, list]] = []
+    frames = data.get("frames", []) if isinstance(data, dict) else []
+    for fi, fr in enumerate(frames):
+        if not isinstance(fr, dict):
+            continue
+        idx = int(fr.get("index", fi))
+        for key in ("limbs", "branches", "paths"):
+            for limb in fr.get(key, []) or []:
+                pts = limb.get("points") if isinstance(limb, dict) else limb
+                if isinstance(pts, list) and len(pts) >= 2:
+                    out.append((idx, pts))
+        nodes, edges = fr.get("nodes"), fr.get("edges")
+        if isinstance(nodes, list) and isinstance(edges, list):
+            for e in edges:
+                try:
+                    out.append((idx, [nodes[int(e[0])], nodes[int(e[1])]]))
+                except (IndexError, TypeError, ValueError, KeyError):
+                    continue
+    return out
+
+
+def _generic_spine_glb(data: Any) -> bytes:
+    import numpy as np
+    import trimesh
+
+    lines = _polylines(data)
+    if not lines:
+        raise UnavailableError("spine.json has no polylines this server knows how to export as GLB")
+    scene = trimesh.Scene()
+    by_frame: dict[int, list] = {}
+    for idx, pts in lines:
+        by_frame.setdefault(idx, []).append(np.asarray(pts, dtype=float)[:, :3])
+    for idx, polys in sorted(by_frame.items()):
+        segs = np.concatenate([np.stack([p[:-1], p[1:]], axis=1) for p in polys])
+        scale = float(np.ptp(np.concatenate(polys), axis=0).max() or 1.0)
+        tubes = []
+        for a, b in segs:
+            if np.linalg.norm(b - a) <= 0:
+                continue
+            tubes.append(trimesh.creation.cylinder(radius=scale * 0.01, segment=np.stack([a, b]), sections=8))
+        if tubes:
+            scene.add_geometry(trimesh.util.concatenate(tubes), node_name=f"frame_{idx:06d}")
+    return scene.export(file_type="glb")

@@ -1,0 +1,196 @@
+"""The rig as the API sees it: its cameras, one capture at a time in the background, previews.
+
+Captures go through helper B's :mod:`stage.capture` and write a take into
+``DATA/takes/<take>.h5``; previews open one camera through
+:func:`stage.drivers.open_driver`, grab a frame and close it.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from api.errors import ConflictError, NotFoundError, UnavailableError
+from api.paths import TAKE_ID, check_id, inside
+
+__all__ = ["CaptureManager", "CaptureState"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CaptureState:
+    """The current (or last) capture."""
+
+    state: str = "idle"  # idle | capturing | done | failed | stopped
+    take: str | None = None
+    frames: int | None = None
+    duration_s: float | None = None
+    started: float | None = None
+    finished: float | None = None
+    frames_written: int = 0
+    error: str | None = None
+    result: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+class CaptureManager:
+    """One background capture at a time on the rig of ``rig_path``.
+
+    Parameters
+    ----------
+    rig_path : Path
+        The rig TOML file.
+    takes_dir : Path
+        Where takes are written.
+    """
+
+    def __init__(self, rig_path: Path, takes_dir: Path, *, driver_factory: Any = None) -> None:
+        self.driver_factory = driver_factory  # (config, rig) -> CameraDriver; default stage.drivers.open_driver
+        self.rig_path = Path(rig_path)
+        self.takes_dir = Path(takes_dir)
+        self._state = CaptureState()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- rig ---------------------------------------------------------------------------------
+    def rig(self):
+        """The validated rig (raises :class:`UnavailableError` when there is no rig file)."""
+        from stage.rig import load_rig
+
+        if not self.rig_path.is_file():
+            raise UnavailableError("no rig file: put rig.toml in the data root or set the 'rig' setting")
+        return load_rig(self.rig_path)
+
+    @property
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def describe(self) -> dict[str, Any]:
+        """Rig name, fps, volume and cameras with their state (``idle`` or ``capturing``)."""
+        rig = self.rig()
+        cam_state = "capturing" if self.busy else "idle"
+        cams = []
+        for c in rig.cameras:
+            d = c.model_dump(mode="json")
+            d["state"] = cam_state
+            cams.append(d)
+        return {
+            "name": rig.name,
+            "fps": rig.fps,
+            "volume": rig.volume.model_dump(mode="json"),
+            "backdrop": rig.backdrop.model_dump(mode="json"),
+            "cameras": cams,
+            "capture": self.status(),
+        }
+
+    def status(self) -> dict[str, Any]:
+        with self._lock:
+            return self._state.to_dict()
+
+    # -- preview -----------------------------------------------------------------------------
+    def preview(self, camera_id: str, *, quality: int = 80) -> bytes:
+        """A JPEG from one camera, grabbed now (refused while a capture runs)."""
+        import cv2
+
+        rig = self.rig()
+        conf = next((c for c in rig.cameras if c.id == camera_id), None)
+        if conf is None:
+            raise NotFoundError(f"no camera {camera_id!r} in the rig (cameras: {', '.join(c.id for c in rig.cameras)})")
+        if self.busy:
+            raise ConflictError("a capture is running; previews are off until it ends")
+        drv = self._factory()(conf, rig)
+        drv.open()
+        try:
+            drv.configure()
+            frame = drv.grab()
+        finally:
+            drv.close()
+        ok, buf = cv2.imencode(".jpg", frame.image, [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)])
+        if not ok:
+            raise ValueError("could not encode the preview")
+        return buf.tobytes()
+
+    def _factory(self) -> Any:
+        if self.driver_factory is not None:
+            return self.driver_factory
+        try:
+            from stage.drivers import open_driver
+        except ImportError as exc:
+            raise UnavailableError(f"camera drivers are not available ({exc})") from None
+        return open_driver
+
+    # -- capture -----------------------------------------------------------------------------
+    def start(self, *, take: str, frames: int | None = None, duration_s: float | None = None) -> dict[str, Any]:
+        """Start capturing ``frames`` frame sets (or ``duration_s`` seconds) into take ``take``."""
+        check_id(take, pattern=TAKE_ID, name="take")
+        if (frames is None) == (duration_s is None):
+            raise ValueError("give exactly one of frames or duration_s")
+        if frames is not None and frames < 1:
+            raise ValueError("frames must be >= 1")
+        if duration_s is not None and not (0 < duration_s <= 24 * 3600):
+            raise ValueError("duration_s must be in (0, 86400]")
+        rig = self.rig()
+        out = inside(self.takes_dir, f"{take}.h5")
+        if out.exists():
+            raise ConflictError(f"take {take!r} already exists")
+        try:
+            from stage.capture import capture_take
+        except ImportError as exc:
+            raise UnavailableError(f"capturing needs stage.capture ({exc})") from None
+        drivers = None
+        if self.driver_factory is not None:
+            drivers = {c.id: self.driver_factory(c, rig) for c in rig.cameras}
+        with self._lock:
+            if self.busy:
+                raise ConflictError(f"a capture is already running (take {self._state.take!r})")
+            self._stop.clear()
+            self._state = CaptureState(state="capturing", take=take, frames=frames, duration_s=duration_s,
+                                       started=time.time())
+            self._thread = threading.Thread(target=self._run, args=(capture_take, rig, out, frames, duration_s, drivers),
+                                            name="capture", daemon=True)
+            self._thread.start()
+            return self._state.to_dict()
+
+    def stop(self) -> dict[str, Any]:
+        """Ask the running capture to stop (the take keeps what was written)."""
+        if not self.busy:
+            raise ConflictError("no capture is running")
+        self._stop.set()
+        return self.status()
+
+    def wait(self, timeout: float | None = None) -> None:
+        th = self._thread
+        if th is not None:
+            th.join(timeout)
+
+    def _on_set(self, n: int) -> None:
+        with self._lock:
+            self._state.frames_written = int(n)
+
+    def _run(self, capture_take: Any, rig: Any, out: Path, frames: int | None, duration_s: float | None,
+             drivers: Any) -> None:
+        try:
+            result = capture_take(rig, out, frames=frames, duration_s=duration_s, drivers=drivers,
+                                  stop=self._stop, on_set=self._on_set)
+            state, err = ("stopped" if result.stopped in ("stopped", "interrupted") else "done"), None
+        except Exception as exc:  # a capture failure becomes the state's error; the server goes on
+            log.exception("capture into %s failed", out.name)
+            result, state, err = None, "failed", f"{type(exc).__name__}: {exc}".replace(str(out.parent), "DATA/takes")
+        with self._lock:
+            self._state.state = state
+            self._state.error = err
+            self._state.finished = time.time()
+            if result is not None:
+                self._state.frames_written = int(result.sets)
+                self._state.result = {"sets": int(result.sets), "frames": dict(result.frames),
+                                      "duration_s": float(result.duration_s), "fps": float(result.fps),
+                                      "stopped": str(result.stopped), "disconnected": dict(result.disconnected),
+                                      "drops": {k: int(v) for k, v in result.drops.items()}}

@@ -1,0 +1,185 @@
+"""``/jobs``: submit processing, follow its progress (polling or Server-Sent Events), cancel, fetch results."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+from typing import Annotated, Any, AsyncIterator, Literal
+
+from fastapi import APIRouter, Depends, Header, HTTPException, Path, Query, Request, status
+from fastapi.responses import FileResponse, Response
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+from pydantic import BaseModel, ConfigDict, Field
+
+from api import results
+from api.deps import JobId, LibraryDep, ReadAccess, RunnerDep, SettingsDep, StoreDep, WriteAccess
+from api.jobs.store import TERMINAL, JobRecord
+from api.paths import TAKE_ID, inside
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+
+
+class JobCreate(BaseModel):
+    """A processing job: which take, which steps, which parameters."""
+
+    model_config = ConfigDict(extra="forbid")
+    take: Annotated[str, Field(pattern=TAKE_ID, max_length=128, examples=["take1"])]
+    steps: Annotated[list[str] | None, Field(max_length=16, examples=[["key", "surface", "spine"]])] = None
+    parameters: dict[str, Any] = Field(default_factory=dict, description="stage.process.ProcessParams fields")
+
+
+class StepProgress(BaseModel):
+    done: int
+    total: int
+
+
+class JobStatus(BaseModel):
+    id: str
+    kind: str
+    take: str
+    steps: list[str]
+    params: dict[str, Any]
+    state: Literal["queued", "running", "done", "failed", "cancelled"]
+    created: float
+    started: float | None
+    finished: float | None
+    heartbeat: float | None
+    attempts: int
+    error: str | None
+    cancel_requested: bool
+    progress: dict[str, StepProgress]
+    done: int = Field(description="frames done, summed over steps (the SSE event id)")
+    total: int
+    result: dict[str, Any] | None = None
+    links: dict[str, str] = Field(default_factory=dict)
+
+
+def _status(rec: JobRecord) -> JobStatus:
+    links = {"self": f"/jobs/{rec.id}", "events": f"/jobs/{rec.id}/events"}
+    if rec.kind == "process":
+        links["results"] = f"/jobs/{rec.id}/results/"
+    return JobStatus(**rec.to_dict(), links=links)
+
+
+def existing_job(job_id: JobId, store: StoreDep) -> JobRecord:
+    return store.get(job_id)
+
+
+Job = Annotated[JobRecord, Depends(existing_job)]
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobStatus,
+             responses={400: {"description": "bad steps or parameters"}, 404: {"description": "unknown take"},
+                        503: {"description": "processing not available"}})
+def create_job(body: JobCreate, _: WriteAccess, store: StoreDep, runner: RunnerDep, library: LibraryDep,
+               response: Response) -> JobStatus:
+    """Queue a job that processes ``take`` through ``steps``; returns at once (202) with its id."""
+    library.path(body.take)  # 404 if the take does not exist
+    spec = runner.work_spec()
+    steps, params = spec.validate(body.steps, body.parameters)
+    rec = store.create(kind="process", take=body.take, steps=steps, params=params)
+    runner.wake()
+    response.headers["Location"] = f"/jobs/{rec.id}"
+    return _status(rec)
+
+
+@router.get("", response_model=list[JobStatus])
+def list_jobs(store: StoreDep, _: ReadAccess,
+              state: Literal["queued", "running", "done", "failed", "cancelled"] | None = None,
+              take: Annotated[str | None, Query(pattern=TAKE_ID, max_length=128)] = None,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+              offset: Annotated[int, Query(ge=0)] = 0) -> list[JobStatus]:
+    """Jobs, newest first."""
+    return [_status(r) for r in store.list(state=state, take=take, limit=limit, offset=offset)]
+
+
+@router.get("/{job_id}", response_model=JobStatus)
+def get_job(job: Job, _: ReadAccess) -> JobStatus:
+    """Status of one job: state, progress per step, attempts, error (poll this, or follow ``/events``)."""
+    return _status(job)
+
+
+@router.post("/{job_id}/cancel", response_model=JobStatus, responses={409: {"description": "already finished"}})
+def cancel_job(job: Job, _: WriteAccess, store: StoreDep, runner: RunnerDep) -> JobStatus:
+    """Cancel a queued job at once, or ask a running one to stop."""
+    rec = store.request_cancel(job.id)
+    runner.wake()
+    return _status(rec)
+
+
+@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses={409: {"description": "still active"}})
+def delete_job(job: Job, _: WriteAccess, store: StoreDep, settings: SettingsDep) -> Response:
+    """Forget a finished job and delete its results."""
+    store.delete(job.id)
+    out = inside(settings.jobs_dir, job.id)
+    shutil.rmtree(out, ignore_errors=True)
+    return Response(status_code=204)
+
+
+@router.get("/{job_id}/events", response_class=EventSourceResponse,
+            responses={200: {"description": "text/event-stream of `progress` events (id = frames done) and a final `end`"}})
+async def job_events(job: Job, _: ReadAccess, request: Request, store: StoreDep, settings: SettingsDep,
+                     last_event_id: Annotated[str | None, Header(alias="Last-Event-ID")] = None,
+                     ) -> AsyncIterator[ServerSentEvent]:
+    """Progress as Server-Sent Events.
+
+    Every ``progress`` event has ``id`` = frames done (summed over steps); a client
+    that reconnects with ``Last-Event-ID`` gets only the events after it. The stream
+    ends with one ``end`` event carrying the final status. Poll ``GET /jobs/{id}``
+    when SSE is not an option.
+    """
+    try:
+        last = int(last_event_id) if last_event_id not in (None, "") else -1
+    except ValueError:
+        last = -1
+    yield ServerSentEvent(event="status", data=_status(job).model_dump(mode="json"), retry=1000)
+    poll = settings.poll_s
+    while True:
+        for seq, data in await asyncio.to_thread(store.events, job.id, after=last):
+            last = seq
+            yield ServerSentEvent(event="progress", id=str(seq), data=data)
+        rec = await asyncio.to_thread(store.get, job.id)
+        if rec.state in TERMINAL:
+            # drain events written between the two reads
+            for seq, data in await asyncio.to_thread(store.events, job.id, after=last):
+                last = seq
+                yield ServerSentEvent(event="progress", id=str(seq), data=data)
+            yield ServerSentEvent(event="end", id=str(max(last, rec.done)), data=_status(rec).model_dump(mode="json"))
+            return
+        if await request.is_disconnected():
+            return
+        await asyncio.sleep(poll)
+
+
+# -- results --------------------------------------------------------------------------------------
+
+ResultName = Annotated[str, Path(pattern=r"^(spine\.json|report\.json|spine\.glb)$")]
+MeshName = Annotated[str, Path(pattern=r"^(frame_)?[0-9]{1,6}\.(ply|glb)$", examples=["frame_000000.ply", "3.glb"])]
+
+
+@router.get("/{job_id}/results/", response_model=dict[str, Any])
+def list_results(job: Job, _: ReadAccess, settings: SettingsDep) -> dict[str, Any]:
+    """The result files of a job (those written so far)."""
+    return results.listing(settings.jobs_dir, job.id)
+
+
+@router.get("/{job_id}/results/meshes/{name}", response_class=FileResponse,
+            responses={200: {"content": {"model/gltf-binary": {}, "application/octet-stream": {}}}})
+def get_mesh(job: Job, name: MeshName, _: ReadAccess, settings: SettingsDep) -> Response:
+    """One frame's surface mesh as PLY (as written) or GLB (converted): ``frame_000003.ply`` or ``3.glb``."""
+    path, media = results.mesh(settings.jobs_dir, job.id, name)
+    if isinstance(path, bytes):
+        return Response(path, media_type=media)
+    return FileResponse(path, media_type=media, filename=path.name)
+
+
+@router.get("/{job_id}/results/{name}", response_class=FileResponse,
+            responses={200: {"content": {"application/json": {}, "model/gltf-binary": {}}}})
+def get_result(job: Job, name: ResultName, _: ReadAccess, settings: SettingsDep) -> Response:
+    """``spine.json``, ``report.json``, or the spine as ``spine.glb``."""
+    if name == "spine.glb":
+        return Response(results.spine_glb(settings.jobs_dir, job.id), media_type="model/gltf-binary")
+    path = results.result_file(settings.jobs_dir, job.id, name)
+    if path is None:
+        raise HTTPException(404, f"{name} is not available (job is {job.state})")
+    return FileResponse(path, media_type="application/json", filename=name)

@@ -1,0 +1,303 @@
+"""Bundle adjustment of a camera rig observing a planar board in many poses.
+
+Unknowns: every camera's pose (world -> camera; the reference camera's is fixed,
+it defines the world), optionally every camera's intrinsics (fx, fy, cx, cy,
+k1, k2, p1, p2, k3), and every board pose (board -> world). Residuals: the
+reprojection errors of the observed board corners. Solved with
+``scipy.optimize.least_squares`` (trust-region reflective) with a sparse
+Jacobian pattern, a robust loss and ``x_scale='jac'``.
+
+The projection is the camera model of :mod:`calib.camera` evaluated for many
+cameras at once (verified against :func:`calib.camera.project_points` in the
+tests).
+
+Reference: Triggs, McLauchlan, Hartley, Fitzgibbon, "Bundle adjustment — a
+modern synthesis", 2000.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import csr_matrix
+
+__all__ = ["BundleResult", "bundle_adjust", "rodrigues_batch", "project_batch"]
+
+log = logging.getLogger(__name__)
+
+N_INTR = 9  # fx, fy, cx, cy, k1, k2, p1, p2, k3
+
+
+def rodrigues_batch(r: np.ndarray) -> np.ndarray:
+    """(N, 3) rotation vectors -> (N, 3, 3) rotation matrices."""
+    r = np.asarray(r, dtype=np.float64).reshape(-1, 3)
+    theta = np.linalg.norm(r, axis=1)
+    small = theta < 1e-12
+    th = np.where(small, 1.0, theta)
+    k = r / th[:, None]
+    K = np.zeros((r.shape[0], 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
+    s = np.where(small, 0.0, np.sin(theta))[:, None, None]
+    c = np.where(small, 0.0, 1.0 - np.cos(theta))[:, None, None]
+    R = np.eye(3)[None] + s * K + c * (K @ K)
+    # first-order term for tiny angles
+    if small.any():
+        rs = r[small]
+        Ks = np.zeros((rs.shape[0], 3, 3))
+        Ks[:, 0, 1], Ks[:, 0, 2] = -rs[:, 2], rs[:, 1]
+        Ks[:, 1, 0], Ks[:, 1, 2] = rs[:, 2], -rs[:, 0]
+        Ks[:, 2, 0], Ks[:, 2, 1] = -rs[:, 1], rs[:, 0]
+        R[small] = np.eye(3)[None] + Ks
+    return R
+
+
+def project_batch(Xc: np.ndarray, intr: np.ndarray) -> np.ndarray:
+    """Project camera-frame points with per-point intrinsics.
+
+    Parameters
+    ----------
+    Xc : (M, 3) float ndarray
+        Points in their camera's frame.
+    intr : (M, 9) float ndarray
+        ``fx, fy, cx, cy, k1, k2, p1, p2, k3`` of each point's camera.
+
+    Returns
+    -------
+    (M, 2) float ndarray
+        Pixels (as :func:`calib.camera.project_points`, zero skew).
+    """
+    z = Xc[:, 2]
+    z = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    x = Xc[:, 0] / z
+    y = Xc[:, 1] / z
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = intr.T
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.stack([fx * xd + cx, fy * yd + cy], axis=1)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(N, 3) -> (N, 3, 3) cross-product matrices."""
+    S = np.zeros((v.shape[0], 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
+    return S
+
+
+def _left_jacobian(r: np.ndarray) -> np.ndarray:
+    """(N, 3) rotation vectors -> (N, 3, 3) left Jacobians of SO(3).
+
+    ``d(R(r) p)/dr = -[R(r) p]_x J_l(r)``.
+    """
+    theta = np.linalg.norm(r, axis=1)
+    S = _skew(r)
+    S2 = S @ S
+    small = theta < 1e-6
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
+    b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - np.sin(th)) / th**3)
+    return np.eye(3)[None] + a[:, None, None] * S + b[:, None, None] * S2
+
+
+@dataclass(frozen=True, eq=False)
+class BundleResult:
+    """Output of :func:`bundle_adjust` (arrays as in its parameters)."""
+
+    cam_rvec: np.ndarray
+    cam_tvec: np.ndarray
+    intrinsics: np.ndarray
+    board_rvec: np.ndarray
+    board_tvec: np.ndarray
+    residuals: np.ndarray  # (M, 2) px, final
+    success: bool
+    message: str
+    nfev: int
+    cost: float
+
+
+def bundle_adjust(
+    obs_cam: np.ndarray,
+    obs_board: np.ndarray,
+    obs_points: np.ndarray,
+    obs_uv: np.ndarray,
+    *,
+    intrinsics: np.ndarray,
+    cam_rvec: np.ndarray,
+    cam_tvec: np.ndarray,
+    board_rvec: np.ndarray,
+    board_tvec: np.ndarray,
+    reference: int = 0,
+    optimize_intrinsics: bool = False,
+    loss: str = "soft_l1",
+    f_scale: float = 1.0,
+    max_nfev: int | None = None,
+    ftol: float = 1e-10,
+) -> BundleResult:
+    """Jointly refine camera poses (and intrinsics) and board poses.
+
+    Parameters
+    ----------
+    obs_cam, obs_board : (M,) int ndarray
+        Camera and board-pose index of every observed corner.
+    obs_points : (M, 3) float ndarray
+        The corner in the board frame.
+    obs_uv : (M, 2) float ndarray
+        Its observed pixel.
+    intrinsics : (C, 9) float ndarray
+        ``fx, fy, cx, cy, k1, k2, p1, p2, k3`` per camera (initial values).
+    cam_rvec, cam_tvec : (C, 3) float ndarray
+        World -> camera poses (initial).
+    board_rvec, board_tvec : (B, 3) float ndarray
+        Board -> world poses (initial).
+    reference : int
+        Camera whose pose stays fixed (gauge).
+    optimize_intrinsics : bool
+    loss : str
+        ``least_squares`` loss (``"linear"``, ``"soft_l1"``, ``"huber"``, ``"cauchy"``).
+    f_scale : float
+        Inlier scale of the robust loss, px.
+
+    Returns
+    -------
+    BundleResult
+    """
+    obs_cam = np.asarray(obs_cam, dtype=np.int64).ravel()
+    obs_board = np.asarray(obs_board, dtype=np.int64).ravel()
+    X = np.asarray(obs_points, dtype=np.float64).reshape(-1, 3)
+    uv = np.asarray(obs_uv, dtype=np.float64).reshape(-1, 2)
+    M = obs_cam.shape[0]
+    if not (obs_board.shape[0] == X.shape[0] == uv.shape[0] == M) or M == 0:
+        raise ValueError("obs_cam, obs_board, obs_points and obs_uv must be non-empty and of equal length")
+    intr0 = np.asarray(intrinsics, dtype=np.float64).reshape(-1, N_INTR)
+    C = intr0.shape[0]
+    crv = np.asarray(cam_rvec, dtype=np.float64).reshape(C, 3)
+    ctv = np.asarray(cam_tvec, dtype=np.float64).reshape(C, 3)
+    brv = np.asarray(board_rvec, dtype=np.float64).reshape(-1, 3)
+    btv = np.asarray(board_tvec, dtype=np.float64).reshape(-1, 3)
+    B = brv.shape[0]
+    if obs_cam.min() < 0 or obs_cam.max() >= C or obs_board.min() < 0 or obs_board.max() >= B:
+        raise ValueError("obs_cam / obs_board index out of range")
+    if not 0 <= reference < C:
+        raise ValueError(f"reference must be a camera index in [0, {C}), got {reference}")
+    if loss not in ("linear", "soft_l1", "huber", "cauchy", "arctan"):
+        raise ValueError(f"loss must be a least_squares loss name, got {loss!r}")
+    if not f_scale > 0:
+        raise ValueError(f"f_scale must be > 0, got {f_scale!r}")
+
+    free_cams = np.array([c for c in range(C) if c != reference], dtype=np.int64)
+    cam_slot = -np.ones(C, dtype=np.int64)
+    cam_slot[free_cams] = np.arange(free_cams.size)
+    n_pose = 6 * free_cams.size
+    n_intr = N_INTR * C if optimize_intrinsics else 0
+    n_board = 6 * B
+
+    def unpack(p: np.ndarray):
+        rv, tv = crv.copy(), ctv.copy()
+        poses = p[:n_pose].reshape(-1, 6)
+        rv[free_cams], tv[free_cams] = poses[:, :3], poses[:, 3:]
+        intr = p[n_pose : n_pose + n_intr].reshape(C, N_INTR) if optimize_intrinsics else intr0
+        b = p[n_pose + n_intr :].reshape(B, 6)
+        return rv, tv, intr, b[:, :3], b[:, 3:]
+
+    def _forward(p: np.ndarray):
+        rv, tv, intr, bR, bT = unpack(p)
+        Rc = rodrigues_batch(rv)
+        Rb = rodrigues_batch(bR)
+        RbX = np.einsum("mij,mj->mi", Rb[obs_board], X)
+        Xw = RbX + bT[obs_board]
+        RcXw = np.einsum("mij,mj->mi", Rc[obs_cam], Xw)
+        Xc = RcXw + tv[obs_cam]
+        return rv, bR, intr, Rc, RbX, RcXw, Xc
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        *_, intr, _Rc, _RbX, _RcXw, Xc = _forward(p)
+        return (project_batch(Xc, intr[obs_cam]) - uv).ravel()
+
+    x0 = np.concatenate(
+        [np.hstack([crv[free_cams], ctv[free_cams]]).ravel(), intr0.ravel() if optimize_intrinsics else [],
+         np.hstack([brv, btv]).ravel()]
+    )
+    n = x0.size
+    # Jacobian layout: for every observation, 2 rows x (6 camera pose + 9 intrinsics + 6 board pose) columns.
+    obs_cslot = cam_slot[obs_cam]
+    has_pose = obs_cslot >= 0
+    col_pose = np.where(has_pose, obs_cslot, 0)[:, None] * 6 + np.arange(6)
+    col_intr = n_pose + obs_cam[:, None] * N_INTR + np.arange(N_INTR)
+    col_board = n_pose + n_intr + obs_board[:, None] * 6 + np.arange(6)
+    blocks = [col_pose]
+    if optimize_intrinsics:
+        blocks.append(col_intr)
+    blocks.append(col_board)
+    cols = np.concatenate(blocks, axis=1)  # (M, k)
+    k = cols.shape[1]
+    row_idx = np.repeat(np.arange(2 * M), k)
+    col_idx = np.repeat(cols, 2, axis=0).ravel()
+    keep_mask = np.ones((M, k), bool)
+    keep_mask[:, :6] = has_pose[:, None]
+    keep = np.repeat(keep_mask, 2, axis=0).ravel()
+
+    def jacobian(p: np.ndarray):
+        rv, bR, intr, Rc, RbX, RcXw, Xc = _forward(p)
+        ip = intr[obs_cam]
+        fx, fy = ip[:, 0], ip[:, 1]
+        k1, k2, p1, p2, k3 = ip[:, 4], ip[:, 5], ip[:, 6], ip[:, 7], ip[:, 8]
+        z = np.where(np.abs(Xc[:, 2]) < 1e-9, 1e-9, Xc[:, 2])
+        x, y = Xc[:, 0] / z, Xc[:, 1] / z
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        # d(u, v) / d(x, y)
+        dxd_dx = radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
+        dxd_dy = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+        dyd_dy = radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
+        D = np.empty((M, 2, 2))
+        D[:, 0, 0], D[:, 0, 1] = fx * dxd_dx, fx * dxd_dy
+        D[:, 1, 0], D[:, 1, 1] = fy * dxd_dy, fy * dyd_dy
+        # d(x, y) / d Xc
+        P = np.zeros((M, 2, 3))
+        P[:, 0, 0] = 1.0 / z
+        P[:, 1, 1] = 1.0 / z
+        P[:, 0, 2] = -x / z
+        P[:, 1, 2] = -y / z
+        J_Xc = D @ P  # (M, 2, 3)
+        J_cr = -J_Xc @ _skew(RcXw) @ _left_jacobian(rv)[obs_cam]
+        J_Xw = J_Xc @ Rc[obs_cam]
+        J_br = -J_Xw @ _skew(RbX) @ _left_jacobian(bR)[obs_board]
+        parts = [np.concatenate([J_cr, J_Xc], axis=2)]
+        if optimize_intrinsics:
+            Ji = np.zeros((M, 2, N_INTR))
+            Ji[:, 0, 0] = xd
+            Ji[:, 1, 1] = yd
+            Ji[:, 0, 2] = 1.0
+            Ji[:, 1, 3] = 1.0
+            Ji[:, 0, 4], Ji[:, 1, 4] = fx * x * r2, fy * y * r2
+            Ji[:, 0, 5], Ji[:, 1, 5] = fx * x * r2 * r2, fy * y * r2 * r2
+            Ji[:, 0, 6], Ji[:, 1, 6] = fx * 2.0 * x * y, fy * (r2 + 2.0 * y * y)
+            Ji[:, 0, 7], Ji[:, 1, 7] = fx * (r2 + 2.0 * x * x), fy * 2.0 * x * y
+            Ji[:, 0, 8], Ji[:, 1, 8] = fx * x * r2**3, fy * y * r2**3
+            parts.append(Ji)
+        parts.append(np.concatenate([J_br, J_Xw], axis=2))
+        data = np.concatenate(parts, axis=2).reshape(-1)  # (M, 2, k) row-major = row_idx order
+        return csr_matrix((data[keep], (row_idx[keep], col_idx[keep])), shape=(2 * M, n))
+
+    res = least_squares(
+        residuals, x0, jac=jacobian, method="trf", loss=loss, f_scale=f_scale, x_scale="jac",
+        max_nfev=max_nfev, ftol=ftol, xtol=1e-12, gtol=1e-10, tr_solver="lsmr",
+    )
+    rv, tv, intr, bR, bT = unpack(res.x)
+    log.debug("bundle adjustment: %s after %d evaluations", res.message, res.nfev)
+    return BundleResult(
+        cam_rvec=rv, cam_tvec=tv, intrinsics=np.array(intr, dtype=np.float64), board_rvec=bR, board_tvec=bT,
+        residuals=res.fun.reshape(-1, 2), success=bool(res.success), message=str(res.message),
+        nfev=int(res.nfev), cost=float(res.cost),
+    )

@@ -1,0 +1,453 @@
+"""Calibration file formats: aniposelib TOML, OpenCV YAML, Middlebury ``*_par.txt``, JSON.
+
+``read_calibration(path)`` detects the format from the name (and content);
+``write_calibration(calib, path, format=...)`` writes one.
+
+aniposelib TOML (what ``aniposelib.cameras.CameraGroup.dump`` writes)::
+
+    [cam_0]
+    name = "cam00"
+    size = [640, 480]                 # width, height
+    matrix = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+    distortions = [k1, k2, p1, p2, k3]
+    rotation = [rx, ry, rz]           # Rodrigues, world -> camera
+    translation = [tx, ty, tz]        # world -> camera, board units
+    [metadata]
+    units = "mm"                      # ours; aniposelib ignores unknown metadata
+
+OpenCV FileStorage YAML (``cv2.FileStorage``): ``units``, ``camera_count`` and one
+map ``camera_<i>`` per camera with ``name``, ``image_width``, ``image_height``,
+``K`` (3x3), ``dist`` (1x5), ``R`` (3x3, world -> camera), ``T`` (3x1). A
+single-camera file written by OpenCV's ``calibration`` sample
+(``camera_matrix``, ``distortion_coefficients``, ``image_width``,
+``image_height``) also reads, as one camera at the origin.
+
+Middlebury ``*_par.txt`` (Seitz et al. 2006): a count line, then one line per
+image ``name k11..k33 r11..r33 t1 t2 t3`` with projection ``K [R | t]``, in
+metres (units recorded as ``"m"``); no distortion. Image sizes are read from the
+images beside the file when present.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import tempfile
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calib import _toml
+from calib.calibration import Calibration
+from calib.camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
+
+__all__ = [
+    "FORMATS",
+    "CalibrationFormatError",
+    "read_calibration",
+    "write_calibration",
+    "calibration_to_aniposelib",
+    "calibration_from_aniposelib",
+    "read_aniposelib_toml",
+    "write_aniposelib_toml",
+    "read_opencv_yaml",
+    "write_opencv_yaml",
+    "read_middlebury_par",
+    "read_json",
+    "write_json",
+    "detect_format",
+]
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("toml", "yaml", "json")
+
+
+class CalibrationFormatError(ValueError):
+    """A calibration file could not be read (names the file and what is wrong)."""
+
+
+# -- aniposelib TOML ------------------------------------------------------------------
+
+
+def calibration_to_aniposelib(calib: Calibration) -> dict:
+    """The dictionary ``CameraGroup.dump`` would write (``cam_i`` tables + ``metadata``)."""
+    if not isinstance(calib, Calibration):
+        raise ValueError(f"calib must be a Calibration, got {type(calib).__name__}")
+    out: dict[str, Any] = {}
+    for i, c in enumerate(calib.cameras):
+        out[f"cam_{i}"] = {
+            "name": c.name,
+            "size": [int(c.size[0]), int(c.size[1])],
+            "matrix": c.K.tolist(),
+            "distortions": c.dist.tolist(),
+            "rotation": matrix_to_rodrigues(c.R).tolist(),
+            "translation": c.t.tolist(),
+            # Not read by aniposelib (it ignores unknown keys); lets our reader round-trip R exactly.
+            "rotation_matrix": c.R.tolist(),
+        }
+    meta: dict[str, Any] = {"units": calib.units}
+    if calib.meta:
+        try:
+            _toml.dumps({"m": _drop_none(calib.meta)})
+            meta.update({k: v for k, v in _drop_none(calib.meta).items() if k != "units"})
+        except ValueError:
+            meta["capture_stage_meta_json"] = json.dumps(calib.meta)
+    out["metadata"] = meta
+    return out
+
+
+def _drop_none(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {str(k): _drop_none(v) for k, v in d.items() if v is not None}
+    if isinstance(d, (list, tuple)):
+        return [_drop_none(v) for v in d]
+    return d
+
+
+def _cam_sort_key(key: str) -> tuple[int, str]:
+    m = re.fullmatch(r"cam_(\d+)", key)
+    return (int(m.group(1)) if m else 1 << 30, key)
+
+
+def calibration_from_aniposelib(data: dict, *, source: str = "aniposelib TOML") -> Calibration:
+    """Build a :class:`Calibration` from a parsed aniposelib TOML dictionary.
+
+    Cameras are ordered by their ``cam_<i>`` index (numerically, so ``cam_10``
+    follows ``cam_9``). Exact inverse of :func:`calibration_to_aniposelib` except that
+    the rotation passes through Rodrigues vectors (we also write ``rotation_matrix`` so our own files round-trip exactly).
+    """
+    if not isinstance(data, dict):
+        raise CalibrationFormatError(f"{source}: expected tables [cam_0], [cam_1], ...")
+    keys = sorted((k for k in data if k != "metadata" and isinstance(data[k], dict)), key=_cam_sort_key)
+    if not keys:
+        raise CalibrationFormatError(f"{source}: no camera tables ([cam_0], [cam_1], ...) found")
+    cams = []
+    for k in keys:
+        d = data[k]
+        if d.get("fisheye"):
+            raise CalibrationFormatError(f"{source}: [{k}] is a fisheye camera; only the pinhole model is supported")
+        missing = [f for f in ("matrix", "rotation", "translation", "size") if f not in d]
+        if missing:
+            raise CalibrationFormatError(f"{source}: [{k}] is missing {', '.join(missing)}")
+        try:
+            dist = np.asarray(d.get("distortions", [0.0] * 5), dtype=np.float64).ravel()
+            cams.append(
+                Camera(
+                    name=str(d.get("name", k)),
+                    K=np.asarray(d["matrix"], dtype=np.float64),
+                    dist=dist,
+                    R=_rotation(d),
+                    t=np.asarray(d["translation"], dtype=np.float64),
+                    size=tuple(int(s) for s in d["size"]),
+                )
+            )
+        except (ValueError, TypeError) as exc:
+            raise CalibrationFormatError(f"{source}: [{k}]: {exc}") from None
+    meta = dict(data.get("metadata", {}) or {})
+    units = str(meta.pop("units", "mm"))
+    if "capture_stage_meta_json" in meta:
+        meta = json.loads(meta.pop("capture_stage_meta_json"))
+    return Calibration(cameras=tuple(cams), units=units, meta=meta)
+
+
+def _rotation(d: dict) -> np.ndarray:
+    R = rodrigues_to_matrix(np.asarray(d["rotation"], dtype=np.float64))
+    if "rotation_matrix" in d:
+        Rm = np.asarray(d["rotation_matrix"], dtype=np.float64)
+        if Rm.shape == (3, 3) and np.allclose(Rm, R, atol=1e-9):
+            return Rm  # exact; the Rodrigues vector wins if someone edited it
+    return R
+
+
+def read_aniposelib_toml(path: str | Path) -> Calibration:
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise CalibrationFormatError(f"{p}: not valid TOML: {exc}") from None
+    if "cameras" in data and isinstance(data["cameras"], list):  # our JSON layout written as TOML
+        return Calibration.from_dict(data)
+    return calibration_from_aniposelib(data, source=str(p))
+
+
+def write_aniposelib_toml(calib: Calibration, path: str | Path) -> None:
+    _atomic_write_text(Path(path), _toml.dumps(calibration_to_aniposelib(calib)))
+
+
+# -- OpenCV FileStorage YAML -------------------------------------------------------------
+
+
+def write_opencv_yaml(calib: Calibration, path: str | Path) -> None:
+    """Write ``calib`` with ``cv2.FileStorage`` (YAML; ``.xml`` gives XML)."""
+    import cv2
+
+    if not isinstance(calib, Calibration):
+        raise ValueError(f"calib must be a Calibration, got {type(calib).__name__}")
+    p = Path(path)
+    suffix = p.suffix if p.suffix in (".yml", ".yaml", ".xml") else ".yml"
+    fd, tmp = tempfile.mkstemp(prefix=".calib-", suffix=suffix, dir=str(p.parent or Path(".")))
+    os.close(fd)
+    try:
+        fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
+        fs.write("units", calib.units)
+        fs.write("camera_count", len(calib))
+        for i, c in enumerate(calib.cameras):
+            fs.startWriteStruct(f"camera_{i}", cv2.FileNode_MAP)
+            fs.write("name", c.name)
+            fs.write("image_width", int(c.size[0]))
+            fs.write("image_height", int(c.size[1]))
+            fs.write("K", np.ascontiguousarray(c.K))
+            fs.write("dist", np.ascontiguousarray(c.dist.reshape(1, 5)))
+            fs.write("R", np.ascontiguousarray(c.R))
+            fs.write("T", np.ascontiguousarray(c.t.reshape(3, 1)))
+            fs.endWriteStruct()
+        fs.release()
+        os.replace(tmp, p)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def read_opencv_yaml(path: str | Path) -> Calibration:
+    """Read a file written by :func:`write_opencv_yaml` or a single-camera OpenCV calibration."""
+    import cv2
+
+    p = Path(path)
+    try:
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+    except cv2.error as exc:
+        raise CalibrationFormatError(f"{p}: not an OpenCV FileStorage file: {exc}") from None
+    if not fs.isOpened():
+        raise CalibrationFormatError(f"{p}: OpenCV could not open it as FileStorage YAML/XML")
+    try:
+        root = fs.root()
+        keys = list(root.keys())
+        units_node = fs.getNode("units")
+        units = units_node.string() if not units_node.empty() else "mm"
+        cams = []
+        cam_keys = sorted((k for k in keys if re.fullmatch(r"camera_\d+", k)), key=lambda k: int(k.split("_")[1]))
+        if cam_keys:
+            for k in cam_keys:
+                n = fs.getNode(k)
+                try:
+                    name = n.getNode("name").string() or k
+                    K = n.getNode("K").mat()
+                    dist = n.getNode("dist").mat()
+                    R = n.getNode("R").mat()
+                    T = n.getNode("T").mat()
+                    w = int(n.getNode("image_width").real())
+                    h = int(n.getNode("image_height").real())
+                    if K is None or R is None or T is None:
+                        raise ValueError("needs K, R and T matrices")
+                    cams.append(Camera(name=name, K=K, dist=np.zeros(5) if dist is None else dist.ravel(),
+                                       R=R, t=T.ravel(), size=(w, h)))
+                except (ValueError, TypeError, cv2.error) as exc:
+                    raise CalibrationFormatError(f"{p}: {k}: {exc}") from None
+        elif "camera_matrix" in keys:
+            K = fs.getNode("camera_matrix").mat()
+            d = fs.getNode("distortion_coefficients").mat()
+            w = int(fs.getNode("image_width").real())
+            h = int(fs.getNode("image_height").real())
+            units = units if not units_node.empty() else "m"
+            cams.append(Camera(name=p.stem, K=K, dist=np.zeros(5) if d is None else d.ravel()[:5],
+                               R=np.eye(3), t=np.zeros(3), size=(w, h)))
+        else:
+            raise CalibrationFormatError(f"{p}: no camera_<i> maps and no camera_matrix: not a calibration file")
+    finally:
+        fs.release()
+    return Calibration(cameras=tuple(cams), units=units, meta={"source": str(p)})
+
+
+# -- Middlebury par.txt ----------------------------------------------------------------------
+
+
+def _image_size(path: Path) -> tuple[int, int] | None:
+    if not path.is_file():
+        return None
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            return (int(im.size[0]), int(im.size[1]))
+    except (OSError, ValueError):
+        return None
+
+
+def read_middlebury_par(path: str | Path, *, size: tuple[int, int] | None = None) -> Calibration:
+    """Read a Middlebury multi-view ``*_par.txt`` file.
+
+    Parameters
+    ----------
+    path : path-like
+        The ``*_par.txt`` file.
+    size : (int, int), optional
+        Image ``(width, height)`` when the images are not beside the file.
+
+    Returns
+    -------
+    Calibration
+        One camera per line, named by the image name without extension, in
+        metres (``units="m"``), zero distortion.
+    """
+    p = Path(path)
+    if size is not None and (len(size) != 2 or min(int(s) for s in size) <= 0):
+        raise ValueError(f"size must be (width, height) > 0, got {size!r}")
+    lines = [ln.split() for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
+    if not lines:
+        raise CalibrationFormatError(f"{p}: empty file")
+    if len(lines[0]) == 1:
+        try:
+            count = int(lines[0][0])
+        except ValueError:
+            raise CalibrationFormatError(f"{p}: first line must be the number of images") from None
+        lines = lines[1:]
+        if count != len(lines):
+            raise CalibrationFormatError(f"{p}: header says {count} images but {len(lines)} lines follow")
+    cams = []
+    for i, parts in enumerate(lines):
+        if len(parts) != 22:
+            raise CalibrationFormatError(
+                f"{p}: line {i + 2}: expected 'name k11..k33 r11..r33 t1 t2 t3' (22 fields), got {len(parts)}"
+            )
+        try:
+            vals = np.array([float(v) for v in parts[1:]])
+        except ValueError:
+            raise CalibrationFormatError(f"{p}: line {i + 2}: non-numeric value") from None
+        K, R, t = vals[:9].reshape(3, 3), vals[9:18].reshape(3, 3), vals[18:]
+        # Re-orthonormalize R (the file stores ~17 digits; keep it a proper rotation).
+        U, _, Vt = np.linalg.svd(R)
+        R = U @ Vt
+        img = p.parent / parts[0]
+        sz = _image_size(img) or (tuple(int(s) for s in size) if size is not None else None)
+        if sz is None:
+            raise CalibrationFormatError(f"{p}: image {parts[0]} not found beside the file; pass size=(width, height)")
+        try:
+            cams.append(Camera(name=Path(parts[0]).stem, K=K, dist=np.zeros(5), R=R, t=t, size=sz,
+                               meta={"image": parts[0]}))
+        except ValueError as exc:
+            raise CalibrationFormatError(f"{p}: line {i + 2}: {exc}") from None
+    return Calibration(cameras=tuple(cams), units="m", meta={"source": str(p), "format": "middlebury"})
+
+
+# -- JSON ---------------------------------------------------------------------------------------
+
+
+def write_json(calib: Calibration, path: str | Path) -> None:
+    if not isinstance(calib, Calibration):
+        raise ValueError(f"calib must be a Calibration, got {type(calib).__name__}")
+    _atomic_write_text(Path(path), json.dumps(calib.to_dict(), indent=1) + "\n")
+
+
+def read_json(path: str | Path) -> Calibration:
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise CalibrationFormatError(f"{p}: not valid JSON: {exc}") from None
+    try:
+        return Calibration.from_dict(data)
+    except ValueError as exc:
+        raise CalibrationFormatError(f"{p}: {exc}") from None
+
+
+# -- dispatch -------------------------------------------------------------------------------------
+
+
+def detect_format(path: str | Path) -> str:
+    """``"toml"``, ``"yaml"``, ``"json"`` or ``"middlebury"`` from the file name."""
+    p = Path(path)
+    name = p.name.lower()
+    if name.endswith(".toml"):
+        return "toml"
+    if name.endswith((".yml", ".yaml", ".xml")):
+        return "yaml"
+    if name.endswith(".json"):
+        return "json"
+    if name.endswith(".txt"):
+        return "middlebury"
+    raise CalibrationFormatError(
+        f"{p}: unknown calibration format (expected .toml, .yml/.yaml/.xml, .json or a Middlebury *_par.txt)"
+    )
+
+
+def read_calibration(path: str | Path, **kwargs: Any) -> Calibration:
+    """Read a calibration in any supported format (detected from the file name).
+
+    Parameters
+    ----------
+    path : path-like
+        ``.toml`` (aniposelib), ``.yml``/``.yaml``/``.xml`` (OpenCV FileStorage),
+        ``.json`` (:meth:`Calibration.to_dict`), ``*_par.txt`` (Middlebury).
+    **kwargs
+        Passed to the reader (``size=`` for Middlebury).
+
+    Raises
+    ------
+    FileNotFoundError
+        The file does not exist.
+    CalibrationFormatError
+        The file cannot be parsed (a ``ValueError``; the message names the file).
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path must be a file path, got {type(path).__name__}")
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"calibration file not found: {p}")
+    fmt = detect_format(p)
+    if fmt == "toml":
+        return read_aniposelib_toml(p)
+    if fmt == "yaml":
+        return read_opencv_yaml(p)
+    if fmt == "json":
+        return read_json(p)
+    return read_middlebury_par(p, **kwargs)
+
+
+def write_calibration(calib: Calibration, path: str | Path, *, format: str | None = None) -> Path:
+    """Write ``calib`` atomically (a temporary file renamed into place).
+
+    Parameters
+    ----------
+    calib : Calibration
+    path : path-like
+    format : {"toml", "yaml", "json"}, optional
+        Default: from the file extension.
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
+    if not isinstance(calib, Calibration):
+        raise ValueError(f"calib must be a Calibration, got {type(calib).__name__}")
+    p = Path(path)
+    fmt = format if format is not None else detect_format(p)
+    if fmt == "yml":
+        fmt = "yaml"
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {', '.join(FORMATS)} (Middlebury is read-only), got {fmt!r}")
+    if not p.parent.exists():
+        raise FileNotFoundError(f"output folder does not exist: {p.parent}")
+    if fmt == "toml":
+        write_aniposelib_toml(calib, p)
+    elif fmt == "yaml":
+        write_opencv_yaml(calib, p)
+    else:
+        write_json(calib, p)
+    return p
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=".calib-", suffix=path.suffix, dir=str(path.parent or Path(".")))
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)

@@ -1,0 +1,359 @@
+"""Intrinsic calibration of one camera from board views (Zhang 2000, via OpenCV).
+
+``cv2.calibrateCameraExtended`` gives per-view reprojection errors and the
+standard deviations of the parameters; views whose error is far above the rest
+(a blurred or mis-detected board) are rejected and the camera re-solved. The
+result carries a coverage measure (which part of the image the corners covered)
+and plain-language warnings when views or coverage are too few.
+
+Reference: Z. Zhang, "A flexible new technique for camera calibration", IEEE
+TPAMI 22(11), 2000.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from calib.boards import Board, Charuco, Chessboard
+from calib.camera import Camera
+from calib.detect import Detection
+
+__all__ = [
+    "CalibrationError",
+    "IntrinsicsResult",
+    "calibrate_intrinsics",
+    "coverage_fraction",
+    "coverage_image",
+    "MIN_VIEWS",
+    "WARN_VIEWS",
+    "WARN_COVERAGE",
+]
+
+log = logging.getLogger(__name__)
+
+MIN_VIEWS = 4  # fewer views than this: refuse to calibrate
+WARN_VIEWS = 10  # fewer views than this: warn
+WARN_COVERAGE = 0.5  # fraction of the image grid cells with corners below which we warn
+COVERAGE_GRID = (8, 6)
+
+
+class CalibrationError(ValueError):
+    """Calibration cannot proceed; the message names the camera and says what to do."""
+
+    def __init__(self, message: str, *, cameras: Sequence[str] = ()) -> None:
+        super().__init__(message)
+        self.cameras = tuple(cameras)
+
+
+@dataclass(frozen=True, eq=False)
+class IntrinsicsResult:
+    """Intrinsics of one camera and how good they are.
+
+    Attributes
+    ----------
+    name : str
+    size : (int, int)
+    K : (3, 3) float ndarray
+    dist : (5,) float ndarray
+    rms : float
+        Reprojection RMS over the kept views (px).
+    frames : (V,) int ndarray
+        Frames of the kept views.
+    per_view_rms : (V,) float ndarray
+    rejected : dict
+        Frame -> its per-view RMS, for views rejected as outliers.
+    rvecs, tvecs : (V, 3) float ndarray
+        Board -> camera pose of every kept view (mm).
+    std : dict
+        Standard deviations: ``fx, fy, cx, cy`` (px) and ``dist`` (5,).
+    coverage : float
+        Fraction of the image grid cells (8 x 6) that received a corner.
+    warnings : tuple of str
+    """
+
+    name: str
+    size: tuple[int, int]
+    K: np.ndarray
+    dist: np.ndarray
+    rms: float
+    frames: np.ndarray
+    per_view_rms: np.ndarray
+    rejected: dict
+    rvecs: np.ndarray
+    tvecs: np.ndarray
+    std: dict
+    coverage: float
+    warnings: tuple[str, ...] = ()
+    meta: dict = field(default_factory=dict)
+
+    def camera(self) -> Camera:
+        """The camera at the origin (``R = I``, ``t = 0``)."""
+        return Camera(self.name, K=self.K, dist=self.dist, R=np.eye(3), t=np.zeros(3), size=self.size)
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "size": list(self.size),
+            "K": self.K.tolist(),
+            "dist": self.dist.tolist(),
+            "rms": self.rms,
+            "views": int(len(self.frames)),
+            "frames": self.frames.tolist(),
+            "per_view_rms": self.per_view_rms.tolist(),
+            "rejected": {str(k): v for k, v in self.rejected.items()},
+            "std": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.std.items()},
+            "coverage": self.coverage,
+            "warnings": list(self.warnings),
+        }
+
+    def summary(self) -> str:
+        s = self.std
+        lines = [
+            f"{self.name}: {len(self.frames)} views, RMS {self.rms:.3f} px, "
+            f"f = ({self.K[0, 0]:.1f} ± {s['fx']:.1f}, {self.K[1, 1]:.1f} ± {s['fy']:.1f}) px, "
+            f"c = ({self.K[0, 2]:.1f} ± {s['cx']:.1f}, {self.K[1, 2]:.1f} ± {s['cy']:.1f}) px, "
+            f"coverage {100 * self.coverage:.0f}%"
+        ]
+        if self.rejected:
+            lines.append(
+                "  rejected outlier views: "
+                + ", ".join(f"frame {k} ({v:.2f} px)" for k, v in sorted(self.rejected.items()))
+            )
+        lines += [f"  warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def coverage_fraction(points: np.ndarray, size: tuple[int, int], *, grid: tuple[int, int] = COVERAGE_GRID) -> float:
+    """Fraction of a ``grid`` of image cells that contain at least one of ``points`` ((N, 2) px)."""
+    w, h = size
+    gx, gy = grid
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if pts.size == 0:
+        return 0.0
+    ix = np.clip(((pts[:, 0] + 0.5) / w * gx).astype(int), 0, gx - 1)
+    iy = np.clip(((pts[:, 1] + 0.5) / h * gy).astype(int), 0, gy - 1)
+    occupied = np.zeros((gy, gx), bool)
+    occupied[iy, ix] = True
+    return float(occupied.mean())
+
+
+def coverage_image(
+    detections: Sequence[Detection], size: tuple[int, int], *, rejected: Sequence[int] = (),
+    grid: tuple[int, int] = COVERAGE_GRID, title: str = ""
+) -> np.ndarray:
+    """Picture of where the corners fell: (H, W, 3) uint8 BGR, image-sized.
+
+    Uncovered grid cells are tinted red; corners are dots (one colour per view,
+    rejected views as grey crosses).
+    """
+    import cv2
+
+    w, h = (int(s) for s in size)
+    img = np.full((h, w, 3), 40, np.uint8)
+    gx, gy = grid
+    pts = np.concatenate([d.corners for d in detections], axis=0) if detections else np.zeros((0, 2))
+    ix = np.clip(((pts[:, 0] + 0.5) / w * gx).astype(int), 0, gx - 1)
+    iy = np.clip(((pts[:, 1] + 0.5) / h * gy).astype(int), 0, gy - 1)
+    occupied = np.zeros((gy, gx), bool)
+    occupied[iy, ix] = True
+    for j in range(gy):
+        for i in range(gx):
+            x0, x1 = int(i * w / gx), int((i + 1) * w / gx)
+            y0, y1 = int(j * h / gy), int((j + 1) * h / gy)
+            if not occupied[j, i]:
+                img[y0:y1, x0:x1] = (40, 40, 110)
+            cv2.rectangle(img, (x0, y0), (x1 - 1, y1 - 1), (80, 80, 80), 1)
+    rej = set(int(r) for r in rejected)
+    n = max(len(detections), 1)
+    for k, d in enumerate(detections):
+        hue = int(170 * k / n)
+        color = cv2.cvtColor(np.uint8([[[hue, 220, 255]]]), cv2.COLOR_HSV2BGR)[0, 0].tolist()
+        for u, v in d.corners:
+            p = (int(round(u)), int(round(v)))
+            if d.frame in rej:
+                cv2.drawMarker(img, p, (160, 160, 160), cv2.MARKER_CROSS, 6, 1)
+            else:
+                cv2.circle(img, p, 2, color, -1, lineType=cv2.LINE_AA)
+    text = f"{title}  coverage {100 * occupied.mean():.0f}%  views {len(detections) - len(rej)}"
+    cv2.putText(img, text.strip(), (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return img
+
+
+def _object_image_points(detections: Sequence[Detection], board: Board):
+    obj = board.object_points()
+    objp = [obj[d.ids].astype(np.float32).reshape(-1, 1, 3) for d in detections]
+    imgp = [d.corners.astype(np.float32).reshape(-1, 1, 2) for d in detections]
+    return objp, imgp
+
+
+def _initial_K(objp, imgp, size) -> np.ndarray:
+    import cv2
+
+    try:
+        return cv2.initCameraMatrix2D(objp, imgp, tuple(size))
+    except cv2.error:
+        w, h = size
+        f = float(max(w, h))
+        return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+
+
+def calibrate_intrinsics(
+    detections: Sequence[Detection],
+    board: Board,
+    size: tuple[int, int],
+    *,
+    name: str = "camera",
+    fix_aspect_ratio: bool = False,
+    fix_k3: bool = False,
+    zero_tangent: bool = False,
+    reject_outliers: bool = True,
+    outlier_factor: float = 3.0,
+    outlier_floor_px: float = 0.5,
+    min_views: int = MIN_VIEWS,
+    K_guess: np.ndarray | None = None,
+) -> IntrinsicsResult:
+    """Calibrate one camera's intrinsics from board detections (Zhang's method).
+
+    Parameters
+    ----------
+    detections : sequence of Detection
+        Views of the board (each with ``>= 6`` non-collinear corners).
+    board : Chessboard or Charuco
+    size : (int, int)
+        Image ``(width, height)``.
+    name : str
+        Camera name (used in messages).
+    fix_aspect_ratio : bool
+        ``CALIB_FIX_ASPECT_RATIO`` (``fx / fy`` kept at the initial ratio 1).
+    fix_k3, zero_tangent : bool
+        Simpler distortion models for few views / mild lenses.
+    reject_outliers : bool
+        Drop views with a per-view RMS above ``max(outlier_factor * median,
+        outlier_floor_px)`` and re-solve (repeatedly, never below ``min_views``).
+    min_views : int
+        Fewer usable views raise :class:`CalibrationError`.
+    K_guess : (3, 3) ndarray, optional
+        Initial intrinsics (``CALIB_USE_INTRINSIC_GUESS``).
+
+    Returns
+    -------
+    IntrinsicsResult
+
+    Raises
+    ------
+    CalibrationError
+        Too few usable views (the message names the camera and what to do).
+    """
+    import cv2
+
+    if not isinstance(board, (Chessboard, Charuco)):
+        raise ValueError(f"board must be a Chessboard or Charuco, got {type(board).__name__}")
+    if len(size) != 2 or min(int(s) for s in size) <= 0:
+        raise ValueError(f"size must be (width, height) > 0, got {size!r}")
+    size = (int(size[0]), int(size[1]))
+    if min_views < 3:
+        raise ValueError(f"min_views must be >= 3, got {min_views}")
+    if outlier_factor <= 1:
+        raise ValueError(f"outlier_factor must be > 1, got {outlier_factor}")
+    dets = [d for d in detections if d is not None]
+    for d in dets:
+        if not isinstance(d, Detection):
+            raise ValueError(f"detections must hold Detection objects, got {type(d).__name__}")
+    dets = [d for d in dets if len(d) >= 6]
+    if len(dets) < min_views:
+        raise CalibrationError(
+            f"camera {name}: only {len(dets)} usable board view(s), need at least {min_views} "
+            f"(10-20 recommended): film the board in more positions and tilts in front of {name}",
+            cameras=[name],
+        )
+    flags = 0
+    if fix_aspect_ratio:
+        flags |= cv2.CALIB_FIX_ASPECT_RATIO
+    if fix_k3:
+        flags |= cv2.CALIB_FIX_K3
+    if zero_tangent:
+        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+
+    def solve(views: list[Detection]):
+        objp, imgp = _object_image_points(views, board)
+        if K_guess is not None:
+            K0 = np.asarray(K_guess, dtype=np.float64).reshape(3, 3).copy()
+            fl = flags | cv2.CALIB_USE_INTRINSIC_GUESS
+        elif fix_aspect_ratio:
+            K0 = np.eye(3)
+            fl = flags
+        else:
+            K0 = _initial_K(objp, imgp, size)
+            fl = flags | cv2.CALIB_USE_INTRINSIC_GUESS
+        out = cv2.calibrateCameraExtended(objp, imgp, size, K0, np.zeros(5), flags=fl, criteria=criteria)
+        rms, K, dist, rvecs, tvecs, std_in, _std_ex, per_view = out
+        return rms, K, dist.ravel()[:5], rvecs, tvecs, std_in.ravel(), per_view.ravel()
+
+    kept = list(dets)
+    rejected: dict[int, float] = {}
+    rms, K, dist, rvecs, tvecs, std_in, per_view = solve(kept)
+    while reject_outliers and len(kept) > min_views:
+        med = float(np.median(per_view))
+        thr = max(outlier_factor * med, outlier_floor_px)
+        bad = np.flatnonzero(per_view > thr)
+        if bad.size == 0:
+            break
+        bad = bad[np.argsort(-per_view[bad])][: len(kept) - min_views]
+        if bad.size == 0:
+            break
+        for b in bad:
+            rejected[kept[b].frame] = float(per_view[b])
+        bad_set = set(bad.tolist())
+        kept = [d for i, d in enumerate(kept) if i not in bad_set]
+        log.info("camera %s: rejected %d outlier view(s) above %.2f px", name, len(bad), thr)
+        rms, K, dist, rvecs, tvecs, std_in, per_view = solve(kept)
+
+    pts = np.concatenate([d.corners for d in kept], axis=0)
+    cov = coverage_fraction(pts, size)
+    warnings = []
+    if len(kept) < WARN_VIEWS:
+        warnings.append(
+            f"camera {name}: only {len(kept)} board views; 10-20 views at varied tilts give reliable intrinsics"
+        )
+    if cov < WARN_COVERAGE:
+        warnings.append(
+            f"camera {name}: board corners covered only {100 * cov:.0f}% of the image; move the board "
+            "into the corners and edges of the view, or the lens distortion there is guessed"
+        )
+    if np.any(~np.isfinite(std_in[:9])):
+        warnings.append(f"camera {name}: parameter uncertainty is undefined (degenerate views?)")
+    std = {
+        "fx": float(std_in[0]),
+        "fy": float(std_in[1]),
+        "cx": float(std_in[2]),
+        "cy": float(std_in[3]),
+        "dist": np.asarray(std_in[4:9], dtype=np.float64),
+    }
+    f_rel = std["fx"] / K[0, 0]
+    if np.isfinite(f_rel) and f_rel > 0.01:
+        warnings.append(
+            f"camera {name}: focal length uncertain to {100 * f_rel:.1f}%; add views with the board tilted "
+            "(30-45 degrees) towards the camera"
+        )
+    for w in warnings:
+        log.warning(w)
+    return IntrinsicsResult(
+        name=name,
+        size=size,
+        K=np.asarray(K, dtype=np.float64),
+        dist=np.asarray(dist, dtype=np.float64),
+        rms=float(rms),
+        frames=np.array([d.frame for d in kept], dtype=np.int64),
+        per_view_rms=np.asarray(per_view, dtype=np.float64),
+        rejected=rejected,
+        rvecs=np.asarray(rvecs, dtype=np.float64).reshape(-1, 3),
+        tvecs=np.asarray(tvecs, dtype=np.float64).reshape(-1, 3),
+        std=std,
+        coverage=cov,
+        warnings=tuple(warnings),
+    )

@@ -1,0 +1,479 @@
+"""Tip correspondence over time (Brostow et al. 2004, section 4.2).
+
+The per-frame tips ``E_t`` are noisy: limbs merge, bumps appear for a frame.
+Assuming the creature grows no new limbs, the number of limbs is
+``K = mode |E_t|``. The reference frame is the middle of the longest run of
+``K``-tip frames; every possible mapping of a frame's tips onto the
+reference's is scored by the residual of Arun et al.'s least-squares rigid
+alignment (eqs. 6-8) and the best one kept. Frames with another tip count are
+matched against both the reference and the nearest ``K``-tip frame; their
+superfluous tips are culled, and limbs they lack stay empty.
+
+Choices the paper leaves open, made here:
+
+* ``K``-tip frames are visited outward from the reference and scored against
+  the nearest reference *and* the previous visited frame (the paper's "align
+  each exploratory skeleton with respect to its temporal neighbors"), which
+  keeps near-symmetric creatures (left/right legs) consistent.
+* Long takes get several references, one per ``reference_span`` frames (the
+  middle of the longest ``K``-run inside each window); a reference's own tips
+  are assigned like any ``K``-tip frame, so all share the same limb ids.
+* Permutations are enumerated exhaustively and scored in one vectorised batch
+  (only the singular values of each 3x3 ``H`` are needed: the residual is
+  ``|A|^2 + |B|^2 - 2 (s1 + s2 + sign(det H) s3)`` for centred sets). Above
+  ``max_permutations`` candidates (K > 8) the Hungarian assignment on
+  centred positions is refined by a local search of pairwise swaps.
+* A tip whose residual after alignment to its temporal neighbour exceeds
+  ``gate`` times the RMS radius of the reference tips is dropped (its limb
+  is empty in that frame) rather than given to a limb it is far from.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from functools import lru_cache
+from itertools import permutations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+__all__ = [
+    "NoLimbsError",
+    "arun_alignment",
+    "alignment_errors",
+    "limb_count",
+    "reference_frames",
+    "Correspondence",
+    "correspond_tips",
+]
+
+
+class NoLimbsError(ValueError):
+    """No frame of the take has a limb tip (e.g. a take of spheres)."""
+
+
+def arun_alignment(A, B):
+    """Least-squares rigid motion taking points ``A`` onto ``B`` (Arun et al. 1987; eqs. 6-8).
+
+    Parameters
+    ----------
+    A, B : (k, 3) float ndarray
+        Corresponding points.
+
+    Returns
+    -------
+    R : (3, 3) float ndarray
+        Rotation (``det = +1``; the reflection case is corrected).
+    T : (3,) float ndarray
+    error : float
+        ``sum_k |B_k - R A_k - T|^2`` (eq. 6).
+    """
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    if A.ndim != 2 or A.shape[1] != 3 or A.shape != B.shape:
+        raise ValueError(f"A and B must both have shape (k, 3), got {A.shape} and {B.shape}")
+    if len(A) == 0:
+        raise ValueError("A and B must not be empty")
+    ca, cb = A.mean(0), B.mean(0)
+    H = (A - ca).T @ (B - cb)  # eq. 7: sum A_k B_k^T
+    U, S, Vt = np.linalg.svd(H)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ D @ U.T  # eq. 8 (with the reflection fix of Arun et al., section IV)
+    T = cb - R @ ca
+    err = float(np.sum((B - A @ R.T - T) ** 2))
+    return R, T, err
+
+
+def alignment_errors(A, B) -> np.ndarray:
+    """Residual of eq. 6 for many candidate point sets at once.
+
+    Parameters
+    ----------
+    A : (k, 3) or (M, k, 3) float ndarray
+    B : (M, k, 3) float ndarray
+
+    Returns
+    -------
+    (M,) float ndarray
+    """
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    if B.ndim != 3 or B.shape[2] != 3:
+        raise ValueError(f"B must have shape (M, k, 3), got {B.shape}")
+    if A.ndim == 2:
+        A = A[None]
+    Ac = A - A.mean(axis=1, keepdims=True)
+    Bc = B - B.mean(axis=1, keepdims=True)
+    H = np.einsum("mki,mkj->mij", np.broadcast_to(Ac, Bc.shape), Bc)
+    s = np.linalg.svd(H, compute_uv=False)
+    d = np.sign(np.linalg.det(H))
+    d[d == 0] = 1.0
+    tr = s[:, 0] + s[:, 1] + d * s[:, 2]
+    err = np.sum(Ac**2, axis=(1, 2)) + np.sum(Bc**2, axis=(1, 2)) - 2 * tr
+    return np.maximum(err, 0.0)
+
+
+def limb_count(counts) -> int:
+    """``K = mode |E_t|``; ties go to the count with the longest run of frames, then the larger."""
+    c = [int(x) for x in counts]
+    if not c:
+        raise ValueError("counts must not be empty")
+    freq = Counter(c)
+    best = max(freq.values())
+    tied = [k for k, v in freq.items() if v == best]
+    return max(tied, key=lambda k: (_longest_run(c, k)[1], k))
+
+
+def _runs(counts, K):
+    runs, start = [], None
+    for i, c in enumerate(list(counts) + [None]):
+        if c == K and start is None:
+            start = i
+        elif c != K and start is not None:
+            runs.append((start, i))
+            start = None
+    return runs
+
+
+def _longest_run(counts, K):
+    runs = _runs(counts, K)
+    if not runs:
+        return None, 0
+    s, e = max(runs, key=lambda r: (r[1] - r[0], -r[0]))
+    return (s, e), e - s
+
+
+def reference_frames(counts, K: int, *, span: int = 150) -> list[int]:
+    """Reference frames: the middle of the longest ``K``-run, plus one per further ``span`` frames.
+
+    The first element is the primary reference (middle of the longest run of
+    the whole take); each other window of ``span`` frames (tiling the take
+    around the primary) contributes the middle of its own longest ``K``-run.
+    """
+    c = [int(x) for x in counts]
+    if span < 1:
+        raise ValueError(f"span must be >= 1, got {span}")
+    run, length = _longest_run(c, K)
+    if not length:
+        raise ValueError(f"no frame has {K} tips")
+    primary = (run[0] + run[1] - 1) // 2
+    refs = [primary]
+    T = len(c)
+    if T <= span:
+        return refs
+    # windows tiling the take, centred on the primary
+    starts = set()
+    s = primary - span // 2
+    while s > -span:
+        starts.add(s)
+        s -= span
+    s = primary - span // 2 + span
+    while s < T:
+        starts.add(s)
+        s += span
+    for s in sorted(starts):
+        lo, hi = max(0, s), min(T, s + span)
+        if lo <= primary < hi or hi - lo < span // 4:
+            continue
+        sub = c[lo:hi]
+        r, L = _longest_run(sub, K)
+        if L:
+            refs.append(lo + (r[0] + r[1] - 1) // 2)
+    return refs
+
+
+@lru_cache(maxsize=64)
+def _perms(n: int, k: int) -> np.ndarray:
+    return np.array(list(permutations(range(n), k)), dtype=np.int64).reshape(-1, k)
+
+
+@dataclass(frozen=True)
+class Correspondence:
+    """Which tip of each frame is which limb.
+
+    Attributes
+    ----------
+    K : int
+        Number of limbs (mode of the tip counts).
+    assignment : (T, K) int ndarray
+        Index into frame ``t``'s tips of limb ``k``; ``-1`` = not seen.
+    references : list of int
+        Reference frames, primary first.
+    error : (T,) float ndarray
+        Alignment residual of the chosen mapping (nan for frames without tips).
+    """
+
+    K: int
+    assignment: np.ndarray
+    references: list
+    error: np.ndarray
+
+
+def _errors(A, B):
+    """Eq. 6 residuals (rigid for >= 3 points, translation-only below)."""
+    if B.shape[1] >= 3:
+        return alignment_errors(A, B)
+    A = np.asarray(A)
+    if A.ndim == 2:
+        A = A[None]
+    Ac = A - A.mean(axis=1, keepdims=True)
+    Bc = B - B.mean(axis=1, keepdims=True)
+    return np.sum((Bc - Ac) ** 2, axis=(1, 2))
+
+
+def _best_mapping(pts: np.ndarray, anchors: list[np.ndarray], K: int, max_perms: int) -> tuple[np.ndarray, float]:
+    """Best injective mapping limb slot -> frame tip (``-1`` for empty slots).
+
+    pts : (n, m, 3) tip plus limb points of each frame tip.
+    anchors : (K, m, 3) arrays with nan for limbs unknown in that anchor.
+    """
+    n, m = pts.shape[:2]
+    known = np.ones(K, dtype=bool)
+    for a in anchors:
+        known &= np.all(np.isfinite(a.reshape(K, -1)), axis=1)
+    if n >= K:
+        if math.perm(n, K) > max_perms:
+            return _local_search(pts, anchors, K)
+        P = _perms(n, K)
+        slots = np.flatnonzero(known)
+        if len(slots) == 0:
+            return P[0].copy(), float("nan")
+        B = pts[P[:, slots]].reshape(len(P), -1, 3)
+        err = np.zeros(len(P))
+        for a in anchors:
+            err += _errors(a[slots].reshape(-1, 3), B)
+        # candidates differing only in unknown slots tie: keep the first
+        i = int(np.argmin(err))
+        return P[i].copy(), float(err[i])
+    if math.perm(K, n) > max_perms:
+        return _local_search(pts, anchors, K)
+    P = _perms(K, n)  # P[i, j] = slot of tip j
+    if known.sum() >= n:
+        P = P[np.all(known[P], axis=1)]
+    B = np.broadcast_to(pts.reshape(1, -1, 3), (len(P), n * m, 3))
+    err = np.zeros(len(P))
+    for a in anchors:
+        A = np.nan_to_num(a[P].reshape(len(P), -1, 3))
+        err += _errors(A, B)
+    i = int(np.argmin(err))
+    out = np.full(K, -1, dtype=np.int64)
+    out[P[i]] = np.arange(n)
+    return out, float(err[i])
+
+
+def _mapping_error(pts, anchors, mapping):
+    sl = np.flatnonzero(mapping >= 0)
+    B = pts[mapping[sl]].reshape(1, -1, 3)
+    e = 0.0
+    for a in anchors:
+        A = a[sl].reshape(-1, 3)
+        ok = np.all(np.isfinite(A), axis=1)
+        if ok.any():
+            e += float(_errors(A[ok], B[:, ok])[0])
+    return e
+
+
+def _local_search(pts, anchors, K):
+    """Hungarian on centred tip positions, then greedy swaps and replacements (very large K)."""
+    n = len(pts)
+    tips = pts[:, 0]
+    a = anchors[0][:, 0]
+    okA = np.all(np.isfinite(a), axis=1)
+    ca = a[okA].mean(0)
+    cb = tips.mean(0)
+    cost = np.linalg.norm((a - ca)[:, None, :] - (tips - cb)[None], axis=2)
+    cost = np.where(np.isfinite(cost), cost, 1e9)
+    r, c = linear_sum_assignment(cost)
+    mapping = np.full(K, -1, dtype=np.int64)
+    mapping[r] = c
+    best = _mapping_error(pts, anchors, mapping)
+    improved = True
+    while improved:
+        improved = False
+        for i in range(K):
+            cands = []
+            for j in range(i + 1, K):
+                m2 = mapping.copy()
+                m2[i], m2[j] = m2[j], m2[i]
+                cands.append(m2)
+            used = set(mapping[mapping >= 0].tolist())
+            for u in range(n):
+                if u not in used:
+                    m2 = mapping.copy()
+                    m2[i] = u
+                    cands.append(m2)
+            for m2 in cands:
+                e = _mapping_error(pts, anchors, m2)
+                if e < best - 1e-12:
+                    best, mapping, improved = e, m2, True
+    return mapping, best
+
+
+def correspond_tips(
+    tips,
+    *,
+    features=None,
+    K: int | None = None,
+    reference_span: int = 150,
+    max_permutations: int = 40320,
+    gate: float = 1.0,
+) -> Correspondence:
+    """Assign every frame's tips to ``K`` limbs consistently over a take (section 4.2).
+
+    Parameters
+    ----------
+    tips : sequence of (n_t, 3) float ndarray
+        Tips of each frame, in take order (``n_t`` may be 0).
+    features : sequence of (n_t, m, 3) float ndarray, optional
+        Further points that move with each tip (points along its limb, see
+        :func:`pipeline.skeleton.limb_points`); aligned together with the
+        tips, so whole skeletons are aligned rather than tips alone.
+    K : int, optional
+        Number of limbs; default ``mode n_t``.
+    reference_span : int
+        One reference frame per this many frames.
+    max_permutations : int
+        Exhaustive search up to this many mappings per frame.
+    gate : float
+        Drop a tip farther than ``gate`` x (RMS radius of the reference tips)
+        from its limb's position in the aligned temporal neighbour.
+
+    Returns
+    -------
+    Correspondence
+
+    Raises
+    ------
+    NoLimbsError
+        When no frame has a tip (or ``K`` would be 0).
+    """
+    frames = []
+    for i, t in enumerate(tips):
+        a = np.asarray(t, dtype=np.float64)
+        if a.size == 0:
+            a = a.reshape(0, 3)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ValueError(f"tips[{i}] must have shape (n, 3), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"tips[{i}] must be finite")
+        frames.append(a)
+    if not frames:
+        raise ValueError("tips must hold at least one frame")
+    if max_permutations < 1:
+        raise ValueError(f"max_permutations must be >= 1, got {max_permutations}")
+    if not gate > 0:
+        raise ValueError(f"gate must be > 0, got {gate}")
+    counts = [len(a) for a in frames]
+    T = len(frames)
+    if features is None:
+        pts = [a[:, None, :] for a in frames]
+    else:
+        features = list(features)
+        if len(features) != T:
+            raise ValueError(f"features must have one entry per frame ({T}), got {len(features)}")
+        pts = []
+        for i, (a, fe) in enumerate(zip(frames, features)):
+            fe = np.asarray(fe, dtype=np.float64)
+            if fe.size == 0:
+                fe = fe.reshape(len(a), 0, 3)
+            if fe.ndim != 3 or fe.shape[0] != len(a) or fe.shape[2] != 3 or not np.all(np.isfinite(fe)):
+                raise ValueError(f"features[{i}] must be finite with shape ({len(a)}, m, 3), got {fe.shape}")
+            pts.append(np.concatenate([a[:, None, :], fe], axis=1))
+        if len({p.shape[1] for p in pts}) > 1:
+            raise ValueError("features must have the same number of points per tip in every frame")
+    if K is None:
+        K = limb_count(counts)
+    K = int(K)
+    if K < 1:
+        raise NoLimbsError("no limb tips found in any frame (K = 0): nothing protrudes")
+    if K not in counts:
+        raise ValueError(f"K={K} but no frame has {K} tips")
+    refs = reference_frames(counts, K, span=reference_span)
+    r0 = refs[0]
+    assign = np.full((T, K), -1, dtype=np.int64)
+    err = np.full(T, np.nan)
+    assign[r0] = np.arange(K)
+    err[r0] = 0.0
+    ref_tips = frames[r0]
+    radius = float(np.sqrt(np.mean(np.sum((ref_tips - ref_tips.mean(0)) ** 2, axis=1))))
+    gate_d = gate * max(radius, 1e-12)
+
+    m_pts = pts[0].shape[1]
+
+    def limb_positions(t):
+        out = np.full((K, 3), np.nan)
+        ok = assign[t] >= 0
+        out[ok] = frames[t][assign[t][ok]]
+        return out
+
+    def limb_points_of(t):
+        out = np.full((K, m_pts, 3), np.nan)
+        ok = assign[t] >= 0
+        out[ok] = pts[t][assign[t][ok]]
+        return out
+
+    # 1. K-tip frames, outward from the primary reference
+    assigned_refs = {r0}
+    for direction in (1, -1):
+        prev = r0
+        t = r0 + direction
+        while 0 <= t < T:
+            if counts[t] == K:
+                near_ref = min(assigned_refs, key=lambda r: abs(r - t))
+                anchors = [limb_points_of(near_ref)]
+                if prev != near_ref:
+                    anchors.append(limb_points_of(prev))
+                m, e = _best_mapping(pts[t], anchors, K, max_permutations)
+                assign[t] = m
+                err[t] = e
+                prev = t
+                if t in refs:
+                    assigned_refs.add(t)
+            t += direction
+    kframes = np.flatnonzero(np.asarray(counts) == K)
+
+    # 2. other frames: against the nearest reference and the nearest K-tip frame
+    for t in range(T):
+        if counts[t] == K or counts[t] == 0:
+            continue
+        near_ref = min(assigned_refs, key=lambda r: abs(r - t))
+        near_k = int(kframes[np.argmin(np.abs(kframes - t))])
+        anchors = [limb_points_of(near_ref)]
+        if near_k != near_ref:
+            anchors.append(limb_points_of(near_k))
+        m, e = _best_mapping(pts[t], anchors, K, max_permutations)
+        assign[t] = m
+        err[t] = e
+
+    # 3. gate against the aligned nearest K-tip neighbour
+    for t in range(T):
+        if counts[t] == 0 or t == r0:
+            continue
+        others = kframes[kframes != t]
+        if len(others) == 0:
+            continue
+        nb = int(others[np.argmin(np.abs(others - t))])
+        A = limb_positions(nb)
+        B = limb_positions(t)
+        ok = np.all(np.isfinite(A), axis=1) & np.all(np.isfinite(B), axis=1)
+        if ok.sum() < 3:
+            continue
+        resid = _robust_residuals(A[ok], B[ok])
+        bad = np.flatnonzero(ok)[resid > gate_d]
+        assign[t, bad] = -1
+    return Correspondence(K=K, assignment=assign, references=list(refs), error=err)
+
+
+def _robust_residuals(A, B):
+    """Per-point residual after a rigid fit, refit without the worst point (one outlier)."""
+    R, T, _ = arun_alignment(A, B)
+    r = np.linalg.norm(B - A @ R.T - T, axis=1)
+    if len(A) >= 4:
+        keep = np.ones(len(A), dtype=bool)
+        keep[int(np.argmax(r))] = False
+        R, T, _ = arun_alignment(A[keep], B[keep])
+        r = np.linalg.norm(B - A @ R.T - T, axis=1)
+    return r

@@ -1,0 +1,726 @@
+"""Spines: one temporally consistent branching skeleton per take (Brostow et al. 2004).
+
+The take-level driver:
+
+1. per frame (in parallel): tips ``E_t`` (:mod:`pipeline.extremities`) and one
+   level-set skeleton per tip (:mod:`pipeline.skeleton`) ->
+   :class:`FrameSkeleton` (:func:`frame_skeleton`);
+2. reduce: tip correspondence over time (:mod:`pipeline.correspond`,
+   section 4.2), then the skeletons re-merged with only the ``K``
+   corresponded limbs (:mod:`pipeline.merge`), the most frequent topology
+   imposed on every frame as the graph ``G``, and each limb resampled at one
+   interval (section 4.3) -> :class:`Spine` (:func:`build_spine`);
+3. :func:`write_spine` / :func:`read_spine`: the ``capture-stage/spine@1``
+   JSON file (``docs/spine-format.md``).
+
+:func:`spine_from_meshes` runs all of it on a mesh sequence.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from pipeline.correspond import Correspondence, NoLimbsError, correspond_tips
+from pipeline.extremities import find_extremities
+from pipeline.geodesic import EmptyMeshError, edge_graph, largest_component, mesh_edges, validate_mesh, vertex_areas
+from pipeline.merge import MergedSkeleton, Topology, consensus_topology, merge_skeletons, skeleton_splits
+from pipeline.skeleton import TipSkeleton, grow_skeleton, limb_points
+
+__all__ = [
+    "FORMAT",
+    "SpineParams",
+    "FrameSkeleton",
+    "frame_skeleton",
+    "Spine",
+    "build_spine",
+    "spine_from_meshes",
+    "write_spine",
+    "read_spine",
+    "validate_spine_dict",
+    "SpineFormatError",
+    "NoLimbsError",
+    "EmptyMeshError",
+]
+
+log = logging.getLogger(__name__)
+
+FORMAT = "capture-stage/spine@1"
+LIMB_FRACTIONS = (0.25, 0.5, 0.75)  # points along each limb used to align skeletons over time
+
+
+class SpineParams(BaseModel):
+    """Options of the spine pipeline (all scale-free; defaults follow the paper).
+
+    Attributes
+    ----------
+    n_base : int
+        Base points for the average geodesic distance (Hilaga et al.).
+    min_protrusion : float
+        Tip threshold: a tip must protrude by this fraction of ``sqrt(area)``.
+    n_bins : int
+        Level-set bins per skeleton (paper: "usually 100").
+    min_bin_edges : float
+        Bins are never thinner than this many mean edge lengths.
+    area_weighted : bool
+        Weight ring points by vertex area (uniform on a regular mesh).
+    reference_span : int
+        One correspondence reference frame per this many frames.
+    max_permutations : int
+        Exhaustive tip-mapping search up to this many candidates per frame.
+    gate : float
+        Drop a tip farther than this x the RMS tip radius from its limb's
+        position in the aligned neighbouring frame.
+    samples : int
+        Resampling interval = (median total spine length) / ``samples``.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    n_base: int = Field(24, ge=2, le=1000)
+    min_protrusion: float = Field(0.1, gt=0, lt=10)
+    n_bins: int = Field(100, ge=2, le=10000)
+    min_bin_edges: float = Field(1.0, ge=0)
+    area_weighted: bool = True
+    reference_span: int = Field(150, ge=1)
+    max_permutations: int = Field(40320, ge=1)
+    gate: float = Field(1.0, gt=0)
+    samples: int = Field(100, ge=2)
+
+
+# --------------------------------------------------------------------------- per frame
+
+
+@dataclass(frozen=True)
+class FrameSkeleton:
+    """Everything the reduce step needs from one frame.
+
+    Attributes
+    ----------
+    tips : (n, 3) float ndarray
+        Tip positions ``E_t``.
+    tip_vertices : (n,) int ndarray
+        Tip vertex ids in the *input* mesh numbering.
+    skeletons : tuple of TipSkeleton
+        One per tip (``skeletons[i].seed == i``).
+    size : float
+        ``sqrt(surface area)`` of the kept part.
+    n_faces : int
+        Faces of the kept part (0 = empty frame).
+    limb_points : (n, m, 3) float ndarray
+        Points along each tip's own limb (:func:`pipeline.skeleton.limb_points`),
+        aligned with the tips when tracking correspondence.
+    """
+
+    tips: np.ndarray
+    tip_vertices: np.ndarray
+    skeletons: tuple
+    size: float
+    n_faces: int
+    limb_points: np.ndarray
+
+    @property
+    def n_tips(self) -> int:
+        return len(self.tips)
+
+    def topology(self) -> Topology:
+        """Exploratory topology over all tips (majority consensus, section 4.1)."""
+        n = self.n_tips
+        if n == 0:
+            raise ValueError("frame has no tips")
+        return consensus_topology([skeleton_splits(s) for s in self.skeletons], n)
+
+    def merged(self) -> MergedSkeleton:
+        """The frame's merged exploratory skeleton (all tips, section 4.1)."""
+        if self.n_tips == 0:
+            raise ValueError("frame has no tips")
+        return merge_skeletons(self.skeletons, self.tips)
+
+    def to_dict(self) -> dict:
+        return {
+            "tips": self.tips.tolist(),
+            "tip_vertices": self.tip_vertices.tolist(),
+            "skeletons": [s.to_dict() for s in self.skeletons],
+            "size": float(self.size),
+            "n_faces": int(self.n_faces),
+            "limb_points": self.limb_points.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FrameSkeleton":
+        return cls(
+            tips=np.asarray(d["tips"], dtype=np.float64).reshape(-1, 3),
+            tip_vertices=np.asarray(d["tip_vertices"], dtype=np.int64),
+            skeletons=tuple(TipSkeleton.from_dict(s) for s in d["skeletons"]),
+            size=float(d["size"]),
+            n_faces=int(d["n_faces"]),
+            limb_points=np.asarray(d["limb_points"], dtype=np.float64).reshape(len(d["tips"]), -1, 3),
+        )
+
+    @classmethod
+    def empty(cls) -> "FrameSkeleton":
+        return cls(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), (), 0.0, 0, np.zeros((0, len(LIMB_FRACTIONS), 3)))
+
+
+def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> FrameSkeleton:
+    """Tips and per-tip level-set skeletons of one surface (Brostow et al. 2004, 4.1).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+    faces : (F, 3) int ndarray
+        A triangle mesh; only its largest connected part is used (warning
+        logged). Non-manifold meshes are fine. An empty mesh (no faces) gives
+        an empty :class:`FrameSkeleton`; a blob with nothing protruding
+        gives one with no tips.
+    params : SpineParams, optional
+
+    Returns
+    -------
+    FrameSkeleton
+    """
+    params = params or SpineParams()
+    if not isinstance(params, SpineParams):
+        raise ValueError(f"params must be a SpineParams, got {type(params).__name__}")
+    v, f = validate_mesh(vertices, faces, allow_empty=True)
+    if len(f) == 0:
+        log.warning("empty frame (no faces)")
+        return FrameSkeleton.empty()
+    v, f, kept = largest_component(v, f, warn=True)
+    edges = mesh_edges(f)
+    graph = edge_graph(v, edges)
+    areas = vertex_areas(v, f)
+    size = float(np.sqrt(areas.sum()))
+    if size <= 0:
+        log.warning("degenerate frame (zero surface area)")
+        return FrameSkeleton.empty()
+    ext = find_extremities(v, f, n_base=params.n_base, min_protrusion=params.min_protrusion, graph=graph, edges=edges)
+    mean_edge = float(np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1).mean())
+    weights = areas if params.area_weighted else None
+    skels = tuple(
+        grow_skeleton(
+            v,
+            edges,
+            graph,
+            int(tv),
+            tips=ext.vertices,
+            seed=i,
+            n_bins=params.n_bins,
+            min_bin_width=params.min_bin_edges * mean_edge,
+            weights=weights,
+        )
+        for i, tv in enumerate(ext.vertices)
+    )
+    lp = np.array([limb_points(s, ext.points[i], LIMB_FRACTIONS) for i, s in enumerate(skels)]).reshape(
+        len(skels), len(LIMB_FRACTIONS), 3
+    )
+    return FrameSkeleton(
+        tips=ext.points.copy(),
+        tip_vertices=kept[ext.vertices],
+        skeletons=skels,
+        size=size,
+        n_faces=len(f),
+        limb_points=lp,
+    )
+
+
+# --------------------------------------------------------------------------- take
+
+
+@dataclass
+class Spine:
+    """One spine for a take: a fixed graph and its pose in every frame.
+
+    Attributes
+    ----------
+    units : str
+    fps : float
+    frame_indices : (T,) int ndarray
+    limb_ids : list of str
+        One per limb tip (``limb0``, ...), in correspondence order.
+    junction_ids : list of str
+    parents : dict of str to str or None
+        Parent junction of every limb and junction (the root junction: None).
+    tips : (T, K, 3) float ndarray
+        nan where a limb was not seen.
+    junctions : (T, J, 3) float ndarray
+    axes : dict of str to (T, n, 3) float ndarray
+        For every limb and every non-root junction, the polyline from its
+        parent junction to it, resampled to ``n`` points (nan rows = unseen).
+    meta : dict
+        ``K``, reference frames, topology splits, tip counts, ...
+    """
+
+    units: str
+    fps: float
+    frame_indices: np.ndarray
+    limb_ids: list
+    junction_ids: list
+    parents: dict
+    tips: np.ndarray
+    junctions: np.ndarray
+    axes: dict
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def K(self) -> int:
+        return len(self.limb_ids)
+
+    @property
+    def frame_count(self) -> int:
+        return len(self.frame_indices)
+
+    @property
+    def root(self) -> str:
+        return next(k for k, p in self.parents.items() if p is None)
+
+    def to_dict(self) -> dict:
+        def pt(x):
+            return [float(c) for c in x] if np.all(np.isfinite(x)) else None
+
+        frames = []
+        for t, idx in enumerate(self.frame_indices):
+            frames.append(
+                {
+                    "index": int(idx),
+                    "tips": {lid: pt(self.tips[t, k]) for k, lid in enumerate(self.limb_ids)},
+                    "junctions": {jid: pt(self.junctions[t, j]) for j, jid in enumerate(self.junction_ids)},
+                    "axes": {
+                        name: (a[t].tolist() if np.all(np.isfinite(a[t])) else None) for name, a in self.axes.items()
+                    },
+                }
+            )
+        return {
+            "format": FORMAT,
+            "units": self.units,
+            "fps": float(self.fps),
+            "frame_count": self.frame_count,
+            "graph": {
+                "limbs": list(self.limb_ids),
+                "junctions": list(self.junction_ids),
+                "root": self.root,
+                "parents": dict(self.parents),
+            },
+            "frames": frames,
+            "meta": _jsonable(self.meta),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Spine":
+        validate_spine_dict(d)
+        g = d["graph"]
+        limbs, juncs = list(g["limbs"]), list(g["junctions"])
+        frames = d["frames"]
+        T = len(frames)
+
+        def arr(x, n=3):
+            return np.full(n, np.nan) if x is None else np.asarray(x, dtype=np.float64)
+
+        tips = np.array([[arr(fr["tips"][k]) for k in limbs] for fr in frames]).reshape(T, len(limbs), 3)
+        jun = np.array([[arr(fr.get("junctions", {}).get(j)) for j in juncs] for fr in frames]).reshape(
+            T, len(juncs), 3
+        )
+        axes = {}
+        names = [n for n in limbs + juncs if g["parents"][n] is not None]
+        for name in names:
+            n = max((len(fr["axes"][name]) for fr in frames if fr["axes"].get(name) is not None), default=0)
+            a = np.full((T, n, 3), np.nan)
+            for t, fr in enumerate(frames):
+                if fr["axes"].get(name) is not None:
+                    a[t] = np.asarray(fr["axes"][name], dtype=np.float64)
+            axes[name] = a
+        return cls(
+            units=d["units"],
+            fps=float(d["fps"]),
+            frame_indices=np.array([fr["index"] for fr in frames], dtype=np.int64),
+            limb_ids=limbs,
+            junction_ids=juncs,
+            parents=dict(g["parents"]),
+            tips=tips,
+            junctions=jun,
+            axes=axes,
+            meta=dict(d.get("meta", {})),
+        )
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(x) else None
+    return x
+
+
+def _resample(poly: np.ndarray, n: int) -> np.ndarray:
+    """Uniform arc-length resampling of a polyline to ``n`` points."""
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0:
+        return np.repeat(poly[:1], n, axis=0)
+    q = np.linspace(0.0, s[-1], n)
+    return np.stack([np.interp(q, s, poly[:, k]) for k in range(3)], axis=1)
+
+
+def _polyline_length(poly) -> float:
+    return float(np.linalg.norm(np.diff(poly, axis=0), axis=1).sum()) if poly is not None and len(poly) > 1 else 0.0
+
+
+def build_spine(
+    frames: Sequence[FrameSkeleton],
+    *,
+    fps: float = 30.0,
+    units: str = "mm",
+    params: SpineParams | None = None,
+    frame_indices=None,
+) -> Spine:
+    """The reduce step: correspondence (4.2) and one imposed graph (4.3).
+
+    Parameters
+    ----------
+    frames : sequence of FrameSkeleton
+        In take order.
+    fps : float
+    units : str
+    params : SpineParams, optional
+    frame_indices : (T,) int array-like, optional
+        Take frame numbers (default ``0..T-1``).
+
+    Returns
+    -------
+    Spine
+
+    Raises
+    ------
+    NoLimbsError
+        When no frame has a tip.
+    """
+    params = params or SpineParams()
+    frames = list(frames)
+    if not frames:
+        raise ValueError("frames must hold at least one FrameSkeleton")
+    if not all(isinstance(f, FrameSkeleton) for f in frames):
+        raise ValueError("frames must be FrameSkeleton objects")
+    if not (fps > 0 and math.isfinite(fps)):
+        raise ValueError(f"fps must be > 0, got {fps}")
+    if not isinstance(units, str) or not units:
+        raise ValueError("units must be a non-empty string")
+    T = len(frames)
+    idx = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64)
+    if idx.shape != (T,):
+        raise ValueError(f"frame_indices must have {T} entries")
+    if all(f.n_tips == 0 for f in frames):
+        raise NoLimbsError("no limb tips in any frame: nothing protrudes from the surfaces")
+    corr = correspond_tips(
+        [f.tips for f in frames],
+        features=[f.limb_points for f in frames],
+        reference_span=params.reference_span,
+        max_permutations=params.max_permutations,
+        gate=params.gate,
+    )
+    K = corr.K
+    A = corr.assignment
+
+    # topology of every complete frame over the K limbs; G = the most frequent
+    tops: list[Topology | None] = []
+    for t, fr in enumerate(frames):
+        sel = A[t]
+        if np.all(sel >= 0):
+            sk = [s for s in fr.skeletons if s.seed in set(sel.tolist())]
+            tops.append(consensus_topology([skeleton_splits(s, sel) for s in sk], K))
+        else:
+            tops.append(None)
+    counted = Counter(tp.splits for tp in tops if tp is not None)
+    if counted:
+        G = Topology.from_splits(K, counted.most_common(1)[0][0])
+    else:  # no complete frame: majority over the partial frames' skeletons
+        G = Topology.from_splits(K, [])
+    J = G.n_junctions
+
+    # realise G in every frame; junctions not realisable get hints from the nearest frame
+    merged: list[MergedSkeleton | None] = [None] * T
+    for t, fr in enumerate(frames):
+        if fr.n_tips and np.any(A[t] >= 0):
+            merged[t] = merge_skeletons(fr.skeletons, fr.tips, tips=A[t], topology=G)
+    jpos = np.full((T, J, 3), np.nan)
+    for t, m in enumerate(merged):
+        if m is not None:
+            jpos[t] = m.junctions
+    for t, m in enumerate(merged):
+        if m is None or np.all(np.isfinite(m.junctions)):
+            continue
+        hints = np.full((J, 3), np.nan)
+        for j in range(J):
+            if np.isfinite(m.junctions[j]).all():
+                continue
+            ok = np.flatnonzero(np.all(np.isfinite(jpos[:, j]), axis=1))
+            if len(ok):
+                hints[j] = jpos[ok[np.argmin(np.abs(ok - t))], j]
+        if np.isfinite(hints).any():
+            fr = frames[t]
+            merged[t] = merge_skeletons(fr.skeletons, fr.tips, tips=A[t], topology=G, junction_hints=hints)
+
+    limb_ids = [f"limb{k}" for k in range(K)]
+    junction_ids = [f"j{j}" for j in range(J)]
+    parents: dict = {"j0": None}
+    for j in range(1, J):
+        parents[junction_ids[j]] = junction_ids[G.junction_parent[j]]
+    for k in range(K):
+        parents[limb_ids[k]] = junction_ids[G.tip_parent[k]]
+
+    # resample every limb at one interval
+    tips = np.full((T, K, 3), np.nan)
+    juncs = np.full((T, J, 3), np.nan)
+    polys: dict[str, list] = {name: [None] * T for name in limb_ids + junction_ids[1:]}
+    for t, m in enumerate(merged):
+        if m is None:
+            continue
+        tips[t] = m.tips
+        juncs[t] = m.junctions
+        for k in range(K):
+            polys[limb_ids[k]][t] = m.tip_axes[k]
+        for j in range(1, J):
+            polys[junction_ids[j]][t] = m.junction_axes[j]
+    lengths = {name: [_polyline_length(p) for p in ps if p is not None] for name, ps in polys.items()}
+    totals = []
+    for t in range(T):
+        tot = [_polyline_length(polys[name][t]) for name in polys if polys[name][t] is not None]
+        if len(tot) == len(polys):
+            totals.append(sum(tot))
+    total = float(np.median(totals)) if totals else float(sum(np.median(v) for v in lengths.values() if v))
+    interval = total / params.samples if total > 0 else 1.0
+    axes = {}
+    for name, ps in polys.items():
+        L = float(np.median(lengths[name])) if lengths[name] else 0.0
+        n = max(2, int(round(L / interval)) + 1)
+        a = np.full((T, n, 3), np.nan)
+        for t, p in enumerate(ps):
+            if p is not None and len(p) >= 1:
+                a[t] = _resample(p, n)
+        axes[name] = a
+    meta = {
+        "K": K,
+        "references": [int(r) for r in corr.references],
+        "topology_splits": [int(s) for s in G.splits],
+        "topology_frames": int(counted.get(G.splits, 0)),
+        "tip_counts": [f.n_tips for f in frames],
+        "sample_interval": interval,
+        "method": "Brostow et al. 2004",
+    }
+    return Spine(
+        units=units,
+        fps=float(fps),
+        frame_indices=idx,
+        limb_ids=limb_ids,
+        junction_ids=junction_ids,
+        parents=parents,
+        tips=tips,
+        junctions=juncs,
+        axes=axes,
+        meta=meta,
+    )
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def _frame_task(item, params_dict: dict) -> dict:
+    """Top-level (picklable) per-frame work: load if needed, skeletonize, serialise."""
+    params = SpineParams(**params_dict)
+    if isinstance(item, (str, Path)):
+        from pipeline.meshio import load_mesh
+
+        v, f = load_mesh(item)
+    else:
+        v, f = item
+    return frame_skeleton(v, f, params=params).to_dict()
+
+
+def spine_from_meshes(
+    meshes,
+    *,
+    fps: float = 30.0,
+    units: str = "mm",
+    workers: int = 2,
+    progress: bool | Callable[[Iterable], Iterable] = False,
+    params: SpineParams | None = None,
+) -> Spine:
+    """Spine of a mesh sequence: per-frame skeletons in parallel, then the reduce step.
+
+    Parameters
+    ----------
+    meshes : str, Path, sequence of paths, or sequence of (vertices, faces)
+        A glob such as ``'DIR/*.obj'`` or a directory (files sorted by name),
+        explicit files (OBJ, PLY, OFF), or in-memory meshes; one per frame,
+        in take order.
+    fps : float
+    units : str
+        The meshes' units (written to the spine as given).
+    workers : int
+        Processes for the per-frame work (``<= 1``: in this process).
+    progress : bool or callable
+        ``True`` shows a tqdm bar; a callable wraps the frame iterator.
+    params : SpineParams, optional
+
+    Returns
+    -------
+    Spine
+    """
+    from pipeline.meshio import mesh_paths
+
+    params = params or SpineParams()
+    if not isinstance(params, SpineParams):
+        raise ValueError(f"params must be a SpineParams, got {type(params).__name__}")
+    if isinstance(meshes, (str, Path)):
+        items: list = list(mesh_paths(meshes))
+    else:
+        items = list(meshes)
+        if items and isinstance(items[0], (str, Path)):
+            items = list(mesh_paths(items))
+    if not items:
+        raise ValueError("meshes must hold at least one frame")
+    if int(workers) < 0:
+        raise ValueError(f"workers must be >= 0, got {workers}")
+    pd = params.model_dump()
+    wrap = progress if callable(progress) else None
+    if progress is True:
+        from tqdm import tqdm
+
+        def wrap(it):
+            return tqdm(it, total=len(items), desc="skeletons", unit="frame")
+
+    if int(workers) <= 1 or len(items) == 1:
+        it = (_frame_task(x, pd) for x in items)
+        results = list(wrap(it) if wrap else it)
+    else:
+        with ProcessPoolExecutor(max_workers=int(workers)) as ex:
+            it = ex.map(_frame_task, items, [pd] * len(items), chunksize=1)
+            results = list(wrap(it) if wrap else it)
+    frames = [FrameSkeleton.from_dict(r) for r in results]
+    return build_spine(frames, fps=fps, units=units, params=params)
+
+
+# --------------------------------------------------------------------------- file
+
+
+class SpineFormatError(ValueError):
+    """A spine file that does not follow ``capture-stage/spine@1``."""
+
+
+def _check_point(x, where):
+    if x is None:
+        return
+    if not (isinstance(x, list) and len(x) == 3 and all(isinstance(c, (int, float)) for c in x)):
+        raise SpineFormatError(f"{where}: expected [x, y, z] or null")
+    if not all(math.isfinite(c) for c in x):
+        raise SpineFormatError(f"{where}: coordinates must be finite")
+
+
+def validate_spine_dict(d) -> None:
+    """Check a parsed spine file; raises :class:`SpineFormatError` naming the first problem."""
+    if not isinstance(d, dict):
+        raise SpineFormatError("spine must be a JSON object")
+    if d.get("format") != FORMAT:
+        raise SpineFormatError(f"format must be {FORMAT!r}, got {d.get('format')!r}")
+    for k in ("units", "fps", "frame_count", "graph", "frames"):
+        if k not in d:
+            raise SpineFormatError(f"missing key {k!r}")
+    if not isinstance(d["units"], str):
+        raise SpineFormatError("units must be a string")
+    if not (isinstance(d["fps"], (int, float)) and d["fps"] > 0):
+        raise SpineFormatError("fps must be a positive number")
+    g = d["graph"]
+    if not isinstance(g, dict) or not all(k in g for k in ("limbs", "junctions", "parents")):
+        raise SpineFormatError("graph must have limbs, junctions and parents")
+    limbs, juncs, parents = g["limbs"], g["junctions"], g["parents"]
+    names = list(limbs) + list(juncs)
+    if len(set(names)) != len(names) or not all(isinstance(n, str) for n in names):
+        raise SpineFormatError("limb and junction ids must be unique strings")
+    if set(parents) != set(names):
+        raise SpineFormatError("parents must name the parent of every limb and junction")
+    roots = [n for n, p in parents.items() if p is None]
+    if len(roots) != 1 or roots[0] not in juncs:
+        raise SpineFormatError("exactly one junction must be the root (parent null)")
+    for n, p in parents.items():
+        if p is not None and p not in juncs:
+            raise SpineFormatError(f"parent of {n!r} must be a junction, got {p!r}")
+    for n in names:  # acyclic
+        seen, x = set(), n
+        while x is not None:
+            if x in seen:
+                raise SpineFormatError(f"parents form a cycle through {x!r}")
+            seen.add(x)
+            x = parents[x]
+    frames = d["frames"]
+    if not isinstance(frames, list) or len(frames) != d["frame_count"]:
+        raise SpineFormatError("frames must be a list of frame_count entries")
+    last = None
+    for i, fr in enumerate(frames):
+        w = f"frames[{i}]"
+        if not isinstance(fr, dict) or "index" not in fr or "tips" not in fr or "axes" not in fr:
+            raise SpineFormatError(f"{w}: needs index, tips and axes")
+        if not isinstance(fr["index"], int) or (last is not None and fr["index"] <= last):
+            raise SpineFormatError(f"{w}: index must be an integer increasing with the take order")
+        last = fr["index"]
+        if set(fr["tips"]) != set(limbs):
+            raise SpineFormatError(f"{w}: tips must have one entry per limb")
+        for k, x in fr["tips"].items():
+            _check_point(x, f"{w}.tips.{k}")
+        for k, x in fr.get("junctions", {}).items():
+            if k not in juncs:
+                raise SpineFormatError(f"{w}.junctions: unknown junction {k!r}")
+            _check_point(x, f"{w}.junctions.{k}")
+        for k, a in fr["axes"].items():
+            if k not in parents or parents[k] is None:
+                raise SpineFormatError(f"{w}.axes: unknown limb {k!r}")
+            if a is None:
+                continue
+            if not isinstance(a, list) or len(a) < 2:
+                raise SpineFormatError(f"{w}.axes.{k}: expected a polyline of >= 2 points or null")
+            for j, p in enumerate(a):
+                _check_point(p, f"{w}.axes.{k}[{j}]")
+                if p is None:
+                    raise SpineFormatError(f"{w}.axes.{k}[{j}]: null point inside a polyline")
+        for k in limbs:
+            if (fr["tips"][k] is None) != (fr["axes"].get(k) is None) and fr["axes"].get(k) is not None:
+                raise SpineFormatError(f"{w}: limb {k!r} has an axis but no tip")
+
+
+def write_spine(path, spine: Spine) -> Path:
+    """Write ``spine.json`` (``capture-stage/spine@1``); returns the path."""
+    if not isinstance(spine, Spine):
+        raise ValueError(f"spine must be a Spine, got {type(spine).__name__}")
+    d = spine.to_dict()
+    validate_spine_dict(d)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(d, separators=(",", ":"), allow_nan=False))
+    tmp.replace(path)
+    return path
+
+
+def read_spine(path) -> Spine:
+    """Read and validate a ``spine.json``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"spine file not found: {path}")
+    try:
+        d = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise SpineFormatError(f"{path}: not JSON ({exc})") from exc
+    return Spine.from_dict(d)

@@ -1,0 +1,61 @@
+"""``stage import``: build a take from another rig's images or videos and its calibration."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+ORDER = 21
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "import",
+        help="build a take from another rig's footage (image folders, videos or single images) and its calibration",
+        description="DIR holds one entry per camera, named as in the calibration: a folder of images "
+        "(sorted by name), a video file, or a single image (a Middlebury *_par.txt names its images "
+        "directly). The calibration may be aniposelib TOML ([cam_N] tables: name, size, matrix, "
+        "distortions, rotation as a Rodrigues vector, translation; world->camera), OpenCV YAML, "
+        "Middlebury *_par.txt or capture-stage JSON. JPEG files are stored as they are.",
+    )
+    p.add_argument("--images", required=True, type=Path, metavar="DIR", help="folder with one entry per camera")
+    p.add_argument("--calibration", required=True, type=Path, metavar="FILE", help="calibration file")
+    p.add_argument("--out", required=True, type=Path, metavar="TAKE.h5", help="take file to write")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate for the synthetic timestamps (default 30)")
+    p.add_argument("--storage", choices=("auto", "raw", "jpeg"), default="auto",
+                   help="auto (default): keep JPEG files as they are, raw otherwise")
+    p.add_argument("--compression", choices=("none", "lz4", "gzip"), default="none", help="filter for raw frames")
+    p.add_argument("--max-frames", type=int, metavar="N", help="import at most N frame sets")
+    p.add_argument("--overwrite", action="store_true", help="replace TAKE.h5 if it exists")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from stage.importer import import_take
+
+    bar = tqdm(unit="set", desc="import", dynamic_ncols=True)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        res = import_take(
+            args.images,
+            args.calibration,
+            args.out,
+            fps=args.fps,
+            storage=args.storage,
+            compression=args.compression,
+            overwrite=args.overwrite,
+            max_frames=args.max_frames,
+            progress=progress,
+        )
+    finally:
+        bar.close()
+    print(f"wrote {res.path}: {len(res.frames)} cameras, {res.sets} frame sets, calibration units {res.units!r}")
+    for c, n in res.frames.items():
+        print(f"  {c}: {n} frames ({res.storage[c]})")
+    return 0

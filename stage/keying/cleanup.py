@@ -1,0 +1,168 @@
+"""From a backdrop-distance image to a clean silhouette.
+
+1. *Soft matte*: linear between the thresholds ``t_lo`` (backdrop) and ``t_hi``
+   (solid foreground).
+2. *Coverage rule*: for a pixel mixing subject and backdrop the residual distance
+   is proportional to its coverage, so a candidate pixel must reach half of the
+   local maximum distance (a ``coverage_window`` square): the mask edge sits at 50 %
+   coverage whatever the subject's colour, and thin limb tips survive.
+3. *Hysteresis* (Canny 1986): candidate components (distance >= ``t_lo``) are kept
+   only if they contain a solid pixel (distance >= ``t_hi``) and are not smaller
+   than ``min_area`` of the image; backdrop holes below that size are filled.
+4. Optional closing (never opening, which would cut limb tips) and growing.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+__all__ = ["soft_matte", "mask_from_distance"]
+
+
+def soft_matte(distance: np.ndarray, *, t_lo: float, t_hi: float) -> np.ndarray:
+    """(H, W) uint8 matte: 0 at ``distance <= t_lo``, 255 at ``distance >= t_hi``, linear between."""
+    scale = 255.0 / (t_hi - t_lo)
+    return cv2.addWeighted(distance, scale, distance, 0.0, -t_lo * scale, dtype=cv2.CV_8U)
+
+
+def _disk(radius: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def _select_labels(labels: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Boolean mask of the pixels whose label is in ``keep`` (label ids)."""
+    if keep.size == 0:
+        return np.zeros(labels.shape, bool)
+    if keep.size <= 4:  # OpenCV compares release the GIL (worker threads scale)
+        out = cv2.compare(labels, float(keep[0]), cv2.CMP_EQ)
+        for k in keep[1:]:
+            out = cv2.bitwise_or(out, cv2.compare(labels, float(k), cv2.CMP_EQ))
+        return out.view(bool)
+    lut = np.zeros(int(labels.max()) + 1, bool)
+    lut[keep] = True
+    return lut[labels]
+
+
+def mask_from_distance(
+    distance: np.ndarray,
+    *,
+    t_lo: float,
+    t_hi: float,
+    min_area: float,
+    close_radius: int = 0,
+    grow: int = 0,
+    coverage_window: int = 3,
+    coverage_fraction: float = 0.5,
+) -> tuple[np.ndarray, dict[str, float]]:
+    """Silhouette from a backdrop-distance image.
+
+    Parameters
+    ----------
+    distance : (H, W) float32 ndarray
+        Backdrop distance in units of the backdrop spread (0 = backdrop).
+    t_lo, t_hi : float
+        Candidate and solid thresholds.
+    min_area : float
+        Minimum component (and hole) size as a fraction of the image.
+    close_radius, grow : int
+        Closing radius and final dilation in pixels.
+    coverage_window : int
+        Odd window side for the 50 %-coverage rule (1 disables it).
+
+    Returns
+    -------
+    mask : (H, W) bool ndarray
+    stats : dict
+        ``components_dropped``, ``holes_filled``.
+    """
+    h, w = distance.shape
+    min_px = max(1, int(round(min_area * h * w)))
+    # OpenCV comparisons (uint8 0/255, no GIL) rather than NumPy boolean arrays
+    cand8 = cv2.compare(distance, float(t_lo), cv2.CMP_GE)
+    if coverage_window > 1:
+        local = cv2.dilate(distance, np.ones((coverage_window, coverage_window), np.uint8))
+        cand8 = cv2.bitwise_and(cand8, cv2.compare(distance, cv2.multiply(local, float(coverage_fraction)), cv2.CMP_GE))
+    if close_radius > 0:
+        cand8 = cv2.morphologyEx(cand8, cv2.MORPH_CLOSE, _disk(close_radius))
+    seeds8 = cv2.bitwise_and(cand8, cv2.compare(distance, float(t_hi), cv2.CMP_GE))
+    # labels without stats (the stats pass costs more than the labelling itself);
+    # areas and seed counts from the bounding box of the candidates only
+    n, labels = cv2.connectedComponents(cand8, connectivity=8, ltype=cv2.CV_32S)
+    if n > 1:
+        x, y, bw, bh = cv2.boundingRect(cand8)
+        lab_roi = labels[y : y + bh, x : x + bw]
+        area = np.bincount(lab_roi.ravel(), minlength=n)
+        seeds = np.bincount(lab_roi[seeds8[y : y + bh, x : x + bw] != 0], minlength=n)
+        ok = (area >= min_px) & (seeds > 0)
+        ok[0] = False
+    else:
+        ok = np.zeros(1, bool)
+    keep = np.flatnonzero(ok).astype(np.int32)
+    dropped = int(n - 1 - keep.size)
+    mask = _select_labels(labels, keep)
+    holes = 0
+    if keep.size and min_px > 1:
+        x, y, bw, bh = cv2.boundingRect(mask.view(np.uint8))
+        roi = mask[y : y + bh, x : x + bw]
+        n2, lab2 = cv2.connectedComponents((~roi).view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
+        if n2 > 1:
+            area2 = np.bincount(lab2[~roi], minlength=n2)
+            border = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
+            small = area2 < min_px
+            small[0] = False
+            small[border] = False
+            fill = np.flatnonzero(small).astype(np.int32)
+            if fill.size:
+                roi |= _select_labels(lab2, fill)
+                holes = int(fill.size)
+    if grow > 0:
+        mask = cv2.dilate(mask.view(np.uint8), _disk(grow)).view(bool)
+    return mask, {"components_dropped": float(dropped), "holes_filled": float(holes)}
+
+
+def estimate_coverage_fraction(
+    distances: list[np.ndarray], *, t_lo: float, t_hi: float, coverage_window: int, default: float = 0.5
+) -> float:
+    """The coverage rule's fraction, from the edge statistics of a few frames.
+
+    Near a solid pixel (distance >= ``t_hi``) the ratio ``rho = distance / local
+    max`` of the other pixels is bimodal: backdrop pixels that only pick up blur
+    and bleeding from the subject (low ``rho``, set by the optics) and the
+    subject's own pixels (high ``rho``, lowered by spill and shading). The
+    fraction is the minimum of the smoothed ``rho`` histogram between the
+    backdrop-side mode and 0.5 (Prewitt & Mendelsohn 1966); with ideal box-filter
+    mixing there is no backdrop mode below 0.5 and the result is 0.5.
+
+    Returns
+    -------
+    float
+        In [0.1, 0.5]; ``default`` when the frames have too few edge pixels.
+    """
+    if coverage_window <= 1:
+        return default
+    bins = 40
+    top = 0.6
+    hist = np.zeros(bins)
+    kernel = np.ones((coverage_window, coverage_window), np.uint8)
+    for d in distances:
+        local = cv2.dilate(d, kernel)
+        sel = (d >= t_lo) & (local >= t_hi) & (d < local)
+        rho = d[sel] / local[sel]
+        rho = rho[rho < top]
+        hist += np.bincount((rho / top * bins).astype(int), minlength=bins)[:bins]
+    if hist.sum() < 100:
+        return default
+    from scipy.ndimage import gaussian_filter1d
+
+    smooth = gaussian_filter1d(hist, 1.5, mode="nearest")
+    centers = (np.arange(bins) + 0.5) / bins * top
+    upto = int(np.searchsorted(centers, 0.5))
+    # the backdrop-side mode: the first local maximum holding a fair share of the counts
+    floor = 0.25 * smooth[:upto].max()
+    mode = next(
+        (i for i in range(1, upto) if smooth[i] >= floor and smooth[i] >= smooth[i - 1] and smooth[i] >= smooth[i + 1]),
+        0,
+    )
+    valley = mode + int(np.argmin(smooth[mode : upto + 1]))
+    return float(np.clip(centers[min(valley, bins - 1)], 0.1, 0.5))

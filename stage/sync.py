@@ -1,0 +1,669 @@
+"""Group frames of several free-running cameras into frame sets by timestamp.
+
+Every camera stamps its frames on its own clock. Each frame also carries the
+host's ``time.monotonic_ns()`` at reception, so the offset of a device clock
+to the host clock is the (robust) median of ``host - device`` over a short
+sliding window of that camera's frames; the window follows slow clock drift
+and the median ignores transport hiccups. A frame's *mapped time* is
+``device + offset`` on the host clock; cameras are compared there.
+
+Frame sets tile time in windows ``[T_k - tol, T_k + tol)``, spaced one frame
+period apart. ``T_0`` is the centre of the first frames of all cameras; after
+each set, ``T_{k+1} = T_k + period + gain * median(member times - T_k)``, a
+phase-locked loop that keeps the windows centred on the cameras. A camera
+contributes to a set the one frame nearest ``T_k`` inside the window; a camera
+with no frame there is recorded as *missing* (never filled with a duplicate),
+and every frame is used at most once. Frames that fall in no window (outside
+the tolerance, a second frame of one camera in one window, or arriving after
+their set was emitted on timeout) are counted as *unused*.
+
+The default tolerance is half a frame period, so the windows cover time
+without gaps: a set's frames lie within ``tol`` of the set time, i.e. within
+one period of each other (free-running webcams have arbitrary phases).
+
+Two implementations of the same rule: :class:`StreamGrouper` (push frames as
+they arrive, get sets as soon as they are decided or timed out; used by live
+capture) and :func:`group_frames` (all frames at once; vectorized offsets,
+used by tests and imports). They agree exactly when no set times out.
+
+This module is pure: no I/O, no clocks read (the caller passes ``now_ns``).
+Brostow et al. 2004 (``/work/shared/papers/brostow2004-spines.txt``) assume
+synchronized views of one instant; this is what makes a frame set one instant.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Generic, Iterable, Mapping, NamedTuple, Sequence, TypeVar
+
+import numpy as np
+
+__all__ = [
+    "Stamp",
+    "FrameSet",
+    "CameraSyncStats",
+    "SyncStats",
+    "StreamGrouper",
+    "group_frames",
+    "estimate_period_ns",
+]
+
+T = TypeVar("T")
+
+
+class Stamp(NamedTuple):
+    """Minimal frame-like record (the attributes :class:`~stage.frame.Frame` has)."""
+
+    camera_id: str
+    index: int
+    timestamp_ns: int
+    host_timestamp_ns: int
+
+
+@dataclass(frozen=True)
+class FrameSet(Generic[T]):
+    """Frames of one instant, one (or none) per camera.
+
+    Attributes
+    ----------
+    index : int
+        Set number, 0, 1, 2 ... in time order.
+    time_ns : int
+        Window centre ``T_k`` on the host monotonic clock.
+    frames : dict of str -> frame or None
+        Every camera of the grouper; ``None`` = missing in this set.
+    times_ns : dict of str -> int
+        Mapped (host-clock) time of every present frame.
+    """
+
+    index: int
+    time_ns: int
+    frames: dict[str, T | None]
+    times_ns: dict[str, int]
+
+    @property
+    def missing(self) -> list[str]:
+        return [c for c, f in self.frames.items() if f is None]
+
+    @property
+    def complete(self) -> bool:
+        return all(f is not None for f in self.frames.values())
+
+    @property
+    def spread_ns(self) -> int:
+        """Max - min mapped time of the present frames (0 with fewer than two)."""
+        if len(self.times_ns) < 2:
+            return 0
+        v = list(self.times_ns.values())
+        return int(max(v) - min(v))
+
+
+@dataclass
+class CameraSyncStats:
+    """Per-camera counters.
+
+    ``missing``: sets without this camera; ``sequence_gaps``: frames the device
+    itself reported as skipped (jumps in its sequence numbers); ``unused``:
+    frames delivered but not placed in any set; ``offset_ns``: last estimated
+    device -> host clock offset.
+    """
+
+    frames: int = 0
+    missing: int = 0
+    sequence_gaps: int = 0
+    unused: int = 0
+    offset_ns: int = 0
+
+    @property
+    def drops(self) -> int:
+        """Frames lost for this camera in the take: sets where it is missing."""
+        return self.missing
+
+
+@dataclass
+class SyncStats:
+    """Synchronization statistics of a take.
+
+    ``spread_median_ms`` / ``spread_max_ms``: inter-camera spread (max - min
+    mapped time) over sets with at least two frames.
+    """
+
+    cameras: dict[str, CameraSyncStats]
+    sets: int = 0
+    sets_complete: int = 0
+    spread_median_ms: float = 0.0
+    spread_max_ms: float = 0.0
+    period_ns: int = 0
+    tolerance_ns: int = 0
+
+    @property
+    def sets_incomplete(self) -> int:
+        return self.sets - self.sets_complete
+
+    @property
+    def drops(self) -> dict[str, int]:
+        return {c: s.drops for c, s in self.cameras.items()}
+
+    def to_dict(self) -> dict:
+        return {
+            "sets": self.sets,
+            "sets_complete": self.sets_complete,
+            "sets_incomplete": self.sets_incomplete,
+            "spread_median_ms": self.spread_median_ms,
+            "spread_max_ms": self.spread_max_ms,
+            "period_ns": self.period_ns,
+            "tolerance_ns": self.tolerance_ns,
+            "cameras": {
+                c: {
+                    "frames": s.frames,
+                    "missing": s.missing,
+                    "sequence_gaps": s.sequence_gaps,
+                    "unused": s.unused,
+                    "offset_ns": s.offset_ns,
+                }
+                for c, s in self.cameras.items()
+            },
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "SyncStats":
+        cams = {c: CameraSyncStats(**{k: int(v) for k, v in d.items()}) for c, d in data.get("cameras", {}).items()}
+        return cls(
+            cameras=cams,
+            sets=int(data.get("sets", 0)),
+            sets_complete=int(data.get("sets_complete", 0)),
+            spread_median_ms=float(data.get("spread_median_ms", 0.0)),
+            spread_max_ms=float(data.get("spread_max_ms", 0.0)),
+            period_ns=int(data.get("period_ns", 0)),
+            tolerance_ns=int(data.get("tolerance_ns", 0)),
+        )
+
+
+class _StatsAccumulator:
+    def __init__(self, cameras: Sequence[str], period_ns: int, tolerance_ns: int) -> None:
+        self.cams = {c: CameraSyncStats() for c in cameras}
+        self.sets = 0
+        self.complete = 0
+        self.spreads: list[int] = []
+        self.period_ns = period_ns
+        self.tolerance_ns = tolerance_ns
+
+    def add_set(self, fs: FrameSet) -> None:
+        self.sets += 1
+        if fs.complete:
+            self.complete += 1
+        for c, f in fs.frames.items():
+            if f is None:
+                self.cams[c].missing += 1
+        if len(fs.times_ns) >= 2:
+            self.spreads.append(fs.spread_ns)
+
+    def snapshot(self) -> SyncStats:
+        sp = np.asarray(self.spreads, dtype=np.float64) / 1e6
+        return SyncStats(
+            cameras={c: CameraSyncStats(**vars(s)) for c, s in self.cams.items()},
+            sets=self.sets,
+            sets_complete=self.complete,
+            spread_median_ms=float(np.median(sp)) if sp.size else 0.0,
+            spread_max_ms=float(sp.max()) if sp.size else 0.0,
+            period_ns=int(self.period_ns),
+            tolerance_ns=int(self.tolerance_ns),
+        )
+
+
+def _check_common(cameras: Sequence[str], period_ns: int | None, tolerance_ns: int | None, window: int, gain: float, clock: str) -> tuple[list[str], int | None, int | None]:
+    cams = list(cameras)
+    if not cams or not all(isinstance(c, str) and c for c in cams):
+        raise ValueError("cameras must be a non-empty sequence of camera ids")
+    if len(set(cams)) != len(cams):
+        raise ValueError(f"cameras: duplicate camera ids in {cams}")
+    if period_ns is not None and (not np.isfinite(period_ns) or period_ns <= 0):
+        raise ValueError(f"period_ns must be positive, got {period_ns}")
+    if tolerance_ns is not None and (not np.isfinite(tolerance_ns) or tolerance_ns <= 0):
+        raise ValueError(f"tolerance_ns must be positive, got {tolerance_ns}")
+    if int(window) < 1:
+        raise ValueError(f"window must be >= 1, got {window}")
+    if not 0.0 <= gain <= 1.0:
+        raise ValueError(f"gain must be in [0, 1], got {gain}")
+    if clock not in ("per-camera", "shared", "device"):
+        raise ValueError(f"clock must be 'per-camera', 'shared' or 'device', got {clock!r}")
+    return cams, (None if period_ns is None else int(period_ns)), (None if tolerance_ns is None else int(tolerance_ns))
+
+
+def estimate_period_ns(device_ns: Iterable[np.ndarray]) -> int:
+    """Frame period from device timestamps: median positive difference over all cameras.
+
+    Parameters
+    ----------
+    device_ns : iterable of (N_c,) int ndarray
+        Device timestamps of each camera, in capture order.
+    """
+    diffs = [np.diff(np.asarray(d, dtype=np.int64)) for d in device_ns]
+    diffs = [d[d > 0] for d in diffs if d.size]
+    if not diffs or not sum(d.size for d in diffs):
+        raise ValueError("need at least two frames of one camera to estimate the frame period")
+    return int(np.median(np.concatenate(diffs)))
+
+
+def _median_int(values: Sequence[int]) -> int:
+    return int(np.median(np.asarray(values, dtype=np.int64)))
+
+
+def _next_time(t: int, period: int, gain: float, residuals: list[int]) -> int:
+    adj = gain * float(np.median(residuals)) if residuals else 0.0
+    return int(t + period + round(adj))
+
+
+# ---------------------------------------------------------------------------
+# streaming
+
+
+class _Cam:
+    __slots__ = ("raw", "lat", "first_lat", "queue", "closed", "ready", "n", "last_seq", "first_host")
+
+    def __init__(self, window: int) -> None:
+        self.raw: list[tuple[int, int, Any]] = []  # (device, host, item) before the offset is known
+        self.lat: deque[int] = deque(maxlen=window)
+        self.first_lat: list[int] = []  # host - device of the first `window` frames
+        self.queue: deque[tuple[int, Any, int]] = deque()  # (mapped time, item, device time)
+        self.closed = False
+        self.ready = False
+        self.n = 0
+        self.last_seq: int | None = None
+        self.first_host: int | None = None
+
+
+class StreamGrouper(Generic[T]):
+    """Streaming frame-set grouper for live capture.
+
+    Push frames in the order they arrive (per camera in capture order; cameras
+    interleaved arbitrarily), then collect the sets that are decided::
+
+        g = StreamGrouper(["a", "b"], period_ns=33_333_333)
+        for frame in incoming:
+            for fs in g.push(frame, now_ns=time.monotonic_ns()):
+                store(fs)
+        for fs in g.finish():
+            store(fs)
+
+    A set is emitted once every camera has delivered a frame past its window,
+    is closed (:meth:`close_camera`), or ``timeout_ns`` has passed on the host
+    clock since the window ended (then the late camera is recorded missing).
+
+    Parameters
+    ----------
+    cameras : sequence of str
+        Camera ids, in rig order.
+    period_ns : int or None
+        Nominal frame period; ``None`` estimates it from the first ``window``
+        frames of each camera.
+    tolerance_ns : int or None
+        Half-width of a set's window; default half a period.
+    window : int
+        Frames per camera in the sliding median of ``host - device``.
+    gain : float
+        Phase-locked-loop gain in [0, 1] for re-centring the windows.
+    clock : {"per-camera", "shared", "device"}
+        ``per-camera``: each device clock has its own offset (default);
+        ``shared``: the devices share one clock (one offset, from all cameras);
+        ``device``: device timestamps are already on the host clock.
+    timeout_ns : int or None
+        How long after a window ends to wait for a late camera; default
+        ``4 * period``. Only :meth:`poll` / ``push(now_ns=...)`` use it.
+    """
+
+    def __init__(
+        self,
+        cameras: Sequence[str],
+        *,
+        period_ns: int | None = None,
+        tolerance_ns: int | None = None,
+        window: int = 15,
+        gain: float = 0.5,
+        clock: str = "per-camera",
+        timeout_ns: int | None = None,
+    ) -> None:
+        cams, period, tol = _check_common(cameras, period_ns, tolerance_ns, window, gain, clock)
+        if timeout_ns is not None and timeout_ns < 0:
+            raise ValueError(f"timeout_ns must be >= 0, got {timeout_ns}")
+        self.cameras = cams
+        self._period = period
+        self._tol = tol
+        self._window = int(window)
+        self._gain = float(gain)
+        self._clock = clock
+        self._timeout = timeout_ns
+        self._cams = {c: _Cam(self._window) for c in cams}
+        self._T: int | None = None
+        self._next_index = 0
+        self._acc: _StatsAccumulator | None = None
+        self._shared_offset: int | None = None
+        self._pending_gaps = {c: 0 for c in cams}
+        self._pending_counts = {c: 0 for c in cams}
+        self._pending_unused = {c: 0 for c in cams}
+
+    # -- properties ---------------------------------------------------------
+    @property
+    def period_ns(self) -> int | None:
+        return self._period
+
+    @property
+    def tolerance_ns(self) -> int | None:
+        return self._tol
+
+    def missing_total(self) -> int:
+        """Camera slots missing in the sets emitted so far (cheap; for progress bars)."""
+        return sum(s.missing for s in self._acc.cams.values()) if self._acc is not None else 0
+
+    def stats(self) -> SyncStats:
+        """Statistics of the sets emitted so far."""
+        acc = self._acc or _StatsAccumulator(self.cameras, self._period or 0, self._tol or 0)
+        snap = acc.snapshot()
+        for c in self.cameras:
+            s = snap.cameras[c]
+            s.frames = self._pending_counts[c]
+            s.sequence_gaps = self._pending_gaps[c]
+            s.unused = self._pending_unused[c]
+        return snap
+
+    # -- input --------------------------------------------------------------
+    def push(self, frame: Any, *, now_ns: int | None = None) -> list[FrameSet[T]]:
+        """Add one frame (anything with ``camera_id``, ``index``, ``timestamp_ns``,
+        ``host_timestamp_ns``); return the sets decided by it (maybe none)."""
+        cid = getattr(frame, "camera_id", None)
+        if cid not in self._cams:
+            raise ValueError(f"frame.camera_id {cid!r} is not one of the grouper's cameras {self.cameras}")
+        cam = self._cams[cid]
+        if cam.closed:
+            raise ValueError(f"camera {cid!r} was closed; it cannot deliver more frames")
+        dev = int(frame.timestamp_ns)
+        host = int(frame.host_timestamp_ns)
+        seq = int(frame.index)
+        if cam.last_seq is not None and seq > cam.last_seq + 1:
+            self._pending_gaps[cid] += seq - cam.last_seq - 1
+        cam.last_seq = seq if cam.last_seq is None else max(seq, cam.last_seq)
+        self._pending_counts[cid] += 1
+        if cam.first_host is None:
+            cam.first_host = host
+        cam.n += 1
+        cam.lat.append(host - dev)
+        if len(cam.first_lat) < self._window:
+            cam.first_lat.append(host - dev)
+        if self._clock == "device":
+            cam.ready = True
+            cam.queue.append((dev, frame, dev))
+        elif cam.ready:
+            cam.queue.append((dev + self._offset(cam), frame, dev))
+        else:
+            cam.raw.append((dev, host, frame))
+            if cam.n >= self._window:
+                self._make_ready(cam)
+        return self._emit(now_ns)
+
+    def close_camera(self, camera_id: str, *, now_ns: int | None = None) -> list[FrameSet[T]]:
+        """The camera delivers no more frames (disconnected or stopped)."""
+        if camera_id not in self._cams:
+            raise ValueError(f"camera_id {camera_id!r} is not one of the grouper's cameras {self.cameras}")
+        cam = self._cams[camera_id]
+        if not cam.closed:
+            cam.closed = True
+            if not cam.ready:
+                self._make_ready(cam)
+        return self._emit(now_ns)
+
+    def poll(self, now_ns: int) -> list[FrameSet[T]]:
+        """Emit sets whose wait for late cameras has timed out at host time ``now_ns``."""
+        return self._emit(int(now_ns))
+
+    def finish(self) -> list[FrameSet[T]]:
+        """No more frames from anyone: emit every remaining set."""
+        out: list[FrameSet[T]] = []
+        for c in self.cameras:
+            out += self.close_camera(c)
+        return out
+
+    # -- internals ----------------------------------------------------------
+    def _offset(self, cam: _Cam) -> int:
+        if self._clock == "shared":
+            return self._shared_offset if self._shared_offset is not None else _median_int(cam.lat)
+        return _median_int(cam.lat)
+
+    def _make_ready(self, cam: _Cam) -> None:
+        cam.ready = True
+        if not cam.raw:
+            return
+        off = self._shared_offset if self._shared_offset is not None else _median_int(cam.first_lat)
+        for dev, _host, item in cam.raw:
+            cam.queue.append((dev + off, item, dev))
+        cam.raw = []
+
+    def _all_started(self, now_ns: int | None) -> bool:
+        for cam in self._cams.values():
+            if cam.ready or cam.closed:
+                continue
+            if now_ns is not None and self._timeout_for_start(cam, now_ns):
+                self._make_ready(cam)
+                continue
+            return False
+        return True
+
+    def _timeout_for_start(self, cam: _Cam, now_ns: int) -> bool:
+        first = min((c.first_host for c in self._cams.values() if c.first_host is not None), default=None)
+        if first is None or self._period is None:
+            return False
+        limit = self._window * self._period + self._timeout_ns()
+        return now_ns - first > limit
+
+    def _timeout_ns(self) -> int:
+        if self._timeout is not None:
+            return self._timeout
+        return 4 * (self._period or 33_333_333)
+
+    def _start(self) -> bool:
+        if self._clock == "shared" and self._shared_offset is None:
+            # rebase everything on one common offset (median over all cameras)
+            lats = [v for cam in self._cams.values() for v in cam.first_lat]
+            if lats:
+                self._shared_offset = _median_int(lats)
+                for cam in self._cams.values():
+                    cam.queue = deque((d + self._shared_offset, it, d) for _t, it, d in cam.queue)
+        if self._period is None:
+            devs = []
+            for cam in self._cams.values():
+                devs.append(np.array([t for t, _it, _d in cam.queue][: self._window], dtype=np.int64))
+            try:
+                self._period = estimate_period_ns(devs)
+            except ValueError:
+                return False
+        if self._tol is None:
+            self._tol = self._period // 2
+        heads = [cam.queue[0][0] for cam in self._cams.values() if cam.queue]
+        if not heads:
+            return False
+        self._T = _initial_time(heads, self._period)
+        self._acc = _StatsAccumulator(self.cameras, self._period, self._tol)
+        return True
+
+    def _emit(self, now_ns: int | None) -> list[FrameSet[T]]:
+        out: list[FrameSet[T]] = []
+        if self._T is None:
+            if not self._all_started(now_ns) or not self._start():
+                return out
+        assert self._T is not None and self._tol is not None and self._period is not None
+        while True:
+            T = self._T
+            lo, hi = T - self._tol, T + self._tol
+            # frames before the window can never be used
+            for c, cam in self._cams.items():
+                while cam.queue and cam.queue[0][0] < lo:
+                    cam.queue.popleft()
+                    self._pending_unused[c] += 1
+            heads = [cam.queue[0][0] for cam in self._cams.values() if cam.queue]
+            if not heads:
+                return out
+            hmin = min(heads)
+            if hmin >= hi:
+                # skip empty windows (everyone dropped, or a pause)
+                skip = max(1, (hmin - lo) // self._period)
+                self._T = T + int(skip) * self._period
+                continue
+            # decided?
+            for cam in self._cams.values():
+                if cam.closed and cam.ready:
+                    continue
+                if cam.queue and cam.queue[-1][0] >= hi:
+                    continue
+                if now_ns is not None and now_ns >= hi + self._timeout_ns():
+                    continue
+                return out
+            frames: dict[str, Any] = {}
+            times: dict[str, int] = {}
+            for c, cam in self._cams.items():
+                cand = []
+                while cam.queue and cam.queue[0][0] < hi:
+                    cand.append(cam.queue.popleft())
+                frames[c] = None
+                if cand:
+                    best = min(range(len(cand)), key=lambda i: (abs(cand[i][0] - T), i))
+                    frames[c] = cand[best][1]
+                    times[c] = cand[best][0]
+                    self._pending_unused[c] += len(cand) - 1
+            fs = FrameSet(index=self._next_index, time_ns=int(T), frames=frames, times_ns=times)
+            self._next_index += 1
+            assert self._acc is not None
+            self._acc.add_set(fs)
+            for c, cam in self._cams.items():
+                if cam.lat:
+                    self._acc.cams[c].offset_ns = self._shared_offset if self._clock == "shared" and self._shared_offset is not None else (0 if self._clock == "device" else _median_int(cam.lat))
+            out.append(fs)
+            self._T = _next_time(T, self._period, self._gain, [t - T for t in times.values()])
+
+
+def _initial_time(heads: Sequence[int], period: int) -> int:
+    """Centre of the first frames within one period of the earliest."""
+    h = np.sort(np.asarray(heads, dtype=np.int64))
+    first = h[h < h[0] + period]
+    return int((int(first[0]) + int(first[-1])) // 2)
+
+
+# ---------------------------------------------------------------------------
+# batch
+
+
+def group_frames(
+    frames: Iterable[Any],
+    cameras: Sequence[str] | None = None,
+    *,
+    period_ns: int | None = None,
+    tolerance_ns: int | None = None,
+    window: int = 15,
+    gain: float = 0.5,
+    clock: str = "per-camera",
+) -> tuple[list[FrameSet], SyncStats]:
+    """Group a whole recording into frame sets (same rule as :class:`StreamGrouper`).
+
+    Parameters
+    ----------
+    frames : iterable of frame-like
+        Objects with ``camera_id``, ``index``, ``timestamp_ns``,
+        ``host_timestamp_ns`` (e.g. :class:`~stage.frame.Frame` or
+        :class:`Stamp`), per camera in capture order.
+    cameras : sequence of str, optional
+        Camera ids in rig order; default: in order of first appearance.
+    period_ns, tolerance_ns, window, gain, clock
+        As in :class:`StreamGrouper`.
+
+    Returns
+    -------
+    sets : list of FrameSet
+    stats : SyncStats
+    """
+    items = list(frames)
+    if cameras is None:
+        seen: dict[str, None] = {}
+        for f in items:
+            seen.setdefault(getattr(f, "camera_id", None), None)
+        cameras = [c for c in seen if c is not None]
+        if not cameras:
+            raise ValueError("frames is empty and no cameras were given")
+    cams, period, tol = _check_common(cameras, period_ns, tolerance_ns, window, gain, clock)
+    per: dict[str, list[Any]] = {c: [] for c in cams}
+    for f in items:
+        cid = getattr(f, "camera_id", None)
+        if cid not in per:
+            raise ValueError(f"frame camera_id {cid!r} is not one of the cameras {cams}")
+        per[cid].append(f)
+    dev = {c: np.array([int(f.timestamp_ns) for f in per[c]], dtype=np.int64) for c in cams}
+    host = {c: np.array([int(f.host_timestamp_ns) for f in per[c]], dtype=np.int64) for c in cams}
+    seqs = {c: np.array([int(f.index) for f in per[c]], dtype=np.int64) for c in cams}
+    # offsets: median of host - device over the window ending at max(j, window-1)
+    offsets: dict[str, np.ndarray] = {}
+    for c in cams:
+        lat = host[c] - dev[c]
+        n = lat.size
+        if n == 0 or clock == "device":
+            offsets[c] = np.zeros(n, dtype=np.int64)
+            continue
+        w = min(window, n)
+        off = np.empty(n, dtype=np.int64)
+        off[:w] = int(np.median(lat[:w]))
+        if n > window:
+            sw = np.lib.stride_tricks.sliding_window_view(lat, window)  # (n-window+1, window)
+            off[window - 1 :] = np.median(sw, axis=1).astype(np.int64)
+        offsets[c] = off
+    if clock == "shared":
+        firsts = np.concatenate([(host[c] - dev[c])[: min(window, dev[c].size)] for c in cams])
+        shared = int(np.median(firsts)) if firsts.size else 0
+        offsets = {c: np.full(dev[c].size, shared, dtype=np.int64) for c in cams}
+    mapped = {c: dev[c] + offsets[c] for c in cams}
+    if period is None:
+        period = estimate_period_ns([mapped[c][:window] for c in cams])
+    if tol is None:
+        tol = period // 2
+    acc = _StatsAccumulator(cams, period, tol)
+    for c in cams:
+        s = acc.cams[c]
+        s.frames = int(dev[c].size)
+        if seqs[c].size > 1:
+            running_max = np.maximum.accumulate(seqs[c])
+            jumps = seqs[c][1:] - running_max[:-1] - 1
+            s.sequence_gaps = int(jumps[jumps > 0].sum())
+        s.offset_ns = int(offsets[c][-1]) if offsets[c].size else 0
+    heads = [int(mapped[c][0]) for c in cams if mapped[c].size]
+    sets: list[FrameSet] = []
+    if not heads:
+        return sets, acc.snapshot()
+    ptr = {c: 0 for c in cams}
+    Tk = _initial_time(heads, period)
+    while True:
+        lo, hi = Tk - tol, Tk + tol
+        starts = {c: int(np.searchsorted(mapped[c], lo, side="left")) for c in cams}
+        for c in cams:
+            if starts[c] > ptr[c]:
+                acc.cams[c].unused += starts[c] - ptr[c]
+                ptr[c] = starts[c]
+        remaining = [int(mapped[c][ptr[c]]) for c in cams if ptr[c] < mapped[c].size]
+        if not remaining:
+            break
+        hmin = min(remaining)
+        if hmin >= hi:
+            Tk = Tk + max(1, int((hmin - lo) // period)) * period
+            continue
+        members: dict[str, Any] = {}
+        times: dict[str, int] = {}
+        for c in cams:
+            end = int(np.searchsorted(mapped[c], hi, side="left"))
+            members[c] = None
+            if end > ptr[c]:
+                seg = mapped[c][ptr[c] : end]
+                j = int(np.argmin(np.abs(seg - Tk)))
+                members[c] = per[c][ptr[c] + j]
+                times[c] = int(seg[j])
+                acc.cams[c].unused += int(end - ptr[c] - 1)
+                ptr[c] = end
+        fs = FrameSet(index=len(sets), time_ns=int(Tk), frames=members, times_ns=times)
+        sets.append(fs)
+        acc.add_set(fs)
+        Tk = _next_time(Tk, period, gain, [t - Tk for t in times.values()])
+    return sets, acc.snapshot()

@@ -1,0 +1,89 @@
+"""/calibrations: from a take's stored calibration or from board views (a job), downloads in three formats."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.formats import read_calibration
+from tests.api.conftest import AUTH, wait_job
+from tests.api.test_takes import _calibration
+from tests.api.fakework import make_take_file
+
+
+def _put(client, tmp_path, name, **kw):
+    src = make_take_file(tmp_path / f"{name}.h5", 2, **kw)
+    r = client.put(f"/takes/{name}", content=src.read_bytes(), headers={**AUTH, "Content-Type": "application/x-hdf5"})
+    assert r.status_code == 201, r.text
+
+
+def test_from_take_and_download_formats(client, tmp_path):
+    cal = _calibration(3)
+    _put(client, tmp_path, "board", cameras=3, calibration=cal)
+    r = client.post("/calibrations", json={"take": "board", "source": "take"}, headers=AUTH)
+    assert r.status_code == 201, r.text
+    cid = r.json()["id"]
+    assert r.json()["cameras"] == ["cam00", "cam01", "cam02"] and r.json()["take"] == "board"
+    assert [c["id"] for c in client.get("/calibrations").json()] == [cid]
+    for fmt in ("json", "toml", "yaml"):
+        d = client.get(f"/calibrations/{cid}.{fmt}")
+        assert d.status_code == 200, (fmt, d.text)
+        path = tmp_path / f"down.{fmt}"
+        path.write_bytes(d.content)
+        back = read_calibration(path)
+        assert back.names == cal.names
+        for a, b in zip(back, cal):
+            np.testing.assert_allclose(a.K, b.K, atol=1e-9)
+            np.testing.assert_allclose(a.R, b.R, atol=1e-9)
+            np.testing.assert_allclose(a.t, b.t, atol=1e-9)
+    assert client.delete(f"/calibrations/{cid}", headers=AUTH).status_code == 204
+    assert client.get(f"/calibrations/{cid}.json").status_code == 404
+
+
+def test_from_board_views_runs_a_job(client, tmp_path, monkeypatch):
+    import api.calibrations as mod
+
+    cal = _calibration(2)
+    seen = {}
+
+    def fake_calibrator(take, *, progress=None, cancel=None, board=None):
+        seen["board"] = board
+        progress("calibrate", 1, 1)
+        return cal
+
+    monkeypatch.setattr(mod, "_find_rig_calibrator", lambda: fake_calibrator)
+    _put(client, tmp_path, "b")
+    r = client.post("/calibrations", json={"take": "b", "parameters": {"board": "charuco"}}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    jid = r.json()["job"]
+    st = wait_job(client, jid)
+    assert st["state"] == "done" and st["kind"] == "calibrate", st
+    assert seen["board"] == "charuco"
+    got = client.get(f"/calibrations/{jid}.json").json()
+    assert [c["name"] for c in got["cameras"]] == ["cam00", "cam01"] and got["meta"]["source"] == "board"
+
+
+def test_invalid_input(client, tmp_path, monkeypatch):
+    import api.calibrations as mod
+    from api.errors import UnavailableError
+
+    _put(client, tmp_path, "nocal")
+    assert client.post("/calibrations", json={"take": "nocal", "source": "take"}).status_code == 401
+    assert client.post("/calibrations", json={"take": "nocal", "source": "take"},
+                       headers={"Authorization": "Bearer no"}).status_code == 403
+    r = client.post("/calibrations", json={"take": "nocal", "source": "take"}, headers=AUTH)
+    assert r.status_code == 404 and "no calibration" in r.json()["detail"]
+    assert client.post("/calibrations", json={"take": "zzz", "source": "take"}, headers=AUTH).status_code == 404
+    assert client.post("/calibrations", json={"take": "nocal", "source": "magic"}, headers=AUTH).status_code == 422
+
+    def missing():
+        raise UnavailableError("no calibrator")
+
+    monkeypatch.setattr(mod, "_find_rig_calibrator", missing)
+    assert client.post("/calibrations", json={"take": "nocal"}, headers=AUTH).status_code == 503
+    unknown = "1" * 32
+    assert client.get(f"/calibrations/{unknown}.json").status_code == 404
+    assert client.get(f"/calibrations/{unknown}.xml").status_code in (400, 422)
+    assert client.get("/calibrations/..%2Fjobs.json").status_code in (400, 404)
+    assert client.delete(f"/calibrations/{unknown}", headers=AUTH).status_code == 404
+    assert client.delete(f"/calibrations/{unknown}").status_code == 401

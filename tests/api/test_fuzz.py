@@ -1,0 +1,56 @@
+"""Schemathesis against the app's OpenAPI schema: no request it generates gets a 5xx (bounded in examples)."""
+
+from __future__ import annotations
+
+import pytest
+
+schemathesis = pytest.importorskip("schemathesis", reason="schemathesis is not installed (pip install schemathesis)")
+from hypothesis import HealthCheck, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from api.app import create_app  # noqa: E402
+from tests.api.conftest import AUTH, make_settings  # noqa: E402
+from tests.api.fakework import make_take_file  # noqa: E402
+from tests.api.test_rig import RIG, PatternCamera  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+# raw take uploads: random bytes, or something that starts like HDF5
+schemathesis.openapi.media_type(
+    "application/x-hdf5", st.binary(max_size=512) | st.binary(max_size=256).map(lambda b: b"\x89HDF\r\n\x1a\n" + b)
+)
+
+
+@pytest.fixture(scope="module")
+def api_app(tmp_path_factory):
+    data = tmp_path_factory.mktemp("fuzz") / "data"
+    (data / "takes").mkdir(parents=True)
+    make_take_file(data / "takes" / "take1.h5", 2, masks=True)
+    (data / "rig.toml").write_text(RIG)
+    app = create_app(make_settings(data, max_upload_bytes=1 << 16), work="tests.api.fakework:process_take",
+                     driver_factory=PatternCamera, start_runner=False)
+    yield app
+    cap = app.state.capture
+    if cap.busy:
+        cap.stop()
+        cap.wait(30)
+
+
+@pytest.fixture(scope="module")
+def api_schema(api_app):
+    return schemathesis.openapi.from_asgi("/openapi.json", api_app)
+
+
+schema = schemathesis.pytest.from_fixture("api_schema")
+
+
+@schema.parametrize()
+@settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+def test_no_server_errors(case):
+    response = case.call(headers=AUTH)
+    assert response.status_code < 500, (case.method, case.formatted_path, response.status_code, response.text[:300])
+    if response.status_code >= 400:
+        ctype = response.headers.get("content-type") or ""
+        ctype = ctype[0] if isinstance(ctype, list) else ctype
+        assert ctype.startswith("application/json"), ctype
+        assert "Traceback" not in response.text

@@ -1,0 +1,168 @@
+"""Jobs over the API with the fake work (contract of stage.process.process_take): create, status, SSE, cancel, results."""
+
+from __future__ import annotations
+
+import json
+
+from api.jobs.store import JobStore
+from tests.api.conftest import AUTH, add_take, wait_job
+
+
+def test_job_runs_to_done_with_progress_and_results(client, data_root):
+    add_take(data_root, "take1", frames=5)
+    r = client.post("/jobs", json={"take": "take1", "steps": ["key", "surface", "spine"]}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert r.headers["location"] == f"/jobs/{job['id']}"
+    assert job["state"] in ("queued", "running")
+    st = wait_job(client, job["id"])
+    assert st["state"] == "done", st
+    assert st["progress"] == {"key": {"done": 5, "total": 5}, "surface": {"done": 5, "total": 5},
+                              "spine": {"done": 5, "total": 5}}
+    assert st["done"] == st["total"] == 15
+    assert st["attempts"] == 1 and st["error"] is None
+    listing = client.get(f"/jobs/{job['id']}/results/").json()
+    assert listing["files"] == ["spine.json", "report.json"] and listing["meshes"] == [0, 1, 2, 3, 4]
+    spine = client.get(f"/jobs/{job['id']}/results/spine.json")
+    assert spine.status_code == 200 and len(spine.json()["frames"]) == 5
+    assert client.get(f"/jobs/{job['id']}/results/report.json").json()["frames"] == 5
+    ply = client.get(f"/jobs/{job['id']}/results/meshes/frame_000002.ply")
+    assert ply.status_code == 200 and ply.content.startswith(b"ply")
+    glb = client.get(f"/jobs/{job['id']}/results/meshes/2.glb")
+    assert glb.status_code == 200 and glb.content[:4] == b"glTF"
+    sg = client.get(f"/jobs/{job['id']}/results/spine.glb")
+    assert sg.status_code == 200 and sg.content[:4] == b"glTF"
+    assert client.get(f"/jobs/{job['id']}/results/meshes/frame_000009.ply").status_code == 404
+    # listed
+    assert [j["id"] for j in client.get("/jobs").json()] == [job["id"]]
+    assert client.get("/jobs", params={"state": "queued"}).json() == []
+
+
+def _parse_sse(text: str) -> list[dict]:
+    events = []
+    for block in text.strip().split("\n\n"):
+        ev = {}
+        for line in block.splitlines():
+            if line.startswith(":"):
+                continue
+            k, _, v = line.partition(": ")
+            ev[k] = v if k != "data" else json.loads(v)
+        if ev:
+            events.append(ev)
+    return events
+
+
+def test_sse_stream_and_resume_with_last_event_id(client, data_root):
+    add_take(data_root, "t", frames=4)
+    job = client.post("/jobs", json={"take": "t", "parameters": {"delay_s": 0.01}}, headers=AUTH).json()
+    with client.stream("GET", f"/jobs/{job['id']}/events") as r:
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
+        text = "".join(r.iter_text())
+    events = _parse_sse(text)
+    assert events[0]["event"] == "status"
+    prog = [e for e in events if e.get("event") == "progress"]
+    ids = [int(e["id"]) for e in prog]
+    assert ids == sorted(ids) and len(set(ids)) == len(ids)
+    assert ids[-1] == 12
+    for e in prog:
+        assert int(e["id"]) == e["data"]["done"]
+    assert events[-1]["event"] == "end" and events[-1]["data"]["state"] == "done"
+    # reconnect after id 6: only later events, then end
+    with client.stream("GET", f"/jobs/{job['id']}/events", headers={"Last-Event-ID": "6"}) as r:
+        again = _parse_sse("".join(r.iter_text()))
+    later = [int(e["id"]) for e in again if e.get("event") == "progress"]
+    assert later == [i for i in ids if i > 6]
+    assert again[-1]["event"] == "end"
+
+
+def test_cancel_running_and_queued(client, data_root):
+    add_take(data_root, "t", frames=40)
+    a = client.post("/jobs", json={"take": "t", "parameters": {"delay_s": 0.05}}, headers=AUTH).json()
+    b = client.post("/jobs", json={"take": "t"}, headers=AUTH).json()
+    wait_job(client, a["id"], states=("running",))
+    rb = client.post(f"/jobs/{b['id']}/cancel", headers=AUTH)
+    assert rb.status_code == 200 and rb.json()["state"] == "cancelled"
+    ra = client.post(f"/jobs/{a['id']}/cancel", headers=AUTH)
+    assert ra.status_code == 200 and ra.json()["cancel_requested"]
+    st = wait_job(client, a["id"])
+    assert st["state"] == "cancelled"
+    assert client.post(f"/jobs/{a['id']}/cancel", headers=AUTH).status_code == 409
+    # deleting a take in use is refused while a job is active; finished jobs can be deleted
+    assert client.delete(f"/jobs/{a['id']}", headers=AUTH).status_code == 204
+    assert client.get(f"/jobs/{a['id']}").status_code == 404
+    assert not (data_root / "jobs" / a["id"]).exists()
+
+
+def test_failed_job_reports_error(client, data_root):
+    (data_root / "takes").mkdir(parents=True, exist_ok=True)
+    (data_root / "takes" / "bad.h5").write_bytes(b"\x89HDF\r\n\x1a\nnot really")
+    job = client.post("/jobs", json={"take": "bad"}, headers=AUTH).json()
+    st = wait_job(client, job["id"])
+    assert st["state"] == "failed" and st["error"].startswith("take: not readable")
+    assert "Traceback" not in st["error"]
+
+
+def test_invalid_input(client, data_root):
+    add_take(data_root, "t", frames=2)
+    # auth
+    assert client.post("/jobs", json={"take": "t"}).status_code == 401
+    assert client.post("/jobs", json={"take": "t"}, headers={"Authorization": "Bearer nope"}).status_code == 403
+    assert client.post("/jobs", json={"take": "t"}, headers={"Authorization": "Basic abc"}).status_code == 401
+    # bad body
+    assert client.post("/jobs", json={"take": "../etc"}, headers=AUTH).status_code == 422
+    assert client.post("/jobs", json={"take": "t", "steps": ["fly"]}, headers=AUTH).status_code == 400
+    assert client.post("/jobs", json={"take": "t", "steps": []}, headers=AUTH).status_code == 400
+    r = client.post("/jobs", json={"take": "t", "parameters": {"delay_s": -1}}, headers=AUTH)
+    assert r.status_code == 400 and "delay_s" in r.json()["detail"]
+    assert client.post("/jobs", json={"take": "t", "parameters": {"nope": 1}}, headers=AUTH).status_code == 400
+    assert client.post("/jobs", json={"take": "t", "extra": 1}, headers=AUTH).status_code == 422
+    assert client.post("/jobs", json={"take": "missing"}, headers=AUTH).status_code == 404
+    # unknown / malformed ids
+    unknown = "0" * 32
+    for path in (f"/jobs/{unknown}", f"/jobs/{unknown}/events", f"/jobs/{unknown}/results/",
+                 f"/jobs/{unknown}/results/spine.json"):
+        assert client.get(path).status_code == 404, path
+    assert client.post(f"/jobs/{unknown}/cancel", headers=AUTH).status_code == 404
+    for bad in ("..", "abc", "%2e%2e%2fetc", "A" * 32):
+        assert client.get(f"/jobs/{bad}").status_code in (400, 404), bad
+    job = client.post("/jobs", json={"take": "t"}, headers=AUTH).json()
+    wait_job(client, job["id"])
+    for name in ("..%2Fjobs.sqlite", "%2e%2e", "secret.txt", "meshes/..%2F..%2Fjobs.sqlite"):
+        r = client.get(f"/jobs/{job['id']}/results/{name}")
+        assert r.status_code in (400, 404), (name, r.status_code)
+        assert b"SQLite" not in r.content
+    # errors are JSON with a message
+    r = client.get(f"/jobs/{unknown}")
+    assert r.headers["content-type"] == "application/json" and "no job" in r.json()["detail"]
+
+
+def test_read_protected(make_client, data_root):
+    c = make_client(read_protected=True)
+    assert c.get("/jobs").status_code == 401
+    assert c.get("/jobs", headers=AUTH).status_code == 200
+    assert c.get("/takes").status_code == 401
+    assert c.get("/health").status_code == 200
+
+
+def test_no_token_configured_refuses_writes(make_client, data_root):
+    c = make_client(api_token=None)
+    add_take(data_root, "t", frames=1)
+    r = c.post("/jobs", json={"take": "t"}, headers=AUTH)
+    assert r.status_code == 403 and "STAGE_API_TOKEN" in r.json()["detail"]
+    assert c.get("/jobs").status_code == 200
+
+
+def test_queued_jobs_survive_restart(make_client, data_root):
+    add_take(data_root, "t", frames=3)
+    # an app that only queues (runner off), then a new one on the same data root runs the job
+    from api.app import create_app
+    from fastapi.testclient import TestClient
+    from tests.api.conftest import make_settings
+
+    app = create_app(make_settings(data_root), work="tests.api.fakework:process_take", start_runner=False)
+    with TestClient(app) as c1:
+        jid = c1.post("/jobs", json={"take": "t"}, headers=AUTH).json()["id"]
+        assert c1.get(f"/jobs/{jid}").json()["state"] == "queued"
+    assert JobStore(data_root / "jobs.sqlite").get(jid).state == "queued"
+    c2 = make_client()
+    assert wait_job(c2, jid)["state"] == "done"

@@ -1,0 +1,139 @@
+"""/rig: cameras and state, capture by frames / duration, stop, previews (test drivers; no hardware)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from stage.drivers.base import CameraDisconnectedError, Granted
+from stage.frame import Frame
+from stage.store import TakeReader
+from tests.api.conftest import AUTH, make_settings
+
+RIG = """
+name = "testrig"
+fps = 50
+
+[[cameras]]
+id = "left"
+driver = "opencv"
+device = 0
+width = 32
+height = 24
+
+[[cameras]]
+id = "right"
+driver = "opencv"
+device = 1
+width = 32
+height = 24
+"""
+
+
+class PatternCamera:
+    """A driver that returns a known image per camera at the requested fps."""
+
+    def __init__(self, config, rig) -> None:
+        self.camera_id = config.id
+        self.w, self.h, self.fps = config.width, config.height, rig.fps
+        self.value = 40 if config.id == "left" else 200
+        self.i = 0
+        self.t0 = None
+
+    def open(self) -> None:
+        self.t0 = time.monotonic_ns()
+
+    def configure(self) -> Granted:
+        return Granted(self.w, self.h, self.fps)
+
+    def grab(self) -> Frame:
+        if self.t0 is None:
+            raise CameraDisconnectedError("not open")
+        t = self.t0 + int(self.i * 1e9 / self.fps)
+        delay = (t - time.monotonic_ns()) / 1e9
+        if delay > 0:
+            time.sleep(delay)
+        img = np.full((self.h, self.w, 3), self.value, np.uint8)
+        f = Frame(img, self.camera_id, self.i, t, t)
+        self.i += 1
+        return f
+
+    def close(self) -> None:
+        self.t0 = None
+
+
+@pytest.fixture
+def rig_client(data_root):
+    data_root.mkdir(parents=True, exist_ok=True)
+    (data_root / "rig.toml").write_text(RIG)
+    app = create_app(make_settings(data_root), work="tests.api.fakework:process_take", driver_factory=PatternCamera,
+                     start_runner=False)
+    with TestClient(app, raise_server_exceptions=False) as c:
+        yield c
+
+
+def _wait_capture(c, timeout=15.0):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        st = c.get("/rig/capture").json()
+        if st["state"] != "capturing":
+            return st
+        time.sleep(0.02)
+    raise AssertionError("capture did not end")
+
+
+def test_rig_and_capture_by_frames(rig_client, data_root):
+    rig = rig_client.get("/rig").json()
+    assert rig["name"] == "testrig" and [c["id"] for c in rig["cameras"]] == ["left", "right"]
+    assert {c["state"] for c in rig["cameras"]} == {"idle"}
+    r = rig_client.post("/rig/capture", json={"take": "cap1", "frames": 10}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    st = _wait_capture(rig_client)
+    assert st["state"] == "done" and st["frames_written"] == 10, st
+    with TakeReader(data_root / "takes" / "cap1.h5") as rd:
+        assert len(rd) == 10 and rd.cameras == ["left", "right"]
+        assert int(rd.frame("right", 3)[0, 0, 0]) == 200
+    assert rig_client.get("/takes/cap1").json()["frames"] == 10
+
+
+def test_capture_by_duration_and_stop(rig_client, data_root):
+    r = rig_client.post("/rig/capture", json={"take": "long", "duration_s": 30}, headers=AUTH)
+    assert r.status_code == 202
+    time.sleep(0.3)
+    assert {c["state"] for c in rig_client.get("/rig").json()["cameras"]} == {"capturing"}
+    assert rig_client.post("/rig/capture", json={"take": "other", "frames": 1}, headers=AUTH).status_code == 409
+    assert rig_client.get("/rig/cameras/left/preview.jpg").status_code == 409  # busy
+    assert rig_client.post("/rig/capture/stop", headers=AUTH).status_code == 200
+    st = _wait_capture(rig_client)
+    assert st["state"] == "stopped" and 0 < st["frames_written"] < 30 * 50
+    assert rig_client.post("/rig/capture/stop", headers=AUTH).status_code == 409
+
+
+def test_preview(rig_client):
+    r = rig_client.get("/rig/cameras/right/preview.jpg")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/jpeg"
+    img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (24, 32, 3) and abs(float(img.mean()) - 200) < 3
+
+
+def test_invalid_input(rig_client, make_client, tmp_path):
+    assert rig_client.post("/rig/capture", json={"take": "x", "frames": 1}).status_code == 401
+    assert rig_client.post("/rig/capture", json={"take": "x", "frames": 1},
+                           headers={"Authorization": "Bearer bad"}).status_code == 403
+    assert rig_client.post("/rig/capture/stop").status_code == 401
+    for body in ({"take": "x"}, {"take": "x", "frames": 1, "duration_s": 1}, {"take": "x", "frames": 0},
+                 {"take": "../x", "frames": 1}, {"take": "x", "duration_s": -1}):
+        assert rig_client.post("/rig/capture", json=body, headers=AUTH).status_code == 422, body
+    assert rig_client.get("/rig/cameras/nope/preview.jpg").status_code == 404
+    assert rig_client.get("/rig/cameras/..%2F..%2Fetc/preview.jpg").status_code in (400, 404)
+    # no rig file: 503 with a message
+    c = make_client(data=tmp_path / "norig")
+    r = c.get("/rig")
+    assert r.status_code == 503 and "rig" in r.json()["detail"]
+    assert c.post("/rig/capture", json={"take": "x", "frames": 1}, headers=AUTH).status_code == 503

@@ -1,0 +1,125 @@
+"""The durable job store and the runner, without HTTP: claim, heartbeat, stale requeue, resume after a crash."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import json
+import time
+
+import pytest
+
+from api.executors import ExecutorHandle
+from api.jobs import JobNotFoundError, JobRunner, JobStateError, JobStore, load_work
+from tests.api import fakework
+
+
+def _age(store: JobStore, jid: str, seconds: float) -> None:
+    store._con().execute("UPDATE jobs SET heartbeat = ? WHERE id = ?", (time.time() - seconds, jid))
+
+
+def test_claim_heartbeat_requeue_and_give_up(tmp_path):
+    store = JobStore(tmp_path / "jobs.sqlite")
+    a = store.create(kind="process", take="t", steps=["key"], params={})
+    b = store.create(kind="process", take="t", steps=["key"], params={})
+    assert store.claim("me").id == a.id  # oldest first
+    assert store.get(a.id).state == "running" and store.get(a.id).attempts == 1
+    assert store.heartbeat([a.id], "me") == set()
+    assert store.requeue_stale(stale_after_s=60, max_attempts=3) == []  # fresh heartbeat: left alone
+    _age(store, a.id, 120)
+    assert store.requeue_stale(stale_after_s=60, max_attempts=3) == [a.id]
+    assert store.get(a.id).state == "queued"
+    # the same job is claimed again (still the oldest); after max_attempts interruptions it fails
+    for attempt in (2, 3):
+        assert store.claim("me").id == a.id and store.get(a.id).attempts == attempt
+        _age(store, a.id, 120)
+        store.requeue_stale(stale_after_s=60, max_attempts=3)
+    st = store.get(a.id)
+    assert st.state == "failed" and "interrupted 3 times" in st.error
+    # cancel flags reach the heartbeat; a stale cancelled job ends cancelled
+    assert store.claim("me").id == b.id
+    store.request_cancel(b.id)
+    assert store.heartbeat([b.id], "me") == {b.id}
+    _age(store, b.id, 120)
+    store.requeue_stale(stale_after_s=60, max_attempts=3)
+    assert store.get(b.id).state == "cancelled"
+
+
+def test_progress_events_are_monotonic_and_unique(tmp_path):
+    store = JobStore(tmp_path / "jobs.sqlite")
+    j = store.create(kind="process", take="t", steps=["key", "surface"], params={})
+    for step, done in (("key", 0), ("key", 1), ("surface", 1), ("key", 2), ("key", 1), ("surface", 2)):
+        store.progress(j.id, step, done, 2)
+    ev = store.events(j.id)
+    assert [s for s, _ in ev] == [0, 1, 2, 3]  # one event per new total; a lower total adds none
+    assert store.events(j.id, after=2) == ev[3:]
+    assert store.get(j.id).progress == {"key": {"done": 1, "total": 2}, "surface": {"done": 2, "total": 2}}
+
+
+def test_runner_resumes_an_interrupted_job_with_the_same_output(tmp_path):
+    takes, jobs = tmp_path / "takes", tmp_path / "jobs"
+    takes.mkdir()
+    fakework.make_take_file(takes / "t.h5", 8)
+    ref = tmp_path / "ref"
+    fakework.process_take(takes / "t.h5", ref)
+
+    store = JobStore(tmp_path / "jobs.sqlite")
+    j = store.create(kind="process", take="t", steps=["key", "surface", "spine"], params={})
+    # a crash mid-job: the job is 'running' with a stale heartbeat and half of its frames on disk
+    store.claim("dead-server")
+    _age(store, j.id, 3600)
+    out = jobs / j.id
+    (out / "frames").mkdir(parents=True)
+    for i in range(4):
+        (out / "frames" / f"key_{i:06d}.txt").write_text((ref / "frames" / f"key_{i:06d}.txt").read_text())
+
+    calls = []
+    orig = fakework._frame
+
+    def counting(step, index, salt, delay):
+        calls.append((step, index))
+        return orig(step, index, salt, delay)
+
+    handle = ExecutorHandle(cf.ThreadPoolExecutor(2), "threads", "test")
+    fakework._frame = counting
+    runner = JobRunner(store, takes_dir=takes, jobs_dir=jobs, work=fakework.process_take, executor=handle,
+                       heartbeat_s=0.05, stale_after_s=0.2, poll_s=0.02)
+    try:
+        runner.start()
+        t0 = time.monotonic()
+        while store.get(j.id).state != "done" and time.monotonic() - t0 < 20:
+            time.sleep(0.02)
+    finally:
+        runner.stop()
+        fakework._frame = orig
+        handle.close()
+    st = store.get(j.id)
+    assert st.state == "done" and st.attempts == 2
+    assert sorted(i for s, i in calls if s == "key") == [4, 5, 6, 7]  # only the unfinished frames
+    assert json.loads((out / "spine.json").read_text()) == json.loads((ref / "spine.json").read_text())
+
+
+def test_invalid_input(tmp_path):
+    store = JobStore(tmp_path / "jobs.sqlite")
+    with pytest.raises(JobNotFoundError):
+        store.get("0" * 32)
+    with pytest.raises(JobNotFoundError):
+        store.request_cancel("0" * 32)
+    j = store.create(kind="process", take="t", steps=["key"], params={})
+    with pytest.raises(JobStateError):
+        store.delete(j.id)  # still queued
+    with pytest.raises(ValueError, match="state"):
+        store.finish(j.id, "running")
+    with pytest.raises(ValueError, match="stale_after_s"):
+        JobRunner(store, takes_dir=tmp_path, jobs_dir=tmp_path, heartbeat_s=1, stale_after_s=0.5)
+    with pytest.raises(ValueError, match="module:function"):
+        load_work("nocolon")
+    from api.jobs import WorkUnavailableError
+
+    with pytest.raises(WorkUnavailableError):
+        load_work("no_such_module_xyz:fn")
+    spec = load_work("tests.api.fakework:process_take")
+    assert spec.steps == ("key", "surface", "spine")
+    assert spec.validate(["spine", "key"], {}) == (("key", "spine"), {})
+    for steps, params in ((["x"], {}), ([], {}), (["key", "key"], {}), (None, {"delay_s": "slow"})):
+        with pytest.raises(ValueError):
+            spec.validate(steps, params)

@@ -1,0 +1,145 @@
+import numpy as np
+import pytest
+
+from fake_cameras.creatures import BODY, CREATURES, Pose, make_creature, round_cone_sdf
+from stage.rig import Volume
+
+
+def _reference_sdf_outside(p, a, b, ra, rb, n=20001):
+    """Distance from an outside point to the union of the swept spheres (dense sampling)."""
+    s = np.linspace(0, 1, n)[:, None]
+    c = a + s * (b - a)
+    r = ra + s[:, 0] * (rb - ra)
+    return np.min(np.linalg.norm(p - c, axis=1) - r)
+
+
+def test_round_cone_sdf_matches_dense_reference():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        a, b = rng.uniform(-50, 50, size=(2, 3))
+        ra, rb = rng.uniform(3, 25, size=2)
+        pts = rng.uniform(-90, 90, size=(40, 3))
+        d = round_cone_sdf(pts, a[None], b[None], np.array([ra]), np.array([rb]))[:, 0]
+        for p, dv in zip(pts, d):
+            ref = _reference_sdf_outside(p, a, b, ra, rb)
+            if ref > 0:
+                assert dv == pytest.approx(ref, abs=2e-3)
+            else:
+                assert dv <= 1e-9
+
+
+def test_degenerate_round_cone_is_the_larger_sphere():
+    a = np.array([[0.0, 0, 0]])
+    b = np.array([[1.0, 0, 0]])
+    pts = np.array([[30.0, 0, 0], [0, 40.0, 0], [0, 0, 0]])
+    d = round_cone_sdf(pts, a, b, np.array([20.0]), np.array([5.0]))[:, 0]
+    assert np.allclose(d, np.linalg.norm(pts - a, axis=1) - 20.0)
+    sp = Pose.spheres([[0, 0, 100]], 10.0)
+    assert sp.sdf(np.array([[0, 0, 130.0]]))[0] == pytest.approx(20.0)
+
+
+@pytest.mark.parametrize("name", CREATURES)
+def test_creature_stays_in_volume_and_moves_smoothly(name):
+    vol = Volume()
+    lo, hi = (np.asarray(b) for b in vol.bounds)
+    c = make_creature(name)
+    times = np.linspace(0, 8, 97)
+    prev = None
+    spans = []
+    for t in times:
+        p = c.pose(t)
+        plo, phi = p.bounds()
+        assert np.all(plo > lo) and np.all(phi < hi), (t, plo, phi)
+        assert plo[2] > 0  # above the floor
+        spans.append((phi - plo).max())
+        tips = p.tip_array()
+        if prev is not None:
+            # 1/12 s apart: tips move, but smoothly (< 60 mm)
+            step = np.linalg.norm(tips - prev, axis=1)
+            assert step.max() < 60
+        prev = tips
+    assert 300 <= max(spans) <= 560
+    # the pose really changes over time
+    assert np.abs(c.pose(0).tip_array() - c.pose(0.4).tip_array()).max() > 10
+
+
+@pytest.mark.parametrize("name", CREATURES)
+def test_tips_and_axes_are_consistent_with_the_surface(name):
+    p = make_creature(name, seed=2).pose(0.7)
+    assert set(p.tips) == set(p.names) == set(p.axes)
+    expected = {"starfish": 5, "quadruped": 6, "biped": 5}[name]
+    assert len(p.names) == expected
+    for li, n in enumerate(p.names):
+        tip = p.tips[n]
+        ax = p.axes[n]
+        assert ax.shape[1] == 3 and ax.shape[0] >= 3
+        assert np.allclose(ax[-1], tip)
+        # the tip is on the surface and is the extreme point along the last segment
+        assert abs(p.sdf(tip[None])[0]) < 1e-6
+        u = (ax[-2] - ax[-3]) / np.linalg.norm(ax[-2] - ax[-3])
+        assert np.all(p.sdf((tip + u * 0.5)[None]) > 0)
+        # the junction lies inside (or on) the creature, the axis inside the limb
+        assert p.sdf(ax[:1])[0] <= 1e-6
+        mids = (ax[1:-1] + ax[:-2]) / 2
+        assert np.all(p.sdf(mids) < 0)
+        # a point just inside the tip belongs to that limb
+        assert p.label_at((tip - u * 1.0)[None])[0] == li
+    assert np.all(np.isin(p.limb, [BODY, *range(len(p.names))]))
+
+
+def test_sdf_is_the_minimum_over_capsules():
+    p = make_creature("quadruped").pose(1.1)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([-300, -300, 0], [300, 300, 400], size=(500, 3))
+    per = p.capsule_sdf(pts)
+    assert np.allclose(p.sdf(pts, chunk=77), per.min(1))
+    assert np.array_equal(p.label_at(pts, chunk=33), p.limb[per.argmin(1)])
+
+
+def test_tuck_presses_two_limbs_together_and_spur_adds_a_protrusion():
+    plain = make_creature("quadruped")
+    hard = make_creature("quadruped", tuck=(0.5, 1.0), spur=(0.2, 0.2 + 1 / 30))
+    a, b = hard.tuck_pair
+    ia, ib = hard.names.index(a), hard.names.index(b)
+    inside = hard.pose(0.75)
+    outside = hard.pose(1.5)
+    d_in = np.linalg.norm(inside.tips[a] - inside.tips[b])
+    d_out = np.linalg.norm(outside.tips[a] - outside.tips[b])
+    assert d_in < 60 < d_out
+    # outside the interval (and its ramp) the pose is the plain one
+    assert np.allclose(outside.tip_array(), plain.pose(1.5).tip_array())
+    # limb segments keep their lengths while tucked
+    la = np.linalg.norm(np.diff(inside.axes[a][:-1], axis=0), axis=1)
+    lp = np.linalg.norm(np.diff(plain.pose(0.75).axes[a][:-1], axis=0), axis=1)
+    assert np.allclose(la, lp)
+    assert ia != ib
+    n_plain = plain.pose(0.21).n_capsules
+    assert hard.pose(0.21).n_capsules == n_plain + 1
+    assert hard.pose(0.19).n_capsules == n_plain
+    assert hard.pose(0.2 + 1 / 30 + 1e-6).n_capsules == n_plain
+    assert set(hard.pose(0.21).tips) == set(plain.names)
+
+
+def test_invalid_input():
+    with pytest.raises(ValueError, match="name"):
+        make_creature("dragon")
+    with pytest.raises(ValueError, match="scale"):
+        make_creature("starfish", scale=0)
+    with pytest.raises(ValueError, match="scale"):
+        make_creature("starfish", scale="x")
+    with pytest.raises(ValueError, match="tuck"):
+        make_creature("starfish", tuck=(1.0, 0.5))
+    with pytest.raises(ValueError, match="spur"):
+        make_creature("starfish", spur=3)
+    c = make_creature("biped")
+    with pytest.raises(ValueError, match="time_s"):
+        c.pose(float("nan"))
+    p = c.pose(0)
+    with pytest.raises(ValueError, match="points"):
+        p.sdf(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="points"):
+        p.label_at(np.zeros(3))
+    with pytest.raises(ValueError, match="radii"):
+        Pose(p0=[[0, 0, 0]], p1=[[1, 0, 0]], r0=[0.0], r1=[1.0], limb=[-1])
+    with pytest.raises(ValueError):
+        Pose(p0=[[0, 0, 0]], p1=[[1, 0, 0]], r0=[1.0, 2.0], r1=[1.0], limb=[-1])

@@ -1,0 +1,211 @@
+"""Synchronized capture into a take: real threads, paced test cameras, disconnects, SIGKILL."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stage.capture import CaptureProgress, capture_take
+from stage.drivers.base import CameraDisconnectedError, Granted
+from stage.frame import Frame
+from stage.rig import parse_rig
+from stage.store import TakeReader
+
+ROOT = Path(__file__).resolve().parents[2]
+W, H = 160, 120
+
+
+def pattern(cam: int, k: int) -> np.ndarray:
+    img = np.zeros((H, W, 3), np.uint8)
+    img[..., 0] = cam * 50
+    img[..., 1] = k % 256
+    img[..., 2] = (k // 256) % 256
+    return img
+
+
+class PacedCamera:
+    """A camera that delivers frame k at t0 + k / fps on its own clock (offset, jitter),
+    skipping frames listed in ``drop`` (sequence gaps) and disconnecting after ``disconnect_after``."""
+
+    def __init__(self, camera_id, cam, fps, *, offset_ns=0, jitter_ms=0.0, drop=(), disconnect_after=None, seed=0, start=None):
+        self.camera_id, self.cam, self.fps = camera_id, cam, fps
+        self.offset_ns, self.jitter_ms, self.drop = offset_ns, jitter_ms, set(drop)
+        self.disconnect_after = disconnect_after
+        self.rng = np.random.default_rng(seed)
+        self.k = 0
+        self.start = start if start is not None else {}  # shared by the cameras of one rig: same exposure instants
+        self.opened = self.closed = False
+
+    def open(self):
+        self.opened = True
+
+    def configure(self):
+        return Granted(W, H, self.fps)
+
+    def grab(self):
+        t0 = self.start.setdefault("t0", time.monotonic_ns())
+        while True:
+            k = self.k
+            self.k += 1
+            if self.disconnect_after is not None and k >= self.disconnect_after:
+                raise CameraDisconnectedError(f"camera {self.camera_id}: USB device went away")
+            due = t0 + int(k * 1e9 / self.fps)
+            wait = due - time.monotonic_ns()
+            if wait > 0:
+                time.sleep(wait / 1e9)
+            if k in self.drop:
+                continue
+            dev = due + self.offset_ns + int(self.rng.normal(0, self.jitter_ms * 1e6))
+            return Frame(pattern(self.cam, k), self.camera_id, k, dev, time.monotonic_ns())
+
+    def close(self):
+        self.closed = True
+
+
+def rig_for(ids, fps=60.0):
+    return parse_rig({"name": "t", "fps": fps, "cameras": [{"id": c, "driver": "opencv", "device": 0, "width": W, "height": H} for c in ids]})
+
+
+def make_drivers(ids, fps=60.0, **per_cam):
+    start: dict = {}
+    return {
+        c: PacedCamera(c, i, fps, offset_ns=(i * 7_777_777_777) % 10**10, jitter_ms=0.3, seed=i, start=start, **per_cam.get(c, {}))
+        for i, c in enumerate(ids)
+    }
+
+
+def test_capture_frames_grouped_and_stored(tmp_path):
+    ids = ["a", "b", "c"]
+    drivers = make_drivers(ids, b={"drop": {5, 6, 17}})
+    seen: list[CaptureProgress] = []
+    res = capture_take(rig_for(ids), tmp_path / "t.h5", frames=30, drivers=drivers, progress=seen.append)
+    assert res.sets == 30 and res.stopped == "frames"
+    assert all(d.closed for d in drivers.values())
+    assert seen and seen[-1].sets == 30 and seen[-1].target_sets == 30
+    with TakeReader(res.path) as r:
+        assert r.complete and len(r) == 30
+        table = r.set_table()
+        # every set is one instant: same device sequence number in every camera present
+        for k in range(30):
+            seqs = {int(r.timestamps(c)["sequence"][row]) for c, row in zip(ids, table[k]) if row >= 0}
+            assert len(seqs) == 1
+            fs = r.frame_set(k)
+            (seq,) = seqs
+            for i, c in enumerate(ids):
+                if fs[c] is not None:
+                    np.testing.assert_array_equal(fs[c], pattern(i, seq))
+        # b's dropped frames are missing in their sets, never duplicated
+        b_seq = r.timestamps("b")["sequence"]
+        assert len(set(b_seq.tolist())) == len(b_seq)
+        a_seq = r.timestamps("a")["sequence"]
+        missing_b = [int(a_seq[table[k, 0]]) for k in range(30) if table[k, 1] < 0]
+        assert set(missing_b) == {5, 6, 17} & set(a_seq.tolist())
+        st = r.sync_stats
+        assert st["cameras"]["b"]["missing"] == len(missing_b) and st["cameras"]["b"]["sequence_gaps"] >= 2
+        assert st["spread_max_ms"] < 1e3 / 60 and r.calibration is None and r.rig["fps"] == 60.0
+    assert res.stats.cameras["b"].missing == len(missing_b)
+
+
+def test_camera_disconnects_mid_take(tmp_path, caplog):
+    ids = ["a", "b"]
+    drivers = make_drivers(ids, b={"disconnect_after": 10})
+    with caplog.at_level(logging.WARNING):
+        res = capture_take(rig_for(ids), tmp_path / "d.h5", frames=25, drivers=drivers)
+    assert "camera b disconnected" in caplog.text
+    assert "b" in res.disconnected and "USB" in res.disconnected["b"]
+    assert res.sets == 25
+    with TakeReader(res.path) as r:
+        assert r.complete and len(r) == 25
+        assert r.frame_counts()["a"] == 25 and r.frame_counts()["b"] <= 10
+        assert (r.set_table()[12:, 1] == -1).all()
+        r.frame_set(24)
+
+
+def test_all_cameras_gone_stops(tmp_path, caplog):
+    ids = ["a", "b"]
+    drivers = make_drivers(ids, a={"disconnect_after": 5}, b={"disconnect_after": 8})
+    res = capture_take(rig_for(ids), tmp_path / "g.h5", frames=100, drivers=drivers)
+    assert res.stopped == "all cameras disconnected"
+    assert res.frames == {"a": 5, "b": 8} and 8 <= res.sets <= 13
+    with TakeReader(res.path) as r:
+        assert r.complete and len(r) == res.sets
+
+
+def test_duration_stop(tmp_path):
+    ids = ["a"]
+    res = capture_take(rig_for(ids), tmp_path / "dur.h5", duration_s=0.4, drivers=make_drivers(ids))
+    assert res.stopped == "duration" and 1 <= res.sets <= 0.4 * 60 + 2, res
+    assert 0.4 <= res.duration_s < 3.0
+
+
+CHILD = textwrap.dedent(
+    """
+    import sys
+    sys.path.insert(0, {root!r})
+    from tests.stage.test_capture import make_drivers, rig_for
+    from stage.capture import capture_take
+    ids = ["a", "b", "c"]
+    capture_take(rig_for(ids, fps=60.0), {path!r}, frames=100000, drivers=make_drivers(ids, fps=60.0),
+                 on_set=lambda n: print(n, flush=True))
+    """
+)
+
+
+def test_capture_killed_with_sigkill_keeps_flushed_sets(tmp_path):
+    path = tmp_path / "killed.h5"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD.format(root=str(ROOT), path=str(path))],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+    )
+    flushed = 0
+    try:
+        t0 = time.monotonic()
+        while flushed < 15:
+            line = proc.stdout.readline()
+            if not line:
+                raise AssertionError(f"capture child died: {proc.stderr.read()}")
+            flushed = int(line)
+            assert time.monotonic() - t0 < 30
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    with TakeReader(path) as r:
+        assert not r.complete
+        assert len(r) >= flushed
+        table = r.set_table()
+        for k in range(len(r)):
+            for i, c in enumerate(["a", "b", "c"]):
+                row = table[k, i]
+                if row >= 0:
+                    seq = int(r.timestamps(c)["sequence"][row])
+                    np.testing.assert_array_equal(r.frame(c, row), pattern(i, seq))
+
+
+def test_invalid_input(tmp_path):
+    ids = ["a"]
+    rig = rig_for(ids)
+    with pytest.raises(ValueError, match="stop condition"):
+        capture_take(rig, tmp_path / "x.h5", drivers=make_drivers(ids))
+    with pytest.raises(ValueError, match="frames"):
+        capture_take(rig, tmp_path / "x.h5", frames=0, drivers=make_drivers(ids))
+    with pytest.raises(ValueError, match="duration_s"):
+        capture_take(rig, tmp_path / "x.h5", duration_s=-1, drivers=make_drivers(ids))
+    with pytest.raises(ValueError, match="rig"):
+        capture_take({"cameras": []}, tmp_path / "x.h5", frames=1)
+    with pytest.raises(ValueError, match="no driver"):
+        capture_take(rig, tmp_path / "x.h5", frames=1, drivers={})
+    (tmp_path / "exists.h5").write_bytes(b"")
+    with pytest.raises(FileExistsError):
+        capture_take(rig, tmp_path / "exists.h5", frames=1, drivers=make_drivers(ids))
+    with pytest.raises(ValueError, match="compression"):
+        capture_take(rig, tmp_path / "c.h5", frames=1, drivers=make_drivers(ids), compression="zip")
+    assert not (tmp_path / "c.h5").exists() or TakeReader

@@ -1,0 +1,148 @@
+"""``stage import``: takes from image folders / videos / single images and an aniposelib TOML."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.camera import rodrigues_to_matrix
+from stage.cli import main
+from stage.importer import import_take
+from stage.store import TakeReader
+from tests.conftest import shared_dataset
+
+W, H = 160, 120
+
+
+def img(cam: int, k: int) -> np.ndarray:
+    a = np.zeros((H, W, 3), np.uint8)
+    a[..., 0] = 60 * cam
+    a[..., 1] = 20 * k
+    cv2.circle(a, (40 + 10 * k, 60), 15, (255, 255, 255), -1)
+    return a
+
+
+CAMS = [
+    # name, rvec, tvec, fx, dist
+    ("left", [0.1, -0.2, 0.05], [10.0, 20.0, 900.0], 210.0, [-0.1, 0.01, 0.001, -0.002, 0.0]),
+    ("right", [-0.3, 0.4, 0.0], [-150.0, 5.0, 1000.0], 190.0, [0.05, 0.0, 0.0, 0.0, -0.01]),
+    ("top", [1.2, 0.0, 0.0], [0.0, 0.0, 1200.0], 200.0, [0.0, 0.0, 0.0, 0.0, 0.0]),
+]
+
+
+def write_anipose_toml(path: Path, cams=CAMS, size=(W, H)) -> None:
+    lines = []
+    for i, (name, r, t, f, d) in enumerate(cams):
+        lines += [
+            f"[cam_{i}]",
+            f'name = "{name}"',
+            f"size = [ {size[0]}, {size[1]},]",
+            f"matrix = [ [ {f}, 0.0, {size[0] / 2}], [ 0.0, {f}, {size[1] / 2}], [ 0.0, 0.0, 1.0]]",
+            f"distortions = [ {', '.join(str(x) for x in d)},]",
+            f"rotation = [ {', '.join(str(x) for x in r)},]",
+            f"translation = [ {', '.join(str(x) for x in t)},]",
+            "",
+        ]
+    lines += ["[metadata]", "adjusted = false", "error = 0.5", ""]
+    path.write_text("\n".join(lines))
+
+
+@pytest.fixture
+def footage(tmp_path):
+    d = tmp_path / "footage"
+    d.mkdir()
+    (d / "left").mkdir()
+    for k in range(4):  # png folder, written out of order: sorted by name on import
+        cv2.imwrite(str(d / "left" / f"f{3 - k:03d}.png"), img(0, 3 - k))
+    vw = cv2.VideoWriter(str(d / "right.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 30, (W, H))
+    assert vw.isOpened()
+    for k in range(3):
+        vw.write(img(1, k))
+    vw.release()
+    cv2.imwrite(str(d / "top.jpg"), img(2, 0))
+    cal = tmp_path / "calibration.toml"
+    write_anipose_toml(cal)
+    return d, cal
+
+
+def test_import_folder_video_image(footage, tmp_path):
+    d, cal = footage
+    res = import_take(d, cal, tmp_path / "t.h5", fps=25)
+    assert res.sets == 4 and res.frames == {"left": 4, "right": 3, "top": 1}
+    assert res.storage == {"left": "raw", "right": "raw", "top": "jpeg"}
+    with TakeReader(res.path) as r:
+        assert r.cameras == ["left", "right", "top"] and len(r) == 4
+        for k in range(4):
+            np.testing.assert_array_equal(r.frame("left", k), img(0, k))
+        for k in range(3):  # MJPG video: lossy, close
+            assert np.abs(r.frame("right", k).astype(int) - img(1, k)).mean() < 3
+        assert r.encoded("top", 0) == (d / "top.jpg").read_bytes()
+        table = r.set_table()
+        assert (table[:, 1] == [0, 1, 2, -1]).all() and (table[:, 2] == [0, -1, -1, -1]).all()
+        ts = r.timestamps("left")["timestamp_ns"]
+        np.testing.assert_array_equal(ts, np.round(np.arange(4) * 1e9 / 25).astype(np.int64))
+        calib = r.calibration
+        for name, rv, t, f, dist in CAMS:
+            c = calib[name]
+            np.testing.assert_allclose(c.R, rodrigues_to_matrix(np.array(rv)), atol=1e-12)
+            np.testing.assert_allclose(c.t, t)
+            np.testing.assert_allclose(c.dist, dist)
+            assert c.K[0, 0] == f and c.size == (W, H)
+
+
+def test_import_cli(footage, tmp_path, capsys):
+    d, cal = footage
+    out = tmp_path / "cli.h5"
+    assert main(["import", "--images", str(d), "--calibration", str(cal), "--out", str(out), "--max-frames", "2"]) == 0
+    assert "2 frame sets" in capsys.readouterr().out
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "calibration present" in text and "left: 160x120 raw, 2 frames" in text
+    # existing output is refused (exit 2 with a message)
+    assert main(["import", "--images", str(d), "--calibration", str(cal), "--out", str(out)]) == 2
+    assert "exists" in capsys.readouterr().err
+
+
+def test_middlebury_dino():
+    root = shared_dataset("middlebury_dino_sparse_ring")
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        res = import_take(root, root / "dinoSR_par.txt", Path(tmp) / "dino.h5", max_frames=1)
+        assert res.sets == 1 and len(res.frames) == 16 and res.units == "m"
+        with TakeReader(res.path) as r:
+            im = r.frame("dinoSR0003", 0)
+            np.testing.assert_array_equal(im, cv2.imread(str(root / "dinoSR0003.png")))
+            c = r.calibration["dinoSR0003"]
+            assert r.calibration.units == "m" and abs(c.K[0, 0] - 3310.4) < 1e-6
+
+
+def test_invalid_input(footage, tmp_path):
+    d, cal = footage
+    out = tmp_path / "x.h5"
+    with pytest.raises(FileNotFoundError):
+        import_take(tmp_path / "nope", cal, out)
+    with pytest.raises(ValueError, match="fps"):
+        import_take(d, cal, out, fps=0)
+    with pytest.raises(ValueError, match="storage"):
+        import_take(d, cal, out, storage="png")
+    with pytest.raises(ValueError, match="calibration"):
+        import_take(d, 42, out)
+    # a camera without an entry
+    (d / "top.jpg").rename(d / "other.jpg")
+    with pytest.raises(ValueError, match="no entry for camera.*top"):
+        import_take(d, cal, out)
+    (d / "other.jpg").rename(d / "top.jpg")
+    # an unreadable image
+    (d / "left" / "f001.png").write_bytes(b"not a png")
+    with pytest.raises(ValueError, match="f001.png.*not a readable image"):
+        import_take(d, cal, out)
+    assert not out.exists() and not (tmp_path / "x.h5.part").exists()
+    cv2.imwrite(str(d / "left" / "f001.png"), img(0, 1))
+    # mismatched size
+    cv2.imwrite(str(d / "left" / "f002.png"), np.zeros((H + 2, W, 3), np.uint8))
+    with pytest.raises(ValueError, match=r"f002.png is 160x122 but the calibration says 160x120"):
+        import_take(d, cal, out)

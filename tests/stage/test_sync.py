@@ -1,0 +1,199 @@
+"""Frame-set grouping: clock offsets, jitter, drops (synthetic timestamps with known truth)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stage.sync import FrameSet, Stamp, StreamGrouper, SyncStats, estimate_period_ns, group_frames
+
+P = 33_333_333  # 30 fps
+
+
+def synth(
+    n_cams=5,
+    n_frames=200,
+    *,
+    seed=0,
+    drop=0.05,
+    phase_ms=4.0,
+    jitter_ms=0.5,
+    latency_jitter_ms=1.5,
+    drift_ppm=50.0,
+    shared_clock=False,
+):
+    """Frames with true instants k*P + phase; device clocks with big offsets and drift;
+    host stamps = true + per-camera latency + one-sided jitter. Returns (stamps, truth, dropped)."""
+    rng = np.random.default_rng(seed)
+    cams = [f"cam{i:02d}" for i in range(n_cams)]
+    stamps, truth, dropped = [], {}, {c: set() for c in cams}
+    common_off = int(rng.integers(-10**12, 10**12))
+    for c in cams:
+        phase = rng.uniform(-phase_ms, phase_ms) * 1e6
+        dev_off = common_off if shared_clock else int(rng.integers(-10**12, 10**12))
+        drift = 1.0 if shared_clock else 1 + rng.uniform(-drift_ppm, drift_ppm) * 1e-6
+        lat = rng.uniform(2, 6) * 1e6
+        for k in range(n_frames):
+            true = 5e9 + k * P + phase + rng.normal(0, jitter_ms * 1e6)
+            if k > 0 and rng.random() < drop:
+                dropped[c].add(k)
+                continue
+            dev = int(true * drift) + dev_off
+            host = int(true + lat + rng.exponential(latency_jitter_ms * 1e6))
+            s = Stamp(c, k, dev, host)
+            stamps.append(s)
+            truth[id(s)] = k
+    return cams, stamps, truth, dropped
+
+
+def arrival_order(stamps):
+    return sorted(stamps, key=lambda s: s.host_timestamp_ns)
+
+
+def check_sets(sets, cams, truth, dropped, n_frames):
+    used = set()
+    for fs in sets:
+        ks = {truth[id(f)] for f in fs.frames.values() if f is not None}
+        assert len(ks) == 1, f"set {fs.index} mixes instants {ks}"
+        for f in fs.frames.values():
+            if f is not None:
+                assert id(f) not in used, "a frame was used twice"
+                used.add(id(f))
+    # every delivered frame is in exactly one set
+    assert len(used) == sum(n_frames - len(dropped[c]) for c in cams)
+    # one set per instant where at least one camera delivered
+    assert len(sets) == n_frames
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_batch_groups_with_offsets_jitter_drops(seed):
+    n = 200
+    cams, stamps, truth, dropped = synth(seed=seed, n_frames=n)
+    sets, stats = group_frames(stamps, cams, period_ns=P)
+    check_sets(sets, cams, truth, dropped, n)
+    for c in cams:
+        assert stats.cameras[c].missing == len(dropped[c])
+        last = max(s.index for s in stamps if s.camera_id == c)
+        assert stats.cameras[c].sequence_gaps == sum(1 for k in dropped[c] if k < last)
+        assert stats.cameras[c].unused == 0
+        assert stats.cameras[c].frames == n - len(dropped[c])
+    n_complete = sum(1 for k in range(n) if all(k not in dropped[c] for c in cams))
+    assert stats.sets == n and stats.sets_complete == n_complete and stats.sets_incomplete == n - n_complete
+    # spread: phases within +-4 ms, jitter 0.5 ms, latency-median error ~1 ms
+    assert 0 < stats.spread_median_ms < 12 and stats.spread_max_ms < P / 2e6
+    assert stats.spread_max_ms == pytest.approx(max(fs.spread_ns for fs in sets) / 1e6)
+
+
+def test_missing_never_duplicated():
+    cams, stamps, truth, dropped = synth(n_cams=3, n_frames=60, drop=0.3, seed=5)
+    sets, stats = group_frames(stamps, cams, period_ns=P)
+    for fs in sets:
+        for c in fs.missing:
+            assert fs.frames[c] is None
+        seqs = [f.index for f in fs.frames.values() if f is not None]
+        assert len(set(seqs)) == 1
+    assert sum(len(fs.missing) for fs in sets) == sum(s.missing for s in stats.cameras.values())
+
+
+@pytest.mark.parametrize("clock", ["per-camera", "shared"])
+def test_stream_equals_batch(clock):
+    cams, stamps, truth, dropped = synth(seed=3, n_frames=150, shared_clock=clock == "shared")
+    batch, bstats = group_frames(stamps, cams, period_ns=P, clock=clock)
+    g = StreamGrouper(cams, period_ns=P, clock=clock)
+    stream = []
+    for s in arrival_order(stamps):
+        stream += g.push(s, now_ns=s.host_timestamp_ns)
+    stream += g.finish()
+    assert len(stream) == len(batch)
+    for a, b in zip(stream, batch):
+        assert a.index == b.index and a.time_ns == b.time_ns
+        assert {c: id(f) if f is not None else None for c, f in a.frames.items()} == {
+            c: id(f) if f is not None else None for c, f in b.frames.items()
+        }
+    assert g.stats().to_dict() == bstats.to_dict()
+    check_sets(batch, cams, truth, dropped, 150)
+
+
+def test_stream_emits_while_running_and_times_out():
+    cams = ["a", "b"]
+    g = StreamGrouper(cams, period_ns=P, window=3, timeout_ns=2 * P)
+    out = []
+    # camera b stops after 5 frames without being closed; a keeps going
+    for k in range(20):
+        t = k * P
+        out += g.push(Stamp("a", k, t, t + 1000), now_ns=t + 1000)
+        if k < 5:
+            out += g.push(Stamp("b", k, t + 10, t + 2000), now_ns=t + 2000)
+    # sets are emitted during the run (not only at the end), b missing after its last frame
+    assert len(out) >= 15
+    assert all(fs.frames["b"] is not None for fs in out[:5])
+    assert all(fs.frames["b"] is None for fs in out[5:])
+    # a late frame of b (after its set timed out) is not used twice nor inserted
+    out += g.push(Stamp("b", 5, 5 * P + 10, 20 * P), now_ns=20 * P)
+    out += g.finish()
+    assert g.stats().cameras["b"].unused == 1
+    ids = [fs.index for fs in out]
+    assert ids == list(range(len(out)))
+
+
+def test_close_camera_marks_rest_missing():
+    cams, stamps, truth, dropped = synth(n_cams=3, n_frames=60, drop=0.0, seed=7)
+    g = StreamGrouper(cams, period_ns=P, window=5)
+    out = []
+    for s in arrival_order(stamps):
+        if s.camera_id == "cam01" and s.index >= 30:
+            continue
+        out += g.push(s)
+        if s.camera_id == "cam01" and s.index == 29:
+            out += g.close_camera("cam01")
+    out += g.finish()
+    assert len(out) == 60
+    assert sum(fs.frames["cam01"] is None for fs in out) == 30
+    st = g.stats()
+    assert st.cameras["cam01"].missing == 30 and st.cameras["cam00"].missing == 0
+
+
+def test_estimated_period_and_free_running_phases():
+    # phases spread over most of a period (free-running webcams): still one frame per camera per set
+    cams, stamps, truth, dropped = synth(n_cams=4, n_frames=100, drop=0.0, phase_ms=12.0, seed=11, jitter_ms=0.2)
+    sets, stats = group_frames(stamps, cams)  # period estimated
+    assert abs(stats.period_ns - P) < 0.01 * P
+    assert stats.sets_complete >= 98
+    check_sets(sets, cams, truth, dropped, 100)
+
+
+def test_stats_roundtrip():
+    cams, stamps, *_ = synth(n_cams=2, n_frames=30)
+    _, st = group_frames(stamps, cams, period_ns=P)
+    assert SyncStats.from_dict(st.to_dict()).to_dict() == st.to_dict()
+    assert isinstance(st.drops, dict)
+
+
+def test_invalid_input():
+    with pytest.raises(ValueError, match="cameras"):
+        StreamGrouper([])
+    with pytest.raises(ValueError, match="duplicate"):
+        StreamGrouper(["a", "a"])
+    with pytest.raises(ValueError, match="period_ns"):
+        StreamGrouper(["a"], period_ns=0)
+    with pytest.raises(ValueError, match="tolerance_ns"):
+        StreamGrouper(["a"], tolerance_ns=-1)
+    with pytest.raises(ValueError, match="clock"):
+        StreamGrouper(["a"], clock="gps")
+    with pytest.raises(ValueError, match="gain"):
+        group_frames([Stamp("a", 0, 0, 0)], gain=2.0)
+    g = StreamGrouper(["a"], period_ns=P)
+    with pytest.raises(ValueError, match="camera_id"):
+        g.push(Stamp("zz", 0, 0, 0))
+    with pytest.raises(ValueError, match="camera_id"):
+        g.close_camera("zz")
+    g.close_camera("a")
+    with pytest.raises(ValueError, match="closed"):
+        g.push(Stamp("a", 0, 0, 0))
+    with pytest.raises(ValueError, match="camera_id"):
+        group_frames([Stamp("zz", 0, 0, 0)], ["a"])
+    with pytest.raises(ValueError, match="empty"):
+        group_frames([])
+    with pytest.raises(ValueError, match="two frames"):
+        estimate_period_ns([np.array([5])])
+    assert isinstance(FrameSet(0, 0, {"a": None}, {}).missing, list)
