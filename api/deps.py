@@ -36,23 +36,23 @@ __all__ = [
 _bearer = HTTPBearer(auto_error=False, description="API token (settings `api_token` or env STAGE_API_TOKEN)")
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_store(request: Request) -> JobStore:
+async def get_store(request: Request) -> JobStore:
     return request.app.state.store
 
 
-def get_runner(request: Request) -> JobRunner:
+async def get_runner(request: Request) -> JobRunner:
     return request.app.state.runner
 
 
-def get_library(request: Request):
+async def get_library(request: Request):
     return request.app.state.library
 
 
-def get_capture(request: Request):
+async def get_capture(request: Request):
     return request.app.state.capture
 
 
@@ -78,12 +78,12 @@ def _check_token(settings: Settings, creds: HTTPAuthorizationCredentials | None)
         raise HTTPException(403, "wrong API token")
 
 
-def require_write(settings: SettingsDep, creds: _Creds) -> None:
+async def require_write(settings: SettingsDep, creds: _Creds) -> None:
     """Every endpoint that changes anything depends on this."""
     _check_token(settings, creds)
 
 
-def require_read(settings: SettingsDep, creds: _Creds) -> None:
+async def require_read(settings: SettingsDep, creds: _Creds) -> None:
     """Reading endpoints: open unless ``read_protected``."""
     if settings.read_protected:
         _check_token(settings, creds)

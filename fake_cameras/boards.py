@@ -20,7 +20,7 @@ import numpy as np
 
 from calib.boards import Charuco, Chessboard
 from calib.calibration import Calibration
-from fake_cameras.render import Backdrop, _scene
+from fake_cameras.render import Backdrop, _scene, sensor_noise
 from stage.rig import Volume
 
 __all__ = ["BoardViews", "board_poses", "render_board_views", "render_board"]
@@ -128,6 +128,25 @@ def board_poses(
         T[:3, 3] = p - R @ mid
         out[v] = T
     return out
+
+
+def floor_pose(origin: tuple[float, float, float] = (0.0, 0.0, 0.5)) -> np.ndarray:
+    """Board -> world pose of a board lying face up on the floor, its origin at ``origin``.
+
+    This is how a lab fixes the world frame: the board's x axis along world x, the
+    printed face up. Calibrating with this view as the world frame
+    (``calib.extrinsics.calibrate_extrinsics(world="board", world_frame=...)``, which
+    turns the board frame 180 degrees about x) gives back the simulator's world frame
+    (up to the 0.5 mm the board floats above the floor so it does not z-fight).
+
+    Returns
+    -------
+    (4, 4) float ndarray
+    """
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # board z points into the face, i.e. down
+    T[:3, 3] = np.asarray(origin, dtype=np.float64)
+    return T
 
 
 _SUPERSAMPLE = 3
@@ -247,9 +266,7 @@ def render_board(
                     region += val[..., None]
     if bd.blur_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), bd.blur_sigma)
-    if noise_sigma > 0:
-        img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_sigma)
-    return np.clip(img, 0, 255, out=img).round(out=img).astype(np.uint8)
+    return sensor_noise(img, float(noise_sigma), rng)
 
 
 def render_board_views(

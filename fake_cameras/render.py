@@ -245,54 +245,6 @@ def intersect_round_cones(
     return best, n
 
 
-def _cast(origin: np.ndarray, dirs: np.ndarray, pose: Pose, *, any_hit: bool = False):
-    """Intersect rays with every capsule of a pose, culling by bounding spheres.
-
-    Returns ``(t (N,), capsule (N,) int, normal (N, 3))`` with ``t = inf`` and
-    ``capsule = -1`` for misses (``normal`` is None with ``any_hit``).
-    ``origin`` is (3,) or (N, 3).
-    """
-    n = dirs.shape[0]
-    cen = (pose.p0 + pose.p1) / 2.0
-    rad = np.linalg.norm(pose.p1 - pose.p0, axis=1) / 2.0 + np.maximum(pose.r0, pose.r1) + 1e-6
-    t_out = np.full(n, np.inf)
-    cap_out = np.full(n, -1, dtype=np.int64)
-    if n == 0:
-        return t_out, cap_out, (None if any_hit else np.zeros((0, 3)))
-    if origin.ndim == 1:
-        oc = cen - origin  # (M, 3)
-        proj = dirs @ oc.T  # (N, M)
-        perp2 = (oc * oc).sum(1)[None, :] - proj * proj
-    else:
-        # per-ray origins: |c - o|^2 - ((c - o).d)^2
-        od = (origin * dirs).sum(1)[:, None]
-        proj = dirs @ cen.T - od
-        oc2 = (cen * cen).sum(1)[None, :] - 2.0 * (origin @ cen.T) + (origin * origin).sum(1)[:, None]
-        perp2 = oc2 - proj * proj
-    cand = (perp2 <= (rad * rad)[None, :]) & (proj > -rad[None, :])
-    ri, ci = np.nonzero(cand)
-    if ri.size == 0:
-        return t_out, cap_out, (None if any_hit else np.zeros((n, 3)))
-    o = origin if origin.ndim == 1 else origin[ri]
-    t, nrm = intersect_round_cones(
-        o, dirs[ri], pose.p0[ci], pose.p1[ci], pose.r0[ci], pose.r1[ci], normals=not any_hit
-    )
-    T = np.full(cand.shape, np.inf)
-    T[ri, ci] = t
-    best = T.argmin(axis=1)
-    t_out = T[np.arange(n), best]
-    hit = np.isfinite(t_out)
-    cap_out = np.where(hit, best, -1)
-    if any_hit:
-        return t_out, cap_out, None
-    PI = np.full(cand.shape, -1, dtype=np.int64)
-    PI[ri, ci] = np.arange(ri.size)
-    pidx = PI[np.arange(n), best]
-    normal = np.zeros((n, 3))
-    normal[hit] = nrm[pidx[hit]]
-    return t_out, cap_out, normal
-
-
 # -- per-camera precomputation --------------------------------------------------
 
 
@@ -511,13 +463,26 @@ def render_view(
                 _spill(img, mask, ray, w, h, bd)
     if bd.blur_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), bd.blur_sigma)
-    if sigma > 0:
-        img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(sigma)
-    image = np.clip(img, 0, 255, out=img).round(out=img).astype(np.uint8)
+    image = sensor_noise(img, sigma, rng)
     dimg = None
     if depth_img is not None:
         dimg = np.clip(np.round(depth_img), 0, 65535).astype(np.uint16)
     return View(image=image, mask=mask, depth=dimg, label=label)
+
+
+def sensor_noise(img: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """Add Gaussian noise to a float32 BGR image and quantize it to uint8 (rounding, saturating).
+
+    The noise comes from OpenCV's fast generator, seeded from ``rng`` (reproducible).
+    ``img`` is modified in place.
+    """
+    if sigma > 0:
+        noise = np.empty((img.shape[0], img.size // img.shape[0]), dtype=np.float32)
+        cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
+        cv2.randn(noise, 0.0, float(sigma))  # single channel: every value gets the same sigma
+        img += noise.reshape(img.shape)
+    np.maximum(img, 0.0, out=img)
+    return cv2.convertScaleAbs(img)
 
 
 def _cast_tiles(sc: _Scene, pose: Pose):

@@ -212,9 +212,9 @@ class Correspondence:
     error: np.ndarray
 
 
-def _errors(A, B):
-    """Eq. 6 residuals (rigid for >= 3 points, translation-only below)."""
-    if B.shape[1] >= 3:
+def _errors(A, B, rigid=True):
+    """Eq. 6 residuals (rigid for >= 3 points, translation-only below or when not ``rigid``)."""
+    if rigid and B.shape[1] >= 3:
         return alignment_errors(A, B)
     A = np.asarray(A)
     if A.ndim == 2:
@@ -224,13 +224,19 @@ def _errors(A, B):
     return np.sum((Bc - Ac) ** 2, axis=(1, 2))
 
 
-def _best_mapping(pts: np.ndarray, anchors: list[np.ndarray], K: int, max_perms: int) -> tuple[np.ndarray, float]:
+def _best_mapping(
+    pts: np.ndarray, anchors: list[np.ndarray], K: int, max_perms: int, weights=None
+) -> tuple[np.ndarray, float]:
     """Best injective mapping limb slot -> frame tip (``-1`` for empty slots).
 
     pts : (n, m, 3) tip plus limb points of each frame tip.
     anchors : (K, m, 3) arrays with nan for limbs unknown in that anchor.
     """
     n, m = pts.shape[:2]
+    weights = [1.0] * len(anchors) if weights is None else list(weights)
+    # a negative weight marks a temporal neighbour: translation-only residual
+    rigid = [w >= 0 for w in weights]
+    weights = [abs(w) for w in weights]
     known = np.ones(K, dtype=bool)
     for a in anchors:
         known &= np.all(np.isfinite(a.reshape(K, -1)), axis=1)
@@ -243,8 +249,8 @@ def _best_mapping(pts: np.ndarray, anchors: list[np.ndarray], K: int, max_perms:
             return P[0].copy(), float("nan")
         B = pts[P[:, slots]].reshape(len(P), -1, 3)
         err = np.zeros(len(P))
-        for a in anchors:
-            err += _errors(a[slots].reshape(-1, 3), B)
+        for a, w, rg in zip(anchors, weights, rigid):
+            err += w * _errors(a[slots].reshape(-1, 3), B, rg)
         # candidates differing only in unknown slots tie: keep the first
         i = int(np.argmin(err))
         return P[i].copy(), float(err[i])
@@ -255,9 +261,9 @@ def _best_mapping(pts: np.ndarray, anchors: list[np.ndarray], K: int, max_perms:
         P = P[np.all(known[P], axis=1)]
     B = np.broadcast_to(pts.reshape(1, -1, 3), (len(P), n * m, 3))
     err = np.zeros(len(P))
-    for a in anchors:
+    for a, w, rg in zip(anchors, weights, rigid):
         A = np.nan_to_num(a[P].reshape(len(P), -1, 3))
-        err += _errors(A, B)
+        err += w * _errors(A, B, rg)
     i = int(np.argmin(err))
     out = np.full(K, -1, dtype=np.int64)
     out[P[i]] = np.arange(n)
@@ -320,6 +326,7 @@ def correspond_tips(
     reference_span: int = 150,
     max_permutations: int = 40320,
     gate: float = 1.0,
+    reference_weight: float = 0.1,
 ) -> Correspondence:
     """Assign every frame's tips to ``K`` limbs consistently over a take (section 4.2).
 
@@ -340,6 +347,10 @@ def correspond_tips(
     gate : float
         Drop a tip farther than ``gate`` x (RMS radius of the reference tips)
         from its limb's position in the aligned temporal neighbour.
+
+    reference_weight : float
+        Weight of the reference frame's residual against the temporal
+        neighbour's (1.0) when both anchor a frame.
 
     Returns
     -------
@@ -377,13 +388,19 @@ def correspond_tips(
         pts = []
         for i, (a, fe) in enumerate(zip(frames, features)):
             fe = np.asarray(fe, dtype=np.float64)
+            if len(a) == 0:
+                pts.append(None)
+                continue
             if fe.size == 0:
                 fe = fe.reshape(len(a), 0, 3)
             if fe.ndim != 3 or fe.shape[0] != len(a) or fe.shape[2] != 3 or not np.all(np.isfinite(fe)):
                 raise ValueError(f"features[{i}] must be finite with shape ({len(a)}, m, 3), got {fe.shape}")
             pts.append(np.concatenate([a[:, None, :], fe], axis=1))
-        if len({p.shape[1] for p in pts}) > 1:
+        widths = {p.shape[1] for p in pts if p is not None}
+        if len(widths) > 1:
             raise ValueError("features must have the same number of points per tip in every frame")
+        w = widths.pop() if widths else 1
+        pts = [np.zeros((0, w, 3)) if p is None else p for p in pts]
     if K is None:
         K = limb_count(counts)
     K = int(K)
@@ -423,10 +440,11 @@ def correspond_tips(
         while 0 <= t < T:
             if counts[t] == K:
                 near_ref = min(assigned_refs, key=lambda r: abs(r - t))
-                anchors = [limb_points_of(near_ref)]
+                anchors, w = [limb_points_of(near_ref)], [1.0]
                 if prev != near_ref:
                     anchors.append(limb_points_of(prev))
-                m, e = _best_mapping(pts[t], anchors, K, max_permutations)
+                    w = [reference_weight, -1.0]
+                m, e = _best_mapping(pts[t], anchors, K, max_permutations, w)
                 assign[t] = m
                 err[t] = e
                 prev = t
@@ -441,10 +459,11 @@ def correspond_tips(
             continue
         near_ref = min(assigned_refs, key=lambda r: abs(r - t))
         near_k = int(kframes[np.argmin(np.abs(kframes - t))])
-        anchors = [limb_points_of(near_ref)]
+        anchors, w = [limb_points_of(near_ref)], [1.0]
         if near_k != near_ref:
             anchors.append(limb_points_of(near_k))
-        m, e = _best_mapping(pts[t], anchors, K, max_permutations)
+            w = [reference_weight, -1.0]
+        m, e = _best_mapping(pts[t], anchors, K, max_permutations, w)
         assign[t] = m
         err[t] = e
 

@@ -38,7 +38,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from calib.calibration import Calibration
-from pipeline.volume import Grid, pixel_index
+from pipeline.volume import Grid, grid_pixel_index, pixel_index
 
 __all__ = [
     "EmptyHullError",
@@ -173,22 +173,21 @@ def _check_options(tolerance: Any, min_views: Any, n_use: int) -> tuple[int, int
     return int(tolerance), min(int(min_views), n_use)
 
 
-def _grid_points(grid: Grid, i0: int, i1: int) -> np.ndarray:
-    ax, ay, az = grid.axes()
-    X, Y, Z = np.meshgrid(ax[i0:i1], ay, az, indexing="ij")
-    return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
-
-
-def _project_grid(camera, grid: Grid, chunk_voxels: int = 1 << 20) -> np.ndarray:
-    """Flat pixel index (int32, -1 unseen) of every voxel of ``grid`` in C order."""
-    nx, ny, nz = grid.shape
-    out = np.empty(grid.n_voxels, dtype=np.int32)
-    step = max(1, chunk_voxels // (ny * nz))
-    for i0 in range(0, nx, step):
-        i1 = min(nx, i0 + step)
-        flat, _ = pixel_index(camera, _grid_points(grid, i0, i1))
-        out[i0 * ny * nz : i1 * ny * nz] = flat
-    return out
+def _block_reduce(a: np.ndarray, r: int, op) -> np.ndarray:
+    """Reduce a 3-D array over ``r x r x r`` blocks with a binary ufunc (strided, fast)."""
+    if r == 1:
+        return a
+    for axis in (2, 1, 0):
+        sl = [slice(None)] * 3
+        parts = []
+        for i in range(r):
+            sl[axis] = slice(i, None, r)
+            parts.append(a[tuple(sl)])
+        out = parts[0].copy()
+        for p_ in parts[1:]:
+            op(out, p_, out=out)
+        a = out
+    return a
 
 
 def carve_direct(
@@ -200,6 +199,9 @@ def carve_direct(
     min_views: int = 2,
 ) -> np.ndarray:
     """Visual hull by projecting every voxel centre in every frame (no tables, no hierarchy).
+
+    Projects with :meth:`calib.camera.Camera.project` (through :func:`pipeline.volume.pixel_index`),
+    independently of the tables' :func:`pipeline.volume.grid_pixel_index`.
 
     The plain baseline that :class:`HullCarver` is compared with, for speed (``stage bench
     reconstruct``) and for exactness (tests). Same rules as :meth:`HullCarver.carve`.
@@ -231,12 +233,20 @@ def carve_direct(
     k, mv = _check_options(tolerance, min_views, len(use))
     carve = np.zeros(grid.n_voxels, dtype=np.uint8)
     seen = np.zeros(grid.n_voxels, dtype=np.uint8)
-    for i in use:
-        flat = _project_grid(calibration[i], grid)
-        vis = flat >= 0
-        fg = ms[i].ravel()[np.where(vis, flat, 0)]
-        seen += vis
-        carve += vis & ~fg
+    nx, ny, nz = grid.shape
+    ax, ay, az = grid.axes()
+    step = max(1, (1 << 20) // (ny * nz))
+    for i0 in range(0, nx, step):
+        i1 = min(nx, i0 + step)
+        X, Y, Z = np.meshgrid(ax[i0:i1], ay, az, indexing="ij")
+        pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+        sl = slice(i0 * ny * nz, i1 * ny * nz)
+        for i in use:
+            flat, _ = pixel_index(calibration[i], pts)
+            vis = flat >= 0
+            fg = ms[i].ravel()[np.where(vis, flat, 0)]
+            seen[sl] += vis
+            carve[sl] += vis & ~fg
     occ = (carve <= k) & (seen >= mv)
     if not occ.any():
         raise EmptyHullError("every voxel was carved: the silhouettes do not agree on any region")
@@ -332,43 +342,32 @@ class HullCarver:
         level_arrays: dict[int, dict[str, list]] = {b: {k: [] for k in ("i00", "du", "dv", "all", "any")} for b in lv}
         for c, cam in enumerate(self.calibration):
             w, h = cam.size
-            flat = _project_grid(cam, pg)
+            flat = grid_pixel_index(cam, pg)
             vis = flat >= 0
             self._sentinel[c] = w * h
             blk = np.where(vis, flat, w * h).reshape(fdims[0], fine, fdims[1], fine, fdims[2], fine)
             self._lut[c] = blk.transpose(0, 2, 4, 1, 3, 5).reshape(nfb, fine**3)
             if not lv:
                 continue
-            col = np.where(vis, flat % w, 0).astype(np.int16)
-            row = np.where(vis, flat // w, 0).astype(np.int16)
+            vis3 = vis.reshape(P)
+            col = np.where(vis, flat % w, 0).astype(np.int16).reshape(P)
+            row = np.where(vis, flat // w, 0).astype(np.int16).reshape(P)
             big = np.int16(32767)
             # finest-level block extrema from the voxels, coarser levels from their children
             b = lv[-1]
-            shp = (P[0] // b, b, P[1] // b, b, P[2] // b, b)
-            ax = (1, 3, 5)
             stats = (
-                np.where(vis, col, big).reshape(shp).min(axis=ax),
-                np.where(vis, row, big).reshape(shp).min(axis=ax),
-                np.where(vis, col, -1).reshape(shp).max(axis=ax),
-                np.where(vis, row, -1).reshape(shp).max(axis=ax),
-                vis.reshape(shp).all(axis=ax),
-                vis.reshape(shp).any(axis=ax),
+                _block_reduce(np.where(vis3, col, big), b, np.minimum),
+                _block_reduce(np.where(vis3, row, big), b, np.minimum),
+                _block_reduce(np.where(vis3, col, np.int16(-1)), b, np.maximum),
+                _block_reduce(np.where(vis3, row, np.int16(-1)), b, np.maximum),
+                _block_reduce(vis3, b, np.logical_and),
+                _block_reduce(vis3, b, np.logical_or),
             )
-            stats_by_block = {lv[-1]: stats}
+            stats_by_block = {b: stats}
             for hi_b, lo_b in zip(reversed(lv[:-1]), reversed(lv[1:])):
                 r = hi_b // lo_b
-                cmin, rmin, cmax, rmax, vall, vany = stats_by_block[lo_b]
-                d = cmin.shape
-                shp = (d[0] // r, r, d[1] // r, r, d[2] // r, r)
-                ax = (1, 3, 5)
-                stats_by_block[hi_b] = (
-                    cmin.reshape(shp).min(axis=ax),
-                    rmin.reshape(shp).min(axis=ax),
-                    cmax.reshape(shp).max(axis=ax),
-                    rmax.reshape(shp).max(axis=ax),
-                    vall.reshape(shp).all(axis=ax),
-                    vany.reshape(shp).any(axis=ax),
-                )
+                ops = (np.minimum, np.minimum, np.maximum, np.maximum, np.logical_and, np.logical_or)
+                stats_by_block[hi_b] = tuple(_block_reduce(a_, r, op) for a_, op in zip(stats_by_block[lo_b], ops))
             for b in lv:
                 cmin, rmin, cmax, rmax, vall, vany = (a.ravel() for a in stats_by_block[b])
                 i00 = np.where(vany, rmin.astype(np.int32) * (w + 1) + cmin, 0).astype(np.int32)

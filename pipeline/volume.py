@@ -32,6 +32,7 @@ __all__ = [
     "grid_from_volume",
     "volume_from_cameras",
     "pixel_index",
+    "grid_pixel_index",
     "check_bounds",
 ]
 
@@ -210,6 +211,73 @@ def pixel_index(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndar
     flat = np.full(points.shape[0] if points.ndim == 2 else 1, -1, dtype=np.int32)
     flat[ok] = (row[ok] * w + col[ok]).astype(np.int32)
     return flat, z
+
+
+def grid_pixel_index(
+    camera: Camera, grid: Grid, *, with_depth: bool = False, chunk_voxels: int = 1 << 17
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """:func:`pixel_index` of every voxel centre of ``grid``, computed slab by slab.
+
+    Same formula as :func:`calib.camera.project_points`, evaluated with the grid's separable
+    structure (``R @ X + t`` as a sum of three per-axis terms) in cache-sized chunks; it
+    agrees with :func:`pixel_index` except for floating-point ties exactly on a pixel border.
+
+    Parameters
+    ----------
+    camera : Camera
+    grid : Grid
+    with_depth : bool, optional
+        Also return the camera-frame ``Z`` of every voxel centre (float32).
+    chunk_voxels : int, optional
+        Voxels per chunk.
+
+    Returns
+    -------
+    flat : (nx * ny * nz,) int32 ndarray
+        Flat pixel index per voxel in C order of ``grid.shape``, ``-1`` where unseen.
+    depth : (nx * ny * nz,) float32 ndarray, only with ``with_depth``
+    """
+    nx, ny, nz = grid.shape
+    ax, ay, az = grid.axes()
+    R, t, K = camera.R, camera.t, camera.K
+    k1, k2, p1, p2, k3 = camera.dist
+    has_dist = bool(np.any(camera.dist))
+    w, h = camera.size
+    A = [np.outer(ax, R[:, 0]), np.outer(ay, R[:, 1]), np.outer(az, R[:, 2])]
+    flat_out = np.empty(grid.n_voxels, dtype=np.int32)
+    z_out = np.empty(grid.n_voxels, dtype=np.float32) if with_depth else None
+    step = max(1, int(chunk_voxels) // (ny * nz))
+    for i0 in range(0, nx, step):
+        i1 = min(nx, i0 + step)
+        pc = [
+            A[0][i0:i1, m][:, None, None] + A[1][:, m][None, :, None] + A[2][:, m][None, None, :] + t[m]
+            for m in range(3)
+        ]
+        z = pc[2].reshape(-1)
+        safe = np.where(np.abs(z) < 1e-12, 1e-12, z)
+        x = pc[0].reshape(-1) / safe
+        y = pc[1].reshape(-1) / safe
+        if has_dist:
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+            yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        else:
+            xd, yd = x, y
+        u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+        v = K[1, 1] * yd + K[1, 2]
+        with np.errstate(invalid="ignore"):
+            col = np.floor(u + 0.5)
+            row = np.floor(v + 0.5)
+            ok = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        f = np.where(ok, row * w + col, -1.0)
+        sl = slice(i0 * ny * nz, i1 * ny * nz)
+        flat_out[sl] = f
+        if z_out is not None:
+            z_out[sl] = z
+    if z_out is not None:
+        return flat_out, z_out
+    return flat_out
 
 
 # -- capture volume from the cameras -------------------------------------------------------------

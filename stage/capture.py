@@ -26,7 +26,7 @@ from typing import Any, Callable, Mapping
 from stage.drivers.base import CameraDriver, CameraError, Granted
 from stage.rig import Rig
 from stage.store import CameraSpec, TakeWriter
-from stage.sync import StreamGrouper, SyncStats
+from stage.sync import SetStatsAccumulator, StreamGrouper, SyncStats
 
 __all__ = ["CaptureProgress", "CaptureResult", "capture_take"]
 
@@ -207,7 +207,11 @@ def capture_take(
         for c in rig.cameras
     ]
     period_ns = int(round(1e9 / rig.fps))
-    grouper: StreamGrouper = StreamGrouper(ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns)
+    # a late camera is waited for half a second (GIL or disk stalls), then marked missing
+    grouper: StreamGrouper = StreamGrouper(
+        ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns, timeout_ns=max(4 * period_ns, 500_000_000)
+    )
+    stored = SetStatsAccumulator(ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns)
     stop_ev = stop or threading.Event()
     q: queue.Queue = queue.Queue(maxsize=max(8, int(len(ids) * rig.fps * queue_seconds)))
     qdrops = {c: 0 for c in ids}
@@ -242,6 +246,7 @@ def capture_take(
                 if frames is not None and n_sets >= frames:
                     return True
                 writer.write_set({c: f for c, f in fs.frames.items()}, time_ns=fs.time_ns)
+                stored.add(fs)
                 n_sets += 1
                 now = time.monotonic()
                 recent.append(now)
@@ -250,7 +255,7 @@ def capture_take(
                 if on_set is not None:
                     on_set(n_sets)
                 if now - last_stats > 1.0:
-                    writer.update_sync_stats(grouper.stats())
+                    writer.update_sync_stats(stored.stats(grouper.stats()))
                     last_stats = now
                 if progress is not None:
                     progress(
@@ -260,12 +265,15 @@ def capture_take(
                             elapsed_s=now - t0,
                             duration_s=duration_s,
                             fps=float(len(recent) - 1) / max(recent[-1] - recent[0], 1e-9) if len(recent) > 1 else 0.0,
-                            drops=grouper.missing_total(),
+                            drops=missing_so_far(),
                             queue_drops=sum(qdrops.values()),
                             disconnected=tuple(disconnected),
                         )
                     )
             return frames is not None and n_sets >= frames
+
+        def missing_so_far() -> int:
+            return stored.missing_total()
 
         def camera_gone(cid: str, why: str) -> list:
             if cid in disconnected:
@@ -328,7 +336,7 @@ def capture_take(
             th.join(timeout=2.0)
         for cid in ids:
             _close_quietly(cid, drv[cid])
-        stats = grouper.stats()
+        stats = stored.stats(grouper.stats())
         if writer is not None:
             writer.close(sync_stats=stats)
     elapsed = time.monotonic() - t0

@@ -856,6 +856,18 @@ class TakeReader:
             return None
         return self.read_array(f"cameras/{camera}", "masks")[0].astype(bool)
 
+    def mask(self, camera: str, i: int) -> np.ndarray | None:
+        """(H, W) bool mask of one frame row of one camera, or None if not keyed."""
+        self._check_camera(camera)
+        key = f"cameras/{camera}/masks"
+        if key not in self._f:
+            return None
+        ds = self._f[key]
+        i = int(i)
+        if not 0 <= i < ds.shape[0]:
+            raise IndexError(f"{self.path}: mask row {i} of camera {camera!r} out of range (0..{ds.shape[0] - 1})")
+        return self._read(ds, i, f"mask {i} of {camera}").astype(bool)
+
     def mask_params(self, camera: str) -> dict | None:
         if not self.has_array(f"cameras/{camera}", "masks"):
             return None

@@ -2,9 +2,10 @@
 
 Every camera stamps its frames on its own clock. Each frame also carries the
 host's ``time.monotonic_ns()`` at reception, so the offset of a device clock
-to the host clock is the (robust) median of ``host - device`` over a short
-sliding window of that camera's frames; the window follows slow clock drift
-and the median ignores transport hiccups. A frame's *mapped time* is
+to the host clock is the minimum of ``host - device`` over a sliding window
+of that camera's frames (about a second): transport latency is one-sided and
+grows in bursts when the host is busy, so the fastest delivery is the best
+estimate; the window follows slow clock drift. A frame's *mapped time* is
 ``device + offset`` on the host clock; cameras are compared there.
 
 Frame sets tile time in windows ``[T_k - tol, T_k + tol)``, spaced one frame
@@ -44,6 +45,7 @@ __all__ = [
     "FrameSet",
     "CameraSyncStats",
     "SyncStats",
+    "SetStatsAccumulator",
     "StreamGrouper",
     "group_frames",
     "estimate_period_ns",
@@ -180,6 +182,31 @@ class SyncStats:
         )
 
 
+class SetStatsAccumulator:
+    """Sync statistics of a chosen subset of emitted sets (e.g. the ones a capture stored)."""
+
+    def __init__(self, cameras: Sequence[str], *, period_ns: int, tolerance_ns: int) -> None:
+        self._acc = _StatsAccumulator(list(cameras), period_ns, tolerance_ns)
+
+    def add(self, fs: FrameSet) -> None:
+        self._acc.add_set(fs)
+
+    def missing_total(self) -> int:
+        """Camera slots missing in the added sets."""
+        return sum(s.missing for s in self._acc.cams.values())
+
+    def stats(self, stream: SyncStats | None = None) -> SyncStats:
+        """Statistics of the added sets; per-camera frames, sequence gaps, unused
+        frames and offsets are taken from ``stream`` (the grouper's) when given."""
+        snap = self._acc.snapshot()
+        if stream is not None:
+            for c, s in snap.cameras.items():
+                o = stream.cameras.get(c)
+                if o is not None:
+                    s.frames, s.sequence_gaps, s.unused, s.offset_ns = o.frames, o.sequence_gaps, o.unused, o.offset_ns
+        return snap
+
+
 class _StatsAccumulator:
     def __init__(self, cameras: Sequence[str], period_ns: int, tolerance_ns: int) -> None:
         self.cams = {c: CameraSyncStats() for c in cameras}
@@ -246,8 +273,14 @@ def estimate_period_ns(device_ns: Iterable[np.ndarray]) -> int:
     return int(np.median(np.concatenate(diffs)))
 
 
-def _median_int(values: Sequence[int]) -> int:
-    return int(np.median(np.asarray(values, dtype=np.int64)))
+def _offset_est(values: Sequence[int]) -> int:
+    """Clock offset from ``host - device`` samples: their minimum.
+
+    Transport latency is one-sided (a frame is never received before it was
+    exposed) and grows in bursts when the host is busy, so the fastest delivery
+    in the window is the best estimate (as NTP's minimum-delay filter).
+    """
+    return int(min(values))
 
 
 def _next_time(t: int, period: int, gain: float, residuals: list[int]) -> int:
@@ -301,7 +334,7 @@ class StreamGrouper(Generic[T]):
     tolerance_ns : int or None
         Half-width of a set's window; default half a period.
     window : int
-        Frames per camera in the sliding median of ``host - device``.
+        Frames per camera in the sliding minimum of ``host - device``.
     gain : float
         Phase-locked-loop gain in [0, 1] for re-centring the windows.
     clock : {"per-camera", "shared", "device"}
@@ -319,7 +352,7 @@ class StreamGrouper(Generic[T]):
         *,
         period_ns: int | None = None,
         tolerance_ns: int | None = None,
-        window: int = 15,
+        window: int = 30,
         gain: float = 0.5,
         clock: str = "per-camera",
         timeout_ns: int | None = None,
@@ -426,14 +459,14 @@ class StreamGrouper(Generic[T]):
     # -- internals ----------------------------------------------------------
     def _offset(self, cam: _Cam) -> int:
         if self._clock == "shared":
-            return self._shared_offset if self._shared_offset is not None else _median_int(cam.lat)
-        return _median_int(cam.lat)
+            return self._shared_offset if self._shared_offset is not None else _offset_est(cam.lat)
+        return _offset_est(cam.lat)
 
     def _make_ready(self, cam: _Cam) -> None:
         cam.ready = True
         if not cam.raw:
             return
-        off = self._shared_offset if self._shared_offset is not None else _median_int(cam.first_lat)
+        off = self._shared_offset if self._shared_offset is not None else _offset_est(cam.first_lat)
         for dev, _host, item in cam.raw:
             cam.queue.append((dev + off, item, dev))
         cam.raw = []
@@ -462,10 +495,10 @@ class StreamGrouper(Generic[T]):
 
     def _start(self) -> bool:
         if self._clock == "shared" and self._shared_offset is None:
-            # rebase everything on one common offset (median over all cameras)
+            # rebase everything on one common offset (over all cameras)
             lats = [v for cam in self._cams.values() for v in cam.first_lat]
             if lats:
-                self._shared_offset = _median_int(lats)
+                self._shared_offset = _offset_est(lats)
                 for cam in self._cams.values():
                     cam.queue = deque((d + self._shared_offset, it, d) for _t, it, d in cam.queue)
         if self._period is None:
@@ -535,7 +568,7 @@ class StreamGrouper(Generic[T]):
             self._acc.add_set(fs)
             for c, cam in self._cams.items():
                 if cam.lat:
-                    self._acc.cams[c].offset_ns = self._shared_offset if self._clock == "shared" and self._shared_offset is not None else (0 if self._clock == "device" else _median_int(cam.lat))
+                    self._acc.cams[c].offset_ns = self._shared_offset if self._clock == "shared" and self._shared_offset is not None else (0 if self._clock == "device" else _offset_est(cam.lat))
             out.append(fs)
             self._T = _next_time(T, self._period, self._gain, [t - T for t in times.values()])
 
@@ -557,7 +590,7 @@ def group_frames(
     *,
     period_ns: int | None = None,
     tolerance_ns: int | None = None,
-    window: int = 15,
+    window: int = 30,
     gain: float = 0.5,
     clock: str = "per-camera",
 ) -> tuple[list[FrameSet], SyncStats]:
@@ -597,7 +630,7 @@ def group_frames(
     dev = {c: np.array([int(f.timestamp_ns) for f in per[c]], dtype=np.int64) for c in cams}
     host = {c: np.array([int(f.host_timestamp_ns) for f in per[c]], dtype=np.int64) for c in cams}
     seqs = {c: np.array([int(f.index) for f in per[c]], dtype=np.int64) for c in cams}
-    # offsets: median of host - device over the window ending at max(j, window-1)
+    # offsets: minimum of host - device over the window ending at max(j, window-1)
     offsets: dict[str, np.ndarray] = {}
     for c in cams:
         lat = host[c] - dev[c]
@@ -607,14 +640,14 @@ def group_frames(
             continue
         w = min(window, n)
         off = np.empty(n, dtype=np.int64)
-        off[:w] = int(np.median(lat[:w]))
+        off[:w] = int(lat[:w].min())
         if n > window:
             sw = np.lib.stride_tricks.sliding_window_view(lat, window)  # (n-window+1, window)
-            off[window - 1 :] = np.median(sw, axis=1).astype(np.int64)
+            off[window - 1 :] = sw.min(axis=1)
         offsets[c] = off
     if clock == "shared":
         firsts = np.concatenate([(host[c] - dev[c])[: min(window, dev[c].size)] for c in cams])
-        shared = int(np.median(firsts)) if firsts.size else 0
+        shared = int(firsts.min()) if firsts.size else 0
         offsets = {c: np.full(dev[c].size, shared, dtype=np.int64) for c in cams}
     mapped = {c: dev[c] + offsets[c] for c in cams}
     if period is None:

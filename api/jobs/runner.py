@@ -312,6 +312,9 @@ class JobRunner:
                                                  job_id=jid, take_id=rec.take)
             else:
                 raise ValueError(f"unknown job kind {rec.kind!r}")
+        except InterruptedError:  # the work stopped on the cancel event
+            self._after_stop_or_fail(jid, cancel, "interrupted")
+            return
         except BrokenProcessPool as exc:
             self._reset_executor()
             self._after_stop_or_fail(jid, cancel, f"worker pool broke: {exc}", requeue=True)

@@ -16,7 +16,7 @@ from api.paths import TAKE_ID
 router = APIRouter(prefix="/calibrations", tags=["calibrations"])
 
 
-def get_calibrations(request: Request) -> CalibrationLibrary:
+async def get_calibrations(request: Request) -> CalibrationLibrary:
     return request.app.state.calibrations
 
 

@@ -61,7 +61,7 @@ def _status(rec: JobRecord) -> JobStatus:
     return JobStatus(**rec.to_dict(), links=links)
 
 
-def existing_job(job_id: JobId, store: StoreDep) -> JobRecord:
+async def existing_job(job_id: JobId, store: StoreDep) -> JobRecord:
     return store.get(job_id)
 
 
@@ -94,7 +94,7 @@ def list_jobs(store: StoreDep, _: ReadAccess,
 
 
 @router.get("/{job_id}", response_model=JobStatus)
-def get_job(job: Job, _: ReadAccess) -> JobStatus:
+async def get_job(job: Job, _: ReadAccess) -> JobStatus:
     """Status of one job: state, progress per step, attempts, error (poll this, or follow ``/events``)."""
     return _status(job)
 
@@ -153,7 +153,7 @@ async def job_events(job: Job, _: ReadAccess, request: Request, store: StoreDep,
 
 # -- results --------------------------------------------------------------------------------------
 
-ResultName = Annotated[str, Path(pattern=r"^(spine\.json|report\.json|spine\.glb)$")]
+ResultName = Annotated[str, Path(pattern=r"^(spine\.json|report\.json|spine\.glb|spine_rig\.glb)$")]
 MeshName = Annotated[str, Path(pattern=r"^(frame_)?[0-9]{1,6}\.(ply|glb)$", examples=["frame_000000.ply", "3.glb"])]
 
 
@@ -176,7 +176,11 @@ def get_mesh(job: Job, name: MeshName, _: ReadAccess, settings: SettingsDep) -> 
 @router.get("/{job_id}/results/{name}", response_class=FileResponse,
             responses={200: {"content": {"application/json": {}, "model/gltf-binary": {}}}})
 def get_result(job: Job, name: ResultName, _: ReadAccess, settings: SettingsDep) -> Response:
-    """``spine.json``, ``report.json``, or the spine as ``spine.glb``."""
+    """``spine.json``, ``report.json``, the animated spine as ``spine.glb``, or the reference mesh
+    rigged to the spine as ``spine_rig.glb``."""
+    if name == "spine_rig.glb":
+        return FileResponse(results.rig_glb(settings.jobs_dir, job.id), media_type="model/gltf-binary",
+                            filename="spine_rig.glb")
     if name == "spine.glb":
         return Response(results.spine_glb(settings.jobs_dir, job.id), media_type="model/gltf-binary")
     path = results.result_file(settings.jobs_dir, job.id, name)

@@ -30,7 +30,9 @@ HELP = "sustained capture from N simulated cameras into HDF5 per compression: MB
 class ReplayCamera:
     """Replays pre-made frames at ``fps`` on its own clock, with a ring of ``buffers`` frames."""
 
-    def __init__(self, camera_id: str, frames: list[np.ndarray], fps: float, *, offset_ns: int = 0, buffers: int = 4) -> None:
+    def __init__(
+        self, camera_id: str, frames: list[np.ndarray], fps: float, *, offset_ns: int = 0, buffers: int = 4, start: dict | None = None
+    ) -> None:
         self.camera_id = camera_id
         self.frames = frames
         self.period = 1e9 / fps
@@ -39,6 +41,7 @@ class ReplayCamera:
         self.buffers = buffers
         self.next = 0
         self.t0: int | None = None
+        self.start = start if start is not None else {}  # shared: cameras expose together (a synced rig)
 
     def open(self) -> None:
         pass
@@ -50,7 +53,7 @@ class ReplayCamera:
     def grab(self) -> Frame:
         now = time.monotonic_ns()
         if self.t0 is None:
-            self.t0 = now
+            self.t0 = self.start.setdefault("t0", now)
         latest = int((now - self.t0) // self.period)
         if latest - self.next >= self.buffers:  # the ring overflowed: the device dropped frames
             self.next = latest - self.buffers + 1
@@ -124,7 +127,10 @@ def run_one(directory: Path, n_cams: int, compression: str, seconds: float, fps:
             "cameras": [{"id": c, "driver": "opencv", "device": i, "width": size[0], "height": size[1]} for i, c in enumerate(ids)],
         }
     )
-    drivers = {c: ReplayCamera(c, frames[i % len(frames)], fps, offset_ns=i * 1_234_567_891) for i, c in enumerate(ids)}
+    start: dict = {}
+    drivers = {
+        c: ReplayCamera(c, frames[i % len(frames)], fps, offset_ns=i * 1_234_567_891, start=start) for i, c in enumerate(ids)
+    }
     out = directory / f"bench_{compression}_{n_cams}.h5"
     c0, w0 = cpu_seconds(), time.perf_counter()
     res = capture_take(rig, out, duration_s=seconds, compression=compression, drivers=drivers, overwrite=True)

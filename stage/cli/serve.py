@@ -49,6 +49,11 @@ def run(args: argparse.Namespace) -> int:
     if args.read_protected:
         overrides["read_protected"] = True
     settings = Settings(**overrides)
+    if settings.dask:
+        from api.executors import dask_available
+
+        if not dask_available():
+            raise ValueError("--dask needs Dask: pip install 'dask[distributed]' (the [dask] extra)")
     if settings.api_token is None and not settings.allow_anonymous_writes:
         print("stage serve: warning: STAGE_API_TOKEN is not set; every change (capture, import, jobs) is refused")
     if args.port < 0 or args.port > 65535:

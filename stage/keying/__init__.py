@@ -14,6 +14,7 @@ from stage.keying.metrics import boundary_f_score, iou, mask_boundary
 from stage.keying.params import KEY_MODES, KeyingError, KeyParams, KeyResult
 from stage.keying.preview import contact_sheet
 from stage.keying.spill import despill
+from stage.keying.take import key_take
 
 __all__ = [
     "KEY_MODES",
@@ -22,6 +23,7 @@ __all__ = [
     "KeyingError",
     "key_frames",
     "key_one",
+    "key_take",
     "estimate_model",
     "despill",
     "contact_sheet",

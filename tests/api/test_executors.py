@@ -53,12 +53,13 @@ def test_dask_and_local_pool_agree_fake_work(tmp_path, dask_handle, pool_handle)
 
 
 def test_dask_and_local_pool_agree_process_take(tmp_path, dask_handle, pool_handle):
-    from tests.api.test_serve import _simulated_take_file
+    from tests.api.test_serve import _simulated_take_file, reference_spine
 
     take = _simulated_take_file(tmp_path / "sim.h5")
+    ref = reference_spine(take, tmp_path)
     a = _run_job(tmp_path, "pool", take, pool_handle, "stage.process:process_take")
     b = _run_job(tmp_path, "dask", take, dask_handle, "stage.process:process_take")
-    assert a == b
+    assert a == b == ref
 
 
 def test_invalid_input():

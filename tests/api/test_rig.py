@@ -105,13 +105,17 @@ def test_rig_and_capture_by_frames(rig_client, data_root):
 def test_capture_by_duration_and_stop(rig_client, data_root):
     r = rig_client.post("/rig/capture", json={"take": "long", "duration_s": 30}, headers=AUTH)
     assert r.status_code == 202
-    time.sleep(0.3)
+    t0 = time.monotonic()
+    while rig_client.get("/rig/capture").json()["frames_written"] < 3 and time.monotonic() - t0 < 15:
+        time.sleep(0.02)
     assert {c["state"] for c in rig_client.get("/rig").json()["cameras"]} == {"capturing"}
     assert rig_client.post("/rig/capture", json={"take": "other", "frames": 1}, headers=AUTH).status_code == 409
     assert rig_client.get("/rig/cameras/left/preview.jpg").status_code == 409  # busy
     assert rig_client.post("/rig/capture/stop", headers=AUTH).status_code == 200
     st = _wait_capture(rig_client)
-    assert st["state"] == "stopped" and 0 < st["frames_written"] < 30 * 50
+    assert st["state"] == "stopped" and 3 <= st["frames_written"] < 30 * 50, st
+    with TakeReader(data_root / "takes" / "long.h5") as rd:
+        assert len(rd) == st["frames_written"] and rd.complete
     assert rig_client.post("/rig/capture/stop", headers=AUTH).status_code == 409
 
 

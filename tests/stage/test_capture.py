@@ -178,6 +178,10 @@ def test_capture_killed_with_sigkill_keeps_flushed_sets(tmp_path):
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
+    from stage.cli.info import summarize
+
+    summary = summarize(path)  # what `stage info` prints, on the killed take
+    assert summary["sets"] >= flushed and summary["state"].startswith("open")
     with TakeReader(path) as r:
         assert not r.complete
         assert len(r) >= flushed
@@ -209,3 +213,24 @@ def test_invalid_input(tmp_path):
     with pytest.raises(ValueError, match="compression"):
         capture_take(rig, tmp_path / "c.h5", frames=1, drivers=make_drivers(ids), compression="zip")
     assert not (tmp_path / "c.h5").exists() or TakeReader
+
+
+def test_cli_capture_simulated_rig(tmp_path, capsys):
+    """`stage capture` end to end through the registry and the fake driver (tiny images)."""
+    pytest.importorskip("stage.drivers.fake")
+    from fake_cameras.rigs import write_simulated_rig
+    from stage.cli import main
+
+    rig = write_simulated_rig(tmp_path / "rig.toml", 2, size=(160, 120), frames=6, fps=30)
+    out = tmp_path / "cap.h5"
+    code = main(["capture", "--rig", str(rig), "--frames", "8", "--out", str(out), "--no-progress"])
+    text = capsys.readouterr().out
+    assert code == 0, text
+    assert "8 frame sets" in text
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "8 frame sets" in text and "cam01: 160x120 raw" in text
+    with TakeReader(out) as r:
+        assert r.complete and len(r) == 8 and r.rig["name"] == "simulated"
+    assert main(["capture", "--rig", str(rig), "--out", str(tmp_path / "x.h5")]) == 2
+    assert "--frames" in capsys.readouterr().err

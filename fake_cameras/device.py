@@ -1,0 +1,276 @@
+"""A simulated camera device behind the driver interface (``driver = "fake"``).
+
+Frames are rendered ahead (:func:`fake_cameras.take.simulate_take`, cached on
+disk and shared by every camera of the process) and replayed in real time:
+frame ``k`` is captured at ``epoch + k / fps`` on the host's monotonic clock
+(all simulated cameras of a process share the epoch, like a genlocked rig) and
+shows scene frame ``k mod F``. ``grab()`` sleeps until the next capture time.
+
+Like a real device each camera
+
+* stamps frames with its own clock: ``timestamp_ns`` = true capture time +
+  ``clock_offset_ms`` + Gaussian jitter (``jitter_ms``);
+* numbers frames with its own sequence counter (from 0 at ``open``), so a
+  dropped frame leaves a gap;
+* drops frames at random (``drop_rate``) and when the reader falls more than
+  ``buffer`` frames behind (the oldest frames are overwritten);
+* disconnects after ``disconnect_after`` delivered frames
+  (:class:`~stage.drivers.base.CameraDisconnectedError`);
+* refuses to open a simulated index the rig does not have
+  (:class:`~stage.drivers.base.CameraNotFoundError`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from stage.drivers.base import CameraDisconnectedError, CameraError, CameraNotFoundError, Granted
+from stage.frame import Frame
+from stage.rig import FakeCameraConfig, Rig
+
+__all__ = ["FakeCamera", "take_for_rig", "DEFAULT_EPOCH_NS"]
+
+log = logging.getLogger(__name__)
+
+#: capture-time origin shared by the simulated cameras of this process
+DEFAULT_EPOCH_NS = time.monotonic_ns()
+
+_TAKES: dict = {}
+_TAKES_LOCK = threading.Lock()
+
+
+def _board_source(kind: str, calibration, frames: int, seed: int, noise: float, volume):
+    from calib.boards import Charuco, Chessboard
+    from fake_cameras.boards import board_poses, floor_pose, render_board_views
+
+    board = (
+        Chessboard(corners=(9, 6), square_mm=50.0)
+        if kind == "board-chessboard"
+        else Charuco(squares=(7, 5), square_mm=70.0, marker_mm=52.0, dictionary="DICT_4X4_50")
+    )
+    # view 0: the board lying on the floor at the world origin (it defines the world frame
+    # when calibrating with world_frame=0); the rest move through the volume
+    poses = np.concatenate([floor_pose()[None], board_poses(board, calibration, max(frames - 1, 0), seed=seed, volume=volume)])
+    return render_board_views(board, calibration, frames, seed=seed, noise_sigma=noise, volume=volume, poses=poses[:frames])
+
+
+def take_for_rig(rig: Rig, *, size: tuple[int, int], fps: float, depth: bool = False):
+    """The rendered frames a rig's ``[simulation]`` films (memoized per process).
+
+    Returns
+    -------
+    SimulatedTake or fake_cameras.boards.BoardViews
+        Anything with ``images (F, C, H, W, 3)``, optional ``depth`` and ``calibration``.
+    """
+    sim = rig.simulation
+    if sim is None:
+        raise ValueError("rig: fake cameras need a [simulation] table")
+    key = (sim.subject, sim.n_cameras, sim.frames, float(fps), tuple(size), sim.seed, bool(depth), sim.noise,
+           tuple(rig.volume.center), tuple(rig.volume.size))
+    with _TAKES_LOCK:
+        hit = _TAKES.get(key)
+        if hit is not None:
+            return hit
+        from fake_cameras.dome import make_dome
+        from fake_cameras.take import simulate_take
+
+        if sim.subject.startswith("board-"):
+            cal = make_dome(sim.n_cameras, size=size, volume=rig.volume, seed=sim.seed)
+            src = _board_source(sim.subject, cal, sim.frames, sim.seed, sim.noise, rig.volume)
+        else:
+            src = simulate_take(
+                sim.subject, n_cameras=sim.n_cameras, frames=sim.frames, fps=fps, size=size, seed=sim.seed,
+                depth=depth, noise_sigma=sim.noise, volume=rig.volume,
+            )
+        _TAKES[key] = src
+        return src
+
+
+class FakeCamera:
+    """A simulated camera (implements :class:`stage.drivers.base.CameraDriver`).
+
+    Parameters
+    ----------
+    config : stage.rig.FakeCameraConfig
+        ``index`` picks the camera of the simulated dome; ``clock_offset_ms``,
+        ``jitter_ms``, ``drop_rate``, ``disconnect_after`` and ``depth`` as in
+        the module docstring.
+    rig : stage.rig.Rig, optional
+        Its ``[simulation]`` says what is filmed (needed unless ``take`` is given);
+        ``rig.fps`` is used when the camera has no ``fps`` of its own.
+    take : SimulatedTake or BoardViews, optional
+        Replay these frames instead of simulating the rig's subject.
+    epoch_ns : int, optional
+        Monotonic time of frame 0 (default: shared by the process).
+    seed : int, optional
+        Seeds drops and jitter (default: derived from the camera index).
+    buffer : int, optional
+        Frames the device holds for a slow reader before it overwrites them.
+    latency_ms : float, optional
+        Delay between capture and delivery to the host.
+    clock, sleep : callables, optional
+        ``time.monotonic_ns`` and ``time.sleep`` (replace them to test without waiting).
+    """
+
+    def __init__(
+        self,
+        config: FakeCameraConfig,
+        rig: Rig | None = None,
+        *,
+        take=None,
+        epoch_ns: int | None = None,
+        seed: int | None = None,
+        buffer: int = 4,
+        latency_ms: float = 2.0,
+        clock: Callable[[], int] = time.monotonic_ns,
+        sleep: Callable[[float], None] = time.sleep,
+    ):
+        if not isinstance(config, FakeCameraConfig):
+            raise ValueError(f"config must be a stage.rig.FakeCameraConfig, got {type(config).__name__}")
+        if rig is not None and not isinstance(rig, Rig):
+            raise ValueError(f"rig must be a stage.rig.Rig or None, got {type(rig).__name__}")
+        if take is None and (rig is None or rig.simulation is None):
+            raise ValueError("rig: a fake camera needs a rig with a [simulation] table (or a take to replay)")
+        if take is not None and not hasattr(take, "images"):
+            raise ValueError(f"take must be a SimulatedTake or BoardViews, got {type(take).__name__}")
+        if int(buffer) < 1:
+            raise ValueError(f"buffer must be >= 1, got {buffer!r}")
+        self.config = config
+        self.camera_id = config.id
+        self.rig = rig
+        self.fps = float(config.fps or (rig.fps if rig is not None else None) or getattr(take, "fps", 30.0))
+        self.period_ns = int(round(1e9 / self.fps))
+        self._take = take
+        self._epoch = DEFAULT_EPOCH_NS if epoch_ns is None else int(epoch_ns)
+        self._rng = np.random.default_rng(config.index + 7919 if seed is None else seed)
+        self._buffer = int(buffer)
+        self._latency_ns = int(latency_ms * 1e6)
+        self._clock = clock
+        self._sleep = sleep
+        self._opened = False
+        self._configured = False
+        self._k = None  # next capture number
+        self._k0 = 0
+        self.delivered = 0
+        self.dropped = 0
+
+    # -- driver protocol ---------------------------------------------------------
+    def open(self) -> None:
+        """Connect to the simulated device (renders or loads its frames)."""
+        if self._take is None:
+            self._take = take_for_rig(
+                self.rig, size=(self.config.width, self.config.height), fps=self.fps, depth=self.config.depth
+            )
+        n_cams = self._take.images.shape[1]
+        if self.config.index >= n_cams:
+            raise CameraNotFoundError(
+                f"camera {self.camera_id!r}: simulated camera index {self.config.index} does not exist "
+                f"(the simulated rig has {n_cams} cameras, indices 0..{n_cams - 1})"
+            )
+        h, w = self._take.images.shape[2:4]
+        if (w, h) != (self.config.width, self.config.height):
+            raise CameraError(
+                f"camera {self.camera_id!r}: the simulated frames are {w}x{h}, "
+                f"the rig asks for {self.config.width}x{self.config.height}"
+            )
+        if self.config.depth and getattr(self._take, "depth", None) is None:
+            raise CameraError(f"camera {self.camera_id!r}: depth requested but the simulated take has no depth")
+        self._opened = True
+        self._k = None
+        self.delivered = 0
+        self.dropped = 0
+
+    def configure(self) -> Granted:
+        """What the simulated device grants: exactly the requested settings."""
+        if not self._opened:
+            raise CameraError(f"camera {self.camera_id!r}: open() before configure()")
+        self._configured = True
+        return Granted(
+            width=self.config.width,
+            height=self.config.height,
+            fps=self.fps,
+            pixel_format="BGR",
+            has_depth=bool(self.config.depth),
+            extra={"simulated": True, "index": self.config.index},
+        )
+
+    def grab(self) -> Frame:
+        """Block until the next frame is delivered and return it."""
+        if not self._opened:
+            raise CameraError(f"camera {self.camera_id!r}: grab() on a closed camera")
+        lim = self.config.disconnect_after
+        if lim is not None and self.delivered >= lim:
+            self._opened = False
+            raise CameraDisconnectedError(
+                f"camera {self.camera_id!r}: simulated disconnect after {lim} frames (disconnect_after)"
+            )
+        now = self._clock()
+        if self._k is None:
+            self._k = max(0, -(-(now - self._epoch) // self.period_ns))
+            self._k0 = self._k
+        while True:
+            # frames the reader was too slow for are overwritten in the device buffer
+            newest = (now - self._epoch - self._latency_ns) // self.period_ns
+            oldest_kept = newest - self._buffer + 1
+            if self._k < oldest_kept:
+                self.dropped += oldest_kept - self._k
+                self._k = oldest_kept
+            due = self._epoch + self._k * self.period_ns + self._latency_ns
+            if due > now:
+                self._sleep((due - now) / 1e9)
+                now = self._clock()
+                continue
+            k = self._k
+            self._k += 1
+            if self.config.drop_rate > 0 and self._rng.random() < self.config.drop_rate:
+                self.dropped += 1
+                continue
+            break
+        take = self._take
+        F = take.images.shape[0]
+        idx = self.config.index
+        image = np.array(take.images[k % F, idx])
+        depth = None
+        if self.config.depth:
+            depth = np.array(take.depth[k % F, idx])
+        capture = self._epoch + k * self.period_ns
+        jitter = self._rng.normal(0.0, self.config.jitter_ms * 1e6) if self.config.jitter_ms > 0 else 0.0
+        ts = int(capture + self.config.clock_offset_ms * 1e6 + jitter)
+        self.delivered += 1
+        return Frame(
+            image=image,
+            camera_id=self.camera_id,
+            index=int(k - self._k0),
+            timestamp_ns=ts,
+            host_timestamp_ns=int(self._clock()),
+            depth=depth,
+        )
+
+    def close(self) -> None:
+        self._opened = False
+
+    # -- extras -------------------------------------------------------------------
+    @property
+    def calibration(self):
+        """The true calibration of the simulated rig (after :meth:`open`)."""
+        return None if self._take is None else self._take.calibration
+
+    def scene_frame(self, index: int) -> int:
+        """Scene frame shown by device sequence number ``index``."""
+        return (self._k0 + int(index)) % self._take.images.shape[0]
+
+    def __enter__(self) -> "FakeCamera":
+        self.open()
+        self.configure()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"FakeCamera({self.camera_id!r}, index={self.config.index}, {self.config.width}x{self.config.height}@{self.fps:g})"

@@ -1,0 +1,118 @@
+"""Rig files for the simulated rig (``driver = "fake"``), for ``stage demo``, tests and benchmarks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from stage.rig import Rig, parse_rig
+
+__all__ = ["simulated_rig_dict", "simulated_rig", "write_simulated_rig", "dumps_toml"]
+
+
+def simulated_rig_dict(
+    n_cameras: int = 4,
+    *,
+    subject: str = "starfish",
+    fps: float = 30.0,
+    frames: int = 30,
+    size: tuple[int, int] = (640, 480),
+    seed: int = 0,
+    noise: float = 2.0,
+    clock_offsets_ms: float = 20.0,
+    jitter_ms: float = 0.5,
+    drop_rate: float = 0.0,
+    depth: bool = False,
+    store: str = "raw",
+    dome_cameras: int | None = None,
+    name: str = "simulated",
+) -> dict:
+    """A rig dictionary (as read from TOML) of ``n_cameras`` simulated cameras.
+
+    Parameters
+    ----------
+    n_cameras : int
+        Cameras in the rig file (1..``dome_cameras``); they are cameras ``0..n-1`` of the dome.
+    subject : str
+        What the rig films (``stage.rig.Simulation.subject``).
+    clock_offsets_ms : float
+        Each camera's clock offset is drawn uniformly from +-this (seeded).
+    jitter_ms, drop_rate, depth, store
+        Copied to every camera.
+    dome_cameras : int, optional
+        Cameras of the simulated dome (default ``max(4, n_cameras)``).
+
+    Returns
+    -------
+    dict
+        Valid for :func:`stage.rig.parse_rig`.
+    """
+    dome = max(4, n_cameras) if dome_cameras is None else int(dome_cameras)
+    if not 1 <= n_cameras <= dome:
+        raise ValueError(f"n_cameras must be within 1..{dome} (the dome's cameras), got {n_cameras!r}")
+    w, h = (int(s) for s in size)
+    rng = np.random.default_rng(seed)
+    cams = []
+    for i in range(n_cameras):
+        c = {
+            "id": f"cam{i:02d}",
+            "driver": "fake",
+            "index": i,
+            "width": w,
+            "height": h,
+            "clock_offset_ms": round(float(rng.uniform(-clock_offsets_ms, clock_offsets_ms)), 3),
+            "jitter_ms": float(jitter_ms),
+            "drop_rate": float(drop_rate),
+            "store": store,
+        }
+        if depth:
+            c["depth"] = True
+        cams.append(c)
+    data = {
+        "name": name,
+        "fps": float(fps),
+        "simulation": {"subject": subject, "n_cameras": dome, "frames": int(frames), "seed": int(seed), "noise": float(noise)},
+        "cameras": cams,
+    }
+    parse_rig(data, source="simulated rig")  # validate now: errors name the parameter's key
+    return data
+
+
+def simulated_rig(n_cameras: int = 4, **kw) -> Rig:
+    """:func:`simulated_rig_dict`, validated into a :class:`stage.rig.Rig`."""
+    return parse_rig(simulated_rig_dict(n_cameras, **kw), source="simulated rig")
+
+
+def _value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    raise ValueError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dumps_toml(data: dict) -> str:
+    """TOML text of a rig dictionary (scalars, arrays, tables, arrays of tables)."""
+    lines = [f"{k} = {_value(v)}" for k, v in data.items() if not isinstance(v, dict) and not (isinstance(v, list) and v and isinstance(v[0], dict))]
+    for k, v in data.items():
+        if isinstance(v, dict):
+            lines += ["", f"[{k}]"] + [f"{kk} = {_value(vv)}" for kk, vv in v.items()]
+    for k, v in data.items():
+        if isinstance(v, list) and v and isinstance(v[0], dict):
+            for item in v:
+                lines += ["", f"[[{k}]]"] + [f"{kk} = {_value(vv)}" for kk, vv in item.items()]
+    return "\n".join(lines) + "\n"
+
+
+def write_simulated_rig(path: str | Path, n_cameras: int = 4, **kw) -> Path:
+    """Write a simulated rig TOML file (see :func:`simulated_rig_dict`); returns the path."""
+    p = Path(path)
+    p.write_text(dumps_toml(simulated_rig_dict(n_cameras, **kw)), encoding="utf-8")
+    return p

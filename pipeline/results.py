@@ -1,0 +1,225 @@
+"""Results store: per-frame meshes and reports beside the take, never inside it.
+
+The capture file stays as recorded; everything computed from it goes to a directory::
+
+    DIR/
+      report.json              {"format": ..., "meta": {...}, "frames": {"123": {...}, ...}}
+      meshes/frame_000123.npz  vertices (V, 3) float64, faces (F, 3) int32
+      export/frame_000123.ply  on request (export), also .glb
+
+Plain files and numpy only (no HDF5 here: only ``stage/store.py`` touches HDF5). Every write
+goes to a temporary file in the same directory and is moved into place with ``os.replace``,
+so a killed process leaves either the old file or the new one, never half a file.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["ResultsStore", "atomic_write_bytes", "FORMAT"]
+
+FORMAT = "capture-stage/results@1"
+_FRAME_RE = re.compile(r"^frame_(\d{6,})\.npz$")
+_EXPORT_FORMATS = ("ply", "glb")
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file in the same folder + ``os.replace``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def _check_frame(frame: Any) -> int:
+    if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or frame < 0:
+        raise ValueError(f"frame must be a non-negative integer, got {frame!r}")
+    return int(frame)
+
+
+class ResultsStore:
+    """A directory of per-frame results for one processed take.
+
+    Parameters
+    ----------
+    path : str or Path
+        The results directory (created on first write). Keep it beside the take, e.g.
+        ``takes/walk.h5`` -> ``takes/walk.results/``.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        if not isinstance(path, (str, os.PathLike)) or str(path) == "":
+            raise ValueError(f"path must be a directory path, got {path!r}")
+        self.path = Path(path)
+        if self.path.exists() and not self.path.is_dir():
+            raise ValueError(f"path {str(self.path)!r} exists and is not a directory")
+        self._lock = threading.Lock()
+
+    # -- layout ---------------------------------------------------------------------------------
+    @property
+    def mesh_dir(self) -> Path:
+        return self.path / "meshes"
+
+    @property
+    def report_path(self) -> Path:
+        return self.path / "report.json"
+
+    def mesh_path(self, frame: int) -> Path:
+        return self.mesh_dir / f"frame_{_check_frame(frame):06d}.npz"
+
+    # -- meshes ---------------------------------------------------------------------------------
+    def write_mesh(self, frame: int, mesh) -> Path:
+        """Store the mesh of ``frame`` (replaces any previous one).
+
+        Parameters
+        ----------
+        frame : int
+        mesh : trimesh.Trimesh, or a pair ``(vertices (V, 3), faces (F, 3))``
+        """
+        frame = _check_frame(frame)
+        if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+            v, f = mesh.vertices, mesh.faces
+        elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+            v, f = mesh
+        else:
+            raise ValueError("mesh must be a trimesh.Trimesh or a (vertices, faces) pair")
+        v = np.asarray(v, dtype=np.float64)
+        f = np.asarray(f)
+        if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
+            raise ValueError(f"mesh vertices must be finite (V, 3), got shape {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
+            raise ValueError(f"mesh faces must be integer (F, 3), got shape {f.shape} dtype {f.dtype}")
+        if f.size and (f.min() < 0 or f.max() >= len(v)):
+            raise ValueError("mesh faces index vertices that do not exist")
+        buf = io.BytesIO()
+        np.savez(buf, vertices=v, faces=f.astype(np.int32))
+        return atomic_write_bytes(self.mesh_path(frame), buf.getvalue())
+
+    def read_mesh(self, frame: int):
+        """The stored mesh of ``frame`` as a ``trimesh.Trimesh``.
+
+        Raises
+        ------
+        KeyError
+            No mesh stored for that frame.
+        """
+        import trimesh
+
+        p = self.mesh_path(frame)
+        if not p.is_file():
+            raise KeyError(f"no mesh for frame {frame} in {self.path}")
+        with np.load(p) as z:
+            return trimesh.Trimesh(vertices=z["vertices"], faces=z["faces"], process=False)
+
+    def frames(self) -> list[int]:
+        """Frames that have a mesh, sorted."""
+        if not self.mesh_dir.is_dir():
+            return []
+        out = []
+        for p in self.mesh_dir.iterdir():
+            m = _FRAME_RE.match(p.name)
+            if m:
+                out.append(int(m.group(1)))
+        return sorted(out)
+
+    def export(self, frame: int, fmt: str = "ply", path: str | os.PathLike | None = None) -> Path:
+        """Export the mesh of ``frame`` to PLY (binary) or GLB.
+
+        Parameters
+        ----------
+        frame : int
+        fmt : {"ply", "glb"}
+        path : str or Path, optional
+            Destination; default ``DIR/export/frame_000123.<fmt>``.
+
+        Returns
+        -------
+        Path
+            The written file.
+        """
+        if fmt not in _EXPORT_FORMATS:
+            raise ValueError(f"fmt must be one of {_EXPORT_FORMATS}, got {fmt!r}")
+        mesh = self.read_mesh(frame)
+        data = mesh.export(file_type=fmt)
+        if isinstance(data, str):
+            data = data.encode()
+        dest = Path(path) if path is not None else self.path / "export" / f"frame_{int(frame):06d}.{fmt}"
+        return atomic_write_bytes(dest, data)
+
+    # -- report ---------------------------------------------------------------------------------
+    def read_report(self) -> dict:
+        """The whole report: ``{"format", "meta", "frames": {str(frame): {...}}}``."""
+        if not self.report_path.is_file():
+            return {"format": FORMAT, "meta": {}, "frames": {}}
+        try:
+            data = json.loads(self.report_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{self.report_path}: not valid JSON ({exc})") from None
+        data.setdefault("meta", {})
+        data.setdefault("frames", {})
+        return data
+
+    def write_frame_report(self, frame: int, entry: dict) -> None:
+        """Record (merge) the report of one frame, e.g. ``surface_quality(mesh).to_dict()`` or
+        ``{"empty": True, "reason": ...}``."""
+        frame = _check_frame(frame)
+        if not isinstance(entry, dict):
+            raise ValueError(f"entry must be a dict, got {type(entry).__name__}")
+        with self._lock:
+            data = self.read_report()
+            cur = data["frames"].get(str(frame), {})
+            cur.update(entry)
+            data["frames"][str(frame)] = cur
+            self._write_report(data)
+
+    def write_meta(self, meta: dict) -> None:
+        """Merge take-level information (grid, calibration source, options, timings)."""
+        if not isinstance(meta, dict):
+            raise ValueError(f"meta must be a dict, got {type(meta).__name__}")
+        with self._lock:
+            data = self.read_report()
+            data["meta"].update(meta)
+            self._write_report(data)
+
+    def frame_report(self, frame: int) -> dict:
+        """The report of one frame (``{}`` when none)."""
+        return dict(self.read_report()["frames"].get(str(_check_frame(frame)), {}))
+
+    def _write_report(self, data: dict) -> None:
+        data["format"] = FORMAT
+        text = json.dumps(data, indent=1, sort_keys=True, default=_json_default)
+        atomic_write_bytes(self.report_path, text.encode())
+
+    def __repr__(self) -> str:
+        return f"ResultsStore({str(self.path)!r})"
+
+
+def _json_default(o: Any):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"{type(o).__name__} is not JSON serializable")

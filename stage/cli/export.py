@@ -1,0 +1,57 @@
+"""``stage export``: a processed take as a rigged, animated glTF model (GLB)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+ORDER = 62
+
+FORMATS = ("glb", "spine-glb")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "export",
+        help="export a processed take as a rigged, animated GLB (mesh + skeleton + skinning weights)",
+        description="Rig the reference frame's mesh to the take's spine and write a binary glTF 2.0 file: "
+        "the surface, a skin whose joints lie along the spine's limbs, bone-heat skinning weights (at most 4 "
+        "per vertex) and an animation with one key per frame that plays the take back. "
+        "Format 'spine-glb' writes the animated spine alone. Units are converted to metres (glTF).",
+    )
+    p.add_argument("results", type=Path, metavar="DIR", help="results directory (spine.json, meshes/frame_NNNNNN.ply)")
+    p.add_argument("--format", choices=FORMATS, default="glb", help="glb: rigged mesh (default); spine-glb: spine only")
+    p.add_argument("--out", type=Path, metavar="FILE", help="output file (default DIR/spine_rig.glb or DIR/spine.glb)")
+    p.add_argument("--reference", type=int, metavar="FRAME", help="take frame number of the rest pose (default: the spine's reference)")
+    p.add_argument("--segments", type=int, default=6, metavar="N", help="bones per limb (default 6)")
+    p.add_argument("--no-spine-tubes", action="store_true", help="do not add the spine tubes to the rigged mesh")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pipeline.gltf_export import NoSpineError, export_rig, spine_to_glb
+
+    d = Path(args.results)
+    if args.segments < 1:
+        raise ValueError(f"--segments must be >= 1, got {args.segments}")
+    if args.format == "glb":
+        path = export_rig(
+            d, out=args.out, reference=args.reference, segments=args.segments, include_spine=not args.no_spine_tubes
+        )
+    else:
+        from pipeline.spine import read_spine
+
+        if not (d / "spine.json").is_file():
+            raise NoSpineError(f"{d} has no spine.json yet: run the spine stage (`stage process`) before exporting")
+        spine = read_spine(d / "spine.json")
+        ref = None
+        if args.reference is not None:
+            fi = [int(x) for x in spine.frame_indices]
+            if args.reference not in fi:
+                raise ValueError(f"--reference must be a frame number of the take, got {args.reference}")
+            ref = fi.index(args.reference)
+        path = Path(args.out) if args.out else d / "spine.glb"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(spine_to_glb(spine, segments=args.segments, reference=ref))
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+    return 0

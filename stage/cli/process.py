@@ -1,0 +1,110 @@
+"""``stage process``: keying, reconstruction and spines for a take (or spines for a mesh sequence)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+ORDER = 50
+log = logging.getLogger("stage.process")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "process",
+        help="run keying, reconstruction and spines on a take (writes DIR/spine.json)",
+        description="Process a take: key silhouettes (if the take has none), carve a visual hull and extract a "
+        "surface per frame set, grow per-frame skeletons and correspond their tips over time into one spine "
+        "(Brostow et al. 2004). Results go to DIR, beside the take; re-running on the same DIR resumes. "
+        "With --meshes, run the spine stage alone on a mesh sequence from another system.",
+    )
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("take", nargs="?", type=Path, help="take file (.h5) with a calibration")
+    src.add_argument("--meshes", metavar="GLOB", help="mesh sequence, one file per frame, e.g. 'DIR/*.obj' (OBJ, PLY, OFF)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="results directory")
+    p.add_argument(
+        "--until", choices=("key", "surface", "spine"), default="spine", help="last step to run (default: spine)"
+    )
+    p.add_argument("--key-mode", choices=("chroma", "luma", "plate"), default=None, help="keying mode (default: the rig's)")
+    p.add_argument("--rekey", action="store_true", help="key again even if the take holds masks")
+    p.add_argument(
+        "--resolution", type=int, default=None, help="voxels along the subject's longest side (default 96)"
+    )
+    p.add_argument(
+        "--volume",
+        type=float,
+        nargs=6,
+        metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+        help="where to look for the subject (default: the rig's capture volume, else derived from the cameras)",
+    )
+    p.add_argument("--tolerance", type=int, default=0, help="cameras allowed to disagree before a voxel is carved")
+    p.add_argument("--workers", type=int, default=2, help="worker processes for per-frame work (default 2; 0 = in process)")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate of a mesh sequence (--meshes)")
+    p.add_argument("--units", default="mm", help="units of a mesh sequence (--meshes), written as given")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def _run_meshes(args: argparse.Namespace) -> int:
+    from pipeline.spine import spine_from_meshes, write_spine
+
+    spine = spine_from_meshes(
+        args.meshes, fps=args.fps, units=args.units, workers=args.workers, progress=not args.no_progress
+    )
+    path = write_spine(args.out / "spine.json", spine)
+    d = spine.to_dict()
+    print(f"spine: {len(d['graph']['limbs'])} limbs over {len(d['frames'])} frames -> {path}")
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.workers < 0:
+        raise ValueError("--workers must be >= 0")
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.meshes:
+        return _run_meshes(args)
+    return process_with_progress(args.take, args.out, args=args)
+
+
+def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) -> int:
+    import concurrent.futures as cf
+
+    from tqdm import tqdm
+
+    from stage.process import STEPS, ProcessParams, process_take
+
+    steps = STEPS[: STEPS.index(args.until) + 1]
+    kw = {"key_mode": args.key_mode, "rekey": args.rekey, "tolerance": args.tolerance}
+    if args.resolution is not None:
+        kw["resolution"] = args.resolution
+    if args.volume is not None:
+        kw["volume"] = tuple(args.volume)
+    params = ProcessParams(**kw)
+    bars: dict[str, tqdm] = {}
+
+    def progress(step: str, done: int, total: int) -> None:
+        bar = bars.get(step)
+        if bar is None:
+            bar = bars[step] = tqdm(total=total, desc=step, unit="frame", disable=args.no_progress)
+        bar.n = done
+        bar.refresh()
+
+    executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
+    try:
+        result = process_take(take, out, steps=steps, params=params, executor=executor, progress=progress)
+    finally:
+        for b in bars.values():
+            b.close()
+        if executor is not None:
+            executor.shutdown(cancel_futures=True)
+    rep = result.report
+    print(f"processed {result.frames} frame sets of {take} ({', '.join(result.steps)}) in {rep['total_seconds']:.1f} s")
+    if result.empty_frames:
+        print(f"  empty frames (no subject): {result.empty_frames}")
+    if result.spine_path is not None:
+        spine = json.loads(Path(result.spine_path).read_text())
+        print(f"  spine: {len(spine['graph']['limbs'])} limbs -> {result.spine_path}")
+    print(f"  meshes: {out / 'meshes'}/  report: {out / 'report.json'}")
+    return 0

@@ -1,0 +1,533 @@
+"""Process a take: keying -> visual hull and surface per frame -> spines -> ``spine.json``.
+
+This is the worker pipeline's driver. Per-frame work (surfaces, per-frame skeletons)
+fans out over a :class:`concurrent.futures.Executor` (a local process pool by
+default, a Dask ``Client.get_executor()`` on a cluster); the correspondence of tips
+over time is the reduce step. Workers open the take by path themselves, so a Dask
+cluster needs a shared filesystem.
+
+Every per-frame result is persisted in the output directory as soon as it is
+finished (meshes as PLY, skeletons as JSON, written atomically), and a second call
+on the same output directory resumes from the unfinished frames: an interrupted
+job re-run gives the same ``spine.json`` as an uninterrupted one.
+
+Output directory layout::
+
+    OUT/process.json              parameters and the take it came from
+    OUT/meshes/frame_000000.ply   one surface per frame set (missing: empty frame)
+    OUT/frames/frame_000000.json  per-frame surface quality (or why it is empty)
+    OUT/skeletons/frame_000000.json  per-frame tips and skeletons
+    OUT/spine.json                the take's spine (capture-stage/spine@1)
+    OUT/report.json               summary: steps, timings, per-frame quality, tip counts
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+__all__ = ["ProcessParams", "ProcessResult", "ProcessError", "process_take", "STEPS"]
+
+log = logging.getLogger("stage.process")
+
+STEPS = ("key", "surface", "spine")
+
+
+class ProcessError(ValueError):
+    """A take that cannot be processed; the message says why and what to do."""
+
+
+class ProcessParams(BaseModel):
+    """Options of :func:`process_take` (defaults scale with the subject and the rig).
+
+    Attributes
+    ----------
+    key_mode : {"chroma", "luma", "plate"} or None
+        Keying mode; default: the rig's backdrop, else chroma.
+    rekey : bool
+        Key again even when the take already holds masks.
+    resolution : int
+        Voxels along the longest side of the subject's bounding box (the box is
+        found by a coarse carve of the whole capture volume, so the voxel size
+        follows the subject, not the rig).
+    volume : (6,) floats or None
+        ``[xmin, ymin, zmin, xmax, ymax, zmax]`` to search for the subject; default the
+        rig's capture volume, else derived from the cameras.
+    tolerance : int
+        Cameras allowed to disagree before a voxel is carved.
+    smooth_iterations : int
+        Taubin smoothing iterations of the surface.
+    face_budget : int or None
+        Decimate surfaces to at most this many faces.
+    chunk : int
+        Frames per task sent to the executor.
+    spine : dict
+        Options of :class:`pipeline.spine.SpineParams`.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    key_mode: Literal["chroma", "luma", "plate"] | None = None
+    rekey: bool = False
+    resolution: Annotated[int, Field(ge=16, le=512)] = 96
+    volume: tuple[float, float, float, float, float, float] | None = None
+    tolerance: Annotated[int, Field(ge=0)] = 0
+    smooth_iterations: Annotated[int, Field(ge=0, le=200)] = 10
+    face_budget: Annotated[int, Field(ge=100)] | None = None
+    chunk: Annotated[int, Field(ge=1)] = 4
+    spine: dict = Field(default_factory=dict)
+
+
+@dataclass
+class ProcessResult:
+    out: Path
+    steps: tuple[str, ...]
+    frames: int
+    empty_frames: list[int] = field(default_factory=list)
+    spine_path: Path | None = None
+    report: dict = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _frame_name(k: int) -> str:
+    return f"frame_{k:06d}"
+
+
+def _calibration_key(calib_dict: dict, grid_dict: dict) -> str:
+    blob = json.dumps([calib_dict, grid_dict], sort_keys=True).encode()
+    return hashlib.sha1(blob).hexdigest()
+
+
+_CARVERS: dict[str, object] = {}
+
+
+def _carver(calib_dict: dict, grid_dict: dict):
+    """One :class:`pipeline.hull.HullCarver` per (calibration, grid) and worker process."""
+    from calib.calibration import Calibration
+    from pipeline.hull import HullCarver
+    from pipeline.volume import Grid
+
+    key = _calibration_key(calib_dict, grid_dict)
+    if key not in _CARVERS:
+        _CARVERS.clear()  # one grid at a time keeps worker memory bounded
+        _CARVERS[key] = HullCarver(Calibration.from_dict(calib_dict), Grid.from_dict(grid_dict))
+    return _CARVERS[key]
+
+
+def _frame_masks(reader, cameras: Sequence[str], k: int) -> tuple[np.ndarray, list[str]]:
+    """(C, H, W) masks of frame set ``k``; a camera missing in the set, or whose mask was
+    marked invalid by the keyer, gets an all-foreground mask (it carves nothing)."""
+    rows = reader.set_rows(k)
+    masks = []
+    skipped = []
+    for cam in cameras:
+        w, h = reader.image_size(cam)
+        r = rows[cam]
+        m = reader.mask(cam, r) if r >= 0 else None
+        if m is not None and reader.has_array(f"cameras/{cam}", "mask_valid"):
+            valid = reader.read_array(f"cameras/{cam}", "mask_valid")[0]
+            if r < valid.shape[0] and not valid[r]:
+                m = None
+        if m is None:
+            skipped.append(cam)
+            m = np.ones((h, w), bool)
+        masks.append(m)
+    return np.stack(masks), skipped
+
+
+# ----------------------------------------------------------------------------- per-frame tasks
+
+
+def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: dict, params: dict, out: str) -> list[dict]:
+    """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/``.
+
+    Top level (picklable) so it runs in a process pool or on a Dask worker.
+    """
+    from pipeline.hull import EmptyHullError
+    from pipeline.surface import EmptySurfaceError, surface_from_occupancy, surface_quality
+    from stage.store import TakeReader
+
+    p = ProcessParams(**params)
+    out_dir = Path(out)
+    carver = _carver(calib_dict, grid_dict)
+    cameras = [c["name"] for c in calib_dict["cameras"]]
+    results = []
+    with TakeReader(take) as reader:
+        for k in frames:
+            t0 = time.perf_counter()
+            masks, skipped = _frame_masks(reader, cameras, k)
+            info: dict = {"index": int(k), "skipped_cameras": skipped}
+            try:
+                if len(skipped) == len(cameras):
+                    raise EmptyHullError("no camera has a valid mask in this frame set")
+                hull = carver.carve(masks, tolerance=p.tolerance)
+                mesh = surface_from_occupancy(
+                    hull.occupancy,
+                    carver.grid,
+                    taubin_iterations=p.smooth_iterations,
+                    face_budget=p.face_budget,
+                )
+                quality = surface_quality(mesh).to_dict()
+                mesh_path = out_dir / "meshes" / f"{_frame_name(k)}.ply"
+                mesh_path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = mesh_path.with_name(f".{mesh_path.name}.{os.getpid()}.tmp")
+                mesh.export(tmp, file_type="ply")
+                os.replace(tmp, mesh_path)
+                info.update(status="ok", quality=quality)
+            except (EmptyHullError, EmptySurfaceError) as exc:
+                info.update(status="empty", reason=str(exc))
+                log.warning("frame set %d: %s", k, exc)
+            info["seconds"] = time.perf_counter() - t0
+            _atomic_write_text(out_dir / "frames" / f"{_frame_name(k)}.json", json.dumps(info))
+            results.append(info)
+    return results
+
+
+def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
+    """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of some frames' meshes."""
+    from pipeline.meshio import load_mesh
+    from pipeline.spine import SpineParams, frame_skeleton
+
+    params = SpineParams(**spine_params)
+    out_dir = Path(out)
+    done = []
+    for k in frames:
+        mesh_path = out_dir / "meshes" / f"{_frame_name(k)}.ply"
+        if mesh_path.exists():
+            v, f = load_mesh(mesh_path)
+            try:
+                sk = frame_skeleton(v, f, params=params).to_dict()
+                rec = {"index": int(k), "status": "ok", "skeleton": sk}
+            except ValueError as exc:
+                rec = {"index": int(k), "status": "failed", "reason": str(exc)}
+                log.warning("frame set %d: no skeleton: %s", k, exc)
+        else:
+            rec = {"index": int(k), "status": "empty"}
+        _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
+        done.append({"index": int(k), "status": rec["status"]})
+    return done
+
+
+# ----------------------------------------------------------------------------- driver
+
+
+def _chunks(items: Sequence[int], n: int) -> list[list[int]]:
+    return [list(items[i : i + n]) for i in range(0, len(items), n)]
+
+
+def _run_tasks(
+    executor: cf.Executor | None,
+    fn: Callable,
+    chunks: list[list[int]],
+    args: tuple,
+    *,
+    step: str,
+    done0: int,
+    total: int,
+    progress: Callable[[str, int, int], None] | None,
+    cancel: threading.Event | None,
+) -> list[dict]:
+    results: list[dict] = []
+    done = done0
+    if executor is None:
+        for ch in chunks:
+            if cancel is not None and cancel.is_set():
+                raise InterruptedError("cancelled")
+            res = fn(args[0], ch, *args[1:])
+            results.extend(res)
+            done += len(ch)
+            if progress:
+                progress(step, done, total)
+        return results
+    futures = {}
+    for ch in chunks:
+        futures[executor.submit(fn, args[0], ch, *args[1:])] = ch
+    try:
+        for fut in cf.as_completed(futures):
+            if cancel is not None and cancel.is_set():
+                raise InterruptedError("cancelled")
+            results.extend(fut.result())
+            done += len(futures[fut])
+            if progress:
+                progress(step, done, total)
+    finally:
+        for fut in futures:
+            fut.cancel()
+    return results
+
+
+def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, volume_bounds: np.ndarray):
+    """A grid fitted to the subject: carve a few frame sets coarsely over the whole volume,
+    take the union of their hulls' boxes (padded), and put ``resolution`` voxels along its
+    longest side."""
+    from pipeline.hull import EmptyHullError, HullCarver
+    from pipeline.volume import grid_from_volume
+
+    volume_bounds = np.asarray(volume_bounds, float).reshape(-1)
+    coarse = grid_from_volume(volume_bounds.reshape(2, 3), 64)
+    carver = HullCarver(calibration, coarse)
+    sample = np.unique(np.linspace(0, n_sets - 1, min(n_sets, 8)).round().astype(int))
+    lo, hi = None, None
+    for k in sample:
+        masks, skipped = _frame_masks(reader, cameras, int(k))
+        if len(skipped) == len(cameras):
+            continue
+        try:
+            occ = carver.carve(masks, tolerance=p.tolerance).occupancy
+        except ValueError:
+            continue
+        idx = np.argwhere(occ)
+        if idx.size == 0:
+            continue
+        a = coarse.index_to_world(idx.min(0)[None])[0]
+        b = coarse.index_to_world(idx.max(0)[None])[0]
+        lo = a if lo is None else np.minimum(lo, a)
+        hi = b if hi is None else np.maximum(hi, b)
+    if lo is None:
+        raise EmptyHullError("no subject found in any sampled frame set (check the masks: `stage key --preview`)")
+    pad = 2.5 * coarse.voxel
+    lo = np.maximum(lo - pad, volume_bounds[:3])
+    hi = np.minimum(hi + pad, volume_bounds[3:])
+    # the subject may move beyond the sampled frames: grow the box by 25 % (inside the volume)
+    c, half = (lo + hi) / 2, (hi - lo) / 2 * 1.25
+    lo = np.maximum(c - half, volume_bounds[:3])
+    hi = np.minimum(c + half, volume_bounds[3:])
+    return grid_from_volume(np.stack([lo, hi]), p.resolution)
+
+
+def process_take(
+    take: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    steps: Sequence[str] = STEPS,
+    params: ProcessParams | dict | None = None,
+    executor: cf.Executor | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> ProcessResult:
+    """Run keying, reconstruction and spines on a take; resumable.
+
+    Parameters
+    ----------
+    take : path
+        The take (.h5) with a calibration.
+    out : path
+        Results directory (beside the take, never inside it).
+    steps : sequence of {"key", "surface", "spine"}
+        Steps to run, in pipeline order (a later step needs the earlier ones' results,
+        which may come from an earlier run).
+    params : ProcessParams or dict, optional
+    executor : concurrent.futures.Executor, optional
+        Where per-frame work runs; ``None`` runs it in this process.
+    progress : callable, optional
+        ``progress(step, done, total)`` after every finished chunk of frames.
+    cancel : threading.Event, optional
+        Set it to stop between chunks (``InterruptedError``); finished frames stay.
+
+    Returns
+    -------
+    ProcessResult
+    """
+    from stage.store import TakeReader
+
+    take = Path(take)
+    out = Path(out)
+    steps = tuple(steps)
+    bad = [s for s in steps if s not in STEPS]
+    if bad or not steps:
+        raise ValueError(f"steps must be a non-empty subset of {STEPS}, got {steps}")
+    steps = tuple(s for s in STEPS if s in steps)
+    if params is None:
+        params = ProcessParams()
+    elif isinstance(params, dict):
+        try:
+            params = ProcessParams(**params)
+        except ValidationError as exc:
+            raise ValueError(f"params: {exc}") from None
+    elif not isinstance(params, ProcessParams):
+        raise ValueError(f"params must be ProcessParams or a dict, got {type(params).__name__}")
+    if not take.is_file():
+        raise FileNotFoundError(f"{take}: take not found")
+    if out.resolve() == take.resolve() or out.suffix in (".h5", ".hdf5"):
+        raise ValueError(f"out must be a directory beside the take, got {out}")
+    out.mkdir(parents=True, exist_ok=True)
+    spine_params = params.spine
+    try:
+        from pipeline.spine import SpineParams
+
+        SpineParams(**spine_params)
+    except ValidationError as exc:
+        raise ValueError(f"params.spine: {exc}") from None
+
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    # -- key ---------------------------------------------------------------------
+    with TakeReader(take) as reader:
+        if not reader.has_calibration:
+            raise ProcessError(f"{take}: the take has no calibration; run `stage calibrate` first")
+        calibration = reader.calibration
+        cameras = list(reader.cameras)
+        missing_cal = [c for c in cameras if c not in calibration.names]
+        if missing_cal:
+            raise ProcessError(f"{take}: cameras {missing_cal} are not in the take's calibration")
+        n_sets = reader.n_sets
+        fps = reader.fps or reader.measured_fps() or 30.0
+        rig = reader.rig or {}
+        need_key = params.rekey or len(reader.masks_present()) < len(cameras)
+    if n_sets == 0:
+        raise ProcessError(f"{take}: the take holds no frame sets")
+    calibration = type(calibration)(tuple(calibration[c] for c in cameras), units=calibration.units, meta=calibration.meta)
+    record = {"take": str(take.resolve()), "params": params.model_dump(), "frames": n_sets, "cameras": cameras}
+    prev = out / "process.json"
+    if prev.exists():
+        old = json.loads(prev.read_text())
+        if old.get("params") != record["params"] or old.get("take") != record["take"]:
+            log.warning("%s holds results of other parameters or another take; starting over", out)
+            for sub in ("meshes", "frames", "skeletons"):
+                for f in (out / sub).glob("frame_*"):
+                    f.unlink()
+            (out / "spine.json").unlink(missing_ok=True)
+    _atomic_write_text(prev, json.dumps(record, indent=2))
+
+    if "key" in steps and need_key:
+        from stage.keying.take import key_take
+
+        t0 = time.perf_counter()
+        total = n_sets * len(cameras)
+        state = {"done": 0}
+
+        def _key_progress(n: int) -> None:
+            state["done"] += n
+            if progress:
+                progress("key", state["done"], total)
+            if cancel is not None and cancel.is_set():
+                raise InterruptedError("cancelled")
+
+        key_take(take, key_mode=params.key_mode, progress=_key_progress)
+        timings["key"] = time.perf_counter() - t0
+    elif "key" in steps and progress:
+        progress("key", n_sets * len(cameras), n_sets * len(cameras))
+
+    # -- surface -----------------------------------------------------------------
+    frame_infos: dict[int, dict] = {}
+    grid_path = out / "grid.json"
+    if "surface" in steps:
+        from pipeline.volume import Grid, volume_from_cameras
+
+        t0 = time.perf_counter()
+        with TakeReader(take) as reader:
+            if len(reader.masks_present()) < len(cameras):
+                raise ProcessError(f"{take}: cameras {sorted(set(cameras) - set(reader.masks_present()))} have no masks; run the key step")
+            if grid_path.exists():
+                grid = Grid.from_dict(json.loads(grid_path.read_text()))
+            else:
+                if params.volume is not None:
+                    vb = np.asarray(params.volume, float)
+                elif rig.get("volume"):
+                    c = np.asarray(rig["volume"]["center"], float)
+                    s = np.asarray(rig["volume"]["size"], float)
+                    vb = np.r_[c - s / 2, c + s / 2]
+                else:
+                    vb = np.asarray(volume_from_cameras(calibration), float).reshape(-1)
+                grid = _subject_grid(reader, calibration, cameras, n_sets, params, vb)
+                _atomic_write_text(grid_path, json.dumps(grid.to_dict()))
+        todo = [k for k in range(n_sets) if not (out / "frames" / f"{_frame_name(k)}.json").exists()]
+        if progress:
+            progress("surface", n_sets - len(todo), n_sets)
+        _run_tasks(
+            executor,
+            surface_task,
+            _chunks(todo, params.chunk),
+            (str(take.resolve()), calibration.to_dict(), grid.to_dict(), params.model_dump(), str(out.resolve())),
+            step="surface",
+            done0=n_sets - len(todo),
+            total=n_sets,
+            progress=progress,
+            cancel=cancel,
+        )
+        timings["surface"] = time.perf_counter() - t0
+    for k in range(n_sets):
+        f = out / "frames" / f"{_frame_name(k)}.json"
+        if f.exists():
+            frame_infos[k] = json.loads(f.read_text())
+
+    # -- spine -------------------------------------------------------------------
+    spine_path = None
+    tip_counts: list[int | None] = [None] * n_sets
+    if "spine" in steps:
+        from pipeline.spine import FrameSkeleton, SpineParams, build_spine, write_spine
+
+        if not frame_infos or len(frame_infos) < n_sets:
+            raise ProcessError(f"{out}: surfaces are missing for some frames; run the surface step")
+        t0 = time.perf_counter()
+        todo = [k for k in range(n_sets) if not (out / "skeletons" / f"{_frame_name(k)}.json").exists()]
+        if progress:
+            progress("skeleton", n_sets - len(todo), n_sets)
+        _run_tasks(
+            executor,
+            skeleton_task,
+            _chunks(todo, params.chunk),
+            (str(out.resolve()), spine_params),
+            step="skeleton",
+            done0=n_sets - len(todo),
+            total=n_sets,
+            progress=progress,
+            cancel=cancel,
+        )
+        skeletons: list[FrameSkeleton] = []
+        for k in range(n_sets):
+            rec = json.loads((out / "skeletons" / f"{_frame_name(k)}.json").read_text())
+            sk = FrameSkeleton.from_dict(rec["skeleton"]) if rec["status"] == "ok" else FrameSkeleton.empty()
+            skeletons.append(sk)
+            tip_counts[k] = sk.n_tips
+        if progress:
+            progress("spine", 0, 1)
+        spine = build_spine(skeletons, fps=float(fps), units=calibration.units, params=SpineParams(**spine_params))
+        spine_path = write_spine(out / "spine.json", spine)
+        if progress:
+            progress("spine", 1, 1)
+        timings["spine"] = time.perf_counter() - t0
+
+    empty = sorted(k for k, i in frame_infos.items() if i.get("status") != "ok")
+    report = {
+        "take": str(take.resolve()),
+        "frames": n_sets,
+        "cameras": cameras,
+        "steps": list(steps),
+        "seconds": timings,
+        "total_seconds": time.perf_counter() - t_start,
+        "empty_frames": empty,
+        "tip_counts": tip_counts,
+        "per_frame": [frame_infos.get(k) for k in range(n_sets)],
+    }
+    _atomic_write_text(out / "report.json", json.dumps(report, indent=1, default=_json_default))
+    return ProcessResult(out=out, steps=steps, frames=n_sets, empty_frames=empty, spine_path=spine_path, report=report)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")

@@ -1,0 +1,106 @@
+"""Rendered boards are found by OpenCV's own detectors, at the true corner positions."""
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.boards import Charuco, Chessboard
+from fake_cameras.boards import board_poses, render_board_views
+from fake_cameras.dome import make_dome
+
+
+@pytest.fixture(scope="module")
+def cal():
+    return make_dome(4, seed=0)
+
+
+def _frontal(bv, v, c, max_deg=50):
+    cam = bv.calibration[c]
+    to_cam = cam.center - bv.poses[v, :3, 3]
+    cos = -(to_cam / np.linalg.norm(to_cam)) @ bv.poses[v, :3, 2]
+    return bv.visible[v, c].all() and cos > np.cos(np.radians(max_deg))
+
+
+@pytest.mark.slow
+def test_chessboard_corners_are_detected_at_the_truth(cal):
+    board = Chessboard(corners=(9, 6), square_mm=50.0)
+    bv = render_board_views(board, cal, 4, seed=1)
+    assert bv.images.shape == (4, 4, 480, 640, 3)
+    errs = []
+    for v in range(4):
+        for c in range(4):
+            if not _frontal(bv, v, c):
+                continue
+            gray = cv2.cvtColor(bv.images[v, c], cv2.COLOR_BGR2GRAY)
+            ok, cc = cv2.findChessboardCornersSB(gray, board.corners, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+            assert ok, (v, c)
+            cc = cc.reshape(-1, 2)
+            true = bv.corners_2d[v, c]
+            # the detector may start from either end of the grid
+            e = min((np.linalg.norm(cc - true, axis=1), np.linalg.norm(cc[::-1] - true, axis=1)), key=np.max)
+            errs.append(e)
+    errs = np.concatenate(errs)
+    assert errs.size >= 3 * board.n_corners
+    assert np.median(errs) < 0.12
+    assert np.percentile(errs, 90) < 0.3
+
+
+@pytest.mark.slow
+def test_charuco_corners_are_detected_at_the_truth(cal):
+    board = Charuco(squares=(7, 5), square_mm=70.0, marker_mm=52.0, dictionary="DICT_4X4_50")
+    bv = render_board_views(board, cal, 4, seed=1)
+    det = cv2.aruco.CharucoDetector(board.to_cv())
+    errs = []
+    for v in range(4):
+        for c in range(4):
+            if not _frontal(bv, v, c):
+                continue
+            gray = cv2.cvtColor(bv.images[v, c], cv2.COLOR_BGR2GRAY)
+            cc, ids, _, _ = det.detectBoard(gray)
+            assert ids is not None and len(ids) >= 12, (v, c)
+            errs.append(np.linalg.norm(cc.reshape(-1, 2) - bv.corners_2d[v, c][ids.ravel()], axis=1))
+    errs = np.concatenate(errs)
+    assert errs.size >= 40
+    assert np.median(errs) < 0.12
+    assert np.percentile(errs, 90) < 0.3
+
+
+def test_ground_truth_geometry(cal):
+    board = Chessboard(corners=(5, 4), square_mm=60.0)
+    bv = render_board_views(board, cal, 3, seed=2, noise_sigma=0)
+    V, C, N = bv.visible.shape
+    assert (V, C, N) == (3, 4, 20)
+    for v in range(V):
+        R, t = bv.poses[v, :3, :3], bv.poses[v, :3, 3]
+        assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1)
+        assert np.allclose(bv.corners_3d[v], bv.object_points @ R.T + t)
+        # corners of adjacent squares are one square apart in the world
+        d = np.linalg.norm(np.diff(bv.corners_3d[v].reshape(4, 5, 3), axis=1), axis=2)
+        assert np.allclose(d, 60.0)
+        for c, cam in enumerate(cal):
+            assert np.allclose(bv.corners_2d[v, c], cam.project(bv.corners_3d[v]))
+    # every pose faces at least one camera; boards stay inside the volume
+    assert bv.visible.any(axis=(1, 2)).all()
+    assert np.all(np.abs(bv.corners_3d[..., :2]) < 375) and np.all((bv.corners_3d[..., 2] > 0) & (bv.corners_3d[..., 2] < 750))
+    # cameras behind the board see only the studio (green)
+    for v in range(V):
+        for c in range(C):
+            if not bv.visible[v, c].any():
+                img = bv.images[v, c].astype(int)
+                assert np.mean(img[..., 1] > img[..., 2] + 30) > 0.99
+
+
+def test_invalid_input(cal):
+    board = Chessboard(corners=(5, 4), square_mm=60.0)
+    with pytest.raises(ValueError, match="board"):
+        render_board_views({"type": "chessboard"}, cal, 2)
+    with pytest.raises(ValueError, match="calibration"):
+        render_board_views(board, "dome", 2)
+    with pytest.raises(ValueError, match="n_views"):
+        render_board_views(board, cal, 0)
+    with pytest.raises(ValueError, match="noise_sigma"):
+        render_board_views(board, cal, 1, noise_sigma=-1)
+    with pytest.raises(ValueError, match="poses"):
+        render_board_views(board, cal, 2, poses=np.eye(4)[None])
+    with pytest.raises(ValueError, match="board"):
+        board_poses("chessboard", cal, 2)

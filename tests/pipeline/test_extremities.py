@@ -1,0 +1,99 @@
+"""Tips: protruding AGD maxima."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.extremities import find_extremities, local_maxima, protrudes
+from pipeline.geodesic import average_geodesic_distance, edge_graph, mesh_edges
+
+
+def capsule(height=3.0):
+    """A capsule with roughly uniform edges (trimesh's has only end rings on the cylinder)."""
+    m = trimesh.creation.capsule(height=height, radius=0.5, count=[16, 16])
+    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=0.2)
+    return trimesh.Trimesh(v, f)
+
+
+def star(arms=4, length=2.0):
+    """A ball with ``arms`` capsules sticking out of it (one watertight mesh)."""
+    parts = [trimesh.creation.icosphere(subdivisions=3, radius=1.0)]
+    dirs = []
+    for k in range(arms):
+        a = 2 * np.pi * k / arms
+        d = np.array([np.cos(a), np.sin(a), 0.3 * (k % 2)])
+        d /= np.linalg.norm(d)
+        c = trimesh.creation.capsule(height=length, radius=0.3, count=[12, 12])
+        z = np.array([0, 0, 1.0])
+        R = trimesh.geometry.align_vectors(z, d)
+        c.apply_transform(R)
+        c.apply_translation(d * (0.6 + length / 2))
+        parts.append(c)
+        dirs.append(d)
+    m = trimesh.boolean.union(parts) if False else trimesh.util.concatenate(parts)
+    return m, np.array(dirs)
+
+
+def test_local_maxima_vs_bruteforce():
+    rng = np.random.default_rng(1)
+    m = trimesh.creation.icosphere(subdivisions=2)
+    e = mesh_edges(np.asarray(m.faces))
+    vals = rng.normal(size=len(m.vertices))
+    vals[5] = vals[6] = vals.max() + 1  # a tie between neighbours (or not) is broken by index
+    got = set(local_maxima(vals, e).tolist())
+    ref = set()
+    for i in range(len(vals)):
+        nb = np.concatenate([e[e[:, 0] == i, 1], e[e[:, 1] == i, 0]])
+        if all((vals[i], i) > (vals[j], j) for j in nb):
+            ref.add(i)
+    assert got == ref
+
+
+def test_fast_tests_agree_with_persistence_definition():
+    """Every tip passes the slow exact test; every 1-ring maximum rejected fails it."""
+    m = capsule()
+    # bend it into a 'V' with a short bump: 2 real tips + noise
+    v = np.asarray(m.vertices).copy()
+    v[:, 0] += 0.3 * np.abs(v[:, 2])
+    f = np.asarray(m.faces)
+    ext = find_extremities(v, f, min_protrusion=0.1)
+    e = mesh_edges(f)
+    for t in ext.vertices:
+        assert protrudes(ext.agd, e, int(t), ext.threshold)
+    for c in local_maxima(ext.agd, e):
+        if c not in set(ext.vertices.tolist()):
+            assert not protrudes(ext.agd, e, int(c), ext.threshold)
+    assert len(ext) == 2
+
+
+def test_sphere_has_no_tips_capsule_two():
+    s = trimesh.creation.icosphere(subdivisions=3)
+    assert len(find_extremities(s.vertices, s.faces)) == 0
+    c = capsule()
+    ext = find_extremities(c.vertices, c.faces)
+    assert len(ext) == 2
+    np.testing.assert_allclose(np.sort(np.abs(ext.points[:, 2])), [2.0, 2.0], atol=0.05)
+
+
+def test_threshold_is_scale_free():
+    c = capsule()
+    a = find_extremities(c.vertices, c.faces)
+    b = find_extremities(c.vertices * 1000.0, c.faces)
+    assert len(a) == len(b) == 2
+    # symmetric ties may fall on another vertex of the same cap: compare heights
+    np.testing.assert_allclose(np.sort(b.points[:, 2]) / 1000.0, np.sort(a.points[:, 2]), atol=0.05)
+    np.testing.assert_allclose(b.threshold, 1000.0 * a.threshold, rtol=1e-9)
+
+
+def test_invalid_input():
+    c = capsule()
+    with pytest.raises(ValueError, match="n_base"):
+        find_extremities(c.vertices, c.faces, n_base=1)
+    with pytest.raises(ValueError, match="min_protrusion"):
+        find_extremities(c.vertices, c.faces, min_protrusion=0)
+    with pytest.raises(ValueError, match="protrusion"):
+        find_extremities(c.vertices, c.faces, protrusion=-1.0)
+    with pytest.raises(ValueError, match="faces"):
+        find_extremities(c.vertices, np.zeros((0, 3), int))

@@ -1,0 +1,230 @@
+"""Rigged GLB export (pipeline.gltf_export, stage export): loads back, skin, weights, animation, posing."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.gltf_export import NoSpineError, export_rig, find_frame_mesh, rig_to_glb, spine_to_glb, spine_tubes
+from pipeline.rig_model import rig_from_spine, rigged_model
+from pipeline.spine import write_spine
+from tests.pipeline.rig_fixtures import FPS, creature_size, creature_take, surface, true_spine
+
+pygltflib = pytest.importorskip("pygltflib", reason="pygltflib (test dependency) is not installed")
+trimesh = pytest.importorskip("trimesh")
+
+FRAMES = 12
+SEGMENTS = 6
+HIDE = {"tail": [2, 3]}  # the tail is not seen in frames 2-3: it holds frame 4's pose
+
+
+@pytest.fixture(scope="module")
+def take():
+    _, poses = creature_take("quadruped", FRAMES)
+    spine = true_spine("quadruped", poses, hide=HIDE)
+    v, f = surface(poses[spine.meta["references"][0]], step=8.0)
+    return poses, spine, v, f
+
+
+@pytest.fixture(scope="module")
+def glb(take):
+    _, spine, v, f = take
+    model = rigged_model(spine, v, f, segments=SEGMENTS)
+    return model, rig_to_glb(model)
+
+
+# ----------------------------------------------------------------- reading the GLB back, independently
+
+
+def _accessor(g, i):
+    """An accessor's data as an array, read straight from the GLB's binary chunk."""
+    acc = g.accessors[i]
+    view = g.bufferViews[acc.bufferView]
+    blob = g.binary_blob()
+    dtype = {5126: np.float32, 5125: np.uint32, 5123: np.uint16, 5121: np.uint8}[acc.componentType]
+    ncomp = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}[acc.type]
+    start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+    a = np.frombuffer(blob, dtype=dtype, count=acc.count * ncomp, offset=start)
+    return a.reshape(acc.count, ncomp) if ncomp > 1 else a
+
+
+def _quat_matrix(q):
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _pose_from_glb(g, t):
+    """Surface vertices posed for key ``t`` by linear blend skinning, from the GLB data alone (metres)."""
+    skin = g.skins[0]
+    joints = list(skin.joints)
+    ibm = _accessor(g, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1).astype(np.float64)
+    trs = {n: {"t": np.array(g.nodes[n].translation or [0, 0, 0], float),
+               "r": np.array(g.nodes[n].rotation or [0, 0, 0, 1], float)} for n in joints}
+    anim = g.animations[0]
+    for ch in anim.channels:
+        out = _accessor(g, anim.samplers[ch.sampler].output)
+        trs[ch.target.node]["t" if ch.target.path == "translation" else "r"] = out[t].astype(np.float64)
+    parent = {c: n for n in range(len(g.nodes)) for c in (g.nodes[n].children or [])}
+    world = {}
+
+    def glob(n):
+        if n not in world:
+            M = np.eye(4)
+            M[:3, :3] = _quat_matrix(trs[n]["r"])
+            M[:3, 3] = trs[n]["t"]
+            world[n] = glob(parent[n]) @ M if n in parent else M
+        return world[n]
+
+    S = np.array([glob(n) for n in joints]) @ ibm
+    mesh = next(m for m in g.meshes if m.name == "surface")
+    attr = mesh.primitives[0].attributes
+    V = _accessor(g, attr.POSITION).astype(np.float64)
+    J = _accessor(g, attr.JOINTS_0).astype(np.int64)
+    W = _accessor(g, attr.WEIGHTS_0).astype(np.float64)
+    vh = np.c_[V, np.ones(len(V))]
+    out = np.zeros_like(V)
+    for c in range(4):
+        out += W[:, c : c + 1] * np.einsum("vij,vj->vi", S[J[:, c]][:, :3, :], vh)
+    return out
+
+
+# ----------------------------------------------------------------- tests
+
+
+def test_glb_loads_back_with_pygltflib_and_trimesh(glb, take):
+    model, data = glb
+    _, spine, v, f = take
+    g = pygltflib.GLTF2.load_from_bytes(data)
+    assert g.asset.version == "2.0"
+    # expected joints: the root + (segments + 1) per axis: 6 limbs and 2 junction-to-junction axes
+    assert len(g.skins[0].joints) == 1 + (len(spine.limb_ids) + len(spine.junction_ids) - 1) * (SEGMENTS + 1)
+    scene = trimesh.load(io.BytesIO(data), file_type="glb")
+    geom = scene.geometry["surface"]
+    assert len(geom.faces) == len(f)
+    np.testing.assert_allclose(np.sort(geom.vertices[:, 2]), np.sort(v[:, 2] / 1000.0), atol=1e-6)
+    assert "spine" in scene.geometry
+    extras = g.asset.extras
+    assert extras["source_units"] == "mm" and extras["scale_to_metres"] == 0.001
+    assert len(extras["joint_limbs"]) == len(g.skins[0].joints)
+
+
+def test_weights_sum_to_one_with_at_most_four_influences(glb):
+    _, data = glb
+    g = pygltflib.GLTF2.load_from_bytes(data)
+    for mesh in g.meshes:
+        attr = mesh.primitives[0].attributes
+        W = _accessor(g, attr.WEIGHTS_0)
+        J = _accessor(g, attr.JOINTS_0)
+        assert W.shape[1] == 4 and W.min() >= 0
+        np.testing.assert_allclose(W.astype(np.float64).sum(1), 1.0, atol=2e-7)
+        assert J.max() < len(g.skins[0].joints)
+
+
+def test_animation_has_one_key_per_frame(glb):
+    model, data = glb
+    g = pygltflib.GLTF2.load_from_bytes(data)
+    (anim,) = g.animations
+    n_joints = len(g.skins[0].joints)
+    assert len(anim.channels) == 2 * n_joints
+    assert {c.target.path for c in anim.channels} == {"rotation", "translation"}
+    for s in anim.samplers:
+        times = _accessor(g, s.input)
+        assert len(times) == FRAMES == len(_accessor(g, s.output))
+        np.testing.assert_allclose(times, np.arange(FRAMES) / FPS, atol=1e-6)
+
+
+def test_posed_mesh_stays_on_each_frames_true_surface(glb, take):
+    """Mean |sdf| < 3 % and 95th percentile < 6 % of the creature's size (bounding-box diagonal), every frame."""
+    model, data = glb
+    poses, *_ = take
+    g = pygltflib.GLTF2.load_from_bytes(data)
+    worst = []
+    for t in range(FRAMES):
+        posed = _pose_from_glb(g, t) * 1000.0  # metres -> mm
+        np.testing.assert_allclose(posed, model.deform(t), atol=0.05)  # our own LBS agrees with the file's
+        d = np.abs(poses[t].sdf(posed)) / creature_size(poses[t])
+        worst.append((float(d.mean()), float(np.percentile(d, 95))))
+    mean, p95 = max(w[0] for w in worst), max(w[1] for w in worst)
+    print(f"posing error over {FRAMES} frames: worst mean |sdf| {mean:.2%}, worst p95 {p95:.2%} of size")
+    assert mean < 0.03 and p95 < 0.06
+
+
+def test_spine_only_glb(take):
+    _, spine, *_ = take
+    data = spine_to_glb(spine.to_dict())
+    g = pygltflib.GLTF2.load_from_bytes(data)
+    assert [m.name for m in g.meshes] == ["spine"]
+    assert len(_accessor(g, g.animations[0].samplers[0].input)) == FRAMES
+    tubes = spine_tubes(rig_from_spine(spine))
+    assert len(_accessor(g, g.meshes[0].primitives[0].attributes.POSITION)) == len(tubes[0])
+
+
+@pytest.fixture
+def results_dir(tmp_path, take):
+    poses, spine, v, f = take
+    write_spine(tmp_path / "spine.json", spine)
+    (tmp_path / "meshes").mkdir()
+    ref = spine.meta["references"][0]
+    trimesh.Trimesh(v, f, process=False).export(tmp_path / "meshes" / f"frame_{ref:06d}.ply")
+    return tmp_path
+
+
+def test_export_rig_writes_spine_rig_glb(results_dir):
+    path = export_rig(results_dir)
+    assert path == results_dir / "spine_rig.glb"
+    g = pygltflib.GLTF2.load_from_bytes(path.read_bytes())
+    assert g.asset.extras["reference_frame"] == FRAMES // 2
+    assert find_frame_mesh(results_dir, FRAMES // 2).suffix == ".ply"
+
+
+def test_cli_export(results_dir, tmp_path_factory, capsys):
+    from stage.cli import main
+
+    assert main(["export", str(results_dir), "--format", "glb"]) == 0
+    assert (results_dir / "spine_rig.glb").is_file()
+    out = tmp_path_factory.mktemp("o") / "s.glb"
+    assert main(["export", str(results_dir), "--format", "spine-glb", "--out", str(out)]) == 0
+    assert out.is_file() and str(out) in capsys.readouterr().out
+
+
+def test_export_without_spine_is_a_clear_error(tmp_path, capsys):
+    from stage.cli import main
+
+    (tmp_path / "meshes").mkdir()
+    with pytest.raises(NoSpineError, match="no spine.json yet"):
+        export_rig(tmp_path)
+    assert main(["export", str(tmp_path)]) == 2
+    assert "no spine.json yet" in capsys.readouterr().err
+
+
+def test_invalid_input(tmp_path, results_dir, take):
+    _, spine, v, f = take
+    with pytest.raises(ValueError, match="model"):
+        rig_to_glb(spine)
+    with pytest.raises(ValueError, match="scale"):
+        rig_to_glb(rigged_model(spine, v, f), scale=-1)
+    with pytest.raises(ValueError, match="sections"):
+        spine_tubes(rig_from_spine(spine), sections=2)
+    with pytest.raises(ValueError):
+        spine_to_glb({"format": "nope"})
+    with pytest.raises(FileNotFoundError, match="results directory"):
+        export_rig(tmp_path / "missing")
+    with pytest.raises(ValueError, match="reference"):
+        export_rig(results_dir, reference=999)
+    (results_dir / "meshes" / f"frame_{FRAMES // 2:06d}.ply").unlink()
+    with pytest.raises(FileNotFoundError, match="no mesh"):
+        export_rig(results_dir)
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "spine.json").write_text(json.dumps({"format": "capture-stage/spine@1"}))
+    with pytest.raises(ValueError, match="missing key"):
+        export_rig(bad)

@@ -1,0 +1,280 @@
+"""Visual hull: lookup-table carving vs a slow direct reference, coarse-to-fine exactness,
+visibility, tolerance, bad masks, memory refusal, derived capture volumes."""
+
+from __future__ import annotations
+
+import logging
+from functools import lru_cache
+
+import numpy as np
+import pytest
+
+from calib.calibration import Calibration
+from pipeline.hull import EmptyHullError, HullCarver, carve_direct, hull_memory_bytes
+from pipeline.volume import Grid, grid_from_volume, pixel_index, volume_from_cameras
+from stage.rig import Volume
+from tests.pipeline import simrig
+
+
+# -- fixtures ------------------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=None)
+def analytic():
+    """4 distorted cameras around a capsule creature, exact silhouettes by sphere tracing."""
+    cal = simrig.dome(6, size=(96, 72), seed=3)
+    creature = simrig.Creature()
+    masks, depth = simrig.render(cal, creature.sdf)
+    return cal, creature, masks, depth
+
+
+@lru_cache(maxsize=None)
+def sim_take():
+    """One frame of the simulated dome (helper A's renderer), ground-truth masks."""
+    take_mod = pytest.importorskip("fake_cameras.take")
+    return take_mod.simulate_take("starfish", n_cameras=8, frames=1, size=(160, 120), seed=1, depth=True)
+
+
+def sim_grid(res: int = 48) -> Grid:
+    return grid_from_volume(Volume().bounds, res)
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return np.count_nonzero(a & b) / max(np.count_nonzero(a | b), 1)
+
+
+def slow_reference(masks, cal: Calibration, grid: Grid, *, tolerance=0, min_views=2) -> np.ndarray:
+    """Voxel by voxel, camera by camera, with Camera.project on a single point."""
+    ax, ay, az = grid.axes()
+    mv = min(min_views, len(cal))
+    out = np.zeros(grid.shape, dtype=bool)
+    for i, x in enumerate(ax):
+        for j, y in enumerate(ay):
+            for k, z in enumerate(az):
+                carved = seen = 0
+                for c, cam in enumerate(cal):
+                    (u, v), = cam.project(np.array([[x, y, z]]))
+                    depth = (cam.R @ np.array([x, y, z]) + cam.t)[2]
+                    col, row = int(np.floor(u + 0.5)), int(np.floor(v + 0.5))
+                    if depth <= 0 or not (0 <= col < cam.size[0] and 0 <= row < cam.size[1]):
+                        continue
+                    seen += 1
+                    carved += not masks[c][row, col]
+                out[i, j, k] = carved <= tolerance and seen >= mv
+    return out
+
+
+# -- exactness -----------------------------------------------------------------------------------
+
+
+def test_lut_equals_slow_direct_reference_exactly():
+    cal, creature, masks, _ = analytic()
+    b = creature.bounds()
+    # a small grid that sticks out of some cameras' views (so visibility matters)
+    grid = grid_from_volume(np.stack([b[0] - 150, b[1] + 400]), 14)
+    hc = HullCarver(cal, grid, levels=())
+    for tol in (0, 1):
+        ref = slow_reference(masks, cal, grid, tolerance=tol)
+        assert ref.any() and not ref.all()
+        got = hc.carve(masks, tolerance=tol, coarse_to_fine=False).occupancy
+        assert np.array_equal(got, ref)
+        assert np.array_equal(carve_direct(masks, cal, grid, tolerance=tol), ref)
+    # the tables themselves: one pixel per voxel, -1 where the camera does not see it
+    pts = grid.centers()
+    for c, cam in enumerate(cal):
+        lut = hc.lut(c).ravel()
+        ref_idx = np.array([pixel_index(cam, p[None])[0][0] for p in pts[::7]])
+        assert np.array_equal(lut[::7], ref_idx)
+    assert any((hc.lut(c) < 0).any() for c in range(len(cal)))  # some voxels are unseen
+
+
+@pytest.mark.parametrize("levels", [None, (8, 4), (16, 4), (8, 2), (4,)])
+@pytest.mark.parametrize("tolerance", [0, 1])
+def test_coarse_to_fine_equals_full_resolution_exactly(levels, tolerance):
+    take = sim_take()
+    grid = Grid(sim_grid(48).lo, (45, 48, 37), sim_grid(48).voxel)  # odd shape: padding is cropped
+    masks = take.masks[0]
+    hc = HullCarver(take.calibration, grid, levels=levels)
+    full = hc.carve(masks, tolerance=tolerance, coarse_to_fine=False).occupancy
+    c2f = hc.carve(masks, tolerance=tolerance)
+    assert np.array_equal(c2f.occupancy, full)
+    assert c2f.stats["refined"] < grid.n_voxels / 4 or not hc.levels  # it did skip most voxels
+    assert np.array_equal(full, carve_direct(masks, take.calibration, grid, tolerance=tolerance))
+
+
+def test_simulated_rig_hull_matches_ground_truth_hull_and_contains_creature():
+    take = sim_take()
+    grid = sim_grid(64)
+    hc = HullCarver(take.calibration, grid)
+    occ = hc.carve(take.masks[0]).occupancy
+    ref = carve_direct(take.masks[0], take.calibration, grid)
+    assert iou(occ, ref) >= 0.98  # measured: 1.0 (exact)
+    # the hull contains the creature: voxels deeper than a voxel inside it are all kept
+    sdf = take.poses[0].sdf(grid.centers()).reshape(grid.shape)
+    deep = sdf < -grid.voxel
+    assert deep.sum() > 50
+    assert occ[deep].all()
+    # and it is not much more than the creature (8 cameras: a loose hull, still bounded)
+    assert occ.sum() < 3.0 * (sdf < 0).sum()
+
+
+# -- visibility, tolerance, bad masks -------------------------------------------------------------
+
+
+def test_tolerance_keeps_a_limb_a_bad_mask_removed():
+    take = sim_take()
+    grid = sim_grid(48)
+    hc = HullCarver(take.calibration, grid)
+    masks = take.masks[0].copy()
+    clean = hc.carve(masks).occupancy
+    bad = masks.copy()
+    rows, cols = np.nonzero(bad[2])
+    keep_half = cols < np.median(cols)
+    bad[2][rows[~keep_half], cols[~keep_half]] = False  # camera 2 loses half the subject
+    amputated = hc.carve(bad).occupancy
+    assert amputated.sum() < 0.9 * clean.sum()
+    tolerant = hc.carve(bad, tolerance=1).occupancy
+    assert np.all(tolerant[clean])  # nothing of the clean hull is lost
+    assert np.array_equal(tolerant, carve_direct(bad, take.calibration, grid, tolerance=1))
+
+
+def test_all_foreground_camera_is_flagged_and_ignored(caplog):
+    take = sim_take()
+    cal = take.calibration
+    grid = sim_grid(40)
+    masks = take.masks[0].copy()
+    masks[3] = True
+    with caplog.at_level(logging.WARNING, logger="pipeline.hull"):
+        res = HullCarver(cal, grid).carve(masks)
+    assert res.ignored == (cal[3].name,)
+    assert cal[3].name in caplog.text
+    others = [i for i in range(len(cal)) if i != 3]
+    sub = Calibration(tuple(cal[i] for i in others))
+    assert np.array_equal(res.occupancy, HullCarver(sub, grid).carve(masks[others]).occupancy)
+
+
+def test_empty_masks_everywhere_report_an_empty_frame():
+    take = sim_take()
+    grid = sim_grid(32)
+    empty = np.zeros_like(take.masks[0])
+    hc = HullCarver(take.calibration, grid)
+    with pytest.raises(EmptyHullError, match="empty"):
+        hc.carve(empty)
+    with pytest.raises(EmptyHullError):
+        carve_direct(empty, take.calibration, grid)
+    # silhouettes that do not agree anywhere carve everything: also reported empty
+    disjoint = take.masks[0].copy()
+    disjoint[1] = False
+    disjoint[1][:4, :4] = True  # a speck in a corner, away from the subject
+    assert not take.masks[0][1][:4, :4].any()
+    with pytest.raises(EmptyHullError, match="carved"):
+        hc.carve(disjoint)
+
+
+def test_voxels_outside_a_camera_are_not_carved_by_it():
+    cal, creature, masks, _ = analytic()
+    b = creature.bounds()
+    grid = grid_from_volume(b, 24)
+    # cut camera 0's image in half: its right half is "not seen" once the camera is cropped
+    cam0 = cal[0]
+    w, h = cam0.size
+    narrow = cam0.replace(size=(w // 2, h))
+    cal2 = Calibration((narrow,) + tuple(cal)[1:])
+    m2 = [masks[0][:, : w // 2]] + [m for m in masks[1:]]
+    occ_full = HullCarver(cal, grid).carve(masks).occupancy
+    occ_narrow = HullCarver(cal2, grid).carve(m2).occupancy
+    assert np.all(occ_narrow[occ_full])  # fewer constraints, never fewer voxels
+    assert occ_narrow.sum() >= occ_full.sum()
+
+
+def test_grid_too_large_is_refused_up_front_with_the_memory_it_needs():
+    take = sim_take()
+    grid = grid_from_volume(Volume().bounds, 4096)
+    need = hull_memory_bytes(grid, take.calibration)
+    with pytest.raises(ValueError, match=r"needs \d+\.\d+ GiB") as exc:
+        HullCarver(take.calibration, grid)
+    assert f"{need / 1024**3:.2f} GiB" in str(exc.value)
+    with pytest.raises(ValueError, match="GiB"):
+        HullCarver(take.calibration, sim_grid(64), memory_limit=1024)
+
+
+# -- capture volume --------------------------------------------------------------------------------
+
+
+def test_volume_from_cameras_contains_the_subject_and_the_rig_volume():
+    take = sim_take()
+    lo, hi = take.poses[0].bounds()
+    vol = volume_from_cameras(take.calibration, take.masks)
+    assert np.all(vol[0] <= lo) and np.all(vol[1] >= hi)
+    assert np.all((vol[1] - vol[0]) < 3.0 * (hi - lo) + 100)  # bounded by the silhouettes
+    rig = Volume().bounds
+    no_masks = volume_from_cameras(take.calibration)
+    assert np.all(no_masks[0] <= np.asarray(rig[0]) + 1) and np.all(no_masks[1] >= np.asarray(rig[1]) - 1)
+    # carving in the derived volume gives the same hull as in the rig volume (where they overlap)
+    grid = grid_from_volume(vol, 40)
+    occ = HullCarver(take.calibration, grid).carve(take.masks[0]).occupancy
+    assert np.array_equal(occ, carve_direct(take.masks[0], take.calibration, grid))
+
+
+def test_grid_from_volume():
+    g = grid_from_volume(np.array([[0, 0, 0], [100, 50, 25.0]]), 20)
+    assert g.shape == (20, 10, 5) and g.voxel == 5.0
+    np.testing.assert_allclose(g.bounds, [[0, 0, 0], [100, 50, 25]])
+    g2 = grid_from_volume(Volume(), 16)
+    assert g2.shape == (16, 16, 16)
+    assert Grid.from_dict(g2.to_dict()) == g2
+    np.testing.assert_allclose(g2.world_to_index(g2.index_to_world(np.array([[1.0, 2, 3]]))), [[1, 2, 3]])
+    c = g.centers()
+    assert c.shape == (1000, 3)
+    np.testing.assert_allclose(c[0], [2.5, 2.5, 2.5])
+
+
+# -- invalid input ---------------------------------------------------------------------------------
+
+
+def test_invalid_input():
+    take = sim_take()
+    cal = take.calibration
+    grid = sim_grid(16)
+    masks = take.masks[0]
+    with pytest.raises(ValueError, match="resolution"):
+        grid_from_volume(Volume().bounds, 0)
+    with pytest.raises(ValueError, match="volume_bounds"):
+        grid_from_volume([[0, 0, 0], [0, 1, 1]], 8)
+    with pytest.raises(ValueError, match="volume_bounds"):
+        grid_from_volume([1, 2, 3], 8)
+    with pytest.raises(ValueError, match="shape"):
+        Grid(np.zeros(3), (0, 2, 2), 1.0)
+    with pytest.raises(ValueError, match="voxel"):
+        Grid(np.zeros(3), (2, 2, 2), -1.0)
+    with pytest.raises(ValueError, match="calibration"):
+        HullCarver("cams", grid)
+    with pytest.raises(ValueError, match="grid"):
+        HullCarver(cal, (16, 16, 16))
+    with pytest.raises(ValueError, match="levels"):
+        HullCarver(cal, grid, levels=(4, 8))
+    hc = HullCarver(cal, grid)
+    with pytest.raises(ValueError, match="masks"):
+        hc.carve(masks[:3])
+    with pytest.raises(ValueError, match="masks"):
+        hc.carve(masks[:, :10])
+    with pytest.raises(ValueError, match="masks"):
+        hc.carve("masks")
+    with pytest.raises(ValueError, match="tolerance"):
+        hc.carve(masks, tolerance=-1)
+    with pytest.raises(ValueError, match="tolerance"):
+        hc.carve(masks, tolerance=len(cal))
+    with pytest.raises(ValueError, match="min_views"):
+        hc.carve(masks, min_views=0)
+    with pytest.raises(ValueError, match="masks"):
+        carve_direct(masks[:2], cal, grid)
+    with pytest.raises(ValueError, match="grid"):
+        carve_direct(masks, cal, None)
+    with pytest.raises(ValueError, match="calibration"):
+        volume_from_cameras(None)
+    with pytest.raises(ValueError, match="min_fraction"):
+        volume_from_cameras(cal, min_fraction=0)
+    with pytest.raises(ValueError, match="masks"):
+        volume_from_cameras(cal, masks[:2])
+    with pytest.raises(ValueError, match="no foreground"):
+        volume_from_cameras(cal, np.zeros_like(masks))

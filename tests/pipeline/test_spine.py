@@ -1,0 +1,337 @@
+"""Spines end to end on meshes: real horse/cat, simulated creatures, hard frames, bad input.
+
+Creature size in the simulated tests = diagonal of the bounding box of the
+creature's capsules in the first frame.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+import pytest
+
+from pipeline.geodesic import edge_graph, geodesic_distance, mesh_edges, vertex_areas
+from pipeline.meshio import load_mesh, mesh_paths
+from pipeline.spine import (
+    FORMAT,
+    FrameSkeleton,
+    NoLimbsError,
+    Spine,
+    SpineFormatError,
+    SpineParams,
+    build_spine,
+    frame_skeleton,
+    read_spine,
+    spine_from_meshes,
+    validate_spine_dict,
+    write_spine,
+)
+from tests.conftest import shared_dataset
+
+FPS = 30.0
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def mesh_pose(pose, voxel):
+    """Marching-cubes mesh of a simulated pose's signed distance field."""
+    from skimage.measure import marching_cubes
+
+    lo, hi = pose.bounds()
+    lo = lo - 2 * voxel
+    hi = hi + 2 * voxel
+    n = np.ceil((hi - lo) / voxel).astype(int) + 1
+    g = [lo[i] + voxel * np.arange(n[i]) for i in range(3)]
+    P = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+    s = pose.sdf(P).reshape(n)
+    v, f, _, _ = marching_cubes(s, 0.0, spacing=(voxel,) * 3)
+    return v + lo, f
+
+
+def polyline_distance(P, Q):
+    """Distance from each point of P (n, 3) to the polyline Q (m, 3)."""
+    a, b = Q[:-1], Q[1:]
+    ab = b - a
+    t = np.clip(((P[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12)[None], 0, 1)
+    return np.linalg.norm(P[:, None] - (a[None] + t[..., None] * ab[None]), axis=2).min(1)
+
+
+def sphere_mesh(r=1.0, sub=3):
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=sub, radius=r)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+_SIM: dict = {}
+
+
+def simulated(name, frames=24, **kw):
+    key = (name, frames, tuple(sorted(kw.items())))
+    if key not in _SIM:
+        from fake_cameras.creatures import make_creature
+
+        c = make_creature(name, **kw)
+        poses = [c.pose(i / FPS) for i in range(frames)]
+        lo, hi = poses[0].bounds()
+        size = float(np.linalg.norm(hi - lo))
+        meshes = [mesh_pose(p, size / 56) for p in poses]
+        frames_sk = [frame_skeleton(v, f) for v, f in meshes]
+        _SIM[key] = (c, poses, size, frames_sk)
+    return _SIM[key]
+
+
+def limb_map(spine, poses, names):
+    """Spine limb k -> creature limb name, by nearest true tip in the reference frame."""
+    r = spine.meta["references"][0]
+    T = np.array([poses[r].tips[n] for n in names])
+    d = np.linalg.norm(spine.tips[r][:, None] - T[None], axis=2)
+    m = d.argmin(1)
+    assert len(set(m.tolist())) == spine.K
+    return [names[i] for i in m]
+
+
+# --------------------------------------------------------------------------- real meshes
+
+
+@pytest.fixture(scope="module")
+def horse():
+    d = shared_dataset("horse_gallop")
+    paths = mesh_paths(d / "0*.obj")[:24]  # 24 consecutive frames of the 48 (half a take, full frame rate)
+    meshes = [load_mesh(p) for p in paths]
+    frames = [frame_skeleton(v, f) for v, f in meshes]
+    return meshes, frames
+
+
+def test_horse_gallop_six_limbs_on_same_body_part(horse):
+    """K = 6, and the vertex nearest each spine tip stays on the same body part in >= 95 % of frames.
+
+    Same body part: the nearest vertex of the tip in frame t lies within a geodesic
+    radius of 0.1 sqrt(area) (about a hoof's length) of the reference frame's tip
+    vertex, measured on the reference mesh (vertex ids correspond across frames).
+    """
+    meshes, frames = horse
+    spine = build_spine(frames, fps=FPS, units="m")
+    assert spine.K == 6
+    r = spine.meta["references"][0]
+    v, f = meshes[r]
+    g = edge_graph(v, mesh_edges(f))
+    radius = 0.1 * np.sqrt(vertex_areas(v, f).sum())
+    ref_vert = [int(np.argmin(np.linalg.norm(v - spine.tips[r, k], axis=1))) for k in range(6)]
+    D = geodesic_distance(g, np.array(ref_vert))
+    same = np.zeros((len(frames), 6), dtype=bool)
+    for t, (vt, _) in enumerate(meshes):
+        for k in range(6):
+            if np.all(np.isfinite(spine.tips[t, k])):
+                nv = int(np.argmin(np.linalg.norm(vt - spine.tips[t, k], axis=1)))
+                same[t, k] = D[k, nv] < radius
+    assert same.mean(axis=0).min() >= 0.95, same.mean(axis=0)
+
+
+def test_cat_poses_six_tips_every_pose():
+    d = shared_dataset("cat_poses")
+    for p in mesh_paths(d / "0*.obj"):
+        fs = frame_skeleton(*load_mesh(p))
+        assert fs.n_tips == 6, p.name
+
+
+# --------------------------------------------------------------------------- simulated creatures
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["starfish", "quadruped"])
+def test_simulated_creature_accuracy(name):
+    """K = true limb count; tips within 3 % of size in >= 95 % of frames; identities 100 %;
+    mean distance between spine axes and true limb axes <= 2 % of size.
+
+    The axis distance is measured from the true limb axis to the spine's axis of
+    that limb (the spine's junction is a metanode inside the body, while the true
+    axis starts at the limb's attachment on the body surface, so the spine axis
+    is longer at its junction end by construction).
+    """
+    c, poses, size, frames = simulated(name)
+    spine = build_spine(frames, fps=FPS, units="mm")
+    assert spine.K == len(c.names)
+    names = limb_map(spine, poses, c.names)
+    T = len(poses)
+    true_tips = np.array([[p.tips[n] for n in names] for p in poses])
+    err = np.linalg.norm(spine.tips - true_tips, axis=2) / size
+    ok = np.nan_to_num(err, nan=np.inf) <= 0.03
+    assert ok.mean(axis=0).min() >= 0.95, err
+    # identities: every seen tip is nearest to its own true tip
+    for t in range(T):
+        allt = np.array([poses[t].tips[n] for n in names])
+        seen = np.all(np.isfinite(spine.tips[t]), axis=1)
+        nearest = np.linalg.norm(spine.tips[t][:, None] - allt[None], axis=2).argmin(1)
+        assert np.array_equal(nearest[seen], np.arange(spine.K)[seen]), t
+    dists = []
+    for t in range(T):
+        for k, n in enumerate(names):
+            ax = spine.axes[f"limb{k}"][t]
+            if np.all(np.isfinite(ax)):
+                dists.append(polyline_distance(poses[t].axes[n], ax).mean())
+    assert np.mean(dists) / size <= 0.02, np.mean(dists) / size
+
+
+@pytest.mark.slow
+def test_hard_frames_tuck_and_spur():
+    """Two limbs tucked for a few frames and a one-frame spurious bump: K stays right,
+    the hidden limb is null (never given another limb's identity)."""
+    c, poses, size, frames = simulated("quadruped", frames=18, tuck=(0.2, 0.3), spur=(0.45, 0.45 + 1 / FPS))
+    spine = build_spine(frames, fps=FPS, units="mm")
+    assert spine.K == 6
+    counts = spine.meta["tip_counts"]
+    assert max(counts) >= 6
+    names = limb_map(spine, poses, c.names)
+    for t in range(len(poses)):
+        allt = np.array([poses[t].tips[n] for n in names])
+        for k in range(6):
+            if np.all(np.isfinite(spine.tips[t, k])):
+                d = np.linalg.norm(allt - spine.tips[t, k], axis=1)
+                # a seen tip is its own limb (or, while tucked, the partner it is pressed against)
+                near = int(d.argmin())
+                partner = set(c.tuck_pair) if names[k] in c.tuck_pair else {names[k]}
+                assert names[near] in partner or d[k] <= 0.05 * size, (t, k, names[near])
+    tucked = [t for t in range(len(poses)) if counts[t] < 6]
+    for t in tucked:  # a limb is missing there: exactly the missing count are null
+        assert np.sum(~np.all(np.isfinite(spine.tips[t]), axis=1)) >= 6 - counts[t]
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_sphere_has_no_tips_and_take_raises():
+    v, f = sphere_mesh()
+    fs = frame_skeleton(v, f)
+    assert fs.n_tips == 0
+    with pytest.raises(NoLimbsError):
+        build_spine([fs, fs])
+
+
+def test_empty_frame_one_frame_take_and_multicomponent(caplog):
+    c, poses, size, frames = simulated("starfish", frames=4)
+    empty = frame_skeleton(np.zeros((0, 3)), np.zeros((0, 3), dtype=int))
+    assert empty.n_tips == 0 and empty.n_faces == 0
+    spine = build_spine([frames[0], empty, frames[1]], fps=FPS)
+    assert spine.frame_count == 3 and spine.K == 5
+    assert np.all(np.isnan(spine.tips[1]))
+    d = spine.to_dict()
+    assert all(x is None for x in d["frames"][1]["tips"].values())
+    one = build_spine([frames[0]], fps=FPS)
+    assert one.K == 5 and one.frame_count == 1
+    # multi-component: a far-away sphere is dropped with a warning, tips unchanged
+    pose = poses[0]
+    v, f = mesh_pose(pose, size / 56)
+    sv, sf = sphere_mesh(r=size / 20, sub=2)
+    v2 = np.vstack([sv + np.array([3 * size, 0, 0]), v])
+    f2 = np.vstack([sf, f + len(sv)])
+    with caplog.at_level(logging.WARNING):
+        fs = frame_skeleton(v2, f2)
+    assert "connected parts" in caplog.text
+    assert fs.n_tips == 5
+    np.testing.assert_allclose(fs.tips, frames[0].tips, atol=1e-9)
+    assert np.all(fs.tip_vertices >= len(sv))  # numbered in the input mesh
+
+
+def test_nonmanifold_mesh_is_accepted():
+    v, f = sphere_mesh(sub=2)
+    # a fin sharing one edge with the sphere: non-manifold edge
+    e = f[0, :2]
+    v2 = np.vstack([v, v[e].mean(0) * 3])
+    f2 = np.vstack([f, [[e[0], e[1], len(v)]]])
+    fs = frame_skeleton(v2, f2)
+    assert fs.n_tips <= 1
+
+
+# --------------------------------------------------------------------------- format and driver
+
+
+def test_write_read_roundtrip_and_validation(tmp_path):
+    c, poses, size, frames = simulated("starfish", frames=4)
+    spine = build_spine(frames, fps=FPS, units="mm")
+    p = write_spine(tmp_path / "out" / "spine.json", spine)
+    d = json.loads(p.read_text())
+    assert d["format"] == FORMAT and d["frame_count"] == 4 and len(d["frames"]) == 4
+    assert set(d["graph"]["limbs"]) == set(d["frames"][0]["tips"])
+    for k in d["graph"]["limbs"]:
+        ax = d["frames"][0]["axes"][k]
+        # from junction to tip
+        assert np.allclose(ax[-1], d["frames"][0]["tips"][k])
+        assert np.allclose(ax[0], d["frames"][0]["junctions"][d["graph"]["parents"][k]])
+    back = read_spine(p)
+    np.testing.assert_allclose(back.tips, spine.tips)
+    for k in spine.axes:
+        np.testing.assert_allclose(back.axes[k], spine.axes[k])
+    bad = dict(d, format="x")
+    with pytest.raises(SpineFormatError):
+        validate_spine_dict(bad)
+    bad = json.loads(p.read_text())
+    bad["graph"]["parents"]["j0"] = "limb0"
+    with pytest.raises(SpineFormatError):
+        validate_spine_dict(bad)
+    bad = json.loads(p.read_text())
+    bad["frames"][1]["index"] = 0
+    with pytest.raises(SpineFormatError):
+        validate_spine_dict(bad)
+    bad = json.loads(p.read_text())
+    bad["frames"][0]["tips"]["limb0"] = [1, 2]
+    with pytest.raises(SpineFormatError):
+        validate_spine_dict(bad)
+    (tmp_path / "junk.json").write_text("{")
+    with pytest.raises(SpineFormatError):
+        read_spine(tmp_path / "junk.json")
+
+
+def test_frame_skeleton_dict_roundtrip():
+    c, poses, size, frames = simulated("starfish", frames=4)
+    fs = frames[0]
+    back = FrameSkeleton.from_dict(json.loads(json.dumps(fs.to_dict())))
+    np.testing.assert_allclose(back.tips, fs.tips)
+    np.testing.assert_allclose(back.limb_points, fs.limb_points)
+    assert back.topology() == fs.topology()
+    assert len(back.skeletons) == fs.n_tips
+
+
+def test_spine_from_meshes_parallel_matches_serial(tmp_path):
+    import trimesh
+
+    c, poses, size, frames = simulated("starfish", frames=4)
+    paths = []
+    for i, p in enumerate(poses[:3]):
+        v, f = mesh_pose(p, size / 40)
+        q = tmp_path / f"{i:04d}.ply"
+        trimesh.Trimesh(v, f, process=False).export(q)
+        paths.append(q)
+    a = spine_from_meshes(str(tmp_path / "*.ply"), workers=2, fps=24, units="mm")
+    b = spine_from_meshes([load_mesh(q) for q in paths], workers=1, fps=24, units="mm")
+    assert a.K == b.K == 5 and a.fps == 24
+    np.testing.assert_allclose(a.tips, b.tips)
+
+
+def test_invalid_input():
+    v, f = sphere_mesh(sub=1)
+    with pytest.raises(ValueError, match="vertices"):
+        frame_skeleton(np.zeros((4, 2)), f)
+    with pytest.raises(ValueError, match="faces"):
+        frame_skeleton(v, f + 1000)
+    with pytest.raises(ValueError, match="params"):
+        frame_skeleton(v, f, params={"n_bins": 10})
+    with pytest.raises(ValueError):
+        SpineParams(n_bins=0)
+    with pytest.raises(ValueError, match="frames"):
+        build_spine([])
+    with pytest.raises(ValueError, match="fps"):
+        build_spine([FrameSkeleton.empty()], fps=0)
+    with pytest.raises(ValueError, match="spine"):
+        write_spine("/tmp/x.json", {"format": FORMAT})
+    with pytest.raises(FileNotFoundError):
+        read_spine("/nonexistent/spine.json")
+    with pytest.raises(FileNotFoundError):
+        spine_from_meshes("/nonexistent/*.obj")
+    with pytest.raises(ValueError, match="workers"):
+        spine_from_meshes([(v, f)], workers=-1)
+    with pytest.raises(SpineFormatError):
+        Spine.from_dict({"format": FORMAT})

@@ -1,0 +1,168 @@
+import time
+
+import numpy as np
+import pytest
+
+from fake_cameras.device import FakeCamera
+from fake_cameras.take import simulate_take
+from stage.drivers.base import CameraDisconnectedError, CameraDriver, CameraError, CameraNotFoundError
+from stage.rig import FakeCameraConfig, parse_rig
+
+FPS = 30.0
+PERIOD = int(1e9 / FPS)
+
+
+class FakeClock:
+    """A monotonic clock that only moves when the camera sleeps (or the test says so)."""
+
+    def __init__(self, start=10**12):
+        self.now = start
+
+    def __call__(self):
+        return self.now
+
+    def sleep(self, s):
+        self.now += int(round(s * 1e9))
+
+
+@pytest.fixture(scope="module")
+def take(tmp_path_factory):
+    import os
+
+    os.environ.setdefault("CAPTURE_STAGE_CACHE", str(tmp_path_factory.getbasetemp() / "simcache"))
+    return simulate_take("starfish", n_cameras=4, frames=5, size=(64, 48), seed=1)
+
+
+def _cam(take, clock, **kw):
+    cfg = FakeCameraConfig(driver="fake", id=kw.pop("id", "c1"), index=kw.pop("index", 1), width=64, height=48, fps=FPS, **kw)
+    return FakeCamera(cfg, take=take, epoch_ns=0, seed=3, clock=clock, sleep=clock.sleep, latency_ms=1.0)
+
+
+def test_frames_replay_the_take_in_real_time(take):
+    clock = FakeClock()
+    cam = _cam(take, clock)
+    assert isinstance(cam, CameraDriver)
+    cam.open()
+    g = cam.configure()
+    assert (g.width, g.height, g.fps) == (64, 48, FPS)
+    frames = [cam.grab() for _ in range(12)]
+    idx = [f.index for f in frames]
+    assert idx == list(range(12))
+    ts = np.array([f.timestamp_ns for f in frames])
+    assert np.all(np.diff(ts) == PERIOD)
+    host = np.array([f.host_timestamp_ns for f in frames])
+    assert np.all(host >= ts) and np.all(np.diff(host) == PERIOD)  # grab waited for each frame
+    for f in frames:
+        assert f.camera_id == "c1"
+        assert np.array_equal(f.image, take.images[cam.scene_frame(f.index), 1])
+    cam.close()
+    with pytest.raises(CameraError):
+        cam.grab()
+
+
+def test_clock_offset_and_jitter(take):
+    clock = FakeClock()
+    cam = _cam(take, clock, clock_offset_ms=7.5, jitter_ms=1.0)
+    cam.open()
+    frames = [cam.grab() for _ in range(400)]
+    k = np.array([f.index for f in frames]) + cam._k0
+    err = np.array([f.timestamp_ns for f in frames]) - k * PERIOD  # device time - true capture time
+    assert abs(err.mean() / 1e6 - 7.5) < 0.2
+    assert 0.85 < err.std() / 1e6 < 1.15
+
+
+def test_random_drops_skip_sequence_numbers(take):
+    clock = FakeClock()
+    cam = _cam(take, clock, drop_rate=0.3)
+    cam.open()
+    frames = [cam.grab() for _ in range(300)]
+    idx = np.array([f.index for f in frames])
+    gaps = np.diff(idx) - 1
+    assert np.all(gaps >= 0)
+    assert gaps.sum() == cam.dropped - (idx[0] - 0)
+    assert 0.2 < cam.dropped / (idx[-1] + 1) < 0.4
+    # a dropped frame is never replaced: timestamps follow the sequence numbers
+    ts = np.array([f.timestamp_ns for f in frames])
+    assert np.all(np.diff(ts) == np.diff(idx) * PERIOD)
+
+
+def test_slow_reader_loses_overwritten_frames(take):
+    clock = FakeClock()
+    cam = _cam(take, clock)
+    cam.open()
+    a = cam.grab()
+    clock.now += 10 * PERIOD  # the reader stalls for 10 frame periods; the device keeps 4
+    b = cam.grab()
+    assert b.index - a.index - 1 == cam.dropped > 0
+    assert b.index >= a.index + 10 - 4
+
+
+def test_disconnect_after(take):
+    clock = FakeClock()
+    cam = _cam(take, clock, disconnect_after=3)
+    cam.open()
+    for _ in range(3):
+        cam.grab()
+    with pytest.raises(CameraDisconnectedError, match="disconnect"):
+        cam.grab()
+
+
+def test_missing_index_is_not_found(take):
+    cam = _cam(take, FakeClock(), index=4)
+    with pytest.raises(CameraNotFoundError, match="index 4"):
+        cam.open()
+
+
+def test_depth_needs_a_depth_take(take):
+    cam = _cam(take, FakeClock(), depth=True)
+    with pytest.raises(CameraError, match="depth"):
+        cam.open()
+
+
+def test_rig_cameras_through_the_registry(tmp_path, monkeypatch):
+    monkeypatch.setenv("CAPTURE_STAGE_CACHE", str(tmp_path))
+    from stage.drivers.registry import open_driver
+
+    rig = parse_rig(
+        {
+            "fps": 60,
+            "simulation": {"subject": "quadruped", "n_cameras": 4, "frames": 2},
+            "cameras": [
+                {"id": f"cam{i}", "driver": "fake", "index": i, "width": 80, "height": 60, "depth": i == 0}
+                for i in range(2)
+            ],
+        }
+    )
+    cams = [open_driver(c, rig) for c in rig.cameras]
+    for c in cams:
+        c.open()
+        assert c.configure().fps == 60
+    t0 = time.monotonic_ns()
+    frames = [[c.grab() for c in cams] for _ in range(3)]
+    assert time.monotonic_ns() - t0 < 2e9
+    assert frames[0][0].depth is not None and frames[0][0].depth.shape == (60, 80)
+    assert frames[0][1].depth is None
+    assert all(f.image.shape == (60, 80, 3) for fs in frames for f in fs)
+    # real time: the host timestamps of one camera follow its frame period
+    host = np.array([fs[1].host_timestamp_ns for fs in frames])
+    assert np.all(np.diff(host) > 0.5e9 / 60)
+    assert cams[0].calibration is not None and len(cams[0].calibration) == 4
+
+
+def test_invalid_input(take):
+    from stage.rig import OpenCVCameraConfig
+
+    with pytest.raises(ValueError, match="config"):
+        FakeCamera(OpenCVCameraConfig(driver="opencv", id="x"), take=take)
+    cfg = FakeCameraConfig(driver="fake", id="x")
+    with pytest.raises(ValueError, match="simulation"):
+        FakeCamera(cfg)
+    with pytest.raises(ValueError, match="rig"):
+        FakeCamera(cfg, rig={"simulation": {}})
+    with pytest.raises(ValueError, match="take"):
+        FakeCamera(cfg, take=np.zeros(3))
+    with pytest.raises(ValueError, match="buffer"):
+        FakeCamera(cfg, take=take, buffer=0)
+    cam = _cam(take, FakeClock())
+    with pytest.raises(CameraError, match="open"):
+        cam.configure()
