@@ -72,6 +72,8 @@ def simulated_rig_dict(
     data = {
         "name": name,
         "fps": float(fps),
+        "volume": {"center": [0.0, 0.0, 375.0], "size": [750.0, 750.0, 750.0]},
+        "backdrop": {"key_mode": "chroma", "color": "green"},
         "simulation": {"subject": subject, "n_cameras": dome, "frames": int(frames), "seed": int(seed), "noise": float(noise)},
         "cameras": cams,
     }

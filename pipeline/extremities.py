@@ -187,7 +187,7 @@ def find_extremities(
     chunk = max(1, int(4_000_000 // max(len(v), 1)))
     for i in range(0, len(cand), chunk):
         c = cand[i : i + chunk]
-        d = dijkstra(graph, directed=False, indices=c, limit=h)
+        d = dijkstra(graph, directed=True, indices=c, limit=h)
         for j, m in enumerate(c):
             ball = np.isfinite(d[j])
             if not np.any(rank[ball] > rank[m]):

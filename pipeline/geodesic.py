@@ -89,7 +89,10 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     if len(e) == 0:
         return e.reshape(0, 2)
     n = int(e.max()) + 1
-    key = np.unique(e[:, 0] * n + e[:, 1])
+    key = np.sort(e[:, 0] * n + e[:, 1])
+    keep = np.ones(len(key), dtype=bool)
+    keep[1:] = key[1:] != key[:-1]
+    key = key[keep]
     return np.stack([key // n, key % n], axis=1)
 
 
@@ -189,7 +192,7 @@ def geodesic_distance(
     Parameters
     ----------
     graph : (V, V) sparse matrix
-        From :func:`edge_graph`.
+        From :func:`edge_graph` (symmetric).
     sources : int or (S,) int array-like
     limit : float
         Stop exploring beyond this distance (those vertices get ``inf``).
@@ -207,7 +210,8 @@ def geodesic_distance(
         raise ValueError("sources must not be empty")
     if np.any(src < 0) or np.any(src >= n):
         raise ValueError(f"sources must index vertices 0..{n - 1}")
-    return dijkstra(graph, directed=False, indices=src, limit=limit, return_predecessors=return_predecessors)
+    # the graph is symmetric: directed=True gives the same distances and spares scipy a transpose per call
+    return dijkstra(graph, directed=True, indices=src, limit=limit, return_predecessors=return_predecessors)
 
 
 def farthest_point_sampling(graph: sp.csr_matrix, n: int, *, start: int | None = None, vertices=None):
@@ -246,7 +250,7 @@ def farthest_point_sampling(graph: sp.csr_matrix, n: int, *, start: int | None =
         else:
             start = 0
     base = [int(start)]
-    rows = [dijkstra(graph, directed=False, indices=base[0])]
+    rows = [dijkstra(graph, directed=True, indices=base[0])]
     dmin = rows[0].copy()
     for _ in range(n - 1):
         d = np.where(np.isfinite(dmin), dmin, -1.0)
@@ -254,7 +258,7 @@ def farthest_point_sampling(graph: sp.csr_matrix, n: int, *, start: int | None =
         if d[nxt] <= 0:
             break
         base.append(nxt)
-        rows.append(dijkstra(graph, directed=False, indices=nxt))
+        rows.append(dijkstra(graph, directed=True, indices=nxt))
         np.minimum(dmin, rows[-1], out=dmin)
     return np.asarray(base, dtype=np.int64), np.vstack(rows)
 

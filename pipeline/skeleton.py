@@ -124,17 +124,24 @@ def level_set_rings(distance: np.ndarray, edges: np.ndarray, *, n_bins: int = 10
     span = np.abs(b[e[:, 0]] - b[e[:, 1]]) + 1
     rep = np.repeat(np.arange(len(e)), span)
     k = lo[rep] + (np.arange(len(rep)) - np.repeat(np.cumsum(span) - span, span))
-    ku = e[rep, 0] * nb + k
-    kv = e[rep, 1] * nb + k
     valid = np.flatnonzero(ok)
-    own = valid * nb + b[valid]  # (vertex, own bin) nodes
-    keys, inv = np.unique(np.concatenate([own, ku, kv]), return_inverse=True)
-    m = len(keys)
-    iu = inv[len(own) : len(own) + len(ku)]
-    iv = inv[len(own) + len(ku) :]
-    adj = sp.csr_matrix((np.ones(len(iu)), (iu, iv)), shape=(m, m))
+    # node (v, k) -> id v + n * (k - b[v] + S): the vertex's own band is block S
+    S = int(span.max()) - 1 if len(span) else 0
+    if S <= 8:
+        iu = e[rep, 0] + n * (k - b[e[rep, 0]] + S)
+        iv = e[rep, 1] + n * (k - b[e[rep, 1]] + S)
+        m = n * (2 * S + 1)
+        own_id = valid + n * S
+    else:  # very long edges: compact the ids
+        own = valid * nb + b[valid]
+        keys, inv = np.unique(np.concatenate([own, e[rep, 0] * nb + k, e[rep, 1] * nb + k]), return_inverse=True)
+        m = len(keys)
+        own_id = inv[: len(own)]
+        iu = inv[len(own) : len(own) + len(rep)]
+        iv = inv[len(own) + len(rep) :]
+    adj = sp.csr_matrix((np.ones(len(iu), dtype=np.int8), (iu, iv)), shape=(m, m))
     _, lab = connected_components(adj, directed=False)
-    lab_own = lab[inv[: len(own)]]
+    lab_own = lab[own_id]
     # rings: components holding at least one vertex of their own bin, numbered by (bin, component)
     comp_ids, first = np.unique(lab_own, return_index=True)
     comp_bin = b[valid[first]]
@@ -234,7 +241,7 @@ def grow_skeleton(
     n = len(v)
     if not (0 <= int(seed_vertex) < n):
         raise ValueError(f"seed_vertex must index a vertex 0..{n - 1}, got {seed_vertex}")
-    d, pred = dijkstra(graph, directed=False, indices=int(seed_vertex), return_predecessors=True)
+    d, pred = dijkstra(graph, directed=True, indices=int(seed_vertex), return_predecessors=True)
     ring, level, _ = level_set_rings(d, edges, n_bins=n_bins, min_bin_width=min_bin_width)
     R = len(level)
     nodes, cost, frame, count = ring_statistics(v, ring, R, weights=weights)

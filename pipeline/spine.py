@@ -28,7 +28,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 from pydantic import BaseModel, ConfigDict, Field
+
+from scipy.sparse.csgraph import connected_components
 
 from pipeline.correspond import Correspondence, NoLimbsError, correspond_tips
 from pipeline.extremities import find_extremities
@@ -195,8 +198,16 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
     if len(f) == 0:
         log.warning("empty frame (no faces)")
         return FrameSkeleton.empty()
-    v, f, kept = largest_component(v, f, warn=True)
     edges = mesh_edges(f)
+    n_comp, _ = connected_components(
+        sp.csr_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v))),
+        directed=False,
+    )
+    if n_comp == 1:
+        kept = np.arange(len(v))
+    else:  # several parts (or unreferenced vertices): keep the largest part
+        v, f, kept = largest_component(v, f, warn=True)
+        edges = mesh_edges(f)
     graph = edge_graph(v, edges)
     areas = vertex_areas(v, f)
     size = float(np.sqrt(areas.sum()))

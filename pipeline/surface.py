@@ -20,6 +20,7 @@ The mesh is in the calibration's world units (millimetres for our rigs).
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -177,6 +178,7 @@ def surface_from_occupancy(
     taubin_iterations: int = 10,
     face_budget: int | None = None,
     keep_largest: bool = True,
+    timings: dict | None = None,
 ):
     """Surface of a voxel occupancy (e.g. a visual hull) as a cleaned ``trimesh.Trimesh``.
 
@@ -193,6 +195,9 @@ def surface_from_occupancy(
         Fill enclosed cavities of the occupancy first.
     taubin_iterations, face_budget, keep_largest
         As in :func:`clean_mesh`.
+    timings : dict, optional
+        Filled with the seconds spent in ``prepare`` (crop, cavities, blur),
+        ``marching_cubes`` and ``cleanup`` (for ``stage bench reconstruct``).
 
     Returns
     -------
@@ -213,6 +218,7 @@ def surface_from_occupancy(
     _check_options(smooth_sigma, taubin_iterations, face_budget)
     if not occ.any():
         raise EmptySurfaceError("the occupancy is empty: no surface")
+    t0 = time.perf_counter()
     pad = 2 + int(np.ceil(3 * float(smooth_sigma)))
     sl, off = _crop(occ, 0)
     sub = np.pad(occ[sl], pad, mode="constant", constant_values=False)
@@ -228,13 +234,17 @@ def surface_from_occupancy(
         f = gaussian_filter(f, sigma=float(smooth_sigma), mode="constant", cval=0.0)
     if f.max() <= 0.5:
         raise EmptySurfaceError("the occupancy is too thin to hold a surface after smoothing")
-    return _finish(f, 0.5, off, grid, taubin_iterations, face_budget, keep_largest)
+    if timings is not None:
+        timings["prepare"] = time.perf_counter() - t0
+    return _finish(f, 0.5, off, grid, taubin_iterations, face_budget, keep_largest, timings)
 
 
-def _finish(f, level, off, grid: Grid, taubin_iterations, face_budget, keep_largest):
+def _finish(f, level, off, grid: Grid, taubin_iterations, face_budget, keep_largest, timings=None):
     import trimesh
 
+    t0 = time.perf_counter()
     verts, faces = _marching_cubes(f, level)
+    t1 = time.perf_counter()
     if len(faces) == 0:
         raise EmptySurfaceError("marching cubes found no surface")
     # skimage orients faces so that normals point towards increasing values (the inside);
@@ -245,6 +255,9 @@ def _finish(f, level, off, grid: Grid, taubin_iterations, face_budget, keep_larg
     mesh = clean_mesh(mesh, taubin_iterations=taubin_iterations, keep_largest=keep_largest)
     if face_budget is not None and len(mesh.faces) > face_budget:
         mesh = _decimate(mesh, f, level, off, grid, face_budget, taubin_iterations, keep_largest)
+    if timings is not None:
+        timings["marching_cubes"] = t1 - t0
+        timings["cleanup"] = time.perf_counter() - t1
     return mesh
 
 

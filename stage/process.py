@@ -281,6 +281,8 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
     """A grid fitted to the subject: carve a few frame sets coarsely over the whole volume,
     take the union of their hulls' boxes (padded), and put ``resolution`` voxels along its
     longest side."""
+    from scipy import ndimage
+
     from pipeline.hull import EmptyHullError, HullCarver
     from pipeline.volume import grid_from_volume
 
@@ -297,9 +299,13 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
             occ = carver.carve(masks, tolerance=p.tolerance).occupancy
         except ValueError:
             continue
-        idx = np.argwhere(occ)
-        if idx.size == 0:
+        # the subject is the largest connected piece; phantom blobs seen by few cameras are not
+        lab, n = ndimage.label(occ)
+        if n == 0:
             continue
+        sizes = np.bincount(lab.ravel())[1:]
+        keep = 1 + np.flatnonzero(sizes >= 0.05 * sizes.max())
+        idx = np.argwhere(np.isin(lab, keep))
         a = coarse.index_to_world(idx.min(0)[None])[0]
         b = coarse.index_to_world(idx.max(0)[None])[0]
         lo = a if lo is None else np.minimum(lo, a)

@@ -191,13 +191,14 @@ def _simulated_take_file(path: Path) -> Path:
 
 
 _REF: dict = {}
+SIM_KEY = "starfish-6-8-160x120-0"  # what _simulated_take_file makes (the file bytes hold a creation time)
 
 
 def reference_spine(take: Path, tmp: Path) -> dict:
     """``spine.json`` of an uninterrupted in-process run of process_take (skips while its pipeline is incomplete)."""
     from stage.process import process_take
 
-    key = "starfish-6-8-160x120-0"  # what _simulated_take_file makes (the file bytes hold a creation time)
+    key = SIM_KEY
     if key not in _REF:
         try:
             process_take(take, tmp / "ref")

@@ -1,0 +1,77 @@
+"""Write a simulated take straight into a take file (no real-time capture).
+
+``stage capture`` with ``driver = "fake"`` cameras exercises the real capture path
+(threads, clocks, synchronization); tests and benchmarks that only need a take on
+disk use :func:`record_take`, which stores every rendered frame as one complete
+frame set with ideal timestamps, the clean background plate per camera
+(``cameras/<cam>/plate``, used by the keyer) and the ground truth beside it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fake_cameras.take import SimulatedTake, write_ground_truth
+
+__all__ = ["record_take"]
+
+
+def record_take(
+    take: SimulatedTake,
+    path: str | Path,
+    *,
+    calibration=None,
+    compression: str = "none",
+    with_calibration: bool = True,
+    overwrite: bool = True,
+) -> Path:
+    """Store a :class:`~fake_cameras.take.SimulatedTake` as a take file.
+
+    Parameters
+    ----------
+    take : SimulatedTake
+    path : path
+        The ``.h5`` file to create; the ground truth goes to ``<stem>.gt.npz`` beside it.
+    calibration : Calibration, optional
+        Stored in the take (default: the simulator's true cameras).
+    compression : {"none", "lz4", "gzip"}
+    with_calibration : bool
+        Store a calibration at all (False: a take that still needs ``stage calibrate``).
+    overwrite : bool
+
+    Returns
+    -------
+    Path
+        The take file.
+    """
+    from fake_cameras.rigs import simulated_rig_dict
+    from stage.frame import Frame
+    from stage.store import CameraSpec, TakeWriter, write_array
+
+    if not isinstance(take, SimulatedTake):
+        raise ValueError(f"take must be a SimulatedTake, got {type(take).__name__}")
+    path = Path(path)
+    w, h = take.size
+    names = take.calibration.names
+    cal = (calibration or take.calibration) if with_calibration else None
+    rig = simulated_rig_dict(
+        take.n_cameras, subject=take.subject, frames=take.n_frames, fps=take.fps, size=(w, h),
+        depth=take.depth is not None, clock_offsets_ms=0.0, jitter_ms=0.0, name="simulated",
+    )
+    period = int(round(1e9 / take.fps))
+    specs = [CameraSpec(n, w, h, depth=take.depth is not None) for n in names]
+    with TakeWriter(path, specs, rig=rig, calibration=cal, compression=compression, fps=take.fps, overwrite=overwrite) as wr:
+        for f in range(take.n_frames):
+            t = f * period
+            frames = {
+                n: Frame(
+                    take.images[f, c], n, f, t, t,
+                    depth=None if take.depth is None else take.depth[f, c],
+                )
+                for c, n in enumerate(names)
+            }
+            wr.write_set(frames, time_ns=t)
+    for c, n in enumerate(names):
+        write_array(path, f"cameras/{n}", "plate", take.plate[c])
+    write_ground_truth(take, path)
+    return path

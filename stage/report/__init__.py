@@ -1,0 +1,414 @@
+"""The HTML report of a processed take: one self-contained page that works offline.
+
+``render_report(DIR)`` reads a results directory (``spine.json``,
+``report.json``, ``meshes/frame_NNNNNN.ply``; see :mod:`stage.process`) and,
+when a take is given (or ``report.json`` names one that exists), the take
+itself, and returns a full HTML page:
+
+* summary: frames, limbs ``K``, timings, empty frames, files;
+* an interactive 3-D view: the reference frame's surface rigged to the spine
+  (:mod:`pipeline.rig_model`) and posed in every frame, with the animated
+  spine, its tips and junctions (slider and play button);
+* the tip count over time (Brostow et al. 2004, Fig. 7);
+* per-frame surface quality (plot and table);
+* the cameras: frusta, intrinsics, calibration errors (from the
+  calibration's ``meta``) and how well they cover the subject;
+* contact sheets of frames and masks.
+
+plotly.js is embedded in the page (from the plotly package), images are
+base64 data URIs: nothing is fetched at run time. The figure functions
+(:mod:`stage.report.figures`) are reusable, e.g. by the API's pages.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import html
+import json
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from stage.report.figures import (
+    camera_coverage,
+    contact_sheet,
+    decimate_mesh,
+    figure_html,
+    frusta_figure,
+    jpeg_data_uri,
+    mesh_quality_figure,
+    plotly_js,
+    png_data_uri,
+    spine_figure,
+    tip_count_figure,
+)
+
+__all__ = [
+    "render_report",
+    "write_report",
+    "NothingToReportError",
+    "take_contact_sheets",
+    "camera_coverage",
+    "contact_sheet",
+    "decimate_mesh",
+    "figure_html",
+    "frusta_figure",
+    "mesh_quality_figure",
+    "plotly_js",
+    "spine_figure",
+    "tip_count_figure",
+]
+
+log = logging.getLogger(__name__)
+
+
+class NothingToReportError(ValueError):
+    """A results directory with neither ``spine.json`` nor ``report.json``."""
+
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0;color:#222;background:#fafafa}
+header{background:#263238;color:#fff;padding:14px 24px}
+header h1{margin:0;font-size:20px} header p{margin:4px 0 0;color:#b0bec5;font-size:13px}
+nav{padding:6px 24px;background:#eceff1;font-size:14px} nav a{margin-right:14px;color:#1565c0}
+section{background:#fff;margin:14px 24px;padding:10px 18px;border-radius:6px;box-shadow:0 1px 3px rgba(0,0,0,.12)}
+h2{font-size:17px;margin:8px 0} table{border-collapse:collapse;font-size:13px;margin:6px 0}
+td,th{border:1px solid #ddd;padding:3px 8px;text-align:right} th{background:#f5f5f5}
+td.l,th.l{text-align:left} .warn{color:#b71c1c} .muted{color:#777;font-size:13px}
+img.sheet{max-width:100%;image-rendering:auto;border:1px solid #ccc}
+details summary{cursor:pointer;color:#1565c0;font-size:14px;margin:6px 0}
+"""
+
+
+def _esc(x) -> str:
+    return html.escape(str(x))
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            return "–"
+        return f"{v:.4g}"
+    return _esc(v)
+
+
+def _table(header: list[str], rows: list[list], *, left: int = 1) -> str:
+    th = "".join(f'<th class="{"l" if i < left else ""}">{_esc(h)}</th>' for i, h in enumerate(header))
+    body = "".join(
+        "<tr>" + "".join(f'<td class="{"l" if i < left else ""}">{_fmt(c)}</td>' for i, c in enumerate(r)) + "</tr>"
+        for r in rows
+    )
+    return f"<table><tr>{th}</tr>{body}</table>"
+
+
+def _scalars(d: dict, prefix: str = "") -> dict:
+    """Flatten the scalar leaves of a nested dict (``a.b``)."""
+    out = {}
+    for k, v in (d or {}).items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_scalars(v, key + "."))
+        elif isinstance(v, (int, float, str, bool)) or v is None:
+            out[key] = v
+    return out
+
+
+# --------------------------------------------------------------------------- take images
+
+
+def take_contact_sheets(reader, *, n_frames: int = 4, max_cameras: int = 12, thumb_width: int = 160) -> dict:
+    """Contact sheets of a take: some frame sets (rows) x cameras (columns), images and masks.
+
+    Parameters
+    ----------
+    reader : stage.store.TakeReader
+    n_frames : int
+        Frame sets shown, evenly spread over the take.
+    max_cameras : int
+    thumb_width : int
+
+    Returns
+    -------
+    dict
+        ``frames``: (H, W, 3) BGR sheet; ``masks``: sheet or None when the take
+        has no masks; ``sets``: the frame-set numbers; ``cameras``: the camera ids.
+    """
+    if int(n_frames) < 1:
+        raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+    n = len(reader)
+    if n == 0:
+        raise ValueError(f"{reader.path}: the take has no frame sets")
+    sets = sorted(set(np.linspace(0, n - 1, min(n, int(n_frames))).round().astype(int).tolist()))
+    cams = list(reader.cameras)[: int(max_cameras)]
+    with_masks = [c for c in cams if c in reader.masks_present()]
+    masks = {c: reader.masks(c) for c in with_masks}
+    imgs, mimgs, labels = [], [], []
+    for k in sets:
+        rows = reader.set_rows(k)
+        for c in cams:
+            r = rows[c]
+            imgs.append(reader.frame(c, r) if r >= 0 else None)
+            m = masks.get(c)
+            mimgs.append(m[r] if (m is not None and r >= 0 and r < len(m)) else None)
+            labels.append(f"{c} #{k}")
+    frames = contact_sheet(imgs, columns=len(cams), labels=labels, thumb_width=thumb_width)
+    msheet = contact_sheet(mimgs, columns=len(cams), labels=labels, thumb_width=thumb_width) if masks else None
+    return {"frames": frames, "masks": msheet, "sets": sets, "cameras": cams}
+
+
+# --------------------------------------------------------------------------- page
+
+
+def _load_json(p: Path):
+    try:
+        return json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{p}: cannot read ({exc})") from None
+
+
+def _rigged_view_model(spine, d: Path, *, max_faces: int):
+    """A small rigged surface for the 3-D view (None when no mesh of a complete frame exists)."""
+    from pipeline.gltf_export import find_frame_mesh
+    from pipeline.meshio import load_mesh
+    from pipeline.rig_model import reference_frame, rigged_model
+
+    try:
+        best = reference_frame(spine)
+    except ValueError as exc:
+        log.warning("no rest pose for the 3-D view: %s", exc)
+        return None, None
+    fi = [int(x) for x in spine.frame_indices]
+    for t in sorted(range(len(fi)), key=lambda t: abs(t - best)):
+        p = find_frame_mesh(d, fi[t])
+        if p is None:
+            continue
+        try:
+            reference_frame(spine, prefer=t)
+        except ValueError:
+            continue
+        v, f = load_mesh(p)
+        if len(f) == 0:
+            continue
+        v, f = decimate_mesh(v, f, max_faces=max_faces)
+        try:
+            return rigged_model(spine, v, f, reference=t), None
+        except ValueError as exc:  # fall back to the static surface
+            log.warning("could not rig the surface for the 3-D view: %s", exc)
+            return None, (v, f)
+    return None, None
+
+
+def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: int = 3000,
+                  contact_frames: int = 4) -> str:
+    """A full, self-contained HTML page about a processed take.
+
+    Parameters
+    ----------
+    results_dir : str or Path
+        Output directory of ``stage process`` (``spine.json``, ``report.json``, ``meshes/``).
+    take : str or Path, optional
+        The take (``.h5``) for contact sheets and its calibration. Default:
+        the take named in ``report.json``, when that file exists.
+    max_frames : int
+        Animation keys of the 3-D view.
+    view_faces : int
+        Faces of the surface shown in the 3-D view (decimated for the page's size).
+    contact_frames : int
+        Frame sets in the contact sheets.
+
+    Returns
+    -------
+    str
+        The HTML page (plotly.js embedded; no network access needed).
+
+    Raises
+    ------
+    FileNotFoundError
+        ``results_dir`` or ``take`` does not exist.
+    NothingToReportError
+        Neither ``spine.json`` nor ``report.json`` in ``results_dir``.
+    """
+    d = Path(results_dir)
+    if not d.is_dir():
+        raise FileNotFoundError(f"results directory not found: {d}")
+    if int(max_frames) < 1:
+        raise ValueError(f"max_frames must be >= 1, got {max_frames}")
+    if int(view_faces) < 4:
+        raise ValueError(f"view_faces must be >= 4, got {view_faces}")
+    if take is not None and not Path(take).is_file():
+        raise FileNotFoundError(f"take not found: {take}")
+    has_spine = (d / "spine.json").is_file()
+    report = _load_json(d / "report.json") if (d / "report.json").is_file() else None
+    if not has_spine and report is None:
+        raise NothingToReportError(f"{d} has neither spine.json nor report.json: run `stage process` first")
+    if take is None and isinstance(report, dict) and isinstance(report.get("take"), str):
+        if Path(report["take"]).is_file():
+            take = report["take"]
+
+    spine = None
+    if has_spine:
+        from pipeline.spine import read_spine
+
+        spine = read_spine(d / "spine.json")
+
+    sections: list[tuple[str, str, str]] = []  # (id, title, html)
+    warnings: list[str] = []
+
+    # -- summary
+    summary_rows = []
+    if spine is not None:
+        summary_rows += [["frames", spine.frame_count], ["limbs K", spine.K], ["junctions", len(spine.junction_ids)],
+                         ["fps", spine.fps], ["units", spine.units]]
+        refs = spine.meta.get("references")
+        if refs:
+            summary_rows.append(["reference frames", ", ".join(str(int(spine.frame_indices[r])) for r in refs
+                                                                if 0 <= r < spine.frame_count)])
+    if isinstance(report, dict):
+        for k in ("frames", "total_seconds"):
+            if k in report and not (spine is not None and k == "frames"):
+                summary_rows.append([k.replace("_", " "), report[k]])
+        if report.get("empty_frames"):
+            summary_rows.append(["empty frames", ", ".join(str(x) for x in report["empty_frames"][:50])])
+            warnings.append(f"{len(report['empty_frames'])} frame(s) have no surface")
+        for k, v in (report.get("seconds") or {}).items():
+            summary_rows.append([f"seconds: {k}", v])
+    files = [n for n in ("spine.json", "report.json", "spine_rig.glb", "spine.glb") if (d / n).is_file()]
+    n_meshes = len(list((d / "meshes").glob("frame_*.ply"))) if (d / "meshes").is_dir() else 0
+    summary_rows.append(["files", ", ".join(files + ([f"meshes/ ({n_meshes})"] if n_meshes else []))])
+    if take is not None:
+        summary_rows.append(["take", str(take)])
+    sections.append(("summary", "Summary", _table(["", ""], summary_rows)))
+
+    # -- 3-D view
+    if spine is not None:
+        model, static = _rigged_view_model(spine, d, max_faces=int(view_faces))
+        fig = spine_figure(spine, model=model, mesh=static, max_frames=int(max_frames))
+        note = ("The reference frame's surface is rigged to the spine (bone heat weights) and posed in every "
+                "frame by linear blend skinning." if model is not None else
+                "No surface mesh of a complete frame: the spine alone." if static is None else
+                "The reference frame's surface (static).")
+        sections.append(("view", "3-D view: surface and animated spine",
+                         f'<p class="muted">{_esc(note)} Drag to rotate, scroll to zoom; '
+                         "Play or the slider step through the take.</p>" + figure_html(fig, div_id="spine-view")))
+
+    # -- tips over time
+    counts = None
+    if spine is not None and spine.meta.get("tip_counts"):
+        counts = spine.meta["tip_counts"]
+    elif isinstance(report, dict) and report.get("tip_counts"):
+        counts = report["tip_counts"]
+    if counts:
+        K = spine.K if spine is not None else None
+        fi = spine.frame_indices if spine is not None and len(spine.frame_indices) == len(counts) else None
+        fig = tip_count_figure(counts, K=K, frame_indices=fi, fps=spine.fps if spine is not None else None)
+        off = sum(1 for c in counts if c is not None and K is not None and c != K)
+        txt = f"<p class=\"muted\">{off} of {len(counts)} frames have a tip count other than K.</p>" if K else ""
+        if spine is not None:
+            nulls = {lid: int(np.sum(~np.all(np.isfinite(spine.tips[:, k]), axis=1)))
+                     for k, lid in enumerate(spine.limb_ids)}
+            txt += _table(["limb", "frames unseen (null)"], [[k, v] for k, v in nulls.items()])
+        sections.append(("tips", "Tips over time", figure_html(fig, div_id="tip-counts") + txt))
+
+    # -- surface quality
+    per_frame = report.get("per_frame") if isinstance(report, dict) else None
+    if per_frame:
+        from stage.report.figures import _quality_rows
+
+        fig = mesh_quality_figure(per_frame)
+        rows = _quality_rows(per_frame)
+        cols = ["index", "status"] + [c for c in ("vertices", "faces", "watertight", "bodies", "genus", "area",
+                                                   "volume", "seconds") if any(c in r for r in rows)]
+        not_tight = sum(1 for r in rows if r.get("watertight") is False)
+        if not_tight:
+            warnings.append(f"{not_tight} surface(s) are not watertight")
+        sections.append(("quality", "Surface quality per frame",
+                         figure_html(fig, div_id="mesh-quality")
+                         + f"<details><summary>table ({len(rows)} frames)</summary>"
+                         + _table(cols, [[r.get(c) for c in cols] for r in rows], left=2) + "</details>"))
+
+    # -- take: calibration and contact sheets
+    calibration = None
+    sheets = None
+    if take is not None:
+        from stage.store import TakeReader
+
+        with TakeReader(take) as reader:
+            calibration = reader.calibration
+            sheets = take_contact_sheets(reader, n_frames=int(contact_frames))
+    if calibration is None and (d / "calibration.json").is_file():
+        from calib.calibration import Calibration
+
+        calibration = Calibration.from_dict(_load_json(d / "calibration.json"))
+    if calibration is not None:
+        pts = None
+        if spine is not None:
+            pts = np.concatenate([a.reshape(-1, 3) for a in spine.axes.values()])
+            pts = pts[np.all(np.isfinite(pts), axis=1)]
+        fig = frusta_figure(calibration, points=pts[:: max(1, len(pts) // 3000)] if pts is not None and len(pts) else None)
+        cov = camera_coverage(calibration, pts) if pts is not None and len(pts) else None
+        rows = []
+        extra_keys = sorted({k for c in calibration.cameras for k, v in _scalars(c.meta).items()
+                             if isinstance(v, (int, float)) and not isinstance(v, bool)})[:6]
+        for c in calibration.cameras:
+            cm = _scalars(c.meta)
+            row = [c.name, f"{c.size[0]}x{c.size[1]}", c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2],
+                   float(np.linalg.norm(c.dist))]
+            row += [cm.get(k) for k in extra_keys]
+            if cov is not None:
+                row.append(f"{cov['per_camera'][c.name]:.0%}")
+            rows.append(row)
+        header = ["camera", "size", "fx", "fy", "cx", "cy", "|dist|"] + extra_keys
+        if cov is not None:
+            header.append("sees subject")
+        meta_rows = [[k, v] for k, v in _scalars(calibration.meta).items() if not k.startswith("board.")][:20]
+        body = figure_html(fig, div_id="frusta") + _table(header, rows, left=2)
+        if cov is not None:
+            body += (f'<p>Subject coverage: {cov["seen_by_2"]:.0%} of the spine points are seen by at least '
+                     f'2 cameras (median {int(np.median(cov["views"]))} cameras per point).</p>')
+            if cov["seen_by_2"] < 0.95:
+                warnings.append(f"only {cov['seen_by_2']:.0%} of the spine points are seen by >= 2 cameras")
+        if meta_rows:
+            body += "<h3>Calibration</h3>" + _table(["", ""], meta_rows)
+        else:
+            body += '<p class="muted">The calibration carries no error figures.</p>'
+        sections.append(("cameras", "Cameras and calibration", body))
+    if sheets is not None:
+        body = (f'<p class="muted">Frame sets {", ".join(map(str, sheets["sets"]))}; '
+                f'cameras {", ".join(sheets["cameras"])}.</p>'
+                f'<h3>Frames</h3><img class="sheet" alt="frames" src="{jpeg_data_uri(sheets["frames"])}">')
+        if sheets["masks"] is not None:
+            body += f'<h3>Masks</h3><img class="sheet" alt="masks" src="{png_data_uri(sheets["masks"])}">'
+        else:
+            body += '<p class="muted">The take has no masks.</p>'
+        sections.append(("sheets", "Contact sheets", body))
+
+    title = f"capture-stage report: {d.resolve().name}"
+    nav = "".join(f'<a href="#{sid}">{_esc(t)}</a>' for sid, t, _ in sections)
+    warn = "".join(f'<p class="warn">&#9888; {_esc(w)}</p>' for w in warnings)
+    body = "".join(f'<section id="{sid}"><h2>{_esc(t)}</h2>{h}</section>' for sid, t, h in sections)
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    js = plotly_js().replace("</script", "<\\/script")
+    return (
+        "<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\">"
+        f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\"><title>{_esc(title)}</title>"
+        f"<style>{_CSS}</style><script type=\"text/javascript\">{js}</script></head><body>"
+        f"<header><h1>{_esc(title)}</h1><p>{_esc(str(d.resolve()))} &middot; generated {stamp}</p></header>"
+        f"<nav>{nav}</nav>{('<section>' + warn + '</section>') if warn else ''}{body}</body></html>"
+    )
+
+
+def write_report(results_dir, *, take=None, out=None, **kwargs) -> Path:
+    """Write :func:`render_report` to ``out`` (default ``results_dir/report.html``); returns the path."""
+    page = render_report(results_dir, take=take, **kwargs)
+    target = Path(out) if out is not None else Path(results_dir) / "report.html"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_suffix(target.suffix + ".tmp")
+    tmp.write_text(page, encoding="utf-8")
+    tmp.replace(target)
+    return target

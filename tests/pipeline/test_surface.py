@@ -1,0 +1,185 @@
+"""Surface: marching cubes + cleanup on hulls and fields; quality report; the Middlebury dino."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.hull import HullCarver
+from pipeline.surface import (
+    EmptySurfaceError,
+    clean_mesh,
+    surface_from_field,
+    surface_from_occupancy,
+    surface_quality,
+)
+from pipeline.volume import Grid, grid_from_volume, volume_from_cameras
+from tests.conftest import shared_dataset
+from tests.pipeline.test_hull import sim_grid, sim_take
+
+trimesh = pytest.importorskip("trimesh")
+
+
+def _ball_grid(n=24, voxel=2.0):
+    return Grid(np.full(3, -n * voxel / 2), (n, n, n), voxel)
+
+
+def test_surface_of_simulated_hull_is_watertight_and_within_one_voxel_of_the_hull():
+    from scipy.spatial import cKDTree
+    from scipy.ndimage import binary_erosion
+
+    take = sim_take()
+    grid = sim_grid(64)
+    occ = HullCarver(take.calibration, grid).carve(take.masks[0]).occupancy
+    mesh = surface_from_occupancy(occ, grid)
+    q = surface_quality(mesh)
+    assert q.watertight and q.bodies == 1 and q.volume > 0
+    # the surface runs between kept and carved voxel centres: every vertex is within one
+    # voxel of a kept boundary voxel and of a carved voxel next to it
+    inner = occ & ~binary_erosion(occ)
+    outer = ~occ & binary_erosion(~occ, border_value=1) ^ ~occ
+    kept = grid.index_to_world(np.argwhere(inner))
+    carved = grid.index_to_world(np.argwhere(outer))
+    d_in, _ = cKDTree(kept).query(mesh.vertices)
+    d_out, _ = cKDTree(carved).query(mesh.vertices)
+    assert d_in.max() <= grid.voxel and d_out.max() <= grid.voxel
+    # its volume matches the voxel count within a few percent (Taubin does not shrink it)
+    assert abs(q.volume - occ.sum() * grid.voxel**3) < 0.1 * occ.sum() * grid.voxel**3
+
+
+def test_surface_from_field_follows_an_exact_sdf():
+    grid = _ball_grid()
+    c = grid.centers()
+    sdf = (np.linalg.norm(c - [1.0, -2.0, 0.5], axis=1) - 15.0).reshape(grid.shape)
+    mesh = surface_from_field(sdf, grid, taubin_iterations=0)
+    err = np.abs(np.linalg.norm(mesh.vertices - [1.0, -2.0, 0.5], axis=1) - 15.0)
+    assert err.max() < 0.1 * grid.voxel  # linear interpolation of an exact distance
+    q = surface_quality(mesh)
+    assert q.watertight and q.genus == 0 and q.euler == 2
+    assert abs(q.volume - 4 / 3 * np.pi * 15.0**3) < 0.02 * 4 / 3 * np.pi * 15.0**3
+
+
+def test_quality_report_of_a_torus():
+    torus = trimesh.creation.torus(major_radius=10, minor_radius=3)
+    q = surface_quality(torus)
+    assert q.watertight and q.genus == 1 and q.euler == 0 and q.bodies == 1
+    assert q.vertices == len(torus.vertices) and q.faces == len(torus.faces)
+    assert set(q.to_dict()) >= {"vertices", "faces", "watertight", "genus", "volume"}
+    open_mesh = torus.submesh([np.arange(len(torus.faces) - 3)], append=True)
+    q2 = surface_quality(open_mesh)
+    assert not q2.watertight and q2.genus is None and q2.volume is None
+
+
+def test_cleanup_keeps_the_largest_piece_and_fills_cavities():
+    grid = _ball_grid(32, 1.0)
+    c = grid.centers()
+    r = np.linalg.norm(c, axis=1).reshape(grid.shape)
+    occ = (r < 10) & ~(r < 4)  # a hollow ball
+    speck = np.linalg.norm(c - [13, 13, 13], axis=1).reshape(grid.shape) < 1.5
+    occ |= speck
+    mesh = surface_from_occupancy(occ, grid)
+    q = surface_quality(mesh)
+    assert q.bodies == 1 and q.genus == 0 and q.watertight
+    assert np.linalg.norm(mesh.vertices, axis=1).min() > 8  # no inner shell, no speck
+    assert np.linalg.norm(mesh.vertices, axis=1).max() < 11
+    both = surface_from_occupancy(occ, grid, keep_largest=False, fill_cavities=False)
+    assert surface_quality(both).bodies == 3
+
+
+def test_decimation_to_a_face_budget_stays_watertight():
+    take = sim_take()
+    grid = sim_grid(64)
+    occ = HullCarver(take.calibration, grid).carve(take.masks[0]).occupancy
+    full = surface_from_occupancy(occ, grid)
+    budget = len(full.faces) // 2
+    small = surface_from_occupancy(occ, grid, face_budget=budget)
+    q = surface_quality(small)
+    assert q.faces <= budget and q.watertight and q.bodies == 1
+    # without fast-simplification the fallback re-runs marching cubes with a coarser step,
+    # which thins the limbs: measured -9 % volume at step 2 on this small creature
+    assert abs(q.volume - surface_quality(full).volume) < 0.2 * surface_quality(full).volume
+
+
+def test_empty_occupancy_raises_empty_surface_error():
+    grid = _ball_grid(8)
+    with pytest.raises(EmptySurfaceError):
+        surface_from_occupancy(np.zeros(grid.shape, bool), grid)
+    with pytest.raises(EmptySurfaceError):
+        surface_from_field(np.ones(grid.shape), grid)
+
+
+def test_invalid_input():
+    grid = _ball_grid(8)
+    occ = np.zeros(grid.shape, bool)
+    occ[2:6, 2:6, 2:6] = True
+    with pytest.raises(ValueError, match="grid"):
+        surface_from_occupancy(occ, None)
+    with pytest.raises(ValueError, match="occupancy"):
+        surface_from_occupancy(occ[:4], grid)
+    with pytest.raises(ValueError, match="occupancy"):
+        surface_from_occupancy(occ.astype(float), grid)
+    with pytest.raises(ValueError, match="smooth_sigma"):
+        surface_from_occupancy(occ, grid, smooth_sigma=-1)
+    with pytest.raises(ValueError, match="face_budget"):
+        surface_from_occupancy(occ, grid, face_budget=2)
+    with pytest.raises(ValueError, match="taubin_iterations"):
+        surface_from_occupancy(occ, grid, taubin_iterations=-1)
+    with pytest.raises(ValueError, match="field"):
+        surface_from_field(np.zeros((3, 3, 3)), grid)
+    with pytest.raises(ValueError, match="inside"):
+        surface_from_field(occ.astype(float), grid, inside="left")
+    with pytest.raises(ValueError, match="mesh"):
+        clean_mesh("mesh")
+    with pytest.raises(ValueError, match="mesh"):
+        surface_quality(None)
+
+
+# -- real data: the Middlebury dino -----------------------------------------------------------------
+
+DINO_TIGHT_BOX = np.array([[-0.061897, -0.018874, -0.057845], [0.010897, 0.068227, 0.015495]])  # README.txt
+
+
+def _dino_silhouettes(folder: Path, names: list[str]) -> np.ndarray:
+    """The dataset README's recipe: luma > 0.19, dilate 10 px, erode 7 px."""
+    import cv2
+
+    out = []
+    for n in names:
+        img = cv2.imread(str(folder / n))
+        luma = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+        m = (luma > 0.19).astype(np.uint8)
+        m = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (21, 21)))
+        m = cv2.erode(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (15, 15)))
+        out.append(m.astype(bool))
+    return np.stack(out)
+
+
+@pytest.mark.slow
+def test_middlebury_dino_surface_bounding_box():
+    from calib.calibration import Calibration
+
+    formats = pytest.importorskip("calib.formats")
+    folder = shared_dataset("middlebury_dino_sparse_ring")
+    cal = formats.read_middlebury_par(folder / "dinoSR_par.txt")
+    good = [ln.strip() for ln in (folder / "dinoSR_good_silhouette_images.txt").read_text().splitlines() if ln.strip()]
+    cal = Calibration(tuple(cal[Path(n).stem] for n in good), units=cal.units)
+    masks = _dino_silhouettes(folder, good)
+    vol = volume_from_cameras(cal, masks)  # imported footage: no capture volume
+    grid = grid_from_volume(vol, 128)
+    occ = HullCarver(cal, grid).carve(masks).occupancy
+    mesh = surface_from_occupancy(occ, grid)
+    assert surface_quality(mesh).watertight
+    ext = mesh.bounds[1] - mesh.bounds[0]
+    pub = DINO_TIGHT_BOX[1] - DINO_TIGHT_BOX[0]
+    rel = (ext - pub) / pub
+    # x and z: within 5 % of the published tight box (measured +0.6 %, -1.3 %)
+    assert abs(rel[0]) <= 0.05 and abs(rel[2]) <= 0.05, rel
+    # y: all 15 views sit ~18 degrees above the dino (a ring around +y), so no silhouette
+    # can carve the cone under its base: the visual hull itself reaches ~7 mm below the
+    # published box (measured +8.1 % at 128^3, +8.4 % at 192^3; the dataset README's own 128^3
+    # hull is +5.3 %). The top of the box is matched to a voxel.
+    assert abs(rel[1]) <= 0.10, rel
+    assert abs(mesh.bounds[1, 1] - DINO_TIGHT_BOX[1, 1]) <= 2 * grid.voxel
+    assert np.all(np.abs(mesh.bounds[:, [0, 2]] - DINO_TIGHT_BOX[:, [0, 2]]) <= 0.05 * pub[[0, 2]])
