@@ -19,12 +19,14 @@ import os
 import threading
 import uuid
 from pathlib import Path
-from typing import Any, Callable
+from typing import Annotated, Any, Callable, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from api.errors import NotFoundError, UnavailableError
 from api.paths import JOB_ID, check_id, inside
 
-__all__ = ["CalibrationLibrary", "calibrate_take_work", "FORMATS", "MEDIA"]
+__all__ = ["CalibrationLibrary", "CalibrateParams", "calibrate_take", "calibrate_take_work", "FORMATS", "MEDIA"]
 
 log = logging.getLogger(__name__)
 
@@ -112,20 +114,78 @@ class CalibrationLibrary:
         return self.save(cal)
 
 
-def _find_rig_calibrator() -> Callable[..., Any]:
-    """Helper D's calibrate-a-take entry point (names tried in order)."""
-    import importlib
+class CalibrateParams(BaseModel):
+    """Options of a calibration from board views (see ``stage calibrate --help``)."""
 
-    for modname, fname in (("calib.take", "calibrate_take"), ("calib.rig", "calibrate_take"),
-                           ("calib.pipeline", "calibrate_take"), ("calib.extrinsics", "calibrate_take"),
-                           ("calib", "calibrate_take")):
-        try:
-            fn = getattr(importlib.import_module(modname), fname)
-        except (ImportError, AttributeError):
-            continue
-        if callable(fn):
-            return fn
-    raise UnavailableError("calibrating from board views needs helper D's calib.calibrate_take (not available)")
+    model_config = ConfigDict(extra="forbid")
+    board: dict[str, Any] = Field(description="board definition as in BOARD.toml, e.g. "
+                                  "{type: chessboard, corners: [9, 6], square_mm: 25}")
+    step: Annotated[int, Field(ge=1, le=1000)] = 1
+    min_change: Annotated[float, Field(ge=0, le=1)] = 0.02
+    world: Literal["board", "camera"] = "board"
+    world_frame: Annotated[int, Field(ge=0)] | None = None
+    fix_k3: bool = False
+
+    @field_validator("board")
+    @classmethod
+    def _board(cls, v: dict) -> dict:
+        from calib.boards import parse_board
+
+        parse_board(v)  # BoardError (a ValueError) names the bad key
+        return v
+
+
+def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[str, int, int], None] | None = None,
+                   cancel: threading.Event | None = None):
+    """Detect the board in every camera's frames of ``take`` and calibrate the rig (helper D's
+    :func:`calib.rig.calibrate_rig`); returns its ``RigCalibration``.
+
+    Raises
+    ------
+    InterruptedError
+        When ``cancel`` is set.
+    calib.intrinsics.CalibrationError
+        Too few views / cameras that cannot be connected (a ValueError).
+    """
+    from calib.boards import parse_board
+    from calib.detect import default_min_corners, detect_board, select_views
+    from calib.rig import calibrate_rig
+    from stage.store import TakeReader
+
+    board = parse_board(params.board)
+    detections, sizes = {}, {}
+    with TakeReader(take) as r:
+        cams = list(r.cameras)
+        todo = [(c, k) for c in cams for k in range(0, r.n_frames(c), params.step)]
+        done = 0
+        for c in cams:
+            size = tuple(r.image_size(c))
+            dets = []
+            for k in range(0, r.n_frames(c), params.step):
+                if cancel is not None and cancel.is_set():
+                    raise InterruptedError("calibration cancelled")
+                dets.append(detect_board(r.frame(c, k), board, frame=k))
+                done += 1
+                if progress is not None:
+                    progress("detect", done, len(todo))
+            keep = select_views(dets, size=size, min_corners=default_min_corners(board), min_change=params.min_change)
+            detections[c] = [dets[i] for i in keep]
+            sizes[c] = size
+    result = calibrate_rig(detections, sizes, board, cameras=cams, world=params.world, world_frame=params.world_frame,
+                           fix_k3=params.fix_k3)
+    if progress is not None:
+        progress("calibrate", 1, 1)
+    return result
+
+
+def _find_rig_calibrator() -> Callable[..., Any]:
+    """The calibrate-a-take function (needs helper D's ``calib.rig`` and ``calib.detect``)."""
+    try:
+        import calib.detect  # noqa: F401
+        import calib.rig  # noqa: F401
+    except ImportError as exc:
+        raise UnavailableError(f"calibrating from board views is not available ({exc})") from None
+    return calibrate_take
 
 
 def calibrate_take_work(calibrations_dir: Path) -> Callable[..., Any]:
@@ -133,22 +193,16 @@ def calibrate_take_work(calibrations_dir: Path) -> Callable[..., Any]:
 
     def work(take: Path, out: Path, *, params: dict, progress: Callable[[str, int, int], None],
              cancel: threading.Event, job_id: str, take_id: str, **_: Any) -> dict:
-        import inspect
-
         fn = _find_rig_calibrator()
-        sig = inspect.signature(fn).parameters
-        kw = {k: v for k, v in params.items() if k in sig}
-        if "progress" in sig:
-            kw["progress"] = progress
-        if "cancel" in sig:
-            kw["cancel"] = cancel
-        result = fn(take, **kw)
+        result = fn(take, params=CalibrateParams.model_validate(params), progress=progress, cancel=cancel)
         calib = getattr(result, "calibration", result)
         if not hasattr(calib, "to_dict"):
             raise ValueError("the calibrator returned no calibration")
         calib = type(calib)(cameras=calib.cameras, units=calib.units,
                             meta={**calib.meta, "take": take_id, "source": "board"})
         CalibrationLibrary(calibrations_dir).save(calib, job_id)
-        return {"calibration": job_id, "links": {"json": f"/calibrations/{job_id}.json"}}
+        if hasattr(result, "to_dict"):
+            (out / "report.json").write_text(json.dumps(result.to_dict(), indent=1, default=str), encoding="utf-8")
+        return {"calibration": job_id, "cameras": list(calib.names), "links": {"json": f"/calibrations/{job_id}.json"}}
 
     return work

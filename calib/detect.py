@@ -172,7 +172,7 @@ def _detect_chessboard(gray: np.ndarray, board: Chessboard, method: str, window:
             )
             corners = c.reshape(-1, 2).astype(np.float64)
     if corners is None and method in ("auto", "sb"):
-        ok, c = cv2.findChessboardCornersSB(gray, pattern, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE)
+        ok, c = cv2.findChessboardCornersSB(gray, pattern, flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
         if ok:
             corners = c.reshape(-1, 2).astype(np.float64)
     if corners is None:

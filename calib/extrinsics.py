@@ -193,6 +193,12 @@ def triangulate_board_error(
         ``neighbor_rms``, ``neighbor_max``, ``pairs_rms``, ``pairs_max`` (mm),
         ``frames`` and ``corners`` used.
     """
+    if not isinstance(board, (Chessboard, Charuco)):
+        raise ValueError(f"board must be a Chessboard or Charuco, got {type(board).__name__}")
+    if not isinstance(calibration, Calibration):
+        raise ValueError(f"calibration must be a Calibration, got {type(calibration).__name__}")
+    if min_cameras < 2:
+        raise ValueError(f"min_cameras must be >= 2, got {min_cameras}")
     names = calibration.names
     obj = board.object_points()
     n_corners = obj.shape[0]

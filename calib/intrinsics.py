@@ -215,6 +215,7 @@ def calibrate_intrinsics(
     outlier_floor_px: float = 0.5,
     min_views: int = MIN_VIEWS,
     K_guess: np.ndarray | None = None,
+    max_views: int | None = None,
 ) -> IntrinsicsResult:
     """Calibrate one camera's intrinsics from board detections (Zhang's method).
 
@@ -238,6 +239,9 @@ def calibrate_intrinsics(
         Fewer usable views raise :class:`CalibrationError`.
     K_guess : (3, 3) ndarray, optional
         Initial intrinsics (``CALIB_USE_INTRINSIC_GUESS``).
+    max_views : int, optional
+        Use at most this many views, evenly spaced over the sequence (Zhang's
+        method costs grow with the views; a rig's bundle adjustment uses them all).
 
     Returns
     -------
@@ -264,6 +268,12 @@ def calibrate_intrinsics(
         if not isinstance(d, Detection):
             raise ValueError(f"detections must hold Detection objects, got {type(d).__name__}")
     dets = [d for d in dets if len(d) >= 6]
+    if max_views is not None:
+        if max_views < min_views:
+            raise ValueError(f"max_views must be >= min_views ({min_views}), got {max_views}")
+        if len(dets) > max_views:
+            pick = np.unique(np.round(np.linspace(0, len(dets) - 1, max_views)).astype(int))
+            dets = [dets[i] for i in pick]
     if len(dets) < min_views:
         raise CalibrationError(
             f"camera {name}: only {len(dets)} usable board view(s), need at least {min_views} "

@@ -72,6 +72,7 @@ def calibrate_rig(
     reject_outliers: bool = True,
     min_views: int = 4,
     solver: str = "lm",
+    max_intrinsic_views: int | None = 40,
 ) -> RigCalibration:
     """Intrinsics of every camera (:func:`calib.intrinsics.calibrate_intrinsics`), then
     one bundle adjustment of the rig (:func:`calib.extrinsics.calibrate_extrinsics`).
@@ -89,6 +90,9 @@ def calibrate_rig(
         See :func:`calib.extrinsics.calibrate_extrinsics`.
     fix_k3, reject_outliers, min_views
         See :func:`calib.intrinsics.calibrate_intrinsics`.
+    max_intrinsic_views : int or None
+        Views per camera for the initial per-camera intrinsics (evenly spaced);
+        the bundle adjustment then refines them with every view.
 
     Returns
     -------
@@ -118,7 +122,8 @@ def calibrate_rig(
         dets = [d for d in detections.get(n, ()) if d is not None]
         try:
             intr[n] = calibrate_intrinsics(dets, board, tuple(sizes[n]), name=n, fix_k3=fix_k3,
-                                           reject_outliers=reject_outliers, min_views=min_views)
+                                           reject_outliers=reject_outliers, min_views=min_views,
+                                           max_views=max_intrinsic_views)
         except CalibrationError as exc:
             if not dets:
                 problems.append(

@@ -449,7 +449,7 @@ class HullCarver:
         f3 = self._fine**3
         nfb = self._lut.shape[1]
         stats: dict[str, Any] = {"blocks": []}
-        full_fine_blocks: list[np.ndarray] = []
+        full_blocks: list[tuple[int, np.ndarray]] = []
         if coarse_to_fine and self._levels:
             import cv2
 
@@ -479,16 +479,20 @@ class HullCarver:
                 empty = (n_lo > k) | (s_hi < mv)
                 full = ~empty & (n_hi <= k) & (s_lo >= mv)
                 amb = ~(empty | full)
-                full_fine_blocks.append(self._to_fine_blocks(active[full], li))
+                full_blocks.append((li, active[full]))
                 nxt = active[amb]
                 active = self._children(nxt, li)
             fine_blocks = active
         else:
             fine_blocks = np.arange(nfb, dtype=np.int64)
         stats["refined"] = int(fine_blocks.size * f3)
-        occ_b = np.zeros((nfb, f3), dtype=bool)
-        for fb in full_fine_blocks:
-            occ_b[fb] = True
+        P = self._pgrid.shape
+        occ = np.zeros(P, dtype=bool)
+        for li, blocks in full_blocks:  # whole blocks, written at their own level
+            if blocks.size:
+                L = self._levels[li]
+                bx, by, bz = np.unravel_index(blocks, L.dims)
+                occ.reshape(L.dims[0], L.block, L.dims[1], L.block, L.dims[2], L.block)[bx, :, by, :, bz, :] = True
         if fine_blocks.size:
             carve = np.zeros((fine_blocks.size, f3), dtype=np.uint8)
             seen = np.zeros((fine_blocks.size, f3), dtype=np.uint8)
@@ -496,11 +500,15 @@ class HullCarver:
                 v = ext[j][self._lut[i][fine_blocks]]
                 carve += v == 0
                 seen += v != 2
-            occ_b[fine_blocks] = (carve <= k) & (seen >= mv)
-        fd, f = self._fdims, self._fine
-        occ = occ_b.reshape(fd[0], fd[1], fd[2], f, f, f).transpose(0, 3, 1, 4, 2, 5).reshape(self._pgrid.shape)
+            keep = (carve <= k) & (seen >= mv)
+            rows, cols = np.nonzero(keep)
+            f = self._fine
+            bx, by, bz = np.unravel_index(fine_blocks[rows], self._fdims)
+            lx, ly, lz = np.unravel_index(cols, (f, f, f))
+            occ.reshape(-1)[((bx * f + lx) * P[1] + (by * f + ly)) * P[2] + (bz * f + lz)] = True
         nx, ny, nz = self.grid.shape
-        occ = np.ascontiguousarray(occ[:nx, :ny, :nz])
+        if (nx, ny, nz) != P:
+            occ = np.ascontiguousarray(occ[:nx, :ny, :nz])
         n = int(np.count_nonzero(occ))
         stats["voxels"] = n
         if n == 0:
@@ -525,10 +533,3 @@ class HullCarver:
         cy = (y[:, None] * r + o)[:, None, :, None]
         cz = (z[:, None] * r + o)[:, None, None, :]
         return ((cx * cd[1] + cy) * cd[2] + cz).reshape(-1)
-
-    def _to_fine_blocks(self, blocks: np.ndarray, li: int) -> np.ndarray:
-        """Fine-block ids covered by level-``li`` ``blocks``."""
-        out = blocks
-        for lj in range(li, len(self._levels)):
-            out = self._children(out, lj)
-        return out

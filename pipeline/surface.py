@@ -224,9 +224,13 @@ def surface_from_occupancy(
     sub = np.pad(occ[sl], pad, mode="constant", constant_values=False)
     off = off - pad
     if fill_cavities:
-        from scipy.ndimage import binary_fill_holes
+        from scipy.ndimage import label
 
-        sub = binary_fill_holes(sub)
+        # background not connected to the (padded, empty) border is a cavity: one labelling
+        # pass instead of scipy's iterated binary_fill_holes
+        lab, n = label(~sub)
+        if n > 1:
+            sub = lab != lab[0, 0, 0]
     f = sub.astype(np.float32)
     if smooth_sigma > 0:
         from scipy.ndimage import gaussian_filter
@@ -251,7 +255,7 @@ def _finish(f, level, off, grid: Grid, taubin_iterations, face_budget, keep_larg
     # flip the winding for outward normals
     faces = faces[:, ::-1]
     world = grid.lo + (verts + off + 0.5) * grid.voxel
-    mesh = trimesh.Trimesh(vertices=world, faces=faces, process=True)
+    mesh = trimesh.Trimesh(vertices=world, faces=faces, process=False)  # marching cubes shares vertices
     mesh = clean_mesh(mesh, taubin_iterations=taubin_iterations, keep_largest=keep_largest)
     if face_budget is not None and len(mesh.faces) > face_budget:
         mesh = _decimate(mesh, f, level, off, grid, face_budget, taubin_iterations, keep_largest)
@@ -273,7 +277,7 @@ def _decimate(mesh, f, level, off, grid, face_budget, taubin_iterations, keep_la
             step += 1
             verts, faces = _marching_cubes(f, level, step=step)
             world = grid.lo + (verts + off + 0.5) * grid.voxel
-            coarse = trimesh.Trimesh(vertices=world, faces=faces[:, ::-1], process=True)
+            coarse = trimesh.Trimesh(vertices=world, faces=faces[:, ::-1], process=False)
             coarse = clean_mesh(coarse, taubin_iterations=taubin_iterations, keep_largest=keep_largest)
             n = len(coarse.faces)
             mesh = coarse
@@ -281,6 +285,21 @@ def _decimate(mesh, f, level, off, grid, face_budget, taubin_iterations, keep_la
         return mesh
     dec = mesh.simplify_quadric_decimation(face_count=int(face_budget))
     return clean_mesh(dec, taubin_iterations=0, keep_largest=keep_largest)
+
+
+def _face_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Connected-component label of every face (faces sharing a vertex are connected)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return np.zeros(0, dtype=np.int64)
+    a = np.concatenate([f[:, 0], f[:, 1]])
+    b = np.concatenate([f[:, 1], f[:, 2]])
+    g = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(n_vertices, n_vertices))
+    _, vlab = connected_components(g, directed=False)
+    return vlab[f[:, 0]]
 
 
 def clean_mesh(mesh, *, taubin_iterations: int = 10, keep_largest: bool = True):
@@ -306,7 +325,7 @@ def clean_mesh(mesh, *, taubin_iterations: int = 10, keep_largest: bool = True):
     if len(mesh.faces) == 0:
         raise EmptySurfaceError("the mesh has no faces")
     if keep_largest:
-        labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+        labels = _face_components(mesh.faces, len(mesh.vertices))
         if labels.size and labels.max() > 0:
             counts = np.bincount(labels)
             keep = labels == int(np.argmax(counts))
@@ -336,8 +355,8 @@ def surface_quality(mesh) -> SurfaceQuality:
     watertight = bool(mesh.is_watertight) and bool(mesh.is_winding_consistent)
     euler = int(mesh.euler_number)
     if len(mesh.faces):
-        labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
-        bodies = int(labels.max()) + 1 if labels.size else 0
+        labels = _face_components(mesh.faces, len(mesh.vertices))
+        bodies = len(np.unique(labels))
     else:
         bodies = 0
     genus = (2 * bodies - euler) // 2 if watertight else None

@@ -19,14 +19,13 @@ If the function's module defines ``ProcessParams`` (a pydantic model) the job's
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-from concurrent.futures.process import BrokenProcessPool
 import dataclasses
 import importlib
 import json
 import logging
 import threading
 import uuid
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, Path, Request, status
+from fastapi import APIRouter, Depends, HTTPException, Path, Request, status
 from fastapi.responses import Response
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from api import calibrations as _cal
 from api.calibrations import MEDIA, CalibrationLibrary
@@ -33,7 +33,8 @@ class CalibrationCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     take: Annotated[str, Field(pattern=TAKE_ID, max_length=128, examples=["board1"])]
     source: Literal["board", "take"] = "board"
-    parameters: dict[str, Any] = Field(default_factory=dict, description="options of the rig calibration (board...)")
+    parameters: dict[str, Any] = Field(default_factory=dict, description="source=board: api.calibrations.CalibrateParams "
+                                       "(board definition required, step, min_change, world, world_frame, fix_k3)")
 
 
 class CalibrationSummary(BaseModel):
@@ -66,7 +67,13 @@ def create_calibration(body: CalibrationCreate, library: LibraryDep, calibration
         response.status_code = status.HTTP_201_CREATED
         return CalibrationSummary(**summary, links=_links(cid))
     find_rig_calibrator()  # 503 now rather than a failed job later
-    rec = store.create(kind="calibrate", take=body.take, steps=("calibrate",), params=body.parameters)
+    try:
+        params = _cal.CalibrateParams.model_validate(body.parameters)
+    except ValidationError as exc:
+        msgs = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'parameters'}: {e['msg']}" for e in exc.errors())
+        raise HTTPException(400, f"parameters: {msgs}") from None
+    rec = store.create(kind="calibrate", take=body.take, steps=("detect", "calibrate"),
+                       params=params.model_dump(mode="json"))
     runner.wake()
     response.headers["Location"] = f"/jobs/{rec.id}"
     return CalibrationSummary(id=rec.id, take=body.take, source="board", state=rec.state, job=rec.id,

@@ -82,13 +82,12 @@ def _capture(rig_dict: dict, path: Path, frames: int, *, calibration=None, no_pr
 
 
 def _calibrate(board_take: Path, board, *, world_frame: int, no_progress: bool):
-    """Detect the board in every frame of the take, Zhang per camera, bundle adjustment."""
+    """Detect the board in every frame set of the take (``Detection.frame`` = set index, so
+    equal frames mean the same moment), then Zhang per camera and one bundle adjustment."""
     from tqdm import tqdm
 
-    from calib.camera import Camera
     from calib.detect import detect_board
-    from calib.extrinsics import calibrate_extrinsics
-    from calib.intrinsics import calibrate_intrinsics
+    from calib.rig import calibrate_rig
     from stage.store import TakeReader
 
     with TakeReader(board_take) as r:
@@ -108,12 +107,8 @@ def _calibrate(board_take: Path, board, *, world_frame: int, no_progress: bool):
                         dets.append(d)
                     bar.update(1)
                 detections[cam] = dets
-        sizes = {c: r.image_size(c) for c in cameras}
-    intr = []
-    for cam in cameras:
-        res = calibrate_intrinsics(detections[cam], board, sizes[cam], name=cam)  # logs its own warnings
-        intr.append(Camera(cam, res.K, res.dist, np.eye(3), np.zeros(3), sizes[cam]))
-    return calibrate_extrinsics(detections, intr, board, world="board", world_frame=world_frame)
+        sizes = {c: tuple(r.image_size(c)) for c in cameras}
+    return calibrate_rig(detections, sizes, board, cameras=cameras, world="board", world_frame=world_frame)
 
 
 def _calibration_errors(est, true) -> dict:
@@ -200,8 +195,10 @@ def run(args: argparse.Namespace) -> int:
         floor_sets = np.flatnonzero(_scene_frames(board_path, views.images) == 0)
         if floor_sets.size == 0:
             raise ValueError("the board take missed the view of the board on the floor; record more --board-views")
-        ext = _calibrate(board_path, views.board, world_frame=int(floor_sets[0]), no_progress=args.no_progress)
-        calibration = ext.calibration
+        rigcal = _calibrate(board_path, views.board, world_frame=int(floor_sets[0]), no_progress=args.no_progress)
+        (out / "calibration-report.txt").write_text(rigcal.report() + "\n")
+        ext = rigcal.extrinsics
+        calibration = rigcal.calibration
         errs = _calibration_errors(calibration, views.calibration)
         write_calibration(calibration, out / "calibration.toml", format="toml")
         geom = ext.geometry

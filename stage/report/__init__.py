@@ -204,7 +204,7 @@ def _rigged_view_model(spine, d: Path, *, max_faces: int):
     return None, None
 
 
-def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: int = 3000,
+def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: int = 5000,
                   contact_frames: int = 4) -> str:
     """A full, self-contained HTML page about a processed take.
 

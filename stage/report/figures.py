@@ -264,6 +264,9 @@ def camera_coverage(calibration, points) -> dict:
 def decimate_mesh(vertices, faces, *, max_faces: int = 4000) -> tuple[np.ndarray, np.ndarray]:
     """Vertex-clustering decimation (for display): at most ``max_faces`` faces.
 
+    Vertices are merged per grid cell *and* per normal direction (6 buckets),
+    so the two sides of a part thinner than a cell (a horse's leg) stay apart.
+
     Parameters
     ----------
     vertices : (V, 3) float ndarray
@@ -288,8 +291,15 @@ def decimate_mesh(vertices, faces, *, max_faces: int = 4000) -> tuple[np.ndarray
     ext = float(np.linalg.norm(v.max(0) - lo))
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
     cell = math.sqrt(2.0 * area / max_faces)  # about one face pair per cell face
+    # vertex normals, bucketed by their dominant signed axis: the two sides of a thin part never merge
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    ax = np.abs(vn).argmax(1)
+    bucket = 2 * ax + (vn[np.arange(len(v)), ax] < 0)
     for _ in range(30):
-        key = np.floor((v - lo) / cell).astype(np.int64)
+        key = np.c_[np.floor((v - lo) / cell).astype(np.int64), bucket]
         _, inv = np.unique(key, axis=0, return_inverse=True)
         inv = inv.ravel()
         nf = inv[f]
@@ -363,13 +373,17 @@ def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: 
     elif mesh is not None:
         surf_v, surf_f = (np.asarray(a) for a in mesh)
 
-    def traces(t: int) -> list:
+    def traces(t: int, first: bool = False) -> list:
         out = []
         if surf_v is not None:
-            V = model.deform(t) if model is not None else surf_v
-            out.append(go.Mesh3d(x=V[:, 0], y=V[:, 1], z=V[:, 2], i=surf_f[:, 0], j=surf_f[:, 1], k=surf_f[:, 2],
-                                 color="#d9c3a5", opacity=0.45, name="surface", flatshading=False,
-                                 lighting=dict(ambient=0.6, diffuse=0.6), hoverinfo="skip", showlegend=True))
+            V = (model.deform(t) if model is not None else surf_v).astype(np.float32)
+            if first:
+                out.append(go.Mesh3d(x=V[:, 0], y=V[:, 1], z=V[:, 2], i=surf_f[:, 0].astype(np.int32),
+                                     j=surf_f[:, 1].astype(np.int32), k=surf_f[:, 2].astype(np.int32),
+                                     color="#d9c3a5", opacity=0.55, name="surface", flatshading=False,
+                                     lighting=dict(ambient=0.6, diffuse=0.6), hoverinfo="skip", showlegend=True))
+            else:  # animation frames update the coordinates only (faces stay those of the first trace)
+                out.append(go.Mesh3d(x=V[:, 0], y=V[:, 1], z=V[:, 2]))
         xs, ys, zs = _spine_lines(spine, t)
         out.append(go.Scatter3d(x=xs, y=ys, z=zs, mode="lines", line=dict(color="#222222", width=6), name="spine",
                                 hoverinfo="skip"))
@@ -406,7 +420,7 @@ def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: 
     )
     fi = spine.frame_indices
     frames = [go.Frame(data=traces(int(t)), name=str(int(fi[t]))) for t in keys]
-    fig = go.Figure(data=traces(int(keys[0])), frames=frames)
+    fig = go.Figure(data=traces(int(keys[0]), first=True), frames=frames)
     step_ms = max(1, int(round(1000.0 / spine.fps * max(1, (T - 1) / max(1, len(keys) - 1)))))
     fig.update_layout(
         title=title or f"Spine: {len(limb_ids)} limbs, {T} frames",

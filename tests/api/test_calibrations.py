@@ -11,6 +11,9 @@ from tests.api.test_takes import _calibration
 from tests.api.fakework import make_take_file
 
 
+BOARD = {"type": "chessboard", "corners": [7, 6], "square_mm": 100.0}
+
+
 def _put(client, tmp_path, name, **kw):
     src = make_take_file(tmp_path / f"{name}.h5", 2, **kw)
     r = client.put(f"/takes/{name}", content=src.read_bytes(), headers={**AUTH, "Content-Type": "application/x-hdf5"})
@@ -46,19 +49,19 @@ def test_from_board_views_runs_a_job(client, tmp_path, monkeypatch):
     cal = _calibration(2)
     seen = {}
 
-    def fake_calibrator(take, *, progress=None, cancel=None, board=None):
-        seen["board"] = board
+    def fake_calibrator(take, *, params, progress=None, cancel=None):
+        seen["board"] = params.board
         progress("calibrate", 1, 1)
         return cal
 
     monkeypatch.setattr(mod, "_find_rig_calibrator", lambda: fake_calibrator)
     _put(client, tmp_path, "b")
-    r = client.post("/calibrations", json={"take": "b", "parameters": {"board": "charuco"}}, headers=AUTH)
+    r = client.post("/calibrations", json={"take": "b", "parameters": {"board": BOARD}}, headers=AUTH)
     assert r.status_code == 202, r.text
     jid = r.json()["job"]
     st = wait_job(client, jid)
     assert st["state"] == "done" and st["kind"] == "calibrate", st
-    assert seen["board"] == "charuco"
+    assert seen["board"] == BOARD
     got = client.get(f"/calibrations/{jid}.json").json()
     assert [c["name"] for c in got["cameras"]] == ["cam00", "cam01"] and got["meta"]["source"] == "board"
 
@@ -79,11 +82,54 @@ def test_invalid_input(client, tmp_path, monkeypatch):
     def missing():
         raise UnavailableError("no calibrator")
 
+    for params in ({}, {"board": {"type": "hexagon"}}, {"board": BOARD, "step": 0}, {"board": BOARD, "extra": 1}):
+        r = client.post("/calibrations", json={"take": "nocal", "parameters": params}, headers=AUTH)
+        assert r.status_code == 400 and "parameters" in r.json()["detail"], (params, r.text)
     monkeypatch.setattr(mod, "_find_rig_calibrator", missing)
-    assert client.post("/calibrations", json={"take": "nocal"}, headers=AUTH).status_code == 503
+    assert client.post("/calibrations", json={"take": "nocal", "parameters": {"board": BOARD}},
+                       headers=AUTH).status_code == 503
     unknown = "1" * 32
     assert client.get(f"/calibrations/{unknown}.json").status_code == 404
     assert client.get(f"/calibrations/{unknown}.xml").status_code in (400, 422)
     assert client.get("/calibrations/..%2Fjobs.json").status_code in (400, 404)
     assert client.delete(f"/calibrations/{unknown}", headers=AUTH).status_code == 404
     assert client.delete(f"/calibrations/{unknown}").status_code == 401
+
+
+@pytest.mark.slow
+def test_calibrate_rendered_board_take(make_client, tmp_path):
+    """A take of a board waved through a simulated 4-camera dome (helper A), calibrated by helper D's
+    calib.rig through the API: camera-to-camera distances within 1.5 % of the truth."""
+    pytest.importorskip("fake_cameras.boards")
+    from scipy.spatial.distance import pdist
+
+    client = make_client(max_upload_bytes=64 << 20)
+
+    from calib.boards import parse_board
+    from fake_cameras.boards import render_board_views
+    from fake_cameras.dome import make_dome
+    from stage.frame import Frame
+    from stage.store import CameraSpec, TakeWriter
+
+    truth = make_dome(4, size=(320, 240), seed=0)
+    views = render_board_views(parse_board(BOARD), truth, 20, seed=0)
+    path = tmp_path / "board.h5"
+    with TakeWriter(path, [CameraSpec(c, 320, 240) for c in truth.names], fps=30.0) as tw:
+        for v in range(views.images.shape[0]):
+            t = 10**9 + v * 33_333_333
+            tw.write_set({c: Frame(np.ascontiguousarray(views.images[v, j]), c, v, t, t)
+                          for j, c in enumerate(truth.names)}, time_ns=t)
+    r = client.put("/takes/board", content=path.read_bytes(), headers={**AUTH, "Content-Type": "application/x-hdf5"})
+    assert r.status_code == 201
+    r = client.post("/calibrations", json={"take": "board", "parameters": {"board": BOARD}}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    st = wait_job(client, r.json()["job"], timeout=120)
+    assert st["state"] == "done", st
+    assert st["progress"]["detect"] == {"done": 80, "total": 80}
+    got = client.get(f"/calibrations/{st['id']}.json").json()
+    from calib.calibration import Calibration
+
+    cal = Calibration.from_dict(got)
+    assert cal.names == truth.names
+    d_true, d_got = pdist(truth.centers()), pdist(cal.centers())
+    assert np.max(np.abs(d_got - d_true) / d_true) < 0.015

@@ -123,3 +123,22 @@ def test_invalid_input(tmp_path):
     for steps, params in ((["x"], {}), ([], {}), (["key", "key"], {}), (None, {"delay_s": "slow"})):
         with pytest.raises(ValueError):
             spec.validate(steps, params)
+
+
+def test_graceful_stop_puts_the_running_job_back_in_the_queue(tmp_path):
+    takes, jobs = tmp_path / "takes", tmp_path / "jobs"
+    takes.mkdir()
+    fakework.make_take_file(takes / "t.h5", 30)
+    store = JobStore(tmp_path / "jobs.sqlite")
+    j = store.create(kind="process", take="t", steps=["key", "surface", "spine"], params={"delay_s": 0.05})
+    handle = ExecutorHandle(cf.ThreadPoolExecutor(2), "threads", "test")
+    runner = JobRunner(store, takes_dir=takes, jobs_dir=jobs, work=fakework.process_take, executor=handle,
+                       heartbeat_s=0.05, stale_after_s=0.2, poll_s=0.02)
+    runner.start()
+    t0 = time.monotonic()
+    while store.get(j.id).done < 2 and time.monotonic() - t0 < 20:
+        time.sleep(0.01)
+    runner.stop()
+    handle.close()
+    st = store.get(j.id)
+    assert st.state == "queued" and not st.cancel_requested and 2 <= st.done < 60

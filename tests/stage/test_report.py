@@ -28,7 +28,8 @@ from stage.report import (
 from tests.pipeline.rig_fixtures import creature_take, surface, true_spine
 
 FRAMES = 8
-ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts"
+# screenshots of the browser test are kept here (CI can point STAGE_TEST_ARTIFACTS elsewhere)
+ARTIFACTS = Path(os.environ.get("STAGE_TEST_ARTIFACTS", Path(__file__).resolve().parents[1] / "artifacts"))
 CHROMIUM = os.environ.get("STAGE_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run"]
@@ -118,7 +119,7 @@ def test_report_3d_view_animates_the_spine_over_the_take(results):
     # the surface is posed per frame, the tips follow the spine, a null limb is left out
     for t in (0, 7):
         mesh, lines, tips, _ = fig.frames[t].data
-        np.testing.assert_allclose(np.c_[mesh.x, mesh.y, mesh.z], model.deform(t), atol=1e-9)
+        np.testing.assert_allclose(np.c_[mesh.x, mesh.y, mesh.z], model.deform(t), atol=1e-3)  # float32
         assert len(tips.x) == spine.K
     assert len(fig.frames[1].data[2].x) == spine.K - 1
     assert fig.layout.sliders[0].steps[-1].label == str(FRAMES - 1)

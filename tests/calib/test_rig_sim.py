@@ -1,0 +1,249 @@
+"""Rig calibration on the simulated 12-camera dome (calib.rig, calib.extrinsics, calib.bundle).
+
+Corners are the true projections through the simulated cameras plus Gaussian
+noise (sigma = 0.3 px per coordinate); the estimate is compared with the true
+cameras after the best rigid alignment (the world frame is a choice of gauge;
+the scale comes from the board and is not aligned).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.boards import Charuco, Chessboard
+from calib.bundle import bundle_adjust, project_batch, rodrigues_batch
+from calib.camera import project_points
+from calib.detect import Detection
+from calib.extrinsics import calibrate_extrinsics, triangulate_board_error
+from calib.intrinsics import CalibrationError, calibrate_intrinsics
+from calib.rig import calibrate_rig
+from calib.synthetic import random_board_poses, synthetic_detections
+
+SIGMA = 0.3
+N_VIEWS = 200
+
+BOARDS = {
+    "chessboard": Chessboard((11, 8), 50.0),
+    "charuco": Charuco((12, 9), 50.0, 37.0, dictionary="DICT_4X4_100"),
+}
+
+
+@pytest.fixture(scope="module")
+def truth():
+    dome = pytest.importorskip("fake_cameras.dome")
+    return dome.make_dome(12)
+
+
+def _simulate(truth, board, n=N_VIEWS, seed=1):
+    poses = random_board_poses(truth, board, n, seed=seed, spread=0.25 * 1560)
+    return synthetic_detections(truth, board, poses, noise_px=SIGMA, seed=seed + 1)
+
+
+def _align(est, tru):
+    """Rigid (no scale) transform taking the estimate's world to the true world."""
+    A = np.concatenate([est.centers()] + [np.stack([c.center + 300 * c.R[k] for c in est]) for k in range(3)])
+    B = np.concatenate([tru.centers()] + [np.stack([c.center + 300 * c.R[k] for c in tru]) for k in range(3)])
+    ma, mb = A.mean(0), B.mean(0)
+    U, _, Vt = np.linalg.svd((A - ma).T @ (B - mb))
+    D = np.diag([1, 1, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, mb - R @ ma
+
+
+@pytest.fixture(scope="module", params=list(BOARDS))
+def solved(request, truth):
+    board = BOARDS[request.param]
+    dets = _simulate(truth, board)
+    res = calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names)
+    return board, dets, res
+
+
+@pytest.mark.slow
+def test_rig_accuracy(solved, truth):
+    board, dets, res = solved
+    est = res.calibration
+    assert est.names == truth.names  # every camera connected
+    R, t = _align(est, truth)
+    for e, g in zip(est, truth):
+        assert abs(e.K[0, 0] / g.K[0, 0] - 1) < 0.005 and abs(e.K[1, 1] / g.K[1, 1] - 1) < 0.005, e.name
+        assert np.all(np.abs(e.K[:2, 2] - g.K[:2, 2]) < 2.0), (e.name, e.K[:2, 2] - g.K[:2, 2])
+        centre = R @ e.center + t
+        assert np.linalg.norm(centre - g.center) < 2.0, (e.name, np.linalg.norm(centre - g.center))
+        dR = (e.R @ R.T) @ g.R.T
+        angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
+        assert angle < 0.1, (e.name, angle)
+    # RMS per corner (2D) of pure Gaussian noise: sigma * sqrt(2) (minus the few fitted parameters)
+    floor = SIGMA * np.sqrt(2)
+    assert abs(res.extrinsics.rms - floor) < 0.1 * floor
+    for name, v in res.extrinsics.per_camera_rms.items():
+        assert abs(v - floor) < 0.1 * floor, name
+    # the board triangulated from the calibrated cameras keeps its shape (mm)
+    assert res.extrinsics.geometry["neighbor_rms"] < 1.0
+    assert res.extrinsics.geometry["frames"] > 0.9 * N_VIEWS
+
+
+@pytest.mark.slow
+def test_world_frame_is_the_board(solved):
+    board, dets, res = solved
+    ext = res.extrinsics
+    R, t = ext.board_poses[ext.world_frame]
+    # the world frame is the chosen board turned face up: x along the board, z = -board z
+    np.testing.assert_allclose(R, np.diag([1.0, -1.0, -1.0]), atol=1e-9)
+    np.testing.assert_allclose(t, 0, atol=1e-9)
+
+
+def test_bundle_projection_matches_camera_model():
+    rng = np.random.default_rng(0)
+    intr = np.array([[510, 505, 320, 240, -0.1, 0.02, 0.001, -0.002, 0.01]], float)
+    r = rng.normal(0, 0.3, (1, 3))
+    X = rng.uniform(-100, 100, (50, 3)) + [0, 0, 800]
+    R = rodrigues_batch(r)[0]
+    uv = project_batch(X @ R.T + [1, 2, 3], np.repeat(intr, 50, 0))
+    K = np.array([[510, 0, 320], [0, 505, 240], [0, 0, 1.0]])
+    ref = project_points(X, K=K, dist=intr[0, 4:], R=R, t=[1, 2, 3])
+    np.testing.assert_allclose(uv, ref, atol=1e-9)
+
+
+def test_bundle_adjust_recovers_perturbed_poses():
+    """Exact data, perturbed start: the analytic-Jacobian LM and scipy's least_squares reach the truth."""
+    rng = np.random.default_rng(3)
+    C, B = 3, 6
+    obj = Chessboard((5, 4), 30).object_points()
+    intr = np.tile([600.0, 600, 320, 240, 0, 0, 0, 0, 0], (C, 1))
+    cr = np.array([[0, 0, 0], [0, 0.4, 0], [0, -0.4, 0.0]])
+    ct = np.array([[0, 0, 1000.0], [-400, 0, 1100], [400, 0, 1100]])
+    br = rng.normal(0, 0.2, (B, 3))
+    bt = rng.normal(0, 60, (B, 3)) - [60, 45, 0]
+    oc, ob, op = [], [], []
+    for c in range(C):
+        for b in range(B):
+            oc += [c] * len(obj)
+            ob += [b] * len(obj)
+            op.append(obj)
+    oc, ob, op = np.array(oc), np.array(ob), np.concatenate(op)
+    Xw = np.einsum("mij,mj->mi", rodrigues_batch(br)[ob], op) + bt[ob]
+    uv = project_batch(np.einsum("mij,mj->mi", rodrigues_batch(cr)[oc], Xw) + ct[oc], intr[oc])
+    for solver in ("lm", "scipy"):
+        res = bundle_adjust(oc, ob, op, uv, intrinsics=intr, cam_rvec=cr + rng.normal(0, 0.01, cr.shape) * [[0], [1], [1]],
+                            cam_tvec=ct + rng.normal(0, 5, ct.shape) * [[0], [1], [1]], board_rvec=br + 0.01,
+                            board_tvec=bt + 3, reference=0, solver=solver)
+        np.testing.assert_allclose(res.cam_tvec, ct, atol=1e-4)
+        np.testing.assert_allclose(res.cam_rvec, cr, atol=1e-7)
+        assert np.abs(res.residuals).max() < 1e-6
+
+
+# -- bad input: an error naming the camera and saying what to do ---------------------------------
+
+
+@pytest.fixture(scope="module")
+def small(truth):
+    board = BOARDS["charuco"]
+    return board, _simulate(truth, board, n=25, seed=5)
+
+
+def test_camera_without_board(small, truth):
+    board, dets = small
+    dets = dict(dets)
+    dets["cam07"] = []
+    with pytest.raises(CalibrationError, match=r"camera cam07: the board was never detected.*board file") as ei:
+        calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names)
+    assert ei.value.cameras == ("cam07",)
+
+
+def test_too_few_views(small, truth):
+    board, dets = small
+    dets = dict(dets)
+    dets["cam03"] = dets["cam03"][:2]
+    with pytest.raises(CalibrationError, match=r"camera cam03: only 2 usable board view.*film the board"):
+        calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names)
+
+
+def test_camera_sharing_no_view(small, truth):
+    board, dets = small
+    dets = dict(dets)
+    # cam05 sees the board only in frames nobody else saw
+    dets["cam05"] = [Detection(d.ids, d.corners, frame=1000 + d.frame) for d in dets["cam05"]]
+    intr = [calibrate_intrinsics(dets[c.name], board, c.size, name=c.name).camera() for c in truth]
+    with pytest.raises(CalibrationError, match=r"camera cam05: saw the board in \d+ view\(s\) but never at the same "
+                                               r"time.*show the board where cam05") as ei:
+        calibrate_extrinsics(dets, intr, board)
+    assert ei.value.cameras == ("cam05",)
+
+
+def test_wrong_board_definition(truth):
+    """The classic mistake: the board file counts squares (8 x 6) instead of inner corners (7 x 5).
+
+    Nothing is detected and the error says to check the board file against the print.
+    """
+    pytest.importorskip("fake_cameras.boards")
+    from fake_cameras.boards import render_board_views
+    from fake_cameras.dome import make_dome
+
+    from calib.detect import detect_board
+
+    cal = make_dome(4, size=(320, 240))
+    views = render_board_views(Chessboard((7, 5), 100.0), cal, 2, seed=1)
+    wrong = Chessboard((8, 6), 100.0)
+    dets = {c.name: [d for d in (detect_board(views.images[v, i], wrong, frame=v) for v in range(2)) if d]
+            for i, c in enumerate(cal)}
+    assert not any(dets.values())
+    with pytest.raises(CalibrationError, match="board file matches the print"):
+        calibrate_rig(dets, {c.name: c.size for c in cal}, wrong, cameras=cal.names)
+
+
+def test_detection_on_rendered_images(truth):
+    """Real rendered images (fake_cameras.boards): detected corners agree with the true ones, same ids."""
+    pytest.importorskip("fake_cameras.boards")
+    from fake_cameras.boards import render_board_views
+    from fake_cameras.dome import make_dome
+
+    from calib.detect import detect_board
+
+    cal = make_dome(4, size=(640, 480))
+    for board in (Chessboard((7, 6), 80.0), Charuco((5, 4), 120.0, 90.0, dictionary="DICT_4X4_50", inverted=True)):
+        views = render_board_views(board, cal, 2, seed=1)
+        found = 0
+        for v in range(2):
+            for c in range(len(cal)):
+                d = detect_board(views.images[v, c], board)
+                if d is None:
+                    continue
+                found += 1
+                assert views.visible[v, c, d.ids].all()
+                err = np.linalg.norm(d.corners - views.corners_2d[v, c, d.ids], axis=1)
+                assert np.median(err) < 0.3 and err.max() < 1.0, (type(board).__name__, v, c, err.max())
+        assert found >= 3
+
+
+def test_invalid_input(small, truth):
+    board, dets = small
+    sizes = {c.name: c.size for c in truth}
+    with pytest.raises(ValueError, match="board"):
+        calibrate_rig(dets, sizes, "board.toml")
+    with pytest.raises(ValueError, match="sizes"):
+        calibrate_rig(dets, {"cam00": (640, 480)}, board, cameras=["cam00", "cam01"])
+    with pytest.raises(ValueError, match="size"):
+        calibrate_intrinsics(dets["cam00"], board, (0, 480))
+    with pytest.raises(ValueError, match="detections"):
+        calibrate_intrinsics([1, 2, 3, 4], board, (640, 480))
+    cams = [c.replace() for c in truth]
+    with pytest.raises(ValueError, match="world"):
+        calibrate_extrinsics(dets, cams, board, world="floor")
+    with pytest.raises(ValueError, match="at least 2 cameras"):
+        calibrate_extrinsics(dets, cams[:1], board)
+    with pytest.raises(ValueError, match="unknown camera"):
+        calibrate_extrinsics({"nope": []}, cams, board)
+    with pytest.raises(ValueError, match="loss"):
+        bundle_adjust([0], [0], [[0, 0, 0]], [[0, 0]], intrinsics=np.ones((1, 9)), cam_rvec=np.zeros((1, 3)),
+                      cam_tvec=np.zeros((1, 3)), board_rvec=np.zeros((1, 3)), board_tvec=np.zeros((1, 3)),
+                      loss="l3")
+    with pytest.raises(ValueError, match="equal length"):
+        bundle_adjust([0, 0], [0], [[0, 0, 0]], [[0, 0]], intrinsics=np.ones((1, 9)), cam_rvec=np.zeros((1, 3)),
+                      cam_tvec=np.zeros((1, 3)), board_rvec=np.zeros((1, 3)), board_tvec=np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="noise_px"):
+        synthetic_detections(truth, board, [], noise_px=-1)
+    with pytest.raises(ValueError, match="board"):
+        triangulate_board_error(truth, dets, "board")
+    with pytest.raises(ValueError, match="max_views"):
+        calibrate_intrinsics(dets["cam00"], board, (640, 480), max_views=2)
