@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         carver = HullCarver(cal, grid)
         build = time.perf_counter() - t0
         print(f"  lookup tables (once): {build:.2f} s, {carver.memory_bytes / 1024**3:.2f} GiB, levels {carver.levels}")
-        carver.carve(masks[0])  # warm up
+        surface_from_occupancy(carver.carve(masks[0]).occupancy, grid)  # warm up (imports, caches)
         steps = {"carve": 0.0, "prepare": 0.0, "marching_cubes": 0.0, "cleanup": 0.0}
         n = 0
         refined = 0
