@@ -35,7 +35,7 @@ HELP = "REST API: job-status requests/s and p50/p99 latency under 50 concurrent 
 ROOT = Path(__file__).resolve().parents[2]
 TOKEN = "bench-token"
 
-__all__ = ["NAME", "HELP", "add_arguments", "run", "synthetic_process", "write_simulated_take", "load_client"]
+__all__ = ["NAME", "HELP", "add_arguments", "run", "synthetic_process", "load_client"]
 
 
 # -- the work --------------------------------------------------------------------------------------
@@ -86,26 +86,6 @@ def synthetic_process(take: str | Path, out: str | Path, *, steps: Sequence[str]
     spine = {"frames": [json.loads((out / "frames" / f"{i:06d}.json").read_text()) for i in range(n)]}
     (out / "spine.json").write_text(json.dumps(spine, sort_keys=True))
     return {"frames": n}
-
-
-def write_simulated_take(sim: Any, path: str | Path) -> Path:
-    """Write a :class:`fake_cameras.take.SimulatedTake` as a take file (helper B's store), with its
-    true calibration, and each camera's clean plate as the derived array ``cameras/<id>/plate``."""
-    from stage.frame import Frame
-    from stage.store import CameraSpec, TakeWriter, write_array
-
-    path = Path(path)
-    names = sim.calibration.names
-    w, h = sim.size
-    period = int(round(1e9 / sim.fps))
-    with TakeWriter(path, [CameraSpec(c, w, h) for c in names], calibration=sim.calibration, fps=sim.fps) as tw:
-        for k in range(sim.n_frames):
-            t = 1_000_000_000 + k * period
-            tw.write_set({c: Frame(np.ascontiguousarray(sim.images[k, j]), c, k, t, t) for j, c in enumerate(names)},
-                         time_ns=t)
-    for j, c in enumerate(names):
-        write_array(path, f"cameras/{c}", "plate", np.ascontiguousarray(sim.plate[j]))
-    return path
 
 
 def _real_work_available() -> tuple[bool, str]:
@@ -190,24 +170,11 @@ def _free_port() -> int:
 
 
 def _make_take(path: Path, *, frames: int, cameras: int, size: tuple[int, int]) -> None:
-    try:
-        from fake_cameras.take import simulate_take
-    except ImportError:
-        simulate_take = None
-    if simulate_take is not None:
-        sim = simulate_take("starfish", n_cameras=max(4, cameras), frames=frames, size=size, seed=0)
-        write_simulated_take(sim, path)
-        return
-    from stage.frame import Frame
-    from stage.store import CameraSpec, TakeWriter
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
 
-    rng = np.random.default_rng(0)
-    ids = [f"cam{i:02d}" for i in range(cameras)]
-    with TakeWriter(path, [CameraSpec(c, *size) for c in ids], fps=30.0) as tw:
-        for k in range(frames):
-            t = 1_000_000_000 + k * 33_333_333
-            tw.write_set({c: Frame(rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8), c, k, t, t)
-                          for c in ids}, time_ns=t)
+    sim = simulate_take("starfish", n_cameras=max(4, cameras), frames=frames, size=size, seed=0)
+    record_take(sim, path)
 
 
 def _serve(data: Path, port: int, work: str, workers: int) -> subprocess.Popen:
@@ -229,6 +196,15 @@ def _serve(data: Path, port: int, work: str, workers: int) -> subprocess.Popen:
             time.sleep(0.2)
     proc.kill()
     raise RuntimeError("stage serve did not start in 60 s")
+
+
+def _cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of one process (Linux /proc), or None."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def _frames_per_s(take: Path, fn: Callable, handle: Any, params: Any, tmp: Path, label: str) -> tuple[float, float]:
@@ -291,6 +267,7 @@ def _status_load(take: Path, tmp: Path, work: str, real: bool, args: argparse.Na
         r = httpx.post(f"{base}/jobs", json={"take": "bench", "parameters": params}, headers=auth, timeout=30)
         r.raise_for_status()
         jid = r.json()["id"]
+        cpu0 = _cpu_s(srv.pid)
         load = subprocess.run(
             [sys.executable, "-m", "stage.benchmarks.api", f"{base}/jobs/{jid}", str(args.clients),
              str(args.duration), str(args.max_requests)],
@@ -300,12 +277,16 @@ def _status_load(take: Path, tmp: Path, work: str, real: bool, args: argparse.Na
         if load.returncode != 0:
             raise RuntimeError(f"load process failed: {load.stderr[-2000:]}")
         res = json.loads(load.stdout.strip().splitlines()[-1])
+        cpu1 = _cpu_s(srv.pid)
         st = httpx.get(f"{base}/jobs/{jid}", timeout=10).json()
         httpx.post(f"{base}/jobs/{jid}/cancel", headers=auth, timeout=10)
         print(f"GET /jobs/{{id}} with {args.clients} concurrent clients (second process, loopback) while the job "
               f"runs (job {st['state']}, {st['done']}/{st['total']} frame-steps done when the load ended):")
         print(f"  {res['rps']:.0f} requests/s over {res['elapsed_s']:.1f} s ({res['requests']} requests, "
               f"{res['errors']} errors)  p50 {res['p50_ms']:.1f} ms  p99 {res['p99_ms']:.1f} ms  max {res['max_ms']:.1f} ms")
+        if cpu0 is not None and cpu1 is not None and res["requests"]:
+            print(f"  server process CPU: {1e3 * (cpu1 - cpu0) / res['requests']:.2f} ms per request "
+                  f"(its own threads, job thread included; pool workers excluded)")
     finally:
         srv.terminate()
         try:

@@ -184,10 +184,10 @@ def _simulated_take_file(path: Path) -> Path:
         from fake_cameras.take import simulate_take
     except ImportError as exc:
         pytest.skip(f"fake_cameras.take.simulate_take is not available: {exc}")
-    from stage.benchmarks.api import write_simulated_take
+    from fake_cameras.record import record_take
 
     sim = simulate_take("starfish", n_cameras=6, frames=8, size=(160, 120), seed=0)
-    return write_simulated_take(sim, path)
+    return record_take(sim, path)
 
 
 _REF: dict = {}
