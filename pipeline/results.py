@@ -4,8 +4,8 @@ The capture file stays as recorded; everything computed from it goes to a direct
 
     DIR/
       report.json              {"format": ..., "meta": {...}, "frames": {"123": {...}, ...}}
-      meshes/frame_000123.npz  vertices (V, 3) float64, faces (F, 3) int32
-      export/frame_000123.ply  on request (export), also .glb
+      meshes/frame_000123.ply  binary PLY (what MeshLab, Blender, trimesh and the API serve)
+      export/frame_000123.glb  on request (export), also .ply
 
 Plain files and numpy only (no HDF5 here: only ``stage/store.py`` touches HDF5). Every write
 goes to a temporary file in the same directory and is moved into place with ``os.replace``,
@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ResultsStore", "atomic_write_bytes", "FORMAT"]
+__all__ = ["ResultsStore", "atomic_write_bytes", "ply_bytes", "FORMAT"]
 
 FORMAT = "capture-stage/results@1"
-_FRAME_RE = re.compile(r"^frame_(\d{6,})\.npz$")
+_FRAME_RE = re.compile(r"^frame_(\d{6,})\.ply$")
 _EXPORT_FORMATS = ("ply", "glb")
 
 
@@ -50,6 +50,27 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             pass
         raise
     return path
+
+
+def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
+    """Binary little-endian PLY with double-precision vertices (exact round trip).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+    faces : (F, 3) int ndarray
+    """
+    v = np.ascontiguousarray(vertices, dtype="<f8")
+    f = np.asarray(faces)
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment capture-stage\n"
+        f"element vertex {len(v)}\nproperty double x\nproperty double y\nproperty double z\n"
+        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
+    ).encode("ascii")
+    rec = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    rec["n"] = 3
+    rec["i"] = f
+    return header + v.tobytes() + rec.tobytes()
 
 
 def _check_frame(frame: Any) -> int:
@@ -86,7 +107,7 @@ class ResultsStore:
         return self.path / "report.json"
 
     def mesh_path(self, frame: int) -> Path:
-        return self.mesh_dir / f"frame_{_check_frame(frame):06d}.npz"
+        return self.mesh_dir / f"frame_{_check_frame(frame):06d}.ply"
 
     # -- meshes ---------------------------------------------------------------------------------
     def write_mesh(self, frame: int, mesh) -> Path:
@@ -112,9 +133,7 @@ class ResultsStore:
             raise ValueError(f"mesh faces must be integer (F, 3), got shape {f.shape} dtype {f.dtype}")
         if f.size and (f.min() < 0 or f.max() >= len(v)):
             raise ValueError("mesh faces index vertices that do not exist")
-        buf = io.BytesIO()
-        np.savez(buf, vertices=v, faces=f.astype(np.int32))
-        return atomic_write_bytes(self.mesh_path(frame), buf.getvalue())
+        return atomic_write_bytes(self.mesh_path(frame), ply_bytes(v, f))
 
     def read_mesh(self, frame: int):
         """The stored mesh of ``frame`` as a ``trimesh.Trimesh``.
@@ -129,8 +148,7 @@ class ResultsStore:
         p = self.mesh_path(frame)
         if not p.is_file():
             raise KeyError(f"no mesh for frame {frame} in {self.path}")
-        with np.load(p) as z:
-            return trimesh.Trimesh(vertices=z["vertices"], faces=z["faces"], process=False)
+        return trimesh.load(p, file_type="ply", process=False, force="mesh")
 
     def frames(self) -> list[int]:
         """Frames that have a mesh, sorted."""

@@ -165,11 +165,13 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
     Top level (picklable) so it runs in a process pool or on a Dask worker.
     """
     from pipeline.hull import EmptyHullError
+    from pipeline.results import ResultsStore
     from pipeline.surface import EmptySurfaceError, surface_from_occupancy, surface_quality
     from stage.store import TakeReader
 
     p = ProcessParams(**params)
     out_dir = Path(out)
+    store = ResultsStore(out_dir)
     carver = _carver(calib_dict, grid_dict)
     cameras = [c["name"] for c in calib_dict["cameras"]]
     results = []
@@ -189,11 +191,7 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
                     face_budget=p.face_budget,
                 )
                 quality = surface_quality(mesh).to_dict()
-                mesh_path = out_dir / "meshes" / f"{_frame_name(k)}.ply"
-                mesh_path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = mesh_path.with_name(f".{mesh_path.name}.{os.getpid()}.tmp")
-                mesh.export(tmp, file_type="ply")
-                os.replace(tmp, mesh_path)
+                store.write_mesh(k, mesh)
                 info.update(status="ok", quality=quality)
             except (EmptyHullError, EmptySurfaceError) as exc:
                 info.update(status="empty", reason=str(exc))
@@ -207,13 +205,15 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
 def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
     """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of some frames' meshes."""
     from pipeline.meshio import load_mesh
+    from pipeline.results import ResultsStore
     from pipeline.spine import SpineParams, frame_skeleton
 
     params = SpineParams(**spine_params)
     out_dir = Path(out)
+    store = ResultsStore(out_dir)
     done = []
     for k in frames:
-        mesh_path = out_dir / "meshes" / f"{_frame_name(k)}.ply"
+        mesh_path = store.mesh_path(k)
         if mesh_path.exists():
             v, f = load_mesh(mesh_path)
             try:

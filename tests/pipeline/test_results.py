@@ -20,7 +20,7 @@ def test_meshes_round_trip_exactly_and_list_frames(tmp_path):
     store.write_mesh(123, a)
     store.write_mesh(7, (b.vertices, b.faces))
     assert store.frames() == [7, 123]
-    assert store.mesh_path(123).name == "frame_000123.npz"
+    assert store.mesh_path(123).name == "frame_000123.ply"
     got = store.read_mesh(123)
     assert np.array_equal(got.vertices, a.vertices) and np.array_equal(got.faces, a.faces)
     assert got.is_watertight
