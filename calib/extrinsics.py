@@ -548,7 +548,7 @@ def calibrate_extrinsics(
         if v < 3:
             warnings.append(f"camera {n}: only {v} shared board view(s); its pose rests on little data")
     for w in warnings:
-        log.warning(w)
+        log.info(w)  # also in the result's warnings / report
     return ExtrinsicsResult(
         calibration=calib, rms=float(np.sqrt(np.mean(r2))), per_camera_rms=per_rms, per_camera_views=per_views,
         geometry=geometry, board_poses=board_world, tree=tree_report, world=world, world_frame=wf,

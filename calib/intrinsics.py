@@ -351,7 +351,7 @@ def calibrate_intrinsics(
             "(30-45 degrees) towards the camera"
         )
     for w in warnings:
-        log.warning(w)
+        log.info(w)  # also in the result's warnings / report
     return IntrinsicsResult(
         name=name,
         size=size,

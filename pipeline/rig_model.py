@@ -44,6 +44,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pipeline.skinning import bone_heat_weights, limit_influences
+from pipeline.spine import resample_polyline
 
 __all__ = ["Rig", "RiggedModel", "rig_from_spine", "rigged_model", "reference_frame", "NoCompleteFrameError"]
 
@@ -173,15 +174,6 @@ class RiggedModel:
 
 
 # --------------------------------------------------------------------------- geometry
-
-
-def _resample(poly: np.ndarray, n: int) -> np.ndarray:
-    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    if s[-1] <= 0:
-        return np.repeat(poly[:1], n, axis=0)
-    q = np.linspace(0.0, s[-1], n)
-    return np.stack([np.interp(q, s, poly[:, k]) for k in range(3)], axis=1)
 
 
 def _align(u: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -316,7 +308,7 @@ def rig_from_spine(spine, *, reference: int | None = None, segments: int | None 
         out = np.full((T, n, 3), np.nan)
         for t in range(T):
             if np.all(np.isfinite(a[t])) and a.shape[1] >= 2:
-                out[t] = _resample(a[t], n) if a.shape[1] != n else a[t]
+                out[t] = resample_polyline(a[t], n) if a.shape[1] != n else a[t]
         polys[name] = out
 
     # joints in parent-first order

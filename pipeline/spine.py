@@ -377,8 +377,8 @@ def _jsonable(x):
     return x
 
 
-def _resample(poly: np.ndarray, n: int) -> np.ndarray:
-    """Uniform arc-length resampling of a polyline to ``n`` points."""
+def resample_polyline(poly: np.ndarray, n: int) -> np.ndarray:
+    """Uniform arc-length resampling of a polyline (K, 3) to ``n`` points."""
     seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     if s[-1] <= 0:
@@ -521,7 +521,7 @@ def build_spine(
         a = np.full((T, n, 3), np.nan)
         for t, p in enumerate(ps):
             if p is not None and len(p) >= 1:
-                a[t] = _resample(p, n)
+                a[t] = resample_polyline(p, n)
         axes[name] = a
     meta = {
         "K": K,

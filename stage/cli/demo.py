@@ -158,9 +158,7 @@ def _scene_frames(take_path: Path, images: np.ndarray) -> np.ndarray:
 def run(args: argparse.Namespace) -> int:
     import concurrent.futures as cf
 
-    from tqdm import tqdm
-
-    from calib.boards import Charuco, Chessboard
+    from stage.cli._progress import StepBars
     from calib.formats import write_calibration
     from fake_cameras.device import take_for_rig
     from fake_cameras.evaluate import evaluate_spine
@@ -225,22 +223,12 @@ def run(args: argparse.Namespace) -> int:
     )
 
     # 4. process
-    bars: dict[str, tqdm] = {}
-
-    def progress(step: str, done: int, total: int) -> None:
-        bar = bars.get(step)
-        if bar is None:
-            bar = bars[step] = tqdm(total=total, desc=step, unit="frame", disable=args.no_progress)
-        bar.n = done
-        bar.refresh()
-
     results = out / f"{args.subject}-results"
     executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
     try:
-        result = process_take(take_path, results, params=ProcessParams(), executor=executor, progress=progress)
+        with StepBars(disable=args.no_progress) as progress:
+            result = process_take(take_path, results, params=ProcessParams(), executor=executor, progress=progress)
     finally:
-        for b in bars.values():
-            b.close()
         if executor is not None:
             executor.shutdown(cancel_futures=True)
     print(f"processed: {result.frames} frame sets in {result.report['total_seconds']:.1f} s -> {results}")

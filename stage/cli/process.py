@@ -71,8 +71,7 @@ def run(args: argparse.Namespace) -> int:
 def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) -> int:
     import concurrent.futures as cf
 
-    from tqdm import tqdm
-
+    from stage.cli._progress import StepBars
     from stage.process import STEPS, ProcessParams, process_take
 
     steps = STEPS[: STEPS.index(args.until) + 1]
@@ -82,21 +81,11 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
     if args.volume is not None:
         kw["volume"] = tuple(args.volume)
     params = ProcessParams(**kw)
-    bars: dict[str, tqdm] = {}
-
-    def progress(step: str, done: int, total: int) -> None:
-        bar = bars.get(step)
-        if bar is None:
-            bar = bars[step] = tqdm(total=total, desc=step, unit="frame", disable=args.no_progress)
-        bar.n = done
-        bar.refresh()
-
     executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
     try:
-        result = process_take(take, out, steps=steps, params=params, executor=executor, progress=progress)
+        with StepBars(disable=args.no_progress) as progress:
+            result = process_take(take, out, steps=steps, params=params, executor=executor, progress=progress)
     finally:
-        for b in bars.values():
-            b.close()
         if executor is not None:
             executor.shutdown(cancel_futures=True)
     rep = result.report
