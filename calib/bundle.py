@@ -297,7 +297,6 @@ def bundle_adjust(
     cam_slot[free_cams] = np.arange(free_cams.size)
     n_pose = 6 * free_cams.size
     n_intr = N_INTR * C if optimize_intrinsics else 0
-    n_board = 6 * B
 
     def unpack(p: np.ndarray):
         rv, tv = crv.copy(), ctv.copy()

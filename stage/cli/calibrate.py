@@ -133,21 +133,22 @@ def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, p
     from calib.detect import default_min_corners, detect_board, select_views
     from stage.store import TakeReader
 
-    detections, sizes = {}, {}
     with TakeReader(path) as r:
-        for name in r.cameras:
-            n = r.n_frames(name)
-            size = tuple(r.image_size(name))
-            dets = []
-            for k in tqdm(range(0, n, step), desc=f"detect {name}", unit="img", disable=not progress,
-                          dynamic_ncols=True, leave=False):
-                dets.append(detect_board(r.frame(name, k), board, frame=k))
-            keep = select_views(dets, size=size, min_corners=default_min_corners(board), min_change=min_change)
-            detections[name] = [dets[i] for i in keep]
-            sizes[name] = size
-            print(f"  {name}: board found in {sum(d is not None for d in dets)}/{len(dets)} frames, "
-                  f"{len(keep)} views kept")
         cams = list(r.cameras)
+        sizes = {name: tuple(r.image_size(name)) for name in cams}
+        raw: dict[str, list] = {name: [] for name in cams}
+        # frame sets keep the cameras in sync: the set index is the moment ("frame") of a detection
+        for k in tqdm(range(0, r.n_sets, step), desc="detect", unit="set", disable=not progress,
+                      dynamic_ncols=True, leave=False):
+            for name, img in r.frame_set(k).items():
+                raw[name].append(None if img is None else detect_board(img, board, frame=k))
+    detections = {}
+    for name in cams:
+        dets = raw[name]
+        keep = select_views(dets, size=sizes[name], min_corners=default_min_corners(board), min_change=min_change)
+        detections[name] = [dets[i] for i in keep]
+        print(f"  {name}: board found in {sum(d is not None for d in dets)}/{len(dets)} frame sets, "
+              f"{len(keep)} views kept")
     return detections, sizes, cams
 
 

@@ -83,32 +83,12 @@ def _capture(rig_dict: dict, path: Path, frames: int, *, calibration=None, no_pr
 
 
 def _calibrate(board_take: Path, board, *, world_frame: int, no_progress: bool):
-    """Detect the board in every frame set of the take (``Detection.frame`` = set index, so
-    equal frames mean the same moment), then Zhang per camera and one bundle adjustment."""
-    from tqdm import tqdm
-
-    from calib.detect import detect_board
+    """Detect the board in every frame set of the take (as ``stage calibrate`` does), then
+    Zhang per camera and one bundle adjustment; the world is the board of ``world_frame``."""
     from calib.rig import calibrate_rig
-    from stage.store import TakeReader
+    from stage.cli.calibrate import detect_take
 
-    with TakeReader(board_take) as r:
-        cameras = list(r.cameras)
-        table = r.set_table()
-        detections: dict[str, list] = {}
-        total = int((table >= 0).sum())
-        with tqdm(total=total, desc="detect board", unit="image", disable=no_progress) as bar:
-            for ci, cam in enumerate(cameras):
-                dets = []
-                for k in range(table.shape[0]):
-                    row = int(table[k, ci])
-                    if row < 0:
-                        continue
-                    d = detect_board(r.frame(cam, row), board, frame=k)
-                    if d is not None:
-                        dets.append(d)
-                    bar.update(1)
-                detections[cam] = dets
-        sizes = {c: tuple(r.image_size(c)) for c in cameras}
+    detections, sizes, cameras = detect_take(board_take, board, progress=not no_progress)
     return calibrate_rig(detections, sizes, board, cameras=cameras, world="board", world_frame=world_frame)
 
 

@@ -1,0 +1,108 @@
+"""``stage calibrate``, ``stage calibration export``, ``stage board`` (through stage.cli.main)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.boards import Chessboard, save_board
+from calib.formats import read_calibration
+from stage.cli import main
+from tests.conftest import shared_dataset
+
+
+@pytest.fixture(scope="module")
+def stereo_dir(tmp_path_factory):
+    root = shared_dataset("opencv_stereo_9x6")
+    d = tmp_path_factory.mktemp("stereo")
+    for side in ("left", "right"):
+        (d / "imgs" / side).mkdir(parents=True)
+        for f in sorted(root.glob(f"{side}*.jpg")):
+            (d / "imgs" / side / f.name.replace(side, "")).symlink_to(f)
+    save_board(Chessboard((9, 6), 25.0), d / "board.toml")
+    save_board(Chessboard((10, 7), 25.0), d / "squares_not_corners.toml")
+    return d
+
+
+def test_calibrate_images_then_export(stereo_dir, tmp_path, capsys):
+    out = tmp_path / "calib.toml"
+    rc = main(["calibrate", "--images", str(stereo_dir / "imgs"), "--board", str(stereo_dir / "board.toml"),
+               "--out", str(out), "--world", "camera", "--coverage", str(tmp_path / "cov")])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "left" in text and "board triangulated" in text
+    calib = read_calibration(out)
+    assert calib.names == ["left", "right"]
+    assert abs(np.linalg.norm(calib["right"].center) - 83.6) < 1.0
+    assert (tmp_path / "cov" / "coverage_left.png").is_file()
+    for fmt, ext in (("yaml", ".yml"), ("json", ".json")):
+        assert main(["calibration", "export", str(out), "--format", fmt]) == 0
+        assert read_calibration(out.with_suffix(ext)) == calib
+
+
+def test_calibrate_wrong_board_writes_nothing(stereo_dir, tmp_path, capsys):
+    out = tmp_path / "calib.toml"
+    rc = main(["calibrate", "--images", str(stereo_dir / "imgs"), "--board",
+               str(stereo_dir / "squares_not_corners.toml"), "--out", str(out)])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "camera left" in err and "board file matches the print" in err
+    assert not out.exists()
+
+
+def test_board_pdf_and_png(tmp_path):
+    save_board(Chessboard((9, 6), 25.0), tmp_path / "b.toml")
+    assert main(["board", str(tmp_path / "b.toml"), "--out", str(tmp_path / "b.pdf")]) == 0
+    pdf = (tmp_path / "b.pdf").read_bytes()
+    # 10 x 7 squares of 25 mm plus a one-square margin each side = 300 x 225 mm
+    import re
+
+    box = [float(v) for v in re.search(rb"/MediaBox \[ ?([\d. ]+)\]", pdf).group(1).split()]
+    assert abs(box[2] - 300 / 25.4 * 72) < 1.0 and abs(box[3] - 225 / 25.4 * 72) < 1.0
+    assert main(["board", str(tmp_path / "b.toml"), "--out", str(tmp_path / "b.png"), "--dpi", "254"]) == 0
+    from PIL import Image
+
+    with Image.open(tmp_path / "b.png") as im:
+        assert im.size == (3000, 2250)  # 254 dpi = 10 px/mm
+
+
+def test_invalid_input(tmp_path, capsys):
+    save_board(Chessboard((9, 6), 25.0), tmp_path / "b.toml")
+    assert main(["calibrate", "--board", str(tmp_path / "b.toml"), "--out", str(tmp_path / "c.toml")]) == 2
+    assert "either a take" in capsys.readouterr().err
+    assert main(["calibrate", "--images", str(tmp_path / "nope"), "--board", str(tmp_path / "b.toml"),
+                 "--out", str(tmp_path / "c.toml")]) == 2
+    assert "not a directory" in capsys.readouterr().err
+    assert main(["board", str(tmp_path / "b.toml"), "--out", str(tmp_path / "b.jpg")]) == 2
+    assert ".png or .pdf" in capsys.readouterr().err
+    assert main(["calibration", "export", str(tmp_path / "missing.toml"), "--format", "json"]) == 2
+    assert not (tmp_path / "c.toml").exists()
+
+
+def test_calibrate_take_stores_calibration(stereo_dir, tmp_path, capsys):
+    import cv2
+
+    store = pytest.importorskip("stage.store")
+    from stage.frame import Frame
+
+    take = tmp_path / "board.h5"
+    specs = [store.CameraSpec("left", 640, 480), store.CameraSpec("right", 640, 480)]
+    files = {s: sorted((stereo_dir / "imgs" / s).iterdir()) for s in ("left", "right")}
+    with store.TakeWriter(take, specs, fps=10) as w:
+        for k in range(len(files["left"])):
+            fr = {}
+            for s in ("left", "right"):
+                img = cv2.imread(str(files[s][k]))
+                fr[s] = Frame(image=img, camera_id=s, index=k, timestamp_ns=k * 100_000_000,
+                              host_timestamp_ns=k * 100_000_000)
+            w.write_set(fr)
+    # a failing calibration leaves the take untouched
+    assert main(["calibrate", str(take), "--board", str(stereo_dir / "squares_not_corners.toml")]) == 2
+    with store.TakeReader(take) as r:
+        assert not r.has_calibration
+    capsys.readouterr()
+    assert main(["calibrate", str(take), "--board", str(stereo_dir / "board.toml"), "--world", "camera"]) == 0
+    with store.TakeReader(take) as r:
+        calib = r.calibration
+    assert calib.names == ["left", "right"]
+    assert abs(np.linalg.norm(calib["right"].center) - 83.6) < 1.0
