@@ -73,6 +73,10 @@ class ProcessParams(BaseModel):
         Decimate surfaces to at most this many faces.
     chunk : int
         Frames per task sent to the executor.
+    depth : {"auto", "off"}
+        ``auto``: when every camera of the take delivers depth (RGB-D), fuse the depth
+        frames into a truncated signed distance volume intersected with the visual hull
+        and take its zero level set; ``off``: the visual hull alone.
     spine : dict
         Options of :class:`pipeline.spine.SpineParams`.
     """
@@ -87,6 +91,7 @@ class ProcessParams(BaseModel):
     smooth_iterations: Annotated[int, Field(ge=0, le=200)] = 10
     face_budget: Annotated[int, Field(ge=100)] | None = None
     chunk: Annotated[int, Field(ge=1)] = 4
+    depth: Literal["auto", "off"] = "auto"
     spine: dict = Field(default_factory=dict)
 
 
@@ -120,6 +125,33 @@ def _calibration_key(calib_dict: dict, grid_dict: dict) -> str:
 
 
 _CARVERS: dict[str, object] = {}
+_FUSERS: dict[str, object] = {}
+
+
+def _fuser(calib_dict: dict, grid_dict: dict):
+    """One :class:`pipeline.tsdf.TSDFFusion` per (calibration, grid) and worker process."""
+    from calib.calibration import Calibration
+    from pipeline.tsdf import TSDFFusion
+    from pipeline.volume import Grid
+
+    key = _calibration_key(calib_dict, grid_dict)
+    if key not in _FUSERS:
+        _FUSERS.clear()
+        cal = Calibration.from_dict(calib_dict)
+        scale = {"mm": 1.0, "m": 1e-3, "cm": 0.1}.get(cal.units, 1.0)  # depth images are uint16 mm
+        _FUSERS[key] = TSDFFusion(cal, Grid.from_dict(grid_dict), depth_scale=scale)
+    return _FUSERS[key]
+
+
+def _frame_depths(reader, cameras: Sequence[str], k: int) -> np.ndarray:
+    """(C, H, W) uint16 depth of frame set ``k``; 0 (no measurement) for a missing camera."""
+    rows = reader.set_rows(k)
+    out = []
+    for cam in cameras:
+        w, h = reader.image_size(cam)
+        d = reader.depth(cam, rows[cam]) if rows[cam] >= 0 else None
+        out.append(np.zeros((h, w), np.uint16) if d is None else d)
+    return np.stack(out)
 
 
 def _carver(calib_dict: dict, grid_dict: dict):
@@ -176,6 +208,7 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
     cameras = [c["name"] for c in calib_dict["cameras"]]
     results = []
     with TakeReader(take) as reader:
+        use_depth = p.depth == "auto" and all(reader.camera_info(c).get("has_depth") for c in cameras)
         for k in frames:
             t0 = time.perf_counter()
             masks, skipped = _frame_masks(reader, cameras, k)
@@ -184,12 +217,18 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
                 if len(skipped) == len(cameras):
                     raise EmptyHullError("no camera has a valid mask in this frame set")
                 hull = carver.carve(masks, tolerance=p.tolerance)
-                mesh = surface_from_occupancy(
-                    hull.occupancy,
-                    carver.grid,
-                    taubin_iterations=p.smooth_iterations,
-                    face_budget=p.face_budget,
-                )
+                if use_depth:
+                    fused = _fuser(calib_dict, grid_dict).fuse(_frame_depths(reader, cameras, k), hull=hull.occupancy)
+                    mesh = fused.surface(taubin_iterations=p.smooth_iterations, face_budget=p.face_budget)
+                    info["source"] = "depth+hull"
+                else:
+                    mesh = surface_from_occupancy(
+                        hull.occupancy,
+                        carver.grid,
+                        taubin_iterations=p.smooth_iterations,
+                        face_budget=p.face_budget,
+                    )
+                    info["source"] = "hull"
                 quality = surface_quality(mesh).to_dict()
                 store.write_mesh(k, mesh)
                 info.update(status="ok", quality=quality)
