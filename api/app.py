@@ -20,7 +20,7 @@ from api.jobs.runner import JobRunner
 from api.jobs.store import JobStore
 from api.library import TakeLibrary
 from api.rigctl import CaptureManager
-from api.routers import calibrations, jobs, rig, takes
+from api.routers import calibrations, jobs, pages, rig, takes
 from api.settings import Settings
 
 __all__ = ["create_app"]
@@ -142,7 +142,7 @@ def create_app(settings: Settings | None = None, *, work: str | Callable[..., An
     app.state.capture = CaptureManager(settings.rig_path, settings.takes_dir, driver_factory=driver_factory)
     install_handlers(app)
     app.add_middleware(BodySizeLimit, max_upload_bytes=settings.max_upload_bytes)
-    for r in (rig.router, takes.router, calibrations.router, jobs.router):
+    for r in (rig.router, takes.router, calibrations.router, jobs.router, pages.router):
         app.include_router(r)
 
     @app.get("/health", tags=["meta"])

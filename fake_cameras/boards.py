@@ -76,7 +76,7 @@ def board_poses(
     max_tilt_deg: float = 35.0,
     spread: float = 0.5,
 ) -> np.ndarray:
-    """Random board -> world poses in the volume, each facing a random camera.
+    """Random board -> world poses in the volume, facing the cameras in turn.
 
     Parameters
     ----------
@@ -106,9 +106,10 @@ def board_poses(
     reach = 0.5 * math.hypot(x1 - x0, y1 - y0) + board.square_mm
     room = np.maximum(half - reach, 0.0)
     out = np.empty((int(n_views), 4, 4))
+    first = int(rng.integers(len(centers)))
     for v in range(int(n_views)):
         p = c + rng.uniform(-1, 1, 3) * room * spread
-        cam = centers[rng.integers(len(centers))]
+        cam = centers[(first + v) % len(centers)]  # the operator walks the board round the rig
         toward = (cam - p) / np.linalg.norm(cam - p)
         tilt = math.radians(rng.uniform(0, max_tilt_deg))
         k = np.cross(toward, rng.normal(size=3))

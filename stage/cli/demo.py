@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--subject", default="starfish", choices=("starfish", "quadruped", "biped"), help="creature")
     p.add_argument("--cameras", type=int, default=12, help="simulated cameras, 4-24 (default 12)")
     p.add_argument("--frames", type=int, default=30, help="creature frames (default 30)")
-    p.add_argument("--board-views", type=int, default=40, help="board views in the calibration take (default 40)")
+    p.add_argument("--board-views", type=int, default=72, help="board views in the calibration take (default 72)")
     p.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
     p.add_argument("--board", choices=("charuco", "chessboard"), default="charuco", help="calibration board")
     p.add_argument("--true-calibration", action="store_true", help="skip calibration and use the simulator's true cameras")

@@ -38,7 +38,10 @@ def _select_labels(labels: np.ndarray, keep: np.ndarray) -> np.ndarray:
         out = cv2.compare(labels, float(keep[0]), cv2.CMP_EQ)
         for k in keep[1:]:
             out = cv2.bitwise_or(out, cv2.compare(labels, float(k), cv2.CMP_EQ))
-        return out.view(bool)
+        # OpenCV's 0/255 must become 0/1 before viewing it as bool: a NumPy bool holding the
+        # byte 255 tests True but counts as 255 wherever its bytes are read as uint8 (summed-area
+        # tables, cv2 sums), e.g. the hull carver's coarse-to-fine block counts
+        return cv2.bitwise_and(out, 1).view(bool)
     lut = np.zeros(int(labels.max()) + 1, bool)
     lut[keep] = True
     return lut[labels]

@@ -1,0 +1,236 @@
+"""Viewer pages (api/routers/pages.py): 200 HTML for valid ids, 404 for unknown ones, ids validated,
+read protection respected, nothing fetched from elsewhere (the pages work offline)."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from api.routers.pages import REPORT_CACHE
+from tests.api import fakework
+from tests.api.conftest import AUTH, make_settings
+from tests.api.fakework import make_take_file
+
+UNKNOWN_JOB = "0" * 32
+# an external resource: <script src=http...>, <link href=http...>, <img src=http...>, CSS url(http...)
+_EXTERNAL = re.compile(r"<(?:script|link|img|iframe|source)\b[^>]*\b(?:src|href)\s*=\s*[\"']?\s*(?:https?:)?//"
+                       r"|url\(\s*[\"']?\s*(?:https?:)?//", re.I)
+
+
+def _calibration(n: int = 3):
+    from calib.calibration import Calibration
+    from calib.camera import Camera
+
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        R = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]])
+        K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+        cams.append(Camera(f"cam{i:02d}", K, np.zeros(5), R, np.array([0, 0, 1000.0]), size=(32, 24)))
+    return Calibration(tuple(cams))
+
+
+def _report_json(d: Path) -> None:
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "report.json").write_text(json.dumps({
+        "frames": 4, "tip_counts": [5, 4, 5, 5], "total_seconds": 1.5,
+        "per_frame": [{"index": i, "status": "ok", "vertices": 100 + i, "faces": 196 + 2 * i, "watertight": True}
+                      for i in range(4)],
+    }))
+
+
+@pytest.fixture
+def app_factory(tmp_path):
+    """``make(**settings) -> (TestClient, data root)``: takes ``cal`` (calibrated, masks) and ``plain``; no runner."""
+    made = []
+
+    def make(**kw):
+        data = tmp_path / f"data{len(made)}"
+        (data / "takes").mkdir(parents=True)
+        make_take_file(data / "takes" / "cal.h5", 5, cameras=3, calibration=_calibration(3), masks=True)
+        make_take_file(data / "takes" / "plain.h5", 2)
+        app = create_app(make_settings(data, **kw), work=fakework.process_take, start_runner=False)
+        c = TestClient(app, raise_server_exceptions=False)
+        c.__enter__()
+        made.append(c)
+        return c, data
+
+    yield make
+    for c in made:
+        c.__exit__(None, None, None)
+
+
+@pytest.fixture
+def client_data(app_factory):
+    return app_factory()
+
+
+def _jobs(client: TestClient, data: Path) -> dict[str, str]:
+    """Jobs in every interesting state: queued, running (with progress), done (with results), failed, calibrate."""
+    store = client.app.state.store
+    ids = {}
+    ids["queued"] = store.create(kind="process", take="cal", steps=["key"], params={}).id
+    rid = store.create(kind="process", take="cal", steps=["key", "surface"], params={"salt": "<b>x</b>"}).id
+    store.progress(rid, "key", 3, 5)
+    store._con().execute("UPDATE jobs SET state = 'running' WHERE id = ?", (rid,))
+    ids["running"] = rid
+    did = store.create(kind="process", take="cal", steps=["spine"], params={}).id
+    _report_json(data / "jobs" / did)
+    store.finish(did, "done")
+    ids["done"] = did
+    fid = store.create(kind="process", take="plain", steps=["key"], params={}).id
+    store.finish(fid, "failed", error="<script>alert(1)</script> went wrong")
+    ids["failed"] = fid
+    cid = store.create(kind="calibrate", take="cal", steps=["calibrate"], params={}).id
+    store.finish(cid, "done")
+    ids["calibrate"] = cid
+    return ids
+
+
+def _html(r) -> str:
+    assert r.status_code == 200, (r.status_code, r.text[:300])
+    assert r.headers["content-type"].startswith("text/html")
+    text = r.text
+    assert text.startswith("<!DOCTYPE html>")
+    assert not _EXTERNAL.search(text), _EXTERNAL.search(text).group(0)
+    return text
+
+
+def test_index_and_takes(client_data):
+    client, _ = client_data
+    page = _html(client.get("/"))
+    for link in ("/ui/takes", "/ui/jobs", "/docs"):
+        assert f'href="{link}"' in page
+    page = _html(client.get("/ui/takes"))
+    assert 'href="/ui/takes/cal"' in page and 'href="/ui/takes/plain"' in page
+    assert "cam00, cam01, cam02" in page
+    assert "Plotly" not in page  # no figure, no plotly.js
+
+
+def test_take_page_with_calibration(client_data):
+    client, _ = client_data
+    page = _html(client.get("/ui/takes/cal"))
+    assert 'id="frusta"' in page and "Plotly.newPlot" in page
+    assert "cam02" in page and page.count("<script") >= 2
+    srcs = re.findall(r'<img[^>]*src="([^"]+)"', page)
+    # 3 frame sets x 3 cameras, images and masks
+    assert len([s for s in srcs if s.endswith("/image.jpg")]) == 9
+    assert len([s for s in srcs if s.endswith("/mask.png")]) == 9
+    for s in srcs:
+        assert s.startswith("/takes/cal/frames/")
+        r = client.get(s)
+        assert r.status_code == 200 and r.headers["content-type"].startswith("image/"), s
+
+
+def test_take_page_without_calibration(client_data):
+    client, _ = client_data
+    page = _html(client.get("/ui/takes/plain"))
+    assert "has no calibration" in page and "Plotly" not in page
+    srcs = re.findall(r'<img[^>]*src="([^"]+)"', page)
+    assert srcs and not [s for s in srcs if "mask" in s]  # no masks in this take
+
+
+def test_jobs_pages(client_data):
+    client, data = client_data
+    ids = _jobs(client, data)
+    page = _html(client.get("/ui/jobs"))
+    for jid in ids.values():
+        assert f'data-job="{jid}"' in page
+    assert f'href="/ui/jobs/{ids["done"]}/report"' in page
+    assert f'href="/ui/jobs/{ids["queued"]}/report"' not in page
+    assert "setTimeout(poll, 1000)" in page and "fetch('/jobs?limit=" in page
+
+    page = _html(client.get(f"/ui/jobs/{ids['running']}"))
+    assert '<progress id="bar-all" max="5" value="3">' in page
+    assert 'data-step="key"' in page and "fetch('/jobs/' + JOB_ID" in page
+    assert f'const JOB_ID = "{ids["running"]}"' in page
+    assert "&lt;b&gt;x&lt;/b&gt;" in page and "<b>x</b>" not in page  # parameters escaped
+    assert f'id="report" href="/ui/jobs/{ids["running"]}/report" hidden' in page
+    page = _html(client.get(f"/ui/jobs/{ids['failed']}"))
+    assert "&lt;script&gt;alert(1)&lt;/script&gt; went wrong" in page and "<script>alert(1)" not in page
+    page = _html(client.get(f"/ui/jobs/{ids['done']}"))
+    assert f'id="report" href="/ui/jobs/{ids["done"]}/report">' in page
+    # the page's own status endpoint exists and says what the script reads
+    st = client.get(f"/jobs/{ids['running']}").json()
+    assert st["done"] == 3 and st["total"] == 5 and st["progress"]["key"] == {"done": 3, "total": 5}
+
+
+def test_take_page_lists_its_jobs(client_data):
+    client, data = client_data
+    ids = _jobs(client, data)
+    page = _html(client.get("/ui/takes/cal"))
+    assert f'href="/ui/jobs/{ids["done"]}"' in page and f'data-job="{ids["failed"]}"' not in page
+
+
+def test_report_is_rendered_and_cached(client_data):
+    client, data = client_data
+    ids = _jobs(client, data)
+    url = f"/ui/jobs/{ids['done']}/report"
+    page = _html(client.get(url))
+    assert 'id="tip-counts"' in page and "Plotly.newPlot" in page
+    assert "frusta" in page  # the take (with its calibration) was found for the report
+    cache = data / "jobs" / ids["done"] / REPORT_CACHE
+    assert cache.read_text(encoding="utf-8") == page
+    # served from the cache while the results do not change ...
+    cache.write_text(page.replace("</body>", "<!-- cached --></body>"), encoding="utf-8")
+    assert "<!-- cached -->" in _html(client.get(url))
+    # ... and rendered again when they do
+    rep = data / "jobs" / ids["done"] / "report.json"
+    import os
+
+    st = cache.stat()
+    os.utime(rep, (st.st_mtime + 5, st.st_mtime + 5))
+    assert "<!-- cached -->" not in _html(client.get(url))
+
+
+def test_unknown_ids_are_404(client_data):
+    client, data = client_data
+    ids = _jobs(client, data)
+    for url in ("/ui/takes/nope", f"/ui/jobs/{UNKNOWN_JOB}", f"/ui/jobs/{UNKNOWN_JOB}/report",
+                f"/ui/jobs/{ids['queued']}/report", f"/ui/jobs/{ids['running']}/report",
+                f"/ui/jobs/{ids['failed']}/report", f"/ui/jobs/{ids['calibrate']}/report"):
+        r = client.get(url)
+        assert r.status_code == 404, (url, r.status_code)
+        assert r.headers["content-type"].startswith("text/html") and "Not found" in r.text, url
+    # a done job whose results folder has vanished
+    import shutil
+
+    shutil.rmtree(data / "jobs" / ids["done"])
+    assert client.get(f"/ui/jobs/{ids['done']}/report").status_code == 404
+
+
+@pytest.mark.parametrize("url", [
+    "/ui/takes/..%2F..%2Fetc%2Fpasswd", "/ui/takes/%2E%2E", "/ui/takes/.hidden", "/ui/takes/a%00b",
+    "/ui/takes/" + "a" * 200, "/ui/jobs/..%2Fjobs.sqlite", "/ui/jobs/ABCDEF0123456789ABCDEF0123456789",
+    "/ui/jobs/not-a-job/report", "/ui/jobs/%2E%2E%2F%2E%2E/report", "/ui/takes/../../etc/passwd",
+])
+def test_path_traversal_is_rejected(client_data, url):
+    client, _ = client_data
+    r = client.get(url)
+    assert r.status_code in (400, 404), (url, r.status_code)
+    assert "root:" not in r.text and "SQLite" not in r.text
+
+
+def test_read_protection(app_factory):
+    client, data = app_factory(read_protected=True)
+    ids = _jobs(client, data)
+    urls = ["/", "/ui/takes", "/ui/takes/cal", "/ui/jobs", f"/ui/jobs/{ids['done']}", f"/ui/jobs/{ids['done']}/report"]
+    for url in urls:
+        assert client.get(url).status_code == 401, url
+        assert client.get(url, headers={"Authorization": "Bearer wrong"}).status_code == 403, url
+        assert client.get(url, headers=AUTH).status_code == 200, url
+    # open reading (the default): no token needed
+    client, _ = app_factory()
+    assert client.get("/ui/takes").status_code == 200
+
+
+def test_pages_are_not_in_the_openapi_schema(client_data):
+    client, _ = client_data
+    paths = client.get("/openapi.json").json()["paths"]
+    assert not [p for p in paths if p == "/" or p.startswith("/ui")]
