@@ -142,6 +142,10 @@ def check_masks(masks: Any, calibration: Calibration, name: str = "masks") -> li
             if not (np.issubdtype(m.dtype, np.integer) or np.issubdtype(m.dtype, np.floating)):
                 raise ValueError(f"{name} must be bool (or numbers, nonzero = foreground), got {m.dtype}")
             m = m != 0
+        else:
+            # bool arrays made by viewing OpenCV's 0/255 output hold 255 bytes; the tables
+            # below read raw bytes, so make every byte 0 or 1
+            m = np.ascontiguousarray(m).view(np.uint8) != 0
         out.append(np.ascontiguousarray(m))
     return out
 

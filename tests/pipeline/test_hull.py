@@ -278,3 +278,17 @@ def test_invalid_input():
         volume_from_cameras(cal, masks[:2])
     with pytest.raises(ValueError, match="no foreground"):
         volume_from_cameras(cal, np.zeros_like(masks))
+
+
+def test_bool_masks_holding_255_bytes_carve_like_clean_ones():
+    """OpenCV's 0/255 output viewed as bool must not change the coarse-to-fine result."""
+    take = sim_take()
+    from pipeline.hull import HullCarver
+    from pipeline.volume import grid_from_volume
+
+    carver = HullCarver(take.calibration, grid_from_volume(take.volume, 48))
+    clean = take.masks[0]
+    dirty = (clean.astype(np.uint8) * 255).view(bool)
+    a = carver.carve(clean).occupancy
+    b = carver.carve(dirty).occupancy
+    assert np.array_equal(a, b)

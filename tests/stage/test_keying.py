@@ -173,6 +173,36 @@ def test_luma_bright_backdrop_auto_polarity():
     assert iou(res.masks[0], truth.astype(bool)) >= 0.97
 
 
+@pytest.mark.parametrize("n_blobs", [2, 7])  # few components: OpenCV compares; many: a label table
+def test_masks_are_canonical_booleans(n_blobs):
+    """Every mask byte is 0 or 1 in every mode (with and without grow and hole filling).
+
+    A NumPy bool holding OpenCV's 255 tests True but counts 255 wherever its bytes are read
+    as uint8 (summed-area tables, ``cv2`` sums, ``view(np.uint8)``): the hull carver's
+    coarse-to-fine blocks then kept whole regions the masks reject.
+    """
+    rng = np.random.default_rng(5)
+    h, w = 120, 160
+    plate = np.empty((h, w, 3), np.uint8)
+    plate[:] = (45, 175, 55)
+    img = plate.copy()
+    truth = np.zeros((h, w), np.uint8)
+    for k in range(n_blobs):
+        c = (20 + (k % 4) * 38, 30 + (k // 4) * 55)
+        cv2.circle(img, c, 12, (70, 125, 205), -1)
+        cv2.circle(truth, c, 12, 1, -1)
+    cv2.circle(img, (20, 30), 2, (45, 175, 55), -1)  # a small backdrop hole to fill
+    noisy = np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+    plate_n = np.clip(plate + rng.normal(0, 2, plate.shape), 0, 255).astype(np.uint8)
+    for mode, kw in (("chroma", {}), ("luma", {}), ("plate", {"plate": plate_n})):
+        for grow in (0, 2):
+            res = key_frames(noisy, params=KeyParams(mode=mode, grow=grow), **kw)
+            assert res.valid[0], (mode, res.reasons)
+            assert res.masks.view(np.uint8).max() == 1, (mode, grow)
+            if mode != "luma" and grow == 0:  # (luma: orange vs green is not a luma contrast)
+                assert iou(res.masks[0], truth.astype(bool)) >= 0.97, mode
+
+
 # -- bad input --------------------------------------------------------------------
 
 
