@@ -38,6 +38,7 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 
 from pipeline.geodesic import (
     average_geodesic_distance,
+    proxy_average_geodesic_distance,
     edge_graph,
     mesh_edges,
     validate_mesh,
@@ -133,6 +134,7 @@ def find_extremities(
     n_base: int = 24,
     min_protrusion: float = 0.1,
     protrusion: float | None = None,
+    agd_proxy: int | None = None,
     graph: sp.csr_matrix | None = None,
     edges: np.ndarray | None = None,
 ) -> Extremities:
@@ -149,6 +151,11 @@ def find_extremities(
         Protrusion threshold as a fraction of ``sqrt(surface area)``.
     protrusion : float, optional
         Absolute threshold in mesh units; overrides ``min_protrusion``.
+    agd_proxy : int, optional
+        On meshes of more than ``3 * agd_proxy`` vertices, compute the AGD on a
+        proxy of about ``agd_proxy`` surface patches
+        (:func:`pipeline.geodesic.proxy_average_geodesic_distance`; tips then
+        move by about one patch size). Default: always exact.
     graph, edges : optional
         Precomputed :func:`pipeline.geodesic.edge_graph` / ``mesh_edges``.
 
@@ -173,7 +180,12 @@ def find_extremities(
         edges = mesh_edges(f)
     if graph is None:
         graph = edge_graph(v, edges)
-    agd, base = average_geodesic_distance(graph, n_base=n_base, vertices=v)
+    if agd_proxy is not None and int(agd_proxy) < 1:
+        raise ValueError(f"agd_proxy must be >= 1, got {agd_proxy}")
+    if agd_proxy is not None and len(v) > 3 * int(agd_proxy):
+        agd, base = proxy_average_geodesic_distance(v, edges, n_base=n_base, n_proxy=int(agd_proxy))
+    else:
+        agd, base = average_geodesic_distance(graph, n_base=n_base, vertices=v)
     finite = np.isfinite(agd)
     if not finite.all():  # disconnected input: only the reached part counts
         agd = np.where(finite, agd, -np.inf)
@@ -182,6 +194,26 @@ def find_extremities(
     cand = cand[np.isfinite(agd[cand])]
     top = int(np.argmax(rank))
 
+    # 0. exact pre-filter: a tip is the maximum of every k-hop neighbourhood
+    #    that fits in its geodesic h-ball (k * longest edge <= h); vectorised
+    #    max-dilations over the CSR rows drop the small bumps before any
+    #    Dijkstra (stop when a step no longer removes candidates)
+    if len(cand) > 8 and graph.nnz:
+        g = graph.tocsr()
+        longest = float(np.max(g.data))
+        max_hops = int(h // longest) if longest > 0 else 0
+        rows = np.flatnonzero(np.diff(g.indptr) > 0)
+        starts = g.indptr[rows]
+        nb = rank.copy()
+        for _ in range(max_hops):
+            grown = nb.copy()
+            grown[rows] = np.maximum(nb[rows], np.maximum.reduceat(nb[g.indices], starts))
+            nb = grown
+            keep = nb[cand] == rank[cand]
+            if keep.all() or keep.sum() <= 8:
+                cand = cand[keep]
+                break
+            cand = cand[keep]
     # 1. geodesic h-ball test, in chunks of sources
     survivors = []
     chunk = max(1, int(4_000_000 // max(len(v), 1)))

@@ -33,7 +33,7 @@ from fastapi.responses import HTMLResponse
 
 from api.deps import JobId, LibraryDep, ReadAccess, SettingsDep, StoreDep, TakeId
 from api.errors import NotFoundError
-from api.jobs.store import TERMINAL, JobNotFoundError, JobRecord
+from api.jobs.store import JobNotFoundError, JobRecord
 from api.paths import inside
 
 __all__ = ["router", "REPORT_CACHE"]
@@ -331,6 +331,8 @@ _JOB_JS = """
       tr.querySelector('.count').textContent = p.done + '/' + p.total;
     }
     document.getElementById('attempts').textContent = j.attempts;
+    for (const k of ['started', 'finished'])
+      if (j[k]) document.getElementById(k).textContent = new Date(j[k] * 1000).toISOString().slice(0, 19).replace('T', ' ') + ' UTC';
     const err = document.getElementById('error');
     err.textContent = j.error || '';
     if (j.state === 'done' && j.kind === 'process') document.getElementById('report').hidden = false;
@@ -362,7 +364,8 @@ def job_page(job_id: JobId, store: StoreDep, _: ReadAccess) -> HTMLResponse:
             ("state", f"<span id=\"state\" class=\"state state-{_e(j.state)}\">{_e(j.state)}</span>"),
             ("progress", _bar(j.done, j.total, attr="id=\"bar-all\"").replace("class=\"count\"", "class=\"count\" id=\"count-all\"")),
             ("attempts", f"<span id=\"attempts\">{j.attempts}</span>"),
-            ("created", _when(j.created)), ("started", _when(j.started)), ("finished", _when(j.finished)),
+            ("created", _when(j.created)), ("started", f"<span id=\"started\">{_when(j.started)}</span>"),
+            ("finished", f"<span id=\"finished\">{_when(j.finished)}</span>"),
             ("parameters", _e(json.dumps(j.params)) if j.params else "–")]
     table = "<table>" + "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows) + "</table>"
     links = (f"<p><a id=\"report\" href=\"/ui/jobs/{j.id}/report\"{'' if j.state == 'done' else ' hidden'}>"

@@ -123,7 +123,7 @@ def test_invalid_input(client, data_root):
                  f"/jobs/{unknown}/results/spine.json"):
         assert client.get(path).status_code == 404, path
     assert client.post(f"/jobs/{unknown}/cancel", headers=AUTH).status_code == 404
-    for bad in ("..", "abc", "%2e%2e%2fetc", "A" * 32):
+    for bad in ("abc", "%2e%2e%2fetc", "A" * 32):  # a bare ".." is normalised to "/" by the client
         assert client.get(f"/jobs/{bad}").status_code in (400, 404), bad
     job = client.post("/jobs", json={"take": "t"}, headers=AUTH).json()
     wait_job(client, job["id"])

@@ -1,0 +1,142 @@
+"""A real browser on a real server: ``python -m stage serve`` processes a small simulated take over HTTP;
+headless Chromium (Playwright, Debian's chromium) follows the job's live progress page, then opens the
+report and the take's page from the server, waits for the plotly 3-D views and checks they are not blank.
+
+Screenshots are kept under ``$STAGE_TEST_ARTIFACTS`` (else the test's tmp dir); the path is printed.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+httpx = pytest.importorskip("httpx")
+
+from tests.api.test_serve import AUTH, Server  # noqa: E402
+from tests.stage.test_report import CHROMIUM, CHROMIUM_ARGS, _browser  # noqa: E402
+
+pytestmark = [pytest.mark.slow]
+try:  # pytest-timeout is in the [test] extra
+    import pytest_timeout  # noqa: F401
+
+    pytestmark.append(pytest.mark.timeout(120))
+except ImportError:
+    pass
+
+CAMERAS, FRAMES, SIZE = 5, 6, (320, 240)
+
+# the plotly figure in div `id` has drawn its WebGL scene
+_GL_READY = ("(id) => { const g = document.getElementById(id);"
+             " return !!(g && g._fullLayout && g.querySelector('.gl-container canvas')); }")
+
+
+def _artifacts(tmp_path: Path) -> Path:
+    env = os.environ.get("STAGE_TEST_ARTIFACTS")
+    d = Path(env) / "browser_served" if env else tmp_path / "artifacts"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def _take(path: Path) -> Path:
+    try:
+        from fake_cameras.record import record_take
+        from fake_cameras.take import simulate_take
+        from stage.process import process_take  # noqa: F401  (the server's default work)
+    except ImportError as exc:
+        pytest.skip(f"the simulated take or the processing pipeline is not available: {exc}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return record_take(simulate_take("starfish", n_cameras=CAMERAS, frames=FRAMES, size=SIZE, seed=0), path)
+
+
+def _not_blank(png: bytes, what: str) -> np.ndarray:
+    """Decode a screenshot and assert it shows a drawing: many colours, some contrast, ink on the background."""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[0] > 200 and img.shape[1] > 300, (what, None if img is None else img.shape)
+    px = img.reshape(-1, 3).astype(int)
+    colours = len(np.unique(px // 8, axis=0))
+    background = np.median(px, axis=0)
+    ink = (np.abs(px - background).sum(1) > 60).mean()
+    assert colours > 40, f"{what}: only {colours} distinct colours: blank?"
+    assert float(img.std()) > 5.0, f"{what}: no contrast (std {img.std():.2f})"
+    assert ink > 0.003, f"{what}: almost nothing drawn ({ink:.4%} of the pixels differ from the background)"
+    return img
+
+
+def test_browser_on_served_pages(tmp_path):
+    sync_playwright = _browser()  # skips with the reason when chromium or playwright is missing
+    t0 = time.monotonic()
+    data = tmp_path / "data"
+    _take(data / "takes" / "sim.h5")
+    art = _artifacts(tmp_path)
+    srv = Server(data).start()
+    try:
+        r = httpx.post(f"{srv.url}/jobs", json={"take": "sim"}, headers=AUTH, timeout=30)
+        assert r.status_code == 202, r.text
+        jid = r.json()["id"]
+        errors: list[str] = []
+        requests: list[str] = []
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+            try:
+                page = browser.new_page(viewport={"width": 1200, "height": 900})
+                page.on("pageerror", lambda e: errors.append(str(e)))
+                page.on("request", lambda q: requests.append(q.url))
+                # the job page follows the job live until it is done, then shows the report link
+                page.goto(f"{srv.url}/ui/jobs/{jid}", wait_until="load", timeout=30_000)
+                initial = page.text_content("#state")
+                page.evaluate("() => { window.__seen = []; new MutationObserver(() => window.__seen.push("
+                              "document.getElementById('count-all').textContent)).observe("
+                              "document.getElementById('count-all'), {childList: true, characterData: true, subtree: true}); }")
+                page.wait_for_function("() => document.getElementById('state').textContent === 'done'",
+                                       timeout=60_000)
+                assert page.is_visible("#report"), "the report link did not appear"
+                counts = page.text_content("#count-all")
+                done, total = (int(x) for x in counts.split("/"))
+                assert done == total > 0, counts
+                if initial != "done":  # the script updated the page while the job ran
+                    assert page.evaluate("() => window.__seen.length") > 0
+                assert "UTC" in page.text_content("#finished")
+                page.screenshot(path=str(art / "job_page.png"), full_page=True)
+                st = httpx.get(f"{srv.url}/jobs/{jid}", timeout=10).json()
+                assert st["state"] == "done", f"{st}\n{srv.logtext()}"
+
+                # the report, rendered by the server
+                page.click("#report")
+                page.wait_for_url(f"**/ui/jobs/{jid}/report", timeout=60_000)
+                page.wait_for_function(_GL_READY, arg="spine-view", timeout=60_000)
+                page.wait_for_timeout(1000)  # let WebGL draw
+                view = page.locator("#spine-view")
+                view.scroll_into_view_if_needed()
+                report_png = view.screenshot(path=str(art / "report_3d_view.png"))
+
+                # the take's page: the cameras as frusta, frames and masks from the server
+                page.goto(f"{srv.url}/ui/takes/sim", wait_until="networkidle", timeout=30_000)
+                page.wait_for_function(_GL_READY, arg="frusta", timeout=30_000)
+                page.wait_for_timeout(1000)
+                frusta = page.locator("#frusta")
+                frusta.scroll_into_view_if_needed()
+                frusta_png = frusta.screenshot(path=str(art / "take_frusta.png"))
+                n_cams = page.evaluate("() => document.getElementById('frusta').data[1].text.length")
+                # the thumbnails load lazily: bring each into view, then wait for all of them
+                page.evaluate("() => { for (const i of document.images) i.scrollIntoView(); }")
+                page.wait_for_function("() => Array.from(document.images).every(i => i.complete)", timeout=30_000)
+                loaded = page.evaluate("() => Array.from(document.images).map(i => i.naturalWidth)")
+                page.screenshot(path=str(art / "take_page.png"), full_page=True)
+            finally:
+                browser.close()
+    finally:
+        srv.cleanup()
+    print(f"\nscreenshots of the served pages: {art} ({time.monotonic() - t0:.1f} s)")
+    assert not errors, errors
+    assert all(u.startswith((srv.url + "/", "data:", "about:", "blob:")) for u in requests), \
+        [u for u in requests if not u.startswith(srv.url)]
+    _not_blank(report_png, "report 3-D view")
+    _not_blank(frusta_png, "take frusta")
+    assert n_cams == CAMERAS
+    assert len(loaded) == 3 * CAMERAS * 2 and all(w == SIZE[0] for w in loaded), loaded  # frames and masks
