@@ -119,7 +119,9 @@ def _memory_limit() -> int:
 def check_masks(masks: Any, calibration: Calibration, name: str = "masks") -> list[np.ndarray]:
     """Validate one frame of masks: one (H, W) array per camera, of that camera's size.
 
-    Returns a list of C-contiguous bool arrays.
+    In a list, ``None`` stands for a camera that has no frame in this frame set (a drop):
+    it neither carves nor counts as a view. Returns a list of C-contiguous bool arrays
+    (and those ``None`` entries).
     """
     if not isinstance(calibration, Calibration):
         raise ValueError(f"calibration must be a Calibration, got {type(calibration).__name__}")
@@ -128,13 +130,16 @@ def check_masks(masks: Any, calibration: Calibration, name: str = "masks") -> li
             raise ValueError(f"{name} must have shape (C, H, W), got {masks.shape}")
         items = [masks[i] for i in range(masks.shape[0])]
     elif isinstance(masks, (list, tuple)):
-        items = [np.asarray(m) for m in masks]
+        items = [None if m is None else np.asarray(m) for m in masks]
     else:
         raise ValueError(f"{name} must be a (C, H, W) array or a list of (H, W) arrays, got {type(masks).__name__}")
     if len(items) != len(calibration):
         raise ValueError(f"{name}: expected one mask per camera ({len(calibration)}), got {len(items)}")
     out = []
     for cam, m in zip(calibration, items):
+        if m is None or (isinstance(m, np.ndarray) and m.dtype == object and m.ndim == 0 and m.item() is None):
+            out.append(None)
+            continue
         w, h = cam.size
         if m.shape != (h, w):
             raise ValueError(f"{name}: camera {cam.name!r} is {w}x{h}, its mask has shape {m.shape}")
@@ -155,6 +160,9 @@ def _usable(masks: list[np.ndarray], calibration: Calibration) -> tuple[list[int
     use, ignored = [], []
     any_fg = False
     for i, (cam, m) in enumerate(zip(calibration, masks)):
+        if m is None:  # no frame from this camera in this set
+            ignored.append(cam.name)
+            continue
         n = int(np.count_nonzero(m))
         if n == m.size:
             log.warning("camera %s: mask is all foreground (keying failed?); ignored for this frame", cam.name)

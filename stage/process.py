@@ -167,14 +167,14 @@ def _carver(calib_dict: dict, grid_dict: dict):
     return _CARVERS[key]
 
 
-def _frame_masks(reader, cameras: Sequence[str], k: int) -> tuple[np.ndarray, list[str]]:
-    """(C, H, W) masks of frame set ``k``; a camera missing in the set, or whose mask was
-    marked invalid by the keyer, gets an all-foreground mask (it carves nothing)."""
+def _frame_masks(reader, cameras: Sequence[str], k: int) -> tuple[list, list[str]]:
+    """Masks of frame set ``k``, one (H, W) bool array per camera; ``None`` for a camera
+    missing in the set or whose mask the keyer marked invalid (it neither carves nor counts
+    as a view)."""
     rows = reader.set_rows(k)
     masks = []
     skipped = []
     for cam in cameras:
-        w, h = reader.image_size(cam)
         r = rows[cam]
         m = reader.mask(cam, r) if r >= 0 else None
         if m is not None and reader.has_array(f"cameras/{cam}", "mask_valid"):
@@ -183,9 +183,8 @@ def _frame_masks(reader, cameras: Sequence[str], k: int) -> tuple[np.ndarray, li
                 m = None
         if m is None:
             skipped.append(cam)
-            m = np.ones((h, w), bool)
         masks.append(m)
-    return np.stack(masks), skipped
+    return masks, skipped
 
 
 # ----------------------------------------------------------------------------- per-frame tasks

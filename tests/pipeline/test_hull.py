@@ -292,3 +292,19 @@ def test_bool_masks_holding_255_bytes_carve_like_clean_ones():
     a = carver.carve(clean).occupancy
     b = carver.carve(dirty).occupancy
     assert np.array_equal(a, b)
+
+
+def test_missing_camera_is_none_and_neither_carves_nor_warns(caplog):
+    """A camera with no frame in a set (None) is left out like an all-foreground mask, silently."""
+    take = sim_take()
+    from pipeline.hull import HullCarver
+    from pipeline.volume import grid_from_volume
+
+    carver = HullCarver(take.calibration, grid_from_volume(take.volume, 32))
+    masks = list(take.masks[0])
+    full = [m if i else np.ones_like(m) for i, m in enumerate(masks)]
+    with caplog.at_level("WARNING"):
+        a = carver.carve([None] + masks[1:])
+    assert not [r for r in caplog.records if "all foreground" in r.getMessage()]
+    b = carver.carve(full)
+    assert np.array_equal(a.occupancy, b.occupancy) and a.ignored == (take.calibration.names[0],)
