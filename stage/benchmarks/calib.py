@@ -2,18 +2,35 @@
 
 Synthetic board views (true projections through ``fake_cameras.dome.make_dome``
 cameras plus Gaussian noise) -> per-camera intrinsics -> one bundle adjustment;
-errors against the true cameras after the best rigid alignment. When
-aniposelib is importable, its ``CameraGroup.calibrate_rows`` runs on the same
-corners (a benchmark-only extra; it needs numba, toml and jax, and declares
-opencv-contrib-python, which would replace the headless OpenCV 5 build — install
-it in a separate virtual environment).
+errors against the true cameras after the best rigid alignment.
+
+Side by side, aniposelib's ``CameraGroup.calibrate_rows`` runs on the same
+corners. It is a benchmark-only extra, never a runtime dependency: it declares
+opencv-contrib-python (the GUI build, which would replace our headless OpenCV 5)
+and needs numba, pandas, toml and jax, so it lives in its own virtual environment
+and runs in a subprocess (``_anipose_worker.py``): corners go in as an npz, the
+calibrated cameras come back as JSON (aniposelib's TOML layout), and both
+calibrations are scored here against the same ground truth. Setup, once::
+
+    python3.11 -m venv ~/.cache/capture-stage/anipose-venv
+    ~/.cache/capture-stage/anipose-venv/bin/pip install --no-deps aniposelib
+    ~/.cache/capture-stage/anipose-venv/bin/pip install opencv-contrib-python-headless numba pandas scipy toml tqdm jax
+
+(``--anipose-python PATH`` or ``$CAPTURE_STAGE_ANIPOSE_PYTHON`` point elsewhere.)
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import re
+import subprocess
+import tempfile
 import time
+from pathlib import Path
 
+import cv2
 import numpy as np
 
 NAME = "calib"
@@ -27,6 +44,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--board", choices=("chessboard", "charuco"), default="chessboard")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--scipy", action="store_true", help="also run the bundle adjustment with scipy least_squares")
+    p.add_argument("--anipose-python", metavar="PATH", default=None,
+                   help="python of an isolated virtual environment with aniposelib, run in a subprocess on the "
+                        "same corners (default: $CAPTURE_STAGE_ANIPOSE_PYTHON, else "
+                        "~/.cache/capture-stage/anipose-venv/bin/python if it exists; else the column is skipped "
+                        "and the one-line setup command is printed)")
+    p.add_argument("--no-anipose", action="store_true", help="skip the aniposelib column")
+    p.add_argument("--anipose-timeout", type=float, default=1800.0, metavar="S",
+                   help="give up on aniposelib after S seconds (default 1800)")
 
 
 def _errors(est, truth) -> dict:
@@ -54,34 +79,113 @@ def _line(name: str, secs: float, err: dict, extra: str = "") -> str:
             f"centre mm {mm(err['centre_mm'])}   rot deg {mm(err['rot_deg'])}  {extra}")
 
 
-def _aniposelib(dets, truth, board, sizes):
-    try:
-        import aniposelib.boards as ab
-        from aniposelib.cameras import CameraGroup
-    except Exception as exc:  # noqa: BLE001 - any import failure means "not available"
-        return None, f"{type(exc).__name__}: {exc}"
+ANIPOSE_VENV = Path("~/.cache/capture-stage/anipose-venv").expanduser()
+ANIPOSE_SETUP = (
+    "python3.11 -m venv ~/.cache/capture-stage/anipose-venv && "
+    "~/.cache/capture-stage/anipose-venv/bin/pip install --no-deps aniposelib && "
+    "~/.cache/capture-stage/anipose-venv/bin/pip install opencv-contrib-python-headless numba pandas scipy toml "
+    "tqdm jax"
+)
+
+
+def _anipose_python(arg: str | None) -> Path | None:
+    """The interpreter of aniposelib's isolated environment: ``--anipose-python``, else
+    ``$CAPTURE_STAGE_ANIPOSE_PYTHON``, else the default venv; None when there is none."""
+    if arg:
+        path = Path(arg).expanduser()
+        if not path.is_file():
+            raise ValueError(f"--anipose-python: no such interpreter: {path}")
+        return path
+    env = os.environ.get("CAPTURE_STAGE_ANIPOSE_PYTHON")
+    if env:
+        path = Path(env).expanduser()
+        if not path.is_file():
+            raise ValueError(f"CAPTURE_STAGE_ANIPOSE_PYTHON: no such interpreter: {path}")
+        return path
+    path = ANIPOSE_VENV / "bin" / "python"
+    return path if path.is_file() else None
+
+
+def _write_corners(path: Path, dets, truth, board) -> None:
+    """The detected corners, per camera, as the worker's input npz."""
     if board.type == "chessboard":
-        ab_board = ab.Checkerboard(board.corners[0], board.corners[1], square_length=board.square_mm)
+        b = {"type": "chessboard", "corners": list(board.corners), "square_mm": board.square_mm}
     else:
-        ab_board = ab.CharucoBoard(board.squares[0], board.squares[1], square_length=board.square_mm,
-                                   marker_length=board.marker_mm, marker_bits=4, dict_size=100)
-    rows = []
-    for c in truth:
-        r = []
-        for d in dets[c.name]:
-            r.append({"framenum": (0, d.frame), "corners": d.corners.reshape(-1, 1, 2).astype(np.float32),
-                      "ids": d.ids.reshape(-1, 1)})
-        rows.append(r)
-    cg = CameraGroup.from_names(truth.names)
-    for cam, c in zip(cg.cameras, truth):
-        cam.set_size(sizes[c.name])
-    t = time.perf_counter()
-    cg.calibrate_rows(rows, ab_board, init_intrinsics=True, init_extrinsics=True, verbose=False)
-    secs = time.perf_counter() - t
+        bits, size = (int(v) for v in re.match(r"DICT_(\d+)X\d+_(\d+)$", board.dictionary).groups())
+        b = {"type": "charuco", "squares": list(board.squares), "square_mm": board.square_mm,
+             "marker_mm": board.marker_mm, "marker_bits": bits, "dict_size": size}
+    arrays = {"names": np.array(truth.names), "sizes": np.array([c.size for c in truth], dtype=np.int64),
+              "board": np.array(json.dumps(b))}
+    for i, c in enumerate(truth):
+        ds = list(dets[c.name])
+        arrays[f"corners_{i}"] = np.concatenate([d.corners for d in ds]).astype(np.float64).reshape(-1, 2)
+        arrays[f"ids_{i}"] = np.concatenate([d.ids for d in ds]).astype(np.int64).ravel()
+        arrays[f"view_{i}"] = np.concatenate([np.full(len(d.ids), k) for k, d in enumerate(ds)]).astype(np.int64)
+        arrays[f"frame_{i}"] = np.array([d.frame for d in ds], dtype=np.int64)
+    np.savez(path, **arrays)
+
+
+def _aniposelib(python: Path, dets, truth, board, *, timeout: float):
+    """Run ``CameraGroup.calibrate_rows`` in aniposelib's own environment on the same corners.
+
+    Returns ``((calibration, seconds, own_error, versions), None)`` or ``(None, reason)``.
+    """
     from calib.formats import calibration_from_aniposelib
 
-    d = {f"cam_{i}": cam.get_dict() for i, cam in enumerate(cg.cameras)}
-    return (calibration_from_aniposelib(d), secs), None
+    worker = Path(__file__).with_name("_anipose_worker.py")
+    with tempfile.TemporaryDirectory(prefix="bench-calib-anipose-") as tmp:
+        src, dst = Path(tmp) / "corners.npz", Path(tmp) / "cameras.json"
+        _write_corners(src, dets, truth, board)
+        try:
+            proc = subprocess.run([str(python), "-I", str(worker), str(src), str(dst)], cwd=tmp,
+                                  capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return None, f"{python} did not finish within {timeout:.0f} s"
+        if not dst.is_file():
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+            return None, f"{python} exited with {proc.returncode}: {' | '.join(tail)}"
+        out = json.loads(dst.read_text())
+    if "failed" in out:
+        return None, f"aniposelib failed: {out['failed']}"
+    calib = calibration_from_aniposelib(out["cameras"])
+    return (calib, float(out["seconds"]), float(out["error"]), out.get("versions", {})), None
+
+
+def _refit_rms(calib, dets, board) -> float:
+    """Reprojection RMS (px) of a calibration with its cameras held fixed: every board pose
+    is re-fitted (6 DOF, all cameras that see it, linear loss) — the same yardstick for
+    any calibration, whatever board poses its own solver ended with."""
+    from scipy.optimize import least_squares
+
+    from calib.camera import matrix_to_rodrigues, project_points, rodrigues_to_matrix
+
+    obj = board.object_points()
+    by_frame: dict[int, list] = {}
+    for c in calib:
+        for d in dets[c.name]:
+            by_frame.setdefault(d.frame, []).append((c, d))
+    sq, n = 0.0, 0
+    for views in by_frame.values():
+        c0, d0 = max(views, key=lambda v: len(v[1].ids))
+        ok, rv, tv = cv2.solvePnP(obj[d0.ids], d0.corners.astype(np.float64), c0.K, c0.dist)
+        if not ok:
+            continue
+        Rb = c0.R.T @ rodrigues_to_matrix(rv.ravel())  # board -> world
+        tb = c0.R.T @ (tv.ravel() - c0.t)
+        x0 = np.concatenate([matrix_to_rodrigues(Rb), tb])
+
+        def resid(x, views=views):
+            R = rodrigues_to_matrix(x[:3])
+            out = []
+            for c, d in views:
+                X = obj[d.ids] @ R.T + x[3:]
+                out.append((project_points(X, K=c.K, dist=c.dist, R=c.R, t=c.t) - d.corners).ravel())
+            return np.concatenate(out)
+
+        r = least_squares(resid, x0, method="lm").fun
+        sq += float(r @ r)
+        n += r.size // 2
+    return float(np.sqrt(sq / max(n, 1)))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -97,10 +201,10 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise ValueError(f"fake_cameras.dome is needed for this benchmark: {exc}") from None
     logging.getLogger("calib").setLevel(logging.ERROR)
+    python = None if args.no_anipose else _anipose_python(args.anipose_python)  # fail early on a bad path
     truth = make_dome(args.cameras)
     board = Chessboard((11, 8), 50.0) if args.board == "chessboard" else Charuco((12, 9), 50.0, 37.0,
                                                                                   dictionary="DICT_4X4_100")
-    sizes = {c.name: c.size for c in truth}
     dist = float(np.median(np.linalg.norm(truth.centers() - truth.centers().mean(0), axis=1)))
     poses = random_board_poses(truth, board, args.views, seed=args.seed, spread=0.25 * dist)
     dets = synthetic_detections(truth, board, poses, noise_px=args.noise, seed=args.seed + 1)
@@ -121,13 +225,24 @@ def run(args: argparse.Namespace) -> int:
         t_ba = time.perf_counter() - t1
         g = res.geometry
         print(_line(f"capture-stage ({solver})", t_intr + t_ba, _errors(res.calibration, truth),
-                    f"RMS {res.rms:.3f} px, board {g['neighbor_rms']:.2f} mm, BA {t_ba:.2f} s"))
-    out, why = _aniposelib(dets, truth, board, sizes)
+                    f"RMS {_refit_rms(res.calibration, dets, board):.3f} px (BA {res.rms:.3f} px), "
+                    f"board {g['neighbor_rms']:.2f} mm, BA {t_ba:.2f} s"))
+    if args.no_anipose:
+        return 0
+    if python is None:
+        print(f"{'aniposelib':<22} skipped: no isolated aniposelib environment. It is a benchmark-only extra "
+              "(it declares opencv-contrib-python, which must not replace our headless OpenCV 5), so set it up "
+              f"once in its own venv:\n    {ANIPOSE_SETUP}\n  or pass --anipose-python PATH")
+        return 0
+    print(f"aniposelib: running CameraGroup.calibrate_rows in {python} (subprocess, same corners) ...", flush=True)
+    out, why = _aniposelib(python, dets, truth, board, timeout=args.anipose_timeout)
     if out is None:
-        print(f"{'aniposelib':<22} not available ({why}); it is a benchmark-only extra: install it in a separate "
-              "virtual environment (pip install aniposelib: needs numba, jax, toml, pandas and pulls "
-              "opencv-contrib-python)")
-    else:
-        calib, secs = out
-        print(_line("aniposelib", secs, _errors(calib, truth)))
+        print(f"{'aniposelib':<22} not available ({why}); setup:\n    {ANIPOSE_SETUP}")
+        return 0
+    calib, secs, own_err, versions = out
+    print(_line("aniposelib", secs, _errors(calib, truth),
+                f"RMS {_refit_rms(calib, dets, board):.3f} px (its own error {own_err:.3f} px)"))
+    print("  aniposelib " + ", ".join(f"{k} {v}" for k, v in versions.items())
+          + "; seconds = calibrate_rows only (no process start-up or imports)")
+    print("RMS: all corners, cameras held fixed, every board pose re-fitted (same yardstick for both)")
     return 0
