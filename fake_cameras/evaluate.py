@@ -9,7 +9,36 @@ assignment on the mean tip distance), then measured frame by frame:
 - ``identity``: a frame is consistent when the frame's own best assignment of seen
   spine tips to true tips agrees with the take-level match;
 - ``axis_error``: mean distance from the points of each spine axis to the matched
-  true limb axis (a polyline), as a fraction of the size.
+  true limb axis (a polyline), as a fraction of the size, over the whole spine axis;
+- ``limb_axis_error`` (when the true poses are given): the same comparison restricted
+  to the *limbs*, i.e. to the parts of both axes that lie outside the creature's body.
+
+Why the limb axis error leaves the body out
+-------------------------------------------
+In Brostow et al. (2004, §4.1 and §4.3) a spine is a graph whose limbs are chains of
+ring centroids running from a *junction* to a tip, and the junctions (metanodes where
+the limbs of the merged per-tip skeletons meet) lie *inside* the body: on a starfish
+or a quadruped every limb's chain continues through the torso to the common junction
+near the body's centre. The simulator's ground truth (:attr:`Pose.axes
+<fake_cameras.creatures.Pose>`) instead starts each limb axis at the limb's
+attachment point on the body and has no axis inside the body at all (the body is a
+few fat capsules, not a chain). Measured over the whole spine axis, the stretch from
+the junction to where the limb leaves the body is therefore scored against the
+attachment end of the true axis: an error by construction that says nothing about
+the limb (on a 30-frame quadruped take about 3.5 % of the size, while outside the
+body the same axes agree to about 0.6 %).
+
+``limb_axis_error`` therefore compares, per frame and matched limb, only the points
+outside every body capsule (``Pose.limb == -1``, signed distance > 0): both polylines
+are resampled densely along their length (step ``size / 400``), the points inside the
+body are dropped, and the score is the symmetric mean
+
+    0.5 * (mean over spine-limb points of their distance to the true axis
+           + mean over true-limb points of their distance to the spine axis),
+
+so a spine limb that stops short of the true one (or runs off elsewhere) is penalised
+as much as one that strays. A (frame, limb) pair with no point outside the body on
+either side is skipped (and counted in ``limb_axis_skipped``).
 """
 
 from __future__ import annotations
@@ -19,7 +48,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-__all__ = ["evaluate_spine", "point_polyline_distance"]
+__all__ = ["evaluate_spine", "point_polyline_distance", "resample_polyline", "limb_axis_distance"]
 
 
 def point_polyline_distance(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
@@ -48,6 +77,68 @@ def point_polyline_distance(points: np.ndarray, polyline: np.ndarray) -> np.ndar
     return np.linalg.norm(p[:, None, :] - closest, axis=2).min(axis=1)
 
 
+def resample_polyline(polyline: np.ndarray, step: float) -> np.ndarray:
+    """Points along a polyline at most ``step`` apart, vertices included.
+
+    Parameters
+    ----------
+    polyline : (K, 3) float ndarray, K >= 1
+    step : float
+        Largest spacing (same units as the polyline), > 0.
+
+    Returns
+    -------
+    (N, 3) float ndarray
+    """
+    q = np.asarray(polyline, float).reshape(-1, 3)
+    if q.shape[0] == 0:
+        raise ValueError("polyline must have at least one point")
+    if not step > 0:
+        raise ValueError(f"step must be positive, got {step}")
+    out = [q[:1]]
+    for a, b in zip(q[:-1], q[1:]):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step)))
+        t = np.arange(1, n + 1)[:, None] / n
+        out.append(a + t * (b - a))
+    return np.concatenate(out)
+
+
+def limb_axis_distance(spine_axis: np.ndarray, true_axis: np.ndarray, pose, *, step: float) -> float | None:
+    """Symmetric mean distance between a spine limb and a true limb outside the body.
+
+    Both polylines are resampled (:func:`resample_polyline`), points inside any body
+    capsule of ``pose`` (limb label -1) are dropped, and the result is the mean of the
+    two directed mean point-to-polyline distances (module docstring).
+
+    Parameters
+    ----------
+    spine_axis, true_axis : (K, 3) float ndarray
+        Junction-to-tip polylines.
+    pose : fake_cameras.creatures.Pose
+        The true pose of that frame (its body capsules).
+    step : float
+        Resampling step, > 0.
+
+    Returns
+    -------
+    float or None
+        ``None`` when either limb has no point outside the body.
+    """
+    S = resample_polyline(spine_axis, step)
+    T = resample_polyline(true_axis, step)
+    body = np.asarray(pose.limb) == -1
+    if body.any():
+        S = S[pose.capsule_sdf(S)[:, body].min(axis=1) > 0]
+        T = T[pose.capsule_sdf(T)[:, body].min(axis=1) > 0]
+    if len(S) < 2 or len(T) < 2:
+        return None
+    # distances to the *whole* other polyline (not only its outside part): where a limb
+    # leaves the body is a property of the surface, not of either axis
+    d_st = point_polyline_distance(S, np.asarray(true_axis, float)).mean()
+    d_ts = point_polyline_distance(T, np.asarray(spine_axis, float)).mean()
+    return float(0.5 * (d_st + d_ts))
+
+
 def evaluate_spine(
     spine: Mapping,
     true_tips: np.ndarray,
@@ -55,6 +146,7 @@ def evaluate_spine(
     limb_names: Sequence[str],
     *,
     tip_tolerance: float = 0.03,
+    poses: Sequence | None = None,
 ) -> dict:
     """Compare a ``capture-stage/spine@1`` dictionary with the ground truth.
 
@@ -69,6 +161,9 @@ def evaluate_spine(
     limb_names : sequence of str
     tip_tolerance : float
         A tip counts as found within this fraction of the creature's size.
+    poses : sequence of fake_cameras.creatures.Pose, optional
+        The true pose of every frame; when given, ``limb_axis_error_mean`` is measured
+        on the limbs outside the body (module docstring).
 
     Returns
     -------
@@ -77,7 +172,10 @@ def evaluate_spine(
         ``tip_within_tol`` (fraction of (frame, true limb) with a matched spine tip within
         tolerance), ``tip_error_median``/``tip_error_p95`` (fractions of size),
         ``identity_consistent`` (fraction of frames), ``axis_error_mean`` (fraction of size),
-        ``seen`` (fraction of (frame, limb) where the spine has a tip).
+        ``seen`` (fraction of (frame, limb) where the spine has a tip);
+        with ``poses``: ``limb_axis_error_mean`` (fraction of size, symmetric, outside the
+        body) and ``limb_axis_skipped`` (number of (frame, limb) pairs with no limb outside
+        the body), otherwise both ``None``.
     """
     tips = np.asarray(true_tips, float)
     if tips.ndim != 3 or tips.shape[2] != 3:
@@ -88,6 +186,8 @@ def evaluate_spine(
     frames = spine.get("frames", [])
     if len(frames) != F:
         raise ValueError(f"spine has {len(frames)} frames, the ground truth {F}")
+    if poses is not None and len(poses) != F:
+        raise ValueError(f"poses must give one pose per frame ({F}), got {len(poses)}")
     limbs = list(spine["graph"]["limbs"])
     K = len(limbs)
     allpts = np.concatenate([np.asarray(true_axes[n], float).reshape(-1, 3) for n in limb_names] + [tips.reshape(-1, 3)])
@@ -133,6 +233,20 @@ def evaluate_spine(
             if ax:
                 d = point_polyline_distance(np.asarray(ax, float), np.asarray(true_axes[limb_names[c]][f], float))
                 axis_errs.append(d.mean() / size)
+    limb_errs: list[float] = []
+    skipped = 0
+    if poses is not None:
+        step = size / 400
+        for f, fr in enumerate(frames):
+            for r, c in zip(rows, cols):
+                ax = fr.get("axes", {}).get(limbs[r])
+                if not ax:
+                    continue
+                e = limb_axis_distance(np.asarray(ax, float), np.asarray(true_axes[limb_names[c]][f], float), poses[f], step=step)
+                if e is None:
+                    skipped += 1
+                else:
+                    limb_errs.append(e / size)
     errs_a = np.asarray(errs) if errs else np.asarray([np.inf])
     return {
         "K": K,
@@ -145,4 +259,6 @@ def evaluate_spine(
         "identity_consistent": consistent / max(1, F),
         "axis_error_mean": float(np.mean(axis_errs)) if axis_errs else float("inf"),
         "seen": float(np.isfinite(S[..., 0]).mean()) if K else 0.0,
+        "limb_axis_error_mean": (float(np.mean(limb_errs)) if limb_errs else float("inf")) if poses is not None else None,
+        "limb_axis_skipped": skipped if poses is not None else None,
     }

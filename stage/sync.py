@@ -34,6 +34,7 @@ synchronized views of one instant; this is what makes a frame set one instant.
 
 from __future__ import annotations
 
+import heapq
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Generic, Iterable, Mapping, NamedTuple, Sequence, TypeVar
@@ -239,7 +240,7 @@ class _StatsAccumulator:
         )
 
 
-def _check_common(cameras: Sequence[str], period_ns: int | None, tolerance_ns: int | None, window: int, gain: float, clock: str) -> tuple[list[str], int | None, int | None]:
+def _check_common(cameras: Sequence[str], period_ns: int | None, tolerance_ns: int | None, window: int, gain: float, clock: str, max_drift_ppm: float = 200.0) -> tuple[list[str], int | None, int | None]:
     cams = list(cameras)
     if not cams or not all(isinstance(c, str) and c for c in cams):
         raise ValueError("cameras must be a non-empty sequence of camera ids")
@@ -255,6 +256,8 @@ def _check_common(cameras: Sequence[str], period_ns: int | None, tolerance_ns: i
         raise ValueError(f"gain must be in [0, 1], got {gain}")
     if clock not in ("per-camera", "shared", "device"):
         raise ValueError(f"clock must be 'per-camera', 'shared' or 'device', got {clock!r}")
+    if not np.isfinite(max_drift_ppm) or not 0.0 <= max_drift_ppm <= 10_000.0:
+        raise ValueError(f"max_drift_ppm must be in [0, 10000], got {max_drift_ppm}")
     return cams, (None if period_ns is None else int(period_ns)), (None if tolerance_ns is None else int(tolerance_ns))
 
 
@@ -273,14 +276,23 @@ def estimate_period_ns(device_ns: Iterable[np.ndarray]) -> int:
     return int(np.median(np.concatenate(diffs)))
 
 
+_PPB = 10**9
+_CHAIN_SLACK = 0.5  # a frame follows its camera's chain while within (1 + slack) * tol of the chain's set
+
+
 def _offset_est(values: Sequence[int]) -> int:
     """Clock offset from ``host - device`` samples: their minimum.
 
     Transport latency is one-sided (a frame is never received before it was
     exposed) and grows in bursts when the host is busy, so the fastest delivery
-    in the window is the best estimate (as NTP's minimum-delay filter).
+    is the best estimate (as NTP's minimum-delay filter).
     """
     return int(min(values))
+
+
+def _round_div(x: int, p: int) -> int:
+    """``round(x / p)`` in integers (halves up), for any sign of ``x``."""
+    return (2 * x + p) // (2 * p)
 
 
 def _next_time(t: int, period: int, gain: float, residuals: list[int]) -> int:
@@ -293,11 +305,11 @@ def _next_time(t: int, period: int, gain: float, residuals: list[int]) -> int:
 
 
 class _Cam:
-    __slots__ = ("raw", "lat", "first_lat", "queue", "closed", "ready", "n", "last_seq", "first_host")
+    __slots__ = ("raw", "first_lat", "queue", "closed", "ready", "n", "last_seq", "first_host",
+                 "d0", "best", "offset", "last_k", "last_d")
 
-    def __init__(self, window: int) -> None:
+    def __init__(self) -> None:
         self.raw: list[tuple[int, int, Any]] = []  # (device, host, item) before the offset is known
-        self.lat: deque[int] = deque(maxlen=window)
         self.first_lat: list[int] = []  # host - device of the first `window` frames
         self.queue: deque[tuple[int, Any, int]] = deque()  # (mapped time, item, device time)
         self.closed = False
@@ -305,6 +317,11 @@ class _Cam:
         self.n = 0
         self.last_seq: int | None = None
         self.first_host: int | None = None
+        self.d0: int | None = None  # first device time (origin of the drift bound)
+        self.best: int | None = None  # min over frames of (host - device) * 1e9 - rate_ppb * (device - d0)
+        self.offset = 0  # last offset estimate (ns)
+        self.last_k: int | None = None  # window index of the camera's last placed frame
+        self.last_d = 0  # its device time
 
 
 class StreamGrouper(Generic[T]):
@@ -334,7 +351,8 @@ class StreamGrouper(Generic[T]):
     tolerance_ns : int or None
         Half-width of a set's window; default half a period.
     window : int
-        Frames per camera in the sliding minimum of ``host - device``.
+        Frames of each camera buffered before its clock offset is trusted
+        (the first offset is the minimum latency over them).
     gain : float
         Phase-locked-loop gain in [0, 1] for re-centring the windows.
     clock : {"per-camera", "shared", "device"}
@@ -344,6 +362,9 @@ class StreamGrouper(Generic[T]):
     timeout_ns : int or None
         How long after a window ends to wait for a late camera; default
         ``4 * period``. Only :meth:`poll` / ``push(now_ns=...)`` use it.
+    max_drift_ppm : float
+        Bound on the rate of a device clock against the host clock: the
+        offset estimate may rise at most this fast (see the module notes).
     """
 
     def __init__(
@@ -356,8 +377,9 @@ class StreamGrouper(Generic[T]):
         gain: float = 0.5,
         clock: str = "per-camera",
         timeout_ns: int | None = None,
+        max_drift_ppm: float = 200.0,
     ) -> None:
-        cams, period, tol = _check_common(cameras, period_ns, tolerance_ns, window, gain, clock)
+        cams, period, tol = _check_common(cameras, period_ns, tolerance_ns, window, gain, clock, max_drift_ppm)
         if timeout_ns is not None and timeout_ns < 0:
             raise ValueError(f"timeout_ns must be >= 0, got {timeout_ns}")
         self.cameras = cams
@@ -367,8 +389,10 @@ class StreamGrouper(Generic[T]):
         self._gain = float(gain)
         self._clock = clock
         self._timeout = timeout_ns
-        self._cams = {c: _Cam(self._window) for c in cams}
+        self._rate = int(round(float(max_drift_ppm) * 1000.0))  # ppb
+        self._cams = {c: _Cam() for c in cams}
         self._T: int | None = None
+        self._k = 0  # window index of self._T (counts skipped empty windows too)
         self._next_index = 0
         self._acc: _StatsAccumulator | None = None
         self._shared_offset: int | None = None
@@ -420,14 +444,14 @@ class StreamGrouper(Generic[T]):
         if cam.first_host is None:
             cam.first_host = host
         cam.n += 1
-        cam.lat.append(host - dev)
+        self._observe(cam, dev, host)
         if len(cam.first_lat) < self._window:
             cam.first_lat.append(host - dev)
         if self._clock == "device":
             cam.ready = True
             cam.queue.append((dev, frame, dev))
         elif cam.ready:
-            cam.queue.append((dev + self._offset(cam), frame, dev))
+            cam.queue.append((dev + self._offset(cam, dev), frame, dev))
         else:
             cam.raw.append((dev, host, frame))
             if cam.n >= self._window:
@@ -456,21 +480,38 @@ class StreamGrouper(Generic[T]):
             out += self.close_camera(c)
         return out
 
-    # -- internals ----------------------------------------------------------
-    def _offset(self, cam: _Cam) -> int:
-        if self._clock == "shared":
-            return self._shared_offset if self._shared_offset is not None else _offset_est(cam.lat)
-        return _offset_est(cam.lat)
+    # -- clock offsets ------------------------------------------------------
+    def _observe(self, cam: _Cam, dev: int, host: int) -> None:
+        """Fold one latency sample into the drift-bounded running minimum."""
+        if self._clock == "device":
+            return
+        if cam.d0 is None:
+            cam.d0 = dev
+        v = (host - dev) * _PPB - self._rate * (dev - cam.d0)
+        cam.best = v if cam.best is None else min(cam.best, v)
+
+    def _per_camera_offset(self, cam: _Cam, dev: int) -> int:
+        """``min_i (lat_i + rate * (dev - dev_i))`` over the camera's frames so far."""
+        assert cam.best is not None and cam.d0 is not None
+        return (cam.best + self._rate * (dev - cam.d0)) // _PPB
+
+    def _offset(self, cam: _Cam, dev: int) -> int:
+        if self._clock == "shared" and self._shared_offset is not None:
+            off = self._shared_offset
+        else:
+            off = self._per_camera_offset(cam, dev)
+        cam.offset = off
+        return off
 
     def _make_ready(self, cam: _Cam) -> None:
         cam.ready = True
         if not cam.raw:
             return
-        off = self._shared_offset if self._shared_offset is not None else _offset_est(cam.first_lat)
         for dev, _host, item in cam.raw:
-            cam.queue.append((dev + off, item, dev))
+            cam.queue.append((dev + self._offset(cam, dev), item, dev))
         cam.raw = []
 
+    # -- start --------------------------------------------------------------
     def _all_started(self, now_ns: int | None) -> bool:
         for cam in self._cams.values():
             if cam.ready or cam.closed:
@@ -501,6 +542,7 @@ class StreamGrouper(Generic[T]):
                 self._shared_offset = _offset_est(lats)
                 for cam in self._cams.values():
                     cam.queue = deque((d + self._shared_offset, it, d) for _t, it, d in cam.queue)
+                    cam.offset = self._shared_offset
         if self._period is None:
             devs = []
             for cam in self._cams.values():
@@ -518,6 +560,29 @@ class StreamGrouper(Generic[T]):
         self._acc = _StatsAccumulator(self.cameras, self._period, self._tol)
         return True
 
+    # -- assignment ---------------------------------------------------------
+    def _target(self, cam: _Cam, mapped: int, dev: int, k: int, T: int) -> tuple[int, bool]:
+        """Window index a queued frame belongs to, given window ``k`` centred at ``T``.
+
+        Returns ``(j, usable)``. A camera's frames follow its *chain*: a frame
+        ``n`` periods (device clock) after the camera's last placed frame goes
+        ``n`` windows after it, so one camera's frames are never swapped, doubled
+        or shifted by a latency burst or a jittery window boundary. The chain is
+        left (re-locked on the mapped time) only when the mapped time is more
+        than ``(1 + slack) * tol`` from the chain's window.
+        """
+        P, tol = self._period, self._tol
+        assert P is not None and tol is not None
+        if cam.last_k is not None:
+            e = cam.last_k + _round_div(dev - cam.last_d, P)
+            if e <= cam.last_k:  # within half a period of a placed frame: a duplicate
+                return e, False
+            if abs(mapped - T - (e - k) * P) <= tol + int(_CHAIN_SLACK * tol):
+                return e, True
+        j = k + _round_div(mapped - T, P)
+        r = mapped - T - (j - k) * P
+        return j, -tol <= r < tol
+
     def _emit(self, now_ns: int | None) -> list[FrameSet[T]]:
         out: list[FrameSet[T]] = []
         if self._T is None:
@@ -525,28 +590,36 @@ class StreamGrouper(Generic[T]):
                 return out
         assert self._T is not None and self._tol is not None and self._period is not None
         while True:
-            T = self._T
-            lo, hi = T - self._tol, T + self._tol
-            # frames before the window can never be used
+            T, k = self._T, self._k
+            hi = T + self._tol
+            # frames that belong to emitted windows (or to no window) can never be used
+            heads: list[int] = []
             for c, cam in self._cams.items():
-                while cam.queue and cam.queue[0][0] < lo:
-                    cam.queue.popleft()
-                    self._pending_unused[c] += 1
-            heads = [cam.queue[0][0] for cam in self._cams.values() if cam.queue]
+                while cam.queue:
+                    m, _it, d = cam.queue[0]
+                    j, ok = self._target(cam, m, d, k, T)
+                    if j < k or (j == k and not ok):
+                        cam.queue.popleft()
+                        self._pending_unused[c] += 1
+                        continue
+                    heads.append(j)
+                    break
             if not heads:
                 return out
-            hmin = min(heads)
-            if hmin >= hi:
+            jmin = min(heads)
+            if jmin > k:
                 # skip empty windows (everyone dropped, or a pause)
-                skip = max(1, (hmin - lo) // self._period)
-                self._T = T + int(skip) * self._period
+                self._T = T + (jmin - k) * self._period
+                self._k = jmin
                 continue
-            # decided?
+            # decided? every camera has delivered past window k (or is closed / timed out)
             for cam in self._cams.values():
                 if cam.closed and cam.ready:
                     continue
-                if cam.queue and cam.queue[-1][0] >= hi:
-                    continue
+                if cam.queue:
+                    m, _it, d = cam.queue[-1]
+                    if self._target(cam, m, d, k, T)[0] > k:
+                        continue
                 if now_ns is not None and now_ns >= hi + self._timeout_ns():
                     continue
                 return out
@@ -554,23 +627,29 @@ class StreamGrouper(Generic[T]):
             times: dict[str, int] = {}
             for c, cam in self._cams.items():
                 cand = []
-                while cam.queue and cam.queue[0][0] < hi:
+                while cam.queue:
+                    m, it, d = cam.queue[0]
+                    j, ok = self._target(cam, m, d, k, T)
+                    if j != k or not ok:
+                        break
                     cand.append(cam.queue.popleft())
                 frames[c] = None
                 if cand:
                     best = min(range(len(cand)), key=lambda i: (abs(cand[i][0] - T), i))
                     frames[c] = cand[best][1]
                     times[c] = cand[best][0]
+                    cam.last_k, cam.last_d = k, cand[best][2]
                     self._pending_unused[c] += len(cand) - 1
             fs = FrameSet(index=self._next_index, time_ns=int(T), frames=frames, times_ns=times)
             self._next_index += 1
             assert self._acc is not None
             self._acc.add_set(fs)
             for c, cam in self._cams.items():
-                if cam.lat:
-                    self._acc.cams[c].offset_ns = self._shared_offset if self._clock == "shared" and self._shared_offset is not None else (0 if self._clock == "device" else _offset_est(cam.lat))
+                if cam.n:
+                    self._acc.cams[c].offset_ns = 0 if self._clock == "device" else int(cam.offset)
             out.append(fs)
             self._T = _next_time(T, self._period, self._gain, [t - T for t in times.values()])
+            self._k = k + 1
 
 
 def _initial_time(heads: Sequence[int], period: int) -> int:
@@ -593,8 +672,13 @@ def group_frames(
     window: int = 30,
     gain: float = 0.5,
     clock: str = "per-camera",
+    max_drift_ppm: float = 200.0,
 ) -> tuple[list[FrameSet], SyncStats]:
     """Group a whole recording into frame sets (same rule as :class:`StreamGrouper`).
+
+    The frames are replayed through a :class:`StreamGrouper` in host-arrival
+    order (each camera's frames in the given order) without timeouts, so the
+    two agree exactly when no live set times out.
 
     Parameters
     ----------
@@ -604,7 +688,7 @@ def group_frames(
         :class:`Stamp`), per camera in capture order.
     cameras : sequence of str, optional
         Camera ids in rig order; default: in order of first appearance.
-    period_ns, tolerance_ns, window, gain, clock
+    period_ns, tolerance_ns, window, gain, clock, max_drift_ppm
         As in :class:`StreamGrouper`.
 
     Returns
@@ -620,83 +704,19 @@ def group_frames(
         cameras = [c for c in seen if c is not None]
         if not cameras:
             raise ValueError("frames is empty and no cameras were given")
-    cams, period, tol = _check_common(cameras, period_ns, tolerance_ns, window, gain, clock)
+    cams, period, tol = _check_common(cameras, period_ns, tolerance_ns, window, gain, clock, max_drift_ppm)
     per: dict[str, list[Any]] = {c: [] for c in cams}
     for f in items:
         cid = getattr(f, "camera_id", None)
         if cid not in per:
             raise ValueError(f"frame camera_id {cid!r} is not one of the cameras {cams}")
         per[cid].append(f)
-    dev = {c: np.array([int(f.timestamp_ns) for f in per[c]], dtype=np.int64) for c in cams}
-    host = {c: np.array([int(f.host_timestamp_ns) for f in per[c]], dtype=np.int64) for c in cams}
-    seqs = {c: np.array([int(f.index) for f in per[c]], dtype=np.int64) for c in cams}
-    # offsets: minimum of host - device over the window ending at max(j, window-1)
-    offsets: dict[str, np.ndarray] = {}
-    for c in cams:
-        lat = host[c] - dev[c]
-        n = lat.size
-        if n == 0 or clock == "device":
-            offsets[c] = np.zeros(n, dtype=np.int64)
-            continue
-        w = min(window, n)
-        off = np.empty(n, dtype=np.int64)
-        off[:w] = int(lat[:w].min())
-        if n > window:
-            sw = np.lib.stride_tricks.sliding_window_view(lat, window)  # (n-window+1, window)
-            off[window - 1 :] = sw.min(axis=1)
-        offsets[c] = off
-    if clock == "shared":
-        firsts = np.concatenate([(host[c] - dev[c])[: min(window, dev[c].size)] for c in cams])
-        shared = int(firsts.min()) if firsts.size else 0
-        offsets = {c: np.full(dev[c].size, shared, dtype=np.int64) for c in cams}
-    mapped = {c: dev[c] + offsets[c] for c in cams}
-    if period is None:
-        period = estimate_period_ns([mapped[c][:window] for c in cams])
-    if tol is None:
-        tol = period // 2
-    acc = _StatsAccumulator(cams, period, tol)
-    for c in cams:
-        s = acc.cams[c]
-        s.frames = int(dev[c].size)
-        if seqs[c].size > 1:
-            running_max = np.maximum.accumulate(seqs[c])
-            jumps = seqs[c][1:] - running_max[:-1] - 1
-            s.sequence_gaps = int(jumps[jumps > 0].sum())
-        s.offset_ns = int(offsets[c][-1]) if offsets[c].size else 0
-    heads = [int(mapped[c][0]) for c in cams if mapped[c].size]
+    g: StreamGrouper = StreamGrouper(
+        cams, period_ns=period, tolerance_ns=tol, window=window, gain=gain, clock=clock, max_drift_ppm=max_drift_ppm
+    )
     sets: list[FrameSet] = []
-    if not heads:
-        return sets, acc.snapshot()
-    ptr = {c: 0 for c in cams}
-    Tk = _initial_time(heads, period)
-    while True:
-        lo, hi = Tk - tol, Tk + tol
-        starts = {c: int(np.searchsorted(mapped[c], lo, side="left")) for c in cams}
-        for c in cams:
-            if starts[c] > ptr[c]:
-                acc.cams[c].unused += starts[c] - ptr[c]
-                ptr[c] = starts[c]
-        remaining = [int(mapped[c][ptr[c]]) for c in cams if ptr[c] < mapped[c].size]
-        if not remaining:
-            break
-        hmin = min(remaining)
-        if hmin >= hi:
-            Tk = Tk + max(1, int((hmin - lo) // period)) * period
-            continue
-        members: dict[str, Any] = {}
-        times: dict[str, int] = {}
-        for c in cams:
-            end = int(np.searchsorted(mapped[c], hi, side="left"))
-            members[c] = None
-            if end > ptr[c]:
-                seg = mapped[c][ptr[c] : end]
-                j = int(np.argmin(np.abs(seg - Tk)))
-                members[c] = per[c][ptr[c] + j]
-                times[c] = int(seg[j])
-                acc.cams[c].unused += int(end - ptr[c] - 1)
-                ptr[c] = end
-        fs = FrameSet(index=len(sets), time_ns=int(Tk), frames=members, times_ns=times)
-        sets.append(fs)
-        acc.add_set(fs)
-        Tk = _next_time(Tk, period, gain, [t - Tk for t in times.values()])
-    return sets, acc.snapshot()
+    keyed = [[(int(f.host_timestamp_ns), ci, i, f) for i, f in enumerate(per[c])] for ci, c in enumerate(cams)]
+    for _h, _ci, _i, f in heapq.merge(*keyed, key=lambda r: (r[0], r[1], r[2])):
+        sets += g.push(f)
+    sets += g.finish()
+    return sets, g.stats()

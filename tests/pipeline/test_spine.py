@@ -100,7 +100,7 @@ def limb_map(spine, poses, names):
 @pytest.fixture(scope="module")
 def horse():
     d = shared_dataset("horse_gallop")
-    paths = mesh_paths(d / "0*.obj")[:24]  # 24 consecutive frames of the 48 (half a take, full frame rate)
+    paths = mesh_paths(d / "0*.obj")  # all 48 frames of the take
     meshes = [load_mesh(p) for p in paths]
     frames = [frame_skeleton(v, f) for v, f in meshes]
     return meshes, frames
@@ -114,6 +114,7 @@ def test_horse_gallop_six_limbs_on_same_body_part(horse):
     vertex, measured on the reference mesh (vertex ids correspond across frames).
     """
     meshes, frames = horse
+    assert len(frames) == 48
     spine = build_spine(frames, fps=FPS, units="m")
     assert spine.K == 6
     r = spine.meta["references"][0]
@@ -128,7 +129,7 @@ def test_horse_gallop_six_limbs_on_same_body_part(horse):
             if np.all(np.isfinite(spine.tips[t, k])):
                 nv = int(np.argmin(np.linalg.norm(vt - spine.tips[t, k], axis=1)))
                 same[t, k] = D[k, nv] < radius
-    assert same.mean(axis=0).min() >= 0.95, same.mean(axis=0)
+    assert same.mean(axis=0).min() >= 0.95, same.mean(axis=0)  # measured 1.0 for every limb (48 frames)
 
 
 def test_cat_poses_six_tips_every_pose():
