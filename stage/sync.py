@@ -1,31 +1,48 @@
 """Group frames of several free-running cameras into frame sets by timestamp.
 
 Every camera stamps its frames on its own clock. Each frame also carries the
-host's ``time.monotonic_ns()`` at reception, so the offset of a device clock
-to the host clock is the minimum of ``host - device`` over a sliding window
-of that camera's frames (about a second): transport latency is one-sided and
-grows in bursts when the host is busy, so the fastest delivery is the best
-estimate; the window follows slow clock drift. A frame's *mapped time* is
-``device + offset`` on the host clock; cameras are compared there.
+host's ``time.monotonic_ns()`` at reception. Transport latency ``host -
+device - offset`` is one-sided and grows in bursts when the host is busy (and
+stays high for seconds when a device buffer backs up), so the device -> host
+offset is the *fastest delivery seen so far*, with a drift allowance: for frame
+``j``, ``offset_j = min_{i <= j} (lat_i + rho * (dev_j - dev_i))``, ``lat = host -
+device`` and ``rho = max_drift_ppm`` (default 200 ppm). A burst can raise the
+estimate by at most ``rho`` times its duration (0.2 ms per second), never by the
+burst's latency, and a device clock drifting against the host is followed (as
+NTP's minimum-delay filter, with a bounded clock rate). The first ``window``
+frames of a camera are buffered and mapped with the minimum over them. A
+frame's *mapped time* is ``device + offset`` on the host clock.
 
 Frame sets tile time in windows ``[T_k - tol, T_k + tol)``, spaced one frame
 period apart. ``T_0`` is the centre of the first frames of all cameras; after
 each set, ``T_{k+1} = T_k + period + gain * median(member times - T_k)``, a
-phase-locked loop that keeps the windows centred on the cameras. A camera
-contributes to a set the one frame nearest ``T_k`` inside the window; a camera
-with no frame there is recorded as *missing* (never filled with a duplicate),
-and every frame is used at most once. Frames that fall in no window (outside
-the tolerance, a second frame of one camera in one window, or arriving after
-their set was emitted on timeout) are counted as *unused*.
+phase-locked loop that keeps the windows centred on the cameras.
+
+A camera's frames follow its *chain*: once a frame of it is placed in window
+``k``, a frame ``n`` periods later on its device clock (rounded) belongs to window
+``k + n``: consecutive frames go to consecutive sets, a gap of ``n`` periods skips
+``n - 1`` sets, and one camera's frames are never swapped or doubled by a
+latency burst or by jitter on a window edge. The chain is left (the frame is
+placed by its mapped time instead) only when the mapped time is more than
+``1.5 * tol`` from the chain's window (a free-running camera slowly slipping a
+period). Unchained frames go to the window containing their mapped time.
+
+A camera contributes to a set the one frame nearest ``T_k``; a camera with no
+frame there is recorded as *missing* (never filled with a duplicate), and every
+frame is used at most once. Frames that belong to no window (outside the
+tolerance, a second frame of one camera in one window, or arriving after their
+set was emitted on timeout) are counted as *unused*: a missing frame is better
+than a wrong one.
 
 The default tolerance is half a frame period, so the windows cover time
 without gaps: a set's frames lie within ``tol`` of the set time, i.e. within
 one period of each other (free-running webcams have arbitrary phases).
 
-Two implementations of the same rule: :class:`StreamGrouper` (push frames as
+Two entry points for the same rule: :class:`StreamGrouper` (push frames as
 they arrive, get sets as soon as they are decided or timed out; used by live
-capture) and :func:`group_frames` (all frames at once; vectorized offsets,
-used by tests and imports). They agree exactly when no set times out.
+capture) and :func:`group_frames` (all frames at once, replayed through a
+grouper in arrival order; used by tests and imports). They agree exactly when
+no set times out.
 
 This module is pure: no I/O, no clocks read (the caller passes ``now_ns``).
 Brostow et al. 2004 (``/work/shared/papers/brostow2004-spines.txt``) assume
