@@ -14,7 +14,6 @@ so a killed process leaves either the old file or the new one, never half a file
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import re

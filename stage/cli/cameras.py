@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"  bus {u.bus:<3} port {u.port or '?':<10} {u.ids}  {kind:<4} "
                       f"{_usb_label(u.speed_mbps):<6} {_mbps(u.speed_mbps):<14} {u.description}")
                 if u.kind == "oak" and u.product_id == 0xF63B and u.speed_mbps is not None and u.speed_mbps <= 480:
-                    print(f"    warning: this OAK runs on a USB 2 link; use a USB 3 port and cable for full frame rates")
+                    print("    warning: this OAK runs on a USB 2 link; use a USB 3 port and cable for full frame rates")
         if inv.oak_devices:
             print("OAK devices (depthai):")
             for d in inv.oak_devices:
