@@ -12,7 +12,7 @@ import shutil
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, AsyncIterator
+from typing import Any, AsyncIterator, Callable
 
 import numpy as np
 
@@ -183,18 +183,27 @@ class TakeLibrary:
         log.info("imported take %s", take_id)
         return {"id": take_id, "size_bytes": target.stat().st_size}
 
+    def _limited(self, f) -> Callable[[bytes], None]:
+        """A writer into ``f`` that raises :class:`UploadTooLargeError` past the upload limit."""
+        written = [0]
+
+        def write(chunk: bytes) -> None:
+            written[0] += len(chunk)
+            if written[0] > self.max_upload_bytes:
+                raise UploadTooLargeError(f"upload larger than the limit of {self.max_upload_bytes} bytes")
+            f.write(chunk)
+
+        return write
+
     async def import_stream(self, take_id: str, chunks: AsyncIterator[bytes]) -> dict[str, Any]:
         """Write an uploaded take (raw HDF5 bytes) under ``take_id``, enforcing the size limit."""
         self._target(take_id)  # fail early on bad or existing ids
         tmp = self._tmp()
-        n = 0
         try:
             with open(tmp, "wb") as f:
+                write = self._limited(f)
                 async for chunk in chunks:
-                    n += len(chunk)
-                    if n > self.max_upload_bytes:
-                        raise UploadTooLargeError(f"upload larger than the limit of {self.max_upload_bytes} bytes")
-                    f.write(chunk)
+                    write(chunk)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
@@ -204,14 +213,11 @@ class TakeLibrary:
         """Write an uploaded take from a file object (multipart upload), enforcing the size limit."""
         self._target(take_id)
         tmp = self._tmp()
-        n = 0
         try:
             with open(tmp, "wb") as f:
+                write = self._limited(f)
                 while chunk := fileobj.read(1 << 20):
-                    n += len(chunk)
-                    if n > self.max_upload_bytes:
-                        raise UploadTooLargeError(f"upload larger than the limit of {self.max_upload_bytes} bytes")
-                    f.write(chunk)
+                    write(chunk)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
