@@ -89,7 +89,11 @@ def board_poses(
         Largest angle between the board's face normal and the direction to its camera.
     spread : float, optional
         Fraction of the volume over which the board centre wanders (the
-        board always stays inside the volume and above the floor).
+        centre stays inside the volume, the whole board above the floor; like
+        an operator's, the board may reach out of the volume at its edges).
+        A board as large as the volume therefore still moves through it, and
+        its corners reach beyond the centre of the images, which the
+        intrinsics (focal length versus lens distortion) need.
 
     Returns
     -------
@@ -103,12 +107,12 @@ def board_poses(
     half = np.asarray(vol.size, dtype=np.float64) / 2
     x0, y0, x1, y1 = board.outline_mm
     mid = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
-    reach = 0.5 * math.hypot(x1 - x0, y1 - y0) + board.square_mm
-    room = np.maximum(half - reach, 0.0)
+    outline = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    floor_clear = board.square_mm  # lowest board point above z = 0
     out = np.empty((int(n_views), 4, 4))
     first = int(rng.integers(len(centers)))
     for v in range(int(n_views)):
-        p = c + rng.uniform(-1, 1, 3) * room * spread
+        p = c + rng.uniform(-1, 1, 3) * half * spread
         cam = centers[(first + v) % len(centers)]  # the operator walks the board round the rig
         toward = (cam - p) / np.linalg.norm(cam - p)
         tilt = math.radians(rng.uniform(0, max_tilt_deg))
@@ -127,6 +131,9 @@ def board_poses(
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = p - R @ mid
+        low = float((outline @ R.T + T[:3, 3])[:, 2].min())
+        if low < floor_clear:  # lift the board off the floor
+            T[2, 3] += floor_clear - low
         out[v] = T
     return out
 
