@@ -32,6 +32,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -167,20 +168,28 @@ def _carver(calib_dict: dict, grid_dict: dict):
     return _CARVERS[key]
 
 
-def _frame_masks(reader, cameras: Sequence[str], k: int) -> tuple[list, list[str]]:
+def _mask_validity(reader, cameras: Sequence[str]) -> dict[str, np.ndarray | None]:
+    """Per camera, the keyer's per-row validity flags (None when the take has none)."""
+    return {
+        cam: reader.read_array(f"cameras/{cam}", "mask_valid")[0].astype(bool)
+        if reader.has_array(f"cameras/{cam}", "mask_valid")
+        else None
+        for cam in cameras
+    }
+
+
+def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tuple[list, list[str]]:
     """Masks of frame set ``k``, one (H, W) bool array per camera; ``None`` for a camera
     missing in the set or whose mask the keyer marked invalid (it neither carves nor counts
-    as a view)."""
+    as a view). ``validity`` is :func:`_mask_validity` of the same reader."""
     rows = reader.set_rows(k)
     masks = []
     skipped = []
     for cam in cameras:
         r = rows[cam]
-        m = reader.mask(cam, r) if r >= 0 else None
-        if m is not None and reader.has_array(f"cameras/{cam}", "mask_valid"):
-            valid = reader.read_array(f"cameras/{cam}", "mask_valid")[0]
-            if r < valid.shape[0] and not valid[r]:
-                m = None
+        valid = validity[cam]
+        ok = r >= 0 and (valid is None or r >= valid.shape[0] or valid[r])
+        m = reader.mask(cam, r) if ok else None
         if m is None:
             skipped.append(cam)
         masks.append(m)
@@ -208,9 +217,10 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
     results = []
     with TakeReader(take) as reader:
         use_depth = p.depth == "auto" and all(reader.camera_info(c).get("has_depth") for c in cameras)
+        validity = _mask_validity(reader, cameras)
         for k in frames:
             t0 = time.perf_counter()
-            masks, skipped = _frame_masks(reader, cameras, k)
+            masks, skipped = _frame_masks(reader, cameras, k, validity)
             info: dict = {"index": int(k), "skipped_cameras": skipped}
             try:
                 if len(skipped) == len(cameras):
@@ -276,43 +286,44 @@ def _chunks(items: Sequence[int], n: int) -> list[list[int]]:
 
 def _run_tasks(
     executor: cf.Executor | None,
-    fn: Callable,
+    task: Callable[[list[int]], list[dict]],
     chunks: list[list[int]],
-    args: tuple,
     *,
     step: str,
     done0: int,
     total: int,
     progress: Callable[[str, int, int], None] | None,
     cancel: threading.Event | None,
-) -> list[dict]:
-    results: list[dict] = []
+) -> None:
+    """Run ``task(chunk)`` for every chunk of frame indices (in this process, or on the
+    executor), reporting progress after each finished chunk; the tasks persist their results."""
     done = done0
+
+    def check_cancel() -> None:
+        if cancel is not None and cancel.is_set():
+            raise InterruptedError("cancelled")
+
+    def finished(n: int) -> None:
+        nonlocal done
+        done += n
+        if progress:
+            progress(step, done, total)
+
     if executor is None:
         for ch in chunks:
-            if cancel is not None and cancel.is_set():
-                raise InterruptedError("cancelled")
-            res = fn(args[0], ch, *args[1:])
-            results.extend(res)
-            done += len(ch)
-            if progress:
-                progress(step, done, total)
-        return results
-    futures = {}
-    for ch in chunks:
-        futures[executor.submit(fn, args[0], ch, *args[1:])] = ch
+            check_cancel()
+            task(ch)
+            finished(len(ch))
+        return
+    futures = {executor.submit(task, ch): ch for ch in chunks}
     try:
         for fut in cf.as_completed(futures):
-            if cancel is not None and cancel.is_set():
-                raise InterruptedError("cancelled")
-            results.extend(fut.result())
-            done += len(futures[fut])
-            if progress:
-                progress(step, done, total)
+            check_cancel()
+            fut.result()
+            finished(len(futures[fut]))
     finally:
         for fut in futures:
             fut.cancel()
-    return results
 
 
 def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, volume_bounds: np.ndarray):
@@ -329,8 +340,9 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
     carver = HullCarver(calibration, coarse)
     sample = np.unique(np.linspace(0, n_sets - 1, min(n_sets, 8)).round().astype(int))
     lo, hi = None, None
+    validity = _mask_validity(reader, cameras)
     for k in sample:
-        masks, skipped = _frame_masks(reader, cameras, int(k))
+        masks, skipped = _frame_masks(reader, cameras, int(k), validity)
         if len(skipped) == len(cameras):
             continue
         try:
@@ -499,11 +511,18 @@ def process_take(
         todo = [k for k in range(n_sets) if not (out / "frames" / f"{_frame_name(k)}.json").exists()]
         if progress:
             progress("surface", n_sets - len(todo), n_sets)
+        task = partial(
+            surface_task,
+            str(take.resolve()),
+            calib_dict=calibration.to_dict(),
+            grid_dict=grid.to_dict(),
+            params=params.model_dump(),
+            out=str(out.resolve()),
+        )
         _run_tasks(
             executor,
-            surface_task,
+            task,
             _chunks(todo, params.chunk),
-            (str(take.resolve()), calibration.to_dict(), grid.to_dict(), params.model_dump(), str(out.resolve())),
             step="surface",
             done0=n_sets - len(todo),
             total=n_sets,
@@ -530,9 +549,8 @@ def process_take(
             progress("skeleton", n_sets - len(todo), n_sets)
         _run_tasks(
             executor,
-            skeleton_task,
+            partial(skeleton_task, str(out.resolve()), spine_params=spine_params),
             _chunks(todo, params.chunk),
-            (str(out.resolve()), spine_params),
             step="skeleton",
             done0=n_sets - len(todo),
             total=n_sets,
