@@ -38,7 +38,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from calib.calibration import Calibration
-from pipeline.volume import Grid, grid_pixel_index, pixel_index
+from pipeline.volume import Grid, above_plane, check_plane, grid_pixel_index, pixel_index
 
 __all__ = [
     "EmptyHullError",
@@ -331,6 +331,7 @@ class HullCarver:
         self.grid = grid
         self.levels = lv
         self.memory_bytes = need
+        self._above_cache: tuple[tuple[float, ...], np.ndarray] | None = None
         t0 = time.perf_counter()
         self._build()
         self.build_seconds = time.perf_counter() - t0
@@ -424,6 +425,8 @@ class HullCarver:
         tolerance: int = 0,
         min_views: int = 2,
         coarse_to_fine: bool = True,
+        support_plane: Any = None,
+        margin: int = 0,
     ) -> HullResult:
         """Carve one frame.
 
@@ -437,6 +440,16 @@ class HullCarver:
             Cameras that must see a voxel for it to be kept (clipped to the cameras in use).
         coarse_to_fine : bool, optional
             Use the block hierarchy (same result, much faster); False gathers every voxel.
+        support_plane : (4,) float array-like, optional
+            ``(a, b, c, d)``: the plane the subject stands on; voxels whose centre lies
+            below it (``a x + b y + c z + d < 0``) are carved. Cameras that all look
+            down on the subject cannot carve the cone under its base
+            (:func:`pipeline.volume.above_plane`).
+        margin : int, optional
+            Grow every silhouette by this many pixels before carving (a conservative
+            hull, Laurentini 1994): with calibration and keying both off by a fraction
+            of a pixel, the intersection of many exact silhouettes shaves thin parts
+            (spikes, limb tips) that every camera only just sees.
 
         Returns
         -------
@@ -450,6 +463,14 @@ class HullCarver:
             Masks of the wrong number, size or type; bad options.
         """
         ms = check_masks(masks, self.calibration)
+        if isinstance(margin, bool) or not isinstance(margin, (int, np.integer)) or margin < 0:
+            raise ValueError(f"margin must be a non-negative integer (pixels), got {margin!r}")
+        if margin > 0:
+            import cv2
+
+            disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
+            ms = [None if m is None else cv2.dilate(m.view(np.uint8), disk).view(bool) for m in ms]
+        above = None if support_plane is None else self._above(support_plane)
         use, ignored = _usable(ms, self.calibration)
         k, mv = _check_options(tolerance, min_views, len(use))
         ext = []
@@ -521,11 +542,21 @@ class HullCarver:
         nx, ny, nz = self.grid.shape
         if (nx, ny, nz) != P:
             occ = np.ascontiguousarray(occ[:nx, :ny, :nz])
+        if above is not None:
+            occ &= above
         n = int(np.count_nonzero(occ))
         stats["voxels"] = n
         if n == 0:
             raise EmptyHullError("every voxel was carved: the silhouettes do not agree on any region")
         return HullResult(occupancy=occ, grid=self.grid, ignored=ignored, stats=stats)
+
+    def _above(self, plane: Any) -> np.ndarray:
+        key = tuple(check_plane(plane).tolist())
+        cached = self._above_cache
+        if cached is None or cached[0] != key:
+            cached = (key, above_plane(self.grid, key))
+            self._above_cache = cached
+        return cached[1]
 
     def _children(self, blocks: np.ndarray, li: int) -> np.ndarray:
         """Ids of the children (next level, or fine blocks after the last level) of ``blocks``."""

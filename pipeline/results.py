@@ -1,11 +1,13 @@
-"""Results store: per-frame meshes and reports beside the take, never inside it.
+"""Results store: per-frame meshes beside the take, never inside it.
 
 The capture file stays as recorded; everything computed from it goes to a directory::
 
     DIR/
-      report.json              {"format": ..., "meta": {...}, "frames": {"123": {...}, ...}}
       meshes/frame_000123.ply  binary PLY (what MeshLab, Blender, trimesh and the API serve)
       export/frame_000123.glb  on request (export), also .ply
+
+The take's ``report.json`` (steps, timings, per-frame quality) in the same directory belongs
+to :func:`stage.process.process_take`, which writes it.
 
 Plain files and numpy only (no HDF5 here: only ``stage/store.py`` touches HDF5). Every write
 goes to a temporary file in the same directory and is moved into place with ``os.replace``,
@@ -14,19 +16,16 @@ so a killed process leaves either the old file or the new one, never half a file
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import tempfile
-import threading
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["ResultsStore", "atomic_write_bytes", "ply_bytes", "FORMAT"]
+__all__ = ["ResultsStore", "atomic_write_bytes", "ply_bytes"]
 
-FORMAT = "capture-stage/results@1"
 _FRAME_RE = re.compile(r"^frame_(\d{6,})\.ply$")
 _EXPORT_FORMATS = ("ply", "glb")
 
@@ -94,16 +93,11 @@ class ResultsStore:
         self.path = Path(path)
         if self.path.exists() and not self.path.is_dir():
             raise ValueError(f"path {str(self.path)!r} exists and is not a directory")
-        self._lock = threading.Lock()
 
     # -- layout ---------------------------------------------------------------------------------
     @property
     def mesh_dir(self) -> Path:
         return self.path / "meshes"
-
-    @property
-    def report_path(self) -> Path:
-        return self.path / "report.json"
 
     def mesh_path(self, frame: int) -> Path:
         return self.mesh_dir / f"frame_{_check_frame(frame):06d}.ply"
@@ -184,59 +178,6 @@ class ResultsStore:
         dest = Path(path) if path is not None else self.path / "export" / f"frame_{int(frame):06d}.{fmt}"
         return atomic_write_bytes(dest, data)
 
-    # -- report ---------------------------------------------------------------------------------
-    def read_report(self) -> dict:
-        """The whole report: ``{"format", "meta", "frames": {str(frame): {...}}}``."""
-        if not self.report_path.is_file():
-            return {"format": FORMAT, "meta": {}, "frames": {}}
-        try:
-            data = json.loads(self.report_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{self.report_path}: not valid JSON ({exc})") from None
-        data.setdefault("meta", {})
-        data.setdefault("frames", {})
-        return data
-
-    def write_frame_report(self, frame: int, entry: dict) -> None:
-        """Record (merge) the report of one frame, e.g. ``surface_quality(mesh).to_dict()`` or
-        ``{"empty": True, "reason": ...}``."""
-        frame = _check_frame(frame)
-        if not isinstance(entry, dict):
-            raise ValueError(f"entry must be a dict, got {type(entry).__name__}")
-        with self._lock:
-            data = self.read_report()
-            cur = data["frames"].get(str(frame), {})
-            cur.update(entry)
-            data["frames"][str(frame)] = cur
-            self._write_report(data)
-
-    def write_meta(self, meta: dict) -> None:
-        """Merge take-level information (grid, calibration source, options, timings)."""
-        if not isinstance(meta, dict):
-            raise ValueError(f"meta must be a dict, got {type(meta).__name__}")
-        with self._lock:
-            data = self.read_report()
-            data["meta"].update(meta)
-            self._write_report(data)
-
-    def frame_report(self, frame: int) -> dict:
-        """The report of one frame (``{}`` when none)."""
-        return dict(self.read_report()["frames"].get(str(_check_frame(frame)), {}))
-
-    def _write_report(self, data: dict) -> None:
-        data["format"] = FORMAT
-        text = json.dumps(data, indent=1, sort_keys=True, default=_json_default)
-        atomic_write_bytes(self.report_path, text.encode())
-
     def __repr__(self) -> str:
         return f"ResultsStore({str(self.path)!r})"
 
-
-def _json_default(o: Any):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"{type(o).__name__} is not JSON serializable")

@@ -34,6 +34,9 @@ __all__ = [
     "pixel_index",
     "grid_pixel_index",
     "check_bounds",
+    "check_plane",
+    "above_plane",
+    "view_elevation",
 ]
 
 log = logging.getLogger(__name__)
@@ -52,6 +55,95 @@ def check_bounds(bounds: Any, name: str = "volume_bounds") -> np.ndarray:
     if np.any(b[1] <= b[0]):
         raise ValueError(f"{name}: hi must exceed lo in every axis, got lo={b[0].tolist()} hi={b[1].tolist()}")
     return b
+
+
+def check_plane(plane: Any, name: str = "support_plane") -> np.ndarray:
+    """Validate a plane ``(a, b, c, d)`` (points with ``a x + b y + c z + d >= 0`` are above).
+
+    Returns
+    -------
+    (4,) float ndarray
+        The plane scaled so that ``(a, b, c)`` is a unit normal (``d`` is then the signed
+        distance of the origin).
+    """
+    try:
+        p = np.asarray(plane, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be four numbers (a, b, c, d)") from None
+    if p.shape != (4,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} must be four finite numbers (a, b, c, d), got {plane!r}")
+    n = float(np.linalg.norm(p[:3]))
+    if n < 1e-12:
+        raise ValueError(f"{name}: the normal (a, b, c) must not be zero")
+    return p / n
+
+
+def above_plane(grid: "Grid", plane: Any) -> np.ndarray:
+    """Voxels whose centre lies on or above a plane (the side its normal points to).
+
+    A subject standing on a support (floor, turntable, pedestal) has nothing below it,
+    but when every camera looks down on it no silhouette can carve the cone under its
+    base: a visual hull from cameras at elevation ``theta`` reaches about
+    ``r * tan(theta)`` below a base of radius ``r``. The support plane removes it.
+
+    Parameters
+    ----------
+    grid : Grid
+    plane : (4,) float array-like
+        ``(a, b, c, d)``: kept where ``a x + b y + c z + d >= 0`` (world units).
+
+    Returns
+    -------
+    (nx, ny, nz) bool ndarray
+    """
+    if not isinstance(grid, Grid):
+        raise ValueError(f"grid must be a Grid, got {type(grid).__name__}")
+    p = check_plane(plane)
+    ax, ay, az = grid.axes()
+    s = (p[0] * ax)[:, None, None] + (p[1] * ay)[None, :, None] + (p[2] * az)[None, None, :] + p[3]
+    return s >= 0
+
+
+def view_elevation(calibration: Calibration, point: Any) -> tuple[np.ndarray, float]:
+    """How far above the subject every camera sits: the blind side under a ring of cameras.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    point : (3,) float array-like
+        The subject's centre, world units.
+
+    Returns
+    -------
+    up : (3,) float ndarray
+        Unit direction of the mean viewing position (the cameras' side).
+    elevation : float
+        Smallest angle, in degrees, between a camera's direction from ``point`` and the plane
+        perpendicular to ``up``. Positive when every camera looks down on the subject: then
+        no silhouette can carve the cone under its base, which reaches about
+        ``tan(elevation)`` times the base's half-width below it (see :func:`above_plane`).
+    """
+    if not isinstance(calibration, Calibration):
+        raise ValueError(f"calibration must be a Calibration, got {type(calibration).__name__}")
+    p = np.asarray(point, dtype=np.float64).reshape(-1)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"point must be a finite 3-vector, got {point!r}")
+    d = np.stack([c.center - p for c in calibration])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    m = d.mean(axis=0)
+    if np.linalg.norm(m) < 1e-9:  # cameras all around: no blind side
+        return np.array([0.0, 0.0, 1.0]), -90.0
+    from scipy.optimize import minimize
+
+    def unit(a: np.ndarray) -> np.ndarray:
+        return np.array([np.sin(a[0]) * np.cos(a[1]), np.sin(a[0]) * np.sin(a[1]), np.cos(a[0])])
+
+    # the direction whose lowest camera is highest (start: the mean viewing direction)
+    m = m / np.linalg.norm(m)
+    a0 = np.array([np.arccos(np.clip(m[2], -1, 1)), np.arctan2(m[1], m[0])])
+    res = minimize(lambda a: -float((d @ unit(a)).min()), a0, method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-9})
+    up = unit(res.x) if -res.fun >= float((d @ m).min()) else m
+    return up, float(np.degrees(np.arcsin(np.clip(d @ up, -1.0, 1.0)).min()))
 
 
 @dataclass(frozen=True, eq=False)

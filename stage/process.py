@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 __all__ = ["ProcessParams", "ProcessResult", "ProcessError", "process_take", "STEPS"]
 
@@ -68,6 +68,16 @@ class ProcessParams(BaseModel):
         rig's capture volume, else derived from the cameras.
     tolerance : int
         Cameras allowed to disagree before a voxel is carved.
+    silhouette_margin : int
+        Pixels every silhouette grows by before carving (a conservative hull): with
+        calibration and masks each a fraction of a pixel off, the intersection of many
+        exact silhouettes shaves thin parts that every camera only just sees.
+    support_plane : (4,) floats or None
+        ``(a, b, c, d)`` of the plane the subject stands on (kept where
+        ``a x + b y + c z + d >= 0``, world units). Cameras that all look down on the
+        subject cannot carve the cone under its base; the plane removes it. Our own
+        rigs need none (their capture volume starts at the floor); give it for imported
+        footage, e.g. a turntable or pedestal at a known height.
     smooth_iterations : int
         Taubin smoothing iterations of the surface.
     face_budget : int or None
@@ -89,11 +99,23 @@ class ProcessParams(BaseModel):
     resolution: Annotated[int, Field(ge=16, le=512)] = 96
     volume: tuple[float, float, float, float, float, float] | None = None
     tolerance: Annotated[int, Field(ge=0)] = 0
+    silhouette_margin: Annotated[int, Field(ge=0, le=10)] = 1
+    support_plane: tuple[float, float, float, float] | None = None
     smooth_iterations: Annotated[int, Field(ge=0, le=200)] = 10
     face_budget: Annotated[int, Field(ge=100)] | None = None
     chunk: Annotated[int, Field(ge=1)] = 4
     depth: Literal["auto", "off"] = "auto"
     spine: dict = Field(default_factory=dict)
+
+    @field_validator("support_plane")
+    @classmethod
+    def _unit_plane(cls, v: tuple[float, float, float, float] | None) -> tuple[float, float, float, float] | None:
+        if v is None:
+            return v
+        from pipeline.volume import check_plane
+
+        a, b, c, d = check_plane(v).tolist()  # ValueError (a zero normal) becomes a ValidationError
+        return (a, b, c, d)
 
 
 @dataclass
@@ -225,7 +247,7 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
             try:
                 if len(skipped) == len(cameras):
                     raise EmptyHullError("no camera has a valid mask in this frame set")
-                hull = carver.carve(masks, tolerance=p.tolerance)
+                hull = carver.carve(masks, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
                 if use_depth:
                     fused = _fuser(calib_dict, grid_dict).fuse(_frame_depths(reader, cameras, k), hull=hull.occupancy)
                     mesh = fused.surface(taubin_iterations=p.smooth_iterations, face_budget=p.face_budget)
@@ -346,7 +368,7 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
         if len(skipped) == len(cameras):
             continue
         try:
-            occ = carver.carve(masks, tolerance=p.tolerance).occupancy
+            occ = carver.carve(masks, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin).occupancy
         except ValueError:
             continue
         # the subject is the largest connected piece; phantom blobs seen by few cameras are not
@@ -438,6 +460,7 @@ def process_take(
 
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
+    warnings_: list[str] = []
     # -- key ---------------------------------------------------------------------
     with TakeReader(take) as reader:
         if not reader.has_calibration:
@@ -507,6 +530,11 @@ def process_take(
                 else:
                     vb = np.asarray(volume_from_cameras(calibration), float).reshape(-1)
                 grid = _subject_grid(reader, calibration, cameras, n_sets, params, vb)
+                if params.support_plane is None and params.volume is None and not rig.get("volume"):
+                    hint = _blind_side_hint(calibration, grid)
+                    if hint:
+                        log.warning("%s", hint)
+                        warnings_.append(hint)
                 _atomic_write_text(grid_path, json.dumps(grid.to_dict()))
         todo = [k for k in range(n_sets) if not (out / "frames" / f"{_frame_name(k)}.json").exists()]
         if progress:
@@ -582,9 +610,27 @@ def process_take(
         "empty_frames": empty,
         "tip_counts": tip_counts,
         "per_frame": [frame_infos.get(k) for k in range(n_sets)],
+        "warnings": warnings_,
     }
     _atomic_write_text(out / "report.json", json.dumps(report, indent=1, default=_json_default))
     return ProcessResult(out=out, steps=steps, frames=n_sets, empty_frames=empty, spine_path=spine_path, report=report)
+
+
+def _blind_side_hint(calibration, grid) -> str:
+    """A warning when every camera looks down on the subject (imported footage, no support plane)."""
+    from pipeline.volume import view_elevation
+
+    centre = (grid.lo + grid.hi) / 2
+    up, elev = view_elevation(calibration, centre)
+    if elev < 5.0:
+        return ""
+    n = up
+    return (
+        f"all {len(calibration)} cameras sit at least {elev:.1f} deg above the subject (seen from direction "
+        f"{n[0]:.2f} {n[1]:.2f} {n[2]:.2f}): no silhouette can carve under its base, so the hull reaches about "
+        f"{np.tan(np.radians(elev)):.2f} x the base's half-width below it. If the subject stands on a support, "
+        f"pass its plane: --support-plane {n[0]:.3f} {n[1]:.3f} {n[2]:.3f} D (kept where a*x + b*y + c*z + D >= 0)"
+    )
 
 
 def _json_default(o):

@@ -30,6 +30,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preview", type=Path, default=None, metavar="DIR", help="write a contact sheet PNG per camera into DIR")
     p.add_argument("--workers", type=int, default=2, help="threads keying frames in parallel (default 2)")
     p.add_argument("--grow", type=int, default=0, help="dilate masks by this many pixels (conservative hulls)")
+    p.add_argument(
+        "--fill-holes",
+        choices=("uncertain", "small", "none"),
+        default=None,
+        help="small holes to fill: 'uncertain' leaves gaps of clean backdrop colour open (default for chroma "
+        "and plate), 'small' fills all (default for luma: shadows look like a black backdrop), 'none'",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -50,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
             cameras=args.camera,
             workers=args.workers,
             grow=args.grow,
+            fill_holes=args.fill_holes,
             preview=args.preview,
             progress=bar.update,
         )

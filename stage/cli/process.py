@@ -40,6 +40,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="where to look for the subject (default: the rig's capture volume, else derived from the cameras)",
     )
     p.add_argument("--tolerance", type=int, default=0, help="cameras allowed to disagree before a voxel is carved")
+    p.add_argument(
+        "--margin",
+        type=int,
+        default=None,
+        help="pixels every silhouette grows by before carving (default 1: a conservative hull)",
+    )
+    p.add_argument(
+        "--support-plane",
+        type=float,
+        nargs=4,
+        metavar=("A", "B", "C", "D"),
+        help="the plane the subject stands on: only a*x + b*y + c*z + d >= 0 is kept (world units); "
+        "removes the cone under the base that cameras all looking down cannot carve",
+    )
     p.add_argument("--workers", type=int, default=2, help="worker processes for per-frame work (default 2; 0 = in process)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of a mesh sequence (--meshes)")
     p.add_argument("--units", default="mm", help="units of a mesh sequence (--meshes), written as given")
@@ -48,15 +62,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_meshes(args: argparse.Namespace) -> int:
-    from pipeline.spine import spine_from_meshes, write_spine
+    from stage.cli import spines
 
-    spine = spine_from_meshes(
-        args.meshes, fps=args.fps, units=args.units, workers=args.workers, progress=not args.no_progress
-    )
-    path = write_spine(args.out / "spine.json", spine)
-    d = spine.to_dict()
-    print(f"spine: {len(d['graph']['limbs'])} limbs over {len(d['frames'])} frames -> {path}")
-    return 0
+    return spines.run(args)  # one implementation: `stage spines` (which also takes --bins, --min-protrusion)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,6 +88,12 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
         kw["resolution"] = args.resolution
     if args.volume is not None:
         kw["volume"] = tuple(args.volume)
+    if args.margin is not None:
+        kw["silhouette_margin"] = args.margin
+    if args.support_plane is not None:
+        from pipeline.volume import check_plane
+
+        kw["support_plane"] = tuple(check_plane(args.support_plane, "--support-plane").tolist())
     params = ProcessParams(**kw)
     executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
     try:

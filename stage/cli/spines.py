@@ -21,25 +21,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of the sequence (default 30)")
     p.add_argument("--units", default="mm", help="units of the mesh coordinates (default mm)")
     p.add_argument("--workers", type=int, default=2, help="worker processes for the per-frame work (default 2)")
-    p.add_argument("--bins", type=int, default=100, help="level-set bins per skeleton (default 100)")
+    p.add_argument("--bins", type=int, default=None, help="level-set bins per skeleton (default 100)")
     p.add_argument(
         "--min-protrusion",
         type=float,
-        default=0.1,
+        default=None,
         help="a tip must protrude by this fraction of sqrt(surface area) (default 0.1)",
     )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    """Also the implementation of ``stage process --meshes`` (which has no --bins/--min-protrusion)."""
     from pipeline.meshio import mesh_paths
     from pipeline.spine import SpineParams, spine_from_meshes, write_spine
 
     paths = mesh_paths(args.meshes)
-    params = SpineParams(n_bins=args.bins, min_protrusion=args.min_protrusion)
+    given = {"n_bins": getattr(args, "bins", None), "min_protrusion": getattr(args, "min_protrusion", None)}
+    params = SpineParams(**{k: v for k, v in given.items() if v is not None})
     print(f"{len(paths)} meshes from {paths[0].parent}")
     spine = spine_from_meshes(
-        paths, fps=args.fps, units=args.units, workers=args.workers, progress=True, params=params
+        paths,
+        fps=args.fps,
+        units=args.units,
+        workers=args.workers,
+        progress=not getattr(args, "no_progress", False),
+        params=params,
     )
     out = write_spine(Path(args.out) / "spine.json", spine)
     counts = spine.meta["tip_counts"]

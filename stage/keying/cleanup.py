@@ -8,7 +8,8 @@
    coverage whatever the subject's colour, and thin limb tips survive.
 3. *Hysteresis* (Canny 1986): candidate components (distance >= ``t_lo``) are kept
    only if they contain a solid pixel (distance >= ``t_hi``) and are not smaller
-   than ``min_area`` of the image; backdrop holes below that size are filled.
+   than ``min_area`` of the image; backdrop holes below that size are filled
+   unless they have the backdrop's own colour (a gap between legs stays open).
 4. Optional closing (never opening, which would cut limb tips) and growing.
 """
 
@@ -57,6 +58,7 @@ def mask_from_distance(
     grow: int = 0,
     coverage_window: int = 3,
     coverage_fraction: float = 0.5,
+    fill_holes: str = "uncertain",
 ) -> tuple[np.ndarray, dict[str, float]]:
     """Silhouette from a backdrop-distance image.
 
@@ -72,6 +74,13 @@ def mask_from_distance(
         Closing radius and final dilation in pixels.
     coverage_window : int
         Odd window side for the 50 %-coverage rule (1 disables it).
+    coverage_fraction : float
+        Fraction of the local maximum a boundary pixel must reach.
+    fill_holes : {"uncertain", "small", "none"}
+        Which backdrop holes inside the subject smaller than ``min_area`` are filled:
+        ``uncertain`` those whose median distance is at least ``t_lo`` (mixed or
+        doubtful pixels; a hole of clean backdrop colour is a gap the camera sees
+        through), ``small`` all of them, ``none`` none.
 
     Returns
     -------
@@ -79,6 +88,8 @@ def mask_from_distance(
     stats : dict
         ``components_dropped``, ``holes_filled``.
     """
+    if fill_holes not in ("uncertain", "small", "none"):
+        raise ValueError(f"fill_holes must be 'uncertain', 'small' or 'none', got {fill_holes!r}")
     h, w = distance.shape
     min_px = max(1, int(round(min_area * h * w)))
     # OpenCV comparisons (uint8 0/255, no GIL) rather than NumPy boolean arrays
@@ -105,7 +116,7 @@ def mask_from_distance(
     dropped = int(n - 1 - keep.size)
     mask = _select_labels(labels, keep)
     holes = 0
-    if keep.size and min_px > 1:
+    if fill_holes != "none" and keep.size and min_px > 1:
         x, y, bw, bh = cv2.boundingRect(mask.view(np.uint8))
         roi = mask[y : y + bh, x : x + bw]
         n2, lab2 = cv2.connectedComponents((~roi).view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
@@ -115,6 +126,21 @@ def mask_from_distance(
             small = area2 < min_px
             small[0] = False
             small[border] = False
+            if fill_holes == "uncertain" and small.any():
+                # a hole of backdrop colour (median distance below t_lo) is backdrop seen
+                # through a gap (between legs, arm and torso); only holes the model is unsure
+                # of (mixed pixels, specks the coverage rule rejected) are subject
+                cand = np.flatnonzero(small)
+                d_roi = distance[y : y + bh, x : x + bw]
+                sel = np.isin(lab2, cand) & ~roi
+                med = np.array([np.median(d_roi[sel & (lab2 == i)]) for i in cand]) if cand.size <= 64 else None
+                if med is None:  # many holes: one pass over sorted labels
+                    order = np.argsort(lab2[sel], kind="stable")
+                    vals, labs = d_roi[sel][order], lab2[sel][order]
+                    starts = np.searchsorted(labs, cand)
+                    ends = np.searchsorted(labs, cand, side="right")
+                    med = np.array([np.median(vals[a:b]) for a, b in zip(starts, ends)])
+                small[cand[med < t_lo]] = False
             fill = np.flatnonzero(small).astype(np.int32)
             if fill.size:
                 roi |= _select_labels(lab2, fill)

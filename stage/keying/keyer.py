@@ -62,6 +62,8 @@ def estimate_model(frames: np.ndarray, *, params: KeyParams, plate: np.ndarray |
     KeyingError
         When no backdrop model can be estimated (no usable frame, no backdrop colour).
     """
+    if params.fill_holes is None:
+        params = params.replace(fill_holes="small" if params.mode == "luma" else "uncertain")
     d_lo, d_hi = default_thresholds(_DOF[params.mode])
     t_lo = params.t_lo if params.t_lo is not None else d_lo
     t_hi = params.t_hi if params.t_hi is not None else max(d_hi, t_lo * 1.2)
@@ -165,6 +167,7 @@ def key_one(image: np.ndarray, params: KeyParams) -> tuple[np.ndarray, np.ndarra
         t_lo=params.t_lo,
         t_hi=params.t_hi,
         min_area=params.min_area,
+        fill_holes=params.fill_holes,
         close_radius=params.close_radius,
         grow=params.grow,
         coverage_window=params.coverage_window,

@@ -48,7 +48,16 @@ class KeyParams:
         pixel's own brightness).
     min_area : float
         Foreground components smaller than this fraction of the image are dropped
-        (and backdrop holes smaller than it are filled).
+        (and backdrop holes smaller than it are filled, see ``fill_holes``).
+    fill_holes : {"uncertain", "small", "none"} or None
+        Holes below ``min_area``: ``uncertain`` fills those whose pixels do not match
+        the backdrop (median distance >= ``t_lo``) and leaves gaps of clean backdrop
+        colour open (a slit between legs, between arm and torso); ``small`` fills
+        every small hole (safest for the hull when the subject has backdrop-coloured
+        patches); ``none`` fills nothing. ``None``: ``uncertain`` in the chroma and
+        plate modes (a subject rarely has the backdrop's hue, and the plate shows
+        what is backdrop), ``small`` in the luma mode (a shadow on the subject is as
+        dark as a black backdrop).
     close_radius : int
         Radius in pixels of the morphological closing applied to the final mask
         (0 = none). Closing never removes thin limbs; opening is not used.
@@ -81,6 +90,7 @@ class KeyParams:
     polarity: Literal["dark", "bright"] | None = None
     shadow_floor: float = 0.35
     min_area: float = 2e-4
+    fill_holes: Literal["uncertain", "small", "none"] | None = None
     close_radius: int = 0
     grow: int = 0
     coverage_window: int = 3
@@ -104,6 +114,8 @@ class KeyParams:
             raise ValueError(f"t_hi ({self.t_hi}) must be greater than t_lo ({self.t_lo})")
         if not 0 < self.shadow_floor < 1:
             raise ValueError(f"shadow_floor must be in (0, 1), got {self.shadow_floor!r}")
+        if self.fill_holes not in (None, "uncertain", "small", "none"):
+            raise ValueError(f"fill_holes must be 'uncertain', 'small' or 'none', got {self.fill_holes!r}")
         if not 0 <= self.min_area < 0.5:
             raise ValueError(f"min_area must be in [0, 0.5), got {self.min_area!r}")
         for name in ("close_radius", "grow", "sample_stride", "coverage_window"):

@@ -33,6 +33,7 @@ def key_take(
     cameras: Sequence[str] | None = None,
     workers: int = 2,
     grow: int = 0,
+    fill_holes: str | None = None,
     preview: str | Path | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> dict:
@@ -50,6 +51,8 @@ def key_take(
         Threads keying frames in parallel.
     grow : int
         Dilate masks by this many pixels (conservative hulls).
+    fill_holes : {"uncertain", "small", "none"}, optional
+        Which small holes to fill (:class:`stage.keying.KeyParams`); default by mode.
     preview : path, optional
         Directory for one contact sheet PNG per camera (frame, matte, overlay).
     progress : callable, optional
@@ -81,7 +84,7 @@ def key_take(
     mode = key_mode or rig_mode or "chroma"
     color = rig_color if (mode == "chroma" and rig_color in ("green", "blue", "red")) else None
     polarity = {"black": "dark", "white": "bright"}.get(rig_color or "") if mode == "luma" else None
-    base = KeyParams(mode=mode, backdrop_color=color, polarity=polarity, grow=grow)
+    base = KeyParams(mode=mode, backdrop_color=color, polarity=polarity, grow=grow, fill_holes=fill_holes)  # type: ignore[arg-type]
     preview_dir = Path(preview) if preview is not None else None
     if preview_dir is not None:
         preview_dir.mkdir(parents=True, exist_ok=True)

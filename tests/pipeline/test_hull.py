@@ -11,7 +11,15 @@ import pytest
 
 from calib.calibration import Calibration
 from pipeline.hull import EmptyHullError, HullCarver, carve_direct, hull_memory_bytes
-from pipeline.volume import Grid, grid_from_volume, pixel_index, volume_from_cameras
+from pipeline.volume import (
+    Grid,
+    above_plane,
+    check_plane,
+    grid_from_volume,
+    pixel_index,
+    view_elevation,
+    volume_from_cameras,
+)
 from stage.rig import Volume
 from tests.pipeline import simrig
 
@@ -232,6 +240,59 @@ def test_grid_from_volume():
 # -- invalid input ---------------------------------------------------------------------------------
 
 
+def test_support_plane_and_margin_equal_the_slow_reference():
+    """A support plane removes exactly the voxels whose centre lies below it; a margin of m px
+    carves exactly like masks dilated by a (2m+1)-px disk."""
+    import cv2
+
+    take = sim_take()
+    cal, masks = take.calibration, take.masks[0]
+    grid = sim_grid(40)
+    hc = HullCarver(cal, grid)
+    plain = hc.carve(masks).occupancy
+    zs = np.flatnonzero(plain.any(axis=(0, 1)))
+    z_cut = grid.axes()[2][zs[len(zs) // 2]] + 0.25 * grid.voxel  # between two voxel layers
+    plane = (0.0, 0.0, 2.0, -2.0 * z_cut)  # z >= z_cut, normal not unit on purpose
+    cut = hc.carve(masks, support_plane=plane).occupancy
+    ref = plain & (grid.centers()[:, 2] >= z_cut).reshape(grid.shape)
+    assert np.array_equal(cut, ref) and cut.sum() < plain.sum()
+    # a tilted plane, slow reference point by point
+    tilted = np.array([0.3137, -0.2071, 1.0, -z_cut - 0.1234])  # no voxel centre on the plane
+    pts = grid.centers()
+    slow = np.array([p @ tilted[:3] + tilted[3] >= 0 for p in pts]).reshape(grid.shape)
+    assert np.array_equal(above_plane(grid, tilted), slow)
+    np.testing.assert_allclose(check_plane(tilted)[:3] @ check_plane(tilted)[:3], 1.0)
+    # margin
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    grown = np.stack([cv2.dilate(m.astype(np.uint8), disk).astype(bool) for m in masks])
+    wide = hc.carve(masks, margin=2).occupancy
+    assert np.array_equal(wide, carve_direct(grown, cal, grid))
+    assert np.array_equal(wide, hc.carve(grown).occupancy) and wide.sum() > plain.sum()
+    assert np.array_equal(hc.carve(masks, margin=0).occupancy, plain)
+
+
+def test_view_elevation_of_a_ring_and_of_cameras_all_around():
+    """A tilted ring of cameras 17 degrees above the subject: up = the ring's axis, 17 degrees
+    (to 0.01); cameras above and below the subject: no blind side (negative)."""
+    axis = np.array([0.2, -0.3, 1.0])
+    axis /= np.linalg.norm(axis)
+    e1 = np.cross(axis, [1.0, 0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    target = np.array([10.0, -20.0, 300.0])
+    el = np.radians(17.0)
+    cams = []
+    for i in range(15):
+        az = 2 * np.pi * i / 15 + 0.05 * np.sin(3 * i)
+        d = np.cos(el) * (np.cos(az) * e1 + np.sin(az) * e2) + np.sin(el) * axis
+        cams.append(simrig.look_at(f"c{i}", target + 600 * d, target))
+    up, elev = view_elevation(Calibration(tuple(cams)), target)
+    assert elev == pytest.approx(17.0, abs=0.01) and up @ axis > 0.99999
+    below = [simrig.look_at(f"b{i}", target + 600 * np.array([np.cos(a), np.sin(a), -0.5]), target)
+             for i, a in enumerate(np.linspace(0, 2 * np.pi, 6, endpoint=False))]
+    assert view_elevation(Calibration(tuple(cams[::3] + below)), target)[1] < 0
+
+
 def test_invalid_input():
     take = sim_take()
     cal = take.calibration
@@ -266,6 +327,22 @@ def test_invalid_input():
         hc.carve(masks, tolerance=len(cal))
     with pytest.raises(ValueError, match="min_views"):
         hc.carve(masks, min_views=0)
+    with pytest.raises(ValueError, match="support_plane"):
+        hc.carve(masks, support_plane=(0, 0, 0, 1))
+    with pytest.raises(ValueError, match="support_plane"):
+        hc.carve(masks, support_plane=(0, 0, 1))
+    with pytest.raises(ValueError, match="support_plane"):
+        hc.carve(masks, support_plane=(0, 0, 1, np.nan))
+    with pytest.raises(ValueError, match="margin"):
+        hc.carve(masks, margin=-1)
+    with pytest.raises(ValueError, match="margin"):
+        hc.carve(masks, margin=1.5)
+    with pytest.raises(ValueError, match="grid"):
+        above_plane(None, (0, 0, 1, 0))
+    with pytest.raises(ValueError, match="calibration"):
+        view_elevation(None, (0, 0, 0))
+    with pytest.raises(ValueError, match="point"):
+        view_elevation(cal, (0, 0))
     with pytest.raises(ValueError, match="masks"):
         carve_direct(masks[:2], cal, grid)
     with pytest.raises(ValueError, match="grid"):

@@ -44,21 +44,6 @@ def test_export_ply_and_glb_load_back(tmp_path):
     assert p == tmp_path / "elsewhere" / "x.ply" and p.is_file()
 
 
-def test_report_merges_frames_and_meta(tmp_path):
-    store = ResultsStore(tmp_path / "r")
-    assert store.read_report()["frames"] == {}
-    store.write_frame_report(3, {"faces": np.int64(10), "watertight": True})
-    store.write_frame_report(3, {"genus": 0})
-    store.write_frame_report(4, {"empty": True, "reason": "no foreground"})
-    store.write_meta({"grid": {"shape": [64, 64, 64]}, "units": "mm"})
-    rep = ResultsStore(tmp_path / "r").read_report()
-    assert rep["format"].startswith("capture-stage/results")
-    assert rep["frames"]["3"] == {"faces": 10, "watertight": True, "genus": 0}
-    assert rep["frames"]["4"]["empty"] is True
-    assert rep["meta"]["units"] == "mm"
-    assert store.frame_report(3)["genus"] == 0 and store.frame_report(99) == {}
-
-
 def test_atomic_write_leaves_no_half_file(tmp_path, monkeypatch):
     target = tmp_path / "d" / "f.bin"
     atomic_write_bytes(target, b"old contents")
@@ -96,10 +81,3 @@ def test_invalid_input(tmp_path):
     store.write_mesh(0, mesh)
     with pytest.raises(ValueError, match="fmt"):
         store.export(0, "obj")
-    with pytest.raises(ValueError, match="entry"):
-        store.write_frame_report(0, "ok")
-    with pytest.raises(ValueError, match="meta"):
-        store.write_meta(["x"])
-    store.report_path.write_text("{broken")
-    with pytest.raises(ValueError, match="JSON"):
-        store.read_report()
