@@ -24,11 +24,12 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
-__all__ = ["BundleResult", "bundle_adjust", "rodrigues_batch", "project_batch"]
+__all__ = ["BundleResult", "bundle_adjust", "rodrigues_batch", "project_batch", "INTRINSIC_NAMES"]
 
 log = logging.getLogger(__name__)
 
 N_INTR = 9  # fx, fy, cx, cy, k1, k2, p1, p2, k3
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 _VERBOSE = 0
 
 
@@ -225,6 +226,7 @@ def bundle_adjust(
     board_tvec: np.ndarray,
     reference: int = 0,
     optimize_intrinsics: bool = False,
+    fixed_intrinsics: tuple[str, ...] = (),
     loss: str = "soft_l1",
     f_scale: float = 1.0,
     max_nfev: int | None = None,
@@ -250,6 +252,10 @@ def bundle_adjust(
     reference : int
         Camera whose pose stays fixed (gauge).
     optimize_intrinsics : bool
+    fixed_intrinsics : tuple of str
+        Intrinsics that stay at their initial values when ``optimize_intrinsics`` is set,
+        named as in ``INTRINSIC_NAMES`` (e.g. ``("k3",)`` for a camera calibrated with
+        ``fix_k3``, ``("p1", "p2")`` with ``zero_tangent``).
     loss : str
         ``least_squares`` loss (``"linear"``, ``"soft_l1"``, ``"huber"``, ``"cauchy"``).
     f_scale : float
@@ -292,17 +298,26 @@ def bundle_adjust(
     if solver not in ("lm", "scipy"):
         raise ValueError(f"solver must be 'lm' or 'scipy', got {solver!r}")
 
+    bad = sorted(set(fixed_intrinsics) - set(INTRINSIC_NAMES))
+    if isinstance(fixed_intrinsics, str) or bad:
+        raise ValueError(f"fixed_intrinsics must name intrinsics among {INTRINSIC_NAMES}, got {fixed_intrinsics!r}")
+    free_i = np.array([n not in fixed_intrinsics for n in INTRINSIC_NAMES])
+    NF = int(free_i.sum())
     free_cams = np.array([c for c in range(C) if c != reference], dtype=np.int64)
     cam_slot = -np.ones(C, dtype=np.int64)
     cam_slot[free_cams] = np.arange(free_cams.size)
     n_pose = 6 * free_cams.size
-    n_intr = N_INTR * C if optimize_intrinsics else 0
+    n_intr = NF * C if optimize_intrinsics else 0
 
     def unpack(p: np.ndarray):
         rv, tv = crv.copy(), ctv.copy()
         poses = p[:n_pose].reshape(-1, 6)
         rv[free_cams], tv[free_cams] = poses[:, :3], poses[:, 3:]
-        intr = p[n_pose : n_pose + n_intr].reshape(C, N_INTR) if optimize_intrinsics else intr0
+        if optimize_intrinsics:
+            intr = intr0.copy()
+            intr[:, free_i] = p[n_pose : n_pose + n_intr].reshape(C, NF)
+        else:
+            intr = intr0
         b = p[n_pose + n_intr :].reshape(B, 6)
         return rv, tv, intr, b[:, :3], b[:, 3:]
 
@@ -321,15 +336,15 @@ def bundle_adjust(
         return (project_batch(Xc, intr[obs_cam]) - uv).ravel()
 
     x0 = np.concatenate(
-        [np.hstack([crv[free_cams], ctv[free_cams]]).ravel(), intr0.ravel() if optimize_intrinsics else [],
+        [np.hstack([crv[free_cams], ctv[free_cams]]).ravel(), intr0[:, free_i].ravel() if optimize_intrinsics else [],
          np.hstack([brv, btv]).ravel()]
     )
     n = x0.size
-    # Jacobian layout: for every observation, 2 rows x (6 camera pose + 9 intrinsics + 6 board pose) columns.
+    # Jacobian layout: for every observation, 2 rows x (6 camera pose + the free intrinsics + 6 board pose) columns.
     obs_cslot = cam_slot[obs_cam]
     has_pose = obs_cslot >= 0
     col_pose = np.where(has_pose, obs_cslot, 0)[:, None] * 6 + np.arange(6)
-    col_intr = n_pose + obs_cam[:, None] * N_INTR + np.arange(N_INTR)
+    col_intr = n_pose + obs_cam[:, None] * NF + np.arange(NF)
     col_board = n_pose + n_intr + obs_board[:, None] * 6 + np.arange(6)
     blocks = [col_pose]
     if optimize_intrinsics:
@@ -384,7 +399,7 @@ def bundle_adjust(
             Ji[:, 0, 6], Ji[:, 1, 6] = fx * 2.0 * x * y, fy * (r2 + 2.0 * y * y)
             Ji[:, 0, 7], Ji[:, 1, 7] = fx * (r2 + 2.0 * x * x), fy * 2.0 * x * y
             Ji[:, 0, 8], Ji[:, 1, 8] = fx * x * r2**3, fy * y * r2**3
-            parts.append(Ji)
+            parts.append(Ji[:, :, free_i])
         parts.append(np.concatenate([J_br, J_Xw], axis=2))
         data = np.concatenate(parts, axis=2).reshape(-1)  # (M, 2, k) row-major = row_idx order
         return csr_matrix((data[keep], (row_idx[keep], col_idx[keep])), shape=(2 * M, n))

@@ -353,6 +353,7 @@ def calibrate_extrinsics(
     world: str = "board",
     world_frame: int | None = None,
     optimize_intrinsics: bool = True,
+    fixed_intrinsics: tuple[str, ...] = (),
     loss: str = "soft_l1",
     f_scale: float = 1.0,
     min_corners: int = 6,
@@ -378,6 +379,9 @@ def calibrate_extrinsics(
         the most cameras).
     optimize_intrinsics : bool
         Refine intrinsics in the bundle adjustment too.
+    fixed_intrinsics : tuple of str
+        Intrinsics the bundle adjustment keeps as given (``calib.bundle.INTRINSIC_NAMES``),
+        e.g. ``("k3",)`` for cameras calibrated with ``fix_k3``.
     loss, f_scale : str, float
         Robust loss of the bundle adjustment and its inlier scale (px).
     min_corners : int
@@ -492,7 +496,8 @@ def calibrate_extrinsics(
     res = bundle_adjust(
         obs_cam, obs_board, np.concatenate(op), np.concatenate(ouv),
         intrinsics=intr0, cam_rvec=cam_rvec, cam_tvec=cam_tvec, board_rvec=board_rvec, board_tvec=board_tvec,
-        reference=root, optimize_intrinsics=optimize_intrinsics, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
+        reference=root, optimize_intrinsics=optimize_intrinsics, fixed_intrinsics=tuple(fixed_intrinsics),
+        loss=loss, f_scale=f_scale, max_nfev=max_nfev,
         solver=solver,
     )
     Rc_all = rodrigues_batch(res.cam_rvec)

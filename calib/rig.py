@@ -146,6 +146,7 @@ def calibrate_rig(
     ext = calibrate_extrinsics(
         kept, [intr[n].camera() for n in names], board, world=world, world_frame=world_frame,
         optimize_intrinsics=optimize_intrinsics, solver=solver,
+        fixed_intrinsics=("k3",) if fix_k3 else (),  # what the intrinsics held, the bundle keeps
     )
     meta = dict(ext.calibration.meta)
     meta["per_camera_rms_px"] = dict(ext.per_camera_rms)

@@ -142,6 +142,21 @@ def small(truth):
     return board, _simulate(truth, board, n=25, seed=5)
 
 
+def test_fix_k3_survives_the_bundle_adjustment(small, truth):
+    """``fix_k3``: k3 is 0 after the intrinsics and stays 0 through the bundle adjustment,
+    which still refines every other intrinsic (it used to free k3 again)."""
+    board, dets = small
+    sizes = {c.name: c.size for c in truth}
+    fixed = calibrate_rig(dets, sizes, board, cameras=truth.names, fix_k3=True)
+    free = calibrate_rig(dets, sizes, board, cameras=truth.names)
+    for n in truth.names:
+        assert fixed.intrinsics[n].camera().dist[4] == 0.0
+        cam = fixed.calibration[n]
+        assert cam.dist[4] == 0.0
+        assert cam.K[0, 0] != fixed.intrinsics[n].camera().K[0, 0]  # the rest was refined
+    assert any(free.calibration[n].dist[4] != 0.0 for n in truth.names)
+
+
 def test_camera_without_board(small, truth):
     board, dets = small
     dets = dict(dets)
@@ -238,6 +253,10 @@ def test_invalid_input(small, truth):
         bundle_adjust([0], [0], [[0, 0, 0]], [[0, 0]], intrinsics=np.ones((1, 9)), cam_rvec=np.zeros((1, 3)),
                       cam_tvec=np.zeros((1, 3)), board_rvec=np.zeros((1, 3)), board_tvec=np.zeros((1, 3)),
                       loss="l3")
+    with pytest.raises(ValueError, match="fixed_intrinsics"):
+        bundle_adjust([0], [0], [[0, 0, 0]], [[0, 0]], intrinsics=np.ones((1, 9)), cam_rvec=np.zeros((1, 3)),
+                      cam_tvec=np.zeros((1, 3)), board_rvec=np.zeros((1, 3)), board_tvec=np.zeros((1, 3)),
+                      optimize_intrinsics=True, fixed_intrinsics=("k4",))
     with pytest.raises(ValueError, match="equal length"):
         bundle_adjust([0, 0], [0], [[0, 0, 0]], [[0, 0]], intrinsics=np.ones((1, 9)), cam_rvec=np.zeros((1, 3)),
                       cam_tvec=np.zeros((1, 3)), board_rvec=np.zeros((1, 3)), board_tvec=np.zeros((1, 3)))
