@@ -75,6 +75,7 @@ def board_poses(
     volume: Volume | None = None,
     max_tilt_deg: float = 35.0,
     spread: float = 0.5,
+    close_fraction: float = 1 / 3,
 ) -> np.ndarray:
     """Random board -> world poses in the volume, facing the cameras in turn.
 
@@ -94,6 +95,12 @@ def board_poses(
         A board as large as the volume therefore still moves through it, and
         its corners reach beyond the centre of the images, which the
         intrinsics (focal length versus lens distortion) need.
+    close_fraction : float, optional
+        Fraction of the rounds of the rig in which the board is held up close to each
+        camera in turn (default: every third round, from the third on), as an
+        operator does to cover the edges and corners of each image: the board fills
+        about half of that camera's width, pushed towards a random image corner
+        (other cameras may not see it at all).
 
     Returns
     -------
@@ -111,9 +118,23 @@ def board_poses(
     floor_clear = board.square_mm  # lowest board point above z = 0
     out = np.empty((int(n_views), 4, 4))
     first = int(rng.integers(len(centers)))
+    if not 0.0 <= float(close_fraction) <= 1.0:
+        raise ValueError(f"close_fraction must be within [0, 1], got {close_fraction!r}")
+    width = max(x1 - x0, y1 - y0)
     for v in range(int(n_views)):
+        ci = (first + v) % len(centers)  # the operator walks the board round the rig
+        cam = centers[ci]
         p = c + rng.uniform(-1, 1, 3) * half * spread
-        cam = centers[(first + v) % len(centers)]  # the operator walks the board round the rig
+        rnd = v // len(centers)  # every camera gets its close-ups in turn, not by chance
+        if math.floor((rnd + 1) * close_fraction + 1e-9) > math.floor(rnd * close_fraction + 1e-9):
+            cm = calibration.cameras[ci]
+            (fx, _, cx), (_, fy, cy) = cm.K[0], cm.K[1]
+            w_img, h_img = cm.size
+            d = fx * width / (0.5 * w_img)
+            u = cx + rng.choice([-1, 1]) * rng.uniform(0.08, 0.2) * w_img
+            vv = cy + rng.choice([-1, 1]) * rng.uniform(0.08, 0.2) * h_img
+            ray = cm.R.T @ np.array([(u - cx) / fx, (vv - cy) / fy, 1.0])
+            p = cam + d * ray / np.linalg.norm(ray)
         toward = (cam - p) / np.linalg.norm(cam - p)
         tilt = math.radians(rng.uniform(0, max_tilt_deg))
         k = np.cross(toward, rng.normal(size=3))

@@ -132,14 +132,15 @@ def mask_from_distance(
                 # of (mixed pixels, specks the coverage rule rejected) are subject
                 cand = np.flatnonzero(small)
                 d_roi = distance[y : y + bh, x : x + bw]
-                sel = np.isin(lab2, cand) & ~roi
-                med = np.array([np.median(d_roi[sel & (lab2 == i)]) for i in cand]) if cand.size <= 64 else None
-                if med is None:  # many holes: one pass over sorted labels
-                    order = np.argsort(lab2[sel], kind="stable")
-                    vals, labs = d_roi[sel][order], lab2[sel][order]
-                    starts = np.searchsorted(labs, cand)
-                    ends = np.searchsorted(labs, cand, side="right")
-                    med = np.array([np.median(vals[a:b]) for a, b in zip(starts, ends)])
+                is_cand = np.zeros(n2, bool)
+                is_cand[cand] = True
+                sel = is_cand[lab2]  # pixels of the small holes (one pass; the holes are few and small)
+                labs, vals = lab2[sel], d_roi[sel]
+                order = np.lexsort((vals, labs))  # by hole, then by distance: medians by index
+                labs, vals = labs[order], vals[order]
+                starts = np.searchsorted(labs, cand)
+                ends = np.searchsorted(labs, cand, side="right")
+                med = 0.5 * (vals[(starts + ends - 1) // 2] + vals[(starts + ends) // 2])
                 small[cand[med < t_lo]] = False
             fill = np.flatnonzero(small).astype(np.int32)
             if fill.size:
