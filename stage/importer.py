@@ -21,7 +21,7 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -161,6 +161,7 @@ def import_take(
     compression: str = "none",
     overwrite: bool = False,
     max_frames: int | None = None,
+    support_plane: Sequence[float] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> ImportResult:
     """Write a take from footage in ``images`` and a calibration.
@@ -183,6 +184,10 @@ def import_take(
         Filter of raw frames.
     max_frames : int, optional
         Import at most this many frame sets.
+    support_plane : (4,) floats, optional
+        ``(a, b, c, d)`` of the plane the subject stands on (``a x + b y + c z + d >= 0``
+        is kept), in the calibration's units; stored in the take's rig, where
+        :func:`stage.process.process_take` finds it.
     progress : callable, optional
         ``progress(done, total)`` after each set.
 
@@ -198,6 +203,11 @@ def import_take(
         raise ValueError(f"storage must be 'auto', 'raw' or 'jpeg', got {storage!r}")
     if max_frames is not None and (not isinstance(max_frames, int) or max_frames < 1):
         raise ValueError(f"max_frames must be a positive integer, got {max_frames!r}")
+    rig: dict[str, Any] = {"name": "imported", "source": str(Path(images).resolve()), "fps": fps}
+    if support_plane is not None:
+        from pipeline.volume import check_plane
+
+        rig["support_plane"] = check_plane(support_plane).tolist()
     if isinstance(calibration, Calibration):
         calib = calibration
     elif isinstance(calibration, (str, os.PathLike)):
@@ -241,7 +251,7 @@ def import_take(
         with TakeWriter(
             tmp,
             specs,
-            rig={"name": "imported", "source": str(Path(images).resolve()), "fps": fps},
+            rig=rig,
             calibration=calib,
             compression=compression,
             fps=fps,

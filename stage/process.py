@@ -473,6 +473,9 @@ def process_take(
         n_sets = reader.n_sets
         fps = reader.fps or reader.measured_fps() or 30.0
         rig = reader.rig or {}
+        if params.support_plane is None and rig.get("support_plane") is not None:
+            # the rig's (or the import's) support plane, unless the job gives its own
+            params = ProcessParams(**{**params.model_dump(), "support_plane": tuple(rig["support_plane"])})
         need_key = params.rekey or len(reader.masks_present()) < len(cameras)
     if n_sets == 0:
         raise ProcessError(f"{take}: the take holds no frame sets")

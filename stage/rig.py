@@ -6,6 +6,8 @@ volume and the backdrop::
     name = "lab"
     fps = 30
 
+    support_plane = [0, 0, 1, 0]  # optional: the plane the subject stands on, a x + b y + c z + d >= 0 kept
+
     [volume]            # millimetres, world frame of the calibration
     center = [0, 0, 375]
     size = [750, 750, 750]
@@ -137,6 +139,7 @@ class Rig(_Strict):
     fps: Annotated[float, Field(gt=0, le=1000)] = 30.0
     sync_tolerance_ms: Annotated[float, Field(gt=0)] | None = None
     volume: Volume = Volume()
+    support_plane: tuple[float, float, float, float] | None = None
     backdrop: Backdrop = Backdrop()
     simulation: Simulation | None = None
     cameras: list[CameraConfig] = Field(default_factory=list)
@@ -149,6 +152,8 @@ class Rig(_Strict):
             raise ValueError(f"cameras: duplicate camera ids {dup}")
         if not self.cameras:
             raise ValueError("cameras: a rig needs at least one camera")
+        if self.support_plane is not None and not any(self.support_plane[:3]):
+            raise ValueError("support_plane: the normal (a, b, c) must not be zero")
         if any(c.driver == "fake" for c in self.cameras) and self.simulation is None:
             raise ValueError("simulation: fake cameras need a [simulation] table")
         return self

@@ -27,6 +27,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--compression", choices=("none", "lz4", "gzip"), default="none", help="filter for raw frames")
     p.add_argument("--max-frames", type=int, metavar="N", help="import at most N frame sets")
     p.add_argument("--overwrite", action="store_true", help="replace TAKE.h5 if it exists")
+    p.add_argument(
+        "--support-plane",
+        type=float,
+        nargs=4,
+        metavar=("A", "B", "C", "D"),
+        help="the plane the subject stands on (a*x + b*y + c*z + d >= 0 kept, calibration units), stored "
+        "in the take for `stage process`: cameras that all look down cannot carve under the subject's base",
+    )
     p.set_defaults(func=run)
 
 
@@ -51,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
             compression=args.compression,
             overwrite=args.overwrite,
             max_frames=args.max_frames,
+            support_plane=args.support_plane,
             progress=progress,
         )
     finally:

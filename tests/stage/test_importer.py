@@ -143,6 +143,16 @@ def test_middlebury_dino_processed_end_to_end(tmp_path):
     assert np.all(np.abs(rel) <= 0.05), rel  # measured -1.7 %, -0.5 %, -0.8 %
     free = ResultsStore(tmp_path / "free").read_mesh(0)
     assert free.bounds[0, 1] < mesh.bounds[0, 1] - 0.002  # the unseen cone under the base
+    # the plane stored at import (`stage import --support-plane`) is the default for processing
+    from stage.cli import main
+
+    take = tmp_path / "dino_plane.h5"
+    args = ["import", "--images", str(root), "--calibration", str(root / "dinoSR_par.txt"), "--out", str(take),
+            "--max-frames", "1", "--support-plane", "0", "2", "0", str(-2 * box[0, 1])]
+    assert main(args) == 0
+    r3 = process_take(take, tmp_path / "stored", steps=("key", "surface"), params={"key_mode": "luma"})
+    assert r3.report["warnings"] == []
+    np.testing.assert_allclose(ResultsStore(tmp_path / "stored").read_mesh(0).bounds, mesh.bounds, atol=1e-9)
 
 
 def test_invalid_input(footage, tmp_path):
