@@ -276,6 +276,7 @@ def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: 
         if report.get("empty_frames"):
             summary_rows.append(["empty frames", ", ".join(str(x) for x in report["empty_frames"][:50])])
             warnings.append(f"{len(report['empty_frames'])} frame(s) have no surface")
+        warnings.extend(str(w) for w in report.get("warnings") or [])  # e.g. the blind side under the subject
         for k, v in (report.get("seconds") or {}).items():
             summary_rows.append([f"seconds: {k}", v])
     files = [n for n in ("spine.json", "report.json", "spine_rig.glb", "spine.glb") if (d / n).is_file()]

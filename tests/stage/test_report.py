@@ -188,6 +188,16 @@ def test_report_without_take_or_calibration(results, tmp_path):
     assert "the spine alone" in html
 
 
+def test_process_warnings_reach_the_page(results, tmp_path):
+    d, *_ = results
+    only = tmp_path / "warned"
+    only.mkdir()
+    shutil.copy(d / "spine.json", only / "spine.json")
+    (only / "report.json").write_text(json.dumps({"frames": 3, "warnings": ["all 16 cameras sit <above> the subject"]}))
+    html = render_report(only)
+    assert 'class="warn">&#9888; all 16 cameras sit &lt;above&gt; the subject' in html
+
+
 def test_invalid_input(tmp_path, results):
     d, spine, calib, take = results
     with pytest.raises(FileNotFoundError, match="results directory"):
