@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import signal
@@ -13,6 +14,7 @@ import time
 from pathlib import Path
 
 import cv2
+import h5py
 import numpy as np
 import pytest
 
@@ -247,6 +249,66 @@ def small_take(tmp_path):
         for k in range(4):
             w.write_set({"a": make_frame("a", 0, k)})
     return path
+
+
+MASK_WRITER_CHILD = textwrap.dedent(
+    """
+    import sys, time
+    sys.path.insert(0, {root!r})
+    import h5py
+    f = h5py.File({path!r}, "r+")          # what write_masks does, without SWMR
+    f.create_group("scratch")
+    f.flush()
+    print("open", flush=True)
+    time.sleep(60)
+    """
+)
+
+
+def test_killed_mask_writer_leaves_a_readable_take(tmp_path, caplog):
+    """A process killed while it had the take open to write masks (non-SWMR) left the
+    superblock flagged "open for write": neither a plain nor a SWMR reader could open it
+    (a killed API job could not resume). The flag is cleared when no process holds the file,
+    every frame reads back, and masks can be written; while a writer lives, it is left alone."""
+    path = tmp_path / "t.h5"
+    with TakeWriter(path, [CameraSpec("a", W, H)]) as w:
+        for k in range(3):
+            w.write_set({"a": make_frame("a", 0, k)})
+    live = subprocess.Popen([sys.executable, "-c", MASK_WRITER_CHILD.format(root=str(ROOT), path=str(path))],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert live.stdout.readline().strip() == "open"
+        with pytest.raises(TakeError, match="cannot open|not closed cleanly"):
+            TakeReader(path)
+        assert path.read_bytes()[11] & 1  # still flagged: not touched while its writer lives
+    finally:
+        live.kill()  # SIGKILL: the flag stays set
+        live.wait()
+    assert path.read_bytes()[11] & 1
+    with caplog.at_level(logging.WARNING):
+        with TakeReader(path) as r:
+            assert r.n_sets == 3
+            for k in range(3):
+                np.testing.assert_array_equal(r.frame("a", k), make_image(0, k))
+    assert "h5clear" in caplog.text and path.read_bytes()[11] == 0
+    write_masks(path, "a", np.ones((3, H, W), bool))
+    with TakeReader(path) as r:
+        assert r.masks("a").all()
+
+
+def test_superblock_checksum_is_hdf5s():
+    """The lookup3 checksum written when clearing the flag is the one HDF5 computes."""
+    import io
+
+    from stage.store import _lookup3
+
+    buf = io.BytesIO()
+    with h5py.File(buf, "w", libver="latest"):
+        pass
+    head = buf.getvalue()[:48]
+    assert head[8] == 3 and head[9] == 8
+    assert _lookup3(head[:44]) == int.from_bytes(head[44:48], "little")
+    assert _lookup3(b"") == 0xDEADBEEF
 
 
 def test_truncated_take(small_take, tmp_path):
