@@ -247,7 +247,7 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
             try:
                 if len(skipped) == len(cameras):
                     raise EmptyHullError("no camera has a valid mask in this frame set")
-                hull = carver.carve(masks, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
+                hull = _carve(carver, masks, p)
                 if use_depth:
                     fused = _fuser(calib_dict, grid_dict).fuse(_frame_depths(reader, cameras, k), hull=hull.occupancy)
                     mesh = fused.surface(taubin_iterations=p.smooth_iterations, face_budget=p.face_budget)
@@ -348,6 +348,11 @@ def _run_tasks(
             fut.cancel()
 
 
+def _carve(carver, masks, p: ProcessParams):
+    """One frame's hull with the job's carving options (the subject grid and the surfaces alike)."""
+    return carver.carve(masks, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
+
+
 def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, volume_bounds: np.ndarray):
     """A grid fitted to the subject: carve a few frame sets coarsely over the whole volume,
     take the union of their hulls' boxes (padded), and put ``resolution`` voxels along its
@@ -368,7 +373,7 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
         if len(skipped) == len(cameras):
             continue
         try:
-            occ = carver.carve(masks, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin).occupancy
+            occ = _carve(carver, masks, p).occupancy
         except ValueError:
             continue
         # the subject is the largest connected piece; phantom blobs seen by few cameras are not
@@ -627,12 +632,11 @@ def _blind_side_hint(calibration, grid) -> str:
     up, elev = view_elevation(calibration, centre)
     if elev < 5.0:
         return ""
-    n = up
     return (
         f"all {len(calibration)} cameras sit at least {elev:.1f} deg above the subject (seen from direction "
-        f"{n[0]:.2f} {n[1]:.2f} {n[2]:.2f}): no silhouette can carve under its base, so the hull reaches about "
+        f"{up[0]:.2f} {up[1]:.2f} {up[2]:.2f}): no silhouette can carve under its base, so the hull reaches about "
         f"{np.tan(np.radians(elev)):.2f} x the base's half-width below it. If the subject stands on a support, "
-        f"pass its plane: --support-plane {n[0]:.3f} {n[1]:.3f} {n[2]:.3f} D (kept where a*x + b*y + c*z + D >= 0)"
+        f"pass its plane: --support-plane {up[0]:.3f} {up[1]:.3f} {up[2]:.3f} D (kept where a*x + b*y + c*z + D >= 0)"
     )
 
 

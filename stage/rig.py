@@ -152,8 +152,10 @@ class Rig(_Strict):
             raise ValueError(f"cameras: duplicate camera ids {dup}")
         if not self.cameras:
             raise ValueError("cameras: a rig needs at least one camera")
-        if self.support_plane is not None and not any(self.support_plane[:3]):
-            raise ValueError("support_plane: the normal (a, b, c) must not be zero")
+        if self.support_plane is not None:
+            from pipeline.volume import check_plane
+
+            check_plane(self.support_plane)  # the one rule for planes: finite, non-zero normal
         if any(c.driver == "fake" for c in self.cameras) and self.simulation is None:
             raise ValueError("simulation: fake cameras need a [simulation] table")
         return self

@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--grow", type=int, default=0, help="dilate masks by this many pixels (conservative hulls)")
     p.add_argument(
         "--fill-holes",
-        choices=("uncertain", "small", "none"),
+        choices=("uncertain", "small", "none"),  # stage.keying.params.FILL_HOLES (not imported: CLI start-up)
         default=None,
         help="small holes to fill: 'uncertain' leaves gaps of clean backdrop colour open (default for chroma "
         "and plate), 'small' fills all (default for luma: shadows look like a black backdrop), 'none'",

@@ -18,6 +18,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from stage.keying.params import FILL_HOLES
+
 __all__ = ["soft_matte", "mask_from_distance"]
 
 
@@ -88,8 +90,8 @@ def mask_from_distance(
     stats : dict
         ``components_dropped``, ``holes_filled``.
     """
-    if fill_holes not in ("uncertain", "small", "none"):
-        raise ValueError(f"fill_holes must be 'uncertain', 'small' or 'none', got {fill_holes!r}")
+    if fill_holes not in FILL_HOLES:
+        raise ValueError(f"fill_holes must be one of {FILL_HOLES}, got {fill_holes!r}")
     h, w = distance.shape
     min_px = max(1, int(round(min_area * h * w)))
     # OpenCV comparisons (uint8 0/255, no GIL) rather than NumPy boolean arrays

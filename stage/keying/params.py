@@ -7,10 +7,11 @@ from typing import Any, Literal
 
 import numpy as np
 
-__all__ = ["KEY_MODES", "KeyMode", "KeyParams", "KeyResult", "KeyingError"]
+__all__ = ["KEY_MODES", "FILL_HOLES", "KeyMode", "KeyParams", "KeyResult", "KeyingError"]
 
 KeyMode = Literal["chroma", "luma", "plate"]
 KEY_MODES: tuple[str, ...] = ("chroma", "luma", "plate")
+FILL_HOLES: tuple[str, ...] = ("uncertain", "small", "none")
 
 
 class KeyingError(ValueError):
@@ -114,8 +115,8 @@ class KeyParams:
             raise ValueError(f"t_hi ({self.t_hi}) must be greater than t_lo ({self.t_lo})")
         if not 0 < self.shadow_floor < 1:
             raise ValueError(f"shadow_floor must be in (0, 1), got {self.shadow_floor!r}")
-        if self.fill_holes not in (None, "uncertain", "small", "none"):
-            raise ValueError(f"fill_holes must be 'uncertain', 'small' or 'none', got {self.fill_holes!r}")
+        if self.fill_holes is not None and self.fill_holes not in FILL_HOLES:
+            raise ValueError(f"fill_holes must be one of {FILL_HOLES} or None, got {self.fill_holes!r}")
         if not 0 <= self.min_area < 0.5:
             raise ValueError(f"min_area must be in [0, 0.5), got {self.min_area!r}")
         for name in ("close_radius", "grow", "sample_stride", "coverage_window"):
