@@ -44,6 +44,13 @@ __all__ = ["ProcessParams", "ProcessResult", "ProcessError", "process_take", "ST
 
 log = logging.getLogger("stage.process")
 
+#: Default voxel edge in pixels at the subject (median footprint over the cameras).
+PIXELS_PER_VOXEL = 2.0
+#: Voxels in the processing grid at most (time: the carve and marching cubes grow with it).
+MAX_VOXELS = 8_000_000
+#: Voxels along the subject's longest side at least, whatever the cameras resolve.
+MIN_RESOLUTION = 48
+
 
 
 class ProcessError(ValueError):
@@ -59,10 +66,12 @@ class ProcessParams(BaseModel):
         Keying mode; default: the rig's backdrop, else chroma.
     rekey : bool
         Key again even when the take already holds masks.
-    resolution : int
+    resolution : int or None
         Voxels along the longest side of the subject's bounding box (the box is
-        found by a coarse carve of the whole capture volume, so the voxel size
-        follows the subject, not the rig).
+        found by a coarse carve of the whole capture volume). Default: from the rig,
+        a voxel of :data:`PIXELS_PER_VOXEL` times the median pixel footprint at the
+        subject over the cameras that see it (so a limb 4 pixels wide in most views is
+        2 voxels across), within :data:`MAX_VOXELS` and the memory the carver may use.
     volume : (6,) floats or None
         ``[xmin, ymin, zmin, xmax, ymax, zmax]`` to search for the subject; default the
         rig's capture volume, else derived from the cameras.
@@ -81,7 +90,8 @@ class ProcessParams(BaseModel):
     smooth_iterations : int
         Taubin smoothing iterations of the surface.
     face_budget : int or None
-        Decimate surfaces to at most this many faces.
+        Decimate surfaces to at most this many faces before skeletons (their cost grows
+        with the faces; the tips and limbs do not need more). ``None``: never.
     chunk : int
         Frames per task sent to the executor.
     depth : {"auto", "off"}
@@ -96,13 +106,13 @@ class ProcessParams(BaseModel):
 
     key_mode: Literal["chroma", "luma", "plate"] | None = None
     rekey: bool = False
-    resolution: Annotated[int, Field(ge=16, le=512)] = 96
+    resolution: Annotated[int, Field(ge=16, le=512)] | None = None
     volume: tuple[float, float, float, float, float, float] | None = None
     tolerance: Annotated[int, Field(ge=0)] = 0
     silhouette_margin: Annotated[int, Field(ge=0, le=10)] = 1
     support_plane: tuple[float, float, float, float] | None = None
     smooth_iterations: Annotated[int, Field(ge=0, le=200)] = 10
-    face_budget: Annotated[int, Field(ge=100)] | None = None
+    face_budget: Annotated[int, Field(ge=100)] | None = 16000
     chunk: Annotated[int, Field(ge=1)] = 4
     depth: Literal["auto", "off"] = "auto"
     spine: dict = Field(default_factory=dict)
@@ -396,7 +406,42 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
     c, half = (lo + hi) / 2, (hi - lo) / 2 * 1.25
     lo = np.maximum(c - half, volume_bounds[:3])
     hi = np.minimum(c + half, volume_bounds[3:])
-    return grid_from_volume(np.stack([lo, hi]), p.resolution)
+    return np.stack([lo, hi])
+
+
+def _rig_resolution(calibration, box: np.ndarray, p: ProcessParams) -> tuple[int, dict]:
+    """Voxels along the box's longest side, and why: ``--resolution`` when given, else from
+    the pixel footprint at the subject (:data:`PIXELS_PER_VOXEL`) within the budgets."""
+    from pipeline.hull import _memory_limit, hull_memory_bytes
+    from pipeline.volume import grid_from_volume, pixel_footprint
+
+    longest = float((box[1] - box[0]).max())
+    if p.resolution is not None:
+        return p.resolution, {"source": "resolution option", "resolution": p.resolution}
+    fp = pixel_footprint(calibration, (box[0] + box[1]) / 2)[:, 0]
+    seen = fp[np.isfinite(fp)]
+    if seen.size == 0:
+        raise ProcessError("no camera sees the centre of the subject's box; check the calibration or pass --resolution")
+    footprint = float(np.median(seen))
+    wanted = int(np.ceil(longest / (PIXELS_PER_VOXEL * footprint)))
+    res, limit = max(wanted, MIN_RESOLUTION), "pixel footprint"
+    if res == MIN_RESOLUTION and wanted < MIN_RESOLUTION:
+        limit = f"at least {MIN_RESOLUTION} voxels along the subject"
+    ext = box[1] - box[0]
+    while res > MIN_RESOLUTION and (
+        np.prod(np.ceil(ext / (longest / res))) > MAX_VOXELS
+        or hull_memory_bytes(grid_from_volume(box, res), calibration) > _memory_limit()
+    ):
+        res, limit = int(res * 0.95), f"budget of {MAX_VOXELS:,} voxels and the carver's memory"
+    why = {
+        "source": "rig",
+        "resolution": res,
+        "pixel_footprint": footprint,
+        "cameras_seeing_subject": int(seen.size),
+        "pixels_per_voxel": PIXELS_PER_VOXEL,
+        "limited_by": limit,
+    }
+    return res, why
 
 
 # ----------------------------------------------------------------------------- steps
@@ -423,6 +468,7 @@ class RunContext:
     warnings: list[str] = field(default_factory=list)
     spine_path: Path | None = None
     tip_counts: list[int | None] = field(default_factory=list)
+    grid_choice: dict = field(default_factory=dict)
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
@@ -509,7 +555,7 @@ def _volume_bounds(ctx: RunContext) -> np.ndarray:
 def _processing_grid(ctx: RunContext):
     """The grid of the surfaces: ``OUT/grid.json`` when an earlier run chose it, else fitted
     to the subject now (and written there)."""
-    from pipeline.volume import Grid
+    from pipeline.volume import Grid, grid_from_volume
     from stage.store import TakeReader
 
     grid_path = ctx.out / "grid.json"
@@ -518,15 +564,21 @@ def _processing_grid(ctx: RunContext):
         if missing:
             raise ProcessError(f"{ctx.take}: cameras {missing} have no masks; run the key step")
         if grid_path.exists():
-            return Grid.from_dict(json.loads(grid_path.read_text()))
-        grid = _subject_grid(reader, ctx.calibration, ctx.cameras, ctx.n_sets, ctx.params, _volume_bounds(ctx))
+            grid = Grid.from_dict(json.loads(grid_path.read_text()))
+            ctx.grid_choice = json.loads(grid_path.read_text()).get("choice", {})
+            return grid
+        box = _subject_grid(reader, ctx.calibration, ctx.cameras, ctx.n_sets, ctx.params, _volume_bounds(ctx))
     p = ctx.params
+    res, why = _rig_resolution(ctx.calibration, box, p)
+    grid = grid_from_volume(box, res)
+    ctx.grid_choice = {**why, "voxel": grid.voxel, "shape": list(grid.shape)}
+    log.info("processing grid %s (%s)", grid, why["limited_by"] if "limited_by" in why else why["source"])
     if p.support_plane is None and p.volume is None and not ctx.rig.get("volume"):
         hint = _blind_side_hint(ctx.calibration, grid)
         if hint:
             log.warning("%s", hint)
             ctx.warnings.append(hint)
-    _atomic_write_text(grid_path, json.dumps(grid.to_dict()))
+    _atomic_write_text(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
     return grid
 
 
@@ -534,6 +586,7 @@ def _step_surface(ctx: RunContext) -> None:
     """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
     t0 = time.perf_counter()
     grid = _processing_grid(ctx)
+    _add_to_record(ctx, grid=ctx.grid_choice)
     task = partial(
         surface_task,
         str(ctx.take.resolve()),
@@ -636,7 +689,14 @@ def _start_record(ctx: RunContext) -> None:
                 for f in (ctx.out / sub).glob("frame_*"):
                     f.unlink()
             (ctx.out / "spine.json").unlink(missing_ok=True)
+            (ctx.out / "grid.json").unlink(missing_ok=True)  # the grid follows the parameters too
     _atomic_write_text(prev, json.dumps(record, indent=2))
+
+
+def _add_to_record(ctx: RunContext, **items) -> None:
+    """Add what a step decided (e.g. the grid and why) to ``process.json``."""
+    path = ctx.out / "process.json"
+    _atomic_write_text(path, json.dumps({**json.loads(path.read_text()), **items}, indent=2, default=_json_default))
 
 
 def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> ProcessResult:
@@ -657,6 +717,7 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "tip_counts": ctx.tip_counts,
         "per_frame": [frame_infos.get(k) for k in range(ctx.n_sets)],
         "warnings": ctx.warnings,
+        "grid": ctx.grid_choice,
     }
     _atomic_write_text(ctx.out / "report.json", json.dumps(report, indent=1, default=_json_default))
     return ProcessResult(
