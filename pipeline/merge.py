@@ -265,7 +265,7 @@ def realize_junctions(skeleton: TipSkeleton, topology: Topology, tips) -> list[i
     """
     tips = [int(t) for t in tips]
     tn = skeleton.tip_nodes
-    par = skeleton.parent
+    par = np.asarray(skeleton.parent).tolist()  # the tree walks index a list (numpy scalars are slow)
     node_of = [int(tn[t]) if t >= 0 else -1 for t in tips]
     n = topology.n_tips
     if n <= 2:
