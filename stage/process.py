@@ -40,7 +40,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-__all__ = ["ProcessParams", "ProcessResult", "ProcessError", "process_take", "STEPS", "Step", "RunContext", "register_step"]
+__all__ = ["STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "process_take", "register_step"]
 
 log = logging.getLogger("stage.process")
 
@@ -231,17 +231,70 @@ def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tupl
 # ----------------------------------------------------------------------------- per-frame tasks
 
 
-def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: dict, params: dict, out: str) -> list[dict]:
-    """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/``.
+def key_task(take: str, camera: str, base: dict, workers: int) -> dict:
+    """Key one camera of the take (in a worker); the masks come back bit-packed for the
+    parent to store (one writer per take file)."""
+    from stage.keying.params import KeyParams
+    from stage.keying.take import key_camera
+
+    if workers == 1:
+        import cv2
+
+        cv2.setNumThreads(1)  # parallelism comes from the worker processes
+    key = key_camera(take, camera, base=KeyParams(**base), workers=workers)
+    if key is None:
+        return {"camera": camera, "key": None}
+    shape = key.masks.shape
+    key.masks = np.packbits(key.masks, axis=-1)
+    return {"camera": camera, "key": key, "shape": shape}
+
+
+def _skeleton_record(k: int, mesh, params) -> dict:
+    """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of one frame's surface
+    (``None``: an empty frame), as stored in ``skeletons/``; the mesh is taken as
+    :func:`pipeline.meshio.load_mesh` reads it back (its largest connected part)."""
+    from pipeline.geodesic import largest_component
+    from pipeline.spine import frame_skeleton
+
+    if mesh is None:
+        return {"index": int(k), "status": "empty"}
+    v, f = np.asarray(mesh[0], np.float64), np.asarray(mesh[1], np.int64)
+    v2, f2, _ = largest_component(v, f, warn=False)
+    if len(f2) != len(f):
+        v, f = v2, f2
+    try:
+        return {"index": int(k), "status": "ok", "skeleton": frame_skeleton(v, f, params=params).to_dict()}
+    except ValueError as exc:
+        log.warning("frame set %d: no skeleton: %s", k, exc)
+        return {"index": int(k), "status": "failed", "reason": str(exc)}
+
+
+def surface_task(
+    take: str,
+    frames: Sequence[int],
+    calib_dict: dict,
+    grid_dict: dict,
+    params: dict,
+    out: str,
+    spine_params: dict | None = None,
+) -> list[dict]:
+    """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/`` (and,
+    with ``spine_params``, the frames' skeletons to ``skeletons/`` from the mesh in memory).
 
     Top level (picklable) so it runs in a process pool or on a Dask worker.
     """
     from pipeline.hull import EmptyHullError
     from pipeline.results import ResultsStore
-    from pipeline.surface import EmptySurfaceError, surface_from_occupancy, surface_quality
+    from pipeline.spine import SpineParams
+    from pipeline.surface import (
+        EmptySurfaceError,
+        surface_from_occupancy,
+        surface_quality,
+    )
     from stage.store import TakeReader
 
     p = ProcessParams(**params)
+    sp = SpineParams(**spine_params) if spine_params is not None else None
     out_dir = Path(out)
     store = ResultsStore(out_dir)
     carver = _carver(calib_dict, grid_dict)
@@ -254,6 +307,7 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
             t0 = time.perf_counter()
             masks, skipped = _frame_masks(reader, cameras, k, validity)
             info: dict = {"index": int(k), "skipped_cameras": skipped}
+            mesh = None
             try:
                 if len(skipped) == len(cameras):
                     raise EmptyHullError("no camera has a valid mask in this frame set")
@@ -274,19 +328,23 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
                 store.write_mesh(k, mesh)
                 info.update(status="ok", quality=quality)
             except (EmptyHullError, EmptySurfaceError) as exc:
+                mesh = None
                 info.update(status="empty", reason=str(exc))
                 log.warning("frame set %d: %s", k, exc)
             info["seconds"] = time.perf_counter() - t0
+            if sp is not None:
+                rec = _skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp)
+                _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
             _atomic_write_text(out_dir / "frames" / f"{_frame_name(k)}.json", json.dumps(info))
             results.append(info)
     return results
 
 
 def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
-    """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of some frames' meshes."""
+    """Per-frame tips and skeletons of some frames' stored meshes -> ``skeletons/``."""
     from pipeline.meshio import load_mesh
     from pipeline.results import ResultsStore
-    from pipeline.spine import SpineParams, frame_skeleton
+    from pipeline.spine import SpineParams
 
     params = SpineParams(**spine_params)
     out_dir = Path(out)
@@ -294,19 +352,20 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
     done = []
     for k in frames:
         mesh_path = store.mesh_path(k)
-        if mesh_path.exists():
-            v, f = load_mesh(mesh_path)
-            try:
-                sk = frame_skeleton(v, f, params=params).to_dict()
-                rec = {"index": int(k), "status": "ok", "skeleton": sk}
-            except ValueError as exc:
-                rec = {"index": int(k), "status": "failed", "reason": str(exc)}
-                log.warning("frame set %d: no skeleton: %s", k, exc)
-        else:
-            rec = {"index": int(k), "status": "empty"}
+        rec = _skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
         _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
         done.append({"index": int(k), "status": rec["status"]})
     return done
+
+
+def warm_task() -> int:
+    """Import what the per-frame tasks need (run once per worker while the parent reads the take)."""
+    import pipeline.hull
+    import pipeline.spine
+    import pipeline.surface  # noqa: F401
+    import stage.keying.take  # noqa: F401
+
+    return os.getpid()
 
 
 # ----------------------------------------------------------------------------- driver
@@ -314,48 +373,6 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
 
 def _chunks(items: Sequence[int], n: int) -> list[list[int]]:
     return [list(items[i : i + n]) for i in range(0, len(items), n)]
-
-
-def _run_tasks(
-    executor: cf.Executor | None,
-    task: Callable[[list[int]], list[dict]],
-    chunks: list[list[int]],
-    *,
-    step: str,
-    done0: int,
-    total: int,
-    progress: Callable[[str, int, int], None] | None,
-    cancel: threading.Event | None,
-) -> None:
-    """Run ``task(chunk)`` for every chunk of frame indices (in this process, or on the
-    executor), reporting progress after each finished chunk; the tasks persist their results."""
-    done = done0
-
-    def check_cancel() -> None:
-        if cancel is not None and cancel.is_set():
-            raise InterruptedError("cancelled")
-
-    def finished(n: int) -> None:
-        nonlocal done
-        done += n
-        if progress:
-            progress(step, done, total)
-
-    if executor is None:
-        for ch in chunks:
-            check_cancel()
-            task(ch)
-            finished(len(ch))
-        return
-    futures = {executor.submit(task, ch): ch for ch in chunks}
-    try:
-        for fut in cf.as_completed(futures):
-            check_cancel()
-            fut.result()
-            finished(len(futures[fut]))
-    finally:
-        for fut in futures:
-            fut.cancel()
 
 
 def _carve(carver, masks, p: ProcessParams):
@@ -469,6 +486,7 @@ class RunContext:
     spine_path: Path | None = None
     tip_counts: list[int | None] = field(default_factory=list)
     grid_choice: dict = field(default_factory=dict)
+    steps: tuple[str, ...] = ()
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
@@ -478,17 +496,11 @@ class RunContext:
         """Run a per-frame ``task`` on every frame set without a result in ``OUT/done_dir``
         (the one runner all per-frame steps share: chunks, executor, progress, cancel)."""
         todo = [k for k in range(self.n_sets) if not (self.out / done_dir / f"{_frame_name(k)}.json").exists()]
-        self.report_progress(step, self.n_sets - len(todo), self.n_sets)
-        _run_tasks(
-            self.executor,
-            task,
-            _chunks(todo, self.params.chunk),
-            step=step,
-            done0=self.n_sets - len(todo),
-            total=self.n_sets,
-            progress=self.progress,
-            cancel=self.cancel,
-        )
+        done = self.n_sets - len(todo)
+        self.report_progress(step, done, self.n_sets)
+        for finished in _map_tasks(self, [partial(task, ch) for ch in _chunks(todo, self.params.chunk)]):
+            done += len(finished)
+            self.report_progress(step, done, self.n_sets)
 
 
 @dataclass(frozen=True)
@@ -519,24 +531,52 @@ def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = ""
 
 
 def _step_key(ctx: RunContext) -> None:
-    """Key every camera of the take (unless it holds masks and ``rekey`` is off)."""
+    """Key every camera of the take (unless it holds masks and ``rekey`` is off): one task
+    per camera on the executor (frames read once, in the worker), masks stored here."""
     total = ctx.n_sets * len(ctx.cameras)
     if not ctx.need_key:
         ctx.report_progress("key", total, total)
         return
-    from stage.keying.take import key_take
+    from stage.keying.take import store_camera_key, take_key_params
 
-    state = {"done": 0}
+    t0 = time.perf_counter()
+    base = take_key_params(ctx.rig, key_mode=ctx.params.key_mode).to_dict()
+    done, keys = 0, []
+    ctx.report_progress("key", 0, total)
+    for res in _map_tasks(ctx, [partial(key_task, str(ctx.take), cam, base, 1 if ctx.executor else 2) for cam in ctx.cameras]):
+        if res["key"] is not None:
+            keys.append(res)
+            done += len(res["key"].valid)
+        ctx.report_progress("key", min(done, total), total)
+    # stored once every worker has finished reading the take (one writer, no readers)
+    for res in keys:
+        key = res["key"]
+        key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).astype(bool)
+        store_camera_key(ctx.take, key)
+    ctx.timings["key"] = time.perf_counter() - t0
 
-    def _key_progress(n: int) -> None:
-        state["done"] += n
-        ctx.report_progress("key", state["done"], total)
+
+def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
+    """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
+    between tasks when cancelled."""
+
+    def check_cancel() -> None:
         if ctx.cancel is not None and ctx.cancel.is_set():
             raise InterruptedError("cancelled")
 
-    t0 = time.perf_counter()
-    key_take(ctx.take, key_mode=ctx.params.key_mode, progress=_key_progress)
-    ctx.timings["key"] = time.perf_counter() - t0
+    if ctx.executor is None:
+        for task in tasks:
+            check_cancel()
+            yield task()
+        return
+    futures = [ctx.executor.submit(task) for task in tasks]
+    try:
+        for fut in cf.as_completed(futures):
+            check_cancel()
+            yield fut.result()
+    finally:
+        for fut in futures:
+            fut.cancel()
 
 
 def _volume_bounds(ctx: RunContext) -> np.ndarray:
@@ -594,6 +634,8 @@ def _step_surface(ctx: RunContext) -> None:
         grid_dict=grid.to_dict(),
         params=ctx.params.model_dump(),
         out=str(ctx.out.resolve()),
+        # skeletons straight from the surfaces in memory when the spine step follows
+        spine_params=ctx.params.spine if "spine" in ctx.steps else None,
     )
     ctx.run_frames("surface", task, "frames")
     ctx.timings["surface"] = time.perf_counter() - t0
@@ -772,7 +814,11 @@ def process_take(
     out.mkdir(parents=True, exist_ok=True)
 
     t_start = time.perf_counter()
+    if executor is not None:
+        for _ in range(2):
+            executor.submit(warm_task)  # workers import while this process reads the take
     ctx = _open_context(take, out, params, executor=executor, progress=progress, cancel=cancel)
+    ctx.steps = steps
     _start_record(ctx)
     for name in steps:
         _REGISTRY[name].run(ctx)
