@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-httpx = pytest.importorskip("httpx")
+import httpx
 
 from tests.api.test_serve import AUTH, Server  # noqa: E402
 from tests.stage.test_report import CHROMIUM, CHROMIUM_ARGS, _browser  # noqa: E402

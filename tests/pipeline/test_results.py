@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.results import ResultsStore, atomic_write_bytes
 
-trimesh = pytest.importorskip("trimesh")
+import trimesh
 
 
 def test_meshes_round_trip_exactly_and_list_frames(tmp_path):

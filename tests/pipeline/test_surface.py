@@ -19,7 +19,7 @@ from pipeline.volume import Grid, grid_from_volume, volume_from_cameras
 from tests.conftest import shared_dataset
 from tests.pipeline.test_hull import sim_grid, sim_take
 
-trimesh = pytest.importorskip("trimesh")
+import trimesh
 
 
 def _ball_grid(n=24, voxel=2.0):
@@ -148,7 +148,7 @@ def _dino_take(folder: Path):
     from calib.calibration import Calibration
     from stage.keying import key_frames
 
-    formats = pytest.importorskip("calib.formats")
+    from calib import formats
     cal = formats.read_middlebury_par(folder / "dinoSR_par.txt")
     good = [ln.strip() for ln in (folder / "dinoSR_good_silhouette_images.txt").read_text().splitlines() if ln.strip()]
     by_name = {c.name: c for c in cal.cameras}
@@ -178,7 +178,7 @@ def _hidden_by(occ_above: np.ndarray, grid: Grid, cameras, points: np.ndarray, r
 
 @pytest.mark.slow
 def test_middlebury_dino_surface_bounding_box():
-    """Issue 5: luma-keyed silhouettes of the dino give a surface within 5 % of the published box.
+    """Luma-keyed silhouettes of the dino give a surface within 5 % of the published box.
 
     All 15 views sit ~17 degrees above the dino on a ring around +y, so no silhouette can
     carve the region under its base: a visual hull from these cameras alone reaches ~6 mm
@@ -238,7 +238,7 @@ def _dino_silhouettes(folder: Path, names: list[str]) -> np.ndarray:
 def test_middlebury_dino_recipe_silhouettes_match_published_box_above_the_floor():
     from calib.calibration import Calibration
 
-    formats = pytest.importorskip("calib.formats")
+    from calib import formats
     folder = shared_dataset("middlebury_dino_sparse_ring")
     cal = formats.read_middlebury_par(folder / "dinoSR_par.txt")
     good = [ln.strip() for ln in (folder / "dinoSR_good_silhouette_images.txt").read_text().splitlines() if ln.strip()]

@@ -217,7 +217,6 @@ def test_invalid_input(tmp_path):
 
 def test_cli_capture_simulated_rig(tmp_path, capsys):
     """`stage capture` end to end through the registry and the fake driver (tiny images)."""
-    pytest.importorskip("stage.drivers.fake")
     from fake_cameras.rigs import write_simulated_rig
     from stage.cli import main
 
