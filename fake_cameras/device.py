@@ -30,6 +30,7 @@ from typing import Callable
 import numpy as np
 
 from stage.drivers.base import CameraDisconnectedError, CameraError, CameraNotFoundError, Granted
+from stage.drivers.registry import register_driver
 from stage.frame import Frame
 from stage.rig import FakeCameraConfig, Rig
 
@@ -275,3 +276,7 @@ class FakeCamera:
 
     def __repr__(self) -> str:
         return f"FakeCamera({self.camera_id!r}, index={self.config.index}, {self.config.width}x{self.config.height}@{self.fps:g})"
+
+
+# rig cameras with driver = "fake" are these (stage.drivers.open_driver finds them once this module is imported)
+register_driver("fake", FakeCamera, needs_rig=True)
