@@ -57,7 +57,8 @@ def _board_source(kind: str, calibration, frames: int, seed: int, noise: float, 
     # view 0: the board lying on the floor at the world origin (it defines the world frame
     # when calibrating with world_frame=0); the rest move through most of the volume, where
     # the subject will be (a calibration only holds where the board has been)
-    poses = np.concatenate([floor_pose()[None], board_poses(board, calibration, max(frames - 1, 0), seed=seed, volume=volume, spread=0.9)])
+    waved = board_poses(board, calibration, max(frames - 1, 0), seed=seed, volume=volume, spread=0.9)
+    poses = np.concatenate([floor_pose()[None], waved])
     return render_board_views(board, calibration, frames, seed=seed, noise_sigma=noise, volume=volume, poses=poses[:frames])
 
 

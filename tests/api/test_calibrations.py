@@ -7,9 +7,8 @@ import pytest
 
 from calib.formats import read_calibration
 from tests.api.conftest import AUTH, wait_job
-from tests.api.test_takes import _calibration
 from tests.api.fakework import make_take_file
-
+from tests.api.test_takes import _calibration
 
 BOARD = {"type": "chessboard", "corners": [7, 6], "square_mm": 100.0}
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-
 import schemathesis
 from hypothesis import HealthCheck, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402

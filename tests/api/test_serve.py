@@ -21,9 +21,8 @@ import threading
 import time
 from pathlib import Path
 
-import pytest
-
 import httpx
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 TOKEN = "serve-test-token"

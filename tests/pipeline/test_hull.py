@@ -24,7 +24,6 @@ from pipeline.volume import (
 from stage.rig import Volume
 from tests.pipeline import simrig
 
-
 # -- fixtures ------------------------------------------------------------------------------------
 
 

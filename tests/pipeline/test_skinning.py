@@ -155,7 +155,7 @@ def test_rig_joints_follow_the_spine_in_every_frame():
     tip = {lb: rig.names.index(f"{lb}.tip") for lb in spine.limb_ids}
     for t in range(spine.frame_count):
         P = rig.joint_positions(t)
-        for k, lb in enumerate(spine.limb_ids):
+        for lb in spine.limb_ids:
             np.testing.assert_allclose(P[tip[lb]], spine.axes[lb][t, -1], atol=1e-9)
         np.testing.assert_allclose(P[0], spine.junctions[t, 0], atol=1e-9)
     # rotations are unit quaternions; rest frame is the identity

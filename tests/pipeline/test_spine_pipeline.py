@@ -119,7 +119,8 @@ def test_resample_polyline_spacing_and_invalid_input():
 
 def test_invalid_input():
     pose = _stick_pose()
-    spine = {"graph": {"limbs": ["limb0"]}, "frames": [{"tips": {"limb0": [200.0, 0, 0]}, "axes": {"limb0": [[0.0, 0, 0], [200.0, 0, 0]]}}]}
+    frame = {"tips": {"limb0": [200.0, 0, 0]}, "axes": {"limb0": [[0.0, 0, 0], [200.0, 0, 0]]}}
+    spine = {"graph": {"limbs": ["limb0"]}, "frames": [frame]}
     tips = np.array([[[200.0, 0, 0]]])
     axes = {"limb": np.array([[[30.0, 0, 0], [200.0, 0, 0]]])}
     acc = evaluate_spine(spine, tips, axes, ["limb"], poses=[pose])

@@ -72,7 +72,8 @@ class PacedCamera:
 
 
 def rig_for(ids, fps=60.0):
-    return parse_rig({"name": "t", "fps": fps, "cameras": [{"id": c, "driver": "opencv", "device": 0, "width": W, "height": H} for c in ids]})
+    cams = [{"id": c, "driver": "opencv", "device": 0, "width": W, "height": H} for c in ids]
+    return parse_rig({"name": "t", "fps": fps, "cameras": cams})
 
 
 def make_drivers(ids, fps=60.0, **per_cam):

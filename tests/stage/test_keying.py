@@ -21,7 +21,6 @@ from stage.keying import (
 from stage.keying.chroma import estimate_chroma_model
 from tests.conftest import shared_dataset
 
-
 # -- reference implementations ------------------------------------------------
 
 

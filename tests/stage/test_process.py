@@ -105,7 +105,7 @@ def test_rgbd_take_fuses_depth(tmp_path):
     # exact masks and calibration: no silhouette margin (the default 1 px guards real rigs'
     # sub-pixel errors; with it the hull-bound pockets grow and the 99th percentile is 2.15)
     exact = {"resolution": 64, "silhouette_margin": 0}
-    res = process_take(path, out, steps=("key", "surface"), params=exact)
+    process_take(path, out, steps=("key", "surface"), params=exact)
     rep = json.loads((out / "report.json").read_text())
     assert [f["source"] for f in rep["per_frame"]] == ["depth+hull"] * 2
     grid = json.loads((out / "grid.json").read_text())
