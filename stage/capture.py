@@ -232,6 +232,7 @@ def capture_take(
             fps=rig.fps,
             overwrite=overwrite,
             attrs={"granted": {c: vars(g) for c, g in granted.items()}},
+            expected_sets=frames if frames is not None else int(duration_s * rig.fps),
         )
         threads = [_Grabber(c, drv[c], q, stop_ev, qdrops) for c in ids]
         t0 = time.monotonic()

@@ -182,6 +182,12 @@ class TakeWriter:
         try:
             self._f = self._create(p, cams, ids, rig=rig, calibration=calibration, compression=compression, fps=fps,
                                    attrs=attrs, filt=filt)
+            # datasets stay open while writing: HDF5 writes a dataset's cached chunks when the
+            # dataset is flushed or closed, and only a flush of the file reports a failed write
+            # (a dataset handle closed by the garbage collector would swallow it)
+            self._ds = {c.id: {name: self._f["cameras"][c.id][name] for name in self._f["cameras"][c.id]} for c in cams}
+            self._sets = {name: self._f["sets"][name] for name in ("commit", "frames", "time_ns")}
+            self._sync = self._f["meta"]["sync_stats"]
         except BaseException as exc:
             self._reserve.release()
             if p.exists():
@@ -320,12 +326,12 @@ class TakeWriter:
             fr = frames.get(spec.id)
             if fr is None:
                 continue
-            self._write_frame(f["cameras"][spec.id], spec, fr, k)
+            self._write_frame(self._ds[spec.id], spec, fr, k)
             row[self._col[spec.id]] = self._n[spec.id]
             hosts.append(int(fr.host_timestamp_ns))
         if time_ns is None:
             time_ns = int(np.median(hosts)) if hosts else 0
-        sets = f["sets"]
+        sets = self._sets
         self._grow(sets["frames"], k + 1)
         sets["frames"][k] = row
         self._grow(sets["time_ns"], k + 1)
@@ -339,7 +345,7 @@ class TakeWriter:
         f.flush()
         return k
 
-    def _write_frame(self, g: h5py.Group, spec: CameraSpec, fr: Frame, k: int) -> None:
+    def _write_frame(self, g: dict[str, h5py.Dataset], spec: CameraSpec, fr: Frame, k: int) -> None:
         i = self._n[spec.id]
         valid = self._frame_valid(spec, fr)
         if spec.storage == "raw":
@@ -365,7 +371,7 @@ class TakeWriter:
             self._grow(d, i + 1)
             d[i] = v
 
-    def _write_jpeg(self, g: h5py.Group, spec: CameraSpec, fr: Frame, i: int, valid: bool) -> None:
+    def _write_jpeg(self, g: dict[str, h5py.Dataset], spec: CameraSpec, fr: Frame, i: int, valid: bool) -> None:
         data = fr.encoded
         if data is None and valid:
             data = encode_jpeg(fr.image)
@@ -386,7 +392,7 @@ class TakeWriter:
 
     def _write_commit(self, *, closed: bool) -> None:
         commit = np.array([self._n_sets, int(closed)] + [self._n[c.id] for c in self.cameras], dtype=np.int64)
-        self._f["sets"]["commit"][...] = commit
+        self._sets["commit"][...] = commit
 
     def update_sync_stats(self, stats: Any) -> None:
         """Record sync statistics (a :class:`~stage.sync.SyncStats` or its dict); rewritable."""
@@ -395,7 +401,7 @@ class TakeWriter:
         d = stats.to_dict() if hasattr(stats, "to_dict") else dict(stats)
         buf = np.frombuffer(to_json(d).encode("utf-8"), dtype=np.uint8)
         try:
-            ds = self._f["meta"]["sync_stats"]
+            ds = self._sync
             ds.resize(buf.size, axis=0)
             ds[:] = buf
             self._f.flush()
@@ -422,19 +428,17 @@ class TakeWriter:
         )
 
     def _finish(self) -> None:
-        f = self._f
         for spec in self.cameras:
-            g = f["cameras"][spec.id]
             n = self._n[spec.id]
-            for name in g:
+            for name, ds in self._ds[spec.id].items():
                 if name == "jpeg":
-                    g[name].resize(self._jpeg_end[spec.id], axis=0)
+                    ds.resize(self._jpeg_end[spec.id], axis=0)
                 elif name in RESERVED:
-                    g[name].resize(n, axis=0)
-        f["sets"]["frames"].resize(self._n_sets, axis=0)
-        f["sets"]["time_ns"].resize(self._n_sets, axis=0)
+                    ds.resize(n, axis=0)
+        self._sets["frames"].resize(self._n_sets, axis=0)
+        self._sets["time_ns"].resize(self._n_sets, axis=0)
         self._write_commit(closed=True)
-        f.flush()
+        self._f.flush()
 
     def close(self, *, sync_stats: Any = None) -> None:
         """Trim datasets to their frame counts, mark the take complete, close the file.
