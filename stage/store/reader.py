@@ -13,6 +13,7 @@ versions, which kept masks inside the capture file, are read where their masks a
 from __future__ import annotations
 
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Any, Iterator
@@ -26,6 +27,10 @@ from stage.store.h5repair import open_h5
 from stage.store.jpeg import decode_jpeg
 
 __all__ = ["TakeReader"]
+
+log = logging.getLogger("stage.store")
+
+_PER_FRAME = ("timestamp_ns", "host_timestamp_ns", "sequence", "valid", "set_index")
 
 
 class TakeReader:
@@ -64,7 +69,7 @@ class TakeReader:
                 self.cameras: list[str] = list(json.loads(self._f.attrs["cameras"]))
                 self._commit_ds = self._f["sets/commit"]
                 for c in self.cameras:
-                    self._f["cameras"][c]
+                    self._check_layout(c)
             except (KeyError, ValueError, OSError) as exc:
                 raise TakeError(f"{self.path}: damaged take layout: {exc}") from None
             self._col = {c: i for i, c in enumerate(self.cameras)}
@@ -78,6 +83,18 @@ class TakeReader:
         except BaseException:
             self._f.close()
             raise
+
+    def _check_layout(self, camera: str) -> None:
+        g = self._f["cameras"][camera]
+        if not isinstance(g, h5py.Group):
+            raise KeyError(f"cameras/{camera} is not a group")
+        need = list(_PER_FRAME) + (["image"] if g.attrs.get("storage") == "raw" else ["jpeg", "jpeg_offset", "jpeg_length"])
+        missing = [n for n in need if not isinstance(g.get(n), h5py.Dataset)]
+        if missing:
+            raise KeyError(f"camera {camera} has no dataset {', '.join(missing)}")
+        for k in ("width", "height", "storage"):
+            if k not in g.attrs:
+                raise KeyError(f"camera {camera} has no attribute {k!r}")
 
     # -- lifecycle ----------------------------------------------------------
     def __enter__(self) -> "TakeReader":
@@ -382,9 +399,16 @@ class TakeReader:
             if self._derived is not None:
                 self._derived.close()
             self._derived, self._derived_key = None, key
-            if st is not None:
+            if st is not None and self._derived_beside_take():
                 self._derived = open_derived(self._derived_path, self._identity())
         return self._derived
+
+    def _derived_beside_take(self) -> bool:
+        """A derived file that is a link to another directory is not this take's (never followed)."""
+        if self._derived_path.resolve().parent == self.path.resolve().parent:
+            return True
+        log.warning("%s links outside the take's directory; its derived data is ignored", self._derived_path)
+        return False
 
     def _identity(self) -> dict:
         return {k: attr_value(self._f.attrs[k]) for k in ("created_utc", "anchor_wall_ns") if k in self._f.attrs}
