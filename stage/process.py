@@ -1,6 +1,7 @@
 """Process a take: keying -> visual hull and surface per frame -> spines -> ``spine.json``.
 
-This is the worker pipeline's driver. Per-frame work (surfaces, per-frame skeletons)
+This is the worker pipeline's driver: a list of named steps (:data:`STEPS`, extended
+with :func:`register_step`) run in order on one :class:`RunContext`. Per-frame work (surfaces, per-frame skeletons)
 fans out over a :class:`concurrent.futures.Executor` (a local process pool by
 default, a Dask ``Client.get_executor()`` on a cluster); the correspondence of tips
 over time is the reduce step. Workers open the take by path themselves, so a Dask
@@ -39,11 +40,10 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-__all__ = ["ProcessParams", "ProcessResult", "ProcessError", "process_take", "STEPS"]
+__all__ = ["ProcessParams", "ProcessResult", "ProcessError", "process_take", "STEPS", "Step", "RunContext", "register_step"]
 
 log = logging.getLogger("stage.process")
 
-STEPS = ("key", "surface", "spine")
 
 
 class ProcessError(ValueError):
@@ -399,48 +399,185 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
     return grid_from_volume(np.stack([lo, hi]), p.resolution)
 
 
-def process_take(
-    take: str | os.PathLike,
-    out: str | os.PathLike,
-    *,
-    steps: Sequence[str] = STEPS,
-    params: ProcessParams | dict | None = None,
-    executor: cf.Executor | None = None,
-    progress: Callable[[str, int, int], None] | None = None,
-    cancel: threading.Event | None = None,
-) -> ProcessResult:
-    """Run keying, reconstruction and spines on a take; resumable.
+# ----------------------------------------------------------------------------- steps
 
-    Parameters
-    ----------
-    take : path
-        The take (.h5) with a calibration.
-    out : path
-        Results directory (beside the take, never inside it).
-    steps : sequence of {"key", "surface", "spine"}
-        Steps to run, in pipeline order (a later step needs the earlier ones' results,
-        which may come from an earlier run).
-    params : ProcessParams or dict, optional
-    executor : concurrent.futures.Executor, optional
-        Where per-frame work runs; ``None`` runs it in this process.
-    progress : callable, optional
-        ``progress(step, done, total)`` after every finished chunk of frames.
-    cancel : threading.Event, optional
-        Set it to stop between chunks (``InterruptedError``); finished frames stay.
 
-    Returns
-    -------
-    ProcessResult
-    """
+@dataclass
+class RunContext:
+    """What the steps of one :func:`process_take` call share: the take's facts, the job's
+    options, the runner's hooks, and what earlier steps left for later ones."""
+
+    take: Path
+    out: Path
+    params: ProcessParams
+    executor: cf.Executor | None
+    progress: Callable[[str, int, int], None] | None
+    cancel: threading.Event | None
+    calibration: object
+    cameras: list[str]
+    n_sets: int
+    fps: float
+    rig: dict
+    need_key: bool
+    timings: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    spine_path: Path | None = None
+    tip_counts: list[int | None] = field(default_factory=list)
+
+    def report_progress(self, step: str, done: int, total: int) -> None:
+        if self.progress:
+            self.progress(step, done, total)
+
+    def run_frames(self, step: str, task: Callable[[list[int]], list[dict]], done_dir: str) -> None:
+        """Run a per-frame ``task`` on every frame set without a result in ``OUT/done_dir``
+        (the one runner all per-frame steps share: chunks, executor, progress, cancel)."""
+        todo = [k for k in range(self.n_sets) if not (self.out / done_dir / f"{_frame_name(k)}.json").exists()]
+        self.report_progress(step, self.n_sets - len(todo), self.n_sets)
+        _run_tasks(
+            self.executor,
+            task,
+            _chunks(todo, self.params.chunk),
+            step=step,
+            done0=self.n_sets - len(todo),
+            total=self.n_sets,
+            progress=self.progress,
+            cancel=self.cancel,
+        )
+
+
+@dataclass(frozen=True)
+class Step:
+    """One named step of :func:`process_take`: ``run(ctx)`` does the work and persists it."""
+
+    name: str
+    run: Callable[[RunContext], None]
+    doc: str = ""
+
+
+_REGISTRY: dict[str, Step] = {}
+
+
+def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = "", after: str | None = None) -> None:
+    """Add a step to the pipeline (after ``after``, default at the end); updates :data:`STEPS`."""
+    global STEPS
+    if not name or not name.isidentifier():
+        raise ValueError(f"name must be an identifier, got {name!r}")
+    if after is not None and after not in _REGISTRY:
+        raise ValueError(f"after: no step {after!r} (steps: {list(_REGISTRY)})")
+    items = [(n, s) for n, s in _REGISTRY.items() if n != name]
+    pos = len(items) if after is None else [n for n, _ in items].index(after) + 1
+    items.insert(pos, (name, Step(name=name, run=run, doc=doc)))
+    _REGISTRY.clear()
+    _REGISTRY.update(items)
+    STEPS = tuple(_REGISTRY)
+
+
+def _step_key(ctx: RunContext) -> None:
+    """Key every camera of the take (unless it holds masks and ``rekey`` is off)."""
+    total = ctx.n_sets * len(ctx.cameras)
+    if not ctx.need_key:
+        ctx.report_progress("key", total, total)
+        return
+    from stage.keying.take import key_take
+
+    state = {"done": 0}
+
+    def _key_progress(n: int) -> None:
+        state["done"] += n
+        ctx.report_progress("key", state["done"], total)
+        if ctx.cancel is not None and ctx.cancel.is_set():
+            raise InterruptedError("cancelled")
+
+    t0 = time.perf_counter()
+    key_take(ctx.take, key_mode=ctx.params.key_mode, progress=_key_progress)
+    ctx.timings["key"] = time.perf_counter() - t0
+
+
+def _volume_bounds(ctx: RunContext) -> np.ndarray:
+    """Where to look for the subject: the job's volume, the rig's, else the cameras'."""
+    from pipeline.volume import volume_from_cameras
+
+    if ctx.params.volume is not None:
+        return np.asarray(ctx.params.volume, float)
+    if ctx.rig.get("volume"):
+        c = np.asarray(ctx.rig["volume"]["center"], float)
+        s = np.asarray(ctx.rig["volume"]["size"], float)
+        return np.r_[c - s / 2, c + s / 2]
+    return np.asarray(volume_from_cameras(ctx.calibration), float).reshape(-1)
+
+
+def _processing_grid(ctx: RunContext):
+    """The grid of the surfaces: ``OUT/grid.json`` when an earlier run chose it, else fitted
+    to the subject now (and written there)."""
+    from pipeline.volume import Grid
     from stage.store import TakeReader
 
-    take = Path(take)
-    out = Path(out)
-    steps = tuple(steps)
-    bad = [s for s in steps if s not in STEPS]
-    if bad or not steps:
-        raise ValueError(f"steps must be a non-empty subset of {STEPS}, got {steps}")
-    steps = tuple(s for s in STEPS if s in steps)
+    grid_path = ctx.out / "grid.json"
+    with TakeReader(ctx.take) as reader:
+        missing = sorted(set(ctx.cameras) - set(reader.masks_present()))
+        if missing:
+            raise ProcessError(f"{ctx.take}: cameras {missing} have no masks; run the key step")
+        if grid_path.exists():
+            return Grid.from_dict(json.loads(grid_path.read_text()))
+        grid = _subject_grid(reader, ctx.calibration, ctx.cameras, ctx.n_sets, ctx.params, _volume_bounds(ctx))
+    p = ctx.params
+    if p.support_plane is None and p.volume is None and not ctx.rig.get("volume"):
+        hint = _blind_side_hint(ctx.calibration, grid)
+        if hint:
+            log.warning("%s", hint)
+            ctx.warnings.append(hint)
+    _atomic_write_text(grid_path, json.dumps(grid.to_dict()))
+    return grid
+
+
+def _step_surface(ctx: RunContext) -> None:
+    """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
+    t0 = time.perf_counter()
+    grid = _processing_grid(ctx)
+    task = partial(
+        surface_task,
+        str(ctx.take.resolve()),
+        calib_dict=ctx.calibration.to_dict(),
+        grid_dict=grid.to_dict(),
+        params=ctx.params.model_dump(),
+        out=str(ctx.out.resolve()),
+    )
+    ctx.run_frames("surface", task, "frames")
+    ctx.timings["surface"] = time.perf_counter() - t0
+
+
+def _step_spine(ctx: RunContext) -> None:
+    """Per-frame skeletons -> ``skeletons/``, then their tips corresponded over time -> ``spine.json``."""
+    from pipeline.spine import FrameSkeleton, SpineParams, build_spine, write_spine
+
+    n = ctx.n_sets
+    if any(not (ctx.out / "frames" / f"{_frame_name(k)}.json").exists() for k in range(n)):
+        raise ProcessError(f"{ctx.out}: surfaces are missing for some frames; run the surface step")
+    t0 = time.perf_counter()
+    ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons")
+    skeletons: list[FrameSkeleton] = []
+    for k in range(n):
+        rec = json.loads((ctx.out / "skeletons" / f"{_frame_name(k)}.json").read_text())
+        sk = FrameSkeleton.from_dict(rec["skeleton"]) if rec["status"] == "ok" else FrameSkeleton.empty()
+        skeletons.append(sk)
+        ctx.tip_counts[k] = sk.n_tips
+    ctx.report_progress("spine", 0, 1)
+    spine = build_spine(skeletons, fps=float(ctx.fps), units=ctx.calibration.units, params=SpineParams(**ctx.params.spine))
+    ctx.spine_path = write_spine(ctx.out / "spine.json", spine)
+    ctx.report_progress("spine", 1, 1)
+    ctx.timings["spine"] = time.perf_counter() - t0
+
+
+STEPS: tuple[str, ...] = ()
+register_step("key", _step_key, doc="keying masks into the take")
+register_step("surface", _step_surface, doc="visual hull and surface per frame set")
+register_step("spine", _step_spine, doc="per-frame skeletons and the take's spine")
+
+
+# ----------------------------------------------------------------------------- driver
+
+
+def _check_params(params: ProcessParams | dict | None) -> ProcessParams:
     if params is None:
         params = ProcessParams()
     elif isinstance(params, dict):
@@ -450,23 +587,19 @@ def process_take(
             raise ValueError(f"params: {exc}") from None
     elif not isinstance(params, ProcessParams):
         raise ValueError(f"params must be ProcessParams or a dict, got {type(params).__name__}")
-    if not take.is_file():
-        raise FileNotFoundError(f"{take}: take not found")
-    if out.resolve() == take.resolve() or out.suffix in (".h5", ".hdf5"):
-        raise ValueError(f"out must be a directory beside the take, got {out}")
-    out.mkdir(parents=True, exist_ok=True)
-    spine_params = params.spine
     try:
         from pipeline.spine import SpineParams
 
-        SpineParams(**spine_params)
+        SpineParams(**params.spine)
     except ValidationError as exc:
         raise ValueError(f"params.spine: {exc}") from None
+    return params
 
-    t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-    warnings_: list[str] = []
-    # -- key ---------------------------------------------------------------------
+
+def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunContext:
+    """Read what every step needs from the take once (and check it can be processed)."""
+    from stage.store import TakeReader
+
     with TakeReader(take) as reader:
         if not reader.has_calibration:
             raise ProcessError(f"{take}: the take has no calibration; run `stage calibrate` first")
@@ -485,143 +618,104 @@ def process_take(
     if n_sets == 0:
         raise ProcessError(f"{take}: the take holds no frame sets")
     calibration = type(calibration)(tuple(calibration[c] for c in cameras), units=calibration.units, meta=calibration.meta)
-    record = {"take": str(take.resolve()), "params": params.model_dump(), "frames": n_sets, "cameras": cameras}
-    prev = out / "process.json"
+    return RunContext(
+        take=take, out=out, params=params, calibration=calibration, cameras=cameras, n_sets=n_sets,
+        fps=float(fps), rig=rig, need_key=need_key, tip_counts=[None] * n_sets, **hooks,
+    )
+
+
+def _start_record(ctx: RunContext) -> None:
+    """Write ``process.json``; results of other parameters or another take are removed first."""
+    record = {"take": str(ctx.take.resolve()), "params": ctx.params.model_dump(), "frames": ctx.n_sets, "cameras": ctx.cameras}
+    prev = ctx.out / "process.json"
     if prev.exists():
         old = json.loads(prev.read_text())
         if old.get("params") != record["params"] or old.get("take") != record["take"]:
-            log.warning("%s holds results of other parameters or another take; starting over", out)
+            log.warning("%s holds results of other parameters or another take; starting over", ctx.out)
             for sub in ("meshes", "frames", "skeletons"):
-                for f in (out / sub).glob("frame_*"):
+                for f in (ctx.out / sub).glob("frame_*"):
                     f.unlink()
-            (out / "spine.json").unlink(missing_ok=True)
+            (ctx.out / "spine.json").unlink(missing_ok=True)
     _atomic_write_text(prev, json.dumps(record, indent=2))
 
-    if "key" in steps and need_key:
-        from stage.keying.take import key_take
 
-        t0 = time.perf_counter()
-        total = n_sets * len(cameras)
-        state = {"done": 0}
-
-        def _key_progress(n: int) -> None:
-            state["done"] += n
-            if progress:
-                progress("key", state["done"], total)
-            if cancel is not None and cancel.is_set():
-                raise InterruptedError("cancelled")
-
-        key_take(take, key_mode=params.key_mode, progress=_key_progress)
-        timings["key"] = time.perf_counter() - t0
-    elif "key" in steps and progress:
-        progress("key", n_sets * len(cameras), n_sets * len(cameras))
-
-    # -- surface -----------------------------------------------------------------
+def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> ProcessResult:
     frame_infos: dict[int, dict] = {}
-    grid_path = out / "grid.json"
-    if "surface" in steps:
-        from pipeline.volume import Grid, volume_from_cameras
-
-        t0 = time.perf_counter()
-        with TakeReader(take) as reader:
-            if len(reader.masks_present()) < len(cameras):
-                raise ProcessError(f"{take}: cameras {sorted(set(cameras) - set(reader.masks_present()))} have no masks; run the key step")
-            if grid_path.exists():
-                grid = Grid.from_dict(json.loads(grid_path.read_text()))
-            else:
-                if params.volume is not None:
-                    vb = np.asarray(params.volume, float)
-                elif rig.get("volume"):
-                    c = np.asarray(rig["volume"]["center"], float)
-                    s = np.asarray(rig["volume"]["size"], float)
-                    vb = np.r_[c - s / 2, c + s / 2]
-                else:
-                    vb = np.asarray(volume_from_cameras(calibration), float).reshape(-1)
-                grid = _subject_grid(reader, calibration, cameras, n_sets, params, vb)
-                if params.support_plane is None and params.volume is None and not rig.get("volume"):
-                    hint = _blind_side_hint(calibration, grid)
-                    if hint:
-                        log.warning("%s", hint)
-                        warnings_.append(hint)
-                _atomic_write_text(grid_path, json.dumps(grid.to_dict()))
-        todo = [k for k in range(n_sets) if not (out / "frames" / f"{_frame_name(k)}.json").exists()]
-        if progress:
-            progress("surface", n_sets - len(todo), n_sets)
-        task = partial(
-            surface_task,
-            str(take.resolve()),
-            calib_dict=calibration.to_dict(),
-            grid_dict=grid.to_dict(),
-            params=params.model_dump(),
-            out=str(out.resolve()),
-        )
-        _run_tasks(
-            executor,
-            task,
-            _chunks(todo, params.chunk),
-            step="surface",
-            done0=n_sets - len(todo),
-            total=n_sets,
-            progress=progress,
-            cancel=cancel,
-        )
-        timings["surface"] = time.perf_counter() - t0
-    for k in range(n_sets):
-        f = out / "frames" / f"{_frame_name(k)}.json"
+    for k in range(ctx.n_sets):
+        f = ctx.out / "frames" / f"{_frame_name(k)}.json"
         if f.exists():
             frame_infos[k] = json.loads(f.read_text())
-
-    # -- spine -------------------------------------------------------------------
-    spine_path = None
-    tip_counts: list[int | None] = [None] * n_sets
-    if "spine" in steps:
-        from pipeline.spine import FrameSkeleton, SpineParams, build_spine, write_spine
-
-        if not frame_infos or len(frame_infos) < n_sets:
-            raise ProcessError(f"{out}: surfaces are missing for some frames; run the surface step")
-        t0 = time.perf_counter()
-        todo = [k for k in range(n_sets) if not (out / "skeletons" / f"{_frame_name(k)}.json").exists()]
-        if progress:
-            progress("skeleton", n_sets - len(todo), n_sets)
-        _run_tasks(
-            executor,
-            partial(skeleton_task, str(out.resolve()), spine_params=spine_params),
-            _chunks(todo, params.chunk),
-            step="skeleton",
-            done0=n_sets - len(todo),
-            total=n_sets,
-            progress=progress,
-            cancel=cancel,
-        )
-        skeletons: list[FrameSkeleton] = []
-        for k in range(n_sets):
-            rec = json.loads((out / "skeletons" / f"{_frame_name(k)}.json").read_text())
-            sk = FrameSkeleton.from_dict(rec["skeleton"]) if rec["status"] == "ok" else FrameSkeleton.empty()
-            skeletons.append(sk)
-            tip_counts[k] = sk.n_tips
-        if progress:
-            progress("spine", 0, 1)
-        spine = build_spine(skeletons, fps=float(fps), units=calibration.units, params=SpineParams(**spine_params))
-        spine_path = write_spine(out / "spine.json", spine)
-        if progress:
-            progress("spine", 1, 1)
-        timings["spine"] = time.perf_counter() - t0
-
     empty = sorted(k for k, i in frame_infos.items() if i.get("status") != "ok")
     report = {
-        "take": str(take.resolve()),
-        "frames": n_sets,
-        "cameras": cameras,
+        "take": str(ctx.take.resolve()),
+        "frames": ctx.n_sets,
+        "cameras": ctx.cameras,
         "steps": list(steps),
-        "seconds": timings,
+        "seconds": ctx.timings,
         "total_seconds": time.perf_counter() - t_start,
         "empty_frames": empty,
-        "tip_counts": tip_counts,
-        "per_frame": [frame_infos.get(k) for k in range(n_sets)],
-        "warnings": warnings_,
+        "tip_counts": ctx.tip_counts,
+        "per_frame": [frame_infos.get(k) for k in range(ctx.n_sets)],
+        "warnings": ctx.warnings,
     }
-    _atomic_write_text(out / "report.json", json.dumps(report, indent=1, default=_json_default))
-    return ProcessResult(out=out, steps=steps, frames=n_sets, empty_frames=empty, spine_path=spine_path, report=report)
+    _atomic_write_text(ctx.out / "report.json", json.dumps(report, indent=1, default=_json_default))
+    return ProcessResult(
+        out=ctx.out, steps=steps, frames=ctx.n_sets, empty_frames=empty, spine_path=ctx.spine_path, report=report
+    )
+
+
+def process_take(
+    take: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    steps: Sequence[str] | None = None,
+    params: ProcessParams | dict | None = None,
+    executor: cf.Executor | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> ProcessResult:
+    """Run keying, reconstruction and spines on a take; resumable.
+
+    Parameters
+    ----------
+    take : path
+        The take (.h5) with a calibration.
+    out : path
+        Results directory (beside the take, never inside it).
+    steps : sequence of str, optional
+        Steps to run (names in :data:`STEPS`, default all), run in pipeline order (a later
+        step needs the earlier ones' results, which may come from an earlier run).
+    params : ProcessParams or dict, optional
+    executor : concurrent.futures.Executor, optional
+        Where per-frame work runs; ``None`` runs it in this process.
+    progress : callable, optional
+        ``progress(step, done, total)`` after every finished chunk of frames.
+    cancel : threading.Event, optional
+        Set it to stop between chunks (``InterruptedError``); finished frames stay.
+
+    Returns
+    -------
+    ProcessResult
+    """
+    take, out = Path(take), Path(out)
+    steps = STEPS if steps is None else tuple(steps)
+    bad = [s for s in steps if s not in _REGISTRY]
+    if bad or not steps:
+        raise ValueError(f"steps must be a non-empty subset of {STEPS}, got {steps}")
+    steps = tuple(s for s in STEPS if s in steps)
+    params = _check_params(params)
+    if not take.is_file():
+        raise FileNotFoundError(f"{take}: take not found")
+    if out.resolve() == take.resolve() or out.suffix in (".h5", ".hdf5"):
+        raise ValueError(f"out must be a directory beside the take, got {out}")
+    out.mkdir(parents=True, exist_ok=True)
+
+    t_start = time.perf_counter()
+    ctx = _open_context(take, out, params, executor=executor, progress=progress, cancel=cancel)
+    _start_record(ctx)
+    for name in steps:
+        _REGISTRY[name].run(ctx)
+    return _write_report(ctx, steps, t_start)
 
 
 def _blind_side_hint(calibration, grid) -> str:
