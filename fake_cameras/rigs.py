@@ -102,7 +102,10 @@ def _value(v) -> str:
 
 def dumps_toml(data: dict) -> str:
     """TOML text of a rig dictionary (scalars, arrays, tables, arrays of tables)."""
-    lines = [f"{k} = {_value(v)}" for k, v in data.items() if not isinstance(v, dict) and not (isinstance(v, list) and v and isinstance(v[0], dict))]
+    def is_table(v) -> bool:
+        return isinstance(v, dict) or (isinstance(v, list) and bool(v) and isinstance(v[0], dict))
+
+    lines = [f"{k} = {_value(v)}" for k, v in data.items() if not is_table(v)]
     for k, v in data.items():
         if isinstance(v, dict):
             lines += ["", f"[{k}]"] + [f"{kk} = {_value(vv)}" for kk, vv in v.items()]

@@ -26,6 +26,7 @@ import numpy as np
 
 from calib.calibration import Calibration
 from calib.camera import Camera
+from stage.rig import check_plane  # the one rule for planes; re-exported here for the pipeline
 
 __all__ = [
     "Grid",
@@ -56,27 +57,6 @@ def check_bounds(bounds: Any, name: str = "volume_bounds") -> np.ndarray:
     if np.any(b[1] <= b[0]):
         raise ValueError(f"{name}: hi must exceed lo in every axis, got lo={b[0].tolist()} hi={b[1].tolist()}")
     return b
-
-
-def check_plane(plane: Any, name: str = "support_plane") -> np.ndarray:
-    """Validate a plane ``(a, b, c, d)`` (points with ``a x + b y + c z + d >= 0`` are above).
-
-    Returns
-    -------
-    (4,) float ndarray
-        The plane scaled so that ``(a, b, c)`` is a unit normal (``d`` is then the signed
-        distance of the origin).
-    """
-    try:
-        p = np.asarray(plane, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be four numbers (a, b, c, d)") from None
-    if p.shape != (4,) or not np.all(np.isfinite(p)):
-        raise ValueError(f"{name} must be four finite numbers (a, b, c, d), got {plane!r}")
-    n = float(np.linalg.norm(p[:3]))
-    if n < 1e-12:
-        raise ValueError(f"{name}: the normal (a, b, c) must not be zero")
-    return p / n
 
 
 def above_plane(grid: "Grid", plane: Any) -> np.ndarray:
