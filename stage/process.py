@@ -32,7 +32,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Annotated, Literal
@@ -543,7 +543,10 @@ def _step_key(ctx: RunContext) -> None:
     base = take_key_params(ctx.rig, key_mode=ctx.params.key_mode).to_dict()
     done, keys = 0, []
     ctx.report_progress("key", 0, total)
-    for res in _map_tasks(ctx, [partial(key_task, str(ctx.take), cam, base, 1 if ctx.executor else 2) for cam in ctx.cameras]):
+    # OpenCV's thread pool does not survive fork(): forked workers key nothing, this process does
+    where = ctx if not _forking_pool(ctx.executor) else replace(ctx, executor=None)
+    threads = 1 if where.executor else 2
+    for res in _map_tasks(where, [partial(key_task, str(ctx.take), cam, base, threads) for cam in ctx.cameras]):
         if res["key"] is not None:
             keys.append(res)
             done += len(res["key"].valid)
@@ -554,6 +557,12 @@ def _step_key(ctx: RunContext) -> None:
         key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).astype(bool)
         store_camera_key(ctx.take, key)
     ctx.timings["key"] = time.perf_counter() - t0
+
+
+def _forking_pool(executor) -> bool:
+    """A local process pool whose workers are forked from this process."""
+    ctx = getattr(executor, "_mp_context", None)
+    return isinstance(executor, cf.ProcessPoolExecutor) and (ctx is None or ctx.get_start_method(allow_none=False) == "fork")
 
 
 def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):

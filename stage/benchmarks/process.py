@@ -135,11 +135,13 @@ def _own_reconstruct(take: Path, out: Path) -> dict:
 
 def _executors(args):
     import concurrent.futures as cf
+    import multiprocessing
 
+    ctx = multiprocessing.get_context("forkserver")  # as `stage process`
     for w in args.workers:
         if w < 1:
             raise ValueError("--workers must be >= 1")
-        yield f"{w} worker{'s' if w > 1 else ''}", w, lambda w=w: (cf.ProcessPoolExecutor(max_workers=w), None)
+        yield f"{w} worker{'s' if w > 1 else ''}", w, lambda w=w: (cf.ProcessPoolExecutor(max_workers=w, mp_context=ctx), None)
     if not args.no_dask:
         try:
             from distributed import Client, LocalCluster

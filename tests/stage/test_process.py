@@ -208,8 +208,10 @@ def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
     params = ProcessParams()
     reference = _reference_results(sim, tmp_path, params, json.loads((out / "grid.json").read_text()))
     _same_results(path, out, reference)
+    import multiprocessing
+
     pooled = record_take(sim, tmp_path / "pooled.h5")
-    with cf.ProcessPoolExecutor(max_workers=2) as ex:
+    with cf.ProcessPoolExecutor(max_workers=2, mp_context=multiprocessing.get_context("forkserver")) as ex:
         process_take(pooled, tmp_path / "pooled", executor=ex)
     _same_results(pooled, tmp_path / "pooled", reference)
 
