@@ -50,6 +50,8 @@ PIXELS_PER_VOXEL = 2.0
 MAX_VOXELS = 8_000_000
 #: Voxels along the subject's longest side at least, whatever the cameras resolve.
 MIN_RESOLUTION = 48
+#: Masks stored per update of the take's derived data (bytes, unpacked).
+_STORE_BATCH_BYTES = 512 << 20
 
 
 
@@ -537,7 +539,7 @@ def _step_key(ctx: RunContext) -> None:
     if not ctx.need_key:
         ctx.report_progress("key", total, total)
         return
-    from stage.keying.take import store_camera_key, take_key_params
+    from stage.keying.take import store_camera_keys, take_key_params
 
     t0 = time.perf_counter()
     base = take_key_params(ctx.rig, key_mode=ctx.params.key_mode).to_dict()
@@ -551,11 +553,15 @@ def _step_key(ctx: RunContext) -> None:
             keys.append(res)
             done += len(res["key"].valid)
         ctx.report_progress("key", min(done, total), total)
-    # stored once every worker has finished reading the take (one writer, no readers)
-    for res in keys:
+    # stored in few updates of the derived data (each copies it), at most ~512 MB of masks at a time
+    batch: list = []
+    for i, res in enumerate(keys):
         key = res["key"]
         key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).astype(bool)
-        store_camera_key(ctx.take, key)
+        batch.append(key)
+        if i == len(keys) - 1 or sum(k.masks.nbytes for k in batch) + key.masks.nbytes > _STORE_BATCH_BYTES:
+            store_camera_keys(ctx.take, batch)
+            batch = []
     ctx.timings["key"] = time.perf_counter() - t0
 
 
