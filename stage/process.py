@@ -642,6 +642,8 @@ def _step_surface(ctx: RunContext) -> None:
     t0 = time.perf_counter()
     grid = _processing_grid(ctx)
     _add_to_record(ctx, grid=ctx.grid_choice)
+    ctx.timings["grid"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     task = partial(
         surface_task,
         str(ctx.take.resolve()),
