@@ -236,14 +236,17 @@ def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tupl
 def key_task(take: str, camera: str, base: dict, workers: int) -> dict:
     """Key one camera of the take (in a worker); the masks come back bit-packed for the
     parent to store (one writer per take file)."""
+    import cv2
+
     from stage.keying.params import KeyParams
     from stage.keying.take import key_camera
 
-    if workers == 1:
-        import cv2
-
-        cv2.setNumThreads(1)  # parallelism comes from the worker processes
-    key = key_camera(take, camera, base=KeyParams(**base), workers=workers)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # parallelism comes from the workers (threads or processes), not OpenCV's pool
+    try:
+        key = key_camera(take, camera, base=KeyParams(**base), workers=workers)
+    finally:
+        cv2.setNumThreads(threads)
     if key is None:
         return {"camera": camera, "key": None}
     shape = key.masks.shape

@@ -197,6 +197,9 @@ def run(args: argparse.Namespace) -> int:
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench-process-"))
     work.mkdir(parents=True, exist_ok=True)
     try:
+        import os
+
+        print(f"load average at the start: {os.getloadavg()[0]:.1f} (2 cores: figures above ~1 are shared with others)")
         print(f"simulated take: {args.subject}, {args.cameras} cameras at {size[0]}x{size[1]}, {args.frames} frame sets")
         sim = simulate_take(args.subject, n_cameras=args.cameras, frames=args.frames, size=size, seed=0)
         src = record_take(sim, work / "source.h5")
@@ -254,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
             other = wall - sum(sec.values()) - rep.get("startup", 0.0)
             print(f"{label:<30} {'other':<22} {other:9.2f}")
             print(f"{label:<30} {'END TO END':<22} {wall:9.2f} {'':>8} {'':>6}  {n_sets / wall:5.1f} sets/s")
+        print(f"load average at the end: {os.getloadavg()[0]:.1f}")
         best = max(n_sets / wall for _, _, wall, _ in runs)
         print(f"\nbest end to end: {best:.1f} sets/s (target >= 8 on 2 cores); disk-read floor {n_sets / floor:.0f} sets/s")
         if prof is not None:
