@@ -160,11 +160,20 @@ def _executors(args):
         yield "Dask LocalCluster (2 workers)", 2, dask
 
 
+def _copy_take(src: Path, dst: Path) -> Path:
+    """A copy of the take and its derived data (the plates; never keyed)."""
+    from stage.store import derived_path
+
+    shutil.copy(src, dst)
+    if derived_path(src).exists():
+        shutil.copy(derived_path(src), derived_path(dst))
+    return dst
+
+
 def _run(take_src: Path, work: Path, i: int, make) -> tuple[float, dict]:
     from stage.process import process_take
 
-    take = work / f"take-{i}.h5"
-    shutil.copy(take_src, take)
+    take = _copy_take(take_src, work / f"take-{i}.h5")
     out = work / f"out-{i}"
     shutil.rmtree(out, ignore_errors=True)
     from stage.process import warm_task
@@ -210,8 +219,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"disk-read floor: every frame read once in {floor:.2f} s ({n_sets / floor:.0f} sets/s)")
 
         # in-process run first: it chooses the grid the own benchmarks use (and is profiled on request)
-        take0 = work / "take-0.h5"
-        shutil.copy(src, take0)
+        take0 = _copy_take(src, work / "take-0.h5")
         prof = None
         if args.profile:
             import cProfile
