@@ -339,9 +339,10 @@ def surface_task(
             info["seconds"] = time.perf_counter() - t0
             if sp is not None:
                 rec = _skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp)
-                _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
+                _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec, separators=(",", ":")))
             _atomic_write_text(out_dir / "frames" / f"{_frame_name(k)}.json", json.dumps(info))
-            results.append(info)
+            # the skeleton travels back too: the spine step need not read it again
+            results.append({**info, "skeleton_record": rec} if sp is not None else info)
     return results
 
 
@@ -358,8 +359,8 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
     for k in frames:
         mesh_path = store.mesh_path(k)
         rec = _skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
-        _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
-        done.append({"index": int(k), "status": rec["status"]})
+        _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec, separators=(",", ":")))
+        done.append({"index": int(k), "status": rec["status"], "skeleton_record": rec})
     return done
 
 
@@ -492,6 +493,7 @@ class RunContext:
     tip_counts: list[int | None] = field(default_factory=list)
     grid_choice: dict = field(default_factory=dict)
     steps: tuple[str, ...] = ()
+    skeletons: dict[int, dict] = field(default_factory=dict)  # frame -> skeletons/ record, as computed
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
@@ -505,6 +507,9 @@ class RunContext:
         self.report_progress(step, done, self.n_sets)
         for finished in _map_tasks(self, [partial(task, ch) for ch in _chunks(todo, self.params.chunk)]):
             done += len(finished)
+            for rec in finished:
+                if "skeleton_record" in rec:
+                    self.skeletons[rec["index"]] = rec.pop("skeleton_record")
             self.report_progress(step, done, self.n_sets)
 
 
@@ -560,7 +565,7 @@ def _step_key(ctx: RunContext) -> None:
     batch: list = []
     for i, res in enumerate(keys):
         key = res["key"]
-        key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).astype(bool)
+        key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).view(bool)
         batch.append(key)
         if i == len(keys) - 1 or sum(k.masks.nbytes for k in batch) + key.masks.nbytes > _STORE_BATCH_BYTES:
             store_camera_keys(ctx.take, batch)
@@ -672,7 +677,7 @@ def _step_spine(ctx: RunContext) -> None:
     ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons")
     skeletons: list[FrameSkeleton] = []
     for k in range(n):
-        rec = json.loads((ctx.out / "skeletons" / f"{_frame_name(k)}.json").read_text())
+        rec = ctx.skeletons.get(k) or json.loads((ctx.out / "skeletons" / f"{_frame_name(k)}.json").read_text())
         sk = FrameSkeleton.from_dict(rec["skeleton"]) if rec["status"] == "ok" else FrameSkeleton.empty()
         skeletons.append(sk)
         ctx.tip_counts[k] = sk.n_tips
