@@ -137,7 +137,8 @@ def parse_mirror(items: list[str], cameras: list[str]) -> dict[str, bool | None]
     return out
 
 
-SAMPLE = 16  # frames of a camera tried flipped / with other board variants
+SAMPLE = 12  # frames of a camera tried flipped
+VARIANT_SAMPLE = 6  # frames of a camera that never showed the board tried with the other board variants
 
 
 def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror: bool | None):
@@ -149,8 +150,11 @@ def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror
         ``mirror`` True when the evidence is clear (auto) ; ``message`` says what was found
         (None when there is nothing to say).
     """
+    from calib.boards import Chessboard
     from calib.detect import detect_board, find_variant
 
+    if isinstance(board, Chessboard):  # a chessboard is found in a mirrored image too: nothing to decide
+        mirror = bool(mirror)
     if mirror is not None and found:
         return mirror, None
     if not sample:
@@ -161,7 +165,7 @@ def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror
     flipped = sum(detect_board(img, board, mirror=not bool(mirror)) is not None for img in sample)
     if flipped >= max(3, 2 * as_is + 1):
         if mirror is False:
-            return False, (f"{name}: the board is never detected with mirror = false, but it is found in "
+            return False, (f"camera {name}: the board is never detected with mirror = false, but it is found in "
                            f"{flipped}/{len(sample)} sampled frames once the image is flipped: {name} delivers "
                            f"mirrored images; drop --mirror {name}=false (or turn the camera's mirror mode off)")
         if mirror is None:
@@ -169,13 +173,16 @@ def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror
                           f"{flipped}/{len(sample)} sampled frames once the image is flipped ({as_is} as "
                           f"delivered); the rig decides which")
     if found == 0:
+        pick = np.unique(np.round(np.linspace(0, len(sample) - 1, min(VARIANT_SAMPLE, len(sample)))).astype(int))
+        sample = [sample[i] for i in pick]
         v = find_variant(sample, board)
         if v is not None:
-            return bool(mirror), (f"{name}: the board was never detected, but with the {v[0]} it is found in "
+            return bool(mirror), (f"camera {name}: the board was never detected, but with the {v[0]} it is found in "
                                   f"{v[3]}/{len(sample)} sampled frames; fix the board file"
                                   + (" (and the camera's mirror mode)" if v[2] else ""))
-        return bool(mirror), (f"{name}: the board was never detected in {total} frames (also not inverted, "
-                              f"legacy or mirrored); check the view, focus and the board file")
+        return bool(mirror), (f"camera {name}: the board was never detected in {total} frames (nor inverted, "
+                              f"legacy or mirrored); check that {name} sees the board, its focus, and that the "
+                              f"board file matches the print")
     return bool(mirror), None
 
 
@@ -259,7 +266,7 @@ def detect_images(root: Path, board, *, step: int = 1, min_change: float = 0.02,
 
         for line in notes:
             print(f"  note: {line}")
-        raise CalibrationError("; ".join(problems), cameras=[p.split(":")[0] for p in problems])
+        raise CalibrationError("; ".join(problems), cameras=[p.split(":")[0].removeprefix("camera ") for p in problems])
     return detections, sizes, mirrored, notes
 
 
