@@ -37,6 +37,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
         "pipeline.rig_model", "pipeline.gltf_export", "pipeline.results",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",
+        "calib.evaluate",
     )),
     3: ("orchestration", (
         # process, import and report are orchestration; they sit in stage/ until they move
