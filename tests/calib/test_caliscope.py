@@ -15,14 +15,11 @@ import itertools
 import numpy as np
 import pytest
 
-from calib.boards import parse_board
+from calib.boards import load_board
 from calib.evaluate import reprojection_errors
 from calib.formats import in_units, read_calibration
 from calib.rig import calibrate_rig
 from tests.conftest import shared_dataset
-
-BOARD = {"type": "charuco", "squares": [4, 5], "square_mm": 54.0, "marker_mm": 40.5,
-         "dictionary": "DICT_4X4_1000", "legacy": False, "inverted": True}  # from the session's charuco.toml
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +27,8 @@ def session():
     root = shared_dataset("caliscope_4cam")
     from stage.cli.calibrate import detect_images
 
-    board = parse_board(BOARD)
+    board = load_board(root / "charuco.toml")  # caliscope's own board file
+    assert board.squares == (4, 5) and board.square_mm == pytest.approx(54.0) and board.inverted
     dets, sizes, flipped, notes = detect_images(root / "extrinsic", board, progress=False)
     result = calibrate_rig(dets, sizes, board, cameras=list(sizes), flipped=flipped, holdout_folds=5)  # as the CLI
     ref = in_units(read_calibration(root / "camera_array.toml"), "mm")
