@@ -120,7 +120,7 @@ class RigCalibration:
                 u = ev.get("uncertainty", {}).get(name, {})
                 corner = max((v for k, v in u.items() if k != "centre"), default=float("nan"))
                 lines.append(f"  {name:<12} {fit:7.3f}   {a['rms']:7.3f} ({a['views']:4d})          {h:7.3f}"
-                             f"       {u.get('centre', float('nan')):.3f} / {corner:.3f}")
+                             f"       {_px(u.get('centre', float('nan')))} / {_px(corner)}")
             if g and g.get("frames"):
                 lines.append(f"  board over every detected frame ({g['frames']} frames): adjacent corners off by "
                              f"{g['neighbor_rms']:.2f} mm RMS, all corner pairs {g['pairs_rms']:.2f} mm RMS")
@@ -140,6 +140,11 @@ class RigCalibration:
             "evaluation": _jsonable({k: v for k, v in self.evaluation.items() if k != "detections"}),
             "warnings": self.warnings,
         }
+
+
+def _px(v: float) -> str:
+    """An uncertainty for the table: beyond 100 px the linearization says only "unknown"."""
+    return f"{v:.3f}" if not v > 100 else ">100"
 
 
 def _jsonable(x):
