@@ -275,6 +275,7 @@ class _Capture:
             fps=self.rig.fps,
             overwrite=overwrite,
             attrs={"granted": {c: vars(v) for c, v in g.items()}},
+            expected_sets=self.frames if self.frames is not None else int(self.duration_s * self.rig.fps),
         )
         self.threads = [_Grabber(c, self.drivers[c], self.queue, self.stop, self.queue_drops) for c in self.ids]
         self.t0 = self.last_stats = time.monotonic()

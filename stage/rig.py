@@ -129,7 +129,7 @@ CameraConfig = Annotated[
 class Simulation(_Strict):
     """What the simulated rig films (used by ``driver = "fake"`` cameras)."""
 
-    subject: Literal["starfish", "quadruped", "biped", "board-chessboard", "board-charuco", "empty"] = "starfish"
+    subject: Literal["starfish", "quadruped", "biped", "tailed_quadruped", "board-chessboard", "board-charuco", "empty"] = "starfish"
     n_cameras: Annotated[int, Field(ge=4, le=24)] = 12
     frames: Annotated[int, Field(ge=1)] = 30
     seed: int = 0

@@ -55,6 +55,16 @@ def make_take_file(path: Path, frames: int = 6, *, cameras: int = 2, size: tuple
     return path
 
 
+def write_legacy_masks(path: Path, camera: str, masks: np.ndarray) -> None:
+    """Masks inside the take file itself, as takes written by older versions of the store hold them."""
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        ds = f[f"cameras/{camera}"].create_dataset("masks", data=np.asarray(masks, np.uint8))
+        ds.attrs["bool"] = True
+        ds.attrs["params"] = "{}"
+
+
 def _frame(step: str, index: int, salt: str, delay_s: float) -> str:
     if delay_s:
         time.sleep(delay_s)
