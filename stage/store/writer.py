@@ -30,6 +30,7 @@ import numpy as np
 from stage import __version__
 from stage.frame import Frame
 from stage.store._format import FORMAT, RESERVED, CameraSpec, filter_kwargs, to_json
+from stage.store.h5repair import close_all as _close_file
 from stage.store.jpeg import encode_jpeg
 from stage.store.space import DiskFullError, check_free_space, format_bytes, is_disk_full
 
@@ -465,21 +466,3 @@ class TakeWriter:
                 self._closed = True
                 _close_file(self._f)
                 self._reserve.release()
-
-
-def _close_file(f: h5py.File) -> None:
-    """Close an HDF5 file and every object of it still open, whatever state a failed write left."""
-    try:
-        ids = f.id.get_obj_ids(h5py.h5f.OBJ_DATASET | h5py.h5f.OBJ_GROUP | h5py.h5f.OBJ_ATTR | h5py.h5f.OBJ_DATATYPE)
-    except Exception:
-        ids = []
-    for oid in ids:
-        try:
-            while oid.valid:
-                oid._close()
-        except Exception:
-            pass
-    try:
-        f.close()
-    except Exception as exc:
-        log.debug("closing %s: %s", getattr(f, "filename", "?"), exc)
