@@ -727,7 +727,7 @@ def process_take(
         ctx = _open_context(take, out, params, executor=executor, progress=progress, cancel=cancel)
         need = _space_needed(ctx, steps)
         with raise_disk_full(out, "the processing results", need,
-                             detail="the take is unchanged; free space and run again (finished frames are kept)"):
+                             detail="the take is unchanged; free space and run again"):
             check_free_space(out, need, f"processing {ctx.n_sets} frame sets of {take.name}")
             out.mkdir(parents=True, exist_ok=True)
             _start_record(ctx)
