@@ -43,9 +43,16 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from stage.store.space import check_free_space, raise_disk_full
 
-__all__ = ["ProcessParams", "ProcessResult", "ProcessError", "process_take", "STEPS", "Step", "RunContext", "register_step"]
+__all__ = ["STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "process_take", "register_step"]
 
 log = logging.getLogger("stage.process")
+
+#: Default voxel edge in pixels at the subject (median footprint over the cameras).
+PIXELS_PER_VOXEL = 2.0
+#: Voxels in the processing grid at most (time: the carve and marching cubes grow with it).
+MAX_VOXELS = 8_000_000
+#: Voxels along the subject's longest side at least, whatever the cameras resolve.
+MIN_RESOLUTION = 48
 
 
 
@@ -62,10 +69,12 @@ class ProcessParams(BaseModel):
         Keying mode; default: the rig's backdrop, else chroma.
     rekey : bool
         Key again even when the take already holds masks.
-    resolution : int
+    resolution : int or None
         Voxels along the longest side of the subject's bounding box (the box is
-        found by a coarse carve of the whole capture volume, so the voxel size
-        follows the subject, not the rig).
+        found by a coarse carve of the whole capture volume). Default: from the rig,
+        a voxel of :data:`PIXELS_PER_VOXEL` times the median pixel footprint at the
+        subject over the cameras that see it (so a limb 4 pixels wide in most views is
+        2 voxels across), within :data:`MAX_VOXELS` and the memory the carver may use.
     volume : (6,) floats or None
         ``[xmin, ymin, zmin, xmax, ymax, zmax]`` to search for the subject; default the
         rig's capture volume, else derived from the cameras.
@@ -84,7 +93,8 @@ class ProcessParams(BaseModel):
     smooth_iterations : int
         Taubin smoothing iterations of the surface.
     face_budget : int or None
-        Decimate surfaces to at most this many faces.
+        Decimate surfaces to at most this many faces before skeletons (their cost grows
+        with the faces; the tips and limbs do not need more). ``None``: never.
     chunk : int
         Frames per task sent to the executor.
     depth : {"auto", "off"}
@@ -99,13 +109,13 @@ class ProcessParams(BaseModel):
 
     key_mode: Literal["chroma", "luma", "plate"] | None = None
     rekey: bool = False
-    resolution: Annotated[int, Field(ge=16, le=512)] = 96
+    resolution: Annotated[int, Field(ge=16, le=512)] | None = None
     volume: tuple[float, float, float, float, float, float] | None = None
     tolerance: Annotated[int, Field(ge=0)] = 0
     silhouette_margin: Annotated[int, Field(ge=0, le=10)] = 1
     support_plane: tuple[float, float, float, float] | None = None
     smooth_iterations: Annotated[int, Field(ge=0, le=200)] = 10
-    face_budget: Annotated[int, Field(ge=100)] | None = None
+    face_budget: Annotated[int, Field(ge=100)] | None = 16000
     chunk: Annotated[int, Field(ge=1)] = 4
     depth: Literal["auto", "off"] = "auto"
     spine: dict = Field(default_factory=dict)
@@ -234,17 +244,70 @@ def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tupl
 # ----------------------------------------------------------------------------- per-frame tasks
 
 
-def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: dict, params: dict, out: str) -> list[dict]:
-    """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/``.
+def key_task(take: str, camera: str, base: dict, workers: int) -> dict:
+    """Key one camera of the take (in a worker); the masks come back bit-packed for the
+    parent to store (one writer per take file)."""
+    from stage.keying.params import KeyParams
+    from stage.keying.take import key_camera
+
+    if workers == 1:
+        import cv2
+
+        cv2.setNumThreads(1)  # parallelism comes from the worker processes
+    key = key_camera(take, camera, base=KeyParams(**base), workers=workers)
+    if key is None:
+        return {"camera": camera, "key": None}
+    shape = key.masks.shape
+    key.masks = np.packbits(key.masks, axis=-1)
+    return {"camera": camera, "key": key, "shape": shape}
+
+
+def _skeleton_record(k: int, mesh, params) -> dict:
+    """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of one frame's surface
+    (``None``: an empty frame), as stored in ``skeletons/``; the mesh is taken as
+    :func:`pipeline.meshio.load_mesh` reads it back (its largest connected part)."""
+    from pipeline.geodesic import largest_component
+    from pipeline.spine import frame_skeleton
+
+    if mesh is None:
+        return {"index": int(k), "status": "empty"}
+    v, f = np.asarray(mesh[0], np.float64), np.asarray(mesh[1], np.int64)
+    v2, f2, _ = largest_component(v, f, warn=False)
+    if len(f2) != len(f):
+        v, f = v2, f2
+    try:
+        return {"index": int(k), "status": "ok", "skeleton": frame_skeleton(v, f, params=params).to_dict()}
+    except ValueError as exc:
+        log.warning("frame set %d: no skeleton: %s", k, exc)
+        return {"index": int(k), "status": "failed", "reason": str(exc)}
+
+
+def surface_task(
+    take: str,
+    frames: Sequence[int],
+    calib_dict: dict,
+    grid_dict: dict,
+    params: dict,
+    out: str,
+    spine_params: dict | None = None,
+) -> list[dict]:
+    """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/`` (and,
+    with ``spine_params``, the frames' skeletons to ``skeletons/`` from the mesh in memory).
 
     Top level (picklable) so it runs in a process pool or on a Dask worker.
     """
     from pipeline.hull import EmptyHullError
     from pipeline.results import ResultsStore
-    from pipeline.surface import EmptySurfaceError, surface_from_occupancy, surface_quality
+    from pipeline.spine import SpineParams
+    from pipeline.surface import (
+        EmptySurfaceError,
+        surface_from_occupancy,
+        surface_quality,
+    )
     from stage.store import TakeReader
 
     p = ProcessParams(**params)
+    sp = SpineParams(**spine_params) if spine_params is not None else None
     out_dir = Path(out)
     store = ResultsStore(out_dir)
     carver = _carver(calib_dict, grid_dict)
@@ -257,6 +320,7 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
             t0 = time.perf_counter()
             masks, skipped = _frame_masks(reader, cameras, k, validity)
             info: dict = {"index": int(k), "skipped_cameras": skipped}
+            mesh = None
             try:
                 if len(skipped) == len(cameras):
                     raise EmptyHullError("no camera has a valid mask in this frame set")
@@ -277,19 +341,23 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
                 store.write_mesh(k, mesh)
                 info.update(status="ok", quality=quality)
             except (EmptyHullError, EmptySurfaceError) as exc:
+                mesh = None
                 info.update(status="empty", reason=str(exc))
                 log.warning("frame set %d: %s", k, exc)
             info["seconds"] = time.perf_counter() - t0
+            if sp is not None:
+                rec = _skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp)
+                _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
             _atomic_write_text(out_dir / "frames" / f"{_frame_name(k)}.json", json.dumps(info))
             results.append(info)
     return results
 
 
 def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
-    """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of some frames' meshes."""
+    """Per-frame tips and skeletons of some frames' stored meshes -> ``skeletons/``."""
     from pipeline.meshio import load_mesh
     from pipeline.results import ResultsStore
-    from pipeline.spine import SpineParams, frame_skeleton
+    from pipeline.spine import SpineParams
 
     params = SpineParams(**spine_params)
     out_dir = Path(out)
@@ -297,19 +365,20 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
     done = []
     for k in frames:
         mesh_path = store.mesh_path(k)
-        if mesh_path.exists():
-            v, f = load_mesh(mesh_path)
-            try:
-                sk = frame_skeleton(v, f, params=params).to_dict()
-                rec = {"index": int(k), "status": "ok", "skeleton": sk}
-            except ValueError as exc:
-                rec = {"index": int(k), "status": "failed", "reason": str(exc)}
-                log.warning("frame set %d: no skeleton: %s", k, exc)
-        else:
-            rec = {"index": int(k), "status": "empty"}
+        rec = _skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
         _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
         done.append({"index": int(k), "status": rec["status"]})
     return done
+
+
+def warm_task() -> int:
+    """Import what the per-frame tasks need (run once per worker while the parent reads the take)."""
+    import pipeline.hull
+    import pipeline.spine
+    import pipeline.surface  # noqa: F401
+    import stage.keying.take  # noqa: F401
+
+    return os.getpid()
 
 
 # ----------------------------------------------------------------------------- driver
@@ -317,48 +386,6 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
 
 def _chunks(items: Sequence[int], n: int) -> list[list[int]]:
     return [list(items[i : i + n]) for i in range(0, len(items), n)]
-
-
-def _run_tasks(
-    executor: cf.Executor | None,
-    task: Callable[[list[int]], list[dict]],
-    chunks: list[list[int]],
-    *,
-    step: str,
-    done0: int,
-    total: int,
-    progress: Callable[[str, int, int], None] | None,
-    cancel: threading.Event | None,
-) -> None:
-    """Run ``task(chunk)`` for every chunk of frame indices (in this process, or on the
-    executor), reporting progress after each finished chunk; the tasks persist their results."""
-    done = done0
-
-    def check_cancel() -> None:
-        if cancel is not None and cancel.is_set():
-            raise InterruptedError("cancelled")
-
-    def finished(n: int) -> None:
-        nonlocal done
-        done += n
-        if progress:
-            progress(step, done, total)
-
-    if executor is None:
-        for ch in chunks:
-            check_cancel()
-            task(ch)
-            finished(len(ch))
-        return
-    futures = {executor.submit(task, ch): ch for ch in chunks}
-    try:
-        for fut in cf.as_completed(futures):
-            check_cancel()
-            fut.result()
-            finished(len(futures[fut]))
-    finally:
-        for fut in futures:
-            fut.cancel()
 
 
 def _carve(carver, masks, p: ProcessParams):
@@ -409,7 +436,42 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
     c, half = (lo + hi) / 2, (hi - lo) / 2 * 1.25
     lo = np.maximum(c - half, volume_bounds[:3])
     hi = np.minimum(c + half, volume_bounds[3:])
-    return grid_from_volume(np.stack([lo, hi]), p.resolution)
+    return np.stack([lo, hi])
+
+
+def _rig_resolution(calibration, box: np.ndarray, p: ProcessParams) -> tuple[int, dict]:
+    """Voxels along the box's longest side, and why: ``--resolution`` when given, else from
+    the pixel footprint at the subject (:data:`PIXELS_PER_VOXEL`) within the budgets."""
+    from pipeline.hull import _memory_limit, hull_memory_bytes
+    from pipeline.volume import grid_from_volume, pixel_footprint
+
+    longest = float((box[1] - box[0]).max())
+    if p.resolution is not None:
+        return p.resolution, {"source": "resolution option", "resolution": p.resolution}
+    fp = pixel_footprint(calibration, (box[0] + box[1]) / 2)[:, 0]
+    seen = fp[np.isfinite(fp)]
+    if seen.size == 0:
+        raise ProcessError("no camera sees the centre of the subject's box; check the calibration or pass --resolution")
+    footprint = float(np.median(seen))
+    wanted = int(np.ceil(longest / (PIXELS_PER_VOXEL * footprint)))
+    res, limit = max(wanted, MIN_RESOLUTION), "pixel footprint"
+    if res == MIN_RESOLUTION and wanted < MIN_RESOLUTION:
+        limit = f"at least {MIN_RESOLUTION} voxels along the subject"
+    ext = box[1] - box[0]
+    while res > MIN_RESOLUTION and (
+        np.prod(np.ceil(ext / (longest / res))) > MAX_VOXELS
+        or hull_memory_bytes(grid_from_volume(box, res), calibration) > _memory_limit()
+    ):
+        res, limit = int(res * 0.95), f"budget of {MAX_VOXELS:,} voxels and the carver's memory"
+    why = {
+        "source": "rig",
+        "resolution": res,
+        "pixel_footprint": footprint,
+        "cameras_seeing_subject": int(seen.size),
+        "pixels_per_voxel": PIXELS_PER_VOXEL,
+        "limited_by": limit,
+    }
+    return res, why
 
 
 # ----------------------------------------------------------------------------- steps
@@ -436,6 +498,8 @@ class RunContext:
     warnings: list[str] = field(default_factory=list)
     spine_path: Path | None = None
     tip_counts: list[int | None] = field(default_factory=list)
+    grid_choice: dict = field(default_factory=dict)
+    steps: tuple[str, ...] = ()
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
@@ -445,17 +509,11 @@ class RunContext:
         """Run a per-frame ``task`` on every frame set without a result in ``OUT/done_dir``
         (the one runner all per-frame steps share: chunks, executor, progress, cancel)."""
         todo = [k for k in range(self.n_sets) if not (self.out / done_dir / f"{_frame_name(k)}.json").exists()]
-        self.report_progress(step, self.n_sets - len(todo), self.n_sets)
-        _run_tasks(
-            self.executor,
-            task,
-            _chunks(todo, self.params.chunk),
-            step=step,
-            done0=self.n_sets - len(todo),
-            total=self.n_sets,
-            progress=self.progress,
-            cancel=self.cancel,
-        )
+        done = self.n_sets - len(todo)
+        self.report_progress(step, done, self.n_sets)
+        for finished in _map_tasks(self, [partial(task, ch) for ch in _chunks(todo, self.params.chunk)]):
+            done += len(finished)
+            self.report_progress(step, done, self.n_sets)
 
 
 @dataclass(frozen=True)
@@ -486,24 +544,52 @@ def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = ""
 
 
 def _step_key(ctx: RunContext) -> None:
-    """Key every camera of the take (unless it holds masks and ``rekey`` is off)."""
+    """Key every camera of the take (unless it holds masks and ``rekey`` is off): one task
+    per camera on the executor (frames read once, in the worker), masks stored here."""
     total = ctx.n_sets * len(ctx.cameras)
     if not ctx.need_key:
         ctx.report_progress("key", total, total)
         return
-    from stage.keying.take import key_take
+    from stage.keying.take import store_camera_key, take_key_params
 
-    state = {"done": 0}
+    t0 = time.perf_counter()
+    base = take_key_params(ctx.rig, key_mode=ctx.params.key_mode).to_dict()
+    done, keys = 0, []
+    ctx.report_progress("key", 0, total)
+    for res in _map_tasks(ctx, [partial(key_task, str(ctx.take), cam, base, 1 if ctx.executor else 2) for cam in ctx.cameras]):
+        if res["key"] is not None:
+            keys.append(res)
+            done += len(res["key"].valid)
+        ctx.report_progress("key", min(done, total), total)
+    # stored once every worker has finished reading the take (one writer, no readers)
+    for res in keys:
+        key = res["key"]
+        key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).astype(bool)
+        store_camera_key(ctx.take, key)
+    ctx.timings["key"] = time.perf_counter() - t0
 
-    def _key_progress(n: int) -> None:
-        state["done"] += n
-        ctx.report_progress("key", state["done"], total)
+
+def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
+    """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
+    between tasks when cancelled."""
+
+    def check_cancel() -> None:
         if ctx.cancel is not None and ctx.cancel.is_set():
             raise InterruptedError("cancelled")
 
-    t0 = time.perf_counter()
-    key_take(ctx.take, key_mode=ctx.params.key_mode, progress=_key_progress)
-    ctx.timings["key"] = time.perf_counter() - t0
+    if ctx.executor is None:
+        for task in tasks:
+            check_cancel()
+            yield task()
+        return
+    futures = [ctx.executor.submit(task) for task in tasks]
+    try:
+        for fut in cf.as_completed(futures):
+            check_cancel()
+            yield fut.result()
+    finally:
+        for fut in futures:
+            fut.cancel()
 
 
 def _volume_bounds(ctx: RunContext) -> np.ndarray:
@@ -522,7 +608,7 @@ def _volume_bounds(ctx: RunContext) -> np.ndarray:
 def _processing_grid(ctx: RunContext):
     """The grid of the surfaces: ``OUT/grid.json`` when an earlier run chose it, else fitted
     to the subject now (and written there)."""
-    from pipeline.volume import Grid
+    from pipeline.volume import Grid, grid_from_volume
     from stage.store import TakeReader
 
     grid_path = ctx.out / "grid.json"
@@ -531,15 +617,21 @@ def _processing_grid(ctx: RunContext):
         if missing:
             raise ProcessError(f"{ctx.take}: cameras {missing} have no masks; run the key step")
         if grid_path.exists():
-            return Grid.from_dict(json.loads(grid_path.read_text()))
-        grid = _subject_grid(reader, ctx.calibration, ctx.cameras, ctx.n_sets, ctx.params, _volume_bounds(ctx))
+            grid = Grid.from_dict(json.loads(grid_path.read_text()))
+            ctx.grid_choice = json.loads(grid_path.read_text()).get("choice", {})
+            return grid
+        box = _subject_grid(reader, ctx.calibration, ctx.cameras, ctx.n_sets, ctx.params, _volume_bounds(ctx))
     p = ctx.params
+    res, why = _rig_resolution(ctx.calibration, box, p)
+    grid = grid_from_volume(box, res)
+    ctx.grid_choice = {**why, "voxel": grid.voxel, "shape": list(grid.shape)}
+    log.info("processing grid %s (%s)", grid, why["limited_by"] if "limited_by" in why else why["source"])
     if p.support_plane is None and p.volume is None and not ctx.rig.get("volume"):
         hint = _blind_side_hint(ctx.calibration, grid)
         if hint:
             log.warning("%s", hint)
             ctx.warnings.append(hint)
-    _atomic_write_text(grid_path, json.dumps(grid.to_dict()))
+    _atomic_write_text(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
     return grid
 
 
@@ -547,6 +639,7 @@ def _step_surface(ctx: RunContext) -> None:
     """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
     t0 = time.perf_counter()
     grid = _processing_grid(ctx)
+    _add_to_record(ctx, grid=ctx.grid_choice)
     task = partial(
         surface_task,
         str(ctx.take.resolve()),
@@ -554,6 +647,8 @@ def _step_surface(ctx: RunContext) -> None:
         grid_dict=grid.to_dict(),
         params=ctx.params.model_dump(),
         out=str(ctx.out.resolve()),
+        # skeletons straight from the surfaces in memory when the spine step follows
+        spine_params=ctx.params.spine if "spine" in ctx.steps else None,
     )
     ctx.run_frames("surface", task, "frames")
     ctx.timings["surface"] = time.perf_counter() - t0
@@ -649,7 +744,14 @@ def _start_record(ctx: RunContext) -> None:
                 for f in (ctx.out / sub).glob("frame_*"):
                     f.unlink()
             (ctx.out / "spine.json").unlink(missing_ok=True)
+            (ctx.out / "grid.json").unlink(missing_ok=True)  # the grid follows the parameters too
     _atomic_write_text(prev, json.dumps(record, indent=2))
+
+
+def _add_to_record(ctx: RunContext, **items) -> None:
+    """Add what a step decided (e.g. the grid and why) to ``process.json``."""
+    path = ctx.out / "process.json"
+    _atomic_write_text(path, json.dumps({**json.loads(path.read_text()), **items}, indent=2, default=_json_default))
 
 
 def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> ProcessResult:
@@ -670,6 +772,7 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "tip_counts": ctx.tip_counts,
         "per_frame": [frame_infos.get(k) for k in range(ctx.n_sets)],
         "warnings": ctx.warnings,
+        "grid": ctx.grid_choice,
     }
     _atomic_write_text(ctx.out / "report.json", json.dumps(report, indent=1, default=_json_default))
     return ProcessResult(
@@ -723,8 +826,12 @@ def process_take(
         raise ValueError(f"out must be a directory beside the take, got {out}")
     created = not out.exists()
     t_start = time.perf_counter()
+    if executor is not None:
+        for _ in range(2):
+            executor.submit(warm_task)  # workers import while this process reads the take
     try:
         ctx = _open_context(take, out, params, executor=executor, progress=progress, cancel=cancel)
+        ctx.steps = steps
         need = _space_needed(ctx, steps)
         with raise_disk_full(out, "the processing results", need,
                              detail="the take is unchanged; free space and run again"):

@@ -36,7 +36,7 @@ class BadTakeError(ValueError):
 
 def make_take_file(path: Path, frames: int = 6, *, cameras: int = 2, size: tuple[int, int] = (32, 24),
                    calibration=None, masks: bool = False) -> Path:
-    """A small real take (helper B's store): ``cameras`` cameras of noise images, optional masks."""
+    """A small real take (written by stage.store): ``cameras`` cameras of noise images, optional masks."""
     from stage.frame import Frame
     from stage.store import CameraSpec, TakeWriter, write_masks
 
