@@ -858,7 +858,8 @@ def _space_needed(ctx: RunContext, steps: Sequence[str]) -> int:
             old = r.derived_path.stat().st_size if r.derived_path.exists() else 0
         need += pixels // 16 + old  # the derived file is rebuilt beside the old one
     if "surface" in steps or "spine" in steps:
-        need += ctx.n_sets * (64 * ctx.params.resolution**2 + (16 << 10))
+        res = ctx.params.resolution or round(MAX_VOXELS ** (1 / 3))  # chosen later from the rig: at most this
+        need += ctx.n_sets * (64 * res**2 + (16 << 10))
     return need
 
 

@@ -141,7 +141,8 @@ def open_h5(path: Path, mode: str = "r") -> h5py.File:
                 f"it can be read but not modified: make a clean copy with `stage info --recover NEW.h5 {path}`"
             ) from None
         if "already open for read-only" in msg.lower():
-            raise TakeError(f"{path}: cannot modify the take while this process has it open for reading (close the TakeReader first)") from None
+            raise TakeError(f"{path}: cannot modify the take while this process has it open for reading "
+                            "(close the TakeReader first)") from None
         raise TakeError(f"{path}: cannot open take: {msg}") from None
 
 

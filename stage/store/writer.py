@@ -197,7 +197,8 @@ class TakeWriter:
                 raise DiskFullError(f"{p}: disk full while creating the take ({format_bytes(_HEADER_BYTES)} needed)") from None
             raise
 
-    def _create(self, p: Path, cams: list[CameraSpec], ids: list[str], *, rig, calibration, compression, fps, attrs, filt) -> h5py.File:
+    def _create(self, p: Path, cams: list[CameraSpec], ids: list[str], *, rig, calibration, compression, fps, attrs,
+                filt) -> h5py.File:
         f = h5py.File(p, "w", libver="latest")
         try:
             wall, mono = time.time_ns(), time.monotonic_ns()
@@ -238,7 +239,8 @@ class TakeWriter:
                 )
                 H, W = int(c.height), int(c.width)
                 if c.storage == "raw":
-                    g.create_dataset("image", shape=(0, H, W, 3), maxshape=(None, H, W, 3), dtype=np.uint8, chunks=(1, H, W, 3), **filt)
+                    g.create_dataset("image", shape=(0, H, W, 3), maxshape=(None, H, W, 3), dtype=np.uint8,
+                                     chunks=(1, H, W, 3), **filt)
                 else:
                     g.create_dataset("jpeg", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(256 << 10,))
                     g.create_dataset("jpeg_offset", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))

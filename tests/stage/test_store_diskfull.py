@@ -20,8 +20,7 @@ import h5py
 import numpy as np
 import pytest
 
-from stage.store import CameraSpec, DiskFullError, TakeReader, TakeWriter, derived_path, write_masks
-from stage.store import space
+from stage.store import CameraSpec, DiskFullError, TakeReader, TakeWriter, derived_path, space, write_masks
 from tests.stage.test_store import H, W, calibration, make_frame
 
 ROOT = Path(__file__).resolve().parents[2]
