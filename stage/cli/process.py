@@ -100,7 +100,9 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
         params = ProcessParams(**kw)
     except ValueError as exc:  # pydantic's ValidationError: one line per problem, the option named
         errors = exc.errors() if hasattr(exc, "errors") else [{"loc": (), "msg": str(exc)}]
-        raise ValueError("; ".join(f"--{'.'.join(map(str, e['loc'])).replace('_', '-')}: {e['msg']}" for e in errors)) from None
+        raise ValueError("; ".join(
+            f"--{'.'.join(map(str, e['loc'])).replace('_', '-')}: {e['msg'].removeprefix('Value error, ')}" for e in errors
+        )) from None
     executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
     try:
         with StepBars(disable=args.no_progress) as progress:
