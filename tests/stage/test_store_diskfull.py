@@ -25,10 +25,10 @@ from tests.stage.test_store import H, W, calibration, make_frame
 
 ROOT = Path(__file__).resolve().parents[2]
 #: free bytes left for `stage process` in the sweep (16 KiB .. 8 MiB): with the up-front estimate
-#: (refused, then enough), and without it, so that the disk fills up mid-run (in the keying's
-#: derived-data write at 64-256 KiB, in the results at 320 KiB, for this take)
+#: (refused below about 1.2 MiB for this take, then enough), and without it, so that the disk fills up
+#: mid-run (for this take: in the keying's derived-data write at 16-32 KiB, in the results at 64-384 KiB)
 BUDGETS = (16 << 10, 256 << 10, 2 << 20, 8 << 20)
-BUDGETS_MID_RUN = (64 << 10, 256 << 10, 320 << 10, 1 << 20)
+BUDGETS_MID_RUN = (16 << 10, 64 << 10, 320 << 10, 1 << 20)
 
 
 @contextlib.contextmanager
