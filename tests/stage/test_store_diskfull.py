@@ -111,6 +111,27 @@ def test_capture_on_a_full_disk_keeps_every_committed_set(tmp_path):
         assert sorted(p.name for p in take.parent.iterdir() if p.name != "ballast") == ["t.h5"]  # no reserve left
 
 
+def test_stage_capture_on_a_full_disk_exits_cleanly(tmp_path):
+    from fake_cameras.rigs import write_simulated_rig
+
+    rig = tmp_path / "rig.toml"
+    write_simulated_rig(rig, 4, frames=60, fps=30, size=(320, 240))
+    with small_fs(20 << 20) as fs:
+        if fs is None:
+            pytest.skip("needs a small filesystem (tmpfs as root) to fill up")
+        fill(fs, 13 << 20)  # passes the estimate (lz4 counted at 2:1), fills up mid-take (noise packs ~1.5:1)
+        r = subprocess.run(
+            [sys.executable, "-m", "stage", "capture", "--rig", str(rig), "--out", str(fs / "c.h5"), "--frames", "20",
+             "--compression", "lz4", "--no-progress"],
+            capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120,
+        )
+        assert r.returncode == 2, r.stderr[-2000:]
+        assert "Traceback" not in r.stderr and "disk full" in r.stderr and "closed cleanly" in r.stderr, r.stderr
+        kept = int(r.stderr.split("keeps the ")[1].split()[0])
+        with TakeReader(fs / "c.h5") as rd:
+            assert rd.complete and rd.n_sets == kept >= 1
+
+
 def test_free_space_checked_up_front(tmp_path, monkeypatch):
     monkeypatch.setattr(space, "free_bytes", lambda p: 10 << 20)
     with pytest.raises(DiskFullError, match=r"a take of 1000 frame sets: about .* MiB needed, 10.0 MiB free"):
