@@ -211,22 +211,22 @@ def procrustes_pose(model: ArticulatedModel, target) -> Pose:
     cx, cy = x[m0].mean(0), y[m0].mean(0)
     R0 = _kabsch(x[m0] - cx, y[m0] - cy)
     t0 = cy - R0 @ cx
-    local = np.tile(np.eye(3), (P, 1, 1))
-    pose = _forward(model, R0, t0, local)
+    R = np.tile(np.eye(3), (P, 1, 1))
+    t = np.zeros((P, 3))
+    R[0], t[0] = R0, t0
     c = model.pivots
-    for p in range(1, P):
+    for p in range(1, P):  # parents come first
         m = dom == p
         q = sk.part_parent[p]
-        if m.sum() >= 3:
-            cw = pose.R[q] @ c[p] + pose.t[q]
-            Rg = _kabsch(x[m] - c[p], y[m] - cw)
-            local[p] = pose.R[q].T @ Rg
-            pose = _forward(model, R0, t0, local)
+        cw = R[q] @ c[p] + t[q]
+        R[p] = _kabsch(x[m] - c[p], y[m] - cw) if m.sum() >= 3 else R[q]
+        t[p] = cw - R[p] @ c[p]
+    pose = Pose(R, t)
     return pose
 
 
 def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, iterations: int = 10,
-              tol: float = 1e-7) -> tuple[Pose, float]:
+              tol: float = 1e-5) -> tuple[Pose, float]:
     """Least-squares pose of the model for one frame (Gauss-Newton on the skinned vertices).
 
     Parameters
@@ -258,17 +258,28 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
     x = model.vertices
     size = float(np.linalg.norm(x.max(0) - x.min(0))) or 1.0
     vp = model.vertex_parts
-    Wb = (model.weights[..., None] * model.below[vp])[..., None]  # (V, k, P, 1)
+    Wk = model.weights[..., None] * model.below[vp]  # (V, k, P)
+    Wsum = Wk.sum(1)  # (V, P)
     local = _local(model, pose)
     root_R, root_t = pose.R[0].copy(), pose.t[0].copy()
     n_par = 3 * (P + 1)
-    for _ in range(int(iterations)):
+    prev_sse, prev_pose = np.inf, pose
+    for _ in range(int(iterations) + 1):
         q = np.einsum("vkij,vj->vki", pose.R[vp], x) + pose.t[vp]  # (V, k, 3)
         xp = (model.weights[..., None] * q).sum(1)
         r = xp - y
+        sse = float((r * r).sum())
+        if prev_sse == -np.inf:
+            break
+        if sse > prev_sse:  # the linearisation overshot: keep the previous pose
+            pose = prev_pose
+            break
+        if prev_sse - sse <= 1e-6 * prev_sse or _ == int(iterations):
+            break
+        prev_sse, prev_pose = sse, pose
         cw = np.einsum("pij,pj->pi", pose.R, model.pivots) + pose.t  # carried joints
         # columns: root translation, root rotation (about the root joint), one rotation per part >= 1
-        A = (Wb * (q[:, :, None, :] - cw[None, None, :, :])).sum(1)  # (V, P, 3)
+        A = np.einsum("vkp,vki->vpi", Wk, q) - Wsum[..., None] * cw[None]  # (V, P, 3)
         J = np.empty((V, 3, n_par))
         J[:, :, :3] = np.eye(3)
         J[:, :, 3:] = np.transpose(-_skew_batch(A), (0, 2, 1, 3)).reshape(V, 3, 3 * P)
@@ -292,7 +303,7 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
             local[p] = pose.R[qpar].T @ Rinc[p] @ pose.R[qpar] @ local[p]
         pose = _forward(model, root_R, root_t, local)
         if np.abs(om).max() < tol and np.abs(dt).max() < tol * size:
-            break
+            prev_sse = -np.inf  # converged: evaluate this pose and stop
     err = float(np.linalg.norm(model.deform(pose) - y, axis=1).mean())
     return pose, err
 
@@ -333,6 +344,13 @@ def fit_sequence(model: ArticulatedModel, frames, *, iterations: int = 10, progr
     Y = np.asarray(frames, dtype=np.float64)
     if Y.ndim != 3 or Y.shape[1:] != model.vertices.shape:
         raise ValueError(f"frames must have shape (T, {len(model.vertices)}, 3), got {Y.shape}")
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, "blas"):  # small dense products: threads only contend
+        return _fit_sequence(model, Y, iterations, progress)
+
+
+def _fit_sequence(model, Y, iterations, progress) -> FitResult:
     poses, errs, joints = [], [], []
     prev = None
     for t in range(len(Y)):
