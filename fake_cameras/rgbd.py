@@ -1,0 +1,382 @@
+"""Simulated single RGB-D takes: one OAK-like camera filming an articulated object bent by hand.
+
+The objects of Tzionas & Gall (2016, §5), as chains of capsules (round cones) joined at
+their end spheres:
+
+``pipe_half``   a 300 mm pipe (radius 15 mm) with one joint at 1/2 of its length;
+``pipe_3q``     the same pipe with its joint at 3/4;
+``lamp``        a desk lamp: base, two arms and a head, three joints.
+
+Over the take every joint bends from the rest pose to ``bend`` degrees (default 75, well
+past 45) about the camera's viewing axis, each joint starting at its own time, with a
+smooth (smoothstep) ramp. The template is the object's rest surface (marching cubes of
+the exact signed distance, :func:`template_mesh`); every template vertex belongs to the
+capsule it lies on at rest and moves rigidly with it, which gives per-vertex ground truth
+on every frame. Images and depth come from :func:`fake_cameras.render.render_view` (the
+green studio), depth with Gaussian noise growing with distance like a stereo camera's.
+
+:func:`simulate_rgbd_take` returns a :class:`SimulatedRGBDTake`; :func:`record_rgbd_take`
+writes it as a take file (one camera with depth), the template as ``TAKE.template.ply``
+and the ground truth as ``TAKE.gt.npz`` beside it (:func:`load_rgbd_ground_truth`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calib.calibration import Calibration
+from calib.camera import Camera
+from fake_cameras.creatures import Pose
+from fake_cameras.render import Backdrop, render_view
+
+__all__ = [
+    "OBJECTS",
+    "ArticulatedObject",
+    "SimulatedRGBDTake",
+    "make_object",
+    "template_mesh",
+    "oak_camera",
+    "simulate_rgbd_take",
+    "record_rgbd_take",
+    "load_rgbd_ground_truth",
+]
+
+OBJECTS = ("pipe_half", "pipe_3q", "lamp")
+
+
+def _rot(axis, angle: float) -> np.ndarray:
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * (K @ K)
+
+
+@dataclass(frozen=True)
+class ArticulatedObject:
+    """A chain of capsules joined end to end.
+
+    Parameters
+    ----------
+    name : str
+    points : (S+1, 3) float ndarray
+        Chain joints at rest, mm (segment ``k`` runs from ``points[k]`` to ``points[k+1]``).
+    radii : (S+1,) float ndarray
+        Radius at every chain point, mm.
+    joints : tuple of int
+        Chain points that bend (indices into ``points``, never the ends).
+    axis : (3,) float ndarray
+        Bending axis of every joint (the camera's viewing direction).
+    """
+
+    name: str
+    points: np.ndarray
+    radii: np.ndarray
+    joints: tuple[int, ...]
+    axis: np.ndarray
+
+    @property
+    def n_segments(self) -> int:
+        return int(len(self.points) - 1)
+
+    @property
+    def length(self) -> float:
+        """Length of the chain plus its end caps, mm."""
+        seg = np.linalg.norm(np.diff(self.points, axis=0), axis=1).sum()
+        return float(seg + self.radii[0] + self.radii[-1])
+
+    def segment_transforms(self, angles) -> tuple[np.ndarray, np.ndarray]:
+        """Rigid motion of every segment for the given joint angles (radians).
+
+        Returns
+        -------
+        R : (S, 3, 3) float ndarray
+        t : (S, 3) float ndarray
+            A rest point ``x`` of segment ``k`` moves to ``R[k] @ x + t[k]``.
+        """
+        angles = np.asarray(angles, dtype=np.float64).reshape(-1)
+        if angles.shape != (len(self.joints),):
+            raise ValueError(f"angles must have {len(self.joints)} values, got {angles.shape}")
+        S = self.n_segments
+        R = np.zeros((S, 3, 3))
+        t = np.zeros((S, 3))
+        Rc, tc = np.eye(3), np.zeros(3)
+        bend = dict(zip(self.joints, angles))
+        for k in range(S):
+            if k in bend:  # segment k starts at a joint: rotate about the joint's current position
+                p = Rc @ self.points[k] + tc
+                Rj = _rot(self.axis, bend[k])  # planar chain: every joint bends about the same axis
+                Rc, tc = Rj @ Rc, Rj @ (tc - p) + p
+            R[k], t[k] = Rc, tc
+        return R, t
+
+    def pose(self, angles) -> Pose:
+        """The capsules for the given joint angles (a :class:`fake_cameras.creatures.Pose`)."""
+        R, t = self.segment_transforms(angles)
+        p0 = np.einsum("kij,kj->ki", R, self.points[:-1]) + t
+        p1 = np.einsum("kij,kj->ki", R, self.points[1:]) + t
+        return Pose(p0=p0, p1=p1, r0=self.radii[:-1], r1=self.radii[1:], limb=np.arange(self.n_segments))
+
+
+def make_object(name: str, *, base=(0.0, 0.0, 300.0)) -> ArticulatedObject:
+    """One of :data:`OBJECTS`, standing in the x-z plane around ``base`` (mm); it bends about +y."""
+    if name not in OBJECTS:
+        raise ValueError(f"name must be one of {', '.join(OBJECTS)}, got {name!r}")
+    b = np.asarray(base, dtype=np.float64)
+    if name in ("pipe_half", "pipe_3q"):
+        L, r = 300.0, 15.0
+        at = 0.5 if name == "pipe_half" else 0.75
+        z = np.array([0.0, at * L, L]) - L / 2
+        pts = b + np.stack([np.zeros(3), np.zeros(3), z], axis=1)
+        return ArticulatedObject(name, pts, np.full(3, r), (1,), np.array([0.0, 1.0, 0.0]))
+    # lamp: a flat base, a lower and an upper arm, a conical head
+    pts = b + np.array([[-150.0, 0, -150], [-60.0, 0, -150], [-60.0, 0, 20], [90.0, 0, 110], [150.0, 0, 60]])
+    radii = np.array([22.0, 22.0, 11.0, 11.0, 24.0])
+    return ArticulatedObject(name, pts, radii, (1, 2, 3), np.array([0.0, 1.0, 0.0]))
+
+
+def template_mesh(obj: ArticulatedObject, *, spacing: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The rest surface of ``obj``: marching cubes of its exact signed distance.
+
+    Parameters
+    ----------
+    spacing : float, optional
+        Grid step, mm (default 3 mm for the pipes, 5 mm for the lamp).
+
+    Returns
+    -------
+    vertices : (V, 3) float ndarray
+    faces : (F, 3) int ndarray
+        Outward-oriented, closed.
+    """
+    from skimage.measure import marching_cubes
+
+    h = float(spacing if spacing is not None else (5.0 if obj.name == "lamp" else 3.0))
+    pose = obj.pose(np.zeros(len(obj.joints)))
+    lo, hi = pose.bounds()
+    lo, hi = lo - 2 * h, hi + 2 * h
+    axes = [np.arange(lo[i], hi[i] + h, h) for i in range(3)]
+    G = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    sdf = pose.sdf(G).reshape(len(axes[0]), len(axes[1]), len(axes[2]))
+    v, f, _, _ = marching_cubes(sdf, 0.0, spacing=(h, h, h))
+    v = v + lo
+    f = f.astype(np.int64)  # skimage orients the triangles towards increasing distance: outward
+    return v, f
+
+
+def oak_camera(*, size=(640, 400), distance: float = 800.0, target=(0.0, 0.0, 300.0), name: str = "oak") -> Camera:
+    """An OAK-D-like colour camera with aligned depth (71 degrees horizontal field of view).
+
+    It looks along +y at ``target`` from ``distance`` mm, level, no lens distortion.
+    """
+    w, h = (int(s) for s in size)
+    f = 0.5 * w / math.tan(math.radians(71.0) / 2)
+    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]])
+    R = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # x right, y down (= -z), z forward (= +y)
+    c = np.asarray(target, dtype=np.float64) - np.array([0.0, distance, 0.0])
+    return Camera(name, K, np.zeros(5), R, -R @ c, (w, h))
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedRGBDTake:
+    """A single-camera RGB-D take of an articulated object, with per-vertex ground truth.
+
+    Parameters
+    ----------
+    object : ArticulatedObject
+    calibration : calib.Calibration
+        The one camera.
+    images : (F, H, W, 3) uint8 ndarray
+    depth : (F, H, W) uint16 ndarray
+        Camera-frame Z in mm (0 = no return).
+    template_vertices : (V, 3) float ndarray
+    template_faces : (T, 3) int ndarray
+    vertex_segment : (V,) int ndarray
+        Capsule every template vertex moves with.
+    truth : (F, V, 3) float ndarray
+        Every template vertex on every frame.
+    angles : (F, J) float ndarray
+        Joint angles, radians.
+    joint_positions : (F, J, 3) float ndarray
+    fps : float
+    params : dict
+    """
+
+    object: ArticulatedObject
+    calibration: Calibration
+    images: np.ndarray
+    depth: np.ndarray
+    template_vertices: np.ndarray
+    template_faces: np.ndarray
+    vertex_segment: np.ndarray
+    truth: np.ndarray
+    angles: np.ndarray
+    joint_positions: np.ndarray
+    fps: float
+    params: dict
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def size(self) -> float:
+        """The object's length, mm (what errors are a fraction of)."""
+        return self.object.length
+
+
+def _angles(obj: ArticulatedObject, frames: int, bend: float) -> np.ndarray:
+    J = len(obj.joints)
+    u = np.linspace(0.0, 1.0, frames)
+    out = np.zeros((frames, J))
+    sign = np.array([1.0, -1.0, 1.0])[:J] if J > 1 else np.array([1.0])
+    for j in range(J):
+        a, b = (0.0, 1.0) if J == 1 else (0.45 * j / (J - 1), 0.55 + 0.45 * j / (J - 1))
+        x = np.clip((u - a) / (b - a), 0, 1)
+        out[:, j] = sign[j] * math.radians(bend) * x * x * (3 - 2 * x)
+    return out
+
+
+def simulate_rgbd_take(
+    name: str = "pipe_half",
+    *,
+    frames: int = 30,
+    fps: float = 30.0,
+    bend: float = 75.0,
+    size: tuple[int, int] = (640, 400),
+    distance: float = 800.0,
+    depth_noise: float = 1.0,
+    spacing: float | None = None,
+    seed: int = 0,
+) -> SimulatedRGBDTake:
+    """Render a single RGB-D camera's take of one of :data:`OBJECTS` being bent.
+
+    Parameters
+    ----------
+    name : {"pipe_half", "pipe_3q", "lamp"}
+    frames : int, optional
+        2..2000 frames; the bend runs over the whole take.
+    fps : float, optional
+    bend : float, optional
+        Final angle of every joint, degrees (0..150).
+    size : (int, int), optional
+        Image (width, height).
+    distance : float, optional
+        Camera to object, mm.
+    depth_noise : float, optional
+        Depth noise standard deviation at 1 m, mm (grows with the square of the distance).
+    spacing : float, optional
+        Template grid step (:func:`template_mesh`).
+    seed : int, optional
+
+    Returns
+    -------
+    SimulatedRGBDTake
+    """
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or not 2 <= frames <= 2000:
+        raise ValueError(f"frames must be an integer within 2..2000, got {frames!r}")
+    if not (isinstance(bend, (int, float)) and 0 <= bend <= 150):
+        raise ValueError(f"bend must be within 0..150 degrees, got {bend!r}")
+    if not (isinstance(depth_noise, (int, float)) and depth_noise >= 0):
+        raise ValueError(f"depth_noise must be >= 0, got {depth_noise!r}")
+    if not (isinstance(fps, (int, float)) and 0 < fps <= 1000):
+        raise ValueError(f"fps must be within (0, 1000], got {fps!r}")
+    obj = make_object(name)
+    cam = oak_camera(size=size, distance=distance, target=obj.points.mean(0))
+    V, T = template_mesh(obj, spacing=spacing)
+    rest = obj.pose(np.zeros(len(obj.joints)))
+    seg = rest.capsule_sdf(V).argmin(axis=1)
+    angles = _angles(obj, int(frames), float(bend))
+    rng = np.random.default_rng(seed)
+    bd = Backdrop(wall_radius=4000.0, wall_height=4000.0)
+    F = int(frames)
+    w, h = cam.size
+    images = np.empty((F, h, w, 3), np.uint8)
+    depth = np.empty((F, h, w), np.uint16)
+    truth = np.empty((F, len(V), 3))
+    jpos = np.empty((F, len(obj.joints), 3))
+    for k in range(F):
+        R, t = obj.segment_transforms(angles[k])
+        truth[k] = np.einsum("vij,vj->vi", R[seg], V) + t[seg]
+        jpos[k] = [R[j] @ obj.points[j] + t[j] for j in obj.joints]
+        view = render_view(cam, obj.pose(angles[k]), backdrop=bd, rng=np.random.default_rng([seed, k]), depth=True)
+        images[k] = view.image
+        z = view.depth.astype(np.float64)
+        noisy = z + rng.normal(0.0, 1.0, z.shape) * depth_noise * (z / 1000.0) ** 2
+        depth[k] = np.where(z > 0, np.clip(np.round(noisy), 1, 65535), 0).astype(np.uint16)
+    params = dict(name=name, frames=F, fps=float(fps), bend=float(bend), size=[w, h], distance=float(distance),
+                  depth_noise=float(depth_noise), spacing=spacing, seed=int(seed))
+    return SimulatedRGBDTake(
+        object=obj, calibration=Calibration((cam,)), images=images, depth=depth, template_vertices=V,
+        template_faces=T, vertex_segment=seg, truth=truth, angles=angles, joint_positions=jpos,
+        fps=float(fps), params=params,
+    )
+
+
+def record_rgbd_take(take: SimulatedRGBDTake, path: str | os.PathLike, *, drop_depth=(), overwrite: bool = True) -> Path:
+    """Write a simulated RGB-D take: ``TAKE.h5``, ``TAKE.template.ply`` and ``TAKE.gt.npz``.
+
+    Parameters
+    ----------
+    take : SimulatedRGBDTake
+    path : path
+        The ``.h5`` file.
+    drop_depth : iterable of int, optional
+        Frames stored without depth (an all-zero depth image, as a camera that lost its stereo).
+    overwrite : bool
+
+    Returns
+    -------
+    Path
+        The take file.
+    """
+    import trimesh
+
+    from stage.frame import Frame
+    from stage.store import CameraSpec, TakeWriter
+
+    if not isinstance(take, SimulatedRGBDTake):
+        raise ValueError(f"take must be a SimulatedRGBDTake, got {type(take).__name__}")
+    path = Path(path)
+    cam = take.calibration[0]
+    w, h = cam.size
+    drop = {int(i) for i in drop_depth}
+    period = int(round(1e9 / take.fps))
+    with TakeWriter(path, [CameraSpec(cam.name, w, h, depth=True)], calibration=take.calibration,
+                    fps=take.fps, overwrite=overwrite) as wr:
+        for k in range(take.n_frames):
+            d = np.zeros_like(take.depth[k]) if k in drop else take.depth[k]
+            wr.write_set({cam.name: Frame(take.images[k], cam.name, k, k * period, k * period, depth=d)}, time_ns=k * period)
+    trimesh.Trimesh(take.template_vertices, take.template_faces, process=False).export(template_path(path))
+    np.savez_compressed(
+        path.with_name(path.stem + ".gt.npz"),
+        truth=take.truth, vertex_segment=take.vertex_segment, angles=take.angles,
+        joint_positions=take.joint_positions, length=np.asarray(take.size),
+        template_vertices=take.template_vertices, template_faces=take.template_faces,
+        params=np.asarray(json.dumps(take.params)),
+    )
+    return path
+
+
+def template_path(take_path: str | os.PathLike) -> Path:
+    """``TAKE.template.ply`` beside ``TAKE.h5``."""
+    p = Path(take_path)
+    return p.with_name(p.stem + ".template.ply")
+
+
+def load_rgbd_ground_truth(take_path: str | os.PathLike) -> dict:
+    """Read ``TAKE.gt.npz`` written by :func:`record_rgbd_take` (``truth (F, V, 3)``, ``length``, ...)."""
+    p = Path(take_path)
+    p = p if p.suffix == ".npz" else p.with_name(p.stem + ".gt.npz")
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: ground truth file not found")
+    with np.load(p, allow_pickle=False) as z:
+        out = {k: z[k] for k in z.files if k != "params"}
+        out["params"] = json.loads(str(z["params"]))
+    out["length"] = float(out["length"])
+    return out

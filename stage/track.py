@@ -1,0 +1,272 @@
+"""Template tracking of whole takes: ``tracked/NNNNNN.ply`` in the template's vertex order.
+
+Two sources of data (Tzionas & Gall 2016, §3):
+
+- :func:`track_results`: a multi-view take already processed by ``stage process``; the
+  template is the reference frame's surface (or a given mesh), the data every frame's
+  surface ``meshes/frame_NNNNNN.ply``; every template vertex may pair (the data are whole
+  surfaces).
+- :func:`track_rgbd_take`: one RGB-D camera's take and a template from a static scan;
+  the template is placed on the first frame with depth by rigid ICP, then every frame is
+  preprocessed (:func:`pipeline.rgbd_preprocess.preprocess_depth`) and only the vertices
+  the camera and the data see get model->data pairs.
+
+Both write atomically, frame by frame, and resume: frames already in ``tracked/`` are kept,
+and tracking continues from the last one. ``tracked/track.json`` records the parameters,
+the skipped frames and per-frame fit figures.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.results import atomic_write_bytes, ply_bytes
+from pipeline.tracking import TemplateTracker, TrackingError, mesh_volume
+
+__all__ = ["track_results", "track_rgbd_take", "tracked_path", "TrackingError"]
+
+log = logging.getLogger(__name__)
+
+
+def tracked_path(out_dir, frame: int) -> Path:
+    """``OUT/tracked/NNNNNN.ply``."""
+    return Path(out_dir) / "tracked" / f"{int(frame):06d}.ply"
+
+
+def _read_tracked(path: Path, n_vertices: int) -> np.ndarray | None:
+    from pipeline.meshio import load_mesh
+
+    try:
+        v, _ = load_mesh(path, largest=False)
+    except (ValueError, OSError) as exc:
+        log.warning("re-tracking %s: unreadable (%s)", path, exc)
+        return None
+    return v if v.shape == (n_vertices, 3) else None
+
+
+def _write_frame(out_dir: Path, frame: int, vertices: np.ndarray, faces: np.ndarray) -> None:
+    atomic_write_bytes(tracked_path(out_dir, frame), ply_bytes(vertices, faces))
+
+
+def _write_report(out_dir: Path, report: dict) -> None:
+    atomic_write_bytes(Path(out_dir) / "tracked" / "track.json", json.dumps(report, indent=1).encode())
+
+
+def _load_template(template) -> tuple[np.ndarray, np.ndarray]:
+    from pipeline.meshio import load_mesh
+
+    if isinstance(template, (tuple, list)) and len(template) == 2:
+        return np.asarray(template[0], float), np.asarray(template[1], np.int64)
+    v, f = load_mesh(template, largest=False)
+    if len(f) == 0:
+        raise ValueError(f"template {template}: the mesh has no triangles")
+    return v, f
+
+
+def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_for, progress, start, prev):
+    """Track ``frames`` in order; ``data_for(k)`` -> (points, normals, extra) or None (no data)."""
+    V0 = tracker.template
+    vol0 = mesh_volume(V0, faces)
+    per = report.setdefault("frames", {})
+    done = 0
+    for k in frames:
+        t0 = time.perf_counter()
+        existing = _read_tracked(tracked_path(out_dir, k), len(V0)) if tracked_path(out_dir, k).is_file() else None
+        if existing is not None:
+            prev = existing
+        else:
+            data = data_for(k)
+            if data is None:
+                report["skipped"].append(int(k))
+            else:
+                pts, nrm, extra = data
+                fit = tracker.fit(pts, nrm, previous=prev, visible=visible_for(extra))
+                prev = fit.vertices
+                _write_frame(out_dir, k, prev, faces)
+                per[str(k)] = {
+                    "model_pairs": fit.model_pairs, "data_pairs": fit.data_pairs,
+                    "residual_mm": round(fit.residual, 4) if np.isfinite(fit.residual) else None,
+                    "volume_ratio": round(mesh_volume(prev, faces) / vol0, 5) if vol0 > 0 else None,
+                    "seconds": round(time.perf_counter() - t0, 4),
+                }
+        done += 1
+        if progress is not None:
+            progress("track", start + done, start + len(frames))
+    return prev
+
+
+def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None) -> dict:
+    """Track a template through the surfaces of a processed multi-view take.
+
+    Parameters
+    ----------
+    results_dir : path
+        Output of ``stage process`` (``meshes/frame_NNNNNN.ply``).
+    template : path or (vertices, faces), optional
+        Default: the first frame's surface.
+    progress : callable(step, done, total), optional
+    gamma, gate : float, optional
+        See :class:`pipeline.tracking.TemplateTracker`.
+
+    Returns
+    -------
+    dict
+        The report written to ``tracked/track.json``.
+    """
+    from pipeline.meshio import load_mesh
+    from pipeline.tracking import vertex_normals
+
+    root = Path(results_dir)
+    mesh_dir = root / "meshes"
+    paths = sorted(mesh_dir.glob("frame_*.ply"))
+    if not paths:
+        raise FileNotFoundError(f"{mesh_dir}: no frame_NNNNNN.ply meshes (run `stage process` first)")
+    frames = [int(p.stem.split("_")[1]) for p in paths]
+    by_frame = dict(zip(frames, paths))
+    if template is None:
+        V0, F0 = load_mesh(paths[0], largest=True)
+        source = str(paths[0])
+    else:
+        V0, F0 = _load_template(template)
+        source = str(template) if not isinstance(template, (tuple, list)) else "array"
+    tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
+    report = {"mode": "multi-view", "template": source, "vertices": int(len(V0)), "gamma": tracker.gamma,
+              "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
+              "skipped": [], "frames": {}}
+
+    def data_for(k):
+        v, f = load_mesh(by_frame[k], largest=False)
+        if len(f) == 0:
+            return None
+        return v, vertex_normals(v, f), None
+
+    _run_frames(tracker, frames, root, F0, report, data_for=data_for, visible_for=lambda e: None,
+                progress=progress, start=0, prev=V0.copy())
+    _write_report(root, report)
+    return report
+
+
+def _capture_bounds(reader, V: np.ndarray, margin: float):
+    rig = reader.rig or {}
+    vol = rig.get("volume") if isinstance(rig, dict) else None
+    if isinstance(vol, dict) and "center" in vol and "size" in vol:
+        c, s = np.asarray(vol["center"], float), np.asarray(vol["size"], float)
+        return c - s / 2, c + s / 2
+    return V.min(0) - margin, V.max(0) + margin
+
+
+def track_rgbd_take(
+    take_path,
+    template,
+    out_dir,
+    *,
+    camera: str | None = None,
+    remove_skin: bool = False,
+    bounds=None,
+    progress=None,
+    gamma=None,
+    gate=None,
+) -> dict:
+    """Track a template through one RGB-D camera's take.
+
+    Parameters
+    ----------
+    take_path : path
+        A take whose camera records depth (uint16 mm) and which holds a calibration.
+    template : path or (vertices, faces)
+        The object's mesh (mm, roughly placed in the world frame of the calibration).
+    out_dir : path
+        ``tracked/`` is written there.
+    camera : str, optional
+        The depth camera (default: the first camera with depth).
+    remove_skin : bool
+        Drop skin-coloured pixels (the hands) before tracking.
+    bounds : ((3,), (3,)), optional
+        Capture volume; default the rig's volume, else the template's box grown by 15 % of its size.
+
+    Returns
+    -------
+    dict
+        The report written to ``tracked/track.json`` (``skipped``: frames without depth).
+
+    Raises
+    ------
+    TrackingError
+        The template cannot be placed on the data (nothing is written then).
+    """
+    from pipeline.rgbd_preprocess import preprocess_depth, rigid_icp, visible_vertices
+    from stage.store import TakeReader
+
+    V0, F0 = _load_template(template)
+    out = Path(out_dir)
+    with TakeReader(take_path) as rd:
+        cams = [c for c in rd.cameras if rd.camera_info(c).get("has_depth")]
+        if camera is not None:
+            if camera not in rd.cameras:
+                raise ValueError(f"camera {camera!r} is not in the take (cameras: {', '.join(rd.cameras)})")
+            cams = [camera]
+        if not cams:
+            raise ValueError(f"{take_path}: no camera of the take records depth")
+        cam_id = cams[0]
+        calib = rd.calibration
+        if calib is None or cam_id not in calib.names:
+            raise ValueError(f"{take_path}: the take has no calibration of camera {cam_id} (run `stage calibrate`)")
+        cam = calib[calib.names.index(cam_id)]
+        size = float(np.linalg.norm(V0.max(0) - V0.min(0)))
+        lohi = bounds if bounds is not None else _capture_bounds(rd, V0, 0.15 * size)
+        n = rd.n_frames(cam_id)
+        tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
+        cache: dict = {}
+
+        def data_for(k):
+            z = rd.depth(cam_id, k)
+            if z is None or not np.any(z):
+                return None
+            img = rd.frame(cam_id, k) if remove_skin else None
+            fr = preprocess_depth(z, cam, bounds=lohi, image=img, remove_skin=remove_skin)
+            if len(fr.points) < 10:
+                return None
+            cache["last"] = fr
+            return fr.points, fr.normals, fr
+
+        def visible_for(fr):
+            return lambda V, nrm: visible_vertices(V, F0, cam, normals=nrm, tolerance=0.3 * tracker.gate, observed=fr.valid)
+
+        # place the template on the first frame with depth (nothing written if it fails)
+        skipped = []
+        first = None
+        for k in range(n):
+            d = data_for(k)
+            if d is not None:
+                first = (k, d)
+                break
+            skipped.append(k)
+        if first is None:
+            with_depth = [k for k in range(n) if np.any(rd.depth(cam_id, k))]
+            if with_depth:
+                raise TrackingError(
+                    f"{take_path}: rigid ICP cannot place the template: no depth point of camera {cam_id} lies in the "
+                    f"capture volume {np.round(lohi[0]).tolist()}..{np.round(lohi[1]).tolist()} mm around it "
+                    "(is the template roughly placed in the calibration's world frame, in mm?)"
+                )
+            raise TrackingError(f"{take_path}: no frame of camera {cam_id} has depth")
+        R, t, fit0 = rigid_icp(V0, F0, first[1][0], first[1][1], cam, gate=tracker.gate)
+        placed = V0 @ R.T + t
+        tracker = TemplateTracker(placed, F0, gamma=tracker.gamma, gate=tracker.gate)
+        report = {"mode": "rgbd", "take": str(take_path), "camera": cam_id, "template": str(template) if not isinstance(template, (tuple, list)) else "array",
+                  "vertices": int(len(V0)), "gamma": tracker.gamma, "gate_mm": tracker.gate, "rounds": tracker.rounds,
+                  "solver": tracker.system.backend, "remove_skin": bool(remove_skin),
+                  "icp": {"frame": first[0], "fit": round(fit0, 4), "R": R.tolist(), "t": t.tolist()},
+                  "skipped": list(skipped), "frames": {}}
+        (out / "tracked").mkdir(parents=True, exist_ok=True)
+        _run_frames(tracker, list(range(first[0], n)), out, F0, report, data_for=data_for, visible_for=visible_for,
+                    progress=progress, start=first[0], prev=placed)
+    if report["skipped"]:
+        log.warning("frames without depth skipped: %s", ", ".join(map(str, report["skipped"])))
+    _write_report(out, report)
+    return report
