@@ -149,15 +149,15 @@ def mesh_sequence(
     capsule = pose0.capsule_sdf(v0).argmin(1)
     mats0, org0, _ = _segment_frames(cr, 0.0)
     M0 = np.asarray(mats0)
-    O0 = np.asarray(org0)
-    local = np.einsum("vji,vj->vi", M0[capsule], v0 - O0[capsule])  # vertex in its capsule's frame
+    org0_a = np.asarray(org0)
+    local = np.einsum("vji,vj->vi", M0[capsule], v0 - org0_a[capsule])  # vertex in its capsule's frame
     verts, joint_pos, rel = [], [], []
     names = None
     for t in times:
         mats, org, joints = _segment_frames(cr, float(t))
         M = np.asarray(mats)
-        O = np.asarray(org)
-        verts.append(np.einsum("vij,vj->vi", M[capsule], local) + O[capsule])
+        org_a = np.asarray(org)
+        verts.append(np.einsum("vij,vj->vi", M[capsule], local) + org_a[capsule])
         names = tuple(joints)
         joint_pos.append(np.asarray([joints[k][0] for k in names]))
         # relative rotation between the two parts a joint links

@@ -36,6 +36,8 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.hull", "pipeline.surface", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
         "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
         "pipeline.rig_model", "pipeline.gltf_export", "pipeline.results",
+        "pipeline.motion_segmentation", "pipeline.articulated_skeleton", "pipeline.articulated_fit",
+        "pipeline.articulated_rig",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",
     )),
     3: ("orchestration", (
