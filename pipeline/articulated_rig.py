@@ -37,12 +37,89 @@ from pipeline.articulated_skeleton import ArticulatedSkeleton, articulated_skele
 from pipeline.motion_segmentation import Segmentation, check_sequence, motion_segmentation, subject_size
 from pipeline.results import atomic_write_bytes, ply_bytes
 
-__all__ = ["RIG_FORMAT", "ArticulatedRig", "build_articulated_rig", "rig_dict", "bvh_text", "glb_bytes", "write_rig",
+__all__ = ["RIG_FORMAT", "NoTrackingError", "tracked_meshes", "load_sequence", "rig_results", "ArticulatedRig", "build_articulated_rig", "rig_dict", "bvh_text", "glb_bytes", "write_rig",
            "choose_reference"]
 
 log = logging.getLogger(__name__)
 
 RIG_FORMAT = "capture-stage/rig@1"
+
+
+class NoTrackingError(FileNotFoundError):
+    """A results directory without a tracked template (``tracked/NNNNNN.ply``)."""
+
+
+def tracked_meshes(results_dir) -> list[Path]:
+    """The tracked template's meshes of a results directory, in frame order.
+
+    Raises
+    ------
+    NoTrackingError
+        When ``RESULTS_DIR/tracked/`` holds no ``.ply``.
+    """
+    d = Path(results_dir)
+    paths = sorted((d / "tracked").glob("*.ply")) if (d / "tracked").is_dir() else []
+    if not paths:
+        raise NoTrackingError(
+            f"{d} has no tracked/NNNNNN.ply: the per-frame surfaces of a take do not share connectivity, "
+            f"so the template must be tracked through the take first (stage track {d})"
+        )
+    return paths
+
+
+def load_sequence(paths) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices (T, V, 3), faces (F, 3) and frame numbers (T,) of a mesh sequence with shared connectivity.
+
+    Frame numbers are the last number in each file name (positions when
+    they are missing or repeated).
+
+    Raises
+    ------
+    ValueError
+        When the meshes do not share connectivity (vertex counts or faces differ).
+    """
+    import re
+
+    from pipeline.meshio import load_mesh
+
+    paths = [Path(p) for p in paths]
+    verts, faces, numbers = [], None, []
+    for i, p in enumerate(paths):
+        v, f = load_mesh(p, largest=False)
+        if len(f) == 0:
+            raise ValueError(f"{p.name}: empty mesh (no faces)")
+        if faces is None:
+            faces = f
+        elif len(v) != len(verts[0]):
+            raise ValueError(
+                f"{p.name} has {len(v)} vertices, {paths[0].name} has {len(verts[0])}: the meshes do not share "
+                "connectivity; track the template through the take first (stage track)"
+            )
+        elif f.shape != faces.shape or not np.array_equal(f, faces):
+            raise ValueError(
+                f"{p.name}: its faces differ from {paths[0].name}'s: the meshes do not share connectivity; "
+                "track the template through the take first (stage track)"
+            )
+        verts.append(v)
+        m = re.findall(r"\d+", p.stem)
+        numbers.append(int(m[-1]) if m else i)
+    if len(set(numbers)) != len(numbers):
+        numbers = list(range(len(paths)))
+    return np.asarray(verts), faces, np.asarray(numbers, dtype=np.int64)
+
+
+def rig_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=None, progress=None, **options):
+    """Rig a results directory from its tracked template; writes ``RESULTS_DIR/rig/`` (or ``out``).
+
+    Returns
+    -------
+    ArticulatedRig
+    """
+    vertices, faces, numbers = load_sequence(tracked_meshes(results_dir))
+    rig = build_articulated_rig(vertices, faces, units=units, fps=fps, frame_indices=numbers, progress=progress,
+                                **options)
+    write_rig(rig, Path(out) if out is not None else Path(results_dir) / "rig", progress=progress)
+    return rig
 
 
 @dataclass(frozen=True, eq=False)

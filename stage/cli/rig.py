@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 from pathlib import Path
 
 ORDER = 63
@@ -42,41 +41,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _frame_number(path: Path, default: int) -> int:
-    m = re.findall(r"\d+", path.stem)
-    return int(m[-1]) if m else default
-
-
-def load_sequence(paths) -> tuple:
-    """Vertices (T, V, 3), faces and frame numbers of a mesh sequence with shared connectivity."""
-    import numpy as np
-
-    from pipeline.meshio import load_mesh
-
-    verts, faces, numbers = [], None, []
-    for i, p in enumerate(paths):
-        v, f = load_mesh(p, largest=False)
-        if len(f) == 0:
-            raise ValueError(f"{p.name}: empty mesh (no faces)")
-        if faces is None:
-            faces = f
-        elif len(v) != len(verts[0]):
-            raise ValueError(
-                f"{p.name} has {len(v)} vertices, {paths[0].name} has {len(verts[0])}: the meshes do not share "
-                "connectivity; track the template through the take first (stage track)"
-            )
-        elif f.shape != faces.shape or not np.array_equal(f, faces):
-            raise ValueError(
-                f"{p.name}: its faces differ from {paths[0].name}'s: the meshes do not share connectivity; "
-                "track the template through the take first (stage track)"
-            )
-        verts.append(v)
-        numbers.append(_frame_number(Path(p), i))
-    if len(set(numbers)) != len(numbers):
-        numbers = list(range(len(paths)))
-    return np.asarray(verts), faces, np.asarray(numbers)
-
-
 def _spine_meta(results: Path) -> dict:
     sp = results / "spine.json"
     if not sp.is_file():
@@ -89,7 +53,7 @@ def _spine_meta(results: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.articulated_rig import build_articulated_rig, write_rig
+    from pipeline.articulated_rig import NoTrackingError, build_articulated_rig, load_sequence, tracked_meshes, write_rig
     from pipeline.meshio import mesh_paths
     from stage.cli import UserError
     from stage.cli._progress import StepBars
@@ -106,13 +70,10 @@ def run(args: argparse.Namespace) -> int:
         d = Path(args.results)
         if not d.is_dir():
             raise FileNotFoundError(f"results directory not found: {d}")
-        tracked = sorted((d / "tracked").glob("*.ply")) if (d / "tracked").is_dir() else []
-        if not tracked:
-            raise UserError(
-                f"{d} has no tracked/NNNNNN.ply: the per-frame surfaces of a take do not share connectivity, "
-                f"so the template must be tracked through the take first (stage track {d})"
-            )
-        paths = tracked
+        try:
+            paths = tracked_meshes(d)
+        except NoTrackingError as exc:
+            raise UserError(str(exc)) from None
         meta = _spine_meta(d)
         out = args.out or d / "rig"
     if len(paths) < 1:
