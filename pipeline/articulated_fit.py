@@ -13,9 +13,11 @@ linear blend skinning, ``x' = sum_k w_k (R_k x + t_k)`` over its bones' parts.
 
 Per frame, :func:`fit_frame` minimises ``sum_v ||x'_v - y_v||^2`` (the
 frame's vertices ``y``, corresponding by index: shared connectivity) by
-Gauss-Newton with a small Levenberg damping; the Jacobian of a rotation
+Gauss-Newton; the Jacobian of a rotation
 increment ``omega_p`` (world frame, about the part's current joint) is
-``-[A_vp]_x`` with ``A_vp = sum_k w_vk [part_k below p] (x'_vk - c_p)``.
+``-[A_vp]_x`` with ``A_vp = sum_k w_vk [part_k below p] (x'_vk - c_p)``; a
+Levenberg-Marquardt damping (Marquardt's diagonal scaling) keeps every step
+descending.
 :func:`fit_sequence` initialises every frame from the previous one (the
 paper's tracking) and, as a guard against fast motion, from a closed-form
 hierarchical Procrustes fit of the parts (Arun et al. 1987 about each
@@ -260,23 +262,11 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
     vp = model.vertex_parts
     Wk = model.weights[..., None] * model.below[vp]  # (V, k, P)
     Wsum = Wk.sum(1)  # (V, P)
-    local = _local(model, pose)
-    root_R, root_t = pose.R[0].copy(), pose.t[0].copy()
     n_par = 3 * (P + 1)
-    prev_sse, prev_pose = np.inf, pose
-    for _ in range(int(iterations) + 1):
+
+    def linearise(pose):
         q = np.einsum("vkij,vj->vki", pose.R[vp], x) + pose.t[vp]  # (V, k, 3)
-        xp = (model.weights[..., None] * q).sum(1)
-        r = xp - y
-        sse = float((r * r).sum())
-        if prev_sse == -np.inf:
-            break
-        if sse > prev_sse:  # the linearisation overshot: keep the previous pose
-            pose = prev_pose
-            break
-        if prev_sse - sse <= 1e-6 * prev_sse or _ == int(iterations):
-            break
-        prev_sse, prev_pose = sse, pose
+        r = (model.weights[..., None] * q).sum(1) - y
         cw = np.einsum("pij,pj->pi", pose.R, model.pivots) + pose.t  # carried joints
         # columns: root translation, root rotation (about the root joint), one rotation per part >= 1
         A = np.einsum("vkp,vki->vpi", Wk, q) - Wsum[..., None] * cw[None]  # (V, P, 3)
@@ -284,26 +274,40 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
         J[:, :, :3] = np.eye(3)
         J[:, :, 3:] = np.transpose(-_skew_batch(A), (0, 2, 1, 3)).reshape(V, 3, 3 * P)
         Jm = J.reshape(3 * V, n_par)
-        H = Jm.T @ Jm
-        g = Jm.T @ r.reshape(-1)
-        H[np.diag_indices(n_par)] *= 1.0 + 1e-6
-        H[np.diag_indices(n_par)] += 1e-9 * size * size
-        try:
-            delta = -np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
-            break
+        return float((r * r).sum()), Jm.T @ Jm, Jm.T @ r.reshape(-1), cw
+
+    def step(pose, delta, cw):
         dt, om = delta[:3], delta[3:].reshape(P, 3)
         Rinc = Rotation.from_rotvec(om).as_matrix()
-        # root: rotate about its carried joint, then translate
-        g0 = cw[0]
-        root_R = Rinc[0] @ root_R
-        root_t = Rinc[0] @ (root_t - g0) + g0 + dt
+        local = _local(model, pose)
+        g0 = cw[0]  # the root turns about its carried joint, then translates
+        root_R = Rinc[0] @ pose.R[0]
+        root_t = Rinc[0] @ (pose.t[0] - g0) + g0 + dt
         for p in range(1, P):
             qpar = sk.part_parent[p]
             local[p] = pose.R[qpar].T @ Rinc[p] @ pose.R[qpar] @ local[p]
-        pose = _forward(model, root_R, root_t, local)
-        if np.abs(om).max() < tol and np.abs(dt).max() < tol * size:
-            prev_sse = -np.inf  # converged: evaluate this pose and stop
+        return _forward(model, root_R, root_t, local)
+
+    sse, H, g, cw = linearise(pose)
+    mu = 1e-4 * float(np.mean(np.diag(H))) + 1e-12 * size * size
+    for _ in range(int(iterations)):  # Levenberg-Marquardt
+        try:
+            delta = -np.linalg.solve(H + mu * np.diag(np.diag(H) + 1e-9 * size * size), g)
+        except np.linalg.LinAlgError:
+            break
+        cand = step(pose, delta, cw)
+        c_sse, c_H, c_g, c_cw = linearise(cand)
+        if c_sse < sse:
+            done = sse - c_sse <= 1e-7 * sse or (
+                np.abs(delta[3:]).max() < tol and np.abs(delta[:3]).max() < tol * size)
+            pose, sse, H, g, cw = cand, c_sse, c_H, c_g, c_cw
+            mu /= 3.0
+            if done:
+                break
+        else:
+            mu *= 4.0
+            if mu > 1e8 * float(np.mean(np.diag(H)) + 1.0):
+                break
     err = float(np.linalg.norm(model.deform(pose) - y, axis=1).mean())
     return pose, err
 

@@ -37,8 +37,8 @@ on the surface, so a label whose vertices form several surface patches (two
 legs that happen to move in step) is split, and patches smaller than
 ``min_segment`` of the vertices are merged into the neighbour they share the
 longest boundary with; adjacent segments whose union still moves as one rigid
-body (RMS residual of the best rigid motion below ``rigid_tol`` of the size in
-every frame) are merged, so that over-segmentation (``lambda_thr = 0.98``, or
+body (median residual of each of the two after the best rigid motion of both,
+below ``rigid_tol`` of the size in every frame) are merged, so that over-segmentation (``lambda_thr = 0.98``, or
 k-means splitting a rigid part) adds no joint that never bends. Labels are
 renumbered by decreasing size.
 
@@ -452,18 +452,24 @@ def _connected_segments(labels: np.ndarray, edges: np.ndarray, n_vertices: int, 
     return rank[inv].astype(np.int64)
 
 
-def rigid_residual(points) -> float:
+def rigid_residual(points, groups=None) -> float:
     """How far a set of trajectories is from one rigid motion.
 
     Parameters
     ----------
     points : (T, n, 3) float ndarray
+    groups : (n,) int array_like, optional
+        Group of every point: the result is the largest over the groups of
+        their median residual, so a few stray points (labels propagated
+        across a boundary) do not hide a rigid union, and a small group that
+        moves on its own is not outvoted by a large one.
 
     Returns
     -------
     float
-        The largest (over frames) RMS distance after the best rigid
-        transform from frame 0 (Arun et al. 1987, all frames at once).
+        The largest (over frames) RMS distance (median per group when
+        ``groups`` is given) after the best rigid transform from frame 0
+        (Arun et al. 1987, every frame at once).
     """
     Y = np.asarray(points, dtype=np.float64)
     Y = Y - Y.mean(1, keepdims=True)
@@ -473,8 +479,11 @@ def rigid_residual(points) -> float:
     d = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
     U[:, :, 2] *= d[:, None]
     R = np.einsum("tij,tjk->tik", U, Vt)  # X @ R ~ Y
-    res = np.einsum("nd,tde->tne", X, R) - Y
-    return float(np.sqrt((res**2).sum(2).mean(1)).max())
+    res = np.sqrt(((np.einsum("nd,tde->tne", X, R) - Y) ** 2).sum(2))  # (T, n)
+    if groups is None:
+        return float(np.sqrt((res**2).mean(1)).max())
+    g = np.asarray(groups)
+    return float(max(np.median(res[:, g == k], axis=1).max() for k in np.unique(g)))
 
 
 def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, per_segment: int = 400,
@@ -498,7 +507,9 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
             break
         for pr in pairs:
             if pr not in cache:
-                cache[pr] = rigid_residual(v[:, np.r_[pick[pr[0]], pick[pr[1]]]])
+                ids = np.r_[pick[pr[0]], pick[pr[1]]]
+                grp = np.r_[np.zeros(len(pick[pr[0]])), np.ones(len(pick[pr[1]]))]
+                cache[pr] = rigid_residual(v[:, ids], grp)
         best = min(pairs, key=lambda pr: cache[pr])
         if cache[best] >= tol:
             break
@@ -547,7 +558,7 @@ def motion_segmentation(
         Surface patches below this fraction of the vertices are merged into a neighbour.
     rigid_tol : float or None
         Adjacent segments whose union moves rigidly within this fraction of
-        the subject's size (RMS, worst frame) are merged: a joint that never
+        the subject's size (median residual of each, worst frame) are merged: a joint that never
         bends is no joint. ``None`` keeps the spectral segments.
     max_clusters : int
     seed : int
