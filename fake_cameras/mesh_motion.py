@@ -114,6 +114,7 @@ def mesh_sequence(
     seed: int = 0,
     scale: float = 1.0,
     min_bend: float = math.radians(10.0),
+    dtype=np.float64,
 ) -> MeshSequence:
     """A creature's rest mesh posed along its kinematic tree over ``frames`` frames.
 
@@ -131,6 +132,8 @@ def mesh_sequence(
     min_bend : float
         A joint articulates when its relative rotation varies by more than
         this (radians) over the sequence.
+    dtype : numpy dtype
+        Of the vertices (float32 halves the memory of long, fine sequences).
 
     Returns
     -------
@@ -151,13 +154,14 @@ def mesh_sequence(
     M0 = np.asarray(mats0)
     org0_a = np.asarray(org0)
     local = np.einsum("vji,vj->vi", M0[capsule], v0 - org0_a[capsule])  # vertex in its capsule's frame
-    verts, joint_pos, rel = [], [], []
+    verts = np.empty((len(times), len(v0), 3), dtype=dtype)
+    joint_pos, rel = [], []
     names = None
-    for t in times:
+    for ti, t in enumerate(times):
         mats, org, joints = _segment_frames(cr, float(t))
         M = np.asarray(mats)
         org_a = np.asarray(org)
-        verts.append(np.einsum("vij,vj->vi", M[capsule], local) + org_a[capsule])
+        verts[ti] = np.einsum("vij,vj->vi", M[capsule], local) + org_a[capsule]
         names = tuple(joints)
         joint_pos.append(np.asarray([joints[k][0] for k in names]))
         # relative rotation between the two parts a joint links
@@ -186,7 +190,7 @@ def mesh_sequence(
     part[capsule >= n_body] = seg_ids[capsule[capsule >= n_body] - n_body]
     size = float(np.linalg.norm(v0.max(0) - v0.min(0)))
     return MeshSequence(
-        vertices=np.asarray(verts),
+        vertices=verts,
         faces=f,
         times=times,
         joint_names=names,

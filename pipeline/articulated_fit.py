@@ -270,11 +270,19 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
         cw = np.einsum("pij,pj->pi", pose.R, model.pivots) + pose.t  # carried joints
         # columns: root translation, root rotation (about the root joint), one rotation per part >= 1
         A = np.einsum("vkp,vki->vpi", Wk, q) - Wsum[..., None] * cw[None]  # (V, P, 3)
-        J = np.empty((V, 3, n_par))
-        J[:, :, :3] = np.eye(3)
-        J[:, :, 3:] = np.transpose(-_skew_batch(A), (0, 2, 1, 3)).reshape(V, 3, 3 * P)
-        Jm = J.reshape(3 * V, n_par)
-        return float((r * r).sum()), Jm.T @ Jm, Jm.T @ r.reshape(-1), cw
+        # normal equations of J = [I, -[A_v0]_x, ..., -[A_vP-1]_x] without forming J:
+        # [a]_x^T [b]_x = (a.b) I - b a^T
+        A2 = A.reshape(V, 3 * P)
+        M = (A2.T @ A2).reshape(P, 3, P, 3)  # sum_v A_vp,i A_vq,j
+        tr = np.einsum("piqi->pq", M)
+        Hww = tr[:, None, :, None] * np.eye(3)[None, :, None, :] - M.transpose(0, 3, 2, 1)
+        H = np.empty((n_par, n_par))
+        H[:3, :3] = V * np.eye(3)
+        H[:3, 3:] = -_skew_batch(A.sum(0)).transpose(1, 0, 2).reshape(3, 3 * P)
+        H[3:, :3] = H[:3, 3:].T
+        H[3:, 3:] = Hww.reshape(3 * P, 3 * P)
+        g = np.r_[r.sum(0), np.cross(A, r[:, None, :]).sum(0).ravel()]
+        return float((r * r).sum()), H, g, cw
 
     def step(pose, delta, cw):
         dt, om = delta[:3], delta[3:].reshape(P, 3)
@@ -298,7 +306,7 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
         cand = step(pose, delta, cw)
         c_sse, c_H, c_g, c_cw = linearise(cand)
         if c_sse < sse:
-            done = sse - c_sse <= 1e-7 * sse or (
+            done = sse - c_sse <= 1e-4 * sse or (
                 np.abs(delta[3:]).max() < tol and np.abs(delta[:3]).max() < tol * size)
             pose, sse, H, g, cw = cand, c_sse, c_H, c_g, c_cw
             mu /= 3.0

@@ -37,8 +37,10 @@ from pipeline.articulated_skeleton import ArticulatedSkeleton, articulated_skele
 from pipeline.motion_segmentation import Segmentation, check_sequence, motion_segmentation, subject_size
 from pipeline.results import atomic_write_bytes, ply_bytes
 
-__all__ = ["RIG_FORMAT", "NoTrackingError", "tracked_meshes", "load_sequence", "rig_results", "ArticulatedRig", "build_articulated_rig", "rig_dict", "bvh_text", "glb_bytes", "write_rig",
-           "choose_reference"]
+__all__ = [
+    "RIG_FORMAT", "NoTrackingError", "tracked_meshes", "load_sequence", "rig_results", "ArticulatedRig",
+    "build_articulated_rig", "rig_dict", "bvh_text", "glb_bytes", "write_rig", "choose_reference",
+]
 
 log = logging.getLogger(__name__)
 

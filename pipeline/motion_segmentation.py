@@ -127,7 +127,8 @@ def check_sequence(vertices, faces, *, name: str = "vertices") -> tuple[np.ndarr
 
     Returns
     -------
-    vertices : (T, V, 3) float64 ndarray
+    vertices : (T, V, 3) float ndarray
+        float32 input stays float32 (long sequences), anything else becomes float64.
     faces : (F, 3) int64 ndarray
     """
     if isinstance(vertices, (list, tuple)) and vertices and len({np.shape(x) for x in vertices}) > 1:
@@ -136,7 +137,9 @@ def check_sequence(vertices, faces, *, name: str = "vertices") -> tuple[np.ndarr
             f"{name}: the frames have different vertex counts ({', '.join(map(str, counts[:4]))}): "
             "a sequence without shared connectivity needs its template tracked first (stage track)"
         )
-    v = np.asarray(vertices, dtype=np.float64)
+    v = np.asarray(vertices)
+    if v.dtype not in (np.float32, np.float64):
+        v = v.astype(np.float64)
     if v.ndim != 3 or v.shape[2] != 3 or v.shape[0] < 1 or v.shape[1] < 4:
         raise ValueError(f"{name} must have shape (T, V, 3) with T >= 1 and V >= 4, got {v.shape}")
     if not np.all(np.isfinite(v)):
@@ -253,11 +256,12 @@ def interval_length(vertices, *, to_reference: float = 1.0) -> int:
     int
         Within ``1 .. max(T - 1, 1)``.
     """
-    v = np.asarray(vertices, dtype=np.float64)
+    v = np.asarray(vertices)
     T = v.shape[0]
     if T < 2:
         return 1
-    step = max(float(np.sqrt(((v[1:] - v[:-1]) ** 2).sum(2)).max()), 0.0) * float(to_reference)
+    big = max(float(np.sqrt(((v[t + 1] - v[t]).astype(np.float64) ** 2).sum(1)).max()) for t in range(T - 1))
+    step = big * float(to_reference)
     return int(np.clip(round(2.0 * step), 1, T - 1))
 
 

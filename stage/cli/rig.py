@@ -53,7 +53,13 @@ def _spine_meta(results: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.articulated_rig import NoTrackingError, build_articulated_rig, load_sequence, tracked_meshes, write_rig
+    from pipeline.articulated_rig import (
+        NoTrackingError,
+        build_articulated_rig,
+        load_sequence,
+        tracked_meshes,
+        write_rig,
+    )
     from pipeline.meshio import mesh_paths
     from stage.cli import UserError
     from stage.cli._progress import StepBars

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from pipeline.articulated_fit import fit_frame
-from pipeline.articulated_rig import bvh_text, build_articulated_rig, load_sequence, rig_dict, write_rig
+from pipeline.articulated_rig import build_articulated_rig, bvh_text, load_sequence, rig_dict, write_rig
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 PIPE = DATA / "tzionas_pipe" / "pipe.npz"
