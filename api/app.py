@@ -62,17 +62,42 @@ class BodySizeLimit:
                                        status_code=413)(scope, receive, send)
                     return
         seen = 0
+        too_large = False
+        replied = False
 
         async def limited() -> Message:
-            nonlocal seen
+            nonlocal seen, too_large
             msg = await receive()
             if msg["type"] == "http.request":
                 seen += len(msg.get("body", b""))
                 if seen > limit:
+                    too_large = True
                     raise UploadTooLargeError(f"request body larger than the limit of {limit} bytes")
             return msg
 
-        await self.app(scope, limited, send)
+        async def reply(message: Message) -> None:
+            # a body that grew past the limit (chunked, no Content-Length) is a 413 whatever the
+            # route made of the aborted read (FastAPI answers 400 "error parsing the body")
+            nonlocal replied
+            if too_large:
+                if not replied and message["type"] == "http.response.start":
+                    replied = True
+                    from fastapi.responses import JSONResponse
+
+                    await JSONResponse({"detail": f"request body larger than the limit of {limit} bytes"},
+                                       status_code=413)(scope, receive, send)
+                return
+            await send(message)
+
+        try:
+            await self.app(scope, limited, reply)
+        except UploadTooLargeError:
+            if replied:
+                return
+            from fastapi.responses import JSONResponse
+
+            await JSONResponse({"detail": f"request body larger than the limit of {limit} bytes"},
+                               status_code=413)(scope, receive, send)
 
 
 def create_app(settings: Settings | None = None, *, work: str | Callable[..., Any] | None = None,

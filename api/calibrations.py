@@ -24,7 +24,7 @@ from typing import Annotated, Any, Callable, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from api.errors import NotFoundError, UnavailableError
-from api.paths import JOB_ID, check_id, inside
+from api.paths import JOB_ID, check_id, confined_entries, inside
 
 __all__ = ["CalibrationLibrary", "CalibrateParams", "calibrate_take", "calibrate_take_work", "FORMATS", "MEDIA"]
 
@@ -49,17 +49,21 @@ class CalibrationLibrary:
 
     def list(self) -> list[dict[str, Any]]:
         out = []
-        if self.dir.is_dir():
-            for p in sorted(self.dir.glob("*.json"), key=lambda p: p.stat().st_mtime):
-                try:
-                    check_id(p.stem, pattern=JOB_ID)
-                    data = json.loads(p.read_text(encoding="utf-8"))
-                except (ValueError, OSError):
-                    continue
-                meta = data.get("meta", {}) if isinstance(data, dict) else {}
-                out.append({"id": p.stem, "cameras": [c.get("name") for c in data.get("cameras", [])],
-                            "units": data.get("units"), "take": meta.get("take"), "source": meta.get("source"),
-                            "created": p.stat().st_mtime})
+        for p in confined_entries(self.dir, "*.json", root=self.dir):
+            try:
+                check_id(p.stem, pattern=JOB_ID)
+                data = json.loads(p.read_text(encoding="utf-8"))
+                created = p.stat().st_mtime
+            except (ValueError, OSError):
+                continue
+            if not isinstance(data, dict):
+                continue
+            meta = data.get("meta", {}) if isinstance(data.get("meta"), dict) else {}
+            cams = data.get("cameras", []) if isinstance(data.get("cameras"), list) else []
+            out.append({"id": p.stem, "cameras": [c.get("name") for c in cams if isinstance(c, dict)],
+                        "units": data.get("units"), "take": meta.get("take"), "source": meta.get("source"),
+                        "created": created})
+        out.sort(key=lambda e: e["created"])
         return out
 
     def load(self, cal_id: str):

@@ -62,14 +62,16 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
-        errors = []
+        # the body the OpenAPI schema promises (HTTPValidationError): detail = [{loc, msg, type}]
+        detail = []
         for e in exc.errors():
-            loc = ".".join(str(p) for p in e.get("loc", ()))
-            errors.append({"loc": loc, "msg": e.get("msg", "invalid")})
-        msg = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors) or "invalid request"
+            loc = [p if isinstance(p, (str, int)) else str(p) for p in e.get("loc", ())]
+            detail.append({"loc": loc, "msg": _scrub(request, str(e.get("msg", "invalid"))), "type": str(e.get("type", "value_error"))})
         # a malformed id in the URL (e.g. a path traversal attempt) is a bad request, not an unprocessable body
-        code = 400 if errors and all(e["loc"].startswith("path") for e in errors) else 422
-        return JSONResponse({"detail": msg, "errors": errors}, status_code=code)
+        if detail and all(d["loc"][:1] == ["path"] for d in detail):
+            msg = "; ".join(f"{'.'.join(str(p) for p in d['loc'])}: {d['msg']}" for d in detail)
+            return JSONResponse({"detail": msg, "errors": detail}, status_code=400)
+        return JSONResponse({"detail": detail}, status_code=422)
 
     @app.exception_handler(InvalidIdError)
     @app.exception_handler(OutsideDataRootError)
@@ -107,6 +109,12 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(CameraError)
     async def _camera(request: Request, exc: Exception) -> JSONResponse:
         return _json(503, f"camera error: {exc}", request=request)
+
+    from stage.store.space import DiskFullError
+
+    @app.exception_handler(DiskFullError)
+    async def _disk_full(request: Request, exc: Exception) -> JSONResponse:
+        return _json(507, str(exc), request=request)
 
     @app.exception_handler(ValueError)
     async def _value(request: Request, exc: ValueError) -> JSONResponse:

@@ -17,7 +17,7 @@ from typing import Any, AsyncIterator, Callable
 import numpy as np
 
 from api.errors import ConflictError, NotFoundError, UnavailableError, UploadTooLargeError
-from api.paths import TAKE_ID, check_id, inside
+from api.paths import TAKE_ID, InvalidIdError, check_id, confined, confined_entries, inside
 
 __all__ = ["TakeLibrary", "HDF5_SIGNATURE", "InvalidTakeError"]
 
@@ -112,15 +112,19 @@ class TakeLibrary:
     def list(self) -> list[dict[str, Any]]:
         """``[{"id", "size_bytes", "modified"}]`` sorted by id."""
         out = []
-        if self.takes_dir.is_dir():
-            for p in sorted(self.takes_dir.glob("*.h5")):
-                tid = p.stem
-                try:
-                    check_id(tid)
-                except ValueError:
-                    continue
+        for p in confined_entries(self.takes_dir, "*.h5", root=self.takes_dir):
+            tid = p.stem
+            if p.name.endswith(".derived.h5"):
+                continue  # the derived data (masks...) of a take, not a take
+            try:
+                check_id(tid)
+            except ValueError:
+                continue
+            try:
                 st = p.stat()
-                out.append({"id": tid, "size_bytes": st.st_size, "modified": st.st_mtime})
+            except OSError:
+                continue
+            out.append({"id": tid, "size_bytes": st.st_size, "modified": st.st_mtime})
         return out
 
     def info(self, take_id: str) -> dict[str, Any]:
@@ -155,6 +159,8 @@ class TakeLibrary:
     # -- changes -----------------------------------------------------------------------------
     def _target(self, take_id: str) -> Path:
         check_id(take_id, pattern=TAKE_ID, name="take id")
+        if take_id.endswith(".derived"):
+            raise InvalidIdError(f"take id {take_id!r} is not valid (names ending in '.derived' hold derived data)")
         p = inside(self.takes_dir, f"{take_id}.h5")
         if p.exists():
             raise ConflictError(f"take {take_id!r} already exists")
@@ -200,7 +206,7 @@ class TakeLibrary:
         self._target(take_id)  # fail early on bad or existing ids
         tmp = self._tmp()
         try:
-            with open(tmp, "wb") as f:
+            with _disk_full_as_error(self.takes_dir), open(tmp, "wb") as f:
                 write = self._limited(f)
                 async for chunk in chunks:
                     write(chunk)
@@ -214,7 +220,7 @@ class TakeLibrary:
         self._target(take_id)
         tmp = self._tmp()
         try:
-            with open(tmp, "wb") as f:
+            with _disk_full_as_error(self.takes_dir), open(tmp, "wb") as f:
                 write = self._limited(f)
                 while chunk := fileobj.read(1 << 20):
                     write(chunk)
@@ -233,14 +239,48 @@ class TakeLibrary:
         if src.stat().st_size > self.max_upload_bytes:
             raise UploadTooLargeError(f"file larger than the limit of {self.max_upload_bytes} bytes")
         self._target(take_id)
+        src_derived = _derived(src)
+        derived = src_derived.is_file() and confined(src_derived, self.data_root)
+        _check_space(self.takes_dir, src.stat().st_size + (src_derived.stat().st_size if derived else 0), "the imported take")
         tmp = self._tmp()
-        shutil.copyfile(src, tmp)
-        return self._finish(tmp, take_id)
+        try:
+            shutil.copyfile(src, tmp)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        out = self._finish(tmp, take_id)
+        if derived:  # the take's masks and other derived data travel with it
+            dst = _derived(self.takes_dir / f"{take_id}.h5")
+            part = dst.with_name(f".{dst.name}.{uuid.uuid4().hex}.part")
+            try:
+                shutil.copyfile(src_derived, part)
+                os.replace(part, dst)
+            finally:
+                part.unlink(missing_ok=True)
+        return out
 
     def delete(self, take_id: str) -> None:
         p = self.path(take_id)
         p.unlink()
+        _derived(p).unlink(missing_ok=True)
         log.info("deleted take %s", take_id)
+
+
+def _derived(take: Path) -> Path:
+    """The derived-data file beside a take (``TAKE.derived.h5``, see ``docs/take-format.md``)."""
+    return take.with_name(take.stem + ".derived.h5")
+
+
+def _disk_full_as_error(directory: Path):
+    from stage.store.space import raise_disk_full
+
+    return raise_disk_full(directory, "the uploaded take", detail="nothing was stored")
+
+
+def _check_space(directory: Path, need: int, what: str) -> None:
+    from stage.store.space import check_free_space
+
+    check_free_space(directory, need + (1 << 20), what)
 
 
 def _describe(r: Any) -> dict[str, Any]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
@@ -14,7 +15,12 @@ __all__ = [
     "OutsideDataRootError",
     "check_id",
     "inside",
+    "confined",
+    "confined_entries",
+    "data_relative",
 ]
+
+log = logging.getLogger("api")
 
 #: take ids: letters, digits, ``_ . -``; no leading dot; at most 128 characters.
 TAKE_ID = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,127}$"
@@ -61,3 +67,36 @@ def inside(root: Path, *parts: str | Path) -> Path:
     if not p.is_relative_to(base):
         raise OutsideDataRootError("path is outside the data root")
     return p
+
+
+def confined(path: Path, root: Path) -> bool:
+    """True when ``path`` resolved (symlinks included) lies inside ``root``; logs a warning when it does not."""
+    try:
+        ok = Path(path).resolve().is_relative_to(Path(root).resolve())
+    except (OSError, RuntimeError):
+        ok = False
+    if not ok:
+        log.warning("%s points outside the data root; skipped", path)
+    return ok
+
+
+def confined_entries(directory: Path, pattern: str, *, root: Path) -> list[Path]:
+    """Entries of ``directory`` matching ``pattern`` that resolve inside ``root`` (links out skipped, with a warning)."""
+    d = Path(directory)
+    if not d.is_dir() or not confined(d, root):
+        return []
+    return [p for p in sorted(d.glob(pattern)) if confined(p, root)]
+
+
+def data_relative(obj, root: Path):
+    """``obj`` (JSON-like) with every string path under ``root`` written as ``DATA/...``."""
+    roots = sorted({str(Path(root)), str(Path(root).resolve())}, key=len, reverse=True)
+    if isinstance(obj, str):
+        for r in roots:
+            obj = obj.replace(r, "DATA")
+        return obj
+    if isinstance(obj, dict):
+        return {k: data_relative(v, root) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [data_relative(v, root) for v in obj]
+    return obj

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from api.errors import NotFoundError, UnavailableError
-from api.paths import JOB_ID, check_id, inside
+from api.paths import JOB_ID, check_id, confined, confined_entries, inside
 
 __all__ = ["listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb"]
 
@@ -26,14 +26,12 @@ def _job_dir(jobs_dir: Path, job_id: str) -> Path:
 def listing(jobs_dir: Path, job_id: str) -> dict[str, Any]:
     """``{"files": [...], "meshes": [frame indices], "links": {...}}`` of what exists now."""
     d = _job_dir(jobs_dir, job_id)
-    files = [n for n in ("spine.json", "report.json") if (d / n).is_file()]
+    files = [n for n in ("spine.json", "report.json") if (d / n).is_file() and confined(d / n, d)]
     meshes = []
-    mdir = d / "meshes"
-    if mdir.is_dir():
-        for p in sorted(mdir.glob("frame_*.ply")):
-            m = _MESH.match(p.name)
-            if m:
-                meshes.append(int(m.group(1)))
+    for p in confined_entries(d / "meshes", "frame_*.ply", root=d):
+        m = _MESH.match(p.name)
+        if m:
+            meshes.append(int(m.group(1)))
     links = {n: f"/jobs/{job_id}/results/{n}" for n in files}
     if "spine.json" in files:
         links["spine.glb"] = f"/jobs/{job_id}/results/spine.glb"
@@ -99,8 +97,11 @@ def rig_glb(jobs_dir: Path, job_id: str) -> Path:
     out = inside(d, "spine_rig.glb")
     if out.is_file():
         return out
-    if not (d / "spine.json").is_file():
+    if not inside(d, "spine.json").is_file():
         raise NotFoundError("spine.json is not available (yet)")
+    mdir = d / "meshes"
+    if mdir.exists() and (not confined(mdir, d) or len(confined_entries(mdir, "*", root=d)) != len(list(mdir.iterdir()))):
+        raise NotFoundError("the meshes of this job are not available (a mesh file points outside the data root)")
     from pipeline.gltf_export import export_rig
 
     export_rig(d, out=out)

@@ -106,10 +106,19 @@ class _Result:
         self.x, self.fun, self.success, self.message, self.nfev, self.cost = x, fun, success, message, nfev, cost
 
 
-def _robust_lm(fun, jac, x0, *, loss: str, f_scale: float, max_nfev: int, ftol: float, xtol: float = 1e-12):
+def _robust_weights(r: np.ndarray, loss: str, f2: float, n_robust: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-residual cost ``f2 * rho(r**2 / f2)`` and IRLS weight; rows past ``n_robust`` (priors) are plain squares."""
+    rho, w = _rho(r[:n_robust] * r[:n_robust] / f2, loss)
+    cost = np.concatenate([f2 * rho, r[n_robust:] ** 2])
+    return cost, np.concatenate([w, np.ones(r.size - n_robust)])
+
+
+def _robust_lm(fun, jac, x0, *, loss: str, f_scale: float, max_nfev: int, ftol: float, xtol: float = 1e-12,
+               n_robust: int | None = None):
     """Levenberg-Marquardt with iteratively reweighted robust loss, sparse normal equations solved directly.
 
-    Minimizes ``0.5 * f_scale**2 * sum(rho((r / f_scale)**2))`` like ``least_squares``.
+    Minimizes ``0.5 * f_scale**2 * sum(rho((r / f_scale)**2))`` like ``least_squares``; residuals past
+    ``n_robust`` (prior rows) enter as plain squares.
     """
     from scipy.sparse import diags
     from scipy.sparse.linalg import spsolve
@@ -119,15 +128,17 @@ def _robust_lm(fun, jac, x0, *, loss: str, f_scale: float, max_nfev: int, ftol: 
     r = fun(x)
     nfev = 1
 
+    nr = r.size if n_robust is None else int(n_robust)
+
     def cost_of(res):
-        return 0.5 * f2 * float(np.sum(_rho(res * res / f2, loss)[0]))
+        return 0.5 * float(np.sum(_robust_weights(res, loss, f2, nr)[0]))
 
     cost = cost_of(r)
     lam = 1e-4
     message, success = "maximum number of function evaluations reached", False
     while nfev < max_nfev:
         J = jac(x)
-        w = _rho(r * r / f2, loss)[1]
+        w = _robust_weights(r, loss, f2, nr)[1]
         Jw = J.multiply(w[:, None]).tocsr() if hasattr(J, "multiply") else J * w[:, None]
         A = (J.T @ Jw).tocsc()
         g = np.asarray(J.T @ (w * r)).ravel()
@@ -211,6 +222,8 @@ class BundleResult:
     message: str
     nfev: int
     cost: float
+    intrinsics_cov: np.ndarray | None = None  # (C, 9, 9), NaN rows/columns for intrinsics not estimated
+    sigma_px: float = float("nan")  # residual scale the covariance is expressed in
 
 
 def bundle_adjust(
@@ -232,6 +245,9 @@ def bundle_adjust(
     max_nfev: int | None = None,
     ftol: float = 1e-10,
     solver: str = "lm",
+    prior_cov: np.ndarray | None = None,
+    prior_scale: float = 1.0,
+    covariance: bool = False,
 ) -> BundleResult:
     """Jointly refine camera poses (and intrinsics) and board poses.
 
@@ -267,7 +283,21 @@ def bundle_adjust(
         sparse LU — about a hundred times faster than ``least_squares``' LSMR
         trust-region steps on this poorly conditioned problem). ``"scipy"``:
         ``scipy.optimize.least_squares`` (TRF, sparse analytic Jacobian,
-        ``x_scale='jac'``), the reference.
+        ``x_scale='jac'``), the reference (its robust loss also bends the prior rows).
+    prior_cov : (C, 9, 9) float ndarray, optional
+        Gaussian prior on the intrinsics when they are optimized: centred on
+        ``intrinsics``, with this covariance (e.g. from the per-camera Zhang solve,
+        :func:`calib.intrinsics.calibrate_intrinsics`). The prior rows are
+        ``prior_scale * L.T @ (p - p0)`` with ``L L.T`` the inverse covariance of the
+        free intrinsics, so with ``prior_scale`` the pixel noise the reprojection
+        rows are the whitened negative log-likelihood up to that common factor.
+        Non-finite entries leave a camera's intrinsics without a prior.
+    prior_scale : float
+        Pixel noise (px) the prior is expressed in, see ``prior_cov``.
+    covariance : bool
+        Also return the marginal covariance of every camera's intrinsics at the
+        solution (``(J^T W J)^-1`` with the robust weights, scaled by the
+        residual variance; Triggs et al. 2000, section 10).
 
     Returns
     -------
@@ -331,9 +361,15 @@ def bundle_adjust(
         Xc = RcXw + tv[obs_cam]
         return rv, bR, intr, Rc, RbX, RcXw, Xc
 
+    prior_rows = _prior_rows(prior_cov, C, free_i, prior_scale) if optimize_intrinsics else None
+
     def residuals(p: np.ndarray) -> np.ndarray:
         *_, intr, _Rc, _RbX, _RcXw, Xc = _forward(p)
-        return (project_batch(Xc, intr[obs_cam]) - uv).ravel()
+        r = (project_batch(Xc, intr[obs_cam]) - uv).ravel()
+        if prior_rows is None:
+            return r
+        d = (intr[:, free_i] - intr0[:, free_i])  # (C, NF)
+        return np.concatenate([r, np.einsum("cij,cj->ci", prior_rows, d).ravel()])
 
     x0 = np.concatenate(
         [np.hstack([crv[free_cams], ctv[free_cams]]).ravel(), intr0[:, free_i].ravel() if optimize_intrinsics else [],
@@ -402,7 +438,13 @@ def bundle_adjust(
             parts.append(Ji[:, :, free_i])
         parts.append(np.concatenate([J_br, J_Xw], axis=2))
         data = np.concatenate(parts, axis=2).reshape(-1)  # (M, 2, k) row-major = row_idx order
-        return csr_matrix((data[keep], (row_idx[keep], col_idx[keep])), shape=(2 * M, n))
+        if prior_rows is None:
+            return csr_matrix((data[keep], (row_idx[keep], col_idx[keep])), shape=(2 * M, n))
+        pr = 2 * M + np.repeat(np.arange(C * NF), NF)
+        pc = n_pose + (np.arange(C)[:, None, None] * NF + np.zeros((1, NF, 1), int) + np.arange(NF)).ravel()
+        return csr_matrix((np.concatenate([data[keep], prior_rows.ravel()]),
+                           (np.concatenate([row_idx[keep], pr]), np.concatenate([col_idx[keep], pc]))),
+                          shape=(2 * M + C * NF, n))
 
     if solver == "scipy":
         res = least_squares(
@@ -411,11 +453,65 @@ def bundle_adjust(
         )
     else:
         res = _robust_lm(residuals, jacobian, x0, loss=loss, f_scale=f_scale,
-                         max_nfev=200 if max_nfev is None else max_nfev, ftol=ftol)
+                         max_nfev=200 if max_nfev is None else max_nfev, ftol=ftol, n_robust=2 * M)
     rv, tv, intr, bR, bT = unpack(res.x)
     log.debug("bundle adjustment: %s after %d evaluations", res.message, res.nfev)
+    icov, sigma = None, float("nan")
+    if covariance:
+        icov, sigma = _intrinsics_covariance(jacobian(res.x), np.asarray(res.fun), 2 * M, loss, f_scale,
+                                             C, free_i, n_pose, optimize_intrinsics, prior_scale)
     return BundleResult(
         cam_rvec=rv, cam_tvec=tv, intrinsics=np.array(intr, dtype=np.float64), board_rvec=bR, board_tvec=bT,
-        residuals=res.fun.reshape(-1, 2), success=bool(res.success), message=str(res.message),
-        nfev=int(res.nfev), cost=float(res.cost),
+        residuals=np.asarray(res.fun)[: 2 * M].reshape(-1, 2), success=bool(res.success), message=str(res.message),
+        nfev=int(res.nfev), cost=float(res.cost), intrinsics_cov=icov, sigma_px=sigma,
     )
+
+
+def _prior_rows(prior_cov, C: int, free_i: np.ndarray, scale: float) -> np.ndarray | None:
+    """(C, NF, NF) whitening rows ``scale * L.T`` of the prior on the free intrinsics (zero: no prior)."""
+    if prior_cov is None:
+        return None
+    cov = np.asarray(prior_cov, dtype=np.float64)
+    if cov.shape != (C, N_INTR, N_INTR):
+        raise ValueError(f"prior_cov must have shape ({C}, {N_INTR}, {N_INTR}), got {cov.shape}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"prior_scale must be > 0, got {scale!r}")
+    NF = int(free_i.sum())
+    rows = np.zeros((C, NF, NF))
+    for c in range(C):
+        S = cov[c][np.ix_(free_i, free_i)]
+        if not np.all(np.isfinite(S)):
+            continue
+        try:
+            L = np.linalg.cholesky(np.linalg.inv(0.5 * (S + S.T)))
+        except np.linalg.LinAlgError:
+            continue
+        rows[c] = scale * L.T
+    return rows
+
+
+def _intrinsics_covariance(J, r, n_obs, loss, f_scale, C, free_i, n_pose, optimized, prior_scale):
+    """Marginal (C, 9, 9) intrinsics covariance and the residual scale (px) at a solution."""
+    cov = np.full((C, N_INTR, N_INTR), np.nan)
+    f2 = f_scale * f_scale
+    _, w = _robust_weights(r, loss, f2, n_obs)
+    n = J.shape[1]
+    dof = max(n_obs - n, 1)
+    sigma2 = float(np.sum(w[:n_obs] * r[:n_obs] ** 2) / dof)
+    if not optimized:
+        return cov, float(np.sqrt(sigma2))
+    Jd = J.tocsr()
+    # whitened: pixel rows by the residual scale, prior rows by the scale they were written in
+    scale = np.full(J.shape[0], 1.0 / prior_scale**2)
+    scale[:n_obs] = w[:n_obs] / sigma2
+    A = (Jd.T @ Jd.multiply(scale[:, None]).tocsr()).toarray()
+    try:
+        Ainv = np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        Ainv = np.linalg.pinv(A)
+    NF = int(free_i.sum())
+    idx = np.flatnonzero(free_i)
+    for c in range(C):
+        sl = slice(n_pose + c * NF, n_pose + (c + 1) * NF)
+        cov[c][np.ix_(idx, idx)] = Ainv[sl, sl]
+    return cov, float(np.sqrt(sigma2))

@@ -270,8 +270,12 @@ class Camera:
         size = tuple(int(s) for s in self.size)
         if len(size) != 2 or min(size) <= 0:
             raise ValueError(f"size must be (width, height) > 0, got {self.size}")
+        dist = _check_dist(self.dist)
+        for label, a in (("K", K), ("dist", dist), ("t", t)):
+            if not np.isfinite(a).all():
+                raise ValueError(f"camera {self.name}: {label} must be finite, got {a.ravel().tolist()}")
         object.__setattr__(self, "K", K)
-        object.__setattr__(self, "dist", _check_dist(self.dist))
+        object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "R", R)
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "size", size)

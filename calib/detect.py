@@ -11,10 +11,16 @@ needs ``cols + rows`` odd (e.g. 9 x 6 inner corners), otherwise a chessboard is
 ChArUco: ``cv2.aruco.CharucoDetector`` (corner ids are unique).
 
 Boards printed inverted (white on black) are detected on the inverted image.
+Cameras that deliver mirrored images (the "mirror" mode of many webcams) are
+detected on the image flipped left-right (``mirror=True``): the corners are then
+pixels of the flipped, true image, which is what such a camera's calibration
+describes. :func:`board_variants` finds out which of these a camera needs when
+the board is never found.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 from dataclasses import dataclass, field
@@ -24,7 +30,8 @@ import numpy as np
 
 from calib.boards import Board, Charuco, Chessboard
 
-__all__ = ["Detection", "detect_board", "select_views", "default_min_corners", "to_gray"]
+__all__ = ["Detection", "detect_board", "select_views", "default_min_corners", "to_gray", "board_variants",
+           "find_variant"]
 
 log = logging.getLogger(__name__)
 
@@ -216,6 +223,7 @@ def detect_board(
     method: str = "auto",
     min_corners: int | None = None,
     subpix_window: int | None = None,
+    mirror: bool = False,
 ) -> Detection | None:
     """Find the board in one image.
 
@@ -235,6 +243,9 @@ def detect_board(
     min_corners : int, optional
         Fewer corners than this count as "not found" (default
         :func:`default_min_corners`).
+    mirror : bool, optional
+        The camera delivers mirrored images: detect on the image flipped
+        left-right; corners are pixels of the flipped image.
 
     Returns
     -------
@@ -246,6 +257,8 @@ def detect_board(
     if method not in ("auto", "classic", "sb"):
         raise ValueError(f"method must be 'auto', 'classic' or 'sb', got {method!r}")
     gray = to_gray(image)
+    if mirror:
+        gray = np.ascontiguousarray(gray[:, ::-1])
     if board.inverted:
         gray = 255 - gray
     need = default_min_corners(board) if min_corners is None else int(min_corners)
@@ -331,3 +344,40 @@ def detect_sequence(
     """Detect the board in every image of a sequence (frame = position)."""
     for i, img in enumerate(images):
         yield detect_board(img, board, frame=i, method=method, min_corners=min_corners)
+
+
+def board_variants(board: Board) -> list[tuple[str, Board, bool]]:
+    """The ways a board file or a camera may differ from the print: ``(description, board, mirror)``.
+
+    Mirrored images first (a camera setting), then the board's ``inverted`` and
+    ChArUco ``legacy`` flags flipped, alone and with the mirror.
+    """
+    out: list[tuple[str, Board, bool]] = [("mirrored images", board, True)]
+    flips = [("inverted", dataclasses.replace(board, inverted=not board.inverted))]
+    if isinstance(board, Charuco):
+        flips.append(("legacy", dataclasses.replace(board, legacy=not board.legacy)))
+        flips.append(("inverted + legacy", dataclasses.replace(board, inverted=not board.inverted, legacy=not board.legacy)))
+    for what, b in flips:
+        desc = ", ".join(f"{k} = {str(getattr(b, k)).lower()}" for k in ("inverted", "legacy") if hasattr(b, k)
+                         and getattr(b, k) != getattr(board, k))
+        out.append((f"board file with {desc}", b, False))
+        out.append((f"board file with {desc} and mirrored images", b, True))
+    return out
+
+
+def find_variant(images: Sequence[np.ndarray], board: Board, *, min_found: int = 2):
+    """Which variant of :func:`board_variants` finds the board in ``images`` (a sample of one camera).
+
+    Returns
+    -------
+    (description, board, mirror, found) or None
+        The variant that found the board in the most images (at least ``min_found``).
+    """
+    best = None
+    for desc, b, mirror in board_variants(board):
+        found = sum(detect_board(img, b, mirror=mirror) is not None for img in images)
+        if found >= min_found and (best is None or found > best[3]):
+            best = (desc, b, mirror, found)
+            if found == len(images):
+                break
+    return best

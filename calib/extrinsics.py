@@ -303,7 +303,7 @@ class ExtrinsicsResult:
             "world": self.world,
             "world_frame": self.world_frame,
             "warnings": list(self.warnings),
-            **self.meta,
+            **{k: v for k, v in self.meta.items() if k != "intrinsics_cov"},
         }
 
     def report(self) -> str:
@@ -359,6 +359,8 @@ def calibrate_extrinsics(
     min_corners: int = 6,
     max_nfev: int | None = None,
     solver: str = "lm",
+    intrinsics_prior: np.ndarray | None = None,
+    prior_scale: float = 1.0,
 ) -> ExtrinsicsResult:
     """Calibrate the poses of all cameras together (and refine their intrinsics).
 
@@ -388,10 +390,16 @@ def calibrate_extrinsics(
         Views with fewer corners are ignored.
     solver : {"lm", "scipy"}
         See :func:`calib.bundle.bundle_adjust`.
+    intrinsics_prior : (C, 9, 9) float ndarray, optional
+        Covariance of a Gaussian prior on every camera's intrinsics, centred on the
+        given cameras' (``prior_cov`` of :func:`calib.bundle.bundle_adjust`).
+    prior_scale : float
+        Pixel noise the prior is expressed in (px per coordinate).
 
     Returns
     -------
     ExtrinsicsResult
+        ``meta["intrinsics_cov"]``: (C, 9, 9) covariance of the refined intrinsics.
 
     Raises
     ------
@@ -498,7 +506,7 @@ def calibrate_extrinsics(
         intrinsics=intr0, cam_rvec=cam_rvec, cam_tvec=cam_tvec, board_rvec=board_rvec, board_tvec=board_tvec,
         reference=root, optimize_intrinsics=optimize_intrinsics, fixed_intrinsics=tuple(fixed_intrinsics),
         loss=loss, f_scale=f_scale, max_nfev=max_nfev,
-        solver=solver,
+        solver=solver, prior_cov=intrinsics_prior, prior_scale=prior_scale, covariance=True,
     )
     Rc_all = rodrigues_batch(res.cam_rvec)
     Rb_all = rodrigues_batch(res.board_rvec)
@@ -553,10 +561,11 @@ def calibrate_extrinsics(
         if v < 3:
             warnings.append(f"camera {n}: only {v} shared board view(s); its pose rests on little data")
     for w in warnings:
-        log.info(w)  # also in the result's warnings / report
+        log.debug(w)  # in the result's warnings / report
     return ExtrinsicsResult(
         calibration=calib, rms=float(np.sqrt(np.mean(r2))), per_camera_rms=per_rms, per_camera_views=per_views,
         geometry=geometry, board_poses=board_world, tree=tree_report, world=world, world_frame=wf,
         warnings=tuple(warnings), meta={"bundle": {"nfev": res.nfev, "message": res.message,
-                                                    "observations": int(obs_cam.size)}},
+                                                    "observations": int(obs_cam.size)},
+                                        "intrinsics_cov": res.intrinsics_cov, "sigma_px": res.sigma_px},
     )

@@ -89,6 +89,12 @@ class IntrinsicsResult:
     coverage: float
     warnings: tuple[str, ...] = ()
     meta: dict = field(default_factory=dict)
+    covariance: np.ndarray | None = None  # (9, 9) fx, fy, cx, cy, k1..k3; NaN where held fixed
+
+    @property
+    def params(self) -> np.ndarray:
+        """(9,) ``fx, fy, cx, cy, k1, k2, p1, p2, k3``."""
+        return np.array([self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2], *self.dist], dtype=np.float64)
 
     def camera(self) -> Camera:
         """The camera at the origin (``R = I``, ``t = 0``)."""
@@ -351,7 +357,9 @@ def calibrate_intrinsics(
             "(30-45 degrees) towards the camera"
         )
     for w in warnings:
-        log.info(w)  # also in the result's warnings / report
+        log.debug(w)  # in the result's warnings / report
+    fixed = (("k3",) if fix_k3 else ()) + (("p1", "p2") if zero_tangent else ())
+    zcov = _zhang_covariance(kept, board, K, dist, rvecs, tvecs, fixed)
     return IntrinsicsResult(
         name=name,
         size=size,
@@ -366,4 +374,29 @@ def calibrate_intrinsics(
         std=std,
         coverage=cov,
         warnings=tuple(warnings),
+        covariance=zcov,
     )
+
+
+def _zhang_covariance(views, board, K, dist, rvecs, tvecs, fixed) -> np.ndarray:
+    """(9, 9) covariance of the intrinsics of a Zhang solve, with the full correlations.
+
+    OpenCV reports only standard deviations; the bundle adjustment's Jacobian at the
+    Zhang solution (one camera at the origin, the views' board poses free) gives the
+    whole matrix, so a prior built from it keeps correlated terms (k1, k2, k3; fx, fy)
+    together.
+    """
+    from calib.bundle import bundle_adjust
+
+    obj = board.object_points()
+    oc = np.concatenate([np.zeros(len(d), np.int64) for d in views])
+    ob = np.concatenate([np.full(len(d), i) for i, d in enumerate(views)])
+    op = np.concatenate([obj[d.ids] for d in views])
+    ouv = np.concatenate([d.corners for d in views])
+    intr = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(dist).ravel()[:5]]])
+    res = bundle_adjust(oc, ob, op, ouv, intrinsics=intr, cam_rvec=np.zeros((1, 3)), cam_tvec=np.zeros((1, 3)),
+                        board_rvec=np.asarray(rvecs, dtype=np.float64).reshape(-1, 3),
+                        board_tvec=np.asarray(tvecs, dtype=np.float64).reshape(-1, 3),
+                        optimize_intrinsics=True, fixed_intrinsics=tuple(fixed), loss="linear", max_nfev=1,
+                        covariance=True)
+    return res.intrinsics_cov[0]

@@ -6,6 +6,23 @@ This is the entry point the CLI and the demo use::
     result.calibration          # calib.Calibration, mm, world = a board pose (z up)
     print(result.report())
 
+Steps:
+
+1. Views. Each camera's intrinsics (Zhang) use its views thinned by novelty
+   (:func:`calib.detect.select_views`) together with every view it shares with
+   another camera. The bundle adjustment uses *every* frame set in which two or
+   more cameras saw the board (evenly thinned only above ``max_sets``): those are
+   what links the cameras.
+2. Intrinsics in the bundle adjustment (``intrinsics``): ``"prior"`` refines them
+   under a Gaussian prior from each camera's Zhang solve (its full covariance), so
+   a parameter moves only as far as the joint data supports; ``"fixed"`` keeps the
+   Zhang values; ``"free"`` refines them without a prior.
+3. Honest figures (:mod:`calib.evaluate`): beside the fit on the views used, the
+   reprojection and board-geometry error over every frame with a detection, a
+   k-fold held-out error over frame sets (calibrate on the rest, measure on the
+   fold), the per-camera projection uncertainty from the parameter covariance, and
+   how far each intrinsic moved from Zhang's in units of its standard deviation.
+
 Detection (from images, takes or videos) is the caller's business (see
 :mod:`calib.detect`); this module only takes arrays.
 """
@@ -13,50 +30,316 @@ Detection (from images, takes or videos) is the caller's business (see
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from calib.boards import Board, Charuco, Chessboard
 from calib.calibration import Calibration
-from calib.detect import Detection
-from calib.extrinsics import ExtrinsicsResult, calibrate_extrinsics
+from calib.bundle import INTRINSIC_NAMES
+from calib.detect import Detection, select_views
+from calib.evaluate import projection_uncertainty, reprojection_errors
+from calib.extrinsics import ExtrinsicsResult, calibrate_extrinsics, triangulate_board_error
 from calib.intrinsics import CalibrationError, IntrinsicsResult, calibrate_intrinsics
 
-__all__ = ["RigCalibration", "calibrate_rig"]
+__all__ = ["RigCalibration", "calibrate_rig", "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA"]
 
 log = logging.getLogger(__name__)
+
+INTRINSICS_MODES = ("prior", "fixed", "free")
+MAX_SETS = 300  # frame sets in the bundle adjustment above which they are evenly thinned
+MOVE_WARN_SIGMA = 3.0  # an intrinsic that moved further than this many Zhang sigmas is reported
 
 
 @dataclass(frozen=True, eq=False)
 class RigCalibration:
-    """Result of :func:`calibrate_rig`."""
+    """Result of :func:`calibrate_rig`.
+
+    Attributes
+    ----------
+    calibration : Calibration
+    intrinsics : dict
+        Name -> :class:`~calib.intrinsics.IntrinsicsResult` (the per-camera Zhang solve).
+    extrinsics : ExtrinsicsResult or None
+        The bundle adjustment (None for a single camera).
+    evaluation : dict
+        ``all_frames`` (:func:`calib.evaluate.reprojection_errors` over every frame with a
+        detection), ``geometry_all`` (board geometry error over them), ``held_out``
+        (k-fold, same layout plus ``folds``), ``uncertainty`` (name -> position -> px),
+        ``moved_sigma`` (name -> intrinsic -> signed move in Zhang sigmas), ``sets``
+        (frame sets used by the bundle adjustment).
+    """
 
     calibration: Calibration
     intrinsics: dict  # name -> IntrinsicsResult
     extrinsics: ExtrinsicsResult | None
+    evaluation: dict = field(default_factory=dict)
+    extra_warnings: tuple[str, ...] = ()
 
     @property
     def warnings(self) -> list[str]:
         w = [x for r in self.intrinsics.values() for x in r.warnings]
         if self.extrinsics is not None:
             w += list(self.extrinsics.warnings)
-        return w
+        return w + list(self.extra_warnings)
+
+    def held_out_rms(self) -> dict:
+        """Camera name -> held-out reprojection RMS (px), NaN where not measured."""
+        ho = self.evaluation.get("held_out") or {}
+        return {n: v["rms"] for n, v in ho.get("per_camera", {}).items()}
+
+    def summary(self) -> str:
+        """The line a user reads first: the held-out error per camera."""
+        ho = self.evaluation.get("held_out")
+        if ho and ho.get("per_camera"):
+            per = ", ".join(f"{n} {v['rms']:.2f}" for n, v in ho["per_camera"].items())
+            return (f"held-out reprojection RMS ({ho['folds']}-fold over {ho['frames']} frame sets), px: {per}; "
+                    f"all cameras {ho['rms']:.2f}")
+        af = self.evaluation.get("all_frames")
+        if af:
+            per = ", ".join(f"{n} {v['rms']:.2f}" for n, v in af["per_camera"].items())
+            return f"reprojection RMS over every detected frame (too few frame sets to hold any out), px: {per}"
+        return "single camera: " + next(iter(self.intrinsics.values())).summary().splitlines()[0]
 
     def report(self) -> str:
-        lines = ["intrinsics (per camera, Zhang):"]
+        lines = [self.summary(), "intrinsics (per camera, Zhang):"]
         lines += ["  " + r.summary().replace("\n", "\n  ") for r in self.intrinsics.values()]
         if self.extrinsics is not None:
-            lines.append("extrinsics (bundle adjustment of all cameras):")
+            ev = self.evaluation
+            lines.append(f"extrinsics (bundle adjustment of all cameras over {ev.get('sets', '?')} frame sets, "
+                         f"intrinsics {ev.get('mode', '?')}):")
             lines.append("  " + self.extrinsics.report().replace("\n", "\n  "))
+            af, ho = ev.get("all_frames"), ev.get("held_out")
+            g = ev.get("geometry_all")
+            lines.append("  camera        fit px   all-frames px (views)   held-out px   uncertainty px (centre / worst corner)")
+            for name in self.calibration.names:
+                fit = self.extrinsics.per_camera_rms.get(name, float("nan"))
+                a = af["per_camera"][name] if af else {"rms": float("nan"), "views": 0}
+                h = ho["per_camera"][name]["rms"] if ho and name in ho.get("per_camera", {}) else float("nan")
+                u = ev.get("uncertainty", {}).get(name, {})
+                corner = max((v for k, v in u.items() if k != "centre"), default=float("nan"))
+                lines.append(f"  {name:<12} {fit:7.3f}   {a['rms']:7.3f} ({a['views']:4d})          {h:7.3f}"
+                             f"       {u.get('centre', float('nan')):.3f} / {corner:.3f}")
+            if g and g.get("frames"):
+                lines.append(f"  board over every detected frame ({g['frames']} frames): adjacent corners off by "
+                             f"{g['neighbor_rms']:.2f} mm RMS, all corner pairs {g['pairs_rms']:.2f} mm RMS")
+            moved = ev.get("moved_sigma", {})
+            if moved:
+                lines.append("  intrinsics moved from Zhang, in Zhang standard deviations:")
+                for name, m in moved.items():
+                    lines.append("    " + f"{name:<12} " + "  ".join(f"{k} {v:+.1f}" for k, v in m.items()))
+            lines += [f"  note: {n}" for n in self.evaluation.get("flipped", ())]
+        lines += [f"  warning: {w}" for w in self.extra_warnings]
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
         return {
+            "summary": self.summary(),
             "intrinsics": {k: v.to_dict() for k, v in self.intrinsics.items()},
             "extrinsics": self.extrinsics.to_dict() if self.extrinsics is not None else None,
+            "evaluation": _jsonable({k: v for k, v in self.evaluation.items() if k != "detections"}),
+            "warnings": self.warnings,
         }
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    return x
+
+
+def _intrinsic_views(dets: list[Detection], size, linking: set[int], min_change: float, min_corners: int):
+    """Novelty-thinned views plus every view that links this camera to another."""
+    keep = set(select_views(dets, size=size, min_corners=min_corners, min_change=min_change))
+    return [d for i, d in enumerate(dets) if i in keep or (d.frame in linking and len(d) >= min_corners)]
+
+
+def _thin(frames: list[int], budget: int) -> list[int]:
+    if len(frames) <= budget:
+        return frames
+    pick = np.unique(np.round(np.linspace(0, len(frames) - 1, budget)).astype(int))
+    return [frames[i] for i in pick]
+
+
+def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, reject_outliers, min_views, solver,
+           max_intrinsic_views, min_change, max_sets, min_corners):
+    """One calibration (intrinsics, then the bundle adjustment) without the evaluation."""
+    seen: dict[int, int] = {}
+    for n in names:
+        for f in {d.frame for d in dets[n]}:
+            seen[f] = seen.get(f, 0) + 1
+    linking = {f for f, k in seen.items() if k >= 2}
+    intr: dict[str, IntrinsicsResult] = {}
+    problems, bad = [], []
+    for n in names:
+        views = _intrinsic_views(dets[n], tuple(sizes[n]), linking, min_change, min_corners)
+        try:
+            intr[n] = calibrate_intrinsics(views, board, tuple(sizes[n]), name=n, fix_k3=fix_k3,
+                                           reject_outliers=reject_outliers, min_views=min_views,
+                                           max_views=max_intrinsic_views)
+        except CalibrationError as exc:
+            if not dets[n]:
+                problems.append(
+                    f"camera {n}: the board was never detected; check that {n} sees the board and that the board "
+                    f"file matches the print (corners = INNER corners; ChArUco squares, dictionary, legacy flag)"
+                )
+            else:
+                problems.append(str(exc))
+            bad.append(n)
+    if problems:
+        raise CalibrationError("; ".join(problems), cameras=bad)
+    if len(names) == 1:
+        return intr, None, 0
+    # rejected outlier views stay out of the bundle adjustment as well
+    kept = {n: [d for d in dets[n] if d.frame not in intr[n].rejected] for n in names}
+    count: dict[int, int] = {}
+    for n in names:
+        for d in kept[n]:
+            count[d.frame] = count.get(d.frame, 0) + 1
+    sets = set(_thin(sorted(f for f, k in count.items() if k >= 2), max_sets))
+    ba = {n: [d for d in kept[n] if d.frame in sets] for n in names}
+    prior = None
+    if mode == "prior":
+        prior = np.stack([intr[n].covariance if intr[n].covariance is not None else np.full((9, 9), np.nan)
+                          for n in names])
+    sigma = float(np.sqrt(np.mean([intr[n].rms ** 2 for n in names]) / 2.0))  # per coordinate
+    ext = calibrate_extrinsics(
+        ba, [intr[n].camera() for n in names], board, world=world, world_frame=world_frame,
+        optimize_intrinsics=mode != "fixed", solver=solver,
+        fixed_intrinsics=("k3",) if fix_k3 else (),  # what the intrinsics held, the bundle keeps
+        intrinsics_prior=prior, prior_scale=max(sigma, 1e-3),
+    )
+    return intr, ext, len(sets)
+
+
+def _unflip(dets: list[Detection], width: int) -> list[Detection]:
+    """Detections made on images flipped left-right, in the coordinates of the images as delivered."""
+    return [Detection(d.ids, np.column_stack([width - 1.0 - d.corners[:, 0], d.corners[:, 1]]), d.frame,
+                      dict(d.meta)) for d in dets]
+
+
+def _pose_spread(dets, others, board, sizes, name, min_corners) -> float:
+    """How inconsistent ``name``'s pose relative to the other cameras is over their shared frames.
+
+    Median over camera pairs of the median distance (mm) between the other camera's centre as
+    seen from every shared frame and its medoid; ``inf`` without shared frames.
+    """
+    from calib.extrinsics import board_poses
+
+    def poses(n, ds):
+        try:
+            r = calibrate_intrinsics(ds, board, tuple(sizes[n]), name=n, max_views=40, reject_outliers=False)
+        except CalibrationError:
+            return {}
+        return board_poses(ds, board, K=r.K, dist=r.dist, min_corners=min_corners)
+
+    mine = poses(name, dets)
+    spreads = []
+    for n, ds in others.items():
+        theirs = poses(n, ds)
+        shared = sorted(set(mine) & set(theirs))
+        if len(shared) < 3:
+            continue
+        centres = []
+        for f in shared:
+            Ra, ta, _ = mine[f]
+            Rb, tb, _ = theirs[f]
+            R = Rb @ Ra.T
+            centres.append(-R.T @ (tb - R @ ta))  # the other camera's centre in this camera's frame
+        c = np.array(centres)
+        med = c[np.argmin(np.linalg.norm(c[:, None] - c[None], axis=2).sum(1))]
+        spreads.append(float(np.median(np.linalg.norm(c - med, axis=1))))
+    return float(np.median(spreads)) if spreads else float("inf")
+
+
+def resolve_flipped(detections, sizes, board, flipped, names, min_corners):
+    """Decide, for cameras whose board was found only in the flipped image, which of two things happened.
+
+    Either the camera delivers mirrored images (its model is that of the flipped image,
+    ``mirror = true``), or it sees the board from behind, through the print (its model is
+    that of the image as delivered). A single camera cannot tell them apart; the rig can:
+    only the right one gives the same relative pose to the other cameras in every shared
+    frame. Without another camera sharing frames, the mirror is assumed.
+
+    Returns
+    -------
+    detections : dict
+        With the flipped cameras' detections in the coordinates of their model.
+    mirrored : list of str
+        Cameras calibrated as mirroring.
+    notes : list of str
+    """
+    dets = dict(detections)
+    mirrored, notes = [], []
+    for n in flipped:
+        others = {m: dets[m] for m in names if m != n and m not in flipped}
+        as_mirror = _pose_spread(dets[n], others, board, sizes, n, min_corners)
+        behind = _unflip(dets[n], int(sizes[n][0]))
+        as_behind = _pose_spread(behind, others, board, sizes, n, min_corners)
+        if np.isfinite(as_behind) and as_behind < 0.5 * as_mirror:
+            dets[n] = behind
+            notes.append(f"{n}: the board is found only in the flipped image, and the rig shows that {n} sees it "
+                         f"from behind, through the print (relative pose to the other cameras consistent to "
+                         f"{as_behind:.0f} mm; {as_mirror:.0f} mm as a mirroring camera): calibrated as delivered, "
+                         f"mirror = false")
+        else:
+            mirrored.append(n)
+            why = (f"relative pose to the other cameras consistent to {as_mirror:.0f} mm; "
+                   f"{as_behind:.0f} mm seen from behind" if np.isfinite(as_mirror) else "no other camera to tell")
+            notes.append(f"{n} delivers mirrored images ({why}): calibrated on the flipped images, mirror = true")
+    return dets, mirrored, notes
+
+
+def _moved(intr: IntrinsicsResult, cam) -> dict:
+    new = np.array([cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], *cam.dist])
+    cov = intr.covariance
+    out = {}
+    for i, k in enumerate(INTRINSIC_NAMES):
+        sd = float(np.sqrt(cov[i, i])) if cov is not None and np.isfinite(cov[i, i]) else float("nan")
+        if sd > 0:
+            out[k] = float((new[i] - intr.params[i]) / sd)
+    return out
+
+
+def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | None:
+    """k-fold over frame sets (contiguous blocks): calibrate on the rest, measure on the fold."""
+    frames = sorted({d.frame for n in names for d in dets[n]})
+    k = min(int(folds), len(frames) // 2)
+    if k < 2:
+        return None
+    blocks = np.array_split(np.array(frames), k)
+    sq = {n: 0.0 for n in names}
+    cnt = {n: 0 for n in names}
+    views = {n: 0 for n in names}
+    failed = []
+    for i, block in enumerate(blocks):
+        out = set(block.tolist())
+        rest = {n: [d for d in dets[n] if d.frame not in out] for n in names}
+        try:
+            _, ext, _ = _solve(rest, sizes, board, names, **solve_kw)
+        except CalibrationError as exc:
+            failed.append(f"fold {i + 1} (frames {block[0]}-{block[-1]}): {exc}")
+            continue
+        ev = reprojection_errors(ext.calibration, {n: [d for d in dets[n] if d.frame in out] for n in names},
+                                 board)
+        for n, v in ev["per_camera"].items():
+            sq[n] += v["sum_sq"]
+            cnt[n] += v["corners"]
+            views[n] += v["views"]
+    if len(failed) == k:
+        return None
+    per = {n: {"rms": float(np.sqrt(sq[n] / cnt[n])) if cnt[n] else float("nan"), "corners": cnt[n],
+               "views": views[n], "sum_sq": sq[n]} for n in names}
+    tot = sum(cnt.values())
+    return {"per_camera": per, "rms": float(np.sqrt(sum(sq.values()) / tot)) if tot else float("nan"),
+            "folds": k, "frames": len(frames), "failed_folds": failed}
 
 
 def calibrate_rig(
@@ -67,32 +350,55 @@ def calibrate_rig(
     cameras: Sequence[str] | None = None,
     world: str = "board",
     world_frame: int | None = None,
-    optimize_intrinsics: bool = True,
+    intrinsics: str = "prior",
+    optimize_intrinsics: bool | None = None,
     fix_k3: bool = False,
     reject_outliers: bool = True,
     min_views: int = 4,
     solver: str = "lm",
     max_intrinsic_views: int | None = 40,
+    min_change: float = 0.02,
+    max_sets: int = MAX_SETS,
+    holdout_folds: int = 5,
+    mirrored: Sequence[str] = (),
+    flipped: Sequence[str] = (),
 ) -> RigCalibration:
     """Intrinsics of every camera (:func:`calib.intrinsics.calibrate_intrinsics`), then
-    one bundle adjustment of the rig (:func:`calib.extrinsics.calibrate_extrinsics`).
+    one bundle adjustment of the rig (:func:`calib.extrinsics.calibrate_extrinsics`),
+    then the evaluation (module docstring).
 
     Parameters
     ----------
     detections : mapping str -> sequence of Detection
-        Per camera; equal ``frame`` numbers mean the same moment.
+        Per camera, every detection (no need to thin them: this function selects);
+        equal ``frame`` numbers mean the same moment.
     sizes : mapping str -> (int, int)
         Image ``(width, height)`` per camera.
     board : Chessboard or Charuco
     cameras : sequence of str, optional
         Rig order (default: the order of ``sizes``).
-    world, world_frame, optimize_intrinsics, solver
+    world, world_frame, solver
         See :func:`calib.extrinsics.calibrate_extrinsics`.
+    intrinsics : {"prior", "fixed", "free"}
+        How the bundle adjustment treats the intrinsics (module docstring).
+    optimize_intrinsics : bool, optional
+        Older spelling: ``False`` means ``intrinsics="fixed"``, ``True`` keeps ``intrinsics``.
     fix_k3, reject_outliers, min_views
         See :func:`calib.intrinsics.calibrate_intrinsics`.
     max_intrinsic_views : int or None
-        Views per camera for the initial per-camera intrinsics (evenly spaced);
-        the bundle adjustment then refines them with every view.
+        Views per camera for its Zhang solve (evenly spaced).
+    min_change : float
+        Novelty threshold of the intrinsic views (:func:`calib.detect.select_views`).
+    max_sets : int
+        Frame sets seen by two or more cameras above which the bundle adjustment thins them evenly.
+    holdout_folds : int
+        Folds of the held-out error (0: none).
+    mirrored : sequence of str
+        Cameras known to deliver mirrored images (their detections made on the flipped
+        images); marked ``meta["mirror"] = True`` in the calibration.
+    flipped : sequence of str
+        Cameras whose board was found only in the flipped image (detections made on it):
+        :func:`resolve_flipped` decides whether each mirrors or sees the board from behind.
 
     Returns
     -------
@@ -109,47 +415,80 @@ def calibrate_rig(
         raise ValueError(f"board must be a Chessboard or Charuco, got {type(board).__name__}")
     if not isinstance(detections, Mapping) or not isinstance(sizes, Mapping):
         raise ValueError("detections and sizes must be mappings keyed by camera name")
+    if optimize_intrinsics is False:
+        intrinsics = "fixed"
+    if intrinsics not in INTRINSICS_MODES:
+        raise ValueError(f"intrinsics must be one of {INTRINSICS_MODES}, got {intrinsics!r}")
+    if not (isinstance(max_sets, (int, np.integer)) and max_sets >= 2):
+        raise ValueError(f"max_sets must be an integer >= 2, got {max_sets!r}")
+    if not (isinstance(holdout_folds, (int, np.integer)) and (holdout_folds == 0 or holdout_folds >= 2)):
+        raise ValueError(f"holdout_folds must be 0 or an integer >= 2, got {holdout_folds!r}")
+    if not (np.isfinite(min_change) and min_change >= 0):
+        raise ValueError(f"min_change must be >= 0, got {min_change!r}")
     names = list(cameras) if cameras is not None else list(sizes)
     if not names:
         raise ValueError("cameras: no cameras to calibrate")
     missing = [n for n in names if n not in sizes]
     if missing:
         raise ValueError(f"sizes: no image size for camera(s) {missing}")
-    intr: dict[str, IntrinsicsResult] = {}
-    problems: list[str] = []
-    bad: list[str] = []
-    for n in names:
-        dets = [d for d in detections.get(n, ()) if d is not None]
-        try:
-            intr[n] = calibrate_intrinsics(dets, board, tuple(sizes[n]), name=n, fix_k3=fix_k3,
-                                           reject_outliers=reject_outliers, min_views=min_views,
-                                           max_views=max_intrinsic_views)
-        except CalibrationError as exc:
-            if not dets:
-                problems.append(
-                    f"camera {n}: the board was never detected; check that {n} sees the board and that the board "
-                    f"file matches the print (corners = INNER corners; ChArUco squares, dictionary, legacy flag)"
-                )
-            else:
-                problems.append(str(exc))
-            bad.append(n)
-    if problems:
-        raise CalibrationError("; ".join(problems), cameras=bad)
-    if len(names) == 1:
-        cam = intr[names[0]].camera()
-        return RigCalibration(Calibration((cam,), units="mm", meta={"method": "intrinsics only"}), intr, None)
-    # rejected outlier views are left out of the bundle adjustment as well
-    kept = {}
-    for n in names:
-        rej = set(intr[n].rejected)
-        kept[n] = [d for d in detections.get(n, ()) if d is not None and d.frame not in rej]
-    ext = calibrate_extrinsics(
-        kept, [intr[n].camera() for n in names], board, world=world, world_frame=world_frame,
-        optimize_intrinsics=optimize_intrinsics, solver=solver,
-        fixed_intrinsics=("k3",) if fix_k3 else (),  # what the intrinsics held, the bundle keeps
-    )
-    meta = dict(ext.calibration.meta)
+    for what, given in (("mirrored", mirrored), ("flipped", flipped)):
+        unknown = sorted(set(given) - set(names))
+        if unknown:
+            raise ValueError(f"{what}: unknown camera(s) {unknown}")
+    from calib.detect import default_min_corners
+
+    min_corners = default_min_corners(board)
+    dets = {n: sorted((d for d in detections.get(n, ()) if d is not None), key=lambda d: d.frame) for n in names}
+    flip_notes: list[str] = []
+    if flipped:
+        dets, more, flip_notes = resolve_flipped(dets, sizes, board, list(flipped), names, min_corners)
+        mirrored = list(mirrored) + more
+    solve_kw = dict(world=world, world_frame=world_frame, mode=intrinsics, fix_k3=fix_k3,
+                    reject_outliers=reject_outliers, min_views=min_views, solver=solver,
+                    max_intrinsic_views=max_intrinsic_views, min_change=min_change, max_sets=max_sets,
+                    min_corners=min_corners)
+    intr, ext, n_sets = _solve(dets, sizes, board, names, **solve_kw)
+    mirror = set(mirrored)
+
+    def mark(cam):
+        return cam.replace(meta={**cam.meta, "mirror": True}) if cam.name in mirror else cam
+
+    if ext is None:
+        cam = mark(intr[names[0]].camera())
+        meta = {"method": "intrinsics only", "rms_px": intr[names[0]].rms}
+        return RigCalibration(Calibration((cam,), units="mm", meta=meta), intr, None,
+                              {"mode": intrinsics, "sets": 0, "flipped": flip_notes, "mirrored": sorted(mirror),
+                               "detections": dets})
+    calib = Calibration(tuple(mark(c) for c in ext.calibration.cameras), units="mm", meta=dict(ext.calibration.meta))
+    ev: dict = {"mode": intrinsics, "sets": n_sets, "flipped": flip_notes,
+                "mirrored": sorted(mirror), "detections": dets}
+    ev["all_frames"] = reprojection_errors(calib, dets, board)
+    ev["geometry_all"] = triangulate_board_error(calib, dets, board)
+    icov = ext.meta.get("intrinsics_cov")
+    ev["uncertainty"] = {}
+    for ci, cam in enumerate(calib.cameras):
+        cov = icov[ci] if icov is not None and intrinsics != "fixed" else intr[cam.name].covariance
+        if cov is not None:
+            ev["uncertainty"][cam.name] = projection_uncertainty(cam, cov)
+    ev["moved_sigma"] = {} if intrinsics == "fixed" else {c.name: _moved(intr[c.name], c) for c in calib.cameras}
+    warn = []
+    for name, m in ev["moved_sigma"].items():
+        far = {k: v for k, v in m.items() if abs(v) > MOVE_WARN_SIGMA}
+        if far:
+            warn.append(f"camera {name}: the bundle adjustment moved " + ", ".join(
+                f"{k} by {v:+.1f} sigma" for k, v in far.items()) + " from its own calibration; the rig data "
+                "disagrees with what this camera saw alone (a moved camera, a bent board, or too few views of it)")
+    ev["held_out"] = _held_out(dets, sizes, board, names, holdout_folds, solve_kw) if holdout_folds else None
+    if ev["held_out"] is not None:
+        warn += [f"held-out {f}" for f in ev["held_out"]["failed_folds"]]
+    for w in warn:
+        log.debug(w)  # in the result's warnings / report
+    meta = dict(calib.meta)
     meta["per_camera_rms_px"] = dict(ext.per_camera_rms)
     meta["board_geometry_error_mm"] = {k: v for k, v in ext.geometry.items() if np.isfinite(v)}
-    calib = Calibration(ext.calibration.cameras, units="mm", meta=meta)
-    return RigCalibration(calib, intr, ext)
+    meta["intrinsics"] = intrinsics
+    if ev["held_out"] is not None:
+        meta["held_out_rms_px"] = {n: v["rms"] for n, v in ev["held_out"]["per_camera"].items()}
+    meta["all_frames_rms_px"] = {n: v["rms"] for n, v in ev["all_frames"]["per_camera"].items()}
+    calib = Calibration(calib.cameras, units="mm", meta=meta)
+    return RigCalibration(calib, intr, ext, ev, tuple(warn))

@@ -1,6 +1,9 @@
 """A simulated capture rig that renders real images of animated synthetic creatures, with ground truth.
 
-Modules (import them directly; this package imports nothing heavy):
+Importing the package registers the ``fake`` camera driver (:mod:`fake_cameras.device`)
+with :func:`stage.drivers.registry.register_driver`; the other modules are imported directly.
+
+Modules:
 
 ``fake_cameras.dome``
     :func:`make_dome` - the true calibration of N cameras around the volume.
@@ -21,3 +24,5 @@ Modules (import them directly; this package imports nothing heavy):
 ``fake_cameras.rigs``
     :func:`simulated_rig_dict` / :func:`write_simulated_rig` - rig files of simulated cameras.
 """
+
+from fake_cameras import device as _device  # noqa: E402, F401 (registers the "fake" driver)

@@ -18,6 +18,9 @@ Subjects (``make_creature(name)``):
 ``quadruped``
     Torso, four walking legs, a neck with head and a wagging tail: six limb tips
     ``leg_fl, leg_fr, leg_hl, leg_hr, head, tail``.
+``tailed_quadruped``
+    The quadruped with a long tail tapering from 36 mm to 16 mm thick (at scale 1): a
+    thin limb that a coarse grid loses and a grid following the cameras keeps.
 ``biped``
     Upright torso with head, two swinging arms and two walking legs:
     ``head, arm_l, arm_r, leg_l, leg_r``.
@@ -39,7 +42,7 @@ import numpy as np
 
 __all__ = ["CREATURES", "BODY", "LimbSpec", "Creature", "Pose", "make_creature", "round_cone_sdf", "round_cone_sdf_pairs"]
 
-CREATURES = ("starfish", "quadruped", "biped")
+CREATURES = ("starfish", "quadruped", "biped", "tailed_quadruped")
 BODY = -1  # limb label of body capsules
 
 
@@ -543,6 +546,15 @@ def _quadruped(rng: np.random.Generator) -> dict:
     )
 
 
+def _tailed_quadruped(rng: np.random.Generator) -> dict:
+    spec = _quadruped(rng)
+    limbs = list(spec["limbs"])
+    i = next(j for j, lb in enumerate(limbs) if lb.name == "tail")
+    # diameters 36, 30, 24, 16 mm; longer than the quadruped's so it stands clear of the body
+    limbs[i] = LimbSpec(**{**limbs[i].__dict__, "lengths": (50.0, 48.0, 46.0), "radii": (18.0, 15.0, 12.0, 8.0)})
+    return {**spec, "limbs": tuple(limbs)}
+
+
 def _biped(rng: np.random.Generator) -> dict:
     limbs = []
     for side, y in (("l", 1.0), ("r", -1.0)):
@@ -608,7 +620,7 @@ def _biped(rng: np.random.Generator) -> dict:
     )
 
 
-_BUILDERS = {"starfish": _starfish, "quadruped": _quadruped, "biped": _biped}
+_BUILDERS = {"starfish": _starfish, "quadruped": _quadruped, "biped": _biped, "tailed_quadruped": _tailed_quadruped}
 
 
 def _scaled(spec: dict, s: float) -> dict:
@@ -650,7 +662,7 @@ def make_creature(
 
     Parameters
     ----------
-    name : {"starfish", "quadruped", "biped"}
+    name : {"starfish", "quadruped", "biped", "tailed_quadruped"}
     scale : float, optional
         Uniform size factor (1.0: a span of about 300-500 mm that moves
         within the default 750 mm volume), 0.2..2.

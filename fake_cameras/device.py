@@ -30,6 +30,7 @@ from typing import Callable
 import numpy as np
 
 from stage.drivers.base import CameraDisconnectedError, CameraError, CameraNotFoundError, Granted
+from stage.drivers.registry import register_driver
 from stage.frame import Frame
 from stage.rig import FakeCameraConfig, Rig
 
@@ -56,7 +57,8 @@ def _board_source(kind: str, calibration, frames: int, seed: int, noise: float, 
     # view 0: the board lying on the floor at the world origin (it defines the world frame
     # when calibrating with world_frame=0); the rest move through most of the volume, where
     # the subject will be (a calibration only holds where the board has been)
-    poses = np.concatenate([floor_pose()[None], board_poses(board, calibration, max(frames - 1, 0), seed=seed, volume=volume, spread=0.9)])
+    waved = board_poses(board, calibration, max(frames - 1, 0), seed=seed, volume=volume, spread=0.9)
+    poses = np.concatenate([floor_pose()[None], waved])
     return render_board_views(board, calibration, frames, seed=seed, noise_sigma=noise, volume=volume, poses=poses[:frames])
 
 
@@ -275,3 +277,7 @@ class FakeCamera:
 
     def __repr__(self) -> str:
         return f"FakeCamera({self.camera_id!r}, index={self.config.index}, {self.config.width}x{self.config.height}@{self.fps:g})"
+
+
+# rig cameras with driver = "fake" are these (stage.drivers.open_driver finds them once this module is imported)
+register_driver("fake", FakeCamera, needs_rig=True)

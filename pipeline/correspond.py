@@ -31,6 +31,14 @@ Choices the paper leaves open, made here:
   ``max_permutations`` candidates (K > 8) the Hungarian assignment on
   centred tip positions is refined by a local search of pairwise swaps and
   replacements (unweighted sum over the anchors).
+* Every frame with tips is visited outward from the reference and anchored to the
+  last seen position of every limb, so a limb missing from some frames (hidden,
+  merged, too thin to survive) keeps its slot and never makes the others swap.
+* A borderline count (the mode ``K`` while ``K + 1`` tips are found in 40-60 % of
+  the frames with tips) is decided for ``K + 1`` when the extra limb is the same
+  limb throughout: aligned onto the reference by the other limbs, its tip stays
+  within ``0.4`` x the RMS radius of the reference tips of its mean position.
+  :attr:`Correspondence.count_rule` says which rule chose ``K``.
 * A tip whose residual after alignment to its temporal neighbour exceeds
   ``gate`` times the RMS radius of the reference tips is dropped (its limb
   is empty in that frame) rather than given to a limb it is far from.
@@ -212,13 +220,43 @@ class Correspondence:
         Reference frames, primary first.
     error : (T,) float ndarray
         Alignment residual of the chosen mapping (nan for frames without tips).
+    count_rule : str
+        How ``K`` was chosen: ``"given"``, ``"mode"`` or the borderline decision.
     """
 
     K: int
     assignment: np.ndarray
     references: list
     error: np.ndarray
+    count_rule: str = "given"
 
+
+#: A count seen in this share of the frames with tips (beside the mode) is borderline.
+BORDERLINE = (0.4, 0.6)
+#: The extra limb of a borderline count is "the same limb" when its aligned tip stays
+#: within this many RMS radii of the reference tips of its mean position.
+SAME_LIMB_SPREAD = 0.4
+
+
+def _extra_limb_spread(frames, corr: "Correspondence") -> float:
+    """Spread of the least-seen limb's tip, aligned onto the reference by the other limbs,
+    over the frames where every limb is seen (RMS distance to its mean / RMS tip radius)."""
+    A = corr.assignment
+    K = corr.K
+    extra = int(np.argmin((A >= 0).sum(axis=0)))
+    others = [k for k in range(K) if k != extra]
+    r0 = corr.references[0]
+    ref = frames[r0][A[r0]]
+    radius = float(np.sqrt(np.mean(np.sum((ref - ref.mean(0)) ** 2, axis=1)))) or 1.0
+    rel = []
+    for t in np.flatnonzero(np.all(A >= 0, axis=1)):
+        P = frames[t][A[t]]
+        R, T, _ = arun_alignment(P[others], ref[others])
+        rel.append(R @ P[extra] + T)
+    if len(rel) < 2:
+        return float("inf")
+    rel = np.asarray(rel)
+    return float(np.sqrt(np.mean(np.sum((rel - rel.mean(0)) ** 2, axis=1))) / radius)
 
 def _errors(A, B, rigid=True):
     """Eq. 6 residuals (rigid for >= 3 points, translation-only below or when not ``rigid``)."""
@@ -409,8 +447,25 @@ def correspond_tips(
             raise ValueError("features must have the same number of points per tip in every frame")
         w = widths.pop() if widths else 1
         pts = [np.zeros((0, w, 3)) if p is None else p for p in pts]
+    rule = "given"
     if K is None:
-        K = limb_count(counts)
+        K, rule = limb_count(counts), "mode"
+        with_tips = np.asarray([c for c in counts if c > 0])
+        share = float(np.mean(with_tips >= K + 1)) if with_tips.size else 0.0
+        if BORDERLINE[0] <= share <= BORDERLINE[1] and (K + 1) in counts:
+            kw = dict(features=features, reference_span=reference_span, max_permutations=max_permutations,
+                      gate=gate, reference_weight=reference_weight)
+            wider = correspond_tips(frames, K=K + 1, **kw)
+            spread = _extra_limb_spread(frames, wider)
+            same = spread <= SAME_LIMB_SPREAD
+            rule = (
+                f"borderline: {K + 1} tips in {100 * share:.0f} % of the frames; the extra limb "
+                f"{'is' if same else 'is not'} the same limb throughout (spread {spread:.2f} of the tip radius, "
+                f"limit {SAME_LIMB_SPREAD}): K = {K + 1 if same else K}"
+            )
+            if same:
+                return Correspondence(K=wider.K, assignment=wider.assignment, references=wider.references,
+                                      error=wider.error, count_rule=rule)
     K = int(K)
     if K < 1:
         raise NoLimbsError("no limb tips found in any frame (K = 0): nothing protrudes")
@@ -440,40 +495,31 @@ def correspond_tips(
         out[ok] = pts[t][assign[t][ok]]
         return out
 
-    # 1. K-tip frames, outward from the primary reference
+    # 1. every frame with tips, outward from the primary reference, against the nearest
+    #    reference and the last seen position of every limb (a limb missing from some
+    #    frames keeps its place, so the others never have to take it)
     assigned_refs = {r0}
     for direction in (1, -1):
-        prev = r0
+        last, prev = limb_points_of(r0), r0
         t = r0 + direction
         while 0 <= t < T:
-            if counts[t] == K:
+            if counts[t] > 0:
                 near_ref = min(assigned_refs, key=lambda r: abs(r - t))
                 anchors, w = [limb_points_of(near_ref)], [1.0]
                 if prev != near_ref:
-                    anchors.append(limb_points_of(prev))
+                    anchors.append(last)
                     w = [reference_weight, -1.0]
                 m, e = _best_mapping(pts[t], anchors, K, max_permutations, w)
                 assign[t] = m
                 err[t] = e
+                seen = m >= 0
+                last = last.copy()
+                last[seen] = pts[t][m[seen]]
                 prev = t
-                if t in refs:
+                if t in refs and counts[t] == K:
                     assigned_refs.add(t)
             t += direction
     kframes = np.flatnonzero(np.asarray(counts) == K)
-
-    # 2. other frames: against the nearest reference and the nearest K-tip frame
-    for t in range(T):
-        if counts[t] == K or counts[t] == 0:
-            continue
-        near_ref = min(assigned_refs, key=lambda r: abs(r - t))
-        near_k = int(kframes[np.argmin(np.abs(kframes - t))])
-        anchors, w = [limb_points_of(near_ref)], [1.0]
-        if near_k != near_ref:
-            anchors.append(limb_points_of(near_k))
-            w = [reference_weight, -1.0]
-        m, e = _best_mapping(pts[t], anchors, K, max_permutations, w)
-        assign[t] = m
-        err[t] = e
 
     # 3. gate against the aligned nearest K-tip neighbour
     for t in range(T):
@@ -491,7 +537,7 @@ def correspond_tips(
         resid = _robust_residuals(A[ok], B[ok])
         bad = np.flatnonzero(ok)[resid > gate_d]
         assign[t, bad] = -1
-    return Correspondence(K=K, assignment=assign, references=list(refs), error=err)
+    return Correspondence(K=K, assignment=assign, references=list(refs), error=err, count_rule=rule)
 
 
 def _robust_residuals(A, B):

@@ -38,9 +38,9 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 
 from pipeline.geodesic import (
     average_geodesic_distance,
-    proxy_average_geodesic_distance,
     edge_graph,
     mesh_edges,
+    proxy_average_geodesic_distance,
     validate_mesh,
     vertex_areas,
 )

@@ -8,7 +8,9 @@ distances over-estimate true geodesics by a few percent on irregular meshes,
 uniformly enough that level sets and extrema are unaffected.
 
 All functions are free functions on arrays: ``vertices (V, 3) float``,
-``faces (F, 3) int``.
+``faces (F, 3) int``. Edges and connected components come from trimesh
+(``trimesh.geometry.faces_to_edges``, ``trimesh.graph.connected_component_labels``);
+what is written here is the edge-graph geometry trimesh does not have.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import logging
 
 import numpy as np
 import scipy.sparse as sp
+import trimesh
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 __all__ = [
@@ -84,18 +87,13 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
         Each edge once, ``edges[:, 0] < edges[:, 1]``; degenerate (repeated
         index) edges are dropped.
     """
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = trimesh.geometry.faces_to_edges(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
     e.sort(axis=1)
     e = e[e[:, 0] != e[:, 1]]
     if len(e) == 0:
         return e.reshape(0, 2)
-    n = int(e.max()) + 1
-    key = np.sort(e[:, 0] * n + e[:, 1])
-    keep = np.ones(len(key), dtype=bool)
-    keep[1:] = key[1:] != key[:-1]
-    key = key[keep]
-    return np.stack([key // n, key % n], axis=1)
+    e = e[trimesh.grouping.unique_rows(e)[0]]
+    return e[np.lexsort((e[:, 1], e[:, 0]))]
 
 
 def edge_graph(vertices: np.ndarray, edges: np.ndarray) -> sp.csr_matrix:
@@ -163,9 +161,8 @@ def largest_component(vertices, faces, *, warn: bool = True) -> tuple[np.ndarray
     """
     v, f = validate_mesh(vertices, faces)
     n = len(v)
-    e = mesh_edges(f)
-    adj = sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    n_comp, labels = connected_components(adj, directed=False)
+    labels = trimesh.graph.connected_component_labels(mesh_edges(f), node_count=n)
+    n_comp = int(labels.max()) + 1 if n else 0
     face_label = labels[f[:, 0]]
     counts = np.bincount(face_label, minlength=n_comp)
     best = int(np.argmax(counts))

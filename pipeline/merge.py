@@ -162,7 +162,25 @@ def canonical_split(mask: int, n: int) -> int:
     return (full ^ mask) if mask & 1 else mask
 
 
-def _ancestors(parent: np.ndarray, node: int) -> list[int]:
+class _Tree:
+    """A parent array whose ancestor chains are computed once per node (the junction
+    search asks for the same few chains thousands of times)."""
+
+    def __init__(self, parent) -> None:
+        self.parent = np.asarray(parent).tolist()
+        self._cache: dict[int, list[int]] = {}
+
+    def ancestors(self, node: int) -> list[int]:
+        node = int(node)
+        out = self._cache.get(node)
+        if out is None:
+            out = self._cache[node] = _ancestors(self.parent, node)
+        return out
+
+
+def _ancestors(parent, node: int) -> list[int]:
+    if isinstance(parent, _Tree):
+        return parent.ancestors(node)
     out = []
     while node >= 0:
         out.append(int(node))
@@ -265,7 +283,7 @@ def realize_junctions(skeleton: TipSkeleton, topology: Topology, tips) -> list[i
     """
     tips = [int(t) for t in tips]
     tn = skeleton.tip_nodes
-    par = skeleton.parent
+    par = _Tree(skeleton.parent)
     node_of = [int(tn[t]) if t >= 0 else -1 for t in tips]
     n = topology.n_tips
     if n <= 2:

@@ -81,10 +81,17 @@ def load_mesh(path, *, largest: bool = True) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"unsupported mesh format: {path.name} (expected .obj, .ply or .off)")
     try:
         m = trimesh.load(str(path), process=False, force="mesh")
-    except (ValueError, IndexError, KeyError) as exc:
-        raise ValueError(f"cannot read mesh {path}: {exc}") from exc
-    v = np.asarray(getattr(m, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(getattr(m, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+        v = np.asarray(getattr(m, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+        f = np.asarray(getattr(m, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    except (ValueError, IndexError, KeyError, TypeError, AttributeError, UnicodeDecodeError, EOFError) as exc:
+        raise ValueError(
+            f"cannot read mesh {path}: not a valid {path.suffix.lower().lstrip('.').upper()} triangle mesh "
+            f"(damaged or another format; {type(exc).__name__})"
+        ) from None
+    if len(v) and not np.isfinite(v).all():
+        raise ValueError(f"cannot read mesh {path}: vertex coordinates are not finite (NaN or inf)")
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        raise ValueError(f"cannot read mesh {path}: faces refer to vertices that do not exist")
     if len(f) == 0 or not largest:
         return v, f
     n_before = len(f)

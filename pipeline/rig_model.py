@@ -294,186 +294,225 @@ def rig_from_spine(spine, *, reference: int | None = None, segments: int | None 
     if T == 0:
         raise ValueError("spine has no frames")
     ref = reference_frame(spine, prefer=reference)
-    root = spine.root
-    children: dict[str, list[str]] = {}
-    for name, p in spine.parents.items():
-        if p is not None:
-            children.setdefault(p, []).append(name)
-    jidx = {j: i for i, j in enumerate(spine.junction_ids)}
+    axes = _resampled_axes(spine, segments)
+    tree = _joint_tree(spine, axes)
+    positions = _joint_positions(spine, axes, tree)  # (T, J, 3)
+    rest = positions[ref].copy()
+    if not np.all(np.isfinite(rest)):
+        raise NoCompleteFrameError(f"reference frame {ref} is incomplete")
+    local_rotations, local_translations = _local_poses(tree, positions, rest, ref)
+    fi = np.asarray(spine.frame_indices, dtype=np.int64)
+    times = (fi - fi[0]) / float(spine.fps)
+    return Rig(
+        names=tuple(tree.names),
+        parents=tree.parents,
+        element=tuple(tree.element),
+        rest=rest,
+        bones=np.asarray(tree.bones, dtype=np.int64).reshape(-1, 2),
+        rotations=_continuous_quaternions(local_rotations, ref),
+        translations=local_translations,
+        times=times.astype(np.float64),
+        frame_indices=fi,
+        reference=ref,
+        units=spine.units,
+    )
 
-    # per-axis polylines, resampled: (T, n, 3), nan rows = unseen
-    polys: dict[str, np.ndarray] = {}
+
+# --------------------------------------------------------------------------- rig_from_spine, step by step
+
+
+def _resampled_axes(spine, segments: int | None) -> dict[str, np.ndarray]:
+    """Every spine axis resampled to ``segments + 1`` points: (T, n, 3), nan rows where unseen."""
+    T = spine.frame_count
+    out_axes: dict[str, np.ndarray] = {}
     for name, a in spine.axes.items():
         n = a.shape[1] if segments is None else int(segments) + 1
         out = np.full((T, n, 3), np.nan)
         for t in range(T):
             if np.all(np.isfinite(a[t])) and a.shape[1] >= 2:
                 out[t] = resample_polyline(a[t], n) if a.shape[1] != n else a[t]
-        polys[name] = out
+        out_axes[name] = out
+    return out_axes
 
-    # joints in parent-first order
-    names: list[str] = []
-    parents: list[int] = []
-    element: list[str] = []
-    # how to find each joint's position at frame t: ("junction", jid) or ("axis", name, k)
-    source: list[tuple] = []
-    kind: list[str] = []  # "root" | "bone" | "tip" | "junction"
 
-    def add(name, parent, elem, src, knd):
-        names.append(name)
-        parents.append(parent)
-        element.append(elem)
-        source.append(src)
-        kind.append(knd)
-        return len(names) - 1
+@dataclass
+class _JointTree:
+    """The joint hierarchy in parent-first order, and where each joint sits on the spine."""
 
-    def grow(junction: str, jnode: int) -> None:
-        for ch in sorted(children.get(junction, []), key=lambda c: (c in jidx, c)):
-            n = polys[ch].shape[1]
-            prev = jnode
+    names: list[str] = field(default_factory=list)
+    parent: list[int] = field(default_factory=list)
+    element: list[str] = field(default_factory=list)  # the spine element (junction or axis) it belongs to
+    source: list[tuple] = field(default_factory=list)  # ("junction", id) or ("axis", name, point)
+    kind: list[str] = field(default_factory=list)  # "root" | "bone" | "tip" | "junction"
+    children: list[list[int]] = field(default_factory=list)
+    bone_end: dict[int, int] = field(default_factory=dict)  # bone joint -> next joint on its axis
+    fit_targets: list[list[int]] = field(default_factory=list)  # root/junction joint -> first bone ends below
+
+    def add(self, name: str, parent: int, element: str, source: tuple, kind: str) -> int:
+        self.names.append(name)
+        self.parent.append(parent)
+        self.element.append(element)
+        self.source.append(source)
+        self.kind.append(kind)
+        return len(self.names) - 1
+
+    @property
+    def parents(self) -> np.ndarray:
+        return np.asarray(self.parent, dtype=np.int64)
+
+    @property
+    def bones(self) -> list[tuple[int, int]]:
+        return [(j, self.bone_end[j]) for j in range(len(self.names)) if self.kind[j] == "bone"]
+
+
+def _joint_tree(spine, axes: dict[str, np.ndarray]) -> _JointTree:
+    """Root joint at the root junction; per axis below a junction: bone joints, then a tip or junction joint."""
+    below: dict[str, list[str]] = {}
+    for name, p in spine.parents.items():
+        if p is not None:
+            below.setdefault(p, []).append(name)
+    junctions = set(spine.junction_ids)
+    tree = _JointTree()
+
+    def grow(junction: str, junction_joint: int) -> None:
+        for axis in sorted(below.get(junction, []), key=lambda c: (c in junctions, c)):
+            n = axes[axis].shape[1]
+            joint = junction_joint
             for k in range(n - 1):
-                prev = add(f"{ch}.{k}", prev, ch, ("axis", ch, k), "bone")
-            if ch in jidx:
-                end = add(ch, prev, ch, ("axis", ch, n - 1), "junction")
+                joint = tree.add(f"{axis}.{k}", joint, axis, ("axis", axis, k), "bone")
+            if axis in junctions:
+                grow(axis, tree.add(axis, joint, axis, ("axis", axis, n - 1), "junction"))
             else:
-                end = add(f"{ch}.tip", prev, ch, ("axis", ch, n - 1), "tip")
-            if ch in jidx:
-                grow(ch, end)
+                tree.add(f"{axis}.tip", joint, axis, ("axis", axis, n - 1), "tip")
 
-    r0 = add(root, -1, root, ("junction", root), "root")
-    grow(root, r0)
-    J = len(names)
-    parents_a = np.asarray(parents, dtype=np.int64)
-    # bones: every "bone" joint to its chain child
-    child_of = {}
-    for j in range(J):
-        p = parents_a[j]
-        if p >= 0 and kind[p] == "bone":
-            child_of[p] = j
-    bones = [(j, child_of[j]) for j in range(J) if kind[j] == "bone"]
+    grow(spine.root, tree.add(spine.root, -1, spine.root, ("junction", spine.root), "root"))
+    J = len(tree.names)
+    tree.children = [[] for _ in range(J)]
+    for j, p in enumerate(tree.parent):
+        if p >= 0:
+            tree.children[p].append(j)
+            if tree.kind[p] == "bone":
+                tree.bone_end[p] = j
+    tree.fit_targets = [_first_bone_ends(tree, j, []) if tree.kind[j] in ("root", "junction") else []
+                        for j in range(J)]
+    return tree
 
-    def position(t: int, j: int) -> np.ndarray:
-        src = source[j]
-        if src[0] == "junction":
-            p = spine.junctions[t, jidx[src[1]]] if spine.junctions.size else np.full(3, np.nan)
-            if not np.all(np.isfinite(p)):  # the common start of the child axes
-                starts = [polys[c][t, 0] for c in children.get(src[1], []) if np.all(np.isfinite(polys[c][t]))]
-                p = np.mean(starts, axis=0) if starts else np.full(3, np.nan)
-            return p
-        return polys[src[1]][t, src[2]]
 
-    pos = np.array([[position(t, j) for j in range(J)] for t in range(T)])  # (T, J, 3)
-    rest = pos[ref].copy()
-    if not np.all(np.isfinite(rest)):
-        raise NoCompleteFrameError(f"reference frame {ref} is incomplete")
-    kids = [[] for _ in range(J)]
-    for j in range(J):
-        if parents_a[j] >= 0:
-            kids[parents_a[j]].append(j)
-
-    def first_bone_ends(j, out):
-        """Joints ending the first bone of every axis below junction joint j (through child junctions)."""
-        for c in kids[j]:
-            b = child_of.get(c)
-            if b is not None:
-                out.append(b)
-            if kind[c] == "junction":
-                first_bone_ends(c, out)
-            elif kind[c] == "bone":
-                # the axis' end joint, when it is a junction
-                e = c
-                while e in child_of:
-                    e = child_of[e]
-                end = [k for k in kids[e] if kind[k] == "junction"]
-                for k in end:
+def _first_bone_ends(tree: _JointTree, j: int, out: list[int]) -> list[int]:
+    """Joints ending the first bone of every axis below junction joint ``j`` (through child junctions)."""
+    for c in tree.children[j]:
+        end = tree.bone_end.get(c)
+        if end is not None:
+            out.append(end)
+        if tree.kind[c] == "junction":
+            _first_bone_ends(tree, c, out)
+        elif tree.kind[c] == "bone":
+            last = c  # walk to the axis' last bone joint; a junction joint below it continues the tree
+            while last in tree.bone_end:
+                last = tree.bone_end[last]
+            for k in tree.children[last]:
+                if tree.kind[k] == "junction":
                     out.append(k)
-                    first_bone_ends(k, out)
-        return out
+                    _first_bone_ends(tree, k, out)
+    return out
 
-    fit_targets = [first_bone_ends(j, []) if kind[j] in ("root", "junction") else [] for j in range(J)]
 
-    def frame_dirs(t, j):
-        """Rest and frame vectors from junction joint j to the first bone ends below it."""
-        U, W = [], []
-        if not np.all(np.isfinite(pos[t, j])):
-            return np.zeros((0, 3)), np.zeros((0, 3))
-        for b in fit_targets[j]:
-            if np.all(np.isfinite(pos[t, b])):
-                U.append(rest[b] - rest[j])
-                W.append(pos[t, b] - pos[t, j])
-        return np.array(U).reshape(-1, 3), np.array(W).reshape(-1, 3)
+def _joint_positions(spine, axes: dict[str, np.ndarray], tree: _JointTree) -> np.ndarray:
+    """(T, J, 3) joint positions on the spine; a junction without a position takes its axes' common start."""
+    junction_index = {j: i for i, j in enumerate(spine.junction_ids)}
+    below: dict[str, list[str]] = {}
+    for name, p in spine.parents.items():
+        if p is not None:
+            below.setdefault(p, []).append(name)
 
-    Rloc = np.zeros((T, J, 3, 3))
-    tloc = np.zeros((T, J, 3))
+    def position(t: int, src: tuple) -> np.ndarray:
+        if src[0] == "axis":
+            return axes[src[1]][t, src[2]]
+        p = spine.junctions[t, junction_index[src[1]]] if spine.junctions.size else np.full(3, np.nan)
+        if not np.all(np.isfinite(p)):
+            starts = [axes[c][t, 0] for c in below.get(src[1], []) if np.all(np.isfinite(axes[c][t]))]
+            p = np.mean(starts, axis=0) if starts else np.full(3, np.nan)
+        return p
+
+    return np.array([[position(t, src) for src in tree.source] for t in range(spine.frame_count)])
+
+
+def _local_poses(tree: _JointTree, positions: np.ndarray, rest: np.ndarray, ref: int):
+    """Local rotations (T, J, 3, 3) and translations (T, J, 3), solved outwards from the reference frame."""
+    T, J = positions.shape[:2]
+    parents = tree.parents
     rest_local = rest.copy()
-    rest_local[1:] = rest[1:] - rest[parents_a[1:]]
+    rest_local[1:] = rest[1:] - rest[parents[1:]]
+    rotations = np.zeros((T, J, 3, 3))
+    translations = np.zeros((T, J, 3))
+    order = [(ref, None)] + [(t, t - 1) for t in range(ref + 1, T)] + [(t, t + 1) for t in range(ref - 1, -1, -1)]
+    for t, previous in order:
+        _pose_frame(tree, positions[t], rest, rest_local, rotations, translations, t, previous)
+    return rotations, translations
 
-    def solve(t: int, prev: int | None) -> None:
-        G = np.zeros((J, 3, 3))
-        P = np.zeros((J, 3))
-        for j in range(J):
-            p = parents_a[j]
-            Gp = np.eye(3) if p < 0 else G[p]
-            Pp = np.zeros(3) if p < 0 else P[p]
-            here = pos[t, j]
-            seen = np.all(np.isfinite(here)) and (p < 0 or np.all(np.isfinite(pos[t, p])))
-            Rg = None
-            if seen:
-                if kind[j] in ("root", "junction"):
-                    U, W = frame_dirs(t, j)
-                    Rg = _fit_rotation(U, W)
-                    if Rg is None:
-                        Rg = Gp
-                elif kind[j] == "bone":
-                    c = child_of[j]
-                    if np.all(np.isfinite(pos[t, c])):
-                        u = Gp @ (rest[c] - rest[j])
-                        Rg = _align(u, pos[t, c] - here) @ Gp
-                    else:
-                        seen = False
-                else:  # tip
-                    Rg = Gp
-            if seen:
-                Rloc[t, j] = Gp.T @ Rg
-                tloc[t, j] = Gp.T @ (here - Pp) if p >= 0 else here
-            elif prev is not None:
-                Rloc[t, j] = Rloc[prev, j]
-                tloc[t, j] = tloc[prev, j]
-            else:
-                Rloc[t, j] = np.eye(3)
-                tloc[t, j] = rest_local[j]
-            G[j] = Gp @ Rloc[t, j]
-            P[j] = Pp + Gp @ tloc[t, j]
 
-    solve(ref, None)
-    for t in range(ref + 1, T):
-        solve(t, t - 1)
-    for t in range(ref - 1, -1, -1):
-        solve(t, t + 1)
+def _pose_frame(tree: _JointTree, here: np.ndarray, rest: np.ndarray, rest_local: np.ndarray,
+                rotations: np.ndarray, translations: np.ndarray, t: int, previous: int | None) -> None:
+    """Fill frame ``t`` of the local poses; unseen joints hold ``previous``'s pose (the rest pose at first)."""
+    J = len(tree.names)
+    global_rotation = np.zeros((J, 3, 3))
+    global_position = np.zeros((J, 3))
+    for j in range(J):
+        p = tree.parent[j]
+        parent_rotation = np.eye(3) if p < 0 else global_rotation[p]
+        parent_position = np.zeros(3) if p < 0 else global_position[p]
+        rotation = None
+        if np.all(np.isfinite(here[j])) and (p < 0 or np.all(np.isfinite(here[p]))):
+            rotation = _joint_rotation(tree, j, here, rest, parent_rotation)
+        if rotation is not None:
+            rotations[t, j] = parent_rotation.T @ rotation
+            translations[t, j] = parent_rotation.T @ (here[j] - parent_position) if p >= 0 else here[j]
+        elif previous is not None:
+            rotations[t, j] = rotations[previous, j]
+            translations[t, j] = translations[previous, j]
+        else:
+            rotations[t, j] = np.eye(3)
+            translations[t, j] = rest_local[j]
+        global_rotation[j] = parent_rotation @ rotations[t, j]
+        global_position[j] = parent_position + parent_rotation @ translations[t, j]
 
-    q = Rotation.from_matrix(Rloc.reshape(-1, 3, 3)).as_quat().reshape(T, J, 4)
-    # sign continuity outwards from the reference (slerp takes the short way)
+
+def _joint_rotation(tree: _JointTree, j: int, here: np.ndarray, rest: np.ndarray,
+                    parent_rotation: np.ndarray) -> np.ndarray | None:
+    """Global rotation of seen joint ``j`` in one frame, or None when its bone's end is unseen.
+
+    Root and junction joints fit the first bones of their axes (Arun et al.); a bone joint
+    turns its carried rest bone onto the frame's bone; a tip follows its parent.
+    """
+    kind = tree.kind[j]
+    if kind in ("root", "junction"):
+        U, W = [], []
+        for b in tree.fit_targets[j]:
+            if np.all(np.isfinite(here[b])):
+                U.append(rest[b] - rest[j])
+                W.append(here[b] - here[j])
+        fitted = _fit_rotation(np.array(U).reshape(-1, 3), np.array(W).reshape(-1, 3))
+        return parent_rotation if fitted is None else fitted
+    if kind == "bone":
+        end = tree.bone_end[j]
+        if not np.all(np.isfinite(here[end])):
+            return None
+        carried = parent_rotation @ (rest[end] - rest[j])
+        return _align(carried, here[end] - here[j]) @ parent_rotation
+    return parent_rotation  # tip
+
+
+def _continuous_quaternions(rotations: np.ndarray, ref: int) -> np.ndarray:
+    """(T, J, 4) quaternions with signs continuous outwards from the reference (slerp takes the short way)."""
+    T, J = rotations.shape[:2]
+    q = Rotation.from_matrix(rotations.reshape(-1, 3, 3)).as_quat().reshape(T, J, 4)
     for t in range(ref + 1, T):
         flip = (q[t] * q[t - 1]).sum(1) < 0
         q[t, flip] *= -1
     for t in range(ref - 1, -1, -1):
         flip = (q[t] * q[t + 1]).sum(1) < 0
         q[t, flip] *= -1
-    fi = np.asarray(spine.frame_indices, dtype=np.int64)
-    times = (fi - fi[0]) / float(spine.fps)
-    return Rig(
-        names=tuple(names),
-        parents=parents_a,
-        element=tuple(element),
-        rest=rest,
-        bones=np.asarray(bones, dtype=np.int64).reshape(-1, 2),
-        rotations=q,
-        translations=tloc,
-        times=times.astype(np.float64),
-        frame_indices=fi,
-        reference=ref,
-        units=spine.units,
-    )
+    return q
 
 
 def rigged_model(

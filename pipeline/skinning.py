@@ -9,7 +9,8 @@ screened heat equation
 where ``Δ`` is the cotangent Laplace-Beltrami operator, ``H`` is diagonal with
 ``H_jj = c / d_j**2`` (``d_j``: distance from vertex ``j`` to its nearest
 bone) and ``p_i`` is 1 where bone ``i`` is the nearest bone of a vertex, else 0
-(shared equally among ties). With the lumped mass matrix ``M`` and the
+(shared equally among ties). With the lumped mass matrix ``M`` (barycentric vertex areas,
+:func:`pipeline.geodesic.vertex_areas`) and the
 stiffness matrix ``L`` (``Δ = -M^-1 L``) the system reads
 ``(L + M H) w_i = M H p_i``: one sparse factorisation, one solve per bone.
 
@@ -29,9 +30,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from pipeline.geodesic import validate_mesh, vertex_areas
+
 __all__ = [
     "cotangent_laplacian",
-    "lumped_mass",
     "segment_distances",
     "bone_heat_weights",
     "limit_influences",
@@ -43,23 +45,6 @@ log = logging.getLogger(__name__)
 
 class SkinningError(ValueError):
     """A valid input that yields no weights (degenerate mesh, no bones)."""
-
-
-def _check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
-        raise ValueError(f"vertices must have shape (V, 3) with V > 0, got {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("vertices must be finite")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-        raise ValueError(f"faces must have shape (F, 3) with F > 0, got {f.shape}")
-    if not np.issubdtype(f.dtype, np.integer):
-        raise ValueError("faces must hold integer vertex ids")
-    f = f.astype(np.int64)
-    if f.min() < 0 or f.max() >= len(v):
-        raise ValueError("faces reference vertices that do not exist")
-    return v, f
 
 
 def cotangent_laplacian(vertices, faces) -> sp.csr_matrix:
@@ -76,7 +61,7 @@ def cotangent_laplacian(vertices, faces) -> sp.csr_matrix:
         ``L_ij = -(cot a_ij + cot b_ij) / 2`` for an edge, ``L_ii = -sum_j L_ij``.
         Cotangents are clamped to ``[-1e3, 1e3]`` (slivers from marching cubes).
     """
-    v, f = _check_mesh(vertices, faces)
+    v, f = validate_mesh(vertices, faces)
     n = len(v)
     rows, cols, vals = [], [], []
     for k in range(3):
@@ -93,21 +78,6 @@ def cotangent_laplacian(vertices, faces) -> sp.csr_matrix:
     W.sum_duplicates()
     d = -np.asarray(W.sum(axis=1)).ravel()
     return (W + sp.diags(d)).tocsr()
-
-
-def lumped_mass(vertices, faces) -> np.ndarray:
-    """Barycentric lumped vertex areas (a third of every incident triangle).
-
-    Returns
-    -------
-    (V,) float ndarray
-    """
-    v, f = _check_mesh(vertices, faces)
-    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    m = np.zeros(len(v))
-    for k in range(3):
-        np.add.at(m, f[:, k], area / 3.0)
-    return m
 
 
 def segment_distances(points, seg_a, seg_b, *, chunk: int = 16384) -> np.ndarray:
@@ -210,7 +180,7 @@ def bone_heat_weights(
     SkinningError
         When the mesh has no area.
     """
-    v, f = _check_mesh(vertices, faces)
+    v, f = validate_mesh(vertices, faces)
     A = np.asarray(seg_a, dtype=np.float64)
     Bp = np.asarray(seg_b, dtype=np.float64)
     if A.ndim != 2 or A.shape[1] != 3 or len(A) == 0:
@@ -223,7 +193,7 @@ def bone_heat_weights(
         raise ValueError(f"heat must be > 0, got {heat}")
     if not tie_tolerance >= 0:
         raise ValueError(f"tie_tolerance must be >= 0, got {tie_tolerance}")
-    m = lumped_mass(v, f)
+    m = vertex_areas(v, f)
     if m.sum() <= 0:
         raise SkinningError("mesh has no surface area")
     diag = float(np.linalg.norm(v.max(0) - v.min(0)))

@@ -541,6 +541,7 @@ def build_spine(
     meta = {
         "K": K,
         "references": [int(r) for r in corr.references],
+        "count_rule": corr.count_rule,
         "topology_splits": [int(s) for s in G.splits],
         "topology_frames": int(counted.get(G.splits, 0)),
         "tip_counts": [f.n_tips for f in frames],

@@ -287,19 +287,12 @@ def _decimate(mesh, f, level, off, grid, face_budget, taubin_iterations, keep_la
     return clean_mesh(dec, taubin_iterations=0, keep_largest=keep_largest)
 
 
-def _face_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Connected-component label of every face (faces sharing a vertex are connected)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+def _face_components(mesh) -> np.ndarray:
+    """Connected-component label of every face of a trimesh (faces sharing a vertex are connected)."""
+    import trimesh
 
-    f = np.asarray(faces, dtype=np.int64)
-    if len(f) == 0:
-        return np.zeros(0, dtype=np.int64)
-    a = np.concatenate([f[:, 0], f[:, 1]])
-    b = np.concatenate([f[:, 1], f[:, 2]])
-    g = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(n_vertices, n_vertices))
-    _, vlab = connected_components(g, directed=False)
-    return vlab[f[:, 0]]
+    labels = trimesh.graph.connected_component_labels(mesh.edges, node_count=len(mesh.vertices))
+    return labels[np.asarray(mesh.faces, dtype=np.int64)[:, 0]]
 
 
 def clean_mesh(mesh, *, taubin_iterations: int = 10, keep_largest: bool = True):
@@ -325,7 +318,7 @@ def clean_mesh(mesh, *, taubin_iterations: int = 10, keep_largest: bool = True):
     if len(mesh.faces) == 0:
         raise EmptySurfaceError("the mesh has no faces")
     if keep_largest:
-        labels = _face_components(mesh.faces, len(mesh.vertices))
+        labels = _face_components(mesh)
         if labels.size and labels.max() > 0:
             counts = np.bincount(labels)
             keep = labels == int(np.argmax(counts))
@@ -355,7 +348,7 @@ def surface_quality(mesh) -> SurfaceQuality:
     watertight = bool(mesh.is_watertight) and bool(mesh.is_winding_consistent)
     euler = int(mesh.euler_number)
     if len(mesh.faces):
-        labels = _face_components(mesh.faces, len(mesh.vertices))
+        labels = _face_components(mesh)
         bodies = len(np.unique(labels))
     else:
         bodies = 0

@@ -26,6 +26,7 @@ import numpy as np
 
 from calib.calibration import Calibration
 from calib.camera import Camera
+from stage.rig import check_plane  # the one rule for planes; re-exported here for the pipeline
 
 __all__ = [
     "Grid",
@@ -37,6 +38,7 @@ __all__ = [
     "check_plane",
     "above_plane",
     "view_elevation",
+    "pixel_footprint",
 ]
 
 log = logging.getLogger(__name__)
@@ -55,27 +57,6 @@ def check_bounds(bounds: Any, name: str = "volume_bounds") -> np.ndarray:
     if np.any(b[1] <= b[0]):
         raise ValueError(f"{name}: hi must exceed lo in every axis, got lo={b[0].tolist()} hi={b[1].tolist()}")
     return b
-
-
-def check_plane(plane: Any, name: str = "support_plane") -> np.ndarray:
-    """Validate a plane ``(a, b, c, d)`` (points with ``a x + b y + c z + d >= 0`` are above).
-
-    Returns
-    -------
-    (4,) float ndarray
-        The plane scaled so that ``(a, b, c)`` is a unit normal (``d`` is then the signed
-        distance of the origin).
-    """
-    try:
-        p = np.asarray(plane, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be four numbers (a, b, c, d)") from None
-    if p.shape != (4,) or not np.all(np.isfinite(p)):
-        raise ValueError(f"{name} must be four finite numbers (a, b, c, d), got {plane!r}")
-    n = float(np.linalg.norm(p[:3]))
-    if n < 1e-12:
-        raise ValueError(f"{name}: the normal (a, b, c) must not be zero")
-    return p / n
 
 
 def above_plane(grid: "Grid", plane: Any) -> np.ndarray:
@@ -420,6 +401,39 @@ def _mask_boxes(masks: Any, calibration: Calibration, pad: int) -> list[tuple[in
             continue
         boxes.append((max(cols[0] - pad, 0), max(rows[0] - pad, 0), min(cols[-1] + pad, w - 1), min(rows[-1] + pad, h - 1)))
     return boxes
+
+
+def pixel_footprint(calibration: Calibration, points: Any) -> np.ndarray:
+    """Size of one pixel at some points, per camera (world units per pixel).
+
+    A pixel of focal length ``f`` (pixels) covers ``Z / f`` world units at depth ``Z``
+    along the optical axis (pinhole; distortion changes it by well under a percent near
+    the image centre, where a subject is filmed).
+
+    Parameters
+    ----------
+    calibration : Calibration
+    points : (3,) or (N, 3) float array-like
+        World points, e.g. the subject's centre.
+
+    Returns
+    -------
+    (C, N) float ndarray
+        NaN where the camera does not see the point (behind it or outside its image).
+    """
+    if not isinstance(calibration, Calibration):
+        raise ValueError(f"calibration must be a Calibration, got {type(calibration).__name__}")
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not np.isfinite(P).all():
+        raise ValueError("points must be finite")
+    out = np.full((len(calibration), len(P)), np.nan)
+    for i, cam in enumerate(calibration):
+        flat, _ = pixel_index(cam, P)
+        z = cam.world_to_camera(P)[:, 2]
+        f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+        seen = flat >= 0
+        out[i, seen] = z[seen] / f
+    return out
 
 
 def volume_from_cameras(

@@ -184,175 +184,237 @@ def capture_take(
     out = Path(out)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: take already exists (use --overwrite to replace it)")
+    run = _Capture(rig, out, _open_drivers(rig, drivers), frames=frames, duration_s=duration_s,
+                   stop=stop or threading.Event(), stall_timeout_s=stall_timeout_s, queue_seconds=queue_seconds,
+                   progress=progress, on_set=on_set)
+    return run.run(compression=compression, calibration=calibration, overwrite=overwrite)
 
-    drv = _open_drivers(rig, drivers)
-    ids = list(drv)
-    granted: dict[str, Granted] = {}
-    opened: list[str] = []
-    try:
-        for cid, d in drv.items():
-            d.open()
-            opened.append(cid)
-            granted[cid] = d.configure()
-    except BaseException:
-        for cid in opened:
-            _close_quietly(cid, drv[cid])
-        raise
-    for cfg in rig.cameras:
-        g = granted[cfg.id]
-        if (g.width, g.height) != (cfg.width, cfg.height):
-            log.warning("camera %s: asked for %dx%d, the device granted %dx%d", cfg.id, cfg.width, cfg.height, g.width, g.height)
-    specs = [
-        CameraSpec(c.id, granted[c.id].width, granted[c.id].height, storage=c.store, depth=bool(granted[c.id].has_depth))
-        for c in rig.cameras
-    ]
-    period_ns = int(round(1e9 / rig.fps))
-    # a late camera is waited for half a second (GIL or disk stalls), then marked missing
-    grouper: StreamGrouper = StreamGrouper(
-        ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns, timeout_ns=max(4 * period_ns, 500_000_000)
-    )
-    stored = SetStatsAccumulator(ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns)
-    stop_ev = stop or threading.Event()
-    q: queue.Queue = queue.Queue(maxsize=max(8, int(len(ids) * rig.fps * queue_seconds)))
-    qdrops = {c: 0 for c in ids}
-    disconnected: dict[str, str] = {}
-    last_seen: dict[str, float] = {}
-    threads: list[_Grabber] = []
-    stopped = "frames"
-    writer = None
-    n_sets = 0
-    t0 = time.monotonic()
-    try:
-        writer = TakeWriter(
-            out,
+
+class _Capture:
+    """One capture, through its states in order (``state``):
+
+    ``new`` -> ``opened`` (every camera open and configured) -> ``recording`` (the take
+    file exists, grabbers run; frame sets are grouped and stored until a stop
+    condition) -> ``draining`` (grabbers stopped; queued frames and open sets are
+    stored) -> ``closed`` (cameras closed, take closed with its sync statistics).
+    ``stopped`` says why recording ended: ``frames``, ``duration``, ``stopped``,
+    ``all cameras disconnected`` or ``interrupted``.
+    """
+
+    def __init__(self, rig: Rig, out: Path, drivers: dict[str, CameraDriver], *, frames: int | None,
+                 duration_s: float | None, stop: threading.Event, stall_timeout_s: float, queue_seconds: float,
+                 progress: Callable[[CaptureProgress], None] | None, on_set: Callable[[int], None] | None) -> None:
+        self.rig, self.out, self.drivers = rig, out, drivers
+        self.frames, self.duration_s, self.stall_timeout_s = frames, duration_s, stall_timeout_s
+        self.progress, self.on_set, self.stop = progress, on_set, stop
+        self.ids = list(drivers)
+        period_ns = int(round(1e9 / rig.fps))
+        # a late camera is waited for half a second (GIL or disk stalls), then marked missing
+        self.grouper = StreamGrouper(self.ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns,
+                                     timeout_ns=max(4 * period_ns, 500_000_000))
+        self.stored = SetStatsAccumulator(self.ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns)
+        self.queue: queue.Queue = queue.Queue(maxsize=max(8, int(len(self.ids) * rig.fps * queue_seconds)))
+        self.queue_drops = {c: 0 for c in self.ids}
+        self.granted: dict[str, Granted] = {}
+        self.disconnected: dict[str, str] = {}
+        self.last_seen: dict[str, float] = {}
+        self.threads: list[_Grabber] = []
+        self.writer: TakeWriter | None = None
+        self.n_sets = 0
+        self.recent: list[float] = []  # times of the sets stored in the last second
+        self.t0 = self.last_stats = time.monotonic()
+        self.state = "new"
+        self.stopped = "frames"
+
+    # -- the run, top to bottom
+
+    def run(self, *, compression: str, calibration: Any, overwrite: bool) -> CaptureResult:
+        self.open_cameras()
+        try:
+            self.start_recording(compression=compression, calibration=calibration, overwrite=overwrite)
+            done = self.record()
+            if not done and self.stopped != "stopped":
+                self.drain()
+        except KeyboardInterrupt:
+            self.stopped = "interrupted"
+            log.warning("capture interrupted; closing the take with %d frame sets", self.n_sets)
+        finally:
+            stats = self.close()
+        return self.result(stats)
+
+    def open_cameras(self) -> None:
+        """Open and configure every camera; on a failure close those already open (nothing is written)."""
+        opened: list[str] = []
+        try:
+            for cid, d in self.drivers.items():
+                d.open()
+                opened.append(cid)
+                self.granted[cid] = d.configure()
+        except BaseException:
+            for cid in opened:
+                _close_quietly(cid, self.drivers[cid])
+            raise
+        for cfg in self.rig.cameras:
+            g = self.granted[cfg.id]
+            if (g.width, g.height) != (cfg.width, cfg.height):
+                log.warning("camera %s: asked for %dx%d, the device granted %dx%d",
+                            cfg.id, cfg.width, cfg.height, g.width, g.height)
+        self.state = "opened"
+
+    def start_recording(self, *, compression: str, calibration: Any, overwrite: bool) -> None:
+        """Create the take file and start one grabber thread per camera."""
+        g = self.granted
+        specs = [CameraSpec(c.id, g[c.id].width, g[c.id].height, storage=c.store, depth=bool(g[c.id].has_depth))
+                 for c in self.rig.cameras]
+        self.writer = TakeWriter(
+            self.out,
             specs,
-            rig=rig.model_dump(mode="json"),
+            rig=self.rig.model_dump(mode="json"),
             calibration=calibration,
             compression=compression,
-            fps=rig.fps,
+            fps=self.rig.fps,
             overwrite=overwrite,
-            attrs={"granted": {c: vars(g) for c, g in granted.items()}},
+            attrs={"granted": {c: vars(v) for c, v in g.items()}},
+            expected_sets=self.frames if self.frames is not None else int(self.duration_s * self.rig.fps),
         )
-        threads = [_Grabber(c, drv[c], q, stop_ev, qdrops) for c in ids]
-        t0 = time.monotonic()
-        for th in threads:
+        self.threads = [_Grabber(c, self.drivers[c], self.queue, self.stop, self.queue_drops) for c in self.ids]
+        self.t0 = self.last_stats = time.monotonic()
+        for th in self.threads:
             th.start()
-        recent: list[float] = []
-        last_stats = t0
+        self.state = "recording"
 
-        def store(sets: list) -> bool:
-            nonlocal n_sets, last_stats
-            for fs in sets:
-                if frames is not None and n_sets >= frames:
-                    return True
-                writer.write_set({c: f for c, f in fs.frames.items()}, time_ns=fs.time_ns)
-                stored.add(fs)
-                n_sets += 1
-                now = time.monotonic()
-                recent.append(now)
-                while recent and recent[0] < now - 1.0:
-                    recent.pop(0)
-                if on_set is not None:
-                    on_set(n_sets)
-                if now - last_stats > 1.0:
-                    writer.update_sync_stats(stored.stats(grouper.stats()))
-                    last_stats = now
-                if progress is not None:
-                    progress(
-                        CaptureProgress(
-                            sets=n_sets,
-                            target_sets=frames,
-                            elapsed_s=now - t0,
-                            duration_s=duration_s,
-                            fps=float(len(recent) - 1) / max(recent[-1] - recent[0], 1e-9) if len(recent) > 1 else 0.0,
-                            drops=missing_so_far(),
-                            queue_drops=sum(qdrops.values()),
-                            disconnected=tuple(disconnected),
-                        )
-                    )
-            return frames is not None and n_sets >= frames
+    def record(self) -> bool:
+        """Group and store frame sets until a stop condition; True when the frame count is reached."""
+        while True:
+            reason = self._stop_reason()
+            if reason is not None:
+                self.stopped = reason
+                return False
+            if self._store(self._next_sets()):
+                return True
 
-        def missing_so_far() -> int:
-            return stored.missing_total()
-
-        def camera_gone(cid: str, why: str) -> list:
-            if cid in disconnected:
-                return []
-            disconnected[cid] = why
-            log.warning("camera %s disconnected mid-take (%s); it is marked missing from now on", cid, why)
-            return grouper.close_camera(cid, now_ns=time.monotonic_ns())
-
-        done = False
-        while not done:
-            if stop_ev.is_set():
-                stopped = "stopped"
-                break
-            now = time.monotonic()
-            if duration_s is not None and now - t0 >= duration_s:
-                stopped = "duration"
-                break
-            if len(disconnected) == len(ids):
-                stopped = "all cameras disconnected"
-                break
-            try:
-                kind, cid, payload = q.get(timeout=0.05)
-            except queue.Empty:
-                kind = None
-            emitted: list = []
-            if kind == "frame" and cid not in disconnected:
-                # "now" for timeouts is the frame's own arrival time: a backlog in the
-                # queue (slow disk) must not time out sets whose frames are still queued
-                last_seen[cid] = payload.host_timestamp_ns / 1e9
-                emitted += grouper.push(payload, now_ns=payload.host_timestamp_ns)
-            elif kind == "gone":
-                emitted += camera_gone(cid, payload)
-            elif kind is None:  # queue empty: the wall clock is the truth
-                now = time.monotonic()
-                for c in ids:
-                    if c not in disconnected and now - last_seen.get(c, t0) > stall_timeout_s:
-                        emitted += camera_gone(c, f"no frame for {stall_timeout_s:g} s")
-                emitted += grouper.poll(time.monotonic_ns())
-            done = store(emitted)
-        if not done and stopped != "stopped":
-            # stop the grabbers, store what they delivered, then emit the sets still open
-            stop_ev.set()
-            for th in threads:
-                th.join(timeout=2.0)
-            while True:
-                try:
-                    kind, cid, payload = q.get_nowait()
-                except queue.Empty:
-                    break
-                if kind == "frame" and cid not in disconnected:
-                    if store(grouper.push(payload, now_ns=time.monotonic_ns())):
-                        break
-            store(grouper.finish())
-    except KeyboardInterrupt:
-        stopped = "interrupted"
-        log.warning("capture interrupted; closing the take with %d frame sets", n_sets)
-    finally:
-        stop_ev.set()
-        for th in threads:
+    def drain(self) -> None:
+        """Stop the grabbers, store what they delivered, then the sets still open."""
+        self.state = "draining"
+        self.stop.set()
+        for th in self.threads:
             th.join(timeout=2.0)
-        for cid in ids:
-            _close_quietly(cid, drv[cid])
-        stats = stored.stats(grouper.stats())
-        if writer is not None:
-            writer.close(sync_stats=stats)
-    elapsed = time.monotonic() - t0
-    counts = writer.frame_counts() if writer is not None else {}
-    return CaptureResult(
-        path=out,
-        sets=n_sets,
-        frames=counts,
-        duration_s=elapsed,
-        fps=n_sets / elapsed if elapsed > 0 else 0.0,
-        stats=stats,
-        stopped=stopped,
-        disconnected=disconnected,
-        queue_drops=dict(qdrops),
-        granted=granted,
-    )
+        while True:
+            try:
+                kind, cid, payload = self.queue.get_nowait()
+            except queue.Empty:
+                break
+            if kind == "frame" and cid not in self.disconnected:
+                if self._store(self.grouper.push(payload, now_ns=time.monotonic_ns())):
+                    break
+        self._store(self.grouper.finish())
+
+    def close(self) -> SyncStats:
+        """Stop the grabbers, close every camera and the take (in every case, also on errors)."""
+        self.stop.set()
+        for th in self.threads:
+            th.join(timeout=2.0)
+        for cid in self.ids:
+            _close_quietly(cid, self.drivers[cid])
+        stats = self.stored.stats(self.grouper.stats())
+        if self.writer is not None:
+            self.writer.close(sync_stats=stats)
+        self.state = "closed"
+        return stats
+
+    def result(self, stats: SyncStats) -> CaptureResult:
+        elapsed = time.monotonic() - self.t0
+        return CaptureResult(
+            path=self.out,
+            sets=self.n_sets,
+            frames=self.writer.frame_counts() if self.writer is not None else {},
+            duration_s=elapsed,
+            fps=self.n_sets / elapsed if elapsed > 0 else 0.0,
+            stats=stats,
+            stopped=self.stopped,
+            disconnected=self.disconnected,
+            queue_drops=dict(self.queue_drops),
+            granted=self.granted,
+        )
+
+    # -- recording, one step at a time
+
+    def _stop_reason(self) -> str | None:
+        if self.stop.is_set():
+            return "stopped"
+        if self.duration_s is not None and time.monotonic() - self.t0 >= self.duration_s:
+            return "duration"
+        if len(self.disconnected) == len(self.ids):
+            return "all cameras disconnected"
+        return None
+
+    def _next_sets(self) -> list:
+        """Take one event off the queue (or notice it is empty) and return the sets it completes."""
+        try:
+            kind, cid, payload = self.queue.get(timeout=0.05)
+        except queue.Empty:
+            return self._sets_on_idle()
+        if kind == "frame" and cid not in self.disconnected:
+            # "now" for timeouts is the frame's own arrival time: a backlog in the
+            # queue (slow disk) must not time out sets whose frames are still queued
+            self.last_seen[cid] = payload.host_timestamp_ns / 1e9
+            return self.grouper.push(payload, now_ns=payload.host_timestamp_ns)
+        if kind == "gone":
+            return self._camera_gone(cid, payload)
+        return []
+
+    def _sets_on_idle(self) -> list:
+        """The queue is empty: the wall clock is the truth (stalled cameras, timed-out sets)."""
+        emitted: list = []
+        now = time.monotonic()
+        for c in self.ids:
+            if c not in self.disconnected and now - self.last_seen.get(c, self.t0) > self.stall_timeout_s:
+                emitted += self._camera_gone(c, f"no frame for {self.stall_timeout_s:g} s")
+        return emitted + self.grouper.poll(time.monotonic_ns())
+
+    def _camera_gone(self, cid: str, why: str) -> list:
+        if cid in self.disconnected:
+            return []
+        self.disconnected[cid] = why
+        log.warning("camera %s disconnected mid-take (%s); it is marked missing from now on", cid, why)
+        return self.grouper.close_camera(cid, now_ns=time.monotonic_ns())
+
+    def _store(self, sets: list) -> bool:
+        """Write decided sets (up to the frame count); True once the frame count is reached."""
+        for fs in sets:
+            if self._enough():
+                return True
+            self.writer.write_set(dict(fs.frames.items()), time_ns=fs.time_ns)
+            self.stored.add(fs)
+            self.n_sets += 1
+            self._report(time.monotonic())
+        return self._enough()
+
+    def _enough(self) -> bool:
+        return self.frames is not None and self.n_sets >= self.frames
+
+    def _report(self, now: float) -> None:
+        """Callbacks and live figures after one stored set; sync statistics into the take every second."""
+        self.recent.append(now)
+        while self.recent and self.recent[0] < now - 1.0:
+            self.recent.pop(0)
+        if self.on_set is not None:
+            self.on_set(self.n_sets)
+        if now - self.last_stats > 1.0:
+            self.writer.update_sync_stats(self.stored.stats(self.grouper.stats()))
+            self.last_stats = now
+        if self.progress is not None:
+            r = self.recent
+            self.progress(CaptureProgress(
+                sets=self.n_sets,
+                target_sets=self.frames,
+                elapsed_s=now - self.t0,
+                duration_s=self.duration_s,
+                fps=float(len(r) - 1) / max(r[-1] - r[0], 1e-9) if len(r) > 1 else 0.0,
+                drops=self.stored.missing_total(),
+                queue_drops=sum(self.queue_drops.values()),
+                disconnected=tuple(self.disconnected),
+            ))
 
 
 def _close_quietly(cid: str, driver: CameraDriver) -> None:

@@ -461,7 +461,8 @@ def list_usb_devices(*, backend=None) -> tuple[list[UsbDevice], dict[int, float]
         warnings.append("no libusb backend found (pip install libusb-package); USB devices not listed")
         return [], {}, warnings
     except (usb.core.USBError, OSError) as exc:
-        hint = " (permission denied: see docs/hardware.md for udev rules)" if getattr(exc, "errno", None) in (errno.EACCES, errno.EPERM) else ""
+        denied = getattr(exc, "errno", None) in (errno.EACCES, errno.EPERM)
+        hint = " (permission denied: see docs/hardware.md for udev rules)" if denied else ""
         warnings.append(f"libusb could not list USB devices: {exc}{hint}")
         return [], {}, warnings
     devices = []

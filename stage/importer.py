@@ -28,7 +28,7 @@ import numpy as np
 
 from calib.calibration import Calibration
 from stage.frame import Frame
-from stage.store import CameraSpec, TakeWriter
+from stage.store import CameraSpec, DiskFullError, TakeWriter
 
 __all__ = ["ImportResult", "import_take", "find_sources", "IMAGE_EXTS", "VIDEO_EXTS"]
 
@@ -256,6 +256,7 @@ def import_take(
             compression=compression,
             fps=fps,
             attrs={"imported": True, "images": str(Path(images).resolve()), "units": calib.units},
+            expected_sets=n_sets if max(counts.values()) > 0 else None,
         ) as w:
             while max_frames is None or k < max_frames:
                 frames: dict[str, Frame | None] = {}
@@ -284,12 +285,21 @@ def import_take(
                 if progress is not None:
                     progress(k, max(n_sets, k))
         os.replace(tmp, out)
+    except DiskFullError as exc:
+        _remove(tmp)
+        raise DiskFullError(f"{out}: import stopped, nothing written: {str(exc).replace(str(tmp), tmp.name)}") from None
     except BaseException:
-        if tmp.exists():
-            tmp.unlink()
+        _remove(tmp)
         raise
     from stage.store import TakeReader
 
     with TakeReader(out) as r:
         fc = r.frame_counts()
     return ImportResult(path=out, sets=k, frames=fc, storage=kinds, units=calib.units)
+
+
+def _remove(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError as exc:  # pragma: no cover - e.g. the directory went read-only
+        log.warning("could not remove %s: %s", path, exc)

@@ -1,6 +1,7 @@
 """Process a take: keying -> visual hull and surface per frame -> spines -> ``spine.json``.
 
-This is the worker pipeline's driver. Per-frame work (surfaces, per-frame skeletons)
+This is the worker pipeline's driver: a list of named steps (:data:`STEPS`, extended
+with :func:`register_step`) run in order on one :class:`RunContext`. Per-frame work (surfaces, per-frame skeletons)
 fans out over a :class:`concurrent.futures.Executor` (a local process pool by
 default, a Dask ``Client.get_executor()`` on a cluster); the correspondence of tips
 over time is the reduce step. Workers open the take by path themselves, so a Dask
@@ -39,11 +40,17 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-__all__ = ["ProcessParams", "ProcessResult", "ProcessError", "process_take", "STEPS"]
+__all__ = ["STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "process_take", "register_step"]
 
 log = logging.getLogger("stage.process")
 
-STEPS = ("key", "surface", "spine")
+#: Default voxel edge in pixels at the subject (median footprint over the cameras).
+PIXELS_PER_VOXEL = 2.0
+#: Voxels in the processing grid at most (time: the carve and marching cubes grow with it).
+MAX_VOXELS = 8_000_000
+#: Voxels along the subject's longest side at least, whatever the cameras resolve.
+MIN_RESOLUTION = 48
+
 
 
 class ProcessError(ValueError):
@@ -59,10 +66,12 @@ class ProcessParams(BaseModel):
         Keying mode; default: the rig's backdrop, else chroma.
     rekey : bool
         Key again even when the take already holds masks.
-    resolution : int
+    resolution : int or None
         Voxels along the longest side of the subject's bounding box (the box is
-        found by a coarse carve of the whole capture volume, so the voxel size
-        follows the subject, not the rig).
+        found by a coarse carve of the whole capture volume). Default: from the rig,
+        a voxel of :data:`PIXELS_PER_VOXEL` times the median pixel footprint at the
+        subject over the cameras that see it (so a limb 4 pixels wide in most views is
+        2 voxels across), within :data:`MAX_VOXELS` and the memory the carver may use.
     volume : (6,) floats or None
         ``[xmin, ymin, zmin, xmax, ymax, zmax]`` to search for the subject; default the
         rig's capture volume, else derived from the cameras.
@@ -81,7 +90,8 @@ class ProcessParams(BaseModel):
     smooth_iterations : int
         Taubin smoothing iterations of the surface.
     face_budget : int or None
-        Decimate surfaces to at most this many faces.
+        Decimate surfaces to at most this many faces before skeletons (their cost grows
+        with the faces; the tips and limbs do not need more). ``None``: never.
     chunk : int
         Frames per task sent to the executor.
     depth : {"auto", "off"}
@@ -96,13 +106,13 @@ class ProcessParams(BaseModel):
 
     key_mode: Literal["chroma", "luma", "plate"] | None = None
     rekey: bool = False
-    resolution: Annotated[int, Field(ge=16, le=512)] = 96
+    resolution: Annotated[int, Field(ge=16, le=512)] | None = None
     volume: tuple[float, float, float, float, float, float] | None = None
     tolerance: Annotated[int, Field(ge=0)] = 0
     silhouette_margin: Annotated[int, Field(ge=0, le=10)] = 1
     support_plane: tuple[float, float, float, float] | None = None
     smooth_iterations: Annotated[int, Field(ge=0, le=200)] = 10
-    face_budget: Annotated[int, Field(ge=100)] | None = None
+    face_budget: Annotated[int, Field(ge=100)] | None = 16000
     chunk: Annotated[int, Field(ge=1)] = 4
     depth: Literal["auto", "off"] = "auto"
     spine: dict = Field(default_factory=dict)
@@ -221,17 +231,70 @@ def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tupl
 # ----------------------------------------------------------------------------- per-frame tasks
 
 
-def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: dict, params: dict, out: str) -> list[dict]:
-    """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/``.
+def key_task(take: str, camera: str, base: dict, workers: int) -> dict:
+    """Key one camera of the take (in a worker); the masks come back bit-packed for the
+    parent to store (one writer per take file)."""
+    from stage.keying.params import KeyParams
+    from stage.keying.take import key_camera
+
+    if workers == 1:
+        import cv2
+
+        cv2.setNumThreads(1)  # parallelism comes from the worker processes
+    key = key_camera(take, camera, base=KeyParams(**base), workers=workers)
+    if key is None:
+        return {"camera": camera, "key": None}
+    shape = key.masks.shape
+    key.masks = np.packbits(key.masks, axis=-1)
+    return {"camera": camera, "key": key, "shape": shape}
+
+
+def _skeleton_record(k: int, mesh, params) -> dict:
+    """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of one frame's surface
+    (``None``: an empty frame), as stored in ``skeletons/``; the mesh is taken as
+    :func:`pipeline.meshio.load_mesh` reads it back (its largest connected part)."""
+    from pipeline.geodesic import largest_component
+    from pipeline.spine import frame_skeleton
+
+    if mesh is None:
+        return {"index": int(k), "status": "empty"}
+    v, f = np.asarray(mesh[0], np.float64), np.asarray(mesh[1], np.int64)
+    v2, f2, _ = largest_component(v, f, warn=False)
+    if len(f2) != len(f):
+        v, f = v2, f2
+    try:
+        return {"index": int(k), "status": "ok", "skeleton": frame_skeleton(v, f, params=params).to_dict()}
+    except ValueError as exc:
+        log.warning("frame set %d: no skeleton: %s", k, exc)
+        return {"index": int(k), "status": "failed", "reason": str(exc)}
+
+
+def surface_task(
+    take: str,
+    frames: Sequence[int],
+    calib_dict: dict,
+    grid_dict: dict,
+    params: dict,
+    out: str,
+    spine_params: dict | None = None,
+) -> list[dict]:
+    """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/`` (and,
+    with ``spine_params``, the frames' skeletons to ``skeletons/`` from the mesh in memory).
 
     Top level (picklable) so it runs in a process pool or on a Dask worker.
     """
     from pipeline.hull import EmptyHullError
     from pipeline.results import ResultsStore
-    from pipeline.surface import EmptySurfaceError, surface_from_occupancy, surface_quality
+    from pipeline.spine import SpineParams
+    from pipeline.surface import (
+        EmptySurfaceError,
+        surface_from_occupancy,
+        surface_quality,
+    )
     from stage.store import TakeReader
 
     p = ProcessParams(**params)
+    sp = SpineParams(**spine_params) if spine_params is not None else None
     out_dir = Path(out)
     store = ResultsStore(out_dir)
     carver = _carver(calib_dict, grid_dict)
@@ -244,6 +307,7 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
             t0 = time.perf_counter()
             masks, skipped = _frame_masks(reader, cameras, k, validity)
             info: dict = {"index": int(k), "skipped_cameras": skipped}
+            mesh = None
             try:
                 if len(skipped) == len(cameras):
                     raise EmptyHullError("no camera has a valid mask in this frame set")
@@ -264,19 +328,23 @@ def surface_task(take: str, frames: Sequence[int], calib_dict: dict, grid_dict: 
                 store.write_mesh(k, mesh)
                 info.update(status="ok", quality=quality)
             except (EmptyHullError, EmptySurfaceError) as exc:
+                mesh = None
                 info.update(status="empty", reason=str(exc))
                 log.warning("frame set %d: %s", k, exc)
             info["seconds"] = time.perf_counter() - t0
+            if sp is not None:
+                rec = _skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp)
+                _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
             _atomic_write_text(out_dir / "frames" / f"{_frame_name(k)}.json", json.dumps(info))
             results.append(info)
     return results
 
 
 def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
-    """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of some frames' meshes."""
+    """Per-frame tips and skeletons of some frames' stored meshes -> ``skeletons/``."""
     from pipeline.meshio import load_mesh
     from pipeline.results import ResultsStore
-    from pipeline.spine import SpineParams, frame_skeleton
+    from pipeline.spine import SpineParams
 
     params = SpineParams(**spine_params)
     out_dir = Path(out)
@@ -284,19 +352,20 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
     done = []
     for k in frames:
         mesh_path = store.mesh_path(k)
-        if mesh_path.exists():
-            v, f = load_mesh(mesh_path)
-            try:
-                sk = frame_skeleton(v, f, params=params).to_dict()
-                rec = {"index": int(k), "status": "ok", "skeleton": sk}
-            except ValueError as exc:
-                rec = {"index": int(k), "status": "failed", "reason": str(exc)}
-                log.warning("frame set %d: no skeleton: %s", k, exc)
-        else:
-            rec = {"index": int(k), "status": "empty"}
+        rec = _skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
         _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
         done.append({"index": int(k), "status": rec["status"]})
     return done
+
+
+def warm_task() -> int:
+    """Import what the per-frame tasks need (run once per worker while the parent reads the take)."""
+    import pipeline.hull
+    import pipeline.spine
+    import pipeline.surface  # noqa: F401
+    import stage.keying.take  # noqa: F401
+
+    return os.getpid()
 
 
 # ----------------------------------------------------------------------------- driver
@@ -304,48 +373,6 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
 
 def _chunks(items: Sequence[int], n: int) -> list[list[int]]:
     return [list(items[i : i + n]) for i in range(0, len(items), n)]
-
-
-def _run_tasks(
-    executor: cf.Executor | None,
-    task: Callable[[list[int]], list[dict]],
-    chunks: list[list[int]],
-    *,
-    step: str,
-    done0: int,
-    total: int,
-    progress: Callable[[str, int, int], None] | None,
-    cancel: threading.Event | None,
-) -> None:
-    """Run ``task(chunk)`` for every chunk of frame indices (in this process, or on the
-    executor), reporting progress after each finished chunk; the tasks persist their results."""
-    done = done0
-
-    def check_cancel() -> None:
-        if cancel is not None and cancel.is_set():
-            raise InterruptedError("cancelled")
-
-    def finished(n: int) -> None:
-        nonlocal done
-        done += n
-        if progress:
-            progress(step, done, total)
-
-    if executor is None:
-        for ch in chunks:
-            check_cancel()
-            task(ch)
-            finished(len(ch))
-        return
-    futures = {executor.submit(task, ch): ch for ch in chunks}
-    try:
-        for fut in cf.as_completed(futures):
-            check_cancel()
-            fut.result()
-            finished(len(futures[fut]))
-    finally:
-        for fut in futures:
-            fut.cancel()
 
 
 def _carve(carver, masks, p: ProcessParams):
@@ -396,51 +423,256 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
     c, half = (lo + hi) / 2, (hi - lo) / 2 * 1.25
     lo = np.maximum(c - half, volume_bounds[:3])
     hi = np.minimum(c + half, volume_bounds[3:])
-    return grid_from_volume(np.stack([lo, hi]), p.resolution)
+    return np.stack([lo, hi])
 
 
-def process_take(
-    take: str | os.PathLike,
-    out: str | os.PathLike,
-    *,
-    steps: Sequence[str] = STEPS,
-    params: ProcessParams | dict | None = None,
-    executor: cf.Executor | None = None,
-    progress: Callable[[str, int, int], None] | None = None,
-    cancel: threading.Event | None = None,
-) -> ProcessResult:
-    """Run keying, reconstruction and spines on a take; resumable.
+def _rig_resolution(calibration, box: np.ndarray, p: ProcessParams) -> tuple[int, dict]:
+    """Voxels along the box's longest side, and why: ``--resolution`` when given, else from
+    the pixel footprint at the subject (:data:`PIXELS_PER_VOXEL`) within the budgets."""
+    from pipeline.hull import _memory_limit, hull_memory_bytes
+    from pipeline.volume import grid_from_volume, pixel_footprint
 
-    Parameters
-    ----------
-    take : path
-        The take (.h5) with a calibration.
-    out : path
-        Results directory (beside the take, never inside it).
-    steps : sequence of {"key", "surface", "spine"}
-        Steps to run, in pipeline order (a later step needs the earlier ones' results,
-        which may come from an earlier run).
-    params : ProcessParams or dict, optional
-    executor : concurrent.futures.Executor, optional
-        Where per-frame work runs; ``None`` runs it in this process.
-    progress : callable, optional
-        ``progress(step, done, total)`` after every finished chunk of frames.
-    cancel : threading.Event, optional
-        Set it to stop between chunks (``InterruptedError``); finished frames stay.
+    longest = float((box[1] - box[0]).max())
+    if p.resolution is not None:
+        return p.resolution, {"source": "resolution option", "resolution": p.resolution}
+    fp = pixel_footprint(calibration, (box[0] + box[1]) / 2)[:, 0]
+    seen = fp[np.isfinite(fp)]
+    if seen.size == 0:
+        raise ProcessError("no camera sees the centre of the subject's box; check the calibration or pass --resolution")
+    footprint = float(np.median(seen))
+    wanted = int(np.ceil(longest / (PIXELS_PER_VOXEL * footprint)))
+    res, limit = max(wanted, MIN_RESOLUTION), "pixel footprint"
+    if res == MIN_RESOLUTION and wanted < MIN_RESOLUTION:
+        limit = f"at least {MIN_RESOLUTION} voxels along the subject"
+    ext = box[1] - box[0]
+    while res > MIN_RESOLUTION and (
+        np.prod(np.ceil(ext / (longest / res))) > MAX_VOXELS
+        or hull_memory_bytes(grid_from_volume(box, res), calibration) > _memory_limit()
+    ):
+        res, limit = int(res * 0.95), f"budget of {MAX_VOXELS:,} voxels and the carver's memory"
+    why = {
+        "source": "rig",
+        "resolution": res,
+        "pixel_footprint": footprint,
+        "cameras_seeing_subject": int(seen.size),
+        "pixels_per_voxel": PIXELS_PER_VOXEL,
+        "limited_by": limit,
+    }
+    return res, why
 
-    Returns
-    -------
-    ProcessResult
-    """
+
+# ----------------------------------------------------------------------------- steps
+
+
+@dataclass
+class RunContext:
+    """What the steps of one :func:`process_take` call share: the take's facts, the job's
+    options, the runner's hooks, and what earlier steps left for later ones."""
+
+    take: Path
+    out: Path
+    params: ProcessParams
+    executor: cf.Executor | None
+    progress: Callable[[str, int, int], None] | None
+    cancel: threading.Event | None
+    calibration: object
+    cameras: list[str]
+    n_sets: int
+    fps: float
+    rig: dict
+    need_key: bool
+    timings: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    spine_path: Path | None = None
+    tip_counts: list[int | None] = field(default_factory=list)
+    grid_choice: dict = field(default_factory=dict)
+    steps: tuple[str, ...] = ()
+
+    def report_progress(self, step: str, done: int, total: int) -> None:
+        if self.progress:
+            self.progress(step, done, total)
+
+    def run_frames(self, step: str, task: Callable[[list[int]], list[dict]], done_dir: str) -> None:
+        """Run a per-frame ``task`` on every frame set without a result in ``OUT/done_dir``
+        (the one runner all per-frame steps share: chunks, executor, progress, cancel)."""
+        todo = [k for k in range(self.n_sets) if not (self.out / done_dir / f"{_frame_name(k)}.json").exists()]
+        done = self.n_sets - len(todo)
+        self.report_progress(step, done, self.n_sets)
+        for finished in _map_tasks(self, [partial(task, ch) for ch in _chunks(todo, self.params.chunk)]):
+            done += len(finished)
+            self.report_progress(step, done, self.n_sets)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One named step of :func:`process_take`: ``run(ctx)`` does the work and persists it."""
+
+    name: str
+    run: Callable[[RunContext], None]
+    doc: str = ""
+
+
+_REGISTRY: dict[str, Step] = {}
+
+
+def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = "", after: str | None = None) -> None:
+    """Add a step to the pipeline (after ``after``, default at the end); updates :data:`STEPS`."""
+    global STEPS
+    if not name or not name.isidentifier():
+        raise ValueError(f"name must be an identifier, got {name!r}")
+    if after is not None and after not in _REGISTRY:
+        raise ValueError(f"after: no step {after!r} (steps: {list(_REGISTRY)})")
+    items = [(n, s) for n, s in _REGISTRY.items() if n != name]
+    pos = len(items) if after is None else [n for n, _ in items].index(after) + 1
+    items.insert(pos, (name, Step(name=name, run=run, doc=doc)))
+    _REGISTRY.clear()
+    _REGISTRY.update(items)
+    STEPS = tuple(_REGISTRY)
+
+
+def _step_key(ctx: RunContext) -> None:
+    """Key every camera of the take (unless it holds masks and ``rekey`` is off): one task
+    per camera on the executor (frames read once, in the worker), masks stored here."""
+    total = ctx.n_sets * len(ctx.cameras)
+    if not ctx.need_key:
+        ctx.report_progress("key", total, total)
+        return
+    from stage.keying.take import store_camera_key, take_key_params
+
+    t0 = time.perf_counter()
+    base = take_key_params(ctx.rig, key_mode=ctx.params.key_mode).to_dict()
+    done, keys = 0, []
+    ctx.report_progress("key", 0, total)
+    for res in _map_tasks(ctx, [partial(key_task, str(ctx.take), cam, base, 1 if ctx.executor else 2) for cam in ctx.cameras]):
+        if res["key"] is not None:
+            keys.append(res)
+            done += len(res["key"].valid)
+        ctx.report_progress("key", min(done, total), total)
+    # stored once every worker has finished reading the take (one writer, no readers)
+    for res in keys:
+        key = res["key"]
+        key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).astype(bool)
+        store_camera_key(ctx.take, key)
+    ctx.timings["key"] = time.perf_counter() - t0
+
+
+def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
+    """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
+    between tasks when cancelled."""
+
+    def check_cancel() -> None:
+        if ctx.cancel is not None and ctx.cancel.is_set():
+            raise InterruptedError("cancelled")
+
+    if ctx.executor is None:
+        for task in tasks:
+            check_cancel()
+            yield task()
+        return
+    futures = [ctx.executor.submit(task) for task in tasks]
+    try:
+        for fut in cf.as_completed(futures):
+            check_cancel()
+            yield fut.result()
+    finally:
+        for fut in futures:
+            fut.cancel()
+
+
+def _volume_bounds(ctx: RunContext) -> np.ndarray:
+    """Where to look for the subject: the job's volume, the rig's, else the cameras'."""
+    from pipeline.volume import volume_from_cameras
+
+    if ctx.params.volume is not None:
+        return np.asarray(ctx.params.volume, float)
+    if ctx.rig.get("volume"):
+        c = np.asarray(ctx.rig["volume"]["center"], float)
+        s = np.asarray(ctx.rig["volume"]["size"], float)
+        return np.r_[c - s / 2, c + s / 2]
+    return np.asarray(volume_from_cameras(ctx.calibration), float).reshape(-1)
+
+
+def _processing_grid(ctx: RunContext):
+    """The grid of the surfaces: ``OUT/grid.json`` when an earlier run chose it, else fitted
+    to the subject now (and written there)."""
+    from pipeline.volume import Grid, grid_from_volume
     from stage.store import TakeReader
 
-    take = Path(take)
-    out = Path(out)
-    steps = tuple(steps)
-    bad = [s for s in steps if s not in STEPS]
-    if bad or not steps:
-        raise ValueError(f"steps must be a non-empty subset of {STEPS}, got {steps}")
-    steps = tuple(s for s in STEPS if s in steps)
+    grid_path = ctx.out / "grid.json"
+    with TakeReader(ctx.take) as reader:
+        missing = sorted(set(ctx.cameras) - set(reader.masks_present()))
+        if missing:
+            raise ProcessError(f"{ctx.take}: cameras {missing} have no masks; run the key step")
+        if grid_path.exists():
+            grid = Grid.from_dict(json.loads(grid_path.read_text()))
+            ctx.grid_choice = json.loads(grid_path.read_text()).get("choice", {})
+            return grid
+        box = _subject_grid(reader, ctx.calibration, ctx.cameras, ctx.n_sets, ctx.params, _volume_bounds(ctx))
+    p = ctx.params
+    res, why = _rig_resolution(ctx.calibration, box, p)
+    grid = grid_from_volume(box, res)
+    ctx.grid_choice = {**why, "voxel": grid.voxel, "shape": list(grid.shape)}
+    log.info("processing grid %s (%s)", grid, why["limited_by"] if "limited_by" in why else why["source"])
+    if p.support_plane is None and p.volume is None and not ctx.rig.get("volume"):
+        hint = _blind_side_hint(ctx.calibration, grid)
+        if hint:
+            log.warning("%s", hint)
+            ctx.warnings.append(hint)
+    _atomic_write_text(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
+    return grid
+
+
+def _step_surface(ctx: RunContext) -> None:
+    """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
+    t0 = time.perf_counter()
+    grid = _processing_grid(ctx)
+    _add_to_record(ctx, grid=ctx.grid_choice)
+    task = partial(
+        surface_task,
+        str(ctx.take.resolve()),
+        calib_dict=ctx.calibration.to_dict(),
+        grid_dict=grid.to_dict(),
+        params=ctx.params.model_dump(),
+        out=str(ctx.out.resolve()),
+        # skeletons straight from the surfaces in memory when the spine step follows
+        spine_params=ctx.params.spine if "spine" in ctx.steps else None,
+    )
+    ctx.run_frames("surface", task, "frames")
+    ctx.timings["surface"] = time.perf_counter() - t0
+
+
+def _step_spine(ctx: RunContext) -> None:
+    """Per-frame skeletons -> ``skeletons/``, then their tips corresponded over time -> ``spine.json``."""
+    from pipeline.spine import FrameSkeleton, SpineParams, build_spine, write_spine
+
+    n = ctx.n_sets
+    if any(not (ctx.out / "frames" / f"{_frame_name(k)}.json").exists() for k in range(n)):
+        raise ProcessError(f"{ctx.out}: surfaces are missing for some frames; run the surface step")
+    t0 = time.perf_counter()
+    ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons")
+    skeletons: list[FrameSkeleton] = []
+    for k in range(n):
+        rec = json.loads((ctx.out / "skeletons" / f"{_frame_name(k)}.json").read_text())
+        sk = FrameSkeleton.from_dict(rec["skeleton"]) if rec["status"] == "ok" else FrameSkeleton.empty()
+        skeletons.append(sk)
+        ctx.tip_counts[k] = sk.n_tips
+    ctx.report_progress("spine", 0, 1)
+    spine = build_spine(skeletons, fps=float(ctx.fps), units=ctx.calibration.units, params=SpineParams(**ctx.params.spine))
+    ctx.spine_path = write_spine(ctx.out / "spine.json", spine)
+    ctx.report_progress("spine", 1, 1)
+    ctx.timings["spine"] = time.perf_counter() - t0
+
+
+STEPS: tuple[str, ...] = ()
+register_step("key", _step_key, doc="keying masks into the take")
+register_step("surface", _step_surface, doc="visual hull and surface per frame set")
+register_step("spine", _step_spine, doc="per-frame skeletons and the take's spine")
+
+
+# ----------------------------------------------------------------------------- driver
+
+
+def _check_params(params: ProcessParams | dict | None) -> ProcessParams:
     if params is None:
         params = ProcessParams()
     elif isinstance(params, dict):
@@ -450,23 +682,19 @@ def process_take(
             raise ValueError(f"params: {exc}") from None
     elif not isinstance(params, ProcessParams):
         raise ValueError(f"params must be ProcessParams or a dict, got {type(params).__name__}")
-    if not take.is_file():
-        raise FileNotFoundError(f"{take}: take not found")
-    if out.resolve() == take.resolve() or out.suffix in (".h5", ".hdf5"):
-        raise ValueError(f"out must be a directory beside the take, got {out}")
-    out.mkdir(parents=True, exist_ok=True)
-    spine_params = params.spine
     try:
         from pipeline.spine import SpineParams
 
-        SpineParams(**spine_params)
+        SpineParams(**params.spine)
     except ValidationError as exc:
         raise ValueError(f"params.spine: {exc}") from None
+    return params
 
-    t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-    warnings_: list[str] = []
-    # -- key ---------------------------------------------------------------------
+
+def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunContext:
+    """Read what every step needs from the take once (and check it can be processed)."""
+    from stage.store import TakeReader
+
     with TakeReader(take) as reader:
         if not reader.has_calibration:
             raise ProcessError(f"{take}: the take has no calibration; run `stage calibrate` first")
@@ -485,143 +713,116 @@ def process_take(
     if n_sets == 0:
         raise ProcessError(f"{take}: the take holds no frame sets")
     calibration = type(calibration)(tuple(calibration[c] for c in cameras), units=calibration.units, meta=calibration.meta)
-    record = {"take": str(take.resolve()), "params": params.model_dump(), "frames": n_sets, "cameras": cameras}
-    prev = out / "process.json"
+    return RunContext(
+        take=take, out=out, params=params, calibration=calibration, cameras=cameras, n_sets=n_sets,
+        fps=float(fps), rig=rig, need_key=need_key, tip_counts=[None] * n_sets, **hooks,
+    )
+
+
+def _start_record(ctx: RunContext) -> None:
+    """Write ``process.json``; results of other parameters or another take are removed first."""
+    record = {"take": str(ctx.take.resolve()), "params": ctx.params.model_dump(), "frames": ctx.n_sets, "cameras": ctx.cameras}
+    prev = ctx.out / "process.json"
     if prev.exists():
         old = json.loads(prev.read_text())
         if old.get("params") != record["params"] or old.get("take") != record["take"]:
-            log.warning("%s holds results of other parameters or another take; starting over", out)
+            log.warning("%s holds results of other parameters or another take; starting over", ctx.out)
             for sub in ("meshes", "frames", "skeletons"):
-                for f in (out / sub).glob("frame_*"):
+                for f in (ctx.out / sub).glob("frame_*"):
                     f.unlink()
-            (out / "spine.json").unlink(missing_ok=True)
+            (ctx.out / "spine.json").unlink(missing_ok=True)
+            (ctx.out / "grid.json").unlink(missing_ok=True)  # the grid follows the parameters too
     _atomic_write_text(prev, json.dumps(record, indent=2))
 
-    if "key" in steps and need_key:
-        from stage.keying.take import key_take
 
-        t0 = time.perf_counter()
-        total = n_sets * len(cameras)
-        state = {"done": 0}
+def _add_to_record(ctx: RunContext, **items) -> None:
+    """Add what a step decided (e.g. the grid and why) to ``process.json``."""
+    path = ctx.out / "process.json"
+    _atomic_write_text(path, json.dumps({**json.loads(path.read_text()), **items}, indent=2, default=_json_default))
 
-        def _key_progress(n: int) -> None:
-            state["done"] += n
-            if progress:
-                progress("key", state["done"], total)
-            if cancel is not None and cancel.is_set():
-                raise InterruptedError("cancelled")
 
-        key_take(take, key_mode=params.key_mode, progress=_key_progress)
-        timings["key"] = time.perf_counter() - t0
-    elif "key" in steps and progress:
-        progress("key", n_sets * len(cameras), n_sets * len(cameras))
-
-    # -- surface -----------------------------------------------------------------
+def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> ProcessResult:
     frame_infos: dict[int, dict] = {}
-    grid_path = out / "grid.json"
-    if "surface" in steps:
-        from pipeline.volume import Grid, volume_from_cameras
-
-        t0 = time.perf_counter()
-        with TakeReader(take) as reader:
-            if len(reader.masks_present()) < len(cameras):
-                raise ProcessError(f"{take}: cameras {sorted(set(cameras) - set(reader.masks_present()))} have no masks; run the key step")
-            if grid_path.exists():
-                grid = Grid.from_dict(json.loads(grid_path.read_text()))
-            else:
-                if params.volume is not None:
-                    vb = np.asarray(params.volume, float)
-                elif rig.get("volume"):
-                    c = np.asarray(rig["volume"]["center"], float)
-                    s = np.asarray(rig["volume"]["size"], float)
-                    vb = np.r_[c - s / 2, c + s / 2]
-                else:
-                    vb = np.asarray(volume_from_cameras(calibration), float).reshape(-1)
-                grid = _subject_grid(reader, calibration, cameras, n_sets, params, vb)
-                if params.support_plane is None and params.volume is None and not rig.get("volume"):
-                    hint = _blind_side_hint(calibration, grid)
-                    if hint:
-                        log.warning("%s", hint)
-                        warnings_.append(hint)
-                _atomic_write_text(grid_path, json.dumps(grid.to_dict()))
-        todo = [k for k in range(n_sets) if not (out / "frames" / f"{_frame_name(k)}.json").exists()]
-        if progress:
-            progress("surface", n_sets - len(todo), n_sets)
-        task = partial(
-            surface_task,
-            str(take.resolve()),
-            calib_dict=calibration.to_dict(),
-            grid_dict=grid.to_dict(),
-            params=params.model_dump(),
-            out=str(out.resolve()),
-        )
-        _run_tasks(
-            executor,
-            task,
-            _chunks(todo, params.chunk),
-            step="surface",
-            done0=n_sets - len(todo),
-            total=n_sets,
-            progress=progress,
-            cancel=cancel,
-        )
-        timings["surface"] = time.perf_counter() - t0
-    for k in range(n_sets):
-        f = out / "frames" / f"{_frame_name(k)}.json"
+    for k in range(ctx.n_sets):
+        f = ctx.out / "frames" / f"{_frame_name(k)}.json"
         if f.exists():
             frame_infos[k] = json.loads(f.read_text())
-
-    # -- spine -------------------------------------------------------------------
-    spine_path = None
-    tip_counts: list[int | None] = [None] * n_sets
-    if "spine" in steps:
-        from pipeline.spine import FrameSkeleton, SpineParams, build_spine, write_spine
-
-        if not frame_infos or len(frame_infos) < n_sets:
-            raise ProcessError(f"{out}: surfaces are missing for some frames; run the surface step")
-        t0 = time.perf_counter()
-        todo = [k for k in range(n_sets) if not (out / "skeletons" / f"{_frame_name(k)}.json").exists()]
-        if progress:
-            progress("skeleton", n_sets - len(todo), n_sets)
-        _run_tasks(
-            executor,
-            partial(skeleton_task, str(out.resolve()), spine_params=spine_params),
-            _chunks(todo, params.chunk),
-            step="skeleton",
-            done0=n_sets - len(todo),
-            total=n_sets,
-            progress=progress,
-            cancel=cancel,
-        )
-        skeletons: list[FrameSkeleton] = []
-        for k in range(n_sets):
-            rec = json.loads((out / "skeletons" / f"{_frame_name(k)}.json").read_text())
-            sk = FrameSkeleton.from_dict(rec["skeleton"]) if rec["status"] == "ok" else FrameSkeleton.empty()
-            skeletons.append(sk)
-            tip_counts[k] = sk.n_tips
-        if progress:
-            progress("spine", 0, 1)
-        spine = build_spine(skeletons, fps=float(fps), units=calibration.units, params=SpineParams(**spine_params))
-        spine_path = write_spine(out / "spine.json", spine)
-        if progress:
-            progress("spine", 1, 1)
-        timings["spine"] = time.perf_counter() - t0
-
     empty = sorted(k for k, i in frame_infos.items() if i.get("status") != "ok")
     report = {
-        "take": str(take.resolve()),
-        "frames": n_sets,
-        "cameras": cameras,
+        "take": str(ctx.take.resolve()),
+        "frames": ctx.n_sets,
+        "cameras": ctx.cameras,
         "steps": list(steps),
-        "seconds": timings,
+        "seconds": ctx.timings,
         "total_seconds": time.perf_counter() - t_start,
         "empty_frames": empty,
-        "tip_counts": tip_counts,
-        "per_frame": [frame_infos.get(k) for k in range(n_sets)],
-        "warnings": warnings_,
+        "tip_counts": ctx.tip_counts,
+        "per_frame": [frame_infos.get(k) for k in range(ctx.n_sets)],
+        "warnings": ctx.warnings,
+        "grid": ctx.grid_choice,
     }
-    _atomic_write_text(out / "report.json", json.dumps(report, indent=1, default=_json_default))
-    return ProcessResult(out=out, steps=steps, frames=n_sets, empty_frames=empty, spine_path=spine_path, report=report)
+    _atomic_write_text(ctx.out / "report.json", json.dumps(report, indent=1, default=_json_default))
+    return ProcessResult(
+        out=ctx.out, steps=steps, frames=ctx.n_sets, empty_frames=empty, spine_path=ctx.spine_path, report=report
+    )
+
+
+def process_take(
+    take: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    steps: Sequence[str] | None = None,
+    params: ProcessParams | dict | None = None,
+    executor: cf.Executor | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> ProcessResult:
+    """Run keying, reconstruction and spines on a take; resumable.
+
+    Parameters
+    ----------
+    take : path
+        The take (.h5) with a calibration.
+    out : path
+        Results directory (beside the take, never inside it).
+    steps : sequence of str, optional
+        Steps to run (names in :data:`STEPS`, default all), run in pipeline order (a later
+        step needs the earlier ones' results, which may come from an earlier run).
+    params : ProcessParams or dict, optional
+    executor : concurrent.futures.Executor, optional
+        Where per-frame work runs; ``None`` runs it in this process.
+    progress : callable, optional
+        ``progress(step, done, total)`` after every finished chunk of frames.
+    cancel : threading.Event, optional
+        Set it to stop between chunks (``InterruptedError``); finished frames stay.
+
+    Returns
+    -------
+    ProcessResult
+    """
+    take, out = Path(take), Path(out)
+    steps = STEPS if steps is None else tuple(steps)
+    bad = [s for s in steps if s not in _REGISTRY]
+    if bad or not steps:
+        raise ValueError(f"steps must be a non-empty subset of {STEPS}, got {steps}")
+    steps = tuple(s for s in STEPS if s in steps)
+    params = _check_params(params)
+    if not take.is_file():
+        raise FileNotFoundError(f"{take}: take not found")
+    if out.resolve() == take.resolve() or out.suffix in (".h5", ".hdf5"):
+        raise ValueError(f"out must be a directory beside the take, got {out}")
+    out.mkdir(parents=True, exist_ok=True)
+
+    t_start = time.perf_counter()
+    if executor is not None:
+        for _ in range(2):
+            executor.submit(warm_task)  # workers import while this process reads the take
+    ctx = _open_context(take, out, params, executor=executor, progress=progress, cancel=cancel)
+    ctx.steps = steps
+    _start_record(ctx)
+    for name in steps:
+        _REGISTRY[name].run(ctx)
+    return _write_report(ctx, steps, t_start)
 
 
 def _blind_side_hint(calibration, grid) -> str:

@@ -29,12 +29,14 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Any, Literal, Union
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 __all__ = [
     "RigError",
+    "check_plane",
     "Volume",
     "Backdrop",
     "FakeCameraConfig",
@@ -127,7 +129,7 @@ CameraConfig = Annotated[
 class Simulation(_Strict):
     """What the simulated rig films (used by ``driver = "fake"`` cameras)."""
 
-    subject: Literal["starfish", "quadruped", "biped", "board-chessboard", "board-charuco", "empty"] = "starfish"
+    subject: Literal["starfish", "quadruped", "biped", "tailed_quadruped", "board-chessboard", "board-charuco", "empty"] = "starfish"
     n_cameras: Annotated[int, Field(ge=4, le=24)] = 12
     frames: Annotated[int, Field(ge=1)] = 30
     seed: int = 0
@@ -153,8 +155,6 @@ class Rig(_Strict):
         if not self.cameras:
             raise ValueError("cameras: a rig needs at least one camera")
         if self.support_plane is not None:
-            from pipeline.volume import check_plane
-
             check_plane(self.support_plane)  # the one rule for planes: finite, non-zero normal
         if any(c.driver == "fake" for c in self.cameras) and self.simulation is None:
             raise ValueError("simulation: fake cameras need a [simulation] table")
@@ -169,6 +169,27 @@ class Rig(_Strict):
 
 
 _DRIVERS = {"fake", "opencv", "depthai"}
+
+
+def check_plane(plane: Any, name: str = "support_plane") -> np.ndarray:
+    """Validate a plane ``(a, b, c, d)`` (points with ``a x + b y + c z + d >= 0`` are above).
+
+    Returns
+    -------
+    (4,) float ndarray
+        The plane scaled so that ``(a, b, c)`` is a unit normal (``d`` is then the signed
+        distance of the origin).
+    """
+    try:
+        p = np.asarray(plane, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be four numbers (a, b, c, d)") from None
+    if p.shape != (4,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} must be four finite numbers (a, b, c, d), got {plane!r}")
+    n = float(np.linalg.norm(p[:3]))
+    if n < 1e-12:
+        raise ValueError(f"{name}: the normal (a, b, c) must not be zero")
+    return p / n
 
 
 def _format_errors(exc: ValidationError, source: str) -> str:

@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import heapq
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Generic, Iterable, Mapping, NamedTuple, Sequence, TypeVar
 
 import numpy as np
@@ -257,7 +257,8 @@ class _StatsAccumulator:
         )
 
 
-def _check_common(cameras: Sequence[str], period_ns: int | None, tolerance_ns: int | None, window: int, gain: float, clock: str, max_drift_ppm: float = 200.0) -> tuple[list[str], int | None, int | None]:
+def _check_common(cameras: Sequence[str], period_ns: int | None, tolerance_ns: int | None, window: int, gain: float,
+                  clock: str, max_drift_ppm: float = 200.0) -> tuple[list[str], int | None, int | None]:
     cams = list(cameras)
     if not cams or not all(isinstance(c, str) and c for c in cams):
         raise ValueError("cameras must be a non-empty sequence of camera ids")

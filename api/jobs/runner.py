@@ -32,6 +32,7 @@ from typing import Any, Callable, Sequence
 
 from api.executors import ExecutorHandle, make_executor
 from api.jobs.store import JobRecord, JobStore
+from api.paths import data_relative
 
 __all__ = ["JobRunner", "WorkSpec", "WorkUnavailableError", "load_work", "DEFAULT_STEPS"]
 
@@ -328,10 +329,14 @@ class JobRunner:
         if cancel.is_set() and not self._user_cancelled(jid):
             self._requeue(jid)
         elif cancel.is_set():
-            self.store.finish(jid, "cancelled", result=_jsonable(result))
+            self.store.finish(jid, "cancelled", result=self._public(result))
         else:
-            self.store.finish(jid, "done", result=_jsonable(result))
+            self.store.finish(jid, "done", result=self._public(result))
             log.info("job %s done", jid)
+
+    def _public(self, result: Any) -> Any:
+        """The work's result as JSON, the server's paths written as ``DATA/...``."""
+        return data_relative(_jsonable(result), self.takes_dir.parent)
 
     def _user_cancelled(self, jid: str) -> bool:
         try:
@@ -345,7 +350,7 @@ class JobRunner:
         log.info("job %s stopped with the server; queued to resume", jid)
 
     def _after_stop_or_fail(self, jid: str, cancel: threading.Event, error: str, *, requeue: bool = False) -> None:
-        error = error.replace(str(self.takes_dir.parent), "DATA")  # never show the server's paths
+        error = data_relative(error, self.takes_dir.parent)  # never show the server's paths
         if cancel.is_set():
             if self._user_cancelled(jid):
                 self.store.finish(jid, "cancelled")

@@ -88,19 +88,19 @@ def list_jobs(store: StoreDep, _: ReadAccess,
               state: Literal["queued", "running", "done", "failed", "cancelled"] | None = None,
               take: Annotated[str | None, Query(pattern=TAKE_ID, max_length=128)] = None,
               limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-              offset: Annotated[int, Query(ge=0)] = 0) -> list[JobStatus]:
+              offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> list[JobStatus]:
     """Jobs, newest first."""
     return [_status(r) for r in store.list(state=state, take=take, limit=limit, offset=offset)]
 
 
 @router.get("/{job_id}", response_model=JobStatus)
-async def get_job(job: Job, _: ReadAccess) -> JobStatus:
+async def get_job(_: ReadAccess, job: Job) -> JobStatus:
     """Status of one job: state, progress per step, attempts, error (poll this, or follow ``/events``)."""
     return _status(job)
 
 
 @router.post("/{job_id}/cancel", response_model=JobStatus, responses={409: {"description": "already finished"}})
-def cancel_job(job: Job, _: WriteAccess, store: StoreDep, runner: RunnerDep) -> JobStatus:
+def cancel_job(_: WriteAccess, job: Job, store: StoreDep, runner: RunnerDep) -> JobStatus:
     """Cancel a queued job at once, or ask a running one to stop."""
     rec = store.request_cancel(job.id)
     runner.wake()
@@ -108,7 +108,7 @@ def cancel_job(job: Job, _: WriteAccess, store: StoreDep, runner: RunnerDep) -> 
 
 
 @router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses={409: {"description": "still active"}})
-def delete_job(job: Job, _: WriteAccess, store: StoreDep, settings: SettingsDep) -> Response:
+def delete_job(_: WriteAccess, job: Job, store: StoreDep, settings: SettingsDep) -> Response:
     """Forget a finished job and delete its results."""
     store.delete(job.id)
     out = inside(settings.jobs_dir, job.id)
@@ -118,7 +118,7 @@ def delete_job(job: Job, _: WriteAccess, store: StoreDep, settings: SettingsDep)
 
 @router.get("/{job_id}/events", response_class=EventSourceResponse,
             responses={200: {"description": "text/event-stream of `progress` events (id = frames done) and a final `end`"}})
-async def job_events(job: Job, _: ReadAccess, request: Request, store: StoreDep, settings: SettingsDep,
+async def job_events(_: ReadAccess, job: Job, request: Request, store: StoreDep, settings: SettingsDep,
                      last_event_id: Annotated[str | None, Header(alias="Last-Event-ID")] = None,
                      ) -> AsyncIterator[ServerSentEvent]:
     """Progress as Server-Sent Events.
@@ -158,14 +158,14 @@ MeshName = Annotated[str, Path(pattern=r"^(frame_)?[0-9]{1,6}\.(ply|glb)$", exam
 
 
 @router.get("/{job_id}/results/", response_model=dict[str, Any])
-def list_results(job: Job, _: ReadAccess, settings: SettingsDep) -> dict[str, Any]:
+def list_results(_: ReadAccess, job: Job, settings: SettingsDep) -> dict[str, Any]:
     """The result files of a job (those written so far)."""
     return results.listing(settings.jobs_dir, job.id)
 
 
 @router.get("/{job_id}/results/meshes/{name}", response_class=FileResponse,
             responses={200: {"content": {"model/gltf-binary": {}, "application/octet-stream": {}}}})
-def get_mesh(job: Job, name: MeshName, _: ReadAccess, settings: SettingsDep) -> Response:
+def get_mesh(_: ReadAccess, job: Job, name: MeshName, settings: SettingsDep) -> Response:
     """One frame's surface mesh as PLY (as written) or GLB (converted): ``frame_000003.ply`` or ``3.glb``."""
     path, media = results.mesh(settings.jobs_dir, job.id, name)
     if isinstance(path, bytes):
@@ -175,7 +175,7 @@ def get_mesh(job: Job, name: MeshName, _: ReadAccess, settings: SettingsDep) -> 
 
 @router.get("/{job_id}/results/{name}", response_class=FileResponse,
             responses={200: {"content": {"application/json": {}, "model/gltf-binary": {}}}})
-def get_result(job: Job, name: ResultName, _: ReadAccess, settings: SettingsDep) -> Response:
+def get_result(_: ReadAccess, job: Job, name: ResultName, settings: SettingsDep) -> Response:
     """``spine.json``, ``report.json``, the animated spine as ``spine.glb``, or the reference mesh
     rigged to the spine as ``spine_rig.glb``."""
     if name == "spine_rig.glb":

@@ -55,11 +55,10 @@ def main(argv: list[str]) -> int:
     src, dst = argv
     out: dict = {}
     try:
-        import numpy as np
-
         import aniposelib
         import aniposelib.boards as ab
         import cv2
+        import numpy as np
         from aniposelib.cameras import CameraGroup
 
         data = np.load(src, allow_pickle=False)

@@ -7,7 +7,7 @@
 2. Processes the same take through the local process pool and through a Dask
    ``LocalCluster`` with 2 workers, in this run: frames per second of each.
 
-The work is the lead's :func:`stage.process.process_take` on a simulated take when
+The work is :func:`stage.process.process_take` on a simulated take when
 both exist; otherwise a synthetic CPU-bound stand-in with the same contract
 (:func:`synthetic_process`), and the output says so.
 """

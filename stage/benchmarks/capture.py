@@ -211,7 +211,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"cpu: {cpu_src}; {os.cpu_count()} logical cores; runs of {args.seconds:g} s")
         print()
         frames = [make_frames(8, (w, h), seed=s) for s in range(4)]
-        hdr = f"{'compr':>6} {'N':>3} {'sets':>9} {'MB/s disk':>9} {'MB/s raw':>9} {'ratio':>5} {'miss':>5} {'gaps':>5} {'qdrop':>5} {'cpu':>5}"
+        hdr = (f"{'compr':>6} {'N':>3} {'sets':>9} {'MB/s disk':>9} {'MB/s raw':>9} "
+               f"{'ratio':>5} {'miss':>5} {'gaps':>5} {'qdrop':>5} {'cpu':>5}")
         print(hdr)
         best: dict[str, int] = {}
         for comp in comps:

@@ -94,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
 
     print(f"\nbackdrop model estimation: {1e3 * t_model:.1f} ms per camera (once per take)")
     print(f"target: {TARGET_MPIX:.0f} Mpix/s (12 cameras, 640x480, 30 fps)\n")
-    print(f"{'keyer':20s} {'workers':>7s} {'frames/s':>9s} {'Mpix/s':>8s}   {'IoU mean':>8s} {'IoU min':>8s} {'BF2 mean':>8s} {'BF2 min':>8s}")
+    print(f"{'keyer':20s} {'workers':>7s} {'frames/s':>9s} {'Mpix/s':>8s}   "
+          f"{'IoU mean':>8s} {'IoU min':>8s} {'BF2 mean':>8s} {'BF2 min':>8s}")
     for name, workers, ips in rows:
         s = scores[name]
         print(

@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         rows.append((res, build, per, fps_hull, fps_all, direct))
     print("\nsummary (frames/s):")
     print(f"  {'grid':>6s} {'tables s':>9s} {'hull':>8s} {'hull+surf':>10s} {'plain numpy':>12s}")
-    for res, build, per, fh, fa, direct in rows:
+    for res, build, _per, fh, fa, direct in rows:
         d = f"{1.0 / direct:12.2f}" if direct else f"{'-':>12s}"
         print(f"  {res:>5d}^3 {build:9.2f} {fh:8.1f} {fa:10.1f} {d}")
     return 0

@@ -22,25 +22,41 @@ def register(sub: argparse._SubParsersAction) -> None:
         "calibrate",
         help="calibrate the cameras from views of a board (intrinsics, then bundle adjustment)",
         description="Detect the board in every camera's frames, calibrate each camera (Zhang), then all "
-        "cameras together by bundle adjustment. Input: a take (TAKE.h5; the calibration is stored in it) "
-        "or --images DIR with one folder of images (sorted by name; the n-th image of every camera is the "
-        "same moment) or one video per camera, named by camera. The world frame is the board in the frame "
-        "seen by the most cameras (origin on the board, z up if it lies face up) unless --world camera.",
+        "cameras together by bundle adjustment over every frame set that two or more cameras saw, with the "
+        "intrinsics held by a prior from each camera's own calibration. Input: a take (TAKE.h5; the calibration "
+        "is stored in it) or --images DIR with one folder of images (sorted by name; the n-th image of every "
+        "camera is the same moment), one folder holding one video, or one video per camera, named by camera; "
+        "--timestamps synchronises videos by time. Cameras that deliver mirrored images are found and "
+        "calibrated mirrored (mirror = true). The first line of the report is the held-out reprojection error "
+        "(k-fold over frame sets). The world frame is the board in the frame seen by the most cameras (origin "
+        "on the board, z up if it lies face up) unless --world camera.",
     )
     p.add_argument("take", nargs="?", type=Path, metavar="TAKE.h5", help="board take to calibrate from")
     p.add_argument("--images", type=Path, metavar="DIR", help="folder with one image folder or video per camera")
     p.add_argument("--board", required=True, type=Path, metavar="BOARD.toml", help="board definition")
     p.add_argument("--out", type=Path, metavar="CALIB.toml",
-                   help="calibration file to write (.toml aniposelib, .yml OpenCV, .json)")
+                   help="calibration file to write (.toml aniposelib, .yml OpenCV, .json; see "
+                   "'stage calibration export' for caliscope, COLMAP and nerfstudio)")
+    p.add_argument("--timestamps", type=Path, metavar="FILE.csv",
+                   help="synchronise the videos by time: caliscope's timestamps.csv (sync_index, cam_id, "
+                   "frame_time) or a CSV with camera, frame, time_s (default: frame by frame)")
     p.add_argument("--world", choices=("board", "camera"), default="board",
                    help="world frame: a board pose (default) or the first camera")
     p.add_argument("--world-frame", type=int, metavar="N", help="frame whose board defines the world")
     p.add_argument("--min-change", type=float, default=0.02,
-                   help="keep a view only if the board moved by this fraction of the image diagonal (default 0.02)")
+                   help="per-camera intrinsics: skip a view that moved less than this fraction of the image "
+                   "diagonal since the last one, unless it links cameras (default 0.02)")
     p.add_argument("--step", type=int, default=1, help="look at every N-th frame (default 1)")
     p.add_argument("--fix-k3", action="store_true", help="fix the k3 distortion term (few views, mild lenses)")
-    p.add_argument("--no-intrinsics-refinement", action="store_true",
-                   help="keep per-camera intrinsics fixed in the bundle adjustment")
+    p.add_argument("--intrinsics", choices=("prior", "fixed", "free"), default="prior",
+                   help="intrinsics in the bundle adjustment: refined under a prior from each camera's own "
+                   "calibration (default), kept fixed, or refined freely")
+    p.add_argument("--no-intrinsics-refinement", action="store_true", help="same as --intrinsics fixed")
+    p.add_argument("--mirror", action="append", default=[], metavar="CAM=auto|true|false",
+                   help="whether CAM delivers mirrored images (default auto: decided from where the board is "
+                   "found); repeatable")
+    p.add_argument("--holdout", type=int, default=5, metavar="K",
+                   help="folds of the held-out error (0: skip it; default 5)")
     p.add_argument("--coverage", type=Path, metavar="DIR", help="write a coverage picture per camera here")
     p.add_argument("--report", type=Path, metavar="FILE.json", help="write the full report as JSON")
     p.set_defaults(func=run)
@@ -53,13 +69,19 @@ def _sources(root: Path) -> dict[str, tuple[str, Path, list[Path]]]:
     for p in sorted(root.iterdir()):
         if p.is_dir():
             files = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_EXTS)
+            videos = sorted(f for f in p.iterdir() if f.suffix.lower() in VIDEO_EXTS)
             if files:
                 out[p.name] = ("folder", p, files)
+            elif len(videos) == 1:
+                out[p.name] = ("video", videos[0], [])
+            elif len(videos) > 1:
+                raise ValueError(f"--images {root}: camera folder {p.name} holds {len(videos)} videos "
+                                 f"({', '.join(v.name for v in videos[:3])}); keep one video per camera")
         elif p.suffix.lower() in VIDEO_EXTS:
             out[p.stem] = ("video", p, [])
     if not out:
         raise ValueError(f"--images {root}: no camera folders of images and no videos found "
-                         f"(expected DIR/<camera>/*.png or DIR/<camera>.mp4)")
+                         f"(expected DIR/<camera>/*.png, DIR/<camera>/<video> or DIR/<camera>.mp4)")
     return out
 
 
@@ -101,36 +123,151 @@ def _video_count(path: Path) -> int:
         cap.release()
 
 
-def detect_images(root: Path, board, *, step: int = 1, min_change: float = 0.02, progress: bool = True):
-    """Detections and image sizes per camera from ``--images DIR``."""
+def parse_mirror(items: list[str], cameras: list[str]) -> dict[str, bool | None]:
+    """``--mirror CAM=auto|true|false`` -> camera -> True / False / None (auto)."""
+    out: dict[str, bool | None] = {c: None for c in cameras}
+    for item in items:
+        name, _, val = item.partition("=")
+        val = val.strip().lower() or "true"
+        if name not in out:
+            raise ValueError(f"--mirror {item}: unknown camera {name!r} (cameras: {', '.join(cameras)})")
+        if val not in ("auto", "true", "false"):
+            raise ValueError(f"--mirror {item}: the value must be auto, true or false")
+        out[name] = None if val == "auto" else val == "true"
+    return out
+
+
+SAMPLE = 16  # frames of a camera tried flipped / with other board variants
+
+
+def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror: bool | None):
+    """Whether a camera's images must be flipped, from the board found in a sample of its frames.
+
+    Returns
+    -------
+    (mirror, message)
+        ``mirror`` True when the evidence is clear (auto) ; ``message`` says what was found
+        (None when there is nothing to say).
+    """
+    from calib.detect import detect_board, find_variant
+
+    if mirror is not None and found:
+        return mirror, None
+    if not sample:
+        return bool(mirror), None
+    as_is = sum(detect_board(img, board, mirror=bool(mirror)) is not None for img in sample)
+    if found >= 0.5 * total and as_is >= 0.5 * len(sample):
+        return bool(mirror), None
+    flipped = sum(detect_board(img, board, mirror=not bool(mirror)) is not None for img in sample)
+    if flipped >= max(3, 2 * as_is + 1):
+        if mirror is False:
+            return False, (f"{name}: the board is never detected with mirror = false, but it is found in "
+                           f"{flipped}/{len(sample)} sampled frames once the image is flipped: {name} delivers "
+                           f"mirrored images; drop --mirror {name}=false (or turn the camera's mirror mode off)")
+        if mirror is None:
+            return True, (f"{name} delivers mirrored images or sees the board from behind: the board is found in "
+                          f"{flipped}/{len(sample)} sampled frames once the image is flipped ({as_is} as "
+                          f"delivered); the rig decides which")
+    if found == 0:
+        v = find_variant(sample, board)
+        if v is not None:
+            return bool(mirror), (f"{name}: the board was never detected, but with the {v[0]} it is found in "
+                                  f"{v[3]}/{len(sample)} sampled frames; fix the board file"
+                                  + (" (and the camera's mirror mode)" if v[2] else ""))
+        return bool(mirror), (f"{name}: the board was never detected in {total} frames (also not inverted, "
+                              f"legacy or mirrored); check the view, focus and the board file")
+    return bool(mirror), None
+
+
+def _sample_positions(total: int) -> set[int]:
+    if total <= 0:
+        return set()
+    return set(np.unique(np.round(np.linspace(0, total - 1, min(SAMPLE, total))).astype(int)).tolist())
+
+
+def detect_images(root: Path, board, *, step: int = 1, min_change: float = 0.02, progress: bool = True,
+                  timestamps: Path | None = None, mirror: list[str] | tuple = ()):
+    """Detections (every one, frame = frame set) and image sizes per camera from ``--images DIR``.
+
+    Returns
+    -------
+    detections, sizes, mirrored, notes
+        ``mirrored``: cameras calibrated mirrored; ``notes``: one line per finding.
+    """
     from tqdm import tqdm
 
-    from calib.detect import default_min_corners, detect_board, select_views
+    from calib.detect import detect_board
+    from calib.timestamps import read_timestamps
 
     srcs = _sources(root)
-    detections, sizes = {}, {}
+    names = list(srcs)
+    mirror_of = parse_mirror(list(mirror), names)
+    notes: list[str] = []
+    sets = None
+    if timestamps is not None:
+        sets, tw = read_timestamps(timestamps, names)
+        notes += tw
+    detections, sizes, mirrored, problems, counts = {}, {}, [], [], {}
     for name, (kind, path, files) in srcs.items():
-        total = (len(files) if kind == "folder" else _video_count(path)) // step
-        dets, size = [], None
-        for k, img in tqdm(_frames(kind, path, files, step), total=total, desc=f"detect {name}", unit="img",
-                           disable=not progress, dynamic_ncols=True, leave=False):
-            size = (img.shape[1], img.shape[0])
-            dets.append(detect_board(img, board, frame=k))
+        total = (len(files) if kind == "folder" else _video_count(path))
+        want = _sample_positions((total + step - 1) // step)
+
+        def run_pass(flip: bool, keep_sample: bool):
+            dets, sample, size, n = [], [], None, 0
+            for k, img in tqdm(_frames(kind, path, files, step), total=(total + step - 1) // step,
+                               desc=f"detect {name}", unit="img", disable=not progress, dynamic_ncols=True,
+                               leave=False):
+                size = (img.shape[1], img.shape[0])
+                if keep_sample and n in want:
+                    sample.append(img)
+                n += 1
+                frame = k if sets is None else sets[name].get(k)
+                if frame is None:
+                    continue
+                d = detect_board(img, board, frame=frame, mirror=flip)
+                if d is not None:
+                    dets.append(d)
+            return dets, sample, size, n
+
+        dets, sample, size, n = run_pass(bool(mirror_of[name]), True)
         if size is None:
             raise ValueError(f"camera {name}: {path} holds no readable frame")
-        keep = select_views(dets, size=size, min_corners=default_min_corners(board), min_change=min_change)
-        detections[name] = [dets[i] for i in keep]
+        flip, msg = decide_mirror(name, len(dets), n, sample, board, mirror_of[name])
+        if msg:
+            notes.append(msg)
+            if not flip and not dets:
+                problems.append(msg)
+        if flip != bool(mirror_of[name]):
+            dets, _, _, n = run_pass(flip, False)
+        if flip:
+            mirrored.append(name)
+        detections[name] = dets
         sizes[name] = size
-        n_found = sum(d is not None for d in dets)
-        print(f"  {name}: board found in {n_found}/{len(dets)} frames, {len(keep)} views kept")
-    return detections, sizes
+        counts[name] = n * step
+        if sets is not None and len(sets[name]) > n * step:
+            notes.append(f"{name}: the timestamps list {len(sets[name])} frames, its video holds {n * step}; "
+                         f"the frame sets past its end lack {name}")
+        print(f"  {name}: board found in {len(dets)}/{n} frames{' (mirrored)' if flip else ''}")
+    if sets is None and len(set(counts.values())) > 1:
+        most = max(counts.values())
+        for name, c in counts.items():
+            if c < most:
+                notes.append(f"{name}: {c} frames, the others up to {most}; matched frame by frame, the frames "
+                             f"past {c} lack {name} (give --timestamps if the cameras did not start together)")
+    if problems:
+        from calib.intrinsics import CalibrationError
+
+        for line in notes:
+            print(f"  note: {line}")
+        raise CalibrationError("; ".join(problems), cameras=[p.split(":")[0] for p in problems])
+    return detections, sizes, mirrored, notes
 
 
 def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, progress: bool = True):
-    """Detections and image sizes per camera from a take (through ``stage.store.TakeReader``)."""
+    """Detections (every one) and image sizes per camera from a take (through ``stage.store.TakeReader``)."""
     from tqdm import tqdm
 
-    from calib.detect import default_min_corners, detect_board, select_views
+    from calib.detect import detect_board
     from stage.store import TakeReader
 
     with TakeReader(path) as r:
@@ -145,10 +282,8 @@ def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, p
     detections = {}
     for name in cams:
         dets = raw[name]
-        keep = select_views(dets, size=sizes[name], min_corners=default_min_corners(board), min_change=min_change)
-        detections[name] = [dets[i] for i in keep]
-        print(f"  {name}: board found in {sum(d is not None for d in dets)}/{len(dets)} frame sets, "
-              f"{len(keep)} views kept")
+        detections[name] = [d for d in dets if d is not None]
+        print(f"  {name}: board found in {len(detections[name])}/{len(dets)} frame sets")
     return detections, sizes, cams
 
 
@@ -167,20 +302,40 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--step must be >= 1")
     if args.out is not None and not args.out.parent.exists():
         raise FileNotFoundError(f"--out: folder {args.out.parent} does not exist")
+    if args.holdout < 0 or args.holdout == 1:
+        raise ValueError("--holdout must be 0 (none) or >= 2")
+    if args.timestamps is not None and args.take is not None:
+        raise ValueError("--timestamps applies to --images DIR (a take is synchronised already)")
+    quiet = bool(getattr(args, "quiet", False))
     board = load_board(args.board)
-    print(f"board: {board.to_dict()}")
+    if not quiet:
+        print(f"board: {board.to_dict()}")
+    mirrored: list[str] = []
     if args.take is not None:
         if not args.take.is_file():
             raise FileNotFoundError(f"take not found: {args.take}")
-        detections, sizes, cams = detect_take(args.take, board, step=args.step, min_change=args.min_change)
+        detections, sizes, cams = detect_take(args.take, board, step=args.step, progress=not quiet)
     else:
-        detections, sizes = detect_images(args.images, board, step=args.step, min_change=args.min_change)
+        detections, sizes, mirrored, notes = detect_images(
+            args.images, board, step=args.step, progress=not quiet, timestamps=args.timestamps,
+            mirror=args.mirror)
         cams = list(sizes)
+        for line in dict.fromkeys(notes):
+            print(f"  note: {line}")
+    mode = "fixed" if args.no_intrinsics_refinement else args.intrinsics
     result = calibrate_rig(
         detections, sizes, board, cameras=cams, world=args.world, world_frame=args.world_frame,
-        optimize_intrinsics=not args.no_intrinsics_refinement, fix_k3=args.fix_k3,
+        intrinsics=mode, fix_k3=args.fix_k3, min_change=args.min_change, holdout_folds=args.holdout,
+        flipped=mirrored,
     )
-    print(result.report())
+    for line in result.evaluation.get("flipped", ()):
+        print(f"  note: {line}")
+    if quiet:
+        print(result.summary())
+        for w in dict.fromkeys(result.warnings):
+            print(f"  warning: {w}")
+    else:
+        print(result.report())
     calib = result.calibration
     # everything computed: now write (nothing is written when anything above fails)
     if args.coverage is not None:

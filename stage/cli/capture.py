@@ -36,6 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    import fake_cameras  # noqa: F401 (registers the simulated rig's "fake" driver)
     from stage.capture import capture_take
     from stage.rig import load_rig
 

@@ -156,12 +156,12 @@ def _transform_spine(spine: dict, R: np.ndarray, T: np.ndarray) -> dict:
 def run(args: argparse.Namespace) -> int:
     import concurrent.futures as cf
 
-    from stage.cli._progress import StepBars
     from calib.formats import write_calibration
     from fake_cameras.device import take_for_rig
     from fake_cameras.evaluate import evaluate_spine
     from fake_cameras.rigs import simulated_rig_dict
     from fake_cameras.take import write_ground_truth
+    from stage.cli._progress import StepBars
     from stage.process import ProcessParams, process_take
     from stage.store import attach_calibration
 
@@ -200,7 +200,8 @@ def run(args: argparse.Namespace) -> int:
         write_calibration(calibration, out / "calibration.toml", format="toml")
         geom = ext.geometry
         print(
-            f"calibration: RMS {ext.rms:.3f} px; board geometry error (corner pairs) RMS {geom.get('pairs_rms', float('nan')):.2f} mm; "
+            f"calibration: RMS {ext.rms:.3f} px; "
+            f"board geometry error (corner pairs) RMS {geom.get('pairs_rms', float('nan')):.2f} mm; "
             f"vs truth: focal <= {errs['focal_error_pct_max']:.2f} %, centres <= {errs['centre_error_mm_max']:.2f} mm, "
             f"rotations <= {errs['rotation_error_deg_max']:.3f} deg -> {out / 'calibration.toml'}"
         )
@@ -209,7 +210,8 @@ def run(args: argparse.Namespace) -> int:
     # 3. creature take + ground truth
     creature_rig = simulated_rig_dict(args.cameras, subject=args.subject, frames=args.frames, size=size, name="demo")
     take_path = out / f"{args.subject}.h5"
-    rig, cap = _capture(creature_rig, take_path, args.frames, calibration=calibration, no_progress=args.no_progress, label=args.subject)
+    rig, cap = _capture(creature_rig, take_path, args.frames, calibration=calibration,
+                        no_progress=args.no_progress, label=args.subject)
     sim = take_for_rig(rig, size=size, fps=rig.fps)
     if calibration is None:
         attach_calibration(take_path, sim.calibration)

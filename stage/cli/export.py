@@ -22,7 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("results", type=Path, metavar="DIR", help="results directory (spine.json, meshes/frame_NNNNNN.ply)")
     p.add_argument("--format", choices=FORMATS, default="glb", help="glb: rigged mesh (default); spine-glb: spine only")
     p.add_argument("--out", type=Path, metavar="FILE", help="output file (default DIR/spine_rig.glb or DIR/spine.glb)")
-    p.add_argument("--reference", type=int, metavar="FRAME", help="take frame number of the rest pose (default: the spine's reference)")
+    p.add_argument("--reference", type=int, metavar="FRAME",
+                   help="take frame number of the rest pose (default: the spine's reference)")
     p.add_argument("--segments", type=int, default=6, metavar="N", help="bones per limb (default 6)")
     p.add_argument("--no-spine-tubes", action="store_true", help="do not add the spine tubes to the rigged mesh")
     p.set_defaults(func=run)

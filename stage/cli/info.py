@@ -30,6 +30,18 @@ def _size(n: int) -> str:
 
 
 def summarize(path: Path) -> dict:
+    """The summary of a take; :class:`~stage.store.TakeError` (one line) when it is damaged."""
+    from stage.store import TakeError
+
+    try:
+        return _summarize(path)
+    except (KeyError, IndexError, TypeError, AttributeError, OSError, RuntimeError) as exc:
+        if isinstance(exc, FileNotFoundError):
+            raise
+        raise TakeError(f"{path}: damaged take, cannot summarize it ({type(exc).__name__}: {exc})") from None
+
+
+def _summarize(path: Path) -> dict:
     from stage.store import TakeReader
 
     with TakeReader(path) as r:

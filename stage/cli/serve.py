@@ -33,6 +33,7 @@ def run(args: argparse.Namespace) -> int:
         import uvicorn
     except ImportError:
         raise ValueError("stage serve needs uvicorn: pip install uvicorn") from None
+    import fake_cameras  # noqa: F401 (registers the simulated rig's "fake" driver for /rig)
     from api.app import create_app
     from api.settings import Settings
 

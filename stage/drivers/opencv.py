@@ -146,7 +146,7 @@ def _pattern_regex(pattern: str) -> tuple[Path, re.Pattern]:
     zero, width = fields[0]
     m = _PRINTF.search(name)
     prefix, suffix = re.escape(name[: m.start()]), re.escape(name[m.end():])
-    digits = rf"(\d{{{int(width)}}})" if zero and width else (rf"( *\d+)" if width else r"(\d+)")
+    digits = rf"(\d{{{int(width)}}})" if zero and width else (r"( *\d+)" if width else r"(\d+)")
     return Path(pattern).parent, re.compile(rf"^{prefix}{digits}{suffix}$")
 
 
@@ -434,7 +434,8 @@ class OpenCVCamera:
         if not np.isfinite(fps) or fps <= 0:
             fps = float(self.config.fps or 30.0)
         if self._explicit("fps") and self.config.fps and abs(fps - self.config.fps) > 0.01 * self.config.fps:
-            log.warning("%s: requested %.3g fps, the file is %.3g fps; timestamps follow the file", self.camera_id, self.config.fps, fps)
+            log.warning("%s: requested %.3g fps, the file is %.3g fps; timestamps follow the file",
+                        self.camera_id, self.config.fps, fps)
         self._warn_size(w, h)
         fourcc = fourcc_to_str(cap.get(cv2.CAP_PROP_FOURCC))
         jpeg = False

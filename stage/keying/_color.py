@@ -1,4 +1,4 @@
-"""Shared colour helpers: the linear BGR -> (Y, Cr, Cb) map and chi quantiles."""
+"""Shared colour functions: the linear BGR -> (Y, Cr, Cb) map and chi quantiles."""
 
 from __future__ import annotations
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ from stage.keying.keyer import estimate_model, key_frames
 from stage.keying.params import KeyParams, KeyResult
 from stage.keying.preview import contact_sheet
 
-__all__ = ["key_take"]
+__all__ = ["key_take", "key_camera", "store_camera_key", "take_key_params", "CameraKey"]
 
 log = logging.getLogger("stage.keying")
 
@@ -24,6 +25,108 @@ def _backdrop_from_rig(rig: dict | None) -> tuple[str | None, str | None]:
         return None, None
     bd = rig.get("backdrop") or {}
     return bd.get("key_mode"), bd.get("color")
+
+
+@dataclass
+class CameraKey:
+    """The keyed masks of one camera, before they are stored (:func:`store_camera_key`)."""
+
+    camera: str
+    masks: np.ndarray  # (N, H, W) bool
+    valid: np.ndarray  # (N,) bool
+    reasons: list[str]
+    params: KeyParams  # as fitted, every derived value filled in
+    preview: list = field(default_factory=list)  # (frame, mask, matte, valid, reason, index)
+
+
+def take_key_params(rig: dict | None, *, key_mode: str | None = None, grow: int = 0, fill_holes: str | None = None) -> KeyParams:
+    """The keyer's base parameters for a take: the mode and colour of the rig's backdrop
+    unless ``key_mode`` is given (chroma by default)."""
+    rig_mode, rig_color = _backdrop_from_rig(rig)
+    mode = key_mode or rig_mode or "chroma"
+    color = rig_color if (mode == "chroma" and rig_color in ("green", "blue", "red")) else None
+    polarity = {"black": "dark", "white": "bright"}.get(rig_color or "") if mode == "luma" else None
+    return KeyParams(mode=mode, backdrop_color=color, polarity=polarity, grow=grow, fill_holes=fill_holes)  # type: ignore[arg-type]
+
+
+def key_camera(
+    take: str | Path,
+    camera: str,
+    *,
+    base: KeyParams,
+    workers: int = 2,
+    preview: bool = False,
+    progress: Callable[[int], None] | None = None,
+) -> CameraKey | None:
+    """Key every frame of one camera of a take (backdrop model from 16 frames); stores nothing.
+
+    Returns None for a camera without frames. Runs anywhere the take can be read (a worker
+    process too); :func:`store_camera_key` writes the result into the take.
+    """
+    from stage.store import TakeReader
+
+    with TakeReader(take) as r:
+        n = r.n_frames(camera)
+        if n == 0:
+            log.warning("%s: no frames", camera)
+            return None
+        plate = r.read_array(f"cameras/{camera}", "plate")[0] if r.has_array(f"cameras/{camera}", "plate") else None
+        sample_idx = np.unique(np.linspace(0, n - 1, min(n, 16)).round().astype(int))
+        sample = np.stack([r.frame(camera, int(i)) for i in sample_idx])
+        if plate is not None and (plate.dtype != np.uint8 or plate.shape != sample.shape[1:]):
+            log.warning("%s: stored plate has shape %s, ignored", camera, plate.shape)
+            plate = None
+        params = estimate_model(sample, params=base, plate=plate)
+        masks = np.zeros((n,) + sample.shape[1:3], bool)
+        valid = np.zeros(n, bool)
+        reasons = [""] * n
+        preview_frames = []
+        for start in range(0, n, _CHUNK):
+            stop = min(n, start + _CHUNK)
+            frames = np.stack([r.frame(camera, i) for i in range(start, stop)])
+            res = key_frames(frames, params=params, plate=plate, workers=workers, camera=camera, progress=progress)
+            masks[start:stop] = res.masks
+            valid[start:stop] = res.valid
+            reasons[start:stop] = res.reasons
+            if preview:
+                keep = [i for i in range(stop - start) if not res.valid[i]][:3]
+                keep += [i for i in np.linspace(0, stop - start - 1, 3).round().astype(int) if i not in keep]
+                for i in keep:
+                    preview_frames.append((frames[i], res.masks[i], res.matte[i], res.valid[i], res.reasons[i], start + i))
+    return CameraKey(camera, masks, valid, reasons, res.params, preview_frames)
+
+
+def store_camera_key(take: str | Path, key: CameraKey) -> None:
+    """Write one camera's masks and their per-frame validity into the take."""
+    from stage.store import write_array, write_masks
+
+    meta = {"key": key.params.to_dict(), "valid": key.valid.tolist(), "reasons": key.reasons}
+    write_masks(take, key.camera, key.masks, params=meta)
+    write_array(take, f"cameras/{key.camera}", "mask_valid", key.valid.astype(np.uint8), params={"reasons": key.reasons})
+
+
+def _write_preview(preview_dir: Path, key: CameraKey) -> str | None:
+    import cv2
+
+    if not key.preview:
+        return None
+    pf = key.preview
+    sel = pf[:: max(1, len(pf) // 6)][:6]
+    sheet = contact_sheet(
+        np.stack([s[0] for s in sel]),
+        KeyResult(
+            masks=np.stack([s[1] for s in sel]),
+            matte=np.stack([s[2] for s in sel]),
+            valid=np.array([s[3] for s in sel]),
+            reasons=[s[4] for s in sel],
+            params=key.params,
+        ),
+        indices=np.array([s[5] for s in sel]),
+    )
+    out = preview_dir / f"{key.camera}.png"
+    if not cv2.imwrite(str(out), sheet):
+        raise OSError(f"cannot write {out}")
+    return str(out)
 
 
 def key_take(
@@ -63,7 +166,7 @@ def key_take(
     dict
         ``{"mode", "cameras", "frames", "invalid", "previews"}``.
     """
-    from stage.store import TakeReader, write_array, write_masks
+    from stage.store import TakeReader
 
     if workers < 1:
         raise ValueError("workers must be >= 1")
@@ -72,8 +175,7 @@ def key_take(
     take = Path(take)
     with TakeReader(take) as r:
         all_cameras = list(r.cameras)
-        rig_mode, rig_color = _backdrop_from_rig(r.rig)
-        counts = r.frame_counts()
+        rig = r.rig
     if cameras:
         unknown = [c for c in cameras if c not in all_cameras]
         if unknown:
@@ -81,71 +183,24 @@ def key_take(
         selected = [c for c in all_cameras if c in cameras]
     else:
         selected = all_cameras
-    mode = key_mode or rig_mode or "chroma"
-    color = rig_color if (mode == "chroma" and rig_color in ("green", "blue", "red")) else None
-    polarity = {"black": "dark", "white": "bright"}.get(rig_color or "") if mode == "luma" else None
-    base = KeyParams(mode=mode, backdrop_color=color, polarity=polarity, grow=grow, fill_holes=fill_holes)  # type: ignore[arg-type]
+    base = take_key_params(rig, key_mode=key_mode, grow=grow, fill_holes=fill_holes)
     preview_dir = Path(preview) if preview is not None else None
     if preview_dir is not None:
         preview_dir.mkdir(parents=True, exist_ok=True)
-    total = sum(counts[c] for c in selected)
-    n_invalid = 0
+    total = n_invalid = 0
     previews: list[str] = []
     for cam in selected:
-        n = counts[cam]
-        if n == 0:
-            log.warning("%s: no frames", cam)
+        key = key_camera(take, cam, base=base, workers=workers, preview=preview_dir is not None, progress=progress)
+        if key is None:
             continue
-        with TakeReader(take) as r:
-            plate = r.read_array(f"cameras/{cam}", "plate")[0] if r.has_array(f"cameras/{cam}", "plate") else None
-            sample_idx = np.unique(np.linspace(0, n - 1, min(n, 16)).round().astype(int))
-            sample = np.stack([r.frame(cam, int(i)) for i in sample_idx])
-            if plate is not None and (plate.dtype != np.uint8 or plate.shape != sample.shape[1:]):
-                log.warning("%s: stored plate has shape %s, ignored", cam, plate.shape)
-                plate = None
-            params = estimate_model(sample, params=base, plate=plate)
-            masks = np.zeros((n,) + sample.shape[1:3], bool)
-            valid = np.zeros(n, bool)
-            reasons = [""] * n
-            preview_frames = []
-            for start in range(0, n, _CHUNK):
-                stop = min(n, start + _CHUNK)
-                frames = np.stack([r.frame(cam, i) for i in range(start, stop)])
-                res = key_frames(frames, params=params, plate=plate, workers=workers, camera=cam, progress=progress)
-                masks[start:stop] = res.masks
-                valid[start:stop] = res.valid
-                reasons[start:stop] = res.reasons
-                if preview_dir is not None:
-                    keep = [i for i in range(stop - start) if not res.valid[i]][:3]
-                    keep += [i for i in np.linspace(0, stop - start - 1, 3).round().astype(int) if i not in keep]
-                    for i in keep:
-                        preview_frames.append((frames[i], res.masks[i], res.matte[i], res.valid[i], res.reasons[i], start + i))
-        recorded = res.params.to_dict()
-        meta = {"key": recorded, "valid": valid.tolist(), "reasons": reasons}
-        write_masks(take, cam, masks, params=meta)
-        write_array(take, f"cameras/{cam}", "mask_valid", valid.astype(np.uint8), params={"reasons": reasons})
-        n_invalid += int((~valid).sum())
-        if preview_dir is not None and preview_frames:
-            import cv2
-
-            sel = preview_frames[:: max(1, len(preview_frames) // 6)][:6]
-            sheet = contact_sheet(
-                np.stack([s[0] for s in sel]),
-                KeyResult(
-                    masks=np.stack([s[1] for s in sel]),
-                    matte=np.stack([s[2] for s in sel]),
-                    valid=np.array([s[3] for s in sel]),
-                    reasons=[s[4] for s in sel],
-                    params=res.params,
-                ),
-                indices=np.array([s[5] for s in sel]),
-            )
-            out = preview_dir / f"{cam}.png"
-            if not cv2.imwrite(str(out), sheet):
-                raise OSError(f"cannot write {out}")
-            previews.append(str(out))
-        log.info(
-            "%s: %d frames keyed (%s), %d invalid, foreground %.1f %% on average",
-            cam, n, mode, int((~valid).sum()), 100 * masks[valid].mean() if valid.any() else 0.0,
-        )
-    return {"mode": mode, "cameras": selected, "frames": total, "invalid": n_invalid, "previews": previews}
+        store_camera_key(take, key)
+        total += len(key.valid)
+        n_invalid += int((~key.valid).sum())
+        if preview_dir is not None:
+            out = _write_preview(preview_dir, key)
+            if out:
+                previews.append(out)
+        fg = 100 * key.masks[key.valid].mean() if key.valid.any() else 0.0
+        log.info("%s: %d frames keyed (%s), %d invalid, foreground %.1f %% on average",
+                 cam, len(key.valid), base.mode, int((~key.valid).sum()), fg)
+    return {"mode": base.mode, "cameras": selected, "frames": total, "invalid": n_invalid, "previews": previews}

@@ -23,12 +23,13 @@ base64 data URIs: nothing is fetched at run time. The figure functions
 from __future__ import annotations
 
 import datetime as _dt
-import html
+import functools
 import json
 import logging
 import math
 from pathlib import Path
 
+import jinja2
 import numpy as np
 
 from stage.report.figures import (
@@ -68,43 +69,27 @@ class NothingToReportError(ValueError):
     """A results directory with neither ``spine.json`` nor ``report.json``."""
 
 
-_CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0;color:#222;background:#fafafa}
-header{background:#263238;color:#fff;padding:14px 24px}
-header h1{margin:0;font-size:20px} header p{margin:4px 0 0;color:#b0bec5;font-size:13px}
-nav{padding:6px 24px;background:#eceff1;font-size:14px} nav a{margin-right:14px;color:#1565c0}
-section{background:#fff;margin:14px 24px;padding:10px 18px;border-radius:6px;box-shadow:0 1px 3px rgba(0,0,0,.12)}
-h2{font-size:17px;margin:8px 0} table{border-collapse:collapse;font-size:13px;margin:6px 0}
-td,th{border:1px solid #ddd;padding:3px 8px;text-align:right} th{background:#f5f5f5}
-td.l,th.l{text-align:left} .warn{color:#b71c1c} .muted{color:#777;font-size:13px}
-img.sheet{max-width:100%;image-rendering:auto;border:1px solid #ccc}
-details summary{cursor:pointer;color:#1565c0;font-size:14px;margin:6px 0}
-"""
+@functools.cache
+def _templates() -> jinja2.Environment:
+    """The report's templates (``stage/report/templates``), autoescaped."""
+    env = jinja2.Environment(
+        loader=jinja2.PackageLoader("stage.report", "templates"),
+        autoescape=jinja2.select_autoescape(["html"]),
+        undefined=jinja2.StrictUndefined,
+    )
+    env.filters["cell"] = _cell
+    return env
 
 
-def _esc(x) -> str:
-    return html.escape(str(x))
-
-
-def _fmt(v) -> str:
+def _cell(v) -> str:
+    """A table cell's text: ``–`` for missing or non-finite, ``yes``/``no``, 4 significant digits."""
     if v is None:
         return "–"
     if isinstance(v, bool):
         return "yes" if v else "no"
     if isinstance(v, float):
-        if not math.isfinite(v):
-            return "–"
-        return f"{v:.4g}"
-    return _esc(v)
-
-
-def _table(header: list[str], rows: list[list], *, left: int = 1) -> str:
-    th = "".join(f'<th class="{"l" if i < left else ""}">{_esc(h)}</th>' for i, h in enumerate(header))
-    body = "".join(
-        "<tr>" + "".join(f'<td class="{"l" if i < left else ""}">{_fmt(c)}</td>' for i, c in enumerate(r)) + "</tr>"
-        for r in rows
-    )
-    return f"<table><tr>{th}</tr>{body}</table>"
+        return f"{v:.4g}" if math.isfinite(v) else "–"
+    return str(v)
 
 
 def _scalars(d: dict, prefix: str = "") -> dict:
@@ -225,7 +210,8 @@ def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: 
     Returns
     -------
     str
-        The HTML page (plotly.js embedded; no network access needed).
+        The HTML page (plotly.js embedded; no network access needed), rendered
+        from ``stage/report/templates/report.html``.
 
     Raises
     ------
@@ -243,166 +229,180 @@ def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: 
         raise ValueError(f"view_faces must be >= 4, got {view_faces}")
     if take is not None and not Path(take).is_file():
         raise FileNotFoundError(f"take not found: {take}")
-    has_spine = (d / "spine.json").is_file()
-    report = _load_json(d / "report.json") if (d / "report.json").is_file() else None
-    if not has_spine and report is None:
-        raise NothingToReportError(f"{d} has neither spine.json nor report.json: run `stage process` first")
+    spine, report = _read_results(d)
     if take is None and isinstance(report, dict) and isinstance(report.get("take"), str):
         if Path(report["take"]).is_file():
             take = report["take"]
 
+    warnings: list[str] = []
+    calibration, sheets = _read_take(take, d, contact_frames=int(contact_frames))
+    sections = [
+        _summary_section(d, spine, report, take, warnings),
+        _view_section(d, spine, max_frames=int(max_frames), view_faces=int(view_faces))
+        if spine is not None else None,
+        _tips_section(spine, report),
+        _quality_section(report, warnings),
+        _cameras_section(calibration, spine, warnings) if calibration is not None else None,
+        _sheets_section(sheets) if sheets is not None else None,
+    ]
+    title = f"capture-stage report: {d.resolve().name}"
+    return _templates().get_template("report.html").render(
+        title=title,
+        where=str(d.resolve()),
+        stamp=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        plotly_js=plotly_js().replace("</script", "<\\/script"),
+        sections=[s for s in sections if s is not None],
+        warnings=warnings,
+    )
+
+
+# --------------------------------------------------------------------------- sections
+# Each returns the data one block of the template shows (``id`` picks the block), or None.
+
+
+def _read_results(d: Path):
+    """``(spine or None, report.json or None)`` of a results directory."""
+    has_spine = (d / "spine.json").is_file()
+    report = _load_json(d / "report.json") if (d / "report.json").is_file() else None
+    if not has_spine and report is None:
+        raise NothingToReportError(f"{d} has neither spine.json nor report.json: run `stage process` first")
     spine = None
     if has_spine:
         from pipeline.spine import read_spine
 
         spine = read_spine(d / "spine.json")
+    return spine, report
 
-    sections: list[tuple[str, str, str]] = []  # (id, title, html)
-    warnings: list[str] = []
 
-    # -- summary
-    summary_rows = []
-    if spine is not None:
-        summary_rows += [["frames", spine.frame_count], ["limbs K", spine.K], ["junctions", len(spine.junction_ids)],
-                         ["fps", spine.fps], ["units", spine.units]]
-        refs = spine.meta.get("references")
-        if refs:
-            summary_rows.append(["reference frames", ", ".join(str(int(spine.frame_indices[r])) for r in refs
-                                                                if 0 <= r < spine.frame_count)])
-    if isinstance(report, dict):
-        for k in ("frames", "total_seconds"):
-            if k in report and not (spine is not None and k == "frames"):
-                summary_rows.append([k.replace("_", " "), report[k]])
-        if report.get("empty_frames"):
-            summary_rows.append(["empty frames", ", ".join(str(x) for x in report["empty_frames"][:50])])
-            warnings.append(f"{len(report['empty_frames'])} frame(s) have no surface")
-        warnings.extend(str(w) for w in report.get("warnings") or [])  # e.g. the blind side under the subject
-        for k, v in (report.get("seconds") or {}).items():
-            summary_rows.append([f"seconds: {k}", v])
-    files = [n for n in ("spine.json", "report.json", "spine_rig.glb", "spine.glb") if (d / n).is_file()]
-    n_meshes = len(list((d / "meshes").glob("frame_*.ply"))) if (d / "meshes").is_dir() else 0
-    summary_rows.append(["files", ", ".join(files + ([f"meshes/ ({n_meshes})"] if n_meshes else []))])
-    if take is not None:
-        summary_rows.append(["take", str(take)])
-    sections.append(("summary", "Summary", _table(["", ""], summary_rows)))
-
-    # -- 3-D view
-    if spine is not None:
-        model, static = _rigged_view_model(spine, d, max_faces=int(view_faces))
-        fig = spine_figure(spine, model=model, mesh=static, max_frames=int(max_frames))
-        note = ("The reference frame's surface is rigged to the spine (bone heat weights) and posed in every "
-                "frame by linear blend skinning." if model is not None else
-                "No surface mesh of a complete frame: the spine alone." if static is None else
-                "The reference frame's surface (static).")
-        sections.append(("view", "3-D view: surface and animated spine",
-                         f'<p class="muted">{_esc(note)} Drag to rotate, scroll to zoom; '
-                         "Play or the slider step through the take.</p>" + figure_html(fig, div_id="spine-view")))
-
-    # -- tips over time
-    counts = None
-    if spine is not None and spine.meta.get("tip_counts"):
-        counts = spine.meta["tip_counts"]
-    elif isinstance(report, dict) and report.get("tip_counts"):
-        counts = report["tip_counts"]
-    if counts:
-        K = spine.K if spine is not None else None
-        fi = spine.frame_indices if spine is not None and len(spine.frame_indices) == len(counts) else None
-        fig = tip_count_figure(counts, K=K, frame_indices=fi, fps=spine.fps if spine is not None else None)
-        off = sum(1 for c in counts if c is not None and K is not None and c != K)
-        txt = f"<p class=\"muted\">{off} of {len(counts)} frames have a tip count other than K.</p>" if K else ""
-        if spine is not None:
-            nulls = {lid: int(np.sum(~np.all(np.isfinite(spine.tips[:, k]), axis=1)))
-                     for k, lid in enumerate(spine.limb_ids)}
-            txt += _table(["limb", "frames unseen (null)"], [[k, v] for k, v in nulls.items()])
-        sections.append(("tips", "Tips over time", figure_html(fig, div_id="tip-counts") + txt))
-
-    # -- surface quality
-    per_frame = report.get("per_frame") if isinstance(report, dict) else None
-    if per_frame:
-        from stage.report.figures import _quality_rows
-
-        fig = mesh_quality_figure(per_frame)
-        rows = _quality_rows(per_frame)
-        cols = ["index", "status"] + [c for c in ("vertices", "faces", "watertight", "bodies", "genus", "area",
-                                                   "volume", "seconds") if any(c in r for r in rows)]
-        not_tight = sum(1 for r in rows if r.get("watertight") is False)
-        if not_tight:
-            warnings.append(f"{not_tight} surface(s) are not watertight")
-        sections.append(("quality", "Surface quality per frame",
-                         figure_html(fig, div_id="mesh-quality")
-                         + f"<details><summary>table ({len(rows)} frames)</summary>"
-                         + _table(cols, [[r.get(c) for c in cols] for r in rows], left=2) + "</details>"))
-
-    # -- take: calibration and contact sheets
-    calibration = None
-    sheets = None
+def _read_take(take, d: Path, *, contact_frames: int):
+    """``(calibration or None, contact sheets or None)``: from the take, else ``calibration.json``."""
+    calibration = sheets = None
     if take is not None:
         from stage.store import TakeReader
 
         with TakeReader(take) as reader:
             calibration = reader.calibration
-            sheets = take_contact_sheets(reader, n_frames=int(contact_frames))
+            sheets = take_contact_sheets(reader, n_frames=contact_frames)
     if calibration is None and (d / "calibration.json").is_file():
         from calib.calibration import Calibration
 
         calibration = Calibration.from_dict(_load_json(d / "calibration.json"))
-    if calibration is not None:
-        pts = None
-        if spine is not None:
-            pts = np.concatenate([a.reshape(-1, 3) for a in spine.axes.values()])
-            pts = pts[np.all(np.isfinite(pts), axis=1)]
-        fig = frusta_figure(calibration, points=pts[:: max(1, len(pts) // 3000)] if pts is not None and len(pts) else None)
-        cov = camera_coverage(calibration, pts) if pts is not None and len(pts) else None
-        rows = []
-        extra_keys = sorted({k for c in calibration.cameras for k, v in _scalars(c.meta).items()
-                             if isinstance(v, (int, float)) and not isinstance(v, bool)})[:6]
-        for c in calibration.cameras:
-            cm = _scalars(c.meta)
-            row = [c.name, f"{c.size[0]}x{c.size[1]}", c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2],
-                   float(np.linalg.norm(c.dist))]
-            row += [cm.get(k) for k in extra_keys]
-            if cov is not None:
-                row.append(f"{cov['per_camera'][c.name]:.0%}")
-            rows.append(row)
-        header = ["camera", "size", "fx", "fy", "cx", "cy", "|dist|"] + extra_keys
-        if cov is not None:
-            header.append("sees subject")
-        meta_rows = [[k, v] for k, v in _scalars(calibration.meta).items() if not k.startswith("board.")][:20]
-        body = figure_html(fig, div_id="frusta") + _table(header, rows, left=2)
-        if cov is not None:
-            body += (f'<p>Subject coverage: {cov["seen_by_2"]:.0%} of the spine points are seen by at least '
-                     f'2 cameras (median {int(np.median(cov["views"]))} cameras per point).</p>')
-            if cov["seen_by_2"] < 0.95:
-                warnings.append(f"only {cov['seen_by_2']:.0%} of the spine points are seen by >= 2 cameras")
-        if meta_rows:
-            body += "<h3>Calibration</h3>" + _table(["", ""], meta_rows)
-        else:
-            body += '<p class="muted">The calibration carries no error figures.</p>'
-        sections.append(("cameras", "Cameras and calibration", body))
-    if sheets is not None:
-        body = (f'<p class="muted">Frame sets {", ".join(map(str, sheets["sets"]))}; '
-                f'cameras {", ".join(sheets["cameras"])}.</p>'
-                f'<h3>Frames</h3><img class="sheet" alt="frames" src="{jpeg_data_uri(sheets["frames"])}">')
-        if sheets["masks"] is not None:
-            body += f'<h3>Masks</h3><img class="sheet" alt="masks" src="{png_data_uri(sheets["masks"])}">'
-        else:
-            body += '<p class="muted">The take has no masks.</p>'
-        sections.append(("sheets", "Contact sheets", body))
+    return calibration, sheets
 
-    title = f"capture-stage report: {d.resolve().name}"
-    nav = "".join(f'<a href="#{sid}">{_esc(t)}</a>' for sid, t, _ in sections)
-    warn = "".join(f'<p class="warn">&#9888; {_esc(w)}</p>' for w in warnings)
-    body = "".join(f'<section id="{sid}"><h2>{_esc(t)}</h2>{h}</section>' for sid, t, h in sections)
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    js = plotly_js().replace("</script", "<\\/script")
-    return (
-        "<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\">"
-        f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\"><title>{_esc(title)}</title>"
-        f"<style>{_CSS}</style><script type=\"text/javascript\">{js}</script></head><body>"
-        f"<header><h1>{_esc(title)}</h1><p>{_esc(str(d.resolve()))} &middot; generated {stamp}</p></header>"
-        f"<nav>{nav}</nav>{('<section>' + warn + '</section>') if warn else ''}{body}</body></html>"
-    )
 
+def _summary_section(d: Path, spine, report, take, warnings: list[str]) -> dict:
+    rows = []
+    if spine is not None:
+        rows += [["frames", spine.frame_count], ["limbs K", spine.K], ["junctions", len(spine.junction_ids)],
+                 ["fps", spine.fps], ["units", spine.units]]
+        refs = spine.meta.get("references")
+        if refs:
+            rows.append(["reference frames", ", ".join(str(int(spine.frame_indices[r])) for r in refs
+                                                        if 0 <= r < spine.frame_count)])
+    if isinstance(report, dict):
+        for k in ("frames", "total_seconds"):
+            if k in report and not (spine is not None and k == "frames"):
+                rows.append([k.replace("_", " "), report[k]])
+        if report.get("empty_frames"):
+            rows.append(["empty frames", ", ".join(str(x) for x in report["empty_frames"][:50])])
+            warnings.append(f"{len(report['empty_frames'])} frame(s) have no surface")
+        warnings.extend(str(w) for w in report.get("warnings") or [])  # e.g. the blind side under the subject
+        for k, v in (report.get("seconds") or {}).items():
+            rows.append([f"seconds: {k}", v])
+    files = [n for n in ("spine.json", "report.json", "spine_rig.glb", "spine.glb") if (d / n).is_file()]
+    n_meshes = len(list((d / "meshes").glob("frame_*.ply"))) if (d / "meshes").is_dir() else 0
+    rows.append(["files", ", ".join(files + ([f"meshes/ ({n_meshes})"] if n_meshes else []))])
+    if take is not None:
+        rows.append(["take", str(take)])
+    return {"id": "summary", "title": "Summary", "rows": rows}
+
+
+def _view_section(d: Path, spine, *, max_frames: int, view_faces: int) -> dict:
+    model, static = _rigged_view_model(spine, d, max_faces=view_faces)
+    fig = spine_figure(spine, model=model, mesh=static, max_frames=max_frames)
+    if model is not None:
+        note = ("The reference frame's surface is rigged to the spine (bone heat weights) and posed in every "
+                "frame by linear blend skinning.")
+    elif static is None:
+        note = "No surface mesh of a complete frame: the spine alone."
+    else:
+        note = "The reference frame's surface (static)."
+    return {"id": "view", "title": "3-D view: surface and animated spine", "note": note,
+            "figure": figure_html(fig, div_id="spine-view")}
+
+
+def _tips_section(spine, report) -> dict | None:
+    counts = None
+    if spine is not None and spine.meta.get("tip_counts"):
+        counts = spine.meta["tip_counts"]
+    elif isinstance(report, dict) and report.get("tip_counts"):
+        counts = report["tip_counts"]
+    if not counts:
+        return None
+    K = spine.K if spine is not None else None
+    fi = spine.frame_indices if spine is not None and len(spine.frame_indices) == len(counts) else None
+    fig = tip_count_figure(counts, K=K, frame_indices=fi, fps=spine.fps if spine is not None else None)
+    unseen = None
+    if spine is not None:
+        unseen = [[lid, int(np.sum(~np.all(np.isfinite(spine.tips[:, k]), axis=1)))]
+                  for k, lid in enumerate(spine.limb_ids)]
+    return {"id": "tips", "title": "Tips over time", "figure": figure_html(fig, div_id="tip-counts"),
+            "K": K, "n": len(counts), "off": sum(1 for c in counts if c is not None and K is not None and c != K),
+            "unseen": unseen}
+
+
+def _quality_section(report, warnings: list[str]) -> dict | None:
+    per_frame = report.get("per_frame") if isinstance(report, dict) else None
+    if not per_frame:
+        return None
+    from stage.report.figures import _quality_rows
+
+    fig = mesh_quality_figure(per_frame)
+    rows = _quality_rows(per_frame)
+    cols = ["index", "status"] + [c for c in ("vertices", "faces", "watertight", "bodies", "genus", "area",
+                                               "volume", "seconds") if any(c in r for r in rows)]
+    not_tight = sum(1 for r in rows if r.get("watertight") is False)
+    if not_tight:
+        warnings.append(f"{not_tight} surface(s) are not watertight")
+    return {"id": "quality", "title": "Surface quality per frame", "figure": figure_html(fig, div_id="mesh-quality"),
+            "columns": cols, "rows": [[r.get(c) for c in cols] for r in rows]}
+
+
+def _cameras_section(calibration, spine, warnings: list[str]) -> dict:
+    pts = None
+    if spine is not None:
+        pts = np.concatenate([a.reshape(-1, 3) for a in spine.axes.values()])
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        if not len(pts):
+            pts = None
+    fig = frusta_figure(calibration, points=pts[:: max(1, len(pts) // 3000)] if pts is not None else None)
+    cov = camera_coverage(calibration, pts) if pts is not None else None
+    extra_keys = sorted({k for c in calibration.cameras for k, v in _scalars(c.meta).items()
+                         if isinstance(v, (int, float)) and not isinstance(v, bool)})[:6]
+    header = ["camera", "size", "fx", "fy", "cx", "cy", "|dist|"] + extra_keys + (["sees subject"] if cov is not None else [])
+    rows = []
+    for c in calibration.cameras:
+        cm = _scalars(c.meta)
+        row = [c.name, f"{c.size[0]}x{c.size[1]}", c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2],
+               float(np.linalg.norm(c.dist))]
+        row += [cm.get(k) for k in extra_keys]
+        if cov is not None:
+            row.append(f"{cov['per_camera'][c.name]:.0%}")
+        rows.append(row)
+    coverage = None
+    if cov is not None:
+        coverage = {"seen_by_2": cov["seen_by_2"], "median_views": int(np.median(cov["views"]))}
+        if cov["seen_by_2"] < 0.95:
+            warnings.append(f"only {cov['seen_by_2']:.0%} of the spine points are seen by >= 2 cameras")
+    meta_rows = [[k, v] for k, v in _scalars(calibration.meta).items() if not k.startswith("board.")][:20]
+    return {"id": "cameras", "title": "Cameras and calibration", "figure": figure_html(fig, div_id="frusta"),
+            "header": header, "rows": rows, "coverage": coverage, "meta_rows": meta_rows}
+
+
+def _sheets_section(sheets: dict) -> dict:
+    return {"id": "sheets", "title": "Contact sheets", "sets": sheets["sets"], "cameras": sheets["cameras"],
+            "frames_uri": jpeg_data_uri(sheets["frames"]),
+            "masks_uri": png_data_uri(sheets["masks"]) if sheets["masks"] is not None else None}
 
 def write_report(results_dir, *, take=None, out=None, **kwargs) -> Path:
     """Write :func:`render_report` to ``out`` (default ``results_dir/report.html``); returns the path."""

@@ -36,7 +36,7 @@ class BadTakeError(ValueError):
 
 def make_take_file(path: Path, frames: int = 6, *, cameras: int = 2, size: tuple[int, int] = (32, 24),
                    calibration=None, masks: bool = False) -> Path:
-    """A small real take (helper B's store): ``cameras`` cameras of noise images, optional masks."""
+    """A small real take (written by stage.store): ``cameras`` cameras of noise images, optional masks."""
     from stage.frame import Frame
     from stage.store import CameraSpec, TakeWriter, write_masks
 
@@ -53,6 +53,16 @@ def make_take_file(path: Path, frames: int = 6, *, cameras: int = 2, size: tuple
             m[:, h // 4: 3 * h // 4, w // 4: 3 * w // 4] = True
             write_masks(path, c, m)
     return path
+
+
+def write_legacy_masks(path: Path, camera: str, masks: np.ndarray) -> None:
+    """Masks inside the take file itself, as takes written by older versions of the store hold them."""
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        ds = f[f"cameras/{camera}"].create_dataset("masks", data=np.asarray(masks, np.uint8))
+        ds.attrs["bool"] = True
+        ds.attrs["params"] = "{}"
 
 
 def _frame(step: str, index: int, salt: str, delay_s: float) -> str:

@@ -11,10 +11,9 @@ import os
 import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
-
-httpx = pytest.importorskip("httpx")
 
 from tests.api.test_serve import AUTH, Server  # noqa: E402
 from tests.stage.test_report import CHROMIUM, CHROMIUM_ARGS, _browser  # noqa: E402

@@ -7,9 +7,8 @@ import pytest
 
 from calib.formats import read_calibration
 from tests.api.conftest import AUTH, wait_job
-from tests.api.test_takes import _calibration
 from tests.api.fakework import make_take_file
-
+from tests.api.test_takes import _calibration
 
 BOARD = {"type": "chessboard", "corners": [7, 6], "square_mm": 100.0}
 
@@ -98,9 +97,8 @@ def test_invalid_input(client, tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_calibrate_rendered_board_take(make_client, tmp_path):
-    """A take of a board waved through a simulated 4-camera dome (helper A), calibrated by helper D's
+    """A take of a board waved through a simulated 4-camera dome, calibrated by
     calib.rig through the API: camera-to-camera distances within 1.5 % of the truth."""
-    pytest.importorskip("fake_cameras.boards")
     from scipy.spatial.distance import pdist
 
     client = make_client(max_upload_bytes=64 << 20)

@@ -155,8 +155,9 @@ def test_no_token_configured_refuses_writes(make_client, data_root):
 def test_queued_jobs_survive_restart(make_client, data_root):
     add_take(data_root, "t", frames=3)
     # an app that only queues (runner off), then a new one on the same data root runs the job
-    from api.app import create_app
     from fastapi.testclient import TestClient
+
+    from api.app import create_app
     from tests.api.conftest import make_settings
 
     app = create_app(make_settings(data_root), work="tests.api.fakework:process_take", start_runner=False)

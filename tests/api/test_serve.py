@@ -3,10 +3,10 @@ SIGKILL the server mid-job, restart it; the job resumes and its spine.json equal
 
 Two variants:
 
-* ``real``: helper A's simulated take written by helper B's store, processed by the
-  lead's :func:`stage.process.process_take` (skips with the reason while one of them is missing);
+* ``real``: a simulated take (fake_cameras) written by stage.store, processed by
+  :func:`stage.process.process_take`;
 * ``fake``: the tiny deterministic stand-in of ``tests/api/fakework.py`` (same contract),
-  so the durability machinery is tested whatever exists.
+  fast enough to kill the server at several points.
 """
 
 from __future__ import annotations
@@ -21,9 +21,8 @@ import threading
 import time
 from pathlib import Path
 
+import httpx
 import pytest
-
-httpx = pytest.importorskip("httpx")
 
 ROOT = Path(__file__).resolve().parents[2]
 TOKEN = "serve-test-token"
@@ -177,14 +176,9 @@ def test_serve_kill_and_resume_fake_work(tmp_path):
 
 
 def _simulated_take_file(path: Path) -> Path:
-    """helper A's simulated take (6 cameras, 160x120, 8 frames) written through helper B's store."""
-    if not (ROOT / "stage" / "process.py").is_file():
-        pytest.skip("stage/process.py (the lead's process_take) is not there yet")
-    try:
-        from fake_cameras.take import simulate_take
-    except ImportError as exc:
-        pytest.skip(f"fake_cameras.take.simulate_take is not available: {exc}")
+    """A simulated take (6 cameras, 160x120, 8 frames) written through stage.store."""
     from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
 
     sim = simulate_take("starfish", n_cameras=6, frames=8, size=(160, 120), seed=0)
     return record_take(sim, path)
@@ -195,15 +189,12 @@ SIM_KEY = "starfish-6-8-160x120-0"  # what _simulated_take_file makes (the file 
 
 
 def reference_spine(take: Path, tmp: Path) -> dict:
-    """``spine.json`` of an uninterrupted in-process run of process_take (skips while its pipeline is incomplete)."""
+    """``spine.json`` of an uninterrupted in-process run of process_take."""
     from stage.process import process_take
 
     key = SIM_KEY
     if key not in _REF:
-        try:
-            process_take(take, tmp / "ref")
-        except ImportError as exc:
-            pytest.skip(f"process_take cannot run yet (a pipeline module is missing): {exc}")
+        process_take(take, tmp / "ref")
         _REF[key] = json.loads((tmp / "ref" / "spine.json").read_text())
     return _REF[key]
 

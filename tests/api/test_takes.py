@@ -7,7 +7,7 @@ import numpy as np
 
 from stage.store import TakeReader
 from tests.api.conftest import AUTH, add_take
-from tests.api.fakework import make_take_file
+from tests.api.fakework import make_take_file, write_legacy_masks
 
 
 def _calibration(n: int = 2):
@@ -22,7 +22,12 @@ def _calibration(n: int = 2):
 
 
 def test_upload_raw_and_multipart_then_read(client, tmp_path, data_root):
-    src = make_take_file(tmp_path / "a.h5", 3, calibration=_calibration(), masks=True)
+    # an upload is the capture file alone: masks travel with it only in the older layout (inside the take)
+    src = make_take_file(tmp_path / "a.h5", 3, calibration=_calibration())
+    m = np.zeros((3, 24, 32), bool)
+    m[:, 6:18, 8:24] = True
+    for c in ("cam00", "cam01"):
+        write_legacy_masks(src, c, m)
     r = client.put("/takes/a", content=src.read_bytes(), headers={**AUTH, "Content-Type": "application/x-hdf5"})
     assert r.status_code == 201, r.text
     assert r.json()["id"] == "a" and r.json()["size_bytes"] == src.stat().st_size

@@ -6,7 +6,8 @@ from calib import Calibration, Camera
 
 def _cams(n=3):
     return tuple(
-        Camera(f"c{i}", np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), np.zeros(5), np.eye(3), [i * 100.0, 0, 1000], (640, 480))
+        Camera(f"c{i}", np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), np.zeros(5), np.eye(3),
+               [i * 100.0, 0, 1000], (640, 480))
         for i in range(n)
     )
 

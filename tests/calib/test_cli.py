@@ -82,7 +82,7 @@ def test_invalid_input(tmp_path, capsys):
 def test_calibrate_take_stores_calibration(stereo_dir, tmp_path, capsys):
     import cv2
 
-    store = pytest.importorskip("stage.store")
+    from stage import store
     from stage.frame import Frame
 
     take = tmp_path / "board.h5"

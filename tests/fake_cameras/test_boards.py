@@ -32,7 +32,8 @@ def test_chessboard_corners_are_detected_at_the_truth(cal):
             if not _frontal(bv, v, c):
                 continue
             gray = cv2.cvtColor(bv.images[v, c], cv2.COLOR_BGR2GRAY)
-            ok, cc = cv2.findChessboardCornersSB(gray, board.corners, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+            flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+            ok, cc = cv2.findChessboardCornersSB(gray, board.corners, flags=flags)
             assert ok, (v, c)
             cc = cc.reshape(-1, 2)
             true = bv.corners_2d[v, c]

@@ -67,7 +67,7 @@ def test_creature_stays_in_volume_and_moves_smoothly(name):
 def test_tips_and_axes_are_consistent_with_the_surface(name):
     p = make_creature(name, seed=2).pose(0.7)
     assert set(p.tips) == set(p.names) == set(p.axes)
-    expected = {"starfish": 5, "quadruped": 6, "biped": 5}[name]
+    expected = {"starfish": 5, "quadruped": 6, "biped": 5, "tailed_quadruped": 6}[name]
     assert len(p.names) == expected
     for li, n in enumerate(p.names):
         tip = p.tips[n]

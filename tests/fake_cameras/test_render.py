@@ -190,7 +190,8 @@ def test_noise_statistics(quad_views):
     assert np.array_equal(quad_views["noisy"].mask, quad_views["clean"].mask)
     assert abs(d.mean()) < 0.1
     assert d.std() == pytest.approx(4.0, rel=0.05)
-    again = render_view(quad_views["cam"], quad_views["pose"], rng=np.random.default_rng(1), noise_sigma=4.0, backdrop=Backdrop(blur_sigma=0))
+    again = render_view(quad_views["cam"], quad_views["pose"], rng=np.random.default_rng(1), noise_sigma=4.0,
+                        backdrop=Backdrop(blur_sigma=0))
     assert np.array_equal(again.image, quad_views["noisy"].image)
 
 

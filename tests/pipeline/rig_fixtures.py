@@ -76,7 +76,7 @@ def true_spine(name: str, poses, *, points: int = 16, hide: dict | None = None) 
             jpos[t, i] = np.mean([p.axes[lb][0] for lb in ls], axis=0)
     tips = np.array([[p.tips[lb] for lb in limbs] for p in poses])
     axes = {}
-    for k, lb in enumerate(limbs):
+    for lb in limbs:
         ji = juncs.index(parents[lb])
         axes[lb] = np.array([_resample(np.vstack([jpos[t, ji], p.axes[lb]]), points) for t, p in enumerate(poses)])
     for i, j in enumerate(juncs):

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from pipeline.extremities import find_extremities, local_maxima, protrudes
-from pipeline.geodesic import average_geodesic_distance, edge_graph, mesh_edges
+from pipeline.geodesic import mesh_edges
 
 
 def capsule(height=3.0):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from calib.calibration import Calibration
+from fake_cameras.take import simulate_take
 from pipeline.hull import EmptyHullError, HullCarver, carve_direct, hull_memory_bytes
 from pipeline.volume import (
     Grid,
@@ -22,7 +23,6 @@ from pipeline.volume import (
 )
 from stage.rig import Volume
 from tests.pipeline import simrig
-
 
 # -- fixtures ------------------------------------------------------------------------------------
 
@@ -38,9 +38,8 @@ def analytic():
 
 @lru_cache(maxsize=None)
 def sim_take():
-    """One frame of the simulated dome (helper A's renderer), ground-truth masks."""
-    take_mod = pytest.importorskip("fake_cameras.take")
-    return take_mod.simulate_take("starfish", n_cameras=8, frames=1, size=(160, 120), seed=1, depth=True)
+    """One frame of the simulated dome (fake_cameras renderer), ground-truth masks."""
+    return simulate_take("starfish", n_cameras=8, frames=1, size=(160, 120), seed=1, depth=True)
 
 
 def sim_grid(res: int = 48) -> Grid:

@@ -1,4 +1,4 @@
-"""Visual hull from *keyed* silhouettes (issue 5, "Must show"): on the simulated rig the hull
+"""Visual hull from *keyed* silhouettes: on the simulated rig the hull
 carved from the chroma keyer's masks matches the hull carved from the ground-truth masks.
 
 The grid is fitted to the creature (as ``stage process`` does): at 128^3 over the whole
@@ -22,7 +22,7 @@ RESOLUTION = 128  # voxels along the longest side of the subject's box
 @lru_cache(maxsize=None)
 def keyed_take(creature: str = "starfish"):
     """A creature on the 12-camera dome at 640x480 (rendering cached on disk), GT and keyed masks."""
-    take_mod = pytest.importorskip("fake_cameras.take")
+    from fake_cameras import take as take_mod
     from stage.keying import key_frames
 
     tk = take_mod.simulate_take(creature, n_cameras=12, frames=N_FRAMES, size=(640, 480), seed=0)

@@ -66,7 +66,7 @@ def test_majority_keeps_agreed_split_and_best_limb():
     assert m.tip_quality[1] == pytest.approx(1 - 0.5 / 1.0)
 
 
-def test_topology_helpers():
+def test_topology_functions():
     t = Topology.from_splits(6, [0b000110, 0b111000])
     assert t.n_junctions == 3
     assert Topology.from_dict(t.to_dict()) == t

@@ -6,10 +6,9 @@ import os
 
 import numpy as np
 import pytest
+import trimesh
 
 from pipeline.results import ResultsStore, atomic_write_bytes
-
-trimesh = pytest.importorskip("trimesh")
 
 
 def test_meshes_round_trip_exactly_and_list_frames(tmp_path):

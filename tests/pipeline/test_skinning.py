@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.geodesic import vertex_areas
 from pipeline.rig_model import NoCompleteFrameError, reference_frame, rig_from_spine, rigged_model
 from pipeline.skinning import (
     SkinningError,
     bone_heat_weights,
     cotangent_laplacian,
     limit_influences,
-    lumped_mass,
     segment_distances,
 )
 from tests.pipeline.rig_fixtures import creature_take, surface, true_spine
@@ -57,8 +57,9 @@ def test_cotangent_laplacian_matches_slow_reference_and_kills_linear_functions()
 
 
 def test_lumped_mass_sums_to_area():
+    """The mass matrix of the heat equation is geodesic.vertex_areas: it sums to the area."""
     v, f, _ = _grid(5)
-    assert lumped_mass(v, f).sum() == pytest.approx(16.0, rel=1e-12)
+    assert vertex_areas(v, f).sum() == pytest.approx(16.0, rel=1e-12)
 
 
 def test_segment_distances_match_dense_sampling():
@@ -155,7 +156,7 @@ def test_rig_joints_follow_the_spine_in_every_frame():
     tip = {lb: rig.names.index(f"{lb}.tip") for lb in spine.limb_ids}
     for t in range(spine.frame_count):
         P = rig.joint_positions(t)
-        for k, lb in enumerate(spine.limb_ids):
+        for lb in spine.limb_ids:
             np.testing.assert_allclose(P[tip[lb]], spine.axes[lb][t, -1], atol=1e-9)
         np.testing.assert_allclose(P[0], spine.junctions[t, 0], atol=1e-9)
     # rotations are unit quaternions; rest frame is the identity
@@ -180,11 +181,13 @@ def test_invalid_input():
     v, f, _ = _grid(4)
     A, B = np.zeros((1, 3)), np.ones((1, 3))
     with pytest.raises(ValueError, match="vertices"):
-        cotangent_laplacian(np.zeros((0, 3)), f)
+        cotangent_laplacian(np.zeros((4, 2)), f)
     with pytest.raises(ValueError, match="faces"):
         cotangent_laplacian(v, f + 100)
     with pytest.raises(ValueError, match="faces"):
-        lumped_mass(v, f.astype(float))
+        cotangent_laplacian(v, f + 0.5)
+    with pytest.raises(ValueError, match="faces"):
+        bone_heat_weights(v, np.zeros((0, 3), int), A, B)
     with pytest.raises(ValueError, match="points"):
         segment_distances(np.zeros(3), A, B)
     with pytest.raises(ValueError, match="seg_a"):

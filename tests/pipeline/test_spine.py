@@ -33,7 +33,7 @@ from tests.conftest import shared_dataset
 FPS = 30.0
 
 
-# --------------------------------------------------------------------------- helpers
+# --------------------------------------------------------------------------- building blocks
 
 
 def mesh_pose(pose, voxel):

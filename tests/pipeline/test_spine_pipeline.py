@@ -1,4 +1,4 @@
-"""Spines through the whole pipeline on the simulated rig (issue 6, "Must show").
+"""Spines through the whole pipeline on the simulated rig.
 
 Simulated takes (8 cameras, 640x480, 30 frames = one gait cycle at 30 fps) of the starfish
 and the quadruped are keyed, carved, meshed, skeletonized and corresponded by
@@ -6,7 +6,7 @@ and the quadruped are keyed, carved, meshed, skeletonized and corresponded by
 the simulator's ground truth with :func:`fake_cameras.evaluate.evaluate_spine`.
 
 Size = diagonal of the bounding box of the true limb axes and tips over the take.
-Stated tolerances (issue 6): K = the true limb count; every limb's tip within 3 % of
+Stated tolerances: K = the true limb count; every limb's tip within 3 % of
 the size of its true tip in >= 95 % of frames; identities consistent in 100 % of
 frames; mean distance between spine limb axes and true limb axes <= 2 % of the size,
 measured on the limbs, i.e. outside the creature's body (the spine's junctions lie
@@ -37,7 +37,7 @@ _RUNS: dict = {}
 
 
 def run(name: str, tmp_path_factory) -> dict:
-    """Simulate, record and process one take (once per session), and score its spine."""
+    """Simulate, record and process one take (once per test run), and score its spine."""
     if name not in _RUNS:
         sim = simulate_take(name, n_cameras=N_CAMERAS, frames=N_FRAMES, size=(640, 480), seed=3)
         root = tmp_path_factory.mktemp(f"spine_{name}")
@@ -119,7 +119,8 @@ def test_resample_polyline_spacing_and_invalid_input():
 
 def test_invalid_input():
     pose = _stick_pose()
-    spine = {"graph": {"limbs": ["limb0"]}, "frames": [{"tips": {"limb0": [200.0, 0, 0]}, "axes": {"limb0": [[0.0, 0, 0], [200.0, 0, 0]]}}]}
+    frame = {"tips": {"limb0": [200.0, 0, 0]}, "axes": {"limb0": [[0.0, 0, 0], [200.0, 0, 0]]}}
+    spine = {"graph": {"limbs": ["limb0"]}, "frames": [frame]}
     tips = np.array([[[200.0, 0, 0]]])
     axes = {"limb": np.array([[[30.0, 0, 0], [200.0, 0, 0]]])}
     acc = evaluate_spine(spine, tips, axes, ["limb"], poses=[pose])

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
 from pipeline.hull import HullCarver
 from pipeline.surface import (
@@ -19,16 +20,14 @@ from pipeline.volume import Grid, grid_from_volume, volume_from_cameras
 from tests.conftest import shared_dataset
 from tests.pipeline.test_hull import sim_grid, sim_take
 
-trimesh = pytest.importorskip("trimesh")
-
 
 def _ball_grid(n=24, voxel=2.0):
     return Grid(np.full(3, -n * voxel / 2), (n, n, n), voxel)
 
 
 def test_surface_of_simulated_hull_is_watertight_and_within_one_voxel_of_the_hull():
-    from scipy.spatial import cKDTree
     from scipy.ndimage import binary_erosion
+    from scipy.spatial import cKDTree
 
     take = sim_take()
     grid = sim_grid(64)
@@ -145,10 +144,9 @@ def _dino_take(folder: Path):
     """The 15 good views, keyed in luma mode (automatic threshold, defaults)."""
     import cv2
 
+    from calib import formats
     from calib.calibration import Calibration
     from stage.keying import key_frames
-
-    formats = pytest.importorskip("calib.formats")
     cal = formats.read_middlebury_par(folder / "dinoSR_par.txt")
     good = [ln.strip() for ln in (folder / "dinoSR_good_silhouette_images.txt").read_text().splitlines() if ln.strip()]
     by_name = {c.name: c for c in cal.cameras}
@@ -178,7 +176,7 @@ def _hidden_by(occ_above: np.ndarray, grid: Grid, cameras, points: np.ndarray, r
 
 @pytest.mark.slow
 def test_middlebury_dino_surface_bounding_box():
-    """Issue 5: luma-keyed silhouettes of the dino give a surface within 5 % of the published box.
+    """Luma-keyed silhouettes of the dino give a surface within 5 % of the published box.
 
     All 15 views sit ~17 degrees above the dino on a ring around +y, so no silhouette can
     carve the region under its base: a visual hull from these cameras alone reaches ~6 mm
@@ -236,9 +234,8 @@ def _dino_silhouettes(folder: Path, names: list[str]) -> np.ndarray:
 
 @pytest.mark.slow
 def test_middlebury_dino_recipe_silhouettes_match_published_box_above_the_floor():
+    from calib import formats
     from calib.calibration import Calibration
-
-    formats = pytest.importorskip("calib.formats")
     folder = shared_dataset("middlebury_dino_sparse_ring")
     cal = formats.read_middlebury_par(folder / "dinoSR_par.txt")
     good = [ln.strip() for ln in (folder / "dinoSR_good_silhouette_images.txt").read_text().splitlines() if ln.strip()]

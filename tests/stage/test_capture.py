@@ -72,7 +72,8 @@ class PacedCamera:
 
 
 def rig_for(ids, fps=60.0):
-    return parse_rig({"name": "t", "fps": fps, "cameras": [{"id": c, "driver": "opencv", "device": 0, "width": W, "height": H} for c in ids]})
+    cams = [{"id": c, "driver": "opencv", "device": 0, "width": W, "height": H} for c in ids]
+    return parse_rig({"name": "t", "fps": fps, "cameras": cams})
 
 
 def make_drivers(ids, fps=60.0, **per_cam):
@@ -217,7 +218,6 @@ def test_invalid_input(tmp_path):
 
 def test_cli_capture_simulated_rig(tmp_path, capsys):
     """`stage capture` end to end through the registry and the fake driver (tiny images)."""
-    pytest.importorskip("stage.drivers.fake")
     from fake_cameras.rigs import write_simulated_rig
     from stage.cli import main
 

@@ -21,7 +21,6 @@ from stage.discovery import (
 )
 from stage.rig import parse_rig
 
-
 # -- the pure bandwidth model --------------------------------------------------------------------
 
 

@@ -122,7 +122,7 @@ def test_middlebury_dino():
 
 @pytest.mark.slow
 def test_middlebury_dino_processed_end_to_end(tmp_path):
-    """Issue 5 through the product: `stage import` + `stage process --key-mode luma` (defaults,
+    """The Middlebury dino through the product: `stage import` + `stage process --key-mode luma` (defaults,
     all 16 views). Without a support plane the report warns that the cameras all look down
     on the dino; with the plane it stands on, the surface box is within 5 % of the published one."""
     from pipeline.results import ResultsStore

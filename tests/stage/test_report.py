@@ -38,12 +38,12 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-backg
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     """A results directory as `stage process` writes it, and a tiny take (4 cameras, 160x120) with masks."""
+    import trimesh
+
     from fake_cameras.dome import make_dome
     from fake_cameras.render import render_view
     from stage.frame import Frame
     from stage.store import CameraSpec, TakeWriter, write_masks
-
-    import trimesh
 
     d = tmp_path_factory.mktemp("results")
     _, poses = creature_take("starfish", FRAMES)

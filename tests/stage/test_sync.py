@@ -200,7 +200,7 @@ def test_invalid_input():
 
 
 # ---------------------------------------------------------------------------
-# regression: heavy host load (issue 2, item 6; `stage demo` board take)
+# regression: heavy host load (`stage demo` board take)
 
 DEMO_OFFSETS_MS = [5.478, -9.209, -18.361, -19.339, 12.531, 16.51, 4.265, 9.18, 1.745, 17.403, 12.634, -19.89]
 

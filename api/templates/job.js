@@ -1,0 +1,42 @@
+{#- follows one job: polls /jobs/{id} every second until it is finished (JOB_ID, INITIAL_STATE: set by the page) -#}
+(function(){
+  const TERMINAL = ["done", "failed", "cancelled"];
+  function render(j){
+    const st = document.getElementById('state');
+    st.textContent = j.state + (j.cancel_requested && !TERMINAL.includes(j.state) ? ' (cancel requested)' : '');
+    st.className = 'state state-' + j.state;
+    const all = document.getElementById('bar-all');
+    all.max = Math.max(j.total, 1); all.value = Math.min(j.done, all.max);
+    document.getElementById('count-all').textContent = j.done + '/' + j.total;
+    const tbody = document.getElementById('steps');
+    for (const [step, p] of Object.entries(j.progress || {})){
+      let tr = tbody.querySelector('tr[data-step="' + CSS.escape(step) + '"]');
+      if (!tr){
+        tr = document.createElement('tr'); tr.dataset.step = step;
+        const td0 = document.createElement('td'); td0.textContent = step;
+        const td1 = document.createElement('td'); const bar = document.createElement('progress');
+        const sp = document.createElement('span'); sp.className = 'count';
+        td1.appendChild(bar); td1.appendChild(document.createTextNode(' ')); td1.appendChild(sp);
+        tr.appendChild(td0); tr.appendChild(td1); tbody.appendChild(tr);
+      }
+      const bar = tr.querySelector('progress');
+      bar.max = Math.max(p.total, 1); bar.value = Math.min(p.done, bar.max);
+      tr.querySelector('.count').textContent = p.done + '/' + p.total;
+    }
+    document.getElementById('attempts').textContent = j.attempts;
+    for (const k of ['started', 'finished'])
+      if (j[k]) document.getElementById(k).textContent = new Date(j[k] * 1000).toISOString().slice(0, 19).replace('T', ' ') + ' UTC';
+    const err = document.getElementById('error');
+    err.textContent = j.error || '';
+    if (j.state === 'done' && j.kind === 'process') document.getElementById('report').hidden = false;
+    return !TERMINAL.includes(j.state);
+  }
+  async function poll(){
+    try {
+      const r = await fetch('/jobs/' + JOB_ID, {headers: {'Accept': 'application/json'}});
+      if (r.ok && !render(await r.json())) return;
+    } catch (e) {}
+    setTimeout(poll, 1000);
+  }
+  if (!TERMINAL.includes(INITIAL_STATE)) setTimeout(poll, 1000);
+})();

@@ -1,0 +1,467 @@
+"""Kinematic topology from motion segments and a curve skeleton (Tzionas & Gall 2016, section 4.2).
+
+Given a motion segmentation (:mod:`pipeline.motion_segmentation`) of a mesh
+and a curve skeleton running inside it:
+
+1. for every pair of adjacent segments, the centroid of the vertices on their
+   shared boundary, moved to the nearest point of the curve skeleton, is a
+   *joint* (an articulation, three rotational degrees of freedom);
+2. *auxiliary joints* (no degree of freedom) where the curve skeleton
+   branches or ends;
+3. bones follow the curve skeleton from joint to joint;
+4. a bone that links an end with an auxiliary joint of the same motion
+   segment is dropped (the segment of a curve point is the majority label of
+   its nearest surface vertices);
+5. a bone whose straight segment leaves the mesh (segment-triangle test) is
+   split at the middle of the curve path between its ends, until every bone
+   is inside (at most ``max_splits`` rounds).
+
+The paper's curve skeleton is the mean curvature skeleton (Tagliasacchi et
+al. 2012). Here it is the spine's curve skeleton in the rest frame: the
+level-set skeleton of Brostow et al. 2004 (:func:`pipeline.spine.frame_skeleton`,
+merged over the tips), which runs through the middle of every limb and
+branches at the junctions -- the role the mean curvature skeleton plays. Any
+other curve skeleton can be passed as a :class:`CurveSkeleton`.
+
+The tree is hung from an auxiliary joint of the largest segment (the graph
+centre among them), so that the root's rigid motion is that segment's.
+Every joint is driven by a *part*: the root's, or that of the nearest
+articulation at or above it; a bone belongs to the part of its first joint.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import defaultdict, deque
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+from scipy.spatial import cKDTree
+
+from pipeline.geodesic import mesh_edges
+
+__all__ = ["CurveSkeleton", "ArticulatedSkeleton", "curve_skeleton", "articulated_skeleton", "segment_hits_mesh"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class CurveSkeleton:
+    """A curve skeleton as a graph of points.
+
+    Attributes
+    ----------
+    points : (P, 3) float ndarray
+    edges : (E, 2) int ndarray
+    """
+
+    points: np.ndarray
+    edges: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class ArticulatedSkeleton:
+    """Joints, hierarchy and parts of an articulated model.
+
+    Attributes
+    ----------
+    names : tuple of str
+        ``root``, ``joint<i>`` (articulations), ``aux<i>`` (auxiliary joints).
+    parents : (J,) int ndarray
+        Parent of every joint (-1 for the root); parents come first.
+    rest : (J, 3) float ndarray
+        Joint positions in the rest frame.
+    articulation : (J,) bool ndarray
+        True for the joints with degrees of freedom.
+    segment_pairs : tuple
+        For every joint, the pair of motion segments it joins (``None`` for
+        auxiliary joints).
+    part : (J,) int ndarray
+        Part driving every joint: 0 is the root's rigid motion, ``p >= 1`` is
+        the rotation of articulation ``part_joint[p]``.
+    part_joint : (P,) int ndarray
+        The joint of every part (the root for part 0).
+    part_parent : (P,) int ndarray
+        Parent part (-1 for part 0).
+    bones : (B, 2) int ndarray
+        ``(joint, child joint)``.
+    """
+
+    names: tuple
+    parents: np.ndarray
+    rest: np.ndarray
+    articulation: np.ndarray
+    segment_pairs: tuple
+    part: np.ndarray
+    part_joint: np.ndarray
+    part_parent: np.ndarray
+    bones: np.ndarray
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.names)
+
+    @property
+    def n_parts(self) -> int:
+        return len(self.part_joint)
+
+    @property
+    def joints(self) -> np.ndarray:
+        """(A, 3) rest positions of the articulations."""
+        return self.rest[self.articulation]
+
+
+# --------------------------------------------------------------------------- curve skeleton
+
+
+def curve_skeleton(vertices, faces) -> CurveSkeleton:
+    """The rest frame's curve skeleton from the spine machinery (Brostow et al. 2004, 4.1).
+
+    Falls back to the principal axis of the vertices (a straight curve
+    through the subject) when the surface has fewer than two tips.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+    faces : (F, 3) int ndarray
+
+    Returns
+    -------
+    CurveSkeleton
+    """
+    from pipeline.spine import frame_skeleton
+
+    v = np.asarray(vertices, dtype=np.float64)
+    pts, edges = [], []
+
+    def chain(start_id, interior, end_id=None):
+        prev = start_id
+        for p in np.asarray(interior, dtype=np.float64).reshape(-1, 3):
+            pts.append(p)
+            edges.append((prev, len(pts) - 1))
+            prev = len(pts) - 1
+        if end_id is not None:
+            edges.append((prev, end_id))
+
+    fs = frame_skeleton(v, faces)
+    if fs.n_tips >= 2:
+        m = fs.merged()
+        topo = m.topology
+        jid = {}
+        for j, p in enumerate(m.junctions):
+            if np.all(np.isfinite(p)):
+                pts.append(np.asarray(p, dtype=np.float64))
+                jid[j] = len(pts) - 1
+        for j, ax in enumerate(m.junction_axes):
+            par = topo.junction_parent[j]
+            if ax is not None and j in jid and par in jid:
+                chain(jid[par], np.asarray(ax)[1:-1], jid[j])
+        for i, ax in enumerate(m.tip_axes):
+            par = topo.tip_parent[i]
+            if ax is not None and par in jid and len(ax) >= 2:
+                chain(jid[par], np.asarray(ax)[1:])
+        if len(edges) >= 1:
+            return _clean(np.asarray(pts), np.asarray(edges, dtype=np.int64))
+    log.warning("no curve skeleton from the spine (fewer than two tips): using the principal axis")
+    c = v.mean(0)
+    _, _, Vt = np.linalg.svd(v - c, full_matrices=False)
+    proj = (v - c) @ Vt[0]
+    lo, hi = np.percentile(proj, [2, 98])
+    line = c + np.linspace(lo, hi, 21)[:, None] * Vt[0]
+    return CurveSkeleton(line, np.c_[np.arange(20), np.arange(1, 21)])
+
+
+def _clean(points: np.ndarray, edges: np.ndarray) -> CurveSkeleton:
+    """Drop unreferenced points, self-loops and duplicate edges."""
+    e = np.sort(edges, axis=1)
+    e = e[e[:, 0] != e[:, 1]]
+    e = np.unique(e, axis=0)
+    used = np.unique(e)
+    remap = np.full(len(points), -1)
+    remap[used] = np.arange(len(used))
+    return CurveSkeleton(points[used], remap[e])
+
+
+def _densify(cs: CurveSkeleton, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Insert points so that no edge is longer than ``step``; keep the largest tree."""
+    P = [p for p in cs.points]
+    E = []
+    for a, b in cs.edges:
+        L = np.linalg.norm(cs.points[b] - cs.points[a])
+        m = int(np.ceil(L / step)) if L > step else 1
+        prev = int(a)
+        for k in range(1, m):
+            P.append(cs.points[a] + (cs.points[b] - cs.points[a]) * k / m)
+            E.append((prev, len(P) - 1))
+            prev = len(P) - 1
+        E.append((prev, int(b)))
+    P = np.asarray(P)
+    E = np.asarray(E, dtype=np.int64)
+    n = len(P)
+    w = np.linalg.norm(P[E[:, 0]] - P[E[:, 1]], axis=1) + 1e-9
+    G = sp.csr_matrix((w, (E[:, 0], E[:, 1])), shape=(n, n))
+    T = minimum_spanning_tree(G + G.T).tocoo()  # a tree (cycles dropped)
+    E = np.c_[T.row, T.col]
+    nc, comp = connected_components(sp.csr_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)), directed=False)
+    if nc > 1:
+        keep = comp == np.bincount(comp).argmax()
+        remap = np.full(n, -1)
+        remap[keep] = np.arange(keep.sum())
+        E = remap[E[keep[E[:, 0]]]]
+        P = P[keep]
+    return P, E
+
+
+# --------------------------------------------------------------------------- collision
+
+
+def segment_hits_mesh(a, b, vertices, faces, *, margin: float = 1e-3) -> bool:
+    """Whether the open segment ``a -> b`` crosses a triangle of the mesh (Moller-Trumbore).
+
+    ``margin`` trims that fraction of the segment at both ends.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    a = np.asarray(a, dtype=np.float64)
+    d = np.asarray(b, dtype=np.float64) - a
+    v0 = v[f[:, 0]]
+    e1 = v[f[:, 1]] - v0
+    e2 = v[f[:, 2]] - v0
+    p = np.cross(d, e2)
+    det = (e1 * p).sum(1)
+    ok = np.abs(det) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = a - v0
+    u = (s * p).sum(1) * inv
+    q = np.cross(s, e1)
+    w = (q @ d) * inv
+    t = (q * e2).sum(1) * inv
+    hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > margin) & (t < 1 - margin)
+    return bool(hit.any())
+
+
+# --------------------------------------------------------------------------- topology
+
+
+def _boundary_joints(vertices, faces, labels, min_edges: int) -> list[tuple[tuple[int, int], np.ndarray]]:
+    e = mesh_edges(faces)
+    la, lb = labels[e[:, 0]], labels[e[:, 1]]
+    cross = la != lb
+    out = []
+    pairs = np.sort(np.c_[la[cross], lb[cross]], axis=1)
+    ec = e[cross]
+    if len(pairs) == 0:
+        return out
+    keys, inv = np.unique(pairs, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    for k, (sa, sb) in enumerate(keys):
+        m = inv == k
+        if m.sum() < min_edges:
+            continue
+        vid = np.unique(ec[m].ravel())
+        out.append(((int(sa), int(sb)), vertices[vid].mean(0)))
+    return out
+
+
+def articulated_skeleton(
+    vertices,
+    faces,
+    labels,
+    curve: CurveSkeleton | None = None,
+    *,
+    spacing: float = 0.01,
+    min_boundary_edges: int = 3,
+    max_splits: int = 4,
+) -> ArticulatedSkeleton:
+    """Joints and bones of an articulated model (Tzionas & Gall 2016, section 4.2).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+        The rest frame.
+    faces : (F, 3) int ndarray
+    labels : (V,) int ndarray
+        Motion segment of every vertex.
+    curve : CurveSkeleton, optional
+        Default: :func:`curve_skeleton` of the rest frame.
+    spacing : float
+        The curve skeleton is resampled at this fraction of the subject's size
+        (the precision of a joint along the curve).
+    min_boundary_edges : int
+        Two segments are adjacent when they share at least this many edges.
+    max_splits : int
+        Rounds of splitting bones that leave the mesh.
+
+    Returns
+    -------
+    ArticulatedSkeleton
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    lab = np.asarray(labels, dtype=np.int64)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
+        raise ValueError(f"vertices must have shape (V, 3) with V >= 4, got {v.shape}")
+    if lab.shape != (len(v),):
+        raise ValueError(f"labels must have shape ({len(v)},), got {lab.shape}")
+    if not 0 < spacing < 0.5:
+        raise ValueError(f"spacing must be within (0, 0.5), got {spacing}")
+    size = float(np.linalg.norm(v.max(0) - v.min(0)))
+    cs = curve_skeleton(v, f) if curve is None else curve
+    P, E = _densify(cs, spacing * size)
+    n = len(P)
+    adj = defaultdict(set)
+    for a, b in E:
+        adj[int(a)].add(int(b))
+        adj[int(b)].add(int(a))
+    tree = cKDTree(v)
+    _, nn = tree.query(P, k=min(8, len(v)))
+    nn = np.atleast_2d(nn)
+    node_seg = np.array([np.bincount(lab[r]).argmax() for r in nn])
+
+    # 1. articulations: boundary centroids moved to the curve skeleton
+    ptree = cKDTree(P)
+    joint_pairs: dict[int, list] = defaultdict(list)
+    for pair, c in _boundary_joints(v, f, lab, min_boundary_edges):
+        _, node = ptree.query(c)
+        joint_pairs[int(node)].append(pair)
+    # 2. auxiliary joints at ends and branches
+    key = set(joint_pairs) | {i for i in range(n) if len(adj[i]) != 2}
+    if not key:
+        key = {0}
+    # 3. bones along the curve between key nodes
+    bones = _key_bones(adj, key)
+    # 4. drop end bones inside one segment
+    bones = _drop_end_bones(bones, key, joint_pairs, node_seg)
+    # 5. split bones that leave the mesh
+    for _ in range(int(max_splits)):
+        split = []
+        for i, (a, b, path) in enumerate(bones):
+            if len(path) > 2 and segment_hits_mesh(P[a], P[b], v, f):
+                split.append(i)
+        if not split:
+            break
+        for i in sorted(split, reverse=True):
+            a, b, path = bones.pop(i)
+            mid = len(path) // 2
+            m = path[mid]
+            key.add(m)
+            bones.append((a, m, path[: mid + 1]))
+            bones.append((m, b, path[mid:]))
+    return _hang(P, bones, joint_pairs, node_seg, lab)
+
+
+def _key_bones(adj, key) -> list:
+    bones, seen = [], set()
+    for s in key:
+        for nb in adj[s]:
+            if (s, nb) in seen:
+                continue
+            path = [s, nb]
+            prev, cur = s, nb
+            while cur not in key:
+                nxt = [x for x in adj[cur] if x != prev]
+                if not nxt:
+                    break
+                prev, cur = cur, nxt[0]
+                path.append(cur)
+            seen.add((path[-1], path[-2]))
+            seen.add((s, nb))
+            if cur in key:
+                bones.append((s, cur, path))
+    return bones
+
+
+def _drop_end_bones(bones, key, joint_pairs, node_seg) -> list:
+    changed = True
+    while changed and len(bones) > 1:
+        changed = False
+        deg = defaultdict(int)
+        for a, b, _ in bones:
+            deg[a] += 1
+            deg[b] += 1
+        for i, (a, b, path) in enumerate(bones):
+            for end, other in ((a, b), (b, a)):
+                if (deg[end] == 1 and end not in joint_pairs and other not in joint_pairs
+                        and node_seg[end] == node_seg[other]):
+                    bones.pop(i)
+                    changed = True
+                    break
+            if changed:
+                break
+    return bones
+
+
+def _hang(P, bones, joint_pairs, node_seg, lab) -> ArticulatedSkeleton:
+    nodes = sorted({a for a, _, _ in bones} | {b for _, b, _ in bones}) or [0]
+    nbrs = defaultdict(list)
+    plen = {}
+    for a, b, path in bones:
+        L = float(np.linalg.norm(np.diff(P[path], axis=0), axis=1).sum())
+        nbrs[a].append(b)
+        nbrs[b].append(a)
+        plen[(a, b)] = plen[(b, a)] = L
+    largest = int(np.bincount(lab).argmax())
+    aux = [x for x in nodes if x not in joint_pairs]
+    cand = [x for x in aux if node_seg[x] == largest] or aux or nodes
+
+    def ecc(s):
+        dist = {s: 0.0}
+        dq = deque([s])
+        while dq:
+            u = dq.popleft()
+            for w in nbrs[u]:
+                if w not in dist:
+                    dist[w] = dist[u] + plen[(u, w)]
+                    dq.append(w)
+        return max(dist.values())
+
+    root = min(cand, key=ecc)
+    order, parent = [root], {root: -1}
+    dq = deque([root])
+    while dq:
+        u = dq.popleft()
+        for w in sorted(nbrs[u]):
+            if w not in parent:
+                parent[w] = u
+                order.append(w)
+                dq.append(w)
+    idx = {node: i for i, node in enumerate(order)}
+    J = len(order)
+    parents = np.array([idx[parent[x]] if parent[x] >= 0 else -1 for x in order], dtype=np.int64)
+    artic = np.array([x in joint_pairs and x != root for x in order])
+    part = np.zeros(J, dtype=np.int64)
+    part_joint, part_parent = [0], [-1]
+    for i, x in enumerate(order):
+        if i == 0:
+            continue
+        if artic[i]:
+            part_joint.append(i)
+            part_parent.append(int(part[parents[i]]))
+            part[i] = len(part_joint) - 1
+        else:
+            part[i] = part[parents[i]]
+    names, na, nx = [], 0, 0
+    for i, x in enumerate(order):
+        if i == 0:
+            names.append("root")
+        elif artic[i]:
+            names.append(f"joint{na}")
+            na += 1
+        else:
+            names.append(f"aux{nx}")
+            nx += 1
+    pairs = tuple(tuple(joint_pairs[x][0]) if artic[i] else None for i, x in enumerate(order))
+    bone_arr = np.array([(int(parents[i]), i) for i in range(1, J)], dtype=np.int64).reshape(-1, 2)
+    return ArticulatedSkeleton(
+        names=tuple(names),
+        parents=parents,
+        rest=P[order].copy(),
+        articulation=artic,
+        segment_pairs=pairs,
+        part=part,
+        part_joint=np.asarray(part_joint, dtype=np.int64),
+        part_parent=np.asarray(part_parent, dtype=np.int64),
+        bones=bone_arr,
+    )

@@ -1,0 +1,524 @@
+"""Motion segmentation of vertex trajectories by spectral clustering (Tzionas & Gall 2016, section 4.1).
+
+A mesh sequence with shared connectivity gives every vertex ``i`` a trajectory
+``T_i = (V_i,1 .. V_i,T)``. Vertices of one rigid part keep their distances
+(and the angles between their normals) over time; vertices of two parts that
+turn against each other do not. The paper's steps:
+
+1. sample ``n`` (1000) vertices uniformly over the surface;
+2. interval length ``dt = 2 max_i,t ||V_i,t - V_i,t-1||`` (eq. 7, millimetres
+   taken as frames);
+3. ``d^v_ij``: the largest change of ``||V_i - V_j||`` within any interval of
+   ``dt`` frames (eq. 8); ``d^n_ij``: the same for the angle between the
+   normals (eq. 9, radians); ``d_ij = d^v_ij (d^n_ij + 1)`` (eq. 10: "adding 1
+   to ``d^n`` was necessary since ``d^n`` can be close to zero despite large
+   displacement changes");
+4. affinity ``Phi_ij = exp(-lambda d_ij)`` (eq. 6, ``lambda = 0.1`` per mm);
+5. normalised graph Laplacian ``L = I - D^-1/2 Phi D^-1/2`` (Ng, Jordan &
+   Weiss 2002); ``k`` = number of eigenvalues below ``lambda_thr``;
+6. k-means on the rows of the first ``k`` eigenvectors (rows normalised to
+   unit length, as Ng et al.);
+7. every other vertex takes the label of its nearest sample along the surface.
+
+Units and size. The paper's constants are for millimetres and objects of
+0.2-0.4 m (spray, donkey, lamp, pipe). So that the defaults follow the subject
+and not its units, distances are expressed in *reference millimetres*: the
+subject's rest-frame bounding-box diagonal is mapped to ``reference_size``
+(300 mm). ``lambda = 0.1`` and eq. 7 are then applied as written. For a 0.3 m
+subject in millimetres this is the paper's setting exactly.
+
+``lambda_thr``: 0.7 (default) when reasonably sized parts undergo a pronounced
+movement; 0.98 for small parts with a small motion compared to the size of the
+subject (the paper's "spray" handle, the rope) -- it over-segments, which adds
+joints that can be ignored.
+
+Two steps are ours (the paper is silent): a motion segment must be connected
+on the surface, so a label whose vertices form several surface patches (two
+legs that happen to move in step) is split, and patches smaller than
+``min_segment`` of the vertices are merged into the neighbour they share the
+longest boundary with. Labels are renumbered by decreasing size.
+
+Hand-written because no library computes trajectory distances; the
+eigen-decomposition (``numpy.linalg.eigh``), k-means (``scipy.cluster.vq``)
+and the surface distances (``scipy.sparse.csgraph``) are library calls.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.cluster.vq import kmeans2
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
+from scipy.sparse.csgraph import connected_components, dijkstra
+
+from pipeline.geodesic import edge_graph, mesh_edges
+
+__all__ = [
+    "REFERENCE_SIZE",
+    "Segmentation",
+    "check_sequence",
+    "subject_size",
+    "vertex_normals",
+    "sample_vertices",
+    "interval_length",
+    "trajectory_distances",
+    "spectral_clusters",
+    "propagate_labels",
+    "motion_segmentation",
+]
+
+log = logging.getLogger(__name__)
+
+REFERENCE_SIZE = 300.0  # mm: the size of the paper's objects, where lambda = 0.1 / mm holds
+
+
+@dataclass(frozen=True, eq=False)
+class Segmentation:
+    """A motion segmentation of a mesh sequence.
+
+    Attributes
+    ----------
+    labels : (V,) int ndarray
+        Segment of every vertex, ``0 .. k-1`` by decreasing size.
+    samples : (n,) int ndarray
+        The sampled vertices.
+    sample_labels : (n,) int ndarray
+        Their spectral cluster (before propagation and the connectivity split).
+    eigenvalues : (m,) float ndarray
+        The smallest eigenvalues of the normalised Laplacian (ascending).
+    k : int
+        Number of spectral clusters (eigenvalues below ``lambda_thr``).
+    interval : int
+        ``dt`` in frames.
+    lam : float
+        ``lambda`` in the sequence's own units (per unit).
+    """
+
+    labels: np.ndarray
+    samples: np.ndarray
+    sample_labels: np.ndarray
+    eigenvalues: np.ndarray
+    k: int
+    interval: int
+    lam: float
+
+    @property
+    def n_segments(self) -> int:
+        return int(self.labels.max()) + 1 if len(self.labels) else 0
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def check_sequence(vertices, faces, *, name: str = "vertices") -> tuple[np.ndarray, np.ndarray]:
+    """Validate a mesh sequence with shared connectivity.
+
+    Parameters
+    ----------
+    vertices : (T, V, 3) float ndarray
+    faces : (F, 3) int ndarray
+
+    Returns
+    -------
+    vertices : (T, V, 3) float64 ndarray
+    faces : (F, 3) int64 ndarray
+    """
+    if isinstance(vertices, (list, tuple)) and vertices and len({np.shape(x) for x in vertices}) > 1:
+        counts = sorted({len(x) for x in vertices})
+        raise ValueError(
+            f"{name}: the frames have different vertex counts ({', '.join(map(str, counts[:4]))}): "
+            "a sequence without shared connectivity needs its template tracked first (stage track)"
+        )
+    v = np.asarray(vertices, dtype=np.float64)
+    if v.ndim != 3 or v.shape[2] != 3 or v.shape[0] < 1 or v.shape[1] < 4:
+        raise ValueError(f"{name} must have shape (T, V, 3) with T >= 1 and V >= 4, got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be finite")
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"faces must be an (F, 3) integer array with F > 0, got {f.shape} {f.dtype}")
+    f = f.astype(np.int64)
+    if f.min() < 0 or f.max() >= v.shape[1]:
+        raise ValueError("faces reference vertices that do not exist")
+    return v, f
+
+
+def subject_size(vertices) -> float:
+    """Bounding-box diagonal of the first frame (the subject's size)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    v0 = v[0] if v.ndim == 3 else v
+    return float(np.linalg.norm(v0.max(0) - v0.min(0)))
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def vertex_normals(vertices, faces) -> np.ndarray:
+    """Area-weighted unit vertex normals of every frame.
+
+    Parameters
+    ----------
+    vertices : (T, V, 3) or (V, 3) float ndarray
+    faces : (F, 3) int ndarray
+
+    Returns
+    -------
+    ndarray, shape of ``vertices``
+        Unit normals (a vertex in no face gets ``(0, 0, 1)``).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    single = v.ndim == 2
+    if single:
+        v = v[None]
+    f = np.asarray(faces, dtype=np.int64)
+    fn = np.cross(v[:, f[:, 1]] - v[:, f[:, 0]], v[:, f[:, 2]] - v[:, f[:, 0]])  # (T, F, 3)
+    V = v.shape[1]
+    inc = sp.csr_matrix(
+        (np.ones(3 * len(f)), (np.repeat(np.arange(len(f)), 3), f.ravel())), shape=(len(f), V)
+    ).T.tocsr()  # (V, F)
+    n = np.stack([inc @ fn[t] for t in range(len(v))])
+    ln = np.linalg.norm(n, axis=2, keepdims=True)
+    n = np.where(ln > 0, n / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
+    return n[0] if single else n
+
+
+def sample_vertices(points, n: int, *, start: int | None = None) -> np.ndarray:
+    """``n`` vertices spread uniformly over a surface (Euclidean farthest-point sampling).
+
+    Parameters
+    ----------
+    points : (V, 3) float ndarray
+        Vertex positions (the rest frame).
+    n : int
+        Number of samples (capped at ``V``).
+    start : int, optional
+        First sample (default: the vertex farthest from the centroid).
+
+    Returns
+    -------
+    (n,) int ndarray
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise ValueError(f"points must have shape (V, 3) with V > 0, got {p.shape}")
+    if int(n) < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    n = min(int(n), len(p))
+    first = int(np.argmax(((p - p.mean(0)) ** 2).sum(1))) if start is None else int(start)
+    out = np.empty(n, dtype=np.int64)
+    out[0] = first
+    dmin = ((p - p[first]) ** 2).sum(1)
+    for i in range(1, n):
+        nxt = int(np.argmax(dmin))
+        out[i] = nxt
+        np.minimum(dmin, ((p - p[nxt]) ** 2).sum(1), out=dmin)
+    return out
+
+
+def _sample_normals(v: np.ndarray, f: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """(T, n, 3) unit normals of the sampled vertices only (their incident faces)."""
+    pos = np.full(v.shape[1], -1, dtype=np.int64)
+    pos[samples] = np.arange(len(samples))
+    hit = pos[f] >= 0
+    fi = np.flatnonzero(hit.any(1))
+    fs = f[fi]
+    out = np.zeros((v.shape[0], len(samples), 3))
+    for t in range(v.shape[0]):
+        fn = np.cross(v[t, fs[:, 1]] - v[t, fs[:, 0]], v[t, fs[:, 2]] - v[t, fs[:, 0]])
+        for c in range(3):
+            m = hit[fi, c]
+            np.add.at(out[t], pos[fs[m, c]], fn[m])
+    ln = np.linalg.norm(out, axis=2, keepdims=True)
+    return np.where(ln > 0, out / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
+
+
+def interval_length(vertices, *, to_reference: float = 1.0) -> int:
+    """``dt = 2 max_i,t ||V_i,t - V_i,t-1||`` (Tzionas & Gall eq. 7), in frames.
+
+    Parameters
+    ----------
+    vertices : (T, V, 3) float ndarray
+    to_reference : float
+        Factor from the sequence's units to reference millimetres.
+
+    Returns
+    -------
+    int
+        Within ``1 .. max(T - 1, 1)``.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    T = v.shape[0]
+    if T < 2:
+        return 1
+    step = max(float(np.sqrt(((v[1:] - v[:-1]) ** 2).sum(2)).max()), 0.0) * float(to_reference)
+    return int(np.clip(round(2.0 * step), 1, T - 1))
+
+
+def _window_range(x: np.ndarray, width: int) -> np.ndarray:
+    """max over t of (max - min of x[t .. t+width-1]) along axis 0."""
+    T = x.shape[0]
+    if width >= T:
+        return x.max(0) - x.min(0)
+    hi = maximum_filter1d(x, size=width, axis=0, mode="nearest")
+    lo = minimum_filter1d(x, size=width, axis=0, mode="nearest")
+    hi -= lo
+    return hi.max(0)
+
+
+def trajectory_distances(
+    trajectories, normals=None, *, interval: int, block_elements: int = 12_000_000
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairwise trajectory distances ``d^v`` and ``d^n`` (Tzionas & Gall eqs. 8, 9).
+
+    ``d^v_ij`` is the largest change of the distance between vertices ``i``
+    and ``j`` between two frames at most ``interval`` frames apart; ``d^n_ij``
+    the same for the angle between their normals.
+
+    Parameters
+    ----------
+    trajectories : (T, n, 3) float ndarray
+    normals : (T, n, 3) float ndarray, optional
+        Unit normals; ``d^n`` is zero when omitted.
+    interval : int
+        ``dt`` in frames (>= 1).
+    block_elements : int
+        Working-set size (elements) of one block of rows.
+
+    Returns
+    -------
+    dv, dn : (n, n) float32 ndarray
+        Symmetric, zero diagonal.
+    """
+    X = np.asarray(trajectories, dtype=np.float32)
+    if X.ndim != 3 or X.shape[2] != 3:
+        raise ValueError(f"trajectories must have shape (T, n, 3), got {X.shape}")
+    T, n, _ = X.shape
+    if int(interval) < 1:
+        raise ValueError(f"interval must be >= 1, got {interval}")
+    width = int(interval) + 1
+    X = X - X.mean(1, keepdims=True)
+    sq = (X * X).sum(2)  # (T, n)
+    N = None
+    if normals is not None:
+        N = np.asarray(normals, dtype=np.float32)
+        if N.shape != X.shape:
+            raise ValueError(f"normals must have the shape of trajectories {X.shape}, got {N.shape}")
+    dv = np.zeros((n, n), dtype=np.float32)
+    dn = np.zeros((n, n), dtype=np.float32)
+    rows = max(1, int(block_elements) // max(T * n, 1))
+    for a in range(0, n, rows):
+        b = min(n, a + rows)
+        cols = slice(a, n)  # upper triangle only
+        G = np.einsum("tid,tjd->tij", X[:, a:b], X[:, cols], optimize=True)
+        D = sq[:, a:b, None] + sq[:, None, cols] - 2.0 * G
+        np.maximum(D, 0.0, out=D)
+        np.sqrt(D, out=D)
+        dv[a:b, cols] = _window_range(D, width)
+        if N is not None:
+            C = np.einsum("tid,tjd->tij", N[:, a:b], N[:, cols], optimize=True)
+            np.clip(C, -1.0, 1.0, out=C)
+            if width >= T:  # one window: arccos is monotonic, take it after the range
+                dn[a:b, cols] = np.arccos(C.min(0)) - np.arccos(C.max(0))
+            else:
+                np.arccos(C, out=C)
+                dn[a:b, cols] = _window_range(C, width)
+    iu = np.triu_indices(n, 1)
+    dv[iu[1], iu[0]] = dv[iu]
+    dn[iu[1], iu[0]] = dn[iu]
+    np.fill_diagonal(dv, 0.0)
+    np.fill_diagonal(dn, 0.0)
+    return dv, dn
+
+
+def spectral_clusters(
+    affinity, *, lambda_thr: float = 0.7, max_clusters: int = 64, seed: int = 0, restarts: int = 8
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Spectral clustering with the number of clusters from the eigenvalues (Ng et al. 2002).
+
+    Parameters
+    ----------
+    affinity : (n, n) float ndarray
+        Symmetric, non-negative.
+    lambda_thr : float
+        ``k`` = number of eigenvalues of ``I - D^-1/2 A D^-1/2`` below it.
+    max_clusters : int
+        Upper bound of ``k``.
+    seed : int
+        k-means seed (deterministic results).
+    restarts : int
+        k-means runs; the one with the smallest within-cluster distortion wins.
+
+    Returns
+    -------
+    labels : (n,) int ndarray
+    eigenvalues : (m,) float ndarray
+        The ``m = min(n, max_clusters + 1)`` smallest eigenvalues.
+    k : int
+    """
+    A = np.asarray(affinity, dtype=np.float64)
+    if A.ndim != 2 or A.shape[0] != A.shape[1] or len(A) == 0:
+        raise ValueError(f"affinity must be a square (n, n) matrix, got {A.shape}")
+    if not (0 < lambda_thr < 2):
+        raise ValueError(f"lambda_thr must be within (0, 2), got {lambda_thr}")
+    n = len(A)
+    d = A.sum(1)
+    s = 1.0 / np.sqrt(np.maximum(d, 1e-300))
+    L = np.eye(n) - s[:, None] * A * s[None, :]
+    w, U = np.linalg.eigh(L)
+    m = min(n, int(max_clusters) + 1)
+    k = int(np.clip((w < lambda_thr).sum(), 1, min(int(max_clusters), n)))
+    if k == 1:
+        return np.zeros(n, dtype=np.int64), w[:m], 1
+    F = U[:, :k]
+    F = F / np.maximum(np.linalg.norm(F, axis=1, keepdims=True), 1e-12)
+    rng = np.random.default_rng(seed)
+    best, best_cost = None, np.inf
+    for _ in range(max(1, int(restarts))):
+        cent, lab = kmeans2(F, k, minit="++", seed=rng)
+        cost = float(((F - cent[lab]) ** 2).sum())
+        if cost < best_cost:
+            best, best_cost = lab, cost
+    _, best = np.unique(best, return_inverse=True)
+    return best.astype(np.int64), w[:m], k
+
+
+def propagate_labels(points, faces, samples, sample_labels) -> np.ndarray:
+    """Every vertex takes the label of its nearest sample along the surface.
+
+    Distances are shortest paths on the edge graph; a vertex in a part of the
+    mesh that holds no sample takes the label of the Euclidean-nearest one.
+
+    Returns
+    -------
+    (V,) int ndarray
+    """
+    p = np.asarray(points, dtype=np.float64)
+    samples = np.asarray(samples, dtype=np.int64)
+    sample_labels = np.asarray(sample_labels, dtype=np.int64)
+    g = edge_graph(p, mesh_edges(faces))
+    dist, _, src = dijkstra(g, directed=False, indices=samples, min_only=True, return_predecessors=True)
+    out = np.full(len(p), -1, dtype=np.int64)
+    ok = np.isfinite(dist) & (src >= 0)
+    lut = np.full(len(p), -1, dtype=np.int64)
+    lut[samples] = sample_labels
+    out[ok] = lut[src[ok]]
+    if np.any(~ok):
+        from scipy.spatial import cKDTree
+
+        _, j = cKDTree(p[samples]).query(p[~ok])
+        out[~ok] = sample_labels[j]
+    return out
+
+
+def _connected_segments(labels: np.ndarray, edges: np.ndarray, n_vertices: int, min_size: int) -> np.ndarray:
+    """Split labels into surface-connected patches, merge tiny patches, renumber by size."""
+    same = labels[edges[:, 0]] == labels[edges[:, 1]]
+    e = edges[same]
+    g = sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))
+    _, comp = connected_components(g, directed=False)
+    for _ in range(50):
+        sizes = np.bincount(comp)
+        small = np.flatnonzero((sizes > 0) & (sizes < min_size))
+        if len(small) == 0 or (sizes > 0).sum() <= 1:
+            break
+        # shared boundary lengths between patches
+        ca, cb = comp[edges[:, 0]], comp[edges[:, 1]]
+        cross = ca != cb
+        pairs = np.r_[np.c_[ca[cross], cb[cross]], np.c_[cb[cross], ca[cross]]]
+        changed = False
+        for c in small[np.argsort(sizes[small])]:
+            nb = pairs[pairs[:, 0] == c, 1]
+            nb = nb[sizes[nb] > 0]
+            if len(nb) == 0:
+                continue  # an isolated part of the mesh: keep it
+            tgt = int(np.bincount(nb).argmax())
+            comp[comp == c] = tgt
+            sizes[tgt] += sizes[c]
+            sizes[c] = 0
+            changed = True
+        if not changed:
+            break
+    uniq, inv = np.unique(comp, return_inverse=True)
+    order = np.argsort(-np.bincount(inv), kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return rank[inv].astype(np.int64)
+
+
+def motion_segmentation(
+    vertices,
+    faces,
+    *,
+    n_samples: int = 1000,
+    lam: float = 0.1,
+    lambda_thr: float = 0.7,
+    reference_size: float = REFERENCE_SIZE,
+    use_normals: bool = True,
+    min_segment: float = 0.005,
+    max_clusters: int = 64,
+    seed: int = 0,
+) -> Segmentation:
+    """Segment a mesh sequence into rigidly moving parts (Tzionas & Gall 2016, section 4.1).
+
+    Parameters
+    ----------
+    vertices : (T, V, 3) float ndarray
+        Vertex trajectories: vertex ``i`` is the same surface point in every
+        frame (shared connectivity).
+    faces : (F, 3) int ndarray
+    n_samples : int
+        Sampled vertices for the affinity matrix (paper: 1000).
+    lam : float
+        ``lambda`` of ``exp(-lambda d)`` per reference millimetre (paper: 0.1).
+    lambda_thr : float
+        Eigenvalue threshold (paper: 0.7; 0.98 for small parts with small motion).
+    reference_size : float
+        The subject's size in reference millimetres (see the module docstring).
+    use_normals : bool
+        Include ``d^n`` (the paper's default); ``False`` uses ``d^v`` alone.
+    min_segment : float
+        Surface patches below this fraction of the vertices are merged into a neighbour.
+    max_clusters : int
+    seed : int
+
+    Returns
+    -------
+    Segmentation
+        ``k == 1`` (one segment, a warning logged) when nothing bends or the
+        sequence has a single frame.
+    """
+    v, f = check_sequence(vertices, faces)
+    if not (lam > 0 and np.isfinite(lam)):
+        raise ValueError(f"lam must be > 0, got {lam}")
+    if not (reference_size > 0 and np.isfinite(reference_size)):
+        raise ValueError(f"reference_size must be > 0, got {reference_size}")
+    if int(n_samples) < 2:
+        raise ValueError(f"n_samples must be >= 2, got {n_samples}")
+    if not 0 <= min_segment < 0.5:
+        raise ValueError(f"min_segment must be within [0, 0.5), got {min_segment}")
+    T, V, _ = v.shape
+    size = subject_size(v)
+    if not size > 0:
+        raise ValueError("vertices: the subject has zero size")
+    to_ref = float(reference_size) / size
+    samples = sample_vertices(v[0], n_samples)
+    dt = interval_length(v, to_reference=to_ref)
+    lam_units = float(lam) * to_ref
+    if T < 2:
+        log.warning("one frame: no motion to segment, the whole mesh is one segment")
+        return Segmentation(np.zeros(V, dtype=np.int64), samples, np.zeros(len(samples), dtype=np.int64),
+                            np.zeros(1), 1, dt, lam_units)
+    normals = _sample_normals(v, f, samples) if use_normals else None
+    dv, dn = trajectory_distances(v[:, samples], normals, interval=dt)
+    d = dv * (dn + 1.0) if use_normals else dv
+    A = np.exp(-lam_units * d.astype(np.float64))
+    sample_labels, eig, k = spectral_clusters(A, lambda_thr=lambda_thr, max_clusters=max_clusters, seed=seed)
+    if k == 1:
+        log.warning("nothing bends in this sequence (one eigenvalue below lambda_thr=%g): one segment", lambda_thr)
+        return Segmentation(np.zeros(V, dtype=np.int64), samples, sample_labels, eig, 1, dt, lam_units)
+    labels = propagate_labels(v[0], f, samples, sample_labels)
+    labels = _connected_segments(labels, mesh_edges(f), V, max(1, int(round(min_segment * V))))
+    return Segmentation(labels, samples, sample_labels, eig, k, dt, lam_units)

@@ -1,0 +1,242 @@
+"""Imports run one way (docs/architecture.md): no module imports a higher floor, not even
+inside a function, and two packages on one floor do not import each other.
+
+Every module of the five packages is parsed with :mod:`ast`; every ``import`` and
+``from ... import`` counts, wherever it is (module level, function, ``if TYPE_CHECKING``),
+and so does a string that is a whole import path (``"stage.process:process_take"``), since
+``importlib`` turns it into an import the parser would not see.
+"""
+
+from __future__ import annotations
+
+import ast
+import graphlib
+import re
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("stage", "calib", "pipeline", "api", "fake_cameras")
+
+#: floor number -> (name, module prefixes). A module belongs to the floor of its longest
+#: matching prefix; docs/architecture.md explains each floor.
+FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
+    0: ("model", (
+        "calib", "calib.camera", "calib.calibration", "calib.boards", "calib.formats", "calib._toml",
+        "stage", "stage.frame", "stage.rig",
+    )),
+    1: ("ground", (
+        "stage.drivers", "stage.sync", "stage.store", "stage.keying", "stage.discovery", "stage.capture",
+        "pipeline", "pipeline.volume", "pipeline.geodesic", "pipeline.meshio",
+    )),
+    2: ("steps", (
+        "pipeline.hull", "pipeline.surface", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
+        "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
+        "pipeline.rig_model", "pipeline.gltf_export", "pipeline.results",
+        "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",
+    )),
+    3: ("orchestration", (
+        # process, import and report are orchestration; they sit in stage/ until they move
+        # (see MOVES_PENDING below and docs/architecture.md)
+        "stage.process", "stage.importer", "stage.report",
+        "fake_cameras",
+    )),
+    4: ("service", ("api",)),
+    5: ("composition root", ("stage.cli", "stage.benchmarks", "stage.__main__")),
+}
+
+#: Orchestration modules still under stage/ whose home is another package; each line is one
+#: ``git mv`` + import rewrite. Remove a line when its move is done.
+MOVES_PENDING = {
+    "stage.process": "git mv stage/process.py pipeline/process.py",
+    "stage.report": "git mv stage/report pipeline/report",
+    "stage.importer": "stays; imports check_plane from stage.rig, then moves to floor 1 (ground)",
+}
+
+@dataclass(frozen=True)
+class Edge:
+    importer: str
+    imported: str
+    path: Path
+    line: int
+    how: str  # "import" or "string"
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.line}: {self.importer} -> {self.imported} ({self.how})"
+
+
+def module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def imports_of(path: Path, root: Path, packages: tuple[str, ...]) -> list[Edge]:
+    """Every import of one of ``packages`` in the file, at any depth, and whole import-path strings."""
+    name = module_name(path, root)
+    is_pkg = path.name == "__init__.py"
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    pattern = re.compile(r"^(?:%s)(?:\.[A-Za-z_]\w*)*(?::[A-Za-z_]\w*)?$" % "|".join(map(re.escape, packages)))
+    out = []
+    for node in ast.walk(tree):
+        targets: list[tuple[str, str]] = []
+        if isinstance(node, ast.Import):
+            targets = [(a.name, "import") for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:  # relative: resolve against this module's package
+                base = name.split(".") if is_pkg else name.split(".")[:-1]
+                base = base[: len(base) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            # ``from pkg import mod`` imports pkg.mod when that is a module
+            targets = [(mod, "import")] + [(f"{mod}.{a.name}", "import?") for a in node.names]
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and pattern.match(node.value):
+            targets = [(node.value.split(":")[0], "string")]
+        for target, how in targets:
+            if target.split(".")[0] in packages:
+                out.append(Edge(name, target, path.relative_to(root), node.lineno, how))
+    return out
+
+
+def import_graph(root: Path, packages: tuple[str, ...]) -> tuple[set[str], list[Edge]]:
+    """All modules of ``packages`` under ``root`` and the edges between them."""
+    modules, edges = set(), []
+    for pkg in packages:
+        for path in sorted((root / pkg).rglob("*.py")):
+            modules.add(module_name(path, root))
+            edges += imports_of(path, root, packages)
+    resolved = []
+    for e in edges:
+        if e.how == "import?":  # ``from a import b``: an edge to a.b only when a.b is a module
+            if e.imported in modules:
+                resolved.append(Edge(e.importer, e.imported, e.path, e.line, "import"))
+        else:
+            resolved.append(e)
+    return modules, resolved
+
+
+def floor_of(module: str, floors: dict[int, tuple[str, tuple[str, ...]]]) -> int | None:
+    best, best_len = None, -1
+    for number, (_, prefixes) in floors.items():
+        for p in prefixes:
+            if (module == p or module.startswith(p + ".")) and len(p) > best_len:
+                best, best_len = number, len(p)
+    return best
+
+
+def violations(root: Path, packages: tuple[str, ...], floors) -> list[str]:
+    """Upward imports, imports between packages of one floor, modules without a floor, room cycles."""
+    modules, edges = import_graph(root, packages)
+    problems = [f"{m}: on no floor (add it to FLOORS and docs/architecture.md)"
+                for m in sorted(modules) if floor_of(m, floors) is None]
+    rooms: dict[tuple[int, str], set[tuple[int, str]]] = {}
+    for e in edges:
+        a, b = floor_of(e.importer, floors), floor_of(e.imported, floors)
+        if a is None or b is None:
+            continue
+        pa, pb = e.importer.split(".")[0], e.imported.split(".")[0]
+        rooms.setdefault((a, pa), set())
+        if (b, pb) != (a, pa):
+            rooms[(a, pa)].add((b, pb))
+        if b > a:
+            problems.append(f"upward import, floor {a} ({floors[a][0]}) -> floor {b} ({floors[b][0]}): {e}")
+        elif b == a and pa != pb:
+            problems.append(f"import between two packages of floor {a} ({floors[a][0]}): {e}")
+    try:
+        graphlib.TopologicalSorter(rooms).prepare()
+    except graphlib.CycleError as exc:
+        problems.append(f"circular imports between packages/floors: {exc.args[1]}")
+    return problems
+
+
+# --------------------------------------------------------------------------- the project
+
+
+def test_imports_run_one_way():
+    problems = violations(ROOT, PACKAGES, FLOORS)
+    assert not problems, "\n".join(problems)
+
+
+def test_every_floor_prefix_is_a_module():
+    modules, _ = import_graph(ROOT, PACKAGES)
+    stale = [p for _, prefixes in FLOORS.values() for p in prefixes
+             if p not in modules and not any(m.startswith(p + ".") for m in modules)]
+    assert not stale, f"FLOORS names modules that do not exist: {stale}"
+
+
+def test_pending_moves_are_still_pending():
+    """A finished move must leave MOVES_PENDING (and the floor map) too."""
+    modules, _ = import_graph(ROOT, PACKAGES)
+    done = [m for m in MOVES_PENDING if m not in modules]
+    assert not done, f"moved already, remove from MOVES_PENDING: {done}"
+
+
+def test_string_import_paths_are_edges():
+    """``"stage.process:process_take"`` counts as an import (api -> orchestration, downward)."""
+    _, edges = import_graph(ROOT, PACKAGES)
+    strings = {(e.importer, e.imported) for e in edges if e.how == "string"}
+    assert ("api.settings", "stage.process") in strings
+
+
+# --------------------------------------------------------------------------- the checker itself
+
+
+def _tree(tmp_path: Path, files: dict[str, str]) -> Path:
+    for rel, text in files.items():
+        p = tmp_path / rel
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(textwrap.dedent(text))
+    return tmp_path
+
+
+TOY_FLOORS = {0: ("low", ("low",)), 1: ("high", ("high",))}
+TOY = {"low/__init__.py": "", "low/a.py": "import math\n", "high/__init__.py": "", "high/b.py": "from low import a\n"}
+
+
+def test_checker_passes_a_clean_tree(tmp_path):
+    assert violations(_tree(tmp_path, TOY), ("low", "high"), TOY_FLOORS) == []
+
+
+@pytest.mark.parametrize("planted", [
+    "from high import b\n",                                   # module level
+    "def f():\n    from high.b import x\n    return x\n",     # inside a function
+    "def f():\n    import high.b\n",                          # plain import in a function
+    "WORK = 'high.b:run'\n",                                  # an import path as a string
+    "from ..high import b\n",                                 # relative import out of the package
+])
+def test_checker_fails_on_a_planted_upward_import(tmp_path, planted):
+    root = _tree(tmp_path, {**TOY, "low/a.py": planted})
+    problems = violations(root, ("low", "high"), TOY_FLOORS)
+    assert len(problems) >= 1 and "upward import" in problems[0], problems
+
+
+def test_checker_fails_between_packages_of_one_floor(tmp_path):
+    floors = {0: ("ground", ("low", "high"))}
+    problems = violations(_tree(tmp_path, TOY), ("low", "high"), floors)
+    assert any("between two packages of floor 0" in p for p in problems), problems
+
+
+def test_checker_fails_on_a_module_without_floor(tmp_path):
+    root = _tree(tmp_path, {**TOY, "other/__init__.py": ""})
+    problems = violations(root, ("low", "high", "other"), TOY_FLOORS)
+    assert problems == ["other: on no floor (add it to FLOORS and docs/architecture.md)"]
+
+
+def test_checker_fails_on_a_cycle_the_floors_do_not_order(tmp_path):
+    floors = {0: ("one", ("low", "high"))}
+    root = _tree(tmp_path, {**TOY, "low/a.py": "import high.b\n"})
+    assert any("circular" in p for p in violations(root, ("low", "high"), floors))
+
+
+def test_the_project_goes_red_on_a_planted_upward_import(tmp_path):
+    """The real floor map on a copy of one ground module with an upward import planted in a function."""
+    files = {f"{p}/__init__.py": "" for p in PACKAGES}
+    files["stage/rig.py"] = "def f():\n    from pipeline.volume import check_plane\n    return check_plane\n"
+    files["pipeline/volume.py"] = "from stage.rig import f\n"
+    problems = [p for p in violations(_tree(tmp_path, files), PACKAGES, FLOORS) if "no floor" not in p]
+    assert problems and "upward import, floor 0 (model) -> floor 1 (ground)" in problems[0], problems
