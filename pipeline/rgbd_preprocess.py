@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calib.camera import Camera
-from pipeline.tracking import COS_45, TrackingError, closest_pairs, vertex_normals
+from pipeline.tracking import TrackingError, closest_pairs, vertex_normals
 
 __all__ = [
     "SKIN_GMM",

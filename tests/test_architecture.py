@@ -36,12 +36,13 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.hull", "pipeline.surface", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
         "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
         "pipeline.rig_model", "pipeline.gltf_export", "pipeline.results",
+        "pipeline.tracking", "pipeline.rgbd_preprocess",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",
     )),
     3: ("orchestration", (
         # process, import and report are orchestration; they sit in stage/ until they move
         # (see MOVES_PENDING below and docs/architecture.md)
-        "stage.process", "stage.importer", "stage.report",
+        "stage.process", "stage.importer", "stage.report", "stage.track",
         "fake_cameras",
     )),
     4: ("service", ("api",)),

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         for k in range(F):
             fr = preprocess_depth(tk.depth[k], cam, bounds=lohi)
             fit = tr.fit(fr.points, fr.normals, previous=prev,
-                         visible=lambda X, n, fr=fr: visible_vertices(X, T, cam, normals=n, observed=fr.valid))
+                         visible=lambda X, n, fr=fr, T=T, cam=cam: visible_vertices(X, T, cam, normals=n, observed=fr.valid))
             prev = fit.vertices
         rg = (time.perf_counter() - t0) / F
         print(f"{len(V):6d} vertices  single RGB-D: {rg:6.3f} s per frame (preprocessing and z-buffer included)")
