@@ -302,8 +302,22 @@ def detect_images(root: Path, board, *, step: int = 1, min_change: float = 0.02,
     return detections, sizes, flipped, notes
 
 
-def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, progress: bool = True):
-    """Detections (every one) and image sizes per camera from a take (through ``stage.store.TakeReader``)."""
+def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, progress: bool = True,
+                mirror: list[str] | tuple = ()):
+    """Detections (every one) and image sizes per camera from a take (through ``stage.store.TakeReader``).
+
+    Returns
+    -------
+    detections, sizes, cameras
+        ``detections`` of a camera whose board is found only in the flipped image are made on the
+        flipped images; :func:`detect_take_flipped` returns which.
+    """
+    dets, sizes, cams, _, _ = detect_take_flipped(path, board, step=step, progress=progress, mirror=mirror)
+    return dets, sizes, cams
+
+
+def detect_take_flipped(path: Path, board, *, step: int = 1, progress: bool = True, mirror: list[str] | tuple = ()):
+    """:func:`detect_take`, also returning the flipped cameras and the notes."""
     from tqdm import tqdm
 
     from calib.detect import detect_board
@@ -311,19 +325,49 @@ def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, p
 
     with TakeReader(path) as r:
         cams = list(r.cameras)
+        mirror_of = parse_mirror(list(mirror), cams)
         sizes = {name: tuple(r.image_size(name)) for name in cams}
         raw: dict[str, list] = {name: [] for name in cams}
+        sets = list(range(0, r.n_sets, step))
+        want = _sample_positions(len(sets))
+        sample: dict[str, list] = {name: [] for name in cams}
+        found_sample = dict.fromkeys(cams, 0)
         # frame sets keep the cameras in sync: the set index is the moment ("frame") of a detection
-        for k in tqdm(range(0, r.n_sets, step), desc="detect", unit="set", disable=not progress,
-                      dynamic_ncols=True, leave=False):
+        for i, k in enumerate(tqdm(sets, desc="detect", unit="set", disable=not progress, dynamic_ncols=True,
+                                   leave=False)):
             for name, img in r.frame_set(k).items():
-                raw[name].append(None if img is None else detect_board(img, board, frame=k))
+                d = None if img is None else detect_board(img, board, frame=k, mirror=bool(mirror_of[name]))
+                raw[name].append(d)
+                if i in want and img is not None:
+                    sample[name].append(img)
+                    found_sample[name] += int(d is not None)
+        notes, flipped, problems = [], [], []
+        for name in cams:
+            n_found = sum(d is not None for d in raw[name])
+            flip, msg = decide_mirror(name, n_found, len(raw[name]), sample[name], found_sample[name], board,
+                                      mirror_of[name])
+            if msg:
+                notes.append(msg)
+                if not flip and not n_found:
+                    problems.append(msg)
+            if flip != bool(mirror_of[name]):
+                rows = [(k, r.set_rows(k).get(name, -1)) for k in sets]
+                raw[name] = [detect_board(r.frame(name, row), board, frame=k, mirror=flip) if row >= 0 else None
+                             for k, row in rows]
+            if flip:
+                flipped.append(name)
     detections = {}
     for name in cams:
-        dets = raw[name]
-        detections[name] = [d for d in dets if d is not None]
-        print(f"  {name}: board found in {len(detections[name])}/{len(dets)} frame sets")
-    return detections, sizes, cams
+        detections[name] = [d for d in raw[name] if d is not None]
+        print(f"  {name}: board found in {len(detections[name])}/{len(raw[name])} frame sets"
+              f"{' (flipped)' if name in flipped else ''}")
+    if problems:
+        from calib.intrinsics import CalibrationError
+
+        for line in notes:
+            print(f"  note: {line}")
+        raise CalibrationError("; ".join(problems), cameras=[p.split(":")[0].removeprefix("camera ") for p in problems])
+    return detections, sizes, cams, flipped, notes
 
 
 def _detect(args: argparse.Namespace, board, quiet: bool):
@@ -331,7 +375,10 @@ def _detect(args: argparse.Namespace, board, quiet: bool):
     if args.take is not None:
         if not args.take.is_file():
             raise FileNotFoundError(f"take not found: {args.take}")
-        detections, sizes, cams = detect_take(args.take, board, step=args.step, progress=not quiet)
+        detections, sizes, cams, flipped, notes = detect_take_flipped(args.take, board, step=args.step,
+                                                                      progress=not quiet, mirror=args.mirror)
+        for line in dict.fromkeys(notes):
+            print(f"  note: {line}")
     else:
         detections, sizes, flipped, notes = detect_images(
             args.images, board, step=args.step, progress=not quiet, timestamps=args.timestamps, mirror=args.mirror)
