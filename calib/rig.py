@@ -43,13 +43,15 @@ from calib.evaluate import projection_uncertainty, reprojection_errors
 from calib.extrinsics import ExtrinsicsResult, calibrate_extrinsics, triangulate_board_error
 from calib.intrinsics import CalibrationError, IntrinsicsResult, calibrate_intrinsics
 
-__all__ = ["RigCalibration", "calibrate_rig", "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA"]
+__all__ = ["RigCalibration", "calibrate_rig", "resolve_flipped", "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA",
+           "CORNER_WARN_PX"]
 
 log = logging.getLogger(__name__)
 
 INTRINSICS_MODES = ("prior", "fixed", "free")
 MAX_SETS = 300  # frame sets in the bundle adjustment above which they are evenly thinned
 MOVE_WARN_SIGMA = 3.0  # an intrinsic that moved further than this many Zhang sigmas is reported
+CORNER_WARN_PX = 2.0  # projection uncertainty at the image corners above which the report warns
 
 
 @dataclass(frozen=True, eq=False)
@@ -333,8 +335,8 @@ def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | N
     for i, block in enumerate(blocks):
         out = set(block.tolist())
         rest = {n: [d for d in dets[n] if d.frame not in out] for n in names}
-        try:
-            _, ext, _ = _solve(rest, sizes, board, names, **solve_kw)
+        try:  # the world frame is a gauge: any will do, and the chosen one may be in the fold
+            _, ext, _ = _solve(rest, sizes, board, names, **{**solve_kw, "world_frame": None})
         except CalibrationError as exc:
             failed.append(f"fold {i + 1} of {k}: {exc}")
             continue
@@ -372,6 +374,12 @@ def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_f
             warn.append(f"camera {name}: the bundle adjustment moved " + ", ".join(
                 f"{k} by {v:+.1f} sigma" for k, v in far.items()) + " from its own calibration; the rig data "
                 "disagrees with what this camera saw alone (a moved camera, a bent board, or too few views of it)")
+    for name, u in ev["uncertainty"].items():
+        corner = max(v for k, v in u.items() if k != "centre")
+        if corner > CORNER_WARN_PX:
+            warn.append(f"camera {name}: its projection is uncertain by {_px(corner)} px (1 sigma) at the image "
+                        f"corners: the lens distortion there is extrapolated from the board's views; film the board "
+                        f"near the corners of {name}'s image (or use --fix-k3 for a mild lens)")
     ev["held_out"] = _held_out(dets, sizes, board, names, holdout_folds, solve_kw) if holdout_folds else None
     if ev["held_out"] is not None:
         warn += [f"held-out {f}" for f in ev["held_out"]["failed_folds"]]
