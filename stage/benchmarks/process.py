@@ -152,8 +152,13 @@ def _executors(args):
             return
 
         def dask():
-            cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   host="127.0.0.1")
+            import dask
+
+            from api.executors import DASK_WORKER_ENV
+
+            with dask.config.set(DASK_WORKER_ENV):  # as the API's LocalCluster
+                cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                       host="127.0.0.1")
             client = Client(cluster)
             return client.get_executor(pure=False), (client, cluster)
 
