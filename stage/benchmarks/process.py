@@ -263,10 +263,10 @@ def run(args: argparse.Namespace) -> int:
             names = {"key": "key", "grid": "grid choice", "surface": "surface + skeletons", "spine": "spine (reduce)"}
             if "startup" in rep:
                 print(f"{label:<30} {'worker start-up':<22} {rep['startup']:9.2f}")
-            for step in ("key", "grid", "surface", "spine"):
+            for step in ["key", "grid", "surface", "spine"] + [k for k in sec if k not in names]:
                 if step in sec:
                     ratio = f"{own_s[step]:8.2f} {sec[step] / own_s[step]:6.2f}" if step in own_s else ""
-                    print(f"{label:<30} {names[step]:<22} {sec[step]:9.2f} {ratio}")
+                    print(f"{label:<30} {names.get(step, step):<22} {sec[step]:9.2f} {ratio}")
             other = wall - sum(sec.values()) - rep.get("startup", 0.0)
             print(f"{label:<30} {'other':<22} {other:9.2f}")
             print(f"{label:<30} {'END TO END':<22} {wall:9.2f} {'':>8} {'':>6}  {n_sets / wall:5.1f} sets/s")
