@@ -236,3 +236,26 @@ def test_thin_tail_survives_the_default_grid(tmp_path):
     assert acc["K"] == 6
     assert acc["identity_consistent"] == 1.0
     assert acc["tip_within_tol"] >= 0.95
+
+
+def test_steps_are_a_registry(starfish, processed, tmp_path):
+    """A step registered after another runs in order on the same context; bad registrations fail."""
+    import stage.process as sp
+
+    _, path = starfish
+    seen = []
+    before = dict(sp._REGISTRY)
+    try:
+        sp.register_step("count", lambda ctx: seen.append((ctx.n_sets, ctx.steps)), after="surface")
+        assert sp.STEPS.index("count") == sp.STEPS.index("surface") + 1
+        res = process_take(path, tmp_path / "o", steps=("count",))
+        assert seen == [(8, ("count",))] and res.steps == ("count",)
+    finally:
+        sp._REGISTRY.clear()
+        sp._REGISTRY.update(before)
+        sp.STEPS = tuple(before)
+    with pytest.raises(ValueError, match="name"):
+        sp.register_step("not a name", lambda ctx: None)
+    with pytest.raises(ValueError, match="after"):
+        sp.register_step("x", lambda ctx: None, after="nothing")
+    assert "count" not in sp.STEPS and "x" not in sp.STEPS
