@@ -259,3 +259,34 @@ def test_steps_are_a_registry(starfish, processed, tmp_path):
     with pytest.raises(ValueError, match="after"):
         sp.register_step("x", lambda ctx: None, after="nothing")
     assert "count" not in sp.STEPS and "x" not in sp.STEPS
+
+
+_AFTER_OPENCV_THREADS = """
+import concurrent.futures as cf, multiprocessing, sys
+import cv2, numpy as np
+from fake_cameras.record import record_take
+from fake_cameras.take import simulate_take
+from stage.process import process_take
+
+cv2.setNumThreads(2)  # OpenCV's thread pool running in this process before the workers start
+cv2.GaussianBlur(np.zeros((2000, 2000), np.float32), (31, 31), 5)
+sim = simulate_take("starfish", n_cameras=4, frames=2, size=(320, 240), seed=1)
+path = record_take(sim, sys.argv[1] + "/t.h5")
+for method in ("fork", "forkserver"):
+    with cf.ProcessPoolExecutor(2, mp_context=multiprocessing.get_context(method)) as ex:
+        process_take(path, sys.argv[1] + "/out-" + method, steps=("key", "surface"), params={"rekey": True}, executor=ex)
+print("finished")
+"""
+
+
+def test_worker_pools_survive_opencv_threads_in_the_parent(tmp_path):
+    """A parent that used OpenCV's thread pool, then a forked or forkserver pool: no deadlock
+    (a forked worker hung in cv2.setNumThreads; `stage demo` calibrates before it processes)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    run = subprocess.run([sys.executable, "-c", _AFTER_OPENCV_THREADS, str(tmp_path)], capture_output=True, text=True,
+                         timeout=300, env=env, cwd=tmp_path)
+    assert run.returncode == 0 and "finished" in run.stdout, run.stderr[-2000:]
