@@ -153,7 +153,7 @@ class ProcessResult:
     report: dict = field(default_factory=dict)
 
 
-# ----------------------------------------------------------------------------- helpers
+# ----------------------------------------------------------------------------- files and caches
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
