@@ -215,7 +215,7 @@ def triangulate_board_error(
     iu, ju = np.triu_indices(n_corners, 1)
     true_all = np.linalg.norm(obj[iu] - obj[ju], axis=1)
     true_nb = np.linalg.norm(obj[pairs[:, 0]] - obj[pairs[:, 1]], axis=1)
-    for frame, dets in by_frame.items():
+    for dets in by_frame.values():
         if len(dets) < min_cameras:
             continue
         xy = np.zeros((n_corners, C, 2))
