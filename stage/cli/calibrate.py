@@ -190,8 +190,8 @@ def decide_mirror(name: str, found: int, total: int, sample: list, as_is: int, b
                               f"{v[3]}/{len(pick)} sampled frames; fix the board file"
                               + (" (and the camera's mirror mode)" if v[2] else ""))
     return bool(mirror), (f"camera {name}: the board was never detected in {total} frames (nor inverted, "
-                          f"legacy or mirrored); check that {name} sees the board, its focus, and that the "
-                          f"board file matches the print")
+                          f"legacy, mirrored or with the squares counted as inner corners); check that {name} sees "
+                          f"the board, its focus, and that the board file matches the print")
 
 
 def _sample_positions(total: int) -> set[int]:
