@@ -682,6 +682,25 @@ register_step("surface", _step_surface, doc="visual hull and surface per frame s
 register_step("spine", _step_spine, doc="per-frame skeletons and the take's spine")
 
 
+def _step_rig(ctx: RunContext) -> None:
+    """Articulated rig from the tracked template (``tracked/``) -> ``rig/``. Without a tracked
+    template it is skipped with a warning inside a full run, an error when asked for alone."""
+    from pipeline.articulated_rig import NoTrackingError, rig_results
+
+    t0 = time.perf_counter()
+    try:
+        rig_results(ctx.out, units=ctx.calibration.units, fps=float(ctx.fps), progress=ctx.progress)
+    except NoTrackingError as exc:
+        if "spine" not in ctx.steps:
+            raise ProcessError(str(exc)) from None
+        ctx.warnings.append(f"rig step skipped: {exc}")
+        log.warning("rig step skipped: %s", exc)
+    ctx.timings["rig"] = time.perf_counter() - t0
+
+
+register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine")
+
+
 # ----------------------------------------------------------------------------- driver
 
 
