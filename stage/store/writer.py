@@ -183,6 +183,8 @@ class TakeWriter:
         reserve = 2 * max(c.frame_bytes() for c in cams) * len(cams) + (1 << 20)
         if expected_sets is not None:
             need = estimate_take_bytes(cams, int(expected_sets), compression=compression) + reserve
+            if overwrite and p.is_file():
+                need -= p.stat().st_size  # freed before writing
             check_free_space(p, need, f"a take of {int(expected_sets)} frame sets")
         self._block = int(block)
         self._col = {c.id: i for i, c in enumerate(cams)}
