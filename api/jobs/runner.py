@@ -32,7 +32,7 @@ from typing import Any, Callable, Sequence
 
 from api.executors import ExecutorHandle, make_executor
 from api.jobs.store import JobRecord, JobStore
-from api.paths import data_relative
+from api.paths import confined, data_relative
 
 __all__ = ["JobRunner", "WorkSpec", "WorkUnavailableError", "load_work", "DEFAULT_STEPS"]
 
@@ -293,7 +293,7 @@ class JobRunner:
         log.info("job %s: %s on take %s (attempt %d)", jid, "/".join(rec.steps), rec.take, rec.attempts)
         try:
             take = self.takes_dir / f"{rec.take}.h5"
-            if not take.is_file():
+            if not take.is_file() or not confined(take, self.takes_dir):
                 raise FileNotFoundError(f"take {rec.take!r} not found")
             out = self.jobs_dir / jid
             out.mkdir(parents=True, exist_ok=True)
