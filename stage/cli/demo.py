@@ -155,6 +155,7 @@ def _transform_spine(spine: dict, R: np.ndarray, T: np.ndarray) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     import concurrent.futures as cf
+    import multiprocessing
 
     from calib.formats import write_calibration
     from fake_cameras.device import take_for_rig
@@ -224,7 +225,8 @@ def run(args: argparse.Namespace) -> int:
 
     # 4. process
     results = out / f"{args.subject}-results"
-    executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
+    pool_ctx = multiprocessing.get_context("forkserver")  # as `stage process`: workers start clean
+    executor = cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=pool_ctx) if args.workers > 0 else None
     try:
         with StepBars(disable=args.no_progress) as progress:
             result = process_take(take_path, results, params=ProcessParams(), executor=executor, progress=progress)
