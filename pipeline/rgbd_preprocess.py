@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calib.camera import Camera
-from pipeline.tracking import COS_45, TrackingError, closest_pairs, vertex_normals
+from pipeline.tracking import TrackingError, closest_pairs, vertex_normals
 
 __all__ = [
     "SKIN_GMM",
@@ -244,7 +244,7 @@ def render_depth(vertices, faces, camera: Camera) -> np.ndarray:
     """Z-buffer render of a mesh: (H, W) camera-frame Z of the nearest triangle, ``inf`` where none.
 
     Vertices are projected through the camera model (distortion included); triangles are
-    filled in image space with depth interpolated linearly (pixel centres).
+    filled in image space with depth interpolated linearly (pixel centres at integer coordinates).
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -258,10 +258,11 @@ def render_depth(vertices, faces, camera: Camera) -> np.ndarray:
     if len(f) == 0:
         return zbuf.reshape(h, w)
     U, Vv, Z = uv[f, 0], uv[f, 1], z[f]
-    x0 = np.clip(np.ceil(U.min(1) - 0.5), 0, w).astype(np.int64)
-    x1 = np.clip(np.floor(U.max(1) - 0.5), -1, w - 1).astype(np.int64)
-    y0 = np.clip(np.ceil(Vv.min(1) - 0.5), 0, h).astype(np.int64)
-    y1 = np.clip(np.floor(Vv.max(1) - 0.5), -1, h - 1).astype(np.int64)
+    # pixel centres at integer coordinates (the camera model's convention)
+    x0 = np.clip(np.ceil(U.min(1)), 0, w).astype(np.int64)
+    x1 = np.clip(np.floor(U.max(1)), -1, w - 1).astype(np.int64)
+    y0 = np.clip(np.ceil(Vv.min(1)), 0, h).astype(np.int64)
+    y1 = np.clip(np.floor(Vv.max(1)), -1, h - 1).astype(np.int64)
     nx = np.maximum(x1 - x0 + 1, 0)
     ny = np.maximum(y1 - y0 + 1, 0)
     cnt = nx * ny
@@ -271,8 +272,8 @@ def render_depth(vertices, faces, camera: Camera) -> np.ndarray:
         return zbuf.reshape(h, w)
     start = np.repeat(np.cumsum(cnt[ok]) - cnt[ok], cnt[ok])
     k = np.arange(tri.size) - start
-    px = x0[tri] + k % nx[tri] + 0.5
-    py = y0[tri] + k // nx[tri] + 0.5
+    px = (x0[tri] + k % nx[tri]).astype(np.float64)
+    py = (y0[tri] + k // nx[tri]).astype(np.float64)
     ax, ay, bx, by, cx, cy = U[tri, 0], Vv[tri, 0], U[tri, 1], Vv[tri, 1], U[tri, 2], Vv[tri, 2]
     den = (by - cy) * (ax - cx) + (cx - bx) * (ay - cy)
     good = np.abs(den) > 1e-12
@@ -282,7 +283,7 @@ def render_depth(vertices, faces, camera: Camera) -> np.ndarray:
     l2 = 1.0 - l0 - l1
     inside = good & (l0 >= -1e-9) & (l1 >= -1e-9) & (l2 >= -1e-9)
     zz = l0 * Z[tri, 0] + l1 * Z[tri, 1] + l2 * Z[tri, 2]
-    idx = (py - 0.5).astype(np.int64) * w + (px - 0.5).astype(np.int64)
+    idx = py.astype(np.int64) * w + px.astype(np.int64)
     np.minimum.at(zbuf, idx[inside], zz[inside])
     return zbuf.reshape(h, w)
 
@@ -310,8 +311,8 @@ def visible_vertices(vertices, faces, camera: Camera, *, tolerance: float = 3.0,
     uv = np.asarray(uv)
     z = np.asarray(z).reshape(-1)
     w, h = camera.size
-    col = np.floor(uv[:, 0]).astype(np.int64)
-    row = np.floor(uv[:, 1]).astype(np.int64)
+    col = np.round(uv[:, 0]).astype(np.int64)
+    row = np.round(uv[:, 1]).astype(np.int64)
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h) & (z > 0)
     vis = np.zeros(len(v), bool)
     zb = zbuf[row[inside], col[inside]]

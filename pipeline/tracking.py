@@ -321,9 +321,10 @@ class TemplateTracker:
     """
 
     def __init__(self, vertices, faces, *, gamma: float | None = None, gate: float | None = None,
-                 rounds: int = ROUNDS, backend: str = "auto", tangential: float = 0.25):
+                 rounds: int = ROUNDS, backend: str = "auto", tangential: float = 0.25, hold: float = 0.1):
         v, f = _check_mesh(vertices, faces)
         self.tangential = float(tangential)
+        self.hold = float(hold)
         if gamma is not None and not (isinstance(gamma, (int, float)) and math.isfinite(gamma) and gamma > 0):
             raise ValueError(f"gamma must be a positive number, got {gamma!r}")
         if gate is not None and not (isinstance(gate, (int, float)) and math.isfinite(gate) and gate > 0):
@@ -383,6 +384,7 @@ class TemplateTracker:
         n = self.n_vertices
         tree_x = cKDTree(X) if len(X) else None
         smooth_rhs = self.LtL @ prev
+        start = V.copy()
         history = []
         n_md = n_dm = 0
         res = float("nan")
@@ -413,8 +415,9 @@ class TemplateTracker:
             history.append((n_md, n_dm, res))
             if n_md + n_dm == 0:
                 break
-            self.system.factor(self.gamma * counts + self.eps)
-            rhs = smooth_rhs + self.gamma * target + self.eps * V
+            hold = self.hold * (counts == 0)  # vertices without a pair keep their start weakly
+            self.system.factor(self.gamma * (counts + hold) + self.eps)
+            rhs = smooth_rhs + self.gamma * (target + hold[:, None] * start) + self.eps * V
             V = self.system.solve(rhs)
         return FrameFit(vertices=V, model_pairs=n_md, data_pairs=n_dm, residual=res,
                         rounds=len(history), history=history)

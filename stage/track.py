@@ -258,7 +258,8 @@ def track_rgbd_take(
         R, t, fit0 = rigid_icp(V0, F0, first[1][0], first[1][1], cam, gate=tracker.gate)
         placed = V0 @ R.T + t
         tracker = TemplateTracker(placed, F0, gamma=tracker.gamma, gate=tracker.gate)
-        report = {"mode": "rgbd", "take": str(take_path), "camera": cam_id, "template": str(template) if not isinstance(template, (tuple, list)) else "array",
+        name = str(template) if not isinstance(template, (tuple, list)) else "array"
+        report = {"mode": "rgbd", "take": str(take_path), "camera": cam_id, "template": name,
                   "vertices": int(len(V0)), "gamma": tracker.gamma, "gate_mm": tracker.gate, "rounds": tracker.rounds,
                   "solver": tracker.system.backend, "remove_skin": bool(remove_skin),
                   "icp": {"frame": first[0], "fit": round(fit0, 4), "R": R.tolist(), "t": t.tolist()},

@@ -1,0 +1,79 @@
+"""``stage bench track``: seconds per frame of template tracking (15 rounds), 6k and 25k vertices.
+
+Multi-view: the template is the simulated pipe's surface (marching cubes), the data each
+frame's surface of the bending pipe; single RGB-D: the simulated OAK-like take of the pipe,
+preprocessing and z-buffer visibility included. Also times the solver backends (one
+numeric refactorisation + solve of the 15 per frame).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+NAME = "track"
+HELP = "seconds per frame of template tracking for 6k / 25k-vertex templates (multi-view and single RGB-D)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--frames", type=int, default=5, help="frames timed per case (default 5)")
+
+
+def _spacing_for(obj, target):
+    from fake_cameras.rgbd import template_mesh
+
+    s = 4.0
+    for _ in range(4):
+        v, _ = template_mesh(obj, spacing=s)
+        s *= np.sqrt(len(v) / target)
+    return s
+
+
+def run(args: argparse.Namespace) -> int:
+    from fake_cameras.rgbd import make_object, simulate_rgbd_take, template_mesh
+    from pipeline.rgbd_preprocess import preprocess_depth, visible_vertices
+    from pipeline.tracking import CholeskySystem, TemplateTracker, vertex_normals
+
+    F = max(2, int(args.frames))
+    obj = make_object("pipe_half")
+    for target in (6000, 25000):
+        s = _spacing_for(obj, target)
+        V, T = template_mesh(obj, spacing=s)
+        tr = TemplateTracker(V, T)
+        for be in ("qdldl", "splu"):
+            try:
+                cs = CholeskySystem(tr.LtL, backend=be)
+            except ImportError:
+                continue
+            d = np.full(len(V), tr.gamma)
+            t0 = time.perf_counter()
+            for _ in range(5):
+                cs.factor(d)
+                cs.solve(np.ones((len(V), 3)))
+            print(f"{len(V):6d} vertices  solver {be:6s}: {(time.perf_counter() - t0) / 5 * 1000:7.1f} ms per refactor+solve")
+        tk = simulate_rgbd_take("pipe_half", frames=F, spacing=s, bend=20.0)
+        # multi-view: each frame's true surface as data
+        prev = V.copy()
+        t0 = time.perf_counter()
+        for k in range(F):
+            fit = tr.fit(tk.truth[k], vertex_normals(tk.truth[k], T), previous=prev)
+            prev = fit.vertices
+        mv = (time.perf_counter() - t0) / F
+        print(f"{len(V):6d} vertices  multi-view : {mv:6.3f} s per frame ({tr.system.backend}, {tr.rounds} rounds)")
+        cam = tk.calibration[0]
+        size = float(np.linalg.norm(np.ptp(V, 0)))
+        lohi = (V.min(0) - 0.15 * size, V.max(0) + 0.15 * size)
+        prev = V.copy()
+        t0 = time.perf_counter()
+        for k in range(F):
+            fr = preprocess_depth(tk.depth[k], cam, bounds=lohi)
+            fit = tr.fit(fr.points, fr.normals, previous=prev,
+                         visible=lambda X, n, fr=fr, T=T, cam=cam: visible_vertices(X, T, cam, normals=n, observed=fr.valid))
+            prev = fit.vertices
+        rg = (time.perf_counter() - t0) / F
+        print(f"{len(V):6d} vertices  single RGB-D: {rg:6.3f} s per frame (preprocessing and z-buffer included)")
+    print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl); "
+          "per frame: KD-tree of the data; per round: KD-tree of the vertices, pairs, numeric refactorisation")
+    return 0

@@ -1,0 +1,47 @@
+"""Simulated single RGB-D takes (fake_cameras.rgbd)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fake_cameras.rgbd import OBJECTS, make_object, simulate_rgbd_take, template_mesh
+from pipeline.tracking import mesh_volume
+
+
+@pytest.mark.parametrize("name, joints, at", [("pipe_half", 1, 0.5), ("pipe_3q", 1, 0.75), ("lamp", 3, None)])
+def test_objects_and_per_vertex_ground_truth(name, joints, at):
+    tk = simulate_rgbd_take(name, frames=3, bend=75.0)
+    obj = tk.object
+    assert len(obj.joints) == joints
+    if at is not None:
+        seg = np.linalg.norm(np.diff(obj.points, axis=0), axis=1)
+        assert seg[0] / seg.sum() == pytest.approx(at)
+    assert np.degrees(np.abs(tk.angles[-1])).min() > 45  # bent well past 45 degrees
+    # every template vertex, moved with its capsule, lies on the posed surface
+    for k in (0, 2):
+        sdf = obj.pose(tk.angles[k]).sdf(tk.truth[k])
+        # (vertices in the crease of a bent joint sink into the neighbouring capsule)
+        assert np.median(np.abs(sdf)) < 0.3 and np.percentile(np.abs(sdf), 90) < 1.0
+    np.testing.assert_allclose(tk.truth[0], tk.template_vertices, atol=1e-9)  # rest mesh = template
+    assert tk.depth.dtype == np.uint16 and (tk.depth[0] > 0).any()
+    assert mesh_volume(tk.template_vertices, tk.template_faces) > 0
+
+
+def test_template_is_closed_and_outward():
+    import trimesh
+
+    v, f = template_mesh(make_object("pipe_half"), spacing=5.0)
+    m = trimesh.Trimesh(v, f, process=False)
+    assert m.is_watertight and m.volume > 0
+    assert m.volume == pytest.approx(np.pi * 15**2 * 300 + 4 / 3 * np.pi * 15**3, rel=0.03)
+
+
+def test_invalid_input():
+    with pytest.raises(ValueError, match="name"):
+        simulate_rgbd_take("teapot")
+    with pytest.raises(ValueError, match="frames"):
+        simulate_rgbd_take("lamp", frames=1)
+    with pytest.raises(ValueError, match="bend"):
+        simulate_rgbd_take("lamp", bend=400)
+    assert OBJECTS == ("pipe_half", "pipe_3q", "lamp")

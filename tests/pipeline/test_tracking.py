@@ -1,0 +1,134 @@
+"""Template tracking energy and solver (pipeline.tracking)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import trimesh
+from scipy.sparse.linalg import spsolve
+
+from pipeline.tracking import (
+    CholeskySystem,
+    TemplateTracker,
+    choose_gamma,
+    cotangent_laplacian,
+    default_gate,
+    mesh_volume,
+    vertex_normals,
+)
+
+
+def _sphere(sub=2, r=50.0):
+    m = trimesh.creation.icosphere(subdivisions=sub, radius=r)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def _slow_laplacian(v, f):
+    n = len(v)
+    L = np.zeros((n, n))
+    area = np.zeros(n)
+    for tri in f:
+        a = 0.5 * np.linalg.norm(np.cross(v[tri[1]] - v[tri[0]], v[tri[2]] - v[tri[0]]))
+        area[tri] += a
+        for k in range(3):
+            i, j, o = tri[(k + 1) % 3], tri[(k + 2) % 3], tri[k]
+            e1, e2 = v[i] - v[o], v[j] - v[o]
+            cot = e1 @ e2 / np.linalg.norm(np.cross(e1, e2))
+            L[i, j] += cot
+            L[j, i] += cot
+    area *= 0.5
+    L -= np.diag(L.sum(1))
+    return L / (2 * area[:, None])
+
+
+def test_cotangent_laplacian_matches_slow_reference():
+    v, f = _sphere(1)
+    v = v * np.array([1.0, 0.7, 1.3])  # not a regular mesh
+    L = cotangent_laplacian(v, f).toarray()
+    np.testing.assert_allclose(L, _slow_laplacian(v, f), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(L @ np.ones(len(v)), 0, atol=1e-12)
+    # on a sphere of radius r the mean-curvature normal has length 2/r with the barycentric
+    # cell (a third of the triangle areas); the paper's cell (half of them) scales it by 2/3
+    vs, fs = _sphere(3)
+    lv = cotangent_laplacian(vs, fs) @ vs
+    np.testing.assert_allclose(np.linalg.norm(lv, axis=1).mean(), 2 / 50.0 * 2 / 3, rtol=0.02)
+
+
+@pytest.mark.parametrize("backend", ["qdldl", "splu"])
+def test_cholesky_system_matches_spsolve(backend):
+    v, f = _sphere(2)
+    L = cotangent_laplacian(v, f)
+    K = sp.csr_matrix(L.T @ L)
+    rng = np.random.default_rng(0)
+    sysm = CholeskySystem(K, backend=backend)
+    for _ in range(3):  # refactor with new diagonals on the same analysis
+        d = rng.uniform(0.01, 0.1, len(v))
+        b = rng.normal(size=(len(v), 3))
+        sysm.factor(d)
+        x = sysm.solve(b)
+        np.testing.assert_allclose(x, spsolve((K + sp.diags(d)).tocsc(), b), rtol=1e-8, atol=1e-8)
+    assert sysm.factorizations == 3
+
+
+def test_gamma_and_gate_follow_the_template():
+    v, f = _sphere(2, r=50.0)  # triangles ~ 97 mm^2
+    assert choose_gamma(v, f) == 0.05
+    assert choose_gamma(v / 10, f) == 0.005  # ~1 mm^2
+    assert default_gate(v * 10) == pytest.approx(10 * np.linalg.norm(np.ptp(v * 10, 0)) / 300)
+    assert default_gate(v / 100) == 10.0
+
+
+def test_fit_follows_a_translated_surface_without_thinning():
+    v, f = _sphere(3)
+    d = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    shift = np.array([3.0, -2.0, 1.0])
+    tr = TemplateTracker(v, f)
+    fit = tr.fit(d.vertices + shift, d.vertex_normals, previous=v)
+    # every vertex on the moved sphere (to 0.2 mm), the volume kept within 1 %
+    assert np.abs(np.linalg.norm(fit.vertices - shift, axis=1) - 50.0).max() < 0.2
+    assert abs(mesh_volume(fit.vertices, f) / mesh_volume(v, f) - 1) < 0.01
+    assert fit.model_pairs > 0 and fit.data_pairs > 0 and fit.rounds == 15
+
+
+def test_no_data_keeps_the_shape_and_components_without_data_stay():
+    v, f = _sphere(2)
+    v2 = v + [500.0, 0, 0]
+    V = np.vstack([v, v2])
+    F = np.vstack([f, f + len(v)])[:-5]  # two components, one with a hole
+    tr = TemplateTracker(V, F)
+    d = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
+    fit = tr.fit(d.vertices + [2.0, 0, 0], d.vertex_normals, previous=V)
+    assert np.all(np.isfinite(fit.vertices))
+    far = slice(len(v), None)
+    np.testing.assert_allclose(fit.vertices[far], V[far], atol=1e-6)  # nothing pulls the second sphere
+    assert np.abs(np.linalg.norm(fit.vertices[: len(v)] - [2.0, 0, 0], axis=1) - 50).mean() < 0.5
+    empty = tr.fit(np.zeros((0, 3)), np.zeros((0, 3)), previous=V)
+    np.testing.assert_array_equal(empty.vertices, V)
+
+
+def test_vertex_normals_point_outwards():
+    v, f = _sphere(2)
+    n = vertex_normals(v, f)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", n, v / 50.0), 1.0, atol=0.01)
+
+
+def test_invalid_input():
+    v, f = _sphere(1)
+    with pytest.raises(ValueError, match="vertices"):
+        TemplateTracker(v[:, :2], f)
+    with pytest.raises(ValueError, match="faces"):
+        TemplateTracker(v, f + 1000)
+    with pytest.raises(ValueError, match="gamma"):
+        TemplateTracker(v, f, gamma=-1)
+    with pytest.raises(ValueError, match="gate"):
+        TemplateTracker(v, f, gate=0)
+    with pytest.raises(ValueError, match="rounds"):
+        TemplateTracker(v, f, rounds=0)
+    tr = TemplateTracker(v, f)
+    with pytest.raises(ValueError, match="points and normals"):
+        tr.fit(np.zeros((5, 3)), np.zeros((4, 3)), previous=v)
+    with pytest.raises(ValueError, match="previous"):
+        tr.fit(np.zeros((5, 3)), np.zeros((5, 3)), previous=v[:3])
+    with pytest.raises(ValueError, match="backend"):
+        CholeskySystem(sp.eye(3), backend="magic")

@@ -1,0 +1,84 @@
+"""``stage track`` on simulated takes: single RGB-D and multi-view results directories."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from fake_cameras.rgbd import load_rgbd_ground_truth, record_rgbd_take, simulate_rgbd_take, template_path
+from pipeline.meshio import load_mesh
+from pipeline.results import atomic_write_bytes, ply_bytes
+from pipeline.tracking import mesh_volume
+from stage.cli import main
+
+
+@pytest.fixture(scope="module")
+def lamp_take(tmp_path_factory):
+    root = tmp_path_factory.mktemp("track_lamp")
+    tk = simulate_rgbd_take("lamp", frames=6, bend=0.0)
+    return record_rgbd_take(tk, root / "lamp.h5", drop_depth=[3])
+
+
+def test_rgbd_track_static_lamp_accuracy_skips_and_resumes(lamp_take, capsys):
+    out = lamp_take.parent / "out"
+    assert main(["-q", "track", str(lamp_take), "--template", str(template_path(lamp_take)), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "skipped 1 frames without data: 3" in text
+    rep = json.loads((out / "tracked" / "track.json").read_text())
+    assert rep["skipped"] == [3] and rep["mode"] == "rgbd"
+    gt = load_rgbd_ground_truth(lamp_take)
+    V0, F0 = load_mesh(template_path(lamp_take), largest=False)
+    for k in (0, 1, 2, 4, 5):
+        v, f = load_mesh(out / "tracked" / f"{k:06d}.ply", largest=False)
+        assert v.shape == V0.shape and np.array_equal(f, F0)  # template vertex order
+        err = np.linalg.norm(v - gt["truth"][k], axis=1).mean()
+        assert err <= 0.01 * gt["length"], (k, err)  # measured 0.2 % of the length
+        assert abs(mesh_volume(v, f) / mesh_volume(V0, F0) - 1) <= 0.05
+    assert not (out / "tracked" / "000003.ply").exists()
+    # resume: a lost frame is tracked again, the others are kept
+    kept = (out / "tracked" / "000001.ply").stat().st_mtime_ns
+    (out / "tracked" / "000004.ply").unlink()
+    assert main(["-q", "track", str(lamp_take), "--template", str(template_path(lamp_take)), "--out", str(out)]) == 0
+    assert (out / "tracked" / "000004.ply").exists()
+    assert (out / "tracked" / "000001.ply").stat().st_mtime_ns == kept
+
+
+def test_rgbd_template_far_from_the_data_is_a_clear_error_and_writes_nothing(lamp_take, capsys):
+    V0, F0 = load_mesh(template_path(lamp_take), largest=False)
+    far = lamp_take.parent / "far.ply"
+    trimesh.Trimesh(V0 + [0, 0, 2000.0], F0, process=False).export(far)
+    out = lamp_take.parent / "far_out"
+    assert main(["track", str(lamp_take), "--template", str(far), "--out", str(out)]) == 2
+    assert "cannot place the template" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_multiview_results_directory_with_holes_and_no_spine(tmp_path):
+    """Per-frame surfaces of a moving sphere; template with a hole; no spine.json: still tracks."""
+    meshes = tmp_path / "meshes"
+    for k in range(4):
+        m = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
+        atomic_write_bytes(meshes / f"frame_{k:06d}.ply", ply_bytes(m.vertices + [2.0 * k, 0, 0], m.faces))
+    t = trimesh.creation.icosphere(subdivisions=2, radius=60.0)
+    holed = tmp_path / "template.ply"
+    trimesh.Trimesh(t.vertices, t.faces[:-6], process=False).export(holed)
+    assert main(["-q", "track", str(tmp_path), "--template", str(holed)]) == 0
+    rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
+    assert rep["mode"] == "multi-view" and sorted(rep["frames"]) == ["0", "1", "2", "3"]
+    v, _ = load_mesh(tmp_path / "tracked" / "000003.ply", largest=False)
+    assert v.shape == t.vertices.shape
+    assert np.abs(np.linalg.norm(v - [6.0, 0, 0], axis=1) - 60.0).mean() < 0.5
+
+
+def test_invalid_input(tmp_path, capsys):
+    assert main(["track", str(tmp_path / "nothing")]) == 2
+    assert "no such results directory" in capsys.readouterr().err
+    f = tmp_path / "take.h5"
+    f.write_bytes(b"")
+    assert main(["track", str(f)]) == 2
+    assert "--template" in capsys.readouterr().err
+    assert main(["track", str(tmp_path)]) == 2  # a directory without meshes
+    assert "stage process" in capsys.readouterr().err
