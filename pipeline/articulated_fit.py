@@ -70,6 +70,9 @@ class ArticulatedModel:
         Bones (rows of ``skeleton.bones``) influencing every vertex.
     weights : (V, k) float ndarray
         Rows sum to 1.
+    active : (V,) bool ndarray or None
+        The vertices the fit uses and its error counts (default all; a
+        separate part the skeleton does not reach is left out).
     """
 
     vertices: np.ndarray
@@ -77,6 +80,7 @@ class ArticulatedModel:
     skeleton: ArticulatedSkeleton
     influences: np.ndarray
     weights: np.ndarray
+    active: np.ndarray | None = None
     _cache: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -113,12 +117,12 @@ class ArticulatedModel:
 
     def subset(self, n: int | None) -> np.ndarray:
         """Indices of at most ``n`` vertices, evenly drawn (fixed seed), sorted; all when ``n`` is None."""
-        V = len(self.vertices)
-        if n is None or n >= V:
-            return np.arange(V)
+        ids = np.arange(len(self.vertices)) if self.active is None else np.flatnonzero(self.active)
+        if n is None or n >= len(ids):
+            return ids
         key = ("subset", int(n))
         if key not in self._cache:
-            self._cache[key] = np.sort(np.random.default_rng(0).choice(V, int(n), replace=False))
+            self._cache[key] = np.sort(np.random.default_rng(0).choice(ids, int(n), replace=False))
         return self._cache[key]
 
     def identity(self) -> Pose:
@@ -136,7 +140,8 @@ class ArticulatedModel:
         return np.einsum("jab,jb->ja", pose.R[sk.part], sk.rest) + pose.t[sk.part]
 
 
-def articulated_model(vertices, faces, skeleton: ArticulatedSkeleton, *, max_influences: int = 4) -> ArticulatedModel:
+def articulated_model(vertices, faces, skeleton: ArticulatedSkeleton, *, max_influences: int = 4,
+                      active=None) -> ArticulatedModel:
     """Bind a rest mesh to a skeleton with bone heat weights.
 
     Parameters
@@ -146,6 +151,8 @@ def articulated_model(vertices, faces, skeleton: ArticulatedSkeleton, *, max_inf
     skeleton : ArticulatedSkeleton
     max_influences : int
         Bones per vertex (1..4, glTF's limit per set).
+    active : (V,) bool array_like, optional
+        Vertices the fit uses (default all).
 
     Returns
     -------
@@ -157,13 +164,16 @@ def articulated_model(vertices, faces, skeleton: ArticulatedSkeleton, *, max_inf
         raise ValueError(f"max_influences must be within 1..4, got {max_influences}")
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
+    act = None if active is None else np.asarray(active, dtype=bool).reshape(-1)
+    if act is not None and (act.shape != (len(v),) or not act.any()):
+        raise ValueError(f"active must be a (V,) boolean mask with at least one vertex, got shape {act.shape}")
     sk = skeleton
     if len(sk.bones) == 0:
         # a single joint: everything moves rigidly with the root
-        return ArticulatedModel(v, f, sk, np.zeros((len(v), 1), dtype=np.int64), np.ones((len(v), 1)))
+        return ArticulatedModel(v, f, sk, np.zeros((len(v), 1), dtype=np.int64), np.ones((len(v), 1)), act)
     W = bone_heat_weights(v, f, sk.rest[sk.bones[:, 0]], sk.rest[sk.bones[:, 1]])
     cols, w = limit_influences(W, max_influences=max_influences)
-    return ArticulatedModel(v, f, sk, cols, w)
+    return ArticulatedModel(v, f, sk, cols, w, act)
 
 
 # --------------------------------------------------------------------------- pose algebra
@@ -334,7 +344,8 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
             mu *= 4.0
             if mu > 1e8 * float(np.mean(np.diag(H)) + 1.0):
                 break
-    err = float(np.linalg.norm(model.deform(pose) - y_all, axis=1).mean())
+    act = model.subset(None)
+    err = float(np.linalg.norm(model.deform(pose)[act] - y_all[act], axis=1).mean())
     return pose, err
 
 
