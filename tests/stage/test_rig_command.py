@@ -72,3 +72,16 @@ def test_rig_step(tmp_path, caplog):
     doc = json.loads((tmp_path / "rig" / "rig.json").read_text())
     assert doc["fps"] == 25.0 and doc["units"] == "mm"
     assert np.isfinite(doc["fit"]["mean_vertex_error"])
+
+
+def test_report_shows_the_rig(tmp_path):
+    from stage.report import render_report
+
+    V, F, _ = _two_bars(10)
+    _write_seq(tmp_path / "seq", V, F)
+    assert main(["-q", "rig", "--meshes", str(tmp_path / "seq"), "--out", str(tmp_path / "res" / "rig"),
+                 "--samples", "300"]) == 0
+    (tmp_path / "res" / "report.json").write_text(json.dumps({"frames": 10, "steps": ["rig"]}))
+    html = render_report(tmp_path / "res")
+    assert 'id="rig"' in html and "rig-view" in html
+    assert "1 articulations" in html
