@@ -89,7 +89,14 @@ def test_pipe_fit_matches_the_slow_least_squares(pipe):
 # --------------------------------------------------------------------------- simulated creatures
 
 
-@pytest.fixture(scope="module", params=["starfish", "quadruped", "biped"])
+_BIPED_XFAIL = pytest.mark.xfail(
+    strict=True,
+    reason="biped: the arms touch the torso in the rest mesh, so the boundary between an arm and the torso runs "
+    "along the upper arm and its centroid is not the shoulder (measured recall 0.56, precision 0.45)",
+)
+
+
+@pytest.fixture(scope="module", params=["starfish", "quadruped", pytest.param("biped", marks=_BIPED_XFAIL)])
 def creature(request):
     from fake_cameras.mesh_motion import mesh_sequence
 
@@ -101,9 +108,6 @@ def creature(request):
 
 def test_simulated_creatures_articulations_and_error(creature):
     name, ms, rig = creature
-    if name == "biped":
-        pytest.xfail("biped: the arms touch the torso in the rest mesh, the curve skeleton misses them "
-                     "(measured recall 0.56, precision 0.45)")
     recall, precision, _ = _articulation_scores(rig, ms.joints, ms.articulates, ms.size)
     # measured: starfish 0.75 / 1.0, quadruped 0.77 / 1.0
     assert recall >= 0.7
