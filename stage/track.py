@@ -68,7 +68,7 @@ def _load_template(template) -> tuple[np.ndarray, np.ndarray]:
     return v, f
 
 
-def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_for, progress, start, prev):
+def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_for, progress, start, prev, contour_for=None):
     """Track ``frames`` in order; ``data_for(k)`` -> (points, normals, extra) or None (no data)."""
     V0 = tracker.template
     vol0 = mesh_volume(V0, faces)
@@ -85,7 +85,8 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
                 report["skipped"].append(int(k))
             else:
                 pts, nrm, extra = data
-                fit = tracker.fit(pts, nrm, previous=prev, visible=visible_for(extra))
+                contour = contour_for(extra) if contour_for is not None else None
+                fit = tracker.fit(pts, nrm, previous=prev, visible=visible_for(extra), contour=contour)
                 prev = fit.vertices
                 _write_frame(out_dir, k, prev, faces)
                 per[str(k)] = {
@@ -167,6 +168,7 @@ def track_rgbd_take(
     *,
     camera: str | None = None,
     remove_skin: bool = False,
+    contour: bool = False,
     bounds=None,
     progress=None,
     gamma=None,
@@ -186,6 +188,8 @@ def track_rgbd_take(
         The depth camera (default: the first camera with depth).
     remove_skin : bool
         Drop skin-coloured pixels (the hands) before tracking.
+    contour : bool
+        Add the contour term (depth edges, the paper's eq. 3).
     bounds : ((3,), (3,)), optional
         Capture volume; default the rig's volume, else the template's box grown by 15 % of its size.
 
@@ -199,7 +203,7 @@ def track_rgbd_take(
     TrackingError
         The template cannot be placed on the data (nothing is written then).
     """
-    from pipeline.rgbd_preprocess import preprocess_depth, rigid_icp, visible_vertices
+    from pipeline.rgbd_preprocess import contour_pairs, preprocess_depth, rigid_icp, visible_vertices
     from stage.store import TakeReader
 
     V0, F0 = _load_template(template)
@@ -237,6 +241,9 @@ def track_rgbd_take(
         def visible_for(fr):
             return lambda V, nrm: visible_vertices(V, F0, cam, normals=nrm, tolerance=0.3 * tracker.gate, observed=fr.valid)
 
+        def contour_for(fr):
+            return lambda V, nrm: contour_pairs(V, nrm, F0, cam, fr.contour, gate=tracker.gate)
+
         # place the template on the first frame with depth (nothing written if it fails)
         skipped = []
         first = None
@@ -261,12 +268,12 @@ def track_rgbd_take(
         name = str(template) if not isinstance(template, (tuple, list)) else "array"
         report = {"mode": "rgbd", "take": str(take_path), "camera": cam_id, "template": name,
                   "vertices": int(len(V0)), "gamma": tracker.gamma, "gate_mm": tracker.gate, "rounds": tracker.rounds,
-                  "solver": tracker.system.backend, "remove_skin": bool(remove_skin),
+                  "solver": tracker.system.backend, "remove_skin": bool(remove_skin), "contour": bool(contour),
                   "icp": {"frame": first[0], "fit": round(fit0, 4), "R": R.tolist(), "t": t.tolist()},
                   "skipped": list(skipped), "frames": {}}
         (out / "tracked").mkdir(parents=True, exist_ok=True)
         _run_frames(tracker, list(range(first[0], n)), out, F0, report, data_for=data_for, visible_for=visible_for,
-                    progress=progress, start=first[0], prev=placed)
+                    progress=progress, start=first[0], prev=placed, contour_for=contour_for if contour else None)
     if report["skipped"]:
         log.warning("frames without depth skipped: %s", ", ".join(map(str, report["skipped"])))
     _write_report(out, report)

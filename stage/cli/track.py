@@ -27,6 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=None, help="output directory for a take (default: beside the take, TAKE_results)")
     p.add_argument("--camera", default=None, help="depth camera of the take (default: the first with depth)")
     p.add_argument("--remove-skin", action="store_true", help="drop skin-coloured pixels (hands) before tracking")
+    p.add_argument("--contour", action="store_true", help="add the contour term (depth edges; single RGB-D only)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
     p.add_argument("--gate", type=float, default=None, help="pair distance gate, mm (default 10 mm scaled with the template's size)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -50,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
                     raise UserError("a take needs --template MESH (the object's scan, in mm)")
                 out = args.out if args.out is not None else src.with_name(src.stem + "_results")
                 rep = track_rgbd_take(src, args.template, out, camera=args.camera, remove_skin=args.remove_skin,
+                                      contour=args.contour,
                                       progress=bars, gamma=args.gamma, gate=args.gate)
             else:
                 raise FileNotFoundError(f"{src}: no such results directory or take file")
