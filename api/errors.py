@@ -66,7 +66,8 @@ def install_handlers(app: FastAPI) -> None:
         detail = []
         for e in exc.errors():
             loc = [p if isinstance(p, (str, int)) else str(p) for p in e.get("loc", ())]
-            detail.append({"loc": loc, "msg": _scrub(request, str(e.get("msg", "invalid"))), "type": str(e.get("type", "value_error"))})
+            msg = _scrub(request, str(e.get("msg", "invalid")))
+            detail.append({"loc": loc, "msg": msg, "type": str(e.get("type", "value_error"))})
         # a malformed id in the URL (e.g. a path traversal attempt) is a bad request, not an unprocessable body
         if detail and all(d["loc"][:1] == ["path"] for d in detail):
             msg = "; ".join(f"{'.'.join(str(p) for p in d['loc'])}: {d['msg']}" for d in detail)

@@ -1,70 +1,40 @@
-"""A minimal TOML writer for the small files calibration writes.
+"""TOML writing for the small files calibration writes, through ``tomli-w``.
 
-Python 3.11 reads TOML with :mod:`tomllib` but cannot write it, and we take no
-dependency for that. This writes the subset we need: a flat table of scalars
-and (nested) lists, followed by sub-tables ``[name]`` of the same. Floats are
-written with ``repr`` so they read back bit-exactly.
+Python reads TOML with :mod:`tomllib`; ``tomli_w`` writes it. This adapter only turns
+numpy scalars and arrays into the plain Python values ``tomli_w`` accepts and names
+what TOML cannot hold (``None``). Floats are written so they read back bit-exactly.
 """
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
+import tomli_w
 
 __all__ = ["dumps"]
 
 
-def _key(k: str) -> str:
-    if k and all(c.isalnum() or c in "_-" for c in k):
-        return k
-    return _string(k)
-
-
-def _string(s: str) -> str:
-    out = s.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
-    return f'"{out}"'
-
-
-def _value(v: Any) -> str:
+def _plain(v: Any) -> Any:
     if isinstance(v, np.ndarray):
-        v = v.tolist()
+        return _plain(v.tolist())
     if isinstance(v, (bool, np.bool_)):
-        return "true" if v else "false"
+        return bool(v)
     if isinstance(v, (int, np.integer)):
-        return str(int(v))
+        return int(v)
     if isinstance(v, (float, np.floating)):
-        f = float(v)
-        if math.isnan(f):
-            return "nan"
-        if math.isinf(f):
-            return "inf" if f > 0 else "-inf"
-        return repr(f)
+        return float(v)
     if isinstance(v, str):
-        return _string(v)
+        return v
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_value(x) for x in v) + "]"
+        return [_plain(x) for x in v]
     if isinstance(v, dict):
-        return "{" + ", ".join(f"{_key(str(k))} = {_value(x)}" for k, x in v.items()) + "}"
+        return {str(k): _plain(x) for k, x in v.items()}
     if v is None:
         raise ValueError("TOML has no null value")
     raise ValueError(f"cannot write {type(v).__name__} to TOML")
 
 
 def dumps(data: dict) -> str:
-    """Serialize a dict of scalars, lists and one level of sub-tables (nested tables inline)."""
-    lines: list[str] = []
-    tables: list[tuple[str, dict]] = []
-    for k, v in data.items():
-        if isinstance(v, dict):
-            tables.append((k, v))
-        else:
-            lines.append(f"{_key(str(k))} = {_value(v)}")
-    for name, table in tables:
-        if lines:
-            lines.append("")
-        lines.append(f"[{_key(str(name))}]")
-        for k, v in table.items():
-            lines.append(f"{_key(str(k))} = {_value(v)}")
-    return "\n".join(lines) + "\n"
+    """Serialize a dict (tables, scalars, nested lists) to TOML text."""
+    return tomli_w.dumps(_plain(data))

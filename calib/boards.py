@@ -14,6 +14,9 @@ A board is described by the small TOML file users write by hand::
     legacy = false          # OpenCV's pre-4.6 ChArUco layout (setLegacyPattern)
     inverted = true         # printed white-on-black
 
+caliscope's ``charuco.toml`` (``columns``, ``rows``, ``aruco_scale``,
+``square_size_override_cm``, ``inverted``, ``legacy_pattern``...) reads as well.
+
 Board frame
 -----------
 Corners lie in the plane ``z = 0``, in millimetres, ``x`` along the columns
@@ -391,6 +394,8 @@ def parse_board(data: dict) -> Board:
         return data
     if not isinstance(data, dict):
         raise BoardError(f"board: expected a table of keys, got {type(data).__name__}")
+    if "type" not in data and {"columns", "rows"} <= set(data):
+        return _caliscope_charuco(data)
     kind = data.get("type")
     if kind == "chessboard":
         _check_keys(data, {"corners", "square_mm", "inverted"}, kind)
@@ -415,6 +420,36 @@ def parse_board(data: dict) -> Board:
             inverted=_flag(data, "inverted"),
         )
     raise BoardError(f"board: 'type' must be \"chessboard\" or \"charuco\", got {kind!r}")
+
+
+_INCH_CM = {"inch": 2.54, "cm": 1.0, "mm": 0.1}
+
+
+def _caliscope_charuco(data: dict) -> Charuco:
+    """caliscope's ``charuco.toml`` (``columns``, ``rows``, ``aruco_scale``, ``square_size_override_cm`` or
+    ``board_width`` / ``board_height`` in ``units``, ``dictionary``, ``inverted``, ``legacy_pattern``)."""
+    cols, rows = data["columns"], data["rows"]
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 2 for v in (cols, rows)):
+        raise BoardError(f"board: caliscope columns and rows must be integers >= 2, got {cols!r}, {rows!r}")
+    if data.get("square_size_override_cm"):
+        square_cm = float(data["square_size_override_cm"])
+    else:
+        unit = data.get("units", "inch")
+        if unit not in _INCH_CM:
+            raise BoardError(f"board: caliscope units {unit!r} unknown (inch, cm, mm)")
+        try:
+            w, h = float(data["board_width"]), float(data["board_height"])
+        except (KeyError, TypeError, ValueError):
+            raise BoardError("board: caliscope board needs square_size_override_cm or board_width and "
+                             "board_height") from None
+        square_cm = min(w / cols, h / rows) * _INCH_CM[unit]
+    square_mm = 10.0 * square_cm
+    scale = float(data.get("aruco_scale", 0.75))
+    if not 0 < scale < 1:
+        raise BoardError(f"board: caliscope aruco_scale must be within (0, 1), got {scale}")
+    return Charuco(squares=(cols, rows), square_mm=square_mm, marker_mm=scale * square_mm,
+                   dictionary=data.get("dictionary", "DICT_4X4_1000"), legacy=bool(data.get("legacy_pattern", False)),
+                   inverted=bool(data.get("inverted", False)))
 
 
 def load_board(path: str | Path) -> Board:

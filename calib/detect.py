@@ -353,11 +353,11 @@ def board_variants(board: Board) -> list[tuple[str, Board, bool]]:
     ChArUco ``legacy`` flags flipped, alone and with the mirror.
     """
     out: list[tuple[str, Board, bool]] = [("mirrored images", board, True)]
-    flips = [("inverted", dataclasses.replace(board, inverted=not board.inverted))]
+    flips = [dataclasses.replace(board, inverted=not board.inverted)]
     if isinstance(board, Charuco):
-        flips.append(("legacy", dataclasses.replace(board, legacy=not board.legacy)))
-        flips.append(("inverted + legacy", dataclasses.replace(board, inverted=not board.inverted, legacy=not board.legacy)))
-    for what, b in flips:
+        flips.append(dataclasses.replace(board, legacy=not board.legacy))
+        flips.append(dataclasses.replace(board, inverted=not board.inverted, legacy=not board.legacy))
+    for b in flips:
         desc = ", ".join(f"{k} = {str(getattr(b, k)).lower()}" for k in ("inverted", "legacy") if hasattr(b, k)
                          and getattr(b, k) != getattr(board, k))
         out.append((f"board file with {desc}", b, False))

@@ -1,4 +1,5 @@
-"""Calibration file formats: aniposelib TOML, OpenCV YAML, Middlebury ``*_par.txt``, JSON.
+"""Calibration file formats: aniposelib TOML, caliscope TOML, OpenCV YAML, Middlebury ``*_par.txt``,
+JSON, COLMAP text, nerfstudio ``transforms.json``.
 
 ``read_calibration(path)`` detects the format from the name (and content);
 ``write_calibration(calib, path, format=...)`` writes one.
@@ -26,6 +27,22 @@ Middlebury ``*_par.txt`` (Seitz et al. 2006): a count line, then one line per
 image ``name k11..k33 r11..r33 t1 t2 t3`` with projection ``K [R | t]``, in
 metres (units recorded as ``"m"``); no distortion. Image sizes are read from the
 images beside the file when present.
+
+caliscope ``camera_array.toml``: tables ``[cameras.<cam_id>]`` with ``size``, ``matrix``,
+``distortions`` (k1, k2, p1, p2, k3), ``rotation`` (3x3 world -> camera), ``translation``
+(world -> camera, metres), ``error`` (intrinsic RMS px), ``rotation_count``. Read in
+metres (units ``"m"``); written in metres. Camera ``cam_<id>`` is caliscope's ``<id>``.
+
+COLMAP text model (a folder): ``cameras.txt`` (``OPENCV`` model, or ``FULL_OPENCV`` when
+k3 is not zero), ``images.txt`` (world -> camera quaternion ``QW QX QY QZ`` and
+``TX TY TZ``, one image ``<camera>.png`` per camera), an empty ``points3D.txt``. COLMAP
+puts the origin of pixel coordinates at the corner of the first pixel, so its
+principal point is ours + 0.5.
+
+nerfstudio ``transforms.json``: ``camera_model = "OPENCV"``, one frame per camera with
+``fl_x, fl_y, cx, cy, w, h, k1, k2, k3, p1, p2`` (principal point + 0.5, as COLMAP) and a
+camera -> world ``transform_matrix`` in the OpenGL convention (x right, y up, z back), in
+metres.
 """
 
 from __future__ import annotations
@@ -59,12 +76,20 @@ __all__ = [
     "read_middlebury_par",
     "read_json",
     "write_json",
+    "read_caliscope_toml",
+    "write_caliscope_toml",
+    "write_colmap",
+    "read_colmap",
+    "write_nerfstudio",
+    "read_nerfstudio",
+    "in_units",
     "detect_format",
 ]
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("toml", "yaml", "json")
+FORMATS = ("toml", "yaml", "json", "caliscope", "colmap", "nerfstudio")
+_UNIT_M = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 
 
 class CalibrationFormatError(ValueError):
@@ -89,6 +114,7 @@ def calibration_to_aniposelib(calib: Calibration) -> dict:
             "translation": c.t.tolist(),
             # Not read by aniposelib (it ignores unknown keys); lets our reader round-trip R exactly.
             "rotation_matrix": c.R.tolist(),
+            **({"mirror": True} if c.meta.get("mirror") else {}),
         }
     meta: dict[str, Any] = {"units": calib.units}
     if calib.meta:
@@ -144,6 +170,7 @@ def calibration_from_aniposelib(data: dict, *, source: str = "aniposelib TOML") 
                     R=_rotation(d),
                     t=np.asarray(d["translation"], dtype=np.float64),
                     size=tuple(int(s) for s in d["size"]),
+                    meta={"mirror": True} if d.get("mirror") else {},
                 )
             )
         except (ValueError, TypeError) as exc:
@@ -355,6 +382,225 @@ def read_json(path: str | Path) -> Calibration:
         raise CalibrationFormatError(f"{p}: {exc}") from None
 
 
+# -- units ------------------------------------------------------------------------------------------
+
+
+def in_units(calib: Calibration, units: str) -> Calibration:
+    """The same calibration with lengths (``t``) in ``units`` (``"m"``, ``"cm"``, ``"mm"``)."""
+    if units not in _UNIT_M:
+        raise ValueError(f"units must be one of {sorted(_UNIT_M)}, got {units!r}")
+    if calib.units not in _UNIT_M:
+        raise ValueError(f"calibration units {calib.units!r} cannot be converted")
+    f = _UNIT_M[calib.units] / _UNIT_M[units]
+    return Calibration(tuple(c.replace(t=c.t * f) for c in calib.cameras), units=units, meta=dict(calib.meta))
+
+
+# -- caliscope ------------------------------------------------------------------------------------
+
+
+def _cam_id(name: str, index: int) -> int:
+    m = re.search(r"(\d+)$", name)
+    return int(m.group(1)) if m else index
+
+
+def read_caliscope_toml(path: str | Path) -> Calibration:
+    """Read caliscope's ``camera_array.toml`` (units ``"m"``; cameras ``cam_<id>``)."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise CalibrationFormatError(f"{p}: not valid TOML: {exc}") from None
+    return _from_caliscope(data, str(p))
+
+
+def _from_caliscope(data: dict, source: str) -> Calibration:
+    tables = data.get("cameras")
+    if not isinstance(tables, dict) or not tables:
+        raise CalibrationFormatError(f"{source}: no [cameras.<id>] tables (caliscope camera_array.toml)")
+    cams = []
+    for key in sorted(tables, key=lambda k: int(k) if str(k).isdigit() else 1 << 30):
+        d = tables[key]
+        if d.get("ignore"):
+            continue
+        missing = [f for f in ("matrix", "rotation", "translation", "size") if f not in d]
+        if missing:
+            raise CalibrationFormatError(f"{source}: [cameras.{key}] is missing {', '.join(missing)}")
+        try:
+            meta = {k: d[k] for k in ("error", "rotation_count") if k in d}
+            if d.get("mirror"):
+                meta["mirror"] = True
+            cams.append(Camera(name=f"cam_{d.get('cam_id', key)}", K=np.asarray(d["matrix"], dtype=np.float64),
+                               dist=np.asarray(d.get("distortions", [0.0] * 5), dtype=np.float64),
+                               R=np.asarray(d["rotation"], dtype=np.float64),
+                               t=np.asarray(d["translation"], dtype=np.float64), size=tuple(d["size"]), meta=meta))
+        except (ValueError, TypeError) as exc:
+            raise CalibrationFormatError(f"{source}: [cameras.{key}]: {exc}") from None
+    if not cams:
+        raise CalibrationFormatError(f"{source}: every camera is marked ignore = true")
+    return Calibration(tuple(cams), units="m", meta={"source": "caliscope"})
+
+
+def write_caliscope_toml(calib: Calibration, path: str | Path) -> None:
+    """Write caliscope's ``camera_array.toml`` (metres; ``cam_id`` from the name's trailing number)."""
+    if not isinstance(calib, Calibration):
+        raise ValueError(f"calib must be a Calibration, got {type(calib).__name__}")
+    c_m = in_units(calib, "m")
+    tables: dict[str, dict] = {}
+    for i, c in enumerate(c_m.cameras):
+        cid = _cam_id(c.name, i)
+        if str(cid) in tables:
+            cid = i
+        if str(cid) in tables:
+            raise ValueError(f"calib: camera {c.name}: cannot give it a unique caliscope cam_id")
+        err = c.meta.get("error", calib.meta.get("per_camera_rms_px", {}).get(c.name, 0.0))
+        tables[str(cid)] = {"cam_id": cid, "size": [int(s) for s in c.size], "rotation_count":
+                            int(c.meta.get("rotation_count", 0)), "error": float(err), "matrix": c.K.tolist(),
+                            "distortions": c.dist.tolist(), "translation": c.t.tolist(), "rotation": c.R.tolist(),
+                            "ignore": False, **({"mirror": True} if c.meta.get("mirror") else {})}
+    _atomic_write_text(Path(path), _toml.dumps({"cameras": tables}))
+
+
+# -- COLMAP ---------------------------------------------------------------------------------------
+
+
+def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z])
+    return q if q[0] >= 0 else -q
+
+
+def write_colmap(calib: Calibration, folder: str | Path) -> Path:
+    """Write a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``) into ``folder``."""
+    if not isinstance(calib, Calibration):
+        raise ValueError(f"calib must be a Calibration, got {type(calib).__name__}")
+    d = Path(folder)
+    if d.exists() and not d.is_dir():
+        raise ValueError(f"COLMAP output must be a folder, {d} is a file")
+    if not d.parent.exists():
+        raise FileNotFoundError(f"output folder does not exist: {d.parent}")
+    d.mkdir(exist_ok=True)
+    cams = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
+            f"# Number of cameras: {len(calib)}"]
+    imgs = ["# Image list with two lines of data per image:",
+            "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+            f"# Number of images: {len(calib)}, units: {calib.units}"]
+    for i, c in enumerate(calib.cameras, start=1):
+        fx, fy, cx, cy = c.K[0, 0], c.K[1, 1], c.K[0, 2] + 0.5, c.K[1, 2] + 0.5
+        k1, k2, p1, p2, k3 = c.dist
+        if k3 != 0:
+            model, params = "FULL_OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]
+        else:
+            model, params = "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
+        cams.append(f"{i} {model} {c.width} {c.height} " + " ".join(repr(float(v)) for v in params))
+        q = _quat_from_matrix(c.R)
+        imgs.append(f"{i} " + " ".join(repr(float(v)) for v in (*q, *c.t)) + f" {i} {c.name}.png")
+        imgs.append("")
+    _atomic_write_text(d / "cameras.txt", "\n".join(cams) + "\n")
+    _atomic_write_text(d / "images.txt", "\n".join(imgs) + "\n")
+    _atomic_write_text(d / "points3D.txt", "# 3D point list (none: a calibration only)\n")
+    return d
+
+
+def read_colmap(folder: str | Path, *, units: str = "mm") -> Calibration:
+    """Read a COLMAP text model's cameras and images (pinhole, OPENCV and FULL_OPENCV models)."""
+    from scipy.spatial.transform import Rotation
+
+    d = Path(folder)
+    try:
+        cam_lines = [ln.split() for ln in (d / "cameras.txt").read_text().splitlines() if ln and ln[0] != "#"]
+        img_text = [ln for ln in (d / "images.txt").read_text().splitlines() if not ln.startswith("#")]
+        img_lines = [ln.split() for ln in img_text[0::2] if ln.strip()]  # pose lines; points lines between
+    except OSError as exc:
+        raise CalibrationFormatError(f"{d}: not a COLMAP text model: {exc}") from None
+    intr = {}
+    for parts in cam_lines:
+        try:
+            cid, model, w, h = int(parts[0]), parts[1], int(parts[2]), int(parts[3])
+            p = [float(v) for v in parts[4:]]
+        except (IndexError, ValueError):
+            raise CalibrationFormatError(f"{d}/cameras.txt: bad line {' '.join(parts)!r}") from None
+        if model == "PINHOLE":
+            fx, fy, cx, cy, dist = *p[:4], [0.0] * 5
+        elif model == "OPENCV":
+            fx, fy, cx, cy, dist = *p[:4], p[4:8] + [0.0]
+        elif model == "FULL_OPENCV":
+            if any(v != 0 for v in p[9:12]):
+                raise CalibrationFormatError(f"{d}/cameras.txt: camera {cid}: rational terms k4-k6 not supported")
+            fx, fy, cx, cy, dist = *p[:4], p[4:9]
+        else:
+            raise CalibrationFormatError(f"{d}/cameras.txt: camera {cid}: model {model} not supported "
+                                         "(PINHOLE, OPENCV, FULL_OPENCV)")
+        intr[cid] = (np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1.0]]), np.array(dist), (w, h))
+    cams = []
+    # images.txt: a pose line then a points line (possibly empty, dropped above)
+    for parts in img_lines:
+        try:
+            qw, qx, qy, qz, tx, ty, tz = (float(v) for v in parts[1:8])
+            cid = int(parts[8])
+            parts[9]
+        except (ValueError, IndexError):
+            raise CalibrationFormatError(f"{d}/images.txt: bad image line {' '.join(parts)!r}") from None
+        if cid not in intr:
+            raise CalibrationFormatError(f"{d}/images.txt: image {parts[0]} names unknown camera {cid}")
+        K, dist, size = intr[cid]
+        R = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
+        cams.append(Camera(Path(parts[9]).stem, K=K, dist=dist, R=R, t=np.array([tx, ty, tz]), size=size))
+    if not cams:
+        raise CalibrationFormatError(f"{d}/images.txt: no images")
+    return Calibration(tuple(cams), units=units)
+
+
+# -- nerfstudio -----------------------------------------------------------------------------------
+
+_GL = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes -> OpenGL (x right, y up, z back)
+
+
+def write_nerfstudio(calib: Calibration, path: str | Path) -> None:
+    """Write nerfstudio's ``transforms.json`` (OPENCV model, metres, one frame per camera)."""
+    if not isinstance(calib, Calibration):
+        raise ValueError(f"calib must be a Calibration, got {type(calib).__name__}")
+    c_m = in_units(calib, "m")
+    frames = []
+    for c in c_m.cameras:
+        c2w = np.eye(4)
+        c2w[:3, :3] = c.R.T @ _GL
+        c2w[:3, 3] = c.center
+        k1, k2, p1, p2, k3 = (float(v) for v in c.dist)
+        frames.append({"file_path": f"images/{c.name}.png", "camera": c.name, "fl_x": float(c.K[0, 0]),
+                       "fl_y": float(c.K[1, 1]), "cx": float(c.K[0, 2]) + 0.5, "cy": float(c.K[1, 2]) + 0.5,
+                       "w": int(c.width), "h": int(c.height), "k1": k1, "k2": k2, "k3": k3, "k4": 0.0,
+                       "p1": p1, "p2": p2, "transform_matrix": c2w.tolist()})
+    _atomic_write_text(Path(path), json.dumps({"camera_model": "OPENCV", "frames": frames}, indent=1) + "\n")
+
+
+def read_nerfstudio(path: str | Path, *, units: str = "m") -> Calibration:
+    """Read nerfstudio's ``transforms.json`` (per-frame or shared intrinsics, OPENCV / PINHOLE)."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CalibrationFormatError(f"{p}: not a nerfstudio transforms.json: {exc}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
+        raise CalibrationFormatError(f"{p}: no 'frames' list")
+    if data.get("camera_model", "OPENCV") not in ("OPENCV", "PINHOLE"):
+        raise CalibrationFormatError(f"{p}: camera_model {data['camera_model']!r} not supported (OPENCV, PINHOLE)")
+    cams = []
+    for i, f in enumerate(data["frames"]):
+        g = {**data, **f}
+        try:
+            K = np.array([[g["fl_x"], 0, g["cx"] - 0.5], [0, g["fl_y"], g["cy"] - 0.5], [0, 0, 1.0]])
+            dist = np.array([g.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")], dtype=np.float64)
+            c2w = np.asarray(g["transform_matrix"], dtype=np.float64)
+            Rcw = (c2w[:3, :3] @ _GL).T
+            name = str(f.get("camera", Path(str(f.get("file_path", f"cam_{i}"))).stem))
+            cams.append(Camera(name, K=K, dist=dist, R=Rcw, t=-Rcw @ c2w[:3, 3], size=(int(g["w"]), int(g["h"]))))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise CalibrationFormatError(f"{p}: frame {i}: {exc}") from None
+    return Calibration(tuple(cams), units=units)
+
+
 # -- dispatch -------------------------------------------------------------------------------------
 
 
@@ -362,7 +608,15 @@ def detect_format(path: str | Path) -> str:
     """``"toml"``, ``"yaml"``, ``"json"`` or ``"middlebury"`` from the file name."""
     p = Path(path)
     name = p.name.lower()
+    if p.is_dir() or name in ("cameras.txt", "images.txt") or (not p.exists() and not p.suffix):
+        return "colmap"
+    if name == "transforms.json":
+        return "nerfstudio"
+    if name == "camera_array.toml":
+        return "caliscope"
     if name.endswith(".toml"):
+        if p.is_file() and re.search(r"^\[cameras\.", p.read_text(encoding="utf-8", errors="replace"), re.M):
+            return "caliscope"
         return "toml"
     if name.endswith((".yml", ".yaml", ".xml")):
         return "yaml"
@@ -396,9 +650,15 @@ def read_calibration(path: str | Path, **kwargs: Any) -> Calibration:
     if not isinstance(path, (str, os.PathLike)):
         raise ValueError(f"path must be a file path, got {type(path).__name__}")
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise FileNotFoundError(f"calibration file not found: {p}")
     fmt = detect_format(p)
+    if fmt == "colmap":
+        return read_colmap(p if p.is_dir() else p.parent, **kwargs)
+    if fmt == "nerfstudio":
+        return read_nerfstudio(p, **kwargs)
+    if fmt == "caliscope":
+        return read_caliscope_toml(p)
     if fmt == "toml":
         return read_aniposelib_toml(p)
     if fmt == "yaml":
@@ -415,8 +675,9 @@ def write_calibration(calib: Calibration, path: str | Path, *, format: str | Non
     ----------
     calib : Calibration
     path : path-like
-    format : {"toml", "yaml", "json"}, optional
-        Default: from the file extension.
+    format : {"toml", "yaml", "json", "caliscope", "colmap", "nerfstudio"}, optional
+        Default: from the file name (a folder or ``cameras.txt``: COLMAP;
+        ``transforms.json``: nerfstudio; ``camera_array.toml``: caliscope).
 
     Returns
     -------
@@ -433,7 +694,13 @@ def write_calibration(calib: Calibration, path: str | Path, *, format: str | Non
         raise ValueError(f"format must be one of {', '.join(FORMATS)} (Middlebury is read-only), got {fmt!r}")
     if not p.parent.exists():
         raise FileNotFoundError(f"output folder does not exist: {p.parent}")
-    if fmt == "toml":
+    if fmt == "colmap":
+        return write_colmap(calib, p)
+    if fmt == "nerfstudio":
+        write_nerfstudio(calib, p)
+    elif fmt == "caliscope":
+        write_caliscope_toml(calib, p)
+    elif fmt == "toml":
         write_aniposelib_toml(calib, p)
     elif fmt == "yaml":
         write_opencv_yaml(calib, p)

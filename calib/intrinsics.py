@@ -326,7 +326,7 @@ def calibrate_intrinsics(
             rejected[kept[b].frame] = float(per_view[b])
         bad_set = set(bad.tolist())
         kept = [d for i, d in enumerate(kept) if i not in bad_set]
-        log.info("camera %s: rejected %d outlier view(s) above %.2f px", name, len(bad), thr)
+        log.debug("camera %s: rejected %d outlier view(s) above %.2f px", name, len(bad), thr)
         rms, K, dist, rvecs, tvecs, std_in, per_view = solve(kept)
 
     pts = np.concatenate([d.corners for d in kept], axis=0)

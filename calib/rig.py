@@ -36,8 +36,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from calib.boards import Board, Charuco, Chessboard
-from calib.calibration import Calibration
 from calib.bundle import INTRINSIC_NAMES
+from calib.calibration import Calibration
 from calib.detect import Detection, select_views
 from calib.evaluate import projection_uncertainty, reprojection_errors
 from calib.extrinsics import ExtrinsicsResult, calibrate_extrinsics, triangulate_board_error
@@ -129,7 +129,6 @@ class RigCalibration:
                 lines.append("  intrinsics moved from Zhang, in Zhang standard deviations:")
                 for name, m in moved.items():
                     lines.append("    " + f"{name:<12} " + "  ".join(f"{k} {v:+.1f}" for k, v in m.items()))
-            lines += [f"  note: {n}" for n in self.evaluation.get("flipped", ())]
         lines += [f"  warning: {w}" for w in self.extra_warnings]
         return "\n".join(lines)
 
@@ -210,6 +209,13 @@ def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, rejec
         prior = np.stack([intr[n].covariance if intr[n].covariance is not None else np.full((9, 9), np.nan)
                           for n in names])
     sigma = float(np.sqrt(np.mean([intr[n].rms ** 2 for n in names]) / 2.0))  # per coordinate
+    if mode == "prior":
+        # The prior is worth as much as the rig's own pixel noise makes the joint data worth: a first
+        # solve with the intrinsics held measures that noise (sync and rolling shutter add to it).
+        ext0 = calibrate_extrinsics(ba, [intr[n].camera() for n in names], board, world=world,
+                                    world_frame=world_frame, optimize_intrinsics=False, solver=solver)
+        if np.isfinite(ext0.meta.get("sigma_px", np.nan)):
+            sigma = max(sigma, float(ext0.meta["sigma_px"]))
     ext = calibrate_extrinsics(
         ba, [intr[n].camera() for n in names], board, world=world, world_frame=world_frame,
         optimize_intrinsics=mode != "fixed", solver=solver,
@@ -309,12 +315,12 @@ def _moved(intr: IntrinsicsResult, cam) -> dict:
 
 
 def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | None:
-    """k-fold over frame sets (contiguous blocks): calibrate on the rest, measure on the fold."""
+    """k-fold over frame sets (frame set i in fold i mod k): calibrate on the rest, measure on the fold."""
     frames = sorted({d.frame for n in names for d in dets[n]})
     k = min(int(folds), len(frames) // 2)
     if k < 2:
         return None
-    blocks = np.array_split(np.array(frames), k)
+    blocks = [np.array(frames[i::k]) for i in range(k)]
     sq = {n: 0.0 for n in names}
     cnt = {n: 0 for n in names}
     views = {n: 0 for n in names}
@@ -325,7 +331,7 @@ def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | N
         try:
             _, ext, _ = _solve(rest, sizes, board, names, **solve_kw)
         except CalibrationError as exc:
-            failed.append(f"fold {i + 1} (frames {block[0]}-{block[-1]}): {exc}")
+            failed.append(f"fold {i + 1} of {k}: {exc}")
             continue
         ev = reprojection_errors(ext.calibration, {n: [d for d in dets[n] if d.frame in out] for n in names},
                                  board)
@@ -340,6 +346,60 @@ def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | N
     tot = sum(cnt.values())
     return {"per_camera": per, "rms": float(np.sqrt(sum(sq.values()) / tot)) if tot else float("nan"),
             "folds": k, "frames": len(frames), "failed_folds": failed}
+
+
+def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_folds, solve_kw):
+    """The figures of the module docstring (step 3) and the warnings they give."""
+    ev: dict = {"mode": intrinsics}
+    ev["all_frames"] = reprojection_errors(calib, dets, board)
+    ev["geometry_all"] = triangulate_board_error(calib, dets, board)
+    icov = ext.meta.get("intrinsics_cov")
+    ev["uncertainty"] = {}
+    for ci, cam in enumerate(calib.cameras):
+        cov = icov[ci] if icov is not None and intrinsics != "fixed" else intr[cam.name].covariance
+        if cov is not None:
+            ev["uncertainty"][cam.name] = projection_uncertainty(cam, cov)
+    ev["moved_sigma"] = {} if intrinsics == "fixed" else {c.name: _moved(intr[c.name], c) for c in calib.cameras}
+    warn = []
+    for name, m in ev["moved_sigma"].items():
+        far = {k: v for k, v in m.items() if abs(v) > MOVE_WARN_SIGMA}
+        if far:
+            warn.append(f"camera {name}: the bundle adjustment moved " + ", ".join(
+                f"{k} by {v:+.1f} sigma" for k, v in far.items()) + " from its own calibration; the rig data "
+                "disagrees with what this camera saw alone (a moved camera, a bent board, or too few views of it)")
+    ev["held_out"] = _held_out(dets, sizes, board, names, holdout_folds, solve_kw) if holdout_folds else None
+    if ev["held_out"] is not None:
+        warn += [f"held-out {f}" for f in ev["held_out"]["failed_folds"]]
+    for w in warn:
+        log.debug(w)  # in the result's warnings / report
+    return ev, warn
+
+
+def _check(detections, sizes, board, cameras, intrinsics, max_sets, holdout_folds, min_change, mirrored, flipped):
+    """Validate :func:`calibrate_rig`'s arguments; the camera names in rig order."""
+    if not isinstance(board, (Chessboard, Charuco)):
+        raise ValueError(f"board must be a Chessboard or Charuco, got {type(board).__name__}")
+    if not isinstance(detections, Mapping) or not isinstance(sizes, Mapping):
+        raise ValueError("detections and sizes must be mappings keyed by camera name")
+    if intrinsics not in INTRINSICS_MODES:
+        raise ValueError(f"intrinsics must be one of {INTRINSICS_MODES}, got {intrinsics!r}")
+    if not (isinstance(max_sets, (int, np.integer)) and max_sets >= 2):
+        raise ValueError(f"max_sets must be an integer >= 2, got {max_sets!r}")
+    if not (isinstance(holdout_folds, (int, np.integer)) and (holdout_folds == 0 or holdout_folds >= 2)):
+        raise ValueError(f"holdout_folds must be 0 or an integer >= 2, got {holdout_folds!r}")
+    if not (np.isfinite(min_change) and min_change >= 0):
+        raise ValueError(f"min_change must be >= 0, got {min_change!r}")
+    names = list(cameras) if cameras is not None else list(sizes)
+    if not names:
+        raise ValueError("cameras: no cameras to calibrate")
+    missing = [n for n in names if n not in sizes]
+    if missing:
+        raise ValueError(f"sizes: no image size for camera(s) {missing}")
+    for what, given in (("mirrored", mirrored), ("flipped", flipped)):
+        unknown = sorted(set(given) - set(names))
+        if unknown:
+            raise ValueError(f"{what}: unknown camera(s) {unknown}")
+    return names
 
 
 def calibrate_rig(
@@ -359,7 +419,7 @@ def calibrate_rig(
     max_intrinsic_views: int | None = 40,
     min_change: float = 0.02,
     max_sets: int = MAX_SETS,
-    holdout_folds: int = 5,
+    holdout_folds: int = 0,
     mirrored: Sequence[str] = (),
     flipped: Sequence[str] = (),
 ) -> RigCalibration:
@@ -392,7 +452,8 @@ def calibrate_rig(
     max_sets : int
         Frame sets seen by two or more cameras above which the bundle adjustment thins them evenly.
     holdout_folds : int
-        Folds of the held-out error (0: none).
+        Folds of the held-out error (0: none, the default here; ``stage calibrate`` uses 5).
+        Each fold is a whole calibration, so this multiplies the time by ``1 + holdout_folds``.
     mirrored : sequence of str
         Cameras known to deliver mirrored images (their detections made on the flipped
         images); marked ``meta["mirror"] = True`` in the calibration.
@@ -411,30 +472,10 @@ def calibrate_rig(
         Naming every camera that has too few views or cannot be connected, with
         what to do. Nothing is written anywhere.
     """
-    if not isinstance(board, (Chessboard, Charuco)):
-        raise ValueError(f"board must be a Chessboard or Charuco, got {type(board).__name__}")
-    if not isinstance(detections, Mapping) or not isinstance(sizes, Mapping):
-        raise ValueError("detections and sizes must be mappings keyed by camera name")
     if optimize_intrinsics is False:
         intrinsics = "fixed"
-    if intrinsics not in INTRINSICS_MODES:
-        raise ValueError(f"intrinsics must be one of {INTRINSICS_MODES}, got {intrinsics!r}")
-    if not (isinstance(max_sets, (int, np.integer)) and max_sets >= 2):
-        raise ValueError(f"max_sets must be an integer >= 2, got {max_sets!r}")
-    if not (isinstance(holdout_folds, (int, np.integer)) and (holdout_folds == 0 or holdout_folds >= 2)):
-        raise ValueError(f"holdout_folds must be 0 or an integer >= 2, got {holdout_folds!r}")
-    if not (np.isfinite(min_change) and min_change >= 0):
-        raise ValueError(f"min_change must be >= 0, got {min_change!r}")
-    names = list(cameras) if cameras is not None else list(sizes)
-    if not names:
-        raise ValueError("cameras: no cameras to calibrate")
-    missing = [n for n in names if n not in sizes]
-    if missing:
-        raise ValueError(f"sizes: no image size for camera(s) {missing}")
-    for what, given in (("mirrored", mirrored), ("flipped", flipped)):
-        unknown = sorted(set(given) - set(names))
-        if unknown:
-            raise ValueError(f"{what}: unknown camera(s) {unknown}")
+    names = _check(detections, sizes, board, cameras, intrinsics, max_sets, holdout_folds, min_change,
+                   mirrored, flipped)
     from calib.detect import default_min_corners
 
     min_corners = default_min_corners(board)
@@ -460,29 +501,8 @@ def calibrate_rig(
                               {"mode": intrinsics, "sets": 0, "flipped": flip_notes, "mirrored": sorted(mirror),
                                "detections": dets})
     calib = Calibration(tuple(mark(c) for c in ext.calibration.cameras), units="mm", meta=dict(ext.calibration.meta))
-    ev: dict = {"mode": intrinsics, "sets": n_sets, "flipped": flip_notes,
-                "mirrored": sorted(mirror), "detections": dets}
-    ev["all_frames"] = reprojection_errors(calib, dets, board)
-    ev["geometry_all"] = triangulate_board_error(calib, dets, board)
-    icov = ext.meta.get("intrinsics_cov")
-    ev["uncertainty"] = {}
-    for ci, cam in enumerate(calib.cameras):
-        cov = icov[ci] if icov is not None and intrinsics != "fixed" else intr[cam.name].covariance
-        if cov is not None:
-            ev["uncertainty"][cam.name] = projection_uncertainty(cam, cov)
-    ev["moved_sigma"] = {} if intrinsics == "fixed" else {c.name: _moved(intr[c.name], c) for c in calib.cameras}
-    warn = []
-    for name, m in ev["moved_sigma"].items():
-        far = {k: v for k, v in m.items() if abs(v) > MOVE_WARN_SIGMA}
-        if far:
-            warn.append(f"camera {name}: the bundle adjustment moved " + ", ".join(
-                f"{k} by {v:+.1f} sigma" for k, v in far.items()) + " from its own calibration; the rig data "
-                "disagrees with what this camera saw alone (a moved camera, a bent board, or too few views of it)")
-    ev["held_out"] = _held_out(dets, sizes, board, names, holdout_folds, solve_kw) if holdout_folds else None
-    if ev["held_out"] is not None:
-        warn += [f"held-out {f}" for f in ev["held_out"]["failed_folds"]]
-    for w in warn:
-        log.debug(w)  # in the result's warnings / report
+    ev, warn = _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_folds, solve_kw)
+    ev.update({"sets": n_sets, "flipped": flip_notes, "mirrored": sorted(mirror), "detections": dets})
     meta = dict(calib.meta)
     meta["per_camera_rms_px"] = dict(ext.per_camera_rms)
     meta["board_geometry_error_mm"] = {k: v for k, v in ext.geometry.items() if np.isfinite(v)}

@@ -192,61 +192,17 @@ def evaluate_spine(
     K = len(limbs)
     allpts = np.concatenate([np.asarray(true_axes[n], float).reshape(-1, 3) for n in limb_names] + [tips.reshape(-1, 3)])
     size = float(np.linalg.norm(allpts.max(0) - allpts.min(0)))
-
-    S = np.full((F, K, 3), np.nan)
-    for f, fr in enumerate(frames):
-        for j, limb in enumerate(limbs):
-            t = fr["tips"].get(limb)
-            if t is not None:
-                S[f, j] = t
-    # take-level match
-    cost = np.zeros((K, L))
-    for j in range(K):
-        d = np.linalg.norm(S[:, j, None, :] - tips, axis=2)  # (F, L)
-        with np.errstate(invalid="ignore"):
-            cost[j] = np.nanmean(np.where(np.isnan(d), np.nan, d), axis=0) if np.isfinite(d).any() else 1e9
-    cost = np.nan_to_num(cost, nan=1e9)
-    rows, cols = linear_sum_assignment(cost) if K and L else (np.zeros(0, int), np.zeros(0, int))
+    S = _spine_tips(frames, limbs)
+    rows, cols = _take_match(S, tips)
     match = {limbs[r]: limb_names[c] for r, c in zip(rows, cols)}
-
-    errs = []
-    within = 0
-    consistent = 0
-    for f in range(F):
-        seen = [j for j in range(K) if np.isfinite(S[f, j]).all()]
-        for r, c in zip(rows, cols):
-            if np.isfinite(S[f, r]).all():
-                e = np.linalg.norm(S[f, r] - tips[f, c]) / size
-                errs.append(e)
-                within += e <= tip_tolerance
-        if seen:
-            d = np.linalg.norm(S[f, seen][:, None, :] - tips[f][None], axis=2)
-            rr, cc = linear_sum_assignment(d)
-            frame_match = {limbs[seen[a]]: limb_names[b] for a, b in zip(rr, cc)}
-            consistent += all(match.get(k) == v for k, v in frame_match.items())
-        else:
-            consistent += 1
-    axis_errs = []
-    for f, fr in enumerate(frames):
-        for r, c in zip(rows, cols):
-            ax = fr.get("axes", {}).get(limbs[r])
-            if ax:
-                d = point_polyline_distance(np.asarray(ax, float), np.asarray(true_axes[limb_names[c]][f], float))
-                axis_errs.append(d.mean() / size)
+    pairs = [(limbs[r], limb_names[c]) for r, c in zip(rows, cols)]
+    errs, within = _tip_errors(S, tips, rows, cols, size=size, tip_tolerance=tip_tolerance)
+    consistent = _consistent_frames(S, tips, limbs, limb_names, match)
+    axis_errs = [e / size for e in _axis_distances(frames, pairs, true_axes)]
     limb_errs: list[float] = []
     skipped = 0
     if poses is not None:
-        step = size / 400
-        for f, fr in enumerate(frames):
-            for r, c in zip(rows, cols):
-                ax = fr.get("axes", {}).get(limbs[r])
-                if not ax:
-                    continue
-                e = limb_axis_distance(np.asarray(ax, float), np.asarray(true_axes[limb_names[c]][f], float), poses[f], step=step)
-                if e is None:
-                    skipped += 1
-                else:
-                    limb_errs.append(e / size)
+        limb_errs, skipped = _limb_axis_errors(frames, pairs, true_axes, poses, size=size)
     errs_a = np.asarray(errs) if errs else np.asarray([np.inf])
     return {
         "K": K,
@@ -262,3 +218,85 @@ def evaluate_spine(
         "limb_axis_error_mean": (float(np.mean(limb_errs)) if limb_errs else float("inf")) if poses is not None else None,
         "limb_axis_skipped": skipped if poses is not None else None,
     }
+
+
+# --------------------------------------------------------------------------- evaluate_spine, step by step
+
+
+def _spine_tips(frames: Sequence[Mapping], limbs: Sequence[str]) -> np.ndarray:
+    """(F, K, 3) spine tips per frame, nan where a limb has no tip."""
+    S = np.full((len(frames), len(limbs), 3), np.nan)
+    for f, fr in enumerate(frames):
+        for j, limb in enumerate(limbs):
+            t = fr["tips"].get(limb)
+            if t is not None:
+                S[f, j] = t
+    return S
+
+
+def _take_match(S: np.ndarray, tips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One assignment of spine limbs to true limbs for the whole take (mean tip distance, Hungarian)."""
+    K, L = S.shape[1], tips.shape[1]
+    cost = np.zeros((K, L))
+    for j in range(K):
+        d = np.linalg.norm(S[:, j, None, :] - tips, axis=2)  # (F, L)
+        with np.errstate(invalid="ignore"):
+            cost[j] = np.nanmean(np.where(np.isnan(d), np.nan, d), axis=0) if np.isfinite(d).any() else 1e9
+    cost = np.nan_to_num(cost, nan=1e9)
+    return linear_sum_assignment(cost) if K and L else (np.zeros(0, int), np.zeros(0, int))
+
+
+def _tip_errors(S, tips, rows, cols, *, size: float, tip_tolerance: float) -> tuple[list[float], int]:
+    """Tip errors (fractions of size) of the matched limbs where seen, and how many are within tolerance."""
+    errs, within = [], 0
+    for f in range(len(S)):
+        for r, c in zip(rows, cols):
+            if np.isfinite(S[f, r]).all():
+                e = np.linalg.norm(S[f, r] - tips[f, c]) / size
+                errs.append(e)
+                within += e <= tip_tolerance
+    return errs, within
+
+
+def _consistent_frames(S, tips, limbs, limb_names, match: dict) -> int:
+    """Frames whose own best assignment agrees with the take's (frames with no tip count as consistent)."""
+    consistent = 0
+    for f in range(len(S)):
+        seen = [j for j in range(len(limbs)) if np.isfinite(S[f, j]).all()]
+        if not seen:
+            consistent += 1
+            continue
+        d = np.linalg.norm(S[f, seen][:, None, :] - tips[f][None], axis=2)
+        rr, cc = linear_sum_assignment(d)
+        frame_match = {limbs[seen[a]]: limb_names[b] for a, b in zip(rr, cc)}
+        consistent += all(match.get(k) == v for k, v in frame_match.items())
+    return consistent
+
+
+def _axis_distances(frames, pairs, true_axes) -> list[float]:
+    """Mean distance of every matched spine axis to its true axis, per (frame, limb) with an axis."""
+    out = []
+    for f, fr in enumerate(frames):
+        for limb, true_limb in pairs:
+            ax = fr.get("axes", {}).get(limb)
+            if ax:
+                d = point_polyline_distance(np.asarray(ax, float), np.asarray(true_axes[true_limb][f], float))
+                out.append(d.mean())
+    return out
+
+
+def _limb_axis_errors(frames, pairs, true_axes, poses, *, size: float) -> tuple[list[float], int]:
+    """:func:`limb_axis_distance` (fractions of size) per (frame, limb), and the pairs with nothing outside."""
+    errs, skipped = [], 0
+    step = size / 400
+    for f, fr in enumerate(frames):
+        for limb, true_limb in pairs:
+            ax = fr.get("axes", {}).get(limb)
+            if not ax:
+                continue
+            e = limb_axis_distance(np.asarray(ax, float), np.asarray(true_axes[true_limb][f], float), poses[f], step=step)
+            if e is None:
+                skipped += 1
+            else:
+                errs.append(e / size)
+    return errs, skipped

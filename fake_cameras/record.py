@@ -46,7 +46,7 @@ def record_take(
     """
     from fake_cameras.rigs import simulated_rig_dict
     from stage.frame import Frame
-    from stage.store import CameraSpec, TakeWriter, write_array
+    from stage.store import CameraSpec, TakeWriter
 
     if not isinstance(take, SimulatedTake):
         raise ValueError(f"take must be a SimulatedTake, got {type(take).__name__}")
@@ -60,7 +60,9 @@ def record_take(
     )
     period = int(round(1e9 / take.fps))
     specs = [CameraSpec(n, w, h, depth=take.depth is not None) for n in names]
-    with TakeWriter(path, specs, rig=rig, calibration=cal, compression=compression, fps=take.fps, overwrite=overwrite) as wr:
+    plates = {f"cameras/{n}/plate": take.plate[c] for c, n in enumerate(names)}  # shot with the take
+    with TakeWriter(path, specs, rig=rig, calibration=cal, compression=compression, fps=take.fps, overwrite=overwrite,
+                    arrays=plates) as wr:
         for f in range(take.n_frames):
             t = f * period
             frames = {
@@ -71,7 +73,5 @@ def record_take(
                 for c, n in enumerate(names)
             }
             wr.write_set(frames, time_ns=t)
-    for c, n in enumerate(names):
-        write_array(path, f"cameras/{n}", "plate", take.plate[c])
     write_ground_truth(take, path)
     return path

@@ -13,9 +13,11 @@ linear blend skinning, ``x' = sum_k w_k (R_k x + t_k)`` over its bones' parts.
 
 Per frame, :func:`fit_frame` minimises ``sum_v ||x'_v - y_v||^2`` (the
 frame's vertices ``y``, corresponding by index: shared connectivity) by
-Gauss-Newton with a small Levenberg damping; the Jacobian of a rotation
+Gauss-Newton; the Jacobian of a rotation
 increment ``omega_p`` (world frame, about the part's current joint) is
-``-[A_vp]_x`` with ``A_vp = sum_k w_vk [part_k below p] (x'_vk - c_p)``.
+``-[A_vp]_x`` with ``A_vp = sum_k w_vk [part_k below p] (x'_vk - c_p)``; a
+Levenberg-Marquardt damping (Marquardt's diagonal scaling) keeps every step
+descending.
 :func:`fit_sequence` initialises every frame from the previous one (the
 paper's tracking) and, as a guard against fast motion, from a closed-form
 hierarchical Procrustes fit of the parts (Arun et al. 1987 about each
@@ -211,22 +213,22 @@ def procrustes_pose(model: ArticulatedModel, target) -> Pose:
     cx, cy = x[m0].mean(0), y[m0].mean(0)
     R0 = _kabsch(x[m0] - cx, y[m0] - cy)
     t0 = cy - R0 @ cx
-    local = np.tile(np.eye(3), (P, 1, 1))
-    pose = _forward(model, R0, t0, local)
+    R = np.tile(np.eye(3), (P, 1, 1))
+    t = np.zeros((P, 3))
+    R[0], t[0] = R0, t0
     c = model.pivots
-    for p in range(1, P):
+    for p in range(1, P):  # parents come first
         m = dom == p
         q = sk.part_parent[p]
-        if m.sum() >= 3:
-            cw = pose.R[q] @ c[p] + pose.t[q]
-            Rg = _kabsch(x[m] - c[p], y[m] - cw)
-            local[p] = pose.R[q].T @ Rg
-            pose = _forward(model, R0, t0, local)
+        cw = R[q] @ c[p] + t[q]
+        R[p] = _kabsch(x[m] - c[p], y[m] - cw) if m.sum() >= 3 else R[q]
+        t[p] = cw - R[p] @ c[p]
+    pose = Pose(R, t)
     return pose
 
 
 def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, iterations: int = 10,
-              tol: float = 1e-7) -> tuple[Pose, float]:
+              tol: float = 1e-5) -> tuple[Pose, float]:
     """Least-squares pose of the model for one frame (Gauss-Newton on the skinned vertices).
 
     Parameters
@@ -258,41 +260,62 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
     x = model.vertices
     size = float(np.linalg.norm(x.max(0) - x.min(0))) or 1.0
     vp = model.vertex_parts
-    Wb = (model.weights[..., None] * model.below[vp])[..., None]  # (V, k, P, 1)
-    local = _local(model, pose)
-    root_R, root_t = pose.R[0].copy(), pose.t[0].copy()
+    Wk = model.weights[..., None] * model.below[vp]  # (V, k, P)
+    Wsum = Wk.sum(1)  # (V, P)
     n_par = 3 * (P + 1)
-    for _ in range(int(iterations)):
+
+    def linearise(pose):
         q = np.einsum("vkij,vj->vki", pose.R[vp], x) + pose.t[vp]  # (V, k, 3)
-        xp = (model.weights[..., None] * q).sum(1)
-        r = xp - y
+        r = (model.weights[..., None] * q).sum(1) - y
         cw = np.einsum("pij,pj->pi", pose.R, model.pivots) + pose.t  # carried joints
         # columns: root translation, root rotation (about the root joint), one rotation per part >= 1
-        A = (Wb * (q[:, :, None, :] - cw[None, None, :, :])).sum(1)  # (V, P, 3)
-        J = np.empty((V, 3, n_par))
-        J[:, :, :3] = np.eye(3)
-        J[:, :, 3:] = np.transpose(-_skew_batch(A), (0, 2, 1, 3)).reshape(V, 3, 3 * P)
-        Jm = J.reshape(3 * V, n_par)
-        H = Jm.T @ Jm
-        g = Jm.T @ r.reshape(-1)
-        H[np.diag_indices(n_par)] *= 1.0 + 1e-6
-        H[np.diag_indices(n_par)] += 1e-9 * size * size
-        try:
-            delta = -np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
-            break
+        A = np.einsum("vkp,vki->vpi", Wk, q) - Wsum[..., None] * cw[None]  # (V, P, 3)
+        # normal equations of J = [I, -[A_v0]_x, ..., -[A_vP-1]_x] without forming J:
+        # [a]_x^T [b]_x = (a.b) I - b a^T
+        A2 = A.reshape(V, 3 * P)
+        M = (A2.T @ A2).reshape(P, 3, P, 3)  # sum_v A_vp,i A_vq,j
+        tr = np.einsum("piqi->pq", M)
+        Hww = tr[:, None, :, None] * np.eye(3)[None, :, None, :] - M.transpose(0, 3, 2, 1)
+        H = np.empty((n_par, n_par))
+        H[:3, :3] = V * np.eye(3)
+        H[:3, 3:] = -_skew_batch(A.sum(0)).transpose(1, 0, 2).reshape(3, 3 * P)
+        H[3:, :3] = H[:3, 3:].T
+        H[3:, 3:] = Hww.reshape(3 * P, 3 * P)
+        g = np.r_[r.sum(0), np.cross(A, r[:, None, :]).sum(0).ravel()]
+        return float((r * r).sum()), H, g, cw
+
+    def step(pose, delta, cw):
         dt, om = delta[:3], delta[3:].reshape(P, 3)
         Rinc = Rotation.from_rotvec(om).as_matrix()
-        # root: rotate about its carried joint, then translate
-        g0 = cw[0]
-        root_R = Rinc[0] @ root_R
-        root_t = Rinc[0] @ (root_t - g0) + g0 + dt
+        local = _local(model, pose)
+        g0 = cw[0]  # the root turns about its carried joint, then translates
+        root_R = Rinc[0] @ pose.R[0]
+        root_t = Rinc[0] @ (pose.t[0] - g0) + g0 + dt
         for p in range(1, P):
             qpar = sk.part_parent[p]
             local[p] = pose.R[qpar].T @ Rinc[p] @ pose.R[qpar] @ local[p]
-        pose = _forward(model, root_R, root_t, local)
-        if np.abs(om).max() < tol and np.abs(dt).max() < tol * size:
+        return _forward(model, root_R, root_t, local)
+
+    sse, H, g, cw = linearise(pose)
+    mu = 1e-4 * float(np.mean(np.diag(H))) + 1e-12 * size * size
+    for _ in range(int(iterations)):  # Levenberg-Marquardt
+        try:
+            delta = -np.linalg.solve(H + mu * np.diag(np.diag(H) + 1e-9 * size * size), g)
+        except np.linalg.LinAlgError:
             break
+        cand = step(pose, delta, cw)
+        c_sse, c_H, c_g, c_cw = linearise(cand)
+        if c_sse < sse:
+            done = sse - c_sse <= 1e-4 * sse or (
+                np.abs(delta[3:]).max() < tol and np.abs(delta[:3]).max() < tol * size)
+            pose, sse, H, g, cw = cand, c_sse, c_H, c_g, c_cw
+            mu /= 3.0
+            if done:
+                break
+        else:
+            mu *= 4.0
+            if mu > 1e8 * float(np.mean(np.diag(H)) + 1.0):
+                break
     err = float(np.linalg.norm(model.deform(pose) - y, axis=1).mean())
     return pose, err
 
@@ -333,6 +356,13 @@ def fit_sequence(model: ArticulatedModel, frames, *, iterations: int = 10, progr
     Y = np.asarray(frames, dtype=np.float64)
     if Y.ndim != 3 or Y.shape[1:] != model.vertices.shape:
         raise ValueError(f"frames must have shape (T, {len(model.vertices)}, 3), got {Y.shape}")
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, "blas"):  # small dense products: threads only contend
+        return _fit_sequence(model, Y, iterations, progress)
+
+
+def _fit_sequence(model, Y, iterations, progress) -> FitResult:
     poses, errs, joints = [], [], []
     prev = None
     for t in range(len(Y)):

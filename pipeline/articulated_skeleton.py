@@ -381,7 +381,7 @@ def _drop_end_bones(bones, key, joint_pairs, node_seg) -> list:
         for a, b, _ in bones:
             deg[a] += 1
             deg[b] += 1
-        for i, (a, b, path) in enumerate(bones):
+        for i, (a, b, _path) in enumerate(bones):
             for end, other in ((a, b), (b, a)):
                 if (deg[end] == 1 and end not in joint_pairs and other not in joint_pairs
                         and node_seg[end] == node_seg[other]):
@@ -433,9 +433,7 @@ def _hang(P, bones, joint_pairs, node_seg, lab) -> ArticulatedSkeleton:
     artic = np.array([x in joint_pairs and x != root for x in order])
     part = np.zeros(J, dtype=np.int64)
     part_joint, part_parent = [0], [-1]
-    for i, x in enumerate(order):
-        if i == 0:
-            continue
+    for i in range(1, J):
         if artic[i]:
             part_joint.append(i)
             part_parent.append(int(part[parents[i]]))
@@ -443,7 +441,7 @@ def _hang(P, bones, joint_pairs, node_seg, lab) -> ArticulatedSkeleton:
         else:
             part[i] = part[parents[i]]
     names, na, nx = [], 0, 0
-    for i, x in enumerate(order):
+    for i in range(J):
         if i == 0:
             names.append("root")
         elif artic[i]:

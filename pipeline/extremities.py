@@ -167,21 +167,13 @@ def find_extremities(
     v, f = validate_mesh(vertices, faces)
     if int(n_base) < 2:
         raise ValueError(f"n_base must be >= 2, got {n_base}")
-    if protrusion is None:
-        if not (min_protrusion > 0):
-            raise ValueError(f"min_protrusion must be > 0, got {min_protrusion}")
-        area = float(vertex_areas(v, f).sum())
-        h = float(min_protrusion) * np.sqrt(area)
-    else:
-        if not (protrusion > 0):
-            raise ValueError(f"protrusion must be > 0, got {protrusion}")
-        h = float(protrusion)
+    h = _protrusion_height(v, f, min_protrusion=min_protrusion, protrusion=protrusion)
+    if agd_proxy is not None and int(agd_proxy) < 1:
+        raise ValueError(f"agd_proxy must be >= 1, got {agd_proxy}")
     if edges is None:
         edges = mesh_edges(f)
     if graph is None:
         graph = edge_graph(v, edges)
-    if agd_proxy is not None and int(agd_proxy) < 1:
-        raise ValueError(f"agd_proxy must be >= 1, got {agd_proxy}")
     if agd_proxy is not None and len(v) > 3 * int(agd_proxy):
         agd, base = proxy_average_geodesic_distance(v, edges, n_base=n_base, n_proxy=int(agd_proxy))
     else:
@@ -192,29 +184,56 @@ def find_extremities(
     rank = _ranks(agd)
     cand = local_maxima(agd, edges)
     cand = cand[np.isfinite(agd[cand])]
-    top = int(np.argmax(rank))
+    cand = _hop_prefilter(graph, rank, cand, h)
+    survivors = _ball_maxima(graph, rank, cand, h)
+    top = int(np.argmax(rank))  # the global maximum persists when the whole field spans h
+    tips = np.asarray([m for m in survivors
+                       if (bool(agd[finite].max() - agd[finite].min() >= h) if m == top
+                           else _persists(agd, rank, edges, m, h))], dtype=np.int64)
+    return Extremities(vertices=tips, points=v[tips], agd=agd, base=base, threshold=h)
 
-    # 0. exact pre-filter: a tip is the maximum of every k-hop neighbourhood
-    #    that fits in its geodesic h-ball (k * longest edge <= h); vectorised
-    #    max-dilations over the CSR rows drop the small bumps before any
-    #    Dijkstra
-    if len(cand) > 8 and graph.nnz:
-        g = graph.tocsr()
-        longest = float(np.max(g.data))
-        max_hops = int(h // longest) if longest > 0 else 0
-        rows = np.flatnonzero(np.diff(g.indptr) > 0)
-        starts = g.indptr[rows]
-        nb = rank.copy()
-        for _ in range(min(max_hops, 64)):
-            grown = nb.copy()
-            grown[rows] = np.maximum(nb[rows], np.maximum.reduceat(nb[g.indices], starts))
-            nb = grown
-            cand = cand[nb[cand] == rank[cand]]
-            if len(cand) <= 8:
-                break
-    # 1. geodesic h-ball test, in chunks of sources
+
+# --------------------------------------------------------------------------- find_extremities, step by step
+
+
+def _protrusion_height(v: np.ndarray, f: np.ndarray, *, min_protrusion: float, protrusion: float | None) -> float:
+    """The threshold ``h`` in mesh units: absolute, or ``min_protrusion * sqrt(area)``."""
+    if protrusion is not None:
+        if not (protrusion > 0):
+            raise ValueError(f"protrusion must be > 0, got {protrusion}")
+        return float(protrusion)
+    if not (min_protrusion > 0):
+        raise ValueError(f"min_protrusion must be > 0, got {min_protrusion}")
+    area = float(vertex_areas(v, f).sum())
+    return float(min_protrusion) * np.sqrt(area)
+
+
+def _hop_prefilter(graph: sp.csr_matrix, rank: np.ndarray, cand: np.ndarray, h: float) -> np.ndarray:
+    """Exact pre-filter: a tip is the maximum of every k-hop neighbourhood that fits in its geodesic
+    h-ball (k * longest edge <= h); vectorised max-dilations over the CSR rows drop the small bumps
+    before any Dijkstra."""
+    if not (len(cand) > 8 and graph.nnz):
+        return cand
+    g = graph.tocsr()
+    longest = float(np.max(g.data))
+    max_hops = int(h // longest) if longest > 0 else 0
+    rows = np.flatnonzero(np.diff(g.indptr) > 0)
+    starts = g.indptr[rows]
+    nb = rank.copy()
+    for _ in range(min(max_hops, 64)):
+        grown = nb.copy()
+        grown[rows] = np.maximum(nb[rows], np.maximum.reduceat(nb[g.indices], starts))
+        nb = grown
+        cand = cand[nb[cand] == rank[cand]]
+        if len(cand) <= 8:
+            break
+    return cand
+
+
+def _ball_maxima(graph: sp.csr_matrix, rank: np.ndarray, cand: np.ndarray, h: float) -> list[int]:
+    """Candidates that are the maximum of their geodesic h-ball (Dijkstra in chunks of sources)."""
     survivors = []
-    chunk = max(1, int(4_000_000 // max(len(v), 1)))
+    chunk = max(1, int(4_000_000 // max(graph.shape[0], 1)))
     for i in range(0, len(cand), chunk):
         c = cand[i : i + chunk]
         d = dijkstra(graph, directed=True, indices=c, limit=h)
@@ -222,19 +241,14 @@ def find_extremities(
             ball = np.isfinite(d[j])
             if not np.any(rank[ball] > rank[m]):
                 survivors.append(int(m))
-    # 2. persistence test
-    tips = []
-    n = len(v)
-    for m in survivors:
-        if m == top:
-            ok = bool(agd[finite].max() - agd[finite].min() >= h)
-        else:
-            keep = agd >= agd[m] - h
-            ee = edges[keep[edges[:, 0]] & keep[edges[:, 1]]]
-            adj = sp.csr_matrix((np.ones(len(ee)), (ee[:, 0], ee[:, 1])), shape=(n, n))
-            _, lab = connected_components(adj, directed=False)
-            ok = not bool(np.any(rank[lab == lab[m]] > rank[m]))
-        if ok:
-            tips.append(m)
-    tips = np.asarray(tips, dtype=np.int64)
-    return Extremities(vertices=tips, points=v[tips], agd=agd, base=base, threshold=h)
+    return survivors
+
+
+def _persists(agd: np.ndarray, rank: np.ndarray, edges: np.ndarray, m: int, h: float) -> bool:
+    """Persistence test: no higher vertex in ``m``'s component of the super-level set ``agd >= agd[m] - h``."""
+    n = len(agd)
+    keep = agd >= agd[m] - h
+    ee = edges[keep[edges[:, 0]] & keep[edges[:, 1]]]
+    adj = sp.csr_matrix((np.ones(len(ee)), (ee[:, 0], ee[:, 1])), shape=(n, n))
+    _, lab = connected_components(adj, directed=False)
+    return not bool(np.any(rank[lab == lab[m]] > rank[m]))

@@ -406,18 +406,7 @@ def merge_skeletons(
     # only the skeletons seeded at kept tips take part
     kept = [s for s in skeletons if s.seed in present] or skeletons
     if topology is None:
-        sub = [i for i, t in enumerate(tips) if t >= 0]
-        split_sets = [skeleton_splits(s, [tips[i] for i in sub]) for s in kept]
-        topology = consensus_topology(split_sets, len(sub)) if sub else Topology.from_splits(max(n, 1), [])
-        if len(sub) != n:  # lift back to the full tip numbering
-            lifted = []
-            for s in topology.splits:
-                m = 0
-                for k, i in enumerate(sub):
-                    if s >> k & 1:
-                        m |= 1 << i
-                lifted.append(m)
-            topology = Topology.from_splits(n, lifted)
+        topology = _consensus_over(kept, tips)
     elif topology.n_tips != n:
         raise ValueError(f"topology has {topology.n_tips} tips, tips has {n}")
     if cost_norm is None:
@@ -428,37 +417,87 @@ def merge_skeletons(
     for i, t in enumerate(tips):
         if t >= 0:
             tips_xyz[i] = P[t]
-    real = [realize_junctions(s, topology, tips) for s in kept]
-    # fill junctions missing everywhere from hints
-    if junction_hints is not None:
-        hints = np.asarray(junction_hints, dtype=np.float64).reshape(J, 3)
-        for si, s in enumerate(kept):
-            for j in range(J):
-                if real[si][j] is None and np.all(np.isfinite(hints[j])):
-                    real[si][j] = _node_near_hint(s, topology, tips, j, hints[j])
+    real = _realized_junctions(kept, topology, tips, junction_hints)
     jpos = np.full((J, 3), np.nan)
     for j in range(J):
         pts = [kept[si].nodes[real[si][j]] for si in range(len(kept)) if real[si][j] is not None]
         if pts:
             jpos[j] = np.median(np.asarray(pts), axis=0)
+    chains = _ChainPicker(kept, real, jpos, cost_norm)
+    tip_axes, tq = [], np.full(n, np.nan)
+    for i, t in enumerate(tips):
+        if t < 0:
+            tip_axes.append(None)
+            continue
+        poly, q = chains.best(lambda si, s, t=t: int(s.tip_nodes[t]), topology.tip_parent[i], True, tips_xyz[i])
+        tip_axes.append(poly)
+        tq[i] = q
+    junction_axes, jq = [None], np.full(J, np.nan)
+    for j in range(1, J):
+        poly, q = chains.best(lambda si, s, j=j: real[si][j], topology.junction_parent[j], False, jpos[j])
+        junction_axes.append(poly)
+        jq[j] = q
+    return MergedSkeleton(topology, tips_xyz, jpos, tip_axes, junction_axes, tq, jq)
 
-    def best_chain(end_node_of, j_parent, end_is_tip, end_xyz):
+
+def _consensus_over(kept, tips: list[int]) -> Topology:
+    """Majority topology of the skeletons over the present tips, in the numbering of ``tips``."""
+    n = len(tips)
+    sub = [i for i, t in enumerate(tips) if t >= 0]
+    split_sets = [skeleton_splits(s, [tips[i] for i in sub]) for s in kept]
+    topology = consensus_topology(split_sets, len(sub)) if sub else Topology.from_splits(max(n, 1), [])
+    if len(sub) == n:
+        return topology
+    lifted = []  # lift back to the full tip numbering
+    for s in topology.splits:
+        m = 0
+        for k, i in enumerate(sub):
+            if s >> k & 1:
+                m |= 1 << i
+        lifted.append(m)
+    return Topology.from_splits(n, lifted)
+
+
+def _realized_junctions(kept, topology: Topology, tips, junction_hints) -> list[list]:
+    """Per skeleton, the node of every junction (None when it cannot be realised nor hinted)."""
+    real = [realize_junctions(s, topology, tips) for s in kept]
+    if junction_hints is None:
+        return real
+    hints = np.asarray(junction_hints, dtype=np.float64).reshape(topology.n_junctions, 3)
+    for si, s in enumerate(kept):
+        for j in range(topology.n_junctions):
+            if real[si][j] is None and np.all(np.isfinite(hints[j])):
+                real[si][j] = _node_near_hint(s, topology, tips, j, hints[j])
+    return real
+
+
+@dataclass
+class _ChainPicker:
+    """Picks, among the skeletons, the best-quality chain from a junction to a tip or junction."""
+
+    kept: list
+    real: list
+    jpos: np.ndarray
+    cost_norm: float
+
+    def best(self, end_node_of, j_parent: int, end_is_tip: bool, end_xyz: np.ndarray):
+        """``(polyline from the junction's median position to end_xyz, quality)`` or ``(None, nan)``."""
         best_q, best_poly = -np.inf, None
-        for si, s in enumerate(kept):
-            a = real[si][j_parent]
+        for si, s in enumerate(self.kept):
+            a = self.real[si][j_parent]
             b = end_node_of(si, s)
             if a is None or b is None or b < 0:
                 continue
             path = tree_path(s.parent, a, b)
             inner = path[1:] if end_is_tip else path[1:-1]
-            q = limb_quality(s.cost[inner], cost_norm) if inner else 0.0
+            q = limb_quality(s.cost[inner], self.cost_norm) if inner else 0.0
             if q > best_q:
                 best_q = q
                 best_poly = s.nodes[path]
-        if best_poly is None or not np.all(np.isfinite(jpos[j_parent])):
+        if best_poly is None or not np.all(np.isfinite(self.jpos[j_parent])):
             return None, np.nan
         poly = best_poly.copy()
-        poly[0] = jpos[j_parent]
+        poly[0] = self.jpos[j_parent]
         if end_is_tip:
             poly = np.vstack([poly, end_xyz[None]])
         else:
@@ -466,21 +505,6 @@ def merge_skeletons(
         if not np.all(np.isfinite(poly[-1])):
             return None, np.nan
         return _dedupe(poly), best_q
-
-    tip_axes, tq = [], np.full(n, np.nan)
-    for i, t in enumerate(tips):
-        if t < 0:
-            tip_axes.append(None)
-            continue
-        poly, q = best_chain(lambda si, s, t=t: int(s.tip_nodes[t]), topology.tip_parent[i], True, tips_xyz[i])
-        tip_axes.append(poly)
-        tq[i] = q
-    junction_axes, jq = [None], np.full(J, np.nan)
-    for j in range(1, J):
-        poly, q = best_chain(lambda si, s, j=j: real[si][j], topology.junction_parent[j], False, jpos[j])
-        junction_axes.append(poly)
-        jq[j] = q
-    return MergedSkeleton(topology, tips_xyz, jpos, tip_axes, junction_axes, tq, jq)
 
 
 def _node_near_hint(s: TipSkeleton, topology: Topology, tips, j: int, hint: np.ndarray):

@@ -36,7 +36,11 @@ Two steps are ours (the paper is silent): a motion segment must be connected
 on the surface, so a label whose vertices form several surface patches (two
 legs that happen to move in step) is split, and patches smaller than
 ``min_segment`` of the vertices are merged into the neighbour they share the
-longest boundary with. Labels are renumbered by decreasing size.
+longest boundary with; adjacent segments whose union still moves as one rigid
+body (median residual of each of the two after the best rigid motion of both,
+below ``rigid_tol`` of the size in every frame) are merged, so that over-segmentation (``lambda_thr = 0.98``, or
+k-means splitting a rigid part) adds no joint that never bends. Labels are
+renumbered by decreasing size.
 
 Hand-written because no library computes trajectory distances; the
 eigen-decomposition (``numpy.linalg.eigh``), k-means (``scipy.cluster.vq``)
@@ -123,7 +127,8 @@ def check_sequence(vertices, faces, *, name: str = "vertices") -> tuple[np.ndarr
 
     Returns
     -------
-    vertices : (T, V, 3) float64 ndarray
+    vertices : (T, V, 3) float ndarray
+        float32 input stays float32 (long sequences), anything else becomes float64.
     faces : (F, 3) int64 ndarray
     """
     if isinstance(vertices, (list, tuple)) and vertices and len({np.shape(x) for x in vertices}) > 1:
@@ -132,7 +137,9 @@ def check_sequence(vertices, faces, *, name: str = "vertices") -> tuple[np.ndarr
             f"{name}: the frames have different vertex counts ({', '.join(map(str, counts[:4]))}): "
             "a sequence without shared connectivity needs its template tracked first (stage track)"
         )
-    v = np.asarray(vertices, dtype=np.float64)
+    v = np.asarray(vertices)
+    if v.dtype not in (np.float32, np.float64):
+        v = v.astype(np.float64)
     if v.ndim != 3 or v.shape[2] != 3 or v.shape[0] < 1 or v.shape[1] < 4:
         raise ValueError(f"{name} must have shape (T, V, 3) with T >= 1 and V >= 4, got {v.shape}")
     if not np.all(np.isfinite(v)):
@@ -249,11 +256,12 @@ def interval_length(vertices, *, to_reference: float = 1.0) -> int:
     int
         Within ``1 .. max(T - 1, 1)``.
     """
-    v = np.asarray(vertices, dtype=np.float64)
+    v = np.asarray(vertices)
     T = v.shape[0]
     if T < 2:
         return 1
-    step = max(float(np.sqrt(((v[1:] - v[:-1]) ** 2).sum(2)).max()), 0.0) * float(to_reference)
+    big = max(float(np.sqrt(((v[t + 1] - v[t]).astype(np.float64) ** 2).sum(1)).max()) for t in range(T - 1))
+    step = big * float(to_reference)
     return int(np.clip(round(2.0 * step), 1, T - 1))
 
 
@@ -448,6 +456,76 @@ def _connected_segments(labels: np.ndarray, edges: np.ndarray, n_vertices: int, 
     return rank[inv].astype(np.int64)
 
 
+def rigid_residual(points, groups=None) -> float:
+    """How far a set of trajectories is from one rigid motion.
+
+    Parameters
+    ----------
+    points : (T, n, 3) float ndarray
+    groups : (n,) int array_like, optional
+        Group of every point: the result is the largest over the groups of
+        their median residual, so a few stray points (labels propagated
+        across a boundary) do not hide a rigid union, and a small group that
+        moves on its own is not outvoted by a large one.
+
+    Returns
+    -------
+    float
+        The largest (over frames) RMS distance (median per group when
+        ``groups`` is given) after the best rigid transform from frame 0
+        (Arun et al. 1987, every frame at once).
+    """
+    Y = np.asarray(points, dtype=np.float64)
+    Y = Y - Y.mean(1, keepdims=True)
+    X = Y[0]
+    H = np.einsum("nd,tne->tde", X, Y)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
+    U[:, :, 2] *= d[:, None]
+    R = np.einsum("tij,tjk->tik", U, Vt)  # X @ R ~ Y
+    res = np.sqrt(((np.einsum("nd,tde->tne", X, R) - Y) ** 2).sum(2))  # (T, n)
+    if groups is None:
+        return float(np.sqrt((res**2).mean(1)).max())
+    g = np.asarray(groups)
+    return float(max(np.median(res[:, g == k], axis=1).max() for k in np.unique(g)))
+
+
+def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, per_segment: int = 400,
+                 min_edges: int = 3) -> np.ndarray:
+    """Merge adjacent segments whose union still moves rigidly (residual below ``tol``)."""
+    rng = np.random.default_rng(0)
+    lab = labels.copy()
+    members = {int(s): np.flatnonzero(lab == s) for s in np.unique(lab)}
+    pick = {s: (m if len(m) <= per_segment else rng.choice(m, per_segment, replace=False)) for s, m in members.items()}
+
+    def adjacent_pairs():
+        la, lb = lab[edges[:, 0]], lab[edges[:, 1]]
+        c = la != lb
+        pairs, counts = np.unique(np.sort(np.c_[la[c], lb[c]], axis=1), axis=0, return_counts=True)
+        return {(int(a), int(b)) for (a, b), n in zip(pairs, counts) if n >= min_edges}
+
+    cache: dict = {}
+    while True:
+        pairs = adjacent_pairs()
+        if not pairs:
+            break
+        for pr in pairs:
+            if pr not in cache:
+                ids = np.r_[pick[pr[0]], pick[pr[1]]]
+                grp = np.r_[np.zeros(len(pick[pr[0]])), np.ones(len(pick[pr[1]]))]
+                cache[pr] = rigid_residual(v[:, ids], grp)
+        best = min(pairs, key=lambda pr: cache[pr])
+        if cache[best] >= tol:
+            break
+        a, b = best
+        lab[lab == b] = a
+        both = np.r_[pick[a], pick[b]]
+        pick[a] = both if len(both) <= per_segment else rng.choice(both, per_segment, replace=False)
+        pick.pop(b)
+        cache = {pr: r for pr, r in cache.items() if a not in pr and b not in pr}
+    return lab
+
+
 def motion_segmentation(
     vertices,
     faces,
@@ -458,6 +536,7 @@ def motion_segmentation(
     reference_size: float = REFERENCE_SIZE,
     use_normals: bool = True,
     min_segment: float = 0.005,
+    rigid_tol: float | None = 0.005,
     max_clusters: int = 64,
     seed: int = 0,
 ) -> Segmentation:
@@ -481,6 +560,10 @@ def motion_segmentation(
         Include ``d^n`` (the paper's default); ``False`` uses ``d^v`` alone.
     min_segment : float
         Surface patches below this fraction of the vertices are merged into a neighbour.
+    rigid_tol : float or None
+        Adjacent segments whose union moves rigidly within this fraction of
+        the subject's size (median residual of each, worst frame) are merged: a joint that never
+        bends is no joint. ``None`` keeps the spectral segments.
     max_clusters : int
     seed : int
 
@@ -490,6 +573,15 @@ def motion_segmentation(
         ``k == 1`` (one segment, a warning logged) when nothing bends or the
         sequence has a single frame.
     """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, "blas"):  # many small products: threads only contend on a busy machine
+        return _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals,
+                                    min_segment, rigid_tol, max_clusters, seed)
+
+
+def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals, min_segment,
+                         rigid_tol, max_clusters, seed) -> Segmentation:
     v, f = check_sequence(vertices, faces)
     if not (lam > 0 and np.isfinite(lam)):
         raise ValueError(f"lam must be > 0, got {lam}")
@@ -520,5 +612,11 @@ def motion_segmentation(
         log.warning("nothing bends in this sequence (one eigenvalue below lambda_thr=%g): one segment", lambda_thr)
         return Segmentation(np.zeros(V, dtype=np.int64), samples, sample_labels, eig, 1, dt, lam_units)
     labels = propagate_labels(v[0], f, samples, sample_labels)
-    labels = _connected_segments(labels, mesh_edges(f), V, max(1, int(round(min_segment * V))))
+    edges = mesh_edges(f)
+    labels = _connected_segments(labels, edges, V, max(1, int(round(min_segment * V))))
+    if rigid_tol is not None:
+        labels = _merge_rigid(labels, v, edges, float(rigid_tol) * size)
+        labels = _connected_segments(labels, edges, V, 1)
+    if labels.max() == 0:
+        log.warning("nothing bends in this sequence (the segments move rigidly together): one segment")
     return Segmentation(labels, samples, sample_labels, eig, k, dt, lam_units)

@@ -277,6 +277,8 @@ def import_take(
                             f"camera {c}: {where} is {wd}x{h} but the calibration says {cam.width}x{cam.height}"
                         )
                     t = int(round(k * period))
+                    if cam.meta.get("mirror"):  # a camera that delivers mirrored images: flip back
+                        img, enc = np.ascontiguousarray(img[:, ::-1]), None
                     frames[c] = Frame(img, c, k, t, t, encoded=enc if kinds[c] == "jpeg" else None)
                 if all(done.values()):
                     break

@@ -29,6 +29,7 @@ import hashlib
 import json
 import logging
 import os
+import shutil
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -39,6 +40,8 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from stage.store.space import check_free_space, raise_disk_full
 
 __all__ = [
     "STEPS", "DEFAULT_STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "process_take",
@@ -119,6 +122,16 @@ class ProcessParams(BaseModel):
     chunk: Annotated[int, Field(ge=1)] = 4
     depth: Literal["auto", "off"] = "auto"
     spine: dict = Field(default_factory=dict)
+
+    @field_validator("volume")
+    @classmethod
+    def _check_volume(cls, v: tuple[float, float, float, float, float, float] | None):
+        if v is None:
+            return v
+        from pipeline.volume import check_bounds
+
+        lo_hi = check_bounds(np.reshape(np.asarray(v, float), (2, 3)), "volume")  # before any step runs
+        return tuple(float(x) for x in lo_hi.reshape(-1))
 
     @field_validator("support_plane")
     @classmethod
@@ -679,8 +692,27 @@ STEPS: tuple[str, ...] = ()
 register_step("key", _step_key, doc="keying masks into the take")
 register_step("surface", _step_surface, doc="visual hull and surface per frame set")
 register_step("spine", _step_spine, doc="per-frame skeletons and the take's spine")
-register_step("track", _step_track, doc="template tracking of the surfaces (only when asked for)")
-DEFAULT_STEPS: tuple[str, ...] = ("key", "surface", "spine")  # what runs when no steps are given
+
+
+def _step_rig(ctx: RunContext) -> None:
+    """Articulated rig from the tracked template (``tracked/``) -> ``rig/``. Without a tracked
+    template it is skipped with a warning inside a full run, an error when asked for alone."""
+    from pipeline.articulated_rig import NoTrackingError, rig_results
+
+    t0 = time.perf_counter()
+    try:
+        rig_results(ctx.out, units=ctx.calibration.units, fps=float(ctx.fps), progress=ctx.progress)
+    except NoTrackingError as exc:
+        if "spine" not in ctx.steps:
+            raise ProcessError(str(exc)) from None
+        ctx.warnings.append(f"rig step skipped: {exc}")
+        log.warning("rig step skipped: %s", exc)
+    ctx.timings["rig"] = time.perf_counter() - t0
+
+
+register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine")
+register_step("track", _step_track, doc="template tracking of the surfaces (only when asked for)", after="spine")
+DEFAULT_STEPS: tuple[str, ...] = tuple(s for s in STEPS if s != "track")  # what runs when no steps are given
 
 
 # ----------------------------------------------------------------------------- driver
@@ -825,18 +857,43 @@ def process_take(
         raise FileNotFoundError(f"{take}: take not found")
     if out.resolve() == take.resolve() or out.suffix in (".h5", ".hdf5"):
         raise ValueError(f"out must be a directory beside the take, got {out}")
-    out.mkdir(parents=True, exist_ok=True)
-
+    created = not out.exists()
     t_start = time.perf_counter()
     if executor is not None:
         for _ in range(2):
             executor.submit(warm_task)  # workers import while this process reads the take
-    ctx = _open_context(take, out, params, executor=executor, progress=progress, cancel=cancel)
-    ctx.steps = steps
-    _start_record(ctx)
-    for name in steps:
-        _REGISTRY[name].run(ctx)
-    return _write_report(ctx, steps, t_start)
+    try:
+        ctx = _open_context(take, out, params, executor=executor, progress=progress, cancel=cancel)
+        ctx.steps = steps
+        need = _space_needed(ctx, steps)
+        with raise_disk_full(out, "the processing results", need,
+                             detail="the take is unchanged; free space and run again"):
+            check_free_space(out, need, f"processing {ctx.n_sets} frame sets of {take.name}")
+            out.mkdir(parents=True, exist_ok=True)
+            _start_record(ctx)
+            for name in steps:
+                _REGISTRY[name].run(ctx)
+            return _write_report(ctx, steps, t_start)
+    except Exception:
+        if created and out.is_dir():  # a failed run leaves no results folder it made itself
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def _space_needed(ctx: RunContext, steps: Sequence[str]) -> int:
+    """About how many bytes processing writes: compressed masks (if keying), meshes and records per frame."""
+    from stage.store import TakeReader
+
+    need = 1 << 20
+    if "key" in steps and ctx.need_key:
+        with TakeReader(ctx.take) as r:
+            pixels = sum(r.n_frames(c) * int.__mul__(*r.image_size(c)) for c in ctx.cameras)
+            old = r.derived_path.stat().st_size if r.derived_path.exists() else 0
+        need += pixels // 16 + old  # the derived file is rebuilt beside the old one
+    if "surface" in steps or "spine" in steps:
+        res = ctx.params.resolution or round(MAX_VOXELS ** (1 / 3))  # chosen later from the rig: at most this
+        need += ctx.n_sets * (64 * res**2 + (16 << 10))
+    return need
 
 
 def _blind_side_hint(calibration, grid) -> str:

@@ -88,6 +88,8 @@ class _CameraBase(_Strict):
     height: Annotated[int, Field(gt=0, le=16384)] = 480
     fps: Annotated[float, Field(gt=0, le=1000)] | None = None
     store: Literal["raw", "jpeg"] = "raw"
+    # the camera delivers mirrored images (a webcam's mirror mode): frames are flipped back at capture
+    mirror: bool = False
 
 
 class FakeCameraConfig(_CameraBase):

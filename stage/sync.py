@@ -602,6 +602,7 @@ class StreamGrouper(Generic[T]):
         return j, -tol <= r < tol
 
     def _emit(self, now_ns: int | None) -> list[FrameSet[T]]:
+        """Every window that is decided now, in order, as frame sets."""
         out: list[FrameSet[T]] = []
         if self._T is None:
             if not self._all_started(now_ns) or not self._start():
@@ -609,19 +610,7 @@ class StreamGrouper(Generic[T]):
         assert self._T is not None and self._tol is not None and self._period is not None
         while True:
             T, k = self._T, self._k
-            hi = T + self._tol
-            # frames that belong to emitted windows (or to no window) can never be used
-            heads: list[int] = []
-            for c, cam in self._cams.items():
-                while cam.queue:
-                    m, _it, d = cam.queue[0]
-                    j, ok = self._target(cam, m, d, k, T)
-                    if j < k or (j == k and not ok):
-                        cam.queue.popleft()
-                        self._pending_unused[c] += 1
-                        continue
-                    heads.append(j)
-                    break
+            heads = self._window_heads(k, T)
             if not heads:
                 return out
             jmin = min(heads)
@@ -630,44 +619,70 @@ class StreamGrouper(Generic[T]):
                 self._T = T + (jmin - k) * self._period
                 self._k = jmin
                 continue
-            # decided? every camera has delivered past window k (or is closed / timed out)
-            for cam in self._cams.values():
-                if cam.closed and cam.ready:
-                    continue
-                if cam.queue:
-                    m, _it, d = cam.queue[-1]
-                    if self._target(cam, m, d, k, T)[0] > k:
-                        continue
-                if now_ns is not None and now_ns >= hi + self._timeout_ns():
-                    continue
+            if not self._decided(k, T, now_ns):
                 return out
-            frames: dict[str, Any] = {}
-            times: dict[str, int] = {}
-            for c, cam in self._cams.items():
-                cand = []
-                while cam.queue:
-                    m, it, d = cam.queue[0]
-                    j, ok = self._target(cam, m, d, k, T)
-                    if j != k or not ok:
-                        break
-                    cand.append(cam.queue.popleft())
-                frames[c] = None
-                if cand:
-                    best = min(range(len(cand)), key=lambda i: (abs(cand[i][0] - T), i))
-                    frames[c] = cand[best][1]
-                    times[c] = cand[best][0]
-                    cam.last_k, cam.last_d = k, cand[best][2]
-                    self._pending_unused[c] += len(cand) - 1
-            fs = FrameSet(index=self._next_index, time_ns=int(T), frames=frames, times_ns=times)
-            self._next_index += 1
-            assert self._acc is not None
-            self._acc.add_set(fs)
-            for c, cam in self._cams.items():
-                if cam.n:
-                    self._acc.cams[c].offset_ns = 0 if self._clock == "device" else int(cam.offset)
+            fs, times = self._take_window(k, T)
             out.append(fs)
             self._T = _next_time(T, self._period, self._gain, [t - T for t in times.values()])
             self._k = k + 1
+
+    def _window_heads(self, k: int, T: int) -> list[int]:
+        """Window of every camera's first usable frame; frames of emitted windows (or of none) are dropped."""
+        heads: list[int] = []
+        for c, cam in self._cams.items():
+            while cam.queue:
+                m, _it, d = cam.queue[0]
+                j, ok = self._target(cam, m, d, k, T)
+                if j < k or (j == k and not ok):
+                    cam.queue.popleft()
+                    self._pending_unused[c] += 1
+                    continue
+                heads.append(j)
+                break
+        return heads
+
+    def _decided(self, k: int, T: int, now_ns: int | None) -> bool:
+        """Every camera has delivered past window ``k`` (or is closed / timed out)."""
+        hi = T + self._tol
+        for cam in self._cams.values():
+            if cam.closed and cam.ready:
+                continue
+            if cam.queue:
+                m, _it, d = cam.queue[-1]
+                if self._target(cam, m, d, k, T)[0] > k:
+                    continue
+            if now_ns is not None and now_ns >= hi + self._timeout_ns():
+                continue
+            return False
+        return True
+
+    def _take_window(self, k: int, T: int) -> tuple[FrameSet[Any], dict[str, int]]:
+        """Pop window ``k``'s frames (the one nearest its time per camera) into a frame set."""
+        frames: dict[str, Any] = {}
+        times: dict[str, int] = {}
+        for c, cam in self._cams.items():
+            cand = []
+            while cam.queue:
+                m, it, d = cam.queue[0]
+                j, ok = self._target(cam, m, d, k, T)
+                if j != k or not ok:
+                    break
+                cand.append(cam.queue.popleft())
+            frames[c] = None
+            if cand:
+                best = min(range(len(cand)), key=lambda i: (abs(cand[i][0] - T), i))
+                frames[c] = cand[best][1]
+                times[c] = cand[best][0]
+                cam.last_k, cam.last_d = k, cand[best][2]
+                self._pending_unused[c] += len(cand) - 1
+        fs = FrameSet(index=self._next_index, time_ns=int(T), frames=frames, times_ns=times)
+        self._next_index += 1
+        assert self._acc is not None
+        self._acc.add_set(fs)
+        for c, cam in self._cams.items():
+            if cam.n:
+                self._acc.cams[c].offset_ns = 0 if self._clock == "device" else int(cam.offset)
+        return fs, times
 
 
 def _initial_time(heads: Sequence[int], period: int) -> int:

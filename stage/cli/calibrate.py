@@ -137,7 +137,8 @@ def parse_mirror(items: list[str], cameras: list[str]) -> dict[str, bool | None]
     return out
 
 
-SAMPLE = 16  # frames of a camera tried flipped / with other board variants
+SAMPLE = 12  # frames of a camera tried flipped
+VARIANT_SAMPLE = 6  # frames of a camera that never showed the board tried with the other board variants
 
 
 def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror: bool | None):
@@ -149,8 +150,11 @@ def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror
         ``mirror`` True when the evidence is clear (auto) ; ``message`` says what was found
         (None when there is nothing to say).
     """
+    from calib.boards import Chessboard
     from calib.detect import detect_board, find_variant
 
+    if isinstance(board, Chessboard):  # a chessboard is found in a mirrored image too: nothing to decide
+        mirror = bool(mirror)
     if mirror is not None and found:
         return mirror, None
     if not sample:
@@ -161,7 +165,7 @@ def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror
     flipped = sum(detect_board(img, board, mirror=not bool(mirror)) is not None for img in sample)
     if flipped >= max(3, 2 * as_is + 1):
         if mirror is False:
-            return False, (f"{name}: the board is never detected with mirror = false, but it is found in "
+            return False, (f"camera {name}: the board is never detected with mirror = false, but it is found in "
                            f"{flipped}/{len(sample)} sampled frames once the image is flipped: {name} delivers "
                            f"mirrored images; drop --mirror {name}=false (or turn the camera's mirror mode off)")
         if mirror is None:
@@ -169,13 +173,20 @@ def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror
                           f"{flipped}/{len(sample)} sampled frames once the image is flipped ({as_is} as "
                           f"delivered); the rig decides which")
     if found == 0:
+        pick = np.unique(np.round(np.linspace(0, len(sample) - 1, min(VARIANT_SAMPLE, len(sample)))).astype(int))
+        sample = [sample[i] for i in pick]
         v = find_variant(sample, board)
+        if v is not None and v[1] is board:
+            return bool(mirror), (f"camera {name}: the board was never detected, but once the image is flipped it "
+                                  f"is found in {v[3]}/{len(sample)} sampled frames; if {name} delivers mirrored "
+                                  f"images, give --mirror {name}=true")
         if v is not None:
-            return bool(mirror), (f"{name}: the board was never detected, but with the {v[0]} it is found in "
+            return bool(mirror), (f"camera {name}: the board was never detected, but with the {v[0]} it is found in "
                                   f"{v[3]}/{len(sample)} sampled frames; fix the board file"
                                   + (" (and the camera's mirror mode)" if v[2] else ""))
-        return bool(mirror), (f"{name}: the board was never detected in {total} frames (also not inverted, "
-                              f"legacy or mirrored); check the view, focus and the board file")
+        return bool(mirror), (f"camera {name}: the board was never detected in {total} frames (nor inverted, "
+                              f"legacy or mirrored); check that {name} sees the board, its focus, and that the "
+                              f"board file matches the print")
     return bool(mirror), None
 
 
@@ -185,18 +196,73 @@ def _sample_positions(total: int) -> set[int]:
     return set(np.unique(np.round(np.linspace(0, total - 1, min(SAMPLE, total))).astype(int)).tolist())
 
 
+def _detect_pass(name, src, board, *, step, flip, frame_set, want, progress):
+    """Detect the board in every frame of one camera: (detections, sampled images, size, frames read)."""
+    from tqdm import tqdm
+
+    from calib.detect import detect_board
+
+    kind, path, files = src
+    total = len(files) if kind == "folder" else _video_count(path)
+    dets, sample, size, n = [], [], None, 0
+    for k, img in tqdm(_frames(kind, path, files, step), total=(total + step - 1) // step, desc=f"detect {name}",
+                       unit="img", disable=not progress, dynamic_ncols=True, leave=False):
+        size = (img.shape[1], img.shape[0])
+        if n in want:
+            sample.append(img)
+        n += 1
+        frame = k if frame_set is None else frame_set.get(k)
+        if frame is None:
+            continue
+        d = detect_board(img, board, frame=frame, mirror=flip)
+        if d is not None:
+            dets.append(d)
+    return dets, sample, size, n
+
+
+def _detect_camera(name, src, board, *, step, mirror, frame_set, progress):
+    """One camera: detections, size, frames read, whether flipped, and what was found out."""
+    kind, path, files = src
+    total = len(files) if kind == "folder" else _video_count(path)
+    want = _sample_positions((total + step - 1) // step)
+    dets, sample, size, n = _detect_pass(name, src, board, step=step, flip=bool(mirror), frame_set=frame_set,
+                                         want=want, progress=progress)
+    if size is None:
+        raise ValueError(f"camera {name}: {path} holds no readable frame")
+    flip, msg = decide_mirror(name, len(dets), n, sample, board, mirror)
+    if flip != bool(mirror):
+        dets, _, _, n = _detect_pass(name, src, board, step=step, flip=flip, frame_set=frame_set, want=set(),
+                                     progress=progress)
+    return dets, size, n, flip, msg
+
+
+def _length_notes(counts: dict[str, int], sets) -> list[str]:
+    notes = []
+    if sets is not None:
+        for name, c in counts.items():
+            if len(sets[name]) > c:
+                notes.append(f"{name}: the timestamps list {len(sets[name])} frames, its video holds {c}; the frame "
+                             f"sets past its end lack {name}")
+    elif len(set(counts.values())) > 1:
+        most = max(counts.values())
+        for name, c in counts.items():
+            if c < most:
+                notes.append(f"{name}: {c} frames, the others up to {most}; matched frame by frame, the frames "
+                             f"past {c} lack {name} (give --timestamps if the cameras did not start together)")
+    return notes
+
+
 def detect_images(root: Path, board, *, step: int = 1, min_change: float = 0.02, progress: bool = True,
                   timestamps: Path | None = None, mirror: list[str] | tuple = ()):
     """Detections (every one, frame = frame set) and image sizes per camera from ``--images DIR``.
 
     Returns
     -------
-    detections, sizes, mirrored, notes
-        ``mirrored``: cameras calibrated mirrored; ``notes``: one line per finding.
+    detections, sizes, flipped, notes
+        ``flipped``: cameras whose board was found only in the flipped image (detections made
+        on it; :func:`calib.rig.resolve_flipped` decides why); ``notes``: one line per finding.
     """
-    from tqdm import tqdm
-
-    from calib.detect import detect_board
+    from calib.intrinsics import CalibrationError
     from calib.timestamps import read_timestamps
 
     srcs = _sources(root)
@@ -207,60 +273,24 @@ def detect_images(root: Path, board, *, step: int = 1, min_change: float = 0.02,
     if timestamps is not None:
         sets, tw = read_timestamps(timestamps, names)
         notes += tw
-    detections, sizes, mirrored, problems, counts = {}, {}, [], [], {}
-    for name, (kind, path, files) in srcs.items():
-        total = (len(files) if kind == "folder" else _video_count(path))
-        want = _sample_positions((total + step - 1) // step)
-
-        def run_pass(flip: bool, keep_sample: bool):
-            dets, sample, size, n = [], [], None, 0
-            for k, img in tqdm(_frames(kind, path, files, step), total=(total + step - 1) // step,
-                               desc=f"detect {name}", unit="img", disable=not progress, dynamic_ncols=True,
-                               leave=False):
-                size = (img.shape[1], img.shape[0])
-                if keep_sample and n in want:
-                    sample.append(img)
-                n += 1
-                frame = k if sets is None else sets[name].get(k)
-                if frame is None:
-                    continue
-                d = detect_board(img, board, frame=frame, mirror=flip)
-                if d is not None:
-                    dets.append(d)
-            return dets, sample, size, n
-
-        dets, sample, size, n = run_pass(bool(mirror_of[name]), True)
-        if size is None:
-            raise ValueError(f"camera {name}: {path} holds no readable frame")
-        flip, msg = decide_mirror(name, len(dets), n, sample, board, mirror_of[name])
+    detections, sizes, flipped, problems, counts = {}, {}, [], [], {}
+    for name, src in srcs.items():
+        dets, size, n, flip, msg = _detect_camera(name, src, board, step=step, mirror=mirror_of[name],
+                                                  frame_set=None if sets is None else sets[name], progress=progress)
         if msg:
             notes.append(msg)
             if not flip and not dets:
                 problems.append(msg)
-        if flip != bool(mirror_of[name]):
-            dets, _, _, n = run_pass(flip, False)
         if flip:
-            mirrored.append(name)
-        detections[name] = dets
-        sizes[name] = size
-        counts[name] = n * step
-        if sets is not None and len(sets[name]) > n * step:
-            notes.append(f"{name}: the timestamps list {len(sets[name])} frames, its video holds {n * step}; "
-                         f"the frame sets past its end lack {name}")
-        print(f"  {name}: board found in {len(dets)}/{n} frames{' (mirrored)' if flip else ''}")
-    if sets is None and len(set(counts.values())) > 1:
-        most = max(counts.values())
-        for name, c in counts.items():
-            if c < most:
-                notes.append(f"{name}: {c} frames, the others up to {most}; matched frame by frame, the frames "
-                             f"past {c} lack {name} (give --timestamps if the cameras did not start together)")
+            flipped.append(name)
+        detections[name], sizes[name], counts[name] = dets, size, n * step
+        print(f"  {name}: board found in {len(dets)}/{n} frames{' (flipped)' if flip else ''}")
+    notes += _length_notes(counts, sets)
     if problems:
-        from calib.intrinsics import CalibrationError
-
         for line in notes:
             print(f"  note: {line}")
-        raise CalibrationError("; ".join(problems), cameras=[p.split(":")[0] for p in problems])
-    return detections, sizes, mirrored, notes
+        raise CalibrationError("; ".join(problems), cameras=[p.split(":")[0].removeprefix("camera ") for p in problems])
+    return detections, sizes, flipped, notes
 
 
 def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, progress: bool = True):
@@ -287,13 +317,22 @@ def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, p
     return detections, sizes, cams
 
 
-def run(args: argparse.Namespace) -> int:
-    import json
+def _detect(args: argparse.Namespace, board, quiet: bool):
+    flipped: list[str] = []
+    if args.take is not None:
+        if not args.take.is_file():
+            raise FileNotFoundError(f"take not found: {args.take}")
+        detections, sizes, cams = detect_take(args.take, board, step=args.step, progress=not quiet)
+    else:
+        detections, sizes, flipped, notes = detect_images(
+            args.images, board, step=args.step, progress=not quiet, timestamps=args.timestamps, mirror=args.mirror)
+        cams = list(sizes)
+        for line in dict.fromkeys(notes):
+            print(f"  note: {line}")
+    return detections, sizes, cams, flipped
 
-    from calib.boards import load_board
-    from calib.formats import write_calibration
-    from calib.rig import calibrate_rig
 
+def _check_args(args: argparse.Namespace) -> None:
     if (args.take is None) == (args.images is None):
         raise ValueError("give either a take (TAKE.h5) or --images DIR, not both / neither")
     if args.take is None and args.out is None:
@@ -306,38 +345,15 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--holdout must be 0 (none) or >= 2")
     if args.timestamps is not None and args.take is not None:
         raise ValueError("--timestamps applies to --images DIR (a take is synchronised already)")
-    quiet = bool(getattr(args, "quiet", False))
-    board = load_board(args.board)
-    if not quiet:
-        print(f"board: {board.to_dict()}")
-    mirrored: list[str] = []
-    if args.take is not None:
-        if not args.take.is_file():
-            raise FileNotFoundError(f"take not found: {args.take}")
-        detections, sizes, cams = detect_take(args.take, board, step=args.step, progress=not quiet)
-    else:
-        detections, sizes, mirrored, notes = detect_images(
-            args.images, board, step=args.step, progress=not quiet, timestamps=args.timestamps,
-            mirror=args.mirror)
-        cams = list(sizes)
-        for line in dict.fromkeys(notes):
-            print(f"  note: {line}")
-    mode = "fixed" if args.no_intrinsics_refinement else args.intrinsics
-    result = calibrate_rig(
-        detections, sizes, board, cameras=cams, world=args.world, world_frame=args.world_frame,
-        intrinsics=mode, fix_k3=args.fix_k3, min_change=args.min_change, holdout_folds=args.holdout,
-        flipped=mirrored,
-    )
-    for line in result.evaluation.get("flipped", ()):
-        print(f"  note: {line}")
-    if quiet:
-        print(result.summary())
-        for w in dict.fromkeys(result.warnings):
-            print(f"  warning: {w}")
-    else:
-        print(result.report())
+
+
+def _write(args: argparse.Namespace, result, detections) -> None:
+    """Everything computed: now write (nothing is written when anything before fails)."""
+    import json
+
+    from calib.formats import write_calibration
+
     calib = result.calibration
-    # everything computed: now write (nothing is written when anything above fails)
     if args.coverage is not None:
         import cv2
 
@@ -358,4 +374,31 @@ def run(args: argparse.Namespace) -> int:
 
         attach_calibration(args.take, calib)
         print(f"stored the calibration in {args.take}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from calib.boards import load_board
+    from calib.rig import calibrate_rig
+
+    _check_args(args)
+    quiet = bool(getattr(args, "quiet", False))
+    board = load_board(args.board)
+    if not quiet:
+        print(f"board: {board.to_dict()}")
+    detections, sizes, cams, flipped = _detect(args, board, quiet)
+    mode = "fixed" if args.no_intrinsics_refinement else args.intrinsics
+    result = calibrate_rig(
+        detections, sizes, board, cameras=cams, world=args.world, world_frame=args.world_frame,
+        intrinsics=mode, fix_k3=args.fix_k3, min_change=args.min_change, holdout_folds=args.holdout,
+        flipped=flipped,
+    )
+    for line in result.evaluation.get("flipped", ()):
+        print(f"  note: {line}")
+    if quiet:
+        print(result.summary())
+        for w in dict.fromkeys(result.warnings):
+            print(f"  warning: {w}")
+    else:
+        print(result.report())
+    _write(args, result, result.evaluation.get("detections", detections))
     return 0

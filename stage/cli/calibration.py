@@ -10,14 +10,18 @@ ORDER = 31
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("calibration", help="inspect or convert calibration files",
-                       description="Calibration files: aniposelib TOML, OpenCV YAML, JSON; Middlebury *_par.txt "
-                       "and takes (TAKE.h5) are read too.")
+                       description="Calibration files: aniposelib TOML, caliscope camera_array.toml, OpenCV YAML, "
+                       "JSON, COLMAP text models, nerfstudio transforms.json; Middlebury *_par.txt and takes (TAKE.h5) "
+                       "are read too.")
     csub = p.add_subparsers(dest="calibration_command", metavar="ACTION", required=True)
     e = csub.add_parser("export", help="write a calibration in another format",
                         description="Read CALIB (any supported format, or a take) and write it as aniposelib TOML, "
-                        "OpenCV FileStorage YAML or JSON.")
+                        "OpenCV FileStorage YAML, JSON, caliscope camera_array.toml (metres), a COLMAP text model "
+                        "(a folder: cameras.txt, images.txt) or nerfstudio transforms.json (metres, OpenCV "
+                        "distortion).")
     e.add_argument("calib", type=Path, metavar="CALIB", help="calibration file or TAKE.h5")
-    e.add_argument("--format", required=True, choices=("toml", "yaml", "json"), help="output format")
+    e.add_argument("--format", required=True, choices=("toml", "yaml", "json", "caliscope", "colmap", "nerfstudio"),
+                   help="output format")
     e.add_argument("--out", type=Path, metavar="FILE", help="output file (default: CALIB with the new extension)")
     e.set_defaults(func=run_export)
     s = csub.add_parser("show", help="print a calibration's cameras")
@@ -43,8 +47,10 @@ def run_export(args: argparse.Namespace) -> int:
     from calib.formats import write_calibration
 
     calib = _read(args.calib)
-    ext = {"toml": ".toml", "yaml": ".yml", "json": ".json"}[args.format]
-    out = args.out if args.out is not None else args.calib.with_suffix(ext)
+    default = {"toml": args.calib.with_suffix(".toml"), "yaml": args.calib.with_suffix(".yml"),
+               "json": args.calib.with_suffix(".json"), "caliscope": args.calib.parent / "camera_array.toml",
+               "colmap": args.calib.parent / "colmap", "nerfstudio": args.calib.parent / "transforms.json"}
+    out = args.out if args.out is not None else default[args.format]
     if out.resolve() == args.calib.resolve():
         raise ValueError(f"--out {out} would overwrite the input; give another file")
     write_calibration(calib, out, format=args.format)

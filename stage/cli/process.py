@@ -72,8 +72,8 @@ def _run_meshes(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.workers < 0:
         raise ValueError("--workers must be >= 0")
-    args.out.mkdir(parents=True, exist_ok=True)
     if args.meshes:
+        args.out.mkdir(parents=True, exist_ok=True)
         return _run_meshes(args)
     return process_with_progress(args.take, args.out, args=args)
 
@@ -96,7 +96,13 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
         from pipeline.volume import check_plane
 
         kw["support_plane"] = tuple(check_plane(args.support_plane, "--support-plane").tolist())
-    params = ProcessParams(**kw)
+    try:
+        params = ProcessParams(**kw)
+    except ValueError as exc:  # pydantic's ValidationError: one line per problem, the option named
+        errors = exc.errors() if hasattr(exc, "errors") else [{"loc": (), "msg": str(exc)}]
+        raise ValueError("; ".join(
+            f"--{'.'.join(map(str, e['loc'])).replace('_', '-')}: {e['msg'].removeprefix('Value error, ')}" for e in errors
+        )) from None
     executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
     try:
         with StepBars(disable=args.no_progress) as progress:

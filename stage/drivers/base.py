@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
+
+import numpy as np
 
 from stage.frame import Frame
 
@@ -14,6 +17,7 @@ __all__ = [
     "CameraNotFoundError",
     "CameraDisconnectedError",
     "DriverUnavailableError",
+    "unmirror",
 ]
 
 
@@ -67,3 +71,14 @@ class CameraDriver(Protocol):
     def grab(self) -> Frame: ...
 
     def close(self) -> None: ...
+
+
+def unmirror(frame: Frame) -> Frame:
+    """The frame of a camera that delivers mirrored images, flipped back left-right.
+
+    The camera's own encoded bytes describe the mirrored image, so they are dropped
+    (the store encodes the flipped image).
+    """
+    image = np.ascontiguousarray(frame.image[:, ::-1])
+    depth = None if frame.depth is None else np.ascontiguousarray(frame.depth[:, ::-1])
+    return dataclasses.replace(frame, image=image, depth=depth, encoded=None)

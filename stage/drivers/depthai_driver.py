@@ -38,6 +38,7 @@ from stage.drivers.base import (
     CameraNotFoundError,
     DriverUnavailableError,
     Granted,
+    unmirror,
 )
 from stage.frame import Frame
 from stage.rig import DepthAICameraConfig
@@ -569,8 +570,10 @@ class DepthAICamera:
                 + (" (device closed: unplugged?)" if closed else "")
             )
         if self._synced:
-            return frame_from_messages(self.camera_id, msg["color"], msg["depth"], host_ns=host, clock=self.clock)
-        return frame_from_messages(self.camera_id, msg, host_ns=host, clock=self.clock)
+            frame = frame_from_messages(self.camera_id, msg["color"], msg["depth"], host_ns=host, clock=self.clock)
+        else:
+            frame = frame_from_messages(self.camera_id, msg, host_ns=host, clock=self.clock)
+        return unmirror(frame) if self.config.mirror else frame
 
     def factory_camera(self) -> "Camera":
         """This device's factory calibration as a first-guess :class:`calib.camera.Camera`."""

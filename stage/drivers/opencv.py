@@ -45,6 +45,7 @@ from stage.drivers.base import (
     CameraError,
     CameraNotFoundError,
     Granted,
+    unmirror,
 )
 from stage.frame import Frame
 from stage.rig import OpenCVCameraConfig
@@ -524,7 +525,7 @@ class OpenCVCamera:
             host_timestamp_ns=host, encoded=encoded,
         )
         self._count += 1
-        return frame
+        return unmirror(frame) if self.config.mirror else frame
 
     def _file_timestamp(self) -> int:
         return int(round(self._count * 1e9 / self._fps))

@@ -103,10 +103,18 @@ class KeyParams:
     model: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
+        self._check_choices()
+        self._check_thresholds()
+        self._check_counts()
+        self._check_fractions()
+
+    def _check_choices(self) -> None:
         if self.mode not in KEY_MODES:
             raise ValueError(f"mode must be one of {KEY_MODES}, got {self.mode!r}")
         if self.polarity not in (None, "dark", "bright"):
             raise ValueError(f"polarity must be 'dark', 'bright' or None, got {self.polarity!r}")
+
+    def _check_thresholds(self) -> None:
         for name in ("t_lo", "t_hi"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
@@ -119,6 +127,8 @@ class KeyParams:
             raise ValueError(f"fill_holes must be one of {FILL_HOLES} or None, got {self.fill_holes!r}")
         if not 0 <= self.min_area < 0.5:
             raise ValueError(f"min_area must be in [0, 0.5), got {self.min_area!r}")
+
+    def _check_counts(self) -> None:
         for name in ("close_radius", "grow", "sample_stride", "coverage_window"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0:
@@ -127,6 +137,8 @@ class KeyParams:
             raise ValueError("sample_stride must be >= 1")
         if self.coverage_window < 1 or self.coverage_window % 2 == 0:
             raise ValueError(f"coverage_window must be a positive odd integer, got {self.coverage_window!r}")
+
+    def _check_fractions(self) -> None:
         if self.coverage_fraction is not None and not 0 < self.coverage_fraction <= 1:
             raise ValueError(f"coverage_fraction must be in (0, 1] or None, got {self.coverage_fraction!r}")
         if not 0 <= self.min_backdrop_fraction < 1:

@@ -5,9 +5,9 @@ Everything computed from it later goes to ``TAKE.derived.h5`` next to ``TAKE.h5`
 take's layout (``cameras/<id>/<name>``, ``meta/calibration``), and :class:`~stage.store.TakeReader`
 presents it as if it were part of the take.
 
-Every update is atomic: the new derived file is built as a temporary file in the same
-directory (the arrays kept from the old one plus the new one), flushed to disk and renamed over
-the old file. A crash, a kill or a full disk at any point leaves the old derived file (and the
+Every update is atomic: the new derived file is built in memory (the arrays kept from the old
+one plus the new one), written to a temporary file in the same directory with plain file I/O,
+flushed to disk and renamed over the old file. A crash, a kill or a full disk at any point leaves the old derived file (and the
 take, which is never opened for writing) as they were; a reader that has the old file open
 keeps reading it. Updates of takes in one directory are serialized with an exclusive ``flock``
 on the directory, so two jobs keying one take at once both land their arrays; readers never wait.
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import io
 import logging
 import os
 import threading
@@ -109,7 +110,10 @@ def _update(take: Path, key: str, put: Callable[[h5py.File], None], *, nbytes: i
         try:
             with raise_disk_full(dp, what, need, detail="the take and its earlier derived data are unchanged"):
                 check_free_space(dp, need, what)
-                with h5py.File(tmp, "w") as out:
+                # built in memory, then written with plain file I/O: a full disk fails that write
+                # cleanly, never HDF5's own flush of a half-written file
+                buf = io.BytesIO()
+                with h5py.File(buf, "w") as out:
                     out.attrs["format"] = DERIVED_FORMAT
                     out.attrs["take"] = take.name
                     for k, v in identity.items():
@@ -117,8 +121,11 @@ def _update(take: Path, key: str, put: Callable[[h5py.File], None], *, nbytes: i
                     if old is not None:
                         _copy_except(old, out, key)
                     put(out)
-                with open(tmp, "rb+") as fh:
+                with open(tmp, "wb") as fh:
+                    fh.write(buf.getbuffer())
+                    fh.flush()
                     os.fsync(fh.fileno())
+                del buf
                 os.replace(tmp, dp)
                 _fsync_dir(dp.parent)
         finally:

@@ -17,7 +17,7 @@ import h5py
 
 from stage.store._format import TakeError
 
-__all__ = ["open_h5", "lookup3"]
+__all__ = ["open_h5", "lookup3", "close_all"]
 
 log = logging.getLogger("stage.store")
 
@@ -141,7 +141,8 @@ def open_h5(path: Path, mode: str = "r") -> h5py.File:
                 f"it can be read but not modified: make a clean copy with `stage info --recover NEW.h5 {path}`"
             ) from None
         if "already open for read-only" in msg.lower():
-            raise TakeError(f"{path}: cannot modify the take while this process has it open for reading (close the TakeReader first)") from None
+            raise TakeError(f"{path}: cannot modify the take while this process has it open for reading "
+                            "(close the TakeReader first)") from None
         raise TakeError(f"{path}: cannot open take: {msg}") from None
 
 
@@ -158,3 +159,26 @@ def _open_once(path: Path, mode: str) -> h5py.File:
 
 
 lookup3 = _lookup3
+
+
+def close_all(f: h5py.File) -> None:
+    """Close an HDF5 file and every object of it still open, whatever state a failed write left.
+
+    After a failed write (a full disk) HDF5 still holds dirty data for the file's datasets;
+    h5py would try to write it again whenever a forgotten dataset object is garbage collected,
+    which crashes the interpreter. Closing every identifier of the file at once avoids that.
+    """
+    try:
+        ids = f.id.get_obj_ids(h5py.h5f.OBJ_DATASET | h5py.h5f.OBJ_GROUP | h5py.h5f.OBJ_ATTR | h5py.h5f.OBJ_DATATYPE)
+    except Exception:
+        ids = []
+    for oid in ids:
+        try:
+            while oid.valid:
+                oid._close()
+        except Exception:
+            pass
+    try:
+        f.close()
+    except Exception as exc:
+        log.debug("closing %s: %s", getattr(f, "filename", "?"), exc)

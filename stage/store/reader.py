@@ -343,7 +343,7 @@ class TakeReader:
         """Per-frame ``timestamp_ns``, ``host_timestamp_ns``, ``sequence``, ``valid``, ``set_index``."""
         g = self._f["cameras"][self._check_camera(camera)]
         n = self._counts[camera]
-        return {k: self._read(g[k], slice(0, n), f"camera {camera} {k}") for k in ("timestamp_ns", "host_timestamp_ns", "sequence", "valid", "set_index")}
+        return {k: self._read(g[k], slice(0, n), f"camera {camera} {k}") for k in _PER_FRAME}
 
     def set_table(self) -> np.ndarray:
         """(S, C) int64: row of each camera's frame in each set, -1 when missing."""

@@ -28,6 +28,8 @@ def recover_take(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: b
         raise FileExistsError(f"{dst}: exists (use overwrite)")
     if dst.resolve() == src.resolve():
         raise ValueError("dst must differ from src")
+    if not dst.parent.is_dir():
+        raise FileNotFoundError(f"{dst.parent}: output directory does not exist")
     tmp = dst.with_name(dst.name + ".part")
     try:
         with raise_disk_full(dst, "the recovered take", src.stat().st_size):

@@ -29,7 +29,8 @@ import numpy as np
 
 from stage import __version__
 from stage.frame import Frame
-from stage.store._format import FORMAT, RESERVED, CameraSpec, filter_kwargs, to_json
+from stage.store._format import FORMAT, RESERVED, CameraSpec, derived_filter_kwargs, filter_kwargs, to_json
+from stage.store.h5repair import close_all as _close_file
 from stage.store.jpeg import encode_jpeg
 from stage.store.space import DiskFullError, check_free_space, format_bytes, is_disk_full
 
@@ -56,6 +57,19 @@ def _set_bytes(cameras: Sequence[CameraSpec], compression: str) -> int:
 def estimate_take_bytes(cameras: Sequence[CameraSpec], n_sets: int, *, compression: str = "none") -> int:
     """About how many bytes a take of ``n_sets`` frame sets of these cameras takes on disk."""
     return _HEADER_BYTES + int(n_sets) * _set_bytes(list(cameras), compression)
+
+
+def _check_arrays(arrays: Mapping[str, np.ndarray] | None, ids: list[str]) -> dict[str, np.ndarray]:
+    out = {}
+    for key, a in (arrays or {}).items():
+        parts = str(key).strip("/").split("/")
+        if len(parts) != 3 or parts[0] != "cameras" or parts[1] not in ids or parts[2] in RESERVED or not parts[2]:
+            raise ValueError(f"arrays: {key!r} must be 'cameras/<camera id>/<name>' (name not one of the capture's datasets)")
+        arr = np.asarray(a)
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"arrays[{key!r}] must be numeric, got dtype {arr.dtype}")
+        out["/".join(parts)] = arr
+    return out
 
 
 class _Reserve:
@@ -111,6 +125,10 @@ class TakeWriter:
     expected_sets : int, optional
         Frame sets the take is planned to hold (a capture's rate x duration); when given, the
         free disk space is checked up front and a :class:`DiskFullError` names what is needed.
+    arrays : mapping of str -> ndarray, optional
+        Arrays recorded with the capture (e.g. ``{"cameras/cam0/plate": background}``, the
+        clean plate shot before the subject enters), stored in the take itself; names as in
+        :func:`~stage.store.write_array`. Everything computed later goes to the derived file.
 
     Raises
     ------
@@ -137,6 +155,7 @@ class TakeWriter:
         block: int = 32,
         attrs: Mapping[str, Any] | None = None,
         expected_sets: int | None = None,
+        arrays: Mapping[str, np.ndarray] | None = None,
     ) -> None:
         cams = list(cameras)
         if not cams or not all(isinstance(c, CameraSpec) for c in cams):
@@ -181,7 +200,7 @@ class TakeWriter:
         self._reserve = _Reserve(p.parent, reserve)
         try:
             self._f = self._create(p, cams, ids, rig=rig, calibration=calibration, compression=compression, fps=fps,
-                                   attrs=attrs, filt=filt)
+                                   attrs=attrs, filt=filt, arrays=_check_arrays(arrays, ids))
             # datasets stay open while writing: HDF5 writes a dataset's cached chunks when the
             # dataset is flushed or closed, and only a flush of the file reports a failed write
             # (a dataset handle closed by the garbage collector would swallow it)
@@ -196,7 +215,8 @@ class TakeWriter:
                 raise DiskFullError(f"{p}: disk full while creating the take ({format_bytes(_HEADER_BYTES)} needed)") from None
             raise
 
-    def _create(self, p: Path, cams: list[CameraSpec], ids: list[str], *, rig, calibration, compression, fps, attrs, filt) -> h5py.File:
+    def _create(self, p: Path, cams: list[CameraSpec], ids: list[str], *, rig, calibration, compression, fps, attrs,
+                filt, arrays) -> h5py.File:
         f = h5py.File(p, "w", libver="latest")
         try:
             wall, mono = time.time_ns(), time.monotonic_ns()
@@ -237,7 +257,8 @@ class TakeWriter:
                 )
                 H, W = int(c.height), int(c.width)
                 if c.storage == "raw":
-                    g.create_dataset("image", shape=(0, H, W, 3), maxshape=(None, H, W, 3), dtype=np.uint8, chunks=(1, H, W, 3), **filt)
+                    g.create_dataset("image", shape=(0, H, W, 3), maxshape=(None, H, W, 3), dtype=np.uint8,
+                                     chunks=(1, H, W, 3), **filt)
                 else:
                     g.create_dataset("jpeg", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(256 << 10,))
                     g.create_dataset("jpeg_offset", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
@@ -247,6 +268,8 @@ class TakeWriter:
                 for name in ("timestamp_ns", "host_timestamp_ns", "sequence", "set_index"):
                     g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
                 g.create_dataset("valid", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(1024,))
+            for key, arr in arrays.items():  # HDF5 creates no object once SWMR writing has started
+                f.create_dataset(key, data=arr, **({"chunks": True, **derived_filter_kwargs()} if arr.ndim >= 2 else {}))
             f.swmr_mode = True
             f.flush()
         except BaseException:
@@ -465,21 +488,3 @@ class TakeWriter:
                 self._closed = True
                 _close_file(self._f)
                 self._reserve.release()
-
-
-def _close_file(f: h5py.File) -> None:
-    """Close an HDF5 file and every object of it still open, whatever state a failed write left."""
-    try:
-        ids = f.id.get_obj_ids(h5py.h5f.OBJ_DATASET | h5py.h5f.OBJ_GROUP | h5py.h5f.OBJ_ATTR | h5py.h5f.OBJ_DATATYPE)
-    except Exception:
-        ids = []
-    for oid in ids:
-        try:
-            while oid.valid:
-                oid._close()
-        except Exception:
-            pass
-    try:
-        f.close()
-    except Exception as exc:
-        log.debug("closing %s: %s", getattr(f, "filename", "?"), exc)

@@ -127,3 +127,89 @@ def test_invalid_input(tmp_path):
     with pytest.raises(FileNotFoundError):
         write_calibration(c, tmp_path / "no" / "dir" / "c.toml")
     assert not (tmp_path / "c.toml").exists()
+
+
+# -- caliscope, COLMAP, nerfstudio --------------------------------------------------------------
+
+
+def _close(a: Calibration, b: Calibration, *, t_scale: float = 1.0, atol: float = 1e-9) -> None:
+    assert a.names == b.names
+    for ca, cb in zip(a, b):
+        assert ca.size == cb.size
+        np.testing.assert_allclose(ca.K, cb.K, atol=atol)
+        np.testing.assert_allclose(ca.dist, cb.dist, atol=atol)
+        np.testing.assert_allclose(ca.R, cb.R, atol=1e-12)
+        np.testing.assert_allclose(ca.t * t_scale, cb.t, atol=atol * 1e3)
+
+
+def _named(calib: Calibration) -> Calibration:
+    return Calibration(tuple(c.replace(name=f"cam_{i}") for i, c in enumerate(calib)), units=calib.units)
+
+
+@pytest.mark.parametrize("where", ["camera_array.toml", "colmap", "transforms.json"])
+def test_round_trip_new_formats(tmp_path, where):
+    cal = _named(_calib(5))
+    out = write_calibration(cal, tmp_path / where)
+    back = read_calibration(out if where != "colmap" else tmp_path / "colmap", **({"units": "mm"} if where
+                                                                                 == "colmap" else {}))
+    # caliscope and nerfstudio are metres, COLMAP keeps the unit it was given
+    _close(cal, back, t_scale=1.0 if where == "colmap" else 1e-3)
+
+
+def test_colmap_layout_and_pixel_convention(tmp_path):
+    cal = _named(_calib(2))
+    write_calibration(cal, tmp_path / "model", format="colmap")
+    lines = [ln for ln in (tmp_path / "model" / "cameras.txt").read_text().splitlines() if not ln.startswith("#")]
+    parts = lines[0].split()
+    assert parts[1] == "FULL_OPENCV" and len(parts) == 4 + 12
+    assert float(parts[6]) == pytest.approx(cal[0].K[0, 2] + 0.5)  # COLMAP: origin at the pixel corner
+    img = [ln for ln in (tmp_path / "model" / "images.txt").read_text().splitlines() if not ln.startswith("#")]
+    q = np.array([float(v) for v in img[0].split()[1:5]])
+    assert np.linalg.norm(q) == pytest.approx(1.0) and q[0] >= 0
+
+
+def test_nerfstudio_pose_is_camera_to_world_opengl(tmp_path):
+    cal = _named(_calib(1))
+    write_calibration(cal, tmp_path / "transforms.json")
+    import json
+
+    f = json.loads((tmp_path / "transforms.json").read_text())["frames"][0]
+    c2w = np.array(f["transform_matrix"])
+    cam = cal[0]
+    np.testing.assert_allclose(c2w[:3, 3], cam.center / 1000.0, atol=1e-12)
+    # the camera looks down its -z axis (OpenGL): -z of c2w is the optical axis in the world
+    np.testing.assert_allclose(-c2w[:3, 2], cam.R[2], atol=1e-12)
+
+
+def test_reads_caliscope_reference_file():
+    root = shared_dataset("caliscope_4cam")
+    cal = read_calibration(root / "camera_array.toml")
+    assert cal.units == "m" and cal.names == ["cam_0", "cam_1", "cam_2", "cam_3"]
+    assert cal["cam_0"].K[0, 0] == pytest.approx(894.5288733178912)
+    np.testing.assert_allclose(cal["cam_1"].t, [0.00043375420342479525, -0.0019919458836723174, 0.0025865337259615363])
+
+
+def test_mirror_flag_round_trips(tmp_path):
+    cal = _named(_calib(2))
+    cal = Calibration((cal[0].replace(meta={"mirror": True}), cal[1]), units="mm")
+    for name in ("a.toml", "camera_array.toml", "a.json"):
+        back = read_calibration(write_calibration(cal, tmp_path / name))
+        assert back[0].meta.get("mirror") is True and not back[1].meta.get("mirror")
+
+
+def test_invalid_input_new_formats(tmp_path):
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "cameras.txt").write_text("1 SIMPLE_RADIAL 640 480 500 320 240 0.1\n")
+    (tmp_path / "bad" / "images.txt").write_text("")
+    with pytest.raises(CalibrationFormatError, match="SIMPLE_RADIAL"):
+        read_calibration(tmp_path / "bad")
+    (tmp_path / "transforms.json").write_text('{"camera_model": "OPENCV_FISHEYE", "frames": []}')
+    with pytest.raises(CalibrationFormatError, match="OPENCV_FISHEYE"):
+        read_calibration(tmp_path / "transforms.json")
+    (tmp_path / "camera_array.toml").write_text("[cameras.0]\ncam_id = 0\n")
+    with pytest.raises(CalibrationFormatError, match="missing"):
+        read_calibration(tmp_path / "camera_array.toml")
+    with pytest.raises(ValueError, match="units"):
+        from calib.formats import in_units
+
+        in_units(_calib(1), "furlong")

@@ -166,3 +166,25 @@ def test_invalid_input(take):
     cam = _cam(take, FakeClock())
     with pytest.raises(CameraError, match="open"):
         cam.configure()
+
+
+def test_the_simulator_registers_its_driver(monkeypatch):
+    """fake_cameras registers ``fake`` itself; the ground floor holds no reference to it."""
+    from stage.drivers import registry
+    from stage.drivers.base import DriverUnavailableError
+
+    assert "fake" in registry.registered_drivers()
+    assert registry._driver_class("fake") == (FakeCamera, True)
+    rig = parse_rig({"simulation": {"frames": 2}, "cameras": [{"id": "a", "driver": "fake", "width": 64, "height": 48}]})
+    monkeypatch.delitem(registry._DRIVERS, "fake")
+    with pytest.raises(DriverUnavailableError, match="'fake' is not registered.*fake_cameras"):
+        registry.open_driver(rig.cameras[0], rig)
+
+
+def test_register_driver_invalid_input():
+    from stage.drivers.registry import register_driver
+
+    with pytest.raises(ValueError, match="name"):
+        register_driver("", FakeCamera)
+    with pytest.raises(ValueError, match="cls"):
+        register_driver("other", "fake_cameras.device:FakeCamera")  # a class, not an import path

@@ -144,3 +144,93 @@ def test_support_plane_and_margin_reach_the_carver(tmp_path):
     with pytest.raises(ValueError, match="support.plane"):
         ProcessParams(support_plane=(0, 0, 0, 1))
     assert ProcessParams(support_plane=(0, 0, 2, -4)).support_plane == (0.0, 0.0, 1.0, -2.0)
+
+
+def _reference_results(sim, tmp_path, params: ProcessParams, grid_dict: dict):
+    """The plain path, one call per part: key_take, then per frame set carve -> surface ->
+    skeleton from files, then build_spine."""
+    from pipeline.hull import HullCarver
+    from pipeline.spine import SpineParams, build_spine, frame_skeleton
+    from pipeline.surface import surface_from_occupancy
+    from pipeline.volume import Grid
+    from stage.keying.take import key_take
+    from stage.store import TakeReader
+
+    ref = record_take(sim, tmp_path / "reference.h5")
+    key_take(ref)
+    grid = Grid.from_dict(grid_dict)
+    with TakeReader(ref) as r:
+        cams = list(r.cameras)
+        masks = {c: r.masks(c) for c in cams}
+        cal = r.calibration
+    carver = HullCarver(type(cal)(tuple(cal[c] for c in cams), units=cal.units), grid)
+    meshes, skeletons = [], []
+    for k in range(sim.n_frames):
+        hull = carver.carve([masks[c][k] for c in cams], tolerance=params.tolerance, margin=params.silhouette_margin)
+        mesh = surface_from_occupancy(
+            hull.occupancy, grid, taubin_iterations=params.smooth_iterations, face_budget=params.face_budget
+        )
+        meshes.append(mesh)
+        skeletons.append(frame_skeleton(mesh.vertices, mesh.faces))
+    spine = build_spine(skeletons, fps=sim.fps, units=cal.units, params=SpineParams())
+    return masks, meshes, spine.to_dict()
+
+
+def _same_results(path, out, reference):
+    from pipeline.results import ResultsStore
+    from stage.store import TakeReader
+
+    masks, meshes, spine = reference
+    with TakeReader(path) as r:
+        for cam, m in masks.items():
+            assert np.array_equal(r.masks(cam), m), cam
+    store = ResultsStore(out)
+    for k, ref in enumerate(meshes):
+        mesh = store.read_mesh(k)
+        assert np.array_equal(mesh.faces, ref.faces)
+        np.testing.assert_allclose(mesh.vertices, ref.vertices, rtol=0, atol=1e-9)
+    got = json.loads((out / "spine.json").read_text())
+    want = json.loads(json.dumps(spine))
+    assert got["graph"] == want["graph"]
+    for a, b in zip(got["frames"], want["frames"]):
+        assert a["tips"].keys() == b["tips"].keys()
+        for name in a["tips"]:
+            np.testing.assert_allclose(np.asarray(a["tips"][name], float), np.asarray(b["tips"][name], float), atol=1e-9)
+
+
+def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
+    """In process and on 2 worker processes, `stage process` gives the masks, meshes and
+    spine of the parts called one by one (issue 16)."""
+    import concurrent.futures as cf
+
+    sim, path = starfish
+    _, out, _ = processed
+    params = ProcessParams()
+    reference = _reference_results(sim, tmp_path, params, json.loads((out / "grid.json").read_text()))
+    _same_results(path, out, reference)
+    pooled = record_take(sim, tmp_path / "pooled.h5")
+    with cf.ProcessPoolExecutor(max_workers=2) as ex:
+        process_take(pooled, tmp_path / "pooled", executor=ex)
+    _same_results(pooled, tmp_path / "pooled", reference)
+
+
+def test_thin_tail_survives_the_default_grid(tmp_path):
+    """The tailed quadruped (tail 36 -> 16 mm thick, 5-6 px at its end) filmed by ten 480x360
+    cameras: the default grid follows the pixel footprint, and the spine has all 6 limbs with
+    consistent identities in every frame (issue 16)."""
+    from fake_cameras.rigs import thin_tail_setup
+
+    sim = simulate_take(frames=20, seed=0, **thin_tail_setup())
+    path = record_take(sim, tmp_path / "tail.h5")
+    res = process_take(path, tmp_path / "out")
+    choice = json.loads((tmp_path / "out" / "process.json").read_text())["grid"]
+    assert choice["source"] == "rig" and choice["limited_by"] == "pixel footprint"
+    assert 2.5 < choice["pixel_footprint"] < 3.3
+    assert choice["voxel"] == pytest.approx(2 * choice["pixel_footprint"], rel=0.1)
+    assert res.report["grid"] == choice
+    spine = json.loads((tmp_path / "out" / "spine.json").read_text())
+    axes = {n: np.stack([a[n] for a in sim.axes]) for n in sim.limb_names}
+    acc = evaluate_spine(spine, sim.tip_array(), axes, list(sim.limb_names))
+    assert acc["K"] == 6
+    assert acc["identity_consistent"] == 1.0
+    assert acc["tip_within_tol"] >= 0.95

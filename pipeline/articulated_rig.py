@@ -1,0 +1,456 @@
+"""Articulated rigs from motion: segmentation, skeleton, fit, and the files users open.
+
+:func:`build_articulated_rig` runs Tzionas & Gall 2016 section 4 on a mesh
+sequence with shared connectivity: motion segmentation (4.1,
+:mod:`pipeline.motion_segmentation`), the kinematic topology (4.2,
+:mod:`pipeline.articulated_skeleton`), bone heat skinning, and the
+per-frame least-squares fit (:mod:`pipeline.articulated_fit`).
+:func:`write_rig` writes a rig directory (``docs/rig-format.md``):
+
+``rig.json``         capture-stage/rig@1: joints, joint positions per frame, fit errors
+``segments.npy``     (V,) motion segment of every template vertex
+``posed/NNNNNN.ply`` the fitted model at every frame, in the template's vertex order
+``rig.glb``          glTF 2.0: skinned template, joints at the articulations, one key per frame
+``rig.bvh``          BVH motion capture: the same joints and local rotations
+
+The rest (template) frame is the frame whose curve skeleton shows the most
+limb tips among a few evenly spaced candidates (first one on ties): a limb
+pressed against the body in one frame is apart in another.
+
+BVH is written by hand (a text format: HIERARCHY with OFFSET/CHANNELS,
+MOTION with one line per frame); rotations are ``Zrotation Xrotation
+Yrotation`` in degrees (intrinsic Z-X-Y), positions in the source units.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from pipeline.articulated_fit import ArticulatedModel, FitResult, articulated_model, fit_sequence
+from pipeline.articulated_skeleton import ArticulatedSkeleton, articulated_skeleton, curve_skeleton
+from pipeline.motion_segmentation import Segmentation, check_sequence, motion_segmentation, subject_size
+from pipeline.results import atomic_write_bytes, ply_bytes
+
+__all__ = [
+    "RIG_FORMAT", "NoTrackingError", "tracked_meshes", "load_sequence", "rig_results", "ArticulatedRig",
+    "build_articulated_rig", "rig_dict", "bvh_text", "glb_bytes", "write_rig", "choose_reference",
+]
+
+log = logging.getLogger(__name__)
+
+RIG_FORMAT = "capture-stage/rig@1"
+
+
+class NoTrackingError(FileNotFoundError):
+    """A results directory without a tracked template (``tracked/NNNNNN.ply``)."""
+
+
+def tracked_meshes(results_dir) -> list[Path]:
+    """The tracked template's meshes of a results directory, in frame order.
+
+    Raises
+    ------
+    NoTrackingError
+        When ``RESULTS_DIR/tracked/`` holds no ``.ply``.
+    """
+    d = Path(results_dir)
+    paths = sorted((d / "tracked").glob("*.ply")) if (d / "tracked").is_dir() else []
+    if not paths:
+        raise NoTrackingError(
+            f"{d} has no tracked/NNNNNN.ply: the per-frame surfaces of a take do not share connectivity, "
+            f"so the template must be tracked through the take first (stage track {d})"
+        )
+    return paths
+
+
+def load_sequence(paths) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices (T, V, 3), faces (F, 3) and frame numbers (T,) of a mesh sequence with shared connectivity.
+
+    Frame numbers are the last number in each file name (positions when
+    they are missing or repeated).
+
+    Raises
+    ------
+    ValueError
+        When the meshes do not share connectivity (vertex counts or faces differ).
+    """
+    import re
+
+    from pipeline.meshio import load_mesh
+
+    paths = [Path(p) for p in paths]
+    verts, faces, numbers = [], None, []
+    for i, p in enumerate(paths):
+        v, f = load_mesh(p, largest=False)
+        if len(f) == 0:
+            raise ValueError(f"{p.name}: empty mesh (no faces)")
+        if faces is None:
+            faces = f
+        elif len(v) != len(verts[0]):
+            raise ValueError(
+                f"{p.name} has {len(v)} vertices, {paths[0].name} has {len(verts[0])}: the meshes do not share "
+                "connectivity; track the template through the take first (stage track)"
+            )
+        elif f.shape != faces.shape or not np.array_equal(f, faces):
+            raise ValueError(
+                f"{p.name}: its faces differ from {paths[0].name}'s: the meshes do not share connectivity; "
+                "track the template through the take first (stage track)"
+            )
+        verts.append(v)
+        m = re.findall(r"\d+", p.stem)
+        numbers.append(int(m[-1]) if m else i)
+    if len(set(numbers)) != len(numbers):
+        numbers = list(range(len(paths)))
+    return np.asarray(verts), faces, np.asarray(numbers, dtype=np.int64)
+
+
+def rig_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=None, progress=None, **options):
+    """Rig a results directory from its tracked template; writes ``RESULTS_DIR/rig/`` (or ``out``).
+
+    Returns
+    -------
+    ArticulatedRig
+    """
+    vertices, faces, numbers = load_sequence(tracked_meshes(results_dir))
+    rig = build_articulated_rig(vertices, faces, units=units, fps=fps, frame_indices=numbers, progress=progress,
+                                **options)
+    write_rig(rig, Path(out) if out is not None else Path(results_dir) / "rig", progress=progress)
+    return rig
+
+
+@dataclass(frozen=True, eq=False)
+class ArticulatedRig:
+    """Everything :func:`build_articulated_rig` found.
+
+    Attributes
+    ----------
+    segmentation : Segmentation
+    skeleton : ArticulatedSkeleton
+    model : ArticulatedModel
+        Bound to the rest frame.
+    fit : FitResult
+    reference : int
+        Position of the rest frame.
+    frame_indices : (T,) int ndarray
+    units : str
+    fps : float
+    size : float
+        Bounding-box diagonal of the rest frame.
+    lambda_thr : float
+    timings : dict
+        Seconds per step.
+    """
+
+    segmentation: Segmentation
+    skeleton: ArticulatedSkeleton
+    model: ArticulatedModel
+    fit: FitResult
+    reference: int
+    frame_indices: np.ndarray
+    units: str
+    fps: float
+    size: float
+    lambda_thr: float
+    timings: dict
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_indices)
+
+    def posed(self, t: int) -> np.ndarray:
+        """(V, 3) the fitted model at frame position ``t``."""
+        return self.model.deform(self.fit.poses[t])
+
+
+def choose_reference(vertices, faces, *, candidates: int = 8) -> int:
+    """Frame (position) whose curve skeleton has the most tips among evenly spaced candidates."""
+    from pipeline.spine import frame_skeleton
+
+    v = np.asarray(vertices)
+    T = len(v)
+    cand = np.unique(np.linspace(0, T - 1, min(int(candidates), T)).round().astype(int))
+    tips = []
+    for t in cand:
+        try:
+            tips.append(frame_skeleton(v[t], faces).n_tips)
+        except ValueError:
+            tips.append(-1)
+    return int(cand[int(np.argmax(tips))])
+
+
+def build_articulated_rig(
+    vertices,
+    faces,
+    *,
+    units: str = "mm",
+    fps: float = 30.0,
+    frame_indices=None,
+    lambda_thr: float = 0.7,
+    n_samples: int = 1000,
+    reference: int | None = None,
+    progress=None,
+) -> ArticulatedRig:
+    """An articulated, skinned model fitted to every frame of a mesh sequence.
+
+    Parameters
+    ----------
+    vertices : (T, V, 3) float ndarray
+        Shared connectivity: vertex ``i`` is the same surface point in every frame.
+    faces : (F, 3) int ndarray
+    units : str
+        Units of the coordinates (``mm``, ``cm``, ``m`` or anything: the
+        defaults follow the subject's size, see :mod:`pipeline.motion_segmentation`).
+    fps : float
+        Frame rate (for the animation files).
+    frame_indices : (T,) int array_like, optional
+        Frame numbers (default ``0 .. T-1``).
+    lambda_thr : float
+        Eigenvalue threshold of the segmentation (0.7; 0.98 for small parts
+        with small motion).
+    n_samples : int
+        Sampled vertices of the segmentation.
+    reference : int, optional
+        Position of the rest frame (default: :func:`choose_reference`).
+    progress : callable, optional
+        ``progress(step, done, total)``.
+
+    Returns
+    -------
+    ArticulatedRig
+    """
+    import time
+
+    v, f = check_sequence(vertices, faces)
+    T = len(v)
+    if not (fps > 0 and np.isfinite(fps)):
+        raise ValueError(f"fps must be > 0, got {fps}")
+    fi = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64).reshape(-1)
+    if len(fi) != T:
+        raise ValueError(f"frame_indices must have {T} entries, got {len(fi)}")
+    timings = {}
+    t0 = time.perf_counter()
+    seg = motion_segmentation(v, f, lambda_thr=lambda_thr, n_samples=n_samples)
+    timings["segmentation"] = time.perf_counter() - t0
+    if progress:
+        progress("segmentation", 1, 1)
+    t0 = time.perf_counter()
+    ref = choose_reference(v, f) if reference is None else int(reference)
+    if not 0 <= ref < T:
+        raise ValueError(f"reference must be within 0..{T - 1}, got {reference}")
+    rest = v[ref]
+    skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f))
+    model = articulated_model(rest, f, skel)
+    timings["skeleton"] = time.perf_counter() - t0
+    if progress:
+        progress("skeleton", 1, 1)
+    t0 = time.perf_counter()
+    fit = fit_sequence(model, v, progress=(lambda t: progress("fit", t + 1, T)) if progress else None)
+    timings["fit"] = time.perf_counter() - t0
+    size = subject_size(rest[None])
+    log.info(
+        "rig: %d segments, %d articulations, %d joints; mean vertex error %.3g %s (%.2f %% of size)",
+        seg.n_segments, int(skel.articulation.sum()), skel.n_joints, fit.errors.mean(), units,
+        100 * fit.errors.mean() / size,
+    )
+    return ArticulatedRig(seg, skel, model, fit, ref, fi, str(units), float(fps), size, float(lambda_thr), timings)
+
+
+# --------------------------------------------------------------------------- local transforms
+
+
+def _local_motion(rig: ArticulatedRig) -> tuple[np.ndarray, np.ndarray]:
+    """Local rotations (T, J, 3, 3) and translations (T, J, 3) of every joint per frame."""
+    sk = rig.skeleton
+    T, J = rig.n_frames, sk.n_joints
+    R = np.empty((T, J, 3, 3))
+    tr = np.empty((T, J, 3))
+    for t, pose in enumerate(rig.fit.poses):
+        G = pose.R[sk.part]  # (J, 3, 3) global rotation of every joint
+        pos = rig.fit.joints[t]
+        for j in range(J):
+            p = sk.parents[j]
+            if p < 0:
+                R[t, j], tr[t, j] = G[j], pos[j]
+            else:
+                R[t, j] = G[p].T @ G[j]
+                tr[t, j] = G[p].T @ (pos[j] - pos[p])
+    return R, tr
+
+
+def _quats(R: np.ndarray) -> np.ndarray:
+    """(T, J, 4) xyzw quaternions, sign-continuous over time."""
+    T, J = R.shape[:2]
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat().reshape(T, J, 4)
+    for t in range(1, T):
+        flip = (q[t] * q[t - 1]).sum(1) < 0
+        q[t, flip] *= -1
+    return q
+
+
+def rig_dict(rig: ArticulatedRig) -> dict:
+    """The ``rig.json`` document (capture-stage/rig@1, docs/rig-format.md)."""
+    sk = rig.skeleton
+    names = list(sk.names)
+    kinds = ["root" if p < 0 else ("joint" if a else "aux") for p, a in zip(sk.parents, sk.articulation)]
+    joints = [
+        {
+            "name": n,
+            "parent": None if sk.parents[j] < 0 else names[sk.parents[j]],
+            "kind": kinds[j],
+            "segments": list(sk.segment_pairs[j]) if sk.segment_pairs[j] is not None else None,
+            "rest": [float(x) for x in sk.rest[j]],
+        }
+        for j, n in enumerate(names)
+    ]
+    frames = []
+    for t in range(rig.n_frames):
+        P = rig.fit.joints[t]
+        frames.append({
+            "index": int(rig.frame_indices[t]),
+            "joints": {n: ([float(x) for x in P[j]] if np.all(np.isfinite(P[j])) else None) for j, n in enumerate(names)},
+        })
+    err = rig.fit.errors
+    seg = rig.segmentation
+    return {
+        "format": RIG_FORMAT,
+        "units": rig.units,
+        "fps": rig.fps,
+        "frame_count": rig.n_frames,
+        "reference_frame": int(rig.frame_indices[rig.reference]),
+        "size": rig.size,
+        "joints": joints,
+        "frames": frames,
+        "fit": {
+            "vertex_error": [float(e) for e in err],
+            "vertex_error_percent": [float(100 * e / rig.size) for e in err],
+            "mean_vertex_error": float(err.mean()),
+        },
+        "segmentation": {
+            "segments": seg.n_segments,
+            "clusters": seg.k,
+            "lambda_thr": rig.lambda_thr,
+            "lambda": seg.lam,
+            "interval": seg.interval,
+            "samples": int(len(seg.samples)),
+            "eigenvalues": [float(x) for x in seg.eigenvalues[:16]],
+        },
+    }
+
+
+def bvh_text(rig: ArticulatedRig) -> str:
+    """The rig as a BVH file (one ROOT/JOINT per joint; leaves carry an ``End Site``)."""
+    sk = rig.skeleton
+    R, tr = _local_motion(rig)
+    J = sk.n_joints
+    rest_local = sk.rest.copy()
+    nz = sk.parents >= 0
+    rest_local[nz] = sk.rest[nz] - sk.rest[sk.parents[nz]]
+    kids = [[int(k) for k in np.flatnonzero(sk.parents == j)] for j in range(J)]
+    lines = ["HIERARCHY"]
+    order = []
+
+    def emit(j: int, depth: int) -> None:
+        ind = "  " * depth
+        head = "ROOT" if sk.parents[j] < 0 else "JOINT"
+        lines.append(f"{ind}{head} {sk.names[j]}")
+        lines.append(f"{ind}{{")
+        o = rest_local[j] if sk.parents[j] >= 0 else np.zeros(3)
+        lines.append(f"{ind}  OFFSET {o[0]:.6f} {o[1]:.6f} {o[2]:.6f}")
+        if sk.parents[j] < 0:
+            lines.append(f"{ind}  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation")
+        else:
+            lines.append(f"{ind}  CHANNELS 3 Zrotation Xrotation Yrotation")
+        order.append(j)
+        for k in kids[j]:
+            emit(k, depth + 1)
+        if not kids[j]:
+            lines.append(f"{ind}  End Site")
+            lines.append(f"{ind}  {{")
+            lines.append(f"{ind}    OFFSET 0.000000 0.000000 0.000000")
+            lines.append(f"{ind}  }}")
+        lines.append(f"{ind}}}")
+
+    emit(int(np.flatnonzero(sk.parents < 0)[0]), 0)
+    lines += ["MOTION", f"Frames: {rig.n_frames}", f"Frame Time: {1.0 / rig.fps:.6f}"]
+    eul = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler("ZXY", degrees=True).reshape(rig.n_frames, J, 3)
+    root = order[0]
+    for t in range(rig.n_frames):
+        vals = list(tr[t, root]) + list(eul[t, root])
+        for j in order[1:]:
+            vals += list(eul[t, j])
+        lines.append(" ".join(f"{x:.5f}" for x in vals))
+    return "\n".join(lines) + "\n"
+
+
+def glb_bytes(rig: ArticulatedRig, *, scale: float | None = None) -> bytes:
+    """The rig as GLB: the skinned rest mesh, joints at the articulations, one key per frame."""
+    from pipeline.gltf_export import rig_to_glb
+    from pipeline.rig_model import Rig, RiggedModel
+
+    sk = rig.skeleton
+    R, tr = _local_motion(rig)
+    times = (rig.frame_indices - rig.frame_indices[0]) / rig.fps
+    if rig.n_frames > 1 and np.any(np.diff(times) <= 0):
+        times = np.arange(rig.n_frames) / rig.fps
+    element = tuple(
+        "root" if p < 0 else (f"segments {sk.segment_pairs[j][0]}-{sk.segment_pairs[j][1]}" if sk.articulation[j] else "aux")
+        for j, p in enumerate(sk.parents)
+    )
+    grig = Rig(
+        names=tuple(sk.names),
+        parents=sk.parents.copy(),
+        element=element,
+        rest=sk.rest.copy(),
+        bones=sk.bones.copy() if len(sk.bones) else np.zeros((0, 2), dtype=np.int64),
+        rotations=_quats(R),
+        translations=tr,
+        times=times.astype(np.float64),
+        frame_indices=rig.frame_indices.copy(),
+        reference=rig.reference,
+        units=rig.units,
+    )
+    m = rig.model
+    if len(sk.bones):
+        joints = sk.bones[m.influences, 0]
+    else:
+        joints = np.zeros_like(m.influences)
+    model = RiggedModel(m.vertices, m.faces, joints, m.weights, grig, meta={"weights": "bone heat"})
+    return rig_to_glb(model, scale=scale, include_spine=len(sk.bones) > 0)
+
+
+def write_rig(rig: ArticulatedRig, out_dir, *, progress=None) -> dict:
+    """Write the rig directory (``rig.json``, ``segments.npy``, ``posed/``, ``rig.glb``, ``rig.bvh``).
+
+    Every file is written atomically (temporary file, then rename).
+
+    Returns
+    -------
+    dict
+        Name -> path.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    posed = out / "posed"
+    posed.mkdir(exist_ok=True)
+    for t in range(rig.n_frames):
+        atomic_write_bytes(posed / f"{int(rig.frame_indices[t]):06d}.ply", ply_bytes(rig.posed(t), rig.model.faces))
+        if progress:
+            progress("write", t + 1, rig.n_frames)
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, rig.segmentation.labels.astype(np.int32))
+    paths = {
+        "segments": atomic_write_bytes(out / "segments.npy", buf.getvalue()),
+        "rig_json": atomic_write_bytes(out / "rig.json", json.dumps(rig_dict(rig), indent=1).encode()),
+        "bvh": atomic_write_bytes(out / "rig.bvh", bvh_text(rig).encode()),
+        "glb": atomic_write_bytes(out / "rig.glb", glb_bytes(rig)),
+        "posed": posed,
+    }
+    return paths

@@ -1,0 +1,254 @@
+"""``stage bench process``: ``stage process`` end to end against the speed of its parts.
+
+A simulated take (the demo's by default: the starfish, 12 cameras at 640x480, 30 frame
+sets, raw frames) is recorded once; then, in the same run:
+
+1. the disk-read floor: every frame of the take read (and decoded) once;
+2. each step's own benchmark on the same data in this process (one core, no files):
+   keying (``key_frames`` on the frames in memory, 1 and 2 threads, as ``stage bench key``),
+   hull + surface on the grid the process chose (as ``stage bench reconstruct``),
+   per-frame skeletons on those surfaces (as ``stage bench spines``) and the reduce step
+   (correspondence and one graph, ``build_spine``);
+3. ``process_take`` with the default settings on a fresh copy of the take (no masks) with
+   1 and 2 worker processes and on a Dask ``LocalCluster`` of 2 single-threaded workers.
+
+The table gives seconds per step inside ``stage process`` beside the step's own figure at
+the same parallelism (own seconds divided by the workers: ideal scaling), their ratio
+(the overhead), and sets/s end to end (worker start-up included). ``--profile`` adds a
+cProfile of the in-process run (the heaviest functions by own time).
+
+Target on a 2-core machine: >= 8 sets/s end to end for the demo's take, no step more than
+1.5x slower than its own benchmark.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+NAME = "process"
+HELP = "stage process end to end (1, 2 workers, Dask) vs each step's own benchmark and the disk-read floor"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--subject", default="starfish", help="simulated subject (default starfish, as the demo)")
+    p.add_argument("--cameras", type=int, default=12, help="simulated cameras (default 12)")
+    p.add_argument("--frames", type=int, default=30, help="frame sets (default 30)")
+    p.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
+    p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker processes to try (default 1 2)")
+    p.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster run")
+    p.add_argument("--profile", action="store_true", help="also profile an in-process run (cProfile, top 20)")
+    p.add_argument("--keep", type=Path, default=None, metavar="DIR", help="keep the take and results in DIR")
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--size must look like 640x480, got {text!r}") from None
+    if w < 64 or h < 48:
+        raise ValueError(f"--size must be at least 64x48, got {text!r}")
+    return w, h
+
+
+def _disk_floor(take: Path) -> float:
+    from stage.store import TakeReader
+
+    t = time.perf_counter()
+    with TakeReader(take) as r:
+        for cam in r.cameras:
+            for i in range(r.n_frames(cam)):
+                r.frame(cam, i)
+    return time.perf_counter() - t
+
+
+def _own_key(images: np.ndarray, rig: dict) -> dict[int, float]:
+    """Images/s of the keyer on frames in memory (model estimation included), 1 and 2 threads."""
+    import cv2
+
+    from stage.keying.keyer import estimate_model, key_frames
+    from stage.keying.take import take_key_params
+
+    base = take_key_params(rig)
+    F, C = images.shape[:2]
+    out = {}
+    threads = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        for workers in (1, 2):
+            t = time.perf_counter()
+            for c in range(C):
+                frames = images[:, c]
+                sample = frames[np.unique(np.linspace(0, F - 1, min(F, 16)).round().astype(int))]
+                params = estimate_model(sample, params=base)
+                key_frames(frames, params=params, workers=workers)
+            out[workers] = F * C / (time.perf_counter() - t)
+    finally:
+        cv2.setNumThreads(threads)
+    return out
+
+
+def _own_reconstruct(take: Path, out: Path) -> dict:
+    """Per set: hull + surface on the process's grid and masks, then skeletons; and the reduce step."""
+    import json
+
+    from calib.calibration import Calibration
+    from pipeline.hull import HullCarver
+    from pipeline.spine import SpineParams, build_spine, frame_skeleton
+    from pipeline.surface import surface_from_occupancy
+    from pipeline.volume import Grid
+    from stage.process import ProcessParams
+    from stage.store import TakeReader
+
+    p = ProcessParams(**json.loads((out / "process.json").read_text())["params"])
+    grid = Grid.from_dict(json.loads((out / "grid.json").read_text()))
+    with TakeReader(take) as r:
+        cams = list(r.cameras)
+        cal = r.calibration
+        cal = Calibration(tuple(cal[c] for c in cams), units=cal.units, meta=cal.meta)
+        table = r.set_table()
+        masks = [[r.mask(c, int(table[k, i])) for i, c in enumerate(cams)] for k in range(len(table))]
+    carver = HullCarver(cal, grid)
+    t_carve = t_surf = t_skel = 0.0
+    skeletons = []
+    for m in masks:
+        t = time.perf_counter()
+        hull = carver.carve(m, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
+        t_carve += time.perf_counter() - t
+        t = time.perf_counter()
+        mesh = surface_from_occupancy(hull.occupancy, grid, taubin_iterations=p.smooth_iterations, face_budget=p.face_budget)
+        t_surf += time.perf_counter() - t
+        t = time.perf_counter()
+        skeletons.append(frame_skeleton(mesh.vertices, mesh.faces, params=SpineParams(**p.spine)))
+        t_skel += time.perf_counter() - t
+    t = time.perf_counter()
+    build_spine(skeletons, fps=30.0, params=SpineParams(**p.spine))
+    t_spine = time.perf_counter() - t
+    n = len(masks)
+    return {"carve": t_carve / n, "surface": t_surf / n, "skeleton": t_skel / n, "spine": t_spine, "grid": grid}
+
+
+def _executors(args):
+    import concurrent.futures as cf
+
+    for w in args.workers:
+        if w < 1:
+            raise ValueError("--workers must be >= 1")
+        yield f"{w} worker{'s' if w > 1 else ''}", w, lambda w=w: (cf.ProcessPoolExecutor(max_workers=w), None)
+    if not args.no_dask:
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:
+            print("(Dask is not installed: the LocalCluster run is skipped; pip install 'dask[distributed]')")
+            return
+
+        def dask():
+            cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   host="127.0.0.1")
+            client = Client(cluster)
+            return client.get_executor(pure=False), (client, cluster)
+
+        yield "Dask LocalCluster (2 workers)", 2, dask
+
+
+def _run(take_src: Path, work: Path, i: int, make) -> tuple[float, dict]:
+    from stage.process import process_take
+
+    take = work / f"take-{i}.h5"
+    shutil.copy(take_src, take)
+    out = work / f"out-{i}"
+    shutil.rmtree(out, ignore_errors=True)
+    t = time.perf_counter()
+    ex, closers = make()
+    try:
+        res = process_take(take, out, executor=ex)
+    finally:
+        if closers is None:
+            ex.shutdown()
+        else:
+            for c in closers:
+                c.close()
+    return time.perf_counter() - t, res.report
+
+
+def run(args: argparse.Namespace) -> int:
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
+    from stage.process import process_take
+    from stage.store import TakeReader
+
+    size = _size(args.size)
+    if args.frames < 2 or args.cameras < 4:
+        raise ValueError("--frames must be >= 2 and --cameras >= 4")
+    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench-process-"))
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        print(f"simulated take: {args.subject}, {args.cameras} cameras at {size[0]}x{size[1]}, {args.frames} frame sets")
+        sim = simulate_take(args.subject, n_cameras=args.cameras, frames=args.frames, size=size, seed=0)
+        src = record_take(sim, work / "source.h5")
+        n_sets, n_img = sim.n_frames, sim.n_frames * sim.n_cameras
+        with TakeReader(src) as r:
+            rig = r.rig
+        floor = _disk_floor(src)
+        print(f"disk-read floor: every frame read once in {floor:.2f} s ({n_sets / floor:.0f} sets/s)")
+
+        # in-process run first: it chooses the grid the own benchmarks use (and is profiled on request)
+        take0 = work / "take-0.h5"
+        shutil.copy(src, take0)
+        prof = None
+        if args.profile:
+            import cProfile
+
+            prof = cProfile.Profile()
+            prof.enable()
+        t = time.perf_counter()
+        rep0 = process_take(take0, work / "out-0", executor=None).report
+        wall0 = time.perf_counter() - t
+        if prof is not None:
+            prof.disable()
+        own_key = _own_key(sim.images, rig)
+        own = _own_reconstruct(take0, work / "out-0")
+        g = rep0.get("grid", {})
+        print(f"grid: {own['grid']} ({g.get('source', '?')}; voxel {g.get('voxel', float('nan')):.2f}, "
+              f"pixel at the subject {g.get('pixel_footprint', float('nan')):.2f})")
+        per_set = own["carve"] + own["surface"] + own["skeleton"]
+        print(f"own benchmarks (this process, files aside): keying {own_key[1]:.0f} images/s (1 thread), "
+              f"{own_key[2]:.0f} (2 threads); hull {1e3 * own['carve']:.1f} ms + surface {1e3 * own['surface']:.1f} ms "
+              f"+ skeletons {1e3 * own['skeleton']:.1f} ms per set = {1 / per_set:.1f} sets/s; reduce {own['spine']:.2f} s")
+
+        runs = [("in process (keying 2 threads)", (2, 1), wall0, rep0)]
+        for i, (label, w, make) in enumerate(_executors(args), start=1):
+            wall, rep = _run(src, work, i, make)
+            runs.append((label, (min(w, 2), w), wall, rep))
+        print()
+        print(f"{'run':<30} {'step':<22} {'inside s':>9} {'own s':>8} {'ratio':>6}")
+        for label, (kw, w), wall, rep in runs:
+            sec = rep["seconds"]
+            own_s = {
+                "key": n_img / own_key[kw],
+                "surface": n_sets * per_set / w,
+                "spine": own["spine"],
+            }
+            names = {"key": "key", "surface": "surface + skeletons", "spine": "spine (reduce)"}
+            for step in ("key", "surface", "spine"):
+                if step in sec:
+                    print(f"{label:<30} {names[step]:<22} {sec[step]:9.2f} {own_s[step]:8.2f} {sec[step] / own_s[step]:6.2f}")
+            other = wall - sum(sec.values())
+            print(f"{label:<30} {'start-up, other':<22} {other:9.2f}")
+            print(f"{label:<30} {'END TO END':<22} {wall:9.2f} {'':>8} {'':>6}  {n_sets / wall:5.1f} sets/s")
+        best = max(n_sets / wall for _, _, wall, _ in runs)
+        print(f"\nbest end to end: {best:.1f} sets/s (target >= 8 on 2 cores); disk-read floor {n_sets / floor:.0f} sets/s")
+        if prof is not None:
+            import pstats
+
+            print("\nprofile of the in-process run (own time):")
+            pstats.Stats(prof).sort_stats("tottime").print_stats(20)
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+    return 0

@@ -1,0 +1,110 @@
+"""``stage rig``: an articulated rig from motion (Tzionas & Gall 2016, section 4).
+
+``stage rig RESULTS_DIR`` rigs a processed take from its tracked template
+(``RESULTS_DIR/tracked/NNNNNN.ply``, one mesh per frame in the template's
+vertex order) and writes ``RESULTS_DIR/rig/``; ``stage rig --meshes GLOB --out
+DIR`` rigs any mesh sequence with shared connectivity (.ply/.obj/.off).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+ORDER = 63
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "rig",
+        help="build an articulated rig from motion: segments, joints where the subject bends, skin, pose per frame",
+        description="Segment a mesh sequence with shared connectivity into rigidly moving parts (spectral "
+        "clustering of vertex trajectories), put a joint where two parts meet on the curve skeleton, skin the "
+        "template with bone-heat weights and fit the articulated model to every frame by least squares. "
+        "Writes rig.json (capture-stage/rig@1), segments.npy, posed/NNNNNN.ply, rig.glb and rig.bvh "
+        "(docs/rig-format.md). The per-frame surfaces of a processed take do not share connectivity: "
+        "rig a results directory after its template has been tracked (tracked/NNNNNN.ply).",
+    )
+    p.add_argument("results", type=Path, nargs="?", metavar="RESULTS_DIR",
+                   help="results directory of `stage process` with tracked/NNNNNN.ply (writes RESULTS_DIR/rig/)")
+    p.add_argument("--meshes", metavar="GLOB", help="mesh sequence with shared connectivity (e.g. 'seq/*.obj')")
+    p.add_argument("--out", type=Path, metavar="DIR", help="output directory (default RESULTS_DIR/rig)")
+    p.add_argument("--units", help="units of the meshes (default: the spine's, else mm)")
+    p.add_argument("--fps", type=float, help="frame rate (default: the spine's, else 30)")
+    p.add_argument("--lambda-thr", type=float, default=0.7, metavar="T",
+                   help="eigenvalue threshold: 0.7 (default) for pronounced motion of reasonably sized parts, "
+                   "0.98 for small parts with small motion (over-segments)")
+    p.add_argument("--samples", type=int, default=1000, metavar="N", help="sampled vertices for the segmentation (default 1000)")
+    p.add_argument("--reference", type=int, metavar="POS",
+                   help="position (0-based) of the rest frame (default: the frame showing the most limb tips)")
+    p.set_defaults(func=run)
+
+
+def _spine_meta(results: Path) -> dict:
+    sp = results / "spine.json"
+    if not sp.is_file():
+        return {}
+    try:
+        d = json.loads(sp.read_text())
+        return {"units": d.get("units"), "fps": d.get("fps")}
+    except (OSError, ValueError):
+        return {}
+
+
+def run(args: argparse.Namespace) -> int:
+    from pipeline.articulated_rig import (
+        NoTrackingError,
+        build_articulated_rig,
+        load_sequence,
+        tracked_meshes,
+        write_rig,
+    )
+    from pipeline.meshio import mesh_paths
+    from stage.cli import UserError
+    from stage.cli._progress import StepBars
+
+    if (args.results is None) == (args.meshes is None):
+        raise UserError("give either RESULTS_DIR or --meshes GLOB (see stage rig --help)")
+    meta = {}
+    if args.meshes is not None:
+        if args.out is None:
+            raise UserError("--meshes needs --out DIR")
+        paths = mesh_paths(args.meshes)
+        out = args.out
+    else:
+        d = Path(args.results)
+        if not d.is_dir():
+            raise FileNotFoundError(f"results directory not found: {d}")
+        try:
+            paths = tracked_meshes(d)
+        except NoTrackingError as exc:
+            raise UserError(str(exc)) from None
+        meta = _spine_meta(d)
+        out = args.out or d / "rig"
+    if len(paths) < 1:
+        raise UserError("no meshes")
+    if args.samples < 2:
+        raise ValueError(f"--samples must be >= 2, got {args.samples}")
+    if not 0 < args.lambda_thr < 2:
+        raise ValueError(f"--lambda-thr must be within (0, 2), got {args.lambda_thr}")
+    vertices, faces, numbers = load_sequence(paths)
+    units = args.units or meta.get("units") or "mm"
+    fps = args.fps or meta.get("fps") or 30.0
+    with StepBars(disable=args.quiet) as bars:
+        rig = build_articulated_rig(
+            vertices, faces, units=units, fps=float(fps), frame_indices=numbers, lambda_thr=args.lambda_thr,
+            n_samples=args.samples, reference=args.reference, progress=bars,
+        )
+        write_rig(rig, out, progress=bars)
+    sk = rig.skeleton
+    err = rig.fit.errors
+    print(
+        f"{rig.segmentation.n_segments} segments, {int(sk.articulation.sum())} articulations, {sk.n_joints} joints; "
+        f"mean vertex error {err.mean():.4g} {units} ({100 * err.mean() / rig.size:.2f} % of size), "
+        f"worst frame {err.max():.4g} {units}"
+    )
+    if rig.segmentation.n_segments == 1:
+        print("nothing bends in this sequence: one segment, the rig moves rigidly")
+    print(f"wrote {out}/rig.json, rig.glb, rig.bvh, segments.npy, posed/ ({rig.n_frames} frames)")
+    return 0

@@ -1,0 +1,293 @@
+"""Articulated rigs from motion (Tzionas & Gall 2016, section 4): real and simulated subjects, files, bad input.
+
+Measured (this machine, see docs/rig-format.md for the figures): the pipe's articulation,
+the simulated creatures' recall/precision and vertex errors, the horse's legs and playback.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.articulated_fit import fit_frame
+from pipeline.articulated_rig import build_articulated_rig, bvh_text, load_sequence, rig_dict, write_rig
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+PIPE = DATA / "tzionas_pipe" / "pipe.npz"
+HORSE = DATA / "horse_gallop"
+
+
+def _articulation_scores(rig, true_joints, articulates, size, tol=0.05):
+    """Recall and precision of articulations within ``tol`` of size (median distance over frames)."""
+    sk = rig.skeleton
+    found = rig.fit.joints[:, sk.articulation]
+    true = true_joints[:, articulates]
+    if found.shape[1] == 0:
+        return 0.0, 0.0, np.zeros((0, true.shape[1]))
+    D = np.median(np.linalg.norm(found[:, :, None] - true[:, None, :], axis=3), axis=0) / size
+    return float((D.min(0) < tol).mean()), float((D.min(1) < tol).mean()), D
+
+
+# --------------------------------------------------------------------------- the pipe
+
+
+@pytest.fixture(scope="module")
+def pipe():
+    if not PIPE.is_file():
+        pytest.skip(f"real data not found: {PIPE} (../shared/data is absent)")
+    d = np.load(PIPE)
+    rig = build_articulated_rig(d["vertices"], d["faces"], units="mm", frame_indices=d["frame_index"])
+    return d, rig
+
+
+def test_pipe_has_one_articulation_at_the_hand_made_joint(pipe):
+    d, rig = pipe
+    sk = rig.skeleton
+    assert int(sk.articulation.sum()) == 1
+    size = float(np.linalg.norm(np.ptp(d["vertices"][0], axis=0)))
+    found = rig.fit.joints[:, sk.articulation][:, 0]
+    err = np.linalg.norm(found - d["joints"][:, 1], axis=1)  # joint 1: the hand-made articulation
+    # measured: median 2.9 mm = 0.8 % of the 355 mm pipe
+    assert np.median(err) <= 0.05 * size
+    # measured: 0.84 mm mean over the 60 frames
+    assert rig.fit.errors.mean() <= 3.0
+
+
+def test_pipe_fit_matches_the_slow_least_squares(pipe):
+    """Gauss-Newton reaches the minimum a general optimiser finds (one frame)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.articulated_fit import Pose, _forward
+
+    d, rig = pipe
+    m = rig.model
+    t = 45
+    y = np.asarray(d["vertices"][t], dtype=np.float64)
+    pose, err = fit_frame(m, y, rig.fit.poses[t - 1], iterations=30)
+    P = m.skeleton.n_parts
+
+    def resid(x):
+        loc = Rotation.from_rotvec(x[6:].reshape(P - 1, 3)).as_matrix()
+        local = np.concatenate([np.eye(3)[None], loc])
+        pz = _forward(m, Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], local)
+        return (m.deform(Pose(pz.R, pz.t)) - y).ravel()
+
+    p0 = rig.fit.poses[t - 1]
+    x0 = np.r_[Rotation.from_matrix(p0.R[0]).as_rotvec(), p0.t[0],
+               np.concatenate([Rotation.from_matrix(p0.R[0].T @ p0.R[p]).as_rotvec() for p in range(1, P)])]
+    ref = least_squares(resid, x0, method="lm", xtol=1e-10, ftol=1e-10)
+    ref_sse = float((ref.fun**2).sum())
+    sse = float(((m.deform(pose) - y) ** 2).sum())
+    assert sse <= ref_sse * 1.01 + 1e-9
+
+
+# --------------------------------------------------------------------------- simulated creatures
+
+
+@pytest.fixture(scope="module", params=["starfish", "quadruped", "biped"])
+def creature(request):
+    from fake_cameras.mesh_motion import mesh_sequence
+
+    ms = mesh_sequence(request.param, frames=40)
+    # small motion of small parts: the paper's setting for it (section 5)
+    rig = build_articulated_rig(ms.vertices, ms.faces, lambda_thr=0.98)
+    return request.param, ms, rig
+
+
+def test_simulated_creatures_articulations_and_error(creature):
+    name, ms, rig = creature
+    if name == "biped":
+        pytest.xfail("biped: the arms touch the torso in the rest mesh, the curve skeleton misses them "
+                     "(measured recall 0.56, precision 0.45)")
+    recall, precision, _ = _articulation_scores(rig, ms.joints, ms.articulates, ms.size)
+    # measured: starfish 0.75 / 1.0, quadruped 0.77 / 1.0
+    assert recall >= 0.7
+    assert precision >= 0.7
+    # measured: starfish 0.39 %, quadruped 0.60 % of size (mean over frames)
+    assert rig.fit.errors.mean() <= 0.01 * ms.size
+
+
+# --------------------------------------------------------------------------- the horse and the files
+
+
+@pytest.fixture(scope="module")
+def horse(tmp_path_factory):
+    if not HORSE.is_dir():
+        pytest.skip(f"real data not found: {HORSE} (../shared/data is absent)")
+    paths = sorted(HORSE.glob("0*.obj"))
+    V, F, numbers = load_sequence(paths)
+    rig = build_articulated_rig(V, F, units="m", fps=24.0, frame_indices=numbers)
+    out = tmp_path_factory.mktemp("horse_rig")
+    write_rig(rig, out)
+    return V, F, rig, out
+
+
+def test_horse_legs_have_two_segments(horse):
+    from scipy.spatial import cKDTree
+
+    from pipeline.spine import frame_skeleton
+
+    V, F, rig, _ = horse
+    rest = V[rig.reference]
+    m = frame_skeleton(rest, F).merged()
+    axes = [a for a in m.tip_axes if a is not None]
+    hooves = sorted(range(len(axes)), key=lambda i: axes[i][-1][1])[:4]  # y is up: the four lowest tips
+    pts = np.vstack(axes)
+    owner = np.concatenate([np.full(len(a), i) for i, a in enumerate(axes)])
+    _, near = cKDTree(pts).query(rest)
+    lab = rig.segmentation.labels
+    for h in hooves:
+        leg = owner[near] == h
+        counts = np.bincount(lab[leg])
+        assert (counts >= 0.05 * leg.sum()).sum() >= 2, f"leg {h}: segments {counts[counts > 0]}"
+
+
+def _parse_bvh(text):
+    """Joints (name, parent, offset, channels) and motion rows of a BVH file; strict about structure."""
+    tok = text.split()
+    i = 0
+    assert tok[i] == "HIERARCHY"
+    i += 1
+    joints, stack, pending = [], [], None
+    while tok[i] != "MOTION":
+        t = tok[i]
+        if t in ("ROOT", "JOINT"):
+            parents = [x for x in stack if x is not None]
+            joints.append({"name": tok[i + 1], "parent": parents[-1] if parents else None})
+            pending = len(joints) - 1
+            i += 2
+        elif t == "End":
+            assert tok[i + 1] == "Site"
+            pending = None
+            i += 2
+        elif t == "{":
+            stack.append(pending)
+            i += 1
+        elif t == "}":
+            stack.pop()
+            i += 1
+        elif t == "OFFSET":
+            if stack[-1] is not None:
+                joints[stack[-1]]["offset"] = [float(x) for x in tok[i + 1 : i + 4]]
+            i += 4
+        elif t == "CHANNELS":
+            n = int(tok[i + 1])
+            joints[stack[-1]]["channels"] = tok[i + 2 : i + 2 + n]
+            i += 2 + n
+        else:
+            raise AssertionError(f"unexpected BVH token {t!r}")
+    assert not stack
+    assert tok[i + 1] == "Frames:"
+    frames = int(tok[i + 2])
+    assert tok[i + 3 : i + 5] == ["Frame", "Time:"]
+    n_ch = sum(len(j["channels"]) for j in joints)
+    rows = np.asarray(tok[i + 6 :], dtype=float).reshape(frames, n_ch)
+    return joints, rows
+
+
+def test_horse_rig_plays_back(horse):
+    import pygltflib
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    V, F, rig, out = horse
+    doc = json.loads((out / "rig.json").read_text())
+    assert doc["format"] == "capture-stage/rig@1" and doc["frame_count"] == len(V)
+    g = pygltflib.GLTF2().load(str(out / "rig.glb"))
+    assert len(g.skins) == 1 and len(g.skins[0].joints) == len(doc["joints"])
+    assert len(g.animations) == 1
+    scene = trimesh.load(str(out / "rig.glb"))
+    assert len(scene.geometry) >= 1
+    joints, rows = _parse_bvh((out / "rig.bvh").read_text())
+    assert len(joints) == len(doc["joints"])
+    assert sorted(j["name"] for j in joints) == sorted(j["name"] for j in doc["joints"])
+    # forward kinematics of the BVH reproduces rig.json's joint positions
+    t = len(V) // 2
+    pos, rot, col = {}, {}, 0
+    for j in joints:
+        vals = rows[t, col : col + len(j["channels"])]
+        col += len(j["channels"])
+        R = Rotation.from_euler("ZXY", vals[-3:], degrees=True).as_matrix()
+        if j["parent"] is None:
+            pos[j["name"]], rot[j["name"]] = vals[:3], R
+        else:
+            par = joints[j["parent"]]["name"]
+            pos[j["name"]] = pos[par] + rot[par] @ np.asarray(j["offset"])
+            rot[j["name"]] = rot[par] @ R
+    ref = doc["frames"][t]["joints"]
+    size = doc["size"]
+    for name, p in pos.items():
+        assert np.linalg.norm(p - np.asarray(ref[name])) < 1e-4 * size
+    # posed frames in the template's vertex order
+    assert len(list((out / "posed").glob("*.ply"))) == len(V)
+    lab = np.load(out / "segments.npy")
+    assert lab.shape == (V.shape[1],)
+    # measured: 1.8 % of size on the gallop (a deforming, not articulated, body)
+    assert np.mean(doc["fit"]["vertex_error_percent"]) < 5.0
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_rigid_sequence_gives_one_segment_and_a_message(caplog, tmp_path):
+    from fake_cameras.mesh_motion import mesh_sequence
+
+    ms = mesh_sequence("quadruped", frames=6, voxel=14.0)
+    V = np.repeat(ms.vertices[:1], 6, axis=0) + np.linspace(0, 50, 6)[:, None, None]
+    with caplog.at_level(logging.WARNING):
+        rig = build_articulated_rig(V, ms.faces)
+    assert rig.segmentation.n_segments == 1
+    assert int(rig.skeleton.articulation.sum()) == 0
+    assert "nothing bends" in caplog.text
+    assert rig.fit.errors.max() < 1e-6 * ms.size
+    write_rig(rig, tmp_path)
+    assert len(_parse_bvh(bvh_text(rig))[0]) == len(rig_dict(rig)["joints"])
+
+
+def test_one_frame_sequence():
+    from fake_cameras.mesh_motion import mesh_sequence
+
+    ms = mesh_sequence("starfish", frames=1, voxel=14.0)
+    rig = build_articulated_rig(ms.vertices, ms.faces)
+    assert rig.n_frames == 1 and rig.segmentation.n_segments == 1
+    assert rig.fit.errors[0] < 1e-6 * ms.size
+
+
+def test_several_components(pipe):
+    """A second, separate part that moves rigidly: the rig still finds the pipe's joint."""
+    import trimesh
+
+    d, _ = pipe
+    V = np.asarray(d["vertices"][::3], dtype=np.float64)
+    F = d["faces"]
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=20.0)
+    bv = np.asarray(ball.vertices) + V[0].mean(0) + np.array([0.0, 0.0, 150.0])
+    BV = np.repeat(bv[None], len(V), axis=0)
+    V2 = np.concatenate([V, BV], axis=1)
+    F2 = np.concatenate([F, np.asarray(ball.faces) + V.shape[1]])
+    rig = build_articulated_rig(V2, F2)
+    assert int(rig.skeleton.articulation.sum()) == 1
+    assert rig.fit.errors.mean() <= 3.0 * 2
+
+
+def test_invalid_input(tmp_path):
+    from pipeline.results import ply_bytes
+
+    V = np.random.default_rng(0).normal(size=(2, 10, 3))
+    F = np.array([[0, 1, 2], [2, 3, 4]])
+    with pytest.raises(ValueError, match="fps"):
+        build_articulated_rig(V, F, fps=0)
+    with pytest.raises(ValueError, match="frame_indices"):
+        build_articulated_rig(V, F, frame_indices=[1, 2, 3])
+    with pytest.raises(ValueError, match="shape"):
+        build_articulated_rig(V[0], F)
+    # files whose vertex counts differ: not a sequence with shared connectivity
+    (tmp_path / "000000.ply").write_bytes(ply_bytes(V[0], F))
+    (tmp_path / "000001.ply").write_bytes(ply_bytes(V[1][:8], F[:1]))
+    with pytest.raises(ValueError, match="track"):
+        load_sequence(sorted(tmp_path.glob("*.ply")))
