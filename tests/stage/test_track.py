@@ -92,3 +92,10 @@ def test_track_is_an_opt_in_step_of_process_and_of_api_jobs():
     spec = load_work("stage.process:process_take")
     assert spec.validate(None, {})[0] == DEFAULT_STEPS
     assert spec.validate(["track", "spine"], {})[0] == ("spine", "track")
+
+
+def test_demo_rgbd_runs_the_single_camera_path_end_to_end(tmp_path, capsys):
+    assert main(["-q", "demo", "--rgbd", "--frames", "4", "--out", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert "accuracy: mean vertex error" in text
+    assert (tmp_path / "results" / "tracked" / "000003.ply").exists()
