@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{len(V):6d} vertices  single RGB-D: {rg:6.3f} s per frame (preprocessing and z-buffer included)")
     if args.accuracy:
         accuracy()
-    print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl); "
-          "per frame: KD-tree of the data; per round: KD-tree of the vertices, pairs, numeric refactorisation")
+    print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl), "
+          "the patches; per frame: KD-tree of the data, the first round's numeric factor (CG preconditioner of the "
+          "later rounds); per round: KD-tree of the vertices, pairs, patch motions")
     return 0
