@@ -39,13 +39,15 @@ single RGB-D pipe, ``fake_cameras.rgbd``):
   closest-point displacements, which carry only their normal part: a 3 mm shift of a
   pipe's data away from the camera moved the template by -0.8 mm, and a static lamp
   shrank to 46 % of its volume in 8 frames (the thinning of the paper's Fig. 4). Here the
-  template is cut into patches about 15 % of its size across (:func:`surface_patches`); each
+  template is cut into patches a quarter of its size across (:func:`surface_patches`); each
   round, every patch gets the rigid motion that best fits its pairs point-to-plane
   (:func:`patch_rigid_motion`), ``P`` is every vertex moved with its patch, a pair's target is
   ``P_i`` moved along the data normal onto the data point (``B``), and every vertex is drawn
   to ``P_i`` with weight ``rho`` (``rigidity``, 0.5 of a pair). The same 3 mm shift is then
-  recovered to 0.1 mm and the static lamp keeps 95..99 % of its volume.
-  ``point_to_plane=False`` gives the paper's point-to-point form.
+  recovered to 0.1 mm and the static lamp keeps its volume. On the simulated multi-view
+  starfish (30 frames) the vertex error is 0.92 voxels on average with patches of 25 % of
+  the size, 1.12 with 15 %, 1.64 with 8 % and 1.93 with the paper's point-to-point form
+  (``point_to_plane=False``).
 - *Vertices the data sees.* Model->data pairs only for vertices that project onto a pixel
   with data (:func:`pipeline.rgbd_preprocess.visible_vertices` with ``observed``): near the
   silhouette a depth camera returns nothing usable, and those vertices were all pulled
@@ -468,6 +470,12 @@ class TemplateTracker:
         Rounds of correspondences and solve per frame (the paper's 15).
     backend : {"auto", "qdldl", "splu"}
         Sparse Cholesky backend (:class:`CholeskySystem`).
+    point_to_plane : bool, optional
+        Pairs through patch-rigid motions (see the module docstring); False: point-to-point.
+    rigidity : float, optional
+        Weight of the patch-rigid prior, in pairs (0.5).
+    patch_size : float, optional
+        Patch diameter, mm (default a quarter of the template's bounding-box diagonal).
 
     Notes
     -----
@@ -502,7 +510,7 @@ class TemplateTracker:
         self.eps = 1e-4 * self.gamma
         self.system = CholeskySystem(self.LtL, backend=backend)
         size = float(np.linalg.norm(np.ptp(v, axis=0)))
-        self.patch_size = float(patch_size) if patch_size is not None else 0.15 * size
+        self.patch_size = float(patch_size) if patch_size is not None else 0.25 * size
         self.patches, self.patch_component = surface_patches(v, f, self.patch_size)
 
     def _solve_round(self, V, pv, px, pn, smooth_rhs, start, first):
