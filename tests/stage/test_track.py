@@ -103,9 +103,9 @@ def test_demo_rgbd_runs_the_single_camera_path_end_to_end(tmp_path, capsys):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
-    "must-show of the RGB-D path not met yet: mean vertex error over the take 3.2 % (pipe 1/2), 2.0 % (pipe 3/4), "
-    "8.0 % (lamp) of the length against <= 1 %; volume 0.97..1.12, 1.00..1.04, 0.86..1.08; stage rig finds "
-    "3, 2, 50 articulations against 1, 1, 3 (stage bench track --accuracy)"))
+    "must-show of the RGB-D path not met yet: mean vertex error over the take 3.5 % (pipe 1/2), 1.6 % (pipe 3/4), "
+    "8.5 % (lamp) of the length against <= 1 %; volume 1.00..1.09, 1.00..1.03, 0.80..1.09; stage rig finds "
+    "2, 1, 33 articulations against 1, 1, 3 (stage bench track --accuracy)"))
 @pytest.mark.parametrize("name, articulations", [("pipe_half", 1), ("pipe_3q", 1), ("lamp", 3)])
 def test_rgbd_bent_objects_tracked_to_one_percent_and_rigged(name, articulations, tmp_path):
     from pipeline.articulated_rig import rig_results
