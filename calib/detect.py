@@ -352,7 +352,8 @@ def board_variants(board: Board) -> list[tuple[str, Board, bool]]:
     Mirrored images first (a camera setting), then the board's ``inverted`` and
     ChArUco ``legacy`` flags flipped, alone and with the mirror.
     """
-    out: list[tuple[str, Board, bool]] = [("mirrored images", board, True)]
+    mirrors = (False,) if isinstance(board, Chessboard) else (False, True)  # a chessboard looks the same mirrored
+    out: list[tuple[str, Board, bool]] = [("mirrored images", board, True)] if True in mirrors else []
     flips = [dataclasses.replace(board, inverted=not board.inverted)]
     if isinstance(board, Charuco):
         flips.append(dataclasses.replace(board, legacy=not board.legacy))
@@ -360,8 +361,7 @@ def board_variants(board: Board) -> list[tuple[str, Board, bool]]:
     for b in flips:
         desc = ", ".join(f"{k} = {str(getattr(b, k)).lower()}" for k in ("inverted", "legacy") if hasattr(b, k)
                          and getattr(b, k) != getattr(board, k))
-        out.append((f"board file with {desc}", b, False))
-        out.append((f"board file with {desc} and mirrored images", b, True))
+        out += [(f"board file with {desc}" + (" and mirrored images" if m else ""), b, m) for m in mirrors]
     return out
 
 

@@ -30,8 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--key-mode", choices=("chroma", "luma", "plate"), default=None, help="keying mode (default: the rig's)")
     p.add_argument("--rekey", action="store_true", help="key again even if the take holds masks")
     p.add_argument(
-        "--resolution", type=int, default=None, help="voxels along the subject's longest side (default: from the rig, a voxel of 2 pixels at the "
-        "subject, within a budget of 8M voxels; process.json records the choice)"
+        "--resolution",
+        type=int,
+        default=None,
+        help="voxels along the subject's longest side (default: from the rig, a voxel of 2 pixels at the "
+        "subject, within a budget of 8M voxels; process.json records the choice)",
     )
     p.add_argument(
         "--volume",

@@ -106,3 +106,23 @@ def test_calibrate_take_stores_calibration(stereo_dir, tmp_path, capsys):
         calib = r.calibration
     assert calib.names == ["left", "right"]
     assert abs(np.linalg.norm(calib["right"].center) - 83.6) < 1.0
+
+
+def test_quiet_calibrate_prints_the_held_out_line_first(stereo_dir, tmp_path, capsys):
+    import json
+
+    out = tmp_path / "calib.toml"
+    rc = main(["-q", "calibrate", "--images", str(stereo_dir / "imgs"), "--board", str(stereo_dir / "board.toml"),
+               "--out", str(out), "--holdout", "3", "--intrinsics", "fixed", "--report", str(tmp_path / "r.json")])
+    assert rc == 0
+    captured = capsys.readouterr()
+    lines = [ln for ln in captured.out.splitlines() if not ln.startswith("  ")]
+    assert lines[0].startswith("held-out reprojection RMS (3-fold over 13 frame sets)")
+    assert "detect left" not in captured.err  # no progress bars under -q
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert set(rep["evaluation"]["held_out"]["per_camera"]) == {"left", "right"}
+    assert rep["evaluation"]["mode"] == "fixed"
+    for fmt, name in (("caliscope", "camera_array.toml"), ("colmap", "colmap"), ("nerfstudio", "transforms.json")):
+        assert main(["calibration", "export", str(out), "--format", fmt]) == 0
+        back = read_calibration(tmp_path / name, **({"units": "mm"} if fmt == "colmap" else {}))
+        assert len(back) == 2

@@ -200,7 +200,7 @@ def _same_results(path, out, reference):
 
 def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
     """In process and on 2 worker processes, `stage process` gives the masks, meshes and
-    spine of the parts called one by one (issue 16)."""
+    spine of the parts called one by one."""
     import concurrent.futures as cf
 
     sim, path = starfish
@@ -217,7 +217,7 @@ def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
 def test_thin_tail_survives_the_default_grid(tmp_path):
     """The tailed quadruped (tail 36 -> 16 mm thick, 5-6 px at its end) filmed by ten 480x360
     cameras: the default grid follows the pixel footprint, and the spine has all 6 limbs with
-    consistent identities in every frame (issue 16)."""
+    consistent identities in every frame."""
     from fake_cameras.rigs import thin_tail_setup
 
     sim = simulate_take(frames=20, seed=0, **thin_tail_setup())
