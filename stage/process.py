@@ -43,7 +43,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from stage.store.space import check_free_space, raise_disk_full
 
-__all__ = ["STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "process_take", "register_step"]
+__all__ = [
+    "STEPS", "DEFAULT_STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "process_take",
+    "register_step",
+]
 
 log = logging.getLogger("stage.process")
 
@@ -701,6 +704,15 @@ def _step_spine(ctx: RunContext) -> None:
     ctx.timings["spine"] = time.perf_counter() - t0
 
 
+def _step_track(ctx: RunContext) -> None:
+    """The first surface tracked through the take -> ``tracked/`` (:func:`stage.track.track_results`)."""
+    from stage.track import track_results
+
+    t0 = time.perf_counter()
+    track_results(ctx.out, progress=ctx.progress)
+    ctx.timings["track"] = time.perf_counter() - t0
+
+
 STEPS: tuple[str, ...] = ()
 register_step("key", _step_key, doc="keying masks into the take")
 register_step("surface", _step_surface, doc="visual hull and surface per frame set")
@@ -724,6 +736,8 @@ def _step_rig(ctx: RunContext) -> None:
 
 
 register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine")
+register_step("track", _step_track, doc="template tracking of the surfaces (only when asked for)", after="spine")
+DEFAULT_STEPS: tuple[str, ...] = tuple(s for s in STEPS if s != "track")  # what runs when no steps are given
 
 
 # ----------------------------------------------------------------------------- driver
@@ -843,7 +857,7 @@ def process_take(
     out : path
         Results directory (beside the take, never inside it).
     steps : sequence of str, optional
-        Steps to run (names in :data:`STEPS`, default all), run in pipeline order (a later
+        Steps to run (names in :data:`STEPS`, default :data:`DEFAULT_STEPS`), run in pipeline order (a later
         step needs the earlier ones' results, which may come from an earlier run).
     params : ProcessParams or dict, optional
     executor : concurrent.futures.Executor, optional
@@ -858,7 +872,7 @@ def process_take(
     ProcessResult
     """
     take, out = Path(take), Path(out)
-    steps = STEPS if steps is None else tuple(steps)
+    steps = DEFAULT_STEPS if steps is None else tuple(steps)
     bad = [s for s in steps if s not in _REGISTRY]
     if bad or not steps:
         raise ValueError(f"steps must be a non-empty subset of {STEPS}, got {steps}")

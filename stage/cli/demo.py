@@ -41,6 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--true-calibration", action="store_true", help="skip calibration and use the simulator's true cameras")
     p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--rgbd", action="store_true",
+                   help="instead: the single RGB-D camera path (simulated pipe bent at 1/2: take, tracking, rig)")
     p.set_defaults(func=run)
 
 
@@ -154,6 +156,10 @@ def _transform_spine(spine: dict, R: np.ndarray, T: np.ndarray) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.rgbd:
+        from stage.cli._demo_rgbd import run_rgbd
+
+        return run_rgbd(args)
     import concurrent.futures as cf
     import multiprocessing
 
