@@ -201,9 +201,14 @@ class TakeLibrary:
 
         return write
 
-    async def import_stream(self, take_id: str, chunks: AsyncIterator[bytes]) -> dict[str, Any]:
-        """Write an uploaded take (raw HDF5 bytes) under ``take_id``, enforcing the size limit."""
+    async def import_stream(self, take_id: str, chunks: AsyncIterator[bytes], *, expected: int | None = None) -> dict[str, Any]:
+        """Write an uploaded take (raw HDF5 bytes) under ``take_id``, enforcing the size limit.
+
+        ``expected``: the declared body size (Content-Length), checked against the free space first.
+        """
         self._target(take_id)  # fail early on bad or existing ids
+        if expected is not None:
+            _check_space(self.takes_dir, expected, "the uploaded take")
         tmp = self._tmp()
         try:
             with _disk_full_as_error(self.takes_dir), open(tmp, "wb") as f:

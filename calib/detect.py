@@ -366,18 +366,27 @@ def board_variants(board: Board) -> list[tuple[str, Board, bool]]:
 
 
 def find_variant(images: Sequence[np.ndarray], board: Board, *, min_found: int = 2):
-    """Which variant of :func:`board_variants` finds the board in ``images`` (a sample of one camera).
+    """Which variant of :func:`board_variants` finds the board in ``images`` (a few evenly spaced
+    frames of one camera).
+
+    The variants are tried in order and the first that finds the board in ``min_found`` images
+    (or in all of them, when fewer) is returned: a wrong board file costs one failed detection per
+    image and variant, so keep ``images`` few.
 
     Returns
     -------
     (description, board, mirror, found) or None
-        The variant that found the board in the most images (at least ``min_found``).
+        ``found``: in how many of ``images`` that variant found the board.
     """
-    best = None
+    need = min(int(min_found), len(images))
+    if need < 1:
+        return None
     for desc, b, mirror in board_variants(board):
-        found = sum(detect_board(img, b, mirror=mirror) is not None for img in images)
-        if found >= min_found and (best is None or found > best[3]):
-            best = (desc, b, mirror, found)
-            if found == len(images):
-                break
-    return best
+        found = 0
+        for i, img in enumerate(images):
+            found += detect_board(img, b, mirror=mirror) is not None
+            if found + len(images) - 1 - i < need:
+                break  # this variant can no longer reach need
+        if found >= need:
+            return desc, b, mirror, found
+    return None

@@ -32,7 +32,7 @@ from typing import Any, Callable, Sequence
 
 from api.executors import ExecutorHandle, make_executor
 from api.jobs.store import JobRecord, JobStore
-from api.paths import data_relative
+from api.paths import confined, data_relative
 
 __all__ = ["JobRunner", "WorkSpec", "WorkUnavailableError", "load_work", "DEFAULT_STEPS"]
 
@@ -52,6 +52,7 @@ class WorkSpec:
     fn: Callable[..., Any]
     steps: tuple[str, ...] = DEFAULT_STEPS
     params_model: Any = None
+    defaults: tuple[str, ...] | None = None  # steps of a job that names none (default: all)
 
     def validate(self, steps: Sequence[str] | None, params: dict | None) -> tuple[tuple[str, ...], dict]:
         """Check ``steps`` and ``params``; return them normalized (steps in canonical order, params as JSON dict).
@@ -61,7 +62,7 @@ class WorkSpec:
         ValueError
             Naming the unknown step or the bad parameter.
         """
-        steps = tuple(self.steps if steps is None else steps)
+        steps = tuple((self.defaults or self.steps) if steps is None else steps)
         if not steps:
             raise ValueError("steps must not be empty")
         unknown = [s for s in steps if s not in self.steps]
@@ -112,7 +113,8 @@ def load_work(spec: str | Callable[..., Any]) -> WorkSpec:
     model = getattr(mod, "ProcessParams", None) if mod is not None else None
     if model is not None and not hasattr(model, "model_validate"):
         model = None
-    return WorkSpec(fn=fn, steps=steps, params_model=model)
+    defaults = tuple(getattr(mod, "DEFAULT_STEPS", steps)) if mod is not None else None
+    return WorkSpec(fn=fn, steps=steps, params_model=model, defaults=defaults)
 
 
 def _jsonable(obj: Any) -> Any:
@@ -293,7 +295,7 @@ class JobRunner:
         log.info("job %s: %s on take %s (attempt %d)", jid, "/".join(rec.steps), rec.take, rec.attempts)
         try:
             take = self.takes_dir / f"{rec.take}.h5"
-            if not take.is_file():
+            if not take.is_file() or not confined(take, self.takes_dir):
                 raise FileNotFoundError(f"take {rec.take!r} not found")
             out = self.jobs_dir / jid
             out.mkdir(parents=True, exist_ok=True)

@@ -72,14 +72,16 @@ def take_image(take_id: TakeId, index: Annotated[int, Path(ge=0, le=10_000_000)]
     status_code=status.HTTP_201_CREATED,
     response_model=TakeSummary,
     openapi_extra={"requestBody": {"required": True, "content": {"application/x-hdf5": {"schema": {"type": "string", "format": "binary"}}}}},
-    responses={409: {"description": "take exists"}, 413: {"description": "too large"}, 400: {"description": "not a take"}},
+    responses={409: {"description": "take exists"}, 413: {"description": "too large"}, 400: {"description": "not a take"},
+               507: {"description": "not enough free disk space"}},
 )
 async def upload_take_raw(take_id: TakeId, request: Request, library: LibraryDep, _: WriteAccess) -> dict:
     """Upload a take as the raw body (an HDF5 take file, ``Content-Type: application/x-hdf5``)."""
     ctype = request.headers.get("content-type", "application/octet-stream").split(";")[0].strip().lower()
     if ctype not in _HDF5_TYPES:
         raise HTTPException(415, f"send the take as {_HDF5_TYPES[0]} (or use POST /takes with multipart/form-data)")
-    return await library.import_stream(take_id, request.stream())
+    length = request.headers.get("content-length", "")
+    return await library.import_stream(take_id, request.stream(), expected=int(length) if length.isdigit() else None)
 
 
 @router.post(

@@ -138,7 +138,7 @@ def parse_mirror(items: list[str], cameras: list[str]) -> dict[str, bool | None]
 
 
 SAMPLE = 12  # frames of a camera tried flipped
-VARIANT_SAMPLE = 6  # frames of a camera that never showed the board tried with the other board variants
+VARIANT_SAMPLE = 3  # evenly spaced frames of a camera that never showed the board, tried with the board variants
 
 
 def decide_mirror(name: str, found: int, total: int, sample: list, as_is: int, board, mirror: bool | None):

@@ -73,6 +73,7 @@ def _summarize(path: Path) -> dict:
             "cameras": cams,
             "sync": r.sync_stats,
             "size_on_disk": r.size_on_disk,
+            "derived": {"path": str(r.derived_path), "size": r.derived_path.stat().st_size} if r.derived_path.is_file() else None,
         }
 
 
@@ -92,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
               f"size on disk {_size(s['size_on_disk'])}")
         masks = [c for c, v in s["cameras"].items() if v["masks"]]
         print(f"  masks: {', '.join(masks) if masks else 'none'}")
+        if s["derived"]:
+            print(f"  derived data (masks...): {s['derived']['path']}, {_size(s['derived']['size'])}")
         sync = s["sync"] or {}
         if sync:
             print(f"  sync: {sync.get('sets_complete', 0)} complete / {sync.get('sets_incomplete', 0)} incomplete sets, "

@@ -83,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
 
 def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) -> int:
     import concurrent.futures as cf
+    import multiprocessing
 
     from stage.cli._progress import StepBars
     from stage.process import STEPS, ProcessParams, process_take
@@ -106,7 +107,9 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
         raise ValueError("; ".join(
             f"--{'.'.join(map(str, e['loc'])).replace('_', '-')}: {e['msg'].removeprefix('Value error, ')}" for e in errors
         )) from None
-    executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
+    # forkserver: workers start clean (OpenCV's thread pool does not survive fork) and stay warm across steps
+    ctx = multiprocessing.get_context("forkserver")
+    executor = cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) if args.workers > 0 else None
     try:
         with StepBars(disable=args.no_progress) as progress:
             result = process_take(take, out, steps=steps, params=params, executor=executor, progress=progress)

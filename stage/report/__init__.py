@@ -308,14 +308,27 @@ def _summary_section(d: Path, spine, report, take, warnings: list[str]) -> dict:
             rows.append(["empty frames", ", ".join(str(x) for x in report["empty_frames"][:50])])
             warnings.append(f"{len(report['empty_frames'])} frame(s) have no surface")
         warnings.extend(str(w) for w in report.get("warnings") or [])  # e.g. the blind side under the subject
+        if (report.get("grid") or {}).get("voxel"):
+            rows.append(["voxel", _grid_choice(report["grid"])])
         for k, v in (report.get("seconds") or {}).items():
             rows.append([f"seconds: {k}", v])
+    if spine is not None and spine.meta.get("count_rule", "mode") not in ("mode", "given"):
+        rows.append(["limb count", spine.meta["count_rule"]])
     files = [n for n in ("spine.json", "report.json", "spine_rig.glb", "spine.glb") if (d / n).is_file()]
     n_meshes = len(list((d / "meshes").glob("frame_*.ply"))) if (d / "meshes").is_dir() else 0
     rows.append(["files", ", ".join(files + ([f"meshes/ ({n_meshes})"] if n_meshes else []))])
     if take is not None:
         rows.append(["take", str(take)])
     return {"id": "summary", "title": "Summary", "rows": rows}
+
+
+def _grid_choice(g: dict) -> str:
+    """The processing grid's voxel and why it is that size (``report.json`` ``grid``)."""
+    head = f"{g['voxel']:.3g} ({' x '.join(str(n) for n in g.get('shape', []))} voxels)"
+    if g.get("source") == "rig":
+        return (f"{head}: {g['pixels_per_voxel']:g} x the median pixel footprint at the subject "
+                f"({g['pixel_footprint']:.3g} over {g['cameras_seeing_subject']} cameras), limited by {g['limited_by']}")
+    return f"{head}: --resolution {g.get('resolution')}"
 
 
 def _view_section(d: Path, spine, *, max_frames: int, view_faces: int) -> dict:

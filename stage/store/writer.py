@@ -30,6 +30,7 @@ import numpy as np
 from stage import __version__
 from stage.frame import Frame
 from stage.store._format import FORMAT, RESERVED, CameraSpec, derived_filter_kwargs, filter_kwargs, to_json
+from stage.store.derived import derived_path
 from stage.store.h5repair import close_all as _close_file
 from stage.store.jpeg import encode_jpeg
 from stage.store.space import DiskFullError, check_free_space, format_bytes, is_disk_full
@@ -57,6 +58,25 @@ def _set_bytes(cameras: Sequence[CameraSpec], compression: str) -> int:
 def estimate_take_bytes(cameras: Sequence[CameraSpec], n_sets: int, *, compression: str = "none") -> int:
     """About how many bytes a take of ``n_sets`` frame sets of these cameras takes on disk."""
     return _HEADER_BYTES + int(n_sets) * _set_bytes(list(cameras), compression)
+
+
+def _check_cameras(cameras: Sequence[CameraSpec]) -> tuple[list[CameraSpec], list[str]]:
+    cams = list(cameras)
+    if not cams or not all(isinstance(c, CameraSpec) for c in cams):
+        raise ValueError("cameras must be a non-empty sequence of CameraSpec")
+    ids = [c.id for c in cams]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"cameras: duplicate camera ids {ids}")
+    return cams, ids
+
+
+def _check_numbers(block: int, fps: float | None, expected_sets: int | None) -> None:
+    if int(block) < 1:
+        raise ValueError(f"block must be >= 1, got {block}")
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be positive, got {fps}")
+    if expected_sets is not None and (not isinstance(expected_sets, (int, np.integer)) or expected_sets < 0):
+        raise ValueError(f"expected_sets must be a non-negative integer, got {expected_sets!r}")
 
 
 def _check_arrays(arrays: Mapping[str, np.ndarray] | None, ids: list[str]) -> dict[str, np.ndarray]:
@@ -157,19 +177,9 @@ class TakeWriter:
         expected_sets: int | None = None,
         arrays: Mapping[str, np.ndarray] | None = None,
     ) -> None:
-        cams = list(cameras)
-        if not cams or not all(isinstance(c, CameraSpec) for c in cams):
-            raise ValueError("cameras must be a non-empty sequence of CameraSpec")
-        ids = [c.id for c in cams]
-        if len(set(ids)) != len(ids):
-            raise ValueError(f"cameras: duplicate camera ids {ids}")
+        cams, ids = _check_cameras(cameras)
         filt = filter_kwargs(compression)
-        if int(block) < 1:
-            raise ValueError(f"block must be >= 1, got {block}")
-        if fps is not None and not (np.isfinite(fps) and fps > 0):
-            raise ValueError(f"fps must be positive, got {fps}")
-        if expected_sets is not None and (not isinstance(expected_sets, (int, np.integer)) or expected_sets < 0):
-            raise ValueError(f"expected_sets must be a non-negative integer, got {expected_sets!r}")
+        _check_numbers(block, fps, expected_sets)
         p = Path(path)
         if p.exists() and not overwrite:
             raise FileExistsError(f"{p}: take already exists (use overwrite=True / --overwrite to replace it)")
@@ -183,6 +193,8 @@ class TakeWriter:
         reserve = 2 * max(c.frame_bytes() for c in cams) * len(cams) + (1 << 20)
         if expected_sets is not None:
             need = estimate_take_bytes(cams, int(expected_sets), compression=compression) + reserve
+            if overwrite and p.is_file():
+                need -= p.stat().st_size  # freed before writing
             check_free_space(p, need, f"a take of {int(expected_sets)} frame sets")
         self._block = int(block)
         self._col = {c.id: i for i, c in enumerate(cams)}
@@ -192,8 +204,6 @@ class TakeWriter:
         self._closed = False
         self._warned: set[str] = set()
         if overwrite:
-            from stage.store.derived import derived_path
-
             for old in (p, derived_path(p)):
                 if old.exists():
                     old.unlink()

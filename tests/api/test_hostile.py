@@ -98,3 +98,14 @@ def test_two_jobs_on_one_take_match_one_job_alone(make_client, tmp_path):
         assert str(data) not in json.dumps(st) and "DATA/jobs/" in json.dumps(st["result"])  # no server paths
         spine = c.get(f"/jobs/{jid}/results/spine.json", headers=AUTH).json()
         assert spine["graph"] == alone["graph"] and spine["frames"] == alone["frames"]
+
+
+def test_upload_checks_free_space_first(client, data_root, tmp_path, monkeypatch):
+    from stage.store import space
+
+    src = make_take_file(tmp_path / "a.h5", 2)
+    monkeypatch.setattr(space, "free_bytes", lambda p: 1000)
+    r = client.put("/takes/a", content=src.read_bytes(), headers={**AUTH, "Content-Type": "application/x-hdf5"})
+    assert r.status_code == 507 and "free" in r.json()["detail"], r.text
+    assert str(data_root) not in r.text
+    assert not [p for p in (data_root / "takes").iterdir()]

@@ -177,4 +177,20 @@ def test_invalid_input(tmp_path):
             write_masks(tmp_path / "open.h5", "a", masks_of(1, 0))
     finally:
         w.close()
-    assert derived_mod.DERIVED_SUFFIX == ".derived.h5"
+    assert derived_mod.DERIVED_SUFFIX == ".derived.h5" and derived_path("x/y.h5") == Path("x/y.derived.h5")
+    with pytest.raises(ValueError, match="arrays"):
+        TakeWriter(tmp_path / "a.h5", [CameraSpec("a", W, H)], arrays={"plate": np.zeros(3)})
+    with pytest.raises(ValueError, match="arrays"):
+        TakeWriter(tmp_path / "a.h5", [CameraSpec("a", W, H)], arrays={"cameras/zz/plate": np.zeros(3)})
+    with pytest.raises(ValueError, match="expected_sets"):
+        TakeWriter(tmp_path / "a.h5", [CameraSpec("a", W, H)], expected_sets=-1)
+    assert not (tmp_path / "a.h5").exists()
+
+
+def test_arrays_shot_with_the_capture_live_in_the_take(tmp_path):
+    plate = np.full((H, W, 3), 9, np.uint8)
+    with TakeWriter(tmp_path / "p.h5", [CameraSpec("a", W, H)], arrays={"cameras/a/plate": plate}) as w:
+        w.write_set({"a": make_frame("a", 0, 0)})
+    assert not derived_path(tmp_path / "p.h5").exists()
+    with TakeReader(tmp_path / "p.h5") as r:
+        np.testing.assert_array_equal(r.read_array("cameras/a", "plate")[0], plate)

@@ -1,8 +1,8 @@
 """A full disk is an error, never a crash or a loss: capture, import, derived data and `stage process`.
 
 The disk is a small tmpfs when the tests run as root (CI does); elsewhere HDF5's writes are
-made to fail with ENOSPC by a mock at every flush, and the process sweep (which needs a real
-filesystem that fills up) is skipped with its reason.
+made to fail with ENOSPC by a mock at every flush, and the process sweep runs against a mocked
+disk (a byte budget shared by every file written from Python) only.
 """
 
 from __future__ import annotations
@@ -29,6 +29,8 @@ ROOT = Path(__file__).resolve().parents[2]
 #: mid-run (for this take: in the keying's derived-data write at 16-32 KiB, in the results at 64-384 KiB)
 BUDGETS = (16 << 10, 256 << 10, 2 << 20, 8 << 20)
 BUDGETS_MID_RUN = (16 << 10, 64 << 10, 320 << 10, 1 << 20)
+#: the mocked disk counts only bytes written from Python (the derived file, the results)
+BUDGETS_MOCKED = (16 << 10, 128 << 10, 8 << 20)
 
 
 @contextlib.contextmanager
@@ -195,16 +197,46 @@ def test_keying_on_a_full_disk_leaves_take_and_derived_data_unchanged(tmp_path, 
 
 _RUN = """
 import sys
-if sys.argv[1] == "unchecked":  # no up-front estimate: the full disk is met mid-run
+mode, budget = sys.argv[1].split(":")
+if mode in ("unchecked", "mocked"):  # no up-front estimate: the full disk is met mid-run
     import stage.process, stage.store.derived
     stage.process.check_free_space = stage.store.derived.check_free_space = lambda *a, **k: None
+if mode == "mocked":  # no small filesystem: every file written from Python shares a byte budget
+    import builtins, errno, io
+    real_open, used = io.open, [0]
+
+    class Budgeted:
+        def __init__(self, f):
+            self._f = f
+        def write(self, b):
+            if used[0] + len(b) > int(budget):
+                raise OSError(errno.ENOSPC, "No space left on device")
+            used[0] += len(b)
+            return self._f.write(b)
+        def __getattr__(self, name):
+            return getattr(self._f, name)
+        def __enter__(self):
+            return self
+        def __exit__(self, *exc):
+            return self._f.__exit__(*exc)
+
+    def budgeted_open(file, mode="r", *a, **k):
+        f = real_open(file, mode, *a, **k)
+        return Budgeted(f) if any(c in mode for c in "wax+") else f
+
+    builtins.open = io.open = budgeted_open
 from stage.cli import main
 raise SystemExit(main(sys.argv[2:]))
 """
 
 
-def process_sweep(take_dir: Path, fs: Path, budgets=BUDGETS, *, checked: bool) -> list[dict]:
-    """Run `stage process` on a fresh copy of the take for every budget of free bytes; what happened."""
+def process_sweep(take_dir: Path, fs: Path, budgets=BUDGETS, *, mode: str) -> list[dict]:
+    """Run `stage process` on a fresh copy of the take for every budget of free bytes; what happened.
+
+    ``mode``: "checked" (as users run it), "unchecked" (no up-front estimate, so the disk fills up
+    mid-run) on a small filesystem ``fs``; "mocked" (a byte budget for every file written from
+    Python, ENOSPC past it) in any directory.
+    """
     results = []
     for budget in budgets:
         for p in fs.iterdir():
@@ -212,13 +244,14 @@ def process_sweep(take_dir: Path, fs: Path, budgets=BUDGETS, *, checked: bool) -
         for p in take_dir.iterdir():
             shutil.copy(p, fs / p.name)
         before = sha(fs / "t.h5")
-        fill(fs, budget)
+        if mode != "mocked":
+            fill(fs, budget)
         r = subprocess.run(
-            [sys.executable, "-c", _RUN, "checked" if checked else "unchecked", "-q", "process", str(fs / "t.h5"),
+            [sys.executable, "-c", _RUN, f"{mode}:{budget}", "-q", "process", str(fs / "t.h5"),
              "--out", str(fs / "out"), "--resolution", "32", "--no-progress"],
             capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120,
         )
-        (fs / "ballast").unlink()
+        (fs / "ballast").unlink(missing_ok=True)
         with TakeReader(fs / "t.h5") as rd:
             masks = rd.masks_present()
         results.append({
@@ -242,12 +275,15 @@ def small_take(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("checked", [True, False], ids=["estimate-first", "enospc-mid-run"])
-def test_process_sweep_fails_cleanly_or_succeeds(small_take, checked):
+@pytest.mark.parametrize("mode", ["checked", "unchecked", "mocked"])
+def test_process_sweep_fails_cleanly_or_succeeds(small_take, mode, tmp_path):
     with small_fs(16 << 20) as fs:
-        if fs is None:
-            pytest.skip("the sweep needs a small filesystem that fills up (tmpfs, as root)")
-        res = process_sweep(small_take, fs, BUDGETS if checked else BUDGETS_MID_RUN, checked=checked)
+        if mode == "mocked":
+            res = process_sweep(small_take, tmp_path, BUDGETS_MOCKED, mode=mode)
+        elif fs is None:
+            pytest.skip("needs a small filesystem that fills up (tmpfs, as root); the mocked sweep runs instead")
+        else:
+            res = process_sweep(small_take, fs, BUDGETS if mode == "checked" else BUDGETS_MID_RUN, mode=mode)
     for r in res:
         assert r["take_same"], r
         assert r["rc"] in (0, 2), r
