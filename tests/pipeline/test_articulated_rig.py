@@ -307,3 +307,39 @@ def test_scan_opening_opens_only_limbs_that_touch_the_body():
     assert b["head"] == 0.0  # attached end-on: no angle clears it
     with pytest.raises(ValueError, match="step"):
         scan_opening(make_creature("biped"), step=0.0)
+
+
+def test_deform_matches_the_per_influence_blend(creature):
+    """The blended affine maps give the textbook LBS sum over influences."""
+    _, ms, rig = creature
+    m = rig.model
+    pose = rig.fit.poses[len(rig.fit.poses) // 2]
+    vp = m.vertex_parts
+    ref = np.zeros_like(m.vertices)
+    for k in range(vp.shape[1]):
+        ref += m.weights[:, k, None] * (np.einsum("vij,vj->vi", pose.R[vp[:, k]], m.vertices) + pose.t[vp[:, k]])
+    np.testing.assert_allclose(m.deform(pose), ref, rtol=0, atol=1e-9 * ms.size)
+    rows = np.arange(0, len(ref), 7)
+    np.testing.assert_allclose(m.deform(pose, rows), ref[rows], rtol=0, atol=1e-9 * ms.size)
+
+
+def test_constant_velocity_prediction_is_exact_on_constant_velocity_motion(creature):
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.articulated_fit import _forward, predict_pose
+
+    _, _, rig = creature
+    m = rig.model
+    P = m.skeleton.n_parts
+    om = np.random.default_rng(1).normal(scale=0.1, size=(P, 3))
+    v = np.array([3.0, -2.0, 1.0])
+    c = m.pivots[0]
+
+    def pose_at(s):
+        R = Rotation.from_rotvec(s * om).as_matrix()
+        return _forward(m, R[0], c + s * v - R[0] @ c, R)
+
+    pred = predict_pose(m, pose_at(1.0), pose_at(0.0))
+    truth = pose_at(2.0)
+    np.testing.assert_allclose(pred.R, truth.R, atol=1e-9)
+    np.testing.assert_allclose(pred.t, truth.t, atol=1e-6)
