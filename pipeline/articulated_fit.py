@@ -16,12 +16,15 @@ frame's vertices ``y``, corresponding by index: shared connectivity) by
 Gauss-Newton; the Jacobian of a rotation
 increment ``omega_p`` (world frame, about the part's current joint) is
 ``-[A_vp]_x`` with ``A_vp = sum_k w_vk [part_k below p] (x'_vk - c_p)``; a
-Levenberg-Marquardt damping (Marquardt's diagonal scaling) keeps every step
-descending.
+Levenberg-Marquardt damping (Marquardt's diagonal scaling, dimensionless)
+keeps every step descending, and the iterations stop once the linear model
+promises less than 1e-4 of the residual. The normal equations are formed
+from ``A`` directly (never the 3V x 3(P+1) Jacobian), with batched products.
 :func:`fit_sequence` initialises every frame from the previous one (the
-paper's tracking) and, as a guard against fast motion, from a closed-form
-hierarchical Procrustes fit of the parts (Arun et al. 1987 about each
-joint), keeping the better start.
+paper's tracking) or from its constant-velocity prediction from the two
+previous frames (:func:`predict_pose`), whichever fits better, and, as a
+guard against fast motion, from a closed-form hierarchical Procrustes fit
+of the parts (Arun et al. 1987 about each joint), keeping the best start.
 
 The paper's measure (section 5): the mean 3-D vertex error between the fitted
 model and the frame, per frame.
