@@ -350,7 +350,8 @@ def board_variants(board: Board) -> list[tuple[str, Board, bool]]:
     """The ways a board file or a camera may differ from the print: ``(description, board, mirror)``.
 
     Mirrored images first (a camera setting), then the board's ``inverted`` and
-    ChArUco ``legacy`` flags flipped, alone and with the mirror.
+    ChArUco ``legacy`` flags flipped, alone and with the mirror; for a chessboard also
+    the squares given instead of the inner corners (one fewer each way).
     """
     mirrors = (False,) if isinstance(board, Chessboard) else (False, True)  # a chessboard looks the same mirrored
     out: list[tuple[str, Board, bool]] = [("mirrored images", board, True)] if True in mirrors else []
@@ -358,11 +359,20 @@ def board_variants(board: Board) -> list[tuple[str, Board, bool]]:
     if isinstance(board, Charuco):
         flips.append(dataclasses.replace(board, legacy=not board.legacy))
         flips.append(dataclasses.replace(board, inverted=not board.inverted, legacy=not board.legacy))
+    elif min(board.corners) > 2:
+        flips.append(dataclasses.replace(board, corners=(board.corners[0] - 1, board.corners[1] - 1)))
     for b in flips:
-        desc = ", ".join(f"{k} = {str(getattr(b, k)).lower()}" for k in ("inverted", "legacy") if hasattr(b, k)
+        desc = ", ".join(_board_value(k, getattr(b, k)) for k in ("corners", "inverted", "legacy") if hasattr(b, k)
                          and getattr(b, k) != getattr(board, k))
         out += [(f"board file with {desc}" + (" and mirrored images" if m else ""), b, m) for m in mirrors]
     return out
+
+
+def _board_value(key: str, value) -> str:
+    """``key = value`` as written in a board file."""
+    if isinstance(value, tuple):
+        return f"{key} = [{', '.join(str(v) for v in value)}]"
+    return f"{key} = {str(value).lower()}"
 
 
 def find_variant(images: Sequence[np.ndarray], board: Board, *, min_found: int = 2):

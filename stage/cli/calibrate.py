@@ -190,8 +190,8 @@ def decide_mirror(name: str, found: int, total: int, sample: list, as_is: int, b
                               f"{v[3]}/{len(pick)} sampled frames; fix the board file"
                               + (" (and the camera's mirror mode)" if v[2] else ""))
     return bool(mirror), (f"camera {name}: the board was never detected in {total} frames (nor inverted, "
-                          f"legacy or mirrored); check that {name} sees the board, its focus, and that the "
-                          f"board file matches the print")
+                          f"legacy, mirrored or with the squares counted as inner corners); check that {name} sees "
+                          f"the board, its focus, and that the board file matches the print")
 
 
 def _sample_positions(total: int) -> set[int]:
@@ -229,10 +229,42 @@ def _detect_pass(name, src, board, *, step, flip, frame_set, want, progress):
     return dets, sample, size, n, as_is
 
 
+def _probe(name, src, board, *, step, mirror, total):
+    """A wrong board file, found on a few evenly spaced frames before the full pass.
+
+    Returns the message naming the board-file variant that finds the board when none of
+    ``VARIANT_SAMPLE`` frames shows it as given (a wrong board costs one failed detection per
+    frame, so the full pass of a long video would keep the user waiting for nothing); else None.
+    """
+    from calib.detect import detect_board, find_variant
+
+    n = (total + step - 1) // step
+    want = set(np.unique(np.round(np.linspace(0, n - 1, min(VARIANT_SAMPLE, n)))).astype(int).tolist()) if n else set()
+    images, frames = [], _frames(*src, step)
+    try:
+        for i, (_, img) in enumerate(frames):
+            if i in want:
+                if detect_board(img, board, mirror=bool(mirror)) is not None:
+                    return None
+                images.append(img)
+            if i >= max(want, default=-1):
+                break
+    finally:
+        frames.close()
+    v = find_variant(images, board) if len(images) >= 2 else None
+    if v is None or v[1] is board:
+        return None  # not a board-file problem: the full pass decides
+    return (f"camera {name}: the board was not detected in {len(images)} sampled frames, but with the {v[0]} it is "
+            f"found in {v[3]}/{len(images)}; fix the board file" + (" (and the camera's mirror mode)" if v[2] else ""))
+
+
 def _detect_camera(name, src, board, *, step, mirror, frame_set, progress):
     """One camera: detections, size, frames read, whether flipped, and what was found out."""
     kind, path, files = src
     total = len(files) if kind == "folder" else _video_count(path)
+    wrong = _probe(name, src, board, step=step, mirror=mirror, total=total)
+    if wrong is not None:
+        return [], _first_size(src), (total + step - 1) // step, bool(mirror), wrong
     want = _sample_positions((total + step - 1) // step)
     dets, sample, size, n, as_is = _detect_pass(name, src, board, step=step, flip=bool(mirror),
                                                 frame_set=frame_set, want=want, progress=progress)
@@ -243,6 +275,15 @@ def _detect_camera(name, src, board, *, step, mirror, frame_set, progress):
         dets, _, _, n, _ = _detect_pass(name, src, board, step=step, flip=flip, frame_set=frame_set, want=set(),
                                      progress=progress)
     return dets, size, n, flip, msg
+
+
+def _first_size(src) -> tuple[int, int]:
+    frames = _frames(*src, 1)
+    try:
+        img = next(frames)[1]
+    finally:
+        frames.close()
+    return img.shape[1], img.shape[0]
 
 
 def _length_notes(counts: dict[str, int], sets) -> list[str]:

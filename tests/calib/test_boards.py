@@ -141,9 +141,17 @@ def test_find_variant_names_the_first_variant_that_finds_the_board():
     desc, b, mirror, found = find_variant([255 - img] * 3, board)
     assert b == dataclasses.replace(board, inverted=True) and not mirror and "inverted = true" in desc
     chess = Chessboard((9, 6), 25.0)
-    assert find_variant([chess.image(px_per_mm=2.0)] * 3, Chessboard((10, 7), 25.0)) is None
+    assert find_variant([chess.image(px_per_mm=2.0)] * 3, Chessboard((12, 9), 25.0)) is None
     assert find_variant([], board) is None
     # found in one image of three: below min_found
     blank = np.full_like(img, 255)
     assert find_variant([img[:, ::-1], blank, blank], board) is None
     assert find_variant([img[:, ::-1], blank, blank], board, min_found=1)[3] == 1
+
+
+def test_find_variant_names_the_inner_corners_when_the_squares_were_given():
+    from calib.detect import find_variant
+
+    img = Chessboard((9, 6), 25.0).image(px_per_mm=2.0)
+    desc, b, mirror, found = find_variant([img] * 3, Chessboard((10, 7), 25.0))
+    assert desc == "board file with corners = [9, 6]" and b.corners == (9, 6) and not mirror and found == 3

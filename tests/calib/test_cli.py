@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.boards import Chessboard, save_board
+from calib.boards import Charuco, Chessboard, save_board
 from calib.formats import read_calibration
 from stage.cli import main
 from tests.conftest import shared_dataset
@@ -47,7 +47,15 @@ def test_calibrate_wrong_board_writes_nothing(stereo_dir, tmp_path, capsys):
                str(stereo_dir / "squares_not_corners.toml"), "--out", str(out), "--step", "4"])
     assert rc == 2
     err = capsys.readouterr().err
-    assert "camera left" in err and "board file matches the print" in err
+    # the squares given as corners: the variant search names the inner corners that find the board
+    assert "camera left" in err and "corners = [9, 6]" in err and "fix the board file" in err
+    assert not out.exists()
+    # a board that matches nothing: one line per camera saying what was tried
+    save_board(Charuco((5, 7), 30, 22, dictionary="DICT_4X4_50"), tmp_path / "charuco.toml")
+    assert main(["calibrate", "--images", str(stereo_dir / "imgs"), "--board", str(tmp_path / "charuco.toml"),
+                 "--out", str(out), "--step", "4"]) == 2
+    err = capsys.readouterr().err
+    assert "camera left" in err and "camera right" in err and "board file matches the print" in err
     assert not out.exists()
 
 

@@ -57,7 +57,8 @@ def test_invalid_input(capsys):
 def test_rig_step(tmp_path, caplog):
     from stage.process import STEPS, ProcessError, _step_rig
 
-    assert STEPS.index("rig") > STEPS.index("spine")
+    # the rig runs on what tracking wrote, so it comes after the spine and the tracking
+    assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")
     ctx = SimpleNamespace(out=tmp_path, calibration=SimpleNamespace(units="mm"), fps=25.0, progress=None,
                           steps=("rig",), warnings=[], timings={})
     with pytest.raises(ProcessError, match="stage track"):
