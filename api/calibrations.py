@@ -4,8 +4,11 @@ Two ways to get one:
 
 * ``source="take"``: the calibration stored in the take (simulated takes and
   imported takes carry one) is copied at once;
-* ``source="board"``: a background job (kind ``calibrate``) runs helper D's rig
-  calibration on the board views of the take.
+* ``source="board"``: a background job (kind ``calibrate``) detects the board in every
+  frame of the take and runs :func:`calib.rig.calibrate_rig` on all detections, with the
+  defaults of ``stage calibrate``: the rig selects the views (every frame set seen by two or
+  more cameras links them), intrinsics held by a prior from each camera's own calibration,
+  5-fold held-out error in the report.
 
 Downloads convert with :func:`calib.formats.write_calibration` (JSON, aniposelib
 TOML, OpenCV YAML).
@@ -129,6 +132,15 @@ class CalibrateParams(BaseModel):
     world: Literal["board", "camera"] = "board"
     world_frame: Annotated[int, Field(ge=0)] | None = None
     fix_k3: bool = False
+    intrinsics: Literal["prior", "fixed", "free"] = "prior"
+    holdout: Annotated[int, Field(ge=0, le=20)] = 5
+
+    @field_validator("holdout")
+    @classmethod
+    def _holdout(cls, v: int) -> int:
+        if v == 1:
+            raise ValueError("holdout must be 0 (none) or >= 2 folds")
+        return v
 
     @field_validator("board")
     @classmethod
@@ -141,8 +153,11 @@ class CalibrateParams(BaseModel):
 
 def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[str, int, int], None] | None = None,
                    cancel: threading.Event | None = None):
-    """Detect the board in every camera's frames of ``take`` and calibrate the rig (helper D's
-    :func:`calib.rig.calibrate_rig`); returns its ``RigCalibration``.
+    """Detect the board in every camera's frames of ``take`` and calibrate the rig with
+    :func:`calib.rig.calibrate_rig`; returns its ``RigCalibration``.
+
+    Every detection goes to :func:`calib.rig.calibrate_rig`, which selects the views for the rig
+    (thinning each camera alone would drop the frames that link the cameras).
 
     Raises
     ------
@@ -152,7 +167,7 @@ def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[s
         Too few views / cameras that cannot be connected (a ValueError).
     """
     from calib.boards import parse_board
-    from calib.detect import default_min_corners, detect_board, select_views
+    from calib.detect import detect_board
     from calib.rig import calibrate_rig
     from stage.store import TakeReader
 
@@ -168,22 +183,24 @@ def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[s
             for k in range(0, r.n_frames(c), params.step):
                 if cancel is not None and cancel.is_set():
                     raise InterruptedError("calibration cancelled")
-                dets.append(detect_board(r.frame(c, k), board, frame=k))
+                d = detect_board(r.frame(c, k), board, frame=k)
+                if d is not None:
+                    dets.append(d)
                 done += 1
                 if progress is not None:
                     progress("detect", done, len(todo))
-            keep = select_views(dets, size=size, min_corners=default_min_corners(board), min_change=params.min_change)
-            detections[c] = [dets[i] for i in keep]
+            detections[c] = dets
             sizes[c] = size
     result = calibrate_rig(detections, sizes, board, cameras=cams, world=params.world, world_frame=params.world_frame,
-                           fix_k3=params.fix_k3)
+                           intrinsics=params.intrinsics, fix_k3=params.fix_k3, min_change=params.min_change,
+                           holdout_folds=params.holdout)
     if progress is not None:
         progress("calibrate", 1, 1)
     return result
 
 
 def _find_rig_calibrator() -> Callable[..., Any]:
-    """The calibrate-a-take function (needs helper D's ``calib.rig`` and ``calib.detect``)."""
+    """The calibrate-a-take function (needs ``calib.rig`` and ``calib.detect``)."""
     try:
         import calib.detect  # noqa: F401
         import calib.rig  # noqa: F401

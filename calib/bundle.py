@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
+from scipy.spatial.transform import Rotation
 
 __all__ = ["BundleResult", "bundle_adjust", "rodrigues_batch", "project_batch", "INTRINSIC_NAMES"]
 
@@ -34,28 +35,8 @@ _VERBOSE = 0
 
 
 def rodrigues_batch(r: np.ndarray) -> np.ndarray:
-    """(N, 3) rotation vectors -> (N, 3, 3) rotation matrices."""
-    r = np.asarray(r, dtype=np.float64).reshape(-1, 3)
-    theta = np.linalg.norm(r, axis=1)
-    small = theta < 1e-12
-    th = np.where(small, 1.0, theta)
-    k = r / th[:, None]
-    K = np.zeros((r.shape[0], 3, 3))
-    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
-    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
-    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
-    s = np.where(small, 0.0, np.sin(theta))[:, None, None]
-    c = np.where(small, 0.0, 1.0 - np.cos(theta))[:, None, None]
-    R = np.eye(3)[None] + s * K + c * (K @ K)
-    # first-order term for tiny angles
-    if small.any():
-        rs = r[small]
-        Ks = np.zeros((rs.shape[0], 3, 3))
-        Ks[:, 0, 1], Ks[:, 0, 2] = -rs[:, 2], rs[:, 1]
-        Ks[:, 1, 0], Ks[:, 1, 2] = rs[:, 2], -rs[:, 0]
-        Ks[:, 2, 0], Ks[:, 2, 1] = -rs[:, 1], rs[:, 0]
-        R[small] = np.eye(3)[None] + Ks
-    return R
+    """(N, 3) rotation vectors -> (N, 3, 3) rotation matrices (``scipy.spatial.transform.Rotation``)."""
+    return Rotation.from_rotvec(np.asarray(r, dtype=np.float64).reshape(-1, 3)).as_matrix()
 
 
 def project_batch(Xc: np.ndarray, intr: np.ndarray) -> np.ndarray:
@@ -226,6 +207,42 @@ class BundleResult:
     sigma_px: float = float("nan")  # residual scale the covariance is expressed in
 
 
+def _observations(obs_cam, obs_board, obs_points, obs_uv, intrinsics, cam_rvec, cam_tvec, board_rvec, board_tvec):
+    """The inputs of :func:`bundle_adjust` as arrays of the documented shapes (ValueError otherwise)."""
+    obs_cam = np.asarray(obs_cam, dtype=np.int64).ravel()
+    obs_board = np.asarray(obs_board, dtype=np.int64).ravel()
+    X = np.asarray(obs_points, dtype=np.float64).reshape(-1, 3)
+    uv = np.asarray(obs_uv, dtype=np.float64).reshape(-1, 2)
+    M = obs_cam.shape[0]
+    if not (obs_board.shape[0] == X.shape[0] == uv.shape[0] == M) or M == 0:
+        raise ValueError("obs_cam, obs_board, obs_points and obs_uv must be non-empty and of equal length")
+    intr0 = np.asarray(intrinsics, dtype=np.float64).reshape(-1, N_INTR)
+    C = intr0.shape[0]
+    crv = np.asarray(cam_rvec, dtype=np.float64).reshape(C, 3)
+    ctv = np.asarray(cam_tvec, dtype=np.float64).reshape(C, 3)
+    brv = np.asarray(board_rvec, dtype=np.float64).reshape(-1, 3)
+    btv = np.asarray(board_tvec, dtype=np.float64).reshape(-1, 3)
+    B = brv.shape[0]
+    if obs_cam.min() < 0 or obs_cam.max() >= C or obs_board.min() < 0 or obs_board.max() >= B:
+        raise ValueError("obs_cam / obs_board index out of range")
+    return obs_cam, obs_board, X, uv, intr0, crv, ctv, brv, btv
+
+
+def _check_options(reference, loss, f_scale, solver, fixed_intrinsics, C: int) -> None:
+    """ValueError naming the first bad option of :func:`bundle_adjust`."""
+    if not 0 <= reference < C:
+        raise ValueError(f"reference must be a camera index in [0, {C}), got {reference}")
+    if loss not in ("linear", "soft_l1", "huber", "cauchy", "arctan"):
+        raise ValueError(f"loss must be a least_squares loss name, got {loss!r}")
+    if not f_scale > 0:
+        raise ValueError(f"f_scale must be > 0, got {f_scale!r}")
+    if solver not in ("lm", "scipy"):
+        raise ValueError(f"solver must be 'lm' or 'scipy', got {solver!r}")
+    bad = sorted(set(fixed_intrinsics) - set(INTRINSIC_NAMES))
+    if isinstance(fixed_intrinsics, str) or bad:
+        raise ValueError(f"fixed_intrinsics must name intrinsics among {INTRINSIC_NAMES}, got {fixed_intrinsics!r}")
+
+
 def bundle_adjust(
     obs_cam: np.ndarray,
     obs_board: np.ndarray,
@@ -303,34 +320,10 @@ def bundle_adjust(
     -------
     BundleResult
     """
-    obs_cam = np.asarray(obs_cam, dtype=np.int64).ravel()
-    obs_board = np.asarray(obs_board, dtype=np.int64).ravel()
-    X = np.asarray(obs_points, dtype=np.float64).reshape(-1, 3)
-    uv = np.asarray(obs_uv, dtype=np.float64).reshape(-1, 2)
-    M = obs_cam.shape[0]
-    if not (obs_board.shape[0] == X.shape[0] == uv.shape[0] == M) or M == 0:
-        raise ValueError("obs_cam, obs_board, obs_points and obs_uv must be non-empty and of equal length")
-    intr0 = np.asarray(intrinsics, dtype=np.float64).reshape(-1, N_INTR)
-    C = intr0.shape[0]
-    crv = np.asarray(cam_rvec, dtype=np.float64).reshape(C, 3)
-    ctv = np.asarray(cam_tvec, dtype=np.float64).reshape(C, 3)
-    brv = np.asarray(board_rvec, dtype=np.float64).reshape(-1, 3)
-    btv = np.asarray(board_tvec, dtype=np.float64).reshape(-1, 3)
-    B = brv.shape[0]
-    if obs_cam.min() < 0 or obs_cam.max() >= C or obs_board.min() < 0 or obs_board.max() >= B:
-        raise ValueError("obs_cam / obs_board index out of range")
-    if not 0 <= reference < C:
-        raise ValueError(f"reference must be a camera index in [0, {C}), got {reference}")
-    if loss not in ("linear", "soft_l1", "huber", "cauchy", "arctan"):
-        raise ValueError(f"loss must be a least_squares loss name, got {loss!r}")
-    if not f_scale > 0:
-        raise ValueError(f"f_scale must be > 0, got {f_scale!r}")
-    if solver not in ("lm", "scipy"):
-        raise ValueError(f"solver must be 'lm' or 'scipy', got {solver!r}")
-
-    bad = sorted(set(fixed_intrinsics) - set(INTRINSIC_NAMES))
-    if isinstance(fixed_intrinsics, str) or bad:
-        raise ValueError(f"fixed_intrinsics must name intrinsics among {INTRINSIC_NAMES}, got {fixed_intrinsics!r}")
+    obs_cam, obs_board, X, uv, intr0, crv, ctv, brv, btv = _observations(
+        obs_cam, obs_board, obs_points, obs_uv, intrinsics, cam_rvec, cam_tvec, board_rvec, board_tvec)
+    M, C, B = obs_cam.shape[0], intr0.shape[0], brv.shape[0]
+    _check_options(reference, loss, f_scale, solver, fixed_intrinsics, C)
     free_i = np.array([n not in fixed_intrinsics for n in INTRINSIC_NAMES])
     NF = int(free_i.sum())
     free_cams = np.array([c for c in range(C) if c != reference], dtype=np.int64)

@@ -350,34 +350,53 @@ def board_variants(board: Board) -> list[tuple[str, Board, bool]]:
     """The ways a board file or a camera may differ from the print: ``(description, board, mirror)``.
 
     Mirrored images first (a camera setting), then the board's ``inverted`` and
-    ChArUco ``legacy`` flags flipped, alone and with the mirror.
+    ChArUco ``legacy`` flags flipped, alone and with the mirror; for a chessboard also
+    the squares given instead of the inner corners (one fewer each way).
     """
-    out: list[tuple[str, Board, bool]] = [("mirrored images", board, True)]
+    mirrors = (False,) if isinstance(board, Chessboard) else (False, True)  # a chessboard looks the same mirrored
+    out: list[tuple[str, Board, bool]] = [("mirrored images", board, True)] if True in mirrors else []
     flips = [dataclasses.replace(board, inverted=not board.inverted)]
     if isinstance(board, Charuco):
         flips.append(dataclasses.replace(board, legacy=not board.legacy))
         flips.append(dataclasses.replace(board, inverted=not board.inverted, legacy=not board.legacy))
+    elif min(board.corners) > 2:
+        flips.append(dataclasses.replace(board, corners=(board.corners[0] - 1, board.corners[1] - 1)))
     for b in flips:
-        desc = ", ".join(f"{k} = {str(getattr(b, k)).lower()}" for k in ("inverted", "legacy") if hasattr(b, k)
+        desc = ", ".join(_board_value(k, getattr(b, k)) for k in ("corners", "inverted", "legacy") if hasattr(b, k)
                          and getattr(b, k) != getattr(board, k))
-        out.append((f"board file with {desc}", b, False))
-        out.append((f"board file with {desc} and mirrored images", b, True))
+        out += [(f"board file with {desc}" + (" and mirrored images" if m else ""), b, m) for m in mirrors]
     return out
 
 
+def _board_value(key: str, value) -> str:
+    """``key = value`` as written in a board file."""
+    if isinstance(value, tuple):
+        return f"{key} = [{', '.join(str(v) for v in value)}]"
+    return f"{key} = {str(value).lower()}"
+
+
 def find_variant(images: Sequence[np.ndarray], board: Board, *, min_found: int = 2):
-    """Which variant of :func:`board_variants` finds the board in ``images`` (a sample of one camera).
+    """Which variant of :func:`board_variants` finds the board in ``images`` (a few evenly spaced
+    frames of one camera).
+
+    The variants are tried in order and the first that finds the board in ``min_found`` images
+    (or in all of them, when fewer) is returned: a wrong board file costs one failed detection per
+    image and variant, so keep ``images`` few.
 
     Returns
     -------
     (description, board, mirror, found) or None
-        The variant that found the board in the most images (at least ``min_found``).
+        ``found``: in how many of ``images`` that variant found the board.
     """
-    best = None
+    need = min(int(min_found), len(images))
+    if need < 1:
+        return None
     for desc, b, mirror in board_variants(board):
-        found = sum(detect_board(img, b, mirror=mirror) is not None for img in images)
-        if found >= min_found and (best is None or found > best[3]):
-            best = (desc, b, mirror, found)
-            if found == len(images):
-                break
-    return best
+        found = 0
+        for i, img in enumerate(images):
+            found += detect_board(img, b, mirror=mirror) is not None
+            if found + len(images) - 1 - i < need:
+                break  # this variant can no longer reach need
+        if found >= need:
+            return desc, b, mirror, found
+    return None

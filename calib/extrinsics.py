@@ -215,7 +215,7 @@ def triangulate_board_error(
     iu, ju = np.triu_indices(n_corners, 1)
     true_all = np.linalg.norm(obj[iu] - obj[ju], axis=1)
     true_nb = np.linalg.norm(obj[pairs[:, 0]] - obj[pairs[:, 1]], axis=1)
-    for frame, dets in by_frame.items():
+    for dets in by_frame.values():
         if len(dets) < min_cameras:
             continue
         xy = np.zeros((n_corners, C, 2))
@@ -345,6 +345,89 @@ def _unconnected_message(names, labels, root, frames_per_camera, W) -> tuple[str
     return "; ".join(parts), [names[i] for i in bad]
 
 
+def _check_inputs(detections, cameras, board, world: str, min_corners: int):
+    """ValueError naming the bad parameter of :func:`calibrate_extrinsics`; the cameras and their names."""
+    if not isinstance(board, (Chessboard, Charuco)):
+        raise ValueError(f"board must be a Chessboard or Charuco, got {type(board).__name__}")
+    cams = list(cameras)
+    if len(cams) < 2:
+        raise ValueError(f"cameras: need at least 2 cameras for extrinsics, got {len(cams)}")
+    for c in cams:
+        if not isinstance(c, Camera):
+            raise ValueError(f"cameras must hold Camera objects, got {type(c).__name__}")
+    names = [c.name for c in cams]
+    if not isinstance(detections, Mapping):
+        raise ValueError("detections must map camera names to sequences of Detection")
+    unknown = sorted(set(detections) - set(names))
+    if unknown:
+        raise ValueError(f"detections: unknown camera name(s) {unknown} (cameras: {names})")
+    if world not in ("board", "camera"):
+        raise ValueError(f"world must be 'board' or 'camera', got {world!r}")
+    if min_corners < 4:
+        raise ValueError(f"min_corners must be >= 4, got {min_corners}")
+    if isinstance(board, Chessboard) and sum(board.corners) % 2 == 0:
+        log.warning(
+            "board %dx%d: a chessboard with cols + rows even is 180-degree symmetric, so cameras may number its "
+            "corners differently; use e.g. 9 x 6 inner corners or a ChArUco board", *board.corners
+        )
+    return cams, names
+
+
+def _chain(edges, root: int, poses, frames_per_camera, names):
+    """Camera poses ``T_c<-root`` chained along the spanning tree from the shared views of each edge."""
+    T: dict[int, tuple[np.ndarray, np.ndarray]] = {root: (np.eye(3), np.zeros(3))}
+    tree_report = []
+    for p, c in edges:
+        shared = sorted(frames_per_camera[p] & frames_per_camera[c])
+        samples = []
+        for f in shared:
+            Rp, tp, _ = poses[p][f]
+            Rc, tc, _ = poses[c][f]
+            samples.append(_compose(Rc, tc, *_inv(Rp, tp)))  # T_c<-p
+        Rcp, tcp = _robust_relative(samples)
+        T[c] = _compose(Rcp, tcp, *T[p])
+        tree_report.append((names[p], names[c], len(shared)))
+
+    return T, tree_report
+
+
+def _warnings(res, per_rms: dict, per_views: dict) -> list[str]:
+    """What a user should know about the bundle adjustment."""
+    warnings = []
+    if not res.success:
+        warnings.append(f"bundle adjustment did not converge: {res.message}")
+    med = float(np.median(list(per_rms.values())))
+    for n, v in per_rms.items():
+        if v > 3 * med and v > 1.0:
+            warnings.append(f"camera {n}: reprojection RMS {v:.2f} px is far above the rest (median {med:.2f}); "
+                            "check its focus, motion blur and that it did not move during calibration")
+    for n, v in per_views.items():
+        if v < 3:
+            warnings.append(f"camera {n}: only {v} shared board view(s); its pose rests on little data")
+    return warnings
+
+
+def _world_from_root(world, world_frame, use_frames, frame_cams, corners_count, frame_index, Rc_all, Rb_all, res):
+    """``T_world<-root`` and the world frame (None with ``world="camera"``)."""
+    if world == "camera":
+        Rw, tw = Rc_all[0], res.cam_tvec[0]  # T_cam0<-root: world = first camera
+        W_from_root = (Rw, tw)
+        wf = None
+    else:
+        if world_frame is None:
+            wf = max(use_frames, key=lambda f: (len(frame_cams[f]), sum(corners_count.get((k, f), 0)
+                                                                       for k in frame_cams[f])))
+        else:
+            wf = int(world_frame)
+            if wf not in frame_index:
+                raise CalibrationError(f"world_frame {wf}: no camera saw the board in that frame; pick another frame")
+        i = frame_index[wf]
+        # X_root = Rb X_board + tb ; X_world = F X_board  =>  T_world<-root = F T_board<-root
+        Rbr, tbr = _inv(Rb_all[i], res.board_tvec[i])
+        W_from_root = (BOARD_TO_WORLD @ Rbr, BOARD_TO_WORLD @ tbr)
+    return W_from_root, wf
+
+
 def calibrate_extrinsics(
     detections: Mapping[str, Sequence[Detection]],
     cameras: Sequence[Camera],
@@ -407,29 +490,7 @@ def calibrate_extrinsics(
         A camera could not be connected to the others (names every such camera,
         why, and what to do) or ``world_frame`` saw no board.
     """
-    if not isinstance(board, (Chessboard, Charuco)):
-        raise ValueError(f"board must be a Chessboard or Charuco, got {type(board).__name__}")
-    cams = list(cameras)
-    if len(cams) < 2:
-        raise ValueError(f"cameras: need at least 2 cameras for extrinsics, got {len(cams)}")
-    for c in cams:
-        if not isinstance(c, Camera):
-            raise ValueError(f"cameras must hold Camera objects, got {type(c).__name__}")
-    names = [c.name for c in cams]
-    if not isinstance(detections, Mapping):
-        raise ValueError("detections must map camera names to sequences of Detection")
-    unknown = sorted(set(detections) - set(names))
-    if unknown:
-        raise ValueError(f"detections: unknown camera name(s) {unknown} (cameras: {names})")
-    if world not in ("board", "camera"):
-        raise ValueError(f"world must be 'board' or 'camera', got {world!r}")
-    if min_corners < 4:
-        raise ValueError(f"min_corners must be >= 4, got {min_corners}")
-    if isinstance(board, Chessboard) and sum(board.corners) % 2 == 0:
-        log.warning(
-            "board %dx%d: a chessboard with cols + rows even is 180-degree symmetric, so cameras may number its "
-            "corners differently; use e.g. 9 x 6 inner corners or a ChArUco board", *board.corners
-        )
+    cams, names = _check_inputs(detections, cameras, board, world, min_corners)
     C = len(cams)
     obj = board.object_points()
 
@@ -449,19 +510,7 @@ def calibrate_extrinsics(
         raise CalibrationError(f"could not connect every camera: {msg}", cameras=bad)
 
     # 3. chain relative poses along the tree (T_c<-root)
-    T: dict[int, tuple[np.ndarray, np.ndarray]] = {root: (np.eye(3), np.zeros(3))}
-    tree_report = []
-    for p, c in edges:
-        shared = sorted(frames_per_camera[p] & frames_per_camera[c])
-        samples = []
-        for f in shared:
-            Rp, tp, _ = poses[p][f]
-            Rc, tc, _ = poses[c][f]
-            samples.append(_compose(Rc, tc, *_inv(Rp, tp)))  # T_c<-p
-        Rcp, tcp = _robust_relative(samples)
-        T[c] = _compose(Rcp, tcp, *T[p])
-        tree_report.append((names[p], names[c], len(shared)))
-
+    T, tree_report = _chain(edges, root, poses, frames_per_camera, names)
     # board poses in the root frame: from the camera that saw the most corners
     corners_count = {}
     for ci, c in enumerate(cams):
@@ -512,22 +561,8 @@ def calibrate_extrinsics(
     Rb_all = rodrigues_batch(res.board_rvec)
 
     # 5. world frame
-    if world == "camera":
-        Rw, tw = Rc_all[0], res.cam_tvec[0]  # T_cam0<-root: world = first camera
-        W_from_root = (Rw, tw)
-        wf = None
-    else:
-        if world_frame is None:
-            wf = max(use_frames, key=lambda f: (len(frame_cams[f]), sum(corners_count.get((k, f), 0)
-                                                                       for k in frame_cams[f])))
-        else:
-            wf = int(world_frame)
-            if wf not in frame_index:
-                raise CalibrationError(f"world_frame {wf}: no camera saw the board in that frame; pick another frame")
-        i = frame_index[wf]
-        # X_root = Rb X_board + tb ; X_world = F X_board  =>  T_world<-root = F T_board<-root
-        Rbr, tbr = _inv(Rb_all[i], res.board_tvec[i])
-        W_from_root = (BOARD_TO_WORLD @ Rbr, BOARD_TO_WORLD @ tbr)
+    W_from_root, wf = _world_from_root(world, world_frame, use_frames, frame_cams, corners_count, frame_index,
+                                       Rc_all, Rb_all, res)
     root_from_world = _inv(*W_from_root)
     out_cams = []
     for ci, c in enumerate(cams):
@@ -549,17 +584,7 @@ def calibrate_extrinsics(
                               "rms_px": float(np.sqrt(np.mean(r2))), "world": world,
                               **({"world_frame": wf} if wf is not None else {})})
     geometry = triangulate_board_error(calib, detections, board)
-    warnings = []
-    if not res.success:
-        warnings.append(f"bundle adjustment did not converge: {res.message}")
-    med = float(np.median(list(per_rms.values())))
-    for n, v in per_rms.items():
-        if v > 3 * med and v > 1.0:
-            warnings.append(f"camera {n}: reprojection RMS {v:.2f} px is far above the rest (median {med:.2f}); "
-                            "check its focus, motion blur and that it did not move during calibration")
-    for n, v in per_views.items():
-        if v < 3:
-            warnings.append(f"camera {n}: only {v} shared board view(s); its pose rests on little data")
+    warnings = _warnings(res, per_rms, per_views)
     for w in warnings:
         log.debug(w)  # in the result's warnings / report
     return ExtrinsicsResult(

@@ -207,6 +207,87 @@ def _initial_K(objp, imgp, size) -> np.ndarray:
         return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
 
 
+def _check_inputs(board, size, min_views: int, outlier_factor: float) -> tuple[int, int]:
+    """ValueError naming the bad parameter of :func:`calibrate_intrinsics`; the size as ints."""
+    if not isinstance(board, (Chessboard, Charuco)):
+        raise ValueError(f"board must be a Chessboard or Charuco, got {type(board).__name__}")
+    if len(size) != 2 or min(int(s) for s in size) <= 0:
+        raise ValueError(f"size must be (width, height) > 0, got {size!r}")
+    if min_views < 3:
+        raise ValueError(f"min_views must be >= 3, got {min_views}")
+    if outlier_factor <= 1:
+        raise ValueError(f"outlier_factor must be > 1, got {outlier_factor}")
+    return int(size[0]), int(size[1])
+
+
+def _usable_views(detections, name: str, min_views: int, max_views: int | None) -> list[Detection]:
+    """Views with >= 6 corners, at most ``max_views`` evenly spaced; CalibrationError when too few."""
+    dets = [d for d in detections if d is not None]
+    for d in dets:
+        if not isinstance(d, Detection):
+            raise ValueError(f"detections must hold Detection objects, got {type(d).__name__}")
+    dets = [d for d in dets if len(d) >= 6]
+    if max_views is not None:
+        if max_views < min_views:
+            raise ValueError(f"max_views must be >= min_views ({min_views}), got {max_views}")
+        if len(dets) > max_views:
+            pick = np.unique(np.round(np.linspace(0, len(dets) - 1, max_views)).astype(int))
+            dets = [dets[i] for i in pick]
+    if len(dets) < min_views:
+        raise CalibrationError(
+            f"camera {name}: only {len(dets)} usable board view(s), need at least {min_views} "
+            f"(10-20 recommended): film the board in more positions and tilts in front of {name}",
+            cameras=[name],
+        )
+    return dets
+
+
+def _solve_rejecting(solve, dets: list[Detection], name: str, *, reject_outliers: bool, min_views: int,
+                     outlier_factor: float, outlier_floor_px: float):
+    """Solve, drop the views above ``max(outlier_factor * median, outlier_floor_px)``, re-solve
+    (never below ``min_views``); returns (kept views, rejected frame -> RMS, the last solution)."""
+    kept = list(dets)
+    rejected: dict[int, float] = {}
+    sol = solve(kept)
+    while reject_outliers and len(kept) > min_views:
+        per_view = sol[-1]
+        med = float(np.median(per_view))
+        thr = max(outlier_factor * med, outlier_floor_px)
+        bad = np.flatnonzero(per_view > thr)
+        bad = bad[np.argsort(-per_view[bad])][: len(kept) - min_views]
+        if bad.size == 0:
+            break
+        for b in bad:
+            rejected[kept[b].frame] = float(per_view[b])
+        bad_set = set(bad.tolist())
+        kept = [d for i, d in enumerate(kept) if i not in bad_set]
+        log.debug("camera %s: rejected %d outlier view(s) above %.2f px", name, len(bad), thr)
+        sol = solve(kept)
+    return kept, rejected, sol
+
+
+def _warnings(name: str, n_views: int, cov: float, std_in: np.ndarray, f_rel: float) -> list[str]:
+    """What a user should know about one camera's intrinsics."""
+    warnings = []
+    if n_views < WARN_VIEWS:
+        warnings.append(
+            f"camera {name}: only {n_views} board views; 10-20 views at varied tilts give reliable intrinsics"
+        )
+    if cov < WARN_COVERAGE:
+        warnings.append(
+            f"camera {name}: board corners covered only {100 * cov:.0f}% of the image; move the board "
+            "into the corners and edges of the view, or the lens distortion there is guessed"
+        )
+    if np.any(~np.isfinite(std_in[:9])):
+        warnings.append(f"camera {name}: parameter uncertainty is undefined (degenerate views?)")
+    if np.isfinite(f_rel) and f_rel > 0.01:
+        warnings.append(
+            f"camera {name}: focal length uncertain to {100 * f_rel:.1f}%; add views with the board tilted "
+            "(30-45 degrees) towards the camera"
+        )
+    return warnings
+
+
 def calibrate_intrinsics(
     detections: Sequence[Detection],
     board: Board,
@@ -260,32 +341,8 @@ def calibrate_intrinsics(
     """
     import cv2
 
-    if not isinstance(board, (Chessboard, Charuco)):
-        raise ValueError(f"board must be a Chessboard or Charuco, got {type(board).__name__}")
-    if len(size) != 2 or min(int(s) for s in size) <= 0:
-        raise ValueError(f"size must be (width, height) > 0, got {size!r}")
-    size = (int(size[0]), int(size[1]))
-    if min_views < 3:
-        raise ValueError(f"min_views must be >= 3, got {min_views}")
-    if outlier_factor <= 1:
-        raise ValueError(f"outlier_factor must be > 1, got {outlier_factor}")
-    dets = [d for d in detections if d is not None]
-    for d in dets:
-        if not isinstance(d, Detection):
-            raise ValueError(f"detections must hold Detection objects, got {type(d).__name__}")
-    dets = [d for d in dets if len(d) >= 6]
-    if max_views is not None:
-        if max_views < min_views:
-            raise ValueError(f"max_views must be >= min_views ({min_views}), got {max_views}")
-        if len(dets) > max_views:
-            pick = np.unique(np.round(np.linspace(0, len(dets) - 1, max_views)).astype(int))
-            dets = [dets[i] for i in pick]
-    if len(dets) < min_views:
-        raise CalibrationError(
-            f"camera {name}: only {len(dets)} usable board view(s), need at least {min_views} "
-            f"(10-20 recommended): film the board in more positions and tilts in front of {name}",
-            cameras=[name],
-        )
+    size = _check_inputs(board, size, min_views, outlier_factor)
+    dets = _usable_views(detections, name, min_views, max_views)
     flags = 0
     if fix_aspect_ratio:
         flags |= cv2.CALIB_FIX_ASPECT_RATIO
@@ -310,39 +367,10 @@ def calibrate_intrinsics(
         rms, K, dist, rvecs, tvecs, std_in, _std_ex, per_view = out
         return rms, K, dist.ravel()[:5], rvecs, tvecs, std_in.ravel(), per_view.ravel()
 
-    kept = list(dets)
-    rejected: dict[int, float] = {}
-    rms, K, dist, rvecs, tvecs, std_in, per_view = solve(kept)
-    while reject_outliers and len(kept) > min_views:
-        med = float(np.median(per_view))
-        thr = max(outlier_factor * med, outlier_floor_px)
-        bad = np.flatnonzero(per_view > thr)
-        if bad.size == 0:
-            break
-        bad = bad[np.argsort(-per_view[bad])][: len(kept) - min_views]
-        if bad.size == 0:
-            break
-        for b in bad:
-            rejected[kept[b].frame] = float(per_view[b])
-        bad_set = set(bad.tolist())
-        kept = [d for i, d in enumerate(kept) if i not in bad_set]
-        log.debug("camera %s: rejected %d outlier view(s) above %.2f px", name, len(bad), thr)
-        rms, K, dist, rvecs, tvecs, std_in, per_view = solve(kept)
-
-    pts = np.concatenate([d.corners for d in kept], axis=0)
-    cov = coverage_fraction(pts, size)
-    warnings = []
-    if len(kept) < WARN_VIEWS:
-        warnings.append(
-            f"camera {name}: only {len(kept)} board views; 10-20 views at varied tilts give reliable intrinsics"
-        )
-    if cov < WARN_COVERAGE:
-        warnings.append(
-            f"camera {name}: board corners covered only {100 * cov:.0f}% of the image; move the board "
-            "into the corners and edges of the view, or the lens distortion there is guessed"
-        )
-    if np.any(~np.isfinite(std_in[:9])):
-        warnings.append(f"camera {name}: parameter uncertainty is undefined (degenerate views?)")
+    kept, rejected, (rms, K, dist, rvecs, tvecs, std_in, per_view) = _solve_rejecting(
+        solve, dets, name, reject_outliers=reject_outliers, min_views=min_views, outlier_factor=outlier_factor,
+        outlier_floor_px=outlier_floor_px)
+    cov = coverage_fraction(np.concatenate([d.corners for d in kept], axis=0), size)
     std = {
         "fx": float(std_in[0]),
         "fy": float(std_in[1]),
@@ -350,12 +378,7 @@ def calibrate_intrinsics(
         "cy": float(std_in[3]),
         "dist": np.asarray(std_in[4:9], dtype=np.float64),
     }
-    f_rel = std["fx"] / K[0, 0]
-    if np.isfinite(f_rel) and f_rel > 0.01:
-        warnings.append(
-            f"camera {name}: focal length uncertain to {100 * f_rel:.1f}%; add views with the board tilted "
-            "(30-45 degrees) towards the camera"
-        )
+    warnings = _warnings(name, len(kept), cov, std_in, std["fx"] / K[0, 0])
     for w in warnings:
         log.debug(w)  # in the result's warnings / report
     fixed = (("k3",) if fix_k3 else ()) + (("p1", "p2") if zero_tangent else ())

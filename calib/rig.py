@@ -43,13 +43,15 @@ from calib.evaluate import projection_uncertainty, reprojection_errors
 from calib.extrinsics import ExtrinsicsResult, calibrate_extrinsics, triangulate_board_error
 from calib.intrinsics import CalibrationError, IntrinsicsResult, calibrate_intrinsics
 
-__all__ = ["RigCalibration", "calibrate_rig", "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA"]
+__all__ = ["RigCalibration", "calibrate_rig", "resolve_flipped", "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA",
+           "CORNER_WARN_PX"]
 
 log = logging.getLogger(__name__)
 
 INTRINSICS_MODES = ("prior", "fixed", "free")
 MAX_SETS = 300  # frame sets in the bundle adjustment above which they are evenly thinned
 MOVE_WARN_SIGMA = 3.0  # an intrinsic that moved further than this many Zhang sigmas is reported
+CORNER_WARN_PX = 2.0  # projection uncertainty at the image corners above which the report warns
 
 
 @dataclass(frozen=True, eq=False)
@@ -120,7 +122,7 @@ class RigCalibration:
                 u = ev.get("uncertainty", {}).get(name, {})
                 corner = max((v for k, v in u.items() if k != "centre"), default=float("nan"))
                 lines.append(f"  {name:<12} {fit:7.3f}   {a['rms']:7.3f} ({a['views']:4d})          {h:7.3f}"
-                             f"       {u.get('centre', float('nan')):.3f} / {corner:.3f}")
+                             f"       {_px(u.get('centre', float('nan')))} / {_px(corner)}")
             if g and g.get("frames"):
                 lines.append(f"  board over every detected frame ({g['frames']} frames): adjacent corners off by "
                              f"{g['neighbor_rms']:.2f} mm RMS, all corner pairs {g['pairs_rms']:.2f} mm RMS")
@@ -140,6 +142,11 @@ class RigCalibration:
             "evaluation": _jsonable({k: v for k, v in self.evaluation.items() if k != "detections"}),
             "warnings": self.warnings,
         }
+
+
+def _px(v: float) -> str:
+    """An uncertainty for the table: beyond 100 px the linearization says only "unknown"."""
+    return f"{v:.3f}" if not v > 100 else ">100"
 
 
 def _jsonable(x):
@@ -328,8 +335,8 @@ def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | N
     for i, block in enumerate(blocks):
         out = set(block.tolist())
         rest = {n: [d for d in dets[n] if d.frame not in out] for n in names}
-        try:
-            _, ext, _ = _solve(rest, sizes, board, names, **solve_kw)
+        try:  # the world frame is a gauge: any will do, and the chosen one may be in the fold
+            _, ext, _ = _solve(rest, sizes, board, names, **{**solve_kw, "world_frame": None})
         except CalibrationError as exc:
             failed.append(f"fold {i + 1} of {k}: {exc}")
             continue
@@ -367,6 +374,12 @@ def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_f
             warn.append(f"camera {name}: the bundle adjustment moved " + ", ".join(
                 f"{k} by {v:+.1f} sigma" for k, v in far.items()) + " from its own calibration; the rig data "
                 "disagrees with what this camera saw alone (a moved camera, a bent board, or too few views of it)")
+    for name, u in ev["uncertainty"].items():
+        corner = max(v for k, v in u.items() if k != "centre")
+        if corner > CORNER_WARN_PX:
+            warn.append(f"camera {name}: its projection is uncertain by {_px(corner)} px (1 sigma) at the image "
+                        f"corners: the lens distortion there is extrapolated from the board's views; film the board "
+                        f"near the corners of {name}'s image (or use --fix-k3 for a mild lens)")
     ev["held_out"] = _held_out(dets, sizes, board, names, holdout_folds, solve_kw) if holdout_folds else None
     if ev["held_out"] is not None:
         warn += [f"held-out {f}" for f in ev["held_out"]["failed_folds"]]

@@ -14,6 +14,9 @@ Like a real device each camera
   dropped frame leaves a gap;
 * drops frames at random (``drop_rate``) and when the reader falls more than
   ``buffer`` frames behind (the oldest frames are overwritten);
+* delivers its images flipped left-right when its ``mirror_mode`` is on (a
+  webcam's mirror mode); ``mirror = true`` on the camera flips them back at
+  capture, as the other drivers do (:func:`~stage.drivers.base.unmirror`);
 * disconnects after ``disconnect_after`` delivered frames
   (:class:`~stage.drivers.base.CameraDisconnectedError`);
 * refuses to open a simulated index the rig does not have
@@ -29,7 +32,7 @@ from typing import Callable
 
 import numpy as np
 
-from stage.drivers.base import CameraDisconnectedError, CameraError, CameraNotFoundError, Granted
+from stage.drivers.base import CameraDisconnectedError, CameraError, CameraNotFoundError, Granted, unmirror
 from stage.drivers.registry import register_driver
 from stage.frame import Frame
 from stage.rig import FakeCameraConfig, Rig
@@ -245,7 +248,10 @@ class FakeCamera:
         jitter = self._rng.normal(0.0, self.config.jitter_ms * 1e6) if self.config.jitter_ms > 0 else 0.0
         ts = int(capture + self.config.clock_offset_ms * 1e6 + jitter)
         self.delivered += 1
-        return Frame(
+        if self.config.mirror_mode:  # what the device delivers
+            image = np.ascontiguousarray(image[:, ::-1])
+            depth = None if depth is None else np.ascontiguousarray(depth[:, ::-1])
+        frame = Frame(
             image=image,
             camera_id=self.camera_id,
             index=int(k - self._k0),
@@ -253,6 +259,7 @@ class FakeCamera:
             host_timestamp_ns=int(self._clock()),
             depth=depth,
         )
+        return unmirror(frame) if self.config.mirror else frame
 
     def close(self) -> None:
         self._opened = False

@@ -45,6 +45,7 @@ __all__ = [
     "simulate_rgbd_take",
     "record_rgbd_take",
     "load_rgbd_ground_truth",
+    "template_path",
 ]
 
 OBJECTS = ("pipe_half", "pipe_3q", "lamp")

@@ -70,6 +70,9 @@ class ArticulatedModel:
         Bones (rows of ``skeleton.bones``) influencing every vertex.
     weights : (V, k) float ndarray
         Rows sum to 1.
+    active : (V,) bool ndarray or None
+        The vertices the fit uses and its error counts (default all; a
+        separate part the skeleton does not reach is left out).
     """
 
     vertices: np.ndarray
@@ -77,6 +80,7 @@ class ArticulatedModel:
     skeleton: ArticulatedSkeleton
     influences: np.ndarray
     weights: np.ndarray
+    active: np.ndarray | None = None
     _cache: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -111,6 +115,16 @@ class ArticulatedModel:
         """(P, 3) rest position of every part's joint (part 0: the root)."""
         return self.skeleton.rest[self.skeleton.part_joint]
 
+    def subset(self, n: int | None) -> np.ndarray:
+        """Indices of at most ``n`` vertices, evenly drawn (fixed seed), sorted; all when ``n`` is None."""
+        ids = np.arange(len(self.vertices)) if self.active is None else np.flatnonzero(self.active)
+        if n is None or n >= len(ids):
+            return ids
+        key = ("subset", int(n))
+        if key not in self._cache:
+            self._cache[key] = np.sort(np.random.default_rng(0).choice(ids, int(n), replace=False))
+        return self._cache[key]
+
     def identity(self) -> Pose:
         P = self.skeleton.n_parts
         return Pose(np.tile(np.eye(3), (P, 1, 1)), np.zeros((P, 3)))
@@ -126,7 +140,8 @@ class ArticulatedModel:
         return np.einsum("jab,jb->ja", pose.R[sk.part], sk.rest) + pose.t[sk.part]
 
 
-def articulated_model(vertices, faces, skeleton: ArticulatedSkeleton, *, max_influences: int = 4) -> ArticulatedModel:
+def articulated_model(vertices, faces, skeleton: ArticulatedSkeleton, *, max_influences: int = 4,
+                      active=None) -> ArticulatedModel:
     """Bind a rest mesh to a skeleton with bone heat weights.
 
     Parameters
@@ -136,6 +151,8 @@ def articulated_model(vertices, faces, skeleton: ArticulatedSkeleton, *, max_inf
     skeleton : ArticulatedSkeleton
     max_influences : int
         Bones per vertex (1..4, glTF's limit per set).
+    active : (V,) bool array_like, optional
+        Vertices the fit uses (default all).
 
     Returns
     -------
@@ -147,13 +164,16 @@ def articulated_model(vertices, faces, skeleton: ArticulatedSkeleton, *, max_inf
         raise ValueError(f"max_influences must be within 1..4, got {max_influences}")
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
+    act = None if active is None else np.asarray(active, dtype=bool).reshape(-1)
+    if act is not None and (act.shape != (len(v),) or not act.any()):
+        raise ValueError(f"active must be a (V,) boolean mask with at least one vertex, got shape {act.shape}")
     sk = skeleton
     if len(sk.bones) == 0:
         # a single joint: everything moves rigidly with the root
-        return ArticulatedModel(v, f, sk, np.zeros((len(v), 1), dtype=np.int64), np.ones((len(v), 1)))
+        return ArticulatedModel(v, f, sk, np.zeros((len(v), 1), dtype=np.int64), np.ones((len(v), 1)), act)
     W = bone_heat_weights(v, f, sk.rest[sk.bones[:, 0]], sk.rest[sk.bones[:, 1]])
     cols, w = limit_influences(W, max_influences=max_influences)
-    return ArticulatedModel(v, f, sk, cols, w)
+    return ArticulatedModel(v, f, sk, cols, w, act)
 
 
 # --------------------------------------------------------------------------- pose algebra
@@ -228,7 +248,7 @@ def procrustes_pose(model: ArticulatedModel, target) -> Pose:
 
 
 def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, iterations: int = 10,
-              tol: float = 1e-5) -> tuple[Pose, float]:
+              tol: float = 1e-5, max_points: int | None = 3000) -> tuple[Pose, float]:
     """Least-squares pose of the model for one frame (Gauss-Newton on the skinned vertices).
 
     Parameters
@@ -243,12 +263,16 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
     tol : float
         Stop when the update is below this (radians, and this times the
         subject's size for translations).
+    max_points : int or None
+        The least squares run on at most this many vertices (a fixed,
+        evenly drawn subset: the pose of a few dozen parts is determined many
+        times over); ``None`` uses all. The error is over all vertices.
 
     Returns
     -------
     pose : Pose
     error : float
-        Mean vertex distance ``mean_v ||x'_v - y_v||``.
+        Mean vertex distance ``mean_v ||x'_v - y_v||`` over all vertices.
     """
     y = np.asarray(target, dtype=np.float64)
     if y.shape != model.vertices.shape:
@@ -256,17 +280,21 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
     pose = procrustes_pose(model, y) if start is None else start
     sk = model.skeleton
     P = sk.n_parts
+    y_all = y
+    sub = model.subset(max_points)
+    x = model.vertices[sub]
+    y = y[sub]
     V = len(y)
-    x = model.vertices
     size = float(np.linalg.norm(x.max(0) - x.min(0))) or 1.0
-    vp = model.vertex_parts
-    Wk = model.weights[..., None] * model.below[vp]  # (V, k, P)
+    vp = model.vertex_parts[sub]
+    w = model.weights[sub]
+    Wk = w[..., None] * model.below[vp]  # (V, k, P)
     Wsum = Wk.sum(1)  # (V, P)
     n_par = 3 * (P + 1)
 
     def linearise(pose):
         q = np.einsum("vkij,vj->vki", pose.R[vp], x) + pose.t[vp]  # (V, k, 3)
-        r = (model.weights[..., None] * q).sum(1) - y
+        r = (w[..., None] * q).sum(1) - y
         cw = np.einsum("pij,pj->pi", pose.R, model.pivots) + pose.t  # carried joints
         # columns: root translation, root rotation (about the root joint), one rotation per part >= 1
         A = np.einsum("vkp,vki->vpi", Wk, q) - Wsum[..., None] * cw[None]  # (V, P, 3)
@@ -316,8 +344,15 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
             mu *= 4.0
             if mu > 1e8 * float(np.mean(np.diag(H)) + 1.0):
                 break
-    err = float(np.linalg.norm(model.deform(pose) - y, axis=1).mean())
+    act = model.subset(None)
+    err = float(np.linalg.norm(model.deform(pose)[act] - y_all[act], axis=1).mean())
     return pose, err
+
+
+def _deform_subset(model: ArticulatedModel, pose: Pose, sub: np.ndarray) -> np.ndarray:
+    vp = model.vertex_parts[sub]
+    q = np.einsum("vkij,vj->vki", pose.R[vp], model.vertices[sub]) + pose.t[vp]
+    return (model.weights[sub][..., None] * q).sum(1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -365,14 +400,19 @@ def fit_sequence(model: ArticulatedModel, frames, *, iterations: int = 10, progr
 def _fit_sequence(model, Y, iterations, progress) -> FitResult:
     poses, errs, joints = [], [], []
     prev = None
+    sub = model.subset(3000)
+    last_err = np.inf
     for t in range(len(Y)):
-        start = procrustes_pose(model, Y[t])
+        start = prev
         if prev is not None:
-            e_prev = np.linalg.norm(model.deform(prev) - Y[t], axis=1).mean()
-            e_new = np.linalg.norm(model.deform(start) - Y[t], axis=1).mean()
-            if e_prev <= e_new:
-                start = prev
+            e_prev = np.linalg.norm(_deform_subset(model, prev, sub) - Y[t][sub], axis=1).mean()
+        if prev is None or e_prev > 2.0 * last_err:  # fast motion: try the closed-form start too
+            cand = procrustes_pose(model, Y[t])
+            e_new = np.linalg.norm(_deform_subset(model, cand, sub) - Y[t][sub], axis=1).mean()
+            if prev is None or e_new < e_prev:
+                start = cand
         pose, e = fit_frame(model, Y[t], start, iterations=iterations)
+        last_err = e
         poses.append(pose)
         errs.append(e)
         joints.append(model.joint_positions(pose))

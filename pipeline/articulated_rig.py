@@ -168,6 +168,27 @@ class ArticulatedRig:
         return self.model.deform(self.fit.poses[t])
 
 
+def _main_component(vertices, faces) -> np.ndarray | None:
+    """Mask of the largest connected part when there are several (a warning), else None."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from pipeline.geodesic import mesh_edges
+
+    e = mesh_edges(faces)
+    n = len(vertices)
+    k, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    used = np.unique(np.asarray(faces).ravel())
+    sizes = np.bincount(comp[used])
+    if (sizes > 0).sum() <= 1:
+        return None
+    log.warning(
+        "the mesh has %d connected parts: the rig is built and fitted on the largest; the other parts "
+        "(%d vertices) follow their nearest bone", int((sizes > 0).sum()), int(sizes.sum() - sizes.max()),
+    )
+    return comp == int(np.argmax(sizes))
+
+
 def choose_reference(vertices, faces, *, candidates: int = 8) -> int:
     """Frame (position) whose curve skeleton has the most tips among evenly spaced candidates."""
     from pipeline.spine import frame_skeleton
@@ -244,8 +265,9 @@ def build_articulated_rig(
     if not 0 <= ref < T:
         raise ValueError(f"reference must be within 0..{T - 1}, got {reference}")
     rest = v[ref]
+    main = _main_component(rest, f)
     skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f))
-    model = articulated_model(rest, f, skel)
+    model = articulated_model(rest, f, skel, active=main)
     timings["skeleton"] = time.perf_counter() - t0
     if progress:
         progress("skeleton", 1, 1)

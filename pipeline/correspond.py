@@ -407,6 +407,20 @@ def correspond_tips(
     NoLimbsError
         When no frame has a tip (or ``K`` would be 0).
     """
+    frames = _check_tips(tips)
+    if max_permutations < 1:
+        raise ValueError(f"max_permutations must be >= 1, got {max_permutations}")
+    if not gate > 0:
+        raise ValueError(f"gate must be > 0, got {gate}")
+    pts = _tip_points(frames, features)
+    opts = dict(reference_span=reference_span, max_permutations=max_permutations, gate=gate,
+                reference_weight=reference_weight)
+    if K is None:
+        return _with_counted_K(frames, pts, opts)
+    return _correspond(frames, pts, int(K), "given", **opts)
+
+
+def _check_tips(tips) -> list[np.ndarray]:
     frames = []
     for i, t in enumerate(tips):
         a = np.asarray(t, dtype=np.float64)
@@ -419,93 +433,97 @@ def correspond_tips(
         frames.append(a)
     if not frames:
         raise ValueError("tips must hold at least one frame")
-    if max_permutations < 1:
-        raise ValueError(f"max_permutations must be >= 1, got {max_permutations}")
-    if not gate > 0:
-        raise ValueError(f"gate must be > 0, got {gate}")
-    counts = [len(a) for a in frames]
-    T = len(frames)
+    return frames
+
+
+def _tip_points(frames: list[np.ndarray], features) -> list[np.ndarray]:
+    """(n_t, m, 3) per frame: each tip followed by the points along its limb."""
     if features is None:
-        pts = [a[:, None, :] for a in frames]
-    else:
-        features = list(features)
-        if len(features) != T:
-            raise ValueError(f"features must have one entry per frame ({T}), got {len(features)}")
-        pts = []
-        for i, (a, fe) in enumerate(zip(frames, features)):
-            fe = np.asarray(fe, dtype=np.float64)
-            if len(a) == 0:
-                pts.append(None)
-                continue
-            if fe.size == 0:
-                fe = fe.reshape(len(a), 0, 3)
-            if fe.ndim != 3 or fe.shape[0] != len(a) or fe.shape[2] != 3 or not np.all(np.isfinite(fe)):
-                raise ValueError(f"features[{i}] must be finite with shape ({len(a)}, m, 3), got {fe.shape}")
-            pts.append(np.concatenate([a[:, None, :], fe], axis=1))
-        widths = {p.shape[1] for p in pts if p is not None}
-        if len(widths) > 1:
-            raise ValueError("features must have the same number of points per tip in every frame")
-        w = widths.pop() if widths else 1
-        pts = [np.zeros((0, w, 3)) if p is None else p for p in pts]
-    rule = "given"
-    if K is None:
-        K, rule = limb_count(counts), "mode"
-        with_tips = np.asarray([c for c in counts if c > 0])
-        share = float(np.mean(with_tips >= K + 1)) if with_tips.size else 0.0
-        if BORDERLINE[0] <= share <= BORDERLINE[1] and (K + 1) in counts:
-            kw = dict(features=features, reference_span=reference_span, max_permutations=max_permutations,
-                      gate=gate, reference_weight=reference_weight)
-            wider = correspond_tips(frames, K=K + 1, **kw)
-            spread = _extra_limb_spread(frames, wider)
-            same = spread <= SAME_LIMB_SPREAD
-            rule = (
-                f"borderline: {K + 1} tips in {100 * share:.0f} % of the frames; the extra limb "
-                f"{'is' if same else 'is not'} the same limb throughout (spread {spread:.2f} of the tip radius, "
-                f"limit {SAME_LIMB_SPREAD}): K = {K + 1 if same else K}"
-            )
-            if same:
-                return Correspondence(K=wider.K, assignment=wider.assignment, references=wider.references,
-                                      error=wider.error, count_rule=rule)
-    K = int(K)
+        return [a[:, None, :] for a in frames]
+    features = list(features)
+    if len(features) != len(frames):
+        raise ValueError(f"features must have one entry per frame ({len(frames)}), got {len(features)}")
+    pts = []
+    for i, (a, fe) in enumerate(zip(frames, features)):
+        fe = np.asarray(fe, dtype=np.float64)
+        if len(a) == 0:
+            pts.append(None)
+            continue
+        if fe.size == 0:
+            fe = fe.reshape(len(a), 0, 3)
+        if fe.ndim != 3 or fe.shape[0] != len(a) or fe.shape[2] != 3 or not np.all(np.isfinite(fe)):
+            raise ValueError(f"features[{i}] must be finite with shape ({len(a)}, m, 3), got {fe.shape}")
+        pts.append(np.concatenate([a[:, None, :], fe], axis=1))
+    widths = {p.shape[1] for p in pts if p is not None}
+    if len(widths) > 1:
+        raise ValueError("features must have the same number of points per tip in every frame")
+    w = widths.pop() if widths else 1
+    return [np.zeros((0, w, 3)) if p is None else p for p in pts]
+
+
+def _with_counted_K(frames, pts, opts) -> Correspondence:
+    """``K`` = the mode of the tip counts, or one more on a borderline count whose extra limb
+    is the same limb throughout (module docstring)."""
+    counts = [len(a) for a in frames]
+    K = limb_count(counts)
+    with_tips = np.asarray([c for c in counts if c > 0])
+    share = float(np.mean(with_tips >= K + 1)) if with_tips.size else 0.0
+    if not (BORDERLINE[0] <= share <= BORDERLINE[1] and (K + 1) in counts):
+        return _correspond(frames, pts, K, "mode", **opts)
+    wider = _correspond(frames, pts, K + 1, "", **opts)
+    spread = _extra_limb_spread(frames, wider)
+    same = spread <= SAME_LIMB_SPREAD
+    rule = (
+        f"borderline: {K + 1} tips in {100 * share:.0f} % of the frames; the extra limb "
+        f"{'is' if same else 'is not'} the same limb throughout (spread {spread:.2f} of the tip radius, "
+        f"limit {SAME_LIMB_SPREAD}): K = {K + 1 if same else K}"
+    )
+    if same:
+        return Correspondence(K=wider.K, assignment=wider.assignment, references=wider.references,
+                              error=wider.error, count_rule=rule)
+    return _correspond(frames, pts, K, rule, **opts)
+
+
+def _correspond(frames, pts, K: int, rule: str, *, reference_span, max_permutations, gate, reference_weight):
+    counts = [len(a) for a in frames]
     if K < 1:
         raise NoLimbsError("no limb tips found in any frame (K = 0): nothing protrudes")
     if K not in counts:
         raise ValueError(f"K={K} but no frame has {K} tips")
     refs = reference_frames(counts, K, span=reference_span)
-    r0 = refs[0]
-    assign = np.full((T, K), -1, dtype=np.int64)
-    err = np.full(T, np.nan)
-    assign[r0] = np.arange(K)
-    err[r0] = 0.0
-    ref_tips = frames[r0]
+    assign = np.full((len(frames), K), -1, dtype=np.int64)
+    err = np.full(len(frames), np.nan)
+    assign[refs[0]] = np.arange(K)
+    err[refs[0]] = 0.0
+    _sweep(pts, counts, refs, assign, err, max_permutations=max_permutations, reference_weight=reference_weight)
+    ref_tips = frames[refs[0]]
     radius = float(np.sqrt(np.mean(np.sum((ref_tips - ref_tips.mean(0)) ** 2, axis=1))))
-    gate_d = gate * max(radius, 1e-12)
+    _gate(frames, counts, refs[0], assign, gate * max(radius, 1e-12))
+    return Correspondence(K=K, assignment=assign, references=list(refs), error=err, count_rule=rule)
 
-    m_pts = pts[0].shape[1]
 
-    def limb_positions(t):
-        out = np.full((K, 3), np.nan)
-        ok = assign[t] >= 0
-        out[ok] = frames[t][assign[t][ok]]
-        return out
+def _limb_rows(values: np.ndarray, mapping: np.ndarray, K: int) -> np.ndarray:
+    """Per limb slot, the frame's row it is mapped to (nan for an empty slot)."""
+    out = np.full((K,) + values.shape[1:], np.nan)
+    ok = mapping >= 0
+    out[ok] = values[mapping[ok]]
+    return out
 
-    def limb_points_of(t):
-        out = np.full((K, m_pts, 3), np.nan)
-        ok = assign[t] >= 0
-        out[ok] = pts[t][assign[t][ok]]
-        return out
 
-    # 1. every frame with tips, outward from the primary reference, against the nearest
-    #    reference and the last seen position of every limb (a limb missing from some
-    #    frames keeps its place, so the others never have to take it)
+def _sweep(pts, counts, refs, assign, err, *, max_permutations, reference_weight) -> None:
+    """Every frame with tips, outward from the primary reference, against the nearest
+    reference and the last seen position of every limb (a limb missing from some frames
+    keeps its place, so the others never have to take it)."""
+    T, K = assign.shape
+    r0 = refs[0]
     assigned_refs = {r0}
     for direction in (1, -1):
-        last, prev = limb_points_of(r0), r0
+        last, prev = _limb_rows(pts[r0], assign[r0], K), r0
         t = r0 + direction
         while 0 <= t < T:
             if counts[t] > 0:
-                near_ref = min(assigned_refs, key=lambda r: abs(r - t))
-                anchors, w = [limb_points_of(near_ref)], [1.0]
+                near_ref = min(assigned_refs, key=lambda r, t=t: abs(r - t))
+                anchors, w = [_limb_rows(pts[near_ref], assign[near_ref], K)], [1.0]
                 if prev != near_ref:
                     anchors.append(last)
                     w = [reference_weight, -1.0]
@@ -519,9 +537,12 @@ def correspond_tips(
                 if t in refs and counts[t] == K:
                     assigned_refs.add(t)
             t += direction
-    kframes = np.flatnonzero(np.asarray(counts) == K)
 
-    # 3. gate against the aligned nearest K-tip neighbour
+
+def _gate(frames, counts, r0: int, assign, gate_d: float) -> None:
+    """Drop tips farther than ``gate_d`` from their limb in the aligned nearest K-tip neighbour."""
+    T, K = assign.shape
+    kframes = np.flatnonzero(np.asarray(counts) == K)
     for t in range(T):
         if counts[t] == 0 or t == r0:
             continue
@@ -529,15 +550,14 @@ def correspond_tips(
         if len(others) == 0:
             continue
         nb = int(others[np.argmin(np.abs(others - t))])
-        A = limb_positions(nb)
-        B = limb_positions(t)
+        A = _limb_rows(frames[nb], assign[nb], K)
+        B = _limb_rows(frames[t], assign[t], K)
         ok = np.all(np.isfinite(A), axis=1) & np.all(np.isfinite(B), axis=1)
         if ok.sum() < 3:
             continue
         resid = _robust_residuals(A[ok], B[ok])
         bad = np.flatnonzero(ok)[resid > gate_d]
         assign[t, bad] = -1
-    return Correspondence(K=K, assignment=assign, references=list(refs), error=err, count_rule=rule)
 
 
 def _robust_residuals(A, B):

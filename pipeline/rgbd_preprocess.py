@@ -38,6 +38,8 @@ __all__ = [
     "preprocess_depth",
     "render_depth",
     "visible_vertices",
+    "depth_edges",
+    "contour_pairs",
     "rigid_icp",
 ]
 
@@ -64,12 +66,16 @@ class DepthFrame:
         (column, row) of every point.
     valid : (H, W) bool ndarray
         Pixels that gave a point.
+    contour : (K, 2) float ndarray
+        Sub-pixel (column, row) of the depth discontinuities: pixels with data next to a pixel without
+        data or much further away (the occluding side of a depth edge).
     """
 
     points: np.ndarray
     normals: np.ndarray
     pixels: np.ndarray
     valid: np.ndarray
+    contour: np.ndarray
 
 
 def back_project(depth, camera: Camera) -> np.ndarray:
@@ -229,15 +235,87 @@ def preprocess_depth(
             valid &= np.all((raw >= lo) & (raw <= hi), axis=-1)
     if remove_skin:
         valid &= ~skin_mask(image, model=skin_model)
+    seen = valid.copy()  # depth kept, before the normals are required
     zf = bilateral_depth(np.where(valid, z, 0), sigma_space=sigma_space, sigma_depth=sigma_depth)
     P = back_project(zf, camera)
     N = depth_normals(P, camera, max_jump=2.0 * sigma_depth)
     valid &= np.isfinite(N).all(-1) & np.isfinite(P).all(-1)
+    contour = depth_edges(np.where(seen, zf, 0.0), jump=4.0 * sigma_depth)
     rows, cols = np.nonzero(valid)
     if len(rows) > max_points:
         keep = np.linspace(0, len(rows) - 1, max_points).astype(np.int64)
         rows, cols = rows[keep], cols[keep]
-    return DepthFrame(points=P[rows, cols], normals=N[rows, cols], pixels=np.stack([cols, rows], 1), valid=valid)
+    return DepthFrame(points=P[rows, cols], normals=N[rows, cols], pixels=np.stack([cols, rows], 1), valid=valid,
+                      contour=contour)
+
+
+def depth_edges(depth, *, jump: float = 12.0) -> np.ndarray:
+    """(K, 2) sub-pixel (column, row) of occluding depth edges.
+
+    A pixel with depth whose 4-neighbour has none, or lies more than ``jump`` mm further away,
+    is on the occluding side of an edge (as the edge detector of [26] on depth data); the edge
+    itself is taken half a pixel towards that neighbour, where the silhouette passes.
+    """
+    z = np.asarray(depth, dtype=np.float64)
+    valid = z > 0
+    far = np.where(valid, z, np.inf)
+    out = []
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        nb = np.full_like(far, -np.inf)  # outside the image: no edge
+        rs = slice(dr, None) if dr > 0 else slice(None, dr if dr < 0 else None)
+        rd = slice(None, -dr) if dr > 0 else slice(-dr if dr < 0 else None, None)
+        cs = slice(dc, None) if dc > 0 else slice(None, dc if dc < 0 else None)
+        cd = slice(None, -dc) if dc > 0 else slice(-dc if dc < 0 else None, None)
+        nb[rd, cd] = far[rs, cs]  # nb[r, c] = far[r + dr, c + dc]
+        rows, cols = np.nonzero(valid & (nb > z + jump))
+        out.append(np.stack([cols + 0.5 * dc, rows + 0.5 * dr], 1))
+    return np.concatenate(out).astype(np.float64)
+
+
+def contour_pairs(vertices, normals, faces, camera: Camera, contour, *, gate: float, rim: float = 0.5):
+    """The contour term's pairs: every depth edge pixel and the closest projected rim vertex.
+
+    Rim vertices are those the camera sees at a grazing angle (``|cos| < rim`` between the
+    normal and the viewing ray) and not behind the z-buffer. The pair's target is the point of
+    the edge pixel's projection ray nearest to the vertex, so that ``||V - target||`` is the
+    vertex's distance to the ray (the Pluecker-line distance of the paper's eq. 3).
+
+    Returns
+    -------
+    vertex_index : (K',) int ndarray
+    targets : (K', 3) float ndarray
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    c = np.asarray(contour, dtype=np.float64)
+    if len(c) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    view = v - camera.center
+    dist = np.linalg.norm(view, axis=1)
+    cosang = np.einsum("ij,ij->i", normals, view) / np.maximum(dist, 1e-12)
+    cand = np.flatnonzero(np.abs(cosang) < rim)
+    if len(cand) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    zbuf = render_depth(v, faces, camera)
+    uv, z = camera.project(v[cand], return_depth=True)
+    uv = np.asarray(uv)
+    z = np.asarray(z).reshape(-1)
+    w, h = camera.size
+    col = np.round(uv[:, 0]).astype(np.int64)
+    row = np.round(uv[:, 1]).astype(np.int64)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h) & (z > 0)
+    ok = np.zeros(len(cand), bool)
+    ok[inside] = z[inside] <= zbuf[row[inside], col[inside]] + 0.3 * gate
+    cand, uv, z = cand[ok], uv[ok], z[ok]
+    if len(cand) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    f = float(camera.K[0, 0])
+    d2, k = cKDTree(uv).query(c, distance_upper_bound=gate * f / float(np.median(z)))
+    keep = np.isfinite(d2)
+    vi = cand[k[keep]]
+    o, dirs = camera.rays(c[keep])
+    o = np.broadcast_to(np.asarray(o, dtype=np.float64), dirs.shape)
+    t = np.einsum("ij,ij->i", v[vi] - o, dirs)
+    return vi, o + dirs * t[:, None]
 
 
 def render_depth(vertices, faces, camera: Camera) -> np.ndarray:

@@ -30,10 +30,9 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 from pydantic import BaseModel, ConfigDict, Field
-
 from scipy.sparse.csgraph import connected_components
 
-from pipeline.correspond import Correspondence, NoLimbsError, correspond_tips
+from pipeline.correspond import NoLimbsError, correspond_tips
 from pipeline.extremities import find_extremities
 from pipeline.geodesic import EmptyMeshError, edge_graph, largest_component, mesh_edges, validate_mesh, vertex_areas
 from pipeline.merge import MergedSkeleton, Topology, consensus_topology, merge_skeletons, skeleton_splits

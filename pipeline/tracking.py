@@ -19,15 +19,41 @@ The template's vertices ``V`` are moved to minimise, per frame, the paper's ener
 
 Every round of correspondences gives a linear least-squares problem whose normal equations
 
-    (L^T L + gamma D + eps I) V = L^T L V_{t-1} + gamma B + eps V_0
+    (L^T L + gamma (D + rho I) + eps I) V = L^T L V_{t-1} + gamma (B + rho P) + eps V_0
 
-share one matrix for x, y and z; only the diagonal ``D`` (how many pairs each vertex has)
-changes between rounds and frames. A tiny ``eps`` (1e-4 gamma) towards the round's start
-``V_0`` keeps components without any data (several components, unseen parts) well posed.
-The system is solved by sparse Cholesky (LDL^T): the fill-reducing ordering and elimination
-tree are computed once per take, each round only refactors numerically
-(:class:`CholeskySystem`; QDLDL when installed, else scipy's SuperLU). 15 rounds per frame,
-each frame started from the previous one (or from a caller's guess such as a skinned pose).
+share one matrix for x, y and z; only the diagonal (how many pairs each vertex has) changes
+between rounds and frames. A tiny ``eps`` (1e-4 gamma) towards the round's start ``V_0``
+keeps components without any data well posed. The system is solved by sparse Cholesky
+(LDL^T): the fill-reducing ordering and elimination tree are computed once per take
+(:class:`CholeskySystem`; QDLDL when installed, else scipy's SuperLU, which cannot keep
+them); the first round of a frame refactors numerically, the later rounds (whose pairs, so
+diagonal, change little) solve by conjugate gradients preconditioned with that factor,
+refactoring only when CG does not reach 1e-6 in 6 steps. 15 rounds per frame, each frame started from the previous one (or from
+a caller's guess such as a skinned pose).
+
+Where this departs from the letter of the paper, and why (measured on the simulated
+single RGB-D pipe, ``fake_cameras.rgbd``):
+
+- *Point-to-plane through rigid patches.* With point-to-point pairs and the Laplacian alone,
+  the half of the object the camera does not see is extrapolated from the seen half's
+  closest-point displacements, which carry only their normal part: a 3 mm shift of a
+  pipe's data away from the camera moved the template by -0.8 mm, and a static lamp
+  shrank to 46 % of its volume in 8 frames (the thinning of the paper's Fig. 4). Here the
+  template is cut into patches a quarter of its size across (:func:`surface_patches`); each
+  round, every patch gets the rigid motion that best fits its pairs point-to-plane
+  (:func:`patch_rigid_motion`), ``P`` is every vertex moved with its patch, a pair's target is
+  ``P_i`` moved along the data normal onto the data point (``B``), and every vertex is drawn
+  to ``P_i`` with weight ``rho`` (``rigidity``, 0.5 of a pair). The same 3 mm shift is then
+  recovered to 0.1 mm and the static lamp keeps its volume. On the simulated multi-view
+  starfish (30 frames) the vertex error is 0.92 voxels on average with patches of 25 % of
+  the size, 1.12 with 15 %, 1.64 with 8 % and 1.93 with the paper's point-to-point form
+  (``point_to_plane=False``).
+- *Vertices the data sees.* Model->data pairs only for vertices that project onto a pixel
+  with data (:func:`pipeline.rgbd_preprocess.visible_vertices` with ``observed``): near the
+  silhouette a depth camera returns nothing usable, and those vertices were all pulled
+  onto the nearest observed point, towards the camera.
+- The contour term (eq. 3) enters as a pair whose "plane" contains the depth edge's ray
+  (``contour=``; optional, as in the paper).
 
 What is hand-written and why: the cotangent Laplacian and the pair gating are a few lines
 of numpy on top of scipy's KD-tree; no maintained package offers the paper's energy.
@@ -54,6 +80,8 @@ __all__ = [
     "FrameFit",
     "TemplateTracker",
     "mesh_volume",
+    "surface_patches",
+    "patch_rigid_motion",
 ]
 
 COS_45 = math.cos(math.radians(45.0))
@@ -78,6 +106,14 @@ def _check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     if f.min() < 0 or f.max() >= v.shape[0]:
         raise ValueError("faces index vertices that do not exist")
     return v, f.astype(np.int64)
+
+
+def _scatter_add(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """``out[index[k]] += values[k]`` for (K,) or (K, d...) values (bincount: much faster than ``np.add.at``)."""
+    vals = np.asarray(values, dtype=np.float64)
+    flat = vals.reshape(len(vals), -1)
+    out = np.stack([np.bincount(index, weights=flat[:, c], minlength=n) for c in range(flat.shape[1])], axis=1)
+    return out.reshape((n,) + vals.shape[1:])
 
 
 def _triangle_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -155,9 +191,7 @@ def vertex_normals(vertices, faces) -> np.ndarray:
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
+    n = _scatter_add(f.ravel(), np.repeat(fn, 3, axis=0), len(v))
     nn = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.where(nn > 0, nn, 1.0)
 
@@ -195,6 +229,90 @@ def closest_pairs(
     j = j[ok]
     agree = np.einsum("ij,ij->i", src_normals[i], dst_normals[j]) >= cos_angle
     return i[agree], j[agree]
+
+
+def surface_patches(vertices, faces, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Patches of about ``size`` across, never spanning two connected components.
+
+    Returns
+    -------
+    patch : (V,) int ndarray
+        Patch of every vertex (seeds: one vertex per ``size`` grid cell, per component).
+    component : (n_patches,) int ndarray
+        Connected component of every patch.
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    n = len(v)
+    adj = sp.coo_matrix((np.ones(3 * len(f)), (f.ravel(), np.roll(f, 1, axis=1).ravel())), shape=(n, n))
+    _, comp = connected_components(adj, directed=False)
+    cell = np.floor((v - v.min(0)) / max(size, 1e-9)).astype(np.int64)
+    key = np.concatenate([comp[:, None], cell], axis=1)
+    _, first = np.unique(key, axis=0, return_index=True)
+    seeds = np.sort(first)
+    patch = np.empty(n, np.int64)
+    for c in np.unique(comp):
+        mine = np.flatnonzero(comp == c)
+        s_c = seeds[comp[seeds] == c]
+        patch[mine] = np.searchsorted(seeds, s_c)[cKDTree(v[s_c]).query(v[mine])[1]]
+    return patch, comp[seeds]
+
+
+def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_pairs: int = 12,
+                       damping: float = 1e-6) -> np.ndarray:
+    """Every vertex moved by its patch's rigid motion onto the pairs (point-to-plane, one step).
+
+    Per patch, the small rigid motion ``(omega, t)`` minimising
+    ``sum (n_k . (a_k + omega x a_k + t - x_k))^2`` over the patch's pairs (vertex ``a_k``, data
+    point ``x_k`` with normal ``n_k``; Chen & Medioni's linearised point-to-plane ICP), about
+    the patch centroid. Patches with fewer than ``min_pairs`` pairs take the motion of the
+    nearest patch of the same connected component (``component``, per patch) that has enough;
+    vertices of components without any such patch keep ``fallback``.
+
+    Returns
+    -------
+    (V, 3) float ndarray
+    """
+    n_p = int(patches.max()) + 1
+    comp = np.zeros(n_p, np.int64) if component is None else np.asarray(component)
+    lab = patches[pv]
+    cnt = np.bincount(lab, minlength=n_p)
+    ok = cnt >= min_pairs
+    if not ok.any():
+        return np.asarray(fallback, dtype=np.float64).copy()
+    sizes = np.maximum(np.bincount(patches, minlength=n_p), 1)
+    cen = np.stack([np.bincount(patches, weights=V[:, k], minlength=n_p) for k in range(3)], 1) / sizes[:, None]
+    a = V[pv] - cen[lab]
+    J = np.concatenate([np.cross(a, pn), pn], axis=1)  # (P, 6)
+    r = np.einsum("ij,ij->i", px - V[pv], pn)
+    JtJ = _scatter_add(lab, J[:, :, None] * J[:, None, :], n_p)
+    Jtr = _scatter_add(lab, J * r[:, None], n_p)
+    scale = np.maximum(np.trace(JtJ, axis1=1, axis2=2), 1e-12)[:, None, None]
+    x = np.linalg.solve(JtJ[ok] + damping * scale[ok] * np.eye(6), Jtr[ok][..., None])[..., 0]
+    sol = np.zeros((n_p, 6))
+    sol[ok] = x
+    still = np.zeros(n_p, bool)
+    for c in np.unique(comp[~ok]):  # patches without enough pairs move like the nearest one that has them
+        dst = np.flatnonzero(~ok & (comp == c))
+        src = np.flatnonzero(ok & (comp == c))
+        if len(src) == 0:
+            still[dst] = True
+            continue
+        sol[dst] = sol[src[cKDTree(cen[src]).query(cen[dst])[1]]]
+    w, t = sol[:, :3], sol[:, 3:]
+    theta = np.linalg.norm(w, axis=1)
+    k = w / np.maximum(theta, 1e-12)[:, None]
+    K = np.zeros((n_p, 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    R = np.eye(3) + np.sin(theta)[:, None, None] * K + (1 - np.cos(theta))[:, None, None] * (K @ K)
+    A = V - cen[patches]
+    out = np.einsum("vij,vj->vi", R[patches], A) + cen[patches] + t[patches]
+    keep = still[patches]
+    out[keep] = np.asarray(fallback, dtype=np.float64)[keep]
+    return out
 
 
 class CholeskySystem:
@@ -236,6 +354,8 @@ class CholeskySystem:
         self._solver = None
         self.n = n
         self.factorizations = 0
+        self.cg_iterations = 0
+        self._K = sp.csr_matrix(K)
 
     def _matrix(self, d: np.ndarray) -> sp.csc_matrix:
         A = self._U.copy()
@@ -259,6 +379,45 @@ class CholeskySystem:
             self._solver = splu(sp.csc_matrix(full), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                                 options={"SymmetricMode": True})
         self.factorizations += 1
+
+    def solve_near(self, d: np.ndarray, b: np.ndarray, x0: np.ndarray, *, rtol: float = 1e-6,
+                   max_iter: int = 6) -> np.ndarray:
+        """Solve ``(K + diag(d)) x = b`` (N, k) by conjugate gradients preconditioned with the last
+        factorisation (of a nearby diagonal), refactoring first when there is none or CG stalls.
+
+        Between the rounds of one frame the pairs, hence ``d``, change little: a few CG steps
+        reach ``rtol`` for a fraction of the cost of a numeric refactorisation.
+        """
+        d = np.asarray(d, dtype=np.float64)
+        if self._solver is None:
+            self.factor(d)
+            return self.solve(b)
+        K = self._K
+
+        def matvec(x):
+            return K @ x + d[:, None] * x
+
+        x = np.array(x0, dtype=np.float64)
+        r = b - matvec(x)
+        bn = np.maximum(np.linalg.norm(b, axis=0), 1e-300)
+        z = self.solve(r)
+        p = z.copy()
+        rz = np.einsum("ij,ij->j", r, z)
+        for _ in range(max_iter):
+            if np.all(np.linalg.norm(r, axis=0) <= rtol * bn):
+                self.cg_iterations += _
+                return x
+            Ap = matvec(p)
+            alpha = rz / np.maximum(np.einsum("ij,ij->j", p, Ap), 1e-300)
+            x += p * alpha
+            r -= Ap * alpha
+            z = self.solve(r)
+            rz_new = np.einsum("ij,ij->j", r, z)
+            p = z + p * (rz_new / np.maximum(rz, 1e-300))
+            rz = rz_new
+        self.cg_iterations += max_iter
+        self.factor(d)  # the diagonal moved too far: refactor
+        return self.solve(b)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve for a (N,) or (N, k) right-hand side with the last factorisation."""
@@ -311,20 +470,30 @@ class TemplateTracker:
         Rounds of correspondences and solve per frame (the paper's 15).
     backend : {"auto", "qdldl", "splu"}
         Sparse Cholesky backend (:class:`CholeskySystem`).
+    point_to_plane : bool, optional
+        Pairs through patch-rigid motions (see the module docstring); False: point-to-point.
+    rigidity : float, optional
+        Weight of the patch-rigid prior, in pairs (0.5).
+    patch_size : float, optional
+        Patch diameter, mm (default a quarter of the template's bounding-box diagonal).
 
     Notes
     -----
     Reused between the rounds and frames of a take: the Laplacian ``L``, ``L^T L`` and its
     upper-triangular pattern, the fill-reducing ordering and elimination tree of the
-    Cholesky factorisation, and the frame's KD-tree over the data; per round only the
-    KD-tree over the moved vertices, the pairs and the numeric factorisation are redone.
+    Cholesky factorisation, the patches, and the frame's KD-tree over the data; between the
+    rounds of a frame, the numeric factor of its first round (as CG preconditioner); per
+    round only the KD-tree over the moved vertices, the pairs and the patch motions are redone.
     """
 
     def __init__(self, vertices, faces, *, gamma: float | None = None, gate: float | None = None,
-                 rounds: int = ROUNDS, backend: str = "auto", tangential: float = 0.25, hold: float = 0.1):
+                 rounds: int = ROUNDS, backend: str = "auto", point_to_plane: bool = True, rigidity: float = 0.5,
+                 patch_size: float | None = None):
         v, f = _check_mesh(vertices, faces)
-        self.tangential = float(tangential)
-        self.hold = float(hold)
+        self.point_to_plane = bool(point_to_plane)
+        if not (isinstance(rigidity, (int, float)) and rigidity >= 0):
+            raise ValueError(f"rigidity must be a number >= 0, got {rigidity!r}")
+        self.rigidity = float(rigidity)
         if gamma is not None and not (isinstance(gamma, (int, float)) and math.isfinite(gamma) and gamma > 0):
             raise ValueError(f"gamma must be a positive number, got {gamma!r}")
         if gate is not None and not (isinstance(gate, (int, float)) and math.isfinite(gate) and gate > 0):
@@ -340,17 +509,34 @@ class TemplateTracker:
         self.LtL = sp.csr_matrix(self.L.T @ self.L)
         self.eps = 1e-4 * self.gamma
         self.system = CholeskySystem(self.LtL, backend=backend)
+        size = float(np.linalg.norm(np.ptp(v, axis=0)))
+        self.patch_size = float(patch_size) if patch_size is not None else 0.25 * size
+        self.patches, self.patch_component = surface_patches(v, f, self.patch_size)
 
-    def _target(self, v, n, x):
-        d = x - v
-        dn = n * np.einsum("ij,ij->i", d, n)[:, None]
-        return v + dn + self.tangential * (d - dn)
+    def _solve_round(self, V, pv, px, pn, smooth_rhs, start, first):
+        """One linear solve of the energy for fixed pairs (see the module docstring)."""
+        n = self.n_vertices
+        if self.point_to_plane:
+            P = patch_rigid_motion(V, pv, px, pn, self.patches, fallback=start, component=self.patch_component)
+            # the data fix each paired vertex along the data normal; tangentially it follows its patch
+            tx = P[pv] + pn * np.einsum("ij,ij->i", px - P[pv], pn)[:, None]
+        else:
+            P, tx = V, px
+        counts = np.bincount(pv, minlength=n).astype(np.float64)
+        target = _scatter_add(pv, tx, n)
+        rw = self.rigidity if self.point_to_plane else 0.0
+        d = self.gamma * (counts + rw) + self.eps
+        rhs = smooth_rhs + self.gamma * (target + rw * P) + self.eps * V
+        if first:
+            self.system.factor(d)
+            return self.system.solve(rhs)
+        return self.system.solve_near(d, rhs, V)
 
     @property
     def n_vertices(self) -> int:
         return int(self.template.shape[0])
 
-    def fit(self, points, normals, *, previous, init=None, visible=None) -> FrameFit:
+    def fit(self, points, normals, *, previous, init=None, visible=None, contour=None) -> FrameFit:
         """Deform the template onto one frame's data.
 
         Parameters
@@ -366,6 +552,9 @@ class TemplateTracker:
         visible : callable or (V,) bool ndarray, optional
             Vertices that get model->data pairs: a mask, or ``visible(vertices, normals) -> mask``
             evaluated every round (a z-buffer render for a depth camera). Default: all.
+        contour : callable, optional
+            ``contour(vertices, normals) -> (vertex_index, targets)``: the contour term's pairs
+            (vertex, nearest point of a depth edge's projection ray), weighted like data pairs.
 
         Returns
         -------
@@ -396,28 +585,29 @@ class TemplateTracker:
                 vis = np.asarray(visible(V, vn), bool)
             else:
                 vis = np.asarray(visible, bool)
-            counts = np.zeros(n)
-            target = np.zeros((n, 3))
+            pv = np.zeros(0, np.int64)
+            px = np.zeros((0, 3))
+            pn = np.zeros((0, 3))
             if tree_x is not None:
                 vi = np.flatnonzero(vis)
                 i, j = closest_pairs(V[vi], vn[vi], tree_x, N, gate=self.gate)
-                i = vi[i]
-                np.add.at(counts, i, 1.0)
-                np.add.at(target, i, self._target(V[i], vn[i], X[j]))
-                n_md = len(i)
-                tree_v = cKDTree(V)
-                jd, iv = closest_pairs(X, N, tree_v, vn, gate=self.gate)
-                np.add.at(counts, iv, 1.0)
-                np.add.at(target, iv, self._target(V[iv], vn[iv], X[jd]))
-                n_dm = len(jd)
-                d2 = np.concatenate([((V[i] - X[j]) ** 2).sum(1), ((V[iv] - X[jd]) ** 2).sum(1)])
-                res = float(np.sqrt(d2.mean())) if len(d2) else float("nan")
+                jd, iv = closest_pairs(X, N, cKDTree(V), vn, gate=self.gate)
+                n_md, n_dm = len(i), len(jd)
+                pv = np.concatenate([vi[i], iv])
+                px = np.concatenate([X[j], X[jd]])
+                pn = np.concatenate([N[j], N[jd]])
+                res = float(np.sqrt(((V[pv] - px) ** 2).sum(1).mean())) if len(pv) else float("nan")
+            if contour is not None:  # vertex -> nearest point of an edge's ray: a plane through the ray
+                cv, cx = contour(V, vn)
+                off = cx - V[cv]
+                dist = np.linalg.norm(off, axis=1)
+                near = dist < self.gate
+                cv, cx, off, dist = cv[near], cx[near], off[near], dist[near]
+                cn = off / np.maximum(dist, 1e-12)[:, None]
+                pv, px, pn = np.concatenate([pv, cv]), np.concatenate([px, cx]), np.concatenate([pn, cn])
             history.append((n_md, n_dm, res))
-            if n_md + n_dm == 0:
+            if len(pv) == 0:
                 break
-            hold = self.hold * (counts == 0)  # vertices without a pair keep their start weakly
-            self.system.factor(self.gamma * (counts + hold) + self.eps)
-            rhs = smooth_rhs + self.gamma * (target + hold[:, None] * start) + self.eps * V
-            V = self.system.solve(rhs)
+            V = self._solve_round(V, pv, px, pn, smooth_rhs, start, first=len(history) == 1)
         return FrameFit(vertices=V, model_pairs=n_md, data_pairs=n_dm, residual=res,
                         rounds=len(history), history=history)

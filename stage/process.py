@@ -33,7 +33,7 @@ import shutil
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Annotated, Literal
@@ -43,7 +43,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from stage.store.space import check_free_space, raise_disk_full
 
-__all__ = ["STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "process_take", "register_step"]
+__all__ = [
+    "STEPS", "DEFAULT_STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "process_take",
+    "register_step",
+]
 
 log = logging.getLogger("stage.process")
 
@@ -53,6 +56,8 @@ PIXELS_PER_VOXEL = 2.0
 MAX_VOXELS = 8_000_000
 #: Voxels along the subject's longest side at least, whatever the cameras resolve.
 MIN_RESOLUTION = 48
+#: Masks stored per update of the take's derived data (bytes, unpacked).
+_STORE_BATCH_BYTES = 512 << 20
 
 
 
@@ -151,7 +156,7 @@ class ProcessResult:
     report: dict = field(default_factory=dict)
 
 
-# ----------------------------------------------------------------------------- helpers
+# ----------------------------------------------------------------------------- files and caches
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
@@ -247,14 +252,17 @@ def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tupl
 def key_task(take: str, camera: str, base: dict, workers: int) -> dict:
     """Key one camera of the take (in a worker); the masks come back bit-packed for the
     parent to store (one writer per take file)."""
+    import cv2
+
     from stage.keying.params import KeyParams
     from stage.keying.take import key_camera
 
-    if workers == 1:
-        import cv2
-
-        cv2.setNumThreads(1)  # parallelism comes from the worker processes
-    key = key_camera(take, camera, base=KeyParams(**base), workers=workers)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # parallelism comes from the workers (threads or processes), not OpenCV's pool
+    try:
+        key = key_camera(take, camera, base=KeyParams(**base), workers=workers)
+    finally:
+        cv2.setNumThreads(threads)
     if key is None:
         return {"camera": camera, "key": None}
     shape = key.masks.shape
@@ -347,9 +355,10 @@ def surface_task(
             info["seconds"] = time.perf_counter() - t0
             if sp is not None:
                 rec = _skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp)
-                _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
+                _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec, separators=(",", ":")))
             _atomic_write_text(out_dir / "frames" / f"{_frame_name(k)}.json", json.dumps(info))
-            results.append(info)
+            # the skeleton travels back too: the spine step need not read it again
+            results.append({**info, "skeleton_record": rec} if sp is not None else info)
     return results
 
 
@@ -366,8 +375,8 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
     for k in frames:
         mesh_path = store.mesh_path(k)
         rec = _skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
-        _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec))
-        done.append({"index": int(k), "status": rec["status"]})
+        _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec, separators=(",", ":")))
+        done.append({"index": int(k), "status": rec["status"], "skeleton_record": rec})
     return done
 
 
@@ -500,6 +509,7 @@ class RunContext:
     tip_counts: list[int | None] = field(default_factory=list)
     grid_choice: dict = field(default_factory=dict)
     steps: tuple[str, ...] = ()
+    skeletons: dict[int, dict] = field(default_factory=dict)  # frame -> skeletons/ record, as computed
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
@@ -513,6 +523,9 @@ class RunContext:
         self.report_progress(step, done, self.n_sets)
         for finished in _map_tasks(self, [partial(task, ch) for ch in _chunks(todo, self.params.chunk)]):
             done += len(finished)
+            for rec in finished:
+                if "skeleton_record" in rec:
+                    self.skeletons[rec["index"]] = rec.pop("skeleton_record")
             self.report_progress(step, done, self.n_sets)
 
 
@@ -550,23 +563,36 @@ def _step_key(ctx: RunContext) -> None:
     if not ctx.need_key:
         ctx.report_progress("key", total, total)
         return
-    from stage.keying.take import store_camera_key, take_key_params
+    from stage.keying.take import store_camera_keys, take_key_params
 
     t0 = time.perf_counter()
     base = take_key_params(ctx.rig, key_mode=ctx.params.key_mode).to_dict()
     done, keys = 0, []
     ctx.report_progress("key", 0, total)
-    for res in _map_tasks(ctx, [partial(key_task, str(ctx.take), cam, base, 1 if ctx.executor else 2) for cam in ctx.cameras]):
+    # OpenCV's thread pool does not survive fork(): forked workers key nothing, this process does
+    where = ctx if not _forking_pool(ctx.executor) else replace(ctx, executor=None)
+    threads = 1 if where.executor else 2
+    for res in _map_tasks(where, [partial(key_task, str(ctx.take), cam, base, threads) for cam in ctx.cameras]):
         if res["key"] is not None:
             keys.append(res)
             done += len(res["key"].valid)
         ctx.report_progress("key", min(done, total), total)
-    # stored once every worker has finished reading the take (one writer, no readers)
-    for res in keys:
+    # stored in few updates of the derived data (each copies it), at most ~512 MB of masks at a time
+    batch: list = []
+    for i, res in enumerate(keys):
         key = res["key"]
-        key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).astype(bool)
-        store_camera_key(ctx.take, key)
+        key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).view(bool)
+        batch.append(key)
+        if i == len(keys) - 1 or sum(k.masks.nbytes for k in batch) + key.masks.nbytes > _STORE_BATCH_BYTES:
+            store_camera_keys(ctx.take, batch)
+            batch = []
     ctx.timings["key"] = time.perf_counter() - t0
+
+
+def _forking_pool(executor) -> bool:
+    """A local process pool whose workers are forked from this process."""
+    ctx = getattr(executor, "_mp_context", None)
+    return isinstance(executor, cf.ProcessPoolExecutor) and (ctx is None or ctx.get_start_method(allow_none=False) == "fork")
 
 
 def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
@@ -640,6 +666,8 @@ def _step_surface(ctx: RunContext) -> None:
     t0 = time.perf_counter()
     grid = _processing_grid(ctx)
     _add_to_record(ctx, grid=ctx.grid_choice)
+    ctx.timings["grid"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     task = partial(
         surface_task,
         str(ctx.take.resolve()),
@@ -665,7 +693,7 @@ def _step_spine(ctx: RunContext) -> None:
     ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons")
     skeletons: list[FrameSkeleton] = []
     for k in range(n):
-        rec = json.loads((ctx.out / "skeletons" / f"{_frame_name(k)}.json").read_text())
+        rec = ctx.skeletons.get(k) or json.loads((ctx.out / "skeletons" / f"{_frame_name(k)}.json").read_text())
         sk = FrameSkeleton.from_dict(rec["skeleton"]) if rec["status"] == "ok" else FrameSkeleton.empty()
         skeletons.append(sk)
         ctx.tip_counts[k] = sk.n_tips
@@ -674,6 +702,15 @@ def _step_spine(ctx: RunContext) -> None:
     ctx.spine_path = write_spine(ctx.out / "spine.json", spine)
     ctx.report_progress("spine", 1, 1)
     ctx.timings["spine"] = time.perf_counter() - t0
+
+
+def _step_track(ctx: RunContext) -> None:
+    """The first surface tracked through the take -> ``tracked/`` (:func:`stage.track.track_results`)."""
+    from stage.track import track_results
+
+    t0 = time.perf_counter()
+    track_results(ctx.out, progress=ctx.progress)
+    ctx.timings["track"] = time.perf_counter() - t0
 
 
 STEPS: tuple[str, ...] = ()
@@ -699,6 +736,8 @@ def _step_rig(ctx: RunContext) -> None:
 
 
 register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine")
+register_step("track", _step_track, doc="template tracking of the surfaces (only when asked for)", after="spine")
+DEFAULT_STEPS: tuple[str, ...] = tuple(s for s in STEPS if s != "track")  # what runs when no steps are given
 
 
 # ----------------------------------------------------------------------------- driver
@@ -818,7 +857,7 @@ def process_take(
     out : path
         Results directory (beside the take, never inside it).
     steps : sequence of str, optional
-        Steps to run (names in :data:`STEPS`, default all), run in pipeline order (a later
+        Steps to run (names in :data:`STEPS`, default :data:`DEFAULT_STEPS`), run in pipeline order (a later
         step needs the earlier ones' results, which may come from an earlier run).
     params : ProcessParams or dict, optional
     executor : concurrent.futures.Executor, optional
@@ -833,7 +872,7 @@ def process_take(
     ProcessResult
     """
     take, out = Path(take), Path(out)
-    steps = STEPS if steps is None else tuple(steps)
+    steps = DEFAULT_STEPS if steps is None else tuple(steps)
     bad = [s for s in steps if s not in _REGISTRY]
     if bad or not steps:
         raise ValueError(f"steps must be a non-empty subset of {STEPS}, got {steps}")

@@ -102,6 +102,9 @@ class FakeCameraConfig(_CameraBase):
     drop_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
     disconnect_after: Annotated[int, Field(ge=0)] | None = None
     depth: bool = False
+    # the simulated webcam's mirror mode: it delivers its images flipped left-right (``mirror = true``
+    # tells the stage so, and capture flips them back)
+    mirror_mode: bool = False
 
 
 class OpenCVCameraConfig(_CameraBase):

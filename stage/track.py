@@ -68,8 +68,10 @@ def _load_template(template) -> tuple[np.ndarray, np.ndarray]:
     return v, f
 
 
-def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_for, progress, start, prev):
-    """Track ``frames`` in order; ``data_for(k)`` -> (points, normals, extra) or None (no data)."""
+def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_for, progress, start, prev,
+                contour_for=None, init_for=None, total=None, prev_frame=None):
+    """Track ``frames`` in order; ``data_for(k)`` -> (points, normals, extra) or None (no data);
+    ``init_for(k, previous_frame, previous_vertices)`` -> where frame ``k``'s rounds start."""
     V0 = tracker.template
     vol0 = mesh_volume(V0, faces)
     per = report.setdefault("frames", {})
@@ -78,15 +80,17 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
         t0 = time.perf_counter()
         existing = _read_tracked(tracked_path(out_dir, k), len(V0)) if tracked_path(out_dir, k).is_file() else None
         if existing is not None:
-            prev = existing
+            prev, prev_frame = existing, k
         else:
             data = data_for(k)
             if data is None:
                 report["skipped"].append(int(k))
             else:
                 pts, nrm, extra = data
-                fit = tracker.fit(pts, nrm, previous=prev, visible=visible_for(extra))
-                prev = fit.vertices
+                contour = contour_for(extra) if contour_for is not None else None
+                init = init_for(k, prev_frame, prev) if init_for is not None and prev_frame is not None else None
+                fit = tracker.fit(pts, nrm, previous=prev, init=init, visible=visible_for(extra), contour=contour)
+                prev, prev_frame = fit.vertices, k
                 _write_frame(out_dir, k, prev, faces)
                 per[str(k)] = {
                     "model_pairs": fit.model_pairs, "data_pairs": fit.data_pairs,
@@ -96,22 +100,53 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
                 }
         done += 1
         if progress is not None:
-            progress("track", start + done, start + len(frames))
+            progress("track", start + done, total if total is not None else start + len(frames))
     return prev
 
 
-def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None) -> dict:
+def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
+    """(reference position, RiggedModel) of the take's spine, or None without a usable spine."""
+    from pipeline.meshio import load_mesh
+    from pipeline.rig_model import NoCompleteFrameError, reference_frame, rigged_model
+    from pipeline.spine import read_spine
+
+    path = root / "spine.json"
+    if not path.is_file():
+        return None
+    try:
+        spine = read_spine(path)
+        if spine.frame_count != len(frames):
+            return None
+        ref = reference_frame(spine)
+        V, F = load_mesh(by_frame[frames[ref]], largest=True) if template is None else _load_template(template)
+        return ref, rigged_model(spine, V, F, reference=ref)
+    except (NoCompleteFrameError, ValueError, KeyError) as exc:
+        log.warning("tracking without the spine's pose (%s)", exc)
+        return None
+
+
+def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False) -> dict:
     """Track a template through the surfaces of a processed multi-view take.
+
+    With the take's spine (``spine.json``) the template is the spine's reference frame's
+    surface and tracking runs from that frame forwards and backwards; with ``spine_init``
+    every frame starts from the previous one moved as the spine's skinned pose of the
+    template moves (linear blend skinning). Without a spine: the first frame's surface.
+    Each frame starts from the previous one.
 
     Parameters
     ----------
     results_dir : path
         Output of ``stage process`` (``meshes/frame_NNNNNN.ply``).
     template : path or (vertices, faces), optional
-        Default: the first frame's surface.
+        Default: the reference (or first) frame's surface.
     progress : callable(step, done, total), optional
     gamma, gate : float, optional
         See :class:`pipeline.tracking.TemplateTracker`.
+    spine_init : bool
+        Start every frame from the spine's skinned motion (off by default: on the simulated
+        starfish the skinned pose of the spine's rig is further from the truth than the
+        previous frame, e.g. 24 mm against 12 mm of true motion).
 
     Returns
     -------
@@ -128,7 +163,12 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         raise FileNotFoundError(f"{mesh_dir}: no frame_NNNNNN.ply meshes (run `stage process` first)")
     frames = [int(p.stem.split("_")[1]) for p in paths]
     by_frame = dict(zip(frames, paths))
-    if template is None:
+    skinned = _spine_model(root, frames, by_frame, template)
+    ref = skinned[0] if skinned is not None else 0
+    if skinned is not None:
+        V0, F0 = skinned[1].vertices, skinned[1].faces
+        source = str(by_frame[frames[ref]]) if template is None else str(template)
+    elif template is None:
         V0, F0 = load_mesh(paths[0], largest=True)
         source = str(paths[0])
     else:
@@ -137,7 +177,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
     report = {"mode": "multi-view", "template": source, "vertices": int(len(V0)), "gamma": tracker.gamma,
               "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
-              "skipped": [], "frames": {}}
+              "reference_frame": frames[ref], "spine_init": skinned is not None and bool(spine_init), "skipped": [], "frames": {}}
 
     def data_for(k):
         v, f = load_mesh(by_frame[k], largest=False)
@@ -145,8 +185,29 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
             return None
         return v, vertex_normals(v, f), None
 
-    _run_frames(tracker, frames, root, F0, report, data_for=data_for, visible_for=lambda e: None,
-                progress=progress, start=0, prev=V0.copy())
+    init_for = None
+    if skinned is not None and spine_init:
+        model = skinned[1]
+        pos = {k: i for i, k in enumerate(frames)}
+        lbs: dict = {}
+
+        def pose(k):
+            if k not in lbs:
+                lbs[k] = model.deform(pos[k])
+            return lbs[k]
+
+        def init_for(k, k_prev, prev):
+            return prev + (pose(k) - pose(k_prev))
+
+    forward = frames[ref:]
+    backward = frames[: ref + 1][::-1]
+    _run_frames(tracker, forward, root, F0, report, data_for=data_for, visible_for=lambda e: None,
+                progress=progress, start=0, prev=V0.copy(), init_for=init_for, total=len(frames))
+    if len(backward) > 1:
+        first = _read_tracked(tracked_path(root, frames[ref]), len(V0))
+        _run_frames(tracker, backward[1:], root, F0, report, data_for=data_for, visible_for=lambda e: None,
+                    progress=progress, start=len(forward), prev=V0.copy() if first is None else first,
+                    init_for=init_for, total=len(frames), prev_frame=frames[ref])
     _write_report(root, report)
     return report
 
@@ -167,6 +228,7 @@ def track_rgbd_take(
     *,
     camera: str | None = None,
     remove_skin: bool = False,
+    contour: bool = False,
     bounds=None,
     progress=None,
     gamma=None,
@@ -186,6 +248,8 @@ def track_rgbd_take(
         The depth camera (default: the first camera with depth).
     remove_skin : bool
         Drop skin-coloured pixels (the hands) before tracking.
+    contour : bool
+        Add the contour term (depth edges, the paper's eq. 3).
     bounds : ((3,), (3,)), optional
         Capture volume; default the rig's volume, else the template's box grown by 15 % of its size.
 
@@ -199,7 +263,7 @@ def track_rgbd_take(
     TrackingError
         The template cannot be placed on the data (nothing is written then).
     """
-    from pipeline.rgbd_preprocess import preprocess_depth, rigid_icp, visible_vertices
+    from pipeline.rgbd_preprocess import contour_pairs, preprocess_depth, rigid_icp, visible_vertices
     from stage.store import TakeReader
 
     V0, F0 = _load_template(template)
@@ -237,6 +301,9 @@ def track_rgbd_take(
         def visible_for(fr):
             return lambda V, nrm: visible_vertices(V, F0, cam, normals=nrm, tolerance=0.3 * tracker.gate, observed=fr.valid)
 
+        def contour_for(fr):
+            return lambda V, nrm: contour_pairs(V, nrm, F0, cam, fr.contour, gate=tracker.gate)
+
         # place the template on the first frame with depth (nothing written if it fails)
         skipped = []
         first = None
@@ -261,12 +328,12 @@ def track_rgbd_take(
         name = str(template) if not isinstance(template, (tuple, list)) else "array"
         report = {"mode": "rgbd", "take": str(take_path), "camera": cam_id, "template": name,
                   "vertices": int(len(V0)), "gamma": tracker.gamma, "gate_mm": tracker.gate, "rounds": tracker.rounds,
-                  "solver": tracker.system.backend, "remove_skin": bool(remove_skin),
+                  "solver": tracker.system.backend, "remove_skin": bool(remove_skin), "contour": bool(contour),
                   "icp": {"frame": first[0], "fit": round(fit0, 4), "R": R.tolist(), "t": t.tolist()},
                   "skipped": list(skipped), "frames": {}}
         (out / "tracked").mkdir(parents=True, exist_ok=True)
         _run_frames(tracker, list(range(first[0], n)), out, F0, report, data_for=data_for, visible_for=visible_for,
-                    progress=progress, start=first[0], prev=placed)
+                    progress=progress, start=first[0], prev=placed, contour_for=contour_for if contour else None)
     if report["skipped"]:
         log.warning("frames without depth skipped: %s", ", ".join(map(str, report["skipped"])))
     _write_report(out, report)

@@ -52,6 +52,7 @@ class WorkSpec:
     fn: Callable[..., Any]
     steps: tuple[str, ...] = DEFAULT_STEPS
     params_model: Any = None
+    defaults: tuple[str, ...] | None = None  # steps of a job that names none (default: all)
 
     def validate(self, steps: Sequence[str] | None, params: dict | None) -> tuple[tuple[str, ...], dict]:
         """Check ``steps`` and ``params``; return them normalized (steps in canonical order, params as JSON dict).
@@ -61,7 +62,7 @@ class WorkSpec:
         ValueError
             Naming the unknown step or the bad parameter.
         """
-        steps = tuple(self.steps if steps is None else steps)
+        steps = tuple((self.defaults or self.steps) if steps is None else steps)
         if not steps:
             raise ValueError("steps must not be empty")
         unknown = [s for s in steps if s not in self.steps]
@@ -112,7 +113,8 @@ def load_work(spec: str | Callable[..., Any]) -> WorkSpec:
     model = getattr(mod, "ProcessParams", None) if mod is not None else None
     if model is not None and not hasattr(model, "model_validate"):
         model = None
-    return WorkSpec(fn=fn, steps=steps, params_model=model)
+    defaults = tuple(getattr(mod, "DEFAULT_STEPS", steps)) if mod is not None else None
+    return WorkSpec(fn=fn, steps=steps, params_model=model, defaults=defaults)
 
 
 def _jsonable(obj: Any) -> Any:

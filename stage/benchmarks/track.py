@@ -19,6 +19,87 @@ HELP = "seconds per frame of template tracking for 6k / 25k-vertex templates (mu
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, default=5, help="frames timed per case (default 5)")
+    p.add_argument("--accuracy", action="store_true",
+                   help="also track the simulated RGB-D pipe 1/2, pipe 3/4 and lamp (30 frames, bent 75 degrees) "
+                   "and the simulated multi-view starfish and quadruped (30 frames), and print the vertex errors "
+                   "against the simulator's truth, the volume and what `stage rig` finds (several minutes)")
+
+
+def multiview_accuracy(frames: int = 30) -> None:
+    """Simulated starfish and quadruped (8 cameras, 640x480): `stage process`, then tracking; every
+    template vertex against the true surface point it started on (fake_cameras.surface_motion)."""
+    import json
+    import tempfile
+    from pathlib import Path
+
+    from fake_cameras.record import record_take
+    from fake_cameras.surface_motion import surface_point_tracks
+    from fake_cameras.take import simulate_take
+    from pipeline.meshio import load_mesh
+    from pipeline.tracking import mesh_volume
+    from stage.process import process_take
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in ("starfish", "quadruped"):
+            sim = simulate_take(name, n_cameras=8, frames=frames, size=(640, 480), seed=3)
+            take = record_take(sim, Path(tmp) / f"{name}.h5")
+            res = Path(tmp) / f"{name}_results"
+            process_take(take, res, executor=None)
+            t0 = time.perf_counter()
+            process_take(take, res, steps=("track",), executor=None)
+            dt = (time.perf_counter() - t0) / frames
+            rep = json.loads((res / "tracked" / "track.json").read_text())
+            voxel = float(json.loads((res / "grid.json").read_text())["voxel"])
+            V0, F0 = load_mesh(rep["template"], largest=True)
+            ref = int(rep["reference_frame"])
+            truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
+            means, p95s, vols = [], [], []
+            for k in range(frames):
+                v, _ = load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)
+                e = np.linalg.norm(v - truth[k], axis=1) / voxel
+                means.append(e.mean())
+                p95s.append(np.percentile(e, 95))
+                vols.append(mesh_volume(v, F0) / mesh_volume(V0, F0))
+            print(f"{name:9s} {len(V0)} vertices (template = frame {ref}), voxel {voxel:.2f} mm: vertex error mean "
+                  f"{np.mean(means):.2f} voxels over the take (worst frame {max(means):.2f}), 95th percentile "
+                  f"{np.mean(p95s):.2f} (worst {max(p95s):.2f}); volume {min(vols):.3f}..{max(vols):.3f}; {dt:.2f} s/frame")
+
+
+def accuracy(frames: int = 30) -> None:
+    """Mean vertex error against the simulator's per-vertex truth, volume ratio, rig articulations."""
+    import tempfile
+    from pathlib import Path
+
+    from fake_cameras.rgbd import OBJECTS, record_rgbd_take, simulate_rgbd_take, template_path
+    from pipeline.meshio import load_mesh
+    from pipeline.tracking import mesh_volume
+    from stage.track import track_rgbd_take
+
+    expected = {"pipe_half": 1, "pipe_3q": 1, "lamp": 3}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in OBJECTS:
+            tk = simulate_rgbd_take(name, frames=frames, spacing=4.0 if name != "lamp" else None)
+            take = record_rgbd_take(tk, Path(tmp) / f"{name}.h5")
+            out = Path(tmp) / name
+            t0 = time.perf_counter()
+            track_rgbd_take(take, template_path(take), out)
+            dt = (time.perf_counter() - t0) / frames
+            V0, F0 = tk.template_vertices, tk.template_faces
+            err, vol = [], []
+            for k in range(frames):
+                v, _ = load_mesh(out / "tracked" / f"{k:06d}.ply", largest=False)
+                err.append(np.linalg.norm(v - tk.truth[k], axis=1).mean())
+                vol.append(mesh_volume(v, F0) / mesh_volume(V0, F0))
+            line = (f"{name:9s} {len(V0)} vertices: mean vertex error {100 * np.mean(err) / tk.size:.2f} % of {tk.size:.0f} mm "
+                    f"over the take (last frame {100 * err[-1] / tk.size:.2f} %), volume {min(vol):.3f}..{max(vol):.3f} "
+                    f"of the template's, {dt:.2f} s/frame")
+            try:
+                from pipeline.articulated_rig import rig_results
+            except ImportError:
+                print(line)
+                continue
+            rig = rig_results(out)
+            print(f"{line}; stage rig: {int(rig.skeleton.articulation.sum())} articulations (true {expected[name]})")
 
 
 def _spacing_for(obj, target):
@@ -52,7 +133,12 @@ def run(args: argparse.Namespace) -> int:
             for _ in range(5):
                 cs.factor(d)
                 cs.solve(np.ones((len(V), 3)))
-            print(f"{len(V):6d} vertices  solver {be:6s}: {(time.perf_counter() - t0) / 5 * 1000:7.1f} ms per refactor+solve")
+            t1 = time.perf_counter()
+            for _ in range(5):
+                cs.solve(np.ones((len(V), 3)))
+            solve_ms = (time.perf_counter() - t1) / 5 * 1000
+            total = (t1 - t0) / 5 * 1000
+            print(f"{len(V):6d} vertices  solver {be:6s}: {total:7.1f} ms per refactor + solve (solve alone {solve_ms:.1f} ms)")
         tk = simulate_rgbd_take("pipe_half", frames=F, spacing=s, bend=20.0)
         # multi-view: each frame's true surface as data
         prev = V.copy()
@@ -74,6 +160,10 @@ def run(args: argparse.Namespace) -> int:
             prev = fit.vertices
         rg = (time.perf_counter() - t0) / F
         print(f"{len(V):6d} vertices  single RGB-D: {rg:6.3f} s per frame (preprocessing and z-buffer included)")
-    print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl); "
-          "per frame: KD-tree of the data; per round: KD-tree of the vertices, pairs, numeric refactorisation")
+    if args.accuracy:
+        accuracy()
+        multiview_accuracy()
+    print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl), "
+          "the patches; per frame: KD-tree of the data, the first round's numeric factor (CG preconditioner of the "
+          "later rounds); per round: KD-tree of the vertices, pairs, patch motions")
     return 0

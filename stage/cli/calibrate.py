@@ -138,56 +138,60 @@ def parse_mirror(items: list[str], cameras: list[str]) -> dict[str, bool | None]
 
 
 SAMPLE = 12  # frames of a camera tried flipped
-VARIANT_SAMPLE = 6  # frames of a camera that never showed the board tried with the other board variants
+VARIANT_SAMPLE = 3  # evenly spaced frames of a camera that never showed the board, tried with the board variants
 
 
-def decide_mirror(name: str, found: int, total: int, sample: list, board, mirror: bool | None):
+def decide_mirror(name: str, found: int, total: int, sample: list, as_is: int, board, mirror: bool | None):
     """Whether a camera's images must be flipped, from the board found in a sample of its frames.
+
+    Parameters
+    ----------
+    found, total : int
+        Frames with the board / frames read, as delivered (or flipped when ``mirror``).
+    sample : list of ndarray
+        Frames sampled evenly; ``as_is`` of them showed the board.
 
     Returns
     -------
-    (mirror, message)
-        ``mirror`` True when the evidence is clear (auto) ; ``message`` says what was found
-        (None when there is nothing to say).
+    (flip, message)
+        ``flip`` True when the board is found only in the flipped image (auto); ``message`` says
+        what was found (None when there is nothing to say).
     """
     from calib.boards import Chessboard
     from calib.detect import detect_board, find_variant
 
-    if isinstance(board, Chessboard):  # a chessboard is found in a mirrored image too: nothing to decide
-        mirror = bool(mirror)
-    if mirror is not None and found:
-        return mirror, None
-    if not sample:
+    chess = isinstance(board, Chessboard)  # found in a mirrored image too: nothing to decide
+    if (mirror is not None or chess) and found:
         return bool(mirror), None
-    as_is = sum(detect_board(img, board, mirror=bool(mirror)) is not None for img in sample)
-    if found >= 0.5 * total and as_is >= 0.5 * len(sample):
+    if not sample or (found >= 0.5 * total and as_is >= 0.5 * len(sample)):
         return bool(mirror), None
-    flipped = sum(detect_board(img, board, mirror=not bool(mirror)) is not None for img in sample)
-    if flipped >= max(3, 2 * as_is + 1):
-        if mirror is False:
-            return False, (f"camera {name}: the board is never detected with mirror = false, but it is found in "
-                           f"{flipped}/{len(sample)} sampled frames once the image is flipped: {name} delivers "
-                           f"mirrored images; drop --mirror {name}=false (or turn the camera's mirror mode off)")
-        if mirror is None:
-            return True, (f"{name} delivers mirrored images or sees the board from behind: the board is found in "
-                          f"{flipped}/{len(sample)} sampled frames once the image is flipped ({as_is} as "
-                          f"delivered); the rig decides which")
-    if found == 0:
-        pick = np.unique(np.round(np.linspace(0, len(sample) - 1, min(VARIANT_SAMPLE, len(sample)))).astype(int))
-        sample = [sample[i] for i in pick]
-        v = find_variant(sample, board)
-        if v is not None and v[1] is board:
-            return bool(mirror), (f"camera {name}: the board was never detected, but once the image is flipped it "
-                                  f"is found in {v[3]}/{len(sample)} sampled frames; if {name} delivers mirrored "
-                                  f"images, give --mirror {name}=true")
-        if v is not None:
-            return bool(mirror), (f"camera {name}: the board was never detected, but with the {v[0]} it is found in "
-                                  f"{v[3]}/{len(sample)} sampled frames; fix the board file"
-                                  + (" (and the camera's mirror mode)" if v[2] else ""))
-        return bool(mirror), (f"camera {name}: the board was never detected in {total} frames (nor inverted, "
-                              f"legacy or mirrored); check that {name} sees the board, its focus, and that the "
-                              f"board file matches the print")
-    return bool(mirror), None
+    if not chess:
+        flipped = sum(detect_board(img, board, mirror=not bool(mirror)) is not None for img in sample)
+        if flipped >= max(3, 2 * as_is + 1):
+            if mirror is False:
+                return False, (f"camera {name}: the board is never detected with mirror = false, but it is found "
+                               f"in {flipped}/{len(sample)} sampled frames once the image is flipped: {name} "
+                               f"delivers mirrored images; drop --mirror {name}=false (or turn the camera's mirror "
+                               f"mode off)")
+            if mirror is None:
+                return True, (f"{name} delivers mirrored images or sees the board from behind: the board is found "
+                              f"in {flipped}/{len(sample)} sampled frames once the image is flipped ({as_is} as "
+                              f"delivered); the rig decides which")
+    if found:
+        return bool(mirror), None
+    pick = np.unique(np.round(np.linspace(0, len(sample) - 1, min(VARIANT_SAMPLE, len(sample)))).astype(int))
+    v = find_variant([sample[i] for i in pick], board)
+    if v is not None and v[1] is board:
+        return bool(mirror), (f"camera {name}: the board was never detected, but once the image is flipped it "
+                              f"is found in {v[3]}/{len(pick)} sampled frames; if {name} delivers mirrored "
+                              f"images, give --mirror {name}=true")
+    if v is not None:
+        return bool(mirror), (f"camera {name}: the board was never detected, but with the {v[0]} it is found in "
+                              f"{v[3]}/{len(pick)} sampled frames; fix the board file"
+                              + (" (and the camera's mirror mode)" if v[2] else ""))
+    return bool(mirror), (f"camera {name}: the board was never detected in {total} frames (nor inverted, "
+                          f"legacy, mirrored or with the squares counted as inner corners); check that {name} sees "
+                          f"the board, its focus, and that the board file matches the print")
 
 
 def _sample_positions(total: int) -> set[int]:
@@ -197,43 +201,89 @@ def _sample_positions(total: int) -> set[int]:
 
 
 def _detect_pass(name, src, board, *, step, flip, frame_set, want, progress):
-    """Detect the board in every frame of one camera: (detections, sampled images, size, frames read)."""
+    """Detect the board in every frame of one camera.
+
+    Returns (detections, sampled images, size, frames read, sampled images with the board).
+    """
     from tqdm import tqdm
 
     from calib.detect import detect_board
 
     kind, path, files = src
     total = len(files) if kind == "folder" else _video_count(path)
-    dets, sample, size, n = [], [], None, 0
+    dets, sample, size, n, as_is = [], [], None, 0, 0
     for k, img in tqdm(_frames(kind, path, files, step), total=(total + step - 1) // step, desc=f"detect {name}",
                        unit="img", disable=not progress, dynamic_ncols=True, leave=False):
         size = (img.shape[1], img.shape[0])
-        if n in want:
+        sampled = n in want
+        if sampled:
             sample.append(img)
         n += 1
         frame = k if frame_set is None else frame_set.get(k)
-        if frame is None:
+        if frame is None and not sampled:
             continue
-        d = detect_board(img, board, frame=frame, mirror=flip)
-        if d is not None:
+        d = detect_board(img, board, frame=-1 if frame is None else frame, mirror=flip)
+        as_is += int(sampled and d is not None)
+        if d is not None and frame is not None:
             dets.append(d)
-    return dets, sample, size, n
+    return dets, sample, size, n, as_is
+
+
+def _probe(name, src, board, *, step, mirror, total):
+    """A wrong board file, found on a few evenly spaced frames before the full pass.
+
+    Returns the message naming the board-file variant that finds the board when none of
+    ``VARIANT_SAMPLE`` frames shows it as given (a wrong board costs one failed detection per
+    frame, so the full pass of a long video would keep the user waiting for nothing); else None.
+    """
+    from calib.detect import detect_board, find_variant
+
+    n = (total + step - 1) // step
+    want = set(np.unique(np.round(np.linspace(0, n - 1, min(VARIANT_SAMPLE, n)))).astype(int).tolist()) if n else set()
+    images, frames = [], _frames(*src, step)
+    try:
+        for i, (_, img) in enumerate(frames):
+            if i in want:
+                if detect_board(img, board, mirror=bool(mirror)) is not None:
+                    return None
+                images.append(img)
+            if i >= max(want, default=-1):
+                break
+    finally:
+        frames.close()
+    v = find_variant(images, board) if len(images) >= 2 else None
+    if v is None or v[1] is board:
+        return None  # not a board-file problem: the full pass decides
+    return (f"camera {name}: the board was not detected in {len(images)} sampled frames, but with the {v[0]} it is "
+            f"found in {v[3]}/{len(images)}; fix the board file" + (" (and the camera's mirror mode)" if v[2] else ""))
 
 
 def _detect_camera(name, src, board, *, step, mirror, frame_set, progress):
     """One camera: detections, size, frames read, whether flipped, and what was found out."""
     kind, path, files = src
     total = len(files) if kind == "folder" else _video_count(path)
+    wrong = _probe(name, src, board, step=step, mirror=mirror, total=total)
+    if wrong is not None:
+        return [], _first_size(src), (total + step - 1) // step, bool(mirror), wrong
     want = _sample_positions((total + step - 1) // step)
-    dets, sample, size, n = _detect_pass(name, src, board, step=step, flip=bool(mirror), frame_set=frame_set,
-                                         want=want, progress=progress)
+    dets, sample, size, n, as_is = _detect_pass(name, src, board, step=step, flip=bool(mirror),
+                                                frame_set=frame_set, want=want, progress=progress)
     if size is None:
         raise ValueError(f"camera {name}: {path} holds no readable frame")
-    flip, msg = decide_mirror(name, len(dets), n, sample, board, mirror)
+    flip, msg = decide_mirror(name, len(dets), n, sample, as_is, board, mirror)
     if flip != bool(mirror):
-        dets, _, _, n = _detect_pass(name, src, board, step=step, flip=flip, frame_set=frame_set, want=set(),
+        dets, _, _, n, _ = _detect_pass(name, src, board, step=step, flip=flip, frame_set=frame_set, want=set(),
                                      progress=progress)
     return dets, size, n, flip, msg
+
+
+def _first_size(src) -> tuple[int, int]:
+    frames = _frames(*src, 1)
+    try:
+        img = next(frames)[1]
+    finally:
+        frames.close()
+    return img.shape[1], img.shape[0]
 
 
 def _length_notes(counts: dict[str, int], sets) -> list[str]:
@@ -293,8 +343,22 @@ def detect_images(root: Path, board, *, step: int = 1, min_change: float = 0.02,
     return detections, sizes, flipped, notes
 
 
-def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, progress: bool = True):
-    """Detections (every one) and image sizes per camera from a take (through ``stage.store.TakeReader``)."""
+def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, progress: bool = True,
+                mirror: list[str] | tuple = ()):
+    """Detections (every one) and image sizes per camera from a take (through ``stage.store.TakeReader``).
+
+    Returns
+    -------
+    detections, sizes, cameras
+        ``detections`` of a camera whose board is found only in the flipped image are made on the
+        flipped images; :func:`detect_take_flipped` returns which.
+    """
+    dets, sizes, cams, _, _ = detect_take_flipped(path, board, step=step, progress=progress, mirror=mirror)
+    return dets, sizes, cams
+
+
+def detect_take_flipped(path: Path, board, *, step: int = 1, progress: bool = True, mirror: list[str] | tuple = ()):
+    """:func:`detect_take`, also returning the flipped cameras and the notes."""
     from tqdm import tqdm
 
     from calib.detect import detect_board
@@ -302,19 +366,49 @@ def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, p
 
     with TakeReader(path) as r:
         cams = list(r.cameras)
+        mirror_of = parse_mirror(list(mirror), cams)
         sizes = {name: tuple(r.image_size(name)) for name in cams}
         raw: dict[str, list] = {name: [] for name in cams}
+        sets = list(range(0, r.n_sets, step))
+        want = _sample_positions(len(sets))
+        sample: dict[str, list] = {name: [] for name in cams}
+        found_sample = dict.fromkeys(cams, 0)
         # frame sets keep the cameras in sync: the set index is the moment ("frame") of a detection
-        for k in tqdm(range(0, r.n_sets, step), desc="detect", unit="set", disable=not progress,
-                      dynamic_ncols=True, leave=False):
+        for i, k in enumerate(tqdm(sets, desc="detect", unit="set", disable=not progress, dynamic_ncols=True,
+                                   leave=False)):
             for name, img in r.frame_set(k).items():
-                raw[name].append(None if img is None else detect_board(img, board, frame=k))
+                d = None if img is None else detect_board(img, board, frame=k, mirror=bool(mirror_of[name]))
+                raw[name].append(d)
+                if i in want and img is not None:
+                    sample[name].append(img)
+                    found_sample[name] += int(d is not None)
+        notes, flipped, problems = [], [], []
+        for name in cams:
+            n_found = sum(d is not None for d in raw[name])
+            flip, msg = decide_mirror(name, n_found, len(raw[name]), sample[name], found_sample[name], board,
+                                      mirror_of[name])
+            if msg:
+                notes.append(msg)
+                if not flip and not n_found:
+                    problems.append(msg)
+            if flip != bool(mirror_of[name]):
+                rows = [(k, r.set_rows(k).get(name, -1)) for k in sets]
+                raw[name] = [detect_board(r.frame(name, row), board, frame=k, mirror=flip) if row >= 0 else None
+                             for k, row in rows]
+            if flip:
+                flipped.append(name)
     detections = {}
     for name in cams:
-        dets = raw[name]
-        detections[name] = [d for d in dets if d is not None]
-        print(f"  {name}: board found in {len(detections[name])}/{len(dets)} frame sets")
-    return detections, sizes, cams
+        detections[name] = [d for d in raw[name] if d is not None]
+        print(f"  {name}: board found in {len(detections[name])}/{len(raw[name])} frame sets"
+              f"{' (flipped)' if name in flipped else ''}")
+    if problems:
+        from calib.intrinsics import CalibrationError
+
+        for line in notes:
+            print(f"  note: {line}")
+        raise CalibrationError("; ".join(problems), cameras=[p.split(":")[0].removeprefix("camera ") for p in problems])
+    return detections, sizes, cams, flipped, notes
 
 
 def _detect(args: argparse.Namespace, board, quiet: bool):
@@ -322,7 +416,10 @@ def _detect(args: argparse.Namespace, board, quiet: bool):
     if args.take is not None:
         if not args.take.is_file():
             raise FileNotFoundError(f"take not found: {args.take}")
-        detections, sizes, cams = detect_take(args.take, board, step=args.step, progress=not quiet)
+        detections, sizes, cams, flipped, notes = detect_take_flipped(args.take, board, step=args.step,
+                                                                      progress=not quiet, mirror=args.mirror)
+        for line in dict.fromkeys(notes):
+            print(f"  note: {line}")
     else:
         detections, sizes, flipped, notes = detect_images(
             args.images, board, step=args.step, progress=not quiet, timestamps=args.timestamps, mirror=args.mirror)
@@ -376,7 +473,34 @@ def _write(args: argparse.Namespace, result, detections) -> None:
         print(f"stored the calibration in {args.take}")
 
 
+class _Once(logging.Filter):
+    """Let each distinct log message through once (the held-out folds repeat every calibration step)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        if msg in self.seen:
+            return False
+        self.seen.add(msg)
+        return True
+
+
 def run(args: argparse.Namespace) -> int:
+    once = _Once()
+    handlers = logging.getLogger().handlers
+    for h in handlers:
+        h.addFilter(once)
+    try:
+        return _run(args)
+    finally:
+        for h in handlers:
+            h.removeFilter(once)
+
+
+def _run(args: argparse.Namespace) -> int:
     from calib.boards import load_board
     from calib.rig import calibrate_rig
 

@@ -41,6 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--true-calibration", action="store_true", help="skip calibration and use the simulator's true cameras")
     p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--rgbd", action="store_true",
+                   help="instead: the single RGB-D camera path (simulated pipe bent at 1/2: take, tracking, rig)")
     p.set_defaults(func=run)
 
 
@@ -154,7 +156,12 @@ def _transform_spine(spine: dict, R: np.ndarray, T: np.ndarray) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.rgbd:
+        from stage.cli._demo_rgbd import run_rgbd
+
+        return run_rgbd(args)
     import concurrent.futures as cf
+    import multiprocessing
 
     from calib.formats import write_calibration
     from fake_cameras.device import take_for_rig
@@ -224,7 +231,8 @@ def run(args: argparse.Namespace) -> int:
 
     # 4. process
     results = out / f"{args.subject}-results"
-    executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
+    pool_ctx = multiprocessing.get_context("forkserver")  # as `stage process`: workers start clean
+    executor = cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=pool_ctx) if args.workers > 0 else None
     try:
         with StepBars(disable=args.no_progress) as progress:
             result = process_take(take_path, results, params=ProcessParams(), executor=executor, progress=progress)

@@ -30,8 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--key-mode", choices=("chroma", "luma", "plate"), default=None, help="keying mode (default: the rig's)")
     p.add_argument("--rekey", action="store_true", help="key again even if the take holds masks")
     p.add_argument(
-        "--resolution", type=int, default=None, help="voxels along the subject's longest side (default: from the rig, a voxel of 2 pixels at the "
-        "subject, within a budget of 8M voxels; process.json records the choice)"
+        "--resolution",
+        type=int,
+        default=None,
+        help="voxels along the subject's longest side (default: from the rig, a voxel of 2 pixels at the "
+        "subject, within a budget of 8M voxels; process.json records the choice)",
     )
     p.add_argument(
         "--volume",
@@ -80,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
 
 def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) -> int:
     import concurrent.futures as cf
+    import multiprocessing
 
     from stage.cli._progress import StepBars
     from stage.process import STEPS, ProcessParams, process_take
@@ -103,7 +107,9 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
         raise ValueError("; ".join(
             f"--{'.'.join(map(str, e['loc'])).replace('_', '-')}: {e['msg'].removeprefix('Value error, ')}" for e in errors
         )) from None
-    executor = cf.ProcessPoolExecutor(max_workers=args.workers) if args.workers > 0 else None
+    # forkserver: workers start clean (OpenCV's thread pool does not survive fork) and stay warm across steps
+    ctx = multiprocessing.get_context("forkserver")
+    executor = cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) if args.workers > 0 else None
     try:
         with StepBars(disable=args.no_progress) as progress:
             result = process_take(take, out, steps=steps, params=params, executor=executor, progress=progress)

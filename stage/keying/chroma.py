@@ -26,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from stage.keying._color import M_C, M_Y, NAMED_COLORS_BGR, chi_radius
+from stage.keying._color import M_C, M_Y, NAMED_COLORS_BGR, chi2_cdf, chi_radius
 from stage.keying.params import KeyingError
 
 __all__ = ["estimate_chroma_model", "chroma_distance", "chroma_matrix"]
@@ -125,12 +125,10 @@ def _fit_component(
     c: np.ndarray, y: np.ndarray, sel: np.ndarray, ok: np.ndarray, iterations: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Concentration steps of one residual Gaussian, started from the samples ``sel``."""
-    from scipy.stats import chi2
-
     n0 = np.median(c[sel] / y[sel, None], axis=0)
     q99 = chi_radius(0.01, 2) ** 2
     # consistency factor of a covariance estimated from the Gaussian core inside chi2_2(0.99)
-    consistency = 0.99 / chi2.cdf(q99, 4)
+    consistency = 0.99 / chi2_cdf(q99, 4)
     r = c - y[:, None] * n0
     cov = np.cov(r[sel].T) + np.eye(2) * 0.25
     for _ in range(iterations):

@@ -13,7 +13,7 @@ from stage.keying.keyer import estimate_model, key_frames
 from stage.keying.params import KeyParams, KeyResult
 from stage.keying.preview import contact_sheet
 
-__all__ = ["key_take", "key_camera", "store_camera_key", "take_key_params", "CameraKey"]
+__all__ = ["key_take", "key_camera", "store_camera_key", "store_camera_keys", "take_key_params", "CameraKey"]
 
 log = logging.getLogger("stage.keying")
 
@@ -98,11 +98,24 @@ def key_camera(
 
 def store_camera_key(take: str | Path, key: CameraKey) -> None:
     """Write one camera's masks and their per-frame validity into the take."""
-    from stage.store import write_array, write_masks
+    store_camera_keys(take, [key])
 
-    meta = {"key": key.params.to_dict(), "valid": key.valid.tolist(), "reasons": key.reasons}
-    write_masks(take, key.camera, key.masks, params=meta)
-    write_array(take, f"cameras/{key.camera}", "mask_valid", key.valid.astype(np.uint8), params={"reasons": key.reasons})
+
+def store_camera_keys(take: str | Path, keys: Sequence[CameraKey]) -> None:
+    """Write several cameras' masks and validity in one update of the take's derived data."""
+    from stage.store import TakeReader, write_arrays
+
+    arrays = []
+    with TakeReader(take) as r:
+        for key in keys:
+            W, H = r.image_size(key.camera)
+            shape = (r.n_frames(key.camera), H, W)
+            if key.masks.shape != shape:
+                raise ValueError(f"masks of camera {key.camera} must have shape {shape}, got {key.masks.shape}")
+            meta = {"key": key.params.to_dict(), "valid": key.valid.tolist(), "reasons": key.reasons}
+            arrays.append((f"cameras/{key.camera}", "masks", key.masks.astype(bool), meta))
+            arrays.append((f"cameras/{key.camera}", "mask_valid", key.valid.astype(np.uint8), {"reasons": key.reasons}))
+    write_arrays(take, arrays)
 
 
 def _write_preview(preview_dir: Path, key: CameraKey) -> str | None:

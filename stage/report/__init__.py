@@ -241,6 +241,7 @@ def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: 
         _view_section(d, spine, max_frames=int(max_frames), view_faces=int(view_faces))
         if spine is not None else None,
         _tips_section(spine, report),
+        _rig_section(d, max_frames=int(max_frames), warnings=warnings),
         _quality_section(report, warnings),
         _cameras_section(calibration, spine, warnings) if calibration is not None else None,
         _sheets_section(sheets) if sheets is not None else None,
@@ -307,14 +308,27 @@ def _summary_section(d: Path, spine, report, take, warnings: list[str]) -> dict:
             rows.append(["empty frames", ", ".join(str(x) for x in report["empty_frames"][:50])])
             warnings.append(f"{len(report['empty_frames'])} frame(s) have no surface")
         warnings.extend(str(w) for w in report.get("warnings") or [])  # e.g. the blind side under the subject
+        if (report.get("grid") or {}).get("voxel"):
+            rows.append(["voxel", _grid_choice(report["grid"])])
         for k, v in (report.get("seconds") or {}).items():
             rows.append([f"seconds: {k}", v])
+    if spine is not None and spine.meta.get("count_rule", "mode") not in ("mode", "given"):
+        rows.append(["limb count", spine.meta["count_rule"]])
     files = [n for n in ("spine.json", "report.json", "spine_rig.glb", "spine.glb") if (d / n).is_file()]
     n_meshes = len(list((d / "meshes").glob("frame_*.ply"))) if (d / "meshes").is_dir() else 0
     rows.append(["files", ", ".join(files + ([f"meshes/ ({n_meshes})"] if n_meshes else []))])
     if take is not None:
         rows.append(["take", str(take)])
     return {"id": "summary", "title": "Summary", "rows": rows}
+
+
+def _grid_choice(g: dict) -> str:
+    """The processing grid's voxel and why it is that size (``report.json`` ``grid``)."""
+    head = f"{g['voxel']:.3g} ({' x '.join(str(n) for n in g.get('shape', []))} voxels)"
+    if g.get("source") == "rig":
+        return (f"{head}: {g['pixels_per_voxel']:g} x the median pixel footprint at the subject "
+                f"({g['pixel_footprint']:.3g} over {g['cameras_seeing_subject']} cameras), limited by {g['limited_by']}")
+    return f"{head}: --resolution {g.get('resolution')}"
 
 
 def _view_section(d: Path, spine, *, max_frames: int, view_faces: int) -> dict:
@@ -349,6 +363,37 @@ def _tips_section(spine, report) -> dict | None:
     return {"id": "tips", "title": "Tips over time", "figure": figure_html(fig, div_id="tip-counts"),
             "K": K, "n": len(counts), "off": sum(1 for c in counts if c is not None and K is not None and c != K),
             "unseen": unseen}
+
+
+def _rig_section(d: Path, *, max_frames: int, warnings: list[str]) -> dict | None:
+    """The articulated rig of ``DIR/rig/`` (``stage rig``): segments on the surface, joints over the take."""
+    from stage.report.figures import rig_figure
+
+    r = d / "rig"
+    if not ((r / "rig.json").is_file() and (r / "segments.npy").is_file()):
+        return None
+    try:
+        from pipeline.meshio import load_mesh
+
+        doc = _load_json(r / "rig.json")
+        labels = np.load(r / "segments.npy")
+        ref = doc["reference_frame"]
+        v, f = load_mesh(r / "posed" / f"{int(ref):06d}.ply", largest=False)
+        names = [j["name"] for j in doc["joints"]]
+        idx = {n: i for i, n in enumerate(names)}
+        parents = np.array([idx[j["parent"]] if j["parent"] is not None else -1 for j in doc["joints"]])
+        P = np.array([[fr["joints"][n] if fr["joints"][n] is not None else [np.nan] * 3 for n in names]
+                      for fr in doc["frames"]], dtype=float)
+        fig = rig_figure(v, f, labels, P, parents, [j["kind"] for j in doc["joints"]],
+                         frame_indices=[fr["index"] for fr in doc["frames"]], fps=float(doc["fps"]),
+                         max_frames=max_frames)
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        warnings.append(f"rig/ could not be shown: {exc}")
+        return None
+    err = doc.get("fit", {}).get("mean_vertex_error")
+    note = (f"Mean vertex error of the fitted model {err:.3g} {doc.get('units', '')}." if err is not None else "")
+    return {"id": "rig", "title": "Articulated rig: motion segments and joints", "note": note,
+            "figure": figure_html(fig, div_id="rig-view")}
 
 
 def _quality_section(report, warnings: list[str]) -> dict | None:

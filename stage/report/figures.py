@@ -22,6 +22,7 @@ __all__ = [
     "frusta_figure",
     "camera_coverage",
     "spine_figure",
+    "rig_figure",
     "decimate_mesh",
     "contact_sheet",
     "png_data_uri",
@@ -442,6 +443,77 @@ def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: 
             steps=[dict(method="animate", label=str(int(fi[t])),
                         args=[[str(int(fi[t]))], dict(mode="immediate", frame=dict(duration=0, redraw=True),
                                                       transition=dict(duration=0))]) for t in keys])],
+    )
+    return fig
+
+
+def rig_figure(vertices, faces, labels, joints, parents, kinds, *, frame_indices=None, fps: float = 30.0,
+               max_frames: int = 120, max_faces: int = 20000):
+    """The articulated rig: the rest surface coloured by motion segment, the joints animated over the take.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+    faces : (F, 3) int ndarray
+    labels : (V,) int ndarray
+        Motion segment of every vertex.
+    joints : (T, J, 3) float ndarray
+        Joint positions per frame.
+    parents : (J,) int ndarray
+    kinds : sequence of str
+        ``root``, ``joint`` (articulation) or ``aux`` per joint.
+    frame_indices : (T,) int array_like, optional
+    fps : float
+    max_frames : int
+        Animation keys (evenly subsampled above this).
+    max_faces : int
+        Faces drawn at most (an even subset of them above this).
+    """
+    go = _go()
+    v = np.asarray(vertices, dtype=np.float32)
+    f = np.asarray(faces, dtype=np.int64)
+    lab = np.asarray(labels, dtype=np.int64)
+    P = np.asarray(joints, dtype=np.float64)
+    par = np.asarray(parents, dtype=np.int64)
+    if P.ndim != 3 or P.shape[2] != 3 or len(P) == 0:
+        raise ValueError(f"joints must have shape (T, J, 3) with T > 0, got {P.shape}")
+    if lab.shape != (len(v),):
+        raise ValueError(f"labels must have shape ({len(v)},), got {lab.shape}")
+    T = len(P)
+    fi = np.arange(T) if frame_indices is None else np.asarray(frame_indices)
+    keys = np.unique(np.linspace(0, T - 1, min(T, int(max_frames))).round().astype(int))
+    if len(f) > max_faces:
+        f = f[np.linspace(0, len(f) - 1, int(max_faces)).round().astype(int)]
+    colors = [_PALETTE[int(k) % len(_PALETTE)] for k in lab]
+    art = np.array([k == "joint" for k in kinds])
+
+    def joint_traces(t: int) -> list:
+        xs, ys, zs = _bone_lines(P[t], par)
+        return [
+            go.Scatter3d(x=xs, y=ys, z=zs, mode="lines", line=dict(color="#222222", width=6), name="bones",
+                         hoverinfo="skip"),
+            go.Scatter3d(x=P[t, art, 0], y=P[t, art, 1], z=P[t, art, 2], mode="markers",
+                         marker=dict(size=7, color="#d62728"), name="articulations"),
+            go.Scatter3d(x=P[t, ~art, 0], y=P[t, ~art, 1], z=P[t, ~art, 2], mode="markers",
+                         marker=dict(size=4, color="#555555"), name="auxiliary joints"),
+        ]
+
+    surface = go.Mesh3d(x=v[:, 0], y=v[:, 1], z=v[:, 2], i=f[:, 0], j=f[:, 1], k=f[:, 2], vertexcolor=colors,
+                        opacity=0.5, name=f"{int(lab.max()) + 1} segments", hoverinfo="skip", showlegend=True)
+    frames = [go.Frame(data=joint_traces(int(t)), traces=[1, 2, 3], name=str(int(fi[t]))) for t in keys]
+    fig = go.Figure(data=[surface] + joint_traces(int(keys[0])), frames=frames)
+    step_ms = max(1, int(round(1000.0 / fps * max(1, (T - 1) / max(1, len(keys) - 1)))))
+    fig.update_layout(
+        title=f"Rig: {int(lab.max()) + 1} motion segments, {int(art.sum())} articulations, {len(par)} joints",
+        scene=dict(aspectmode="data"), height=620, margin=dict(l=0, r=0, t=40, b=0), uirevision="rig",
+        updatemenus=[dict(type="buttons", showactive=False, x=0.02, y=0.02, xanchor="left", yanchor="bottom",
+                          buttons=[dict(label="Play", method="animate",
+                                        args=[None, dict(frame=dict(duration=step_ms, redraw=True), fromcurrent=True,
+                                                         transition=dict(duration=0))])])],
+        sliders=[dict(active=0, x=0.12, len=0.86, y=0.02, yanchor="bottom", currentvalue=dict(prefix="frame "),
+                      steps=[dict(method="animate", label=str(int(fi[t])),
+                                  args=[[str(int(fi[t]))], dict(mode="immediate", frame=dict(duration=0, redraw=True),
+                                                                transition=dict(duration=0))]) for t in keys])],
     )
     return fig
 

@@ -18,7 +18,7 @@ Meshes and spines do not belong in a take.
 """
 
 from stage.store._format import COMPRESSIONS, DERIVED_FORMAT, FORMAT, CameraSpec, TakeError, have_lz4
-from stage.store.derived import attach_calibration, derived_path, write_array, write_masks
+from stage.store.derived import attach_calibration, derived_path, write_array, write_arrays, write_masks
 from stage.store.h5repair import _lookup3  # noqa: F401  (HDF5's checksum; tests compare with h5py's)
 from stage.store.reader import TakeReader
 from stage.store.recover import recover_take
@@ -35,6 +35,7 @@ __all__ = [
     "TakeWriter",
     "TakeReader",
     "write_array",
+    "write_arrays",
     "write_masks",
     "attach_calibration",
     "derived_path",

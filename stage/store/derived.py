@@ -24,7 +24,7 @@ import logging
 import os
 import threading
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import h5py
 import numpy as np
@@ -32,7 +32,7 @@ import numpy as np
 from stage.store._format import DERIVED_FORMAT, RESERVED, TakeError, attr_value, derived_filter_kwargs, to_json
 from stage.store.space import check_free_space, format_bytes, raise_disk_full
 
-__all__ = ["derived_path", "open_derived", "write_array", "write_masks", "attach_calibration"]
+__all__ = ["derived_path", "open_derived", "write_array", "write_arrays", "write_masks", "attach_calibration"]
 
 log = logging.getLogger("stage.store")
 
@@ -259,3 +259,45 @@ def attach_calibration(path: str | os.PathLike, calibration: Any) -> None:
         out.require_group("meta").create_dataset("calibration", data=text, dtype=h5py.string_dtype())
 
     _update(Path(path), "meta/calibration", put, nbytes=len(text), what=f"the calibration of {Path(path).name}")
+
+
+def write_arrays(path: str | os.PathLike, arrays: Sequence[tuple[str, str, np.ndarray, Mapping[str, Any] | None]]) -> None:
+    """Store several derived arrays in one update of the derived file (one copy, one flush).
+
+    ``arrays`` holds ``(group_path, name, array, params)`` as :func:`write_array` takes them
+    (compressed, arrays of 3 or more dimensions chunked one leading index per chunk; existing
+    arrays of those names replaced). Keying every camera of a take stores its masks this way:
+    one update instead of two per camera, each of which copies the derived file.
+    """
+    items = []
+    for group_path, name, array, params in arrays:
+        if not isinstance(name, str) or not name or "/" in name or name in RESERVED:
+            raise ValueError(f"name must be a non-reserved string without '/', got {name!r}")
+        group = str(group_path).strip("/")
+        if group.split("/")[0] == "meta":
+            raise ValueError("group_path 'meta' is reserved for the take's metadata")
+        arr = np.asarray(array)
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"array must be numeric or bool, got dtype {arr.dtype}")
+        items.append((group, name, arr, params))
+    if not items:
+        return
+
+    def put(out: h5py.File) -> None:
+        for group, name, arr, params in items:
+            grp = out.require_group(group) if group else out
+            if name in grp:
+                del grp[name]
+            kw: dict[str, Any] = {}
+            if arr.ndim >= 2 and arr.size:
+                kw = {"chunks": (1,) + arr.shape[1:] if arr.ndim >= 3 else arr.shape, **derived_filter_kwargs()}
+            ds = grp.create_dataset(name, data=arr.astype(np.uint8) if arr.dtype == bool else arr, **kw)
+            if arr.dtype == bool:
+                ds.attrs["bool"] = True
+            if params is not None:
+                ds.attrs["params"] = to_json(dict(params))
+
+    p = Path(path)
+    expect = sum(a.nbytes // (16 if a.dtype == bool else 2) for _, _, a, _ in items)
+    first = f"{items[0][0]}/{items[0][1]}"
+    _update(p, first, put, nbytes=expect, what=f"{len(items)} arrays of {p.name} ({format_bytes(expect)})")

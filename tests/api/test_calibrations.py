@@ -131,3 +131,46 @@ def test_calibrate_rendered_board_take(make_client, tmp_path):
     assert cal.names == truth.names
     d_true, d_got = pdist(truth.centers()), pdist(cal.centers())
     assert np.max(np.abs(d_got - d_true) / d_true) < 0.015
+
+
+def test_calibrate_take_passes_every_detection_with_the_cli_defaults(tmp_path, monkeypatch):
+    """The job hands every detection to calib.rig.calibrate_rig (which selects the views for the
+    rig) with stage calibrate's defaults: a board held still for two frames is seen twice by every
+    camera, and per-camera novelty thinning would have dropped the repeats that link the cameras."""
+    import calib.rig
+    from api.calibrations import CalibrateParams, calibrate_take
+    from calib.boards import parse_board
+    from calib.detect import detect_board
+    from fake_cameras.boards import render_board_views
+    from fake_cameras.dome import make_dome
+    from stage.frame import Frame
+    from stage.store import CameraSpec, TakeWriter
+
+    truth = make_dome(4, size=(320, 240), seed=0)
+    views = render_board_views(parse_board(BOARD), truth, 4, seed=0)
+    images = np.repeat(views.images, 2, axis=0)  # each pose held for two frames
+    path = tmp_path / "still.h5"
+    with TakeWriter(path, [CameraSpec(c, 320, 240) for c in truth.names], fps=30.0) as tw:
+        for v in range(images.shape[0]):
+            t = 10**9 + v * 33_333_333
+            tw.write_set({c: Frame(np.ascontiguousarray(images[v, j]), c, v, t, t)
+                          for j, c in enumerate(truth.names)}, time_ns=t)
+    seen = {}
+
+    def spy(detections, sizes, board, **kw):
+        seen.update(detections=detections, kw=kw)
+        return "result"
+
+    monkeypatch.setattr(calib.rig, "calibrate_rig", spy)
+    assert calibrate_take(path, params=CalibrateParams(board=BOARD)) == "result"
+    board = parse_board(BOARD)
+    for j, c in enumerate(truth.names):
+        want = [k for k in range(images.shape[0]) if detect_board(images[k, j], board) is not None]
+        assert len(want) >= 4
+        assert [d.frame for d in seen["detections"][c]] == want
+    assert seen["kw"]["intrinsics"] == "prior" and seen["kw"]["holdout_folds"] == 5
+    assert seen["kw"]["min_change"] == 0.02
+    with pytest.raises(ValueError, match="holdout"):
+        CalibrateParams(board=BOARD, holdout=1)
+    with pytest.raises(ValueError, match="intrinsics"):
+        CalibrateParams(board=BOARD, intrinsics="loose")

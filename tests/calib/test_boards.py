@@ -125,3 +125,33 @@ def test_invalid_input(tmp_path):
         select_views([], size=(0, 10))
     with pytest.raises(ValueError, match="min_change"):
         select_views([], size=(10, 10), min_change=-1)
+
+
+def test_find_variant_names_the_first_variant_that_finds_the_board():
+    """Rendered prints: a mirrored image, an inverted print and a wrong board file."""
+    import dataclasses
+
+    from calib.detect import find_variant
+
+    board = Charuco((5, 7), 30, 22, dictionary="DICT_4X4_50")
+    img = board.image(px_per_mm=3.0)
+    assert detect_board(img, board) is not None
+    desc, b, mirror, found = find_variant([img[:, ::-1]] * 3, board)
+    assert (desc, b, mirror, found) == ("mirrored images", board, True, 3)
+    desc, b, mirror, found = find_variant([255 - img] * 3, board)
+    assert b == dataclasses.replace(board, inverted=True) and not mirror and "inverted = true" in desc
+    chess = Chessboard((9, 6), 25.0)
+    assert find_variant([chess.image(px_per_mm=2.0)] * 3, Chessboard((12, 9), 25.0)) is None
+    assert find_variant([], board) is None
+    # found in one image of three: below min_found
+    blank = np.full_like(img, 255)
+    assert find_variant([img[:, ::-1], blank, blank], board) is None
+    assert find_variant([img[:, ::-1], blank, blank], board, min_found=1)[3] == 1
+
+
+def test_find_variant_names_the_inner_corners_when_the_squares_were_given():
+    from calib.detect import find_variant
+
+    img = Chessboard((9, 6), 25.0).image(px_per_mm=2.0)
+    desc, b, mirror, found = find_variant([img] * 3, Chessboard((10, 7), 25.0))
+    assert desc == "board file with corners = [9, 6]" and b.corners == (9, 6) and not mirror and found == 3

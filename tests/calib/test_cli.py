@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.boards import Chessboard, save_board
+from calib.boards import Charuco, Chessboard, save_board
 from calib.formats import read_calibration
 from stage.cli import main
 from tests.conftest import shared_dataset
@@ -42,11 +42,20 @@ def test_calibrate_images_then_export(stereo_dir, tmp_path, capsys):
 
 def test_calibrate_wrong_board_writes_nothing(stereo_dir, tmp_path, capsys):
     out = tmp_path / "calib.toml"
+    # every 4th frame: a failed chessboard search costs ~0.5 s an image, and 4 frames per camera show the same
     rc = main(["calibrate", "--images", str(stereo_dir / "imgs"), "--board",
-               str(stereo_dir / "squares_not_corners.toml"), "--out", str(out)])
+               str(stereo_dir / "squares_not_corners.toml"), "--out", str(out), "--step", "4"])
     assert rc == 2
     err = capsys.readouterr().err
-    assert "camera left" in err and "board file matches the print" in err
+    # the squares given as corners: the variant search names the inner corners that find the board
+    assert "camera left" in err and "corners = [9, 6]" in err and "fix the board file" in err
+    assert not out.exists()
+    # a board that matches nothing: one line per camera saying what was tried
+    save_board(Charuco((5, 7), 30, 22, dictionary="DICT_4X4_50"), tmp_path / "charuco.toml")
+    assert main(["calibrate", "--images", str(stereo_dir / "imgs"), "--board", str(tmp_path / "charuco.toml"),
+                 "--out", str(out), "--step", "4"]) == 2
+    err = capsys.readouterr().err
+    assert "camera left" in err and "camera right" in err and "board file matches the print" in err
     assert not out.exists()
 
 
@@ -97,7 +106,7 @@ def test_calibrate_take_stores_calibration(stereo_dir, tmp_path, capsys):
                               host_timestamp_ns=k * 100_000_000)
             w.write_set(fr)
     # a failing calibration leaves the take untouched
-    assert main(["calibrate", str(take), "--board", str(stereo_dir / "squares_not_corners.toml")]) == 2
+    assert main(["calibrate", str(take), "--board", str(stereo_dir / "squares_not_corners.toml"), "--step", "4"]) == 2
     with store.TakeReader(take) as r:
         assert not r.has_calibration
     capsys.readouterr()
@@ -106,3 +115,23 @@ def test_calibrate_take_stores_calibration(stereo_dir, tmp_path, capsys):
         calib = r.calibration
     assert calib.names == ["left", "right"]
     assert abs(np.linalg.norm(calib["right"].center) - 83.6) < 1.0
+
+
+def test_quiet_calibrate_prints_the_held_out_line_first(stereo_dir, tmp_path, capsys):
+    import json
+
+    out = tmp_path / "calib.toml"
+    rc = main(["-q", "calibrate", "--images", str(stereo_dir / "imgs"), "--board", str(stereo_dir / "board.toml"),
+               "--out", str(out), "--holdout", "3", "--intrinsics", "fixed", "--report", str(tmp_path / "r.json")])
+    assert rc == 0
+    captured = capsys.readouterr()
+    lines = [ln for ln in captured.out.splitlines() if not ln.startswith("  ")]
+    assert lines[0].startswith("held-out reprojection RMS (3-fold over 13 frame sets)")
+    assert "detect left" not in captured.err  # no progress bars under -q
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert set(rep["evaluation"]["held_out"]["per_camera"]) == {"left", "right"}
+    assert rep["evaluation"]["mode"] == "fixed"
+    for fmt, name in (("caliscope", "camera_array.toml"), ("colmap", "colmap"), ("nerfstudio", "transforms.json")):
+        assert main(["calibration", "export", str(out), "--format", fmt]) == 0
+        back = read_calibration(tmp_path / name, **({"units": "mm"} if fmt == "colmap" else {}))
+        assert len(back) == 2

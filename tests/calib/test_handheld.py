@@ -127,3 +127,26 @@ def test_mirrored_images_are_found_and_flagged(tmp_path):
 
     with pytest.raises(CalibrationError, match="cam_1.*mirror = false.*flipped"):
         detect_images(tmp_path, HANDHELD_BOARD, progress=False, mirror=["cam_1=false"])
+
+
+def test_mirrored_camera_in_a_take(tmp_path):
+    """The same check on a take (stage calibrate TAKE.h5): frames of one camera mirrored."""
+    from stage import store
+    from stage.cli.calibrate import detect_take_flipped
+    from stage.frame import Frame
+
+    truth, _ = handheld_rig(3, mirrored=(1,), sideways=())
+    poses = handheld_poses(truth, HANDHELD_BOARD, 200, seed=3)
+    obj = HANDHELD_BOARD.object_points()
+    keep = [k for k, T in enumerate(poses)
+            if all(truth[i].in_image(truth[i].project(obj @ T[:3, :3].T + T[:3, 3]), margin=4).all()
+                   and (truth[i].center - T[:3, 3]) @ -T[:3, 2] > 0 for i in (0, 1))][:4]
+    sub = truth.__class__(truth.cameras[:2], units="mm")
+    imgs = render_handheld(sub, HANDHELD_BOARD, poses[keep], seed=5)
+    take = tmp_path / "board.h5"
+    with store.TakeWriter(take, [store.CameraSpec(n, 640, 480) for n in imgs], fps=6) as w:
+        for k in range(len(keep)):
+            w.write_set({n: Frame(np.repeat(imgs[n][k][:, :, None], 3, axis=2), n, k, k * 10**8, k * 10**8)
+                         for n in imgs})
+    dets, sizes, cams, flipped, notes = detect_take_flipped(take, HANDHELD_BOARD, progress=False)
+    assert flipped == ["cam_1"] and len(dets["cam_1"]) >= 3 and any("cam_1" in n for n in notes)

@@ -45,3 +45,24 @@ def test_invalid_input():
     with pytest.raises(ValueError, match="bend"):
         simulate_rgbd_take("lamp", bend=400)
     assert OBJECTS == ("pipe_half", "pipe_3q", "lamp")
+
+
+def test_surface_point_tracks_stay_on_the_creature():
+    from fake_cameras.creatures import make_creature
+    from fake_cameras.surface_motion import capsule_frames, surface_point_tracks
+
+    c = make_creature("quadruped", seed=3)
+    p0 = c.pose(0.0)
+    lo, hi = p0.bounds()
+    X = np.random.default_rng(0).uniform(lo, hi, (20000, 3))
+    X = X[np.abs(p0.sdf(X)) < 3][:500]
+    times = np.array([0.0, 0.3, 0.9])
+    tr = surface_point_tracks(c, X, times)
+    for k, t in enumerate(times):
+        assert np.percentile(np.abs(c.pose(t).sdf(tr[k])), 95) < 1e-6  # rigidly carried, still on the surface
+    assert np.linalg.norm(tr[2] - tr[0], axis=1).mean() > 5  # and they do move
+    R, o = capsule_frames(c, 0.3)
+    np.testing.assert_allclose(np.einsum("kij,kil->kjl", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    assert len(R) == c.pose(0.3).n_capsules
+    with pytest.raises(ValueError, match="creature"):
+        capsule_frames("starfish", 0.0)

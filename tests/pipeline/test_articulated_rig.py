@@ -51,9 +51,9 @@ def test_pipe_has_one_articulation_at_the_hand_made_joint(pipe):
     size = float(np.linalg.norm(np.ptp(d["vertices"][0], axis=0)))
     found = rig.fit.joints[:, sk.articulation][:, 0]
     err = np.linalg.norm(found - d["joints"][:, 1], axis=1)  # joint 1: the hand-made articulation
-    # measured: median 2.9 mm = 0.8 % of the 355 mm pipe
+    # measured: median 2.9 mm = 0.8 % of the pipe's 361 mm bounding-box diagonal
     assert np.median(err) <= 0.05 * size
-    # measured: 0.84 mm mean over the 60 frames
+    # measured: 0.80 mm mean over the 60 frames
     assert rig.fit.errors.mean() <= 3.0
 
 
@@ -89,7 +89,14 @@ def test_pipe_fit_matches_the_slow_least_squares(pipe):
 # --------------------------------------------------------------------------- simulated creatures
 
 
-@pytest.fixture(scope="module", params=["starfish", "quadruped", "biped"])
+_BIPED_XFAIL = pytest.mark.xfail(
+    strict=True,
+    reason="biped: the arms touch the torso in the rest mesh, so the boundary between an arm and the torso runs "
+    "along the upper arm and its centroid is not the shoulder (measured recall 0.56, precision 0.45)",
+)
+
+
+@pytest.fixture(scope="module", params=["starfish", "quadruped", pytest.param("biped", marks=_BIPED_XFAIL)])
 def creature(request):
     from fake_cameras.mesh_motion import mesh_sequence
 
@@ -101,14 +108,11 @@ def creature(request):
 
 def test_simulated_creatures_articulations_and_error(creature):
     name, ms, rig = creature
-    if name == "biped":
-        pytest.xfail("biped: the arms touch the torso in the rest mesh, the curve skeleton misses them "
-                     "(measured recall 0.56, precision 0.45)")
     recall, precision, _ = _articulation_scores(rig, ms.joints, ms.articulates, ms.size)
     # measured: starfish 0.75 / 1.0, quadruped 0.77 / 1.0
     assert recall >= 0.7
     assert precision >= 0.7
-    # measured: starfish 0.39 %, quadruped 0.60 % of size (mean over frames)
+    # measured: starfish 0.27 %, quadruped 0.53 % of size (mean over frames)
     assert rig.fit.errors.mean() <= 0.01 * ms.size
 
 
@@ -227,7 +231,7 @@ def test_horse_rig_plays_back(horse):
     assert len(list((out / "posed").glob("*.ply"))) == len(V)
     lab = np.load(out / "segments.npy")
     assert lab.shape == (V.shape[1],)
-    # measured: 1.8 % of size on the gallop (a deforming, not articulated, body)
+    # measured: 0.91 % of size on the gallop (a deforming, not only articulated, body)
     assert np.mean(doc["fit"]["vertex_error_percent"]) < 5.0
 
 
@@ -258,8 +262,8 @@ def test_one_frame_sequence():
     assert rig.fit.errors[0] < 1e-6 * ms.size
 
 
-def test_several_components(pipe):
-    """A second, separate part that moves rigidly: the rig still finds the pipe's joint."""
+def test_several_components(pipe, caplog):
+    """A second, separate part: a warning, and the pipe's joint and fit are unchanged."""
     import trimesh
 
     d, _ = pipe
@@ -270,9 +274,12 @@ def test_several_components(pipe):
     BV = np.repeat(bv[None], len(V), axis=0)
     V2 = np.concatenate([V, BV], axis=1)
     F2 = np.concatenate([F, np.asarray(ball.faces) + V.shape[1]])
-    rig = build_articulated_rig(V2, F2)
+    with caplog.at_level(logging.WARNING):
+        rig = build_articulated_rig(V2, F2)
+    assert "2 connected parts" in caplog.text
     assert int(rig.skeleton.articulation.sum()) == 1
-    assert rig.fit.errors.mean() <= 3.0 * 2
+    pipe_err = np.mean([np.linalg.norm(rig.posed(t)[: V.shape[1]] - V[t], axis=1).mean() for t in range(len(V))])
+    assert pipe_err <= 3.0
 
 
 def test_invalid_input(tmp_path):

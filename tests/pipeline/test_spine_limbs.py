@@ -1,4 +1,4 @@
-"""Limbs that come and go (issue 16): the spine keeps the identities of the limbs it sees.
+"""Limbs that come and go: the spine keeps the identities of the limbs it sees.
 
 Surfaces are marching cubes of the tailed quadruped's signed distance (9 mm voxels, about
 8k faces); a "hidden" limb is left out of the pose in some frames, as when it is too thin

@@ -188,3 +188,50 @@ def test_register_driver_invalid_input():
         register_driver("", FakeCamera)
     with pytest.raises(ValueError, match="cls"):
         register_driver("other", "fake_cameras.device:FakeCamera")  # a class, not an import path
+
+
+def test_mirror_mode_delivers_mirrored_images_and_mirror_flips_them_back(take):
+    """A simulated webcam in mirror mode delivers the scene flipped left-right (depth too);
+    ``mirror = true`` on the camera says so, and the driver flips its frames back."""
+    from fake_cameras.take import simulate_take
+
+    dtake = simulate_take("starfish", n_cameras=4, frames=5, size=(64, 48), seed=1, depth=True)
+    for mirror_mode, mirror, flipped in ((True, False, True), (True, True, False), (False, True, True)):
+        clock = FakeClock()
+        cam = _cam(dtake, clock, mirror_mode=mirror_mode, mirror=mirror, depth=True)
+        cam.open()
+        for f in (cam.grab() for _ in range(3)):
+            k = cam.scene_frame(f.index)
+            img, dep = dtake.images[k, 1], dtake.depth[k, 1]
+            want = (img[:, ::-1], dep[:, ::-1]) if flipped else (img, dep)
+            assert np.array_equal(f.image, want[0]) and np.array_equal(f.depth, want[1]), (mirror_mode, mirror)
+            assert not np.array_equal(img, img[:, ::-1])  # the test can tell the two apart
+            assert f.image.flags.c_contiguous
+
+
+def test_capture_unmirrors_a_mirror_mode_camera_marked_in_the_rig_file(tmp_path, monkeypatch):
+    """``stage capture`` of a rig file whose cam1 is in mirror mode: with ``mirror = true`` the take
+    holds the scene as the camera really sees it, without it the mirrored images."""
+    monkeypatch.setenv("CAPTURE_STAGE_CACHE", str(tmp_path))
+    from fake_cameras.device import take_for_rig
+    from fake_cameras.rigs import dumps_toml
+    from stage.cli import main
+    from stage.store import TakeReader
+
+    for mirror in (True, False):
+        rig = {"name": "mirror", "fps": 30,
+               "simulation": {"subject": "starfish", "n_cameras": 4, "frames": 3},
+               "cameras": [{"id": "cam0", "driver": "fake", "index": 0, "width": 64, "height": 48},
+                           {"id": "cam1", "driver": "fake", "index": 1, "width": 64, "height": 48,
+                            "mirror_mode": True, "mirror": mirror}]}
+        path = tmp_path / f"rig_{mirror}.toml"
+        path.write_text(dumps_toml(rig), encoding="utf-8")
+        out = tmp_path / f"cap_{mirror}.h5"
+        assert main(["capture", "--rig", str(path), "--frames", "4", "--out", str(out), "--no-progress"]) == 0
+        scene = take_for_rig(parse_rig(rig), size=(64, 48), fps=30.0).images
+        with TakeReader(out) as r:
+            for k in range(len(r)):
+                got = {c: r.frame(c, k) for c in ("cam0", "cam1")}
+                f = next(i for i in range(scene.shape[0]) if np.array_equal(got["cam0"], scene[i, 0]))
+                want = scene[f, 1] if mirror else scene[f, 1][:, ::-1]
+                assert np.array_equal(got["cam1"], want), (mirror, k)

@@ -200,7 +200,7 @@ def _same_results(path, out, reference):
 
 def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
     """In process and on 2 worker processes, `stage process` gives the masks, meshes and
-    spine of the parts called one by one (issue 16)."""
+    spine of the parts called one by one."""
     import concurrent.futures as cf
 
     sim, path = starfish
@@ -208,8 +208,10 @@ def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
     params = ProcessParams()
     reference = _reference_results(sim, tmp_path, params, json.loads((out / "grid.json").read_text()))
     _same_results(path, out, reference)
+    import multiprocessing
+
     pooled = record_take(sim, tmp_path / "pooled.h5")
-    with cf.ProcessPoolExecutor(max_workers=2) as ex:
+    with cf.ProcessPoolExecutor(max_workers=2, mp_context=multiprocessing.get_context("forkserver")) as ex:
         process_take(pooled, tmp_path / "pooled", executor=ex)
     _same_results(pooled, tmp_path / "pooled", reference)
 
@@ -217,7 +219,7 @@ def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
 def test_thin_tail_survives_the_default_grid(tmp_path):
     """The tailed quadruped (tail 36 -> 16 mm thick, 5-6 px at its end) filmed by ten 480x360
     cameras: the default grid follows the pixel footprint, and the spine has all 6 limbs with
-    consistent identities in every frame (issue 16)."""
+    consistent identities in every frame."""
     from fake_cameras.rigs import thin_tail_setup
 
     sim = simulate_take(frames=20, seed=0, **thin_tail_setup())
@@ -234,3 +236,57 @@ def test_thin_tail_survives_the_default_grid(tmp_path):
     assert acc["K"] == 6
     assert acc["identity_consistent"] == 1.0
     assert acc["tip_within_tol"] >= 0.95
+
+
+def test_steps_are_a_registry(starfish, processed, tmp_path):
+    """A step registered after another runs in order on the same context; bad registrations fail."""
+    import stage.process as sp
+
+    _, path = starfish
+    seen = []
+    before = dict(sp._REGISTRY)
+    try:
+        sp.register_step("count", lambda ctx: seen.append((ctx.n_sets, ctx.steps)), after="surface")
+        assert sp.STEPS.index("count") == sp.STEPS.index("surface") + 1
+        res = process_take(path, tmp_path / "o", steps=("count",))
+        assert seen == [(8, ("count",))] and res.steps == ("count",)
+    finally:
+        sp._REGISTRY.clear()
+        sp._REGISTRY.update(before)
+        sp.STEPS = tuple(before)
+    with pytest.raises(ValueError, match="name"):
+        sp.register_step("not a name", lambda ctx: None)
+    with pytest.raises(ValueError, match="after"):
+        sp.register_step("x", lambda ctx: None, after="nothing")
+    assert "count" not in sp.STEPS and "x" not in sp.STEPS
+
+
+_AFTER_OPENCV_THREADS = """
+import concurrent.futures as cf, multiprocessing, sys
+import cv2, numpy as np
+from fake_cameras.record import record_take
+from fake_cameras.take import simulate_take
+from stage.process import process_take
+
+cv2.setNumThreads(2)  # OpenCV's thread pool running in this process before the workers start
+cv2.GaussianBlur(np.zeros((2000, 2000), np.float32), (31, 31), 5)
+sim = simulate_take("starfish", n_cameras=4, frames=2, size=(320, 240), seed=1)
+path = record_take(sim, sys.argv[1] + "/t.h5")
+for method in ("fork", "forkserver"):
+    with cf.ProcessPoolExecutor(2, mp_context=multiprocessing.get_context(method)) as ex:
+        process_take(path, sys.argv[1] + "/out-" + method, steps=("key", "surface"), params={"rekey": True}, executor=ex)
+print("finished")
+"""
+
+
+def test_worker_pools_survive_opencv_threads_in_the_parent(tmp_path):
+    """A parent that used OpenCV's thread pool, then a forked or forkserver pool: no deadlock
+    (a forked worker hung in cv2.setNumThreads; `stage demo` calibrates before it processes)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    run = subprocess.run([sys.executable, "-c", _AFTER_OPENCV_THREADS, str(tmp_path)], capture_output=True, text=True,
+                         timeout=300, env=env, cwd=tmp_path)
+    assert run.returncode == 0 and "finished" in run.stdout, run.stderr[-2000:]

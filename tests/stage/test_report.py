@@ -290,3 +290,16 @@ def test_browser_renders_the_3d_view(results):
     # animated: the creature moved between the first and the last frame
     changed = (np.abs(img - last).max(axis=2) > 40).mean()
     assert changed > 0.002, f"the view did not change when stepping the animation ({changed:.4f})"
+
+
+def test_grid_choice_reaches_the_page(results, tmp_path):
+    """The voxel `stage process` chose from the rig, and why, is on the page (issue 16)."""
+    d, *_ = results
+    only = tmp_path / "grid"
+    only.mkdir()
+    shutil.copy(d / "spine.json", only / "spine.json")
+    grid = {"source": "rig", "resolution": 115, "pixel_footprint": 2.94, "cameras_seeing_subject": 10,
+            "pixels_per_voxel": 2.0, "limited_by": "pixel footprint", "voxel": 5.86, "shape": [115, 55, 75]}
+    (only / "report.json").write_text(json.dumps({"frames": 3, "grid": grid}))
+    html = render_report(only)
+    assert "5.86 (115 x 55 x 75 voxels): 2 x the median pixel footprint at the subject (2.94 over 10 cameras)" in html

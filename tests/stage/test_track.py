@@ -82,3 +82,49 @@ def test_invalid_input(tmp_path, capsys):
     assert "--template" in capsys.readouterr().err
     assert main(["track", str(tmp_path)]) == 2  # a directory without meshes
     assert "stage process" in capsys.readouterr().err
+
+
+def test_track_is_an_opt_in_step_of_process_and_of_api_jobs():
+    from api.jobs import load_work
+    from stage.process import DEFAULT_STEPS, STEPS
+
+    assert "track" in STEPS and "track" not in DEFAULT_STEPS
+    spec = load_work("stage.process:process_take")
+    assert spec.validate(None, {})[0] == DEFAULT_STEPS
+    assert spec.validate(["track", "spine"], {})[0] == ("spine", "track")
+
+
+def test_demo_rgbd_runs_the_single_camera_path_end_to_end(tmp_path, capsys):
+    assert main(["-q", "demo", "--rgbd", "--frames", "4", "--out", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert "accuracy: mean vertex error" in text
+    assert (tmp_path / "results" / "tracked" / "000003.ply").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "must-show of the RGB-D path not met yet: mean vertex error over the take 3.5 % (pipe 1/2), 1.6 % (pipe 3/4), "
+    "8.5 % (lamp) of the length against <= 1 %; volume 1.00..1.09, 1.00..1.03, 0.80..1.09; stage rig finds "
+    "2, 1, 33 articulations against 1, 1, 3 (stage bench track --accuracy)"))
+@pytest.mark.parametrize("name, articulations", [("pipe_half", 1), ("pipe_3q", 1), ("lamp", 3)])
+def test_rgbd_bent_objects_tracked_to_one_percent_and_rigged(name, articulations, tmp_path):
+    from pipeline.articulated_rig import rig_results
+
+    tk = simulate_rgbd_take(name, frames=30, spacing=4.0 if name != "lamp" else None)
+    take = record_rgbd_take(tk, tmp_path / f"{name}.h5")
+    out = tmp_path / "out"
+    assert main(["-q", "track", str(take), "--template", str(template_path(take)), "--out", str(out)]) == 0
+    V0, F0 = tk.template_vertices, tk.template_faces
+    errs, vols = [], []
+    for k in range(tk.n_frames):
+        v, _ = load_mesh(out / "tracked" / f"{k:06d}.ply", largest=False)
+        errs.append(np.linalg.norm(v - tk.truth[k], axis=1).mean())
+        vols.append(mesh_volume(v, F0) / mesh_volume(V0, F0))
+    assert max(abs(np.array(vols) - 1)) <= 0.05  # no thinning over the whole take
+    assert np.mean(errs) <= 0.01 * tk.size
+    rig = rig_results(out)
+    assert int(rig.skeleton.articulation.sum()) == articulations
+    sk = rig.skeleton
+    found = sk.rest[sk.articulation]  # articulated joints in the template's (rest) frame
+    d = np.linalg.norm(found[:, None, :] - tk.joint_positions[0][None], axis=2).min(axis=0)
+    assert np.all(d <= 0.05 * tk.size)  # every true joint has an articulation within 5 % of the length

@@ -1,0 +1,103 @@
+"""Where every surface point of a simulated creature goes: per-point ground truth for tracking.
+
+Every capsule of a :class:`fake_cameras.creatures.Creature` moves rigidly: body capsules with
+the body, limb segment ``i`` with the body, the limb's swing and its accumulated bend
+(the same composition as :meth:`Creature.pose`). :func:`capsule_frames` gives those rigid
+motions at a time; :func:`surface_point_tracks` snaps points onto the surface at a first
+time, assigns each to the capsule it lies on and carries it along.
+
+The limb tuck (``Creature.tuck``) bends limbs by blending joint positions, not by rotating
+segments: takes with a tuck interval have no rigid per-capsule motion and are refused.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fake_cameras.creatures import Creature, _rot, _unit
+
+__all__ = ["capsule_frames", "surface_point_tracks"]
+
+
+def capsule_frames(creature: Creature, time_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid frame of every capsule of ``creature.pose(time_s)``, in the pose's capsule order.
+
+    Returns
+    -------
+    R : (M, 3, 3) float ndarray
+    o : (M, 3) float ndarray
+        A point with local coordinates ``q`` in capsule ``k``'s frame is at ``R[k] @ q + o[k]``.
+    """
+    if not isinstance(creature, Creature):
+        raise ValueError(f"creature must be a Creature, got {type(creature).__name__}")
+    if creature.tuck is not None:
+        raise ValueError("creature: a take with a tuck interval has no rigid per-capsule motion")
+    t = float(time_s)
+    pos, Rb = creature._body_transform(t)
+    Rs, Os = [], []
+    for _ in creature.body:
+        Rs.append(Rb)
+        Os.append(pos)
+    for lb in creature.limbs:
+        w = 2 * math.pi * lb.freq
+        R_swing = _rot(lb.swing_axis, lb.swing * math.sin(w * t + lb.phase)) if lb.swing else np.eye(3)
+        axis = _unit(lb.bend_axis)
+        p = np.asarray(lb.attach, dtype=np.float64)
+        theta = 0.0
+        d0 = _unit(lb.direction)
+        for i, L in enumerate(lb.lengths):
+            theta += lb.rest[i] + lb.amp[i] * math.sin(w * t + lb.phase - i * lb.lag)
+            M = R_swing @ _rot(axis, theta)
+            Rs.append(Rb @ M)
+            Os.append(Rb @ p + pos)
+            p = p + L * (M @ d0)
+    if creature.spur is not None and creature._weight(t, creature.spur, 0.0) > 0:
+        Rs.append(Rb)
+        Os.append(pos)
+    return np.stack(Rs), np.stack(Os)
+
+
+def _snap(pose, points: np.ndarray, h: float = 0.05) -> np.ndarray:
+    """Points moved onto the surface along the distance gradient (two Newton steps)."""
+    x = np.asarray(points, dtype=np.float64).copy()
+    for _ in range(2):
+        d = pose.sdf(x)
+        g = np.stack([(pose.sdf(x + h * e) - pose.sdf(x - h * e)) / (2 * h) for e in np.eye(3)], axis=1)
+        g /= np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+        x -= d[:, None] * g
+    return x
+
+
+def surface_point_tracks(creature: Creature, points, times) -> np.ndarray:
+    """Carry points through time with the creature's capsules.
+
+    Parameters
+    ----------
+    creature : Creature
+    points : (N, 3) float ndarray
+        Points near the surface at ``times[0]`` (e.g. a reconstructed mesh's vertices); each
+        is first snapped onto the true surface.
+    times : (F,) float ndarray
+        Seconds.
+
+    Returns
+    -------
+    (F, N, 3) float ndarray
+        Every point's true surface position at every time.
+    """
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+    pose0 = creature.pose(times[0])
+    x0 = _snap(pose0, pts)
+    cap = pose0.capsule_sdf(x0).argmin(axis=1)
+    R0, o0 = capsule_frames(creature, times[0])
+    local = np.einsum("nji,nj->ni", R0[cap], x0 - o0[cap])
+    out = np.empty((len(times), len(pts), 3))
+    for f, t in enumerate(times):
+        R, o = capsule_frames(creature, t)
+        out[f] = np.einsum("nij,nj->ni", R[cap], local) + o[cap]
+    return out

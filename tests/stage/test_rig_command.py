@@ -1,0 +1,88 @@
+"""``stage rig`` and the ``rig`` process step: files written, clear messages without tracking."""
+
+from __future__ import annotations
+
+import json
+import logging
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from pipeline.results import ply_bytes
+from stage.cli import main
+from tests.pipeline.test_motion_segmentation import _two_bars
+
+
+def _write_seq(d, V, F):
+    d.mkdir(parents=True, exist_ok=True)
+    for i, v in enumerate(V):
+        (d / f"{i:06d}.ply").write_bytes(ply_bytes(v, F))
+
+
+def test_rig_meshes_writes_the_rig(tmp_path, capsys):
+    V, F, _ = _two_bars(10)
+    _write_seq(tmp_path / "seq", V, F)
+    out = tmp_path / "rig"
+    assert main(["-q", "rig", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(out), "--samples", "300"]) == 0
+    doc = json.loads((out / "rig.json").read_text())
+    assert doc["format"] == "capture-stage/rig@1" and doc["frame_count"] == 10
+    assert sum(j["kind"] == "joint" for j in doc["joints"]) == 1
+    assert (out / "rig.glb").stat().st_size > 0 and (out / "rig.bvh").is_file()
+    assert len(list((out / "posed").glob("*.ply"))) == 10
+    assert "1 articulations" in capsys.readouterr().out
+
+
+def test_rig_results_dir_needs_tracking(tmp_path, capsys):
+    (tmp_path / "meshes").mkdir()
+    assert main(["rig", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "tracked" in err and "stage track" in err
+
+
+def test_rig_meshes_without_shared_connectivity(tmp_path, capsys):
+    V, F, _ = _two_bars(3)
+    _write_seq(tmp_path / "seq", V, F)
+    (tmp_path / "seq" / "000002.ply").write_bytes(ply_bytes(V[2][:-3], F[:10]))
+    assert main(["rig", "--meshes", str(tmp_path / "seq"), "--out", str(tmp_path / "o")]) == 2
+    assert "share connectivity" in capsys.readouterr().err
+
+
+def test_invalid_input(capsys):
+    assert main(["rig"]) == 2
+    assert main(["rig", "--meshes", "x/*.ply"]) == 2  # no --out
+    assert "--out" in capsys.readouterr().err
+
+
+def test_rig_step(tmp_path, caplog):
+    from stage.process import STEPS, ProcessError, _step_rig
+
+    # the rig runs on what tracking wrote, so it comes after the spine and the tracking
+    assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")
+    ctx = SimpleNamespace(out=tmp_path, calibration=SimpleNamespace(units="mm"), fps=25.0, progress=None,
+                          steps=("rig",), warnings=[], timings={})
+    with pytest.raises(ProcessError, match="stage track"):
+        _step_rig(ctx)
+    ctx.steps = ("key", "surface", "spine", "rig")
+    with caplog.at_level(logging.WARNING):
+        _step_rig(ctx)
+    assert ctx.warnings and "rig step skipped" in ctx.warnings[0]
+    V, F, _ = _two_bars(8)
+    _write_seq(tmp_path / "tracked", V, F)
+    _step_rig(ctx)
+    doc = json.loads((tmp_path / "rig" / "rig.json").read_text())
+    assert doc["fps"] == 25.0 and doc["units"] == "mm"
+    assert np.isfinite(doc["fit"]["mean_vertex_error"])
+
+
+def test_report_shows_the_rig(tmp_path):
+    from stage.report import render_report
+
+    V, F, _ = _two_bars(10)
+    _write_seq(tmp_path / "seq", V, F)
+    assert main(["-q", "rig", "--meshes", str(tmp_path / "seq"), "--out", str(tmp_path / "res" / "rig"),
+                 "--samples", "300"]) == 0
+    (tmp_path / "res" / "report.json").write_text(json.dumps({"frames": 10, "steps": ["rig"]}))
+    html = render_report(tmp_path / "res")
+    assert 'id="rig"' in html and "rig-view" in html
+    assert "1 articulations" in html
