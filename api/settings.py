@@ -9,7 +9,7 @@ Layout of the data root::
 
     DATA/
       rig.toml              the rig (unless ``rig`` points elsewhere)
-      takes/<take>.h5       takes (HDF5, helper B's store)
+      takes/<take>.h5       takes (HDF5, see docs/take-format.md)
       calibrations/<id>.json
       jobs/<job>/           results of one job (spine.json, meshes/, report.json)
       jobs.sqlite           the durable job store (SQLite, WAL)

@@ -293,7 +293,7 @@ def test_browser_renders_the_3d_view(results):
 
 
 def test_grid_choice_reaches_the_page(results, tmp_path):
-    """The voxel `stage process` chose from the rig, and why, is on the page (issue 16)."""
+    """The voxel `stage process` chose from the rig, and why, is on the page."""
     d, *_ = results
     only = tmp_path / "grid"
     only.mkdir()
