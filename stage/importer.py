@@ -189,7 +189,7 @@ def import_take(
     support_plane : (4,) floats, optional
         ``(a, b, c, d)`` of the plane the subject stands on (``a x + b y + c z + d >= 0``
         is kept), in the calibration's units; stored in the take's rig, where
-        :func:`stage.process.process_take` finds it.
+        :func:`pipeline.process.process_take` finds it.
     progress : callable, optional
         ``progress(done, total)`` after each set.
 

@@ -93,10 +93,10 @@ def _own_reconstruct(take: Path, out: Path) -> dict:
 
     from calib.calibration import Calibration
     from pipeline.hull import HullCarver
+    from pipeline.process import ProcessParams
     from pipeline.spine import SpineParams, build_spine, frame_skeleton
     from pipeline.surface import surface_from_occupancy
     from pipeline.volume import Grid
-    from stage.process import ProcessParams
     from stage.store import TakeReader
 
     p = ProcessParams(**json.loads((out / "process.json").read_text())["params"])
@@ -168,12 +168,12 @@ def _copy_take(src: Path, dst: Path) -> Path:
 
 
 def _run(take_src: Path, work: Path, i: int, make) -> tuple[float, dict]:
-    from stage.process import process_take
+    from pipeline.process import process_take
 
     take = _copy_take(take_src, work / f"take-{i}.h5")
     out = work / f"out-{i}"
     shutil.rmtree(out, ignore_errors=True)
-    from stage.process import warm_task
+    from pipeline.process import warm_task
 
     t = time.perf_counter()
     ex, closers = make()
@@ -194,7 +194,7 @@ def _run(take_src: Path, work: Path, i: int, make) -> tuple[float, dict]:
 def run(args: argparse.Namespace) -> int:
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
-    from stage.process import process_take
+    from pipeline.process import process_take
     from stage.store import TakeReader
 
     size = parse_size(args.size)

@@ -160,8 +160,8 @@ def run(args: argparse.Namespace) -> int:
     from fake_cameras.evaluate import evaluate_spine
     from fake_cameras.rigs import simulated_rig_dict
     from fake_cameras.take import write_ground_truth
+    from pipeline.process import ProcessParams, process_take
     from stage.cli._progress import StepBars
-    from stage.process import ProcessParams, process_take
     from stage.store import attach_calibration
 
     size = parse_size(args.size)
@@ -262,7 +262,7 @@ def run(args: argparse.Namespace) -> int:
     )
     # 6. what users take away: a rigged, animated model and a page to look at
     from pipeline.gltf_export import export_rig
-    from stage.report import write_report
+    from pipeline.report import write_report
 
     glb = export_rig(results)
     report = write_report(results, take=take_path)

@@ -17,8 +17,8 @@ import pytest
 
 from fake_cameras.surface_motion import surface_point_tracks
 from pipeline.meshio import load_mesh
+from pipeline.process import process_take
 from pipeline.tracking import mesh_volume
-from stage.process import process_take
 from tests.pipeline.test_spine_pipeline import N_FRAMES, run
 
 

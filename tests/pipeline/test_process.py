@@ -8,7 +8,7 @@ import pytest
 from fake_cameras.evaluate import evaluate_spine
 from fake_cameras.record import record_take
 from fake_cameras.take import simulate_take
-from stage.process import ProcessError, ProcessParams, process_take
+from pipeline.process import ProcessError, ProcessParams, process_take
 
 
 @pytest.fixture(scope="module")
@@ -258,7 +258,7 @@ def test_thin_tail_survives_the_default_grid(thin_tail, tmp_path):
 
 def test_steps_are_a_registry(starfish, processed, tmp_path):
     """A step registered after another runs in order on the same context; bad registrations fail."""
-    import stage.process as sp
+    import pipeline.process as sp
 
     _, path = starfish
     seen = []
@@ -284,7 +284,7 @@ import concurrent.futures as cf, multiprocessing, sys
 import cv2, numpy as np
 from fake_cameras.record import record_take
 from fake_cameras.take import simulate_take
-from stage.process import process_take
+from pipeline.process import process_take
 
 cv2.setNumThreads(2)  # OpenCV's thread pool running in this process before the workers start
 cv2.GaussianBlur(np.zeros((2000, 2000), np.float32), (31, 31), 5)
