@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from tests.api.test_serve import AUTH, Server  # noqa: E402
-from tests.stage.test_report import CHROMIUM, CHROMIUM_ARGS, _browser  # noqa: E402
+from tests.pipeline.test_report import CHROMIUM, CHROMIUM_ARGS, _browser  # noqa: E402
 
 pytestmark = [pytest.mark.slow]
 try:  # pytest-timeout is in the [test] extra
