@@ -82,6 +82,7 @@ __all__ = [
     "mesh_volume",
     "surface_patches",
     "patch_rigid_motion",
+    "predict_patch_motion",
 ]
 
 COS_45 = math.cos(math.radians(45.0))
@@ -261,13 +262,17 @@ def surface_patches(vertices, faces, size: float) -> tuple[np.ndarray, np.ndarra
 
 
 def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_pairs: int = 12,
-                       damping: float = 1e-6) -> np.ndarray:
+                       damping: float = 1e-6, cutoff: float = 1e-2) -> np.ndarray:
     """Every vertex moved by its patch's rigid motion onto the pairs (point-to-plane, one step).
 
     Per patch, the small rigid motion ``(omega, t)`` minimising
     ``sum (n_k . (a_k + omega x a_k + t - x_k))^2`` over the patch's pairs (vertex ``a_k``, data
     point ``x_k`` with normal ``n_k``; Chen & Medioni's linearised point-to-plane ICP), about
-    the patch centroid. Patches with fewer than ``min_pairs`` pairs take the motion of the
+    the patch centroid, restricted to the motions the pairs constrain: with the rotation
+    scaled by the patch's radius, eigen-directions of the 6x6 normal matrix weaker than
+    ``cutoff`` times its strongest get none (a cylindrical patch's twist about its own axis,
+    which point-to-plane pairs cannot see: left free, noise twisted thin parts by up to 15
+    degrees a frame on the simulated pipe). Patches with fewer than ``min_pairs`` pairs take the motion of the
     nearest patch of the same connected component (``component``, per patch) that has enough;
     vertices of components without any such patch keep ``fallback``.
 
@@ -289,8 +294,8 @@ def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_
     r = np.einsum("ij,ij->i", px - V[pv], pn)
     JtJ = _scatter_add(lab, J[:, :, None] * J[:, None, :], n_p)
     Jtr = _scatter_add(lab, J * r[:, None], n_p)
-    scale = np.maximum(np.trace(JtJ, axis1=1, axis2=2), 1e-12)[:, None, None]
-    x = np.linalg.solve(JtJ[ok] + damping * scale[ok] * np.eye(6), Jtr[ok][..., None])[..., 0]
+    x = _truncated_solve(JtJ[ok], Jtr[ok], _scatter_add(lab, (a ** 2).sum(1), n_p)[ok] / cnt[ok], damping,
+                         cutoff)
     sol = np.zeros((n_p, 6))
     sol[ok] = x
     still = np.zeros(n_p, bool)
@@ -313,6 +318,56 @@ def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_
     keep = still[patches]
     out[keep] = np.asarray(fallback, dtype=np.float64)[keep]
     return out
+
+
+def predict_patch_motion(before, previous, patches) -> np.ndarray:
+    """Constant-velocity start of a frame: every patch repeats its last rigid motion.
+
+    Per patch, the rigid motion (Kabsch) carrying ``before`` (frame t-2) onto ``previous``
+    (frame t-1) is applied once more to ``previous``. Rigid per patch, so the small
+    non-rigid drift of the side the camera does not see is not extrapolated (a per-vertex
+    ``2 previous - before`` amplifies it frame after frame).
+
+    Parameters
+    ----------
+    before, previous : (V, 3) float ndarray
+    patches : (V,) int ndarray
+        Patch of every vertex (:func:`surface_patches`).
+
+    Returns
+    -------
+    (V, 3) float ndarray
+    """
+    b = np.asarray(before, dtype=np.float64)
+    p = np.asarray(previous, dtype=np.float64)
+    n_p = int(patches.max()) + 1
+    cnt = np.maximum(np.bincount(patches, minlength=n_p), 1)[:, None]
+    cb = _scatter_add(patches, b, n_p) / cnt
+    cp = _scatter_add(patches, p, n_p) / cnt
+    H = _scatter_add(patches, (b - cb[patches])[:, :, None] * (p - cp[patches])[:, None, :], n_p)
+    U, _, Wt = np.linalg.svd(H)
+    sign = np.sign(np.linalg.det(np.einsum("pji,pkj->pik", Wt, U)))
+    D = np.zeros((n_p, 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = np.where(sign == 0, 1.0, sign)
+    R = np.einsum("pji,pjk,plk->pil", Wt, D, U)  # R = W D U^T maps before onto previous
+    return np.einsum("vij,vj->vi", R[patches], p - cp[patches]) + cp[patches] + (cp - cb)[patches]
+
+
+def _truncated_solve(JtJ, Jtr, spread, damping, cutoff):
+    """Per patch, the 6-vector minimising ``|J x - r|`` restricted to the directions the pairs
+    constrain: rotations are scaled by the patch's radius (so all six are in mm), and
+    eigen-directions of ``J^T J`` weaker than ``cutoff`` of the strongest get no motion (a
+    cylinder's twist about its own axis, a plane's sliding, which point-to-plane pairs do not see)."""
+    r = np.sqrt(np.maximum(spread, 1e-12))
+    S = np.concatenate([1.0 / r[:, None] * np.ones((1, 3)), np.ones((len(r), 3))], axis=1)  # x = S * y
+    A = JtJ * S[:, :, None] * S[:, None, :]
+    b = Jtr * S
+    w, U = np.linalg.eigh(A)
+    keep = w >= np.maximum(cutoff * w[:, -1:], 1e-300)
+    inv = np.where(keep, 1.0 / np.maximum(w + damping * w[:, -1:], 1e-300), 0.0)
+    y = np.einsum("pij,pj,pkj,pk->pi", U, inv, U, b)
+    return y * S
 
 
 class CholeskySystem:
