@@ -82,7 +82,6 @@ __all__ = [
     "mesh_volume",
     "surface_patches",
     "patch_rigid_motion",
-    "predict_patch_motion",
 ]
 
 COS_45 = math.cos(math.radians(45.0))
@@ -318,40 +317,6 @@ def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_
     keep = still[patches]
     out[keep] = np.asarray(fallback, dtype=np.float64)[keep]
     return out
-
-
-def predict_patch_motion(before, previous, patches) -> np.ndarray:
-    """Constant-velocity start of a frame: every patch repeats its last rigid motion.
-
-    Per patch, the rigid motion (Kabsch) carrying ``before`` (frame t-2) onto ``previous``
-    (frame t-1) is applied once more to ``previous``. Rigid per patch, so the small
-    non-rigid drift of the side the camera does not see is not extrapolated (a per-vertex
-    ``2 previous - before`` amplifies it frame after frame).
-
-    Parameters
-    ----------
-    before, previous : (V, 3) float ndarray
-    patches : (V,) int ndarray
-        Patch of every vertex (:func:`surface_patches`).
-
-    Returns
-    -------
-    (V, 3) float ndarray
-    """
-    b = np.asarray(before, dtype=np.float64)
-    p = np.asarray(previous, dtype=np.float64)
-    n_p = int(patches.max()) + 1
-    cnt = np.maximum(np.bincount(patches, minlength=n_p), 1)[:, None]
-    cb = _scatter_add(patches, b, n_p) / cnt
-    cp = _scatter_add(patches, p, n_p) / cnt
-    H = _scatter_add(patches, (b - cb[patches])[:, :, None] * (p - cp[patches])[:, None, :], n_p)
-    U, _, Wt = np.linalg.svd(H)
-    sign = np.sign(np.linalg.det(np.einsum("pji,pkj->pik", Wt, U)))
-    D = np.zeros((n_p, 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = np.where(sign == 0, 1.0, sign)
-    R = np.einsum("pji,pjk,plk->pil", Wt, D, U)  # R = W D U^T maps before onto previous
-    return np.einsum("vij,vj->vi", R[patches], p - cp[patches]) + cp[patches] + (cp - cb)[patches]
 
 
 def _truncated_solve(JtJ, Jtr, spread, damping, cutoff):
