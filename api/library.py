@@ -1,6 +1,6 @@
 """The takes under the data root (``DATA/takes/<take>.h5``): list, read, import, delete.
 
-Reading goes through helper B's :class:`stage.store.TakeReader`; this module only
+Reading goes through :class:`stage.store.TakeReader`; this module only
 adds id validation, the data-root confinement and upload handling.
 """
 

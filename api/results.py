@@ -1,6 +1,6 @@
 """Result files of a job (``DATA/jobs/<job>/``): listing and safe lookup, PLY -> GLB conversion.
 
-What :func:`stage.process.process_take` writes: ``spine.json``, ``report.json``,
+What :func:`pipeline.process.process_take` writes: ``spine.json``, ``report.json``,
 ``meshes/frame_NNNNNN.ply``.
 """
 

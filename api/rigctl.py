@@ -1,6 +1,6 @@
 """The rig as the API sees it: its cameras, one capture at a time in the background, previews.
 
-Captures go through helper B's :mod:`stage.capture` and write a take into
+Captures go through :mod:`stage.capture` and write a take into
 ``DATA/takes/<take>.h5``; previews open one camera through
 :func:`stage.drivers.open_driver`, grab a frame and close it.
 """

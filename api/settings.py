@@ -9,7 +9,7 @@ Layout of the data root::
 
     DATA/
       rig.toml              the rig (unless ``rig`` points elsewhere)
-      takes/<take>.h5       takes (HDF5, helper B's store)
+      takes/<take>.h5       takes (HDF5, see docs/take-format.md)
       calibrations/<id>.json
       jobs/<job>/           results of one job (spine.json, meshes/, report.json)
       jobs.sqlite           the durable job store (SQLite, WAL)
@@ -50,7 +50,7 @@ class Settings(BaseSettings):
         Rig file; default ``DATA/rig.toml``.
     work : str
         ``module:function`` that processes one take with the signature of
-        :func:`stage.process.process_take`. A hook for tests and plug-ins.
+        :func:`pipeline.process.process_take`. A hook for tests and plug-ins.
     heartbeat_s, stale_after_s : float
         A running job refreshes its heartbeat every ``heartbeat_s``; a job still
         marked running whose heartbeat is older than ``stale_after_s`` was
@@ -69,7 +69,7 @@ class Settings(BaseSettings):
     dask: str | None = None
     workers: Annotated[int, Field(ge=1, le=1024)] | None = None
     rig: Path | None = None
-    work: str = "stage.process:process_take"
+    work: str = "pipeline.process:process_take"
     heartbeat_s: Annotated[float, Field(gt=0)] = 2.0
     stale_after_s: Annotated[float, Field(gt=0)] = 10.0
     max_attempts: Annotated[int, Field(ge=1)] = 5

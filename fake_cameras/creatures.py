@@ -19,8 +19,9 @@ Subjects (``make_creature(name)``):
     Torso, four walking legs, a neck with head and a wagging tail: six limb tips
     ``leg_fl, leg_fr, leg_hl, leg_hr, head, tail``.
 ``tailed_quadruped``
-    The quadruped with a long tail tapering from 36 mm to 16 mm thick (at scale 1): a
-    thin limb that a coarse grid loses and a grid following the cameras keeps.
+    The quadruped with a 144 mm tail tapering from 36 mm to 16 mm thick at every scale
+    (``scale`` grows the animal, not its tail): a thin limb that a coarse grid loses and
+    a grid following the cameras keeps.
 ``biped``
     Upright torso with head, two swinging arms and two walking legs:
     ``head, arm_l, arm_r, leg_l, leg_r``.
@@ -552,7 +553,8 @@ def _tailed_quadruped(rng: np.random.Generator) -> dict:
     i = next(j for j, lb in enumerate(limbs) if lb.name == "tail")
     # diameters 36, 30, 24, 16 mm; longer than the quadruped's so it stands clear of the body
     limbs[i] = LimbSpec(**{**limbs[i].__dict__, "lengths": (50.0, 48.0, 46.0), "radii": (18.0, 15.0, 12.0, 8.0)})
-    return {**spec, "limbs": tuple(limbs)}
+    # the tail is absolute: a larger animal has the same thin tail (lengths and thickness)
+    return {**spec, "limbs": tuple(limbs), "fixed_size": ("tail",)}
 
 
 def _biped(rng: np.random.Generator) -> dict:
@@ -628,8 +630,10 @@ def _scaled(spec: dict, s: float) -> dict:
         return tuple(float(x) * s for x in v)
 
     body = tuple((sc(a), sc(b), ra * s, rb * s) for a, b, ra, rb in spec["body"])
+    fixed = spec.get("fixed_size", ())
     limbs = tuple(
-        LimbSpec(**{**lb.__dict__, "attach": sc(lb.attach), "lengths": sc(lb.lengths), "radii": sc(lb.radii)})
+        LimbSpec(**{**lb.__dict__, "attach": sc(lb.attach), **({} if lb.name in fixed else
+                                                               {"lengths": sc(lb.lengths), "radii": sc(lb.radii)})})
         for lb in spec["limbs"]
     )
     motion = dict(spec["motion"])

@@ -1,12 +1,21 @@
 """Mesh sequences with shared connectivity and true joints, from the simulated creatures.
 
-A rest mesh (marching cubes of the creature's signed distance at the rest
-time) is posed along the creature's kinematic tree: every vertex belongs to
+A rest mesh (marching cubes of the creature's signed distance in a scanning
+pose) is posed along the creature's kinematic tree: every vertex belongs to
 the capsule nearest to it at rest and moves rigidly with it (the body's
 capsules with the body, limb segment ``i`` with the body, the limb's swing
 and the bend angles of joints ``0..i``). Vertex ``i`` is thus the same
 surface point in every frame, as the input of
 :func:`pipeline.motion_segmentation.motion_segmentation` requires.
+
+The scanning pose is the creature at time 0 with every limb that runs along
+the body or another limb opened at its root (:func:`scan_opening`), the way
+a template scan is taken (arms held away from the torso, an "A pose"): a
+limb pressed against the body over its length would be fused to it in the
+template, and no motion could then separate the two surfaces -- neither in
+this simulation nor for a real scanned subject. Limbs already clear of
+everything (a starfish's arms, a quadruped's legs) are not moved. Only the
+template is opened; the motion itself is the creature's own.
 
 Ground truth (:class:`MeshSequence`): every limb joint's position per frame
 and whether it *articulates* -- whether the rotation between the two parts
@@ -21,9 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fake_cameras.creatures import Creature, _rot, _unit, make_creature
+from fake_cameras.creatures import Creature, Pose, _rot, _unit, make_creature
 
-__all__ = ["MeshSequence", "rest_mesh", "mesh_sequence"]
+__all__ = ["MeshSequence", "rest_mesh", "mesh_sequence", "scan_opening"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,7 +55,7 @@ class MeshSequence:
     part : (V,) int ndarray
         The rigid part of every vertex (-1: body; else ``limb * 16 + segment``).
     size : float
-        Rest mesh bounding-box diagonal (mm).
+        Bounding-box diagonal of the first frame (mm).
     """
 
     vertices: np.ndarray
@@ -59,8 +68,116 @@ class MeshSequence:
     size: float
 
 
-def rest_mesh(creature: Creature, *, time_s: float = 0.0, voxel: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
+def scan_opening(
+    creature: Creature, *, gap: float = 1.0, step: float = math.radians(5.0), max_angle: float = math.radians(90.0)
+) -> dict:
+    """Per limb, the rotation about its root that holds it clear of the body for a template scan.
+
+    A limb is opened (rotated about its attachment point, in the plane of
+    its direction and the outward direction from the nearest body axis) by
+    the smallest multiple of ``step`` at which every point of its axis beyond
+    the junction (two root radii from the attachment, at most half the limb)
+    is at least ``gap`` times the limb's local radius away from the surface
+    of the body and of every other limb, at time 0. A limb that is already clear,
+    or that no angle up to ``max_angle`` clears (a head on top of a torso,
+    attached end-on), keeps its pose.
+
+    Returns
+    -------
+    dict str -> (3, 3) float ndarray
+        Body-frame rotation about the limb's ``attach`` point (identity when not opened).
+    """
+    if not gap >= 0 or not step > 0 or not max_angle >= 0:
+        raise ValueError("gap must be >= 0, step > 0, max_angle >= 0")
+    chains = {lb.name: creature._limb_chain(lb, 0.0) for lb in creature.limbs}
+    body = [(np.asarray(a, float), np.asarray(b, float), ra, rb) for a, b, ra, rb in creature.body]
+    out = {}
+    for lb in creature.limbs:
+        caps = body + [
+            (c[i], c[i + 1], o.radii[i], o.radii[i + 1])
+            for o in creature.limbs
+            if o.name != lb.name
+            for c in [chains[o.name]]
+            for i in range(len(o.lengths))
+        ]
+        p0, p1, r0, r1 = (np.asarray(x, dtype=np.float64) for x in zip(*caps))
+        out[lb.name] = _opening(lb, chains[lb.name], body, (p0, p1, r0, r1), gap, step, max_angle)
+    return out
+
+
+def _opening(lb, chain, body, caps, gap, step, max_angle) -> np.ndarray:
+    """Smallest clearing rotation of one limb (see :func:`scan_opening`)."""
+    from fake_cameras.creatures import round_cone_sdf
+
+    att = np.asarray(lb.attach, dtype=np.float64)
+    d = _unit(chain[-1] - chain[0])
+    near = min((_closest_on_segment(att, a, b) for a, b, _, _ in body), key=lambda q: float(np.linalg.norm(att - q)))
+    outward = att - near
+    outward = outward - d * (outward @ d)
+    axis = np.cross(d, outward)
+    if np.linalg.norm(outward) < 1e-6 or np.linalg.norm(axis) < 1e-9:
+        return np.eye(3)
+    # the limb beyond its junction (two root radii): points along its axis polyline and their radii
+    seg = np.linalg.norm(np.diff(chain, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    s = np.linspace(min(2.0 * lb.radii[0], 0.5 * arc[-1]), arc[-1], 12)
+    pts = np.stack([np.interp(s, arc, chain[:, k]) for k in range(3)], 1)
+    rad = np.interp(s, arc, np.asarray(lb.radii, dtype=np.float64))
+    for k in range(int(max_angle // step) + 1):
+        A = _rot(axis, k * step)
+        q = att + (pts - att) @ A.T
+        clear = round_cone_sdf(q, *caps).min(1) - rad
+        if np.all(clear >= gap * rad):
+            return A
+    return np.eye(3)
+
+
+def _closest_on_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ab = b - a
+    L2 = float(ab @ ab)
+    u = 0.0 if L2 == 0 else float(np.clip((p - a) @ ab / L2, 0.0, 1.0))
+    return a + u * ab
+
+
+def _pose_from_frames(creature: Creature, mats: list, origins: list) -> Pose:
+    """The capsules of the creature placed by per-capsule frames (see :func:`_segment_frames`)."""
+    R, pos = mats[0], origins[0]
+    p0, p1, r0, r1, lab = [], [], [], [], []
+    for a, b, ra, rb in creature.body:
+        p0.append(R @ np.asarray(a, float) + pos)
+        p1.append(R @ np.asarray(b, float) + pos)
+        r0.append(ra)
+        r1.append(rb)
+        lab.append(-1)
+    k = len(creature.body)
+    for li, lb in enumerate(creature.limbs):
+        d0 = _unit(lb.direction)
+        for i, L in enumerate(lb.lengths):
+            p0.append(origins[k])
+            p1.append(origins[k] + mats[k] @ (L * d0))
+            r0.append(lb.radii[i])
+            r1.append(lb.radii[i + 1])
+            lab.append(li)
+            k += 1
+    return Pose(
+        p0=np.asarray(p0),
+        p1=np.asarray(p1),
+        r0=np.asarray(r0),
+        r1=np.asarray(r1),
+        limb=np.asarray(lab),
+        names=tuple(creature.names),
+    )
+
+
+def rest_mesh(
+    creature: Creature, *, time_s: float = 0.0, voxel: float = 8.0, opening: dict | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Marching-cubes surface of the creature at ``time_s`` (mm).
+
+    Parameters
+    ----------
+    opening : dict, optional
+        Per-limb root rotations (:func:`scan_opening`) applied to the pose.
 
     Returns
     -------
@@ -71,7 +188,11 @@ def rest_mesh(creature: Creature, *, time_s: float = 0.0, voxel: float = 8.0) ->
 
     if not voxel > 0:
         raise ValueError(f"voxel must be > 0, got {voxel}")
-    pose = creature.pose(time_s)
+    if opening is None:
+        pose = creature.pose(time_s)
+    else:
+        mats, org, _ = _segment_frames(creature, float(time_s), opening)
+        pose = _pose_from_frames(creature, mats, org)
     lo, hi = pose.bounds()
     lo, hi = lo - 2 * voxel, hi + 2 * voxel
     axes = [np.arange(lo[k], hi[k] + voxel, voxel) for k in range(3)]
@@ -83,8 +204,12 @@ def rest_mesh(creature: Creature, *, time_s: float = 0.0, voxel: float = 8.0) ->
     return v.astype(np.float64), f[:, ::-1].astype(np.int64)
 
 
-def _segment_frames(creature: Creature, t: float):
-    """Per capsule (body first, then limb segments): rotation and origin in the world."""
+def _segment_frames(creature: Creature, t: float, opening: dict | None = None):
+    """Per capsule (body first, then limb segments): rotation and origin in the world.
+
+    ``opening`` (:func:`scan_opening`) rotates every limb about its attachment point.
+    """
+    opening = opening or {}
     pos, R = creature._body_transform(t)
     mats, origins, joints = [], [], {}
     for _ in creature.body:
@@ -94,11 +219,13 @@ def _segment_frames(creature: Creature, t: float):
         w = 2 * math.pi * lb.freq
         R_swing = _rot(lb.swing_axis, lb.swing * math.sin(w * t + lb.phase)) if lb.swing else np.eye(3)
         axis = _unit(lb.bend_axis)
-        chain = creature._limb_chain(lb, t)
+        A = opening.get(lb.name, np.eye(3))
+        att = np.asarray(lb.attach, dtype=np.float64)
+        chain = att + (creature._limb_chain(lb, t) - att) @ A.T
         theta = 0.0
         for i in range(len(lb.lengths)):
             theta += lb.rest[i] + lb.amp[i] * math.sin(w * t + lb.phase - i * lb.lag)
-            M = R @ R_swing @ _rot(axis, theta)
+            M = R @ A @ R_swing @ _rot(axis, theta)
             mats.append(M)
             origins.append(R @ chain[i] + pos)
             joints[f"{lb.name}.{i}"] = (R @ chain[i] + pos, M)
@@ -115,6 +242,7 @@ def mesh_sequence(
     scale: float = 1.0,
     min_bend: float = math.radians(10.0),
     dtype=np.float64,
+    open_pose: bool = True,
 ) -> MeshSequence:
     """A creature's rest mesh posed along its kinematic tree over ``frames`` frames.
 
@@ -134,6 +262,9 @@ def mesh_sequence(
         this (radians) over the sequence.
     dtype : numpy dtype
         Of the vertices (float32 halves the memory of long, fine sequences).
+    open_pose : bool
+        Template in the scanning pose (:func:`scan_opening`, the default);
+        False: the creature's pose at time 0, limbs touching the body included.
 
     Returns
     -------
@@ -147,10 +278,13 @@ def mesh_sequence(
     if not duration > 0:
         raise ValueError(f"duration must be > 0, got {duration}")
     times = np.linspace(0.0, float(duration), int(frames), endpoint=False)
-    v0, f = rest_mesh(cr, time_s=0.0, voxel=voxel)
-    pose0 = cr.pose(0.0)
+    opening = scan_opening(cr) if open_pose else {}
+    if not any(np.abs(A - np.eye(3)).max() > 0 for A in opening.values()):
+        opening = None  # nothing to open: the creature's own pose at time 0
+    v0, f = rest_mesh(cr, time_s=0.0, voxel=voxel, opening=opening)
+    mats0, org0, _ = _segment_frames(cr, 0.0, opening)
+    pose0 = cr.pose(0.0) if opening is None else _pose_from_frames(cr, mats0, org0)
     capsule = pose0.capsule_sdf(v0).argmin(1)
-    mats0, org0, _ = _segment_frames(cr, 0.0)
     M0 = np.asarray(mats0)
     org0_a = np.asarray(org0)
     local = np.einsum("vji,vj->vi", M0[capsule], v0 - org0_a[capsule])  # vertex in its capsule's frame
@@ -188,7 +322,8 @@ def mesh_sequence(
         seg_ids += [li * 16 + i for i in range(len(lb.lengths))]
     seg_ids = np.asarray(seg_ids)
     part[capsule >= n_body] = seg_ids[capsule[capsule >= n_body] - n_body]
-    size = float(np.linalg.norm(v0.max(0) - v0.min(0)))
+    # the subject's size as it moves (frame 0), not the opened template's
+    size = float(np.linalg.norm(np.ptp(verts[0], axis=0)))
     return MeshSequence(
         vertices=verts,
         faces=f,

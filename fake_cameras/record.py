@@ -56,7 +56,7 @@ def record_take(
     cal = (calibration or take.calibration) if with_calibration else None
     rig = simulated_rig_dict(
         take.n_cameras, subject=take.subject, frames=take.n_frames, fps=take.fps, size=(w, h),
-        depth=take.depth is not None, clock_offsets_ms=0.0, jitter_ms=0.0, name="simulated",
+        depth=take.depth is not None, clock_offsets_ms=0.0, jitter_ms=0.0, name="simulated", volume=take.volume,
     )
     period = int(round(1e9 / take.fps))
     specs = [CameraSpec(n, w, h, depth=take.depth is not None) for n in names]

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stage.rig import Rig, parse_rig
+from stage.rig import Rig, Volume, parse_rig
 
 __all__ = ["simulated_rig_dict", "simulated_rig", "write_simulated_rig", "dumps_toml", "thin_tail_setup"]
 
@@ -27,6 +27,7 @@ def simulated_rig_dict(
     store: str = "raw",
     dome_cameras: int | None = None,
     name: str = "simulated",
+    volume=None,
 ) -> dict:
     """A rig dictionary (as read from TOML) of ``n_cameras`` simulated cameras.
 
@@ -42,6 +43,8 @@ def simulated_rig_dict(
         Copied to every camera.
     dome_cameras : int, optional
         Cameras of the simulated dome (default ``max(4, n_cameras)``).
+    volume : stage.rig.Volume, optional
+        The capture volume (default ``Volume()``: centre (0, 0, 375), 750 mm cube).
 
     Returns
     -------
@@ -52,6 +55,7 @@ def simulated_rig_dict(
     if not 1 <= n_cameras <= dome:
         raise ValueError(f"n_cameras must be within 1..{dome} (the dome's cameras), got {n_cameras!r}")
     w, h = (int(s) for s in size)
+    vol = Volume() if volume is None else volume
     rng = np.random.default_rng(seed)
     cams = []
     for i in range(n_cameras):
@@ -72,7 +76,7 @@ def simulated_rig_dict(
     data = {
         "name": name,
         "fps": float(fps),
-        "volume": {"center": [0.0, 0.0, 375.0], "size": [750.0, 750.0, 750.0]},
+        "volume": {"center": [float(v) for v in vol.center], "size": [float(v) for v in vol.size]},
         "backdrop": {"key_mode": "chroma", "color": "green"},
         "simulation": {"subject": subject, "n_cameras": dome, "frames": int(frames), "seed": int(seed), "noise": float(noise)},
         "cameras": cams,
@@ -126,13 +130,17 @@ def write_simulated_rig(path: str | Path, n_cameras: int = 4, **kw) -> Path:
 def thin_tail_setup() -> dict:
     """Keywords of :func:`fake_cameras.take.simulate_take` for the thin-limb case.
 
-    The ``tailed_quadruped`` (tail 36 -> 16 mm thick) filmed by ten 480x360 cameras of a
-    dome fitted to a 600 x 600 x 460 mm volume: a pixel covers about 2.9 mm at the subject
-    (median over the cameras), so the tail's thin end is 5-6 pixels wide in most views.
+    The ``tailed_quadruped`` at 1.6x (about 840 mm long; its 144 mm tail stays 36 -> 16 mm
+    thick) in a 900 x 600 x 640 mm capture volume, filmed by ten 480x360 cameras of a dome
+    framed on the animal (fitted to a 640 x 360 x 480 mm box): a pixel covers about 2.6 mm
+    at the subject (median over the cameras), so the tail's thin end is about 6 pixels wide,
+    and the subject's box is about 880 mm long (a 96-voxel grid along it has 9.2 mm voxels).
     """
-    from stage.rig import Volume
+    from fake_cameras.dome import make_dome
 
+    framing = Volume(center=(0.0, 0.0, 240.0), size=(640.0, 360.0, 480.0))
     return dict(
-        subject="tailed_quadruped", n_cameras=10, size=(480, 360),
-        volume=Volume(center=(0.0, 0.0, 230.0), size=(600.0, 600.0, 460.0)),
+        subject="tailed_quadruped", scale=1.6,
+        volume=Volume(center=(0.0, 0.0, 320.0), size=(900.0, 600.0, 640.0)),
+        calibration=make_dome(10, size=(480, 360), volume=framing, seed=0),
     )

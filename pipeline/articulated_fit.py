@@ -16,12 +16,15 @@ frame's vertices ``y``, corresponding by index: shared connectivity) by
 Gauss-Newton; the Jacobian of a rotation
 increment ``omega_p`` (world frame, about the part's current joint) is
 ``-[A_vp]_x`` with ``A_vp = sum_k w_vk [part_k below p] (x'_vk - c_p)``; a
-Levenberg-Marquardt damping (Marquardt's diagonal scaling) keeps every step
-descending.
+Levenberg-Marquardt damping (Marquardt's diagonal scaling, dimensionless)
+keeps every step descending, and the iterations stop once the linear model
+promises less than 1e-4 of the residual. The normal equations are formed
+from ``A`` directly (never the 3V x 3(P+1) Jacobian), with batched products.
 :func:`fit_sequence` initialises every frame from the previous one (the
-paper's tracking) and, as a guard against fast motion, from a closed-form
-hierarchical Procrustes fit of the parts (Arun et al. 1987 about each
-joint), keeping the better start.
+paper's tracking) or from its constant-velocity prediction from the two
+previous frames (:func:`predict_pose`), whichever fits better, and, as a
+guard against fast motion, from a closed-form hierarchical Procrustes fit
+of the parts (Arun et al. 1987 about each joint), keeping the best start.
 
 The paper's measure (section 5): the mean 3-D vertex error between the fitted
 model and the frame, per frame.
@@ -38,7 +41,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.articulated_skeleton import ArticulatedSkeleton
 from pipeline.skinning import bone_heat_weights, limit_influences
 
-__all__ = ["ArticulatedModel", "Pose", "articulated_model", "fit_frame", "fit_sequence", "FitResult"]
+__all__ = ["ArticulatedModel", "Pose", "articulated_model", "fit_frame", "fit_sequence", "predict_pose", "FitResult"]
 
 log = logging.getLogger(__name__)
 
@@ -129,10 +132,26 @@ class ArticulatedModel:
         P = self.skeleton.n_parts
         return Pose(np.tile(np.eye(3), (P, 1, 1)), np.zeros((P, 3)))
 
-    def deform(self, pose: Pose) -> np.ndarray:
-        """(V, 3) vertices posed by linear blend skinning."""
-        q = np.einsum("vkij,vj->vki", pose.R[self.vertex_parts], self.vertices) + pose.t[self.vertex_parts]
-        return (self.weights[..., None] * q).sum(1)
+    @property
+    def part_weights(self) -> np.ndarray:
+        """(V, P) skinning weight of every part (summed over the bones it drives)."""
+        if "wp" not in self._cache:
+            V = len(self.vertices)
+            W = np.zeros((V, self.skeleton.n_parts))
+            np.add.at(W, (np.repeat(np.arange(V), self.weights.shape[1]), self.vertex_parts.ravel()), self.weights.ravel())
+            self._cache["wp"] = W
+        return self._cache["wp"]
+
+    def deform(self, pose: Pose, rows: np.ndarray | None = None) -> np.ndarray:
+        """(V, 3) vertices posed by linear blend skinning (``rows``: only those vertices).
+
+        Blends every vertex's affine map first, ``sum_p w_vp [R_p | t_p]``, then applies it.
+        """
+        W = self.part_weights if rows is None else self.part_weights[rows]
+        x = self.vertices if rows is None else self.vertices[rows]
+        P = self.skeleton.n_parts
+        T = W @ np.concatenate([pose.R.reshape(P, 9), pose.t], 1)  # (V, 12)
+        return np.einsum("vij,vj->vi", T[:, :9].reshape(-1, 3, 3), x) + T[:, 9:]
 
     def joint_positions(self, pose: Pose) -> np.ndarray:
         """(J, 3) joints in a pose."""
@@ -286,18 +305,15 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
     y = y[sub]
     V = len(y)
     size = float(np.linalg.norm(x.max(0) - x.min(0))) or 1.0
-    vp = model.vertex_parts[sub]
-    w = model.weights[sub]
-    Wk = w[..., None] * model.below[vp]  # (V, k, P)
-    Wsum = Wk.sum(1)  # (V, P)
+    vp, w_row, WkT, Wsum = _lsq_weights(model, max_points)
     n_par = 3 * (P + 1)
 
     def linearise(pose):
         q = np.einsum("vkij,vj->vki", pose.R[vp], x) + pose.t[vp]  # (V, k, 3)
-        r = (w[..., None] * q).sum(1) - y
+        r = (w_row @ q)[:, 0] - y
         cw = np.einsum("pij,pj->pi", pose.R, model.pivots) + pose.t  # carried joints
         # columns: root translation, root rotation (about the root joint), one rotation per part >= 1
-        A = np.einsum("vkp,vki->vpi", Wk, q) - Wsum[..., None] * cw[None]  # (V, P, 3)
+        A = WkT @ q - Wsum[..., None] * cw[None]  # (V, P, 3)
         # normal equations of J = [I, -[A_v0]_x, ..., -[A_vP-1]_x] without forming J:
         # [a]_x^T [b]_x = (a.b) I - b a^T
         A2 = A.reshape(V, 3 * P)
@@ -309,7 +325,8 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
         H[:3, 3:] = -_skew_batch(A.sum(0)).transpose(1, 0, 2).reshape(3, 3 * P)
         H[3:, :3] = H[:3, 3:].T
         H[3:, 3:] = Hww.reshape(3 * P, 3 * P)
-        g = np.r_[r.sum(0), np.cross(A, r[:, None, :]).sum(0).ravel()]
+        C = (A2.T @ r).reshape(P, 3, 3)  # sum_v A_vp r_v^T; its antisymmetric part is sum_v A_vp x r_v
+        g = np.r_[r.sum(0), np.stack([C[:, 1, 2] - C[:, 2, 1], C[:, 2, 0] - C[:, 0, 2], C[:, 0, 1] - C[:, 1, 0]], 1).ravel()]
         return float((r * r).sum()), H, g, cw
 
     def step(pose, delta, cw):
@@ -325,34 +342,66 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
         return _forward(model, root_R, root_t, local)
 
     sse, H, g, cw = linearise(pose)
-    mu = 1e-4 * float(np.mean(np.diag(H))) + 1e-12 * size * size
+    mu = 1e-3  # Marquardt's damping, relative to the diagonal of H (dimensionless)
     for _ in range(int(iterations)):  # Levenberg-Marquardt
         try:
             delta = -np.linalg.solve(H + mu * np.diag(np.diag(H) + 1e-9 * size * size), g)
         except np.linalg.LinAlgError:
             break
+        # early stop: the linear model promises (almost) nothing more, or the step is negligible
+        gain = -(2.0 * float(delta @ g) + float(delta @ H @ delta))
+        if gain <= 1e-4 * sse or (np.abs(delta[3:]).max() < tol and np.abs(delta[:3]).max() < tol * size):
+            break
         cand = step(pose, delta, cw)
         c_sse, c_H, c_g, c_cw = linearise(cand)
         if c_sse < sse:
-            done = sse - c_sse <= 1e-4 * sse or (
-                np.abs(delta[3:]).max() < tol and np.abs(delta[:3]).max() < tol * size)
+            done = sse - c_sse <= 1e-4 * sse
             pose, sse, H, g, cw = cand, c_sse, c_H, c_g, c_cw
             mu /= 3.0
             if done:
                 break
         else:
             mu *= 4.0
-            if mu > 1e8 * float(np.mean(np.diag(H)) + 1.0):
+            if mu > 1e8:
                 break
-    act = model.subset(None)
-    err = float(np.linalg.norm(model.deform(pose)[act] - y_all[act], axis=1).mean())
+    act = None if model.active is None else model.subset(None)
+    err = float(np.linalg.norm(model.deform(pose, act) - (y_all if act is None else y_all[act]), axis=1).mean())
     return pose, err
 
 
+def _lsq_weights(model: ArticulatedModel, max_points: int | None):
+    """Per-subset arrays of the normal equations, cached on the model.
+
+    ``vp`` (V, k) parts of the influences, ``w_row`` (V, 1, k) weights,
+    ``WkT`` (V, P, k) weight of influence k on the rotation of part p (the
+    influence's part is p or below it), ``Wsum`` (V, P) its sum over k.
+    """
+    key = ("lsq", max_points)
+    if key not in model._cache:
+        sub = model.subset(max_points)
+        vp = model.vertex_parts[sub]
+        w = model.weights[sub]
+        Wk = w[..., None] * model.below[vp]  # (V, k, P)
+        model._cache[key] = (vp, w[:, None, :], np.ascontiguousarray(Wk.transpose(0, 2, 1)), Wk.sum(1))
+    return model._cache[key]
+
+
+def predict_pose(model: ArticulatedModel, pose: Pose, before: Pose) -> Pose:
+    """Constant-velocity prediction of the next pose from the last two.
+
+    Every local rotation repeats its last change (``L' = L L_before^T L``),
+    the root rotation likewise, and the root joint moves on by its last step.
+    """
+    L1, L0 = _local(model, pose), _local(model, before)
+    L2 = np.einsum("pij,pkj,pkl->pil", L1, L0, L1)
+    R2 = pose.R[0] @ before.R[0].T @ pose.R[0]
+    c = model.pivots[0]
+    g1, g0 = pose.R[0] @ c + pose.t[0], before.R[0] @ c + before.t[0]
+    return _forward(model, R2, 2.0 * g1 - g0 - R2 @ c, L2)
+
+
 def _deform_subset(model: ArticulatedModel, pose: Pose, sub: np.ndarray) -> np.ndarray:
-    vp = model.vertex_parts[sub]
-    q = np.einsum("vkij,vj->vki", pose.R[vp], model.vertices[sub]) + pose.t[vp]
-    return (model.weights[sub][..., None] * q).sum(1)
+    return model.deform(pose, sub)
 
 
 @dataclass(frozen=True, eq=False)
@@ -406,6 +455,11 @@ def _fit_sequence(model, Y, iterations, progress) -> FitResult:
         start = prev
         if prev is not None:
             e_prev = np.linalg.norm(_deform_subset(model, prev, sub) - Y[t][sub], axis=1).mean()
+        if len(poses) >= 2:  # constant velocity from the two previous frames, when it predicts better
+            pred = predict_pose(model, poses[-1], poses[-2])
+            e_pred = np.linalg.norm(_deform_subset(model, pred, sub) - Y[t][sub], axis=1).mean()
+            if e_pred < e_prev:
+                start, e_prev = pred, e_pred
         if prev is None or e_prev > 2.0 * last_err:  # fast motion: try the closed-form start too
             cand = procrustes_pose(model, Y[t])
             e_new = np.linalg.norm(_deform_subset(model, cand, sub) - Y[t][sub], axis=1).mean()

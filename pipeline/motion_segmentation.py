@@ -55,7 +55,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from scipy.cluster.vq import kmeans2
-from scipy.ndimage import maximum_filter1d, minimum_filter1d
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from pipeline.geodesic import edge_graph, mesh_edges
@@ -265,14 +264,35 @@ def interval_length(vertices, *, to_reference: float = 1.0) -> int:
     return int(np.clip(round(2.0 * step), 1, T - 1))
 
 
+def _window_extreme(x: np.ndarray, width: int, op) -> np.ndarray:
+    """``op`` (np.maximum or np.minimum) over every window ``x[t : t + width]``, t = 0 .. T - width.
+
+    Whole frames at a time (contiguous memory): a running loop for short windows, the van
+    Herk / Gil-Werman block decomposition (prefix and suffix scans) for long ones.
+    """
+    T = x.shape[0]
+    n_win = T - width + 1
+    if width <= 12:
+        out = x[:n_win].copy()
+        for k in range(1, width):
+            op(out, x[k : k + n_win], out=out)
+        return out
+    nb = -(-T // width)
+    pad = nb * width - T
+    xp = np.concatenate([x, np.repeat(x[-1:], pad, axis=0)]) if pad else x
+    blocks = xp.reshape((nb, width) + x.shape[1:])
+    pre = op.accumulate(blocks, axis=1).reshape(xp.shape)
+    suf = op.accumulate(blocks[:, ::-1], axis=1)[:, ::-1].reshape(xp.shape)
+    return op(suf[:n_win], pre[width - 1 : width - 1 + n_win])
+
+
 def _window_range(x: np.ndarray, width: int) -> np.ndarray:
     """max over t of (max - min of x[t .. t+width-1]) along axis 0."""
     T = x.shape[0]
     if width >= T:
         return x.max(0) - x.min(0)
-    hi = maximum_filter1d(x, size=width, axis=0, mode="nearest")
-    lo = minimum_filter1d(x, size=width, axis=0, mode="nearest")
-    hi -= lo
+    hi = _window_extreme(x, width, np.maximum)
+    hi -= _window_extreme(x, width, np.minimum)
     return hi.max(0)
 
 

@@ -7,7 +7,7 @@ The capture file stays as recorded; everything computed from it goes to a direct
       export/frame_000123.glb  on request (export), also .ply
 
 The take's ``report.json`` (steps, timings, per-frame quality) in the same directory belongs
-to :func:`stage.process.process_take`, which writes it.
+to :func:`pipeline.process.process_take`, which writes it.
 
 Plain files and numpy only (no HDF5 here: only the ``stage.store`` package touches HDF5). Every write
 goes to a temporary file in the same directory and is moved into place with ``os.replace``,

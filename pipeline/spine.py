@@ -405,6 +405,132 @@ def _polyline_length(poly) -> float:
     return float(np.linalg.norm(np.diff(poly, axis=0), axis=1).sum()) if poly is not None and len(poly) > 1 else 0.0
 
 
+def _check_build_args(frames, fps, units, frame_indices) -> tuple[list, np.ndarray]:
+    """The frames as a list and the take frame numbers; ValueError naming a bad parameter."""
+    frames = list(frames)
+    if not frames:
+        raise ValueError("frames must hold at least one FrameSkeleton")
+    if not all(isinstance(f, FrameSkeleton) for f in frames):
+        raise ValueError("frames must be FrameSkeleton objects")
+    if not (fps > 0 and math.isfinite(fps)):
+        raise ValueError(f"fps must be > 0, got {fps}")
+    if not isinstance(units, str) or not units:
+        raise ValueError("units must be a non-empty string")
+    T = len(frames)
+    idx = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64)
+    if idx.shape != (T,):
+        raise ValueError(f"frame_indices must have {T} entries")
+    if all(f.n_tips == 0 for f in frames):
+        raise NoLimbsError("no limb tips in any frame: nothing protrudes from the surfaces")
+    return frames, idx
+
+
+def _imposed_topology(frames, A: np.ndarray, K: int) -> tuple[Topology, Counter]:
+    """Topology of every complete frame over the K limbs; the most frequent one (4.3)."""
+    tops: list[Topology | None] = []
+    for t, fr in enumerate(frames):
+        sel = A[t]
+        if np.all(sel >= 0):
+            sk = [s for s in fr.skeletons if s.seed in set(sel.tolist())]
+            tops.append(consensus_topology([skeleton_splits(s, sel) for s in sk], K))
+        else:
+            tops.append(None)
+    counted = Counter(tp.splits for tp in tops if tp is not None)
+    if counted:
+        G = Topology.from_splits(K, counted.most_common(1)[0][0])
+    else:  # no complete frame: majority over the partial frames' skeletons
+        G = Topology.from_splits(K, [])
+    return G, counted
+
+
+def _junction_hints(merged, t: int, jpos: np.ndarray) -> np.ndarray:
+    """Positions from the nearest frame for the junctions frame ``t`` could not realise."""
+    m = merged[t]
+    J = jpos.shape[1]
+    hints = np.full((J, 3), np.nan)
+    for j in range(J):
+        if np.isfinite(m.junctions[j]).all():
+            continue
+        ok = np.flatnonzero(np.all(np.isfinite(jpos[:, j]), axis=1))
+        if len(ok):
+            hints[j] = jpos[ok[np.argmin(np.abs(ok - t))], j]
+    return hints
+
+
+def _realise_topology(frames, A: np.ndarray, G: Topology) -> list[MergedSkeleton | None]:
+    """G realised in every frame; junctions not realisable get hints from the nearest frame."""
+    T, J = len(frames), G.n_junctions
+    merged: list[MergedSkeleton | None] = [None] * T
+    for t, fr in enumerate(frames):
+        if fr.n_tips and np.any(A[t] >= 0):
+            merged[t] = merge_skeletons(fr.skeletons, fr.tips, tips=A[t], topology=G)
+    jpos = np.full((T, J, 3), np.nan)
+    for t, m in enumerate(merged):
+        if m is not None:
+            jpos[t] = m.junctions
+    for t, m in enumerate(merged):
+        if m is None or np.all(np.isfinite(m.junctions)):
+            continue
+        hints = _junction_hints(merged, t, jpos)
+        if np.isfinite(hints).any():
+            fr = frames[t]
+            merged[t] = merge_skeletons(fr.skeletons, fr.tips, tips=A[t], topology=G, junction_hints=hints)
+    return merged
+
+
+def _graph_ids_for(G: Topology, K: int) -> tuple[list[str], list[str], dict]:
+    """Limb and junction ids and the parent of each."""
+    J = G.n_junctions
+    limb_ids = [f"limb{k}" for k in range(K)]
+    junction_ids = [f"j{j}" for j in range(J)]
+    parents: dict = {"j0": None}
+    for j in range(1, J):
+        parents[junction_ids[j]] = junction_ids[G.junction_parent[j]]
+    for k in range(K):
+        parents[limb_ids[k]] = junction_ids[G.tip_parent[k]]
+    return limb_ids, junction_ids, parents
+
+
+def _frame_polylines(merged, limb_ids, junction_ids):
+    """Tips, junctions and the axis polyline of every limb and inner junction, per frame."""
+    T, K, J = len(merged), len(limb_ids), len(junction_ids)
+    tips = np.full((T, K, 3), np.nan)
+    juncs = np.full((T, J, 3), np.nan)
+    polys: dict[str, list] = {name: [None] * T for name in limb_ids + junction_ids[1:]}
+    for t, m in enumerate(merged):
+        if m is None:
+            continue
+        tips[t] = m.tips
+        juncs[t] = m.junctions
+        for k in range(K):
+            polys[limb_ids[k]][t] = m.tip_axes[k]
+        for j in range(1, J):
+            polys[junction_ids[j]][t] = m.junction_axes[j]
+    return tips, juncs, polys
+
+
+def _resample_axes(polys: dict, T: int, samples: int) -> tuple[dict, float]:
+    """Every axis resampled at one interval (the median total length over ``samples``)."""
+    lengths = {name: [_polyline_length(p) for p in ps if p is not None] for name, ps in polys.items()}
+    totals = []
+    for t in range(T):
+        tot = [_polyline_length(polys[name][t]) for name in polys if polys[name][t] is not None]
+        if len(tot) == len(polys):
+            totals.append(sum(tot))
+    total = float(np.median(totals)) if totals else float(sum(np.median(v) for v in lengths.values() if v))
+    interval = total / samples if total > 0 else 1.0
+    axes = {}
+    for name, ps in polys.items():
+        L = float(np.median(lengths[name])) if lengths[name] else 0.0
+        n = max(2, int(round(L / interval)) + 1)
+        a = np.full((T, n, 3), np.nan)
+        for t, p in enumerate(ps):
+            if p is not None and len(p) >= 1:
+                a[t] = resample_polyline(p, n)
+        axes[name] = a
+    return axes, interval
+
+
 def build_spine(
     frames: Sequence[FrameSkeleton],
     *,
@@ -435,21 +561,7 @@ def build_spine(
         When no frame has a tip.
     """
     params = params or SpineParams()
-    frames = list(frames)
-    if not frames:
-        raise ValueError("frames must hold at least one FrameSkeleton")
-    if not all(isinstance(f, FrameSkeleton) for f in frames):
-        raise ValueError("frames must be FrameSkeleton objects")
-    if not (fps > 0 and math.isfinite(fps)):
-        raise ValueError(f"fps must be > 0, got {fps}")
-    if not isinstance(units, str) or not units:
-        raise ValueError("units must be a non-empty string")
-    T = len(frames)
-    idx = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64)
-    if idx.shape != (T,):
-        raise ValueError(f"frame_indices must have {T} entries")
-    if all(f.n_tips == 0 for f in frames):
-        raise NoLimbsError("no limb tips in any frame: nothing protrudes from the surfaces")
+    frames, idx = _check_build_args(frames, fps, units, frame_indices)
     corr = correspond_tips(
         [f.tips for f in frames],
         features=[f.limb_points for f in frames],
@@ -457,88 +569,13 @@ def build_spine(
         max_permutations=params.max_permutations,
         gate=params.gate,
     )
-    K = corr.K
-    A = corr.assignment
-
-    # topology of every complete frame over the K limbs; G = the most frequent
-    tops: list[Topology | None] = []
-    for t, fr in enumerate(frames):
-        sel = A[t]
-        if np.all(sel >= 0):
-            sk = [s for s in fr.skeletons if s.seed in set(sel.tolist())]
-            tops.append(consensus_topology([skeleton_splits(s, sel) for s in sk], K))
-        else:
-            tops.append(None)
-    counted = Counter(tp.splits for tp in tops if tp is not None)
-    if counted:
-        G = Topology.from_splits(K, counted.most_common(1)[0][0])
-    else:  # no complete frame: majority over the partial frames' skeletons
-        G = Topology.from_splits(K, [])
-    J = G.n_junctions
-
-    # realise G in every frame; junctions not realisable get hints from the nearest frame
-    merged: list[MergedSkeleton | None] = [None] * T
-    for t, fr in enumerate(frames):
-        if fr.n_tips and np.any(A[t] >= 0):
-            merged[t] = merge_skeletons(fr.skeletons, fr.tips, tips=A[t], topology=G)
-    jpos = np.full((T, J, 3), np.nan)
-    for t, m in enumerate(merged):
-        if m is not None:
-            jpos[t] = m.junctions
-    for t, m in enumerate(merged):
-        if m is None or np.all(np.isfinite(m.junctions)):
-            continue
-        hints = np.full((J, 3), np.nan)
-        for j in range(J):
-            if np.isfinite(m.junctions[j]).all():
-                continue
-            ok = np.flatnonzero(np.all(np.isfinite(jpos[:, j]), axis=1))
-            if len(ok):
-                hints[j] = jpos[ok[np.argmin(np.abs(ok - t))], j]
-        if np.isfinite(hints).any():
-            fr = frames[t]
-            merged[t] = merge_skeletons(fr.skeletons, fr.tips, tips=A[t], topology=G, junction_hints=hints)
-
-    limb_ids = [f"limb{k}" for k in range(K)]
-    junction_ids = [f"j{j}" for j in range(J)]
-    parents: dict = {"j0": None}
-    for j in range(1, J):
-        parents[junction_ids[j]] = junction_ids[G.junction_parent[j]]
-    for k in range(K):
-        parents[limb_ids[k]] = junction_ids[G.tip_parent[k]]
-
-    # resample every limb at one interval
-    tips = np.full((T, K, 3), np.nan)
-    juncs = np.full((T, J, 3), np.nan)
-    polys: dict[str, list] = {name: [None] * T for name in limb_ids + junction_ids[1:]}
-    for t, m in enumerate(merged):
-        if m is None:
-            continue
-        tips[t] = m.tips
-        juncs[t] = m.junctions
-        for k in range(K):
-            polys[limb_ids[k]][t] = m.tip_axes[k]
-        for j in range(1, J):
-            polys[junction_ids[j]][t] = m.junction_axes[j]
-    lengths = {name: [_polyline_length(p) for p in ps if p is not None] for name, ps in polys.items()}
-    totals = []
-    for t in range(T):
-        tot = [_polyline_length(polys[name][t]) for name in polys if polys[name][t] is not None]
-        if len(tot) == len(polys):
-            totals.append(sum(tot))
-    total = float(np.median(totals)) if totals else float(sum(np.median(v) for v in lengths.values() if v))
-    interval = total / params.samples if total > 0 else 1.0
-    axes = {}
-    for name, ps in polys.items():
-        L = float(np.median(lengths[name])) if lengths[name] else 0.0
-        n = max(2, int(round(L / interval)) + 1)
-        a = np.full((T, n, 3), np.nan)
-        for t, p in enumerate(ps):
-            if p is not None and len(p) >= 1:
-                a[t] = resample_polyline(p, n)
-        axes[name] = a
+    G, counted = _imposed_topology(frames, corr.assignment, corr.K)
+    merged = _realise_topology(frames, corr.assignment, G)
+    limb_ids, junction_ids, parents = _graph_ids_for(G, corr.K)
+    tips, juncs, polys = _frame_polylines(merged, limb_ids, junction_ids)
+    axes, interval = _resample_axes(polys, len(frames), params.samples)
     meta = {
-        "K": K,
+        "K": corr.K,
         "references": [int(r) for r in corr.references],
         "count_rule": corr.count_rule,
         "topology_splits": [int(s) for s in G.splits],
@@ -656,8 +693,7 @@ def _check_point(x, where):
         raise SpineFormatError(f"{where}: coordinates must be finite")
 
 
-def validate_spine_dict(d) -> None:
-    """Check a parsed spine file; raises :class:`SpineFormatError` naming the first problem."""
+def _check_header(d) -> None:
     if not isinstance(d, dict):
         raise SpineFormatError("spine must be a JSON object")
     if d.get("format") != FORMAT:
@@ -669,7 +705,10 @@ def validate_spine_dict(d) -> None:
         raise SpineFormatError("units must be a string")
     if not (isinstance(d["fps"], (int, float)) and d["fps"] > 0):
         raise SpineFormatError("fps must be a positive number")
-    g = d["graph"]
+
+
+def _check_graph(g) -> tuple[list, list, dict]:
+    """Limbs, junctions and parents of a valid graph: unique ids, one root junction, a tree."""
     if not isinstance(g, dict) or not all(k in g for k in ("limbs", "junctions", "parents")):
         raise SpineFormatError("graph must have limbs, junctions and parents")
     limbs, juncs, parents = g["limbs"], g["junctions"], g["parents"]
@@ -691,39 +730,54 @@ def validate_spine_dict(d) -> None:
                 raise SpineFormatError(f"parents form a cycle through {x!r}")
             seen.add(x)
             x = parents[x]
+    return limbs, juncs, parents
+
+
+def _check_axes(fr: dict, w: str, parents: dict) -> None:
+    for k, a in fr["axes"].items():
+        if k not in parents or parents[k] is None:
+            raise SpineFormatError(f"{w}.axes: unknown limb {k!r}")
+        if a is None:
+            continue
+        if not isinstance(a, list) or len(a) < 2:
+            raise SpineFormatError(f"{w}.axes.{k}: expected a polyline of >= 2 points or null")
+        for j, p in enumerate(a):
+            _check_point(p, f"{w}.axes.{k}[{j}]")
+            if p is None:
+                raise SpineFormatError(f"{w}.axes.{k}[{j}]: null point inside a polyline")
+
+
+def _check_frame(fr, w: str, last, limbs, juncs, parents) -> int:
+    """One frame entry; returns its index."""
+    if not isinstance(fr, dict) or "index" not in fr or "tips" not in fr or "axes" not in fr:
+        raise SpineFormatError(f"{w}: needs index, tips and axes")
+    if not isinstance(fr["index"], int) or (last is not None and fr["index"] <= last):
+        raise SpineFormatError(f"{w}: index must be an integer increasing with the take order")
+    if set(fr["tips"]) != set(limbs):
+        raise SpineFormatError(f"{w}: tips must have one entry per limb")
+    for k, x in fr["tips"].items():
+        _check_point(x, f"{w}.tips.{k}")
+    for k, x in fr.get("junctions", {}).items():
+        if k not in juncs:
+            raise SpineFormatError(f"{w}.junctions: unknown junction {k!r}")
+        _check_point(x, f"{w}.junctions.{k}")
+    _check_axes(fr, w, parents)
+    for k in limbs:
+        if (fr["tips"][k] is None) != (fr["axes"].get(k) is None) and fr["axes"].get(k) is not None:
+            raise SpineFormatError(f"{w}: limb {k!r} has an axis but no tip")
+    return fr["index"]
+
+
+def validate_spine_dict(d) -> None:
+    """Check a parsed spine file; raises :class:`SpineFormatError` naming the first problem."""
+    _check_header(d)
+    limbs, juncs, parents = _check_graph(d["graph"])
     frames = d["frames"]
     if not isinstance(frames, list) or len(frames) != d["frame_count"]:
         raise SpineFormatError("frames must be a list of frame_count entries")
     last = None
     for i, fr in enumerate(frames):
-        w = f"frames[{i}]"
-        if not isinstance(fr, dict) or "index" not in fr or "tips" not in fr or "axes" not in fr:
-            raise SpineFormatError(f"{w}: needs index, tips and axes")
-        if not isinstance(fr["index"], int) or (last is not None and fr["index"] <= last):
-            raise SpineFormatError(f"{w}: index must be an integer increasing with the take order")
-        last = fr["index"]
-        if set(fr["tips"]) != set(limbs):
-            raise SpineFormatError(f"{w}: tips must have one entry per limb")
-        for k, x in fr["tips"].items():
-            _check_point(x, f"{w}.tips.{k}")
-        for k, x in fr.get("junctions", {}).items():
-            if k not in juncs:
-                raise SpineFormatError(f"{w}.junctions: unknown junction {k!r}")
-            _check_point(x, f"{w}.junctions.{k}")
-        for k, a in fr["axes"].items():
-            if k not in parents or parents[k] is None:
-                raise SpineFormatError(f"{w}.axes: unknown limb {k!r}")
-            if a is None:
-                continue
-            if not isinstance(a, list) or len(a) < 2:
-                raise SpineFormatError(f"{w}.axes.{k}: expected a polyline of >= 2 points or null")
-            for j, p in enumerate(a):
-                _check_point(p, f"{w}.axes.{k}[{j}]")
-                if p is None:
-                    raise SpineFormatError(f"{w}.axes.{k}[{j}]: null point inside a polyline")
-        for k in limbs:
-            if (fr["tips"][k] is None) != (fr["axes"].get(k) is None) and fr["axes"].get(k) is not None:
-                raise SpineFormatError(f"{w}: limb {k!r} has an axis but no tip")
+        last = _check_frame(fr, f"frames[{i}]", last, limbs, juncs, parents)
 
 
 def write_spine(path, spine: Spine) -> Path:

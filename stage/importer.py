@@ -27,8 +27,10 @@ import cv2
 import numpy as np
 
 from calib.calibration import Calibration
+from calib.formats import read_calibration
 from stage.frame import Frame
-from stage.store import CameraSpec, DiskFullError, TakeWriter
+from stage.rig import check_plane
+from stage.store import CameraSpec, DiskFullError, TakeReader, TakeWriter
 
 __all__ = ["ImportResult", "import_take", "find_sources", "IMAGE_EXTS", "VIDEO_EXTS"]
 
@@ -187,7 +189,7 @@ def import_take(
     support_plane : (4,) floats, optional
         ``(a, b, c, d)`` of the plane the subject stands on (``a x + b y + c z + d >= 0``
         is kept), in the calibration's units; stored in the take's rig, where
-        :func:`stage.process.process_take` finds it.
+        :func:`pipeline.process.process_take` finds it.
     progress : callable, optional
         ``progress(done, total)`` after each set.
 
@@ -197,55 +199,23 @@ def import_take(
         Missing entry for a camera, unreadable image or video, an image whose
         size differs from the calibration's, bad arguments.
     """
-    if not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps must be positive, got {fps!r}")
-    if storage not in ("auto", "raw", "jpeg"):
-        raise ValueError(f"storage must be 'auto', 'raw' or 'jpeg', got {storage!r}")
-    if max_frames is not None and (not isinstance(max_frames, int) or max_frames < 1):
-        raise ValueError(f"max_frames must be a positive integer, got {max_frames!r}")
+    _check_options(fps=fps, storage=storage, max_frames=max_frames)
     rig: dict[str, Any] = {"name": "imported", "source": str(Path(images).resolve()), "fps": fps}
     if support_plane is not None:
-        from pipeline.volume import check_plane
-
         rig["support_plane"] = check_plane(support_plane).tolist()
-    if isinstance(calibration, Calibration):
-        calib = calibration
-    elif isinstance(calibration, (str, os.PathLike)):
-        from calib.formats import read_calibration
-
-        calib = read_calibration(calibration)
-    else:
-        raise ValueError(f"calibration must be a path or a Calibration, got {type(calibration).__name__}")
+    calib = _load_calibration(calibration)
     out = Path(out)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: take already exists (use --overwrite to replace it)")
     sources = find_sources(images, calib)
     counts = {c: sources[c].count() for c in calib.names}
-    n_sets = max(counts.values())
-    if n_sets == 0:
-        n_sets = 1  # videos whose frame count is unknown: read until they end
-    if len(set(counts.values())) > 1:
-        log.warning("cameras have different frame counts (%s); the shorter ones are missing from later sets",
-                    ", ".join(f"{c}: {n}" for c, n in counts.items()))
-    if max_frames is not None:
-        n_sets = min(n_sets, max_frames)
-    specs = []
-    kinds = {}
-    for cam in calib:
-        src = sources[cam.name]
-        st = storage
-        if st == "auto":
-            st = "jpeg" if src.all_jpeg else "raw"
-        elif st == "jpeg" and not src.all_jpeg:
-            log.info("camera %s: frames are not JPEG files; they will be JPEG-encoded for storage", cam.name)
-        kinds[cam.name] = st
-        specs.append(CameraSpec(cam.name, cam.width, cam.height, storage=st))
-    iters = {c: _frames(sources[c]) for c in calib.names}
-    period = 1e9 / fps
+    n_sets = _set_count(counts, max_frames)
+    kinds = {cam.name: _storage_of(sources[cam.name], storage, cam.name) for cam in calib}
+    specs = [CameraSpec(cam.name, cam.width, cam.height, storage=kinds[cam.name]) for cam in calib]
+    reader = _SetReader(calib, {c: _frames(sources[c]) for c in calib.names}, kinds, period=1e9 / fps)
     tmp = out.with_name(out.name + ".part")
     if tmp.exists():
         tmp.unlink()
-    done = {c: False for c in calib.names}
     k = 0
     try:
         with TakeWriter(
@@ -259,30 +229,10 @@ def import_take(
             expected_sets=n_sets if max(counts.values()) > 0 else None,
         ) as w:
             while max_frames is None or k < max_frames:
-                frames: dict[str, Frame | None] = {}
-                for cam in calib:
-                    c = cam.name
-                    if done[c]:
-                        frames[c] = None
-                        continue
-                    try:
-                        img, enc, where = next(iters[c])
-                    except StopIteration:
-                        done[c] = True
-                        frames[c] = None
-                        continue
-                    h, wd = img.shape[:2]
-                    if (wd, h) != tuple(cam.size):
-                        raise ValueError(
-                            f"camera {c}: {where} is {wd}x{h} but the calibration says {cam.width}x{cam.height}"
-                        )
-                    t = int(round(k * period))
-                    if cam.meta.get("mirror"):  # a camera that delivers mirrored images: flip back
-                        img, enc = np.ascontiguousarray(img[:, ::-1]), None
-                    frames[c] = Frame(img, c, k, t, t, encoded=enc if kinds[c] == "jpeg" else None)
-                if all(done.values()):
+                frames = reader.next_set(k)
+                if frames is None:
                     break
-                w.write_set(frames, time_ns=int(round(k * period)))
+                w.write_set(frames, time_ns=reader.time_ns(k))
                 k += 1
                 if progress is not None:
                     progress(k, max(n_sets, k))
@@ -293,11 +243,79 @@ def import_take(
     except BaseException:
         _remove(tmp)
         raise
-    from stage.store import TakeReader
-
     with TakeReader(out) as r:
         fc = r.frame_counts()
     return ImportResult(path=out, sets=k, frames=fc, storage=kinds, units=calib.units)
+
+
+def _check_options(*, fps: float, storage: str, max_frames: int | None) -> None:
+    if not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be positive, got {fps!r}")
+    if storage not in ("auto", "raw", "jpeg"):
+        raise ValueError(f"storage must be 'auto', 'raw' or 'jpeg', got {storage!r}")
+    if max_frames is not None and (not isinstance(max_frames, int) or max_frames < 1):
+        raise ValueError(f"max_frames must be a positive integer, got {max_frames!r}")
+
+
+def _load_calibration(calibration: str | os.PathLike | Calibration) -> Calibration:
+    if isinstance(calibration, Calibration):
+        return calibration
+    if isinstance(calibration, (str, os.PathLike)):
+        return read_calibration(calibration)
+    raise ValueError(f"calibration must be a path or a Calibration, got {type(calibration).__name__}")
+
+
+def _set_count(counts: dict[str, int], max_frames: int | None) -> int:
+    """Frame sets to expect: the longest camera's count (1 when no count is known: videos
+    whose frame count is unknown are read until they end), at most ``max_frames``."""
+    n_sets = max(counts.values()) or 1
+    if len(set(counts.values())) > 1:
+        log.warning("cameras have different frame counts (%s); the shorter ones are missing from later sets",
+                    ", ".join(f"{c}: {n}" for c, n in counts.items()))
+    return n_sets if max_frames is None else min(n_sets, max_frames)
+
+
+def _storage_of(src: _Source, storage: str, camera: str) -> str:
+    """``raw`` or ``jpeg`` for one camera (``auto``: JPEG bytes as they are when every frame is a JPEG file)."""
+    if storage == "auto":
+        return "jpeg" if src.all_jpeg else "raw"
+    if storage == "jpeg" and not src.all_jpeg:
+        log.info("camera %s: frames are not JPEG files; they will be JPEG-encoded for storage", camera)
+    return storage
+
+
+class _SetReader:
+    """The next frame set of every camera's frame iterator; a camera that has ended is
+    missing (``None``) from later sets."""
+
+    def __init__(self, calib: Calibration, iters: dict[str, Iterator], kinds: dict[str, str], *, period: float) -> None:
+        self.calib, self.iters, self.kinds, self.period = calib, iters, kinds, period
+        self.done = {c: False for c in calib.names}
+
+    def time_ns(self, k: int) -> int:
+        return int(round(k * self.period))
+
+    def next_set(self, k: int) -> dict[str, Frame | None] | None:
+        """Set ``k``, or ``None`` once every camera has ended."""
+        frames = {cam.name: self._next_frame(cam, k) for cam in self.calib}
+        return None if all(self.done.values()) else frames
+
+    def _next_frame(self, cam, k: int) -> Frame | None:
+        c = cam.name
+        if self.done[c]:
+            return None
+        try:
+            img, enc, where = next(self.iters[c])
+        except StopIteration:
+            self.done[c] = True
+            return None
+        h, wd = img.shape[:2]
+        if (wd, h) != tuple(cam.size):
+            raise ValueError(f"camera {c}: {where} is {wd}x{h} but the calibration says {cam.width}x{cam.height}")
+        if cam.meta.get("mirror"):  # a camera that delivers mirrored images: flip back
+            img, enc = np.ascontiguousarray(img[:, ::-1]), None
+        t = self.time_ns(k)
+        return Frame(img, c, k, t, t, encoded=enc if self.kinds[c] == "jpeg" else None)
 
 
 def _remove(path: Path) -> None:

@@ -3,7 +3,7 @@ inside a function, and two packages on one floor do not import each other.
 
 Every module of the five packages is parsed with :mod:`ast`; every ``import`` and
 ``from ... import`` counts, wherever it is (module level, function, ``if TYPE_CHECKING``),
-and so does a string that is a whole import path (``"stage.process:process_take"``), since
+and so does a string that is a whole import path (``"pipeline.process:process_take"``), since
 ``importlib`` turns it into an import the parser would not see.
 """
 
@@ -32,6 +32,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
     )),
     1: ("ground", (
         "stage.drivers.*", "stage.sync", "stage.store.*", "stage.keying.*", "stage.discovery", "stage.capture",
+        "stage.importer",
         "pipeline", "pipeline.volume", "pipeline.geodesic", "pipeline.meshio",
     )),
     2: ("steps", (
@@ -44,22 +45,12 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "calib.evaluate", "calib.timestamps",
     )),
     3: ("orchestration", (
-        # process, import, report and track are orchestration; they sit in stage/ until they
-        # move (see MOVES_PENDING below and docs/architecture.md)
-        "stage.process", "stage.importer", "stage.report.*", "stage.track",
+        # processing, tracking and the report run the pipeline over a take
+        "pipeline.process", "pipeline.report.*", "pipeline.track",
         "fake_cameras.*",
     )),
     4: ("service", ("api.*",)),
     5: ("composition root", ("stage.cli.*", "stage.benchmarks.*", "stage.__main__")),
-}
-
-#: Orchestration modules still under stage/ whose home is another package; each line is one
-#: ``git mv`` + import rewrite. Remove a line when its move is done.
-MOVES_PENDING = {
-    "stage.process": "git mv stage/process.py pipeline/process.py",
-    "stage.report": "git mv stage/report pipeline/report",
-    "stage.track": "git mv stage/track.py pipeline/track.py",
-    "stage.importer": "stays; imports check_plane from stage.rig, then moves to floor 1 (ground)",
 }
 
 @dataclass(frozen=True)
@@ -185,13 +176,6 @@ def test_every_floor_entry_is_a_module():
     modules, _ = _project_graph()
     stale = [p for _, patterns in FLOORS.values() for p in patterns if not any(_matches(m, p) for m in modules)]
     assert not stale, f"FLOORS names modules that do not exist: {stale}"
-
-
-def test_pending_moves_are_still_pending():
-    """A finished move must leave MOVES_PENDING (and the floor map) too."""
-    modules, _ = _project_graph()
-    done = [m for m in MOVES_PENDING if m not in modules]
-    assert not done, f"moved already, remove from MOVES_PENDING: {done}"
 
 
 # --------------------------------------------------------------------------- the checker itself

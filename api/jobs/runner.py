@@ -1,7 +1,7 @@
 """The job runner: takes queued jobs from the :class:`~api.jobs.store.JobStore` and runs them.
 
 A dispatcher thread polls the store; each claimed job runs in its own thread,
-which calls the *work* function (by default :func:`stage.process.process_take`)
+which calls the *work* function (by default :func:`pipeline.process.process_take`)
 with the shared executor, a progress callback that writes to the store, and a
 cancel event. The work function persists per-frame results in the job's output
 folder and resumes from the unfinished frames when called again on it, so a job
@@ -156,7 +156,7 @@ class JobRunner:
         *,
         takes_dir: Path,
         jobs_dir: Path,
-        work: str | Callable[..., Any] = "stage.process:process_take",
+        work: str | Callable[..., Any] = "pipeline.process:process_take",
         executor: ExecutorHandle | Callable[[], ExecutorHandle] | None = None,
         dask: str | None = None,
         workers: int | None = None,

@@ -25,7 +25,7 @@ class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     take: Annotated[str, Field(pattern=TAKE_ID, max_length=128, examples=["take1"])]
     steps: Annotated[list[str] | None, Field(max_length=16, examples=[["key", "surface", "spine"]])] = None
-    parameters: dict[str, Any] = Field(default_factory=dict, description="stage.process.ProcessParams fields")
+    parameters: dict[str, Any] = Field(default_factory=dict, description="pipeline.process.ProcessParams fields")
 
 
 class StepProgress(BaseModel):

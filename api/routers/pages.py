@@ -7,11 +7,11 @@
 * ``GET /ui/jobs``, ``GET /ui/jobs/{id}``: jobs with live progress bars (a small inline
   script polls ``/jobs`` / ``/jobs/{id}`` every second while a job is active);
 * ``GET /ui/jobs/{id}/report``: the HTML report of a finished job
-  (:func:`stage.report.render_report`, cached as ``DATA/jobs/<id>/report.html``).
+  (:func:`pipeline.report.render_report`, cached as ``DATA/jobs/<id>/report.html``).
 
 The pages read with the same :data:`~api.deps.ReadAccess` dependency as the JSON
 endpoints. Nothing is fetched from elsewhere: the only scripts are inline, and
-plotly.js is embedded (:func:`stage.report.figures.plotly_js`) only on pages with
+plotly.js is embedded (:func:`pipeline.report.figures.plotly_js`) only on pages with
 a figure. The pages are left out of the OpenAPI schema (they are not API).
 
 The HTML lives in ``api/templates`` (Jinja2, autoescaped; served through FastAPI's
@@ -86,7 +86,7 @@ def _not_found(request: Request, message: str) -> HTMLResponse:
 
 def _plotly_js() -> str:
     """plotly.js, safe inside an inline ``<script>``."""
-    from stage.report.figures import plotly_js
+    from pipeline.report.figures import plotly_js
 
     return plotly_js().replace("</script", "<\\/script")
 
@@ -131,7 +131,7 @@ def _frame_sets(n: int, k: int) -> list[int]:
 def _frusta_html(calibration: dict) -> str:
     """The cameras of a calibration (as stored in a take) as a plotly figure's HTML."""
     from calib.calibration import Calibration
-    from stage.report.figures import figure_html, frusta_figure
+    from pipeline.report.figures import figure_html, frusta_figure
 
     return figure_html(frusta_figure(Calibration.from_dict(calibration)), div_id="frusta")
 
@@ -192,7 +192,7 @@ def job_page(request: Request, job_id: JobId, store: StoreDep, _: ReadAccess) ->
 
 def _report_html(job: JobRecord, job_dir: Path, take: Path | None) -> str:
     """The cached report of a finished job, (re)rendered when missing or older than its inputs."""
-    from stage.report import render_report
+    from pipeline.report import render_report
 
     cache = job_dir / REPORT_CACHE
     inputs = [p for p in (job_dir / "spine.json", job_dir / "report.json") if p.is_file()]
@@ -214,7 +214,7 @@ def _report_html(job: JobRecord, job_dir: Path, take: Path | None) -> str:
 def job_report(request: Request, job_id: JobId, store: StoreDep, library: LibraryDep, settings: SettingsDep,
                _: ReadAccess) -> HTMLResponse:
     """The HTML report of a finished processing job (plotly.js embedded; cached in the job's folder)."""
-    from stage.report import NothingToReportError
+    from pipeline.report import NothingToReportError
 
     try:
         j = store.get(job_id)

@@ -71,7 +71,10 @@ def take_image(take_id: TakeId, index: Annotated[int, Path(ge=0, le=10_000_000)]
     "/{take_id}",
     status_code=status.HTTP_201_CREATED,
     response_model=TakeSummary,
-    openapi_extra={"requestBody": {"required": True, "content": {"application/x-hdf5": {"schema": {"type": "string", "format": "binary"}}}}},
+    openapi_extra={"requestBody": {
+        "required": True,
+        "content": {"application/x-hdf5": {"schema": {"type": "string", "format": "binary"}}},
+    }},
     responses={409: {"description": "take exists"}, 413: {"description": "too large"}, 400: {"description": "not a take"},
                507: {"description": "not enough free disk space"}},
 )

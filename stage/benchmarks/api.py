@@ -7,7 +7,7 @@
 2. Processes the same take through the local process pool and through a Dask
    ``LocalCluster`` with 2 workers, in this run: frames per second of each.
 
-The work is :func:`stage.process.process_take` on a simulated take when
+The work is :func:`pipeline.process.process_take` on a simulated take when
 both exist; otherwise a synthetic CPU-bound stand-in with the same contract
 (:func:`synthetic_process`), and the output says so.
 """
@@ -90,9 +90,9 @@ def synthetic_process(take: str | Path, out: str | Path, *, steps: Sequence[str]
 
 def _real_work_available() -> tuple[bool, str]:
     try:
-        import stage.process  # noqa: F401
+        import pipeline.process  # noqa: F401
     except ImportError as exc:
-        return False, f"stage.process is not available ({exc})"
+        return False, f"pipeline.process is not available ({exc})"
     try:
         from fake_cameras.take import simulate_take  # noqa: F401
     except ImportError as exc:
@@ -159,7 +159,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cameras", type=int, default=6, help="cameras of the simulated take (default: %(default)s)")
     p.add_argument("--size", default="160x120", help="image size WxH (default: %(default)s)")
     p.add_argument("--workers", type=int, default=2, help="local pool processes / Dask workers (default: %(default)s)")
-    p.add_argument("--synthetic", action="store_true", help="use the synthetic work even if stage.process exists")
+    p.add_argument("--synthetic", action="store_true", help="use the synthetic work even if pipeline.process exists")
     p.add_argument("--skip-dask", action="store_true", help="only the local pool")
 
 
@@ -224,7 +224,7 @@ def _throughput(take: Path, tmp: Path, real: bool, args: argparse.Namespace) -> 
     from api.executors import dask_available, dask_executor, local_pool
 
     if real:
-        from stage.process import process_take as fn
+        from pipeline.process import process_take as fn
 
         params = None
     else:
@@ -320,7 +320,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         _make_take(take, frames=args.frames, cameras=args.cameras, size=size)
         print(f"take: {args.frames} frames x {args.cameras} cameras {args.size} ({time.perf_counter() - t0:.1f} s to make)")
-        print("work: " + ("stage.process.process_take" if real else f"synthetic stand-in ({why})"))
+        print("work: " + ("pipeline.process.process_take" if real else f"synthetic stand-in ({why})"))
         try:
             _throughput(take, tmp, real, args)
         except ImportError as exc:
@@ -329,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
             real = False
             print(f"process_take cannot run yet ({exc}); using the synthetic stand-in")
             _throughput(take, tmp, real, args)
-        work = "stage.process:process_take" if real else "stage.benchmarks.api:synthetic_process"
+        work = "pipeline.process:process_take" if real else "stage.benchmarks.api:synthetic_process"
         _status_load(take, tmp, work, real, args)
     return 0
 

@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stage.cli._args import parse_size
+
 NAME = "process"
 HELP = "stage process end to end (1, 2 workers, Dask) vs each step's own benchmark and the disk-read floor"
 
@@ -46,16 +48,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster run")
     p.add_argument("--profile", action="store_true", help="also profile an in-process run (cProfile, top 20)")
     p.add_argument("--keep", type=Path, default=None, metavar="DIR", help="keep the take and results in DIR")
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--size must look like 640x480, got {text!r}") from None
-    if w < 64 or h < 48:
-        raise ValueError(f"--size must be at least 64x48, got {text!r}")
-    return w, h
 
 
 def _disk_floor(take: Path) -> float:
@@ -101,10 +93,10 @@ def _own_reconstruct(take: Path, out: Path) -> dict:
 
     from calib.calibration import Calibration
     from pipeline.hull import HullCarver
+    from pipeline.process import ProcessParams
     from pipeline.spine import SpineParams, build_spine, frame_skeleton
     from pipeline.surface import surface_from_occupancy
     from pipeline.volume import Grid
-    from stage.process import ProcessParams
     from stage.store import TakeReader
 
     p = ProcessParams(**json.loads((out / "process.json").read_text())["params"])
@@ -176,12 +168,12 @@ def _copy_take(src: Path, dst: Path) -> Path:
 
 
 def _run(take_src: Path, work: Path, i: int, make) -> tuple[float, dict]:
-    from stage.process import process_take
+    from pipeline.process import process_take
 
     take = _copy_take(take_src, work / f"take-{i}.h5")
     out = work / f"out-{i}"
     shutil.rmtree(out, ignore_errors=True)
-    from stage.process import warm_task
+    from pipeline.process import warm_task
 
     t = time.perf_counter()
     ex, closers = make()
@@ -202,10 +194,10 @@ def _run(take_src: Path, work: Path, i: int, make) -> tuple[float, dict]:
 def run(args: argparse.Namespace) -> int:
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
-    from stage.process import process_take
+    from pipeline.process import process_take
     from stage.store import TakeReader
 
-    size = _size(args.size)
+    size = parse_size(args.size)
     if args.frames < 2 or args.cameras < 4:
         raise ValueError("--frames must be >= 2 and --cameras >= 4")
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench-process-"))

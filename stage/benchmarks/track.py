@@ -36,8 +36,8 @@ def multiview_accuracy(frames: int = 30) -> None:
     from fake_cameras.surface_motion import surface_point_tracks
     from fake_cameras.take import simulate_take
     from pipeline.meshio import load_mesh
+    from pipeline.process import process_take
     from pipeline.tracking import mesh_volume
-    from stage.process import process_take
 
     with tempfile.TemporaryDirectory() as tmp:
         for name in ("starfish", "quadruped"):
@@ -72,8 +72,8 @@ def accuracy(frames: int = 30) -> None:
 
     from fake_cameras.rgbd import OBJECTS, record_rgbd_take, simulate_rgbd_take, template_path
     from pipeline.meshio import load_mesh
+    from pipeline.track import track_rgbd_take
     from pipeline.tracking import mesh_volume
-    from stage.track import track_rgbd_take
 
     expected = {"pipe_half": 1, "pipe_3q": 1, "lamp": 3}
     with tempfile.TemporaryDirectory() as tmp:

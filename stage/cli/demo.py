@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stage.cli._args import parse_size
+
 ORDER = 1
 log = logging.getLogger("stage.demo")
 
@@ -44,16 +46,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rgbd", action="store_true",
                    help="instead: the single RGB-D camera path (simulated pipe bent at 1/2: take, tracking, rig)")
     p.set_defaults(func=run)
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--size must look like 640x480, got {text!r}") from None
-    if w < 64 or h < 48:
-        raise ValueError(f"--size must be at least 64x48, got {text!r}")
-    return w, h
 
 
 def _capture(rig_dict: dict, path: Path, frames: int, *, calibration=None, no_progress: bool, label: str):
@@ -168,11 +160,11 @@ def run(args: argparse.Namespace) -> int:
     from fake_cameras.evaluate import evaluate_spine
     from fake_cameras.rigs import simulated_rig_dict
     from fake_cameras.take import write_ground_truth
+    from pipeline.process import ProcessParams, process_take
     from stage.cli._progress import StepBars
-    from stage.process import ProcessParams, process_take
     from stage.store import attach_calibration
 
-    size = _size(args.size)
+    size = parse_size(args.size)
     if not 4 <= args.cameras <= 24:
         raise ValueError(f"--cameras must be in 4..24, got {args.cameras}")
     if args.frames < 2:
@@ -270,7 +262,7 @@ def run(args: argparse.Namespace) -> int:
     )
     # 6. what users take away: a rigged, animated model and a page to look at
     from pipeline.gltf_export import export_rig
-    from stage.report import write_report
+    from pipeline.report import write_report
 
     glb = export_rig(results)
     report = write_report(results, take=take_path)

@@ -8,7 +8,7 @@ import logging
 from pathlib import Path
 
 ORDER = 50
-log = logging.getLogger("stage.process")
+log = logging.getLogger("pipeline.process")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -85,8 +85,8 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
     import concurrent.futures as cf
     import multiprocessing
 
+    from pipeline.process import STEPS, ProcessParams, process_take
     from stage.cli._progress import StepBars
-    from stage.process import STEPS, ProcessParams, process_take
 
     steps = STEPS[: STEPS.index(args.until) + 1]
     kw = {"key_mode": args.key_mode, "rekey": args.rekey, "tolerance": args.tolerance}

@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from stage.report import write_report
+    from pipeline.report import write_report
 
     path = write_report(args.results, take=args.take, out=args.out, max_frames=args.max_frames)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); open it in a browser (works offline)")

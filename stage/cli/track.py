@@ -37,9 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pipeline.track import TrackingError, track_results, track_rgbd_take
     from stage.cli import UserError
     from stage.cli._progress import StepBars
-    from stage.track import TrackingError, track_results, track_rgbd_take
 
     src = Path(args.source)
     quiet = bool(getattr(args, "quiet", False)) or args.no_progress

@@ -1,4 +1,4 @@
-"""Names, errors and small helpers every part of the take store shares."""
+"""Names, errors and small functions every part of the take store shares."""
 
 from __future__ import annotations
 

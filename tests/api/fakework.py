@@ -1,4 +1,4 @@
-"""A tiny deterministic stand-in for :func:`stage.process.process_take` (same contract), for unit tests.
+"""A tiny deterministic stand-in for :func:`pipeline.process.process_take` (same contract), for unit tests.
 
 It reads the frame count from a minimal take file (``attrs["frames"]``, see
 :func:`make_take_file`), fans frames out on the executor, persists one result per

@@ -44,7 +44,7 @@ def _take(path: Path) -> Path:
     try:
         from fake_cameras.record import record_take
         from fake_cameras.take import simulate_take
-        from stage.process import process_take  # noqa: F401  (the server's default work)
+        from pipeline.process import process_take  # noqa: F401  (the server's default work)
     except ImportError as exc:
         pytest.skip(f"the simulated take or the processing pipeline is not available: {exc}")
     path.parent.mkdir(parents=True, exist_ok=True)

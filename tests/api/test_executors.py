@@ -56,9 +56,9 @@ def test_dask_and_local_pool_agree_process_take(tmp_path, dask_handle, pool_hand
     from tests.api import test_serve
 
     take = test_serve._simulated_take_file(tmp_path / "sim.h5")
-    a = _run_job(tmp_path, "pool", take, pool_handle, "stage.process:process_take", skip_on_import_error=True)
+    a = _run_job(tmp_path, "pool", take, pool_handle, "pipeline.process:process_take", skip_on_import_error=True)
     test_serve._REF.setdefault(test_serve.SIM_KEY, a)  # an uninterrupted run: the reference of test_serve
-    b = _run_job(tmp_path, "dask", take, dask_handle, "stage.process:process_take")
+    b = _run_job(tmp_path, "dask", take, dask_handle, "pipeline.process:process_take")
     assert a == b and a["format"].startswith("capture-stage/spine")
 
 

@@ -78,7 +78,7 @@ def test_error_bodies_and_numbers(client):
 def test_two_jobs_on_one_take_match_one_job_alone(make_client, tmp_path):
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
-    from stage.process import process_take
+    from pipeline.process import process_take
 
     data = tmp_path / "data"
     (data / "takes").mkdir(parents=True)
@@ -90,7 +90,7 @@ def test_two_jobs_on_one_take_match_one_job_alone(make_client, tmp_path):
     process_take(ref_dir / "takes" / "t.h5", ref_dir / "out", params={"resolution": 32})
     alone = json.loads((ref_dir / "out" / "spine.json").read_text())
 
-    c = make_client(work="stage.process:process_take", data=data, max_concurrent_jobs=2)
+    c = make_client(work="pipeline.process:process_take", data=data, max_concurrent_jobs=2)
     ids = [c.post("/jobs", json={"take": "t", "parameters": {"resolution": 32}}, headers=AUTH).json()["id"] for _ in range(2)]
     for jid in ids:
         st = wait_job(c, jid, timeout=120)

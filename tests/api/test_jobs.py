@@ -1,4 +1,4 @@
-"""Jobs over the API with the fake work (contract of stage.process.process_take): create, status, SSE, cancel, results."""
+"""Jobs over the API with the fake work (contract of pipeline.process.process_take): create, status, SSE, cancel, results."""
 
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ SIGKILL the server mid-job, restart it; the job resumes and its spine.json equal
 Two variants:
 
 * ``real``: a simulated take (fake_cameras) written by stage.store, processed by
-  :func:`stage.process.process_take`;
+  :func:`pipeline.process.process_take`;
 * ``fake``: the tiny deterministic stand-in of ``tests/api/fakework.py`` (same contract),
   fast enough to kill the server at several points.
 """
@@ -190,7 +190,7 @@ SIM_KEY = "starfish-6-8-160x120-0"  # what _simulated_take_file makes (the file 
 
 def reference_spine(take: Path, tmp: Path) -> dict:
     """``spine.json`` of an uninterrupted in-process run of process_take."""
-    from stage.process import process_take
+    from pipeline.process import process_take
 
     key = SIM_KEY
     if key not in _REF:

@@ -143,3 +143,14 @@ def test_invalid_input():
         Pose(p0=[[0, 0, 0]], p1=[[1, 0, 0]], r0=[0.0], r1=[1.0], limb=[-1])
     with pytest.raises(ValueError):
         Pose(p0=[[0, 0, 0]], p1=[[1, 0, 0]], r0=[1.0, 2.0], r1=[1.0], limb=[-1])
+
+
+def test_tailed_quadruped_keeps_its_thin_tail_at_any_scale():
+    """``scale`` grows the animal (body and other limbs exactly by the factor), not its tail."""
+    small, big = make_creature("tailed_quadruped"), make_creature("tailed_quadruped", scale=1.6)
+    a, b = (next(lb for lb in c.limbs if lb.name == "tail") for c in (small, big))
+    assert a.radii == b.radii == (18.0, 15.0, 12.0, 8.0) and a.lengths == b.lengths
+    np.testing.assert_allclose(np.asarray(b.attach), 1.6 * np.asarray(a.attach))
+    for la, lb in zip(small.limbs, big.limbs):
+        if la.name != "tail":
+            np.testing.assert_allclose(lb.radii, 1.6 * np.asarray(la.radii))

@@ -24,3 +24,18 @@ def test_invalid_input():
         simulated_rig_dict(2, subject="dragon")
     with pytest.raises(ValueError, match="drop_rate"):
         simulated_rig_dict(2, drop_rate=2.0)
+
+
+def test_rig_carries_the_capture_volume(tmp_path):
+    """A simulated take's rig file holds the take's capture volume (processing searches it)."""
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
+    from stage.rig import Volume
+    from stage.store import TakeReader
+
+    vol = Volume(center=(10.0, 0.0, 300.0), size=(900.0, 600.0, 600.0))
+    assert simulated_rig_dict(4, volume=vol)["volume"] == {"center": [10.0, 0.0, 300.0], "size": [900.0, 600.0, 600.0]}
+    assert simulated_rig_dict(4)["volume"] == {"center": [0.0, 0.0, 375.0], "size": [750.0, 750.0, 750.0]}
+    sim = simulate_take("starfish", n_cameras=4, frames=1, size=(160, 120), volume=vol)
+    with TakeReader(record_take(sim, tmp_path / "t.h5")) as r:
+        assert r.rig["volume"]["size"] == [900.0, 600.0, 600.0]

@@ -51,9 +51,9 @@ def test_pipe_has_one_articulation_at_the_hand_made_joint(pipe):
     size = float(np.linalg.norm(np.ptp(d["vertices"][0], axis=0)))
     found = rig.fit.joints[:, sk.articulation][:, 0]
     err = np.linalg.norm(found - d["joints"][:, 1], axis=1)  # joint 1: the hand-made articulation
-    # measured: median 2.9 mm = 0.8 % of the pipe's 361 mm bounding-box diagonal
+    # measured: median 3.0 mm = 0.8 % of the pipe's 361 mm bounding-box diagonal
     assert np.median(err) <= 0.05 * size
-    # measured: 0.80 mm mean over the 60 frames
+    # measured: 0.55 mm mean over the 60 frames
     assert rig.fit.errors.mean() <= 3.0
 
 
@@ -89,17 +89,11 @@ def test_pipe_fit_matches_the_slow_least_squares(pipe):
 # --------------------------------------------------------------------------- simulated creatures
 
 
-_BIPED_XFAIL = pytest.mark.xfail(
-    strict=True,
-    reason="biped: the arms touch the torso in the rest mesh, so the boundary between an arm and the torso runs "
-    "along the upper arm and its centroid is not the shoulder (measured recall 0.56, precision 0.45)",
-)
-
-
-@pytest.fixture(scope="module", params=["starfish", "quadruped", pytest.param("biped", marks=_BIPED_XFAIL)])
+@pytest.fixture(scope="module", params=["starfish", "quadruped", "biped"])
 def creature(request):
     from fake_cameras.mesh_motion import mesh_sequence
 
+    # the template in the scanning pose (the biped's arms held away from its torso)
     ms = mesh_sequence(request.param, frames=40)
     # small motion of small parts: the paper's setting for it (section 5)
     rig = build_articulated_rig(ms.vertices, ms.faces, lambda_thr=0.98)
@@ -109,10 +103,10 @@ def creature(request):
 def test_simulated_creatures_articulations_and_error(creature):
     name, ms, rig = creature
     recall, precision, _ = _articulation_scores(rig, ms.joints, ms.articulates, ms.size)
-    # measured: starfish 0.75 / 1.0, quadruped 0.77 / 1.0
+    # measured: starfish 0.75 / 1.0, quadruped 0.77 / 1.0, biped 1.0 / 0.71
     assert recall >= 0.7
     assert precision >= 0.7
-    # measured: starfish 0.27 %, quadruped 0.53 % of size (mean over frames)
+    # measured: starfish 0.27 %, quadruped 0.49 %, biped 0.83 % of size (mean over frames)
     assert rig.fit.errors.mean() <= 0.01 * ms.size
 
 
@@ -231,7 +225,7 @@ def test_horse_rig_plays_back(horse):
     assert len(list((out / "posed").glob("*.ply"))) == len(V)
     lab = np.load(out / "segments.npy")
     assert lab.shape == (V.shape[1],)
-    # measured: 0.91 % of size on the gallop (a deforming, not only articulated, body)
+    # measured: 0.94 % of size on the gallop (a deforming, not only articulated, body)
     assert np.mean(doc["fit"]["vertex_error_percent"]) < 5.0
 
 
@@ -298,3 +292,54 @@ def test_invalid_input(tmp_path):
     (tmp_path / "000001.ply").write_bytes(ply_bytes(V[1][:8], F[:1]))
     with pytest.raises(ValueError, match="track"):
         load_sequence(sorted(tmp_path.glob("*.ply")))
+
+
+def test_scan_opening_opens_only_limbs_that_touch_the_body():
+    from fake_cameras.creatures import make_creature
+    from fake_cameras.mesh_motion import scan_opening
+
+    def angles(name):
+        return {k: np.degrees(np.arccos(np.clip((np.trace(A) - 1) / 2, -1, 1))) for k, A in scan_opening(make_creature(name)).items()}
+
+    assert max(angles("starfish").values()) == 0.0  # arms already clear
+    b = angles("biped")
+    assert 20.0 <= b["arm_l"] <= 90.0 and 20.0 <= b["arm_r"] <= 90.0  # arms hang against the torso
+    assert b["head"] == 0.0  # attached end-on: no angle clears it
+    with pytest.raises(ValueError, match="step"):
+        scan_opening(make_creature("biped"), step=0.0)
+
+
+def test_deform_matches_the_per_influence_blend(creature):
+    """The blended affine maps give the textbook LBS sum over influences."""
+    _, ms, rig = creature
+    m = rig.model
+    pose = rig.fit.poses[len(rig.fit.poses) // 2]
+    vp = m.vertex_parts
+    ref = np.zeros_like(m.vertices)
+    for k in range(vp.shape[1]):
+        ref += m.weights[:, k, None] * (np.einsum("vij,vj->vi", pose.R[vp[:, k]], m.vertices) + pose.t[vp[:, k]])
+    np.testing.assert_allclose(m.deform(pose), ref, rtol=0, atol=1e-9 * ms.size)
+    rows = np.arange(0, len(ref), 7)
+    np.testing.assert_allclose(m.deform(pose, rows), ref[rows], rtol=0, atol=1e-9 * ms.size)
+
+
+def test_constant_velocity_prediction_is_exact_on_constant_velocity_motion(creature):
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.articulated_fit import _forward, predict_pose
+
+    _, _, rig = creature
+    m = rig.model
+    P = m.skeleton.n_parts
+    om = np.random.default_rng(1).normal(scale=0.1, size=(P, 3))
+    v = np.array([3.0, -2.0, 1.0])
+    c = m.pivots[0]
+
+    def pose_at(s):
+        R = Rotation.from_rotvec(s * om).as_matrix()
+        return _forward(m, R[0], c + s * v - R[0] @ c, R)
+
+    pred = predict_pose(m, pose_at(1.0), pose_at(0.0))
+    truth = pose_at(2.0)
+    np.testing.assert_allclose(pred.R, truth.R, atol=1e-9)
+    np.testing.assert_allclose(pred.t, truth.t, atol=1e-6)

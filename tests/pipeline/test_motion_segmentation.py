@@ -32,11 +32,11 @@ def _slow_distances(X, N, dt):
     return dv, dn
 
 
-@pytest.mark.parametrize("dt", [1, 3, 20])
-def test_trajectory_distances_match_the_definition(dt):
+@pytest.mark.parametrize("T, dt", [(9, 1), (9, 3), (9, 20), (40, 16), (41, 13)])
+def test_trajectory_distances_match_the_definition(T, dt):
     rng = np.random.default_rng(3)
-    X = rng.normal(size=(9, 7, 3)) * 50
-    N = rng.normal(size=(9, 7, 3))
+    X = rng.normal(size=(T, 7, 3)) * 50
+    N = rng.normal(size=(T, 7, 3))
     N /= np.linalg.norm(N, axis=2, keepdims=True)
     dv, dn = trajectory_distances(X, N, interval=dt, block_elements=100)  # several row blocks
     rv, rn = _slow_distances(X, N, dt)

@@ -2,7 +2,7 @@
 
 Simulated takes (8 cameras, 640x480, 30 frames = one gait cycle at 30 fps) of the starfish
 and the quadruped are keyed, carved, meshed, skeletonized and corresponded by
-:func:`stage.process.process_take`, and the resulting ``spine.json`` is scored against
+:func:`pipeline.process.process_take`, and the resulting ``spine.json`` is scored against
 the simulator's ground truth with :func:`fake_cameras.evaluate.evaluate_spine`.
 
 Size = diagonal of the bounding box of the true limb axes and tips over the take.
@@ -27,7 +27,7 @@ from fake_cameras.creatures import Pose
 from fake_cameras.evaluate import evaluate_spine, limb_axis_distance, resample_polyline
 from fake_cameras.record import record_take
 from fake_cameras.take import simulate_take
-from stage.process import process_take
+from pipeline.process import process_take
 
 N_CAMERAS = 8
 N_FRAMES = 30

@@ -1,10 +1,10 @@
-"""Template tracking of simulated multi-view takes (issue 14, "Must show").
+"""Template tracking of simulated multi-view takes.
 
 The takes and their ``stage process`` results are the ones of the spine pipeline test
 (8 cameras, 640x480, 30 frames, cached per session); the ``track`` step runs on them and
 every template vertex is compared with the true surface point it started on (the template
 vertex snapped onto the creature at the template's frame and carried with its capsule,
-:mod:`fake_cameras.surface_motion`). Tolerances (issue 14): mean over all vertices and frames
+:mod:`fake_cameras.surface_motion`). Tolerances: mean over all vertices and frames
 at most one voxel, 95th percentile at most two voxels; the volume within 5 % of the template's.
 """
 
@@ -17,8 +17,8 @@ import pytest
 
 from fake_cameras.surface_motion import surface_point_tracks
 from pipeline.meshio import load_mesh
+from pipeline.process import process_take
 from pipeline.tracking import mesh_volume
-from stage.process import process_take
 from tests.pipeline.test_spine_pipeline import N_FRAMES, run
 
 

@@ -125,8 +125,8 @@ def test_middlebury_dino_processed_end_to_end(tmp_path):
     """The Middlebury dino through the product: `stage import` + `stage process --key-mode luma` (defaults,
     all 16 views). Without a support plane the report warns that the cameras all look down
     on the dino; with the plane it stands on, the surface box is within 5 % of the published one."""
+    from pipeline.process import process_take
     from pipeline.results import ResultsStore
-    from stage.process import process_take
 
     root = shared_dataset("middlebury_dino_sparse_ring")
     res = import_take(root, root / "dinoSR_par.txt", tmp_path / "dino.h5", max_frames=1)

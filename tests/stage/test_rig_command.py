@@ -55,9 +55,10 @@ def test_invalid_input(capsys):
 
 
 def test_rig_step(tmp_path, caplog):
-    from stage.process import STEPS, ProcessError, _step_rig
+    from pipeline.process import STEPS, ProcessError, _step_rig
 
-    assert STEPS.index("rig") == STEPS.index("spine") + 1
+    # the rig runs on what tracking wrote, so it comes after the spine and the tracking
+    assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")
     ctx = SimpleNamespace(out=tmp_path, calibration=SimpleNamespace(units="mm"), fps=25.0, progress=None,
                           steps=("rig",), warnings=[], timings={})
     with pytest.raises(ProcessError, match="stage track"):
@@ -75,7 +76,7 @@ def test_rig_step(tmp_path, caplog):
 
 
 def test_report_shows_the_rig(tmp_path):
-    from stage.report import render_report
+    from pipeline.report import render_report
 
     V, F, _ = _two_bars(10)
     _write_seq(tmp_path / "seq", V, F)

@@ -86,10 +86,10 @@ def test_invalid_input(tmp_path, capsys):
 
 def test_track_is_an_opt_in_step_of_process_and_of_api_jobs():
     from api.jobs import load_work
-    from stage.process import DEFAULT_STEPS, STEPS
+    from pipeline.process import DEFAULT_STEPS, STEPS
 
     assert "track" in STEPS and "track" not in DEFAULT_STEPS
-    spec = load_work("stage.process:process_take")
+    spec = load_work("pipeline.process:process_take")
     assert spec.validate(None, {})[0] == DEFAULT_STEPS
     assert spec.validate(["track", "spine"], {})[0] == ("spine", "track")
 

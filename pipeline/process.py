@@ -48,7 +48,7 @@ __all__ = [
     "register_step",
 ]
 
-log = logging.getLogger("stage.process")
+log = logging.getLogger("pipeline.process")
 
 #: Default voxel edge in pixels at the subject (median footprint over the cameras).
 PIXELS_PER_VOXEL = 2.0
@@ -705,8 +705,8 @@ def _step_spine(ctx: RunContext) -> None:
 
 
 def _step_track(ctx: RunContext) -> None:
-    """The first surface tracked through the take -> ``tracked/`` (:func:`stage.track.track_results`)."""
-    from stage.track import track_results
+    """The first surface tracked through the take -> ``tracked/`` (:func:`pipeline.track.track_results`)."""
+    from pipeline.track import track_results
 
     t0 = time.perf_counter()
     track_results(ctx.out, progress=ctx.progress)

@@ -129,7 +129,7 @@ def mesh_quality_figure(per_frame):
     ----------
     per_frame : sequence of dict or None
         ``{"index", "status", "quality": {"vertices", "faces", "watertight", "bodies", "area", "volume", ...}}``
-        (``stage.process``); unknown numeric fields are plotted too.
+        (``pipeline.process``); unknown numeric fields are plotted too.
     """
     go = _go()
     from plotly.subplots import make_subplots

@@ -1,4 +1,4 @@
-"""The offline HTML report (stage.report, stage report) and a real browser test of its 3-D view."""
+"""The offline HTML report (pipeline.report, stage report) and a real browser test of its 3-D view."""
 
 from __future__ import annotations
 
@@ -11,8 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.spine import write_spine
-from stage.report import (
+from pipeline.report import (
     NothingToReportError,
     camera_coverage,
     contact_sheet,
@@ -25,6 +24,7 @@ from stage.report import (
     tip_count_figure,
     write_report,
 )
+from pipeline.spine import write_spine
 from tests.pipeline.rig_fixtures import creature_take, surface, true_spine
 
 FRAMES = 8
@@ -293,7 +293,7 @@ def test_browser_renders_the_3d_view(results):
 
 
 def test_grid_choice_reaches_the_page(results, tmp_path):
-    """The voxel `stage process` chose from the rig, and why, is on the page (issue 16)."""
+    """The voxel `stage process` chose from the rig, and why, is on the page."""
     d, *_ = results
     only = tmp_path / "grid"
     only.mkdir()

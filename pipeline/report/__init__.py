@@ -1,7 +1,7 @@
 """The HTML report of a processed take: one self-contained page that works offline.
 
 ``render_report(DIR)`` reads a results directory (``spine.json``,
-``report.json``, ``meshes/frame_NNNNNN.ply``; see :mod:`stage.process`) and,
+``report.json``, ``meshes/frame_NNNNNN.ply``; see :mod:`pipeline.process`) and,
 when a take is given (or ``report.json`` names one that exists), the take
 itself, and returns a full HTML page:
 
@@ -17,7 +17,7 @@ itself, and returns a full HTML page:
 
 plotly.js is embedded in the page (from the plotly package), images are
 base64 data URIs: nothing is fetched at run time. The figure functions
-(:mod:`stage.report.figures`) are reusable, e.g. by the API's pages.
+(:mod:`pipeline.report.figures`) are reusable, e.g. by the API's pages.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from pathlib import Path
 import jinja2
 import numpy as np
 
-from stage.report.figures import (
+from pipeline.report.figures import (
     camera_coverage,
     contact_sheet,
     decimate_mesh,
@@ -71,9 +71,9 @@ class NothingToReportError(ValueError):
 
 @functools.cache
 def _templates() -> jinja2.Environment:
-    """The report's templates (``stage/report/templates``), autoescaped."""
+    """The report's templates (``pipeline/report/templates``), autoescaped."""
     env = jinja2.Environment(
-        loader=jinja2.PackageLoader("stage.report", "templates"),
+        loader=jinja2.PackageLoader("pipeline.report", "templates"),
         autoescape=jinja2.select_autoescape(["html"]),
         undefined=jinja2.StrictUndefined,
     )
@@ -211,7 +211,7 @@ def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: 
     -------
     str
         The HTML page (plotly.js embedded; no network access needed), rendered
-        from ``stage/report/templates/report.html``.
+        from ``pipeline/report/templates/report.html``.
 
     Raises
     ------
@@ -367,7 +367,7 @@ def _tips_section(spine, report) -> dict | None:
 
 def _rig_section(d: Path, *, max_frames: int, warnings: list[str]) -> dict | None:
     """The articulated rig of ``DIR/rig/`` (``stage rig``): segments on the surface, joints over the take."""
-    from stage.report.figures import rig_figure
+    from pipeline.report.figures import rig_figure
 
     r = d / "rig"
     if not ((r / "rig.json").is_file() and (r / "segments.npy").is_file()):
@@ -400,7 +400,7 @@ def _quality_section(report, warnings: list[str]) -> dict | None:
     per_frame = report.get("per_frame") if isinstance(report, dict) else None
     if not per_frame:
         return None
-    from stage.report.figures import _quality_rows
+    from pipeline.report.figures import _quality_rows
 
     fig = mesh_quality_figure(per_frame)
     rows = _quality_rows(per_frame)
