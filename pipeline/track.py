@@ -70,7 +70,7 @@ def _load_template(template) -> tuple[np.ndarray, np.ndarray]:
 
 def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_for, progress, start, prev,
                 contour_for=None, init_for=None, total=None, prev_frame=None):
-    """Track ``frames`` in order; ``data_for(k)`` -> (points, normals, extra) or None (no data);
+    """Track ``frames`` in order; ``data_for(k, previous_vertices)`` -> (points, normals, extra) or None (no data);
     ``init_for(k, previous_frame, previous_vertices)`` -> where frame ``k``'s rounds start."""
     V0 = tracker.template
     vol0 = mesh_volume(V0, faces)
@@ -82,7 +82,7 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
         if existing is not None:
             prev, prev_frame = existing, k
         else:
-            data = data_for(k)
+            data = data_for(k, prev)
             if data is None:
                 report["skipped"].append(int(k))
             else:
@@ -179,7 +179,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
               "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
               "reference_frame": frames[ref], "spine_init": skinned is not None and bool(spine_init), "skipped": [], "frames": {}}
 
-    def data_for(k):
+    def data_for(k, previous=None):
         v, f = load_mesh(by_frame[k], largest=False)
         if len(f) == 0:
             return None
@@ -218,7 +218,7 @@ def _capture_bounds(reader, V: np.ndarray, margin: float):
     if isinstance(vol, dict) and "center" in vol and "size" in vol:
         c, s = np.asarray(vol["center"], float), np.asarray(vol["size"], float)
         return c - s / 2, c + s / 2
-    return V.min(0) - margin, V.max(0) + margin
+    return None if margin is None else (V.min(0) - margin, V.max(0) + margin)
 
 
 def track_rgbd_take(
@@ -251,7 +251,9 @@ def track_rgbd_take(
     contour : bool
         Add the contour term (depth edges, the paper's eq. 3).
     bounds : ((3,), (3,)), optional
-        Capture volume; default the rig's volume, else the template's box grown by 15 % of its size.
+        Capture volume; default the rig's volume, else, per frame, the box of the template's
+        previous frame grown by 15 % of its size (a fixed box around the rest pose cropped
+        away up to 30 % of a simulated pipe bent 75 degrees).
 
     Returns
     -------
@@ -282,17 +284,19 @@ def track_rgbd_take(
             raise ValueError(f"{take_path}: the take has no calibration of camera {cam_id} (run `stage calibrate`)")
         cam = calib[calib.names.index(cam_id)]
         size = float(np.linalg.norm(V0.max(0) - V0.min(0)))
-        lohi = bounds if bounds is not None else _capture_bounds(rd, V0, 0.15 * size)
+        fixed = bounds if bounds is not None else _capture_bounds(rd, V0, None)
+        lohi = fixed if fixed is not None else _capture_bounds(rd, V0, 0.15 * size)
         n = rd.n_frames(cam_id)
         tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
         cache: dict = {}
 
-        def data_for(k):
+        def data_for(k, previous=None):
             z = rd.depth(cam_id, k)
             if z is None or not np.any(z):
                 return None
             img = rd.frame(cam_id, k) if remove_skin else None
-            fr = preprocess_depth(z, cam, bounds=lohi, image=img, remove_skin=remove_skin)
+            box = fixed if fixed is not None else (previous.min(0) - 0.15 * size, previous.max(0) + 0.15 * size)
+            fr = preprocess_depth(z, cam, bounds=box, image=img, remove_skin=remove_skin)
             if len(fr.points) < 10:
                 return None
             cache["last"] = fr
@@ -308,7 +312,7 @@ def track_rgbd_take(
         skipped = []
         first = None
         for k in range(n):
-            d = data_for(k)
+            d = data_for(k, V0)
             if d is not None:
                 first = (k, d)
                 break

@@ -101,27 +101,57 @@ def test_demo_rgbd_runs_the_single_camera_path_end_to_end(tmp_path, capsys):
     assert (tmp_path / "results" / "tracked" / "000003.ply").exists()
 
 
+@pytest.fixture(scope="module")
+def bent_tracks(tmp_path_factory):
+    """Each bent object's 30-frame take tracked once for the module: name -> (take, out, errors, volumes)."""
+    cache = {}
+
+    def get(name):
+        if name not in cache:
+            root = tmp_path_factory.mktemp(f"bent_{name}")
+            tk = simulate_rgbd_take(name, frames=30, spacing=4.0 if name != "lamp" else None)
+            take = record_rgbd_take(tk, root / f"{name}.h5")
+            out = root / "out"
+            assert main(["-q", "track", str(take), "--template", str(template_path(take)), "--out", str(out)]) == 0
+            V0, F0 = tk.template_vertices, tk.template_faces
+            errs, vols = [], []
+            for k in range(tk.n_frames):
+                v, _ = load_mesh(out / "tracked" / f"{k:06d}.ply", largest=False)
+                errs.append(np.linalg.norm(v - tk.truth[k], axis=1).mean())
+                vols.append(mesh_volume(v, F0) / mesh_volume(V0, F0))
+            cache[name] = (tk, out, np.array(errs), np.array(vols))
+        return cache[name]
+
+    return get
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "must-show of the RGB-D path not met yet: mean vertex error over the take 3.5 % (pipe 1/2), 1.6 % (pipe 3/4), "
-    "8.5 % (lamp) of the length against <= 1 %; volume 1.00..1.09, 1.00..1.03, 0.80..1.09; stage rig finds "
-    "2, 1, 33 articulations against 1, 1, 3 (stage bench track --accuracy)"))
-@pytest.mark.parametrize("name, articulations", [("pipe_half", 1), ("pipe_3q", 1), ("lamp", 3)])
-def test_rgbd_bent_objects_tracked_to_one_percent_and_rigged(name, articulations, tmp_path):
+@pytest.mark.parametrize("name", [
+    "pipe_half",  # measured: 0.83 % of the length, volume 0.96..1.01
+    "pipe_3q",  # measured: 0.85 % of the length, volume 1.00..1.02
+    pytest.param("lamp", marks=pytest.mark.xfail(strict=True, reason=(
+        "must-show not met yet: mean vertex error 7.8 % of the length against <= 1 % (its last segment moves "
+        "20-33 mm a frame, twice the 15 mm gate); volume 0.77..1.07"))),
+])
+def test_rgbd_bent_objects_tracked_to_one_percent(name, bent_tracks):
+    tk, _, errs, vols = bent_tracks(name)
+    assert max(abs(vols - 1)) <= 0.05  # no thinning over the whole take
+    assert errs.mean() <= 0.01 * tk.size, errs.mean() / tk.size
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, articulations", [
+    ("pipe_half", 1),
+    pytest.param("pipe_3q", 1, marks=pytest.mark.xfail(strict=True, reason=(
+        "must-show not met yet: tracked to 0.85 %, but stage rig finds its 1 articulation 30 mm from the true "
+        "joint (limit 5 % = 16.5 mm)"))),
+    pytest.param("lamp", 3, marks=pytest.mark.xfail(strict=True, reason=(
+        "must-show not met yet: the lamp is not tracked to 1 % (7.8 %); stage rig finds 15 articulations (3)"))),
+])
+def test_rgbd_bent_objects_rigged(name, articulations, bent_tracks):
     from pipeline.articulated_rig import rig_results
 
-    tk = simulate_rgbd_take(name, frames=30, spacing=4.0 if name != "lamp" else None)
-    take = record_rgbd_take(tk, tmp_path / f"{name}.h5")
-    out = tmp_path / "out"
-    assert main(["-q", "track", str(take), "--template", str(template_path(take)), "--out", str(out)]) == 0
-    V0, F0 = tk.template_vertices, tk.template_faces
-    errs, vols = [], []
-    for k in range(tk.n_frames):
-        v, _ = load_mesh(out / "tracked" / f"{k:06d}.ply", largest=False)
-        errs.append(np.linalg.norm(v - tk.truth[k], axis=1).mean())
-        vols.append(mesh_volume(v, F0) / mesh_volume(V0, F0))
-    assert max(abs(np.array(vols) - 1)) <= 0.05  # no thinning over the whole take
-    assert np.mean(errs) <= 0.01 * tk.size
+    tk, out, _, _ = bent_tracks(name)
     rig = rig_results(out)
     assert int(rig.skeleton.articulation.sum()) == articulations
     sk = rig.skeleton
