@@ -285,7 +285,8 @@ def simulate_take(
         volume={"center": list(vol.center), "size": list(vol.size)},
     )
     key_src = json.dumps(
-        {"v": RENDER_VERSION, "params": params, "calibration": calib.to_dict(), "backdrop": repr(backdrop)},
+        {"v": RENDER_VERSION, "params": params, "calibration": calib.to_dict(), "backdrop": repr(backdrop),
+         "poses": _poses_digest(poses)},
         sort_keys=True,
     )
     key = hashlib.sha1(key_src.encode()).hexdigest()[:20]
@@ -348,6 +349,20 @@ def _render_all(calib: Calibration, poses: list, backdrop: Backdrop, seed: int, 
 
 
 _ARRAYS = ("images", "masks", "labels", "depth", "plate")
+
+
+def _poses_digest(poses: list) -> str:
+    """A digest of the posed capsules: the cache key follows the creature's shape and motion,
+    not only its name (a changed creature is rendered anew)."""
+    h = hashlib.sha1()
+    for pose in poses:
+        if pose is None:
+            h.update(b"-")
+            continue
+        for a in (pose.p0, pose.p1, pose.r0, pose.r1):
+            h.update(np.round(np.asarray(a, np.float64), 6).tobytes())
+        h.update(np.asarray(pose.limb, np.int64).tobytes())
+    return h.hexdigest()
 
 
 def _load_cached(key: str) -> dict | None:

@@ -126,3 +126,16 @@ def test_invalid_input():
         write_ground_truth("take", "x.npz")
     with pytest.raises(FileNotFoundError):
         load_ground_truth("/nonexistent/take.h5")
+
+
+def test_cache_key_follows_the_creatures_shape(take):
+    """The cached render is keyed by the posed capsules too: a creature whose shape changes
+    under the same name gets a new key (is rendered anew), the same poses the same key."""
+    from dataclasses import replace
+
+    from fake_cameras.take import _poses_digest
+
+    same = _poses_digest(list(take.poses))
+    assert _poses_digest(list(take.poses)) == same
+    thicker = [replace(p, r0=p.r0 * 1.01) for p in take.poses]
+    assert _poses_digest(thicker) != same
