@@ -74,6 +74,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from pipeline.skinning import cotangent_laplacian as stiffness_laplacian
+
 __all__ = [
     "TrackingError",
     "cotangent_laplacian",
@@ -151,18 +153,18 @@ def default_gate(vertices) -> float:
     return max(PAPER_GATE_MM, PAPER_GATE_MM * diag / PAPER_OBJECT_MM)
 
 
-def cotangent_laplacian(vertices, faces, *, max_cot: float = 1e3) -> sp.csr_matrix:
+def cotangent_laplacian(vertices, faces) -> sp.csr_matrix:
     """Cotangent Laplacian of eq. 5 (Tzionas & Gall 2016; Sorkine 2005).
 
     ``(L V)_i = 1 / (2 |A_i|) sum_{j in N1(i)} (cot a_ij + cot b_ij) (V_j - V_i)``
-    with ``|A_i|`` half the sum of the areas of the triangles around vertex ``i``.
+    with ``|A_i|`` half the sum of the areas of the triangles around vertex ``i``: the
+    cotangent stiffness of :func:`pipeline.skinning.cotangent_laplacian` (cotangents clipped
+    to ``[-1e3, 1e3]`` for the slivers of marching cubes), scaled per vertex by that area.
 
     Parameters
     ----------
     vertices : (V, 3) float ndarray
     faces : (F, 3) int ndarray
-    max_cot : float, optional
-        Cotangents are clipped to ``[-max_cot, max_cot]`` (degenerate slivers of marching cubes).
 
     Returns
     -------
@@ -171,25 +173,10 @@ def cotangent_laplacian(vertices, faces, *, max_cot: float = 1e3) -> sp.csr_matr
     """
     v, f = _check_mesh(vertices, faces)
     n = v.shape[0]
-    rows, cols, w = [], [], []
-    for k in range(3):
-        i, j, o = f[:, (k + 1) % 3], f[:, (k + 2) % 3], f[:, k]  # edge (i, j), opposite corner o
-        a, b = v[i] - v[o], v[j] - v[o]
-        cross = np.linalg.norm(np.cross(a, b), axis=1)
-        dot = np.einsum("ij,ij->i", a, b)
-        cot = np.clip(dot / np.maximum(cross, 1e-12 * np.maximum(dot, 1.0)), -max_cot, max_cot)
-        rows += [i, j]
-        cols += [j, i]
-        w += [cot, cot]
-    rows, cols, w = np.concatenate(rows), np.concatenate(cols), np.concatenate(w)
-    W = sp.coo_matrix((w, (rows, cols)), shape=(n, n)).tocsr()  # sums cot a + cot b per edge
-    area = np.zeros(n)
-    np.add.at(area, f.ravel(), np.repeat(_triangle_areas(v, f), 3))
-    area *= 0.5
+    stiffness = stiffness_laplacian(v, f)  # -(cot a + cot b) / 2 off the diagonal
+    area = 0.5 * _scatter_add(f.ravel(), np.repeat(_triangle_areas(v, f), 3), n)
     scale = np.where(area > 0, 1.0 / (2.0 * np.maximum(area, 1e-300)), 0.0)
-    deg = np.asarray(W.sum(axis=1)).ravel()
-    L = sp.diags(scale) @ (W - sp.diags(deg))
-    return sp.csr_matrix(L)
+    return sp.csr_matrix(sp.diags(scale) @ (-2.0 * stiffness))
 
 
 def vertex_normals(vertices, faces) -> np.ndarray:
