@@ -295,16 +295,9 @@ def contour_pairs(vertices, normals, faces, camera: Camera, contour, *, gate: fl
     cand = np.flatnonzero(np.abs(cosang) < rim)
     if len(cand) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3))
-    zbuf = render_depth(v, faces, camera)
-    uv, z = camera.project(v[cand], return_depth=True)
-    uv = np.asarray(uv)
-    z = np.asarray(z).reshape(-1)
-    w, h = camera.size
-    col = np.round(uv[:, 0]).astype(np.int64)
-    row = np.round(uv[:, 1]).astype(np.int64)
-    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h) & (z > 0)
+    uv, z, row, col, inside = _project_to_pixels(v[cand], camera)
     ok = np.zeros(len(cand), bool)
-    ok[inside] = z[inside] <= zbuf[row[inside], col[inside]] + 0.3 * gate
+    ok[inside] = z[inside] <= render_depth(v, faces, camera)[row[inside], col[inside]] + 0.3 * gate
     cand, uv, z = cand[ok], uv[ok], z[ok]
     if len(cand) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3))
@@ -316,6 +309,20 @@ def contour_pairs(vertices, normals, faces, camera: Camera, contour, *, gate: fl
     o = np.broadcast_to(np.asarray(o, dtype=np.float64), dirs.shape)
     t = np.einsum("ij,ij->i", v[vi] - o, dirs)
     return vi, o + dirs * t[:, None]
+
+
+def _project_to_pixels(points: np.ndarray, camera: Camera):
+    """Project ``points``: image coordinates ``uv`` (N, 2), camera-frame depth ``z`` (N,), the
+    nearest pixel's ``row`` and ``col`` (N,) and ``inside`` (N,) bool, in the image and in front
+    of the camera (the pixel is meaningful only there)."""
+    uv, z = camera.project(points, return_depth=True)
+    uv = np.asarray(uv)
+    z = np.asarray(z).reshape(-1)
+    w, h = camera.size
+    col = np.round(uv[:, 0]).astype(np.int64)
+    row = np.round(uv[:, 1]).astype(np.int64)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h) & (z > 0)
+    return uv, z, row, col, inside
 
 
 def render_depth(vertices, faces, camera: Camera) -> np.ndarray:
@@ -384,19 +391,12 @@ def visible_vertices(vertices, faces, camera: Camera, *, tolerance: float = 3.0,
         Pixels with data.
     """
     v = np.asarray(vertices, dtype=np.float64)
-    zbuf = render_depth(v, faces, camera)
-    uv, z = camera.project(v, return_depth=True)
-    uv = np.asarray(uv)
-    z = np.asarray(z).reshape(-1)
-    w, h = camera.size
-    col = np.round(uv[:, 0]).astype(np.int64)
-    row = np.round(uv[:, 1]).astype(np.int64)
-    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h) & (z > 0)
+    _, z, row, col, inside = _project_to_pixels(v, camera)
+    row, col = row[inside], col[inside]
     vis = np.zeros(len(v), bool)
-    zb = zbuf[row[inside], col[inside]]
-    vis[inside] = z[inside] <= zb + tolerance
+    vis[inside] = z[inside] <= render_depth(v, faces, camera)[row, col] + tolerance
     if observed is not None:
-        vis[inside] &= np.asarray(observed, bool)[row[inside], col[inside]]
+        vis[inside] &= np.asarray(observed, bool)[row, col]
     n = vertex_normals(v, faces) if normals is None else np.asarray(normals)
     vis &= np.einsum("ij,ij->i", n, v - camera.center) < 0
     return vis
