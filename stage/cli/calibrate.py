@@ -291,8 +291,10 @@ def detect_take_flipped(path: Path, board, *, step: int = 1, progress: bool = Tr
 
     bar = tqdm(desc="detect", unit="set", disable=not progress, dynamic_ncols=True, leave=False)
 
+    sets = [0]
+
     def on_set(done, total):
-        bar.total = total
+        bar.total, sets[0] = total, total
         bar.update(1)
 
     try:
@@ -304,7 +306,7 @@ def detect_take_flipped(path: Path, board, *, step: int = 1, progress: bool = Tr
     finally:
         bar.close()
     for name in cams:
-        print(f"  {name}: board found in {len(detections[name])} frame sets{' (flipped)' if name in flipped else ''}")
+        print(f"  {name}: board found in {len(detections[name])}/{sets[0]} frame sets{' (flipped)' if name in flipped else ''}")
     return detections, sizes, cams, flipped, notes
 
 
