@@ -8,7 +8,10 @@ Two ways to get one:
   frame of the take and runs :func:`calib.rig.calibrate_rig` on all detections, with the
   defaults of ``stage calibrate``: the rig selects the views (every frame set seen by two or
   more cameras links them), intrinsics held by a prior from each camera's own calibration,
-  5-fold held-out error in the report.
+  5-fold held-out error in the report. Cameras whose board is found only in the flipped
+  image are found by :func:`calib.mirror.detect_take` (as ``stage calibrate`` does) and the
+  rig decides whether each mirrors (``mirror = true`` in the calibration) or sees the board
+  from behind; ``parameters.mirror`` forces it per camera.
 
 Downloads convert with :func:`calib.formats.write_calibration` (JSON, aniposelib
 TOML, OpenCV YAML).
@@ -134,6 +137,9 @@ class CalibrateParams(BaseModel):
     fix_k3: bool = False
     intrinsics: Literal["prior", "fixed", "free"] = "prior"
     holdout: Annotated[int, Field(ge=0, le=20)] = 5
+    mirror: dict[str, Literal["auto", "true", "false"]] = Field(
+        default_factory=dict, description="per camera: whether it delivers mirrored images (auto: decided from where "
+        "the board is found, as stage calibrate --mirror CAM=auto|true|false); unnamed cameras: auto")
 
     @field_validator("holdout")
     @classmethod
@@ -167,33 +173,25 @@ def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[s
         Too few views / cameras that cannot be connected (a ValueError).
     """
     from calib.boards import parse_board
-    from calib.detect import detect_board
+    from calib.mirror import detect_take
     from calib.rig import calibrate_rig
-    from stage.store import TakeReader
+
+    def on_set(done: int, total: int) -> None:
+        if cancel is not None and cancel.is_set():
+            raise InterruptedError("calibration cancelled")
+        if progress is not None:
+            progress("detect", done, total)
 
     board = parse_board(params.board)
-    detections, sizes = {}, {}
-    with TakeReader(take) as r:
-        cams = list(r.cameras)
-        todo = [(c, k) for c in cams for k in range(0, r.n_frames(c), params.step)]
-        done = 0
-        for c in cams:
-            size = tuple(r.image_size(c))
-            dets = []
-            for k in range(0, r.n_frames(c), params.step):
-                if cancel is not None and cancel.is_set():
-                    raise InterruptedError("calibration cancelled")
-                d = detect_board(r.frame(c, k), board, frame=k)
-                if d is not None:
-                    dets.append(d)
-                done += 1
-                if progress is not None:
-                    progress("detect", done, len(todo))
-            detections[c] = dets
-            sizes[c] = size
+    if cancel is not None and cancel.is_set():
+        raise InterruptedError("calibration cancelled")
+    detections, sizes, cams, flipped, notes = detect_take(take, board, step=params.step, mirror=params.mirror,
+                                                          on_set=on_set)
+    for line in dict.fromkeys(notes):
+        log.info("calibrate %s: %s", take.name, line)
     result = calibrate_rig(detections, sizes, board, cameras=cams, world=params.world, world_frame=params.world_frame,
                            intrinsics=params.intrinsics, fix_k3=params.fix_k3, min_change=params.min_change,
-                           holdout_folds=params.holdout)
+                           holdout_folds=params.holdout, flipped=flipped)
     if progress is not None:
         progress("calibrate", 1, 1)
     return result

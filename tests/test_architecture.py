@@ -42,7 +42,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.tracking", "pipeline.rgbd_preprocess", "pipeline.motion_segmentation",
         "pipeline.articulated_skeleton", "pipeline.articulated_fit", "pipeline.articulated_rig",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",
-        "calib.evaluate", "calib.timestamps",
+        "calib.evaluate", "calib.timestamps", "calib.mirror",
     )),
     3: ("orchestration", (
         # processing, tracking and the report run the pipeline over a take

@@ -9,6 +9,8 @@ from typing import Iterator
 
 import numpy as np
 
+from calib.mirror import VARIANT_SAMPLE, decide_mirror, parse_mirror, sample_positions
+
 ORDER = 30
 
 log = logging.getLogger(__name__)
@@ -123,83 +125,6 @@ def _video_count(path: Path) -> int:
         cap.release()
 
 
-def parse_mirror(items: list[str], cameras: list[str]) -> dict[str, bool | None]:
-    """``--mirror CAM=auto|true|false`` -> camera -> True / False / None (auto)."""
-    out: dict[str, bool | None] = {c: None for c in cameras}
-    for item in items:
-        name, _, val = item.partition("=")
-        val = val.strip().lower() or "true"
-        if name not in out:
-            raise ValueError(f"--mirror {item}: unknown camera {name!r} (cameras: {', '.join(cameras)})")
-        if val not in ("auto", "true", "false"):
-            raise ValueError(f"--mirror {item}: the value must be auto, true or false")
-        out[name] = None if val == "auto" else val == "true"
-    return out
-
-
-SAMPLE = 12  # frames of a camera tried flipped
-VARIANT_SAMPLE = 3  # evenly spaced frames of a camera that never showed the board, tried with the board variants
-
-
-def decide_mirror(name: str, found: int, total: int, sample: list, as_is: int, board, mirror: bool | None):
-    """Whether a camera's images must be flipped, from the board found in a sample of its frames.
-
-    Parameters
-    ----------
-    found, total : int
-        Frames with the board / frames read, as delivered (or flipped when ``mirror``).
-    sample : list of ndarray
-        Frames sampled evenly; ``as_is`` of them showed the board.
-
-    Returns
-    -------
-    (flip, message)
-        ``flip`` True when the board is found only in the flipped image (auto); ``message`` says
-        what was found (None when there is nothing to say).
-    """
-    from calib.boards import Chessboard
-    from calib.detect import detect_board, find_variant
-
-    chess = isinstance(board, Chessboard)  # found in a mirrored image too: nothing to decide
-    if (mirror is not None or chess) and found:
-        return bool(mirror), None
-    if not sample or (found >= 0.5 * total and as_is >= 0.5 * len(sample)):
-        return bool(mirror), None
-    if not chess:
-        flipped = sum(detect_board(img, board, mirror=not bool(mirror)) is not None for img in sample)
-        if flipped >= max(3, 2 * as_is + 1):
-            if mirror is False:
-                return False, (f"camera {name}: the board is never detected with mirror = false, but it is found "
-                               f"in {flipped}/{len(sample)} sampled frames once the image is flipped: {name} "
-                               f"delivers mirrored images; drop --mirror {name}=false (or turn the camera's mirror "
-                               f"mode off)")
-            if mirror is None:
-                return True, (f"{name} delivers mirrored images or sees the board from behind: the board is found "
-                              f"in {flipped}/{len(sample)} sampled frames once the image is flipped ({as_is} as "
-                              f"delivered); the rig decides which")
-    if found:
-        return bool(mirror), None
-    pick = np.unique(np.round(np.linspace(0, len(sample) - 1, min(VARIANT_SAMPLE, len(sample)))).astype(int))
-    v = find_variant([sample[i] for i in pick], board)
-    if v is not None and v[1] is board:
-        return bool(mirror), (f"camera {name}: the board was never detected, but once the image is flipped it "
-                              f"is found in {v[3]}/{len(pick)} sampled frames; if {name} delivers mirrored "
-                              f"images, give --mirror {name}=true")
-    if v is not None:
-        return bool(mirror), (f"camera {name}: the board was never detected, but with the {v[0]} it is found in "
-                              f"{v[3]}/{len(pick)} sampled frames; fix the board file"
-                              + (" (and the camera's mirror mode)" if v[2] else ""))
-    return bool(mirror), (f"camera {name}: the board was never detected in {total} frames (nor inverted, "
-                          f"legacy, mirrored or with the squares counted as inner corners); check that {name} sees "
-                          f"the board, its focus, and that the board file matches the print")
-
-
-def _sample_positions(total: int) -> set[int]:
-    if total <= 0:
-        return set()
-    return set(np.unique(np.round(np.linspace(0, total - 1, min(SAMPLE, total))).astype(int)).tolist())
-
-
 def _detect_pass(name, src, board, *, step, flip, frame_set, want, progress):
     """Detect the board in every frame of one camera.
 
@@ -265,7 +190,7 @@ def _detect_camera(name, src, board, *, step, mirror, frame_set, progress):
     wrong = _probe(name, src, board, step=step, mirror=mirror, total=total)
     if wrong is not None:
         return [], _first_size(src), (total + step - 1) // step, bool(mirror), wrong
-    want = _sample_positions((total + step - 1) // step)
+    want = sample_positions((total + step - 1) // step)
     dets, sample, size, n, as_is = _detect_pass(name, src, board, step=step, flip=bool(mirror),
                                                 frame_set=frame_set, want=want, progress=progress)
     if size is None:
@@ -358,56 +283,30 @@ def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, p
 
 
 def detect_take_flipped(path: Path, board, *, step: int = 1, progress: bool = True, mirror: list[str] | tuple = ()):
-    """:func:`detect_take`, also returning the flipped cameras and the notes."""
+    """:func:`detect_take`, also returning the flipped cameras and the notes (:func:`calib.mirror.detect_take`)."""
     from tqdm import tqdm
 
-    from calib.detect import detect_board
-    from stage.store import TakeReader
+    from calib.intrinsics import CalibrationError
+    from calib.mirror import detect_take as detect_in_take
 
-    with TakeReader(path) as r:
-        cams = list(r.cameras)
-        mirror_of = parse_mirror(list(mirror), cams)
-        sizes = {name: tuple(r.image_size(name)) for name in cams}
-        raw: dict[str, list] = {name: [] for name in cams}
-        sets = list(range(0, r.n_sets, step))
-        want = _sample_positions(len(sets))
-        sample: dict[str, list] = {name: [] for name in cams}
-        found_sample = dict.fromkeys(cams, 0)
-        # frame sets keep the cameras in sync: the set index is the moment ("frame") of a detection
-        for i, k in enumerate(tqdm(sets, desc="detect", unit="set", disable=not progress, dynamic_ncols=True,
-                                   leave=False)):
-            for name, img in r.frame_set(k).items():
-                d = None if img is None else detect_board(img, board, frame=k, mirror=bool(mirror_of[name]))
-                raw[name].append(d)
-                if i in want and img is not None:
-                    sample[name].append(img)
-                    found_sample[name] += int(d is not None)
-        notes, flipped, problems = [], [], []
-        for name in cams:
-            n_found = sum(d is not None for d in raw[name])
-            flip, msg = decide_mirror(name, n_found, len(raw[name]), sample[name], found_sample[name], board,
-                                      mirror_of[name])
-            if msg:
-                notes.append(msg)
-                if not flip and not n_found:
-                    problems.append(msg)
-            if flip != bool(mirror_of[name]):
-                rows = [(k, r.set_rows(k).get(name, -1)) for k in sets]
-                raw[name] = [detect_board(r.frame(name, row), board, frame=k, mirror=flip) if row >= 0 else None
-                             for k, row in rows]
-            if flip:
-                flipped.append(name)
-    detections = {}
-    for name in cams:
-        detections[name] = [d for d in raw[name] if d is not None]
-        print(f"  {name}: board found in {len(detections[name])}/{len(raw[name])} frame sets"
-              f"{' (flipped)' if name in flipped else ''}")
-    if problems:
-        from calib.intrinsics import CalibrationError
+    bar = tqdm(desc="detect", unit="set", disable=not progress, dynamic_ncols=True, leave=False)
 
-        for line in notes:
+    sets = [0]
+
+    def on_set(done, total):
+        bar.total, sets[0] = total, total
+        bar.update(1)
+
+    try:
+        detections, sizes, cams, flipped, notes = detect_in_take(path, board, step=step, mirror=mirror, on_set=on_set)
+    except CalibrationError as exc:
+        for line in getattr(exc, "notes", ()):
             print(f"  note: {line}")
-        raise CalibrationError("; ".join(problems), cameras=[p.split(":")[0].removeprefix("camera ") for p in problems])
+        raise
+    finally:
+        bar.close()
+    for name in cams:
+        print(f"  {name}: board found in {len(detections[name])}/{sets[0]} frame sets{' (flipped)' if name in flipped else ''}")
     return detections, sizes, cams, flipped, notes
 
 

@@ -123,7 +123,7 @@ def test_calibrate_rendered_board_take(make_client, tmp_path):
     assert r.status_code == 202, r.text
     st = wait_job(client, r.json()["job"], timeout=120)
     assert st["state"] == "done", st
-    assert st["progress"]["detect"] == {"done": 80, "total": 80}
+    assert st["progress"]["detect"] == {"done": 20, "total": 20}  # frame sets
     got = client.get(f"/calibrations/{st['id']}.json").json()
     from calib.calibration import Calibration
 
@@ -174,3 +174,67 @@ def test_calibrate_take_passes_every_detection_with_the_cli_defaults(tmp_path, m
         CalibrateParams(board=BOARD, holdout=1)
     with pytest.raises(ValueError, match="intrinsics"):
         CalibrateParams(board=BOARD, intrinsics="loose")
+
+
+CHARUCO = {"type": "charuco", "squares": [7, 6], "square_mm": 100.0, "marker_mm": 75.0, "dictionary": "DICT_4X4_50"}
+
+
+@pytest.fixture(scope="module")
+def mirrored_take(tmp_path_factory):
+    """A ChArUco board waved through a 4-camera dome; cam01 delivers its images flipped
+    left-right, as a simulated camera with ``mirror_mode = true`` does (fake_cameras.device)."""
+    from calib.boards import parse_board
+    from fake_cameras.boards import render_board_views
+    from fake_cameras.dome import make_dome
+    from stage.frame import Frame
+    from stage.store import CameraSpec, TakeWriter
+
+    truth = make_dome(4, size=(640, 480), seed=0)
+    views = render_board_views(parse_board(CHARUCO), truth, 24, seed=0)
+    images = views.images.copy()
+    images[:, 1] = images[:, 1, :, ::-1]  # what the mirroring webcam delivers
+    path = tmp_path_factory.mktemp("mirror") / "mirrored.h5"
+    with TakeWriter(path, [CameraSpec(c, 640, 480) for c in truth.names], fps=30.0) as tw:
+        for v in range(images.shape[0]):
+            t = 10**9 + v * 33_333_333
+            tw.write_set({c: Frame(np.ascontiguousarray(images[v, j]), c, v, t, t)
+                          for j, c in enumerate(truth.names)}, time_ns=t)
+    return truth, path
+
+
+def test_calibrate_take_finds_a_mirrored_camera(make_client, mirrored_take):
+    """The API's calibration job detects the mirroring camera as stage calibrate does (calib.mirror
+    and calib.rig.resolve_flipped), records mirror = true and calibrates it: focal lengths within
+    1 % and principal points within 5 px of the truth (tests/calib/test_handheld.py's tolerances),
+    camera distances within 1.5 %. Forced ``mirror: {cam01: false}``: the job fails naming cam01."""
+    from scipy.spatial.distance import pdist
+
+    from calib.calibration import Calibration
+
+    truth, path = mirrored_take
+    client = make_client(max_upload_bytes=128 << 20)
+    r = client.put("/takes/mir", content=path.read_bytes(), headers={**AUTH, "Content-Type": "application/x-hdf5"})
+    assert r.status_code == 201, r.text
+    r = client.post("/calibrations", json={"take": "mir", "parameters": {"board": CHARUCO}}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    st = wait_job(client, r.json()["job"], timeout=120)
+    assert st["state"] == "done", st
+    got = client.get(f"/calibrations/{st['id']}.json").json()
+    cal = Calibration.from_dict(got)
+    assert cal.names == truth.names
+    assert [c.name for c in cal if c.meta.get("mirror")] == ["cam01"]
+    for est, tru in zip(cal, truth):
+        np.testing.assert_allclose([est.K[0, 0], est.K[1, 1]], [tru.K[0, 0], tru.K[1, 1]], rtol=0.01,
+                                   err_msg=est.name)
+        assert np.linalg.norm(est.K[:2, 2] - tru.K[:2, 2]) < 5.0, est.name
+    d_true, d_got = pdist(truth.centers()), pdist(cal.centers())
+    assert np.max(np.abs(d_got - d_true) / d_true) < 0.015
+
+    r = client.post("/calibrations", json={"take": "mir", "parameters": {"board": CHARUCO,
+                                                                        "mirror": {"cam01": "false"}}}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    st = wait_job(client, r.json()["job"], timeout=120)
+    assert st["state"] == "failed" and "cam01" in str(st) and "mirror = false" in str(st), st
+    r = client.post("/calibrations", json={"take": "mir", "parameters": {"board": CHARUCO,
+                                                                        "mirror": {"cam01": "sometimes"}}}, headers=AUTH)
+    assert r.status_code == 400 and "parameters" in r.json()["detail"], r.text
