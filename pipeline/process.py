@@ -567,26 +567,39 @@ def _step_key(ctx: RunContext) -> None:
 
     t0 = time.perf_counter()
     base = take_key_params(ctx.rig, key_mode=ctx.params.key_mode).to_dict()
-    done, keys = 0, []
+    done = 0
     ctx.report_progress("key", 0, total)
     # OpenCV's thread pool does not survive fork(): forked workers key nothing, this process does
     where = ctx if not _forking_pool(ctx.executor) else replace(ctx, executor=None)
     threads = 1 if where.executor else 2
-    for res in _map_tasks(where, [partial(key_task, str(ctx.take), cam, base, threads) for cam in ctx.cameras]):
-        if res["key"] is not None:
-            keys.append(res)
-            done += len(res["key"].valid)
-        ctx.report_progress("key", min(done, total), total)
-    # stored in few updates of the derived data (each copies it), at most ~512 MB of masks at a time
+    # masks unpacked as each camera arrives; those done are stored once a worker falls idle
+    # (the last cameras still keying: a core is free then), the rest at the end: few updates of
+    # the derived data (each copies it), at most ~512 MB of masks a batch
+    pending = len(ctx.cameras)
+    overlap_at = max(1, _pool_size(where.executor) - 1) if where.executor is not None else 0
     batch: list = []
-    for i, res in enumerate(keys):
-        key = res["key"]
-        key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).view(bool)
-        batch.append(key)
-        if i == len(keys) - 1 or sum(k.masks.nbytes for k in batch) + key.masks.nbytes > _STORE_BATCH_BYTES:
+    for res in _map_tasks(where, [partial(key_task, str(ctx.take), cam, base, threads) for cam in ctx.cameras]):
+        pending -= 1
+        if res["key"] is not None:
+            key = res["key"]
+            key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).view(bool)
+            done += len(key.valid)
+            if batch and sum(k.masks.nbytes for k in batch) + key.masks.nbytes > _STORE_BATCH_BYTES:
+                store_camera_keys(ctx.take, batch)
+                batch = []
+            batch.append(key)
+        if batch and 0 < pending <= overlap_at:
             store_camera_keys(ctx.take, batch)
             batch = []
+        ctx.report_progress("key", min(done, total), total)
+    if batch:
+        store_camera_keys(ctx.take, batch)
     ctx.timings["key"] = time.perf_counter() - t0
+
+
+def _pool_size(executor) -> int:
+    """Tasks an executor runs at once (a process pool's workers; 2 when it does not say)."""
+    return int(getattr(executor, "_max_workers", 0) or 2)
 
 
 def _forking_pool(executor) -> bool:
