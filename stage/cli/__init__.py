@@ -62,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     _setup_logging(args.verbose, args.quiet)
+    if args.quiet and hasattr(args, "no_progress"):
+        args.no_progress = True  # -q silences progress bars as well as log messages
     from stage.drivers.base import CameraError
 
     try:

@@ -24,3 +24,13 @@ def test_spines_and_process_meshes_agree(tmp_path, capsys):
 def test_invalid_input(tmp_path, capsys):
     assert main(["spines", "--meshes", str(tmp_path / "none*.obj"), "--out", str(tmp_path / "o")]) == 2
     assert "mesh" in capsys.readouterr().err.lower()
+
+
+def test_quiet_silences_progress_bars(tmp_path, capsys):
+    """`stage -q` draws no progress bar (tqdm writes them to stderr); without it, bars are drawn."""
+    cat = shared_dataset("cat_poses")
+    pattern = str(cat / "000[1-3].obj")
+    assert main(["spines", "--meshes", pattern, "--out", str(tmp_path / "a"), "--workers", "0"]) == 0
+    assert "%|" in capsys.readouterr().err
+    assert main(["-q", "spines", "--meshes", pattern, "--out", str(tmp_path / "b"), "--workers", "0"]) == 0
+    assert "%|" not in capsys.readouterr().err
