@@ -750,7 +750,9 @@ def _step_rig(ctx: RunContext) -> None:
 
 register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine")
 register_step("track", _step_track, doc="template tracking of the surfaces (only when asked for)", after="spine")
-DEFAULT_STEPS: tuple[str, ...] = tuple(s for s in STEPS if s != "track")  # what runs when no steps are given
+# what runs when no steps are given: tracking and the rig on it are asked for (``stage track``,
+# ``stage rig`` or a job's steps); a plain run does not warn about a rig it was not asked for
+DEFAULT_STEPS: tuple[str, ...] = tuple(s for s in STEPS if s not in ("track", "rig"))
 
 
 # ----------------------------------------------------------------------------- driver
