@@ -19,7 +19,6 @@ Meshes and spines do not belong in a take.
 
 from stage.store._format import COMPRESSIONS, DERIVED_FORMAT, FORMAT, CameraSpec, TakeError, have_lz4
 from stage.store.derived import attach_calibration, derived_path, write_array, write_arrays, write_masks
-from stage.store.h5repair import _lookup3  # noqa: F401  (HDF5's checksum; tests compare with h5py's)
 from stage.store.reader import TakeReader
 from stage.store.recover import recover_take
 from stage.store.space import DiskFullError, check_free_space, free_bytes, is_disk_full

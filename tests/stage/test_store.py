@@ -298,7 +298,7 @@ def test_superblock_checksum_is_hdf5s():
     """The lookup3 checksum written when clearing the flag is the one HDF5 computes."""
     import io
 
-    from stage.store import _lookup3
+    from stage.store.h5repair import _lookup3
 
     buf = io.BytesIO()
     with h5py.File(buf, "w", libver="latest"):
