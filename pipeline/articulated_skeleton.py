@@ -42,7 +42,9 @@ from scipy.spatial import cKDTree
 
 from pipeline.geodesic import mesh_edges
 
-__all__ = ["CurveSkeleton", "ArticulatedSkeleton", "curve_skeleton", "articulated_skeleton", "segment_hits_mesh"]
+__all__ = [
+    "CurveSkeleton", "ArticulatedSkeleton", "curve_skeleton", "articulated_skeleton", "segment_hits_mesh", "joint_residual",
+]
 
 log = logging.getLogger(__name__)
 
@@ -265,6 +267,112 @@ def _boundary_joints(vertices, faces, labels, min_edges: int) -> list[tuple[tupl
     return out
 
 
+def _segment_motions(motion: np.ndarray, labels: np.ndarray, segments, reference: int, per_segment: int = 400):
+    """Per segment, its best rigid motion from the reference frame to every frame (Arun et al. 1987).
+
+    Returns dict segment -> (R (T, 3, 3), t (T, 3)) with ``x_t ~ R_t x_ref + t_t``.
+    """
+    rng = np.random.default_rng(0)
+    out = {}
+    for sgm in segments:
+        ids = np.flatnonzero(labels == sgm)
+        if len(ids) > per_segment:
+            ids = rng.choice(ids, per_segment, replace=False)
+        Y = np.asarray(motion[:, ids], dtype=np.float64)  # (T, n, 3)
+        X = Y[reference]
+        cx, cy = X.mean(0), Y.mean(1)
+        H = np.einsum("nd,tne->tde", X - cx, Y - cy[:, None])
+        U, _, Vt = np.linalg.svd(H)
+        d = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
+        U[:, :, 2] *= d[:, None]
+        R = np.einsum("tij,tjk->tki", U, Vt)  # R_t x ~ y (the transpose of X -> Y's right factor)
+        out[int(sgm)] = (R, cy - np.einsum("tij,j->ti", R, cx))
+    return out
+
+
+def joint_residual(motion_a, motion_b, centroid, *, ridge: float = 1e-3) -> tuple[float, np.ndarray]:
+    """How far two rigid motions are from sharing a pivot: a ball joint between them.
+
+    The pivot ``c`` minimises ``sum_t ||(R_a,t c + t_a,t) - (R_b,t c + t_b,t)||^2``
+    plus ``ridge * T ||c - centroid||^2`` (a hinge leaves ``c`` free along
+    its axis: it stays at the boundary centroid there).
+
+    Parameters
+    ----------
+    motion_a, motion_b : tuple of (T, 3, 3) and (T, 3) float ndarray
+        ``x_t = R_t x + t_t`` of each segment.
+    centroid : (3,) float ndarray
+        Centroid of the shared boundary (rest frame).
+    ridge : float
+        Weight of the pull towards the centroid.
+
+    Returns
+    -------
+    residual : float
+        RMS over frames of the distance between the pivot carried by either motion (units of the input).
+    pivot : (3,) float ndarray
+    """
+    Ra, ta = motion_a
+    Rb, tb = motion_b
+    M = Ra - Rb  # (T, 3, 3)
+    b = tb - ta  # (T, 3)
+    c0 = np.asarray(centroid, dtype=np.float64)
+    T = len(M)
+    A = np.einsum("tji,tjk->ik", M, M) + ridge * T * np.eye(3)
+    rhs = np.einsum("tji,tj->i", M, b) + ridge * T * c0
+    c = np.linalg.solve(A, rhs)
+    gap = np.einsum("tij,j->ti", M, c) - b
+    return float(np.sqrt((gap**2).sum(1).mean())), c
+
+
+def _kinematic_tree(candidates, residual) -> list:
+    """The candidate pairs that form a spanning tree of the segments with the smallest residuals.
+
+    A kinematic tree has no cycles: when the segments' adjacency does (two
+    limbs that touch, arms that meet round a body), the pairs whose motion
+    is least like a joint are not articulations.
+    """
+    segs = sorted({x for pair, _ in candidates for x in pair})
+    if len(segs) < 2:
+        return list(candidates)
+    idx = {x: i for i, x in enumerate(segs)}
+    rows = [idx[a] for (a, _), _ in candidates]
+    cols = [idx[b] for (_, b), _ in candidates]
+    w = np.asarray([residual[pair] for pair, _ in candidates], dtype=np.float64)
+    w = w + 1e-12 * (1.0 + np.abs(w).max()) + 1e-300  # a zero residual is still an edge
+    n = len(segs)
+    T = minimum_spanning_tree(sp.csr_matrix((w, (rows, cols)), shape=(n, n))).tocoo()
+    keep = {(segs[min(a, b)], segs[max(a, b)]) for a, b in zip(T.row, T.col)}
+    return [(pair, c) for pair, c in candidates if pair in keep]
+
+
+def _articulation_pairs(v, f, lab, min_edges, motion, reference) -> list:
+    """Boundary centroids of adjacent segments, reduced to a tree (see :func:`articulated_skeleton`)."""
+    cand = _boundary_joints(v, f, lab, min_edges)
+    segs = sorted({x for pair, _ in cand for x in pair})
+    idx = {x: i for i, x in enumerate(segs)}
+    n = len(segs)
+    g = sp.csr_matrix((np.ones(len(cand)), ([idx[a] for (a, _), _ in cand], [idx[b] for (_, b), _ in cand])),
+                      shape=(n, n))
+    if len(cand) == 0 or len(cand) - n + connected_components(g, directed=False)[0] == 0:
+        return cand  # no cycle: a tree (or a forest) already
+    if motion is not None:
+        mo = np.asarray(motion)
+        if mo.ndim != 3 or mo.shape[1:] != v.shape or not 0 <= int(reference) < len(mo):
+            raise ValueError(f"motion must have shape (T, {len(v)}, 3) with reference within 0..T-1, got {mo.shape}")
+        motions = _segment_motions(mo, lab, segs, int(reference))
+        residual = {pair: joint_residual(motions[pair[0]], motions[pair[1]], c)[0] for pair, c in cand}
+    else:
+        e = mesh_edges(f)
+        la, lb = np.sort(np.c_[lab[e[:, 0]], lab[e[:, 1]]], axis=1).T
+        residual = {pair: -float(((la == pair[0]) & (lb == pair[1])).sum()) for pair, _ in cand}
+    kept = _kinematic_tree(cand, residual)
+    if len(kept) < len(cand):
+        log.info("%d adjacent segment pairs are contacts, not joints (the kinematic tree keeps %d)",
+                 len(cand) - len(kept), len(kept))
+    return kept
+
+
 def articulated_skeleton(
     vertices,
     faces,
@@ -274,6 +382,8 @@ def articulated_skeleton(
     spacing: float = 0.01,
     min_boundary_edges: int = 3,
     max_splits: int = 4,
+    motion=None,
+    reference: int = 0,
 ) -> ArticulatedSkeleton:
     """Joints and bones of an articulated model (Tzionas & Gall 2016, section 4.2).
 
@@ -293,6 +403,14 @@ def articulated_skeleton(
         Two segments are adjacent when they share at least this many edges.
     max_splits : int
         Rounds of splitting bones that leave the mesh.
+    motion : (T, V, 3) float ndarray, optional
+        The vertex trajectories. When the segments' adjacency has cycles
+        (segments that touch without being jointed), only the spanning tree
+        of pairs whose rigid motions best share a pivot
+        (:func:`joint_residual`) become articulations. Without it, the
+        longest shared boundaries win.
+    reference : int
+        Position of ``vertices`` in ``motion``.
 
     Returns
     -------
@@ -323,7 +441,7 @@ def articulated_skeleton(
     # 1. articulations: boundary centroids moved to the curve skeleton
     ptree = cKDTree(P)
     joint_pairs: dict[int, list] = defaultdict(list)
-    for pair, c in _boundary_joints(v, f, lab, min_boundary_edges):
+    for pair, c in _articulation_pairs(v, f, lab, min_boundary_edges, motion, reference):
         _, node = ptree.query(c)
         joint_pairs[int(node)].append(pair)
     # 2. auxiliary joints at ends and branches
