@@ -290,23 +290,24 @@ def interval_length(vertices, *, to_reference: float = 1.0, motion: float | None
 def _window_extreme(x: np.ndarray, width: int, op) -> np.ndarray:
     """``op`` (np.maximum or np.minimum) over every window ``x[t : t + width]``, t = 0 .. T - width.
 
-    Whole frames at a time (contiguous memory): a running loop for short windows, the van
-    Herk / Gil-Werman block decomposition (prefix and suffix scans) for long ones.
+    Whole frames at a time (contiguous memory): a running loop for short windows, doubling
+    (a sparse table: extremes over 1, 2, 4, .. frames, then two overlapping spans) for long ones.
     """
     T = x.shape[0]
     n_win = T - width + 1
-    if width <= 12:
+    if width <= 8:
         out = x[:n_win].copy()
         for k in range(1, width):
             op(out, x[k : k + n_win], out=out)
         return out
-    nb = -(-T // width)
-    pad = nb * width - T
-    xp = np.concatenate([x, np.repeat(x[-1:], pad, axis=0)]) if pad else x
-    blocks = xp.reshape((nb, width) + x.shape[1:])
-    pre = op.accumulate(blocks, axis=1).reshape(xp.shape)
-    suf = op.accumulate(blocks[:, ::-1], axis=1)[:, ::-1].reshape(xp.shape)
-    return op(suf[:n_win], pre[width - 1 : width - 1 + n_win])
+    span = 1
+    cur = x.copy()
+    while 2 * span <= width:
+        n = T - 2 * span + 1
+        op(cur[:n], cur[span : span + n], out=cur[:n])
+        span *= 2
+    # cur[t] = extreme of x[t : t + span]; a window of ``width`` is two such spans
+    return op(cur[:n_win], cur[width - span : width - span + n_win])
 
 
 def _window_range(x: np.ndarray, width: int) -> np.ndarray:

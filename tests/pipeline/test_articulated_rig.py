@@ -350,9 +350,9 @@ def test_constant_velocity_prediction_is_exact_on_constant_velocity_motion(creat
 _VARIED = [
     # (creature, frames, periods of the slowest limb): coarse, dense, and twice as fast a frame
     ("biped", 16, 1.0),
-    ("biped", 80, 1.0),
-    ("biped", 40, 2.0),
-    ("quadruped", 120, 1.0),
+    ("biped", 64, 1.0),
+    ("biped", 32, 2.0),
+    ("quadruped", 100, 1.0),
 ]
 
 
