@@ -370,3 +370,50 @@ def test_varied_frame_rate_and_speed_give_a_stable_rig(name, frames, periods):
     assert recall >= 0.7
     assert precision >= 0.7
     assert rig.fit.errors.mean() <= 0.01 * ms.size
+
+
+# --------------------------------------------------------------------------- joints from the segments' motion
+
+
+def _rigid_about(pivot, axis, angles):
+    """(R (T, 3, 3), t (T, 3)) of rotations by ``angles`` about ``axis`` through ``pivot``."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(np.outer(angles, axis)).as_matrix()
+    return R, pivot - np.einsum("tij,j->ti", R, pivot)
+
+
+def test_joint_residual_recovers_a_shared_pivot():
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.articulated_skeleton import joint_residual
+
+    T = 30
+    body = (np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3)))
+    pivot = np.array([10.0, -5.0, 3.0])
+    # a ball joint: rotations about changing axes through the pivot
+    rv = np.c_[np.linspace(0.0, 0.5, T), np.linspace(0.0, 0.7, T), 0.2 * np.sin(np.linspace(0.0, 3.0, T))]
+    R = Rotation.from_rotvec(rv).as_matrix()
+    ball = (R, pivot - np.einsum("tij,j->ti", R, pivot))
+    res, c = joint_residual(body, ball, pivot + np.array([4.0, 0.0, 0.0]), ridge=1e-9)
+    assert res < 1e-6 and np.linalg.norm(c - pivot) < 1e-4
+    # a hinge: the pivot is free along the axis and stays at the centroid's foot on it
+    hinge = _rigid_about(pivot, np.array([0.0, 0.0, 1.0]), np.linspace(0.0, 0.6, T))
+    centroid = pivot + np.array([1.0, 0.0, 7.0])
+    res, c = joint_residual(body, hinge, centroid)
+    assert res < 1e-2
+    np.testing.assert_allclose(c, pivot + np.array([0.0, 0.0, 7.0]), atol=0.1)
+    # two limbs turning about points 30 apart (siblings in contact): no shared pivot
+    other = _rigid_about(pivot + np.array([30.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), np.linspace(0.0, 0.6, T))
+    res, _ = joint_residual(hinge, other, pivot)
+    assert res > 3.0
+
+
+def test_touching_segments_are_not_jointed():
+    """Three segments adjacent in a cycle: the pair whose motion shares no pivot is a contact."""
+    from pipeline.articulated_skeleton import _kinematic_tree
+
+    cand = [((0, 1), None, 1.0), ((0, 2), None, 1.0), ((1, 2), None, 1.0)]
+    kept = _kinematic_tree(cand, {(0, 1): 0.1, (0, 2): 0.2, (1, 2): 9.0})
+    assert sorted(c[0] for c in kept) == [(0, 1), (0, 2)]
+    assert len(_kinematic_tree(cand[:1], {(0, 1): 0.0})) == 1
