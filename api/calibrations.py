@@ -37,6 +37,7 @@ __all__ = ["CalibrationLibrary", "CalibrateParams", "calibrate_take", "calibrate
 log = logging.getLogger(__name__)
 
 FORMATS = ("json", "toml", "yaml")
+MIRROR_SPELLING = 'parameters.mirror.{camera} = "{value}"'  # the request field, in messages of calib.mirror
 MEDIA = {"json": "application/json", "toml": "application/toml", "yaml": "application/x-yaml"}
 
 
@@ -186,7 +187,7 @@ def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[s
     if cancel is not None and cancel.is_set():
         raise InterruptedError("calibration cancelled")
     detections, sizes, cams, flipped, notes = detect_take(take, board, step=params.step, mirror=params.mirror,
-                                                          on_set=on_set)
+                                                          on_set=on_set, spelling=MIRROR_SPELLING)
     for line in dict.fromkeys(notes):
         log.info("calibrate %s: %s", take.name, line)
     result = calibrate_rig(detections, sizes, board, cameras=cams, world=params.world, world_frame=params.world_frame,

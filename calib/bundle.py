@@ -205,6 +205,7 @@ class BundleResult:
     cost: float
     intrinsics_cov: np.ndarray | None = None  # (C, 9, 9), NaN rows/columns for intrinsics not estimated
     sigma_px: float = float("nan")  # residual scale the covariance is expressed in
+    rotation_cov: np.ndarray | None = None  # (C, C, 3, 3) rad^2, camera rotations (left perturbation), reference 0
 
 
 def _observations(obs_cam, obs_board, obs_points, obs_uv, intrinsics, cam_rvec, cam_tvec, board_rvec, board_tvec):
@@ -314,7 +315,11 @@ def bundle_adjust(
     covariance : bool
         Also return the marginal covariance of every camera's intrinsics at the
         solution (``(J^T W J)^-1`` with the robust weights, scaled by the
-        residual variance; Triggs et al. 2000, section 10).
+        residual variance; Triggs et al. 2000, section 10) and the joint covariance
+        of the camera rotations (``rotation_cov``: block ``[a, b]`` is the
+        cross-covariance of the small rotations ``d`` with ``R_a <- exp([d]_x) R_a``,
+        in radians squared; the reference camera's blocks are zero, it is the gauge).
+        The board poses are eliminated by their Schur complement.
 
     Returns
     -------
@@ -449,14 +454,14 @@ def bundle_adjust(
                          max_nfev=200 if max_nfev is None else max_nfev, ftol=ftol, n_robust=2 * M)
     rv, tv, intr, bR, bT = unpack(res.x)
     log.debug("bundle adjustment: %s after %d evaluations", res.message, res.nfev)
-    icov, sigma = None, float("nan")
+    icov, rcov, sigma = None, None, float("nan")
     if covariance:
-        icov, sigma = _intrinsics_covariance(jacobian(res.x), np.asarray(res.fun), 2 * M, loss, f_scale,
-                                             C, free_i, n_pose, optimize_intrinsics, prior_scale)
+        icov, rcov, sigma = _covariance(jacobian(res.x), np.asarray(res.fun), 2 * M, loss, f_scale, C, free_i,
+                                        n_pose, n_intr, free_cams, rv, optimize_intrinsics, prior_scale)
     return BundleResult(
         cam_rvec=rv, cam_tvec=tv, intrinsics=np.array(intr, dtype=np.float64), board_rvec=bR, board_tvec=bT,
         residuals=np.asarray(res.fun)[: 2 * M].reshape(-1, 2), success=bool(res.success), message=str(res.message),
-        nfev=int(res.nfev), cost=float(res.cost), intrinsics_cov=icov, sigma_px=sigma,
+        nfev=int(res.nfev), cost=float(res.cost), intrinsics_cov=icov, sigma_px=sigma, rotation_cov=rcov,
     )
 
 
@@ -483,28 +488,60 @@ def _prior_rows(prior_cov, C: int, free_i: np.ndarray, scale: float) -> np.ndarr
     return rows
 
 
-def _intrinsics_covariance(J, r, n_obs, loss, f_scale, C, free_i, n_pose, optimized, prior_scale):
-    """Marginal (C, 9, 9) intrinsics covariance and the residual scale (px) at a solution."""
+def _camera_block_inverse(A, n_cam: int) -> np.ndarray:
+    """Inverse of the camera block (first ``n_cam`` unknowns) of the normal matrix ``A``.
+
+    The board poses (6 x 6 diagonal blocks after the camera unknowns) are eliminated by their
+    Schur complement, so the cost is that of the cameras, not of the frame sets.
+    """
+    A = A.tocsr()
+    n = A.shape[0]
+    nb = (n - n_cam) // 6
+    Acc = A[:n_cam, :n_cam].toarray()
+    Acb = A[:n_cam, n_cam:].toarray()
+    Abb = A[n_cam:, n_cam:]
+    blocks = np.stack([Abb[6 * b : 6 * b + 6, 6 * b : 6 * b + 6].toarray() for b in range(nb)]) if nb else np.zeros((0, 6, 6))
+    try:
+        inv_b = np.linalg.inv(blocks)
+    except np.linalg.LinAlgError:
+        inv_b = np.linalg.pinv(blocks)
+    # S = Acc - Acb Abb^-1 Abc, with Abb^-1 block diagonal
+    Acb3 = Acb.reshape(n_cam, nb, 6).transpose(1, 0, 2)  # (nb, n_cam, 6)
+    S = Acc - np.einsum("bik,bkl,bjl->ij", Acb3, inv_b, Acb3)
+    try:
+        return np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(S)
+
+
+def _covariance(J, r, n_obs, loss, f_scale, C, free_i, n_pose, n_intr, free_cams, cam_rvec, optimized, prior_scale):
+    """Marginal (C, 9, 9) intrinsics covariance, (C, C, 3, 3) camera rotation covariance and the
+    residual scale (px) at a solution."""
     cov = np.full((C, N_INTR, N_INTR), np.nan)
     f2 = f_scale * f_scale
     _, w = _robust_weights(r, loss, f2, n_obs)
     n = J.shape[1]
     dof = max(n_obs - n, 1)
     sigma2 = float(np.sum(w[:n_obs] * r[:n_obs] ** 2) / dof)
-    if not optimized:
-        return cov, float(np.sqrt(sigma2))
     Jd = J.tocsr()
     # whitened: pixel rows by the residual scale, prior rows by the scale they were written in
     scale = np.full(J.shape[0], 1.0 / prior_scale**2)
     scale[:n_obs] = w[:n_obs] / sigma2
-    A = (Jd.T @ Jd.multiply(scale[:, None]).tocsr()).toarray()
-    try:
-        Ainv = np.linalg.inv(A)
-    except np.linalg.LinAlgError:
-        Ainv = np.linalg.pinv(A)
+    A = Jd.T @ Jd.multiply(scale[:, None]).tocsr()
+    n_cam = n_pose + n_intr
+    Ainv = _camera_block_inverse(A, n_cam)
+    # rotation vector -> left perturbation: d = J_l(r) dr
+    Jl = _left_jacobian(cam_rvec[free_cams]) if free_cams.size else np.zeros((0, 3, 3))
+    rcov = np.zeros((C, C, 3, 3))
+    for a, ca in enumerate(free_cams):
+        for b, cb in enumerate(free_cams):
+            blk = Ainv[6 * a : 6 * a + 3, 6 * b : 6 * b + 3]
+            rcov[ca, cb] = Jl[a] @ blk @ Jl[b].T
+    if not optimized:
+        return cov, rcov, float(np.sqrt(sigma2))
     NF = int(free_i.sum())
     idx = np.flatnonzero(free_i)
     for c in range(C):
         sl = slice(n_pose + c * NF, n_pose + (c + 1) * NF)
         cov[c][np.ix_(idx, idx)] = Ainv[sl, sl]
-    return cov, float(np.sqrt(sigma2))
+    return cov, rcov, float(np.sqrt(sigma2))

@@ -303,7 +303,7 @@ class ExtrinsicsResult:
             "world": self.world,
             "world_frame": self.world_frame,
             "warnings": list(self.warnings),
-            **{k: v for k, v in self.meta.items() if k != "intrinsics_cov"},
+            **{k: v for k, v in self.meta.items() if k not in ("intrinsics_cov", "rotation_cov")},
         }
 
     def report(self) -> str:
@@ -482,7 +482,10 @@ def calibrate_extrinsics(
     Returns
     -------
     ExtrinsicsResult
-        ``meta["intrinsics_cov"]``: (C, 9, 9) covariance of the refined intrinsics.
+        ``meta["intrinsics_cov"]``: (C, 9, 9) covariance of the refined intrinsics;
+        ``meta["rotation_cov"]``: (C, C, 3, 3) joint covariance of the camera rotations (rad^2,
+        :func:`calib.bundle.bundle_adjust`), relative to ``meta["reference"]``, the camera held
+        fixed in the adjustment (the covariance of relative rotations does not depend on it).
 
     Raises
     ------
@@ -592,5 +595,6 @@ def calibrate_extrinsics(
         geometry=geometry, board_poses=board_world, tree=tree_report, world=world, world_frame=wf,
         warnings=tuple(warnings), meta={"bundle": {"nfev": res.nfev, "message": res.message,
                                                     "observations": int(obs_cam.size)},
-                                        "intrinsics_cov": res.intrinsics_cov, "sigma_px": res.sigma_px},
+                                        "intrinsics_cov": res.intrinsics_cov, "sigma_px": res.sigma_px,
+                                        "rotation_cov": res.rotation_cov, "reference": names[root]},
     )
