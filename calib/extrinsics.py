@@ -436,7 +436,7 @@ def calibrate_extrinsics(
     world: str = "board",
     world_frame: int | None = None,
     optimize_intrinsics: bool = True,
-    fixed_intrinsics: tuple[str, ...] = (),
+    fixed_intrinsics: tuple[str, ...] | np.ndarray = (),
     loss: str = "soft_l1",
     f_scale: float = 1.0,
     min_corners: int = 6,
@@ -464,9 +464,9 @@ def calibrate_extrinsics(
         the most cameras).
     optimize_intrinsics : bool
         Refine intrinsics in the bundle adjustment too.
-    fixed_intrinsics : tuple of str
+    fixed_intrinsics : tuple of str or (C, 9) bool ndarray
         Intrinsics the bundle adjustment keeps as given (``calib.bundle.INTRINSIC_NAMES``),
-        e.g. ``("k3",)`` for cameras calibrated with ``fix_k3``.
+        e.g. ``("k3",)`` for cameras calibrated with ``fix_k3``, or per camera (True: held).
     loss, f_scale : str, float
         Robust loss of the bundle adjustment and its inlier scale (px).
     min_corners : int
@@ -556,7 +556,8 @@ def calibrate_extrinsics(
     res = bundle_adjust(
         obs_cam, obs_board, np.concatenate(op), np.concatenate(ouv),
         intrinsics=intr0, cam_rvec=cam_rvec, cam_tvec=cam_tvec, board_rvec=board_rvec, board_tvec=board_tvec,
-        reference=root, optimize_intrinsics=optimize_intrinsics, fixed_intrinsics=tuple(fixed_intrinsics),
+        reference=root, optimize_intrinsics=optimize_intrinsics,
+        fixed_intrinsics=fixed_intrinsics if isinstance(fixed_intrinsics, np.ndarray) else tuple(fixed_intrinsics),
         loss=loss, f_scale=f_scale, max_nfev=max_nfev,
         solver=solver, prior_cov=intrinsics_prior, prior_scale=prior_scale, covariance=True,
     )
