@@ -20,8 +20,11 @@ Steps:
 3. Honest figures (:mod:`calib.evaluate`): beside the fit on the views used, the
    reprojection and board-geometry error over every frame with a detection, a
    k-fold held-out error over frame sets (calibrate on the rest, measure on the
-   fold), the per-camera projection uncertainty from the parameter covariance, and
-   how far each intrinsic moved from Zhang's in units of its standard deviation.
+   fold), the per-camera projection uncertainty from the parameter covariance, the
+   rotation uncertainty of every camera and camera pair in degrees (from the bundle
+   adjustment's covariance, :func:`rotation_sigma`, and from the spread of the held-out
+   folds' calibrations, :func:`fold_rotation_spread`), and how far each intrinsic moved
+   from Zhang's in units of its standard deviation.
 
 Detection (from images, takes or videos) is the caller's business (see
 :mod:`calib.detect`); this module only takes arrays.
@@ -70,7 +73,9 @@ class RigCalibration:
         detection), ``geometry_all`` (board geometry error over them), ``held_out``
         (k-fold, same layout plus ``folds``), ``uncertainty`` (name -> position -> px),
         ``moved_sigma`` (name -> intrinsic -> signed move in Zhang sigmas), ``sets``
-        (frame sets used by the bundle adjustment).
+        (frame sets used by the bundle adjustment), ``rotation_sigma_deg``
+        (:func:`rotation_sigma`) and, with held-out folds, ``rotation_folds_deg``
+        (:func:`fold_rotation_spread`).
     """
 
     calibration: Calibration

@@ -43,6 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="instead: real footage in caliscope's layout (DIR/extrinsic/<camera>.mp4, DIR/charuco.toml, "
                    "DIR/camera_array.toml): held-out error per camera, ours and the reference calibration's on the "
                    "same detections, focal and distance differences, seconds")
+    p.add_argument("--distortion", choices=("full", "auto"), default="full",
+                   help="with --real: each camera's distortion model, as stage calibrate --distortion (default full)")
     p.add_argument("--cameras", type=int, default=12)
     p.add_argument("--views", type=int, default=60)
     p.add_argument("--noise", type=float, default=0.3, help="corner noise sigma, px (default 0.3)")
@@ -197,7 +199,7 @@ def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
 
 
-def run_real(root: Path) -> int:
+def run_real(root: Path, *, distortion: str = "full") -> int:
     """Default ``stage calibrate`` on caliscope-layout footage against its reference calibration."""
     import itertools
 
@@ -217,7 +219,8 @@ def run_real(root: Path) -> int:
     dets, sizes, flipped, notes = detect_images(root / "extrinsic", board, progress=False)
     t_det = time.perf_counter() - t0
     t1 = time.perf_counter()
-    res = calibrate_rig(dets, sizes, board, cameras=list(sizes), flipped=flipped, holdout_folds=5)
+    res = calibrate_rig(dets, sizes, board, cameras=list(sizes), flipped=flipped, holdout_folds=5,
+                        distortion=distortion)
     t_cal = time.perf_counter() - t1
     for n in notes + res.evaluation["flipped"]:
         print(f"note: {n}")
@@ -263,7 +266,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.real is not None:
         logging.getLogger("calib").setLevel(logging.ERROR)
-        return run_real(args.real)
+        return run_real(args.real, distortion=args.distortion)
 
     from calib.boards import Charuco, Chessboard
     from calib.extrinsics import calibrate_extrinsics
