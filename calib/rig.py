@@ -47,7 +47,7 @@ from calib.extrinsics import ExtrinsicsResult, calibrate_extrinsics, triangulate
 from calib.intrinsics import DISTORTION_MODES, CalibrationError, IntrinsicsResult, calibrate_intrinsics
 
 __all__ = ["RigCalibration", "calibrate_rig", "resolve_flipped", "rotation_sigma", "fold_rotation_spread",
-           "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA", "CORNER_WARN_PX"]
+           "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA", "CORNER_WARN_PX", "FOLD_WARN_RATIO", "FOLD_WARN_DEG"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +55,8 @@ INTRINSICS_MODES = ("prior", "fixed", "free")
 MAX_SETS = 300  # frame sets in the bundle adjustment above which they are evenly thinned
 MOVE_WARN_SIGMA = 3.0  # an intrinsic that moved further than this many Zhang sigmas is reported
 CORNER_WARN_PX = 2.0  # projection uncertainty at the image corners above which the report warns
+FOLD_WARN_RATIO = 2.0  # folds' rotation spread over the covariance's figure above which the report warns
+FOLD_WARN_DEG = 0.5  # ... when the spread is also above this
 
 
 @dataclass(frozen=True, eq=False)
@@ -439,6 +441,20 @@ def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | N
             "folds": k, "frames": len(frames), "failed_folds": failed, "calibrations": fold_calibs}
 
 
+def _shared_error_warnings(cov: dict, folds: dict) -> list[str]:
+    """Cameras whose rotation varies between the folds far more than independent corner errors explain."""
+    out = []
+    for name, f in (folds.get("per_camera") or {}).items():
+        c = (cov.get("per_camera") or {}).get(name, float("nan"))
+        if name != cov.get("reference") and f > FOLD_WARN_DEG and f > FOLD_WARN_RATIO * c:
+            out.append(f"camera {name}: its rotation relative to {cov['reference']} varies by {f:.2f} deg (1 sigma) "
+                       f"between the held-out folds, {f / c:.1f} times what independent corner errors explain: errors "
+                       f"shared by whole views dominate (a board that moved between the cameras' exposures, cameras "
+                       f"not synchronised, a bending board), so trust the folds' figure; hold the board still in each "
+                       f"pose, or synchronise the cameras")
+    return out
+
+
 def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_folds, solve_kw):
     """The figures of the module docstring (step 3) and the warnings they give."""
     ev: dict = {"mode": intrinsics}
@@ -470,6 +486,7 @@ def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_f
         warn += [f"held-out {f}" for f in ev["held_out"]["failed_folds"]]
         ref = ev["rotation_sigma_deg"].get("reference")
         ev["rotation_folds_deg"] = fold_rotation_spread(ev["held_out"].pop("calibrations"), names, ref)
+        warn += _shared_error_warnings(ev["rotation_sigma_deg"], ev["rotation_folds_deg"])
     for w in warn:
         log.debug(w)  # in the result's warnings / report
     return ev, warn

@@ -125,6 +125,7 @@ def test_report_figures(rig):
             assert err < 3 * rs["pairs"][key], (key, err, rs["pairs"][key])
             assert rs["pairs"][key] / 3 < rf["pairs"][key] < 3 * rs["pairs"][key], key
     assert "rotation deg vs " + rs["reference"] in res.report()
+    assert not any("errors shared by whole views" in w for w in res.warnings)  # independent noise only
 
 
 def test_invalid_input(rig):
