@@ -394,14 +394,19 @@ def surface_task(
     out: str,
     spine_params: dict | None = None,
     masks: dict | None = None,
+    use_depth: bool | None = None,
 ) -> list[dict]:
     """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/`` (and,
     with ``spine_params``, the frames' skeletons to ``skeletons/`` from the mesh in memory).
 
     ``masks`` (optional): the sets' masks as keyed in this run, ``{"widths": [W per camera],
     "sets": {k: [bit-packed (H, W/8) rows or None per camera]}}``; without it they are read
-    from the take. Top level (picklable) so it runs in a process pool or on a Dask worker.
+    from the take. ``use_depth``: fuse depth (default: when ``params.depth`` is ``auto`` and
+    every camera has depth); with masks given and no depth, the take is not opened at all.
+    Top level (picklable) so it runs in a process pool or on a Dask worker.
     """
+    from contextlib import nullcontext
+
     from pipeline.hull import EmptyHullError
     from pipeline.results import ResultsStore, ply_bytes
     from pipeline.spine import SpineParams
@@ -417,8 +422,9 @@ def surface_task(
     results = []
     writer = _Writer()
     try:
-        with TakeReader(take) as reader:
-            use_depth = p.depth == "auto" and all(reader.camera_info(c).get("has_depth") for c in cameras)
+        with TakeReader(take) if masks is None or use_depth is not False else nullcontext() as reader:
+            if use_depth is None:
+                use_depth = _uses_depth(reader, cameras, p)
             validity = _mask_validity(reader, cameras) if masks is None else None
             for k in frames:
                 t0 = time.perf_counter()
@@ -454,6 +460,11 @@ def surface_task(
     finally:
         writer.close()
     return results
+
+
+def _uses_depth(reader, cameras: Sequence[str], p: ProcessParams) -> bool:
+    """Depth is fused when the job allows it and every camera of the take delivers depth."""
+    return p.depth == "auto" and all(reader.camera_info(c).get("has_depth") for c in cameras)
 
 
 def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
@@ -605,6 +616,7 @@ class RunContext:
     skeletons: dict[int, object] = field(default_factory=dict)  # frame -> FrameSkeleton (None: none), as computed
     keyed: dict | None = field(default_factory=dict)  # camera -> (bit-packed masks, width, valid) keyed in this run
     set_table: np.ndarray | None = None  # (S, C) frame row of every camera in every set
+    limb_count: dict = field(default_factory=dict)  # the spine's K and the rule that chose it
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
@@ -813,8 +825,12 @@ def _processing_grid(ctx: RunContext):
 
 def _step_surface(ctx: RunContext) -> None:
     """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
+    from stage.store import TakeReader
+
     t0 = time.perf_counter()
     grid = _processing_grid(ctx)
+    with TakeReader(ctx.take) as reader:
+        use_depth = _uses_depth(reader, ctx.cameras, ctx.params)
     _add_to_record(ctx, grid=ctx.grid_choice)
     ctx.timings["grid"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -827,6 +843,7 @@ def _step_surface(ctx: RunContext) -> None:
         out=str(ctx.out.resolve()),
         # skeletons straight from the surfaces in memory when the spine step follows
         spine_params=ctx.params.spine if "spine" in ctx.steps else None,
+        use_depth=use_depth,
     )
     ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx))
     ctx.timings["surface"] = time.perf_counter() - t0
@@ -851,6 +868,8 @@ def _step_spine(ctx: RunContext) -> None:
     ctx.report_progress("spine", 0, 1)
     spine = build_spine(skeletons, fps=float(ctx.fps), units=ctx.calibration.units, params=SpineParams(**ctx.params.spine))
     ctx.spine_path = write_spine(ctx.out / "spine.json", spine)
+    # how K was chosen (the mode of the tip counts, or a borderline count decided): in the report
+    ctx.limb_count = {"K": int(spine.meta.get("K", len(spine.limb_ids))), "rule": spine.meta.get("count_rule", "mode")}
     ctx.report_progress("spine", 1, 1)
     ctx.timings["spine"] = time.perf_counter() - t0
 
@@ -986,6 +1005,7 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "per_frame": [frame_infos.get(k) for k in range(ctx.n_sets)],
         "warnings": ctx.warnings,
         "grid": ctx.grid_choice,
+        "limb_count": ctx.limb_count,
     }
     _atomic_write_text(ctx.out / "report.json", json.dumps(report, indent=1, default=_json_default))
     return ProcessResult(

@@ -13,7 +13,8 @@ sets, raw frames) is recorded once; then, in the same run:
    1 and 2 worker processes and on a Dask ``LocalCluster`` of 2 single-threaded workers.
 
 The table gives seconds per step inside ``stage process`` beside the step's own figure at
-the same parallelism (own seconds divided by the workers: ideal scaling), their ratio
+the same parallelism, measured right before the run (the step's own code on its data in
+memory, split over as many processes started together as the run has workers), their ratio
 (the overhead), the one-time costs (worker start-up: forkserver processes importing the
 pipeline; the grid choice: a coarse carve of 8 sets) and sets/s end to end (start-up
 included). ``--profile`` adds a
@@ -127,6 +128,109 @@ def _own_reconstruct(take: Path, out: Path) -> dict:
     return {"carve": t_carve / n, "surface": t_surf / n, "skeleton": t_skel / n, "spine": t_spine, "grid": grid}
 
 
+def _own_worker(what: str, take: str, out: str, part: list, barrier, queue) -> None:
+    """One process of an own benchmark at several processes: load the data of its part (the
+    clock not running), wait for the others, then run the part of the step (as
+    :func:`_own_key` / :func:`_own_reconstruct` do) and report its monotonic start and end."""
+    try:
+        run = _load_key_part(take, part) if what == "key" else _load_surface_part(take, Path(out), part)
+        barrier.wait(timeout=300)
+        t0 = time.monotonic()
+        run()
+        queue.put((t0, time.monotonic(), None))
+    except BaseException as exc:  # reported to the parent, which raises it
+        barrier.abort()
+        queue.put((0.0, 0.0, f"{type(exc).__name__}: {exc}"))
+
+
+def _load_key_part(take: str, cameras: list[str]):
+    import cv2
+
+    from stage.keying.keyer import estimate_model, key_frames
+    from stage.keying.take import take_key_params
+    from stage.store import TakeReader
+
+    cv2.setNumThreads(1)  # as a pool worker keys
+    with TakeReader(take) as r:
+        base = take_key_params(r.rig)
+        data = []
+        for cam in cameras:
+            plate = r.read_array(f"cameras/{cam}", "plate")[0] if r.has_array(f"cameras/{cam}", "plate") else None
+            data.append((r.frames(cam, 0, r.n_frames(cam)), plate))
+
+    def run():
+        for frames, plate in data:
+            F = len(frames)
+            sample = frames[np.unique(np.linspace(0, F - 1, min(F, 16)).round().astype(int))]
+            params = estimate_model(sample, params=base, plate=plate)
+            key_frames(frames, params=params, plate=plate, workers=1)
+
+    return run
+
+
+def _load_surface_part(take: str, out: Path, sets: list[int]):
+    import json
+
+    from calib.calibration import Calibration
+    from pipeline.hull import HullCarver
+    from pipeline.process import ProcessParams
+    from pipeline.spine import SpineParams, frame_skeleton
+    from pipeline.surface import surface_from_occupancy
+    from pipeline.volume import Grid
+    from stage.store import TakeReader
+
+    p = ProcessParams(**json.loads((out / "process.json").read_text())["params"])
+    sp = SpineParams(**p.spine)
+    grid = Grid.from_dict(json.loads((out / "grid.json").read_text()))
+    with TakeReader(take) as r:
+        cams = list(r.cameras)
+        cal = r.calibration
+        cal = Calibration(tuple(cal[c] for c in cams), units=cal.units, meta=cal.meta)
+        table = r.set_table()
+        masks = [[r.mask(c, int(table[k, i])) for i, c in enumerate(cams)] for k in sets]
+    carver = HullCarver(cal, grid)
+
+    def run():
+        for m in masks:
+            hull = carver.carve(m, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
+            mesh = surface_from_occupancy(hull.occupancy, grid, taubin_iterations=p.smooth_iterations,
+                                          face_budget=p.face_budget)
+            frame_skeleton(mesh.vertices, mesh.faces, params=sp)
+
+    return run
+
+
+def _own_parallel(what: str, take: Path, out: Path, parts: list[list], timeout: float = 600.0) -> float:
+    """Wall seconds of one step's own benchmark split over ``len(parts)`` forkserver processes
+    that start together (each with its data in memory): the own figure at that parallelism,
+    measured, not extrapolated from one process."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("forkserver")
+    parts = [p for p in parts if p]
+    barrier, queue = ctx.Barrier(len(parts)), ctx.Queue()
+    procs = [ctx.Process(target=_own_worker, args=(what, str(take), str(out), part, barrier, queue)) for part in parts]
+    for pr in procs:
+        pr.start()
+    try:
+        got = [queue.get(timeout=timeout) for _ in procs]
+    finally:
+        for pr in procs:
+            pr.join(timeout=30)
+    errors = [e for _, _, e in got if e]
+    if errors:
+        raise RuntimeError(f"own benchmark of {what} failed in a worker: {errors[0]}")
+    return max(t1 for _, t1, _ in got) - min(t0 for t0, _, _ in got)
+
+
+def _own_at(take: Path, out: Path, cameras: list[str], n_sets: int, workers: int) -> dict[str, float]:
+    """Seconds of keying and of hull + surface + skeletons at ``workers`` processes (cameras
+    dealt round-robin, frame sets in contiguous runs: as the pool gets them)."""
+    cams = [cameras[i::workers] for i in range(workers)]
+    sets = [list(a) for a in np.array_split(np.arange(n_sets), workers)]
+    return {"key": _own_parallel("key", take, out, cams), "surface": _own_parallel("surface", take, out, sets)}
+
+
 def _executors(args):
     import concurrent.futures as cf
     import multiprocessing
@@ -238,20 +342,28 @@ def run(args: argparse.Namespace) -> int:
               f"{own_key[2]:.0f} (2 threads); hull {1e3 * own['carve']:.1f} ms + surface {1e3 * own['surface']:.1f} ms "
               f"+ skeletons {1e3 * own['skeleton']:.1f} ms per set = {1 / per_set:.1f} sets/s; reduce {own['spine']:.2f} s")
 
-        runs = [("in process (keying 2 threads)", 0, wall0, rep0)]
+        # each run's own figures are measured at its parallelism right before it (processes
+        # started together, data in memory): a fair ratio on a machine whose load moves
+        own0 = {"key": n_img / own_key[2], "surface": n_sets * per_set}
+        runs = [("in process (keying 2 threads)", 0, wall0, rep0, own0)]
+        with TakeReader(take0) as r:
+            cameras = list(r.cameras)
         for i, (label, w, make) in enumerate(_executors(args), start=1):
+            own_w = _own_at(take0, work / "out-0", cameras, n_sets, w)
             wall, rep = _run(src, work, i, make)
-            runs.append((label, w, wall, rep))
+            runs.append((label, w, wall, rep, own_w))
+        print()
+        print("own benchmarks at the runs' parallelism (measured; ideal = the 1-process figure / workers):")
+        one = next((o for _, w, _, _, o in runs if w == 1), None)
+        for label, w, _, _, o in runs[1:]:
+            ideal = "" if one is None else (f"  (ideal key {one['key'] / w:.2f}, surface {one['surface'] / w:.2f}; "
+                                            f"scaling {one['key'] / o['key']:.2f}x, {one['surface'] / o['surface']:.2f}x)")
+            print(f"  {label:<30} key {o['key']:.2f} s, hull + surface + skeletons {o['surface']:.2f} s{ideal}")
         print()
         print(f"{'run':<30} {'step':<22} {'inside s':>9} {'own s':>8} {'ratio':>6}")
-        for label, w, wall, rep in runs:
+        for label, _w, wall, rep, own_run in runs:
             sec = rep["seconds"]
-            own_s = {
-                # worker processes key one camera each at the 1-thread speed; in process, 2 threads
-                "key": n_img / (own_key[2] if w == 0 else own_key[1] * w),
-                "surface": n_sets * per_set / max(w, 1),
-                "spine": own["spine"],
-            }
+            own_s = {**own_run, "spine": own["spine"]}
             names = {"key": "key", "grid": "grid choice", "surface": "surface + skeletons", "spine": "spine (reduce)"}
             if "startup" in rep:
                 print(f"{label:<30} {'worker start-up':<22} {rep['startup']:9.2f}")
@@ -263,7 +375,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{label:<30} {'other':<22} {other:9.2f}")
             print(f"{label:<30} {'END TO END':<22} {wall:9.2f} {'':>8} {'':>6}  {n_sets / wall:5.1f} sets/s")
         print(f"load average at the end: {os.getloadavg()[0]:.1f}")
-        best = max(n_sets / wall for _, _, wall, _ in runs)
+        best = max(n_sets / wall for _, _, wall, _, _ in runs)
         print(f"\nbest end to end: {best:.1f} sets/s (target >= 8 on 2 cores); disk-read floor {n_sets / floor:.0f} sets/s")
         if prof is not None:
             import pstats
