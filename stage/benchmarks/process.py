@@ -47,6 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker processes to try (default 1 2)")
     p.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster run")
+    p.add_argument("--repeat", type=int, default=1, help="rounds of every measurement (default 1); medians at the end")
     p.add_argument("--profile", action="store_true", help="also profile an in-process run (cProfile, top 20)")
     p.add_argument("--keep", type=Path, default=None, metavar="DIR", help="keep the take and results in DIR")
 
@@ -95,7 +96,7 @@ def _own_reconstruct(take: Path, out: Path) -> dict:
     from calib.calibration import Calibration
     from pipeline.hull import HullCarver
     from pipeline.process import ProcessParams
-    from pipeline.spine import SpineParams, build_spine, frame_skeleton
+    from pipeline.spine import SpineParams, frame_skeleton
     from pipeline.surface import surface_from_occupancy
     from pipeline.volume import Grid
     from stage.store import TakeReader
@@ -121,11 +122,18 @@ def _own_reconstruct(take: Path, out: Path) -> dict:
         t = time.perf_counter()
         skeletons.append(frame_skeleton(mesh.vertices, mesh.faces, params=SpineParams(**p.spine)))
         t_skel += time.perf_counter() - t
-    t = time.perf_counter()
-    build_spine(skeletons, fps=30.0, params=SpineParams(**p.spine))
-    t_spine = time.perf_counter() - t
     n = len(masks)
-    return {"carve": t_carve / n, "surface": t_surf / n, "skeleton": t_skel / n, "spine": t_spine, "grid": grid}
+    return {"carve": t_carve / n, "surface": t_surf / n, "skeleton": t_skel / n, "grid": grid,
+            "reduce": lambda: _own_reduce(skeletons, SpineParams(**p.spine))}
+
+
+def _own_reduce(skeletons, params) -> float:
+    """Seconds of the reduce step alone: correspondence and one graph (``build_spine``)."""
+    from pipeline.spine import build_spine
+
+    t = time.perf_counter()
+    build_spine(skeletons, fps=30.0, params=params)
+    return time.perf_counter() - t
 
 
 def _own_worker(what: str, take: str, out: str, part: list, barrier, queue) -> None:
@@ -248,13 +256,15 @@ def _executors(args):
             return
 
         def dask():
+            import logging
+
             import dask
 
             from api.executors import DASK_WORKER_ENV
 
             with dask.config.set(DASK_WORKER_ENV):  # as the API's LocalCluster
                 cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                                       host="127.0.0.1")
+                                       host="127.0.0.1", silence_logs=logging.ERROR)
             client = Client(cluster)
             return client.get_executor(pure=False), (client, cluster)
 
@@ -286,96 +296,132 @@ def _run(take_src: Path, work: Path, i: int, make) -> tuple[float, dict]:
             f.result()
         startup = time.perf_counter() - t
         res = process_take(take, out, executor=ex)
+        wall = time.perf_counter() - t  # the pool's or cluster's shutdown aside
     finally:
         if closers is None:
             ex.shutdown()
         else:
             for c in closers:
                 c.close()
-    return time.perf_counter() - t, {**res.report, "startup": startup}
+    return wall, {**res.report, "startup": startup}
+
+
+_NAMES = {"key": "key", "grid": "grid choice", "surface": "surface + skeletons", "spine": "spine (reduce)"}
+
+
+def _measure(src: Path, work: Path, args, sim, rig: dict, prof) -> list[tuple]:
+    """One round: the in-process run and its own figures, then per executor its own figures at
+    its parallelism and its run. Returns ``(label, workers, wall, report, own)`` per run."""
+    from pipeline.process import process_take, warm_task
+    from stage.store import TakeReader
+
+    n_sets, n_img = sim.n_frames, sim.n_frames * sim.n_cameras
+    shutil.rmtree(work / "out-0", ignore_errors=True)
+    take0 = _copy_take(src, work / "take-0.h5")
+    t = time.perf_counter()
+    warm_task()  # the imports a worker makes at start-up, here too
+    startup0 = time.perf_counter() - t
+    if prof is not None:
+        prof.enable()
+    t = time.perf_counter()
+    rep0 = process_take(take0, work / "out-0", executor=None).report
+    wall0 = time.perf_counter() - t + startup0
+    if prof is not None:
+        prof.disable()
+    own_key = _own_key(sim.images, sim.plate, rig)
+    own = _own_reconstruct(take0, work / "out-0")
+    g = rep0.get("grid", {})
+    print(f"grid: {own['grid']} ({g.get('source', '?')}; voxel {g.get('voxel', float('nan')):.2f}, "
+          f"pixel at the subject {g.get('pixel_footprint', float('nan')):.2f})")
+    per_set = own["carve"] + own["surface"] + own["skeleton"]
+    print(f"own benchmarks (this process, files aside): keying {own_key[1]:.0f} images/s (1 thread), "
+          f"{own_key[2]:.0f} (2 threads); hull {1e3 * own['carve']:.1f} ms + surface {1e3 * own['surface']:.1f} ms "
+          f"+ skeletons {1e3 * own['skeleton']:.1f} ms per set = {1 / per_set:.1f} sets/s")
+    # each run's own figures are measured at its parallelism right before it (processes
+    # started together, data in memory): a fair ratio on a machine whose load moves
+    own0 = {"key": n_img / own_key[2], "surface": n_sets * per_set, "spine": own["reduce"]()}
+    runs = [("in process (keying 2 threads)", 0, wall0, {**rep0, "startup": startup0}, own0)]
+    with TakeReader(take0) as r:
+        cameras = list(r.cameras)
+    for i, (label, w, make) in enumerate(_executors(args), start=1):
+        own_w = {**_own_at(take0, work / "out-0", cameras, n_sets, w), "spine": own["reduce"]()}
+        wall, rep = _run(src, work, i, make)
+        runs.append((label, w, wall, rep, own_w))
+    return runs
+
+
+def _print_round(runs: list[tuple], n_sets: int) -> None:
+    print("own benchmarks at the runs' parallelism (measured; ideal = the 1-process figure / workers):")
+    one = next((o for _, w, _, _, o in runs if w == 1), None)
+    for label, w, _, _, o in runs[1:]:
+        ideal = "" if one is None else (f"  (ideal key {one['key'] / w:.2f}, surface {one['surface'] / w:.2f}; "
+                                        f"scaling {one['key'] / o['key']:.2f}x, {one['surface'] / o['surface']:.2f}x)")
+        print(f"  {label:<30} key {o['key']:.2f} s, hull + surface + skeletons {o['surface']:.2f} s{ideal}")
+    print()
+    print(f"{'run':<30} {'step':<22} {'inside s':>9} {'own s':>8} {'ratio':>6}")
+    for label, _w, wall, rep, own_s in runs:
+        sec = rep["seconds"]
+        print(f"{label:<30} {'start-up':<22} {rep['startup']:9.2f}")
+        for step in ["key", "grid", "surface", "spine"] + [k for k in sec if k not in _NAMES]:
+            if step in sec:
+                ratio = f"{own_s[step]:8.2f} {sec[step] / own_s[step]:6.2f}" if step in own_s else ""
+                print(f"{label:<30} {_NAMES.get(step, step):<22} {sec[step]:9.2f} {ratio}")
+        other = wall - sum(sec.values()) - rep["startup"]
+        print(f"{label:<30} {'other':<22} {other:9.2f}")
+        print(f"{label:<30} {'END TO END':<22} {wall:9.2f} {'':>8} {'':>6}  {n_sets / wall:5.1f} sets/s"
+              f" ({n_sets / (wall - rep['startup']):.1f} after start-up)")
+
+
+def _print_summary(rounds: list[list[tuple]], n_sets: int) -> None:
+    """Median over the rounds of every ratio and of sets/s."""
+    print(f"\nmedian of {len(rounds)} rounds:")
+    for j, (label, *_rest) in enumerate(rounds[0]):
+        ratios = {step: float(np.median([r[j][3]["seconds"][step] / r[j][4][step] for r in rounds]))
+                  for step in ("key", "surface", "spine") if step in rounds[0][j][3]["seconds"]}
+        rate = float(np.median([n_sets / r[j][2] for r in rounds]))
+        worst = max(ratios.values()) if ratios else float("nan")
+        print(f"  {label:<30} " + ", ".join(f"{_NAMES[k]} {v:.2f}" for k, v in ratios.items())
+              + f"; worst {worst:.2f}; {rate:.1f} sets/s")
 
 
 def run(args: argparse.Namespace) -> int:
+    import os
+
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
-    from pipeline.process import process_take
     from stage.store import TakeReader
 
     size = parse_size(args.size)
     if args.frames < 2 or args.cameras < 4:
         raise ValueError("--frames must be >= 2 and --cameras >= 4")
+    if args.repeat < 1:
+        raise ValueError("--repeat must be >= 1")
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench-process-"))
     work.mkdir(parents=True, exist_ok=True)
     try:
-        import os
-
         print(f"load average at the start: {os.getloadavg()[0]:.1f} (2 cores: figures above ~1 are shared with others)")
         print(f"simulated take: {args.subject}, {args.cameras} cameras at {size[0]}x{size[1]}, {args.frames} frame sets")
         sim = simulate_take(args.subject, n_cameras=args.cameras, frames=args.frames, size=size, seed=0)
         src = record_take(sim, work / "source.h5")
-        n_sets, n_img = sim.n_frames, sim.n_frames * sim.n_cameras
+        n_sets = sim.n_frames
         with TakeReader(src) as r:
             rig = r.rig
         floor = _disk_floor(src)
         print(f"disk-read floor: every frame read once in {floor:.2f} s ({n_sets / floor:.0f} sets/s)")
-
-        # in-process run first: it chooses the grid the own benchmarks use (and is profiled on request)
-        take0 = _copy_take(src, work / "take-0.h5")
         prof = None
         if args.profile:
             import cProfile
 
             prof = cProfile.Profile()
-            prof.enable()
-        t = time.perf_counter()
-        rep0 = process_take(take0, work / "out-0", executor=None).report
-        wall0 = time.perf_counter() - t
-        if prof is not None:
-            prof.disable()
-        own_key = _own_key(sim.images, sim.plate, rig)
-        own = _own_reconstruct(take0, work / "out-0")
-        g = rep0.get("grid", {})
-        print(f"grid: {own['grid']} ({g.get('source', '?')}; voxel {g.get('voxel', float('nan')):.2f}, "
-              f"pixel at the subject {g.get('pixel_footprint', float('nan')):.2f})")
-        per_set = own["carve"] + own["surface"] + own["skeleton"]
-        print(f"own benchmarks (this process, files aside): keying {own_key[1]:.0f} images/s (1 thread), "
-              f"{own_key[2]:.0f} (2 threads); hull {1e3 * own['carve']:.1f} ms + surface {1e3 * own['surface']:.1f} ms "
-              f"+ skeletons {1e3 * own['skeleton']:.1f} ms per set = {1 / per_set:.1f} sets/s; reduce {own['spine']:.2f} s")
-
-        # each run's own figures are measured at its parallelism right before it (processes
-        # started together, data in memory): a fair ratio on a machine whose load moves
-        own0 = {"key": n_img / own_key[2], "surface": n_sets * per_set}
-        runs = [("in process (keying 2 threads)", 0, wall0, rep0, own0)]
-        with TakeReader(take0) as r:
-            cameras = list(r.cameras)
-        for i, (label, w, make) in enumerate(_executors(args), start=1):
-            own_w = _own_at(take0, work / "out-0", cameras, n_sets, w)
-            wall, rep = _run(src, work, i, make)
-            runs.append((label, w, wall, rep, own_w))
-        print()
-        print("own benchmarks at the runs' parallelism (measured; ideal = the 1-process figure / workers):")
-        one = next((o for _, w, _, _, o in runs if w == 1), None)
-        for label, w, _, _, o in runs[1:]:
-            ideal = "" if one is None else (f"  (ideal key {one['key'] / w:.2f}, surface {one['surface'] / w:.2f}; "
-                                            f"scaling {one['key'] / o['key']:.2f}x, {one['surface'] / o['surface']:.2f}x)")
-            print(f"  {label:<30} key {o['key']:.2f} s, hull + surface + skeletons {o['surface']:.2f} s{ideal}")
-        print()
-        print(f"{'run':<30} {'step':<22} {'inside s':>9} {'own s':>8} {'ratio':>6}")
-        for label, _w, wall, rep, own_run in runs:
-            sec = rep["seconds"]
-            own_s = {**own_run, "spine": own["spine"]}
-            names = {"key": "key", "grid": "grid choice", "surface": "surface + skeletons", "spine": "spine (reduce)"}
-            if "startup" in rep:
-                print(f"{label:<30} {'worker start-up':<22} {rep['startup']:9.2f}")
-            for step in ["key", "grid", "surface", "spine"] + [k for k in sec if k not in names]:
-                if step in sec:
-                    ratio = f"{own_s[step]:8.2f} {sec[step] / own_s[step]:6.2f}" if step in own_s else ""
-                    print(f"{label:<30} {names.get(step, step):<22} {sec[step]:9.2f} {ratio}")
-            other = wall - sum(sec.values()) - rep.get("startup", 0.0)
-            print(f"{label:<30} {'other':<22} {other:9.2f}")
-            print(f"{label:<30} {'END TO END':<22} {wall:9.2f} {'':>8} {'':>6}  {n_sets / wall:5.1f} sets/s")
+        rounds = []
+        for i in range(args.repeat):
+            print(f"\n== round {i + 1} of {args.repeat} (load average {os.getloadavg()[0]:.1f})")
+            rounds.append(_measure(src, work, args, sim, rig, prof if i == 0 else None))
+            _print_round(rounds[-1], n_sets)
         print(f"load average at the end: {os.getloadavg()[0]:.1f}")
-        best = max(n_sets / wall for _, _, wall, _, _ in runs)
+        if len(rounds) > 1:
+            _print_summary(rounds, n_sets)
+        best = max(n_sets / wall for rnd in rounds for _, _, wall, _, _ in rnd)
         print(f"\nbest end to end: {best:.1f} sets/s (target >= 8 on 2 cores); disk-read floor {n_sets / floor:.0f} sets/s")
         if prof is not None:
             import pstats
