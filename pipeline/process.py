@@ -8,18 +8,24 @@ over time is the reduce step. Workers open the take by path themselves, so a Das
 cluster needs a shared filesystem.
 
 Every per-frame result is persisted in the output directory as soon as it is
-finished (meshes as PLY, skeletons as JSON, written atomically), and a second call
+finished (meshes as PLY, skeletons as binary ``.npz``, written atomically by a
+background thread of the task while it computes the next frame), and a second call
 on the same output directory resumes from the unfinished frames: an interrupted
 job re-run gives the same ``spine.json`` as an uninterrupted one.
+
+Frames are read once: a keying task reads its camera's frames, and the masks it
+returns (bit-packed) stay in this process and travel with the surface tasks of the
+same run, which then never open the take (a resumed run, or a take whose masks
+exceed :data:`_KEEP_MASKS_BYTES`, reads them from the take).
 
 Output directory layout::
 
     OUT/process.json              parameters and the take it came from
     OUT/meshes/frame_000000.ply   one surface per frame set (missing: empty frame)
     OUT/frames/frame_000000.json  per-frame surface quality (or why it is empty)
-    OUT/skeletons/frame_000000.json  per-frame tips and skeletons
+    OUT/skeletons/frame_000000.npz   per-frame tips and skeletons (numpy arrays, for resuming)
     OUT/spine.json                the take's spine (capture-stage/spine@1)
-    OUT/report.json               summary: steps, timings, per-frame quality, tip counts
+    OUT/report.json               summary: steps, timings, per-frame quality, tip counts, how K was chosen
 """
 
 from __future__ import annotations
@@ -617,6 +623,9 @@ class RunContext:
     keyed: dict | None = field(default_factory=dict)  # camera -> (bit-packed masks, width, valid) keyed in this run
     set_table: np.ndarray | None = None  # (S, C) frame row of every camera in every set
     limb_count: dict = field(default_factory=dict)  # the spine's K and the rule that chose it
+    step: str = ""  # the step running
+    cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds (this process and the workers)
+    worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks on the executor
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
@@ -747,9 +756,16 @@ def _forking_pool(executor) -> bool:
     return isinstance(executor, cf.ProcessPoolExecutor) and (ctx is None or ctx.get_start_method(allow_none=False) == "fork")
 
 
+def _with_cpu(task: Callable[[], object]) -> tuple[object, float]:
+    """A task's result and the CPU seconds its process spent on it (run in the worker)."""
+    t = time.process_time()
+    out = task()
+    return out, time.process_time() - t
+
+
 def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
     """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
-    between tasks when cancelled."""
+    between tasks when cancelled. The workers' CPU seconds add to the running step's."""
 
     def check_cancel() -> None:
         if ctx.cancel is not None and ctx.cancel.is_set():
@@ -760,11 +776,13 @@ def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
             check_cancel()
             yield task()
         return
-    futures = [ctx.executor.submit(task) for task in tasks]
+    futures = [ctx.executor.submit(_with_cpu, task) for task in tasks]
     try:
         for fut in cf.as_completed(futures):
             check_cancel()
-            yield fut.result()
+            out, cpu = fut.result()
+            ctx.worker_cpu[ctx.step] = ctx.worker_cpu.get(ctx.step, 0.0) + cpu
+            yield out
     finally:
         for fut in futures:
             fut.cancel()
@@ -827,12 +845,13 @@ def _step_surface(ctx: RunContext) -> None:
     """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
     from stage.store import TakeReader
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     grid = _processing_grid(ctx)
     with TakeReader(ctx.take) as reader:
         use_depth = _uses_depth(reader, ctx.cameras, ctx.params)
     _add_to_record(ctx, grid=ctx.grid_choice)
     ctx.timings["grid"] = time.perf_counter() - t0
+    ctx.cpu["grid"] = time.process_time() - c0
     t0 = time.perf_counter()
     task = partial(
         surface_task,
@@ -999,6 +1018,7 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "cameras": ctx.cameras,
         "steps": list(steps),
         "seconds": ctx.timings,
+        "cpu_seconds": ctx.cpu,
         "total_seconds": time.perf_counter() - t_start,
         "empty_frames": empty,
         "tip_counts": ctx.tip_counts,
@@ -1072,12 +1092,22 @@ def process_take(
             out.mkdir(parents=True, exist_ok=True)
             _start_record(ctx)
             for name in steps:
-                _REGISTRY[name].run(ctx)
+                _run_step(ctx, name)
             return _write_report(ctx, steps, t_start)
     except Exception:
         if created and out.is_dir():  # a failed run leaves no results folder it made itself
             shutil.rmtree(out, ignore_errors=True)
         raise
+
+
+def _run_step(ctx: RunContext, name: str) -> None:
+    """Run one step; its CPU seconds (this process's and its tasks' on the executor) go to
+    ``ctx.cpu`` (the surface step's without the grid choice, which it records itself)."""
+    ctx.step = name
+    t = time.process_time()
+    _REGISTRY[name].run(ctx)
+    own = time.process_time() - t - (ctx.cpu.get("grid", 0.0) if name == "surface" else 0.0)
+    ctx.cpu[name] = own + ctx.worker_cpu.get(name, 0.0)
 
 
 def _space_needed(ctx: RunContext, steps: Sequence[str]) -> int:

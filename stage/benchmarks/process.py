@@ -63,8 +63,9 @@ def _disk_floor(take: Path) -> float:
     return time.perf_counter() - t
 
 
-def _own_key(images: np.ndarray, plates: np.ndarray, rig: dict) -> dict[int, float]:
-    """Images/s of the keyer on frames in memory (model estimation included), 1 and 2 threads."""
+def _own_key(images: np.ndarray, plates: np.ndarray, rig: dict) -> dict[int, tuple[float, float]]:
+    """Images/s of the keyer on frames in memory (model estimation included) and its CPU
+    seconds, with 1 and 2 threads."""
     import cv2
 
     from stage.keying.keyer import estimate_model, key_frames
@@ -77,13 +78,13 @@ def _own_key(images: np.ndarray, plates: np.ndarray, rig: dict) -> dict[int, flo
     try:
         cv2.setNumThreads(1)
         for workers in (1, 2):
-            t = time.perf_counter()
+            t, cpu = time.perf_counter(), time.process_time()
             for c in range(C):
                 frames = images[:, c]
                 sample = frames[np.unique(np.linspace(0, F - 1, min(F, 16)).round().astype(int))]
                 params = estimate_model(sample, params=base, plate=plates[c])
                 key_frames(frames, params=params, plate=plates[c], workers=workers)
-            out[workers] = F * C / (time.perf_counter() - t)
+            out[workers] = (F * C / (time.perf_counter() - t), time.process_time() - cpu)
     finally:
         cv2.setNumThreads(threads)
     return out
@@ -112,6 +113,7 @@ def _own_reconstruct(take: Path, out: Path) -> dict:
     carver = HullCarver(cal, grid)
     t_carve = t_surf = t_skel = 0.0
     skeletons = []
+    cpu = time.process_time()
     for m in masks:
         t = time.perf_counter()
         hull = carver.carve(m, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
@@ -124,16 +126,17 @@ def _own_reconstruct(take: Path, out: Path) -> dict:
         t_skel += time.perf_counter() - t
     n = len(masks)
     return {"carve": t_carve / n, "surface": t_surf / n, "skeleton": t_skel / n, "grid": grid,
+            "cpu": time.process_time() - cpu,
             "reduce": lambda: _own_reduce(skeletons, SpineParams(**p.spine))}
 
 
-def _own_reduce(skeletons, params) -> float:
-    """Seconds of the reduce step alone: correspondence and one graph (``build_spine``)."""
+def _own_reduce(skeletons, params) -> tuple[float, float]:
+    """Wall and CPU seconds of the reduce step alone: correspondence and one graph (``build_spine``)."""
     from pipeline.spine import build_spine
 
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     build_spine(skeletons, fps=30.0, params=params)
-    return time.perf_counter() - t
+    return time.perf_counter() - t, time.process_time() - cpu
 
 
 def _own_worker(what: str, take: str, out: str, part: list, barrier, queue) -> None:
@@ -143,12 +146,12 @@ def _own_worker(what: str, take: str, out: str, part: list, barrier, queue) -> N
     try:
         run = _load_key_part(take, part) if what == "key" else _load_surface_part(take, Path(out), part)
         barrier.wait(timeout=300)
-        t0 = time.monotonic()
+        t0, cpu = time.monotonic(), time.process_time()
         run()
-        queue.put((t0, time.monotonic(), None))
+        queue.put((t0, time.monotonic(), time.process_time() - cpu, None))
     except BaseException as exc:  # reported to the parent, which raises it
         barrier.abort()
-        queue.put((0.0, 0.0, f"{type(exc).__name__}: {exc}"))
+        queue.put((0.0, 0.0, 0.0, f"{type(exc).__name__}: {exc}"))
 
 
 def _load_key_part(take: str, cameras: list[str]):
@@ -208,10 +211,10 @@ def _load_surface_part(take: str, out: Path, sets: list[int]):
     return run
 
 
-def _own_parallel(what: str, take: Path, out: Path, parts: list[list], timeout: float = 600.0) -> float:
-    """Wall seconds of one step's own benchmark split over ``len(parts)`` forkserver processes
-    that start together (each with its data in memory): the own figure at that parallelism,
-    measured, not extrapolated from one process."""
+def _own_parallel(what: str, take: Path, out: Path, parts: list[list], timeout: float = 600.0) -> tuple[float, float]:
+    """Wall and CPU seconds of one step's own benchmark split over ``len(parts)`` forkserver
+    processes that start together (each with its data in memory): the own figure at that
+    parallelism, measured, not extrapolated from one process."""
     import multiprocessing
 
     ctx = multiprocessing.get_context("forkserver")
@@ -225,14 +228,14 @@ def _own_parallel(what: str, take: Path, out: Path, parts: list[list], timeout: 
     finally:
         for pr in procs:
             pr.join(timeout=30)
-    errors = [e for _, _, e in got if e]
+    errors = [g[3] for g in got if g[3]]
     if errors:
         raise RuntimeError(f"own benchmark of {what} failed in a worker: {errors[0]}")
-    return max(t1 for _, t1, _ in got) - min(t0 for t0, _, _ in got)
+    return max(g[1] for g in got) - min(g[0] for g in got), sum(g[2] for g in got)
 
 
-def _own_at(take: Path, out: Path, cameras: list[str], n_sets: int, workers: int) -> dict[str, float]:
-    """Seconds of keying and of hull + surface + skeletons at ``workers`` processes (cameras
+def _own_at(take: Path, out: Path, cameras: list[str], n_sets: int, workers: int) -> dict[str, tuple[float, float]]:
+    """Wall and CPU seconds of keying and of hull + surface + skeletons at ``workers`` processes (cameras
     dealt round-robin, frame sets in contiguous runs: as the pool gets them)."""
     cams = [cameras[i::workers] for i in range(workers)]
     sets = [list(a) for a in np.array_split(np.arange(n_sets), workers)]
@@ -275,6 +278,7 @@ def _copy_take(src: Path, dst: Path) -> Path:
     """A copy of the take and its derived data (the plates; never keyed)."""
     from stage.store import derived_path
 
+    derived_path(dst).unlink(missing_ok=True)  # masks of an earlier round
     shutil.copy(src, dst)
     if derived_path(src).exists():
         shutil.copy(derived_path(src), derived_path(dst))
@@ -334,12 +338,12 @@ def _measure(src: Path, work: Path, args, sim, rig: dict, prof) -> list[tuple]:
     print(f"grid: {own['grid']} ({g.get('source', '?')}; voxel {g.get('voxel', float('nan')):.2f}, "
           f"pixel at the subject {g.get('pixel_footprint', float('nan')):.2f})")
     per_set = own["carve"] + own["surface"] + own["skeleton"]
-    print(f"own benchmarks (this process, files aside): keying {own_key[1]:.0f} images/s (1 thread), "
-          f"{own_key[2]:.0f} (2 threads); hull {1e3 * own['carve']:.1f} ms + surface {1e3 * own['surface']:.1f} ms "
+    print(f"own benchmarks (this process, files aside): keying {own_key[1][0]:.0f} images/s (1 thread), "
+          f"{own_key[2][0]:.0f} (2 threads); hull {1e3 * own['carve']:.1f} ms + surface {1e3 * own['surface']:.1f} ms "
           f"+ skeletons {1e3 * own['skeleton']:.1f} ms per set = {1 / per_set:.1f} sets/s")
     # each run's own figures are measured at its parallelism right before it (processes
     # started together, data in memory): a fair ratio on a machine whose load moves
-    own0 = {"key": n_img / own_key[2], "surface": n_sets * per_set, "spine": own["reduce"]()}
+    own0 = {"key": (n_img / own_key[2][0], own_key[2][1]), "surface": (n_sets * per_set, own["cpu"]), "spine": own["reduce"]()}
     runs = [("in process (keying 2 threads)", 0, wall0, {**rep0, "startup": startup0}, own0)]
     with TakeReader(take0) as r:
         cameras = list(r.cameras)
@@ -354,17 +358,22 @@ def _print_round(runs: list[tuple], n_sets: int) -> None:
     print("own benchmarks at the runs' parallelism (measured; ideal = the 1-process figure / workers):")
     one = next((o for _, w, _, _, o in runs if w == 1), None)
     for label, w, _, _, o in runs[1:]:
-        ideal = "" if one is None else (f"  (ideal key {one['key'] / w:.2f}, surface {one['surface'] / w:.2f}; "
-                                        f"scaling {one['key'] / o['key']:.2f}x, {one['surface'] / o['surface']:.2f}x)")
-        print(f"  {label:<30} key {o['key']:.2f} s, hull + surface + skeletons {o['surface']:.2f} s{ideal}")
+        k, sf = o["key"][0], o["surface"][0]
+        ideal = "" if one is None else (f"  (ideal key {one['key'][0] / w:.2f}, surface {one['surface'][0] / w:.2f}; "
+                                        f"scaling {one['key'][0] / k:.2f}x, {one['surface'][0] / sf:.2f}x)")
+        print(f"  {label:<30} key {k:.2f} s, hull + surface + skeletons {sf:.2f} s{ideal}")
     print()
-    print(f"{'run':<30} {'step':<22} {'inside s':>9} {'own s':>8} {'ratio':>6}")
+    print("wall seconds, and CPU seconds of this process and the workers (CPU does not count other jobs' time slices)")
+    print(f"{'run':<30} {'step':<22} {'inside s':>9} {'own s':>8} {'ratio':>6} {'cpu in':>8} {'own':>7} {'ratio':>6}")
     for label, _w, wall, rep, own_s in runs:
-        sec = rep["seconds"]
+        sec, cpu = rep["seconds"], rep.get("cpu_seconds", {})
         print(f"{label:<30} {'start-up':<22} {rep['startup']:9.2f}")
         for step in ["key", "grid", "surface", "spine"] + [k for k in sec if k not in _NAMES]:
             if step in sec:
-                ratio = f"{own_s[step]:8.2f} {sec[step] / own_s[step]:6.2f}" if step in own_s else ""
+                ratio = ""
+                if step in own_s:
+                    (ow, oc), c = own_s[step], cpu.get(step, float("nan"))
+                    ratio = f"{ow:8.2f} {sec[step] / ow:6.2f} {c:8.2f} {oc:7.2f} {c / oc:6.2f}"
                 print(f"{label:<30} {_NAMES.get(step, step):<22} {sec[step]:9.2f} {ratio}")
         other = wall - sum(sec.values()) - rep["startup"]
         print(f"{label:<30} {'other':<22} {other:9.2f}")
@@ -376,12 +385,12 @@ def _print_summary(rounds: list[list[tuple]], n_sets: int) -> None:
     """Median over the rounds of every ratio and of sets/s."""
     print(f"\nmedian of {len(rounds)} rounds:")
     for j, (label, *_rest) in enumerate(rounds[0]):
-        ratios = {step: float(np.median([r[j][3]["seconds"][step] / r[j][4][step] for r in rounds]))
-                  for step in ("key", "surface", "spine") if step in rounds[0][j][3]["seconds"]}
+        steps = [s for s in ("key", "surface", "spine") if all(s in r[j][3]["seconds"] for r in rounds)]
+        wall = {s: float(np.median([r[j][3]["seconds"][s] / r[j][4][s][0] for r in rounds])) for s in steps}
+        cpu = {s: float(np.median([r[j][3]["cpu_seconds"][s] / r[j][4][s][1] for r in rounds])) for s in steps}
         rate = float(np.median([n_sets / r[j][2] for r in rounds]))
-        worst = max(ratios.values()) if ratios else float("nan")
-        print(f"  {label:<30} " + ", ".join(f"{_NAMES[k]} {v:.2f}" for k, v in ratios.items())
-              + f"; worst {worst:.2f}; {rate:.1f} sets/s")
+        print(f"  {label:<30} wall ratio " + ", ".join(f"{_NAMES[k]} {v:.2f}" for k, v in wall.items())
+              + "; CPU ratio " + ", ".join(f"{v:.2f}" for v in cpu.values()) + f"; {rate:.1f} sets/s")
 
 
 def run(args: argparse.Namespace) -> int:
