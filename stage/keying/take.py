@@ -114,7 +114,7 @@ def store_camera_keys(take: str | Path, keys: Sequence[CameraKey]) -> None:
             if key.masks.shape != shape:
                 raise ValueError(f"masks of camera {key.camera} must have shape {shape}, got {key.masks.shape}")
             meta = {"key": key.params.to_dict(), "valid": key.valid.tolist(), "reasons": key.reasons}
-            arrays.append((f"cameras/{key.camera}", "masks", key.masks.astype(bool), meta))
+            arrays.append((f"cameras/{key.camera}", "masks", np.asarray(key.masks, bool), meta))  # no copy of bool masks
             arrays.append((f"cameras/{key.camera}", "mask_valid", key.valid.astype(np.uint8), {"reasons": key.reasons}))
     write_arrays(take, arrays)
 
