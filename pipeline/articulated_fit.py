@@ -460,12 +460,15 @@ def _fit_sequence(model, Y, iterations, progress) -> FitResult:
             e_pred = np.linalg.norm(_deform_subset(model, pred, sub) - Y[t][sub], axis=1).mean()
             if e_pred < e_prev:
                 start, e_prev = pred, e_pred
-        if prev is None or e_prev > 2.0 * last_err:  # fast motion: try the closed-form start too
-            cand = procrustes_pose(model, Y[t])
-            e_new = np.linalg.norm(_deform_subset(model, cand, sub) - Y[t][sub], axis=1).mean()
-            if prev is None or e_new < e_prev:
-                start = cand
+        cand = procrustes_pose(model, Y[t])
+        e_new = np.linalg.norm(_deform_subset(model, cand, sub) - Y[t][sub], axis=1).mean()
+        if prev is None or (e_prev > 2.0 * last_err and e_new < e_prev):  # fast motion: the closed-form start
+            start = cand
         pose, e = fit_frame(model, Y[t], start, iterations=iterations)
+        if start is not cand and e_new < e:  # the tracked pose fell into a worse basin: fit from the closed form
+            pose2, e2 = fit_frame(model, Y[t], cand, iterations=iterations)
+            if e2 < e:
+                pose, e = pose2, e2
         last_err = e
         poses.append(pose)
         errs.append(e)

@@ -266,7 +266,7 @@ def build_articulated_rig(
         raise ValueError(f"reference must be within 0..{T - 1}, got {reference}")
     rest = v[ref]
     main = _main_component(rest, f)
-    skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f))
+    skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f), motion=v, reference=ref)
     model = articulated_model(rest, f, skel, active=main)
     timings["skeleton"] = time.perf_counter() - t0
     if progress:

@@ -76,6 +76,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 REFERENCE_SIZE = 300.0  # mm: the size of the paper's objects, where lambda = 0.1 / mm holds
+INTERVAL_MOTION = REFERENCE_SIZE  # reference mm the fastest vertex travels within the interval
 
 
 @dataclass(frozen=True, eq=False)
@@ -241,14 +242,27 @@ def _sample_normals(v: np.ndarray, f: np.ndarray, samples: np.ndarray) -> np.nda
     return np.where(ln > 0, out / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
 
 
-def interval_length(vertices, *, to_reference: float = 1.0) -> int:
-    """``dt = 2 max_i,t ||V_i,t - V_i,t-1||`` (Tzionas & Gall eq. 7), in frames.
+def interval_length(vertices, *, to_reference: float = 1.0, motion: float | None = INTERVAL_MOTION) -> int:
+    """The interval of eqs. 8-9 in frames: a span of motion, not of frames.
+
+    ``motion`` given (the default): the frames the fastest vertex takes to
+    travel ``motion`` reference millimetres at its top speed,
+    ``dt = motion / max_i,t ||V_i,t - V_i,t-1||``. The interval then covers
+    the same stretch of motion whatever the frame rate: resampling a
+    sequence at 5x the rate divides every step by 5 and multiplies ``dt``
+    by 5 (see the module docstring).
+
+    ``motion=None``: eq. 7 of Tzionas & Gall as written,
+    ``dt = 2 max_i,t ||V_i,t - V_i,t-1||``, millimetres taken as frames.
 
     Parameters
     ----------
     vertices : (T, V, 3) float ndarray
+        Trajectories (all vertices or a sample of them).
     to_reference : float
         Factor from the sequence's units to reference millimetres.
+    motion : float or None
+        Reference millimetres.
 
     Returns
     -------
@@ -257,33 +271,43 @@ def interval_length(vertices, *, to_reference: float = 1.0) -> int:
     """
     v = np.asarray(vertices)
     T = v.shape[0]
+    if motion is not None and not (motion > 0 and np.isfinite(motion)):
+        raise ValueError(f"motion must be > 0 or None, got {motion}")
     if T < 2:
         return 1
-    big = max(float(np.sqrt(((v[t + 1] - v[t]).astype(np.float64) ** 2).sum(1)).max()) for t in range(T - 1))
-    step = big * float(to_reference)
-    return int(np.clip(round(2.0 * step), 1, T - 1))
+    chunk = max(1, 4_000_000 // max(v.shape[1] * 3, 1))  # frames at a time
+    step = float(to_reference) * max(
+        float(np.sqrt((np.diff(v[t : min(t + chunk, T - 1) + 1].astype(np.float64), axis=0) ** 2).sum(2)).max())
+        for t in range(0, T - 1, chunk)
+    )
+    if motion is None:
+        return int(np.clip(round(2.0 * step), 1, T - 1))
+    if step <= 0:
+        return T - 1
+    return int(np.clip(round(float(motion) / step), 1, T - 1))
 
 
 def _window_extreme(x: np.ndarray, width: int, op) -> np.ndarray:
     """``op`` (np.maximum or np.minimum) over every window ``x[t : t + width]``, t = 0 .. T - width.
 
-    Whole frames at a time (contiguous memory): a running loop for short windows, the van
-    Herk / Gil-Werman block decomposition (prefix and suffix scans) for long ones.
+    Whole frames at a time (contiguous memory): a running loop for short windows, doubling
+    (a sparse table: extremes over 1, 2, 4, .. frames, then two overlapping spans) for long ones.
     """
     T = x.shape[0]
     n_win = T - width + 1
-    if width <= 12:
+    if width <= 8:
         out = x[:n_win].copy()
         for k in range(1, width):
             op(out, x[k : k + n_win], out=out)
         return out
-    nb = -(-T // width)
-    pad = nb * width - T
-    xp = np.concatenate([x, np.repeat(x[-1:], pad, axis=0)]) if pad else x
-    blocks = xp.reshape((nb, width) + x.shape[1:])
-    pre = op.accumulate(blocks, axis=1).reshape(xp.shape)
-    suf = op.accumulate(blocks[:, ::-1], axis=1)[:, ::-1].reshape(xp.shape)
-    return op(suf[:n_win], pre[width - 1 : width - 1 + n_win])
+    span = 1
+    cur = x.copy()
+    while 2 * span <= width:
+        n = T - 2 * span + 1
+        op(cur[:n], cur[span : span + n], out=cur[:n])
+        span *= 2
+    # cur[t] = extreme of x[t : t + span]; a window of ``width`` is two such spans
+    return op(cur[:n_win], cur[width - span : width - span + n_win])
 
 
 def _window_range(x: np.ndarray, width: int) -> np.ndarray:
@@ -362,7 +386,8 @@ def trajectory_distances(
 
 
 def spectral_clusters(
-    affinity, *, lambda_thr: float = 0.7, max_clusters: int = 64, seed: int = 0, restarts: int = 8
+    affinity, *, lambda_thr: float = 0.7, max_clusters: int = 64, seed: int = 0, restarts: int = 8,
+    k: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Spectral clustering with the number of clusters from the eigenvalues (Ng et al. 2002).
 
@@ -378,6 +403,8 @@ def spectral_clusters(
         k-means seed (deterministic results).
     restarts : int
         k-means runs; the one with the smallest within-cluster distortion wins.
+    k : int, optional
+        The number of clusters, in place of the eigenvalue count.
 
     Returns
     -------
@@ -397,7 +424,7 @@ def spectral_clusters(
     L = np.eye(n) - s[:, None] * A * s[None, :]
     w, U = np.linalg.eigh(L)
     m = min(n, int(max_clusters) + 1)
-    k = int(np.clip((w < lambda_thr).sum(), 1, min(int(max_clusters), n)))
+    k = int(np.clip((w < lambda_thr).sum() if k is None else k, 1, min(int(max_clusters), n)))
     if k == 1:
         return np.zeros(n, dtype=np.int64), w[:m], 1
     F = U[:, :k]
@@ -546,6 +573,52 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
     return lab
 
 
+def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: np.ndarray, tol: float, *,
+                    min_size: int, seed: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6) -> np.ndarray:
+    """Split segments that do not move rigidly in two, recursively (the spectral cut of their own samples).
+
+    The eigenvalue count ``k`` spends clusters on large parts and can leave a
+    small part fused to its neighbour (a tail on a body); a segment whose
+    rigid residual exceeds ``tol`` is cut in two by the normalised cut of its
+    samples' affinities (k-means on two eigenvectors) when that leaves both
+    halves at most ``gain`` of its residual -- a joint inside it, not a
+    smooth deformation. Halves below ``min_size`` vertices are not made.
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    lab = labels.copy()
+
+    def residual(ids):
+        if len(ids) > per_segment:
+            ids = rng.choice(ids, per_segment, replace=False)
+        return rigid_residual(v[:, ids])
+
+    todo = [(int(x), 0) for x in np.unique(lab)]
+    while todo:
+        sgm, level = todo.pop()
+        ids = np.flatnonzero(lab == sgm)
+        own = samples[lab[samples] == sgm]
+        if level >= depth or len(own) < 8 or len(ids) < 2 * min_size:
+            continue
+        parent = residual(ids)
+        if parent <= tol:
+            continue
+        pos = np.searchsorted(samples, own) if np.all(np.diff(samples) > 0) else None
+        sub = np.flatnonzero(np.isin(samples, own)) if pos is None else pos
+        halves, _, _ = spectral_clusters(A[np.ix_(sub, sub)], k=2, seed=seed)
+        _, near = cKDTree(v[0, own]).query(v[0, ids])
+        side = halves[near]
+        if min(int((side == 0).sum()), int((side == 1).sum())) < min_size:
+            continue
+        if max(residual(ids[side == 0]), residual(ids[side == 1])) > gain * parent:
+            continue
+        new = int(lab.max()) + 1
+        lab[ids[side == 1]] = new
+        todo += [(sgm, level + 1), (new, level + 1)]
+    return lab
+
+
 def motion_segmentation(
     vertices,
     faces,
@@ -557,6 +630,7 @@ def motion_segmentation(
     use_normals: bool = True,
     min_segment: float = 0.005,
     rigid_tol: float | None = 0.005,
+    interval_motion: float | None = INTERVAL_MOTION,
     max_clusters: int = 64,
     seed: int = 0,
 ) -> Segmentation:
@@ -584,6 +658,10 @@ def motion_segmentation(
         Adjacent segments whose union moves rigidly within this fraction of
         the subject's size (median residual of each, worst frame) are merged: a joint that never
         bends is no joint. ``None`` keeps the spectral segments.
+    interval_motion : float or None
+        The interval of eqs. 8-9 spans the frames in which some vertex moves
+        this many reference millimetres (:func:`interval_length`); ``None``:
+        eq. 7 as written (twice the largest step, millimetres as frames).
     max_clusters : int
     seed : int
 
@@ -597,11 +675,11 @@ def motion_segmentation(
 
     with threadpool_limits(1, "blas"):  # many small products: threads only contend on a busy machine
         return _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals,
-                                    min_segment, rigid_tol, max_clusters, seed)
+                                    min_segment, rigid_tol, interval_motion, max_clusters, seed)
 
 
 def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals, min_segment,
-                         rigid_tol, max_clusters, seed) -> Segmentation:
+                         rigid_tol, interval_motion, max_clusters, seed) -> Segmentation:
     v, f = check_sequence(vertices, faces)
     if not (lam > 0 and np.isfinite(lam)):
         raise ValueError(f"lam must be > 0, got {lam}")
@@ -617,7 +695,7 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         raise ValueError("vertices: the subject has zero size")
     to_ref = float(reference_size) / size
     samples = sample_vertices(v[0], n_samples)
-    dt = interval_length(v, to_reference=to_ref)
+    dt = interval_length(v[:, samples], to_reference=to_ref, motion=interval_motion)
     lam_units = float(lam) * to_ref
     if T < 2:
         log.warning("one frame: no motion to segment, the whole mesh is one segment")
@@ -635,7 +713,12 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
     edges = mesh_edges(f)
     labels = _connected_segments(labels, edges, V, max(1, int(round(min_segment * V))))
     if rigid_tol is not None:
-        labels = _merge_rigid(labels, v, edges, float(rigid_tol) * size)
+        tol = float(rigid_tol) * size
+        min_size = max(1, int(round(min_segment * V)))
+        labels = _merge_rigid(labels, v, edges, tol)
+        labels = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, seed=seed)
+        labels = _connected_segments(labels, edges, V, min_size)
+        labels = _merge_rigid(labels, v, edges, tol)
         labels = _connected_segments(labels, edges, V, 1)
     if labels.max() == 0:
         log.warning("nothing bends in this sequence (the segments move rigidly together): one segment")
