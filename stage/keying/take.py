@@ -72,7 +72,8 @@ def key_camera(
             return None
         plate = r.read_array(f"cameras/{camera}", "plate")[0] if r.has_array(f"cameras/{camera}", "plate") else None
         sample_idx = np.unique(np.linspace(0, n - 1, min(n, 16)).round().astype(int))
-        sample = np.stack([r.frame(camera, int(i)) for i in sample_idx])
+        first = r.frames(camera, 0, min(n, _CHUNK))  # one read; a short take's sample comes from it
+        sample = first[sample_idx] if n <= _CHUNK else np.stack([r.frame(camera, int(i)) for i in sample_idx])
         if plate is not None and (plate.dtype != np.uint8 or plate.shape != sample.shape[1:]):
             log.warning("%s: stored plate has shape %s, ignored", camera, plate.shape)
             plate = None
@@ -83,7 +84,7 @@ def key_camera(
         preview_frames = []
         for start in range(0, n, _CHUNK):
             stop = min(n, start + _CHUNK)
-            frames = np.stack([r.frame(camera, i) for i in range(start, stop)])
+            frames, first = (first, None) if start == 0 else (r.frames(camera, start, stop), None)
             res = key_frames(frames, params=params, plate=plate, workers=workers, camera=camera, progress=progress)
             masks[start:stop] = res.masks
             valid[start:stop] = res.valid
@@ -113,7 +114,7 @@ def store_camera_keys(take: str | Path, keys: Sequence[CameraKey]) -> None:
             if key.masks.shape != shape:
                 raise ValueError(f"masks of camera {key.camera} must have shape {shape}, got {key.masks.shape}")
             meta = {"key": key.params.to_dict(), "valid": key.valid.tolist(), "reasons": key.reasons}
-            arrays.append((f"cameras/{key.camera}", "masks", key.masks.astype(bool), meta))
+            arrays.append((f"cameras/{key.camera}", "masks", np.asarray(key.masks, bool), meta))  # no copy of bool masks
             arrays.append((f"cameras/{key.camera}", "mask_valid", key.valid.astype(np.uint8), {"reasons": key.reasons}))
     write_arrays(take, arrays)
 
