@@ -348,13 +348,15 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
             delta = -np.linalg.solve(H + mu * np.diag(np.diag(H) + 1e-9 * size * size), g)
         except np.linalg.LinAlgError:
             break
+        if not np.all(np.isfinite(delta)):  # a singular system (a part with no vertices): keep the pose
+            break
         # early stop: the linear model promises (almost) nothing more, or the step is negligible
         gain = -(2.0 * float(delta @ g) + float(delta @ H @ delta))
         if gain <= 1e-4 * sse or (np.abs(delta[3:]).max() < tol and np.abs(delta[:3]).max() < tol * size):
             break
         cand = step(pose, delta, cw)
         c_sse, c_H, c_g, c_cw = linearise(cand)
-        if c_sse < sse:
+        if np.isfinite(c_sse) and c_sse < sse:
             done = sse - c_sse <= 1e-4 * sse
             pose, sse, H, g, cw = cand, c_sse, c_H, c_g, c_cw
             mu /= 3.0

@@ -417,3 +417,33 @@ def test_touching_segments_are_not_jointed():
     kept = _kinematic_tree(cand, {(0, 1): 0.1, (0, 2): 0.2, (1, 2): 9.0})
     assert sorted(c[0] for c in kept) == [(0, 1), (0, 2)]
     assert len(_kinematic_tree(cand[:1], {(0, 1): 0.0})) == 1
+
+
+def test_an_undefined_joint_in_a_frame_still_gives_valid_files(pipe, tmp_path, caplog):
+    """A frame whose pose is unusable (a zero rotation, unknown joint positions): null in rig.json, the
+    previous frame's motion in the BVH and the GLB."""
+    import pygltflib
+
+    from pipeline.articulated_fit import FitResult, Pose
+
+    _, rig = pipe
+    poses = list(rig.fit.poses[:6])
+    joints = rig.fit.joints[:6].copy()
+    bad = poses[3]
+    R = bad.R.copy()
+    R[-1] = 0.0  # the last part's rotation is undefined
+    poses[3] = Pose(R, bad.t.copy())
+    joints[4, -1] = np.nan  # a joint position unknown in another frame
+    from dataclasses import replace
+
+    broken = replace(rig, fit=FitResult(poses, rig.fit.errors[:6].copy(), joints), frame_indices=rig.frame_indices[:6])
+    with caplog.at_level(logging.WARNING):
+        text = bvh_text(broken)
+    assert "undefined" in caplog.text
+    parsed, rows = _parse_bvh(text)
+    assert len(parsed) == broken.skeleton.n_joints and rows.shape[0] == 6 and np.all(np.isfinite(rows))
+    doc = rig_dict(broken)
+    assert doc["frames"][4]["joints"][broken.skeleton.names[-1]] is None
+    write_rig(broken, tmp_path)
+    g = pygltflib.GLTF2().load(str(tmp_path / "rig.glb"))
+    assert len(g.animations) == 1
