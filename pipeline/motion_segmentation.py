@@ -614,15 +614,36 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
     return lab
 
 
+def _best_cut(A: np.ndarray, near: np.ndarray, ids: np.ndarray, residual, min_size: int, cuts: int = 19):
+    """The normalised cut of a segment's samples (a sweep of the Fiedler vector, Shi & Malik 2000) whose
+    halves move most rigidly; ``None`` when no cut leaves both halves ``min_size`` vertices.
+
+    Returns (len(ids),) 0/1 side of every vertex (its nearest sample's).
+    """
+    d = A.sum(1)
+    s = 1.0 / np.sqrt(np.maximum(d, 1e-300))
+    _, U = np.linalg.eigh(np.eye(len(A)) - s[:, None] * A * s[None, :])
+    fiedler = U[:, 1] * s  # the generalised eigenvector of (D - A, D)
+    best, best_res = None, np.inf
+    for q in np.linspace(0.05, 0.95, int(cuts)):
+        side = (fiedler > np.quantile(fiedler, q)).astype(np.int64)[near]
+        if min(int((side == 0).sum()), int((side == 1).sum())) < min_size:
+            continue
+        r = max(residual(ids[side == 0]), residual(ids[side == 1]))
+        if r < best_res:
+            best, best_res = side, r
+    return best
+
+
 def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: np.ndarray, tol: float, *,
                     min_size: int, seed: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6) -> np.ndarray:
     """Split segments that do not move rigidly in two, recursively (the spectral cut of their own samples).
 
     The eigenvalue count ``k`` spends clusters on large parts and can leave a
     small part fused to its neighbour (a tail on a body); a segment whose
-    rigid residual exceeds ``tol`` is cut in two by the normalised cut of its
-    samples' affinities (k-means on two eigenvectors) when that leaves both
-    halves at most ``gain`` of its residual -- a joint inside it, not a
+    rigid residual exceeds ``tol`` is cut in two along the Fiedler vector of
+    its samples' affinities (:func:`_best_cut`) when that leaves both halves
+    at most ``gain`` of its residual -- a joint inside it, not a
     smooth deformation. Halves below ``min_size`` vertices are not made.
     """
     from scipy.spatial import cKDTree
@@ -648,12 +669,9 @@ def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: n
             continue
         pos = np.searchsorted(samples, own) if np.all(np.diff(samples) > 0) else None
         sub = np.flatnonzero(np.isin(samples, own)) if pos is None else pos
-        halves, _, _ = spectral_clusters(A[np.ix_(sub, sub)], k=2, seed=seed)
         _, near = cKDTree(v[0, own]).query(v[0, ids])
-        side = halves[near]
-        if min(int((side == 0).sum()), int((side == 1).sum())) < min_size:
-            continue
-        if max(residual(ids[side == 0]), residual(ids[side == 1])) > gain * parent:
+        side = _best_cut(A[np.ix_(sub, sub)], near, ids, residual, min_size)
+        if side is None or max(residual(ids[side == 0]), residual(ids[side == 1])) > gain * parent:
             continue
         new = int(lab.max()) + 1
         lab[ids[side == 1]] = new
