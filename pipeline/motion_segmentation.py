@@ -25,8 +25,9 @@ Units and size. The paper's constants are for millimetres and objects of
 0.2-0.4 m (spray, donkey, lamp, pipe). So that the defaults follow the subject
 and not its units, distances are expressed in *reference millimetres*: the
 subject's rest-frame bounding-box diagonal is mapped to ``reference_size``
-(300 mm). ``lambda = 0.1`` and eq. 7 are then applied as written. For a 0.3 m
-subject in millimetres this is the paper's setting exactly.
+(300 mm). ``lambda = 0.1`` is then applied as written (and eq. 7, when asked
+for). For a 0.3 m subject in millimetres this is the paper's setting (the
+interval aside, see below).
 
 ``lambda_thr``: 0.7 (default) when reasonably sized parts undergo a pronounced
 movement; 0.98 for small parts with a small motion compared to the size of the
