@@ -15,6 +15,10 @@ from pipeline.tracking import (
     cotangent_laplacian,
     default_gate,
     mesh_volume,
+    patch_align,
+    patch_constraints,
+    predict_motion,
+    surface_patches,
     vertex_normals,
 )
 
@@ -107,6 +111,50 @@ def test_no_data_keeps_the_shape_and_components_without_data_stay():
     np.testing.assert_array_equal(empty.vertices, V)
 
 
+def _rotation(axis, deg):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
+
+
+def test_patch_align_places_every_patch_rigidly():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(60, 3)) * 20
+    patches = np.repeat([0, 1, 2], 20)
+    moves = [(_rotation([1, 2, 3], 30), [5.0, 0, 0]), (_rotation([0, 0, 1], -50), [0, 9.0, 1]), (np.eye(3), [0, 0, 2.0])]
+    dst = np.concatenate([src[patches == p] @ R.T + t for p, (R, t) in enumerate(moves)])
+    np.testing.assert_allclose(patch_align(src, dst, patches), dst, atol=1e-9)
+    # a target that is not rigid: every patch keeps the source's shape (distances within the patch)
+    noisy = dst + rng.normal(size=dst.shape)
+    out = patch_align(src, noisy, patches)
+    a = out[:20]
+    np.testing.assert_allclose(np.linalg.norm(a[:, None] - a[None], axis=2),
+                               np.linalg.norm(src[:20, None] - src[None, :20], axis=2), atol=1e-9)
+
+
+def test_prediction_repeats_a_rigid_motion_and_drops_what_the_data_cannot_see():
+    m = trimesh.creation.cylinder(radius=15.0, height=200.0, sections=24)
+    m = m.subdivide().subdivide()
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    patches, _ = surface_patches(v, f, 1000.0)  # one patch
+    R = _rotation([1, 0, 0], 4.0)
+    step = np.array([0.0, 2.0, 3.0])  # 3 mm along the cylinder's own axis (z): invisible point-to-plane
+    c = v.mean(0)
+    before = v
+    previous = (v - c) @ R.T + c + step
+    exact = (previous - c - step) @ R.T + c + 2 * step
+    np.testing.assert_allclose(predict_motion(previous, before, f, patches, smoothing=0), exact, atol=1e-6)
+    # the cylinder's side: point-to-plane pairs constrain neither sliding along z nor twist about z
+    side = np.abs(v[:, 2]) < 99.0
+    Q = patch_constraints(previous, np.flatnonzero(side), vertex_normals(previous, f)[side], patches)
+    assert np.linalg.matrix_rank(Q[0], tol=1e-6) == 4
+    pred = predict_motion(previous, before, f, patches, constrained=Q, smoothing=0)
+    axis = R @ [0, 0, 1.0]
+    moved = pred - previous
+    assert abs((moved.mean(0)) @ axis) < 0.1  # no slide along the (tilted) axis
+    assert np.linalg.norm(moved.mean(0)) > 1.0  # the visible part of the step is kept
+
+
 def test_vertex_normals_point_outwards():
     v, f = _sphere(2)
     n = vertex_normals(v, f)
@@ -125,6 +173,10 @@ def test_invalid_input():
         TemplateTracker(v, f, gate=0)
     with pytest.raises(ValueError, match="rounds"):
         TemplateTracker(v, f, rounds=0)
+    with pytest.raises(ValueError, match="prior"):
+        TemplateTracker(v, f, prior="next")
+    with pytest.raises(ValueError, match="align_size"):
+        TemplateTracker(v, f, prior="previous", align_size=-1.0)
     tr = TemplateTracker(v, f)
     with pytest.raises(ValueError, match="points and normals"):
         tr.fit(np.zeros((5, 3)), np.zeros((4, 3)), previous=v)
