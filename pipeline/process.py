@@ -257,25 +257,40 @@ def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tupl
 # ----------------------------------------------------------------------------- per-frame tasks
 
 
-def key_task(take: str, camera: str, base: dict, workers: int) -> dict:
-    """Key one camera of the take (in a worker); the masks come back bit-packed for the
-    parent to store (one writer per take file)."""
+def key_task(take: str, cameras: Sequence[str], base: dict, workers: int) -> list[dict]:
+    """Key some cameras of the take (in a worker), the take opened once; their masks come
+    back bit-packed for the parent to store (one writer per take file)."""
     import cv2
 
     from stage.keying.params import KeyParams
     from stage.keying.take import key_camera
+    from stage.store import TakeReader
 
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # parallelism comes from the workers (threads or processes), not OpenCV's pool
+    out = []
     try:
-        key = key_camera(take, camera, base=KeyParams(**base), workers=workers)
+        with TakeReader(take) as reader:
+            for camera in cameras:
+                key = key_camera(reader, camera, base=KeyParams(**base), workers=workers)
+                if key is None:
+                    out.append({"camera": camera, "key": None})
+                    continue
+                shape = key.masks.shape
+                key.masks = np.packbits(key.masks, axis=-1)
+                out.append({"camera": camera, "key": key, "shape": shape})
     finally:
         cv2.setNumThreads(threads)
-    if key is None:
-        return {"camera": camera, "key": None}
-    shape = key.masks.shape
-    key.masks = np.packbits(key.masks, axis=-1)
-    return {"camera": camera, "key": key, "shape": shape}
+    return out
+
+
+def _camera_groups(cameras: Sequence[str], executor) -> list[list[str]]:
+    """Cameras per key task: two tasks per worker (each opens the take once; the last ones
+    still key while this process stores the others' masks), all in one here without one."""
+    if executor is None:
+        return [list(cameras)]
+    n = min(len(cameras), 2 * _pool_size(executor))
+    return [list(cameras[i::n]) for i in range(n)]
 
 
 def _skeleton_record(k: int, mesh, params, *, bodies: int | None = None) -> dict:
@@ -695,12 +710,15 @@ def _step_key(ctx: RunContext) -> None:
     # masks unpacked as each camera arrives; those done are stored once a worker falls idle
     # (the last cameras still keying: a core is free then), the rest at the end: few updates of
     # the derived data (each copies it), at most ~512 MB of masks a batch
-    pending = len(ctx.cameras)
+    groups = _camera_groups(ctx.cameras, where.executor)
+    pending = len(groups)
     overlap_at = max(1, _pool_size(where.executor) - 1) if where.executor is not None else 0
     batch: list = []
-    for res in _map_tasks(where, [partial(key_task, str(ctx.take), cam, base, threads) for cam in ctx.cameras]):
+    for results in _map_tasks(where, [partial(key_task, str(ctx.take), g, base, threads) for g in groups]):
         pending -= 1
-        if res["key"] is not None:
+        for res in results:
+            if res["key"] is None:
+                continue
             key = res["key"]
             _keep_masks(ctx, key, res["shape"][-1])
             key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).view(bool)

@@ -6,12 +6,16 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stage.keying.keyer import estimate_model, key_frames
 from stage.keying.params import KeyParams, KeyResult
 from stage.keying.preview import contact_sheet
+
+if TYPE_CHECKING:
+    from stage.store import TakeReader
 
 __all__ = ["key_take", "key_camera", "store_camera_key", "store_camera_keys", "take_key_params", "CameraKey"]
 
@@ -50,7 +54,7 @@ def take_key_params(rig: dict | None, *, key_mode: str | None = None, grow: int 
 
 
 def key_camera(
-    take: str | Path,
+    take: str | Path | TakeReader,
     camera: str,
     *,
     base: KeyParams,
@@ -61,11 +65,14 @@ def key_camera(
     """Key every frame of one camera of a take (backdrop model from 16 frames); stores nothing.
 
     Returns None for a camera without frames. Runs anywhere the take can be read (a worker
-    process too); :func:`store_camera_key` writes the result into the take.
+    process too); :func:`store_camera_key` writes the result into the take. ``take`` may be
+    an open :class:`stage.store.TakeReader` (left open: several cameras, one opening).
     """
+    from contextlib import nullcontext
+
     from stage.store import TakeReader
 
-    with TakeReader(take) as r:
+    with nullcontext(take) if isinstance(take, TakeReader) else TakeReader(take) as r:
         n = r.n_frames(camera)
         if n == 0:
             log.warning("%s: no frames", camera)
