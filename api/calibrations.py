@@ -37,6 +37,7 @@ __all__ = ["CalibrationLibrary", "CalibrateParams", "calibrate_take", "calibrate
 log = logging.getLogger(__name__)
 
 FORMATS = ("json", "toml", "yaml")
+MIRROR_SPELLING = 'parameters.mirror.{camera} = "{value}"'  # the request field, in messages of calib.mirror
 MEDIA = {"json": "application/json", "toml": "application/toml", "yaml": "application/x-yaml"}
 
 
@@ -135,6 +136,9 @@ class CalibrateParams(BaseModel):
     world: Literal["board", "camera"] = "board"
     world_frame: Annotated[int, Field(ge=0)] | None = None
     fix_k3: bool = False
+    distortion: Literal["full", "auto"] = Field("full", description="per camera: full keeps all five distortion "
+                                                "coefficients; auto holds p1, p2 and/or k3 at 0 where its views do "
+                                                "not support them (as stage calibrate --distortion)")
     intrinsics: Literal["prior", "fixed", "free"] = "prior"
     holdout: Annotated[int, Field(ge=0, le=20)] = 5
     mirror: dict[str, Literal["auto", "true", "false"]] = Field(
@@ -186,11 +190,12 @@ def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[s
     if cancel is not None and cancel.is_set():
         raise InterruptedError("calibration cancelled")
     detections, sizes, cams, flipped, notes = detect_take(take, board, step=params.step, mirror=params.mirror,
-                                                          on_set=on_set)
+                                                          on_set=on_set, spelling=MIRROR_SPELLING)
     for line in dict.fromkeys(notes):
         log.info("calibrate %s: %s", take.name, line)
     result = calibrate_rig(detections, sizes, board, cameras=cams, world=params.world, world_frame=params.world_frame,
                            intrinsics=params.intrinsics, fix_k3=params.fix_k3, min_change=params.min_change,
+                           distortion=params.distortion,
                            holdout_folds=params.holdout, flipped=flipped)
     if progress is not None:
         progress("calibrate", 1, 1)

@@ -205,6 +205,7 @@ class BundleResult:
     cost: float
     intrinsics_cov: np.ndarray | None = None  # (C, 9, 9), NaN rows/columns for intrinsics not estimated
     sigma_px: float = float("nan")  # residual scale the covariance is expressed in
+    rotation_cov: np.ndarray | None = None  # (C, C, 3, 3) rad^2, camera rotations (left perturbation), reference 0
 
 
 def _observations(obs_cam, obs_board, obs_points, obs_uv, intrinsics, cam_rvec, cam_tvec, board_rvec, board_tvec):
@@ -238,9 +239,21 @@ def _check_options(reference, loss, f_scale, solver, fixed_intrinsics, C: int) -
         raise ValueError(f"f_scale must be > 0, got {f_scale!r}")
     if solver not in ("lm", "scipy"):
         raise ValueError(f"solver must be 'lm' or 'scipy', got {solver!r}")
+    if isinstance(fixed_intrinsics, np.ndarray):
+        if fixed_intrinsics.shape != (C, N_INTR) or fixed_intrinsics.dtype != bool:
+            raise ValueError(f"fixed_intrinsics as an array must be ({C}, {N_INTR}) bool, got "
+                             f"{fixed_intrinsics.shape} {fixed_intrinsics.dtype}")
+        return
     bad = sorted(set(fixed_intrinsics) - set(INTRINSIC_NAMES))
     if isinstance(fixed_intrinsics, str) or bad:
         raise ValueError(f"fixed_intrinsics must name intrinsics among {INTRINSIC_NAMES}, got {fixed_intrinsics!r}")
+
+
+def _held_mask(fixed_intrinsics, C: int) -> np.ndarray:
+    """(C, 9) bool: the intrinsics each camera keeps at its initial value."""
+    if isinstance(fixed_intrinsics, np.ndarray):
+        return fixed_intrinsics.copy()
+    return np.tile([n in fixed_intrinsics for n in INTRINSIC_NAMES], (C, 1))
 
 
 def bundle_adjust(
@@ -256,7 +269,7 @@ def bundle_adjust(
     board_tvec: np.ndarray,
     reference: int = 0,
     optimize_intrinsics: bool = False,
-    fixed_intrinsics: tuple[str, ...] = (),
+    fixed_intrinsics: tuple[str, ...] | np.ndarray = (),
     loss: str = "soft_l1",
     f_scale: float = 1.0,
     max_nfev: int | None = None,
@@ -285,10 +298,10 @@ def bundle_adjust(
     reference : int
         Camera whose pose stays fixed (gauge).
     optimize_intrinsics : bool
-    fixed_intrinsics : tuple of str
+    fixed_intrinsics : tuple of str or (C, 9) bool ndarray
         Intrinsics that stay at their initial values when ``optimize_intrinsics`` is set,
         named as in ``INTRINSIC_NAMES`` (e.g. ``("k3",)`` for a camera calibrated with
-        ``fix_k3``, ``("p1", "p2")`` with ``zero_tangent``).
+        ``fix_k3``, ``("p1", "p2")`` with ``zero_tangent``), or per camera (True: held).
     loss : str
         ``least_squares`` loss (``"linear"``, ``"soft_l1"``, ``"huber"``, ``"cauchy"``).
     f_scale : float
@@ -314,7 +327,11 @@ def bundle_adjust(
     covariance : bool
         Also return the marginal covariance of every camera's intrinsics at the
         solution (``(J^T W J)^-1`` with the robust weights, scaled by the
-        residual variance; Triggs et al. 2000, section 10).
+        residual variance; Triggs et al. 2000, section 10) and the joint covariance
+        of the camera rotations (``rotation_cov``: block ``[a, b]`` is the
+        cross-covariance of the small rotations ``d`` with ``R_a <- exp([d]_x) R_a``,
+        in radians squared; the reference camera's blocks are zero, it is the gauge).
+        The board poses are eliminated by their Schur complement.
 
     Returns
     -------
@@ -324,8 +341,10 @@ def bundle_adjust(
         obs_cam, obs_board, obs_points, obs_uv, intrinsics, cam_rvec, cam_tvec, board_rvec, board_tvec)
     M, C, B = obs_cam.shape[0], intr0.shape[0], brv.shape[0]
     _check_options(reference, loss, f_scale, solver, fixed_intrinsics, C)
-    free_i = np.array([n not in fixed_intrinsics for n in INTRINSIC_NAMES])
+    held = _held_mask(fixed_intrinsics, C)
+    free_i = ~held.all(axis=0)  # estimated for at least one camera
     NF = int(free_i.sum())
+    held_f = held[:, free_i]  # (C, NF): entries a camera holds (zero Jacobian columns, no prior)
     free_cams = np.array([c for c in range(C) if c != reference], dtype=np.int64)
     cam_slot = -np.ones(C, dtype=np.int64)
     cam_slot[free_cams] = np.arange(free_cams.size)
@@ -354,7 +373,7 @@ def bundle_adjust(
         Xc = RcXw + tv[obs_cam]
         return rv, bR, intr, Rc, RbX, RcXw, Xc
 
-    prior_rows = _prior_rows(prior_cov, C, free_i, prior_scale) if optimize_intrinsics else None
+    prior_rows = _prior_rows(prior_cov, C, free_i, prior_scale, held_f) if optimize_intrinsics else None
 
     def residuals(p: np.ndarray) -> np.ndarray:
         *_, intr, _Rc, _RbX, _RcXw, Xc = _forward(p)
@@ -428,7 +447,7 @@ def bundle_adjust(
             Ji[:, 0, 6], Ji[:, 1, 6] = fx * 2.0 * x * y, fy * (r2 + 2.0 * y * y)
             Ji[:, 0, 7], Ji[:, 1, 7] = fx * (r2 + 2.0 * x * x), fy * 2.0 * x * y
             Ji[:, 0, 8], Ji[:, 1, 8] = fx * x * r2**3, fy * y * r2**3
-            parts.append(Ji[:, :, free_i])
+            parts.append(Ji[:, :, free_i] * ~held_f[obs_cam][:, None, :])
         parts.append(np.concatenate([J_br, J_Xw], axis=2))
         data = np.concatenate(parts, axis=2).reshape(-1)  # (M, 2, k) row-major = row_idx order
         if prior_rows is None:
@@ -449,19 +468,20 @@ def bundle_adjust(
                          max_nfev=200 if max_nfev is None else max_nfev, ftol=ftol, n_robust=2 * M)
     rv, tv, intr, bR, bT = unpack(res.x)
     log.debug("bundle adjustment: %s after %d evaluations", res.message, res.nfev)
-    icov, sigma = None, float("nan")
+    icov, rcov, sigma = None, None, float("nan")
     if covariance:
-        icov, sigma = _intrinsics_covariance(jacobian(res.x), np.asarray(res.fun), 2 * M, loss, f_scale,
-                                             C, free_i, n_pose, optimize_intrinsics, prior_scale)
+        icov, rcov, sigma = _covariance(jacobian(res.x), np.asarray(res.fun), 2 * M, loss, f_scale, C, free_i,
+                                        held_f, n_pose, n_intr, free_cams, rv, optimize_intrinsics, prior_scale)
     return BundleResult(
         cam_rvec=rv, cam_tvec=tv, intrinsics=np.array(intr, dtype=np.float64), board_rvec=bR, board_tvec=bT,
         residuals=np.asarray(res.fun)[: 2 * M].reshape(-1, 2), success=bool(res.success), message=str(res.message),
-        nfev=int(res.nfev), cost=float(res.cost), intrinsics_cov=icov, sigma_px=sigma,
+        nfev=int(res.nfev), cost=float(res.cost), intrinsics_cov=icov, sigma_px=sigma, rotation_cov=rcov,
     )
 
 
-def _prior_rows(prior_cov, C: int, free_i: np.ndarray, scale: float) -> np.ndarray | None:
-    """(C, NF, NF) whitening rows ``scale * L.T`` of the prior on the free intrinsics (zero: no prior)."""
+def _prior_rows(prior_cov, C: int, free_i: np.ndarray, scale: float, held_f: np.ndarray) -> np.ndarray | None:
+    """(C, NF, NF) whitening rows ``scale * L.T`` of the prior on the free intrinsics (zero: no prior),
+    each camera's over the intrinsics it does not hold."""
     if prior_cov is None:
         return None
     cov = np.asarray(prior_cov, dtype=np.float64)
@@ -472,39 +492,83 @@ def _prior_rows(prior_cov, C: int, free_i: np.ndarray, scale: float) -> np.ndarr
     NF = int(free_i.sum())
     rows = np.zeros((C, NF, NF))
     for c in range(C):
-        S = cov[c][np.ix_(free_i, free_i)]
+        own = ~held_f[c]
+        S = cov[c][np.ix_(free_i, free_i)][np.ix_(own, own)]
         if not np.all(np.isfinite(S)):
             continue
         try:
             L = np.linalg.cholesky(np.linalg.inv(0.5 * (S + S.T)))
         except np.linalg.LinAlgError:
             continue
-        rows[c] = scale * L.T
+        rows[c][np.ix_(own, own)] = scale * L.T
     return rows
 
 
-def _intrinsics_covariance(J, r, n_obs, loss, f_scale, C, free_i, n_pose, optimized, prior_scale):
-    """Marginal (C, 9, 9) intrinsics covariance and the residual scale (px) at a solution."""
+def _camera_block_inverse(A, n_cam: int) -> np.ndarray:
+    """Inverse of the camera block (first ``n_cam`` unknowns) of the normal matrix ``A``.
+
+    The board poses (6 x 6 diagonal blocks after the camera unknowns) are eliminated by their
+    Schur complement, so the cost is that of the cameras, not of the frame sets.
+    """
+    A = A.tocsr()
+    n = A.shape[0]
+    nb = (n - n_cam) // 6
+    Acc = A[:n_cam, :n_cam].toarray()
+    Acb = A[:n_cam, n_cam:].toarray()
+    Abb = A[n_cam:, n_cam:]
+    blocks = np.stack([Abb[6 * b : 6 * b + 6, 6 * b : 6 * b + 6].toarray() for b in range(nb)]) if nb else np.zeros((0, 6, 6))
+    try:
+        inv_b = np.linalg.inv(blocks)
+    except np.linalg.LinAlgError:
+        inv_b = np.linalg.pinv(blocks)
+    # S = Acc - Acb Abb^-1 Abc, with Abb^-1 block diagonal
+    Acb3 = Acb.reshape(n_cam, nb, 6).transpose(1, 0, 2)  # (nb, n_cam, 6)
+    S = Acc - np.einsum("bik,bkl,bjl->ij", Acb3, inv_b, Acb3)
+    try:
+        return np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(S)
+
+
+def _covariance(J, r, n_obs, loss, f_scale, C, free_i, held_f, n_pose, n_intr, free_cams, cam_rvec, optimized,
+                prior_scale):
+    """Marginal (C, 9, 9) intrinsics covariance, (C, C, 3, 3) camera rotation covariance and the
+    residual scale (px) at a solution."""
     cov = np.full((C, N_INTR, N_INTR), np.nan)
     f2 = f_scale * f_scale
     _, w = _robust_weights(r, loss, f2, n_obs)
     n = J.shape[1]
     dof = max(n_obs - n, 1)
     sigma2 = float(np.sum(w[:n_obs] * r[:n_obs] ** 2) / dof)
-    if not optimized:
-        return cov, float(np.sqrt(sigma2))
     Jd = J.tocsr()
     # whitened: pixel rows by the residual scale, prior rows by the scale they were written in
     scale = np.full(J.shape[0], 1.0 / prior_scale**2)
     scale[:n_obs] = w[:n_obs] / sigma2
-    A = (Jd.T @ Jd.multiply(scale[:, None]).tocsr()).toarray()
-    try:
-        Ainv = np.linalg.inv(A)
-    except np.linalg.LinAlgError:
-        Ainv = np.linalg.pinv(A)
+    A = Jd.T @ Jd.multiply(scale[:, None]).tocsr()
+    n_cam = n_pose + n_intr
+    held_cols = n_pose + np.flatnonzero(held_f.ravel()) if optimized else np.zeros(0, np.int64)
+    if held_cols.size:  # held intrinsics: empty rows and columns, exactly known
+        from scipy.sparse import diags
+
+        unit = np.zeros(n)
+        unit[held_cols] = 1.0
+        A = A + diags(unit)
+    Ainv = _camera_block_inverse(A, n_cam)
+    # rotation vector -> left perturbation: d = J_l(r) dr
+    Jl = _left_jacobian(cam_rvec[free_cams]) if free_cams.size else np.zeros((0, 3, 3))
+    rcov = np.zeros((C, C, 3, 3))
+    for a, ca in enumerate(free_cams):
+        for b, cb in enumerate(free_cams):
+            blk = Ainv[6 * a : 6 * a + 3, 6 * b : 6 * b + 3]
+            rcov[ca, cb] = Jl[a] @ blk @ Jl[b].T
+    if not optimized:
+        return cov, rcov, float(np.sqrt(sigma2))
     NF = int(free_i.sum())
     idx = np.flatnonzero(free_i)
     for c in range(C):
         sl = slice(n_pose + c * NF, n_pose + (c + 1) * NF)
         cov[c][np.ix_(idx, idx)] = Ainv[sl, sl]
-    return cov, float(np.sqrt(sigma2))
+        gone = idx[held_f[c]]
+        cov[c][gone, :] = np.nan
+        cov[c][:, gone] = np.nan
+    return cov, rcov, float(np.sqrt(sigma2))

@@ -303,7 +303,7 @@ class ExtrinsicsResult:
             "world": self.world,
             "world_frame": self.world_frame,
             "warnings": list(self.warnings),
-            **{k: v for k, v in self.meta.items() if k != "intrinsics_cov"},
+            **{k: v for k, v in self.meta.items() if k not in ("intrinsics_cov", "rotation_cov")},
         }
 
     def report(self) -> str:
@@ -436,7 +436,7 @@ def calibrate_extrinsics(
     world: str = "board",
     world_frame: int | None = None,
     optimize_intrinsics: bool = True,
-    fixed_intrinsics: tuple[str, ...] = (),
+    fixed_intrinsics: tuple[str, ...] | np.ndarray = (),
     loss: str = "soft_l1",
     f_scale: float = 1.0,
     min_corners: int = 6,
@@ -464,9 +464,9 @@ def calibrate_extrinsics(
         the most cameras).
     optimize_intrinsics : bool
         Refine intrinsics in the bundle adjustment too.
-    fixed_intrinsics : tuple of str
+    fixed_intrinsics : tuple of str or (C, 9) bool ndarray
         Intrinsics the bundle adjustment keeps as given (``calib.bundle.INTRINSIC_NAMES``),
-        e.g. ``("k3",)`` for cameras calibrated with ``fix_k3``.
+        e.g. ``("k3",)`` for cameras calibrated with ``fix_k3``, or per camera (True: held).
     loss, f_scale : str, float
         Robust loss of the bundle adjustment and its inlier scale (px).
     min_corners : int
@@ -482,7 +482,10 @@ def calibrate_extrinsics(
     Returns
     -------
     ExtrinsicsResult
-        ``meta["intrinsics_cov"]``: (C, 9, 9) covariance of the refined intrinsics.
+        ``meta["intrinsics_cov"]``: (C, 9, 9) covariance of the refined intrinsics;
+        ``meta["rotation_cov"]``: (C, C, 3, 3) joint covariance of the camera rotations (rad^2,
+        :func:`calib.bundle.bundle_adjust`), relative to ``meta["reference"]``, the camera held
+        fixed in the adjustment (the covariance of relative rotations does not depend on it).
 
     Raises
     ------
@@ -553,7 +556,8 @@ def calibrate_extrinsics(
     res = bundle_adjust(
         obs_cam, obs_board, np.concatenate(op), np.concatenate(ouv),
         intrinsics=intr0, cam_rvec=cam_rvec, cam_tvec=cam_tvec, board_rvec=board_rvec, board_tvec=board_tvec,
-        reference=root, optimize_intrinsics=optimize_intrinsics, fixed_intrinsics=tuple(fixed_intrinsics),
+        reference=root, optimize_intrinsics=optimize_intrinsics,
+        fixed_intrinsics=fixed_intrinsics if isinstance(fixed_intrinsics, np.ndarray) else tuple(fixed_intrinsics),
         loss=loss, f_scale=f_scale, max_nfev=max_nfev,
         solver=solver, prior_cov=intrinsics_prior, prior_scale=prior_scale, covariance=True,
     )
@@ -592,5 +596,6 @@ def calibrate_extrinsics(
         geometry=geometry, board_poses=board_world, tree=tree_report, world=world, world_frame=wf,
         warnings=tuple(warnings), meta={"bundle": {"nfev": res.nfev, "message": res.message,
                                                     "observations": int(obs_cam.size)},
-                                        "intrinsics_cov": res.intrinsics_cov, "sigma_px": res.sigma_px},
+                                        "intrinsics_cov": res.intrinsics_cov, "sigma_px": res.sigma_px,
+                                        "rotation_cov": res.rotation_cov, "reference": names[root]},
     )

@@ -6,12 +6,26 @@ standard deviations of the parameters; views whose error is far above the rest
 result carries a coverage measure (which part of the image the corners covered)
 and plain-language warnings when views or coverage are too few.
 
+Distortion model (``distortion="auto"``): the tangential terms ``p1, p2`` and the
+sixth-order ``k3`` are held at zero when the views do not support them. With the
+board on a small part of the image, ``p1, p2`` are nearly degenerate with the
+principal point (correlations of 0.97-0.99 on real webcam footage) and ``k3`` with
+``k1, k2``: left free they let the principal point wander along that valley, and
+every camera's rotation with it. The test is the Bayesian information criterion,
+evaluated from the full model by its Wald statistic: a set ``S`` of terms is
+dropped when ``theta_S^T Cov_S^-1 theta_S < |S| ln N`` (``N`` pixel coordinates),
+the largest margin winning, and the camera is solved again without it (Schwarz
+1978; the Wald form is its usual large-sample approximation). It is a choice, not
+the default: a term too small for one camera's views may still matter to a rig whose
+bundle adjustment sees many more (docs/calibration.md, "Real footage").
+
 Reference: Z. Zhang, "A flexible new technique for camera calibration", IEEE
 TPAMI 22(11), 2000.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -29,6 +43,7 @@ __all__ = [
     "coverage_fraction",
     "coverage_image",
     "MIN_VIEWS",
+    "DISTORTION_MODES",
     "WARN_VIEWS",
     "WARN_COVERAGE",
 ]
@@ -39,6 +54,9 @@ MIN_VIEWS = 4  # fewer views than this: refuse to calibrate
 WARN_VIEWS = 10  # fewer views than this: warn
 WARN_COVERAGE = 0.5  # fraction of the image grid cells with corners below which we warn
 COVERAGE_GRID = (8, 6)
+DISTORTION_MODES = ("auto", "full")
+_DROPPABLE = (("p1", "p2", "k3"), ("p1", "p2"), ("k3",))  # distortion terms the auto model may hold at zero
+_INTR = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 
 class CalibrationError(ValueError):
@@ -90,6 +108,8 @@ class IntrinsicsResult:
     warnings: tuple[str, ...] = ()
     meta: dict = field(default_factory=dict)
     covariance: np.ndarray | None = None  # (9, 9) fx, fy, cx, cy, k1..k3; NaN where held fixed
+    held: tuple[str, ...] = ()  # distortion terms held at zero, here and in a bundle adjustment
+    dropped: tuple[str, ...] = ()  # of those, the ones distortion="auto" found unsupported by the views
 
     @property
     def params(self) -> np.ndarray:
@@ -113,6 +133,8 @@ class IntrinsicsResult:
             "rejected": {str(k): v for k, v in self.rejected.items()},
             "std": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.std.items()},
             "coverage": self.coverage,
+            "held_at_zero": list(self.held),
+            "dropped_by_model_selection": list(self.dropped),
             "warnings": list(self.warnings),
         }
 
@@ -124,6 +146,9 @@ class IntrinsicsResult:
             f"c = ({self.K[0, 2]:.1f} ± {s['cx']:.1f}, {self.K[1, 2]:.1f} ± {s['cy']:.1f}) px, "
             f"coverage {100 * self.coverage:.0f}%"
         ]
+        if self.dropped:
+            lines.append(f"  distortion: {', '.join(self.dropped)} held at 0 (the views do not support them: "
+                         "information criterion)")
         if self.rejected:
             lines.append(
                 "  rejected outlier views: "
@@ -303,6 +328,7 @@ def calibrate_intrinsics(
     min_views: int = MIN_VIEWS,
     K_guess: np.ndarray | None = None,
     max_views: int | None = None,
+    distortion: str = "full",
 ) -> IntrinsicsResult:
     """Calibrate one camera's intrinsics from board detections (Zhang's method).
 
@@ -329,6 +355,10 @@ def calibrate_intrinsics(
     max_views : int, optional
         Use at most this many views, evenly spaced over the sequence (Zhang's
         method costs grow with the views; a rig's bundle adjustment uses them all).
+    distortion : {"full", "auto"}
+        ``"full"``: the five coefficients (less what ``fix_k3`` / ``zero_tangent``
+        hold). ``"auto"``: also hold ``p1, p2`` and / or ``k3`` at zero when the views
+        do not support them (module docstring); the result's ``dropped`` names them.
 
     Returns
     -------
@@ -342,6 +372,8 @@ def calibrate_intrinsics(
     import cv2
 
     size = _check_inputs(board, size, min_views, outlier_factor)
+    if distortion not in DISTORTION_MODES:
+        raise ValueError(f"distortion must be one of {DISTORTION_MODES}, got {distortion!r}")
     dets = _usable_views(detections, name, min_views, max_views)
     flags = 0
     if fix_aspect_ratio:
@@ -383,6 +415,12 @@ def calibrate_intrinsics(
         log.debug(w)  # in the result's warnings / report
     fixed = (("k3",) if fix_k3 else ()) + (("p1", "p2") if zero_tangent else ())
     zcov = _zhang_covariance(kept, board, K, dist, rvecs, tvecs, fixed)
+    drop = _unsupported(K, dist, zcov, fixed, 2 * sum(len(d) for d in kept)) if distortion == "auto" else ()
+    if drop:
+        simpler = calibrate_intrinsics(kept, board, size, name=name, fix_aspect_ratio=fix_aspect_ratio,
+                                       fix_k3=fix_k3 or "k3" in drop, zero_tangent=zero_tangent or "p1" in drop,
+                                       reject_outliers=False, min_views=min_views, K_guess=K_guess)
+        return dataclasses.replace(simpler, rejected=rejected, dropped=drop)
     return IntrinsicsResult(
         name=name,
         size=size,
@@ -398,7 +436,30 @@ def calibrate_intrinsics(
         coverage=cov,
         warnings=tuple(warnings),
         covariance=zcov,
+        held=fixed,
     )
+
+
+def _unsupported(K, dist, cov, fixed, n_obs: int) -> tuple[str, ...]:
+    """Distortion terms the views do not support (module docstring): the droppable set with the
+    largest BIC margin ``|S| ln N - theta_S^T Cov_S^-1 theta_S`` when it is positive, else ()."""
+    theta = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(dist).ravel()[:5]])
+    best, margin = (), 0.0
+    for S in _DROPPABLE:
+        if set(S) & set(fixed):
+            continue
+        idx = [_INTR.index(k) for k in S]
+        C = cov[np.ix_(idx, idx)]
+        if not np.all(np.isfinite(C)):
+            continue
+        try:
+            wald = float(theta[idx] @ np.linalg.solve(C, theta[idx]))
+        except np.linalg.LinAlgError:
+            continue
+        m = len(S) * np.log(n_obs) - wald
+        if m > margin:
+            best, margin = S, m
+    return best
 
 
 def _zhang_covariance(views, board, K, dist, rvecs, tvecs, fixed) -> np.ndarray:

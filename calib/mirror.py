@@ -5,6 +5,8 @@ camera that sees the board from behind; :func:`decide_mirror` finds the flip fro
 frames, :func:`calib.rig.resolve_flipped` lets the rig decide which of the two it is.
 :func:`detect_take` is the detection pass over a take that ``stage calibrate TAKE.h5`` and
 the API's calibration job share. ``mirror`` per camera: True / False forces, None decides.
+Messages name the override the way the caller spells it (``spelling``): ``--mirror CAM=false``
+on the command line (:data:`CLI_SPELLING`), the request field in the API.
 """
 
 from __future__ import annotations
@@ -14,39 +16,54 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["parse_mirror", "decide_mirror", "sample_positions", "detect_take", "SAMPLE", "VARIANT_SAMPLE"]
+__all__ = ["parse_mirror", "decide_mirror", "sample_positions", "detect_take", "SAMPLE", "VARIANT_SAMPLE",
+           "CLI_SPELLING"]
 
 SAMPLE = 12  # frames of a camera tried flipped
 VARIANT_SAMPLE = 3  # evenly spaced frames of a camera that never showed the board, tried with the board variants
 _VALUES = {"auto": None, "true": True, "false": False}
+CLI_SPELLING = "--mirror {camera}={value}"  # how stage calibrate spells the per-camera override
 
 
-def parse_mirror(items, cameras, *, option: str = "--mirror") -> dict[str, bool | None]:
+def _spell(spelling: str, camera: str, value) -> str:
+    return spelling.format(camera=camera, value=value)
+
+
+def parse_mirror(items, cameras, *, spelling: str = CLI_SPELLING) -> dict[str, bool | None]:
     """``CAM=auto|true|false`` items (or a mapping camera -> value) -> camera -> True / False / None (auto).
+
+    Parameters
+    ----------
+    spelling : str
+        How the caller's user writes one override, with ``{camera}`` and ``{value}``
+        (default :data:`CLI_SPELLING`); errors quote the offending item that way.
 
     Raises
     ------
     ValueError
-        Naming ``option`` for an unknown camera or value.
+        Quoting the item for an unknown camera or value.
     """
     out: dict[str, bool | None] = {c: None for c in cameras}
     pairs = list(items.items()) if isinstance(items, dict) else [tuple(i.partition("=")[::2]) for i in items]
     for name, val in pairs:
-        item = f"{name}={val}"
+        item = _spell(spelling, name, val)
         val = str(val).strip().lower() if val is not None else "auto"
         val = val or "true"
         if name not in out:
-            raise ValueError(f"{option} {item}: unknown camera {name!r} (cameras: {', '.join(cameras)})")
+            raise ValueError(f"{item}: unknown camera {name!r} (cameras: {', '.join(cameras)})")
         if val not in _VALUES:
-            raise ValueError(f"{option} {item}: the value must be auto, true or false")
+            raise ValueError(f"{item}: the value must be auto, true or false")
         out[name] = _VALUES[val]
     return out
 
-def decide_mirror(name: str, found: int, total: int, sample: list, as_is: int, board, mirror: bool | None):
+def decide_mirror(name: str, found: int, total: int, sample: list, as_is: int, board, mirror: bool | None, *,
+                  spelling: str = CLI_SPELLING):
     """Whether a camera's images must be flipped, from the board found in a sample of its frames.
 
     Parameters
     ----------
+    spelling : str
+        How the user writes the override the messages suggest (:func:`parse_mirror`).
     found, total : int
         Frames with the board / frames read, as delivered (or flipped when ``mirror``).
     sample : list of ndarray
@@ -72,8 +89,8 @@ def decide_mirror(name: str, found: int, total: int, sample: list, as_is: int, b
             if mirror is False:
                 return False, (f"camera {name}: the board is never detected with mirror = false, but it is found "
                                f"in {flipped}/{len(sample)} sampled frames once the image is flipped: {name} "
-                               f"delivers mirrored images; drop --mirror {name}=false (or turn the camera's mirror "
-                               f"mode off)")
+                               f"delivers mirrored images; drop {_spell(spelling, name, 'false')} (or turn the "
+                               f"camera's mirror mode off)")
             if mirror is None:
                 return True, (f"{name} delivers mirrored images or sees the board from behind: the board is found "
                               f"in {flipped}/{len(sample)} sampled frames once the image is flipped ({as_is} as "
@@ -85,7 +102,7 @@ def decide_mirror(name: str, found: int, total: int, sample: list, as_is: int, b
     if v is not None and v[1] is board:
         return bool(mirror), (f"camera {name}: the board was never detected, but once the image is flipped it "
                               f"is found in {v[3]}/{len(pick)} sampled frames; if {name} delivers mirrored "
-                              f"images, give --mirror {name}=true")
+                              f"images, give {_spell(spelling, name, 'true')}")
     if v is not None:
         return bool(mirror), (f"camera {name}: the board was never detected, but with the {v[0]} it is found in "
                               f"{v[3]}/{len(pick)} sampled frames; fix the board file"
@@ -103,7 +120,8 @@ def sample_positions(total: int) -> set[int]:
 
 
 
-def detect_take(path: Path, board, *, step: int = 1, mirror=(), on_set: Callable[[int, int], None] | None = None):
+def detect_take(path: Path, board, *, step: int = 1, mirror=(), on_set: Callable[[int, int], None] | None = None,
+                spelling: str = CLI_SPELLING):
     """Detect the board in every frame set of a take, flipping the cameras whose board is found only flipped.
 
     Parameters
@@ -116,6 +134,8 @@ def detect_take(path: Path, board, *, step: int = 1, mirror=(), on_set: Callable
         ``CAM=auto|true|false`` per camera (:func:`parse_mirror`); unnamed cameras: auto.
     on_set : callable, optional
         Called as ``on_set(done, total)`` after each frame set (progress; it may raise to cancel).
+    spelling : str
+        How the user writes a ``mirror`` override, for the messages (:func:`parse_mirror`).
 
     Returns
     -------
@@ -136,7 +156,7 @@ def detect_take(path: Path, board, *, step: int = 1, mirror=(), on_set: Callable
         raise ValueError(f"step must be >= 1, got {step}")
     with TakeReader(path) as r:
         cams = list(r.cameras)
-        mirror_of = parse_mirror(mirror, cams)
+        mirror_of = parse_mirror(mirror, cams, spelling=spelling)
         sizes = {name: tuple(r.image_size(name)) for name in cams}
         sets = list(range(0, r.n_sets, int(step)))
         raw, sample, as_is = _first_pass(r, cams, board, sets, mirror_of, on_set, detect_board)
@@ -144,7 +164,7 @@ def detect_take(path: Path, board, *, step: int = 1, mirror=(), on_set: Callable
         for name in cams:
             n_found = sum(d is not None for d in raw[name])
             flip, msg = decide_mirror(name, n_found, len(raw[name]), sample[name], as_is[name], board,
-                                      mirror_of[name])
+                                      mirror_of[name], spelling=spelling)
             if msg:
                 notes.append(msg)
                 if not flip and not n_found:

@@ -20,8 +20,11 @@ Steps:
 3. Honest figures (:mod:`calib.evaluate`): beside the fit on the views used, the
    reprojection and board-geometry error over every frame with a detection, a
    k-fold held-out error over frame sets (calibrate on the rest, measure on the
-   fold), the per-camera projection uncertainty from the parameter covariance, and
-   how far each intrinsic moved from Zhang's in units of its standard deviation.
+   fold), the per-camera projection uncertainty from the parameter covariance, the
+   rotation uncertainty of every camera and camera pair in degrees (from the bundle
+   adjustment's covariance, :func:`rotation_sigma`, and from the spread of the held-out
+   folds' calibrations, :func:`fold_rotation_spread`), and how far each intrinsic moved
+   from Zhang's in units of its standard deviation.
 
 Detection (from images, takes or videos) is the caller's business (see
 :mod:`calib.detect`); this module only takes arrays.
@@ -41,10 +44,10 @@ from calib.calibration import Calibration
 from calib.detect import Detection, select_views
 from calib.evaluate import projection_uncertainty, reprojection_errors
 from calib.extrinsics import ExtrinsicsResult, calibrate_extrinsics, triangulate_board_error
-from calib.intrinsics import CalibrationError, IntrinsicsResult, calibrate_intrinsics
+from calib.intrinsics import DISTORTION_MODES, CalibrationError, IntrinsicsResult, calibrate_intrinsics
 
-__all__ = ["RigCalibration", "calibrate_rig", "resolve_flipped", "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA",
-           "CORNER_WARN_PX"]
+__all__ = ["RigCalibration", "calibrate_rig", "resolve_flipped", "rotation_sigma", "fold_rotation_spread",
+           "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA", "CORNER_WARN_PX", "FOLD_WARN_RATIO", "FOLD_WARN_DEG"]
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +55,8 @@ INTRINSICS_MODES = ("prior", "fixed", "free")
 MAX_SETS = 300  # frame sets in the bundle adjustment above which they are evenly thinned
 MOVE_WARN_SIGMA = 3.0  # an intrinsic that moved further than this many Zhang sigmas is reported
 CORNER_WARN_PX = 2.0  # projection uncertainty at the image corners above which the report warns
+FOLD_WARN_RATIO = 2.0  # folds' rotation spread over the covariance's figure above which the report warns
+FOLD_WARN_DEG = 0.5  # ... when the spread is also above this
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +75,9 @@ class RigCalibration:
         detection), ``geometry_all`` (board geometry error over them), ``held_out``
         (k-fold, same layout plus ``folds``), ``uncertainty`` (name -> position -> px),
         ``moved_sigma`` (name -> intrinsic -> signed move in Zhang sigmas), ``sets``
-        (frame sets used by the bundle adjustment).
+        (frame sets used by the bundle adjustment), ``rotation_sigma_deg``
+        (:func:`rotation_sigma`) and, with held-out folds, ``rotation_folds_deg``
+        (:func:`fold_rotation_spread`).
     """
 
     calibration: Calibration
@@ -114,15 +121,21 @@ class RigCalibration:
             lines.append("  " + self.extrinsics.report().replace("\n", "\n  "))
             af, ho = ev.get("all_frames"), ev.get("held_out")
             g = ev.get("geometry_all")
-            lines.append("  camera        fit px   all-frames px (views)   held-out px   uncertainty px (centre / worst corner)")
+            rs, rf = ev.get("rotation_sigma_deg") or {}, ev.get("rotation_folds_deg") or {}
+            ref = rs.get("reference", "?")
+            lines.append("  camera        fit px   all-frames px (views)   held-out px   uncertainty px (centre / worst corner)"
+                         f"   rotation deg vs {ref} (covariance / folds)")
             for name in self.calibration.names:
                 fit = self.extrinsics.per_camera_rms.get(name, float("nan"))
                 a = af["per_camera"][name] if af else {"rms": float("nan"), "views": 0}
                 h = ho["per_camera"][name]["rms"] if ho and name in ho.get("per_camera", {}) else float("nan")
                 u = ev.get("uncertainty", {}).get(name, {})
                 corner = max((v for k, v in u.items() if k != "centre"), default=float("nan"))
+                rot = (f"{rs.get('per_camera', {}).get(name, float('nan')):.2f} / "
+                       f"{rf.get('per_camera', {}).get(name, float('nan')):.2f}")
                 lines.append(f"  {name:<12} {fit:7.3f}   {a['rms']:7.3f} ({a['views']:4d})          {h:7.3f}"
-                             f"       {_px(u.get('centre', float('nan')))} / {_px(corner)}")
+                             f"       {_px(u.get('centre', float('nan')))} / {_px(corner)}"
+                             f"{'':22}{'reference' if name == ref else rot}")
             if g and g.get("frames"):
                 lines.append(f"  board over every detected frame ({g['frames']} frames): adjacent corners off by "
                              f"{g['neighbor_rms']:.2f} mm RMS, all corner pairs {g['pairs_rms']:.2f} mm RMS")
@@ -175,7 +188,7 @@ def _thin(frames: list[int], budget: int) -> list[int]:
 
 
 def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, reject_outliers, min_views, solver,
-           max_intrinsic_views, min_change, max_sets, min_corners):
+           max_intrinsic_views, min_change, max_sets, min_corners, distortion):
     """One calibration (intrinsics, then the bundle adjustment) without the evaluation."""
     seen: dict[int, int] = {}
     for n in names:
@@ -189,7 +202,7 @@ def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, rejec
         try:
             intr[n] = calibrate_intrinsics(views, board, tuple(sizes[n]), name=n, fix_k3=fix_k3,
                                            reject_outliers=reject_outliers, min_views=min_views,
-                                           max_views=max_intrinsic_views)
+                                           max_views=max_intrinsic_views, distortion=distortion)
         except CalibrationError as exc:
             if not dets[n]:
                 problems.append(
@@ -211,6 +224,7 @@ def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, rejec
             count[d.frame] = count.get(d.frame, 0) + 1
     sets = set(_thin(sorted(f for f, k in count.items() if k >= 2), max_sets))
     ba = {n: [d for d in kept[n] if d.frame in sets] for n in names}
+    held = np.array([[k in intr[n].held for k in INTRINSIC_NAMES] for n in names])
     prior = None
     if mode == "prior":
         prior = np.stack([intr[n].covariance if intr[n].covariance is not None else np.full((9, 9), np.nan)
@@ -226,7 +240,7 @@ def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, rejec
     ext = calibrate_extrinsics(
         ba, [intr[n].camera() for n in names], board, world=world, world_frame=world_frame,
         optimize_intrinsics=mode != "fixed", solver=solver,
-        fixed_intrinsics=("k3",) if fix_k3 else (),  # what the intrinsics held, the bundle keeps
+        fixed_intrinsics=held,  # what each camera's own calibration held, the bundle keeps
         intrinsics_prior=prior, prior_scale=max(sigma, 1e-3),
     )
     return intr, ext, len(sets)
@@ -321,6 +335,77 @@ def _moved(intr: IntrinsicsResult, cam) -> dict:
     return out
 
 
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def rotation_sigma(calibration: Calibration, rotation_cov: np.ndarray | None, reference: str | None) -> dict:
+    """1-sigma uncertainty (deg) of every camera's rotation relative to ``reference`` and of every
+    pair's relative rotation, from the bundle adjustment's covariance.
+
+    The figure is the RMS of the rotation angle error, ``sqrt(trace(S))`` of the 3 x 3 covariance
+    ``S`` of the small rotation. For a pair, ``d_ab = d_a - R_a R_b^T d_b`` (left perturbations).
+    It assumes independent corner noise of the measured size; errors shared by whole views (a
+    board that moved between the cameras' exposures) make it optimistic, see
+    :func:`fold_rotation_spread` for the figure the data themselves give.
+
+    Returns
+    -------
+    dict
+        ``reference``, ``per_camera`` (name -> deg, 0 for the reference), ``pairs``
+        (``"a - b"`` -> deg); empty without a covariance.
+    """
+    if rotation_cov is None or reference is None:
+        return {}
+    cams = calibration.cameras
+    rc = np.asarray(rotation_cov, dtype=np.float64)
+    per = {c.name: float(np.degrees(np.sqrt(max(np.trace(rc[i, i]), 0.0)))) for i, c in enumerate(cams)}
+    pairs = {}
+    for a in range(len(cams)):
+        for b in range(a + 1, len(cams)):
+            R = cams[a].R @ cams[b].R.T
+            S = rc[a, a] + R @ rc[b, b] @ R.T - rc[a, b] @ R.T - R @ rc[b, a]
+            pairs[f"{cams[a].name} - {cams[b].name}"] = float(np.degrees(np.sqrt(max(np.trace(S), 0.0))))
+    return {"reference": reference, "per_camera": per, "pairs": pairs}
+
+
+def fold_rotation_spread(calibrations: Sequence[Calibration], names: Sequence[str], reference: str | None) -> dict:
+    """Grouped-jackknife 1-sigma (deg) of the rotations, from the held-out folds' calibrations.
+
+    Each fold calibrated on all frame sets but one group; the spread of the k results,
+    ``sqrt((k - 1) / k * sum |log(R_i mean(R)^T)|^2)`` (Efron & Tibshirani 1993, ch. 11),
+    estimates the uncertainty of the calibration on all frame sets, whatever the errors
+    (shared by views, intrinsics), as far as k folds can tell.
+
+    Returns
+    -------
+    dict
+        ``per_camera`` (relative to ``reference``), ``pairs`` as :func:`rotation_sigma`, and
+        ``folds``; empty with fewer than 3 folds.
+    """
+    k = len(calibrations)
+    if k < 3:
+        return {}
+
+    def spread(rots: list[np.ndarray]) -> float:
+        U, _, Vt = np.linalg.svd(np.sum(rots, axis=0))
+        mean = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        dev = np.array([np.radians(_angle_deg(R @ mean.T)) for R in rots])
+        return float(np.degrees(np.sqrt((k - 1) / k * np.sum(dev**2))))
+
+    def rel(c: Calibration, a: str, b: str) -> np.ndarray:
+        return c[a].R @ c[b].R.T
+
+    out: dict = {"folds": k, "per_camera": {}, "pairs": {}}
+    if reference is not None:
+        out["reference"] = reference
+        out["per_camera"] = {n: spread([rel(c, n, reference) for c in calibrations]) for n in names}
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            out["pairs"][f"{a} - {b}"] = spread([rel(c, a, b) for c in calibrations])
+    return out
+
+
 def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | None:
     """k-fold over frame sets (frame set i in fold i mod k): calibrate on the rest, measure on the fold."""
     frames = sorted({d.frame for n in names for d in dets[n]})
@@ -331,7 +416,7 @@ def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | N
     sq = {n: 0.0 for n in names}
     cnt = {n: 0 for n in names}
     views = {n: 0 for n in names}
-    failed = []
+    failed, fold_calibs = [], []
     for i, block in enumerate(blocks):
         out = set(block.tolist())
         rest = {n: [d for d in dets[n] if d.frame not in out] for n in names}
@@ -340,6 +425,7 @@ def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | N
         except CalibrationError as exc:
             failed.append(f"fold {i + 1} of {k}: {exc}")
             continue
+        fold_calibs.append(ext.calibration)
         ev = reprojection_errors(ext.calibration, {n: [d for d in dets[n] if d.frame in out] for n in names},
                                  board)
         for n, v in ev["per_camera"].items():
@@ -352,7 +438,21 @@ def _held_out(dets, sizes, board, names, folds: int, solve_kw: dict) -> dict | N
                "views": views[n], "sum_sq": sq[n]} for n in names}
     tot = sum(cnt.values())
     return {"per_camera": per, "rms": float(np.sqrt(sum(sq.values()) / tot)) if tot else float("nan"),
-            "folds": k, "frames": len(frames), "failed_folds": failed}
+            "folds": k, "frames": len(frames), "failed_folds": failed, "calibrations": fold_calibs}
+
+
+def _shared_error_warnings(cov: dict, folds: dict) -> list[str]:
+    """Cameras whose rotation varies between the folds far more than independent corner errors explain."""
+    out = []
+    for name, f in (folds.get("per_camera") or {}).items():
+        c = (cov.get("per_camera") or {}).get(name, float("nan"))
+        if name != cov.get("reference") and f > FOLD_WARN_DEG and f > FOLD_WARN_RATIO * c:
+            out.append(f"camera {name}: its rotation relative to {cov['reference']} varies by {f:.2f} deg (1 sigma) "
+                       f"between the held-out folds, {f / c:.1f} times what independent corner errors explain: errors "
+                       f"shared by whole views dominate (a board that moved between the cameras' exposures, cameras "
+                       f"not synchronised, a bending board), so trust the folds' figure; hold the board still in each "
+                       f"pose, or synchronise the cameras")
+    return out
 
 
 def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_folds, solve_kw):
@@ -367,6 +467,7 @@ def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_f
         if cov is not None:
             ev["uncertainty"][cam.name] = projection_uncertainty(cam, cov)
     ev["moved_sigma"] = {} if intrinsics == "fixed" else {c.name: _moved(intr[c.name], c) for c in calib.cameras}
+    ev["rotation_sigma_deg"] = rotation_sigma(calib, ext.meta.get("rotation_cov"), ext.meta.get("reference"))
     warn = []
     for name, m in ev["moved_sigma"].items():
         far = {k: v for k, v in m.items() if abs(v) > MOVE_WARN_SIGMA}
@@ -383,6 +484,9 @@ def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_f
     ev["held_out"] = _held_out(dets, sizes, board, names, holdout_folds, solve_kw) if holdout_folds else None
     if ev["held_out"] is not None:
         warn += [f"held-out {f}" for f in ev["held_out"]["failed_folds"]]
+        ref = ev["rotation_sigma_deg"].get("reference")
+        ev["rotation_folds_deg"] = fold_rotation_spread(ev["held_out"].pop("calibrations"), names, ref)
+        warn += _shared_error_warnings(ev["rotation_sigma_deg"], ev["rotation_folds_deg"])
     for w in warn:
         log.debug(w)  # in the result's warnings / report
     return ev, warn
@@ -435,6 +539,7 @@ def calibrate_rig(
     holdout_folds: int = 0,
     mirrored: Sequence[str] = (),
     flipped: Sequence[str] = (),
+    distortion: str = "full",
 ) -> RigCalibration:
     """Intrinsics of every camera (:func:`calib.intrinsics.calibrate_intrinsics`), then
     one bundle adjustment of the rig (:func:`calib.extrinsics.calibrate_extrinsics`),
@@ -458,6 +563,12 @@ def calibrate_rig(
         Older spelling: ``False`` means ``intrinsics="fixed"``, ``True`` keeps ``intrinsics``.
     fix_k3, reject_outliers, min_views
         See :func:`calib.intrinsics.calibrate_intrinsics`.
+    distortion : {"full", "auto"}
+        Each camera's distortion model (:func:`calib.intrinsics.calibrate_intrinsics`):
+        ``"full"`` keeps all five coefficients; ``"auto"`` holds ``p1, p2`` and / or ``k3``
+        at zero where the camera's own views do not support them, and the bundle adjustment
+        keeps what each camera held (docs/calibration.md: steadier principal points on
+        narrow-coverage footage, at the price of small real terms on a well-covered rig).
     max_intrinsic_views : int or None
         Views per camera for its Zhang solve (evenly spaced).
     min_change : float
@@ -497,7 +608,9 @@ def calibrate_rig(
     if flipped:
         dets, more, flip_notes = resolve_flipped(dets, sizes, board, list(flipped), names, min_corners)
         mirrored = list(mirrored) + more
-    solve_kw = dict(world=world, world_frame=world_frame, mode=intrinsics, fix_k3=fix_k3,
+    if distortion not in DISTORTION_MODES:
+        raise ValueError(f"distortion must be one of {DISTORTION_MODES}, got {distortion!r}")
+    solve_kw = dict(world=world, world_frame=world_frame, mode=intrinsics, fix_k3=fix_k3, distortion=distortion,
                     reject_outliers=reject_outliers, min_views=min_views, solver=solver,
                     max_intrinsic_views=max_intrinsic_views, min_change=min_change, max_sets=max_sets,
                     min_corners=min_corners)

@@ -127,7 +127,7 @@ def write_simulated_rig(path: str | Path, n_cameras: int = 4, **kw) -> Path:
     return p
 
 
-def thin_tail_setup() -> dict:
+def thin_tail_setup(size: tuple[int, int] = (480, 360)) -> dict:
     """Keywords of :func:`fake_cameras.take.simulate_take` for the thin-limb case.
 
     The ``tailed_quadruped`` at 1.6x (about 840 mm long; its 144 mm tail stays 36 -> 16 mm
@@ -142,5 +142,5 @@ def thin_tail_setup() -> dict:
     return dict(
         subject="tailed_quadruped", scale=1.6,
         volume=Volume(center=(0.0, 0.0, 320.0), size=(900.0, 600.0, 640.0)),
-        calibration=make_dome(10, size=(480, 360), volume=framing, seed=0),
+        calibration=make_dome(10, size=size, volume=framing, seed=0),
     )

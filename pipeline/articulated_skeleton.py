@@ -17,7 +17,9 @@ and a curve skeleton running inside it:
    is inside (at most ``max_splits`` rounds).
 
 The paper's curve skeleton is the mean curvature skeleton (Tagliasacchi et
-al. 2012). Here it is the spine's curve skeleton in the rest frame: the
+al. 2012). Here it is the spine's curve skeleton in the rest frame (where
+the rest frame shows no spine, fewer than two tips, the mesh contraction
+skeleton of :mod:`pipeline.contraction_skeleton`): the
 level-set skeleton of Brostow et al. 2004 (:func:`pipeline.spine.frame_skeleton`,
 merged over the tips), which runs through the middle of every limb and
 branches at the junctions -- the role the mean curvature skeleton plays. Any
@@ -42,7 +44,9 @@ from scipy.spatial import cKDTree
 
 from pipeline.geodesic import mesh_edges
 
-__all__ = ["CurveSkeleton", "ArticulatedSkeleton", "curve_skeleton", "articulated_skeleton", "segment_hits_mesh"]
+__all__ = [
+    "CurveSkeleton", "ArticulatedSkeleton", "curve_skeleton", "articulated_skeleton", "segment_hits_mesh", "joint_residual",
+]
 
 log = logging.getLogger(__name__)
 
@@ -119,8 +123,9 @@ class ArticulatedSkeleton:
 def curve_skeleton(vertices, faces) -> CurveSkeleton:
     """The rest frame's curve skeleton from the spine machinery (Brostow et al. 2004, 4.1).
 
-    Falls back to the principal axis of the vertices (a straight curve
-    through the subject) when the surface has fewer than two tips.
+    When the surface has fewer than two tips (no spine), the curve skeleton
+    of the mesh contraction (:func:`pipeline.contraction_skeleton.contraction_skeleton`,
+    Au et al. 2008, in place of the mean curvature skeleton) is used.
 
     Parameters
     ----------
@@ -164,13 +169,17 @@ def curve_skeleton(vertices, faces) -> CurveSkeleton:
                 chain(jid[par], np.asarray(ax)[1:])
         if len(edges) >= 1:
             return _clean(np.asarray(pts), np.asarray(edges, dtype=np.int64))
-    log.warning("no curve skeleton from the spine (fewer than two tips): using the principal axis")
-    c = v.mean(0)
-    _, _, Vt = np.linalg.svd(v - c, full_matrices=False)
-    proj = (v - c) @ Vt[0]
-    lo, hi = np.percentile(proj, [2, 98])
-    line = c + np.linspace(lo, hi, 21)[:, None] * Vt[0]
-    return CurveSkeleton(line, np.c_[np.arange(20), np.arange(1, 21)])
+    log.warning("no curve skeleton from the spine (fewer than two tips): using the mesh contraction skeleton")
+    from pipeline.contraction_skeleton import contraction_skeleton
+
+    P, E = contraction_skeleton(v, faces)
+    if len(E) == 0:  # contracted to a single point: the principal axis through it
+        c = v.mean(0)
+        _, _, Vt = np.linalg.svd(v - c, full_matrices=False)
+        lo, hi = np.percentile((v - c) @ Vt[0], [2, 98])
+        line = c + np.linspace(lo, hi, 21)[:, None] * Vt[0]
+        return CurveSkeleton(line, np.c_[np.arange(20), np.arange(1, 21)])
+    return CurveSkeleton(P, E)
 
 
 def _clean(points: np.ndarray, edges: np.ndarray) -> CurveSkeleton:
@@ -245,7 +254,8 @@ def segment_hits_mesh(a, b, vertices, faces, *, margin: float = 1e-3) -> bool:
 # --------------------------------------------------------------------------- topology
 
 
-def _boundary_joints(vertices, faces, labels, min_edges: int) -> list[tuple[tuple[int, int], np.ndarray]]:
+def _boundary_joints(vertices, faces, labels, min_edges: int) -> list[tuple[tuple[int, int], np.ndarray, float]]:
+    """Per pair of adjacent segments: the pair, the centroid of its boundary vertices and their mean distance to it."""
     e = mesh_edges(faces)
     la, lb = labels[e[:, 0]], labels[e[:, 1]]
     cross = la != lb
@@ -261,7 +271,133 @@ def _boundary_joints(vertices, faces, labels, min_edges: int) -> list[tuple[tupl
         if m.sum() < min_edges:
             continue
         vid = np.unique(ec[m].ravel())
-        out.append(((int(sa), int(sb)), vertices[vid].mean(0)))
+        c = vertices[vid].mean(0)
+        out.append(((int(sa), int(sb)), c, float(np.linalg.norm(vertices[vid] - c, axis=1).mean())))
+    return out
+
+
+def _segment_motions(motion: np.ndarray, labels: np.ndarray, segments, reference: int, per_segment: int = 400):
+    """Per segment, its best rigid motion from the reference frame to every frame (Arun et al. 1987).
+
+    Returns dict segment -> (R (T, 3, 3), t (T, 3)) with ``x_t ~ R_t x_ref + t_t``.
+    """
+    rng = np.random.default_rng(0)
+    out = {}
+    for sgm in segments:
+        ids = np.flatnonzero(labels == sgm)
+        if len(ids) > per_segment:
+            ids = rng.choice(ids, per_segment, replace=False)
+        Y = np.asarray(motion[:, ids], dtype=np.float64)  # (T, n, 3)
+        X = Y[reference]
+        cx, cy = X.mean(0), Y.mean(1)
+        H = np.einsum("nd,tne->tde", X - cx, Y - cy[:, None])
+        U, _, Vt = np.linalg.svd(H)
+        d = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
+        U[:, :, 2] *= d[:, None]
+        R = np.einsum("tij,tjk->tki", U, Vt)  # R_t x ~ y (the transpose of X -> Y's right factor)
+        out[int(sgm)] = (R, cy - np.einsum("tij,j->ti", R, cx))
+    return out
+
+
+def joint_residual(motion_a, motion_b, centroid, *, ridge: float = 1e-3) -> tuple[float, np.ndarray]:
+    """How far two rigid motions are from sharing a pivot: a ball joint between them.
+
+    The pivot ``c`` minimises ``sum_t ||(R_a,t c + t_a,t) - (R_b,t c + t_b,t)||^2``
+    plus ``ridge * T ||c - centroid||^2`` (a hinge leaves ``c`` free along
+    its axis: it stays at the boundary centroid there).
+
+    Parameters
+    ----------
+    motion_a, motion_b : tuple of (T, 3, 3) and (T, 3) float ndarray
+        ``x_t = R_t x + t_t`` of each segment.
+    centroid : (3,) float ndarray
+        Centroid of the shared boundary (rest frame).
+    ridge : float
+        Weight of the pull towards the centroid.
+
+    Returns
+    -------
+    residual : float
+        RMS over frames of the distance between the pivot carried by either motion (units of the input).
+    pivot : (3,) float ndarray
+    """
+    Ra, ta = motion_a
+    Rb, tb = motion_b
+    M = Ra - Rb  # (T, 3, 3)
+    b = tb - ta  # (T, 3)
+    c0 = np.asarray(centroid, dtype=np.float64)
+    T = len(M)
+    A = np.einsum("tji,tjk->ik", M, M) + ridge * T * np.eye(3)
+    rhs = np.einsum("tji,tj->i", M, b) + ridge * T * c0
+    c = np.linalg.solve(A, rhs)
+    gap = np.einsum("tij,j->ti", M, c) - b
+    return float(np.sqrt((gap**2).sum(1).mean())), c
+
+
+def _kinematic_tree(candidates, residual) -> list:
+    """The candidate pairs that form a spanning tree of the segments with the smallest residuals.
+
+    A kinematic tree has no cycles: when the segments' adjacency does (two
+    limbs that touch, arms that meet round a body), the pairs whose motion
+    is least like a joint are not articulations.
+    """
+    segs = sorted({x for c in candidates for x in c[0]})
+    if len(segs) < 2:
+        return list(candidates)
+    idx = {x: i for i, x in enumerate(segs)}
+    rows = [idx[c[0][0]] for c in candidates]
+    cols = [idx[c[0][1]] for c in candidates]
+    w = np.asarray([residual[c[0]] for c in candidates], dtype=np.float64)
+    w = w + 1e-12 * (1.0 + np.abs(w).max()) + 1e-300  # a zero residual is still an edge
+    n = len(segs)
+    T = minimum_spanning_tree(sp.csr_matrix((w, (rows, cols)), shape=(n, n))).tocoo()
+    keep = {(segs[min(a, b)], segs[max(a, b)]) for a, b in zip(T.row, T.col)}
+    return [c for c in candidates if c[0] in keep]
+
+
+def _articulation_pairs(v, f, lab, min_edges, motion, reference) -> tuple[list, dict | None]:
+    """Boundary centroids of adjacent segments, reduced to a tree, and the segments' rigid motions.
+
+    Returns ``[(pair, centroid, radius)]`` and ``{segment: (R, t)}`` (None without ``motion``).
+    """
+    cand = _boundary_joints(v, f, lab, min_edges)
+    segs = sorted({x for pair, _, _ in cand for x in pair})
+    motions = None
+    if motion is not None:
+        mo = np.asarray(motion)
+        if mo.ndim != 3 or mo.shape[1:] != v.shape or not 0 <= int(reference) < len(mo):
+            raise ValueError(f"motion must have shape (T, {len(v)}, 3) with reference within 0..T-1, got {mo.shape}")
+        motions = _segment_motions(mo, lab, segs, int(reference))
+    idx = {x: i for i, x in enumerate(segs)}
+    n = len(segs)
+    g = sp.csr_matrix((np.ones(len(cand)), ([idx[p[0]] for p, _, _ in cand], [idx[p[1]] for p, _, _ in cand])),
+                      shape=(n, n))
+    if len(cand) == 0 or len(cand) - n + connected_components(g, directed=False)[0] == 0:
+        return cand, motions  # no cycle: a tree (or a forest) already
+    if motions is not None:
+        residual = {pair: joint_residual(motions[pair[0]], motions[pair[1]], c)[0] for pair, c, _ in cand}
+    else:
+        e = mesh_edges(f)
+        la, lb = np.sort(np.c_[lab[e[:, 0]], lab[e[:, 1]]], axis=1).T
+        residual = {pair: -float(((la == pair[0]) & (lb == pair[1])).sum()) for pair, _, _ in cand}
+    kept = _kinematic_tree(cand, residual)
+    if len(kept) < len(cand):
+        log.info("%d adjacent segment pairs are contacts, not joints (the kinematic tree keeps %d)",
+                 len(cand) - len(kept), len(kept))
+    return kept, motions
+
+
+def _pivot_positions(P, joint_pairs, cand, motions) -> dict:
+    """Articulations moved to their centre of rotation when it lies within their boundary's cross-section."""
+    if motions is None:
+        return {}
+    radius = {pair: r for pair, _, r in cand}
+    out = {}
+    for node, pairs in joint_pairs.items():
+        a, b = pairs[0]
+        _, c = joint_residual(motions[a], motions[b], P[node])
+        if np.linalg.norm(c - P[node]) <= radius[(a, b)]:
+            out[node] = c
     return out
 
 
@@ -274,6 +410,9 @@ def articulated_skeleton(
     spacing: float = 0.01,
     min_boundary_edges: int = 3,
     max_splits: int = 4,
+    motion=None,
+    reference: int = 0,
+    refine_joints: bool = True,
 ) -> ArticulatedSkeleton:
     """Joints and bones of an articulated model (Tzionas & Gall 2016, section 4.2).
 
@@ -293,6 +432,19 @@ def articulated_skeleton(
         Two segments are adjacent when they share at least this many edges.
     max_splits : int
         Rounds of splitting bones that leave the mesh.
+    motion : (T, V, 3) float ndarray, optional
+        The vertex trajectories. When the segments' adjacency has cycles
+        (segments that touch without being jointed), only the spanning tree
+        of pairs whose rigid motions best share a pivot
+        (:func:`joint_residual`) become articulations. Without it, the
+        longest shared boundaries win.
+    reference : int
+        Position of ``vertices`` in ``motion``.
+    refine_joints : bool
+        With ``motion``: an articulation placed on the curve skeleton moves
+        to the centre of rotation of its two segments (:func:`joint_residual`,
+        pulled towards the curve point along a hinge's axis) when that lies
+        within the mean radius of their shared boundary from the curve point.
 
     Returns
     -------
@@ -323,9 +475,11 @@ def articulated_skeleton(
     # 1. articulations: boundary centroids moved to the curve skeleton
     ptree = cKDTree(P)
     joint_pairs: dict[int, list] = defaultdict(list)
-    for pair, c in _boundary_joints(v, f, lab, min_boundary_edges):
+    cand, motions = _articulation_pairs(v, f, lab, min_boundary_edges, motion, reference)
+    for pair, c, _ in cand:
         _, node = ptree.query(c)
         joint_pairs[int(node)].append(pair)
+    pivots = _pivot_positions(P, joint_pairs, cand, motions) if refine_joints else {}
     # 2. auxiliary joints at ends and branches
     key = set(joint_pairs) | {i for i in range(n) if len(adj[i]) != 2}
     if not key:
@@ -349,6 +503,9 @@ def articulated_skeleton(
             key.add(m)
             bones.append((a, m, path[: mid + 1]))
             bones.append((m, b, path[mid:]))
+    P = P.copy()
+    for node, c in pivots.items():
+        P[node] = c
     return _hang(P, bones, joint_pairs, node_seg, lab)
 
 

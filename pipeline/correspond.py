@@ -34,10 +34,11 @@ Choices the paper leaves open, made here:
 * Every frame with tips is visited outward from the reference and anchored to the
   last seen position of every limb, so a limb missing from some frames (hidden,
   merged, too thin to survive) keeps its slot and never makes the others swap.
-* A borderline count (the mode ``K`` while ``K + 1`` tips are found in 40-60 % of
-  the frames with tips) is decided for ``K + 1`` when the extra limb is the same
-  limb throughout: aligned onto the reference by the other limbs, its tip stays
-  within ``0.4`` x the RMS radius of the reference tips of its mean position.
+* A borderline count (``K + 1`` tips found in 40-60 % of the frames with tips, ``K``
+  in the others, whichever of the two is the mode) is decided for ``K + 1`` when the
+  extra limb is the same limb throughout, for ``K`` when it is not: aligned onto the
+  reference by the other limbs, its tip stays within ``0.4`` x the RMS radius of the
+  reference tips of its mean position.
   :attr:`Correspondence.count_rule` says which rule chose ``K``.
 * A tip whose residual after alignment to its temporal neighbour exceeds
   ``gate`` times the RMS radius of the reference tips is dropped (its limb
@@ -462,26 +463,36 @@ def _tip_points(frames: list[np.ndarray], features) -> list[np.ndarray]:
 
 
 def _with_counted_K(frames, pts, opts) -> Correspondence:
-    """``K`` = the mode of the tip counts, or one more on a borderline count whose extra limb
-    is the same limb throughout (module docstring)."""
+    """``K`` = the mode of the tip counts, unless the count is borderline: the larger of two
+    neighbouring counts is found in 40-60 % of the frames with tips (whether it is the mode
+    or not); then the larger count when the extra limb is the same limb throughout, else the
+    smaller (module docstring)."""
     counts = [len(a) for a in frames]
     K = limb_count(counts)
     with_tips = np.asarray([c for c in counts if c > 0])
-    share = float(np.mean(with_tips >= K + 1)) if with_tips.size else 0.0
-    if not (BORDERLINE[0] <= share <= BORDERLINE[1] and (K + 1) in counts):
+
+    def share(n: int) -> float:
+        return float(np.mean(with_tips >= n)) if with_tips.size else 0.0
+
+    lo, hi = BORDERLINE
+    if lo <= share(K + 1) <= hi and (K + 1) in counts:
+        small, large = K, K + 1
+    elif K > 1 and lo <= share(K) <= hi and (K - 1) in counts:
+        small, large = K - 1, K
+    else:
         return _correspond(frames, pts, K, "mode", **opts)
-    wider = _correspond(frames, pts, K + 1, "", **opts)
+    wider = _correspond(frames, pts, large, "", **opts)
     spread = _extra_limb_spread(frames, wider)
     same = spread <= SAME_LIMB_SPREAD
     rule = (
-        f"borderline: {K + 1} tips in {100 * share:.0f} % of the frames; the extra limb "
+        f"borderline: {large} tips in {100 * share(large):.0f} % of the frames; the extra limb "
         f"{'is' if same else 'is not'} the same limb throughout (spread {spread:.2f} of the tip radius, "
-        f"limit {SAME_LIMB_SPREAD}): K = {K + 1 if same else K}"
+        f"limit {SAME_LIMB_SPREAD}): K = {large if same else small}"
     )
     if same:
         return Correspondence(K=wider.K, assignment=wider.assignment, references=wider.references,
                               error=wider.error, count_rule=rule)
-    return _correspond(frames, pts, K, rule, **opts)
+    return _correspond(frames, pts, small, rule, **opts)
 
 
 def _correspond(frames, pts, K: int, rule: str, *, reference_span, max_permutations, gate, reference_weight):
@@ -518,22 +529,22 @@ def _sweep(pts, counts, refs, assign, err, *, max_permutations, reference_weight
     r0 = refs[0]
     assigned_refs = {r0}
     for direction in (1, -1):
-        last, prev = _limb_rows(pts[r0], assign[r0], K), r0
+        last = _limb_rows(pts[r0], assign[r0], K)
         t = r0 + direction
         while 0 <= t < T:
             if counts[t] > 0:
                 near_ref = min(assigned_refs, key=lambda r, t=t: abs(r - t))
-                anchors, w = [_limb_rows(pts[near_ref], assign[near_ref], K)], [1.0]
-                if prev != near_ref:
-                    anchors.append(last)
-                    w = [reference_weight, -1.0]
+                # the temporal neighbour always anchors too (translation only): a rigid fit
+                # alone, even to the adjacent reference, may turn a near-symmetric body half
+                # round (a quadruped's front legs onto its hind legs, head onto tail)
+                anchors = [_limb_rows(pts[near_ref], assign[near_ref], K), last]
+                w = [reference_weight, -1.0]
                 m, e = _best_mapping(pts[t], anchors, K, max_permutations, w)
                 assign[t] = m
                 err[t] = e
                 seen = m >= 0
                 last = last.copy()
                 last[seen] = pts[t][m[seen]]
-                prev = t
                 if t in refs and counts[t] == K:
                     assigned_refs.add(t)
             t += direction

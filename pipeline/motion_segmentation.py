@@ -6,8 +6,9 @@ A mesh sequence with shared connectivity gives every vertex ``i`` a trajectory
 turn against each other do not. The paper's steps:
 
 1. sample ``n`` (1000) vertices uniformly over the surface;
-2. interval length ``dt = 2 max_i,t ||V_i,t - V_i,t-1||`` (eq. 7, millimetres
-   taken as frames);
+2. an interval length ``dt`` (eq. 7 sets ``dt = 2 max_i,t ||V_i,t - V_i,t-1||``,
+   millimetres taken as frames; here it spans a stretch of motion, see
+   :func:`interval_length` and below);
 3. ``d^v_ij``: the largest change of ``||V_i - V_j||`` within any interval of
    ``dt`` frames (eq. 8); ``d^n_ij``: the same for the angle between the
    normals (eq. 9, radians); ``d_ij = d^v_ij (d^n_ij + 1)`` (eq. 10: "adding 1
@@ -24,23 +25,40 @@ Units and size. The paper's constants are for millimetres and objects of
 0.2-0.4 m (spray, donkey, lamp, pipe). So that the defaults follow the subject
 and not its units, distances are expressed in *reference millimetres*: the
 subject's rest-frame bounding-box diagonal is mapped to ``reference_size``
-(300 mm). ``lambda = 0.1`` and eq. 7 are then applied as written. For a 0.3 m
-subject in millimetres this is the paper's setting exactly.
+(300 mm). ``lambda = 0.1`` is then applied as written (and eq. 7, when asked
+for). For a 0.3 m subject in millimetres this is the paper's setting (the
+interval aside, see below).
 
 ``lambda_thr``: 0.7 (default) when reasonably sized parts undergo a pronounced
 movement; 0.98 for small parts with a small motion compared to the size of the
 subject (the paper's "spray" handle, the rope) -- it over-segments, which adds
 joints that can be ignored.
 
-Two steps are ours (the paper is silent): a motion segment must be connected
+The interval (a decision): eq. 7 taken literally ties ``dt`` to the frame
+rate -- the same motion at 5x the rate has 5x smaller steps, so a 5x shorter
+interval in frames and 25x shorter in time -- and on slow, dense sequences
+the distances cannot change within it. ``dt`` is therefore the number of
+frames the fastest vertex takes to travel the reference size (300 reference
+mm) at its top speed, ``dt = 300 / max ||V_i,t - V_i,t-1||``: resampling the
+motion multiplies it by the same factor, and the segments stay
+(``interval_motion=None`` restores eq. 7 as written). When ``dt`` exceeds
+``2 x WINDOW_FRAMES`` (32), eqs. 8-9 run on every ``dt // 32``-th frame (the
+trajectories are smooth, as the paper notes for eq. 7; at least 32 frames
+per interval).
+
+Three steps are ours (the paper is silent): a motion segment must be connected
 on the surface, so a label whose vertices form several surface patches (two
 legs that happen to move in step) is split, and patches smaller than
 ``min_segment`` of the vertices are merged into the neighbour they share the
 longest boundary with; adjacent segments whose union still moves as one rigid
 body (median residual of each of the two after the best rigid motion of both,
 below ``rigid_tol`` of the size in every frame) are merged, so that over-segmentation (``lambda_thr = 0.98``, or
-k-means splitting a rigid part) adds no joint that never bends. Labels are
-renumbered by decreasing size.
+k-means splitting a rigid part) adds no joint that never bends; and a segment
+that does not move rigidly is cut in two by the normalised cut of its own
+samples when both halves are then at most half as far from rigid (the
+eigenvalue count spends clusters on large parts and can leave a small part,
+a tail, fused to its neighbour), recursively, before the merge runs again.
+Labels are renumbered by decreasing size.
 
 Hand-written because no library computes trajectory distances; the
 eigen-decomposition (``numpy.linalg.eigh``), k-means (``scipy.cluster.vq``)
@@ -76,6 +94,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 REFERENCE_SIZE = 300.0  # mm: the size of the paper's objects, where lambda = 0.1 / mm holds
+INTERVAL_MOTION = REFERENCE_SIZE  # reference mm the fastest vertex travels within the interval
+WINDOW_FRAMES = 32  # frames per interval at least, when a long interval lets eqs. 8-9 skip frames
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,8 +174,8 @@ def check_sequence(vertices, faces, *, name: str = "vertices") -> tuple[np.ndarr
 
 def subject_size(vertices) -> float:
     """Bounding-box diagonal of the first frame (the subject's size)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    v0 = v[0] if v.ndim == 3 else v
+    v = np.asarray(vertices)
+    v0 = np.asarray(v[0] if v.ndim == 3 else v, dtype=np.float64)  # the first frame only (long sequences)
     return float(np.linalg.norm(v0.max(0) - v0.min(0)))
 
 
@@ -241,14 +261,27 @@ def _sample_normals(v: np.ndarray, f: np.ndarray, samples: np.ndarray) -> np.nda
     return np.where(ln > 0, out / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
 
 
-def interval_length(vertices, *, to_reference: float = 1.0) -> int:
-    """``dt = 2 max_i,t ||V_i,t - V_i,t-1||`` (Tzionas & Gall eq. 7), in frames.
+def interval_length(vertices, *, to_reference: float = 1.0, motion: float | None = INTERVAL_MOTION) -> int:
+    """The interval of eqs. 8-9 in frames: a span of motion, not of frames.
+
+    ``motion`` given (the default): the frames the fastest vertex takes to
+    travel ``motion`` reference millimetres at its top speed,
+    ``dt = motion / max_i,t ||V_i,t - V_i,t-1||``. The interval then covers
+    the same stretch of motion whatever the frame rate: resampling a
+    sequence at 5x the rate divides every step by 5 and multiplies ``dt``
+    by 5 (see the module docstring).
+
+    ``motion=None``: eq. 7 of Tzionas & Gall as written,
+    ``dt = 2 max_i,t ||V_i,t - V_i,t-1||``, millimetres taken as frames.
 
     Parameters
     ----------
     vertices : (T, V, 3) float ndarray
+        Trajectories (all vertices or a sample of them).
     to_reference : float
         Factor from the sequence's units to reference millimetres.
+    motion : float or None
+        Reference millimetres.
 
     Returns
     -------
@@ -257,33 +290,58 @@ def interval_length(vertices, *, to_reference: float = 1.0) -> int:
     """
     v = np.asarray(vertices)
     T = v.shape[0]
+    if motion is not None and not (motion > 0 and np.isfinite(motion)):
+        raise ValueError(f"motion must be > 0 or None, got {motion}")
     if T < 2:
         return 1
-    big = max(float(np.sqrt(((v[t + 1] - v[t]).astype(np.float64) ** 2).sum(1)).max()) for t in range(T - 1))
-    step = big * float(to_reference)
-    return int(np.clip(round(2.0 * step), 1, T - 1))
+    chunk = max(1, 4_000_000 // max(v.shape[1] * 3, 1))  # frames at a time
+    step = float(to_reference) * max(
+        float(np.sqrt((np.diff(v[t : min(t + chunk, T - 1) + 1].astype(np.float64), axis=0) ** 2).sum(2)).max())
+        for t in range(0, T - 1, chunk)
+    )
+    if motion is None:
+        return int(np.clip(round(2.0 * step), 1, T - 1))
+    if step <= 0:
+        return T - 1
+    return int(np.clip(round(float(motion) / step), 1, T - 1))
 
 
 def _window_extreme(x: np.ndarray, width: int, op) -> np.ndarray:
     """``op`` (np.maximum or np.minimum) over every window ``x[t : t + width]``, t = 0 .. T - width.
 
-    Whole frames at a time (contiguous memory): a running loop for short windows, the van
-    Herk / Gil-Werman block decomposition (prefix and suffix scans) for long ones.
+    Whole frames at a time (contiguous memory): a running loop for short windows, doubling
+    (extremes over 1, 2, 4, .. frames, then two overlapping spans) for medium ones, and the van
+    Herk / Gil-Werman decomposition for long ones (running prefix and suffix extremes within blocks
+    of ``width`` frames, one frame of every block per step: three passes whatever the width).
     """
     T = x.shape[0]
     n_win = T - width + 1
-    if width <= 12:
+    if width <= 8:
         out = x[:n_win].copy()
         for k in range(1, width):
             op(out, x[k : k + n_win], out=out)
         return out
-    nb = -(-T // width)
-    pad = nb * width - T
-    xp = np.concatenate([x, np.repeat(x[-1:], pad, axis=0)]) if pad else x
-    blocks = xp.reshape((nb, width) + x.shape[1:])
-    pre = op.accumulate(blocks, axis=1).reshape(xp.shape)
-    suf = op.accumulate(blocks[:, ::-1], axis=1)[:, ::-1].reshape(xp.shape)
-    return op(suf[:n_win], pre[width - 1 : width - 1 + n_win])
+    if width <= 16:
+        cur = op(x[:-1], x[1:])  # extremes over 2 frames (the first doubling, no copy of x)
+        span = 2
+        while 2 * span <= width:
+            n = T - 2 * span + 1
+            op(cur[:n], cur[span : span + n], out=cur[:n])
+            span *= 2
+        # cur[t] = extreme of x[t : t + span]; a window of ``width`` is two such spans
+        return op(cur[:n_win], cur[width - span : width - span + n_win])
+    pre = np.empty_like(x)
+    suf = np.empty_like(x)
+    for start in range(0, T, width):
+        end = min(T, start + width)
+        pre[start] = x[start]
+        for k in range(start + 1, end):
+            op(pre[k - 1], x[k], out=pre[k])
+        suf[end - 1] = x[end - 1]
+        for k in range(end - 2, start - 1, -1):
+            op(suf[k + 1], x[k], out=suf[k])
+    # a window starting at t spans the suffix of t's block and the prefix of the next up to t + width - 1
+    return op(suf[:n_win], pre[width - 1 : width - 1 + n_win], out=suf[:n_win])
 
 
 def _window_range(x: np.ndarray, width: int) -> np.ndarray:
@@ -340,13 +398,13 @@ def trajectory_distances(
     for a in range(0, n, rows):
         b = min(n, a + rows)
         cols = slice(a, n)  # upper triangle only
-        G = np.einsum("tid,tjd->tij", X[:, a:b], X[:, cols], optimize=True)
+        G = np.matmul(X[:, a:b], X[:, cols].transpose(0, 2, 1))  # batched BLAS, not einsum's loop
         D = sq[:, a:b, None] + sq[:, None, cols] - 2.0 * G
         np.maximum(D, 0.0, out=D)
         np.sqrt(D, out=D)
         dv[a:b, cols] = _window_range(D, width)
         if N is not None:
-            C = np.einsum("tid,tjd->tij", N[:, a:b], N[:, cols], optimize=True)
+            C = np.matmul(N[:, a:b], N[:, cols].transpose(0, 2, 1))
             np.clip(C, -1.0, 1.0, out=C)
             if width >= T:  # one window: arccos is monotonic, take it after the range
                 dn[a:b, cols] = np.arccos(C.min(0)) - np.arccos(C.max(0))
@@ -362,7 +420,8 @@ def trajectory_distances(
 
 
 def spectral_clusters(
-    affinity, *, lambda_thr: float = 0.7, max_clusters: int = 64, seed: int = 0, restarts: int = 8
+    affinity, *, lambda_thr: float = 0.7, max_clusters: int = 64, seed: int = 0, restarts: int = 8,
+    k: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Spectral clustering with the number of clusters from the eigenvalues (Ng et al. 2002).
 
@@ -378,6 +437,8 @@ def spectral_clusters(
         k-means seed (deterministic results).
     restarts : int
         k-means runs; the one with the smallest within-cluster distortion wins.
+    k : int, optional
+        The number of clusters, in place of the eigenvalue count.
 
     Returns
     -------
@@ -397,7 +458,7 @@ def spectral_clusters(
     L = np.eye(n) - s[:, None] * A * s[None, :]
     w, U = np.linalg.eigh(L)
     m = min(n, int(max_clusters) + 1)
-    k = int(np.clip((w < lambda_thr).sum(), 1, min(int(max_clusters), n)))
+    k = int(np.clip((w < lambda_thr).sum() if k is None else k, 1, min(int(max_clusters), n)))
     if k == 1:
         return np.zeros(n, dtype=np.int64), w[:m], 1
     F = U[:, :k]
@@ -498,16 +559,21 @@ def rigid_residual(points, groups=None) -> float:
     Y = np.asarray(points, dtype=np.float64)
     Y = Y - Y.mean(1, keepdims=True)
     X = Y[0]
-    H = np.einsum("nd,tne->tde", X, Y)
+    H = np.matmul(X.T[None], Y)  # (T, 3, 3)
     U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
+    d = np.sign(np.linalg.det(np.matmul(U, Vt)))
     U[:, :, 2] *= d[:, None]
-    R = np.einsum("tij,tjk->tik", U, Vt)  # X @ R ~ Y
-    res = np.sqrt(((np.einsum("nd,tde->tne", X, R) - Y) ** 2).sum(2))  # (T, n)
+    R = np.matmul(U, Vt)  # X @ R ~ Y
+    res = np.sqrt(((np.matmul(X[None], R) - Y) ** 2).sum(2))  # (T, n)
     if groups is None:
         return float(np.sqrt((res**2).mean(1)).max())
     g = np.asarray(groups)
     return float(max(np.median(res[:, g == k], axis=1).max() for k in np.unique(g)))
+
+
+def _some_frames(T: int, most: int = 120) -> np.ndarray:
+    """At most ``most`` evenly spaced frame positions (rigidity of smooth motion, checked on long sequences)."""
+    return np.unique(np.linspace(0, T - 1, min(int(T), most)).round().astype(np.int64))
 
 
 def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, per_segment: int = 400,
@@ -515,14 +581,17 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
     """Merge adjacent segments whose union still moves rigidly (residual below ``tol``)."""
     rng = np.random.default_rng(0)
     lab = labels.copy()
+    frames = _some_frames(len(v))
     members = {int(s): np.flatnonzero(lab == s) for s in np.unique(lab)}
     pick = {s: (m if len(m) <= per_segment else rng.choice(m, per_segment, replace=False)) for s, m in members.items()}
 
     def adjacent_pairs():
         la, lb = lab[edges[:, 0]], lab[edges[:, 1]]
         c = la != lb
-        pairs, counts = np.unique(np.sort(np.c_[la[c], lb[c]], axis=1), axis=0, return_counts=True)
-        return {(int(a), int(b)) for (a, b), n in zip(pairs, counts) if n >= min_edges}
+        lo, hi = np.minimum(la[c], lb[c]), np.maximum(la[c], lb[c])
+        m = int(lab.max()) + 1
+        keys, counts = np.unique(lo * m + hi, return_counts=True)  # one integer per pair: a 1-D unique
+        return {(int(k // m), int(k % m)) for k, n in zip(keys, counts) if n >= min_edges}
 
     cache: dict = {}
     while True:
@@ -533,7 +602,7 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
             if pr not in cache:
                 ids = np.r_[pick[pr[0]], pick[pr[1]]]
                 grp = np.r_[np.zeros(len(pick[pr[0]])), np.ones(len(pick[pr[1]]))]
-                cache[pr] = rigid_residual(v[:, ids], grp)
+                cache[pr] = rigid_residual(v[frames[:, None], ids[None, :]], grp)
         best = min(pairs, key=lambda pr: cache[pr])
         if cache[best] >= tol:
             break
@@ -543,6 +612,71 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
         pick[a] = both if len(both) <= per_segment else rng.choice(both, per_segment, replace=False)
         pick.pop(b)
         cache = {pr: r for pr, r in cache.items() if a not in pr and b not in pr}
+    return lab
+
+
+def _best_cut(A: np.ndarray, near: np.ndarray, ids: np.ndarray, residual, min_size: int, cuts: int = 19):
+    """The normalised cut of a segment's samples (a sweep of the Fiedler vector, Shi & Malik 2000) whose
+    halves move most rigidly; ``None`` when no cut leaves both halves ``min_size`` vertices.
+
+    Returns (len(ids),) 0/1 side of every vertex (its nearest sample's).
+    """
+    d = A.sum(1)
+    s = 1.0 / np.sqrt(np.maximum(d, 1e-300))
+    _, U = np.linalg.eigh(np.eye(len(A)) - s[:, None] * A * s[None, :])
+    fiedler = U[:, 1] * s  # the generalised eigenvector of (D - A, D)
+    best, best_res = None, np.inf
+    for q in np.linspace(0.05, 0.95, int(cuts)):
+        side = (fiedler > np.quantile(fiedler, q)).astype(np.int64)[near]
+        if min(int((side == 0).sum()), int((side == 1).sum())) < min_size:
+            continue
+        r = max(residual(ids[side == 0]), residual(ids[side == 1]))
+        if r < best_res:
+            best, best_res = side, r
+    return best
+
+
+def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: np.ndarray, tol: float, *,
+                    min_size: int, seed: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6) -> np.ndarray:
+    """Split segments that do not move rigidly in two, recursively (the spectral cut of their own samples).
+
+    The eigenvalue count ``k`` spends clusters on large parts and can leave a
+    small part fused to its neighbour (a tail on a body); a segment whose
+    rigid residual exceeds ``tol`` is cut in two along the Fiedler vector of
+    its samples' affinities (:func:`_best_cut`) when that leaves both halves
+    at most ``gain`` of its residual -- a joint inside it, not a
+    smooth deformation. Halves below ``min_size`` vertices are not made.
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    lab = labels.copy()
+    frames = _some_frames(len(v))
+
+    def residual(ids):
+        if len(ids) > per_segment:
+            ids = rng.choice(ids, per_segment, replace=False)
+        return rigid_residual(v[frames[:, None], ids[None, :]])
+
+    todo = [(int(x), 0) for x in np.unique(lab)]
+    while todo:
+        sgm, level = todo.pop()
+        ids = np.flatnonzero(lab == sgm)
+        own = samples[lab[samples] == sgm]
+        if level >= depth or len(own) < 8 or len(ids) < 2 * min_size:
+            continue
+        parent = residual(ids)
+        if parent <= tol:
+            continue
+        pos = np.searchsorted(samples, own) if np.all(np.diff(samples) > 0) else None
+        sub = np.flatnonzero(np.isin(samples, own)) if pos is None else pos
+        _, near = cKDTree(v[0, own]).query(v[0, ids])
+        side = _best_cut(A[np.ix_(sub, sub)], near, ids, residual, min_size)
+        if side is None or max(residual(ids[side == 0]), residual(ids[side == 1])) > gain * parent:
+            continue
+        new = int(lab.max()) + 1
+        lab[ids[side == 1]] = new
+        todo += [(sgm, level + 1), (new, level + 1)]
     return lab
 
 
@@ -557,6 +691,7 @@ def motion_segmentation(
     use_normals: bool = True,
     min_segment: float = 0.005,
     rigid_tol: float | None = 0.005,
+    interval_motion: float | None = INTERVAL_MOTION,
     max_clusters: int = 64,
     seed: int = 0,
 ) -> Segmentation:
@@ -584,6 +719,10 @@ def motion_segmentation(
         Adjacent segments whose union moves rigidly within this fraction of
         the subject's size (median residual of each, worst frame) are merged: a joint that never
         bends is no joint. ``None`` keeps the spectral segments.
+    interval_motion : float or None
+        The interval of eqs. 8-9 spans the frames in which some vertex moves
+        this many reference millimetres (:func:`interval_length`); ``None``:
+        eq. 7 as written (twice the largest step, millimetres as frames).
     max_clusters : int
     seed : int
 
@@ -597,11 +736,11 @@ def motion_segmentation(
 
     with threadpool_limits(1, "blas"):  # many small products: threads only contend on a busy machine
         return _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals,
-                                    min_segment, rigid_tol, max_clusters, seed)
+                                    min_segment, rigid_tol, interval_motion, max_clusters, seed)
 
 
 def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals, min_segment,
-                         rigid_tol, max_clusters, seed) -> Segmentation:
+                         rigid_tol, interval_motion, max_clusters, seed) -> Segmentation:
     v, f = check_sequence(vertices, faces)
     if not (lam > 0 and np.isfinite(lam)):
         raise ValueError(f"lam must be > 0, got {lam}")
@@ -617,14 +756,18 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         raise ValueError("vertices: the subject has zero size")
     to_ref = float(reference_size) / size
     samples = sample_vertices(v[0], n_samples)
-    dt = interval_length(v, to_reference=to_ref)
+    dt = interval_length(v[:, samples], to_reference=to_ref, motion=interval_motion)
     lam_units = float(lam) * to_ref
     if T < 2:
         log.warning("one frame: no motion to segment, the whole mesh is one segment")
         return Segmentation(np.zeros(V, dtype=np.int64), samples, np.zeros(len(samples), dtype=np.int64),
                             np.zeros(1), 1, dt, lam_units)
-    normals = _sample_normals(v, f, samples) if use_normals else None
-    dv, dn = trajectory_distances(v[:, samples], normals, interval=dt)
+    # a long interval on smooth trajectories: every ``stride``-th frame holds its extremes (at least
+    # WINDOW_FRAMES frames per interval), for a fraction of the work
+    stride = max(1, dt // WINDOW_FRAMES)
+    frames = np.arange(0, T, stride)
+    normals = _sample_normals(v[frames], f, samples) if use_normals else None
+    dv, dn = trajectory_distances(v[frames][:, samples], normals, interval=max(1, int(round(dt / stride))))
     d = dv * (dn + 1.0) if use_normals else dv
     A = np.exp(-lam_units * d.astype(np.float64))
     sample_labels, eig, k = spectral_clusters(A, lambda_thr=lambda_thr, max_clusters=max_clusters, seed=seed)
@@ -635,7 +778,12 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
     edges = mesh_edges(f)
     labels = _connected_segments(labels, edges, V, max(1, int(round(min_segment * V))))
     if rigid_tol is not None:
-        labels = _merge_rigid(labels, v, edges, float(rigid_tol) * size)
+        tol = float(rigid_tol) * size
+        min_size = max(1, int(round(min_segment * V)))
+        labels = _merge_rigid(labels, v, edges, tol)
+        labels = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, seed=seed)
+        labels = _connected_segments(labels, edges, V, min_size)
+        labels = _merge_rigid(labels, v, edges, tol)
         labels = _connected_segments(labels, edges, V, 1)
     if labels.max() == 0:
         log.warning("nothing bends in this sequence (the segments move rigidly together): one segment")

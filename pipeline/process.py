@@ -8,18 +8,24 @@ over time is the reduce step. Workers open the take by path themselves, so a Das
 cluster needs a shared filesystem.
 
 Every per-frame result is persisted in the output directory as soon as it is
-finished (meshes as PLY, skeletons as JSON, written atomically), and a second call
+finished (meshes as PLY, skeletons as binary ``.npz``, written atomically by a
+background thread of the task while it computes the next frame), and a second call
 on the same output directory resumes from the unfinished frames: an interrupted
 job re-run gives the same ``spine.json`` as an uninterrupted one.
+
+Frames are read once: a keying task reads its camera's frames, and the masks it
+returns (bit-packed) stay in this process and travel with the surface tasks of the
+same run, which then never open the take (a resumed run, or a take whose masks
+exceed :data:`_KEEP_MASKS_BYTES`, reads them from the take).
 
 Output directory layout::
 
     OUT/process.json              parameters and the take it came from
     OUT/meshes/frame_000000.ply   one surface per frame set (missing: empty frame)
     OUT/frames/frame_000000.json  per-frame surface quality (or why it is empty)
-    OUT/skeletons/frame_000000.json  per-frame tips and skeletons
+    OUT/skeletons/frame_000000.npz   per-frame tips and skeletons (numpy arrays, for resuming)
     OUT/spine.json                the take's spine (capture-stage/spine@1)
-    OUT/report.json               summary: steps, timings, per-frame quality, tip counts
+    OUT/report.json               summary: steps, timings, per-frame quality, tip counts, how K was chosen
 """
 
 from __future__ import annotations
@@ -58,6 +64,8 @@ MAX_VOXELS = 8_000_000
 MIN_RESOLUTION = 48
 #: Masks stored per update of the take's derived data (bytes, unpacked).
 _STORE_BATCH_BYTES = 512 << 20
+#: Keyed masks kept in memory (bit-packed) for the surface tasks, at most (else they read the take).
+_KEEP_MASKS_BYTES = 1 << 30
 
 
 
@@ -249,45 +257,153 @@ def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tupl
 # ----------------------------------------------------------------------------- per-frame tasks
 
 
-def key_task(take: str, camera: str, base: dict, workers: int) -> dict:
-    """Key one camera of the take (in a worker); the masks come back bit-packed for the
-    parent to store (one writer per take file)."""
+def key_task(take: str, cameras: Sequence[str], base: dict, workers: int) -> list[dict]:
+    """Key some cameras of the take (in a worker), the take opened once; their masks come
+    back bit-packed for the parent to store (one writer per take file)."""
     import cv2
 
     from stage.keying.params import KeyParams
     from stage.keying.take import key_camera
+    from stage.store import TakeReader
 
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # parallelism comes from the workers (threads or processes), not OpenCV's pool
+    out = []
     try:
-        key = key_camera(take, camera, base=KeyParams(**base), workers=workers)
+        with TakeReader(take) as reader:
+            for camera in cameras:
+                key = key_camera(reader, camera, base=KeyParams(**base), workers=workers)
+                if key is None:
+                    out.append({"camera": camera, "key": None})
+                    continue
+                shape = key.masks.shape
+                key.masks = np.packbits(key.masks, axis=-1)
+                out.append({"camera": camera, "key": key, "shape": shape})
     finally:
         cv2.setNumThreads(threads)
-    if key is None:
-        return {"camera": camera, "key": None}
-    shape = key.masks.shape
-    key.masks = np.packbits(key.masks, axis=-1)
-    return {"camera": camera, "key": key, "shape": shape}
+    return out
 
 
-def _skeleton_record(k: int, mesh, params) -> dict:
+def _camera_groups(cameras: Sequence[str], executor) -> list[list[str]]:
+    """Cameras per key task: two tasks per worker (each opens the take once; the last ones
+    still key while this process stores the others' masks), all in one here without one."""
+    if executor is None:
+        return [list(cameras)]
+    n = min(len(cameras), 2 * _pool_size(executor))
+    return [list(cameras[i::n]) for i in range(n)]
+
+
+def _skeleton_record(k: int, mesh, params, *, bodies: int | None = None) -> dict:
     """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of one frame's surface
-    (``None``: an empty frame), as stored in ``skeletons/``; the mesh is taken as
-    :func:`pipeline.meshio.load_mesh` reads it back (its largest connected part)."""
+    (``None``: an empty frame): ``{"index", "status", "skeleton"}`` (a :class:`FrameSkeleton`,
+    ``None`` unless ``ok``) or ``reason``. The mesh is taken as
+    :func:`pipeline.meshio.load_mesh` reads it back (its largest connected part); with
+    ``bodies == 1`` (the surface's quality counted its pieces) it is that part already."""
     from pipeline.geodesic import largest_component
     from pipeline.spine import frame_skeleton
 
     if mesh is None:
-        return {"index": int(k), "status": "empty"}
+        return {"index": int(k), "status": "empty", "skeleton": None}
     v, f = np.asarray(mesh[0], np.float64), np.asarray(mesh[1], np.int64)
-    v2, f2, _ = largest_component(v, f, warn=False)
-    if len(f2) != len(f):
-        v, f = v2, f2
+    if bodies != 1:
+        v2, f2, _ = largest_component(v, f, warn=False)
+        if len(f2) != len(f):
+            v, f = v2, f2
     try:
-        return {"index": int(k), "status": "ok", "skeleton": frame_skeleton(v, f, params=params).to_dict()}
+        return {"index": int(k), "status": "ok", "skeleton": frame_skeleton(v, f, params=params)}
     except ValueError as exc:
         log.warning("frame set %d: no skeleton: %s", k, exc)
-        return {"index": int(k), "status": "failed", "reason": str(exc)}
+        return {"index": int(k), "status": "failed", "reason": str(exc), "skeleton": None}
+
+
+_TIP_FIELDS = ("seed", "nodes", "parent", "cost", "frame", "count", "level", "tip_nodes")
+
+
+def _skeleton_bytes(rec: dict) -> bytes:
+    """A ``skeletons/`` record as an uncompressed ``.npz`` (binary arrays: exact, and a
+    fraction of the time JSON takes for the ~10^4 floats of a frame's skeletons)."""
+    import io
+
+    arrays: dict[str, np.ndarray] = {"index": np.int64(rec["index"]), "status": np.str_(rec["status"]),
+                                     "reason": np.str_(rec.get("reason", ""))}
+    sk = rec.get("skeleton")
+    if sk is not None:
+        arrays.update(tips=sk.tips, tip_vertices=sk.tip_vertices, size=np.float64(sk.size), n_faces=np.int64(sk.n_faces),
+                      limb_points=sk.limb_points, n_skeletons=np.int64(len(sk.skeletons)))
+        for i, tip in enumerate(sk.skeletons):
+            arrays.update({f"skeleton{i}.{name}": np.asarray(getattr(tip, name)) for name in _TIP_FIELDS})
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def _load_skeleton(path: Path) -> dict:
+    """A record written by :func:`_skeleton_bytes`."""
+    from pipeline.spine import FrameSkeleton
+
+    with np.load(path, allow_pickle=False) as z:
+        rec = {"index": int(z["index"]), "status": str(z["status"]), "skeleton": None}
+        if str(z["reason"]):
+            rec["reason"] = str(z["reason"])
+        if "tips" in z:
+            d = {name: z[name] for name in ("tips", "tip_vertices", "size", "n_faces", "limb_points")}
+            d["skeletons"] = [{name: z[f"skeleton{i}.{name}"] for name in _TIP_FIELDS} for i in range(int(z["n_skeletons"]))]
+            rec["skeleton"] = FrameSkeleton.from_dict(d)
+    return rec
+
+
+class _Writer:
+    """Files of a task written in order by one background thread: the disk's waits (fsync)
+    overlap the next frame's computation; :meth:`close` waits and re-raises a failed write."""
+
+    def __init__(self) -> None:
+        self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="results-writer")
+        self._pending: list[cf.Future] = []
+
+    def write(self, path: Path, data: bytes | str, *, sync: bool = False) -> None:
+        from pipeline.results import atomic_write_bytes
+
+        if sync:
+            self._pending.append(self._pool.submit(atomic_write_bytes, path, data))
+        else:
+            self._pending.append(self._pool.submit(_atomic_write, path, data))
+
+    def close(self) -> None:
+        try:
+            for fut in self._pending:
+                fut.result()
+        finally:
+            self._pool.shutdown(wait=True)
+
+
+def _atomic_write(path: Path, data: bytes | str) -> None:
+    if isinstance(data, str):
+        _atomic_write_text(path, data)
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def _unpack_masks(packed: list, widths: Sequence[int]) -> list:
+    """The masks of one frame set shipped with a task: bit-packed rows -> (H, W) bool (or None)."""
+    return [None if p is None else np.unpackbits(p, axis=-1, count=w).view(bool) for p, w in zip(packed, widths)]
+
+
+def _surface_of(carver, masks, p: ProcessParams, depth=None):
+    """The frame set's surface and its source: the hull's, or with ``depth`` (a fuser and the
+    set's depth images) the depth fused inside the hull."""
+    from pipeline.surface import surface_from_occupancy
+
+    hull = _carve(carver, masks, p)
+    if depth is not None:
+        fuser, images = depth
+        fused = fuser.fuse(images, hull=hull.occupancy)
+        return fused.surface(taubin_iterations=p.smooth_iterations, face_budget=p.face_budget), "depth+hull"
+    mesh = surface_from_occupancy(hull.occupancy, carver.grid, taubin_iterations=p.smooth_iterations,
+                                  face_budget=p.face_budget)
+    return mesh, "hull"
 
 
 def surface_task(
@@ -298,20 +414,24 @@ def surface_task(
     params: dict,
     out: str,
     spine_params: dict | None = None,
+    masks: dict | None = None,
+    use_depth: bool | None = None,
 ) -> list[dict]:
     """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/`` (and,
     with ``spine_params``, the frames' skeletons to ``skeletons/`` from the mesh in memory).
 
+    ``masks`` (optional): the sets' masks as keyed in this run, ``{"widths": [W per camera],
+    "sets": {k: [bit-packed (H, W/8) rows or None per camera]}}``; without it they are read
+    from the take. ``use_depth``: fuse depth (default: when ``params.depth`` is ``auto`` and
+    every camera has depth); with masks given and no depth, the take is not opened at all.
     Top level (picklable) so it runs in a process pool or on a Dask worker.
     """
+    from contextlib import nullcontext
+
     from pipeline.hull import EmptyHullError
-    from pipeline.results import ResultsStore
+    from pipeline.results import ResultsStore, ply_bytes
     from pipeline.spine import SpineParams
-    from pipeline.surface import (
-        EmptySurfaceError,
-        surface_from_occupancy,
-        surface_quality,
-    )
+    from pipeline.surface import EmptySurfaceError, surface_quality
     from stage.store import TakeReader
 
     p = ProcessParams(**params)
@@ -321,45 +441,51 @@ def surface_task(
     carver = _carver(calib_dict, grid_dict)
     cameras = [c["name"] for c in calib_dict["cameras"]]
     results = []
-    with TakeReader(take) as reader:
-        use_depth = p.depth == "auto" and all(reader.camera_info(c).get("has_depth") for c in cameras)
-        validity = _mask_validity(reader, cameras)
-        for k in frames:
-            t0 = time.perf_counter()
-            masks, skipped = _frame_masks(reader, cameras, k, validity)
-            info: dict = {"index": int(k), "skipped_cameras": skipped}
-            mesh = None
-            try:
-                if len(skipped) == len(cameras):
-                    raise EmptyHullError("no camera has a valid mask in this frame set")
-                hull = _carve(carver, masks, p)
-                if use_depth:
-                    fused = _fuser(calib_dict, grid_dict).fuse(_frame_depths(reader, cameras, k), hull=hull.occupancy)
-                    mesh = fused.surface(taubin_iterations=p.smooth_iterations, face_budget=p.face_budget)
-                    info["source"] = "depth+hull"
+    writer = _Writer()
+    try:
+        with TakeReader(take) if masks is None or use_depth is not False else nullcontext() as reader:
+            if use_depth is None:
+                use_depth = _uses_depth(reader, cameras, p)
+            validity = _mask_validity(reader, cameras) if masks is None else None
+            for k in frames:
+                t0 = time.perf_counter()
+                if masks is None:
+                    ms, skipped = _frame_masks(reader, cameras, k, validity)
                 else:
-                    mesh = surface_from_occupancy(
-                        hull.occupancy,
-                        carver.grid,
-                        taubin_iterations=p.smooth_iterations,
-                        face_budget=p.face_budget,
-                    )
-                    info["source"] = "hull"
-                quality = surface_quality(mesh).to_dict()
-                store.write_mesh(k, mesh)
-                info.update(status="ok", quality=quality)
-            except (EmptyHullError, EmptySurfaceError) as exc:
-                mesh = None
-                info.update(status="empty", reason=str(exc))
-                log.warning("frame set %d: %s", k, exc)
-            info["seconds"] = time.perf_counter() - t0
-            if sp is not None:
-                rec = _skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp)
-                _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec, separators=(",", ":")))
-            _atomic_write_text(out_dir / "frames" / f"{_frame_name(k)}.json", json.dumps(info))
-            # the skeleton travels back too: the spine step need not read it again
-            results.append({**info, "skeleton_record": rec} if sp is not None else info)
+                    ms = _unpack_masks(masks["sets"][k], masks["widths"])
+                    skipped = [c for c, m in zip(cameras, ms) if m is None]
+                info: dict = {"index": int(k), "skipped_cameras": skipped}
+                mesh = quality = None
+                try:
+                    if len(skipped) == len(cameras):
+                        raise EmptyHullError("no camera has a valid mask in this frame set")
+                    depth = (_fuser(calib_dict, grid_dict), _frame_depths(reader, cameras, k)) if use_depth else None
+                    mesh, info["source"] = _surface_of(carver, ms, p, depth)
+                    quality = surface_quality(mesh).to_dict()
+                    writer.write(store.mesh_path(k), ply_bytes(mesh.vertices, mesh.faces), sync=True)
+                    info.update(status="ok", quality=quality)
+                except (EmptyHullError, EmptySurfaceError) as exc:
+                    mesh = None
+                    info.update(status="empty", reason=str(exc))
+                    log.warning("frame set %d: %s", k, exc)
+                info["seconds"] = time.perf_counter() - t0
+                res = dict(info)
+                if sp is not None:
+                    rec = _skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp,
+                                           bodies=None if quality is None else quality["bodies"])
+                    writer.write(out_dir / "skeletons" / f"{_frame_name(k)}.npz", _skeleton_bytes(rec))
+                    res["skeleton"] = rec["skeleton"]  # travels back: the spine step need not read it again
+                # written last: a frame with its record has its mesh (and skeletons) on disk
+                writer.write(out_dir / "frames" / f"{_frame_name(k)}.json", json.dumps(info))
+                results.append(res)
+    finally:
+        writer.close()
     return results
+
+
+def _uses_depth(reader, cameras: Sequence[str], p: ProcessParams) -> bool:
+    """Depth is fused when the job allows it and every camera of the take delivers depth."""
+    return p.depth == "auto" and all(reader.camera_info(c).get("has_depth") for c in cameras)
 
 
 def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
@@ -375,8 +501,8 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
     for k in frames:
         mesh_path = store.mesh_path(k)
         rec = _skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
-        _atomic_write_text(out_dir / "skeletons" / f"{_frame_name(k)}.json", json.dumps(rec, separators=(",", ":")))
-        done.append({"index": int(k), "status": rec["status"], "skeleton_record": rec})
+        _atomic_write(out_dir / "skeletons" / f"{_frame_name(k)}.npz", _skeleton_bytes(rec))
+        done.append({"index": int(k), "status": rec["status"], "skeleton": rec["skeleton"]})
     return done
 
 
@@ -402,10 +528,10 @@ def _carve(carver, masks, p: ProcessParams):
     return carver.carve(masks, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
 
 
-def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, volume_bounds: np.ndarray):
-    """A grid fitted to the subject: carve a few frame sets coarsely over the whole volume,
-    take the union of their hulls' boxes (padded), and put ``resolution`` voxels along its
-    longest side."""
+def _subject_grid(masks_of: Callable, calibration, n_sets: int, p: ProcessParams, volume_bounds: np.ndarray):
+    """The subject's box: carve a few frame sets coarsely over the whole volume and take the
+    union of their hulls' boxes (padded, grown for motion). ``masks_of(k)`` gives the masks
+    of set ``k`` and the cameras skipped (:func:`_frame_masks`)."""
     from scipy import ndimage
 
     from pipeline.hull import EmptyHullError, HullCarver
@@ -416,10 +542,9 @@ def _subject_grid(reader, calibration, cameras, n_sets: int, p: ProcessParams, v
     carver = HullCarver(calibration, coarse)
     sample = np.unique(np.linspace(0, n_sets - 1, min(n_sets, 8)).round().astype(int))
     lo, hi = None, None
-    validity = _mask_validity(reader, cameras)
     for k in sample:
-        masks, skipped = _frame_masks(reader, cameras, int(k), validity)
-        if len(skipped) == len(cameras):
+        masks, skipped = masks_of(int(k))
+        if len(skipped) == len(calibration):
             continue
         try:
             occ = _carve(carver, masks, p).occupancy
@@ -509,23 +634,33 @@ class RunContext:
     tip_counts: list[int | None] = field(default_factory=list)
     grid_choice: dict = field(default_factory=dict)
     steps: tuple[str, ...] = ()
-    skeletons: dict[int, dict] = field(default_factory=dict)  # frame -> skeletons/ record, as computed
+    skeletons: dict[int, object] = field(default_factory=dict)  # frame -> FrameSkeleton (None: none), as computed
+    keyed: dict | None = field(default_factory=dict)  # camera -> (bit-packed masks, width, valid) keyed in this run
+    set_table: np.ndarray | None = None  # (S, C) frame row of every camera in every set
+    limb_count: dict = field(default_factory=dict)  # the spine's K and the rule that chose it
+    step: str = ""  # the step running
+    cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds (this process and the workers)
+    worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks on the executor
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
             self.progress(step, done, total)
 
-    def run_frames(self, step: str, task: Callable[[list[int]], list[dict]], done_dir: str) -> None:
+    def run_frames(self, step: str, task: Callable[..., list[dict]], done_dir: str, *, suffix: str = ".json",
+                   chunk_args: Callable[[list[int]], dict] | None = None) -> None:
         """Run a per-frame ``task`` on every frame set without a result in ``OUT/done_dir``
-        (the one runner all per-frame steps share: chunks, executor, progress, cancel)."""
-        todo = [k for k in range(self.n_sets) if not (self.out / done_dir / f"{_frame_name(k)}.json").exists()]
+        (the one runner all per-frame steps share: chunks, executor, progress, cancel);
+        ``chunk_args(frames)`` adds keywords per chunk (e.g. its masks)."""
+        todo = [k for k in range(self.n_sets) if not (self.out / done_dir / f"{_frame_name(k)}{suffix}").exists()]
         done = self.n_sets - len(todo)
         self.report_progress(step, done, self.n_sets)
-        for finished in _map_tasks(self, [partial(task, ch) for ch in _chunks(todo, self.params.chunk)]):
+        chunks = _chunks(todo, self.params.chunk)
+        tasks = [partial(task, ch, **(chunk_args(ch) if chunk_args else {})) for ch in chunks]
+        for finished in _map_tasks(self, tasks):
             done += len(finished)
             for rec in finished:
-                if "skeleton_record" in rec:
-                    self.skeletons[rec["index"]] = rec.pop("skeleton_record")
+                if "skeleton" in rec:
+                    self.skeletons[rec["index"]] = rec.pop("skeleton")
             self.report_progress(step, done, self.n_sets)
 
 
@@ -575,13 +710,17 @@ def _step_key(ctx: RunContext) -> None:
     # masks unpacked as each camera arrives; those done are stored once a worker falls idle
     # (the last cameras still keying: a core is free then), the rest at the end: few updates of
     # the derived data (each copies it), at most ~512 MB of masks a batch
-    pending = len(ctx.cameras)
+    groups = _camera_groups(ctx.cameras, where.executor)
+    pending = len(groups)
     overlap_at = max(1, _pool_size(where.executor) - 1) if where.executor is not None else 0
     batch: list = []
-    for res in _map_tasks(where, [partial(key_task, str(ctx.take), cam, base, threads) for cam in ctx.cameras]):
+    for results in _map_tasks(where, [partial(key_task, str(ctx.take), g, base, threads) for g in groups]):
         pending -= 1
-        if res["key"] is not None:
+        for res in results:
+            if res["key"] is None:
+                continue
             key = res["key"]
+            _keep_masks(ctx, key, res["shape"][-1])
             key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).view(bool)
             done += len(key.valid)
             if batch and sum(k.masks.nbytes for k in batch) + key.masks.nbytes > _STORE_BATCH_BYTES:
@@ -597,6 +736,33 @@ def _step_key(ctx: RunContext) -> None:
     ctx.timings["key"] = time.perf_counter() - t0
 
 
+def _keep_masks(ctx: RunContext, key, width: int) -> None:
+    """Keep a camera's bit-packed masks for the surface step (within :data:`_KEEP_MASKS_BYTES`)."""
+    if ctx.keyed is None:
+        return
+    ctx.keyed[key.camera] = (key.masks, int(width), np.asarray(key.valid, bool))
+    if sum(m.nbytes for m, _, _ in ctx.keyed.values()) > _KEEP_MASKS_BYTES:
+        ctx.keyed = None  # a long take: the surface tasks read the masks from it
+
+
+def _kept_masks(ctx: RunContext) -> Callable[[list[int]], dict] | None:
+    """Per chunk of frame sets, its masks as keyed in this run (``surface_task(masks=)``), or
+    None when they are not all in memory (a resumed run, a long take)."""
+    if not ctx.keyed or set(ctx.keyed) != set(ctx.cameras) or ctx.set_table is None:
+        return None
+    kept = [ctx.keyed[c] for c in ctx.cameras]
+    widths = [w for _, w, _ in kept]
+
+    def packed(k: int) -> list:
+        out = []
+        for (m, _, valid), r in zip(kept, ctx.set_table[k]):
+            ok = 0 <= r < len(m) and (r >= len(valid) or valid[r])  # as _frame_masks
+            out.append(m[r] if ok else None)
+        return out
+
+    return lambda frames: {"masks": {"widths": widths, "sets": {k: packed(k) for k in frames}}}
+
+
 def _pool_size(executor) -> int:
     """Tasks an executor runs at once (a process pool's workers; 2 when it does not say)."""
     return int(getattr(executor, "_max_workers", 0) or 2)
@@ -608,9 +774,16 @@ def _forking_pool(executor) -> bool:
     return isinstance(executor, cf.ProcessPoolExecutor) and (ctx is None or ctx.get_start_method(allow_none=False) == "fork")
 
 
+def _with_cpu(task: Callable[[], object]) -> tuple[object, float]:
+    """A task's result and the CPU seconds its process spent on it (run in the worker)."""
+    t = time.process_time()
+    out = task()
+    return out, time.process_time() - t
+
+
 def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
     """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
-    between tasks when cancelled."""
+    between tasks when cancelled. The workers' CPU seconds add to the running step's."""
 
     def check_cancel() -> None:
         if ctx.cancel is not None and ctx.cancel.is_set():
@@ -621,11 +794,13 @@ def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
             check_cancel()
             yield task()
         return
-    futures = [ctx.executor.submit(task) for task in tasks]
+    futures = [ctx.executor.submit(_with_cpu, task) for task in tasks]
     try:
         for fut in cf.as_completed(futures):
             check_cancel()
-            yield fut.result()
+            out, cpu = fut.result()
+            ctx.worker_cpu[ctx.step] = ctx.worker_cpu.get(ctx.step, 0.0) + cpu
+            yield out
     finally:
         for fut in futures:
             fut.cancel()
@@ -659,7 +834,17 @@ def _processing_grid(ctx: RunContext):
             grid = Grid.from_dict(json.loads(grid_path.read_text()))
             ctx.grid_choice = json.loads(grid_path.read_text()).get("choice", {})
             return grid
-        box = _subject_grid(reader, ctx.calibration, ctx.cameras, ctx.n_sets, ctx.params, _volume_bounds(ctx))
+        kept = _kept_masks(ctx)
+        if kept is not None:  # the masks keyed in this run, in memory
+            widths = [w for _, w, _ in (ctx.keyed[c] for c in ctx.cameras)]
+
+            def masks_of(k: int):
+                ms = _unpack_masks(kept([k])["masks"]["sets"][k], widths)
+                return ms, [c for c, m in zip(ctx.cameras, ms) if m is None]
+        else:
+            validity = _mask_validity(reader, ctx.cameras)
+            masks_of = partial(_frame_masks, reader, ctx.cameras, validity=validity)
+        box = _subject_grid(masks_of, ctx.calibration, ctx.n_sets, ctx.params, _volume_bounds(ctx))
     p = ctx.params
     res, why = _rig_resolution(ctx.calibration, box, p)
     grid = grid_from_volume(box, res)
@@ -676,10 +861,15 @@ def _processing_grid(ctx: RunContext):
 
 def _step_surface(ctx: RunContext) -> None:
     """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
-    t0 = time.perf_counter()
+    from stage.store import TakeReader
+
+    t0, c0 = time.perf_counter(), time.process_time()
     grid = _processing_grid(ctx)
+    with TakeReader(ctx.take) as reader:
+        use_depth = _uses_depth(reader, ctx.cameras, ctx.params)
     _add_to_record(ctx, grid=ctx.grid_choice)
     ctx.timings["grid"] = time.perf_counter() - t0
+    ctx.cpu["grid"] = time.process_time() - c0
     t0 = time.perf_counter()
     task = partial(
         surface_task,
@@ -690,8 +880,9 @@ def _step_surface(ctx: RunContext) -> None:
         out=str(ctx.out.resolve()),
         # skeletons straight from the surfaces in memory when the spine step follows
         spine_params=ctx.params.spine if "spine" in ctx.steps else None,
+        use_depth=use_depth,
     )
-    ctx.run_frames("surface", task, "frames")
+    ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx))
     ctx.timings["surface"] = time.perf_counter() - t0
 
 
@@ -703,16 +894,19 @@ def _step_spine(ctx: RunContext) -> None:
     if any(not (ctx.out / "frames" / f"{_frame_name(k)}.json").exists() for k in range(n)):
         raise ProcessError(f"{ctx.out}: surfaces are missing for some frames; run the surface step")
     t0 = time.perf_counter()
-    ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons")
+    ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons",
+                   suffix=".npz")
     skeletons: list[FrameSkeleton] = []
     for k in range(n):
-        rec = ctx.skeletons.get(k) or json.loads((ctx.out / "skeletons" / f"{_frame_name(k)}.json").read_text())
-        sk = FrameSkeleton.from_dict(rec["skeleton"]) if rec["status"] == "ok" else FrameSkeleton.empty()
+        sk = ctx.skeletons[k] if k in ctx.skeletons else _load_skeleton(ctx.out / "skeletons" / f"{_frame_name(k)}.npz")["skeleton"]
+        sk = FrameSkeleton.empty() if sk is None else sk
         skeletons.append(sk)
         ctx.tip_counts[k] = sk.n_tips
     ctx.report_progress("spine", 0, 1)
     spine = build_spine(skeletons, fps=float(ctx.fps), units=ctx.calibration.units, params=SpineParams(**ctx.params.spine))
     ctx.spine_path = write_spine(ctx.out / "spine.json", spine)
+    # how K was chosen (the mode of the tip counts, or a borderline count decided): in the report
+    ctx.limb_count = {"K": int(spine.meta.get("K", len(spine.limb_ids))), "rule": spine.meta.get("count_rule", "mode")}
     ctx.report_progress("spine", 1, 1)
     ctx.timings["spine"] = time.perf_counter() - t0
 
@@ -796,12 +990,14 @@ def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunC
             # the rig's (or the import's) support plane, unless the job gives its own
             params = ProcessParams(**{**params.model_dump(), "support_plane": tuple(rig["support_plane"])})
         need_key = params.rekey or len(reader.masks_present()) < len(cameras)
+        table = reader.set_table()
+        set_table = table[:, [list(reader.cameras).index(c) for c in cameras]]
     if n_sets == 0:
         raise ProcessError(f"{take}: the take holds no frame sets")
     calibration = type(calibration)(tuple(calibration[c] for c in cameras), units=calibration.units, meta=calibration.meta)
     return RunContext(
         take=take, out=out, params=params, calibration=calibration, cameras=cameras, n_sets=n_sets,
-        fps=float(fps), rig=rig, need_key=need_key, tip_counts=[None] * n_sets, **hooks,
+        fps=float(fps), rig=rig, need_key=need_key, tip_counts=[None] * n_sets, set_table=set_table, **hooks,
     )
 
 
@@ -840,12 +1036,14 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "cameras": ctx.cameras,
         "steps": list(steps),
         "seconds": ctx.timings,
+        "cpu_seconds": ctx.cpu,
         "total_seconds": time.perf_counter() - t_start,
         "empty_frames": empty,
         "tip_counts": ctx.tip_counts,
         "per_frame": [frame_infos.get(k) for k in range(ctx.n_sets)],
         "warnings": ctx.warnings,
         "grid": ctx.grid_choice,
+        "limb_count": ctx.limb_count,
     }
     _atomic_write_text(ctx.out / "report.json", json.dumps(report, indent=1, default=_json_default))
     return ProcessResult(
@@ -912,12 +1110,22 @@ def process_take(
             out.mkdir(parents=True, exist_ok=True)
             _start_record(ctx)
             for name in steps:
-                _REGISTRY[name].run(ctx)
+                _run_step(ctx, name)
             return _write_report(ctx, steps, t_start)
     except Exception:
         if created and out.is_dir():  # a failed run leaves no results folder it made itself
             shutil.rmtree(out, ignore_errors=True)
         raise
+
+
+def _run_step(ctx: RunContext, name: str) -> None:
+    """Run one step; its CPU seconds (this process's and its tasks' on the executor) go to
+    ``ctx.cpu`` (the surface step's without the grid choice, which it records itself)."""
+    ctx.step = name
+    t = time.process_time()
+    _REGISTRY[name].run(ctx)
+    own = time.process_time() - t - (ctx.cpu.get("grid", 0.0) if name == "surface" else 0.0)
+    ctx.cpu[name] = own + ctx.worker_cpu.get(name, 0.0)
 
 
 def _space_needed(ctx: RunContext, steps: Sequence[str]) -> int:

@@ -50,6 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "diagonal since the last one, unless it links cameras (default 0.02)")
     p.add_argument("--step", type=int, default=1, help="look at every N-th frame (default 1)")
     p.add_argument("--fix-k3", action="store_true", help="fix the k3 distortion term (few views, mild lenses)")
+    p.add_argument("--distortion", choices=("full", "auto"), default="full",
+                   help="distortion model per camera: full (default) keeps all five coefficients; auto holds p1, p2 "
+                   "and/or k3 at 0 where the camera's own views do not support them (information criterion): "
+                   "steadier principal points when the board covered little of the image")
     p.add_argument("--intrinsics", choices=("prior", "fixed", "free"), default="prior",
                    help="intrinsics in the bundle adjustment: refined under a prior from each camera's own "
                    "calibration (default), kept fixed, or refined freely")
@@ -413,7 +417,7 @@ def _run(args: argparse.Namespace) -> int:
     result = calibrate_rig(
         detections, sizes, board, cameras=cams, world=args.world, world_frame=args.world_frame,
         intrinsics=mode, fix_k3=args.fix_k3, min_change=args.min_change, holdout_folds=args.holdout,
-        flipped=flipped,
+        flipped=flipped, distortion=args.distortion,
     )
     for line in result.evaluation.get("flipped", ()):
         print(f"  note: {line}")

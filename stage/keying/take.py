@@ -6,12 +6,16 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stage.keying.keyer import estimate_model, key_frames
 from stage.keying.params import KeyParams, KeyResult
 from stage.keying.preview import contact_sheet
+
+if TYPE_CHECKING:
+    from stage.store import TakeReader
 
 __all__ = ["key_take", "key_camera", "store_camera_key", "store_camera_keys", "take_key_params", "CameraKey"]
 
@@ -50,7 +54,7 @@ def take_key_params(rig: dict | None, *, key_mode: str | None = None, grow: int 
 
 
 def key_camera(
-    take: str | Path,
+    take: str | Path | TakeReader,
     camera: str,
     *,
     base: KeyParams,
@@ -61,18 +65,22 @@ def key_camera(
     """Key every frame of one camera of a take (backdrop model from 16 frames); stores nothing.
 
     Returns None for a camera without frames. Runs anywhere the take can be read (a worker
-    process too); :func:`store_camera_key` writes the result into the take.
+    process too); :func:`store_camera_key` writes the result into the take. ``take`` may be
+    an open :class:`stage.store.TakeReader` (left open: several cameras, one opening).
     """
+    from contextlib import nullcontext
+
     from stage.store import TakeReader
 
-    with TakeReader(take) as r:
+    with nullcontext(take) if isinstance(take, TakeReader) else TakeReader(take) as r:
         n = r.n_frames(camera)
         if n == 0:
             log.warning("%s: no frames", camera)
             return None
         plate = r.read_array(f"cameras/{camera}", "plate")[0] if r.has_array(f"cameras/{camera}", "plate") else None
         sample_idx = np.unique(np.linspace(0, n - 1, min(n, 16)).round().astype(int))
-        sample = np.stack([r.frame(camera, int(i)) for i in sample_idx])
+        first = r.frames(camera, 0, min(n, _CHUNK))  # one read; a short take's sample comes from it
+        sample = first[sample_idx] if n <= _CHUNK else np.stack([r.frame(camera, int(i)) for i in sample_idx])
         if plate is not None and (plate.dtype != np.uint8 or plate.shape != sample.shape[1:]):
             log.warning("%s: stored plate has shape %s, ignored", camera, plate.shape)
             plate = None
@@ -83,7 +91,7 @@ def key_camera(
         preview_frames = []
         for start in range(0, n, _CHUNK):
             stop = min(n, start + _CHUNK)
-            frames = np.stack([r.frame(camera, i) for i in range(start, stop)])
+            frames, first = (first, None) if start == 0 else (r.frames(camera, start, stop), None)
             res = key_frames(frames, params=params, plate=plate, workers=workers, camera=camera, progress=progress)
             masks[start:stop] = res.masks
             valid[start:stop] = res.valid
@@ -113,7 +121,7 @@ def store_camera_keys(take: str | Path, keys: Sequence[CameraKey]) -> None:
             if key.masks.shape != shape:
                 raise ValueError(f"masks of camera {key.camera} must have shape {shape}, got {key.masks.shape}")
             meta = {"key": key.params.to_dict(), "valid": key.valid.tolist(), "reasons": key.reasons}
-            arrays.append((f"cameras/{key.camera}", "masks", key.masks.astype(bool), meta))
+            arrays.append((f"cameras/{key.camera}", "masks", np.asarray(key.masks, bool), meta))  # no copy of bool masks
             arrays.append((f"cameras/{key.camera}", "mask_valid", key.valid.astype(np.uint8), {"reasons": key.reasons}))
     write_arrays(take, arrays)
 

@@ -291,7 +291,7 @@ def write_arrays(path: str | os.PathLike, arrays: Sequence[tuple[str, str, np.nd
             kw: dict[str, Any] = {}
             if arr.ndim >= 2 and arr.size:
                 kw = {"chunks": (1,) + arr.shape[1:] if arr.ndim >= 3 else arr.shape, **derived_filter_kwargs()}
-            ds = grp.create_dataset(name, data=arr.astype(np.uint8) if arr.dtype == bool else arr, **kw)
+            ds = grp.create_dataset(name, data=arr.view(np.uint8) if arr.dtype == bool else arr, **kw)  # no copy
             if arr.dtype == bool:
                 ds.attrs["bool"] = True
             if params is not None:

@@ -316,6 +316,22 @@ class TakeReader:
             return np.zeros((H, W, 3), np.uint8)
         return decode_jpeg(np.frombuffer(data, np.uint8), f"{self.path}: {where}")
 
+    def frames(self, camera: str, start: int, stop: int) -> np.ndarray:
+        """Decoded frames ``start:stop`` (rows of the camera) as (N, H, W, 3) uint8 BGR; one
+        read of the file for raw storage, where :meth:`frame` per row pays h5py's per-call cost."""
+        n = self._counts[self._check_camera(camera)]
+        start, stop = int(start), int(stop)
+        if not 0 <= start <= stop <= n:
+            raise IndexError(f"{self.path}: camera {camera}: frames {start}:{stop} out of range (0..{n})")
+        g = self._f["cameras"][camera]
+        if "image" in g:
+            return self._read(g["image"], slice(start, stop), f"camera {camera} frames {start}:{stop}")
+        W, H = self.image_size(camera)
+        out = np.empty((stop - start, H, W, 3), np.uint8)
+        for j, i in enumerate(range(start, stop)):
+            out[j] = self.frame(camera, i)
+        return out
+
     def encoded(self, camera: str, i: int) -> bytes | None:
         """The JPEG bytes of frame ``i`` as the camera delivered them (None for raw storage)."""
         i = self._check_row(camera, i)

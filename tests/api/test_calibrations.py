@@ -235,6 +235,12 @@ def test_calibrate_take_finds_a_mirrored_camera(make_client, mirrored_take):
     assert r.status_code == 202, r.text
     st = wait_job(client, r.json()["job"], timeout=120)
     assert st["state"] == "failed" and "cam01" in str(st) and "mirror = false" in str(st), st
+    # the message names the request field, not the command line's --mirror
+    assert 'parameters.mirror.cam01 = "false"' in str(st) and "--mirror" not in str(st), st
+    r = client.post("/calibrations", json={"take": "mir", "parameters": {"board": CHARUCO,
+                                                                        "mirror": {"cam09": "true"}}}, headers=AUTH)
+    st = wait_job(client, r.json()["job"], timeout=120)
+    assert st["state"] == "failed" and 'parameters.mirror.cam09 = "true": unknown camera' in str(st), st
     r = client.post("/calibrations", json={"take": "mir", "parameters": {"board": CHARUCO,
                                                                         "mirror": {"cam01": "sometimes"}}}, headers=AUTH)
     assert r.status_code == 400 and "parameters" in r.json()["detail"], r.text

@@ -50,15 +50,20 @@ def test_focal_lengths_within_3_percent(session):
             assert ours.K[i, i] == pytest.approx(theirs.K[i, i], rel=0.03), ours.name
 
 
-# Relative rotations: the target is 2 degrees. Measured 1.3-2.4 degrees: the principal points these
-# extrinsic videos support (board on 12-19 % of each image) are uncertain by about 7 px (1 sigma, 0.6
-# degrees at these focal lengths), and caliscope's come from separate intrinsic sessions that are not
-# part of the data; on the same detections our held-out error is the lower one for every camera.
-# The data cannot place the rotations closer: calibrating on random 80 % subsets of the frame sets
-# moves the relative rotations by a median 0.5-1.4 degrees per pair (up to 2.2); simpler distortion
-# models (k1, k2 / no k3 / k3 only where the Zhang covariance supports it) keep the held-out error
-# within 0.02 px and give 3.5-4.3 degrees; the prior weighted 1/9 to 9 times gives 2.3-3.3 degrees.
-# (docs/calibration.md, "Real footage").
+# Relative rotations: the target is 2 degrees; measured 1.29-2.37 with the defaults. What limits them is
+# the intrinsics, not the extrinsics: with caliscope's intrinsics held, our bundle adjustment gives
+# caliscope's relative rotations within 0.43 degrees, and with only caliscope's principal points within
+# 1.0 (test_extrinsics_agree_given_caliscope_intrinsics). These videos do not pin the principal points:
+# the board covers 12-19 % of each image and the tangential terms p1, p2 are correlated 0.97-0.99 with
+# cx on cam_1 and cam_2, so cx slides along that valley (caliscope's intrinsics come from separate
+# sessions, not in the data). Our own 1-sigma of the relative rotations, from the 5 held-out fold
+# calibrations (grouped jackknife), is 0.8-1.75 degrees per pair (the bundle adjustment's covariance
+# says 0.5-0.64: it takes the corner errors as independent, but a hand-held board moves between the
+# webcams' exposures); every difference to caliscope is within 2.4 of those sigmas, before caliscope's
+# own error. Robust losses, dropping corners above 2-3 sigma, cornerSubPix at detection and using
+# every view do not bring them closer (docs/calibration.md, "Real footage"); holding unsupported
+# distortion terms at zero does (--distortion auto, below), at a cost on well-covered rigs, so it is
+# an option, not the default.
 ROTATION_TOL_DEG = 2.5
 
 
@@ -73,6 +78,56 @@ def test_camera_distances_and_relative_rotations(session):
         Rr = theirs[a].R @ theirs[b].R.T
         angle = np.degrees(np.arccos(np.clip((np.trace(Ro.T @ Rr) - 1) / 2, -1, 1)))
         assert angle < ROTATION_TOL_DEG, (ours[a].name, ours[b].name, angle)
+
+
+def test_rotation_gap_is_within_our_uncertainty(session):
+    _, result, ref, *_ = session
+    ev = result.evaluation
+    folds, cov = ev["rotation_folds_deg"]["pairs"], ev["rotation_sigma_deg"]["pairs"]
+    ours = result.calibration
+    for a, b in itertools.combinations(range(len(ours)), 2):
+        key = f"{ours[a].name} - {ours[b].name}"
+        Ro, Rr = ours[a].R @ ours[b].R.T, ref[a].R @ ref[b].R.T
+        angle = np.degrees(np.arccos(np.clip((np.trace(Ro.T @ Rr) - 1) / 2, -1, 1)))
+        assert 0 < cov[key] < folds[key] and angle < 3 * folds[key], (key, angle, folds[key])
+    table = result.report()
+    assert "rotation deg vs" in table and "(covariance / folds)" in table
+    # the folds vary far more than independent corner errors explain: the report says why
+    assert any("errors shared by whole views dominate" in w for w in result.warnings)
+
+
+def test_extrinsics_agree_given_caliscope_intrinsics(session):
+    """With caliscope's intrinsics held, our extrinsics reproduce caliscope's relative rotations."""
+    from calib.extrinsics import calibrate_extrinsics
+
+    board, result, ref, *_ = session
+    dets = result.evaluation["detections"]
+    seen: dict[int, int] = {}
+    for n in ref.names:
+        for d in dets[n]:
+            seen[d.frame] = seen.get(d.frame, 0) + 1
+    linked = {n: [d for d in dets[n] if seen[d.frame] >= 2] for n in ref.names}
+    ext = calibrate_extrinsics(linked, list(ref.cameras), board, optimize_intrinsics=False)
+    ours = ext.calibration
+    for a, b in itertools.combinations(range(len(ours)), 2):
+        Ro, Rr = ours[a].R @ ours[b].R.T, ref[a].R @ ref[b].R.T
+        angle = np.degrees(np.arccos(np.clip((np.trace(Ro.T @ Rr) - 1) / 2, -1, 1)))
+        assert angle < 1.0, (ours[a].name, ours[b].name, angle)
+
+
+def test_auto_distortion_model(session):
+    """--distortion auto: p1, p2 (and k3) held at zero where a camera's views do not support them."""
+    board, result, ref, *_ = session
+    auto = calibrate_rig(result.evaluation["detections"], {c.name: c.size for c in result.calibration}, board,
+                         cameras=ref.names, distortion="auto")
+    assert all(r.dropped for r in auto.intrinsics.values())
+    ours = auto.calibration
+    for a, b in itertools.combinations(range(len(ours)), 2):
+        Ro, Rr = ours[a].R @ ours[b].R.T, ref[a].R @ ref[b].R.T
+        angle = np.degrees(np.arccos(np.clip((np.trace(Ro.T @ Rr) - 1) / 2, -1, 1)))
+        assert angle < 2.0, (ours[a].name, ours[b].name, angle)
+        assert np.linalg.norm(ours[a].center - ours[b].center) == pytest.approx(
+            np.linalg.norm(ref[a].center - ref[b].center), rel=0.03)
 
 
 def test_held_out_error_at_most_caliscope_on_same_detections(session):

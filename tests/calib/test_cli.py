@@ -40,6 +40,25 @@ def test_calibrate_images_then_export(stereo_dir, tmp_path, capsys):
         assert read_calibration(out.with_suffix(ext)) == calib
 
 
+def test_calibrate_distortion_auto_and_rotation_uncertainty(stereo_dir, tmp_path, capsys):
+    import json
+
+    out, rep = tmp_path / "calib.toml", tmp_path / "report.json"
+    assert main(["calibrate", "--images", str(stereo_dir / "imgs"), "--board", str(stereo_dir / "board.toml"),
+                 "--out", str(out), "--holdout", "0", "--distortion", "auto", "--report", str(rep)]) == 0
+    text = capsys.readouterr().out
+    assert "rotation deg vs " in text
+    report = json.loads(rep.read_text())
+    for r in report["intrinsics"].values():
+        assert set(r["dropped_by_model_selection"]) <= {"p1", "p2", "k3"}
+        assert set(r["dropped_by_model_selection"]) <= set(r["held_at_zero"])
+    sig = report["evaluation"]["rotation_sigma_deg"]
+    assert sig["reference"] in ("left", "right") and 0 < sig["pairs"]["left - right"] < 1.0
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--images", str(stereo_dir / "imgs"), "--board", str(stereo_dir / "board.toml"),
+              "--distortion", "some"])
+
+
 def test_calibrate_wrong_board_writes_nothing(stereo_dir, tmp_path, capsys):
     out = tmp_path / "calib.toml"
     # every 4th frame: a failed chessboard search costs ~0.5 s an image, and 4 frames per camera show the same

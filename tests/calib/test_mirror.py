@@ -25,7 +25,7 @@ def test_sample_positions_are_even_and_bounded():
 def test_invalid_input(tmp_path):
     with pytest.raises(ValueError, match="--mirror x=true: unknown camera 'x'"):
         parse_mirror(["x=true"], ["a"])
-    with pytest.raises(ValueError, match="mirror a=maybe: the value must be auto, true or false"):
-        parse_mirror({"a": "maybe"}, ["a"], option="mirror")
+    with pytest.raises(ValueError, match='parameters.mirror.a = "maybe": the value must be auto, true or false'):
+        parse_mirror({"a": "maybe"}, ["a"], spelling='parameters.mirror.{camera} = "{value}"')
     with pytest.raises(ValueError, match="step"):
         detect_take(tmp_path / "none.h5", None, step=0)

@@ -112,6 +112,20 @@ def test_report_figures(rig):
     assert ev["geometry_all"]["frames"] == with_truth["frames"] > 0
     assert ev["geometry_all"]["neighbor_rms"] < 1.2 * with_truth["neighbor_rms"]
     assert res.to_dict()["summary"] == res.summary()
+    # how sure the rotations are: the covariance figure and the folds' spread, per camera vs the reference
+    rs, rf = ev["rotation_sigma_deg"], ev["rotation_folds_deg"]
+    assert rs["per_camera"][rs["reference"]] == 0.0 and rf["folds"] == 3
+    est = res.calibration
+    for a in range(len(est)):
+        for b in range(a + 1, len(est)):
+            key = f"{est[a].name} - {est[b].name}"
+            d = (est[a].R @ est[b].R.T) @ (truth[a].R @ truth[b].R.T).T
+            err = np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1)))
+            # independent noise: the true error within 3 sigma, the folds' spread near the covariance
+            assert err < 3 * rs["pairs"][key], (key, err, rs["pairs"][key])
+            assert rs["pairs"][key] / 3 < rf["pairs"][key] < 3 * rs["pairs"][key], key
+    assert "rotation deg vs " + rs["reference"] in res.report()
+    assert not any("errors shared by whole views" in w for w in res.warnings)  # independent noise only
 
 
 def test_invalid_input(rig):

@@ -44,11 +44,61 @@ def test_trajectory_distances_match_the_definition(T, dt):
     np.testing.assert_allclose(dn, rn, atol=2e-3)
 
 
-def test_interval_length_is_twice_the_largest_step():
+def test_interval_length_literal_eq7_is_twice_the_largest_step():
     v = np.zeros((5, 4, 3))
     v[3, 2, 0] = 4.0  # one vertex steps 4 then back 4
-    assert interval_length(v) == 4  # 2 * 4 = 8, capped at T - 1 = 4
-    assert interval_length(v, to_reference=0.25) == 2
+    assert interval_length(v, motion=None) == 4  # 2 * 4 = 8, capped at T - 1 = 4
+    assert interval_length(v, to_reference=0.25, motion=None) == 2
+
+
+def test_interval_length_follows_the_motion():
+    """The frames the fastest vertex needs to travel ``motion`` at its top speed: 5x the rate, 5x the frames."""
+    t = np.arange(200, dtype=np.float64)
+    v = np.zeros((200, 3, 3))
+    v[:, 0, 0] = 30.0 * np.sin(t / 20.0)  # top speed 1.5 a frame
+    v[:, 1, 1] = 0.2 * t  # slower
+    slow = np.linspace(0.0, 199.0, 996)  # the same motion at 5x the frame rate (0.2 frames apart)
+    v5 = np.zeros((996, 3, 3))
+    v5[:, 0, 0] = 30.0 * np.sin(slow / 20.0)
+    v5[:, 1, 1] = 0.2 * slow
+    speed = np.abs(np.diff(v[:, 0, 0])).max()
+    assert interval_length(v, motion=30.0) == round(30.0 / speed)  # 20 frames
+    assert interval_length(v, to_reference=2.0, motion=30.0) == round(15.0 / speed)
+    assert abs(interval_length(v5, motion=30.0) - 5 * interval_length(v, motion=30.0)) <= 1
+    assert interval_length(v, motion=1e6) == 199  # capped at T - 1
+    assert interval_length(np.zeros((6, 3, 3)), motion=30.0) == 5  # nothing moves: the whole sequence
+    with pytest.raises(ValueError, match="motion"):
+        interval_length(v, motion=0.0)
+
+
+def _agreement(a, b):
+    """Fraction of vertices with the same segment under the best one-to-one matching of the labels."""
+    from scipy.optimize import linear_sum_assignment
+
+    C = np.zeros((a.max() + 1, b.max() + 1))
+    np.add.at(C, (a, b), 1)
+    r, c = linear_sum_assignment(-C)
+    return C[r, c].sum() / len(a)
+
+
+def test_five_times_the_frame_rate_gives_the_same_segments():
+    """The simulated quadruped's stride at 20 and at 100 frames: the interval spans the same motion."""
+    from fake_cameras.mesh_motion import mesh_sequence
+
+    segs = []
+    for frames in (20, 100):
+        ms = mesh_sequence("quadruped", frames=frames, voxel=10.0, dtype=np.float32)
+        segs.append(motion_segmentation(ms.vertices, ms.faces, lambda_thr=0.98, n_samples=600))
+    a, b = segs
+    # measured: 10 and 49 frames
+    assert abs(b.interval - 5 * a.interval) <= 2
+    assert a.n_segments == b.n_segments
+    # measured: 0.97 of the vertices carry the same segment (boundaries move by about a sample spacing)
+    assert _agreement(a.labels, b.labels) >= 0.9
+    # eq. 7 as written: the interval is a fifth of the stride's (2 x the largest step, in frames)
+    lit = interval_length(ms.vertices, to_reference=300.0 / np.linalg.norm(np.ptp(ms.vertices[0], axis=0)),
+                          motion=None)
+    assert lit < b.interval / 3
 
 
 def test_spectral_clusters_find_blocks():
@@ -100,6 +150,25 @@ def test_two_hinged_parts_are_two_segments():
     far = np.abs(V[0][:, 0]) > 10
     lab_r = np.bincount(seg.labels[far & right]).argmax()
     assert (seg.labels[far & right] == lab_r).all() and (seg.labels[far & ~right] != lab_r).all()
+
+
+def test_a_segment_that_does_not_move_rigidly_is_cut_at_its_joint():
+    """The hinged bar as one label: the normalised cut of its samples splits it at the hinge; a rigid bar stays."""
+    from pipeline.motion_segmentation import _sample_normals, _split_nonrigid, sample_vertices
+
+    V, F, right = _two_bars()
+    size = float(np.linalg.norm(np.ptp(V[0], axis=0)))
+    samples = np.sort(sample_vertices(V[0], 200))
+    dv, dn = trajectory_distances(V[:, samples], _sample_normals(V, F, samples), interval=len(V) - 1)
+    A = np.exp(-0.1 * (300.0 / size) * dv * (dn + 1.0))
+    lab = _split_nonrigid(np.zeros(len(V[0]), dtype=np.int64), V, samples, A, 0.005 * size, min_size=10, seed=0)
+    far = np.abs(V[0][:, 0]) > 15  # more than one mesh edge (12.5 mm) from the hinge; measured: cut at 12.5 mm
+    assert len(np.unique(lab)) == 2
+    assert len(np.unique(lab[far & right])) == 1 and len(np.unique(lab[far & ~right])) == 1
+    assert lab[far & right][0] != lab[far & ~right][0]
+    rigid = np.repeat(V[:1], len(V), axis=0)
+    same = _split_nonrigid(np.zeros(len(V[0]), dtype=np.int64), rigid, samples, A, 0.005 * size, min_size=10, seed=0)
+    assert (same == 0).all()
 
 
 def test_rigid_sequence_is_one_segment(caplog):

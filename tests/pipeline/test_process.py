@@ -43,6 +43,7 @@ def test_pipeline_end_to_end(starfish, processed):
     # meshes are watertight and per-frame quality is reported
     rep = json.loads((out / "report.json").read_text())
     assert all(f["quality"]["watertight"] for f in rep["per_frame"])
+    assert rep["limb_count"] == {"K": 5, "rule": "mode"}  # how K was chosen (a borderline count says so here)
     assert {s for s, _, _ in seen} >= {"key", "surface", "skeleton", "spine"}
 
 
@@ -254,6 +255,39 @@ def test_thin_tail_survives_the_default_grid(thin_tail, tmp_path):
     process_take(path, tmp_path / "coarse", steps=("key", "surface", "spine"), params={"resolution": 64})
     coarse = json.loads((tmp_path / "coarse" / "spine.json").read_text())
     assert coarse["meta"]["K"] == 6 and min(_limbs_seen(coarse)) < 6
+
+
+@pytest.fixture(scope="module")
+def tail_at_4px(tmp_path_factory):
+    """The thin-tail rig with 256x192 cameras: the tail's 16 mm end is about 4 pixels wide."""
+    from fake_cameras.rigs import thin_tail_setup
+
+    sim = simulate_take(frames=8, seed=0, **thin_tail_setup(size=(256, 192)))
+    return sim, record_take(sim, tmp_path_factory.mktemp("tail4") / "tail.h5")
+
+
+def test_a_limb_4_pixels_wide_survives_the_default_grid(tail_at_4px, tmp_path):
+    """The rule's boundary: a limb the cameras resolve (at least 4 pixels wide in most views)
+    survives at default settings. The tail's end (16 mm thick) is 4.1 px wide in the median
+    view of every frame (4 px or more in 5-6 of the 10 views); the default voxel of two pixel
+    footprints makes it under 2 voxels across, and the spine still has all 6 limbs in every
+    frame with consistent identities."""
+    from pipeline.volume import pixel_footprint
+
+    sim, path = tail_at_4px
+    tail = sim.limb_names.index("tail")
+    width = 16.0 / pixel_footprint(sim.calibration, sim.tip_array()[:, tail])  # (C, F) pixels across the tail's end
+    median = np.nanmedian(width, axis=0)
+    assert 4.0 <= median.min() and median.max() < 4.3, median
+    assert (np.mean(width >= 4.0, axis=0) >= 0.5).all()
+    res = process_take(path, tmp_path / "out")
+    assert res.report["grid"]["source"] == "rig"
+    assert 16.0 / res.report["grid"]["voxel"] < 2.0  # the tail's end is under 2 voxels across
+    spine = json.loads((tmp_path / "out" / "spine.json").read_text())
+    assert _limbs_seen(spine) == [6] * sim.n_frames
+    axes = {n: np.stack([a[n] for a in sim.axes]) for n in sim.limb_names}
+    acc = evaluate_spine(spine, sim.tip_array(), axes, list(sim.limb_names))
+    assert acc["K"] == 6 and acc["identity_consistent"] == 1.0 and acc["tip_within_tol"] >= 0.95
 
 
 def test_steps_are_a_registry(starfish, processed, tmp_path):

@@ -112,3 +112,35 @@ def test_borderline_spurious_tips_do_not_add_a_limb(take):
     # a limb seen in every frame but shuffled: the mode rule, K = 5, every tip kept
     corr = correspond_tips([p[rng.permutation(5)] for p in five])
     assert corr.K == 5 and corr.count_rule == "mode" and (corr.assignment >= 0).all()
+
+
+def test_borderline_mode_of_the_larger_count_keeps_the_limb_seen_throughout(take):
+    """The tail seen in 10 of 18 frames (56 %): 6 is the mode, still borderline; the tail is
+    the same limb throughout, so K = 6 and every limb keeps its identity."""
+    names, truth, full, tailless = take
+    hidden = set(HIDDEN_10[:8])
+    frames = [tailless[t] if t in hidden else full[t] for t in range(T)]
+    assert [f.n_tips for f in frames].count(6) == 10
+    spine = build_spine(frames, fps=15.0)
+    assert len(spine.limb_ids) == 6
+    assert spine.meta["count_rule"].startswith("borderline") and spine.meta["count_rule"].endswith("K = 6")
+    _check_identities(spine, names, truth, hidden)
+
+
+def test_borderline_mode_of_spurious_tips_is_no_limb(take):
+    """Bumps at random places in 10 of 18 frames (56 %, the mode): not the same limb
+    throughout, so K is the smaller count and the true limbs keep every tip."""
+    names, truth, _, _ = take
+    rng = np.random.default_rng(5)
+    five = [t[[i for i, n in enumerate(names) if n != "tail"]] for t in truth]
+    bumped = set(rng.choice(T, 10, replace=False).tolist())
+    tips = [np.vstack([p, p.mean(0) + rng.normal(scale=120.0, size=3)]) if t in bumped else p for t, p in enumerate(five)]
+    corr = correspond_tips(tips)
+    assert corr.K == 5
+    assert corr.count_rule.startswith("borderline") and "is not the same limb" in corr.count_rule
+    # the 5 true limbs: each column holds one true limb in every frame
+    for k in range(5):
+        owners = {int(np.argmin(np.linalg.norm(five[t] - tips[t][corr.assignment[t, k]], axis=1)))
+                  for t in range(T) if corr.assignment[t, k] >= 0}
+        assert len(owners) == 1
+    assert (corr.assignment >= 0).sum() >= 5 * T - 2
