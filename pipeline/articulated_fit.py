@@ -24,7 +24,10 @@ from ``A`` directly (never the 3V x 3(P+1) Jacobian), with batched products.
 paper's tracking) or from its constant-velocity prediction from the two
 previous frames (:func:`predict_pose`), whichever fits better, and, as a
 guard against fast motion, from a closed-form hierarchical Procrustes fit
-of the parts (Arun et al. 1987 about each joint), keeping the best start.
+of the parts (Arun et al. 1987 about each joint), keeping the best start;
+when the closed-form start is already closer to the frame than the tracked
+result, the frame is fitted from it too and the better fit kept (tracking
+from frame to frame can settle in a worse basin and stay there).
 
 The paper's measure (section 5): the mean 3-D vertex error between the fitted
 model and the frame, per frame.
@@ -236,14 +239,17 @@ def _kabsch(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return Vt.T @ D @ U.T
 
 
-def procrustes_pose(model: ArticulatedModel, target) -> Pose:
+def procrustes_pose(model: ArticulatedModel, target, rows: np.ndarray | None = None) -> Pose:
     """Closed-form start: every part's rotation about its carried joint (Arun et al. 1987).
 
-    The vertices of a part are those whose strongest influence it drives.
+    The vertices of a part are those whose strongest influence it drives
+    (``rows``: only those vertices, e.g. the least-squares subset).
     """
     y = np.asarray(target, dtype=np.float64)
     x = model.vertices
     dom = model.vertex_parts[:, 0]
+    if rows is not None:
+        x, y, dom = x[rows], y[rows], dom[rows]
     sk = model.skeleton
     P = sk.n_parts
     m0 = dom == 0
@@ -348,13 +354,15 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
             delta = -np.linalg.solve(H + mu * np.diag(np.diag(H) + 1e-9 * size * size), g)
         except np.linalg.LinAlgError:
             break
+        if not np.all(np.isfinite(delta)):  # a singular system (a part with no vertices): keep the pose
+            break
         # early stop: the linear model promises (almost) nothing more, or the step is negligible
         gain = -(2.0 * float(delta @ g) + float(delta @ H @ delta))
         if gain <= 1e-4 * sse or (np.abs(delta[3:]).max() < tol and np.abs(delta[:3]).max() < tol * size):
             break
         cand = step(pose, delta, cw)
         c_sse, c_H, c_g, c_cw = linearise(cand)
-        if c_sse < sse:
+        if np.isfinite(c_sse) and c_sse < sse:
             done = sse - c_sse <= 1e-4 * sse
             pose, sse, H, g, cw = cand, c_sse, c_H, c_g, c_cw
             mu /= 3.0
@@ -460,7 +468,7 @@ def _fit_sequence(model, Y, iterations, progress) -> FitResult:
             e_pred = np.linalg.norm(_deform_subset(model, pred, sub) - Y[t][sub], axis=1).mean()
             if e_pred < e_prev:
                 start, e_prev = pred, e_pred
-        cand = procrustes_pose(model, Y[t])
+        cand = procrustes_pose(model, Y[t], sub)
         e_new = np.linalg.norm(_deform_subset(model, cand, sub) - Y[t][sub], axis=1).mean()
         if prev is None or (e_prev > 2.0 * last_err and e_new < e_prev):  # fast motion: the closed-form start
             start = cand

@@ -302,6 +302,26 @@ def _local_motion(rig: ArticulatedRig) -> tuple[np.ndarray, np.ndarray]:
             else:
                 R[t, j] = G[p].T @ G[j]
                 tr[t, j] = G[p].T @ (pos[j] - pos[p])
+    rest = sk.rest.copy()
+    nz = sk.parents >= 0
+    rest[nz] = sk.rest[nz] - sk.rest[sk.parents[nz]]
+    return _hold_invalid(R, tr, rest)
+
+
+def _hold_invalid(R: np.ndarray, tr: np.ndarray, rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A joint whose frame rotation is undefined (non-finite, zero, not a rotation) or whose position is
+    unknown keeps its previous frame's local motion (the rest pose in the first frame)."""
+    det = np.linalg.det(np.where(np.isfinite(R), R, 0.0))
+    orth = np.abs(np.einsum("tjik,tjil->tjkl", np.nan_to_num(R), np.nan_to_num(R)) - np.eye(3)).max(axis=(2, 3))
+    bad_r = ~np.isfinite(R).all(axis=(2, 3)) | (np.abs(det - 1.0) > 1e-3) | (orth > 1e-3)
+    bad_t = ~np.isfinite(tr).all(axis=2)
+    if not (bad_r.any() or bad_t.any()):
+        return R, tr
+    log.warning("%d joint rotations and %d joint positions are undefined in some frames: they hold the "
+                "previous frame's", int(bad_r.sum()), int(bad_t.sum()))
+    for t in range(len(R)):
+        R[t, bad_r[t]] = R[t - 1, bad_r[t]] if t > 0 else np.eye(3)
+        tr[t, bad_t[t]] = tr[t - 1, bad_t[t]] if t > 0 else rest[bad_t[t]]
     return R, tr
 
 

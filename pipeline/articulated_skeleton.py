@@ -17,7 +17,9 @@ and a curve skeleton running inside it:
    is inside (at most ``max_splits`` rounds).
 
 The paper's curve skeleton is the mean curvature skeleton (Tagliasacchi et
-al. 2012). Here it is the spine's curve skeleton in the rest frame: the
+al. 2012). Here it is the spine's curve skeleton in the rest frame (where
+the rest frame shows no spine, fewer than two tips, the mesh contraction
+skeleton of :mod:`pipeline.contraction_skeleton`): the
 level-set skeleton of Brostow et al. 2004 (:func:`pipeline.spine.frame_skeleton`,
 merged over the tips), which runs through the middle of every limb and
 branches at the junctions -- the role the mean curvature skeleton plays. Any
@@ -121,8 +123,9 @@ class ArticulatedSkeleton:
 def curve_skeleton(vertices, faces) -> CurveSkeleton:
     """The rest frame's curve skeleton from the spine machinery (Brostow et al. 2004, 4.1).
 
-    Falls back to the principal axis of the vertices (a straight curve
-    through the subject) when the surface has fewer than two tips.
+    When the surface has fewer than two tips (no spine), the curve skeleton
+    of the mesh contraction (:func:`pipeline.contraction_skeleton.contraction_skeleton`,
+    Au et al. 2008, in place of the mean curvature skeleton) is used.
 
     Parameters
     ----------
@@ -166,13 +169,17 @@ def curve_skeleton(vertices, faces) -> CurveSkeleton:
                 chain(jid[par], np.asarray(ax)[1:])
         if len(edges) >= 1:
             return _clean(np.asarray(pts), np.asarray(edges, dtype=np.int64))
-    log.warning("no curve skeleton from the spine (fewer than two tips): using the principal axis")
-    c = v.mean(0)
-    _, _, Vt = np.linalg.svd(v - c, full_matrices=False)
-    proj = (v - c) @ Vt[0]
-    lo, hi = np.percentile(proj, [2, 98])
-    line = c + np.linspace(lo, hi, 21)[:, None] * Vt[0]
-    return CurveSkeleton(line, np.c_[np.arange(20), np.arange(1, 21)])
+    log.warning("no curve skeleton from the spine (fewer than two tips): using the mesh contraction skeleton")
+    from pipeline.contraction_skeleton import contraction_skeleton
+
+    P, E = contraction_skeleton(v, faces)
+    if len(E) == 0:  # contracted to a single point: the principal axis through it
+        c = v.mean(0)
+        _, _, Vt = np.linalg.svd(v - c, full_matrices=False)
+        lo, hi = np.percentile((v - c) @ Vt[0], [2, 98])
+        line = c + np.linspace(lo, hi, 21)[:, None] * Vt[0]
+        return CurveSkeleton(line, np.c_[np.arange(20), np.arange(1, 21)])
+    return CurveSkeleton(P, E)
 
 
 def _clean(points: np.ndarray, edges: np.ndarray) -> CurveSkeleton:

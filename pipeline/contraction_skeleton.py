@@ -11,19 +11,23 @@ Cohen-Or & Lee 2008 ("Skeleton extraction by mesh contraction"):
    with the cotangent Laplacian ``L`` of the current surface (a discrete
    mean curvature flow, ``L V = -2 H n A``), ``W_L^0 = 1e-3 sqrt(mean face
    area)``, ``W_H^0 = 1``; after every step ``W_L <- s_L W_L``
-   and ``W_H,i <- W_H,i^0 sqrt(A_i^0 / A_i)`` (one-ring areas), until the
-   surface area is below 2 % of the original or ``iterations`` run out
-   (``s_L = 2``; coordinates scaled to a 300-unit diagonal, so that ``W_L^0``
-   follows the mesh's resolution and not its units). Contracting further
-   collapses the thin curve along its length (measured on a bent tube: the
-   axis is reached at 1-2 % of the area and lost below 0.5 %);
+   and ``W_H,i <- W_H,i^0 sqrt(A_i^0 / A_i)`` (one-ring areas), ``s_L = 2``,
+   coordinates scaled to a 300-unit diagonal (so that ``W_L^0`` follows the
+   mesh's resolution and not its units). A vertex whose one-ring area has
+   fallen below 2 % of its original is held from then on, and the steps stop
+   when 98 % are held or the area stops shrinking (the cotangent weights of
+   the degenerate triangles make the flow unstable): thin parts reach their axis many steps before thick
+   ones, and contracting them further collapses them along their length
+   (measured on a bent tube: the axis is reached at 1-2 % of the area and
+   lost below 0.5 %);
 2. the contracted points are grouped in balls of radius ``spacing`` times
    the subject's size (greedy cover in farthest-point order); two groups are
    linked when a mesh edge joins them (Au et al.'s connectivity surgery,
    replaced by this clustering as in the ``skeletor`` package);
 3. the group graph's minimum spanning tree is the skeleton; side branches
-   shorter than ``min_branch`` group radii are pruned (noise of the
-   contraction at bumps), and every node sits at the centroid of its group's
+   shorter than ``min_branch`` group radii, or than the distance from their
+   branch node to the surface, are pruned (bumps and the incompletely
+   contracted middle of thick parts, not limbs) at the centroid of its group's
    *original* vertices (Au et al.'s embedding refinement: the centre of the
    cross-section the group contracted from).
 
@@ -99,7 +103,8 @@ def cotangent_laplacian(vertices, faces, *, max_weight: float = 1e4) -> tuple[sp
     return L.tocsr(), areas
 
 
-def contract_mesh(vertices, faces, *, iterations: int = 40, sl: float = 2.0, area_ratio: float = 0.02) -> np.ndarray:
+def contract_mesh(vertices, faces, *, iterations: int = 40, sl: float = 2.0, area_ratio: float = 0.02,
+                  done: float = 0.98) -> np.ndarray:
     """Au et al. 2008's constrained Laplacian contraction (see the module docstring).
 
     Parameters
@@ -111,7 +116,10 @@ def contract_mesh(vertices, faces, *, iterations: int = 40, sl: float = 2.0, are
     sl : float
         Growth of the contraction weight per step (``s_L``).
     area_ratio : float
-        Stop once the surface area falls below this fraction of the original.
+        A vertex whose one-ring area has fallen below this fraction of its
+        original has reached the curve: it is held where it is from then on.
+    done : float
+        Stop once this fraction of the vertices is held.
 
     Returns
     -------
@@ -119,19 +127,20 @@ def contract_mesh(vertices, faces, *, iterations: int = 40, sl: float = 2.0, are
         The contracted vertices (same order).
     """
     v, f = _check(vertices, faces)
-    if int(iterations) < 1 or not sl > 1 or not 0 < area_ratio < 1:
-        raise ValueError("iterations must be >= 1, sl > 1 and area_ratio within (0, 1)")
+    if int(iterations) < 1 or not sl > 1 or not 0 < area_ratio < 1 or not 0 < done <= 1:
+        raise ValueError("iterations must be >= 1, sl > 1, area_ratio within (0, 1) and done within (0, 1]")
     size = float(np.linalg.norm(v.max(0) - v.min(0)))
     if not size > 0:
         raise ValueError("vertices: the mesh has zero size")
     centre = v.mean(0)
     v = (v - centre) * (300.0 / size)  # W_L^0 follows the mesh's resolution, not its units
     L, a0 = cotangent_laplacian(v, f)
-    total0 = a0.sum()
-    wl = 1e-3 * np.sqrt(total0 / len(f))
-    wh0 = np.ones(len(v))
-    wh = wh0.copy()
+    wl = 1e-3 * np.sqrt(a0.sum() / len(f))
+    wh = np.ones(len(v))
+    held = a0 <= 0  # vertices in no face
     cur = v.copy()
+    prev_area = a0.sum()
+    retries = 0
     for _ in range(int(iterations)):
         A = (wl * wl) * (L.T @ L) + sp.diags(wh * wh)
         try:
@@ -140,15 +149,21 @@ def contract_mesh(vertices, faces, *, iterations: int = 40, sl: float = 2.0, are
             break
         if not np.all(np.isfinite(nxt)):
             break
-        L, a = cotangent_laplacian(nxt, f)
-        if a.sum() > total0:  # unstable
-            break
-        cur = nxt
-        if a.sum() < area_ratio * total0:
+        nxt[held] = cur[held]
+        L_next, a = cotangent_laplacian(nxt, f)
+        if a.sum() >= prev_area:  # too strong a step (degenerate triangles): retry it weaker
+            retries += 1
+            if retries > 6:
+                break
+            wl /= float(sl) ** 2
+            continue
+        L, cur, prev_area = L_next, nxt, a.sum()
+        held |= a < area_ratio * a0
+        if held.mean() >= done:
             break
         wl *= float(sl)
-        wh = wh0 * np.sqrt(a0 / np.maximum(a, 1e-12 * a0.max()))
-        wh = np.minimum(wh, 1e4)
+        wh = np.sqrt(a0 / np.maximum(a, 1e-12 * a0.max()))  # W_H,i^0 = 1
+        wh = np.where(held, 1e6 * max(wl, 1.0), np.minimum(wh, 1e3))
     return cur * (size / 300.0) + centre
 
 
@@ -172,8 +187,9 @@ def _cover(points: np.ndarray, radius: float) -> np.ndarray:
         cur = int(np.argmax(np.where(free, dmin, -1.0)))
 
 
-def _prune(points: np.ndarray, edges: np.ndarray, min_length: float) -> tuple[np.ndarray, np.ndarray]:
-    """Remove side branches (leaf to branch node) shorter than ``min_length``, repeatedly."""
+def _prune(points: np.ndarray, edges: np.ndarray, min_length: float, radius=None) -> tuple[np.ndarray, np.ndarray]:
+    """Remove side branches (leaf to branch node) shorter than ``min_length`` or than the part's radius at
+    the branch node (``radius``, per point: a bump, not a limb), shortest first, repeatedly."""
     keep = np.ones(len(points), dtype=bool)
     E = [tuple(e) for e in edges]
     for _ in range(len(points)):
@@ -194,7 +210,8 @@ def _prune(points: np.ndarray, edges: np.ndarray, min_length: float) -> tuple[np
                 length += float(np.linalg.norm(points[nxt[0]] - points[cur]))
                 prev, cur = cur, nxt[0]
                 path.append(cur)
-            if cur in branch and length < min_length and (cut is None or length < cut[0]):
+            limit = max(min_length, 0.0 if radius is None else float(radius[cur]))
+            if cur in branch and length < limit and (cut is None or length < cut[0]):
                 cut = (length, path[:-1])
         if cut is None:
             break
@@ -242,7 +259,7 @@ def contraction_skeleton(
     group[used] = _cover(c[used], spacing * size)
     n = int(group.max()) + 1
     counts = np.bincount(group[used], minlength=n).astype(np.float64)
-    pts = np.stack([np.bincount(group[used], weights=v[used, k], minlength=n) for k in range(3)], 1) / counts[:, None]
+    pts = np.stack([np.bincount(group[used], weights=c[used, k], minlength=n) for k in range(3)], 1) / counts[:, None]
     e = np.r_[f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]
     ge = np.sort(group[e], axis=1)
     ge = np.unique(ge[ge[:, 0] != ge[:, 1]], axis=0)
@@ -260,4 +277,5 @@ def contraction_skeleton(
         remap[keep] = np.arange(keep.sum())
         E = remap[E[keep[E[:, 0]] & keep[E[:, 1]]]]
         pts = pts[keep]
-    return _prune(pts, E, float(min_branch) * spacing * size)
+    radius, _ = cKDTree(v[used]).query(pts)  # distance to the surface: the part's radius there
+    return _prune(pts, E, float(min_branch) * spacing * size, radius)

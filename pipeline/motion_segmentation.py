@@ -6,8 +6,9 @@ A mesh sequence with shared connectivity gives every vertex ``i`` a trajectory
 turn against each other do not. The paper's steps:
 
 1. sample ``n`` (1000) vertices uniformly over the surface;
-2. interval length ``dt = 2 max_i,t ||V_i,t - V_i,t-1||`` (eq. 7, millimetres
-   taken as frames);
+2. an interval length ``dt`` (eq. 7 sets ``dt = 2 max_i,t ||V_i,t - V_i,t-1||``,
+   millimetres taken as frames; here it spans a stretch of motion, see
+   :func:`interval_length` and below);
 3. ``d^v_ij``: the largest change of ``||V_i - V_j||`` within any interval of
    ``dt`` frames (eq. 8); ``d^n_ij``: the same for the angle between the
    normals (eq. 9, radians); ``d_ij = d^v_ij (d^n_ij + 1)`` (eq. 10: "adding 1
@@ -24,23 +25,40 @@ Units and size. The paper's constants are for millimetres and objects of
 0.2-0.4 m (spray, donkey, lamp, pipe). So that the defaults follow the subject
 and not its units, distances are expressed in *reference millimetres*: the
 subject's rest-frame bounding-box diagonal is mapped to ``reference_size``
-(300 mm). ``lambda = 0.1`` and eq. 7 are then applied as written. For a 0.3 m
-subject in millimetres this is the paper's setting exactly.
+(300 mm). ``lambda = 0.1`` is then applied as written (and eq. 7, when asked
+for). For a 0.3 m subject in millimetres this is the paper's setting (the
+interval aside, see below).
 
 ``lambda_thr``: 0.7 (default) when reasonably sized parts undergo a pronounced
 movement; 0.98 for small parts with a small motion compared to the size of the
 subject (the paper's "spray" handle, the rope) -- it over-segments, which adds
 joints that can be ignored.
 
-Two steps are ours (the paper is silent): a motion segment must be connected
+The interval (a decision): eq. 7 taken literally ties ``dt`` to the frame
+rate -- the same motion at 5x the rate has 5x smaller steps, so a 5x shorter
+interval in frames and 25x shorter in time -- and on slow, dense sequences
+the distances cannot change within it. ``dt`` is therefore the number of
+frames the fastest vertex takes to travel the reference size (300 reference
+mm) at its top speed, ``dt = 300 / max ||V_i,t - V_i,t-1||``: resampling the
+motion multiplies it by the same factor, and the segments stay
+(``interval_motion=None`` restores eq. 7 as written). When ``dt`` exceeds
+``2 x WINDOW_FRAMES`` (32), eqs. 8-9 run on every ``dt // 32``-th frame (the
+trajectories are smooth, as the paper notes for eq. 7; at least 32 frames
+per interval).
+
+Three steps are ours (the paper is silent): a motion segment must be connected
 on the surface, so a label whose vertices form several surface patches (two
 legs that happen to move in step) is split, and patches smaller than
 ``min_segment`` of the vertices are merged into the neighbour they share the
 longest boundary with; adjacent segments whose union still moves as one rigid
 body (median residual of each of the two after the best rigid motion of both,
 below ``rigid_tol`` of the size in every frame) are merged, so that over-segmentation (``lambda_thr = 0.98``, or
-k-means splitting a rigid part) adds no joint that never bends. Labels are
-renumbered by decreasing size.
+k-means splitting a rigid part) adds no joint that never bends; and a segment
+that does not move rigidly is cut in two by the normalised cut of its own
+samples when both halves are then at most half as far from rigid (the
+eigenvalue count spends clusters on large parts and can leave a small part,
+a tail, fused to its neighbour), recursively, before the merge runs again.
+Labels are renumbered by decreasing size.
 
 Hand-written because no library computes trajectory distances; the
 eigen-decomposition (``numpy.linalg.eigh``), k-means (``scipy.cluster.vq``)
@@ -77,6 +95,7 @@ log = logging.getLogger(__name__)
 
 REFERENCE_SIZE = 300.0  # mm: the size of the paper's objects, where lambda = 0.1 / mm holds
 INTERVAL_MOTION = REFERENCE_SIZE  # reference mm the fastest vertex travels within the interval
+WINDOW_FRAMES = 32  # frames per interval at least, when a long interval lets eqs. 8-9 skip frames
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,8 +174,8 @@ def check_sequence(vertices, faces, *, name: str = "vertices") -> tuple[np.ndarr
 
 def subject_size(vertices) -> float:
     """Bounding-box diagonal of the first frame (the subject's size)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    v0 = v[0] if v.ndim == 3 else v
+    v = np.asarray(vertices)
+    v0 = np.asarray(v[0] if v.ndim == 3 else v, dtype=np.float64)  # the first frame only (long sequences)
     return float(np.linalg.norm(v0.max(0) - v0.min(0)))
 
 
@@ -291,7 +310,9 @@ def _window_extreme(x: np.ndarray, width: int, op) -> np.ndarray:
     """``op`` (np.maximum or np.minimum) over every window ``x[t : t + width]``, t = 0 .. T - width.
 
     Whole frames at a time (contiguous memory): a running loop for short windows, doubling
-    (a sparse table: extremes over 1, 2, 4, .. frames, then two overlapping spans) for long ones.
+    (extremes over 1, 2, 4, .. frames, then two overlapping spans) for medium ones, and the van
+    Herk / Gil-Werman decomposition for long ones (running prefix and suffix extremes within blocks
+    of ``width`` frames, one frame of every block per step: three passes whatever the width).
     """
     T = x.shape[0]
     n_win = T - width + 1
@@ -300,14 +321,27 @@ def _window_extreme(x: np.ndarray, width: int, op) -> np.ndarray:
         for k in range(1, width):
             op(out, x[k : k + n_win], out=out)
         return out
-    span = 1
-    cur = x.copy()
-    while 2 * span <= width:
-        n = T - 2 * span + 1
-        op(cur[:n], cur[span : span + n], out=cur[:n])
-        span *= 2
-    # cur[t] = extreme of x[t : t + span]; a window of ``width`` is two such spans
-    return op(cur[:n_win], cur[width - span : width - span + n_win])
+    if width <= 16:
+        cur = op(x[:-1], x[1:])  # extremes over 2 frames (the first doubling, no copy of x)
+        span = 2
+        while 2 * span <= width:
+            n = T - 2 * span + 1
+            op(cur[:n], cur[span : span + n], out=cur[:n])
+            span *= 2
+        # cur[t] = extreme of x[t : t + span]; a window of ``width`` is two such spans
+        return op(cur[:n_win], cur[width - span : width - span + n_win])
+    pre = np.empty_like(x)
+    suf = np.empty_like(x)
+    for start in range(0, T, width):
+        end = min(T, start + width)
+        pre[start] = x[start]
+        for k in range(start + 1, end):
+            op(pre[k - 1], x[k], out=pre[k])
+        suf[end - 1] = x[end - 1]
+        for k in range(end - 2, start - 1, -1):
+            op(suf[k + 1], x[k], out=suf[k])
+    # a window starting at t spans the suffix of t's block and the prefix of the next up to t + width - 1
+    return op(suf[:n_win], pre[width - 1 : width - 1 + n_win], out=suf[:n_win])
 
 
 def _window_range(x: np.ndarray, width: int) -> np.ndarray:
@@ -364,13 +398,13 @@ def trajectory_distances(
     for a in range(0, n, rows):
         b = min(n, a + rows)
         cols = slice(a, n)  # upper triangle only
-        G = np.einsum("tid,tjd->tij", X[:, a:b], X[:, cols], optimize=True)
+        G = np.matmul(X[:, a:b], X[:, cols].transpose(0, 2, 1))  # batched BLAS, not einsum's loop
         D = sq[:, a:b, None] + sq[:, None, cols] - 2.0 * G
         np.maximum(D, 0.0, out=D)
         np.sqrt(D, out=D)
         dv[a:b, cols] = _window_range(D, width)
         if N is not None:
-            C = np.einsum("tid,tjd->tij", N[:, a:b], N[:, cols], optimize=True)
+            C = np.matmul(N[:, a:b], N[:, cols].transpose(0, 2, 1))
             np.clip(C, -1.0, 1.0, out=C)
             if width >= T:  # one window: arccos is monotonic, take it after the range
                 dn[a:b, cols] = np.arccos(C.min(0)) - np.arccos(C.max(0))
@@ -525,16 +559,21 @@ def rigid_residual(points, groups=None) -> float:
     Y = np.asarray(points, dtype=np.float64)
     Y = Y - Y.mean(1, keepdims=True)
     X = Y[0]
-    H = np.einsum("nd,tne->tde", X, Y)
+    H = np.matmul(X.T[None], Y)  # (T, 3, 3)
     U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
+    d = np.sign(np.linalg.det(np.matmul(U, Vt)))
     U[:, :, 2] *= d[:, None]
-    R = np.einsum("tij,tjk->tik", U, Vt)  # X @ R ~ Y
-    res = np.sqrt(((np.einsum("nd,tde->tne", X, R) - Y) ** 2).sum(2))  # (T, n)
+    R = np.matmul(U, Vt)  # X @ R ~ Y
+    res = np.sqrt(((np.matmul(X[None], R) - Y) ** 2).sum(2))  # (T, n)
     if groups is None:
         return float(np.sqrt((res**2).mean(1)).max())
     g = np.asarray(groups)
     return float(max(np.median(res[:, g == k], axis=1).max() for k in np.unique(g)))
+
+
+def _some_frames(T: int, most: int = 120) -> np.ndarray:
+    """At most ``most`` evenly spaced frame positions (rigidity of smooth motion, checked on long sequences)."""
+    return np.unique(np.linspace(0, T - 1, min(int(T), most)).round().astype(np.int64))
 
 
 def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, per_segment: int = 400,
@@ -542,14 +581,17 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
     """Merge adjacent segments whose union still moves rigidly (residual below ``tol``)."""
     rng = np.random.default_rng(0)
     lab = labels.copy()
+    frames = _some_frames(len(v))
     members = {int(s): np.flatnonzero(lab == s) for s in np.unique(lab)}
     pick = {s: (m if len(m) <= per_segment else rng.choice(m, per_segment, replace=False)) for s, m in members.items()}
 
     def adjacent_pairs():
         la, lb = lab[edges[:, 0]], lab[edges[:, 1]]
         c = la != lb
-        pairs, counts = np.unique(np.sort(np.c_[la[c], lb[c]], axis=1), axis=0, return_counts=True)
-        return {(int(a), int(b)) for (a, b), n in zip(pairs, counts) if n >= min_edges}
+        lo, hi = np.minimum(la[c], lb[c]), np.maximum(la[c], lb[c])
+        m = int(lab.max()) + 1
+        keys, counts = np.unique(lo * m + hi, return_counts=True)  # one integer per pair: a 1-D unique
+        return {(int(k // m), int(k % m)) for k, n in zip(keys, counts) if n >= min_edges}
 
     cache: dict = {}
     while True:
@@ -560,7 +602,7 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
             if pr not in cache:
                 ids = np.r_[pick[pr[0]], pick[pr[1]]]
                 grp = np.r_[np.zeros(len(pick[pr[0]])), np.ones(len(pick[pr[1]]))]
-                cache[pr] = rigid_residual(v[:, ids], grp)
+                cache[pr] = rigid_residual(v[frames[:, None], ids[None, :]], grp)
         best = min(pairs, key=lambda pr: cache[pr])
         if cache[best] >= tol:
             break
@@ -573,26 +615,48 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
     return lab
 
 
+def _best_cut(A: np.ndarray, near: np.ndarray, ids: np.ndarray, residual, min_size: int, cuts: int = 19):
+    """The normalised cut of a segment's samples (a sweep of the Fiedler vector, Shi & Malik 2000) whose
+    halves move most rigidly; ``None`` when no cut leaves both halves ``min_size`` vertices.
+
+    Returns (len(ids),) 0/1 side of every vertex (its nearest sample's).
+    """
+    d = A.sum(1)
+    s = 1.0 / np.sqrt(np.maximum(d, 1e-300))
+    _, U = np.linalg.eigh(np.eye(len(A)) - s[:, None] * A * s[None, :])
+    fiedler = U[:, 1] * s  # the generalised eigenvector of (D - A, D)
+    best, best_res = None, np.inf
+    for q in np.linspace(0.05, 0.95, int(cuts)):
+        side = (fiedler > np.quantile(fiedler, q)).astype(np.int64)[near]
+        if min(int((side == 0).sum()), int((side == 1).sum())) < min_size:
+            continue
+        r = max(residual(ids[side == 0]), residual(ids[side == 1]))
+        if r < best_res:
+            best, best_res = side, r
+    return best
+
+
 def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: np.ndarray, tol: float, *,
                     min_size: int, seed: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6) -> np.ndarray:
     """Split segments that do not move rigidly in two, recursively (the spectral cut of their own samples).
 
     The eigenvalue count ``k`` spends clusters on large parts and can leave a
     small part fused to its neighbour (a tail on a body); a segment whose
-    rigid residual exceeds ``tol`` is cut in two by the normalised cut of its
-    samples' affinities (k-means on two eigenvectors) when that leaves both
-    halves at most ``gain`` of its residual -- a joint inside it, not a
+    rigid residual exceeds ``tol`` is cut in two along the Fiedler vector of
+    its samples' affinities (:func:`_best_cut`) when that leaves both halves
+    at most ``gain`` of its residual -- a joint inside it, not a
     smooth deformation. Halves below ``min_size`` vertices are not made.
     """
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(seed)
     lab = labels.copy()
+    frames = _some_frames(len(v))
 
     def residual(ids):
         if len(ids) > per_segment:
             ids = rng.choice(ids, per_segment, replace=False)
-        return rigid_residual(v[:, ids])
+        return rigid_residual(v[frames[:, None], ids[None, :]])
 
     todo = [(int(x), 0) for x in np.unique(lab)]
     while todo:
@@ -606,12 +670,9 @@ def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: n
             continue
         pos = np.searchsorted(samples, own) if np.all(np.diff(samples) > 0) else None
         sub = np.flatnonzero(np.isin(samples, own)) if pos is None else pos
-        halves, _, _ = spectral_clusters(A[np.ix_(sub, sub)], k=2, seed=seed)
         _, near = cKDTree(v[0, own]).query(v[0, ids])
-        side = halves[near]
-        if min(int((side == 0).sum()), int((side == 1).sum())) < min_size:
-            continue
-        if max(residual(ids[side == 0]), residual(ids[side == 1])) > gain * parent:
+        side = _best_cut(A[np.ix_(sub, sub)], near, ids, residual, min_size)
+        if side is None or max(residual(ids[side == 0]), residual(ids[side == 1])) > gain * parent:
             continue
         new = int(lab.max()) + 1
         lab[ids[side == 1]] = new
@@ -701,8 +762,12 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         log.warning("one frame: no motion to segment, the whole mesh is one segment")
         return Segmentation(np.zeros(V, dtype=np.int64), samples, np.zeros(len(samples), dtype=np.int64),
                             np.zeros(1), 1, dt, lam_units)
-    normals = _sample_normals(v, f, samples) if use_normals else None
-    dv, dn = trajectory_distances(v[:, samples], normals, interval=dt)
+    # a long interval on smooth trajectories: every ``stride``-th frame holds its extremes (at least
+    # WINDOW_FRAMES frames per interval), for a fraction of the work
+    stride = max(1, dt // WINDOW_FRAMES)
+    frames = np.arange(0, T, stride)
+    normals = _sample_normals(v[frames], f, samples) if use_normals else None
+    dv, dn = trajectory_distances(v[frames][:, samples], normals, interval=max(1, int(round(dt / stride))))
     d = dv * (dn + 1.0) if use_normals else dv
     A = np.exp(-lam_units * d.astype(np.float64))
     sample_labels, eig, k = spectral_clusters(A, lambda_thr=lambda_thr, max_clusters=max_clusters, seed=seed)

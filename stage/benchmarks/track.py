@@ -2,7 +2,8 @@
 
 Multi-view: the template is the simulated pipe's surface (marching cubes), the data each
 frame's surface of the bending pipe; single RGB-D: the simulated OAK-like take of the pipe,
-preprocessing and z-buffer visibility included. Also times the solver backends (one
+preprocessing, z-buffer visibility and the previous-shape prior included. Every frame after
+the second starts from the constant-velocity prediction, as in ``pipeline.track``. Also times the solver backends (one
 numeric refactorisation + solve of the 15 per frame).
 """
 
@@ -115,7 +116,7 @@ def _spacing_for(obj, target):
 def run(args: argparse.Namespace) -> int:
     from fake_cameras.rgbd import make_object, simulate_rgbd_take, template_mesh
     from pipeline.rgbd_preprocess import preprocess_depth, visible_vertices
-    from pipeline.tracking import CholeskySystem, TemplateTracker, vertex_normals
+    from pipeline.tracking import CholeskySystem, TemplateTracker, predict_motion, vertex_normals
 
     F = max(2, int(args.frames))
     obj = make_object("pipe_half")
@@ -140,30 +141,42 @@ def run(args: argparse.Namespace) -> int:
             total = (t1 - t0) / 5 * 1000
             print(f"{len(V):6d} vertices  solver {be:6s}: {total:7.1f} ms per refactor + solve (solve alone {solve_ms:.1f} ms)")
         tk = simulate_rgbd_take("pipe_half", frames=F, spacing=s, bend=20.0)
-        # multi-view: each frame's true surface as data
-        prev = V.copy()
+        # multi-view: each frame's true surface as data; every frame started from the prediction
+        prev, before, seen = V.copy(), None, None
         t0 = time.perf_counter()
         for k in range(F):
-            fit = tr.fit(tk.truth[k], vertex_normals(tk.truth[k], T), previous=prev)
-            prev = fit.vertices
+            init = None if before is None else predict_motion(prev, before, T, tr.patches, constrained=seen)
+            fit = tr.fit(tk.truth[k], vertex_normals(tk.truth[k], T), previous=prev, init=init)
+            before, prev, seen = prev, fit.vertices, fit.constrained
         mv = (time.perf_counter() - t0) / F
         print(f"{len(V):6d} vertices  multi-view : {mv:6.3f} s per frame ({tr.system.backend}, {tr.rounds} rounds)")
         cam = tk.calibration[0]
         size = float(np.linalg.norm(np.ptp(V, 0)))
         lohi = (V.min(0) - 0.15 * size, V.max(0) + 0.15 * size)
-        prev = V.copy()
+        tr = TemplateTracker(V, T, prior="previous")  # as pipeline.track.track_rgbd_take
+        prev, before, seen = V.copy(), None, None
         t0 = time.perf_counter()
         for k in range(F):
             fr = preprocess_depth(tk.depth[k], cam, bounds=lohi)
-            fit = tr.fit(fr.points, fr.normals, previous=prev,
+            init = None if before is None else predict_motion(prev, before, T, tr.patches, constrained=seen)
+            fit = tr.fit(fr.points, fr.normals, previous=prev, init=init,
                          visible=lambda X, n, fr=fr, T=T, cam=cam: visible_vertices(X, T, cam, normals=n, observed=fr.valid))
-            prev = fit.vertices
+            before, prev, seen = prev, fit.vertices, fit.constrained
         rg = (time.perf_counter() - t0) / F
         print(f"{len(V):6d} vertices  single RGB-D: {rg:6.3f} s per frame (preprocessing and z-buffer included)")
+        t0 = time.perf_counter()
+        for _ in range(5):
+            predict_motion(prev, before, T, tr.patches, constrained=seen)
+        t1 = time.perf_counter()
+        for _ in range(5):
+            tr._solve_round(prev, np.arange(len(V)), prev, vertex_normals(prev, T), tr.LtL @ prev, prev, True, prev=before)
+        print(f"{len(V):6d} vertices  of which: prediction {1000 * (t1 - t0) / 5:.1f} ms a frame, "
+              f"one round's solve with the previous-shape prior {1000 * (time.perf_counter() - t1) / 5:.1f} ms")
     if args.accuracy:
         accuracy()
         multiview_accuracy()
     print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl), "
           "the patches; per frame: KD-tree of the data, the first round's numeric factor (CG preconditioner of the "
-          "later rounds); per round: KD-tree of the vertices, pairs, patch motions")
+          "later rounds), the prediction; per round: KD-tree of the vertices, pairs, patch motions (and, single "
+          "RGB-D, the previous frame's shape placed patch by patch)")
     return 0

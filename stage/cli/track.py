@@ -29,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--remove-skin", action="store_true", help="drop skin-coloured pixels (hands) before tracking")
     p.add_argument("--spine-init", action="store_true",
                    help="multi-view: start every frame from the spine's skinned motion of the template")
+    p.add_argument("--no-predict", action="store_true",
+                   help="start every frame from the previous one, not from the constant-velocity prediction of the two before")
     p.add_argument("--contour", action="store_true", help="add the contour term (depth edges; single RGB-D only)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
     p.add_argument("--gate", type=float, default=None, help="pair distance gate, mm (default 10 mm scaled with the template's size)")
@@ -47,14 +49,14 @@ def run(args: argparse.Namespace) -> int:
         with StepBars(disable=quiet) as bars:
             if src.is_dir():
                 rep = track_results(src, template=args.template, progress=bars, gamma=args.gamma, gate=args.gate,
-                                    spine_init=args.spine_init)
+                                    spine_init=args.spine_init, predict=not args.no_predict)
                 out = src
             elif src.is_file():
                 if args.template is None:
                     raise UserError("a take needs --template MESH (the object's scan, in mm)")
                 out = args.out if args.out is not None else src.with_name(src.stem + "_results")
                 rep = track_rgbd_take(src, args.template, out, camera=args.camera, remove_skin=args.remove_skin,
-                                      contour=args.contour,
+                                      contour=args.contour, predict=not args.no_predict,
                                       progress=bars, gamma=args.gamma, gate=args.gate)
             else:
                 raise FileNotFoundError(f"{src}: no such results directory or take file")

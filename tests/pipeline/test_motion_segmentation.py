@@ -152,6 +152,25 @@ def test_two_hinged_parts_are_two_segments():
     assert (seg.labels[far & right] == lab_r).all() and (seg.labels[far & ~right] != lab_r).all()
 
 
+def test_a_segment_that_does_not_move_rigidly_is_cut_at_its_joint():
+    """The hinged bar as one label: the normalised cut of its samples splits it at the hinge; a rigid bar stays."""
+    from pipeline.motion_segmentation import _sample_normals, _split_nonrigid, sample_vertices
+
+    V, F, right = _two_bars()
+    size = float(np.linalg.norm(np.ptp(V[0], axis=0)))
+    samples = np.sort(sample_vertices(V[0], 200))
+    dv, dn = trajectory_distances(V[:, samples], _sample_normals(V, F, samples), interval=len(V) - 1)
+    A = np.exp(-0.1 * (300.0 / size) * dv * (dn + 1.0))
+    lab = _split_nonrigid(np.zeros(len(V[0]), dtype=np.int64), V, samples, A, 0.005 * size, min_size=10, seed=0)
+    far = np.abs(V[0][:, 0]) > 15  # more than one mesh edge (12.5 mm) from the hinge; measured: cut at 12.5 mm
+    assert len(np.unique(lab)) == 2
+    assert len(np.unique(lab[far & right])) == 1 and len(np.unique(lab[far & ~right])) == 1
+    assert lab[far & right][0] != lab[far & ~right][0]
+    rigid = np.repeat(V[:1], len(V), axis=0)
+    same = _split_nonrigid(np.zeros(len(V[0]), dtype=np.int64), rigid, samples, A, 0.005 * size, min_size=10, seed=0)
+    assert (same == 0).all()
+
+
 def test_rigid_sequence_is_one_segment(caplog):
     V, F, _ = _two_bars(8)
     Vr = np.repeat(V[:1], 8, axis=0) + np.linspace(0, 80, 8)[:, None, None]  # translates, nothing bends
