@@ -107,8 +107,13 @@ def local_pool(workers: int | None = None) -> ExecutorHandle:
 #: Environment of local Dask workers. Dask's nannies set ``MALLOC_TRIM_THRESHOLD_=65536``, which
 #: also pins glibc's mmap threshold at 128 KiB: every image-sized temporary is then a fresh mmap
 #: and its page faults, and keying a camera takes 5x longer (1.05 s instead of 0.20 s measured);
-#: arrays up to 64 MiB come from the heap again with this.
-DASK_WORKER_ENV = {"distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 1 << 26}
+#: arrays up to 64 MiB come from the heap again with the mmap threshold, and stay there between
+#: frames with the trim threshold (at 64 KiB the heap's top went back to the system after every
+#: frame: key tasks spent 1.2-1.9x the CPU of a pool worker's, now the same).
+DASK_WORKER_ENV = {
+    "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 1 << 26,
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": 1 << 26,
+}
 
 
 def dask_executor(address: str, *, n_workers: int = 2, threads_per_worker: int = 1) -> ExecutorHandle:

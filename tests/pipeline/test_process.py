@@ -217,6 +217,31 @@ def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
     _same_results(pooled, tmp_path / "pooled", reference)
 
 
+def test_masks_over_the_memory_budget_are_read_from_the_take(starfish, processed, tmp_path, monkeypatch):
+    """Keyed masks beyond the budget kept in memory: the surface tasks read them from the take
+    (as a resumed run does), with the same results."""
+    import pipeline.process as sp
+
+    sim, path = starfish
+    _, out, _ = processed
+    monkeypatch.setattr(sp, "_KEEP_MASKS_BYTES", 1)
+    seen = []
+    real = sp.surface_task
+    monkeypatch.setattr(sp, "surface_task", lambda *a, **k: seen.append(k.get("masks")) or real(*a, **k))
+    again = record_take(sim, tmp_path / "again.h5")
+    process_take(again, tmp_path / "again")
+    assert seen and all(m is None for m in seen)
+    for sub in ("meshes", "frames"):
+        assert sorted(p.name for p in (out / sub).iterdir()) == sorted(p.name for p in (tmp_path / "again" / sub).iterdir())
+    from pipeline.results import ResultsStore
+
+    for k in range(sim.n_frames):
+        a, b = ResultsStore(out).read_mesh(k), ResultsStore(tmp_path / "again").read_mesh(k)
+        assert np.array_equal(a.faces, b.faces) and np.allclose(a.vertices, b.vertices, rtol=0, atol=1e-9)
+    spines = [json.loads((d / "spine.json").read_text()) for d in (out, tmp_path / "again")]
+    assert spines[0]["graph"] == spines[1]["graph"]
+
+
 @pytest.fixture(scope="module")
 def thin_tail(tmp_path_factory):
     """The thin-tail take (rendered once, cached on disk like every simulated take)."""

@@ -88,6 +88,12 @@ def test_roundtrip_raw(tmp_path, compression):
             if k == 3:
                 assert fs["b"] is None
         np.testing.assert_array_equal(r.frame("b", 3), make_image(1, 4))
+        # frames(camera, start, stop): one read, the rows frame() gives
+        np.testing.assert_array_equal(r.frames("b", 2, 6), np.stack([r.frame("b", i) for i in range(2, 6)]))
+        assert r.frames("a", 4, 4).shape == (0, H, W, 3)
+        for bad in ((-1, 2), (3, 2), (0, 11)):
+            with pytest.raises(IndexError, match="out of range"):
+                r.frames("a", *bad)
         np.testing.assert_array_equal(r.depth("b", 3), np.full((H, W), 1004, np.uint16))
         assert r.depth("a", 0) is None
         ts = r.timestamps("b")
@@ -115,6 +121,7 @@ def test_roundtrip_jpeg_bytes_kept(tmp_path):
         for k, fr in enumerate(frames):
             assert r.encoded("a", k) == fr.encoded  # byte for byte, nothing re-encoded
             np.testing.assert_array_equal(r.frame("a", k), cv2.imdecode(np.frombuffer(fr.encoded, np.uint8), cv2.IMREAD_COLOR))
+        np.testing.assert_array_equal(r.frames("a", 1, 4), np.stack([r.frame("a", k) for k in range(1, 4)]))
 
 
 def test_wrong_size_frame_marked_invalid(tmp_path, caplog):
