@@ -16,6 +16,8 @@ small immutable value object that wraps them and serializes with
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,6 +25,7 @@ import numpy as np
 
 __all__ = [
     "Camera",
+    "cached_pixel_grid_rays",
     "distort_normalized",
     "undistort_normalized",
     "project_points",
@@ -404,3 +407,36 @@ class Camera:
             f"Camera({self.name!r}, {self.width}x{self.height}, f=({self.K[0, 0]:.1f}, {self.K[1, 1]:.1f}), "
             f"centre=({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}))"
         )
+
+
+_RAY_CACHE: OrderedDict = OrderedDict()
+_RAY_LOCK = threading.Lock()
+_RAY_CACHE_SIZE = 32
+
+
+def cached_pixel_grid_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`Camera.pixel_grid_rays`, kept for the last 32 cameras asked for.
+
+    Every frame of a camera uses the same rays (rendering, depth back-projection), and
+    computing them undistorts every pixel. Thread-safe; the directions are read-only.
+
+    Returns
+    -------
+    origin : (3,) ndarray
+    directions : (H, W, 3) ndarray, read-only
+    """
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera must be a Camera, got {type(camera).__name__}")
+    with _RAY_LOCK:
+        hit = _RAY_CACHE.get(camera)
+        if hit is not None:
+            _RAY_CACHE.move_to_end(camera)
+            return hit
+    origin, dirs = camera.pixel_grid_rays()
+    origin.setflags(write=False)
+    dirs.setflags(write=False)
+    with _RAY_LOCK:
+        _RAY_CACHE[camera] = (origin, dirs)
+        while len(_RAY_CACHE) > _RAY_CACHE_SIZE:
+            _RAY_CACHE.popitem(last=False)
+    return origin, dirs

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from calib.camera import Camera
+from calib.camera import cached_pixel_grid_rays as camera_rays
 from fake_cameras.creatures import Pose, round_cone_sdf_pairs
 
 __all__ = ["Backdrop", "View", "render_view", "intersect_round_cones", "BACKGROUND", "camera_rays"]
@@ -335,26 +336,9 @@ class _Scene:
 
 
 _TILE = 16
-_RAY_CACHE: OrderedDict = OrderedDict()
 _SCENE_CACHE: OrderedDict = OrderedDict()
 _CACHE_LOCK = threading.Lock()
 _CACHE_SIZE = 32
-
-
-def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Cached :meth:`Camera.pixel_grid_rays`: origin (3,), directions (H, W, 3) (read-only)."""
-    with _CACHE_LOCK:
-        hit = _RAY_CACHE.get(camera)
-        if hit is not None:
-            _RAY_CACHE.move_to_end(camera)
-            return hit
-    origin, dirs = camera.pixel_grid_rays()
-    dirs.setflags(write=False)
-    with _CACHE_LOCK:
-        _RAY_CACHE[camera] = (origin, dirs)
-        while len(_RAY_CACHE) > _CACHE_SIZE:
-            _RAY_CACHE.popitem(last=False)
-    return origin, dirs
 
 
 def _scene(camera: Camera, bd: Backdrop) -> _Scene:

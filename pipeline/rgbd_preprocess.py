@@ -18,15 +18,13 @@ without a display or an OpenGL stack; both are short vectorised numpy.
 from __future__ import annotations
 
 import math
-import threading
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from calib.camera import Camera
+from calib.camera import Camera, cached_pixel_grid_rays
 from pipeline.tracking import TrackingError, closest_pairs, vertex_normals
 
 __all__ = [
@@ -80,30 +78,10 @@ class DepthFrame:
     contour: np.ndarray
 
 
-_RAYS: OrderedDict = OrderedDict()
-_RAYS_LOCK = threading.Lock()
-
-
-def _grid_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """:meth:`Camera.pixel_grid_rays`, kept for the last few cameras (every frame of a take uses the same)."""
-    with _RAYS_LOCK:
-        hit = _RAYS.get(camera)
-        if hit is not None:
-            _RAYS.move_to_end(camera)
-            return hit
-    o, d = camera.pixel_grid_rays()
-    d.setflags(write=False)
-    with _RAYS_LOCK:
-        _RAYS[camera] = (o, d)
-        while len(_RAYS) > 4:
-            _RAYS.popitem(last=False)
-    return o, d
-
-
 def back_project(depth, camera: Camera) -> np.ndarray:
     """(H, W, 3) world points of a depth image (camera-frame Z in mm); NaN where depth is 0."""
     z = np.asarray(depth, dtype=np.float64)
-    o, d = _grid_rays(camera)
+    o, d = cached_pixel_grid_rays(camera)
     if z.shape != d.shape[:2]:
         raise ValueError(f"depth must have the camera's shape {d.shape[:2]}, got {z.shape}")
     dz = d @ camera.R[2]

@@ -92,25 +92,10 @@ def _own_key(images: np.ndarray, plates: np.ndarray, rig: dict) -> dict[int, tup
 
 def _own_reconstruct(take: Path, out: Path) -> dict:
     """Per set: hull + surface on the process's grid and masks, then skeletons; and the reduce step."""
-    import json
-
-    from calib.calibration import Calibration
-    from pipeline.hull import HullCarver
-    from pipeline.process import ProcessParams
     from pipeline.spine import SpineParams, frame_skeleton
     from pipeline.surface import surface_from_occupancy
-    from pipeline.volume import Grid
-    from stage.store import TakeReader
 
-    p = ProcessParams(**json.loads((out / "process.json").read_text())["params"])
-    grid = Grid.from_dict(json.loads((out / "grid.json").read_text()))
-    with TakeReader(take) as r:
-        cams = list(r.cameras)
-        cal = r.calibration
-        cal = Calibration(tuple(cal[c] for c in cams), units=cal.units, meta=cal.meta)
-        table = r.set_table()
-        masks = [[r.mask(c, int(table[k, i])) for i, c in enumerate(cams)] for k in range(len(table))]
-    carver = HullCarver(cal, grid)
+    p, grid, carver, masks = _surface_inputs(take, out, None)
     t_carve = t_surf = t_skel = 0.0
     skeletons = []
     cpu = time.process_time()
@@ -179,27 +164,35 @@ def _load_key_part(take: str, cameras: list[str]):
     return run
 
 
-def _load_surface_part(take: str, out: Path, sets: list[int]):
+def _surface_inputs(take, out: Path, sets: list[int] | None):
+    """The process's parameters and grid, a carver on them, and the stored masks of ``sets``
+    (every set when None): what the surface step starts from."""
     import json
 
     from calib.calibration import Calibration
     from pipeline.hull import HullCarver
     from pipeline.process import ProcessParams
-    from pipeline.spine import SpineParams, frame_skeleton
-    from pipeline.surface import surface_from_occupancy
     from pipeline.volume import Grid
     from stage.store import TakeReader
 
     p = ProcessParams(**json.loads((out / "process.json").read_text())["params"])
-    sp = SpineParams(**p.spine)
     grid = Grid.from_dict(json.loads((out / "grid.json").read_text()))
     with TakeReader(take) as r:
         cams = list(r.cameras)
         cal = r.calibration
         cal = Calibration(tuple(cal[c] for c in cams), units=cal.units, meta=cal.meta)
         table = r.set_table()
-        masks = [[r.mask(c, int(table[k, i])) for i, c in enumerate(cams)] for k in sets]
-    carver = HullCarver(cal, grid)
+        ks = range(len(table)) if sets is None else sets
+        masks = [[r.mask(c, int(table[k, i])) for i, c in enumerate(cams)] for k in ks]
+    return p, grid, HullCarver(cal, grid), masks
+
+
+def _load_surface_part(take: str, out: Path, sets: list[int]):
+    from pipeline.spine import SpineParams, frame_skeleton
+    from pipeline.surface import surface_from_occupancy
+
+    p, grid, carver, masks = _surface_inputs(take, out, sets)
+    sp = SpineParams(**p.spine)
 
     def run():
         for m in masks:

@@ -6,6 +6,7 @@ import pytest
 
 from calib.camera import (
     Camera,
+    cached_pixel_grid_rays,
     distort_normalized,
     matrix_to_rodrigues,
     pixel_rays,
@@ -97,6 +98,20 @@ def test_dict_roundtrip_and_depth():
     assert cam.in_image(np.array([[0, 0], [639.4, 479.4], [-1, 3], [640, 10]])).tolist() == [True, True, False, False]
 
 
+def test_cached_grid_rays_equal_the_computed_ones():
+    cam = _camera(dist=(-0.08, 0.03, 0.001, -0.0015, -0.01)).replace(size=(64, 48))
+    o, d = cam.pixel_grid_rays()
+    co, cd = cached_pixel_grid_rays(cam)
+    np.testing.assert_array_equal(co, o)  # exact: the same computation
+    np.testing.assert_array_equal(cd, d)
+    again = cached_pixel_grid_rays(cam.replace())  # an equal camera hits the cache
+    assert again[1] is cd
+    with pytest.raises(ValueError, match="read-only"):
+        cd[0, 0, 0] = 1.0
+    other = cached_pixel_grid_rays(cam.replace(t=cam.t + 1.0))
+    assert other[1] is not cd
+
+
 def test_invalid_input():
     cam = _camera()
     with pytest.raises(ValueError, match="points"):
@@ -117,3 +132,5 @@ def test_invalid_input():
         Camera.from_dict({"name": "x"})
     with pytest.raises(ValueError, match="pixels"):
         pixel_rays(np.zeros(5), K=cam.K, dist=cam.dist, R=cam.R, t=cam.t)
+    with pytest.raises(ValueError, match="camera"):
+        cached_pixel_grid_rays(cam.to_dict())
