@@ -52,7 +52,12 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
     level = logging.WARNING if quiet else (logging.INFO if verbose <= 1 else logging.DEBUG)
     if verbose == 0 and not quiet:
         level = logging.INFO
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    # libraries that set their own loggers' levels (Dask's distributed logs at INFO) pass the root's
+    # level; the handler's level holds -q for them too
+    handler.setLevel(level)
+    logging.basicConfig(level=level, handlers=[handler])  # no change when logging is set up already
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -34,3 +34,18 @@ def test_quiet_silences_progress_bars(tmp_path, capsys):
     assert "%|" in capsys.readouterr().err
     assert main(["-q", "spines", "--meshes", pattern, "--out", str(tmp_path / "b"), "--workers", "0"]) == 0
     assert "%|" not in capsys.readouterr().err
+
+
+def test_quiet_silences_libraries_that_set_their_own_log_levels():
+    """`stage -q` in a fresh process: a library logger set to INFO (as Dask's distributed sets its
+    own) prints nothing below WARNING; without -q its INFO lines are printed."""
+    import subprocess
+    import sys
+
+    code = ("import logging; from stage.cli import _setup_logging; _setup_logging(0, {quiet}); "
+            "lib = logging.getLogger('distributed.scheduler'); lib.setLevel(logging.INFO); "
+            "lib.info('state start'); lib.warning('worker lost')")
+    quiet = subprocess.run([sys.executable, "-c", code.format(quiet=True)], capture_output=True, text=True, check=True)
+    assert quiet.stderr == "WARNING distributed.scheduler: worker lost\n"
+    loud = subprocess.run([sys.executable, "-c", code.format(quiet=False)], capture_output=True, text=True, check=True)
+    assert "INFO distributed.scheduler: state start" in loud.stderr
