@@ -33,6 +33,7 @@ from typing import Sequence
 import numpy as np
 
 from calib.boards import Board, Charuco, Chessboard
+from calib.bundle import INTRINSIC_NAMES
 from calib.camera import Camera
 from calib.detect import Detection
 
@@ -56,7 +57,6 @@ WARN_COVERAGE = 0.5  # fraction of the image grid cells with corners below which
 COVERAGE_GRID = (8, 6)
 DISTORTION_MODES = ("auto", "full")
 _DROPPABLE = (("p1", "p2", "k3"), ("p1", "p2"), ("k3",))  # distortion terms the auto model may hold at zero
-_INTR = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 
 class CalibrationError(ValueError):
@@ -448,7 +448,7 @@ def _unsupported(K, dist, cov, fixed, n_obs: int) -> tuple[str, ...]:
     for S in _DROPPABLE:
         if set(S) & set(fixed):
             continue
-        idx = [_INTR.index(k) for k in S]
+        idx = [INTRINSIC_NAMES.index(k) for k in S]
         C = cov[np.ix_(idx, idx)]
         if not np.all(np.isfinite(C)):
             continue

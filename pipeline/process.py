@@ -167,10 +167,11 @@ class ProcessResult:
 # ----------------------------------------------------------------------------- files and caches
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
+def _atomic_write(path: Path, data: bytes | str) -> None:
+    """``data`` (text as UTF-8) to ``path`` through a temporary file and a rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    tmp.write_text(text, encoding="utf-8")
+    tmp.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
     os.replace(tmp, path)
 
 
@@ -286,9 +287,10 @@ def key_task(take: str, cameras: Sequence[str], base: dict, workers: int) -> lis
 
 def _camera_groups(cameras: Sequence[str], executor) -> list[list[str]]:
     """Cameras per key task: two tasks per worker (each opens the take once; the last ones
-    still key while this process stores the others' masks), all in one here without one."""
+    still key while this process stores the others' masks); one camera a task in this process
+    (progress and cancellation are seen between tasks)."""
     if executor is None:
-        return [list(cameras)]
+        return [[c] for c in cameras]
     n = min(len(cameras), 2 * _pool_size(executor))
     return [list(cameras[i::n]) for i in range(n)]
 
@@ -374,16 +376,6 @@ class _Writer:
                 fut.result()
         finally:
             self._pool.shutdown(wait=True)
-
-
-def _atomic_write(path: Path, data: bytes | str) -> None:
-    if isinstance(data, str):
-        _atomic_write_text(path, data)
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
 
 
 def _unpack_masks(packed: list, widths: Sequence[int]) -> list:
@@ -692,8 +684,8 @@ def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = ""
 
 
 def _step_key(ctx: RunContext) -> None:
-    """Key every camera of the take (unless it holds masks and ``rekey`` is off): one task
-    per camera on the executor (frames read once, in the worker), masks stored here."""
+    """Key every camera of the take (unless it holds masks and ``rekey`` is off): tasks of a
+    few cameras on the executor (frames read once, in the worker), masks stored here."""
     total = ctx.n_sets * len(ctx.cameras)
     if not ctx.need_key:
         ctx.report_progress("key", total, total)
@@ -855,7 +847,7 @@ def _processing_grid(ctx: RunContext):
         if hint:
             log.warning("%s", hint)
             ctx.warnings.append(hint)
-    _atomic_write_text(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
+    _atomic_write(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
     return grid
 
 
@@ -1014,13 +1006,13 @@ def _start_record(ctx: RunContext) -> None:
                     f.unlink()
             (ctx.out / "spine.json").unlink(missing_ok=True)
             (ctx.out / "grid.json").unlink(missing_ok=True)  # the grid follows the parameters too
-    _atomic_write_text(prev, json.dumps(record, indent=2))
+    _atomic_write(prev, json.dumps(record, indent=2))
 
 
 def _add_to_record(ctx: RunContext, **items) -> None:
     """Add what a step decided (e.g. the grid and why) to ``process.json``."""
     path = ctx.out / "process.json"
-    _atomic_write_text(path, json.dumps({**json.loads(path.read_text()), **items}, indent=2, default=_json_default))
+    _atomic_write(path, json.dumps({**json.loads(path.read_text()), **items}, indent=2, default=_json_default))
 
 
 def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> ProcessResult:
@@ -1045,7 +1037,7 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "grid": ctx.grid_choice,
         "limb_count": ctx.limb_count,
     }
-    _atomic_write_text(ctx.out / "report.json", json.dumps(report, indent=1, default=_json_default))
+    _atomic_write(ctx.out / "report.json", json.dumps(report, indent=1, default=_json_default))
     return ProcessResult(
         out=ctx.out, steps=steps, frames=ctx.n_sets, empty_frames=empty, spine_path=ctx.spine_path, report=report
     )
