@@ -99,13 +99,20 @@ def test_borderline_count_decides_for_the_limb_seen_throughout(take):
     _check_identities(spine, names, truth, set(HIDDEN_10))
 
 
+
+def _five_with_bumps(names, truth, rng, n_bumped):
+    """The true tips without the tail, and the same with a bump at a random place (about 120 mm
+    from the tips' centre) added in ``n_bumped`` random frames."""
+    five = [t[[i for i, n in enumerate(names) if n != "tail"]] for t in truth]
+    bumped = set(rng.choice(T, n_bumped, replace=False).tolist())
+    tips = [np.vstack([p, p.mean(0) + rng.normal(scale=120.0, size=3)]) if t in bumped else p for t, p in enumerate(five)]
+    return five, tips
+
 def test_borderline_spurious_tips_do_not_add_a_limb(take):
     """Bumps at random places in 44 % of the frames are no limb: K stays the mode."""
     names, truth, _, _ = take
     rng = np.random.default_rng(4)
-    five = [t[[i for i, n in enumerate(names) if n != "tail"]] for t in truth]
-    bumped = set(rng.choice(T, 8, replace=False).tolist())
-    tips = [np.vstack([p, p.mean(0) + rng.normal(scale=120.0, size=3)]) if t in bumped else p for t, p in enumerate(five)]
+    five, tips = _five_with_bumps(names, truth, rng, 8)
     corr = correspond_tips(tips)
     assert corr.K == 5
     assert corr.count_rule.startswith("borderline") and "is not the same limb" in corr.count_rule
@@ -132,9 +139,7 @@ def test_borderline_mode_of_spurious_tips_is_no_limb(take):
     throughout, so K is the smaller count and the true limbs keep every tip."""
     names, truth, _, _ = take
     rng = np.random.default_rng(5)
-    five = [t[[i for i, n in enumerate(names) if n != "tail"]] for t in truth]
-    bumped = set(rng.choice(T, 10, replace=False).tolist())
-    tips = [np.vstack([p, p.mean(0) + rng.normal(scale=120.0, size=3)]) if t in bumped else p for t, p in enumerate(five)]
+    five, tips = _five_with_bumps(names, truth, rng, 10)
     corr = correspond_tips(tips)
     assert corr.K == 5
     assert corr.count_rule.startswith("borderline") and "is not the same limb" in corr.count_rule
