@@ -908,7 +908,7 @@ def _step_track(ctx: RunContext) -> None:
     from pipeline.track import track_results
 
     t0 = time.perf_counter()
-    track_results(ctx.out, progress=ctx.progress)
+    track_results(ctx.out, progress=ctx.progress, executor=ctx.executor)
     ctx.timings["track"] = time.perf_counter() - t0
 
 

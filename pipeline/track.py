@@ -28,7 +28,7 @@ import numpy as np
 from pipeline.results import atomic_write_bytes, ply_bytes
 from pipeline.tracking import TemplateTracker, TrackingError, mesh_volume
 
-__all__ = ["track_results", "track_rgbd_take", "tracked_path", "TrackingError"]
+__all__ = ["track_results", "track_chain_task", "track_rgbd_take", "tracked_path", "TrackingError"]
 
 log = logging.getLogger(__name__)
 
@@ -137,14 +137,20 @@ def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
 
 
 def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False,
-                  predict: bool = True) -> dict:
+                  predict: bool = True, executor=None) -> dict:
     """Track a template through the surfaces of a processed multi-view take.
 
     With the take's spine (``spine.json``) the template is the spine's reference frame's
     surface and tracking runs from that frame forwards and backwards; with ``spine_init``
     every frame starts from the previous one moved as the spine's skinned pose of the
     template moves (linear blend skinning). Without a spine: the first frame's surface.
-    Each frame starts from the previous one.
+    Each frame starts from the previous one (or its constant-velocity prediction).
+
+    The two halves, forwards and backwards from the reference frame, depend on nothing but
+    that frame's fit: with ``executor`` the backward half runs there as one task while this
+    process tracks the forward half (the same vertices as in order, in about half the wall
+    time). Chunks that start further from the reference frame would start from the spine's
+    skinned pose, which is not accurate enough (``spine_init`` below).
 
     Parameters
     ----------
@@ -163,6 +169,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     predict : bool
         Start every frame from the constant-velocity prediction of the two frames before
         (:func:`pipeline.tracking.predict_motion`) instead of the previous frame.
+    executor : concurrent.futures.Executor, optional
+        Runs the backward half (a process pool: :func:`track_chain_task` is its task).
 
     Returns
     -------
@@ -170,7 +178,6 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         The report written to ``tracked/track.json``.
     """
     from pipeline.meshio import load_mesh
-    from pipeline.tracking import vertex_normals
 
     root = Path(results_dir)
     mesh_dir = root / "meshes"
@@ -196,38 +203,99 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
               "reference_frame": frames[ref], "spine_init": skinned is not None and bool(spine_init),
               "predict": bool(predict), "prior": tracker.prior, "skipped": [], "frames": {}}
 
+    chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
+             "spine_init": skinned is not None and bool(spine_init), "spine_template": template, "predict": bool(predict)}
+    forward = frames[ref:]
+    backward = frames[: ref + 1][::-1]
+    n_forward = len(forward)
+    # the reference frame first: both halves start from its fit
+    _run_frames(tracker, forward[:1], root, F0, report, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
+                progress=progress, start=0, prev=V0.copy(), total=len(frames))
+    first = _read_tracked(tracked_path(root, frames[ref]), len(V0))
+    first = V0.copy() if first is None else first
+    later = None
+    if len(backward) > 1 and executor is not None:
+        later = executor.submit(track_chain_task, {**chain, "frames": backward[1:], "prev": first, "prev_frame": frames[ref]})
+
+    def progress_both(step, done, total):  # the backward half's frames count as they are written
+        if later is not None:
+            done += sum(tracked_path(root, k).is_file() for k in backward[1:])
+        progress(step, min(done, total), total)
+
+    halves = [(forward[1:], 1)] + ([(backward[1:], n_forward)] if later is None and len(backward) > 1 else [])
+    for part, start in halves:
+        out = _track_chain({**chain, "frames": part, "prev": first, "prev_frame": frames[ref]}, tracker=tracker,
+                           by_frame=by_frame, frame_list=frames, skinned=skinned,
+                           progress=progress_both if progress is not None else None, start=start, total=len(frames))
+        _merge_chain(report, out)
+    if later is not None:
+        _merge_chain(report, later.result())
+        if progress is not None:
+            progress("track", len(frames), len(frames))
+    report["frames"] = {str(k): report["frames"][str(k)] for k in frames if str(k) in report["frames"]}
+    _write_report(root, report)
+    return report
+
+
+def _mesh_data(by_frame: dict):
+    """``data_for(k, previous)`` of a multi-view take: frame ``k``'s surface and its normals (None: no surface)."""
+    from pipeline.meshio import load_mesh
+    from pipeline.tracking import vertex_normals
+
     def data_for(k, previous=None):
         v, f = load_mesh(by_frame[k], largest=False)
         if len(f) == 0:
             return None
         return v, vertex_normals(v, f), None
 
+    return data_for
+
+
+def _spine_starts(model, frames: list[int]):
+    """``init_for(k, k_prev, prev)``: the previous frame moved as the spine's skinned pose of the template moves."""
+    pos = {k: i for i, k in enumerate(frames)}
+    lbs: dict = {}
+
+    def pose(k):
+        if k not in lbs:
+            lbs[k] = model.deform(pos[k])
+        return lbs[k]
+
+    return lambda k, k_prev, prev: prev + (pose(k) - pose(k_prev))
+
+
+def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, skinned=None, progress=None, start=0,
+                 total=None) -> dict:
+    """Track ``chain["frames"]`` in order from ``chain["prev"]`` (the fit of ``chain["prev_frame"]``);
+    -> {"frames": per-frame figures, "skipped": frames without a surface}."""
+    root = Path(chain["root"])
+    V0, F0 = chain["template"]
+    if by_frame is None:
+        paths = sorted((root / "meshes").glob("frame_*.ply"))
+        frame_list = [int(p.stem.split("_")[1]) for p in paths]
+        by_frame = dict(zip(frame_list, paths))
+    if tracker is None:
+        tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"])
     init_for = None
-    if skinned is not None and spine_init:
-        model = skinned[1]
-        pos = {k: i for i, k in enumerate(frames)}
-        lbs: dict = {}
+    if chain["spine_init"]:
+        if skinned is None:
+            skinned = _spine_model(root, frame_list, by_frame, chain["spine_template"])
+        init_for = _spine_starts(skinned[1], frame_list) if skinned is not None else None
+    part = {"skipped": [], "frames": {}}
+    _run_frames(tracker, list(chain["frames"]), root, F0, part, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
+                progress=progress, start=start, prev=np.asarray(chain["prev"], float), init_for=init_for, total=total,
+                prev_frame=chain["prev_frame"], predict=_predictor(tracker, chain["predict"]))
+    return part
 
-        def pose(k):
-            if k not in lbs:
-                lbs[k] = model.deform(pos[k])
-            return lbs[k]
 
-        def init_for(k, k_prev, prev):
-            return prev + (pose(k) - pose(k_prev))
+def track_chain_task(chain: dict) -> dict:
+    """One half of a multi-view take tracked in a worker process (see :func:`track_results`)."""
+    return _track_chain(chain)
 
-    forward = frames[ref:]
-    backward = frames[: ref + 1][::-1]
-    _run_frames(tracker, forward, root, F0, report, data_for=data_for, visible_for=lambda e: None,
-                progress=progress, start=0, prev=V0.copy(), init_for=init_for, total=len(frames),
-                predict=_predictor(tracker, predict))
-    if len(backward) > 1:
-        first = _read_tracked(tracked_path(root, frames[ref]), len(V0))
-        _run_frames(tracker, backward[1:], root, F0, report, data_for=data_for, visible_for=lambda e: None,
-                    progress=progress, start=len(forward), prev=V0.copy() if first is None else first,
-                    init_for=init_for, total=len(frames), prev_frame=frames[ref], predict=_predictor(tracker, predict))
-    _write_report(root, report)
-    return report
+
+def _merge_chain(report: dict, part: dict) -> None:
+    report["skipped"] = sorted(set(report["skipped"]) | set(part["skipped"]))
+    report["frames"].update(part["frames"])
 
 
 def _predictor(tracker, predict: bool):

@@ -34,22 +34,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--contour", action="store_true", help="add the contour term (depth edges; single RGB-D only)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
     p.add_argument("--gate", type=float, default=None, help="pair distance gate, mm (default 10 mm scaled with the template's size)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="multi-view: with 2 or more, the half of the take before the reference frame is tracked in a "
+                   "second process while this one tracks the half after it (default 2; 0 or 1 = in order, in process)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.track import TrackingError, track_results, track_rgbd_take
+    from pipeline.track import TrackingError, track_rgbd_take
     from stage.cli import UserError
     from stage.cli._progress import StepBars
 
     src = Path(args.source)
+    if args.workers < 0:
+        raise UserError("--workers must be >= 0")
     quiet = bool(getattr(args, "quiet", False)) or args.no_progress
     try:
         with StepBars(disable=quiet) as bars:
             if src.is_dir():
-                rep = track_results(src, template=args.template, progress=bars, gamma=args.gamma, gate=args.gate,
-                                    spine_init=args.spine_init, predict=not args.no_predict)
+                rep = _track_results(args, src, bars)
                 out = src
             elif src.is_file():
                 if args.template is None:
@@ -72,3 +76,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"skipped {len(rep['skipped'])} frames without data: {', '.join(map(str, rep['skipped']))}")
     print(f"wrote {Path(out) / 'tracked'}")
     return 0
+
+
+def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
+    """Multi-view tracking; the backward half in a worker process with ``--workers`` >= 2."""
+    import concurrent.futures as cf
+    import multiprocessing
+
+    from pipeline.track import track_results
+
+    kw = dict(template=args.template, progress=bars, gamma=args.gamma, gate=args.gate, spine_init=args.spine_init,
+              predict=not args.no_predict)
+    if args.workers < 2:
+        return track_results(src, **kw)
+    # forkserver, as `stage process`: the worker starts clean
+    with cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver")) as ex:
+        return track_results(src, executor=ex, **kw)
