@@ -479,6 +479,30 @@ def predict_motion(previous, before, faces, patches, *, constrained=None, smooth
     return P + step
 
 
+def _check_tracks(tracks, n: int):
+    if tracks is None:
+        return None
+    ti, tx = np.asarray(tracks[0]), np.asarray(tracks[1], dtype=np.float64)
+    if ti.ndim != 1 or not np.issubdtype(ti.dtype, np.integer) or tx.shape != (len(ti), 3):
+        raise ValueError(f"tracks must be ((T,) int, (T, 3) float), got {ti.shape} {ti.dtype} and {tx.shape}")
+    if len(ti) and (ti.min() < 0 or ti.max() >= n):
+        raise ValueError("tracks index vertices that do not exist")
+    return ti.astype(np.int64), tx
+
+
+def _tangent_pairs(V, vn, ti, tx, *, gate: float):
+    """Feature tracks as pairs along two tangent directions of their vertex: those within the gate and
+    within 3 times the tracks' median distance (a track that jumped to another part is not a pair)."""
+    dist = np.linalg.norm(tx - V[ti], axis=1)
+    near = dist < min(gate, 3.0 * float(np.median(dist))) if len(dist) else dist < gate
+    ti, tx, n = ti[near], tx[near], vn[ti[near]]
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(n, helper)
+    t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
+    t2 = np.cross(n, t1)
+    return np.concatenate([ti, ti]), np.concatenate([tx, tx]), np.concatenate([t1, t2])
+
+
 class CholeskySystem:
     """``(K + diag(d)) x = b`` for a fixed sparse SPD ``K`` and a changing diagonal ``d``.
 
@@ -716,7 +740,7 @@ class TemplateTracker:
     def n_vertices(self) -> int:
         return int(self.template.shape[0])
 
-    def fit(self, points, normals, *, previous, init=None, visible=None, contour=None) -> FrameFit:
+    def fit(self, points, normals, *, previous, init=None, visible=None, contour=None, tracks=None) -> FrameFit:
         """Deform the template onto one frame's data.
 
         Parameters
@@ -735,6 +759,11 @@ class TemplateTracker:
         contour : callable, optional
             ``contour(vertices, normals) -> (vertex_index, targets)``: the contour term's pairs
             (vertex, nearest point of a depth edge's projection ray), weighted like data pairs.
+        tracks : ((T,) int ndarray, (T, 3) float ndarray), optional
+            Feature tracks: template vertices and where the colour image says they went
+            (:func:`pipeline.colour_tracks.colour_tracks`). Each enters, while within the gate, as
+            two pairs along the vertex's tangent plane (the depth pairs hold the normal
+            direction): they see what point-to-plane pairs cannot, a round part's twist.
 
         Returns
         -------
@@ -758,6 +787,7 @@ class TemplateTracker:
         n_md = n_dm = 0
         res = float("nan")
         gate = self.gate
+        tracks = _check_tracks(tracks, n)
         for _ in range(self.rounds):
             vn = vertex_normals(V, self.faces)
             if visible is None:
@@ -786,6 +816,9 @@ class TemplateTracker:
                 cv, cx, off, dist = cv[near], cx[near], off[near], dist[near]
                 cn = off / np.maximum(dist, 1e-12)[:, None]
                 pv, px, pn = np.concatenate([pv, cv]), np.concatenate([px, cx]), np.concatenate([pn, cn])
+            if tracks is not None:
+                tv, tx, tn = _tangent_pairs(V, vn, *tracks, gate=gate)
+                pv, px, pn = np.concatenate([pv, tv]), np.concatenate([px, tx]), np.concatenate([pn, tn])
             history.append((n_md, n_dm, res))
             if len(pv) == 0:
                 break
