@@ -7,9 +7,17 @@ vertex that the camera and the data see on the previous frame is projected into 
 colour image and followed into the current one by pyramidal Lucas-Kanade optical flow
 (OpenCV's ``calcOpticalFlowPyrLK``, Bouguet 2000), kept only when the flow tracked back
 returns within ``max_error`` pixels of its start (forward-backward check) and lands on a
-pixel whose depth is smooth; the landing pixel is lifted to 3D with the current frame's
-filtered depth. The tracker uses these as extra, gated correspondences along the surface's
-tangent plane (:meth:`pipeline.tracking.TemplateTracker.fit`, ``tracks=``).
+pixel whose depth is smooth. Pixels without data are filled with the object's mean grey
+first (the static background otherwise holds thin parts' flow back) and the shading is
+taken out by a high-pass filter; the landing pixel is lifted to 3D with the current frame's
+filtered depth. The tracker uses these as extra, gated correspondences across the viewing
+ray (:meth:`pipeline.tracking.TemplateTracker.fit`, ``tracks=``); along it the lifted point
+carries the depth's noise, and the depth pairs hold that direction.
+
+Measured on the simulated lamp (30 frames, the true previous frame as start): the targets lie
+0.1 to 0.3 mm across the ray from the truth at rest and 0.7 to 1.1 mm (median) while parts
+move 20 to 37 mm a frame; without the background fill a thin arm's tracks lagged by 1 to 2 mm
+a frame.
 
 Hand-written here: only the choice of points and the lifting to 3D; the flow is OpenCV's.
 """
@@ -34,6 +42,22 @@ def _gray(image) -> np.ndarray:
     return cv2.cvtColor(img.astype(np.uint8, copy=False), cv2.COLOR_BGR2GRAY)
 
 
+def _masked(gray: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    if mask.shape != gray.shape:
+        raise ValueError(f"masks must have the images' shape {gray.shape}, got {mask.shape}")
+    out = gray.copy()
+    if mask.any():
+        out[~mask] = np.uint8(round(float(gray[mask].mean())))
+    return out
+
+
+def _highpass(gray: np.ndarray, sigma: float) -> np.ndarray:
+    import cv2
+
+    g = gray.astype(np.float32)
+    return np.clip(2.0 * (g - cv2.GaussianBlur(g, (0, 0), sigma)) + 128.0, 0, 255).astype(np.uint8)
+
+
 def _lift(uv: np.ndarray, depth: np.ndarray, camera: Camera, max_jump: float):
     """World points at sub-pixel ``uv`` from bilinear depth; ``ok`` where all four neighbours have
     depth within ``max_jump`` mm of each other (no depth edge under the point)."""
@@ -52,8 +76,9 @@ def _lift(uv: np.ndarray, depth: np.ndarray, camera: Camera, max_jump: float):
     return pts, ok
 
 
-def colour_tracks(previous_image, image, vertices, visible, camera: Camera, depth, *, predicted=None, normals=None,
-                  facing: float = 0.0, window: int = 15, levels: int = 3, max_error: float = 0.3,
+def colour_tracks(previous_image, image, vertices, visible, camera: Camera, depth, *, masks=None, predicted=None,
+                  normals=None,
+                  facing: float = 0.0, highpass: float = 6.0, window: int = 15, levels: int = 3, max_error: float = 0.3,
                   max_jump: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
     """Follow visible template vertices from the previous colour image into the current one.
 
@@ -66,6 +91,11 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
     visible : (V,) bool ndarray
         Vertices the camera and the data saw on the previous frame.
     camera : calib.Camera
+    masks : ((H, W) bool ndarray, (H, W) bool ndarray), optional
+        The object's pixels on both images (the frames' :attr:`~pipeline.rgbd_preprocess.DepthFrame.valid`):
+        everything else is filled with the object's mean grey level first, so the static
+        background inside a window does not hold the flow back (on thin parts, where every
+        window holds background, it did by about 7 % of the motion).
     predicted : (V, 3) float ndarray, optional
         A prediction of the current frame: the flow starts from its projection (fast motions).
     normals : (V, 3) float ndarray, optional
@@ -82,6 +112,9 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
         Pyramid levels above the full image (motions of tens of pixels).
     max_error : float
         Forward-backward error allowed, pixels.
+    highpass : float
+        Shading is taken out first (the image minus its Gaussian blur of this sigma, pixels;
+        0: not): a part turning under the lights changes its shading, not its texture.
     max_jump : float
         Depth spread allowed under a landing point, mm.
 
@@ -91,12 +124,19 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
         Template vertices followed.
     targets : (T, 3) float ndarray
         Where they are on the current frame, world mm.
+    rays : (T, 3) float ndarray
+        Unit viewing directions of the targets: the flow measures the two directions across
+        them; along them, the target carries the depth's noise.
     """
     import cv2
 
     a, b = _gray(previous_image), _gray(image)
     if a.shape != b.shape:
         raise ValueError(f"previous_image and image must have the same shape, got {a.shape} and {b.shape}")
+    if masks is not None:
+        a, b = (_masked(img, np.asarray(m, bool)) for img, m in zip((a, b), masks))
+    if highpass > 0:
+        a, b = (_highpass(img, highpass) for img in (a, b))
     z = np.asarray(depth, dtype=np.float64)
     if z.shape != b.shape:
         raise ValueError(f"depth must have the images' shape {b.shape}, got {z.shape}")
@@ -110,7 +150,7 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
         vis = vis & (cos >= facing)
     idx = np.flatnonzero(vis)
     if len(idx) == 0:
-        return idx, np.zeros((0, 3))
+        return idx, np.zeros((0, 3)), np.zeros((0, 3))
     u0 = np.asarray(camera.project(V[idx]), dtype=np.float32).reshape(-1, 1, 2)
     lk = dict(winSize=(int(window), int(window)), maxLevel=int(levels),
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
@@ -124,4 +164,5 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
     ok = (st.ravel() == 1) & (st2.ravel() == 1) & (fb <= max_error)
     pts, lifted = _lift(u1.reshape(-1, 2).astype(np.float64), z, camera, max_jump)
     ok &= lifted
-    return idx[ok], pts[ok]
+    rays = pts[ok] - camera.center
+    return idx[ok], pts[ok], rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)

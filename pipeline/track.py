@@ -255,7 +255,9 @@ def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float):
         seen = frames.get(k_prev)
         vis = visible_vertices(prev, faces, cam, normals=vertex_normals(prev, faces), tolerance=tolerance,
                                observed=None if seen is None else seen.valid)
-        return colour_tracks(rd.frame(cam_id, k_prev), rd.frame(cam_id, k), prev, vis, cam, fr.depth, predicted=start)
+        masks = None if seen is None else (seen.valid, fr.valid)
+        return colour_tracks(rd.frame(cam_id, k_prev), rd.frame(cam_id, k), prev, vis, cam, fr.depth, masks=masks,
+                             predicted=start)
 
     return tracks_for
 

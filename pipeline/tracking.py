@@ -482,20 +482,27 @@ def predict_motion(previous, before, faces, patches, *, constrained=None, smooth
 def _check_tracks(tracks, n: int):
     if tracks is None:
         return None
+    if len(tracks) not in (2, 3):
+        raise ValueError("tracks must be (index, targets) or (index, targets, rays)")
     ti, tx = np.asarray(tracks[0]), np.asarray(tracks[1], dtype=np.float64)
     if ti.ndim != 1 or not np.issubdtype(ti.dtype, np.integer) or tx.shape != (len(ti), 3):
         raise ValueError(f"tracks must be ((T,) int, (T, 3) float), got {ti.shape} {ti.dtype} and {tx.shape}")
     if len(ti) and (ti.min() < 0 or ti.max() >= n):
         raise ValueError("tracks index vertices that do not exist")
-    return ti.astype(np.int64), tx
+    rays = None if len(tracks) == 2 else np.asarray(tracks[2], dtype=np.float64)
+    if rays is not None and rays.shape != tx.shape:
+        raise ValueError(f"tracks' rays must have shape {tx.shape}, got {rays.shape}")
+    return ti.astype(np.int64), tx, rays
 
 
-def _tangent_pairs(V, vn, ti, tx, *, gate: float):
-    """Feature tracks as pairs along two tangent directions of their vertex: those within the gate and
-    within 3 times the tracks' median distance (a track that jumped to another part is not a pair)."""
+def _tangent_pairs(V, vn, ti, tx, rays, *, gate: float):
+    """Feature tracks as pairs along two directions: across their viewing ray when given (what
+    the image measures), else the vertex's tangent plane. Kept: those within the gate and within
+    3 times the tracks' median distance (a track that jumped to another part is not a pair)."""
     dist = np.linalg.norm(tx - V[ti], axis=1)
     near = dist < min(gate, 3.0 * float(np.median(dist))) if len(dist) else dist < gate
-    ti, tx, n = ti[near], tx[near], vn[ti[near]]
+    ti, tx = ti[near], tx[near]
+    n = vn[ti] if rays is None else rays[near]
     helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     t1 = np.cross(n, helper)
     t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
@@ -759,11 +766,12 @@ class TemplateTracker:
         contour : callable, optional
             ``contour(vertices, normals) -> (vertex_index, targets)``: the contour term's pairs
             (vertex, nearest point of a depth edge's projection ray), weighted like data pairs.
-        tracks : ((T,) int ndarray, (T, 3) float ndarray), optional
-            Feature tracks: template vertices and where the colour image says they went
+        tracks : ((T,) int, (T, 3) float[, (T, 3) float]) ndarrays, optional
+            Feature tracks: template vertices, where the colour image says they went and,
+            optionally, the unit viewing rays of those points
             (:func:`pipeline.colour_tracks.colour_tracks`). Each enters, while within the gate, as
-            two pairs along the vertex's tangent plane (the depth pairs hold the normal
-            direction): they see what point-to-plane pairs cannot, a round part's twist.
+            two pairs across its ray (else along the vertex's tangent plane): they see what
+            point-to-plane pairs cannot, a round part's twist about its own axis.
 
         Returns
         -------
