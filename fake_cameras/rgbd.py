@@ -49,6 +49,8 @@ __all__ = [
 ]
 
 OBJECTS = ("pipe_half", "pipe_3q", "lamp")
+TEXTURE = 0.15  # amplitude of the objects' painted texture (fake_cameras.render.Backdrop.texture)
+TEXTURE_SCALE = 0.5  # its wavelengths relative to the creatures' (about 9 to 60 mm)
 
 
 def _rot(axis, angle: float) -> np.ndarray:
@@ -121,7 +123,8 @@ class ArticulatedObject:
         R, t = self.segment_transforms(angles)
         p0 = np.einsum("kij,kj->ki", R, self.points[:-1]) + t
         p1 = np.einsum("kij,kj->ki", R, self.points[1:]) + t
-        return Pose(p0=p0, p1=p1, r0=self.radii[:-1], r1=self.radii[1:], limb=np.arange(self.n_segments))
+        return Pose(p0=p0, p1=p1, r0=self.radii[:-1], r1=self.radii[1:], limb=np.arange(self.n_segments),
+                    rest=np.concatenate([R, t[:, :, None]], axis=2))
 
 
 def make_object(name: str, *, base=(0.0, 0.0, 300.0)) -> ArticulatedObject:
@@ -294,7 +297,8 @@ def simulate_rgbd_take(
     seg = rest.capsule_sdf(V).argmin(axis=1)
     angles = _angles(obj, int(frames), float(bend))
     rng = np.random.default_rng(seed)
-    bd = Backdrop(wall_radius=4000.0, wall_height=4000.0)
+    # the texture is painted on the object (it moves with every part) and finer than the creatures'
+    bd = Backdrop(wall_radius=4000.0, wall_height=4000.0, texture=TEXTURE, texture_scale=TEXTURE_SCALE)
     F = int(frames)
     w, h = cam.size
     images = np.empty((F, h, w, 3), np.uint8)
