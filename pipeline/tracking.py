@@ -498,10 +498,9 @@ def _check_tracks(tracks, n: int):
 def _tangent_pairs(V, vn, ti, tx, rays, *, gate: float):
     """Feature tracks as pairs along two directions: across their viewing ray when given (what
     the image measures), else the vertex's tangent plane. Kept: those within the gate and within
-    3 times the tracks' median distance or a quarter of the gate, whichever is larger (a track
-    that jumped to another part is not a pair; a part that lags the others keeps its tracks)."""
+    3 times the tracks' median distance (a track that jumped to another part is not a pair)."""
     dist = np.linalg.norm(tx - V[ti], axis=1)
-    near = dist < min(gate, max(3.0 * float(np.median(dist)), 0.25 * gate)) if len(dist) else dist < gate
+    near = dist < min(gate, 3.0 * float(np.median(dist))) if len(dist) else dist < gate
     ti, tx = ti[near], tx[near]
     n = vn[ti] if rays is None else rays[near]
     helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
