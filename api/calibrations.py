@@ -136,8 +136,9 @@ class CalibrateParams(BaseModel):
     world: Literal["board", "camera"] = "board"
     world_frame: Annotated[int, Field(ge=0)] | None = None
     fix_k3: bool = False
-    distortion: Literal["full", "auto"] = Field("full", description="per camera: full keeps all five distortion "
-                                                "coefficients; auto holds p1, p2 and/or k3 at 0 where its views do "
+    distortion: Literal["prior", "full", "auto"] = Field("prior", description="per camera: prior fits all five "
+                                                "distortion coefficients with a weak zero-mean prior on p1, p2 and k3; "
+                                                "full fits them without one; auto holds p1, p2 and/or k3 at 0 where its views do "
                                                 "not support them (as stage calibrate --distortion)")
     intrinsics: Literal["prior", "fixed", "free"] = "prior"
     holdout: Annotated[int, Field(ge=0, le=20)] = 5

@@ -277,6 +277,7 @@ def bundle_adjust(
     solver: str = "lm",
     prior_cov: np.ndarray | None = None,
     prior_scale: float = 1.0,
+    prior_mean: np.ndarray | None = None,
     covariance: bool = False,
 ) -> BundleResult:
     """Jointly refine camera poses (and intrinsics) and board poses.
@@ -321,9 +322,13 @@ def bundle_adjust(
         ``prior_scale * L.T @ (p - p0)`` with ``L L.T`` the inverse covariance of the
         free intrinsics, so with ``prior_scale`` the pixel noise the reprojection
         rows are the whitened negative log-likelihood up to that common factor.
-        Non-finite entries leave a camera's intrinsics without a prior.
+        An intrinsic with an infinite variance (and zero covariances) has no prior row;
+        other non-finite entries leave a camera's intrinsics without a prior.
     prior_scale : float
         Pixel noise (px) the prior is expressed in, see ``prior_cov``.
+    prior_mean : (C, 9) float ndarray, optional
+        Centre of the prior (default ``intrinsics``, the initial values): e.g. zero
+        tangential terms for a maximum-a-posteriori solve (:mod:`calib.intrinsics`).
     covariance : bool
         Also return the marginal covariance of every camera's intrinsics at the
         solution (``(J^T W J)^-1`` with the robust weights, scaled by the
@@ -374,13 +379,16 @@ def bundle_adjust(
         return rv, bR, intr, Rc, RbX, RcXw, Xc
 
     prior_rows = _prior_rows(prior_cov, C, free_i, prior_scale, held_f) if optimize_intrinsics else None
+    mu = intr0 if prior_mean is None else np.asarray(prior_mean, dtype=np.float64)
+    if mu.shape != intr0.shape or not np.all(np.isfinite(mu)):
+        raise ValueError(f"prior_mean must be finite with shape {intr0.shape}, got {mu.shape}")
 
     def residuals(p: np.ndarray) -> np.ndarray:
         *_, intr, _Rc, _RbX, _RcXw, Xc = _forward(p)
         r = (project_batch(Xc, intr[obs_cam]) - uv).ravel()
         if prior_rows is None:
             return r
-        d = (intr[:, free_i] - intr0[:, free_i])  # (C, NF)
+        d = (intr[:, free_i] - mu[:, free_i])  # (C, NF)
         return np.concatenate([r, np.einsum("cij,cj->ci", prior_rows, d).ravel()])
 
     x0 = np.concatenate(
@@ -492,7 +500,8 @@ def _prior_rows(prior_cov, C: int, free_i: np.ndarray, scale: float, held_f: np.
     NF = int(free_i.sum())
     rows = np.zeros((C, NF, NF))
     for c in range(C):
-        own = ~held_f[c]
+        var = np.diag(cov[c])[free_i]
+        own = ~held_f[c] & ~np.isposinf(var)  # infinite variance: no prior on that intrinsic
         S = cov[c][np.ix_(free_i, free_i)][np.ix_(own, own)]
         if not np.all(np.isfinite(S)):
             continue

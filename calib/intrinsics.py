@@ -45,6 +45,7 @@ __all__ = [
     "coverage_image",
     "MIN_VIEWS",
     "DISTORTION_MODES",
+    "DISTORTION_SIGMA",
     "WARN_VIEWS",
     "WARN_COVERAGE",
 ]
@@ -55,7 +56,10 @@ MIN_VIEWS = 4  # fewer views than this: refuse to calibrate
 WARN_VIEWS = 10  # fewer views than this: warn
 WARN_COVERAGE = 0.5  # fraction of the image grid cells with corners below which we warn
 COVERAGE_GRID = (8, 6)
-DISTORTION_MODES = ("auto", "full")
+DISTORTION_MODES = ("prior", "full", "auto")
+# Zero-mean prior standard deviations of the distortion terms a board on a small part of the image
+# cannot separate from the principal point (p1, p2) or from k1, k2 (k3); see the module docstring.
+DISTORTION_SIGMA = {"p1": 1e-3, "p2": 1e-3, "k3": 0.5}
 _DROPPABLE = (("p1", "p2", "k3"), ("p1", "p2"), ("k3",))  # distortion terms the auto model may hold at zero
 
 
@@ -328,7 +332,8 @@ def calibrate_intrinsics(
     min_views: int = MIN_VIEWS,
     K_guess: np.ndarray | None = None,
     max_views: int | None = None,
-    distortion: str = "full",
+    distortion: str = "prior",
+    distortion_sigma: dict | None = None,
 ) -> IntrinsicsResult:
     """Calibrate one camera's intrinsics from board detections (Zhang's method).
 
@@ -355,10 +360,17 @@ def calibrate_intrinsics(
     max_views : int, optional
         Use at most this many views, evenly spaced over the sequence (Zhang's
         method costs grow with the views; a rig's bundle adjustment uses them all).
-    distortion : {"full", "auto"}
-        ``"full"``: the five coefficients (less what ``fix_k3`` / ``zero_tangent``
-        hold). ``"auto"``: also hold ``p1, p2`` and / or ``k3`` at zero when the views
-        do not support them (module docstring); the result's ``dropped`` names them.
+    distortion : {"prior", "full", "auto"}
+        ``"prior"`` (default): the five coefficients, with a zero-mean Gaussian prior of
+        standard deviations ``distortion_sigma`` (maximum a posteriori; module
+        docstring). ``"full"``: the five coefficients without a prior (less what
+        ``fix_k3`` / ``zero_tangent`` hold). ``"auto"``: also hold ``p1, p2`` and / or
+        ``k3`` at zero when the views do not support them (module docstring); the
+        result's ``dropped`` names them.
+    distortion_sigma : dict, optional
+        With ``distortion="prior"``: prior standard deviation per distortion term
+        (keys among ``k1, k2, p1, p2, k3``; ``inf`` or absent: no prior on it).
+        Default :data:`DISTORTION_SIGMA`.
 
     Returns
     -------
@@ -374,6 +386,7 @@ def calibrate_intrinsics(
     size = _check_inputs(board, size, min_views, outlier_factor)
     if distortion not in DISTORTION_MODES:
         raise ValueError(f"distortion must be one of {DISTORTION_MODES}, got {distortion!r}")
+    sigmas = _check_sigma(DISTORTION_SIGMA if distortion_sigma is None else distortion_sigma)
     dets = _usable_views(detections, name, min_views, max_views)
     flags = 0
     if fix_aspect_ratio:
@@ -402,6 +415,12 @@ def calibrate_intrinsics(
     kept, rejected, (rms, K, dist, rvecs, tvecs, std_in, per_view) = _solve_rejecting(
         solve, dets, name, reject_outliers=reject_outliers, min_views=min_views, outlier_factor=outlier_factor,
         outlier_floor_px=outlier_floor_px)
+    fixed = (("k3",) if fix_k3 else ()) + (("p1", "p2") if zero_tangent else ())
+    if distortion == "prior":
+        K, dist, rvecs, tvecs, zcov, per_view, rms = _map_refine(kept, board, K, dist, rvecs, tvecs, fixed, sigmas)
+        std_in = np.sqrt(np.diag(zcov))
+    else:
+        zcov = _zhang_covariance(kept, board, K, dist, rvecs, tvecs, fixed)
     cov = coverage_fraction(np.concatenate([d.corners for d in kept], axis=0), size)
     std = {
         "fx": float(std_in[0]),
@@ -413,13 +432,11 @@ def calibrate_intrinsics(
     warnings = _warnings(name, len(kept), cov, std_in, std["fx"] / K[0, 0])
     for w in warnings:
         log.debug(w)  # in the result's warnings / report
-    fixed = (("k3",) if fix_k3 else ()) + (("p1", "p2") if zero_tangent else ())
-    zcov = _zhang_covariance(kept, board, K, dist, rvecs, tvecs, fixed)
     drop = _unsupported(K, dist, zcov, fixed, 2 * sum(len(d) for d in kept)) if distortion == "auto" else ()
     if drop:
         simpler = calibrate_intrinsics(kept, board, size, name=name, fix_aspect_ratio=fix_aspect_ratio,
                                        fix_k3=fix_k3 or "k3" in drop, zero_tangent=zero_tangent or "p1" in drop,
-                                       reject_outliers=False, min_views=min_views, K_guess=K_guess)
+                                       reject_outliers=False, min_views=min_views, K_guess=K_guess, distortion="full")
         return dataclasses.replace(simpler, rejected=rejected, dropped=drop)
     return IntrinsicsResult(
         name=name,
@@ -438,6 +455,54 @@ def calibrate_intrinsics(
         covariance=zcov,
         held=fixed,
     )
+
+
+def _check_sigma(sigma) -> np.ndarray:
+    """(5,) prior standard deviations of ``k1, k2, p1, p2, k3`` (inf: none) from ``distortion_sigma``."""
+    names = INTRINSIC_NAMES[4:]
+    if not isinstance(sigma, dict) or set(sigma) - set(names):
+        raise ValueError(f"distortion_sigma must be a dict with keys among {names}, got {sigma!r}")
+    out = np.array([float(sigma.get(k, np.inf)) for k in names])
+    if np.any(np.isnan(out)) or np.any(out <= 0):
+        raise ValueError(f"distortion_sigma values must be > 0 (inf: no prior), got {sigma!r}")
+    return out
+
+
+def _map_refine(views, board, K, dist, rvecs, tvecs, fixed, sigmas):
+    """Maximum-a-posteriori intrinsics of one camera: reprojection errors plus a zero-mean Gaussian prior
+    on the distortion terms (standard deviations ``sigmas``), started from the unregularised Zhang solution.
+
+    The prior is weighted by that solution's per-coordinate pixel noise, so the objective is the negative
+    log-posterior. Returns K, dist, rvecs, tvecs, the posterior (9, 9) covariance (prior included, NaN
+    where held), per-view RMS and RMS (px)."""
+    from calib.bundle import bundle_adjust
+
+    obj = board.object_points()
+    oc = np.concatenate([np.zeros(len(d), np.int64) for d in views])
+    ob = np.concatenate([np.full(len(d), i) for i, d in enumerate(views)])
+    op = np.concatenate([obj[d.ids] for d in views])
+    ouv = np.concatenate([d.corners for d in views])
+    intr = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(dist).ravel()[:5]]])
+    mean = intr.copy()
+    mean[0, 4:] = 0.0
+    var = np.concatenate([np.full(4, np.inf), sigmas ** 2])
+    prior = np.diag(var)
+    prior[~np.isfinite(prior)] = 0.0
+    prior[np.diag_indices(9)] = var
+    kw = dict(intrinsics=intr, cam_rvec=np.zeros((1, 3)), cam_tvec=np.zeros((1, 3)),
+              optimize_intrinsics=True, fixed_intrinsics=tuple(fixed), loss="linear")
+    brv = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)
+    btv = np.asarray(tvecs, dtype=np.float64).reshape(-1, 3)
+    r0 = bundle_adjust(oc, ob, op, ouv, board_rvec=brv, board_tvec=btv, max_nfev=1, **kw).residuals
+    n_par = 9 - len(fixed) + 6 * len(views)
+    noise = float(np.sqrt(np.sum(r0 ** 2) / max(r0.size - n_par, 1)))  # px per coordinate
+    res = bundle_adjust(oc, ob, op, ouv, board_rvec=brv, board_tvec=btv, prior_cov=prior[None],
+                        prior_scale=max(noise, 1e-6), prior_mean=mean, covariance=True, ftol=1e-14, **kw)
+    p = res.intrinsics[0]
+    K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
+    sq = np.sum(res.residuals ** 2, axis=1)
+    per_view = np.array([np.sqrt(np.mean(sq[ob == i])) for i in range(len(views))])
+    return K, p[4:].copy(), res.board_rvec, res.board_tvec, res.intrinsics_cov[0], per_view, float(np.sqrt(np.mean(sq)))
 
 
 def _unsupported(K, dist, cov, fixed, n_obs: int) -> tuple[str, ...]:

@@ -539,7 +539,7 @@ def calibrate_rig(
     holdout_folds: int = 0,
     mirrored: Sequence[str] = (),
     flipped: Sequence[str] = (),
-    distortion: str = "full",
+    distortion: str = "prior",
 ) -> RigCalibration:
     """Intrinsics of every camera (:func:`calib.intrinsics.calibrate_intrinsics`), then
     one bundle adjustment of the rig (:func:`calib.extrinsics.calibrate_extrinsics`),
@@ -563,9 +563,11 @@ def calibrate_rig(
         Older spelling: ``False`` means ``intrinsics="fixed"``, ``True`` keeps ``intrinsics``.
     fix_k3, reject_outliers, min_views
         See :func:`calib.intrinsics.calibrate_intrinsics`.
-    distortion : {"full", "auto"}
+    distortion : {"prior", "full", "auto"}
         Each camera's distortion model (:func:`calib.intrinsics.calibrate_intrinsics`):
-        ``"full"`` keeps all five coefficients; ``"auto"`` holds ``p1, p2`` and / or ``k3``
+        ``"prior"`` (default) fits all five coefficients under a weak zero-mean prior on
+        ``p1, p2, k3`` (its posterior covariance is then the bundle adjustment's prior);
+        ``"full"`` keeps all five coefficients without a prior; ``"auto"`` holds ``p1, p2`` and / or ``k3``
         at zero where the camera's own views do not support them, and the bundle adjustment
         keeps what each camera held (docs/calibration.md: steadier principal points on
         narrow-coverage footage, at the price of small real terms on a well-covered rig).

@@ -43,8 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="instead: real footage in caliscope's layout (DIR/extrinsic/<camera>.mp4, DIR/charuco.toml, "
                    "DIR/camera_array.toml): held-out error per camera, ours and the reference calibration's on the "
                    "same detections, focal and distance differences, seconds")
-    p.add_argument("--distortion", choices=("full", "auto"), default="full",
-                   help="with --real: each camera's distortion model, as stage calibrate --distortion (default full)")
+    p.add_argument("--distortion", choices=("prior", "full", "auto"), default="prior",
+                   help="each camera's distortion model, as stage calibrate --distortion (default prior)")
     p.add_argument("--cameras", type=int, default=12)
     p.add_argument("--views", type=int, default=60)
     p.add_argument("--noise", type=float, default=0.3, help="corner noise sigma, px (default 0.3)")
@@ -199,7 +199,7 @@ def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
 
 
-def run_real(root: Path, *, distortion: str = "full") -> int:
+def run_real(root: Path, *, distortion: str = "prior") -> int:
     """Default ``stage calibrate`` on caliscope-layout footage against its reference calibration."""
     import itertools
 
@@ -290,7 +290,8 @@ def run(args: argparse.Namespace) -> int:
           f"noise {args.noise} px: {sum(len(v) for v in dets.values())} camera views, {n_obs} corners")
     print("errors: median / max over cameras, after the best rigid alignment to the true rig")
     t0 = time.perf_counter()
-    intr = [calibrate_intrinsics(dets[c.name], board, c.size, name=c.name, max_views=40) for c in truth]
+    intr = [calibrate_intrinsics(dets[c.name], board, c.size, name=c.name, max_views=40,
+                                 distortion=args.distortion) for c in truth]
     t_intr = time.perf_counter() - t0
     f = [100 * abs(r.K[0, 0] / c.K[0, 0] - 1) for r, c in zip(intr, truth)]
     pp = [float(np.abs(r.K[:2, 2] - c.K[:2, 2]).max()) for r, c in zip(intr, truth)]
@@ -307,7 +308,8 @@ def run(args: argparse.Namespace) -> int:
     from calib.rig import calibrate_rig
 
     t2 = time.perf_counter()
-    rig = calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names, world="camera")
+    rig = calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names, world="camera",
+                        distortion=args.distortion)
     t_rig = time.perf_counter() - t2
     g = rig.extrinsics.geometry
     print(_line("capture-stage rig", t_rig, _errors(rig.calibration, truth),

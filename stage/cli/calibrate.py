@@ -50,8 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "diagonal since the last one, unless it links cameras (default 0.02)")
     p.add_argument("--step", type=int, default=1, help="look at every N-th frame (default 1)")
     p.add_argument("--fix-k3", action="store_true", help="fix the k3 distortion term (few views, mild lenses)")
-    p.add_argument("--distortion", choices=("full", "auto"), default="full",
-                   help="distortion model per camera: full (default) keeps all five coefficients; auto holds p1, p2 "
+    p.add_argument("--distortion", choices=("prior", "full", "auto"), default="prior",
+                   help="distortion model per camera: prior (default) fits all five coefficients with a weak "
+                   "zero-mean prior on p1, p2 (sigma 0.001) and k3 (sigma 0.5), so they move only as far as the "
+                   "views support; full fits them without a prior; auto holds p1, p2 "
                    "and/or k3 at 0 where the camera's own views do not support them (information criterion): "
                    "steadier principal points when the board covered little of the image")
     p.add_argument("--intrinsics", choices=("prior", "fixed", "free"), default="prior",
