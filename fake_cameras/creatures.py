@@ -158,6 +158,11 @@ class Pose:
         Limb axis polyline from the junction on the body to the tip.
     time : float
         Time of the pose, seconds.
+    rest : (M, 3, 4) float ndarray, optional
+        Per capsule, the rigid motion ``[R | t]`` that takes its rest position to this pose.
+        When given, the renderer attaches the surface texture to the body (evaluated at the
+        rest position of every surface point, so it moves with the part, twist included);
+        without it the texture is a function of the world position.
     """
 
     p0: np.ndarray
@@ -169,6 +174,7 @@ class Pose:
     tips: dict = field(default_factory=dict)
     axes: dict = field(default_factory=dict)
     time: float = 0.0
+    rest: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         p0 = np.asarray(self.p0, dtype=np.float64).reshape(-1, 3)
@@ -183,6 +189,11 @@ class Pose:
             raise ValueError("r0, r1: capsule radii must be positive")
         for name, v in (("p0", p0), ("p1", p1), ("r0", r0), ("r1", r1), ("limb", limb)):
             object.__setattr__(self, name, v)
+        if self.rest is not None:
+            rest = np.asarray(self.rest, dtype=np.float64)
+            if rest.shape != (m, 3, 4):
+                raise ValueError(f"rest must have shape ({m}, 3, 4), got {rest.shape}")
+            object.__setattr__(self, "rest", rest)
 
     @classmethod
     def spheres(cls, centers: np.ndarray, radii: np.ndarray) -> "Pose":

@@ -61,6 +61,8 @@ class Backdrop:
         Albedo of the creature (not green).
     texture : float
         Amplitude of the creature's procedural texture.
+    texture_scale : float
+        Its wavelengths, relative to the default (0.5: twice as fine).
     key_light, fill_light : (3,) float
         Directions *towards* the lights (normalized internally).
     key_intensity, fill_intensity, ambient : float
@@ -87,6 +89,7 @@ class Backdrop:
     vignette: float = 0.25
     creature_color: tuple[float, float, float] = (70.0, 125.0, 205.0)
     texture: float = 0.08
+    texture_scale: float = 1.0
     key_light: tuple[float, float, float] = (0.25, -0.18, 1.0)
     fill_light: tuple[float, float, float] = (-0.6, 0.5, 0.4)
     key_intensity: float = 0.75
@@ -99,7 +102,7 @@ class Backdrop:
     blur_sigma: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("wall_radius", "wall_height"):
+        for name in ("wall_radius", "wall_height", "texture_scale"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"backdrop.{name} must be positive")
         for name in (
@@ -432,10 +435,7 @@ def render_view(
                 + bd.key_intensity * np.maximum(n @ sc.key, 0.0)
                 + bd.fill_intensity * np.maximum(n @ sc.fill, 0.0)
             )
-            tex = 1.0 + bd.texture * (
-                np.sin(pts[:, 0] / 23.0) * np.sin(pts[:, 1] / 19.0) * np.sin(pts[:, 2] / 17.0)
-                + 0.3 * np.sin((pts[:, 0] + pts[:, 1] + pts[:, 2]) / 7.0)
-            )
+            tex = _texture(pts if pose.rest is None else _rest_points(pose.rest[cap], pts), bd)
             rows, cols = np.divmod(ray, w)
             col = np.asarray(bd.creature_color)[None, :] * (shade * tex * sc.vignette[rows, cols])[:, None]
             img[rows, cols] = col.astype(np.float32)
@@ -452,6 +452,20 @@ def render_view(
     if depth_img is not None:
         dimg = np.clip(np.round(depth_img), 0, 65535).astype(np.uint16)
     return View(image=image, mask=mask, depth=dimg, label=label)
+
+
+def _rest_points(rest: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """World points mapped back to their capsule's rest position: ``R^T (p - t)`` per point."""
+    return np.einsum("kji,kj->ki", rest[:, :, :3], pts - rest[:, :, 3])
+
+
+def _texture(p: np.ndarray, bd: Backdrop) -> np.ndarray:
+    """Brightness factor of the creature's procedural texture at points ``p`` (K, 3), mm."""
+    q = p / bd.texture_scale
+    return 1.0 + bd.texture * (
+        np.sin(q[:, 0] / 23.0) * np.sin(q[:, 1] / 19.0) * np.sin(q[:, 2] / 17.0)
+        + 0.3 * np.sin((q[:, 0] + q[:, 1] + q[:, 2]) / 7.0)
+    )
 
 
 def sensor_noise(img: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:

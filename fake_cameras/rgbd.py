@@ -13,7 +13,10 @@ smooth (smoothstep) ramp. The template is the object's rest surface (marching cu
 the exact signed distance, :func:`template_mesh`); every template vertex belongs to the
 capsule it lies on at rest and moves rigidly with it, which gives per-vertex ground truth
 on every frame. Images and depth come from :func:`fake_cameras.render.render_view` (the
-green studio), depth with Gaussian noise growing with distance like a stereo camera's.
+green studio), depth with Gaussian noise growing with distance like a stereo camera's. The
+objects' texture is painted on them (:class:`fake_cameras.creatures.Pose` ``rest``: it moves
+with every part, as a real object's does) and finer than the creatures' (:data:`TEXTURE`,
+:data:`TEXTURE_SCALE`).
 
 :func:`simulate_rgbd_take` returns a :class:`SimulatedRGBDTake`; :func:`record_rgbd_take`
 writes it as a take file (one camera with depth), the template as ``TAKE.template.ply``
@@ -49,6 +52,8 @@ __all__ = [
 ]
 
 OBJECTS = ("pipe_half", "pipe_3q", "lamp")
+TEXTURE = 0.15  # amplitude of the objects' painted texture (fake_cameras.render.Backdrop.texture)
+TEXTURE_SCALE = 0.5  # its wavelengths relative to the creatures' (about 9 to 60 mm)
 
 
 def _rot(axis, angle: float) -> np.ndarray:
@@ -121,7 +126,8 @@ class ArticulatedObject:
         R, t = self.segment_transforms(angles)
         p0 = np.einsum("kij,kj->ki", R, self.points[:-1]) + t
         p1 = np.einsum("kij,kj->ki", R, self.points[1:]) + t
-        return Pose(p0=p0, p1=p1, r0=self.radii[:-1], r1=self.radii[1:], limb=np.arange(self.n_segments))
+        return Pose(p0=p0, p1=p1, r0=self.radii[:-1], r1=self.radii[1:], limb=np.arange(self.n_segments),
+                    rest=np.concatenate([R, t[:, :, None]], axis=2))
 
 
 def make_object(name: str, *, base=(0.0, 0.0, 300.0)) -> ArticulatedObject:
@@ -294,7 +300,8 @@ def simulate_rgbd_take(
     seg = rest.capsule_sdf(V).argmin(axis=1)
     angles = _angles(obj, int(frames), float(bend))
     rng = np.random.default_rng(seed)
-    bd = Backdrop(wall_radius=4000.0, wall_height=4000.0)
+    # the texture is painted on the object (it moves with every part) and finer than the creatures'
+    bd = Backdrop(wall_radius=4000.0, wall_height=4000.0, texture=TEXTURE, texture_scale=TEXTURE_SCALE)
     F = int(frames)
     w, h = cam.size
     images = np.empty((F, h, w, 3), np.uint8)

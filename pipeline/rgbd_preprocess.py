@@ -69,6 +69,8 @@ class DepthFrame:
     contour : (K, 2) float ndarray
         Sub-pixel (column, row) of the depth discontinuities: pixels with data next to a pixel without
         data or much further away (the occluding side of a depth edge).
+    depth : (H, W) float ndarray, optional
+        The filtered camera-frame Z, mm (0 where ``valid`` is False).
     """
 
     points: np.ndarray
@@ -76,6 +78,7 @@ class DepthFrame:
     pixels: np.ndarray
     valid: np.ndarray
     contour: np.ndarray
+    depth: np.ndarray | None = None
 
 
 def back_project(depth, camera: Camera) -> np.ndarray:
@@ -246,7 +249,7 @@ def preprocess_depth(
         keep = np.linspace(0, len(rows) - 1, max_points).astype(np.int64)
         rows, cols = rows[keep], cols[keep]
     return DepthFrame(points=P[rows, cols], normals=N[rows, cols], pixels=np.stack([cols, rows], 1), valid=valid,
-                      contour=contour)
+                      contour=contour, depth=np.where(valid, zf, 0.0))
 
 
 def depth_edges(depth, *, jump: float = 12.0) -> np.ndarray:

@@ -39,7 +39,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.hull", "pipeline.surface", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
         "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
         "pipeline.rig_model", "pipeline.gltf_export", "pipeline.results",
-        "pipeline.tracking", "pipeline.rgbd_preprocess", "pipeline.motion_segmentation",
+        "pipeline.tracking", "pipeline.rgbd_preprocess", "pipeline.colour_tracks", "pipeline.motion_segmentation",
         "pipeline.articulated_skeleton", "pipeline.articulated_fit", "pipeline.articulated_rig",
         "pipeline.contraction_skeleton",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",

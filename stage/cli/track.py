@@ -32,6 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-predict", action="store_true",
                    help="start every frame from the previous one, not from the constant-velocity prediction of the two before")
     p.add_argument("--contour", action="store_true", help="add the contour term (depth edges; single RGB-D only)")
+    p.add_argument("--no-colour", action="store_true",
+                   help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
     p.add_argument("--gate", type=float, default=None, help="pair distance gate, mm (default 10 mm scaled with the template's size)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -56,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
                     raise UserError("a take needs --template MESH (the object's scan, in mm)")
                 out = args.out if args.out is not None else src.with_name(src.stem + "_results")
                 rep = track_rgbd_take(src, args.template, out, camera=args.camera, remove_skin=args.remove_skin,
-                                      contour=args.contour, predict=not args.no_predict,
+                                      contour=args.contour, predict=not args.no_predict, colour=not args.no_colour,
                                       progress=bars, gamma=args.gamma, gate=args.gate)
             else:
                 raise FileNotFoundError(f"{src}: no such results directory or take file")
