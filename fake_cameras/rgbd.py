@@ -13,7 +13,10 @@ smooth (smoothstep) ramp. The template is the object's rest surface (marching cu
 the exact signed distance, :func:`template_mesh`); every template vertex belongs to the
 capsule it lies on at rest and moves rigidly with it, which gives per-vertex ground truth
 on every frame. Images and depth come from :func:`fake_cameras.render.render_view` (the
-green studio), depth with Gaussian noise growing with distance like a stereo camera's.
+green studio), depth with Gaussian noise growing with distance like a stereo camera's. The
+objects' texture is painted on them (:class:`fake_cameras.creatures.Pose` ``rest``: it moves
+with every part, as a real object's does) and finer than the creatures' (:data:`TEXTURE`,
+:data:`TEXTURE_SCALE`).
 
 :func:`simulate_rgbd_take` returns a :class:`SimulatedRGBDTake`; :func:`record_rgbd_take`
 writes it as a take file (one camera with depth), the template as ``TAKE.template.ply``

@@ -77,8 +77,7 @@ def _lift(uv: np.ndarray, depth: np.ndarray, camera: Camera, max_jump: float):
 
 
 def colour_tracks(previous_image, image, vertices, visible, camera: Camera, depth, *, masks=None, predicted=None,
-                  normals=None,
-                  facing: float = 0.0, highpass: float = 6.0, window: int = 15, levels: int = 3, max_error: float = 0.3,
+                  highpass: float = 6.0, window: int = 15, levels: int = 3, max_error: float = 0.3,
                   max_jump: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
     """Follow visible template vertices from the previous colour image into the current one.
 
@@ -98,11 +97,6 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
         window holds background, it did by about 7 % of the motion).
     predicted : (V, 3) float ndarray, optional
         A prediction of the current frame: the flow starts from its projection (fast motions).
-    normals : (V, 3) float ndarray, optional
-        Vertex normals on the previous frame, for ``facing``.
-    facing : float
-        Only vertices whose normal's cosine with the direction to the camera is at least this
-        (near a silhouette the window holds background, which pulls the flow towards zero).
     depth : (H, W) float ndarray
         The current frame's filtered camera-frame Z, mm (0 = none;
         :attr:`pipeline.rgbd_preprocess.DepthFrame.depth`).
@@ -133,21 +127,19 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
     a, b = _gray(previous_image), _gray(image)
     if a.shape != b.shape:
         raise ValueError(f"previous_image and image must have the same shape, got {a.shape} and {b.shape}")
-    if masks is not None:
-        a, b = (_masked(img, np.asarray(m, bool)) for img, m in zip((a, b), masks))
-    if highpass > 0:
-        a, b = (_highpass(img, highpass) for img in (a, b))
     z = np.asarray(depth, dtype=np.float64)
     if z.shape != b.shape:
         raise ValueError(f"depth must have the images' shape {b.shape}, got {z.shape}")
+    if masks is not None and any(np.shape(m) != b.shape for m in masks):
+        raise ValueError(f"masks must have the images' shape {b.shape}, got {[np.shape(m) for m in masks]}")
     V = np.asarray(vertices, dtype=np.float64)
     vis = np.asarray(visible, bool)
     if V.ndim != 2 or V.shape[1] != 3 or vis.shape != (len(V),):
         raise ValueError(f"vertices must be (V, 3) and visible (V,), got {V.shape} and {vis.shape}")
-    if facing > 0 and normals is not None:
-        to_cam = camera.center - V
-        cos = np.einsum("ij,ij->i", np.asarray(normals, float), to_cam) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-12)
-        vis = vis & (cos >= facing)
+    if masks is not None:
+        a, b = (_masked(img, np.asarray(m, bool)) for img, m in zip((a, b), masks))
+    if highpass > 0:
+        a, b = (_highpass(img, highpass) for img in (a, b))
     idx = np.flatnonzero(vis)
     if len(idx) == 0:
         return idx, np.zeros((0, 3)), np.zeros((0, 3))

@@ -126,9 +126,35 @@ def _spacing_for(obj, target):
     return s
 
 
+def _rgbd_seconds(tk, V, T, F: int, *, colour: bool):
+    """Seconds a frame of single RGB-D tracking as :func:`pipeline.track.track_rgbd_take` runs it;
+    also the tracker and its last state (previous, before, constrained)."""
+    from pipeline.colour_tracks import colour_tracks
+    from pipeline.rgbd_preprocess import preprocess_depth, visible_vertices
+    from pipeline.tracking import TemplateTracker, predict_motion, vertex_normals
+
+    cam = tk.calibration[0]
+    size = float(np.linalg.norm(np.ptp(V, 0)))
+    lohi = (V.min(0) - 0.15 * size, V.max(0) + 0.15 * size)
+    tr = TemplateTracker(V, T, prior="previous")
+    prev, before, seen, last = V.copy(), None, None, None
+    t0 = time.perf_counter()
+    for k in range(F):
+        fr = preprocess_depth(tk.depth[k], cam, bounds=lohi)
+        init = None if before is None else predict_motion(prev, before, T, tr.patches, constrained=seen)
+        tracks = None
+        if colour and last is not None:
+            vis = visible_vertices(prev, T, cam, normals=vertex_normals(prev, T), tolerance=0.3 * tr.gate, observed=last.valid)
+            tracks = colour_tracks(tk.images[k - 1], tk.images[k], prev, vis, cam, fr.depth, masks=(last.valid, fr.valid),
+                                   predicted=init)
+        fit = tr.fit(fr.points, fr.normals, previous=prev, init=init, tracks=tracks,
+                     visible=lambda X, n, fr=fr: visible_vertices(X, T, cam, normals=n, observed=fr.valid))
+        before, prev, seen, last = prev, fit.vertices, fit.constrained, fr
+    return (time.perf_counter() - t0) / F, tr, prev, before, seen
+
+
 def run(args: argparse.Namespace) -> int:
     from fake_cameras.rgbd import make_object, simulate_rgbd_take, template_mesh
-    from pipeline.rgbd_preprocess import preprocess_depth, visible_vertices
     from pipeline.tracking import CholeskySystem, TemplateTracker, predict_motion, vertex_normals
 
     F = max(2, int(args.frames))
@@ -163,20 +189,10 @@ def run(args: argparse.Namespace) -> int:
             before, prev, seen = prev, fit.vertices, fit.constrained
         mv = (time.perf_counter() - t0) / F
         print(f"{len(V):6d} vertices  multi-view : {mv:6.3f} s per frame ({tr.system.backend}, {tr.rounds} rounds)")
-        cam = tk.calibration[0]
-        size = float(np.linalg.norm(np.ptp(V, 0)))
-        lohi = (V.min(0) - 0.15 * size, V.max(0) + 0.15 * size)
-        tr = TemplateTracker(V, T, prior="previous")  # as pipeline.track.track_rgbd_take
-        prev, before, seen = V.copy(), None, None
-        t0 = time.perf_counter()
-        for k in range(F):
-            fr = preprocess_depth(tk.depth[k], cam, bounds=lohi)
-            init = None if before is None else predict_motion(prev, before, T, tr.patches, constrained=seen)
-            fit = tr.fit(fr.points, fr.normals, previous=prev, init=init,
-                         visible=lambda X, n, fr=fr, T=T, cam=cam: visible_vertices(X, T, cam, normals=n, observed=fr.valid))
-            before, prev, seen = prev, fit.vertices, fit.constrained
-        rg = (time.perf_counter() - t0) / F
-        print(f"{len(V):6d} vertices  single RGB-D: {rg:6.3f} s per frame (preprocessing and z-buffer included)")
+        rg, tr, prev, before, seen = _rgbd_seconds(tk, V, T, F, colour=False)
+        rgc = _rgbd_seconds(tk, V, T, F, colour=True)[0]
+        print(f"{len(V):6d} vertices  single RGB-D: {rgc:6.3f} s per frame with colour tracks (the default), "
+              f"{rg:.3f} without (preprocessing and z-buffer included)")
         t0 = time.perf_counter()
         for _ in range(5):
             predict_motion(prev, before, T, tr.patches, constrained=seen)

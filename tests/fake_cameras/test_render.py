@@ -233,3 +233,31 @@ def test_invalid_input():
         render_view(cam, pose, backdrop=Backdrop(wall_radius=500.0))
     with pytest.raises(ValueError, match="backdrop.vignette"):
         Backdrop(vignette=2.0)
+    with pytest.raises(ValueError, match="texture_scale"):
+        Backdrop(texture_scale=0.0)
+    with pytest.raises(ValueError, match="rest"):
+        Pose(p0=pose.p0, p1=pose.p1, r0=pose.r0, r1=pose.r1, limb=pose.limb, rest=np.zeros((1, 3, 4)))
+
+
+def test_texture_painted_on_the_body_moves_with_it():
+    """With ``rest``, the texture is evaluated at every point's rest position: a capsule shifted by
+    ``t`` with ``rest = [I | t]`` shows, pixel for pixel, the texture that a capsule at rest shows
+    at the point minus ``t`` (exact formula); identity ``rest`` renders like the world texture."""
+    from fake_cameras.render import _rest_points, _texture
+
+    cam = make_dome(4, size=(64, 48))[0]
+    pose = make_creature("starfish").pose(0)
+    eye = np.concatenate([np.tile(np.eye(3), (pose.n_capsules, 1, 1)), np.zeros((pose.n_capsules, 3, 1))], axis=2)
+    same = Pose(p0=pose.p0, p1=pose.p1, r0=pose.r0, r1=pose.r1, limb=pose.limb, rest=eye)
+    a = render_view(cam, pose, rng=np.random.default_rng(0))
+    b = render_view(cam, same, rng=np.random.default_rng(0))
+    assert np.array_equal(a.image, b.image)
+    rng = np.random.default_rng(1)
+    p = rng.uniform(-200, 200, (50, 3))
+    t = np.array([30.0, -12.0, 5.0])
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    rest = np.tile(np.concatenate([R, t[:, None]], axis=1), (50, 1, 1))
+    moved = p @ R.T + t
+    assert np.allclose(_rest_points(rest, moved), p)
+    bd = Backdrop(texture=0.2, texture_scale=0.5)
+    assert np.allclose(_texture(_rest_points(rest, moved), bd), _texture(p, bd))

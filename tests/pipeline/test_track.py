@@ -127,9 +127,9 @@ def bent_tracks(tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [
-    "pipe_half",  # measured: 0.59 % of the length, volume 1.00..1.01
-    "pipe_3q",  # measured: 0.38 % of the length
-    "lamp",  # measured: 0.88 % of the length, volume 1.00..1.04 (2.1 % without the colour tracks)
+    "pipe_half",  # measured: 0.59 % of the length, volume 0.98..1.00 (0.89 % without the colour tracks)
+    "pipe_3q",  # measured: 0.38 % of the length, volume 0.99..1.00 (0.77 %)
+    "lamp",  # measured: 0.88 % of the length, volume 1.00..1.04 (2.1 %)
 ])
 def test_rgbd_bent_objects_tracked_to_one_percent(name, bent_tracks):
     tk, _, errs, vols = bent_tracks(name)
@@ -139,11 +139,13 @@ def test_rgbd_bent_objects_tracked_to_one_percent(name, bent_tracks):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name, articulations", [
-    ("pipe_half", 1),  # measured: 1 articulation, 4 mm from the joint
-    ("pipe_3q", 1),  # measured: 1 articulation, 9 mm from the joint (limit 16.5 mm)
+    ("pipe_half", 1),  # measured: 1 articulation, 5 mm from the joint
+    ("pipe_3q", 1),  # measured: 1 articulation, 6 mm from the joint (limit 16.5 mm)
     pytest.param("lamp", 3, marks=pytest.mark.xfail(strict=True, reason=(
-        "must-show not met yet: the lamp is tracked to 2.1 % (not 1 %); stage rig finds 9 articulations (3), "
-        "one within 4, 9 and 17 mm of each true joint (limit 28 mm)"))),
+        "must-show not met yet: the lamp is tracked to 0.88 % (1 % met), but stage rig finds 4 articulations (3): "
+        "one within 4, 25 and 4 mm of each true joint (limit 28 mm) and one inside the head, which the motion "
+        "segmentation cuts in two because the tracked head deforms (10 mm off and turned 12 degrees by the last frame; its colour "
+        "tracks are 1.0-1.4 mm off while it turns 7 degrees a frame under the lights, 0.1 mm on the other parts)"))),
 ])
 def test_rgbd_bent_objects_rigged(name, articulations, bent_tracks):
     from pipeline.articulated_rig import rig_results
