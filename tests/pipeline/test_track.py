@@ -143,9 +143,11 @@ def test_rgbd_bent_objects_tracked_to_one_percent(name, bent_tracks):
     ("pipe_3q", 1),  # measured: 1 articulation, 6 mm from the joint (limit 16.5 mm)
     pytest.param("lamp", 3, marks=pytest.mark.xfail(strict=True, reason=(
         "must-show not met yet: the lamp is tracked to 0.88 % (1 % met), but stage rig finds 4 articulations (3): "
-        "one within 4, 25 and 4 mm of each true joint (limit 28 mm) and one inside the head, which the motion "
-        "segmentation cuts in two because the tracked head deforms (10 mm off and turned 12 degrees by the last frame; its colour "
-        "tracks are 1.0-1.4 mm off while it turns 7 degrees a frame under the lights, 0.1 mm on the other parts)"))),
+        "one within 4, 25 and 4 mm of each true joint (limit 28 mm) and one inside the head, which the spectral "
+        "clustering cuts in two (391 + 344 vertices) because the tracked head bends: its halves turn up to 33 degrees "
+        "against each other (3.1x their own rigid-fit noise; 7-13x at the true joints). The merge rules measured "
+        "(docs/tracking.md) do not separate it from real joints: three starfish articulations turn 8-18 degrees at "
+        "1.3-2.3x noise, and merging below 3.5x noise rigs the lamp but drops the starfish's recall 0.80 -> 0.75"))),
 ])
 def test_rgbd_bent_objects_rigged(name, articulations, bent_tracks):
     from pipeline.articulated_rig import rig_results
