@@ -485,6 +485,18 @@ def _check_sigma(sigma) -> np.ndarray:
     return out
 
 
+def _one_camera_problem(views, board, K, dist):
+    """The bundle adjustment's arrays for one camera at the origin seeing ``views``: observation
+    camera and board-pose indices, board points, pixels, and the (1, 9) intrinsics of K and dist."""
+    obj = board.object_points()
+    oc = np.concatenate([np.zeros(len(d), np.int64) for d in views])
+    ob = np.concatenate([np.full(len(d), i) for i, d in enumerate(views)])
+    op = np.concatenate([obj[d.ids] for d in views])
+    ouv = np.concatenate([d.corners for d in views])
+    intr = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(dist).ravel()[:5]]])
+    return oc, ob, op, ouv, intr
+
+
 def _map_refine(views, board, K, dist, rvecs, tvecs, fixed, sigmas):
     """Maximum-a-posteriori intrinsics of one camera: reprojection errors plus a zero-mean Gaussian prior
     on the distortion terms (standard deviations ``sigmas``), started from the unregularised Zhang solution.
@@ -494,18 +506,11 @@ def _map_refine(views, board, K, dist, rvecs, tvecs, fixed, sigmas):
     where held), per-view RMS and RMS (px)."""
     from calib.bundle import bundle_adjust
 
-    obj = board.object_points()
-    oc = np.concatenate([np.zeros(len(d), np.int64) for d in views])
-    ob = np.concatenate([np.full(len(d), i) for i, d in enumerate(views)])
-    op = np.concatenate([obj[d.ids] for d in views])
-    ouv = np.concatenate([d.corners for d in views])
-    intr = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(dist).ravel()[:5]]])
+    oc, ob, op, ouv, intr = _one_camera_problem(views, board, K, dist)
     mean = intr.copy()
     mean[0, 4:] = 0.0
     var = np.concatenate([np.full(4, np.inf), sigmas ** 2])
-    prior = np.diag(var)
-    prior[~np.isfinite(prior)] = 0.0
-    prior[np.diag_indices(9)] = var
+    prior = np.diag(var)  # infinite variance: no prior row for that intrinsic
     kw = dict(intrinsics=intr, cam_rvec=np.zeros((1, 3)), cam_tvec=np.zeros((1, 3)),
               optimize_intrinsics=True, fixed_intrinsics=tuple(fixed), loss="linear")
     brv = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)
@@ -554,12 +559,7 @@ def _zhang_covariance(views, board, K, dist, rvecs, tvecs, fixed) -> np.ndarray:
     """
     from calib.bundle import bundle_adjust
 
-    obj = board.object_points()
-    oc = np.concatenate([np.zeros(len(d), np.int64) for d in views])
-    ob = np.concatenate([np.full(len(d), i) for i, d in enumerate(views)])
-    op = np.concatenate([obj[d.ids] for d in views])
-    ouv = np.concatenate([d.corners for d in views])
-    intr = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(dist).ravel()[:5]]])
+    oc, ob, op, ouv, intr = _one_camera_problem(views, board, K, dist)
     res = bundle_adjust(oc, ob, op, ouv, intrinsics=intr, cam_rvec=np.zeros((1, 3)), cam_tvec=np.zeros((1, 3)),
                         board_rvec=np.asarray(rvecs, dtype=np.float64).reshape(-1, 3),
                         board_tvec=np.asarray(tvecs, dtype=np.float64).reshape(-1, 3),
