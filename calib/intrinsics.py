@@ -364,7 +364,9 @@ def calibrate_intrinsics(
     name : str
         Camera name (used in messages).
     fix_aspect_ratio : bool
-        ``CALIB_FIX_ASPECT_RATIO`` (``fx / fy`` kept at the initial ratio 1).
+        ``CALIB_FIX_ASPECT_RATIO`` (``fx / fy`` kept at the initial ratio 1). The MAP
+        refinement of ``distortion="prior"`` frees ``fx`` and ``fy`` apart, so with this
+        option the Zhang solution is kept as with ``"full"``.
     fix_k3, zero_tangent : bool
         Simpler distortion models for few views / mild lenses.
     reject_outliers : bool
@@ -433,9 +435,10 @@ def calibrate_intrinsics(
         solve, dets, name, reject_outliers=reject_outliers, min_views=min_views, outlier_factor=outlier_factor,
         outlier_floor_px=outlier_floor_px)
     fixed = (("k3",) if fix_k3 else ()) + (("p1", "p2") if zero_tangent else ())
-    if distortion == "prior":
+    if distortion == "prior" and not fix_aspect_ratio:  # the MAP refinement frees fx and fy apart
         K, dist, rvecs, tvecs, zcov, per_view, rms = _map_refine(kept, board, K, dist, rvecs, tvecs, fixed, sigmas)
         std_in = np.sqrt(np.diag(zcov))
+        std_in[[INTRINSIC_NAMES.index(k) for k in fixed]] = 0.0  # held terms: 0, as OpenCV reports them
     else:
         zcov = _zhang_covariance(kept, board, K, dist, rvecs, tvecs, fixed)
     cov = coverage_fraction(np.concatenate([d.corners for d in kept], axis=0), size)

@@ -38,8 +38,20 @@ def _gray(image) -> np.ndarray:
     if img.ndim == 2:
         return img.astype(np.uint8, copy=False)
     if img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"images must be (H, W) or (H, W, 3), got shape {img.shape}")
+        raise ValueError(f"previous_image and image must be (H, W) or (H, W, 3), got shape {img.shape}")
     return cv2.cvtColor(img.astype(np.uint8, copy=False), cv2.COLOR_BGR2GRAY)
+
+
+def _check_options(*, window, levels, max_error, max_jump, highpass) -> None:
+    if int(window) != window or window < 3:
+        raise ValueError(f"window must be an integer >= 3, got {window!r}")
+    if int(levels) != levels or levels < 0:
+        raise ValueError(f"levels must be an integer >= 0, got {levels!r}")
+    for name, v in (("max_error", max_error), ("max_jump", max_jump)):
+        if not v > 0:
+            raise ValueError(f"{name} must be > 0, got {v!r}")
+    if not highpass >= 0:
+        raise ValueError(f"highpass must be >= 0, got {highpass!r}")
 
 
 def _masked(gray: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -78,7 +90,7 @@ def _lift(uv: np.ndarray, depth: np.ndarray, camera: Camera, max_jump: float):
 
 def colour_tracks(previous_image, image, vertices, visible, camera: Camera, depth, *, masks=None, predicted=None,
                   highpass: float = 6.0, window: int = 15, levels: int = 3, max_error: float = 0.3,
-                  max_jump: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+                  max_jump: float = 5.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Follow visible template vertices from the previous colour image into the current one.
 
     Parameters
@@ -130,12 +142,17 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
     z = np.asarray(depth, dtype=np.float64)
     if z.shape != b.shape:
         raise ValueError(f"depth must have the images' shape {b.shape}, got {z.shape}")
+    if masks is not None and len(masks) != 2:
+        raise ValueError(f"masks must be a pair (previous, current), got {len(masks)} arrays")
     if masks is not None and any(np.shape(m) != b.shape for m in masks):
         raise ValueError(f"masks must have the images' shape {b.shape}, got {[np.shape(m) for m in masks]}")
     V = np.asarray(vertices, dtype=np.float64)
     vis = np.asarray(visible, bool)
     if V.ndim != 2 or V.shape[1] != 3 or vis.shape != (len(V),):
         raise ValueError(f"vertices must be (V, 3) and visible (V,), got {V.shape} and {vis.shape}")
+    if predicted is not None and np.shape(predicted) != V.shape:
+        raise ValueError(f"predicted must have the vertices' shape {V.shape}, got {np.shape(predicted)}")
+    _check_options(window=window, levels=levels, max_error=max_error, max_jump=max_jump, highpass=highpass)
     if masks is not None:
         a, b = (_masked(img, np.asarray(m, bool)) for img, m in zip((a, b), masks))
     if highpass > 0:

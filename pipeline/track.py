@@ -331,6 +331,13 @@ def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float):
     return tracks_for
 
 
+def _keep_last(cache: dict) -> None:
+    """Drop all but the latest preprocessed frame: the next frame's colour tracks start from it,
+    also across frames without data."""
+    for j in [j for j in cache if j != max(cache)]:
+        del cache[j]
+
+
 def _capture_bounds(reader, V: np.ndarray, margin: float):
     rig = reader.rig or {}
     vol = rig.get("volume") if isinstance(rig, dict) else None
@@ -427,7 +434,7 @@ def track_rgbd_take(
             fr = preprocess_depth(z, cam, bounds=box, image=img, remove_skin=remove_skin)
             if len(fr.points) < 10:
                 return None
-            cache.pop(k - 2, None)
+            _keep_last(cache)
             cache[k] = fr
             return fr.points, fr.normals, fr
 

@@ -34,7 +34,8 @@ class CalibrationCreate(BaseModel):
     take: Annotated[str, Field(pattern=TAKE_ID, max_length=128, examples=["board1"])]
     source: Literal["board", "take"] = "board"
     parameters: dict[str, Any] = Field(default_factory=dict, description="source=board: api.calibrations.CalibrateParams "
-                                       "(board definition required, step, min_change, world, world_frame, fix_k3)")
+                                       "(board definition required, step, min_change, world, world_frame, fix_k3, "
+                                       "distortion, intrinsics, holdout, mirror)")
 
 
 class CalibrationSummary(BaseModel):

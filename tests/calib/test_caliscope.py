@@ -74,7 +74,7 @@ def test_rotation_uncertainty_figures(session):
     """Both 1-sigma figures of the relative rotations are reported, and the folds' spread is the larger.
 
     With the default prior the folds' spread is 0.40-0.88 degrees per pair (0.79-1.75 without it); the
-    remaining differences to caliscope (0.68-1.54 degrees) are 1.2-3.7 of those sigmas, so part of them
+    remaining differences to caliscope (0.68-1.54 degrees) are 0.9-3.6 of those sigmas, so part of them
     is caliscope's own error or a bias of ours that these videos cannot show; the test does not claim
     more than what the figures support."""
     _, result, ref, *_ = session

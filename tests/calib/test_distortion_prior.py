@@ -77,6 +77,17 @@ def test_infinitely_wide_prior_is_the_unregularised_solve(views):
         np.testing.assert_allclose(np.diag(r.covariance), np.diag(full.covariance), rtol=1e-2)
 
 
+def test_held_terms_have_zero_std_and_fixed_aspect_keeps_its_ratio(views):
+    """Held distortion terms report a standard deviation of 0 (as OpenCV does), with no
+    "uncertainty undefined" warning; a fixed aspect ratio is kept under the default prior."""
+    cam, dets = views
+    r = calibrate_intrinsics(dets[:20], HANDHELD_BOARD, cam.size, fix_k3=True, zero_tangent=True, reject_outliers=False)
+    assert np.all(np.isfinite(r.std["dist"])) and r.std["dist"][2:5].tolist() == [0.0, 0.0, 0.0]
+    assert r.std["dist"][0] > 0 and not any("undefined" in w for w in r.warnings)
+    a = calibrate_intrinsics(dets[:20], HANDHELD_BOARD, cam.size, fix_aspect_ratio=True, reject_outliers=False)
+    assert a.K[0, 0] == pytest.approx(a.K[1, 1], rel=1e-9)
+
+
 def test_posterior_information_is_data_plus_prior(views):
     """The posterior covariance's inverse is the views' information at the same solution plus the
     prior's diagonal (closed form; 2 % for the two noise estimates, with and without the prior rows)."""

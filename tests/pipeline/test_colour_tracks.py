@@ -82,7 +82,16 @@ def test_invalid_input():
         colour_tracks(a, a, V, np.ones(1, bool), cam, depth[:60])
     with pytest.raises(ValueError, match="vertices"):
         colour_tracks(a, a, V[:, :2], np.ones(1, bool), cam, depth)
-    with pytest.raises(ValueError, match="images"):
+    with pytest.raises(ValueError, match="previous_image and image"):
         colour_tracks(np.zeros((120, 160, 4), np.uint8), a, V, np.ones(1, bool), cam, depth)
     with pytest.raises(ValueError, match="masks"):
         colour_tracks(a, a, V, np.ones(1, bool), cam, depth, masks=(np.ones((5, 5), bool), np.ones((5, 5), bool)))
+    ok = np.ones((120, 160), bool)
+    with pytest.raises(ValueError, match="masks must be a pair"):
+        colour_tracks(a, a, V, np.ones(1, bool), cam, depth, masks=(ok,))
+    with pytest.raises(ValueError, match="predicted"):
+        colour_tracks(a, a, V, np.ones(1, bool), cam, depth, predicted=np.zeros((2, 3)))
+    for kw, name in (({"window": 2}, "window"), ({"levels": -1}, "levels"), ({"max_error": 0.0}, "max_error"),
+                     ({"max_jump": -1.0}, "max_jump"), ({"highpass": -1.0}, "highpass")):
+        with pytest.raises(ValueError, match=name):
+            colour_tracks(a, a, V, np.ones(1, bool), cam, depth, **kw)
