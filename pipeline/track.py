@@ -187,20 +187,15 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     from pipeline.meshio import load_mesh
 
     root = Path(results_dir)
-    mesh_dir = root / "meshes"
-    paths = sorted(mesh_dir.glob("frame_*.ply"))
-    if not paths:
-        raise FileNotFoundError(f"{mesh_dir}: no frame_NNNNNN.ply meshes (run `stage process` first)")
-    frames = [int(p.stem.split("_")[1]) for p in paths]
-    by_frame = dict(zip(frames, paths))
+    frames, by_frame = _surface_meshes(root)
     skinned = _spine_model(root, frames, by_frame, template)
     ref = skinned[0] if skinned is not None else 0
     if skinned is not None:
         V0, F0 = skinned[1].vertices, skinned[1].faces
         source = str(by_frame[frames[ref]]) if template is None else str(template)
     elif template is None:
-        V0, F0 = load_mesh(paths[0], largest=True)
-        source = str(paths[0])
+        V0, F0 = load_mesh(by_frame[frames[0]], largest=True)
+        source = str(by_frame[frames[0]])
     else:
         V0, F0 = _load_template(template)
         source = str(template) if not isinstance(template, (tuple, list)) else "array"
@@ -244,10 +239,19 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     return report
 
 
+def _surface_meshes(root: Path) -> tuple[list[int], dict]:
+    """The per-frame surfaces of a results directory: frame numbers in order, and their ``meshes/frame_NNNNNN.ply``."""
+    mesh_dir = root / "meshes"
+    paths = sorted(mesh_dir.glob("frame_*.ply"))
+    if not paths:
+        raise FileNotFoundError(f"{mesh_dir}: no frame_NNNNNN.ply meshes (run `stage process` first)")
+    frames = [int(p.stem.split("_")[1]) for p in paths]
+    return frames, dict(zip(frames, paths))
+
+
 def _mesh_data(by_frame: dict):
     """``data_for(k, previous)`` of a multi-view take: frame ``k``'s surface and its normals (None: no surface)."""
     from pipeline.meshio import load_mesh
-    from pipeline.tracking import vertex_normals
 
     def data_for(k, previous=None):
         v, f = load_mesh(by_frame[k], largest=False)
@@ -278,9 +282,7 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     root = Path(chain["root"])
     V0, F0 = chain["template"]
     if by_frame is None:
-        paths = sorted((root / "meshes").glob("frame_*.ply"))
-        frame_list = [int(p.stem.split("_")[1]) for p in paths]
-        by_frame = dict(zip(frame_list, paths))
+        frame_list, by_frame = _surface_meshes(root)
     if tracker is None:
         tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"])
     init_for = None
@@ -320,13 +322,17 @@ def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float):
     from pipeline.colour_tracks import colour_tracks
     from pipeline.rgbd_preprocess import visible_vertices
 
+    images: dict = {}  # the last colour image read: the next frame's previous one
+
     def tracks_for(k, k_prev, prev, fr, start):
         seen = frames.get(k_prev)
         vis = visible_vertices(prev, faces, cam, normals=vertex_normals(prev, faces), tolerance=tolerance,
                                observed=None if seen is None else seen.valid)
         masks = None if seen is None else (seen.valid, fr.valid)
-        return colour_tracks(rd.frame(cam_id, k_prev), rd.frame(cam_id, k), prev, vis, cam, fr.depth, masks=masks,
-                             predicted=start)
+        before = images.pop(k_prev) if k_prev in images else rd.frame(cam_id, k_prev)
+        images.clear()
+        images[k] = rd.frame(cam_id, k)
+        return colour_tracks(before, images[k], prev, vis, cam, fr.depth, masks=masks, predicted=start)
 
     return tracks_for
 
