@@ -152,15 +152,13 @@ def run(args: argparse.Namespace) -> int:
         from stage.cli._demo_rgbd import run_rgbd
 
         return run_rgbd(args)
-    import concurrent.futures as cf
-    import multiprocessing
-
     from calib.formats import write_calibration
     from fake_cameras.device import take_for_rig
     from fake_cameras.evaluate import evaluate_spine
     from fake_cameras.rigs import simulated_rig_dict
     from fake_cameras.take import write_ground_truth
     from pipeline.process import ProcessParams, process_take
+    from stage.cli._pool import worker_pool
     from stage.cli._progress import StepBars
     from stage.store import attach_calibration
 
@@ -223,8 +221,7 @@ def run(args: argparse.Namespace) -> int:
 
     # 4. process
     results = out / f"{args.subject}-results"
-    pool_ctx = multiprocessing.get_context("forkserver")  # as `stage process`: workers start clean
-    executor = cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=pool_ctx) if args.workers > 0 else None
+    executor = worker_pool(args.workers)
     try:
         with StepBars(disable=args.no_progress) as progress:
             result = process_take(take_path, results, params=ProcessParams(), executor=executor, progress=progress)

@@ -82,10 +82,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) -> int:
-    import concurrent.futures as cf
-    import multiprocessing
-
     from pipeline.process import STEPS, ProcessParams, process_take
+    from stage.cli._pool import worker_pool
     from stage.cli._progress import StepBars
 
     steps = STEPS[: STEPS.index(args.until) + 1]
@@ -107,9 +105,7 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
         raise ValueError("; ".join(
             f"--{'.'.join(map(str, e['loc'])).replace('_', '-')}: {e['msg'].removeprefix('Value error, ')}" for e in errors
         )) from None
-    # forkserver: workers start clean (OpenCV's thread pool does not survive fork) and stay warm across steps
-    ctx = multiprocessing.get_context("forkserver")
-    executor = cf.ProcessPoolExecutor(max_workers=args.workers, mp_context=ctx) if args.workers > 0 else None
+    executor = worker_pool(args.workers)
     try:
         with StepBars(disable=args.no_progress) as progress:
             result = process_take(take, out, steps=steps, params=params, executor=executor, progress=progress)

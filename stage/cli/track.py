@@ -82,15 +82,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
     """Multi-view tracking; the backward half in a worker process with ``--workers`` >= 2."""
-    import concurrent.futures as cf
-    import multiprocessing
-
     from pipeline.track import track_results
+    from stage.cli._pool import worker_pool
 
     kw = dict(template=args.template, progress=bars, gamma=args.gamma, gate=args.gate, spine_init=args.spine_init,
               predict=not args.no_predict)
     if args.workers < 2:
         return track_results(src, **kw)
-    # forkserver, as `stage process`: the worker starts clean
-    with cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver")) as ex:
+    with worker_pool(1) as ex:  # one task: the half before the reference frame
         return track_results(src, executor=ex, **kw)
