@@ -21,6 +21,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -183,7 +184,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     Returns
     -------
     dict
-        The report written to ``tracked/track.json``.
+        The report written to ``tracked/track.json`` (``worker_cpu_seconds``: the CPU seconds
+        of the backward half when another process tracked it).
     """
     root = Path(results_dir)
     frames, by_frame = _surface_meshes(root)
@@ -257,7 +259,11 @@ def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tra
     while not cf.wait([later], timeout=_POLL_SECONDS).done:
         if progress is not None:
             progress_both("track", 1 + len(forward), total)
-    _merge_chain(report, later.result())
+    part = later.result()
+    cpu, pid = part.pop("cpu")
+    if pid != os.getpid():  # a thread's CPU seconds are already this process's
+        report["worker_cpu_seconds"] = round(cpu, 3)
+    _merge_chain(report, part)
     if progress is not None:
         progress("track", total, total)
 
@@ -352,8 +358,11 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
 
 
 def track_chain_task(chain: dict) -> dict:
-    """One half of a multi-view take tracked in a worker process (see :func:`track_results`)."""
-    return _track_chain(chain)
+    """One half of a multi-view take tracked in a worker process (see :func:`track_results`);
+    also the CPU seconds it took there and that process's id (``cpu``)."""
+    c0 = time.process_time()
+    part = _track_chain(chain)
+    return {**part, "cpu": (time.process_time() - c0, os.getpid())}
 
 
 def _merge_chain(report: dict, part: dict) -> None:

@@ -203,6 +203,7 @@ def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(
         else:
             rep = track.track_results(root, progress=progress)
         assert rep["reference_frame"] == 3 and list(rep["frames"]) == [str(k) for k in range(7)]
+        assert ("worker_cpu_seconds" in rep) == (how == "pool")  # a thread's CPU is already this process's
         assert seen[-1] == (7, 7) and all(d <= n for d, n in seen)
         runs[how] = [load_mesh(root / "tracked" / f"{k:06d}.ply", largest=False)[0] for k in range(7)]
     assert {5, 6} <= {d for d, _ in seen_by["late"]}  # the worker's frames 2 and 1, counted while waiting
