@@ -84,9 +84,17 @@ class DepthFrame:
 def back_project(depth, camera: Camera) -> np.ndarray:
     """(H, W, 3) world points of a depth image (camera-frame Z in mm); NaN where depth is 0."""
     z = np.asarray(depth, dtype=np.float64)
-    o, d = cached_pixel_grid_rays(camera)
+    d = cached_pixel_grid_rays(camera)[1]
     if z.shape != d.shape[:2]:
         raise ValueError(f"depth must have the camera's shape {d.shape[:2]}, got {z.shape}")
+    return _back_project(z, camera, (slice(None), slice(None)))
+
+
+def _back_project(depth, camera: Camera, window: tuple[slice, slice]) -> np.ndarray:
+    """:func:`back_project` of the ``window`` (rows, columns) of the image, ``depth`` its pixels."""
+    z = np.asarray(depth, dtype=np.float64)
+    o, d = cached_pixel_grid_rays(camera)
+    d = d[window]
     dz = d @ camera.R[2]
     t = np.where(z > 0, z / dz, np.nan)
     return o + d * t[..., None]
@@ -230,6 +238,8 @@ def preprocess_depth(
         raise ValueError(f"depth must be a (H, W) image, got shape {z.shape}")
     if remove_skin and image is None:
         raise ValueError("remove_skin needs the colour image")
+    if z.shape != (camera.size[1], camera.size[0]):
+        raise ValueError(f"depth must have the camera's shape {(camera.size[1], camera.size[0])}, got {z.shape}")
     valid = z > 0
     if bounds is not None:
         lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
@@ -238,18 +248,35 @@ def preprocess_depth(
             valid &= np.all((raw >= lo) & (raw <= hi), axis=-1)
     if remove_skin:
         valid &= ~skin_mask(image, model=skin_model)
-    seen = valid.copy()  # depth kept, before the normals are required
-    zf = bilateral_depth(np.where(valid, z, 0), sigma_space=sigma_space, sigma_depth=sigma_depth)
-    P = back_project(zf, camera)
+    # the filter, normals and edges of a pixel depend only on pixels within the filter's radius (plus one):
+    # computed on the window around the kept pixels, they are those of the whole image
+    win = _window(valid, margin=int(math.ceil(2 * sigma_space)) + 1)
+    off = np.array([win[1].start, win[0].start])
+    seen = valid[win].copy()  # depth kept, before the normals are required
+    zf = bilateral_depth(np.where(seen, z[win], 0), sigma_space=sigma_space, sigma_depth=sigma_depth)
+    P = _back_project(zf, camera, win)
     N = depth_normals(P, camera, max_jump=2.0 * sigma_depth)
-    valid &= np.isfinite(N).all(-1) & np.isfinite(P).all(-1)
-    contour = depth_edges(np.where(seen, zf, 0.0), jump=4.0 * sigma_depth)
-    rows, cols = np.nonzero(valid)
+    ok = seen & np.isfinite(N).all(-1) & np.isfinite(P).all(-1)
+    valid[win] = ok
+    contour = depth_edges(np.where(seen, zf, 0.0), jump=4.0 * sigma_depth) + off
+    rows, cols = np.nonzero(ok)
     if len(rows) > max_points:
         keep = np.linspace(0, len(rows) - 1, max_points).astype(np.int64)
         rows, cols = rows[keep], cols[keep]
-    return DepthFrame(points=P[rows, cols], normals=N[rows, cols], pixels=np.stack([cols, rows], 1), valid=valid,
-                      contour=contour, depth=np.where(valid, zf, 0.0))
+    depth_mm = np.zeros(z.shape)
+    depth_mm[win] = np.where(ok, zf, 0.0)
+    return DepthFrame(points=P[rows, cols], normals=N[rows, cols], pixels=np.stack([cols, rows], 1) + off, valid=valid,
+                      contour=contour, depth=depth_mm)
+
+
+def _window(mask: np.ndarray, *, margin: int) -> tuple[slice, slice]:
+    """(rows, columns) slices of the bounding box of ``mask`` grown by ``margin`` pixels, within the image."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if len(rows) == 0:
+        return slice(0, 0), slice(0, 0)
+    h, w = mask.shape
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
 
 
 def depth_edges(depth, *, jump: float = 12.0) -> np.ndarray:
