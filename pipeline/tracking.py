@@ -645,17 +645,26 @@ class CholeskySystem:
         x = np.array(x0, dtype=np.float64)
         r = b - matvec(x)
         bn = np.maximum(np.linalg.norm(b, axis=0), 1e-300)
+
+        def converged(r):
+            return bool(np.all(np.linalg.norm(r, axis=0) <= rtol * bn))
+
+        if max_iter > 0 and converged(r):
+            return x
+        # the residual is tested before it is preconditioned: the last step's solve is not done for nothing
         z = self.solve(r)
         p = z.copy()
         rz = np.einsum("ij,ij->j", r, z)
-        for _ in range(max_iter):
-            if np.all(np.linalg.norm(r, axis=0) <= rtol * bn):
-                self.cg_iterations += _
-                return x
+        for step in range(1, max_iter + 1):
             Ap = matvec(p)
             alpha = rz / np.maximum(np.einsum("ij,ij->j", p, Ap), 1e-300)
             x += p * alpha
             r -= Ap * alpha
+            if step == max_iter:
+                break
+            if converged(r):
+                self.cg_iterations += step
+                return x
             z = self.solve(r)
             rz_new = np.einsum("ij,ij->j", r, z)
             p = z + p * (rz_new / np.maximum(rz, 1e-300))
