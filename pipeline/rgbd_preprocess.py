@@ -6,9 +6,12 @@ hands that bend the object are removed where a Gaussian mixture over colour says
 :data:`SKIN_GMM`, or one fitted to the user's own skin samples, :func:`fit_skin_model`);
 depth is smoothed by a bilateral filter (OpenCV) and normals are computed from the depth
 image (cross product of the image-space derivatives of the back-projected points, the
-simple member of the family of [23]). Which template vertices the camera can see comes
-from a z-buffer render of the template (:func:`render_depth`, :func:`visible_vertices`);
-:func:`rigid_icp` places a roughly placed template on the first frame.
+simple member of the family of [23]). Filter, normals and depth edges are computed on the
+window around the pixels kept (the object is a few per cent of the image): every pixel's
+values depend only on pixels within the filter's radius plus one, so they are the whole
+image's. Which template vertices the camera can see comes from a z-buffer render of the
+template (:func:`render_depth`, :func:`visible_vertices`); :func:`rigid_icp` places a
+roughly placed template on the first frame.
 
 What is hand-written and why: OpenCV's contrib build here has no ``rgbd`` module (its
 normal estimators), and no maintained package renders a z-buffer of a mesh on a CPU
