@@ -423,6 +423,8 @@ class Creature:
         Returns
         -------
         Pose
+            With ``rest``: every capsule's rigid motion from its place at time 0 (without the
+            hard cases), so that the renderer paints the texture on the body.
         """
         t = float(time_s)
         if not math.isfinite(t):

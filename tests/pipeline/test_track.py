@@ -297,7 +297,11 @@ def test_multiview_colour_tracks_follow_a_turn_the_surfaces_cannot_see(tmp_path)
     res, truth = _turning_sphere_results(tmp_path)
     errors = {}
     for colour in (False, True):
-        rep = track_results(res, colour=colour)
+        if colour:  # the command line's opt-in
+            assert main(["-q", "track", str(res), "--colour", "--workers", "0"]) == 0
+            rep = json.loads((res / "tracked" / "track.json").read_text())
+        else:
+            rep = track_results(res)
         assert rep["colour_tracks"] is colour
         assert all(("colour_tracks" in rep["frames"][str(k)]) is colour for k in range(1, 6))
         tracked = [load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)[0] for k in range(6)]
