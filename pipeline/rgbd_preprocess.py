@@ -264,9 +264,13 @@ def preprocess_depth(
         raise ValueError("remove_skin needs the colour image")
     if z.shape != (camera.size[1], camera.size[0]):
         raise ValueError(f"depth must have the camera's shape {(camera.size[1], camera.size[0])}, got {z.shape}")
+    if bounds is not None:
+        box = np.asarray(bounds, dtype=np.float64)
+        if box.shape != (2, 3) or not np.all(box[0] <= box[1]):
+            raise ValueError(f"bounds must be (low (3,), high (3,)) corners with low <= high, got {bounds!r}")
     valid = z > 0
     if bounds is not None:
-        lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) for b in bounds)
+        lo, hi = box
         valid &= _in_bounds(z, camera, lo, hi)
     if remove_skin:
         valid &= ~skin_mask(image, model=skin_model)

@@ -207,15 +207,42 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
               "reference_frame": frames[ref], "spine_init": use_spine,
               "predict": bool(predict), "prior": tracker.prior, "colour_tracks": _colour_available(root, bool(colour)),
               "skipped": [], "frames": {}}
+    kept = _start_over_if_changed(root, report)
     chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
-             "spine_init": use_spine, "spine_template": template, "predict": bool(predict), "colour": bool(colour)}
+             "spine_init": use_spine, "spine_template": template, "predict": bool(predict),
+             "colour": report["colour_tracks"]}
     first = _track_reference(tracker, (V0, F0), frames[ref], root, report, by_frame=by_frame, progress=progress,
                              total=len(frames))
     _track_halves({**chain, "prev": first, "prev_frame": frames[ref]}, frames, ref, report, tracker=tracker,
                   by_frame=by_frame, skinned=skinned, progress=progress, executor=executor)
+    report["frames"] = {**kept, **report["frames"]}
     report["frames"] = {str(k): report["frames"][str(k)] for k in frames if str(k) in report["frames"]}
     _write_report(root, report)
     return report
+
+
+#: Report entries that are results, not settings: a resumed run may differ in them.
+_RESULT_KEYS = frozenset({"skipped", "frames", "worker_cpu_seconds", "icp"})
+
+
+def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
+    """Per-frame figures of the frames an earlier run of the same settings tracked (they are
+    kept), or ``{}``: tracked frames of other settings are removed first, as ``stage process``
+    removes results of other parameters, with one warning naming what changed."""
+    path = Path(out_dir) / "tracked" / "track.json"
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    changed = [k for k in report if k not in _RESULT_KEYS and old.get(k) != report[k]]
+    if not changed:
+        return old.get("frames", {}) if isinstance(old.get("frames"), dict) else {}
+    log.warning("%s holds frames tracked with other settings (%s); tracking again", path.parent,
+                ", ".join(f"{k} {old.get(k)!r} -> {report[k]!r}" for k in changed))
+    for f in path.parent.glob("[0-9]*.ply"):
+        f.unlink()
+    path.unlink()
+    return {}
 
 
 def _multiview_template(frames: list[int], by_frame: dict, skinned, template):
@@ -269,7 +296,13 @@ def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tra
     while not cf.wait([later], timeout=_POLL_SECONDS).done:
         if progress is not None:
             progress_both("track", 1 + len(forward), total)
-    part = later.result()
+    try:
+        part = later.result()
+    except cf.BrokenExecutor as exc:  # the worker process was killed: its frames are tracked here (resuming its files)
+        log.warning("the second tracking process stopped (%s); tracking the frames before frame %d here", exc, frames[ref])
+        part = _track_chain({**chain, "frames": backward}, tracker=tracker, by_frame=by_frame, frame_list=frames,
+                            skinned=skinned, progress=progress, start=1 + len(forward), total=total)
+        part["cpu"] = (0.0, os.getpid())
     cpu, pid = part.pop("cpu")
     if pid != os.getpid():  # a thread's CPU seconds are already this process's
         report["worker_cpu_seconds"] = round(cpu, 3)
@@ -361,7 +394,7 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
             skinned = _spine_model(root, frame_list, by_frame, chain["spine_template"])
         init_for = _spine_starts(skinned[1], frame_list) if skinned is not None else None
     part = {"skipped": [], "frames": {}}
-    with _multiview_colour(root, F0, 0.3 * tracker.gate, enabled=chain.get("colour", True)) as tracks_for:
+    with _multiview_colour(root, F0, 0.3 * tracker.gate, enabled=chain.get("colour", False)) as tracks_for:
         _run_frames(tracker, list(chain["frames"]), root, F0, part, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
                     progress=progress, start=start, prev=np.asarray(chain["prev"], float), init_for=init_for, total=total,
                     prev_frame=chain["prev_frame"], predict=_predictor(tracker, chain["predict"]), tracks_for=tracks_for)

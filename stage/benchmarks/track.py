@@ -147,6 +147,8 @@ def _rgbd_seconds(take, out, *, colour: bool) -> tuple[float, float]:
 
     rep = track_rgbd_take(take, template_path(take), out, colour=colour)
     frames = [int(k) for k in rep["frames"]]
+    if not frames:
+        raise RuntimeError(f"{take}: no frame was tracked (skipped: {rep['skipped']})")
     per_frame = float(np.mean([f["seconds"] for f in rep["frames"].values()]))
     with TakeReader(take) as rd:
         t0 = time.perf_counter()

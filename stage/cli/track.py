@@ -55,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
     src = Path(args.source)
     if args.workers < 0:
         raise UserError("--workers must be >= 0")
+    _check_mode(args, take=src.is_file())
     quiet = bool(getattr(args, "quiet", False)) or args.no_progress
     try:
         with StepBars(disable=quiet) as bars:
@@ -78,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
           f"solver {rep['solver']})")
     if vols:
         print(f"volume / template volume: {min(vols):.3f} .. {max(vols):.3f}")
+    if "colour_tracks" in rep:
+        print(f"colour tracks: {'on' if rep['colour_tracks'] else 'off'}")
     if rep["skipped"]:
         print(f"skipped {len(rep['skipped'])} frames without data: {', '.join(map(str, rep['skipped']))}")
     print(f"wrote {Path(out) / 'tracked'}")
@@ -95,3 +98,19 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
         return track_results(src, **kw)
     with worker_pool(1) as ex:  # one task: the half before the reference frame
         return track_results(src, executor=ex, **kw)
+
+
+#: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.
+_TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
+              ("--contour", "contour", False), ("--no-colour", "no_colour", False))
+_RESULTS_ONLY = (("--colour", "colour", False), ("--spine-init", "spine_init", False))
+
+
+def _check_mode(args: argparse.Namespace, *, take: bool) -> None:
+    """A flag of the other mode is an error (it would be silently ignored)."""
+    from stage.cli import UserError
+
+    for flag, attr, default in (_RESULTS_ONLY if take else _TAKE_ONLY):
+        if getattr(args, attr) != default:
+            where = "a results directory (multi-view)" if take else "a take file (single RGB-D)"
+            raise UserError(f"{flag} applies to {where} only")

@@ -250,9 +250,17 @@ def test_texture_painted_on_the_body_moves_with_it():
     pose = make_creature("starfish").pose(0)
     eye = np.concatenate([np.tile(np.eye(3), (pose.n_capsules, 1, 1)), np.zeros((pose.n_capsules, 3, 1))], axis=2)
     same = Pose(p0=pose.p0, p1=pose.p1, r0=pose.r0, r1=pose.r1, limb=pose.limb, rest=eye)
-    a = render_view(cam, pose, rng=np.random.default_rng(0))
+    world = Pose(p0=pose.p0, p1=pose.p1, r0=pose.r0, r1=pose.r1, limb=pose.limb, rest=None)
+    a = render_view(cam, world, rng=np.random.default_rng(0))
     b = render_view(cam, same, rng=np.random.default_rng(0))
     assert np.array_equal(a.image, b.image)
+    later = make_creature("starfish").pose(0.37)  # moved: painted and world texture differ on the body only
+    sharp = {"blur_sigma": 0.0, "spill": 0.0}  # no blur or spill carries body colours past the outline
+    painted = render_view(cam, later, backdrop=Backdrop(**sharp), rng=np.random.default_rng(0))
+    fixed = render_view(cam, later, backdrop=Backdrop(painted=False, **sharp), rng=np.random.default_rng(0))
+    assert np.array_equal(painted.mask, fixed.mask)
+    assert np.array_equal(painted.image[~painted.mask], fixed.image[~fixed.mask])
+    assert np.any(painted.image[painted.mask] != fixed.image[fixed.mask])
     rng = np.random.default_rng(1)
     p = rng.uniform(-200, 200, (50, 3))
     t = np.array([30.0, -12.0, 5.0])

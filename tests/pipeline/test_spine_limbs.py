@@ -36,7 +36,8 @@ def _mesh(pose):
 
 def _without(pose, limb: int):
     keep = pose.limb != limb
-    return replace(pose, p0=pose.p0[keep], p1=pose.p1[keep], r0=pose.r0[keep], r1=pose.r1[keep], limb=pose.limb[keep])
+    return replace(pose, p0=pose.p0[keep], p1=pose.p1[keep], r0=pose.r0[keep], r1=pose.r1[keep], limb=pose.limb[keep],
+                   rest=None if pose.rest is None else pose.rest[keep])
 
 
 @pytest.fixture(scope="module")
