@@ -43,6 +43,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from pipeline.geodesic import mesh_edges
+from pipeline.motion_segmentation import rigid_motions
 
 __all__ = [
     "CurveSkeleton", "ArticulatedSkeleton", "curve_skeleton", "articulated_skeleton", "segment_hits_mesh", "joint_residual",
@@ -277,7 +278,8 @@ def _boundary_joints(vertices, faces, labels, min_edges: int) -> list[tuple[tupl
 
 
 def _segment_motions(motion: np.ndarray, labels: np.ndarray, segments, reference: int, per_segment: int = 400):
-    """Per segment, its best rigid motion from the reference frame to every frame (Arun et al. 1987).
+    """Per segment, its best rigid motion from the reference frame to every frame
+    (:func:`pipeline.motion_segmentation.rigid_motions` of at most ``per_segment`` of its vertices).
 
     Returns dict segment -> (R (T, 3, 3), t (T, 3)) with ``x_t ~ R_t x_ref + t_t``.
     """
@@ -287,15 +289,7 @@ def _segment_motions(motion: np.ndarray, labels: np.ndarray, segments, reference
         ids = np.flatnonzero(labels == sgm)
         if len(ids) > per_segment:
             ids = rng.choice(ids, per_segment, replace=False)
-        Y = np.asarray(motion[:, ids], dtype=np.float64)  # (T, n, 3)
-        X = Y[reference]
-        cx, cy = X.mean(0), Y.mean(1)
-        H = np.einsum("nd,tne->tde", X - cx, Y - cy[:, None])
-        U, _, Vt = np.linalg.svd(H)
-        d = np.sign(np.linalg.det(np.einsum("tij,tjk->tik", U, Vt)))
-        U[:, :, 2] *= d[:, None]
-        R = np.einsum("tij,tjk->tki", U, Vt)  # R_t x ~ y (the transpose of X -> Y's right factor)
-        out[int(sgm)] = (R, cy - np.einsum("tij,j->ti", R, cx))
+        out[int(sgm)] = rigid_motions(motion[:, ids], reference=reference)
     return out
 
 
@@ -334,17 +328,18 @@ def joint_residual(motion_a, motion_b, centroid, *, ridge: float = 1e-3) -> tupl
     return float(np.sqrt((gap**2).sum(1).mean())), c
 
 
-def _kinematic_tree(candidates, residual) -> list:
+def _kinematic_tree(candidates, residual, *, index=None) -> list:
     """The candidate pairs that form a spanning tree of the segments with the smallest residuals.
 
     A kinematic tree has no cycles: when the segments' adjacency does (two
     limbs that touch, arms that meet round a body), the pairs whose motion
-    is least like a joint are not articulations.
+    is least like a joint are not articulations. ``index``: segment -> its
+    position among the pairs' segments in ascending order (when the caller has it).
     """
-    segs = sorted({x for c in candidates for x in c[0]})
+    idx = {x: i for i, x in enumerate(sorted({x for c in candidates for x in c[0]}))} if index is None else index
+    segs = list(idx)
     if len(segs) < 2:
         return list(candidates)
-    idx = {x: i for i, x in enumerate(segs)}
     rows = [idx[c[0][0]] for c in candidates]
     cols = [idx[c[0][1]] for c in candidates]
     w = np.asarray([residual[c[0]] for c in candidates], dtype=np.float64)
@@ -380,7 +375,7 @@ def _articulation_pairs(v, f, lab, min_edges, motion, reference) -> tuple[list, 
         e = mesh_edges(f)
         la, lb = np.sort(np.c_[lab[e[:, 0]], lab[e[:, 1]]], axis=1).T
         residual = {pair: -float(((la == pair[0]) & (lb == pair[1])).sum()) for pair, _, _ in cand}
-    kept = _kinematic_tree(cand, residual)
+    kept = _kinematic_tree(cand, residual, index=idx)
     if len(kept) < len(cand):
         log.info("%d adjacent segment pairs are contacts, not joints (the kinematic tree keeps %d)",
                  len(cand) - len(kept), len(kept))

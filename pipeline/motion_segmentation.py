@@ -89,6 +89,7 @@ __all__ = [
     "spectral_clusters",
     "propagate_labels",
     "motion_segmentation",
+    "rigid_motions",
 ]
 
 log = logging.getLogger(__name__)
@@ -537,6 +538,46 @@ def _connected_segments(labels: np.ndarray, edges: np.ndarray, n_vertices: int, 
     return rank[inv].astype(np.int64)
 
 
+def rigid_motions(points, *, reference: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The best rigid motion of a point set from one frame to every frame, all frames at once.
+
+    Least squares (Arun et al. 1987; the reflection case corrected), batched over frames:
+    one SVD of a 3x3 matrix per frame.
+
+    Parameters
+    ----------
+    points : (T, n, 3) float array_like
+        The same ``n`` points in ``T`` frames.
+    reference : int
+        The frame the motions start from.
+
+    Returns
+    -------
+    R : (T, 3, 3) float ndarray
+        Rotations (det +1).
+    t : (T, 3) float ndarray
+        ``points[k] ~ points[reference] @ R[k].T + t[k]``.
+    """
+    Y = np.asarray(points, dtype=np.float64)
+    if Y.ndim != 3 or Y.shape[2] != 3 or Y.shape[1] == 0:
+        raise ValueError(f"points must have shape (T, n, 3) with n >= 1, got {Y.shape}")
+    if isinstance(reference, bool) or not isinstance(reference, (int, np.integer)) or not 0 <= reference < len(Y):
+        raise ValueError(f"reference must be a frame index within 0..{len(Y) - 1}, got {reference!r}")
+    c = Y.mean(1)
+    Rt = _rotations_from(Y - c[:, None], int(reference))
+    R = Rt.transpose(0, 2, 1)
+    return R, c - np.einsum("tij,j->ti", R, c[reference])
+
+
+def _rotations_from(Yc: np.ndarray, reference: int) -> np.ndarray:
+    """(T, 3, 3) ``Q`` with ``Yc[reference] @ Q[k] ~ Yc[k]`` for centred point sets ``Yc`` (T, n, 3)."""
+    H = np.matmul(Yc[reference].T[None], Yc)  # (T, 3, 3)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.matmul(U, Vt)))
+    U[:, :, 2] *= d[:, None]
+    return np.matmul(U, Vt)
+
+
 def rigid_residual(points, groups=None) -> float:
     """How far a set of trajectories is from one rigid motion.
 
@@ -554,17 +595,12 @@ def rigid_residual(points, groups=None) -> float:
     float
         The largest (over frames) RMS distance (median per group when
         ``groups`` is given) after the best rigid transform from frame 0
-        (Arun et al. 1987, every frame at once).
+        (:func:`rigid_motions`).
     """
     Y = np.asarray(points, dtype=np.float64)
     Y = Y - Y.mean(1, keepdims=True)
     X = Y[0]
-    H = np.matmul(X.T[None], Y)  # (T, 3, 3)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.matmul(U, Vt)))
-    U[:, :, 2] *= d[:, None]
-    R = np.matmul(U, Vt)  # X @ R ~ Y
-    res = np.sqrt(((np.matmul(X[None], R) - Y) ** 2).sum(2))  # (T, n)
+    res = np.sqrt(((np.matmul(X[None], _rotations_from(Y, 0)) - Y) ** 2).sum(2))  # (T, n)
     if groups is None:
         return float(np.sqrt((res**2).mean(1)).max())
     g = np.asarray(groups)

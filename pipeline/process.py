@@ -39,6 +39,7 @@ import shutil
 import threading
 import time
 from collections.abc import Callable, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -437,7 +438,7 @@ def surface_task(
     try:
         with TakeReader(take) if masks is None or use_depth is not False else nullcontext() as reader:
             if use_depth is None:
-                use_depth = _uses_depth(reader, cameras, p)
+                use_depth = _uses_depth(p, all_depth=_all_depth(reader, cameras))
             validity = _mask_validity(reader, cameras) if masks is None else None
             for k in frames:
                 t0 = time.perf_counter()
@@ -475,9 +476,14 @@ def surface_task(
     return results
 
 
-def _uses_depth(reader, cameras: Sequence[str], p: ProcessParams) -> bool:
+def _all_depth(reader, cameras: Sequence[str]) -> bool:
+    """Every camera of the take delivers depth."""
+    return all(reader.camera_info(c).get("has_depth") for c in cameras)
+
+
+def _uses_depth(p: ProcessParams, *, all_depth: bool) -> bool:
     """Depth is fused when the job allows it and every camera of the take delivers depth."""
-    return p.depth == "auto" and all(reader.camera_info(c).get("has_depth") for c in cameras)
+    return p.depth == "auto" and all_depth
 
 
 def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
@@ -620,6 +626,7 @@ class RunContext:
     fps: float
     rig: dict
     need_key: bool
+    all_depth: bool = False  # every camera records depth
     timings: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     spine_path: Path | None = None
@@ -633,6 +640,20 @@ class RunContext:
     step: str = ""  # the step running
     cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds (this process and the workers)
     worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks on the executor
+    part_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its parts counted on their own
+
+    @contextmanager
+    def part(self, name: str):
+        """Count a part of the running step on its own (e.g. the surface step's grid choice): its
+        wall and CPU seconds go to ``timings[name]`` and ``cpu[name]``, not to the step's."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            cpu = time.process_time() - c0
+            self.timings[name] = time.perf_counter() - t0
+            self.cpu[name] = cpu
+            self.part_cpu[self.step] = self.part_cpu.get(self.step, 0.0) + cpu
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
@@ -766,16 +787,17 @@ def _forking_pool(executor) -> bool:
     return isinstance(executor, cf.ProcessPoolExecutor) and (ctx is None or ctx.get_start_method(allow_none=False) == "fork")
 
 
-def _with_cpu(task: Callable[[], object]) -> tuple[object, float]:
-    """A task's result and the CPU seconds its process spent on it (run in the worker)."""
+def _with_cpu(task: Callable[[], object]) -> tuple[object, float, int]:
+    """A task's result, the CPU seconds its process spent on it and that process's id (run in the worker)."""
     t = time.process_time()
     out = task()
-    return out, time.process_time() - t
+    return out, time.process_time() - t, os.getpid()
 
 
 def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
     """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
-    between tasks when cancelled. The workers' CPU seconds add to the running step's."""
+    between tasks when cancelled. The CPU seconds of workers in other processes add to the
+    running step's (a thread pool's are already this process's)."""
 
     def check_cancel() -> None:
         if ctx.cancel is not None and ctx.cancel.is_set():
@@ -790,8 +812,9 @@ def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
     try:
         for fut in cf.as_completed(futures):
             check_cancel()
-            out, cpu = fut.result()
-            ctx.worker_cpu[ctx.step] = ctx.worker_cpu.get(ctx.step, 0.0) + cpu
+            out, cpu, pid = fut.result()
+            if pid != os.getpid():
+                ctx.worker_cpu[ctx.step] = ctx.worker_cpu.get(ctx.step, 0.0) + cpu
             yield out
     finally:
         for fut in futures:
@@ -853,15 +876,9 @@ def _processing_grid(ctx: RunContext):
 
 def _step_surface(ctx: RunContext) -> None:
     """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
-    from stage.store import TakeReader
-
-    t0, c0 = time.perf_counter(), time.process_time()
-    grid = _processing_grid(ctx)
-    with TakeReader(ctx.take) as reader:
-        use_depth = _uses_depth(reader, ctx.cameras, ctx.params)
-    _add_to_record(ctx, grid=ctx.grid_choice)
-    ctx.timings["grid"] = time.perf_counter() - t0
-    ctx.cpu["grid"] = time.process_time() - c0
+    with ctx.part("grid"):
+        grid = _processing_grid(ctx)
+        _add_to_record(ctx, grid=ctx.grid_choice)
     t0 = time.perf_counter()
     task = partial(
         surface_task,
@@ -872,7 +889,7 @@ def _step_surface(ctx: RunContext) -> None:
         out=str(ctx.out.resolve()),
         # skeletons straight from the surfaces in memory when the spine step follows
         spine_params=ctx.params.spine if "spine" in ctx.steps else None,
-        use_depth=use_depth,
+        use_depth=_uses_depth(ctx.params, all_depth=ctx.all_depth),
     )
     ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx))
     ctx.timings["surface"] = time.perf_counter() - t0
@@ -908,7 +925,8 @@ def _step_track(ctx: RunContext) -> None:
     from pipeline.track import track_results
 
     t0 = time.perf_counter()
-    track_results(ctx.out, progress=ctx.progress, executor=ctx.executor)
+    rep = track_results(ctx.out, progress=ctx.progress, executor=ctx.executor)
+    ctx.worker_cpu["track"] = ctx.worker_cpu.get("track", 0.0) + rep.get("worker_cpu_seconds", 0.0)
     ctx.timings["track"] = time.perf_counter() - t0
 
 
@@ -982,6 +1000,7 @@ def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunC
             # the rig's (or the import's) support plane, unless the job gives its own
             params = ProcessParams(**{**params.model_dump(), "support_plane": tuple(rig["support_plane"])})
         need_key = params.rekey or len(reader.masks_present()) < len(cameras)
+        all_depth = _all_depth(reader, cameras)
         table = reader.set_table()
         set_table = table[:, [list(reader.cameras).index(c) for c in cameras]]
     if n_sets == 0:
@@ -989,7 +1008,7 @@ def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunC
     calibration = type(calibration)(tuple(calibration[c] for c in cameras), units=calibration.units, meta=calibration.meta)
     return RunContext(
         take=take, out=out, params=params, calibration=calibration, cameras=cameras, n_sets=n_sets,
-        fps=float(fps), rig=rig, need_key=need_key, tip_counts=[None] * n_sets, set_table=set_table, **hooks,
+        fps=float(fps), rig=rig, need_key=need_key, all_depth=all_depth, tip_counts=[None] * n_sets, set_table=set_table, **hooks,
     )
 
 
@@ -1111,12 +1130,12 @@ def process_take(
 
 
 def _run_step(ctx: RunContext, name: str) -> None:
-    """Run one step; its CPU seconds (this process's and its tasks' on the executor) go to
-    ``ctx.cpu`` (the surface step's without the grid choice, which it records itself)."""
+    """Run one step; its CPU seconds (this process's and its tasks' in other processes) go to
+    ``ctx.cpu``, less those of its parts counted on their own (:meth:`RunContext.part`)."""
     ctx.step = name
     t = time.process_time()
     _REGISTRY[name].run(ctx)
-    own = time.process_time() - t - (ctx.cpu.get("grid", 0.0) if name == "surface" else 0.0)
+    own = time.process_time() - t - ctx.part_cpu.get(name, 0.0)
     ctx.cpu[name] = own + ctx.worker_cpu.get(name, 0.0)
 
 

@@ -84,9 +84,17 @@ class DepthFrame:
 def back_project(depth, camera: Camera) -> np.ndarray:
     """(H, W, 3) world points of a depth image (camera-frame Z in mm); NaN where depth is 0."""
     z = np.asarray(depth, dtype=np.float64)
-    o, d = cached_pixel_grid_rays(camera)
+    d = cached_pixel_grid_rays(camera)[1]
     if z.shape != d.shape[:2]:
         raise ValueError(f"depth must have the camera's shape {d.shape[:2]}, got {z.shape}")
+    return _back_project(z, camera, (slice(None), slice(None)))
+
+
+def _back_project(depth, camera: Camera, window: tuple[slice, slice]) -> np.ndarray:
+    """:func:`back_project` of the ``window`` (rows, columns) of the image, ``depth`` its pixels."""
+    z = np.asarray(depth, dtype=np.float64)
+    o, d = cached_pixel_grid_rays(camera)
+    d = d[window]
     dz = d @ camera.R[2]
     t = np.where(z > 0, z / dz, np.nan)
     return o + d * t[..., None]
@@ -230,6 +238,8 @@ def preprocess_depth(
         raise ValueError(f"depth must be a (H, W) image, got shape {z.shape}")
     if remove_skin and image is None:
         raise ValueError("remove_skin needs the colour image")
+    if z.shape != (camera.size[1], camera.size[0]):
+        raise ValueError(f"depth must have the camera's shape {(camera.size[1], camera.size[0])}, got {z.shape}")
     valid = z > 0
     if bounds is not None:
         lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
@@ -238,18 +248,35 @@ def preprocess_depth(
             valid &= np.all((raw >= lo) & (raw <= hi), axis=-1)
     if remove_skin:
         valid &= ~skin_mask(image, model=skin_model)
-    seen = valid.copy()  # depth kept, before the normals are required
-    zf = bilateral_depth(np.where(valid, z, 0), sigma_space=sigma_space, sigma_depth=sigma_depth)
-    P = back_project(zf, camera)
+    # the filter, normals and edges of a pixel depend only on pixels within the filter's radius (plus one):
+    # computed on the window around the kept pixels, they are those of the whole image
+    win = _window(valid, margin=int(math.ceil(2 * sigma_space)) + 1)
+    off = np.array([win[1].start, win[0].start])
+    seen = valid[win].copy()  # depth kept, before the normals are required
+    zf = bilateral_depth(np.where(seen, z[win], 0), sigma_space=sigma_space, sigma_depth=sigma_depth)
+    P = _back_project(zf, camera, win)
     N = depth_normals(P, camera, max_jump=2.0 * sigma_depth)
-    valid &= np.isfinite(N).all(-1) & np.isfinite(P).all(-1)
-    contour = depth_edges(np.where(seen, zf, 0.0), jump=4.0 * sigma_depth)
-    rows, cols = np.nonzero(valid)
+    ok = seen & np.isfinite(N).all(-1) & np.isfinite(P).all(-1)
+    valid[win] = ok
+    contour = depth_edges(np.where(seen, zf, 0.0), jump=4.0 * sigma_depth) + off
+    rows, cols = np.nonzero(ok)
     if len(rows) > max_points:
         keep = np.linspace(0, len(rows) - 1, max_points).astype(np.int64)
         rows, cols = rows[keep], cols[keep]
-    return DepthFrame(points=P[rows, cols], normals=N[rows, cols], pixels=np.stack([cols, rows], 1), valid=valid,
-                      contour=contour, depth=np.where(valid, zf, 0.0))
+    depth_mm = np.zeros(z.shape)
+    depth_mm[win] = np.where(ok, zf, 0.0)
+    return DepthFrame(points=P[rows, cols], normals=N[rows, cols], pixels=np.stack([cols, rows], 1) + off, valid=valid,
+                      contour=contour, depth=depth_mm)
+
+
+def _window(mask: np.ndarray, *, margin: int) -> tuple[slice, slice]:
+    """(rows, columns) slices of the bounding box of ``mask`` grown by ``margin`` pixels, within the image."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if len(rows) == 0:
+        return slice(0, 0), slice(0, 0)
+    h, w = mask.shape
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
 
 
 def depth_edges(depth, *, jump: float = 12.0) -> np.ndarray:
@@ -335,22 +362,25 @@ def render_depth(vertices, faces, camera: Camera) -> np.ndarray:
     filled in image space with depth interpolated linearly (pixel centres at integer coordinates).
     """
     v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    w, h = camera.size
     uv, z = camera.project(v, return_depth=True)
-    uv = np.asarray(uv, dtype=np.float64)
-    z = np.asarray(z, dtype=np.float64).reshape(-1)
+    return _zbuffer(np.asarray(uv, dtype=np.float64), np.asarray(z, dtype=np.float64).reshape(-1),
+                    np.asarray(faces, dtype=np.int64), camera.size)
+
+
+def _zbuffer(uv: np.ndarray, z: np.ndarray, f: np.ndarray, size) -> np.ndarray:
+    """:func:`render_depth` of projected vertices (``uv`` (V, 2), depth ``z`` (V,)); one array per
+    triangle corner (column operations: reductions over an axis of length 3 cost more than the rest)."""
+    w, h = size
     zbuf = np.full(h * w, np.inf)
-    front = (z[f] > 1e-6).all(1)
-    f = f[front]
+    f = f[(z[f[:, 0]] > 1e-6) & (z[f[:, 1]] > 1e-6) & (z[f[:, 2]] > 1e-6)]
     if len(f) == 0:
         return zbuf.reshape(h, w)
-    U, Vv, Z = uv[f, 0], uv[f, 1], z[f]
+    (ax, ay), (bx, by), (cx, cy) = (uv[f[:, c]].T for c in range(3))
     # pixel centres at integer coordinates (the camera model's convention)
-    x0 = np.clip(np.ceil(U.min(1)), 0, w).astype(np.int64)
-    x1 = np.clip(np.floor(U.max(1)), -1, w - 1).astype(np.int64)
-    y0 = np.clip(np.ceil(Vv.min(1)), 0, h).astype(np.int64)
-    y1 = np.clip(np.floor(Vv.max(1)), -1, h - 1).astype(np.int64)
+    x0 = np.clip(np.ceil(np.minimum(np.minimum(ax, bx), cx)), 0, w).astype(np.int64)
+    x1 = np.clip(np.floor(np.maximum(np.maximum(ax, bx), cx)), -1, w - 1).astype(np.int64)
+    y0 = np.clip(np.ceil(np.minimum(np.minimum(ay, by), cy)), 0, h).astype(np.int64)
+    y1 = np.clip(np.floor(np.maximum(np.maximum(ay, by), cy)), -1, h - 1).astype(np.int64)
     nx = np.maximum(x1 - x0 + 1, 0)
     ny = np.maximum(y1 - y0 + 1, 0)
     cnt = nx * ny
@@ -360,9 +390,10 @@ def render_depth(vertices, faces, camera: Camera) -> np.ndarray:
         return zbuf.reshape(h, w)
     start = np.repeat(np.cumsum(cnt[ok]) - cnt[ok], cnt[ok])
     k = np.arange(tri.size) - start
-    px = (x0[tri] + k % nx[tri]).astype(np.float64)
-    py = (y0[tri] + k // nx[tri]).astype(np.float64)
-    ax, ay, bx, by, cx, cy = U[tri, 0], Vv[tri, 0], U[tri, 1], Vv[tri, 1], U[tri, 2], Vv[tri, 2]
+    ntri = nx[tri]
+    px = (x0[tri] + k % ntri).astype(np.float64)
+    py = (y0[tri] + k // ntri).astype(np.float64)
+    ax, ay, bx, by, cx, cy = ax[tri], ay[tri], bx[tri], by[tri], cx[tri], cy[tri]
     den = (by - cy) * (ax - cx) + (cx - bx) * (ay - cy)
     good = np.abs(den) > 1e-12
     den = np.where(good, den, 1.0)
@@ -370,7 +401,8 @@ def render_depth(vertices, faces, camera: Camera) -> np.ndarray:
     l1 = ((cy - ay) * (px - cx) + (ax - cx) * (py - cy)) / den
     l2 = 1.0 - l0 - l1
     inside = good & (l0 >= -1e-9) & (l1 >= -1e-9) & (l2 >= -1e-9)
-    zz = l0 * Z[tri, 0] + l1 * Z[tri, 1] + l2 * Z[tri, 2]
+    ft = f[tri]
+    zz = l0 * z[ft[:, 0]] + l1 * z[ft[:, 1]] + l2 * z[ft[:, 2]]
     idx = py.astype(np.int64) * w + px.astype(np.int64)
     np.minimum.at(zbuf, idx[inside], zz[inside])
     return zbuf.reshape(h, w)
@@ -394,10 +426,11 @@ def visible_vertices(vertices, faces, camera: Camera, *, tolerance: float = 3.0,
         Pixels with data.
     """
     v = np.asarray(vertices, dtype=np.float64)
-    _, z, row, col, inside = _project_to_pixels(v, camera)
+    uv, z, row, col, inside = _project_to_pixels(v, camera)
     row, col = row[inside], col[inside]
     vis = np.zeros(len(v), bool)
-    vis[inside] = z[inside] <= render_depth(v, faces, camera)[row, col] + tolerance
+    zbuf = _zbuffer(np.asarray(uv, dtype=np.float64), z.astype(np.float64), np.asarray(faces, dtype=np.int64), camera.size)
+    vis[inside] = z[inside] <= zbuf[row, col] + tolerance
     if observed is not None:
         vis[inside] &= np.asarray(observed, bool)[row, col]
     n = vertex_normals(v, faces) if normals is None else np.asarray(normals)

@@ -18,8 +18,10 @@ the skipped frames and per-frame fit figures.
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -182,61 +184,119 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     Returns
     -------
     dict
-        The report written to ``tracked/track.json``.
+        The report written to ``tracked/track.json`` (``worker_cpu_seconds``: the CPU seconds
+        of the backward half when another process tracked it).
     """
-    from pipeline.meshio import load_mesh
-
     root = Path(results_dir)
     frames, by_frame = _surface_meshes(root)
     skinned = _spine_model(root, frames, by_frame, template)
-    ref = skinned[0] if skinned is not None else 0
-    if skinned is not None:
-        V0, F0 = skinned[1].vertices, skinned[1].faces
-        source = str(by_frame[frames[ref]]) if template is None else str(template)
-    elif template is None:
-        V0, F0 = load_mesh(by_frame[frames[0]], largest=True)
-        source = str(by_frame[frames[0]])
-    else:
-        V0, F0 = _load_template(template)
-        source = str(template) if not isinstance(template, (tuple, list)) else "array"
+    ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, template)
     tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
+    use_spine = skinned is not None and bool(spine_init)
     report = {"mode": "multi-view", "template": source, "vertices": int(len(V0)), "gamma": tracker.gamma,
               "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
-              "reference_frame": frames[ref], "spine_init": skinned is not None and bool(spine_init),
+              "reference_frame": frames[ref], "spine_init": use_spine,
               "predict": bool(predict), "prior": tracker.prior, "skipped": [], "frames": {}}
-
     chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
-             "spine_init": skinned is not None and bool(spine_init), "spine_template": template, "predict": bool(predict)}
-    forward = frames[ref:]
-    backward = frames[: ref + 1][::-1]
-    n_forward = len(forward)
-    # the reference frame first: both halves start from its fit
-    _run_frames(tracker, forward[:1], root, F0, report, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
-                progress=progress, start=0, prev=V0.copy(), total=len(frames))
-    first = _read_tracked(tracked_path(root, frames[ref]), len(V0))
-    first = V0.copy() if first is None else first
-    later = None
-    if len(backward) > 1 and executor is not None:
-        later = executor.submit(track_chain_task, {**chain, "frames": backward[1:], "prev": first, "prev_frame": frames[ref]})
-
-    def progress_both(step, done, total):  # the backward half's frames count as they are written
-        if later is not None:
-            done += sum(tracked_path(root, k).is_file() for k in backward[1:])
-        progress(step, min(done, total), total)
-
-    halves = [(forward[1:], 1)] + ([(backward[1:], n_forward)] if later is None and len(backward) > 1 else [])
-    for part, start in halves:
-        out = _track_chain({**chain, "frames": part, "prev": first, "prev_frame": frames[ref]}, tracker=tracker,
-                           by_frame=by_frame, frame_list=frames, skinned=skinned,
-                           progress=progress_both if progress is not None else None, start=start, total=len(frames))
-        _merge_chain(report, out)
-    if later is not None:
-        _merge_chain(report, later.result())
-        if progress is not None:
-            progress("track", len(frames), len(frames))
+             "spine_init": use_spine, "spine_template": template, "predict": bool(predict)}
+    first = _track_reference(tracker, (V0, F0), frames[ref], root, report, by_frame=by_frame, progress=progress,
+                             total=len(frames))
+    _track_halves({**chain, "prev": first, "prev_frame": frames[ref]}, frames, ref, report, tracker=tracker,
+                  by_frame=by_frame, skinned=skinned, progress=progress, executor=executor)
     report["frames"] = {str(k): report["frames"][str(k)] for k in frames if str(k) in report["frames"]}
     _write_report(root, report)
     return report
+
+
+def _multiview_template(frames: list[int], by_frame: dict, skinned, template):
+    """(reference index into ``frames``, template vertices, faces, its source for the report)."""
+    from pipeline.meshio import load_mesh
+
+    if skinned is not None:
+        source = str(by_frame[frames[skinned[0]]]) if template is None else str(template)
+        return skinned[0], skinned[1].vertices, skinned[1].faces, source
+    if template is None:
+        V0, F0 = load_mesh(by_frame[frames[0]], largest=True)
+        return 0, V0, F0, str(by_frame[frames[0]])
+    V0, F0 = _load_template(template)
+    return 0, V0, F0, (str(template) if not isinstance(template, (tuple, list)) else "array")
+
+
+def _track_reference(tracker, template: tuple, frame: int, root: Path, report: dict, *, by_frame: dict, progress,
+                     total: int) -> np.ndarray:
+    """Fit the reference frame (or keep its tracked file); -> where both halves start: that fit,
+    or the template when the frame has no surface (one warning says so)."""
+    V0, F0 = template
+    first = _run_frames(tracker, [frame], root, F0, report, data_for=_mesh_data(by_frame),
+                        visible_for=lambda e: None, progress=progress, start=0, prev=V0.copy(), total=total)
+    if frame in report["skipped"]:
+        log.warning("reference frame %d has no surface (%s has no triangles): both halves start from the template",
+                    frame, by_frame[frame])
+    return first
+
+
+def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tracker, by_frame: dict, skinned,
+                  progress, executor) -> None:
+    """The frames after the reference frame here, those before it (backwards) on ``executor`` at the
+    same time, or here afterwards; their figures merged into ``report``. Progress counts the
+    worker's frames by the tracked files it writes (:func:`_written_count`), also while this
+    process waits for it."""
+    forward, backward = frames[ref + 1:], frames[:ref][::-1]
+    total = len(frames)
+    later = executor.submit(track_chain_task, {**chain, "frames": backward}) if backward and executor is not None else None
+    worker_done = _written_count(Path(chain["root"]), backward) if later is not None else (lambda: 0)
+
+    def progress_both(step, done, n):
+        progress(step, min(done + worker_done(), n), n)
+
+    here = [(forward, 1)] + ([(backward, 1 + len(forward))] if backward and later is None else [])
+    for part, start in here:
+        out = _track_chain({**chain, "frames": part}, tracker=tracker, by_frame=by_frame, frame_list=frames, skinned=skinned,
+                           progress=progress_both if progress is not None else None, start=start, total=total)
+        _merge_chain(report, out)
+    if later is None:
+        return
+    while not cf.wait([later], timeout=_POLL_SECONDS).done:
+        if progress is not None:
+            progress_both("track", 1 + len(forward), total)
+    part = later.result()
+    cpu, pid = part.pop("cpu")
+    if pid != os.getpid():  # a thread's CPU seconds are already this process's
+        report["worker_cpu_seconds"] = round(cpu, 3)
+    _merge_chain(report, part)
+    if progress is not None:
+        progress("track", total, total)
+
+
+#: Seconds between two looks at the worker's tracked files while this process waits for it.
+_POLL_SECONDS = 0.5
+#: Frames looked at past a missing tracked file (a frame without a surface writes none).
+_LOOK_AHEAD = 4
+
+
+def _written_count(root: Path, frames: list[int]):
+    """``count()`` -> how many of ``frames``, tracked in this order by another process, are done,
+    judged by their tracked files. Linear in the frames: a count looks at the files from the first
+    missing one of the last count on, and past a missing file (a frame without a surface, or the
+    one being tracked) at no more than ``_LOOK_AHEAD`` more."""
+    paths = [tracked_path(root, k) for k in frames]
+    done = 0
+
+    def count() -> int:
+        nonlocal done
+        i = done
+        while i < len(paths):
+            if paths[i].is_file():
+                i += 1
+                continue
+            ahead = [j for j in range(i + 1, min(i + 1 + _LOOK_AHEAD, len(paths))) if paths[j].is_file()]
+            if not ahead:
+                break
+            i = ahead[-1] + 1
+        done = i
+        return i
+
+    return count
 
 
 def _surface_meshes(root: Path) -> tuple[list[int], dict]:
@@ -298,8 +358,11 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
 
 
 def track_chain_task(chain: dict) -> dict:
-    """One half of a multi-view take tracked in a worker process (see :func:`track_results`)."""
-    return _track_chain(chain)
+    """One half of a multi-view take tracked in a worker process (see :func:`track_results`);
+    also the CPU seconds it took there and that process's id (``cpu``)."""
+    c0 = time.process_time()
+    part = _track_chain(chain)
+    return {**part, "cpu": (time.process_time() - c0, os.getpid())}
 
 
 def _merge_chain(report: dict, part: dict) -> None:

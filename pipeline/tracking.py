@@ -158,6 +158,20 @@ def _scatter_add(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return out.reshape((n,) + vals.shape[1:])
 
 
+def _summing(index: np.ndarray, n: int) -> sp.csr_matrix:
+    """(n, K) sparse ``S`` with ``S @ values`` equal, bit for bit, to ``_scatter_add(index, values, n)``:
+    each row holds ones at its values' positions in order, so it adds them in the order bincount does.
+    One sparse product for all columns; built once, it serves every sum over the same ``index``."""
+    k = len(index)
+    return sp.csr_matrix((np.ones(k), (np.asarray(index, dtype=np.int64), np.arange(k))), shape=(n, k))
+
+
+def _sum_by(S: sp.csr_matrix, values: np.ndarray) -> np.ndarray:
+    """``S @ values`` for (K,) or (K, d...) values (:func:`_summing`)."""
+    vals = np.asarray(values, dtype=np.float64)
+    return (S @ vals.reshape(len(vals), -1)).reshape((S.shape[0],) + vals.shape[1:])
+
+
 def _triangle_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
 
@@ -217,8 +231,13 @@ def vertex_normals(vertices, faces) -> np.ndarray:
     """(V, 3) unit area-weighted vertex normals (zero for isolated vertices)."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
+    return _vertex_normals(v, f, _summing(f.ravel(), len(v)))
+
+
+def _vertex_normals(v: np.ndarray, f: np.ndarray, corners: sp.csr_matrix) -> np.ndarray:
+    """:func:`vertex_normals` with the corners' summing matrix (``_summing(f.ravel(), V)``) given."""
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = _scatter_add(f.ravel(), np.repeat(fn, 3, axis=0), len(v))
+    n = _sum_by(corners, np.repeat(fn, 3, axis=0))
     nn = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.where(nn > 0, nn, 1.0)
 
@@ -306,7 +325,28 @@ def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_
     -------
     (V, 3) float ndarray
     """
-    n_p = int(patches.max()) + 1
+    return _patch_rigid_motion(V, pv, px, pn, patches, _summing(patches, int(patches.max()) + 1), fallback=fallback,
+                               component=component, min_pairs=min_pairs, damping=damping, cutoff=cutoff)
+
+
+_UPPER6 = np.triu_indices(6)
+
+
+def _pair_normal_matrices(lab, J, r, a, n_p):
+    """Per patch, ``J^T J`` (6, 6), ``J^T r`` (6,) and the pairs' ``sum |a|^2``: the 21 distinct products of
+    ``J^T J`` (the matrix is symmetric) and the rest summed in one sparse product (:func:`_summing`)."""
+    iu, ju = _UPPER6
+    sums = _sum_by(_summing(lab, n_p), np.concatenate([J[:, iu] * J[:, ju], J * r[:, None], (a ** 2).sum(1)[:, None]], 1))
+    JtJ = np.empty((n_p, 6, 6))
+    JtJ[:, iu, ju] = sums[:, :21]
+    JtJ[:, ju, iu] = sums[:, :21]
+    return JtJ, sums[:, 21:27], sums[:, 27]
+
+
+def _patch_rigid_motion(V, pv, px, pn, patches, patch_sum, *, fallback, component=None, min_pairs: int = 12,
+                        damping: float = 1e-6, cutoff: float = 1e-2):
+    """:func:`patch_rigid_motion` with the patches' summing matrix (``_summing(patches, n_patches)``) given."""
+    n_p = patch_sum.shape[0]
     comp = np.zeros(n_p, np.int64) if component is None else np.asarray(component)
     lab = patches[pv]
     cnt = np.bincount(lab, minlength=n_p)
@@ -314,14 +354,12 @@ def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_
     if not ok.any():
         return np.asarray(fallback, dtype=np.float64).copy()
     sizes = np.maximum(np.bincount(patches, minlength=n_p), 1)
-    cen = np.stack([np.bincount(patches, weights=V[:, k], minlength=n_p) for k in range(3)], 1) / sizes[:, None]
+    cen = _sum_by(patch_sum, V) / sizes[:, None]
     a = V[pv] - cen[lab]
     J = np.concatenate([np.cross(a, pn), pn], axis=1)  # (P, 6)
     r = np.einsum("ij,ij->i", px - V[pv], pn)
-    JtJ = _scatter_add(lab, J[:, :, None] * J[:, None, :], n_p)
-    Jtr = _scatter_add(lab, J * r[:, None], n_p)
-    x = _truncated_solve(JtJ[ok], Jtr[ok], _scatter_add(lab, (a ** 2).sum(1), n_p)[ok] / cnt[ok], damping,
-                         cutoff)
+    JtJ, Jtr, spread = _pair_normal_matrices(lab, J, r, a, n_p)
+    x = _truncated_solve(JtJ[ok], Jtr[ok], spread[ok] / cnt[ok], damping, cutoff)
     sol = np.zeros((n_p, 6))
     sol[ok] = x
     still = np.zeros(n_p, bool)
@@ -361,12 +399,17 @@ def patch_align(source, target, patches) -> np.ndarray:
     """
     S = np.asarray(source, dtype=np.float64)
     T = np.asarray(target, dtype=np.float64)
-    n_p = int(patches.max()) + 1
+    return _patch_align(S, T, patches, _summing(patches, int(patches.max()) + 1))
+
+
+def _patch_align(S, T, patches, patch_sum) -> np.ndarray:
+    """:func:`patch_align` with the patches' summing matrix (``_summing(patches, n_patches)``) given."""
+    n_p = patch_sum.shape[0]
     cnt = np.maximum(np.bincount(patches, minlength=n_p), 1)[:, None]
-    cs = _scatter_add(patches, S, n_p) / cnt
-    ct = _scatter_add(patches, T, n_p) / cnt
+    cs = _sum_by(patch_sum, S) / cnt
+    ct = _sum_by(patch_sum, T) / cnt
     a, b = S - cs[patches], T - ct[patches]
-    H = _scatter_add(patches, a[:, :, None] * b[:, None, :], n_p)  # (n_p, 3, 3)
+    H = _sum_by(patch_sum, a[:, :, None] * b[:, None, :])  # (n_p, 3, 3)
     U, _, Wt = np.linalg.svd(H)
     D = np.ones((n_p, 3))
     D[:, 2] = np.sign(np.linalg.det(np.einsum("pij,pjk->pik", U, Wt)))
@@ -676,17 +719,26 @@ class CholeskySystem:
         x = np.array(x0, dtype=np.float64)
         r = b - matvec(x)
         bn = np.maximum(np.linalg.norm(b, axis=0), 1e-300)
+
+        def converged(r):
+            return bool(np.all(np.linalg.norm(r, axis=0) <= rtol * bn))
+
+        if max_iter > 0 and converged(r):
+            return x
+        # the residual is tested before it is preconditioned: the last step's solve is not done for nothing
         z = self.solve(r)
         p = z.copy()
         rz = np.einsum("ij,ij->j", r, z)
-        for _ in range(max_iter):
-            if np.all(np.linalg.norm(r, axis=0) <= rtol * bn):
-                self.cg_iterations += _
-                return x
+        for step in range(1, max_iter + 1):
             Ap = matvec(p)
             alpha = rz / np.maximum(np.einsum("ij,ij->j", p, Ap), 1e-300)
             x += p * alpha
             r -= Ap * alpha
+            if step == max_iter:
+                break
+            if converged(r):
+                self.cg_iterations += step
+                return x
             z = self.solve(r)
             rz_new = np.einsum("ij,ij->j", r, z)
             p = z + p * (rz_new / np.maximum(rz, 1e-300))
@@ -807,6 +859,10 @@ class TemplateTracker:
         self.align_size = float(align_size) if align_size is not None else 0.15 * size
         self.align_patches = surface_patches(v, f, self.align_size)[0] if prior == "previous" else None
         self.align_cover = blended_patches(v, f, self.align_size) if prior == "previous" and blend else None
+        # summing matrices of the per-round sums over fixed indices (the same sums as bincount's, in one product)
+        self._corner_sum = _summing(f.ravel(), len(v))
+        self._patch_sum = _summing(self.patches, int(self.patches.max()) + 1)
+        self._align_sum = None if self.align_patches is None else _summing(self.align_patches, int(self.align_patches.max()) + 1)
 
     def _solve_round(self, V, pv, px, pn, smooth_rhs, start, first, prev=None):
         """One linear solve of the energy for fixed pairs (see the module docstring)."""
@@ -816,8 +872,9 @@ class TemplateTracker:
             if self.align_cover is not None:
                 base = blended_align(prev, V, self.align_cover)
             else:
-                base = V if self.align_patches is None else patch_align(prev, V, self.align_patches)
-            P = patch_rigid_motion(base, pv, px, pn, self.patches, fallback=start, component=self.patch_component)
+                base = V if self.align_patches is None else _patch_align(prev, V, self.align_patches, self._align_sum)
+            P = _patch_rigid_motion(base, pv, px, pn, self.patches, self._patch_sum, fallback=start,
+                                    component=self.patch_component)
             # the data fix each paired vertex along the data normal; tangentially it follows its patch
             tx = P[pv] + pn * np.einsum("ij,ij->i", px - P[pv], pn)[:, None]
         else:
@@ -886,7 +943,7 @@ class TemplateTracker:
         gate = self.gate
         tracks = _check_tracks(tracks, n)
         for _ in range(self.rounds):
-            vn = vertex_normals(V, self.faces)
+            vn = _vertex_normals(V, self.faces, self._corner_sum)
             if visible is None:
                 vis = np.ones(n, bool)
             elif callable(visible):

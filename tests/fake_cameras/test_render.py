@@ -242,8 +242,9 @@ def test_invalid_input():
 def test_texture_painted_on_the_body_moves_with_it():
     """With ``rest``, the texture is evaluated at every point's rest position: a capsule shifted by
     ``t`` with ``rest = [I | t]`` shows, pixel for pixel, the texture that a capsule at rest shows
-    at the point minus ``t`` (exact formula); identity ``rest`` renders like the world texture."""
-    from fake_cameras.render import _rest_points, _texture
+    at the point minus ``t`` (exact formula); identity ``rest`` renders like the world texture, and
+    the render uses ``rest``: shifting it alone changes the body's colours, nothing else."""
+    from fake_cameras.render import _rest_points
 
     cam = make_dome(4, size=(64, 48))[0]
     pose = make_creature("starfish").pose(0)
@@ -259,5 +260,14 @@ def test_texture_painted_on_the_body_moves_with_it():
     rest = np.tile(np.concatenate([R, t[:, None]], axis=1), (50, 1, 1))
     moved = p @ R.T + t
     assert np.allclose(_rest_points(rest, moved), p)
-    bd = Backdrop(texture=0.2, texture_scale=0.5)
-    assert np.allclose(_texture(_rest_points(rest, moved), bd), _texture(p, bd))
+    # the render evaluates the texture at the rest position: shifting ``rest`` alone moves the
+    # texture over the (unmoved) body: the same silhouette, labels and depth, other creature colours
+    bd = Backdrop(texture=0.2, texture_scale=0.5, blur_sigma=0.0, spill=0.0)
+    shifted = Pose(p0=pose.p0, p1=pose.p1, r0=pose.r0, r1=pose.r1, limb=pose.limb,
+                   rest=np.concatenate([eye[:, :, :3], np.tile(t[:, None], (pose.n_capsules, 1, 1))], axis=2))
+    c = render_view(cam, same, backdrop=bd, noise_sigma=0, depth=True)
+    d = render_view(cam, shifted, backdrop=bd, noise_sigma=0, depth=True)
+    assert c.mask.any() and np.array_equal(c.mask, d.mask) and np.array_equal(c.label, d.label)
+    assert np.array_equal(c.depth, d.depth) and np.array_equal(c.image[~c.mask], d.image[~d.mask])
+    changed = np.abs(c.image.astype(int) - d.image.astype(int)).max(axis=-1)[c.mask] > 1
+    assert changed.mean() > 0.5, changed.mean()

@@ -11,6 +11,7 @@ from pipeline.motion_segmentation import (
     check_sequence,
     interval_length,
     motion_segmentation,
+    rigid_motions,
     rigid_residual,
     spectral_clusters,
     trajectory_distances,
@@ -188,8 +189,32 @@ def test_one_frame_is_one_segment(caplog):
     assert "one frame" in caplog.text
 
 
+def test_rigid_motions_match_one_alignment_per_frame():
+    """Batched over frames against :func:`pipeline.correspond.arun_alignment` frame by frame (1e-9),
+    from a reference frame in the middle; a mirrored frame still gets a rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.correspond import arun_alignment
+
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(40, 3)) * [50.0, 20.0, 10.0]
+    R = Rotation.random(7, random_state=4).as_matrix()
+    Y = np.einsum("tij,nj->tni", R, X) + rng.normal(size=(7, 1, 3)) * 30 + rng.normal(size=(7, 40, 3))
+    Y[5] = Y[5] * [-1.0, 1.0, 1.0]  # a reflection: no rotation maps onto it exactly
+    Rb, tb = rigid_motions(Y, reference=2)
+    for k in range(7):
+        Rk, tk, _ = arun_alignment(Y[2], Y[k])
+        assert np.allclose(Rb[k], Rk, atol=1e-9) and np.allclose(tb[k], tk, atol=1e-9), k
+    assert np.allclose(np.linalg.det(Rb), 1.0)
+    assert np.allclose(Y[2] @ Rb[2].T + tb[2], Y[2])
+
+
 def test_invalid_input():
     V, F, _ = _two_bars(3)
+    with pytest.raises(ValueError, match="points"):
+        rigid_motions(np.zeros((3, 4, 2)))
+    with pytest.raises(ValueError, match="reference"):
+        rigid_motions(np.zeros((3, 4, 3)), reference=3)
     with pytest.raises(ValueError, match="track"):
         check_sequence([V[0], V[1][:-5]], F)
     with pytest.raises(ValueError, match="vertices"):

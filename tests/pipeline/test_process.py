@@ -1,6 +1,7 @@
 """The whole pipeline on a simulated take: keying -> hull -> surface -> spine, resumable."""
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -367,3 +368,33 @@ def test_worker_pools_survive_opencv_threads_in_the_parent(tmp_path):
     run = subprocess.run([sys.executable, "-c", _AFTER_OPENCV_THREADS, str(tmp_path)], capture_output=True, text=True,
                          timeout=300, env=env, cwd=tmp_path)
     assert run.returncode == 0 and "finished" in run.stdout, run.stderr[-2000:]
+
+
+def _burn(seconds: float) -> None:
+    c0 = time.process_time()
+    while time.process_time() - c0 < seconds:
+        pass
+
+
+def test_cpu_seconds_of_a_thread_pool_count_once_and_parts_count_apart(monkeypatch):
+    """A thread pool's tasks run in this process: their CPU is the step's own, not added again as
+    workers'; a part of a step (the surface step's grid) is counted on its own, not in the step."""
+    import concurrent.futures as cf
+    from functools import partial
+    from pathlib import Path
+
+    from pipeline import process
+
+    def step(ctx):
+        with ctx.part("inner"):
+            _burn(0.1)
+        list(process._map_tasks(ctx, [partial(_burn, 0.1)]))
+
+    monkeypatch.setitem(process._REGISTRY, "burn", process.Step("burn", step))
+    with cf.ThreadPoolExecutor(1) as ex:
+        ctx = process.RunContext(take=Path("t.h5"), out=Path("out"), params=ProcessParams(), executor=ex, progress=None,
+                                 cancel=None, calibration=None, cameras=[], n_sets=0, fps=30.0, rig={}, need_key=False)
+        process._run_step(ctx, "burn")
+    assert ctx.worker_cpu == {}
+    assert 0.1 <= ctx.cpu["inner"] < 0.15 and ctx.timings["inner"] >= 0.1
+    assert 0.1 <= ctx.cpu["burn"] < 0.15, ctx.cpu  # 0.3 before: the task counted twice, the part once more

@@ -157,29 +157,89 @@ def test_rgbd_bent_objects_rigged(name, articulations, bent_tracks):
 
 def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(tmp_path, monkeypatch):
     """Reference frame 3 of 7 (as a spine would choose it): the backward half tracked on a process pool
-    gives the same vertices as tracking in order, and progress reaches every frame."""
+    gives the same vertices as tracking in order, and progress reaches every frame; while this process
+    waits for a late worker, progress counts the worker's frames as they are written."""
     import concurrent.futures as cf
     import multiprocessing
+    import threading
     from types import SimpleNamespace
 
     from pipeline import track
 
     t = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
     monkeypatch.setattr(track, "_spine_model", lambda *a: (3, SimpleNamespace(vertices=t.vertices + [6.0, 0, 0], faces=t.faces)))
-    runs = {}
-    for how in ("in_order", "pool"):
+    monkeypatch.setattr(track, "_POLL_SECONDS", 0.01)
+    forward_done = threading.Event()
+
+    class LateWorker(cf.ThreadPoolExecutor):  # starts the backward half once this process has tracked its own
+        def submit(self, fn, *args, **kwargs):
+            return super().submit(lambda: forward_done.wait(60) and fn(*args, **kwargs))
+
+    runs, seen_by = {}, {}
+    for how in ("in_order", "pool", "late"):
         root = tmp_path / how
         for k in range(7):
             atomic_write_bytes(root / "meshes" / f"frame_{k:06d}.ply", ply_bytes(t.vertices + [2.0 * k, 0, 0], t.faces))
-        seen = []
+        seen = seen_by[how] = []
+        forward_done.clear()
+
+        def progress(s, d, n, seen=seen):
+            seen.append((d, n))
+            if d >= 4:  # the reference frame and the 3 after it
+                forward_done.set()
+
         if how == "pool":
             with cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver")) as ex:
-                rep = track.track_results(root, executor=ex, progress=lambda s, d, n, seen=seen: seen.append((d, n)))
+                rep = track.track_results(root, executor=ex, progress=progress)
+        elif how == "late":
+            with LateWorker(max_workers=1) as ex:
+                rep = track.track_results(root, executor=ex, progress=progress)
         else:
-            rep = track.track_results(root, progress=lambda s, d, n, seen=seen: seen.append((d, n)))
+            rep = track.track_results(root, progress=progress)
         assert rep["reference_frame"] == 3 and list(rep["frames"]) == [str(k) for k in range(7)]
+        assert ("worker_cpu_seconds" in rep) == (how == "pool")  # a thread's CPU is already this process's
         assert seen[-1] == (7, 7) and all(d <= n for d, n in seen)
         runs[how] = [load_mesh(root / "tracked" / f"{k:06d}.ply", largest=False)[0] for k in range(7)]
+    assert {5, 6} <= {d for d, _ in seen_by["late"]}  # the worker's frames 2 and 1, counted while waiting
+    for how in ("pool", "late"):
+        for k in range(7):
+            assert np.array_equal(runs[how][k], runs["in_order"][k]), (how, k)
     for k in range(7):
-        assert np.array_equal(runs["pool"][k], runs["in_order"][k]), k
         assert np.abs(np.linalg.norm(runs["pool"][k] - [2.0 * k, 0, 0], axis=1) - 60.0).mean() < 0.5
+
+
+def test_worker_progress_counts_frames_without_a_surface_and_looks_at_each_file_a_bounded_number_of_times(
+        tmp_path, monkeypatch):
+    import pathlib
+
+    from pipeline import track
+
+    frames = list(range(40, 0, -1))
+    count = track._written_count(tmp_path, frames)
+    looks = []
+    is_file = pathlib.Path.is_file
+    monkeypatch.setattr(pathlib.Path, "is_file", lambda self: looks.append(self) or is_file(self))
+    assert count() == 0
+    (tmp_path / "tracked").mkdir()
+    for i, k in enumerate(frames):
+        if k != 30:  # frame 30 has no surface: no tracked file
+            track.tracked_path(tmp_path, k).write_bytes(b"ply")
+        assert count() == (i + 1 if k != 30 else i)
+    assert count() == 40
+    # each count: the files it passes, the first missing one and a few after it (linear; 820 looks if quadratic)
+    assert len(looks) <= len(frames) + 42 * (1 + track._LOOK_AHEAD)
+
+
+def test_reference_frame_without_a_surface_says_so_in_one_line(tmp_path, caplog):
+    from pipeline.track import track_results
+
+    t = trimesh.creation.icosphere(subdivisions=2, radius=60.0)
+    atomic_write_bytes(tmp_path / "meshes" / "frame_000000.ply", ply_bytes(np.zeros((0, 3)), np.zeros((0, 3), int)))
+    for k in (1, 2):
+        atomic_write_bytes(tmp_path / "meshes" / f"frame_{k:06d}.ply", ply_bytes(t.vertices + [1.0 * k, 0, 0], t.faces))
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        rep = track_results(tmp_path, template=(t.vertices, t.faces))
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == [f"reference frame 0 has no surface ({tmp_path / 'meshes' / 'frame_000000.ply'} has no triangles): "
+                     "both halves start from the template"]
+    assert rep["skipped"] == [0] and sorted(rep["frames"]) == ["1", "2"]

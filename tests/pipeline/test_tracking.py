@@ -11,6 +11,9 @@ from scipy.sparse.linalg import spsolve
 from pipeline.tracking import (
     CholeskySystem,
     TemplateTracker,
+    _scatter_add,
+    _sum_by,
+    _summing,
     blended_align,
     blended_patches,
     choose_gamma,
@@ -75,6 +78,65 @@ def test_cholesky_system_matches_spsolve(backend):
         x = sysm.solve(b)
         np.testing.assert_allclose(x, spsolve((K + sp.diags(d)).tocsc(), b), rtol=1e-8, atol=1e-8)
     assert sysm.factorizations == 3
+
+
+def _reference_cg(sysm, d, b, x0, rtol=1e-6, max_iter=6):
+    """Preconditioned CG as the textbook writes it (precondition, then test the residual)."""
+    K = sysm._K
+    x = x0.copy()
+    r = b - (K @ x + d[:, None] * x)
+    bn = np.linalg.norm(b, axis=0)
+    z = sysm.solve(r)
+    p, rz = z.copy(), np.einsum("ij,ij->j", r, z)
+    for _ in range(max_iter):
+        if np.all(np.linalg.norm(r, axis=0) <= rtol * bn):
+            return x, False
+        Ap = K @ p + d[:, None] * p
+        alpha = rz / np.einsum("ij,ij->j", p, Ap)
+        x += p * alpha
+        r -= Ap * alpha
+        z = sysm.solve(r)
+        rz_new = np.einsum("ij,ij->j", r, z)
+        p, rz = z + p * (rz_new / rz), rz_new
+    return None, True
+
+
+def test_solve_near_gives_the_textbook_iterates_with_one_triangular_solve_fewer():
+    v, f = _sphere(2)
+    L = cotangent_laplacian(v, f)
+    K = sp.csr_matrix(L.T @ L)
+    rng = np.random.default_rng(1)
+    d0 = rng.uniform(0.01, 0.1, len(v))
+    b, x0 = rng.normal(size=(len(v), 3)), rng.normal(size=(len(v), 3))
+    spread = np.random.default_rng(3).uniform(-1, 1, len(v))
+    for scale, refactors in ((1e-4, False), (1e-2, False), (1.0, True)):  # near, further, too far: refactor
+        a, ref = CholeskySystem(K, backend="qdldl"), CholeskySystem(K, backend="qdldl")
+        a.factor(d0)
+        ref.factor(d0)
+        solves = []
+        a.solve = lambda r, plain=a.solve, solves=solves: solves.append(1) or plain(r)
+        d = d0 * np.exp(scale * spread)
+        x = a.solve_near(d, b, x0)
+        want, failed = _reference_cg(ref, d, b, x0)
+        assert failed == refactors and a.factorizations == 1 + refactors
+        if failed:
+            np.testing.assert_allclose(x, spsolve((K + sp.diags(d)).tocsc(), b), rtol=1e-8, atol=1e-8)
+            assert len(solves) == 1 + a.cg_iterations  # the preconditioner's 6 and the final direct solve
+        else:
+            assert np.array_equal(x, want)
+            assert len(solves) == a.cg_iterations and a.cg_iterations >= 1
+
+
+def test_summing_matrix_adds_bit_for_bit_like_bincount():
+    rng = np.random.default_rng(2)
+    index = rng.integers(0, 40, 2000)
+    values = rng.normal(size=(2000, 6, 6)) * 10.0 ** rng.uniform(-8, 8, (2000, 1, 1))
+    S = _summing(index, 45)  # the last rows without any value
+    assert np.array_equal(_sum_by(S, values), _scatter_add(index, values, 45))
+    assert np.array_equal(_sum_by(S, values[:, 0, 0]), _scatter_add(index, values[:, 0, 0], 45))
+    exact = np.zeros((45, 6, 6))
+    np.add.at(exact, index, values)
+    np.testing.assert_allclose(_sum_by(S, values), exact, rtol=1e-12, atol=1e-12 * np.abs(values).max())
 
 
 def test_gamma_and_gate_follow_the_template():
