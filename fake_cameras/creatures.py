@@ -59,6 +59,16 @@ def _unit(v) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def _align(a, b) -> np.ndarray:
+    """The smallest rotation taking direction ``a`` to direction ``b``."""
+    a, b = _unit(a), _unit(b)
+    c = np.cross(a, b)
+    s = float(np.linalg.norm(c))
+    if s < 1e-12:
+        return np.eye(3) if a @ b > 0 else _rot(np.cross(a, [1.0, 0, 0]) if abs(a[0]) < 0.9 else np.cross(a, [0, 1.0, 0]), math.pi)
+    return _rot(c, math.atan2(s, float(a @ b)))
+
+
 def round_cone_sdf_pairs(points: np.ndarray, p0: np.ndarray, p1: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
     """Exact signed distance of points to round cones, broadcasting pairwise.
 
@@ -360,17 +370,52 @@ class Creature:
 
     def _limb_chain(self, lb: LimbSpec, t: float) -> np.ndarray:
         """(S+1, 3) joint positions of a limb in the body frame."""
+        return self._limb_frames(lb, t)[0]
+
+    @staticmethod
+    def _limb_frames(lb: LimbSpec, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(S+1, 3) joint positions and (S, 3, 3) segment rotations of a limb in the body frame
+        (segment ``i`` is its straight rest direction turned by rotation ``i``, from joint ``i``)."""
         w = 2 * math.pi * lb.freq
         R_swing = _rot(lb.swing_axis, lb.swing * math.sin(w * t + lb.phase)) if lb.swing else np.eye(3)
         d0 = _unit(lb.direction)
         axis = _unit(lb.bend_axis)
         pts = [np.asarray(lb.attach, dtype=np.float64)]
+        rots = []
         theta = 0.0
         for i, L in enumerate(lb.lengths):
             theta += lb.rest[i] + lb.amp[i] * math.sin(w * t + lb.phase - i * lb.lag)
-            d = R_swing @ (_rot(axis, theta) @ d0)
-            pts.append(pts[-1] + L * d)
-        return np.stack(pts)
+            rots.append(R_swing @ _rot(axis, theta))
+            pts.append(pts[-1] + L * (rots[-1] @ d0))
+        return np.stack(pts), np.stack(rots)
+
+    def _capsule_frames(self, chains: dict, rots: dict, R: np.ndarray, pos: np.ndarray, spur: bool):
+        """World frames (R (M, 3, 3), o (M, 3)) of the capsules, in the pose's order: body capsules
+        move with the body, limb segment ``i`` with its rotation about joint ``i``."""
+        Rs = [R] * len(self.body)
+        Os = [pos] * len(self.body)
+        for lb in self.limbs:
+            for i in range(len(lb.lengths)):
+                Rs.append(R @ rots[lb.name][i])
+                Os.append(R @ chains[lb.name][i] + pos)
+        if spur:
+            Rs.append(R)
+            Os.append(pos)
+        return np.stack(Rs), np.stack(Os)
+
+    def _rest_motions(self, frames: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """(M, 3, 4) ``[R | t]`` per capsule: from its place at rest (time 0, no hard case) to ``frames``."""
+        pos0, R0 = self._body_transform(0.0)
+        limb0 = {lb.name: self._limb_frames(lb, 0.0) for lb in self.limbs}
+        F0, O0 = self._capsule_frames({k: v[0] for k, v in limb0.items()}, {k: v[1] for k, v in limb0.items()},
+                                      R0, pos0, spur=len(frames[0]) > self._n_plain_capsules)
+        Rt = np.einsum("mij,mkj->mik", frames[0], F0)  # R_t R_0^T
+        t = frames[1] - np.einsum("mij,mj->mi", Rt, O0)
+        return np.concatenate([Rt, t[:, :, None]], axis=2)
+
+    @property
+    def _n_plain_capsules(self) -> int:
+        return len(self.body) + sum(len(lb.lengths) for lb in self.limbs)
 
     def pose(self, time_s: float) -> Pose:
         """The creature at ``time_s`` seconds.
@@ -378,6 +423,8 @@ class Creature:
         Returns
         -------
         Pose
+            With ``rest``: every capsule's rigid motion from its place at time 0 (without the
+            hard cases), so that the renderer paints the texture on the body.
         """
         t = float(time_s)
         if not math.isfinite(t):
@@ -390,7 +437,9 @@ class Creature:
             r0.append(ra)
             r1.append(rb)
             lab.append(BODY)
-        chains = {lb.name: self._limb_chain(lb, t) for lb in self.limbs}
+        limb_frames = {lb.name: self._limb_frames(lb, t) for lb in self.limbs}
+        chains = {k: v[0] for k, v in limb_frames.items()}
+        rots = {k: v[1].copy() for k, v in limb_frames.items()}
         w_tuck = self._weight(t, self.tuck, 0.1) if self.tuck_pair else 0.0
         if w_tuck > 0:
             a_name, b_name = self.tuck_pair
@@ -410,6 +459,8 @@ class Creature:
             for i in range(1, len(A2)):
                 d = A2[i] - A2[i - 1]
                 A2[i] = A2[i - 1] + _unit(d) * la.lengths[i - 1]
+                # the segment turns rigidly onto its new direction (its texture goes with it)
+                rots[a_name][i - 1] = _align(A[i] - A[i - 1], A2[i] - A2[i - 1]) @ rots[a_name][i - 1]
             chains[a_name] = A2
         tips, axes = {}, {}
         for li, lb in enumerate(self.limbs):
@@ -423,7 +474,8 @@ class Creature:
             tip_local = P[-1] + lb.radii[-1] * _unit(P[-1] - P[-2])
             axes[lb.name] = np.vstack([P, tip_local[None]]) @ R.T + pos
             tips[lb.name] = tip_local @ R.T + pos
-        if self._weight(t, self.spur, 0.0) > 0:
+        spur = self._weight(t, self.spur, 0.0) > 0
+        if spur:
             # a short stub growing out of the body: a spurious protrusion
             a, b, ra, rb = self.body[0]
             a = np.asarray(a, dtype=np.float64)
@@ -445,6 +497,7 @@ class Creature:
             tips=tips,
             axes=axes,
             time=t,
+            rest=self._rest_motions(self._capsule_frames(chains, rots, R, pos, spur)),
         )
 
 

@@ -11,7 +11,7 @@ The studio: a green cylindrical wall around the volume and a green floor
 (z = 0), unevenly lit (smooth gradients plus lens vignetting); the creature
 casts a soft-edged shadow on the floor (a ray from each floor point to the key
 light, tested against the creature), it is Lambert-shaded by a key and a fill
-light with a faint procedural texture, picks up green spill near its
+light with a faint procedural texture painted on its body, picks up green spill near its
 silhouette, and the sensor adds Gaussian noise after a slight optical blur.
 
 The ground-truth mask is exactly the set of pixels whose centre ray hits the
@@ -63,6 +63,11 @@ class Backdrop:
         Amplitude of the creature's procedural texture.
     texture_scale : float
         Its wavelengths, relative to the default (0.5: twice as fine).
+    painted : bool
+        The texture is painted on the body: evaluated at every point's rest position
+        (:attr:`fake_cameras.creatures.Pose.rest`), so it moves with the part that carries it,
+        as a real subject's skin does. False: a function of the world position (the texture
+        stands still while the subject moves through it; what the simulator did before).
     key_light, fill_light : (3,) float
         Directions *towards* the lights (normalized internally).
     key_intensity, fill_intensity, ambient : float
@@ -90,6 +95,7 @@ class Backdrop:
     creature_color: tuple[float, float, float] = (70.0, 125.0, 205.0)
     texture: float = 0.08
     texture_scale: float = 1.0
+    painted: bool = True
     key_light: tuple[float, float, float] = (0.25, -0.18, 1.0)
     fill_light: tuple[float, float, float] = (-0.6, 0.5, 0.4)
     key_intensity: float = 0.75
@@ -435,7 +441,8 @@ def render_view(
                 + bd.key_intensity * np.maximum(n @ sc.key, 0.0)
                 + bd.fill_intensity * np.maximum(n @ sc.fill, 0.0)
             )
-            tex = _texture(pts if pose.rest is None else _rest_points(pose.rest[cap], pts), bd)
+            body = pose.rest is not None and bd.painted
+            tex = _texture(_rest_points(pose.rest[cap], pts) if body else pts, bd)
             rows, cols = np.divmod(ray, w)
             col = np.asarray(bd.creature_color)[None, :] * (shade * tex * sc.vignette[rows, cols])[:, None]
             img[rows, cols] = col.astype(np.float32)

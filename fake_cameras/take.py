@@ -46,7 +46,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 SUBJECTS = (*CREATURES, "empty")
-RENDER_VERSION = 1  # bump when rendering changes: invalidates cached takes
+RENDER_VERSION = 2  # bump when rendering changes: invalidates cached takes
 
 
 @dataclass(frozen=True, eq=False)
@@ -362,6 +362,8 @@ def _poses_digest(poses: list) -> str:
         for a in (pose.p0, pose.p1, pose.r0, pose.r1):
             h.update(np.round(np.asarray(a, np.float64), 6).tobytes())
         h.update(np.asarray(pose.limb, np.int64).tobytes())
+        if pose.rest is not None:  # where the painted texture lies on the body
+            h.update(np.round(pose.rest, 9).tobytes())
     return h.hexdigest()
 
 

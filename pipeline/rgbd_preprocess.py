@@ -6,9 +6,12 @@ hands that bend the object are removed where a Gaussian mixture over colour says
 :data:`SKIN_GMM`, or one fitted to the user's own skin samples, :func:`fit_skin_model`);
 depth is smoothed by a bilateral filter (OpenCV) and normals are computed from the depth
 image (cross product of the image-space derivatives of the back-projected points, the
-simple member of the family of [23]). Which template vertices the camera can see comes
-from a z-buffer render of the template (:func:`render_depth`, :func:`visible_vertices`);
-:func:`rigid_icp` places a roughly placed template on the first frame.
+simple member of the family of [23]). Filter, normals and depth edges are computed on the
+window around the pixels kept (the object is a few per cent of the image): every pixel's
+values depend only on pixels within the filter's radius plus one, so they are the whole
+image's. Which template vertices the camera can see comes from a z-buffer render of the
+template (:func:`render_depth`, :func:`visible_vertices`); :func:`rigid_icp` places a
+roughly placed template on the first frame.
 
 What is hand-written and why: OpenCV's contrib build here has no ``rgbd`` module (its
 normal estimators), and no maintained package renders a z-buffer of a mesh on a CPU
@@ -17,6 +20,7 @@ without a display or an OpenGL stack; both are short vectorised numpy.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -90,14 +94,34 @@ def back_project(depth, camera: Camera) -> np.ndarray:
     return _back_project(z, camera, (slice(None), slice(None)))
 
 
+@functools.lru_cache(maxsize=8)
+def _ray_depths(camera: Camera) -> np.ndarray:
+    """(H, W) camera-frame Z of every pixel's unit ray (:func:`calib.camera.cached_pixel_grid_rays`), read-only."""
+    dz = cached_pixel_grid_rays(camera)[1] @ camera.R[2]
+    dz.setflags(write=False)
+    return dz
+
+
 def _back_project(depth, camera: Camera, window: tuple[slice, slice]) -> np.ndarray:
     """:func:`back_project` of the ``window`` (rows, columns) of the image, ``depth`` its pixels."""
     z = np.asarray(depth, dtype=np.float64)
     o, d = cached_pixel_grid_rays(camera)
-    d = d[window]
-    dz = d @ camera.R[2]
-    t = np.where(z > 0, z / dz, np.nan)
-    return o + d * t[..., None]
+    t = np.where(z > 0, z / _ray_depths(camera)[window], np.nan)
+    return o + d[window] * t[..., None]
+
+
+def _in_bounds(depth: np.ndarray, camera: Camera, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels whose back-projected point (:func:`back_project`) lies in the box ``lo..hi``,
+    one coordinate at a time (no (H, W, 3) image of points)."""
+    o, d = cached_pixel_grid_rays(camera)
+    z = np.asarray(depth, dtype=np.float64)
+    t = np.where(z > 0, z / _ray_depths(camera), np.nan)
+    inside = z > 0
+    with np.errstate(invalid="ignore"):
+        for k in range(3):
+            c = o[k] + d[..., k] * t
+            inside &= (c >= lo[k]) & (c <= hi[k])
+    return inside
 
 
 def bilateral_depth(depth, *, sigma_space: float = 1.0, sigma_depth: float = 3.0) -> np.ndarray:
@@ -242,10 +266,8 @@ def preprocess_depth(
         raise ValueError(f"depth must have the camera's shape {(camera.size[1], camera.size[0])}, got {z.shape}")
     valid = z > 0
     if bounds is not None:
-        lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
-        raw = back_project(np.where(valid, z, 0), camera)
-        with np.errstate(invalid="ignore"):
-            valid &= np.all((raw >= lo) & (raw <= hi), axis=-1)
+        lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) for b in bounds)
+        valid &= _in_bounds(z, camera, lo, hi)
     if remove_skin:
         valid &= ~skin_mask(image, model=skin_model)
     # the filter, normals and edges of a pixel depend only on pixels within the filter's radius (plus one):

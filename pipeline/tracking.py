@@ -818,10 +818,15 @@ class TemplateTracker:
     Notes
     -----
     Reused between the rounds and frames of a take: the Laplacian ``L``, ``L^T L`` and its
-    upper-triangular pattern, the fill-reducing ordering and elimination tree of the
-    Cholesky factorisation, the patches, and the frame's KD-tree over the data; between the
-    rounds of a frame, the numeric factor of its first round (as CG preconditioner); per
-    round only the KD-tree over the moved vertices, the pairs and the patch motions are redone.
+    upper-triangular pattern (each factorisation only writes the new diagonal into it), the
+    fill-reducing ordering and elimination tree of the Cholesky factorisation, the patches and
+    the sparse summing matrices of the sums over fixed indices (vertex normals from the
+    triangles, patch centroids and per-patch Kabsch: one sparse product each, the same sums
+    as ``bincount``'s, bit for bit), and the frame's KD-tree over the data; between the rounds
+    of a frame, the numeric factor of its first round (as CG preconditioner, whose residual is
+    tested before it is preconditioned, so the step that converges costs no triangular
+    solve); per round only the KD-tree over the moved vertices, the pairs and the patch
+    motions are redone.
     """
 
     def __init__(self, vertices, faces, *, gamma: float | None = None, gate: float | None = None,

@@ -217,7 +217,8 @@ def run(args: argparse.Namespace) -> int:
         accuracy()
         multiview_accuracy()
     print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl), "
-          "the patches; per frame: KD-tree of the data, the first round's numeric factor (CG preconditioner of the "
-          "later rounds), the prediction; per round: KD-tree of the vertices, pairs, patch motions (and, single "
-          "RGB-D, the previous frame's shape placed patch by patch)")
+          "the patches and the summing matrices of the per-round sums (vertex normals, patch centroids and Kabsch), "
+          "each camera's pixel rays and their depths; per frame: KD-tree of the data, the first round's numeric factor "
+          "(CG preconditioner of the later rounds), the prediction; per round: KD-tree of the vertices, pairs, patch "
+          "motions (and, single RGB-D, the previous frame's shape placed patch by patch, the z-buffer)")
     return 0

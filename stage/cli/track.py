@@ -32,6 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-predict", action="store_true",
                    help="start every frame from the previous one, not from the constant-velocity prediction of the two before")
     p.add_argument("--contour", action="store_true", help="add the contour term (depth edges; single RGB-D only)")
+    p.add_argument("--colour", action="store_true",
+                   help="multi-view: also follow the template's vertices in every camera's colour images (the take named "
+                   "by RESULTS_DIR/process.json; feature tracks across each viewing ray pin a slide along the surface); "
+                   "off by default there, see docs/tracking.md")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -86,7 +90,7 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
     from stage.cli._pool import worker_pool
 
     kw = dict(template=args.template, progress=bars, gamma=args.gamma, gate=args.gate, spine_init=args.spine_init,
-              predict=not args.no_predict)
+              predict=not args.no_predict, colour=args.colour)
     if args.workers < 2:
         return track_results(src, **kw)
     with worker_pool(1) as ex:  # one task: the half before the reference frame

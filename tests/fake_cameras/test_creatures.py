@@ -154,3 +154,30 @@ def test_tailed_quadruped_keeps_its_thin_tail_at_any_scale():
     for la, lb in zip(small.limbs, big.limbs):
         if la.name != "tail":
             np.testing.assert_allclose(lb.radii, 1.6 * np.asarray(la.radii))
+
+
+def test_pose_rest_motions_carry_the_painted_texture_with_every_capsule():
+    """``Pose.rest`` takes every capsule from its place at time 0 to the pose: a point fixed in a
+    capsule (fake_cameras.surface_motion's frames, the tracking ground truth) maps back to where it
+    was at time 0 (exact formula); at time 0 every motion is the identity; a tucked limb's segments
+    and the spur get motions too, and their capsules' end spheres map back onto the rest chain."""
+    from fake_cameras.render import _rest_points
+    from fake_cameras.surface_motion import capsule_frames
+
+    rng = np.random.default_rng(0)
+    for name in ("quadruped", "starfish", "biped"):
+        c = make_creature(name, seed=3)
+        R0, o0 = capsule_frames(c, 0.0)
+        R, o = capsule_frames(c, 0.37)
+        q = rng.normal(size=(len(R), 3)) * 10  # one point per capsule, in its own frame
+        at0 = np.einsum("mij,mj->mi", R0, q) + o0
+        now = np.einsum("mij,mj->mi", R, q) + o
+        assert np.allclose(_rest_points(c.pose(0.37).rest, now), at0, atol=1e-9)
+        rest0 = c.pose(0.0).rest
+        assert np.allclose(rest0[:, :, :3], np.eye(3), atol=1e-12) and np.allclose(rest0[:, :, 3], 0, atol=1e-9)
+    c = make_creature("quadruped", seed=3, tuck=(0.2, 0.5), spur=(0.3, 0.34))
+    p, p0 = c.pose(0.31), c.pose(0.0)
+    assert p.rest.shape == (p.n_capsules, 3, 4) and p.n_capsules == p0.n_capsules + 1
+    n = p0.n_capsules
+    assert np.allclose(_rest_points(p.rest[:n], p.p0[:n]), p0.p0, atol=1e-6)
+    assert np.allclose(_rest_points(p.rest[:n], p.p1[:n]), p0.p1, atol=1e-6)
