@@ -569,7 +569,7 @@ def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float):
         before = images.pop(k_prev) if k_prev in images else rd.frame(cam_id, k_prev)
         images.clear()
         images[k] = rd.frame(cam_id, k)
-        return colour_tracks(before, images[k], prev, vis, cam, fr.depth, masks=masks, predicted=start)
+        return colour_tracks(before, images[k], prev, vis, cam, fr.depth, masks=masks, predicted=start, faces=faces)
 
     return tracks_for
 

@@ -14,6 +14,8 @@ from pipeline.tracking import (
     _scatter_add,
     _sum_by,
     _summing,
+    blended_align,
+    blended_patches,
     choose_gamma,
     cotangent_laplacian,
     default_gate,
@@ -192,6 +194,42 @@ def test_patch_align_places_every_patch_rigidly():
     a = out[:20]
     np.testing.assert_allclose(np.linalg.norm(a[:, None] - a[None], axis=2),
                                np.linalg.norm(src[:20, None] - src[None, :20], axis=2), atol=1e-9)
+
+
+def _blended_align_reference(src, dst, cover):
+    """One weighted Kabsch per patch in a loop, then the weighted mean of the placements."""
+    pp, vv, w = cover
+    out = np.zeros_like(src)
+    for p in np.unique(pp):
+        m = pp == p
+        i, wi = vv[m], w[m]
+        cs, ct = (wi[:, None] * src[i]).sum(0) / wi.sum(), (wi[:, None] * dst[i]).sum(0) / wi.sum()
+        H = ((src[i] - cs) * wi[:, None]).T @ (dst[i] - ct)
+        U, _, Wt = np.linalg.svd(H)
+        R = Wt.T @ np.diag([1, 1, np.sign(np.linalg.det(U @ Wt))]) @ U.T
+        out[i] += wi[:, None] * ((src[i] - cs) @ R.T + ct)
+    return out
+
+
+def test_blended_patches_overlap_and_blended_align_is_rigid_where_the_target_is():
+    m = trimesh.creation.capsule(height=200.0, radius=20.0, count=[24, 24])
+    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=8.0)
+    pp, vv, w = cover = blended_patches(v, f, 60.0)
+    np.testing.assert_allclose(np.bincount(vv, weights=w, minlength=len(v)), 1.0)
+    # the patches overlap: across every boundary of the partition both vertices are in both patches
+    part = surface_patches(v, f, 60.0)[0]
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = e[part[e[:, 0]] != part[e[:, 1]]]
+    covered = set(zip(pp.tolist(), vv.tolist()))
+    assert len(e) and all((part[j], i) in covered and (part[i], j) in covered for i, j in e)
+    R, t = _rotation([1, 2, 3], 40), np.array([5.0, -3.0, 8.0])
+    np.testing.assert_allclose(blended_align(v, v @ R.T + t, cover), v @ R.T + t, atol=1e-9)
+    # a bent target: the same as a slow reference (loop over patches)
+    bent = v.copy()
+    top = v[:, 2] > 0
+    bent[top] = v[top] @ _rotation([1, 0, 0], 30).T
+    noisy = bent + np.random.default_rng(1).normal(0, 0.5, v.shape)
+    np.testing.assert_allclose(blended_align(v, noisy, cover), _blended_align_reference(v, noisy, cover), atol=1e-8)
 
 
 def test_prediction_repeats_a_rigid_motion_and_drops_what_the_data_cannot_see():
