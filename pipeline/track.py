@@ -716,6 +716,7 @@ def track_rgbd_take(
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": bool(colour),
                   "icp": {"frame": first[0], "fit": round(fit0, 4), "R": R.tolist(), "t": t.tolist()},
                   "skipped": list(skipped), "frames": {}}
+        kept = _start_over_if_changed(out, report)
         (out / "tracked").mkdir(parents=True, exist_ok=True)
         _run_frames(tracker, list(range(first[0], n)), out, F0, report, data_for=data_for, visible_for=visible_for,
                     progress=progress, start=first[0], prev=placed, contour_for=contour_for if contour else None,
@@ -723,5 +724,6 @@ def track_rgbd_take(
                     tracks_for=_colour_tracks_for(rd, cam_id, cam, F0, cache, 0.3 * tracker.gate) if colour else None)
     if report["skipped"]:
         log.warning("frames without depth skipped: %s", ", ".join(map(str, report["skipped"])))
+    report["frames"] = dict(sorted({**kept, **report["frames"]}.items(), key=lambda kv: int(kv[0])))
     _write_report(out, report)
     return report

@@ -45,6 +45,12 @@ def test_rgbd_track_static_lamp_accuracy_skips_and_resumes(lamp_take, capsys):
     assert main(["-q", "track", str(lamp_take), "--template", str(template_path(lamp_take)), "--out", str(out)]) == 0
     assert (out / "tracked" / "000004.ply").exists()
     assert (out / "tracked" / "000001.ply").stat().st_mtime_ns == kept
+    assert sorted(json.loads((out / "tracked" / "track.json").read_text())["frames"], key=int) == ["0", "1", "2", "4", "5"]
+    # other settings: the frames are tracked again
+    assert main(["-q", "track", str(lamp_take), "--template", str(template_path(lamp_take)), "--out", str(out),
+                 "--no-predict"]) == 0
+    assert (out / "tracked" / "000001.ply").stat().st_mtime_ns != kept
+    assert json.loads((out / "tracked" / "track.json").read_text())["predict"] is False
 
 
 def test_rgbd_template_far_from_the_data_is_a_clear_error_and_writes_nothing(lamp_take, capsys):
