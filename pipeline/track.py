@@ -468,8 +468,10 @@ def _multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float
     """``tracks_for(k, k_prev, previous, extra, start)`` over every camera (see :func:`_multiview_colour`)."""
     from pipeline.colour_tracks import colour_tracks
     from pipeline.rgbd_preprocess import visible_vertices
+    from stage.store import TakeError
 
     last: dict = {}  # camera -> (frame set, image, mask) of the last set read: the next frame's previous one
+    warned: set = set()  # cameras whose unreadable image or mask has been reported
 
     def view(cam_id, k):
         hit = last.get(cam_id)
@@ -477,8 +479,15 @@ def _multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float
             return hit[1], hit[2]
         if not 0 <= k < rd.n_sets:
             return None, None
-        r = rd.set_rows(k)[cam_id]
-        return (None, None) if r < 0 else (rd.frame(cam_id, r), rd.mask(cam_id, r))
+        try:
+            r = rd.set_rows(k)[cam_id]
+            return (None, None) if r < 0 else (rd.frame(cam_id, r), rd.mask(cam_id, r))
+        except (IndexError, TakeError, OSError) as exc:  # truncated masks, corrupt image, unreadable file
+            if cam_id not in warned:
+                warned.add(cam_id)
+                log.warning("colour tracks: camera %s, frame set %d unreadable (%s); "
+                            "this camera's colour tracks skip the frames it cannot read", cam_id, k, exc)
+            return None, None
 
     def follow(cam, before, now, V, vis, start):
         (img0, m0), (img1, m1) = before, now

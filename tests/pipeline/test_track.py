@@ -434,3 +434,44 @@ def test_multiview_colour_halves_in_a_worker_process_equal_the_frames_tracked_in
         runs[how] = [load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)[0] for k in range(5)]
         (res / "tracked").rename(tmp_path / how)
     assert all(np.array_equal(a, b) for a, b in zip(runs["pool"], runs["in_order"]))
+
+
+def test_multiview_colour_tracks_skip_an_unreadable_view_with_one_warning(tmp_path, caplog):
+    """A camera whose mask cannot be read (truncated dataset: IndexError; corrupt image: TakeError)
+    on some frames gives no colour tracks there, with one warning for that camera; the other cameras'
+    tracks are those of a run without it."""
+    import logging
+
+    from pipeline.track import _colour_cameras, _multiview_tracks_for
+    from stage.store import TakeError, TakeReader
+
+    res, _ = _turning_sphere_results(tmp_path, frames=3, size=(160, 120))
+    V0, F0 = load_mesh(res / "meshes" / "frame_000000.ply", largest=False)
+    take = Path(json.loads((res / "process.json").read_text())["take"])
+
+    class Flaky:  # a reader whose mask of one camera fails from frame 1 on
+        def __init__(self, rd, bad, error):
+            self._rd, self._bad, self._error = rd, bad, error
+
+        def __getattr__(self, name):
+            return getattr(self._rd, name)
+
+        def mask(self, cam_id, r):
+            if cam_id == self._bad and r >= 1:
+                raise self._error
+            return self._rd.mask(cam_id, r)
+
+    with TakeReader(take) as rd:
+        cams = _colour_cameras(rd)
+        bad = sorted(cams)[0]
+        rest = {c: cam for c, cam in cams.items() if c != bad}
+        want = [_multiview_tracks_for(rd, rest, F0, 2.0)(k, k - 1, V0, None, None) for k in (1, 2)]
+        for error in (IndexError("mask row 1 out of range"), TakeError("corrupt JPEG")):
+            caplog.clear()
+            tracks_for = _multiview_tracks_for(Flaky(rd, bad, error), cams, F0, 2.0)
+            with caplog.at_level(logging.WARNING, logger="pipeline.track"):
+                got = [tracks_for(k, k - 1, V0, None, None) for k in (1, 2)]
+            lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+            assert len(lines) == 1 and bad in lines[0] and str(error) in lines[0], lines
+            for g, w in zip(got, want):
+                assert len(g[0]) > 0 and all(np.array_equal(a, b) for a, b in zip(g, w))
