@@ -444,6 +444,7 @@ def write_ground_truth(take: SimulatedTake, path: str | Path) -> Path:
         ``mask_shape``), ``labels``, ``calibration`` (JSON), ``limb_names``,
         ``tips`` (F, L, 3), ``axis_<limb>`` (F, K, 3), the capsules per frame
         (``p0``/``p1`` (F, M, 3), ``r0``/``r1``/``limb`` (F, M), padded; ``n_capsules`` (F,)),
+        when the poses carry them their rest motions (``rest`` (F, M, 3, 4), padded; ``has_rest`` (F,)),
         ``times``, ``fps`` and ``params`` (JSON). Read it with :func:`load_ground_truth`.
     """
     if not isinstance(take, SimulatedTake):
@@ -478,6 +479,12 @@ def write_ground_truth(take: SimulatedTake, path: str | Path) -> Path:
             p0[f, :m], p1[f, :m], r0[f, :m], r1[f, :m], limb[f, :m] = p.p0, p.p1, p.r0, p.r1, p.limb
             n[f] = m
         data.update(p0=p0, p1=p1, r0=r0, r1=r1, limb=limb, n_capsules=n)
+        if any(p.rest is not None for p in take.poses):  # the body-painted texture's rest motions
+            rest = np.full((F, M, 3, 4), np.nan)
+            for f, p in enumerate(take.poses):
+                if p.rest is not None:
+                    rest[f, : p.n_capsules] = p.rest
+            data.update(rest=rest, has_rest=np.array([p.rest is not None for p in take.poses]))
     tmp = out.with_name(out.name + ".tmp.npz")
     np.savez_compressed(tmp, **data)
     os.replace(tmp, out)
@@ -493,7 +500,7 @@ def load_ground_truth(path: str | Path) -> dict:
         ``masks (F, C, H, W) bool``, ``labels``, ``calibration`` (Calibration),
         ``limb_names`` (list), ``tips (F, L, 3)``, ``axes`` (dict limb -> (F, K, 3)),
         ``times``, ``fps``, ``subject``, ``params`` and, for creatures, ``poses``
-        (list of Pose).
+        (list of Pose; ``Pose.rest`` as written, None from files that do not store it).
     """
     p = ground_truth_path(path)
     if not p.is_file():
@@ -516,6 +523,8 @@ def load_ground_truth(path: str | Path) -> dict:
         if "p0" in z.files:
             poses = []
             P0, P1, R0, R1, LB, NC = (z[k] for k in ("p0", "p1", "r0", "r1", "limb", "n_capsules"))
+            # files written before the rest motions were stored: texture fixed in the world, as then
+            rest, has_rest = (z["rest"], z["has_rest"]) if "rest" in z.files else (None, np.zeros(shape[0], bool))
             for f in range(shape[0]):
                 m = int(NC[f])
                 tips = {n: out["tips"][f, i] for i, n in enumerate(names)}
@@ -531,6 +540,7 @@ def load_ground_truth(path: str | Path) -> dict:
                         tips=tips,
                         axes=axes,
                         time=float(out["times"][f]),
+                        rest=rest[f, :m] if has_rest[f] else None,
                     )
                 )
             out["poses"] = poses

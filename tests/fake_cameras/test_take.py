@@ -98,6 +98,26 @@ def test_ground_truth_file_round_trip(take, tmp_path):
     assert gt["fps"] == 30.0 and gt["subject"] == "quadruped"
 
 
+def test_ground_truth_poses_keep_their_rest_motions_and_render_the_same(take, tmp_path):
+    """Re-read poses carry ``Pose.rest`` (the body-painted texture renders as in the take); a file
+    without it (written before it was stored) loads as before: rest None, texture fixed in the world."""
+    assert all(p.rest is not None for p in take.poses)
+    write_ground_truth(take, tmp_path / "take.h5")
+    gt = load_ground_truth(tmp_path / "take.h5")
+    assert all(np.array_equal(g.rest, p.rest) for g, p in zip(gt["poses"], take.poses))
+    cam = take.calibration[0]
+    bd = Backdrop(texture=0.3, texture_scale=0.5)
+    image = [render_view(cam, p, backdrop=bd, rng=np.random.default_rng(1)).image for p in (take.poses[2], gt["poses"][2])]
+    assert np.array_equal(*image)
+    with np.load(tmp_path / "take.gt.npz") as z:  # an older file: no rest motions
+        np.savez_compressed(tmp_path / "old.npz", **{k: z[k] for k in z.files if k not in ("rest", "has_rest")})
+    old = load_ground_truth(tmp_path / "old.npz")
+    assert all(p.rest is None for p in old["poses"])
+    assert all(np.array_equal(o.p0, g.p0) and np.array_equal(o.limb, g.limb) for o, g in zip(old["poses"], gt["poses"]))
+    world = render_view(cam, old["poses"][2], backdrop=bd, rng=np.random.default_rng(1)).image
+    assert not np.array_equal(world, image[0])
+
+
 def test_empty_subject_and_hard_cases(tmp_path):
     empty = simulate_take("empty", n_cameras=4, frames=2, size=(64, 48), cache=False)
     assert not empty.masks.any() and empty.limb_names == () and empty.tips == [{}, {}]
@@ -105,6 +125,8 @@ def test_empty_subject_and_hard_cases(tmp_path):
     assert load_ground_truth(tmp_path / "e.npz")["tips"].shape == (2, 0, 3)
     hard = simulate_take("starfish", n_cameras=4, frames=3, size=(64, 48), spur=(1 / 30, 2 / 30), cache=False)
     assert [p.n_capsules for p in hard.poses] == [25, 26, 25]
+    write_ground_truth(hard, tmp_path / "h.npz")  # rest motions padded to the largest count
+    assert all(np.array_equal(g.rest, p.rest) for g, p in zip(load_ground_truth(tmp_path / "h.npz")["poses"], hard.poses))
 
 
 def test_invalid_input():
