@@ -645,14 +645,15 @@ class RunContext:
     @contextmanager
     def part(self, name: str):
         """Count a part of the running step on its own (e.g. the surface step's grid choice): its
-        wall and CPU seconds go to ``timings[name]`` and ``cpu[name]``, not to the step's."""
+        wall and CPU seconds are added to ``timings[name]`` and ``cpu[name]`` (a part run several
+        times counts every run), not to the step's."""
         t0, c0 = time.perf_counter(), time.process_time()
         try:
             yield
         finally:
             cpu = time.process_time() - c0
-            self.timings[name] = time.perf_counter() - t0
-            self.cpu[name] = cpu
+            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+            self.cpu[name] = self.cpu.get(name, 0.0) + cpu
             self.part_cpu[self.step] = self.part_cpu.get(self.step, 0.0) + cpu
 
     def report_progress(self, step: str, done: int, total: int) -> None:

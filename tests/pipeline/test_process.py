@@ -398,3 +398,23 @@ def test_cpu_seconds_of_a_thread_pool_count_once_and_parts_count_apart(monkeypat
     assert ctx.worker_cpu == {}
     assert 0.1 <= ctx.cpu["inner"] < 0.15 and ctx.timings["inner"] >= 0.1
     assert 0.1 <= ctx.cpu["burn"] < 0.15, ctx.cpu  # 0.3 before: the task counted twice, the part once more
+
+
+def test_a_part_run_several_times_counts_every_run(monkeypatch):
+    """``RunContext.part`` adds up: wall and CPU seconds of every run of a part, none of them in the step's."""
+    from pathlib import Path
+
+    from pipeline import process
+
+    def step(ctx):
+        for _ in range(2):
+            with ctx.part("inner"):
+                _burn(0.05)
+        _burn(0.05)
+
+    ctx = process.RunContext(take=Path("t.h5"), out=Path("out"), params=ProcessParams(), executor=None, progress=None,
+                             cancel=None, calibration=None, cameras=[], n_sets=0, fps=30.0, rig={}, need_key=False)
+    monkeypatch.setitem(process._REGISTRY, "burn_twice", process.Step("burn_twice", step))
+    process._run_step(ctx, "burn_twice")
+    assert ctx.cpu["inner"] >= 0.1 and ctx.timings["inner"] >= 0.1, ctx.cpu  # 0.05: the last run only
+    assert 0.05 <= ctx.cpu["burn_twice"] < 0.09, ctx.cpu
