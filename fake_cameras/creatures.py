@@ -417,6 +417,43 @@ class Creature:
     def _n_plain_capsules(self) -> int:
         return len(self.body) + sum(len(lb.lengths) for lb in self.limbs)
 
+    def _tucked_chain(self, chains: dict, rots: np.ndarray, w: float) -> tuple[np.ndarray, np.ndarray]:
+        """The first limb of ``tuck_pair`` pressed onto the second, by weight ``w`` in 0..1.
+
+        ``chains``: limb -> (S+1, 3) joints in the body frame; ``rots``: (S, 3, 3) segment
+        rotations of the first limb (changed in place). Its junction stays; the other joints
+        are blended towards a line beside the second limb, then re-extended to the segment
+        lengths, each segment turning rigidly onto its new direction (its texture goes with it).
+        -> ((S+1, 3) joints, (S, 3, 3) rotations) of the first limb.
+        """
+        a_name, b_name = self.tuck_pair
+        la = next(lb for lb in self.limbs if lb.name == a_name)
+        lbb = next(lb for lb in self.limbs if lb.name == b_name)
+        A, B = chains[a_name], chains[b_name]
+        side = A[0] - B[0]
+        dB = _unit(B[-1] - B[0])
+        side = side - dB * (side @ dB)
+        side = _unit(side) if np.linalg.norm(side) > 1e-9 else np.array([0.0, 1.0, 0.0])
+        gap = 0.85 * (max(la.radii) + max(lbb.radii))
+        target = B + gap * side
+        A2 = A.copy()
+        # keep the junction, move the rest of the limb next to the other one
+        A2[1:] = (1 - w) * A[1:] + w * target[1:]
+        # keep segment lengths (re-extend along the blended directions)
+        for i in range(1, len(A2)):
+            d = A2[i] - A2[i - 1]
+            A2[i] = A2[i - 1] + _unit(d) * la.lengths[i - 1]
+            rots[i - 1] = _align(A[i] - A[i - 1], A2[i] - A2[i - 1]) @ rots[i - 1]
+        return A2, rots
+
+    def _spur_capsule(self) -> tuple:
+        """(p0, p1, r0, r1) in the body frame of the hard case ``spur``: a short stub growing out
+        of the body, a spurious protrusion."""
+        a, b, ra, rb = self.body[0]
+        a = np.asarray(a, dtype=np.float64)
+        out_dir = _unit(np.asarray(self.motion.get("spur_dir", (0.3, 0.6, 0.74))))
+        return a, a + out_dir * (ra + 0.9 * ra), 0.45 * ra, 0.3 * ra
+
     def pose(self, time_s: float) -> Pose:
         """The creature at ``time_s`` seconds.
 
@@ -442,26 +479,8 @@ class Creature:
         rots = {k: v[1].copy() for k, v in limb_frames.items()}
         w_tuck = self._weight(t, self.tuck, 0.1) if self.tuck_pair else 0.0
         if w_tuck > 0:
-            a_name, b_name = self.tuck_pair
-            la = next(lb for lb in self.limbs if lb.name == a_name)
-            lbb = next(lb for lb in self.limbs if lb.name == b_name)
-            A, B = chains[a_name], chains[b_name]
-            side = A[0] - B[0]
-            dB = _unit(B[-1] - B[0])
-            side = side - dB * (side @ dB)
-            side = _unit(side) if np.linalg.norm(side) > 1e-9 else np.array([0.0, 1.0, 0.0])
-            gap = 0.85 * (max(la.radii) + max(lbb.radii))
-            target = B + gap * side
-            A2 = A.copy()
-            # keep the junction, move the rest of the limb next to the other one
-            A2[1:] = (1 - w_tuck) * A[1:] + w_tuck * target[1:]
-            # keep segment lengths (re-extend along the blended directions)
-            for i in range(1, len(A2)):
-                d = A2[i] - A2[i - 1]
-                A2[i] = A2[i - 1] + _unit(d) * la.lengths[i - 1]
-                # the segment turns rigidly onto its new direction (its texture goes with it)
-                rots[a_name][i - 1] = _align(A[i] - A[i - 1], A2[i] - A2[i - 1]) @ rots[a_name][i - 1]
-            chains[a_name] = A2
+            a_name = self.tuck_pair[0]
+            chains[a_name], rots[a_name] = self._tucked_chain(chains, rots[a_name], w_tuck)
         tips, axes = {}, {}
         for li, lb in enumerate(self.limbs):
             P = chains[lb.name]
@@ -476,15 +495,8 @@ class Creature:
             tips[lb.name] = tip_local @ R.T + pos
         spur = self._weight(t, self.spur, 0.0) > 0
         if spur:
-            # a short stub growing out of the body: a spurious protrusion
-            a, b, ra, rb = self.body[0]
-            a = np.asarray(a, dtype=np.float64)
-            out_dir = _unit(np.asarray(self.motion.get("spur_dir", (0.3, 0.6, 0.74))))
-            p0.append(a)
-            p1.append(a + out_dir * (ra + 0.9 * ra))
-            r0.append(0.45 * ra)
-            r1.append(0.3 * ra)
-            lab.append(BODY)
+            for lst, v in zip((p0, p1, r0, r1, lab), (*self._spur_capsule(), BODY)):
+                lst.append(v)
         P0 = np.asarray(p0) @ R.T + pos
         P1 = np.asarray(p1) @ R.T + pos
         return Pose(
