@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -470,13 +471,10 @@ def _multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float
     from pipeline.rgbd_preprocess import visible_vertices
     from stage.store import TakeError
 
-    last: dict = {}  # camera -> (frame set, image, mask) of the last set read: the next frame's previous one
     warned: set = set()  # cameras whose unreadable image or mask has been reported
 
     def view(cam_id, k):
-        hit = last.get(cam_id)
-        if hit is not None and hit[0] == k:
-            return hit[1], hit[2]
+        """(image, mask) of frame set ``k`` in one camera, (None, None) where it has none."""
         if not 0 <= k < rd.n_sets:
             return None, None
         try:
@@ -498,13 +496,14 @@ def _multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float
         along = np.einsum("ij,ij->i", start[idx] - cam.center, rays)
         return idx, cam.center + rays * along[:, None], rays
 
+    views = {cam_id: _LastRead(functools.partial(view, cam_id)) for cam_id in cameras}
+
     def tracks_for(k, k_prev, prev, extra, start):
         start = prev if start is None else start
         vn = vertex_normals(prev, faces)
         out = []
         for cam_id, cam in cameras.items():
-            before, now = view(cam_id, k_prev), view(cam_id, k)
-            last[cam_id] = (k, *now)
+            before, now = views[cam_id].pair(k_prev, k)
             if any(x is None for x in (*before, *now)):
                 continue
             vis = visible_vertices(prev, faces, cam, normals=vn, tolerance=tolerance, observed=before[1])
@@ -568,19 +567,33 @@ def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float):
     from pipeline.colour_tracks import colour_tracks
     from pipeline.rgbd_preprocess import visible_vertices
 
-    images: dict = {}  # the last colour image read: the next frame's previous one
+    images = _LastRead(lambda k: rd.frame(cam_id, k))
 
     def tracks_for(k, k_prev, prev, fr, start):
         seen = frames.get(k_prev)
         vis = visible_vertices(prev, faces, cam, normals=vertex_normals(prev, faces), tolerance=tolerance,
                                observed=None if seen is None else seen.valid)
         masks = None if seen is None else (seen.valid, fr.valid)
-        before = images.pop(k_prev) if k_prev in images else rd.frame(cam_id, k_prev)
-        images.clear()
-        images[k] = rd.frame(cam_id, k)
-        return colour_tracks(before, images[k], prev, vis, cam, fr.depth, masks=masks, predicted=start, faces=faces)
+        before, now = images.pair(k_prev, k)
+        return colour_tracks(before, now, prev, vis, cam, fr.depth, masks=masks, predicted=start, faces=faces)
 
     return tracks_for
+
+
+class _LastRead:
+    """One camera's reads by frame index (``read(k)``), keeping the last one: following the
+    previous frame into the current one reads each frame once, the RGB-D and the multi-view
+    colour tracks alike."""
+
+    def __init__(self, read):
+        self._read, self._k, self._value = read, None, None
+
+    def pair(self, k_prev: int, k: int):
+        """(what frame ``k_prev`` reads, what frame ``k`` reads); the second is kept for the next call."""
+        before = self._value if k_prev == self._k else self._read(k_prev)
+        now = self._value if k == self._k else self._read(k)
+        self._k, self._value = k, now
+        return before, now
 
 
 def _keep_last(cache: dict) -> None:
