@@ -85,15 +85,14 @@ def _highpass(gray: np.ndarray, sigma: float) -> np.ndarray:
 
 def _highpass_inside(gray: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
     """``_highpass`` of the object's pixels alone (normalised convolution: the local mean of the
-    object's pixels only); 128 elsewhere."""
+    object's pixels only); 128 elsewhere. ``sigma`` 0: the object's pixels unchanged."""
     import cv2
 
     m = mask.astype(np.float32)
     g = gray.astype(np.float32)
-    if sigma > 0:
-        mean = cv2.GaussianBlur(g * m, (0, 0), sigma) / np.maximum(cv2.GaussianBlur(m, (0, 0), sigma), 1e-6)
-    else:
-        mean = np.full_like(g, float(g[mask].mean()) if mask.any() else 128.0)
+    if sigma <= 0:  # no high-pass: the object's pixels as they are, its mean elsewhere
+        return np.where(mask, g, float(g[mask].mean()) if mask.any() else 128.0).astype(np.uint8)
+    mean = cv2.GaussianBlur(g * m, (0, 0), sigma) / np.maximum(cv2.GaussianBlur(m, (0, 0), sigma), 1e-6)
     out = np.where(mask, 2.0 * (g - mean) + 128.0, 128.0)
     return np.clip(out, 0, 255).astype(np.uint8)
 
@@ -170,8 +169,9 @@ def _warped_lk(src, dst, p_src, p_dst, warps, *, window: int = 15, iterations: i
     """
     import cv2
 
-    def sample(img, q):  # bilinear, q (n, K, 2) float32 pixel positions
-        return cv2.remap(img, q, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    def sample(img, q):  # bilinear, q (n, K, 2) float32 pixel positions; OpenCV maps have fewer than 2**15 rows
+        return np.concatenate([cv2.remap(img, q[i:i + 32000], None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                               for i in range(0, max(len(q), 1), 32000)])
 
     s, d = np.asarray(src, np.float32), np.asarray(dst, np.float32)
     gx = cv2.Sobel(s, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
@@ -208,7 +208,7 @@ def _warped_lk(src, dst, p_src, p_dst, warps, *, window: int = 15, iterations: i
         dp += step
         done = np.linalg.norm(step, axis=1) < eps
         p[live] = np.asarray(p_dst, np.float64)[live] + dp
-        converged[live[done]] = True
+        converged[live] = done  # a window that moves again is no longer settled
         if it >= 3 and done.any():  # the first rounds run on all windows; then only on those still moving
             keep = ~done
             live, dp, arrays = live[keep], dp[keep], [x[keep] for x in arrays]
@@ -216,16 +216,25 @@ def _warped_lk(src, dst, p_src, p_dst, warps, *, window: int = 15, iterations: i
     return np.where(np.isfinite(p), p, 0.0), converged
 
 
-def _refine_warped(a, b, V, predicted, faces, camera, idx, u0, u1, st, window, inside=None):
+def _refine_warped(a, b, V, predicted, faces, camera, idx, u0, u1, st, lk, inside=None):
     """The flow's result refined with the prediction's local warps, forward and back; with
-    ``inside`` (the two masks) the windows use the object's pixels only."""
+    ``inside`` (the two masks) the windows use the object's pixels only. The way back starts
+    where the pyramidal flow from the forward result goes on its own (no initial flow): started
+    from the forward track's origin it would stay there and pass any match, a wrong one too."""
+    import cv2
+
+    window = lk["winSize"][0]
     warps = _local_warps(camera.project(V), camera.project(predicted), faces)[idx]
     p0 = u0.reshape(-1, 2).astype(np.float64)
     wf = None if inside is None else tuple(m.astype(np.float32) for m in inside)
     wb = None if wf is None else wf[::-1]
     p1, ok1 = _warped_lk(a, b, p0, u1.reshape(-1, 2), warps, window=window, weights=wf)
-    pb, ok2 = _warped_lk(b, a, p1, p0, np.linalg.inv(warps), window=window, weights=wb)
-    ok = (st.ravel() == 1) & ok1 & ok2
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, p1.astype(np.float32).reshape(-1, 1, 2), None, **lk)
+    det = np.linalg.det(warps)
+    turnable = np.abs(det) > 1e-9
+    inv = np.linalg.inv(np.where(turnable[:, None, None], warps, np.eye(2)))
+    pb, ok2 = _warped_lk(b, a, p1, back.reshape(-1, 2), inv, window=window, weights=wb)
+    ok = (st.ravel() == 1) & (st2.ravel() == 1) & ok1 & ok2 & turnable
     return ok, p1.astype(np.float32).reshape(-1, 1, 2), np.linalg.norm(pb - p0, axis=1)
 
 
@@ -328,7 +337,7 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
     else:
         u1, st, _ = cv2.calcOpticalFlowPyrLK(a, b, u0, None, **lk)
     if warped:
-        ok, u1, fb = _refine_warped(a, b, V, np.asarray(predicted, float), faces, camera, idx, u0, u1, st, window, inside)
+        ok, u1, fb = _refine_warped(a, b, V, np.asarray(predicted, float), faces, camera, idx, u0, u1, st, lk, inside)
     else:
         ub, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, u1, None, **lk)
         fb = np.linalg.norm((ub - u0).reshape(-1, 2), axis=1)

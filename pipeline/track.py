@@ -203,7 +203,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, template)
     tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
     use_spine = skinned is not None and bool(spine_init)
-    report = {"mode": "multi-view", "template": source, "vertices": int(len(V0)), "gamma": tracker.gamma,
+    report = {"mode": "multi-view", "template": source, "template_sha256": _mesh_digest(V0, F0),
+              "vertices": int(len(V0)), "gamma": tracker.gamma,
               "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
               "reference_frame": frames[ref], "spine_init": use_spine,
               "predict": bool(predict), "prior": tracker.prior, "colour_tracks": _colour_available(root, bool(colour)),
@@ -222,28 +223,46 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     return report
 
 
-#: Report entries that are results, not settings: a resumed run may differ in them.
-_RESULT_KEYS = frozenset({"skipped", "frames", "worker_cpu_seconds", "icp"})
+#: Report entries that are not settings: results (a resumed run may differ in them) and the
+#: template's name as it was given (its content is ``template_sha256``).
+_RESULT_KEYS = frozenset({"skipped", "frames", "worker_cpu_seconds", "icp", "template"})
+
+
+def _mesh_digest(V: np.ndarray, F: np.ndarray) -> str:
+    """SHA-256 of a mesh's vertices and faces (as float64 and int64)."""
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(V, np.float64).tobytes() + np.ascontiguousarray(F, np.int64).tobytes()).hexdigest()
 
 
 def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
     """Per-frame figures of the frames an earlier run of the same settings tracked (they are
     kept), or ``{}``: tracked frames of other settings are removed first, as ``stage process``
-    removes results of other parameters, with one warning naming what changed."""
+    removes results of other parameters, with one warning naming what changed. The settings
+    are written before any frame is tracked, so a killed run's frames keep theirs."""
     path = Path(out_dir) / "tracked" / "track.json"
     try:
         old = json.loads(path.read_text())
     except (OSError, ValueError):
-        return {}
-    changed = [k for k in report if k not in _RESULT_KEYS and old.get(k) != report[k]]
-    if not changed:
-        return old.get("frames", {}) if isinstance(old.get("frames"), dict) else {}
-    log.warning("%s holds frames tracked with other settings (%s); tracking again", path.parent,
-                ", ".join(f"{k} {old.get(k)!r} -> {report[k]!r}" for k in changed))
-    for f in path.parent.glob("[0-9]*.ply"):
-        f.unlink()
-    path.unlink()
-    return {}
+        old = None
+    kept = {}
+    if old is not None:
+        changed = [k for k in report if k not in _RESULT_KEYS and old.get(k) != report[k]]
+        if changed:
+            log.warning("%s holds frames tracked with other settings (%s); tracking again", path.parent,
+                        ", ".join(_change(k, old.get(k), report[k]) for k in changed))
+            for f in path.parent.glob("[0-9]*.ply"):
+                f.unlink()
+        elif isinstance(old.get("frames"), dict):
+            kept = old["frames"]
+    _write_report(out_dir, {**report, "frames": kept})
+    return kept
+
+
+def _change(key: str, old, new) -> str:
+    if key == "template_sha256":
+        return "template mesh changed"
+    return f"{key} {old!r} -> {new!r}"
 
 
 def _multiview_template(frames: list[int], by_frame: dict, skinned, template):
@@ -732,7 +751,8 @@ def track_rgbd_take(
         # a single view sees half the object: the prior keeps the previous frame's shape (see pipeline.tracking)
         tracker = TemplateTracker(placed, F0, gamma=tracker.gamma, gate=tracker.gate, prior="previous")
         name = str(template) if not isinstance(template, (tuple, list)) else "array"
-        report = {"mode": "rgbd", "take": str(take_path), "camera": cam_id, "template": name,
+        report = {"mode": "rgbd", "take": str(Path(take_path).resolve()), "camera": cam_id, "template": name,
+                  "template_sha256": _mesh_digest(V0, F0),
                   "vertices": int(len(V0)), "gamma": tracker.gamma, "gate_mm": tracker.gate, "rounds": tracker.rounds,
                   "solver": tracker.system.backend, "remove_skin": bool(remove_skin), "contour": bool(contour),
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": bool(colour),

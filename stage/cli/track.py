@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
     p.add_argument("--gate", type=float, default=None, help="pair distance gate, mm (default 10 mm scaled with the template's size)")
-    p.add_argument("--workers", type=int, default=2,
+    p.add_argument("--workers", type=int, default=None,
                    help="multi-view: with 2 or more, the half of the take before the reference frame is tracked in a "
                    "second process while this one tracks the half after it (default 2; 0 or 1 = in order, in process)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -53,9 +53,10 @@ def run(args: argparse.Namespace) -> int:
     from stage.cli._progress import StepBars
 
     src = Path(args.source)
-    if args.workers < 0:
+    if args.workers is not None and args.workers < 0:
         raise UserError("--workers must be >= 0")
-    _check_mode(args, take=src.is_file())
+    if src.exists():
+        _check_mode(args, take=src.is_file())
     quiet = bool(getattr(args, "quiet", False)) or args.no_progress
     try:
         with StepBars(disable=quiet) as bars:
@@ -94,7 +95,7 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
 
     kw = dict(template=args.template, progress=bars, gamma=args.gamma, gate=args.gate, spine_init=args.spine_init,
               predict=not args.no_predict, colour=args.colour)
-    if args.workers < 2:
+    if (2 if args.workers is None else args.workers) < 2:
         return track_results(src, **kw)
     with worker_pool(1) as ex:  # one task: the half before the reference frame
         return track_results(src, executor=ex, **kw)
@@ -103,7 +104,7 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
 #: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.
 _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
               ("--contour", "contour", False), ("--no-colour", "no_colour", False))
-_RESULTS_ONLY = (("--colour", "colour", False), ("--spine-init", "spine_init", False))
+_RESULTS_ONLY = (("--colour", "colour", False), ("--spine-init", "spine_init", False), ("--workers", "workers", None))
 
 
 def _check_mode(args: argparse.Namespace, *, take: bool) -> None:

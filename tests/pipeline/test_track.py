@@ -94,6 +94,10 @@ def test_invalid_input(tmp_path, capsys):
                       ([str(f), "--template", str(f), "--colour"], "--colour applies to a results directory")):
         assert main(["track", *args]) == 2  # a flag of the other mode would be ignored
         assert msg in capsys.readouterr().err
+    assert main(["track", str(f), "--template", str(f), "--workers", "2"]) == 2
+    assert "--workers applies to a results directory" in capsys.readouterr().err
+    assert main(["track", str(tmp_path / "missing.h5"), "--template", str(f), "--out", str(tmp_path / "o")]) == 2
+    assert "no such results directory or take file" in capsys.readouterr().err  # not a mode error
     assert not (tmp_path / "tracked").exists() and not (tmp_path / "o").exists()
 
 
@@ -301,6 +305,7 @@ def test_tracking_again_with_other_settings_starts_over_and_same_settings_keep_f
     again = track_results(tmp_path, template=(t.vertices, t.faces))  # resumed: nothing fitted, figures kept
     assert again["frames"] == first["frames"] and not caplog.records
     stamp = tracked_path(tmp_path, 1).stat().st_mtime_ns
+    assert json.loads((tmp_path / "tracked" / "track.json").read_text())["template_sha256"] == first["template_sha256"]
     with caplog.at_level("WARNING", logger="pipeline.track"):
         other = track_results(tmp_path, template=(t.vertices, t.faces), predict=False)
     assert len(caplog.records) == 1 and "other settings (predict True -> False)" in caplog.records[0].getMessage()
