@@ -265,8 +265,11 @@ def preprocess_depth(
     if z.shape != (camera.size[1], camera.size[0]):
         raise ValueError(f"depth must have the camera's shape {(camera.size[1], camera.size[0])}, got {z.shape}")
     if bounds is not None:
-        box = np.asarray(bounds, dtype=np.float64)
-        if box.shape != (2, 3) or not np.all(box[0] <= box[1]):
+        try:
+            box = np.asarray(bounds, dtype=np.float64)
+        except (TypeError, ValueError):
+            box = np.empty(0)
+        if box.shape != (2, 3) or np.any(box[0] > box[1]):  # a NaN corner keeps no pixel (the frame has no data)
             raise ValueError(f"bounds must be (low (3,), high (3,)) corners with low <= high, got {bounds!r}")
     valid = z > 0
     if bounds is not None:

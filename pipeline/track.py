@@ -300,7 +300,7 @@ def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tra
     process waits for it."""
     forward, backward = frames[ref + 1:], frames[:ref][::-1]
     total = len(frames)
-    later = executor.submit(track_chain_task, {**chain, "frames": backward}) if backward and executor is not None else None
+    later = _submit(executor, {**chain, "frames": backward}) if backward and executor is not None else None
     worker_done = _written_count(Path(chain["root"]), backward) if later is not None else (lambda: 0)
 
     def progress_both(step, done, n):
@@ -329,6 +329,15 @@ def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tra
     _merge_chain(report, part)
     if progress is not None:
         progress("track", total, total)
+
+
+def _submit(executor, chain: dict):
+    """The backward half's future on ``executor``, or None (tracked here) when the pool is broken."""
+    try:
+        return executor.submit(track_chain_task, chain)
+    except (cf.BrokenExecutor, RuntimeError) as exc:  # a broken or shut-down pool
+        log.warning("the second tracking process is not available (%s); tracking the frames before the reference here", exc)
+        return None
 
 
 #: Seconds between two looks at the worker's tracked files while this process waits for it.

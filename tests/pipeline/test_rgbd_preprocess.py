@@ -121,9 +121,10 @@ def test_preprocess_on_the_window_around_the_data_equals_the_whole_image(lamp):
             assert got.shape == want.shape and np.array_equal(got, want)
     with pytest.raises(ValueError, match="camera's shape"):
         preprocess_depth(z[:-1], cam)
-    for bad in ((0.0, 1.0), (V.max(0), V.min(0))):
+    for bad in ((0.0, 1.0), (V.max(0), V.min(0)), ((0, 0, 0), (1, 1))):
         with pytest.raises(ValueError, match="bounds"):
             preprocess_depth(z, cam, bounds=bad)
+    assert len(preprocess_depth(z, cam, bounds=(np.full(3, np.nan), np.full(3, np.nan))).points) == 0  # NaN: no data
 
 
 def test_back_project_and_normals_of_a_plane():

@@ -284,17 +284,23 @@ def test_killed_worker_process_frames_are_tracked_here(tmp_path, monkeypatch, ca
             fut.set_exception(BrokenProcessPool("a child process terminated abruptly"))
             return fut
 
+    class Broken(cf.Executor):  # the pool broke before: submitting fails
+        def submit(self, fn, *args, **kwargs):
+            raise BrokenProcessPool("a child process terminated abruptly")
+
     runs = {}
-    for how in ("in_order", "killed"):
+    for how, ex in (("in_order", None), ("killed", Killed()), ("broken", Broken())):
         t = _sphere_results(tmp_path / how)
         monkeypatch.setattr(track, "_spine_model", lambda *a, t=t: (2, SimpleNamespace(vertices=t.vertices, faces=t.faces)))
         with caplog.at_level("WARNING", logger="pipeline.track"):
-            rep = track.track_results(tmp_path / how, executor=Killed() if how == "killed" else None)
+            rep = track.track_results(tmp_path / how, executor=ex)
         assert list(rep["frames"]) == [str(k) for k in range(5)] and "worker_cpu_seconds" not in rep
         runs[how] = [load_mesh(track.tracked_path(tmp_path / how, k), largest=False)[0] for k in range(5)]
-    assert [r.getMessage().split(" (")[0] for r in caplog.records] == ["the second tracking process stopped"]
-    for k in range(5):
-        assert np.array_equal(runs["killed"][k], runs["in_order"][k]), k
+    assert [r.getMessage().split(" (")[0] for r in caplog.records] == ["the second tracking process stopped",
+                                                                       "the second tracking process is not available"]
+    for how in ("killed", "broken"):
+        for k in range(5):
+            assert np.array_equal(runs[how][k], runs["in_order"][k]), (how, k)
 
 
 def test_tracking_again_with_other_settings_starts_over_and_same_settings_keep_figures(tmp_path, caplog):
