@@ -883,9 +883,10 @@ class TemplateTracker:
     align_size : float, optional
         Diameter of the patches that place the previous frame's shape, mm (default 15 % of the
         template's bounding-box diagonal; only with ``prior="previous"``).
-    blend : bool
-        Overlapping, blended patches place the previous frame's shape (:func:`blended_align`)
-        instead of a partition (:func:`patch_align`); only with ``prior="previous"``.
+    blend : bool, optional
+        Overlapping, blended patches place the previous frame's shape (:func:`blended_align`,
+        default True) instead of a partition (:func:`patch_align`, False); only with
+        ``prior="previous"``, and only the one chosen is built.
 
     Notes
     -----
@@ -910,7 +911,10 @@ class TemplateTracker:
             raise ValueError(f"prior must be 'round' or 'previous', got {prior!r}")
         if align_size is not None and not (isinstance(align_size, (int, float)) and align_size > 0):
             raise ValueError(f"align_size must be a positive number (mm), got {align_size!r}")
+        if not isinstance(blend, (bool, np.bool_)):
+            raise ValueError(f"blend must be True or False, got {blend!r}")
         self.prior = prior
+        self.blend = bool(blend)
         self.point_to_plane = bool(point_to_plane)
         if not (isinstance(rigidity, (int, float)) and rigidity >= 0):
             raise ValueError(f"rigidity must be a number >= 0, got {rigidity!r}")
@@ -934,8 +938,9 @@ class TemplateTracker:
         self.patch_size = float(patch_size) if patch_size is not None else 0.25 * size
         self.patches, self.patch_component = surface_patches(v, f, self.patch_size)
         self.align_size = float(align_size) if align_size is not None else 0.15 * size
-        self.align_patches = surface_patches(v, f, self.align_size)[0] if prior == "previous" else None
-        self.align_cover = blended_patches(v, f, self.align_size) if prior == "previous" and blend else None
+        # the previous shape's placement: blended patches, or a partition (only what is used is built)
+        self.align_cover = _blended_patches(v, f, self.align_size) if prior == "previous" and self.blend else None
+        self.align_patches = surface_patches(v, f, self.align_size)[0] if prior == "previous" and not self.blend else None
         # summing matrices of the per-round sums over fixed indices (the same sums as bincount's, in one product)
         self._corner_sum = _summing(f.ravel(), len(v))
         self._patch_sum = _summing(self.patches, int(self.patches.max()) + 1)

@@ -277,6 +277,9 @@ def test_invalid_input():
         TemplateTracker(v, f, prior="next")
     with pytest.raises(ValueError, match="align_size"):
         TemplateTracker(v, f, prior="previous", align_size=-1.0)
+    for blend in ("no", 1, None):
+        with pytest.raises(ValueError, match="blend"):
+            TemplateTracker(v, f, prior="previous", blend=blend)
     tr = TemplateTracker(v, f)
     with pytest.raises(ValueError, match="points and normals"):
         tr.fit(np.zeros((5, 3)), np.zeros((4, 3)), previous=v)
@@ -313,6 +316,16 @@ def test_blended_patches_and_blended_align_invalid_input():
     with pytest.raises(ValueError, match="cover's vertex"):
         blended_align(v[:10], v[:10], cover)
     np.testing.assert_allclose(blended_align(v, v + [1.0, 2.0, 3.0], list(cover)), v + [1.0, 2.0, 3.0], atol=1e-9)
+
+
+def test_previous_prior_builds_only_the_placement_it_uses():
+    v, f = _sphere(1)
+    tr = TemplateTracker(v, f, prior="previous")
+    assert tr.blend and tr.align_cover is not None and tr.align_patches is None and tr._align_sum is None
+    tr = TemplateTracker(v, f, prior="previous", blend=np.False_)
+    assert tr.align_cover is None and tr.align_patches is not None and tr._align_sum is not None
+    tr = TemplateTracker(v, f)  # prior="round": neither
+    assert tr.align_cover is None and tr.align_patches is None
 
 
 def test_prediction_follows_motion_faster_than_the_gate():
