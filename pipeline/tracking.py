@@ -425,15 +425,39 @@ def blended_patches(vertices, faces, size: float) -> tuple[np.ndarray, np.ndarra
     own vertex), weighted ``(1 - (d / r)^2)^2``: across every boundary of the partition
     (edges shorter than ``size / 2``) both vertices are in both patches.
 
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+        The surface the patches cover (the template at rest), mm.
+    faces : (F, 3) int ndarray
+        Its triangles (they give the connected components no patch spans).
+    size : float
+        Diameter of the patches before they are grown, mm (> 0).
+
     Returns
     -------
     patch, vertex : (K,) int ndarray
-        The (patch, vertex) pairs covered.
+        The (patch, vertex) pairs covered; patches are numbered ``0 .. n_patches - 1`` as in
+        :func:`surface_patches`, every vertex is covered at least by its own.
     weight : (K,) float ndarray
         Their weights, summing to 1 over each vertex's patches.
+
+    Notes
+    -----
+    The support of the previous-shape prior of :class:`TemplateTracker` (``prior="previous"``).
+    Tzionas & Gall 2016 (§3) compensate the under-constrained single-view data terms by the
+    smoothness term towards the previous frame alone (eq. 4); the rigid patches of this prior
+    are the project's addition (see the module docstring).
     """
-    v = np.asarray(vertices, dtype=np.float64)
-    part, comp_p = surface_patches(v, faces, size)
+    v, f = _check_mesh(vertices, faces)
+    if isinstance(size, bool) or not (isinstance(size, (int, float, np.integer, np.floating)) and math.isfinite(size) and size > 0):
+        raise ValueError(f"size must be a positive number (mm), got {size!r}")
+    return _blended_patches(v, f, float(size))
+
+
+def _blended_patches(v, f, size):
+    """:func:`blended_patches` on checked input."""
+    part, comp_p = surface_patches(v, f, size)
     n_p = int(part.max()) + 1
     cnt = np.maximum(np.bincount(part, minlength=n_p), 1)[:, None]
     centre = _scatter_add(part, v, n_p) / cnt
@@ -463,12 +487,60 @@ def blended_align(source, target, cover) -> np.ndarray:
 
     Parameters
     ----------
-    source, target : (V, 3) float ndarray
-    cover : ((K,), (K,), (K,)) ndarrays
-        :func:`blended_patches`.
+    source : (V, 3) float ndarray
+        The shape to keep (the previous frame's vertices), mm.
+    target : (V, 3) float ndarray
+        Where it goes (the round's start), mm; same vertex order as ``source``.
+    cover : ((K,) int, (K,) int, (K,) float) ndarrays
+        ``(patch, vertex, weight)`` of :func:`blended_patches` on a surface of ``V`` vertices:
+        vertex indices in ``0 .. V - 1``, weights finite and >= 0.
+
+    Returns
+    -------
+    (V, 3) float ndarray
+        Every vertex at ``sum_p w_p (R_p (s - c_p) + d_p)`` over the patches ``p`` covering it,
+        ``(R_p, c_p, d_p)`` the rotation and the weighted centroids of ``source`` and ``target``
+        of the weighted Kabsch fit of patch ``p``: ``target`` itself wherever it is a rigid
+        motion of ``source`` over every patch covering the vertex.
+
+    Notes
+    -----
+    The previous-shape prior of :class:`TemplateTracker` (``prior="previous"``, ``blend=True``):
+    it keeps what Tzionas & Gall 2016 (§3, eq. 4) keep through the Laplacian only, the previous
+    frame's shape, rigidly per patch (see the module docstring).
     """
     S = np.asarray(source, dtype=np.float64)
     T = np.asarray(target, dtype=np.float64)
+    if S.ndim != 2 or S.shape[1] != 3 or S.shape[0] < 1:
+        raise ValueError(f"source must have shape (V >= 1, 3), got {S.shape}")
+    if T.shape != S.shape:
+        raise ValueError(f"target must have the shape of source {S.shape}, got {T.shape}")
+    if not (np.all(np.isfinite(S)) and np.all(np.isfinite(T))):
+        raise ValueError("source and target must be finite")
+    return _blended_align(S, T, _check_cover(cover, len(S)))
+
+
+def _check_cover(cover, n: int):
+    """``cover`` (:func:`blended_patches`) as (int64, int64, float64) arrays, checked against ``n`` vertices."""
+    if not (isinstance(cover, (tuple, list)) and len(cover) == 3):
+        raise ValueError("cover must be the (patch, vertex, weight) arrays of blended_patches")
+    pp, vv, w = (np.asarray(c) for c in cover)
+    if pp.ndim != 1 or len(pp) < 1 or vv.shape != pp.shape or w.shape != pp.shape:
+        raise ValueError(f"cover's patch, vertex and weight must have one shape (K >= 1,), got {pp.shape}, {vv.shape}, {w.shape}")
+    if not (np.issubdtype(pp.dtype, np.integer) and np.issubdtype(vv.dtype, np.integer)):
+        raise ValueError(f"cover's patch and vertex must be integer arrays, got {pp.dtype} and {vv.dtype}")
+    if pp.min() < 0:
+        raise ValueError("cover's patch indices must be >= 0")
+    if vv.min() < 0 or vv.max() >= n:
+        raise ValueError(f"cover's vertex indices must be in 0 .. {n - 1} (source has {n} vertices)")
+    w = w.astype(np.float64)
+    if not (np.all(np.isfinite(w)) and w.min() >= 0):
+        raise ValueError("cover's weights must be finite and >= 0")
+    return pp.astype(np.int64), vv.astype(np.int64), w
+
+
+def _blended_align(S, T, cover) -> np.ndarray:
+    """:func:`blended_align` on checked input."""
     pp, vv, w = cover
     n_p = int(pp.max()) + 1
     sw = np.maximum(np.bincount(pp, weights=w, minlength=n_p), 1e-300)[:, None]
@@ -811,9 +883,10 @@ class TemplateTracker:
     align_size : float, optional
         Diameter of the patches that place the previous frame's shape, mm (default 15 % of the
         template's bounding-box diagonal; only with ``prior="previous"``).
-    blend : bool
-        Overlapping, blended patches place the previous frame's shape (:func:`blended_align`)
-        instead of a partition (:func:`patch_align`); only with ``prior="previous"``.
+    blend : bool, optional
+        Overlapping, blended patches place the previous frame's shape (:func:`blended_align`,
+        default True) instead of a partition (:func:`patch_align`, False); only with
+        ``prior="previous"``, and only the one chosen is built.
 
     Notes
     -----
@@ -838,7 +911,10 @@ class TemplateTracker:
             raise ValueError(f"prior must be 'round' or 'previous', got {prior!r}")
         if align_size is not None and not (isinstance(align_size, (int, float)) and align_size > 0):
             raise ValueError(f"align_size must be a positive number (mm), got {align_size!r}")
+        if not isinstance(blend, (bool, np.bool_)):
+            raise ValueError(f"blend must be True or False, got {blend!r}")
         self.prior = prior
+        self.blend = bool(blend)
         self.point_to_plane = bool(point_to_plane)
         if not (isinstance(rigidity, (int, float)) and rigidity >= 0):
             raise ValueError(f"rigidity must be a number >= 0, got {rigidity!r}")
@@ -862,8 +938,9 @@ class TemplateTracker:
         self.patch_size = float(patch_size) if patch_size is not None else 0.25 * size
         self.patches, self.patch_component = surface_patches(v, f, self.patch_size)
         self.align_size = float(align_size) if align_size is not None else 0.15 * size
-        self.align_patches = surface_patches(v, f, self.align_size)[0] if prior == "previous" else None
-        self.align_cover = blended_patches(v, f, self.align_size) if prior == "previous" and blend else None
+        # the previous shape's placement: blended patches, or a partition (only what is used is built)
+        self.align_cover = _blended_patches(v, f, self.align_size) if prior == "previous" and self.blend else None
+        self.align_patches = surface_patches(v, f, self.align_size)[0] if prior == "previous" and not self.blend else None
         # summing matrices of the per-round sums over fixed indices (the same sums as bincount's, in one product)
         self._corner_sum = _summing(f.ravel(), len(v))
         self._patch_sum = _summing(self.patches, int(self.patches.max()) + 1)
@@ -875,7 +952,7 @@ class TemplateTracker:
         if self.point_to_plane:
             # the prior's shape: the round's start, or the previous frame's shape placed patch by patch onto it
             if self.align_cover is not None:
-                base = blended_align(prev, V, self.align_cover)
+                base = _blended_align(prev, V, self.align_cover)
             else:
                 base = V if self.align_patches is None else _patch_align(prev, V, self.align_patches, self._align_sum)
             P = _patch_rigid_motion(base, pv, px, pn, self.patches, self._patch_sum, fallback=start,

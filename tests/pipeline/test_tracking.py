@@ -277,6 +277,9 @@ def test_invalid_input():
         TemplateTracker(v, f, prior="next")
     with pytest.raises(ValueError, match="align_size"):
         TemplateTracker(v, f, prior="previous", align_size=-1.0)
+    for blend in ("no", 1, None):
+        with pytest.raises(ValueError, match="blend"):
+            TemplateTracker(v, f, prior="previous", blend=blend)
     tr = TemplateTracker(v, f)
     with pytest.raises(ValueError, match="points and normals"):
         tr.fit(np.zeros((5, 3)), np.zeros((4, 3)), previous=v)
@@ -288,6 +291,41 @@ def test_invalid_input():
         tr.fit(v, vertex_normals(v, f), previous=v, tracks=(np.array([0, 1]), np.zeros((3, 3))))
     with pytest.raises(ValueError, match="tracks"):
         tr.fit(v, vertex_normals(v, f), previous=v, tracks=(np.array([len(v)]), np.zeros((1, 3))))
+
+
+def test_blended_patches_and_blended_align_invalid_input():
+    v, f = _sphere(1)
+    for size in (0, -5.0, float("nan"), float("inf"), "20", None, True):
+        with pytest.raises(ValueError, match="size"):
+            blended_patches(v, f, size)
+    with pytest.raises(ValueError, match="vertices"):
+        blended_patches(v[:, :2], f, 20.0)
+    with pytest.raises(ValueError, match="faces"):
+        blended_patches(v, f + len(v), 20.0)
+    pp, vv, w = cover = blended_patches(v, f, 20.0)
+    for src, dst, msg in ((v[:, :2], v[:, :2], "source"), (v, v[:-1], "target"), (v, v.T, "target"),
+                          (np.zeros((0, 3)), np.zeros((0, 3)), "source"), (v, v + np.nan, "finite")):
+        with pytest.raises(ValueError, match=msg):
+            blended_align(src, dst, cover)
+    for bad in ((pp, vv), [pp, vv, w, w], (pp, vv[:-1], w), (pp, vv, w[:, None]), (pp[:0], vv[:0], w[:0]),
+                (pp, vv.astype(float), w), (pp - 1, vv, w), (pp, vv + 1, w), (pp, vv - 1, w),
+                (pp, vv, -w), (pp, vv, w * np.nan)):
+        with pytest.raises(ValueError, match="cover"):
+            blended_align(v, v, bad)
+    # a cover of a bigger surface indexes vertices this one does not have
+    with pytest.raises(ValueError, match="cover's vertex"):
+        blended_align(v[:10], v[:10], cover)
+    np.testing.assert_allclose(blended_align(v, v + [1.0, 2.0, 3.0], list(cover)), v + [1.0, 2.0, 3.0], atol=1e-9)
+
+
+def test_previous_prior_builds_only_the_placement_it_uses():
+    v, f = _sphere(1)
+    tr = TemplateTracker(v, f, prior="previous")
+    assert tr.blend and tr.align_cover is not None and tr.align_patches is None and tr._align_sum is None
+    tr = TemplateTracker(v, f, prior="previous", blend=np.False_)
+    assert tr.align_cover is None and tr.align_patches is not None and tr._align_sum is not None
+    tr = TemplateTracker(v, f)  # prior="round": neither
+    assert tr.align_cover is None and tr.align_patches is None
 
 
 def test_prediction_follows_motion_faster_than_the_gate():
