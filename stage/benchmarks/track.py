@@ -118,7 +118,8 @@ def accuracy(frames: int = 30) -> None:
                 print(line)
                 continue
             rig = rig_results(out)
-            print(f"{line}; stage rig: {int(rig.skeleton.articulation.sum())} articulations (true {expected[name]})")
+            n = int(rig.skeleton.articulation.sum())
+            print(f"{line}; stage rig: {n} articulation{'s' * (n != 1)} (true {expected[name]})")
 
 
 def _spacing_for(obj, target):

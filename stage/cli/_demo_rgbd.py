@@ -43,7 +43,8 @@ def run_rgbd(args: argparse.Namespace) -> int:
         print("3/3 stage rig is not available in this build: skipped")
     else:
         rig = rig_results(out / "results")
-        print(f"3/3 stage rig: {int(rig.skeleton.articulation.sum())} articulations (the pipe has 1) -> {out / 'results' / 'rig'}")
+        n = int(rig.skeleton.articulation.sum())
+        print(f"3/3 stage rig: {n} articulation{'s' * (n != 1)} (the pipe has 1) -> {out / 'results' / 'rig'}")
     print(f"accuracy: mean vertex error {np.mean(err):.2f} mm = {100 * np.mean(err) / tk.size:.2f} % of the pipe's "
           f"{tk.size:.0f} mm over the take (last frame {100 * err[-1] / tk.size:.2f} %); volume {min(vol):.3f}..{max(vol):.3f} "
           "of the template's")
