@@ -233,5 +233,11 @@ def test_capture_unmirrors_a_mirror_mode_camera_marked_in_the_rig_file(tmp_path,
             for k in range(len(r)):
                 got = {c: r.frame(c, k) for c in ("cam0", "cam1")}
                 f = next(i for i in range(scene.shape[0]) if np.array_equal(got["cam0"], scene[i, 0]))
-                want = scene[f, 1] if mirror else scene[f, 1][:, ::-1]
-                assert np.array_equal(got["cam1"], want), (mirror, k)
+                # the set may pair cam1's neighbouring frame (the devices are read one after the other;
+                # the simulated scene loops, so frame 0 follows the last)
+                want = [scene[i, 1] if mirror else scene[i, 1][:, ::-1] for i in range(scene.shape[0])]
+                other = [w[:, ::-1] for w in want]
+                g = [i for i in range(scene.shape[0]) if np.array_equal(got["cam1"], want[i])]
+                n = scene.shape[0]
+                assert g and min((g[0] - f) % n, (f - g[0]) % n) <= 1, (mirror, k, g, f)
+                assert not any(np.array_equal(got["cam1"], o) for o in other), (mirror, k)
