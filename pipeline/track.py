@@ -306,11 +306,13 @@ def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tra
     def progress_both(step, done, n):
         progress(step, min(done + worker_done(), n), n)
 
-    here = [(forward, 1)] + ([(backward, 1 + len(forward))] if backward and later is None else [])
-    for part, start in here:
-        out = _track_chain({**chain, "frames": part}, tracker=tracker, by_frame=by_frame, frame_list=frames, skinned=skinned,
-                           progress=progress_both if progress is not None else None, start=start, total=total)
-        _merge_chain(report, out)
+    def here(part, start, bar):
+        return _track_chain({**chain, "frames": part}, tracker=tracker, by_frame=by_frame, frame_list=frames,
+                            skinned=skinned, progress=bar, start=start, total=total)
+
+    _merge_chain(report, here(forward, 1, progress_both if progress is not None else None))
+    if backward and later is None:
+        _merge_chain(report, here(backward, 1 + len(forward), progress))
     if later is None:
         return
     while not cf.wait([later], timeout=_POLL_SECONDS).done:
@@ -320,9 +322,7 @@ def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tra
         part = later.result()
     except cf.BrokenExecutor as exc:  # the worker process was killed: its frames are tracked here (resuming its files)
         log.warning("the second tracking process stopped (%s); tracking the frames before frame %d here", exc, frames[ref])
-        part = _track_chain({**chain, "frames": backward}, tracker=tracker, by_frame=by_frame, frame_list=frames,
-                            skinned=skinned, progress=progress, start=1 + len(forward), total=total)
-        part["cpu"] = (0.0, os.getpid())
+        part = {**here(backward, 1 + len(forward), progress), "cpu": (0.0, os.getpid())}
     cpu, pid = part.pop("cpu")
     if pid != os.getpid():  # a thread's CPU seconds are already this process's
         report["worker_cpu_seconds"] = round(cpu, 3)
