@@ -199,8 +199,10 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     """
     root = Path(results_dir)
     frames, by_frame = _surface_meshes(root)
-    skinned = _spine_model(root, frames, by_frame, template)
-    ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, template)
+    loaded = None if template is None else _load_template(template)  # a bad template is the user's error, said once
+    name = None if template is None else ("array" if isinstance(template, (tuple, list)) else str(template))
+    skinned = _spine_model(root, frames, by_frame, loaded)
+    ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, loaded, name)
     tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
     use_spine = skinned is not None and bool(spine_init)
     report = {"mode": "multi-view", "template": source, "template_sha256": _mesh_digest(V0, F0),
@@ -211,7 +213,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
               "skipped": [], "frames": {}}
     kept = _start_over_if_changed(root, report)
     chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
-             "spine_init": use_spine, "spine_template": template, "predict": bool(predict),
+             "spine_init": use_spine, "spine_template": loaded, "predict": bool(predict),
              "colour": report["colour_tracks"]}
     first = _track_reference(tracker, (V0, F0), frames[ref], root, report, by_frame=by_frame, progress=progress,
                              total=len(frames))
@@ -265,18 +267,18 @@ def _change(key: str, old, new) -> str:
     return f"{key} {old!r} -> {new!r}"
 
 
-def _multiview_template(frames: list[int], by_frame: dict, skinned, template):
-    """(reference index into ``frames``, template vertices, faces, its source for the report)."""
+def _multiview_template(frames: list[int], by_frame: dict, skinned, loaded, name):
+    """(reference index into ``frames``, template vertices, faces, its source for the report);
+    ``loaded``: the user's template (vertices, faces), or None, and ``name`` its source."""
     from pipeline.meshio import load_mesh
 
     if skinned is not None:
-        source = str(by_frame[frames[skinned[0]]]) if template is None else str(template)
+        source = str(by_frame[frames[skinned[0]]]) if loaded is None else name
         return skinned[0], skinned[1].vertices, skinned[1].faces, source
-    if template is None:
+    if loaded is None:
         V0, F0 = load_mesh(by_frame[frames[0]], largest=True)
         return 0, V0, F0, str(by_frame[frames[0]])
-    V0, F0 = _load_template(template)
-    return 0, V0, F0, (str(template) if not isinstance(template, (tuple, list)) else "array")
+    return 0, loaded[0], loaded[1], name
 
 
 def _track_reference(tracker, template: tuple, frame: int, root: Path, report: dict, *, by_frame: dict, progress,
