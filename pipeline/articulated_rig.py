@@ -24,6 +24,7 @@ Yrotation`` in degrees (intrinsic Z-X-Y), positions in the source units.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 from dataclasses import dataclass
@@ -39,7 +40,7 @@ from pipeline.results import atomic_write_bytes, ply_bytes
 
 __all__ = [
     "RIG_FORMAT", "NoTrackingError", "tracked_meshes", "load_sequence", "rig_results", "ArticulatedRig",
-    "build_articulated_rig", "rig_dict", "bvh_text", "glb_bytes", "write_rig", "choose_reference",
+    "build_articulated_rig", "rig_dict", "bvh_text", "glb_bytes", "write_rig", "remove_rig", "choose_reference",
 ]
 
 log = logging.getLogger(__name__)
@@ -496,3 +497,29 @@ def write_rig(rig: ArticulatedRig, out_dir, *, progress=None) -> dict:
         "posed": posed,
     }
     return paths
+
+
+#: The files :func:`write_rig` writes in a rig directory, besides ``posed/NNNNNN.ply``.
+RIG_FILES = ("rig.json", "segments.npy", "rig.bvh", "rig.glb")
+
+
+def remove_rig(out_dir) -> bool:
+    """Remove what :func:`write_rig` wrote in ``out_dir``: a rig of frames that were tracked
+    again belongs to other frames.
+
+    ``rig.json``, ``segments.npy``, ``rig.bvh``, ``rig.glb`` and ``posed/NNNNNN.ply`` go; the
+    folders too when that leaves them empty. Other files stay.
+
+    Returns
+    -------
+    bool
+        Whether there was a rig file to remove.
+    """
+    out = Path(out_dir)
+    files = [out / name for name in RIG_FILES if (out / name).is_file()] + sorted((out / "posed").glob("[0-9]*.ply"))
+    for f in files:
+        f.unlink(missing_ok=True)
+    for d in (out / "posed", out):
+        with contextlib.suppress(OSError):  # not there, or not empty: kept
+            d.rmdir()
+    return bool(files)

@@ -927,6 +927,8 @@ def _step_track(ctx: RunContext) -> None:
 
     t0 = time.perf_counter()
     rep = track_results(ctx.out, progress=ctx.progress, executor=ctx.executor)
+    if rep.get("started_over"):  # frames of other settings, and the rig on them, removed: the job report says so
+        ctx.warnings.append(rep["started_over"])
     ctx.worker_cpu["track"] = ctx.worker_cpu.get("track", 0.0) + rep.get("worker_cpu_seconds", 0.0)
     ctx.timings["track"] = time.perf_counter() - t0
 

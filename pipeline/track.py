@@ -225,9 +225,9 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     return report
 
 
-#: Report entries that are not settings: results (a resumed run may differ in them) and the
-#: template's name as it was given (its content is ``template_sha256``).
-_RESULT_KEYS = frozenset({"skipped", "frames", "worker_cpu_seconds", "icp", "template"})
+#: Report entries that are not settings: results (a resumed run may differ in them), the
+#: template's name as it was given (its content is ``template_sha256``) and what a start-over removed.
+_RESULT_KEYS = frozenset({"skipped", "frames", "worker_cpu_seconds", "icp", "template", "started_over"})
 
 
 def _mesh_digest(V: np.ndarray, F: np.ndarray) -> str:
@@ -240,8 +240,9 @@ def _mesh_digest(V: np.ndarray, F: np.ndarray) -> str:
 def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
     """Per-frame figures of the frames an earlier run of the same settings tracked (they are
     kept), or ``{}``: tracked frames of other settings are removed first, as ``stage process``
-    removes results of other parameters, with one warning naming what changed. The settings
-    are written before any frame is tracked, so a killed run's frames keep theirs."""
+    removes results of other parameters, and so is the rig built on them (``rig/``), with one
+    warning naming what changed (also in ``report["started_over"]``). The settings are written
+    before any frame is tracked, so a killed run's frames keep theirs."""
     path = Path(out_dir) / "tracked" / "track.json"
     try:
         old = json.loads(path.read_text())
@@ -251,14 +252,32 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
     if old is not None:
         changed = [k for k in report if k not in _RESULT_KEYS and old.get(k) != report[k]]
         if changed:
-            log.warning("%s holds frames tracked with other settings (%s); tracking again", path.parent,
-                        ", ".join(_change(k, old.get(k), report[k]) for k in changed))
             for f in path.parent.glob("[0-9]*.ply"):
                 f.unlink()
+            report["started_over"] = (f"{path.parent} holds frames tracked with other settings "
+                                      f"({', '.join(_change(k, old.get(k), report[k]) for k in changed)}); "
+                                      f"tracking again{_remove_stale_rig(Path(out_dir))}")
+            log.warning("%s", report["started_over"])
         elif isinstance(old.get("frames"), dict):
             kept = old["frames"]
     _write_report(out_dir, {**report, "frames": kept})
     return kept
+
+
+def _remove_stale_rig(out_dir: Path) -> str:
+    """Remove the rig built on the frames that are tracked again (``OUT/rig/``,
+    :func:`pipeline.articulated_rig.remove_rig`); -> what the start-over's warning says of it."""
+    from pipeline.articulated_rig import remove_rig
+
+    if not remove_rig(out_dir / "rig"):
+        return ""
+    note = f"; removed the rig built on them ({out_dir / 'rig'})"
+    page = out_dir / "report.html"
+    try:
+        shown = '<section id="rig">' in page.read_text(encoding="utf-8", errors="replace")
+    except OSError:  # no report
+        shown = False
+    return note + (f"; {page} still shows it until `stage report` runs again" if shown else "")
 
 
 def _change(key: str, old, new) -> str:

@@ -319,6 +319,48 @@ def test_tracking_again_with_other_settings_starts_over_and_same_settings_keep_f
     assert tracked_path(tmp_path, 1).stat().st_mtime_ns != stamp  # fitted again
 
 
+def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_frames(tmp_path, caplog):
+    """A start-over removes the rig of the old frames (rig.json, GLB, BVH, segments, posed/) in the same
+    warning, which names a report still showing it; other files in rig/ stay. The `track` step of
+    `stage process` does the same and puts the warning in the job report."""
+    from types import SimpleNamespace
+
+    from pipeline.articulated_rig import remove_rig, rig_results
+    from pipeline.process import _step_track
+    from pipeline.report import write_report
+    from pipeline.track import track_results
+
+    t = _sphere_results(tmp_path, frames=3)
+    track_results(tmp_path, template=(t.vertices, t.faces))
+    rig_results(tmp_path)
+    (tmp_path / "report.json").write_text("{}")
+    assert '<section id="rig">' in write_report(tmp_path).read_text()
+    (tmp_path / "rig" / "notes.txt").write_text("the user's")
+    made = {"rig.json", "rig.glb", "rig.bvh", "segments.npy", "posed"}
+    assert made <= {p.name for p in (tmp_path / "rig").iterdir()}
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        rep = track_results(tmp_path, template=(t.vertices, t.faces), predict=False)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "other settings (predict True -> False)" in lines[0], lines
+    assert f"removed the rig built on them ({tmp_path / 'rig'})" in lines[0]
+    assert f"{tmp_path / 'report.html'} still shows it until `stage report` runs again" in lines[0]
+    assert rep["started_over"] == lines[0]
+    assert sorted(p.name for p in (tmp_path / "rig").iterdir()) == ["notes.txt"]
+    assert remove_rig(tmp_path / "rig") is False and remove_rig(tmp_path / "no_rig") is False  # nothing left
+    # the same settings again: nothing removed, nothing said
+    rig_results(tmp_path)
+    caplog.clear()
+    track_results(tmp_path, template=(t.vertices, t.faces), predict=False)
+    assert not caplog.records and (tmp_path / "rig" / "rig.glb").is_file()
+    # `stage process ... steps track` (its defaults: predict on, the first frame's surface) starts over too
+    ctx = SimpleNamespace(out=tmp_path, progress=None, executor=None, worker_cpu={}, timings={}, warnings=[])
+    (tmp_path / "rig" / "notes.txt").unlink()
+    _step_track(ctx)
+    assert len(ctx.warnings) == 1 and "predict False -> True" in ctx.warnings[0]
+    assert "removed the rig built on them" in ctx.warnings[0] and not (tmp_path / "rig").exists()
+
+
 def _turning_sphere_results(root, *, frames=6, degrees=2.0, size=(320, 240)):
     """A textured sphere (radius 150 mm) turning about an oblique axis through its centre, filmed by
     6 dome cameras, with its keyed (true) masks; the results directory holds the same surface every
