@@ -41,6 +41,7 @@ from pipeline.results import atomic_write_bytes, ply_bytes
 __all__ = [
     "RIG_FORMAT", "NoTrackingError", "tracked_meshes", "load_sequence", "rig_results", "ArticulatedRig",
     "build_articulated_rig", "rig_dict", "bvh_text", "glb_bytes", "write_rig", "remove_rig", "choose_reference",
+    "counted", "rig_counts",
 ]
 
 log = logging.getLogger(__name__)
@@ -169,6 +170,16 @@ class ArticulatedRig:
         return self.model.deform(self.fit.poses[t])
 
 
+def counted(n: int, noun: str) -> str:
+    """``n`` and ``noun``, plural unless one: ``"1 articulation"``, ``"0 articulations"``."""
+    return f"{int(n)} {noun}{'' if int(n) == 1 else 's'}"
+
+
+def rig_counts(segments: int, articulations: int, joints: int) -> str:
+    """What a rig is summed up by: ``"2 segments, 1 articulation, 2 joints"``."""
+    return ", ".join(counted(n, w) for n, w in ((segments, "segment"), (articulations, "articulation"), (joints, "joint")))
+
+
 def _main_component(vertices, faces) -> np.ndarray | None:
     """Mask of the largest connected part when there are several (a warning), else None."""
     import scipy.sparse as sp
@@ -277,8 +288,8 @@ def build_articulated_rig(
     timings["fit"] = time.perf_counter() - t0
     size = subject_size(rest[None])
     log.info(
-        "rig: %d segments, %d articulations, %d joints; mean vertex error %.3g %s (%.2f %% of size)",
-        seg.n_segments, int(skel.articulation.sum()), skel.n_joints, fit.errors.mean(), units,
+        "rig: %s; mean vertex error %.3g %s (%.2f %% of size)",
+        rig_counts(seg.n_segments, int(skel.articulation.sum()), skel.n_joints), fit.errors.mean(), units,
         100 * fit.errors.mean() / size,
     )
     return ArticulatedRig(seg, skel, model, fit, ref, fi, str(units), float(fps), size, float(lambda_thr), timings)

@@ -469,6 +469,8 @@ def rig_figure(vertices, faces, labels, joints, parents, kinds, *, frame_indices
     max_faces : int
         Faces drawn at most (an even subset of them above this).
     """
+    from pipeline.articulated_rig import counted
+
     go = _go()
     v = np.asarray(vertices, dtype=np.float32)
     f = np.asarray(faces, dtype=np.int64)
@@ -504,7 +506,8 @@ def rig_figure(vertices, faces, labels, joints, parents, kinds, *, frame_indices
     fig = go.Figure(data=[surface] + joint_traces(int(keys[0])), frames=frames)
     step_ms = max(1, int(round(1000.0 / fps * max(1, (T - 1) / max(1, len(keys) - 1)))))
     fig.update_layout(
-        title=f"Rig: {int(lab.max()) + 1} motion segments, {int(art.sum())} articulations, {len(par)} joints",
+        title=f"Rig: {counted(int(lab.max()) + 1, 'motion segment')}, {counted(int(art.sum()), 'articulation')}, "
+              f"{counted(len(par), 'joint')}",
         scene=dict(aspectmode="data"), height=620, margin=dict(l=0, r=0, t=40, b=0), uirevision="rig",
         updatemenus=[dict(type="buttons", showactive=False, x=0.02, y=0.02, xanchor="left", yanchor="bottom",
                           buttons=[dict(label="Play", method="animate",

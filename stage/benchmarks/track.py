@@ -113,13 +113,13 @@ def accuracy(frames: int = 30) -> None:
                     f"over the take (last frame {100 * err[-1] / tk.size:.2f} %), volume {min(vol):.3f}..{max(vol):.3f} "
                     f"of the template's, {dt:.2f} s/frame")
             try:
-                from pipeline.articulated_rig import rig_results
+                from pipeline.articulated_rig import counted, rig_results
             except ImportError:
                 print(line)
                 continue
             rig = rig_results(out)
             n = int(rig.skeleton.articulation.sum())
-            print(f"{line}; stage rig: {n} articulation{'s' * (n != 1)} (true {expected[name]})")
+            print(f"{line}; stage rig: {counted(n, 'articulation')} (true {expected[name]})")
 
 
 def _spacing_for(obj, target):

@@ -38,13 +38,13 @@ def run_rgbd(args: argparse.Namespace) -> int:
         err.append(np.linalg.norm(v - tk.truth[k], axis=1).mean())
         vol.append(mesh_volume(v, f) / mesh_volume(tk.template_vertices, tk.template_faces))
     try:
-        from pipeline.articulated_rig import rig_results
+        from pipeline.articulated_rig import counted, rig_results
     except ImportError:
         print("3/3 stage rig is not available in this build: skipped")
     else:
         rig = rig_results(out / "results")
         n = int(rig.skeleton.articulation.sum())
-        print(f"3/3 stage rig: {n} articulation{'s' * (n != 1)} (the pipe has 1) -> {out / 'results' / 'rig'}")
+        print(f"3/3 stage rig: {counted(n, 'articulation')} (the pipe has 1) -> {out / 'results' / 'rig'}")
     print(f"accuracy: mean vertex error {np.mean(err):.2f} mm = {100 * np.mean(err) / tk.size:.2f} % of the pipe's "
           f"{tk.size:.0f} mm over the take (last frame {100 * err[-1] / tk.size:.2f} %); volume {min(vol):.3f}..{max(vol):.3f} "
           "of the template's")

@@ -57,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         NoTrackingError,
         build_articulated_rig,
         load_sequence,
+        rig_counts,
         tracked_meshes,
         write_rig,
     )
@@ -100,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     sk = rig.skeleton
     err = rig.fit.errors
     print(
-        f"{rig.segmentation.n_segments} segments, {int(sk.articulation.sum())} articulations, {sk.n_joints} joints; "
+        f"{rig_counts(rig.segmentation.n_segments, int(sk.articulation.sum()), sk.n_joints)}; "
         f"mean vertex error {err.mean():.4g} {units} ({100 * err.mean() / rig.size:.2f} % of size), "
         f"worst frame {err.max():.4g} {units}"
     )

@@ -30,7 +30,22 @@ def test_rig_meshes_writes_the_rig(tmp_path, capsys):
     assert sum(j["kind"] == "joint" for j in doc["joints"]) == 1
     assert (out / "rig.glb").stat().st_size > 0 and (out / "rig.bvh").is_file()
     assert len(list((out / "posed").glob("*.ply"))) == 10
-    assert "1 articulations" in capsys.readouterr().out
+    assert "2 segments, 1 articulation, " in capsys.readouterr().out
+
+
+def test_rig_of_a_rigid_sequence_says_one_segment(tmp_path, capsys):
+    V, F, _ = _two_bars(6)
+    _write_seq(tmp_path / "seq", np.repeat(V[:1], 6, axis=0) + np.linspace(0, 30, 6)[:, None, None], F)
+    assert main(["-q", "rig", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(tmp_path / "rig"),
+                 "--samples", "300"]) == 0
+    assert "1 segment, 0 articulations, " in capsys.readouterr().out
+
+
+def test_counted_is_singular_for_one():
+    from pipeline.articulated_rig import counted, rig_counts
+
+    assert [counted(n, "joint") for n in (0, 1, 2)] == ["0 joints", "1 joint", "2 joints"]
+    assert rig_counts(1, 1, 2) == "1 segment, 1 articulation, 2 joints"
 
 
 def test_rig_results_dir_needs_tracking(tmp_path, capsys):
@@ -85,4 +100,4 @@ def test_report_shows_the_rig(tmp_path):
     (tmp_path / "res" / "report.json").write_text(json.dumps({"frames": 10, "steps": ["rig"]}))
     html = render_report(tmp_path / "res")
     assert 'id="rig"' in html and "rig-view" in html
-    assert "1 articulations" in html
+    assert "Rig: 2 motion segments, 1 articulation, " in html
