@@ -205,20 +205,21 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, loaded, name)
     tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
     use_spine = skinned is not None and bool(spine_init)
-    report = {"mode": "multi-view", "template": source, "template_sha256": _mesh_digest(V0, F0),
-              "vertices": int(len(V0)), "gamma": tracker.gamma,
-              "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
-              "reference_frame": frames[ref], "spine_init": use_spine,
-              "predict": bool(predict), "prior": tracker.prior, "colour_tracks": _colour_available(root, bool(colour)),
-              "skipped": [], "frames": {}}
-    kept = _start_over_if_changed(root, report)
-    chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
-             "spine_init": use_spine, "spine_template": loaded, "predict": bool(predict),
-             "colour": report["colour_tracks"]}
-    first = _track_reference(tracker, (V0, F0), frames[ref], root, report, by_frame=by_frame, progress=progress,
-                             total=len(frames))
-    _track_halves({**chain, "prev": first, "prev_frame": frames[ref]}, frames, ref, report, tracker=tracker,
-                  by_frame=by_frame, skinned=skinned, progress=progress, executor=executor)
+    with _colour_take(root, bool(colour)) as take:  # opened once in this process (a worker opens its own)
+        report = {"mode": "multi-view", "template": source, "template_sha256": _mesh_digest(V0, F0),
+                  "vertices": int(len(V0)), "gamma": tracker.gamma,
+                  "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
+                  "reference_frame": frames[ref], "spine_init": use_spine,
+                  "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
+                  "skipped": [], "frames": {}}
+        kept = _start_over_if_changed(root, report)
+        chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
+                 "spine_init": use_spine, "spine_template": loaded, "predict": bool(predict),
+                 "colour": report["colour_tracks"]}
+        first = _track_reference(tracker, (V0, F0), frames[ref], root, report, by_frame=by_frame, progress=progress,
+                                 total=len(frames))
+        _track_halves({**chain, "prev": first, "prev_frame": frames[ref]}, frames, ref, report, tracker=tracker,
+                      by_frame=by_frame, skinned=skinned, progress=progress, executor=executor, take=take)
     report["frames"] = {**kept, **report["frames"]}
     report["frames"] = {str(k): report["frames"][str(k)] for k in frames if str(k) in report["frames"]}
     _write_report(root, report)
@@ -314,11 +315,12 @@ def _track_reference(tracker, template: tuple, frame: int, root: Path, report: d
 
 
 def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tracker, by_frame: dict, skinned,
-                  progress, executor) -> None:
+                  progress, executor, take=None) -> None:
     """The frames after the reference frame here, those before it (backwards) on ``executor`` at the
     same time, or here afterwards; their figures merged into ``report``. Progress counts the
     worker's frames by the tracked files it writes (:func:`_written_count`), also while this
-    process waits for it."""
+    process waits for it. ``take``: this process's open (reader, cameras) of the colour tracks
+    (:func:`_colour_take`), or None."""
     forward, backward = frames[ref + 1:], frames[:ref][::-1]
     total = len(frames)
     later = _submit(executor, {**chain, "frames": backward}) if backward and executor is not None else None
@@ -329,7 +331,7 @@ def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tra
 
     def here(part, start, bar):
         return _track_chain({**chain, "frames": part}, tracker=tracker, by_frame=by_frame, frame_list=frames,
-                            skinned=skinned, progress=bar, start=start, total=total)
+                            skinned=skinned, progress=bar, start=start, total=total, take=take)
 
     _merge_chain(report, here(forward, 1, progress_both if progress is not None else None))
     if backward and later is None:
@@ -429,9 +431,10 @@ def _spine_starts(model, frames: list[int]):
 
 
 def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, skinned=None, progress=None, start=0,
-                 total=None) -> dict:
+                 total=None, take=None) -> dict:
     """Track ``chain["frames"]`` in order from ``chain["prev"]`` (the fit of ``chain["prev_frame"]``);
-    -> {"frames": per-frame figures, "skipped": frames without a surface}."""
+    -> {"frames": per-frame figures, "skipped": frames without a surface}. The colour tracks
+    (``chain["colour"]``) read ``take`` (an open (reader, cameras)), else open the take here."""
     root = Path(chain["root"])
     V0, F0 = chain["template"]
     if by_frame is None:
@@ -444,7 +447,10 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
             skinned = _spine_model(root, frame_list, by_frame, chain["spine_template"])
         init_for = _spine_starts(skinned[1], frame_list) if skinned is not None else None
     part = {"skipped": [], "frames": {}}
-    with _multiview_colour(root, F0, 0.3 * tracker.gate, enabled=chain.get("colour", False)) as tracks_for:
+    tolerance = 0.3 * tracker.gate
+    colour = contextlib.nullcontext(_multiview_tracks_for(*take, F0, tolerance)) if take is not None else \
+        _multiview_colour(root, F0, tolerance, enabled=chain.get("colour", False))
+    with colour as tracks_for:
         _run_frames(tracker, list(chain["frames"]), root, F0, part, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
                     progress=progress, start=start, prev=np.asarray(chain["prev"], float), init_for=init_for, total=total,
                     prev_frame=chain["prev_frame"], predict=_predictor(tracker, chain["predict"]), tracks_for=tracks_for)
@@ -491,11 +497,6 @@ def _colour_take(root: Path, enabled: bool = True):
         if not cams:
             log.info("%s: no camera of the take has both a calibration and masks; tracking without colour tracks", take)
         yield (rd, cams) if cams else None
-
-
-def _colour_available(root: Path, enabled: bool) -> bool:
-    with _colour_take(root, enabled) as src:
-        return src is not None
 
 
 @contextlib.contextmanager

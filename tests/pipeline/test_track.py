@@ -489,6 +489,30 @@ def test_multiview_colour_halves_in_a_worker_process_equal_the_frames_tracked_in
     assert all(np.array_equal(a, b) for a, b in zip(runs["pool"], runs["in_order"]))
 
 
+def test_multiview_colour_tracks_open_the_take_once_in_this_process(tmp_path, monkeypatch):
+    """Both halves tracked here (reference frame 1 of 3): the take is opened once, for knowing that
+    colour tracks are available and for following them (it was opened for each)."""
+    from types import SimpleNamespace
+
+    import stage.store
+    from pipeline import track
+
+    opened = []
+
+    class Counting(stage.store.TakeReader):
+        def __init__(self, path, *args, **kwargs):
+            opened.append(path)
+            super().__init__(path, *args, **kwargs)
+
+    res, _ = _turning_sphere_results(tmp_path, frames=3, size=(160, 120))
+    V0, F0 = load_mesh(res / "meshes" / "frame_000001.ply", largest=False)
+    monkeypatch.setattr(track, "_spine_model", lambda *a: (1, SimpleNamespace(vertices=V0, faces=F0)))
+    monkeypatch.setattr(stage.store, "TakeReader", Counting)
+    rep = track.track_results(res, colour=True)
+    assert rep["colour_tracks"] is True and all("colour_tracks" in rep["frames"][str(k)] for k in (0, 2))
+    assert len(opened) == 1
+
+
 def test_multiview_colour_tracks_skip_an_unreadable_view_with_one_warning(tmp_path, caplog):
     """A camera whose mask cannot be read (truncated dataset: IndexError; corrupt image: TakeError)
     on some frames gives no colour tracks there, with one warning for that camera; the other cameras'
