@@ -448,8 +448,9 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
         init_for = _spine_starts(skinned[1], frame_list) if skinned is not None else None
     part = {"skipped": [], "frames": {}}
     tolerance = 0.3 * tracker.gate
-    colour = contextlib.nullcontext(_multiview_tracks_for(*take, F0, tolerance)) if take is not None else \
-        _multiview_colour(root, F0, tolerance, enabled=chain.get("colour", False))
+    corners = tracker.corner_sum
+    colour = contextlib.nullcontext(_multiview_tracks_for(*take, F0, tolerance, corners=corners)) if take is not None \
+        else _multiview_colour(root, F0, tolerance, enabled=chain.get("colour", False), corners=corners)
     with colour as tracks_for:
         _run_frames(tracker, list(chain["frames"]), root, F0, part, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
                     progress=progress, start=start, prev=np.asarray(chain["prev"], float), init_for=init_for, total=total,
@@ -500,7 +501,7 @@ def _colour_take(root: Path, enabled: bool = True):
 
 
 @contextlib.contextmanager
-def _multiview_colour(root: Path, faces: np.ndarray, tolerance: float, *, enabled: bool = True):
+def _multiview_colour(root: Path, faces: np.ndarray, tolerance: float, *, enabled: bool = True, corners=None):
     """``tracks_for`` of a multi-view take (None without the take's images, masks and calibration).
 
     Per camera, the template vertices visible there on the previous frame (z-buffer of the
@@ -512,11 +513,12 @@ def _multiview_colour(root: Path, faces: np.ndarray, tolerance: float, *, enable
     which the closest-point pairs of a smooth surface leave free.
     """
     with _colour_take(root, enabled) as src:
-        yield None if src is None else _multiview_tracks_for(src[0], src[1], faces, tolerance)
+        yield None if src is None else _multiview_tracks_for(src[0], src[1], faces, tolerance, corners=corners)
 
 
-def _multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float):
-    """``tracks_for(k, k_prev, previous, extra, start)`` over every camera (see :func:`_multiview_colour`)."""
+def _multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float, *, corners=None):
+    """``tracks_for(k, k_prev, previous, extra, start)`` over every camera (see :func:`_multiview_colour`);
+    ``corners``: the tracker's summing matrix of the face corners (:attr:`TemplateTracker.corner_sum`)."""
     from pipeline.colour_tracks import colour_tracks
     from pipeline.rgbd_preprocess import visible_vertices
     from stage.store import TakeError
@@ -550,7 +552,7 @@ def _multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float
 
     def tracks_for(k, k_prev, prev, extra, start):
         start = prev if start is None else start
-        vn = vertex_normals(prev, faces)
+        vn = vertex_normals(prev, faces, corners=corners)
         out = []
         for cam_id, cam in cameras.items():
             before, now = views[cam_id].pair(k_prev, k)
@@ -611,9 +613,10 @@ def _predictor(tracker, predict: bool):
     return lambda prev, before, seen: predict_motion(prev, before, tracker.faces, tracker.patches, constrained=seen)
 
 
-def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float):
+def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float, *, corners=None):
     """``tracks_for(k, k_prev, previous, frame, start)``: the previous frame's visible vertices
-    followed into frame ``k``'s colour image (``frames``: preprocessed depth frames by index)."""
+    followed into frame ``k``'s colour image (``frames``: preprocessed depth frames by index;
+    ``corners``: the tracker's summing matrix of the face corners)."""
     from pipeline.colour_tracks import colour_tracks
     from pipeline.rgbd_preprocess import visible_vertices
 
@@ -621,7 +624,7 @@ def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float):
 
     def tracks_for(k, k_prev, prev, fr, start):
         seen = frames.get(k_prev)
-        vis = visible_vertices(prev, faces, cam, normals=vertex_normals(prev, faces), tolerance=tolerance,
+        vis = visible_vertices(prev, faces, cam, normals=vertex_normals(prev, faces, corners=corners), tolerance=tolerance,
                                observed=None if seen is None else seen.valid)
         masks = None if seen is None else (seen.valid, fr.valid)
         before, now = images.pair(k_prev, k)
@@ -794,7 +797,8 @@ def track_rgbd_take(
         _run_frames(tracker, list(range(first[0], n)), out, F0, report, data_for=data_for, visible_for=visible_for,
                     progress=progress, start=first[0], prev=placed, contour_for=contour_for if contour else None,
                     predict=_predictor(tracker, predict),
-                    tracks_for=_colour_tracks_for(rd, cam_id, cam, F0, cache, 0.3 * tracker.gate) if colour else None)
+                    tracks_for=_colour_tracks_for(rd, cam_id, cam, F0, cache, 0.3 * tracker.gate,
+                                                  corners=tracker.corner_sum) if colour else None)
     if report["skipped"]:
         log.warning("frames without depth skipped: %s", ", ".join(map(str, report["skipped"])))
     report["frames"] = dict(sorted({**kept, **report["frames"]}.items(), key=lambda kv: int(kv[0])))

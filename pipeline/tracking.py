@@ -227,11 +227,25 @@ def cotangent_laplacian(vertices, faces) -> sp.csr_matrix:
     return sp.csr_matrix(sp.diags(scale) @ (-2.0 * stiffness))
 
 
-def vertex_normals(vertices, faces) -> np.ndarray:
-    """(V, 3) unit area-weighted vertex normals (zero for isolated vertices)."""
+def vertex_normals(vertices, faces, *, corners: sp.spmatrix | None = None) -> np.ndarray:
+    """(V, 3) unit area-weighted vertex normals (zero for isolated vertices).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+    faces : (F, 3) int ndarray
+    corners : (V, 3F) sparse matrix, optional
+        The summing matrix of the faces' corners (:attr:`TemplateTracker.corner_sum`), reused
+        instead of built on every call: the same normals, bit for bit.
+    """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
-    return _vertex_normals(v, f, _summing(f.ravel(), len(v)))
+    if corners is None:
+        return _vertex_normals(v, f, _summing(f.ravel(), len(v)))
+    if not sp.issparse(corners) or corners.shape != (len(v), f.size):
+        raise ValueError(f"corners must be a sparse ({len(v)}, {f.size}) matrix (the faces' corner sums), "
+                         f"got {type(corners).__name__} of shape {getattr(corners, 'shape', None)}")
+    return _vertex_normals(v, f, corners)
 
 
 def _vertex_normals(v: np.ndarray, f: np.ndarray, corners: sp.csr_matrix) -> np.ndarray:
@@ -974,6 +988,12 @@ class TemplateTracker:
     @property
     def n_vertices(self) -> int:
         return int(self.template.shape[0])
+
+    @property
+    def corner_sum(self) -> sp.csr_matrix:
+        """(V, 3F) summing matrix of the template's face corners, built once:
+        ``vertex_normals(V, faces, corners=tracker.corner_sum)``."""
+        return self._corner_sum
 
     def fit(self, points, normals, *, previous, init=None, visible=None, contour=None, tracks=None) -> FrameFit:
         """Deform the template onto one frame's data.

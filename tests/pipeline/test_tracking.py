@@ -261,6 +261,16 @@ def test_vertex_normals_point_outwards():
     np.testing.assert_allclose(np.einsum("ij,ij->i", n, v / 50.0), 1.0, atol=0.01)
 
 
+def test_vertex_normals_with_the_trackers_corner_sums_are_the_same_bit_for_bit():
+    v, f = _sphere(2)
+    tr = TemplateTracker(v, f)
+    moved = v * [1.0, 1.3, 0.8] + 5.0
+    assert np.array_equal(vertex_normals(moved, f, corners=tr.corner_sum), vertex_normals(moved, f))
+    for bad in (tr.corner_sum[:-1], tr.corner_sum.toarray(), "corners"):
+        with pytest.raises(ValueError, match="corners"):
+            vertex_normals(moved, f, corners=bad)
+
+
 def test_invalid_input():
     v, f = _sphere(1)
     with pytest.raises(ValueError, match="vertices"):
