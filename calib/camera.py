@@ -26,6 +26,7 @@ import numpy as np
 __all__ = [
     "Camera",
     "cached_pixel_grid_rays",
+    "cached_pixel_ray_depths",
     "distort_normalized",
     "undistort_normalized",
     "project_points",
@@ -409,9 +410,29 @@ class Camera:
         )
 
 
-_RAY_CACHE: OrderedDict = OrderedDict()
+_RAY_CACHE: OrderedDict = OrderedDict()  # camera -> [origin, directions, ray depths or None]
 _RAY_LOCK = threading.Lock()
 _RAY_CACHE_SIZE = 32
+
+
+def _cached_rays(camera: Camera) -> list:
+    """The ray cache's entry of ``camera`` (computed on a miss), marked as the latest used."""
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera must be a Camera, got {type(camera).__name__}")
+    with _RAY_LOCK:
+        hit = _RAY_CACHE.get(camera)
+        if hit is not None:
+            _RAY_CACHE.move_to_end(camera)
+            return hit
+    origin, dirs = camera.pixel_grid_rays()
+    origin.setflags(write=False)
+    dirs.setflags(write=False)
+    with _RAY_LOCK:
+        entry = _RAY_CACHE.setdefault(camera, [origin, dirs, None])  # another thread's, if it came first
+        _RAY_CACHE.move_to_end(camera)
+        while len(_RAY_CACHE) > _RAY_CACHE_SIZE:
+            _RAY_CACHE.popitem(last=False)
+    return entry
 
 
 def cached_pixel_grid_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -425,18 +446,20 @@ def cached_pixel_grid_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     origin : (3,) ndarray
     directions : (H, W, 3) ndarray, read-only
     """
-    if not isinstance(camera, Camera):
-        raise ValueError(f"camera must be a Camera, got {type(camera).__name__}")
-    with _RAY_LOCK:
-        hit = _RAY_CACHE.get(camera)
-        if hit is not None:
-            _RAY_CACHE.move_to_end(camera)
-            return hit
-    origin, dirs = camera.pixel_grid_rays()
-    origin.setflags(write=False)
-    dirs.setflags(write=False)
-    with _RAY_LOCK:
-        _RAY_CACHE[camera] = (origin, dirs)
-        while len(_RAY_CACHE) > _RAY_CACHE_SIZE:
-            _RAY_CACHE.popitem(last=False)
-    return origin, dirs
+    entry = _cached_rays(camera)
+    return entry[0], entry[1]
+
+
+def cached_pixel_ray_depths(camera: Camera) -> np.ndarray:
+    """(H, W) camera-frame Z of every pixel's unit ray (:func:`cached_pixel_grid_rays`), read-only.
+
+    A depth image (camera-frame Z per pixel, what RGB-D sensors give) back-projects as
+    ``origin + directions * (depth / ray_depths)[..., None]``. Kept with the rays, in the same
+    cache of the last 32 cameras; thread-safe.
+    """
+    entry = _cached_rays(camera)
+    if entry[2] is None:  # two threads may both compute it: the same array
+        dz = entry[1] @ camera.R[2]
+        dz.setflags(write=False)
+        entry[2] = dz
+    return entry[2]

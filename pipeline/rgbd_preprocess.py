@@ -20,7 +20,6 @@ without a display or an OpenGL stack; both are short vectorised numpy.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
@@ -28,7 +27,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from calib.camera import Camera, cached_pixel_grid_rays
+from calib.camera import Camera, cached_pixel_grid_rays, cached_pixel_ray_depths
 from pipeline.tracking import TrackingError, closest_pairs, vertex_normals
 
 __all__ = [
@@ -94,19 +93,11 @@ def back_project(depth, camera: Camera) -> np.ndarray:
     return _back_project(z, camera, (slice(None), slice(None)))
 
 
-@functools.lru_cache(maxsize=8)
-def _ray_depths(camera: Camera) -> np.ndarray:
-    """(H, W) camera-frame Z of every pixel's unit ray (:func:`calib.camera.cached_pixel_grid_rays`), read-only."""
-    dz = cached_pixel_grid_rays(camera)[1] @ camera.R[2]
-    dz.setflags(write=False)
-    return dz
-
-
 def _back_project(depth, camera: Camera, window: tuple[slice, slice]) -> np.ndarray:
     """:func:`back_project` of the ``window`` (rows, columns) of the image, ``depth`` its pixels."""
     z = np.asarray(depth, dtype=np.float64)
     o, d = cached_pixel_grid_rays(camera)
-    t = np.where(z > 0, z / _ray_depths(camera)[window], np.nan)
+    t = np.where(z > 0, z / cached_pixel_ray_depths(camera)[window], np.nan)
     return o + d[window] * t[..., None]
 
 
@@ -115,7 +106,7 @@ def _in_bounds(depth: np.ndarray, camera: Camera, lo: np.ndarray, hi: np.ndarray
     one coordinate at a time (no (H, W, 3) image of points)."""
     o, d = cached_pixel_grid_rays(camera)
     z = np.asarray(depth, dtype=np.float64)
-    t = np.where(z > 0, z / _ray_depths(camera), np.nan)
+    t = np.where(z > 0, z / cached_pixel_ray_depths(camera), np.nan)
     inside = z > 0
     with np.errstate(invalid="ignore"):
         for k in range(3):

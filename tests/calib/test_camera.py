@@ -7,6 +7,7 @@ import pytest
 from calib.camera import (
     Camera,
     cached_pixel_grid_rays,
+    cached_pixel_ray_depths,
     distort_normalized,
     matrix_to_rodrigues,
     pixel_rays,
@@ -110,6 +111,26 @@ def test_cached_grid_rays_equal_the_computed_ones():
         cd[0, 0, 0] = 1.0
     other = cached_pixel_grid_rays(cam.replace(t=cam.t + 1.0))
     assert other[1] is not cd
+
+
+def test_cached_ray_depths_are_the_rays_camera_frame_z_in_the_same_cache(monkeypatch):
+    import calib.camera as camera_module
+
+    cam = _camera(dist=(-0.08, 0.03, 0.001, -0.0015, -0.01)).replace(size=(64, 48))
+    dz = cached_pixel_ray_depths(cam)
+    _, d = cam.pixel_grid_rays()
+    np.testing.assert_array_equal(dz, d @ cam.R[2])  # exact: the same computation
+    np.testing.assert_allclose(dz, np.einsum("hwk,k->hw", d, cam.R[2]), rtol=1e-12)
+    assert cached_pixel_ray_depths(cam.replace()) is dz  # an equal camera hits the cache
+    with pytest.raises(ValueError, match="read-only"):
+        dz[0, 0] = 1.0
+    # one cache: the rays' entry holds the depths, and both go when the entry is evicted
+    assert camera_module._RAY_CACHE[cam][2] is dz
+    monkeypatch.setattr(camera_module, "_RAY_CACHE_SIZE", 1)
+    cached_pixel_grid_rays(cam.replace(t=cam.t + 2.5))  # a camera not asked for before
+    assert cam not in camera_module._RAY_CACHE and cached_pixel_ray_depths(cam) is not dz
+    with pytest.raises(ValueError, match="camera"):
+        cached_pixel_ray_depths(cam.to_dict())
 
 
 def test_invalid_input():
