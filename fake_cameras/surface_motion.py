@@ -2,7 +2,7 @@
 
 Every capsule of a :class:`fake_cameras.creatures.Creature` moves rigidly: body capsules with
 the body, limb segment ``i`` with the body, the limb's swing and its accumulated bend
-(the same composition as :meth:`Creature.pose`). :func:`capsule_frames` gives those rigid
+(:meth:`Creature.pose`'s own capsule frames, without the tuck). :func:`capsule_frames` gives those rigid
 motions at a time; :func:`surface_point_tracks` snaps points onto the surface at a first
 time, assigns each to the capsule it lies on and carries it along.
 
@@ -12,11 +12,9 @@ segments: takes with a tuck interval have no rigid per-capsule motion and are re
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from fake_cameras.creatures import Creature, _rot, _unit
+from fake_cameras.creatures import Creature
 
 __all__ = ["capsule_frames", "surface_point_tracks"]
 
@@ -36,27 +34,10 @@ def capsule_frames(creature: Creature, time_s: float) -> tuple[np.ndarray, np.nd
         raise ValueError("creature: a take with a tuck interval has no rigid per-capsule motion")
     t = float(time_s)
     pos, Rb = creature._body_transform(t)
-    Rs, Os = [], []
-    for _ in creature.body:
-        Rs.append(Rb)
-        Os.append(pos)
-    for lb in creature.limbs:
-        w = 2 * math.pi * lb.freq
-        R_swing = _rot(lb.swing_axis, lb.swing * math.sin(w * t + lb.phase)) if lb.swing else np.eye(3)
-        axis = _unit(lb.bend_axis)
-        p = np.asarray(lb.attach, dtype=np.float64)
-        theta = 0.0
-        d0 = _unit(lb.direction)
-        for i, L in enumerate(lb.lengths):
-            theta += lb.rest[i] + lb.amp[i] * math.sin(w * t + lb.phase - i * lb.lag)
-            M = R_swing @ _rot(axis, theta)
-            Rs.append(Rb @ M)
-            Os.append(Rb @ p + pos)
-            p = p + L * (M @ d0)
-    if creature.spur is not None and creature._weight(t, creature.spur, 0.0) > 0:
-        Rs.append(Rb)
-        Os.append(pos)
-    return np.stack(Rs), np.stack(Os)
+    limbs = {lb.name: creature._limb_frames(lb, t) for lb in creature.limbs}
+    spur = creature.spur is not None and creature._weight(t, creature.spur, 0.0) > 0
+    return creature._capsule_frames({k: v[0] for k, v in limbs.items()}, {k: v[1] for k, v in limbs.items()}, Rb, pos,
+                                    spur)
 
 
 def _snap(pose, points: np.ndarray, h: float = 0.05) -> np.ndarray:
