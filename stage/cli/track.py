@@ -48,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pipeline.articulated_rig import counted
     from pipeline.track import TrackingError, track_rgbd_take
     from stage.cli import UserError
     from stage.cli._progress import StepBars
@@ -76,14 +77,14 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     n = len(rep["frames"])
     vols = [f["volume_ratio"] for f in rep["frames"].values() if f.get("volume_ratio") is not None]
-    print(f"tracked {rep['vertices']} vertices through {n} frames (gamma {rep['gamma']}, gate {rep['gate_mm']:.1f} mm, "
+    print(f"tracked {rep['vertices']} vertices through {counted(n, 'frame')} (gamma {rep['gamma']}, gate {rep['gate_mm']:.1f} mm, "
           f"solver {rep['solver']})")
     if vols:
         print(f"volume / template volume: {min(vols):.3f} .. {max(vols):.3f}")
     if "colour_tracks" in rep:
         print(f"colour tracks: {'on' if rep['colour_tracks'] else 'off'}")
     if rep["skipped"]:
-        print(f"skipped {len(rep['skipped'])} frames without data: {', '.join(map(str, rep['skipped']))}")
+        print(f"skipped {counted(len(rep['skipped']), 'frame')} without data: {', '.join(map(str, rep['skipped']))}")
     print(f"wrote {Path(out) / 'tracked'}")
     return 0
 
