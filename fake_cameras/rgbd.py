@@ -455,6 +455,11 @@ def simulate_mesh_rgbd_take(
     jpos = np.zeros((F, 0, 3)) if joint_positions is None else np.asarray(joint_positions, dtype=np.float64)
     if jpos.ndim != 3 or jpos.shape[0] != F or jpos.shape[2] != 3:
         raise ValueError(f"joint_positions must have shape ({F}, J, 3), got {jpos.shape}")
+    uv, z = camera.project(V[0], return_depth=True)
+    seen = (z > 0) & camera.in_image(uv)
+    if seen.mean() < 0.5:
+        raise ValueError(f"vertices: only {100 * seen.mean():.0f} % of frame 0's mesh is in view of camera "
+                         f"{camera.name!r} (in front of it and inside its image); place the camera or the mesh")
     size = float(np.ptp(V[0], axis=0).max()) if length is None else float(length)
     if not (size > 0 and math.isfinite(size)):
         raise ValueError(f"length must be positive, got {length!r}")

@@ -149,5 +149,9 @@ def test_invalid_input():
         simulate_mesh_rgbd_take(np.stack([V, V]), F, "oak")
     with pytest.raises(ValueError, match="joint_positions"):
         simulate_mesh_rgbd_take(np.stack([V, V]), F, cam, joint_positions=np.zeros((3, 1, 3)))
+    with pytest.raises(ValueError, match="in view"):
+        simulate_mesh_rgbd_take(np.stack([V, V]) + [0, -2000.0, 0], F, cam)  # behind the camera
     with pytest.raises(ValueError, match="height"):
         oak_sensor_camera(height=-5.0)
+    with pytest.raises(ValueError, match="vertices"):
+        simulate_sensor_rgbd_take(V, F)  # one frame, not a sequence
