@@ -13,6 +13,9 @@ Modules:
 ``fake_cameras.render``
     :func:`render_view` - ray casting through the distorted camera model in a
     green studio (shading, uneven light, floor shadows, spill, noise, depth).
+``fake_cameras.mesh_render``
+    :func:`render_mesh_views` - the same studio and image formation for a triangle mesh
+    (Embree ray casting), any cameras of a calibration.
 ``fake_cameras.boards``
     :func:`render_board_views` - chessboard / ChArUco boards waved through the volume.
 ``fake_cameras.take``

@@ -21,6 +21,12 @@ with every part, as a real object's does) and finer than the creatures' (:data:`
 :func:`simulate_rgbd_take` returns a :class:`SimulatedRGBDTake`; :func:`record_rgbd_take`
 writes it as a take file (one camera with depth), the template as ``TAKE.template.ply``
 and the ground truth as ``TAKE.gt.npz`` beside it (:func:`load_rgbd_ground_truth`).
+
+Any mesh sequence with the same connectivity on every frame (a real tracked motion, an
+animation) becomes such a take with :func:`simulate_mesh_rgbd_take` (rendered by
+:func:`fake_cameras.mesh_render.render_mesh`, any calibrated camera; the template is frame 0's
+mesh, every vertex its own truth), and a sequence given in a sensor's own camera frame, filmed
+from that sensor's pose, with :func:`simulate_sensor_rgbd_take`.
 """
 
 from __future__ import annotations
@@ -49,6 +55,10 @@ __all__ = [
     "record_rgbd_take",
     "load_rgbd_ground_truth",
     "template_path",
+    "oak_sensor_camera",
+    "simulate_mesh_rgbd_take",
+    "simulate_sensor_rgbd_take",
+    "stereo_depth_noise",
 ]
 
 OBJECTS = ("pipe_half", "pipe_3q", "lamp")
@@ -195,7 +205,8 @@ class SimulatedRGBDTake:
 
     Parameters
     ----------
-    object : ArticulatedObject
+    object : ArticulatedObject or None
+        None for a take of a mesh sequence (:func:`simulate_mesh_rgbd_take`).
     calibration : calib.Calibration
         The one camera.
     images : (F, H, W, 3) uint8 ndarray
@@ -212,9 +223,11 @@ class SimulatedRGBDTake:
     joint_positions : (F, J, 3) float ndarray
     fps : float
     params : dict
+    length : float, optional
+        The object's length, mm; default the articulated object's.
     """
 
-    object: ArticulatedObject
+    object: ArticulatedObject | None
     calibration: Calibration
     images: np.ndarray
     depth: np.ndarray
@@ -226,6 +239,7 @@ class SimulatedRGBDTake:
     joint_positions: np.ndarray
     fps: float
     params: dict
+    length: float | None = None
 
     @property
     def n_frames(self) -> int:
@@ -234,7 +248,7 @@ class SimulatedRGBDTake:
     @property
     def size(self) -> float:
         """The object's length, mm (what errors are a fraction of)."""
-        return self.object.length
+        return float(self.length) if self.length is not None else self.object.length
 
 
 def _angles(obj: ArticulatedObject, frames: int, bend: float) -> np.ndarray:
@@ -314,9 +328,7 @@ def simulate_rgbd_take(
         jpos[k] = [R[j] @ obj.points[j] + t[j] for j in obj.joints]
         view = render_view(cam, obj.pose(angles[k]), backdrop=bd, rng=np.random.default_rng([seed, k]), depth=True)
         images[k] = view.image
-        z = view.depth.astype(np.float64)
-        noisy = z + rng.normal(0.0, 1.0, z.shape) * depth_noise * (z / 1000.0) ** 2
-        depth[k] = np.where(z > 0, np.clip(np.round(noisy), 1, 65535), 0).astype(np.uint16)
+        depth[k] = stereo_depth_noise(view.depth, sigma=depth_noise, rng=rng)
     params = dict(name=name, frames=F, fps=float(fps), bend=float(bend), size=[w, h], distance=float(distance),
                   depth_noise=float(depth_noise), spacing=spacing, seed=int(seed))
     return SimulatedRGBDTake(
@@ -324,6 +336,190 @@ def simulate_rgbd_take(
         template_faces=T, vertex_segment=seg, truth=truth, angles=angles, joint_positions=jpos,
         fps=float(fps), params=params,
     )
+
+
+def stereo_depth_noise(z: np.ndarray, *, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """A stereo camera's depth from true depth: Gaussian noise of ``sigma`` mm at 1 m, growing with
+    the square of the distance, rounded to whole mm; 0 (no return) stays 0.
+
+    Parameters
+    ----------
+    z : (H, W) ndarray
+        True camera-frame Z, mm (0 = nothing).
+    sigma : float
+        Standard deviation at 1 m, mm.
+    rng : numpy.random.Generator
+        One normal draw per pixel.
+
+    Returns
+    -------
+    (H, W) uint16 ndarray
+    """
+    z = np.asarray(z, dtype=np.float64)
+    noisy = z + rng.normal(0.0, 1.0, z.shape) * sigma * (z / 1000.0) ** 2
+    return np.where(z > 0, np.clip(np.round(noisy), 1, 65535), 0).astype(np.uint16)
+
+
+def oak_sensor_camera(*, size=(640, 400), height: float = 1000.0, name: str = "oak") -> tuple[Camera, np.ndarray]:
+    """The OAK-like camera (:func:`oak_camera`'s intrinsics) at the pose of a sensor whose camera
+    frame the data are given in (a recorded sequence's own coordinates).
+
+    The studio (:class:`fake_cameras.render.Backdrop`) stands on the floor ``z = 0`` with z up,
+    so the sensor's camera frame cannot be the world frame itself (the camera would stand on the
+    floor). The world frame is placed so that the camera is level, ``height`` mm above the floor,
+    looking along +y (as :func:`oak_camera`); a point ``x`` of the sensor's frame is at
+    ``world_from_sensor[:3, :3] @ x + world_from_sensor[:3, 3]`` in the world, and the camera
+    sees it exactly where the sensor saw it (same camera-frame coordinates, same depth).
+
+    Returns
+    -------
+    camera : calib.Camera
+    world_from_sensor : (4, 4) float ndarray
+        Rigid motion from the sensor's camera frame to the world.
+    """
+    if not (isinstance(height, (int, float)) and 0 < height < 4000):
+        raise ValueError(f"height must be within (0, 4000) mm, got {height!r}")
+    cam = oak_camera(size=size, distance=0.0, target=(0.0, 0.0, float(height)), name=name)
+    T = np.eye(4)
+    T[:3, :3] = cam.R.T
+    T[:3, 3] = cam.center
+    return cam, T
+
+
+def simulate_mesh_rgbd_take(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    camera: Camera,
+    *,
+    texture_points: np.ndarray | None = None,
+    fps: float = 30.0,
+    depth_noise: float = 1.0,
+    backdrop: Backdrop | None = None,
+    vertex_segment: np.ndarray | None = None,
+    joint_positions: np.ndarray | None = None,
+    length: float | None = None,
+    name: str = "mesh",
+    seed: int = 0,
+) -> SimulatedRGBDTake:
+    """Render a single RGB-D camera's take of a mesh sequence (the same connectivity every frame).
+
+    Colour and depth come from :func:`fake_cameras.mesh_render.render_mesh` in the objects' green
+    studio, depth with the stereo noise of :func:`simulate_rgbd_take` (:func:`stereo_depth_noise`).
+    The template is frame 0's mesh and every vertex is its own ground truth on every frame.
+
+    Parameters
+    ----------
+    vertices : (F, V, 3) float ndarray
+        The mesh on every frame, world coordinates (mm).
+    faces : (T, 3) int ndarray
+    camera : calib.Camera
+        Any calibrated camera inside the studio (e.g. :func:`oak_sensor_camera`).
+    texture_points : (V, 3) float ndarray, optional
+        Where each vertex reads the painted texture; default frame 0's vertices (painted on the
+        surface at frame 0: it moves with the surface).
+    fps : float, optional
+    depth_noise : float, optional
+        Depth noise standard deviation at 1 m, mm.
+    backdrop : fake_cameras.render.Backdrop, optional
+        Default: the objects' studio and texture (:data:`TEXTURE`, :data:`TEXTURE_SCALE`).
+    vertex_segment : (V,) int ndarray, optional
+        Part of every vertex (default 0), kept in the ground truth.
+    joint_positions : (F, J, 3) float ndarray, optional
+        True joints on every frame (default none), kept in the ground truth.
+    length : float, optional
+        The object's length, mm (what errors are a fraction of); default its bounding box's
+        longest side at frame 0.
+    name : str, optional
+    seed : int, optional
+
+    Returns
+    -------
+    SimulatedRGBDTake
+        ``object`` None, ``angles`` (F, 0).
+    """
+    from fake_cameras.mesh_render import render_mesh
+
+    V = np.asarray(vertices, dtype=np.float64)
+    if V.ndim != 3 or V.shape[2] != 3 or not 2 <= V.shape[0] <= 2000 or not np.isfinite(V).all():
+        raise ValueError(f"vertices must be finite with shape (F, V, 3), 2 <= F <= 2000, got {V.shape}")
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera must be a calib.Camera, got {type(camera).__name__}")
+    if not (isinstance(depth_noise, (int, float)) and depth_noise >= 0):
+        raise ValueError(f"depth_noise must be >= 0, got {depth_noise!r}")
+    if not (isinstance(fps, (int, float)) and 0 < fps <= 1000):
+        raise ValueError(f"fps must be within (0, 1000], got {fps!r}")
+    F, NV = V.shape[:2]
+    seg = np.zeros(NV, np.int64) if vertex_segment is None else np.asarray(vertex_segment, dtype=np.int64)
+    if seg.shape != (NV,):
+        raise ValueError(f"vertex_segment must have shape ({NV},), got {seg.shape}")
+    jpos = np.zeros((F, 0, 3)) if joint_positions is None else np.asarray(joint_positions, dtype=np.float64)
+    if jpos.ndim != 3 or jpos.shape[0] != F or jpos.shape[2] != 3:
+        raise ValueError(f"joint_positions must have shape ({F}, J, 3), got {jpos.shape}")
+    uv, z = camera.project(V[0], return_depth=True)
+    seen = (z > 0) & camera.in_image(uv)
+    if seen.mean() < 0.5:
+        raise ValueError(f"vertices: only {100 * seen.mean():.0f} % of frame 0's mesh is in view of camera "
+                         f"{camera.name!r} (in front of it and inside its image); place the camera or the mesh")
+    size = float(np.ptp(V[0], axis=0).max()) if length is None else float(length)
+    if not (size > 0 and math.isfinite(size)):
+        raise ValueError(f"length must be positive, got {length!r}")
+    bd = backdrop if backdrop is not None else Backdrop(wall_radius=4000.0, wall_height=4000.0, texture=TEXTURE,
+                                                        texture_scale=TEXTURE_SCALE)
+    tp = V[0] if texture_points is None else texture_points
+    rng = np.random.default_rng(seed)
+    w, h = camera.size
+    images = np.empty((F, h, w, 3), np.uint8)
+    depth = np.empty((F, h, w), np.uint16)
+    for k in range(F):
+        view = render_mesh(camera, V[k], faces, texture_points=tp, backdrop=bd,
+                           rng=np.random.default_rng([seed, k]), depth=True)
+        images[k] = view.image
+        depth[k] = stereo_depth_noise(view.depth, sigma=depth_noise, rng=rng)
+    params = dict(name=str(name), frames=F, fps=float(fps), size=[w, h], depth_noise=float(depth_noise), seed=int(seed),
+                  camera=camera.to_dict())
+    return SimulatedRGBDTake(
+        object=None, calibration=Calibration((camera,)), images=images, depth=depth, template_vertices=V[0].copy(),
+        template_faces=np.asarray(faces, dtype=np.int64), vertex_segment=seg, truth=V, angles=np.zeros((F, 0)),
+        joint_positions=jpos, fps=float(fps), params=params, length=size,
+    )
+
+
+def simulate_sensor_rgbd_take(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    size=(640, 400),
+    height: float = 1000.0,
+    joint_positions: np.ndarray | None = None,
+    **kwargs,
+) -> SimulatedRGBDTake:
+    """:func:`simulate_mesh_rgbd_take` of a mesh sequence given in a sensor's camera frame (mm), filmed
+    by the OAK-like camera at that sensor's pose (:func:`oak_sensor_camera`).
+
+    The take's vertices, template and joints are in the studio's world frame
+    (``world_from_sensor`` applied; ``take.params["world_from_sensor"]``); the camera sees every
+    point where the sensor saw it. Other keyword options are :func:`simulate_mesh_rgbd_take`'s.
+
+    Parameters
+    ----------
+    vertices : (F, V, 3) float ndarray
+        Sensor camera frame, mm.
+    faces : (T, 3) int ndarray
+    size : (int, int), optional
+        Image (width, height).
+    height : float, optional
+        The camera's height above the studio's floor, mm.
+    joint_positions : (F, J, 3) float ndarray, optional
+        Sensor camera frame, mm.
+    """
+    cam, T = oak_sensor_camera(size=size, height=height)
+    V = np.asarray(vertices, dtype=np.float64)
+    if V.ndim != 3 or V.shape[2] != 3:
+        raise ValueError(f"vertices must have shape (F, V, 3), got {V.shape}")
+    J = None if joint_positions is None else np.asarray(joint_positions, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+    tk = simulate_mesh_rgbd_take(V @ T[:3, :3].T + T[:3, 3], faces, cam, joint_positions=J, **kwargs)
+    tk.params["world_from_sensor"] = T.tolist()
+    return tk
 
 
 def record_rgbd_take(take: SimulatedRGBDTake, path: str | os.PathLike, *, drop_depth=(), overwrite: bool = True) -> Path:
