@@ -643,12 +643,11 @@ def _merge_chain(report: dict, part: dict) -> None:
 
 
 def _predictor(tracker, predict: bool):
-    """``predict(previous, before, constrained)`` -> the next frame's start, or None (see :func:`predict_motion`)."""
-    from pipeline.tracking import predict_motion
-
+    """``predict(previous, before, constrained)`` -> the next frame's start, or None
+    (:meth:`pipeline.tracking.TemplateTracker.predict`: its matrices built once per take)."""
     if not predict:
         return None
-    return lambda prev, before, seen: predict_motion(prev, before, tracker.faces, tracker.patches, constrained=seen)
+    return lambda prev, before, seen: tracker.predict(prev, before, constrained=seen)
 
 
 def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float, *, corners=None):

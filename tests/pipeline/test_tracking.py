@@ -360,6 +360,37 @@ def test_prediction_follows_motion_faster_than_the_gate():
     assert errs[False] > 3 * np.linalg.norm(step), errs  # left behind
 
 
+def test_tracker_prediction_builds_its_matrices_once_and_predicts_the_same_bits():
+    """``TemplateTracker.predict`` (averaging matrix and patch sums kept for the take) equals
+    :func:`predict_motion` building them in the call, bit for bit, frame after frame; one ring of
+    the averaging is each vertex's mean over itself and its neighbours (slow reference)."""
+    m = trimesh.creation.box(extents=(120.0, 80.0, 60.0)).subdivide().subdivide()
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    tr = TemplateTracker(v, f, gate=10.0, patch_size=60.0)
+    ring = [{i} for i in range(len(v))]
+    for a, b, c in f:
+        ring[a] |= {b, c}
+        ring[b] |= {a, c}
+        ring[c] |= {a, b}
+    x = np.random.default_rng(2).normal(size=(len(v), 3))
+    slow = np.array([x[sorted(r)].mean(0) for r in ring])
+    np.testing.assert_allclose(tr.smoother @ x, slow, rtol=0, atol=1e-14)
+    assert tr.smoother is tr.smoother and tr.patch_sum.shape == (int(tr.patches.max()) + 1, len(v))
+    prev, before, seen = v.copy(), None, None
+    for k in range(1, 5):
+        moved = (v - v.mean(0)) @ _rotation([0, 1, 1], 2.0 * k).T + v.mean(0) + [3.0 * k, 0.0, 0.0]
+        init = None
+        if before is not None:
+            init = tr.predict(prev, before, constrained=seen)
+            assert np.array_equal(init, predict_motion(prev, before, f, tr.patches, constrained=seen))
+        fit = tr.fit(moved, vertex_normals(moved, f), previous=prev, init=init)
+        before, prev, seen = prev, fit.vertices, fit.constrained
+    with pytest.raises(ValueError, match="smoother"):
+        predict_motion(prev, before, f, tr.patches, smoother=tr.smoother[:-1])
+    with pytest.raises(ValueError, match="patch_sum"):
+        predict_motion(prev, before, f, tr.patches, patch_sum=tr.patch_sum[:, :-1])
+
+
 def _rotz(deg):
     a = np.radians(deg)
     return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
