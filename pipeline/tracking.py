@@ -553,21 +553,31 @@ def _check_cover(cover, n: int):
     return pp.astype(np.int64), vv.astype(np.int64), w
 
 
-def _blended_align(S, T, cover) -> np.ndarray:
-    """:func:`blended_align` on checked input."""
+def _cover_sums(cover, n: int):
+    """What :func:`_blended_align` sums over a fixed ``cover`` of ``n`` vertices, built once per
+    take: the summing matrices of its patches and of its vertices (:func:`_summing`, the same
+    sums as ``bincount``'s, bit for bit) and every patch's total weight."""
     pp, vv, w = cover
     n_p = int(pp.max()) + 1
     sw = np.maximum(np.bincount(pp, weights=w, minlength=n_p), 1e-300)[:, None]
-    cs = _scatter_add(pp, w[:, None] * S[vv], n_p) / sw
-    ct = _scatter_add(pp, w[:, None] * T[vv], n_p) / sw
+    return _summing(pp, n_p), _summing(vv, n), sw
+
+
+def _blended_align(S, T, cover, sums=None) -> np.ndarray:
+    """:func:`blended_align` on checked input; ``sums``: :func:`_cover_sums` of ``cover`` (default: built here)."""
+    pp, vv, w = cover
+    by_patch, by_vertex, sw = _cover_sums(cover, len(S)) if sums is None else sums
+    n_p = by_patch.shape[0]
+    cs = _sum_by(by_patch, w[:, None] * S[vv]) / sw
+    ct = _sum_by(by_patch, w[:, None] * T[vv]) / sw
     a = S[vv] - cs[pp]
-    H = _scatter_add(pp, (w[:, None] * a)[:, :, None] * (T[vv] - ct[pp])[:, None, :], n_p)
+    H = _sum_by(by_patch, (w[:, None] * a)[:, :, None] * (T[vv] - ct[pp])[:, None, :])
     U, _, Wt = np.linalg.svd(H)
     D = np.ones((n_p, 3))
     D[:, 2] = np.sign(np.linalg.det(np.einsum("pij,pjk->pik", U, Wt)))
     R = np.einsum("pji,pj,pkj->pik", Wt, D, U)
     placed = np.einsum("kij,kj->ki", R[pp], a) + ct[pp]
-    return _scatter_add(vv, w[:, None] * placed, len(S))
+    return _sum_by(by_vertex, w[:, None] * placed)
 
 
 def _truncated_solve(JtJ, Jtr, spread, damping, cutoff):
@@ -926,7 +936,8 @@ class TemplateTracker:
     fill-reducing ordering and elimination tree of the Cholesky factorisation, the patches and
     the sparse summing matrices of the sums over fixed indices (vertex normals from the
     triangles, patch centroids and per-patch Kabsch: one sparse product each, the same sums
-    as ``bincount``'s, bit for bit), the prediction's averaging matrix (:attr:`smoother`,
+    as ``bincount``'s, bit for bit; also those of the blended patches that place the previous
+    frame's shape, and their weights), the prediction's averaging matrix (:attr:`smoother`,
     :meth:`predict`), and the frame's KD-tree over the data; between the rounds
     of a frame, the numeric factor of its first round (as CG preconditioner, whose residual is
     tested before it is preconditioned, so the step that converges costs no triangular
@@ -978,6 +989,7 @@ class TemplateTracker:
         self._patch_sum = _summing(self.patches, int(self.patches.max()) + 1)
         self._align_sum = None if self.align_patches is None else _summing(self.align_patches, int(self.align_patches.max()) + 1)
         self._smoother = None  # the prediction's averaging: built on first use
+        self._cover_sums = None if self.align_cover is None else _cover_sums(self.align_cover, len(v))
 
     def _solve_round(self, V, pv, px, pn, smooth_rhs, start, first, prev=None):
         """One linear solve of the energy for fixed pairs (see the module docstring)."""
@@ -985,7 +997,7 @@ class TemplateTracker:
         if self.point_to_plane:
             # the prior's shape: the round's start, or the previous frame's shape placed patch by patch onto it
             if self.align_cover is not None:
-                base = _blended_align(prev, V, self.align_cover)
+                base = _blended_align(prev, V, self.align_cover, self._cover_sums)
             else:
                 base = V if self.align_patches is None else _patch_align(prev, V, self.align_patches, self._align_sum)
             P = _patch_rigid_motion(base, pv, px, pn, self.patches, self._patch_sum, fallback=start,

@@ -232,6 +232,41 @@ def test_blended_patches_overlap_and_blended_align_is_rigid_where_the_target_is(
     np.testing.assert_allclose(blended_align(v, noisy, cover), _blended_align_reference(v, noisy, cover), atol=1e-8)
 
 
+def _blended_align_by_bincount(S, T, cover):
+    """:func:`blended_align` summing by bincount (``_scatter_add``) in every call: the sums the kept
+    summing matrices must give bit for bit."""
+    pp, vv, w = cover
+    n_p = int(pp.max()) + 1
+    sw = np.maximum(np.bincount(pp, weights=w, minlength=n_p), 1e-300)[:, None]
+    cs = _scatter_add(pp, w[:, None] * S[vv], n_p) / sw
+    ct = _scatter_add(pp, w[:, None] * T[vv], n_p) / sw
+    a = S[vv] - cs[pp]
+    H = _scatter_add(pp, (w[:, None] * a)[:, :, None] * (T[vv] - ct[pp])[:, None, :], n_p)
+    U, _, Wt = np.linalg.svd(H)
+    D = np.ones((n_p, 3))
+    D[:, 2] = np.sign(np.linalg.det(np.einsum("pij,pjk->pik", U, Wt)))
+    R = np.einsum("pji,pj,pkj->pik", Wt, D, U)
+    return _scatter_add(vv, w[:, None] * (np.einsum("kij,kj->ki", R[pp], a) + ct[pp]), len(S))
+
+
+def test_the_trackers_blended_align_keeps_its_sums_and_gives_the_same_bits():
+    """The previous-shape prior's placement with the cover's summing matrices and patch weights
+    built once per take (every round of every frame used to rebuild them by bincount): the same
+    placement bit for bit, with and without the kept sums."""
+    from pipeline.tracking import _blended_align
+
+    m = trimesh.creation.capsule(height=200.0, radius=20.0, count=[24, 24])
+    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=8.0)
+    tr = TemplateTracker(v, f, prior="previous", align_size=60.0)
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        S, T = v + rng.normal(0, 1.0, v.shape), v @ _rotation([1, 2, 0], 10).T + rng.normal(0, 1.0, v.shape)
+        ref = _blended_align_by_bincount(S, T, tr.align_cover)
+        assert np.array_equal(_blended_align(S, T, tr.align_cover, tr._cover_sums), ref)
+        assert np.array_equal(blended_align(S, T, tr.align_cover), ref)
+    assert TemplateTracker(v, f)._cover_sums is None  # only the previous-shape prior uses them
+
+
 def test_prediction_repeats_a_rigid_motion_and_drops_what_the_data_cannot_see():
     m = trimesh.creation.cylinder(radius=15.0, height=200.0, sections=24)
     m = m.subdivide().subdivide()
