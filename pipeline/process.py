@@ -1022,13 +1022,34 @@ def _start_record(ctx: RunContext) -> None:
     if prev.exists():
         old = json.loads(prev.read_text())
         if old.get("params") != record["params"] or old.get("take") != record["take"]:
-            log.warning("%s holds results of other parameters or another take; starting over", ctx.out)
-            for sub in ("meshes", "frames", "skeletons"):
-                for f in (ctx.out / sub).glob("frame_*"):
-                    f.unlink()
-            (ctx.out / "spine.json").unlink(missing_ok=True)
-            (ctx.out / "grid.json").unlink(missing_ok=True)  # the grid follows the parameters too
+            _start_over(ctx)
     _atomic_write(prev, json.dumps(record, indent=2))
+
+
+def _start_over(ctx: RunContext) -> None:
+    """Remove the results of other parameters or another take and all that was made from them
+    (report, spine exports, tracking, rig), in one warning (also in the job report)."""
+    from pipeline.track import remove_tracking
+
+    for sub in ("meshes", "frames", "skeletons", "export"):  # export/: meshes converted (ResultsStore.export)
+        for f in (ctx.out / sub).glob("frame_*"):
+            f.unlink()
+    (ctx.out / "spine.json").unlink(missing_ok=True)
+    (ctx.out / "grid.json").unlink(missing_ok=True)  # the grid follows the parameters too
+    # made from the frames and the spine: the report (`stage report`, the API's page) and the
+    # exports (`stage export`, the API's first request), then the tracking and the rig on it
+    made = [ctx.out / n for n in _MADE_FROM_FRAMES if (ctx.out / n).is_file()]
+    for f in made:
+        f.unlink()
+    said = [f.name for f in made if f.name != "report.json"]  # report.json: written again by this run
+    note = f"; removed {', '.join(said)}" if said else ""
+    msg = f"{ctx.out} holds results of other parameters or another take; starting over{note}{remove_tracking(ctx.out)}"
+    log.warning("%s", msg)
+    ctx.warnings.append(msg)
+
+
+#: Files of a results directory made from its frames and spine, removed when it starts over.
+_MADE_FROM_FRAMES = ("report.json", "report.html", "spine_rig.glb", "spine.glb")
 
 
 def _add_to_record(ctx: RunContext, **items) -> None:

@@ -32,7 +32,7 @@ import numpy as np
 from pipeline.results import atomic_write_bytes, ply_bytes
 from pipeline.tracking import TemplateTracker, TrackingError, mesh_volume, vertex_normals
 
-__all__ = ["track_results", "track_chain_task", "track_rgbd_take", "tracked_path", "TrackingError"]
+__all__ = ["track_results", "track_chain_task", "track_rgbd_take", "tracked_path", "remove_tracking", "TrackingError"]
 
 log = logging.getLogger(__name__)
 
@@ -253,8 +253,7 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
     if old is not None:
         changed = [k for k in report if k not in _RESULT_KEYS and old.get(k) != report[k]]
         if changed:
-            for f in path.parent.glob("[0-9]*.ply"):
-                f.unlink()
+            _remove_tracked_frames(path.parent)
             report["started_over"] = (f"{path.parent} holds frames tracked with other settings "
                                       f"({', '.join(_change(k, old.get(k), report[k]) for k in changed)}); "
                                       f"tracking again{_remove_stale_rig(Path(out_dir))}")
@@ -263,6 +262,45 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
             kept = old["frames"]
     _write_report(out_dir, {**report, "frames": kept})
     return kept
+
+
+def remove_tracking(out_dir) -> str:
+    """Remove the tracking of ``out_dir`` and the rig built on it: what ``stage process`` does
+    when it starts over, since both follow the surfaces it removes.
+
+    ``tracked/NNNNNN.ply`` and ``tracked/track.json`` go (the folder too when that leaves it
+    empty; other files stay), then the rig as a tracking start-over removes it
+    (``rig/``, :func:`pipeline.articulated_rig.remove_rig`).
+
+    Parameters
+    ----------
+    out_dir : path
+        A results directory.
+
+    Returns
+    -------
+    str
+        What the start-over's warning says of it: ``""`` when there was nothing to remove, else
+        ``"; removed ..."`` naming each folder.
+    """
+    out = Path(out_dir)
+    tracked = out / "tracked"
+    files = _remove_tracked_frames(tracked)
+    if (tracked / "track.json").is_file():
+        (tracked / "track.json").unlink()
+        files += 1
+    with contextlib.suppress(OSError):  # not there, or not empty: kept
+        tracked.rmdir()
+    note = f"; removed the frames tracked on the old surfaces ({tracked})" if files else ""
+    return note + _remove_stale_rig(out)
+
+
+def _remove_tracked_frames(tracked: Path) -> int:
+    """Remove ``tracked/NNNNNN.ply``; -> how many there were."""
+    files = list(tracked.glob("[0-9]*.ply"))
+    for f in files:
+        f.unlink(missing_ok=True)
+    return len(files)
 
 
 def _remove_stale_rig(out_dir: Path) -> str:
@@ -605,12 +643,11 @@ def _merge_chain(report: dict, part: dict) -> None:
 
 
 def _predictor(tracker, predict: bool):
-    """``predict(previous, before, constrained)`` -> the next frame's start, or None (see :func:`predict_motion`)."""
-    from pipeline.tracking import predict_motion
-
+    """``predict(previous, before, constrained)`` -> the next frame's start, or None
+    (:meth:`pipeline.tracking.TemplateTracker.predict`: its matrices built once per take)."""
     if not predict:
         return None
-    return lambda prev, before, seen: predict_motion(prev, before, tracker.faces, tracker.patches, constrained=seen)
+    return lambda prev, before, seen: tracker.predict(prev, before, constrained=seen)
 
 
 def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float, *, corners=None):

@@ -553,21 +553,31 @@ def _check_cover(cover, n: int):
     return pp.astype(np.int64), vv.astype(np.int64), w
 
 
-def _blended_align(S, T, cover) -> np.ndarray:
-    """:func:`blended_align` on checked input."""
+def _cover_sums(cover, n: int):
+    """What :func:`_blended_align` sums over a fixed ``cover`` of ``n`` vertices, built once per
+    take: the summing matrices of its patches and of its vertices (:func:`_summing`, the same
+    sums as ``bincount``'s, bit for bit) and every patch's total weight."""
     pp, vv, w = cover
     n_p = int(pp.max()) + 1
     sw = np.maximum(np.bincount(pp, weights=w, minlength=n_p), 1e-300)[:, None]
-    cs = _scatter_add(pp, w[:, None] * S[vv], n_p) / sw
-    ct = _scatter_add(pp, w[:, None] * T[vv], n_p) / sw
+    return _summing(pp, n_p), _summing(vv, n), sw
+
+
+def _blended_align(S, T, cover, sums=None) -> np.ndarray:
+    """:func:`blended_align` on checked input; ``sums``: :func:`_cover_sums` of ``cover`` (default: built here)."""
+    pp, vv, w = cover
+    by_patch, by_vertex, sw = _cover_sums(cover, len(S)) if sums is None else sums
+    n_p = by_patch.shape[0]
+    cs = _sum_by(by_patch, w[:, None] * S[vv]) / sw
+    ct = _sum_by(by_patch, w[:, None] * T[vv]) / sw
     a = S[vv] - cs[pp]
-    H = _scatter_add(pp, (w[:, None] * a)[:, :, None] * (T[vv] - ct[pp])[:, None, :], n_p)
+    H = _sum_by(by_patch, (w[:, None] * a)[:, :, None] * (T[vv] - ct[pp])[:, None, :])
     U, _, Wt = np.linalg.svd(H)
     D = np.ones((n_p, 3))
     D[:, 2] = np.sign(np.linalg.det(np.einsum("pij,pjk->pik", U, Wt)))
     R = np.einsum("pji,pj,pkj->pik", Wt, D, U)
     placed = np.einsum("kij,kj->ki", R[pp], a) + ct[pp]
-    return _scatter_add(vv, w[:, None] * placed, len(S))
+    return _sum_by(by_vertex, w[:, None] * placed)
 
 
 def _truncated_solve(JtJ, Jtr, spread, damping, cutoff):
@@ -638,7 +648,8 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(w).as_matrix()
 
 
-def predict_motion(previous, before, faces, patches, *, constrained=None, smoothing: int = 10) -> np.ndarray:
+def predict_motion(previous, before, faces, patches, *, constrained=None, smoothing: int = 10, smoother=None,
+                   patch_sum=None) -> np.ndarray:
     """Constant-velocity prediction of the next frame from the two tracked frames before it.
 
     Every patch repeats the rigid motion that took it from ``before`` to ``previous``
@@ -658,6 +669,12 @@ def predict_motion(previous, before, faces, patches, *, constrained=None, smooth
     constrained : (n_patches, 6, 6) float ndarray, optional
         Default: every motion (plain constant velocity per patch).
     smoothing : int
+    smoother : (V, V) sparse matrix, optional
+        One ring of the averaging (each vertex and its neighbours on ``faces``, equal
+        weights): :attr:`TemplateTracker.smoother`, built once per take. Default: built here.
+    patch_sum : (n_patches, V) sparse matrix, optional
+        The summing matrix of ``patches`` (:attr:`TemplateTracker.patch_sum`, the same sums
+        bit for bit). Default: sums by ``bincount``.
 
     Returns
     -------
@@ -665,12 +682,23 @@ def predict_motion(previous, before, faces, patches, *, constrained=None, smooth
     """
     P = np.asarray(previous, float)
     B = np.asarray(before, float)
+    n = len(P)
     n_p = int(patches.max()) + 1
+    if smoother is None:
+        smoother = _umbrella(faces, n)
+    elif smoother.shape != (n, n):
+        raise ValueError(f"smoother must have shape {(n, n)}, got {smoother.shape}")
+    if patch_sum is not None and patch_sum.shape != (n_p, n):
+        raise ValueError(f"patch_sum must have shape {(n_p, n)}, got {patch_sum.shape}")
+
+    def by_patch(values):
+        return _scatter_add(patches, values, n_p) if patch_sum is None else _sum_by(patch_sum, values)
+
     cnt = np.maximum(np.bincount(patches, minlength=n_p), 1)[:, None]
-    cb = _scatter_add(patches, B, n_p) / cnt
-    cp = _scatter_add(patches, P, n_p) / cnt
+    cb = by_patch(B) / cnt
+    cp = by_patch(P) / cnt
     a, b = B - cb[patches], P - cp[patches]
-    H = _scatter_add(patches, a[:, :, None] * b[:, None, :], n_p)
+    H = by_patch(a[:, :, None] * b[:, None, :])
     U, _, Wt = np.linalg.svd(H)
     D = np.ones((n_p, 3))
     D[:, 2] = np.sign(np.linalg.det(np.einsum("pij,pjk->pik", U, Wt)))
@@ -683,9 +711,8 @@ def predict_motion(previous, before, faces, patches, *, constrained=None, smooth
     Rn = _rodrigues(omega)
     moved = np.einsum("vij,vj->vi", Rn[patches], b) + cp[patches] + t[patches]
     step = moved - P
-    A = _umbrella(faces, len(P))
     for _ in range(int(smoothing)):
-        step = A @ step
+        step = smoother @ step
     return P + step
 
 
@@ -909,7 +936,9 @@ class TemplateTracker:
     fill-reducing ordering and elimination tree of the Cholesky factorisation, the patches and
     the sparse summing matrices of the sums over fixed indices (vertex normals from the
     triangles, patch centroids and per-patch Kabsch: one sparse product each, the same sums
-    as ``bincount``'s, bit for bit), and the frame's KD-tree over the data; between the rounds
+    as ``bincount``'s, bit for bit; also those of the blended patches that place the previous
+    frame's shape, and their weights), the prediction's averaging matrix (:attr:`smoother`,
+    :meth:`predict`), and the frame's KD-tree over the data; between the rounds
     of a frame, the numeric factor of its first round (as CG preconditioner, whose residual is
     tested before it is preconditioned, so the step that converges costs no triangular
     solve); per round only the KD-tree over the moved vertices, the pairs and the patch
@@ -959,6 +988,8 @@ class TemplateTracker:
         self._corner_sum = _summing(f.ravel(), len(v))
         self._patch_sum = _summing(self.patches, int(self.patches.max()) + 1)
         self._align_sum = None if self.align_patches is None else _summing(self.align_patches, int(self.align_patches.max()) + 1)
+        self._smoother = None  # the prediction's averaging: built on first use
+        self._cover_sums = None if self.align_cover is None else _cover_sums(self.align_cover, len(v))
 
     def _solve_round(self, V, pv, px, pn, smooth_rhs, start, first, prev=None):
         """One linear solve of the energy for fixed pairs (see the module docstring)."""
@@ -966,7 +997,7 @@ class TemplateTracker:
         if self.point_to_plane:
             # the prior's shape: the round's start, or the previous frame's shape placed patch by patch onto it
             if self.align_cover is not None:
-                base = _blended_align(prev, V, self.align_cover)
+                base = _blended_align(prev, V, self.align_cover, self._cover_sums)
             else:
                 base = V if self.align_patches is None else _patch_align(prev, V, self.align_patches, self._align_sum)
             P = _patch_rigid_motion(base, pv, px, pn, self.patches, self._patch_sum, fallback=start,
@@ -994,6 +1025,25 @@ class TemplateTracker:
         """(V, 3F) summing matrix of the template's face corners, built once:
         ``vertex_normals(V, faces, corners=tracker.corner_sum)``."""
         return self._corner_sum
+
+    @property
+    def patch_sum(self) -> sp.csr_matrix:
+        """(n_patches, V) summing matrix of :attr:`patches`, built once."""
+        return self._patch_sum
+
+    @property
+    def smoother(self) -> sp.csr_matrix:
+        """(V, V) one ring of :func:`predict_motion`'s averaging over the template's faces,
+        built once (on first use)."""
+        if self._smoother is None:
+            self._smoother = _umbrella(self.faces, self.n_vertices)
+        return self._smoother
+
+    def predict(self, previous, before, *, constrained=None) -> np.ndarray:
+        """:func:`predict_motion` on this template's faces and patches, with the matrices built
+        once per take (:attr:`smoother`, :attr:`patch_sum`): the next frame's start."""
+        return predict_motion(previous, before, self.faces, self.patches, constrained=constrained,
+                              smoother=self.smoother, patch_sum=self._patch_sum)
 
     def fit(self, points, normals, *, previous, init=None, visible=None, contour=None, tracks=None) -> FrameFit:
         """Deform the template onto one frame's data.

@@ -167,3 +167,46 @@ def test_queued_jobs_survive_restart(make_client, data_root):
     assert JobStore(data_root / "jobs.sqlite").get(jid).state == "queued"
     c2 = make_client()
     assert wait_job(c2, jid)["state"] == "done"
+
+
+def test_a_job_on_results_of_other_parameters_starts_over_without_their_tracking_and_rig(make_client, tmp_path):
+    """The API's job path (the real work): a job whose folder holds results of other parameters
+    removes the tracked frames and the rig built on them, and its result carries the one warning;
+    a job of the same parameters on them keeps tracked/ and rig/ untouched."""
+    import shutil
+    import uuid
+
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
+
+    data = tmp_path / "data"
+    (data / "takes").mkdir(parents=True)
+    record_take(simulate_take("starfish", n_cameras=4, frames=3, size=(160, 120), seed=3), data / "takes" / "t.h5")
+    c = make_client(work="pipeline.process:process_take", data=data)
+    steps = ["key", "surface", "spine", "track", "rig"]
+    first = c.post("/jobs", json={"take": "t", "steps": steps, "parameters": {"resolution": 32}}, headers=AUTH).json()["id"]
+    assert wait_job(c, first, timeout=120)["state"] == "done"
+    assert c.get(f"/jobs/{first}/results/spine_rig.glb", headers=AUTH).status_code == 200  # cached in the job's folder
+    store = JobStore(data / "jobs.sqlite")
+
+    def job_on_a_copy(params: dict) -> tuple[str, dict]:
+        jid = uuid.uuid4().hex
+        shutil.copytree(data / "jobs" / first, data / "jobs" / jid)
+        store.create(kind="process", take="t", steps=["key", "surface", "spine"], params=params, job_id=jid)
+        st = wait_job(c, jid, timeout=120)
+        assert st["state"] == "done", st
+        return jid, st
+
+    stamps = {p.relative_to(data / "jobs" / first): p.stat().st_mtime_ns
+              for s in ("tracked", "rig") for p in (data / "jobs" / first / s).rglob("*") if p.is_file()}
+    same, st = job_on_a_copy({"resolution": 32})
+    assert st["result"]["report"]["warnings"] == []
+    assert {p: (data / "jobs" / same / p).stat().st_mtime_ns for p in stamps} == stamps and len(stamps) >= 9
+    other, st = job_on_a_copy({"resolution": 28})
+    assert st["result"]["report"]["warnings"] == [
+        f"DATA/jobs/{other} holds results of other parameters or another take; starting over; removed spine_rig.glb; "
+        f"removed the frames tracked on the old surfaces (DATA/jobs/{other}/tracked); "
+        f"removed the rig built on them (DATA/jobs/{other}/rig)"]
+    d = data / "jobs" / other
+    assert not (d / "tracked").exists() and not (d / "rig").exists() and not (d / "spine_rig.glb").exists()
+    assert c.get(f"/jobs/{other}/results/spine_rig.glb", headers=AUTH).status_code == 200  # made again, from the new spine

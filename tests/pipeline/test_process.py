@@ -418,3 +418,75 @@ def test_a_part_run_several_times_counts_every_run(monkeypatch):
     process._run_step(ctx, "burn_twice")
     assert ctx.cpu["inner"] >= 0.1 and ctx.timings["inner"] >= 0.1, ctx.cpu  # 0.05: the last run only
     assert 0.05 <= ctx.cpu["burn_twice"] < 0.09, ctx.cpu
+
+
+# ----------------------------------------------------------------------------- start-over and what follows the surfaces
+
+_SMALL = {"resolution": 32}
+_ALL_STEPS = ("key", "surface", "spine", "track", "rig")
+
+
+@pytest.fixture(scope="module")
+def small_tracked(tmp_path_factory):
+    """A small take processed, tracked and rigged (``tracked/``, ``rig/``), with a report and the
+    spine's rig export beside them."""
+    from pipeline.gltf_export import export_rig
+    from pipeline.report import write_report
+
+    sim = simulate_take("starfish", n_cameras=4, frames=3, size=(160, 120), seed=3)
+    take = record_take(sim, tmp_path_factory.mktemp("small") / "t.h5")
+    out = tmp_path_factory.mktemp("small_results") / "out"
+    process_take(take, out, steps=_ALL_STEPS, params=_SMALL)
+    write_report(out)
+    export_rig(out)
+    assert (out / "tracked" / "000002.ply").is_file() and (out / "rig" / "rig.json").is_file()
+    return take, out
+
+
+def _files_under(out, *subs) -> dict:
+    return {str(p.relative_to(out)): (p.stat().st_mtime_ns, p.read_bytes()) for s in subs
+            for p in sorted((out / s).rglob("*")) if p.is_file()}
+
+
+def test_starting_over_removes_the_tracking_and_rig_of_the_old_surfaces(small_tracked, tmp_path, caplog):
+    """Other parameters: the frames tracked on the old surfaces, the rig built on them, the report
+    and the spine export go too, said in the one start-over warning, which the job report carries;
+    the user's own files stay."""
+    import shutil
+
+    take, first = small_tracked
+    out = tmp_path / "out"
+    shutil.copytree(first, out)
+    (out / "rig" / "notes.txt").write_text("the user's")
+    with caplog.at_level("WARNING"):
+        res = process_take(take, out, params={"resolution": 28})
+    said = [r.getMessage() for r in caplog.records if r.name in ("pipeline.process", "pipeline.track")]
+    assert said == [f"{out} holds results of other parameters or another take; starting over; removed report.html, "
+                    f"spine_rig.glb; removed the frames tracked on the old surfaces ({out / 'tracked'}); "
+                    f"removed the rig built on them ({out / 'rig'})"], said
+    assert said[0] in res.report["warnings"] and json.loads((out / "report.json").read_text())["warnings"] == res.report["warnings"]
+    assert not (out / "tracked").exists() and sorted(p.name for p in (out / "rig").iterdir()) == ["notes.txt"]
+    assert not (out / "report.html").exists() and not (out / "spine_rig.glb").exists()
+    assert json.loads((out / "process.json").read_text())["params"]["resolution"] == 28
+    # tracking again now tracks the new surfaces (nothing of the old settings is left to compare)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        rep = process_take(take, out, steps=("track",), params={"resolution": 28})
+    assert not caplog.records and rep.report["warnings"] == [] and (out / "tracked" / "000002.ply").is_file()
+
+
+def test_a_resume_with_the_same_parameters_keeps_the_tracking_and_rig(small_tracked, tmp_path, caplog):
+    """The same parameters (a run stopped after some surfaces): tracked/ and rig/ are not touched."""
+    import shutil
+
+    take, first = small_tracked
+    out = tmp_path / "out"
+    shutil.copytree(first, out)
+    before = _files_under(out, "tracked", "rig")
+    (out / "frames" / "frame_000002.json").unlink()
+    (out / "spine.json").unlink()
+    with caplog.at_level("WARNING", logger="pipeline.process"):
+        res = process_take(take, out, params=_SMALL)
+    assert not caplog.records and res.report["warnings"] == []
+    assert _files_under(out, "tracked", "rig") == before and len(before) >= 9  # 3 frames, track.json, 5 rig files
+    assert (out / "report.html").is_file() and (out / "spine_rig.glb").is_file()

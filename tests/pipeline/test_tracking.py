@@ -232,6 +232,41 @@ def test_blended_patches_overlap_and_blended_align_is_rigid_where_the_target_is(
     np.testing.assert_allclose(blended_align(v, noisy, cover), _blended_align_reference(v, noisy, cover), atol=1e-8)
 
 
+def _blended_align_by_bincount(S, T, cover):
+    """:func:`blended_align` summing by bincount (``_scatter_add``) in every call: the sums the kept
+    summing matrices must give bit for bit."""
+    pp, vv, w = cover
+    n_p = int(pp.max()) + 1
+    sw = np.maximum(np.bincount(pp, weights=w, minlength=n_p), 1e-300)[:, None]
+    cs = _scatter_add(pp, w[:, None] * S[vv], n_p) / sw
+    ct = _scatter_add(pp, w[:, None] * T[vv], n_p) / sw
+    a = S[vv] - cs[pp]
+    H = _scatter_add(pp, (w[:, None] * a)[:, :, None] * (T[vv] - ct[pp])[:, None, :], n_p)
+    U, _, Wt = np.linalg.svd(H)
+    D = np.ones((n_p, 3))
+    D[:, 2] = np.sign(np.linalg.det(np.einsum("pij,pjk->pik", U, Wt)))
+    R = np.einsum("pji,pj,pkj->pik", Wt, D, U)
+    return _scatter_add(vv, w[:, None] * (np.einsum("kij,kj->ki", R[pp], a) + ct[pp]), len(S))
+
+
+def test_the_trackers_blended_align_keeps_its_sums_and_gives_the_same_bits():
+    """The previous-shape prior's placement with the cover's summing matrices and patch weights
+    built once per take (every round of every frame used to rebuild them by bincount): the same
+    placement bit for bit, with and without the kept sums."""
+    from pipeline.tracking import _blended_align
+
+    m = trimesh.creation.capsule(height=200.0, radius=20.0, count=[24, 24])
+    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=8.0)
+    tr = TemplateTracker(v, f, prior="previous", align_size=60.0)
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        S, T = v + rng.normal(0, 1.0, v.shape), v @ _rotation([1, 2, 0], 10).T + rng.normal(0, 1.0, v.shape)
+        ref = _blended_align_by_bincount(S, T, tr.align_cover)
+        assert np.array_equal(_blended_align(S, T, tr.align_cover, tr._cover_sums), ref)
+        assert np.array_equal(blended_align(S, T, tr.align_cover), ref)
+    assert TemplateTracker(v, f)._cover_sums is None  # only the previous-shape prior uses them
+
+
 def test_prediction_repeats_a_rigid_motion_and_drops_what_the_data_cannot_see():
     m = trimesh.creation.cylinder(radius=15.0, height=200.0, sections=24)
     m = m.subdivide().subdivide()
@@ -358,6 +393,37 @@ def test_prediction_follows_motion_faster_than_the_gate():
         errs[predict] = np.linalg.norm(prev - (v + truth), axis=1).mean()
     assert errs[True] < 0.5 * errs[False], errs
     assert errs[False] > 3 * np.linalg.norm(step), errs  # left behind
+
+
+def test_tracker_prediction_builds_its_matrices_once_and_predicts_the_same_bits():
+    """``TemplateTracker.predict`` (averaging matrix and patch sums kept for the take) equals
+    :func:`predict_motion` building them in the call, bit for bit, frame after frame; one ring of
+    the averaging is each vertex's mean over itself and its neighbours (slow reference)."""
+    m = trimesh.creation.box(extents=(120.0, 80.0, 60.0)).subdivide().subdivide()
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    tr = TemplateTracker(v, f, gate=10.0, patch_size=60.0)
+    ring = [{i} for i in range(len(v))]
+    for a, b, c in f:
+        ring[a] |= {b, c}
+        ring[b] |= {a, c}
+        ring[c] |= {a, b}
+    x = np.random.default_rng(2).normal(size=(len(v), 3))
+    slow = np.array([x[sorted(r)].mean(0) for r in ring])
+    np.testing.assert_allclose(tr.smoother @ x, slow, rtol=0, atol=1e-14)
+    assert tr.smoother is tr.smoother and tr.patch_sum.shape == (int(tr.patches.max()) + 1, len(v))
+    prev, before, seen = v.copy(), None, None
+    for k in range(1, 5):
+        moved = (v - v.mean(0)) @ _rotation([0, 1, 1], 2.0 * k).T + v.mean(0) + [3.0 * k, 0.0, 0.0]
+        init = None
+        if before is not None:
+            init = tr.predict(prev, before, constrained=seen)
+            assert np.array_equal(init, predict_motion(prev, before, f, tr.patches, constrained=seen))
+        fit = tr.fit(moved, vertex_normals(moved, f), previous=prev, init=init)
+        before, prev, seen = prev, fit.vertices, fit.constrained
+    with pytest.raises(ValueError, match="smoother"):
+        predict_motion(prev, before, f, tr.patches, smoother=tr.smoother[:-1])
+    with pytest.raises(ValueError, match="patch_sum"):
+        predict_motion(prev, before, f, tr.patches, patch_sum=tr.patch_sum[:, :-1])
 
 
 def _rotz(deg):
