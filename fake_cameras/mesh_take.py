@@ -17,10 +17,11 @@ The studio, the cameras, the plates and the on-disk cache are :mod:`fake_cameras
 :func:`snap_to_mesh` gives the true surface point a point started on (closest point, as triangle
 and barycentric coordinates; carried by the same barycentrics on later frames, exact for one
 connectivity). Hand-written because trimesh's closest-point query needs ``rtree``, which the
-project does not depend on: a k-d tree of triangle centroids bounds the candidates exactly
-(a triangle can hold a point nearer than the nearest vertex only if its centroid lies within that
-distance plus the largest centroid-to-corner radius) and Ericson's closest point on a triangle
-(Real-Time Collision Detection, 2005, section 5.1.5), vectorised, picks among them.
+project does not depend on: a k-d tree of triangle centroids bounds the candidates exactly (a
+triangle can hold a point nearer than the nearest vertex only if its centroid lies within that
+distance plus its centroid-to-corner radius; triangles are queried in classes of similar radius),
+and Ericson's closest point on a triangle (Real-Time Collision Detection, 2005, section 5.1.5),
+vectorised, picks among them.
 """
 
 from __future__ import annotations
@@ -303,10 +304,17 @@ def snap_to_mesh(vertices, faces, points) -> tuple[np.ndarray, np.ndarray, np.nd
     d_vertex = cKDTree(V[used]).query(P)[0]
     tri = V[F]
     centroid = tri.mean(axis=1)
-    radius = float(np.linalg.norm(tri - centroid[:, None], axis=2).max())
-    cand = cKDTree(centroid).query_ball_point(P, d_vertex + radius + 1e-9)
-    owner = np.repeat(np.arange(len(P)), [len(c) for c in cand])
-    t = np.concatenate([np.asarray(c, dtype=np.int64) for c in cand])
+    radius = np.linalg.norm(tri - centroid[:, None], axis=2).max(axis=1)
+    # triangles in classes of similar radius (doubling), each class's bound its own largest radius
+    cls = np.floor(np.log2(np.maximum(radius / max(np.median(radius), 1e-300), 1.0))).astype(np.int64)
+    owners, tris = [], []
+    for c in np.unique(cls):
+        members = np.flatnonzero(cls == c)
+        cand = cKDTree(centroid[members]).query_ball_point(P, d_vertex + radius[members].max() + 1e-9)
+        n = np.fromiter((len(x) for x in cand), dtype=np.int64, count=len(P))
+        owners.append(np.repeat(np.arange(len(P)), n))
+        tris.append(members[np.concatenate([np.asarray(x, dtype=np.int64) for x in cand])] if n.sum() else members[:0])
+    owner, t = np.concatenate(owners), np.concatenate(tris)
     bary = closest_on_triangles(P[owner], tri[t, 0], tri[t, 1], tri[t, 2])
     d = np.linalg.norm(np.einsum("nj,njc->nc", bary, tri[t]) - P[owner], axis=1)
     order = np.lexsort((d, owner))  # per point, nearest first
