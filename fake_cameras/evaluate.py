@@ -157,7 +157,8 @@ def evaluate_spine(
     true_tips : (F, L, 3) float ndarray
         True limb tips per frame, in ``limb_names`` order.
     true_axes : dict limb -> (F, K, 3) float ndarray
-        True limb axes (junction to tip) per frame.
+        True limb axes (junction to tip) per frame; a limb without one (a mesh subject's named
+        tips) is scored on its tip only.
     limb_names : sequence of str
     tip_tolerance : float
         A tip counts as found within this fraction of the creature's size.
@@ -190,7 +191,8 @@ def evaluate_spine(
         raise ValueError(f"poses must give one pose per frame ({F}), got {len(poses)}")
     limbs = list(spine["graph"]["limbs"])
     K = len(limbs)
-    allpts = np.concatenate([np.asarray(true_axes[n], float).reshape(-1, 3) for n in limb_names] + [tips.reshape(-1, 3)])
+    allpts = np.concatenate([np.asarray(true_axes[n], float).reshape(-1, 3) for n in limb_names if n in true_axes]
+                            + [tips.reshape(-1, 3)])
     size = float(np.linalg.norm(allpts.max(0) - allpts.min(0)))
     S = _spine_tips(frames, limbs)
     rows, cols = _take_match(S, tips)
@@ -279,7 +281,7 @@ def _axis_distances(frames, pairs, true_axes) -> list[float]:
     for f, fr in enumerate(frames):
         for limb, true_limb in pairs:
             ax = fr.get("axes", {}).get(limb)
-            if ax:
+            if ax and true_limb in true_axes:
                 d = point_polyline_distance(np.asarray(ax, float), np.asarray(true_axes[true_limb][f], float))
                 out.append(d.mean())
     return out
@@ -292,7 +294,7 @@ def _limb_axis_errors(frames, pairs, true_axes, poses, *, size: float) -> tuple[
     for f, fr in enumerate(frames):
         for limb, true_limb in pairs:
             ax = fr.get("axes", {}).get(limb)
-            if not ax:
+            if not ax or true_limb not in true_axes:
                 continue
             e = limb_axis_distance(np.asarray(ax, float), np.asarray(true_axes[true_limb][f], float), poses[f], step=step)
             if e is None:

@@ -54,8 +54,11 @@ def record_take(
     w, h = take.size
     names = take.calibration.names
     cal = (calibration or take.calibration) if with_calibration else None
+    # the rig's [simulation] says what a fake camera films live; a mesh sequence is no live
+    # subject, so its rig names the empty studio (the take's images hold the mesh)
+    subject = "empty" if take.mesh_vertices is not None else take.subject
     rig = simulated_rig_dict(
-        take.n_cameras, subject=take.subject, frames=take.n_frames, fps=take.fps, size=(w, h),
+        take.n_cameras, subject=subject, frames=take.n_frames, fps=take.fps, size=(w, h),
         depth=take.depth is not None, clock_offsets_ms=0.0, jitter_ms=0.0, name="simulated", volume=take.volume,
     )
     period = int(round(1e9 / take.fps))

@@ -82,6 +82,11 @@ class SimulatedTake:
     volume : stage.rig.Volume
     params : dict
         The parameters the take was made with.
+    mesh_vertices : (F, V, 3) float ndarray or None
+        A mesh subject's surface on every frame (same connectivity every frame, so a vertex is
+        its own ground truth over time); None for the capsule creatures.
+    mesh_faces : (T, 3) int ndarray or None
+        Its triangles.
     """
 
     subject: str
@@ -100,6 +105,8 @@ class SimulatedTake:
     creature: Creature | None
     volume: Volume
     params: dict = field(default_factory=dict)
+    mesh_vertices: np.ndarray | None = None
+    mesh_faces: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -154,8 +161,13 @@ def _render_camera(args) -> dict:
         labels[f] = v.label
         if dep is not None:
             dep[f] = v.depth
-    plate = render_view(cam, None, backdrop=backdrop, rng=np.random.default_rng([seed, ci, 1 << 30]), noise_sigma=plate_noise).image
+    plate = render_plate(cam, backdrop, seed, ci, plate_noise)
     return {"images": images, "masks": masks, "labels": labels, "depth": dep, "plate": plate}
+
+
+def render_plate(cam, backdrop: Backdrop, seed: int, ci: int, noise: float) -> np.ndarray:
+    """(H, W, 3) uint8: the empty studio seen by camera ``ci`` (one noisy shot, like a real plate)."""
+    return render_view(cam, None, backdrop=backdrop, rng=np.random.default_rng([seed, ci, 1 << 30]), noise_sigma=noise).image
 
 
 def _default_workers(n_pixels: int) -> int:
@@ -233,37 +245,12 @@ def simulate_take(
         raise ValueError(f"subject must be one of {', '.join(SUBJECTS)}, got {subject!r}")
     if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or not 1 <= frames <= 10000:
         raise ValueError(f"frames must be an integer within 1..10000, got {frames!r}")
-    try:
-        fps_f = float(fps)
-    except (TypeError, ValueError):
-        raise ValueError(f"fps must be a number, got {fps!r}") from None
-    if not (math.isfinite(fps_f) and 0 < fps_f <= 1000):
-        raise ValueError(f"fps must be within (0, 1000], got {fps!r}")
-    if not (isinstance(noise_sigma, (int, float)) and math.isfinite(noise_sigma) and noise_sigma >= 0):
-        raise ValueError(f"noise_sigma must be a number >= 0, got {noise_sigma!r}")
-    vol = Volume() if volume is None else volume
-    if not isinstance(vol, Volume):
-        raise ValueError(f"volume must be a stage.rig.Volume, got {type(vol).__name__}")
-    if calibration is None:
-        if isinstance(n_cameras, bool) or not isinstance(n_cameras, (int, np.integer)) or not MIN_CAMERAS <= n_cameras <= MAX_CAMERAS:
-            raise ValueError(f"n_cameras must be an integer within {MIN_CAMERAS}..{MAX_CAMERAS}, got {n_cameras!r}")
-        w, h = _check_size(size)
-        calib = make_dome(int(n_cameras), size=(w, h), volume=vol, seed=seed, distortion=distortion)
-    else:
-        if not isinstance(calibration, Calibration):
-            raise ValueError(f"calibration must be a calib.Calibration, got {type(calibration).__name__}")
-        calib = calibration
-    if backdrop is None:
-        # the wall stands well behind every camera
-        reach = max(np.linalg.norm(calib.centers()[:, :2] - np.asarray(vol.center[:2]), axis=1).max(), 1.0)
-        top = max(float(calib.centers()[:, 2].max()), float(vol.bounds[1][2]))
-        backdrop = Backdrop(
-            wall_radius=float(max(3200.0, 1.6 * reach)),
-            wall_height=float(max(3200.0, 1.5 * top)),
-            center=(float(vol.center[0]), float(vol.center[1])),
-        )
-    elif not isinstance(backdrop, Backdrop):
-        raise ValueError(f"backdrop must be a fake_cameras.render.Backdrop, got {type(backdrop).__name__}")
+    fps_f = check_fps(fps)
+    check_noise(noise_sigma)
+    vol, calib, backdrop = studio(
+        volume=volume, n_cameras=n_cameras, size=size, seed=seed, distortion=distortion,
+        calibration=calibration, backdrop=backdrop,
+    )
     creature = None
     if subject != "empty":
         creature = make_creature(
@@ -289,12 +276,10 @@ def simulate_take(
          "poses": _poses_digest(poses)},
         sort_keys=True,
     )
-    key = hashlib.sha1(key_src.encode()).hexdigest()[:20]
-    arrays = _load_cached(key) if cache else None
-    if arrays is None:
-        arrays = _render_all(calib, poses, backdrop, int(seed), bool(depth), float(noise_sigma), workers)
-        if cache:
-            _store_cached(key, arrays, key_src)
+    arrays = cached_render(
+        key_src, lambda: _render_all(calib, poses, backdrop, int(seed), bool(depth), float(noise_sigma), workers),
+        cache=cache,
+    )
     return SimulatedTake(
         subject=subject,
         calibration=calib,
@@ -313,6 +298,81 @@ def simulate_take(
         volume=vol,
         params=params,
     )
+
+
+# -- the studio and the cache, shared by every kind of simulated take ------------------
+
+
+def check_fps(fps) -> float:
+    """``fps`` as a float within (0, 1000] (ValueError naming ``fps`` otherwise)."""
+    try:
+        fps_f = float(fps)
+    except (TypeError, ValueError):
+        raise ValueError(f"fps must be a number, got {fps!r}") from None
+    if not (math.isfinite(fps_f) and 0 < fps_f <= 1000):
+        raise ValueError(f"fps must be within (0, 1000], got {fps!r}")
+    return fps_f
+
+
+def check_noise(noise_sigma) -> float:
+    """``noise_sigma`` as a float >= 0 (ValueError naming it otherwise)."""
+    if isinstance(noise_sigma, bool) or not (isinstance(noise_sigma, (int, float)) and math.isfinite(noise_sigma)
+                                             and noise_sigma >= 0):
+        raise ValueError(f"noise_sigma must be a number >= 0, got {noise_sigma!r}")
+    return float(noise_sigma)
+
+
+def studio(
+    *,
+    volume: Volume | None,
+    n_cameras: int,
+    size,
+    seed: int,
+    distortion: bool,
+    calibration: Calibration | None,
+    backdrop: Backdrop | None,
+) -> tuple[Volume, Calibration, Backdrop]:
+    """The capture volume, the cameras (a dome unless ``calibration`` is given) and the studio.
+
+    Validates the options of :func:`simulate_take` of the same names; the default backdrop's
+    wall stands well behind every camera.
+    """
+    vol = Volume() if volume is None else volume
+    if not isinstance(vol, Volume):
+        raise ValueError(f"volume must be a stage.rig.Volume, got {type(vol).__name__}")
+    if calibration is None:
+        if isinstance(n_cameras, bool) or not isinstance(n_cameras, (int, np.integer)) or not MIN_CAMERAS <= n_cameras <= MAX_CAMERAS:
+            raise ValueError(f"n_cameras must be an integer within {MIN_CAMERAS}..{MAX_CAMERAS}, got {n_cameras!r}")
+        w, h = _check_size(size)
+        calib = make_dome(int(n_cameras), size=(w, h), volume=vol, seed=seed, distortion=distortion)
+    else:
+        if not isinstance(calibration, Calibration):
+            raise ValueError(f"calibration must be a calib.Calibration, got {type(calibration).__name__}")
+        calib = calibration
+    if backdrop is None:
+        reach = max(np.linalg.norm(calib.centers()[:, :2] - np.asarray(vol.center[:2]), axis=1).max(), 1.0)
+        top = max(float(calib.centers()[:, 2].max()), float(vol.bounds[1][2]))
+        backdrop = Backdrop(
+            wall_radius=float(max(3200.0, 1.6 * reach)),
+            wall_height=float(max(3200.0, 1.5 * top)),
+            center=(float(vol.center[0]), float(vol.center[1])),
+        )
+    elif not isinstance(backdrop, Backdrop):
+        raise ValueError(f"backdrop must be a fake_cameras.render.Backdrop, got {type(backdrop).__name__}")
+    return vol, calib, backdrop
+
+
+def cached_render(key_src: str, render, *, cache: bool = True) -> dict:
+    """The arrays of a take (``images``, ``masks``, ``labels``, ``depth``, ``plate``): read from the
+    on-disk cache under the digest of ``key_src`` (every parameter of the take), else ``render()``
+    and stored."""
+    key = hashlib.sha1(key_src.encode()).hexdigest()[:20]
+    arrays = _load_cached(key) if cache else None
+    if arrays is None:
+        arrays = render()
+        if cache:
+            _store_cached(key, arrays, key_src)
+    return arrays
 
 
 def _render_all(calib: Calibration, poses: list, backdrop: Backdrop, seed: int, depth: bool, noise: float, workers) -> dict:
@@ -445,7 +505,8 @@ def write_ground_truth(take: SimulatedTake, path: str | Path) -> Path:
         ``tips`` (F, L, 3), ``axis_<limb>`` (F, K, 3), the capsules per frame
         (``p0``/``p1`` (F, M, 3), ``r0``/``r1``/``limb`` (F, M), padded; ``n_capsules`` (F,)),
         when the poses carry them their rest motions (``rest`` (F, M, 3, 4), padded; ``has_rest`` (F,)),
-        ``times``, ``fps`` and ``params`` (JSON). Read it with :func:`load_ground_truth`.
+        ``times``, ``fps`` and ``params`` (JSON); for a mesh subject ``mesh_vertices`` (F, V, 3) and
+        ``mesh_faces`` (T, 3) (its tips without ``axis_<limb>``). Read it with :func:`load_ground_truth`.
     """
     if not isinstance(take, SimulatedTake):
         raise ValueError(f"take must be a SimulatedTake, got {type(take).__name__}")
@@ -465,7 +526,10 @@ def write_ground_truth(take: SimulatedTake, path: str | Path) -> Path:
         "params": np.asarray(json.dumps(take.params)),
     }
     for name in take.limb_names:
-        data[f"axis_{name}"] = np.stack([a[name] for a in take.axes])
+        if all(name in a for a in take.axes):  # a mesh subject's tips come without limb axes
+            data[f"axis_{name}"] = np.stack([a[name] for a in take.axes])
+    if take.mesh_vertices is not None:
+        data.update(mesh_vertices=np.asarray(take.mesh_vertices), mesh_faces=np.asarray(take.mesh_faces))
     if take.poses and take.poses[0] is not None:
         M = max(p.n_capsules for p in take.poses)
         p0 = np.full((F, M, 3), np.nan)
@@ -500,7 +564,8 @@ def load_ground_truth(path: str | Path) -> dict:
         ``masks (F, C, H, W) bool``, ``labels``, ``calibration`` (Calibration),
         ``limb_names`` (list), ``tips (F, L, 3)``, ``axes`` (dict limb -> (F, K, 3)),
         ``times``, ``fps``, ``subject``, ``params`` and, for creatures, ``poses``
-        (list of Pose; ``Pose.rest`` as written, None from files that do not store it).
+        (list of Pose; ``Pose.rest`` as written, None from files that do not store it), for
+        mesh subjects ``mesh_vertices (F, V, 3)`` and ``mesh_faces (T, 3)``.
     """
     p = ground_truth_path(path)
     if not p.is_file():
@@ -514,12 +579,14 @@ def load_ground_truth(path: str | Path) -> dict:
             "calibration": Calibration.from_dict(json.loads(str(z["calibration"]))),
             "limb_names": names,
             "tips": z["tips"],
-            "axes": {n: z[f"axis_{n}"] for n in names},
+            "axes": {n: z[f"axis_{n}"] for n in names if f"axis_{n}" in z.files},
             "times": z["times"],
             "fps": float(z["fps"]),
             "subject": str(z["subject"]),
             "params": json.loads(str(z["params"])),
         }
+        if "mesh_vertices" in z.files:
+            out["mesh_vertices"], out["mesh_faces"] = z["mesh_vertices"], z["mesh_faces"]
         if "p0" in z.files:
             poses = []
             P0, P1, R0, R1, LB, NC = (z[k] for k in ("p0", "p1", "r0", "r1", "limb", "n_capsules"))

@@ -1,0 +1,190 @@
+"""The whole multi-view chain on real creature motion: the horse gallop filmed by the simulated dome.
+
+``../shared/data/horse_gallop`` (Sumner & Popovic 2004; 8431 vertices, the same connectivity on
+every frame) is turned into the studio by :func:`fake_cameras.mesh_take.stand_in_volume`: y up ->
+z up, scaled so that the longest side of the whole gallop's bounding box is 0.8 of the capture
+volume's smallest side (600 mm nose to tail in the default 750 mm volume: a foal- or dog-sized
+animal, 400 mm high), centred, hooves on the floor. Its 48 frames are one gait cycle of 24 frames
+repeated (frames k and k + 24 agree to 1e-4 of the mesh's units), so the test uses the first 24:
+the whole cycle once. Rendered by :func:`fake_cameras.mesh_take.simulate_mesh_take` with 8 dome
+cameras at 640x480 (texture painted on the skin), recorded by ``record_take`` and processed by
+:func:`pipeline.process.process_take` (key, surface, spine), then its ``track`` step.
+
+True tips: the extremities of the reference mesh (``reference_horse-gallop.obj``, turned into
+the studio: x along the body, head at +x), i.e. the Brostow et al. 2004 protrusions that
+:func:`pipeline.extremities.find_extremities` finds on the *true* mesh (exactly six there), named
+by where they lie: head = the most forward, tail = the most backward, the hooves by their quadrant
+(in front of / behind the centroid x left / right of it). Each is followed by its vertex on every
+frame. Size = diagonal of the bounding box of the true tips over the take (the capsule creatures'
+measure without limb axes).
+
+Tracking: every template vertex is snapped onto the true horse at the template's frame (closest
+point, barycentric coordinates on its triangle) and carried by the same barycentrics on every frame
+(exact: one connectivity). Tolerances as the capsule creatures': mean <= 1 voxel, 95th percentile
+<= 2 voxels over all vertices and frames, volume within 5 % of the template's.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+HORSE = DATA / "horse_gallop"
+N_CAMERAS = 8
+N_FRAMES = 24  # one gait cycle: the sequence's 48 frames are this cycle twice
+
+_RUN: dict = {}
+
+
+def tip_vertices(reference: np.ndarray, faces: np.ndarray) -> dict[str, int]:
+    """The six limb tips of the reference mesh in studio axes (x forward, z up), by the module's rule."""
+    from pipeline.extremities import find_extremities
+
+    ext = find_extremities(reference, faces).vertices
+    assert len(ext) == 6, f"the reference horse has {len(ext)} extremities, not 6"
+    p = reference[ext]
+    order = np.argsort(p[:, 0])
+    tips = {"head": int(ext[order[-1]]), "tail": int(ext[order[0]])}
+    c = reference.mean(axis=0)
+    for i in order[1:-1]:
+        name = f"{'front' if p[i, 0] > c[0] else 'hind'}_{'left' if p[i, 1] > c[1] else 'right'}_hoof"
+        assert name not in tips, f"two extremities in one quadrant: {name}"
+        tips[name] = int(ext[i])
+    return tips
+
+
+def horse_run(tmp_path_factory) -> dict:
+    """Render, record and process the horse take once per test session."""
+    if not HORSE.is_dir():
+        pytest.skip(f"real data not found: {HORSE} (../shared/data is absent)")
+    if not _RUN:
+        from fake_cameras.mesh_take import simulate_mesh_take, stand_in_volume
+        from fake_cameras.record import record_take
+        from pipeline.meshio import load_mesh
+        from pipeline.process import process_take
+
+        seq = [load_mesh(HORSE / f"{k:04d}.obj", largest=False) for k in range(1, N_FRAMES + 1)]
+        faces = seq[0][1]
+        assert all(np.array_equal(f, faces) for _, f in seq)
+        ref, ref_faces = load_mesh(HORSE / "reference_horse-gallop.obj", largest=False)
+        V, scale = stand_in_volume(np.stack([v for v, _ in seq]), up_axis=1, fill=0.8)
+        tips = tip_vertices(ref[:, [2, 0, 1]], ref_faces)  # stand_in_volume's rotation for y up
+        sim = simulate_mesh_take(V, faces, name="horse_gallop", n_cameras=N_CAMERAS, size=(640, 480), seed=3,
+                                 tip_vertices=tips)
+        root = tmp_path_factory.mktemp("horse")
+        path = record_take(sim, root / "horse.h5")
+        res = process_take(path, root / "results", executor=None)
+        spine = json.loads((root / "results" / "spine.json").read_text())
+        _RUN.update(sim=sim, res=res, spine=spine, scale=scale, path=path)
+    return _RUN
+
+
+def _spine_accuracy(r) -> dict:
+    from fake_cameras.evaluate import evaluate_spine
+
+    sim = r["sim"]
+    return evaluate_spine(r["spine"], sim.tip_array(), {}, list(sim.limb_names))
+
+
+@pytest.mark.slow
+def test_horse_spine_finds_six_limbs(tmp_path_factory):
+    r = horse_run(tmp_path_factory)
+    acc = _spine_accuracy(r)
+    assert r["res"].frames == N_FRAMES and r["res"].empty_frames == []
+    assert r["spine"]["frame_count"] == N_FRAMES == len(r["spine"]["frames"])
+    # K equals the six limbs a human counts, each true tip has its own spine limb, identities hold
+    assert acc["K"] == 6 == len(r["sim"].limb_names), acc
+    assert sorted(acc["match"].values()) == sorted(r["sim"].limb_names)
+    assert acc["identity_consistent"] == 1.0 and acc["seen"] == 1.0
+
+
+_HEAD_CAUSE = (
+    "not met: the head's spine tip lies within 3 % of the size (20.7 mm) of the true tip (the nose) in 8 of 24 "
+    "frames (0.33); in the other 16 it is at an ear tip, 94..102 mm away (elsewhere at most 5.7 mm). The head "
+    "has three sub-protrusions (nose, two ears) whose average geodesic distances differ by 3..4.5 % on the true "
+    "mesh (ear / nose AGD 0.955..0.970), far below the protrusion threshold (12.8 % of the nose's AGD), so each "
+    "frame's surface keeps one of them as the head's tip and which one follows the hull's small AGD errors; "
+    "measured on the true mesh the nose wins on every frame (see docs/reconstruction.md)")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("tip", [
+    pytest.param("head", marks=pytest.mark.xfail(strict=True, reason=_HEAD_CAUSE)),
+    "tail",  # measured: median 5.4 mm, max 19.5 mm
+    "front_left_hoof",  # 14.2 / 20.4 mm
+    "front_right_hoof",  # 6.9 / 10.9 mm
+    "hind_left_hoof",  # 8.4 / 16.3 mm
+    "hind_right_hoof",  # 7.6 / 15.9 mm (every hoof within 3 % of the size, 688.6 mm, in 100 % of frames)
+])
+def test_horse_spine_tip_within_3_percent(tip, tmp_path_factory):
+    r = horse_run(tmp_path_factory)
+    sim, spine = r["sim"], r["spine"]
+    acc = _spine_accuracy(r)
+    limb = {v: k for k, v in acc["match"].items()}[tip]
+    S = np.array([fr["tips"][limb] if fr["tips"][limb] is not None else [np.nan] * 3 for fr in spine["frames"]], float)
+    err = np.linalg.norm(S - sim.tip_array()[:, list(sim.limb_names).index(tip)], axis=1) / acc["size"]
+    # each tip within 3 % of size of its true tip in >= 95 % of frames (unseen counts as a miss)
+    assert np.mean(np.nan_to_num(err, nan=np.inf) <= 0.03) >= 0.95, (tip, err)
+
+
+def horse_tracking(tmp_path_factory) -> dict:
+    """The track step on the horse's results, scored vertex by vertex (once per session)."""
+    r = horse_run(tmp_path_factory)
+    if "track" not in r:
+        from fake_cameras.mesh_take import snap_to_mesh
+        from pipeline.meshio import load_mesh, mesh_paths
+        from pipeline.process import process_take
+        from pipeline.tracking import mesh_volume
+
+        results = r["res"].out
+        process_take(r["path"], results, steps=("track",), executor=None)
+        rep = json.loads((results / "tracked" / "track.json").read_text())
+        voxel = float(json.loads((results / "grid.json").read_text())["voxel"])
+        T0, F0 = load_mesh(rep["template"], largest=True)
+        sim = r["sim"]
+        TV, TF = sim.mesh_vertices, sim.mesh_faces
+        ref = int(rep["reference_frame"])
+        tri, bary, _ = snap_to_mesh(TV[ref], TF, T0)
+        errs, vols = [], []
+        for k in range(N_FRAMES):
+            v, f = load_mesh(results / "tracked" / f"{k:06d}.ply", largest=False)
+            assert v.shape == T0.shape and np.array_equal(f, F0)
+            truth = np.einsum("nj,njc->nc", bary, TV[k][TF[tri]])
+            errs.append(np.linalg.norm(v - truth, axis=1) / voxel)
+            vols.append(mesh_volume(v, f) / mesh_volume(T0, F0))
+        # the per-frame surfaces' own distance to the true horse (what the template is pulled onto)
+        hull = [snap_to_mesh(TV[k], TF, load_mesh(p, largest=True)[0])[2] / voxel  # every third frame
+                for k, p in enumerate(mesh_paths(results / "meshes")) if k % 3 == 0]
+        r["track"] = dict(err=np.concatenate(errs), vols=np.array(vols), rep=rep, voxel=voxel,
+                          surface=np.concatenate(hull), per_frame=[float(e.mean()) for e in errs])
+    return r["track"]
+
+
+_TRACK_CAUSE = (
+    "not met: mean 4.20 voxels, 95th percentile 21.6, volume 0.835..1.015 of the template's (voxel 6.20 mm). "
+    "At the template's frame (11) the fit is 0.70 / 1.70 voxels; the error grows frame by frame away from it "
+    "(7.7 mean at frame 23) as the legs are lost: the gallop moves the template's points by 2.01 voxels a frame "
+    "on average (95th percentile 7.3, max 25; the capsule quadruped's 0.57), 15 % of the steps are longer than "
+    "the 23.6 mm correspondence gate, and the constant-velocity start still leaves 9 % of them beyond it. "
+    "Started from the spine's skinned pose (spine_init) the volume holds (0.981..1.024) but the mean is 3.13 and "
+    "the 95th percentile 8.50 voxels (the spine's head tip jumps between nose and ears). The surfaces "
+    "themselves are 0.78 voxels from the true horse on average, 2.06 at the 95th percentile (every third "
+    "frame): the 95th-percentile tolerance is at their own limit even for a perfect tracker")
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=_TRACK_CAUSE)
+def test_horse_tracking_follows_every_surface_point(tmp_path_factory):
+    t = horse_tracking(tmp_path_factory)
+    err, vols, rep = t["err"], t["vols"], t["rep"]
+    print(f"horse tracking: mean {err.mean():.2f} voxels, p95 {np.percentile(err, 95):.2f}, "
+          f"volume {vols.min():.3f}..{vols.max():.3f}; surfaces' own distance to the horse "
+          f"mean {t['surface'].mean():.2f}, p95 {np.percentile(t['surface'], 95):.2f} (voxel {t['voxel']:.2f} mm)")
+    assert rep["mode"] == "multi-view" and rep["skipped"] == []
+    assert np.all(np.abs(vols - 1) <= 0.05)
+    assert err.mean() <= 1.0, err.mean()
+    assert np.percentile(err, 95) <= 2.0, np.percentile(err, 95)
