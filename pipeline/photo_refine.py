@@ -204,6 +204,9 @@ def refine_surface(
     if inward + outward <= 0:
         raise ValueError("inward + outward must be > 0 (voxels): nothing to search")
     step = _number("step", step)
+    if (inward + outward) / step < 2:
+        raise ValueError(f"step must be at most half the search range (inward + outward = {inward + outward:g} "
+                         f"voxels) for a peak to be found, got {step!r}")
     radius = _number("patch_radius", patch_radius) * vox
     k = _integer("patch_vertices", patch_vertices, 3)
     sigma = _noise_sigma(grey) if noise_sigma is None else _number("noise_sigma", noise_sigma, strict=False)
@@ -354,7 +357,7 @@ def _jacobians(cam: Camera, v: np.ndarray, h: float) -> tuple[np.ndarray, np.nda
     return pix, np.transpose(plus - minus, (0, 2, 1)) / (2 * h)
 
 
-def _scores(v, normals, vis, depths, images, cams, radius, samples, sigma, chunk: int = 1000) -> np.ndarray:
+def _scores(v, normals, vis, depths, images, cams, radius, samples, sigma) -> np.ndarray:
     """(V, D) mean pairwise NCC of each vertex's patch at every candidate depth.
 
     The patch is the vertex's neighbourhood on the mesh moved with it along the normals
@@ -368,6 +371,7 @@ def _scores(v, normals, vis, depths, images, cams, radius, samples, sigma, chunk
     proj = [_jacobians(cam, v, 0.25 * radius) for cam in cams]
     n_d = len(depths)
     out = np.zeros((len(v), n_d), np.float32)
+    chunk = max(1, 30000 // n_d)  # OpenCV's remap takes maps of fewer than 32767 rows
     for s in range(0, len(v), chunk):
         sl = slice(s, min(s + chunk, len(v)))
         n = sl.stop - sl.start

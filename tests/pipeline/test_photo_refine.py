@@ -44,13 +44,15 @@ def test_refined_sphere_moves_to_its_true_radius(sphere_views):
     assert np.percentile(np.abs(err), 95) <= 0.6, np.percentile(np.abs(err), 95)
 
 
-def test_sphere_on_its_surface_stays_there(sphere_views):
+# measured: mean |error| 0.04 voxels (95th percentile 0.12) with the default step; 0.17 with the
+# fine one (101 candidates: more than one remap call takes per chunk of vertices)
+@pytest.mark.parametrize(("step", "tol"), [(0.25, 0.1), (0.05, 0.25)])
+def test_sphere_on_its_surface_stays_there(sphere_views, step, tol):
     cams, images, masks = sphere_views
     v0, f = _sphere(RADIUS)
-    v = refine_surface(v0, f, images, masks, cams, voxel=VOXEL)
+    v = refine_surface(v0, f, images, masks, cams, voxel=VOXEL, step=step)
     err = (np.linalg.norm(v - CENTRE, axis=1) - RADIUS) / VOXEL
-    # measured: mean |error| 0.04 voxels, 95th percentile 0.12
-    assert np.abs(err).mean() <= 0.1, np.abs(err).mean()
+    assert np.abs(err).mean() <= tol, np.abs(err).mean()
 
 
 def _reference_score(v, normals, vis, depths, grey, cams, radius, k, sigma, i):
@@ -152,6 +154,7 @@ def test_invalid_input(sphere_views):
         ((v, f, images, masks, cams), dict(voxel=VOXEL, inward=-1), "inward"),
         ((v, f, images, masks, cams), dict(voxel=VOXEL, inward=0, outward=0), "inward [+] outward"),
         ((v, f, images, masks, cams), dict(voxel=VOXEL, step=0), "step"),
+        ((v, f, images, masks, cams), dict(voxel=VOXEL, inward=0.25, outward=0, step=0.25), "step"),
         ((v, f, images, masks, cams), dict(voxel=VOXEL, patch_radius="x"), "patch_radius"),
         ((v, f, images, masks, cams), dict(voxel=VOXEL, patch_vertices=2), "patch_vertices"),
         ((v, f, images, masks, cams), dict(voxel=VOXEL, noise_sigma=-1), "noise_sigma"),
