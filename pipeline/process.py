@@ -115,6 +115,10 @@ class ProcessParams(BaseModel):
         ``auto``: when every camera of the take delivers depth (RGB-D), fuse the depth
         frames into a truncated signed distance volume intersected with the visual hull
         and take its zero level set; ``off``: the visual hull alone.
+    photo_refine : bool
+        Move every hull surface's vertices along their normals to where the cameras'
+        colours agree (:func:`pipeline.photo_refine.refine_surface`): the hull's excess in
+        concavities that two cameras see is carved. Surfaces from fused depth are not refined.
     spine : dict
         Options of :class:`pipeline.spine.SpineParams`.
     """
@@ -132,6 +136,7 @@ class ProcessParams(BaseModel):
     face_budget: Annotated[int, Field(ge=100)] | None = 16000
     chunk: Annotated[int, Field(ge=1)] = 4
     depth: Literal["auto", "off"] = "auto"
+    photo_refine: bool = False
     spine: dict = Field(default_factory=dict)
 
     @field_validator("volume")
@@ -384,19 +389,42 @@ def _unpack_masks(packed: list, widths: Sequence[int]) -> list:
     return [None if p is None else np.unpackbits(p, axis=-1, count=w).view(bool) for p, w in zip(packed, widths)]
 
 
-def _surface_of(carver, masks, p: ProcessParams, depth=None):
+def _surface_of(carver, masks, p: ProcessParams, depth=None, images=None):
     """The frame set's surface and its source: the hull's, or with ``depth`` (a fuser and the
-    set's depth images) the depth fused inside the hull."""
+    set's depth images) the depth fused inside the hull; with ``images`` (the set's colour
+    images, None for a missing camera) the hull's surface refined where the colours agree."""
     from pipeline.surface import surface_from_occupancy
 
     hull = _carve(carver, masks, p)
     if depth is not None:
-        fuser, images = depth
-        fused = fuser.fuse(images, hull=hull.occupancy)
+        fuser, depth_images = depth
+        fused = fuser.fuse(depth_images, hull=hull.occupancy)
         return fused.surface(taubin_iterations=p.smooth_iterations, face_budget=p.face_budget), "depth+hull"
     mesh = surface_from_occupancy(hull.occupancy, carver.grid, taubin_iterations=p.smooth_iterations,
                                   face_budget=p.face_budget)
-    return mesh, "hull"
+    if images is None:
+        return mesh, "hull"
+    return _photo_refined(mesh, carver, masks, images), "hull+photo"
+
+
+def _photo_refined(mesh, carver, masks, images):
+    """The hull's surface refined by :func:`pipeline.photo_refine.refine_surface` over the
+    cameras with both a mask and an image in this set (unchanged with fewer than two)."""
+    from pipeline.photo_refine import refine_surface
+
+    use = [i for i, (m, im) in enumerate(zip(masks, images)) if m is not None and im is not None]
+    if len(use) < 2:
+        return mesh
+    cams = list(carver.calibration)
+    mesh.vertices = refine_surface(mesh.vertices, mesh.faces, [images[i] for i in use], [masks[i] for i in use],
+                                   [cams[i] for i in use], voxel=carver.grid.voxel)
+    return mesh
+
+
+def _frame_images(reader, cameras: Sequence[str], k: int) -> list:
+    """Colour images of frame set ``k``, one (H, W, 3) uint8 BGR per camera (None: missing)."""
+    rows = reader.set_rows(k)
+    return [reader.frame(cam, rows[cam]) if rows[cam] >= 0 else None for cam in cameras]
 
 
 def surface_task(
@@ -416,7 +444,8 @@ def surface_task(
     ``masks`` (optional): the sets' masks as keyed in this run, ``{"widths": [W per camera],
     "sets": {k: [bit-packed (H, W/8) rows or None per camera]}}``; without it they are read
     from the take. ``use_depth``: fuse depth (default: when ``params.depth`` is ``auto`` and
-    every camera has depth); with masks given and no depth, the take is not opened at all.
+    every camera has depth); with masks given, no depth and no ``params.photo_refine``, the
+    take is not opened at all.
     Top level (picklable) so it runs in a process pool or on a Dask worker.
     """
     from contextlib import nullcontext
@@ -436,7 +465,8 @@ def surface_task(
     results = []
     writer = _Writer()
     try:
-        with TakeReader(take) if masks is None or use_depth is not False else nullcontext() as reader:
+        needs_take = masks is None or use_depth is not False or p.photo_refine
+        with TakeReader(take) if needs_take else nullcontext() as reader:
             if use_depth is None:
                 use_depth = _uses_depth(p, all_depth=_all_depth(reader, cameras))
             validity = _mask_validity(reader, cameras) if masks is None else None
@@ -453,7 +483,8 @@ def surface_task(
                     if len(skipped) == len(cameras):
                         raise EmptyHullError("no camera has a valid mask in this frame set")
                     depth = (_fuser(calib_dict, grid_dict), _frame_depths(reader, cameras, k)) if use_depth else None
-                    mesh, info["source"] = _surface_of(carver, ms, p, depth)
+                    images = _frame_images(reader, cameras, k) if p.photo_refine and not use_depth else None
+                    mesh, info["source"] = _surface_of(carver, ms, p, depth, images)
                     quality = surface_quality(mesh).to_dict()
                     writer.write(store.mesh_path(k), ply_bytes(mesh.vertices, mesh.faces), sync=True)
                     info.update(status="ok", quality=quality)

@@ -36,7 +36,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline", "pipeline.volume", "pipeline.geodesic", "pipeline.meshio",
     )),
     2: ("steps", (
-        "pipeline.hull", "pipeline.surface", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
+        "pipeline.hull", "pipeline.surface", "pipeline.photo_refine", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
         "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
         "pipeline.rig_model", "pipeline.gltf_export", "pipeline.results",
         "pipeline.tracking", "pipeline.rgbd_preprocess", "pipeline.colour_tracks", "pipeline.motion_segmentation",

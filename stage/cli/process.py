@@ -59,6 +59,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the plane the subject stands on: only a*x + b*y + c*z + d >= 0 is kept (world units); "
         "removes the cone under the base that cameras all looking down cannot carve",
     )
+    p.add_argument(
+        "--photo-refine",
+        action="store_true",
+        help="move each hull surface's vertices to where the cameras' colours agree (carves concavities two "
+        "cameras see; about 1 s a frame more; see docs/reconstruction.md)",
+    )
     p.add_argument("--workers", type=int, default=2, help="worker processes for per-frame work (default 2; 0 = in process)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of a mesh sequence (--meshes)")
     p.add_argument("--units", default="mm", help="units of a mesh sequence (--meshes), written as given")
@@ -94,6 +100,8 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
         kw["volume"] = tuple(args.volume)
     if args.margin is not None:
         kw["silhouette_margin"] = args.margin
+    if args.photo_refine:
+        kw["photo_refine"] = True
     if args.support_plane is not None:
         from pipeline.volume import check_plane
 
