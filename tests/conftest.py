@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = ROOT.parent / "shared" / "data"
+from stage.benchmarks._data import SHARED_DATA
+
+__all__ = ["SHARED_DATA", "shared_data", "shared_dataset"]
 
 
 @pytest.fixture(scope="session")

@@ -173,6 +173,20 @@ def test_imports_run_one_way():
     assert not problems, "\n".join(problems)
 
 
+def test_no_installed_module_imports_the_tests():
+    """``tests`` is not packaged (pyproject's packages are the five): an import of it from a
+    packaged module works in the checkout and dies in an installed ``stage``."""
+    found = [str(e) for pkg in PACKAGES for path in sorted((ROOT / pkg).rglob("*.py"))
+             for e in imports_of(path, ROOT, ("tests",))]
+    assert not found, "\n".join(found)
+
+
+def test_the_tests_check_catches_an_import_of_the_tests(tmp_path):
+    root = _tree(tmp_path, {"low/__init__.py": "", "low/a.py": "def f():\n    from tests.conftest import X\n"})
+    assert [e.imported for e in imports_of(root / "low" / "a.py", root, ("tests",))] == ["tests.conftest",
+                                                                                       "tests.conftest.X"]
+
+
 def test_every_floor_entry_is_a_module():
     modules, _ = _project_graph()
     stale = [p for _, patterns in FLOORS.values() for p in patterns if not any(_matches(m, p) for m in modules)]

@@ -16,6 +16,8 @@ import time
 
 import numpy as np
 
+from stage.benchmarks._data import SHARED_DATA
+
 NAME = "spines"
 HELP = "seconds per frame of the spine pipeline on 10k/50k/200k-face meshes and correspondence time for 495 frames"
 
@@ -94,25 +96,21 @@ def run(args: argparse.Namespace) -> int:
     for label, voxel in (("~10k", size / 85), ("~50k", size / 190), ("~200k", size / 380)):
         v, f = _mesh_pose(pose, voxel)
         cases.append((f"quadruped {label}", v, f, truth, size))
-    try:
-        import trimesh
+    import trimesh
 
-        from pipeline.meshio import load_mesh
-        from tests.conftest import SHARED_DATA
+    from pipeline.meshio import load_mesh
 
-        p = SHARED_DATA / "horse_gallop" / "0001.obj"
-        if p.is_file():
-            v, f = load_mesh(p)
-            hs = float(np.sqrt(trimesh.Trimesh(v, f, process=False).area))
-            cases.append(("horse 17k", v, f, None, hs))
-            v4, f4 = trimesh.remesh.subdivide(v, f)
-            cases.append(("horse x4", v4, f4, None, hs))
-            v16, f16 = trimesh.remesh.subdivide(v4, f4)
-            cases.append(("horse x16", v16, f16, None, hs))
-        else:
-            print(f"(horse meshes not found at {p}: skipped)")
-    except ImportError:
-        pass
+    p = SHARED_DATA / "horse_gallop" / "0001.obj"
+    if p.is_file():
+        v, f = load_mesh(p)
+        hs = float(np.sqrt(trimesh.Trimesh(v, f, process=False).area))
+        cases.append(("horse 17k", v, f, None, hs))
+        v4, f4 = trimesh.remesh.subdivide(v, f)
+        cases.append(("horse x4", v4, f4, None, hs))
+        v16, f16 = trimesh.remesh.subdivide(v4, f4)
+        cases.append(("horse x16", v16, f16, None, hs))
+    else:
+        print(f"(horse meshes not found at {p}: skipped)")
 
     skeletor_ok = not args.no_skeletor
     if skeletor_ok:

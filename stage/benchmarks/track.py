@@ -19,6 +19,8 @@ import time
 
 import numpy as np
 
+from stage.benchmarks._data import SHARED_DATA
+
 NAME = "track"
 HELP = "seconds per frame of template tracking for 6k / 25k-vertex templates (multi-view and single RGB-D)"
 
@@ -129,6 +131,11 @@ def real_pipe_accuracy() -> None:
     (:func:`fake_cameras.rgbd.simulate_sensor_rgbd_take`) and tracked like the simulated objects;
     every vertex against its given position, the volume, what `stage rig` finds. Skipped (one
     line) when the data are absent."""
+    path = SHARED_DATA / "tzionas_pipe" / "pipe.npz"
+    if not path.is_file():
+        print(f"real pipe (Tzionas): skipped, {path} not found")
+        return
+
     import tempfile
     from pathlib import Path
 
@@ -136,12 +143,6 @@ def real_pipe_accuracy() -> None:
     from pipeline.meshio import load_mesh
     from pipeline.track import track_rgbd_take
     from pipeline.tracking import mesh_volume
-    from tests.conftest import SHARED_DATA
-
-    path = SHARED_DATA / "tzionas_pipe" / "pipe.npz"
-    if not path.is_file():
-        print(f"real pipe (Tzionas): skipped, {path} not found")
-        return
     d = np.load(path)
     J = d["joints"].astype(np.float64)
     length = float(np.linalg.norm(np.diff(J[0], axis=0), axis=1).sum())
