@@ -512,6 +512,8 @@ def write_rig(rig: ArticulatedRig, out_dir, *, progress=None) -> dict:
 
 #: The files :func:`write_rig` writes in a rig directory, besides ``posed/NNNNNN.ply``.
 RIG_FILES = ("rig.json", "segments.npy", "rig.bvh", "rig.glb")
+#: The names of the frames :func:`write_rig` writes in ``posed/`` (``NNNNNN.ply``), and nothing else.
+POSED_GLOB = "[0-9]" * 6 + ".ply"
 
 
 def remove_rig(out_dir) -> bool:
@@ -527,7 +529,8 @@ def remove_rig(out_dir) -> bool:
         Whether there was a rig file to remove.
     """
     out = Path(out_dir)
-    files = [out / name for name in RIG_FILES if (out / name).is_file()] + sorted((out / "posed").glob("[0-9]*.ply"))
+    posed = sorted((out / "posed").glob(POSED_GLOB))  # exactly six digits: a user's 1_fixed.ply stays
+    files = [out / name for name in RIG_FILES if (out / name).is_file()] + posed
     for f in files:
         f.unlink(missing_ok=True)
     for d in (out / "posed", out):

@@ -320,8 +320,8 @@ def test_tracking_again_with_other_settings_starts_over_and_same_settings_keep_f
 
 
 def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_frames(tmp_path, caplog):
-    """A start-over removes the rig of the old frames (rig.json, GLB, BVH, segments, posed/) in the same
-    warning, which names a report still showing it; other files in rig/ stay. The `track` step of
+    """A start-over removes the rig of the old frames (rig.json, GLB, BVH, segments, posed/NNNNNN.ply) in
+    the same warning, which names a report still showing it; other files in rig/ stay (posed/1_user.ply too). The `track` step of
     `stage process` does the same and puts the warning in the job report."""
     from types import SimpleNamespace
 
@@ -336,6 +336,7 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     (tmp_path / "report.json").write_text("{}")
     assert '<section id="rig">' in write_report(tmp_path).read_text()
     (tmp_path / "rig" / "notes.txt").write_text("the user's")
+    (tmp_path / "rig" / "posed" / "1_user.ply").write_text("the user's, a name starting with a digit")
     made = {"rig.json", "rig.glb", "rig.bvh", "segments.npy", "posed"}
     assert made <= {p.name for p in (tmp_path / "rig").iterdir()}
     caplog.clear()
@@ -346,7 +347,8 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     assert f"removed the rig built on them ({tmp_path / 'rig'})" in lines[0]
     assert f"{tmp_path / 'report.html'} still shows it until `stage report` runs again" in lines[0]
     assert rep["started_over"] == lines[0]
-    assert sorted(p.name for p in (tmp_path / "rig").iterdir()) == ["notes.txt"]
+    assert sorted(p.name for p in (tmp_path / "rig").iterdir()) == ["notes.txt", "posed"]
+    assert [p.name for p in (tmp_path / "rig" / "posed").iterdir()] == ["1_user.ply"]
     assert remove_rig(tmp_path / "rig") is False and remove_rig(tmp_path / "no_rig") is False  # nothing left
     # the same settings again: nothing removed, nothing said
     rig_results(tmp_path)
@@ -356,6 +358,7 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     # `stage process ... steps track` (its defaults: predict on, the first frame's surface) starts over too
     ctx = SimpleNamespace(out=tmp_path, progress=None, executor=None, worker_cpu={}, timings={}, warnings=[])
     (tmp_path / "rig" / "notes.txt").unlink()
+    (tmp_path / "rig" / "posed" / "1_user.ply").unlink()
     _step_track(ctx)
     assert len(ctx.warnings) == 1 and "predict False -> True" in ctx.warnings[0]
     assert "removed the rig built on them" in ctx.warnings[0] and not (tmp_path / "rig").exists()
