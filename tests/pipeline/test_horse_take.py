@@ -27,12 +27,13 @@ point, barycentric coordinates on its triangle) and carried by the same barycent
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+from tests.conftest import SHARED_DATA
+
+DATA = SHARED_DATA
 HORSE = DATA / "horse_gallop"
 N_CAMERAS = 8
 N_FRAMES = 24  # one gait cycle: the sequence's 48 frames are this cycle twice
