@@ -3,9 +3,10 @@
 The counterpart of :func:`fake_cameras.render.render_view` for a subject given as a triangle
 mesh (a tracked or animated mesh sequence, a scan) instead of capsules: the same pixel rays
 (:func:`calib.camera.cached_pixel_grid_rays`, so the camera's lens distortion is rendered
-exactly), the same studio background, vignetting, Lambert shading by the key and fill lights,
-procedural texture, green spill, optical blur and sensor noise, and the same :class:`View`
-(image, mask, depth, label).
+exactly), the same studio background and the same image formation
+(:func:`fake_cameras.render.compose_view`: vignetting, Lambert shading by the key and fill lights,
+procedural texture, green spill, optical blur, sensor noise) into the same :class:`View` (image,
+mask, depth, label).
 
 Why ray casting with Embree (``embreex``, through which ``trimesh`` also casts rays) rather than
 a z-buffer rasteriser: a rasteriser draws straight-edged triangles in the undistorted image, so a
@@ -21,7 +22,8 @@ The texture is read at each hit's *texture point*: the barycentric blend of its 
 ``texture_points`` (per vertex). Pass the mesh's rest (first-frame) vertices and the texture is
 painted on the surface and moves with it, as :class:`fake_cameras.render.Backdrop` ``painted``
 does for the capsules; without them it is a function of the world position. Shading uses the
-vertex normals (area-weighted, interpolated over the triangle), so a fine mesh looks smooth.
+vertex normals (area-weighted, :func:`pipeline.tracking.vertex_normals`, interpolated over the
+triangle), so a fine mesh looks smooth.
 The mesh casts a hard shadow on the floor: a ray from every floor pixel near the mesh's
 shadow towards the key light, tested against the same scene (the optical blur softens its edge).
 """
@@ -31,28 +33,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 
 from calib.calibration import Calibration
 from calib.camera import Camera
-from fake_cameras.render import Backdrop, View, _scene, _spill, _texture, sensor_noise
+from fake_cameras.render import Backdrop, Hits, View, _scene, _texture, compose_view
+from pipeline.tracking import vertex_normals
 
-__all__ = ["MeshScene", "render_mesh", "render_mesh_views", "vertex_normals"]
+__all__ = ["MeshScene", "render_mesh", "render_mesh_views"]
 
 BODY = -1  # label of mesh pixels without a face label
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (V, 3) of a triangle mesh (zero for unused vertices)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = twice the area
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(ln > 0, ln, 1.0)
 
 
 class MeshScene:
@@ -221,35 +211,17 @@ def _candidate_pixels(sc, mesh: MeshScene) -> np.ndarray:
 
 def _render_camera(cam: Camera, mesh: MeshScene, bd: Backdrop, rng, depth: bool, sigma: float) -> View:
     sc = _scene(cam, bd)
-    h, w = sc.h, sc.w
     img = sc.background.copy()
-    mask = np.zeros((h, w), dtype=bool)
-    label = np.full((h, w), -2, dtype=np.int16)
-    depth_img = sc.bg_depth.copy() if depth else None
     _shadow(sc, mesh, bd, img)
     ray = _candidate_pixels(sc, mesh)
     t, face, bary = mesh.cast(sc.origin, sc.dirs[ray])
     hit = face >= 0
     ray, t, face, bary = ray[hit], t[hit], face[hit], bary[hit]
-    if ray.size:
-        n = mesh.interpolate(mesh.normals, face, bary)
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        shade = bd.ambient + bd.key_intensity * np.maximum(n @ sc.key, 0.0) + bd.fill_intensity * np.maximum(n @ sc.fill, 0.0)
-        tex = _texture(mesh.interpolate(mesh.texture_points, face, bary), bd)
-        rows, cols = np.divmod(ray, w)
-        col = np.asarray(bd.creature_color)[None, :] * (shade * tex * sc.vignette[rows, cols])[:, None]
-        img[rows, cols] = col.astype(np.float32)
-        mask[rows, cols] = True
-        label[rows, cols] = mesh.face_label[face]
-        if depth_img is not None:
-            depth_img[rows, cols] = (t * sc.dz[ray]).astype(np.float32)
-        if bd.spill > 0:
-            _spill(img, mask, ray, w, h, bd)
-    if bd.blur_sigma > 0:
-        img = cv2.GaussianBlur(img, (0, 0), bd.blur_sigma)
-    image = sensor_noise(img, sigma, rng)
-    dimg = None if depth_img is None else np.clip(np.round(depth_img), 0, 65535).astype(np.uint16)
-    return View(image=image, mask=mask, depth=dimg, label=label)
+    n = mesh.interpolate(mesh.normals, face, bary)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    tex = _texture(mesh.interpolate(mesh.texture_points, face, bary), bd)
+    hits = Hits(ray=ray, t=t, normals=n, texture=tex, label=mesh.face_label[face])
+    return compose_view(sc, bd, img, hits, depth=depth, sigma=sigma, rng=rng)
 
 
 def _shadow(sc, mesh: MeshScene, bd: Backdrop, img: np.ndarray) -> None:

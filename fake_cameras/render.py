@@ -425,33 +425,64 @@ def render_view(
     if rng is None:
         rng = np.random.default_rng()
     sc = _scene(camera, bd)
-    h, w = sc.h, sc.w
     img = sc.background.copy()
-    mask = np.zeros((h, w), dtype=bool)
-    label = np.full((h, w), BACKGROUND, dtype=np.int16)
-    depth_img = sc.bg_depth.copy() if depth else None
-
+    hits = None
     if pose is not None:
         _shadow(sc, pose, bd, img)
         ray, cap, th, n = _cast_tiles(sc, pose)
-        if ray.size:
-            pts = sc.origin + th[:, None] * sc.dirs[ray]
-            shade = (
-                bd.ambient
-                + bd.key_intensity * np.maximum(n @ sc.key, 0.0)
-                + bd.fill_intensity * np.maximum(n @ sc.fill, 0.0)
-            )
-            body = pose.rest is not None and bd.painted
-            tex = _texture(_rest_points(pose.rest[cap], pts) if body else pts, bd)
-            rows, cols = np.divmod(ray, w)
-            col = np.asarray(bd.creature_color)[None, :] * (shade * tex * sc.vignette[rows, cols])[:, None]
-            img[rows, cols] = col.astype(np.float32)
-            mask[rows, cols] = True
-            label[rows, cols] = pose.limb[cap].astype(np.int16)
-            if depth_img is not None:
-                depth_img[rows, cols] = (th * sc.dz[ray]).astype(np.float32)
-            if bd.spill > 0:
-                _spill(img, mask, ray, w, h, bd)
+        pts = sc.origin + th[:, None] * sc.dirs[ray]
+        body = pose.rest is not None and bd.painted
+        tex = _texture(_rest_points(pose.rest[cap], pts) if body else pts, bd)
+        hits = Hits(ray=ray, t=th, normals=n, texture=tex, label=pose.limb[cap].astype(np.int16))
+    return compose_view(sc, bd, img, hits, depth=depth, sigma=sigma, rng=rng)
+
+
+@dataclass(frozen=True)
+class Hits:
+    """What a renderer found along the pixel rays of one camera: the first surface hit of each.
+
+    ``ray (K,)`` flat pixel indices, ``t (K,)`` distances along the unit rays (mm), ``normals
+    (K, 3)`` unit surface normals, ``texture (K,)`` the procedural texture's brightness factor
+    (:func:`_texture`) and ``label (K,) int16`` the label of each hit.
+    """
+
+    ray: np.ndarray
+    t: np.ndarray
+    normals: np.ndarray
+    texture: np.ndarray
+    label: np.ndarray
+
+
+def compose_view(sc: _Scene, bd: Backdrop, img: np.ndarray, hits: Hits | None, *, depth: bool, sigma: float,
+                 rng: np.random.Generator) -> View:
+    """The image formation every renderer shares, from its hits on the (shadowed) background ``img``.
+
+    Lambert shading by the key and fill lights times the texture, the subject's colour and the
+    vignetting; mask, label (:data:`BACKGROUND` elsewhere) and depth (camera-frame Z, rounded to
+    uint16 mm) of the hits; green spill, optical blur and sensor noise. ``img`` (H, W, 3) float32
+    is written to. :func:`render_view` (capsules) and :mod:`fake_cameras.mesh_render` (meshes)
+    differ only in how they find the hits.
+    """
+    h, w = sc.h, sc.w
+    mask = np.zeros((h, w), dtype=bool)
+    label = np.full((h, w), BACKGROUND, dtype=np.int16)
+    depth_img = sc.bg_depth.copy() if depth else None
+    if hits is not None and hits.ray.size:
+        ray, n = hits.ray, hits.normals
+        shade = (
+            bd.ambient
+            + bd.key_intensity * np.maximum(n @ sc.key, 0.0)
+            + bd.fill_intensity * np.maximum(n @ sc.fill, 0.0)
+        )
+        rows, cols = np.divmod(ray, w)
+        col = np.asarray(bd.creature_color)[None, :] * (shade * hits.texture * sc.vignette[rows, cols])[:, None]
+        img[rows, cols] = col.astype(np.float32)
+        mask[rows, cols] = True
+        label[rows, cols] = hits.label
+        if depth_img is not None:
+            depth_img[rows, cols] = (hits.t * sc.dz[ray]).astype(np.float32)
+        if bd.spill > 0:
+            _spill(img, mask, ray, w, h, bd)
     if bd.blur_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), bd.blur_sigma)
     image = sensor_noise(img, sigma, rng)
