@@ -118,9 +118,16 @@ def test_cached_ray_depths_are_the_rays_camera_frame_z_in_the_same_cache(monkeyp
 
     cam = _camera(dist=(-0.08, 0.03, 0.001, -0.0015, -0.01)).replace(size=(64, 48))
     dz = cached_pixel_ray_depths(cam)
-    _, d = cam.pixel_grid_rays()
-    np.testing.assert_array_equal(dz, d @ cam.R[2])  # exact: the same computation
-    np.testing.assert_allclose(dz, np.einsum("hwk,k->hw", d, cam.R[2]), rtol=1e-12)
+    o, d = cam.pixel_grid_rays()
+    # independent check: a depth image back-projected as the docstring says lands at camera-frame
+    # Z = the depth (world_to_camera, R X + t) on its own pixel (project, with the distortion).
+    # Measured: 7.8e-16 relative in Z, 2.3e-13 px.
+    depth = np.random.default_rng(4).uniform(300.0, 4000.0, size=dz.shape)
+    P = (o + d * (depth / dz)[..., None]).reshape(-1, 3)
+    np.testing.assert_allclose(cam.world_to_camera(P)[:, 2], depth.ravel(), rtol=1e-12)
+    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    np.testing.assert_allclose(cam.project(P), np.stack([u.ravel(), v.ravel()], axis=1), rtol=0, atol=1e-9)
+    assert dz.shape == (cam.height, cam.width) and (dz > 0).all() and (dz <= 1).all()  # unit rays, in front
     assert cached_pixel_ray_depths(cam.replace()) is dz  # an equal camera hits the cache
     with pytest.raises(ValueError, match="read-only"):
         dz[0, 0] = 1.0
