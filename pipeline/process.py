@@ -1060,11 +1060,15 @@ def _start_record(ctx: RunContext) -> None:
 def _start_over(ctx: RunContext) -> None:
     """Remove the results of other parameters or another take and all that was made from them
     (report, spine exports, tracking, rig), in one warning (also in the job report)."""
+    from pipeline.articulated_rig import counted
     from pipeline.track import remove_tracking
 
-    for sub in ("meshes", "frames", "skeletons", "export"):  # export/: meshes converted (ResultsStore.export)
+    for sub in ("meshes", "frames", "skeletons"):  # the results themselves: what "starting over" says
         for f in (ctx.out / sub).glob("frame_*"):
             f.unlink()
+    exported = sorted((ctx.out / "export").glob("frame_*"))  # meshes converted (ResultsStore.export)
+    for f in exported:
+        f.unlink()
     (ctx.out / "spine.json").unlink(missing_ok=True)
     (ctx.out / "grid.json").unlink(missing_ok=True)  # the grid follows the parameters too
     # made from the frames and the spine: the report (`stage report`, the API's page) and the
@@ -1073,6 +1077,8 @@ def _start_over(ctx: RunContext) -> None:
     for f in made:
         f.unlink()
     said = [f.name for f in made if f.name != "report.json"]  # report.json: written again by this run
+    if exported:
+        said.append(f"{counted(len(exported), 'exported mesh file')} ({ctx.out / 'export'})")
     note = f"; removed {', '.join(said)}" if said else ""
     msg = f"{ctx.out} holds results of other parameters or another take; starting over{note}{remove_tracking(ctx.out)}"
     log.warning("%s", msg)

@@ -449,21 +449,28 @@ def _files_under(out, *subs) -> dict:
 
 
 def test_starting_over_removes_the_tracking_and_rig_of_the_old_surfaces(small_tracked, tmp_path, caplog):
-    """Other parameters: the frames tracked on the old surfaces, the rig built on them, the report
-    and the spine export go too, said in the one start-over warning, which the job report carries;
-    the user's own files stay."""
+    """Other parameters: the frames tracked on the old surfaces, the rig built on them, the report,
+    the spine export and the exported meshes go too, said in the one start-over warning, which the
+    job report carries; the user's own files stay."""
     import shutil
+
+    from pipeline.results import ResultsStore
 
     take, first = small_tracked
     out = tmp_path / "out"
     shutil.copytree(first, out)
     (out / "rig" / "notes.txt").write_text("the user's")
+    store = ResultsStore(out)
+    store.export(0, "ply")
+    store.export(2, "glb")
+    (out / "export" / "mine.ply").write_text("the user's")
     with caplog.at_level("WARNING"):
         res = process_take(take, out, params={"resolution": 28})
     said = [r.getMessage() for r in caplog.records if r.name in ("pipeline.process", "pipeline.track")]
     assert said == [f"{out} holds results of other parameters or another take; starting over; removed report.html, "
-                    f"spine_rig.glb; removed the frames tracked on the old surfaces ({out / 'tracked'}); "
-                    f"removed the rig built on them ({out / 'rig'})"], said
+                    f"spine_rig.glb, 2 exported mesh files ({out / 'export'}); removed the frames tracked on the old "
+                    f"surfaces ({out / 'tracked'}); removed the rig built on them ({out / 'rig'})"], said
+    assert [p.name for p in (out / "export").iterdir()] == ["mine.ply"]
     assert said[0] in res.report["warnings"] and json.loads((out / "report.json").read_text())["warnings"] == res.report["warnings"]
     assert not (out / "tracked").exists() and sorted(p.name for p in (out / "rig").iterdir()) == ["notes.txt"]
     assert not (out / "report.html").exists() and not (out / "spine_rig.glb").exists()
