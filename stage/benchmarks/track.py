@@ -93,6 +93,7 @@ def accuracy(frames: int = 30) -> None:
     from pathlib import Path
 
     from fake_cameras.rgbd import OBJECTS, record_rgbd_take, simulate_rgbd_take, template_path
+    from pipeline.articulated_rig import counted, rig_results
     from pipeline.meshio import load_mesh
     from pipeline.track import track_rgbd_take
     from pipeline.tracking import mesh_volume
@@ -115,11 +116,6 @@ def accuracy(frames: int = 30) -> None:
             line = (f"{name:9s} {len(V0)} vertices: mean vertex error {100 * np.mean(err) / tk.size:.2f} % of {tk.size:.0f} mm "
                     f"over the take (last frame {100 * err[-1] / tk.size:.2f} %), volume {min(vol):.3f}..{max(vol):.3f} "
                     f"of the template's, {dt:.2f} s/frame")
-            try:
-                from pipeline.articulated_rig import counted, rig_results
-            except ImportError:
-                print(line)
-                continue
             rig = rig_results(out)
             n = int(rig.skeleton.articulation.sum())
             print(f"{line}; stage rig: {counted(n, 'articulation')} (true {expected[name]})")
@@ -140,6 +136,7 @@ def real_pipe_accuracy() -> None:
     from pathlib import Path
 
     from fake_cameras.rgbd import record_rgbd_take, simulate_sensor_rgbd_take, template_path
+    from pipeline.articulated_rig import counted, rig_results
     from pipeline.meshio import load_mesh
     from pipeline.track import track_rgbd_take
     from pipeline.tracking import mesh_volume
@@ -168,18 +165,13 @@ def real_pipe_accuracy() -> None:
                 f"volume {vol.min():.3f}..{vol.max():.3f} of the template's (the given surface's own "
                 f"{true_vol.min():.3f}..{true_vol.max():.3f}; tracked / given {np.min(vol / true_vol):.3f}.."
                 f"{np.max(vol / true_vol):.3f}), {dt:.2f} s/frame")
-        try:
-            from pipeline.articulated_rig import rig_results
-        except ImportError:
-            print(line)
-            return
         rig = rig_results(out)
         sk = rig.skeleton
         n = int(sk.articulation.sum())
         found = rig.fit.joints[:, sk.articulation]
         near = np.linalg.norm(found - tk.joint_positions[:, :1], axis=2)  # (F, n) from the true joint
         where = f", nearest {np.median(near, axis=0).min():.1f} mm from the true joint (median over frames)" if n else ""
-        print(f"{line}; stage rig: {n} articulation{'s' * (n != 1)} (true 1){where}")
+        print(f"{line}; stage rig: {counted(n, 'articulation')} (true 1){where}")
 
 
 def _spacing_for(obj, target):
