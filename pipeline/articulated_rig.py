@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -171,13 +172,26 @@ class ArticulatedRig:
 
 
 def counted(n: int, noun: str) -> str:
-    """``n`` and ``noun``, plural unless one: ``"1 articulation"``, ``"0 articulations"``."""
+    """``n`` and ``noun``, plural unless one: ``"1 articulation"``, ``"0 articulations"``.
+
+    ``n`` is a count (an integer >= 0), ``noun`` a non-empty word whose plural takes an ``s``.
+    """
+    _check_count(n, "n")
+    if not isinstance(noun, str) or not noun.strip():
+        raise ValueError(f"noun must be a non-empty string, got {noun!r}")
     return f"{int(n)} {noun}{'' if int(n) == 1 else 's'}"
 
 
 def rig_counts(segments: int, articulations: int, joints: int) -> str:
-    """What a rig is summed up by: ``"2 segments, 1 articulation, 2 joints"``."""
+    """What a rig is summed up by: ``"2 segments, 1 articulation, 2 joints"`` (counts, integers >= 0)."""
+    for n, name in ((segments, "segments"), (articulations, "articulations"), (joints, "joints")):
+        _check_count(n, name)
     return ", ".join(counted(n, w) for n, w in ((segments, "segment"), (articulations, "articulation"), (joints, "joint")))
+
+
+def _check_count(n, name: str) -> None:
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise ValueError(f"{name} must be a count (an integer >= 0), got {n!r}")
 
 
 def _main_component(vertices, faces) -> np.ndarray | None:
@@ -523,12 +537,21 @@ def remove_rig(out_dir) -> bool:
     ``rig.json``, ``segments.npy``, ``rig.bvh``, ``rig.glb`` and ``posed/NNNNNN.ply`` go; the
     folders too when that leaves them empty. Other files stay.
 
+    Parameters
+    ----------
+    out_dir : str or os.PathLike
+        The rig directory (``OUT/rig``); it need not exist.
+
     Returns
     -------
     bool
         Whether there was a rig file to remove.
     """
+    if not isinstance(out_dir, (str, os.PathLike)):
+        raise ValueError(f"out_dir must be a path, got {type(out_dir).__name__}")
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out_dir must be a rig directory, got the file {out}")
     posed = sorted((out / "posed").glob(POSED_GLOB))  # exactly six digits: a user's 1_fixed.ply stays
     files = [out / name for name in RIG_FILES if (out / name).is_file()] + posed
     for f in files:

@@ -14,7 +14,16 @@ import numpy as np
 import pytest
 
 from pipeline.articulated_fit import fit_frame
-from pipeline.articulated_rig import build_articulated_rig, bvh_text, load_sequence, rig_dict, write_rig
+from pipeline.articulated_rig import (
+    build_articulated_rig,
+    bvh_text,
+    counted,
+    load_sequence,
+    remove_rig,
+    rig_counts,
+    rig_dict,
+    write_rig,
+)
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 PIPE = DATA / "tzionas_pipe" / "pipe.npz"
@@ -292,6 +301,26 @@ def test_invalid_input(tmp_path):
     (tmp_path / "000001.ply").write_bytes(ply_bytes(V[1][:8], F[:1]))
     with pytest.raises(ValueError, match="track"):
         load_sequence(sorted(tmp_path.glob("*.ply")))
+    # the counts of the rig's summaries
+    for bad in (-1, 1.5, "2", True, None):
+        with pytest.raises(ValueError, match="n must be a count"):
+            counted(bad, "joint")
+    for bad in ("", "  ", 3, None):
+        with pytest.raises(ValueError, match="noun"):
+            counted(1, bad)
+    with pytest.raises(ValueError, match="segments"):
+        rig_counts(-1, 0, 0)
+    with pytest.raises(ValueError, match="articulations"):
+        rig_counts(1, 0.5, 2)
+    with pytest.raises(ValueError, match="joints"):
+        rig_counts(1, 1, "2")
+    assert rig_counts(np.int64(2), 1, 3) == "2 segments, 1 articulation, 3 joints"  # numpy integers count
+    # remove_rig: a path to a directory, which need not exist
+    with pytest.raises(ValueError, match="out_dir must be a path"):
+        remove_rig(None)
+    with pytest.raises(ValueError, match="out_dir must be a rig directory"):
+        remove_rig(tmp_path / "000000.ply")
+    assert (tmp_path / "000000.ply").is_file() and remove_rig(tmp_path / "absent") is False
 
 
 def test_scan_opening_opens_only_limbs_that_touch_the_body():
