@@ -355,7 +355,18 @@ def stereo_depth_noise(z: np.ndarray, *, sigma: float, rng: np.random.Generator)
     -------
     (H, W) uint16 ndarray
     """
-    z = np.asarray(z, dtype=np.float64)
+    try:
+        z = np.asarray(z, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"z must be a numeric (H, W) depth image, got {type(z).__name__}") from None
+    if z.ndim != 2 or not np.isfinite(z).all() or (z < 0).any():
+        raise ValueError(f"z must be a finite (H, W) depth image >= 0 (mm, 0 = nothing), got shape {z.shape}"
+                         + ("" if z.ndim != 2 or z.size == 0 else f", values {z.min():g}..{z.max():g}"))
+    if isinstance(sigma, bool) or not isinstance(sigma, (int, float, np.integer, np.floating)) \
+            or not (math.isfinite(sigma) and sigma >= 0):
+        raise ValueError(f"sigma must be a finite number >= 0 (mm at 1 m), got {sigma!r}")
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
     noisy = z + rng.normal(0.0, 1.0, z.shape) * sigma * (z / 1000.0) ** 2
     return np.where(z > 0, np.clip(np.round(noisy), 1, 65535), 0).astype(np.uint16)
 
@@ -460,9 +471,12 @@ def simulate_mesh_rgbd_take(
     if seen.mean() < 0.5:
         raise ValueError(f"vertices: only {100 * seen.mean():.0f} % of frame 0's mesh is in view of camera "
                          f"{camera.name!r} (in front of it and inside its image); place the camera or the mesh")
-    size = float(np.ptp(V[0], axis=0).max()) if length is None else float(length)
+    try:
+        size = float(np.ptp(V[0], axis=0).max()) if length is None else float(length)
+    except (TypeError, ValueError):
+        raise ValueError(f"length must be a positive number (mm), got {length!r}") from None
     if not (size > 0 and math.isfinite(size)):
-        raise ValueError(f"length must be positive, got {length!r}")
+        raise ValueError(f"length must be a positive number (mm), got {length!r}")
     bd = backdrop if backdrop is not None else Backdrop(wall_radius=4000.0, wall_height=4000.0, texture=TEXTURE,
                                                         texture_scale=TEXTURE_SCALE)
     tp = V[0] if texture_points is None else texture_points

@@ -151,6 +151,9 @@ def test_invalid_input():
         simulate_mesh_rgbd_take(np.stack([V, V]), F, cam, joint_positions=np.zeros((3, 1, 3)))
     with pytest.raises(ValueError, match="in view"):
         simulate_mesh_rgbd_take(np.stack([V, V]) + [0, -2000.0, 0], F, cam)  # behind the camera
+    for bad in ("x", [1.0, 2.0], 0.0, -3.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="length must be a positive number"):
+            simulate_mesh_rgbd_take(np.stack([V, V]), F, cam, length=bad)
     with pytest.raises(ValueError, match="height"):
         oak_sensor_camera(height=-5.0)
     with pytest.raises(ValueError, match="vertices"):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fake_cameras.rgbd import OBJECTS, make_object, simulate_rgbd_take, template_mesh
+from fake_cameras.rgbd import OBJECTS, make_object, simulate_rgbd_take, stereo_depth_noise, template_mesh
 from pipeline.tracking import mesh_volume
 
 
@@ -45,6 +45,19 @@ def test_invalid_input():
     with pytest.raises(ValueError, match="bend"):
         simulate_rgbd_take("lamp", bend=400)
     assert OBJECTS == ("pipe_half", "pipe_3q", "lamp")
+    rng = np.random.default_rng(0)
+    z = np.full((4, 5), 800.0)
+    for bad in (-1.0, float("nan"), float("inf"), "2", None, True):
+        with pytest.raises(ValueError, match="sigma"):
+            stereo_depth_noise(z, sigma=bad, rng=rng)
+    for bad in (z[0], z[None], np.where(z > 0, np.nan, z), -z, [["a"]], None):
+        with pytest.raises(ValueError, match="z must be"):
+            stereo_depth_noise(bad, sigma=2.0, rng=rng)
+    with pytest.raises(ValueError, match="rng"):
+        stereo_depth_noise(z, sigma=2.0, rng=3)
+    out = stereo_depth_noise(np.zeros((4, 5)), sigma=0, rng=rng)  # nothing seen stays 0; sigma 0 is exact
+    assert out.dtype == np.uint16 and not out.any()
+    assert (stereo_depth_noise(z, sigma=0.0, rng=rng) == 800).all()
 
 
 def test_surface_point_tracks_stay_on_the_creature():
