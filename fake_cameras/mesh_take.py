@@ -249,7 +249,10 @@ def closest_on_triangles(points, a, b, c) -> np.ndarray:
     Ericson 2005, section 5.1.5 (Voronoi regions of the vertices, edges and face), vectorised;
     all arguments (N, 3). Degenerate triangles fall to their vertex or edge regions.
     """
-    p, a, b, c = (np.asarray(x, dtype=np.float64) for x in (points, a, b, c))
+    p, a, b, c = (_as_rows(x, name) for x, name in ((points, "points"), (a, "a"), (b, "b"), (c, "c")))
+    for x, name in ((a, "a"), (b, "b"), (c, "c")):
+        if len(x) != len(p):
+            raise ValueError(f"{name} must have one triangle corner per point, shape ({len(p)}, 3), got {x.shape}")
     ab, ac, ap = b - a, c - a, p - a
     d1, d2 = (ab * ap).sum(1), (ac * ap).sum(1)
     bp = p - b
@@ -279,6 +282,17 @@ def closest_on_triangles(points, a, b, c) -> np.ndarray:
             wc = np.broadcast_to(wc, m.shape)[m]
             out[m] = np.stack([1 - wb - wc, wb, wc], axis=1)
     return np.nan_to_num(out, nan=1.0 / 3)
+
+
+def _as_rows(x, name: str) -> np.ndarray:
+    """``x`` as a finite (N, 3) float array, or a ValueError naming ``name``."""
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a numeric (N, 3) array, got {type(x).__name__}") from None
+    if a.ndim != 2 or a.shape[1] != 3 or not np.isfinite(a).all():
+        raise ValueError(f"{name} must be finite with shape (N, 3), got {a.shape}")
+    return a
 
 
 def snap_to_mesh(vertices, faces, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -107,3 +107,16 @@ def test_invalid_input():
         stand_in_volume(V, fill=1.5)
     with pytest.raises(ValueError, match="points"):
         snap_to_mesh(V[0], F, np.zeros((3, 2)))
+    p3 = np.zeros((4, 3))
+    tri = (np.zeros((4, 3)), np.tile([1.0, 0, 0], (4, 1)), np.tile([0, 1.0, 0], (4, 1)))
+    with pytest.raises(ValueError, match="points must be finite with shape"):
+        closest_on_triangles(np.zeros((4, 2)), *tri)
+    with pytest.raises(ValueError, match="points must be finite"):
+        closest_on_triangles(np.full((4, 3), np.nan), *tri)
+    with pytest.raises(ValueError, match="points must be a numeric"):
+        closest_on_triangles([["x", "y", "z"]], *tri)
+    with pytest.raises(ValueError, match="b must have one triangle corner per point"):
+        closest_on_triangles(p3, tri[0], tri[1][:3], tri[2])
+    with pytest.raises(ValueError, match="c must be finite with shape"):
+        closest_on_triangles(p3, tri[0], tri[1], tri[2][:, :2])
+    np.testing.assert_allclose(closest_on_triangles(p3, *tri), np.tile([1.0, 0, 0], (4, 1)))  # the corner a
