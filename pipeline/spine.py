@@ -6,7 +6,8 @@ The take-level driver:
    level-set skeleton per tip (:mod:`pipeline.skeleton`) ->
    :class:`FrameSkeleton` (:func:`frame_skeleton`);
 2. reduce: tip correspondence over time (:mod:`pipeline.correspond`,
-   section 4.2), then the skeletons re-merged with only the ``K``
+   section 4.2), one tip per limb among its near-equal maxima (the one most
+   consistent over the take, :func:`_settle_limb_tips`), then the skeletons re-merged with only the ``K``
    corresponded limbs (:mod:`pipeline.merge`), the most frequent topology
    imposed on every frame as the graph ``G``, and each limb resampled at one
    interval (section 4.3) -> :class:`Spine` (:func:`build_spine`);
