@@ -26,6 +26,14 @@ Two tests, cheapest first:
 
 Ties are broken by vertex index (simulation of simplicity), so flat regions
 give one maximum, not none.
+
+*Near-equal maxima*: a candidate that passes test 1 (the maximum of its own
+geodesic ``h``-ball, so at least ``h`` from any other such maximum) but fails
+test 2 is a sub-protrusion of a limb that ends in several near-equal maxima (a
+horse's nose and ears). It is kept as an *alternate* of the tip whose
+``h``-superlevel component holds it (the lowest such tip): which of them a
+noisy surface ranks highest changes from frame to frame, so the choice of the
+limb's tip among them is left to the take (:mod:`pipeline.spine`).
 """
 
 from __future__ import annotations
@@ -64,6 +72,10 @@ class Extremities:
         Base points used for the AGD.
     threshold : float
         Protrusion threshold ``h`` used (mesh units).
+    alternates : tuple of (a_i,) int ndarray
+        Per tip, the near-equal maxima of its limb (the maxima of their own
+        ``h``-ball inside the tip's ``h``-superlevel component), by decreasing
+        AGD; empty arrays when the limb ends in one maximum.
     """
 
     vertices: np.ndarray
@@ -71,6 +83,7 @@ class Extremities:
     agd: np.ndarray
     base: np.ndarray
     threshold: float
+    alternates: tuple = ()
 
     def __len__(self) -> int:
         return len(self.vertices)
@@ -190,7 +203,9 @@ def find_extremities(
     tips = np.asarray([m for m in survivors
                        if (bool(agd[finite].max() - agd[finite].min() >= h) if m == top
                            else _persists(agd, rank, edges, m, h))], dtype=np.int64)
-    return Extremities(vertices=tips, points=v[tips], agd=agd, base=base, threshold=h)
+    rejected = np.asarray([m for m in survivors if m not in set(tips.tolist())], dtype=np.int64)
+    alternates = _alternates(agd, edges, tips, rejected, h)
+    return Extremities(vertices=tips, points=v[tips], agd=agd, base=base, threshold=h, alternates=alternates)
 
 
 # --------------------------------------------------------------------------- find_extremities, step by step
@@ -252,3 +267,20 @@ def _persists(agd: np.ndarray, rank: np.ndarray, edges: np.ndarray, m: int, h: f
     adj = sp.csr_matrix((np.ones(len(ee)), (ee[:, 0], ee[:, 1])), shape=(n, n))
     _, lab = connected_components(adj, directed=False)
     return not bool(np.any(rank[lab == lab[m]] > rank[m]))
+
+
+def _alternates(agd: np.ndarray, edges: np.ndarray, tips: np.ndarray, rejected: np.ndarray, h: float) -> tuple:
+    """Each rejected ball maximum as an alternate of the lowest tip whose ``h``-superlevel component holds it."""
+    owner = np.full(len(rejected), -1, dtype=np.int64)
+    n = len(agd)
+    for i in np.argsort(agd[tips], kind="stable") if len(rejected) else []:  # lowest tip first
+        free = owner < 0
+        if not free.any():
+            break
+        m = int(tips[i])
+        keep = agd >= agd[m] - h
+        ee = edges[keep[edges[:, 0]] & keep[edges[:, 1]]]
+        adj = sp.csr_matrix((np.ones(len(ee)), (ee[:, 0], ee[:, 1])), shape=(n, n))
+        _, lab = connected_components(adj, directed=False)
+        owner[free & (lab[rejected] == lab[m])] = i
+    return tuple(rejected[owner == i] for i in range(len(tips)))

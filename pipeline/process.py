@@ -325,6 +325,7 @@ def _skeleton_record(k: int, mesh, params, *, bodies: int | None = None) -> dict
 
 
 _TIP_FIELDS = ("seed", "nodes", "parent", "cost", "frame", "count", "level", "tip_nodes")
+_ALT_FIELDS = ("tip", "point", "vertex", "limb_points", "rings", "alt_rings")  # pipeline.spine.Alternate
 
 
 def _skeleton_bytes(rec: dict) -> bytes:
@@ -340,6 +341,10 @@ def _skeleton_bytes(rec: dict) -> bytes:
                       limb_points=sk.limb_points, n_skeletons=np.int64(len(sk.skeletons)))
         for i, tip in enumerate(sk.skeletons):
             arrays.update({f"skeleton{i}.{name}": np.asarray(getattr(tip, name)) for name in _TIP_FIELDS})
+        arrays["n_alternates"] = np.int64(len(sk.alternates))
+        for j, alt in enumerate(sk.alternates):
+            arrays.update({f"alternate{j}.{name}": np.asarray(getattr(alt, name)) for name in _ALT_FIELDS})
+            arrays.update({f"alternate{j}.skeleton.{name}": np.asarray(getattr(alt.skeleton, name)) for name in _TIP_FIELDS})
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
@@ -356,6 +361,10 @@ def _load_skeleton(path: Path) -> dict:
         if "tips" in z:
             d = {name: z[name] for name in ("tips", "tip_vertices", "size", "n_faces", "limb_points")}
             d["skeletons"] = [{name: z[f"skeleton{i}.{name}"] for name in _TIP_FIELDS} for i in range(int(z["n_skeletons"]))]
+            n_alt = int(z["n_alternates"]) if "n_alternates" in z else 0  # records written before alternates: none
+            d["alternates"] = [{**{name: z[f"alternate{j}.{name}"] for name in _ALT_FIELDS},
+                                "skeleton": {name: z[f"alternate{j}.skeleton.{name}"] for name in _TIP_FIELDS}}
+                               for j in range(n_alt)]
             rec["skeleton"] = FrameSkeleton.from_dict(d)
     return rec
 

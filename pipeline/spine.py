@@ -6,7 +6,8 @@ The take-level driver:
    level-set skeleton per tip (:mod:`pipeline.skeleton`) ->
    :class:`FrameSkeleton` (:func:`frame_skeleton`);
 2. reduce: tip correspondence over time (:mod:`pipeline.correspond`,
-   section 4.2), then the skeletons re-merged with only the ``K``
+   section 4.2), one tip per limb among its near-equal maxima (the one most
+   consistent over the take, :func:`_settle_limb_tips`), then the skeletons re-merged with only the ``K``
    corresponded limbs (:mod:`pipeline.merge`), the most frequent topology
    imposed on every frame as the graph ``G``, and each limb resampled at one
    interval (section 4.3) -> :class:`Spine` (:func:`build_spine`);
@@ -24,7 +25,8 @@ import math
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +44,7 @@ __all__ = [
     "FORMAT",
     "SpineParams",
     "FrameSkeleton",
+    "Alternate",
     "frame_skeleton",
     "Spine",
     "build_spine",
@@ -110,6 +113,69 @@ class SpineParams(BaseModel):
 
 
 @dataclass(frozen=True)
+class Alternate:
+    """Another near-equal maximum of one tip's limb, ready to stand in for the tip.
+
+    Attributes
+    ----------
+    tip : int
+        Index of the tip it may replace.
+    point : (3,) float ndarray
+    vertex : int
+        Vertex id in the input mesh numbering.
+    skeleton : TipSkeleton
+        Grown from it (``seed == tip``; its ``tip_nodes`` with it in the tip's place).
+    limb_points : (m, 3) float ndarray
+    rings : (n,) int ndarray
+        Its ring in each tip's skeleton (``-1`` unreached).
+    alt_rings : (a,) int ndarray
+        Every alternate's ring in its own skeleton.
+    """
+
+    tip: int
+    point: np.ndarray
+    vertex: int
+    skeleton: TipSkeleton
+    limb_points: np.ndarray
+    rings: np.ndarray
+    alt_rings: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"tip": int(self.tip), "point": np.asarray(self.point).tolist(), "vertex": int(self.vertex),
+                "skeleton": self.skeleton.to_dict(), "limb_points": np.asarray(self.limb_points).tolist(),
+                "rings": np.asarray(self.rings).tolist(), "alt_rings": np.asarray(self.alt_rings).tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Alternate":
+        return cls(tip=int(d["tip"]), point=np.asarray(d["point"], dtype=np.float64).reshape(3),
+                   vertex=int(d["vertex"]), skeleton=TipSkeleton.from_dict(d["skeleton"]),
+                   limb_points=np.asarray(d["limb_points"], dtype=np.float64).reshape(-1, 3),
+                   rings=np.asarray(d["rings"], dtype=np.int64), alt_rings=np.asarray(d["alt_rings"], dtype=np.int64))
+
+
+def _stand_in(frame: "FrameSkeleton", chosen: Sequence[int]) -> "FrameSkeleton":
+    """``frame`` with the alternates ``chosen`` (indices into ``frame.alternates``, one per tip at most)
+    in their tips' places: tips, skeletons, the rings every skeleton records for them, limb points."""
+    alts = [frame.alternates[c] for c in chosen]
+    if len({a.tip for a in alts}) != len(alts):
+        raise ValueError("chosen must hold at most one alternate per tip")
+    by_tip = dict(zip((a.tip for a in alts), chosen))
+    tips, tv, lp = frame.tips.copy(), frame.tip_vertices.copy(), frame.limb_points.copy()
+    skels = []
+    for j, s in enumerate(frame.skeletons):
+        own = frame.alternates[by_tip[j]] if j in by_tip else None
+        # rings of the (new) tips in this skeleton: the base rings, or the alternate's own record
+        tn = own.skeleton.tip_nodes.copy() if own is not None else s.tip_nodes.copy()
+        for i, c in by_tip.items():
+            if i != j:
+                tn[i] = own.alt_rings[c] if own is not None else frame.alternates[c].rings[j]
+        skels.append(replace(own.skeleton if own is not None else s, tip_nodes=tn))
+    for a in alts:
+        tips[a.tip], tv[a.tip], lp[a.tip] = a.point, a.vertex, a.limb_points
+    return replace(frame, tips=tips, tip_vertices=tv, skeletons=tuple(skels), limb_points=lp, alternates=())
+
+
+@dataclass(frozen=True)
 class FrameSkeleton:
     """Everything the reduce step needs from one frame.
 
@@ -128,6 +194,10 @@ class FrameSkeleton:
     limb_points : (n, m, 3) float ndarray
         Points along each tip's own limb (:func:`pipeline.skeleton.limb_points`),
         aligned with the tips when tracking correspondence.
+    alternates : tuple of Alternate
+        The near-equal maxima of the tips' limbs
+        (:attr:`pipeline.extremities.Extremities.alternates`), each with the
+        skeleton grown from it; :func:`build_spine` picks one per limb and take.
     """
 
     tips: np.ndarray
@@ -136,6 +206,7 @@ class FrameSkeleton:
     size: float
     n_faces: int
     limb_points: np.ndarray
+    alternates: tuple = ()
 
     @property
     def n_tips(self) -> int:
@@ -162,6 +233,7 @@ class FrameSkeleton:
             "size": float(self.size),
             "n_faces": int(self.n_faces),
             "limb_points": self.limb_points.tolist(),
+            "alternates": [a.to_dict() for a in self.alternates],
         }
 
     @classmethod
@@ -173,6 +245,7 @@ class FrameSkeleton:
             size=float(d["size"]),
             n_faces=int(d["n_faces"]),
             limb_points=np.asarray(d["limb_points"], dtype=np.float64).reshape(len(d["tips"]), -1, 3),
+            alternates=tuple(Alternate.from_dict(a) for a in d.get("alternates", ())),
         )
 
     @classmethod
@@ -231,23 +304,27 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
     )
     mean_edge = float(np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1).mean())
     weights = areas if params.area_weighted else None
-    skels = tuple(
-        grow_skeleton(
-            v,
-            edges,
-            graph,
-            int(tv),
-            tips=ext.vertices,
-            seed=i,
-            n_bins=params.n_bins,
-            min_bin_width=params.min_bin_edges * mean_edge,
-            weights=weights,
-        )
-        for i, tv in enumerate(ext.vertices)
-    )
+    grow = partial(grow_skeleton, v, edges, graph, n_bins=params.n_bins, min_bin_width=params.min_bin_edges * mean_edge,
+                   weights=weights)
+    alt = [(i, int(a)) for i, alts in enumerate(ext.alternates) for a in alts]
+    n = len(ext.vertices)
+    # every skeleton also records the alternates' rings (tip_nodes beyond n), so an alternate can stand in later
+    every = np.concatenate([ext.vertices, np.asarray([a for _, a in alt], dtype=np.int64)])
+    grown = [grow(int(tv), tips=every, seed=i) for i, tv in enumerate(ext.vertices)]
+    skels = tuple(replace(s, tip_nodes=s.tip_nodes[:n]) for s in grown)
     lp = np.array([limb_points(s, ext.points[i], LIMB_FRACTIONS) for i, s in enumerate(skels)]).reshape(
         len(skels), len(LIMB_FRACTIONS), 3
     )
+    alternates = []
+    for j, (i, a) in enumerate(alt):
+        own = every.copy()
+        own[i] = a
+        s = grow(a, tips=own, seed=i)
+        alt_rings, s = s.tip_nodes[n:], replace(s, tip_nodes=s.tip_nodes[:n])
+        alternates.append(Alternate(tip=i, point=v[a].copy(), vertex=int(kept[a]), skeleton=s,
+                                    limb_points=limb_points(s, v[a], LIMB_FRACTIONS),
+                                    rings=np.asarray([g.tip_nodes[n + j] for g in grown], dtype=np.int64),
+                                    alt_rings=alt_rings))
     return FrameSkeleton(
         tips=ext.points.copy(),
         tip_vertices=kept[ext.vertices],
@@ -255,6 +332,7 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
         size=size,
         n_faces=len(f),
         limb_points=lp,
+        alternates=tuple(alternates),
     )
 
 
@@ -531,6 +609,88 @@ def _resample_axes(polys: dict, T: int, samples: int) -> tuple[dict, float]:
     return axes, interval
 
 
+def _limb_candidates(frames, A: np.ndarray, k: int) -> dict[int, list]:
+    """Frame -> ``[(alternate index or -1 for the tip, position relative to the limb)]`` of limb ``k``.
+
+    Relative to the limb's point nearest the body (the last of its limb points), so that the
+    creature's travel does not count."""
+    out = {}
+    for t, fr in enumerate(frames):
+        i = int(A[t, k])
+        if i < 0:
+            continue
+        base = fr.limb_points[i][-1]
+        out[t] = [(-1, fr.tips[i] - base)] + [(c, a.point - base) for c, a in enumerate(fr.alternates) if a.tip == i]
+    return out
+
+
+def _candidate_tracks(cands: dict[int, list], gates: dict[int, float]) -> dict[tuple[int, int], int]:
+    """Track id of every ``(frame, candidate slot)``: each seen frame's candidates linked one to one
+    (Hungarian on distance) to the previous seen frame's, a link no longer than the frame's gate."""
+    from scipy.optimize import linear_sum_assignment
+
+    track: dict[tuple[int, int], int] = {}
+    n_tracks, prev = 0, None
+    for t in sorted(cands):
+        here = cands[t]
+        if prev is not None:
+            P = np.array([q for _, q in cands[prev]])
+            Q = np.array([q for _, q in here])
+            D = np.linalg.norm(P[:, None] - Q[None], axis=2)
+            for r, c in zip(*linear_sum_assignment(D)):
+                if D[r, c] <= gates[t]:
+                    track[(t, int(c))] = track[(prev, int(r))]
+        for c in range(len(here)):
+            if (t, c) not in track:
+                track[(t, c)] = n_tracks
+                n_tracks += 1
+        prev = t
+    return track
+
+
+def _track_spread(cands: dict[int, list], track: dict[tuple[int, int], int]) -> dict[int, float]:
+    """RMS distance of each track's relative positions to their mean."""
+    pts: dict[int, list] = {}
+    for (t, c), tr in track.items():
+        pts.setdefault(tr, []).append(cands[t][c][1])
+    return {tr: float(np.sqrt(np.mean(np.sum((np.array(p) - np.mean(p, axis=0)) ** 2, axis=1)))) for tr, p in pts.items()}
+
+
+def _settle_limb_tips(frames, A: np.ndarray, params: SpineParams) -> tuple[list, dict]:
+    """One tip per limb over the take where a limb ends in several near-equal maxima.
+
+    A frame's tip is the highest of its limb's near-equal maxima (Brostow's AGD), and which one
+    that is follows the surface's small errors (a horse's nose or an ear). Over the take the
+    candidates are linked frame to frame (in the limb's own position, within the protrusion
+    threshold ``h``: any two candidates of a frame lie at least ``h`` apart) and, of the tracks
+    seen in the most frames, the one whose position in the limb's frame is the most consistent
+    over the take (least RMS distance to its mean) is the limb's tip (Brostow's spine is one
+    over time); where it is seen, it stands in for the frame's tip. Limbs without alternates
+    are left as they are.
+
+    Returns the frames and, per limb index, the frames where an alternate stood in.
+    """
+    if not any(fr.alternates for fr in frames):
+        return frames, {}
+    chosen: list[list[int]] = [[] for _ in frames]
+    settled = {}
+    for k in range(A.shape[1]):
+        cands = _limb_candidates(frames, A, k)
+        if all(len(c) == 1 for c in cands.values()):
+            continue
+        gates = {t: params.min_protrusion * frames[t].size for t in cands}
+        track = _candidate_tracks(cands, gates)
+        seen = Counter(track.values())
+        spread = _track_spread(cands, track)
+        best = min(seen, key=lambda tr: (-seen[tr], spread[tr], tr))
+        swaps = [(t, cands[t][c][0]) for (t, c), tr in track.items() if tr == best and cands[t][c][0] >= 0]
+        for t, alt in swaps:
+            chosen[t].append(alt)
+        settled[f"limb{k}"] = sorted(t for t, _ in swaps)
+    frames = [_stand_in(fr, chosen[t]) if chosen[t] else fr for t, fr in enumerate(frames)]
+    return frames, settled
+
+
 def build_spine(
     frames: Sequence[FrameSkeleton],
     *,
@@ -569,6 +729,7 @@ def build_spine(
         max_permutations=params.max_permutations,
         gate=params.gate,
     )
+    frames, settled = _settle_limb_tips(frames, corr.assignment, params)
     G, counted = _imposed_topology(frames, corr.assignment, corr.K)
     merged = _realise_topology(frames, corr.assignment, G)
     limb_ids, junction_ids, parents = _graph_ids_for(G, corr.K)
@@ -582,6 +743,7 @@ def build_spine(
         "topology_frames": int(counted.get(G.splits, 0)),
         "tip_counts": [f.n_tips for f in frames],
         "sample_interval": interval,
+        "tip_alternates": settled,
         "method": "Brostow et al. 2004",
     }
     return Spine(

@@ -87,6 +87,45 @@ def test_threshold_is_scale_free():
     np.testing.assert_allclose(b.threshold, 1000.0 * a.threshold, rtol=1e-9)
 
 
+def forked_capsule():
+    """A capsule whose top end forks into two bumps of near-equal height (0.45 and 0.43 of its
+    radius-0.5 body): one limb ending in two near-equal maxima, like a horse's nose and ears."""
+    m = capsule()
+    v = np.asarray(m.vertices).copy()
+    top = v[:, 2] > 1.4
+    for cx, a in ((0.28, 0.45), (-0.28, 0.43)):
+        v[:, 2] += a * top * np.exp(-((v[:, 0] - cx) ** 2 + v[:, 1] ** 2) / 0.12**2)
+    return v, np.asarray(m.faces)
+
+
+def test_alternates_are_the_limbs_other_ball_maxima():
+    """Each alternate fails persistence, is the maximum of its own geodesic h-ball (slow Dijkstra
+    check) and lies in its tip's h-superlevel component; a limb with one end has none."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components, dijkstra
+
+    from pipeline.geodesic import edge_graph
+
+    v, f = forked_capsule()
+    ext = find_extremities(v, f)
+    assert len(ext) == 2 and len(ext.alternates) == 2
+    top = int(np.argmax(ext.points[:, 2]))
+    assert len(ext.alternates[top]) == 1 and len(ext.alternates[1 - top]) == 0
+    a = int(ext.alternates[top][0])
+    np.testing.assert_allclose(v[a], [-0.28, 0.0, 2.35], atol=0.05)  # the other bump of the fork
+    e = mesh_edges(f)
+    agd, h, tip = ext.agd, ext.threshold, int(ext.vertices[top])
+    assert not protrudes(agd, e, a, h) and agd[a] < agd[tip]
+    d = dijkstra(edge_graph(v, e), indices=a)
+    assert agd[d < h].max() == agd[a]
+    keep = agd >= agd[tip] - h
+    ee = e[keep[e[:, 0]] & keep[e[:, 1]]]
+    _, lab = connected_components(sp.csr_matrix((np.ones(len(ee)), (ee[:, 0], ee[:, 1])), shape=(len(v),) * 2))
+    assert lab[a] == lab[tip]
+    c = capsule()
+    assert [len(x) for x in find_extremities(c.vertices, c.faces).alternates] == [0, 0]
+
+
 def test_invalid_input():
     c = capsule()
     with pytest.raises(ValueError, match="n_base"):
