@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import logging
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,8 +23,9 @@ from pipeline.articulated_rig import (
     rig_dict,
     write_rig,
 )
+from tests.conftest import SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+DATA = SHARED_DATA
 PIPE = DATA / "tzionas_pipe" / "pipe.npz"
 HORSE = DATA / "horse_gallop"
 
