@@ -73,7 +73,8 @@ def _load_template(template) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_for, progress, start, prev,
-                contour_for=None, init_for=None, total=None, prev_frame=None, predict=None, before=None, tracks_for=None):
+                contour_for=None, init_for=None, total=None, prev_frame=None, predict=None, before=None, tracks_for=None,
+                choose=None):
     """Track ``frames`` in order; ``data_for(k, previous_vertices)`` -> (points, normals, extra) or None (no data);
     ``init_for(k, previous_frame, previous_vertices)`` -> where frame ``k``'s rounds start;
     ``predict(previous, before)`` -> the start from the two frames before (used when both are the
@@ -97,12 +98,16 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
             else:
                 pts, nrm, extra = data
                 contour = contour_for(extra) if contour_for is not None else None
-                init = None
+                init = predicted = from_spine = None
+                if predict is not None and before is not None and prev_frame is not None \
+                        and abs(k - prev_frame) == 1 and abs(prev_frame - before[0]) == 1:
+                    predicted = predict(prev, before[1], seen)
                 if init_for is not None and prev_frame is not None:
                     init = init_for(k, prev_frame, prev)
-                elif predict is not None and before is not None and prev_frame is not None \
-                        and abs(k - prev_frame) == 1 and abs(prev_frame - before[0]) == 1:
-                    init = predict(prev, before[1], seen)
+                    if choose is not None:
+                        init, from_spine = choose([prev if predicted is None else predicted, init], pts, nrm)
+                else:
+                    init = predicted
                 tracks = None
                 if tracks_for is not None and prev_frame is not None:
                     tracks = tracks_for(k, prev_frame, prev, extra, init)
@@ -120,6 +125,8 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
                 }
                 if tracks is not None:
                     per[str(k)]["colour_tracks"] = int(len(tracks[0]))
+                if from_spine is not None:
+                    per[str(k)]["spine_start_patches"] = round(from_spine, 4)
         done += 1
         if progress is not None:
             progress("track", start + done, total if total is not None else start + len(frames))
@@ -148,14 +155,16 @@ def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
 
 
 def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False,
-                  predict: bool = True, colour: bool = False, executor=None) -> dict:
+                  choose: bool = True, predict: bool = True, colour: bool = False, executor=None) -> dict:
     """Track a template through the surfaces of a processed multi-view take.
 
     With the take's spine (``spine.json``) the template is the spine's reference frame's
-    surface and tracking runs from that frame forwards and backwards; with ``spine_init``
-    every frame starts from the previous one moved as the spine's skinned pose of the
-    template moves (linear blend skinning). Without a spine: the first frame's surface.
-    Each frame starts from the previous one (or its constant-velocity prediction).
+    surface and tracking runs from that frame forwards and backwards. Every frame has two
+    starts then: the constant-velocity prediction (or the previous frame) and the previous
+    frame moved as the spine's skinned pose of the template moves (linear blend skinning);
+    each patch of the template starts from the one this frame's surface explains better
+    (``choose``, :func:`pipeline.tracking.choose_start`). Without a spine: the first frame's
+    surface, and every frame starts from the prediction (or the previous frame).
 
     The two halves, forwards and backwards from the reference frame, depend on nothing but
     that frame's fit: with ``executor`` the backward half runs there as one task while this
@@ -173,10 +182,15 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     gamma, gate : float, optional
         See :class:`pipeline.tracking.TemplateTracker`.
     spine_init : bool
-        Start every frame from the spine's skinned motion (it takes precedence over
-        ``predict``). Off by default: on the simulated multi-view takes the skinned pose's step
+        Start every patch of every frame from the spine's skinned motion (it takes precedence
+        over ``choose``). Off by default: on the simulated capsule takes the skinned pose's step
         from one frame to the next is 3.2 (starfish) and 5.6 (quadruped) voxels away from the
         true step, which is itself 0.37 and 0.57 voxels; constant velocity is 0.04 to 0.13 off.
+        On a fast gallop it is the other way round for the legs (docs/tracking.md).
+    choose : bool
+        With a spine, choose per patch and frame between the prediction and the skinned start
+        by the gated closest-point residual against the frame's surface, both ways
+        (default). False: the prediction only.
     predict : bool
         Start every frame from the constant-velocity prediction of the two frames before
         (:func:`pipeline.tracking.predict_motion`) instead of the previous frame.
@@ -205,16 +219,17 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, loaded, name)
     tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
     use_spine = skinned is not None and bool(spine_init)
+    spine_start = "all" if use_spine else "choose" if skinned is not None and choose else "none"
     with _colour_take(root, bool(colour)) as take:  # opened once in this process (a worker opens its own)
         report = {"mode": "multi-view", "template": source, "template_sha256": _mesh_digest(V0, F0),
                   "vertices": int(len(V0)), "gamma": tracker.gamma,
                   "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
-                  "reference_frame": frames[ref], "spine_init": use_spine,
+                  "reference_frame": frames[ref], "spine_init": use_spine, "spine_start": spine_start,
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
                   "skipped": [], "frames": {}}
         kept = _start_over_if_changed(root, report)
         chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
-                 "spine_init": use_spine, "spine_template": loaded, "predict": bool(predict),
+                 "spine_start": spine_start, "spine_template": loaded, "predict": bool(predict),
                  "colour": report["colour_tracks"]}
         first = _track_reference(tracker, (V0, F0), frames[ref], root, report, by_frame=by_frame, progress=progress,
                                  total=len(frames))
@@ -468,6 +483,19 @@ def _spine_starts(model, frames: list[int]):
     return lambda k, k_prev, prev: prev + (pose(k) - pose(k_prev))
 
 
+def _chooser(tracker):
+    """``choose(candidates, points, normals)`` -> (start, share of the patches that took the second
+    candidate): :func:`pipeline.tracking.choose_start` over the tracker's patches and gate."""
+    from pipeline.tracking import choose_start
+
+    def choose(cands, pts, nrm):
+        start, chosen = choose_start(cands, pts, nrm, tracker.faces, tracker.patches, gate=tracker.gate,
+                                     smoother=tracker.smoother, corners=tracker.corner_sum)
+        return start, float(np.mean(chosen == 1))
+
+    return choose
+
+
 def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, skinned=None, progress=None, start=0,
                  total=None, take=None) -> dict:
     """Track ``chain["frames"]`` in order from ``chain["prev"]`` (the fit of ``chain["prev_frame"]``);
@@ -480,7 +508,7 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     if tracker is None:
         tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"])
     init_for = None
-    if chain["spine_init"]:
+    if chain["spine_start"] in ("all", "choose"):
         if skinned is None:
             skinned = _spine_model(root, frame_list, by_frame, chain["spine_template"])
         init_for = _spine_starts(skinned[1], frame_list) if skinned is not None else None
@@ -492,7 +520,8 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     with colour as tracks_for:
         _run_frames(tracker, list(chain["frames"]), root, F0, part, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
                     progress=progress, start=start, prev=np.asarray(chain["prev"], float), init_for=init_for, total=total,
-                    prev_frame=chain["prev_frame"], predict=_predictor(tracker, chain["predict"]), tracks_for=tracks_for)
+                    prev_frame=chain["prev_frame"], predict=_predictor(tracker, chain["predict"]), tracks_for=tracks_for,
+                    choose=_chooser(tracker) if chain["spine_start"] == "choose" else None)
     return part
 
 

@@ -28,7 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera", default=None, help="depth camera of the take (default: the first with depth)")
     p.add_argument("--remove-skin", action="store_true", help="drop skin-coloured pixels (hands) before tracking")
     p.add_argument("--spine-init", action="store_true",
-                   help="multi-view: start every frame from the spine's skinned motion of the template")
+                   help="multi-view: start every patch of every frame from the spine's skinned motion of the template "
+                   "(default: only the patches the constant-velocity prediction leaves out of the gate's reach, where the "
+                   "surface explains the skinned start better)")
     p.add_argument("--no-predict", action="store_true",
                    help="start every frame from the previous one, not from the constant-velocity prediction of the two before")
     p.add_argument("--contour", action="store_true", help="add the contour term (depth edges; single RGB-D only)")

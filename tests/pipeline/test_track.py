@@ -207,12 +207,12 @@ def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(
 
         if how == "pool":
             with cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver")) as ex:
-                rep = track.track_results(root, executor=ex, progress=progress)
+                rep = track.track_results(root, executor=ex, progress=progress, choose=False)
         elif how == "late":
             with LateWorker(max_workers=1) as ex:
-                rep = track.track_results(root, executor=ex, progress=progress)
+                rep = track.track_results(root, executor=ex, progress=progress, choose=False)
         else:
-            rep = track.track_results(root, progress=progress)
+            rep = track.track_results(root, progress=progress, choose=False)
         assert rep["reference_frame"] == 3 and list(rep["frames"]) == [str(k) for k in range(7)]
         assert ("worker_cpu_seconds" in rep) == (how == "pool")  # a thread's CPU is already this process's
         assert seen[-1] == (7, 7) and all(d <= n for d, n in seen)
@@ -293,7 +293,7 @@ def test_killed_worker_process_frames_are_tracked_here(tmp_path, monkeypatch, ca
         t = _sphere_results(tmp_path / how)
         monkeypatch.setattr(track, "_spine_model", lambda *a, t=t: (2, SimpleNamespace(vertices=t.vertices, faces=t.faces)))
         with caplog.at_level("WARNING", logger="pipeline.track"):
-            rep = track.track_results(tmp_path / how, executor=ex)
+            rep = track.track_results(tmp_path / how, executor=ex, choose=False)
         assert list(rep["frames"]) == [str(k) for k in range(5)] and "worker_cpu_seconds" not in rep
         runs[how] = [load_mesh(track.tracked_path(tmp_path / how, k), largest=False)[0] for k in range(5)]
     assert [r.getMessage().split(" (")[0] for r in caplog.records] == ["the second tracking process stopped",
@@ -483,9 +483,9 @@ def test_multiview_colour_halves_in_a_worker_process_equal_the_frames_tracked_in
     for how in ("in_order", "pool"):
         if how == "pool":
             with cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver")) as ex:
-                rep = track.track_results(res, colour=True, executor=ex)
+                rep = track.track_results(res, colour=True, executor=ex, choose=False)
         else:
-            rep = track.track_results(res, colour=True)
+            rep = track.track_results(res, colour=True, choose=False)
         assert rep["reference_frame"] == 2 and all("colour_tracks" in rep["frames"][str(k)] for k in (0, 1, 3, 4))
         runs[how] = [load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)[0] for k in range(5)]
         (res / "tracked").rename(tmp_path / how)
@@ -511,7 +511,7 @@ def test_multiview_colour_tracks_open_the_take_once_in_this_process(tmp_path, mo
     V0, F0 = load_mesh(res / "meshes" / "frame_000001.ply", largest=False)
     monkeypatch.setattr(track, "_spine_model", lambda *a: (1, SimpleNamespace(vertices=V0, faces=F0)))
     monkeypatch.setattr(stage.store, "TakeReader", Counting)
-    rep = track.track_results(res, colour=True)
+    rep = track.track_results(res, colour=True, choose=False)
     assert rep["colour_tracks"] is True and all("colour_tracks" in rep["frames"][str(k)] for k in (0, 2))
     assert len(opened) == 1
 

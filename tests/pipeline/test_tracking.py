@@ -17,12 +17,14 @@ from pipeline.tracking import (
     blended_align,
     blended_patches,
     choose_gamma,
+    choose_start,
     cotangent_laplacian,
     default_gate,
     mesh_volume,
     patch_align,
     patch_constraints,
     predict_motion,
+    start_residuals,
     surface_patches,
     vertex_normals,
 )
@@ -452,3 +454,88 @@ def test_feature_tracks_see_a_cylinders_twist_which_depth_pairs_do_not(with_rays
     # measured 0.35 of the turn left (one frame; the Laplacian term against the previous frame is
     # not rotation-invariant and holds some of it back)
     assert np.linalg.norm(fit.vertices - truth, axis=1).mean() < 0.5 * moved
+
+
+def _slow_start_residuals(V, vn, X, N, patches, gate):
+    """Per patch: every vertex's and every data point's gated distance, one at a time."""
+    total = np.zeros(patches.max() + 1)
+    count = np.zeros(patches.max() + 1)
+    for i in range(len(V)):
+        d = np.linalg.norm(X - V[i], axis=1)
+        j = int(np.argmin(d))
+        total[patches[i]] += d[j] if d[j] < gate and vn[i] @ N[j] >= np.cos(np.pi / 4) else gate
+        count[patches[i]] += 1
+    for j in range(len(X)):
+        d = np.linalg.norm(V - X[j], axis=1)
+        i = int(np.argmin(d))
+        total[patches[i]] += d[i] if d[i] < gate and vn[i] @ N[j] >= np.cos(np.pi / 4) else gate
+        count[patches[i]] += 1
+    return total / np.maximum(count, 1)
+
+
+def _half_moved(v, f, shift):
+    """The sphere's x > 0 half moved by ``shift`` (the data of a start that only fits one half)."""
+    moved = v.copy()
+    moved[v[:, 0] > 0] += shift
+    return moved
+
+
+def test_start_residuals_match_a_slow_reference():
+    v, f = _sphere(2)
+    patches, _ = surface_patches(v, f, 40.0)
+    data = _half_moved(v, f, [8.0, 0.0, 0.0]) + 0.3
+    X, N = data[::2], vertex_normals(data, f)[::2]
+    got = start_residuals(v, X, N, f, patches, gate=10.0)
+    want = _slow_start_residuals(v, vertex_normals(v, f), X, N, patches, 10.0)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert got.max() > 2 * got.min()  # the moved half's patches further than the others
+    assert np.allclose(start_residuals(v, np.zeros((0, 3)), np.zeros((0, 3)), f, patches, gate=10.0), 10.0)
+
+
+def test_choose_start_takes_per_patch_the_start_the_data_explain():
+    """Data: a sphere whose x > 0 half moved 30 mm (three gates); the unmoved start explains the other half,
+    the moved one this half: each patch takes its own, exactly without smoothing, in between with it."""
+    v, f = _sphere(3, r=60.0)
+    patches, _ = surface_patches(v, f, 30.0)
+    shift = np.array([30.0, 0.0, 0.0])
+    data = _half_moved(v, f, shift)
+    a, b = v, v + shift
+    X, N = data, vertex_normals(data, f)
+    start, chosen = choose_start([a, b], X, N, f, patches, gate=10.0, smoothing=0)
+    cx = _scatter_add(patches, v, patches.max() + 1)[:, 0] / np.bincount(patches)
+    clear = np.abs(cx) > 15.0  # patches wholly on one side of the cut
+    assert np.array_equal(chosen[clear], (cx[clear] > 0).astype(int))
+    assert np.array_equal(start, np.where((chosen[patches] == 1)[:, None], b, a))
+    smooth, chosen10 = choose_start([a, b], X, N, f, patches, gate=10.0)
+    assert np.array_equal(chosen10, chosen)
+    w = (smooth - a)[:, 0] / 30.0  # the blend weight of the moved start, 0..1
+    assert np.all((w >= -1e-12) & (w <= 1 + 1e-12)) and np.any((w > 1e-6) & (w < 1 - 1e-6))
+    assert w[v[:, 0] > 30].min() > 0.5 > w[v[:, 0] < -30].max()  # each side mostly its own start
+    one, only = choose_start([a], X, N, f, patches, gate=10.0)
+    assert np.array_equal(one, a) and not only.any()
+    # within reach (the half moved by less than the gate) the first start stays, whatever the residuals say
+    near = _half_moved(v, f, [6.0, 0.0, 0.0])
+    kept, none = choose_start([a, v + [6.0, 0.0, 0.0]], near, vertex_normals(near, f), f, patches, gate=10.0)
+    assert np.array_equal(kept, a) and not none.any()
+
+
+def test_choose_start_invalid_input():
+    v, f = _sphere(1)
+    patches, _ = surface_patches(v, f, 40.0)
+    n = vertex_normals(v, f)
+    with pytest.raises(ValueError, match="candidates"):
+        choose_start([], v, n, f, patches, gate=10.0)
+    with pytest.raises(ValueError, match="candidates"):
+        choose_start([v, v[:5]], v, n, f, patches, gate=10.0)
+    with pytest.raises(ValueError, match="smoothing"):
+        choose_start([v], v, n, f, patches, gate=10.0, smoothing=-1)
+    with pytest.raises(ValueError, match="out_of_reach"):
+        choose_start([v], v, n, f, patches, gate=10.0, out_of_reach=1.5)
+    with pytest.raises(ValueError, match="points and normals"):
+        start_residuals(v, v, n[:3], f, patches, gate=10.0)
+    with pytest.raises(ValueError, match="start"):
+        start_residuals(v[:, :2], v, n, f, patches, gate=10.0)
+    with pytest.raises(ValueError, match="patches"):
+        start_residuals(v, v, n, f, patches[:3], gate=10.0)
+    with pytest.raises(ValueError, match="gate"):
+        start_residuals(v, v, n, f, patches, gate=0.0)
