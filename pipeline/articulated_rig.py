@@ -60,10 +60,10 @@ def tracked_meshes(results_dir) -> list[Path]:
     Raises
     ------
     NoTrackingError
-        When ``RESULTS_DIR/tracked/`` holds no ``.ply``.
+        When ``RESULTS_DIR/tracked/`` holds no ``NNNNNN.ply``.
     """
     d = Path(results_dir)
-    paths = sorted((d / "tracked").glob("*.ply")) if (d / "tracked").is_dir() else []
+    paths = sorted((d / "tracked").glob(FRAME_GLOB)) if (d / "tracked").is_dir() else []
     if not paths:
         raise NoTrackingError(
             f"{d} has no tracked/NNNNNN.ply: the per-frame surfaces of a take do not share connectivity, "
@@ -526,8 +526,11 @@ def write_rig(rig: ArticulatedRig, out_dir, *, progress=None) -> dict:
 
 #: The files :func:`write_rig` writes in a rig directory, besides ``posed/NNNNNN.ply``.
 RIG_FILES = ("rig.json", "segments.npy", "rig.bvh", "rig.glb")
-#: The names of the frames :func:`write_rig` writes in ``posed/`` (``NNNNNN.ply``), and nothing else.
-POSED_GLOB = "[0-9]" * 6 + ".ply"
+#: A frame's file in ``tracked/`` and ``posed/``: ``NNNNNN.ply``, exactly six digits (a user's
+#: ``1_fixed.ply`` beside them is not a frame: not read as one, not removed).
+FRAME_GLOB = "[0-9]" * 6 + ".ply"
+#: The names of the frames :func:`write_rig` writes in ``posed/``, and nothing else.
+POSED_GLOB = FRAME_GLOB
 
 
 def remove_rig(out_dir) -> bool:

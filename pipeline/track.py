@@ -312,7 +312,9 @@ def remove_tracking(out_dir) -> str:
 
 def _remove_tracked_frames(tracked: Path) -> int:
     """Remove ``tracked/NNNNNN.ply``; -> how many there were."""
-    files = list(tracked.glob("[0-9]*.ply"))
+    from pipeline.articulated_rig import FRAME_GLOB
+
+    files = list(tracked.glob(FRAME_GLOB))  # a user's 1_fixed.ply stays
     for f in files:
         f.unlink(missing_ok=True)
     return len(files)

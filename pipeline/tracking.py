@@ -657,6 +657,12 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(w).as_matrix()
 
 
+def _shape_of(a) -> str:
+    """How an argument that should be a sparse matrix is described in an error."""
+    kind = "sparse" if sp.issparse(a) else type(a).__name__
+    return f"{kind} {getattr(a, 'shape', '')}".strip()
+
+
 def predict_motion(previous, before, faces, patches, *, constrained=None, smoothing: int = 10, smoother=None,
                    patch_sum=None) -> np.ndarray:
     """Constant-velocity prediction of the next frame from the two tracked frames before it.
@@ -695,10 +701,10 @@ def predict_motion(previous, before, faces, patches, *, constrained=None, smooth
     n_p = int(patches.max()) + 1
     if smoother is None:
         smoother = _umbrella(faces, n)
-    elif smoother.shape != (n, n):
-        raise ValueError(f"smoother must have shape {(n, n)}, got {smoother.shape}")
-    if patch_sum is not None and patch_sum.shape != (n_p, n):
-        raise ValueError(f"patch_sum must have shape {(n_p, n)}, got {patch_sum.shape}")
+    elif not sp.issparse(smoother) or smoother.shape != (n, n):
+        raise ValueError(f"smoother must be a sparse matrix of shape {(n, n)}, got {_shape_of(smoother)}")
+    if patch_sum is not None and (not sp.issparse(patch_sum) or patch_sum.shape != (n_p, n)):
+        raise ValueError(f"patch_sum must be a sparse matrix of shape {(n_p, n)}, got {_shape_of(patch_sum)}")
 
     def by_patch(values):
         return _scatter_add(patches, values, n_p) if patch_sum is None else _sum_by(patch_sum, values)

@@ -476,3 +476,16 @@ def test_an_undefined_joint_in_a_frame_still_gives_valid_files(pipe, tmp_path, c
     write_rig(broken, tmp_path)
     g = pygltflib.GLTF2().load(str(tmp_path / "rig.glb"))
     assert len(g.animations) == 1
+
+
+def test_tracked_meshes_are_the_six_digit_frames_only(tmp_path):
+    """``tracked/NNNNNN.ply`` in frame order; a user's file beside them is not read as a frame."""
+    from pipeline.articulated_rig import NoTrackingError, tracked_meshes
+
+    (tmp_path / "tracked").mkdir()
+    (tmp_path / "tracked" / "1_fixed.ply").write_text("the user's")
+    with pytest.raises(NoTrackingError, match="no tracked/NNNNNN.ply"):
+        tracked_meshes(tmp_path)
+    for k in (2, 0, 1):
+        (tmp_path / "tracked" / f"{k:06d}.ply").write_text("")
+    assert [p.name for p in tracked_meshes(tmp_path)] == ["000000.ply", "000001.ply", "000002.ply"]

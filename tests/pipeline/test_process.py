@@ -460,6 +460,7 @@ def test_starting_over_removes_the_tracking_and_rig_of_the_old_surfaces(small_tr
     out = tmp_path / "out"
     shutil.copytree(first, out)
     (out / "rig" / "notes.txt").write_text("the user's")
+    (out / "tracked" / "1_fixed.ply").write_text("the user's, a name starting with a digit")
     store = ResultsStore(out)
     store.export(0, "ply")
     store.export(2, "glb")
@@ -472,7 +473,9 @@ def test_starting_over_removes_the_tracking_and_rig_of_the_old_surfaces(small_tr
                     f"surfaces ({out / 'tracked'}); removed the rig built on them ({out / 'rig'})"], said
     assert [p.name for p in (out / "export").iterdir()] == ["mine.ply"]
     assert said[0] in res.report["warnings"] and json.loads((out / "report.json").read_text())["warnings"] == res.report["warnings"]
-    assert not (out / "tracked").exists() and sorted(p.name for p in (out / "rig").iterdir()) == ["notes.txt"]
+    assert [p.name for p in (out / "tracked").iterdir()] == ["1_fixed.ply"]
+    assert sorted(p.name for p in (out / "rig").iterdir()) == ["notes.txt"]
+    (out / "tracked" / "1_fixed.ply").unlink()
     assert not (out / "report.html").exists() and not (out / "spine_rig.glb").exists()
     assert json.loads((out / "process.json").read_text())["params"]["resolution"] == 28
     # tracking again now tracks the new surfaces (nothing of the old settings is left to compare)

@@ -302,7 +302,14 @@ def test_vertex_normals_with_the_trackers_corner_sums_are_the_same_bit_for_bit()
     v, f = _sphere(2)
     tr = TemplateTracker(v, f)
     moved = v * [1.0, 1.3, 0.8] + 5.0
-    assert np.array_equal(vertex_normals(moved, f, corners=tr.corner_sum), vertex_normals(moved, f))
+    normals = vertex_normals(moved, f, corners=tr.corner_sum)
+    assert np.array_equal(normals, vertex_normals(moved, f))
+    # an independent reference: area-weighted face normals summed per corner by np.add.at, normalised
+    a, b, c = (moved[f[:, i]] for i in range(3))
+    slow = np.zeros_like(moved)
+    for i in range(3):
+        np.add.at(slow, f[:, i], np.cross(b - a, c - a))
+    np.testing.assert_allclose(normals, slow / np.linalg.norm(slow, axis=1, keepdims=True), rtol=0, atol=1e-12)
     for bad in (tr.corner_sum[:-1], tr.corner_sum.toarray(), "corners"):
         with pytest.raises(ValueError, match="corners"):
             vertex_normals(moved, f, corners=bad)
@@ -426,6 +433,11 @@ def test_tracker_prediction_builds_its_matrices_once_and_predicts_the_same_bits(
         predict_motion(prev, before, f, tr.patches, smoother=tr.smoother[:-1])
     with pytest.raises(ValueError, match="patch_sum"):
         predict_motion(prev, before, f, tr.patches, patch_sum=tr.patch_sum[:, :-1])
+    for bad in (tr.smoother.toarray(), "smoother"):  # not a sparse matrix: a ValueError naming it, not AttributeError
+        with pytest.raises(ValueError, match="smoother"):
+            predict_motion(prev, before, f, tr.patches, smoother=bad)
+    with pytest.raises(ValueError, match="patch_sum"):
+        predict_motion(prev, before, f, tr.patches, patch_sum=[[1.0]])
 
 
 def _rotz(deg):
