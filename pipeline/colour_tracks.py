@@ -19,7 +19,9 @@ With the template's triangles and a prediction of the frame (``faces=``, ``predi
 warped by the prediction's local image motion (:func:`_local_warps`, :func:`_warped_lk`), on
 the object's pixels only: OpenCV's window only translates, and a part that turns within the
 image turns the texture inside it; the silhouette is no point of the surface (a round end's
-outline stays put while it turns) and the background does not move with the object.
+outline stays put while it turns) and the background does not move with the object. The
+multi-view colour tracks (:func:`pipeline.track.track_results`, ``colour=True``) use the same
+refinement per camera, with that camera's keyed masks as the object's pixels.
 
 Measured on the simulated lamp (30 frames, each frame started from the true motion, the
 capture volume of the tracking): on the 14 fast frames (head moving over 15 mm a frame) the

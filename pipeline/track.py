@@ -615,7 +615,7 @@ def _multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float
         (img0, m0), (img1, m1) = before, now
         # no depth in one camera: a plane at the visible vertices' depth gives each track its ray ...
         z = float(np.median(cam.project(V[vis], return_depth=True)[1]))
-        # windows warped by the prediction's image motion, on this camera's keyed object pixels only
+        # (windows warped by this camera's projection of the start, on its keyed object pixels only)
         idx, _, rays = colour_tracks(img0, img1, V, vis, cam, np.full(m1.shape, z), masks=(m0, m1), predicted=start,
                                      faces=faces)
         # ... and the target is the ray's point nearest the vertex's start (the fit uses only the directions across it)
