@@ -227,6 +227,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                   "reference_frame": frames[ref], "spine_init": use_spine, "spine_start": spine_start,
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
                   "skipped": [], "frames": {}}
+        if spine_start != "none":  # every frame's start depends on the spine then
+            report["spine_sha256"] = _file_digest(root / "spine.json")
         kept = _start_over_if_changed(root, report)
         chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
                  "spine_start": spine_start, "spine_template": loaded, "predict": bool(predict),
@@ -253,6 +255,13 @@ def _mesh_digest(V: np.ndarray, F: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(V, np.float64).tobytes() + np.ascontiguousarray(F, np.int64).tobytes()).hexdigest()
 
 
+def _file_digest(path: Path) -> str:
+    """SHA-256 of a file's bytes."""
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
 def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
     """Per-frame figures of the frames an earlier run of the same settings tracked (they are
     kept), or ``{}``: tracked frames of other settings are removed first, as ``stage process``
@@ -266,17 +275,31 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
         old = None
     kept = {}
     if old is not None:
-        changed = [k for k in report if k not in _RESULT_KEYS and old.get(k) != report[k]]
+        changed = [k for k in report if k not in _RESULT_KEYS and _old_setting(old, k, report[k]) != report[k]]
         if changed:
             _remove_tracked_frames(path.parent)
             report["started_over"] = (f"{path.parent} holds frames tracked with other settings "
-                                      f"({', '.join(_change(k, old.get(k), report[k]) for k in changed)}); "
+                                      f"({', '.join(_change(k, _old_setting(old, k, report[k]), report[k]) for k in changed)}); "
                                       f"tracking again{_remove_stale_rig(Path(out_dir))}")
             log.warning("%s", report["started_over"])
         elif isinstance(old.get("frames"), dict):
             kept = old["frames"]
     _write_report(out_dir, {**report, "frames": kept})
     return kept
+
+
+def _old_setting(old: dict, key: str, new):
+    """A setting of an earlier run's ``track.json``, with the keys an earlier version did not
+    write read as what it did: without ``spine_start``, every patch started from the spine's
+    skinned step with ``spine_init`` and from the prediction without; without ``spine_sha256``,
+    the spine was not recorded (read as the current one: its frames are kept)."""
+    if key in old:
+        return old[key]
+    if key == "spine_start":
+        return "all" if old.get("spine_init") else "none"
+    if key == "spine_sha256":
+        return new
+    return None
 
 
 def remove_tracking(out_dir) -> str:
@@ -339,6 +362,8 @@ def _remove_stale_rig(out_dir: Path) -> str:
 def _change(key: str, old, new) -> str:
     if key == "template_sha256":
         return "template mesh changed"
+    if key == "spine_sha256":
+        return "spine.json changed"
     return f"{key} {old!r} -> {new!r}"
 
 

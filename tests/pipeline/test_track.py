@@ -269,6 +269,35 @@ def _sphere_results(root, frames=5):
     return t
 
 
+def _fake_spine(V, F, ref, step):
+    """``_spine_model``'s stand-in: reference ``ref``, the template ``V`` and a skinned pose moving by ``step`` a frame."""
+    from types import SimpleNamespace
+
+    V = np.asarray(V, float)
+    model = SimpleNamespace(vertices=V, faces=F, deform=lambda i: V + np.multiply(step, i - ref))
+    return lambda *a: (ref, model)
+
+
+def test_rebuilt_spine_starts_over_with_one_warning_and_the_same_spine_resumes(tmp_path, monkeypatch, caplog):
+    from pipeline import track
+
+    t = _sphere_results(tmp_path, frames=3)
+    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    (tmp_path / "spine.json").write_text('{"frames": 3}')
+    first = track.track_results(tmp_path)
+    assert first["spine_start"] == "choose" and len(first["spine_sha256"]) == 64
+    stamp = track.tracked_path(tmp_path, 2).stat().st_mtime_ns
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        again = track.track_results(tmp_path)  # the same spine: resumed, nothing fitted
+        assert not caplog.records and again["frames"] == first["frames"]
+        assert track.tracked_path(tmp_path, 2).stat().st_mtime_ns == stamp
+        (tmp_path / "spine.json").write_text('{"frames": 3, "rebuilt": true}')
+        other = track.track_results(tmp_path)
+    assert [r.getMessage() for r in caplog.records] == [other["started_over"]]
+    assert "other settings (spine.json changed)" in other["started_over"]
+    assert other["spine_sha256"] != first["spine_sha256"] and track.tracked_path(tmp_path, 2).stat().st_mtime_ns != stamp
+
+
 def test_killed_worker_process_frames_are_tracked_here(tmp_path, monkeypatch, caplog):
     """A backward half whose process died (BrokenProcessPool) is tracked in this process, with one
     warning; the vertices are those of a run in order."""
