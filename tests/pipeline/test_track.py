@@ -298,6 +298,40 @@ def test_rebuilt_spine_starts_over_with_one_warning_and_the_same_spine_resumes(t
     assert other["spine_sha256"] != first["spine_sha256"] and track.tracked_path(tmp_path, 2).stat().st_mtime_ns != stamp
 
 
+def test_track_json_of_the_earlier_version_without_spine_start_keeps_frames_of_the_same_behaviour(
+        tmp_path, monkeypatch, caplog):
+    """An earlier track.json (no spine_start, no spine_sha256) reads as "none" without --spine-init
+    and "all" with it: the same run resumes; the new default with a spine (choose) starts over."""
+    from pipeline import track
+
+    def older(root):  # track.json as the earlier version wrote it
+        path = root / "tracked" / "track.json"
+        rep = json.loads(path.read_text())
+        del rep["spine_start"]
+        rep.pop("spine_sha256", None)
+        path.write_text(json.dumps(rep))
+
+    t = _sphere_results(tmp_path / "no_spine", frames=3)
+    first = track.track_results(tmp_path / "no_spine")
+    older(tmp_path / "no_spine")
+    t = _sphere_results(tmp_path / "spine_init", frames=3)
+    (tmp_path / "spine_init" / "spine.json").write_text('{"frames": 3}')
+    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    init = track.track_results(tmp_path / "spine_init", spine_init=True)
+    older(tmp_path / "spine_init")
+    monkeypatch.undo()
+    stamps = {d: track.tracked_path(tmp_path / d, 2).stat().st_mtime_ns for d in ("no_spine", "spine_init")}
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        assert track.track_results(tmp_path / "no_spine")["frames"] == first["frames"]
+        monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+        assert track.track_results(tmp_path / "spine_init", spine_init=True)["frames"] == init["frames"]
+        assert not caplog.records
+        assert all(track.tracked_path(tmp_path / d, 2).stat().st_mtime_ns == s for d, s in stamps.items())
+        older(tmp_path / "spine_init")
+        track.track_results(tmp_path / "spine_init")  # the new default with a spine: another start
+    assert len(caplog.records) == 1 and "spine_start 'all' -> 'choose'" in caplog.records[0].getMessage()
+
+
 def test_killed_worker_process_frames_are_tracked_here(tmp_path, monkeypatch, caplog):
     """A backward half whose process died (BrokenProcessPool) is tracked in this process, with one
     warning; the vertices are those of a run in order."""
