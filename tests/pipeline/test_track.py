@@ -179,12 +179,11 @@ def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(
     import concurrent.futures as cf
     import multiprocessing
     import threading
-    from types import SimpleNamespace
 
     from pipeline import track
 
     t = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
-    monkeypatch.setattr(track, "_spine_model", lambda *a: (3, SimpleNamespace(vertices=t.vertices + [6.0, 0, 0], faces=t.faces)))
+    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [6.0, 0, 0], t.faces, 3, [2.0, 0, 0]))
     monkeypatch.setattr(track, "_POLL_SECONDS", 0.01)
     forward_done = threading.Event()
 
@@ -197,6 +196,7 @@ def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(
         root = tmp_path / how
         for k in range(7):
             atomic_write_bytes(root / "meshes" / f"frame_{k:06d}.ply", ply_bytes(t.vertices + [2.0 * k, 0, 0], t.faces))
+        (root / "spine.json").write_text('{"frames": 7}')
         seen = seen_by[how] = []
         forward_done.clear()
 
@@ -205,14 +205,21 @@ def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(
             if d >= 4:  # the reference frame and the 3 after it
                 forward_done.set()
 
-        if how == "pool":
+        if how == "pool":  # the fake spine is not in the worker process: the prediction only
             with cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver")) as ex:
                 rep = track.track_results(root, executor=ex, progress=progress, choose=False)
-        elif how == "late":
+        elif how == "late":  # the default: per patch the prediction or the skinned step (choose)
             with LateWorker(max_workers=1) as ex:
-                rep = track.track_results(root, executor=ex, progress=progress, choose=False)
+                rep = track.track_results(root, executor=ex, progress=progress)
+                stamps = [track.tracked_path(root, k).stat().st_mtime_ns for k in range(7)]
+                assert track.track_results(root, executor=ex)["frames"] == rep["frames"]  # resumed
+                assert [track.tracked_path(root, k).stat().st_mtime_ns for k in range(7)] == stamps
+            assert rep["spine_start"] == "choose" and len(rep["spine_sha256"]) == 64
+            # every step within reach of the prediction: no patch takes the skinned step
+            assert [rep["frames"][str(k)].get("spine_start_patches") for k in range(7)] == [0.0] * 3 + [None] + [0.0] * 3
         else:
             rep = track.track_results(root, progress=progress, choose=False)
+            assert rep["spine_start"] == "none" and "spine_sha256" not in rep
         assert rep["reference_frame"] == 3 and list(rep["frames"]) == [str(k) for k in range(7)]
         assert ("worker_cpu_seconds" in rep) == (how == "pool")  # a thread's CPU is already this process's
         assert seen[-1] == (7, 7) and all(d <= n for d, n in seen)
