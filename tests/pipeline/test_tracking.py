@@ -551,3 +551,33 @@ def test_choose_start_invalid_input():
         start_residuals(v, v, n, f, patches[:3], gate=10.0)
     with pytest.raises(ValueError, match="gate"):
         start_residuals(v, v, n, f, patches, gate=0.0)
+    import scipy.sparse as sp
+
+    from pipeline.tracking import TemplateTracker
+
+    tr = TemplateTracker(v, f, gate=10.0)
+    for bad in (True, float("nan"), float("inf"), -1.0, "10", None):  # gate: a finite positive real, not a bool
+        for call in (lambda g: start_residuals(v, v, n, f, patches, gate=g),
+                     lambda g: choose_start([v], v, n, f, patches, gate=g)):  # one candidate: checked all the same
+            with pytest.raises(ValueError, match="gate"):
+                call(bad)
+    assert start_residuals(v, v, n, f, patches, gate=np.float32(10.0)).shape == (patches.max() + 1,)
+    for bad in (tr.smoother.toarray(), sp.eye(len(v) - 1, format="csr")):  # dense, or the wrong shape
+        with pytest.raises(ValueError, match="smoother must be a sparse matrix of shape"):
+            choose_start([v, v + 1.0], v, n, f, patches, gate=10.0, smoother=bad)
+        with pytest.raises(ValueError, match="smoother"):
+            choose_start([v], v, n, f, patches, gate=10.0, smoother=bad)
+    for bad in (tr.corner_sum.toarray(), tr.corner_sum[:, :-3]):
+        with pytest.raises(ValueError, match="corners must be a sparse matrix of shape"):
+            start_residuals(v, v, n, f, patches, gate=10.0, corners=bad)
+        with pytest.raises(ValueError, match="corners"):
+            choose_start([v], v, n, f, patches, gate=10.0, corners=bad)
+    for bad in (f[:, :2], f + len(v), f.astype(float)):
+        with pytest.raises(ValueError, match="faces"):
+            start_residuals(v, v, n, bad, patches, gate=10.0)
+    with pytest.raises(ValueError, match="patches"):  # one candidate: checked all the same
+        choose_start([v], v, n, f, patches[:3], gate=10.0)
+    with pytest.raises(ValueError, match="points and normals"):
+        choose_start([v], v, n[:3], f, patches, gate=10.0)
+    with pytest.raises(ValueError, match="out_of_reach"):
+        choose_start([v], v, n, f, patches, gate=10.0, out_of_reach=True)
