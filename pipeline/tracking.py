@@ -1235,7 +1235,8 @@ def choose_start(candidates, points, normals, faces, patches, *, gate: float, ou
     voxels of the mean). A patch out of reach (a galloping leg whose step is longer than the
     gate) takes the candidate with the smallest gated residual. The choice (one weight per
     candidate and vertex) is averaged over ``smoothing`` rings of neighbours, so that patches
-    taken from different candidates meet without a tear.
+    taken from different candidates meet without a tear: the vertices of a patch within
+    ``smoothing`` rings of a patch that took another candidate take a blend of both.
 
     Parameters
     ----------

@@ -91,7 +91,9 @@ def test_invalid_input(tmp_path, capsys):
     assert "stage process" in capsys.readouterr().err
     for args, msg in (([str(tmp_path), "--no-colour"], "--no-colour applies to a take file"),
                       ([str(tmp_path), "--out", str(tmp_path / "o")], "--out applies to a take file"),
-                      ([str(f), "--template", str(f), "--colour"], "--colour applies to a results directory")):
+                      ([str(f), "--template", str(f), "--colour"], "--colour applies to a results directory"),
+                      ([str(f), "--template", str(f), "--prediction-only"],
+                       "--prediction-only applies to a results directory")):
         assert main(["track", *args]) == 2  # a flag of the other mode would be ignored
         assert msg in capsys.readouterr().err
     assert main(["track", str(f), "--template", str(f), "--workers", "2"]) == 2
@@ -337,6 +339,22 @@ def test_track_json_of_the_earlier_version_without_spine_start_keeps_frames_of_t
         older(tmp_path / "spine_init")
         track.track_results(tmp_path / "spine_init")  # the new default with a spine: another start
     assert len(caplog.records) == 1 and "spine_start 'all' -> 'choose'" in caplog.records[0].getMessage()
+
+
+def test_cli_prediction_only_never_starts_from_the_spine(tmp_path, monkeypatch, capsys):
+    from pipeline import track
+
+    t = _sphere_results(tmp_path, frames=3)
+    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    assert main(["-q", "track", str(tmp_path), "--spine-init", "--prediction-only"]) == 2
+    assert "exclude each other" in capsys.readouterr().err and not (tmp_path / "tracked").exists()
+    assert main(["-q", "track", str(tmp_path), "--prediction-only", "--workers", "0"]) == 0
+    rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
+    assert rep["spine_start"] == "none" and not any("spine_start_patches" in f for f in rep["frames"].values())
+    (tmp_path / "spine.json").write_text('{"frames": 3}')
+    assert main(["-q", "track", str(tmp_path), "--workers", "0"]) == 0  # the default: choose
+    rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
+    assert rep["spine_start"] == "choose" and all("spine_start_patches" in rep["frames"][k] for k in ("0", "2"))
 
 
 def test_killed_worker_process_frames_are_tracked_here(tmp_path, monkeypatch, caplog):
