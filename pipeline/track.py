@@ -76,9 +76,8 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
                 contour_for=None, init_for=None, total=None, prev_frame=None, predict=None, before=None, tracks_for=None,
                 choose=None):
     """Track ``frames`` in order; ``data_for(k, previous_vertices)`` -> (points, normals, extra) or None (no data);
-    ``init_for(k, previous_frame, previous_vertices)`` -> where frame ``k``'s rounds start;
-    ``predict(previous, before)`` -> the start from the two frames before (used when both are the
-    neighbouring frames of ``k`` and ``init_for`` is not given); ``before``: (frame, vertices) before ``prev``;
+    ``predict``, ``init_for``, ``choose``: where each frame's rounds start (:func:`_start_for`);
+    ``before``: (frame, vertices) before ``prev``;
     ``tracks_for(k, previous_frame, previous_vertices, extra, start)`` -> feature tracks of frame ``k`` or None."""
     V0 = tracker.template
     vol0 = mesh_volume(V0, faces)
@@ -98,16 +97,8 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
             else:
                 pts, nrm, extra = data
                 contour = contour_for(extra) if contour_for is not None else None
-                init = predicted = from_spine = None
-                if predict is not None and before is not None and prev_frame is not None \
-                        and abs(k - prev_frame) == 1 and abs(prev_frame - before[0]) == 1:
-                    predicted = predict(prev, before[1], seen)
-                if init_for is not None and prev_frame is not None:
-                    init = init_for(k, prev_frame, prev)
-                    if choose is not None:
-                        init, from_spine = choose([prev if predicted is None else predicted, init], pts, nrm)
-                else:
-                    init = predicted
+                init, from_spine = _start_for(k, prev_frame, prev, before, seen, pts, nrm, predict=predict,
+                                              init_for=init_for, choose=choose)
                 tracks = None
                 if tracks_for is not None and prev_frame is not None:
                     tracks = tracks_for(k, prev_frame, prev, extra, init)
@@ -131,6 +122,31 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
         if progress is not None:
             progress("track", start + done, total if total is not None else start + len(frames))
     return prev
+
+
+def _start_for(k, prev_frame, prev, before, seen, points, normals, *, predict, init_for, choose):
+    """Where frame ``k``'s rounds start (None: the previous frame ``prev``) and the share of the
+    patches that took the second start (None without a choice). Each start is computed only
+    when it is used:
+
+    - ``init_for(k, previous_frame, previous_vertices)`` (the spine's skinned step) without
+      ``choose``: it, for every patch;
+    - with ``choose(candidates, points, normals)`` -> (start, share): per patch, the prediction
+      (or the previous frame) or ``init_for``'s start, whichever the frame's data explain;
+    - without ``init_for``: ``predict(previous, before, constrained)``, the start from the two
+      frames before, when both are the neighbouring frames of ``k`` (``before``: (frame,
+      vertices) before ``prev``; ``seen``: the previous fit's constrained motions).
+    """
+    if prev_frame is None:
+        return None, None
+    if init_for is not None and choose is None:
+        return init_for(k, prev_frame, prev), None
+    predicted = None
+    if predict is not None and before is not None and abs(k - prev_frame) == 1 and abs(prev_frame - before[0]) == 1:
+        predicted = predict(prev, before[1], seen)
+    if init_for is None:
+        return predicted, None
+    return choose([prev if predicted is None else predicted, init_for(k, prev_frame, prev)], points, normals)
 
 
 def _spine_model(root: Path, frames: list[int], by_frame: dict, template):

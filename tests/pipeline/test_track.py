@@ -357,6 +357,25 @@ def test_cli_prediction_only_never_starts_from_the_spine(tmp_path, monkeypatch, 
     assert rep["spine_start"] == "choose" and all("spine_start_patches" in rep["frames"][k] for k in ("0", "2"))
 
 
+def test_start_for_computes_only_the_start_it_uses():
+    from pipeline.track import _start_for
+
+    def unused(*a):
+        raise AssertionError("computed and thrown away")
+
+    prev, before = np.zeros((4, 3)), (1, np.ones((4, 3)))
+    skinned = lambda k, kp, p: p + 2.0  # noqa: E731
+    start, share = _start_for(3, 2, prev, before, None, None, None, predict=unused, init_for=skinned, choose=None)
+    assert np.array_equal(start, prev + 2.0) and share is None  # --spine-init: no prediction
+    start, share = _start_for(3, 2, prev, before, None, None, None, predict=lambda p, b, s: p - b, init_for=None,
+                              choose=unused)
+    assert np.array_equal(start, -np.ones((4, 3))) and share is None
+    assert _start_for(5, 2, prev, before, None, None, None, predict=unused, init_for=None, choose=None) == (None, None)
+    picked = _start_for(3, 2, prev, before, None, "pts", "nrm", predict=lambda p, b, s: p - b, init_for=skinned,
+                        choose=lambda c, x, n: (c[int(x == "pts")], 1.0))
+    assert np.array_equal(picked[0], prev + 2.0) and picked[1] == 1.0
+
+
 def test_killed_worker_process_frames_are_tracked_here(tmp_path, monkeypatch, caplog):
     """A backward half whose process died (BrokenProcessPool) is tracked in this process, with one
     warning; the vertices are those of a run in order."""
