@@ -662,7 +662,8 @@ def _settle_limb_tips(frames, A: np.ndarray, params: SpineParams) -> tuple[list,
     A frame's tip is the highest of its limb's near-equal maxima (Brostow's AGD), and which one
     that is follows the surface's small errors (a horse's nose or an ear). Over the take the
     candidates are linked frame to frame (in the limb's own position, within the protrusion
-    threshold ``h``: any two candidates of a frame lie at least ``h`` apart) and, of the tracks
+    threshold ``h``: any two candidates of a frame lie at least ``h`` apart along the surface,
+    geodesically; in space they may be closer) and, of the tracks
     seen in the most frames, the one whose position in the limb's frame is the most consistent
     over the take (least RMS distance to its mean) is the limb's tip (Brostow's spine is one
     over time); where it is seen, it stands in for the frame's tip. Limbs without alternates

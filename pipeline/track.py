@@ -76,9 +76,8 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
                 contour_for=None, init_for=None, total=None, prev_frame=None, predict=None, before=None, tracks_for=None,
                 choose=None):
     """Track ``frames`` in order; ``data_for(k, previous_vertices)`` -> (points, normals, extra) or None (no data);
-    ``init_for(k, previous_frame, previous_vertices)`` -> where frame ``k``'s rounds start;
-    ``predict(previous, before)`` -> the start from the two frames before (used when both are the
-    neighbouring frames of ``k`` and ``init_for`` is not given); ``before``: (frame, vertices) before ``prev``;
+    ``predict``, ``init_for``, ``choose``: where each frame's rounds start (:func:`_start_for`);
+    ``before``: (frame, vertices) before ``prev``;
     ``tracks_for(k, previous_frame, previous_vertices, extra, start)`` -> feature tracks of frame ``k`` or None."""
     V0 = tracker.template
     vol0 = mesh_volume(V0, faces)
@@ -98,16 +97,8 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
             else:
                 pts, nrm, extra = data
                 contour = contour_for(extra) if contour_for is not None else None
-                init = predicted = from_spine = None
-                if predict is not None and before is not None and prev_frame is not None \
-                        and abs(k - prev_frame) == 1 and abs(prev_frame - before[0]) == 1:
-                    predicted = predict(prev, before[1], seen)
-                if init_for is not None and prev_frame is not None:
-                    init = init_for(k, prev_frame, prev)
-                    if choose is not None:
-                        init, from_spine = choose([prev if predicted is None else predicted, init], pts, nrm)
-                else:
-                    init = predicted
+                init, from_spine = _start_for(k, prev_frame, prev, before, seen, pts, nrm, predict=predict,
+                                              init_for=init_for, choose=choose)
                 tracks = None
                 if tracks_for is not None and prev_frame is not None:
                     tracks = tracks_for(k, prev_frame, prev, extra, init)
@@ -131,6 +122,31 @@ def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_fo
         if progress is not None:
             progress("track", start + done, total if total is not None else start + len(frames))
     return prev
+
+
+def _start_for(k, prev_frame, prev, before, seen, points, normals, *, predict, init_for, choose):
+    """Where frame ``k``'s rounds start (None: the previous frame ``prev``) and the share of the
+    patches that took the second start (None without a choice). Each start is computed only
+    when it is used:
+
+    - ``init_for(k, previous_frame, previous_vertices)`` (the spine's skinned step) without
+      ``choose``: it, for every patch;
+    - with ``choose(candidates, points, normals)`` -> (start, share): per patch, the prediction
+      (or the previous frame) or ``init_for``'s start, whichever the frame's data explain;
+    - without ``init_for``: ``predict(previous, before, constrained)``, the start from the two
+      frames before, when both are the neighbouring frames of ``k`` (``before``: (frame,
+      vertices) before ``prev``; ``seen``: the previous fit's constrained motions).
+    """
+    if prev_frame is None:
+        return None, None
+    if init_for is not None and choose is None:
+        return init_for(k, prev_frame, prev), None
+    predicted = None
+    if predict is not None and before is not None and abs(k - prev_frame) == 1 and abs(prev_frame - before[0]) == 1:
+        predicted = predict(prev, before[1], seen)
+    if init_for is None:
+        return predicted, None
+    return choose([prev if predicted is None else predicted, init_for(k, prev_frame, prev)], points, normals)
 
 
 def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
@@ -229,6 +245,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                   "reference_frame": frames[ref], "spine_init": use_spine, "spine_start": spine_start,
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
                   "skipped": [], "frames": {}}
+        if spine_start != "none":  # every frame's start depends on the spine then
+            report["spine_sha256"] = _file_digest(root / "spine.json")
         kept = _start_over_if_changed(root, report)
         chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
                  "spine_start": spine_start, "spine_template": loaded, "predict": bool(predict),
@@ -255,6 +273,13 @@ def _mesh_digest(V: np.ndarray, F: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(V, np.float64).tobytes() + np.ascontiguousarray(F, np.int64).tobytes()).hexdigest()
 
 
+def _file_digest(path: Path) -> str:
+    """SHA-256 of a file's bytes."""
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
 def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
     """Per-frame figures of the frames an earlier run of the same settings tracked (they are
     kept), or ``{}``: tracked frames of other settings are removed first, as ``stage process``
@@ -268,17 +293,31 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
         old = None
     kept = {}
     if old is not None:
-        changed = [k for k in report if k not in _RESULT_KEYS and old.get(k) != report[k]]
+        changed = [k for k in report if k not in _RESULT_KEYS and _old_setting(old, k, report[k]) != report[k]]
         if changed:
             _remove_tracked_frames(path.parent)
             report["started_over"] = (f"{path.parent} holds frames tracked with other settings "
-                                      f"({', '.join(_change(k, old.get(k), report[k]) for k in changed)}); "
+                                      f"({', '.join(_change(k, _old_setting(old, k, report[k]), report[k]) for k in changed)}); "
                                       f"tracking again{_remove_stale_rig(Path(out_dir))}")
             log.warning("%s", report["started_over"])
         elif isinstance(old.get("frames"), dict):
             kept = old["frames"]
     _write_report(out_dir, {**report, "frames": kept})
     return kept
+
+
+def _old_setting(old: dict, key: str, new):
+    """A setting of an earlier run's ``track.json``, with the keys an earlier version did not
+    write read as what it did: without ``spine_start``, every patch started from the spine's
+    skinned step with ``spine_init`` and from the prediction without; without ``spine_sha256``,
+    the spine was not recorded (read as the current one: its frames are kept)."""
+    if key in old:
+        return old[key]
+    if key == "spine_start":
+        return "all" if old.get("spine_init") else "none"
+    if key == "spine_sha256":
+        return new
+    return None
 
 
 def remove_tracking(out_dir) -> str:
@@ -341,6 +380,8 @@ def _remove_stale_rig(out_dir: Path) -> str:
 def _change(key: str, old, new) -> str:
     if key == "template_sha256":
         return "template mesh changed"
+    if key == "spine_sha256":
+        return "spine.json changed"
     return f"{key} {old!r} -> {new!r}"
 
 

@@ -104,6 +104,7 @@ of numpy on top of scipy's KD-tree; no maintained package offers the paper's ene
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -1149,15 +1150,22 @@ class TemplateTracker:
                         rounds=len(history), history=history, constrained=seen)
 
 
-def _check_start_inputs(V, X, N, patches, gate) -> None:
+def _check_start_inputs(V, X, N, faces, patches, gate, corners) -> None:
+    """The inputs :func:`start_residuals` and :func:`choose_start` share; ValueError naming the first wrong one."""
     if V.ndim != 2 or V.shape[1] != 3:
         raise ValueError(f"the start must have shape (V, 3), got {V.shape}")
     if X.ndim != 2 or X.shape[1] != 3 or N.shape != X.shape:
         raise ValueError(f"points and normals must both have shape (P, 3), got {X.shape} and {N.shape}")
-    if patches.shape != (len(V),) or not np.issubdtype(patches.dtype, np.integer) or patches.min() < 0:
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer) \
+            or (faces.size and (faces.min() < 0 or faces.max() >= len(V))):
+        raise ValueError(f"faces must be (F, 3) integer indices of the {len(V)} vertices, got {faces.shape} {faces.dtype}")
+    if patches.shape != (len(V),) or not np.issubdtype(patches.dtype, np.integer) or (patches.size and patches.min() < 0):
         raise ValueError(f"patches must be one non-negative integer per vertex, shape ({len(V)},), got {patches.shape}")
-    if not (isinstance(gate, (int, float)) and math.isfinite(gate) and gate > 0):
+    if isinstance(gate, bool) or not isinstance(gate, numbers.Real) or not (math.isfinite(gate) and gate > 0):
         raise ValueError(f"gate must be a positive number (mm), got {gate!r}")
+    if corners is not None and (not sp.issparse(corners) or corners.shape != (len(V), faces.size)):
+        raise ValueError(f"corners must be a sparse matrix of shape {(len(V), faces.size)} (the faces' corner sums), "
+                         f"got {_shape_of(corners)}")
 
 
 def start_residuals(V, points, normals, faces, patches, *, gate: float, tree=None, corners=None) -> np.ndarray:
@@ -1189,12 +1197,12 @@ def start_residuals(V, points, normals, faces, patches, *, gate: float, tree=Non
     """
     V = np.asarray(V, float)
     X, N = np.asarray(points, float), np.asarray(normals, float)
-    patches = np.asarray(patches)
-    _check_start_inputs(V, X, N, patches, gate)
+    patches, f = np.asarray(patches), np.asarray(faces)
+    _check_start_inputs(V, X, N, f, patches, gate, corners)
     n_p = int(patches.max()) + 1
     if len(X) == 0:
         return np.full(n_p, float(gate))
-    f = np.asarray(faces, np.int64)
+    f = f.astype(np.int64, copy=False)
     vn = _vertex_normals(V, f, corners if corners is not None else _summing(f.ravel(), len(V)))
     tree = cKDTree(X) if tree is None else tree
 
@@ -1227,7 +1235,8 @@ def choose_start(candidates, points, normals, faces, patches, *, gate: float, ou
     voxels of the mean). A patch out of reach (a galloping leg whose step is longer than the
     gate) takes the candidate with the smallest gated residual. The choice (one weight per
     candidate and vertex) is averaged over ``smoothing`` rings of neighbours, so that patches
-    taken from different candidates meet without a tear.
+    taken from different candidates meet without a tear: the vertices of a patch within
+    ``smoothing`` rings of a patch that took another candidate take a blend of both.
 
     Parameters
     ----------
@@ -1252,10 +1261,16 @@ def choose_start(candidates, points, normals, faces, patches, *, gate: float, ou
     C = [np.asarray(c, float) for c in candidates]
     if not C or any(c.shape != C[0].shape for c in C):
         raise ValueError("candidates must be one or more arrays of the same shape (V, 3)")
-    if not (isinstance(out_of_reach, (int, float)) and 0 <= out_of_reach <= 1):
+    if isinstance(out_of_reach, bool) or not isinstance(out_of_reach, numbers.Real) or not 0 <= out_of_reach <= 1:
         raise ValueError(f"out_of_reach must be a share in [0, 1], got {out_of_reach!r}")
     if isinstance(smoothing, bool) or not isinstance(smoothing, (int, np.integer)) or smoothing < 0:
         raise ValueError(f"smoothing must be an integer >= 0, got {smoothing!r}")
+    patches = np.asarray(patches)
+    _check_start_inputs(C[0], np.asarray(points, float), np.asarray(normals, float), np.asarray(faces), patches, gate,
+                        corners)
+    n = len(C[0])
+    if smoother is not None and (not sp.issparse(smoother) or smoother.shape != (n, n)):
+        raise ValueError(f"smoother must be a sparse matrix of shape {(n, n)}, got {_shape_of(smoother)}")
     if len(C) == 1:
         return C[0].copy(), np.zeros(int(np.max(patches)) + 1, np.int64)
     tree = cKDTree(np.asarray(points, float)) if len(points) else None

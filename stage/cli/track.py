@@ -31,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="multi-view: start every patch of every frame from the spine's skinned motion of the template "
                    "(default: only the patches the constant-velocity prediction leaves out of the gate's reach, where the "
                    "surface explains the skinned start better)")
+    p.add_argument("--prediction-only", action="store_true",
+                   help="multi-view with a spine: start every patch from the constant-velocity prediction, never from the "
+                   "spine's skinned step (the default chooses per patch and frame, see docs/tracking.md)")
     p.add_argument("--no-predict", action="store_true",
                    help="start every frame from the previous one, not from the constant-velocity prediction of the two before")
     p.add_argument("--contour", action="store_true", help="add the contour term (depth edges; single RGB-D only)")
@@ -96,8 +99,12 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
     from pipeline.track import track_results
     from stage.cli._pool import worker_pool
 
+    if args.spine_init and args.prediction_only:
+        from stage.cli import UserError
+
+        raise UserError("--spine-init and --prediction-only exclude each other (the skinned step for every patch, or never)")
     kw = dict(template=args.template, progress=bars, gamma=args.gamma, gate=args.gate, spine_init=args.spine_init,
-              predict=not args.no_predict, colour=args.colour)
+              choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour)
     if (2 if args.workers is None else args.workers) < 2:
         return track_results(src, **kw)
     with worker_pool(1) as ex:  # one task: the half before the reference frame
@@ -107,7 +114,8 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
 #: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.
 _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
               ("--contour", "contour", False), ("--no-colour", "no_colour", False))
-_RESULTS_ONLY = (("--colour", "colour", False), ("--spine-init", "spine_init", False), ("--workers", "workers", None))
+_RESULTS_ONLY = (("--colour", "colour", False), ("--spine-init", "spine_init", False),
+                 ("--prediction-only", "prediction_only", False), ("--workers", "workers", None))
 
 
 def _check_mode(args: argparse.Namespace, *, take: bool) -> None:

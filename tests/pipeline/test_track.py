@@ -91,7 +91,9 @@ def test_invalid_input(tmp_path, capsys):
     assert "stage process" in capsys.readouterr().err
     for args, msg in (([str(tmp_path), "--no-colour"], "--no-colour applies to a take file"),
                       ([str(tmp_path), "--out", str(tmp_path / "o")], "--out applies to a take file"),
-                      ([str(f), "--template", str(f), "--colour"], "--colour applies to a results directory")):
+                      ([str(f), "--template", str(f), "--colour"], "--colour applies to a results directory"),
+                      ([str(f), "--template", str(f), "--prediction-only"],
+                       "--prediction-only applies to a results directory")):
         assert main(["track", *args]) == 2  # a flag of the other mode would be ignored
         assert msg in capsys.readouterr().err
     assert main(["track", str(f), "--template", str(f), "--workers", "2"]) == 2
@@ -179,12 +181,11 @@ def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(
     import concurrent.futures as cf
     import multiprocessing
     import threading
-    from types import SimpleNamespace
 
     from pipeline import track
 
     t = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
-    monkeypatch.setattr(track, "_spine_model", lambda *a: (3, SimpleNamespace(vertices=t.vertices + [6.0, 0, 0], faces=t.faces)))
+    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [6.0, 0, 0], t.faces, 3, [2.0, 0, 0]))
     monkeypatch.setattr(track, "_POLL_SECONDS", 0.01)
     forward_done = threading.Event()
 
@@ -197,6 +198,7 @@ def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(
         root = tmp_path / how
         for k in range(7):
             atomic_write_bytes(root / "meshes" / f"frame_{k:06d}.ply", ply_bytes(t.vertices + [2.0 * k, 0, 0], t.faces))
+        (root / "spine.json").write_text('{"frames": 7}')
         seen = seen_by[how] = []
         forward_done.clear()
 
@@ -205,14 +207,21 @@ def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(
             if d >= 4:  # the reference frame and the 3 after it
                 forward_done.set()
 
-        if how == "pool":
+        if how == "pool":  # the fake spine is not in the worker process: the prediction only
             with cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver")) as ex:
                 rep = track.track_results(root, executor=ex, progress=progress, choose=False)
-        elif how == "late":
+        elif how == "late":  # the default: per patch the prediction or the skinned step (choose)
             with LateWorker(max_workers=1) as ex:
-                rep = track.track_results(root, executor=ex, progress=progress, choose=False)
+                rep = track.track_results(root, executor=ex, progress=progress)
+                stamps = [track.tracked_path(root, k).stat().st_mtime_ns for k in range(7)]
+                assert track.track_results(root, executor=ex)["frames"] == rep["frames"]  # resumed
+                assert [track.tracked_path(root, k).stat().st_mtime_ns for k in range(7)] == stamps
+            assert rep["spine_start"] == "choose" and len(rep["spine_sha256"]) == 64
+            # every step within reach of the prediction: no patch takes the skinned step
+            assert [rep["frames"][str(k)].get("spine_start_patches") for k in range(7)] == [0.0] * 3 + [None] + [0.0] * 3
         else:
             rep = track.track_results(root, progress=progress, choose=False)
+            assert rep["spine_start"] == "none" and "spine_sha256" not in rep
         assert rep["reference_frame"] == 3 and list(rep["frames"]) == [str(k) for k in range(7)]
         assert ("worker_cpu_seconds" in rep) == (how == "pool")  # a thread's CPU is already this process's
         assert seen[-1] == (7, 7) and all(d <= n for d, n in seen)
@@ -267,6 +276,104 @@ def _sphere_results(root, frames=5):
     for k in range(frames):
         atomic_write_bytes(root / "meshes" / f"frame_{k:06d}.ply", ply_bytes(t.vertices + [1.5 * k, 0, 0], t.faces))
     return t
+
+
+def _fake_spine(V, F, ref, step):
+    """``_spine_model``'s stand-in: reference ``ref``, the template ``V`` and a skinned pose moving by ``step`` a frame."""
+    from types import SimpleNamespace
+
+    V = np.asarray(V, float)
+    model = SimpleNamespace(vertices=V, faces=F, deform=lambda i: V + np.multiply(step, i - ref))
+    return lambda *a: (ref, model)
+
+
+def test_rebuilt_spine_starts_over_with_one_warning_and_the_same_spine_resumes(tmp_path, monkeypatch, caplog):
+    from pipeline import track
+
+    t = _sphere_results(tmp_path, frames=3)
+    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    (tmp_path / "spine.json").write_text('{"frames": 3}')
+    first = track.track_results(tmp_path)
+    assert first["spine_start"] == "choose" and len(first["spine_sha256"]) == 64
+    stamp = track.tracked_path(tmp_path, 2).stat().st_mtime_ns
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        again = track.track_results(tmp_path)  # the same spine: resumed, nothing fitted
+        assert not caplog.records and again["frames"] == first["frames"]
+        assert track.tracked_path(tmp_path, 2).stat().st_mtime_ns == stamp
+        (tmp_path / "spine.json").write_text('{"frames": 3, "rebuilt": true}')
+        other = track.track_results(tmp_path)
+    assert [r.getMessage() for r in caplog.records] == [other["started_over"]]
+    assert "other settings (spine.json changed)" in other["started_over"]
+    assert other["spine_sha256"] != first["spine_sha256"] and track.tracked_path(tmp_path, 2).stat().st_mtime_ns != stamp
+
+
+def test_track_json_of_the_earlier_version_without_spine_start_keeps_frames_of_the_same_behaviour(
+        tmp_path, monkeypatch, caplog):
+    """An earlier track.json (no spine_start, no spine_sha256) reads as "none" without --spine-init
+    and "all" with it: the same run resumes; the new default with a spine (choose) starts over."""
+    from pipeline import track
+
+    def older(root):  # track.json as the earlier version wrote it
+        path = root / "tracked" / "track.json"
+        rep = json.loads(path.read_text())
+        del rep["spine_start"]
+        rep.pop("spine_sha256", None)
+        path.write_text(json.dumps(rep))
+
+    t = _sphere_results(tmp_path / "no_spine", frames=3)
+    first = track.track_results(tmp_path / "no_spine")
+    older(tmp_path / "no_spine")
+    t = _sphere_results(tmp_path / "spine_init", frames=3)
+    (tmp_path / "spine_init" / "spine.json").write_text('{"frames": 3}')
+    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    init = track.track_results(tmp_path / "spine_init", spine_init=True)
+    older(tmp_path / "spine_init")
+    monkeypatch.undo()
+    stamps = {d: track.tracked_path(tmp_path / d, 2).stat().st_mtime_ns for d in ("no_spine", "spine_init")}
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        assert track.track_results(tmp_path / "no_spine")["frames"] == first["frames"]
+        monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+        assert track.track_results(tmp_path / "spine_init", spine_init=True)["frames"] == init["frames"]
+        assert not caplog.records
+        assert all(track.tracked_path(tmp_path / d, 2).stat().st_mtime_ns == s for d, s in stamps.items())
+        older(tmp_path / "spine_init")
+        track.track_results(tmp_path / "spine_init")  # the new default with a spine: another start
+    assert len(caplog.records) == 1 and "spine_start 'all' -> 'choose'" in caplog.records[0].getMessage()
+
+
+def test_cli_prediction_only_never_starts_from_the_spine(tmp_path, monkeypatch, capsys):
+    from pipeline import track
+
+    t = _sphere_results(tmp_path, frames=3)
+    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    assert main(["-q", "track", str(tmp_path), "--spine-init", "--prediction-only"]) == 2
+    assert "exclude each other" in capsys.readouterr().err and not (tmp_path / "tracked").exists()
+    assert main(["-q", "track", str(tmp_path), "--prediction-only", "--workers", "0"]) == 0
+    rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
+    assert rep["spine_start"] == "none" and not any("spine_start_patches" in f for f in rep["frames"].values())
+    (tmp_path / "spine.json").write_text('{"frames": 3}')
+    assert main(["-q", "track", str(tmp_path), "--workers", "0"]) == 0  # the default: choose
+    rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
+    assert rep["spine_start"] == "choose" and all("spine_start_patches" in rep["frames"][k] for k in ("0", "2"))
+
+
+def test_start_for_computes_only_the_start_it_uses():
+    from pipeline.track import _start_for
+
+    def unused(*a):
+        raise AssertionError("computed and thrown away")
+
+    prev, before = np.zeros((4, 3)), (1, np.ones((4, 3)))
+    skinned = lambda k, kp, p: p + 2.0  # noqa: E731
+    start, share = _start_for(3, 2, prev, before, None, None, None, predict=unused, init_for=skinned, choose=None)
+    assert np.array_equal(start, prev + 2.0) and share is None  # --spine-init: no prediction
+    start, share = _start_for(3, 2, prev, before, None, None, None, predict=lambda p, b, s: p - b, init_for=None,
+                              choose=unused)
+    assert np.array_equal(start, -np.ones((4, 3))) and share is None
+    assert _start_for(5, 2, prev, before, None, None, None, predict=unused, init_for=None, choose=None) == (None, None)
+    picked = _start_for(3, 2, prev, before, None, "pts", "nrm", predict=lambda p, b, s: p - b, init_for=skinned,
+                        choose=lambda c, x, n: (c[int(x == "pts")], 1.0))
+    assert np.array_equal(picked[0], prev + 2.0) and picked[1] == 1.0
 
 
 def test_killed_worker_process_frames_are_tracked_here(tmp_path, monkeypatch, caplog):
