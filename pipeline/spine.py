@@ -38,7 +38,7 @@ from pipeline.correspond import NoLimbsError, correspond_tips
 from pipeline.extremities import find_extremities
 from pipeline.geodesic import EmptyMeshError, edge_graph, largest_component, mesh_edges, validate_mesh, vertex_areas
 from pipeline.merge import MergedSkeleton, Topology, consensus_topology, merge_skeletons, skeleton_splits
-from pipeline.skeleton import TipSkeleton, grow_skeleton, limb_points
+from pipeline.skeleton import TipSkeleton, grow_skeleton, limb_end, limb_points
 
 __all__ = [
     "FORMAT",
@@ -612,14 +612,17 @@ def _resample_axes(polys: dict, T: int, samples: int) -> tuple[dict, float]:
 def _limb_candidates(frames, A: np.ndarray, k: int) -> dict[int, list]:
     """Frame -> ``[(alternate index or -1 for the tip, position relative to the limb)]`` of limb ``k``.
 
-    Relative to the limb's point nearest the body (the last of its limb points), so that the
-    creature's travel does not count."""
+    Relative to one base shared by all the limb's candidates of the frame, the limb's junction with
+    the body (:func:`pipeline.skeleton.limb_end` in the tip's skeleton), so that the creature's
+    travel does not count. (A point along the tip's own limb would move with the candidate
+    ranked highest, exactly on the frames where the ranking flips.)"""
     out = {}
     for t, fr in enumerate(frames):
         i = int(A[t, k])
         if i < 0:
             continue
-        base = fr.limb_points[i][-1]
+        s = fr.skeletons[i]
+        base = s.nodes[limb_end(s)]
         out[t] = [(-1, fr.tips[i] - base)] + [(c, a.point - base) for c, a in enumerate(fr.alternates) if a.tip == i]
     return out
 
