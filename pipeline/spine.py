@@ -155,12 +155,13 @@ class Alternate:
 
 def _stand_in(frame: "FrameSkeleton", chosen: Sequence[int]) -> "FrameSkeleton":
     """``frame`` with the alternates ``chosen`` (indices into ``frame.alternates``, one per tip at most)
-    in their tips' places: tips, skeletons, the rings every skeleton records for them, limb points."""
+    in their tips' places: tips, skeletons, the rings every skeleton records for them, and every tip's
+    limb points (a tip's limb ends where its paths to the other tips part, so it moves with them)."""
     alts = [frame.alternates[c] for c in chosen]
     if len({a.tip for a in alts}) != len(alts):
         raise ValueError("chosen must hold at most one alternate per tip")
     by_tip = dict(zip((a.tip for a in alts), chosen))
-    tips, tv, lp = frame.tips.copy(), frame.tip_vertices.copy(), frame.limb_points.copy()
+    tips, tv = frame.tips.copy(), frame.tip_vertices.copy()
     skels = []
     for j, s in enumerate(frame.skeletons):
         own = frame.alternates[by_tip[j]] if j in by_tip else None
@@ -171,7 +172,8 @@ def _stand_in(frame: "FrameSkeleton", chosen: Sequence[int]) -> "FrameSkeleton":
                 tn[i] = own.alt_rings[c] if own is not None else frame.alternates[c].rings[j]
         skels.append(replace(own.skeleton if own is not None else s, tip_nodes=tn))
     for a in alts:
-        tips[a.tip], tv[a.tip], lp[a.tip] = a.point, a.vertex, a.limb_points
+        tips[a.tip], tv[a.tip] = a.point, a.vertex
+    lp = np.array([limb_points(s, tips[j], LIMB_FRACTIONS) for j, s in enumerate(skels)]).reshape(frame.limb_points.shape)
     return replace(frame, tips=tips, tip_vertices=tv, skeletons=tuple(skels), limb_points=lp, alternates=())
 
 

@@ -363,8 +363,8 @@ def forked_take(frames=8):
 def test_limb_with_near_equal_maxima_keeps_its_most_consistent_tip():
     """Each frame's highest bump swaps; the spine keeps bump A (the one still in the limb's frame) in
     every frame, and an alternate standing in equals the frame computed with it as the tip."""
-    from pipeline.skeleton import grow_skeleton
-    from pipeline.spine import _stand_in
+    from pipeline.skeleton import grow_skeleton, limb_points
+    from pipeline.spine import LIMB_FRACTIONS, _stand_in
 
     meshes = forked_take()
     frames = [frame_skeleton(v, f) for v, f in meshes]
@@ -376,20 +376,23 @@ def test_limb_with_near_equal_maxima_keeps_its_most_consistent_tip():
     b_higher = [t for t, fr in enumerate(frames) if fr.tips[np.argmax(fr.tips[:, 2]), 0] < 0]
     assert len(b_higher) >= 2 and spine.meta["tip_alternates"] == {f"limb{k}": b_higher}
     # stand-in: tip, skeleton and the rings the other skeleton records are those of the alternate
-    v, f = meshes[0]
-    fr = frames[0]
-    alt = fr.alternates[0]
-    got = _stand_in(fr, [0])
-    e = mesh_edges(f)
-    tips = fr.tip_vertices.copy()
-    tips[alt.tip] = alt.vertex
-    for j, s in enumerate(got.skeletons):
-        ref = grow_skeleton(v, e, edge_graph(v, e), int(tips[j]), tips=tips, seed=j,
-                            min_bin_width=float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).mean()),
-                            weights=vertex_areas(v, f))
-        np.testing.assert_array_equal(s.tip_nodes, ref.tip_nodes)
-        np.testing.assert_allclose(s.nodes, ref.nodes, atol=1e-12)
-    np.testing.assert_allclose(got.tips[alt.tip], v[alt.vertex])
+    for t in (0, 1):  # in frame 1 the alternate's ring in the other tip's skeleton is not the tip's
+        v, f = meshes[t]
+        fr = frames[t]
+        alt = fr.alternates[0]
+        got = _stand_in(fr, [0])
+        e = mesh_edges(f)
+        tips = fr.tip_vertices.copy()
+        tips[alt.tip] = alt.vertex
+        for j, s in enumerate(got.skeletons):
+            ref = grow_skeleton(v, e, edge_graph(v, e), int(tips[j]), tips=tips, seed=j,
+                                min_bin_width=float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).mean()),
+                                weights=vertex_areas(v, f))
+            np.testing.assert_array_equal(s.tip_nodes, ref.tip_nodes)
+            np.testing.assert_allclose(s.nodes, ref.nodes, atol=1e-12)
+            # every tip's limb points, not only the swapped tip's: the other limb ends at its new ring
+            np.testing.assert_allclose(got.limb_points[j], limb_points(ref, got.tips[j], LIMB_FRACTIONS), atol=1e-12)
+        np.testing.assert_allclose(got.tips[alt.tip], v[alt.vertex])
 
 
 def test_alternates_survive_the_stored_records():
