@@ -344,20 +344,10 @@ def test_invalid_input():
 def forked_take(frames=8):
     """The forked capsule (tests/pipeline/test_extremities.py) over a take: bump A stands still, bump B
     wobbles by 0.08 (of the radius-0.5 body), and which of the two is higher swaps every frame."""
-    from tests.pipeline.test_extremities import capsule
+    from tests.pipeline.test_extremities import forked_capsule
 
-    m = capsule()
-    f = np.asarray(m.faces)
-    meshes = []
-    for t in range(frames):
-        v = np.asarray(m.vertices).copy()
-        top = v[:, 2] > 1.4
-        hi, lo = (0.45, 0.43) if t % 2 else (0.43, 0.45)
-        wob = 0.04 * np.array([np.cos(2.1 * t), np.sin(2.1 * t)])
-        for (cx, cy), a in (((0.28, 0.0), hi), ((-0.28 + wob[0], wob[1]), lo)):
-            v[:, 2] += a * top * np.exp(-((v[:, 0] - cx) ** 2 + (v[:, 1] - cy) ** 2) / 0.12**2)
-        meshes.append((v, f))
-    return meshes
+    return [forked_capsule(heights=(0.45, 0.43) if t % 2 else (0.43, 0.45),
+                           b_offset=0.04 * np.array([np.cos(2.1 * t), np.sin(2.1 * t)])) for t in range(frames)]
 
 
 def test_limb_with_near_equal_maxima_keeps_its_most_consistent_tip():
