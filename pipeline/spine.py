@@ -255,6 +255,26 @@ class FrameSkeleton:
         return cls(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), (), 0.0, 0, np.zeros((0, len(LIMB_FRACTIONS), 3)))
 
 
+def _alternate_skeletons(grow: Callable, v: np.ndarray, kept: np.ndarray, alt: list, every: np.ndarray,
+                         grown: list) -> tuple:
+    """One :class:`Alternate` per ``(tip, vertex)`` of ``alt``: its skeleton grown with it in its
+    tip's place (``grow(seed_vertex, tips=, seed=)``), the rings of every alternate in it, and its
+    ring in each tip's skeleton (``grown``, grown with all of ``every``: the ``n`` tips, then the
+    alternates). ``kept`` maps the kept part's vertices to the input mesh's."""
+    n = len(every) - len(alt)
+    alternates = []
+    for j, (i, a) in enumerate(alt):
+        own = every.copy()
+        own[i] = a
+        s = grow(a, tips=own, seed=i)
+        alt_rings, s = s.tip_nodes[n:], replace(s, tip_nodes=s.tip_nodes[:n])
+        alternates.append(Alternate(tip=i, point=v[a].copy(), vertex=int(kept[a]), skeleton=s,
+                                    limb_points=limb_points(s, v[a], LIMB_FRACTIONS),
+                                    rings=np.asarray([g.tip_nodes[n + j] for g in grown], dtype=np.int64),
+                                    alt_rings=alt_rings))
+    return tuple(alternates)
+
+
 def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> FrameSkeleton:
     """Tips and per-tip level-set skeletons of one surface (Brostow et al. 2004, 4.1).
 
@@ -317,16 +337,7 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
     lp = np.array([limb_points(s, ext.points[i], LIMB_FRACTIONS) for i, s in enumerate(skels)]).reshape(
         len(skels), len(LIMB_FRACTIONS), 3
     )
-    alternates = []
-    for j, (i, a) in enumerate(alt):
-        own = every.copy()
-        own[i] = a
-        s = grow(a, tips=own, seed=i)
-        alt_rings, s = s.tip_nodes[n:], replace(s, tip_nodes=s.tip_nodes[:n])
-        alternates.append(Alternate(tip=i, point=v[a].copy(), vertex=int(kept[a]), skeleton=s,
-                                    limb_points=limb_points(s, v[a], LIMB_FRACTIONS),
-                                    rings=np.asarray([g.tip_nodes[n + j] for g in grown], dtype=np.int64),
-                                    alt_rings=alt_rings))
+    alternates = _alternate_skeletons(grow, v, kept, alt, every, grown)
     return FrameSkeleton(
         tips=ext.points.copy(),
         tip_vertices=kept[ext.vertices],
@@ -334,7 +345,7 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
         size=size,
         n_faces=len(f),
         limb_points=lp,
-        alternates=tuple(alternates),
+        alternates=alternates,
     )
 
 
