@@ -259,28 +259,30 @@ def _ball_maxima(graph: sp.csr_matrix, rank: np.ndarray, cand: np.ndarray, h: fl
     return survivors
 
 
-def _persists(agd: np.ndarray, rank: np.ndarray, edges: np.ndarray, m: int, h: float) -> bool:
-    """Persistence test: no higher vertex in ``m``'s component of the super-level set ``agd >= agd[m] - h``."""
+def _superlevel_labels(agd: np.ndarray, edges: np.ndarray, level: float) -> np.ndarray:
+    """Connected-component label of every vertex in the super-level set ``agd >= level`` (edges
+    with both ends in it); a vertex outside the set is a component of its own."""
     n = len(agd)
-    keep = agd >= agd[m] - h
+    keep = agd >= level
     ee = edges[keep[edges[:, 0]] & keep[edges[:, 1]]]
     adj = sp.csr_matrix((np.ones(len(ee)), (ee[:, 0], ee[:, 1])), shape=(n, n))
-    _, lab = connected_components(adj, directed=False)
+    return connected_components(adj, directed=False)[1]
+
+
+def _persists(agd: np.ndarray, rank: np.ndarray, edges: np.ndarray, m: int, h: float) -> bool:
+    """Persistence test: no higher vertex in ``m``'s component of the super-level set ``agd >= agd[m] - h``."""
+    lab = _superlevel_labels(agd, edges, agd[m] - h)
     return not bool(np.any(rank[lab == lab[m]] > rank[m]))
 
 
 def _alternates(agd: np.ndarray, edges: np.ndarray, tips: np.ndarray, rejected: np.ndarray, h: float) -> tuple:
     """Each rejected ball maximum as an alternate of the lowest tip whose ``h``-superlevel component holds it."""
     owner = np.full(len(rejected), -1, dtype=np.int64)
-    n = len(agd)
     for i in np.argsort(agd[tips], kind="stable") if len(rejected) else []:  # lowest tip first
         free = owner < 0
         if not free.any():
             break
         m = int(tips[i])
-        keep = agd >= agd[m] - h
-        ee = edges[keep[edges[:, 0]] & keep[edges[:, 1]]]
-        adj = sp.csr_matrix((np.ones(len(ee)), (ee[:, 0], ee[:, 1])), shape=(n, n))
-        _, lab = connected_components(adj, directed=False)
+        lab = _superlevel_labels(agd, edges, agd[m] - h)
         owner[free & (lab[rejected] == lab[m])] = i
     return tuple(rejected[owner == i] for i in range(len(tips)))

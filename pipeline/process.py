@@ -326,6 +326,9 @@ def _skeleton_record(k: int, mesh, params, *, bodies: int | None = None) -> dict
 
 _TIP_FIELDS = ("seed", "nodes", "parent", "cost", "frame", "count", "level", "tip_nodes")
 _ALT_FIELDS = ("tip", "point", "vertex", "limb_points", "rings", "alt_rings")  # pipeline.spine.Alternate
+# format of a ``skeletons/`` record; 2: with the alternates. A record of another format (or none:
+# written before alternates existed, which reads as "no alternates") is recomputed on a resume.
+_SKELETON_FORMAT = 2
 
 
 def _skeleton_bytes(rec: dict) -> bytes:
@@ -333,8 +336,8 @@ def _skeleton_bytes(rec: dict) -> bytes:
     fraction of the time JSON takes for the ~10^4 floats of a frame's skeletons)."""
     import io
 
-    arrays: dict[str, np.ndarray] = {"index": np.int64(rec["index"]), "status": np.str_(rec["status"]),
-                                     "reason": np.str_(rec.get("reason", ""))}
+    arrays: dict[str, np.ndarray] = {"format": np.int64(_SKELETON_FORMAT), "index": np.int64(rec["index"]),
+                                     "status": np.str_(rec["status"]), "reason": np.str_(rec.get("reason", ""))}
     sk = rec.get("skeleton")
     if sk is not None:
         arrays.update(tips=sk.tips, tip_vertices=sk.tip_vertices, size=np.float64(sk.size), n_faces=np.int64(sk.n_faces),
@@ -361,12 +364,36 @@ def _load_skeleton(path: Path) -> dict:
         if "tips" in z:
             d = {name: z[name] for name in ("tips", "tip_vertices", "size", "n_faces", "limb_points")}
             d["skeletons"] = [{name: z[f"skeleton{i}.{name}"] for name in _TIP_FIELDS} for i in range(int(z["n_skeletons"]))]
-            n_alt = int(z["n_alternates"]) if "n_alternates" in z else 0  # records written before alternates: none
+            n_alt = int(z["n_alternates"]) if "n_alternates" in z else 0  # an older record (see _stale_skeletons)
             d["alternates"] = [{**{name: z[f"alternate{j}.{name}"] for name in _ALT_FIELDS},
                                 "skeleton": {name: z[f"alternate{j}.skeleton.{name}"] for name in _TIP_FIELDS}}
                                for j in range(n_alt)]
             rec["skeleton"] = FrameSkeleton.from_dict(d)
     return rec
+
+
+def _stale_skeletons(out: Path, n: int) -> list[int]:
+    """Remove the ``skeletons/`` records of the first ``n`` frame sets written in another format
+    than :data:`_SKELETON_FORMAT` (or unreadable), so the skeleton step recomputes them; their
+    frame indices. Reads only each archive's directory and one scalar."""
+    import zipfile
+
+    stale = []
+    for k in range(n):
+        path = out / "skeletons" / f"{_frame_name(k)}.npz"
+        if not path.exists():
+            continue
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                current = "format" in z and int(z["format"]) == _SKELETON_FORMAT
+        except (OSError, ValueError, zipfile.BadZipFile):
+            current = False
+        if not current:
+            path.unlink()
+            stale.append(k)
+    if stale:
+        log.info("%d skeleton records of an older format are recomputed", len(stale))
+    return stale
 
 
 class _Writer:
@@ -944,6 +971,8 @@ def _step_spine(ctx: RunContext) -> None:
     if any(not (ctx.out / "frames" / f"{_frame_name(k)}.json").exists() for k in range(n)):
         raise ProcessError(f"{ctx.out}: surfaces are missing for some frames; run the surface step")
     t0 = time.perf_counter()
+    for k in _stale_skeletons(ctx.out, n):
+        ctx.skeletons.pop(k, None)
     ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons",
                    suffix=".npz")
     skeletons: list[FrameSkeleton] = []

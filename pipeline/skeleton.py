@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
-__all__ = ["TipSkeleton", "level_set_rings", "ring_statistics", "grow_skeleton", "limb_quality", "limb_points"]
+__all__ = ["TipSkeleton", "level_set_rings", "ring_statistics", "grow_skeleton", "limb_quality", "limb_end", "limb_points"]
 
 
 @dataclass(frozen=True)
@@ -285,12 +285,39 @@ def limb_quality(costs, norm: float) -> float:
     return float(len(c) - c.sum() / norm)
 
 
+def limb_end(skeleton: TipSkeleton) -> int:
+    """The ring where the seed's own limb ends: the first ring where the paths to the other
+    tips part (their lowest common ancestor, the limb's junction with the body); with no other
+    tip, the farthest ring.
+
+    Parameters
+    ----------
+    skeleton : TipSkeleton
+
+    Returns
+    -------
+    int
+        Index into ``skeleton.nodes``.
+    """
+    par = skeleton.parent
+    others = [int(x) for i, x in enumerate(skeleton.tip_nodes) if i != skeleton.seed and x >= 0]
+    if not others:
+        return int(np.argmax(skeleton.level))
+    anc = None
+    for o in others:
+        chain = []
+        x = o
+        while x >= 0:
+            chain.append(x)
+            x = int(par[x])
+        anc = chain[::-1] if anc is None else [a for a, c in zip(anc, chain[::-1]) if a == c]
+    return int(anc[-1]) if anc else 0
+
+
 def limb_points(skeleton: TipSkeleton, tip_point, fractions=(0.25, 0.5, 0.75)) -> np.ndarray:
     """Points along the seed's own limb, at fractions of its length from the tip.
 
-    The limb is the chain from the seed's ring to the first ring where the
-    paths to the other tips part (their lowest common ancestor); with no
-    other tip, to the farthest ring. Used to align whole skeletons, not only
+    The limb is the chain from the seed's ring to :func:`limb_end`. Used to align whole skeletons, not only
     tips, when tracking correspondence.
 
     Parameters
@@ -305,19 +332,7 @@ def limb_points(skeleton: TipSkeleton, tip_point, fractions=(0.25, 0.5, 0.75)) -
     (len(fractions), 3) float ndarray
     """
     par = skeleton.parent
-    others = [int(x) for i, x in enumerate(skeleton.tip_nodes) if i != skeleton.seed and x >= 0]
-    if others:
-        anc = None
-        for o in others:
-            chain = []
-            x = o
-            while x >= 0:
-                chain.append(x)
-                x = int(par[x])
-            anc = chain[::-1] if anc is None else [a for a, c in zip(anc, chain[::-1]) if a == c]
-        end = anc[-1] if anc else 0
-    else:
-        end = int(np.argmax(skeleton.level))
+    end = limb_end(skeleton)
     path = []
     x = end
     while x >= 0:

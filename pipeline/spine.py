@@ -38,7 +38,7 @@ from pipeline.correspond import NoLimbsError, correspond_tips
 from pipeline.extremities import find_extremities
 from pipeline.geodesic import EmptyMeshError, edge_graph, largest_component, mesh_edges, validate_mesh, vertex_areas
 from pipeline.merge import MergedSkeleton, Topology, consensus_topology, merge_skeletons, skeleton_splits
-from pipeline.skeleton import TipSkeleton, grow_skeleton, limb_points
+from pipeline.skeleton import TipSkeleton, grow_skeleton, limb_end, limb_points
 
 __all__ = [
     "FORMAT",
@@ -155,12 +155,13 @@ class Alternate:
 
 def _stand_in(frame: "FrameSkeleton", chosen: Sequence[int]) -> "FrameSkeleton":
     """``frame`` with the alternates ``chosen`` (indices into ``frame.alternates``, one per tip at most)
-    in their tips' places: tips, skeletons, the rings every skeleton records for them, limb points."""
+    in their tips' places: tips, skeletons, the rings every skeleton records for them, and every tip's
+    limb points (a tip's limb ends where its paths to the other tips part, so it moves with them)."""
     alts = [frame.alternates[c] for c in chosen]
     if len({a.tip for a in alts}) != len(alts):
         raise ValueError("chosen must hold at most one alternate per tip")
     by_tip = dict(zip((a.tip for a in alts), chosen))
-    tips, tv, lp = frame.tips.copy(), frame.tip_vertices.copy(), frame.limb_points.copy()
+    tips, tv = frame.tips.copy(), frame.tip_vertices.copy()
     skels = []
     for j, s in enumerate(frame.skeletons):
         own = frame.alternates[by_tip[j]] if j in by_tip else None
@@ -171,7 +172,8 @@ def _stand_in(frame: "FrameSkeleton", chosen: Sequence[int]) -> "FrameSkeleton":
                 tn[i] = own.alt_rings[c] if own is not None else frame.alternates[c].rings[j]
         skels.append(replace(own.skeleton if own is not None else s, tip_nodes=tn))
     for a in alts:
-        tips[a.tip], tv[a.tip], lp[a.tip] = a.point, a.vertex, a.limb_points
+        tips[a.tip], tv[a.tip] = a.point, a.vertex
+    lp = np.array([limb_points(s, tips[j], LIMB_FRACTIONS) for j, s in enumerate(skels)]).reshape(frame.limb_points.shape)
     return replace(frame, tips=tips, tip_vertices=tv, skeletons=tuple(skels), limb_points=lp, alternates=())
 
 
@@ -253,6 +255,26 @@ class FrameSkeleton:
         return cls(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), (), 0.0, 0, np.zeros((0, len(LIMB_FRACTIONS), 3)))
 
 
+def _alternate_skeletons(grow: Callable, v: np.ndarray, kept: np.ndarray, alt: list, every: np.ndarray,
+                         grown: list) -> tuple:
+    """One :class:`Alternate` per ``(tip, vertex)`` of ``alt``: its skeleton grown with it in its
+    tip's place (``grow(seed_vertex, tips=, seed=)``), the rings of every alternate in it, and its
+    ring in each tip's skeleton (``grown``, grown with all of ``every``: the ``n`` tips, then the
+    alternates). ``kept`` maps the kept part's vertices to the input mesh's."""
+    n = len(every) - len(alt)
+    alternates = []
+    for j, (i, a) in enumerate(alt):
+        own = every.copy()
+        own[i] = a
+        s = grow(a, tips=own, seed=i)
+        alt_rings, s = s.tip_nodes[n:], replace(s, tip_nodes=s.tip_nodes[:n])
+        alternates.append(Alternate(tip=i, point=v[a].copy(), vertex=int(kept[a]), skeleton=s,
+                                    limb_points=limb_points(s, v[a], LIMB_FRACTIONS),
+                                    rings=np.asarray([g.tip_nodes[n + j] for g in grown], dtype=np.int64),
+                                    alt_rings=alt_rings))
+    return tuple(alternates)
+
+
 def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> FrameSkeleton:
     """Tips and per-tip level-set skeletons of one surface (Brostow et al. 2004, 4.1).
 
@@ -315,16 +337,7 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
     lp = np.array([limb_points(s, ext.points[i], LIMB_FRACTIONS) for i, s in enumerate(skels)]).reshape(
         len(skels), len(LIMB_FRACTIONS), 3
     )
-    alternates = []
-    for j, (i, a) in enumerate(alt):
-        own = every.copy()
-        own[i] = a
-        s = grow(a, tips=own, seed=i)
-        alt_rings, s = s.tip_nodes[n:], replace(s, tip_nodes=s.tip_nodes[:n])
-        alternates.append(Alternate(tip=i, point=v[a].copy(), vertex=int(kept[a]), skeleton=s,
-                                    limb_points=limb_points(s, v[a], LIMB_FRACTIONS),
-                                    rings=np.asarray([g.tip_nodes[n + j] for g in grown], dtype=np.int64),
-                                    alt_rings=alt_rings))
+    alternates = _alternate_skeletons(grow, v, kept, alt, every, grown)
     return FrameSkeleton(
         tips=ext.points.copy(),
         tip_vertices=kept[ext.vertices],
@@ -332,7 +345,7 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
         size=size,
         n_faces=len(f),
         limb_points=lp,
-        alternates=tuple(alternates),
+        alternates=alternates,
     )
 
 
@@ -612,14 +625,17 @@ def _resample_axes(polys: dict, T: int, samples: int) -> tuple[dict, float]:
 def _limb_candidates(frames, A: np.ndarray, k: int) -> dict[int, list]:
     """Frame -> ``[(alternate index or -1 for the tip, position relative to the limb)]`` of limb ``k``.
 
-    Relative to the limb's point nearest the body (the last of its limb points), so that the
-    creature's travel does not count."""
+    Relative to one base shared by all the limb's candidates of the frame, the limb's junction with
+    the body (:func:`pipeline.skeleton.limb_end` in the tip's skeleton), so that the creature's
+    travel does not count. (A point along the tip's own limb would move with the candidate
+    ranked highest, exactly on the frames where the ranking flips.)"""
     out = {}
     for t, fr in enumerate(frames):
         i = int(A[t, k])
         if i < 0:
             continue
-        base = fr.limb_points[i][-1]
+        s = fr.skeletons[i]
+        base = s.nodes[limb_end(s)]
         out[t] = [(-1, fr.tips[i] - base)] + [(c, a.point - base) for c, a in enumerate(fr.alternates) if a.tip == i]
     return out
 

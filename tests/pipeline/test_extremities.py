@@ -87,14 +87,15 @@ def test_threshold_is_scale_free():
     np.testing.assert_allclose(b.threshold, 1000.0 * a.threshold, rtol=1e-9)
 
 
-def forked_capsule():
-    """A capsule whose top end forks into two bumps of near-equal height (0.45 and 0.43 of its
-    radius-0.5 body): one limb ending in two near-equal maxima, like a horse's nose and ears."""
+def forked_capsule(heights=(0.45, 0.43), b_offset=(0.0, 0.0)):
+    """A capsule whose top end forks into two bumps of near-equal height (by default 0.45 and
+    0.43 of its radius-0.5 body; bump A at x = 0.28, bump B at x = -0.28 moved by ``b_offset``
+    in x, y): one limb ending in two near-equal maxima, like a horse's nose and ears."""
     m = capsule()
     v = np.asarray(m.vertices).copy()
     top = v[:, 2] > 1.4
-    for cx, a in ((0.28, 0.45), (-0.28, 0.43)):
-        v[:, 2] += a * top * np.exp(-((v[:, 0] - cx) ** 2 + v[:, 1] ** 2) / 0.12**2)
+    for (cx, cy), a in (((0.28, 0.0), heights[0]), ((-0.28 + b_offset[0], b_offset[1]), heights[1])):
+        v[:, 2] += a * top * np.exp(-((v[:, 0] - cx) ** 2 + (v[:, 1] - cy) ** 2) / 0.12**2)
     return v, np.asarray(m.faces)
 
 

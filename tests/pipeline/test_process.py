@@ -67,6 +67,32 @@ def test_resume_gives_the_same_spine(starfish, processed, tmp_path):
     assert res.frames == 8
 
 
+def test_resume_recomputes_skeleton_records_of_an_older_format(starfish, processed, tmp_path):
+    """A record written before alternates existed (no ``format``, no ``n_alternates``) would
+    read as "no alternates": a resume recomputes it, and the spine equals a fresh run's."""
+    import shutil
+
+    from pipeline.process import _load_skeleton
+
+    _, path = starfish
+    _, out, _ = processed
+    out2 = tmp_path / "again"
+    shutil.copytree(out, out2)
+    records = sorted((out2 / "skeletons").glob("frame_*.npz"))
+    counts = [len(_load_skeleton(r)["skeleton"].alternates) for r in records]
+    old = records[int(np.argmax(counts))]  # the frame with the most alternates (the starfish has none)
+    with np.load(old) as z:
+        arrays = {k: z[k] for k in z.files if k not in ("format", "n_alternates") and not k.startswith("alternate")}
+    np.savez(old, **arrays)
+    assert not _load_skeleton(old)["skeleton"].alternates
+    (out2 / "spine.json").unlink()
+    process_take(path, out2)
+    with np.load(old) as z:
+        assert "format" in z.files
+    assert len(_load_skeleton(old)["skeleton"].alternates) == max(counts)
+    assert json.loads((out2 / "spine.json").read_text())["frames"] == json.loads((out / "spine.json").read_text())["frames"]
+
+
 def test_invalid_input(starfish, tmp_path):
     _, path = starfish
     with pytest.raises(ValueError, match="steps"):

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from pipeline.geodesic import edge_graph, geodesic_distance, mesh_edges, vertex_areas
-from pipeline.skeleton import grow_skeleton, level_set_rings, limb_points, limb_quality, ring_statistics
+from pipeline.skeleton import grow_skeleton, level_set_rings, limb_end, limb_points, limb_quality, ring_statistics
 
 
 def capsule(height=4.0, r=0.5):
@@ -94,6 +94,9 @@ def test_capsule_skeleton_is_its_axis():
     lp = limb_points(sk, v[top], (0.0, 1.0))
     np.testing.assert_allclose(lp[0], v[top])
     assert lp[1, 2] < -1.5
+    # a chain with one other tip: the limb ends at that tip's ring, where the limb points end
+    assert limb_end(sk) == sk.tip_nodes[1]
+    np.testing.assert_array_equal(lp[1], sk.nodes[limb_end(sk)])
 
 
 def test_limb_quality_eq5():
