@@ -37,7 +37,7 @@ import numpy as np
 
 from calib.calibration import Calibration
 from calib.camera import Camera
-from fake_cameras.render import Backdrop, Hits, View, _scene, _texture, compose_view
+from fake_cameras.render import Backdrop, Hits, View, _scene, _texture, compose_view, studio_options
 from pipeline.tracking import vertex_normals
 
 __all__ = ["MeshScene", "render_mesh", "render_mesh_views"]
@@ -175,15 +175,7 @@ def render_mesh_views(
     cams = list(cameras.cameras if isinstance(cameras, Calibration) else cameras)
     if not cams or not all(isinstance(c, Camera) for c in cams):
         raise ValueError("cameras must be a calib.Calibration or a non-empty sequence of calib.Camera")
-    bd = Backdrop() if backdrop is None else backdrop
-    if not isinstance(bd, Backdrop):
-        raise ValueError(f"backdrop must be a fake_cameras.render.Backdrop, got {type(bd).__name__}")
-    try:
-        sigma = float(noise_sigma)
-    except (TypeError, ValueError):
-        raise ValueError(f"noise_sigma must be a number, got {noise_sigma!r}") from None
-    if not (sigma >= 0 and math.isfinite(sigma)):
-        raise ValueError(f"noise_sigma must be >= 0, got {noise_sigma!r}")
+    bd, sigma = studio_options(backdrop, noise_sigma)
     mesh = MeshScene(vertices, faces, texture_points=texture_points, face_label=face_label)
     rng = np.random.default_rng() if rng is None else rng
     return [_render_camera(cam, mesh, bd, rng, depth, sigma) for cam in cams]

@@ -377,6 +377,21 @@ def _bbox(flat_idx: np.ndarray, w: int, h: int, pad: int) -> tuple[slice, slice]
 # -- the renderer -----------------------------------------------------------------
 
 
+def studio_options(backdrop, noise_sigma) -> tuple[Backdrop, float]:
+    """The checked studio of a render (None: the default :class:`Backdrop`) and its sensor
+    noise (a finite number >= 0); a ValueError naming the parameter otherwise."""
+    bd = Backdrop() if backdrop is None else backdrop
+    if not isinstance(bd, Backdrop):
+        raise ValueError(f"backdrop must be a fake_cameras.render.Backdrop, got {type(bd).__name__}")
+    try:
+        sigma = float(noise_sigma)
+    except (TypeError, ValueError):
+        raise ValueError(f"noise_sigma must be a number, got {noise_sigma!r}") from None
+    if not (sigma >= 0 and math.isfinite(sigma)):
+        raise ValueError(f"noise_sigma must be >= 0, got {noise_sigma!r}")
+    return bd, sigma
+
+
 def render_view(
     camera: Camera,
     pose: Pose | None,
@@ -413,15 +428,7 @@ def render_view(
         raise ValueError(f"camera must be a calib.Camera, got {type(camera).__name__}")
     if pose is not None and not isinstance(pose, Pose):
         raise ValueError(f"pose must be a fake_cameras.creatures.Pose or None, got {type(pose).__name__}")
-    bd = Backdrop() if backdrop is None else backdrop
-    if not isinstance(bd, Backdrop):
-        raise ValueError(f"backdrop must be a fake_cameras.render.Backdrop, got {type(bd).__name__}")
-    try:
-        sigma = float(noise_sigma)
-    except (TypeError, ValueError):
-        raise ValueError(f"noise_sigma must be a number, got {noise_sigma!r}") from None
-    if not (sigma >= 0 and math.isfinite(sigma)):
-        raise ValueError(f"noise_sigma must be >= 0, got {noise_sigma!r}")
+    bd, sigma = studio_options(backdrop, noise_sigma)
     if rng is None:
         rng = np.random.default_rng()
     sc = _scene(camera, bd)

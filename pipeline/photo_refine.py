@@ -67,6 +67,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from calib.camera import Camera
+from pipeline.tracking import vertex_normals
 
 __all__ = ["refine_surface"]
 
@@ -218,7 +219,7 @@ def refine_surface(
     room = [_room(m) for m in ms]
     lo, hi = -outward, inward
     for _ in range(rounds):
-        normals = _vertex_normals(v, f)
+        normals = vertex_normals(v, f)
         vis = _visibility(v, f, normals, cams, room, vox, cos_max, radius)
         depths = np.arange(lo, hi + 1e-9, step) * vox
         score = _scores(v, normals, vis, depths, grey, cams, radius, k, sigma)
@@ -252,16 +253,6 @@ def _room(mask: np.ndarray) -> np.ndarray:
     import cv2
 
     return cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 3)
-
-
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals."""
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(ln > 0, ln, 1.0)
 
 
 def _graph_laplacian(f: np.ndarray, n: int):

@@ -9,6 +9,7 @@ import trimesh
 
 import pipeline.photo_refine as pr
 from pipeline.photo_refine import refine_surface
+from pipeline.tracking import vertex_normals
 
 RADIUS = 80.0
 CENTRE = np.array([0.0, 0.0, 300.0])
@@ -88,7 +89,7 @@ def test_vectorised_score_matches_a_per_point_reference(sphere_views):
     cams, images, masks = sphere_views
     v, f = _sphere(RADIUS + VOXEL)
     _, _, grey, ms, _ = pr._check_inputs(v, f, images, masks, cams)
-    normals = pr._vertex_normals(v, f)
+    normals = vertex_normals(v, f)
     radius = 2.0 * VOXEL
     vis = pr._visibility(v, f, normals, cams, [pr._room(m) for m in ms], VOXEL, np.cos(np.radians(70)), radius)
     depths = np.arange(-1.0, 3.01, 0.5) * VOXEL
@@ -113,7 +114,7 @@ def test_visibility_against_an_exact_occluder(sphere_views):
     m = trimesh.creation.icosphere(subdivisions=3, radius=small_r)
     v = np.vstack([big_v, np.asarray(m.vertices) + small_c])
     f = np.vstack([big_f, np.asarray(m.faces) + len(big_v)])
-    normals = pr._vertex_normals(v, f)
+    normals = vertex_normals(v, f)
     room = [np.full((cam.height, cam.width), np.inf, np.float32)]
     vis = pr._visibility(v, f, normals, [cam], room, VOXEL, np.cos(np.radians(80)), 1.0)[0, : len(big_v)]
     p = big_v
