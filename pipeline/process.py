@@ -386,7 +386,7 @@ def _stale_skeletons(out: Path, n: int) -> list[int]:
         try:
             with np.load(path, allow_pickle=False) as z:
                 current = "format" in z and int(z["format"]) == _SKELETON_FORMAT
-        except (OSError, ValueError, zipfile.BadZipFile):
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile):  # EOFError: an empty or cut file
             current = False
         if not current:
             path.unlink()
