@@ -293,11 +293,17 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
         old = None
     kept = {}
     if old is not None:
-        changed = [k for k in report if k not in _RESULT_KEYS and _old_setting(old, k, report[k]) != report[k]]
+        spine = Path(out_dir) / "spine.json"
+        newer = spine.is_file() and spine.stat().st_mtime_ns > path.stat().st_mtime_ns
+
+        def was(k):
+            return _old_setting(old, k, report[k], spine_rewritten=newer)
+
+        changed = [k for k in report if k not in _RESULT_KEYS and was(k) != report[k]]
         if changed:
             _remove_tracked_frames(path.parent)
             report["started_over"] = (f"{path.parent} holds frames tracked with other settings "
-                                      f"({', '.join(_change(k, _old_setting(old, k, report[k]), report[k]) for k in changed)}); "
+                                      f"({', '.join(_change(k, was(k), report[k]) for k in changed)}); "
                                       f"tracking again{_remove_stale_rig(Path(out_dir))}")
             log.warning("%s", report["started_over"])
         elif isinstance(old.get("frames"), dict):
@@ -306,17 +312,19 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
     return kept
 
 
-def _old_setting(old: dict, key: str, new):
+def _old_setting(old: dict, key: str, new, *, spine_rewritten: bool = False):
     """A setting of an earlier run's ``track.json``, with the keys an earlier version did not
     write read as what it did: without ``spine_start``, every patch started from the spine's
     skinned step with ``spine_init`` and from the prediction without; without ``spine_sha256``,
-    the spine was not recorded (read as the current one: its frames are kept)."""
+    the spine was not recorded: read as the current one (its frames are kept) unless
+    ``spine.json`` was written after ``track.json`` (``spine_rewritten``: the frames' starts
+    came from an earlier spine)."""
     if key in old:
         return old[key]
     if key == "spine_start":
         return "all" if old.get("spine_init") else "none"
     if key == "spine_sha256":
-        return new
+        return None if spine_rewritten else new
     return None
 
 

@@ -341,6 +341,33 @@ def test_track_json_of_the_earlier_version_without_spine_start_keeps_frames_of_t
     assert len(caplog.records) == 1 and "spine_start 'all' -> 'choose'" in caplog.records[0].getMessage()
 
 
+def test_track_json_of_the_earlier_version_starts_over_when_the_spine_was_rewritten_since(tmp_path, monkeypatch, caplog):
+    """An earlier track.json records no spine digest: its --spine-init frames are kept while
+    spine.json is older than it, and tracked again (one warning) once spine.json was written after it."""
+    import os
+
+    from pipeline import track
+
+    t = _sphere_results(tmp_path, frames=3)
+    (tmp_path / "spine.json").write_text('{"frames": 3}')
+    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    track.track_results(tmp_path, spine_init=True)
+    path = tmp_path / "tracked" / "track.json"
+    rep = json.loads(path.read_text())
+    del rep["spine_start"], rep["spine_sha256"]
+    path.write_text(json.dumps(rep))
+    stamp = track.tracked_path(tmp_path, 2).stat().st_mtime_ns
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        track.track_results(tmp_path, spine_init=True)
+        assert not caplog.records and track.tracked_path(tmp_path, 2).stat().st_mtime_ns == stamp
+        path.write_text(json.dumps(rep))
+        later = path.stat().st_mtime_ns + 10**9
+        os.utime(tmp_path / "spine.json", ns=(later, later))
+        again = track.track_results(tmp_path, spine_init=True)
+    assert [r.getMessage() for r in caplog.records] == [again["started_over"]]
+    assert "spine.json changed" in again["started_over"] and track.tracked_path(tmp_path, 2).stat().st_mtime_ns != stamp
+
+
 def test_cli_prediction_only_never_starts_from_the_spine(tmp_path, monkeypatch, capsys):
     from pipeline import track
 
