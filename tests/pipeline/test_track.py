@@ -376,10 +376,12 @@ def test_cli_prediction_only_never_starts_from_the_spine(tmp_path, monkeypatch, 
     assert main(["-q", "track", str(tmp_path), "--spine-init", "--prediction-only"]) == 2
     assert "exclude each other" in capsys.readouterr().err and not (tmp_path / "tracked").exists()
     assert main(["-q", "track", str(tmp_path), "--prediction-only", "--workers", "0"]) == 0
+    assert "--prediction-only has no effect" in capsys.readouterr().err  # no spine.json yet: said, not silent
     rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
     assert rep["spine_start"] == "none" and not any("spine_start_patches" in f for f in rep["frames"].values())
     (tmp_path / "spine.json").write_text('{"frames": 3}')
     assert main(["-q", "track", str(tmp_path), "--workers", "0"]) == 0  # the default: choose
+    assert "no effect" not in capsys.readouterr().err
     rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
     assert rep["spine_start"] == "choose" and all("spine_start_patches" in rep["frames"][k] for k in ("0", "2"))
 
