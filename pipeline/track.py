@@ -234,6 +234,9 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     loaded = None if template is None else _load_template(template)  # a bad template is the user's error, said once
     name = None if template is None else ("array" if isinstance(template, (tuple, list)) else str(template))
     skinned = _spine_model(root, frames, by_frame, loaded)
+    if skinned is None and (spine_init or not choose):  # asked of a spine the take does not have
+        log.warning("%s has no effect: no usable spine.json in %s, every frame starts from the prediction",
+                    "spine_init (--spine-init)" if spine_init else "choose=False (--prediction-only)", root)
     ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, loaded, name)
     tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
     use_spine = skinned is not None and bool(spine_init)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 ORDER = 56
@@ -104,10 +103,6 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
         from stage.cli import UserError
 
         raise UserError("--spine-init and --prediction-only exclude each other (the skinned step for every patch, or never)")
-    if (args.spine_init or args.prediction_only) and not (src / "spine.json").is_file():
-        flag = "--spine-init" if args.spine_init else "--prediction-only"
-        print(f"stage track: warning: {flag} has no effect: {src} has no spine.json, every frame starts from the "
-              "prediction", file=sys.stderr)
     kw = dict(template=args.template, progress=bars, gamma=args.gamma, gate=args.gate, spine_init=args.spine_init,
               choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour)
     if (2 if args.workers is None else args.workers) < 2:

@@ -368,22 +368,34 @@ def test_track_json_of_the_earlier_version_starts_over_when_the_spine_was_rewrit
     assert "spine.json changed" in again["started_over"] and track.tracked_path(tmp_path, 2).stat().st_mtime_ns != stamp
 
 
-def test_cli_prediction_only_never_starts_from_the_spine(tmp_path, monkeypatch, capsys):
+def test_cli_prediction_only_never_starts_from_the_spine(tmp_path, monkeypatch, capsys, caplog):
     from pipeline import track
 
     t = _sphere_results(tmp_path, frames=3)
     monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
     assert main(["-q", "track", str(tmp_path), "--spine-init", "--prediction-only"]) == 2
     assert "exclude each other" in capsys.readouterr().err and not (tmp_path / "tracked").exists()
-    assert main(["-q", "track", str(tmp_path), "--prediction-only", "--workers", "0"]) == 0
-    assert "--prediction-only has no effect" in capsys.readouterr().err  # no spine.json yet: said, not silent
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        assert main(["-q", "track", str(tmp_path), "--prediction-only", "--workers", "0"]) == 0
+    assert not any("no effect" in r.getMessage() for r in caplog.records)  # a spine is there: the option acts
     rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
     assert rep["spine_start"] == "none" and not any("spine_start_patches" in f for f in rep["frames"].values())
     (tmp_path / "spine.json").write_text('{"frames": 3}')
     assert main(["-q", "track", str(tmp_path), "--workers", "0"]) == 0  # the default: choose
-    assert "no effect" not in capsys.readouterr().err
     rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
     assert rep["spine_start"] == "choose" and all("spine_start_patches" in rep["frames"][k] for k in ("0", "2"))
+
+
+@pytest.mark.parametrize("flag", ["--spine-init", "--prediction-only"])
+def test_cli_spine_options_without_a_spine_say_so(tmp_path, caplog, flag):
+    """Without a spine.json, --spine-init and --prediction-only have nothing to act on: one warning, tracking runs."""
+    _sphere_results(tmp_path, frames=3)
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        assert main(["-q", "track", str(tmp_path), flag, "--workers", "0"]) == 0
+    said = [r.getMessage() for r in caplog.records if "no effect" in r.getMessage()]
+    assert len(said) == 1 and f"({flag}) has no effect" in said[0] and "spine.json" in said[0]
+    rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
+    assert rep["spine_start"] == "none" and len(rep["frames"]) == 3
 
 
 def test_start_for_computes_only_the_start_it_uses():
