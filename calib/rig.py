@@ -336,7 +336,10 @@ def _moved(intr: IntrinsicsResult, cam) -> dict:
 
 
 def _angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+    """Rotation angle of ``R`` (deg), as ``atan2(sin, cos)``: ``arccos`` of the trace alone loses
+    half the digits near 0 (an identity off by 1e-16 in the trace read as 1e-6 degrees)."""
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.degrees(np.arctan2(s, (np.trace(R) - 1.0) / 2.0)))
 
 
 def rotation_sigma(calibration: Calibration, rotation_cov: np.ndarray | None, reference: str | None) -> dict:
