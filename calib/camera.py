@@ -220,6 +220,32 @@ def rodrigues_to_matrix(rvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * Kx + (1 - np.cos(theta)) * (Kx @ Kx)
 
 
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray | float:
+    """Rotation angle (degrees, in [0, 180]) of one or many rotation matrices.
+
+    Computed as ``atan2(|axial(R - R^T)| / 2, (trace(R) - 1) / 2)``: ``arccos`` of the trace alone
+    loses half the digits near 0 (an identity off by 1e-16 in the trace reads as 1e-6 degrees).
+
+    Parameters
+    ----------
+    R : (..., 3, 3) float ndarray
+        Rotation matrices.
+
+    Returns
+    -------
+    float or (...) float ndarray
+        A float for one (3, 3) matrix, else one angle per matrix.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if R.ndim < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must have shape (..., 3, 3), got {R.shape}")
+    axial = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    sin = 0.5 * np.linalg.norm(axial, axis=-1)
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    ang = np.degrees(np.arctan2(sin, cos))
+    return float(ang) if R.ndim == 2 else ang
+
+
 def matrix_to_rodrigues(R: np.ndarray) -> np.ndarray:
     """(3, 3) rotation matrix -> rotation vector (axis * angle)."""
     import cv2

@@ -30,7 +30,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from calib.boards import Board, Charuco, Chessboard
 from calib.bundle import bundle_adjust, rodrigues_batch
 from calib.calibration import Calibration
-from calib.camera import Camera, matrix_to_rodrigues, undistort_normalized
+from calib.camera import Camera, matrix_to_rodrigues, rotation_angle_deg, undistort_normalized
 from calib.detect import Detection
 from calib.intrinsics import CalibrationError
 
@@ -152,8 +152,7 @@ def _robust_relative(samples: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.n
     if len(samples) == 1:
         return Rs[0], ts[0]
     # pairwise rotation angle and translation distance
-    tr = np.einsum("aij,bij->ab", Rs, Rs)
-    ang = np.arccos(np.clip((tr - 1) / 2, -1, 1))
+    ang = np.radians(rotation_angle_deg(np.einsum("aji,bjk->abik", Rs, Rs)))
     dt = np.linalg.norm(ts[:, None] - ts[None], axis=2)
     scale = np.median(np.linalg.norm(ts, axis=1)) + 1e-9
     cost = np.sum(ang + dt / scale, axis=1)

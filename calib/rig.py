@@ -41,6 +41,7 @@ import numpy as np
 from calib.boards import Board, Charuco, Chessboard
 from calib.bundle import INTRINSIC_NAMES
 from calib.calibration import Calibration
+from calib.camera import rotation_angle_deg
 from calib.detect import Detection, select_views
 from calib.evaluate import projection_uncertainty, reprojection_errors
 from calib.extrinsics import ExtrinsicsResult, calibrate_extrinsics, triangulate_board_error
@@ -335,13 +336,6 @@ def _moved(intr: IntrinsicsResult, cam) -> dict:
     return out
 
 
-def _angle_deg(R: np.ndarray) -> float:
-    """Rotation angle of ``R`` (deg), as ``atan2(sin, cos)``: ``arccos`` of the trace alone loses
-    half the digits near 0 (an identity off by 1e-16 in the trace read as 1e-6 degrees)."""
-    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return float(np.degrees(np.arctan2(s, (np.trace(R) - 1.0) / 2.0)))
-
-
 def rotation_sigma(calibration: Calibration, rotation_cov: np.ndarray | None, reference: str | None) -> dict:
     """1-sigma uncertainty (deg) of every camera's rotation relative to ``reference`` and of every
     pair's relative rotation, from the bundle adjustment's covariance.
@@ -393,7 +387,7 @@ def fold_rotation_spread(calibrations: Sequence[Calibration], names: Sequence[st
     def spread(rots: list[np.ndarray]) -> float:
         U, _, Vt = np.linalg.svd(np.sum(rots, axis=0))
         mean = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        dev = np.array([np.radians(_angle_deg(R @ mean.T)) for R in rots])
+        dev = np.array([np.radians(rotation_angle_deg(R @ mean.T)) for R in rots])
         return float(np.degrees(np.sqrt((k - 1) / k * np.sum(dev**2))))
 
     def rel(c: Calibration, a: str, b: str) -> np.ndarray:

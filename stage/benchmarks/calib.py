@@ -34,6 +34,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from calib.camera import rotation_angle_deg
+
 NAME = "calib"
 HELP = "intrinsics + bundle adjustment for a simulated 12-camera dome (vs aniposelib if installed)"
 
@@ -74,7 +76,7 @@ def _errors(est, truth) -> dict:
         pp.append(float(np.abs(e.K[:2, 2] - g.K[:2, 2]).max()))
         cen.append(float(np.linalg.norm(R @ e.center + t - g.center)))
         dR = (e.R @ R.T) @ g.R.T
-        ang.append(float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))))
+        ang.append(rotation_angle_deg(dR))
     return {"focal_%": f, "pp_px": pp, "centre_mm": cen, "rot_deg": ang}
 
 
@@ -196,7 +198,7 @@ def _refit_rms(calib, dets, board) -> float:
 
 
 def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+    return rotation_angle_deg(Ra.T @ Rb)
 
 
 def run_real(root: Path, *, distortion: str = "prior") -> int:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.camera import rotation_angle_deg
 from stage.cli._args import parse_size
 
 ORDER = 1
@@ -95,7 +96,7 @@ def _calibration_errors(est, true) -> dict:
         c_err.append(float(np.linalg.norm(e.K[:2, 2] - cam.K[:2, 2])))
         pos_err.append(float(np.linalg.norm(e.center - cam.center)))
         dR = e.R @ cam.R.T
-        rot_err.append(float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))))
+        rot_err.append(rotation_angle_deg(dR))
     return {
         "focal_error_pct_max": max(f_err),
         "principal_point_error_px_max": max(c_err),

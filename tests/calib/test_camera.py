@@ -13,6 +13,7 @@ from calib.camera import (
     pixel_rays,
     project_points,
     rodrigues_to_matrix,
+    rotation_angle_deg,
     undistort_normalized,
 )
 
@@ -140,8 +141,25 @@ def test_cached_ray_depths_are_the_rays_camera_frame_z_in_the_same_cache(monkeyp
         cached_pixel_ray_depths(cam.to_dict())
 
 
+def test_rotation_angle_is_the_rotation_vector_norm():
+    """Against the exact angle |rvec| (to 1e-9 deg), batched and single, over (0, 180) degrees."""
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(200, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    theta = np.concatenate([rng.uniform(0, np.pi, 197), [1e-9, 1e-5, np.pi - 1e-6]])
+    Rs = np.stack([rodrigues_to_matrix(a * t) for a, t in zip(axes, theta)])
+    np.testing.assert_allclose(rotation_angle_deg(Rs), np.degrees(theta), atol=1e-9)
+    assert isinstance(rotation_angle_deg(Rs[0]), float)
+    assert rotation_angle_deg(Rs.reshape(20, 10, 3, 3)).shape == (20, 10)
+    # the product of a rotation and its transpose is the identity to 1e-16: its angle is ~0, which
+    # arccos of the trace reads as ~1e-6 degrees
+    assert rotation_angle_deg(Rs[5] @ Rs[5].T) < 1e-12
+
+
 def test_invalid_input():
     cam = _camera()
+    with pytest.raises(ValueError, match="R must"):
+        rotation_angle_deg(np.eye(2))
     with pytest.raises(ValueError, match="points"):
         cam.project(np.zeros((4, 2)))
     with pytest.raises(ValueError, match="pixels"):
