@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.motion_segmentation import vertex_normals  # unit, (0, 0, 1) for a vertex in no face
 from pipeline.rig_model import Rig, RiggedModel, reference_frame, rig_from_spine, rigged_model
 
 __all__ = [
@@ -86,16 +87,6 @@ class _Builder:
             acc["max"] = [float(x) for x in flat.max(0)]
         self.accessors.append(acc)
         return len(self.accessors) - 1
-
-
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    out = np.where(ln > 0, n / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
-    return out
 
 
 def _pack_weights(joints: np.ndarray, weights: np.ndarray, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
@@ -212,7 +203,7 @@ def _document(
     for name, v, f, jn, w in meshes:
         v = np.asarray(v, dtype=np.float64)
         pos = b.add((v * scale).astype(np.float32), type_="VEC3", component=_FLOAT, target=_ARRAY_BUFFER, minmax=True)
-        nrm = b.add(_vertex_normals(v, f).astype(np.float32), type_="VEC3", component=_FLOAT, target=_ARRAY_BUFFER)
+        nrm = b.add(vertex_normals(v, f).astype(np.float32), type_="VEC3", component=_FLOAT, target=_ARRAY_BUFFER)
         Jp, Wp = _pack_weights(np.asarray(jn), np.asarray(w), J)
         jac = b.add(Jp, type_="VEC4", component=_USHORT if Jp.dtype == np.uint16 else _UINT, target=_ARRAY_BUFFER)
         wac = b.add(Wp, type_="VEC4", component=_FLOAT, target=_ARRAY_BUFFER)

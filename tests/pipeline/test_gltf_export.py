@@ -116,6 +116,26 @@ def test_glb_loads_back_with_pygltflib_and_trimesh(glb, take):
     assert len(extras["joint_limbs"]) == len(g.skins[0].joints)
 
 
+def test_normals_are_the_unit_area_weighted_face_normals(glb):
+    """Every mesh's NORMAL against a per-vertex loop over its own POSITION and indices (float32: 1e-5)."""
+    _, data = glb
+    g = pygltflib.GLTF2.load_from_bytes(data)
+    with_normals = [m.primitives[0] for m in g.meshes if m.primitives[0].attributes.NORMAL is not None]
+    assert with_normals
+    for prim in with_normals:
+        P = _accessor(g, prim.attributes.POSITION).astype(np.float64)
+        F = _accessor(g, prim.indices).reshape(-1, 3).astype(np.int64)
+        ref = np.zeros_like(P)
+        for a, b, c in F:
+            n = np.cross(P[b] - P[a], P[c] - P[a])
+            ref[a] += n
+            ref[b] += n
+            ref[c] += n
+        length = np.linalg.norm(ref, axis=1, keepdims=True)
+        ref = np.where(length > 0, ref / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
+        np.testing.assert_allclose(_accessor(g, prim.attributes.NORMAL), ref, atol=1e-5)
+
+
 def test_weights_sum_to_one_with_at_most_four_influences(glb):
     _, data = glb
     g = pygltflib.GLTF2.load_from_bytes(data)
