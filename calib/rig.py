@@ -387,7 +387,7 @@ def fold_rotation_spread(calibrations: Sequence[Calibration], names: Sequence[st
     def spread(rots: list[np.ndarray]) -> float:
         U, _, Vt = np.linalg.svd(np.sum(rots, axis=0))
         mean = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        dev = np.array([np.radians(rotation_angle_deg(R @ mean.T)) for R in rots])
+        dev = np.radians(rotation_angle_deg(np.stack(rots) @ mean.T))
         return float(np.degrees(np.sqrt((k - 1) / k * np.sum(dev**2))))
 
     def rel(c: Calibration, a: str, b: str) -> np.ndarray:

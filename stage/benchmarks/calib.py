@@ -197,10 +197,6 @@ def _refit_rms(calib, dets, board) -> float:
     return float(np.sqrt(sq / max(n, 1)))
 
 
-def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    return rotation_angle_deg(Ra.T @ Rb)
-
-
 def run_real(root: Path, *, distortion: str = "prior") -> int:
     """Default ``stage calibrate`` on caliscope-layout footage against its reference calibration."""
     import itertools
@@ -243,7 +239,7 @@ def run_real(root: Path, *, distortion: str = "prior") -> int:
     for a, b in itertools.combinations(names, 2):
         do = np.linalg.norm(cal[a].center - cal[b].center)
         dr = np.linalg.norm(ref[a].center - ref[b].center)
-        rot = _angle_deg(cal[a].R @ cal[b].R.T, ref[a].R @ ref[b].R.T)
+        rot = rotation_angle_deg((cal[a].R @ cal[b].R.T).T @ (ref[a].R @ ref[b].R.T))
         key = f"{a} - {b}"
         print(f"{key:<17} {100 * (do / dr - 1):+9.2f}   {rot:8.2f}              | "
               f"{cov.get(key, float('nan')):20.2f} {folds.get(key, float('nan')):6.2f}")
