@@ -4,7 +4,10 @@ Every capsule of a :class:`fake_cameras.creatures.Creature` moves rigidly: body 
 the body, limb segment ``i`` with the body, the limb's swing and its accumulated bend
 (:meth:`Creature.pose`'s own capsule frames, without the tuck). :func:`capsule_frames` gives those rigid
 motions at a time; :func:`surface_point_tracks` snaps points onto the surface at a first
-time, assigns each to the capsule it lies on and carries it along.
+time, assigns each to the capsule it lies on and carries it along. :func:`true_surface` meshes
+the creature's exact surface on a reconstruction's grid, the per-frame surfaces a perfect
+reconstruction would give: tracking on them measures the tracker apart from the surfaces
+(``stage bench track --accuracy``).
 
 The limb tuck (``Creature.tuck``) bends limbs by blending joint positions, not by rotating
 segments: takes with a tuck interval have no rigid per-capsule motion and are refused.
@@ -16,7 +19,7 @@ import numpy as np
 
 from fake_cameras.creatures import Creature
 
-__all__ = ["capsule_frames", "surface_point_tracks"]
+__all__ = ["capsule_frames", "surface_point_tracks", "true_surface"]
 
 
 def capsule_frames(creature: Creature, time_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -82,3 +85,40 @@ def surface_point_tracks(creature: Creature, points, times) -> np.ndarray:
         R, o = capsule_frames(creature, t)
         out[f] = np.einsum("nij,nj->ni", R[cap], local) + o[cap]
     return out
+
+
+def true_surface(creature: Creature, time_s: float, grid, *, taubin_iterations: int = 10):
+    """The creature's exact surface at ``time_s``, meshed on ``grid`` as the reconstruction meshes.
+
+    Marching cubes of :meth:`Pose.sdf` sampled on the voxel centres of ``grid``, cleaned and
+    smoothed by :func:`pipeline.surface.surface_from_field` (the same cleanup as the hull's
+    surfaces), so that it differs from a reconstructed surface only by what the reconstruction
+    gets wrong.
+
+    Parameters
+    ----------
+    creature : Creature
+    time_s : float
+        Seconds.
+    grid : pipeline.volume.Grid
+        The reconstruction's grid (``grid.json`` of ``stage process``).
+    taubin_iterations : int, optional
+        As in :func:`pipeline.surface.clean_mesh`.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        World units (mm), outward normals.
+    """
+    from pipeline.surface import surface_from_field
+    from pipeline.volume import Grid
+
+    if not isinstance(creature, Creature):
+        raise ValueError(f"creature must be a Creature, got {type(creature).__name__}")
+    if not isinstance(grid, Grid):
+        raise ValueError(f"grid must be a pipeline.volume.Grid, got {type(grid).__name__}")
+    t = float(time_s)
+    if not np.isfinite(t):
+        raise ValueError(f"time_s must be finite, got {time_s!r}")
+    field = creature.pose(t).sdf(grid.centers()).reshape(grid.shape)
+    return surface_from_field(field, grid, level=0.0, inside="below", taubin_iterations=taubin_iterations)

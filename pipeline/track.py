@@ -171,7 +171,8 @@ def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
 
 
 def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False,
-                  choose: bool = True, predict: bool = True, colour: bool = False, executor=None) -> dict:
+                  choose: bool = True, predict: bool = True, colour: bool = False, shape_memory: bool = False,
+                  executor=None) -> dict:
     """Track a template through the surfaces of a processed multi-view take.
 
     With the take's spine (``spine.json``) the template is the spine's reference frame's
@@ -220,6 +221,15 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         (mean / 95th percentile, voxels) the starfish 0.91 / 1.97 -> 0.85 / 1.93, the
         quadruped 1.47 / 3.36 -> 1.18 / 3.08, but the horse gallop 1.92 / 4.65 -> 1.77 / 4.72
         (see docs/tracking.md).
+    shape_memory : bool
+        Keep the previous frame's shape in the rigid prior, placed by overlapping blended
+        patches (``TemplateTracker(prior="previous")``, what one RGB-D camera always uses)
+        instead of each round's own start. Off by default: it holds the volume and helps where
+        the surfaces are close to the truth, but on the hull surfaces it is mixed, measured
+        (mean / 95th percentile, voxels) the quadruped 1.47 / 3.36 -> 1.42 / 3.23, the
+        biped's volume 1.000..1.059 -> 1.000..1.032 but its error 2.29 / 5.85 -> 2.44 / 5.95,
+        the starfish 0.91 / 1.97 -> 0.89 / 2.12; on the true surfaces (``stage bench track
+        --accuracy``) the quadruped 0.99 / 2.89 -> 0.71 / 1.91 (docs/tracking.md).
     executor : concurrent.futures.Executor, optional
         Runs the backward half (a process pool: :func:`track_chain_task` is its task).
 
@@ -229,6 +239,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         The report written to ``tracked/track.json`` (``worker_cpu_seconds``: the CPU seconds
         of the backward half when another process tracked it).
     """
+    if not isinstance(shape_memory, (bool, np.bool_)):
+        raise ValueError(f"shape_memory must be True or False, got {shape_memory!r}")
     root = Path(results_dir)
     frames, by_frame = _surface_meshes(root)
     loaded = None if template is None else _load_template(template)  # a bad template is the user's error, said once
@@ -238,7 +250,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         log.warning("%s has no effect: no usable spine.json in %s, every frame starts from the prediction",
                     "spine_init (--spine-init)" if spine_init else "choose=False (--prediction-only)", root)
     ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, loaded, name)
-    tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
+    prior = "previous" if shape_memory else "round"
+    tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate, prior=prior)
     use_spine = skinned is not None and bool(spine_init)
     spine_start = "all" if use_spine else "choose" if skinned is not None and choose else "none"
     with _colour_take(root, bool(colour)) as take:  # opened once in this process (a worker opens its own)
@@ -253,7 +266,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         kept = _start_over_if_changed(root, report)
         chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
                  "spine_start": spine_start, "spine_template": loaded, "predict": bool(predict),
-                 "colour": report["colour_tracks"]}
+                 "colour": report["colour_tracks"], "prior": prior}
         first = _track_reference(tracker, (V0, F0), frames[ref], root, report, by_frame=by_frame, progress=progress,
                                  total=len(frames))
         _track_halves({**chain, "prev": first, "prev_frame": frames[ref]}, frames, ref, report, tracker=tracker,
@@ -562,7 +575,7 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     if by_frame is None:
         frame_list, by_frame = _surface_meshes(root)
     if tracker is None:
-        tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"])
+        tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"], prior=chain.get("prior", "round"))
     init_for = None
     if chain["spine_start"] in ("all", "choose"):
         if skinned is None:

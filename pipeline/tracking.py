@@ -63,7 +63,10 @@ single RGB-D pipe, ``fake_cameras.rgbd``):
   template's size, ``align_size``) and then moved with the patch's motion. Simulated RGB-D
   lamp (30 frames): 7.8 % of its length -> 3.6 % without prediction, 2.1 % with it (patches of
   25 %: 1.4 %, but pipe 1/2 1.2 %; 6 %: 1.9 %, pipe 3/4's rig joint 24 mm off). On whole
-  surfaces (multi-view) it is not used: the starfish went from 0.92 to 1.11 voxels.
+  surfaces (multi-view) it is opt-in (:func:`pipeline.track.track_results`, ``shape_memory``):
+  on the hull's surfaces it is mixed (starfish 0.91 / 1.97 -> 0.89 / 2.12 voxels, mean / 95th
+  percentile; quadruped 1.47 / 3.36 -> 1.42 / 3.23; horse gallop 1.92 / 4.65 -> 2.23 / 5.49),
+  on the true surfaces it is what meets one voxel (quadruped 0.99 / 2.89 -> 0.71 / 1.91).
   The patches overlap and are blended (:func:`blended_patches`, :func:`blended_align`;
   ``blend``): with a partition, every patch boundary is a free hinge of the placed shape, and
   the tracked lamp's head bent at the one that crossed it (its two halves, one partition patch

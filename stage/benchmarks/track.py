@@ -9,7 +9,9 @@ preprocessing, z-buffer visibility, colour tracks, the rounds with the previous-
 the ``tracked/`` file; not the rigid ICP placement, once per take), and the take reads of those
 frames, timed apart, are printed beside it. Also times the solver backends (one numeric
 refactorisation + solve of the 15 per frame), and the prediction and one round's solve with the
-previous-shape prior on the multi-view loop's last frames.
+previous-shape prior on the multi-view loop's last frames. With ``--accuracy`` the simulated
+multi-view takes are also tracked on their true surfaces
+(:func:`fake_cameras.surface_motion.true_surface`), the tracker's error apart from the surfaces'.
 """
 
 from __future__ import annotations
@@ -30,26 +32,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--accuracy", action="store_true",
                    help="also track the simulated RGB-D pipe 1/2, pipe 3/4 and lamp (30 frames, bent 75 degrees), "
                    "the real tracked pipe of Tzionas & Gall rendered at its sensor's pose (60 frames, when "
-                   "../shared/data is there) and the simulated multi-view starfish and quadruped (30 frames), and "
-                   "print the vertex errors against the truth, the volume and what `stage rig` finds (several minutes)")
+                   "../shared/data is there) and the simulated multi-view starfish and quadruped (30 frames, also on their "
+                   "true surfaces, with and without --shape-memory), and print the vertex errors against the truth, "
+                   "the volume and what `stage rig` finds (several minutes)")
 
 
 def multiview_accuracy(frames: int = 30) -> None:
     """Simulated starfish and quadruped (8 cameras, 640x480): `stage process`, then tracking; every
     template vertex against the true surface point it started on (fake_cameras.surface_motion)."""
     import concurrent.futures as cf
-    import json
     import multiprocessing
     import shutil
     import tempfile
     from pathlib import Path
 
     from fake_cameras.record import record_take
-    from fake_cameras.surface_motion import surface_point_tracks
     from fake_cameras.take import simulate_take
     from pipeline.meshio import load_mesh
     from pipeline.process import process_take
-    from pipeline.tracking import mesh_volume
 
     with tempfile.TemporaryDirectory() as tmp:
         for name in ("starfish", "quadruped"):
@@ -69,22 +69,67 @@ def multiview_accuracy(frames: int = 30) -> None:
             dt2 = (time.perf_counter() - t0) / frames
             same = all(np.array_equal(load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)[0], v)
                        for k, v in in_order.items())
-            rep = json.loads((res / "tracked" / "track.json").read_text())
-            voxel = float(json.loads((res / "grid.json").read_text())["voxel"])
-            V0, F0 = load_mesh(rep["template"], largest=True)
+            rep, voxel, V0, (means, p95s, vols, pooled) = _multiview_scores(sim, res, frames)
             ref = int(rep["reference_frame"])
-            truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
-            means, p95s, vols = [], [], []
-            for k in range(frames):
-                v, _ = load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)
-                e = np.linalg.norm(v - truth[k], axis=1) / voxel
-                means.append(e.mean())
-                p95s.append(np.percentile(e, 95))
-                vols.append(mesh_volume(v, F0) / mesh_volume(V0, F0))
             print(f"{name:9s} {len(V0)} vertices (template = frame {ref}), voxel {voxel:.2f} mm: vertex error mean "
                   f"{np.mean(means):.2f} voxels over the take (worst frame {max(means):.2f}), 95th percentile "
                   f"{np.mean(p95s):.2f} (worst {max(p95s):.2f}); volume {min(vols):.3f}..{max(vols):.3f}; {dt:.2f} s/frame in order, "
-                  f"{dt2:.2f} s/frame with the two halves at once ({'the same' if same else 'NOT the same'} vertices)")
+                  f"{dt2:.2f} s/frame with the two halves at once ({'the same' if same else 'NOT the same'} vertices); "
+                  f"over all vertices and frames (as tests/pipeline/test_tracking_multiview.py scores) {pooled[0]:.3f} / "
+                  f"{pooled[1]:.3f}")
+            _tracker_apart_from_surfaces(sim, res, frames)
+
+
+def _multiview_scores(sim, res, frames: int):
+    """Every tracked vertex of ``res`` against the true surface point it started on (voxels) ->
+    (track.json, voxel, template vertices, (per-frame means, per-frame 95th percentiles, volume
+    ratios, (mean, 95th percentile) over all vertices and frames))."""
+    import json
+
+    from fake_cameras.surface_motion import surface_point_tracks
+    from pipeline.meshio import load_mesh
+    from pipeline.tracking import mesh_volume
+
+    rep = json.loads((res / "tracked" / "track.json").read_text())
+    voxel = float(json.loads((res / "grid.json").read_text())["voxel"])
+    V0, F0 = load_mesh(rep["template"], largest=True)
+    ref = int(rep["reference_frame"])
+    truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
+    errs, vols = [], []
+    for k in range(frames):
+        v, _ = load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)
+        errs.append(np.linalg.norm(v - truth[k], axis=1) / voxel)
+        vols.append(mesh_volume(v, F0) / mesh_volume(V0, F0))
+    pooled = np.concatenate(errs)
+    return rep, voxel, V0, ([e.mean() for e in errs], [np.percentile(e, 95) for e in errs], vols,
+                            (float(pooled.mean()), float(np.percentile(pooled, 95))))
+
+
+def _tracker_apart_from_surfaces(sim, res, frames: int) -> None:
+    """The same take tracked on its true surfaces (:func:`fake_cameras.surface_motion.true_surface`
+    on the take's grid, in place of the hull's): what is left is the tracker's own error. Default,
+    ``shape_memory`` and ``shape_memory`` with the colour tracks."""
+    import json
+    import shutil
+
+    from fake_cameras.surface_motion import true_surface
+    from pipeline.results import atomic_write_bytes, ply_bytes
+    from pipeline.track import track_results
+    from pipeline.volume import Grid
+
+    exact = res.with_name(res.name + "_true_surfaces")
+    shutil.copytree(res, exact, ignore=shutil.ignore_patterns("tracked", "rig"))
+    grid = Grid.from_dict(json.loads((exact / "grid.json").read_text()))
+    for k in range(frames):
+        m = true_surface(sim.creature, sim.times[k], grid)
+        atomic_write_bytes(exact / "meshes" / f"frame_{k:06d}.ply", ply_bytes(m.vertices, m.faces))
+    for label, kw in (("default", {}), ("--shape-memory", {"shape_memory": True}),
+                      ("--shape-memory --colour", {"shape_memory": True, "colour": True})):
+        shutil.rmtree(exact / "tracked", ignore_errors=True)
+        track_results(exact, **kw)
+        _, _, _, (_, _, vols, pooled) = _multiview_scores(sim, exact, frames)
+        print(f"  on the true surfaces, {label}: {pooled[0]:.3f} / {pooled[1]:.3f} voxels (mean / 95th percentile over "
+              f"all vertices and frames); volume {min(vols):.3f}..{max(vols):.3f}")
 
 
 def accuracy(frames: int = 30) -> None:

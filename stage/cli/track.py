@@ -41,6 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="multi-view: also follow the template's vertices in every camera's colour images (the take named "
                    "by RESULTS_DIR/process.json; feature tracks across each viewing ray pin a slide along the surface); "
                    "off by default there, see docs/tracking.md")
+    p.add_argument("--shape-memory", action="store_true",
+                   help="multi-view: keep the previous frame's shape in the rigid prior (as one RGB-D camera does); it "
+                   "holds the volume and helps where the surfaces are close to the truth; off by default, see docs/tracking.md")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -88,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"volume / template volume: {min(vols):.3f} .. {max(vols):.3f}")
     if "colour_tracks" in rep:
         print(f"colour tracks: {'on' if rep['colour_tracks'] else 'off'}")
+    if rep.get("mode") == "multi-view" and rep.get("prior") == "previous":
+        print("shape memory: on (the previous frame's shape)")
     if rep["skipped"]:
         print(f"skipped {counted(len(rep['skipped']), 'frame')} without data: {', '.join(map(str, rep['skipped']))}")
     print(f"wrote {Path(out) / 'tracked'}")
@@ -104,7 +109,8 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
 
         raise UserError("--spine-init and --prediction-only exclude each other (the skinned step for every patch, or never)")
     kw = dict(template=args.template, progress=bars, gamma=args.gamma, gate=args.gate, spine_init=args.spine_init,
-              choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour)
+              choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour,
+              shape_memory=args.shape_memory)
     if (2 if args.workers is None else args.workers) < 2:
         return track_results(src, **kw)
     with worker_pool(1) as ex:  # one task: the half before the reference frame
@@ -114,7 +120,7 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
 #: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.
 _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
               ("--contour", "contour", False), ("--no-colour", "no_colour", False))
-_RESULTS_ONLY = (("--colour", "colour", False), ("--spine-init", "spine_init", False),
+_RESULTS_ONLY = (("--colour", "colour", False), ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
                  ("--prediction-only", "prediction_only", False), ("--workers", "workers", None))
 
 
