@@ -229,7 +229,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         (mean / 95th percentile, voxels) the quadruped 1.47 / 3.36 -> 1.42 / 3.23, the
         biped's volume 1.000..1.059 -> 1.000..1.032 but its error 2.29 / 5.85 -> 2.44 / 5.95,
         the starfish 0.91 / 1.97 -> 0.89 / 2.12; on the true surfaces (``stage bench track
-        --accuracy``) the quadruped 0.99 / 2.89 -> 0.71 / 1.91 (docs/tracking.md).
+        --accuracy``) the quadruped 1.00 / 2.75 -> 0.66 / 1.85 (docs/tracking.md).
     executor : concurrent.futures.Executor, optional
         Runs the backward half (a process pool: :func:`track_chain_task` is its task).
 

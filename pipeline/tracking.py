@@ -66,7 +66,8 @@ single RGB-D pipe, ``fake_cameras.rgbd``):
   surfaces (multi-view) it is opt-in (:func:`pipeline.track.track_results`, ``shape_memory``):
   on the hull's surfaces it is mixed (starfish 0.91 / 1.97 -> 0.89 / 2.12 voxels, mean / 95th
   percentile; quadruped 1.47 / 3.36 -> 1.42 / 3.23; horse gallop 1.92 / 4.65 -> 2.23 / 5.49),
-  on the true surfaces it is what meets one voxel (quadruped 0.99 / 2.89 -> 0.71 / 1.91).
+  on the true surfaces it is what meets one voxel (quadruped 1.00 / 2.75 -> 0.66 / 1.85,
+  starfish 0.50 / 1.24 -> 0.25 / 0.62; ``stage bench track --accuracy``).
   The patches overlap and are blended (:func:`blended_patches`, :func:`blended_align`;
   ``blend``): with a partition, every patch boundary is a free hinge of the placed shape, and
   the tracked lamp's head bent at the one that crossed it (its two halves, one partition patch
