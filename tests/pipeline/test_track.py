@@ -745,3 +745,18 @@ def test_multiview_shape_memory_in_both_halves(tmp_path, monkeypatch, caplog):
     assert all(np.abs(r - v).max() > 1e-9 for r, v in zip(rounds, runs["pool"][:3]))
     with pytest.raises(ValueError, match="shape_memory"):
         track.track_results(tmp_path / "in_order", shape_memory="yes")
+
+
+def test_cli_shape_memory_says_so_and_records_the_prior(tmp_path, capsys):
+    """``stage track RESULTS_DIR --shape-memory``: track.json's prior is "previous" and the summary
+    says shape memory is on; without the flag the prior is "round" and nothing is said of it."""
+    meshes = tmp_path / "meshes"
+    t = trimesh.creation.icosphere(subdivisions=2, radius=60.0)
+    for k in range(3):
+        atomic_write_bytes(meshes / f"frame_{k:06d}.ply", ply_bytes(t.vertices + [2.0 * k, 0, 0], t.faces))
+    assert main(["track", str(tmp_path), "--shape-memory", "--workers", "0", "--no-progress"]) == 0
+    assert "shape memory: on" in capsys.readouterr().out
+    assert json.loads((tmp_path / "tracked" / "track.json").read_text())["prior"] == "previous"
+    assert main(["track", str(tmp_path), "--workers", "0", "--no-progress"]) == 0
+    assert "shape memory" not in capsys.readouterr().out
+    assert json.loads((tmp_path / "tracked" / "track.json").read_text())["prior"] == "round"
