@@ -193,7 +193,7 @@ def test_true_surface_lies_on_the_creature():
 
     c = make_creature("starfish", seed=3)
     pose = c.pose(0.2)
-    grid = Grid(np.array([-320.0, -320.0, -20.0]), (130, 130, 44), 5.0)
+    grid = Grid(np.array([-180.0, -200.0, 10.0]), (80, 80, 36), 5.0)
     mesh = true_surface(c, 0.2, grid)
     assert mesh.is_watertight
     off = np.abs(pose.sdf(mesh.vertices)) / grid.voxel
