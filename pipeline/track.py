@@ -575,7 +575,7 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     if by_frame is None:
         frame_list, by_frame = _surface_meshes(root)
     if tracker is None:
-        tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"], prior=chain.get("prior", "round"))
+        tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"], prior=chain["prior"])
     init_for = None
     if chain["spine_start"] in ("all", "choose"):
         if skinned is None:

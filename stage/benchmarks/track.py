@@ -95,11 +95,11 @@ def _multiview_scores(sim, res, frames: int):
     V0, F0 = load_mesh(rep["template"], largest=True)
     ref = int(rep["reference_frame"])
     truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
-    errs, vols = [], []
+    errs, vols, v0 = [], [], mesh_volume(V0, F0)
     for k in range(frames):
         v, _ = load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)
         errs.append(np.linalg.norm(v - truth[k], axis=1) / voxel)
-        vols.append(mesh_volume(v, F0) / mesh_volume(V0, F0))
+        vols.append(mesh_volume(v, F0) / v0)
     pooled = np.concatenate(errs)
     return rep, voxel, V0, ([e.mean() for e in errs], [np.percentile(e, 95) for e in errs], vols,
                             (float(pooled.mean()), float(np.percentile(pooled, 95))))
