@@ -172,26 +172,27 @@ def _warped_lk(src, dst, p_src, p_dst, warps, *, window: int = 15, iterations: i
     import cv2
 
     def sample(img, q):  # bilinear, q (n, K, 2) float32 pixel positions; OpenCV maps have fewer than 2**15 rows
-        return np.concatenate([cv2.remap(img, q[i:i + 32000], None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                               for i in range(0, max(len(q), 1), 32000)])
+        parts = [cv2.remap(img, q[i:i + 32000], None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                 for i in range(0, max(len(q), 1), 32000)]
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     s, d = np.asarray(src, np.float32), np.asarray(dst, np.float32)
     gx = cv2.Sobel(s, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
     gy = cv2.Sobel(s, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
     ws = np.ones_like(s) if weights is None else np.asarray(weights[0], np.float32)
     r = (int(window) - 1) / 2
-    grid = np.stack(np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1)), -1).reshape(-1, 2)
-    t = sample(cv2.merge([s, gx, gy, ws]), (p_src[:, None, :] + grid[None]).astype(np.float32))  # (T, K, 4)
+    grid = np.stack(np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1)), -1).reshape(-1, 2).astype(np.float32)
+    # window pixels in float32, as the maps are: a pixel position of at most 2**15 is kept to 0.004 px
+    t = sample(cv2.merge([s, gx, gy, ws]), np.asarray(p_src, np.float32)[:, None, :] + grid[None])  # (T, K, 4)
     tmpl, jx, jy, w = (np.ascontiguousarray(t[..., c]) for c in range(4))
     A = np.asarray(warps, np.float64)
-    off = np.stack([A[:, 0, :1] * grid[:, 0] + A[:, 0, 1:] * grid[:, 1],
-                    A[:, 1, :1] * grid[:, 0] + A[:, 1, 1:] * grid[:, 1]], axis=-1)  # (T, K, 2): A @ x
+    off = grid @ A.astype(np.float32).transpose(0, 2, 1)  # (T, K, 2): A @ x
     p = np.asarray(p_dst, np.float64).copy()
-    q0 = (p[:, None, :] + off).astype(np.float32)
+    q0 = p.astype(np.float32)[:, None, :] + off
     if weights is not None:
         w = w * sample(np.asarray(weights[1], np.float32), q0)
     wx, wy = w * jx, w * jy
-    hxx, hxy, hyy = (wx * jx).sum(1, dtype=np.float64), (wx * jy).sum(1, dtype=np.float64), (wy * jy).sum(1, dtype=np.float64)
+    hxx, hxy, hyy = (np.einsum("tk,tk->t", a, b).astype(np.float64) for a, b in ((wx, jx), (wx, jy), (wy, jy)))
     det = hxx * hyy - hxy * hxy
     ok = det > 1e-9 * np.maximum(hxx + hyy, 1e-12) ** 2
     inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
@@ -204,7 +205,7 @@ def _warped_lk(src, dst, p_src, p_dst, warps, *, window: int = 15, iterations: i
             break
         q, tm, ax, ay, h11, h12, h22, iv, Al = arrays
         e = sample(d, q + dp[:, None, :].astype(np.float32)) - tm
-        bx, by = (ax * e).sum(1, dtype=np.float64), (ay * e).sum(1, dtype=np.float64)
+        bx, by = np.einsum("tk,tk->t", ax, e).astype(np.float64), np.einsum("tk,tk->t", ay, e).astype(np.float64)
         dx, dy = (h22 * bx - h12 * by) * iv, (h11 * by - h12 * bx) * iv
         step = -np.stack([Al[:, 0, 0] * dx + Al[:, 0, 1] * dy, Al[:, 1, 0] * dx + Al[:, 1, 1] * dy], axis=1)
         dp += step
