@@ -7,7 +7,8 @@ motions at a time; :func:`surface_point_tracks` snaps points onto the surface at
 time, assigns each to the capsule it lies on and carries it along. :func:`true_surface` meshes
 the creature's exact surface on a reconstruction's grid, the per-frame surfaces a perfect
 reconstruction would give: tracking on them measures the tracker apart from the surfaces
-(``stage bench track --accuracy``).
+(``stage bench track --accuracy``). :func:`tracking_errors` scores a results directory's
+``tracked/`` meshes against those tracks (the multi-view tracking test and the bench score alike).
 
 The limb tuck (``Creature.tuck``) bends limbs by blending joint positions, not by rotating
 segments: takes with a tuck interval have no rigid per-capsule motion and are refused.
@@ -19,7 +20,7 @@ import numpy as np
 
 from fake_cameras.creatures import Creature
 
-__all__ = ["capsule_frames", "surface_point_tracks", "true_surface"]
+__all__ = ["capsule_frames", "surface_point_tracks", "tracking_errors", "true_surface"]
 
 
 def capsule_frames(creature: Creature, time_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -122,3 +123,63 @@ def true_surface(creature: Creature, time_s: float, grid, *, taubin_iterations: 
         raise ValueError(f"time_s must be finite, got {time_s!r}")
     field = creature.pose(t).sdf(grid.centers()).reshape(grid.shape)
     return surface_from_field(field, grid, level=0.0, inside="below", taubin_iterations=taubin_iterations)
+
+
+def tracking_errors(creature: Creature, times, results_dir, *, frames: int | None = None):
+    """Every tracked vertex of a results directory against the true surface point it started on.
+
+    The template (``tracked/track.json``: ``template``, ``reference_frame``) is snapped onto the
+    true surface at the reference frame's time and carried along (:func:`surface_point_tracks`);
+    each frame's ``tracked/NNNNNN.ply`` is compared with it vertex by vertex.
+
+    Parameters
+    ----------
+    creature : Creature
+        The take's creature (``SimulatedTake.creature``).
+    times : (F,) float ndarray
+        The take's frame times, seconds (``SimulatedTake.times``).
+    results_dir : path
+        A ``stage process`` results directory after ``stage track`` (``grid.json``, ``tracked/``).
+    frames : int, optional
+        Frames scored, from the first (default: all of ``times``).
+
+    Returns
+    -------
+    errors : (frames, V) float ndarray
+        Distance of every tracked vertex to its true point, voxels (``grid.json``).
+    volumes : (frames,) float ndarray
+        Every tracked frame's volume over the template's.
+    report : dict
+        ``tracked/track.json``.
+    """
+    import json
+    from pathlib import Path
+
+    from pipeline.meshio import load_mesh
+    from pipeline.tracking import mesh_volume
+
+    if not isinstance(creature, Creature):
+        raise ValueError(f"creature must be a Creature, got {type(creature).__name__}")
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    n = len(times) if frames is None else frames
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= len(times):
+        raise ValueError(f"frames must be an integer in 1..{len(times)} (the times given), got {frames!r}")
+    res = Path(results_dir)
+    track_json, grid_json = res / "tracked" / "track.json", res / "grid.json"
+    if not (track_json.is_file() and grid_json.is_file()):
+        raise ValueError(f"results_dir {res} has no tracked/track.json or grid.json (run `stage track` on it first)")
+    rep = json.loads(track_json.read_text())
+    voxel = float(json.loads(grid_json.read_text())["voxel"])
+    V0, F0 = load_mesh(rep["template"], largest=True)
+    ref = int(rep["reference_frame"])
+    truth = surface_point_tracks(creature, V0, [times[ref], *times[:n]])[1:]
+    v0 = mesh_volume(V0, F0)
+    errors, volumes = np.empty((n, len(V0))), np.empty(n)
+    for k in range(n):
+        v, f = load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)
+        if v.shape != V0.shape or not np.array_equal(f, F0):
+            raise ValueError(f"results_dir {res}: tracked/{k:06d}.ply is not the template's mesh "
+                             f"({len(v)} vertices, {len(f)} faces against {len(V0)} and {len(F0)})")
+        errors[k] = np.linalg.norm(v - truth[k], axis=1) / voxel
+        volumes[k] = mesh_volume(v, f) / v0
+    return errors, volumes, rep

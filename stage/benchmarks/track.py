@@ -45,6 +45,7 @@ def multiview_accuracy(frames: int = 30) -> None:
     """Simulated starfish and quadruped (8 cameras, 640x480): `stage process`, then tracking; every
     template vertex against the true surface point it started on (fake_cameras.surface_motion)."""
     import concurrent.futures as cf
+    import json
     import multiprocessing
     import shutil
     import tempfile
@@ -73,9 +74,10 @@ def multiview_accuracy(frames: int = 30) -> None:
             dt2 = (time.perf_counter() - t0) / frames
             same = all(np.array_equal(load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)[0], v)
                        for k, v in in_order.items())
-            rep, voxel, V0, (means, p95s, vols, pooled) = _multiview_scores(sim, res, frames)
+            rep, (means, p95s, vols, pooled) = _multiview_scores(sim, res, frames)
             ref = int(rep["reference_frame"])
-            print(f"{name:9s} {len(V0)} vertices (template = frame {ref}), voxel {voxel:.2f} mm: vertex error mean "
+            voxel = float(json.loads((res / "grid.json").read_text())["voxel"])
+            print(f"{name:9s} {rep['vertices']} vertices (template = frame {ref}), voxel {voxel:.2f} mm: vertex error mean "
                   f"{np.mean(means):.2f} voxels over the take (worst frame {max(means):.2f}), 95th percentile "
                   f"{np.mean(p95s):.2f} (worst {max(p95s):.2f}); volume {min(vols):.3f}..{max(vols):.3f}; {dt:.2f} s/frame in order, "
                   f"{dt2:.2f} s/frame with the two halves at once ({'the same' if same else 'NOT the same'} vertices); "
@@ -86,27 +88,13 @@ def multiview_accuracy(frames: int = 30) -> None:
 
 def _multiview_scores(sim, res, frames: int):
     """Every tracked vertex of ``res`` against the true surface point it started on (voxels) ->
-    (track.json, voxel, template vertices, (per-frame means, per-frame 95th percentiles, volume
-    ratios, (mean, 95th percentile) over all vertices and frames))."""
-    import json
+    (track.json, (per-frame means, per-frame 95th percentiles, volume ratios, (mean, 95th
+    percentile) over all vertices and frames)); scored as the multi-view tracking test scores."""
+    from fake_cameras.surface_motion import tracking_errors
 
-    from fake_cameras.surface_motion import surface_point_tracks
-    from pipeline.meshio import load_mesh
-    from pipeline.tracking import mesh_volume
-
-    rep = json.loads((res / "tracked" / "track.json").read_text())
-    voxel = float(json.loads((res / "grid.json").read_text())["voxel"])
-    V0, F0 = load_mesh(rep["template"], largest=True)
-    ref = int(rep["reference_frame"])
-    truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
-    errs, vols, v0 = [], [], mesh_volume(V0, F0)
-    for k in range(frames):
-        v, _ = load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)
-        errs.append(np.linalg.norm(v - truth[k], axis=1) / voxel)
-        vols.append(mesh_volume(v, F0) / v0)
-    pooled = np.concatenate(errs)
-    return rep, voxel, V0, ([e.mean() for e in errs], [np.percentile(e, 95) for e in errs], vols,
-                            (float(pooled.mean()), float(np.percentile(pooled, 95))))
+    err, vols, rep = tracking_errors(sim.creature, sim.times, res, frames=frames)
+    return rep, (err.mean(axis=1).tolist(), np.percentile(err, 95, axis=1).tolist(), vols.tolist(),
+                 (float(err.mean()), float(np.percentile(err, 95))))
 
 
 def _tracker_apart_from_surfaces(sim, res, frames: int) -> None:
@@ -131,7 +119,7 @@ def _tracker_apart_from_surfaces(sim, res, frames: int) -> None:
                       ("--shape-memory --colour", {"shape_memory": True, "colour": True})):
         shutil.rmtree(exact / "tracked", ignore_errors=True)
         track_results(exact, **kw)
-        _, _, _, (_, _, vols, pooled) = _multiview_scores(sim, exact, frames)
+        _, (_, _, vols, pooled) = _multiview_scores(sim, exact, frames)
         print(f"  on the true surfaces, {label}: {pooled[0]:.3f} / {pooled[1]:.3f} voxels (mean / 95th percentile over "
               f"all vertices and frames); volume {min(vols):.3f}..{max(vols):.3f}")
 

@@ -214,3 +214,63 @@ def test_true_surface_invalid_input():
         true_surface(c, 0.0, {"lo": [0, 0, 0]})
     with pytest.raises(ValueError, match="time_s"):
         true_surface(c, float("nan"), grid)
+
+
+def _tracked_results(tmp_path, shifts):
+    """A results directory whose template is the starfish's true surface at its frame 1 and whose
+    tracked frames are the true tracks shifted along x by ``shifts`` voxels."""
+    import json
+
+    from fake_cameras.surface_motion import surface_point_tracks, true_surface
+    from pipeline.results import ply_bytes
+    from pipeline.volume import Grid
+
+    c = make_creature("starfish", seed=3)
+    times = np.array([0.0, 0.1, 0.2])
+    grid = Grid(np.array([-180.0, -200.0, 10.0]), (80, 80, 36), 5.0)
+    mesh = true_surface(c, times[1], grid)
+    V0, F0 = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    (tmp_path / "tracked").mkdir()
+    (tmp_path / "template.ply").write_bytes(ply_bytes(V0, F0))
+    (tmp_path / "grid.json").write_text(json.dumps(grid.to_dict()))
+    (tmp_path / "tracked" / "track.json").write_text(json.dumps({"template": str(tmp_path / "template.ply"),
+                                                                 "reference_frame": 1}))
+    truth = surface_point_tracks(c, V0, [times[1], *times])[1:]
+    written = [truth[k] + [shifts[k] * grid.voxel, 0.0, 0.0] for k in range(len(times))]
+    for k, v in enumerate(written):
+        (tmp_path / "tracked" / f"{k:06d}.ply").write_bytes(ply_bytes(v, F0))
+    return c, times, V0, F0, written
+
+
+def test_tracking_errors_are_the_distances_to_the_true_tracks(tmp_path):
+    """fake_cameras.surface_motion.tracking_errors: tracked frames that are the true tracks shifted
+    by 0, 1 and 2.5 voxels score exactly that (the PLY round trip is exact: 1e-9), and the volumes
+    are the frames' own over the template's."""
+    from fake_cameras.surface_motion import tracking_errors
+    from pipeline.tracking import mesh_volume
+
+    c, times, V0, F0, written = _tracked_results(tmp_path, [0.0, 1.0, 2.5])
+    err, vols, rep = tracking_errors(c, times, tmp_path)
+    assert err.shape == (3, len(V0)) and rep["reference_frame"] == 1
+    for k, shift in enumerate([0.0, 1.0, 2.5]):
+        np.testing.assert_allclose(err[k], shift, atol=1e-9)
+        assert vols[k] == pytest.approx(mesh_volume(written[k], F0) / mesh_volume(V0, F0), rel=1e-12)
+    err2, vols2, _ = tracking_errors(c, times, tmp_path, frames=2)
+    assert np.array_equal(err2, err[:2]) and np.array_equal(vols2, vols[:2])
+
+
+def test_tracking_errors_invalid_input(tmp_path):
+    from fake_cameras.surface_motion import tracking_errors
+    from pipeline.results import ply_bytes
+
+    c, times, V0, F0, written = _tracked_results(tmp_path, [0.0, 0.0, 0.0])
+    for bad in (0, 4, True, 1.5):
+        with pytest.raises(ValueError, match="frames"):
+            tracking_errors(c, times, tmp_path, frames=bad)
+    with pytest.raises(ValueError, match="results_dir"):
+        tracking_errors(c, times, tmp_path / "nowhere")
+    with pytest.raises(ValueError, match="creature"):
+        tracking_errors("starfish", times, tmp_path)
+    (tmp_path / "tracked" / "000002.ply").write_bytes(ply_bytes(written[2], F0[:-1]))
+    with pytest.raises(ValueError, match="not the template's mesh"):
+        tracking_errors(c, times, tmp_path)

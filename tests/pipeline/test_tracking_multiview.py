@@ -10,15 +10,11 @@ at most one voxel, 95th percentile at most two voxels; the volume within 5 % of 
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
-from fake_cameras.surface_motion import surface_point_tracks
-from pipeline.meshio import load_mesh
+from fake_cameras.surface_motion import tracking_errors
 from pipeline.process import process_take
-from pipeline.tracking import mesh_volume
 from tests.pipeline.test_spine_pipeline import N_FRAMES, run
 
 
@@ -26,19 +22,8 @@ def _tracking_errors(name, tmp_path_factory):
     r = run(name, tmp_path_factory)
     results = r["res"].out
     process_take(results.parent / f"{name}.h5", results, steps=("track",), executor=None)
-    rep = json.loads((results / "tracked" / "track.json").read_text())
-    voxel = float(json.loads((results / "grid.json").read_text())["voxel"])
-    V0, F0 = load_mesh(rep["template"], largest=True)
-    sim = r["sim"]
-    ref = int(rep["reference_frame"])
-    truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
-    errs, vols = [], []
-    for k in range(N_FRAMES):
-        v, f = load_mesh(results / "tracked" / f"{k:06d}.ply", largest=False)
-        assert v.shape == V0.shape and np.array_equal(f, F0)
-        errs.append(np.linalg.norm(v - truth[k], axis=1) / voxel)
-        vols.append(mesh_volume(v, f) / mesh_volume(V0, F0))
-    return np.concatenate(errs), np.array(vols), rep
+    err, vols, rep = tracking_errors(r["sim"].creature, r["sim"].times, results, frames=N_FRAMES)
+    return err.ravel(), vols, rep
 
 
 @pytest.mark.slow
