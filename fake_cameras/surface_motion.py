@@ -23,6 +23,11 @@ from fake_cameras.creatures import Creature
 __all__ = ["capsule_frames", "surface_point_tracks", "tracking_errors", "true_surface"]
 
 
+def _check_creature(creature) -> None:
+    if not isinstance(creature, Creature):
+        raise ValueError(f"creature must be a Creature, got {type(creature).__name__}")
+
+
 def capsule_frames(creature: Creature, time_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Rigid frame of every capsule of ``creature.pose(time_s)``, in the pose's capsule order.
 
@@ -32,8 +37,7 @@ def capsule_frames(creature: Creature, time_s: float) -> tuple[np.ndarray, np.nd
     o : (M, 3) float ndarray
         A point with local coordinates ``q`` in capsule ``k``'s frame is at ``R[k] @ q + o[k]``.
     """
-    if not isinstance(creature, Creature):
-        raise ValueError(f"creature must be a Creature, got {type(creature).__name__}")
+    _check_creature(creature)
     if creature.tuck is not None:
         raise ValueError("creature: a take with a tuck interval has no rigid per-capsule motion")
     t = float(time_s)
@@ -114,8 +118,7 @@ def true_surface(creature: Creature, time_s: float, grid, *, taubin_iterations: 
     from pipeline.surface import surface_from_field
     from pipeline.volume import Grid
 
-    if not isinstance(creature, Creature):
-        raise ValueError(f"creature must be a Creature, got {type(creature).__name__}")
+    _check_creature(creature)
     if not isinstance(grid, Grid):
         raise ValueError(f"grid must be a pipeline.volume.Grid, got {type(grid).__name__}")
     t = float(time_s)
@@ -158,8 +161,7 @@ def tracking_errors(creature: Creature, times, results_dir, *, frames: int | Non
     from pipeline.meshio import load_mesh
     from pipeline.tracking import mesh_volume
 
-    if not isinstance(creature, Creature):
-        raise ValueError(f"creature must be a Creature, got {type(creature).__name__}")
+    _check_creature(creature)
     times = np.asarray(times, dtype=np.float64).reshape(-1)
     n = len(times) if frames is None else frames
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= len(times):
