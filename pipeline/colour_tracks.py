@@ -364,7 +364,6 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
         Unit viewing directions of the targets: the flow measures the two directions across
         them; along them, the target carries the depth's noise.
     """
-
     a, b = _gray(previous_image), _gray(image)
     if a.shape != b.shape:
         raise ValueError(f"previous_image and image must have the same shape, got {a.shape} and {b.shape}")
