@@ -116,23 +116,29 @@ def test_local_warps_recover_an_affine_image_motion_exactly():
     np.testing.assert_array_equal(_local_warps(line, line * 2, np.array([[0, 1, 2], [1, 2, 3]])), np.tile(np.eye(2), (4, 1, 1)))
 
 
-def test_warped_windows_follow_a_turning_texture_that_translated_windows_do_not():
-    """A plane at Z = 500 mm whose texture turns 10 degrees about the image centre and moves (1.5, -1)
-    pixels; the prediction has the turn but not the move. The warped tracks land on the true
-    pixels to 0.05 px (measured 0.007); the translated windows alone (no faces) are 0.32 px off."""
+def _turning_texture(nx, ny, x_range, y_range):
+    """A plane at Z = 500 mm whose texture turns 10 degrees about the image centre and moves
+    (1.5, -1) px, under an ``nx`` by ``ny`` grid of vertices over the pixel ranges; the
+    prediction has the turn but not the move. -> (camera, the two images, the vertices' pixels,
+    the vertices, their true pixels, the prediction, the depth image, the grid's triangles)."""
     cam = _camera()
     a = _texture(seed=4)
     M = cv2.getRotationMatrix2D((79.5, 59.5), 10.0, 1.0)
     M[:, 2] += [1.5, -1.0]
     b = cv2.warpAffine(a, M, (160, 120), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-    nx, ny = 9, 6
-    uv = np.stack(np.meshgrid(np.linspace(45, 115, nx), np.linspace(35, 85, ny)), -1).reshape(-1, 2)
+    uv = np.stack(np.meshgrid(np.linspace(*x_range, nx), np.linspace(*y_range, ny)), -1).reshape(-1, 2)
     Z = 500.0
     V = cam.unproject(uv, np.full(len(uv), Z))
     truth = uv @ M[:, :2].T + M[:, 2]
     predicted = cam.unproject(truth - [1.5, -1.0], np.full(len(uv), Z))
-    depth = np.full((120, 160), Z)
-    F = _grid_faces(nx, ny)
+    return cam, a, b, uv, V, truth, predicted, np.full((120, 160), Z), _grid_faces(nx, ny)
+
+
+def test_warped_windows_follow_a_turning_texture_that_translated_windows_do_not():
+    """A plane at Z = 500 mm whose texture turns 10 degrees about the image centre and moves (1.5, -1)
+    pixels; the prediction has the turn but not the move. The warped tracks land on the true
+    pixels to 0.05 px (measured 0.007); the translated windows alone (no faces) are 0.32 px off."""
+    cam, a, b, uv, V, truth, predicted, depth, F = _turning_texture(9, 6, (45, 115), (35, 85))
     errs = {}
     for name, faces in (("warped", F), ("translated", None)):
         idx, X, _ = colour_tracks(a, b, V, np.ones(len(V), bool), cam, depth, predicted=predicted, faces=faces, max_error=1.0)
@@ -228,19 +234,8 @@ def test_shared_windows_place_every_vertex_through_its_window_model():
     as when each follows its own window, median under 0.05 px, worst under 0.2 px (measured
     0.010 / 0.035 px with a window each, 0.010 / 0.024 shared); two vertices of a cell on
     different depth slabs do not share."""
-    cam = _camera()
-    a = _texture(seed=4)
-    M = cv2.getRotationMatrix2D((79.5, 59.5), 10.0, 1.0)
-    M[:, 2] += [1.5, -1.0]
-    b = cv2.warpAffine(a, M, (160, 120), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-    nx, ny = 30, 20
-    uv = np.stack(np.meshgrid(np.linspace(60, 95, nx), np.linspace(45, 68, ny)), -1).reshape(-1, 2)
+    cam, a, b, uv, V, truth, predicted, depth, F = _turning_texture(30, 20, (60, 95), (45, 68))
     Z = 500.0
-    V = cam.unproject(uv, np.full(len(uv), Z))
-    truth = uv @ M[:, :2].T + M[:, 2]
-    predicted = cam.unproject(truth - [1.5, -1.0], np.full(len(uv), Z))
-    depth = np.full((120, 160), Z)
-    F = _grid_faces(nx, ny)
     for cell in (0.0, 3.0):
         idx, X, _ = colour_tracks(a, b, V, np.ones(len(V), bool), cam, depth, predicted=predicted, faces=F,
                                   max_error=1.0, cell=cell)
