@@ -208,7 +208,9 @@ def _warped_lk(src, dst, p_src, p_dst, warps, *, window: int = 15, iterations: i
     ok = det > 1e-9 * np.maximum(hxx + hyy, 1e-12) ** 2
     inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
     live = np.flatnonzero(ok)  # the windows still iterating, and their arrays
-    arrays = [x[live] for x in (q0, tmpl, wx, wy, hxx, hxy, hyy, inv, A)]
+    arrays = [q0, tmpl, wx, wy, hxx, hxy, hyy, inv, A]
+    if len(live) < len(p):  # copies of the windows that can iterate only when some cannot
+        arrays = [x[live] for x in arrays]
     dp = np.zeros((len(live), 2))
     converged = np.zeros(len(p), bool)
     for it in range(int(iterations)):
