@@ -403,11 +403,12 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
     uv, zv = camera.project(V[idx], return_depth=True)
     reps, group = _cell_groups(uv, zv, float(cell), max_jump)
     P = None if predicted is None else np.asarray(predicted, float)
-    warps = _rep_warps(V, P, faces, camera, idx[reps]) if warped else np.tile(np.eye(2), (len(reps), 1, 1))
-    ok, u1, fb = _follow(a, b, uv[reps], None if P is None else camera.project(P[idx[reps]]), warps if warped else None,
+    warps = _rep_warps(V, P, faces, camera, idx[reps]) if warped else None
+    ok, u1, fb = _follow(a, b, uv[reps], None if P is None else camera.project(P[idx[reps]]), warps,
                          window=window, levels=levels, inside=inside)
-    # every vertex where its group's window model puts it: dst(p + A x) = src(p0 + x)
-    u1 = u1[group] + np.einsum("tij,tj->ti", warps[group], uv - uv[reps][group])
+    # every vertex where its group's window model puts it: dst(p + A x) = src(p0 + x), A = I unwarped
+    offset = uv - uv[reps][group]
+    u1 = u1[group] + (offset if warps is None else np.einsum("tij,tj->ti", warps[group], offset))
     ok, fb = ok[group], fb[group]
     ok &= fb <= max_error
     pts, lifted = _lift(u1, z, camera, max_jump)

@@ -28,7 +28,7 @@ keeps components without any data well posed. The system is solved by sparse Cho
 (:class:`CholeskySystem`; QDLDL when installed, else scipy's SuperLU, which cannot keep
 them); the first round of a frame refactors numerically, the later rounds (whose pairs, so
 diagonal, change little) solve by conjugate gradients preconditioned with that factor,
-refactoring only when CG does not reach 1e-6 in 6 steps. 15 rounds per frame, each frame started from the previous one (or from
+refactoring only when CG does not reach 1e-5 in 6 steps. 15 rounds per frame, each frame started from the previous one (or from
 a caller's guess such as a skinned pose).
 
 Where this departs from the letter of the paper, and why (measured on the simulated
