@@ -172,7 +172,7 @@ def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
 
 def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False,
                   choose: bool = True, predict: bool = True, colour: bool = False, shape_memory: bool = False,
-                  executor=None) -> dict:
+                  surfaces: str = "meshes", executor=None) -> dict:
     """Track a template through the surfaces of a processed multi-view take.
 
     With the take's spine (``spine.json``) the template is the spine's reference frame's
@@ -230,6 +230,10 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         biped's volume 1.000..1.059 -> 1.000..1.032 but its error 2.29 / 5.85 -> 2.44 / 5.95,
         the starfish 0.91 / 1.97 -> 0.89 / 2.12; on the true surfaces (``stage bench track
         --accuracy``) the quadruped 1.00 / 2.75 -> 0.66 / 1.85 (docs/tracking.md).
+    surfaces : {"meshes", "carved"}
+        The per-frame surfaces tracked (and the template's source): ``stage process``'s
+        ``meshes/``, or the surfaces carved across time with an earlier tracking's motion
+        (``carved/``, :func:`pipeline.carve.carve_results`; ``stage track --carve``).
     executor : concurrent.futures.Executor, optional
         Runs the backward half (a process pool: :func:`track_chain_task` is its task).
 
@@ -241,8 +245,10 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     """
     if not isinstance(shape_memory, (bool, np.bool_)):
         raise ValueError(f"shape_memory must be True or False, got {shape_memory!r}")
+    if surfaces not in ("meshes", "carved"):
+        raise ValueError(f"surfaces must be 'meshes' or 'carved', got {surfaces!r}")
     root = Path(results_dir)
-    frames, by_frame = _surface_meshes(root)
+    frames, by_frame = _surface_meshes(root, surfaces)
     loaded = None if template is None else _load_template(template)  # a bad template is the user's error, said once
     name = None if template is None else ("array" if isinstance(template, (tuple, list)) else str(template))
     skinned = _spine_model(root, frames, by_frame, loaded)
@@ -260,13 +266,15 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                   "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
                   "reference_frame": frames[ref], "spine_init": use_spine, "spine_start": spine_start,
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
-                  "skipped": [], "frames": {}}
+                  "surfaces": surfaces, "skipped": [], "frames": {}}
+        if surfaces == "carved":  # carved with an earlier tracking's motion: their digest says which
+            report["surfaces_sha256"] = _file_digest(root / surfaces / "carve.json")
         if spine_start != "none":  # every frame's start depends on the spine then
             report["spine_sha256"] = _file_digest(root / "spine.json")
         kept = _start_over_if_changed(root, report)
         chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
                  "spine_start": spine_start, "spine_template": loaded, "predict": bool(predict),
-                 "colour": report["colour_tracks"], "prior": prior}
+                 "colour": report["colour_tracks"], "prior": prior, "surfaces": surfaces}
         first = _track_reference(tracker, (V0, F0), frames[ref], root, report, by_frame=by_frame, progress=progress,
                                  total=len(frames))
         _track_halves({**chain, "prev": first, "prev_frame": frames[ref]}, frames, ref, report, tracker=tracker,
@@ -341,6 +349,8 @@ def _old_setting(old: dict, key: str, new, *, spine_rewritten: bool = False):
         return "all" if old.get("spine_init") else "none"
     if key == "spine_sha256":
         return None if spine_rewritten else new
+    if key == "surfaces":  # before the carved surfaces, every run tracked meshes/
+        return "meshes"
     return None
 
 
@@ -349,7 +359,8 @@ def remove_tracking(out_dir) -> str:
     when it starts over, since both follow the surfaces it removes.
 
     ``tracked/NNNNNN.ply`` and ``tracked/track.json`` go (the folder too when that leaves it
-    empty; other files stay), then the rig as a tracking start-over removes it
+    empty; other files stay), the surfaces carved with the tracked motion (``carved/``,
+    :mod:`pipeline.carve`), then the rig as a tracking start-over removes it
     (``rig/``, :func:`pipeline.articulated_rig.remove_rig`).
 
     Parameters
@@ -372,7 +383,20 @@ def remove_tracking(out_dir) -> str:
     with contextlib.suppress(OSError):  # not there, or not empty: kept
         tracked.rmdir()
     note = f"; removed the frames tracked on the old surfaces ({tracked})" if files else ""
-    return note + _remove_stale_rig(out)
+    return note + _remove_carved(out) + _remove_stale_rig(out)
+
+
+def _remove_carved(out: Path) -> str:
+    """Remove the surfaces carved with the tracked motion (``carved/``: ``frame_NNNNNN.ply``, ``carve.json``)."""
+    from pipeline.carve import CARVED_DIR
+
+    carved = out / CARVED_DIR
+    files = [*carved.glob("frame_*.ply"), *carved.glob("carve.json")]
+    for f in files:
+        f.unlink(missing_ok=True)
+    with contextlib.suppress(OSError):
+        carved.rmdir()
+    return f"; removed the surfaces carved with that motion ({carved})" if files else ""
 
 
 def _remove_tracked_frames(tracked: Path) -> int:
@@ -406,6 +430,8 @@ def _change(key: str, old, new) -> str:
         return "template mesh changed"
     if key == "spine_sha256":
         return "spine.json changed"
+    if key == "surfaces_sha256":
+        return "carved surfaces changed"
     return f"{key} {old!r} -> {new!r}"
 
 
@@ -516,12 +542,14 @@ def _written_count(root: Path, frames: list[int]):
     return count
 
 
-def _surface_meshes(root: Path) -> tuple[list[int], dict]:
-    """The per-frame surfaces of a results directory: frame numbers in order, and their ``meshes/frame_NNNNNN.ply``."""
-    mesh_dir = root / "meshes"
+def _surface_meshes(root: Path, folder: str = "meshes") -> tuple[list[int], dict]:
+    """The per-frame surfaces of a results directory: frame numbers in order, and their
+    ``meshes/frame_NNNNNN.ply`` (``folder="carved"``: the surfaces carved across time)."""
+    mesh_dir = root / folder
     paths = sorted(mesh_dir.glob("frame_*.ply"))
     if not paths:
-        raise FileNotFoundError(f"{mesh_dir}: no frame_NNNNNN.ply meshes (run `stage process` first)")
+        run = "`stage track --carve`" if folder != "meshes" else "`stage process`"
+        raise FileNotFoundError(f"{mesh_dir}: no frame_NNNNNN.ply meshes (run {run} first)")
     frames = [int(p.stem.split("_")[1]) for p in paths]
     return frames, dict(zip(frames, paths))
 
@@ -573,7 +601,7 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     root = Path(chain["root"])
     V0, F0 = chain["template"]
     if by_frame is None:
-        frame_list, by_frame = _surface_meshes(root)
+        frame_list, by_frame = _surface_meshes(root, chain.get("surfaces", "meshes"))
     if tracker is None:
         tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"], prior=chain["prior"])
     init_for = None

@@ -39,7 +39,8 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.hull", "pipeline.surface", "pipeline.photo_refine", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
         "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
         "pipeline.rig_model", "pipeline.gltf_export", "pipeline.results",
-        "pipeline.tracking", "pipeline.rgbd_preprocess", "pipeline.colour_tracks", "pipeline.motion_segmentation",
+        "pipeline.tracking", "pipeline.rgbd_preprocess", "pipeline.colour_tracks", "pipeline.temporal_hull",
+        "pipeline.motion_segmentation",
         "pipeline.articulated_skeleton", "pipeline.articulated_fit", "pipeline.articulated_rig",
         "pipeline.contraction_skeleton",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",
@@ -47,7 +48,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
     )),
     3: ("orchestration", (
         # processing, tracking and the report run the pipeline over a take
-        "pipeline.process", "pipeline.report.*", "pipeline.track",
+        "pipeline.process", "pipeline.report.*", "pipeline.track", "pipeline.carve",
         "fake_cameras.*",
     )),
     4: ("service", ("api.*",)),

@@ -44,6 +44,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shape-memory", action="store_true",
                    help="multi-view: keep the previous frame's shape in the rigid prior (as one RGB-D camera does); it "
                    "holds the volume and helps where the surfaces are close to the truth; off by default, see docs/tracking.md")
+    p.add_argument("--carve", type=int, default=0, metavar="ROUNDS",
+                   help="multi-view: after tracking, carve every frame's surface with the silhouettes of the frames around it, "
+                   "carried by the tracked motion (shape from silhouette across time, RESULTS_DIR/carved/), and track again "
+                   "on those; ROUNDS times (default 0: the surfaces of `stage process`). Best with --shape-memory --colour, "
+                   "see docs/tracking.md")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -64,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
     src = Path(args.source)
     if args.workers is not None and args.workers < 0:
         raise UserError("--workers must be >= 0")
+    if args.carve < 0:
+        raise UserError("--carve must be >= 0 (rounds)")
     if src.exists():
         _check_mode(args, take=src.is_file())
     quiet = bool(getattr(args, "quiet", False)) or args.no_progress
@@ -91,6 +98,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"volume / template volume: {min(vols):.3f} .. {max(vols):.3f}")
     if "colour_tracks" in rep:
         print(f"colour tracks: {'on' if rep['colour_tracks'] else 'off'}")
+    if rep.get("surfaces") == "carved":
+        print(f"surfaces: carved across time ({Path(out) / 'carved'})")
     if rep.get("mode") == "multi-view" and rep.get("prior") == "previous":
         print("shape memory: on (the previous frame's shape)")
     if rep["skipped"]:
@@ -101,7 +110,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
     """Multi-view tracking; the backward half in a worker process with ``--workers`` >= 2."""
-    from pipeline.track import track_results
     from stage.cli._pool import worker_pool
 
     if args.spine_init and args.prediction_only:
@@ -112,15 +120,33 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
               choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour,
               shape_memory=args.shape_memory)
     if (2 if args.workers is None else args.workers) < 2:
-        return track_results(src, **kw)
+        return _rounds(src, args.carve, bars, **kw)
     with worker_pool(1) as ex:  # one task: the half before the reference frame
-        return track_results(src, executor=ex, **kw)
+        return _rounds(src, args.carve, bars, executor=ex, **kw)
+
+
+def _rounds(src: Path, rounds: int, bars, **kw) -> dict:
+    """Track the surfaces of `stage process`, then ``rounds`` times carve them across time with
+    the tracked motion and track the carved surfaces (:func:`pipeline.carve.carve_results`)."""
+    from pipeline.carve import carve_results
+    from pipeline.track import track_results
+    from stage.cli import UserError
+
+    rep = track_results(src, **kw)
+    for _ in range(rounds):
+        try:
+            carve_results(src, progress=bars)
+        except ValueError as exc:
+            raise UserError(f"--carve: {exc}") from None
+        rep = track_results(src, surfaces="carved", **kw)
+    return rep
 
 
 #: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.
 _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
               ("--contour", "contour", False), ("--no-colour", "no_colour", False))
-_RESULTS_ONLY = (("--colour", "colour", False), ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
+_RESULTS_ONLY = (("--carve", "carve", 0),
+                 ("--colour", "colour", False), ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
                  ("--prediction-only", "prediction_only", False), ("--workers", "workers", None))
 
 

@@ -1,0 +1,183 @@
+"""``stage track --carve``: every frame's surface carved across time with the tracked motion -> ``carved/``.
+
+A results directory's tracked template (``tracked/NNNNNN.ply``) says how every surface point
+moves; :func:`pipeline.temporal_hull.carve_across_time` then carves each frame's hull with the
+silhouettes of the frames around it, and the surfaces written to ``carved/frame_NNNNNN.ply``
+are what ``track_results(surfaces="carved")`` tracks again (docs/tracking.md, "Surfaces
+carved across time"). ``carved/carve.json`` holds the settings, the digest of the
+``tracked/track.json`` whose motion carved them and per-frame figures; a killed run resumes,
+keeping the frames of the same settings and motion.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.results import atomic_write_bytes, ply_bytes
+
+__all__ = ["carve_results", "carved_path", "CARVED_DIR"]
+
+log = logging.getLogger(__name__)
+
+#: The folder of a results directory that holds the carved surfaces.
+CARVED_DIR = "carved"
+
+
+def carved_path(out_dir, frame: int) -> Path:
+    """``OUT/carved/frame_NNNNNN.ply``."""
+    return Path(out_dir) / CARVED_DIR / f"frame_{int(frame):06d}.ply"
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _take(root: Path):
+    """The take a results directory came from (``process.json``), or a ValueError saying why not."""
+    from stage.store import TakeReader
+
+    try:
+        take = Path(json.loads((root / "process.json").read_text())["take"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{root}: no readable process.json naming the take ({exc}); carving needs its masks") from None
+    if not take.is_file():
+        raise ValueError(f"{root}: the take {take} is not there; carving needs its masks and calibration")
+    return TakeReader(take)
+
+
+def _tracked(root: Path) -> dict:
+    """Frame -> tracked template vertices of every frame ``tracked/track.json`` lists."""
+    from pipeline.meshio import load_mesh
+
+    report = root / "tracked" / "track.json"
+    try:
+        frames = json.loads(report.read_text())["frames"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{report}: unreadable ({exc}); run `stage track` first") from None
+    out = {}
+    for k in sorted(int(f) for f in frames):
+        out[k] = load_mesh(root / "tracked" / f"{k:06d}.ply", largest=False)[0]
+    if len(out) < 2:
+        raise ValueError(f"{report}: {len(out)} tracked frame(s); carving across time needs two or more")
+    return out
+
+
+def _images_of(rd, cameras: list):
+    """``images(k)``: every camera's signed distance image of frame set ``k`` (None where it has no mask)."""
+    from pipeline.temporal_hull import signed_distance_image
+
+    def images(k):
+        rows = rd.set_rows(k)
+        out = []
+        for c in cameras:
+            r = rows.get(c, -1)
+            m = rd.mask(c, r) if r >= 0 else None
+            out.append(None if m is None else signed_distance_image(np.asarray(m, bool)))
+        return out
+
+    return images
+
+
+def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band: float = 3.0, ignore: int = 1,
+                  progress=None) -> dict:
+    """Carve every tracked frame's surface across time into ``carved/frame_NNNNNN.ply``.
+
+    Parameters
+    ----------
+    results_dir : path
+        A ``stage process`` results directory after ``stage track`` (``grid.json``,
+        ``process.json`` naming the take, whose masks and calibration are read, ``tracked/``).
+    window : int, optional
+        Frames before and after each frame whose silhouettes carve it (the work grows with
+        the take's length times ``2 * window``, not with its square).
+    neighbours, band, ignore
+        See :func:`pipeline.temporal_hull.carve_across_time`.
+    progress : callable(step, done, total), optional
+
+    Returns
+    -------
+    dict
+        The report written to ``carved/carve.json``.
+
+    Raises
+    ------
+    ValueError
+        No tracking, no take, masks or calibration to carve with.
+    """
+    from pipeline.surface import EmptySurfaceError, surface_from_field
+    from pipeline.temporal_hull import carve_across_time
+    from pipeline.tracking import mesh_volume
+    from pipeline.volume import Grid
+
+    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
+        raise ValueError(f"window must be an integer >= 1 (frames), got {window!r}")
+    root = Path(results_dir)
+    tracks = _tracked(root)
+    grid = Grid.from_dict(json.loads((root / "grid.json").read_text()))
+    params = json.loads((root / "process.json").read_text()).get("params", {})
+    report = {"tracked_sha256": _digest(root / "tracked" / "track.json"), "window": int(window),
+              "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore),
+              "taubin_iterations": int(params.get("smooth_iterations", 10)), "frames": {}}
+    kept = _start_over_if_changed(root, report)
+    frames = list(tracks)
+    with _take(root) as rd:
+        calib = rd.calibration
+        if calib is None:
+            raise ValueError(f"{rd.path}: no calibration; carving needs the cameras")
+        keyed = set(rd.masks_present())
+        cams = [c for c in calib.names if c in keyed and c in rd.cameras]
+        if not cams:
+            raise ValueError(f"{rd.path}: no camera has both a calibration and masks; run the key step")
+        cameras = [calib[calib.names.index(c)] for c in cams]
+        images_of, cache = _images_of(rd, cams), {}
+        for i, k in enumerate(frames):
+            if str(k) in kept and carved_path(root, k).is_file():
+                report["frames"][str(k)] = kept[str(k)]
+                continue
+            near = [s for s in frames if abs(s - k) <= window]
+            for s in [s for s in cache if s not in near]:
+                del cache[s]  # only the window's images are held
+            for s in near:
+                if s not in cache:
+                    cache[s] = images_of(s)
+            field = carve_across_time(grid, k, {s: tracks[s] for s in near}, cache, cameras, band=band,
+                                      neighbours=neighbours, ignore=ignore)
+            try:
+                mesh = surface_from_field(field, grid, level=0.0, inside="above",
+                                          taubin_iterations=report["taubin_iterations"])
+            except EmptySurfaceError as exc:
+                log.warning("carved frame %d: %s; its surface is left out", k, exc)
+                report["frames"][str(k)] = {"vertices": 0}
+                continue
+            V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+            atomic_write_bytes(carved_path(root, k), ply_bytes(V, F))
+            report["frames"][str(k)] = {"vertices": int(len(V)), "volume_mm3": float(mesh_volume(V, F))}
+            _write_report(root, report)
+            if progress is not None:
+                progress("carve", i + 1, len(frames))
+    _write_report(root, report)
+    return report
+
+
+def _write_report(root: Path, report: dict) -> None:
+    atomic_write_bytes(root / CARVED_DIR / "carve.json", json.dumps(report, indent=1).encode())
+
+
+def _start_over_if_changed(root: Path, report: dict) -> dict:
+    """Per-frame figures of an earlier run with the same settings and motion (kept), else ``{}``
+    and the old carved frames removed first."""
+    path = root / CARVED_DIR / "carve.json"
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        old = None
+    if old is not None and all(old.get(k) == v for k, v in report.items() if k != "frames"):
+        return old.get("frames", {}) if isinstance(old.get("frames"), dict) else {}
+    for f in (root / CARVED_DIR).glob("frame_*.ply"):
+        f.unlink(missing_ok=True)
+    return {}

@@ -1,0 +1,101 @@
+"""``stage track --carve``: surfaces carved across time with the tracked motion (:mod:`pipeline.carve`).
+
+The results directory is the turning sphere of ``tests/pipeline/test_track.py`` (6 dome cameras,
+its true masks in the take, the same icosphere as every frame's surface) with a grid: the carved
+surfaces come from the take's masks and calibration alone, so their distance to the true sphere
+says that both were read right. Accuracy of the carving itself: ``test_temporal_hull.py``; on the
+simulated creatures: docs/tracking.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.carve import carve_results, carved_path
+from pipeline.meshio import load_mesh
+from pipeline.volume import Grid
+from stage.cli import main
+from tests.pipeline.test_track import _turning_sphere_results
+
+CENTRE, RADIUS = np.array([0.0, 0.0, 300.0]), 150.0
+
+
+def _results(root, frames=4):
+    res, _ = _turning_sphere_results(root, frames=frames, size=(160, 120))
+    grid = Grid(lo=CENTRE - 200, shape=(40, 40, 40), voxel=10.0)
+    (res / "grid.json").write_text(json.dumps(grid.to_dict()))
+    return res
+
+
+def _sphere_error(path):
+    v, _ = load_mesh(path, largest=False)
+    return np.abs(np.linalg.norm(v - CENTRE, axis=1) - RADIUS) / 10.0  # voxels
+
+
+def test_cli_carve_tracks_the_carved_surfaces_and_records_them(tmp_path, capsys):
+    res = _results(tmp_path)
+    assert main(["track", str(res), "--carve", "1", "--workers", "0", "--no-progress"]) == 0
+    assert "surfaces: carved across time" in capsys.readouterr().out
+    rep = json.loads((res / "tracked" / "track.json").read_text())
+    carve = json.loads((res / "carved" / "carve.json").read_text())
+    assert rep["surfaces"] == "carved" and sorted(rep["frames"]) == ["0", "1", "2", "3"]
+    assert rep["surfaces_sha256"] == hashlib.sha256((res / "carved" / "carve.json").read_bytes()).hexdigest()
+    assert rep["template"] == str(carved_path(res, 0))
+    for k in range(4):
+        err = _sphere_error(carved_path(res, k))
+        # measured 0.24 / 1.18 voxels (mean / max; 6 cameras at 160x120, a pixel about a voxel); masks or
+        # cameras read wrong would be many voxels off
+        assert err.mean() < 0.35 and err.max() < 1.5, (k, err.mean(), err.max())
+        assert carve["frames"][str(k)]["vertices"] > 100
+
+
+def test_carving_again_resumes_and_other_motion_starts_over(tmp_path):
+    res = _results(tmp_path, frames=3)
+    from pipeline.track import track_results
+
+    track_results(res)
+    first = carve_results(res)
+    stamps = [carved_path(res, k).stat().st_mtime_ns for k in range(3)]
+    assert carve_results(res)["frames"] == first["frames"]
+    assert [carved_path(res, k).stat().st_mtime_ns for k in range(3)] == stamps  # kept, not carved again
+    track_results(res, gate=5.0)  # another tracking: another motion
+    again = carve_results(res)
+    assert again["tracked_sha256"] != first["tracked_sha256"]
+    assert all(carved_path(res, k).stat().st_mtime_ns != s for k, s in zip(range(3), stamps))
+
+
+def test_carving_without_tracking_or_take_is_one_clear_error(tmp_path, capsys):
+    res = _results(tmp_path, frames=3)
+    with pytest.raises(ValueError, match="run `stage track` first"):
+        carve_results(res)
+    from pipeline.track import remove_tracking, track_results
+
+    track_results(res)
+    take = Path(json.loads((res / "process.json").read_text())["take"])
+    take.rename(tmp_path / "elsewhere.h5")
+    with pytest.raises(ValueError, match="is not there"):
+        carve_results(res)
+    assert main(["-q", "track", str(res), "--carve", "1", "--workers", "0"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--carve" in err[0] and "is not there" in err[0], err
+    (tmp_path / "elsewhere.h5").rename(take)
+    carve_results(res)
+    assert "carved" in remove_tracking(res) and not (res / "carved").exists()  # process starting over removes them
+
+
+def test_invalid_input(tmp_path):
+    res = _results(tmp_path, frames=2)
+    with pytest.raises(ValueError, match="window"):
+        carve_results(res, window=0)
+    with pytest.raises(ValueError, match="surfaces"):
+        from pipeline.track import track_results
+
+        track_results(res, surfaces="hull")
+    with pytest.raises(FileNotFoundError, match="stage track --carve"):
+        track_results(res, surfaces="carved")
+    assert main(["-q", "track", str(res), "--carve", "-1"]) != 0
