@@ -93,8 +93,10 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
         A ``stage process`` results directory after ``stage track`` (``grid.json``,
         ``process.json`` naming the take, whose masks and calibration are read, ``tracked/``).
     window : int, optional
-        Frames before and after each frame whose silhouettes carve it (the work grows with
-        the take's length times ``2 * window``, not with its square).
+        Each frame is carved by the ``2 * window`` tracked frames nearest it (as many before as
+        after it, more on one side at the take's ends, so that every frame gets as many views:
+        a frame carved by fewer is looser, and the tracked volume would change with it). The
+        work grows with the take's length times the window, not with its square.
     neighbours, band, ignore
         See :func:`pipeline.temporal_hull.carve_across_time`.
     progress : callable(step, done, total), optional
@@ -139,7 +141,7 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
             if str(k) in kept and carved_path(root, k).is_file():
                 report["frames"][str(k)] = kept[str(k)]
                 continue
-            near = [s for s in frames if abs(s - k) <= window]
+            near = sorted(sorted(frames, key=lambda s: (abs(s - k), s))[:2 * window + 1])
             for s in [s for s in cache if s not in near]:
                 del cache[s]  # only the window's images are held
             for s in near:

@@ -18,8 +18,8 @@ between the voxel centres, so the surface is not the occupancy's staircase.
 
 One frame's mis-tracked motion, or one mask's keying hole, must not carve the body: the
 least value of all cameras and frames is left out (``ignore``), and only points within
-``band`` voxels of the frame's own hull surface are carried (farther out and in, the frame's
-own silhouettes decide). Written by hand: scikit-image, trimesh and OpenCV carve no hull
+``band`` voxels inside the frame's own hull surface are carried (deeper in, the frame's own
+silhouettes decide; outside it nothing is left to carve). Written by hand: scikit-image, trimesh and OpenCV carve no hull
 across time, and the signed distance images come from OpenCV's distance transform.
 """
 
@@ -196,8 +196,8 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
         The frames used are ``frame`` and every other frame in both ``tracks`` and ``images``.
     cameras : sequence of Camera
     band : float, optional
-        Voxels: points this close to the frame's own hull surface (its zero level) are
-        carried to the other frames; the rest keep the frame's own value.
+        Voxels: points inside the frame's own hull up to this deep (and those within one
+        voxel outside it) are carried to the other frames; the rest keep the frame's own value.
     neighbours : int, optional
         See :func:`local_motions`.
     ignore : int, optional
@@ -228,7 +228,10 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
     field = silhouette_distance(C, images[frame], cameras).min(axis=0)
     big = float(np.linalg.norm(np.asarray(grid.shape) * grid.voxel))
     field[np.isinf(field)] = -big  # no camera sees it: carved
-    near = np.flatnonzero(np.abs(field) < float(band) * grid.voxel)
+    # carried: the points inside the frame's own hull up to ``band`` voxels deep, and those within a voxel
+    # outside it, whose values place the zero level between them and the inside ones (farther out the
+    # least value can only fall further below zero: nothing to carve there)
+    near = np.flatnonzero((field > -grid.voxel) & (field < float(band) * grid.voxel))
     others = [s for s in tracks if s != frame and s in images]
     if len(near) and others:
         from scipy.spatial import cKDTree

@@ -11,7 +11,8 @@ frames, timed apart, are printed beside it. Also times the solver backends (one 
 refactorisation + solve of the 15 per frame), and the prediction and one round's solve with the
 previous-shape prior on the multi-view loop's last frames. With ``--accuracy`` the simulated
 multi-view takes are also tracked on their true surfaces
-(:func:`fake_cameras.surface_motion.true_surface`), the tracker's error apart from the surfaces'.
+(:func:`fake_cameras.surface_motion.true_surface`), the tracker's error apart from the surfaces',
+and on their surfaces carved across time (:mod:`pipeline.carve`, two rounds).
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also track the simulated RGB-D pipe 1/2, pipe 3/4 and lamp (30 frames, bent 75 degrees), "
                    "the real tracked pipe of Tzionas & Gall rendered at its sensor's pose (60 frames, when "
                    "../shared/data is there) and the simulated multi-view starfish and quadruped (30 frames, also on their "
-                   "true surfaces, with and without --shape-memory), and print the vertex errors against the truth, "
+                   "true surfaces, with and without --shape-memory, and on their surfaces carved across time, --carve), "
+                   "and print the vertex errors against the truth, "
                    "the volume and what `stage rig` finds (several minutes)")
 
 
@@ -84,6 +86,30 @@ def multiview_accuracy(frames: int = 30) -> None:
                   f"over all vertices and frames (as tests/pipeline/test_tracking_multiview.py scores) {pooled[0]:.3f} / "
                   f"{pooled[1]:.3f}")
             _tracker_apart_from_surfaces(sim, res, frames)
+            _carved_rounds(sim, res, frames)
+
+
+def _carved_rounds(sim, res, frames: int, rounds: int = 2) -> None:
+    """The take tracked again on its surfaces carved across time with the tracked motion, as
+    ``stage track --carve 2 --shape-memory --colour`` after the default tracking
+    (:func:`pipeline.carve.carve_results`); each round's figures and seconds."""
+    import shutil
+
+    from pipeline.carve import carve_results
+    from pipeline.track import track_results
+
+    carved = res.with_name(res.name + "_carved")
+    shutil.copytree(res, carved, ignore=shutil.ignore_patterns("rig"))
+    for r in range(1, rounds + 1):
+        t0 = time.perf_counter()
+        carve_results(carved)
+        t1 = time.perf_counter()
+        track_results(carved, surfaces="carved", shape_memory=True, colour=True)
+        t2 = time.perf_counter()
+        _, (_, _, vols, pooled) = _multiview_scores(sim, carved, frames)
+        print(f"  carved across time, round {r} (--carve {r} --shape-memory --colour): {pooled[0]:.3f} / {pooled[1]:.3f} "
+              f"voxels; volume {min(vols):.3f}..{max(vols):.3f}; carving {(t1 - t0) / frames:.2f} s/frame, tracking "
+              f"{(t2 - t1) / frames:.2f} s/frame in order")
 
 
 def _multiview_scores(sim, res, frames: int):
