@@ -324,6 +324,8 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
             return _old_setting(old, k, report[k], spine_rewritten=newer)
 
         changed = [k for k in report if k not in _RESULT_KEYS and was(k) != report[k]]
+        if "surfaces" in changed:  # from meshes/ to carved/ (or back): their digest says nothing more
+            changed = [k for k in changed if k != "surfaces_sha256"]
         if changed:
             _remove_tracked_frames(path.parent)
             report["started_over"] = (f"{path.parent} holds frames tracked with other settings "
