@@ -84,7 +84,7 @@ def _images_of(rd, cameras: list):
 
 
 def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band: float = 3.0, ignore: int = 1,
-                  progress=None) -> dict:
+                  margin: float | None = None, progress=None) -> dict:
     """Carve every tracked frame's surface across time into ``carved/frame_NNNNNN.ply``.
 
     Parameters
@@ -99,6 +99,10 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
         work grows with the take's length times the window, not with its square.
     neighbours, band, ignore
         See :func:`pipeline.temporal_hull.carve_across_time`.
+    margin : float, optional
+        Pixels by which every silhouette is grown; default the ``silhouette_margin`` that
+        ``stage process`` carved the take's hulls with (``process.json``; 0 without it): what
+        the user said of the calibration's and the keying's accuracy holds for every frame.
     progress : callable(step, done, total), optional
 
     Returns
@@ -122,8 +126,9 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     tracks = _tracked(root)
     grid = Grid.from_dict(json.loads((root / "grid.json").read_text()))
     params = json.loads((root / "process.json").read_text()).get("params", {})
+    margin = float(params.get("silhouette_margin", 0) if margin is None else margin)
     report = {"tracked_sha256": _digest(root / "tracked" / "track.json"), "window": int(window),
-              "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore),
+              "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore), "margin_px": margin,
               "taubin_iterations": int(params.get("smooth_iterations", 10)), "frames": {}}
     kept = _start_over_if_changed(root, report)
     frames = list(tracks)
@@ -148,7 +153,7 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
                 if s not in cache:
                     cache[s] = images_of(s)
             field = carve_across_time(grid, k, {s: tracks[s] for s in near}, cache, cameras, band=band,
-                                      neighbours=neighbours, ignore=ignore)
+                                      neighbours=neighbours, ignore=ignore, margin=margin)
             try:
                 mesh = surface_from_field(field, grid, level=0.0, inside="above",
                                           taubin_iterations=report["taubin_iterations"])

@@ -19,8 +19,9 @@ between the voxel centres, so the surface is not the occupancy's staircase.
 One frame's mis-tracked motion, or one mask's keying hole, must not carve the body: the
 least value of all cameras and frames is left out (``ignore``), and only points within
 ``band`` voxels inside the frame's own hull surface are carried (deeper in, the frame's own
-silhouettes decide; outside it nothing is left to carve). Written by hand: scikit-image, trimesh and OpenCV carve no hull
-across time, and the signed distance images come from OpenCV's distance transform.
+silhouettes decide; outside it nothing is left to carve). Written by hand: scikit-image,
+trimesh and OpenCV carve no hull across time; the signed distance images come from OpenCV's
+distance transform.
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ def _check_points(points, name: str = "points") -> np.ndarray:
     return X
 
 
-def _camera_values(X: np.ndarray, image: np.ndarray, cam: Camera) -> np.ndarray:
+def _camera_values(X: np.ndarray, image: np.ndarray, cam: Camera, margin: float = 0.0) -> np.ndarray:
     """One camera's signed distance (world units) of every point: +inf where the camera does not see it."""
     import cv2
 
@@ -82,11 +83,11 @@ def _camera_values(X: np.ndarray, image: np.ndarray, cam: Camera) -> np.ndarray:
     px = cv2.remap(image, maps[0].reshape(rows, 1024), maps[1].reshape(rows, 1024), cv2.INTER_LINEAR,
                    borderMode=cv2.BORDER_REPLICATE).reshape(-1)[:n]
     out = np.full(len(X), np.inf)
-    out[seen] = px[seen] * z[seen] / float(cam.K[0, 0])
+    out[seen] = (px[seen] + margin) * z[seen] / float(cam.K[0, 0])
     return out
 
 
-def silhouette_distance(points, images: Sequence, cameras: Sequence[Camera]) -> np.ndarray:
+def silhouette_distance(points, images: Sequence, cameras: Sequence[Camera], *, margin: float = 0.0) -> np.ndarray:
     """Every camera's signed distance of points to its silhouette, world units.
 
     Parameters
@@ -97,6 +98,9 @@ def silhouette_distance(points, images: Sequence, cameras: Sequence[Camera]) -> 
         Per camera, :func:`signed_distance_image` of its silhouette (None: no mask, no value).
     cameras : sequence of Camera
         In the order of ``images``.
+    margin : float, optional
+        Pixels added to every signed distance: the silhouettes grown by that much (a
+        conservative hull, as ``stage process``'s ``silhouette_margin``).
 
     Returns
     -------
@@ -106,6 +110,8 @@ def silhouette_distance(points, images: Sequence, cameras: Sequence[Camera]) -> 
         has no mask or does not see the point (behind it, outside its image).
     """
     X = _check_points(points)
+    if not np.isfinite(margin) or margin < 0:
+        raise ValueError(f"margin must be a non-negative number of pixels, got {margin!r}")
     if len(images) != len(cameras):
         raise ValueError(f"images must have one entry per camera ({len(cameras)}), got {len(images)}")
     out = np.full((len(cameras), len(X)), np.inf)
@@ -117,7 +123,7 @@ def silhouette_distance(points, images: Sequence, cameras: Sequence[Camera]) -> 
         im = np.asarray(image, dtype=np.float32)
         if im.shape != (cam.height, cam.width):
             raise ValueError(f"images[{c}] must have camera {cam.name}'s shape {(cam.height, cam.width)}, got {im.shape}")
-        out[c] = _camera_values(X, im, cam)
+        out[c] = _camera_values(X, im, cam, float(margin))
     return out
 
 
@@ -132,7 +138,7 @@ def local_motions(before, after, *, neighbours: int = 100) -> tuple[np.ndarray, 
         Vertices per neighbourhood, the vertex itself included (nearest at ``before``;
         clipped to ``V``). About a five-voxel radius on a hull's surface, whose vertices are
         about a voxel apart: large enough that a few vertices' tracking noise averages out,
-        small enough to be one body part away from a joint.
+        small enough to stay on one body part away from the joints.
 
     Returns
     -------
@@ -180,7 +186,7 @@ def _kabsch(P: np.ndarray, Q: np.ndarray, W) -> tuple[np.ndarray, np.ndarray, np
 
 def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], images: Mapping[int, Sequence],
                       cameras: Sequence[Camera], *, band: float = 3.0, neighbours: int = 100,
-                      ignore: int = 1) -> np.ndarray:
+                      ignore: int = 1, margin: float = 0.0) -> np.ndarray:
     """One frame's silhouette field, carved by the other frames' silhouettes through the tracked motion.
 
     Parameters
@@ -202,6 +208,8 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
         See :func:`local_motions`.
     ignore : int, optional
         How many of the least values per point (over all cameras and frames) are left out.
+    margin : float, optional
+        Pixels by which every silhouette is grown (:func:`silhouette_distance`).
 
     Returns
     -------
@@ -225,7 +233,7 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
         raise ValueError(f"ignore must be a non-negative integer, got {ignore!r}")
     V = _check_points(tracks[frame], f"tracks[{frame}]")
     C = grid.centers()
-    field = silhouette_distance(C, images[frame], cameras).min(axis=0)
+    field = silhouette_distance(C, images[frame], cameras, margin=margin).min(axis=0)
     big = float(np.linalg.norm(np.asarray(grid.shape) * grid.voxel))
     field[np.isinf(field)] = -big  # no camera sees it: carved
     # carried: the points inside the frame's own hull up to ``band`` voxels deep, and those within a voxel
@@ -240,7 +248,7 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
         nearest = cKDTree(V).query(X)[1]
         used, nearest = np.unique(nearest, return_inverse=True)  # only the vertices some point is nearest
         W = _neighbourhoods(V, neighbours)[used]
-        values = [silhouette_distance(X, images[frame], cameras)]
+        values = [silhouette_distance(X, images[frame], cameras, margin=margin)]
         for s in others:
             Q = _check_points(tracks[s], f"tracks[{s}]")
             if Q.shape != V.shape:
@@ -248,7 +256,7 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
             R, c0, c1 = _kabsch(V, Q, W)
             R, c0, c1 = R[nearest], c0[nearest], c1[nearest]
             Xs = np.einsum("nij,nj->ni", R, X - c0) + c1
-            values.append(silhouette_distance(Xs, images[s], cameras))
+            values.append(silhouette_distance(Xs, images[s], cameras, margin=margin))
         A = np.concatenate(values)
         q = min(int(ignore), len(A) - 1)
         field[near] = np.minimum(np.partition(A, q, axis=0)[q], big)

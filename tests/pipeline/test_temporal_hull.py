@@ -83,6 +83,10 @@ def test_silhouette_distance_is_bilinear_image_times_footprint(turning_ell):
             val = ((1 - a) * (1 - b) * im[v0, u0] + a * (1 - b) * im[v0, u0 + 1]
                    + (1 - a) * b * im[v0 + 1, u0] + a * b * im[v0 + 1, u0 + 1])
             assert got[c, i] == pytest.approx(val * zi / cam.K[0, 0], rel=1e-3, abs=1e-3)
+    # a margin grows every silhouette by that many pixels: the footprint's worth more everywhere
+    z = np.stack([cam.project(X, return_depth=True)[1] for cam in cams])
+    footprint = z / np.array([cam.K[0, 0] for cam in cams])[:, None]
+    np.testing.assert_allclose(silhouette_distance(X, images, cams, margin=1.5), got + 1.5 * footprint, rtol=1e-6, atol=1e-6)
 
 
 def test_local_motions_match_a_kabsch_loop():
@@ -132,6 +136,8 @@ def test_invalid_input(turning_ell):
         silhouette_distance(np.zeros((3, 2)), t["images"][0], t["cams"])
     with pytest.raises(ValueError, match="images"):
         silhouette_distance(np.zeros((3, 3)), t["images"][0][:2], t["cams"])
+    with pytest.raises(ValueError, match="margin"):
+        silhouette_distance(np.zeros((3, 3)), t["images"][0], t["cams"], margin=-1)
     with pytest.raises(ValueError, match="images\\[0\\]"):
         silhouette_distance(np.zeros((3, 3)), [np.zeros((5, 5), np.float32)] * 3, t["cams"])
     with pytest.raises(ValueError, match="neighbours"):
