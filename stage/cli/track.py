@@ -49,6 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "carried by the tracked motion (shape from silhouette across time, RESULTS_DIR/carved/), and track again "
                    "on those; ROUNDS times (default 0: the surfaces of `stage process`). Best with --shape-memory --colour, "
                    "see docs/tracking.md")
+    p.add_argument("--carve-margin", type=float, default=None, metavar="PX",
+                   help="with --carve: grow every silhouette by PX pixels (default: the silhouette margin `stage process` "
+                   "carved the hulls with, RESULTS_DIR/process.json)")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -71,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--workers must be >= 0")
     if args.carve < 0:
         raise UserError("--carve must be >= 0 (rounds)")
+    if args.carve_margin is not None and (not args.carve or not args.carve_margin >= 0):
+        raise UserError("--carve-margin needs --carve and a margin >= 0 (pixels)")
     if src.exists():
         _check_mode(args, take=src.is_file())
     quiet = bool(getattr(args, "quiet", False)) or args.no_progress
@@ -120,12 +125,12 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
               choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour,
               shape_memory=args.shape_memory)
     if (2 if args.workers is None else args.workers) < 2:
-        return _rounds(src, args.carve, bars, **kw)
+        return _rounds(src, args.carve, bars, margin=args.carve_margin, **kw)
     with worker_pool(1) as ex:  # one task: the half before the reference frame
-        return _rounds(src, args.carve, bars, executor=ex, **kw)
+        return _rounds(src, args.carve, bars, margin=args.carve_margin, executor=ex, **kw)
 
 
-def _rounds(src: Path, rounds: int, bars, **kw) -> dict:
+def _rounds(src: Path, rounds: int, bars, *, margin=None, **kw) -> dict:
     """Track the surfaces of `stage process`, then ``rounds`` times carve them across time with
     the tracked motion and track the carved surfaces (:func:`pipeline.carve.carve_results`)."""
     from pipeline.carve import carve_results
@@ -135,7 +140,7 @@ def _rounds(src: Path, rounds: int, bars, **kw) -> dict:
     rep = track_results(src, **kw)
     for _ in range(rounds):
         try:
-            carve_results(src, progress=bars)
+            carve_results(src, margin=margin, progress=bars)
         except ValueError as exc:
             raise UserError(f"--carve: {exc}") from None
         rep = track_results(src, surfaces="carved", **kw)
@@ -145,7 +150,7 @@ def _rounds(src: Path, rounds: int, bars, **kw) -> dict:
 #: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.
 _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
               ("--contour", "contour", False), ("--no-colour", "no_colour", False))
-_RESULTS_ONLY = (("--carve", "carve", 0),
+_RESULTS_ONLY = (("--carve", "carve", 0), ("--carve-margin", "carve_margin", None),
                  ("--colour", "colour", False), ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
                  ("--prediction-only", "prediction_only", False), ("--workers", "workers", None))
 

@@ -117,3 +117,11 @@ def test_invalid_input(tmp_path):
     with pytest.raises(FileNotFoundError, match="stage track --carve"):
         track_results(res, surfaces="carved")
     assert main(["-q", "track", str(res), "--carve", "-1"]) != 0
+    assert main(["-q", "track", str(res), "--carve-margin", "1"]) != 0  # without --carve
+    assert main(["-q", "track", str(res), "--carve", "1", "--carve-margin", "-1"]) != 0
+
+
+def test_cli_carve_margin_is_recorded(tmp_path):
+    res = _results(tmp_path, frames=2)
+    assert main(["-q", "track", str(res), "--carve", "1", "--carve-margin", "0.5", "--workers", "0"]) == 0
+    assert json.loads((res / "carved" / "carve.json").read_text())["margin_px"] == 0.5
