@@ -61,7 +61,14 @@ def _tracked(root: Path) -> dict:
         raise ValueError(f"{report}: unreadable ({exc}); run `stage track` first") from None
     out = {}
     for k in sorted(int(f) for f in frames):
-        out[k] = load_mesh(root / "tracked" / f"{k:06d}.ply", largest=False)[0]
+        path = root / "tracked" / f"{k:06d}.ply"
+        try:
+            out[k] = load_mesh(path, largest=False)[0]
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{path}: unreadable ({exc}); run `stage track` again") from None
+        if len(out) > 1 and out[k].shape != next(iter(out.values())).shape:
+            raise ValueError(f"{path}: {len(out[k])} vertices, not the template's {len(next(iter(out.values())))}; "
+                             "run `stage track` again")
     if len(out) < 2:
         raise ValueError(f"{report}: {len(out)} tracked frame(s); carving across time needs two or more")
     return out

@@ -102,6 +102,10 @@ def test_carving_without_tracking_or_take_is_one_clear_error(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--carve" in err[0] and "is not there" in err[0], err
     (tmp_path / "elsewhere.h5").rename(take)
+    (res / "tracked" / "000001.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\n")  # truncated
+    with pytest.raises(ValueError, match="000001.ply: unreadable"):
+        carve_results(res)
+    track_results(res)  # tracked again: the frame is whole
     carve_results(res)
     assert "carved" in remove_tracking(res) and not (res / "carved").exists()  # process starting over removes them
 
