@@ -75,19 +75,37 @@ def _tracked(root: Path) -> dict:
 
 
 def _images_of(rd, cameras: list):
-    """``images(k)``: every camera's signed distance image of frame set ``k`` (None where it has no mask)."""
+    """``images(k)``: every camera's signed distance image of frame set ``k`` (None where it has no
+    mask, or its mask cannot be read: one warning per camera, and that view carves nothing)."""
     from pipeline.temporal_hull import signed_distance_image
+    from stage.store import TakeError
+
+    warned: set = set()
+
+    def mask(c, rows, k):
+        try:
+            r = rows.get(c, -1)
+            return rd.mask(c, r) if r >= 0 else None
+        except (IndexError, TakeError, OSError) as exc:  # truncated masks, read error
+            if c not in warned:
+                warned.add(c)
+                log.warning("carving: camera %s, frame set %d has no readable mask (%s); "
+                            "its views that cannot be read carve nothing", c, k, exc)
+            return None
 
     def images(k):
         rows = rd.set_rows(k)
-        out = []
-        for c in cameras:
-            r = rows.get(c, -1)
-            m = rd.mask(c, r) if r >= 0 else None
-            out.append(None if m is None else signed_distance_image(np.asarray(m, bool)))
-        return out
+        masks = [mask(c, rows, k) for c in cameras]
+        return [None if m is None else signed_distance_image(np.asarray(m, bool)) for m in masks]
 
     return images
+
+
+def _read_json(path: Path, what: str) -> dict:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: unreadable ({exc}); {what}") from None
 
 
 def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band: float = 3.0, ignore: int = 1,
@@ -131,8 +149,8 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
         raise ValueError(f"window must be an integer >= 1 (frames), got {window!r}")
     root = Path(results_dir)
     tracks = _tracked(root)
-    grid = Grid.from_dict(json.loads((root / "grid.json").read_text()))
-    params = json.loads((root / "process.json").read_text()).get("params", {})
+    grid = Grid.from_dict(_read_json(root / "grid.json", "carving needs the grid of `stage process`"))
+    params = _read_json(root / "process.json", "carving needs the take it names").get("params", {})
     margin = float(params.get("silhouette_margin", 0) if margin is None else margin)
     report = {"tracked_sha256": _digest(root / "tracked" / "track.json"), "window": int(window),
               "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore), "margin_px": margin,
@@ -152,6 +170,8 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
         for i, k in enumerate(frames):
             if str(k) in kept and carved_path(root, k).is_file():
                 report["frames"][str(k)] = kept[str(k)]
+                if progress is not None:
+                    progress("carve", i + 1, len(frames))
                 continue
             near = sorted(sorted(frames, key=lambda s: (abs(s - k), s))[:2 * window + 1])
             for s in [s for s in cache if s not in near]:

@@ -129,3 +129,28 @@ def test_cli_carve_margin_is_recorded(tmp_path):
     res = _results(tmp_path, frames=2)
     assert main(["-q", "track", str(res), "--carve", "1", "--carve-margin", "0.5", "--workers", "0"]) == 0
     assert json.loads((res / "carved" / "carve.json").read_text())["margin_px"] == 0.5
+
+
+def test_an_unreadable_mask_carves_nothing_with_one_warning(tmp_path, monkeypatch, caplog):
+    """A camera whose mask cannot be read on some frames (truncated masks, corrupt data) gives those
+    views no say, with one warning for that camera; every frame is still carved."""
+    import logging
+
+    from pipeline.track import track_results
+    from stage.store import TakeError, TakeReader
+
+    res = _results(tmp_path, frames=3)
+    track_results(res)
+    real = TakeReader.mask
+
+    def flaky(self, cam_id, r):
+        if cam_id == "cam00" and r >= 1:
+            raise TakeError("corrupt mask")
+        return real(self, cam_id, r)
+
+    monkeypatch.setattr(TakeReader, "mask", flaky)
+    with caplog.at_level(logging.WARNING, logger="pipeline.carve"):
+        rep = carve_results(res)
+    lines = [r.getMessage() for r in caplog.records if r.name == "pipeline.carve"]
+    assert len(lines) == 1 and "cam00" in lines[0] and "corrupt mask" in lines[0], lines
+    assert sorted(rep["frames"]) == ["0", "1", "2"] and all(f["vertices"] > 100 for f in rep["frames"].values())
