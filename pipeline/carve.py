@@ -14,13 +14,14 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from concurrent.futures import BrokenExecutor
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.results import atomic_write_bytes, ply_bytes
 
-__all__ = ["carve_results", "carved_path", "CARVED_DIR"]
+__all__ = ["carve_results", "carve_frames_task", "carved_path", "CARVED_DIR"]
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +110,7 @@ def _read_json(path: Path, what: str) -> dict:
 
 
 def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band: float = 3.0, ignore: int = 1,
-                  margin: float | None = None, progress=None) -> dict:
+                  margin: float | None = None, progress=None, executor=None) -> dict:
     """Carve every tracked frame's surface across time into ``carved/frame_NNNNNN.ply``.
 
     Parameters
@@ -129,6 +130,10 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
         ``stage process`` carved the take's hulls with (``process.json``; 0 without it): what
         the user said of the calibration's and the keying's accuracy holds for every frame.
     progress : callable(step, done, total), optional
+    executor : concurrent.futures.Executor, optional
+        Carves the second half of the frames to carve (a process pool:
+        :func:`carve_frames_task` is its task) while this process carves the first; the
+        surfaces are the same either way (every frame is carved on its own).
 
     Returns
     -------
@@ -140,62 +145,103 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     ValueError
         No tracking, no take, masks or calibration to carve with.
     """
-    from pipeline.surface import EmptySurfaceError, surface_from_field
-    from pipeline.temporal_hull import carve_across_time
-    from pipeline.tracking import mesh_volume
-    from pipeline.volume import Grid
-
     if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
         raise ValueError(f"window must be an integer >= 1 (frames), got {window!r}")
     root = Path(results_dir)
     tracks = _tracked(root)
-    grid = Grid.from_dict(_read_json(root / "grid.json", "carving needs the grid of `stage process`"))
     params = _read_json(root / "process.json", "carving needs the take it names").get("params", {})
     margin = float(params.get("silhouette_margin", 0) if margin is None else margin)
     report = {"tracked_sha256": _digest(root / "tracked" / "track.json"), "window": int(window),
               "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore), "margin_px": margin,
               "taubin_iterations": int(params.get("smooth_iterations", 10)), "frames": {}}
+    settings = {k: report[k] for k in ("window", "neighbours", "band", "ignore", "margin_px", "taubin_iterations")}
     kept = _start_over_if_changed(root, report)
     frames = list(tracks)
+    todo = [k for k in frames if not (str(k) in kept and carved_path(root, k).is_file())]
+    report["frames"] = {str(k): kept[str(k)] for k in frames if k not in todo}
+    done = [len(report["frames"])]
+
+    def record(k, figures):
+        report["frames"][str(k)] = figures
+        _write_report(root, report)
+        done[0] += 1
+        if progress is not None:
+            progress("carve", done[0], len(frames))
+
+    here, there = (todo[: (len(todo) + 1) // 2], todo[(len(todo) + 1) // 2:]) if executor is not None else (todo, [])
+    future = executor.submit(carve_frames_task, {"root": str(root), "frames": there, "settings": settings}) if there else None
+    _carve_frames(root, here, tracks, settings, record)
+    if future is not None:
+        try:
+            figures = future.result()
+        except BrokenExecutor as exc:  # the worker died: its frames are carved here
+            log.warning("carving: the worker process failed (%s); carving its frames here", exc)
+            figures = _carve_frames(root, [k for k in there if not carved_path(root, k).is_file()], tracks, settings)
+        for k in there:
+            if str(k) in figures:
+                record(k, figures[str(k)])
+    report["frames"] = {str(k): report["frames"][str(k)] for k in frames if str(k) in report["frames"]}
+    _write_report(root, report)
+    return report
+
+
+def carve_frames_task(job: dict) -> dict:
+    """Some frames of a results directory carved in a worker process (see :func:`carve_results`);
+    -> their per-frame figures by frame (``carve.json`` is written by the caller)."""
+    root = Path(job["root"])
+    return _carve_frames(root, list(job["frames"]), _tracked(root), job["settings"])
+
+
+def _carve_frames(root: Path, todo: list, tracks: dict, settings: dict, record=None) -> dict:
+    """Carve the frames ``todo`` into ``carved/``; ``record(frame, figures)`` after each; -> figures by frame."""
+    from pipeline.surface import EmptySurfaceError, surface_from_field
+    from pipeline.temporal_hull import carve_across_time
+    from pipeline.tracking import mesh_volume
+    from pipeline.volume import Grid
+
+    out: dict = {}
+    if not todo:
+        return out
+    grid = Grid.from_dict(_read_json(root / "grid.json", "carving needs the grid of `stage process`"))
+    frames, window = list(tracks), settings["window"]
     with _take(root) as rd:
-        calib = rd.calibration
-        if calib is None:
-            raise ValueError(f"{rd.path}: no calibration; carving needs the cameras")
-        keyed = set(rd.masks_present())
-        cams = [c for c in calib.names if c in keyed and c in rd.cameras]
-        if not cams:
-            raise ValueError(f"{rd.path}: no camera has both a calibration and masks; run the key step")
-        cameras = [calib[calib.names.index(c)] for c in cams]
-        images_of, cache = _images_of(rd, cams), {}
-        for i, k in enumerate(frames):
-            if str(k) in kept and carved_path(root, k).is_file():
-                report["frames"][str(k)] = kept[str(k)]
-                if progress is not None:
-                    progress("carve", i + 1, len(frames))
-                continue
+        cameras, images_of = _cameras(rd)
+        cache: dict = {}
+        for k in todo:
             near = sorted(sorted(frames, key=lambda s: (abs(s - k), s))[:2 * window + 1])
             for s in [s for s in cache if s not in near]:
                 del cache[s]  # only the window's images are held
             for s in near:
                 if s not in cache:
                     cache[s] = images_of(s)
-            field = carve_across_time(grid, k, {s: tracks[s] for s in near}, cache, cameras, band=band,
-                                      neighbours=neighbours, ignore=ignore, margin=margin)
+            field = carve_across_time(grid, k, {s: tracks[s] for s in near}, cache, cameras, band=settings["band"],
+                                      neighbours=settings["neighbours"], ignore=settings["ignore"],
+                                      margin=settings["margin_px"])
             try:
                 mesh = surface_from_field(field, grid, level=0.0, inside="above",
-                                          taubin_iterations=report["taubin_iterations"])
+                                          taubin_iterations=settings["taubin_iterations"])
             except EmptySurfaceError as exc:
                 log.warning("carved frame %d: %s; its surface is left out", k, exc)
-                report["frames"][str(k)] = {"vertices": 0}
-                continue
-            V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-            atomic_write_bytes(carved_path(root, k), ply_bytes(V, F))
-            report["frames"][str(k)] = {"vertices": int(len(V)), "volume_mm3": float(mesh_volume(V, F))}
-            _write_report(root, report)
-            if progress is not None:
-                progress("carve", i + 1, len(frames))
-    _write_report(root, report)
-    return report
+                out[str(k)] = {"vertices": 0}
+            else:
+                V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+                atomic_write_bytes(carved_path(root, k), ply_bytes(V, F))
+                out[str(k)] = {"vertices": int(len(V)), "volume_mm3": float(mesh_volume(V, F))}
+            if record is not None:
+                record(k, out[str(k)])
+    return out
+
+
+def _cameras(rd):
+    """(calibrated cameras with masks, ``images(k)`` of theirs) of an open take, or a ValueError."""
+    calib = rd.calibration
+    if calib is None:
+        raise ValueError(f"{rd.path}: no calibration; carving needs the cameras")
+    keyed = set(rd.masks_present())
+    names = [c for c in calib.names if c in keyed and c in rd.cameras]
+    if not names:
+        raise ValueError(f"{rd.path}: no camera has both a calibration and masks; run the key step")
+    return [calib[calib.names.index(c)] for c in names], _images_of(rd, names)
 
 
 def _write_report(root: Path, report: dict) -> None:

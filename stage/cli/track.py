@@ -132,7 +132,8 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
 
 def _rounds(src: Path, rounds: int, bars, *, margin=None, **kw) -> dict:
     """Track the surfaces of `stage process`, then ``rounds`` times carve them across time with
-    the tracked motion and track the carved surfaces (:func:`pipeline.carve.carve_results`)."""
+    the tracked motion and track the carved surfaces (:func:`pipeline.carve.carve_results`); with
+    an ``executor`` (``--workers 2``) half of each tracking and of each carving runs there."""
     from pipeline.carve import carve_results
     from pipeline.track import track_results
     from stage.cli import UserError
@@ -140,7 +141,7 @@ def _rounds(src: Path, rounds: int, bars, *, margin=None, **kw) -> dict:
     rep = track_results(src, **kw)
     for _ in range(rounds):
         try:
-            carve_results(src, margin=margin, progress=bars)
+            carve_results(src, margin=margin, progress=bars, executor=kw.get("executor"))
         except ValueError as exc:
             raise UserError(f"--carve: {exc}") from None
         rep = track_results(src, surfaces="carved", **kw)

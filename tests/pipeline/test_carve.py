@@ -72,6 +72,26 @@ def test_carving_grows_the_silhouettes_by_the_margin_process_carved_with(tmp_pat
     assert 15.0 < radius[2] - radius[0] < 35.0, radius
 
 
+def test_carving_in_a_worker_process_equals_carving_here(tmp_path):
+    """``carve_results(executor=)`` carves the second half of the frames in a worker process: the
+    same surfaces, and one report with every frame."""
+    import concurrent.futures as cf
+    import multiprocessing
+
+    from pipeline.track import track_results
+
+    res = _results(tmp_path, frames=4)
+    track_results(res)
+    carve_results(res)
+    here = {k: carved_path(res, k).read_bytes() for k in range(4)}
+    for k in range(4):
+        carved_path(res, k).unlink()
+    with cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver")) as ex:
+        rep = carve_results(res, executor=ex)
+    assert sorted(rep["frames"]) == ["0", "1", "2", "3"]
+    assert all(carved_path(res, k).read_bytes() == here[k] for k in range(4))
+
+
 def test_carving_again_resumes_and_other_motion_starts_over(tmp_path):
     res = _results(tmp_path, frames=3)
     from pipeline.track import track_results
