@@ -11,7 +11,7 @@ keeping the frames of the same settings and motion.
 
 from __future__ import annotations
 
-import hashlib
+import contextlib
 import json
 import logging
 from concurrent.futures import BrokenExecutor
@@ -21,7 +21,7 @@ import numpy as np
 
 from pipeline.results import atomic_write_bytes, ply_bytes
 
-__all__ = ["carve_results", "carve_frames_task", "carved_path", "CARVED_DIR"]
+__all__ = ["carve_results", "carve_frames_task", "carved_path", "remove_carved", "CARVED_DIR"]
 
 log = logging.getLogger(__name__)
 
@@ -34,21 +34,14 @@ def carved_path(out_dir, frame: int) -> Path:
     return Path(out_dir) / CARVED_DIR / f"frame_{int(frame):06d}.ply"
 
 
-def _digest(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
-def _take(root: Path):
-    """The take a results directory came from (``process.json``), or a ValueError saying why not."""
-    from stage.store import TakeReader
-
-    try:
-        take = Path(json.loads((root / "process.json").read_text())["take"])
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{root}: no readable process.json naming the take ({exc}); carving needs its masks") from None
-    if not take.is_file():
+def _take_path(root: Path, process: dict) -> Path:
+    """The take a results directory came from (``process.json``, read), or a ValueError saying why not."""
+    take = process.get("take") if isinstance(process, dict) else None
+    if not isinstance(take, str):
+        raise ValueError(f"{root / 'process.json'} names no take; carving needs its masks")
+    if not Path(take).is_file():
         raise ValueError(f"{root}: the take {take} is not there; carving needs its masks and calibration")
-    return TakeReader(take)
+    return Path(take)
 
 
 def _tracked(root: Path) -> dict:
@@ -60,16 +53,16 @@ def _tracked(root: Path) -> dict:
         frames = json.loads(report.read_text())["frames"]
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"{report}: unreadable ({exc}); run `stage track` first") from None
-    out = {}
+    out: dict = {}
     for k in sorted(int(f) for f in frames):
         path = root / "tracked" / f"{k:06d}.ply"
         try:
             out[k] = load_mesh(path, largest=False)[0]
         except (OSError, ValueError) as exc:
             raise ValueError(f"{path}: unreadable ({exc}); run `stage track` again") from None
-        if len(out) > 1 and out[k].shape != next(iter(out.values())).shape:
-            raise ValueError(f"{path}: {len(out[k])} vertices, not the template's {len(next(iter(out.values())))}; "
-                             "run `stage track` again")
+        first = out[min(out)]
+        if out[k].shape != first.shape:
+            raise ValueError(f"{path}: {len(out[k])} vertices, not the template's {len(first)}; run `stage track` again")
     if len(out) < 2:
         raise ValueError(f"{report}: {len(out)} tracked frame(s); carving across time needs two or more")
     return out
@@ -147,11 +140,14 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     """
     if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
         raise ValueError(f"window must be an integer >= 1 (frames), got {window!r}")
+    from pipeline.track import _file_digest
+
     root = Path(results_dir)
     tracks = _tracked(root)
-    params = _read_json(root / "process.json", "carving needs the take it names").get("params", {})
+    process = _read_json(root / "process.json", "carving needs the take it names")
+    take, params = _take_path(root, process), process.get("params", {})
     margin = float(params.get("silhouette_margin", 0) if margin is None else margin)
-    report = {"tracked_sha256": _digest(root / "tracked" / "track.json"), "window": int(window),
+    report = {"tracked_sha256": _file_digest(root / "tracked" / "track.json"), "window": int(window),
               "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore), "margin_px": margin,
               "taubin_iterations": int(params.get("smooth_iterations", 10)), "frames": {}}
     settings = {k: report[k] for k in ("window", "neighbours", "band", "ignore", "margin_px", "taubin_iterations")}
@@ -169,14 +165,15 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
             progress("carve", done[0], len(frames))
 
     here, there = (todo[: (len(todo) + 1) // 2], todo[(len(todo) + 1) // 2:]) if executor is not None else (todo, [])
-    future = executor.submit(carve_frames_task, {"root": str(root), "frames": there, "settings": settings}) if there else None
-    _carve_frames(root, here, tracks, settings, record)
+    job = {"root": str(root), "take": str(take), "frames": there, "settings": settings}
+    future = executor.submit(carve_frames_task, job) if there else None
+    _carve_frames(root, take, here, tracks, settings, record)
     if future is not None:
         try:
             figures = future.result()
         except BrokenExecutor as exc:  # the worker died: its frames are carved here
             log.warning("carving: the worker process failed (%s); carving its frames here", exc)
-            figures = _carve_frames(root, [k for k in there if not carved_path(root, k).is_file()], tracks, settings)
+            figures = _carve_frames(root, take, [k for k in there if not carved_path(root, k).is_file()], tracks, settings)
         for k in there:
             if str(k) in figures:
                 record(k, figures[str(k)])
@@ -189,10 +186,10 @@ def carve_frames_task(job: dict) -> dict:
     """Some frames of a results directory carved in a worker process (see :func:`carve_results`);
     -> their per-frame figures by frame (``carve.json`` is written by the caller)."""
     root = Path(job["root"])
-    return _carve_frames(root, list(job["frames"]), _tracked(root), job["settings"])
+    return _carve_frames(root, Path(job["take"]), list(job["frames"]), _tracked(root), job["settings"])
 
 
-def _carve_frames(root: Path, todo: list, tracks: dict, settings: dict, record=None) -> dict:
+def _carve_frames(root: Path, take: Path, todo: list, tracks: dict, settings: dict, record=None) -> dict:
     """Carve the frames ``todo`` into ``carved/``; ``record(frame, figures)`` after each; -> figures by frame."""
     from pipeline.surface import EmptySurfaceError, surface_from_field
     from pipeline.temporal_hull import carve_across_time
@@ -204,7 +201,9 @@ def _carve_frames(root: Path, todo: list, tracks: dict, settings: dict, record=N
         return out
     grid = Grid.from_dict(_read_json(root / "grid.json", "carving needs the grid of `stage process`"))
     frames, window = list(tracks), settings["window"]
-    with _take(root) as rd:
+    from stage.store import TakeReader
+
+    with TakeReader(take) as rd:
         cameras, images_of = _cameras(rd)
         cache: dict = {}
         for k in todo:
@@ -258,6 +257,27 @@ def _start_over_if_changed(root: Path, report: dict) -> dict:
         old = None
     if old is not None and all(old.get(k) == v for k, v in report.items() if k != "frames"):
         return old.get("frames", {}) if isinstance(old.get("frames"), dict) else {}
-    for f in (root / CARVED_DIR).glob("frame_*.ply"):
-        f.unlink(missing_ok=True)
+    _remove_frames(root)
     return {}
+
+
+def _remove_frames(root: Path) -> int:
+    """Remove ``carved/frame_NNNNNN.ply``; -> how many there were."""
+    files = list((root / CARVED_DIR).glob("frame_*.ply"))
+    for f in files:
+        f.unlink(missing_ok=True)
+    return len(files)
+
+
+def remove_carved(out_dir) -> str:
+    """Remove the surfaces carved with the tracked motion (``carved/``: ``frame_NNNNNN.ply`` and
+    ``carve.json``; the folder too when that leaves it empty), as a tracking start-over does
+    (:func:`pipeline.track.remove_tracking`); -> what its warning says of it (``""``: nothing there)."""
+    carved = Path(out_dir) / CARVED_DIR
+    files = _remove_frames(Path(out_dir))
+    if (carved / "carve.json").is_file():
+        (carved / "carve.json").unlink()
+        files += 1
+    with contextlib.suppress(OSError):  # not there, or not empty: kept
+        carved.rmdir()
+    return f"; removed the surfaces carved with that motion ({carved})" if files else ""

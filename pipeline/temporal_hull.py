@@ -233,7 +233,8 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
         raise ValueError(f"ignore must be a non-negative integer, got {ignore!r}")
     V = _check_points(tracks[frame], f"tracks[{frame}]")
     C = grid.centers()
-    field = silhouette_distance(C, images[frame], cameras, margin=margin).min(axis=0)
+    own = silhouette_distance(C, images[frame], cameras, margin=margin)  # (cameras, voxels)
+    field = own.min(axis=0)
     big = float(np.linalg.norm(np.asarray(grid.shape) * grid.voxel))
     field[np.isinf(field)] = -big  # no camera sees it: carved
     # carried: the points inside the frame's own hull up to ``band`` voxels deep, and those within a voxel
@@ -248,7 +249,7 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
         nearest = cKDTree(V).query(X)[1]
         used, nearest = np.unique(nearest, return_inverse=True)  # only the vertices some point is nearest
         W = _neighbourhoods(V, neighbours)[used]
-        values = [silhouette_distance(X, images[frame], cameras, margin=margin)]
+        values = [own[:, near]]
         for s in others:
             Q = _check_points(tracks[s], f"tracks[{s}]")
             if Q.shape != V.shape:

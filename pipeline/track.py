@@ -385,20 +385,9 @@ def remove_tracking(out_dir) -> str:
     with contextlib.suppress(OSError):  # not there, or not empty: kept
         tracked.rmdir()
     note = f"; removed the frames tracked on the old surfaces ({tracked})" if files else ""
-    return note + _remove_carved(out) + _remove_stale_rig(out)
+    from pipeline.carve import remove_carved
 
-
-def _remove_carved(out: Path) -> str:
-    """Remove the surfaces carved with the tracked motion (``carved/``: ``frame_NNNNNN.ply``, ``carve.json``)."""
-    from pipeline.carve import CARVED_DIR
-
-    carved = out / CARVED_DIR
-    files = [*carved.glob("frame_*.ply"), *carved.glob("carve.json")]
-    for f in files:
-        f.unlink(missing_ok=True)
-    with contextlib.suppress(OSError):
-        carved.rmdir()
-    return f"; removed the surfaces carved with that motion ({carved})" if files else ""
+    return note + remove_carved(out) + _remove_stale_rig(out)
 
 
 def _remove_tracked_frames(tracked: Path) -> int:
