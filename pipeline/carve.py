@@ -144,8 +144,11 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
 
     root = Path(results_dir)
     tracks = _tracked(root)
+    from pipeline.volume import Grid
+
     process = _read_json(root / "process.json", "carving needs the take it names")
     take, params = _take_path(root, process), process.get("params", {})
+    grid = Grid.from_dict(_read_json(root / "grid.json", "carving needs the grid of `stage process`"))
     margin = float(params.get("silhouette_margin", 0) if margin is None else margin)
     report = {"tracked_sha256": _file_digest(root / "tracked" / "track.json"), "window": int(window),
               "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore), "margin_px": margin,
@@ -165,15 +168,16 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
             progress("carve", done[0], len(frames))
 
     here, there = (todo[: (len(todo) + 1) // 2], todo[(len(todo) + 1) // 2:]) if executor is not None else (todo, [])
-    job = {"root": str(root), "take": str(take), "frames": there, "settings": settings}
+    job = {"root": str(root), "take": str(take), "grid": grid.to_dict(), "frames": there, "settings": settings}
     future = executor.submit(carve_frames_task, job) if there else None
-    _carve_frames(root, take, here, tracks, settings, record)
+    _carve_frames(root, take, grid, here, tracks, settings, record)
     if future is not None:
         try:
             figures = future.result()
         except BrokenExecutor as exc:  # the worker died: its frames are carved here
             log.warning("carving: the worker process failed (%s); carving its frames here", exc)
-            figures = _carve_frames(root, take, [k for k in there if not carved_path(root, k).is_file()], tracks, settings)
+            figures = _carve_frames(root, take, grid, [k for k in there if not carved_path(root, k).is_file()], tracks,
+                                    settings)
         for k in there:
             if str(k) in figures:
                 record(k, figures[str(k)])
@@ -185,21 +189,22 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
 def carve_frames_task(job: dict) -> dict:
     """Some frames of a results directory carved in a worker process (see :func:`carve_results`);
     -> their per-frame figures by frame (``carve.json`` is written by the caller)."""
+    from pipeline.volume import Grid
+
     root = Path(job["root"])
-    return _carve_frames(root, Path(job["take"]), list(job["frames"]), _tracked(root), job["settings"])
+    return _carve_frames(root, Path(job["take"]), Grid.from_dict(job["grid"]), list(job["frames"]), _tracked(root),
+                         job["settings"])
 
 
-def _carve_frames(root: Path, take: Path, todo: list, tracks: dict, settings: dict, record=None) -> dict:
+def _carve_frames(root: Path, take: Path, grid, todo: list, tracks: dict, settings: dict, record=None) -> dict:
     """Carve the frames ``todo`` into ``carved/``; ``record(frame, figures)`` after each; -> figures by frame."""
     from pipeline.surface import EmptySurfaceError, surface_from_field
     from pipeline.temporal_hull import carve_across_time
     from pipeline.tracking import mesh_volume
-    from pipeline.volume import Grid
 
     out: dict = {}
     if not todo:
         return out
-    grid = Grid.from_dict(_read_json(root / "grid.json", "carving needs the grid of `stage process`"))
     frames, window = list(tracks), settings["window"]
     from stage.store import TakeReader
 
