@@ -65,6 +65,27 @@ class Calibration:
         """(C, 3) camera centres."""
         return np.stack([c.center for c in self.cameras])
 
+    def reprojection_error_px(self) -> dict[str, float]:
+        """What the calibration says of its own accuracy: each camera's reprojection error, pixels.
+
+        0 for every camera of a calibration that holds the true cameras (``meta["exact"]``, a
+        simulator's); else, per camera, the RMS error on the board frames held out of the fit
+        (``meta["held_out_rms_px"]``, :func:`calib.rig.calibrate_rig`), on all frames
+        (``all_frames_rms_px``) or on the frames fitted (``per_camera_rms_px``), the first one
+        recorded. Cameras it records nothing of are left out (an imported calibration: ``{}``).
+        """
+        if self.meta.get("exact") is True:
+            return {n: 0.0 for n in self.names}
+        out: dict[str, float] = {}
+        for key in ("per_camera_rms_px", "all_frames_rms_px", "held_out_rms_px"):  # the last one recorded wins
+            table = self.meta.get(key)
+            if isinstance(table, dict):
+                for n, v in table.items():
+                    if n in self.names and isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) \
+                            and v >= 0:
+                        out[n] = float(v)
+        return {n: out[n] for n in self.names if n in out}
+
     def to_dict(self) -> dict:
         return {
             "format": "capture-stage/calibration@1",

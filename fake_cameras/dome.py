@@ -183,5 +183,6 @@ def make_dome(
         "seed": int(seed),
         "volume": {"center": list(vol.center), "size": list(vol.size)},
         "distortion": bool(distortion),
+        "exact": True,  # the cameras the images are rendered through (Calibration.reprojection_error_px: 0)
     }
     return Calibration(cameras=tuple(cams), units="mm", meta=meta)

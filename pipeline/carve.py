@@ -119,9 +119,15 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     neighbours, band, ignore
         See :func:`pipeline.temporal_hull.carve_across_time`.
     margin : float, optional
-        Pixels by which every silhouette is grown; default the ``silhouette_margin`` that
-        ``stage process`` carved the take's hulls with (``process.json``; 0 without it): what
-        the user said of the calibration's and the keying's accuracy holds for every frame.
+        Pixels by which every camera's silhouettes are grown. Default, per camera: twice the
+        reprojection error its calibration records of itself
+        (:meth:`calib.calibration.Calibration.reprojection_error_px`: held-out RMS where
+        ``stage calibrate`` measured it, 0 for a simulator's true cameras), at most the
+        ``silhouette_margin`` that ``stage process`` carved the take's hulls with
+        (``process.json``); that margin for a camera the calibration says nothing of. Across
+        time a point meets some 30 times more silhouettes than one frame's hull: what a
+        camera's calibration is off by would shave thin parts all the more, and the
+        calibration's own residual says by how much.
     progress : callable(step, done, total), optional
     executor : concurrent.futures.Executor, optional
         Carves the second half of the frames to carve (a process pool:
@@ -149,7 +155,7 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     process = _read_json(root / "process.json", "carving needs the take it names")
     take, params = _take_path(root, process), process.get("params", {})
     grid = Grid.from_dict(_read_json(root / "grid.json", "carving needs the grid of `stage process`"))
-    margin = float(params.get("silhouette_margin", 0) if margin is None else margin)
+    margin = _margins(take, float(params.get("silhouette_margin", 0))) if margin is None else float(margin)
     report = {"tracked_sha256": _file_digest(root / "tracked" / "track.json"), "window": int(window),
               "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore), "margin_px": margin,
               "taubin_iterations": int(params.get("smooth_iterations", 10)), "frames": {}}
@@ -186,6 +192,26 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     return report
 
 
+#: Silhouettes grow by this many times a camera's recorded reprojection error (RMS, pixels): the
+#: error of most points' projections, not only of a typical one.
+MARGIN_PER_RMS = 2.0
+
+
+def _margins(take: Path, hull_margin: float) -> dict:
+    """Camera -> pixels its silhouettes grow by (see :func:`carve_results`, ``margin``)."""
+    from stage.store import TakeError, TakeReader
+
+    try:
+        with TakeReader(take) as rd:
+            calib = rd.calibration
+    except (OSError, TakeError) as exc:
+        raise ValueError(f"{take}: unreadable ({exc}); carving needs its masks and calibration") from None
+    if calib is None:
+        raise ValueError(f"{take}: no calibration; carving needs the cameras")
+    known = calib.reprojection_error_px()
+    return {n: min(hull_margin, MARGIN_PER_RMS * known[n]) if n in known else hull_margin for n in calib.names}
+
+
 def carve_frames_task(job: dict) -> dict:
     """Some frames of a results directory carved in a worker process (see :func:`carve_results`);
     -> their per-frame figures by frame (``carve.json`` is written by the caller)."""
@@ -210,6 +236,8 @@ def _carve_frames(root: Path, take: Path, grid, todo: list, tracks: dict, settin
 
     with TakeReader(take) as rd:
         cameras, images_of = _cameras(rd)
+        m = settings["margin_px"]
+        margin = [float(m.get(c.name, 0.0)) for c in cameras] if isinstance(m, dict) else float(m)
         cache: dict = {}
         for k in todo:
             near = sorted(sorted(frames, key=lambda s: (abs(s - k), s))[:2 * window + 1])
@@ -219,8 +247,7 @@ def _carve_frames(root: Path, take: Path, grid, todo: list, tracks: dict, settin
                 if s not in cache:
                     cache[s] = images_of(s)
             field = carve_across_time(grid, k, {s: tracks[s] for s in near}, cache, cameras, band=settings["band"],
-                                      neighbours=settings["neighbours"], ignore=settings["ignore"],
-                                      margin=settings["margin_px"])
+                                      neighbours=settings["neighbours"], ignore=settings["ignore"], margin=margin)
             try:
                 mesh = surface_from_field(field, grid, level=0.0, inside="above",
                                           taubin_iterations=settings["taubin_iterations"])

@@ -98,9 +98,11 @@ def silhouette_distance(points, images: Sequence, cameras: Sequence[Camera], *, 
         Per camera, :func:`signed_distance_image` of its silhouette (None: no mask, no value).
     cameras : sequence of Camera
         In the order of ``images``.
-    margin : float, optional
-        Pixels added to every signed distance: the silhouettes grown by that much (a
-        conservative hull, as ``stage process``'s ``silhouette_margin``).
+    margin : float or (C,) float array-like, optional
+        Pixels added to every signed distance, for all cameras or one per camera: the
+        silhouettes grown by that much (a conservative hull, as ``stage process``'s
+        ``silhouette_margin``; :func:`pipeline.carve.carve_results` grows each camera's by
+        what its calibration says of its own accuracy).
 
     Returns
     -------
@@ -110,10 +112,9 @@ def silhouette_distance(points, images: Sequence, cameras: Sequence[Camera], *, 
         has no mask or does not see the point (behind it, outside its image).
     """
     X = _check_points(points)
-    if not np.isfinite(margin) or margin < 0:
-        raise ValueError(f"margin must be a non-negative number of pixels, got {margin!r}")
     if len(images) != len(cameras):
         raise ValueError(f"images must have one entry per camera ({len(cameras)}), got {len(images)}")
+    margins = _margins(margin, len(cameras))
     out = np.full((len(cameras), len(X)), np.inf)
     for c, (image, cam) in enumerate(zip(images, cameras)):
         if not isinstance(cam, Camera):
@@ -123,8 +124,18 @@ def silhouette_distance(points, images: Sequence, cameras: Sequence[Camera], *, 
         im = np.asarray(image, dtype=np.float32)
         if im.shape != (cam.height, cam.width):
             raise ValueError(f"images[{c}] must have camera {cam.name}'s shape {(cam.height, cam.width)}, got {im.shape}")
-        out[c] = _camera_values(X, im, cam, float(margin))
+        out[c] = _camera_values(X, im, cam, float(margins[c]))
     return out
+
+
+def _margins(margin, n: int) -> np.ndarray:
+    """``margin`` (pixels: one for every camera, or (n,) one each) as an (n,) array, or a ValueError."""
+    m = np.asarray(margin, dtype=np.float64) if not isinstance(margin, bool) else np.array(np.nan)
+    if m.ndim == 0:
+        m = np.full(n, float(m))
+    if m.shape != (n,) or not np.all(np.isfinite(m)) or np.any(m < 0):
+        raise ValueError(f"margin must be a non-negative number of pixels or one per camera ({n}), got {margin!r}")
+    return m
 
 
 def local_motions(before, after, *, neighbours: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -208,8 +219,9 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
         See :func:`local_motions`.
     ignore : int, optional
         How many of the least values per point (over all cameras and frames) are left out.
-    margin : float, optional
-        Pixels by which every silhouette is grown (:func:`silhouette_distance`).
+    margin : float or (C,) float array-like, optional
+        Pixels by which every silhouette is grown, for all cameras or one per camera
+        (:func:`silhouette_distance`).
 
     Returns
     -------
@@ -232,6 +244,7 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
     if isinstance(ignore, bool) or not isinstance(ignore, (int, np.integer)) or ignore < 0:
         raise ValueError(f"ignore must be a non-negative integer, got {ignore!r}")
     V = _check_points(tracks[frame], f"tracks[{frame}]")
+    margin = _margins(margin, len(cameras))
     C = grid.centers()
     own = silhouette_distance(C, images[frame], cameras, margin=margin)  # (cameras, voxels)
     field = own.min(axis=0)

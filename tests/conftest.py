@@ -25,3 +25,18 @@ def shared_dataset(name: str) -> Path:
     if not p.is_dir():
         pytest.skip(f"real test data {name!r} not found at {p} (only present in the project's CI and dev machines)")
     return p
+
+
+#: Test files that use another file's module-level cache (its processed takes) run in that file's
+#: worker process under pytest-xdist (``--dist loadgroup``; every other file is a group of its own).
+SAME_WORKER = {"test_tracking_multiview.py": "test_spine_pipeline.py"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups
+def pytest_collection_modifyitems(config, items):
+    if not config.pluginmanager.hasplugin("xdist"):
+        return
+    for item in items:
+        path = Path(item.path)
+        group = path.with_name(SAME_WORKER.get(path.name, path.name))
+        item.add_marker(pytest.mark.xdist_group(str(group.relative_to(config.rootpath))))

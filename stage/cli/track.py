@@ -50,8 +50,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "on those; ROUNDS times (default 0: the surfaces of `stage process`). Best with --shape-memory --colour, "
                    "see docs/tracking.md")
     p.add_argument("--carve-margin", type=float, default=None, metavar="PX",
-                   help="with --carve: grow every silhouette by PX pixels (default: the silhouette margin `stage process` "
-                   "carved the hulls with, RESULTS_DIR/process.json)")
+                   help="with --carve: grow every silhouette by PX pixels (default, per camera: twice the reprojection error "
+                   "its calibration records, at most the silhouette margin `stage process` carved the hulls with, "
+                   "RESULTS_DIR/process.json; that margin where the calibration records none)")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")

@@ -20,6 +20,19 @@ def test_roundtrip_and_lookup():
     np.testing.assert_allclose(cal.centers()[:, 0], [0, -100, -200])
 
 
+def test_reprojection_error_px_says_what_the_calibration_measured():
+    assert Calibration(_cams()).reprojection_error_px() == {}  # imported: nothing known
+    assert Calibration(_cams(), meta={"exact": True}).reprojection_error_px() == {"c0": 0.0, "c1": 0.0, "c2": 0.0}
+    meta = {"per_camera_rms_px": {"c0": 0.3, "c1": 0.4, "c2": 0.5},
+            "held_out_rms_px": {"c0": 0.6, "c1": float("nan"), "zz": 1.0}}
+    # held out where measured, else the fit's own; a non-finite figure or an unknown camera is ignored
+    assert Calibration(_cams(), meta=meta).reprojection_error_px() == {"c0": 0.6, "c1": 0.4, "c2": 0.5}
+    # a figure that is not a number is ignored, as is a table that is not one
+    odd = {"all_frames_rms_px": {"c0": "0.2", "c1": True, "c2": -1.0}, "held_out_rms_px": [0.1]}
+    assert Calibration(_cams(), meta=odd).reprojection_error_px() == {}
+    assert Calibration(_cams(), meta={"exact": "yes"}).reprojection_error_px() == {}
+
+
 def test_invalid_input():
     with pytest.raises(ValueError, match="cameras"):
         Calibration(())

@@ -25,8 +25,8 @@ from tests.pipeline.test_track import _turning_sphere_results
 CENTRE, RADIUS = np.array([0.0, 0.0, 300.0]), 150.0
 
 
-def _results(root, frames=4):
-    res, _ = _turning_sphere_results(root, frames=frames, size=(160, 120))
+def _results(root, frames=4, calib_meta=None):
+    res, _ = _turning_sphere_results(root, frames=frames, size=(160, 120), calib_meta=calib_meta)
     grid = Grid(lo=CENTRE - 200, shape=(40, 40, 40), voxel=10.0)
     (res / "grid.json").write_text(json.dumps(grid.to_dict()))
     return res
@@ -54,22 +54,43 @@ def test_cli_carve_tracks_the_carved_surfaces_and_records_them(tmp_path, capsys)
         assert carve["frames"][str(k)]["vertices"] > 100
 
 
+def _set_hull_margin(res, margin):
+    process = json.loads((res / "process.json").read_text())
+    (res / "process.json").write_text(json.dumps({**process, "params": {"silhouette_margin": margin}}))
+
+
 def test_carving_grows_the_silhouettes_by_the_margin_process_carved_with(tmp_path):
-    """``process.json``'s ``silhouette_margin`` (pixels) holds for every frame's silhouettes: the
-    carved sphere grows by about that many pixels' footprint."""
+    """With a calibration that says nothing of its accuracy (imported), ``process.json``'s
+    ``silhouette_margin`` (pixels) holds for every frame's silhouettes: the carved sphere grows by
+    about that many pixels' footprint."""
     from pipeline.track import track_results
 
-    res = _results(tmp_path, frames=3)
+    res = _results(tmp_path, frames=3, calib_meta={})
     track_results(res)
     radius = {}
     for margin in (0, 2):
-        process = json.loads((res / "process.json").read_text())
-        (res / "process.json").write_text(json.dumps({**process, "params": {"silhouette_margin": margin}}))
-        assert carve_results(res)["margin_px"] == margin
+        _set_hull_margin(res, margin)
+        assert set(carve_results(res)["margin_px"].values()) == {margin}
         v, _ = load_mesh(carved_path(res, 1), largest=False)
         radius[margin] = np.linalg.norm(v - CENTRE, axis=1).mean()
     # measured: 2 px grow the mean radius by 19.7 mm (2 px at the sphere's centre are 22..27 mm from these cameras)
     assert 15.0 < radius[2] - radius[0] < 35.0, radius
+
+
+@pytest.mark.parametrize("meta, expected", [
+    ({"exact": True}, [0.0] * 6),  # the simulator's true cameras: the silhouettes as keyed
+    # twice the held-out RMS where the calibration measured it, at most the hull's margin, that margin where it did not
+    ({"held_out_rms_px": {"cam00": 0.25, "cam01": 0.5, "cam02": 2.0}}, [0.5, 1.0, 2.0, 2.0, 2.0, 2.0]),
+])
+def test_each_camera_grows_by_what_its_calibration_says_of_itself(tmp_path, meta, expected):
+    from pipeline.track import track_results
+
+    res = _results(tmp_path, frames=2, calib_meta=meta)
+    _set_hull_margin(res, 2)
+    track_results(res)
+    got = carve_results(res)["margin_px"]
+    assert list(got) == [f"cam{i:02d}" for i in range(6)]
+    assert list(got.values()) == expected
 
 
 def test_carving_in_a_worker_process_equals_carving_here(tmp_path):

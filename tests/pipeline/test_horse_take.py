@@ -169,7 +169,7 @@ _TRACK_CAUSE = (
     "the vertices are 0.75 voxels from it (1.89 at the 95th percentile), the surfaces' own limit (0.78 / 2.06, every "
     "third frame); along it the legs and belly 2.4 voxels (5.5 at the 95th percentile). The colour tracks "
     "(`track_results(colour=True)`, windows warped on the object's pixels) give 1.77 / 4.72; the surfaces carved across "
-    "time with the tracked motion (`stage track --carve 2 --shape-memory --colour --carve-margin 0`) 1.09 / 3.37. "
+    "time with the tracked motion (`stage track --carve 2 --shape-memory --colour`, the exact cameras' margin 0) 1.09 / 3.37. "
     "See docs/tracking.md")
 
 

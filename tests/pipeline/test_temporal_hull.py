@@ -87,6 +87,10 @@ def test_silhouette_distance_is_bilinear_image_times_footprint(turning_ell):
     z = np.stack([cam.project(X, return_depth=True)[1] for cam in cams])
     footprint = z / np.array([cam.K[0, 0] for cam in cams])[:, None]
     np.testing.assert_allclose(silhouette_distance(X, images, cams, margin=1.5), got + 1.5 * footprint, rtol=1e-6, atol=1e-6)
+    # one margin per camera: each camera's own
+    each = np.arange(len(cams)) * 0.75
+    np.testing.assert_allclose(silhouette_distance(X, images, cams, margin=each), got + each[:, None] * footprint,
+                               rtol=1e-6, atol=1e-6)
 
 
 def test_local_motions_match_a_kabsch_loop():
@@ -136,8 +140,12 @@ def test_invalid_input(turning_ell):
         silhouette_distance(np.zeros((3, 2)), t["images"][0], t["cams"])
     with pytest.raises(ValueError, match="images"):
         silhouette_distance(np.zeros((3, 3)), t["images"][0][:2], t["cams"])
+    assert len(t["cams"]) == 3
+    for bad in (-1, np.nan, True, [1.0] * 4, [1.0, -1.0, 1.0]):
+        with pytest.raises(ValueError, match="margin"):
+            silhouette_distance(np.zeros((3, 3)), t["images"][0], t["cams"], margin=bad)
     with pytest.raises(ValueError, match="margin"):
-        silhouette_distance(np.zeros((3, 3)), t["images"][0], t["cams"], margin=-1)
+        carve_across_time(t["grid"], 0, t["tracks"], t["images"], t["cams"], margin=[0.5])
     with pytest.raises(ValueError, match="images\\[0\\]"):
         silhouette_distance(np.zeros((3, 3)), [np.zeros((5, 5), np.float32)] * 3, t["cams"])
     with pytest.raises(ValueError, match="neighbours"):

@@ -513,10 +513,12 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     assert "removed the rig built on them" in ctx.warnings[0] and not (tmp_path / "rig").exists()
 
 
-def _turning_sphere_results(root, *, frames=6, degrees=2.0, size=(320, 240)):
+def _turning_sphere_results(root, *, frames=6, degrees=2.0, size=(320, 240), calib_meta=None):
     """A textured sphere (radius 150 mm) turning about an oblique axis through its centre, filmed by
     6 dome cameras, with its keyed (true) masks; the results directory holds the same surface every
-    frame, so the turn is invisible to the surfaces. -> (results directory, true vertices per frame)."""
+    frame, so the turn is invisible to the surfaces. ``calib_meta``: the take's calibration's ``meta``
+    (default the simulator's: exact cameras). -> (results directory, true vertices per frame)."""
+    from calib import Calibration
     from fake_cameras.creatures import Pose, _rot
     from fake_cameras.dome import make_dome
     from fake_cameras.render import Backdrop, render_view
@@ -525,6 +527,8 @@ def _turning_sphere_results(root, *, frames=6, degrees=2.0, size=(320, 240)):
     from stage.store.derived import write_masks
 
     calib = make_dome(6, size=size, seed=1)
+    if calib_meta is not None:
+        calib = Calibration(calib.cameras, calib.units, meta=calib_meta)
     c, r = np.array([0.0, 0.0, 300.0]), 150.0
     turns = [_rot((0.3, 0.2, 1.0), np.deg2rad(degrees) * k) for k in range(frames)]
     # texture painted on the body, without shading: what the images see is the turn alone
