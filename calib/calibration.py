@@ -71,19 +71,19 @@ class Calibration:
         0 for every camera of a calibration that holds the true cameras (``meta["exact"]``, a
         simulator's); else, per camera, the RMS error on the board frames held out of the fit
         (``meta["held_out_rms_px"]``, :func:`calib.rig.calibrate_rig`), on all frames
-        (``all_frames_rms_px``) or on the frames fitted (``per_camera_rms_px``), the first one
-        recorded. Cameras it records nothing of are left out (an imported calibration: ``{}``).
+        (``all_frames_rms_px``) or on the frames fitted (``per_camera_rms_px``), else the
+        camera's own ``meta["error"]`` (caliscope's RMS, :func:`calib.formats.read_caliscope_toml`),
+        the first one recorded. Cameras it records nothing of are left out (``{}`` for most
+        imported calibrations).
         """
         if self.meta.get("exact") is True:
             return {n: 0.0 for n in self.names}
+        tables = [{c.name: c.meta.get("error") for c in self.cameras}]
+        tables += [self.meta.get(k) for k in ("per_camera_rms_px", "all_frames_rms_px", "held_out_rms_px")]
         out: dict[str, float] = {}
-        for key in ("per_camera_rms_px", "all_frames_rms_px", "held_out_rms_px"):  # the last one recorded wins
-            table = self.meta.get(key)
+        for table in tables:  # the last one recorded wins
             if isinstance(table, dict):
-                for n, v in table.items():
-                    if n in self.names and isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) \
-                            and v >= 0:
-                        out[n] = float(v)
+                out.update({n: float(v) for n, v in table.items() if n in self.names and _pixels(v)})
         return {n: out[n] for n in self.names if n in out}
 
     def to_dict(self) -> dict:
@@ -108,3 +108,8 @@ class Calibration:
         if not isinstance(other, Calibration):
             return NotImplemented
         return self.units == other.units and self.cameras == other.cameras
+
+
+def _pixels(v) -> bool:
+    """Whether ``v`` is a finite, non-negative number (not a bool)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v)) and v >= 0

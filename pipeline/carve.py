@@ -21,9 +21,15 @@ import numpy as np
 
 from pipeline.results import atomic_write_bytes, ply_bytes
 
-__all__ = ["carve_results", "carve_frames_task", "carved_path", "remove_carved", "CARVED_DIR"]
+__all__ = ["carve_results", "carve_frames_task", "carved_path", "remove_carved", "track_with_carving", "CarveError",
+           "CARVED_DIR"]
 
 log = logging.getLogger(__name__)
+
+class CarveError(ValueError):
+    """A carving that cannot run (no take, masks or calibration, an unreadable record), from
+    :func:`track_with_carving`."""
+
 
 #: The folder of a results directory that holds the carved surfaces.
 CARVED_DIR = "carved"
@@ -210,6 +216,48 @@ def _margins(take: Path, hull_margin: float) -> dict:
         raise ValueError(f"{take}: no calibration; carving needs the cameras")
     known = calib.reprojection_error_px()
     return {n: min(hull_margin, MARGIN_PER_RMS * known[n]) if n in known else hull_margin for n in calib.names}
+
+
+def track_with_carving(results_dir, rounds: int, *, margin: float | None = None, progress=None, executor=None,
+                       **track_options) -> dict:
+    """Track the surfaces of ``stage process``, then ``rounds`` times carve them across time with
+    the tracked motion and track the carved surfaces (``stage track --carve ROUNDS``, the
+    ``track`` step with ``ProcessParams.track.carve``).
+
+    Parameters
+    ----------
+    results_dir : path
+        A ``stage process`` results directory.
+    rounds : int
+        Carvings (0: the tracking of ``meshes/`` alone).
+    margin, progress, executor
+        See :func:`carve_results`; ``progress`` and ``executor`` serve the trackings too.
+    **track_options
+        Keywords of :func:`pipeline.track.track_results` (``colour``, ``shape_memory``...), the
+        same for every round.
+
+    Returns
+    -------
+    dict
+        The last tracking's report (``tracked/track.json``).
+
+    Raises
+    ------
+    CarveError
+        A carving cannot run (:func:`carve_results`' ValueError).
+    """
+    from pipeline.track import track_results
+
+    if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 0:
+        raise ValueError(f"rounds must be an integer >= 0, got {rounds!r}")
+    rep = track_results(results_dir, progress=progress, executor=executor, **track_options)
+    for _ in range(int(rounds)):
+        try:
+            carve_results(results_dir, margin=margin, progress=progress, executor=executor)
+        except ValueError as exc:
+            raise CarveError(str(exc)) from None
+        rep = track_results(results_dir, surfaces="carved", progress=progress, executor=executor, **track_options)
+    return rep
 
 
 def carve_frames_task(job: dict) -> dict:

@@ -51,7 +51,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from stage.store.space import check_free_space, raise_disk_full
 
 __all__ = [
-    "STEPS", "DEFAULT_STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "process_take",
+    "STEPS", "DEFAULT_STEPS", "ProcessError", "ProcessParams", "ProcessResult", "RunContext", "Step", "TrackParams",
+    "process_take",
     "register_step",
 ]
 
@@ -72,6 +73,31 @@ _KEEP_MASKS_BYTES = 1 << 30
 
 class ProcessError(ValueError):
     """A take that cannot be processed; the message says why and what to do."""
+
+
+class TrackParams(BaseModel):
+    """Options of the ``track`` step, as ``stage track RESULTS_DIR`` takes them (docs/tracking.md).
+
+    Parameters
+    ----------
+    carve : int
+        Rounds of surfaces carved across time with the tracked motion, each tracked again
+        (``--carve``; 0: the surfaces of ``stage process``).
+    carve_margin : float or None
+        Pixels every silhouette grows by in the carving (``--carve-margin``; default per camera
+        from its calibration, :func:`pipeline.carve.carve_results`).
+    shape_memory : bool
+        Keep the previous frame's shape in the rigid prior (``--shape-memory``).
+    colour : bool
+        Feature tracks from every camera's colour images (``--colour``).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    carve: Annotated[int, Field(ge=0, le=5)] = 0
+    carve_margin: Annotated[float, Field(ge=0, le=10)] | None = None
+    shape_memory: bool = False
+    colour: bool = False
 
 
 class ProcessParams(BaseModel):
@@ -121,6 +147,9 @@ class ProcessParams(BaseModel):
         concavities that two cameras see is carved. Surfaces from fused depth are not refined.
     spine : dict
         Options of :class:`pipeline.spine.SpineParams`.
+    track : TrackParams
+        Options of the ``track`` step. They change the tracking alone: a run with other ones
+        tracks again (``tracked/track.json`` says what changed) and keeps every other result.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -138,6 +167,7 @@ class ProcessParams(BaseModel):
     depth: Literal["auto", "off"] = "auto"
     photo_refine: bool = False
     spine: dict = Field(default_factory=dict)
+    track: TrackParams = Field(default_factory=TrackParams)
 
     @field_validator("volume")
     @classmethod
@@ -991,11 +1021,13 @@ def _step_spine(ctx: RunContext) -> None:
 
 
 def _step_track(ctx: RunContext) -> None:
-    """The first surface tracked through the take -> ``tracked/`` (:func:`pipeline.track.track_results`)."""
-    from pipeline.track import track_results
+    """The first surface tracked through the take -> ``tracked/`` (:func:`pipeline.carve.track_with_carving`
+    with ``ProcessParams.track``)."""
+    from pipeline.carve import track_with_carving
 
-    t0 = time.perf_counter()
-    rep = track_results(ctx.out, progress=ctx.progress, executor=ctx.executor)
+    t0, opt = time.perf_counter(), ctx.params.track
+    rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.progress, executor=ctx.executor,
+                             colour=opt.colour, shape_memory=opt.shape_memory)
     if rep.get("started_over"):  # frames of other settings, and the rig on them, removed: the job report says so
         ctx.warnings.append(rep["started_over"])
     ctx.worker_cpu["track"] = ctx.worker_cpu.get("track", 0.0) + rep.get("worker_cpu_seconds", 0.0)
@@ -1090,9 +1122,14 @@ def _start_record(ctx: RunContext) -> None:
     prev = ctx.out / "process.json"
     if prev.exists():
         old = json.loads(prev.read_text())
-        if old.get("params") != record["params"] or old.get("take") != record["take"]:
+        if _compared(old.get("params")) != _compared(record["params"]) or old.get("take") != record["take"]:
             _start_over(ctx)
     _atomic_write(prev, json.dumps(record, indent=2))
+
+
+def _compared(params) -> object:
+    """The parameters a start-over compares: all but the ``track`` step's (the tracking compares its own)."""
+    return {k: v for k, v in params.items() if k != "track"} if isinstance(params, dict) else params
 
 
 def _start_over(ctx: RunContext) -> None:

@@ -34,9 +34,14 @@ SAME_WORKER = {"test_tracking_multiview.py": "test_spine_pipeline.py"}
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups
 def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist: every test in its file's group, and the groups holding ``slow`` tests
+    first (the workers take the groups in this order: the longest are not left to the end)."""
     if not config.pluginmanager.hasplugin("xdist"):
         return
+    groups = {}
     for item in items:
         path = Path(item.path)
-        group = path.with_name(SAME_WORKER.get(path.name, path.name))
-        item.add_marker(pytest.mark.xdist_group(str(group.relative_to(config.rootpath))))
+        groups[item] = str(path.with_name(SAME_WORKER.get(path.name, path.name)).relative_to(config.rootpath))
+        item.add_marker(pytest.mark.xdist_group(groups[item]))
+    slow = {groups[item] for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: groups[item] not in slow)  # stable: the collection's order otherwise

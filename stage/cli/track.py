@@ -126,27 +126,20 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
               choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour,
               shape_memory=args.shape_memory)
     if (2 if args.workers is None else args.workers) < 2:
-        return _rounds(src, args.carve, bars, margin=args.carve_margin, **kw)
+        return _rounds(src, args.carve, margin=args.carve_margin, **kw)
     with worker_pool(1) as ex:  # one task: the half before the reference frame
-        return _rounds(src, args.carve, bars, margin=args.carve_margin, executor=ex, **kw)
+        return _rounds(src, args.carve, margin=args.carve_margin, executor=ex, **kw)
 
 
-def _rounds(src: Path, rounds: int, bars, *, margin=None, **kw) -> dict:
-    """Track the surfaces of `stage process`, then ``rounds`` times carve them across time with
-    the tracked motion and track the carved surfaces (:func:`pipeline.carve.carve_results`); with
-    an ``executor`` (``--workers 2``) half of each tracking and of each carving runs there."""
-    from pipeline.carve import carve_results
-    from pipeline.track import track_results
+def _rounds(src: Path, rounds: int, *, margin=None, **kw) -> dict:
+    """:func:`pipeline.carve.track_with_carving`; a carving that cannot run is one clear line."""
+    from pipeline.carve import CarveError, track_with_carving
     from stage.cli import UserError
 
-    rep = track_results(src, **kw)
-    for _ in range(rounds):
-        try:
-            carve_results(src, margin=margin, progress=bars, executor=kw.get("executor"))
-        except ValueError as exc:
-            raise UserError(f"--carve: {exc}") from None
-        rep = track_results(src, surfaces="carved", **kw)
-    return rep
+    try:
+        return track_with_carving(src, rounds, margin=margin, **kw)
+    except CarveError as exc:
+        raise UserError(f"--carve: {exc}") from None
 
 
 #: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.

@@ -169,6 +169,19 @@ def test_queued_jobs_survive_restart(make_client, data_root):
     assert wait_job(c2, jid)["state"] == "done"
 
 
+def test_a_process_job_checks_its_track_options(make_client, data_root):
+    """``parameters.track`` are ``stage track``'s options (pipeline.process.TrackParams), checked when the
+    job is submitted."""
+    add_take(data_root, "t", frames=2)
+    c = make_client(work="pipeline.process:process_take")
+    for bad in ({"carve": -1}, {"carve": 99}, {"carve_margin": -1}, {"shape_memory": "sometimes"}, {"rounds": 2}):
+        r = c.post("/jobs", json={"take": "t", "steps": ["track"], "parameters": {"track": bad}}, headers=AUTH)
+        assert r.status_code == 400 and "track" in r.json()["detail"], (bad, r.json())
+    ok = {"track": {"carve": 2, "shape_memory": True, "colour": True}}
+    r = c.post("/jobs", json={"take": "t", "steps": ["track"], "parameters": ok}, headers=AUTH)
+    assert r.status_code in (200, 201, 202) and r.json()["params"]["track"]["carve"] == 2, r.json()
+
+
 def test_a_job_on_results_of_other_parameters_starts_over_without_their_tracking_and_rig(make_client, tmp_path):
     """The API's job path (the real work): a job whose folder holds results of other parameters
     removes the tracked frames and the rig built on them, and its result carries the one warning;

@@ -31,6 +31,11 @@ def test_reprojection_error_px_says_what_the_calibration_measured():
     odd = {"all_frames_rms_px": {"c0": "0.2", "c1": True, "c2": -1.0}, "held_out_rms_px": [0.1]}
     assert Calibration(_cams(), meta=odd).reprojection_error_px() == {}
     assert Calibration(_cams(), meta={"exact": "yes"}).reprojection_error_px() == {}
+    # a camera's own figure (caliscope's RMS) where the calibration's tables say nothing of it
+    cams = list(_cams())
+    cams[1] = Camera(cams[1].name, cams[1].K, cams[1].dist, cams[1].R, cams[1].t, cams[1].size, meta={"error": 0.7})
+    got = Calibration(tuple(cams), meta={"held_out_rms_px": {"c0": 0.6}}).reprojection_error_px()
+    assert got == {"c0": 0.6, "c1": 0.7}
 
 
 def test_invalid_input():

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.carve import carve_results, carved_path
+from pipeline.carve import CarveError, carve_results, carved_path, track_with_carving
 from pipeline.meshio import load_mesh
 from pipeline.volume import Grid
 from stage.cli import main
@@ -164,6 +164,15 @@ def test_invalid_input(tmp_path):
     assert main(["-q", "track", str(res), "--carve", "-1"]) != 0
     assert main(["-q", "track", str(res), "--carve-margin", "1"]) != 0  # without --carve
     assert main(["-q", "track", str(res), "--carve", "1", "--carve-margin", "-1"]) != 0
+    for bad in (-1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="rounds"):
+            track_with_carving(res, bad)
+    # a carving that cannot run (the take is gone) is a CarveError after the first tracking, nothing carved
+    process = json.loads((res / "process.json").read_text())
+    (res / "process.json").write_text(json.dumps({**process, "take": str(tmp_path / "gone.h5")}))
+    with pytest.raises(CarveError, match="gone.h5"):
+        track_with_carving(res, 1)
+    assert not (res / "carved").exists() and (res / "tracked" / "000001.ply").is_file()
 
 
 def test_cli_carve_margin_is_recorded(tmp_path):

@@ -513,6 +513,33 @@ def test_starting_over_removes_the_tracking_and_rig_of_the_old_surfaces(small_tr
     assert not caplog.records and rep.report["warnings"] == [] and (out / "tracked" / "000002.ply").is_file()
 
 
+def test_track_options_track_again_and_keep_every_other_result(small_tracked, tmp_path, caplog):
+    """``ProcessParams.track`` (the API job's ``parameters.track``) is what ``stage track`` takes: with
+    ``carve`` the surfaces are carved across time and tracked again, with ``shape_memory`` the prior keeps
+    the previous shape. Changing them tracks again (track.json says so) and starts nothing else over."""
+    import shutil
+
+    take, first = small_tracked
+    out = tmp_path / "out"
+    shutil.copytree(first, out)
+    surfaces = _files_under(out, "meshes", "frames")
+    with caplog.at_level("WARNING"):
+        res = process_take(take, out, steps=("track",),
+                           params={**_SMALL, "track": {"carve": 1, "shape_memory": True, "carve_margin": 0.5}})
+    rep = json.loads((out / "tracked" / "track.json").read_text())
+    assert rep["surfaces"] == "carved" and rep["prior"] == "previous" and sorted(rep["frames"]) == ["0", "1", "2"]
+    assert json.loads((out / "carved" / "carve.json").read_text())["margin_px"] == 0.5
+    assert _files_under(out, "meshes", "frames") == surfaces  # the surfaces were not made again
+    said = [r.getMessage() for r in caplog.records]
+    assert not any("starting over" in m and "pipeline.process" == r.name for m, r in zip(said, caplog.records)), said
+    assert res.report["warnings"] and "tracked" in res.report["warnings"][0]  # the tracking started over, said once
+    assert json.loads((out / "process.json").read_text())["params"]["track"]["carve"] == 1
+    # the options are checked before any step runs
+    for bad in ({"carve": -1}, {"carve": "two"}, {"colour": "maybe"}, {"carve_margin": -0.5}, {"rounds": 2}):
+        with pytest.raises(ValueError, match="track"):
+            process_take(take, out, steps=("track",), params={**_SMALL, "track": bad})
+
+
 def test_a_resume_with_the_same_parameters_keeps_the_tracking_and_rig(small_tracked, tmp_path, caplog):
     """The same parameters (a run stopped after some surfaces): tracked/ and rig/ are not touched."""
     import shutil
