@@ -26,6 +26,7 @@ __all__ = ["carve_results", "carve_frames_task", "carved_path", "remove_carved",
 
 log = logging.getLogger(__name__)
 
+
 class CarveError(ValueError):
     """A carving that cannot run (no take, masks or calibration, an unreadable record), from
     :func:`track_with_carving`."""

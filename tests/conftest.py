@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -34,8 +35,9 @@ SAME_WORKER = {"test_tracking_multiview.py": "test_spine_pipeline.py"}
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups
 def pytest_collection_modifyitems(config, items):
-    """Under pytest-xdist: every test in its file's group, and the groups holding ``slow`` tests
-    first (the workers take the groups in this order: the longest are not left to the end)."""
+    """Under pytest-xdist: every test in its file's group, and the groups with the most ``slow``
+    tests first (with ``--no-loadscope-reorder`` the workers take the groups in this order: the
+    longest are not left to the end, when one worker would run them alone)."""
     if not config.pluginmanager.hasplugin("xdist"):
         return
     groups = {}
@@ -43,5 +45,5 @@ def pytest_collection_modifyitems(config, items):
         path = Path(item.path)
         groups[item] = str(path.with_name(SAME_WORKER.get(path.name, path.name)).relative_to(config.rootpath))
         item.add_marker(pytest.mark.xdist_group(groups[item]))
-    slow = {groups[item] for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: groups[item] not in slow)  # stable: the collection's order otherwise
+    slow = Counter(groups[item] for item in items if item.get_closest_marker("slow"))
+    items.sort(key=lambda item: -slow[groups[item]])  # stable: the collection's order otherwise

@@ -475,7 +475,7 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     from types import SimpleNamespace
 
     from pipeline.articulated_rig import remove_rig, rig_results
-    from pipeline.process import _step_track
+    from pipeline.process import ProcessParams, _step_track
     from pipeline.report import write_report
     from pipeline.track import track_results
 
@@ -505,7 +505,8 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     track_results(tmp_path, template=(t.vertices, t.faces), predict=False)
     assert not caplog.records and (tmp_path / "rig" / "rig.glb").is_file()
     # `stage process ... steps track` (its defaults: predict on, the first frame's surface) starts over too
-    ctx = SimpleNamespace(out=tmp_path, progress=None, executor=None, worker_cpu={}, timings={}, warnings=[])
+    ctx = SimpleNamespace(out=tmp_path, progress=None, executor=None, worker_cpu={}, timings={}, warnings=[],
+                          params=ProcessParams())
     (tmp_path / "rig" / "notes.txt").unlink()
     (tmp_path / "rig" / "posed" / "1_user.ply").unlink()
     _step_track(ctx)
