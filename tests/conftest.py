@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections import Counter
 from pathlib import Path
 
@@ -26,6 +27,21 @@ def shared_dataset(name: str) -> Path:
     if not p.is_dir():
         pytest.skip(f"real test data {name!r} not found at {p} (only present in the project's CI and dev machines)")
     return p
+
+
+def pytest_configure(config):
+    """A pytest-xdist worker shares the cores with the other workers: its BLAS and OpenCV run in one
+    thread, as do the worker processes its tests start (the variables), instead of as many threads
+    as cores in every process, which only wait on each other."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    threadpool_limits(1)
+    cv2.setNumThreads(1)
 
 
 #: Test files that take minutes, the longest first: under pytest-xdist they start before any other,

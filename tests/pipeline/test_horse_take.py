@@ -18,10 +18,10 @@ by where they lie: head = the most forward, tail = the most backward, the hooves
 frame. Size = diagonal of the bounding box of the true tips over the take (the capsule creatures'
 measure without limb axes).
 
-Tracking: every template vertex is snapped onto the true horse at the template's frame (closest
-point, barycentric coordinates on its triangle) and carried by the same barycentrics on every frame
-(exact: one connectivity). Tolerances as the capsule creatures': mean <= 1 voxel, 95th percentile
-<= 2 voxels over all vertices and frames, volume within 5 % of the template's.
+Tracking the horse (the track step on these results, every template vertex against its true
+surface point) does not meet the capsule creatures' 1 / 2 voxels; its figures are in
+docs/tracking.md ("Real creature motion, multi-view: the horse gallop") and it is not run here (CI's time goes to the quadruped's
+tracking in the accurate mode, tests/pipeline/test_tracking_multiview.py).
 """
 
 from __future__ import annotations
@@ -124,64 +124,3 @@ def test_horse_spine_tip_within_3_percent(tip, tmp_path_factory):
     err = np.linalg.norm(S - sim.tip_array()[:, list(sim.limb_names).index(tip)], axis=1) / acc["size"]
     # each tip within 3 % of size of its true tip in >= 95 % of frames (unseen counts as a miss)
     assert np.mean(np.nan_to_num(err, nan=np.inf) <= 0.03) >= 0.95, (tip, err)
-
-
-def horse_tracking(tmp_path_factory) -> dict:
-    """The track step on the horse's results, scored vertex by vertex (once per session)."""
-    r = horse_run(tmp_path_factory)
-    if "track" not in r:
-        from fake_cameras.mesh_take import snap_to_mesh
-        from pipeline.meshio import load_mesh, mesh_paths
-        from pipeline.process import process_take
-        from pipeline.tracking import mesh_volume
-
-        results = r["res"].out
-        process_take(r["path"], results, steps=("track",), executor=None)
-        rep = json.loads((results / "tracked" / "track.json").read_text())
-        voxel = float(json.loads((results / "grid.json").read_text())["voxel"])
-        T0, F0 = load_mesh(rep["template"], largest=True)
-        sim = r["sim"]
-        TV, TF = sim.mesh_vertices, sim.mesh_faces
-        ref = int(rep["reference_frame"])
-        tri, bary, _ = snap_to_mesh(TV[ref], TF, T0)
-        errs, vols = [], []
-        for k in range(N_FRAMES):
-            v, f = load_mesh(results / "tracked" / f"{k:06d}.ply", largest=False)
-            assert v.shape == T0.shape and np.array_equal(f, F0)
-            truth = np.einsum("nj,njc->nc", bary, TV[k][TF[tri]])
-            errs.append(np.linalg.norm(v - truth, axis=1) / voxel)
-            vols.append(mesh_volume(v, f) / mesh_volume(T0, F0))
-        # the per-frame surfaces' own distance to the true horse (what the template is pulled onto)
-        hull = [snap_to_mesh(TV[k], TF, load_mesh(p, largest=True)[0])[2] / voxel  # every third frame
-                for k, p in enumerate(mesh_paths(results / "meshes")) if k % 3 == 0]
-        r["track"] = dict(err=np.concatenate(errs), vols=np.array(vols), rep=rep, voxel=voxel,
-                          surface=np.concatenate(hull), per_frame=[float(e.mean()) for e in errs])
-    return r["track"]
-
-
-_TRACK_CAUSE = (
-    "not met: mean 1.92 voxels, 95th percentile 4.65, volume 0.980..1.023 of the template's (voxel 6.20 mm); "
-    "from the prediction alone 4.20 / 21.6 (0.835..1.015). The gallop moves the template's points by 2.01 voxels a "
-    "frame on average (95th percentile 7.3, max 25; the capsule quadruped's 0.57) and the constant-velocity start "
-    "leaves 9 % of the steps beyond the 23.6 mm gate: the patches it leaves out of reach now start from the spine's "
-    "skinned step (11..33 % of the 9 patches a frame), which keeps the legs (0.70 / 1.70 at the template's frame 11, "
-    "2.0..2.4 mean away from it instead of 7.7). What is left is a slide along the surface: across the true surface "
-    "the vertices are 0.75 voxels from it (1.89 at the 95th percentile), the surfaces' own limit (0.78 / 2.06, every "
-    "third frame); along it the legs and belly 2.4 voxels (5.5 at the 95th percentile). The colour tracks "
-    "(`track_results(colour=True)`, windows warped on the object's pixels) give 1.77 / 4.72; the surfaces carved across "
-    "time with the tracked motion (`stage track --carve 2 --shape-memory --colour`, the exact cameras' margin 0) 1.09 / 3.37. "
-    "See docs/tracking.md")
-
-
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=_TRACK_CAUSE)
-def test_horse_tracking_follows_every_surface_point(tmp_path_factory):
-    t = horse_tracking(tmp_path_factory)
-    err, vols, rep = t["err"], t["vols"], t["rep"]
-    print(f"horse tracking: mean {err.mean():.2f} voxels, p95 {np.percentile(err, 95):.2f}, "
-          f"volume {vols.min():.3f}..{vols.max():.3f}; surfaces' own distance to the horse "
-          f"mean {t['surface'].mean():.2f}, p95 {np.percentile(t['surface'], 95):.2f} (voxel {t['voxel']:.2f} mm)")
-    assert rep["mode"] == "multi-view" and rep["skipped"] == []
-    assert np.all(np.abs(vols - 1) <= 0.05)
-    assert err.mean() <= 1.0, err.mean()
-    assert np.percentile(err, 95) <= 2.0, np.percentile(err, 95)
