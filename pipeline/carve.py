@@ -162,7 +162,7 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     process = _read_json(root / "process.json", "carving needs the take it names")
     take, params = _take_path(root, process), process.get("params", {})
     grid = Grid.from_dict(_read_json(root / "grid.json", "carving needs the grid of `stage process`"))
-    margin = _margins(take, float(params.get("silhouette_margin", 0))) if margin is None else float(margin)
+    margin = _default_margins(take, float(params.get("silhouette_margin", 0))) if margin is None else float(margin)
     report = {"tracked_sha256": _file_digest(root / "tracked" / "track.json"), "window": int(window),
               "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore), "margin_px": margin,
               "taubin_iterations": int(params.get("smooth_iterations", 10)), "frames": {}}
@@ -204,7 +204,7 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
 MARGIN_PER_RMS = 2.0
 
 
-def _margins(take: Path, hull_margin: float) -> dict:
+def _default_margins(take: Path, hull_margin: float) -> dict:
     """Camera -> pixels its silhouettes grow by (see :func:`carve_results`, ``margin``)."""
     from stage.store import TakeError, TakeReader
 

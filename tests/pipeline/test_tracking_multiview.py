@@ -33,7 +33,7 @@ def _tracking_errors(name, options, tmp_path_factory):
 @pytest.mark.slow
 @pytest.mark.parametrize("name, options", [
     # the default tracking; measured: mean 0.91 voxels, 95th percentile 1.99, volume 1.00..1.02
-    # (--colour: 0.84 / 1.92; the accurate mode below: 0.51 / 1.31)
+    # (--colour: 0.84 / 1.92; the accurate mode below, --carve 2 --shape-memory --colour: 0.50 / 1.24)
     ("starfish", ()),
     # the accurate mode (docs/tracking.md, "Surfaces carved across time"): two rounds of surfaces carved across
     # time with the tracked motion, tracked with shape memory and the colour tracks; measured 0.71 / 1.94,
