@@ -219,18 +219,24 @@ class JobRunner:
         self._wake.set()
 
     def stop(self, *, timeout: float = 30.0) -> None:
-        """Stop: running jobs are asked to stop and go back to the queue (they resume on the next start)."""
+        """Stop: running jobs are asked to stop and go back to the queue (they resume on the next start).
+
+        The dispatcher is stopped first, so no job is launched after the running ones are collected;
+        a launch that races with the stop sees the stop flag under the lock and queues its job again
+        (:meth:`_launch`), and every thread in the active set has been started, so each can be joined.
+        """
         self._stop.set()
         self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
         with self._lock:
             active = list(self._active.items())
         for _, (_, ev) in active:
             ev.set()
         for _, (th, _) in active:
             th.join(timeout)
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
+        self._reap()
         with self._handle_lock:
             if self._handle is not None and not isinstance(self._executor_arg, ExecutorHandle):
                 self._handle.close()
@@ -286,9 +292,15 @@ class JobRunner:
         if rec.cancel_requested:
             ev.set()
         th = threading.Thread(target=self._run, args=(rec, ev), name=f"job-{rec.id[:8]}", daemon=True)
+        # started under the lock: a thread in the active set is always alive or finished, never
+        # "not yet started" (stop() joins it, _reap() would drop it as finished)
         with self._lock:
-            self._active[rec.id] = (th, ev)
-        th.start()
+            stopping = self._stop.is_set()
+            if not stopping:
+                self._active[rec.id] = (th, ev)
+                th.start()
+        if stopping:  # claimed while the runner was stopping: back to the queue
+            self.store.requeue(rec.id)
 
     def _run(self, rec: JobRecord, cancel: threading.Event) -> None:
         jid = rec.id

@@ -6,6 +6,7 @@ import concurrent.futures as cf
 import json
 import time
 
+import numpy as np
 import pytest
 
 from api.executors import ExecutorHandle
@@ -142,3 +143,45 @@ def test_graceful_stop_puts_the_running_job_back_in_the_queue(tmp_path):
     handle.close()
     st = store.get(j.id)
     assert st.state == "queued" and not st.cancel_requested and 2 <= st.done < 60
+
+
+def test_start_stop_under_stress_loses_no_job_and_joins_every_thread(tmp_path):
+    """200 start/stop cycles while jobs are being claimed and launched: no error, no job left running.
+
+    A stop that races a launch used to join a thread that had not started yet (RuntimeError) or let
+    the reaper drop it; every job must end queued (stopped with the runner) or done, never running.
+    """
+    takes, jobs = tmp_path / "takes", tmp_path / "jobs"
+    takes.mkdir()
+    fakework.make_take_file(takes / "t.h5", 1)
+    store = JobStore(tmp_path / "jobs.sqlite")
+    ran: list[str] = []
+
+    def work(take, out, *, params, progress, cancel, job_id, take_id):
+        ran.append(job_id)
+        cancel.wait(0.002 * params.get("n", 0))
+        if cancel.is_set():
+            raise InterruptedError
+        return {"ok": True}
+
+    runner = JobRunner(store, takes_dir=takes, jobs_dir=jobs, handlers={"noop": work},
+                       heartbeat_s=0.05, stale_after_s=0.2, poll_s=0.001, max_concurrent=3)
+    rng = np.random.default_rng(0)
+    ids = []
+    for i in range(200):
+        ids.append(store.create(kind="noop", take="t", steps=["noop"], params={"n": i % 4}).id)
+        runner.start()
+        runner.wake()
+        time.sleep(float(rng.uniform(0, 0.004)))
+        runner.stop(timeout=10)
+        assert runner.active == []
+        assert not [j for j in ids if store.get(j).state == "running"], f"cycle {i}: a job was left running"
+    assert ran, "no job was ever launched: the stress did not exercise a launch"
+    runner.start()
+    try:
+        t0 = time.monotonic()
+        while any(store.get(j).state != "done" for j in ids) and time.monotonic() - t0 < 30:
+            time.sleep(0.01)
+    finally:
+        runner.stop()
+    assert {store.get(j).state for j in ids} == {"done"}
