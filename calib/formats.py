@@ -1,5 +1,5 @@
-"""Calibration file formats: aniposelib TOML, caliscope TOML, OpenCV YAML, Middlebury ``*_par.txt``,
-JSON, COLMAP text, nerfstudio ``transforms.json``.
+"""Calibration file formats: aniposelib TOML, caliscope TOML, OpenCV FileStorage YAML and XML,
+Qualisys ``.qca.txt``, Middlebury ``*_par.txt``, JSON, COLMAP text, nerfstudio ``transforms.json``.
 
 ``read_calibration(path)`` detects the format from the name (and content);
 ``write_calibration(calib, path, format=...)`` writes one.
@@ -16,12 +16,36 @@ aniposelib TOML (what ``aniposelib.cameras.CameraGroup.dump`` writes)::
     [metadata]
     units = "mm"                      # ours; aniposelib ignores unknown metadata
 
-OpenCV FileStorage YAML (``cv2.FileStorage``): ``units``, ``camera_count`` and one
-map ``camera_<i>`` per camera with ``name``, ``image_width``, ``image_height``,
-``K`` (3x3), ``dist`` (1x5), ``R`` (3x3, world -> camera), ``T`` (3x1). A
-single-camera file written by OpenCV's ``calibration`` sample
-(``camera_matrix``, ``distortion_coefficients``, ``image_width``,
-``image_height``) also reads, as one camera at the origin.
+OpenCV FileStorage YAML or XML (``cv2.FileStorage``, the same nodes in either syntax):
+``units``, ``camera_count`` and one map ``camera_<i>`` per camera with ``name``,
+``image_width``, ``image_height``, ``K`` (3x3), ``dist`` (1x5), ``R`` (3x3, world ->
+camera), ``T`` (3x1). Other dialects that read:
+
+* a single-camera file written by OpenCV's ``calibration`` sample (``camera_matrix``,
+  ``distortion_coefficients``, ``image_width``, ``image_height``): one camera at the origin;
+* EasyMocap's pair ``intri.yml`` (``names``, ``K_<name>``, ``dist_<name>``) and
+  ``extri.yml`` (``R_<name>`` Rodrigues or ``Rot_<name>`` matrix, ``T_<name>``, world ->
+  camera, metres) beside it; either file may be named, the other is read from beside it.
+  Image sizes are not stored: ``(2 cx + 1, 2 cy + 1)`` rounded, with a warning
+  (the importer then takes the footage's own size when it is close, see
+  :mod:`stage.importer`).
+
+Any other FileStorage file is an unknown dialect: a :class:`CalibrationFormatError`
+naming the nodes it holds.
+
+Qualisys QTM ``.qca.txt`` (XML, root ``<calibration>``): one ``<camera serial=...>`` per
+camera with ``fov_video`` (the image window, inclusive pixel bounds), ``transform``
+(``x, y, z``: the camera's position in mm; ``r11..r33`` its orientation) and
+``intrinsic`` (focal lengths, principal point and distortion in sub-pixel units of
+1/64 pixel). As Pose2Sim's ``read_qca`` / ``calib_qca_fun`` read it: ``M`` =
+``[[r11, r12, r13], [r21, r22, r23], [r31, r32, r33]]`` is the world -> Qualisys-camera
+rotation, whose camera y and z axes point the other way from OpenCV's, so
+``R = diag(1, -1, -1) M`` and ``t = -R C``; ``fx = focalLengthU / 64``, ``cx =
+centerPointU / 64 - fov_video.left`` (and v, top); ``k1, k2, k3, p1, p2`` are the
+``radialDistortion*`` and ``tangentalDistortion*`` terms divided by 64 (Pose2Sim's
+convention, followed as the reference; read undivided, the demo rig's terms would move
+the image corners by up to 8 px, docs/calibration.md). Only video cameras (``model`` naming
+``video`` or ``none``) are kept, in natural order of their serials; world units mm.
 
 Middlebury ``*_par.txt`` (Seitz et al. 2006): a count line, then one line per
 image ``name k11..k33 r11..r33 t1 t2 t3`` with projection ``K [R | t]``, in
@@ -74,6 +98,8 @@ __all__ = [
     "read_opencv_yaml",
     "write_opencv_yaml",
     "read_middlebury_par",
+    "read_qualisys_qca",
+    "write_qualisys_qca",
     "read_json",
     "write_json",
     "read_caliscope_toml",
@@ -88,7 +114,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("toml", "yaml", "json", "caliscope", "colmap", "nerfstudio")
+FORMATS = ("toml", "yaml", "json", "caliscope", "colmap", "nerfstudio", "qualisys")
 _UNIT_M = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 
 
@@ -283,11 +309,62 @@ def read_opencv_yaml(path: str | Path) -> Calibration:
             units = units if not units_node.empty() else "m"
             cams.append(Camera(name=p.stem, K=K, dist=np.zeros(5) if d is None else d.ravel()[:5],
                                R=np.eye(3), t=np.zeros(3), size=(w, h)))
+        elif "names" in keys or p.name.lower() in ("intri.yml", "extri.yml", "intri.yaml", "extri.yaml"):
+            fs.release()
+            return _read_easymocap(p)
         else:
-            raise CalibrationFormatError(f"{p}: no camera_<i> maps and no camera_matrix: not a calibration file")
+            shown = ", ".join(keys[:12]) or "nothing"
+            raise CalibrationFormatError(
+                f"{p}: unknown OpenCV FileStorage dialect (it holds {shown}; expected camera_<i> maps, a "
+                "camera_matrix, or EasyMocap's names / K_<name> in intri.yml with extri.yml beside it)"
+            )
     finally:
         fs.release()
     return Calibration(cameras=tuple(cams), units=units, meta={"source": str(p)})
+
+
+def _fs_names(fs: Any) -> list[str]:
+    node = fs.getNode("names")
+    return [node.at(i).string() for i in range(node.size())] if not node.empty() else []
+
+
+def _read_easymocap(p: Path) -> Calibration:
+    """EasyMocap's ``intri.yml`` + ``extri.yml`` (either may be named; the other is beside it)."""
+    import cv2
+
+    stem = p.name.lower()
+    ext = p.suffix
+    intri = p if stem.startswith("intri") else p.with_name(f"intri{ext}")
+    extri = p if stem.startswith("extri") else p.with_name(f"extri{ext}")
+    for f in (intri, extri):
+        if not f.is_file():
+            raise CalibrationFormatError(f"{p}: an EasyMocap calibration needs {intri.name} and {extri.name}; "
+                                         f"{f} is missing")
+    fi, fe = cv2.FileStorage(str(intri), cv2.FILE_STORAGE_READ), cv2.FileStorage(str(extri), cv2.FILE_STORAGE_READ)
+    try:
+        names = _fs_names(fi) or _fs_names(fe)
+        if not names:
+            raise CalibrationFormatError(f"{intri}: no 'names' list: not an EasyMocap calibration")
+        cams = []
+        for name in names:
+            K, dist = fi.getNode(f"K_{name}").mat(), fi.getNode(f"dist_{name}").mat()
+            rot, rvec, T = fe.getNode(f"Rot_{name}").mat(), fe.getNode(f"R_{name}").mat(), fe.getNode(f"T_{name}").mat()
+            if K is None or T is None or (rot is None and rvec is None):
+                raise CalibrationFormatError(f"{p}: camera {name}: needs K_{name} ({intri.name}), T_{name} and "
+                                             f"R_{name} or Rot_{name} ({extri.name})")
+            R = rot if rot is not None else rodrigues_to_matrix(rvec.ravel())
+            d = np.zeros(5) if dist is None else np.r_[dist.ravel(), np.zeros(5)][:5]
+            size = (int(round(2 * K[0, 2] + 1)), int(round(2 * K[1, 2] + 1)))
+            log.warning("%s: camera %s: no image size stored; assuming %dx%d from the principal point",
+                        p, name, *size)
+            try:
+                cams.append(Camera(name=name, K=K, dist=d, R=R, t=T.ravel(), size=size, meta={"size_guessed": True}))
+            except ValueError as exc:
+                raise CalibrationFormatError(f"{p}: camera {name}: {exc}") from None
+    finally:
+        fi.release()
+        fe.release()
+    return Calibration(tuple(cams), units="m", meta={"source": str(p), "format": "easymocap"})
 
 
 # -- Middlebury par.txt ----------------------------------------------------------------------
@@ -359,6 +436,115 @@ def read_middlebury_par(path: str | Path, *, size: tuple[int, int] | None = None
         except ValueError as exc:
             raise CalibrationFormatError(f"{p}: line {i + 2}: {exc}") from None
     return Calibration(cameras=tuple(cams), units="m", meta={"source": str(p), "format": "middlebury"})
+
+
+# -- Qualisys QTM .qca.txt ----------------------------------------------------------------------
+
+_QCA_FLIP = np.diag([1.0, -1.0, -1.0])  # Qualisys camera axes (y, z) -> OpenCV's
+_QCA_SUBPIXEL = 64.0  # QTM stores focal lengths, principal points and distortion in 1/64 pixel
+
+
+def _natural_key(name: str) -> list:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _qca_float(el: Any, key: str, where: str) -> float:
+    v = el.get(key)
+    if v is None:
+        raise CalibrationFormatError(f"{where}: attribute {key!r} is missing")
+    try:
+        return float(v)
+    except ValueError:
+        raise CalibrationFormatError(f"{where}: attribute {key}={v!r} is not a number") from None
+
+
+def _qca_camera(cam: Any, source: str) -> Camera:
+    name = cam.get("serial") or cam.get("name") or ""
+    where = f"{source}: camera {name or '?'}"
+    fov, tr, intr = cam.find("fov_video"), cam.find("transform"), cam.find("intrinsic")
+    if fov is None or tr is None or intr is None:
+        raise CalibrationFormatError(f"{where}: needs <fov_video>, <transform> and <intrinsic>")
+    left, top = _qca_float(fov, "left", where), _qca_float(fov, "top", where)
+    w = int(round(_qca_float(fov, "right", where) - left + 1))
+    h = int(round(_qca_float(fov, "bottom", where) - top + 1))
+    s = _QCA_SUBPIXEL
+    K = np.array([[_qca_float(intr, "focalLengthU", where) / s, 0.0, _qca_float(intr, "centerPointU", where) / s - left],
+                  [0.0, _qca_float(intr, "focalLengthV", where) / s, _qca_float(intr, "centerPointV", where) / s - top],
+                  [0.0, 0.0, 1.0]])
+    d = {k: float(intr.get(k, 0.0)) / s for k in ("radialDistortion1", "radialDistortion2", "radialDistortion3",
+                                                   "tangentalDistortion1", "tangentalDistortion2")}
+    dist = np.array([d["radialDistortion1"], d["radialDistortion2"], d["tangentalDistortion1"],
+                     d["tangentalDistortion2"], d["radialDistortion3"]])
+    M = np.array([[_qca_float(tr, f"r{i}{j}", where) for j in (1, 2, 3)] for i in (1, 2, 3)])
+    C = np.array([_qca_float(tr, k, where) for k in ("x", "y", "z")])
+    U, _, Vt = np.linalg.svd(M)  # the file stores ~16 digits: keep it a proper rotation
+    R = _QCA_FLIP @ (U @ Vt)
+    meta: dict[str, Any] = {}
+    if cam.get("avg-residual") is not None:
+        meta["avg_residual_mm"] = float(cam.get("avg-residual"))
+    try:
+        return Camera(name=name, K=K, dist=dist, R=R, t=-R @ C, size=(w, h), meta=meta)
+    except ValueError as exc:
+        raise CalibrationFormatError(f"{where}: {exc}") from None
+
+
+def read_qualisys_qca(path: str | Path) -> Calibration:
+    """Read a Qualisys QTM ``.qca.txt`` calibration (see the module docstring; mm).
+
+    Raises
+    ------
+    CalibrationFormatError
+        Not XML, not a ``<calibration>`` root, no video camera, a missing or non-numeric
+        attribute (the message names the camera and the attribute).
+    """
+    import xml.etree.ElementTree as ET
+
+    p = Path(path)
+    try:
+        root = ET.fromstring(p.read_bytes())
+    except ET.ParseError as exc:
+        raise CalibrationFormatError(f"{p}: not valid XML: {exc}") from None
+    if root.tag != "calibration":
+        raise CalibrationFormatError(f"{p}: root element is <{root.tag}>, a Qualisys file has <calibration>")
+    cams = root.findall("cameras/camera")
+    video = [c for c in cams if any(m in (c.get("model") or "").lower() for m in ("video", "none"))]
+    if not video:
+        raise CalibrationFormatError(f"{p}: no video camera among {len(cams)} camera(s) (model naming video or none)")
+    out = sorted((_qca_camera(c, str(p)) for c in video), key=lambda c: _natural_key(c.name))
+    try:
+        return Calibration(tuple(out), units="mm", meta={"source": str(p), "format": "qualisys"})
+    except ValueError as exc:
+        raise CalibrationFormatError(f"{p}: {exc}") from None
+
+
+def write_qualisys_qca(calib: Calibration, path: str | Path) -> None:
+    """Write a Qualisys ``.qca.txt`` (the inverse of :func:`read_qualisys_qca`; mm; principal
+    points and sizes as a full-frame ``fov_video`` at the origin)."""
+    import xml.etree.ElementTree as ET
+
+    if not isinstance(calib, Calibration):
+        raise ValueError(f"calib must be a Calibration, got {type(calib).__name__}")
+    c_mm = in_units(calib, "mm")
+    root = ET.Element("calibration", {"type": "regular", "source": "capture-stage"})
+    cams = ET.SubElement(root, "cameras")
+    s = _QCA_SUBPIXEL
+    for c in c_mm.cameras:
+        el = ET.SubElement(cams, "camera", {"active": "1", "model": "none", "serial": c.name,
+                                            "avg-residual": repr(float(c.meta.get("avg_residual_mm", 0.0)))})
+        box = {"left": "0", "top": "0", "right": str(c.width - 1), "bottom": str(c.height - 1)}
+        ET.SubElement(el, "fov_video", box)
+        M = _QCA_FLIP @ c.R
+        attrs = {f"r{i + 1}{j + 1}": repr(float(M[i, j])) for i in range(3) for j in range(3)}
+        attrs.update({k: repr(float(v)) for k, v in zip("xyz", c.center)})
+        ET.SubElement(el, "transform", attrs)
+        k1, k2, p1, p2, k3 = (float(v) * s for v in c.dist)
+        ET.SubElement(el, "intrinsic", {
+            "focalLengthU": repr(float(c.K[0, 0]) * s), "focalLengthV": repr(float(c.K[1, 1]) * s),
+            "centerPointU": repr(float(c.K[0, 2]) * s), "centerPointV": repr(float(c.K[1, 2]) * s),
+            "radialDistortion1": repr(k1), "radialDistortion2": repr(k2), "radialDistortion3": repr(k3),
+            "tangentalDistortion1": repr(p1), "tangentalDistortion2": repr(p2), "skew": "0"})
+    ET.indent(root)
+    _atomic_write_text(Path(path), "<?xml version='1.0' encoding='ASCII'?>\n" + ET.tostring(root, encoding="unicode") + "\n")
 
 
 # -- JSON ---------------------------------------------------------------------------------------
@@ -604,8 +790,26 @@ def read_nerfstudio(path: str | Path, *, units: str = "m") -> Calibration:
 # -- dispatch -------------------------------------------------------------------------------------
 
 
+def _xml_dialect(p: Path) -> str:
+    """``"yaml"`` (OpenCV FileStorage) or ``"qualisys"`` from an XML file's root element."""
+    if not p.is_file():
+        return "yaml"  # a file to write: FileStorage XML
+    head = p.read_bytes()[:4096].decode("utf-8", errors="replace")
+    m = re.search(r"<([A-Za-z_][\w.-]*)[\s>/]", re.sub(r"<\?.*?\?>|<!--.*?-->", "", head, flags=re.S))
+    root = m.group(1) if m else ""
+    if root == "opencv_storage":
+        return "yaml"
+    if root == "calibration":
+        return "qualisys"
+    raise CalibrationFormatError(
+        f"{p}: unknown XML calibration dialect (root element <{root or '?'}>; expected <opencv_storage> "
+        "from OpenCV FileStorage or <calibration> from Qualisys QTM)"
+    )
+
+
 def detect_format(path: str | Path) -> str:
-    """``"toml"``, ``"yaml"``, ``"json"`` or ``"middlebury"`` from the file name."""
+    """``"toml"``, ``"yaml"``, ``"qualisys"``, ``"json"``, ``"middlebury"``... from the file name
+    (and, for ``.xml``, the root element)."""
     p = Path(path)
     name = p.name.lower()
     if p.is_dir() or name in ("cameras.txt", "images.txt") or (not p.exists() and not p.suffix):
@@ -618,7 +822,11 @@ def detect_format(path: str | Path) -> str:
         if p.is_file() and re.search(r"^\[cameras\.", p.read_text(encoding="utf-8", errors="replace"), re.M):
             return "caliscope"
         return "toml"
-    if name.endswith((".yml", ".yaml", ".xml")):
+    if name.endswith(".qca.txt") or name.endswith(".qca"):
+        return "qualisys"
+    if name.endswith(".xml"):
+        return _xml_dialect(p)
+    if name.endswith((".yml", ".yaml")):
         return "yaml"
     if name.endswith(".json"):
         return "json"
@@ -659,6 +867,8 @@ def read_calibration(path: str | Path, **kwargs: Any) -> Calibration:
         return read_nerfstudio(p, **kwargs)
     if fmt == "caliscope":
         return read_caliscope_toml(p)
+    if fmt == "qualisys":
+        return read_qualisys_qca(p)
     if fmt == "toml":
         return read_aniposelib_toml(p)
     if fmt == "yaml":
@@ -700,6 +910,8 @@ def write_calibration(calib: Calibration, path: str | Path, *, format: str | Non
         write_nerfstudio(calib, p)
     elif fmt == "caliscope":
         write_caliscope_toml(calib, p)
+    elif fmt == "qualisys":
+        write_qualisys_qca(calib, p)
     elif fmt == "toml":
         write_aniposelib_toml(calib, p)
     elif fmt == "yaml":

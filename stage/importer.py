@@ -9,6 +9,15 @@
   Middlebury ``*_par.txt``), e.g. the dino: one folder of images named in the
   par file.
 
+Footage whose size differs from the calibration's is reconciled when the difference is
+one a recording explains, with a warning naming the camera: an integer binning (the
+footage a whole fraction of the calibrated size: intrinsics scaled), a codec's 16-pixel
+alignment (the calibration's size rounded up to 16 while the footage is not: the
+footage is the calibrated window's top-left part, intrinsics unchanged), or a calibration
+that does not store the image size (EasyMocap: the footage's size is taken). Any other
+difference is an error. ``scale`` resizes every frame on import (e.g. 0.5 for a quick
+look at 1080p footage) and scales the intrinsics to match.
+
 Frame set ``k`` is the ``k``-th frame of every camera; a camera with fewer
 frames is missing from the later sets. Timestamps are synthetic
 (``k / fps``). JPEG images are stored byte for byte (nothing re-encoded) unless
@@ -32,7 +41,7 @@ from stage.frame import Frame
 from stage.rig import check_plane
 from stage.store import CameraSpec, DiskFullError, TakeReader, TakeWriter
 
-__all__ = ["ImportResult", "import_take", "find_sources", "IMAGE_EXTS", "VIDEO_EXTS"]
+__all__ = ["ImportResult", "import_take", "find_sources", "fit_to_footage", "scaled_calibration", "IMAGE_EXTS", "VIDEO_EXTS"]
 
 log = logging.getLogger(__name__)
 
@@ -164,6 +173,8 @@ def import_take(
     overwrite: bool = False,
     max_frames: int | None = None,
     support_plane: Sequence[float] | None = None,
+    scale: float = 1.0,
+    masks: str | os.PathLike | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> ImportResult:
     """Write a take from footage in ``images`` and a calibration.
@@ -190,6 +201,15 @@ def import_take(
         ``(a, b, c, d)`` of the plane the subject stands on (``a x + b y + c z + d >= 0``
         is kept), in the calibration's units; stored in the take's rig, where
         :func:`pipeline.process.process_take` finds it.
+    scale : float
+        Resize every frame by this factor, in (0, 1] (area averaging); the intrinsics
+        follow. Frames are then stored raw.
+    masks : path, optional
+        Silhouettes made elsewhere: one folder per camera, named like it, one image per
+        frame (sorted by name; non-zero = subject), the footage's size. Stored as the
+        take's masks (``stage process`` then skips keying). Checked before anything is
+        written: a missing or extra folder, a wrong count or a wrong size is one error
+        naming the camera and the file.
     progress : callable, optional
         ``progress(done, total)`` after each set.
 
@@ -200,6 +220,8 @@ def import_take(
         size differs from the calibration's, bad arguments.
     """
     _check_options(fps=fps, storage=storage, max_frames=max_frames)
+    if not (isinstance(scale, (int, float)) and 0 < scale <= 1):
+        raise ValueError(f"scale must be in (0, 1], got {scale!r}")
     rig: dict[str, Any] = {"name": "imported", "source": str(Path(images).resolve()), "fps": fps}
     if support_plane is not None:
         rig["support_plane"] = check_plane(support_plane).tolist()
@@ -208,9 +230,16 @@ def import_take(
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: take already exists (use --overwrite to replace it)")
     sources = find_sources(images, calib)
+    footage = {c: _first_size(sources[c]) for c in calib.names}
+    calib = fit_to_footage(calib, footage)
+    if scale != 1:
+        calib = scaled_calibration(calib, scale)
+        rig["import_scale"] = float(scale)
     counts = {c: sources[c].count() for c in calib.names}
     n_sets = _set_count(counts, max_frames)
-    kinds = {cam.name: _storage_of(sources[cam.name], storage, cam.name) for cam in calib}
+    mask_files = check_mask_folders(masks, calib, counts, footage, max_frames) if masks is not None else None
+    kinds = {cam.name: "raw" if scale != 1 and storage == "auto" else _storage_of(sources[cam.name], storage, cam.name)
+             for cam in calib}
     specs = [CameraSpec(cam.name, cam.width, cam.height, storage=kinds[cam.name]) for cam in calib]
     reader = _SetReader(calib, {c: _frames(sources[c]) for c in calib.names}, kinds, period=1e9 / fps)
     tmp = out.with_name(out.name + ".part")
@@ -237,6 +266,15 @@ def import_take(
                 if progress is not None:
                     progress(k, max(n_sets, k))
         os.replace(tmp, out)
+        if mask_files is not None:
+            try:
+                _store_masks(out, calib, mask_files, source=Path(masks))  # type: ignore[arg-type]
+            except BaseException:
+                from stage.store import derived_path
+
+                _remove(derived_path(out))
+                _remove(out)
+                raise
     except DiskFullError as exc:
         _remove(tmp)
         raise DiskFullError(f"{out}: import stopped, nothing written: {str(exc).replace(str(tmp), tmp.name)}") from None
@@ -246,6 +284,142 @@ def import_take(
     with TakeReader(out) as r:
         fc = r.frame_counts()
     return ImportResult(path=out, sets=k, frames=fc, storage=kinds, units=calib.units)
+
+
+def check_mask_folders(
+    masks: str | os.PathLike,
+    calib: Calibration,
+    counts: dict[str, int],
+    footage: dict[str, tuple[int, int]],
+    max_frames: int | None = None,
+) -> dict[str, list[Path]]:
+    """The mask files of every camera, checked against the footage (names, counts, sizes).
+
+    Raises
+    ------
+    FileNotFoundError
+        ``masks`` is not a directory.
+    ValueError
+        A camera without a folder, a folder no camera has, a count that differs from the
+        camera's frames, an unreadable image or one whose size differs from the footage's:
+        one message naming the camera and the file.
+    """
+    from PIL import Image
+
+    root = Path(masks)
+    if not root.is_dir():
+        raise FileNotFoundError(f"--masks {root}: not a directory")
+    folders = {p.name for p in root.iterdir() if p.is_dir()}
+    missing = [c for c in calib.names if c not in folders]
+    if missing:
+        raise ValueError(f"--masks {root}: no folder for camera(s) {', '.join(missing)} "
+                         f"(one folder per camera, named as in the calibration: {', '.join(calib.names)})")
+    extra = sorted(folders - set(calib.names))
+    if extra:
+        raise ValueError(f"--masks {root}: folder(s) {', '.join(extra)} name no camera of the calibration "
+                         f"({', '.join(calib.names)})")
+    out: dict[str, list[Path]] = {}
+    for c in calib.names:
+        files = sorted((p for p in (root / c).iterdir() if p.suffix.lower() in IMAGE_EXTS), key=lambda p: p.name)
+        want = counts[c] if max_frames is None else min(counts[c], max_frames)
+        if len(files) < want or (max_frames is None and len(files) != want):
+            raise ValueError(f"camera {c}: {root / c} holds {len(files)} mask image(s) but the footage has {want} frames")
+        files = files[:want]
+        for f in files:
+            try:
+                with Image.open(f) as im:
+                    size = (int(im.size[0]), int(im.size[1]))
+            except (OSError, ValueError):
+                raise ValueError(f"camera {c}: mask {f} is not a readable image") from None
+            if size != tuple(footage[c]):
+                raise ValueError(f"camera {c}: mask {f} is {size[0]}x{size[1]} but the footage is "
+                                 f"{footage[c][0]}x{footage[c][1]}")
+        out[c] = files
+    return out
+
+
+def _store_masks(take: Path, calib: Calibration, files: dict[str, list[Path]], *, source: Path) -> None:
+    """Read every camera's mask images (resized to the take's frames) and store them as its masks."""
+    from stage.store import write_arrays
+
+    arrays = []
+    for cam in calib:
+        masks = np.zeros((len(files[cam.name]), cam.height, cam.width), bool)
+        for i, f in enumerate(files[cam.name]):
+            m = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            if m is None:
+                raise ValueError(f"camera {cam.name}: mask {f} is not a readable image")
+            if m.shape != masks.shape[1:]:
+                m = cv2.resize(m, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+                m = np.where(m >= 128, 255, 0).astype(np.uint8)
+            masks[i] = m > 0
+        n = masks.shape[0]
+        meta = {"key": {"mode": "imported", "source": str(source.resolve() / cam.name)}, "valid": [True] * n,
+                "reasons": [""] * n}
+        arrays.append((f"cameras/{cam.name}", "masks", masks, meta))
+        arrays.append((f"cameras/{cam.name}", "mask_valid", np.ones(n, np.uint8), {"reasons": [""] * n}))
+    write_arrays(take, arrays)
+
+
+def _first_size(src: _Source) -> tuple[int, int]:
+    """(width, height) of a source's first frame."""
+    img = next(_frames(src))[0]
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def _scaled_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """Intrinsics of an image resized by (sx, sy) (pixel centres at integer coordinates)."""
+    K2 = np.array(K, float)
+    K2[0, 0], K2[0, 1], K2[0, 2] = K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5
+    K2[1, 1], K2[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
+    return K2
+
+
+def scaled_calibration(calib: Calibration, scale: float) -> Calibration:
+    """Every camera's intrinsics and size for frames resized by ``scale`` (sizes rounded)."""
+    cams = []
+    for c in calib:
+        w, h = max(1, int(round(c.width * scale))), max(1, int(round(c.height * scale)))
+        meta = {**c.meta, "import_scale": float(scale)}
+        cams.append(c.replace(K=_scaled_K(c.K, w / c.width, h / c.height), size=(w, h), meta=meta))
+    return Calibration(tuple(cams), units=calib.units, meta=dict(calib.meta))
+
+
+def _align16(n: int) -> int:
+    return -(-int(n) // 16) * 16
+
+
+def fit_to_footage(calib: Calibration, sizes: dict[str, tuple[int, int]]) -> Calibration:
+    """The calibration reconciled with the footage's frame sizes (see the module docstring).
+
+    Raises
+    ------
+    ValueError
+        A camera whose footage size no recording rule explains (names the camera and both sizes).
+    """
+    cams = []
+    for c in calib:
+        w, h = sizes[c.name]
+        W, H = c.size
+        if (w, h) == (W, H):
+            cams.append(c)
+            continue
+        if c.meta.get("size_guessed"):
+            log.warning("camera %s: the calibration stores no image size; the footage's %dx%d is used", c.name, w, h)
+            cams.append(c.replace(size=(w, h), meta={k: v for k, v in c.meta.items() if k != "size_guessed"}))
+        elif W % w == 0 and H % h == 0 and W // w == H // h:
+            f = W // w
+            log.warning("camera %s: footage %dx%d is the calibrated %dx%d binned by %d; intrinsics scaled",
+                        c.name, w, h, W, H, f)
+            cams.append(c.replace(K=_scaled_K(c.K, 1 / f, 1 / f), size=(w, h)))
+        elif all(a == b or (b % 16 == 0 and _align16(a) == b) for a, b in ((w, W), (h, H))):
+            log.warning("camera %s: footage %dx%d is the calibrated %dx%d less the codec's 16-pixel alignment; "
+                        "the calibrated window's top-left %dx%d is used (intrinsics unchanged)", c.name, w, h, W, H, w, h)
+            cams.append(c.replace(size=(w, h)))
+        else:
+            raise ValueError(f"camera {c.name}: the footage is {w}x{h} but the calibration says {W}x{H} "
+                             "(neither a binning nor a codec's alignment explains it)")
+    return Calibration(tuple(cams), units=calib.units, meta=dict(calib.meta))
 
 
 def _check_options(*, fps: float, storage: str, max_frames: int | None) -> None:
@@ -309,6 +483,9 @@ class _SetReader:
         except StopIteration:
             self.done[c] = True
             return None
+        h, wd = img.shape[:2]
+        if (wd, h) != tuple(cam.size) and cam.meta.get("import_scale"):
+            img, enc = cv2.resize(img, tuple(cam.size), interpolation=cv2.INTER_AREA), None
         h, wd = img.shape[:2]
         if (wd, h) != tuple(cam.size):
             raise ValueError(f"camera {c}: {where} is {wd}x{h} but the calibration says {cam.width}x{cam.height}")

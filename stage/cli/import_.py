@@ -15,8 +15,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="DIR holds one entry per camera, named as in the calibration: a folder of images "
         "(sorted by name), a video file, or a single image (a Middlebury *_par.txt names its images "
         "directly). The calibration may be aniposelib TOML ([cam_N] tables: name, size, matrix, "
-        "distortions, rotation as a Rodrigues vector, translation; world->camera), OpenCV YAML, "
-        "Middlebury *_par.txt or capture-stage JSON. JPEG files are stored as they are.",
+        "distortions, rotation as a Rodrigues vector, translation; world->camera), OpenCV FileStorage "
+        "YAML or XML (also EasyMocap's intri.yml/extri.yml), Qualisys QTM .qca.txt, caliscope "
+        "camera_array.toml, COLMAP, nerfstudio transforms.json, Middlebury *_par.txt or capture-stage "
+        "JSON. JPEG files are stored as they are.",
     )
     p.add_argument("--images", required=True, type=Path, metavar="DIR", help="folder with one entry per camera")
     p.add_argument("--calibration", required=True, type=Path, metavar="FILE", help="calibration file")
@@ -35,6 +37,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the plane the subject stands on (a*x + b*y + c*z + d >= 0 kept, calibration units), stored "
         "in the take for `stage process`: cameras that all look down cannot carve under the subject's base",
     )
+    p.add_argument("--scale", type=float, default=1.0, metavar="S",
+                   help="resize every frame by S in (0, 1] on import (intrinsics follow), e.g. 0.5 for a quick look")
+    p.add_argument("--masks", type=Path, metavar="MASKS_DIR", default=None,
+                   help="silhouettes made elsewhere: one folder per camera (named as in the calibration), one image "
+                   "per frame, non-zero = subject; stored as the take's masks, so `stage process` skips keying")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
@@ -43,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
 
     from stage.importer import import_take
 
-    bar = tqdm(unit="set", desc="import", dynamic_ncols=True)
+    bar = tqdm(unit="set", desc="import", dynamic_ncols=True, disable=args.no_progress or None)
 
     def progress(done: int, total: int) -> None:
         bar.total = total
@@ -60,11 +68,14 @@ def run(args: argparse.Namespace) -> int:
             overwrite=args.overwrite,
             max_frames=args.max_frames,
             support_plane=args.support_plane,
+            scale=args.scale,
+            masks=args.masks,
             progress=progress,
         )
     finally:
         bar.close()
-    print(f"wrote {res.path}: {len(res.frames)} cameras, {res.sets} frame sets, calibration units {res.units!r}")
+    print(f"wrote {res.path}: {len(res.frames)} cameras, {res.sets} frame sets, calibration units {res.units!r}"
+          + (f"; masks from {args.masks} stored (keying skipped)" if args.masks is not None else ""))
     for c, n in res.frames.items():
         print(f"  {c}: {n} frames ({res.storage[c]})")
     return 0

@@ -213,3 +213,133 @@ def test_invalid_input_new_formats(tmp_path):
         from calib.formats import in_units
 
         in_units(_calib(1), "furlong")
+
+
+# -- Qualisys .qca.txt, OpenCV FileStorage XML, EasyMocap -----------------------------------------
+
+
+def _pose2sim_reference(xml_text: str) -> dict:
+    """Pose2Sim's read_qca + calib_qca_fun, written out step by step (homogeneous matrices):
+    a slow reference for the reader, independent of its code."""
+    import xml.etree.ElementTree as ET
+
+    out = {}
+    for cam in ET.fromstring(xml_text).findall("cameras/camera"):
+        tr, intr, fov = cam.find("transform"), cam.find("intrinsic"), cam.find("fov_video")
+        g = lambda el, k: float(el.get(k))  # noqa: E731
+        by_col = np.array([g(tr, f"r{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]).reshape(3, 3).T
+        T = np.array([g(tr, k) for k in "xyz"])
+        r, t = by_col.T, -(by_col.T @ T)  # world_to_camera_persp
+        rt = np.eye(4)
+        rt[:3, :3], rt[:3, 3] = r, t
+        rx = np.eye(4)
+        rx[1:3, 1:3] = [[np.cos(np.pi), -np.sin(np.pi)], [np.sin(np.pi), np.cos(np.pi)]]
+        rt = rx @ rt  # rotate_cam(ang_x=pi)
+        K = np.array([[g(intr, "focalLengthU") / 64, 0, g(intr, "centerPointU") / 64 - g(fov, "left")],
+                      [0, g(intr, "focalLengthV") / 64, g(intr, "centerPointV") / 64 - g(fov, "top")], [0, 0, 1]])
+        size = (int(g(fov, "right") - g(fov, "left") + 1), int(g(fov, "bottom") - g(fov, "top") + 1))
+        out[cam.get("serial")] = (K, rt[:3, :3], rt[:3, 3], size)
+    return out
+
+
+def test_qualisys_demo_matches_pose2sim_and_projects_the_person():
+    root = shared_dataset("pose2sim_demo")
+    path = root / "Calib.qca.txt"
+    calib = read_calibration(path)
+    assert calib.names == ["cam01", "cam02", "cam03", "cam04"] and calib.units == "mm"
+    ref = _pose2sim_reference(path.read_text())
+    for cam in calib:
+        K, R, t, size = ref[cam.name]
+        assert cam.size == size == (1088, 1920)
+        np.testing.assert_allclose(cam.K, K, atol=1e-9)
+        np.testing.assert_allclose(cam.R, R, atol=1e-9)  # re-orthonormalized: the file stores 16 digits
+        np.testing.assert_allclose(cam.t, t, atol=1e-6 * np.abs(t).max())
+    # projection check (README): the cameras stand 1.7-2.1 m high around the origin, look in and
+    # down, and the box that holds the standing person projects into every image, in front
+    centres = np.array([c.center for c in calib])
+    assert np.all((centres[:, 2] > 1600) & (centres[:, 2] < 2200))
+    person_lo, person_hi = np.array([-1550.0, -900.0, 0.0]), np.array([-450.0, 400.0, 1700.0])
+    corners = np.array([[x, y, z] for x in (person_lo[0], person_hi[0]) for y in (person_lo[1], person_hi[1])
+                        for z in (person_lo[2], person_hi[2])])
+    for cam in calib:
+        axis = cam.R[2]  # the optical axis in the world
+        assert axis[2] < -0.2, cam.name  # looks down
+        to_person = (person_lo + person_hi) / 2 - cam.center
+        assert axis @ to_person / np.linalg.norm(to_person) > 0.9, cam.name  # within ~25 deg of the axis
+        uv, z = cam.project(corners, return_depth=True)
+        # the README's box is the 50 mm voxels seen by all four cameras (loose): its centre in the
+        # image, its corners within a tenth of the image's size from it
+        assert np.all(z > 0) and cam.in_image(cam.project((person_lo + person_hi) / 2)).all(), cam.name
+        assert np.all(np.abs(uv - np.array(cam.size) / 2) < 0.6 * np.array(cam.size)), cam.name
+        # world z up appears as image up: the person's head above its feet
+        head, feet = cam.project(np.array([[-1000.0, -250.0, 1700.0], [-1000.0, -250.0, 0.0]]))
+        assert head[1] < feet[1] - 500, cam.name
+
+
+def test_qualisys_round_trip_and_video_cameras_only(tmp_path):
+    c = _calib(n=3)
+    p = write_calibration(c, tmp_path / "rig.qca.txt")
+    c2 = read_calibration(p)
+    _close(c2, c, atol=1e-9)
+    assert c2.units == "mm" and c2.meta["format"] == "qualisys"
+    # a marker camera (no video) is left out; natural order of the serials
+    text = p.read_text().replace('model="none" serial="cam01"', 'model="Oqus 700+" serial="cam01"')
+    p.write_text(text.replace('serial="cam02"', 'serial="cam10"'))
+    c3 = read_calibration(p)
+    assert c3.names == ["cam00", "cam10"]
+
+
+def test_opencv_xml_round_trip_and_easymocap(tmp_path):
+    import cv2
+
+    c = _calib(n=4)
+    p = write_calibration(c, tmp_path / "c.xml")
+    assert "<opencv_storage>" in p.read_text()
+    assert read_calibration(p) == c  # FileStorage XML writes doubles exactly, as YAML does
+    # EasyMocap's intri.yml / extri.yml pair (metres, Rodrigues R_<name>)
+    fi = cv2.FileStorage(str(tmp_path / "intri.yml"), cv2.FILE_STORAGE_WRITE)
+    fe = cv2.FileStorage(str(tmp_path / "extri.yml"), cv2.FILE_STORAGE_WRITE)
+    names = [cam.name for cam in c]
+    fi.write("names", names)
+    fe.write("names", names)
+    for cam in c:
+        fi.write(f"K_{cam.name}", cam.K)
+        fi.write(f"dist_{cam.name}", cam.dist.reshape(1, 5))
+        fe.write(f"R_{cam.name}", cam.rvec.reshape(3, 1))
+        fe.write(f"T_{cam.name}", cam.t.reshape(3, 1) / 1000)
+    fi.release()
+    fe.release()
+    for f in ("intri.yml", "extri.yml"):
+        e = read_calibration(tmp_path / f)
+        assert e.names == names and e.units == "m"
+        for a, b in zip(e, c):
+            np.testing.assert_allclose(a.K, b.K, atol=1e-9)
+            np.testing.assert_allclose(a.R, b.R, atol=1e-9)
+            np.testing.assert_allclose(a.t * 1000, b.t, atol=1e-6)
+            assert a.size == (round(2 * b.K[0, 2] + 1), round(2 * b.K[1, 2] + 1)) and a.meta["size_guessed"]
+
+
+def test_invalid_input_qualisys_and_dialects(tmp_path):
+    import cv2
+
+    (tmp_path / "x.xml").write_text("<?xml version='1.0'?>\n<scene><camera/></scene>\n")
+    with pytest.raises(CalibrationFormatError, match="unknown XML calibration dialect.*<scene>"):
+        read_calibration(tmp_path / "x.xml")
+    fs = cv2.FileStorage(str(tmp_path / "other.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("focal", 1.0)
+    fs.release()
+    with pytest.raises(CalibrationFormatError, match="unknown OpenCV FileStorage dialect.*focal"):
+        read_calibration(tmp_path / "other.yml")
+    (tmp_path / "bad.qca.txt").write_text("<calibration><cameras>")
+    with pytest.raises(CalibrationFormatError, match="not valid XML"):
+        read_calibration(tmp_path / "bad.qca.txt")
+    p = write_calibration(_calib(n=2), tmp_path / "ok.qca.txt")
+    p.write_text(p.read_text().replace(' focalLengthU="', ' focalLengthX="'))
+    with pytest.raises(CalibrationFormatError, match="camera cam00: attribute 'focalLengthU' is missing"):
+        read_calibration(p)
+    p.write_text(p.read_text().replace('model="none"', 'model="Oqus"'))
+    with pytest.raises(CalibrationFormatError, match="no video camera"):
+        read_calibration(p)
+    (tmp_path / "intri.yml").write_text("%YAML:1.0\n---\nnames: [a]\n")
+    with pytest.raises(CalibrationFormatError, match="extri.yml is missing"):
+        read_calibration(tmp_path / "intri.yml")
