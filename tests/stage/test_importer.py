@@ -181,3 +181,100 @@ def test_invalid_input(footage, tmp_path):
     cv2.imwrite(str(d / "left" / "f002.png"), np.zeros((H + 2, W, 3), np.uint8))
     with pytest.raises(ValueError, match=r"f002.png is 160x122 but the calibration says 160x120"):
         import_take(d, cal, out)
+
+
+def _masks_dir(tmp_path, counts=None, size=(W, H)):
+    if counts is None:
+        counts = {"left": 4, "right": 3, "top": 1}
+    m = tmp_path / "masks"
+    for cam, n in counts.items():
+        (m / cam).mkdir(parents=True)
+        for k in range(n):
+            a = np.zeros((size[1], size[0]), np.uint8)
+            cv2.circle(a, (40 + 10 * k, 60), 15, 255, -1)
+            cv2.imwrite(str(m / cam / f"{k:04d}.png"), a)
+    return m
+
+
+def test_masks_imported_and_keying_skipped(footage, tmp_path, capsys):
+    from pipeline.process import ProcessParams, _open_context
+
+    d, cal = footage
+    m = _masks_dir(tmp_path)
+    out = tmp_path / "m.h5"
+    assert main(["import", "--images", str(d), "--calibration", str(cal), "--out", str(out), "--masks", str(m),
+                 "--no-progress"]) == 0
+    assert "keying skipped" in capsys.readouterr().out
+    with TakeReader(out) as r:
+        assert r.masks_present() == ["left", "right", "top"]
+        for cam, n in (("left", 4), ("right", 3), ("top", 1)):
+            masks = r.masks(cam)
+            assert masks.shape == (n, H, W)
+            for k in range(n):
+                np.testing.assert_array_equal(masks[k], cv2.imread(str(m / cam / f"{k:04d}.png"), 0) > 0)
+            assert r.mask_params(cam)["key"]["mode"] == "imported"
+    ctx = _open_context(out, tmp_path / "res", ProcessParams(), executor=None, progress=None, cancel=None)
+    assert not ctx.need_key
+
+
+def test_invalid_masks_write_nothing(footage, tmp_path):
+    d, cal = footage
+    out = tmp_path / "bad.h5"
+    cases = [
+        ({"left": 4, "right": 3}, "no folder for camera.*top"),
+        ({"left": 4, "right": 3, "top": 1, "side": 1}, "folder.*side.*name no camera"),
+        ({"left": 3, "right": 3, "top": 1}, r"camera left: .*left holds 3 mask image\(s\) but the footage has 4"),
+    ]
+    for i, (counts, msg) in enumerate(cases):
+        with pytest.raises(ValueError, match=msg):
+            import_take(d, cal, out, masks=_masks_dir(tmp_path / str(i), counts))
+        assert not out.exists() and not (tmp_path / "bad.h5.part").exists()
+    m = _masks_dir(tmp_path / "size")
+    cv2.imwrite(str(m / "right" / "0001.png"), np.zeros((H, W + 4), np.uint8))
+    with pytest.raises(ValueError, match=r"camera right: mask .*right/0001.png is 164x120 but the footage is 160x120"):
+        import_take(d, cal, out, masks=m)
+    (m / "right" / "0001.png").write_bytes(b"nope")
+    with pytest.raises(ValueError, match=r"camera right: mask .*0001.png is not a readable image"):
+        import_take(d, cal, out, masks=m)
+    with pytest.raises(FileNotFoundError, match="not a directory"):
+        import_take(d, cal, out, masks=tmp_path / "none")
+    assert not out.exists()
+    from stage.store import derived_path
+
+    assert not derived_path(out).exists()
+
+
+def test_footage_size_reconciled_with_the_calibration(footage, tmp_path, caplog):
+    from calib.formats import read_calibration
+    from stage.importer import fit_to_footage, scaled_calibration
+
+    d, cal = footage
+    c = read_calibration(cal)
+    sizes = {n: (W, H) for n in c.names}
+    # a codec's 16-pixel alignment: the calibration says 160x128, the footage is 160x120
+    padded = type(c)(tuple(cam.replace(size=(W, 128)) for cam in c), units=c.units)
+    fit = fit_to_footage(padded, sizes)
+    assert all(cam.size == (W, H) for cam in fit) and all(np.array_equal(a.K, b.K) for a, b in zip(fit, c))
+    assert "16-pixel alignment" in caplog.text
+    # binning by 2: intrinsics halved about pixel centres
+    full = type(c)(tuple(cam.replace(size=(2 * W, 2 * H)) for cam in c), units=c.units)
+    fit = fit_to_footage(full, sizes)
+    for a, b in zip(fit, full):
+        assert a.size == (W, H)
+        np.testing.assert_allclose(a.K[0, 2], (b.K[0, 2] + 0.5) / 2 - 0.5)
+    # anything else: an error naming the camera and both sizes
+    odd = type(c)(tuple(cam.replace(size=(W + 10, H)) for cam in c), units=c.units)
+    with pytest.raises(ValueError, match=r"camera left: the footage is 160x120 but the calibration says 170x120"):
+        fit_to_footage(odd, sizes)
+    # scaling on import: a point projects where the resized image shows it
+    half = scaled_calibration(c, 0.5)
+    pts = np.array([[0.0, 0.0, 0.0], [30.0, -20.0, 50.0]])
+    for a, b in zip(half, c):
+        np.testing.assert_allclose(a.project(pts), (b.project(pts) + 0.5) * 0.5 - 0.5, atol=1e-9)
+    res = import_take(d, cal, tmp_path / "s.h5", scale=0.5, max_frames=2)
+    with TakeReader(res.path) as r:
+        assert r.image_size("left") == (W // 2, H // 2) and r.calibration["left"].size == (W // 2, H // 2)
+        np.testing.assert_array_equal(r.frame("left", 1), cv2.resize(img(0, 1), (W // 2, H // 2),
+                                                                     interpolation=cv2.INTER_AREA))
+    with pytest.raises(ValueError, match="scale"):
+        import_take(d, cal, tmp_path / "s2.h5", scale=1.5)
