@@ -234,13 +234,16 @@ class TakeLibrary:
             raise
         return self._finish(tmp, take_id)
 
-    def import_path(self, take_id: str, rel_path: str) -> dict[str, Any]:
-        """Copy a take file from ``rel_path`` (relative to the data root, never outside it)."""
+    def import_path(self, take_id: str, rel_path: str, *, masks: str | None = None) -> dict[str, Any]:
+        """Copy a take file from ``rel_path`` (relative to the data root, never outside it); ``masks``
+        (a folder relative to the data root, one folder per camera) are checked before anything is
+        copied and stored as the take's masks (:func:`stage.importer.import_masks`)."""
         if not rel_path or Path(rel_path).is_absolute():
             raise ValueError("path must be relative to the data root")
         src = inside(self.data_root, rel_path)
         if not src.is_file():
             raise NotFoundError(f"no file {rel_path!r} in the data root")
+        mask_dir = self._mask_dir(src, masks) if masks is not None else None
         if src.stat().st_size > self.max_upload_bytes:
             raise UploadTooLargeError(f"file larger than the limit of {self.max_upload_bytes} bytes")
         self._target(take_id)
@@ -262,7 +265,36 @@ class TakeLibrary:
                 os.replace(part, dst)
             finally:
                 part.unlink(missing_ok=True)
+        if mask_dir is not None:
+            from stage.importer import import_masks
+
+            dst = self.takes_dir / f"{take_id}.h5"
+            try:
+                import_masks(dst, mask_dir)
+            except BaseException:
+                self.delete(take_id)
+                raise
         return out
+
+    def _mask_dir(self, src: Path, masks: str) -> Path:
+        """The masks folder inside the data root, checked against the take before it is copied."""
+        from stage.importer import check_mask_folders
+        from stage.store import TakeReader
+
+        if Path(masks).is_absolute():
+            raise ValueError("masks must be relative to the data root")
+        d = inside(self.data_root, masks)
+        if not d.is_dir():
+            raise NotFoundError(f"no folder {masks!r} in the data root")
+        with TakeReader(src) as r:
+            if not r.has_calibration:
+                raise ValueError(f"{src.name}: the take has no calibration")
+            calib = r.calibration
+            sizes = {c: tuple(r.image_size(c)) for c in r.cameras}
+            counts = r.frame_counts()
+            cams = type(calib)(tuple(calib[c] for c in r.cameras), units=calib.units)
+        check_mask_folders(d, cams, counts, sizes)  # type: ignore[arg-type]
+        return d
 
     def delete(self, take_id: str) -> None:
         p = self.path(take_id)

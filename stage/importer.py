@@ -41,7 +41,8 @@ from stage.frame import Frame
 from stage.rig import check_plane
 from stage.store import CameraSpec, DiskFullError, TakeReader, TakeWriter
 
-__all__ = ["ImportResult", "import_take", "find_sources", "fit_to_footage", "scaled_calibration", "IMAGE_EXTS", "VIDEO_EXTS"]
+__all__ = ["ImportResult", "import_take", "import_masks", "check_mask_folders", "find_sources", "fit_to_footage",
+           "scaled_calibration", "IMAGE_EXTS", "VIDEO_EXTS"]
 
 log = logging.getLogger(__name__)
 
@@ -336,6 +337,34 @@ def check_mask_folders(
                                  f"{footage[c][0]}x{footage[c][1]}")
         out[c] = files
     return out
+
+
+def import_masks(take: str | os.PathLike, masks: str | os.PathLike) -> dict[str, int]:
+    """Store silhouettes made elsewhere as a take's masks (keying then skipped).
+
+    Parameters
+    ----------
+    take : path
+        An existing take.
+    masks : path
+        One folder per camera of the take, one image per frame, the frames' size
+        (see :func:`check_mask_folders`); checked completely before anything is stored.
+
+    Returns
+    -------
+    dict
+        Masks stored per camera.
+    """
+    with TakeReader(take) as r:
+        if not r.has_calibration:
+            raise ValueError(f"{take}: the take has no calibration")
+        calib = r.calibration
+        calib = Calibration(tuple(calib[c] for c in r.cameras), units=calib.units)
+        counts = r.frame_counts()
+        sizes = {c: tuple(r.image_size(c)) for c in r.cameras}
+    files = check_mask_folders(masks, calib, counts, sizes)  # type: ignore[arg-type]
+    _store_masks(Path(take), calib, files, source=Path(masks))
+    return {c: len(f) for c, f in files.items()}
 
 
 def _store_masks(take: Path, calib: Calibration, files: dict[str, list[Path]], *, source: Path) -> None:

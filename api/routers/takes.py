@@ -38,6 +38,10 @@ class ImportPath(BaseModel):
     take: Annotated[str, Field(pattern=TAKE_ID, max_length=128, examples=["take1"])]
     path: Annotated[str, Field(min_length=1, max_length=1024, examples=["incoming/take1.h5"],
                                description="relative to the data root")]
+    masks: Annotated[str | None, Field(min_length=1, max_length=1024, examples=["incoming/take1_masks"],
+                                       description="silhouettes made elsewhere, relative to the data root: one "
+                                       "folder per camera, one image per frame (non-zero = subject); stored as "
+                                       "the take's masks, so processing skips keying")] = None
 
 
 @router.get("", response_model=list[TakeSummary])
@@ -123,7 +127,7 @@ async def upload_take_multipart(request: Request, library: LibraryDep, _: WriteA
              responses={404: {"description": "no such file"}, 400: {"description": "outside the data root / not a take"}})
 def import_take_path(body: ImportPath, library: LibraryDep, _: WriteAccess) -> dict:
     """Import a take file from a path inside the data root (e.g. copied there by rsync)."""
-    return library.import_path(body.take, body.path)
+    return library.import_path(body.take, body.path, masks=body.masks)
 
 
 @router.delete("/{take_id}", status_code=status.HTTP_204_NO_CONTENT, responses={409: {"description": "jobs still use it"}})

@@ -121,3 +121,36 @@ def test_invalid_input(client, tmp_path, data_root):
     assert client.get("/takes/a/frames/0/cam00/mask.png").status_code == 404  # not keyed
     assert client.get("/takes/a/frames/0/cam00/image.gif").status_code in (400, 422)
     assert client.get("/takes/a/frames/-1/cam00/image.png").status_code in (400, 422)
+
+
+def test_import_from_path_with_masks(client, data_root):
+    """Silhouettes made elsewhere come with the take (one folder per camera); bad ones are one
+    error naming the camera and file, and nothing is imported."""
+    from calib.calibration import Calibration
+    from calib.camera import Camera
+
+    cams = tuple(Camera(f"cam{i:02d}", K=[[30, 0, 16], [0, 30, 12], [0, 0, 1]], dist=np.zeros(5), R=np.eye(3),
+                        t=[i * 10.0, 0, 100], size=(32, 24)) for i in range(2))
+    inc = data_root / "incoming"
+    inc.mkdir(parents=True)
+    make_take_file(inc / "m.h5", 3, calibration=Calibration(cams))
+    for c in ("cam00", "cam01"):
+        (inc / "m_masks" / c).mkdir(parents=True)
+        for k in range(3):
+            a = np.zeros((24, 32), np.uint8)
+            a[5 + k : 15, 8:20] = 255
+            cv2.imwrite(str(inc / "m_masks" / c / f"{k}.png"), a)
+    cv2.imwrite(str(inc / "m_masks" / "cam01" / "2.png"), np.zeros((20, 32), np.uint8))
+    r = client.post("/takes/import", json={"take": "m", "path": "incoming/m.h5", "masks": "incoming/m_masks"},
+                    headers=AUTH)
+    assert r.status_code == 400 and "camera cam01" in r.text and "2.png is 32x20" in r.text, r.text
+    assert client.get("/takes/m").status_code == 404
+    a = np.zeros((24, 32), np.uint8)
+    a[7:15, 8:20] = 255
+    cv2.imwrite(str(inc / "m_masks" / "cam01" / "2.png"), a)
+    r = client.post("/takes/import", json={"take": "m", "path": "incoming/m.h5", "masks": "incoming/m_masks"},
+                    headers=AUTH)
+    assert r.status_code == 201, r.text
+    assert client.get("/takes/m").json()["masks"] == ["cam00", "cam01"]
+    with TakeReader(data_root / "takes" / "m.h5") as rd:
+        np.testing.assert_array_equal(rd.masks("cam01")[2], a > 0)
