@@ -41,7 +41,7 @@ from pipeline.results import atomic_write_bytes, ply_bytes
 
 __all__ = [
     "RIG_FORMAT", "NoTrackingError", "tracked_meshes", "load_sequence", "rig_results", "ArticulatedRig",
-    "build_articulated_rig", "rig_dict", "bvh_text", "glb_bytes", "write_rig", "remove_rig", "choose_reference",
+    "build_articulated_rig", "rig_dict", "bvh_text", "bvh_from_rig_json", "glb_bytes", "write_rig", "remove_rig", "choose_reference",
     "counted", "rig_counts",
 ]
 
@@ -315,22 +315,26 @@ def build_articulated_rig(
 def _local_motion(rig: ArticulatedRig) -> tuple[np.ndarray, np.ndarray]:
     """Local rotations (T, J, 3, 3) and translations (T, J, 3) of every joint per frame."""
     sk = rig.skeleton
-    T, J = rig.n_frames, sk.n_joints
+    G = np.stack([pose.R[sk.part] for pose in rig.fit.poses])  # (T, J, 3, 3) global rotation of every joint
+    return _local_from_global(sk.parents, sk.rest, G, np.asarray(rig.fit.joints, dtype=np.float64))
+
+
+def _local_from_global(parents, rest, G: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Local rotations and translations from global joint rotations ``G`` (T, J, 3, 3) and positions (T, J, 3)."""
+    parents = np.asarray(parents)
+    T, J = G.shape[:2]
     R = np.empty((T, J, 3, 3))
     tr = np.empty((T, J, 3))
-    for t, pose in enumerate(rig.fit.poses):
-        G = pose.R[sk.part]  # (J, 3, 3) global rotation of every joint
-        pos = rig.fit.joints[t]
-        for j in range(J):
-            p = sk.parents[j]
-            if p < 0:
-                R[t, j], tr[t, j] = G[j], pos[j]
-            else:
-                R[t, j] = G[p].T @ G[j]
-                tr[t, j] = G[p].T @ (pos[j] - pos[p])
-    rest = sk.rest.copy()
-    nz = sk.parents >= 0
-    rest[nz] = sk.rest[nz] - sk.rest[sk.parents[nz]]
+    for j in range(J):
+        p = parents[j]
+        if p < 0:
+            R[:, j], tr[:, j] = G[:, j], pos[:, j]
+        else:
+            R[:, j] = np.matmul(G[:, p].transpose(0, 2, 1), G[:, j])
+            tr[:, j] = np.einsum("tji,tj->ti", G[:, p], pos[:, j] - pos[:, p])
+    rest = np.asarray(rest, dtype=np.float64).copy()
+    nz = parents >= 0
+    rest[nz] = rest[nz] - rest[parents[nz]]
     return _hold_invalid(R, tr, rest)
 
 
@@ -379,9 +383,13 @@ def rig_dict(rig: ArticulatedRig) -> dict:
     frames = []
     for t in range(rig.n_frames):
         P = rig.fit.joints[t]
+        G = rig.fit.poses[t].R[sk.part]
+        ok = np.isfinite(G).all(axis=(1, 2)) & (np.abs(np.linalg.det(np.nan_to_num(G)) - 1.0) < 1e-3)
+        q = Rotation.from_matrix(np.where(ok[:, None, None], G, np.eye(3))).as_quat()
         frames.append({
             "index": int(rig.frame_indices[t]),
             "joints": {n: ([float(x) for x in P[j]] if np.all(np.isfinite(P[j])) else None) for j, n in enumerate(names)},
+            "rotations": {n: ([round(float(x), 9) for x in q[j]] if ok[j] else None) for j, n in enumerate(names)},
         })
     err = rig.fit.errors
     seg = rig.segmentation
@@ -415,22 +423,70 @@ def bvh_text(rig: ArticulatedRig) -> str:
     """The rig as a BVH file (one ROOT/JOINT per joint; leaves carry an ``End Site``)."""
     sk = rig.skeleton
     R, tr = _local_motion(rig)
-    J = sk.n_joints
-    rest_local = sk.rest.copy()
-    nz = sk.parents >= 0
-    rest_local[nz] = sk.rest[nz] - sk.rest[sk.parents[nz]]
-    kids = [[int(k) for k in np.flatnonzero(sk.parents == j)] for j in range(J)]
+    return _bvh(sk.names, sk.parents, sk.rest, R, tr, rig.fps)
+
+
+def bvh_from_rig_json(doc: dict) -> str:
+    """BVH text from a ``rig.json`` document (capture-stage/rig@1 with per-frame ``rotations``).
+
+    The joints, their rest positions, the per-frame global joint positions and
+    rotations (xyzw quaternions) of ``rig.json`` give the same file
+    :func:`bvh_text` writes for the rig itself.
+
+    Raises
+    ------
+    ValueError
+        When ``doc`` is not a rig document, or its frames carry no rotations
+        (a ``rig.json`` written before they were stored: run ``stage rig`` again).
+    """
+    if not isinstance(doc, dict) or doc.get("format") != RIG_FORMAT:
+        got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise ValueError(f"doc must be a {RIG_FORMAT} document (rig.json), got {got!r}")
+    try:
+        names = [str(j["name"]) for j in doc["joints"]]
+        index = {n: i for i, n in enumerate(names)}
+        parents = np.array([-1 if j["parent"] is None else index[j["parent"]] for j in doc["joints"]], dtype=np.int64)
+        rest = np.asarray([j["rest"] for j in doc["joints"]], dtype=np.float64).reshape(len(names), 3)
+        frames = doc["frames"]
+        fps = float(doc["fps"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"rig.json: a joint or frame entry is malformed ({exc!s})") from None
+    if not frames or any("rotations" not in fr for fr in frames):
+        raise ValueError("rig.json has no joint rotations per frame (written by an older stage rig): run stage rig again")
+    T, J = len(frames), len(names)
+    G = np.full((T, J, 3, 3), np.nan)
+    pos = np.full((T, J, 3), np.nan)
+    for t, fr in enumerate(frames):
+        for j, n in enumerate(names):
+            q, p = fr["rotations"].get(n), fr["joints"].get(n)
+            if q is not None:
+                G[t, j] = Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
+            if p is not None:
+                pos[t, j] = p
+    R, tr = _local_from_global(parents, rest, G, pos)
+    return _bvh(names, parents, rest, R, tr, fps)
+
+
+def _bvh(names, parents, rest, R: np.ndarray, tr: np.ndarray, fps: float) -> str:
+    """BVH text of a joint tree (rest positions) and its local rotations ``R`` (T, J, 3, 3), root translations."""
+    parents = np.asarray(parents)
+    J = len(names)
+    T = len(R)
+    rest_local = np.asarray(rest, dtype=np.float64).copy()
+    nz = parents >= 0
+    rest_local[nz] = rest_local[nz] - np.asarray(rest)[parents[nz]]
+    kids = [[int(k) for k in np.flatnonzero(parents == j)] for j in range(J)]
     lines = ["HIERARCHY"]
     order = []
 
     def emit(j: int, depth: int) -> None:
         ind = "  " * depth
-        head = "ROOT" if sk.parents[j] < 0 else "JOINT"
-        lines.append(f"{ind}{head} {sk.names[j]}")
+        head = "ROOT" if parents[j] < 0 else "JOINT"
+        lines.append(f"{ind}{head} {names[j]}")
         lines.append(f"{ind}{{")
-        o = rest_local[j] if sk.parents[j] >= 0 else np.zeros(3)
+        o = rest_local[j] if parents[j] >= 0 else np.zeros(3)
         lines.append(f"{ind}  OFFSET {o[0]:.6f} {o[1]:.6f} {o[2]:.6f}")
-        if sk.parents[j] < 0:
+        if parents[j] < 0:
             lines.append(f"{ind}  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation")
         else:
             lines.append(f"{ind}  CHANNELS 3 Zrotation Xrotation Yrotation")
@@ -444,11 +500,11 @@ def bvh_text(rig: ArticulatedRig) -> str:
             lines.append(f"{ind}  }}")
         lines.append(f"{ind}}}")
 
-    emit(int(np.flatnonzero(sk.parents < 0)[0]), 0)
-    lines += ["MOTION", f"Frames: {rig.n_frames}", f"Frame Time: {1.0 / rig.fps:.6f}"]
-    eul = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler("ZXY", degrees=True).reshape(rig.n_frames, J, 3)
+    emit(int(np.flatnonzero(parents < 0)[0]), 0)
+    lines += ["MOTION", f"Frames: {T}", f"Frame Time: {1.0 / fps:.6f}"]
+    eul = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler("ZXY", degrees=True).reshape(T, J, 3)
     root = order[0]
-    for t in range(rig.n_frames):
+    for t in range(T):
         vals = list(tr[t, root]) + list(eul[t, root])
         for j in order[1:]:
             vals += list(eul[t, j])

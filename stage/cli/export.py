@@ -7,7 +7,7 @@ from pathlib import Path
 
 ORDER = 62
 
-FORMATS = ("glb", "spine-glb")
+FORMATS = ("glb", "spine-glb", "bvh")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -17,11 +17,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Rig the reference frame's mesh to the take's spine and write a binary glTF 2.0 file: "
         "the surface, a skin whose joints lie along the spine's limbs, bone-heat skinning weights (at most 4 "
         "per vertex) and an animation with one key per frame that plays the take back. "
-        "Format 'spine-glb' writes the animated spine alone. Units are converted to metres (glTF).",
+        "Format 'spine-glb' writes the animated spine alone. Units are converted to metres (glTF). "
+        "Format 'bvh' writes the articulated rig of `stage rig` (DIR/rig/rig.json) as BVH motion capture: "
+        "its joints, rest offsets and local rotations per frame, in the rig's units.",
     )
     p.add_argument("results", type=Path, metavar="DIR", help="results directory (spine.json, meshes/frame_NNNNNN.ply)")
-    p.add_argument("--format", choices=FORMATS, default="glb", help="glb: rigged mesh (default); spine-glb: spine only")
-    p.add_argument("--out", type=Path, metavar="FILE", help="output file (default DIR/spine_rig.glb or DIR/spine.glb)")
+    p.add_argument("--format", choices=FORMATS, default="glb",
+                   help="glb: rigged mesh (default); spine-glb: spine only; bvh: the articulated rig of `stage rig`")
+    p.add_argument("--out", type=Path, metavar="FILE", help="output file (default DIR/spine_rig.glb, DIR/spine.glb or DIR/rig.bvh)")
     p.add_argument("--reference", type=int, metavar="FRAME",
                    help="take frame number of the rest pose (default: the spine's reference)")
     p.add_argument("--segments", type=int, default=6, metavar="N", help="bones per limb (default 6)")
@@ -35,7 +38,9 @@ def run(args: argparse.Namespace) -> int:
     d = Path(args.results)
     if args.segments < 1:
         raise ValueError(f"--segments must be >= 1, got {args.segments}")
-    if args.format == "glb":
+    if args.format == "bvh":
+        path = _export_bvh(d, args.out)
+    elif args.format == "glb":
         path = export_rig(
             d, out=args.out, reference=args.reference, segments=args.segments, include_spine=not args.no_spine_tubes
         )
@@ -56,3 +61,30 @@ def run(args: argparse.Namespace) -> int:
         path.write_bytes(spine_to_glb(spine, segments=args.segments, reference=ref))
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
     return 0
+
+
+def _export_bvh(d: Path, out) -> Path:
+    """``DIR/rig/rig.json`` (or ``DIR/rig.json``, a rig directory) as BVH; default ``DIR/rig.bvh``."""
+    import json
+
+    from pipeline.articulated_rig import bvh_from_rig_json
+    from pipeline.results import atomic_write_bytes
+    from stage.cli import UserError
+
+    doc_path = next((p for p in (d / "rig" / "rig.json", d / "rig.json") if p.is_file()), None)
+    if doc_path is None:
+        if not d.is_dir():
+            raise FileNotFoundError(f"results directory not found: {d}")
+        raise UserError(f"{d} has no rig/rig.json: build the rig first (stage rig {d})")
+    try:
+        doc = json.loads(doc_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{doc_path}: unreadable ({exc})") from None
+    try:
+        text = bvh_from_rig_json(doc)
+    except ValueError as exc:
+        raise UserError(f"{doc_path}: {exc}") from None
+    path = Path(out) if out else d / "rig.bvh"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, text.encode())
+    return path

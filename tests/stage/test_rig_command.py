@@ -101,3 +101,58 @@ def test_report_shows_the_rig(tmp_path):
     html = render_report(tmp_path / "res")
     assert 'id="rig"' in html and "rig-view" in html
     assert "Rig: 2 motion segments, 1 articulation, " in html
+
+
+def test_export_bvh_of_a_rig(tmp_path, capsys):
+    """``stage export --format bvh``: the rig of ``stage rig`` as BVH that two parsers read, whose forward
+    kinematics gives rig.json's joint positions in every frame."""
+    from scipy.spatial.transform import Rotation
+
+    from tests.pipeline.test_articulated_rig import _parse_bvh
+
+    V, F, _ = _two_bars(10)
+    _write_seq(tmp_path / "seq", V, F)
+    res = tmp_path / "results"
+    assert main(["-q", "rig", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(res / "rig"),
+                 "--samples", "300"]) == 0
+    assert main(["export", str(res), "--format", "bvh"]) == 0
+    assert "rig.bvh" in capsys.readouterr().out
+    doc = json.loads((res / "rig" / "rig.json").read_text())
+    text = (res / "rig.bvh").read_text()
+    joints, rows = _parse_bvh(text)
+    assert [j["name"] for j in joints] == [j["name"] for j in doc["joints"]] and len(rows) == 10
+    tol = 1e-4 * doc["size"]
+    for t in range(10):  # forward kinematics of the file (intrinsic Z-X-Y, degrees)
+        pos, rot, col = {}, {}, 0
+        for j in joints:
+            vals = rows[t, col : col + len(j["channels"])]
+            col += len(j["channels"])
+            R = Rotation.from_euler("ZXY", vals[-3:], degrees=True).as_matrix()
+            par = None if j["parent"] is None else joints[j["parent"]]["name"]
+            pos[j["name"]] = vals[:3] if par is None else pos[par] + rot[par] @ np.asarray(j["offset"])
+            rot[j["name"]] = R if par is None else rot[par] @ R
+        for name, p in pos.items():
+            assert np.linalg.norm(p - np.asarray(doc["frames"][t]["joints"][name])) < tol
+    # a rig directory itself, and another parser (bvhio: world positions per frame)
+    assert main(["-q", "export", str(res / "rig"), "--format", "bvh", "--out", str(tmp_path / "b.bvh")]) == 0
+    bvhio = pytest.importorskip("bvhio", reason="bvhio (a test dependency) is not installed")
+    h = bvhio.readAsHierarchy(str(tmp_path / "b.bvh"))
+    assert bvhio.readAsBvh(str(tmp_path / "b.bvh")).FrameCount == 10
+    for t in (0, 4, 9):
+        h.loadPose(t)
+        for j, _, _ in h.layout():
+            assert np.linalg.norm(np.asarray(j.PositionWorld) - doc["frames"][t]["joints"][j.Name]) < tol
+
+
+def test_export_bvh_needs_a_rig(tmp_path, capsys):
+    (tmp_path / "meshes").mkdir()
+    assert main(["export", str(tmp_path), "--format", "bvh"]) == 2
+    assert f"stage rig {tmp_path}" in capsys.readouterr().err
+    (tmp_path / "rig").mkdir()
+    (tmp_path / "rig" / "rig.json").write_text(json.dumps({"format": "capture-stage/rig@1", "fps": 30, "joints": [
+        {"name": "root", "parent": None, "rest": [0, 0, 0]}], "frames": [{"index": 0, "joints": {"root": [0, 0, 0]}}]}))
+    assert main(["export", str(tmp_path), "--format", "bvh"]) == 2
+    assert "run stage rig again" in capsys.readouterr().err
+    (tmp_path / "rig" / "rig.json").write_text("{not json")
+    assert main(["export", str(tmp_path), "--format", "bvh"]) == 2
+    assert "unreadable" in capsys.readouterr().err
