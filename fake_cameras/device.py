@@ -2,9 +2,14 @@
 
 Frames are rendered ahead (:func:`fake_cameras.take.simulate_take`, cached on
 disk and shared by every camera of the process) and replayed in real time:
-frame ``k`` is captured at ``epoch + k / fps`` on the host's monotonic clock
-(all simulated cameras of a process share the epoch, like a genlocked rig) and
+frame ``k`` is captured at ``epoch + k / fps`` on the host's monotonic clock and
 shows scene frame ``k mod F``. ``grab()`` sleeps until the next capture time.
+The cameras of one rig share the epoch, like a genlocked rig: it is set one
+start-up lead (:data:`START_LEAD_NS`) after the first ``grab()`` of a capture
+(a capture = from the first of the rig's cameras opened to the last closed), so
+every camera's first frame, sequence number 0, shows scene frame 0 and a take
+of ``F`` frame sets films the scene once from its start. An explicit
+``epoch_ns`` replaces that (a rig whose clock has run since then).
 
 Like a real device each camera
 
@@ -37,15 +42,28 @@ from stage.drivers.registry import register_driver
 from stage.frame import Frame
 from stage.rig import FakeCameraConfig, Rig
 
-__all__ = ["FakeCamera", "take_for_rig", "DEFAULT_EPOCH_NS"]
+__all__ = ["FakeCamera", "take_for_rig", "START_LEAD_NS"]
 
 log = logging.getLogger(__name__)
 
-#: capture-time origin shared by the simulated cameras of this process
-DEFAULT_EPOCH_NS = time.monotonic_ns()
+#: the first frame of a capture is due this long after the first grab of any of its cameras,
+#: so that the grabber threads, started one after the other, all begin with frame 0
+START_LEAD_NS = 200_000_000
 
 _TAKES: dict = {}
 _TAKES_LOCK = threading.Lock()
+
+
+class _Session:
+    """The shared epoch of one rig's open cameras (None until the first grab)."""
+
+    def __init__(self) -> None:
+        self.n_open = 0
+        self.epoch: int | None = None
+
+
+_SESSIONS: dict[int, _Session] = {}
+_SESSIONS_LOCK = threading.Lock()
 
 
 def _board_source(kind: str, calibration, frames: int, seed: int, noise: float, volume):
@@ -112,7 +130,8 @@ class FakeCamera:
     take : SimulatedTake or BoardViews, optional
         Replay these frames instead of simulating the rig's subject.
     epoch_ns : int, optional
-        Monotonic time of frame 0 (default: shared by the process).
+        Monotonic time of frame 0 (default: :data:`START_LEAD_NS` after the first grab of
+        the capture, shared by the cameras of ``rig``, or of ``take`` without a rig).
     seed : int, optional
         Seeds drops and jitter (default: derived from the camera index).
     buffer : int, optional
@@ -152,7 +171,9 @@ class FakeCamera:
         self.fps = float(config.fps or (rig.fps if rig is not None else None) or getattr(take, "fps", 30.0))
         self.period_ns = int(round(1e9 / self.fps))
         self._take = take
-        self._epoch = DEFAULT_EPOCH_NS if epoch_ns is None else int(epoch_ns)
+        self._epoch = None if epoch_ns is None else int(epoch_ns)
+        self._shared_epoch = epoch_ns is None
+        self._session: _Session | None = None
         self._rng = np.random.default_rng(config.index + 7919 if seed is None else seed)
         self._buffer = int(buffer)
         self._latency_ns = int(latency_ms * 1e6)
@@ -186,10 +207,38 @@ class FakeCamera:
             )
         if self.config.depth and getattr(self._take, "depth", None) is None:
             raise CameraError(f"camera {self.camera_id!r}: depth requested but the simulated take has no depth")
+        if self._shared_epoch:
+            self._join_session()
         self._opened = True
         self._k = None
         self.delivered = 0
         self.dropped = 0
+
+    def _join_session(self) -> None:
+        """Share the epoch of the rig's other open cameras (a new capture when none is open)."""
+        key = id(self.rig) if self.rig is not None else id(self._take)
+        with _SESSIONS_LOCK:
+            if self._session is None:
+                self._session = _SESSIONS.setdefault(key, _Session())
+                self._session.n_open += 1
+            self._epoch = self._session.epoch
+
+    def _leave_session(self) -> None:
+        key = id(self.rig) if self.rig is not None else id(self._take)
+        with _SESSIONS_LOCK:
+            if self._session is None:
+                return
+            self._session.n_open -= 1
+            if self._session.n_open <= 0 and _SESSIONS.get(key) is self._session:
+                del _SESSIONS[key]
+            self._session = None
+
+    def _start_clock(self, now: int) -> None:
+        """The shared epoch: set by the first grab of the capture, one lead ahead."""
+        with _SESSIONS_LOCK:
+            if self._session.epoch is None:
+                self._session.epoch = int(now) + START_LEAD_NS
+            self._epoch = self._session.epoch
 
     def configure(self) -> Granted:
         """What the simulated device grants: exactly the requested settings."""
@@ -217,6 +266,8 @@ class FakeCamera:
             )
         now = self._clock()
         if self._k is None:
+            if self._session is not None:
+                self._start_clock(now)
             self._k = max(0, -(-(now - self._epoch) // self.period_ns))
             self._k0 = self._k
         while True:
@@ -263,6 +314,7 @@ class FakeCamera:
 
     def close(self) -> None:
         self._opened = False
+        self._leave_session()
 
     # -- extras -------------------------------------------------------------------
     @property

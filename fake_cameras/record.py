@@ -11,9 +11,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from fake_cameras.take import SimulatedTake, write_ground_truth
 
-__all__ = ["record_take"]
+__all__ = ["record_take", "take_scene_frames"]
 
 
 def record_take(
@@ -78,3 +80,36 @@ def record_take(
             wr.write_set(frames, time_ns=t)
     write_ground_truth(take, path)
     return path
+
+
+def take_scene_frames(path: str | Path, n_scene_frames: int) -> np.ndarray:
+    """Scene frame shown in each frame set of a take filmed by simulated cameras.
+
+    A simulated camera's frame with sequence number ``q`` shows scene frame
+    ``q mod F`` (:mod:`fake_cameras.device`: every camera starts at scene frame 0),
+    so the stored sequence numbers say it exactly, also when frames were dropped.
+
+    Parameters
+    ----------
+    path : path
+        The take.
+    n_scene_frames : int
+        ``F``, the frames the simulated rig renders.
+
+    Returns
+    -------
+    (S,) int ndarray
+        Scene frame of each set (``SimulatedTake.select`` gives its ground truth in take order).
+    """
+    from stage.store import TakeReader
+
+    if int(n_scene_frames) < 1:
+        raise ValueError(f"n_scene_frames must be >= 1, got {n_scene_frames!r}")
+    with TakeReader(path) as r:
+        table = r.set_table()
+        seq = [r.timestamps(c)["sequence"] for c in r.cameras]
+    out = np.full(table.shape[0], -1, dtype=np.int64)
+    for k, row in enumerate(table):
+        ci = int(np.flatnonzero(row >= 0)[0])
+        out[k] = int(seq[ci][row[ci]]) % int(n_scene_frames)
+    return out

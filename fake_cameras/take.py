@@ -22,7 +22,7 @@ import os
 import shutil
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -120,6 +120,28 @@ class SimulatedTake:
     def size(self) -> tuple[int, int]:
         """(width, height)."""
         return int(self.images.shape[3]), int(self.images.shape[2])
+
+    def select(self, frames) -> "SimulatedTake":
+        """The take's frames in another order (e.g. a captured take's: frame set ``s`` shows
+        scene frame ``frames[s]``), the ground truth with them.
+
+        Parameters
+        ----------
+        frames : (S,) int array_like
+            Scene frames, each in ``0..F-1``.
+        """
+        idx = np.asarray(frames)
+        if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) or (idx.size and not (
+                0 <= idx.min() and idx.max() < self.n_frames)):
+            raise ValueError(f"frames must be a 1-d integer array within 0..{self.n_frames - 1}")
+        pick = [int(i) for i in idx]
+        return replace(
+            self, images=self.images[idx], masks=self.masks[idx], labels=self.labels[idx],
+            depth=None if self.depth is None else self.depth[idx],
+            poses=[self.poses[i] for i in pick], tips=[self.tips[i] for i in pick],
+            axes=[self.axes[i] for i in pick], times=np.asarray(self.times)[idx],
+            mesh_vertices=None if self.mesh_vertices is None else np.asarray(self.mesh_vertices)[idx],
+        )
 
     def tip_array(self) -> np.ndarray:
         """(F, L, 3) limb tips in ``limb_names`` order."""

@@ -105,31 +105,6 @@ def _calibration_errors(est, true) -> dict:
     }
 
 
-def _scene_frames(take_path: Path, images: np.ndarray) -> np.ndarray:
-    """Scene frame shown in each frame set of a simulated take.
-
-    The simulated cameras replay their rendered frames in a loop from wherever the
-    clock stood when they were opened, so the demo finds each set's scene frame by
-    matching its image (stored raw, so the match is exact) against the renders.
-
-    Parameters
-    ----------
-    images : (F, C, H, W, 3) uint8 ndarray
-        The rendered frames, cameras in take order.
-    """
-    from stage.store import TakeReader
-
-    with TakeReader(take_path) as r:
-        table = r.set_table()
-        out = np.full(table.shape[0], -1)
-        for k in range(table.shape[0]):
-            ci = int(np.flatnonzero(table[k] >= 0)[0])
-            img = r.frame(r.cameras[ci], int(table[k, ci])).astype(np.int16)
-            diff = np.abs(images[:, ci].astype(np.int16) - img).mean(axis=(1, 2, 3))
-            out[k] = int(np.argmin(diff))
-    return out
-
-
 def _transform_spine(spine: dict, R: np.ndarray, T: np.ndarray) -> dict:
     """A copy of a spine dictionary with every point mapped by ``x -> R x + T``."""
 
@@ -156,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
     from calib.formats import write_calibration
     from fake_cameras.device import take_for_rig
     from fake_cameras.evaluate import evaluate_spine
+    from fake_cameras.record import take_scene_frames
     from fake_cameras.rigs import simulated_rig_dict
     from fake_cameras.take import write_ground_truth
     from pipeline.process import ProcessParams, process_take
@@ -187,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"board take: {cap.sets} frame sets from {args.cameras} cameras -> {board_path}")
         views = take_for_rig(rig, size=size, fps=rig.fps)
         # the simulated board lies on the floor at the world origin in scene frame 0
-        floor_sets = np.flatnonzero(_scene_frames(board_path, views.images) == 0)
+        floor_sets = np.flatnonzero(take_scene_frames(board_path, views.images.shape[0]) == 0)
         if floor_sets.size == 0:
             raise ValueError("the board take missed the view of the board on the floor; record more --board-views")
         rigcal = _calibrate(board_path, views.board, world_frame=int(floor_sets[0]), no_progress=args.no_progress)
@@ -210,7 +186,9 @@ def run(args: argparse.Namespace) -> int:
     take_path = out / f"{args.subject}.h5"
     rig, cap = _capture(creature_rig, take_path, args.frames, calibration=calibration,
                         no_progress=args.no_progress, label=args.subject)
-    sim = take_for_rig(rig, size=size, fps=rig.fps)
+    # the ground truth in take order: frame set k shows scene frame idx[k] (k unless frames were dropped)
+    idx = take_scene_frames(take_path, take_for_rig(rig, size=size, fps=rig.fps).n_frames)
+    sim = take_for_rig(rig, size=size, fps=rig.fps).select(idx)
     if calibration is None:
         attach_calibration(take_path, sim.calibration)
     gt_path = write_ground_truth(sim, take_path)
@@ -233,10 +211,9 @@ def run(args: argparse.Namespace) -> int:
 
     # 5. accuracy
     spine = json.loads((results / "spine.json").read_text())
-    idx = _scene_frames(take_path, sim.images)
-    tips = sim.tip_array()[idx]
-    axes = {name: np.stack([sim.axes[i][name] for i in idx]) for name in sim.limb_names}
-    poses = [sim.poses[i] for i in idx]
+    tips = sim.tip_array()
+    axes = {name: np.stack([a[name] for a in sim.axes]) for name in sim.limb_names}
+    poses = sim.poses
     acc = evaluate_spine(spine, tips, axes, list(sim.limb_names), poses=poses)
     summary["spine"] = acc
     if calibration is not None:

@@ -242,3 +242,51 @@ def test_capture_unmirrors_a_mirror_mode_camera_marked_in_the_rig_file(tmp_path,
                 got = r.frame("cam1", k)
                 assert any(np.array_equal(got, w) for w in want), (mirror, k)
                 assert not any(np.array_equal(got, o) for o in other), (mirror, k)
+
+
+def test_a_captured_take_films_the_scene_from_its_first_frame(tmp_path, monkeypatch):
+    """A take captured live from simulated cameras starts at the simulator's frame 0 whenever the
+    process started: rendering the simulator's pose k, and the pose k of the ground truth written
+    the way ``stage demo`` writes it, gives the take's frame set k (not a neighbour, not a loop)."""
+    monkeypatch.setenv("CAPTURE_STAGE_CACHE", str(tmp_path))
+    from fake_cameras.device import take_for_rig
+    from fake_cameras.record import take_scene_frames
+    from fake_cameras.render import render_view
+    from fake_cameras.rigs import simulated_rig
+    from fake_cameras.take import load_ground_truth, studio, write_ground_truth
+    from stage.capture import capture_take
+    from stage.store import TakeReader
+
+    n = 6
+    rig = simulated_rig(4, subject="starfish", frames=n, size=(96, 72), fps=30.0)
+    sim = take_for_rig(rig, size=(96, 72), fps=30.0)
+    time.sleep(0.3 + 0.1 * np.random.default_rng().random())  # the clock runs before the capture starts
+    for attempt in range(2):  # a second capture of the same rig in the same process starts at frame 0 too
+        path = tmp_path / f"t{attempt}.h5"
+        capture_take(rig, path, frames=n)
+        idx = take_scene_frames(path, n)
+        write_ground_truth(sim.select(idx), path)
+        gt = load_ground_truth(path)
+        with TakeReader(path) as r:
+            table = r.set_table()
+            assert table.shape[0] == n
+            stored = np.stack([[r.frame(c, int(table[k, i])) for i, c in enumerate(r.cameras)] for k in range(n)])
+        np.testing.assert_array_equal(idx, np.arange(n))
+        _, _, backdrop = studio(volume=rig.volume, n_cameras=4, size=(96, 72), seed=0, distortion=True,
+                                calibration=sim.calibration, backdrop=None)
+        for k in range(n):
+            for pose in (sim.poses[k], gt["poses"][k]):
+                for c in (0, 2):
+                    img = render_view(sim.calibration[c], pose, backdrop=backdrop, noise_sigma=0).image.astype(float)
+                    err = np.abs(stored[:, c].astype(float) - img).mean(axis=(1, 2, 3))
+                    assert int(np.argmin(err)) == k, (attempt, k, c, err.round(2))
+        np.testing.assert_allclose(gt["tips"], sim.tip_array())
+        time.sleep(0.2)
+
+
+def test_simulated_take_select_invalid_input(take):
+    with pytest.raises(ValueError, match="frames"):
+        take.select([0, 5])
+    with pytest.raises(ValueError, match="frames"):
+        take.select([[0]])
+    assert take.select([2, 0]).images.shape[0] == 2
