@@ -1,7 +1,8 @@
 """Result files of a job (``DATA/jobs/<job>/``): listing and safe lookup, PLY -> GLB conversion.
 
 What :func:`pipeline.process.process_take` writes: ``spine.json``, ``report.json``,
-``meshes/frame_NNNNNN.ply``.
+``meshes/frame_NNNNNN.ply``; the ``track`` step ``tracked/NNNNNN.ply``; the ``rig`` step
+``rig/rig.json``, ``rig/rig.glb``, ``rig/rig.bvh``, ``rig/segments.npy`` and ``rig/posed/NNNNNN.ply``.
 """
 
 from __future__ import annotations
@@ -13,9 +14,15 @@ from typing import Any
 from api.errors import NotFoundError, UnavailableError
 from api.paths import JOB_ID, check_id, confined, confined_entries, inside
 
-__all__ = ["listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb"]
+__all__ = ["listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb", "frame_file", "rig_file", "rig_summary"]
 
 _MESH = re.compile(r"^(?:frame_)?([0-9]{1,6})\.(ply|glb)$")
+_FRAME = re.compile(r"^([0-9]{6})\.ply$")  # tracked/ and rig/posed/: exactly six digits
+#: the files of ``rig/`` served as they are, and their media types
+RIG_FILES = {"rig.json": "application/json", "rig.glb": "model/gltf-binary", "rig.bvh": "text/plain",
+             "segments.npy": "application/octet-stream"}
+#: folders of per-frame meshes in the template's vertex order
+FRAME_FOLDERS = {"tracked": ("tracked",), "posed": ("rig", "posed")}
 
 
 def _job_dir(jobs_dir: Path, job_id: str) -> Path:
@@ -36,8 +43,65 @@ def listing(jobs_dir: Path, job_id: str) -> dict[str, Any]:
     if "spine.json" in files:
         links["spine.glb"] = f"/jobs/{job_id}/results/spine.glb"
         links["spine_rig.glb"] = f"/jobs/{job_id}/results/spine_rig.glb"
-    return {"files": files, "meshes": meshes, "mesh_url": f"/jobs/{job_id}/results/meshes/frame_{{index:06d}}.ply",
-            "links": links}
+    out = {"files": files, "meshes": meshes, "mesh_url": f"/jobs/{job_id}/results/meshes/frame_{{index:06d}}.ply",
+           "links": links}
+    for key, parts in FRAME_FOLDERS.items():
+        idx = [int(m.group(1)) for p in confined_entries(d.joinpath(*parts), "*.ply", root=d) if (m := _FRAME.match(p.name))]
+        out[key] = idx
+        if idx:
+            out[f"{key}_url"] = f"/jobs/{job_id}/results/{'/'.join(parts)}/{{index:06d}}.ply"
+    rig = [n for n in RIG_FILES if (d / "rig" / n).is_file() and confined(d / "rig" / n, d)]
+    out["files"] = files + [f"rig/{n}" for n in rig]
+    links.update({f"rig/{n}": f"/jobs/{job_id}/results/rig/{n}" for n in rig})
+    if "rig.json" in rig:
+        out["rig"] = rig_summary(d / "rig" / "rig.json")
+    return out
+
+
+def rig_summary(path: Path) -> dict[str, Any] | None:
+    """Segments and joints of a ``rig.json`` (None when it cannot be read): what the job's rig is."""
+    import json
+
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+        joints = [{k: j.get(k) for k in ("name", "parent", "kind", "segments", "rest", "placement")} for j in doc["joints"]]
+        return {
+            "segments": int(doc["segmentation"]["segments"]),
+            "articulations": sum(j["kind"] == "joint" for j in joints),
+            "joints": joints,
+            "mean_vertex_error": doc.get("fit", {}).get("mean_vertex_error"),
+            "units": doc.get("units"),
+        }
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def frame_file(jobs_dir: Path, job_id: str, folder: str, name: str) -> Path:
+    """A per-frame mesh of ``tracked/`` or ``rig/posed/`` (``folder``: ``tracked`` or ``posed``), ``NNNNNN.ply``.
+
+    Raises
+    ------
+    NotFoundError
+        When the frame has no such mesh (yet).
+    """
+    if folder not in FRAME_FOLDERS:
+        raise ValueError(f"folder must be one of {', '.join(FRAME_FOLDERS)}, got {folder!r}")
+    if _FRAME.match(name) is None:
+        raise ValueError(f"mesh name {name!r} must look like 000003.ply")
+    p = inside(_job_dir(jobs_dir, job_id), *FRAME_FOLDERS[folder], name)
+    if not p.is_file():
+        raise NotFoundError(f"no {'/'.join(FRAME_FOLDERS[folder])}/{name} (yet)")
+    return p
+
+
+def rig_file(jobs_dir: Path, job_id: str, name: str) -> tuple[Path, str]:
+    """``rig/<name>`` of a job (``rig.json``, ``rig.glb``, ``rig.bvh``, ``segments.npy``) and its media type."""
+    if name not in RIG_FILES:
+        raise ValueError(f"unknown rig file {name!r} (one of {', '.join(RIG_FILES)})")
+    p = inside(_job_dir(jobs_dir, job_id), "rig", name)
+    if not p.is_file():
+        raise NotFoundError(f"rig/{name} is not available (yet): the job's steps did not include the rig, or it has not run")
+    return p, RIG_FILES[name]
 
 
 def result_file(jobs_dir: Path, job_id: str, name: str) -> Path | None:

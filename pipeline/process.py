@@ -1042,17 +1042,26 @@ register_step("spine", _step_spine, doc="per-frame skeletons and the take's spin
 
 def _step_rig(ctx: RunContext) -> None:
     """Articulated rig from the tracked template (``tracked/``) -> ``rig/``. Without a tracked
-    template it is skipped with a warning inside a full run, an error when asked for alone."""
-    from pipeline.articulated_rig import NoTrackingError, rig_results
+    template the track step runs first (``ProcessParams.track``; a warning in the job report says so)."""
+    from pipeline.articulated_rig import NoTrackingError, rig_results, tracked_meshes
 
     t0 = time.perf_counter()
     try:
+        tracked_meshes(ctx.out)
+    except NoTrackingError:
+        if "track" not in ctx.steps:
+            msg = "rig: the take had no tracked template: the track step ran first (with the job's track parameters)"
+            ctx.warnings.append(msg)
+            log.warning("%s", msg)
+            if not any((ctx.out / "meshes").glob("frame_*.ply")):
+                raise ProcessError("rig: the take has no surfaces to track yet (meshes/frame_NNNNNN.ply): "
+                                   "run the surface step first") from None
+            _step_track(ctx)
+        t0 = time.perf_counter()
+    try:
         rig_results(ctx.out, units=ctx.calibration.units, fps=float(ctx.fps), progress=ctx.progress)
     except NoTrackingError as exc:
-        if "spine" not in ctx.steps:
-            raise ProcessError(str(exc)) from None
-        ctx.warnings.append(f"rig step skipped: {exc}")
-        log.warning("rig step skipped: %s", exc)
+        raise ProcessError(f"rig: {exc}") from None
     ctx.timings["rig"] = time.perf_counter() - t0
 
 

@@ -173,6 +173,35 @@ def get_mesh(_: ReadAccess, job: Job, name: MeshName, settings: SettingsDep) -> 
     return FileResponse(path, media_type=media, filename=path.name)
 
 
+FrameName = Annotated[str, Path(pattern=r"^[0-9]{6}\.ply$", examples=["000003.ply"])]
+RigName = Annotated[str, Path(pattern=r"^(rig\.json|rig\.glb|rig\.bvh|segments\.npy)$")]
+
+
+@router.get("/{job_id}/results/tracked/{name}", response_class=FileResponse,
+            responses={200: {"content": {"application/octet-stream": {}}}})
+def get_tracked(_: ReadAccess, job: Job, name: FrameName, settings: SettingsDep) -> Response:
+    """One frame of the tracked template (the ``track`` step): ``000003.ply``, in the template's vertex order."""
+    path = results.frame_file(settings.jobs_dir, job.id, "tracked", name)
+    return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+
+@router.get("/{job_id}/results/rig/posed/{name}", response_class=FileResponse,
+            responses={200: {"content": {"application/octet-stream": {}}}})
+def get_posed(_: ReadAccess, job: Job, name: FrameName, settings: SettingsDep) -> Response:
+    """One frame of the fitted articulated model (the ``rig`` step): ``000003.ply``."""
+    path = results.frame_file(settings.jobs_dir, job.id, "posed", name)
+    return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+
+@router.get("/{job_id}/results/rig/{name}", response_class=FileResponse,
+            responses={200: {"content": {"application/json": {}, "model/gltf-binary": {}, "text/plain": {},
+                                         "application/octet-stream": {}}}})
+def get_rig_file(_: ReadAccess, job: Job, name: RigName, settings: SettingsDep) -> Response:
+    """The articulated rig of the ``rig`` step: ``rig.json``, ``rig.glb``, ``rig.bvh`` or ``segments.npy``."""
+    path, media = results.rig_file(settings.jobs_dir, job.id, name)
+    return FileResponse(path, media_type=media, filename=name)
+
+
 @router.get("/{job_id}/results/{name}", response_class=FileResponse,
             responses={200: {"content": {"application/json": {}, "model/gltf-binary": {}}}})
 def get_result(_: ReadAccess, job: Job, name: ResultName, settings: SettingsDep) -> Response:

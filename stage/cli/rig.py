@@ -24,10 +24,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "template with bone-heat weights and fit the articulated model to every frame by least squares. "
         "Writes rig.json (capture-stage/rig@1), segments.npy, posed/NNNNNN.ply, rig.glb and rig.bvh "
         "(docs/rig-format.md). The per-frame surfaces of a processed take do not share connectivity: "
-        "rig a results directory after its template has been tracked (tracked/NNNNNN.ply).",
+        "a results directory is rigged from its tracked template (tracked/NNNNNN.ply); when there is none, "
+        "the template is tracked through the take first (`stage track RESULTS_DIR` with its defaults).",
     )
     p.add_argument("results", type=Path, nargs="?", metavar="RESULTS_DIR",
-                   help="results directory of `stage process` with tracked/NNNNNN.ply (writes RESULTS_DIR/rig/)")
+                   help="results directory of `stage process` (writes RESULTS_DIR/rig/; tracks the template first "
+                   "when there is no tracked/NNNNNN.ply)")
     p.add_argument("--meshes", metavar="GLOB", help="mesh sequence with shared connectivity (e.g. 'seq/*.obj')")
     p.add_argument("--out", type=Path, metavar="DIR", help="output directory (default RESULTS_DIR/rig)")
     p.add_argument("--units", help="units of the meshes (default: the spine's, else mm)")
@@ -50,6 +52,18 @@ def _spine_meta(results: Path) -> dict:
         return {"units": d.get("units"), "fps": d.get("fps")}
     except (OSError, ValueError):
         return {}
+
+
+def _track_first(d: Path, *, quiet: bool) -> list:
+    """``stage track d`` with its defaults, for a processed take without a tracked template; its tracked meshes."""
+    from pipeline.articulated_rig import tracked_meshes
+    from stage.cli import build_parser
+
+    print(f"{d} has no tracked template (tracked/NNNNNN.ply): tracking the template through the take first, "
+          f"as `stage track {d}` does with its defaults")
+    targs = build_parser().parse_args((["-q"] if quiet else []) + ["track", str(d)])
+    targs.func(targs)
+    return tracked_meshes(d)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,7 +94,9 @@ def run(args: argparse.Namespace) -> int:
         try:
             paths = tracked_meshes(d)
         except NoTrackingError as exc:
-            raise UserError(str(exc)) from None
+            if not any((d / "meshes").glob("frame_*.ply")):
+                raise UserError(str(exc)) from None
+            paths = _track_first(d, quiet=args.quiet)
         meta = _spine_meta(d)
         out = args.out or d / "rig"
     if len(paths) < 1:

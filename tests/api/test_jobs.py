@@ -223,3 +223,37 @@ def test_a_job_on_results_of_other_parameters_starts_over_without_their_tracking
     d = data / "jobs" / other
     assert not (d / "tracked").exists() and not (d / "rig").exists() and not (d / "spine_rig.glb").exists()
     assert c.get(f"/jobs/{other}/results/spine_rig.glb", headers=AUTH).status_code == 200  # made again, from the new spine
+
+
+def test_tracked_and_rig_files_are_listed_and_served(client, data_root):
+    """What the track and rig steps write (tracked/, rig/rig.json, rig.glb, rig.bvh, rig/posed/): listed
+    under /results/ with the rig's segments and joints, and downloadable; absent files are 404."""
+    from pipeline.results import ply_bytes
+    from stage.cli import main
+    from tests.pipeline.test_motion_segmentation import _two_bars
+
+    add_take(data_root, "take1", frames=3)
+    jid = client.post("/jobs", json={"take": "take1", "steps": ["key", "surface", "spine"]}, headers=AUTH).json()["id"]
+    assert wait_job(client, jid)["state"] == "done"
+    job_dir = data_root / "jobs" / jid
+    assert client.get(f"/jobs/{jid}/results/rig/rig.json").status_code == 404
+    assert client.get(f"/jobs/{jid}/results/tracked/000000.ply").status_code == 404
+    V, F, _ = _two_bars(8)
+    (job_dir / "tracked").mkdir()
+    for i, v in enumerate(V):
+        (job_dir / "tracked" / f"{i:06d}.ply").write_bytes(ply_bytes(v, F))
+    assert main(["-q", "rig", str(job_dir), "--samples", "300"]) == 0
+    listing = client.get(f"/jobs/{jid}/results/").json()
+    assert listing["tracked"] == list(range(8)) and listing["posed"] == list(range(8))
+    assert {"rig/rig.json", "rig/rig.glb", "rig/rig.bvh", "rig/segments.npy"} <= set(listing["files"])
+    assert listing["rig"]["segments"] == 2 and listing["rig"]["articulations"] == 1
+    assert [j["kind"] for j in listing["rig"]["joints"]].count("joint") == 1
+    for url in (listing["links"]["rig/rig.json"], listing["links"]["rig/rig.bvh"], listing["links"]["rig/rig.glb"],
+                listing["tracked_url"].format(index=3), listing["posed_url"].format(index=7)):
+        assert client.get(url).status_code == 200, url
+    assert client.get(listing["links"]["rig/rig.json"]).json()["format"] == "capture-stage/rig@1"
+    assert client.get(listing["links"]["rig/rig.bvh"]).text.startswith("HIERARCHY")
+    assert client.get(listing["links"]["rig/rig.glb"]).content[:4] == b"glTF"
+    assert client.get(listing["tracked_url"].format(index=3)).content[:3] == b"ply"
+    for bad in ("tracked/000099.ply", "rig/posed/000099.ply", "tracked/3.ply", "rig/other.json", "rig/posed/rig.json"):
+        assert client.get(f"/jobs/{jid}/results/{bad}").status_code in (400, 404, 422), bad

@@ -55,6 +55,20 @@ def test_rig_results_dir_needs_tracking(tmp_path, capsys):
     assert "tracked" in err and "stage track" in err
 
 
+def test_rig_results_dir_tracks_first(tmp_path, capsys):
+    """A processed take without a tracked template: ``stage rig`` tracks it first (and says so), then rigs it."""
+    V, F, _ = _two_bars(12)
+    (tmp_path / "meshes").mkdir()
+    for i, v in enumerate(V):
+        (tmp_path / "meshes" / f"frame_{i:06d}.ply").write_bytes(ply_bytes(v, F))
+    assert main(["-q", "rig", str(tmp_path), "--samples", "300"]) == 0
+    out = capsys.readouterr().out
+    assert "tracking the template through the take first" in out and f"stage track {tmp_path}" in out
+    assert len(list((tmp_path / "tracked").glob("0*.ply"))) == 12
+    doc = json.loads((tmp_path / "rig" / "rig.json").read_text())
+    assert sum(j["kind"] == "joint" for j in doc["joints"]) == 1 and "1 articulation" in out
+
+
 def test_rig_meshes_without_shared_connectivity(tmp_path, capsys):
     V, F, _ = _two_bars(3)
     _write_seq(tmp_path / "seq", V, F)
@@ -76,12 +90,10 @@ def test_rig_step(tmp_path, caplog):
     assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")
     ctx = SimpleNamespace(out=tmp_path, calibration=SimpleNamespace(units="mm"), fps=25.0, progress=None,
                           steps=("rig",), warnings=[], timings={})
-    with pytest.raises(ProcessError, match="stage track"):
+    # no tracked template and nothing to track: one line in the words of the job's steps, no CLI command
+    with caplog.at_level(logging.WARNING), pytest.raises(ProcessError, match="run the surface step first") as exc:
         _step_rig(ctx)
-    ctx.steps = ("key", "surface", "spine", "rig")
-    with caplog.at_level(logging.WARNING):
-        _step_rig(ctx)
-    assert ctx.warnings and "rig step skipped" in ctx.warnings[0]
+    assert "stage " not in str(exc.value) and "track step ran first" in ctx.warnings[0]
     V, F, _ = _two_bars(8)
     _write_seq(tmp_path / "tracked", V, F)
     _step_rig(ctx)
