@@ -26,9 +26,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", default="60,500", help="sequence lengths to segment (default 60,500)")
     p.add_argument("--fit-frames", type=int, default=20, help="frames timed for the fit (default 20)")
     p.add_argument("--samples", type=int, default=1000, help="sampled vertices (default 1000)")
+    p.add_argument("--accuracy", action="store_true",
+                   help="instead of the timings: where the rig goes wrong, stage by stage, on the cow, the pipe and "
+                   "the simulated creatures (segments against the true rigid parts, joints on the true segments, "
+                   "the rig against the true articulations; a few minutes)")
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "accuracy", False):
+        accuracy()
+        return 0
     from fake_cameras.mesh_motion import mesh_sequence
     from pipeline.articulated_fit import articulated_model, fit_sequence
     from pipeline.articulated_skeleton import articulated_skeleton
@@ -60,3 +67,140 @@ def run(args: argparse.Namespace) -> int:
                   f"{t_fit:>13.1f}")
             del ms, V
     return 0
+
+
+# --------------------------------------------------------------------------- where it goes wrong, stage by stage
+
+
+def _truth_cow(root):
+    """The cow's 7 poses, its rigging skeleton and the true part of every vertex (the bone whose rigid
+    motion, estimated from the vertices nearest to it, best predicts the vertex over the poses)."""
+    from pipeline.articulated_rig import load_sequence
+    from pipeline.motion_segmentation import rigid_motions
+    from pipeline.rig_score import articulation_bends
+
+    d = root / "cow_poses"
+    V, F, _ = load_sequence(sorted(d.glob("cow-*.obj")))
+    sk = np.load(d / "skeleton.npz")
+    J, par = np.asarray(sk["joints"], dtype=np.float64), np.asarray(sk["parents"], dtype=np.int64)
+    bones = [(int(par[c]), c) for c in range(len(par)) if par[c] >= 0]
+    # start: the nearest bone (median over the poses of the distance to the bone's segment)
+    dist = []
+    for p, c in bones:
+        a, b = J[:, p][:, None], J[:, c][:, None]
+        ab = b - a
+        u = np.clip(((V - a) * ab).sum(2) / np.maximum((ab * ab).sum(2), 1e-12), 0.0, 1.0)
+        dist.append(np.median(np.linalg.norm(V - (a + u[..., None] * ab), axis=2), axis=0))
+    lab = np.argmin(np.stack(dist, 1), 1)
+    for _ in range(3):
+        err = []
+        for k in range(len(bones)):
+            ids = np.flatnonzero(lab == k)
+            R, t = rigid_motions(V[:, ids]) if len(ids) >= 3 else (np.tile(np.eye(3), (len(V), 1, 1)), np.zeros((len(V), 3)))
+            err.append(np.linalg.norm(np.einsum("tij,vj->tvi", R, V[0]) + t[:, None] - V, axis=2).mean(0))
+        lab = np.argmin(np.stack(err, 1), 1)
+    art = np.array([par[j] >= 0 and (par == j).any() for j in range(len(par))])
+    bend = articulation_bends(J, par)
+    # a bone's part joins its parent bone's across a joint that does not bend (for this child bone)
+    child_of = {c: i for i, (_, c) in enumerate(bones)}
+    part_parent = np.array([child_of.get(p, -1) for p, _ in bones])
+    part_bends = np.zeros(len(bones), bool)
+    for i, (p, c) in enumerate(bones):
+        q = par[p]
+        if q >= 0:
+            a, b = J[:, p] - J[:, q], J[:, c] - J[:, p]
+            ang = np.degrees(np.arccos(np.clip((a * b).sum(1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1), -1, 1)))
+            part_bends[i] = ang.max() - ang.min() >= 10.0
+    # true articulations where the rig's bones meet: the nine with a parent and a child; the root joins four
+    # bones and is where the front legs turn, so a found joint there is not wrong
+    hub = art | (np.bincount(par[par >= 0], minlength=len(par)) >= 2)
+    return dict(V=V, F=F, joints=J, articulates=hub, bending=art & (bend >= 10.0), part=lab,
+                part_parent=part_parent, part_bends=part_bends, units="mm", fps=30.0, lambda_thr=0.7)
+
+
+def _truth_pipe(root):
+    d = np.load(root / "tzionas_pipe" / "pipe.npz")
+    V = np.asarray(d["vertices"], dtype=np.float64)
+    J = np.asarray(d["joints"], dtype=np.float64)
+    art = np.array([False, True, False])
+    return dict(V=V, F=d["faces"], joints=J, articulates=art, bending=art, part=np.asarray(d["bone_of_vertex"]),
+                part_parent=np.array([-1, 0]), part_bends=np.array([False, True]), units="mm", fps=30.0, lambda_thr=0.7)
+
+
+def _truth_creature(name, frames=40):
+    from fake_cameras.creatures import make_creature
+    from fake_cameras.mesh_motion import mesh_sequence
+
+    ms = mesh_sequence(name, frames=frames)
+    cr = make_creature(name)
+    names = list(ms.joint_names)
+    ids = sorted({int(p) for p in np.unique(ms.part)})  # -1 body, limb * 16 + segment
+    index = {p: i for i, p in enumerate(ids)}
+    part = np.array([index[int(p)] for p in ms.part])
+    parent, bends = np.full(len(ids), -1), np.zeros(len(ids), bool)
+    for p in ids:
+        if p < 0:
+            continue
+        li, i = divmod(p, 16)
+        up = next((q for q in range(p - 1, li * 16 - 1, -1) if q in index), -1)  # the nearest part above with vertices
+        parent[index[p]] = index.get(up, -1)
+        bends[index[p]] = bool(ms.articulates[names.index(f"{cr.limbs[li].name}.{i}")])
+    return dict(V=ms.vertices, F=ms.faces, joints=ms.joints, articulates=np.ones(len(names), bool),
+                bending=np.asarray(ms.articulates, bool), part=part, part_parent=parent, part_bends=bends,
+                units="mm", fps=30.0, lambda_thr=0.98)
+
+
+def _placements(tr, labels, ref):
+    """Joints on the true segments: the paper's (boundary centroid on the curve skeleton) and ours
+    (the centre of rotation where it is determined), each fitted and scored."""
+    from pipeline.articulated_fit import articulated_model, fit_sequence
+    from pipeline.articulated_skeleton import articulated_skeleton, curve_skeleton
+    from pipeline.rig_score import articulation_scores
+
+    V, F = tr["V"], tr["F"]
+    rest = np.asarray(V[ref], dtype=np.float64)
+    cs = curve_skeleton(rest, F)
+    size = float(np.linalg.norm(np.ptp(rest, axis=0)))
+    out = {}
+    for key, refine in (("paper", False), ("pivot", True)):
+        sk = articulated_skeleton(rest, F, labels, cs, motion=V, reference=ref, refine_joints=refine)
+        fit = fit_sequence(articulated_model(rest, F, sk), np.asarray(V, dtype=np.float64))
+        out[key] = articulation_scores(fit.joints[:, sk.articulation], tr["joints"], size=size,
+                                       articulates=tr["articulates"], bending=tr["bending"])
+    return out
+
+
+def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped")) -> None:
+    """Per stage: the segmentation against the true rigid parts, the joints placed on the true segments
+    (the paper's placement and the centre of rotation), and the whole rig against the true articulations."""
+    from pipeline.articulated_rig import build_articulated_rig
+    from pipeline.rig_score import articulation_scores, bending_parts, segment_agreement
+    from stage.benchmarks._data import SHARED_DATA
+
+    print(f"{'subject':10} {'V':>6} {'T':>4} {'bend':>4} | {'segs':>4} {'true':>4} {'purity':>6} {'compl':>6} | "
+          f"{'true segs: paper R/P/err%':>26} {'pivot R/P/err%':>18} | {'rig: R':>6} {'P':>5} {'err%':>5} {'vert%':>5} "
+          f"{'s':>5}")
+    for name in names:
+        if name in ("cow", "pipe"):
+            if not (SHARED_DATA / ("cow_poses" if name == "cow" else "tzionas_pipe")).is_dir():
+                print(f"{name:10} skipped: {SHARED_DATA} is absent")
+                continue
+            tr = (_truth_cow if name == "cow" else _truth_pipe)(SHARED_DATA)
+        else:
+            tr = _truth_creature(name)
+        t0 = time.perf_counter()
+        rig = build_articulated_rig(tr["V"], tr["F"], units=tr["units"], fps=tr["fps"], lambda_thr=tr["lambda_thr"])
+        secs = time.perf_counter() - t0
+        truth = bending_parts(tr["part"], tr["part_parent"], tr["part_bends"])
+        pur, comp = segment_agreement(rig.segmentation.labels, truth)
+        pl = _placements(tr, truth, rig.reference)
+        sc = articulation_scores(rig.fit.joints[:, rig.skeleton.articulation], tr["joints"], size=rig.size,
+                                 articulates=tr["articulates"], bending=tr["bending"])
+
+        def rpe(s):
+            return f"{s['recall']:.2f}/{s['precision']:.2f}/{100 * s['error']:.1f}"
+
+        print(f"{name:10} {tr['V'].shape[1]:>6} {len(tr['V']):>4} {sc['bending']:>4} | {rig.segmentation.n_segments:>4} "
+              f"{int(truth.max()) + 1:>4} {pur:>6.2f} {comp:>6.2f} | {rpe(pl['paper']):>26} {rpe(pl['pivot']):>18} | "
+              f"{sc['recall']:>6.2f} {sc['precision']:>5.2f} {100 * sc['error']:>5.1f} "
+              f"{100 * rig.fit.errors.mean() / rig.size:>5.2f} {secs:>5.1f}", flush=True)
