@@ -21,6 +21,7 @@ from api.jobs.store import JobStore
 from api.library import TakeLibrary
 from api.rigctl import CaptureManager
 from api.routers import calibrations, jobs, pages, rig, takes
+from api.routers import control as control_routes
 from api.settings import Settings
 
 __all__ = ["create_app"]
@@ -101,7 +102,8 @@ class BodySizeLimit:
 
 
 def create_app(settings: Settings | None = None, *, work: str | Callable[..., Any] | None = None,
-               executor: Any = None, start_runner: bool = True, driver_factory: Any = None) -> FastAPI:
+               executor: Any = None, start_runner: bool = True, driver_factory: Any = None,
+               control: Any = None) -> FastAPI:
     """Build the API application.
 
     Parameters
@@ -116,6 +118,9 @@ def create_app(settings: Settings | None = None, *, work: str | Callable[..., An
         Run jobs in this process (default). ``False`` only queues them.
     driver_factory : callable, optional
         ``(camera_config, rig) -> CameraDriver`` instead of :func:`stage.drivers.open_driver` (test hook).
+    control : api.control.ControlRoom, optional
+        The running stage session's control room (``/stage``, ``/ui/stage``); the app closes it
+        and its session at shutdown. Captures of ``/rig/capture`` then record from the session.
     """
     settings = settings if settings is not None else Settings()
     settings.ensure_dirs()
@@ -147,6 +152,9 @@ def create_app(settings: Settings | None = None, *, work: str | Callable[..., An
             if capture.busy:  # close the take cleanly
                 capture.stop()
                 capture.wait(30)
+            if control is not None:  # a take being recorded is closed cleanly, then the cameras
+                control.close()
+                control.session.close()
             runner.stop()
             store.close()
 
@@ -164,10 +172,12 @@ def create_app(settings: Settings | None = None, *, work: str | Callable[..., An
     app.state.runner = runner
     app.state.library = TakeLibrary(settings.takes_dir, max_upload_bytes=settings.max_upload_bytes, data_root=settings.data)
     app.state.calibrations = CalibrationLibrary(settings.calibrations_dir)
-    app.state.capture = CaptureManager(settings.rig_path, settings.takes_dir, driver_factory=driver_factory)
+    app.state.capture = CaptureManager(settings.rig_path, settings.takes_dir, driver_factory=driver_factory,
+                                       session=None if control is None else control.session)
+    app.state.control = control
     install_handlers(app)
     app.add_middleware(BodySizeLimit, max_upload_bytes=settings.max_upload_bytes)
-    for r in (rig.router, takes.router, calibrations.router, jobs.router, pages.router):
+    for r in (rig.router, takes.router, calibrations.router, jobs.router, pages.router, control_routes.router):
         app.include_router(r)
 
     @app.get("/health", tags=["meta"])

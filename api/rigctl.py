@@ -2,7 +2,9 @@
 
 Captures go through :mod:`stage.capture` and write a take into
 ``DATA/takes/<take>.h5``; previews open one camera through
-:func:`stage.drivers.open_driver`, grab a frame and close it.
+:func:`stage.drivers.open_driver`, grab a frame and close it. With a running stage
+session (``stage serve --rig``) the cameras are the session's: captures record from
+it and previews are its latest frames (nothing opens a camera a second time).
 """
 
 from __future__ import annotations
@@ -51,7 +53,8 @@ class CaptureManager:
         Where takes are written.
     """
 
-    def __init__(self, rig_path: Path, takes_dir: Path, *, driver_factory: Any = None) -> None:
+    def __init__(self, rig_path: Path, takes_dir: Path, *, driver_factory: Any = None, session: Any = None) -> None:
+        self.session = session  # a running stage.session.StageSession, or None
         self.driver_factory = driver_factory  # (config, rig) -> CameraDriver; default stage.drivers.open_driver
         self.rig_path = Path(rig_path)
         self.takes_dir = Path(takes_dir)
@@ -71,6 +74,8 @@ class CaptureManager:
 
     @property
     def busy(self) -> bool:
+        if self.session is not None:
+            return self.session.recording_active
         return self._thread is not None and self._thread.is_alive()
 
     def describe(self) -> dict[str, Any]:
@@ -92,18 +97,33 @@ class CaptureManager:
         }
 
     def status(self) -> dict[str, Any]:
+        if self.session is not None:
+            return self._session_status()
         with self._lock:
             return self._state.to_dict()
 
+    def _session_status(self) -> dict[str, Any]:
+        rec = self.session.recording()
+        st = {"idle": "idle", "recording": "capturing"}.get(rec.get("state"), rec.get("state"))
+        res = rec.get("result") or {}
+        if st == "done" and res.get("stopped") == "stopped":
+            st = "stopped"
+        return CaptureState(state=st, take=rec.get("take"), started=rec.get("started"), finished=rec.get("finished"),
+                            frames_written=int(rec.get("frames_written") or 0), error=rec.get("error"),
+                            result={k: v for k, v in res.items() if k != "sync"}).to_dict()
+
     # -- preview -----------------------------------------------------------------------------
     def preview(self, camera_id: str, *, quality: int = 80) -> bytes:
-        """A JPEG from one camera, grabbed now (refused while a capture runs)."""
-        import cv2
-
+        """A JPEG from one camera, grabbed now (refused while a capture runs), or the session's latest frame."""
         rig = self.rig()
         conf = next((c for c in rig.cameras if c.id == camera_id), None)
         if conf is None:
             raise NotFoundError(f"no camera {camera_id!r} in the rig (cameras: {', '.join(c.id for c in rig.cameras)})")
+        if self.session is not None:
+            _, frame = self.session.latest(camera_id)
+            if frame is None:
+                raise UnavailableError(f"camera {camera_id!r} has delivered no frame ({self.session.cameras[camera_id].state})")
+            return _jpeg(frame.image, quality)
         if self.busy:
             raise ConflictError("a capture is running; previews are off until it ends")
         drv = self._factory()(conf, rig)
@@ -113,10 +133,7 @@ class CaptureManager:
             frame = drv.grab()
         finally:
             drv.close()
-        ok, buf = cv2.imencode(".jpg", frame.image, [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)])
-        if not ok:
-            raise ValueError("could not encode the preview")
-        return buf.tobytes()
+        return _jpeg(frame.image, quality)
 
     def _factory(self) -> Any:
         if self.driver_factory is not None:
@@ -141,6 +158,8 @@ class CaptureManager:
         out = inside(self.takes_dir, f"{take}.h5")
         if out.exists():
             raise ConflictError(f"take {take!r} already exists")
+        if self.session is not None:
+            return self._session_start(out, take, frames, duration_s)
         try:
             from stage.capture import capture_take
         except ImportError as exc:
@@ -159,14 +178,29 @@ class CaptureManager:
             self._thread.start()
             return self._state.to_dict()
 
+    def _session_start(self, out: Path, take: str, frames: int | None, duration_s: float | None) -> dict[str, Any]:
+        from stage.session import RecordingBusyError
+
+        try:
+            self.session.start_recording(out, take=take, frames=frames, duration_s=duration_s)
+        except (RecordingBusyError, FileExistsError) as exc:
+            raise ConflictError(str(exc)) from None
+        return self.status()
+
     def stop(self) -> dict[str, Any]:
         """Ask the running capture to stop (the take keeps what was written)."""
         if not self.busy:
             raise ConflictError("no capture is running")
+        if self.session is not None:
+            self.session.stop_recording(wait=None)
+            return self.status()
         self._stop.set()
         return self.status()
 
     def wait(self, timeout: float | None = None) -> None:
+        if self.session is not None:
+            self.session.wait_recording(timeout)
+            return
         th = self._thread
         if th is not None:
             th.join(timeout)
@@ -194,3 +228,12 @@ class CaptureManager:
                                       "duration_s": float(result.duration_s), "fps": float(result.fps),
                                       "stopped": str(result.stopped), "disconnected": dict(result.disconnected),
                                       "drops": {k: int(v) for k, v in result.drops.items()}}
+
+
+def _jpeg(image: Any, quality: int) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", image, [int(cv2.IMWRITE_JPEG_QUALITY), int(quality)])
+    if not ok:
+        raise ValueError("could not encode the preview")
+    return buf.tobytes()

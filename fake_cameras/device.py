@@ -22,8 +22,8 @@ Like a real device each camera
 * delivers its images flipped left-right when its ``mirror_mode`` is on (a
   webcam's mirror mode); ``mirror = true`` on the camera flips them back at
   capture, as the other drivers do (:func:`~stage.drivers.base.unmirror`);
-* disconnects after ``disconnect_after`` delivered frames
-  (:class:`~stage.drivers.base.CameraDisconnectedError`);
+* disconnects after ``disconnect_after`` delivered frames, or at the next grab after
+  :meth:`FakeCamera.unplug` (:class:`~stage.drivers.base.CameraDisconnectedError`);
 * refuses to open a simulated index the rig does not have
   (:class:`~stage.drivers.base.CameraNotFoundError`).
 """
@@ -185,6 +185,7 @@ class FakeCamera:
         self._k0 = 0
         self.delivered = 0
         self.dropped = 0
+        self._unplugged = threading.Event()
 
     # -- driver protocol ---------------------------------------------------------
     def open(self) -> None:
@@ -258,6 +259,9 @@ class FakeCamera:
         """Block until the next frame is delivered and return it."""
         if not self._opened:
             raise CameraError(f"camera {self.camera_id!r}: grab() on a closed camera")
+        if self._unplugged.is_set():
+            self._opened = False
+            raise CameraDisconnectedError(f"camera {self.camera_id!r}: simulated USB unplug")
         lim = self.config.disconnect_after
         if lim is not None and self.delivered >= lim:
             self._opened = False
@@ -317,6 +321,10 @@ class FakeCamera:
         self._leave_session()
 
     # -- extras -------------------------------------------------------------------
+    def unplug(self) -> None:
+        """Pull the simulated cable: the next (or the waiting) grab raises CameraDisconnectedError."""
+        self._unplugged.set()
+
     @property
     def calibration(self):
         """The true calibration of the simulated rig (after :meth:`open`)."""

@@ -28,9 +28,12 @@ from stage.rig import Rig
 from stage.store import CameraSpec, TakeWriter
 from stage.sync import SetStatsAccumulator, StreamGrouper, SyncStats
 
-__all__ = ["CaptureProgress", "CaptureResult", "capture_take"]
+__all__ = ["CaptureProgress", "CaptureResult", "TakeRecorder", "capture_take"]
 
 log = logging.getLogger(__name__)
+
+#: frame sets whose sync spread the live figures keep
+SPREAD_WINDOW = 30
 
 
 @dataclass(frozen=True)
@@ -221,6 +224,7 @@ class _Capture:
         self.threads: list[_Grabber] = []
         self.writer: TakeWriter | None = None
         self.n_sets = 0
+        self.spreads: list[int] = []  # sync spread (ns) of the last stored sets
         self.recent: list[float] = []  # times of the sets stored in the last second
         self.t0 = self.last_stats = time.monotonic()
         self.state = "new"
@@ -275,13 +279,21 @@ class _Capture:
             fps=self.rig.fps,
             overwrite=overwrite,
             attrs={"granted": {c: vars(v) for c, v in g.items()}},
-            expected_sets=self.frames if self.frames is not None else int(self.duration_s * self.rig.fps),
+            expected_sets=self._expected_sets(),
         )
-        self.threads = [_Grabber(c, self.drivers[c], self.queue, self.stop, self.queue_drops) for c in self.ids]
         self.t0 = self.last_stats = time.monotonic()
+        self._start_grabbers()
+        self.state = "recording"
+
+    def _expected_sets(self) -> int | None:
+        if self.frames is not None:
+            return self.frames
+        return int(self.duration_s * self.rig.fps) if self.duration_s is not None else None
+
+    def _start_grabbers(self) -> None:
+        self.threads = [_Grabber(c, self.drivers[c], self.queue, self.stop, self.queue_drops) for c in self.ids]
         for th in self.threads:
             th.start()
-        self.state = "recording"
 
     def record(self) -> bool:
         """Group and store frame sets until a stop condition; True when the frame count is reached."""
@@ -387,6 +399,8 @@ class _Capture:
             self.writer.write_set(dict(fs.frames.items()), time_ns=fs.time_ns)
             self.stored.add(fs)
             self.n_sets += 1
+            self.spreads.append(fs.spread_ns)
+            del self.spreads[:-SPREAD_WINDOW]
             self._report(time.monotonic())
         return self._enough()
 
@@ -422,3 +436,96 @@ def _close_quietly(cid: str, driver: CameraDriver) -> None:
         driver.close()
     except Exception as exc:  # closing must never hide the real outcome
         log.warning("camera %s: error while closing: %s", cid, exc)
+
+
+class TakeRecorder(_Capture):
+    """A take recorded from cameras that are already running (a stage session's).
+
+    The cameras stay open and their grabbers belong to the caller, which puts
+    ``("frame", camera_id, Frame)`` and ``("gone", camera_id, why)`` events on
+    :attr:`queue` (``put_nowait``; a full queue is the caller's drop to count with
+    :meth:`count_drop`). Grouping, storing, stall detection, sync statistics and the
+    take's closing are :func:`capture_take`'s: the same take, the same figures.
+
+    Parameters
+    ----------
+    rig : Rig
+    out : path
+        The take file to create (refused when it exists).
+    granted : mapping of camera id -> Granted
+        What each running camera was granted (every rig camera).
+    frames, duration_s : optional
+        Stop conditions (at least one, or set :attr:`stop`).
+    compression, calibration, stall_timeout_s, queue_seconds, on_set :
+        As in :func:`capture_take`.
+    disconnected : mapping of camera id -> str, optional
+        Cameras already gone when recording starts: missing from the first set on.
+    """
+
+    def __init__(self, rig: Rig, out: str | os.PathLike, *, granted: Mapping[str, Granted],
+                 frames: int | None = None, duration_s: float | None = None, compression: str = "none",
+                 calibration: Any = None, stall_timeout_s: float = 5.0, queue_seconds: float = 2.0,
+                 on_set: Callable[[int], None] | None = None, disconnected: Mapping[str, str] | None = None) -> None:
+        if not isinstance(rig, Rig):
+            raise ValueError(f"rig must be a Rig, got {type(rig).__name__}")
+        missing = [c.id for c in rig.cameras if c.id not in granted]
+        if missing:
+            raise ValueError(f"granted: no granted settings for cameras {missing}")
+        if frames is not None and (not isinstance(frames, int) or frames < 1):
+            raise ValueError(f"frames must be a positive integer, got {frames!r}")
+        if duration_s is not None and not duration_s > 0:
+            raise ValueError(f"duration_s must be positive, got {duration_s!r}")
+        if stall_timeout_s <= 0 or queue_seconds <= 0:
+            raise ValueError("stall_timeout_s and queue_seconds must be positive")
+        out = Path(out)
+        if out.exists():
+            raise FileExistsError(f"{out}: take already exists")
+        super().__init__(rig, out, {c.id: None for c in rig.cameras}, frames=frames, duration_s=duration_s,  # type: ignore[misc]
+                         stop=threading.Event(), stall_timeout_s=stall_timeout_s, queue_seconds=queue_seconds,
+                         progress=None, on_set=on_set)
+        self.granted = dict(granted)
+        self._compression, self._calibration = compression, calibration
+        self._gone_at_start = dict(disconnected or {})
+        self.state = "opened"
+
+    def open_cameras(self) -> None:  # the session opened them
+        self.state = "opened"
+
+    def _start_grabbers(self) -> None:  # the session's grabbers feed self.queue
+        self.threads = []
+
+    def start_recording(self, *, compression: str, calibration: Any, overwrite: bool) -> None:
+        super().start_recording(compression=compression, calibration=calibration, overwrite=overwrite)
+        for cid, why in self._gone_at_start.items():
+            self._store(self._camera_gone(cid, why))
+
+    def close(self) -> SyncStats:
+        """Close the take (never the cameras: they keep running for the session)."""
+        self.stop.set()
+        stats = self.stored.stats(self.grouper.stats())
+        if self.writer is not None:
+            self.writer.close(sync_stats=stats)
+        self.state = "closed"
+        return stats
+
+    def record_take(self) -> CaptureResult:
+        """Record until a stop condition (or :attr:`stop` is set); the take is closed in every case."""
+        return self.run(compression=self._compression, calibration=self._calibration, overwrite=False)
+
+    def count_drop(self, camera_id: str) -> None:
+        """A frame the caller could not queue (the writer fell behind)."""
+        self.queue_drops[camera_id] = self.queue_drops.get(camera_id, 0) + 1
+
+    def snapshot(self) -> dict[str, Any]:
+        """Live figures: sets stored, elapsed seconds, per camera sets missing and queue drops,
+        disconnected cameras and the sync spread (ns) of the last stored sets."""
+        missing = self.stored.missing()
+        return {
+            "sets": self.n_sets,
+            "elapsed_s": time.monotonic() - self.t0 if self.state in ("recording", "draining") else None,
+            "missing": missing,
+            "queue_drops": dict(self.queue_drops),
+            "disconnected": dict(self.disconnected),
+            "spreads_ns": list(self.spreads),
+            "state": self.state,
+        }

@@ -213,6 +213,10 @@ class SetStatsAccumulator:
         """Camera slots missing in the added sets."""
         return sum(s.missing for s in self._acc.cams.values())
 
+    def missing(self) -> dict[str, int]:
+        """Per camera: sets it is missing from (of the added sets)."""
+        return {c: int(s.missing) for c, s in self._acc.cams.items()}
+
     def stats(self, stream: SyncStats | None = None) -> SyncStats:
         """Statistics of the added sets; per-camera frames, sequence gaps, unused
         frames and offsets are taken from ``stream`` (the grouper's) when given."""

@@ -31,7 +31,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "stage", "stage.frame", "stage.rig",
     )),
     1: ("ground", (
-        "stage.drivers.*", "stage.sync", "stage.store.*", "stage.keying.*", "stage.discovery", "stage.capture",
+        "stage.drivers.*", "stage.sync", "stage.store.*", "stage.keying.*", "stage.discovery", "stage.capture", "stage.session",
         "stage.importer",
         "pipeline", "pipeline.volume", "pipeline.geodesic", "pipeline.meshio",
     )),

@@ -1,0 +1,319 @@
+{#- the control room's script (stage.html sets CAMERAS and HAS_BOARD); everything it fetches is on this server -#}
+(function(){
+  const $ = (id) => document.getElementById(id);
+  const tiles = {};
+  for (const t of document.querySelectorAll('.tile')) tiles[t.dataset.cam] = t;
+  const role = (cid, r) => tiles[cid].querySelector('[data-role="' + r + '"]');
+  const tokenBox = $('token');
+  tokenBox.value = sessionStorage.getItem('stage-token') || '';
+  tokenBox.addEventListener('change', () => sessionStorage.setItem('stage-token', tokenBox.value.trim()));
+  window.__stage = {parts: {}, live3dDraws: 0, lastLive3d: null};
+
+  async function api(method, url, body){
+    const h = {'Accept': 'application/json'};
+    const tok = tokenBox.value.trim();
+    if (tok) h['Authorization'] = 'Bearer ' + tok;
+    if (body !== undefined) h['Content-Type'] = 'application/json';
+    const r = await fetch(url, {method, headers: h, body: body === undefined ? undefined : JSON.stringify(body)});
+    let data = null;
+    try { data = await r.json(); } catch (e) {}
+    return {ok: r.ok, status: r.status, data};
+  }
+  function say(el, text, kind){ el.textContent = text; el.className = 'msg' + (kind ? ' ' + kind : ''); }
+  function detail(res){
+    const d = res.data && res.data.detail;
+    const text = typeof d === 'string' ? d : JSON.stringify(d);
+    if (res.status === 401) return 'refused (401): enter the API token above. ' + text;
+    return '(' + res.status + ') ' + text;
+  }
+  const fmt = (v, n) => (v === null || v === undefined) ? '–' : Number(v).toFixed(n === undefined ? 1 : n);
+
+  // ---- previews: one multipart stream for every camera, parsed here (X-Camera names each part)
+  const enc = new TextEncoder();
+  const HEAD_END = enc.encode('\r\n\r\n');
+  function find(buf, seq, from){
+    outer: for (let i = from; i <= buf.length - seq.length; i++){
+      for (let j = 0; j < seq.length; j++) if (buf[i + j] !== seq[j]) continue outer;
+      return i;
+    }
+    return -1;
+  }
+  let streamAbort = null;
+  async function previews(){
+    if (streamAbort) streamAbort.abort();
+    const ctl = new AbortController(); streamAbort = ctl;
+    const h = {}; const tok = tokenBox.value.trim(); if (tok) h['Authorization'] = 'Bearer ' + tok;
+    try {
+      const r = await fetch('/stage/previews.mjpg?mask=' + ($('mask').checked ? 'true' : 'false'), {headers: h, signal: ctl.signal});
+      if (!r.ok) throw new Error('previews: ' + r.status);
+      const reader = r.body.getReader();
+      let buf = new Uint8Array(0);
+      for (;;){
+        const {value, done} = await reader.read();
+        if (done) break;
+        const nb = new Uint8Array(buf.length + value.length); nb.set(buf); nb.set(value, buf.length); buf = nb;
+        for (;;){
+          const he = find(buf, HEAD_END, 0);
+          if (he < 0) break;
+          const head = new TextDecoder().decode(buf.subarray(0, he));
+          const len = parseInt((/Content-Length:\s*(\d+)/i.exec(head) || [])[1], 10);
+          const cam = ((/X-Camera:\s*(\S+)/i.exec(head) || [])[1]);
+          if (!(len >= 0) || buf.length < he + 4 + len + 2) break;
+          const jpg = buf.slice(he + 4, he + 4 + len);
+          buf = buf.slice(he + 4 + len + 2);
+          const img = tiles[cam] && tiles[cam].querySelector('img');
+          if (!img) continue;
+          const old = img.src;
+          img.src = URL.createObjectURL(new Blob([jpg], {type: 'image/jpeg'}));
+          if (old.startsWith('blob:')) setTimeout(() => URL.revokeObjectURL(old), 1000);
+          window.__stage.parts[cam] = (window.__stage.parts[cam] || 0) + 1;
+        }
+      }
+    } catch (e) { if (ctl.signal.aborted) return; }
+    if (!ctl.signal.aborted) setTimeout(previews, 1000);  // the server went away: try again
+  }
+  $('mask').addEventListener('change', previews);
+
+  // ---- figures
+  let recState = 'idle';
+  function showCamera(c, board){
+    const t = tiles[c.id]; if (!t) return;
+    const gone = c.state === 'disconnected' || c.state === 'failed';
+    t.classList.toggle('gone', gone);
+    t.classList.toggle('recording', recState === 'recording' && !gone);
+    role(c.id, 'state').textContent = gone ? (c.state === 'failed' ? 'failed to open' : 'DISCONNECTED') : c.state;
+    role(c.id, 'error').textContent = c.error ? ' ' + c.error : '';
+    role(c.id, 'fps').textContent = fmt(c.fps);
+    role(c.id, 'dropped').textContent = c.dropped;
+    role(c.id, 'take').textContent = (c.take_missing !== undefined) ?
+      '· take: missing ' + c.take_missing + (c.take_queue_drops ? ' + ' + c.take_queue_drops + ' queue' : '') : '';
+    const ex = [];
+    if (c.exposure_ms !== null) ex.push('exposure ' + fmt(c.exposure_ms, 2) + ' ms'); else ex.push('exposure –');
+    ex.push(c.gain !== null && c.gain !== undefined ? 'gain ' + fmt(c.gain) : 'gain –');
+    role(c.id, 'exp').textContent = ex.join(' · ');
+    role(c.id, 'bus').textContent = c.bus === null ? '· ' + fmt(c.stream_mbps, 0) + ' Mbit/s, not on a USB bus' :
+      '· USB bus ' + c.bus + ': ' + fmt(c.bus_need_mbps, 0) + '/' + fmt(c.bus_budget_mbps, 0) + ' Mbit/s' + (c.oversubscribed ? ' OVERSUBSCRIBED' : '');
+  }
+  function showRecording(rec){
+    recState = rec.state || 'idle';
+    $('rec-state').textContent = recState + (rec.take ? ' (' + rec.take + ')' : '');
+    $('rec-frames').textContent = rec.frames_written || 0;
+    $('rec-drops').textContent = rec.drops || 0;
+    $('rec-timer').textContent = fmt(rec.elapsed_s || 0);
+    if (rec.result){
+      const s = rec.result.sync || {};
+      $('rec-state').dataset.sets = rec.result.sets;
+      $('rec-state').dataset.spreadMedianMs = s.spread_median_ms;
+      $('rec-state').dataset.setsComplete = s.sets_complete;
+      if (recState === 'done' && lastShown !== rec.take){
+        lastShown = rec.take;
+        say($('rec-msg'), 'take ' + rec.take + ': ' + rec.result.sets + ' frame sets (' + s.sets_complete + ' complete), sync spread median ' +
+            fmt(s.spread_median_ms, 2) + ' ms, max ' + fmt(s.spread_max_ms, 2) + ' ms' +
+            (Object.keys(rec.result.disconnected || {}).length ? '; disconnected: ' + Object.keys(rec.result.disconnected).join(', ') : ''), 'good');
+        takes();
+      }
+    }
+    if (recState === 'failed') say($('rec-msg'), 'take ' + rec.take + ' failed: ' + rec.error, 'bad');
+  }
+  let lastShown = null;
+  async function figures(){
+    try {
+      const r = await api('GET', '/stage');
+      if (r.ok){
+        const f = r.data;
+        const d = f.disk || {};
+        $('disk-free').textContent = d.free_bytes ? (d.free_bytes / 1e9).toFixed(1) + ' GB' : '–';
+        $('minutes-left').textContent = fmt(d.minutes_left, 0);
+        const s = f.sync_spread_ms || {};
+        $('spread').textContent = s.median === null ? '–' : fmt(s.median, 2) + ' ms median, ' + fmt(s.max, 2) + ' ms max';
+        const l = (f.previews || {}).latency_ms || {};
+        $('latency').textContent = l.p50 === null || l.p50 === undefined ? '–' : fmt(l.p50, 0) + ' / ' + fmt(l.p99, 0) + ' ms';
+        showRecording(f.recording || {});
+        for (const c of f.cameras) showCamera(c);
+      }
+    } catch (e) {}
+    setTimeout(figures, 700);
+  }
+
+  // ---- record / stop
+  function defaultName(){
+    const d = new Date(); const p = (n) => String(n).padStart(2, '0');
+    return 'take-' + d.getFullYear() + p(d.getMonth() + 1) + p(d.getDate()) + '-' + p(d.getHours()) + p(d.getMinutes()) + p(d.getSeconds());
+  }
+  $('take-name').value = defaultName();
+  $('record').addEventListener('click', async () => {
+    const body = {take: $('take-name').value.trim()};
+    const secs = parseFloat($('take-seconds').value);
+    if (secs > 0) body.duration_s = secs;
+    const r = await api('POST', '/stage/record', body);
+    if (r.ok){ say($('rec-msg'), 'recording ' + body.take, ''); lastShown = null; $('take-name').value = defaultName(); }
+    else say($('rec-msg'), 'not recording: ' + detail(r), 'bad');
+  });
+  $('stop').addEventListener('click', async () => {
+    const r = await api('POST', '/stage/stop');
+    if (!r.ok) say($('rec-msg'), 'stop: ' + detail(r), 'bad');
+  });
+
+  // ---- board session
+  function drawCoverage(canvas, grid){
+    const ctx = canvas.getContext('2d'); const rows = grid.length, cols = grid[0].length;
+    const w = canvas.width / cols, h = canvas.height / rows;
+    let mx = 1; for (const r of grid) for (const v of r) mx = Math.max(mx, v);
+    for (let y = 0; y < rows; y++) for (let x = 0; x < cols; x++){
+      const v = grid[y][x] / mx;
+      ctx.fillStyle = grid[y][x] ? 'rgba(76,175,80,' + (0.3 + 0.7 * v) + ')' : 'rgba(183,28,28,0.55)';
+      ctx.fillRect(x * w, y * h, w - 1, h - 1);
+    }
+  }
+  function showPairs(st){
+    const cams = st.cameras; let html = '<table><tr><th></th>' + cams.map((c) => '<th>' + c.slice(-3) + '</th>').join('') + '</tr>';
+    cams.forEach((a, i) => {
+      html += '<tr><th>' + a + '</th>' + cams.map((b, j) => {
+        if (i === j) return '<td>·</td>';
+        const n = st.shared[i][j]; const ok = n >= st.min_shared;
+        return '<td style="background:' + (ok ? '#c8e6c9' : n ? '#fff9c4' : '#ffcdd2') + '">' + n + '</td>';
+      }).join('') + '</tr>';
+    });
+    const box = $('pairs'); box.innerHTML = '';
+    const t = document.createElement('div'); t.innerHTML = '<p class="muted">shared views per camera pair (green: a link for the bundle adjustment)</p>' + html;
+    box.appendChild(t);
+  }
+  let boardPoll = null, calibJob = null;
+  async function board(){
+    const r = await api('GET', '/stage/board');
+    if (r.ok && r.data.cameras){
+      const st = r.data;
+      for (const c of st.cameras){
+        const t = tiles[c]; if (!t) continue;
+        const m = t.querySelector('.meter'); m.hidden = false;
+        m.querySelector('progress').max = st.min_views; m.querySelector('progress').value = Math.min(st.views[c], st.min_views);
+        role(c, 'views').textContent = st.views[c] + (st.detected[c] ? ' · board seen' : '');
+        const cv = t.querySelector('canvas.coverage'); cv.hidden = false; drawCoverage(cv, st.coverage[c]);
+      }
+      showPairs(st);
+      say($('board-msg'), st.message, st.enough ? 'good' : '');
+      $('board-msg').dataset.enough = st.enough;
+      $('calibrate').disabled = !(st.running && st.take);
+      if (!st.running && !calibJob) { boardPoll = null; return; }
+    }
+    if (!calibJob) boardPoll = setTimeout(board, 800);
+  }
+  function showReport(job, rep){
+    $('calib-report').hidden = false;
+    $('calib-state').textContent = 'calibration job ' + job.id.slice(0, 8) + ': ' + job.state + (job.error ? ' — ' + job.error : '');
+    if (!rep) return;
+    $('calib-summary').textContent = rep.summary;
+    const ev = rep.evaluation || {}; const ho = (ev.held_out || {}).per_camera || {}; const af = (ev.all_frames || {}).per_camera || {};
+    const tb = $('calib-errors').querySelector('tbody'); tb.innerHTML = '';
+    for (const name of Object.keys(af).length ? Object.keys(af) : Object.keys(ho)){
+      const tr = document.createElement('tr');
+      for (const v of [name, ho[name] ? fmt(ho[name].rms, 3) : '–', af[name] ? fmt(af[name].rms, 3) : '–', af[name] ? af[name].views : '–']){
+        const td = document.createElement('td'); td.textContent = v; tr.appendChild(td);
+      }
+      tb.appendChild(tr);
+    }
+    const ul = $('calib-warnings'); ul.innerHTML = '';
+    for (const w of rep.warnings || []){ const li = document.createElement('li'); li.textContent = w; ul.appendChild(li); }
+    $('calib-nwarn').textContent = (rep.warnings || []).length;
+    $('calib-report').dataset.done = 'true';
+  }
+  async function followCalibration(){
+    const r = await api('GET', '/jobs/' + calibJob);
+    if (r.ok){
+      const j = r.data;
+      showReport(j, null);
+      if (j.state === 'done'){
+        const rep = await api('GET', '/jobs/' + calibJob + '/results/report.json');
+        showReport(j, rep.ok ? rep.data : null);
+        return;
+      }
+      if (j.state === 'failed' || j.state === 'cancelled') return;
+    }
+    setTimeout(followCalibration, 1000);
+  }
+  if (HAS_BOARD){
+    $('board-start').addEventListener('click', async () => {
+      const r = await api('POST', '/stage/board/start', {});
+      if (!r.ok){ say($('board-msg'), 'board session: ' + detail(r), 'bad'); return; }
+      calibJob = null; $('calib-report').hidden = true;
+      if (!boardPoll) board();
+    });
+    $('calibrate').addEventListener('click', async () => {
+      const r = await api('POST', '/stage/board/calibrate', {});
+      if (!r.ok){ say($('board-msg'), 'calibrate: ' + detail(r), 'bad'); return; }
+      calibJob = r.data.job; $('calibrate').disabled = true;
+      say($('board-msg'), 'calibrating take ' + r.data.take + ' (job ' + calibJob.slice(0, 8) + ')', '');
+      board(); followCalibration();
+    });
+    board();
+  }
+
+  // ---- live 3-D: surface voxels of the coarse hull and the spine, turning slowly
+  const cv3 = $('live3d'); const ctx3 = cv3.getContext('2d'); let live = null;
+  function draw3d(){
+    const W = cv3.width, H = cv3.height; ctx3.fillStyle = '#102027'; ctx3.fillRect(0, 0, W, H);
+    if (live && live.state === 'ok'){
+      // framed on the hull (at least a quarter of the capture volume across)
+      const [vlo, vhi] = live.bounds; const P = live.points.length ? live.points : [vlo, vhi];
+      const lo = [0, 1, 2].map((i) => Math.min(...P.map((p) => p[i]))), hi = [0, 1, 2].map((i) => Math.max(...P.map((p) => p[i])));
+      const c = [0, 1, 2].map((i) => (lo[i] + hi[i]) / 2);
+      const ext = Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], 0.25 * Math.max(vhi[0] - vlo[0], vhi[1] - vlo[1], vhi[2] - vlo[2])) * 1.3;
+      const a = performance.now() / 4000, ca = Math.cos(a), sa = Math.sin(a), el = 0.45, ce = Math.cos(el), se = Math.sin(el);
+      const s = 0.8 * Math.min(W, H) / ext;
+      const proj = (p) => { const x = p[0] - c[0], y = p[1] - c[1], z = p[2] - c[2];
+        const u = ca * x - sa * y, v = sa * x + ca * y; return [W / 2 + s * u, H / 2 - s * (ce * z - se * v), ce * v + se * z]; };
+      const pts = live.points.map(proj).sort((p, q) => q[2] - p[2]);
+      const r = Math.max(1.5, s * live.voxel * 0.6);
+      for (const p of pts){ const k = Math.round(120 + 100 * Math.max(-1, Math.min(1, -p[2] / ext * 2)));
+        ctx3.fillStyle = 'rgb(' + k + ',' + Math.round(k * 0.8) + ',90)'; ctx3.fillRect(p[0] - r / 2, p[1] - r / 2, r, r); }
+      ctx3.strokeStyle = '#4fc3f7'; ctx3.lineWidth = 3; ctx3.beginPath();
+      for (const [p, q] of live.segments){ const P = proj(p), Q = proj(q); ctx3.moveTo(P[0], P[1]); ctx3.lineTo(Q[0], Q[1]); }
+      ctx3.stroke();
+      window.__stage.live3dDraws++;
+    } else {
+      ctx3.fillStyle = '#cfd8dc'; ctx3.font = '14px sans-serif';
+      ctx3.fillText(live ? (live.message || live.state) : 'waiting for the first frame set', 16, 28);
+    }
+    requestAnimationFrame(draw3d);
+  }
+  let seen3d = [];
+  async function poll3d(){
+    try {
+      const r = await api('GET', '/stage/live3d');
+      if (r.ok){
+        live = r.data; window.__stage.lastLive3d = {state: live.state, updates: live.updates, points: (live.points || []).length,
+                                                     segments: (live.segments || []).length};
+        const now = performance.now();
+        if (live.updates !== undefined && (!seen3d.length || seen3d[seen3d.length - 1][1] !== live.updates)) seen3d.push([now, live.updates]);
+        seen3d = seen3d.filter((x) => x[0] > now - 5000);
+        const rate = seen3d.length > 1 ? (seen3d.length - 1) / ((seen3d[seen3d.length - 1][0] - seen3d[0][0]) / 1000) : 0;
+        $('live3d-info').textContent = live.state === 'ok' ? ('frame set ' + live.set + ': ' + live.occupied + ' voxels of ' + fmt(live.voxel, 0) +
+          ' mm, ' + live.segments.length + ' spine segments; ' + fmt(rate, 1) + ' updates/s shown (' + fmt(live.updates_per_s, 1) + ' computed), ' +
+          fmt(live.compute_ms, 0) + ' ms each') : (live.message || live.state);
+      }
+    } catch (e) {}
+    setTimeout(poll3d, 250);
+  }
+
+  // ---- takes
+  async function takes(){
+    const r = await api('GET', '/takes');
+    if (!r.ok) return;
+    const tb = $('take-list'); tb.innerHTML = '';
+    for (const t of r.data){
+      const tr = document.createElement('tr'); tr.dataset.take = t.id;
+      const a = document.createElement('a'); a.href = '/ui/takes/' + encodeURIComponent(t.id); a.textContent = t.id;
+      const td0 = document.createElement('td'); td0.appendChild(a);
+      const td1 = document.createElement('td'); td1.textContent = t.frames === undefined ? '–' : t.frames;
+      const td2 = document.createElement('td'); td2.textContent = (t.size_bytes / 1e6).toFixed(1) + ' MB';
+      const td3 = document.createElement('td'); const b = document.createElement('button'); b.textContent = 'process';
+      b.addEventListener('click', async () => {
+        const j = await api('POST', '/jobs', {take: t.id});
+        if (j.ok) window.location = '/ui/jobs/' + j.data.id; else say($('rec-msg'), 'process: ' + detail(j), 'bad');
+      });
+      td3.appendChild(b);
+      tr.append(td0, td1, td2, td3); tb.appendChild(tr);
+    }
+  }
+  previews(); figures(); poll3d(); takes(); requestAnimationFrame(draw3d);
+})();
