@@ -68,6 +68,8 @@ class CaptureManager:
         """The validated rig (raises :class:`UnavailableError` when there is no rig file)."""
         from stage.rig import load_rig
 
+        if self.session is not None:
+            return self.session.rig
         if not self.rig_path.is_file():
             raise UnavailableError("no rig file: put rig.toml in the data root or set the 'rig' setting")
         return load_rig(self.rig_path)

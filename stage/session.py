@@ -326,7 +326,7 @@ class StageSession:
                 live = self.cameras[cid]
                 g = live.granted
                 cams.append({
-                    "id": cid, "state": live.state, "error": live.error, "fps": round(live.fps(now), 2),
+                    "id": cid, "state": live.state, "error": live.error, "fps": round(live.fps(now), 2) if live.state == "running" else 0.0,
                     "delivered": live.delivered, "dropped": live.sequence_gaps,
                     "exposure_ms": None if g is None else g.exposure,
                     "gain": None if g is None else g.extra.get("gain"),

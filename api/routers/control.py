@@ -127,8 +127,6 @@ async def _stream(request: Request, room, cams: list[str], mask: bool):
     room.stream_opened()
     try:
         while not room.session.closed:
-            if await request.is_disconnected():
-                return
             t0 = asyncio.get_running_loop().time()
             for cid in cams:
                 seq, jpg, grab_ns = await run_in_threadpool(room.preview, cid, mask=mask)

@@ -1,0 +1,235 @@
+"""The control room's endpoints on a real server (uvicorn in a thread) over a running stage session:
+tokens (401 without), --read-protected previews, one take for two record requests (409 for the
+other), preview streams that end with their client, a simulated camera unplugged while recording
+(its tile in a real browser says so; the take has the gap)."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from api.app import create_app
+from api.control import ControlRoom
+from api.settings import Settings
+from stage.session import StageSession
+from stage.store import TakeReader
+from tests.stage.test_capture import make_drivers, rig_for
+
+TOKEN = "control-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+pytestmark = [pytest.mark.slow]
+try:
+    import pytest_timeout  # noqa: F401
+
+    pytestmark.append(pytest.mark.timeout(120))
+except ImportError:
+    pass
+
+
+def _artifacts(tmp_path: Path) -> Path:
+    env = os.environ.get("STAGE_TEST_ARTIFACTS")
+    d = Path(env) / "control" if env else tmp_path / "artifacts"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+class LiveServer:
+    """``create_app`` with a control room, served by uvicorn on a free port in a thread."""
+
+    def __init__(self, tmp: Path, session: StageSession, *, read_protected: bool = False) -> None:
+        import uvicorn
+
+        from tests.api.test_serve import free_port
+
+        settings = Settings(data=tmp / "data", api_token=TOKEN, read_protected=read_protected, workers=1)
+        self.room = ControlRoom(session.open(), preview_fps=10.0)
+        self.app = create_app(settings, control=self.room, start_runner=False)
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.server = uvicorn.Server(uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning"))
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+        self.takes = settings.takes_dir
+
+    def __enter__(self) -> "LiveServer":
+        self.thread.start()
+        t0 = time.monotonic()
+        while not self.server.started:
+            if time.monotonic() - t0 > 20:
+                raise RuntimeError("the server did not start")
+            time.sleep(0.05)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True
+        self.thread.join(30)
+        assert self.room.session.closed  # the app closed the session at shutdown
+
+
+def _wait(cond, timeout=15.0, what="condition"):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        v = cond()
+        if v:
+            return v
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_tokens_and_read_protection(tmp_path):
+    ids = ["a", "b"]
+    with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=make_drivers(ids))) as srv:
+        u = srv.url
+        for path, body in (("/stage/record", {"take": "t"}), ("/stage/stop", None), ("/stage/board/start", {}),
+                           ("/stage/board/calibrate", {})):
+            r = httpx.post(u + path, json=body, timeout=10)
+            assert r.status_code == 401, (path, r.status_code, r.text)
+            assert "token" in r.json()["detail"]
+            r = httpx.post(u + path, json=body, headers={"Authorization": "Bearer wrong"}, timeout=10)
+            assert r.status_code == 403, (path, r.text)
+        assert not list(srv.takes.glob("*.h5"))  # nothing was recorded
+        # reading is open without --read-protected
+        assert httpx.get(u + "/stage", timeout=10).status_code == 200
+        _wait(lambda: httpx.get(u + "/stage/cameras/a/preview.jpg", timeout=10).status_code == 200, what="a preview")
+        assert httpx.get(u + "/ui/stage", timeout=10).status_code == 200
+        assert httpx.get(u + "/stage/cameras/zz/preview.jpg", timeout=10).status_code == 404
+        # with the token, record works
+        r = httpx.post(u + "/stage/record", json={"take": "t", "frames": 5}, headers=AUTH, timeout=10)
+        assert r.status_code == 202, r.text
+    with LiveServer(tmp_path / "p", StageSession(rig_for(ids), tmp_path / "p" / "takes", drivers=make_drivers(ids)),
+                    read_protected=True) as srv:
+        u = srv.url
+        for path in ("/stage", "/stage/cameras/a/preview.jpg", "/stage/cameras/a/preview.mjpg", "/stage/previews.mjpg",
+                     "/stage/board", "/stage/live3d", "/ui/stage"):
+            r = httpx.get(u + path, timeout=10)
+            assert r.status_code == 401, (path, r.status_code)
+        assert httpx.get(u + "/stage", headers=AUTH, timeout=10).status_code == 200
+        with httpx.stream("GET", u + "/stage/previews.mjpg", headers=AUTH, timeout=10) as r:
+            assert r.status_code == 200 and r.headers["content-type"].startswith("multipart/x-mixed-replace")
+            it = r.iter_bytes()
+            first = next(it)
+            assert first.startswith(b"--stageframe\r\nContent-Type: image/jpeg\r\nX-Camera: ")
+
+
+def test_two_record_requests_give_one_take(tmp_path):
+    ids = ["a", "b"]
+    with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=make_drivers(ids))) as srv:
+        out: list = []
+        barrier = threading.Barrier(2)
+
+        def press(name):
+            barrier.wait()
+            out.append(httpx.post(srv.url + "/stage/record", json={"take": name, "duration_s": 1.0}, headers=AUTH,
+                                  timeout=10))
+
+        th = [threading.Thread(target=press, args=(n,)) for n in ("first", "second")]
+        for t in th:
+            t.start()
+        for t in th:
+            t.join()
+        codes = sorted(r.status_code for r in out)
+        assert codes == [202, 409], [(r.status_code, r.text) for r in out]
+        refused = next(r for r in out if r.status_code == 409)
+        assert "is being recorded" in refused.json()["detail"]
+        _wait(lambda: httpx.get(srv.url + "/stage", timeout=10).json()["recording"]["state"] == "done", what="the take")
+        assert len(list(srv.takes.glob("*.h5"))) == 1
+        r = httpx.post(srv.url + "/stage/stop", headers=AUTH, timeout=10)
+        assert r.status_code == 409 and "no take is being recorded" in r.json()["detail"]
+        # the rig endpoint records from the same session (nothing opens the cameras again)
+        r = httpx.post(srv.url + "/rig/capture", json={"take": "viarig", "frames": 5}, headers=AUTH, timeout=10)
+        assert r.status_code == 202, r.text
+        _wait(lambda: httpx.get(srv.url + "/rig/capture", timeout=10).json()["state"] == "done", what="the rig capture")
+        with TakeReader(srv.takes / "viarig.h5") as t:
+            assert len(t) == 5
+
+
+def test_a_client_that_leaves_leaks_nothing(tmp_path):
+    ids = ["a", "b", "c"]
+    with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=make_drivers(ids))) as srv:
+        _wait(lambda: httpx.get(srv.url + "/stage/cameras/a/preview.jpg", timeout=10).status_code == 200, what="frames")
+        threads0 = threading.active_count()
+        for _ in range(3):
+            clients = [httpx.Client(timeout=10) for _ in range(4)]
+            streams = [c.stream("GET", srv.url + ("/stage/previews.mjpg" if i % 2 else "/stage/cameras/b/preview.mjpg"))
+                       for i, c in enumerate(clients)]
+            readers = []
+            for s in streams:
+                it = s.__enter__().iter_bytes()
+                assert next(it).startswith(b"--stageframe")
+                readers.append(it)  # kept: a dropped iterator closes its response
+            assert _wait(lambda: httpx.get(srv.url + "/stage", timeout=10).json()["previews"]["streams"] == 4,
+                         what="4 open streams")
+            for s, c in zip(streams, clients):
+                s.__exit__(None, None, None)
+                c.close()
+            _wait(lambda: httpx.get(srv.url + "/stage", timeout=10).json()["previews"]["streams"] == 0,
+                  what="every stream closed")
+        time.sleep(0.5)
+        assert threading.active_count() <= threads0 + 2, (threads0, threading.active_count())
+        lat = httpx.get(srv.url + "/stage", timeout=10).json()["previews"]["latency_ms"]
+        assert lat["n"] > 0 and 0 <= lat["p50"] <= lat["p99"]
+
+
+def _fake_rig(tmp: Path, n: int = 4):
+    """A simulated rig (fake_cameras) of ``n`` small cameras and its FakeCamera drivers."""
+    fake = pytest.importorskip("fake_cameras.device")
+    from stage.rig import parse_rig
+
+    rig = parse_rig({"name": "sim", "fps": 30, "simulation": {"subject": "starfish", "n_cameras": max(n, 4), "frames": 10},
+                     "cameras": [{"id": f"cam{i}", "driver": "fake", "index": i, "width": 160, "height": 120}
+                                 for i in range(n)]})
+    return rig, {c.id: fake.FakeCamera(c, rig) for c in rig.cameras}
+
+
+def test_unplugged_camera_in_the_browser(tmp_path):
+    from tests.pipeline.test_report import CHROMIUM, CHROMIUM_ARGS, _browser
+
+    sync_playwright = _browser()
+    rig, drivers = _fake_rig(tmp_path)
+    art = _artifacts(tmp_path)
+    with LiveServer(tmp_path, StageSession(rig, tmp_path / "data" / "takes", drivers=drivers)) as srv:
+        errors: list[str] = []
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+            try:
+                page = browser.new_page(viewport={"width": 1200, "height": 900})
+                page.on("pageerror", lambda e: errors.append(str(e)))
+                page.goto(srv.url + "/ui/stage", wait_until="load", timeout=30_000)
+                page.fill("#token", TOKEN)
+                page.dispatch_event("#token", "change")
+                page.fill("#take-name", "unplug")
+                page.fill("#take-seconds", "3")
+                page.click("#record")
+                page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('recording')",
+                                       timeout=15_000)
+                time.sleep(1.0)
+                drivers["cam2"].unplug()
+                tile = page.locator('.tile[data-cam="cam2"]')
+                page.wait_for_function("() => document.querySelector('.tile[data-cam=\"cam2\"]').classList.contains('gone')",
+                                       timeout=15_000)
+                assert "DISCONNECTED" in tile.locator(".badge").text_content()
+                assert "unplug" in tile.locator('[data-role="error"]').text_content()
+                page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('done')",
+                                       timeout=20_000)
+                page.wait_for_timeout(300)
+                page.screenshot(path=str(art / "unplugged.png"), full_page=True)
+                msg = page.text_content("#rec-msg")
+                sets = int(page.get_attribute("#rec-state", "data-sets"))
+            finally:
+                browser.close()
+        assert not errors, errors
+        assert "disconnected: cam2" in msg, msg
+        with TakeReader(srv.takes / "unplug.h5") as t:
+            counts = t.frame_counts()
+            table = t.set_table()
+            assert len(t) == sets and t.complete
+            assert counts["cam2"] < min(counts[c] for c in ("cam0", "cam1", "cam3")) - 10, counts
+            gap = table[:, 2] < 0
+            first = int(gap.argmax())
+            assert gap[first:].all()  # missing from the unplugging to the end: the take records the gap
+            assert t.sync_stats["cameras"]["cam2"]["missing"] == int(gap.sum())
