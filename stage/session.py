@@ -325,8 +325,9 @@ class StageSession:
             for cid in self.ids:
                 live = self.cameras[cid]
                 g = live.granted
+                fps = round(live.fps(now), 2) if live.state == "running" else 0.0
                 cams.append({
-                    "id": cid, "state": live.state, "error": live.error, "fps": round(live.fps(now), 2) if live.state == "running" else 0.0,
+                    "id": cid, "state": live.state, "error": live.error, "fps": fps,
                     "delivered": live.delivered, "dropped": live.sequence_gaps,
                     "exposure_ms": None if g is None else g.exposure,
                     "gain": None if g is None else g.extra.get("gain"),
