@@ -22,7 +22,7 @@ from fastapi.responses import HTMLResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from api.deps import LibraryDep, ReadAccess, RunnerDep, SettingsDep, StoreDep, WriteAccess
-from api.errors import UnavailableError
+from api.errors import NotFoundError
 from api.paths import TAKE_ID, check_id, inside
 
 router = APIRouter(tags=["stage"])
@@ -34,7 +34,7 @@ CameraId = Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="
 async def get_control(request: Request):
     room = getattr(request.app.state, "control", None)
     if room is None:
-        raise UnavailableError("no stage session: start the server with stage serve --rig RIG.toml")
+        raise NotFoundError("no stage session: start the server with stage serve --rig RIG.toml")
     return room
 
 
@@ -86,7 +86,7 @@ def _start(room, settings, take: str, **kw: Any) -> dict[str, Any]:
 # --------------------------------------------------------------------------- figures
 
 
-@router.get("/stage", response_model=dict[str, Any], responses={503: {"description": "no stage session"}})
+@router.get("/stage", response_model=dict[str, Any], responses={404: {"description": "no stage session"}})
 def stage_figures(room: ControlDep, _: ReadAccess) -> dict[str, Any]:
     """Live figures: per camera state, delivered fps, drops, exposure/gain, USB load; sync spread of
     the last sets; disk free and minutes left; the take being recorded; preview streams and latency."""
