@@ -1094,6 +1094,16 @@ def _check_params(params: ProcessParams | dict | None) -> ProcessParams:
     return params
 
 
+def _check_frames(take: Path) -> None:
+    """Every chunk of the frames this run will read, checked before any work: a damaged take
+    stops here naming its damaged cameras, frames and frame sets (``stage verify`` lists them)."""
+    from stage.store.verify import verify_take
+
+    damage = verify_take(take)
+    if not damage.ok:
+        raise ProcessError(f"{damage.summary()}; nothing was processed (`stage verify {take}` lists the damage)")
+
+
 def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunContext:
     """Read what every step needs from the take once (and check it can be processed)."""
     from stage.store import TakeReader
@@ -1118,6 +1128,8 @@ def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunC
         set_table = table[:, [list(reader.cameras).index(c) for c in cameras]]
     if n_sets == 0:
         raise ProcessError(f"{take}: the take holds no frame sets")
+    if need_key or params.photo_refine:
+        _check_frames(take)
     calibration = type(calibration)(tuple(calibration[c] for c in cameras), units=calibration.units, meta=calibration.meta)
     return RunContext(
         take=take, out=out, params=params, calibration=calibration, cameras=cameras, n_sets=n_sets,

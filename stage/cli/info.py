@@ -68,6 +68,7 @@ def _summarize(path: Path) -> dict:
             "fps_measured": r.measured_fps(),
             "duration_s": r.duration_s,
             "compression": r.compression,
+            "checksums": r.checksums,
             "calibration": r.has_calibration,
             "rig": (r.rig or {}).get("name"),
             "cameras": cams,
@@ -91,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {s['sets']} frame sets, {fps} sets/s{nominal}, {s['duration_s']:.2f} s")
         print(f"  compression {s['compression']}, calibration {'present' if s['calibration'] else 'absent'}, "
               f"size on disk {_size(s['size_on_disk'])}")
+        print("  checksums: every chunk (`stage verify` reads them all)" if s["checksums"] else
+              "  checksums: none (written before checksums were added: damage inside frames cannot be detected)")
         masks = [c for c, v in s["cameras"].items() if v["masks"]]
         print(f"  masks: {', '.join(masks) if masks else 'none'}")
         if s["derived"]:

@@ -215,6 +215,7 @@ def write_array(
             kw["chunks"] = (1,) + arr.shape[1:] if arr.ndim >= 3 else arr.shape
             if compress:
                 kw.update(derived_filter_kwargs())
+            kw["fletcher32"] = True  # a damaged chunk is an error on read, not wrong masks
         ds = grp.create_dataset(name, data=arr, **kw)
         if is_bool:
             ds.attrs["bool"] = True
@@ -290,7 +291,8 @@ def write_arrays(path: str | os.PathLike, arrays: Sequence[tuple[str, str, np.nd
                 del grp[name]
             kw: dict[str, Any] = {}
             if arr.ndim >= 2 and arr.size:
-                kw = {"chunks": (1,) + arr.shape[1:] if arr.ndim >= 3 else arr.shape, **derived_filter_kwargs()}
+                kw = {"chunks": (1,) + arr.shape[1:] if arr.ndim >= 3 else arr.shape, **derived_filter_kwargs(),
+                      "fletcher32": True}
             ds = grp.create_dataset(name, data=arr.view(np.uint8) if arr.dtype == bool else arr, **kw)  # no copy
             if arr.dtype == bool:
                 ds.attrs["bool"] = True

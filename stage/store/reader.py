@@ -65,6 +65,7 @@ class TakeReader:
                 fmt = fmt.decode()
             if fmt != FORMAT:
                 raise TakeError(f"{self.path}: not a capture-stage take (format attribute {fmt!r}, expected {FORMAT!r})")
+            self._check_headers()
             try:
                 self.cameras: list[str] = list(json.loads(self._f.attrs["cameras"]))
                 self._commit_ds = self._f["sets/commit"]
@@ -83,6 +84,23 @@ class TakeReader:
         except BaseException:
             self._f.close()
             raise
+
+    def _check_headers(self) -> None:
+        """Open every object of the take once: a damaged object header (flipped bytes in the
+        file's metadata) is one :class:`TakeError` naming it here, not a ``KeyError`` later."""
+        todo, where = [self._f], "/"
+        try:
+            while todo:
+                group = todo.pop()
+                where = group.name
+                for key in list(group.keys()):
+                    where = f"{group.name.rstrip('/')}/{key}"
+                    obj = group[key]
+                    if isinstance(obj, h5py.Group):
+                        todo.append(obj)
+        except (KeyError, OSError, ValueError, RuntimeError) as exc:
+            why = str(exc).strip("'\"")
+            raise TakeError(f"{self.path}: damaged take: the header of {where} cannot be read ({why})") from None
 
     def _check_layout(self, camera: str) -> None:
         g = self._f["cameras"][camera]
@@ -259,6 +277,16 @@ class TakeReader:
             return Calibration.from_dict(d)
         except (ValueError, KeyError, TypeError) as exc:
             raise TakeError(f"{self.path}: stored calibration is invalid: {exc}") from None
+
+    @property
+    def checksums(self) -> bool:
+        """True when every chunk of frame data carries a checksum (takes written before they
+        were added have none: damage inside their frames cannot be detected)."""
+        for c in self.cameras:
+            g = self._f["cameras"][c]
+            if any(name in g and not g[name].fletcher32 for name in ("image", "jpeg", "depth")):
+                return False
+        return True
 
     @property
     def has_calibration(self) -> bool:

@@ -41,6 +41,9 @@ log = logging.getLogger("stage.store")
 
 _JPEG_BLOCK = 4 << 20  # grow the JPEG byte stream 4 MiB at a time
 _HEADER_BYTES = 256 << 10  # metadata of an empty take, generously
+# every chunk carries HDF5's Fletcher-32 checksum (after compression): a flipped bit in stored
+# frames is an error on read (stage.store.verify finds all of them) instead of a wrong pixel
+_SUM = {"fletcher32": True}
 
 
 def _set_bytes(cameras: Sequence[CameraSpec], compression: str) -> int:
@@ -238,6 +241,7 @@ class TakeWriter:
             f.attrs["fps"] = float(fps) if fps is not None else float("nan")
             f.attrs["compression"] = compression
             f.attrs["cameras"] = to_json(ids)
+            f.attrs["checksums"] = "fletcher32"
             meta = f.create_group("meta")
             str_dt = h5py.string_dtype()
             meta.create_dataset("rig", data=to_json(rig) if rig is not None else "null", dtype=str_dt)
@@ -245,13 +249,14 @@ class TakeWriter:
                 cal = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
                 meta.create_dataset("calibration", data=to_json(cal), dtype=str_dt)
             meta.create_dataset("extra", data=to_json(dict(attrs or {})), dtype=str_dt)
-            meta.create_dataset("sync_stats", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(4096,))
+            meta.create_dataset("sync_stats", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(4096,), **_SUM)
             sets = f.create_group("sets")
             C = len(cams)
             # commit = [n_sets, closed, frames of camera 0, 1, ...]; written last for every set
             sets.create_dataset("commit", data=np.zeros(2 + C, dtype=np.int64))
-            sets.create_dataset("frames", shape=(0, C), maxshape=(None, C), dtype=np.int64, chunks=(256, C), fillvalue=-1)
-            sets.create_dataset("time_ns", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(256,))
+            sets.create_dataset("frames", shape=(0, C), maxshape=(None, C), dtype=np.int64, chunks=(256, C), fillvalue=-1,
+                                **_SUM)
+            sets.create_dataset("time_ns", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(256,), **_SUM)
             grp = f.create_group("cameras")
             for c in cams:
                 g = grp.create_group(c.id)
@@ -268,18 +273,18 @@ class TakeWriter:
                 H, W = int(c.height), int(c.width)
                 if c.storage == "raw":
                     g.create_dataset("image", shape=(0, H, W, 3), maxshape=(None, H, W, 3), dtype=np.uint8,
-                                     chunks=(1, H, W, 3), **filt)
+                                     chunks=(1, H, W, 3), **filt, **_SUM)
                 else:
-                    g.create_dataset("jpeg", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(256 << 10,))
-                    g.create_dataset("jpeg_offset", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
-                    g.create_dataset("jpeg_length", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+                    g.create_dataset("jpeg", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(256 << 10,), **_SUM)
+                    g.create_dataset("jpeg_offset", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,), **_SUM)
+                    g.create_dataset("jpeg_length", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,), **_SUM)
                 if c.depth:
-                    g.create_dataset("depth", shape=(0, H, W), maxshape=(None, H, W), dtype=np.uint16, chunks=(1, H, W), **filt)
+                    g.create_dataset("depth", shape=(0, H, W), maxshape=(None, H, W), dtype=np.uint16, chunks=(1, H, W), **filt, **_SUM)
                 for name in ("timestamp_ns", "host_timestamp_ns", "sequence", "set_index"):
-                    g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
-                g.create_dataset("valid", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(1024,))
+                    g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,), **_SUM)
+                g.create_dataset("valid", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(1024,), **_SUM)
             for key, arr in arrays.items():  # HDF5 creates no object once SWMR writing has started
-                f.create_dataset(key, data=arr, **({"chunks": True, **derived_filter_kwargs()} if arr.ndim >= 2 else {}))
+                f.create_dataset(key, data=arr, **({"chunks": True, **derived_filter_kwargs(), **_SUM} if arr.ndim >= 2 else {}))
             f.swmr_mode = True
             f.flush()
         except BaseException:
