@@ -19,6 +19,7 @@ from api.errors import UploadTooLargeError, install_handlers
 from api.jobs.runner import JobRunner
 from api.jobs.store import JobStore
 from api.library import TakeLibrary
+from api.paths import upload_path
 from api.rigctl import CaptureManager
 from api.routers import calibrations, jobs, pages, rig, takes
 from api.routers import control as control_routes
@@ -40,8 +41,10 @@ class BodySizeLimit:
         self.max_upload_bytes = max_upload_bytes
 
     def _limit(self, scope: Scope) -> int:
-        path, method = scope.get("path", ""), scope.get("method", "")
-        if path.startswith("/takes") and method in ("PUT", "POST"):
+        """The upload limit for the two routes that take a take file (``POST /takes``, ``PUT
+        /takes/{id}``); every other body is a small JSON document (``POST /takes/import`` too)."""
+        path, method = scope.get("path", "").rstrip("/"), scope.get("method", "")
+        if (method == "POST" and path == "/takes") or (method == "PUT" and upload_path(path)):
             return self.max_upload_bytes
         return SMALL_BODY
 

@@ -4,7 +4,9 @@
   the app's singletons (on ``app.state``);
 * :data:`WriteAccess`: the bearer token, required by everything that changes anything;
 * :data:`ReadAccess`: the token when ``read_protected`` is set, else nothing;
-* :data:`TakeId`, :data:`JobId`, :data:`CalibrationId`: validated path parameters.
+* :data:`TakeId`, :data:`JobId`, :data:`CalibrationId`: validated path parameters; :data:`TakeRef`
+  (a body field) and :data:`TakeQuery` (a query parameter) hold take ids under the same rule
+  (:func:`api.paths.check_take_id`).
 """
 
 from __future__ import annotations
@@ -12,12 +14,13 @@ from __future__ import annotations
 import hmac
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Path, Request
+from fastapi import Depends, HTTPException, Path, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import AfterValidator, Field
 
 from api.jobs.runner import JobRunner
 from api.jobs.store import JobStore
-from api.paths import JOB_ID, TAKE_ID
+from api.paths import JOB_ID, TAKE_ID, take_id_rule
 from api.settings import Settings
 
 __all__ = [
@@ -29,6 +32,8 @@ __all__ = [
     "WriteAccess",
     "ReadAccess",
     "TakeId",
+    "TakeRef",
+    "TakeQuery",
     "JobId",
     "CalibrationId",
 ]
@@ -92,6 +97,12 @@ async def require_read(settings: SettingsDep, creds: _Creds) -> None:
 WriteAccess = Annotated[None, Depends(require_write)]
 ReadAccess = Annotated[None, Depends(require_read)]
 
-TakeId = Annotated[str, Path(pattern=TAKE_ID, max_length=128, description="take id", examples=["take1"])]
+_TAKE_DOC = "take id (letters, digits, _ . -; not ending in .derived, .gt, .template, .part, .tmp)"
+TakeId = Annotated[str, Path(pattern=TAKE_ID, max_length=128, description=_TAKE_DOC, examples=["take1"]),
+                   AfterValidator(take_id_rule)]
+TakeRef = Annotated[str, Field(pattern=TAKE_ID, max_length=128, description=_TAKE_DOC, examples=["take1"]),
+                    AfterValidator(take_id_rule)]
+TakeQuery = Annotated[str | None, Query(pattern=TAKE_ID, max_length=128, description=_TAKE_DOC),
+                      AfterValidator(lambda v: v if v is None else take_id_rule(v))]
 JobId = Annotated[str, Path(pattern=JOB_ID, description="job id (32 hex digits)")]
 CalibrationId = Annotated[str, Path(pattern=JOB_ID, description="calibration id (32 hex digits)")]

@@ -17,7 +17,7 @@ from typing import Any, AsyncIterator, Callable
 import numpy as np
 
 from api.errors import ConflictError, NotFoundError, UnavailableError, UploadTooLargeError
-from api.paths import TAKE_ID, InvalidIdError, check_id, confined, confined_entries, inside
+from api.paths import check_take_id, confined, confined_entries, inside
 
 __all__ = ["TakeLibrary", "HDF5_SIGNATURE", "InvalidTakeError"]
 
@@ -103,7 +103,7 @@ class TakeLibrary:
     # -- lookup ------------------------------------------------------------------------------
     def path(self, take_id: str) -> Path:
         """The file of an existing take (raises :class:`NotFoundError` / :class:`InvalidIdError`)."""
-        check_id(take_id, pattern=TAKE_ID, name="take id")
+        check_take_id(take_id)
         p = inside(self.takes_dir, f"{take_id}.h5")
         if not p.is_file():
             raise NotFoundError(f"no take {take_id!r}")
@@ -114,10 +114,8 @@ class TakeLibrary:
         out = []
         for p in confined_entries(self.takes_dir, "*.h5", root=self.takes_dir):
             tid = p.stem
-            if p.name.endswith(".derived.h5"):
-                continue  # the derived data (masks...) of a take, not a take
             try:
-                check_id(tid)
+                check_take_id(tid)  # not the derived data (masks...) of a take
             except ValueError:
                 continue
             try:
@@ -158,9 +156,7 @@ class TakeLibrary:
 
     # -- changes -----------------------------------------------------------------------------
     def _target(self, take_id: str) -> Path:
-        check_id(take_id, pattern=TAKE_ID, name="take id")
-        if take_id.endswith(".derived"):
-            raise InvalidIdError(f"take id {take_id!r} is not valid (names ending in '.derived' hold derived data)")
+        check_take_id(take_id)
         p = inside(self.takes_dir, f"{take_id}.h5")
         if p.exists():
             raise ConflictError(f"take {take_id!r} already exists")

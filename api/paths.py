@@ -8,6 +8,11 @@ from pathlib import Path
 
 __all__ = [
     "TAKE_ID",
+    "RESERVED_SUFFIXES",
+    "MAX_NAME_BYTES",
+    "check_take_id",
+    "take_id_rule",
+    "upload_path",
     "JOB_ID",
     "CAL_ID",
     "FILE_NAME",
@@ -32,6 +37,14 @@ FILE_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,127}$"
 
 _TAKE_RE = re.compile(TAKE_ID)
 
+#: what the files stored beside a take end in (``TAKE.derived.h5`` holds its masks, ``TAKE.gt.npz``
+#: a simulated take's ground truth, ``TAKE.template.ply`` an RGB-D take's scan, ``.part``/``.tmp``
+#: files being written): no take id ends in one (any case), so no id reaches them
+RESERVED_SUFFIXES = (".derived", ".gt", ".template", ".part", ".tmp")
+#: a path component (a file name) in bytes, as the file system counts it (ext4, XFS, APFS: 255)
+MAX_NAME_BYTES = 255
+_MAX_PATH_BYTES = 1024
+
 
 class InvalidIdError(ValueError):
     """An id that does not match its pattern (maps to 400)."""
@@ -48,6 +61,39 @@ def check_id(value: str, *, pattern: str = TAKE_ID, name: str = "id") -> str:
     return value
 
 
+def check_take_id(value: str, *, name: str = "take id") -> str:
+    """The one rule for take ids (URL paths, bodies, queries): :data:`TAKE_ID` (ASCII, so
+    characters are bytes; at most 128), no ``..``, and none of :data:`RESERVED_SUFFIXES`.
+
+    Raises
+    ------
+    InvalidIdError
+    """
+    check_id(value, pattern=TAKE_ID, name=name)
+    if value.lower().endswith(RESERVED_SUFFIXES):
+        raise InvalidIdError(f"{name} {value!r} is not valid (ids ending in {', '.join(RESERVED_SUFFIXES)} "
+                             f"name the files kept beside a take)")
+    return value
+
+
+def take_id_rule(value: str) -> str:
+    """:func:`check_take_id` as a pydantic validator (``Annotated[str, AfterValidator(take_id_rule)]``)."""
+    return check_take_id(value)
+
+
+def upload_path(path: str) -> bool:
+    """True for ``/takes/{id}``, the one URL a take file is PUT to."""
+    parts = path.strip("/").split("/")
+    return len(parts) == 2 and parts[0] == "takes" and parts[1] != "import"
+
+
+def _too_long(rel: Path) -> bool:
+    def nbytes(s: str) -> int:
+        return len(s.encode("utf-8", "surrogateescape"))
+
+    return nbytes(str(rel)) > _MAX_PATH_BYTES or any(nbytes(c) > MAX_NAME_BYTES for c in rel.parts)
+
+
 def inside(root: Path, *parts: str | Path) -> Path:
     """``root / parts`` resolved, refusing anything that leaves ``root`` (symlinks included).
 
@@ -58,8 +104,9 @@ def inside(root: Path, *parts: str | Path) -> Path:
     """
     base = Path(root).resolve()
     rel = Path(*[str(x) for x in parts]) if parts else Path()
-    if "\0" in str(rel) or len(str(rel)) > 1024 or any(len(c) > 255 for c in rel.parts):
-        raise OutsideDataRootError("path is too long or contains a NUL byte")
+    if "\0" in str(rel) or _too_long(rel):
+        raise OutsideDataRootError(f"path is too long (a name holds at most {MAX_NAME_BYTES} bytes, a path "
+                                   f"{_MAX_PATH_BYTES}) or contains a NUL byte")
     try:
         p = base.joinpath(rel).resolve()
     except (OSError, RuntimeError) as exc:  # symlink loops, unreadable components

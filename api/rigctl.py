@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from api.errors import ConflictError, NotFoundError, UnavailableError
-from api.paths import TAKE_ID, check_id, inside
+from api.paths import check_take_id, inside
 
 __all__ = ["CaptureManager", "CaptureState"]
 
@@ -149,7 +149,7 @@ class CaptureManager:
     # -- capture -----------------------------------------------------------------------------
     def start(self, *, take: str, frames: int | None = None, duration_s: float | None = None) -> dict[str, Any]:
         """Start capturing ``frames`` frame sets (or ``duration_s`` seconds) into take ``take``."""
-        check_id(take, pattern=TAKE_ID, name="take")
+        check_take_id(take, name="take")
         if (frames is None) == (duration_s is None):
             raise ValueError("give exactly one of frames or duration_s")
         if frames is not None and frames < 1:

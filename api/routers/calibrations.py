@@ -10,8 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from api import calibrations as _cal
 from api.calibrations import MEDIA, CalibrationLibrary
-from api.deps import CalibrationId, LibraryDep, ReadAccess, RunnerDep, StoreDep, WriteAccess
-from api.paths import TAKE_ID
+from api.deps import CalibrationId, LibraryDep, ReadAccess, RunnerDep, StoreDep, TakeRef, WriteAccess
 
 router = APIRouter(prefix="/calibrations", tags=["calibrations"])
 
@@ -31,7 +30,7 @@ class CalibrationCreate(BaseModel):
     """Calibrate from a take: copy its stored calibration (``take``) or solve from its board views (``board``)."""
 
     model_config = ConfigDict(extra="forbid")
-    take: Annotated[str, Field(pattern=TAKE_ID, max_length=128, examples=["board1"])]
+    take: TakeRef
     source: Literal["board", "take"] = "board"
     parameters: dict[str, Any] = Field(default_factory=dict, description="source=board: api.calibrations.CalibrateParams "
                                        "(board definition required, step, min_change, world, world_frame, fix_k3, "

@@ -12,9 +12,9 @@ from fastapi.sse import EventSourceResponse, ServerSentEvent
 from pydantic import BaseModel, ConfigDict, Field
 
 from api import results
-from api.deps import JobId, LibraryDep, ReadAccess, RunnerDep, SettingsDep, StoreDep, WriteAccess
+from api.deps import JobId, LibraryDep, ReadAccess, RunnerDep, SettingsDep, StoreDep, TakeQuery, TakeRef, WriteAccess
 from api.jobs.store import TERMINAL, JobRecord
-from api.paths import TAKE_ID, inside
+from api.paths import inside
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -23,7 +23,7 @@ class JobCreate(BaseModel):
     """A processing job: which take, which steps, which parameters."""
 
     model_config = ConfigDict(extra="forbid")
-    take: Annotated[str, Field(pattern=TAKE_ID, max_length=128, examples=["take1"])]
+    take: TakeRef
     steps: Annotated[list[str] | None, Field(max_length=16, examples=[["key", "surface", "spine"]])] = None
     parameters: dict[str, Any] = Field(default_factory=dict, description="pipeline.process.ProcessParams fields")
 
@@ -86,7 +86,7 @@ def create_job(body: JobCreate, _: WriteAccess, store: StoreDep, runner: RunnerD
 @router.get("", response_model=list[JobStatus])
 def list_jobs(store: StoreDep, _: ReadAccess,
               state: Literal["queued", "running", "done", "failed", "cancelled"] | None = None,
-              take: Annotated[str | None, Query(pattern=TAKE_ID, max_length=128)] = None,
+              take: TakeQuery = None,
               limit: Annotated[int, Query(ge=1, le=1000)] = 100,
               offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> list[JobStatus]:
     """Jobs, newest first."""

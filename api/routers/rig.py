@@ -8,8 +8,7 @@ from fastapi import APIRouter, Path, Query, status
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from api.deps import CaptureDep, ReadAccess, WriteAccess
-from api.paths import TAKE_ID
+from api.deps import CaptureDep, ReadAccess, TakeRef, WriteAccess
 
 router = APIRouter(prefix="/rig", tags=["rig"])
 
@@ -18,7 +17,7 @@ class CaptureRequest(BaseModel):
     """Capture ``frames`` frame sets or ``duration_s`` seconds into a new take."""
 
     model_config = ConfigDict(extra="forbid")
-    take: Annotated[str, Field(pattern=TAKE_ID, max_length=128, examples=["take1"])]
+    take: TakeRef
     frames: Annotated[int | None, Field(ge=1, le=10_000_000)] = None
     duration_s: Annotated[float | None, Field(gt=0, le=86400)] = None
 

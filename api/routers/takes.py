@@ -8,7 +8,7 @@ from fastapi import APIRouter, HTTPException, Path, Request, status
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from api.deps import LibraryDep, ReadAccess, StoreDep, TakeId, WriteAccess
+from api.deps import LibraryDep, ReadAccess, StoreDep, TakeId, TakeRef, WriteAccess
 from api.errors import ConflictError
 from api.paths import TAKE_ID
 
@@ -35,7 +35,7 @@ class ImportPath(BaseModel):
     """Import a take file that is already inside the data root."""
 
     model_config = ConfigDict(extra="forbid")
-    take: Annotated[str, Field(pattern=TAKE_ID, max_length=128, examples=["take1"])]
+    take: TakeRef
     path: Annotated[str, Field(min_length=1, max_length=1024, examples=["incoming/take1.h5"],
                                description="relative to the data root")]
     masks: Annotated[str | None, Field(min_length=1, max_length=1024, examples=["incoming/take1_masks"],
