@@ -279,7 +279,8 @@ class TakeWriter:
                     g.create_dataset("jpeg_offset", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,), **_SUM)
                     g.create_dataset("jpeg_length", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,), **_SUM)
                 if c.depth:
-                    g.create_dataset("depth", shape=(0, H, W), maxshape=(None, H, W), dtype=np.uint16, chunks=(1, H, W), **filt, **_SUM)
+                    g.create_dataset("depth", shape=(0, H, W), maxshape=(None, H, W), dtype=np.uint16, chunks=(1, H, W),
+                                     **filt, **_SUM)
                 for name in ("timestamp_ns", "host_timestamp_ns", "sequence", "set_index"):
                     g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,), **_SUM)
                 g.create_dataset("valid", shape=(0,), maxshape=(None,), dtype=np.uint8, chunks=(1024,), **_SUM)
