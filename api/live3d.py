@@ -1,19 +1,21 @@
 """The live 3-D preview: a coarse visual hull of the latest frame set and its spine.
 
-A worker thread takes the session's latest frame set a few times a second, keys each
-camera's image (the control room's backdrop keyers), carves a hull on a ``resolution``^3
-grid over the rig's volume (:class:`pipeline.hull.HullCarver`: its lookup tables are built
-once, a carve is then a few milliseconds; one camera is allowed to disagree) and keeps its
-surface voxels; when the subject is articulated (its surface has tips,
-:func:`pipeline.spine.frame_skeleton`), the skeleton grown from the first tip as segments.
-The page draws what :meth:`Live3D.latest` returns. Capture never waits for it: the worker
-only reads the latest frames the grabbers already published, and numpy does the carving
-outside the interpreter lock.
+A worker *process* (so that capture never waits for it, not even for the interpreter lock)
+receives the session's latest frame set a few times a second, keys each camera's image
+(:mod:`stage.keying`, the rig's backdrop; the model is estimated once per camera), carves a
+hull on a ``resolution``^3 grid over the rig's volume (:class:`pipeline.hull.HullCarver`: its
+lookup tables are built once, a carve is then a few milliseconds; one camera is allowed to
+disagree) and returns its surface voxels; when the subject is articulated (its surface has
+tips, :func:`pipeline.spine.frame_skeleton`), also the skeleton grown from the first tip as
+segments. A thread of the server sends a set only when the worker is free (the newest one;
+sets in between are skipped) and keeps the last answer, which the page draws
+(:meth:`Live3D.latest`).
 """
 
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import threading
 import time
 from typing import Any
@@ -32,6 +34,71 @@ def _surface_voxels(occ: np.ndarray) -> np.ndarray:
     full = (pad[:-2, 1:-1, 1:-1] & pad[2:, 1:-1, 1:-1] & pad[1:-1, :-2, 1:-1] & pad[1:-1, 2:, 1:-1]
             & pad[1:-1, 1:-1, :-2] & pad[1:-1, 1:-1, 2:])
     return np.argwhere(inner & ~full)
+
+
+class _Worker:
+    """What the worker process holds: the grid's carver and each camera's backdrop model."""
+
+    def __init__(self, calibration: dict, bounds, resolution: int, backdrop: tuple[str, str], spine: bool) -> None:
+        from calib.calibration import Calibration
+        from pipeline.hull import HullCarver
+        from pipeline.volume import grid_from_volume
+
+        self.cal = Calibration.from_dict(calibration)
+        self.grid = grid_from_volume(np.asarray(bounds, dtype=np.float64), resolution)
+        self.carver = HullCarver(self.cal, self.grid)
+        self.backdrop, self.spine = backdrop, spine
+        self.params: dict[str, Any] = {}
+
+    def mask(self, name: str, image: np.ndarray | None) -> np.ndarray:
+        from stage.keying import KeyingError, KeyParams, estimate_model, key_one
+
+        cam = self.cal[name]
+        everything = np.ones((cam.height, cam.width), bool)  # a camera without a mask carves nothing
+        if image is None or image.shape[:2] != (cam.height, cam.width):
+            return everything
+        p = self.params.get(name)
+        try:
+            if p is None:
+                p = self.params[name] = estimate_model(image[None], params=KeyParams(mode=self.backdrop[0],
+                                                                                     backdrop_color=self.backdrop[1]))
+            return key_one(image, p)[0]
+        except (KeyingError, ValueError):
+            return everything
+
+    def update(self, index: int, images: dict) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        masks = [self.mask(n, images.get(n)) for n in self.cal.names]
+        occ = self.carver.carve(masks, tolerance=1).occupancy
+        vox = _surface_voxels(occ)
+        segments = _spine_segments(occ, self.grid) if self.spine and vox.size else []
+        pts = self.grid.lo + (vox + 0.5) * self.grid.voxel
+        return {"state": "ok", "set": int(index), "voxel": float(self.grid.voxel), "occupied": int(occ.sum()),
+                "points": np.round(pts, 1).tolist(), "segments": segments,
+                "compute_ms": (time.perf_counter() - t0) * 1e3}
+
+
+def _worker_main(conn, calibration: dict, bounds, resolution: int, backdrop: tuple[str, str], spine: bool) -> None:
+    """The worker process: (index, {camera: image}) in, the preview's dict out; None ends it."""
+    # a camera missing from a set carves nothing: the hull's "mask is all foreground" notes are expected
+    logging.getLogger("pipeline.hull").setLevel(logging.ERROR)
+    try:
+        w = _Worker(calibration, bounds, resolution, backdrop, spine)
+    except Exception as exc:  # said once, in the answer the page shows
+        conn.send({"state": "unavailable", "message": f"{type(exc).__name__}: {exc}"})
+        return
+    conn.send({"state": "ready"})
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        try:
+            conn.send(w.update(*msg))
+        except Exception as exc:  # an empty or failed hull is shown as such; the worker goes on
+            conn.send({"state": "empty", "set": int(msg[0]), "message": f"{type(exc).__name__}: {exc}"})
 
 
 class Live3D:
@@ -60,6 +127,7 @@ class Live3D:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="live-3d", daemon=True)
         self.updates = 0
+        self.process = None
 
     def start(self) -> "Live3D":
         self._thread.start()
@@ -81,48 +149,64 @@ class Live3D:
             self._latest = {**kw, "updates": self.updates}
 
     def _loop(self) -> None:
-        from pipeline.hull import HullCarver
-        from pipeline.volume import grid_from_volume
-
         cal = self.room.calibration()
         if cal is None:
             self._set(state="unavailable", message="no calibration: start stage serve with --calibration CAL")
             return
-        grid = grid_from_volume(self.room.session.rig.volume, self.resolution)
-        carver = HullCarver(cal, grid)
+        rig = self.room.session.rig
+        ctx = multiprocessing.get_context("spawn")
+        parent, child = ctx.Pipe()
+        proc = ctx.Process(target=_worker_main, name="live-3d", daemon=True,
+                           args=(child, cal.to_dict(), rig.volume.bounds, self.resolution,
+                                 (rig.backdrop.key_mode, rig.backdrop.color), self.spine))
+        proc.start()
+        self.process = proc
+        try:
+            self._serve(parent, proc, rig)
+        finally:
+            try:
+                parent.send(None)
+            except (OSError, ValueError):
+                pass
+            proc.join(5)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(5)
+            parent.close()
+
+    def _answer(self, parent, proc) -> dict | None:
+        while not self._stop.is_set():
+            if parent.poll(0.1):
+                return parent.recv()
+            if not proc.is_alive():
+                self._set(state="unavailable", message=f"the 3-D worker exited ({proc.exitcode})")
+                return None
+        return None
+
+    def _serve(self, parent, proc, rig) -> None:
+        ready = self._answer(parent, proc)
+        if ready is None or ready.get("state") != "ready":
+            if ready is not None:
+                self._set(**ready)
+            return
+        bounds = [list(map(float, b)) for b in rig.volume.bounds]
         last = None
         while not self._stop.is_set():
             t0 = time.monotonic()
             fs = self.room.session.latest_set()
             if fs is not None and fs.index != last:
                 last = fs.index
-                try:
-                    self._update(fs, cal, grid, carver)
-                except Exception as exc:  # an empty or failed hull is shown as such, the worker goes on
-                    self._set(state="empty", message=f"{type(exc).__name__}: {exc}", set=int(fs.index))
+                parent.send((fs.index, {n: f.image for n, f in fs.frames.items() if f is not None}))
+                out = self._answer(parent, proc)
+                if out is None:
+                    return
+                if out.get("state") == "ok":
+                    self.updates += 1
+                    with self._lock:
+                        self._times.append(time.monotonic())
+                        del self._times[:-50]
+                self._set(**out, bounds=bounds)
             self._stop.wait(max(0.0, self.period - (time.monotonic() - t0)))
-
-    def _update(self, fs, cal, grid, carver) -> None:
-        t0 = time.perf_counter()
-        masks = []
-        for name in cal.names:
-            f = fs.frames.get(name)
-            m = None if f is None else self.room.keyers.mask(name, f.image)
-            cam = cal[name]
-            masks.append(m if m is not None else np.ones((cam.height, cam.width), bool))
-        occ = carver.carve(masks, tolerance=1).occupancy
-        vox = _surface_voxels(occ)
-        segments: list = []
-        if self.spine:
-            segments = _spine_segments(occ, grid)
-        pts = grid.lo + (vox + 0.5) * grid.voxel
-        self.updates += 1
-        with self._lock:
-            self._times.append(time.monotonic())
-            del self._times[:-50]
-        self._set(state="ok", set=int(fs.index), voxel=float(grid.voxel), occupied=int(occ.sum()),
-                  points=np.round(pts, 1).tolist(), segments=segments, compute_ms=(time.perf_counter() - t0) * 1e3,
-                  bounds=[list(map(float, b)) for b in self.room.session.rig.volume.bounds])
 
 
 def _spine_segments(occ: np.ndarray, grid) -> list:

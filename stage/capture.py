@@ -225,6 +225,7 @@ class _Capture:
         self.writer: TakeWriter | None = None
         self.n_sets = 0
         self.spreads: list[int] = []  # sync spread (ns) of the last stored sets
+        self.last_set: Any = None  # the last stored frame set
         self.recent: list[float] = []  # times of the sets stored in the last second
         self.t0 = self.last_stats = time.monotonic()
         self.state = "new"
@@ -401,6 +402,7 @@ class _Capture:
             self.n_sets += 1
             self.spreads.append(fs.spread_ns)
             del self.spreads[:-SPREAD_WINDOW]
+            self.last_set = fs
             self._report(time.monotonic())
         return self._enough()
 

@@ -6,10 +6,10 @@ thread per camera that pulls frames for as long as the session lives. Each frame
 * becomes the camera's *latest frame* (what previews show),
 * counts in the camera's live figures (delivered fps, device sequence gaps),
 * goes to the live grouper (:class:`stage.sync.StreamGrouper`, on its own thread) whose
-  frame sets give the sync spread of the last sets and the latest frame set, and
-* while a take is recorded, goes to the :class:`stage.capture.TakeRecorder`, which groups
-  and stores it exactly as :func:`stage.capture.capture_take` does: what is previewed is
-  what is recorded.
+  frame sets give the sync spread of the last sets and the latest frame set, or
+* while a take is recorded, to the :class:`stage.capture.TakeRecorder` instead, which groups
+  and stores it exactly as :func:`stage.capture.capture_take` does (its sets are then the
+  live ones): what is previewed is what is recorded.
 
 A camera whose driver raises (unplugged) is marked disconnected with the driver's message;
 the others go on, and a take being recorded marks it missing from then on (the take's
@@ -234,6 +234,7 @@ class StageSession:
                     rec.queue.put_nowait(("frame", cid, frame))
                 except queue.Full:
                     rec.count_drop(cid)
+                continue  # while recording, the take's sets are the live ones
             try:
                 self._live_q.put_nowait(("frame", cid, frame))
             except queue.Full:
@@ -285,9 +286,13 @@ class StageSession:
             return live.seq, live.latest
 
     def latest_set(self) -> FrameSet | None:
-        """The most recent frame set of the live grouper (None before the first)."""
+        """The most recent frame set: the take's last stored one while recording, else the live
+        grouper's (None before the first)."""
         with self._lock:
-            return self._latest_set
+            rec = self._recorder
+            live = self._latest_set
+        last = None if rec is None else rec.last_set
+        return last if last is not None else live
 
     def disk(self) -> dict[str, float | None]:
         """Free bytes on the takes' disk and minutes of recording left at the rig's data rate."""
@@ -459,6 +464,7 @@ def _result_dict(r: CaptureResult) -> dict[str, Any]:
         "sets": int(r.sets), "frames": {k: int(v) for k, v in r.frames.items()}, "duration_s": float(r.duration_s),
         "fps": float(r.fps), "stopped": str(r.stopped), "disconnected": dict(r.disconnected),
         "drops": {k: int(v) for k, v in r.drops.items()},
+        "queue_drops": {k: int(v) for k, v in r.queue_drops.items()},
         "sync": st.to_dict(),
     }
 

@@ -1,0 +1,199 @@
+"""A real browser on ``stage serve --rig`` with a simulated rig of 12 cameras: 12 tiles whose previews
+change, a 3 s take recorded from the page whose frame count and sync figures are the page's, a second
+browser pressing record at the same time told why not (409), and the live 3-D preview drawing a hull.
+A board session on a simulated board rig reaches "enough views" and shows its calibration's report.
+
+Screenshots are kept under ``$STAGE_TEST_ARTIFACTS/control`` (else the test's tmp dir).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from stage.store import TakeReader
+from tests.api.test_browser_served import _not_blank
+from tests.api.test_serve import ROOT, free_port
+from tests.pipeline.test_report import CHROMIUM, CHROMIUM_ARGS, _browser
+
+TOKEN = "control-browser-token"
+
+pytestmark = [pytest.mark.slow]
+try:
+    import pytest_timeout  # noqa: F401
+
+    pytestmark.append(pytest.mark.timeout(180))
+except ImportError:
+    pass
+
+
+def _artifacts(tmp_path: Path) -> Path:
+    env = os.environ.get("STAGE_TEST_ARTIFACTS")
+    d = Path(env) / "control" if env else tmp_path / "artifacts"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def rig_toml(n: int, *, subject: str, size: tuple[int, int], fps: float, frames: int) -> str:
+    lines = ['name = "sim"', f"fps = {fps}", "[simulation]", f'subject = "{subject}"', f"n_cameras = {max(n, 4)}",
+             f"frames = {frames}", "noise = 1.0", ""]
+    for i in range(n):
+        lines += ["[[cameras]]", f'id = "cam{i:02d}"', 'driver = "fake"', f"index = {i}", f"width = {size[0]}",
+                  f"height = {size[1]}", "jitter_ms = 0.5", ""]
+    return "\n".join(lines)
+
+
+class StageServer:
+    """``python -m stage serve --rig RIG [--board BOARD]`` in its own process group."""
+
+    def __init__(self, tmp: Path, rig: str, *, board: str | None = None, extra: tuple = ()) -> None:
+        self.tmp, self.port = tmp, free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        (tmp / "rig.toml").write_text(rig)
+        self.args = ["--rig", str(tmp / "rig.toml"), *extra]
+        if board is not None:
+            (tmp / "board.toml").write_text(board)
+            self.args += ["--board", str(tmp / "board.toml")]
+        self.data = tmp / "data"
+        self.logf = tmp / f"serve-{self.port}.log"
+
+    def __enter__(self) -> "StageServer":
+        env = dict(os.environ, STAGE_API_TOKEN=TOKEN, STAGE_POLL_S="0.05",
+                   PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        self.log = open(self.logf, "ab")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "stage", "serve", "--port", str(self.port), "--data", str(self.data), "--workers", "1",
+             "--log-level", "warning", *self.args],
+            cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 90:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"stage serve exited with {self.proc.returncode}: {self.logtext()}")
+            try:
+                if httpx.get(self.url + "/stage", timeout=1).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError(f"stage serve did not come up: {self.logtext()}")
+
+    def logtext(self) -> str:
+        return self.logf.read_text(errors="replace")[-3000:]
+
+    def __exit__(self, *exc) -> None:
+        """SIGTERM (the take and the cameras are closed by the app), SIGKILL if it hangs."""
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            self.proc.wait(20)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(10)
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)  # the job pool's workers
+        except ProcessLookupError:
+            pass
+        self.log.close()
+
+
+def _login(page, url: str) -> None:
+    page.goto(url + "/ui/stage", wait_until="load", timeout=30_000)
+    page.fill("#token", TOKEN)
+    page.dispatch_event("#token", "change")
+
+
+def test_control_room_with_twelve_cameras(tmp_path):
+    sync_playwright = _browser()
+    pytest.importorskip("fake_cameras.device")
+    art = _artifacts(tmp_path)
+    rig = rig_toml(12, subject="starfish", size=(160, 120), fps=30, frames=30)
+    with StageServer(tmp_path, rig) as srv, sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        errors: list[str] = []
+        requests: list[str] = []
+        try:
+            page = browser.new_page(viewport={"width": 1300, "height": 1000})
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("request", lambda q: requests.append(q.url))
+            _login(page, srv.url)
+            assert page.locator(".tile").count() == 12
+            # every tile shows its camera, and the pictures change (the simulated starfish moves)
+            page.wait_for_function("() => CAMERAS.every((c) => (window.__stage.parts[c] || 0) >= 3)", timeout=30_000)
+            assert page.evaluate("() => Array.from(document.querySelectorAll('.tile img')).every((i) => i.naturalWidth > 0)")
+            tile = page.locator('.tile[data-cam="cam03"] img')
+            shots = []
+            for _ in range(3):
+                shots.append(tile.screenshot())
+                page.wait_for_timeout(700)
+            import cv2
+
+            imgs = [cv2.imdecode(np.frombuffer(s, np.uint8), cv2.IMREAD_COLOR).astype(int) for s in shots]
+            assert max(np.abs(imgs[0] - b).mean() for b in imgs[1:]) > 0.2, "the preview does not change"
+            page.wait_for_function("() => !document.querySelector('[data-role=\"fps\"]').textContent.startsWith('–')",
+                                   timeout=10_000)
+
+            # two browsers press record at once: one take, the other is told why not
+            other = browser.new_context().new_page()
+            _login(other, srv.url)
+            page.fill("#take-name", "three")
+            page.fill("#take-seconds", "3")
+            other.fill("#take-name", "rival")
+            other.fill("#take-seconds", "3")
+            page.click("#record")
+            other.click("#record")
+            other.wait_for_function("() => document.getElementById('rec-msg').textContent.includes('409')", timeout=15_000)
+            assert "being recorded" in other.text_content("#rec-msg")
+            page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('recording')",
+                                   timeout=15_000)
+            page.wait_for_timeout(1500)
+            page.screenshot(path=str(art / "stage_recording.png"), full_page=True)
+            page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('done')",
+                                   timeout=30_000)
+            page.wait_for_timeout(800)
+            st = page.locator("#rec-state")
+            sets = int(st.get_attribute("data-sets"))
+            complete = int(st.get_attribute("data-sets-complete"))
+            spread = float(st.get_attribute("data-spread-median-ms"))
+            frames_written = int(page.text_content("#rec-frames"))
+            drops = int(page.text_content("#rec-drops"))
+            msg = page.text_content("#rec-msg")
+
+            # the live 3-D preview draws a hull
+            page.wait_for_function("() => window.__stage.lastLive3d && window.__stage.lastLive3d.state === 'ok'"
+                                   " && window.__stage.lastLive3d.points > 30", timeout=30_000)
+            u0 = page.evaluate("() => window.__stage.lastLive3d.updates")
+            page.wait_for_function(f"() => window.__stage.lastLive3d.updates > {u0} && window.__stage.live3dDraws > 10",
+                                   timeout=20_000)
+            view = page.locator("#live3d")
+            view.scroll_into_view_if_needed()
+            hull_png = view.screenshot(path=str(art / "stage_live3d.png"))
+            info3d = page.text_content("#live3d-info")
+            page.wait_for_selector('#take-list tr[data-take="three"]', timeout=10_000)
+            page.screenshot(path=str(art / "stage_page.png"), full_page=True)
+        finally:
+            browser.close()
+        status = httpx.get(srv.url + "/stage", timeout=10).json()
+    print(f"\ncontrol room screenshots: {art}")
+    assert not errors, errors
+    assert all(u.startswith((srv.url + "/", "data:", "about:", "blob:")) for u in requests), \
+        [u for u in requests if not u.startswith(srv.url)]
+    assert not (srv.data / "takes" / "rival.h5").exists()
+    res = status["recording"]["result"]
+    with TakeReader(srv.data / "takes" / "three.h5") as t:
+        assert t.complete
+        assert len(t) == sets == frames_written == res["sets"]
+        ss = t.sync_stats
+        assert ss["sets_complete"] == complete
+        assert ss["spread_median_ms"] == pytest.approx(spread, abs=1e-6)
+        missing = sum(c["missing"] for c in ss["cameras"].values())
+        assert drops == missing + sum(res["queue_drops"].values())
+        assert f"{sets} frame sets ({complete} complete)" in msg and f"{spread:.2f} ms" in msg
+    _not_blank(hull_png, "live 3-D preview") if hull_png else None
+    assert "voxels" in info3d and "updates/s" in info3d, info3d
