@@ -428,6 +428,12 @@ def _run(args: argparse.Namespace) -> int:
         for w in dict.fromkeys(result.warnings):
             print(f"  warning: {w}")
     else:
-        print(result.report())
+        report = result.report()
+        print(report)
+        shown = [w for w in dict.fromkeys(result.warnings) if f"warning: {w}" not in report]
+        if shown:  # every warning of the calibration, also those of the per-camera and bundle solves
+            print(f"warnings ({len(shown)}):")
+            for w in shown:
+                print(f"  warning: {w}")
     _write(args, result, result.evaluation.get("detections", detections))
     return 0

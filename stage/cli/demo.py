@@ -179,6 +179,8 @@ def run(args: argparse.Namespace) -> int:
             f"vs truth: focal <= {errs['focal_error_pct_max']:.2f} %, centres <= {errs['centre_error_mm_max']:.2f} mm, "
             f"rotations <= {errs['rotation_error_deg_max']:.3f} deg -> {out / 'calibration.toml'}"
         )
+        for w in dict.fromkeys(rigcal.warnings):  # the report file holds them too; the terminal must show them
+            print(f"  calibration warning: {w}")
         summary["calibration"] = {"rms_px": ext.rms, "geometry": geom, **errs}
 
     # 3. creature take + ground truth

@@ -154,3 +154,17 @@ def test_quiet_calibrate_prints_the_held_out_line_first(stereo_dir, tmp_path, ca
         assert main(["calibration", "export", str(out), "--format", fmt]) == 0
         back = read_calibration(tmp_path / name, **({"units": "mm"} if fmt == "colmap" else {}))
         assert len(back) == 2
+
+
+def test_calibrate_prints_every_warning(stereo_dir, tmp_path, capsys):
+    """The terminal shows every warning of the calibration (report.json's ``warnings``), not only the report's own."""
+    import json
+
+    rep = tmp_path / "report.json"
+    assert main(["calibrate", "--images", str(stereo_dir / "imgs"), "--board", str(stereo_dir / "board.toml"),
+                 "--out", str(tmp_path / "c.toml"), "--step", "3", "--holdout", "0", "--report", str(rep)]) == 0
+    text = capsys.readouterr().out
+    warnings = json.loads(rep.read_text())["warnings"]
+    assert warnings, "this calibration (a third of the views) is expected to warn"
+    for w in warnings:
+        assert f"warning: {w}" in text, w
