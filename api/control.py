@@ -95,7 +95,7 @@ class BoardSession:
     """
 
     def __init__(self, session, board, *, min_views: int = 8, min_shared: int = 3, min_change: float = 0.02,
-                 rate_hz: float = 3.0) -> None:
+                 rate_hz: float = 6.0) -> None:
         if min_views < 1 or min_shared < 1:
             raise ValueError("min_views and min_shared must be >= 1")
         if not rate_hz > 0:

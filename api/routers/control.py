@@ -66,8 +66,18 @@ class BoardRequest(BaseModel):
 
 
 class CalibrateRequest(BaseModel):
+    """Calibrate the board take: ``holdout`` folds for the held-out errors (0 or >= 2), the board
+    detected in every ``step``-th frame set."""
+
     model_config = ConfigDict(extra="forbid")
     holdout: Annotated[int, Field(ge=0, le=20)] = 5
+    step: Annotated[int, Field(ge=1, le=1000)] = 1
+
+    @model_validator(mode="after")
+    def _folds(self) -> "CalibrateRequest":
+        if self.holdout == 1:
+            raise ValueError("holdout must be 0 (none) or >= 2 folds")
+        return self
 
 
 def _start(room, settings, take: str, **kw: Any) -> dict[str, Any]:
@@ -219,7 +229,7 @@ async def board_calibrate(body: CalibrateRequest, room: ControlDep, store: Store
     except NoRecordingError:
         pass  # it ended on its own
     library.path(bs.take)  # 404 when the take is not there
-    params = CalibrateParams(board=room.board.to_dict(), holdout=body.holdout)
+    params = CalibrateParams(board=room.board.to_dict(), holdout=body.holdout, step=body.step)
     rec = store.create(kind="calibrate", take=bs.take, steps=("detect", "calibrate"),
                        params=params.model_dump(mode="json"))
     runner.wake()

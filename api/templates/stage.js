@@ -166,7 +166,7 @@
     }
   }
   function showPairs(st){
-    const cams = st.cameras; let html = '<table><tr><th></th>' + cams.map((c) => '<th>' + c.slice(-3) + '</th>').join('') + '</tr>';
+    const cams = st.cameras; let html = '<table><tr><th></th>' + cams.map((c) => '<th>' + c + '</th>').join('') + '</tr>';
     cams.forEach((a, i) => {
       html += '<tr><th>' + a + '</th>' + cams.map((b, j) => {
         if (i === j) return '<td>·</td>';
@@ -233,13 +233,15 @@
   }
   if (HAS_BOARD){
     $('board-start').addEventListener('click', async () => {
-      const r = await api('POST', '/stage/board/start', {});
+      const r = await api('POST', '/stage/board/start', {min_views: parseInt($('min-views').value, 10) || 8,
+                                                          min_shared: parseInt($('min-shared').value, 10) || 3});
       if (!r.ok){ say($('board-msg'), 'board session: ' + detail(r), 'bad'); return; }
       calibJob = null; $('calib-report').hidden = true;
       if (!boardPoll) board();
     });
     $('calibrate').addEventListener('click', async () => {
-      const r = await api('POST', '/stage/board/calibrate', {});
+      const folds = parseInt($('holdout').value, 10);
+      const r = await api('POST', '/stage/board/calibrate', {holdout: folds >= 0 ? folds : 5, step: parseInt($('cal-step').value, 10) || 1});
       if (!r.ok){ say($('board-msg'), 'calibrate: ' + detail(r), 'bad'); return; }
       calibJob = r.data.job; $('calibrate').disabled = true;
       say($('board-msg'), 'calibrating take ' + r.data.take + ' (job ' + calibJob.slice(0, 8) + ')', '');

@@ -197,3 +197,64 @@ def test_control_room_with_twelve_cameras(tmp_path):
         assert f"{sets} frame sets ({complete} complete)" in msg and f"{spread:.2f} ms" in msg
     _not_blank(hull_png, "live 3-D preview") if hull_png else None
     assert "voxels" in info3d and "updates/s" in info3d, info3d
+
+
+CAL_CAMERAS = 4
+BOARD = 'type = "charuco"\nsquares = [7, 5]\nsquare_mm = 70.0\nmarker_mm = 52.0\ndictionary = "DICT_4X4_50"\n'
+
+
+def test_board_session_to_calibration_report(tmp_path):
+    """The simulated board (the ChArUco board of ``subject = "board-charuco"``) waved in front of the rig:
+    corners drawn on the tiles, the meters fill to "enough views", then the calibration job's report
+    (every warning, the held-out errors) is on the page.
+
+    Four cameras at 640x480, 4 fps (each simulated view held 250 ms): the board is too small to be found
+    at the test's usual 160x120, and rendering twelve cameras' views at 640x480 alone takes more than
+    the minute a test may take on two cores (``stage bench control --board`` runs twelve)."""
+    sync_playwright = _browser()
+    pytest.importorskip("fake_cameras.device")
+    art = _artifacts(tmp_path)
+    rig = rig_toml(CAL_CAMERAS, subject="board-charuco", size=(640, 480), fps=4, frames=16)
+    t0 = time.monotonic()
+    steps = {}
+    with StageServer(tmp_path, rig, board=BOARD, extra=("--no-live3d",)) as srv, sync_playwright() as p:
+        steps["server up (renders the board views)"] = time.monotonic() - t0
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        errors: list[str] = []
+        try:
+            page = browser.new_page(viewport={"width": 1300, "height": 1000})
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            _login(page, srv.url)
+            page.fill("#min-views", "4")
+            page.fill("#min-shared", "2")
+            page.click("#board-start")
+            page.wait_for_function("() => document.getElementById('board-msg').dataset.enough === 'true'", timeout=60_000)
+            steps["enough views"] = time.monotonic() - t0
+            page.wait_for_timeout(600)
+            page.screenshot(path=str(art / "board_enough.png"), full_page=True)
+            meters = page.evaluate("() => Array.from(document.querySelectorAll('.meter progress')).map((p) => [p.value, p.max])")
+            page.fill("#holdout", "3")
+            page.click("#calibrate")
+            page.wait_for_function("() => document.getElementById('calib-report').dataset.done === 'true'", timeout=90_000)
+            steps["calibration report"] = time.monotonic() - t0
+            page.locator("#calib-report").scroll_into_view_if_needed()
+            page.screenshot(path=str(art / "board_calibration.png"), full_page=True)
+            shown = [li.text_content() for li in page.locator("#calib-warnings li").all()]
+            rows = [[td.text_content() for td in tr.locator("td").all()] for tr in page.locator("#calib-errors tbody tr").all()]
+            summary = page.text_content("#calib-summary")
+        finally:
+            browser.close()
+        board = httpx.get(srv.url + "/stage/board", timeout=10).json()
+        report = httpx.get(srv.url + f"/jobs/{board['job']}/results/report.json", timeout=10).json()
+        cal = httpx.get(srv.url + f"/calibrations/{board['job']}.json", timeout=10)
+    print("\nboard session, seconds from the start: " + ", ".join(f"{k} {v:.1f}" for k, v in steps.items()))
+    assert not errors, errors
+    assert meters and all(v == m for v, m in meters), meters
+    assert all(n >= 4 for n in board["views"].values()), board["views"]
+    assert cal.status_code == 200, cal.text
+    assert shown == report["warnings"]  # every warning, in order
+    assert summary == report["summary"] and "held-out" in summary
+    held = report["evaluation"]["held_out"]["per_camera"]
+    assert [r[0] for r in rows] == list(held)
+    for r in rows:
+        assert float(r[1]) == pytest.approx(held[r[0]]["rms"], abs=1e-3) and float(r[1]) < 2.0
