@@ -98,6 +98,9 @@ class Calibration:
     def from_dict(cls, data: dict) -> "Calibration":
         if not isinstance(data, dict) or "cameras" not in data:
             raise ValueError("calibration dictionary needs a 'cameras' list")
+        unknown = sorted(set(data) - {"format", "units", "cameras", "meta"})
+        if unknown:
+            raise ValueError(f"calibration: unknown keys {unknown} (known: format, units, cameras, meta)")
         return cls(
             cameras=tuple(Camera.from_dict(c) for c in data["cameras"]),
             units=str(data.get("units", "mm")),

@@ -254,6 +254,10 @@ def matrix_to_rodrigues(R: np.ndarray) -> np.ndarray:
     return rvec.ravel()
 
 
+#: the keys of :meth:`Camera.to_dict` (what :meth:`Camera.from_dict` accepts)
+_CAMERA_KEYS = frozenset({"name", "K", "dist", "R", "t", "size", "meta"})
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A calibrated camera: intrinsics, distortion, world -> camera pose.
@@ -289,6 +293,9 @@ class Camera:
             raise ValueError(f"K must be 3x3, got shape {K.shape}")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError("K: focal lengths must be positive")
+        if not np.allclose(K[2], [0.0, 0.0, 1.0], rtol=0, atol=1e-9) or abs(K[1, 0]) > 1e-9:
+            raise ValueError(f"K must be an intrinsic matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got rows "
+                             f"{K[1].tolist()} and {K[2].tolist()}")
         R = np.asarray(self.R, dtype=np.float64)
         if R.shape != (3, 3):
             raise ValueError(f"R must be 3x3, got shape {R.shape}")
@@ -400,6 +407,11 @@ class Camera:
 
     @classmethod
     def from_dict(cls, data: dict) -> "Camera":
+        if not isinstance(data, dict):
+            raise ValueError(f"camera must be a dictionary, got {type(data).__name__}")
+        unknown = sorted(set(data) - _CAMERA_KEYS)
+        if unknown:  # a misspelt key would silently fall back to a default
+            raise ValueError(f"camera {data.get('name', '?')!r}: unknown keys {unknown} (known: {sorted(_CAMERA_KEYS)})")
         try:
             return cls(
                 name=str(data["name"]),

@@ -166,6 +166,11 @@ def _cam_sort_key(key: str) -> tuple[int, str]:
     return (int(m.group(1)) if m else 1 << 30, key)
 
 
+#: keys of an aniposelib camera table (``rotation_matrix`` and ``mirror`` are ours)
+_ANIPOSE_KEYS = frozenset({"name", "size", "matrix", "distortions", "rotation", "rotation_matrix", "translation",
+                           "fisheye", "mirror"})
+
+
 def calibration_from_aniposelib(data: dict, *, source: str = "aniposelib TOML") -> Calibration:
     """Build a :class:`Calibration` from a parsed aniposelib TOML dictionary.
 
@@ -183,6 +188,9 @@ def calibration_from_aniposelib(data: dict, *, source: str = "aniposelib TOML") 
         d = data[k]
         if d.get("fisheye"):
             raise CalibrationFormatError(f"{source}: [{k}] is a fisheye camera; only the pinhole model is supported")
+        unknown = sorted(set(d) - _ANIPOSE_KEYS)
+        if unknown:  # a misspelt key would silently fall back to a default
+            raise CalibrationFormatError(f"{source}: [{k}] has unknown keys {unknown} (known: {sorted(_ANIPOSE_KEYS)})")
         missing = [f for f in ("matrix", "rotation", "translation", "size") if f not in d]
         if missing:
             raise CalibrationFormatError(f"{source}: [{k}] is missing {', '.join(missing)}")

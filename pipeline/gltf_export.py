@@ -357,7 +357,7 @@ def export_rig(
         Output file (default ``results_dir/spine_rig.glb``).
     reference : int, optional
         Take frame number of the rest pose (default: the spine's reference
-        frame, or the complete frame with a mesh nearest to it).
+        frame, or the complete frame nearest to it).
     segments : int or None
         Bones per limb.
     include_spine : bool
@@ -372,7 +372,7 @@ def export_rig(
     NoSpineError
         No ``spine.json`` yet.
     FileNotFoundError
-        No mesh for any complete frame.
+        The reference frame has no mesh file (never another frame in its place).
     """
     from pipeline.meshio import load_mesh
     from pipeline.spine import read_spine
@@ -399,12 +399,14 @@ def export_rig(
             except ValueError:
                 continue
         candidates = complete
-    for pos in candidates:
-        mp = find_frame_mesh(d, fi[pos])
-        if mp is not None:
-            break
-    else:
-        raise FileNotFoundError(f"{d / 'meshes'} has no mesh for any frame where the spine is complete")
+    if not candidates:
+        raise ValueError(f"{d / 'spine.json'}: no frame where the spine is complete")
+    pos = candidates[0]
+    mp = find_frame_mesh(d, fi[pos])
+    if mp is None:  # `stage process` writes every frame's mesh: another frame would be another rest pose
+        raise FileNotFoundError(
+            f"{d / 'meshes'}: the reference frame's mesh frame_{fi[pos]:06d}.ply is missing; run `stage process` "
+            f"again to make it, or choose the rest pose with --reference FRAME")
     v, f = load_mesh(mp)
     if len(f) == 0:
         raise ValueError(f"{mp} is empty")

@@ -542,7 +542,27 @@ def _surface_meshes(root: Path, folder: str = "meshes") -> tuple[list[int], dict
         run = "`stage track --carve`" if folder != "meshes" else "`stage process`"
         raise FileNotFoundError(f"{mesh_dir}: no frame_NNNNNN.ply meshes (run {run} first)")
     frames = [int(p.stem.split("_")[1]) for p in paths]
+    _check_no_gap(root, mesh_dir, frames)
     return frames, dict(zip(frames, paths))
+
+
+def _check_no_gap(root: Path, mesh_dir: Path, frames: list[int]) -> None:
+    """Every frame of the run has its surface file: ``stage process`` writes one per frame set
+    (an empty one where nothing was seen), so a missing file is an error naming it, never a
+    frame tracked past in silence."""
+    expected = None
+    record = root / "process.json"
+    if record.is_file():
+        try:
+            expected = int(json.loads(record.read_text()).get("frames"))
+        except (ValueError, TypeError, OSError, AttributeError):
+            expected = None
+    want = range(expected) if expected else range(frames[0], frames[-1] + 1)
+    missing = sorted(set(want) - set(frames))
+    if missing:
+        names = ", ".join(f"frame_{k:06d}.ply" for k in missing[:5]) + (" ..." if len(missing) > 5 else "")
+        raise FileNotFoundError(f"{mesh_dir}: {len(missing)} of {len(want)} surfaces missing ({names}); "
+                                f"run `stage process` again to make them")
 
 
 def _mesh_data(by_frame: dict):

@@ -205,6 +205,19 @@ def test_export_rig_writes_spine_rig_glb(results_dir):
     assert find_frame_mesh(results_dir, FRAMES // 2).suffix == ".ply"
 
 
+def test_export_with_the_reference_mesh_deleted_names_it_and_rigs_no_other_frame(results_dir, capsys):
+    from stage.cli import main
+
+    ref = FRAMES // 2
+    mesh = results_dir / "meshes" / f"frame_{ref:06d}.ply"
+    mesh.rename(results_dir / "meshes" / f"frame_{ref + 1:06d}.ply")  # a neighbour has a mesh, the reference not
+    with pytest.raises(FileNotFoundError, match=f"frame_{ref:06d}.ply is missing"):
+        export_rig(results_dir)
+    assert main(["export", str(results_dir), "--format", "glb"]) == 2
+    assert "--reference" in capsys.readouterr().err
+    assert not (results_dir / "spine_rig.glb").exists()
+
+
 def test_cli_export(results_dir, tmp_path_factory, capsys):
     from stage.cli import main
 
@@ -240,7 +253,7 @@ def test_invalid_input(tmp_path, results_dir, take):
     with pytest.raises(ValueError, match="reference"):
         export_rig(results_dir, reference=999)
     (results_dir / "meshes" / f"frame_{FRAMES // 2:06d}.ply").unlink()
-    with pytest.raises(FileNotFoundError, match="no mesh"):
+    with pytest.raises(FileNotFoundError, match="mesh frame_.*is missing"):
         export_rig(results_dir)
     bad = tmp_path / "bad"
     bad.mkdir()

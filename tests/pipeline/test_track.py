@@ -272,6 +272,29 @@ def test_reference_frame_without_a_surface_says_so_in_one_line(tmp_path, caplog)
     assert rep["skipped"] == [0] and sorted(rep["frames"]) == ["1", "2"]
 
 
+def test_a_missing_surface_is_an_error_naming_it_not_a_frame_skipped(tmp_path, capsys):
+    """``stage process`` writes a surface per frame set (an empty one where nothing was seen): a
+    missing ``frame_000002.ply`` is one error naming it (against process.json's frame count, or a
+    gap in the numbering), and nothing is tracked."""
+    t = _sphere_results(tmp_path, frames=5)
+    (tmp_path / "meshes" / "frame_000002.ply").unlink()
+    assert main(["-q", "track", str(tmp_path), "--template", str(_template_file(tmp_path, t))]) == 2
+    err = capsys.readouterr().err
+    assert "1 of 5 surfaces missing (frame_000002.ply)" in err and "stage process" in err
+    assert not (tmp_path / "tracked").exists()
+    (tmp_path / "meshes" / "frame_000004.ply").unlink()  # the last frames: only process.json knows them
+    (tmp_path / "process.json").write_text(json.dumps({"frames": 5}))
+    atomic_write_bytes(tmp_path / "meshes" / "frame_000002.ply", ply_bytes(t.vertices, t.faces))
+    assert main(["-q", "track", str(tmp_path), "--template", str(_template_file(tmp_path, t))]) == 2
+    assert "frame_000004.ply" in capsys.readouterr().err
+
+
+def _template_file(root, t):
+    path = root / "template.ply"
+    trimesh.Trimesh(t.vertices, t.faces, process=False).export(path)
+    return path
+
+
 def _sphere_results(root, frames=5):
     t = trimesh.creation.icosphere(subdivisions=2, radius=60.0)
     for k in range(frames):
