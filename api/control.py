@@ -106,11 +106,12 @@ class BoardSession:
         ids = session.ids
         self.ids = ids
         self._lock = threading.Lock()
-        self.latest: dict[str, Any] = {c: None for c in ids}  # camera -> (N, 2) corners of the last set, or None
+        self.latest: dict[str, Any] = {c: None for c in ids}  # camera -> (frame, (N, 2) corners or None) or None
         self.kept: dict[str, list] = {c: [] for c in ids}
         self.coverage = {c: np.zeros(COVERAGE_CELLS[::-1], np.int64) for c in ids}
         self.shared = np.zeros((len(ids), len(ids)), np.int64)
         self.sets_examined = 0
+        self.version = 0  # bumps with every examined set
         self.take: str | None = None
         self.job: str | None = None
         self._stop = threading.Event()
@@ -151,7 +152,7 @@ class BoardSession:
         for i, cid in enumerate(self.ids):
             f = frames.get(cid)
             det = None if f is None else detect_board(f.image, self.board)
-            found[cid] = None if det is None else det.corners
+            found[cid] = None if f is None else (f, None if det is None else det.corners)
             if det is None:
                 continue
             h, w = f.image.shape[:2]
@@ -167,13 +168,15 @@ class BoardSession:
         with self._lock:
             self.latest = found
             self.sets_examined += 1
-            det_idx = [i for i, c in enumerate(self.ids) if found[c] is not None]
+            self.version += 1
+            det_idx = [i for i, c in enumerate(self.ids) if found[c] is not None and found[c][1] is not None]
             for a in det_idx:
                 for b in det_idx:
                     if a != b and (a in seen or b in seen):
                         self.shared[a, b] += 1
 
-    def corners(self, cid: str) -> np.ndarray | None:
+    def examined(self, cid: str) -> tuple[Any, np.ndarray | None] | None:
+        """(frame, corners or None) of camera ``cid`` in the last examined set, or None."""
         with self._lock:
             return self.latest.get(cid)
 
@@ -207,7 +210,7 @@ class BoardSession:
                 "running": self.running, "take": self.take, "job": self.job,
                 "min_views": self.min_views, "min_shared": self.min_shared, "sets_examined": self.sets_examined,
                 "views": {c: len(self.kept[c]) for c in self.ids},
-                "detected": {c: self.latest.get(c) is not None for c in self.ids},
+                "detected": {c: (self.latest.get(c) or (None, None))[1] is not None for c in self.ids},
                 "coverage": {c: self.coverage[c].tolist() for c in self.ids},
                 "shared": self.shared.tolist(), "cameras": list(self.ids),
                 "enough": ok, "message": why, "board": self.board.to_dict(),
@@ -268,8 +271,16 @@ class ControlRoom:
         seq, frame = self.session.latest(cid)
         if frame is None:
             return seq, None, 0
-        show_board = board and self.board_session is not None and self.board_session.running
-        key = (cid, bool(mask), bool(show_board), int(quality))
+        bs = self.board_session
+        show_board = board and bs is not None and bs.running
+        corners = None
+        if show_board:
+            # during a board session a tile shows the frame the board was looked for in, with the
+            # corners found (half a second old at most): corners drawn on a newer frame would be off
+            hit = bs.examined(cid)
+            if hit is not None and frame.host_timestamp_ns - hit[0].host_timestamp_ns < 500_000_000:
+                frame, corners = hit
+        key = (cid, bool(mask), bs.version if show_board else -1, int(quality))
         with self._lock:
             hit = self._cache.get(key)
         if hit is not None and hit[0] == seq:
@@ -282,7 +293,6 @@ class ControlRoom:
                 img = img.copy()
                 img[m] = (0.5 * img[m] + 0.5 * np.array([255, 0, 255])).astype(np.uint8)
         if show_board:
-            corners = self.board_session.corners(cid)
             if corners is not None:
                 img = img.copy() if img is frame.image else img
                 for x, y in np.asarray(corners) * scale:

@@ -127,6 +127,7 @@ class Live3D:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="live-3d", daemon=True)
         self.updates = 0
+        self.compute_ms: list[float] = []  # of the last updates
         self.process = None
 
     def start(self) -> "Live3D":
@@ -201,6 +202,8 @@ class Live3D:
                 if out is None:
                     return
                 if out.get("state") == "ok":
+                    self.compute_ms.append(float(out["compute_ms"]))
+                    del self.compute_ms[:-100]
                     self.updates += 1
                     with self._lock:
                         self._times.append(time.monotonic())
