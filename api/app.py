@@ -146,6 +146,7 @@ def create_app(settings: Settings | None = None, *, work: str | Callable[..., An
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        app.state.library.remove_stale_uploads()  # a killed server's unfinished uploads
         if start_runner:
             runner.start()
         try:

@@ -15,6 +15,7 @@ import concurrent.futures as cf
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -57,12 +58,30 @@ class ExecutorHandle:
     description: str
     _closers: list[Any] = field(default_factory=list, repr=False)
 
-    def close(self) -> None:
-        """Shut the executor down and close the Dask client/cluster if we opened them."""
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Shut the executor down and close the Dask client/cluster if we opened them.
+
+        A local pool is joined: queued tasks are cancelled, running ones get ``timeout_s`` to
+        finish, then their workers are terminated, and the pool's management thread is joined, so
+        its queues (and their semaphores) are released before the process exits.
+        """
+        procs = list((getattr(self.executor, "_processes", None) or {}).values())
+        manager = getattr(self.executor, "_executor_manager_thread", None)  # holds the pool's queues
         try:
             self.executor.shutdown(wait=False, cancel_futures=True)
         except TypeError:  # executors without cancel_futures
             self.executor.shutdown(wait=False)
+        if procs:
+            deadline = time.monotonic() + timeout_s
+            for p in procs:
+                p.join(max(0.0, deadline - time.monotonic()))
+            for p in procs:
+                if p.is_alive():
+                    log.warning("pool worker %d still busy after %.0f s at shutdown; terminated", p.pid, timeout_s)
+                    p.terminate()
+                    p.join(2.0)
+        if manager is not None:
+            manager.join(max(1.0, timeout_s))
         for c in reversed(self._closers):
             try:
                 c.close()
@@ -74,8 +93,11 @@ class ExecutorHandle:
 def _exit_with(parent_pid: int, interval_s: float = 1.0) -> None:
     """Pool-worker initializer: exit when the server process is gone (e.g. killed with SIGKILL).
 
-    Without it the workers of a killed server would live on, blocked on their queue.
+    Without it the workers of a killed server would live on, blocked on their queue. Ctrl-C
+    (SIGINT to the whole process group) is the server's to handle: a worker ignores it, finishes
+    its task and is joined at shutdown, instead of printing a traceback of its own.
     """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def watch() -> None:
         while True:

@@ -84,6 +84,16 @@ def _jsonable(v: Any) -> Any:
     return v
 
 
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process has the pid now
+        return False
+    return True
+
+
 class TakeLibrary:
     """Takes of one data root.
 
@@ -164,7 +174,27 @@ class TakeLibrary:
 
     def _tmp(self) -> Path:
         self.takes_dir.mkdir(parents=True, exist_ok=True)
-        return self.takes_dir / f".upload-{uuid.uuid4().hex}.part"
+        return self.takes_dir / f".upload-{os.getpid()}-{uuid.uuid4().hex}.part"
+
+    def remove_stale_uploads(self) -> list[str]:
+        """Remove the ``.upload-<pid>-<hex>.part`` files of uploads whose server process is gone (a
+        killed server, a dropped connection it never saw end); those of a live server sharing the
+        data root stay. Files of the older name ``.upload-<hex>.part`` carry no pid: removed.
+        Returns the names removed."""
+        gone = []
+        for p in self.takes_dir.glob(".upload-*.part"):
+            parts = p.name[len(".upload-"):-len(".part")].split("-")
+            pid = int(parts[0]) if len(parts) == 2 and parts[0].isdigit() else None
+            if pid is not None and pid != os.getpid() and _process_alive(pid):
+                continue
+            try:
+                p.unlink()
+                gone.append(p.name)
+            except OSError as exc:
+                log.warning("cannot remove the stale upload %s: %s", p.name, exc)
+        if gone:
+            log.info("removed %d stale upload file(s) of a server that is gone: %s", len(gone), ", ".join(gone))
+        return gone
 
     def _finish(self, tmp: Path, take_id: str) -> dict[str, Any]:
         try:
