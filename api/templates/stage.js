@@ -302,7 +302,8 @@
     const r = await api('GET', '/takes');
     if (!r.ok) return;
     const tb = $('take-list'); tb.innerHTML = '';
-    for (const t of r.data){
+    const newest = r.data.slice().sort((a, b) => b.modified - a.modified).slice(0, 20);
+    for (const t of newest){
       const tr = document.createElement('tr'); tr.dataset.take = t.id;
       const a = document.createElement('a'); a.href = '/ui/takes/' + encodeURIComponent(t.id); a.textContent = t.id;
       const td0 = document.createElement('td'); td0.appendChild(a);
@@ -314,7 +315,16 @@
         if (j.ok) window.location = '/ui/jobs/' + j.data.id; else say($('rec-msg'), 'process: ' + detail(j), 'bad');
       });
       td3.appendChild(b);
-      tr.append(td0, td1, td2, td3); tb.appendChild(tr);
+      const td4 = document.createElement('td'); td4.className = 'muted';
+      tr.append(td0, td1, td2, td4, td3); tb.appendChild(tr);
+      api('GET', '/takes/' + encodeURIComponent(t.id)).then((i) => {  // stage info's figures
+        if (!i.ok) return;
+        const sync = i.data.sync || {};
+        td1.textContent = i.data.frames;
+        td4.textContent = (sync.sets_complete !== undefined ? sync.sets_complete + ' complete sets, ' : '') +
+          (sync.spread_median_ms !== undefined ? 'sync spread median ' + fmt(sync.spread_median_ms, 2) + ' ms' : '') +
+          (i.data.complete === false ? ' (being written)' : '');
+      });
     }
   }
   previews(); figures(); poll3d(); takes(); requestAnimationFrame(draw3d);

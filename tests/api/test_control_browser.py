@@ -176,6 +176,8 @@ def test_control_room_with_twelve_cameras(tmp_path):
             hull_png = view.screenshot(path=str(art / "stage_live3d.png"))
             info3d = page.text_content("#live3d-info")
             page.wait_for_selector('#take-list tr[data-take="three"]', timeout=10_000)
+            page.wait_for_function("(n) => document.querySelector('#take-list tr[data-take=\"three\"] td:nth-child(2)')"
+                                   ".textContent === String(n)", arg=sets, timeout=10_000)  # stage info's figures
             page.screenshot(path=str(art / "stage_page.png"), full_page=True)
         finally:
             browser.close()
