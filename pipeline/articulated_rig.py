@@ -377,6 +377,7 @@ def rig_dict(rig: ArticulatedRig) -> dict:
             "kind": kinds[j],
             "segments": list(sk.segment_pairs[j]) if sk.segment_pairs[j] is not None else None,
             "rest": [float(x) for x in sk.rest[j]],
+            **({"placement": sk.placement[j]} if j < len(sk.placement) and sk.placement[j] is not None else {}),
         }
         for j, n in enumerate(names)
     ]

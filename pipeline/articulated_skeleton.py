@@ -47,6 +47,7 @@ from pipeline.motion_segmentation import rigid_motions
 
 __all__ = [
     "CurveSkeleton", "ArticulatedSkeleton", "curve_skeleton", "articulated_skeleton", "segment_hits_mesh", "joint_residual",
+    "relative_bend", "PIVOT_UNCERTAINTY",
 ]
 
 log = logging.getLogger(__name__)
@@ -92,6 +93,10 @@ class ArticulatedSkeleton:
         Parent part (-1 for part 0).
     bones : (B, 2) int ndarray
         ``(joint, child joint)``.
+    placement : tuple
+        For every joint, how an articulation was placed (``None`` for the others, or without the
+        motion): ``{"method": "centre of rotation" | "boundary", "bend_degrees": float,
+        "reason": str}`` (``reason`` says why the centre of rotation was not used).
     """
 
     names: tuple
@@ -103,6 +108,7 @@ class ArticulatedSkeleton:
     part_joint: np.ndarray
     part_parent: np.ndarray
     bones: np.ndarray
+    placement: tuple = ()
 
     @property
     def n_joints(self) -> int:
@@ -382,18 +388,73 @@ def _articulation_pairs(v, f, lab, min_edges, motion, reference) -> tuple[list, 
     return kept, motions
 
 
-def _pivot_positions(P, joint_pairs, cand, motions) -> dict:
-    """Articulations moved to their centre of rotation when it lies within their boundary's cross-section."""
+#: an articulation keeps the paper's placement when its centre of rotation is ill-determined: when the
+#: centre's uncertainty (the pivot residual over the root-mean-square size of ``R_a - R_b`` across the
+#: hinge, i.e. residual / bend) exceeds this fraction of the mean radius of the boundary where the two
+#: parts meet -- the centre could then be anywhere in that cross-section
+PIVOT_UNCERTAINTY = 1.0
+
+
+def relative_bend(motion_a, motion_b, *, most: int = 60) -> float:
+    """Degrees two parts turn against each other: the largest angle between their relative rotations
+    in any two frames (at most ``most`` evenly spaced frames).
+
+    Parameters
+    ----------
+    motion_a, motion_b : tuple of (T, 3, 3) and (T, 3) float ndarray
+        ``x_t = R_t x + t_t`` of each part.
+    """
+    Ra, Rb = np.asarray(motion_a[0], dtype=np.float64), np.asarray(motion_b[0], dtype=np.float64)
+    if Ra.shape != Rb.shape or Ra.ndim != 3 or Ra.shape[1:] != (3, 3):
+        raise ValueError(f"motions must hold (T, 3, 3) rotations of one length, got {Ra.shape} and {Rb.shape}")
+    sel = np.unique(np.linspace(0, len(Ra) - 1, min(len(Ra), int(most))).round().astype(np.int64))
+    Rr = np.matmul(Ra[sel].transpose(0, 2, 1), Rb[sel])
+    cos = (np.einsum("aij,bij->ab", Rr, Rr) - 1.0) / 2.0  # trace(Rr_a^T Rr_b)
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)).max()))
+
+
+def _inside(point: np.ndarray, v: np.ndarray, normals: np.ndarray, tree: cKDTree, k: int = 8) -> bool:
+    """Whether ``point`` lies inside the surface: behind the normals of most of its ``k`` nearest vertices."""
+    _, nn = tree.query(point, k=min(k, len(v)))
+    nn = np.atleast_1d(nn)
+    return bool((((point - v[nn]) * normals[nn]).sum(1) < 0).mean() > 0.5)
+
+
+def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, dict]:
+    """Articulations moved to their centre of rotation where it is determined, inside the boundary's
+    cross-section and inside the mesh; how every articulation was placed, and why."""
     if motions is None:
-        return {}
+        return {}, {}
+    from pipeline.motion_segmentation import vertex_normals
+
+    normals = vertex_normals(v, f)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    if np.einsum("ij,ij->i", a, np.cross(b, c)).sum() < 0:  # faces wound inwards: normals point in
+        normals = -normals
     radius = {pair: r for pair, _, r in cand}
-    out = {}
+    out, how = {}, {}
     for node, pairs in joint_pairs.items():
         a, b = pairs[0]
-        _, c = joint_residual(motions[a], motions[b], P[node])
-        if np.linalg.norm(c - P[node]) <= radius[(a, b)]:
+        bend = relative_bend(motions[a], motions[b])
+        info = {"method": "boundary", "bend_degrees": round(bend, 2)}
+        how[node] = info
+        res, c = joint_residual(motions[a], motions[b], P[node])
+        M = motions[a][0] - motions[b][0]
+        e = np.linalg.eigvalsh(np.einsum("tji,tjk->ik", M, M) / len(M))  # ascending; e[0] ~ 0 along a hinge's axis
+        sigma = res / np.sqrt(max(float(e[1]), 1e-300))
+        info["uncertainty"] = round(float(sigma / max(radius[(a, b)], 1e-300)), 3)
+        if sigma > PIVOT_UNCERTAINTY * radius[(a, b)]:
+            info["reason"] = (f"bends {bend:.1f} degrees: its centre of rotation is ill-determined (uncertain by "
+                              f"{info['uncertainty']:.2f} of the boundary's radius), the boundary's centroid on the "
+                              "curve skeleton is kept")
+        elif np.linalg.norm(c - P[node]) > radius[(a, b)]:
+            info["reason"] = "the centre of rotation lies outside the cross-section where the two parts meet"
+        elif not _inside(c, v, normals, tree):
+            info["reason"] = "the centre of rotation lies outside the mesh"
+        else:
             out[node] = c
-    return out
+            info["method"] = "centre of rotation"
+    return out, how
 
 
 def articulated_skeleton(
@@ -438,8 +499,11 @@ def articulated_skeleton(
     refine_joints : bool
         With ``motion``: an articulation placed on the curve skeleton moves
         to the centre of rotation of its two segments (:func:`joint_residual`,
-        pulled towards the curve point along a hinge's axis) when that lies
-        within the mean radius of their shared boundary from the curve point.
+        pulled towards the curve point along a hinge's axis) when the two
+        segments turn against each other enough for it to be determined
+        (``PIVOT_UNCERTAINTY``), and the centre lies within the mean radius of their shared
+        boundary from the curve point and inside the mesh; otherwise it stays
+        (``placement`` says which, and why).
 
     Returns
     -------
@@ -474,7 +538,7 @@ def articulated_skeleton(
     for pair, c, _ in cand:
         _, node = ptree.query(c)
         joint_pairs[int(node)].append(pair)
-    pivots = _pivot_positions(P, joint_pairs, cand, motions) if refine_joints else {}
+    pivots, how = _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) if refine_joints else ({}, {})
     # 2. auxiliary joints at ends and branches
     key = set(joint_pairs) | {i for i in range(n) if len(adj[i]) != 2}
     if not key:
@@ -501,7 +565,7 @@ def articulated_skeleton(
     P = P.copy()
     for node, c in pivots.items():
         P[node] = c
-    return _hang(P, bones, joint_pairs, node_seg, lab)
+    return _hang(P, bones, joint_pairs, node_seg, lab, how)
 
 
 def _key_bones(adj, key) -> list:
@@ -545,7 +609,7 @@ def _drop_end_bones(bones, key, joint_pairs, node_seg) -> list:
     return bones
 
 
-def _hang(P, bones, joint_pairs, node_seg, lab) -> ArticulatedSkeleton:
+def _hang(P, bones, joint_pairs, node_seg, lab, how=None) -> ArticulatedSkeleton:
     nodes = sorted({a for a, _, _ in bones} | {b for _, b, _ in bones}) or [0]
     nbrs = defaultdict(list)
     plen = {}
@@ -614,4 +678,5 @@ def _hang(P, bones, joint_pairs, node_seg, lab) -> ArticulatedSkeleton:
         part_joint=np.asarray(part_joint, dtype=np.int64),
         part_parent=np.asarray(part_parent, dtype=np.int64),
         bones=bone_arr,
+        placement=tuple((how or {}).get(x) if artic[i] else None for i, x in enumerate(order)),
     )
