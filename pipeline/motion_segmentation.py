@@ -716,6 +716,59 @@ def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: n
     return lab
 
 
+def _core_motion(Y: np.ndarray, *, keep: float = 0.5, rounds: int = 3):
+    """The rigid motion of the most rigid ``keep`` of a point set's trajectories (trimmed least squares:
+    refit on the points the last fit explains best), from frame 0; (R (T, 3, 3), t (T, 3))."""
+    R, t = rigid_motions(Y)
+    for _ in range(rounds):
+        r = np.linalg.norm(np.einsum("tij,vj->tvi", R, Y[0]) + t[:, None] - Y, axis=2).max(0)
+        R, t = rigid_motions(Y[:, np.argsort(r)[: max(3, int(keep * len(r)))]])
+    return R, t
+
+
+def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, min_size: int,
+                   depth: int = 4, gain: float = 0.5) -> np.ndarray:
+    """Parts fused to a segment peeled off: the vertices its core motion (:func:`_core_motion`) leaves
+    more than ``tol`` away in some frame, as surface-connected patches of at least ``min_size`` vertices
+    that have a motion of their own (their own rigid residual at most ``gain`` of their residual under
+    the core's motion, the rule of :func:`_split_nonrigid`): a leg or a tail fused to the body moves
+    with its own motion, the body's core with the body's; a smooth bend is no part."""
+    lab = labels.copy()
+    frames = _some_frames(len(v))
+    V = len(lab)
+    for _ in range(int(depth)):
+        changed = False
+        for sgm in np.unique(lab):
+            ids = np.flatnonzero(lab == sgm)
+            if len(ids) < 2 * min_size:
+                continue
+            Y = v[frames][:, ids].astype(np.float64)
+            R, t = _core_motion(Y)
+            gap = np.linalg.norm(np.einsum("tij,vj->tvi", R, Y[0]) + t[:, None] - Y, axis=2)  # (frames, vertices)
+            off = gap.max(0) > tol
+            where = np.full(V, -1)
+            where[ids] = np.arange(len(ids))
+            if off.sum() < min_size or (~off).sum() < min_size:
+                continue
+            mask = np.zeros(V, bool)
+            mask[ids[off]] = True
+            e = edges[mask[edges[:, 0]] & mask[edges[:, 1]]]
+            _, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(V, V)),
+                                           directed=False)
+            sizes = np.bincount(comp[mask], minlength=comp.max() + 1)
+            for c in np.flatnonzero(sizes >= min_size):
+                patch = np.flatnonzero(mask & (comp == c))
+                some = patch[:: max(1, len(patch) // 400)]
+                under_core = float(np.sqrt((gap[:, where[some]] ** 2).mean(1)).max())
+                if rigid_residual(v[frames][:, some]) > gain * under_core:
+                    continue  # no motion of its own (a smooth bend, a blend between two parts)
+                lab[patch] = int(lab.max()) + 1
+                changed = True
+        if not changed:
+            break
+    return lab
+
+
 def motion_segmentation(
     vertices,
     faces,
@@ -818,6 +871,8 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         min_size = max(1, int(round(min_segment * V)))
         labels = _merge_rigid(labels, v, edges, tol)
         labels = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, seed=seed)
+        labels = _connected_segments(labels, edges, V, min_size)
+        labels = _peel_nonrigid(labels, v, edges, 2.0 * tol, min_size=min_size)
         labels = _connected_segments(labels, edges, V, min_size)
         labels = _merge_rigid(labels, v, edges, tol)
         labels = _connected_segments(labels, edges, V, 1)
