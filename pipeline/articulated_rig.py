@@ -121,6 +121,7 @@ def rig_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=None, 
     ArticulatedRig
     """
     vertices, faces, numbers = load_sequence(tracked_meshes(results_dir))
+    options.setdefault("peel_parts", False)  # a tracked template: its tracking noise is no part
     rig = build_articulated_rig(vertices, faces, units=units, fps=fps, frame_indices=numbers, progress=progress,
                                 **options)
     write_rig(rig, Path(out) if out is not None else Path(results_dir) / "rig", progress=progress)
@@ -242,6 +243,7 @@ def build_articulated_rig(
     n_samples: int = 1000,
     reference: int | None = None,
     progress=None,
+    peel_parts: bool = True,
 ) -> ArticulatedRig:
     """An articulated, skinned model fitted to every frame of a mesh sequence.
 
@@ -266,6 +268,9 @@ def build_articulated_rig(
         Position of the rest frame (default: :func:`choose_reference`).
     progress : callable, optional
         ``progress(step, done, total)``.
+    peel_parts : bool
+        See :func:`pipeline.motion_segmentation.motion_segmentation` (off for a tracked template:
+        :func:`rig_results`, ``stage rig RESULTS_DIR``).
 
     Returns
     -------
@@ -282,7 +287,7 @@ def build_articulated_rig(
         raise ValueError(f"frame_indices must have {T} entries, got {len(fi)}")
     timings = {}
     t0 = time.perf_counter()
-    seg = motion_segmentation(v, f, lambda_thr=lambda_thr, n_samples=n_samples)
+    seg = motion_segmentation(v, f, lambda_thr=lambda_thr, n_samples=n_samples, peel_parts=peel_parts)
     timings["segmentation"] = time.perf_counter() - t0
     if progress:
         progress("segmentation", 1, 1)

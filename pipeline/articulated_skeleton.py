@@ -43,7 +43,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from pipeline.geodesic import mesh_edges
-from pipeline.motion_segmentation import rigid_motions
+from pipeline.motion_segmentation import relative_bend, rigid_motions
 
 __all__ = [
     "CurveSkeleton", "ArticulatedSkeleton", "curve_skeleton", "articulated_skeleton", "segment_hits_mesh", "joint_residual",
@@ -393,24 +393,6 @@ def _articulation_pairs(v, f, lab, min_edges, motion, reference) -> tuple[list, 
 #: hinge, i.e. residual / bend) exceeds this fraction of the mean radius of the boundary where the two
 #: parts meet -- the centre could then be anywhere in that cross-section
 PIVOT_UNCERTAINTY = 1.0
-
-
-def relative_bend(motion_a, motion_b, *, most: int = 60) -> float:
-    """Degrees two parts turn against each other: the largest angle between their relative rotations
-    in any two frames (at most ``most`` evenly spaced frames).
-
-    Parameters
-    ----------
-    motion_a, motion_b : tuple of (T, 3, 3) and (T, 3) float ndarray
-        ``x_t = R_t x + t_t`` of each part.
-    """
-    Ra, Rb = np.asarray(motion_a[0], dtype=np.float64), np.asarray(motion_b[0], dtype=np.float64)
-    if Ra.shape != Rb.shape or Ra.ndim != 3 or Ra.shape[1:] != (3, 3):
-        raise ValueError(f"motions must hold (T, 3, 3) rotations of one length, got {Ra.shape} and {Rb.shape}")
-    sel = np.unique(np.linspace(0, len(Ra) - 1, min(len(Ra), int(most))).round().astype(np.int64))
-    Rr = np.matmul(Ra[sel].transpose(0, 2, 1), Rb[sel])
-    cos = (np.einsum("aij,bij->ab", Rr, Rr) - 1.0) / 2.0  # trace(Rr_a^T Rr_b)
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)).max()))
 
 
 def _inside(point: np.ndarray, v: np.ndarray, normals: np.ndarray, tree: cKDTree, k: int = 8) -> bool:

@@ -90,6 +90,7 @@ __all__ = [
     "propagate_labels",
     "motion_segmentation",
     "rigid_motions",
+    "relative_bend",
 ]
 
 log = logging.getLogger(__name__)
@@ -716,6 +717,24 @@ def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: n
     return lab
 
 
+def relative_bend(motion_a, motion_b, *, most: int = 60) -> float:
+    """Degrees two parts turn against each other: the largest angle between their relative rotations
+    in any two frames (at most ``most`` evenly spaced frames).
+
+    Parameters
+    ----------
+    motion_a, motion_b : tuple of (T, 3, 3) and (T, 3) float ndarray
+        ``x_t = R_t x + t_t`` of each part.
+    """
+    Ra, Rb = np.asarray(motion_a[0], dtype=np.float64), np.asarray(motion_b[0], dtype=np.float64)
+    if Ra.shape != Rb.shape or Ra.ndim != 3 or Ra.shape[1:] != (3, 3):
+        raise ValueError(f"motions must hold (T, 3, 3) rotations of one length, got {Ra.shape} and {Rb.shape}")
+    sel = np.unique(np.linspace(0, len(Ra) - 1, min(len(Ra), int(most))).round().astype(np.int64))
+    Rr = np.matmul(Ra[sel].transpose(0, 2, 1), Rb[sel])
+    cos = (np.einsum("aij,bij->ab", Rr, Rr) - 1.0) / 2.0  # trace(Rr_a^T Rr_b)
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)).max()))
+
+
 def _core_motion(Y: np.ndarray, *, keep: float = 0.5, rounds: int = 3):
     """The rigid motion of the most rigid ``keep`` of a point set's trajectories (trimmed least squares:
     refit on the points the last fit explains best), from frame 0; (R (T, 3, 3), t (T, 3))."""
@@ -732,7 +751,8 @@ def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: fl
     more than ``tol`` away in some frame, as surface-connected patches of at least ``min_size`` vertices
     that have a motion of their own (their own rigid residual at most ``gain`` of their residual under
     the core's motion, the rule of :func:`_split_nonrigid`): a leg or a tail fused to the body moves
-    with its own motion, the body's core with the body's; a smooth bend is no part."""
+    with its own motion, the body's core with the body's; a smooth bend is no part. Tracking noise
+    can look like such a part (``peel_parts`` of :func:`motion_segmentation`)."""
     lab = labels.copy()
     frames = _some_frames(len(v))
     V = len(lab)
@@ -783,6 +803,7 @@ def motion_segmentation(
     interval_motion: float | None = INTERVAL_MOTION,
     max_clusters: int = 64,
     seed: int = 0,
+    peel_parts: bool = True,
 ) -> Segmentation:
     """Segment a mesh sequence into rigidly moving parts (Tzionas & Gall 2016, section 4.1).
 
@@ -814,6 +835,11 @@ def motion_segmentation(
         eq. 7 as written (twice the largest step, millimetres as frames).
     max_clusters : int
     seed : int
+    peel_parts : bool
+        Peel parts fused to a segment off it (vertices its trimmed core motion leaves twice
+        ``rigid_tol`` away, surface patches with a motion of their own). On for animated and scanned
+        sequences; off for a tracked template, whose tracking noise it reads as parts (the two-bar
+        hinge tracked through its surfaces: 3 segments with it, 2 without).
 
     Returns
     -------
@@ -825,11 +851,11 @@ def motion_segmentation(
 
     with threadpool_limits(1, "blas"):  # many small products: threads only contend on a busy machine
         return _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals,
-                                    min_segment, rigid_tol, interval_motion, max_clusters, seed)
+                                    min_segment, rigid_tol, interval_motion, max_clusters, seed, bool(peel_parts))
 
 
 def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals, min_segment,
-                         rigid_tol, interval_motion, max_clusters, seed) -> Segmentation:
+                         rigid_tol, interval_motion, max_clusters, seed, peel_parts) -> Segmentation:
     v, f = check_sequence(vertices, faces)
     if not (lam > 0 and np.isfinite(lam)):
         raise ValueError(f"lam must be > 0, got {lam}")
@@ -872,8 +898,9 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         labels = _merge_rigid(labels, v, edges, tol)
         labels = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, seed=seed)
         labels = _connected_segments(labels, edges, V, min_size)
-        labels = _peel_nonrigid(labels, v, edges, 2.0 * tol, min_size=min_size)
-        labels = _connected_segments(labels, edges, V, min_size)
+        if peel_parts:
+            labels = _peel_nonrigid(labels, v, edges, 2.0 * tol, min_size=min_size)
+            labels = _connected_segments(labels, edges, V, min_size)
         labels = _merge_rigid(labels, v, edges, tol)
         labels = _connected_segments(labels, edges, V, 1)
     if labels.max() == 0:

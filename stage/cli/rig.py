@@ -112,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
         rig = build_articulated_rig(
             vertices, faces, units=units, fps=float(fps), frame_indices=numbers, lambda_thr=args.lambda_thr,
             n_samples=args.samples, reference=args.reference, progress=bars,
+            peel_parts=args.meshes is not None,  # a tracked template: its tracking noise is no part
         )
         write_rig(rig, out, progress=bars)
     sk = rig.skeleton
