@@ -328,10 +328,14 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
             changed = [k for k in changed if k != "surfaces_sha256"]
         if changed:
             _remove_tracked_frames(path.parent)
-            report["started_over"] = (f"{path.parent} holds frames tracked with other settings "
-                                      f"({', '.join(_change(k, was(k), report[k]) for k in changed)}); "
-                                      f"tracking again{_remove_stale_rig(Path(out_dir))}")
-            log.warning("%s", report["started_over"])
+            rig_note = _remove_stale_rig(Path(out_dir))
+            msg = (f"{path.parent} holds frames tracked with other settings "
+                   f"({', '.join(_change(k, was(k), report[k]) for k in changed)}); tracking again{rig_note}")
+            if set(changed) <= {"surfaces", "surfaces_sha256"} and not rig_note:
+                log.info("%s", msg)  # the rounds of --carve: each tracks the surfaces the last one carved
+            else:
+                report["started_over"] = msg
+                log.warning("%s", msg)
         elif isinstance(old.get("frames"), dict):
             kept = old["frames"]
     _write_report(out_dir, {**report, "frames": kept})

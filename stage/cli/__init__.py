@@ -32,8 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
         "and turn its takes into spines (branching, temporally consistent skeletons).",
     )
     parser.add_argument("--version", action="version", version=f"capture-stage {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    _common_options(parser, default=None)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     modules = []
     for info in pkgutil.iter_modules(__path__):
@@ -45,7 +44,21 @@ def build_parser() -> argparse.ArgumentParser:
     modules.sort(key=lambda m: (getattr(m, "ORDER", 50), m.__name__))
     for mod in modules:
         mod.register(sub)
+    for p in sub.choices.values():  # also after the command: `stage rig -q` as `stage -q rig`
+        _common_options(p, default=argparse.SUPPRESS)
     return parser
+
+
+def _common_options(parser: argparse.ArgumentParser, *, default) -> None:
+    """``-v``, ``-q`` and ``--progress``; on a subcommand their defaults are SUPPRESS, so that an
+    option given before the command is kept when the command does not repeat it."""
+    top = default is None
+    parser.add_argument("-v", "--verbose", action="count", default=0 if top else default,
+                        help="more log output (-vv for debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", default=False if top else default,
+                        help="only warnings and errors (no progress bars)")
+    parser.add_argument("--progress", action="store_true", default=False if top else default,
+                        help="progress bars also when stderr is not a terminal (a file, a pipe)")
 
 
 def _setup_logging(verbose: int, quiet: bool) -> None:
@@ -67,12 +80,19 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     _setup_logging(args.verbose, args.quiet)
-    if args.quiet and hasattr(args, "no_progress"):
-        args.no_progress = True  # -q silences progress bars as well as log messages
+    bars = _progress_bars(args)
     from stage.drivers.base import CameraError
 
     try:
-        return int(args.func(args) or 0)
+        if not bars:
+            return int(args.func(args) or 0)
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        with logging_redirect_tqdm():  # a log line is printed above the bars, never glued to one
+            return int(args.func(args) or 0)
+    except BrokenPipeError:  # `stage info | head`: the reader has gone; nothing more to say
+        _silence_stdout()
+        return 0
     except KeyboardInterrupt:
         print("stage: interrupted", file=sys.stderr)
         return 130
@@ -81,6 +101,27 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"stage {args.command}: error: {exc}", file=sys.stderr)
         return 2
+
+
+def _progress_bars(args: argparse.Namespace) -> bool:
+    """Whether the command shows progress bars: on a terminal (stderr), or with ``--progress``;
+    never with ``-q`` or ``--no-progress``. Sets ``args.no_progress`` accordingly."""
+    if not hasattr(args, "no_progress"):
+        return False
+    shown = not args.no_progress and not args.quiet and (args.progress or sys.stderr.isatty())
+    args.no_progress = not shown
+    return shown
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null, so that the interpreter's final flush does not fail again."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -63,9 +63,11 @@ def run(args: argparse.Namespace) -> int:
         )
     finally:
         bar.close()
+    from stage.store import derived_path
+
     print(
         f"keyed {len(summary['cameras'])} camera(s), {summary['frames']} frames, mode {summary['mode']}; "
-        f"{summary['invalid']} invalid frame(s); masks stored in {args.take}"
+        f"{summary['invalid']} invalid frame(s); masks stored in {derived_path(args.take)}"
     )
     if args.preview is not None:
         print(f"contact sheets in {args.preview}/")

@@ -1,0 +1,64 @@
+"""What a person reads: progress bars on a terminal only (or --progress), -q/-v after the command,
+a closed pipe ends quietly, `stage key` names the file its masks went to."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+
+import pytest
+
+from stage.cli import _progress_bars, build_parser, main
+
+
+@pytest.fixture(scope="module")
+def take(tmp_path_factory):
+    import os
+
+    d = tmp_path_factory.mktemp("out")
+    os.environ.setdefault("CAPTURE_STAGE_CACHE", str(d / "cache"))
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
+
+    return record_take(simulate_take("starfish", n_cameras=4, frames=2, size=(64, 48), seed=1), d / "t.h5")
+
+
+def test_quiet_and_verbose_after_the_command():
+    p = build_parser()
+    assert p.parse_args(["rig", "-q"]).quiet is True
+    assert p.parse_args(["-q", "info", "x"]).quiet is True  # kept when the command does not repeat it
+    assert p.parse_args(["info", "x"]).quiet is False
+    assert p.parse_args(["info", "-vv", "x"]).verbose == 2
+    assert p.parse_args(["process", "t.h5", "--out", "r", "--progress"]).progress is True
+
+
+def test_progress_bars_only_on_a_terminal(monkeypatch):
+    def args(**kw):
+        return argparse.Namespace(**{"no_progress": False, "quiet": False, "progress": False, **kw})
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False, raising=False)
+    a = args()
+    assert not _progress_bars(a) and a.no_progress  # a file or a pipe: no bars
+    a = args(progress=True)
+    assert _progress_bars(a) and not a.no_progress
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    assert _progress_bars(args())
+    for kw in ({"quiet": True}, {"no_progress": True}, {"quiet": True, "progress": True}):
+        a = args(**kw)
+        assert not _progress_bars(a) and a.no_progress
+    assert not _progress_bars(argparse.Namespace(quiet=False, progress=True))  # a command without bars
+
+
+def test_a_closed_pipe_ends_quietly(take):
+    p = subprocess.Popen([sys.executable, "-m", "stage", "info", str(take)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE)
+    p.stdout.close()  # `stage info | head -0`: the reader is gone before the first line
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 0 and err == "", err
+
+
+def test_key_names_the_derived_file(take, capsys):
+    assert main(["key", str(take), "--no-progress", "--workers", "1"]) == 0
+    out = capsys.readouterr().out
+    assert f"masks stored in {take.with_name('t.derived.h5')}" in out
