@@ -105,10 +105,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _progress_bars(args: argparse.Namespace) -> bool:
     """Whether the command shows progress bars: on a terminal (stderr), or with ``--progress``;
-    never with ``-q`` or ``--no-progress``. Sets ``args.no_progress`` accordingly."""
-    if not hasattr(args, "no_progress"):
-        return False
-    shown = not args.no_progress and not args.quiet and (args.progress or sys.stderr.isatty())
+    never with ``-q`` or ``--no-progress``. Sets ``args.no_progress`` accordingly (for every
+    command: those without the option read it too)."""
+    shown = not getattr(args, "no_progress", False) and not args.quiet and (args.progress or sys.stderr.isatty())
     args.no_progress = not shown
     return shown
 

@@ -414,7 +414,7 @@ def _run(args: argparse.Namespace) -> int:
     board = load_board(args.board)
     if not quiet:
         print(f"board: {board.to_dict()}")
-    detections, sizes, cams, flipped = _detect(args, board, quiet)
+    detections, sizes, cams, flipped = _detect(args, board, quiet or args.no_progress)
     mode = "fixed" if args.no_intrinsics_refinement else args.intrinsics
     result = calibrate_rig(
         detections, sizes, board, cameras=cams, world=args.world, world_frame=args.world_frame,

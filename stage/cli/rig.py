@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     vertices, faces, numbers = load_sequence(paths)
     units = args.units or meta.get("units") or "mm"
     fps = args.fps or meta.get("fps") or 30.0
-    with StepBars(disable=args.quiet) as bars:
+    with StepBars(disable=args.no_progress) as bars:
         rig = build_articulated_rig(
             vertices, faces, units=units, fps=float(fps), frame_indices=numbers, lambda_thr=args.lambda_thr,
             n_samples=args.samples, reference=args.reference, progress=bars,

@@ -47,7 +47,8 @@ def test_progress_bars_only_on_a_terminal(monkeypatch):
     for kw in ({"quiet": True}, {"no_progress": True}, {"quiet": True, "progress": True}):
         a = args(**kw)
         assert not _progress_bars(a) and a.no_progress
-    assert not _progress_bars(argparse.Namespace(quiet=False, progress=True))  # a command without bars
+    a = argparse.Namespace(quiet=True, progress=True)  # a command without the option: it reads no_progress
+    assert not _progress_bars(a) and a.no_progress
 
 
 def test_a_closed_pipe_ends_quietly(take):

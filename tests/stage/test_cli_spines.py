@@ -27,12 +27,16 @@ def test_invalid_input(tmp_path, capsys):
 
 
 def test_quiet_silences_progress_bars(tmp_path, capsys):
-    """`stage -q` draws no progress bar (tqdm writes them to stderr); without it, bars are drawn."""
+    """`stage -q` draws no progress bar (tqdm writes them to stderr), not even with --progress;
+    stderr here is no terminal, so bars are drawn only with --progress."""
     cat = shared_dataset("cat_poses")
     pattern = str(cat / "000[1-3].obj")
-    assert main(["spines", "--meshes", pattern, "--out", str(tmp_path / "a"), "--workers", "0"]) == 0
+    assert main(["spines", "--meshes", pattern, "--out", str(tmp_path / "a"), "--workers", "0", "--progress"]) == 0
     assert "%|" in capsys.readouterr().err
-    assert main(["-q", "spines", "--meshes", pattern, "--out", str(tmp_path / "b"), "--workers", "0"]) == 0
+    assert main(["spines", "--meshes", pattern, "--out", str(tmp_path / "c"), "--workers", "0"]) == 0
+    assert "%|" not in capsys.readouterr().err  # a file or a pipe: no bars
+    assert main(["-q", "spines", "--meshes", pattern, "--out", str(tmp_path / "b"), "--workers", "0",
+                 "--progress"]) == 0
     assert "%|" not in capsys.readouterr().err
 
 
