@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import threading
 import uuid
 from pathlib import Path
@@ -31,6 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from api.errors import NotFoundError, UnavailableError
 from api.paths import JOB_ID, check_id, confined_entries, inside
+from calib.fileio import atomic_write
 
 __all__ = ["CalibrationLibrary", "CalibrateParams", "calibrate_take", "calibrate_take_work", "FORMATS", "MEDIA"]
 
@@ -85,9 +85,7 @@ class CalibrationLibrary:
         cid = cal_id or uuid.uuid4().hex
         p = self._path(cid)
         p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_name(f".{p.name}.{uuid.uuid4().hex}.part")
-        tmp.write_text(json.dumps(calib.to_dict(), indent=1), encoding="utf-8")
-        os.replace(tmp, p)
+        atomic_write(p, json.dumps(calib.to_dict(), indent=1))
         return cid
 
     def delete(self, cal_id: str) -> None:

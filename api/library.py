@@ -7,7 +7,6 @@ adds id validation, the data-root confinement and upload handling.
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import uuid
 from contextlib import contextmanager
@@ -18,6 +17,7 @@ import numpy as np
 
 from api.errors import ConflictError, NotFoundError, UnavailableError, UploadTooLargeError
 from api.paths import check_take_id, confined, confined_entries, inside
+from calib.fileio import replace_durably
 
 __all__ = ["TakeLibrary", "HDF5_SIGNATURE", "InvalidTakeError"]
 
@@ -209,7 +209,7 @@ class TakeLibrary:
                 msg = str(exc).replace(str(tmp), "upload").replace(f"{tmp}: ", "")
                 raise InvalidTakeError(f"the upload is not a readable take: {msg}") from None
             target = self._target(take_id)
-            os.replace(tmp, target)
+            replace_durably(tmp, target)
         finally:
             tmp.unlink(missing_ok=True)
         log.info("imported take %s", take_id)
@@ -288,7 +288,7 @@ class TakeLibrary:
             part = dst.with_name(f".{dst.name}.{uuid.uuid4().hex}.part")
             try:
                 shutil.copyfile(src_derived, part)
-                os.replace(part, dst)
+                replace_durably(part, dst)
             finally:
                 part.unlink(missing_ok=True)
         if mask_dir is not None:

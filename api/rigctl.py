@@ -66,6 +66,7 @@ class CaptureManager:
     # -- rig ---------------------------------------------------------------------------------
     def rig(self):
         """The validated rig (raises :class:`UnavailableError` when there is no rig file)."""
+        import stage.drivers  # noqa: F401 (the built-in drivers register their camera models)
         from stage.rig import load_rig
 
         if self.session is not None:

@@ -85,6 +85,7 @@ import numpy as np
 from calib import _toml
 from calib.calibration import Calibration
 from calib.camera import Camera, matrix_to_rodrigues, rodrigues_to_matrix
+from calib.fileio import atomic_write, replace_durably
 
 __all__ = [
     "FORMATS",
@@ -237,7 +238,7 @@ def read_aniposelib_toml(path: str | Path) -> Calibration:
 
 
 def write_aniposelib_toml(calib: Calibration, path: str | Path) -> None:
-    _atomic_write_text(Path(path), _toml.dumps(calibration_to_aniposelib(calib)))
+    atomic_write(Path(path), _toml.dumps(calibration_to_aniposelib(calib)), parents=False)
 
 
 # -- OpenCV FileStorage YAML -------------------------------------------------------------
@@ -268,7 +269,7 @@ def write_opencv_yaml(calib: Calibration, path: str | Path) -> None:
             fs.write("T", np.ascontiguousarray(c.t.reshape(3, 1)))
             fs.endWriteStruct()
         fs.release()
-        os.replace(tmp, p)
+        replace_durably(tmp, p)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -552,7 +553,7 @@ def write_qualisys_qca(calib: Calibration, path: str | Path) -> None:
             "radialDistortion1": repr(k1), "radialDistortion2": repr(k2), "radialDistortion3": repr(k3),
             "tangentalDistortion1": repr(p1), "tangentalDistortion2": repr(p2), "skew": "0"})
     ET.indent(root)
-    _atomic_write_text(Path(path), "<?xml version='1.0' encoding='ASCII'?>\n" + ET.tostring(root, encoding="unicode") + "\n")
+    atomic_write(Path(path), "<?xml version='1.0' encoding='ASCII'?>\n" + ET.tostring(root, encoding="unicode") + "\n", parents=False)
 
 
 # -- JSON ---------------------------------------------------------------------------------------
@@ -561,7 +562,7 @@ def write_qualisys_qca(calib: Calibration, path: str | Path) -> None:
 def write_json(calib: Calibration, path: str | Path) -> None:
     if not isinstance(calib, Calibration):
         raise ValueError(f"calib must be a Calibration, got {type(calib).__name__}")
-    _atomic_write_text(Path(path), json.dumps(calib.to_dict(), indent=1) + "\n")
+    atomic_write(Path(path), json.dumps(calib.to_dict(), indent=1) + "\n", parents=False)
 
 
 def read_json(path: str | Path) -> Calibration:
@@ -651,7 +652,7 @@ def write_caliscope_toml(calib: Calibration, path: str | Path) -> None:
                             int(c.meta.get("rotation_count", 0)), "error": float(err), "matrix": c.K.tolist(),
                             "distortions": c.dist.tolist(), "translation": c.t.tolist(), "rotation": c.R.tolist(),
                             "ignore": False, **({"mirror": True} if c.meta.get("mirror") else {})}
-    _atomic_write_text(Path(path), _toml.dumps({"cameras": tables}))
+    atomic_write(Path(path), _toml.dumps({"cameras": tables}), parents=False)
 
 
 # -- COLMAP ---------------------------------------------------------------------------------------
@@ -691,9 +692,9 @@ def write_colmap(calib: Calibration, folder: str | Path) -> Path:
         q = _quat_from_matrix(c.R)
         imgs.append(f"{i} " + " ".join(repr(float(v)) for v in (*q, *c.t)) + f" {i} {c.name}.png")
         imgs.append("")
-    _atomic_write_text(d / "cameras.txt", "\n".join(cams) + "\n")
-    _atomic_write_text(d / "images.txt", "\n".join(imgs) + "\n")
-    _atomic_write_text(d / "points3D.txt", "# 3D point list (none: a calibration only)\n")
+    atomic_write(d / "cameras.txt", "\n".join(cams) + "\n", parents=False)
+    atomic_write(d / "images.txt", "\n".join(imgs) + "\n", parents=False)
+    atomic_write(d / "points3D.txt", "# 3D point list (none: a calibration only)\n", parents=False)
     return d
 
 
@@ -766,7 +767,7 @@ def write_nerfstudio(calib: Calibration, path: str | Path) -> None:
                        "fl_y": float(c.K[1, 1]), "cx": float(c.K[0, 2]) + 0.5, "cy": float(c.K[1, 2]) + 0.5,
                        "w": int(c.width), "h": int(c.height), "k1": k1, "k2": k2, "k3": k3, "k4": 0.0,
                        "p1": p1, "p2": p2, "transform_matrix": c2w.tolist()})
-    _atomic_write_text(Path(path), json.dumps({"camera_model": "OPENCV", "frames": frames}, indent=1) + "\n")
+    atomic_write(Path(path), json.dumps({"camera_model": "OPENCV", "frames": frames}, indent=1) + "\n", parents=False)
 
 
 def read_nerfstudio(path: str | Path, *, units: str = "m") -> Calibration:
@@ -927,14 +928,3 @@ def write_calibration(calib: Calibration, path: str | Path, *, format: str | Non
     else:
         write_json(calib, p)
     return p
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=".calib-", suffix=path.suffix, dir=str(path.parent or Path(".")))
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)

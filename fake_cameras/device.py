@@ -33,22 +33,52 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable
+from typing import Annotated, Callable, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from stage.drivers.base import CameraDisconnectedError, CameraError, CameraNotFoundError, Granted, unmirror
 from stage.drivers.registry import register_driver
 from stage.frame import Frame
-from stage.rig import FakeCameraConfig, Rig
+from stage.rig import CameraConfig, Rig
 
-__all__ = ["FakeCamera", "take_for_rig", "START_LEAD_NS"]
+__all__ = ["FakeCamera", "FakeCameraConfig", "Simulation", "take_for_rig", "START_LEAD_NS"]
 
 log = logging.getLogger(__name__)
 
 #: the first frame of a capture is due this long after the first grab of any of its cameras,
 #: so that the grabber threads, started one after the other, all begin with frame 0
 START_LEAD_NS = 200_000_000
+
+
+class FakeCameraConfig(CameraConfig):
+    """A camera of the simulated rig (``driver = "fake"`` in a rig file)."""
+
+    driver: Literal["fake"]
+    index: Annotated[int, Field(ge=0)] = 0
+    clock_offset_ms: float = 0.0
+    jitter_ms: Annotated[float, Field(ge=0)] = 0.0
+    drop_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
+    disconnect_after: Annotated[int, Field(ge=0)] | None = None
+    depth: bool = False
+    # the simulated webcam's mirror mode: it delivers its images flipped left-right (``mirror = true``
+    # tells the stage so, and capture flips them back)
+    mirror_mode: bool = False
+
+
+class Simulation(BaseModel):
+    """The rig file's ``[simulation]`` table: what the simulated rig films (required with ``driver = "fake"``
+    cameras)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    subject: Literal["starfish", "quadruped", "biped", "tailed_quadruped", "board-chessboard", "board-charuco", "empty"] = "starfish"
+    n_cameras: Annotated[int, Field(ge=4, le=24)] = 12
+    frames: Annotated[int, Field(ge=1)] = 30
+    seed: int = 0
+    noise: Annotated[float, Field(ge=0)] = 2.0
+
 
 _TAKES: dict = {}
 _TAKES_LOCK = threading.Lock()
@@ -91,7 +121,7 @@ def take_for_rig(rig: Rig, *, size: tuple[int, int], fps: float, depth: bool = F
     SimulatedTake or fake_cameras.boards.BoardViews
         Anything with ``images (F, C, H, W, 3)``, optional ``depth`` and ``calibration``.
     """
-    sim = rig.simulation
+    sim = rig.table("simulation")
     if sim is None:
         raise ValueError("rig: fake cameras need a [simulation] table")
     key = (sim.subject, sim.n_cameras, sim.frames, float(fps), tuple(size), sim.seed, bool(depth), sim.noise,
@@ -120,7 +150,7 @@ class FakeCamera:
 
     Parameters
     ----------
-    config : stage.rig.FakeCameraConfig
+    config : FakeCameraConfig
         ``index`` picks the camera of the simulated dome; ``clock_offset_ms``,
         ``jitter_ms``, ``drop_rate``, ``disconnect_after`` and ``depth`` as in
         the module docstring.
@@ -142,6 +172,8 @@ class FakeCamera:
         ``time.monotonic_ns`` and ``time.sleep`` (replace them to test without waiting).
     """
 
+    config_model = FakeCameraConfig
+
     def __init__(
         self,
         config: FakeCameraConfig,
@@ -156,10 +188,10 @@ class FakeCamera:
         sleep: Callable[[float], None] = time.sleep,
     ):
         if not isinstance(config, FakeCameraConfig):
-            raise ValueError(f"config must be a stage.rig.FakeCameraConfig, got {type(config).__name__}")
+            raise ValueError(f"config must be a FakeCameraConfig, got {type(config).__name__}")
         if rig is not None and not isinstance(rig, Rig):
             raise ValueError(f"rig must be a stage.rig.Rig or None, got {type(rig).__name__}")
-        if take is None and (rig is None or rig.simulation is None):
+        if take is None and (rig is None or rig.table("simulation") is None):
             raise ValueError("rig: a fake camera needs a rig with a [simulation] table (or a take to replay)")
         if take is not None and not hasattr(take, "images"):
             raise ValueError(f"take must be a SimulatedTake or BoardViews, got {type(take).__name__}")
@@ -347,4 +379,4 @@ class FakeCamera:
 
 
 # rig cameras with driver = "fake" are these (stage.drivers.open_driver finds them once this module is imported)
-register_driver("fake", FakeCamera, needs_rig=True)
+register_driver("fake", FakeCamera, needs_rig=True, table=("simulation", Simulation))

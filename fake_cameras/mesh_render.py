@@ -22,7 +22,7 @@ The texture is read at each hit's *texture point*: the barycentric blend of its 
 ``texture_points`` (per vertex). Pass the mesh's rest (first-frame) vertices and the texture is
 painted on the surface and moves with it, as :class:`fake_cameras.render.Backdrop` ``painted``
 does for the capsules; without them it is a function of the world position. Shading uses the
-vertex normals (area-weighted, :func:`pipeline.tracking.vertex_normals`, interpolated over the
+vertex normals (area-weighted, :func:`pipeline.mesh_primitives.vertex_normals`, interpolated over the
 triangle), so a fine mesh looks smooth.
 The mesh casts a hard shadow on the floor: a ray from every floor pixel near the mesh's
 shadow towards the key light, tested against the same scene (the optical blur softens its edge).
@@ -38,7 +38,7 @@ import numpy as np
 from calib.calibration import Calibration
 from calib.camera import Camera
 from fake_cameras.render import Backdrop, Hits, View, _scene, _texture, compose_view, studio_options
-from pipeline.tracking import vertex_normals
+from pipeline.mesh_primitives import vertex_normals
 
 __all__ = ["MeshScene", "render_mesh", "render_mesh_views"]
 

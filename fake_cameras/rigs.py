@@ -36,7 +36,7 @@ def simulated_rig_dict(
     n_cameras : int
         Cameras in the rig file (1..``dome_cameras``); they are cameras ``0..n-1`` of the dome.
     subject : str
-        What the rig films (``stage.rig.Simulation.subject``).
+        What the rig films (``fake_cameras.device.Simulation.subject``).
     clock_offsets_ms : float
         Each camera's clock offset is drawn uniformly from +-this (seeded).
     jitter_ms, drop_rate, depth, store

@@ -158,8 +158,8 @@ def tracking_errors(creature: Creature, times, results_dir, *, frames: int | Non
     import json
     from pathlib import Path
 
+    from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
-    from pipeline.tracking import mesh_volume
 
     _check_creature(creature)
     times = np.asarray(times, dtype=np.float64).reshape(-1)

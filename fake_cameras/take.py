@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.calibration import Calibration
+from calib.fileio import replace_durably
 from fake_cameras.creatures import CREATURES, Creature, Pose, make_creature
 from fake_cameras.dome import MAX_CAMERAS, MIN_CAMERAS, make_dome
 from fake_cameras.render import Backdrop, render_view
@@ -573,7 +574,7 @@ def write_ground_truth(take: SimulatedTake, path: str | Path) -> Path:
             data.update(rest=rest, has_rest=np.array([p.rest is not None for p in take.poses]))
     tmp = out.with_name(out.name + ".tmp.npz")
     np.savez_compressed(tmp, **data)
-    os.replace(tmp, out)
+    replace_durably(tmp, out)
     return out
 
 

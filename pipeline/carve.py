@@ -273,9 +273,9 @@ def carve_frames_task(job: dict) -> dict:
 
 def _carve_frames(root: Path, take: Path, grid, todo: list, tracks: dict, settings: dict, record=None) -> dict:
     """Carve the frames ``todo`` into ``carved/``; ``record(frame, figures)`` after each; -> figures by frame."""
+    from pipeline.mesh_primitives import mesh_volume
     from pipeline.surface import EmptySurfaceError, surface_from_field
     from pipeline.temporal_hull import carve_across_time
-    from pipeline.tracking import mesh_volume
 
     out: dict = {}
     if not todo:

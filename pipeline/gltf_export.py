@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.motion_segmentation import vertex_normals  # unit, (0, 0, 1) for a vertex in no face
+from pipeline.mesh_primitives import vertex_normals
 from pipeline.rig_model import Rig, RiggedModel, reference_frame, rig_from_spine, rigged_model
 
 __all__ = [
@@ -87,6 +87,14 @@ class _Builder:
             acc["max"] = [float(x) for x in flat.max(0)]
         self.accessors.append(acc)
         return len(self.accessors) - 1
+
+
+def _unit_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """float32 vertex normals for glTF, which wants every NORMAL of unit length: a vertex in no face
+    (no normal, zero in :func:`pipeline.mesh_primitives.vertex_normals`) gets (0, 0, 1)."""
+    n = vertex_normals(v, f)
+    n[~np.any(n != 0, axis=1)] = (0.0, 0.0, 1.0)
+    return n.astype(np.float32)
 
 
 def _pack_weights(joints: np.ndarray, weights: np.ndarray, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
@@ -203,7 +211,7 @@ def _document(
     for name, v, f, jn, w in meshes:
         v = np.asarray(v, dtype=np.float64)
         pos = b.add((v * scale).astype(np.float32), type_="VEC3", component=_FLOAT, target=_ARRAY_BUFFER, minmax=True)
-        nrm = b.add(vertex_normals(v, f).astype(np.float32), type_="VEC3", component=_FLOAT, target=_ARRAY_BUFFER)
+        nrm = b.add(_unit_normals(v, f), type_="VEC3", component=_FLOAT, target=_ARRAY_BUFFER)
         Jp, Wp = _pack_weights(np.asarray(jn), np.asarray(w), J)
         jac = b.add(Jp, type_="VEC4", component=_USHORT if Jp.dtype == np.uint16 else _UINT, target=_ARRAY_BUFFER)
         wac = b.add(Wp, type_="VEC4", component=_FLOAT, target=_ARRAY_BUFFER)

@@ -82,7 +82,6 @@ __all__ = [
     "Segmentation",
     "check_sequence",
     "subject_size",
-    "vertex_normals",
     "sample_vertices",
     "interval_length",
     "trajectory_distances",
@@ -184,35 +183,6 @@ def subject_size(vertices) -> float:
 # --------------------------------------------------------------------------- geometry
 
 
-def vertex_normals(vertices, faces) -> np.ndarray:
-    """Area-weighted unit vertex normals of every frame.
-
-    Parameters
-    ----------
-    vertices : (T, V, 3) or (V, 3) float ndarray
-    faces : (F, 3) int ndarray
-
-    Returns
-    -------
-    ndarray, shape of ``vertices``
-        Unit normals (a vertex in no face gets ``(0, 0, 1)``).
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    single = v.ndim == 2
-    if single:
-        v = v[None]
-    f = np.asarray(faces, dtype=np.int64)
-    fn = np.cross(v[:, f[:, 1]] - v[:, f[:, 0]], v[:, f[:, 2]] - v[:, f[:, 0]])  # (T, F, 3)
-    V = v.shape[1]
-    inc = sp.csr_matrix(
-        (np.ones(3 * len(f)), (np.repeat(np.arange(len(f)), 3), f.ravel())), shape=(len(f), V)
-    ).T.tocsr()  # (V, F)
-    n = np.stack([inc @ fn[t] for t in range(len(v))])
-    ln = np.linalg.norm(n, axis=2, keepdims=True)
-    n = np.where(ln > 0, n / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
-    return n[0] if single else n
-
-
 def sample_vertices(points, n: int, *, start: int | None = None) -> np.ndarray:
     """``n`` vertices spread uniformly over a surface (Euclidean farthest-point sampling).
 
@@ -247,7 +217,8 @@ def sample_vertices(points, n: int, *, start: int | None = None) -> np.ndarray:
 
 
 def _sample_normals(v: np.ndarray, f: np.ndarray, samples: np.ndarray) -> np.ndarray:
-    """(T, n, 3) unit normals of the sampled vertices only (their incident faces)."""
+    """(T, n, 3) unit normals of the sampled vertices only (their incident faces); zero for a sample
+    in no face, as :func:`pipeline.mesh_primitives.vertex_normals`."""
     pos = np.full(v.shape[1], -1, dtype=np.int64)
     pos[samples] = np.arange(len(samples))
     hit = pos[f] >= 0
@@ -260,7 +231,7 @@ def _sample_normals(v: np.ndarray, f: np.ndarray, samples: np.ndarray) -> np.nda
             m = hit[fi, c]
             np.add.at(out[t], pos[fs[m, c]], fn[m])
     ln = np.linalg.norm(out, axis=2, keepdims=True)
-    return np.where(ln > 0, out / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
+    return out / np.where(ln > 0, ln, 1.0)
 
 
 def interval_length(vertices, *, to_reference: float = 1.0, motion: float | None = INTERVAL_MOTION) -> int:

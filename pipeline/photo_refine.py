@@ -67,7 +67,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from calib.camera import Camera
-from pipeline.tracking import vertex_normals
+from pipeline.mesh_primitives import vertex_normals
 
 __all__ = ["refine_surface"]
 

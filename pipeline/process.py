@@ -48,6 +48,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from calib.fileio import atomic_write, json_default
 from stage.store.space import check_free_space, raise_disk_full
 
 __all__ = [
@@ -201,14 +202,6 @@ class ProcessResult:
 
 
 # ----------------------------------------------------------------------------- files and caches
-
-
-def _atomic_write(path: Path, data: bytes | str) -> None:
-    """``data`` (text as UTF-8) to ``path`` through a temporary file and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    tmp.write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
-    os.replace(tmp, path)
 
 
 def _frame_name(k: int) -> str:
@@ -434,13 +427,8 @@ class _Writer:
         self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="results-writer")
         self._pending: list[cf.Future] = []
 
-    def write(self, path: Path, data: bytes | str, *, sync: bool = False) -> None:
-        from pipeline.results import atomic_write_bytes
-
-        if sync:
-            self._pending.append(self._pool.submit(atomic_write_bytes, path, data))
-        else:
-            self._pending.append(self._pool.submit(_atomic_write, path, data))
+    def write(self, path: Path, data: bytes | str) -> None:
+        self._pending.append(self._pool.submit(atomic_write, path, data))
 
     def close(self) -> None:
         try:
@@ -552,7 +540,7 @@ def surface_task(
                     images = _frame_images(reader, cameras, k) if p.photo_refine and not use_depth else None
                     mesh, info["source"] = _surface_of(carver, ms, p, depth, images)
                     quality = surface_quality(mesh).to_dict()
-                    writer.write(store.mesh_path(k), ply_bytes(mesh.vertices, mesh.faces), sync=True)
+                    writer.write(store.mesh_path(k), ply_bytes(mesh.vertices, mesh.faces))
                     info.update(status="ok", quality=quality)
                 except (EmptyHullError, EmptySurfaceError) as exc:
                     mesh = None
@@ -596,7 +584,7 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
     for k in frames:
         mesh_path = store.mesh_path(k)
         rec = _skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
-        _atomic_write(out_dir / "skeletons" / f"{_frame_name(k)}.npz", _skeleton_bytes(rec))
+        atomic_write(out_dir / "skeletons" / f"{_frame_name(k)}.npz", _skeleton_bytes(rec))
         done.append({"index": int(k), "status": rec["status"], "skeleton": rec["skeleton"]})
     return done
 
@@ -968,7 +956,7 @@ def _processing_grid(ctx: RunContext):
         if hint:
             log.warning("%s", hint)
             ctx.warnings.append(hint)
-    _atomic_write(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
+    atomic_write(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
     return grid
 
 
@@ -1145,7 +1133,7 @@ def _start_record(ctx: RunContext) -> None:
         old = json.loads(prev.read_text())
         if _compared(old.get("params")) != _compared(record["params"]) or old.get("take") != record["take"]:
             _start_over(ctx)
-    _atomic_write(prev, json.dumps(record, indent=2))
+    atomic_write(prev, json.dumps(record, indent=2))
 
 
 def _compared(params) -> object:
@@ -1188,7 +1176,7 @@ _MADE_FROM_FRAMES = ("report.json", "report.html", "spine_rig.glb", "spine.glb")
 def _add_to_record(ctx: RunContext, **items) -> None:
     """Add what a step decided (e.g. the grid and why) to ``process.json``."""
     path = ctx.out / "process.json"
-    _atomic_write(path, json.dumps({**json.loads(path.read_text()), **items}, indent=2, default=_json_default))
+    atomic_write(path, json.dumps({**json.loads(path.read_text()), **items}, indent=2, default=json_default))
 
 
 def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> ProcessResult:
@@ -1213,7 +1201,7 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "grid": ctx.grid_choice,
         "limb_count": ctx.limb_count,
     }
-    _atomic_write(ctx.out / "report.json", json.dumps(report, indent=1, default=_json_default))
+    atomic_write(ctx.out / "report.json", json.dumps(report, indent=1, default=json_default))
     return ProcessResult(
         out=ctx.out, steps=steps, frames=ctx.n_sets, empty_frames=empty, spine_path=ctx.spine_path, report=report
     )
@@ -1326,11 +1314,3 @@ def _blind_side_hint(calibration, grid) -> str:
         f"{np.tan(np.radians(elev)):.2f} x the base's half-width below it. If the subject stands on a support, "
         f"pass its plane: --support-plane {up[0]:.3f} {up[1]:.3f} {up[2]:.3f} D (kept where a*x + b*y + c*z + D >= 0)"
     )
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serializable: {type(o).__name__}")

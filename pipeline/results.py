@@ -18,36 +18,17 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from calib.fileio import atomic_write as atomic_write_bytes  # the project's one atomic write (fsyncs the folder too)
+
 __all__ = ["ResultsStore", "atomic_write_bytes", "ply_bytes"]
 
 _FRAME_RE = re.compile(r"^frame_(\d{6,})\.ply$")
 _EXPORT_FORMATS = ("ply", "glb")
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temporary file in the same folder + ``os.replace``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return path
 
 
 def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:

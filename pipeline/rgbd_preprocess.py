@@ -28,7 +28,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calib.camera import Camera, cached_pixel_grid_rays, cached_pixel_ray_depths
-from pipeline.tracking import TrackingError, closest_pairs, vertex_normals
+from pipeline.mesh_primitives import vertex_normals
+from pipeline.tracking import TrackingError, closest_pairs
 
 __all__ = [
     "SKIN_GMM",

@@ -29,8 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.mesh_primitives import mesh_volume, vertex_normals
 from pipeline.results import atomic_write_bytes, ply_bytes
-from pipeline.tracking import TemplateTracker, TrackingError, mesh_volume, vertex_normals
+from pipeline.tracking import TemplateTracker, TrackingError
 
 __all__ = ["track_results", "track_chain_task", "track_rgbd_take", "tracked_path", "remove_tracking", "TrackingError"]
 

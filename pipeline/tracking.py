@@ -115,12 +115,14 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from pipeline.mesh_primitives import sum_by as _sum_by
+from pipeline.mesh_primitives import summing_matrix as _summing
+from pipeline.mesh_primitives import vertex_normals
 from pipeline.skinning import cotangent_laplacian as stiffness_laplacian
 
 __all__ = [
     "TrackingError",
     "cotangent_laplacian",
-    "vertex_normals",
     "mean_triangle_area",
     "choose_gamma",
     "default_gate",
@@ -128,7 +130,6 @@ __all__ = [
     "CholeskySystem",
     "FrameFit",
     "TemplateTracker",
-    "mesh_volume",
     "surface_patches",
     "patch_rigid_motion",
     "patch_align",
@@ -170,20 +171,6 @@ def _scatter_add(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     flat = vals.reshape(len(vals), -1)
     out = np.stack([np.bincount(index, weights=flat[:, c], minlength=n) for c in range(flat.shape[1])], axis=1)
     return out.reshape((n,) + vals.shape[1:])
-
-
-def _summing(index: np.ndarray, n: int) -> sp.csr_matrix:
-    """(n, K) sparse ``S`` with ``S @ values`` equal, bit for bit, to ``_scatter_add(index, values, n)``:
-    each row holds ones at its values' positions in order, so it adds them in the order bincount does.
-    One sparse product for all columns; built once, it serves every sum over the same ``index``."""
-    k = len(index)
-    return sp.csr_matrix((np.ones(k), (np.asarray(index, dtype=np.int64), np.arange(k))), shape=(n, k))
-
-
-def _sum_by(S: sp.csr_matrix, values: np.ndarray) -> np.ndarray:
-    """``S @ values`` for (K,) or (K, d...) values (:func:`_summing`)."""
-    vals = np.asarray(values, dtype=np.float64)
-    return (S @ vals.reshape(len(vals), -1)).reshape((S.shape[0],) + vals.shape[1:])
 
 
 def _triangle_areas(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -239,42 +226,6 @@ def cotangent_laplacian(vertices, faces) -> sp.csr_matrix:
     area = 0.5 * _scatter_add(f.ravel(), np.repeat(_triangle_areas(v, f), 3), n)
     scale = np.where(area > 0, 1.0 / (2.0 * np.maximum(area, 1e-300)), 0.0)
     return sp.csr_matrix(sp.diags(scale) @ (-2.0 * stiffness))
-
-
-def vertex_normals(vertices, faces, *, corners: sp.spmatrix | None = None) -> np.ndarray:
-    """(V, 3) unit area-weighted vertex normals (zero for isolated vertices).
-
-    Parameters
-    ----------
-    vertices : (V, 3) float ndarray
-    faces : (F, 3) int ndarray
-    corners : (V, 3F) sparse matrix, optional
-        The summing matrix of the faces' corners (:attr:`TemplateTracker.corner_sum`), reused
-        instead of built on every call: the same normals, bit for bit.
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    if corners is None:
-        return _vertex_normals(v, f, _summing(f.ravel(), len(v)))
-    if not sp.issparse(corners) or corners.shape != (len(v), f.size):
-        raise ValueError(f"corners must be a sparse ({len(v)}, {f.size}) matrix (the faces' corner sums), "
-                         f"got {type(corners).__name__} of shape {getattr(corners, 'shape', None)}")
-    return _vertex_normals(v, f, corners)
-
-
-def _vertex_normals(v: np.ndarray, f: np.ndarray, corners: sp.csr_matrix) -> np.ndarray:
-    """:func:`vertex_normals` with the corners' summing matrix (``_summing(f.ravel(), V)``) given."""
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = _sum_by(corners, np.repeat(fn, 3, axis=0))
-    nn = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(nn > 0, nn, 1.0)
-
-
-def mesh_volume(vertices, faces) -> float:
-    """Enclosed volume (divergence theorem; exact for closed, consistently oriented meshes)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    return float(abs(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum()) / 6.0)
 
 
 def closest_pairs(
@@ -1120,7 +1071,7 @@ class TemplateTracker:
         gate = self.gate
         tracks = _check_tracks(tracks, n)
         for _ in range(self.rounds):
-            vn = _vertex_normals(V, self.faces, self._corner_sum)
+            vn = vertex_normals(V, self.faces, corners=self._corner_sum)
             if visible is None:
                 vis = np.ones(n, bool)
             elif callable(visible):
@@ -1212,7 +1163,7 @@ def start_residuals(V, points, normals, faces, patches, *, gate: float, tree=Non
     if len(X) == 0:
         return np.full(n_p, float(gate))
     f = f.astype(np.int64, copy=False)
-    vn = _vertex_normals(V, f, corners if corners is not None else _summing(f.ravel(), len(V)))
+    vn = vertex_normals(V, f, corners=corners)
     tree = cKDTree(X) if tree is None else tree
 
     def gated(d, j, a, b):

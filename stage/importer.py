@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from calib.calibration import Calibration
+from calib.fileio import replace_durably
 from calib.formats import read_calibration
 from stage.frame import Frame
 from stage.rig import check_plane
@@ -266,7 +267,7 @@ def import_take(
                 k += 1
                 if progress is not None:
                     progress(k, max(n_sets, k))
-        os.replace(tmp, out)
+        replace_durably(tmp, out)
         if mask_files is not None:
             try:
                 _store_masks(out, calib, mask_files, source=Path(masks))  # type: ignore[arg-type]

@@ -23,27 +23,34 @@ volume and the backdrop::
     height = 480
 
 Unknown keys and bad values raise :class:`RigError` naming the key.
+
+Every camera entry is validated against the config model of its ``driver``: each driver declares
+its model (a subclass of :class:`CameraConfig`) and registers it with the driver
+(:func:`stage.drivers.registry.register_driver`, which calls :func:`register_camera_config`). A
+driver may also own a top-level table of the rig file (the simulator's ``[simulation]``), required
+when one of its cameras is in the rig. This module knows no driver: ``opencv`` and ``depthai``
+register when :mod:`stage.drivers` is imported, others when their package is (``fake`` with
+:mod:`fake_cameras`); a camera of a driver not registered is a clear error naming the known ones.
 """
 
 from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, ValidationError, field_validator, model_validator
 
 __all__ = [
     "RigError",
     "check_plane",
     "Volume",
     "Backdrop",
-    "FakeCameraConfig",
-    "OpenCVCameraConfig",
-    "DepthAICameraConfig",
     "CameraConfig",
-    "Simulation",
+    "register_camera_config",
+    "registered_camera_configs",
+    "camera_config",
     "Rig",
     "load_rig",
     "parse_rig",
@@ -82,8 +89,12 @@ class Backdrop(_Strict):
     color: Literal["green", "blue", "black", "white"] = "green"
 
 
-class _CameraBase(_Strict):
+class CameraConfig(_Strict):
+    """The settings every camera of a rig file has; a driver's config model subclasses it with its own
+    keys and a ``driver: Literal["name"]`` field."""
+
     id: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")]
+    driver: str
     width: Annotated[int, Field(gt=0, le=16384)] = 640
     height: Annotated[int, Field(gt=0, le=16384)] = 480
     fps: Annotated[float, Field(gt=0, le=1000)] | None = None
@@ -92,64 +103,96 @@ class _CameraBase(_Strict):
     mirror: bool = False
 
 
-class FakeCameraConfig(_CameraBase):
-    """A camera of the simulated rig (``fake_cameras``)."""
-
-    driver: Literal["fake"]
-    index: Annotated[int, Field(ge=0)] = 0
-    clock_offset_ms: float = 0.0
-    jitter_ms: Annotated[float, Field(ge=0)] = 0.0
-    drop_rate: Annotated[float, Field(ge=0, le=1)] = 0.0
-    disconnect_after: Annotated[int, Field(ge=0)] | None = None
-    depth: bool = False
-    # the simulated webcam's mirror mode: it delivers its images flipped left-right (``mirror = true``
-    # tells the stage so, and capture flips them back)
-    mirror_mode: bool = False
+#: driver name -> its camera config model, and the rig-file table it owns (name, model) or None
+_CAMERA_CONFIGS: dict[str, tuple[type[CameraConfig], tuple[str, type[BaseModel]] | None]] = {}
 
 
-class OpenCVCameraConfig(_CameraBase):
-    """A ``cv2.VideoCapture`` source: device index, ``/dev/video*`` path, video file or image sequence."""
+def register_camera_config(driver: str, model: type[CameraConfig], *,
+                           table: tuple[str, type[BaseModel]] | None = None) -> None:
+    """Validate rig cameras with ``driver = driver`` against ``model``.
 
-    driver: Literal["opencv"]
-    device: int | str = 0
-    exposure: float | None = None  # manual exposure in milliseconds; None = auto
-    mjpg: bool = True
-    loop: bool = False
+    Parameters
+    ----------
+    driver : str
+        The ``driver`` value of a rig camera entry.
+    model : type
+        A subclass of :class:`CameraConfig`.
+    table : (str, type), optional
+        A top-level table of the rig file this driver owns and its pydantic model (the
+        simulator's ``("simulation", Simulation)``); required when the rig has a camera of
+        this driver, read with :meth:`Rig.table`.
+    """
+    if not isinstance(driver, str) or not driver:
+        raise ValueError(f"driver must be a non-empty string, got {driver!r}")
+    if not (isinstance(model, type) and issubclass(model, CameraConfig)):
+        raise ValueError(f"model must be a subclass of stage.rig.CameraConfig, got {model!r}")
+    if table is not None:
+        name, table_model = table
+        if not isinstance(name, str) or name in Rig.model_fields or not (
+                isinstance(table_model, type) and issubclass(table_model, BaseModel)):
+            raise ValueError(f"table must be (a new top-level key, a pydantic model), got {table!r}")
+    _CAMERA_CONFIGS[driver] = (model, table)
 
 
-class DepthAICameraConfig(_CameraBase):
-    """A Luxonis OAK camera through depthai v3."""
-
-    driver: Literal["depthai"]
-    device: str | None = None  # device id (MxId) or IP; None = first available
-    depth: bool = True
-    socket: Literal["CAM_A", "CAM_B", "CAM_C"] = "CAM_A"
+def registered_camera_configs() -> list[str]:
+    """The drivers whose cameras a rig file may hold now."""
+    return sorted(_CAMERA_CONFIGS)
 
 
-CameraConfig = Annotated[
-    Union[FakeCameraConfig, OpenCVCameraConfig, DepthAICameraConfig], Field(discriminator="driver")
-]
+def camera_config(data: Any) -> CameraConfig:
+    """One rig camera entry validated against the config model of its ``driver``.
+
+    Raises
+    ------
+    ValueError
+        No registered driver of that name (the message names the known ones).
+    pydantic.ValidationError
+        The entry does not fit the driver's model.
+    """
+    if isinstance(data, CameraConfig):
+        return data
+    driver = data.get("driver") if isinstance(data, dict) else None
+    if driver not in _CAMERA_CONFIGS:
+        hint = " (the simulator's driver registers itself when fake_cameras is imported)" if driver == "fake" else ""
+        raise ValueError(f"unknown driver {driver!r}{hint}; known: {registered_camera_configs()}")
+    return _CAMERA_CONFIGS[driver][0].model_validate(data)
 
 
-class Simulation(_Strict):
-    """What the simulated rig films (used by ``driver = "fake"`` cameras)."""
-
-    subject: Literal["starfish", "quadruped", "biped", "tailed_quadruped", "board-chessboard", "board-charuco", "empty"] = "starfish"
-    n_cameras: Annotated[int, Field(ge=4, le=24)] = 12
-    frames: Annotated[int, Field(ge=1)] = 30
-    seed: int = 0
-    noise: Annotated[float, Field(ge=0)] = 2.0
+def _tables() -> dict[str, tuple[str, type[BaseModel]]]:
+    """Top-level table name -> (the driver owning it, its model)."""
+    return {t[0]: (d, t[1]) for d, (_, t) in _CAMERA_CONFIGS.items() if t is not None}
 
 
 class Rig(_Strict):
+    """A validated rig file. The top-level tables drivers own (:func:`register_camera_config`) are
+    read with :meth:`table`."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)  # the drivers' tables; any other key is refused
+
     name: str = "rig"
     fps: Annotated[float, Field(gt=0, le=1000)] = 30.0
     sync_tolerance_ms: Annotated[float, Field(gt=0)] | None = None
     volume: Volume = Volume()
     support_plane: tuple[float, float, float, float] | None = None
     backdrop: Backdrop = Backdrop()
-    simulation: Simulation | None = None
-    cameras: list[CameraConfig] = Field(default_factory=list)
+    cameras: list[SerializeAsAny[CameraConfig]] = Field(default_factory=list)
+
+    @field_validator("cameras", mode="before")
+    @classmethod
+    def _typed_cameras(cls, v: Any) -> Any:
+        return [camera_config(c) for c in v] if isinstance(v, list) else v
+
+    @model_validator(mode="before")
+    @classmethod
+    def _typed_tables(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        tables = _tables()
+        unknown = sorted(k for k in data if k not in cls.model_fields and k not in tables)
+        if unknown:
+            raise ValueError(f"unknown key {unknown[0]!r}")
+        return {k: tables[k][1].model_validate(v) if k in tables and not isinstance(v, BaseModel) else v
+                for k, v in data.items()}
 
     @model_validator(mode="after")
     def _check(self) -> "Rig":
@@ -161,9 +204,14 @@ class Rig(_Strict):
             raise ValueError("cameras: a rig needs at least one camera")
         if self.support_plane is not None:
             check_plane(self.support_plane)  # the one rule for planes: finite, non-zero normal
-        if any(c.driver == "fake" for c in self.cameras) and self.simulation is None:
-            raise ValueError("simulation: fake cameras need a [simulation] table")
+        for name, (driver, _) in _tables().items():
+            if any(c.driver == driver for c in self.cameras) and self.table(name) is None:
+                raise ValueError(f"{name}: {driver} cameras need a [{name}] table")
         return self
+
+    def table(self, name: str) -> BaseModel | None:
+        """The validated top-level table ``name`` a driver owns (e.g. ``[simulation]``), or None."""
+        return (self.__pydantic_extra__ or {}).get(name)
 
     @property
     def tolerance_ns(self) -> int:
@@ -171,9 +219,6 @@ class Rig(_Strict):
         if self.sync_tolerance_ms is not None:
             return int(self.sync_tolerance_ms * 1e6)
         return int(0.5e9 / self.fps)
-
-
-_DRIVERS = {"fake", "opencv", "depthai"}
 
 
 def check_plane(plane: Any, name: str = "support_plane") -> np.ndarray:
@@ -197,26 +242,56 @@ def check_plane(plane: Any, name: str = "support_plane") -> np.ndarray:
     return p / n
 
 
-def _format_errors(exc: ValidationError, source: str) -> str:
-    lines = [f"{source}: invalid rig file"]
+def _error_lines(exc: ValidationError, prefix: tuple = ()) -> list[str]:
+    lines = []
     for err in exc.errors():
-        parts = list(err["loc"])
-        # drop the discriminator tag pydantic inserts after a camera's list index
-        parts = [p for i, p in enumerate(parts) if not (i > 0 and isinstance(parts[i - 1], int) and p in _DRIVERS)]
-        loc = ".".join(str(p) for p in parts)
+        loc = ".".join(str(p) for p in (*prefix, *err["loc"]))
         if err["type"] == "extra_forbidden":
             lines.append(f"  unknown key {loc!r}")
         else:
-            lines.append(f"  {loc or '(top level)'}: {err['msg']}")
-    return "\n".join(lines)
+            lines.append(f"  {loc or '(top level)'}: {err['msg'].removeprefix('Value error, ')}")
+    return lines
+
+
+def _typed_parts(data: dict) -> tuple[dict, list[str]]:
+    """``data`` with every camera and driver table validated by its own model, and the error lines
+    of those that are not (located in the file: ``cameras.1.device``, ``simulation.frames``)."""
+    out, lines = dict(data), []
+    cams = data.get("cameras")
+    if isinstance(cams, list):
+        typed = []
+        for i, cam in enumerate(cams):
+            try:
+                typed.append(camera_config(cam))
+            except ValidationError as exc:
+                lines += _error_lines(exc, ("cameras", i))
+            except ValueError as exc:
+                lines.append(f"  cameras.{i}.driver: {exc}")
+        out["cameras"] = typed
+    tables = _tables()
+    for key in data:
+        if key in tables:
+            try:
+                out[key] = tables[key][1].model_validate(data[key])
+            except ValidationError as exc:
+                lines += _error_lines(exc, (key,))
+        elif key not in Rig.model_fields:
+            lines.append(f"  unknown key {key!r}")
+    return out, lines
 
 
 def parse_rig(data: dict, *, source: str = "rig") -> Rig:
-    """Validate a rig dictionary (as read from TOML)."""
-    try:
-        return Rig.model_validate(data)
-    except ValidationError as exc:
-        raise RigError(_format_errors(exc, source)) from None
+    """Validate a rig dictionary (as read from TOML); every camera against the config model of its
+    ``driver``. Raises :class:`RigError` listing every bad key."""
+    if not isinstance(data, dict):
+        raise RigError(f"{source}: invalid rig file\n  (top level): must be a table, got {type(data).__name__}")
+    typed, lines = _typed_parts(data)
+    if not lines:
+        try:
+            return Rig.model_validate(typed)
+        except ValidationError as exc:
+            lines = _error_lines(exc)
+    raise RigError("\n".join([f"{source}: invalid rig file", *lines]))
 
 
 def load_rig(path: str | Path) -> Rig:

@@ -45,7 +45,7 @@ grouper in arrival order; used by tests and imports). They agree exactly when
 no set times out.
 
 This module is pure: no I/O, no clocks read (the caller passes ``now_ns``).
-Brostow et al. 2004 (``/work/shared/papers/brostow2004-spines.txt``) assume
+Brostow et al. 2004 ("Novel skeletal representation for articulated creatures") assume
 synchronized views of one instant; this is what makes a frame set one instant.
 """
 

@@ -44,23 +44,33 @@ def pytest_configure(config):
     cv2.setNumThreads(1)
 
 
-#: Test files that take minutes, the longest first: under pytest-xdist they start before any other,
-#: so that no worker is left running one alone at the end (measured on 2 cores: the quadruped's
-#: accurate tracking, about 4 minutes, is the longest test of the suite).
-FIRST = ("test_tracking_multiview.py",)
+#: Test files whose groups take the longest, the longest first: under pytest-xdist they start before
+#: any other, so that no worker is left running one alone at the end (the spine pipeline's group
+#: processes two 30-frame takes and tracks one; the carved tracking renders and processes its own).
+FIRST = ("test_spine_pipeline.py", "test_tracking_carved.py")
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups
 def pytest_collection_modifyitems(config, items):
     """Under pytest-xdist: every test file one group, run in one worker (its module-level caches are
-    built once), the files of :data:`FIRST` first, then those with the most ``slow`` tests (with
-    ``--no-loadscope-reorder`` the workers take the groups in this order)."""
+    built once), unless the file names its own group (``pytestmark = pytest.mark.xdist_group(NAME)``:
+    files that share a fixture module's cache, e.g. :mod:`tests.pipeline.spine_takes`); the groups of
+    :data:`FIRST` first, then those with the most ``slow`` tests (with ``--no-loadscope-reorder`` the
+    workers take the groups in this order)."""
     if not config.pluginmanager.hasplugin("xdist"):
         return
-    groups = {item: str(Path(item.path).relative_to(config.rootpath)) for item in items}
+    groups = {}
     for item in items:
-        item.add_marker(pytest.mark.xdist_group(groups[item]))
+        own = item.get_closest_marker("xdist_group")
+        groups[item] = own.args[0] if own and own.args else own.kwargs.get("name") if own else None
+        if groups[item] is None:
+            groups[item] = str(Path(item.path).relative_to(config.rootpath))
+            item.add_marker(pytest.mark.xdist_group(groups[item]))
     slow = Counter(groups[item] for item in items if item.get_closest_marker("slow"))
-    rank = {name: i for i, name in enumerate(FIRST)}
-    # stable: the collection's order otherwise
-    items.sort(key=lambda item: (rank.get(Path(item.path).name, len(FIRST)), -slow[groups[item]]))
+    rank: dict = {}  # a group's place in FIRST, and where it first appears in the collection
+    for i, item in enumerate(items):
+        name = Path(item.path).name
+        rank.setdefault(groups[item], [len(FIRST), i])
+        if name in FIRST:
+            rank[groups[item]][0] = min(rank[groups[item]][0], FIRST.index(name))
+    items.sort(key=lambda item: (rank[groups[item]][0], -slow[groups[item]], rank[groups[item]][1]))

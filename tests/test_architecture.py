@@ -27,13 +27,13 @@ PACKAGES = ("stage", "calib", "pipeline", "api", "fake_cameras")
 #: the test until it is placed here (and in docs/architecture.md when it opens a new room).
 FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
     0: ("model", (
-        "calib", "calib.camera", "calib.calibration", "calib.boards", "calib.formats", "calib._toml",
+        "calib", "calib.camera", "calib.calibration", "calib.boards", "calib.formats", "calib._toml", "calib.fileio",
         "stage", "stage.frame", "stage.rig",
     )),
     1: ("ground", (
         "stage.drivers.*", "stage.sync", "stage.store.*", "stage.keying.*", "stage.discovery", "stage.capture", "stage.session",
         "stage.importer",
-        "pipeline", "pipeline.volume", "pipeline.geodesic", "pipeline.meshio",
+        "pipeline", "pipeline.volume", "pipeline.geodesic", "pipeline.meshio", "pipeline.mesh_primitives",
     )),
     2: ("steps", (
         "pipeline.hull", "pipeline.surface", "pipeline.photo_refine", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
@@ -186,6 +186,31 @@ def test_the_tests_check_catches_an_import_of_the_tests(tmp_path):
     root = _tree(tmp_path, {"low/__init__.py": "", "low/a.py": "def f():\n    from tests.conftest import X\n"})
     assert [e.imported for e in imports_of(root / "low" / "a.py", root, ("tests",))] == ["tests.conftest",
                                                                                        "tests.conftest.X"]
+
+
+_TEST_FILE_IMPORT = re.compile(r"\b(?:from|import)\s+tests(?:\.\w+)*\.test_\w+|\bfrom\s+tests(?:\.\w+)*\s+import\s+[^\n]*\btest_\w+")
+
+
+def imports_of_test_files(text: str) -> list[str]:
+    """The imports of a test file (``test_*.py``) in ``text``: statements, and the code of child
+    processes a test writes as a string."""
+    return _TEST_FILE_IMPORT.findall(text)
+
+
+def test_no_test_imports_another_test_file():
+    """What several test files share lives in a fixture module (``conftest.py``, or a module not named
+    ``test_*``): a test file imported by another is collected twice, its module caches are built
+    in two workers, and its tests cannot move without breaking the other."""
+    found = [f"{path.relative_to(ROOT)}: {hit}" for path in sorted((ROOT / "tests").rglob("*.py"))
+             if path != Path(__file__) for hit in imports_of_test_files(path.read_text(encoding="utf-8"))]
+    assert not found, "\n".join(found)
+
+
+def test_the_test_import_check_catches_each_form():
+    assert imports_of_test_files("from tests.pipeline.test_hull import sim_grid\n")
+    assert imports_of_test_files("    from tests.api import test_serve\n")
+    assert imports_of_test_files("code = 'import sys; from tests.stage.test_store import make_frame'")
+    assert not imports_of_test_files("from tests.pipeline.shapes import capsule\nfrom tests.conftest import SHARED_DATA\n")
 
 
 def test_every_floor_entry_is_a_module():

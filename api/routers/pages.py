@@ -23,9 +23,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
-import os
 import threading
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +37,7 @@ from api.deps import JobId, LibraryDep, ReadAccess, SettingsDep, StoreDep, TakeI
 from api.errors import NotFoundError
 from api.jobs.store import JobNotFoundError, JobRecord
 from api.paths import inside
+from calib.fileio import atomic_write
 
 __all__ = ["router", "REPORT_CACHE"]
 
@@ -201,12 +200,7 @@ def _report_html(job: JobRecord, job_dir: Path, take: Path | None) -> str:
         if cache.is_file() and cache.stat().st_mtime >= newest:
             return cache.read_text(encoding="utf-8")
         page = render_report(job_dir, take=take)
-        tmp = job_dir / f".{REPORT_CACHE}.{uuid.uuid4().hex}.part"
-        try:
-            tmp.write_text(page, encoding="utf-8")
-            os.replace(tmp, cache)
-        finally:
-            tmp.unlink(missing_ok=True)
+        atomic_write(cache, page)
         return page
 
 

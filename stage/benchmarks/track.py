@@ -163,9 +163,9 @@ def accuracy(frames: int = 30) -> None:
 
     from fake_cameras.rgbd import OBJECTS, record_rgbd_take, simulate_rgbd_take, template_path
     from pipeline.articulated_rig import counted, rig_results
+    from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
     from pipeline.track import track_rgbd_take
-    from pipeline.tracking import mesh_volume
 
     expected = {"pipe_half": 1, "pipe_3q": 1, "lamp": 3}
     with tempfile.TemporaryDirectory() as tmp:
@@ -206,9 +206,9 @@ def real_pipe_accuracy() -> None:
 
     from fake_cameras.rgbd import record_rgbd_take, simulate_sensor_rgbd_take, template_path
     from pipeline.articulated_rig import counted, rig_results
+    from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
     from pipeline.track import track_rgbd_take
-    from pipeline.tracking import mesh_volume
     d = np.load(path)
     J = d["joints"].astype(np.float64)
     length = float(np.linalg.norm(np.diff(J[0], axis=0), axis=1).sum())
@@ -287,7 +287,8 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from fake_cameras.rgbd import make_object, record_rgbd_take, simulate_rgbd_take, template_mesh
-    from pipeline.tracking import CholeskySystem, TemplateTracker, predict_motion, vertex_normals
+    from pipeline.mesh_primitives import vertex_normals
+    from pipeline.tracking import CholeskySystem, TemplateTracker, predict_motion
 
     F = max(2, int(args.frames))
     obj = make_object("pipe_half")

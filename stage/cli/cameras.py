@@ -43,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
 
     rig = None
     if args.rig:
+        import stage.drivers  # noqa: F401 (the built-in drivers register their camera models)
         from stage.rig import load_rig
 
         rig = load_rig(args.rig)  # RigError (a ValueError) -> "stage cameras: error: ..."

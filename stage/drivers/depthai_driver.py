@@ -41,7 +41,7 @@ from stage.drivers.base import (
     unmirror,
 )
 from stage.frame import Frame
-from stage.rig import DepthAICameraConfig
+from stage.rig import CameraConfig
 
 if TYPE_CHECKING:  # pragma: no cover
     from calib.camera import Camera
@@ -384,6 +384,15 @@ def list_devices() -> list[dict]:
     return out
 
 
+class DepthAICameraConfig(CameraConfig):
+    """A Luxonis OAK camera through depthai v3."""
+
+    driver: Literal["depthai"]
+    device: str | None = None  # device id (MxId) or IP; None = first available
+    depth: bool = True
+    socket: Literal["CAM_A", "CAM_B", "CAM_C"] = "CAM_A"
+
+
 class DepthAICamera:
     """One OAK camera: colour plus aligned stereo depth, device-synced timestamps.
 
@@ -396,6 +405,8 @@ class DepthAICamera:
         ``grab`` raises :class:`CameraDisconnectedError` when no frame arrives
         for this long (default: 2 s plus ten frame periods).
     """
+
+    config_model = DepthAICameraConfig
 
     def __init__(self, config: DepthAICameraConfig, *, clock: Clock = "synced", timeout_s: float | None = None) -> None:
         if not isinstance(config, DepthAICameraConfig):

@@ -48,7 +48,7 @@ from stage.drivers.base import (
     unmirror,
 )
 from stage.frame import Frame
-from stage.rig import OpenCVCameraConfig
+from stage.rig import CameraConfig
 
 __all__ = ["OpenCVCamera", "Source", "classify_source", "fourcc_to_str", "expand_pattern", "IMAGE_SUFFIXES"]
 
@@ -241,6 +241,16 @@ def _decode_jpeg(data: np.ndarray | bytes) -> np.ndarray | None:
     return img
 
 
+class OpenCVCameraConfig(CameraConfig):
+    """A ``cv2.VideoCapture`` source: device index, ``/dev/video*`` path, video file or image sequence."""
+
+    driver: Literal["opencv"]
+    device: int | str = 0
+    exposure: float | None = None  # manual exposure in milliseconds; None = auto
+    mjpg: bool = True
+    loop: bool = False
+
+
 class OpenCVCamera:
     """A ``cv2.VideoCapture`` camera: device, stream, video file or image sequence.
 
@@ -259,6 +269,8 @@ class OpenCVCamera:
     ``loop``). ``Frame.index`` counts the frames this source delivered
     (OpenCV's V4L2 backend does not expose the driver's sequence number).
     """
+
+    config_model = OpenCVCameraConfig
 
     def __init__(self, config: OpenCVCameraConfig) -> None:
         if not isinstance(config, OpenCVCameraConfig):

@@ -9,6 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from calib.fileio import replace_durably
 from stage.store._format import RESERVED
 from stage.store.derived import derived_path
 from stage.store.reader import TakeReader
@@ -35,7 +36,7 @@ def recover_take(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: b
         with raise_disk_full(dst, "the recovered take", src.stat().st_size):
             check_free_space(dst, src.stat().st_size, "the recovered take")
             n_sets = _copy_committed(src, tmp)
-            os.replace(tmp, dst)
+            replace_durably(tmp, dst)
             if derived_path(src).exists():
                 shutil.copyfile(derived_path(src), derived_path(dst))
     finally:

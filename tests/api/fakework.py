@@ -148,3 +148,15 @@ def process_take(take: str | Path, out: str | Path, *, steps: Sequence[str] = ST
             progress("spine", n, n)
     _write_atomic(out / "report.json", json.dumps({"frames": n, "steps": list(steps)}))
     return {"frames": n}
+
+
+def small_calibration(n: int = 2):
+    """``n`` 32x24 pinhole cameras side by side, 100 mm apart, looking along +z."""
+    from calib.calibration import Calibration
+    from calib.camera import Camera
+
+    cams = []
+    for i in range(n):
+        K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+        cams.append(Camera(f"cam{i:02d}", K, np.zeros(5), np.eye(3), np.array([i * 100.0, 0, 1000]), size=(32, 24)))
+    return Calibration(tuple(cams))

@@ -15,8 +15,10 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.api.test_serve import AUTH, Server  # noqa: E402
-from tests.pipeline.test_report import CHROMIUM, CHROMIUM_ARGS, _browser  # noqa: E402
+from fake_cameras.record import record_take
+from fake_cameras.take import simulate_take
+from tests.api.served import AUTH, Server
+from tests.browser import CHROMIUM, CHROMIUM_ARGS, sync_playwright_or_skip
 
 pytestmark = [pytest.mark.slow]
 try:  # pytest-timeout is in the [test] extra
@@ -41,12 +43,6 @@ def _artifacts(tmp_path: Path) -> Path:
 
 
 def _take(path: Path) -> Path:
-    try:
-        from fake_cameras.record import record_take
-        from fake_cameras.take import simulate_take
-        from pipeline.process import process_take  # noqa: F401  (the server's default work)
-    except ImportError as exc:
-        pytest.skip(f"the simulated take or the processing pipeline is not available: {exc}")
     path.parent.mkdir(parents=True, exist_ok=True)
     return record_take(simulate_take("starfish", n_cameras=CAMERAS, frames=FRAMES, size=SIZE, seed=0), path)
 
@@ -68,7 +64,7 @@ def _not_blank(png: bytes, what: str) -> np.ndarray:
 
 
 def test_browser_on_served_pages(tmp_path):
-    sync_playwright = _browser()  # skips with the reason when chromium or playwright is missing
+    sync_playwright = sync_playwright_or_skip()  # skips with the reason when chromium or playwright is missing
     t0 = time.monotonic()
     data = tmp_path / "data"
     _take(data / "takes" / "sim.h5")

@@ -7,8 +7,7 @@ import pytest
 
 from calib.formats import read_calibration
 from tests.api.conftest import AUTH, wait_job
-from tests.api.fakework import make_take_file
-from tests.api.test_takes import _calibration
+from tests.api.fakework import make_take_file, small_calibration
 
 BOARD = {"type": "chessboard", "corners": [7, 6], "square_mm": 100.0}
 
@@ -20,7 +19,7 @@ def _put(client, tmp_path, name, **kw):
 
 
 def test_from_take_and_download_formats(client, tmp_path):
-    cal = _calibration(3)
+    cal = small_calibration(3)
     _put(client, tmp_path, "board", cameras=3, calibration=cal)
     r = client.post("/calibrations", json={"take": "board", "source": "take"}, headers=AUTH)
     assert r.status_code == 201, r.text
@@ -45,7 +44,7 @@ def test_from_take_and_download_formats(client, tmp_path):
 def test_from_board_views_runs_a_job(client, tmp_path, monkeypatch):
     import api.calibrations as mod
 
-    cal = _calibration(2)
+    cal = small_calibration(2)
     seen = {}
 
     def fake_calibrator(take, *, params, progress=None, cancel=None):

@@ -18,7 +18,7 @@ from api.control import ControlRoom
 from api.settings import Settings
 from stage.session import StageSession
 from stage.store import TakeReader
-from tests.stage.test_capture import make_drivers, rig_for
+from tests.stage.paced import make_drivers, rig_for
 
 TOKEN = "control-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -45,7 +45,7 @@ class LiveServer:
     def __init__(self, tmp: Path, session: StageSession, *, read_protected: bool = False) -> None:
         import uvicorn
 
-        from tests.api.test_serve import free_port
+        from tests.api.served import free_port
 
         settings = Settings(data=tmp / "data", api_token=TOKEN, read_protected=read_protected, workers=1)
         self.room = ControlRoom(session.open(), preview_fps=10.0)
@@ -177,7 +177,7 @@ def test_a_client_that_leaves_leaks_nothing(tmp_path):
 
 def _fake_rig(tmp: Path, n: int = 4):
     """A simulated rig (fake_cameras) of ``n`` small cameras and its FakeCamera drivers."""
-    fake = pytest.importorskip("fake_cameras.device")
+    from fake_cameras import device as fake
     from stage.rig import parse_rig
 
     rig = parse_rig({"name": "sim", "fps": 30, "simulation": {"subject": "starfish", "n_cameras": max(n, 4), "frames": 10},
@@ -187,9 +187,9 @@ def _fake_rig(tmp: Path, n: int = 4):
 
 
 def test_unplugged_camera_in_the_browser(tmp_path):
-    from tests.pipeline.test_report import CHROMIUM, CHROMIUM_ARGS, _browser
+    from tests.browser import CHROMIUM, CHROMIUM_ARGS, sync_playwright_or_skip
 
-    sync_playwright = _browser()
+    sync_playwright = sync_playwright_or_skip()
     rig, drivers = _fake_rig(tmp_path)
     art = _artifacts(tmp_path)
     with LiveServer(tmp_path, StageSession(rig, tmp_path / "data" / "takes", drivers=drivers)) as srv:

@@ -9,6 +9,7 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.executors import dask_available, dask_executor, local_pool, make_executor
+from tests.api import served
 from tests.api.conftest import AUTH, make_settings, wait_job
 from tests.api.fakework import make_take_file
 
@@ -31,7 +32,7 @@ def pool_handle():
     h.close()
 
 
-def _run_job(tmp: Path, name: str, take: Path, handle, work, *, skip_on_import_error: bool = False) -> dict:
+def _run_job(tmp: Path, name: str, take: Path, handle, work) -> dict:
     data = tmp / name
     (data / "takes").mkdir(parents=True)
     (data / "takes" / "t.h5").write_bytes(take.read_bytes())
@@ -39,8 +40,6 @@ def _run_job(tmp: Path, name: str, take: Path, handle, work, *, skip_on_import_e
     with TestClient(app) as c:
         jid = c.post("/jobs", json={"take": "t"}, headers=AUTH).json()["id"]
         st = wait_job(c, jid, timeout=120)
-        if skip_on_import_error and st["state"] == "failed" and "import" in (st["error"] or ""):
-            pytest.skip(f"process_take cannot run yet: {st['error']}")
         assert st["state"] == "done", st
         return c.get(f"/jobs/{jid}/results/spine.json").json()
 
@@ -53,11 +52,9 @@ def test_dask_and_local_pool_agree_fake_work(tmp_path, dask_handle, pool_handle)
 
 
 def test_dask_and_local_pool_agree_process_take(tmp_path, dask_handle, pool_handle):
-    from tests.api import test_serve
-
-    take = test_serve._simulated_take_file(tmp_path / "sim.h5")
-    a = _run_job(tmp_path, "pool", take, pool_handle, "pipeline.process:process_take", skip_on_import_error=True)
-    test_serve._REF.setdefault(test_serve.SIM_KEY, a)  # an uninterrupted run: the reference of test_serve
+    take = served.simulated_take_file(tmp_path / "sim.h5")
+    a = _run_job(tmp_path, "pool", take, pool_handle, "pipeline.process:process_take")
+    served._REF.setdefault(served.SIM_KEY, a)  # an uninterrupted run: the reference of test_serve
     b = _run_job(tmp_path, "dask", take, dask_handle, "pipeline.process:process_take")
     assert a == b and a["format"].startswith("capture-stage/spine")
 

@@ -12,7 +12,7 @@ from schemathesis.checks import not_a_server_error, response_schema_conformance 
 from api.app import create_app  # noqa: E402
 from tests.api.conftest import AUTH, make_settings  # noqa: E402
 from tests.api.fakework import make_take_file  # noqa: E402
-from tests.api.test_rig import RIG, PatternCamera  # noqa: E402
+from tests.api.pattern_rig import RIG, PatternCamera  # noqa: E402
 
 pytestmark = pytest.mark.slow
 

@@ -25,7 +25,7 @@ def test_links_out_of_the_data_root_are_never_read(client, data_root, outside, c
     # a take, a calibration, a result and a mesh, each a link to a file outside the data root
     make_take_file(outside / "secret.h5", 2)
     (data_root / "takes" / "evil.h5").symlink_to(outside / "secret.h5")
-    from tests.stage.test_store import calibration
+    from tests.stage.frames import calibration
 
     (outside / "cal.json").write_text(json.dumps(calibration(["a"]).to_dict()))
     cal_id = uuid.uuid4().hex

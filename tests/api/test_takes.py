@@ -7,23 +7,12 @@ import numpy as np
 
 from stage.store import TakeReader
 from tests.api.conftest import AUTH, add_take
-from tests.api.fakework import make_take_file, write_legacy_masks
-
-
-def _calibration(n: int = 2):
-    from calib.calibration import Calibration
-    from calib.camera import Camera
-
-    cams = []
-    for i in range(n):
-        K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
-        cams.append(Camera(f"cam{i:02d}", K, np.zeros(5), np.eye(3), np.array([i * 100.0, 0, 1000]), size=(32, 24)))
-    return Calibration(tuple(cams))
+from tests.api.fakework import make_take_file, small_calibration, write_legacy_masks
 
 
 def test_upload_raw_and_multipart_then_read(client, tmp_path, data_root):
     # an upload is the capture file alone: masks travel with it only in the older layout (inside the take)
-    src = make_take_file(tmp_path / "a.h5", 3, calibration=_calibration())
+    src = make_take_file(tmp_path / "a.h5", 3, calibration=small_calibration())
     m = np.zeros((3, 24, 32), bool)
     m[:, 6:18, 8:24] = True
     for c in ("cam00", "cam01"):

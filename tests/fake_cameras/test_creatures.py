@@ -247,7 +247,7 @@ def test_tracking_errors_are_the_distances_to_the_true_tracks(tmp_path):
     by 0, 1 and 2.5 voxels score exactly that (the PLY round trip is exact: 1e-9), and the volumes
     are the frames' own over the template's."""
     from fake_cameras.surface_motion import tracking_errors
-    from pipeline.tracking import mesh_volume
+    from pipeline.mesh_primitives import mesh_volume
 
     c, times, V0, F0, written = _tracked_results(tmp_path, [0.0, 1.0, 2.5])
     err, vols, rep = tracking_errors(c, times, tmp_path)

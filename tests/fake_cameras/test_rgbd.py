@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fake_cameras.rgbd import OBJECTS, make_object, simulate_rgbd_take, stereo_depth_noise, template_mesh
-from pipeline.tracking import mesh_volume
+from pipeline.mesh_primitives import mesh_volume
 
 
 @pytest.mark.parametrize("name, joints, at", [("pipe_half", 1, 0.5), ("pipe_3q", 1, 0.75), ("lamp", 3, None)])

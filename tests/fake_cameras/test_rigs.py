@@ -8,7 +8,7 @@ def test_rig_file_round_trip(tmp_path):
     p = write_simulated_rig(tmp_path / "rig.toml", 3, subject="quadruped", drop_rate=0.01, depth=True, size=(320, 240))
     rig = load_rig(p)
     assert [c.id for c in rig.cameras] == ["cam00", "cam01", "cam02"]
-    assert rig.simulation.subject == "quadruped" and rig.simulation.n_cameras == 4
+    assert rig.table("simulation").subject == "quadruped" and rig.table("simulation").n_cameras == 4
     assert all(c.driver == "fake" and c.depth and c.width == 320 for c in rig.cameras)
     offsets = [c.clock_offset_ms for c in rig.cameras]
     assert len(set(offsets)) == 3 and all(abs(o) <= 20 for o in offsets)

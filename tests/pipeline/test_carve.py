@@ -20,13 +20,13 @@ from pipeline.carve import CarveError, carve_results, carved_path, track_with_ca
 from pipeline.meshio import load_mesh
 from pipeline.volume import Grid
 from stage.cli import main
-from tests.pipeline.test_track import _turning_sphere_results
+from tests.pipeline.tracking_takes import turning_sphere_results
 
 CENTRE, RADIUS = np.array([0.0, 0.0, 300.0]), 150.0
 
 
 def _results(root, frames=4, calib_meta=None):
-    res, _ = _turning_sphere_results(root, frames=frames, size=(160, 120), calib_meta=calib_meta)
+    res, _ = turning_sphere_results(root, frames=frames, size=(160, 120), calib_meta=calib_meta)
     grid = Grid(lo=CENTRE - 200, shape=(40, 40, 40), voxel=10.0)
     (res / "grid.json").write_text(json.dumps(grid.to_dict()))
     return res

@@ -8,13 +8,7 @@ import trimesh
 
 from pipeline.extremities import find_extremities, local_maxima, protrudes
 from pipeline.geodesic import mesh_edges
-
-
-def capsule(height=3.0):
-    """A capsule with roughly uniform edges (trimesh's has only end rings on the cylinder)."""
-    m = trimesh.creation.capsule(height=height, radius=0.5, count=[16, 16])
-    v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=0.2)
-    return trimesh.Trimesh(v, f)
+from tests.pipeline.shapes import capsule, forked_capsule
 
 
 def star(arms=4, length=2.0):
@@ -85,18 +79,6 @@ def test_threshold_is_scale_free():
     # symmetric ties may fall on another vertex of the same cap: compare heights
     np.testing.assert_allclose(np.sort(b.points[:, 2]) / 1000.0, np.sort(a.points[:, 2]), atol=0.05)
     np.testing.assert_allclose(b.threshold, 1000.0 * a.threshold, rtol=1e-9)
-
-
-def forked_capsule(heights=(0.45, 0.43), b_offset=(0.0, 0.0)):
-    """A capsule whose top end forks into two bumps of near-equal height (by default 0.45 and
-    0.43 of its radius-0.5 body; bump A at x = 0.28, bump B at x = -0.28 moved by ``b_offset``
-    in x, y): one limb ending in two near-equal maxima, like a horse's nose and ears."""
-    m = capsule()
-    v = np.asarray(m.vertices).copy()
-    top = v[:, 2] > 1.4
-    for (cx, cy), a in (((0.28, 0.0), heights[0]), ((-0.28 + b_offset[0], b_offset[1]), heights[1])):
-        v[:, 2] += a * top * np.exp(-((v[:, 0] - cx) ** 2 + (v[:, 1] - cy) ** 2) / 0.12**2)
-    return v, np.asarray(m.faces)
 
 
 def test_alternates_are_the_limbs_other_ball_maxima():

@@ -4,13 +4,11 @@ visibility, tolerance, bad masks, memory refusal, derived capture volumes."""
 from __future__ import annotations
 
 import logging
-from functools import lru_cache
 
 import numpy as np
 import pytest
 
 from calib.calibration import Calibration
-from fake_cameras.take import simulate_take
 from pipeline.hull import EmptyHullError, HullCarver, carve_direct, hull_memory_bytes
 from pipeline.volume import (
     Grid,
@@ -23,27 +21,9 @@ from pipeline.volume import (
 )
 from stage.rig import Volume
 from tests.pipeline import simrig
+from tests.pipeline.hull_scenes import analytic, sim_grid, sim_take
 
 # -- fixtures ------------------------------------------------------------------------------------
-
-
-@lru_cache(maxsize=None)
-def analytic():
-    """4 distorted cameras around a capsule creature, exact silhouettes by sphere tracing."""
-    cal = simrig.dome(6, size=(96, 72), seed=3)
-    creature = simrig.Creature()
-    masks, depth = simrig.render(cal, creature.sdf)
-    return cal, creature, masks, depth
-
-
-@lru_cache(maxsize=None)
-def sim_take():
-    """One frame of the simulated dome (fake_cameras renderer), ground-truth masks."""
-    return simulate_take("starfish", n_cameras=8, frames=1, size=(160, 120), seed=1, depth=True)
-
-
-def sim_grid(res: int = 48) -> Grid:
-    return grid_from_volume(Volume().bounds, res)
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:

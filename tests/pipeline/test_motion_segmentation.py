@@ -16,6 +16,7 @@ from pipeline.motion_segmentation import (
     spectral_clusters,
     trajectory_distances,
 )
+from tests.pipeline.shapes import two_bars
 
 
 def _slow_distances(X, N, dt):
@@ -126,27 +127,8 @@ def test_rigid_residual_is_zero_for_a_rigid_motion():
     assert rigid_residual(Y) > 0.1
 
 
-def _two_bars(T=12):
-    """A bar hinged at its middle (the origin); the right half turns by up to 60 degrees (mm)."""
-    import trimesh
-
-    m = trimesh.creation.box(extents=(200, 20, 20))
-    for _ in range(4):
-        m = m.subdivide()
-    v0 = np.asarray(m.vertices)
-    right = v0[:, 0] > 0
-    frames = []
-    for ang in np.linspace(0, np.pi / 3, T):
-        c, s = np.cos(ang), np.sin(ang)
-        R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-        v = v0.copy()
-        v[right] = v0[right] @ R.T
-        frames.append(v)
-    return np.asarray(frames), np.asarray(m.faces), right
-
-
 def test_two_hinged_parts_are_two_segments():
-    V, F, right = _two_bars()
+    V, F, right = two_bars()
     seg = motion_segmentation(V, F, n_samples=300)
     assert seg.n_segments == 2
     # every vertex away from the hinge carries its part's label
@@ -159,7 +141,7 @@ def test_a_segment_that_does_not_move_rigidly_is_cut_at_its_joint():
     """The hinged bar as one label: the normalised cut of its samples splits it at the hinge; a rigid bar stays."""
     from pipeline.motion_segmentation import _sample_normals, _split_nonrigid, sample_vertices
 
-    V, F, right = _two_bars()
+    V, F, right = two_bars()
     size = float(np.linalg.norm(np.ptp(V[0], axis=0)))
     samples = np.sort(sample_vertices(V[0], 200))
     dv, dn = trajectory_distances(V[:, samples], _sample_normals(V, F, samples), interval=len(V) - 1)
@@ -175,7 +157,7 @@ def test_a_segment_that_does_not_move_rigidly_is_cut_at_its_joint():
 
 
 def test_rigid_sequence_is_one_segment(caplog):
-    V, F, _ = _two_bars(8)
+    V, F, _ = two_bars(8)
     Vr = np.repeat(V[:1], 8, axis=0) + np.linspace(0, 80, 8)[:, None, None]  # translates, nothing bends
     with caplog.at_level(logging.WARNING):
         seg = motion_segmentation(Vr, F, n_samples=200)
@@ -184,7 +166,7 @@ def test_rigid_sequence_is_one_segment(caplog):
 
 
 def test_one_frame_is_one_segment(caplog):
-    V, F, _ = _two_bars(3)
+    V, F, _ = two_bars(3)
     with caplog.at_level(logging.WARNING):
         seg = motion_segmentation(V[:1], F)
     assert seg.n_segments == 1
@@ -212,7 +194,7 @@ def test_rigid_motions_match_one_alignment_per_frame():
 
 
 def test_invalid_input():
-    V, F, _ = _two_bars(3)
+    V, F, _ = two_bars(3)
     with pytest.raises(ValueError, match="points"):
         rigid_motions(np.zeros((3, 4, 2)))
     with pytest.raises(ValueError, match="reference"):

@@ -8,8 +8,8 @@ import pytest
 import trimesh
 
 import pipeline.photo_refine as pr
+from pipeline.mesh_primitives import vertex_normals
 from pipeline.photo_refine import refine_surface
-from pipeline.tracking import vertex_normals
 
 RADIUS = 80.0
 CENTRE = np.array([0.0, 0.0, 300.0])

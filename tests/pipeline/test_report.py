@@ -25,14 +25,12 @@ from pipeline.report import (
     write_report,
 )
 from pipeline.spine import write_spine
+from tests.browser import CHROMIUM, CHROMIUM_ARGS, sync_playwright_or_skip
 from tests.pipeline.rig_fixtures import creature_take, surface, true_spine
 
 FRAMES = 8
 # screenshots of the browser test are kept here (CI can point STAGE_TEST_ARTIFACTS elsewhere)
 ARTIFACTS = Path(os.environ.get("STAGE_TEST_ARTIFACTS", Path(__file__).resolve().parents[1] / "artifacts"))
-CHROMIUM = os.environ.get("STAGE_CHROMIUM", "/usr/bin/chromium")
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run"]
 
 
 @pytest.fixture(scope="module")
@@ -228,21 +226,10 @@ def test_invalid_input(tmp_path, results):
 # ----------------------------------------------------------------------------- real browser
 
 
-def _browser():
-    """(sync_playwright, executable) or a skip with the reason."""
-    if not (Path(CHROMIUM).is_file() and os.access(CHROMIUM, os.X_OK)):
-        pytest.skip(f"no Chromium at {CHROMIUM} (apt-get install -y chromium, or set STAGE_CHROMIUM)")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.skip("the Python package playwright is not installed (pip install playwright; never `playwright install`)")
-    return sync_playwright
-
-
 @pytest.mark.slow
 def test_browser_renders_the_3d_view(results):
     """Headless Chromium opens the report (file://), waits for the plotly 3-D view and checks it is not blank."""
-    sync_playwright = _browser()
+    sync_playwright = sync_playwright_or_skip()
     d, *_ = results
     path = write_report(d, max_frames=8)
     ARTIFACTS.mkdir(parents=True, exist_ok=True)

@@ -7,6 +7,7 @@ import pytest
 import trimesh
 
 from fake_cameras.rgbd import oak_camera, simulate_rgbd_take
+from pipeline.mesh_primitives import vertex_normals
 from pipeline.rgbd_preprocess import (
     back_project,
     bilateral_depth,
@@ -18,7 +19,7 @@ from pipeline.rgbd_preprocess import (
     skin_mask,
     visible_vertices,
 )
-from pipeline.tracking import TrackingError, default_gate, vertex_normals
+from pipeline.tracking import TrackingError, default_gate
 
 
 def test_render_depth_of_a_sphere_matches_the_analytic_depth():

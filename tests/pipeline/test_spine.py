@@ -342,9 +342,9 @@ def test_invalid_input():
 
 
 def forked_take(frames=8):
-    """The forked capsule (tests/pipeline/test_extremities.py) over a take: bump A stands still, bump B
+    """The forked capsule (tests/pipeline/shapes.py) over a take: bump A stands still, bump B
     wobbles by 0.08 (of the radius-0.5 body), and which of the two is higher swaps every frame."""
-    from tests.pipeline.test_extremities import forked_capsule
+    from tests.pipeline.shapes import forked_capsule
 
     return [forked_capsule(heights=(0.45, 0.43) if t % 2 else (0.43, 0.45),
                            b_offset=0.04 * np.array([np.cos(2.1 * t), np.sin(2.1 * t)])) for t in range(frames)]

@@ -13,41 +13,21 @@ measured on the limbs, i.e. outside the creature's body (the spine's junctions l
 inside the body by construction, Brostow et al. 2004 §4.3, while the true axes start
 at the limbs' attachments: see the docstring of ``fake_cameras.evaluate``).
 
-Rendering is cached on disk after the first run (``fake_cameras.take.cache_dir``).
+The takes and their results are built once per test process (:mod:`tests.pipeline.spine_takes`).
 """
 
 from __future__ import annotations
-
-import json
 
 import numpy as np
 import pytest
 
 from fake_cameras.creatures import Pose
 from fake_cameras.evaluate import evaluate_spine, limb_axis_distance, resample_polyline
-from fake_cameras.record import record_take
-from fake_cameras.take import simulate_take
-from pipeline.process import process_take
+from tests.pipeline.spine_takes import GROUP, N_FRAMES, run
 
-N_CAMERAS = 8
-N_FRAMES = 30
 TRUE_LIMBS = {"starfish": 5, "quadruped": 6}
 
-_RUNS: dict = {}
-
-
-def run(name: str, tmp_path_factory) -> dict:
-    """Simulate, record and process one take (once per test run), and score its spine."""
-    if name not in _RUNS:
-        sim = simulate_take(name, n_cameras=N_CAMERAS, frames=N_FRAMES, size=(640, 480), seed=3)
-        root = tmp_path_factory.mktemp(f"spine_{name}")
-        path = record_take(sim, root / f"{name}.h5")
-        res = process_take(path, root / "results", executor=None)
-        spine = json.loads((root / "results" / "spine.json").read_text())
-        axes = {n: np.stack([a[n] for a in sim.axes]) for n in sim.limb_names}
-        acc = evaluate_spine(spine, sim.tip_array(), axes, list(sim.limb_names), poses=sim.poses)
-        _RUNS[name] = dict(sim=sim, res=res, spine=spine, acc=acc)
-    return _RUNS[name]
+pytestmark = pytest.mark.xdist_group(GROUP)
 
 
 @pytest.mark.slow

@@ -18,7 +18,7 @@ from pipeline.surface import (
 )
 from pipeline.volume import Grid, grid_from_volume, volume_from_cameras
 from tests.conftest import shared_dataset
-from tests.pipeline.test_hull import sim_grid, sim_take
+from tests.pipeline.hull_scenes import sim_grid, sim_take
 
 
 def _ball_grid(n=24, voxel=2.0):

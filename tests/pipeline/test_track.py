@@ -10,10 +10,11 @@ import pytest
 import trimesh
 
 from fake_cameras.rgbd import load_rgbd_ground_truth, record_rgbd_take, simulate_rgbd_take, template_path
+from pipeline.mesh_primitives import mesh_volume
 from pipeline.meshio import load_mesh
 from pipeline.results import atomic_write_bytes, ply_bytes
-from pipeline.tracking import mesh_volume
 from stage.cli import main
+from tests.pipeline.tracking_takes import turning_sphere_results
 
 
 @pytest.fixture(scope="module")
@@ -537,45 +538,6 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     assert "removed the rig built on them" in ctx.warnings[0] and not (tmp_path / "rig").exists()
 
 
-def _turning_sphere_results(root, *, frames=6, degrees=2.0, size=(320, 240), calib_meta=None):
-    """A textured sphere (radius 150 mm) turning about an oblique axis through its centre, filmed by
-    6 dome cameras, with its keyed (true) masks; the results directory holds the same surface every
-    frame, so the turn is invisible to the surfaces. ``calib_meta``: the take's calibration's ``meta``
-    (default the simulator's: exact cameras). -> (results directory, true vertices per frame)."""
-    from calib import Calibration
-    from fake_cameras.creatures import Pose, _rot
-    from fake_cameras.dome import make_dome
-    from fake_cameras.render import Backdrop, render_view
-    from stage.frame import Frame
-    from stage.store import CameraSpec, TakeWriter
-    from stage.store.derived import write_masks
-
-    calib = make_dome(6, size=size, seed=1)
-    if calib_meta is not None:
-        calib = Calibration(calib.cameras, calib.units, meta=calib_meta)
-    c, r = np.array([0.0, 0.0, 300.0]), 150.0
-    turns = [_rot((0.3, 0.2, 1.0), np.deg2rad(degrees) * k) for k in range(frames)]
-    # texture painted on the body, without shading: what the images see is the turn alone
-    bd = Backdrop(texture=0.3, texture_scale=0.5, key_intensity=0.0, fill_intensity=0.0, ambient=1.0)
-    rng = np.random.default_rng(0)
-    views = [[render_view(cam, Pose(p0=c[None], p1=c[None], r0=[r], r1=[r], limb=[-1],
-                                    rest=np.concatenate([R, (c - R @ c)[:, None]], axis=1)[None]), backdrop=bd, rng=rng)
-              for cam in calib] for R in turns]
-    take = root / "take.h5"
-    with TakeWriter(take, [CameraSpec(n, *size) for n in calib.names], calibration=calib, fps=30.0) as wr:
-        for k in range(frames):
-            t = int(k * 1e9 / 30)
-            wr.write_set({n: Frame(views[k][i].image, n, k, t, t) for i, n in enumerate(calib.names)}, time_ns=t)
-    for i, n in enumerate(calib.names):
-        write_masks(take, n, np.stack([v[i].mask for v in views]))
-    res = root / "results"
-    m = trimesh.creation.icosphere(subdivisions=3, radius=r)
-    for k in range(frames):
-        atomic_write_bytes(res / "meshes" / f"frame_{k:06d}.ply", ply_bytes(m.vertices + c, m.faces))
-    (res / "process.json").write_text(json.dumps({"take": str(take.resolve())}))
-    return res, [m.vertices @ R.T + c for R in turns]
-
-
 def test_multiview_colour_tracks_follow_a_turn_the_surfaces_cannot_see(tmp_path):
     """A sphere turning 2 degrees a frame (5.2 mm at the equator) has the same surface every frame:
     closest-point pairs leave every vertex where it was. The per-camera colour tracks (the images of
@@ -584,7 +546,7 @@ def test_multiview_colour_tracks_follow_a_turn_the_surfaces_cannot_see(tmp_path)
     4.1..20.5 mm; 1.0..3.7 with translated windows)."""
     from pipeline.track import track_results
 
-    res, truth = _turning_sphere_results(tmp_path)
+    res, truth = turning_sphere_results(tmp_path)
     errors = {}
     for colour in (False, True):
         if colour:  # the command line's opt-in
@@ -606,7 +568,7 @@ def test_multiview_colour_tracks_without_the_take_or_masks_are_off(tmp_path):
     from pipeline.track import track_results
     from stage.store import TakeReader
 
-    res, _ = _turning_sphere_results(tmp_path, frames=3, size=(160, 120))
+    res, _ = turning_sphere_results(tmp_path, frames=3, size=(160, 120))
     take = Path(json.loads((res / "process.json").read_text())["take"])
     with TakeReader(take) as rd:
         rd.derived_path.unlink()  # the keyed masks
@@ -654,7 +616,7 @@ def test_multiview_colour_halves_in_a_worker_process_equal_the_frames_tracked_in
 
     from pipeline import track
 
-    res, _ = _turning_sphere_results(tmp_path, frames=5, size=(160, 120))
+    res, _ = turning_sphere_results(tmp_path, frames=5, size=(160, 120))
     V0, F0 = load_mesh(res / "meshes" / "frame_000002.ply", largest=False)
     monkeypatch.setattr(track, "_spine_model", lambda *a: (2, SimpleNamespace(vertices=V0, faces=F0)))
     runs = {}
@@ -685,7 +647,7 @@ def test_multiview_colour_tracks_open_the_take_once_in_this_process(tmp_path, mo
             opened.append(path)
             super().__init__(path, *args, **kwargs)
 
-    res, _ = _turning_sphere_results(tmp_path, frames=3, size=(160, 120))
+    res, _ = turning_sphere_results(tmp_path, frames=3, size=(160, 120))
     V0, F0 = load_mesh(res / "meshes" / "frame_000001.ply", largest=False)
     monkeypatch.setattr(track, "_spine_model", lambda *a: (1, SimpleNamespace(vertices=V0, faces=F0)))
     monkeypatch.setattr(stage.store, "TakeReader", Counting)
@@ -703,7 +665,7 @@ def test_multiview_colour_tracks_skip_an_unreadable_view_with_one_warning(tmp_pa
     from pipeline.track import _colour_cameras, _multiview_tracks_for
     from stage.store import TakeError, TakeReader
 
-    res, _ = _turning_sphere_results(tmp_path, frames=3, size=(160, 120))
+    res, _ = turning_sphere_results(tmp_path, frames=3, size=(160, 120))
     V0, F0 = load_mesh(res / "meshes" / "frame_000000.ply", largest=False)
     take = Path(json.loads((res / "process.json").read_text())["take"])
 

@@ -61,7 +61,7 @@ def test_real_pipe_is_in_view_at_the_sensors_distance(real_pipe):
 
 @pytest.mark.slow
 def test_real_pipe_tracked_to_one_percent_without_thinning(real_pipe):
-    from pipeline.tracking import mesh_volume
+    from pipeline.mesh_primitives import mesh_volume
 
     tk, out = real_pipe
     V = _tracked(out, tk.n_frames)

@@ -8,6 +8,7 @@ import scipy.sparse as sp
 import trimesh
 from scipy.sparse.linalg import spsolve
 
+from pipeline.mesh_primitives import mesh_volume, vertex_normals
 from pipeline.tracking import (
     CholeskySystem,
     TemplateTracker,
@@ -20,13 +21,11 @@ from pipeline.tracking import (
     choose_start,
     cotangent_laplacian,
     default_gate,
-    mesh_volume,
     patch_align,
     patch_constraints,
     predict_motion,
     start_residuals,
     surface_patches,
-    vertex_normals,
 )
 
 

@@ -11,7 +11,7 @@ from pipeline.hull import HullCarver
 from pipeline.surface import EmptySurfaceError, surface_quality
 from pipeline.tsdf import TSDFFusion, fuse_tsdf
 from tests.pipeline import simrig
-from tests.pipeline.test_hull import analytic, sim_grid, sim_take
+from tests.pipeline.hull_scenes import analytic, sim_grid, sim_take
 
 
 def test_depth_surface_within_two_voxels_of_the_true_creature():

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from stage.cli import main
-from tests.stage.test_store import H, W, calibration, make_frame
+from tests.stage.frames import H, W, calibration, make_frame
 
 
 def _tree(root: Path) -> dict[str, str]:

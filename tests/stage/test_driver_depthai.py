@@ -15,12 +15,12 @@ dai = pytest.importorskip("depthai", reason="depthai v3 is not installed")
 from stage.drivers.base import CameraDisconnectedError, CameraError, CameraNotFoundError  # noqa: E402
 from stage.drivers.depthai_driver import (  # noqa: E402
     DepthAICamera,
+    DepthAICameraConfig,
     factory_camera,
     fit_five_coefficients,
     frame_from_messages,
     timedelta_to_ns,
 )
-from stage.rig import DepthAICameraConfig  # noqa: E402
 
 W, H = 160, 120
 

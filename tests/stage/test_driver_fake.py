@@ -3,10 +3,11 @@ import time
 import numpy as np
 import pytest
 
-from fake_cameras.device import FakeCamera
+from fake_cameras.device import FakeCamera, FakeCameraConfig
 from fake_cameras.take import simulate_take
 from stage.drivers.base import CameraDisconnectedError, CameraDriver, CameraError, CameraNotFoundError
-from stage.rig import FakeCameraConfig, parse_rig
+from stage.drivers.opencv import OpenCVCameraConfig
+from stage.rig import parse_rig
 
 FPS = 30.0
 PERIOD = int(1e9 / FPS)
@@ -150,8 +151,6 @@ def test_rig_cameras_through_the_registry(tmp_path, monkeypatch):
 
 
 def test_invalid_input(take):
-    from stage.rig import OpenCVCameraConfig
-
     with pytest.raises(ValueError, match="config"):
         FakeCamera(OpenCVCameraConfig(driver="opencv", id="x"), take=take)
     cfg = FakeCameraConfig(driver="fake", id="x")

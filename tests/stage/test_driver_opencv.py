@@ -8,11 +8,12 @@ import cv2
 import numpy as np
 import pytest
 
+from fake_cameras.device import FakeCameraConfig
 from stage.drivers import opencv as ocv
 from stage.drivers.base import CameraDisconnectedError, CameraDriver, CameraError, CameraNotFoundError
-from stage.drivers.opencv import OpenCVCamera, classify_source, expand_pattern, fourcc_to_str
+from stage.drivers.opencv import OpenCVCamera, OpenCVCameraConfig, classify_source, expand_pattern, fourcc_to_str
 from stage.drivers.registry import open_driver
-from stage.rig import FakeCameraConfig, OpenCVCameraConfig, parse_rig
+from stage.rig import parse_rig
 
 W, H, N = 160, 120, 20
 

@@ -10,10 +10,10 @@ import pytest
 from calib.calibration import Calibration
 from calib.camera import Camera
 from stage.drivers.base import unmirror
-from stage.drivers.opencv import OpenCVCamera
+from stage.drivers.opencv import OpenCVCamera, OpenCVCameraConfig
 from stage.frame import Frame
 from stage.importer import import_take
-from stage.rig import OpenCVCameraConfig, parse_rig
+from stage.rig import parse_rig
 from stage.store import TakeReader
 
 

@@ -11,7 +11,7 @@ import pytest
 
 from pipeline.results import ply_bytes
 from stage.cli import main
-from tests.pipeline.test_motion_segmentation import _two_bars
+from tests.pipeline.shapes import two_bars
 
 
 def _write_seq(d, V, F):
@@ -21,7 +21,7 @@ def _write_seq(d, V, F):
 
 
 def test_rig_meshes_writes_the_rig(tmp_path, capsys):
-    V, F, _ = _two_bars(10)
+    V, F, _ = two_bars(10)
     _write_seq(tmp_path / "seq", V, F)
     out = tmp_path / "rig"
     assert main(["-q", "rig", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(out), "--samples", "300"]) == 0
@@ -34,7 +34,7 @@ def test_rig_meshes_writes_the_rig(tmp_path, capsys):
 
 
 def test_rig_of_a_rigid_sequence_says_one_segment(tmp_path, capsys):
-    V, F, _ = _two_bars(6)
+    V, F, _ = two_bars(6)
     _write_seq(tmp_path / "seq", np.repeat(V[:1], 6, axis=0) + np.linspace(0, 30, 6)[:, None, None], F)
     assert main(["-q", "rig", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(tmp_path / "rig"),
                  "--samples", "300"]) == 0
@@ -57,7 +57,7 @@ def test_rig_results_dir_needs_tracking(tmp_path, capsys):
 
 def test_rig_results_dir_tracks_first(tmp_path, capsys):
     """A processed take without a tracked template: ``stage rig`` tracks it first (and says so), then rigs it."""
-    V, F, _ = _two_bars(12)
+    V, F, _ = two_bars(12)
     (tmp_path / "meshes").mkdir()
     for i, v in enumerate(V):
         (tmp_path / "meshes" / f"frame_{i:06d}.ply").write_bytes(ply_bytes(v, F))
@@ -70,7 +70,7 @@ def test_rig_results_dir_tracks_first(tmp_path, capsys):
 
 
 def test_rig_meshes_without_shared_connectivity(tmp_path, capsys):
-    V, F, _ = _two_bars(3)
+    V, F, _ = two_bars(3)
     _write_seq(tmp_path / "seq", V, F)
     (tmp_path / "seq" / "000002.ply").write_bytes(ply_bytes(V[2][:-3], F[:10]))
     assert main(["rig", "--meshes", str(tmp_path / "seq"), "--out", str(tmp_path / "o")]) == 2
@@ -94,7 +94,7 @@ def test_rig_step(tmp_path, caplog):
     with caplog.at_level(logging.WARNING), pytest.raises(ProcessError, match="run the surface step first") as exc:
         _step_rig(ctx)
     assert "stage " not in str(exc.value) and "track step ran first" in ctx.warnings[0]
-    V, F, _ = _two_bars(8)
+    V, F, _ = two_bars(8)
     _write_seq(tmp_path / "tracked", V, F)
     _step_rig(ctx)
     doc = json.loads((tmp_path / "rig" / "rig.json").read_text())
@@ -105,7 +105,7 @@ def test_rig_step(tmp_path, caplog):
 def test_report_shows_the_rig(tmp_path):
     from pipeline.report import render_report
 
-    V, F, _ = _two_bars(10)
+    V, F, _ = two_bars(10)
     _write_seq(tmp_path / "seq", V, F)
     assert main(["-q", "rig", "--meshes", str(tmp_path / "seq"), "--out", str(tmp_path / "res" / "rig"),
                  "--samples", "300"]) == 0
@@ -122,7 +122,7 @@ def test_export_bvh_of_a_rig(tmp_path, capsys):
 
     from tests.pipeline.test_articulated_rig import _parse_bvh
 
-    V, F, _ = _two_bars(10)
+    V, F, _ = two_bars(10)
     _write_seq(tmp_path / "seq", V, F)
     res = tmp_path / "results"
     assert main(["-q", "rig", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(res / "rig"),

@@ -14,7 +14,7 @@ from stage.capture import TakeRecorder
 from stage.drivers.base import CameraDisconnectedError, CameraError, Granted
 from stage.session import NoRecordingError, RecordingBusyError, StageSession, recording_rate_bytes
 from stage.store import TakeReader
-from tests.stage.test_capture import H, PacedCamera, W, make_drivers, pattern, rig_for
+from tests.stage.paced import H, PacedCamera, W, make_drivers, pattern, rig_for
 
 
 class Unpluggable(PacedCamera):

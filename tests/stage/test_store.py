@@ -16,8 +16,6 @@ import h5py
 import numpy as np
 import pytest
 
-from calib.calibration import Calibration
-from calib.camera import Camera
 from stage.frame import Frame
 from stage.store import (
     CameraSpec,
@@ -30,35 +28,9 @@ from stage.store import (
     write_array,
     write_masks,
 )
+from tests.stage.frames import H, W, calibration, make_frame, make_image
 
 ROOT = Path(__file__).resolve().parents[2]
-W, H = 160, 120
-
-
-def make_image(cam: int, k: int) -> np.ndarray:
-    """Deterministic, distinct image per (camera, frame)."""
-    rng = np.random.default_rng(1000 * cam + k)
-    img = np.zeros((H, W, 3), np.uint8)
-    img[..., 0] = (np.arange(W)[None, :] * 1.5).astype(np.uint8)
-    img[..., 1] = 40 * cam
-    img[..., 2] = (k * 7) % 256
-    img[rng.integers(0, H, 20), rng.integers(0, W, 20)] = 255
-    return img
-
-
-def make_frame(cam_id: str, cam: int, k: int, *, jpeg=False, depth=False) -> Frame:
-    img = make_image(cam, k)
-    enc = cv2.imencode(".jpg", img)[1].tobytes() if jpeg else None
-    d = np.full((H, W), 1000 + k, np.uint16) if depth else None
-    return Frame(img, cam_id, k, 10**12 * (cam + 1) + k * 33_333_333, 5 * 10**9 + k * 33_333_333 + cam * 1000, depth=d, encoded=enc)
-
-
-def calibration(names) -> Calibration:
-    cams = []
-    for i, n in enumerate(names):
-        K = np.array([[200.0, 0, W / 2], [0, 200.0, H / 2], [0, 0, 1]])
-        cams.append(Camera(n, K, np.zeros(5), np.eye(3), np.array([10.0 * i, 0, 1000]), (W, H)))
-    return Calibration(tuple(cams))
 
 
 @pytest.mark.parametrize("compression", ["none", "gzip", "lz4"])
@@ -164,7 +136,7 @@ WRITER_CHILD = textwrap.dedent(
     """
     import sys, time
     sys.path.insert(0, {root!r})
-    from tests.stage.test_store import make_frame, W, H
+    from tests.stage.frames import make_frame, W, H
     from stage.store import TakeWriter, CameraSpec
     specs = [CameraSpec("a", W, H), CameraSpec("b", W, H, storage="jpeg")]
     w = TakeWriter({path!r}, specs, compression="none", fps=30, block=8)

@@ -22,7 +22,7 @@ from stage.store import (
     write_masks,
 )
 from stage.store import derived as derived_mod
-from tests.stage.test_store import H, W, calibration, make_frame
+from tests.stage.frames import H, W, calibration, make_frame
 
 
 def sha(path: Path) -> str:

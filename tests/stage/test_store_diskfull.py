@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from stage.store import CameraSpec, DiskFullError, TakeReader, TakeWriter, derived_path, space, write_masks
-from tests.stage.test_store import H, W, calibration, make_frame
+from tests.stage.frames import H, W, calibration, make_frame
 
 ROOT = Path(__file__).resolve().parents[2]
 #: free bytes left for `stage process` in the sweep (16 KiB .. 8 MiB): with the up-front estimate
@@ -143,7 +143,7 @@ def test_free_space_checked_up_front(tmp_path, monkeypatch):
 
 
 def test_import_on_a_full_disk_leaves_nothing(tmp_path):
-    from tests.stage.test_importer import CAMS, img, write_anipose_toml
+    from tests.stage.footage import CAMS, img, write_anipose_toml
 
     src = tmp_path / "footage"
     for i, (name, *_rest) in enumerate(CAMS):

@@ -1,0 +1,98 @@
+"""Writing files so that a crash never leaves half of one, and numpy values in JSON.
+
+:func:`atomic_write` writes a temporary file in the target's folder, flushes it to the disk
+(``fsync``), moves it over the target (``os.replace``, atomic on POSIX) and flushes the folder,
+so that after a crash or power cut the target holds either its old or its new bytes, and the new
+name survives. :func:`replace_durably` does the same for a temporary file another library wrote
+(OpenCV's ``FileStorage``, ``numpy.savez``, a copy). :func:`json_default` is the one
+``json.dumps(default=...)`` for numpy scalars and arrays.
+
+They live on the lowest floor (``calib``, floor 0; docs/architecture.md) so that every package
+can use them, the calibration file formats included. The standard library has no atomic write
+that also flushes the folder, hence these few lines.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["atomic_write", "replace_durably", "fsync_dir", "json_default"]
+
+
+def fsync_dir(folder: str | os.PathLike) -> None:
+    """Flush a folder's entries (a new or renamed file's name) to the disk; a no-op where the
+    system cannot open a folder for that."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def replace_durably(tmp: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Move the finished file ``tmp`` over ``path`` (same folder): ``tmp`` flushed to the disk, then
+    ``os.replace``, then the folder flushed. Returns ``path``."""
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+    fsync_dir(Path(path).parent)
+    return Path(path)
+
+
+def atomic_write(path: str | os.PathLike, data: bytes | str, *, parents: bool = True) -> Path:
+    """Write ``data`` (text as UTF-8) to ``path`` atomically and durably.
+
+    Parameters
+    ----------
+    path : path
+    data : bytes or str
+    parents : bool, optional
+        Create the folder (default); else a missing folder is a ``FileNotFoundError``.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview, str)):
+        raise ValueError(f"data must be bytes or str, got {type(data).__name__}")
+    path = Path(path)
+    if parents:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data.encode("utf-8") if isinstance(data, str) else data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    fsync_dir(path.parent)
+    return path
+
+
+def json_default(o: Any) -> Any:
+    """``json.dumps(..., default=json_default)``: numpy scalars as Python numbers, arrays as lists."""
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")

@@ -1,0 +1,62 @@
+"""calib.fileio: atomic, durable writes and the JSON default for numpy values."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from calib.fileio import atomic_write, fsync_dir, json_default, replace_durably
+
+
+def test_atomic_write_replaces_whole_files_and_leaves_no_temporary(tmp_path):
+    p = tmp_path / "a" / "b.json"
+    assert atomic_write(p, '{"x": 1}') == p and p.read_text() == '{"x": 1}'
+    atomic_write(p, b"\x00\x01")
+    assert p.read_bytes() == b"\x00\x01" and os.listdir(p.parent) == ["b.json"]
+
+
+def test_a_failed_write_keeps_the_old_file(tmp_path, monkeypatch):
+    p = tmp_path / "f.txt"
+    atomic_write(p, "old")
+
+    def full(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", full)
+    with pytest.raises(OSError, match="No space"):
+        atomic_write(p, "new")
+    assert p.read_text() == "old" and os.listdir(tmp_path) == ["f.txt"]
+
+
+def test_writes_flush_the_file_and_its_folder(tmp_path, monkeypatch):
+    synced = []
+    real = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: synced.append(os.path.realpath(f"/proc/self/fd/{fd}")) or real(fd))
+    atomic_write(tmp_path / "g.bin", b"1")
+    assert len(synced) == 2 and synced[1] == str(tmp_path.resolve())  # the temporary file, then the folder
+    tmp = tmp_path / "h.part"
+    tmp.write_bytes(b"2")
+    synced.clear()
+    replace_durably(tmp, tmp_path / "h.bin")
+    assert (tmp_path / "h.bin").read_bytes() == b"2" and not tmp.exists() and synced[-1] == str(tmp_path.resolve())
+    fsync_dir(tmp_path / "missing")  # nothing to flush: no error
+
+
+def test_json_default_equals_python_values():
+    obj = {"i": np.int64(3), "f": np.float32(0.5), "b": np.bool_(True), "a": np.arange(3).reshape(1, 3)}
+    assert json.loads(json.dumps(obj, default=json_default)) == {"i": 3, "f": 0.5, "b": True, "a": [[0, 1, 2]]}
+
+
+def test_invalid_input(tmp_path):
+    with pytest.raises(ValueError, match="data"):
+        atomic_write(tmp_path / "x", 3)
+    with pytest.raises(TypeError, match="set"):
+        json.dumps({1, 2}, default=json_default)
+    with pytest.raises(FileNotFoundError):
+        replace_durably(tmp_path / "nope", tmp_path / "y")
+    with pytest.raises(FileNotFoundError):
+        atomic_write(tmp_path / "no" / "dir" / "z", "1", parents=False)
+    assert not (tmp_path / "no").exists()

@@ -1,0 +1,79 @@
+"""pipeline.mesh_primitives: vertex normals (zero for a vertex in no face), volume, corner sums."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.gltf_export import _unit_normals
+from pipeline.mesh_primitives import mesh_volume, sum_by, summing_matrix, vertex_normals
+
+
+def _slow_normals(v, f):
+    """Vertex by vertex: the normalized sum of the cross products of its faces (their doubled areas)."""
+    out = np.zeros_like(v)
+    for i in range(len(v)):
+        s = np.zeros(3)
+        for a, b, c in f:
+            if i in (a, b, c):
+                s += np.cross(v[b] - v[a], v[c] - v[a])
+        out[i] = s / np.linalg.norm(s) if np.linalg.norm(s) > 0 else 0.0
+    return out
+
+
+def _mesh_with_an_isolated_vertex():
+    m = trimesh.creation.icosphere(subdivisions=1, radius=2.0)
+    v = np.vstack([m.vertices, [[5.0, 5.0, 5.0]]])  # the last vertex is in no face
+    return v, np.asarray(m.faces)
+
+
+def test_normals_equal_the_per_vertex_reference_and_an_isolated_vertex_has_none():
+    v, f = _mesh_with_an_isolated_vertex()
+    n = vertex_normals(v, f)
+    np.testing.assert_allclose(n, _slow_normals(v, f), atol=1e-12)
+    assert np.all(n[-1] == 0.0)  # one answer for a vertex in no face: zero
+    np.testing.assert_allclose(np.linalg.norm(n[:-1], axis=1), 1.0, atol=1e-12)
+    # outward on a sphere
+    assert np.all(np.einsum("ij,ij->i", n[:-1], v[:-1]) > 0)
+
+
+def test_frames_at_once_and_reused_corner_sums_give_the_same_normals_bit_for_bit():
+    v, f = _mesh_with_an_isolated_vertex()
+    rng = np.random.default_rng(0)
+    frames = v[None] + rng.normal(scale=0.05, size=(4,) + v.shape)
+    corners = summing_matrix(f.ravel(), len(v))
+    batched = vertex_normals(frames, f)
+    for t in range(4):
+        one = vertex_normals(frames[t], f)
+        assert np.array_equal(batched[t], one) and np.array_equal(vertex_normals(frames[t], f, corners=corners), one)
+
+
+def test_corner_sums_equal_bincount_bit_for_bit():
+    rng = np.random.default_rng(1)
+    index = rng.integers(0, 7, 50)
+    values = rng.normal(size=(50, 3))
+    S = summing_matrix(index, 7)
+    ref = np.stack([np.bincount(index, weights=values[:, c], minlength=7) for c in range(3)], axis=1)
+    assert np.array_equal(sum_by(S, values), ref)
+
+
+def test_volume_of_a_sphere_and_the_exporter_gets_unit_normals():
+    m = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    assert mesh_volume(m.vertices, m.faces) == pytest.approx(m.volume, rel=1e-12)
+    v, f = _mesh_with_an_isolated_vertex()
+    n = _unit_normals(v, f)  # glTF wants every NORMAL of unit length: the isolated vertex gets +z
+    assert n.dtype == np.float32 and np.array_equal(n[-1], [0, 0, 1])
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+
+
+def test_invalid_input():
+    v, f = _mesh_with_an_isolated_vertex()
+    with pytest.raises(ValueError, match="vertices"):
+        vertex_normals(v[:, :2], f)
+    with pytest.raises(ValueError, match="faces"):
+        vertex_normals(v, f.astype(float))
+    with pytest.raises(ValueError, match="do not exist"):
+        vertex_normals(v[:5], f)
+    with pytest.raises(ValueError, match="corners"):
+        vertex_normals(v, f, corners=np.eye(3))
