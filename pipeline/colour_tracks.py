@@ -25,20 +25,10 @@ refinement per camera, with that camera's keyed masks as the object's pixels.
 
 Vertices a pixel or two apart see nearly the same window, so they share one (``cell``): the
 visible vertices are grouped by 3-px cells (and depth slabs), one window is followed per
-group and every member is placed through that window's own model (its track and warp).
-On the bench's pipe seen by one camera (1860 visible vertices of the 6k template on 2600
-object pixels; 7800 of the 25k one) that is 330 windows instead of 1860 (7800): 145 -> 42 ms
-a frame (460 -> 56 ms at 25k), the tracks within 0.1 mm (median) of a window each; the RGB-D
-accuracy bench (``stage bench track --accuracy``) moved from 0.71 / 0.43 / 0.72 % of size
-(pipe 1/2, pipe 3/4, lamp) to 0.70 / 0.44 / 0.72 %, the real pipe from 0.79 to 0.80 %.
-
-Measured on the simulated lamp (30 frames, each frame started from the true motion, the
-capture volume of the tracking): on the 14 fast frames (head moving over 15 mm a frame) the
-head's tracks lie 0.79 mm (median) across the ray from the truth with translated windows
-(1.0 mm within 3 px of the silhouette, 0.4 mm 9..13 px inside), 0.51 mm with warped ones, 0.46 mm warped on the object's pixels (upper
-arm 1.08 -> 0.42 mm); 0.19 mm with the simulator's lights off (the rest is the shading, which
-stays with the lights while a part turns). The base, static, 0.17 mm. Without the background
-fill a thin arm's tracks lagged by 1 to 2 mm a frame.
+group and every member is placed through that window's own model (its track and warp), which
+costs a fraction of a window each at the same accuracy. The measurements behind these choices
+(shared windows, warped and object-only windows, the background fill): docs/tracking.md,
+"Colour feature tracks: measurements".
 
 Hand-written here: the choice of points, the lifting to 3D and the warped-window refinement
 (an inverse-compositional Gauss-Newton step, Baker & Matthews 2004, for the translation of a

@@ -201,10 +201,9 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         See :class:`pipeline.tracking.TemplateTracker`.
     spine_init : bool
         Start every patch of every frame from the spine's skinned motion (it takes precedence
-        over ``choose``). Off by default: on the simulated capsule takes the skinned pose's step
-        from one frame to the next is 3.2 (starfish) and 5.6 (quadruped) voxels away from the
-        true step, which is itself 0.37 and 0.57 voxels; constant velocity is 0.04 to 0.13 off.
-        On a fast gallop it is the other way round for the legs (docs/tracking.md).
+        over ``choose``). Off by default: on slow motions the skinned pose's step from one frame
+        to the next is much further from the true step than the constant-velocity prediction; on
+        a fast gallop it is the other way round for the legs (docs/tracking.md, "Spine-posed starts" in the first section).
     choose : bool
         With a spine, choose per patch and frame between the prediction and the skinned start
         by the gated closest-point residual against the frame's surface, both ways
@@ -218,19 +217,14 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         ``process.json`` names is still there: they hold the slide along the surface that
         closest-point pairs leave free. Each track's window is warped by that camera's
         projection of the frame's start, on the camera's keyed object pixels only
-        (:func:`pipeline.colour_tracks.colour_tracks`, ``faces=``). Off by default: measured
-        (mean / 95th percentile, voxels) the starfish 0.91 / 1.97 -> 0.85 / 1.93, the
-        quadruped 1.47 / 3.36 -> 1.18 / 3.08, but the horse gallop 1.92 / 4.65 -> 1.77 / 4.72
-        (see docs/tracking.md).
+        (:func:`pipeline.colour_tracks.colour_tracks`, ``faces=``). Off by default: it helps the
+        capsule creatures but not every take (docs/tracking.md, "Colour feature tracks (multi-view)").
     shape_memory : bool
         Keep the previous frame's shape in the rigid prior, placed by overlapping blended
         patches (``TemplateTracker(prior="previous")``, what one RGB-D camera always uses)
         instead of each round's own start. Off by default: it holds the volume and helps where
-        the surfaces are close to the truth, but on the hull surfaces it is mixed, measured
-        (mean / 95th percentile, voxels) the quadruped 1.47 / 3.36 -> 1.42 / 3.23, the
-        biped's volume 1.000..1.059 -> 1.000..1.032 but its error 2.29 / 5.85 -> 2.44 / 5.95,
-        the starfish 0.91 / 1.97 -> 0.89 / 2.12; on the true surfaces (``stage bench track
-        --accuracy``) the quadruped 1.00 / 2.75 -> 0.66 / 1.85 (docs/tracking.md).
+        the surfaces are close to the truth, but on the hull's surfaces it is mixed
+        (docs/tracking.md, "The tracker apart from the surfaces").
     surfaces : {"meshes", "carved"}
         The per-frame surfaces tracked (and the template's source): ``stage process``'s
         ``meshes/``, or the surfaces carved across time with an earlier tracking's motion

@@ -31,75 +31,39 @@ diagonal, change little) solve by conjugate gradients preconditioned with that f
 refactoring only when CG does not reach 1e-5 in 6 steps. 15 rounds per frame, each frame started from the previous one (or from
 a caller's guess such as a skinned pose).
 
-Where this departs from the letter of the paper, and why (measured on the simulated
-single RGB-D pipe, ``fake_cameras.rgbd``):
+Where this departs from the letter of the paper, and why (the measurements behind each point:
+docs/tracking.md, "Where the tracker departs from the paper"):
 
-- *Point-to-plane through rigid patches.* With point-to-point pairs and the Laplacian alone,
-  the half of the object the camera does not see is extrapolated from the seen half's
-  closest-point displacements, which carry only their normal part: a 3 mm shift of a
-  pipe's data away from the camera moved the template by -0.8 mm, and a static lamp
-  shrank to 46 % of its volume in 8 frames (the thinning of the paper's Fig. 4). Here the
-  template is cut into patches a quarter of its size across (:func:`surface_patches`); each
-  round, every patch gets the rigid motion that best fits its pairs point-to-plane
-  (:func:`patch_rigid_motion`), ``P`` is every vertex moved with its patch, a pair's target is
-  ``P_i`` moved along the data normal onto the data point (``B``), and every vertex is drawn
-  to ``P_i`` with weight ``rho`` (``rigidity``, 0.5 of a pair). The same 3 mm shift is then
-  recovered to 0.1 mm and the static lamp keeps its volume. On the simulated multi-view
-  starfish (30 frames) the vertex error is 0.92 voxels on average with patches of 25 % of
-  the size, 1.12 with 15 %, 1.64 with 8 % and 1.93 with the paper's point-to-point form
-  (``point_to_plane=False``).
+- *Point-to-plane through rigid patches.* Point-to-point pairs carry only the normal part of a
+  displacement, so the unseen half of an object was extrapolated wrongly and a static object
+  thinned. The template is cut into patches (:func:`surface_patches`); each round every patch
+  gets the rigid motion that best fits its pairs point-to-plane (:func:`patch_rigid_motion`),
+  ``P`` is every vertex moved with its patch, a pair's target is ``P_i`` moved along the data
+  normal onto the data point (``B``), and every vertex is drawn to ``P_i`` with weight ``rho``
+  (``rigidity``, 0.5 of a pair).
 - *Only the motions the pairs see.* A patch's rigid motion is solved in the directions its
-  point-to-plane pairs constrain (:func:`patch_rigid_motion`, ``cutoff``): a cylinder's twist
-  about its own axis is invisible to them, and left free, depth noise twisted the simulated
-  pipe's moving half by up to 15 degrees within one frame (one frame started from the truth
-  of the frame before: 0.52 % of the length off, 0.10 % with the cutoff; over the take pipe
-  3/4 went from 1.6 % to 0.86 %, pipe 1/2 from 3.5 % to 2.0 %).
-- *The previous frame's shape, for a single view* (``prior="previous"``, what
-  :func:`pipeline.track.track_rgbd_take` uses). With the prior above, each round's start is
-  what a patch keeps, so a shape error made in one round (the unseen half pulled by the seen
-  half) is kept by the next; from a start that is not the previous frame (a prediction) it
-  stays for good. With ``"previous"`` the prior's shape is the previous frame's, placed patch
-  by patch onto the round's start (Kabsch, :func:`patch_align`; patches of 15 % of the
-  template's size, ``align_size``) and then moved with the patch's motion. Simulated RGB-D
-  lamp (30 frames): 7.8 % of its length -> 3.6 % without prediction, 2.1 % with it (patches of
-  25 %: 1.4 %, but pipe 1/2 1.2 %; 6 %: 1.9 %, pipe 3/4's rig joint 24 mm off). On whole
-  surfaces (multi-view) it is opt-in (:func:`pipeline.track.track_results`, ``shape_memory``):
-  on the hull's surfaces it is mixed (starfish 0.91 / 1.97 -> 0.89 / 2.12 voxels, mean / 95th
-  percentile; quadruped 1.47 / 3.36 -> 1.42 / 3.23; horse gallop 1.92 / 4.65 -> 2.23 / 5.49),
-  on the true surfaces it is what meets one voxel (quadruped 1.00 / 2.75 -> 0.66 / 1.85,
-  starfish 0.50 / 1.24 -> 0.25 / 0.62; ``stage bench track --accuracy``).
-  The patches overlap and are blended (:func:`blended_patches`, :func:`blended_align`;
-  ``blend``): with a partition, every patch boundary is a free hinge of the placed shape, and
-  the tracked lamp's head bent at the one that crossed it (its two halves, one partition patch
-  each, turned up to 33 degrees against each other and ``stage rig`` found a fourth
-  articulation there); blended, it stays rigid and the rig finds the three joints.
-- *A prediction of every frame* (:func:`predict_motion`, the callers' ``predict``): every
-  patch repeats the rigid motion of the two frames before, restricted to the motions the data
-  constrained on the previous frame (:func:`patch_constraints`): along unseen directions (a
-  cylinder sliding along its axis) an error would be repeated and grow (unrestricted, the
-  static half of pipe 1/2 slid 12 mm in 30 frames). The simulated lamp's head moves up to 37 mm
-  a frame against a 15 mm gate; from the previous frame it was lost (7.8 %), from the true
-  frame before plus constant velocity the head is met to 2.4 mm.
+  point-to-plane pairs constrain (``cutoff``): a cylinder's twist about its own axis is invisible
+  to them and, left free, depth noise twisted it.
+- *The previous frame's shape, for a single view* (``prior="previous"``): the prior's shape is the
+  previous frame's, placed patch by patch onto the round's start (:func:`patch_align`) and moved
+  with the patch's motion, so a shape error made in one round is not kept by the next. The
+  patches overlap and are blended (:func:`blended_patches`, :func:`blended_align`): with a
+  partition every patch boundary is a free hinge. On whole surfaces (multi-view) it is opt-in
+  (:func:`pipeline.track.track_results`, ``shape_memory``).
+- *A prediction of every frame* (:func:`predict_motion`): every patch repeats the rigid motion
+  of the two frames before, restricted to the motions the data constrained on the previous
+  frame (:func:`patch_constraints`), since along unseen directions an error would repeat and grow.
 - *A second start where the prediction is out of reach* (:func:`choose_start`, multi-view with a
-  spine): the patches of which 10 % of the vertices or more have no data point within the gate
-  take, when the frame's data explain it better (:func:`start_residuals`, gated closest-point
-  residual both ways), the previous frame moved by the spine's skinned step. A real galloping
-  horse (steps up to 25 voxels against a 3.8-voxel gate) went from 4.20 to 1.92 voxels; the
-  capsule takes, whose steps stay within reach, are unchanged (by the residual alone the
-  quadruped took the skinned step's slide along the surface: 1.47 -> 1.61 voxels).
-- *Vertices the data sees.* Model->data pairs only for vertices that project onto a pixel
-  with data (:func:`pipeline.rgbd_preprocess.visible_vertices` with ``observed``): near the
-  silhouette a depth camera returns nothing usable, and those vertices were all pulled
-  onto the nearest observed point, towards the camera.
+  spine): patches with many vertices out of the gate's reach take, when the frame's data explain
+  it better (:func:`start_residuals`), the previous frame moved by the spine's skinned step.
+- *Vertices the data sees.* Model->data pairs only for vertices that project onto a pixel with
+  data (:func:`pipeline.rgbd_preprocess.visible_vertices`): near the silhouette a depth camera
+  returns nothing usable.
 - The contour term (eq. 3) enters as a pair whose "plane" contains the depth edge's ray
   (``contour=``; optional, as in the paper).
-- *Colour feature tracks, for an RGB-D camera* (``tracks=``, beyond the paper): where the
-  colour image says a vertex went (:func:`pipeline.colour_tracks.colour_tracks`), as two pairs
-  across the viewing ray. Point-to-plane pairs cannot see a round part turn about its own
-  axis; on the simulated lamp, whose joints are hinges, that turn was drift (head and upper
-  arm 66 and 26 degrees by the last frame). With the tracks: lamp 2.1 % -> 0.88 % of its
-  length, pipe 1/2 0.89 -> 0.59 %, pipe 3/4 0.77 -> 0.38 %. Pairs in the vertex's tangent
-  plane instead of across the ray (the lifted point's depth noise then enters): lamp 1.13 %.
+- *Colour feature tracks* (``tracks=``, beyond the paper): where the colour image says a vertex
+  went (:func:`pipeline.colour_tracks.colour_tracks`), as two pairs across the viewing ray;
+  point-to-plane pairs cannot see a round part turn about its own axis.
 
 What is hand-written and why: the cotangent Laplacian and the pair gating are a few lines
 of numpy on top of scipy's KD-tree; no maintained package offers the paper's energy.
