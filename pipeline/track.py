@@ -203,7 +203,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         Start every patch of every frame from the spine's skinned motion (it takes precedence
         over ``choose``). Off by default: on slow motions the skinned pose's step from one frame
         to the next is much further from the true step than the constant-velocity prediction; on
-        a fast gallop it is the other way round for the legs (docs/tracking.md, "Spine-posed starts" in the first section).
+        a fast gallop it is the other way round for the legs (docs/tracking.md, "Spine-posed starts").
     choose : bool
         With a spine, choose per patch and frame between the prediction and the skinned start
         by the gated closest-point residual against the frame's surface, both ways
