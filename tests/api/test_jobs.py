@@ -230,7 +230,7 @@ def test_tracked_and_rig_files_are_listed_and_served(client, data_root):
     under /results/ with the rig's segments and joints, and downloadable; absent files are 404."""
     from pipeline.results import ply_bytes
     from stage.cli import main
-    from tests.pipeline.test_motion_segmentation import _two_bars
+    from tests.pipeline.shapes import two_bars
 
     add_take(data_root, "take1", frames=3)
     jid = client.post("/jobs", json={"take": "take1", "steps": ["key", "surface", "spine"]}, headers=AUTH).json()["id"]
@@ -238,7 +238,7 @@ def test_tracked_and_rig_files_are_listed_and_served(client, data_root):
     job_dir = data_root / "jobs" / jid
     assert client.get(f"/jobs/{jid}/results/rig/rig.json").status_code == 404
     assert client.get(f"/jobs/{jid}/results/tracked/000000.ply").status_code == 404
-    V, F, _ = _two_bars(8)
+    V, F, _ = two_bars(8)
     (job_dir / "tracked").mkdir()
     for i, v in enumerate(V):
         (job_dir / "tracked" / f"{i:06d}.ply").write_bytes(ply_bytes(v, F))

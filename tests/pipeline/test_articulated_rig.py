@@ -24,6 +24,7 @@ from pipeline.articulated_rig import (
     write_rig,
 )
 from tests.conftest import SHARED_DATA
+from tests.pipeline.bvh import parse_bvh
 
 DATA = SHARED_DATA
 PIPE = DATA / "tzionas_pipe" / "pipe.npz"
@@ -154,49 +155,6 @@ def test_horse_legs_have_two_segments(horse):
         assert (counts >= 0.05 * leg.sum()).sum() >= 2, f"leg {h}: segments {counts[counts > 0]}"
 
 
-def _parse_bvh(text):
-    """Joints (name, parent, offset, channels) and motion rows of a BVH file; strict about structure."""
-    tok = text.split()
-    i = 0
-    assert tok[i] == "HIERARCHY"
-    i += 1
-    joints, stack, pending = [], [], None
-    while tok[i] != "MOTION":
-        t = tok[i]
-        if t in ("ROOT", "JOINT"):
-            parents = [x for x in stack if x is not None]
-            joints.append({"name": tok[i + 1], "parent": parents[-1] if parents else None})
-            pending = len(joints) - 1
-            i += 2
-        elif t == "End":
-            assert tok[i + 1] == "Site"
-            pending = None
-            i += 2
-        elif t == "{":
-            stack.append(pending)
-            i += 1
-        elif t == "}":
-            stack.pop()
-            i += 1
-        elif t == "OFFSET":
-            if stack[-1] is not None:
-                joints[stack[-1]]["offset"] = [float(x) for x in tok[i + 1 : i + 4]]
-            i += 4
-        elif t == "CHANNELS":
-            n = int(tok[i + 1])
-            joints[stack[-1]]["channels"] = tok[i + 2 : i + 2 + n]
-            i += 2 + n
-        else:
-            raise AssertionError(f"unexpected BVH token {t!r}")
-    assert not stack
-    assert tok[i + 1] == "Frames:"
-    frames = int(tok[i + 2])
-    assert tok[i + 3 : i + 5] == ["Frame", "Time:"]
-    n_ch = sum(len(j["channels"]) for j in joints)
-    rows = np.asarray(tok[i + 6 :], dtype=float).reshape(frames, n_ch)
-    return joints, rows
-
-
 def test_horse_rig_plays_back(horse):
     import pygltflib
     import trimesh
@@ -210,7 +168,7 @@ def test_horse_rig_plays_back(horse):
     assert len(g.animations) == 1
     scene = trimesh.load(str(out / "rig.glb"))
     assert len(scene.geometry) >= 1
-    joints, rows = _parse_bvh((out / "rig.bvh").read_text())
+    joints, rows = parse_bvh((out / "rig.bvh").read_text())
     assert len(joints) == len(doc["joints"])
     assert sorted(j["name"] for j in joints) == sorted(j["name"] for j in doc["joints"])
     # forward kinematics of the BVH reproduces rig.json's joint positions
@@ -253,7 +211,7 @@ def test_rigid_sequence_gives_one_segment_and_a_message(caplog, tmp_path):
     assert "nothing bends" in caplog.text
     assert rig.fit.errors.max() < 1e-6 * ms.size
     write_rig(rig, tmp_path)
-    assert len(_parse_bvh(bvh_text(rig))[0]) == len(rig_dict(rig)["joints"])
+    assert len(parse_bvh(bvh_text(rig))[0]) == len(rig_dict(rig)["joints"])
 
 
 def test_one_frame_sequence():
@@ -469,7 +427,7 @@ def test_an_undefined_joint_in_a_frame_still_gives_valid_files(pipe, tmp_path, c
     with caplog.at_level(logging.WARNING):
         text = bvh_text(broken)
     assert "undefined" in caplog.text
-    parsed, rows = _parse_bvh(text)
+    parsed, rows = parse_bvh(text)
     assert len(parsed) == broken.skeleton.n_joints and rows.shape[0] == 6 and np.all(np.isfinite(rows))
     doc = rig_dict(broken)
     assert doc["frames"][4]["joints"][broken.skeleton.names[-1]] is None

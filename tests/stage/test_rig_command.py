@@ -120,7 +120,7 @@ def test_export_bvh_of_a_rig(tmp_path, capsys):
     kinematics gives rig.json's joint positions in every frame."""
     from scipy.spatial.transform import Rotation
 
-    from tests.pipeline.test_articulated_rig import _parse_bvh
+    from tests.pipeline.bvh import parse_bvh
 
     V, F, _ = two_bars(10)
     _write_seq(tmp_path / "seq", V, F)
@@ -131,7 +131,7 @@ def test_export_bvh_of_a_rig(tmp_path, capsys):
     assert "rig.bvh" in capsys.readouterr().out
     doc = json.loads((res / "rig" / "rig.json").read_text())
     text = (res / "rig.bvh").read_text()
-    joints, rows = _parse_bvh(text)
+    joints, rows = parse_bvh(text)
     assert [j["name"] for j in joints] == [j["name"] for j in doc["joints"]] and len(rows) == 10
     tol = 1e-4 * doc["size"]
     for t in range(10):  # forward kinematics of the file (intrinsic Z-X-Y, degrees)
