@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "replace_durably", "fsync_dir", "json_default"]
+__all__ = ["atomic_write", "replace_durably", "fsync_dir", "json_default", "plain"]
 
 
 def fsync_dir(folder: str | os.PathLike) -> None:
@@ -96,3 +96,15 @@ def json_default(o: Any) -> Any:
     if isinstance(o, np.ndarray):
         return o.tolist()
     raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def plain(x: Any) -> Any:
+    """``x`` with every numpy value made a Python one, through dicts (keys as strings), lists and
+    tuples (as lists): what :func:`json_default` does at ``json.dumps`` time, for a value kept."""
+    if isinstance(x, dict):
+        return {str(k): plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [plain(v) for v in x]
+    if isinstance(x, (np.generic, np.ndarray)):
+        return json_default(x)
+    return x

@@ -45,6 +45,7 @@ from calib.camera import rotation_angle_deg
 from calib.detect import Detection, select_views
 from calib.evaluate import projection_uncertainty, reprojection_errors
 from calib.extrinsics import ExtrinsicsResult, calibrate_extrinsics, triangulate_board_error
+from calib.fileio import plain
 from calib.intrinsics import DISTORTION_MODES, CalibrationError, IntrinsicsResult, calibrate_intrinsics
 
 __all__ = ["RigCalibration", "calibrate_rig", "resolve_flipped", "rotation_sigma", "fold_rotation_spread",
@@ -153,7 +154,7 @@ class RigCalibration:
             "summary": self.summary(),
             "intrinsics": {k: v.to_dict() for k, v in self.intrinsics.items()},
             "extrinsics": self.extrinsics.to_dict() if self.extrinsics is not None else None,
-            "evaluation": _jsonable({k: v for k, v in self.evaluation.items() if k != "detections"}),
+            "evaluation": plain({k: v for k, v in self.evaluation.items() if k != "detections"}),
             "warnings": self.warnings,
         }
 
@@ -161,18 +162,6 @@ class RigCalibration:
 def _px(v: float) -> str:
     """An uncertainty for the table: beyond 100 px the linearization says only "unknown"."""
     return f"{v:.3f}" if not v > 100 else ">100"
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    return x
 
 
 def _intrinsic_views(dets: list[Detection], size, linking: set[int], min_change: float, min_corners: int):

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from calib.fileio import atomic_write, fsync_dir, json_default, replace_durably
+from calib.fileio import atomic_write, fsync_dir, json_default, plain, replace_durably
 
 
 def test_atomic_write_replaces_whole_files_and_leaves_no_temporary(tmp_path):
@@ -48,6 +48,8 @@ def test_writes_flush_the_file_and_its_folder(tmp_path, monkeypatch):
 def test_json_default_equals_python_values():
     obj = {"i": np.int64(3), "f": np.float32(0.5), "b": np.bool_(True), "a": np.arange(3).reshape(1, 3)}
     assert json.loads(json.dumps(obj, default=json_default)) == {"i": 3, "f": 0.5, "b": True, "a": [[0, 1, 2]]}
+    kept = plain({np.int64(1): (np.float64(2.5), [np.arange(2)])})
+    assert kept == {"1": [2.5, [[0, 1]]]} and type(kept["1"][0]) is float and type(kept["1"][1][0][0]) is int
 
 
 def test_invalid_input(tmp_path):
