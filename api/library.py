@@ -7,6 +7,7 @@ adds id validation, the data-root confinement and upload handling.
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import uuid
 from contextlib import contextmanager

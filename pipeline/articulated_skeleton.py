@@ -407,7 +407,7 @@ def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, d
     cross-section and inside the mesh; how every articulation was placed, and why."""
     if motions is None:
         return {}, {}
-    from pipeline.motion_segmentation import vertex_normals
+    from pipeline.mesh_primitives import vertex_normals
 
     normals = vertex_normals(v, f)
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 CHROMIUM = os.environ.get("STAGE_CHROMIUM", "/usr/bin/chromium")
@@ -23,3 +24,19 @@ def sync_playwright_or_skip():
     except ImportError:
         pytest.skip("the Python package playwright is not installed (pip install playwright; never `playwright install`)")
     return sync_playwright
+
+
+def not_blank(png: bytes, what: str) -> np.ndarray:
+    """Decode a screenshot and assert it shows a drawing: many colours, some contrast, ink on the background."""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[0] > 200 and img.shape[1] > 300, (what, None if img is None else img.shape)
+    px = img.reshape(-1, 3).astype(int)
+    colours = len(np.unique(px // 8, axis=0))
+    background = np.median(px, axis=0)
+    ink = (np.abs(px - background).sum(1) > 60).mean()
+    assert colours > 40, f"{what}: only {colours} distinct colours: blank?"
+    assert float(img.std()) > 5.0, f"{what}: no contrast (std {img.std():.2f})"
+    assert ink > 0.003, f"{what}: almost nothing drawn ({ink:.4%} of the pixels differ from the background)"
+    return img

@@ -12,13 +12,12 @@ import time
 from pathlib import Path
 
 import httpx
-import numpy as np
 import pytest
 
 from fake_cameras.record import record_take
 from fake_cameras.take import simulate_take
 from tests.api.served import AUTH, Server
-from tests.browser import CHROMIUM, CHROMIUM_ARGS, sync_playwright_or_skip
+from tests.browser import CHROMIUM, CHROMIUM_ARGS, not_blank, sync_playwright_or_skip
 
 pytestmark = [pytest.mark.slow]
 try:  # pytest-timeout is in the [test] extra
@@ -45,22 +44,6 @@ def _artifacts(tmp_path: Path) -> Path:
 def _take(path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     return record_take(simulate_take("starfish", n_cameras=CAMERAS, frames=FRAMES, size=SIZE, seed=0), path)
-
-
-def _not_blank(png: bytes, what: str) -> np.ndarray:
-    """Decode a screenshot and assert it shows a drawing: many colours, some contrast, ink on the background."""
-    import cv2
-
-    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    assert img is not None and img.shape[0] > 200 and img.shape[1] > 300, (what, None if img is None else img.shape)
-    px = img.reshape(-1, 3).astype(int)
-    colours = len(np.unique(px // 8, axis=0))
-    background = np.median(px, axis=0)
-    ink = (np.abs(px - background).sum(1) > 60).mean()
-    assert colours > 40, f"{what}: only {colours} distinct colours: blank?"
-    assert float(img.std()) > 5.0, f"{what}: no contrast (std {img.std():.2f})"
-    assert ink > 0.003, f"{what}: almost nothing drawn ({ink:.4%} of the pixels differ from the background)"
-    return img
 
 
 def test_browser_on_served_pages(tmp_path):
@@ -131,7 +114,7 @@ def test_browser_on_served_pages(tmp_path):
     assert not errors, errors
     assert all(u.startswith((srv.url + "/", "data:", "about:", "blob:")) for u in requests), \
         [u for u in requests if not u.startswith(srv.url)]
-    _not_blank(report_png, "report 3-D view")
-    _not_blank(frusta_png, "take frusta")
+    not_blank(report_png, "report 3-D view")
+    not_blank(frusta_png, "take frusta")
     assert n_cams == CAMERAS
     assert len(loaded) == 3 * CAMERAS * 2 and all(w == SIZE[0] for w in loaded), loaded  # frames and masks

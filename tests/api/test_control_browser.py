@@ -20,9 +20,8 @@ import numpy as np
 import pytest
 
 from stage.store import TakeReader
-from tests.api.test_browser_served import _not_blank
-from tests.api.test_serve import ROOT, free_port
-from tests.pipeline.test_report import CHROMIUM, CHROMIUM_ARGS, _browser
+from tests.api.served import ROOT, free_port
+from tests.browser import CHROMIUM, CHROMIUM_ARGS, not_blank, sync_playwright_or_skip
 
 TOKEN = "control-browser-token"
 
@@ -110,7 +109,7 @@ def _login(page, url: str) -> None:
 
 
 def test_control_room_with_twelve_cameras(tmp_path):
-    sync_playwright = _browser()
+    sync_playwright = sync_playwright_or_skip()
     pytest.importorskip("fake_cameras.device")
     art = _artifacts(tmp_path)
     rig = rig_toml(12, subject="starfish", size=(160, 120), fps=30, frames=30)
@@ -197,7 +196,7 @@ def test_control_room_with_twelve_cameras(tmp_path):
         missing = sum(c["missing"] for c in ss["cameras"].values())
         assert drops == missing + sum(res["queue_drops"].values())
         assert f"{sets} frame sets ({complete} complete)" in msg and f"{spread:.2f} ms" in msg
-    _not_blank(hull_png, "live 3-D preview") if hull_png else None
+    not_blank(hull_png, "live 3-D preview") if hull_png else None
     assert "voxels" in info3d and "updates/s" in info3d, info3d
 
 
@@ -213,7 +212,7 @@ def test_board_session_to_calibration_report(tmp_path):
     Four cameras at 640x480, 4 fps (each simulated view held 250 ms): the board is too small to be found
     at the test's usual 160x120, and rendering twelve cameras' views at 640x480 alone takes more than
     the minute a test may take on two cores (``stage bench control --board`` runs twelve)."""
-    sync_playwright = _browser()
+    sync_playwright = sync_playwright_or_skip()
     pytest.importorskip("fake_cameras.device")
     art = _artifacts(tmp_path)
     rig = rig_toml(CAL_CAMERAS, subject="board-charuco", size=(640, 480), fps=4, frames=16)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from calib.calibration import Calibration
-from calib.camera import Camera, rodrigues_to_matrix
+from calib.camera import rodrigues_to_matrix
 from calib.formats import (
     CalibrationFormatError,
     calibration_from_aniposelib,
@@ -16,23 +16,13 @@ from calib.formats import (
     read_middlebury_par,
     write_calibration,
 )
+from tests.calib.calibrations import random_calibration
 from tests.conftest import shared_dataset
-
-
-def _calib(n=12, seed=0):
-    rng = np.random.default_rng(seed)
-    cams = []
-    for i in range(n):
-        K = [[500 + rng.random() * 100, 0.0, 320 + rng.random()], [0, 510 + rng.random() * 100, 240 + rng.random()],
-             [0, 0, 1]]
-        cams.append(Camera(f"cam{i:02d}", K=K, dist=rng.normal(0, 0.05, 5), R=rodrigues_to_matrix(rng.normal(size=3)),
-                           t=rng.normal(0, 1000, 3), size=(640, 480)))
-    return Calibration(tuple(cams), units="mm", meta={"rms_px": 0.31, "per_camera_rms_px": {"cam00": 0.3}})
 
 
 @pytest.mark.parametrize("ext", ["toml", "yml", "json"])
 def test_round_trip_exact(tmp_path, ext):
-    c = _calib()
+    c = random_calibration()
     p = write_calibration(c, tmp_path / f"c.{ext}")
     c2 = read_calibration(p)
     assert c2 == c  # Camera.__eq__ is exact (array_equal) on K, dist, R, t, size, name
@@ -40,7 +30,7 @@ def test_round_trip_exact(tmp_path, ext):
 
 
 def test_toml_is_aniposelib_layout(tmp_path):
-    c = _calib(n=11)
+    c = random_calibration(n=11)
     p = write_calibration(c, tmp_path / "c.toml")
     d = tomllib.loads(p.read_text())
     assert [k for k in d if k.startswith("cam_")] == [f"cam_{i}" for i in range(11)]
@@ -100,7 +90,7 @@ def test_opencv_single_camera_yaml_reads():
 
 
 def test_invalid_input(tmp_path):
-    c = _calib(n=2)
+    c = random_calibration(n=2)
     with pytest.raises(FileNotFoundError):
         read_calibration(tmp_path / "nope.toml")
     with pytest.raises(ValueError, match="path"):
@@ -148,7 +138,7 @@ def _named(calib: Calibration) -> Calibration:
 
 @pytest.mark.parametrize("where", ["camera_array.toml", "colmap", "transforms.json"])
 def test_round_trip_new_formats(tmp_path, where):
-    cal = _named(_calib(5))
+    cal = _named(random_calibration(5))
     out = write_calibration(cal, tmp_path / where)
     back = read_calibration(out if where != "colmap" else tmp_path / "colmap", **({"units": "mm"} if where
                                                                                  == "colmap" else {}))
@@ -157,7 +147,7 @@ def test_round_trip_new_formats(tmp_path, where):
 
 
 def test_colmap_layout_and_pixel_convention(tmp_path):
-    cal = _named(_calib(2))
+    cal = _named(random_calibration(2))
     write_calibration(cal, tmp_path / "model", format="colmap")
     lines = [ln for ln in (tmp_path / "model" / "cameras.txt").read_text().splitlines() if not ln.startswith("#")]
     parts = lines[0].split()
@@ -169,7 +159,7 @@ def test_colmap_layout_and_pixel_convention(tmp_path):
 
 
 def test_nerfstudio_pose_is_camera_to_world_opengl(tmp_path):
-    cal = _named(_calib(1))
+    cal = _named(random_calibration(1))
     write_calibration(cal, tmp_path / "transforms.json")
     import json
 
@@ -190,7 +180,7 @@ def test_reads_caliscope_reference_file():
 
 
 def test_mirror_flag_round_trips(tmp_path):
-    cal = _named(_calib(2))
+    cal = _named(random_calibration(2))
     cal = Calibration((cal[0].replace(meta={"mirror": True}), cal[1]), units="mm")
     for name in ("a.toml", "camera_array.toml", "a.json"):
         back = read_calibration(write_calibration(cal, tmp_path / name))
@@ -212,7 +202,7 @@ def test_invalid_input_new_formats(tmp_path):
     with pytest.raises(ValueError, match="units"):
         from calib.formats import in_units
 
-        in_units(_calib(1), "furlong")
+        in_units(random_calibration(1), "furlong")
 
 
 # -- Qualisys .qca.txt, OpenCV FileStorage XML, EasyMocap -----------------------------------------
@@ -277,7 +267,7 @@ def test_qualisys_demo_matches_pose2sim_and_projects_the_person():
 
 
 def test_qualisys_round_trip_and_video_cameras_only(tmp_path):
-    c = _calib(n=3)
+    c = random_calibration(n=3)
     p = write_calibration(c, tmp_path / "rig.qca.txt")
     c2 = read_calibration(p)
     _close(c2, c, atol=1e-9)
@@ -292,7 +282,7 @@ def test_qualisys_round_trip_and_video_cameras_only(tmp_path):
 def test_opencv_xml_round_trip_and_easymocap(tmp_path):
     import cv2
 
-    c = _calib(n=4)
+    c = random_calibration(n=4)
     p = write_calibration(c, tmp_path / "c.xml")
     assert "<opencv_storage>" in p.read_text()
     assert read_calibration(p) == c  # FileStorage XML writes doubles exactly, as YAML does
@@ -333,7 +323,7 @@ def test_invalid_input_qualisys_and_dialects(tmp_path):
     (tmp_path / "bad.qca.txt").write_text("<calibration><cameras>")
     with pytest.raises(CalibrationFormatError, match="not valid XML"):
         read_calibration(tmp_path / "bad.qca.txt")
-    p = write_calibration(_calib(n=2), tmp_path / "ok.qca.txt")
+    p = write_calibration(random_calibration(n=2), tmp_path / "ok.qca.txt")
     p.write_text(p.read_text().replace(' focalLengthU="', ' focalLengthX="'))
     with pytest.raises(CalibrationFormatError, match="camera cam00: attribute 'focalLengthU' is missing"):
         read_calibration(p)

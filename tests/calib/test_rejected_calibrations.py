@@ -9,11 +9,11 @@ import pytest
 from calib.calibration import Calibration
 from calib.camera import Camera
 from calib.formats import read_calibration, write_calibration
-from tests.calib.test_formats import _calib
+from tests.calib.calibrations import random_calibration
 
 
 def _cal():
-    return _calib(n=2)
+    return random_calibration(n=2)
 
 
 def test_k_with_a_wrong_last_row_is_refused(tmp_path):

@@ -481,9 +481,9 @@ def test_a_joint_that_barely_bends_keeps_the_boundary_placement_and_says_so():
     origin); bent by a fifth of a degree, with 0.5 mm of tracking noise, the centre is ill-determined and the
     joint stays at the boundary's centroid on the curve skeleton, which rig.json says."""
     from pipeline.articulated_skeleton import articulated_skeleton
-    from tests.pipeline.test_motion_segmentation import _two_bars
+    from tests.pipeline.shapes import two_bars
 
-    V, F, right = _two_bars(12)
+    V, F, right = two_bars(12)
     lab = right.astype(np.int64)
     sk = articulated_skeleton(V[0], F, lab, motion=V, reference=0)
     j = int(np.flatnonzero(sk.articulation)[0])
