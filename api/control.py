@@ -251,6 +251,7 @@ class ControlRoom:
         self.latency_ns: collections.deque = collections.deque(maxlen=2000)
         self.encode_s: collections.deque = collections.deque(maxlen=2000)
         self.board_session: BoardSession | None = None
+        self.closing = threading.Event()  # set when the server shuts down: preview streams end
         self.live3d = None
         self._calibration = calibration
 
@@ -339,6 +340,7 @@ class ControlRoom:
             self.board_session.stop()
 
     def close(self) -> None:
+        self.closing.set()
         self.stop_board()
         if self.live3d is not None:
             self.live3d.stop()

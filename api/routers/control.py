@@ -136,7 +136,7 @@ async def _stream(request: Request, room, cams: list[str], mask: bool):
     last = {c: -1 for c in cams}
     room.stream_opened()
     try:
-        while not room.session.closed:
+        while not (room.session.closed or room.closing.is_set()):
             t0 = asyncio.get_running_loop().time()
             for cid in cams:
                 seq, jpg, grab_ns = await run_in_threadpool(room.preview, cid, mask=mask)

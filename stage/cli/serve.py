@@ -83,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"stage serve: data root {settings.data}; jobs on {'dask ' + settings.dask if settings.dask else 'a local process pool'}; "
           f"docs at http://{args.host}:{args.port}/docs"
           + (f"; control room at http://{args.host}:{args.port}/ui/stage" if control is not None else ""), flush=True)
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=10)
+    config = uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=10)
+    _server_class()(config, control).run()
     return 0
 
 
@@ -132,3 +133,23 @@ def _open_stage(args: argparse.Namespace, settings):
     if not args.no_live3d:
         room.live3d = Live3D(room).start()
     return room
+
+
+def _server_class():
+    """uvicorn.Server with the control room's shutdown (uvicorn is imported only when serving)."""
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        """uvicorn's server; on Ctrl-C / SIGTERM the control room's preview streams end first, so that
+        the graceful shutdown does not wait for browsers that would watch forever."""
+
+        def __init__(self, config, control) -> None:
+            super().__init__(config)
+            self.control = control
+
+        def handle_exit(self, sig, frame) -> None:
+            if self.control is not None:
+                self.control.closing.set()
+            super().handle_exit(sig, frame)
+
+    return Server

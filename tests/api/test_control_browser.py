@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -259,3 +260,49 @@ def test_board_session_to_calibration_report(tmp_path):
     assert [r[0] for r in rows] == list(held)
     for r in rows:
         assert float(r[1]) == pytest.approx(held[r[0]]["rms"], abs=1e-3) and float(r[1]) < 2.0
+
+
+def test_ctrl_c_with_a_preview_open(tmp_path):
+    """Ctrl-C while a browser watches: the preview streams end, the server exits cleanly (no graceful
+    shutdown timeout), the take being recorded is closed complete."""
+    pytest.importorskip("fake_cameras.device")
+    rig = rig_toml(4, subject="starfish", size=(160, 120), fps=30, frames=10)
+    srv = StageServer(tmp_path, rig, extra=("--no-live3d",)).__enter__()
+    got = []
+    stop = threading.Event()
+
+    def watch():
+        try:
+            with httpx.stream("GET", srv.url + "/stage/previews.mjpg", timeout=30) as r:
+                for chunk in r.iter_bytes():
+                    got.append(len(chunk))
+                    if stop.is_set():
+                        return
+        except httpx.HTTPError:
+            pass
+
+    th = threading.Thread(target=watch, daemon=True)
+    th.start()
+    try:
+        r = httpx.post(srv.url + "/stage/record", json={"take": "open"}, headers={"Authorization": f"Bearer {TOKEN}"},
+                       timeout=10)
+        assert r.status_code == 202, r.text
+        t0 = time.monotonic()
+        while len(got) < 5 and time.monotonic() - t0 < 20:
+            time.sleep(0.1)
+        assert got, "no preview arrived"
+        while time.monotonic() - t0 < 30:
+            if httpx.get(srv.url + "/stage", timeout=10).json()["recording"].get("frames_written", 0) >= 5:
+                break
+            time.sleep(0.1)
+        srv.proc.send_signal(signal.SIGINT)
+        assert srv.proc.wait(30) in (0, 130)  # 130: the interrupt, re-raised once the server is down
+        th.join(10)
+        assert not th.is_alive()  # the stream ended with the server
+    finally:
+        stop.set()
+        srv.__exit__(None, None, None)
+    log = srv.logtext()
+    assert "graceful shutdown exceeded" not in log and "Traceback" not in log, log
+    with TakeReader(srv.data / "takes" / "open.h5") as t:
+        assert t.complete and len(t) > 0
