@@ -152,8 +152,8 @@ def test_a_client_that_leaves_leaks_nothing(tmp_path):
     ids = ["a", "b", "c"]
     with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=make_drivers(ids))) as srv:
         _wait(lambda: httpx.get(srv.url + "/stage/cameras/a/preview.jpg", timeout=10).status_code == 200, what="frames")
-        threads0 = threading.active_count()
-        for _ in range(3):
+        threads = []
+        for _ in range(4):
             clients = [httpx.Client(timeout=10) for _ in range(4)]
             streams = [c.stream("GET", srv.url + ("/stage/previews.mjpg" if i % 2 else "/stage/cameras/b/preview.mjpg"))
                        for i, c in enumerate(clients)]
@@ -169,8 +169,10 @@ def test_a_client_that_leaves_leaks_nothing(tmp_path):
                 c.close()
             _wait(lambda: httpx.get(srv.url + "/stage", timeout=10).json()["previews"]["streams"] == 0,
                   what="every stream closed")
-        time.sleep(0.5)
-        assert threading.active_count() <= threads0 + 2, (threads0, threading.active_count())
+            time.sleep(0.3)
+            threads.append(threading.active_count())
+        # the first round grows the server's worker-thread pool; later rounds add nothing
+        assert max(threads[1:]) <= threads[0] + 1, threads
         lat = httpx.get(srv.url + "/stage", timeout=10).json()["previews"]["latency_ms"]
         assert lat["n"] > 0 and 0 <= lat["p50"] <= lat["p99"]
 
