@@ -19,6 +19,7 @@ from api.errors import UploadTooLargeError, install_handlers
 from api.jobs.runner import JobRunner
 from api.jobs.store import JobStore
 from api.library import TakeLibrary
+from api.openapi import declare_responses
 from api.paths import upload_path
 from api.rigctl import CaptureManager
 from api.routers import calibrations, jobs, pages, rig, takes
@@ -183,6 +184,9 @@ def create_app(settings: Settings | None = None, *, work: str | Callable[..., An
     app.add_middleware(BodySizeLimit, max_upload_bytes=settings.max_upload_bytes)
     for r in (rig.router, takes.router, calibrations.router, jobs.router, pages.router, control_routes.router):
         app.include_router(r)
+
+    declare_responses(app, (rig.router, takes.router, calibrations.router, jobs.router, control_routes.router),
+                      read_protected=settings.read_protected)
 
     @app.get("/health", tags=["meta"])
     def health() -> dict[str, Any]:
