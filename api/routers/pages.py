@@ -36,7 +36,7 @@ from fastapi.templating import Jinja2Templates
 from api.deps import JobId, LibraryDep, ReadAccess, SettingsDep, StoreDep, TakeId
 from api.errors import NotFoundError
 from api.jobs.store import JobNotFoundError, JobRecord
-from api.paths import inside
+from api.paths import data_relative, inside
 from calib.fileio import atomic_write
 
 __all__ = ["router", "REPORT_CACHE"]
@@ -189,8 +189,9 @@ def job_page(request: Request, job_id: JobId, store: StoreDep, _: ReadAccess) ->
                  parameters=json.dumps(j.params) if j.params else "–")
 
 
-def _report_html(job: JobRecord, job_dir: Path, take: Path | None) -> str:
-    """The cached report of a finished job, (re)rendered when missing or older than its inputs."""
+def _report_html(job: JobRecord, job_dir: Path, take: Path | None, data_root: Path) -> str:
+    """The cached report of a finished job, (re)rendered when missing or older than its inputs;
+    paths in it are relative to the data root (``DATA/...``), never the server's own."""
     from pipeline.report import render_report
 
     cache = job_dir / REPORT_CACHE
@@ -199,7 +200,7 @@ def _report_html(job: JobRecord, job_dir: Path, take: Path | None) -> str:
     with _report_lock:
         if cache.is_file() and cache.stat().st_mtime >= newest:
             return cache.read_text(encoding="utf-8")
-        page = render_report(job_dir, take=take)
+        page = data_relative(render_report(job_dir, take=take), data_root)
         atomic_write(cache, page)
         return page
 
@@ -226,7 +227,7 @@ def job_report(request: Request, job_id: JobId, store: StoreDep, library: Librar
     except (NotFoundError, ValueError):
         take = None  # deleted since: a report without contact sheets
     try:
-        page = _report_html(j, job_dir, take)
+        page = _report_html(j, job_dir, take, settings.data)
     except NothingToReportError:
         return _not_found(request, f"job {j.id} has no spine.json or report.json")
     return HTMLResponse(page, headers={"Cache-Control": "no-cache"})

@@ -175,6 +175,7 @@ def test_report_is_rendered_and_cached(client_data):
     page = _html(client.get(url))
     assert 'id="tip-counts"' in page and "Plotly.newPlot" in page
     assert "frusta" in page  # the take (with its calibration) was found for the report
+    assert str(data) not in page and str(data.resolve()) not in page  # the server's paths: DATA/...
     cache = data / "jobs" / ids["done"] / REPORT_CACHE
     assert cache.read_text(encoding="utf-8") == page
     # served from the cache while the results do not change ...
