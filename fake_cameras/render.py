@@ -82,6 +82,19 @@ class Backdrop:
         Decay length (px) of the spill inwards from the edge.
     blur_sigma : float
         Optical blur (px) before the sensor noise; 0 = none.
+    wall_texture, floor_texture : float
+        Strength (0..1) of a pattern of coloured panels, posters and stripes on the wall, and
+        of tiles and mats on the floor (a lab's walls and floor rather than a backdrop's
+        uniform colour); 0 = the uniform colour.
+    lights : int
+        Bright lamps on the wall, above the cameras (saturating white blobs).
+    figure : (float, float) or None
+        A second person standing still at ``(x, y)`` (a column 360 mm wide and 1.55 m high
+        with a head, 1.8 m in all), in front of the wall: part of the background, not of
+        the masks. Put it outside the capture volume and beyond the cameras' ring so that it
+        never hides the subject.
+    figure_color : (3,) float
+        Its albedo.
     """
 
     wall_color: tuple[float, float, float] = (45.0, 175.0, 55.0)
@@ -106,6 +119,11 @@ class Backdrop:
     spill: float = 0.35
     spill_width: float = 3.0
     blur_sigma: float = 0.5
+    wall_texture: float = 0.0
+    floor_texture: float = 0.0
+    lights: int = 0
+    figure: tuple[float, float] | None = None
+    figure_color: tuple[float, float, float] = (60.0, 70.0, 140.0)
 
     def __post_init__(self) -> None:
         for name in ("wall_radius", "wall_height", "texture_scale"):
@@ -126,9 +144,11 @@ class Backdrop:
         ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"backdrop.{name} must be >= 0")
-        for name in ("vignette", "shadow_strength", "unevenness"):
-            if getattr(self, name) > 1:
-                raise ValueError(f"backdrop.{name} must be <= 1")
+        for name in ("vignette", "shadow_strength", "unevenness", "wall_texture", "floor_texture"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"backdrop.{name} must be within 0..1")
+        if isinstance(self.lights, bool) or not isinstance(self.lights, int) or not 0 <= self.lights <= 16:
+            raise ValueError(f"backdrop.lights must be an integer within 0..16, got {self.lights!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -304,8 +324,16 @@ class _Scene:
         light_floor = 1.0 + un * (0.5 - 1.4 * rr * rr + 0.3 * np.cos(az + 1.7) * rr)
         col = np.empty((D.shape[0], 3), dtype=np.float32)
         col[:] = np.asarray(bd.ceiling_color, dtype=np.float32)
-        col[wall] = (np.asarray(bd.wall_color)[None, :] * light_wall[wall, None]).astype(np.float32)
-        col[floor] = (np.asarray(bd.floor_color)[None, :] * light_floor[floor, None]).astype(np.float32)
+        col[wall] = (_wall_colour(bd, az[wall], zz[wall]) * light_wall[wall, None]).astype(np.float32)
+        col[floor] = (_floor_colour(bd, P[floor]) * light_floor[floor, None]).astype(np.float32)
+        if bd.lights:
+            col[wall] = np.maximum(col[wall], _lamps(bd, az[wall], zz[wall])[:, None])
+        if bd.figure is not None:
+            t_fig, fig_col = _figure_hits(bd, o, D)
+            front = t_fig < t_bg
+            col[front] = fig_col[front]
+            t_bg = np.where(front, t_fig, t_bg)
+            floor &= ~front
         self.background = col.reshape(h, w, 3)
         self.bg_depth = (t_bg * self.dz).astype(np.float32).reshape(h, w)
         self.floor_idx = np.flatnonzero(floor)
@@ -342,6 +370,74 @@ class _Scene:
             lo = np.where(has[:, None], np.nanmin(np.where(np.isnan(tuv), np.inf, tuv), axis=1), np.inf)
             hi = np.where(has[:, None], np.nanmax(np.where(np.isnan(tuv), -np.inf, tuv), axis=1), -np.inf)
         self.tile_uv_lo, self.tile_uv_hi = lo, hi
+
+
+_PALETTE = np.array([[60, 70, 90], [150, 160, 170], [200, 200, 205], [120, 60, 50],
+                     [90, 120, 110], [30, 30, 35], [170, 120, 80]], dtype=np.float64)  # BGR: a lab's colours
+
+
+def _wall_colour(bd: Backdrop, az: np.ndarray, zz: np.ndarray) -> np.ndarray:
+    """(K, 3) wall albedo: the wall colour, mixed by ``wall_texture`` with panels and stripes."""
+    base = np.broadcast_to(np.asarray(bd.wall_color, float), (az.size, 3))
+    if bd.wall_texture <= 0:
+        return base
+    panel = (np.floor((az + np.pi) / (2 * np.pi) * 23).astype(int) * 7 + np.floor(zz * 5).astype(int) * 3) % len(_PALETTE)
+    stripe = 0.15 * np.sin(az * 160.0) * (zz > 0.55)
+    tex = _PALETTE[panel] * (1.0 + stripe[:, None])
+    return (1 - bd.wall_texture) * base + bd.wall_texture * tex
+
+
+def _floor_colour(bd: Backdrop, pts: np.ndarray) -> np.ndarray:
+    """(K, 3) floor albedo: the floor colour, mixed by ``floor_texture`` with tiles and mats."""
+    base = np.broadcast_to(np.asarray(bd.floor_color, float), (pts.shape[0], 3))
+    if bd.floor_texture <= 0:
+        return base
+    i = np.floor((pts[:, 0] - bd.center[0]) / 450.0).astype(int)
+    j = np.floor((pts[:, 1] - bd.center[1]) / 450.0).astype(int)
+    tile = _PALETTE[(3 * i + 5 * j) % len(_PALETTE)] * (0.85 + 0.15 * ((i + j) % 2))[:, None]
+    return (1 - bd.floor_texture) * base + bd.floor_texture * tile
+
+
+def _lamps(bd: Backdrop, az: np.ndarray, zz: np.ndarray) -> np.ndarray:
+    """(K,) brightness of ``lights`` lamps high on the wall (saturating, 255 at their centres)."""
+    out = np.zeros(az.shape, float)
+    for k in range(bd.lights):
+        a0 = 2 * np.pi * k / bd.lights + 0.4
+        da = np.angle(np.exp(1j * (az - a0)))
+        out = np.maximum(out, 400.0 * np.exp(-0.5 * ((da / 0.05) ** 2 + ((zz - 0.8) / 0.04) ** 2)))
+    return np.minimum(out, 255.0)
+
+
+def _figure_hits(bd: Backdrop, o: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ray parameters (inf: missed) and colours of the still figure: a vertical column and a head."""
+    fx, fy = bd.figure  # type: ignore[misc]
+    r, top, head_r = 180.0, 1550.0, 120.0
+    oxy = np.array([o[0] - fx, o[1] - fy])
+    a = D[:, 0] ** 2 + D[:, 1] ** 2
+    b = 2 * (D[:, 0] * oxy[0] + D[:, 1] * oxy[1])
+    c = oxy @ oxy - r * r
+    disc = b * b - 4 * a * c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_col = np.where((disc >= 0) & (a > 1e-12), (-b - np.sqrt(np.maximum(disc, 0))) / (2 * np.where(a > 1e-12, a, 1)), np.inf)
+    z_col = o[2] + t_col * D[:, 2]
+    t_col = np.where((t_col > 0) & (z_col >= 0) & (z_col <= top), t_col, np.inf)
+    oc = o - np.array([fx, fy, top + head_r])
+    bh = D @ oc
+    ch = oc @ oc - head_r**2
+    dh = bh * bh - ch
+    t_head = np.where(dh >= 0, -bh - np.sqrt(np.maximum(dh, 0)), np.inf)
+    t_head = np.where(t_head > 0, t_head, np.inf)
+    t = np.minimum(t_col, t_head)
+    P = o + np.where(np.isfinite(t), t, 0)[:, None] * D
+    n = np.zeros_like(P)
+    n[:, 0], n[:, 1] = P[:, 0] - fx, P[:, 1] - fy
+    head = t_head < t_col
+    n[head] = P[head] - np.array([fx, fy, top + head_r])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
+    shade = bd.ambient + bd.key_intensity * np.maximum(n @ _unit(bd.key_light), 0.0)
+    col = np.asarray(bd.figure_color, float)[None, :] * shade[:, None]
+    col[head] = np.array([90.0, 120.0, 190.0]) * shade[head, None]  # skin
+    return t, col.astype(np.float32)
 
 
 _TILE = 16

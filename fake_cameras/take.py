@@ -37,6 +37,8 @@ from stage.rig import Volume
 __all__ = [
     "SUBJECTS",
     "SimulatedTake",
+    "STAGES",
+    "stage_backdrop",
     "simulate_take",
     "write_ground_truth",
     "load_ground_truth",
@@ -224,6 +226,7 @@ def simulate_take(
     spur: tuple[float, float] | None = None,
     distortion: bool = True,
     workers: int | None = None,
+    travel: tuple[float, float] | None = None,
 ) -> SimulatedTake:
     """Render a take of a simulated subject with ground truth.
 
@@ -259,6 +262,10 @@ def simulate_take(
     workers : int, optional
         Rendering processes; default 1 for small takes, else up to 2
         (environment ``CAPTURE_STAGE_SIM_WORKERS`` overrides).
+    travel : (float, float), optional
+        The creature walks across the floor by ``(dx, dy)`` mm over the take, at constant
+        speed, its path centred on the volume's centre (a subject that leaves every pixel
+        for a while, as a plate from the take needs).
 
     Returns
     -------
@@ -281,6 +288,12 @@ def simulate_take(
         )
     times = np.arange(int(frames), dtype=np.float64) / fps_f
     poses = [creature.pose(t) for t in times] if creature is not None else [None] * int(frames)
+    if travel is not None and creature is not None:
+        dx, dy = (float(v) for v in travel)
+        u = np.linspace(-0.5, 0.5, int(frames)) if frames > 1 else np.zeros(1)
+        poses = [make_creature(subject, scale=scale, seed=seed, tuck=tuck, spur=spur,
+                               origin=(vol.center[0] + a * dx, vol.center[1] + a * dy)).pose(t)
+                 for a, t in zip(u, times)]
     limb_names = tuple(creature.names) if creature is not None else ()
     params = dict(
         subject=subject,
@@ -293,6 +306,7 @@ def simulate_take(
         tuck=list(creature.tuck) if creature is not None and creature.tuck else None,
         spur=list(creature.spur) if creature is not None and creature.spur else None,
         volume={"center": list(vol.center), "size": list(vol.size)},
+        **({"travel": [float(v) for v in travel]} if travel is not None else {}),
     )
     key_src = json.dumps(
         {"v": RENDER_VERSION, "params": params, "calibration": calib.to_dict(), "backdrop": repr(backdrop),
@@ -383,6 +397,47 @@ def studio(
     elif not isinstance(backdrop, Backdrop):
         raise ValueError(f"backdrop must be a fake_cameras.render.Backdrop, got {type(backdrop).__name__}")
     return vol, calib, backdrop
+
+
+#: Stages :func:`stage_backdrop` builds besides the full green backdrop.
+STAGES = ("green", "floor", "none")
+
+
+def stage_backdrop(kind: str, *, calibration: Calibration, volume: Volume) -> Backdrop:
+    """The studio of a stage whose backdrop does not fill the view, with ground truth as usual.
+
+    Parameters
+    ----------
+    kind : {"green", "floor", "none"}
+        ``green``: the default full backdrop. ``floor``: only the floor is green; the wall is
+        textured (panels, posters, stripes), bright lamps hang on it and a second person
+        stands still outside the capture volume. ``none``: no backdrop at all, a lab: a
+        textured wall and tiled floor, the lamps and the still second person (key it with a
+        plate from the take).
+    calibration : Calibration
+    volume : stage.rig.Volume
+
+    Returns
+    -------
+    Backdrop
+    """
+    if kind not in STAGES:
+        raise ValueError(f"kind must be one of {STAGES}, got {kind!r}")
+    centres = calibration.centers()
+    reach = max(np.linalg.norm(centres[:, :2] - np.asarray(volume.center[:2]), axis=1).max(), 1.0)
+    top = max(float(centres[:, 2].max()), float(volume.bounds[1][2]))
+    radius = float(max(3200.0, 1.6 * reach))
+    base = dict(wall_radius=radius, wall_height=float(max(3200.0, 1.5 * top)),
+                center=(float(volume.center[0]), float(volume.center[1])))
+    if kind == "green":
+        return Backdrop(**base)
+    # the second person: between the cameras' ring and the wall, never between a camera and the subject
+    ring = 0.5 * (reach + radius)
+    figure = (float(volume.center[0] + ring * np.cos(2.2)), float(volume.center[1] + ring * np.sin(2.2)))
+    lab = dict(wall_color=(80.0, 85.0, 95.0), wall_texture=0.9, lights=3, figure=figure, spill=0.0)
+    if kind == "floor":
+        return Backdrop(**base, **lab)
+    return Backdrop(**base, **lab, floor_color=(110.0, 115.0, 120.0), floor_texture=0.8)
 
 
 def cached_render(key_src: str, render, *, cache: bool = True) -> dict:

@@ -107,7 +107,15 @@ class ProcessParams(BaseModel):
     Attributes
     ----------
     key_mode : {"chroma", "luma", "plate"} or None
-        Keying mode; default: the rig's backdrop, else chroma.
+        Keying mode; default: the rig's backdrop, else chosen from the footage (a backdrop
+        colour covering a large share of the views: chroma with layers; none: a plate from
+        the take; :func:`stage.keying.take.choose_key_mode`). The choice and why are in
+        ``process.json`` (``key``).
+    key_layers : tuple of {"volume", "graphcut"} or None
+        Keying layers (docs/keying.md): ``volume``, pixels whose rays miss the volume
+        searched for the subject are background; ``graphcut``, the ``refine`` step cuts
+        every camera's silhouettes with colour models seeded by a first hull. Default: the
+        rig's, else the footage's choice.
     rekey : bool
         Key again even when the take already holds masks.
     resolution : int or None
@@ -156,6 +164,7 @@ class ProcessParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     key_mode: Literal["chroma", "luma", "plate"] | None = None
+    key_layers: tuple[Literal["volume", "graphcut"], ...] | None = None
     rekey: bool = False
     resolution: Annotated[int, Field(ge=16, le=512)] | None = None
     volume: tuple[float, float, float, float, float, float] | None = None
@@ -287,7 +296,7 @@ def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tupl
 # ----------------------------------------------------------------------------- per-frame tasks
 
 
-def key_task(take: str, cameras: Sequence[str], base: dict, workers: int) -> list[dict]:
+def key_task(take: str, cameras: Sequence[str], base: dict, workers: int, volume=None) -> list[dict]:
     """Key some cameras of the take (in a worker), the take opened once; their masks come
     back bit-packed for the parent to store (one writer per take file)."""
     import cv2
@@ -302,7 +311,7 @@ def key_task(take: str, cameras: Sequence[str], base: dict, workers: int) -> lis
     try:
         with TakeReader(take) as reader:
             for camera in cameras:
-                key = key_camera(reader, camera, base=KeyParams(**base), workers=workers)
+                key = key_camera(reader, camera, base=KeyParams(**base), workers=workers, volume=volume)
                 if key is None:
                     out.append({"camera": camera, "key": None})
                     continue
@@ -722,6 +731,7 @@ class RunContext:
     keyed: dict | None = field(default_factory=dict)  # camera -> (bit-packed masks, width, valid) keyed in this run
     set_table: np.ndarray | None = None  # (S, C) frame row of every camera in every set
     limb_count: dict = field(default_factory=dict)  # the spine's K and the rule that chose it
+    key_choice: dict = field(default_factory=dict)  # the keying mode and layers of this run, and why
     step: str = ""  # the step running
     cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds (this process and the workers)
     worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks on the executor
@@ -797,10 +807,14 @@ def _step_key(ctx: RunContext) -> None:
     if not ctx.need_key:
         ctx.report_progress("key", total, total)
         return
-    from stage.keying.take import store_camera_keys, take_key_params
+    from stage.keying.take import resolve_key_choice, store_camera_keys, take_key_params
 
     t0 = time.perf_counter()
-    base = take_key_params(ctx.rig, key_mode=ctx.params.key_mode).to_dict()
+    choice = resolve_key_choice(ctx.take, ctx.rig, key_mode=ctx.params.key_mode, layers=ctx.params.key_layers)
+    ctx.key_choice = choice
+    _add_to_record(ctx, key=choice)
+    base = take_key_params(ctx.rig, key_mode=choice["mode"]).to_dict()
+    volume = _volume_bounds(ctx).tolist() if "volume" in choice["layers"] else None
     done = 0
     ctx.report_progress("key", 0, total)
     # OpenCV's thread pool does not survive fork(): forked workers key nothing, this process does
@@ -813,7 +827,7 @@ def _step_key(ctx: RunContext) -> None:
     pending = len(groups)
     overlap_at = max(1, _pool_size(where.executor) - 1) if where.executor is not None else 0
     batch: list = []
-    for results in _map_tasks(where, [partial(key_task, str(ctx.take), g, base, threads) for g in groups]):
+    for results in _map_tasks(where, [partial(key_task, str(ctx.take), g, base, threads, volume) for g in groups]):
         pending -= 1
         for res in results:
             if res["key"] is None:
@@ -833,6 +847,28 @@ def _step_key(ctx: RunContext) -> None:
     if batch:
         store_camera_keys(ctx.take, batch)
     ctx.timings["key"] = time.perf_counter() - t0
+
+
+def _step_refine(ctx: RunContext) -> None:
+    """The keying's ``graphcut`` layer: every camera's masks keyed in this run cut again with colour
+    models seeded by a first hull (:func:`pipeline.silhouette_refine.refine_take`), stored in place."""
+    layers = ctx.key_choice.get("layers", []) if ctx.key_choice else []
+    if "graphcut" not in layers or not ctx.need_key:
+        return
+    from pipeline.silhouette_refine import refine_take
+
+    t0 = time.perf_counter()
+    total = ctx.n_sets * len(ctx.cameras)
+    done = [0]
+
+    def tick(n: int) -> None:
+        done[0] += n
+        ctx.report_progress("refine", min(done[0], total), total)
+
+    info = refine_take(ctx.take, volume=_volume_bounds(ctx), progress=tick)
+    ctx.keyed = None  # the masks in memory are the keyer's: the surface tasks read the refined ones
+    _add_to_record(ctx, refine={"method": "graphcut", "masks": info["frames"], "first_hull_grid": info["grid"]})
+    ctx.timings["refine"] = time.perf_counter() - t0
 
 
 def _keep_masks(ctx: RunContext, key, width: int) -> None:
@@ -1024,6 +1060,7 @@ def _step_track(ctx: RunContext) -> None:
 
 STEPS: tuple[str, ...] = ()
 register_step("key", _step_key, doc="keying masks into the take")
+register_step("refine", _step_refine, doc="graph-cut refinement of the masks (the keying's graphcut layer)")
 register_step("surface", _step_surface, doc="visual hull and surface per frame set")
 register_step("spine", _step_spine, doc="per-frame skeletons and the take's spine")
 
@@ -1245,6 +1282,8 @@ def process_take(
     bad = [s for s in steps if s not in _REGISTRY]
     if bad or not steps:
         raise ValueError(f"steps must be a non-empty subset of {STEPS}, got {steps}")
+    if "key" in steps:
+        steps = (*steps, "refine")  # keying's graphcut layer (a no-op without it)
     steps = tuple(s for s in STEPS if s in steps)
     params = _check_params(params)
     if not take.is_file():

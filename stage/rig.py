@@ -14,6 +14,7 @@ volume and the backdrop::
 
     [backdrop]
     key_mode = "chroma"   # chroma | luma | plate
+    layers = ["volume"]   # optional: volume, graphcut (docs/keying.md)
 
     [[cameras]]
     id = "cam0"
@@ -85,8 +86,17 @@ class Volume(_Strict):
 
 
 class Backdrop(_Strict):
+    """How the stage's silhouettes are keyed (docs/keying.md).
+
+    ``layers`` combine with any mode: ``volume`` (pixels whose rays miss the capture volume
+    are background), ``graphcut`` (a per-camera graph cut seeded by the keyer's sure
+    background and a first hull's projection: walls, lights, people outside the volume drop
+    out where the backdrop does not fill the view).
+    """
+
     key_mode: Literal["chroma", "luma", "plate"] = "chroma"
     color: Literal["green", "blue", "black", "white"] = "green"
+    layers: tuple[Literal["volume", "graphcut"], ...] | None = None
 
 
 class CameraConfig(_Strict):

@@ -24,8 +24,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--key-mode",
         choices=("chroma", "luma", "plate"),
         default=None,
-        help="keying mode (default: the rig's backdrop.key_mode stored in the take, else chroma)",
+        help="keying mode (default: the rig's backdrop.key_mode stored in the take; footage without a rig file: "
+        "chroma when a backdrop colour covers a large share of the views, else a plate from the take)",
     )
+    p.add_argument("--key-layer", action="append", choices=("volume", "graphcut"), default=None, dest="key_layers",
+                   help="keying layer, repeatable: volume (pixels whose rays miss the capture volume are background), "
+                   "graphcut (colour models seeded by a first hull; needs the calibration)")
+    p.add_argument("--volume", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                   help="the volume layer's box (default: the rig's capture volume)")
+    p.add_argument("--plate", type=Path, default=None, metavar="EMPTY_TAKE",
+                   help="an empty take of the same cameras: its per-pixel background and noise become the plate "
+                   "(stored in the take; mode plate unless --key-mode says otherwise)")
     p.add_argument("--camera", action="append", default=None, help="only this camera (repeatable)")
     p.add_argument("--preview", type=Path, default=None, metavar="DIR", help="write a contact sheet PNG per camera into DIR")
     p.add_argument("--workers", type=int, default=2, help="threads keying frames in parallel (default 2)")
@@ -49,24 +58,40 @@ def run(args: argparse.Namespace) -> int:
 
     with TakeReader(args.take) as r:
         total = sum(r.frame_counts().values())
+    key_mode = args.key_mode
+    if args.plate is not None:
+        from stage.keying.take import store_plates
+
+        noise = store_plates(args.take, args.plate)
+        print(f"plates from {args.plate} stored (noise {', '.join(f'{c}: {v:.1f}' for c, v in noise.items())})")
+        key_mode = key_mode or "plate"
     bar = tqdm(total=total, unit="frame", desc="key", disable=args.no_progress)
     try:
         summary = key_take(
             args.take,
-            key_mode=args.key_mode,
+            key_mode=key_mode,
             cameras=args.camera,
             workers=args.workers,
             grow=args.grow,
             fill_holes=args.fill_holes,
             preview=args.preview,
             progress=bar.update,
+            layers=args.key_layers,
+            volume=args.volume,
         )
+        if "graphcut" in summary["layers"]:
+            from pipeline.silhouette_refine import refine_take
+
+            info = refine_take(args.take, volume=args.volume, progress=bar.update)
+            print(f"graph-cut refinement: {info['frames']} masks refined ({info['seconds']:.1f} s)")
     finally:
         bar.close()
     from stage.store import derived_path
 
+    layers = f" + {', '.join(summary['layers'])}" if summary["layers"] else ""
     print(
-        f"keyed {len(summary['cameras'])} camera(s), {summary['frames']} frames, mode {summary['mode']}; "
+        f"keyed {len(summary['cameras'])} camera(s), {summary['frames']} frames, mode {summary['mode']}{layers} "
+        f"({summary['why']}); "
         f"{summary['invalid']} invalid frame(s); masks stored in {derived_path(args.take)}"
     )
     if args.preview is not None:

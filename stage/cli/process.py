@@ -27,7 +27,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--until", choices=("key", "surface", "spine"), default="spine", help="last step to run (default: spine)"
     )
-    p.add_argument("--key-mode", choices=("chroma", "luma", "plate"), default=None, help="keying mode (default: the rig's)")
+    p.add_argument("--key-mode", choices=("chroma", "luma", "plate"), default=None,
+                   help="keying mode (default: the rig's; footage without a rig file: chroma when a backdrop colour "
+                   "covers a large share of the views, else a plate from the take; process.json says which and why)")
+    p.add_argument("--key-layer", action="append", choices=("volume", "graphcut"), default=None, dest="key_layers",
+                   help="keying layer, repeatable: volume (pixels whose rays miss the volume are background), graphcut "
+                   "(colour models seeded by a first hull cut each camera's silhouettes: walls, lights, people "
+                   "outside the volume drop out); default: the rig's, else chosen with the mode")
+    p.add_argument("--plate", type=Path, default=None, metavar="EMPTY_TAKE",
+                   help="an empty take of the same cameras: its per-pixel background and noise become the plate "
+                   "(stored in the take; the keying mode becomes plate unless --key-mode says otherwise)")
     p.add_argument("--rekey", action="store_true", help="key again even if the take holds masks")
     p.add_argument(
         "--resolution",
@@ -94,6 +103,15 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
 
     steps = STEPS[: STEPS.index(args.until) + 1]
     kw = {"key_mode": args.key_mode, "rekey": args.rekey, "tolerance": args.tolerance}
+    if getattr(args, "key_layers", None):
+        kw["key_layers"] = tuple(dict.fromkeys(args.key_layers))
+    if getattr(args, "plate", None) is not None:
+        from stage.keying.take import store_plates
+
+        noise = store_plates(take, args.plate)
+        print(f"plates from {args.plate} stored in {take} (noise {', '.join(f'{c}: {v:.1f}' for c, v in noise.items())})")
+        kw["key_mode"] = args.key_mode or "plate"
+        kw["rekey"] = True
     if args.resolution is not None:
         kw["resolution"] = args.resolution
     if args.volume is not None:

@@ -29,7 +29,7 @@ import numpy as np
 from stage.keying._color import M_C, M_Y, NAMED_COLORS_BGR, chi2_cdf, chi_radius
 from stage.keying.params import KeyingError
 
-__all__ = ["estimate_chroma_model", "chroma_distance", "chroma_matrix"]
+__all__ = ["estimate_chroma_model", "chroma_distance", "chroma_matrix", "backdrop_share"]
 
 _MIN_SAT = 8.0  # chroma units: below this a colour is too grey to vote for the backdrop hue
 _HUE_HALF_WIDTH = np.deg2rad(20.0)
@@ -119,6 +119,46 @@ def estimate_chroma_model(
         "inlier_fraction": float(covered.mean()),
         "luma_median": float(np.median(y[inl])),
     }
+
+
+#: Chroma (units of :data:`M_C`) a pixel needs to count as a backdrop colour in :func:`backdrop_share`.
+BACKDROP_MIN_SAT = 24.0
+
+
+def backdrop_share(samples: np.ndarray) -> tuple[float, float]:
+    """Share of the samples in the dominant saturated hue, and that hue (radians).
+
+    A backdrop is a large region of one saturated colour: the share counts the samples
+    whose chroma exceeds :data:`BACKDROP_MIN_SAT` and whose hue lies within 20 degrees
+    of the most common saturated hue (a 72-bin histogram, neighbours added). Greys,
+    wood and skin are too weakly saturated to count much.
+
+    Parameters
+    ----------
+    samples : (K, 3) float ndarray
+        BGR pixel values.
+
+    Returns
+    -------
+    share : float
+        In [0, 1].
+    hue : float
+    """
+    s = np.asarray(samples, dtype=np.float64)
+    if s.ndim != 2 or s.shape[1] != 3 or s.shape[0] == 0:
+        raise ValueError(f"samples must have shape (K, 3) with K >= 1, got {s.shape}")
+    c = s @ M_C.T
+    sat = np.hypot(c[:, 0], c[:, 1])
+    hue = np.arctan2(c[:, 1], c[:, 0])
+    sel = sat > BACKDROP_MIN_SAT
+    if not sel.any():
+        return 0.0, 0.0
+    bins = 72
+    hist = np.bincount(((hue[sel] + np.pi) / (2 * np.pi) * bins).astype(int) % bins, minlength=bins).astype(float)
+    hist = hist + 0.5 * (np.roll(hist, 1) + np.roll(hist, -1))
+    peak = (np.argmax(hist) + 0.5) / bins * 2 * np.pi - np.pi
+    near = sel & (np.abs(np.angle(np.exp(1j * (hue - peak)))) < _HUE_HALF_WIDTH)
+    return float(near.mean()), float(peak)
 
 
 def _fit_component(

@@ -22,7 +22,8 @@ from stage.keying.chroma import chroma_distance, estimate_chroma_model
 from stage.keying.cleanup import estimate_coverage_fraction, mask_from_distance, soft_matte
 from stage.keying.luma import estimate_luma_model, luma_distance
 from stage.keying.params import KEY_MODES, KeyingError, KeyParams, KeyResult
-from stage.keying.plate import estimate_plate_model, median_plate, plate_distance
+from stage.keying.background import take_plate
+from stage.keying.plate import estimate_plate_model, plate_distance
 
 __all__ = ["key_frames", "estimate_model", "key_one"]
 
@@ -43,14 +44,27 @@ def _frame_ok_for_model(frames: np.ndarray, black_level: float) -> np.ndarray:
     return p >= black_level
 
 
-def estimate_model(frames: np.ndarray, *, params: KeyParams, plate: np.ndarray | None = None) -> KeyParams:
+def estimate_model(
+    frames: np.ndarray,
+    *,
+    params: KeyParams,
+    plate: np.ndarray | None = None,
+    plate_noise: np.ndarray | None = None,
+    roi: np.ndarray | None = None,
+) -> KeyParams:
     """Resolve the thresholds and estimate the backdrop model for one camera.
 
     Parameters
     ----------
     frames : (N, H, W, 3) uint8 ndarray
+        Frames spread across the take (plate mode without a plate estimates it from them).
     params : KeyParams
     plate : (H, W, 3) uint8 ndarray or None
+    plate_noise : (H, W) float ndarray or None
+        Per-pixel noise measured on the plate (grey levels); plate mode only.
+    roi : (H, W) bool ndarray or None
+        Pixels whose rays meet the capture volume (:func:`stage.keying.volume_prior.volume_image`);
+        every other pixel is background, in any mode.
 
     Returns
     -------
@@ -71,6 +85,8 @@ def estimate_model(frames: np.ndarray, *, params: KeyParams, plate: np.ndarray |
         raise ValueError(f"t_hi ({t_hi}) must be greater than t_lo ({t_lo})")
     if params.model is not None:
         resolved = params.replace(t_lo=float(t_lo), t_hi=float(t_hi))
+        if roi is not None and "_roi" not in params.model:
+            resolved = resolved.replace(model={**params.model, "_roi": roi})
         return _with_coverage(resolved, frames)
     ok = _frame_ok_for_model(frames, params.black_level)
     usable = frames[ok]
@@ -92,21 +108,36 @@ def estimate_model(frames: np.ndarray, *, params: KeyParams, plate: np.ndarray |
             t_mid=0.5 * (t_lo + t_hi),
         )
     else:
-        if plate is None:
-            if usable.shape[0] < 3:
-                raise KeyingError("plate mode without a plate needs at least 3 usable frames for a median plate")
-            if usable.shape[0] < 9:
-                log.warning("median background plate from only %d frames: a slow subject may stay in it", usable.shape[0])
-            plate_used = median_plate(usable)
-            source = "median"
-        else:
-            plate_used = plate
-            source = "plate"
-        src = usable if usable.shape[0] else frames
-        model = estimate_plate_model(src, plate_used, stride=params.sample_stride, shadow_floor=params.shadow_floor)
-        model["source"] = source
-        model["_plate"] = plate_used
+        model = _plate_model(usable if usable.shape[0] else frames, usable.shape[0], params, plate, plate_noise)
+    if roi is not None:
+        model["_roi"] = roi
     return _with_coverage(params.replace(t_lo=float(t_lo), t_hi=float(t_hi), model=model), usable)
+
+
+def _plate_model(src: np.ndarray, n_usable: int, params: KeyParams, plate: np.ndarray | None,
+                 plate_noise: np.ndarray | None) -> dict:
+    """The plate keyer's model: a given plate (with its noise map when there is one), else a
+    plate estimated from the frames (spread across the take), its noise and flagged pixels."""
+    stuck = None
+    if plate is None:
+        if n_usable < 3:
+            raise KeyingError("plate mode without a plate needs at least 3 usable frames spread across the take")
+        if n_usable < 9:
+            log.warning("background plate from only %d frames: a slow subject may stay in it", n_usable)
+        est = take_plate(src)
+        plate_used, plate_noise, stuck = est.plate, est.noise, est.stuck
+        extra = {"source": "take", "samples": est.samples, "stuck_fraction": est.stuck_fraction}
+    else:
+        plate_used, extra = plate, {"source": "plate"}
+    model = estimate_plate_model(src, plate_used, stride=params.sample_stride, shadow_floor=params.shadow_floor)
+    if plate_noise is not None:
+        model["sigma"] = float(np.median(plate_noise))
+        model["_noise"] = plate_noise.astype(np.float32)
+    model.update(extra)
+    model["_plate"] = plate_used
+    if stuck is not None and stuck.any():
+        model["_stuck"] = stuck
+    return model
 
 
 def _with_coverage(params: KeyParams, frames: np.ndarray) -> KeyParams:
@@ -123,15 +154,33 @@ def _with_coverage(params: KeyParams, frames: np.ndarray) -> KeyParams:
 
 
 def _distance_fn(params: KeyParams) -> Callable[[np.ndarray], np.ndarray]:
+    """The mode's distance, then the layers: pixels the subject never leaves are uncertain
+    (candidates, not seeds), pixels outside the volume's image are background."""
     model = params.model
-    assert model is not None and params.t_hi is not None
+    assert model is not None and params.t_hi is not None and params.t_lo is not None
     if params.mode == "chroma":
         t_hi = params.t_hi
-        return lambda im: chroma_distance(im, model, t_hi=t_hi)
-    if params.mode == "luma":
-        return lambda im: luma_distance(im, model)
-    plate = model["_plate"]
-    return lambda im: plate_distance(im, plate, model)
+        base: Callable[[np.ndarray], np.ndarray] = lambda im: chroma_distance(im, model, t_hi=t_hi)  # noqa: E731
+    elif params.mode == "luma":
+        base = lambda im: luma_distance(im, model)  # noqa: E731
+    else:
+        plate = model["_plate"]
+        base = lambda im: plate_distance(im, plate, model)  # noqa: E731
+    stuck, roi = model.get("_stuck"), model.get("_roi")
+    if stuck is None and roi is None:
+        return base
+    floor = None if stuck is None else stuck.astype(np.float32) * np.float32(0.5 * (params.t_lo + params.t_hi))
+    keep = None if roi is None else roi.astype(np.float32)
+
+    def layered(im: np.ndarray) -> np.ndarray:
+        d = base(im)
+        if floor is not None:
+            d = cv2.max(d, floor)
+        if keep is not None:
+            d = cv2.multiply(d, keep)
+        return d
+
+    return layered
 
 
 def _luma_percentile(image: np.ndarray, q: float) -> float:
@@ -196,6 +245,8 @@ def key_frames(
     *,
     mode: str = "chroma",
     plate: np.ndarray | None = None,
+    plate_noise: np.ndarray | None = None,
+    roi: np.ndarray | None = None,
     params: KeyParams | None = None,
     workers: int = 1,
     camera: str = "",
@@ -212,7 +263,11 @@ def key_frames(
     plate : (H, W, 3) uint8 ndarray or None
         Clean background plate of this camera. Chroma mode estimates the backdrop
         colour from it; plate mode differences against it (without one, plate mode
-        uses the per-pixel temporal median of the frames).
+        estimates it from the frames, :func:`stage.keying.background.take_plate`).
+    plate_noise : (H, W) float ndarray or None
+        Per-pixel noise measured on the plate (plate mode).
+    roi : (H, W) bool ndarray or None
+        Pixels whose rays meet the capture volume; the rest is background.
     params : KeyParams or None
         Options; ``None`` = defaults for ``mode``.
     workers : int
@@ -249,9 +304,12 @@ def key_frames(
                 f"plate must be a uint8 array of shape {frames.shape[1:]} (one frame), got "
                 f"{getattr(plate, 'dtype', type(plate).__name__)} {getattr(plate, 'shape', '')}"
             )
+    for name, arr in (("plate_noise", plate_noise), ("roi", roi)):
+        if arr is not None and (not isinstance(arr, np.ndarray) or arr.shape != frames.shape[1:3]):
+            raise ValueError(f"{name} must be an array of shape {frames.shape[1:3]}, got {getattr(arr, 'shape', arr)!r}")
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    resolved = estimate_model(frames, params=params, plate=plate)
+    resolved = estimate_model(frames, params=params, plate=plate, plate_noise=plate_noise, roi=roi)
     n, h, w = frames.shape[:3]
     masks = np.zeros((n, h, w), bool)
     matte = np.zeros((n, h, w), np.uint8)
@@ -276,8 +334,7 @@ def key_frames(
         if r:
             log.warning("%sframe %d: mask invalid: %s", f"{camera}: " if camera else "", i, r)
     valid = np.array([not r for r in reasons], bool)
-    model = dict(resolved.model or {})
-    model.pop("_plate", None)
+    model = {k: v for k, v in (resolved.model or {}).items() if not k.startswith("_")}
     return KeyResult(
         masks=masks, matte=matte, valid=valid, reasons=reasons, params=resolved.replace(model=model), stats=stats
     )

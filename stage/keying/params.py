@@ -7,11 +7,15 @@ from typing import Any, Literal
 
 import numpy as np
 
-__all__ = ["KEY_MODES", "FILL_HOLES", "KeyMode", "KeyParams", "KeyResult", "KeyingError"]
+__all__ = ["KEY_MODES", "KEY_LAYERS", "FILL_HOLES", "KeyMode", "KeyParams", "KeyResult", "KeyingError"]
 
 KeyMode = Literal["chroma", "luma", "plate"]
 KEY_MODES: tuple[str, ...] = ("chroma", "luma", "plate")
 FILL_HOLES: tuple[str, ...] = ("uncertain", "small", "none")
+#: Layers combinable with any mode: ``volume`` (pixels whose rays miss the capture volume are
+#: background, :mod:`stage.keying.volume_prior`), ``graphcut`` (a per-camera graph cut seeded by
+#: the keyer's sure background and a first hull's projection, :mod:`pipeline.silhouette_refine`).
+KEY_LAYERS: tuple[str, ...] = ("volume", "graphcut")
 
 
 class KeyingError(ValueError):

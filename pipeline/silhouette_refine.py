@@ -1,0 +1,278 @@
+"""Silhouettes refined by a per-camera graph cut seeded by a first visual hull.
+
+Where the backdrop does not fill the view (a green floor before dark walls, a lab with no
+backdrop), a keyer leaves walls, lights and people outside the volume in the masks. The
+visual hull of those masks still contains the subject (every mask does), and carving
+removes most of what only one camera mistakes for the subject; projected back into each
+camera it bounds where the subject can be. Inside that bound, colour decides:
+
+* **sure background**: every pixel outside the hull's projection (grown by the voxel's
+  footprint and a margin), and what the caller knows is background (outside the capture
+  volume's image);
+* **sure foreground**: the hull's projection shrunk by twice the voxel footprint, where
+  the keyer also says subject;
+* **probable** foreground or background: the rest of the projection, as the keyer says;
+
+and a graph cut with colour mixtures (GrabCut, Rother, Kolmogorov & Blake 2004;
+``cv2.grabCut`` with a mask) labels the probable pixels. The cut runs on the region of
+interest around the projection, downscaled to at most :data:`MAX_CUT_PIXELS` (the colour
+models need no more), and its labels are brought back to full size.
+
+:func:`refine_silhouettes` is one frame set (arrays in and out); :func:`refine_take` runs
+it over a take and stores the refined masks in place of the keyed ones (the ``refine`` step
+of ``stage process``, ``stage key --key-layer graphcut``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any, Callable, Sequence
+
+import cv2
+import numpy as np
+
+from calib.calibration import Calibration
+from pipeline.hull import EmptyHullError, HullCarver
+from pipeline.volume import Grid, grid_from_volume, volume_from_cameras
+
+__all__ = ["refine_silhouette", "refine_silhouettes", "hull_projection", "refine_take", "MAX_CUT_PIXELS"]
+
+log = logging.getLogger(__name__)
+
+#: Pixels of the region a graph cut runs on at most (larger regions are downscaled).
+MAX_CUT_PIXELS = 160_000
+#: Voxels along the longest side of the first hull's grid.
+FIRST_HULL_RESOLUTION = 72
+
+
+def _disk(r: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def refine_silhouette(
+    image: np.ndarray,
+    mask: np.ndarray,
+    hull: np.ndarray,
+    *,
+    footprint: float = 2.0,
+    margin: int = 4,
+    sure_background: np.ndarray | None = None,
+    iterations: int = 3,
+) -> np.ndarray:
+    """One camera's silhouette cut by colour inside a first hull's projection.
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8 ndarray
+        BGR frame.
+    mask : (H, W) bool ndarray
+        The keyer's silhouette.
+    hull : (H, W) bool ndarray
+        The first hull's projection into this camera (:func:`hull_projection`).
+    footprint : float
+        The hull's voxel edge in pixels in this camera (how far the projection may be off).
+    margin : int
+        Pixels the projection grows by before everything outside it is sure background.
+    sure_background : (H, W) bool ndarray or None
+        Pixels known to be background (e.g. outside the capture volume's image).
+    iterations : int
+        GrabCut iterations.
+
+    Returns
+    -------
+    (H, W) bool ndarray
+        The refined silhouette (inside the grown projection).
+
+    Raises
+    ------
+    ValueError
+        Shapes or dtypes that do not match, bad options.
+    """
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image must be a (H, W, 3) uint8 array, got {getattr(image, 'dtype', type(image))} "
+                         f"{getattr(image, 'shape', '')}")
+    shape = image.shape[:2]
+    for name, a in (("mask", mask), ("hull", hull), ("sure_background", sure_background)):
+        if a is not None and (not isinstance(a, np.ndarray) or a.shape != shape or a.dtype != bool):
+            raise ValueError(f"{name} must be a bool array of shape {shape}, got {getattr(a, 'dtype', type(a))} "
+                             f"{getattr(a, 'shape', '')}")
+    if not (np.isfinite(footprint) and footprint > 0):
+        raise ValueError(f"footprint must be a positive number of pixels, got {footprint!r}")
+    if not isinstance(margin, (int, np.integer)) or margin < 0:
+        raise ValueError(f"margin must be a non-negative integer, got {margin!r}")
+    if not isinstance(iterations, (int, np.integer)) or iterations < 1:
+        raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
+    grow = int(np.ceil(footprint)) + margin
+    region = cv2.dilate(hull.view(np.uint8), _disk(grow)).view(bool)
+    core = cv2.erode((hull & mask).view(np.uint8), _disk(int(np.ceil(2 * footprint)))).view(bool)
+    if not core.any() or not region.any():
+        return mask & region
+    gc = np.full(shape, cv2.GC_BGD, np.uint8)
+    gc[region & ~mask] = cv2.GC_PR_BGD
+    gc[region & mask] = cv2.GC_PR_FGD
+    gc[core] = cv2.GC_FGD
+    if sure_background is not None:
+        gc[sure_background & ~core] = cv2.GC_BGD
+    # the region of interest: the grown projection and a band of sure background around it
+    x, y, w, h = cv2.boundingRect(region.view(np.uint8))
+    pad = max(8, int(0.15 * max(w, h)))
+    x0, y0 = max(0, x - pad), max(0, y - pad)
+    x1, y1 = min(shape[1], x + w + pad), min(shape[0], y + h + pad)
+    roi_img, roi_gc = image[y0:y1, x0:x1], gc[y0:y1, x0:x1]
+    if not (roi_gc == cv2.GC_BGD).any():
+        return mask & region
+    scale = min(1.0, float(np.sqrt(MAX_CUT_PIXELS / roi_gc.size)))
+    small_img, small_gc = roi_img, roi_gc.copy()
+    if scale < 1.0:
+        size = (max(1, int(round(roi_img.shape[1] * scale))), max(1, int(round(roi_img.shape[0] * scale))))
+        small_img = cv2.resize(roi_img, size, interpolation=cv2.INTER_AREA)
+        small_gc = cv2.resize(roi_gc, size, interpolation=cv2.INTER_NEAREST)
+    if not ((small_gc == cv2.GC_FGD) | (small_gc == cv2.GC_PR_FGD)).any() or not (small_gc == cv2.GC_BGD).any():
+        return mask & region
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.grabCut(small_img, small_gc, None, bgd, fgd, int(iterations), cv2.GC_INIT_WITH_MASK)
+    fg_small = ((small_gc == cv2.GC_FGD) | (small_gc == cv2.GC_PR_FGD)).astype(np.uint8) * 255
+    if scale < 1.0:
+        fg_small = cv2.resize(fg_small, (roi_img.shape[1], roi_img.shape[0]), interpolation=cv2.INTER_LINEAR)
+    out = np.zeros(shape, bool)
+    out[y0:y1, x0:x1] = fg_small >= 128
+    out |= core
+    return out & region
+
+
+def hull_projection(occupancy: np.ndarray, grid: Grid, calibration: Calibration) -> tuple[list[np.ndarray], list[float]]:
+    """Every camera's image of an occupancy grid, and the voxel's footprint in pixels there.
+
+    The voxel centres are projected and the points grown by half the largest voxel footprint
+    (a superset of the exact projection, which the refinement needs).
+
+    Returns
+    -------
+    images : list of (H, W) bool ndarray
+    footprints : list of float
+    """
+    idx = np.argwhere(occupancy)
+    centres = grid.lo + (idx + 0.5) * grid.voxel
+    out, feet = [], []
+    for cam in calibration:
+        w, h = cam.size
+        img = np.zeros((h, w), np.uint8)
+        if len(centres) == 0:
+            out.append(img.view(bool))
+            feet.append(1.0)
+            continue
+        uv, z = cam.project(centres, return_depth=True)
+        front = z > 0
+        foot = cam.K[0, 0] * grid.voxel / z[front]
+        r = max(1.0, float(np.max(foot)) * 0.5 * np.sqrt(3)) if front.any() else 1.0
+        p = np.round(uv[front]).astype(np.int64)
+        ok = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
+        img[p[ok, 1], p[ok, 0]] = 1
+        img = cv2.dilate(img, _disk(int(np.ceil(r))))
+        out.append(img.view(bool))
+        feet.append(float(np.median(foot)) if front.any() else 1.0)
+    return out, feet
+
+
+def refine_silhouettes(
+    images: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray | None],
+    carver: HullCarver,
+    *,
+    sure_background: Sequence[np.ndarray | None] | None = None,
+    margin: int = 4,
+    hull_margin: int = 2,
+) -> list[np.ndarray | None]:
+    """One frame set's silhouettes refined (see module docstring); a camera without a mask
+    (None) stays None, and a frame set whose first hull is empty keeps its masks."""
+    use = [m if m is not None else np.zeros(carver.calibration[i].size[::-1], bool) for i, m in enumerate(masks)]
+    try:
+        hull = carver.carve(use, margin=hull_margin, min_views=2)
+    except EmptyHullError:
+        return list(masks)
+    proj, feet = hull_projection(hull.occupancy, carver.grid, carver.calibration)
+    out: list[np.ndarray | None] = []
+    for i, m in enumerate(masks):
+        if m is None:
+            out.append(None)
+            continue
+        sb = sure_background[i] if sure_background is not None else None
+        out.append(refine_silhouette(images[i], m, proj[i], footprint=feet[i], margin=margin, sure_background=sb))
+    return out
+
+
+def _first_hull_grid(calibration: Calibration, volume: Any) -> Grid:
+    bounds = np.asarray(volume, float).reshape(2, 3) if volume is not None else volume_from_cameras(calibration)
+    return grid_from_volume(bounds, FIRST_HULL_RESOLUTION)
+
+
+def refine_take(
+    take,
+    *,
+    volume: Any = None,
+    progress: Callable[[int], Any] | None = None,
+    margin: int = 4,
+) -> dict:
+    """Refine every stored mask of a take with :func:`refine_silhouettes` and store them back.
+
+    Parameters
+    ----------
+    take : path
+        A take holding a calibration and every camera's masks.
+    volume : (6,) floats, optional
+        The first hull's box (default: the rig's capture volume, else the cameras' shared view).
+    progress : callable, optional
+        Called with the number of masks refined.
+    margin : int
+        Pixels the hull's projection grows by before the outside is sure background.
+
+    Returns
+    -------
+    dict
+        ``frames`` (masks refined), ``seconds``, ``grid`` (the first hull's).
+
+    Raises
+    ------
+    ValueError
+        A take without a calibration or without masks for every camera.
+    """
+    from stage.store import TakeReader, write_arrays
+
+    t0 = time.perf_counter()
+    with TakeReader(take) as r:
+        if not r.has_calibration:
+            raise ValueError(f"{take}: the take has no calibration")
+        cams = list(r.cameras)
+        missing = [c for c in cams if c not in r.masks_present()]
+        if missing:
+            raise ValueError(f"{take}: cameras {missing} have no masks; key the take first")
+        calib = Calibration(tuple(r.calibration[c] for c in cams), units=r.calibration.units)
+        if volume is None and (r.rig or {}).get("volume"):
+            v = r.rig["volume"]
+            c, s = np.asarray(v["center"], float), np.asarray(v["size"], float)
+            volume = np.r_[c - s / 2, c + s / 2]
+        grid = _first_hull_grid(calib, volume)
+        carver = HullCarver(calib, grid)
+        masks = {c: r.masks(c) for c in cams}
+        params = {c: r.mask_params(c) or {} for c in cams}
+        table = r.set_table()
+        done = 0
+        for k in range(table.shape[0]):
+            rows = table[k]
+            ms = [masks[c][rows[i]] if 0 <= rows[i] < len(masks[c]) else None for i, c in enumerate(cams)]
+            ims = [r.frame(c, int(rows[i])) if ms[i] is not None else None for i, c in enumerate(cams)]
+            new = refine_silhouettes(ims, ms, carver, margin=margin)
+            for i, c in enumerate(cams):
+                if new[i] is not None:
+                    masks[c][rows[i]] = new[i]
+                    done += 1
+                    if progress is not None:
+                        progress(1)
+    arrays = []
+    for c in cams:
+        meta = dict(params[c])
+        meta["refined"] = {"method": "graphcut", "first_hull_voxel": grid.voxel, "margin": margin}
+        arrays.append((f"cameras/{c}", "masks", masks[c], meta))
+    write_arrays(take, arrays)
+    return {"frames": done, "seconds": time.perf_counter() - t0, "grid": grid.to_dict()}
