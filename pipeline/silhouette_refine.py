@@ -42,6 +42,8 @@ log = logging.getLogger(__name__)
 
 #: Pixels of the region a graph cut runs on at most (larger regions are downscaled).
 MAX_CUT_PIXELS = 160_000
+#: Largest voxel disc (pixels) splatted by dilation; larger ones are drawn one by one.
+_SPLAT_DILATE_MAX = 12
 #: Voxels along the longest side of the first hull's grid.
 FIRST_HULL_RESOLUTION = 72
 
@@ -144,8 +146,8 @@ def refine_silhouette(
 def hull_projection(occupancy: np.ndarray, grid: Grid, calibration: Calibration) -> tuple[list[np.ndarray], list[float]]:
     """Every camera's image of an occupancy grid, and the voxel's footprint in pixels there.
 
-    The voxel centres are projected and the points grown by half the largest voxel footprint
-    (a superset of the exact projection, which the refinement needs).
+    Every voxel is drawn as a disc of its own footprint (half the diagonal of its projection;
+    a superset of the exact projection, which the refinement needs).
 
     Returns
     -------
@@ -165,11 +167,20 @@ def hull_projection(occupancy: np.ndarray, grid: Grid, calibration: Calibration)
         uv, z = cam.project(centres, return_depth=True)
         front = z > 0
         foot = cam.K[0, 0] * grid.voxel / z[front]
-        r = max(1.0, float(np.max(foot)) * 0.5 * np.sqrt(3)) if front.any() else 1.0
+        radius = np.ceil(np.maximum(1.0, 0.5 * np.sqrt(3) * foot)).astype(np.int64)
         p = np.round(uv[front]).astype(np.int64)
-        ok = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
-        img[p[ok, 1], p[ok, 0]] = 1
-        img = cv2.dilate(img, _disk(int(np.ceil(r))))
+        ok = (p[:, 0] >= -radius) & (p[:, 0] < w + radius) & (p[:, 1] >= -radius) & (p[:, 1] < h + radius)
+        p, radius = p[ok], radius[ok]
+        # every voxel a disc of its own footprint: small radii by dilating their points together,
+        # the few large ones (voxels close to the camera) drawn one by one
+        for rr in np.unique(radius[radius <= _SPLAT_DILATE_MAX]):
+            sel = (radius == rr) & (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
+            pts = np.zeros((h, w), np.uint8)
+            pts[p[sel, 1], p[sel, 0]] = 1
+            img |= cv2.dilate(pts, _disk(int(rr)))
+        for (x, y), rr in zip(p[radius > _SPLAT_DILATE_MAX], radius[radius > _SPLAT_DILATE_MAX]):
+            cv2.circle(img, (int(np.clip(x, -(1 << 20), 1 << 20)), int(np.clip(y, -(1 << 20), 1 << 20))),
+                       int(min(rr, 1 << 20)), 1, -1)
         out.append(img.view(bool))
         feet.append(float(np.median(foot)) if front.any() else 1.0)
     return out, feet

@@ -18,11 +18,11 @@ import cv2
 import numpy as np
 
 from stage.keying._color import default_thresholds, sample_pixels, validate_frames
+from stage.keying.background import take_plate
 from stage.keying.chroma import chroma_distance, estimate_chroma_model
 from stage.keying.cleanup import estimate_coverage_fraction, mask_from_distance, soft_matte
 from stage.keying.luma import estimate_luma_model, luma_distance
 from stage.keying.params import KEY_MODES, KeyingError, KeyParams, KeyResult
-from stage.keying.background import take_plate
 from stage.keying.plate import estimate_plate_model, plate_distance
 
 __all__ = ["key_frames", "estimate_model", "key_one"]
@@ -240,6 +240,18 @@ def key_one(image: np.ndarray, params: KeyParams) -> tuple[np.ndarray, np.ndarra
     return mask, matte, reason, stats
 
 
+def _check_layers(frames: np.ndarray, plate, plate_noise, roi) -> None:
+    if plate is not None:
+        if not isinstance(plate, np.ndarray) or plate.dtype != np.uint8 or plate.shape != frames.shape[1:]:
+            raise ValueError(
+                f"plate must be a uint8 array of shape {frames.shape[1:]} (one frame), got "
+                f"{getattr(plate, 'dtype', type(plate).__name__)} {getattr(plate, 'shape', '')}"
+            )
+    for name, arr in (("plate_noise", plate_noise), ("roi", roi)):
+        if arr is not None and (not isinstance(arr, np.ndarray) or arr.shape != frames.shape[1:3]):
+            raise ValueError(f"{name} must be an array of shape {frames.shape[1:3]}, got {getattr(arr, 'shape', arr)!r}")
+
+
 def key_frames(
     frames: np.ndarray,
     *,
@@ -298,15 +310,7 @@ def key_frames(
         params = KeyParams(mode=mode)  # type: ignore[arg-type]
     elif not isinstance(params, KeyParams):
         raise ValueError(f"params must be a KeyParams or None, got {type(params).__name__}")
-    if plate is not None:
-        if not isinstance(plate, np.ndarray) or plate.dtype != np.uint8 or plate.shape != frames.shape[1:]:
-            raise ValueError(
-                f"plate must be a uint8 array of shape {frames.shape[1:]} (one frame), got "
-                f"{getattr(plate, 'dtype', type(plate).__name__)} {getattr(plate, 'shape', '')}"
-            )
-    for name, arr in (("plate_noise", plate_noise), ("roi", roi)):
-        if arr is not None and (not isinstance(arr, np.ndarray) or arr.shape != frames.shape[1:3]):
-            raise ValueError(f"{name} must be an array of shape {frames.shape[1:3]}, got {getattr(arr, 'shape', arr)!r}")
+    _check_layers(frames, plate, plate_noise, roi)
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
     resolved = estimate_model(frames, params=params, plate=plate, plate_noise=plate_noise, roi=roi)

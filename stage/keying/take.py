@@ -46,7 +46,7 @@ def rig_layers(rig: dict | None) -> tuple[str, ...] | None:
 BACKDROP_SHARE = 0.25
 #: Below this share of backdrop pixels (but above :data:`BACKDROP_SHARE`) the backdrop is
 #: partial and the default adds the graph-cut layer.
-FULL_BACKDROP_SHARE = 0.5
+FULL_BACKDROP_SHARE = 0.8
 
 
 def choose_key_mode(take: str | Path | TakeReader, *, frames_per_camera: int = 3) -> dict:
