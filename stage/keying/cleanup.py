@@ -61,6 +61,7 @@ def mask_from_distance(
     coverage_window: int = 3,
     coverage_fraction: float = 0.5,
     fill_holes: str = "uncertain",
+    min_relative_area: float = 0.0,
 ) -> tuple[np.ndarray, dict[str, float]]:
     """Silhouette from a backdrop-distance image.
 
@@ -83,6 +84,8 @@ def mask_from_distance(
         ``uncertain`` those whose median distance is at least ``t_lo`` (mixed or
         doubtful pixels; a hole of clean backdrop colour is a gap the camera sees
         through), ``small`` all of them, ``none`` none.
+    min_relative_area : float
+        Components smaller than this fraction of the largest kept one are dropped too.
 
     Returns
     -------
@@ -112,6 +115,8 @@ def mask_from_distance(
         seeds = np.bincount(lab_roi[seeds8[y : y + bh, x : x + bw] != 0], minlength=n)
         ok = (area >= min_px) & (seeds > 0)
         ok[0] = False
+        if min_relative_area > 0 and ok.any():
+            ok &= area >= min_relative_area * area[ok].max()
     else:
         ok = np.zeros(1, bool)
     keep = np.flatnonzero(ok).astype(np.int32)

@@ -191,6 +191,15 @@ def _luma_percentile(image: np.ndarray, q: float) -> float:
     return float(np.searchsorted(cum, q / 100.0 * cum[-1]))
 
 
+def _relative_area(params: KeyParams) -> float:
+    """Plate keying keeps components of at least 2 % of the largest: without a backdrop, what
+    else changes in a lab (compression noise, a flicker, a lamp's reflection) is small beside
+    the subject; a backdrop's keyer keeps every component above ``min_area``."""
+    if params.min_relative_area is not None:
+        return float(params.min_relative_area)
+    return 0.02 if params.mode == "plate" else 0.0
+
+
 def key_one(image: np.ndarray, params: KeyParams) -> tuple[np.ndarray, np.ndarray, str, dict[str, float]]:
     """Key one frame with resolved parameters (see :func:`estimate_model`).
 
@@ -216,6 +225,7 @@ def key_one(image: np.ndarray, params: KeyParams) -> tuple[np.ndarray, np.ndarra
         t_lo=params.t_lo,
         t_hi=params.t_hi,
         min_area=params.min_area,
+        min_relative_area=_relative_area(params),
         fill_holes=params.fill_holes,
         close_radius=params.close_radius,
         grow=params.grow,

@@ -54,6 +54,10 @@ class KeyParams:
     min_area : float
         Foreground components smaller than this fraction of the image are dropped
         (and backdrop holes smaller than it are filled, see ``fill_holes``).
+    min_relative_area : float or None
+        Foreground components smaller than this fraction of the frame's largest one are
+        dropped. ``None``: 0.02 in plate mode (without a backdrop, the small changes of a
+        room are noise beside the subject), 0 otherwise.
     fill_holes : {"uncertain", "small", "none"} or None
         Holes below ``min_area``: ``uncertain`` fills those whose pixels do not match
         the backdrop (median distance >= ``t_lo``) and leaves gaps of clean backdrop
@@ -95,6 +99,7 @@ class KeyParams:
     polarity: Literal["dark", "bright"] | None = None
     shadow_floor: float = 0.35
     min_area: float = 2e-4
+    min_relative_area: float | None = None
     fill_holes: Literal["uncertain", "small", "none"] | None = None
     close_radius: int = 0
     grow: int = 0
@@ -131,6 +136,8 @@ class KeyParams:
             raise ValueError(f"fill_holes must be one of {FILL_HOLES} or None, got {self.fill_holes!r}")
         if not 0 <= self.min_area < 0.5:
             raise ValueError(f"min_area must be in [0, 0.5), got {self.min_area!r}")
+        if self.min_relative_area is not None and not 0 <= self.min_relative_area < 1:
+            raise ValueError(f"min_relative_area must be in [0, 1) or None, got {self.min_relative_area!r}")
 
     def _check_counts(self) -> None:
         for name in ("close_radius", "grow", "sample_stride", "coverage_window"):

@@ -84,11 +84,11 @@ def volume_image(camera: Camera, bounds: np.ndarray, *, margin: int = 4, samples
     if inner.any():
         uv[inner] = camera.project(pts[front][inner])
     # clip far-away projections (points just in front of the camera) to keep the polygon finite
-    lim = 4.0 * max(w, h)
+    lim = 2.0 * max(w, h)  # within int32 at 4 fractional bits
     uv = np.clip(uv, -lim, w + lim)
-    hull = cv2.convexHull(np.round(uv).astype(np.int32))
+    hull = cv2.convexHull(np.round(uv * 16).astype(np.int32))  # 4 fractional bits
     out = np.zeros((h, w), np.uint8)
-    cv2.fillConvexPoly(out, hull, 1)
+    cv2.fillConvexPoly(out, hull, 1, lineType=cv2.LINE_8, shift=4)
     if margin:
         out = cv2.dilate(out, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1)))
     return out.view(bool)

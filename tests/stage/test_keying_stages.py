@@ -1,7 +1,8 @@
 """Silhouettes where the backdrop does not fill the view, on simulated stages with ground truth.
 
 Footage is imported without a rig file (image folders and a calibration, as another rig's
-footage arrives), so the keying mode and layers are the footage's own default
+footage arrives; the capture volume given as ``stage process --volume`` does), so the keying
+mode and layers are the footage's own default
 (:func:`stage.keying.take.choose_key_mode`): a green floor before textured walls gives chroma
 with the volume and graph-cut layers, a stage without any backdrop a plate from the take.
 Tolerances: mask IoU >= 0.95 in every camera (pooled over the frames); the hull from the keyed
@@ -93,7 +94,9 @@ def _subject_box(sim, f) -> np.ndarray:
 def test_partial_backdrop_stage_keys_to_the_true_masks(tmp_path, kind, mode, layers):
     sim, take = _stage(kind, tmp_path)
     out = tmp_path / "out"
-    process_take(take, out, steps=("key",))
+    lo, hi = sim.volume.bounds
+    # the stage's capture volume, as `stage process --volume` gives it for footage without a rig file
+    process_take(take, out, steps=("key",), params={"volume": (*lo, *hi)})
     record = json.loads((out / "process.json").read_text())
     assert record["key"]["mode"] == mode and record["key"]["layers"] == layers, record["key"]
     if "graphcut" in layers:
