@@ -138,3 +138,36 @@ def test_invalid_input():
         backdrop_share(np.zeros((0, 3)))
     with pytest.raises(ValueError, match="min_relative_area"):
         KeyParams(min_relative_area=1.5)
+
+
+def test_plates_from_an_empty_take(tmp_path, capsys):
+    """``--plate EMPTY_TAKE``: every camera's plate and noise from an empty recording, stored in
+    the take, then used by the plate keyer (the subject may stand still: nothing is taken from
+    the take itself)."""
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
+    from stage.cli import main
+    from stage.keying import iou
+    from stage.keying.take import store_plates
+    from stage.store import TakeReader
+
+    sim = simulate_take("starfish", n_cameras=4, frames=3, size=(160, 120), seed=5)
+    empty = simulate_take("empty", n_cameras=4, frames=12, size=(160, 120), seed=5)
+    take = record_take(sim, tmp_path / "t.h5")  # holds the renderer's clean plate
+    bare = record_take(empty, tmp_path / "empty.h5")
+    assert main(["key", str(take), "--key-mode", "plate", "--no-progress"]) == 0
+    with TakeReader(take) as r:
+        clean = [min(iou(r.masks(n)[f], sim.masks[f, c]) for f in range(3)) for c, n in enumerate(sim.calibration.names)]
+    noise = store_plates(take, bare)
+    assert set(noise) == set(sim.calibration.names) and all(1.0 <= v <= 3.0 for v in noise.values())  # sigma 2
+    assert main(["key", str(take), "--plate", str(bare), "--no-progress"]) == 0
+    assert "mode plate" in capsys.readouterr().out
+    with TakeReader(take) as r:
+        for c, name in enumerate(sim.calibration.names):
+            assert r.mask_params(name)["key"]["model"]["source"] == "plate"
+            m = r.masks(name)
+            # as good as the renderer's own clean plate, within 0.03
+            assert min(iou(m[f], sim.masks[f, c]) for f in range(3)) >= clean[c] - 0.03, (name, clean[c])
+    other = simulate_take("empty", n_cameras=4, frames=3, size=(80, 60), seed=5)
+    with pytest.raises(ValueError, match="camera cam00 is"):
+        store_plates(take, record_take(other, tmp_path / "small.h5"))
