@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import cv2
 import numpy as np
@@ -124,6 +124,18 @@ class Backdrop:
     lights: int = 0
     figure: tuple[float, float] | None = None
     figure_color: tuple[float, float, float] = (60.0, 70.0, 140.0)
+
+    def __repr__(self) -> str:
+        """The fields' repr, leaving out the lab fields (``wall_texture`` onwards) at their defaults:
+        the render cache keys on it, so renders of the green studio keep their cache entries."""
+        lab = ("wall_texture", "floor_texture", "lights", "figure", "figure_color")
+        parts = []
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in lab and v == f.default:
+                continue
+            parts.append(f"{f.name}={v!r}")
+        return f"Backdrop({', '.join(parts)})"
 
     def __post_init__(self) -> None:
         for name in ("wall_radius", "wall_height", "texture_scale"):
