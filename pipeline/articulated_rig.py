@@ -280,6 +280,8 @@ def build_articulated_rig(
 
     v, f = check_sequence(vertices, faces)
     T = len(v)
+    if T < 2:
+        raise ValueError("vertices: one frame: a rig is found from how the subject moves, give at least 2 frames")
     if not (fps > 0 and np.isfinite(fps)):
         raise ValueError(f"fps must be > 0, got {fps}")
     fi = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64).reshape(-1)
@@ -416,7 +418,7 @@ def rig_dict(rig: ArticulatedRig) -> dict:
         "segmentation": {
             "segments": seg.n_segments,
             "clusters": seg.k,
-            "lambda_thr": rig.lambda_thr,
+            "lambda_thr": seg.lambda_thr if np.isfinite(seg.lambda_thr) else rig.lambda_thr,
             "lambda": seg.lam,
             "interval": seg.interval,
             "samples": int(len(seg.samples)),

@@ -97,6 +97,9 @@ log = logging.getLogger(__name__)
 REFERENCE_SIZE = 300.0  # mm: the size of the paper's objects, where lambda = 0.1 / mm holds
 INTERVAL_MOTION = REFERENCE_SIZE  # reference mm the fastest vertex travels within the interval
 WINDOW_FRAMES = 32  # frames per interval at least, when a long interval lets eqs. 8-9 skip frames
+#: the paper's eigenvalue threshold for small parts undergoing a small motion (section 5), used when the
+#: one asked for finds a single cluster in a subject that does not move as one rigid body
+SMALL_MOTION_THR = 0.98
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,6 +122,9 @@ class Segmentation:
         ``dt`` in frames.
     lam : float
         ``lambda`` in the sequence's own units (per unit).
+    lambda_thr : float
+        The eigenvalue threshold used (``SMALL_MOTION_THR`` when the one asked for found one cluster
+        in a subject that does not move rigidly; nan when not recorded).
     """
 
     labels: np.ndarray
@@ -128,6 +134,7 @@ class Segmentation:
     k: int
     interval: int
     lam: float
+    lambda_thr: float = float("nan")
 
     @property
     def n_segments(self) -> int:
@@ -857,9 +864,20 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
     d = dv * (dn + 1.0) if use_normals else dv
     A = np.exp(-lam_units * d.astype(np.float64))
     sample_labels, eig, k = spectral_clusters(A, lambda_thr=lambda_thr, max_clusters=max_clusters, seed=seed)
+    thr = float(lambda_thr)
+    if k == 1 and rigid_tol is not None and thr < SMALL_MOTION_THR:
+        # one cluster, yet the subject does not move as one rigid body: small parts with a small motion
+        # (the paper's spray handle; a starfish curling its arms), the paper's threshold for them
+        res = rigid_residual(v[_some_frames(T)][:, samples])
+        if res > float(rigid_tol) * size:
+            log.warning("one eigenvalue below lambda_thr=%g, yet the subject does not move rigidly (%.2f %% of its "
+                        "size): small parts with small motion, lambda_thr=%g used", thr, 100 * res / size,
+                        SMALL_MOTION_THR)
+            thr = SMALL_MOTION_THR
+            sample_labels, eig, k = spectral_clusters(A, lambda_thr=thr, max_clusters=max_clusters, seed=seed)
     if k == 1:
-        log.warning("nothing bends in this sequence (one eigenvalue below lambda_thr=%g): one segment", lambda_thr)
-        return Segmentation(np.zeros(V, dtype=np.int64), samples, sample_labels, eig, 1, dt, lam_units)
+        log.warning("nothing bends in this sequence (one eigenvalue below lambda_thr=%g): one segment", thr)
+        return Segmentation(np.zeros(V, dtype=np.int64), samples, sample_labels, eig, 1, dt, lam_units, thr)
     labels = propagate_labels(v[0], f, samples, sample_labels)
     edges = mesh_edges(f)
     labels = _connected_segments(labels, edges, V, max(1, int(round(min_segment * V))))
@@ -876,4 +894,4 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         labels = _connected_segments(labels, edges, V, 1)
     if labels.max() == 0:
         log.warning("nothing bends in this sequence (the segments move rigidly together): one segment")
-    return Segmentation(labels, samples, sample_labels, eig, k, dt, lam_units)
+    return Segmentation(labels, samples, sample_labels, eig, k, dt, lam_units, thr)
