@@ -223,7 +223,7 @@ def test_a_small_bend_that_one_cluster_hides_uses_the_small_motion_threshold(cap
     3 degrees (0.4 %, under the rigidity tolerance) it stays one segment."""
     import logging
 
-    V, F, right = _two_bars(12)
+    V, F, right = two_bars(12)
 
     def bent(deg):
         W = np.repeat(V[:1], 12, axis=0)
