@@ -171,3 +171,37 @@ def test_plates_from_an_empty_take(tmp_path, capsys):
     other = simulate_take("empty", n_cameras=4, frames=3, size=(80, 60), seed=5)
     with pytest.raises(ValueError, match="camera cam00 is"):
         store_plates(take, record_take(other, tmp_path / "small.h5"))
+
+
+def test_cli_layers_and_plate(tmp_path, capsys):
+    """`stage key --key-layer volume --key-layer graphcut --volume ...` and `stage process --plate`
+    run the layers the functions above test, and say so."""
+    import json
+
+    from fake_cameras.dome import make_dome
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take, stage_backdrop
+    from stage.cli import main
+    from stage.rig import Volume
+    from stage.store import TakeReader
+
+    vol = Volume()
+    calib = make_dome(4, size=(160, 120), volume=vol, seed=3, distortion=False)
+    sim = simulate_take("starfish", calibration=calib, frames=3, volume=vol, seed=3,
+                        backdrop=stage_backdrop("floor", calibration=calib, volume=vol))
+    take = record_take(sim, tmp_path / "t.h5")
+    lo, hi = vol.bounds
+    args = ["key", str(take), "--key-mode", "chroma", "--key-layer", "volume", "--key-layer", "graphcut",
+            "--volume", *map(str, (*lo, *hi)), "--no-progress"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "mode chroma + volume, graphcut" in out and "graph-cut refinement: 12 masks refined" in out
+    with TakeReader(take) as r:
+        assert r.mask_params("cam00")["refined"]["method"] == "graphcut"
+    empty = record_take(simulate_take("empty", calibration=calib, frames=4, volume=vol, seed=3,
+                                      backdrop=stage_backdrop("floor", calibration=calib, volume=vol)), tmp_path / "e.h5")
+    assert main(["process", str(take), "--out", str(tmp_path / "res"), "--plate", str(empty), "--until", "key",
+                 "--no-progress"]) == 0
+    assert "plates from" in capsys.readouterr().out
+    record = json.loads((tmp_path / "res" / "process.json").read_text())
+    assert record["params"]["key_mode"] == "plate" and record["key"]["mode"] == "plate"
