@@ -620,65 +620,52 @@ def _carve(carver, masks, p: ProcessParams):
     return carver.carve(masks, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
 
 
-def _subject_grid(masks_of: Callable, calibration, n_sets: int, p: ProcessParams, volume_bounds: np.ndarray):
-    """The subject's box: carve a few frame sets coarsely over the whole volume and take the
-    union of their hulls' boxes (padded, grown for motion). ``masks_of(k)`` gives the masks
-    of set ``k`` and the cameras skipped (:func:`_frame_masks`)."""
-    from scipy import ndimage
+class _SetMasks:
+    """The take's masks as a sequence of frame sets (:func:`pipeline.subject_box.find_subject_box`),
+    each read when asked for: ``masks_of(k)`` gives the masks of set ``k`` and the cameras skipped."""
 
-    from pipeline.hull import EmptyHullError, HullCarver
-    from pipeline.volume import grid_from_volume
+    def __init__(self, masks_of: Callable, n_sets: int) -> None:
+        self._masks_of, self._n = masks_of, int(n_sets)
 
-    volume_bounds = np.asarray(volume_bounds, float).reshape(-1)
-    coarse = grid_from_volume(volume_bounds.reshape(2, 3), 64)
-    carver = HullCarver(calibration, coarse)
-    sample = np.unique(np.linspace(0, n_sets - 1, min(n_sets, 8)).round().astype(int))
-    lo, hi = None, None
-    for k in sample:
-        masks, skipped = masks_of(int(k))
-        if len(skipped) == len(calibration):
-            continue
-        try:
-            occ = _carve(carver, masks, p).occupancy
-        except ValueError:
-            continue
-        # the subject is the largest connected piece; phantom blobs seen by few cameras are not
-        lab, n = ndimage.label(occ)
-        if n == 0:
-            continue
-        sizes = np.bincount(lab.ravel())[1:]
-        keep = 1 + np.flatnonzero(sizes >= 0.05 * sizes.max())
-        idx = np.argwhere(np.isin(lab, keep))
-        a = coarse.index_to_world(idx.min(0)[None])[0]
-        b = coarse.index_to_world(idx.max(0)[None])[0]
-        lo = a if lo is None else np.minimum(lo, a)
-        hi = b if hi is None else np.maximum(hi, b)
-    if lo is None:
-        raise EmptyHullError("no subject found in any sampled frame set (check the masks: `stage key --preview`)")
-    pad = 2.5 * coarse.voxel
-    lo = np.maximum(lo - pad, volume_bounds[:3])
-    hi = np.minimum(hi + pad, volume_bounds[3:])
-    # the subject may move beyond the sampled frames: grow the box by 25 % (inside the volume)
-    c, half = (lo + hi) / 2, (hi - lo) / 2 * 1.25
-    lo = np.maximum(c - half, volume_bounds[:3])
-    hi = np.minimum(c + half, volume_bounds[3:])
-    return np.stack([lo, hi])
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, k: int) -> list:
+        return self._masks_of(int(k))[0]
 
 
-def _rig_resolution(calibration, box: np.ndarray, p: ProcessParams) -> tuple[int, dict]:
+def _subject_grid(masks_of: Callable, calibration, n_sets: int, p: ProcessParams, volume_bounds: np.ndarray,
+                  progress: Callable[[int, int], None] | None = None):
+    """The subject's box over the whole take (:func:`pipeline.subject_box.find_subject_box`, every
+    frame set carved coarse to fine inside ``volume_bounds``). ``masks_of(k)`` gives the masks of
+    set ``k`` and the cameras skipped (:func:`_frame_masks`)."""
+    from pipeline.subject_box import find_subject_box
+
+    volume_bounds = np.asarray(volume_bounds, float).reshape(2, 3)
+    return find_subject_box(_SetMasks(masks_of, n_sets), calibration, volume_bounds, tolerance=p.tolerance,
+                            support_plane=p.support_plane, progress=progress)
+
+
+def _rig_resolution(calibration, box: np.ndarray, p: ProcessParams, centres: np.ndarray | None = None) -> tuple[int, dict]:
     """Voxels along the box's longest side, and why: ``--resolution`` when given, else from
-    the pixel footprint at the subject (:data:`PIXELS_PER_VOXEL`) within the budgets."""
+    the pixel footprint at the subject (:data:`PIXELS_PER_VOXEL`) within the budgets. The
+    footprint is the median over the frame sets of the median over the cameras that see the
+    subject's centre there (``centres`` (S, 3), NaN where none; default the box's centre)."""
     from pipeline.hull import _memory_limit, hull_memory_bytes
     from pipeline.volume import grid_from_volume, pixel_footprint
 
     longest = float((box[1] - box[0]).max())
     if p.resolution is not None:
         return p.resolution, {"source": "resolution option", "resolution": p.resolution}
-    fp = pixel_footprint(calibration, (box[0] + box[1]) / 2)[:, 0]
-    seen = fp[np.isfinite(fp)]
-    if seen.size == 0:
+    pts = None if centres is None else np.asarray(centres, float).reshape(-1, 3)
+    pts = (box[0] + box[1])[None] / 2 if pts is None or not np.isfinite(pts).all(axis=1).any() else pts[np.isfinite(pts).all(axis=1)]
+    fp = pixel_footprint(calibration, pts)  # (C, S)
+    seen = np.isfinite(fp)
+    at = seen.any(axis=0)
+    if not at.any():
         raise ProcessError("no camera sees the centre of the subject's box; check the calibration or pass --resolution")
-    footprint = float(np.median(seen))
+    footprint = float(np.median(np.nanmedian(fp[:, at], axis=0)))
+    n_seeing = int(np.median(seen[:, at].sum(axis=0)))
     wanted = int(np.ceil(longest / (PIXELS_PER_VOXEL * footprint)))
     res, limit = max(wanted, MIN_RESOLUTION), "pixel footprint"
     if res == MIN_RESOLUTION and wanted < MIN_RESOLUTION:
@@ -693,7 +680,7 @@ def _rig_resolution(calibration, box: np.ndarray, p: ProcessParams) -> tuple[int
         "source": "rig",
         "resolution": res,
         "pixel_footprint": footprint,
-        "cameras_seeing_subject": int(seen.size),
+        "cameras_seeing_subject": n_seeing,
         "pixels_per_voxel": PIXELS_PER_VOXEL,
         "limited_by": limit,
     }
@@ -943,17 +930,27 @@ def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
             fut.cancel()
 
 
-def _volume_bounds(ctx: RunContext) -> np.ndarray:
-    """Where to look for the subject: the job's volume, the rig's, else the cameras'."""
+def _volume_bounds(ctx: RunContext) -> tuple[np.ndarray, str]:
+    """Where to look for the subject: the job's volume, the rig's, else the cameras'; and which."""
     from pipeline.volume import volume_from_cameras
 
     if ctx.params.volume is not None:
-        return np.asarray(ctx.params.volume, float)
+        return np.asarray(ctx.params.volume, float), "the volume option"
     if ctx.rig.get("volume"):
         c = np.asarray(ctx.rig["volume"]["center"], float)
         s = np.asarray(ctx.rig["volume"]["size"], float)
-        return np.r_[c - s / 2, c + s / 2]
-    return np.asarray(volume_from_cameras(ctx.calibration), float).reshape(-1)
+        return np.r_[c - s / 2, c + s / 2], "the rig's capture volume"
+    return np.asarray(volume_from_cameras(ctx.calibration), float).reshape(-1), "the cameras' shared view"
+
+
+def _box_choice(sb, volume: np.ndarray, source: str) -> dict:
+    """The subject's box and why, for ``process.json`` and the report."""
+    st = sb.stats
+    why = (f"the pieces of the silhouettes' hull seen by at least {sb.min_views} cameras and explained by the "
+           f"silhouettes of at least 2, in {st['with_subject']} of {st['frame_sets']} frame sets, carved coarse to "
+           f"fine in {' / '.join(f'{v:.3g}' for v in sb.voxels)} cubes inside {source}, grown by {sb.margin:.3g}")
+    return {**sb.to_dict(), "search_volume": np.asarray(volume, float).reshape(2, 3).tolist(), "searched_in": source,
+            "why": why}
 
 
 def _processing_grid(ctx: RunContext):
@@ -981,11 +978,14 @@ def _processing_grid(ctx: RunContext):
         else:
             validity = _mask_validity(reader, ctx.cameras)
             masks_of = partial(_frame_masks, reader, ctx.cameras, validity=validity)
-        box = _subject_grid(masks_of, ctx.calibration, ctx.n_sets, ctx.params, _volume_bounds(ctx))
+        volume, source = _volume_bounds(ctx)
+        sb = _subject_grid(masks_of, ctx.calibration, ctx.n_sets, ctx.params, volume,
+                           progress=lambda d, t: ctx.report_progress("box", d, t))
     p = ctx.params
-    res, why = _rig_resolution(ctx.calibration, box, p)
-    grid = grid_from_volume(box, res)
-    ctx.grid_choice = {**why, "voxel": grid.voxel, "shape": list(grid.shape)}
+    res, why = _rig_resolution(ctx.calibration, sb.bounds, p, sb.centres)
+    grid = grid_from_volume(sb.bounds, res)
+    ctx.grid_choice = {**why, "voxel": grid.voxel, "shape": list(grid.shape), "box": _box_choice(sb, volume, source)}
+    log.info("subject box %s: %s", " x ".join(f"{x:.4g}" for x in sb.bounds[1] - sb.bounds[0]), ctx.grid_choice["box"]["why"])
     log.info("processing grid %s (%s)", grid, why["limited_by"] if "limited_by" in why else why["source"])
     if p.support_plane is None and p.volume is None and not ctx.rig.get("volume"):
         hint = _blind_side_hint(ctx.calibration, grid)

@@ -134,7 +134,9 @@ def test_rgbd_take_fuses_depth(tmp_path):
         write_masks(path, name, sim.masks[:, c], params={"source": "ground truth"})
     # exact masks and calibration: no silhouette margin (the default 1 px guards real rigs'
     # sub-pixel errors; with it the hull-bound pockets grow and the 99th percentile is 2.15)
-    exact = {"resolution": 64, "silhouette_margin": 0}
+    # 56 voxels along the subject's box: about 8.4 mm, the scale the tolerance below is stated at
+    # (the pockets no camera sees stay hull-bound, about 15 mm whatever the voxel)
+    exact = {"resolution": 56, "silhouette_margin": 0}
     process_take(path, out, steps=("key", "surface"), params=exact)
     rep = json.loads((out / "report.json").read_text())
     assert [f["source"] for f in rep["per_frame"]] == ["depth+hull"] * 2
@@ -145,7 +147,7 @@ def test_rgbd_take_fuses_depth(tmp_path):
         mesh = ResultsStore(results).read_mesh(0)
         return np.abs(sim.poses[0].sdf(np.asarray(mesh.vertices))) / grid["voxel"]
 
-    # measured: 99th percentile 1.7 voxels (hull alone: 2.0); pockets no camera sees stay hull-bound
+    # measured: 99th percentile 1.8 voxels (hull alone: 2.0); pockets no camera sees stay hull-bound
     d = errors(out)
     assert np.percentile(d, 99) <= 2.0
     # "off" gives the hull's surface, which depth improves on
