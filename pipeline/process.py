@@ -25,6 +25,7 @@ Output directory layout::
     OUT/frames/frame_000000.json  per-frame surface quality (or why it is empty)
     OUT/skeletons/frame_000000.npz   per-frame tips and skeletons (numpy arrays, for resuming)
     OUT/spine.json                the take's spine (capture-stage/spine@1)
+    OUT/consistency.json          per camera and frame set, the IoU of its mask and the projected surface
     OUT/report.json               summary: steps, timings, per-frame quality, tip counts, how K was chosen
 """
 
@@ -549,6 +550,7 @@ def surface_task(
                     images = _frame_images(reader, cameras, k) if p.photo_refine and not use_depth else None
                     mesh, info["source"] = _surface_of(carver, ms, p, depth, images)
                     quality = surface_quality(mesh).to_dict()
+                    info["consistency"] = _consistency(mesh, ms, carver.calibration, p.silhouette_margin)
                     writer.write(store.mesh_path(k), ply_bytes(mesh.vertices, mesh.faces))
                     info.update(status="ok", quality=quality)
                 except (EmptyHullError, EmptySurfaceError) as exc:
@@ -568,6 +570,15 @@ def surface_task(
     finally:
         writer.close()
     return results
+
+
+def _consistency(mesh, masks: list, calibration, margin: int) -> dict[str, float | None]:
+    """Per camera, the IoU of its mask (grown by the carving's margin) and the projection of the
+    frame's surface (None: no mask)."""
+    from pipeline.consistency import silhouette_consistency
+
+    iou = silhouette_consistency(mesh.vertices, mesh.faces, masks, calibration, margin=margin)
+    return {cam.name: (round(float(x), 4) if np.isfinite(x) else None) for cam, x in zip(calibration, iou)}
 
 
 def _all_depth(reader, cameras: Sequence[str]) -> bool:
@@ -719,6 +730,7 @@ class RunContext:
     set_table: np.ndarray | None = None  # (S, C) frame row of every camera in every set
     limb_count: dict = field(default_factory=dict)  # the spine's K and the rule that chose it
     key_choice: dict = field(default_factory=dict)  # the keying mode and layers of this run, and why
+    consistency: dict = field(default_factory=dict)  # per camera median silhouette IoU, and those below the threshold
     step: str = ""  # the step running
     cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds (this process and the workers)
     worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks on the executor
@@ -1014,7 +1026,36 @@ def _step_surface(ctx: RunContext) -> None:
         use_depth=_uses_depth(ctx.params, all_depth=ctx.all_depth),
     )
     ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx))
+    _write_consistency(ctx)
     ctx.timings["surface"] = time.perf_counter() - t0
+
+
+def _write_consistency(ctx: RunContext) -> None:
+    """``OUT/consistency.json`` from the frames' records: per camera and frame set the IoU of the
+    camera's mask and the projection of the surface (:mod:`pipeline.consistency`), each camera's
+    median; a camera whose median is below :data:`pipeline.consistency.CONSISTENCY_WARN` is named
+    in a warning."""
+    from pipeline.consistency import CONSISTENCY_WARN
+
+    iou = np.full((len(ctx.cameras), ctx.n_sets), np.nan)
+    for k in range(ctx.n_sets):
+        f = ctx.out / "frames" / f"{_frame_name(k)}.json"
+        per_cam = json.loads(f.read_text()).get("consistency") if f.exists() else None
+        for i, cam in enumerate(ctx.cameras):
+            v = (per_cam or {}).get(cam)
+            iou[i, k] = np.nan if v is None else v
+    seen = np.isfinite(iou).any(axis=1)
+    median = {cam: (float(np.nanmedian(iou[i])) if seen[i] else None) for i, cam in enumerate(ctx.cameras)}
+    low = [cam for cam, m in median.items() if m is not None and m < CONSISTENCY_WARN]
+    doc = {"cameras": ctx.cameras, "threshold": CONSISTENCY_WARN, "median": median, "low": low,
+           "iou": [[None if not np.isfinite(x) else float(x) for x in row] for row in iou]}
+    atomic_write(ctx.out / "consistency.json", json.dumps(doc))
+    ctx.consistency = {"median": median, "low": low, "threshold": CONSISTENCY_WARN}
+    for cam in low:
+        msg = (f"camera {cam}: median silhouette consistency {median[cam]:.2f} (IoU of its masks and the projected "
+               f"hull) is below {CONSISTENCY_WARN}: check its keying and calibration (report: worst frames)")
+        log.warning("%s", msg)
+        ctx.warnings.append(msg)
 
 
 def _step_spine(ctx: RunContext) -> None:
@@ -1207,7 +1248,7 @@ def _start_over(ctx: RunContext) -> None:
 
 
 #: Files of a results directory made from its frames and spine, removed when it starts over.
-_MADE_FROM_FRAMES = ("report.json", "report.html", "spine_rig.glb", "spine.glb")
+_MADE_FROM_FRAMES = ("report.json", "report.html", "spine_rig.glb", "spine.glb", "consistency.json")
 
 
 def _add_to_record(ctx: RunContext, **items) -> None:
@@ -1223,6 +1264,9 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         if f.exists():
             frame_infos[k] = json.loads(f.read_text())
     empty = sorted(k for k, i in frame_infos.items() if i.get("status") != "ok")
+    if not ctx.consistency and (ctx.out / "consistency.json").is_file():  # made by an earlier run's surface step
+        doc = json.loads((ctx.out / "consistency.json").read_text())
+        ctx.consistency = {k: doc.get(k) for k in ("median", "low", "threshold")}
     report = {
         "take": str(ctx.take.resolve()),
         "frames": ctx.n_sets,
@@ -1237,6 +1281,7 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "warnings": ctx.warnings,
         "grid": ctx.grid_choice,
         "limb_count": ctx.limb_count,
+        "consistency": ctx.consistency,
     }
     atomic_write(ctx.out / "report.json", json.dumps(report, indent=1, default=json_default))
     return ProcessResult(

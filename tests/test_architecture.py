@@ -36,7 +36,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline", "pipeline.volume", "pipeline.geodesic", "pipeline.meshio", "pipeline.mesh_primitives",
     )),
     2: ("steps", (
-        "pipeline.hull", "pipeline.subject_box",
+        "pipeline.hull", "pipeline.subject_box", "pipeline.consistency",
         "pipeline.surface", "pipeline.photo_refine", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
         "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
         "pipeline.rig_model", "pipeline.gltf_export", "pipeline.results",

@@ -11,6 +11,8 @@ itself, and returns a full HTML page:
   spine, its tips and junctions (slider and play button);
 * the tip count over time (Brostow et al. 2004, Fig. 7);
 * per-frame surface quality (plot and table);
+* silhouette consistency: per camera over the take, the IoU of its mask and the
+  projected surface (``consistency.json``), the worst frames' masks beside the projection;
 * the cameras: frusta, intrinsics, calibration errors (from the
   calibration's ``meta``) and how well they cover the subject;
 * contact sheets of frames and masks.
@@ -34,6 +36,7 @@ import numpy as np
 
 from pipeline.report.figures import (
     camera_coverage,
+    consistency_figure,
     contact_sheet,
     decimate_mesh,
     figure_html,
@@ -243,6 +246,7 @@ def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: 
         _tips_section(spine, report),
         _rig_section(d, max_frames=int(max_frames), warnings=warnings),
         _quality_section(report, warnings),
+        _consistency_section(d, take, calibration, warnings),
         _cameras_section(calibration, spine, warnings) if calibration is not None else None,
         _sheets_section(sheets) if sheets is not None else None,
     ]
@@ -308,6 +312,8 @@ def _summary_section(d: Path, spine, report, take, warnings: list[str]) -> dict:
             rows.append(["empty frames", ", ".join(str(x) for x in report["empty_frames"][:50])])
             warnings.append(f"{len(report['empty_frames'])} frame(s) have no surface")
         warnings.extend(str(w) for w in report.get("warnings") or [])  # e.g. the blind side under the subject
+        if (report.get("grid") or {}).get("box"):
+            rows.append(["subject box", _box_choice(report["grid"]["box"])])
         if (report.get("grid") or {}).get("voxel"):
             rows.append(["voxel", _grid_choice(report["grid"])])
         for k, v in (report.get("seconds") or {}).items():
@@ -320,6 +326,12 @@ def _summary_section(d: Path, spine, report, take, warnings: list[str]) -> dict:
     if take is not None:
         rows.append(["take", str(take)])
     return {"id": "summary", "title": "Summary", "rows": rows}
+
+
+def _box_choice(b: dict) -> str:
+    """The subject's box and why (``report.json`` ``grid.box``)."""
+    size = " x ".join(f"{x:.4g}" for x in b.get("size", []))
+    return f"{size}: {b.get('why', '')}"
 
 
 def _grid_choice(g: dict) -> str:
@@ -411,6 +423,75 @@ def _quality_section(report, warnings: list[str]) -> dict | None:
         warnings.append(f"{not_tight} surface(s) are not watertight")
     return {"id": "quality", "title": "Surface quality per frame", "figure": figure_html(fig, div_id="mesh-quality"),
             "columns": cols, "rows": [[r.get(c) for c in cols] for r in rows]}
+
+
+#: Worst (camera, frame set) pairs of the silhouette consistency shown as images.
+_WORST_SHOWN = 4
+
+
+def _worst_pairs(iou: list, cameras: list, n: int) -> list[tuple[str, int, float]]:
+    """The ``n`` lowest IoUs as (camera, frame set, IoU), at most one per camera first."""
+    cells = sorted((v, c, k) for c, row in enumerate(iou) for k, v in enumerate(row) if v is not None)
+    picked, cams = [], set()
+    for v, c, k in cells:  # the worst frame of each camera, worst cameras first
+        if c not in cams:
+            picked.append((cameras[c], k, v))
+            cams.add(c)
+    return picked[:n]
+
+
+def _reprojection_sheet(d: Path, take, calibration, pairs: list) -> np.ndarray | None:
+    """Rows of (mask, projected surface, overlay) for the given (camera, frame set, IoU)."""
+    from pipeline.consistency import mesh_silhouette
+    from pipeline.gltf_export import find_frame_mesh
+    from pipeline.meshio import load_mesh
+    from stage.store import TakeReader
+
+    images, labels = [], []
+    with TakeReader(take) as reader:
+        for cam, k, v in pairs:
+            row = reader.set_rows(k).get(cam, -1)
+            path = find_frame_mesh(d, k)
+            if row < 0 or path is None or cam not in calibration.names or cam not in reader.masks_present():
+                continue
+            mask = reader.mask(cam, row)
+            mv, mf = load_mesh(path, largest=False)
+            proj = mesh_silhouette(mv, mf, calibration[cam])
+            overlay = np.zeros(mask.shape + (3,), np.uint8)
+            overlay[mask & proj] = (255, 255, 255)
+            overlay[mask & ~proj] = (60, 60, 255)  # BGR: red, the mask alone
+            overlay[proj & ~mask] = (255, 160, 40)  # blue, the surface alone
+            images += [mask, proj, overlay]
+            labels += [f"{cam} #{k} mask", "projected surface", f"IoU {v:.2f}"]
+    if not images:
+        return None
+    return contact_sheet(images, columns=3, labels=labels, thumb_width=240)
+
+
+def _consistency_section(d: Path, take, calibration, warnings: list[str]) -> dict | None:
+    """``consistency.json``: IoU per camera over the take, medians, the worst frames as images."""
+    if not (d / "consistency.json").is_file():
+        return None
+    doc = _load_json(d / "consistency.json")
+    try:
+        cameras, iou, median = list(doc["cameras"]), doc["iou"], doc["median"]
+        fig = consistency_figure(iou, cameras, threshold=doc.get("threshold"))
+    except (KeyError, TypeError, ValueError) as exc:
+        warnings.append(f"consistency.json could not be shown: {exc}")
+        return None
+    rows = [[c, median.get(c), "below" if c in (doc.get("low") or []) else ""] for c in cameras]
+    sheet_uri = None
+    pairs = _worst_pairs(iou, cameras, _WORST_SHOWN)
+    if take is not None and calibration is not None and pairs:
+        try:
+            sheet = _reprojection_sheet(d, take, calibration, pairs)
+        except (OSError, ValueError, KeyError) as exc:
+            warnings.append(f"the worst frames' reprojections could not be drawn: {exc}")
+            sheet = None
+        sheet_uri = png_data_uri(sheet) if sheet is not None else None
+    return {"id": "consistency", "title": "Silhouette consistency", "figure": figure_html(fig, div_id="consistency"),
+            "rows": rows, "threshold": doc.get("threshold"), "worst_uri": sheet_uri,
+            "worst": [f"{c} #{k}" for c, k, _ in pairs]}
 
 
 def _cameras_section(calibration, spine, warnings: list[str]) -> dict:

@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 __all__ = [
+    "consistency_figure",
     "plotly_js",
     "figure_html",
     "tip_count_figure",
@@ -101,6 +102,33 @@ def tip_count_figure(tip_counts, *, K: int | None = None, frame_indices=None, fp
                                      marker=dict(color="#d62728", size=8, symbol="x")))
     fig.update_layout(title="Tips per frame (Brostow et al. 2004, Fig. 7)", xaxis_title="frame",
                       yaxis_title="number of tips", yaxis=dict(dtick=1, rangemode="tozero"), height=320,
+                      margin=dict(l=50, r=20, t=50, b=40))
+    return fig
+
+
+def consistency_figure(iou, cameras, *, threshold: float | None = None):
+    """Silhouette consistency per camera over the take (``consistency.json``).
+
+    Parameters
+    ----------
+    iou : (C, S) sequence of float or None
+        Per camera and frame set, the IoU of its mask and the projected surface (None: none).
+    cameras : (C,) sequence of str
+    threshold : float, optional
+        The level below which a camera's median is warned about (a dashed line).
+    """
+    go = _go()
+    rows = [[None if v is None else float(v) for v in r] for r in iou]
+    if len(rows) != len(cameras):
+        raise ValueError("iou must have one row per camera")
+    fig = go.Figure()
+    for cam, r in zip(cameras, rows):
+        fig.add_trace(go.Scatter(x=list(range(len(r))), y=r, mode="lines+markers", name=str(cam), marker=dict(size=4)))
+    if threshold is not None:
+        fig.add_hline(y=float(threshold), line_dash="dash", line_color="#d62728",
+                      annotation_text=f"{float(threshold):g}", annotation_position="bottom left")
+    fig.update_layout(title="Silhouette consistency: IoU of each camera's mask and the projected surface",
+                      xaxis_title="frame set", yaxis_title="IoU", yaxis=dict(range=[0, 1.02]), height=340,
                       margin=dict(l=50, r=20, t=50, b=40))
     return fig
 

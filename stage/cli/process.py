@@ -145,5 +145,13 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
     if result.spine_path is not None:
         spine = json.loads(Path(result.spine_path).read_text())
         print(f"  spine: {len(spine['graph']['limbs'])} limbs -> {result.spine_path}")
+    box = (rep.get("grid") or {}).get("box")
+    if box:
+        print(f"  subject box: {' x '.join(f'{x:.4g}' for x in box['size'])} (voxel {rep['grid']['voxel']:.3g}; "
+              f"process.json says why)")
+    cons = rep.get("consistency") or {}
+    if cons.get("median"):
+        print("  silhouette consistency (median IoU of mask and projected surface): "
+              + ", ".join(f"{c} {m:.2f}" for c, m in cons["median"].items() if m is not None))
     print(f"  meshes: {out / 'meshes'}/  report: {out / 'report.json'}")
     return 0

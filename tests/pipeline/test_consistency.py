@@ -1,0 +1,121 @@
+"""Silhouette consistency (pipeline.consistency): the projection of a surface against the exact
+silhouette, and ``stage process`` naming the one camera whose masks are corrupted."""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+
+import numpy as np
+import pytest
+import trimesh
+
+from fake_cameras.record import record_take
+from fake_cameras.take import simulate_take
+from pipeline.consistency import mesh_silhouette, silhouette_consistency, silhouette_iou
+from tests.pipeline.simrig import dome, look_at
+
+
+def _sphere_hits(cam, centre, radius) -> np.ndarray:
+    """Exact silhouette of a sphere: pixel-centre rays that meet it (lens distortion included)."""
+    w, h = cam.size
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    o, d = cam.rays(np.stack([u.ravel(), v.ravel()], axis=1).astype(float))
+    oc = o - np.asarray(centre, float)
+    b = d @ oc
+    disc = b * b - (d * d).sum(axis=1) * (oc @ oc - radius**2)
+    return ((disc >= 0) & (b < 0)).reshape(h, w)
+
+
+@pytest.mark.parametrize("distortion", [(0, 0, 0, 0, 0), (-0.08, 0.02, 0.0005, -0.0003, 0.0)])
+def test_projection_of_a_sphere_is_its_silhouette(distortion):
+    """An icosphere (5120 faces, radius 300 mm, 2 m away, about 90 px across) projected by
+    :func:`mesh_silhouette` against the exact silhouette of the sphere: IoU at least 0.97 (the
+    icosphere's flat faces lie inside the sphere), and the same with the faces turned the other
+    way (a closed surface's back faces cover its projection too)."""
+    cam = look_at("c", (0, -2000, 300), (0, 0, 300), size=(320, 240), dist=distortion)
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=300.0)
+    v = mesh.vertices + [0.0, 0.0, 300.0]
+    exact = _sphere_hits(cam, (0, 0, 300), 300.0)
+    sil = mesh_silhouette(v, mesh.faces, cam)
+    assert silhouette_iou(exact, sil) >= 0.97
+    assert silhouette_iou(exact, mesh_silhouette(v, mesh.faces[:, ::-1], cam)) >= 0.97
+    assert sil.sum() <= exact.sum() and not (sil & ~exact).any()  # inscribed: never more than the sphere
+
+
+def test_iou_is_the_formula():
+    rng = np.random.default_rng(0)
+    a, b = rng.random((40, 50)) < 0.3, rng.random((40, 50)) < 0.4
+    assert silhouette_iou(a, b) == pytest.approx((a & b).sum() / (a | b).sum())
+    assert np.isnan(silhouette_iou(np.zeros((3, 3), bool), np.zeros((3, 3), bool)))
+    cal = dome(4, size=(160, 120))
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=200.0)
+    v = mesh.vertices + [0.0, 0.0, 300.0]
+    masks = [mesh_silhouette(v, mesh.faces, c) for c in cal]
+    masks[1] = None
+    iou = silhouette_consistency(v, mesh.faces, masks, cal)
+    assert np.isnan(iou[1]) and np.allclose(iou[[0, 2, 3]], 1.0)
+
+
+def test_invalid_input():
+    cal = dome(2, size=(160, 120))
+    mesh = trimesh.creation.icosphere(subdivisions=1, radius=200.0)
+    with pytest.raises(ValueError, match="camera"):
+        mesh_silhouette(mesh.vertices, mesh.faces, "cam")
+    with pytest.raises(ValueError, match="vertices"):
+        mesh_silhouette(mesh.vertices[:, :2], mesh.faces, cal[0])
+    with pytest.raises(ValueError, match="faces"):
+        mesh_silhouette(mesh.vertices, mesh.faces + 1000, cal[0])
+    with pytest.raises(ValueError, match="faces"):
+        mesh_silhouette(mesh.vertices, mesh.faces.astype(float), cal[0])
+    with pytest.raises(ValueError, match="shape"):
+        silhouette_iou(np.zeros((3, 3)), np.zeros((3, 4)))
+    with pytest.raises(ValueError, match="calibration"):
+        silhouette_consistency(mesh.vertices, mesh.faces, [None, None], "cal")
+    with pytest.raises(ValueError, match="one mask per camera"):
+        silhouette_consistency(mesh.vertices, mesh.faces, [None], cal)
+    with pytest.raises(ValueError, match="margin"):
+        silhouette_consistency(mesh.vertices, mesh.faces, [None, None], cal, margin=-1)
+    with pytest.raises(ValueError, match="cam01"):
+        silhouette_consistency(mesh.vertices, mesh.faces, [None, np.zeros((5, 5), bool)], cal)
+
+
+def test_process_names_the_camera_with_corrupted_masks(tmp_path, caplog, capsys):
+    """Eight cameras, true silhouettes, except that camera 2's keyer kept a wall: a block of
+    foreground over the left third of its image in every frame. The hull (carved by all eight)
+    does not explain that block, so camera 2's median IoU drops below 0.8 and ``stage process``
+    names it -- and only it; ``consistency.json`` holds every camera's IoU per frame set,
+    ``report.json`` the medians, and the report plots them and shows camera 2's worst frame
+    first, its mask beside the projected surface."""
+    from pipeline.report import render_report
+    from stage.cli import main
+    from stage.store import write_masks
+
+    sim = simulate_take("starfish", n_cameras=8, frames=3, size=(320, 240), seed=2)
+    path = record_take(sim, tmp_path / "take.h5")
+    names = list(sim.calibration.names)
+    for c, name in enumerate(names):
+        m = sim.masks[:, c].copy()
+        if c == 2:
+            m[:, 40:200, :100] = True
+        write_masks(path, name, m, params={"source": "ground truth"})
+    out = tmp_path / "out"
+    with caplog.at_level(logging.WARNING, logger="pipeline.process"):
+        assert main(["process", str(path), "--out", str(out), "--until", "surface", "--workers", "0",
+                     "--no-progress"]) == 0
+    doc = json.loads((out / "consistency.json").read_text())
+    assert doc["cameras"] == names and len(doc["iou"]) == 8 and all(len(r) == 3 for r in doc["iou"])
+    assert doc["low"] == [names[2]]
+    assert doc["median"][names[2]] < 0.8
+    assert min(m for n, m in doc["median"].items() if n != names[2]) >= 0.85  # measured 0.92-0.95
+    said = [r.getMessage() for r in caplog.records if "silhouette consistency" in r.getMessage()]
+    assert len(said) == 1 and names[2] in said[0]
+    printed = capsys.readouterr().out
+    assert "silhouette consistency" in printed and "subject box" in printed
+    report = json.loads((out / "report.json").read_text())
+    assert report["consistency"]["low"] == [names[2]]
+    assert any(names[2] in w for w in report["warnings"])
+    page = render_report(out, take=path)
+    assert 'id="consistency"' in page and "Worst frames" in page and f"{names[2]} #" in page
+    assert re.search(rf'class="muted">{names[2]} #\d', page)  # the worst camera first
