@@ -6,7 +6,8 @@ sets, raw frames) is recorded once; then, in the same run:
 1. the disk-read floor: every frame of the take read (and decoded) once;
 2. each step's own benchmark on the same data in this process (one core, no files):
    keying (``key_frames`` on the frames in memory, 1 and 2 threads, as ``stage bench key``),
-   hull + surface on the grid the process chose (as ``stage bench reconstruct``),
+   hull + surface on the grid the process chose (as ``stage bench reconstruct``), the silhouette
+   consistency of each surface,
    per-frame skeletons on those surfaces (as ``stage bench spines``) and the reduce step
    (correspondence and one graph, ``build_spine``);
 3. ``process_take`` with the default settings on a fresh copy of the take (no masks) with
@@ -16,7 +17,8 @@ The table gives seconds per step inside ``stage process`` beside the step's own 
 the same parallelism, measured right before the run (the step's own code on its data in
 memory, split over as many processes started together as the run has workers), their ratio
 (the overhead), the one-time costs (worker start-up: forkserver processes importing the
-pipeline; the grid choice: a coarse carve of 8 sets) and sets/s end to end (start-up
+pipeline; the grid choice: the subject's box, every set carved coarse to fine, printed with its
+seconds a set) and sets/s end to end (start-up
 included). ``--profile`` adds a
 cProfile of the in-process run (the heaviest functions by own time).
 
@@ -92,11 +94,12 @@ def _own_key(images: np.ndarray, plates: np.ndarray, rig: dict) -> dict[int, tup
 
 def _own_reconstruct(take: Path, out: Path) -> dict:
     """Per set: hull + surface on the process's grid and masks, then skeletons; and the reduce step."""
+    from pipeline.consistency import silhouette_consistency
     from pipeline.spine import SpineParams, frame_skeleton
     from pipeline.surface import surface_from_occupancy
 
     p, grid, carver, masks = _surface_inputs(take, out, None)
-    t_carve = t_surf = t_skel = 0.0
+    t_carve = t_surf = t_cons = t_skel = 0.0
     skeletons = []
     cpu = time.process_time()
     for m in masks:
@@ -107,10 +110,13 @@ def _own_reconstruct(take: Path, out: Path) -> dict:
         mesh = surface_from_occupancy(hull.occupancy, grid, taubin_iterations=p.smooth_iterations, face_budget=p.face_budget)
         t_surf += time.perf_counter() - t
         t = time.perf_counter()
+        silhouette_consistency(mesh.vertices, mesh.faces, m, carver.calibration, margin=p.silhouette_margin)
+        t_cons += time.perf_counter() - t
+        t = time.perf_counter()
         skeletons.append(frame_skeleton(mesh.vertices, mesh.faces, params=SpineParams(**p.spine)))
         t_skel += time.perf_counter() - t
     n = len(masks)
-    return {"carve": t_carve / n, "surface": t_surf / n, "skeleton": t_skel / n, "grid": grid,
+    return {"carve": t_carve / n, "surface": t_surf / n, "consistency": t_cons / n, "skeleton": t_skel / n, "grid": grid,
             "cpu": time.process_time() - cpu,
             "reduce": lambda: _own_reduce(skeletons, SpineParams(**p.spine))}
 
@@ -188,6 +194,7 @@ def _surface_inputs(take, out: Path, sets: list[int] | None):
 
 
 def _load_surface_part(take: str, out: Path, sets: list[int]):
+    from pipeline.consistency import silhouette_consistency
     from pipeline.spine import SpineParams, frame_skeleton
     from pipeline.surface import surface_from_occupancy
 
@@ -199,6 +206,7 @@ def _load_surface_part(take: str, out: Path, sets: list[int]):
             hull = carver.carve(m, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
             mesh = surface_from_occupancy(hull.occupancy, grid, taubin_iterations=p.smooth_iterations,
                                           face_budget=p.face_budget)
+            silhouette_consistency(mesh.vertices, mesh.faces, m, carver.calibration, margin=p.silhouette_margin)
             frame_skeleton(mesh.vertices, mesh.faces, params=sp)
 
     return run
@@ -330,10 +338,16 @@ def _measure(src: Path, work: Path, args, sim, rig: dict, prof) -> list[tuple]:
     g = rep0.get("grid", {})
     print(f"grid: {own['grid']} ({g.get('source', '?')}; voxel {g.get('voxel', float('nan')):.2f}, "
           f"pixel at the subject {g.get('pixel_footprint', float('nan')):.2f})")
-    per_set = own["carve"] + own["surface"] + own["skeleton"]
+    box = g.get("box") or {}
+    if box:
+        sec = rep0["seconds"].get("grid", float("nan"))
+        print(f"subject box: {' x '.join(f'{x:.4g}' for x in box['size'])} from {box['frame_sets']} sets in {sec:.2f} s "
+              f"({1e3 * sec / max(1, box['frame_sets']):.1f} ms a set; cubes {', '.join(f'{v:.3g}' for v in box['level_voxels'])})")
+    per_set = own["carve"] + own["surface"] + own["consistency"] + own["skeleton"]
     print(f"own benchmarks (this process, files aside): keying {own_key[1][0]:.0f} images/s (1 thread), "
           f"{own_key[2][0]:.0f} (2 threads); hull {1e3 * own['carve']:.1f} ms + surface {1e3 * own['surface']:.1f} ms "
-          f"+ skeletons {1e3 * own['skeleton']:.1f} ms per set = {1 / per_set:.1f} sets/s")
+          f"+ consistency {1e3 * own['consistency']:.1f} ms + skeletons {1e3 * own['skeleton']:.1f} ms per set "
+          f"= {1 / per_set:.1f} sets/s")
     # each run's own figures are measured at its parallelism right before it (processes
     # started together, data in memory): a fair ratio on a machine whose load moves
     own0 = {"key": (n_img / own_key[2][0], own_key[2][1]), "surface": (n_sets * per_set, own["cpu"]), "spine": own["reduce"]()}

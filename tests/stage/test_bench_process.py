@@ -8,6 +8,7 @@ def test_bench_process_prints_every_step(capsys):
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "disk-read floor" in out and "own benchmarks" in out
+    assert "subject box:" in out and "ms a set" in out and "consistency" in out
     for label in ("in process", "1 worker"):
         for step in ("key", "surface + skeletons", "spine (reduce)", "END TO END"):
             assert any(line.startswith(label) and step in line for line in out.splitlines()), (label, step)
