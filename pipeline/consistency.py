@@ -38,17 +38,18 @@ _CHUNK = 1 << 21  # candidate pixels tested at once
 
 
 def _fill(out: np.ndarray, tri: np.ndarray) -> None:
-    """Set the pixels of ``out`` whose centre lies in a triangle (edges included), for (F, 3, 2)
-    clockwise (negative area) triangles in pixel coordinates: each triangle's bounding box of
-    pixel centres is tested against its three edges, triangles grouped by box size."""
+    """Set the pixels of ``out`` whose centre lies in a triangle (edges included), for (3, F, 2)
+    clockwise (negative area) triangles in pixel coordinates (vertex first: reductions over the
+    three vertices run along whole rows): each triangle's bounding box of pixel centres is tested
+    against its three edges, triangles grouped by box size."""
     import cv2
 
     h, w = out.shape
-    lo = np.maximum(np.ceil(tri.min(axis=1)), 0).astype(np.int64)
-    hi = np.minimum(np.floor(tri.max(axis=1)), [w - 1, h - 1]).astype(np.int64)
+    lo = np.maximum(np.ceil(np.minimum(np.minimum(tri[0], tri[1]), tri[2])), 0).astype(np.int64)
+    hi = np.minimum(np.floor(np.maximum(np.maximum(tri[0], tri[1]), tri[2])), [w - 1, h - 1]).astype(np.int64)
     n = hi - lo + 1
-    ok = (n > 0).all(axis=1)
-    size = n.max(axis=1)
+    ok = (n[:, 0] > 0) & (n[:, 1] > 0)
+    size = np.maximum(n[:, 0], n[:, 1])
     s_lo = 0
     for s_hi in (1, 2, 4, 8, 16, 32, _LARGEST):
         sel = np.flatnonzero(ok & (size > s_lo) & (size <= s_hi))
@@ -57,16 +58,17 @@ def _fill(out: np.ndarray, tri: np.ndarray) -> None:
         for part in np.array_split(sel, max(1, len(sel) * s_hi * s_hi // _CHUNK)):
             if part.size == 0:
                 continue
-            t, corner, m = tri[part], lo[part], n[part]
+            t, corner, m = tri[:, part], lo[part], n[part]
             px = corner[:, :1] + ox
             py = corner[:, 1:] + oy
             inside = (ox < m[:, :1]) & (oy < m[:, 1:])
             for i, j in ((0, 1), (1, 2), (2, 0)):
-                ax, ay = t[:, i, :1], t[:, i, 1:]
-                bx, by = t[:, j, :1], t[:, j, 1:]
+                ax, ay = t[i, :, :1], t[i, :, 1:]
+                bx, by = t[j, :, :1], t[j, :, 1:]
                 inside &= (bx - ax) * (py - ay) - (by - ay) * (px - ax) <= 0
             out[py[inside], px[inside]] = 1
-    for p in np.round(tri[ok & (size > _LARGEST)] * (1 << _SHIFT)).astype(np.int32):
+    big = np.flatnonzero(ok & (size > _LARGEST))
+    for p in np.round(tri[:, big].transpose(1, 0, 2) * (1 << _SHIFT)).astype(np.int32):
         cv2.fillConvexPoly(out, p, 1, cv2.LINE_8, _SHIFT)
 
 
@@ -106,16 +108,19 @@ def mesh_silhouette(vertices: Any, faces: Any, camera: Camera) -> np.ndarray:
     if len(f) == 0:
         return out.view(bool)
     pix, z = camera.project(v, return_depth=True)
-    tri = pix[f]  # (F, 3, 2)
-    front = (z[f] > 0).all(axis=1)
+    ft = np.ascontiguousarray(f.T)
+    tri = pix[ft]  # (3, F, 2), vertex first
+    zt = z[ft]
+    front = (zt[0] > 0) & (zt[1] > 0) & (zt[2] > 0)
     # an outward face seen from outside turns counter-clockwise; the image's y axis points down,
     # so a face turned towards the camera has a negative signed area in pixel coordinates
-    a = ((tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
-         - (tri[:, 1, 1] - tri[:, 0, 1]) * (tri[:, 2, 0] - tri[:, 0, 0]))
-    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    d1, d2 = tri[1] - tri[0], tri[2] - tri[0]
+    a = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    lo = np.minimum(np.minimum(tri[0], tri[1]), tri[2])
+    hi = np.maximum(np.maximum(tri[0], tri[1]), tri[2])
     inside = (hi[:, 0] >= -0.5) & (lo[:, 0] <= w - 0.5) & (hi[:, 1] >= -0.5) & (lo[:, 1] <= h - 0.5)
-    facing = front & inside & np.isfinite(tri).all(axis=(1, 2)) & (a < 0)
-    _fill(out, tri[facing])
+    facing = front & inside & np.isfinite(a) & (a < 0)  # a NaN vertex makes the area NaN
+    _fill(out, tri[:, facing])
     return out.view(bool)
 
 

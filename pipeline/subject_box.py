@@ -116,18 +116,19 @@ class SubjectBox:
 def _cube_rects(cam, lo: np.ndarray, voxel: float, ijk: np.ndarray) -> tuple[np.ndarray, ...]:
     """Per cube: seen whole, seen in part, and the pixel rectangle (c0, r0, c1, r1, inclusive,
     clipped, one pixel wider on every side) its eight corners project to."""
-    corners = lo + (ijk[:, None, :] + _OFFSETS[None]) * voxel
+    # corner first (8, M): the reductions over the eight corners run along whole rows
+    corners = lo + (ijk[None, :, :] + _OFFSETS[:, None, :]) * voxel
     pix, z = cam.project(corners.reshape(-1, 3), return_depth=True)
     m = len(ijk)
-    front = (z.reshape(m, 8) > 0).all(axis=1)
-    u = np.floor(pix[:, 0].reshape(m, 8) + 0.5)
-    v = np.floor(pix[:, 1].reshape(m, 8) + 0.5)
+    z = z.reshape(8, m)
+    u = np.floor(pix[:, 0].reshape(8, m) + 0.5)
+    v = np.floor(pix[:, 1].reshape(8, m) + 0.5)
+    front = np.logical_and.reduce(z > 0, axis=0)
     w, h = cam.size
     with np.errstate(invalid="ignore"):
-        c0, c1 = u.min(axis=1), u.max(axis=1)
-        r0, r1 = v.min(axis=1), v.max(axis=1)
-        finite = np.isfinite(c0) & np.isfinite(c1) & np.isfinite(r0) & np.isfinite(r1)
-        front &= finite
+        c0, c1 = np.minimum.reduce(u, axis=0), np.maximum.reduce(u, axis=0)
+        r0, r1 = np.minimum.reduce(v, axis=0), np.maximum.reduce(v, axis=0)
+        front &= np.isfinite(c0) & np.isfinite(c1) & np.isfinite(r0) & np.isfinite(r1)
         whole = front & (c0 >= 0) & (c1 <= w - 1) & (r0 >= 0) & (r1 <= h - 1)
         part = front & (c1 >= 0) & (c0 <= w - 1) & (r1 >= 0) & (r0 <= h - 1)
     rect = np.zeros((m, 4), dtype=np.int64)
@@ -263,8 +264,8 @@ def _above(lo: np.ndarray, voxel: float, ijk: np.ndarray, plane: np.ndarray | No
     """Cubes with a corner on or above the support plane (all when there is none)."""
     if plane is None:
         return np.ones(len(ijk), bool)
-    corners = lo + (ijk[:, None, :] + _OFFSETS[None]) * voxel
-    return ((corners @ plane[:3] + plane[3]) >= 0).any(axis=1)
+    corners = lo + (ijk[None, :, :] + _OFFSETS[:, None, :]) * voxel
+    return np.logical_or.reduce((corners @ plane[:3] + plane[3]) >= 0, axis=0)
 
 
 def _frame_subject(masks: Sequence, cams: Sequence, lo: np.ndarray, levels: list[_Level], top: np.ndarray,

@@ -340,9 +340,11 @@ def _measure(src: Path, work: Path, args, sim, rig: dict, prof) -> list[tuple]:
           f"pixel at the subject {g.get('pixel_footprint', float('nan')):.2f})")
     box = g.get("box") or {}
     if box:
-        sec = rep0["seconds"].get("grid", float("nan"))
-        print(f"subject box: {' x '.join(f'{x:.4g}' for x in box['size'])} from {box['frame_sets']} sets in {sec:.2f} s "
-              f"({1e3 * sec / max(1, box['frame_sets']):.1f} ms a set; cubes {', '.join(f'{v:.3g}' for v in box['level_voxels'])})")
+        sec, cpu = rep0["seconds"].get("grid", float("nan")), rep0.get("cpu_seconds", {}).get("grid", float("nan"))
+        n = max(1, box["frame_sets"])
+        print(f"subject box: {' x '.join(f'{x:.4g}' for x in box['size'])} from {box['frame_sets']} sets in {sec:.2f} s, "
+              f"{cpu:.2f} s CPU ({1e3 * sec / n:.1f} ms a set, {1e3 * cpu / n:.1f} ms CPU; "
+              f"cubes {', '.join(f'{v:.3g}' for v in box['level_voxels'])})")
     per_set = own["carve"] + own["surface"] + own["consistency"] + own["skeleton"]
     print(f"own benchmarks (this process, files aside): keying {own_key[1][0]:.0f} images/s (1 thread), "
           f"{own_key[2][0]:.0f} (2 threads); hull {1e3 * own['carve']:.1f} ms + surface {1e3 * own['surface']:.1f} ms "
