@@ -480,6 +480,21 @@ def small_tracked(tmp_path_factory):
     return take, out
 
 
+def _consistency_warning(msg: str) -> bool:
+    """The silhouette consistency's warning: at 160x120 one camera's keyed masks hold about half
+    as much again as its true ones (IoU 0.52-0.65 with them), which the warning names (median
+    0.50, the others 0.96); the tests below are about the other warnings."""
+    return "silhouette consistency" in msg
+
+
+def _said(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if not _consistency_warning(r.getMessage())]
+
+
+def _warned(res) -> list[str]:
+    return [w for w in res.report["warnings"] if not _consistency_warning(w)]
+
+
 def _files_under(out, *subs) -> dict:
     return {str(p.relative_to(out)): (p.stat().st_mtime_ns, p.read_bytes()) for s in subs
             for p in sorted((out / s).rglob("*")) if p.is_file()}
@@ -504,7 +519,8 @@ def test_starting_over_removes_the_tracking_and_rig_of_the_old_surfaces(small_tr
     (out / "export" / "mine.ply").write_text("the user's")
     with caplog.at_level("WARNING"):
         res = process_take(take, out, params={"resolution": 28})
-    said = [r.getMessage() for r in caplog.records if r.name in ("pipeline.process", "pipeline.track")]
+    said = [r.getMessage() for r in caplog.records if r.name in ("pipeline.process", "pipeline.track")
+            and not _consistency_warning(r.getMessage())]
     assert said == [f"{out} holds results of other parameters or another take; starting over; removed report.html, "
                     f"spine_rig.glb, 2 exported mesh files ({out / 'export'}); removed the frames tracked on the old "
                     f"surfaces ({out / 'tracked'}); removed the rig built on them ({out / 'rig'})"], said
@@ -519,7 +535,7 @@ def test_starting_over_removes_the_tracking_and_rig_of_the_old_surfaces(small_tr
     caplog.clear()
     with caplog.at_level("WARNING", logger="pipeline.track"):
         rep = process_take(take, out, steps=("track",), params={"resolution": 28})
-    assert not caplog.records and rep.report["warnings"] == [] and (out / "tracked" / "000002.ply").is_file()
+    assert not _said(caplog) and _warned(rep) == [] and (out / "tracked" / "000002.ply").is_file()
 
 
 def test_track_options_track_again_and_keep_every_other_result(small_tracked, tmp_path, caplog):
@@ -561,6 +577,6 @@ def test_a_resume_with_the_same_parameters_keeps_the_tracking_and_rig(small_trac
     (out / "spine.json").unlink()
     with caplog.at_level("WARNING", logger="pipeline.process"):
         res = process_take(take, out, params=_SMALL)
-    assert not caplog.records and res.report["warnings"] == []
+    assert not _said(caplog) and _warned(res) == []
     assert _files_under(out, "tracked", "rig") == before and len(before) >= 9  # 3 frames, track.json, 5 rig files
     assert (out / "report.html").is_file() and (out / "spine_rig.glb").is_file()
