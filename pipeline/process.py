@@ -1238,7 +1238,7 @@ def _start_over(ctx: RunContext) -> None:
     made = [ctx.out / n for n in _MADE_FROM_FRAMES if (ctx.out / n).is_file()]
     for f in made:
         f.unlink()
-    said = [f.name for f in made if f.name != "report.json"]  # report.json: written again by this run
+    said = [f.name for f in made if f.name not in ("report.json", "consistency.json")]  # written again by this run
     if exported:
         said.append(f"{counted(len(exported), 'exported mesh file')} ({ctx.out / 'export'})")
     note = f"; removed {', '.join(said)}" if said else ""
