@@ -942,8 +942,13 @@ def _map_tasks(ctx: RunContext, tasks: list[Callable[[], object]]):
             fut.cancel()
 
 
-def _volume_bounds(ctx: RunContext) -> tuple[np.ndarray, str]:
-    """Where to look for the subject: the job's volume, the rig's, else the cameras'; and which."""
+def _volume_bounds(ctx: RunContext) -> np.ndarray:
+    """Where to look for the subject: the job's volume, the rig's, else the cameras'."""
+    return _search_volume(ctx)[0]
+
+
+def _search_volume(ctx: RunContext) -> tuple[np.ndarray, str]:
+    """:func:`_volume_bounds` and which it is (for the box's ``why``)."""
     from pipeline.volume import volume_from_cameras
 
     if ctx.params.volume is not None:
@@ -990,7 +995,7 @@ def _processing_grid(ctx: RunContext):
         else:
             validity = _mask_validity(reader, ctx.cameras)
             masks_of = partial(_frame_masks, reader, ctx.cameras, validity=validity)
-        volume, source = _volume_bounds(ctx)
+        volume, source = _search_volume(ctx)
         sb = _subject_grid(masks_of, ctx.calibration, ctx.n_sets, ctx.params, volume,
                            progress=lambda d, t: ctx.report_progress("box", d, t))
     p = ctx.params
