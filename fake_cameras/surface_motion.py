@@ -8,7 +8,9 @@ time, assigns each to the capsule it lies on and carries it along. :func:`true_s
 the creature's exact surface on a reconstruction's grid, the per-frame surfaces a perfect
 reconstruction would give: tracking on them measures the tracker apart from the surfaces
 (``stage bench track --accuracy``). :func:`tracking_errors` scores a results directory's
-``tracked/`` meshes against those tracks (the multi-view tracking test and the bench score alike).
+``tracked/`` meshes against those tracks (the multi-view tracking test and the bench score alike);
+:func:`invented_motion` measures the tracked surface's own non-rigid noise, the motion the
+tracking invents where the body is rigid.
 
 The limb tuck (``Creature.tuck``) bends limbs by blending joint positions, not by rotating
 segments: takes with a tuck interval have no rigid per-capsule motion and are refused.
@@ -20,7 +22,7 @@ import numpy as np
 
 from fake_cameras.creatures import Creature
 
-__all__ = ["capsule_frames", "surface_point_tracks", "tracking_errors", "true_surface"]
+__all__ = ["capsule_frames", "surface_point_tracks", "tracking_errors", "true_surface", "invented_motion"]
 
 
 def _check_creature(creature) -> None:
@@ -185,3 +187,74 @@ def tracking_errors(creature: Creature, times, results_dir, *, frames: int | Non
         errors[k] = np.linalg.norm(v - truth[k], axis=1) / voxel
         volumes[k] = mesh_volume(v, f) / v0
     return errors, volumes, rep
+
+
+def _kabsch_residual(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Distances left after the best rigid motion of points ``A`` onto ``B`` (Kabsch)."""
+    ca, cb = A.mean(0), B.mean(0)
+    U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
+    R = Vt.T @ D @ U.T
+    return np.linalg.norm((A - ca) @ R.T + cb - B, axis=1)
+
+
+def invented_motion(creature: Creature, times, results_dir, *, frames: int | None = None,
+                    min_vertices: int = 20) -> np.ndarray:
+    """The motion the tracking invents where the body is rigid: its non-rigid noise.
+
+    Every template vertex is assigned to the capsule it lies on at the reference frame (the
+    template snapped onto the true surface, as :func:`tracking_errors` does), leaving out the
+    vertices within one voxel of a second capsule (at a joint the true part is ambiguous). A
+    capsule moves rigidly, so on every frame its tracked vertices should be their reference-frame
+    positions moved by one rigid motion: what is left after the best one (Kabsch) is invented.
+
+    Parameters
+    ----------
+    creature : Creature
+    times : (F,) float ndarray
+    results_dir : path
+        A results directory after ``stage track``.
+    frames : int, optional
+        Frames scored, from the first (default: all of ``times``).
+    min_vertices : int
+        Capsules with fewer vertices are left out.
+
+    Returns
+    -------
+    (frames,) float ndarray
+        Per frame, the mean distance left over the scored vertices, voxels (0 at the reference frame).
+    """
+    import json
+    from pathlib import Path
+
+    from pipeline.meshio import load_mesh
+
+    _check_creature(creature)
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    n = len(times) if frames is None else frames
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= len(times):
+        raise ValueError(f"frames must be an integer in 1..{len(times)} (the times given), got {frames!r}")
+    if isinstance(min_vertices, bool) or not isinstance(min_vertices, (int, np.integer)) or min_vertices < 3:
+        raise ValueError(f"min_vertices must be an integer >= 3, got {min_vertices!r}")
+    res = Path(results_dir)
+    try:
+        rep = json.loads((res / "tracked" / "track.json").read_text())
+        voxel = float(json.loads((res / "grid.json").read_text())["voxel"])
+        ref = int(rep["reference_frame"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"results_dir {res}: no readable tracked/track.json or grid.json ({exc})") from None
+    V0, _ = load_mesh(res / "tracked" / f"{ref:06d}.ply", largest=False)
+    pose = creature.pose(times[ref])
+    sd = pose.capsule_sdf(_snap(pose, V0))
+    d, cap = np.sort(sd, axis=1), sd.argmin(axis=1)
+    keep = d[:, 1] - d[:, 0] > voxel
+    groups = [np.flatnonzero(keep & (cap == c)) for c in np.unique(cap)]
+    groups = [g for g in groups if len(g) >= min_vertices]
+    out = np.empty(n)
+    for k in range(n):
+        v, _ = load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)
+        if v.shape != V0.shape:
+            raise ValueError(f"results_dir {res}: tracked/{k:06d}.ply has {len(v)} vertices, the template {len(V0)}")
+        left = np.concatenate([_kabsch_residual(V0[g], v[g]) for g in groups])
+        out[k] = left.mean() / voxel
+    return out

@@ -33,7 +33,8 @@ from pipeline.mesh_primitives import mesh_volume, vertex_normals
 from pipeline.results import atomic_write_bytes, ply_bytes
 from pipeline.tracking import TemplateTracker, TrackingError
 
-__all__ = ["track_results", "track_chain_task", "track_rgbd_take", "tracked_path", "remove_tracking", "TrackingError"]
+__all__ = ["track_results", "track_with_rig", "track_chain_task", "track_rgbd_take", "tracked_path", "remove_tracking",
+           "TrackingError"]
 
 log = logging.getLogger(__name__)
 
@@ -261,7 +262,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                   "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
                   "reference_frame": frames[ref], "spine_init": use_spine, "spine_start": spine_start,
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
-                  "surfaces": surfaces, "skipped": [], "frames": {}}
+                  "surfaces": surfaces, "rig_rounds": 0, "skipped": [], "frames": {}}
         if surfaces == "carved":  # carved with an earlier tracking's motion: their digest says which
             report["surfaces_sha256"] = _file_digest(root / surfaces / "carve.json")
         if spine_start != "none":  # every frame's start depends on the spine then
@@ -352,6 +353,8 @@ def _old_setting(old: dict, key: str, new, *, spine_rewritten: bool = False):
         return None if spine_rewritten else new
     if key == "surfaces":  # before the carved surfaces, every run tracked meshes/
         return "meshes"
+    if key == "rig_rounds":  # before the articulated prior, no run tracked with a rig
+        return 0
     return None
 
 
@@ -630,6 +633,116 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
                     prev_frame=chain["prev_frame"], predict=_predictor(tracker, chain["predict"]), tracks_for=tracks_for,
                     choose=_chooser(tracker) if chain["spine_start"] == "choose" else None)
     return part
+
+
+def track_with_rig(results_dir, model=None, *, poses=None, rounds: int = 1, weight: float = 2.0,
+                   progress=None) -> dict:
+    """Track a tracked results directory again with a rig as the articulated prior.
+
+    Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
+    it, forwards and backwards, by :class:`pipeline.articulated_track.RigTracker`: the rig's pose
+    fitted to the frame's surface from the previous frame's pose, its constant-velocity
+    prediction and the rig's own fit of the frame, then the template fitted from the skinned pose
+    and drawn towards it. Without ``model`` each round builds the rig from the current tracking
+    (:func:`pipeline.articulated_rig.build_articulated_rig`, rest frame the reference frame) and
+    tracks with it: the paper's first rig, then track, refit, repeat (``rounds``).
+
+    Parameters
+    ----------
+    results_dir : path
+        A multi-view results directory tracked by :func:`track_results`.
+    model : pipeline.articulated_fit.ArticulatedModel, optional
+        A given rig, bound to a rest shape in the template's vertex order at the reference frame
+        (one round with it).
+    poses : dict int -> pipeline.articulated_fit.Pose, optional
+        The given rig's poses by frame number (further starts of its fit).
+    rounds : int
+        Rounds of rig building and tracking (without ``model``).
+    weight : float
+        Pull towards the skinned pose, in pairs.
+    progress : callable(step, done, total), optional
+
+    Returns
+    -------
+    dict
+        The report written to ``tracked/track.json``, with ``rig_rounds`` and per round the rig's
+        segments and its fit error (``rig_prior``), per frame ``rig_residual_mm``.
+    """
+    from pipeline.articulated_fit import ArticulatedModel
+    from pipeline.articulated_rig import build_articulated_rig, load_sequence, tracked_meshes
+
+    root = Path(results_dir)
+    if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 1:
+        raise ValueError(f"rounds must be a positive integer, got {rounds!r}")
+    if model is not None and not isinstance(model, ArticulatedModel):
+        raise ValueError(f"model must be an ArticulatedModel, got {type(model).__name__}")
+    try:
+        report = json.loads((root / "tracked" / "track.json").read_text())
+        ref = int(report["reference_frame"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise FileNotFoundError(f"{root}: no readable tracked/track.json ({exc}); run `stage track` first") from None
+    frames, by_frame = _surface_meshes(root, report.get("surfaces", "meshes"))
+    vs, faces, numbers = load_sequence(tracked_meshes(root))
+    if list(numbers) != list(frames) or ref not in frames:
+        raise ValueError(f"{root}: tracked/ does not hold every frame of {report.get('surfaces', 'meshes')}/; "
+                         "run `stage track` first")
+    refi = frames.index(ref)
+    tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"])
+    history = []
+    for r in range(1 if model is not None else int(rounds)):
+        if model is None or r > 0:
+            rig = build_articulated_rig(vs, faces, reference=refi)
+            use, by_pose = rig.model, dict(zip(frames, rig.fit.poses))
+            history.append({"segments": int(rig.segmentation.n_segments), "fit_error_mm": round(float(rig.fit.errors.mean()), 4)})
+        else:
+            use, by_pose = model, dict(poses or {})
+            history.append({"segments": None, "fit_error_mm": None})
+        per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress)
+        vs = np.stack([per["vertices"][k] for k in frames])
+        report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
+        model = None
+    report["rig_rounds"] = len(history)
+    report["rig_prior"] = {"weight": float(weight), "rounds": history}
+    _write_report(root, report)
+    return report
+
+
+def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int], refi: int, by_frame: dict, root: Path,
+               faces: np.ndarray, weight: float, progress) -> dict:
+    """One tracking of every frame but the reference with ``model`` as the prior; -> {"vertices": frame -> (V, 3),
+    "figures": frame -> per-frame figures}."""
+    from pipeline.articulated_fit import predict_pose
+    from pipeline.articulated_track import RigTracker, fit_pose_to_surface
+
+    rig = RigTracker(tracker, model, weight=weight)
+    data_for = _mesh_data(by_frame)
+    ref = frames[refi]
+    out = {"vertices": {ref: vs[refi]}, "figures": {}}
+    ref_data = data_for(ref)
+    start = by_pose.get(ref, model.identity())
+    ref_pose = start if ref_data is None else fit_pose_to_surface(model, start, ref_data[0], ref_data[1],
+                                                                  gate=tracker.gate)[0]
+    done = 1
+    vol0 = mesh_volume(vs[refi], faces)
+    for part in (frames[refi + 1:], frames[:refi][::-1]):
+        prev, pose, before = vs[refi], ref_pose, None
+        for k in part:
+            t0 = time.perf_counter()
+            data = data_for(k)
+            if data is not None:
+                cands = [pose] + ([predict_pose(model, pose, before)] if before is not None else []) + \
+                    ([by_pose[k]] if k in by_pose else [])
+                fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands)
+                prev, before, pose = fit.vertices, pose, new_pose
+                _write_frame(root, k, prev, faces)
+                out["figures"][k] = {"rig_residual_mm": round(res, 4), "residual_mm": round(fit.residual, 4),
+                                     "volume_ratio": round(mesh_volume(prev, faces) / vol0, 5) if vol0 > 0 else None,
+                                     "seconds": round(time.perf_counter() - t0, 4)}
+            out["vertices"][k] = prev
+            done += 1
+            if progress is not None:
+                progress("track with the rig", done, len(frames))
+    return out
 
 
 def _take_of(root: Path) -> Path | None:

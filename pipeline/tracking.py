@@ -931,8 +931,9 @@ class TemplateTracker:
         self._smoother = None  # the prediction's averaging: built on first use
         self._cover_sums = None if self.align_cover is None else _cover_sums(self.align_cover, len(v))
 
-    def _solve_round(self, V, pv, px, pn, smooth_rhs, start, first, prev=None):
-        """One linear solve of the energy for fixed pairs (see the module docstring)."""
+    def _solve_round(self, V, pv, px, pn, smooth_rhs, start, first, prev=None, anchor=None):
+        """One linear solve of the energy for fixed pairs (see the module docstring); ``anchor``:
+        (positions (V, 3), weight in pairs) every vertex is also drawn to."""
         n = self.n_vertices
         if self.point_to_plane:
             # the prior's shape: the round's start, or the previous frame's shape placed patch by patch onto it
@@ -951,10 +952,27 @@ class TemplateTracker:
         rw = self.rigidity if self.point_to_plane else 0.0
         d = self.gamma * (counts + rw) + self.eps
         rhs = smooth_rhs + self.gamma * (target + rw * P) + self.eps * V
+        if anchor is not None:
+            d = d + self.gamma * anchor[1]
+            rhs = rhs + self.gamma * anchor[1] * anchor[0]
         if first:
             self.system.factor(d)
             return self.system.solve(rhs)
         return self.system.solve_near(d, rhs, V)
+
+    def _check_anchor(self, anchor):
+        if anchor is None:
+            return None
+        try:
+            pos, w = anchor
+        except (TypeError, ValueError):
+            raise ValueError("anchor must be (positions (V, 3), weight)") from None
+        pos = np.asarray(pos, dtype=np.float64)
+        if pos.shape != self.template.shape or not np.all(np.isfinite(pos)):
+            raise ValueError(f"anchor positions must be finite with shape {self.template.shape}, got {pos.shape}")
+        if isinstance(w, bool) or not isinstance(w, numbers.Real) or not (math.isfinite(w) and w >= 0):
+            raise ValueError(f"anchor weight must be a number >= 0, got {w!r}")
+        return pos, float(w)
 
     @property
     def n_vertices(self) -> int:
@@ -985,7 +1003,8 @@ class TemplateTracker:
         return predict_motion(previous, before, self.faces, self.patches, constrained=constrained,
                               smoother=self.smoother, patch_sum=self._patch_sum)
 
-    def fit(self, points, normals, *, previous, init=None, visible=None, contour=None, tracks=None) -> FrameFit:
+    def fit(self, points, normals, *, previous, init=None, visible=None, contour=None, tracks=None,
+            anchor=None) -> FrameFit:
         """Deform the template onto one frame's data.
 
         Parameters
@@ -1034,6 +1053,7 @@ class TemplateTracker:
         res = float("nan")
         gate = self.gate
         tracks = _check_tracks(tracks, n)
+        anchor = self._check_anchor(anchor)
         for _ in range(self.rounds):
             vn = vertex_normals(V, self.faces, corners=self._corner_sum)
             if visible is None:
@@ -1068,7 +1088,7 @@ class TemplateTracker:
             history.append((n_md, n_dm, res))
             if len(pv) == 0:
                 break
-            V = self._solve_round(V, pv, px, pn, smooth_rhs, start, first=len(history) == 1, prev=prev)
+            V = self._solve_round(V, pv, px, pn, smooth_rhs, start, first=len(history) == 1, prev=prev, anchor=anchor)
         seen = patch_constraints(V, pv, pn, self.patches) if len(pv) else None
         return FrameFit(vertices=V, model_pairs=n_md, data_pairs=n_dm, residual=res,
                         rounds=len(history), history=history, constrained=seen)

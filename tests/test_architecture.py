@@ -42,7 +42,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.rig_model", "pipeline.gltf_export", "pipeline.results",
         "pipeline.tracking", "pipeline.rgbd_preprocess", "pipeline.colour_tracks", "pipeline.temporal_hull",
         "pipeline.motion_segmentation",
-        "pipeline.articulated_skeleton", "pipeline.articulated_fit", "pipeline.articulated_rig",
+        "pipeline.articulated_skeleton", "pipeline.articulated_fit", "pipeline.articulated_rig", "pipeline.articulated_track",
         "pipeline.contraction_skeleton", "pipeline.rig_score", "pipeline.silhouette_refine",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",
         "calib.evaluate", "calib.timestamps", "calib.mirror",

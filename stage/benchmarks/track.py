@@ -18,6 +18,7 @@ and on their surfaces carved across time (:mod:`pipeline.carve`, two rounds).
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 import numpy as np
@@ -38,7 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also track the simulated RGB-D pipe 1/2, pipe 3/4 and lamp (30 frames, bent 75 degrees), "
                    "the real tracked pipe of Tzionas & Gall rendered at its sensor's pose (60 frames, when "
                    "../shared/data is there) and the simulated multi-view starfish and quadruped (30 frames, also on their "
-                   "true surfaces, with and without --shape-memory, and on their surfaces carved across time, --carve), "
+                   "true surfaces, with and without --shape-memory, and on their surfaces carved across time, --carve; and "
+                   "fast takes at 10 fps, limbs 3+ voxels a frame, also tracked with a rig as the articulated prior), "
                    "and print the vertex errors against the truth, "
                    "the volume and what `stage rig` finds (several minutes)")
 
@@ -85,8 +87,71 @@ def multiview_accuracy(frames: int = 30) -> None:
                   f"{dt2:.2f} s/frame with the two halves at once ({'the same' if same else 'NOT the same'} vertices); "
                   f"over all vertices and frames (as tests/pipeline/test_tracking_multiview.py scores) {pooled[0]:.3f} / "
                   f"{pooled[1]:.3f}")
+            from fake_cameras.surface_motion import invented_motion
+
+            inv = invented_motion(sim.creature, sim.times, res, frames=frames)
+            print(f"  invented motion (where the body is rigid): {np.mean(inv):.2f} voxels on average (worst frame {max(inv):.2f})")
             _tracker_apart_from_surfaces(sim, res, frames)
             _carved_rounds(sim, res, frames)
+
+
+#: The fast takes: the simulated creatures filmed at 10 frames a second (8 cameras, 640x480): their
+#: limbs move 3 voxels a frame and more (the quadruped's legs 2.5 on average, up to 4.6 on a frame,
+#: feet up to 8.9; the surface points' 95th percentile 4.4 voxels a frame).
+FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16))
+
+
+def fast_accuracy() -> None:
+    """Fast takes: the default tracking, then tracked again with a rig as the articulated prior
+    (:func:`pipeline.track.track_with_rig`): the rig built from the tracking (``stage track
+    --rig-rounds``), and the rig of the true motion (what the tracking gives with the right
+    segments); the worst frame's mean and 95th percentile, the invented motion
+    (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from fake_cameras.record import record_take
+    from fake_cameras.surface_motion import surface_point_tracks
+    from fake_cameras.take import simulate_take
+    from pipeline.articulated_rig import build_articulated_rig
+    from pipeline.meshio import load_mesh
+    from pipeline.process import process_take
+    from pipeline.track import track_results, track_with_rig
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, fps, frames in FAST_TAKES:
+            sim = simulate_take(name, n_cameras=8, frames=frames, size=(640, 480), seed=3, fps=fps)
+            take = record_take(sim, Path(tmp) / f"{name}_fast.h5")
+            res = Path(tmp) / f"{name}_fast_results"
+            process_take(take, res, executor=None)
+            t0 = time.process_time()
+            track_results(res)
+            _fast_row(f"{name} at {fps:g} fps, default", sim, res, frames, (time.process_time() - t0) / frames)
+            base = res.with_name(res.name + "_default")
+            shutil.copytree(res, base)
+            t0 = time.process_time()
+            track_with_rig(res, rounds=1)
+            _fast_row(f"{name}, --rig-rounds 1", sim, res, frames, (time.process_time() - t0) / frames)
+            shutil.rmtree(res / "tracked")
+            shutil.copytree(base / "tracked", res / "tracked")
+            ref = int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"])
+            V0, F0 = load_mesh(res / "tracked" / f"{ref:06d}.ply", largest=False)
+            truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
+            rig = build_articulated_rig(truth, F0, reference=ref)
+            t0 = time.process_time()
+            track_with_rig(res, rig.model, poses=dict(enumerate(rig.fit.poses)))
+            _fast_row(f"{name}, the rig of the true motion", sim, res, frames, (time.process_time() - t0) / frames)
+
+
+def _fast_row(label: str, sim, res, frames: int, cpu: float) -> None:
+    from fake_cameras.surface_motion import invented_motion
+
+    _, (means, p95s, vols, pooled) = _multiview_scores(sim, res, frames)
+    inv = invented_motion(sim.creature, sim.times, res, frames=frames)
+    print(f"  {label}: {pooled[0]:.3f} / {pooled[1]:.3f} voxels (mean / 95th percentile over all vertices and frames), "
+          f"worst frame {max(means):.2f} / {max(p95s):.2f}; volume {min(vols):.3f}..{max(vols):.3f}; invented motion "
+          f"{np.mean(inv):.2f} voxels (worst frame {max(inv):.2f}); {cpu:.2f} CPU s/frame")
 
 
 def _carved_rounds(sim, res, frames: int, rounds: int = 2) -> None:
@@ -347,6 +412,7 @@ def run(args: argparse.Namespace) -> int:
         accuracy()
         real_pipe_accuracy()
         multiview_accuracy()
+        fast_accuracy()
     print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl), "
           "the patches and the summing matrices of the per-round sums (vertex normals, patch centroids and Kabsch), "
           "the prediction's averaging matrix, "

@@ -53,6 +53,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --carve: grow every silhouette by PX pixels (default, per camera: twice the reprojection error "
                    "its calibration records, at most the silhouette margin `stage process` carved the hulls with, "
                    "RESULTS_DIR/process.json; that margin where the calibration records none)")
+    p.add_argument("--rig-rounds", type=int, default=0, metavar="ROUNDS",
+                   help="multi-view: after tracking, build a rig from the tracked motion (as `stage rig` does, rest frame the "
+                   "template's) and track every frame again with it as the articulated prior (its skinned pose on each "
+                   "frame's surface as the start, every vertex drawn to it); ROUNDS times (default 0). Only as good as the "
+                   "rig's segments, see docs/tracking.md")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -75,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--workers must be >= 0")
     if args.carve < 0:
         raise UserError("--carve must be >= 0 (rounds)")
+    if args.rig_rounds < 0:
+        raise UserError("--rig-rounds must be >= 0 (rounds)")
     if args.carve_margin is not None and (not args.carve or not args.carve_margin >= 0):
         raise UserError("--carve-margin needs --carve and a margin >= 0 (pixels)")
     if src.exists():
@@ -126,9 +133,15 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
               choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour,
               shape_memory=args.shape_memory)
     if (2 if args.workers is None else args.workers) < 2:
-        return _rounds(src, args.carve, margin=args.carve_margin, **kw)
-    with worker_pool(1) as ex:  # one task: the half before the reference frame
-        return _rounds(src, args.carve, margin=args.carve_margin, executor=ex, **kw)
+        rep = _rounds(src, args.carve, margin=args.carve_margin, **kw)
+    else:
+        with worker_pool(1) as ex:  # one task: the half before the reference frame
+            rep = _rounds(src, args.carve, margin=args.carve_margin, executor=ex, **kw)
+    if args.rig_rounds:
+        from pipeline.track import track_with_rig
+
+        rep = track_with_rig(src, rounds=args.rig_rounds, progress=bars)
+    return rep
 
 
 def _rounds(src: Path, rounds: int, *, margin=None, **kw) -> dict:
@@ -145,7 +158,7 @@ def _rounds(src: Path, rounds: int, *, margin=None, **kw) -> dict:
 #: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.
 _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
               ("--contour", "contour", False), ("--no-colour", "no_colour", False))
-_RESULTS_ONLY = (("--carve", "carve", 0), ("--carve-margin", "carve_margin", None),
+_RESULTS_ONLY = (("--carve", "carve", 0), ("--rig-rounds", "rig_rounds", 0), ("--carve-margin", "carve_margin", None),
                  ("--colour", "colour", False), ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
                  ("--prediction-only", "prediction_only", False), ("--workers", "workers", None))
 

@@ -274,3 +274,39 @@ def test_tracking_errors_invalid_input(tmp_path):
     (tmp_path / "tracked" / "000002.ply").write_bytes(ply_bytes(written[2], F0[:-1]))
     with pytest.raises(ValueError, match="not the template's mesh"):
         tracking_errors(c, times, tmp_path)
+
+
+def test_invented_motion_is_zero_for_rigid_parts_and_sees_noise(tmp_path):
+    """fake_cameras.surface_motion.invented_motion: the true tracks, shifted rigidly, invent nothing
+    but the template's own distance from the true surface they were snapped to (measured 0.018
+    voxels; at most 0.05); a frame with independent noise of 0.5 voxels per coordinate on every vertex
+    invents what a rigid fit cannot take out, close to the noise's mean length (0.8 voxels)."""
+    from fake_cameras.surface_motion import invented_motion
+    from pipeline.results import ply_bytes
+
+    c, times, V0, F0, written = _tracked_results(tmp_path, [0.0, 1.0, 2.5])
+    # the reference frame's tracked file is the template itself
+    (tmp_path / "tracked" / "000001.ply").write_bytes(ply_bytes(V0, F0))
+    inv = invented_motion(c, times, tmp_path)
+    assert inv.shape == (3,) and inv[1] < 1e-9 and np.all(inv < 0.05), inv
+    assert invented_motion(c, times, tmp_path, frames=1).shape == (1,)
+    rng = np.random.default_rng(0)
+    noisy = written[2] + rng.normal(0.0, 0.5 * 5.0, written[2].shape)
+    (tmp_path / "tracked" / "000002.ply").write_bytes(ply_bytes(noisy, F0))
+    noise = invented_motion(c, times, tmp_path)[2]
+    assert 0.5 <= noise <= 0.9, noise
+
+
+def test_invented_motion_invalid_input(tmp_path):
+    from fake_cameras.surface_motion import invented_motion
+
+    c, times, V0, F0, written = _tracked_results(tmp_path, [0.0, 0.0, 0.0])
+    for bad in (0, 4, True):
+        with pytest.raises(ValueError, match="frames"):
+            invented_motion(c, times, tmp_path, frames=bad)
+    with pytest.raises(ValueError, match="min_vertices"):
+        invented_motion(c, times, tmp_path, min_vertices=2)
+    with pytest.raises(ValueError, match="results_dir"):
+        invented_motion(c, times, tmp_path / "nowhere")
+    with pytest.raises(ValueError, match="creature"):
+        invented_motion("starfish", times, tmp_path)

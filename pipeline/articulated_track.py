@@ -1,0 +1,213 @@
+"""Template tracking with a rig as the articulated prior (Tzionas & Gall 2016, sections 1 and 5).
+
+The paper's chicken-and-egg: with a rigged model the mesh motion is tracked accurately, and with
+the mesh motion the rig is found. Once a first rig exists (:mod:`pipeline.articulated_rig` on a
+first tracking), every frame is tracked with it:
+
+1. **The rig's pose on the frame's surface** (:func:`fit_pose_to_surface`): articulated ICP.
+   Each round pairs the skinned model with the surface (gated closest points both ways, normals
+   within 45 degrees, as the template tracking pairs), moves every paired vertex along the data
+   normals onto the surface (point-to-plane) and refits the pose to those targets by the
+   articulated least squares of :func:`pipeline.articulated_fit.fit_frame`. The first half of the
+   rounds pairs within twice the gate (a limb several voxels from its last place is still
+   caught), the second within the gate. It starts from every candidate pose given (the previous
+   frame's pose, its constant-velocity prediction in joint angles, the rig's own fit of the frame
+   from the tracking it was built on): a third of the rounds from each, within twice the gate,
+   and the rest from the one whose skinned surface the frame's surface explains best
+   (:func:`surface_residual`).
+2. **The skinned pose as the start and as a regulariser** (:class:`RigTracker`): the template
+   tracking of :class:`pipeline.tracking.TemplateTracker` starts from the skinned pose and every
+   vertex is drawn towards it with ``weight`` (in pairs, ``fit(anchor=)``), so within a rigid
+   part the surface cannot slide along itself, while the data and the Laplacian still shape what
+   the rig does not (the skinning's error at the joints, non-rigid parts).
+
+A pose fitted in joint angles extrapolates a limb's swing where the vertices' constant velocity
+cannot (a rotating limb's points move on circles). Why the ICP is written here: the articulated
+least squares is the project's own (:mod:`pipeline.articulated_fit`); pairing and gating are the
+template tracker's.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.articulated_fit import ArticulatedModel, Pose, fit_frame
+from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs, vertex_normals
+
+__all__ = ["fit_pose_to_surface", "surface_residual", "RigTracker"]
+
+
+def _check_points(points, normals) -> tuple[np.ndarray, np.ndarray]:
+    X = np.asarray(points, dtype=np.float64)
+    N = np.asarray(normals, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] != 3 or N.shape != X.shape or len(X) == 0:
+        raise ValueError(f"points and normals must both have shape (P, 3) with P > 0, got {X.shape} and {N.shape}")
+    return X, N
+
+
+def _check_positive(value, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def surface_residual(vertices, points, *, gate: float, tree=None) -> float:
+    """Mean closest-point distance both ways, each clipped at ``gate``: how well a surface explains
+    a mesh's vertices and the mesh the surface's points.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+    points : (P, 3) float ndarray
+    gate : float
+        Distances are clipped here (a far part counts as ``gate``, not its distance).
+    tree : scipy.spatial.cKDTree, optional
+        Over ``points`` (built here when not given).
+
+    Returns
+    -------
+    float
+        Same units as the coordinates.
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    X = np.asarray(points, dtype=np.float64)
+    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0 or X.ndim != 2 or X.shape[1] != 3 or len(X) == 0:
+        raise ValueError(f"vertices and points must have shape (N, 3), N > 0, got {V.shape} and {X.shape}")
+    g = _check_positive(gate, "gate")
+    tree = cKDTree(X) if tree is None else tree
+    d1, _ = tree.query(V, distance_upper_bound=g)
+    d2, _ = cKDTree(V).query(X, distance_upper_bound=g)
+    return float(np.minimum(d1, g).mean() + np.minimum(d2, g).mean())
+
+
+def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *, gate: float, rounds: int = 6,
+                        iterations: int = 3, max_points: int = 2000, tree=None) -> tuple[Pose, float]:
+    """The rig's pose on a surface: articulated ICP, point-to-plane (see the module docstring).
+
+    Parameters
+    ----------
+    model : ArticulatedModel
+    start : Pose
+    points, normals : (P, 3) float ndarray
+        The frame's surface points and their outward unit normals.
+    gate : float
+        Pair distance gate (the template tracker's, :attr:`TemplateTracker.gate`); the first half
+        of the rounds pair within twice it.
+    rounds : int
+        Rounds of pairing and refitting.
+    iterations : int
+        Levenberg-Marquardt iterations of each refit (:func:`fit_frame`).
+    max_points : int
+        Vertices paired and fitted (a fixed, evenly drawn subset, :meth:`ArticulatedModel.subset`).
+    tree : scipy.spatial.cKDTree, optional
+        Over ``points``.
+
+    Returns
+    -------
+    pose : Pose
+    residual : float
+        :func:`surface_residual` of the posed model (all vertices) against the surface, within ``gate``.
+    """
+    if not isinstance(model, ArticulatedModel):
+        raise ValueError(f"model must be an ArticulatedModel, got {type(model).__name__}")
+    if not isinstance(start, Pose) or start.R.shape != (model.skeleton.n_parts, 3, 3):
+        raise ValueError(f"start must be a Pose of the model's {model.skeleton.n_parts} parts")
+    X, N = _check_points(points, normals)
+    g = _check_positive(gate, "gate")
+    for value, name in ((rounds, "rounds"), (iterations, "iterations"), (max_points, "max_points")):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    tree = cKDTree(X) if tree is None else tree
+    sub = model.subset(int(max_points))
+    n = len(model.vertices)
+    pose = start
+    for r in range(int(rounds)):
+        gr = 2.0 * g if r < int(rounds) // 2 else g
+        S = model.deform(pose)
+        vn = vertex_normals(S, model.faces)
+        i, j = closest_pairs(S[sub], vn[sub], tree, N, gate=gr)
+        jd, iv = closest_pairs(X, N, cKDTree(S[sub]), vn[sub], gate=gr)
+        pv = sub[np.concatenate([i, iv])]
+        px = np.concatenate([X[j], X[jd]])
+        pn = np.concatenate([N[j], N[jd]])
+        if len(pv) == 0:
+            break
+        shift = pn * np.einsum("ij,ij->i", px - S[pv], pn)[:, None]
+        count = np.bincount(pv, minlength=n).astype(np.float64)
+        moved = np.stack([np.bincount(pv, weights=shift[:, c], minlength=n) for c in range(3)], axis=1)
+        target = S + moved / np.maximum(count, 1.0)[:, None]  # unpaired vertices stay where they are
+        pose, _ = fit_frame(model, target, pose, iterations=int(iterations), max_points=int(max_points))
+    return pose, surface_residual(model.deform(pose), X, gate=g, tree=tree)
+
+
+class RigTracker:
+    """Tracks a template frame by frame with a rig as the articulated prior.
+
+    Parameters
+    ----------
+    tracker : TemplateTracker
+        The template tracker; its template is the model's vertex order.
+    model : ArticulatedModel
+        The rig, bound to a rest shape in the template's vertex order.
+    weight : float
+        How strongly every vertex is drawn to the skinned pose, in pairs (``fit(anchor=)``).
+    rounds, iterations, max_points : int
+        Of :func:`fit_pose_to_surface`.
+    """
+
+    def __init__(self, tracker: TemplateTracker, model: ArticulatedModel, *, weight: float = 2.0, rounds: int = 6,
+                 iterations: int = 3, max_points: int = 2000):
+        if not isinstance(tracker, TemplateTracker):
+            raise ValueError(f"tracker must be a TemplateTracker, got {type(tracker).__name__}")
+        if not isinstance(model, ArticulatedModel):
+            raise ValueError(f"model must be an ArticulatedModel, got {type(model).__name__}")
+        if model.vertices.shape != tracker.template.shape or not np.array_equal(model.faces, tracker.faces):
+            raise ValueError("model must be bound to a mesh of the tracker's connectivity "
+                             f"({len(model.vertices)} vertices against the template's {tracker.n_vertices})")
+        self.tracker = tracker
+        self.model = model
+        self.weight = _check_positive(weight, "weight")
+        for value, name, least in ((rounds, "rounds", 2), (iterations, "iterations", 1), (max_points, "max_points", 1)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+        self.rounds, self.iterations, self.max_points = int(rounds), int(iterations), int(max_points)
+
+    def fit(self, points, normals, *, previous, candidates) -> tuple[FrameFit, Pose, float]:
+        """One frame: the best candidate's pose on the surface, then the template fitted from its
+        skinned pose and drawn towards it.
+
+        Parameters
+        ----------
+        points, normals : (P, 3) float ndarray
+        previous : (V, 3) float ndarray
+            The template on the previous frame.
+        candidates : sequence of Pose
+            Starts of the articulated ICP (at least one).
+
+        Returns
+        -------
+        fit : FrameFit
+        pose : Pose
+        residual : float
+            The chosen pose's :func:`surface_residual`.
+        """
+        X, N = _check_points(points, normals)
+        cands = list(candidates)
+        if not cands:
+            raise ValueError("candidates must hold at least one Pose")
+        tree = cKDTree(X)
+        kw = dict(iterations=self.iterations, max_points=self.max_points, tree=tree)
+        coarse = max(1, self.rounds // 3)  # every candidate's first rounds at twice the gate, then the best one on
+        best = None
+        for c in cands:
+            pose, res = fit_pose_to_surface(self.model, c, X, N, gate=2.0 * self.tracker.gate, rounds=coarse, **kw)
+            if best is None or res < best[1]:
+                best = (pose, res)
+        pose, res = fit_pose_to_surface(self.model, best[0], X, N, gate=self.tracker.gate, rounds=self.rounds - coarse,
+                                        **kw)
+        skinned = self.model.deform(pose)
+        fit = self.tracker.fit(X, N, previous=previous, init=skinned, anchor=(skinned, self.weight))
+        return fit, pose, res
