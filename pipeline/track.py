@@ -691,7 +691,8 @@ def track_with_rig(results_dir, model=None, *, poses=None, rounds: int = 1, weig
     history = []
     for r in range(1 if model is not None else int(rounds)):
         if model is None or r > 0:
-            rig = build_articulated_rig(vs, faces, reference=refi)
+            # with the peel: a prior tolerates parts cut in two (the paper's over-segmentation), not parts fused
+            rig = build_articulated_rig(vs, faces, reference=refi, peel_parts=True)
             use, by_pose = rig.model, dict(zip(frames, rig.fit.poses))
             history.append({"segments": int(rig.segmentation.n_segments), "fit_error_mm": round(float(rig.fit.errors.mean()), 4)})
         else:

@@ -76,14 +76,7 @@ def run(args: argparse.Namespace) -> int:
     from stage.cli._progress import StepBars
 
     src = Path(args.source)
-    if args.workers is not None and args.workers < 0:
-        raise UserError("--workers must be >= 0")
-    if args.carve < 0:
-        raise UserError("--carve must be >= 0 (rounds)")
-    if args.rig_rounds < 0:
-        raise UserError("--rig-rounds must be >= 0 (rounds)")
-    if args.carve_margin is not None and (not args.carve or not args.carve_margin >= 0):
-        raise UserError("--carve-margin needs --carve and a margin >= 0 (pixels)")
+    _check_counts(args)
     if src.exists():
         _check_mode(args, take=src.is_file())
     quiet = bool(getattr(args, "quiet", False)) or args.no_progress
@@ -115,10 +108,28 @@ def run(args: argparse.Namespace) -> int:
         print(f"surfaces: carved across time ({Path(out) / 'carved'})")
     if rep.get("mode") == "multi-view" and rep.get("prior") == "previous":
         print("shape memory: on (the previous frame's shape)")
+    if rep.get("rig_rounds"):
+        rounds = rep["rig_prior"]["rounds"]
+        print(f"tracked again with a rig as the articulated prior: {counted(len(rounds), 'round')} (rig segments: "
+              f"{', '.join(str(r['segments']) for r in rounds)})")
     if rep["skipped"]:
         print(f"skipped {counted(len(rep['skipped']), 'frame')} without data: {', '.join(map(str, rep['skipped']))}")
     print(f"wrote {Path(out) / 'tracked'}")
     return 0
+
+
+def _check_counts(args: argparse.Namespace) -> None:
+    """Counts and margins out of range are one clear line."""
+    from stage.cli import UserError
+
+    if args.workers is not None and args.workers < 0:
+        raise UserError("--workers must be >= 0")
+    if args.carve < 0:
+        raise UserError("--carve must be >= 0 (rounds)")
+    if args.rig_rounds < 0:
+        raise UserError("--rig-rounds must be >= 0 (rounds)")
+    if args.carve_margin is not None and (not args.carve or not args.carve_margin >= 0):
+        raise UserError("--carve-margin needs --carve and a margin >= 0 (pixels)")
 
 
 def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
