@@ -35,7 +35,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.articulated_fit import ArticulatedModel, Pose, fit_frame
-from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs, vertex_normals
+from pipeline.mesh_primitives import vertex_normals
+from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs
 
 __all__ = ["fit_pose_to_surface", "surface_residual", "RigTracker"]
 

@@ -19,7 +19,8 @@ import pytest
 from fake_cameras.mesh_motion import mesh_sequence
 from pipeline.articulated_rig import build_articulated_rig
 from pipeline.articulated_track import RigTracker, fit_pose_to_surface, surface_residual
-from pipeline.tracking import TemplateTracker, vertex_normals
+from pipeline.mesh_primitives import vertex_normals
+from pipeline.tracking import TemplateTracker
 
 FAST = dict(n_cameras=6, frames=8, size=(320, 240), seed=3, fps=5.0)
 
@@ -147,13 +148,32 @@ def test_fast_take_tracked_with_its_rig(fast_take):
     assert np.all(np.abs(vols - 1) <= 0.1), vols
 
 
+CENTRE, RADIUS = np.array([0.0, 0.0, 300.0]), 150.0
+
+
+def _sphere_results(root, frames=4):
+    """The turning sphere of the carving tests (6 cameras at 160x120), with a 10 mm grid."""
+    from pipeline.volume import Grid
+    from tests.pipeline.tracking_takes import turning_sphere_results
+
+    res, _ = turning_sphere_results(root, frames=frames, size=(160, 120))
+    (res / "grid.json").write_text(json.dumps(Grid(lo=CENTRE - 200, shape=(40, 40, 40), voxel=10.0).to_dict()))
+    return res
+
+
+def _sphere_error(path):
+    from pipeline.meshio import load_mesh
+
+    v, _ = load_mesh(path, largest=False)
+    return np.abs(np.linalg.norm(v - CENTRE, axis=1) - RADIUS) / 10.0  # voxels
+
+
 def test_cli_rig_rounds_on_a_turning_sphere(tmp_path, capsys):
     """``stage track RESULTS --rig-rounds 1`` on a rigid turning sphere: one segment, the frames tracked
     again, every vertex still on the sphere (within a voxel), the rounds recorded."""
     from stage.cli import main
-    from tests.pipeline.test_carve import _results, _sphere_error
 
-    res = _results(tmp_path)
+    res = _sphere_results(tmp_path)
     assert main(["track", str(res), "--rig-rounds", "1", "--workers", "0", "--no-progress"]) == 0
     assert "articulated prior: 1 round (rig segments: 1)" in capsys.readouterr().out
     rep = json.loads((res / "tracked" / "track.json").read_text())
@@ -169,9 +189,8 @@ def test_cli_rig_rounds_on_a_turning_sphere(tmp_path, capsys):
 def test_track_with_rig_invalid_input(tmp_path):
     from pipeline.track import track_with_rig
     from stage.cli import main
-    from tests.pipeline.test_carve import _results
 
-    res = _results(tmp_path, frames=2)
+    res = _sphere_results(tmp_path, frames=2)
     with pytest.raises(ValueError, match="rounds"):
         track_with_rig(res, rounds=0)
     with pytest.raises(ValueError, match="model"):
