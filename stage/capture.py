@@ -116,6 +116,16 @@ def _open_drivers(rig: Rig, drivers: Mapping[str, CameraDriver] | None) -> dict[
     return {c.id: open_driver(c, rig) for c in rig.cameras}
 
 
+def _check_limits(frames: int | None, duration_s: float | None, stall_timeout_s: float, queue_seconds: float) -> None:
+    """The stop condition and the stall and queue limits of a capture (ValueError naming the parameter)."""
+    if frames is not None and (not isinstance(frames, int) or frames < 1):
+        raise ValueError(f"frames must be a positive integer, got {frames!r}")
+    if duration_s is not None and not duration_s > 0:
+        raise ValueError(f"duration_s must be positive, got {duration_s!r}")
+    if stall_timeout_s <= 0 or queue_seconds <= 0:
+        raise ValueError("stall_timeout_s and queue_seconds must be positive")
+
+
 def capture_take(
     rig: Rig,
     out: str | os.PathLike,
@@ -178,12 +188,7 @@ def capture_take(
         raise ValueError(f"rig must be a Rig, got {type(rig).__name__}")
     if frames is None and duration_s is None:
         raise ValueError("give frames and/or duration_s: capture needs a stop condition")
-    if frames is not None and (not isinstance(frames, int) or frames < 1):
-        raise ValueError(f"frames must be a positive integer, got {frames!r}")
-    if duration_s is not None and not duration_s > 0:
-        raise ValueError(f"duration_s must be positive, got {duration_s!r}")
-    if stall_timeout_s <= 0 or queue_seconds <= 0:
-        raise ValueError("stall_timeout_s and queue_seconds must be positive")
+    _check_limits(frames, duration_s, stall_timeout_s, queue_seconds)
     out = Path(out)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: take already exists (use --overwrite to replace it)")
@@ -473,12 +478,7 @@ class TakeRecorder(_Capture):
         missing = [c.id for c in rig.cameras if c.id not in granted]
         if missing:
             raise ValueError(f"granted: no granted settings for cameras {missing}")
-        if frames is not None and (not isinstance(frames, int) or frames < 1):
-            raise ValueError(f"frames must be a positive integer, got {frames!r}")
-        if duration_s is not None and not duration_s > 0:
-            raise ValueError(f"duration_s must be positive, got {duration_s!r}")
-        if stall_timeout_s <= 0 or queue_seconds <= 0:
-            raise ValueError("stall_timeout_s and queue_seconds must be positive")
+        _check_limits(frames, duration_s, stall_timeout_s, queue_seconds)
         out = Path(out)
         if out.exists():
             raise FileExistsError(f"{out}: take already exists")

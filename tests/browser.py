@@ -40,3 +40,11 @@ def not_blank(png: bytes, what: str) -> np.ndarray:
     assert float(img.std()) > 5.0, f"{what}: no contrast (std {img.std():.2f})"
     assert ink > 0.003, f"{what}: almost nothing drawn ({ink:.4%} of the pixels differ from the background)"
     return img
+
+
+def artifacts_dir(tmp_path: Path, name: str) -> Path:
+    """Where a test keeps its screenshots: ``$STAGE_TEST_ARTIFACTS/name`` (CI keeps them), else under ``tmp_path``."""
+    env = os.environ.get("STAGE_TEST_ARTIFACTS")
+    d = Path(env) / name if env else tmp_path / "artifacts"
+    d.mkdir(parents=True, exist_ok=True)
+    return d

@@ -5,7 +5,6 @@ other), preview streams that end with their client, a simulated camera unplugged
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from pathlib import Path
@@ -18,6 +17,7 @@ from api.control import ControlRoom
 from api.settings import Settings
 from stage.session import StageSession
 from stage.store import TakeReader
+from tests.browser import artifacts_dir
 from tests.stage.paced import make_drivers, rig_for
 
 TOKEN = "control-token"
@@ -30,13 +30,6 @@ try:
     pytestmark.append(pytest.mark.timeout(120))
 except ImportError:
     pass
-
-
-def _artifacts(tmp_path: Path) -> Path:
-    env = os.environ.get("STAGE_TEST_ARTIFACTS")
-    d = Path(env) / "control" if env else tmp_path / "artifacts"
-    d.mkdir(parents=True, exist_ok=True)
-    return d
 
 
 class LiveServer:
@@ -193,7 +186,7 @@ def test_unplugged_camera_in_the_browser(tmp_path):
 
     sync_playwright = sync_playwright_or_skip()
     rig, drivers = _fake_rig(tmp_path)
-    art = _artifacts(tmp_path)
+    art = artifacts_dir(tmp_path, "control")
     with LiveServer(tmp_path, StageSession(rig, tmp_path / "data" / "takes", drivers=drivers)) as srv:
         errors: list[str] = []
         with sync_playwright() as p:

@@ -22,7 +22,7 @@ import pytest
 
 from stage.store import TakeReader
 from tests.api.served import ROOT, free_port
-from tests.browser import CHROMIUM, CHROMIUM_ARGS, not_blank, sync_playwright_or_skip
+from tests.browser import CHROMIUM, CHROMIUM_ARGS, artifacts_dir, not_blank, sync_playwright_or_skip
 
 TOKEN = "control-browser-token"
 
@@ -33,13 +33,6 @@ try:
     pytestmark.append(pytest.mark.timeout(180))
 except ImportError:
     pass
-
-
-def _artifacts(tmp_path: Path) -> Path:
-    env = os.environ.get("STAGE_TEST_ARTIFACTS")
-    d = Path(env) / "control" if env else tmp_path / "artifacts"
-    d.mkdir(parents=True, exist_ok=True)
-    return d
 
 
 def rig_toml(n: int, *, subject: str, size: tuple[int, int], fps: float, frames: int) -> str:
@@ -112,7 +105,7 @@ def _login(page, url: str) -> None:
 def test_control_room_with_twelve_cameras(tmp_path):
     sync_playwright = sync_playwright_or_skip()
     pytest.importorskip("fake_cameras.device")
-    art = _artifacts(tmp_path)
+    art = artifacts_dir(tmp_path, "control")
     rig = rig_toml(12, subject="starfish", size=(160, 120), fps=30, frames=30)
     with StageServer(tmp_path, rig) as srv, sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
@@ -220,7 +213,7 @@ def test_board_session_to_calibration_report(tmp_path):
     the minute a test may take on two cores (``stage bench control --board`` runs twelve)."""
     sync_playwright = sync_playwright_or_skip()
     pytest.importorskip("fake_cameras.device")
-    art = _artifacts(tmp_path)
+    art = artifacts_dir(tmp_path, "control")
     rig = rig_toml(CAL_CAMERAS, subject="board-charuco", size=(640, 480), fps=4, frames=16)
     t0 = time.monotonic()
     steps = {}
