@@ -195,25 +195,25 @@ def _check_count(n, name: str) -> None:
         raise ValueError(f"{name} must be a count (an integer >= 0), got {n!r}")
 
 
-def _main_component(vertices, faces) -> np.ndarray | None:
-    """Mask of the largest connected part when there are several (a warning), else None."""
+def _check_one_part(n_vertices: int, faces) -> None:
+    """ValueError when the faces form several connected parts (vertices in no face are ignored)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
     from pipeline.geodesic import mesh_edges
 
     e = mesh_edges(faces)
-    n = len(vertices)
-    k, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
-    used = np.unique(np.asarray(faces).ravel())
-    sizes = np.bincount(comp[used])
-    if (sizes > 0).sum() <= 1:
-        return None
-    log.warning(
-        "the mesh has %d connected parts: the rig is built and fitted on the largest; the other parts "
-        "(%d vertices) follow their nearest bone", int((sizes > 0).sum()), int(sizes.sum() - sizes.max()),
-    )
-    return comp == int(np.argmax(sizes))
+    n = int(n_vertices)
+    _, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    sizes = np.bincount(comp[np.unique(np.asarray(faces).ravel())])
+    sizes = np.sort(sizes[sizes > 0])[::-1]
+    if len(sizes) > 1:
+        shown = ", ".join(map(str, sizes[:4])) + (", ..." if len(sizes) > 4 else "")
+        raise ValueError(
+            f"faces: the mesh has {len(sizes)} connected parts ({shown} vertices): a rig is found for one "
+            "connected subject; keep its part (the largest, as stage track's template does) or rig each part "
+            "on its own"
+        )
 
 
 def choose_reference(vertices, faces, *, candidates: int = 8) -> int:
@@ -282,6 +282,7 @@ def build_articulated_rig(
     T = len(v)
     if T < 2:
         raise ValueError("vertices: one frame: a rig is found from how the subject moves, give at least 2 frames")
+    _check_one_part(v.shape[1], f)
     if not (fps > 0 and np.isfinite(fps)):
         raise ValueError(f"fps must be > 0, got {fps}")
     fi = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64).reshape(-1)
@@ -298,9 +299,8 @@ def build_articulated_rig(
     if not 0 <= ref < T:
         raise ValueError(f"reference must be within 0..{T - 1}, got {reference}")
     rest = v[ref]
-    main = _main_component(rest, f)
     skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f), motion=v, reference=ref)
-    model = articulated_model(rest, f, skel, active=main)
+    model = articulated_model(rest, f, skel)
     timings["skeleton"] = time.perf_counter() - t0
     if progress:
         progress("skeleton", 1, 1)

@@ -222,24 +222,22 @@ def test_one_frame_sequence():
         build_articulated_rig(ms.vertices, ms.faces)
 
 
-def test_several_components(pipe, caplog):
-    """A second, separate part: a warning, and the pipe's joint and fit are unchanged."""
+def test_several_components_are_a_clear_error(pipe):
+    """A second, separate part: an error naming the parts (a rig is found for one connected subject)."""
     import trimesh
 
     d, _ = pipe
-    V = np.asarray(d["vertices"][::3], dtype=np.float64)
-    F = d["faces"]
-    ball = trimesh.creation.icosphere(subdivisions=2, radius=20.0)
+    V = np.asarray(d["vertices"][:3], dtype=np.float64)
+    ball = trimesh.creation.icosphere(subdivisions=1, radius=20.0)
     bv = np.asarray(ball.vertices) + V[0].mean(0) + np.array([0.0, 0.0, 150.0])
-    BV = np.repeat(bv[None], len(V), axis=0)
-    V2 = np.concatenate([V, BV], axis=1)
-    F2 = np.concatenate([F, np.asarray(ball.faces) + V.shape[1]])
-    with caplog.at_level(logging.WARNING):
-        rig = build_articulated_rig(V2, F2)
-    assert "2 connected parts" in caplog.text
-    assert int(rig.skeleton.articulation.sum()) == 1
-    pipe_err = np.mean([np.linalg.norm(rig.posed(t)[: V.shape[1]] - V[t], axis=1).mean() for t in range(len(V))])
-    assert pipe_err <= 3.0
+    V2 = np.concatenate([V, np.repeat(bv[None], len(V), axis=0)], axis=1)
+    F2 = np.concatenate([d["faces"], np.asarray(ball.faces) + V.shape[1]])
+    with pytest.raises(ValueError, match=f"faces: the mesh has 2 connected parts \\({V.shape[1]}, {len(bv)} vertices\\)"):
+        build_articulated_rig(V2, F2)
+    # a vertex in no face is no part
+    V3 = np.concatenate([V, V[:, :1] + 500.0], axis=1)
+    rig = build_articulated_rig(V3, d["faces"], n_samples=200)
+    assert rig.segmentation.labels.shape == (V3.shape[1],)
 
 
 def test_invalid_input(tmp_path):
