@@ -160,6 +160,12 @@ class ProcessParams(BaseModel):
     track : TrackParams
         Options of the ``track`` step. They change the tracking alone: a run with other ones
         tracks again (``tracked/track.json`` says what changed) and keeps every other result.
+    skip_damaged : bool
+        A take with damaged frames (a chunk failing its checksum, :func:`stage.store.verify.verify_take`)
+        is processed without the frame sets that hold them: no damaged frame is read, those sets
+        get no surface (``frames/`` records them as ``damaged``) and ``process.json``, the report and
+        the log list them. Off: such a take stops before any work, naming the damage. Damage outside
+        the frames (metadata, the set table) always stops.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -179,6 +185,7 @@ class ProcessParams(BaseModel):
     photo_refine: bool = False
     spine: dict = Field(default_factory=dict)
     track: TrackParams = Field(default_factory=TrackParams)
+    skip_damaged: bool = False
 
     @field_validator("volume")
     @classmethod
@@ -297,9 +304,11 @@ def _frame_masks(reader, cameras: Sequence[str], k: int, validity: dict) -> tupl
 # ----------------------------------------------------------------------------- per-frame tasks
 
 
-def key_task(take: str, cameras: Sequence[str], base: dict, workers: int, volume=None) -> list[dict]:
+def key_task(take: str, cameras: Sequence[str], base: dict, workers: int, volume=None,
+             skip: dict[str, list[int]] | None = None) -> list[dict]:
     """Key some cameras of the take (in a worker), the take opened once; their masks come
-    back bit-packed for the parent to store (one writer per take file)."""
+    back bit-packed for the parent to store (one writer per take file). ``skip``: per camera,
+    damaged rows never read (their masks empty and invalid)."""
     import cv2
 
     from stage.keying.params import KeyParams
@@ -312,7 +321,8 @@ def key_task(take: str, cameras: Sequence[str], base: dict, workers: int, volume
     try:
         with TakeReader(take) as reader:
             for camera in cameras:
-                key = key_camera(reader, camera, base=KeyParams(**base), workers=workers, volume=volume)
+                key = key_camera(reader, camera, base=KeyParams(**base), workers=workers, volume=volume,
+                                 skip=(skip or {}).get(camera, ()))
                 if key is None:
                     out.append({"camera": camera, "key": None})
                     continue
@@ -732,6 +742,7 @@ class RunContext:
     key_choice: dict = field(default_factory=dict)  # the keying mode and layers of this run, and why
     consistency: dict = field(default_factory=dict)  # per camera median silhouette IoU, and those below the threshold
     step: str = ""  # the step running
+    damaged: dict = field(default_factory=dict)  # skip_damaged: {"sets", "frames" per camera, "summary"} of the damage skipped
     cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds (this process and the workers)
     worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks on the executor
     part_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its parts counted on their own
@@ -749,6 +760,11 @@ class RunContext:
             self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
             self.cpu[name] = self.cpu.get(name, 0.0) + cpu
             self.part_cpu[self.step] = self.part_cpu.get(self.step, 0.0) + cpu
+
+    @property
+    def skipped_sets(self) -> frozenset[int]:
+        """Frame sets holding a damaged frame, skipped by this run (``skip_damaged``)."""
+        return frozenset(self.damaged.get("sets", ()))
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         if self.progress:
@@ -809,7 +825,8 @@ def _step_key(ctx: RunContext) -> None:
     from stage.keying.take import resolve_key_choice, store_camera_keys, take_key_params
 
     t0 = time.perf_counter()
-    choice = resolve_key_choice(ctx.take, ctx.rig, key_mode=ctx.params.key_mode, layers=ctx.params.key_layers)
+    skip = ctx.damaged.get("frames") or None
+    choice = resolve_key_choice(ctx.take, ctx.rig, key_mode=ctx.params.key_mode, layers=ctx.params.key_layers, skip=skip)
     ctx.key_choice = choice
     _add_to_record(ctx, key=choice)
     base = take_key_params(ctx.rig, key_mode=choice["mode"]).to_dict()
@@ -826,7 +843,7 @@ def _step_key(ctx: RunContext) -> None:
     pending = len(groups)
     overlap_at = max(1, _pool_size(where.executor) - 1) if where.executor is not None else 0
     batch: list = []
-    for results in _map_tasks(where, [partial(key_task, str(ctx.take), g, base, threads, volume) for g in groups]):
+    for results in _map_tasks(where, [partial(key_task, str(ctx.take), g, base, threads, volume, skip) for g in groups]):
         pending -= 1
         for res in results:
             if res["key"] is None:
@@ -864,7 +881,7 @@ def _step_refine(ctx: RunContext) -> None:
         done[0] += n
         ctx.report_progress("refine", min(done[0], total), total)
 
-    info = refine_take(ctx.take, volume=_volume_bounds(ctx), progress=tick)
+    info = refine_take(ctx.take, volume=_volume_bounds(ctx), progress=tick, skip_sets=ctx.skipped_sets)
     ctx.keyed = None  # the masks in memory are the keyer's: the surface tasks read the refined ones
     _add_to_record(ctx, refine={"method": "graphcut", "masks": info["frames"], "first_hull_grid": info["grid"]})
     ctx.timings["refine"] = time.perf_counter() - t0
@@ -886,8 +903,11 @@ def _kept_masks(ctx: RunContext) -> Callable[[list[int]], dict] | None:
         return None
     kept = [ctx.keyed[c] for c in ctx.cameras]
     widths = [w for _, w, _ in kept]
+    skipped = ctx.skipped_sets
 
     def packed(k: int) -> list:
+        if k in skipped:
+            return [None] * len(kept)
         out = []
         for (m, _, valid), r in zip(kept, ctx.set_table[k]):
             ok = 0 <= r < len(m) and (r >= len(valid) or valid[r])  # as _frame_masks
@@ -995,6 +1015,8 @@ def _processing_grid(ctx: RunContext):
         else:
             validity = _mask_validity(reader, ctx.cameras)
             masks_of = partial(_frame_masks, reader, ctx.cameras, validity=validity)
+        if ctx.skipped_sets:
+            masks_of = _without_sets(masks_of, ctx.skipped_sets, ctx.cameras)
         volume, source = _search_volume(ctx)
         sb = _subject_grid(masks_of, ctx.calibration, ctx.n_sets, ctx.params, volume,
                            progress=lambda d, t: ctx.report_progress("box", d, t))
@@ -1013,8 +1035,33 @@ def _processing_grid(ctx: RunContext):
     return grid
 
 
+def _without_sets(masks_of: Callable, skipped: frozenset[int], cameras: Sequence[str]) -> Callable:
+    """``masks_of`` with no mask in the ``skipped`` frame sets (every camera skipped)."""
+
+    def masks(k: int):
+        return ([None] * len(cameras), list(cameras)) if k in skipped else masks_of(k)
+
+    return masks
+
+
+def _record_skipped(ctx: RunContext) -> None:
+    """``frames/`` records of the skipped frame sets (``status: damaged``), their results removed:
+    the surface and skeleton tasks pass them by, the report lists them."""
+    from pipeline.results import ResultsStore
+
+    store = ResultsStore(ctx.out)
+    for k in sorted(ctx.skipped_sets):
+        store.mesh_path(k).unlink(missing_ok=True)
+        (ctx.out / "skeletons" / f"{_frame_name(k)}.npz").unlink(missing_ok=True)
+        cams = [c for c, r in zip(ctx.cameras, ctx.set_table[k]) if r in ctx.damaged["frames"].get(c, ())]
+        info = {"index": int(k), "status": "damaged", "skipped_cameras": list(ctx.cameras),
+                "reason": f"damaged frames of camera {', '.join(cams)} in the take: the set was skipped (--skip-damaged)"}
+        atomic_write(ctx.out / "frames" / f"{_frame_name(k)}.json", json.dumps(info))
+
+
 def _step_surface(ctx: RunContext) -> None:
     """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
+    _record_skipped(ctx)
     with ctx.part("grid"):
         grid = _processing_grid(ctx)
         _add_to_record(ctx, grid=ctx.grid_choice)
@@ -1165,14 +1212,22 @@ def _check_params(params: ProcessParams | dict | None) -> ProcessParams:
     return params
 
 
-def _check_frames(take: Path) -> None:
+def _check_frames(take: Path, *, skip: bool) -> dict:
     """Every chunk of the frames this run will read, checked before any work: a damaged take
-    stops here naming its damaged cameras, frames and frame sets (``stage verify`` lists them)."""
+    stops here naming its damaged cameras, frames and frame sets (``stage verify`` lists them);
+    with ``skip``, damage confined to frames is returned instead: ``{"sets", "frames", "summary"}``
+    (empty when there is none)."""
     from stage.store.verify import verify_take
 
     damage = verify_take(take)
-    if not damage.ok:
-        raise ProcessError(f"{damage.summary()}; nothing was processed (`stage verify {take}` lists the damage)")
+    if damage.ok:
+        return {}
+    if not skip or not damage.skippable:
+        hint = "" if skip else "; --skip-damaged processes the other frame sets"
+        raise ProcessError(f"{damage.summary()}; nothing was processed (`stage verify {take}` lists the damage){hint}")
+    msg = f"{damage.summary()}: these frame sets are skipped (no surface, no skeleton)"
+    log.warning("%s", msg)
+    return {"sets": list(damage.sets), "frames": {c: list(v) for c, v in damage.frames.items()}, "summary": msg}
 
 
 def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunContext:
@@ -1199,18 +1254,24 @@ def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunC
         set_table = table[:, [list(reader.cameras).index(c) for c in cameras]]
     if n_sets == 0:
         raise ProcessError(f"{take}: the take holds no frame sets")
-    if need_key or params.photo_refine:
-        _check_frames(take)
+    # skipping needs the damage's frame sets on a resumed run too (its surfaces read the take)
+    damaged = _check_frames(take, skip=params.skip_damaged) if need_key or params.photo_refine or params.skip_damaged else {}
     calibration = type(calibration)(tuple(calibration[c] for c in cameras), units=calibration.units, meta=calibration.meta)
-    return RunContext(
+    ctx = RunContext(
         take=take, out=out, params=params, calibration=calibration, cameras=cameras, n_sets=n_sets,
         fps=float(fps), rig=rig, need_key=need_key, all_depth=all_depth, tip_counts=[None] * n_sets, set_table=set_table, **hooks,
     )
+    if damaged:
+        ctx.damaged = damaged
+        ctx.warnings.append(damaged["summary"])
+    return ctx
 
 
 def _start_record(ctx: RunContext) -> None:
     """Write ``process.json``; results of other parameters or another take are removed first."""
     record = {"take": str(ctx.take.resolve()), "params": ctx.params.model_dump(), "frames": ctx.n_sets, "cameras": ctx.cameras}
+    if ctx.damaged:
+        record["damaged"] = ctx.damaged
     prev = ctx.out / "process.json"
     if prev.exists():
         old = json.loads(prev.read_text())
@@ -1268,7 +1329,7 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         f = ctx.out / "frames" / f"{_frame_name(k)}.json"
         if f.exists():
             frame_infos[k] = json.loads(f.read_text())
-    empty = sorted(k for k, i in frame_infos.items() if i.get("status") != "ok")
+    empty = sorted(k for k, i in frame_infos.items() if i.get("status") not in ("ok", "damaged"))
     if not ctx.consistency and (ctx.out / "consistency.json").is_file():  # made by an earlier run's surface step
         doc = json.loads((ctx.out / "consistency.json").read_text())
         ctx.consistency = {k: doc.get(k) for k in ("median", "low", "threshold")}
@@ -1281,6 +1342,7 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "cpu_seconds": ctx.cpu,
         "total_seconds": time.perf_counter() - t_start,
         "empty_frames": empty,
+        "damaged_sets": sorted(ctx.skipped_sets),
         "tip_counts": ctx.tip_counts,
         "per_frame": [frame_infos.get(k) for k in range(ctx.n_sets)],
         "warnings": ctx.warnings,

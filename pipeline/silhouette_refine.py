@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Collection, Sequence
 
 import cv2
 import numpy as np
@@ -224,6 +224,7 @@ def refine_take(
     volume: Any = None,
     progress: Callable[[int], Any] | None = None,
     margin: int = 4,
+    skip_sets: Collection[int] = (),
 ) -> dict:
     """Refine every stored mask of a take with :func:`refine_silhouettes` and store them back.
 
@@ -237,6 +238,9 @@ def refine_take(
         Called with the number of masks refined.
     margin : int
         Pixels the hull's projection grows by before the outside is sure background.
+    skip_sets : collection of int
+        Frame sets left as they are, their frames never read (damaged frames,
+        :func:`stage.store.verify.verify_take`).
 
     Returns
     -------
@@ -269,7 +273,10 @@ def refine_take(
         params = {c: r.mask_params(c) or {} for c in cams}
         table = r.set_table()
         done = 0
+        skip_sets = set(int(k) for k in skip_sets)
         for k in range(table.shape[0]):
+            if k in skip_sets:
+                continue
             rows = table[k]
             ms = [masks[c][rows[i]] if 0 <= rows[i] < len(masks[c]) else None for i, c in enumerate(cams)]
             ims = [r.frame(c, int(rows[i])) if ms[i] is not None else None for i, c in enumerate(cams)]

@@ -311,6 +311,8 @@ def _summary_section(d: Path, spine, report, take, warnings: list[str]) -> dict:
         if report.get("empty_frames"):
             rows.append(["empty frames", ", ".join(str(x) for x in report["empty_frames"][:50])])
             warnings.append(f"{len(report['empty_frames'])} frame(s) have no surface")
+        if report.get("damaged_sets"):  # the warnings say which camera's frames
+            rows.append(["skipped frame sets (damaged)", ", ".join(str(x) for x in report["damaged_sets"][:50])])
         warnings.extend(str(w) for w in report.get("warnings") or [])  # e.g. the blind side under the subject
         if (report.get("grid") or {}).get("box"):
             rows.append(["subject box", _box_choice(report["grid"]["box"])])

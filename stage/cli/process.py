@@ -74,6 +74,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="move each hull surface's vertices to where the cameras' colours agree (carves concavities two "
         "cameras see; about 1 s a frame more; see docs/reconstruction.md)",
     )
+    p.add_argument("--skip-damaged", action="store_true",
+                   help="process a take with damaged frames (`stage verify`) without the frame sets that hold them, "
+                   "listed in the log, process.json and report.json (default: stop and name the damage)")
     p.add_argument("--workers", type=int, default=2, help="worker processes for per-frame work (default 2; 0 = in process)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of a mesh sequence (--meshes)")
     p.add_argument("--units", default="mm", help="units of a mesh sequence (--meshes), written as given")
@@ -120,6 +123,8 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
         kw["silhouette_margin"] = args.margin
     if args.photo_refine:
         kw["photo_refine"] = True
+    if getattr(args, "skip_damaged", False):
+        kw["skip_damaged"] = True
     if args.support_plane is not None:
         from pipeline.volume import check_plane
 
@@ -138,10 +143,17 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
     finally:
         if executor is not None:
             executor.shutdown(cancel_futures=True)
+    _print_result(result, take, out)
+    return 0
+
+
+def _print_result(result, take: Path, out: Path) -> None:
     rep = result.report
     print(f"processed {result.frames} frame sets of {take} ({', '.join(result.steps)}) in {rep['total_seconds']:.1f} s")
     if result.empty_frames:
         print(f"  empty frames (no subject): {result.empty_frames}")
+    if rep.get("damaged_sets"):
+        print(f"  skipped frame sets (damaged frames): {rep['damaged_sets']}")
     if result.spine_path is not None:
         spine = json.loads(Path(result.spine_path).read_text())
         print(f"  spine: {len(spine['graph']['limbs'])} limbs -> {result.spine_path}")
@@ -154,4 +166,3 @@ def process_with_progress(take: Path, out: Path, *, args: argparse.Namespace) ->
         print("  silhouette consistency (median IoU of mask and projected surface): "
               + ", ".join(f"{c} {m:.2f}" for c, m in cons["median"].items() if m is not None))
     print(f"  meshes: {out / 'meshes'}/  report: {out / 'report.json'}")
-    return 0

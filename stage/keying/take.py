@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -49,7 +49,8 @@ BACKDROP_SHARE = 0.25
 FULL_BACKDROP_SHARE = 0.8
 
 
-def choose_key_mode(take: str | Path | TakeReader, *, frames_per_camera: int = 3) -> dict:
+def choose_key_mode(take: str | Path | TakeReader, *, frames_per_camera: int = 3,
+                    skip: Mapping[str, Collection[int]] | None = None) -> dict:
     """The keying default for footage without a rig file, chosen from the footage itself.
 
     A few frames per camera (spread across the take) are searched for a dominant saturated
@@ -57,6 +58,8 @@ def choose_key_mode(take: str | Path | TakeReader, *, frames_per_camera: int = 3
     least :data:`BACKDROP_SHARE` of the pixels in most cameras: chroma, with the ``volume``
     layer, and the ``graphcut`` layer when it covers less than :data:`FULL_BACKDROP_SHARE`
     in some camera (walls and lights beside a partial backdrop); else a plate from the take.
+
+    ``skip``: per camera, rows never read (damaged frames, :func:`stage.store.verify.verify_take`).
 
     Returns
     -------
@@ -72,11 +75,10 @@ def choose_key_mode(take: str | Path | TakeReader, *, frames_per_camera: int = 3
     shares: dict[str, float] = {}
     with nullcontext(take) if isinstance(take, TakeReader) else TakeReader(take) as r:
         for cam in r.cameras:
-            n = r.n_frames(cam)
-            if n == 0:
+            rows = _readable_rows(r.n_frames(cam), (skip or {}).get(cam, ()))
+            if len(rows) == 0:
                 continue
-            idx = np.unique(np.linspace(0, n - 1, min(n, frames_per_camera)).round().astype(int))
-            sample = np.stack([r.frame(cam, int(i)) for i in idx])
+            sample = np.stack([r.frame(cam, int(i)) for i in _spread(rows, frames_per_camera)])
             shares[cam] = backdrop_share(sample_pixels(sample, stride=8))[0]
     vals = np.array(list(shares.values()) or [0.0])
     typical = float(np.median(vals))
@@ -90,6 +92,25 @@ def choose_key_mode(take: str | Path | TakeReader, *, frames_per_camera: int = 3
     why = (f"no backdrop colour covers {100 * BACKDROP_SHARE:.0f} % of the views (median {100 * typical:.1f} %): "
            "a plate estimated from the take")
     return {"mode": "plate", "layers": [], "backdrop_share": shares, "why": why}
+
+
+def _readable_rows(n: int, skip: Collection[int]) -> np.ndarray:
+    """Rows ``0..n-1`` less those in ``skip``."""
+    return np.setdiff1d(np.arange(n), np.fromiter(skip, int, count=len(skip)))
+
+
+def _spread(rows: np.ndarray, k: int) -> np.ndarray:
+    """At most ``k`` of ``rows`` spread evenly from the first to the last."""
+    return rows[np.unique(np.linspace(0, len(rows) - 1, min(len(rows), k)).round().astype(int))]
+
+
+def _read_frames(r, camera: str, start: int, stop: int, skip: set[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Frames ``start:stop`` of a camera but those in ``skip`` (never read), and their rows."""
+    rows = np.array([i for i in range(start, stop) if i not in skip], int)
+    if len(rows) == stop - start:
+        return r.frames(camera, start, stop), rows  # one read
+    W, H = r.image_size(camera)
+    return (np.stack([r.frame(camera, int(i)) for i in rows]) if len(rows) else np.zeros((0, H, W, 3), np.uint8)), rows
 
 
 @dataclass
@@ -144,6 +165,7 @@ def key_camera(
     preview: bool = False,
     progress: Callable[[int], None] | None = None,
     volume=None,
+    skip: Collection[int] = (),
 ) -> CameraKey | None:
     """Key every frame of one camera of a take (backdrop model from frames spread across the
     take: 16, or 25 for a plate estimated from the take); stores nothing.
@@ -152,7 +174,8 @@ def key_camera(
     process too); :func:`store_camera_key` writes the result into the take. ``take`` may be
     an open :class:`stage.store.TakeReader` (left open: several cameras, one opening).
     ``volume`` (``[xmin, ymin, zmin, xmax, ymax, zmax]``, calibration units): the volume
-    layer, pixels whose rays miss it are background.
+    layer, pixels whose rays miss it are background. ``skip``: rows never read (damaged frames,
+    :func:`stage.store.verify.verify_take`): their masks are empty and invalid.
     """
     from contextlib import nullcontext
 
@@ -166,28 +189,37 @@ def key_camera(
         W, H = r.image_size(camera)
         plate, plate_noise = _stored_plate(r, camera, (H, W, 3))
         k = 25 if base.mode == "plate" and plate is None else 16
-        sample_idx = np.unique(np.linspace(0, n - 1, min(n, k)).round().astype(int))
-        first = r.frames(camera, 0, min(n, _CHUNK))  # one read; a short take's sample comes from it
-        sample = first[sample_idx] if n <= _CHUNK else np.stack([r.frame(camera, int(i)) for i in sample_idx])
+        skip = set(int(i) for i in skip)
+        readable = _readable_rows(n, skip)
+        if len(readable) == 0:
+            log.warning("%s: every frame is damaged", camera)
+            return None
+        sample_idx = _spread(readable, k)
+        first = _read_frames(r, camera, 0, min(n, _CHUNK), skip)  # one read; a short take's sample comes from it
+        sample = (first[0][np.searchsorted(first[1], sample_idx)] if n <= _CHUNK
+                  else np.stack([r.frame(camera, int(i)) for i in sample_idx]))
         roi = _volume_roi(r, camera, volume)
         params = estimate_model(sample, params=base, plate=plate, plate_noise=plate_noise, roi=roi)
         _warn_stuck(camera, params)
         masks = np.zeros((n,) + sample.shape[1:3], bool)
         valid = np.zeros(n, bool)
-        reasons = [""] * n
+        reasons = ["damaged frame (not read)" if i in skip else "" for i in range(n)]  # damaged: empty, invalid
         preview_frames = []
         for start in range(0, n, _CHUNK):
             stop = min(n, start + _CHUNK)
-            frames, first = (first, None) if start == 0 else (r.frames(camera, start, stop), None)
+            (frames, rows), first = (first, None) if start == 0 else (_read_frames(r, camera, start, stop, skip), None)
+            if len(rows) == 0:
+                continue
             res = key_frames(frames, params=params, plate=plate, workers=workers, camera=camera, progress=progress)
-            masks[start:stop] = res.masks
-            valid[start:stop] = res.valid
-            reasons[start:stop] = res.reasons
+            masks[rows] = res.masks
+            valid[rows] = res.valid
+            for i, why in zip(rows, res.reasons):
+                reasons[i] = why
             if preview:
-                keep = [i for i in range(stop - start) if not res.valid[i]][:3]
-                keep += [i for i in np.linspace(0, stop - start - 1, 3).round().astype(int) if i not in keep]
+                keep = [i for i in range(len(rows)) if not res.valid[i]][:3]
+                keep += [i for i in np.linspace(0, len(rows) - 1, 3).round().astype(int) if i not in keep]
                 for i in keep:
-                    preview_frames.append((frames[i], res.masks[i], res.matte[i], res.valid[i], res.reasons[i], start + i))
+                    preview_frames.append((frames[i], res.masks[i], res.matte[i], res.valid[i], res.reasons[i], int(rows[i])))
     return CameraKey(camera, masks, valid, reasons, res.params, preview_frames)
 
 
@@ -395,7 +427,7 @@ def rig_volume(rig: dict | None) -> np.ndarray | None:
 
 
 def resolve_key_choice(take, rig: dict | None, *, key_mode: str | None = None,
-                       layers: Sequence[str] | None = None) -> dict:
+                       layers: Sequence[str] | None = None, skip: Mapping[str, Collection[int]] | None = None) -> dict:
     """The keying mode and layers of a take: what was asked for, else the rig file's, else chosen
     from the footage (:func:`choose_key_mode`); logged with the reason.
 
@@ -416,7 +448,7 @@ def resolve_key_choice(take, rig: dict | None, *, key_mode: str | None = None,
         choice = {"mode": rig_mode, "layers": list(layers if layers is not None else rig_layers(rig) or ()),
                   "why": "the rig file's backdrop"}
     else:
-        choice = choose_key_mode(take)
+        choice = choose_key_mode(take, skip=skip)
         if layers is not None:
             choice["layers"] = list(layers)
     log.info("keying: %s%s (%s)", choice["mode"], f" + {', '.join(choice['layers'])}" if choice["layers"] else "",

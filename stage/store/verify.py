@@ -43,6 +43,9 @@ class TakeDamage:
         One line per damaged dataset (structure, metadata, per-frame data).
     n_sets : int
         Frame sets in the take.
+    other : list of str
+        The problems not confined to frames (metadata, the set table, a camera's plate): a run
+        cannot skip them.
     """
 
     path: Path
@@ -51,10 +54,21 @@ class TakeDamage:
     sets: list[int] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)
     n_sets: int = 0
+    other: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
         return not self.problems
+
+    @property
+    def skippable(self) -> bool:
+        """All the damage lies in frames: skipping the frame sets in :attr:`sets` (and keying no
+        damaged frame) leaves a take that reads whole."""
+        return not self.other
+
+    def _other(self, line: str) -> None:
+        self.problems.append(line)
+        self.other.append(line)
 
     def summary(self) -> str:
         """One line: the damaged cameras and frames, or that none were found."""
@@ -128,7 +142,7 @@ def _check_camera(r: TakeReader, cam: str, out: TakeDamage) -> None:
             continue
         if name not in RESERVED:  # arrays shot with the capture (the plate): whole or damaged
             if not _readable(ds):
-                out.problems.append(f"camera {cam}: {name} cannot be read")
+                out._other(f"camera {cam}: {name} cannot be read")
             continue
         bad = _bad_rows(ds, n)
         if bad:
@@ -176,16 +190,16 @@ def verify_take(path: str | os.PathLike) -> TakeDamage:
             try:
                 r._read_json(name)
             except TakeError:
-                out.problems.append(f"{name} cannot be read")
+                out._other(f"{name} cannot be read")
         try:
             r._f["meta/sync_stats"][:]
         except (OSError, ValueError, KeyError, RuntimeError):
-            out.problems.append("meta/sync_stats cannot be read")
+            out._other("meta/sync_stats cannot be read")
         bad_sets: set[int] = set()
         for name in ("frames", "time_ns"):
             bad = _bad_rows(r._f["sets"][name], r.n_sets)
             if bad:
-                out.problems.append(f"sets/{name} of frame sets {frames_text(bad)} cannot be read")
+                out._other(f"sets/{name} of frame sets {frames_text(bad)} cannot be read")
                 bad_sets.update(bad)
         for cam in r.cameras:
             _check_camera(r, cam, out)

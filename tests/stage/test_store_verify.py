@@ -109,19 +109,53 @@ def test_flipped_bytes_in_frame_chunks_are_named(take, tmp_path):
     assert res.returncode == 1 and "camera a frames 5, 33" in res.stdout and "frame sets 5, 33" in res.stdout
 
 
-def test_process_stops_on_a_damaged_take_naming_the_frames(tmp_path, monkeypatch):
-    monkeypatch.setenv("CAPTURE_STAGE_CACHE", str(tmp_path / "cache"))
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """A small simulated take (4 cameras, 3 frame sets) with a calibration."""
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
 
-    good = record_take(simulate_take("starfish", n_cameras=4, frames=3, size=(64, 48), seed=1), tmp_path / "s.h5")
-    bad = _flip(good, tmp_path / "bad.h5", _chunk_offset(good, "cameras/cam02/image", (1, 0, 0, 0)))
+    folder = tmp_path_factory.mktemp("simulated")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("CAPTURE_STAGE_CACHE", str(folder / "cache"))
+        return record_take(simulate_take("starfish", n_cameras=4, frames=3, size=(64, 48), seed=1), folder / "s.h5")
+
+
+def test_process_stops_on_a_damaged_take_naming_the_frames(tmp_path, simulated):
+    bad = _flip(simulated, tmp_path / "bad.h5", _chunk_offset(simulated, "cameras/cam02/image", (1, 0, 0, 0)))
     res = _stage("process", bad.name, "--out", "r", "--workers", "0", "--no-progress", cwd=tmp_path)
     err = _one_line(res)
-    assert "camera cam02 frames 1" in err and "nothing was processed" in err
+    assert "camera cam02 frames 1" in err and "nothing was processed" in err and "--skip-damaged" in err
     assert not (tmp_path / "r").exists()
     res = _stage("info", bad.name, cwd=tmp_path)  # the summary does not read frames
     assert res.returncode == 0 and "checksums: every chunk" in res.stdout
+
+
+def test_process_skip_damaged_skips_the_sets_and_lists_them(tmp_path, simulated, caplog):
+    import json
+
+    bad = _flip(simulated, tmp_path / "bad.h5", _chunk_offset(simulated, "cameras/cam02/image", (1, 0, 0, 0)))
+    res = _stage("process", bad.name, "--out", "r", "--workers", "0", "--no-progress", "--skip-damaged", cwd=tmp_path)
+    assert res.returncode == 0, res
+    assert "skipped frame sets (damaged frames): [1]" in res.stdout
+    said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("camera cam02 frames 1" in m and "skipped" in m for m in said), said  # the log names them
+    assert not any("frame 1: mask invalid" in m for m in said), said  # the damaged frame is not keyed
+    out = tmp_path / "r"
+    record = json.loads((out / "process.json").read_text())
+    assert record["damaged"]["sets"] == [1] and record["damaged"]["frames"] == {"cam02": [1]}
+    report = json.loads((out / "report.json").read_text())
+    assert report["damaged_sets"] == [1] and any("cam02" in w for w in report["warnings"])
+    assert report["per_frame"][1]["status"] == "damaged" and "cam02" in report["per_frame"][1]["reason"]
+    assert [report["per_frame"][k]["status"] for k in (0, 2)] == ["ok", "ok"] and report["tip_counts"][1] == 0
+    assert not (out / "meshes" / "frame_000001.ply").exists() and (out / "meshes" / "frame_000002.ply").exists()
+    with TakeReader(bad) as r:  # the damaged frame was never keyed (nor read): its mask is marked invalid
+        valid = r.read_array("cameras/cam02", "mask_valid")[0]
+        assert not valid[1] and valid[0] and valid[2]
+    # a resumed run still skips the set (the take keeps its damage), and says so again
+    res = _stage("process", bad.name, "--out", "r", "--workers", "0", "--no-progress", "--until", "surface",
+                 "--skip-damaged", cwd=tmp_path)
+    assert res.returncode == 0 and json.loads((out / "report.json").read_text())["damaged_sets"] == [1], res
 
 
 @pytest.mark.parametrize("name", ["meta/rig", "sets/frames", "cameras/a/image", "cameras/b"])
