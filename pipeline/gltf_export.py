@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.armature_spine import Rig, RiggedModel, reference_frame, rig_from_spine, rigged_model
 from pipeline.mesh_primitives import vertex_normals
-from pipeline.rig_model import Rig, RiggedModel, reference_frame, rig_from_spine, rigged_model
 
 __all__ = [
     "UNIT_SCALE",
@@ -290,7 +290,7 @@ def rig_to_glb(model: RiggedModel, *, scale: float | None = None, include_spine:
     Parameters
     ----------
     model : RiggedModel
-        From :func:`pipeline.rig_model.rigged_model`.
+        From :func:`pipeline.armature_spine.rigged_model`.
     scale : float, optional
         Factor from the model's units to the file's (default: to metres).
     include_spine : bool
@@ -318,7 +318,7 @@ def spine_to_glb(spine, *, segments: int | None = 6, scale: float | None = None,
     spine : pipeline.spine.Spine or dict
         A spine, or a parsed ``spine.json``.
     segments : int or None
-        Bones per axis (see :func:`pipeline.rig_model.rig_from_spine`).
+        Bones per axis (see :func:`pipeline.armature_spine.rig_from_spine`).
     scale : float, optional
         Default: to metres.
     reference : int, optional

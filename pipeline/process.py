@@ -1161,7 +1161,7 @@ register_step("spine", _step_spine, doc="per-frame skeletons and the take's spin
 def _step_rig(ctx: RunContext) -> None:
     """Articulated rig from the tracked template (``tracked/``) -> ``rig/``. Without a tracked
     template the track step runs first (``ProcessParams.track``; a warning in the job report says so)."""
-    from pipeline.articulated_rig import NoTrackingError, rig_results, tracked_meshes
+    from pipeline.armature import NoTrackingError, rig_results, tracked_meshes
 
     t0 = time.perf_counter()
     try:
@@ -1288,7 +1288,7 @@ def _compared(params) -> object:
 def _start_over(ctx: RunContext) -> None:
     """Remove the results of other parameters or another take and all that was made from them
     (report, spine exports, tracking, rig), in one warning (also in the job report)."""
-    from pipeline.articulated_rig import counted
+    from pipeline.armature import counted
     from pipeline.track import remove_tracking
 
     for sub in ("meshes", "frames", "skeletons"):  # the results themselves: what "starting over" says

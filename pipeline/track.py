@@ -153,8 +153,8 @@ def _start_for(k, prev_frame, prev, before, seen, points, normals, *, predict, i
 
 def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
     """(reference position, RiggedModel) of the take's spine, or None without a usable spine."""
+    from pipeline.armature_spine import NoCompleteFrameError, reference_frame, rigged_model
     from pipeline.meshio import load_mesh
-    from pipeline.rig_model import NoCompleteFrameError, reference_frame, rigged_model
     from pipeline.spine import read_spine
 
     path = root / "spine.json"
@@ -365,7 +365,7 @@ def remove_tracking(out_dir) -> str:
     ``tracked/NNNNNN.ply`` and ``tracked/track.json`` go (the folder too when that leaves it
     empty; other files stay), the surfaces carved with the tracked motion (``carved/``,
     :mod:`pipeline.carve`), then the rig as a tracking start-over removes it
-    (``rig/``, :func:`pipeline.articulated_rig.remove_rig`).
+    (``rig/``, :func:`pipeline.armature.remove_rig`).
 
     Parameters
     ----------
@@ -394,7 +394,7 @@ def remove_tracking(out_dir) -> str:
 
 def _remove_tracked_frames(tracked: Path) -> int:
     """Remove ``tracked/NNNNNN.ply``; -> how many there were."""
-    from pipeline.articulated_rig import FRAME_GLOB
+    from pipeline.armature import FRAME_GLOB
 
     files = list(tracked.glob(FRAME_GLOB))  # a user's 1_fixed.ply stays
     for f in files:
@@ -404,8 +404,8 @@ def _remove_tracked_frames(tracked: Path) -> int:
 
 def _remove_stale_rig(out_dir: Path) -> str:
     """Remove the rig built on the frames that are tracked again (``OUT/rig/``,
-    :func:`pipeline.articulated_rig.remove_rig`); -> what the start-over's warning says of it."""
-    from pipeline.articulated_rig import remove_rig
+    :func:`pipeline.armature.remove_rig`); -> what the start-over's warning says of it."""
+    from pipeline.armature import remove_rig
 
     if not remove_rig(out_dir / "rig"):
         return ""
@@ -640,21 +640,21 @@ def track_with_rig(results_dir, model=None, *, poses=None, rounds: int = 1, weig
     """Track a tracked results directory again with a rig as the articulated prior.
 
     Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
-    it, forwards and backwards, by :class:`pipeline.articulated_track.RigTracker`: the rig's pose
+    it, forwards and backwards, by :class:`pipeline.armature_track.RigTracker`: the rig's pose
     fitted to the frame's surface from the previous frame's pose, its constant-velocity
     prediction and the rig's own fit of the frame, then the template fitted from the skinned pose
     and drawn towards it. Without ``model`` each round builds the rig from the current tracking
-    (:func:`pipeline.articulated_rig.build_articulated_rig`, rest frame the reference frame) and
+    (:func:`pipeline.armature.build_articulated_rig`, rest frame the reference frame) and
     tracks with it: the paper's first rig, then track, refit, repeat (``rounds``).
 
     Parameters
     ----------
     results_dir : path
         A multi-view results directory tracked by :func:`track_results`.
-    model : pipeline.articulated_fit.ArticulatedModel, optional
+    model : pipeline.armature_fit.ArticulatedModel, optional
         A given rig, bound to a rest shape in the template's vertex order at the reference frame
         (one round with it).
-    poses : dict int -> pipeline.articulated_fit.Pose, optional
+    poses : dict int -> pipeline.armature_fit.Pose, optional
         The given rig's poses by frame number (further starts of its fit).
     rounds : int
         Rounds of rig building and tracking (without ``model``).
@@ -668,8 +668,8 @@ def track_with_rig(results_dir, model=None, *, poses=None, rounds: int = 1, weig
         The report written to ``tracked/track.json``, with ``rig_rounds`` and per round the rig's
         segments and its fit error (``rig_prior``), per frame ``rig_residual_mm``.
     """
-    from pipeline.articulated_fit import ArticulatedModel
-    from pipeline.articulated_rig import build_articulated_rig, load_sequence, tracked_meshes
+    from pipeline.armature import build_articulated_rig, load_sequence, tracked_meshes
+    from pipeline.armature_fit import ArticulatedModel
 
     root = Path(results_dir)
     if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 1:
@@ -712,8 +712,8 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
                faces: np.ndarray, weight: float, progress) -> dict:
     """One tracking of every frame but the reference with ``model`` as the prior; -> {"vertices": frame -> (V, 3),
     "figures": frame -> per-frame figures}."""
-    from pipeline.articulated_fit import predict_pose
-    from pipeline.articulated_track import RigTracker, fit_pose_to_surface
+    from pipeline.armature_fit import predict_pose
+    from pipeline.armature_track import RigTracker, fit_pose_to_surface
 
     rig = RigTracker(tracker, model, weight=weight)
     data_for = _mesh_data(by_frame)

@@ -7,7 +7,7 @@ itself, and returns a full HTML page:
 
 * summary: frames, limbs ``K``, timings, empty frames, files;
 * an interactive 3-D view: the reference frame's surface rigged to the spine
-  (:mod:`pipeline.rig_model`) and posed in every frame, with the animated
+  (:mod:`pipeline.armature_spine`) and posed in every frame, with the animated
   spine, its tips and junctions (slider and play button);
 * the tip count over time (Brostow et al. 2004, Fig. 7);
 * per-frame surface quality (plot and table);
@@ -162,9 +162,9 @@ def _load_json(p: Path):
 
 def _rigged_view_model(spine, d: Path, *, max_faces: int):
     """A small rigged surface for the 3-D view (None when no mesh of a complete frame exists)."""
+    from pipeline.armature_spine import reference_frame, rigged_model
     from pipeline.gltf_export import find_frame_mesh
     from pipeline.meshio import load_mesh
-    from pipeline.rig_model import reference_frame, rigged_model
 
     try:
         best = reference_frame(spine)

@@ -380,7 +380,7 @@ def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: 
     spine : pipeline.spine.Spine
     mesh : (vertices (V, 3), faces (F, 3)), optional
         A static surface (e.g. the reference frame's mesh), drawn semi-transparent.
-    model : pipeline.rig_model.RiggedModel, optional
+    model : pipeline.armature_spine.RiggedModel, optional
         A rigged surface: posed in every frame by linear blend skinning (wins over ``mesh``).
     max_frames : int
         Animation keys (frames are subsampled evenly above this).
@@ -497,7 +497,7 @@ def rig_figure(vertices, faces, labels, joints, parents, kinds, *, frame_indices
     max_faces : int
         Faces drawn at most (an even subset of them above this).
     """
-    from pipeline.articulated_rig import counted
+    from pipeline.armature import counted
 
     go = _go()
     v = np.asarray(vertices, dtype=np.float32)

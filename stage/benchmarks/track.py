@@ -114,7 +114,7 @@ def fast_accuracy() -> None:
     from fake_cameras.record import record_take
     from fake_cameras.surface_motion import surface_point_tracks
     from fake_cameras.take import simulate_take
-    from pipeline.articulated_rig import build_articulated_rig
+    from pipeline.armature import build_articulated_rig
     from pipeline.meshio import load_mesh
     from pipeline.process import process_take
     from pipeline.track import track_results, track_with_rig
@@ -227,7 +227,7 @@ def accuracy(frames: int = 30) -> None:
     from pathlib import Path
 
     from fake_cameras.rgbd import OBJECTS, record_rgbd_take, simulate_rgbd_take, template_path
-    from pipeline.articulated_rig import counted, rig_results
+    from pipeline.armature import counted, rig_results
     from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
     from pipeline.track import track_rgbd_take
@@ -270,7 +270,7 @@ def real_pipe_accuracy() -> None:
     from pathlib import Path
 
     from fake_cameras.rgbd import record_rgbd_take, simulate_sensor_rgbd_take, template_path
-    from pipeline.articulated_rig import counted, rig_results
+    from pipeline.armature import counted, rig_results
     from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
     from pipeline.track import track_rgbd_take

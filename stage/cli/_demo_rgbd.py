@@ -38,7 +38,7 @@ def run_rgbd(args: argparse.Namespace) -> int:
         err.append(np.linalg.norm(v - tk.truth[k], axis=1).mean())
         vol.append(mesh_volume(v, f) / mesh_volume(tk.template_vertices, tk.template_faces))
     try:
-        from pipeline.articulated_rig import counted, rig_results
+        from pipeline.armature import counted, rig_results
     except ImportError:
         print("3/3 stage rig is not available in this build: skipped")
     else:

@@ -67,7 +67,7 @@ def _export_bvh(d: Path, out) -> Path:
     """``DIR/rig/rig.json`` (or ``DIR/rig.json``, a rig directory) as BVH; default ``DIR/rig.bvh``."""
     import json
 
-    from pipeline.articulated_rig import bvh_from_rig_json
+    from pipeline.armature import bvh_from_rig_json
     from pipeline.results import atomic_write_bytes
     from stage.cli import UserError
 

@@ -70,7 +70,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.articulated_rig import counted
+    from pipeline.armature import counted
     from pipeline.track import TrackingError, track_rgbd_take
     from stage.cli import UserError
     from stage.cli._progress import StepBars

@@ -78,7 +78,7 @@ def test_curve_skeleton_without_a_spine_uses_the_contraction(caplog):
     """An ellipsoid shows no tips (no spine): its curve skeleton runs along the major axis."""
     import trimesh
 
-    from pipeline.articulated_skeleton import curve_skeleton
+    from pipeline.armature_skeleton import curve_skeleton
 
     m = trimesh.creation.icosphere(subdivisions=3)
     v = np.asarray(m.vertices) * [60.0, 25.0, 25.0]

@@ -10,10 +10,10 @@ import pygltflib
 import pytest
 import trimesh
 
+from pipeline.armature_spine import rig_from_spine, rigged_model
 from pipeline.gltf_export import NoSpineError, export_rig, find_frame_mesh, rig_to_glb, spine_to_glb, spine_tubes
-from pipeline.rig_model import rig_from_spine, rigged_model
 from pipeline.spine import write_spine
-from tests.pipeline.rig_fixtures import FPS, creature_size, creature_take, surface, true_spine
+from tests.pipeline.creature_truth import FPS, creature_size, creature_take, surface, true_spine
 
 FRAMES = 12
 SEGMENTS = 6

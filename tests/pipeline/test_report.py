@@ -26,7 +26,7 @@ from pipeline.report import (
 )
 from pipeline.spine import write_spine
 from tests.browser import CHROMIUM, CHROMIUM_ARGS, sync_playwright_or_skip
-from tests.pipeline.rig_fixtures import creature_take, surface, true_spine
+from tests.pipeline.creature_truth import creature_take, surface, true_spine
 
 FRAMES = 8
 # screenshots of the browser test are kept here (CI can point STAGE_TEST_ARTIFACTS elsewhere)
@@ -108,7 +108,7 @@ def test_report_is_offline_and_has_every_section(page, results):
 
 def test_report_3d_view_animates_the_spine_over_the_take(results):
     d, spine, *_ = results
-    from pipeline.rig_model import rigged_model
+    from pipeline.armature_spine import rigged_model
 
     v, f = surface(creature_take("starfish", FRAMES)[1][4], step=12.0)
     model = rigged_model(spine, v, f, reference=4)

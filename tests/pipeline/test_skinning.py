@@ -1,12 +1,12 @@
-"""Bone heat skinning weights (pipeline.skinning) and the rig built on them (pipeline.rig_model)."""
+"""Bone heat skinning weights (pipeline.skinning) and the rig built on them (pipeline.armature_spine)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from pipeline.armature_spine import NoCompleteFrameError, reference_frame, rig_from_spine, rigged_model
 from pipeline.geodesic import vertex_areas
-from pipeline.rig_model import NoCompleteFrameError, reference_frame, rig_from_spine, rigged_model
 from pipeline.skinning import (
     SkinningError,
     bone_heat_weights,
@@ -14,7 +14,7 @@ from pipeline.skinning import (
     limit_influences,
     segment_distances,
 )
-from tests.pipeline.rig_fixtures import creature_take, surface, true_spine
+from tests.pipeline.creature_truth import creature_take, surface, true_spine
 
 
 def _grid(n=6, *, seed=0, jitter=0.2):

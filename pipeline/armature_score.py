@@ -1,6 +1,6 @@
 """Scores of an articulated rig against a hand-made or simulated skeleton and its rigid parts.
 
-What the rig's accuracy is judged by (docs/rig-format.md, "Where it goes wrong"):
+What the rig's accuracy is judged by (docs/armature-format.md, "Where it goes wrong"):
 
 * :func:`articulation_bends`: how far every true joint bends during a sequence -- the largest change,
   over frames, of the angle between the bone that ends at the joint and each bone that starts there

@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "clustering of vertex trajectories), put a joint where two parts meet on the curve skeleton, skin the "
         "template with bone-heat weights and fit the articulated model to every frame by least squares. "
         "Writes rig.json (capture-stage/rig@1), segments.npy, posed/NNNNNN.ply, rig.glb and rig.bvh "
-        "(docs/rig-format.md). The per-frame surfaces of a processed take do not share connectivity: "
+        "(docs/armature-format.md). The per-frame surfaces of a processed take do not share connectivity: "
         "a results directory is rigged from its tracked template (tracked/NNNNNN.ply); when there is none, "
         "the template is tracked through the take first (`stage track RESULTS_DIR` with its defaults).",
     )
@@ -56,7 +56,7 @@ def _spine_meta(results: Path) -> dict:
 
 def _track_first(d: Path, *, quiet: bool) -> list:
     """``stage track d`` with its defaults, for a processed take without a tracked template; its tracked meshes."""
-    from pipeline.articulated_rig import tracked_meshes
+    from pipeline.armature import tracked_meshes
     from stage.cli import build_parser
 
     print(f"{d} has no tracked template (tracked/NNNNNN.ply): tracking the template through the take first, "
@@ -67,7 +67,7 @@ def _track_first(d: Path, *, quiet: bool) -> list:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.articulated_rig import (
+    from pipeline.armature import (
         NoTrackingError,
         build_articulated_rig,
         load_sequence,

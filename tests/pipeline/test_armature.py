@@ -1,6 +1,6 @@
 """Articulated rigs from motion (Tzionas & Gall 2016, section 4): real and simulated subjects, files, bad input.
 
-Measured (this machine, see docs/rig-format.md for the figures): the pipe's articulation,
+Measured (this machine, see docs/armature-format.md for the figures): the pipe's articulation,
 the simulated creatures' recall/precision and vertex errors, the horse's legs and playback.
 """
 
@@ -12,8 +12,7 @@ import logging
 import numpy as np
 import pytest
 
-from pipeline.articulated_fit import fit_frame
-from pipeline.articulated_rig import (
+from pipeline.armature import (
     build_articulated_rig,
     bvh_text,
     counted,
@@ -23,6 +22,7 @@ from pipeline.articulated_rig import (
     rig_dict,
     write_rig,
 )
+from pipeline.armature_fit import fit_frame
 from tests.conftest import SHARED_DATA
 from tests.pipeline.bvh import parse_bvh
 
@@ -72,7 +72,7 @@ def test_pipe_fit_matches_the_slow_least_squares(pipe):
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
-    from pipeline.articulated_fit import Pose, _forward
+    from pipeline.armature_fit import Pose, _forward
 
     d, rig = pipe
     m = rig.model
@@ -310,7 +310,7 @@ def test_deform_matches_the_per_influence_blend(creature):
 def test_constant_velocity_prediction_is_exact_on_constant_velocity_motion(creature):
     from scipy.spatial.transform import Rotation
 
-    from pipeline.articulated_fit import _forward, predict_pose
+    from pipeline.armature_fit import _forward, predict_pose
 
     _, _, rig = creature
     m = rig.model
@@ -370,7 +370,7 @@ def _rigid_about(pivot, axis, angles):
 def test_joint_residual_recovers_a_shared_pivot():
     from scipy.spatial.transform import Rotation
 
-    from pipeline.articulated_skeleton import joint_residual
+    from pipeline.armature_skeleton import joint_residual
 
     T = 30
     body = (np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3)))
@@ -395,7 +395,7 @@ def test_joint_residual_recovers_a_shared_pivot():
 
 def test_touching_segments_are_not_jointed():
     """Three segments adjacent in a cycle: the pair whose motion shares no pivot is a contact."""
-    from pipeline.articulated_skeleton import _kinematic_tree
+    from pipeline.armature_skeleton import _kinematic_tree
 
     cand = [((0, 1), None, 1.0), ((0, 2), None, 1.0), ((1, 2), None, 1.0)]
     kept = _kinematic_tree(cand, {(0, 1): 0.1, (0, 2): 0.2, (1, 2): 9.0})
@@ -408,7 +408,7 @@ def test_an_undefined_joint_in_a_frame_still_gives_valid_files(pipe, tmp_path, c
     previous frame's motion in the BVH and the GLB."""
     import pygltflib
 
-    from pipeline.articulated_fit import FitResult, Pose
+    from pipeline.armature_fit import FitResult, Pose
 
     _, rig = pipe
     poses = list(rig.fit.poses[:6])
@@ -435,7 +435,7 @@ def test_an_undefined_joint_in_a_frame_still_gives_valid_files(pipe, tmp_path, c
 
 def test_tracked_meshes_are_the_six_digit_frames_only(tmp_path):
     """``tracked/NNNNNN.ply`` in frame order; a user's file beside them is not read as a frame."""
-    from pipeline.articulated_rig import NoTrackingError, tracked_meshes
+    from pipeline.armature import NoTrackingError, tracked_meshes
 
     (tmp_path / "tracked").mkdir()
     (tmp_path / "tracked" / "1_fixed.ply").write_text("the user's")
@@ -452,11 +452,11 @@ COW = DATA / "cow_poses"
 
 
 def test_cow_articulations_against_its_rigging_skeleton():
-    """The cow's 7 poses against its hand-made rigging skeleton (scored as docs/rig-format.md says: within
+    """The cow's 7 poses against its hand-made rigging skeleton (scored as docs/armature-format.md says: within
     5 % of size, median over the poses; recall over the articulations that bend >= 10 degrees)."""
     if not COW.is_dir():
         pytest.skip(f"real data not found: {COW} (../shared/data is absent)")
-    from pipeline.rig_score import articulation_bends, articulation_scores
+    from pipeline.armature_score import articulation_bends, articulation_scores
 
     V, F, _ = load_sequence(sorted(COW.glob("cow-*.obj")))
     sk = np.load(COW / "skeleton.npz")
@@ -477,7 +477,7 @@ def test_a_joint_that_barely_bends_keeps_the_boundary_placement_and_says_so():
     """The hinged bar: bent by 60 degrees the joint moves to the centre of rotation (the hinge at the
     origin); bent by a fifth of a degree, with 0.5 mm of tracking noise, the centre is ill-determined and the
     joint stays at the boundary's centroid on the curve skeleton, which rig.json says."""
-    from pipeline.articulated_skeleton import articulated_skeleton
+    from pipeline.armature_skeleton import articulated_skeleton
     from tests.pipeline.shapes import two_bars
 
     V, F, right = two_bars(12)

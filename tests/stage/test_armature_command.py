@@ -42,7 +42,7 @@ def test_rig_of_a_rigid_sequence_says_one_segment(tmp_path, capsys):
 
 
 def test_counted_is_singular_for_one():
-    from pipeline.articulated_rig import counted, rig_counts
+    from pipeline.armature import counted, rig_counts
 
     assert [counted(n, "joint") for n in (0, 1, 2)] == ["0 joints", "1 joint", "2 joints"]
     assert rig_counts(1, 1, 2) == "1 segment, 1 articulation, 2 joints"

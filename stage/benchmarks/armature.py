@@ -37,8 +37,8 @@ def run(args: argparse.Namespace) -> int:
         accuracy()
         return 0
     from fake_cameras.mesh_motion import mesh_sequence
-    from pipeline.articulated_fit import articulated_model, fit_sequence
-    from pipeline.articulated_skeleton import articulated_skeleton
+    from pipeline.armature_fit import articulated_model, fit_sequence
+    from pipeline.armature_skeleton import articulated_skeleton
     from pipeline.motion_segmentation import motion_segmentation
 
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
@@ -75,9 +75,9 @@ def run(args: argparse.Namespace) -> int:
 def _truth_cow(root):
     """The cow's 7 poses, its rigging skeleton and the true part of every vertex (the bone whose rigid
     motion, estimated from the vertices nearest to it, best predicts the vertex over the poses)."""
-    from pipeline.articulated_rig import load_sequence
+    from pipeline.armature import load_sequence
+    from pipeline.armature_score import articulation_bends
     from pipeline.motion_segmentation import rigid_motions
-    from pipeline.rig_score import articulation_bends
 
     d = root / "cow_poses"
     V, F, _ = load_sequence(sorted(d.glob("cow-*.obj")))
@@ -153,9 +153,9 @@ def _truth_creature(name, frames=40):
 def _placements(tr, labels, ref):
     """Joints on the true segments: the paper's (boundary centroid on the curve skeleton) and ours
     (the centre of rotation where it is determined), each fitted and scored."""
-    from pipeline.articulated_fit import articulated_model, fit_sequence
-    from pipeline.articulated_skeleton import articulated_skeleton, curve_skeleton
-    from pipeline.rig_score import articulation_scores
+    from pipeline.armature_fit import articulated_model, fit_sequence
+    from pipeline.armature_score import articulation_scores
+    from pipeline.armature_skeleton import articulated_skeleton, curve_skeleton
 
     V, F = tr["V"], tr["F"]
     rest = np.asarray(V[ref], dtype=np.float64)
@@ -173,8 +173,8 @@ def _placements(tr, labels, ref):
 def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped")) -> None:
     """Per stage: the segmentation against the true rigid parts, the joints placed on the true segments
     (the paper's placement and the centre of rotation), and the whole rig against the true articulations."""
-    from pipeline.articulated_rig import build_articulated_rig
-    from pipeline.rig_score import articulation_scores, bending_parts, segment_agreement
+    from pipeline.armature import build_articulated_rig
+    from pipeline.armature_score import articulation_scores, bending_parts, segment_agreement
     from stage.benchmarks._data import SHARED_DATA
 
     print(f"{'subject':10} {'V':>6} {'T':>4} {'bend':>4} | {'segs':>4} {'true':>4} {'purity':>6} {'compl':>6} | "

@@ -1,14 +1,14 @@
 """Template tracking with a rig as the articulated prior (Tzionas & Gall 2016, sections 1 and 5).
 
 The paper's chicken-and-egg: with a rigged model the mesh motion is tracked accurately, and with
-the mesh motion the rig is found. Once a first rig exists (:mod:`pipeline.articulated_rig` on a
+the mesh motion the rig is found. Once a first rig exists (:mod:`pipeline.armature` on a
 first tracking), every frame is tracked with it:
 
 1. **The rig's pose on the frame's surface** (:func:`fit_pose_to_surface`): articulated ICP.
    Each round pairs the skinned model with the surface (gated closest points both ways, normals
    within 45 degrees, as the template tracking pairs), moves every paired vertex along the data
    normals onto the surface (point-to-plane) and refits the pose to those targets by the
-   articulated least squares of :func:`pipeline.articulated_fit.fit_frame`. The first half of the
+   articulated least squares of :func:`pipeline.armature_fit.fit_frame`. The first half of the
    rounds pairs within twice the gate (a limb several voxels from its last place is still
    caught), the second within the gate. It starts from every candidate pose given (the previous
    frame's pose, its constant-velocity prediction in joint angles, the rig's own fit of the frame
@@ -23,7 +23,7 @@ first tracking), every frame is tracked with it:
 
 A pose fitted in joint angles extrapolates a limb's swing where the vertices' constant velocity
 cannot (a rotating limb's points move on circles). Why the ICP is written here: the articulated
-least squares is the project's own (:mod:`pipeline.articulated_fit`); pairing and gating are the
+least squares is the project's own (:mod:`pipeline.armature_fit`); pairing and gating are the
 template tracker's.
 """
 
@@ -34,7 +34,7 @@ import numbers
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.articulated_fit import ArticulatedModel, Pose, fit_frame
+from pipeline.armature_fit import ArticulatedModel, Pose, fit_frame
 from pipeline.mesh_primitives import vertex_normals
 from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs
 

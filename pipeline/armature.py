@@ -3,9 +3,9 @@
 :func:`build_articulated_rig` runs Tzionas & Gall 2016 section 4 on a mesh
 sequence with shared connectivity: motion segmentation (4.1,
 :mod:`pipeline.motion_segmentation`), the kinematic topology (4.2,
-:mod:`pipeline.articulated_skeleton`), bone heat skinning, and the
-per-frame least-squares fit (:mod:`pipeline.articulated_fit`).
-:func:`write_rig` writes a rig directory (``docs/rig-format.md``):
+:mod:`pipeline.armature_skeleton`), bone heat skinning, and the
+per-frame least-squares fit (:mod:`pipeline.armature_fit`).
+:func:`write_rig` writes a rig directory (``docs/armature-format.md``):
 
 ``rig.json``         capture-stage/rig@1: joints, joint positions per frame, fit errors
 ``segments.npy``     (V,) motion segment of every template vertex
@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.articulated_fit import ArticulatedModel, FitResult, articulated_model, fit_sequence
-from pipeline.articulated_skeleton import ArticulatedSkeleton, articulated_skeleton, curve_skeleton
+from pipeline.armature_fit import ArticulatedModel, FitResult, articulated_model, fit_sequence
+from pipeline.armature_skeleton import ArticulatedSkeleton, articulated_skeleton, curve_skeleton
 from pipeline.motion_segmentation import Segmentation, check_sequence, motion_segmentation, subject_size
 from pipeline.results import atomic_write_bytes, ply_bytes
 
@@ -373,7 +373,7 @@ def _quats(R: np.ndarray) -> np.ndarray:
 
 
 def rig_dict(rig: ArticulatedRig) -> dict:
-    """The ``rig.json`` document (capture-stage/rig@1, docs/rig-format.md)."""
+    """The ``rig.json`` document (capture-stage/rig@1, docs/armature-format.md)."""
     sk = rig.skeleton
     names = list(sk.names)
     kinds = ["root" if p < 0 else ("joint" if a else "aux") for p, a in zip(sk.parents, sk.articulation)]
@@ -522,8 +522,8 @@ def _bvh(names, parents, rest, R: np.ndarray, tr: np.ndarray, fps: float) -> str
 
 def glb_bytes(rig: ArticulatedRig, *, scale: float | None = None) -> bytes:
     """The rig as GLB: the skinned rest mesh, joints at the articulations, one key per frame."""
+    from pipeline.armature_spine import Rig, RiggedModel
     from pipeline.gltf_export import rig_to_glb
-    from pipeline.rig_model import Rig, RiggedModel
 
     sk = rig.skeleton
     R, tr = _local_motion(rig)

@@ -1,4 +1,4 @@
-"""Tracking with a rig as the articulated prior (pipeline.articulated_track, pipeline.track.track_with_rig).
+"""Tracking with a rig as the articulated prior (pipeline.armature_track, pipeline.track.track_with_rig).
 
 The fast take: the simulated quadruped filmed at 5 frames a second (6 cameras, 320x240, 8 frames,
 11.7 mm voxels), so its limbs move 3 voxels a frame or more (its true surface points: 95th percentile
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from fake_cameras.mesh_motion import mesh_sequence
-from pipeline.articulated_rig import build_articulated_rig
-from pipeline.articulated_track import RigTracker, fit_pose_to_surface, surface_residual
+from pipeline.armature import build_articulated_rig
+from pipeline.armature_track import RigTracker, fit_pose_to_surface, surface_residual
 from pipeline.mesh_primitives import vertex_normals
 from pipeline.tracking import TemplateTracker
 

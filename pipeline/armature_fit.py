@@ -1,7 +1,7 @@
 """Fitting an articulated model to every frame of a mesh sequence (Tzionas & Gall 2016, sections 4.2, 5).
 
 The model (:class:`ArticulatedModel`): the rest mesh, an
-:class:`~pipeline.articulated_skeleton.ArticulatedSkeleton` and bone heat
+:class:`~pipeline.armature_skeleton.ArticulatedSkeleton` and bone heat
 skinning weights (Baran & Popovic 2007, :mod:`pipeline.skinning`, as the paper
 computes them). Its pose is a global rigid motion plus one rotation per
 articulation; bone lengths are fixed by construction (every part turns about
@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.articulated_skeleton import ArticulatedSkeleton
+from pipeline.armature_skeleton import ArticulatedSkeleton
 from pipeline.skinning import bone_heat_weights, limit_influences
 
 __all__ = ["ArticulatedModel", "Pose", "articulated_model", "fit_frame", "fit_sequence", "predict_pose", "FitResult"]

@@ -1,11 +1,11 @@
-"""Scores of a rig against true joints and parts (pipeline.rig_score): exact small cases and loops."""
+"""Scores of a rig against true joints and parts (pipeline.armature_score): exact small cases and loops."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipeline.rig_score import articulation_bends, articulation_scores, bending_parts, segment_agreement
+from pipeline.armature_score import articulation_bends, articulation_scores, bending_parts, segment_agreement
 
 
 def test_bends_of_a_chain_that_folds():
