@@ -1,11 +1,11 @@
-"""Articulated rigs from motion: segmentation, skeleton, fit, and the files users open.
+"""Armatures from motion: segmentation, skeleton, fit, and the files users open.
 
-:func:`build_articulated_rig` runs Tzionas & Gall 2016 section 4 on a mesh
+:func:`build_armature` runs Tzionas & Gall 2016 section 4 on a mesh
 sequence with shared connectivity: motion segmentation (4.1,
 :mod:`pipeline.motion_segmentation`), the kinematic topology (4.2,
 :mod:`pipeline.armature_skeleton`), bone heat skinning, and the
 per-frame least-squares fit (:mod:`pipeline.armature_fit`).
-:func:`write_rig` writes a rig directory (``docs/armature-format.md``):
+:func:`write_armature` writes a rig directory (``docs/armature-format.md``):
 
 ``rig.json``         capture-stage/rig@1: joints, joint positions per frame, fit errors
 ``segments.npy``     (V,) motion segment of every template vertex
@@ -40,9 +40,9 @@ from pipeline.motion_segmentation import Segmentation, check_sequence, motion_se
 from pipeline.results import atomic_write_bytes, ply_bytes
 
 __all__ = [
-    "RIG_FORMAT", "NoTrackingError", "tracked_meshes", "load_sequence", "rig_results", "ArticulatedRig",
-    "build_articulated_rig", "rig_dict", "bvh_text", "bvh_from_rig_json", "glb_bytes", "write_rig", "remove_rig", "choose_reference",
-    "counted", "rig_counts",
+    "RIG_FORMAT", "NoTrackingError", "tracked_meshes", "load_sequence", "armature_results", "Armature",
+    "build_armature", "armature_dict", "bvh_text", "bvh_from_rig_json", "glb_bytes", "write_armature", "remove_armature",
+    "choose_reference", "counted", "armature_counts",
 ]
 
 log = logging.getLogger(__name__)
@@ -113,24 +113,24 @@ def load_sequence(paths) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.asarray(verts), faces, np.asarray(numbers, dtype=np.int64)
 
 
-def rig_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=None, progress=None, **options):
-    """Rig a results directory from its tracked template; writes ``RESULTS_DIR/rig/`` (or ``out``).
+def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=None, progress=None, **options):
+    """Build the armature of a results directory from its tracked template; writes ``RESULTS_DIR/rig/`` (or ``out``).
 
     Returns
     -------
-    ArticulatedRig
+    Armature
     """
     vertices, faces, numbers = load_sequence(tracked_meshes(results_dir))
     options.setdefault("peel_parts", False)  # a tracked template: its tracking noise is no part
-    rig = build_articulated_rig(vertices, faces, units=units, fps=fps, frame_indices=numbers, progress=progress,
+    rig = build_armature(vertices, faces, units=units, fps=fps, frame_indices=numbers, progress=progress,
                                 **options)
-    write_rig(rig, Path(out) if out is not None else Path(results_dir) / "rig", progress=progress)
+    write_armature(rig, Path(out) if out is not None else Path(results_dir) / "rig", progress=progress)
     return rig
 
 
 @dataclass(frozen=True, eq=False)
-class ArticulatedRig:
-    """Everything :func:`build_articulated_rig` found.
+class Armature:
+    """Everything :func:`build_armature` found.
 
     Attributes
     ----------
@@ -183,7 +183,7 @@ def counted(n: int, noun: str) -> str:
     return f"{int(n)} {noun}{'' if int(n) == 1 else 's'}"
 
 
-def rig_counts(segments: int, articulations: int, joints: int) -> str:
+def armature_counts(segments: int, articulations: int, joints: int) -> str:
     """What a rig is summed up by: ``"2 segments, 1 articulation, 2 joints"`` (counts, integers >= 0)."""
     for n, name in ((segments, "segments"), (articulations, "articulations"), (joints, "joints")):
         _check_count(n, name)
@@ -232,7 +232,7 @@ def choose_reference(vertices, faces, *, candidates: int = 8) -> int:
     return int(cand[int(np.argmax(tips))])
 
 
-def build_articulated_rig(
+def build_armature(
     vertices,
     faces,
     *,
@@ -244,7 +244,7 @@ def build_articulated_rig(
     reference: int | None = None,
     progress=None,
     peel_parts: bool = True,
-) -> ArticulatedRig:
+) -> Armature:
     """An articulated, skinned model fitted to every frame of a mesh sequence.
 
     Parameters
@@ -270,11 +270,11 @@ def build_articulated_rig(
         ``progress(step, done, total)``.
     peel_parts : bool
         See :func:`pipeline.motion_segmentation.motion_segmentation` (off for a tracked template:
-        :func:`rig_results`, ``stage rig RESULTS_DIR``).
+        :func:`armature_results`, ``stage armature RESULTS_DIR``).
 
     Returns
     -------
-    ArticulatedRig
+    Armature
     """
     import time
 
@@ -310,16 +310,16 @@ def build_articulated_rig(
     size = subject_size(rest[None])
     log.info(
         "rig: %s; mean vertex error %.3g %s (%.2f %% of size)",
-        rig_counts(seg.n_segments, int(skel.articulation.sum()), skel.n_joints), fit.errors.mean(), units,
+        armature_counts(seg.n_segments, int(skel.articulation.sum()), skel.n_joints), fit.errors.mean(), units,
         100 * fit.errors.mean() / size,
     )
-    return ArticulatedRig(seg, skel, model, fit, ref, fi, str(units), float(fps), size, float(lambda_thr), timings)
+    return Armature(seg, skel, model, fit, ref, fi, str(units), float(fps), size, float(lambda_thr), timings)
 
 
 # --------------------------------------------------------------------------- local transforms
 
 
-def _local_motion(rig: ArticulatedRig) -> tuple[np.ndarray, np.ndarray]:
+def _local_motion(rig: Armature) -> tuple[np.ndarray, np.ndarray]:
     """Local rotations (T, J, 3, 3) and translations (T, J, 3) of every joint per frame."""
     sk = rig.skeleton
     G = np.stack([pose.R[sk.part] for pose in rig.fit.poses])  # (T, J, 3, 3) global rotation of every joint
@@ -372,7 +372,7 @@ def _quats(R: np.ndarray) -> np.ndarray:
     return q
 
 
-def rig_dict(rig: ArticulatedRig) -> dict:
+def armature_dict(rig: Armature) -> dict:
     """The ``rig.json`` document (capture-stage/rig@1, docs/armature-format.md)."""
     sk = rig.skeleton
     names = list(sk.names)
@@ -427,7 +427,7 @@ def rig_dict(rig: ArticulatedRig) -> dict:
     }
 
 
-def bvh_text(rig: ArticulatedRig) -> str:
+def bvh_text(rig: Armature) -> str:
     """The rig as a BVH file (one ROOT/JOINT per joint; leaves carry an ``End Site``)."""
     sk = rig.skeleton
     R, tr = _local_motion(rig)
@@ -445,7 +445,7 @@ def bvh_from_rig_json(doc: dict) -> str:
     ------
     ValueError
         When ``doc`` is not a rig document, or its frames carry no rotations
-        (a ``rig.json`` written before they were stored: run ``stage rig`` again).
+        (a ``rig.json`` written before they were stored: run ``stage armature`` again).
     """
     if not isinstance(doc, dict) or doc.get("format") != RIG_FORMAT:
         got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
@@ -460,7 +460,7 @@ def bvh_from_rig_json(doc: dict) -> str:
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"rig.json: a joint or frame entry is malformed ({exc!s})") from None
     if not frames or any("rotations" not in fr for fr in frames):
-        raise ValueError("rig.json has no joint rotations per frame (written by an older stage rig): run stage rig again")
+        raise ValueError("rig.json has no joint rotations per frame (written by an older stage armature): run stage armature again")
     T, J = len(frames), len(names)
     G = np.full((T, J, 3, 3), np.nan)
     pos = np.full((T, J, 3), np.nan)
@@ -520,10 +520,10 @@ def _bvh(names, parents, rest, R: np.ndarray, tr: np.ndarray, fps: float) -> str
     return "\n".join(lines) + "\n"
 
 
-def glb_bytes(rig: ArticulatedRig, *, scale: float | None = None) -> bytes:
+def glb_bytes(rig: Armature, *, scale: float | None = None) -> bytes:
     """The rig as GLB: the skinned rest mesh, joints at the articulations, one key per frame."""
-    from pipeline.armature_spine import Rig, RiggedModel
-    from pipeline.gltf_export import rig_to_glb
+    from pipeline.armature_spine import RiggedModel, SpineArmature
+    from pipeline.gltf_export import armature_to_glb
 
     sk = rig.skeleton
     R, tr = _local_motion(rig)
@@ -534,7 +534,7 @@ def glb_bytes(rig: ArticulatedRig, *, scale: float | None = None) -> bytes:
         "root" if p < 0 else (f"segments {sk.segment_pairs[j][0]}-{sk.segment_pairs[j][1]}" if sk.articulation[j] else "aux")
         for j, p in enumerate(sk.parents)
     )
-    grig = Rig(
+    grig = SpineArmature(
         names=tuple(sk.names),
         parents=sk.parents.copy(),
         element=element,
@@ -553,10 +553,10 @@ def glb_bytes(rig: ArticulatedRig, *, scale: float | None = None) -> bytes:
     else:
         joints = np.zeros_like(m.influences)
     model = RiggedModel(m.vertices, m.faces, joints, m.weights, grig, meta={"weights": "bone heat"})
-    return rig_to_glb(model, scale=scale, include_spine=len(sk.bones) > 0)
+    return armature_to_glb(model, scale=scale, include_spine=len(sk.bones) > 0)
 
 
-def write_rig(rig: ArticulatedRig, out_dir, *, progress=None) -> dict:
+def write_armature(rig: Armature, out_dir, *, progress=None) -> dict:
     """Write the rig directory (``rig.json``, ``segments.npy``, ``posed/``, ``rig.glb``, ``rig.bvh``).
 
     Every file is written atomically (temporary file, then rename).
@@ -580,7 +580,7 @@ def write_rig(rig: ArticulatedRig, out_dir, *, progress=None) -> dict:
     np.save(buf, rig.segmentation.labels.astype(np.int32))
     paths = {
         "segments": atomic_write_bytes(out / "segments.npy", buf.getvalue()),
-        "rig_json": atomic_write_bytes(out / "rig.json", json.dumps(rig_dict(rig), indent=1).encode()),
+        "rig_json": atomic_write_bytes(out / "rig.json", json.dumps(armature_dict(rig), indent=1).encode()),
         "bvh": atomic_write_bytes(out / "rig.bvh", bvh_text(rig).encode()),
         "glb": atomic_write_bytes(out / "rig.glb", glb_bytes(rig)),
         "posed": posed,
@@ -588,17 +588,17 @@ def write_rig(rig: ArticulatedRig, out_dir, *, progress=None) -> dict:
     return paths
 
 
-#: The files :func:`write_rig` writes in a rig directory, besides ``posed/NNNNNN.ply``.
+#: The files :func:`write_armature` writes in a rig directory, besides ``posed/NNNNNN.ply``.
 RIG_FILES = ("rig.json", "segments.npy", "rig.bvh", "rig.glb")
 #: A frame's file in ``tracked/`` and ``posed/``: ``NNNNNN.ply``, exactly six digits (a user's
 #: ``1_fixed.ply`` beside them is not a frame: not read as one, not removed).
 FRAME_GLOB = "[0-9]" * 6 + ".ply"
-#: The names of the frames :func:`write_rig` writes in ``posed/``, and nothing else.
+#: The names of the frames :func:`write_armature` writes in ``posed/``, and nothing else.
 POSED_GLOB = FRAME_GLOB
 
 
-def remove_rig(out_dir) -> bool:
-    """Remove what :func:`write_rig` wrote in ``out_dir``: a rig of frames that were tracked
+def remove_armature(out_dir) -> bool:
+    """Remove what :func:`write_armature` wrote in ``out_dir``: a rig of frames that were tracked
     again belongs to other frames.
 
     ``rig.json``, ``segments.npy``, ``rig.bvh``, ``rig.glb`` and ``posed/NNNNNN.ply`` go; the

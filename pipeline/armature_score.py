@@ -1,4 +1,4 @@
-"""Scores of an articulated rig against a hand-made or simulated skeleton and its rigid parts.
+"""Scores of an armature against a hand-made or simulated skeleton and its rigid parts.
 
 What the rig's accuracy is judged by (docs/armature-format.md, "Where it goes wrong"):
 

@@ -6,7 +6,7 @@ skeleton is the take's spine (Brostow et al. 2004, section 4.3: one graph for
 the whole take, every limb resampled at the same interval), so the rig plays
 the take back.
 
-Joints (:func:`rig_from_spine`)
+Joints (:func:`armature_from_spine`)
     The root junction is the root joint. Every spine axis (limb, or the
     chain from a parent junction to a child junction) is resampled to
     ``segments + 1`` points ``p_0 .. p_n``; it gets a *base* joint at ``p_0``
@@ -46,7 +46,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.skinning import bone_heat_weights, limit_influences
 from pipeline.spine import resample_polyline
 
-__all__ = ["Rig", "RiggedModel", "rig_from_spine", "rigged_model", "reference_frame", "NoCompleteFrameError"]
+__all__ = ["SpineArmature", "RiggedModel", "armature_from_spine", "rigged_model", "reference_frame", "NoCompleteFrameError"]
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ class NoCompleteFrameError(ValueError):
 
 
 @dataclass(frozen=True, eq=False)
-class Rig:
+class SpineArmature:
     """A joint hierarchy with a rest pose and one pose per frame.
 
     Attributes
@@ -140,7 +140,7 @@ class Rig:
 
 @dataclass(frozen=True, eq=False)
 class RiggedModel:
-    """A mesh bound to a :class:`Rig`.
+    """A mesh bound to a :class:`SpineArmature`.
 
     Attributes
     ----------
@@ -151,7 +151,7 @@ class RiggedModel:
         Influencing joints per vertex (``k <= 4``), by decreasing weight.
     weights : (V, k) float ndarray
         Rows sum to 1.
-    rig : Rig
+    rig : SpineArmature
     meta : dict
     """
 
@@ -159,7 +159,7 @@ class RiggedModel:
     faces: np.ndarray
     joints: np.ndarray
     weights: np.ndarray
-    rig: Rig
+    rig: SpineArmature
     meta: dict = field(default_factory=dict)
 
     def deform(self, t: int) -> np.ndarray:
@@ -262,7 +262,7 @@ def reference_frame(spine, *, prefer=None) -> int:
     return int(good[np.argmin(np.abs(good - (T - 1) / 2))])
 
 
-def rig_from_spine(spine, *, reference: int | None = None, segments: int | None = 6) -> Rig:
+def armature_from_spine(spine, *, reference: int | None = None, segments: int | None = 6) -> SpineArmature:
     """Joints along the spine's limbs and their pose in every frame.
 
     Parameters
@@ -277,7 +277,7 @@ def rig_from_spine(spine, *, reference: int | None = None, segments: int | None 
 
     Returns
     -------
-    Rig
+    SpineArmature
 
     Raises
     ------
@@ -303,7 +303,7 @@ def rig_from_spine(spine, *, reference: int | None = None, segments: int | None 
     local_rotations, local_translations = _local_poses(tree, positions, rest, ref)
     fi = np.asarray(spine.frame_indices, dtype=np.int64)
     times = (fi - fi[0]) / float(spine.fps)
-    return Rig(
+    return SpineArmature(
         names=tuple(tree.names),
         parents=tree.parents,
         element=tuple(tree.element),
@@ -318,7 +318,7 @@ def rig_from_spine(spine, *, reference: int | None = None, segments: int | None 
     )
 
 
-# --------------------------------------------------------------------------- rig_from_spine, step by step
+# --------------------------------------------------------------------------- armature_from_spine, step by step
 
 
 def _resampled_axes(spine, segments: int | None) -> dict[str, np.ndarray]:
@@ -537,7 +537,7 @@ def rigged_model(
     reference : int, optional
         Position of the frame the mesh belongs to.
     segments : int or None
-        Bones per axis (see :func:`rig_from_spine`).
+        Bones per axis (see :func:`armature_from_spine`).
     max_influences : int
         Joints per vertex (glTF: 4 per ``JOINTS_n`` set; 1..4 here).
     heat : float
@@ -549,7 +549,7 @@ def rigged_model(
     """
     if not 1 <= int(max_influences) <= 4:
         raise ValueError(f"max_influences must be within 1..4, got {max_influences}")
-    rig = rig_from_spine(spine, reference=reference, segments=segments)
+    rig = armature_from_spine(spine, reference=reference, segments=segments)
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
     if len(rig.bones) == 0:

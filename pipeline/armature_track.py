@@ -15,7 +15,7 @@ first tracking), every frame is tracked with it:
    from the tracking it was built on): a third of the rounds from each, within twice the gate,
    and the rest from the one whose skinned surface the frame's surface explains best
    (:func:`surface_residual`).
-2. **The skinned pose as the start and as a regulariser** (:class:`RigTracker`): the template
+2. **The skinned pose as the start and as a regulariser** (:class:`ArmatureTracker`): the template
    tracking of :class:`pipeline.tracking.TemplateTracker` starts from the skinned pose and every
    vertex is drawn towards it with ``weight`` (in pairs, ``fit(anchor=)``), so within a rigid
    part the surface cannot slide along itself, while the data and the Laplacian still shape what
@@ -38,7 +38,7 @@ from pipeline.armature_fit import ArticulatedModel, Pose, fit_frame
 from pipeline.mesh_primitives import vertex_normals
 from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs
 
-__all__ = ["fit_pose_to_surface", "surface_residual", "RigTracker"]
+__all__ = ["fit_pose_to_surface", "surface_residual", "ArmatureTracker"]
 
 
 def _check_points(points, normals) -> tuple[np.ndarray, np.ndarray]:
@@ -144,7 +144,7 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
     return pose, surface_residual(model.deform(pose), X, gate=g, tree=tree)
 
 
-class RigTracker:
+class ArmatureTracker:
     """Tracks a template frame by frame with a rig as the articulated prior.
 
     Parameters

@@ -2,7 +2,7 @@
 
 The GLB is written by hand (JSON chunk + BIN chunk, Khronos glTF 2.0
 specification, section 4.4 "GLB File Format Specification"): no dependency.
-What it holds (:func:`rig_to_glb`):
+What it holds (:func:`armature_to_glb`):
 
 * one skinned triangle mesh (``POSITION``, ``NORMAL``, ``JOINTS_0``,
   ``WEIGHTS_0``, ``indices``): the reference frame's surface;
@@ -32,12 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.armature_spine import Rig, RiggedModel, reference_frame, rig_from_spine, rigged_model
+from pipeline.armature_spine import RiggedModel, SpineArmature, armature_from_spine, reference_frame, rigged_model
 from pipeline.mesh_primitives import vertex_normals
 
 __all__ = [
     "UNIT_SCALE",
-    "rig_to_glb",
+    "armature_to_glb",
     "spine_to_glb",
     "spine_tubes",
     "export_rig",
@@ -112,12 +112,12 @@ def _pack_weights(joints: np.ndarray, weights: np.ndarray, n_joints: int) -> tup
     return J, W
 
 
-def spine_tubes(rig: Rig, *, radius: float | None = None, sections: int = 6):
+def spine_tubes(rig: SpineArmature, *, radius: float | None = None, sections: int = 6):
     """Thin tubes along the rig's bones, bound to their joints (rest pose).
 
     Parameters
     ----------
-    rig : Rig
+    rig : SpineArmature
     radius : float, optional
         Tube radius (default 1 % of the rest pose's extent).
     sections : int
@@ -196,7 +196,7 @@ def _glb(doc: dict, binary: bytes) -> bytes:
 
 
 def _document(
-    rig: Rig,
+    rig: SpineArmature,
     meshes: list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
     *,
     scale: float,
@@ -272,7 +272,7 @@ def _document(
     return _glb(doc, bytes(b.bin))
 
 
-def _extras(rig: Rig, scale: float, **more) -> dict:
+def _extras(rig: SpineArmature, scale: float, **more) -> dict:
     return {
         "format": "capture-stage/rig@1",
         "source_units": rig.units,
@@ -284,7 +284,7 @@ def _extras(rig: Rig, scale: float, **more) -> dict:
     }
 
 
-def rig_to_glb(model: RiggedModel, *, scale: float | None = None, include_spine: bool = True) -> bytes:
+def armature_to_glb(model: RiggedModel, *, scale: float | None = None, include_spine: bool = True) -> bytes:
     """A rigged model as GLB bytes.
 
     Parameters
@@ -318,7 +318,7 @@ def spine_to_glb(spine, *, segments: int | None = 6, scale: float | None = None,
     spine : pipeline.spine.Spine or dict
         A spine, or a parsed ``spine.json``.
     segments : int or None
-        Bones per axis (see :func:`pipeline.armature_spine.rig_from_spine`).
+        Bones per axis (see :func:`pipeline.armature_spine.armature_from_spine`).
     scale : float, optional
         Default: to metres.
     reference : int, optional
@@ -332,7 +332,7 @@ def spine_to_glb(spine, *, segments: int | None = 6, scale: float | None = None,
 
     if isinstance(spine, dict):
         spine = Spine.from_dict(spine)
-    rig = rig_from_spine(spine, reference=reference, segments=segments)
+    rig = armature_from_spine(spine, reference=reference, segments=segments)
     s = _unit_scale(rig.units, scale)
     return _document(rig, [("spine", *spine_tubes(rig))], scale=s, extras=_extras(rig, s))
 
@@ -420,7 +420,7 @@ def export_rig(
         raise ValueError(f"{mp} is empty")
     log.info("rigging %s (frame %d) to %s", mp.name, fi[pos], d / "spine.json")
     model = rigged_model(spine, v, f, reference=pos, segments=segments)
-    data = rig_to_glb(model, include_spine=include_spine)
+    data = armature_to_glb(model, include_spine=include_spine)
     target = Path(out) if out is not None else d / "spine_rig.glb"
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_suffix(target.suffix + ".tmp")

@@ -1161,7 +1161,7 @@ register_step("spine", _step_spine, doc="per-frame skeletons and the take's spin
 def _step_rig(ctx: RunContext) -> None:
     """Articulated rig from the tracked template (``tracked/``) -> ``rig/``. Without a tracked
     template the track step runs first (``ProcessParams.track``; a warning in the job report says so)."""
-    from pipeline.armature import NoTrackingError, rig_results, tracked_meshes
+    from pipeline.armature import NoTrackingError, armature_results, tracked_meshes
 
     t0 = time.perf_counter()
     try:
@@ -1177,7 +1177,7 @@ def _step_rig(ctx: RunContext) -> None:
             _step_track(ctx)
         t0 = time.perf_counter()
     try:
-        rig_results(ctx.out, units=ctx.calibration.units, fps=float(ctx.fps), progress=ctx.progress)
+        armature_results(ctx.out, units=ctx.calibration.units, fps=float(ctx.fps), progress=ctx.progress)
     except NoTrackingError as exc:
         raise ProcessError(f"rig: {exc}") from None
     ctx.timings["rig"] = time.perf_counter() - t0

@@ -33,7 +33,7 @@ from pipeline.mesh_primitives import mesh_volume, vertex_normals
 from pipeline.results import atomic_write_bytes, ply_bytes
 from pipeline.tracking import TemplateTracker, TrackingError
 
-__all__ = ["track_results", "track_with_rig", "track_chain_task", "track_rgbd_take", "tracked_path", "remove_tracking",
+__all__ = ["track_results", "track_with_armature", "track_chain_task", "track_rgbd_take", "tracked_path", "remove_tracking",
            "TrackingError"]
 
 log = logging.getLogger(__name__)
@@ -365,7 +365,7 @@ def remove_tracking(out_dir) -> str:
     ``tracked/NNNNNN.ply`` and ``tracked/track.json`` go (the folder too when that leaves it
     empty; other files stay), the surfaces carved with the tracked motion (``carved/``,
     :mod:`pipeline.carve`), then the rig as a tracking start-over removes it
-    (``rig/``, :func:`pipeline.armature.remove_rig`).
+    (``rig/``, :func:`pipeline.armature.remove_armature`).
 
     Parameters
     ----------
@@ -404,10 +404,10 @@ def _remove_tracked_frames(tracked: Path) -> int:
 
 def _remove_stale_rig(out_dir: Path) -> str:
     """Remove the rig built on the frames that are tracked again (``OUT/rig/``,
-    :func:`pipeline.armature.remove_rig`); -> what the start-over's warning says of it."""
-    from pipeline.armature import remove_rig
+    :func:`pipeline.armature.remove_armature`); -> what the start-over's warning says of it."""
+    from pipeline.armature import remove_armature
 
-    if not remove_rig(out_dir / "rig"):
+    if not remove_armature(out_dir / "rig"):
         return ""
     note = f"; removed the rig built on them ({out_dir / 'rig'})"
     page = out_dir / "report.html"
@@ -635,16 +635,16 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     return part
 
 
-def track_with_rig(results_dir, model=None, *, poses=None, rounds: int = 1, weight: float = 2.0,
+def track_with_armature(results_dir, model=None, *, poses=None, rounds: int = 1, weight: float = 2.0,
                    progress=None) -> dict:
     """Track a tracked results directory again with a rig as the articulated prior.
 
     Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
-    it, forwards and backwards, by :class:`pipeline.armature_track.RigTracker`: the rig's pose
+    it, forwards and backwards, by :class:`pipeline.armature_track.ArmatureTracker`: the rig's pose
     fitted to the frame's surface from the previous frame's pose, its constant-velocity
     prediction and the rig's own fit of the frame, then the template fitted from the skinned pose
     and drawn towards it. Without ``model`` each round builds the rig from the current tracking
-    (:func:`pipeline.armature.build_articulated_rig`, rest frame the reference frame) and
+    (:func:`pipeline.armature.build_armature`, rest frame the reference frame) and
     tracks with it: the paper's first rig, then track, refit, repeat (``rounds``).
 
     Parameters
@@ -668,7 +668,7 @@ def track_with_rig(results_dir, model=None, *, poses=None, rounds: int = 1, weig
         The report written to ``tracked/track.json``, with ``rig_rounds`` and per round the rig's
         segments and its fit error (``rig_prior``), per frame ``rig_residual_mm``.
     """
-    from pipeline.armature import build_articulated_rig, load_sequence, tracked_meshes
+    from pipeline.armature import build_armature, load_sequence, tracked_meshes
     from pipeline.armature_fit import ArticulatedModel
 
     root = Path(results_dir)
@@ -692,7 +692,7 @@ def track_with_rig(results_dir, model=None, *, poses=None, rounds: int = 1, weig
     for r in range(1 if model is not None else int(rounds)):
         if model is None or r > 0:
             # with the peel: a prior tolerates parts cut in two (the paper's over-segmentation), not parts fused
-            rig = build_articulated_rig(vs, faces, reference=refi, peel_parts=True)
+            rig = build_armature(vs, faces, reference=refi, peel_parts=True)
             use, by_pose = rig.model, dict(zip(frames, rig.fit.poses))
             history.append({"segments": int(rig.segmentation.n_segments), "fit_error_mm": round(float(rig.fit.errors.mean()), 4)})
         else:
@@ -713,9 +713,9 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
     """One tracking of every frame but the reference with ``model`` as the prior; -> {"vertices": frame -> (V, 3),
     "figures": frame -> per-frame figures}."""
     from pipeline.armature_fit import predict_pose
-    from pipeline.armature_track import RigTracker, fit_pose_to_surface
+    from pipeline.armature_track import ArmatureTracker, fit_pose_to_surface
 
-    rig = RigTracker(tracker, model, weight=weight)
+    rig = ArmatureTracker(tracker, model, weight=weight)
     data_for = _mesh_data(by_frame)
     ref = frames[refi]
     out = {"vertices": {ref: vs[refi]}, "figures": {}}

@@ -197,7 +197,7 @@ def get_posed(_: ReadAccess, job: Job, name: FrameName, settings: SettingsDep) -
             responses={200: {"content": {"application/json": {}, "model/gltf-binary": {}, "text/plain": {},
                                          "application/octet-stream": {}}}})
 def get_rig_file(_: ReadAccess, job: Job, name: RigName, settings: SettingsDep) -> Response:
-    """The articulated rig of the ``rig`` step: ``rig.json``, ``rig.glb``, ``rig.bvh`` or ``segments.npy``."""
+    """The armature of the ``rig`` step: ``rig.json``, ``rig.glb``, ``rig.bvh`` or ``segments.npy``."""
     path, media = results.rig_file(settings.jobs_dir, job.id, name)
     return FileResponse(path, media_type=media, filename=name)
 

@@ -244,7 +244,7 @@ def render_report(results_dir, *, take=None, max_frames: int = 120, view_faces: 
         _view_section(d, spine, max_frames=int(max_frames), view_faces=int(view_faces))
         if spine is not None else None,
         _tips_section(spine, report),
-        _rig_section(d, max_frames=int(max_frames), warnings=warnings),
+        _armature_section(d, max_frames=int(max_frames), warnings=warnings),
         _quality_section(report, warnings),
         _consistency_section(d, take, calibration, warnings),
         _cameras_section(calibration, spine, warnings) if calibration is not None else None,
@@ -379,9 +379,9 @@ def _tips_section(spine, report) -> dict | None:
             "unseen": unseen}
 
 
-def _rig_section(d: Path, *, max_frames: int, warnings: list[str]) -> dict | None:
-    """The articulated rig of ``DIR/rig/`` (``stage rig``): segments on the surface, joints over the take."""
-    from pipeline.report.figures import rig_figure
+def _armature_section(d: Path, *, max_frames: int, warnings: list[str]) -> dict | None:
+    """The armature of ``DIR/rig/`` (``stage armature``): segments on the surface, joints over the take."""
+    from pipeline.report.figures import armature_figure
 
     r = d / "rig"
     if not ((r / "rig.json").is_file() and (r / "segments.npy").is_file()):
@@ -398,7 +398,7 @@ def _rig_section(d: Path, *, max_frames: int, warnings: list[str]) -> dict | Non
         parents = np.array([idx[j["parent"]] if j["parent"] is not None else -1 for j in doc["joints"]])
         P = np.array([[fr["joints"][n] if fr["joints"][n] is not None else [np.nan] * 3 for n in names]
                       for fr in doc["frames"]], dtype=float)
-        fig = rig_figure(v, f, labels, P, parents, [j["kind"] for j in doc["joints"]],
+        fig = armature_figure(v, f, labels, P, parents, [j["kind"] for j in doc["joints"]],
                          frame_indices=[fr["index"] for fr in doc["frames"]], fps=float(doc["fps"]),
                          max_frames=max_frames)
     except (OSError, KeyError, ValueError, TypeError) as exc:
@@ -406,7 +406,7 @@ def _rig_section(d: Path, *, max_frames: int, warnings: list[str]) -> dict | Non
         return None
     err = doc.get("fit", {}).get("mean_vertex_error")
     note = (f"Mean vertex error of the fitted model {err:.3g} {doc.get('units', '')}." if err is not None else "")
-    return {"id": "rig", "title": "Articulated rig: motion segments and joints", "note": note,
+    return {"id": "rig", "title": "Armature: motion segments and joints", "note": note,
             "figure": figure_html(fig, div_id="rig-view")}
 
 

@@ -23,7 +23,7 @@ __all__ = [
     "frusta_figure",
     "camera_coverage",
     "spine_figure",
-    "rig_figure",
+    "armature_figure",
     "decimate_mesh",
     "contact_sheet",
     "png_data_uri",
@@ -475,9 +475,9 @@ def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: 
     return fig
 
 
-def rig_figure(vertices, faces, labels, joints, parents, kinds, *, frame_indices=None, fps: float = 30.0,
+def armature_figure(vertices, faces, labels, joints, parents, kinds, *, frame_indices=None, fps: float = 30.0,
                max_frames: int = 120, max_faces: int = 20000):
-    """The articulated rig: the rest surface coloured by motion segment, the joints animated over the take.
+    """The armature: the rest surface coloured by motion segment, the joints animated over the take.
 
     Parameters
     ----------
@@ -534,7 +534,7 @@ def rig_figure(vertices, faces, labels, joints, parents, kinds, *, frame_indices
     fig = go.Figure(data=[surface] + joint_traces(int(keys[0])), frames=frames)
     step_ms = max(1, int(round(1000.0 / fps * max(1, (T - 1) / max(1, len(keys) - 1)))))
     fig.update_layout(
-        title=f"Rig: {counted(int(lab.max()) + 1, 'motion segment')}, {counted(int(art.sum()), 'articulation')}, "
+        title=f"Armature: {counted(int(lab.max()) + 1, 'motion segment')}, {counted(int(art.sum()), 'articulation')}, "
               f"{counted(len(par), 'joint')}",
         scene=dict(aspectmode="data"), height=620, margin=dict(l=0, r=0, t=40, b=0), uirevision="rig",
         updatemenus=[dict(type="buttons", showactive=False, x=0.02, y=0.02, xanchor="left", yanchor="bottom",

@@ -1,4 +1,6 @@
-"""``stage bench rig``: seconds for motion segmentation, skeleton and fit (Tzionas & Gall 2016, section 4).
+"""``stage bench armature``: seconds for motion segmentation, skeleton and fit (Tzionas & Gall 2016, section 4).
+
+``stage bench rig`` is its old name, kept as an alias for one release.
 
 Subjects: the simulated quadruped posed along its kinematic tree
 (:func:`fake_cameras.mesh_motion.mesh_sequence`) at two mesh resolutions (about
@@ -14,8 +16,10 @@ import time
 
 import numpy as np
 
-NAME = "rig"
-HELP = "seconds for segmentation, skeleton and per-frame fit on ~6k/50k vertices, 60/500 frames"
+NAME = "armature"
+ALIASES = ("rig",)  # the old name, kept for one release
+HELP = ("seconds for segmentation, skeleton and per-frame fit on ~6k/50k vertices, 60/500 frames "
+        "(`stage bench rig`: the old name, kept for one release)")
 
 #: marching-cubes cell (mm) of the quadruped for about 6k and 50k vertices
 VOXELS = {"6k": 7.0, "50k": 2.5}
@@ -173,7 +177,7 @@ def _placements(tr, labels, ref):
 def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped")) -> None:
     """Per stage: the segmentation against the true rigid parts, the joints placed on the true segments
     (the paper's placement and the centre of rotation), and the whole rig against the true articulations."""
-    from pipeline.armature import build_articulated_rig
+    from pipeline.armature import build_armature
     from pipeline.armature_score import articulation_scores, bending_parts, segment_agreement
     from stage.benchmarks._data import SHARED_DATA
 
@@ -189,7 +193,7 @@ def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped")) -> None:
         else:
             tr = _truth_creature(name)
         t0 = time.perf_counter()
-        rig = build_articulated_rig(tr["V"], tr["F"], units=tr["units"], fps=tr["fps"], lambda_thr=tr["lambda_thr"])
+        rig = build_armature(tr["V"], tr["F"], units=tr["units"], fps=tr["fps"], lambda_thr=tr["lambda_thr"])
         secs = time.perf_counter() - t0
         truth = bending_parts(tr["part"], tr["part_parent"], tr["part_bends"])
         pur, comp = segment_agreement(rig.segmentation.labels, truth)

@@ -42,7 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "true surfaces, with and without --shape-memory, and on their surfaces carved across time, --carve; and "
                    "fast takes at 10 fps, limbs 3+ voxels a frame, also tracked with a rig as the articulated prior), "
                    "and print the vertex errors against the truth, "
-                   "the volume and what `stage rig` finds (several minutes)")
+                   "the volume and what `stage armature` finds (several minutes)")
 
 
 def multiview_accuracy(frames: int = 30) -> None:
@@ -103,8 +103,8 @@ FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16))
 
 def fast_accuracy() -> None:
     """Fast takes: the default tracking, then tracked again with a rig as the articulated prior
-    (:func:`pipeline.track.track_with_rig`): the rig built from the tracking (``stage track
-    --rig-rounds``), and the rig of the true motion (what the tracking gives with the right
+    (:func:`pipeline.track.track_with_armature`): the rig built from the tracking (``stage track
+    --armature-rounds``), and the rig of the true motion (what the tracking gives with the right
     segments); the worst frame's mean and 95th percentile, the invented motion
     (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame."""
     import shutil
@@ -114,10 +114,10 @@ def fast_accuracy() -> None:
     from fake_cameras.record import record_take
     from fake_cameras.surface_motion import surface_point_tracks
     from fake_cameras.take import simulate_take
-    from pipeline.armature import build_articulated_rig
+    from pipeline.armature import build_armature
     from pipeline.meshio import load_mesh
     from pipeline.process import process_take
-    from pipeline.track import track_results, track_with_rig
+    from pipeline.track import track_results, track_with_armature
 
     with tempfile.TemporaryDirectory() as tmp:
         for name, fps, frames in FAST_TAKES:
@@ -131,16 +131,16 @@ def fast_accuracy() -> None:
             base = res.with_name(res.name + "_default")
             shutil.copytree(res, base)
             t0 = time.process_time()
-            track_with_rig(res, rounds=1)
-            _fast_row(f"{name}, --rig-rounds 1", sim, res, frames, (time.process_time() - t0) / frames)
+            track_with_armature(res, rounds=1)
+            _fast_row(f"{name}, --armature-rounds 1", sim, res, frames, (time.process_time() - t0) / frames)
             shutil.rmtree(res / "tracked")
             shutil.copytree(base / "tracked", res / "tracked")
             ref = int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"])
             V0, F0 = load_mesh(res / "tracked" / f"{ref:06d}.ply", largest=False)
             truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
-            rig = build_articulated_rig(truth, F0, reference=ref)
+            rig = build_armature(truth, F0, reference=ref)
             t0 = time.process_time()
-            track_with_rig(res, rig.model, poses=dict(enumerate(rig.fit.poses)))
+            track_with_armature(res, rig.model, poses=dict(enumerate(rig.fit.poses)))
             _fast_row(f"{name}, the rig of the true motion", sim, res, frames, (time.process_time() - t0) / frames)
 
 
@@ -227,7 +227,7 @@ def accuracy(frames: int = 30) -> None:
     from pathlib import Path
 
     from fake_cameras.rgbd import OBJECTS, record_rgbd_take, simulate_rgbd_take, template_path
-    from pipeline.armature import counted, rig_results
+    from pipeline.armature import armature_results, counted
     from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
     from pipeline.track import track_rgbd_take
@@ -250,16 +250,16 @@ def accuracy(frames: int = 30) -> None:
             line = (f"{name:9s} {len(V0)} vertices: mean vertex error {100 * np.mean(err) / tk.size:.2f} % of {tk.size:.0f} mm "
                     f"over the take (last frame {100 * err[-1] / tk.size:.2f} %), volume {min(vol):.3f}..{max(vol):.3f} "
                     f"of the template's, {dt:.2f} s/frame")
-            rig = rig_results(out)
+            rig = armature_results(out)
             n = int(rig.skeleton.articulation.sum())
-            print(f"{line}; stage rig: {counted(n, 'articulation')} (true {expected[name]})")
+            print(f"{line}; stage armature: {counted(n, 'articulation')} (true {expected[name]})")
 
 
 def real_pipe_accuracy() -> None:
     """The real tracked pipe of Tzionas & Gall (2016, section 5), ``../shared/data/tzionas_pipe``,
     rendered by the OAK-like camera at the original sensor's pose
     (:func:`fake_cameras.rgbd.simulate_sensor_rgbd_take`) and tracked like the simulated objects;
-    every vertex against its given position, the volume, what `stage rig` finds. Skipped (one
+    every vertex against its given position, the volume, what `stage armature` finds. Skipped (one
     line) when the data are absent."""
     path = SHARED_DATA / "tzionas_pipe" / "pipe.npz"
     if not path.is_file():
@@ -270,7 +270,7 @@ def real_pipe_accuracy() -> None:
     from pathlib import Path
 
     from fake_cameras.rgbd import record_rgbd_take, simulate_sensor_rgbd_take, template_path
-    from pipeline.armature import counted, rig_results
+    from pipeline.armature import armature_results, counted
     from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
     from pipeline.track import track_rgbd_take
@@ -299,13 +299,13 @@ def real_pipe_accuracy() -> None:
                 f"volume {vol.min():.3f}..{vol.max():.3f} of the template's (the given surface's own "
                 f"{true_vol.min():.3f}..{true_vol.max():.3f}; tracked / given {np.min(vol / true_vol):.3f}.."
                 f"{np.max(vol / true_vol):.3f}), {dt:.2f} s/frame")
-        rig = rig_results(out)
+        rig = armature_results(out)
         sk = rig.skeleton
         n = int(sk.articulation.sum())
         found = rig.fit.joints[:, sk.articulation]
         near = np.linalg.norm(found - tk.joint_positions[:, :1], axis=2)  # (F, n) from the true joint
         where = f", nearest {np.median(near, axis=0).min():.1f} mm from the true joint (median over frames)" if n else ""
-        print(f"{line}; stage rig: {counted(n, 'articulation')} (true 1){where}")
+        print(f"{line}; stage armature: {counted(n, 'articulation')} (true 1){where}")
 
 
 def _spacing_for(obj, target):

@@ -44,7 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     modules.sort(key=lambda m: (getattr(m, "ORDER", 50), m.__name__))
     for mod in modules:
         mod.register(sub)
-    for p in sub.choices.values():  # also after the command: `stage rig -q` as `stage -q rig`
+    # also after the command: `stage armature -q` as `stage -q armature`; an alias shares its command's parser
+    for p in {id(p): p for p in sub.choices.values()}.values():
         _common_options(p, default=argparse.SUPPRESS)
     return parser
 

@@ -3,7 +3,7 @@
 1. render a take of one OAK-like RGB-D camera filming a pipe bent at 1/2 of its length,
    with its rest mesh as the template and per-vertex ground truth (``fake_cameras.rgbd``);
 2. track the template through it (``stage track TAKE.h5 --template MESH``);
-3. rig the tracked template (``stage rig``), when that command is available;
+3. the armature of the tracked template (``stage armature``);
 4. print the tracking accuracy against the ground truth.
 """
 
@@ -37,14 +37,11 @@ def run_rgbd(args: argparse.Namespace) -> int:
         v, f = load_mesh(out / "results" / "tracked" / f"{k:06d}.ply", largest=False)
         err.append(np.linalg.norm(v - tk.truth[k], axis=1).mean())
         vol.append(mesh_volume(v, f) / mesh_volume(tk.template_vertices, tk.template_faces))
-    try:
-        from pipeline.armature import counted, rig_results
-    except ImportError:
-        print("3/3 stage rig is not available in this build: skipped")
-    else:
-        rig = rig_results(out / "results")
-        n = int(rig.skeleton.articulation.sum())
-        print(f"3/3 stage rig: {counted(n, 'articulation')} (the pipe has 1) -> {out / 'results' / 'rig'}")
+    from pipeline.armature import armature_results, counted
+
+    arm = armature_results(out / "results")
+    n = int(arm.skeleton.articulation.sum())
+    print(f"3/3 stage armature: {counted(n, 'articulation')} (the pipe has 1) -> {out / 'results' / 'rig'}")
     print(f"accuracy: mean vertex error {np.mean(err):.2f} mm = {100 * np.mean(err) / tk.size:.2f} % of the pipe's "
           f"{tk.size:.0f} mm over the take (last frame {100 * err[-1] / tk.size:.2f} %); volume {min(vol):.3f}..{max(vol):.3f} "
           "of the template's")

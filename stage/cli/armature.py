@@ -1,9 +1,10 @@
-"""``stage rig``: an articulated rig from motion (Tzionas & Gall 2016, section 4).
+"""``stage armature``: an armature (the articulated model) from motion (Tzionas & Gall 2016, section 4).
 
-``stage rig RESULTS_DIR`` rigs a processed take from its tracked template
-(``RESULTS_DIR/tracked/NNNNNN.ply``, one mesh per frame in the template's
-vertex order) and writes ``RESULTS_DIR/rig/``; ``stage rig --meshes GLOB --out
-DIR`` rigs any mesh sequence with shared connectivity (.ply/.obj/.off).
+``stage armature RESULTS_DIR`` builds the armature of a processed take from its tracked template
+(``RESULTS_DIR/tracked/NNNNNN.ply``, one mesh per frame in the template's vertex order) and writes
+``RESULTS_DIR/rig/`` (the folder's and files' names are the results format's, docs/armature-format.md);
+``stage armature --meshes GLOB --out DIR`` does it for any mesh sequence with shared connectivity
+(.ply/.obj/.off). ``stage rig`` is the old name of the command, kept as an alias for one release.
 """
 
 from __future__ import annotations
@@ -17,14 +18,17 @@ ORDER = 63
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "rig",
-        help="build an articulated rig from motion: segments, joints where the subject bends, skin, pose per frame",
+        "armature",
+        aliases=["rig"],
+        help="build an armature (the articulated model) from motion: segments, joints where the subject bends, skin, "
+        "pose per frame (`stage rig`: the old name, kept for one release)",
         description="Segment a mesh sequence with shared connectivity into rigidly moving parts (spectral "
         "clustering of vertex trajectories), put a joint where two parts meet on the curve skeleton, skin the "
         "template with bone-heat weights and fit the articulated model to every frame by least squares. "
         "Writes rig.json (capture-stage/rig@1), segments.npy, posed/NNNNNN.ply, rig.glb and rig.bvh "
-        "(docs/armature-format.md). The per-frame surfaces of a processed take do not share connectivity: "
-        "a results directory is rigged from its tracked template (tracked/NNNNNN.ply); when there is none, "
+        "(docs/armature-format.md; the files keep their names: a results format). `stage rig` is the old name of this "
+        "command, kept as an alias for one release. The per-frame surfaces of a processed take do not share connectivity: "
+        "a results directory's armature is built from its tracked template (tracked/NNNNNN.ply); when there is none, "
         "the template is tracked through the take first (`stage track RESULTS_DIR` with its defaults).",
     )
     p.add_argument("results", type=Path, nargs="?", metavar="RESULTS_DIR",
@@ -69,18 +73,18 @@ def _track_first(d: Path, *, quiet: bool) -> list:
 def run(args: argparse.Namespace) -> int:
     from pipeline.armature import (
         NoTrackingError,
-        build_articulated_rig,
+        armature_counts,
+        build_armature,
         load_sequence,
-        rig_counts,
         tracked_meshes,
-        write_rig,
+        write_armature,
     )
     from pipeline.meshio import mesh_paths
     from stage.cli import UserError
     from stage.cli._progress import StepBars
 
     if (args.results is None) == (args.meshes is None):
-        raise UserError("give either RESULTS_DIR or --meshes GLOB (see stage rig --help)")
+        raise UserError("give either RESULTS_DIR or --meshes GLOB (see stage armature --help)")
     meta = {}
     if args.meshes is not None:
         if args.out is None:
@@ -109,20 +113,20 @@ def run(args: argparse.Namespace) -> int:
     units = args.units or meta.get("units") or "mm"
     fps = args.fps or meta.get("fps") or 30.0
     with StepBars(disable=args.no_progress) as bars:
-        rig = build_articulated_rig(
+        rig = build_armature(
             vertices, faces, units=units, fps=float(fps), frame_indices=numbers, lambda_thr=args.lambda_thr,
             n_samples=args.samples, reference=args.reference, progress=bars,
             peel_parts=args.meshes is not None,  # a tracked template: its tracking noise is no part
         )
-        write_rig(rig, out, progress=bars)
+        write_armature(rig, out, progress=bars)
     sk = rig.skeleton
     err = rig.fit.errors
     print(
-        f"{rig_counts(rig.segmentation.n_segments, int(sk.articulation.sum()), sk.n_joints)}; "
+        f"{armature_counts(rig.segmentation.n_segments, int(sk.articulation.sum()), sk.n_joints)}; "
         f"mean vertex error {err.mean():.4g} {units} ({100 * err.mean() / rig.size:.2f} % of size), "
         f"worst frame {err.max():.4g} {units}"
     )
     if rig.segmentation.n_segments == 1:
-        print("nothing bends in this sequence: one segment, the rig moves rigidly")
+        print("nothing bends in this sequence: one segment, the armature moves rigidly")
     print(f"wrote {out}/rig.json, rig.glb, rig.bvh, segments.npy, posed/ ({rig.n_frames} frames)")
     return 0

@@ -26,6 +26,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         mod = importlib.import_module(f"stage.benchmarks.{info.name}")
         if not hasattr(mod, "run"):
             continue
-        bp = bsub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
+        bp = bsub.add_parser(mod.NAME, aliases=getattr(mod, "ALIASES", ()), help=mod.HELP, description=mod.HELP)
         mod.add_arguments(bp)
         bp.set_defaults(func=mod.run)

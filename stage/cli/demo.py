@@ -49,13 +49,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _capture(rig_dict: dict, path: Path, frames: int, *, calibration=None, no_progress: bool, label: str):
+def _capture(armature_dict: dict, path: Path, frames: int, *, calibration=None, no_progress: bool, label: str):
     from tqdm import tqdm
 
     from stage.capture import capture_take
     from stage.rig import parse_rig
 
-    rig = parse_rig(rig_dict, source=f"simulated {label} rig")
+    rig = parse_rig(armature_dict, source=f"simulated {label} rig")
     # rendering happens before the clock starts: the simulated cameras replay at the rig's fps
     from fake_cameras.device import take_for_rig
 

@@ -18,12 +18,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the surface, a skin whose joints lie along the spine's limbs, bone-heat skinning weights (at most 4 "
         "per vertex) and an animation with one key per frame that plays the take back. "
         "Format 'spine-glb' writes the animated spine alone. Units are converted to metres (glTF). "
-        "Format 'bvh' writes the articulated rig of `stage rig` (DIR/rig/rig.json) as BVH motion capture: "
+        "Format 'bvh' writes the armature of `stage armature` (DIR/rig/rig.json) as BVH motion capture: "
         "its joints, rest offsets and local rotations per frame, in the rig's units.",
     )
     p.add_argument("results", type=Path, metavar="DIR", help="results directory (spine.json, meshes/frame_NNNNNN.ply)")
     p.add_argument("--format", choices=FORMATS, default="glb",
-                   help="glb: rigged mesh (default); spine-glb: spine only; bvh: the articulated rig of `stage rig`")
+                   help="glb: rigged mesh (default); spine-glb: spine only; bvh: the armature of `stage armature`")
     p.add_argument("--out", type=Path, metavar="FILE", help="output file (default DIR/spine_rig.glb, DIR/spine.glb or DIR/rig.bvh)")
     p.add_argument("--reference", type=int, metavar="FRAME",
                    help="take frame number of the rest pose (default: the spine's reference)")
@@ -75,7 +75,7 @@ def _export_bvh(d: Path, out) -> Path:
     if doc_path is None:
         if not d.is_dir():
             raise FileNotFoundError(f"results directory not found: {d}")
-        raise UserError(f"{d} has no rig/rig.json: build the rig first (stage rig {d})")
+        raise UserError(f"{d} has no rig/rig.json: build the rig first (stage armature {d})")
     try:
         doc = json.loads(doc_path.read_text())
     except (OSError, ValueError) as exc:

@@ -53,11 +53,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --carve: grow every silhouette by PX pixels (default, per camera: twice the reprojection error "
                    "its calibration records, at most the silhouette margin `stage process` carved the hulls with, "
                    "RESULTS_DIR/process.json; that margin where the calibration records none)")
-    p.add_argument("--rig-rounds", type=int, default=0, metavar="ROUNDS",
-                   help="multi-view: after tracking, build a rig from the tracked motion (as `stage rig` does, rest frame the "
-                   "template's) and track every frame again with it as the articulated prior (its skinned pose on each "
-                   "frame's surface as the start, every vertex drawn to it); ROUNDS times (default 0). Only as good as the "
-                   "rig's segments, see docs/tracking.md")
+    p.add_argument("--armature-rounds", "--rig-rounds", dest="rig_rounds", type=int, default=0, metavar="ROUNDS",
+                   help="multi-view: after tracking, build an armature from the tracked motion (as `stage armature` does, "
+                   "rest frame the template's) and track every frame again with it as the articulated prior (its skinned "
+                   "pose on each frame's surface as the start, every vertex drawn to it); ROUNDS times (default 0). Only as "
+                   "good as the armature's segments, see docs/tracking.md. --rig-rounds: the old name, kept for one release")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         print("shape memory: on (the previous frame's shape)")
     if rep.get("rig_rounds"):
         rounds = rep["rig_prior"]["rounds"]
-        print(f"tracked again with a rig as the articulated prior: {counted(len(rounds), 'round')} (rig segments: "
+        print(f"tracked again with an armature as the articulated prior: {counted(len(rounds), 'round')} (armature segments: "
               f"{', '.join(str(r['segments']) for r in rounds)})")
     if rep["skipped"]:
         print(f"skipped {counted(len(rep['skipped']), 'frame')} without data: {', '.join(map(str, rep['skipped']))}")
@@ -127,7 +127,7 @@ def _check_counts(args: argparse.Namespace) -> None:
     if args.carve < 0:
         raise UserError("--carve must be >= 0 (rounds)")
     if args.rig_rounds < 0:
-        raise UserError("--rig-rounds must be >= 0 (rounds)")
+        raise UserError("--armature-rounds must be >= 0 (rounds)")
     if args.carve_margin is not None and (not args.carve or not args.carve_margin >= 0):
         raise UserError("--carve-margin needs --carve and a margin >= 0 (pixels)")
 
@@ -149,9 +149,9 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
         with worker_pool(1) as ex:  # one task: the half before the reference frame
             rep = _rounds(src, args.carve, margin=args.carve_margin, executor=ex, **kw)
     if args.rig_rounds:
-        from pipeline.track import track_with_rig
+        from pipeline.track import track_with_armature
 
-        rep = track_with_rig(src, rounds=args.rig_rounds, progress=bars)
+        rep = track_with_armature(src, rounds=args.rig_rounds, progress=bars)
     return rep
 
 
@@ -169,7 +169,7 @@ def _rounds(src: Path, rounds: int, *, margin=None, **kw) -> dict:
 #: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.
 _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
               ("--contour", "contour", False), ("--no-colour", "no_colour", False))
-_RESULTS_ONLY = (("--carve", "carve", 0), ("--rig-rounds", "rig_rounds", 0), ("--carve-margin", "carve_margin", None),
+_RESULTS_ONLY = (("--carve", "carve", 0), ("--armature-rounds", "rig_rounds", 0), ("--carve-margin", "carve_margin", None),
                  ("--colour", "colour", False), ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
                  ("--prediction-only", "prediction_only", False), ("--workers", "workers", None))
 

@@ -1,4 +1,4 @@
-"""Articulated rigs from motion (Tzionas & Gall 2016, section 4): real and simulated subjects, files, bad input.
+"""Armatures from motion (Tzionas & Gall 2016, section 4): real and simulated subjects, files, bad input.
 
 Measured (this machine, see docs/armature-format.md for the figures): the pipe's articulation,
 the simulated creatures' recall/precision and vertex errors, the horse's legs and playback.
@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from pipeline.armature import (
-    build_articulated_rig,
+    armature_counts,
+    armature_dict,
+    build_armature,
     bvh_text,
     counted,
     load_sequence,
-    remove_rig,
-    rig_counts,
-    rig_dict,
-    write_rig,
+    remove_armature,
+    write_armature,
 )
 from pipeline.armature_fit import fit_frame
 from tests.conftest import SHARED_DATA
@@ -50,7 +50,7 @@ def pipe():
     if not PIPE.is_file():
         pytest.skip(f"real data not found: {PIPE} (../shared/data is absent)")
     d = np.load(PIPE)
-    rig = build_articulated_rig(d["vertices"], d["faces"], units="mm", frame_indices=d["frame_index"])
+    rig = build_armature(d["vertices"], d["faces"], units="mm", frame_indices=d["frame_index"])
     return d, rig
 
 
@@ -106,7 +106,7 @@ def creature(request):
     # the template in the scanning pose (the biped's arms held away from its torso)
     ms = mesh_sequence(request.param, frames=40)
     # small motion of small parts: the paper's setting for it (section 5)
-    rig = build_articulated_rig(ms.vertices, ms.faces, lambda_thr=0.98)
+    rig = build_armature(ms.vertices, ms.faces, lambda_thr=0.98)
     return request.param, ms, rig
 
 
@@ -129,9 +129,9 @@ def horse(tmp_path_factory):
         pytest.skip(f"real data not found: {HORSE} (../shared/data is absent)")
     paths = sorted(HORSE.glob("0*.obj"))
     V, F, numbers = load_sequence(paths)
-    rig = build_articulated_rig(V, F, units="m", fps=24.0, frame_indices=numbers)
+    rig = build_armature(V, F, units="m", fps=24.0, frame_indices=numbers)
     out = tmp_path_factory.mktemp("horse_rig")
-    write_rig(rig, out)
+    write_armature(rig, out)
     return V, F, rig, out
 
 
@@ -205,13 +205,13 @@ def test_rigid_sequence_gives_one_segment_and_a_message(caplog, tmp_path):
     ms = mesh_sequence("quadruped", frames=6, voxel=14.0)
     V = np.repeat(ms.vertices[:1], 6, axis=0) + np.linspace(0, 50, 6)[:, None, None]
     with caplog.at_level(logging.WARNING):
-        rig = build_articulated_rig(V, ms.faces)
+        rig = build_armature(V, ms.faces)
     assert rig.segmentation.n_segments == 1
     assert int(rig.skeleton.articulation.sum()) == 0
     assert "nothing bends" in caplog.text
     assert rig.fit.errors.max() < 1e-6 * ms.size
-    write_rig(rig, tmp_path)
-    assert len(parse_bvh(bvh_text(rig))[0]) == len(rig_dict(rig)["joints"])
+    write_armature(rig, tmp_path)
+    assert len(parse_bvh(bvh_text(rig))[0]) == len(armature_dict(rig)["joints"])
 
 
 def test_one_frame_sequence():
@@ -219,7 +219,7 @@ def test_one_frame_sequence():
 
     ms = mesh_sequence("starfish", frames=1, voxel=14.0)
     with pytest.raises(ValueError, match="one frame: a rig is found from how the subject moves"):
-        build_articulated_rig(ms.vertices, ms.faces)
+        build_armature(ms.vertices, ms.faces)
 
 
 def test_several_components_are_a_clear_error(pipe):
@@ -233,10 +233,10 @@ def test_several_components_are_a_clear_error(pipe):
     V2 = np.concatenate([V, np.repeat(bv[None], len(V), axis=0)], axis=1)
     F2 = np.concatenate([d["faces"], np.asarray(ball.faces) + V.shape[1]])
     with pytest.raises(ValueError, match=f"faces: the mesh has 2 connected parts \\({V.shape[1]}, {len(bv)} vertices\\)"):
-        build_articulated_rig(V2, F2)
+        build_armature(V2, F2)
     # a vertex in no face is no part
     V3 = np.concatenate([V, V[:, :1] + 500.0], axis=1)
-    rig = build_articulated_rig(V3, d["faces"], n_samples=200)
+    rig = build_armature(V3, d["faces"], n_samples=200)
     assert rig.segmentation.labels.shape == (V3.shape[1],)
 
 
@@ -246,11 +246,11 @@ def test_invalid_input(tmp_path):
     V = np.random.default_rng(0).normal(size=(2, 10, 3))
     F = np.array([[0, 1, 2], [2, 3, 4]])
     with pytest.raises(ValueError, match="fps"):
-        build_articulated_rig(V, F, fps=0)
+        build_armature(V, F, fps=0)
     with pytest.raises(ValueError, match="frame_indices"):
-        build_articulated_rig(V, F, frame_indices=[1, 2, 3])
+        build_armature(V, F, frame_indices=[1, 2, 3])
     with pytest.raises(ValueError, match="shape"):
-        build_articulated_rig(V[0], F)
+        build_armature(V[0], F)
     # files whose vertex counts differ: not a sequence with shared connectivity
     (tmp_path / "000000.ply").write_bytes(ply_bytes(V[0], F))
     (tmp_path / "000001.ply").write_bytes(ply_bytes(V[1][:8], F[:1]))
@@ -264,18 +264,18 @@ def test_invalid_input(tmp_path):
         with pytest.raises(ValueError, match="noun"):
             counted(1, bad)
     with pytest.raises(ValueError, match="segments"):
-        rig_counts(-1, 0, 0)
+        armature_counts(-1, 0, 0)
     with pytest.raises(ValueError, match="articulations"):
-        rig_counts(1, 0.5, 2)
+        armature_counts(1, 0.5, 2)
     with pytest.raises(ValueError, match="joints"):
-        rig_counts(1, 1, "2")
-    assert rig_counts(np.int64(2), 1, 3) == "2 segments, 1 articulation, 3 joints"  # numpy integers count
-    # remove_rig: a path to a directory, which need not exist
+        armature_counts(1, 1, "2")
+    assert armature_counts(np.int64(2), 1, 3) == "2 segments, 1 articulation, 3 joints"  # numpy integers count
+    # remove_armature: a path to a directory, which need not exist
     with pytest.raises(ValueError, match="out_dir must be a path"):
-        remove_rig(None)
+        remove_armature(None)
     with pytest.raises(ValueError, match="out_dir must be a rig directory"):
-        remove_rig(tmp_path / "000000.ply")
-    assert (tmp_path / "000000.ply").is_file() and remove_rig(tmp_path / "absent") is False
+        remove_armature(tmp_path / "000000.ply")
+    assert (tmp_path / "000000.ply").is_file() and remove_armature(tmp_path / "absent") is False
 
 
 def test_scan_opening_opens_only_limbs_that_touch_the_body():
@@ -348,7 +348,7 @@ def test_varied_frame_rate_and_speed_give_a_stable_rig(name, frames, periods):
 
     period = 1.0 / min(lb.freq for lb in make_creature(name).limbs)
     ms = mesh_sequence(name, frames=frames, duration=periods * period, voxel=10.0, dtype=np.float32)
-    rig = build_articulated_rig(ms.vertices, ms.faces, lambda_thr=0.98)
+    rig = build_armature(ms.vertices, ms.faces, lambda_thr=0.98)
     recall, precision, _ = _articulation_scores(rig, ms.joints, ms.articulates, ms.size)
     # measured: biped 1.0 / 1.0 and 0.83-0.90 % in all three, quadruped 0.77 / 1.0 and 0.54 %
     assert recall >= 0.7
@@ -426,9 +426,9 @@ def test_an_undefined_joint_in_a_frame_still_gives_valid_files(pipe, tmp_path, c
     assert "undefined" in caplog.text
     parsed, rows = parse_bvh(text)
     assert len(parsed) == broken.skeleton.n_joints and rows.shape[0] == 6 and np.all(np.isfinite(rows))
-    doc = rig_dict(broken)
+    doc = armature_dict(broken)
     assert doc["frames"][4]["joints"][broken.skeleton.names[-1]] is None
-    write_rig(broken, tmp_path)
+    write_armature(broken, tmp_path)
     g = pygltflib.GLTF2().load(str(tmp_path / "rig.glb"))
     assert len(g.animations) == 1
 
@@ -464,7 +464,7 @@ def test_cow_articulations_against_its_rigging_skeleton():
     art = np.array([par[j] >= 0 and (par == j).any() for j in range(len(par))])
     bending = art & (articulation_bends(J, par) >= 10.0)
     hub = art | (np.bincount(par[par >= 0], minlength=len(par)) >= 2)  # the root joins four bones
-    rig = build_articulated_rig(V, F)
+    rig = build_armature(V, F)
     s = articulation_scores(rig.fit.joints[:, rig.skeleton.articulation], J, size=rig.size, articulates=hub,
                             bending=bending)
     # measured: recall 0.71 (5 of 7), precision 0.67 (10 of 15), vertex error 0.44 % of size
@@ -496,7 +496,7 @@ def test_a_joint_that_barely_bends_keeps_the_boundary_placement_and_says_so():
     j = int(np.flatnonzero(sk.articulation)[0])
     pl = sk.placement[j]
     assert pl["method"] == "boundary" and "ill-determined" in pl["reason"] and pl["uncertainty"] > 1.0
-    rig = build_articulated_rig(W, F, n_samples=300)
-    doc = rig_dict(rig)
+    rig = build_armature(W, F, n_samples=300)
+    doc = armature_dict(rig)
     for jd in doc["joints"]:
         assert ("placement" in jd) == (jd["kind"] == "joint")

@@ -1,9 +1,9 @@
-"""Tracking with a rig as the articulated prior (pipeline.armature_track, pipeline.track.track_with_rig).
+"""Tracking with a rig as the articulated prior (pipeline.armature_track, pipeline.track.track_with_armature).
 
 The fast take: the simulated quadruped filmed at 5 frames a second (6 cameras, 320x240, 8 frames,
 11.7 mm voxels), so its limbs move 3 voxels a frame or more (its true surface points: 95th percentile
 of the steps over 4 voxels). Tracked again with the rig built from its default tracking as the
-prior (``stage track --rig-rounds 1``), every frame's template vertices must lie within 2 voxels
+prior (``stage track --armature-rounds 1``), every frame's template vertices must lie within 2 voxels
 (mean) and 4 voxels (95th percentile) of their true points
 (``fake_cameras.surface_motion.tracking_errors``). Figures, also of the larger fast takes and of a
 rig of the true motion, in docs/tracking.md ("Fast motion: the rig as the articulated prior").
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from fake_cameras.mesh_motion import mesh_sequence
-from pipeline.armature import build_articulated_rig
-from pipeline.armature_track import RigTracker, fit_pose_to_surface, surface_residual
+from pipeline.armature import build_armature
+from pipeline.armature_track import ArmatureTracker, fit_pose_to_surface, surface_residual
 from pipeline.mesh_primitives import vertex_normals
 from pipeline.tracking import TemplateTracker
 
@@ -28,7 +28,7 @@ FAST = dict(n_cameras=6, frames=8, size=(320, 240), seed=3, fps=5.0)
 @pytest.fixture(scope="module")
 def sequence():
     ms = mesh_sequence("quadruped", frames=8, duration=0.7, voxel=14.0)  # 0.1 s a frame
-    rig = build_articulated_rig(ms.vertices, ms.faces, reference=0)
+    rig = build_armature(ms.vertices, ms.faces, reference=0)
     return ms, rig
 
 
@@ -87,16 +87,16 @@ def test_invalid_input(sequence):
         surface_residual(X[:0], X, gate=1.0)
     tr = TemplateTracker(ms.vertices[0], ms.faces)
     with pytest.raises(ValueError, match="tracker"):
-        RigTracker(object(), rig.model)
+        ArmatureTracker(object(), rig.model)
     with pytest.raises(ValueError, match="model"):
-        RigTracker(tr, object())
+        ArmatureTracker(tr, object())
     with pytest.raises(ValueError, match="weight"):
-        RigTracker(tr, rig.model, weight=0.0)
+        ArmatureTracker(tr, rig.model, weight=0.0)
     small = TemplateTracker(*_two_triangles())
     with pytest.raises(ValueError, match="connectivity"):
-        RigTracker(small, rig.model)
+        ArmatureTracker(small, rig.model)
     with pytest.raises(ValueError, match="candidates"):
-        RigTracker(tr, rig.model).fit(X, N, previous=ms.vertices[0], candidates=[])
+        ArmatureTracker(tr, rig.model).fit(X, N, previous=ms.vertices[0], candidates=[])
     with pytest.raises(ValueError, match="anchor"):
         tr.fit(X, N, previous=ms.vertices[0], anchor=(X[:3], 1.0))
     with pytest.raises(ValueError, match="anchor weight"):
@@ -125,11 +125,11 @@ def fast_take(tmp_path_factory):
 
 @pytest.mark.slow
 def test_fast_take_tracked_with_its_rig(fast_take):
-    """``stage track --rig-rounds 1`` on the fast take: the rig built from the default tracking, every
+    """``stage track --armature-rounds 1`` on the fast take: the rig built from the default tracking, every
     frame tracked again with it; every frame within 2 voxels (mean) and 4 (95th percentile)."""
     from fake_cameras.surface_motion import surface_point_tracks, tracking_errors
     from pipeline.meshio import load_mesh
-    from pipeline.track import track_with_rig
+    from pipeline.track import track_with_armature
 
     sim, res = fast_take
     voxel = float(json.loads((res / "grid.json").read_text())["voxel"])
@@ -138,7 +138,7 @@ def test_fast_take_tracked_with_its_rig(fast_take):
     truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
     steps = np.linalg.norm(np.diff(truth, axis=0), axis=2) / voxel
     assert np.percentile(steps, 95) >= 3.0  # the take is fast: measured 4.46 voxels (mean 1.73, at most 8.4)
-    rep = track_with_rig(res, rounds=1)
+    rep = track_with_armature(res, rounds=1)
     assert rep["rig_rounds"] == 1 and rep["rig_prior"]["rounds"][0]["segments"] > 1
     err, vols, _ = tracking_errors(sim.creature, sim.times, res)
     # measured: every frame 0.76..1.60 mean, 1.80..3.02 at the 95th percentile (the default tracking:
@@ -169,12 +169,12 @@ def _sphere_error(path):
 
 
 def test_cli_rig_rounds_on_a_turning_sphere(tmp_path, capsys):
-    """``stage track RESULTS --rig-rounds 1`` on a rigid turning sphere: one segment, the frames tracked
+    """``stage track RESULTS --armature-rounds 1`` on a rigid turning sphere: one segment, the frames tracked
     again, every vertex still on the sphere (within a voxel), the rounds recorded."""
     from stage.cli import main
 
     res = _sphere_results(tmp_path)
-    assert main(["track", str(res), "--rig-rounds", "1", "--workers", "0", "--no-progress"]) == 0
+    assert main(["track", str(res), "--armature-rounds", "1", "--workers", "0", "--no-progress"]) == 0
     assert "articulated prior: 1 round (rig segments: 1)" in capsys.readouterr().out
     rep = json.loads((res / "tracked" / "track.json").read_text())
     assert rep["rig_rounds"] == 1 and sorted(rep["frames"]) == ["0", "1", "2", "3"]
@@ -187,14 +187,14 @@ def test_cli_rig_rounds_on_a_turning_sphere(tmp_path, capsys):
 
 
 def test_track_with_rig_invalid_input(tmp_path):
-    from pipeline.track import track_with_rig
+    from pipeline.track import track_with_armature
     from stage.cli import main
 
     res = _sphere_results(tmp_path, frames=2)
     with pytest.raises(ValueError, match="rounds"):
-        track_with_rig(res, rounds=0)
+        track_with_armature(res, rounds=0)
     with pytest.raises(ValueError, match="model"):
-        track_with_rig(res, model=object())
+        track_with_armature(res, model=object())
     with pytest.raises(FileNotFoundError, match="stage track"):
-        track_with_rig(res)  # not tracked yet
-    assert main(["-q", "track", str(res), "--rig-rounds", "-1"]) != 0
+        track_with_armature(res)  # not tracked yet
+    assert main(["-q", "track", str(res), "--armature-rounds", "-1"]) != 0

@@ -10,8 +10,8 @@ import pygltflib
 import pytest
 import trimesh
 
-from pipeline.armature_spine import rig_from_spine, rigged_model
-from pipeline.gltf_export import NoSpineError, export_rig, find_frame_mesh, rig_to_glb, spine_to_glb, spine_tubes
+from pipeline.armature_spine import armature_from_spine, rigged_model
+from pipeline.gltf_export import NoSpineError, armature_to_glb, export_rig, find_frame_mesh, spine_to_glb, spine_tubes
 from pipeline.spine import write_spine
 from tests.pipeline.creature_truth import FPS, creature_size, creature_take, surface, true_spine
 
@@ -32,7 +32,7 @@ def take():
 def glb(take):
     _, spine, v, f = take
     model = rigged_model(spine, v, f, segments=SEGMENTS)
-    return model, rig_to_glb(model)
+    return model, armature_to_glb(model)
 
 
 # ----------------------------------------------------------------- reading the GLB back, independently
@@ -183,7 +183,7 @@ def test_spine_only_glb(take):
     g = pygltflib.GLTF2.load_from_bytes(data)
     assert [m.name for m in g.meshes] == ["spine"]
     assert len(_accessor(g, g.animations[0].samplers[0].input)) == FRAMES
-    tubes = spine_tubes(rig_from_spine(spine))
+    tubes = spine_tubes(armature_from_spine(spine))
     assert len(_accessor(g, g.meshes[0].primitives[0].attributes.POSITION)) == len(tubes[0])
 
 
@@ -241,11 +241,11 @@ def test_export_without_spine_is_a_clear_error(tmp_path, capsys):
 def test_invalid_input(tmp_path, results_dir, take):
     _, spine, v, f = take
     with pytest.raises(ValueError, match="model"):
-        rig_to_glb(spine)
+        armature_to_glb(spine)
     with pytest.raises(ValueError, match="scale"):
-        rig_to_glb(rigged_model(spine, v, f), scale=-1)
+        armature_to_glb(rigged_model(spine, v, f), scale=-1)
     with pytest.raises(ValueError, match="sections"):
-        spine_tubes(rig_from_spine(spine), sections=2)
+        spine_tubes(armature_from_spine(spine), sections=2)
     with pytest.raises(ValueError):
         spine_to_glb({"format": "nope"})
     with pytest.raises(FileNotFoundError, match="results directory"):

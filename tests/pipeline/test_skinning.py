@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.armature_spine import NoCompleteFrameError, reference_frame, rig_from_spine, rigged_model
+from pipeline.armature_spine import NoCompleteFrameError, armature_from_spine, reference_frame, rigged_model
 from pipeline.geodesic import vertex_areas
 from pipeline.skinning import (
     SkinningError,
@@ -149,7 +149,7 @@ def test_dominant_joint_is_the_true_limb(name):
 def test_rig_joints_follow_the_spine_in_every_frame():
     _, poses = creature_take("quadruped", 12)
     spine = true_spine("quadruped", poses)
-    rig = rig_from_spine(spine, segments=4)
+    rig = armature_from_spine(spine, segments=4)
     # joint count: the root + (segments + 1) per axis (6 limbs, 2 junction axes)
     assert rig.n_joints == 1 + 8 * 5
     assert np.all(rig.parents[1:] < np.arange(1, rig.n_joints))
@@ -167,7 +167,7 @@ def test_rig_joints_follow_the_spine_in_every_frame():
 def test_null_limb_holds_the_neighbouring_pose():
     _, poses = creature_take("starfish", 12)
     spine = true_spine("starfish", poses, hide={"arm2": [8, 9]})
-    rig = rig_from_spine(spine)
+    rig = armature_from_spine(spine)
     assert rig.reference == 6
     arm = [j for j, e in enumerate(rig.element) if e == "arm2"]
     for t in (8, 9):  # hold frame 7's local pose (the neighbour nearer the reference)
@@ -207,13 +207,13 @@ def test_invalid_input():
     _, poses = creature_take("starfish", 4)
     spine = true_spine("starfish", poses)
     with pytest.raises(ValueError, match="spine"):
-        rig_from_spine({"format": "x"})
+        armature_from_spine({"format": "x"})
     with pytest.raises(ValueError, match="segments"):
-        rig_from_spine(spine, segments=0)
+        armature_from_spine(spine, segments=0)
     with pytest.raises(ValueError, match="reference"):
-        rig_from_spine(spine, reference=99)
+        armature_from_spine(spine, reference=99)
     with pytest.raises(ValueError, match="max_influences"):
         rigged_model(spine, v, f, max_influences=5)
     hidden = true_spine("starfish", poses, hide={"arm0": range(4)})
     with pytest.raises(NoCompleteFrameError):
-        rig_from_spine(hidden)
+        armature_from_spine(hidden)

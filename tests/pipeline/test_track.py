@@ -165,10 +165,10 @@ def test_rgbd_bent_objects_tracked_to_one_percent(name, bent_tracks):
     ("lamp", 3),  # measured: 3 articulations, 7.5, 6.8 and 6.7 mm from the joints (limit 28 mm)
 ])
 def test_rgbd_bent_objects_rigged(name, articulations, bent_tracks):
-    from pipeline.armature import rig_results
+    from pipeline.armature import armature_results
 
     tk, out, _, _ = bent_tracks(name)
-    rig = rig_results(out)
+    rig = armature_results(out)
     assert int(rig.skeleton.articulation.sum()) == articulations
     sk = rig.skeleton
     found = sk.rest[sk.articulation]  # articulated joints in the template's (rest) frame
@@ -498,14 +498,14 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     `stage process` does the same and puts the warning in the job report."""
     from types import SimpleNamespace
 
-    from pipeline.armature import remove_rig, rig_results
+    from pipeline.armature import armature_results, remove_armature
     from pipeline.process import ProcessParams, _step_track
     from pipeline.report import write_report
     from pipeline.track import track_results
 
     t = _sphere_results(tmp_path, frames=3)
     track_results(tmp_path, template=(t.vertices, t.faces))
-    rig_results(tmp_path)
+    armature_results(tmp_path)
     (tmp_path / "report.json").write_text("{}")
     assert '<section id="rig">' in write_report(tmp_path).read_text()
     (tmp_path / "rig" / "notes.txt").write_text("the user's")
@@ -522,9 +522,9 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     assert rep["started_over"] == lines[0]
     assert sorted(p.name for p in (tmp_path / "rig").iterdir()) == ["notes.txt", "posed"]
     assert [p.name for p in (tmp_path / "rig" / "posed").iterdir()] == ["1_user.ply"]
-    assert remove_rig(tmp_path / "rig") is False and remove_rig(tmp_path / "no_rig") is False  # nothing left
+    assert remove_armature(tmp_path / "rig") is False and remove_armature(tmp_path / "no_rig") is False  # nothing left
     # the same settings again: nothing removed, nothing said
-    rig_results(tmp_path)
+    armature_results(tmp_path)
     caplog.clear()
     track_results(tmp_path, template=(t.vertices, t.faces), predict=False)
     assert not caplog.records and (tmp_path / "rig" / "rig.glb").is_file()

@@ -3,8 +3,8 @@
 ``../shared/data/tzionas_pipe/pipe.npz`` (60 of the sequence's 400 frames, 6359 vertices, mm in
 the original RGB-D sensor's camera frame) is rendered by the OAK-like camera at that sensor's
 pose (:func:`fake_cameras.rgbd.simulate_sensor_rgbd_take`), tracked by ``stage track TAKE.h5
---template TAKE.template.ply --out DIR`` and rigged by ``stage rig``'s
-:func:`pipeline.armature.rig_results`; every vertex is its own ground truth.
+--template TAKE.template.ply --out DIR`` and rigged by ``stage armature``'s
+:func:`pipeline.armature.armature_results`; every vertex is its own ground truth.
 
 The subsample's frames are 6.7 original frames apart: the true motion is up to 19.6 mm a frame
 on average over the vertices (28 mm at most; frames 15..27 and 41..46) against the 12 mm gate,
@@ -84,10 +84,10 @@ def test_real_pipe_tracked_to_one_percent_without_thinning(real_pipe):
 
 @pytest.mark.slow
 def test_real_pipe_rigged_with_one_articulation_at_the_true_joint(real_pipe):
-    from pipeline.armature import rig_results
+    from pipeline.armature import armature_results
 
     tk, out = real_pipe
-    rig = rig_results(out)
+    rig = armature_results(out)
     sk = rig.skeleton
     assert int(sk.articulation.sum()) == 1  # measured: 1
     true_joint = tk.joint_positions[:, 0]  # pipe.npz's joint 1, half way along the pipe

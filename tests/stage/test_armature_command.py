@@ -1,4 +1,4 @@
-"""``stage rig`` and the ``rig`` process step: files written, clear messages without tracking."""
+"""``stage armature`` and the ``rig`` process step: files written, clear messages without tracking."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def test_rig_meshes_writes_the_rig(tmp_path, capsys):
     V, F, _ = two_bars(10)
     _write_seq(tmp_path / "seq", V, F)
     out = tmp_path / "rig"
-    assert main(["-q", "rig", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(out), "--samples", "300"]) == 0
+    assert main(["-q", "armature", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(out), "--samples", "300"]) == 0
     doc = json.loads((out / "rig.json").read_text())
     assert doc["format"] == "capture-stage/rig@1" and doc["frame_count"] == 10
     assert sum(j["kind"] == "joint" for j in doc["joints"]) == 1
@@ -36,32 +36,40 @@ def test_rig_meshes_writes_the_rig(tmp_path, capsys):
 def test_rig_of_a_rigid_sequence_says_one_segment(tmp_path, capsys):
     V, F, _ = two_bars(6)
     _write_seq(tmp_path / "seq", np.repeat(V[:1], 6, axis=0) + np.linspace(0, 30, 6)[:, None, None], F)
+    # `stage rig`: the old name of the command, an alias for one release
     assert main(["-q", "rig", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(tmp_path / "rig"),
                  "--samples", "300"]) == 0
     assert "1 segment, 0 articulations, " in capsys.readouterr().out
 
 
+def test_rig_is_the_old_name_of_armature_and_help_says_so():
+    from stage.cli import build_parser
+
+    top = build_parser().format_help()
+    assert "armature (rig)" in top and "the old name, kept for one release" in top
+
+
 def test_counted_is_singular_for_one():
-    from pipeline.armature import counted, rig_counts
+    from pipeline.armature import armature_counts, counted
 
     assert [counted(n, "joint") for n in (0, 1, 2)] == ["0 joints", "1 joint", "2 joints"]
-    assert rig_counts(1, 1, 2) == "1 segment, 1 articulation, 2 joints"
+    assert armature_counts(1, 1, 2) == "1 segment, 1 articulation, 2 joints"
 
 
 def test_rig_results_dir_needs_tracking(tmp_path, capsys):
     (tmp_path / "meshes").mkdir()
-    assert main(["rig", str(tmp_path)]) == 2
+    assert main(["armature", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "tracked" in err and "stage track" in err
 
 
 def test_rig_results_dir_tracks_first(tmp_path, capsys):
-    """A processed take without a tracked template: ``stage rig`` tracks it first (and says so), then rigs it."""
+    """A processed take without a tracked template: ``stage armature`` tracks it first (and says so), then rigs it."""
     V, F, _ = two_bars(12)
     (tmp_path / "meshes").mkdir()
     for i, v in enumerate(V):
         (tmp_path / "meshes" / f"frame_{i:06d}.ply").write_bytes(ply_bytes(v, F))
-    assert main(["-q", "rig", str(tmp_path), "--samples", "300"]) == 0
+    assert main(["-q", "armature", str(tmp_path), "--samples", "300"]) == 0
     out = capsys.readouterr().out
     assert "tracking the template through the take first" in out and f"stage track {tmp_path}" in out
     assert len(list((tmp_path / "tracked").glob("0*.ply"))) == 12
@@ -73,13 +81,13 @@ def test_rig_meshes_without_shared_connectivity(tmp_path, capsys):
     V, F, _ = two_bars(3)
     _write_seq(tmp_path / "seq", V, F)
     (tmp_path / "seq" / "000002.ply").write_bytes(ply_bytes(V[2][:-3], F[:10]))
-    assert main(["rig", "--meshes", str(tmp_path / "seq"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["armature", "--meshes", str(tmp_path / "seq"), "--out", str(tmp_path / "o")]) == 2
     assert "share connectivity" in capsys.readouterr().err
 
 
 def test_invalid_input(capsys):
-    assert main(["rig"]) == 2
-    assert main(["rig", "--meshes", "x/*.ply"]) == 2  # no --out
+    assert main(["armature"]) == 2
+    assert main(["armature", "--meshes", "x/*.ply"]) == 2  # no --out
     assert "--out" in capsys.readouterr().err
 
 
@@ -107,16 +115,16 @@ def test_report_shows_the_rig(tmp_path):
 
     V, F, _ = two_bars(10)
     _write_seq(tmp_path / "seq", V, F)
-    assert main(["-q", "rig", "--meshes", str(tmp_path / "seq"), "--out", str(tmp_path / "res" / "rig"),
+    assert main(["-q", "armature", "--meshes", str(tmp_path / "seq"), "--out", str(tmp_path / "res" / "rig"),
                  "--samples", "300"]) == 0
     (tmp_path / "res" / "report.json").write_text(json.dumps({"frames": 10, "steps": ["rig"]}))
     html = render_report(tmp_path / "res")
     assert 'id="rig"' in html and "rig-view" in html
-    assert "Rig: 2 motion segments, 1 articulation, " in html
+    assert "Armature: 2 motion segments, 1 articulation, " in html
 
 
 def test_export_bvh_of_a_rig(tmp_path, capsys):
-    """``stage export --format bvh``: the rig of ``stage rig`` as BVH that two parsers read, whose forward
+    """``stage export --format bvh``: the rig of ``stage armature`` as BVH that two parsers read, whose forward
     kinematics gives rig.json's joint positions in every frame."""
     from scipy.spatial.transform import Rotation
 
@@ -125,7 +133,7 @@ def test_export_bvh_of_a_rig(tmp_path, capsys):
     V, F, _ = two_bars(10)
     _write_seq(tmp_path / "seq", V, F)
     res = tmp_path / "results"
-    assert main(["-q", "rig", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(res / "rig"),
+    assert main(["-q", "armature", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(res / "rig"),
                  "--samples", "300"]) == 0
     assert main(["export", str(res), "--format", "bvh"]) == 0
     assert "rig.bvh" in capsys.readouterr().out
@@ -159,12 +167,12 @@ def test_export_bvh_of_a_rig(tmp_path, capsys):
 def test_export_bvh_needs_a_rig(tmp_path, capsys):
     (tmp_path / "meshes").mkdir()
     assert main(["export", str(tmp_path), "--format", "bvh"]) == 2
-    assert f"stage rig {tmp_path}" in capsys.readouterr().err
+    assert f"stage armature {tmp_path}" in capsys.readouterr().err
     (tmp_path / "rig").mkdir()
     (tmp_path / "rig" / "rig.json").write_text(json.dumps({"format": "capture-stage/rig@1", "fps": 30, "joints": [
         {"name": "root", "parent": None, "rest": [0, 0, 0]}], "frames": [{"index": 0, "joints": {"root": [0, 0, 0]}}]}))
     assert main(["export", str(tmp_path), "--format", "bvh"]) == 2
-    assert "run stage rig again" in capsys.readouterr().err
+    assert "run stage armature again" in capsys.readouterr().err
     (tmp_path / "rig" / "rig.json").write_text("{not json")
     assert main(["export", str(tmp_path), "--format", "bvh"]) == 2
     assert "unreadable" in capsys.readouterr().err
