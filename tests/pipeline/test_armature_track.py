@@ -168,14 +168,14 @@ def _sphere_error(path):
     return np.abs(np.linalg.norm(v - CENTRE, axis=1) - RADIUS) / 10.0  # voxels
 
 
-def test_cli_rig_rounds_on_a_turning_sphere(tmp_path, capsys):
+def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
     """``stage track RESULTS --armature-rounds 1`` on a rigid turning sphere: one segment, the frames tracked
     again, every vertex still on the sphere (within a voxel), the rounds recorded."""
     from stage.cli import main
 
     res = _sphere_results(tmp_path)
     assert main(["track", str(res), "--armature-rounds", "1", "--workers", "0", "--no-progress"]) == 0
-    assert "articulated prior: 1 round (rig segments: 1)" in capsys.readouterr().out
+    assert "articulated prior: 1 round (armature segments: 1)" in capsys.readouterr().out
     rep = json.loads((res / "tracked" / "track.json").read_text())
     assert rep["rig_rounds"] == 1 and sorted(rep["frames"]) == ["0", "1", "2", "3"]
     assert all("rig_residual_mm" in rep["frames"][k] for k in ("1", "2", "3"))
