@@ -232,7 +232,8 @@ def track_with_carving(results_dir, rounds: int, *, margin: float | None = None,
     rounds : int
         Carvings (0: the tracking of ``meshes/`` alone).
     margin, progress, executor
-        See :func:`carve_results`; ``progress`` and ``executor`` serve the trackings too.
+        See :func:`carve_results`; ``progress`` and ``executor`` serve the trackings too (the steps
+        of round ``r`` are reported as ``"carve round r"`` and ``"track round r"``).
     **track_options
         Keywords of :func:`pipeline.track.track_results` (``colour``, ``shape_memory``...), the
         same for every round.
@@ -252,13 +253,22 @@ def track_with_carving(results_dir, rounds: int, *, margin: float | None = None,
     if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 0:
         raise ValueError(f"rounds must be an integer >= 0, got {rounds!r}")
     rep = track_results(results_dir, progress=progress, executor=executor, **track_options)
-    for _ in range(int(rounds)):
+    for r in range(1, int(rounds) + 1):
+        named = _in_round(progress, r)
         try:
-            carve_results(results_dir, margin=margin, progress=progress, executor=executor)
+            carve_results(results_dir, margin=margin, progress=named, executor=executor)
         except ValueError as exc:
             raise CarveError(str(exc)) from None
-        rep = track_results(results_dir, surfaces="carved", progress=progress, executor=executor, **track_options)
+        rep = track_results(results_dir, surfaces="carved", progress=named, executor=executor, **track_options)
     return rep
+
+
+def _in_round(progress, r: int):
+    """``progress`` with the steps of round ``r`` named ``"carve round r"``, ``"track round r"``
+    (each round's progress counts on its own, never back from the last round's total)."""
+    if progress is None:
+        return None
+    return lambda step, done, total: progress(f"{step} round {r}", done, total)
 
 
 def carve_frames_task(job: dict) -> dict:

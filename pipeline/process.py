@@ -743,6 +743,8 @@ class RunContext:
     consistency: dict = field(default_factory=dict)  # per camera median silhouette IoU, and those below the threshold
     step: str = ""  # the step running
     damaged: dict = field(default_factory=dict)  # skip_damaged: {"sets", "frames" per camera, "summary"} of the damage skipped
+    reported: dict[str, tuple[int, int]] = field(default_factory=dict)  # progress name -> latest (done, total)
+    planned: dict[str, list[str]] = field(default_factory=dict)  # step -> progress names announced for it
     cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds (this process and the workers)
     worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks on the executor
     part_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its parts counted on their own
@@ -767,8 +769,25 @@ class RunContext:
         return frozenset(self.damaged.get("sets", ()))
 
     def report_progress(self, step: str, done: int, total: int) -> None:
+        self.reported[step] = (int(done), int(total))
         if self.progress:
             self.progress(step, done, total)
+
+    def announce(self, step: str, items: Sequence[tuple[str, int]]) -> None:
+        """Report the progress entries ``(name, total)`` a step will report as 0 done before it
+        runs, so the run's summed total counts every step it will run (a job never reads n/n while
+        steps are still to come); :meth:`complete` closes those the step did not report."""
+        for name, total in items:
+            self.planned.setdefault(step, []).append(name)
+            if name not in self.reported:
+                self.report_progress(name, 0, total)
+
+    def complete(self, step: str) -> None:
+        """The announced entries of a finished step at done == total (a resumed step reports none)."""
+        for name in self.planned.get(step, ()):
+            done, total = self.reported.get(name, (0, 0))
+            if done < total:
+                self.report_progress(name, total, total)
 
     def run_frames(self, step: str, task: Callable[..., list[dict]], done_dir: str, *, suffix: str = ".json",
                    chunk_args: Callable[[list[int]], dict] | None = None) -> None:
@@ -795,13 +814,17 @@ class Step:
     name: str
     run: Callable[[RunContext], None]
     doc: str = ""
+    totals: Callable[[RunContext], list[tuple[str, int]]] | None = None  # its progress entries and their totals
 
 
 _REGISTRY: dict[str, Step] = {}
 
 
-def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = "", after: str | None = None) -> None:
-    """Add a step to the pipeline (after ``after``, default at the end); updates :data:`STEPS`."""
+def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = "", after: str | None = None,
+                  totals: Callable[[RunContext], list[tuple[str, int]]] | None = None) -> None:
+    """Add a step to the pipeline (after ``after``, default at the end); updates :data:`STEPS`.
+    ``totals(ctx)``: the progress entries ``(name, total)`` the step reports, announced before
+    the run's first step (:meth:`RunContext.announce`)."""
     global STEPS
     if not name or not name.isidentifier():
         raise ValueError(f"name must be an identifier, got {name!r}")
@@ -809,7 +832,7 @@ def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = ""
         raise ValueError(f"after: no step {after!r} (steps: {list(_REGISTRY)})")
     items = [(n, s) for n, s in _REGISTRY.items() if n != name]
     pos = len(items) if after is None else [n for n, _ in items].index(after) + 1
-    items.insert(pos, (name, Step(name=name, run=run, doc=doc)))
+    items.insert(pos, (name, Step(name=name, run=run, doc=doc, totals=totals)))
     _REGISTRY.clear()
     _REGISTRY.update(items)
     STEPS = tuple(_REGISTRY)
@@ -829,6 +852,8 @@ def _step_key(ctx: RunContext) -> None:
     choice = resolve_key_choice(ctx.take, ctx.rig, key_mode=ctx.params.key_mode, layers=ctx.params.key_layers, skip=skip)
     ctx.key_choice = choice
     _add_to_record(ctx, key=choice)
+    if "graphcut" in choice["layers"] and "refine" in ctx.steps:
+        ctx.announce("refine", [("refine", total)])
     base = take_key_params(ctx.rig, key_mode=choice["mode"]).to_dict()
     volume = _volume_bounds(ctx).tolist() if "volume" in choice["layers"] else None
     done = 0
@@ -1143,7 +1168,7 @@ def _step_track(ctx: RunContext) -> None:
     from pipeline.carve import track_with_carving
 
     t0, opt = time.perf_counter(), ctx.params.track
-    rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.progress, executor=ctx.executor,
+    rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress, executor=ctx.executor,
                              colour=opt.colour, shape_memory=opt.shape_memory)
     if rep.get("started_over"):  # frames of other settings, and the rig on them, removed: the job report says so
         ctx.warnings.append(rep["started_over"])
@@ -1152,10 +1177,16 @@ def _step_track(ctx: RunContext) -> None:
 
 
 STEPS: tuple[str, ...] = ()
-register_step("key", _step_key, doc="keying masks into the take")
-register_step("refine", _step_refine, doc="graph-cut refinement of the masks (the keying's graphcut layer)")
-register_step("surface", _step_surface, doc="visual hull and surface per frame set")
-register_step("spine", _step_spine, doc="per-frame skeletons and the take's spine")
+def _surface_totals(ctx: RunContext) -> list[tuple[str, int]]:
+    box = [] if (ctx.out / "grid.json").exists() else [("box", ctx.n_sets)]  # the grid is chosen once
+    return [*box, ("surface", ctx.n_sets)]
+
+
+register_step("key", _step_key, doc="keying masks into the take", totals=lambda ctx: [("key", ctx.n_sets * len(ctx.cameras))])
+register_step("refine", _step_refine, doc="graph-cut refinement of the masks (the keying's graphcut layer)")  # announced by key
+register_step("surface", _step_surface, doc="visual hull and surface per frame set", totals=_surface_totals)
+register_step("spine", _step_spine, doc="per-frame skeletons and the take's spine",
+              totals=lambda ctx: [("skeleton", ctx.n_sets), ("spine", 1)])
 
 
 def _step_rig(ctx: RunContext) -> None:
@@ -1177,14 +1208,24 @@ def _step_rig(ctx: RunContext) -> None:
             _step_track(ctx)
         t0 = time.perf_counter()
     try:
-        armature_results(ctx.out, units=ctx.calibration.units, fps=float(ctx.fps), progress=ctx.progress)
+        armature_results(ctx.out, units=ctx.calibration.units, fps=float(ctx.fps),
+                         progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t))
     except NoTrackingError as exc:
         raise ProcessError(f"rig: {exc}") from None
     ctx.timings["rig"] = time.perf_counter() - t0
 
 
-register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine")
-register_step("track", _step_track, doc="template tracking of the surfaces (only when asked for)", after="spine")
+def _track_totals(ctx: RunContext) -> list[tuple[str, int]]:
+    """The tracking, then per round of carving the carve and the tracking again (:func:`pipeline.carve.track_with_carving`)."""
+    rounds = [(f"{what} round {r}", ctx.n_sets) for r in range(1, ctx.params.track.carve + 1) for what in ("carve", "track")]
+    return [("track", ctx.n_sets), *rounds]
+
+
+register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine",
+              totals=lambda ctx: [("rig segmentation", 1), ("rig skeleton", 1), ("rig fit", ctx.n_sets),
+                                  ("rig write", ctx.n_sets)])
+register_step("track", _step_track, doc="template tracking of the surfaces (only when asked for)", after="spine",
+              totals=_track_totals)
 # what runs when no steps are given: tracking and the rig on it are asked for (``stage track``,
 # ``stage rig`` or a job's steps); a plain run does not warn about a rig it was not asked for
 DEFAULT_STEPS: tuple[str, ...] = tuple(s for s in STEPS if s not in ("track", "rig"))
@@ -1416,6 +1457,9 @@ def process_take(
             check_free_space(out, need, f"processing {ctx.n_sets} frame sets of {take.name}")
             out.mkdir(parents=True, exist_ok=True)
             _start_record(ctx)
+            for name in steps:  # the run's total counts every step it will run
+                if _REGISTRY[name].totals is not None:
+                    ctx.announce(name, _REGISTRY[name].totals(ctx))
             for name in steps:
                 _run_step(ctx, name)
             return _write_report(ctx, steps, t_start)
@@ -1431,6 +1475,7 @@ def _run_step(ctx: RunContext, name: str) -> None:
     ctx.step = name
     t = time.process_time()
     _REGISTRY[name].run(ctx)
+    ctx.complete(name)
     own = time.process_time() - t - ctx.part_cpu.get(name, 0.0)
     ctx.cpu[name] = own + ctx.worker_cpu.get(name, 0.0)
 

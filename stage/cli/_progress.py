@@ -16,6 +16,9 @@ class StepBars:
         bar = self._bars.get(step)
         if bar is None:
             bar = self._bars[step] = tqdm(total=total, desc=step, unit="frame", disable=self.disable)
+        elif done == 0 and bar.n == 0:  # announced before it ran: its clock (rate, time left) starts now
+            bar.reset(total=total)
+            return
         bar.n = done
         bar.refresh()
 

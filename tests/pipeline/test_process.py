@@ -46,6 +46,16 @@ def test_pipeline_end_to_end(starfish, processed):
     assert all(f["quality"]["watertight"] for f in rep["per_frame"])
     assert rep["limb_count"] == {"K": 5, "rule": "mode"}  # how K was chosen (a borderline count says so here)
     assert {s for s, _, _ in seen} >= {"key", "surface", "skeleton", "spine"}
+    # summed as a job sums them: the total counts every step from the first report on, so the run
+    # reads done == total once, at its end (never n/n while steps are still to come)
+    latest, sums = {}, []
+    for s, d, t in seen:
+        latest[s] = (d, t)
+        sums.append((sum(v[0] for v in latest.values()), sum(v[1] for v in latest.values())))
+    first_work = next(t for d, t in sums if d > 0)
+    assert sums[-1][0] == sums[-1][1] == first_work == 8 * 8 + 8 + 8 + 8 + 1  # key, box, surface, skeleton, spine
+    assert all(d < t for d, t in sums[:-1]), [x for x in zip(seen, sums) if x[1][0] >= x[1][1]]
+    assert [d for d, _ in sums] == sorted(d for d, _ in sums)  # done never goes back
 
 
 def test_resume_gives_the_same_spine(starfish, processed, tmp_path):
