@@ -9,10 +9,14 @@ intersection over union (IoU) of the camera's mask and the projection of the fra
 
 The projection is the union of the surface's triangles that face the camera (every ray through a
 closed surface's projection meets a front face), the vertices projected with the camera's lens
-distortion, a pixel taken when its centre lies in a triangle. The triangles are filled here, in
-vectorised groups by size: OpenCV's many-polygon filler fills by the even-odd rule (overlapping
-triangles and shared edges cancel), and its convex filler takes every pixel an edge touches (half a
-pixel more all round, which on a limb a few pixels wide is a large share of its area).
+distortion, a pixel taken when its centre lies in a triangle. The triangles are filled here, as
+runs of pixel centres per row (each edge bounds a row's run; the cover is the running sum of the
+runs' ends), all triangles at once: OpenCV's many-polygon filler fills by the even-odd rule
+(overlapping triangles and shared edges cancel), and its convex filler takes every pixel an edge
+touches (half a pixel more all round, which on a limb a few pixels wide is a large share of its
+area; it fills only triangles wider than :data:`_LARGEST` pixels, where that is small). The
+projection and the grown mask are made only inside the window that holds both, which gives the
+same IoU as the whole image.
 
 The carver grows every silhouette by the job's margin before carving (a conservative hull,
 :class:`pipeline.hull.HullCarver`), so the hull is compared with the masks grown the same way.
@@ -34,42 +38,80 @@ CONSISTENCY_WARN = 0.8
 
 _SHIFT = 4  # fractional bits of the polygon filler's vertex coordinates (triangles wider than _LARGEST)
 _LARGEST = 64  # pixels: wider triangles are filled by OpenCV (its half-pixel border is small beside them)
-_CHUNK = 1 << 21  # candidate pixels tested at once
 
 
-def _fill(out: np.ndarray, tri: np.ndarray) -> None:
+def _edge(tri: np.ndarray, i: int, j: int, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    """The edge function of edge ``i -> j`` at pixel centres: <= 0 on the inner side (edge included)."""
+    ax, ay = tri[i, :, 0], tri[i, :, 1]
+    bx, by = tri[j, :, 0], tri[j, :, 1]
+    return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+
+
+def _spans(tri: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel row of every triangle, the run ``[x0, x1]`` of pixel centres inside it, for (3, F, 2)
+    clockwise triangles and their bounding boxes of pixel centres ``lo``, ``hi`` (F, 2): rows (R,),
+    x0, x1 (R,), empty runs included (x0 > x1). The bound each edge puts on a row is solved for;
+    where it falls within rounding of a pixel centre, the edge function itself (the test of pixel
+    centres, :func:`_edge`) decides, so the runs hold exactly the centres that test inside."""
+    heights = hi[:, 1] - lo[:, 1] + 1
+    owner = np.repeat(np.arange(len(heights)), heights)
+    first = np.cumsum(heights) - heights
+    py = (lo[owner, 1] + np.arange(len(owner)) - first[owner]).astype(np.float64)
+    x0 = lo[owner, 0].astype(np.int64)
+    x1 = hi[owner, 0].astype(np.int64)
+    big = float(1 << 40)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        ax, ay = tri[i, owner, 0], tri[i, owner, 1]
+        dx, dy = tri[j, owner, 0] - ax, tri[j, owner, 1] - ay
+        rel = py - ay
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xs = ax + dx * rel / dy
+        down, up = dy > 0, dy < 0  # inside where px >= xs (dy > 0) or px <= xs (dy < 0)
+        # a horizontal edge lets its whole row in or none of it
+        shut = ~down & ~up & (dx * rel > 0)
+        lower = np.where(down, np.clip(np.ceil(xs), -big, big), np.where(shut, big, -big)).astype(np.int64)
+        upper = np.where(up, np.clip(np.floor(xs), -big, big), big).astype(np.int64)
+        with np.errstate(invalid="ignore"):
+            near = np.flatnonzero((down | up) & (np.abs(xs - np.rint(xs)) <= 1e-6 * (1.0 + np.abs(xs))))
+        if near.size:  # the division's rounding may put the bound a pixel off: the edge function decides
+            t, yy = tri[:, owner[near]], py[near]
+            fit = np.rint(xs[near])
+            edge_in = _edge(t, i, j, fit, yy) <= 0
+            lower[near] = np.where(down[near], np.where(edge_in, fit, fit + 1), lower[near]).astype(np.int64)
+            upper[near] = np.where(up[near], np.where(edge_in, fit, fit - 1), upper[near]).astype(np.int64)
+        np.maximum(x0, lower, out=x0)
+        np.minimum(x1, upper, out=x1)
+    return py.astype(np.int64), x0, x1
+
+
+def _fill(out: np.ndarray, tri: np.ndarray, origin: tuple[int, int] = (0, 0)) -> None:
     """Set the pixels of ``out`` whose centre lies in a triangle (edges included), for (3, F, 2)
     clockwise (negative area) triangles in pixel coordinates (vertex first: reductions over the
-    three vertices run along whole rows): each triangle's bounding box of pixel centres is tested
-    against its three edges, triangles grouped by box size."""
+    three vertices run along whole rows). ``out`` is the window of the image whose top-left pixel
+    is ``origin`` (column, row). Each triangle's rows of pixel centres become runs
+    (:func:`_spans`), summed into a difference image whose running sum along the rows is the
+    cover."""
     import cv2
 
     h, w = out.shape
-    lo = np.maximum(np.ceil(np.minimum(np.minimum(tri[0], tri[1]), tri[2])), 0).astype(np.int64)
-    hi = np.minimum(np.floor(np.maximum(np.maximum(tri[0], tri[1]), tri[2])), [w - 1, h - 1]).astype(np.int64)
+    ox, oy = origin
+    lo = np.maximum(np.ceil(np.minimum(np.minimum(tri[0], tri[1]), tri[2])), [ox, oy]).astype(np.int64)
+    hi = np.minimum(np.floor(np.maximum(np.maximum(tri[0], tri[1]), tri[2])), [ox + w - 1, oy + h - 1]).astype(np.int64)
     n = hi - lo + 1
     ok = (n[:, 0] > 0) & (n[:, 1] > 0)
     size = np.maximum(n[:, 0], n[:, 1])
-    s_lo = 0
-    for s_hi in (1, 2, 4, 8, 16, 32, _LARGEST):
-        sel = np.flatnonzero(ok & (size > s_lo) & (size <= s_hi))
-        s_lo = s_hi
-        oy, ox = (g.ravel() for g in np.mgrid[0:s_hi, 0:s_hi])
-        for part in np.array_split(sel, max(1, len(sel) * s_hi * s_hi // _CHUNK)):
-            if part.size == 0:
-                continue
-            t, corner, m = tri[:, part], lo[part], n[part]
-            px = corner[:, :1] + ox
-            py = corner[:, 1:] + oy
-            inside = (ox < m[:, :1]) & (oy < m[:, 1:])
-            for i, j in ((0, 1), (1, 2), (2, 0)):
-                ax, ay = t[i, :, :1], t[i, :, 1:]
-                bx, by = t[j, :, :1], t[j, :, 1:]
-                inside &= (bx - ax) * (py - ay) - (by - ay) * (px - ax) <= 0
-            out[py[inside], px[inside]] = 1
+    small = np.flatnonzero(ok & (size <= _LARGEST))
+    if small.size:
+        rows, x0, x1 = _spans(tri[:, small], lo[small], hi[small])
+        run = x0 <= x1
+        rows, x0, x1 = rows[run] - oy, x0[run] - ox, x1[run] - ox
+        diff = np.bincount(rows * (w + 1) + x0, minlength=h * (w + 1))
+        diff -= np.bincount(rows * (w + 1) + x1 + 1, minlength=h * (w + 1))
+        out |= (np.cumsum(diff.reshape(h, w + 1), axis=1)[:, :w] > 0).view(np.uint8)
     big = np.flatnonzero(ok & (size > _LARGEST))
+    shift = np.array([ox, oy]) * (1 << _SHIFT)
     for p in np.round(tri[:, big].transpose(1, 0, 2) * (1 << _SHIFT)).astype(np.int32):
-        cv2.fillConvexPoly(out, p, 1, cv2.LINE_8, _SHIFT)
+        cv2.fillConvexPoly(out, (p - shift).astype(np.int32), 1, cv2.LINE_8, _SHIFT)
 
 
 def _check_mesh(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -82,6 +124,28 @@ def _check_mesh(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray]:
     if f.size and (f.min() < 0 or f.max() >= len(v)):
         raise ValueError("faces index vertices that do not exist")
     return v, f.astype(np.int64)
+
+
+def _front_triangles(v: np.ndarray, f: np.ndarray, camera: Camera) -> np.ndarray:
+    """(3, F', 2) pixel coordinates of the triangles that face the camera and may cover a pixel
+    centre of its image (every vertex in front of it)."""
+    w, h = camera.size
+    if len(f) == 0:
+        return np.zeros((3, 0, 2))
+    pix, z = camera.project(v, return_depth=True)
+    ft = np.ascontiguousarray(f.T)
+    tri = pix[ft]  # (3, F, 2), vertex first
+    zt = z[ft]
+    front = (zt[0] > 0) & (zt[1] > 0) & (zt[2] > 0)
+    # an outward face seen from outside turns counter-clockwise; the image's y axis points down,
+    # so a face turned towards the camera has a negative signed area in pixel coordinates
+    d1, d2 = tri[1] - tri[0], tri[2] - tri[0]
+    a = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+    lo = np.minimum(np.minimum(tri[0], tri[1]), tri[2])
+    hi = np.maximum(np.maximum(tri[0], tri[1]), tri[2])
+    inside = (hi[:, 0] >= -0.5) & (lo[:, 0] <= w - 0.5) & (hi[:, 1] >= -0.5) & (lo[:, 1] <= h - 0.5)
+    facing = front & inside & np.isfinite(a) & (a < 0)  # a NaN vertex makes the area NaN
+    return tri[:, facing]
 
 
 def mesh_silhouette(vertices: Any, faces: Any, camera: Camera) -> np.ndarray:
@@ -105,23 +169,28 @@ def mesh_silhouette(vertices: Any, faces: Any, camera: Camera) -> np.ndarray:
     v, f = _check_mesh(vertices, faces)
     w, h = camera.size
     out = np.zeros((h, w), np.uint8)
-    if len(f) == 0:
-        return out.view(bool)
-    pix, z = camera.project(v, return_depth=True)
-    ft = np.ascontiguousarray(f.T)
-    tri = pix[ft]  # (3, F, 2), vertex first
-    zt = z[ft]
-    front = (zt[0] > 0) & (zt[1] > 0) & (zt[2] > 0)
-    # an outward face seen from outside turns counter-clockwise; the image's y axis points down,
-    # so a face turned towards the camera has a negative signed area in pixel coordinates
-    d1, d2 = tri[1] - tri[0], tri[2] - tri[0]
-    a = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
-    lo = np.minimum(np.minimum(tri[0], tri[1]), tri[2])
-    hi = np.maximum(np.maximum(tri[0], tri[1]), tri[2])
-    inside = (hi[:, 0] >= -0.5) & (lo[:, 0] <= w - 0.5) & (hi[:, 1] >= -0.5) & (lo[:, 1] <= h - 0.5)
-    facing = front & inside & np.isfinite(a) & (a < 0)  # a NaN vertex makes the area NaN
-    _fill(out, tri[:, facing])
+    _fill(out, _front_triangles(v, f, camera))
     return out.view(bool)
+
+
+def _window(tri: np.ndarray, mask: np.ndarray, margin: int, size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)`` (exclusive ends) holding every pixel centre the triangles may cover
+    and the mask grown by ``margin``, within the image; empty when neither has any."""
+    import cv2
+
+    w, h = size
+    x, y, bw, bh = cv2.boundingRect(mask.view(np.uint8))
+    box = [] if bw == 0 else [(x - margin, y - margin, x + bw + margin, y + bh + margin)]
+    if tri.shape[1]:
+        lo = np.floor(np.minimum(np.minimum(tri[0], tri[1]), tri[2]).min(axis=0))
+        hi = np.ceil(np.maximum(np.maximum(tri[0], tri[1]), tri[2]).max(axis=0)) + 1
+        box.append((int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])))
+    if not box:
+        return 0, 0, 0, 0
+    b = np.array(box)
+    x0, y0 = max(0, int(b[:, 0].min())), max(0, int(b[:, 1].min()))
+    x1, y1 = min(w, int(b[:, 2].max())), min(h, int(b[:, 3].max()))
+    return x0, y0, max(x0, x1), max(y0, y1)
 
 
 def silhouette_iou(mask: Any, projection: Any) -> float:
@@ -185,10 +254,21 @@ def silhouette_consistency(vertices: Any, faces: Any, masks: Any, calibration: C
         w, h = cam.size
         if np.shape(m) != (h, w):
             raise ValueError(f"masks: camera {cam.name!r} is {w}x{h}, its mask has shape {np.shape(m)}")
-        m = np.asarray(m) != 0
+        m = np.ascontiguousarray(np.asarray(m) != 0)
+        tri = _front_triangles(v, f, cam)
+        # the mask grown and the surface drawn only where either can be (exactly as on the whole image)
+        x0, y0, x1, y1 = _window(tri, m, margin, (w, h))
+        if x1 == x0 or y1 == y0:
+            continue
         if disk is not None:
             import cv2
 
-            m = cv2.dilate(m.view(np.uint8), disk).view(bool)
-        out[i] = silhouette_iou(m, mesh_silhouette(v, f, cam))
+            gx0, gy0 = max(0, x0 - margin), max(0, y0 - margin)
+            grown = cv2.dilate(m[gy0 : min(h, y1 + margin), gx0 : min(w, x1 + margin)].view(np.uint8), disk)
+            mw = grown[y0 - gy0 : y1 - gy0, x0 - gx0 : x1 - gx0].view(bool)
+        else:
+            mw = m[y0:y1, x0:x1]
+        proj = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        _fill(proj, tri, origin=(x0, y0))
+        out[i] = silhouette_iou(mw, proj.view(bool))
     return out

@@ -15,9 +15,16 @@ every frame set of the take in one pass:
    one level are tested at the next, on silhouettes max-pooled to the finest level's scale
    (a pooled pixel is foreground when any of its pixels is), so a frame set costs about the
    subject's surface in cubes.
-2. **Cameras that see it.** A cube is kept only when at least half the cameras that see most
-   of the volume (at least two) see some of it (:func:`find_subject_box`'s ``min_share``):
-   at the edge of the shared view few silhouette cones cross, and their crossings are phantoms.
+2. **Cameras that find it.** A camera *finds* a cube when it sees some of the cube and a
+   silhouette pixel lies in the part of the cube's rectangle inside its image. A cube is kept
+   only when at least half the cameras that see most of the volume (at least two) find it
+   (:func:`find_subject_box`'s ``min_share``), and at least as many as find the best-found cube
+   of its frame set and level, less ``view_slack`` (default one). Every camera that sees a
+   point of the subject finds the cubes around it, so the subject's cubes are found by all the
+   cameras that see it; a phantom crossing of a few silhouette cones is found only by those few
+   (two opposite cameras' cones cross along the whole line between them, out to where the
+   other cameras no longer see). The slack keeps a limb that leaves one camera's image, or
+   falls in a hole of one camera's silhouette, where the body is found by all.
 3. **The silhouettes explain every piece.** The kept cubes form connected pieces. A piece is the
    subject's when its projection *uniquely* explains silhouette pixels (pixels no other piece
    covers) in at least ``min_support`` cameras, at least ``support_share`` of the silhouette it
@@ -83,7 +90,9 @@ class SubjectBox:
     margin : float
         Grown on every side of the union (one finest cube).
     min_views : int
-        Cameras that must see a cube (``min_share`` of the most cameras seeing any point).
+        Cameras that must find a cube at least (``min_share`` of the most cameras seeing any point).
+    view_slack : int
+        A cube is found by at least the most cameras finding any cube of its frame set less this.
     pooling : tuple of int
         Per camera, the silhouettes' pooling factor.
     stats : dict
@@ -99,6 +108,7 @@ class SubjectBox:
     min_views: int
     pooling: tuple[int, ...]
     stats: dict = field(default_factory=dict)
+    view_slack: int = 1
 
     def to_dict(self) -> dict:
         """The box and why (for ``process.json``): JSON types only."""
@@ -106,7 +116,8 @@ class SubjectBox:
         return {
             "lo": lo.tolist(), "hi": hi.tolist(), "size": (hi - lo).tolist(),
             "level_voxels": [float(v) for v in self.voxels], "margin": float(self.margin),
-            "min_views": int(self.min_views), "pooling": [int(s) for s in self.pooling], **self.stats,
+            "min_views": int(self.min_views), "view_slack": int(self.view_slack),
+            "pooling": [int(s) for s in self.pooling], **self.stats,
         }
 
 
@@ -180,22 +191,27 @@ def _pool(mask: np.ndarray, s: int) -> np.ndarray:
 
 
 def _carve(ijk: np.ndarray, rects: list, usable: list[int], integrals: dict, *, tolerance: int,
-           min_views: int) -> np.ndarray:
-    """Cubes kept: seen (in part) by ``min_views`` usable cameras, and at most ``tolerance`` cameras
-    that see them whole find no silhouette pixel in their rectangle."""
-    views = np.zeros(len(ijk), np.int32)
+           min_views: int, view_slack: int | None = None) -> np.ndarray:
+    """Cubes kept: found (a silhouette pixel in the visible part of the rectangle) by ``min_views``
+    usable cameras and by the most cameras that find any of the cubes less ``view_slack`` (None:
+    no such bound), and at most ``tolerance`` cameras that see them whole find no silhouette pixel
+    in their rectangle."""
+    found = np.zeros(len(ijk), np.int32)
     misses = np.zeros(len(ijk), np.int32)
     for c in usable:
         whole, part, rect = rects[c]
-        views += part
-        idx = np.flatnonzero(whole)
+        idx = np.flatnonzero(part)
         if idx.size == 0:
             continue
         S = integrals[c]
         c0, r0, c1, r1 = rect[idx].T
-        cnt = S[r1 + 1, c1 + 1] - S[r0, c1 + 1] - S[r1 + 1, c0] + S[r0, c0]
-        misses[idx[cnt == 0]] += 1
-    return (misses <= tolerance) & (views >= min_views)
+        hit = (S[r1 + 1, c1 + 1] - S[r0, c1 + 1] - S[r1 + 1, c0] + S[r0, c0]) > 0
+        found[idx[hit]] += 1
+        misses[idx[~hit & whole[idx]]] += 1
+    keep = (misses <= tolerance) & (found >= min_views)
+    if keep.any() and view_slack is not None:
+        keep &= found >= found[keep].max() - view_slack
+    return keep
 
 
 def _pieces(ijk: np.ndarray) -> tuple[np.ndarray, int]:
@@ -286,7 +302,8 @@ def _frame_subject(masks: Sequence, cams: Sequence, lo: np.ndarray, levels: list
         if li > 0:
             ijk = _children(ijk)
         rects = _rects(cams, lo, level, ijk, pooling)
-        keep = _carve(ijk, rects, usable, integrals, tolerance=opts["tolerance"], min_views=min_views)
+        keep = _carve(ijk, rects, usable, integrals, tolerance=opts["tolerance"], min_views=min_views,
+                      view_slack=opts["view_slack"])
         keep &= _above(lo, level.voxel, ijk, opts["plane"])
         if not keep.any():
             return None
@@ -374,6 +391,7 @@ def find_subject_box(
     tolerance: int = 0,
     finest_voxel: float | None = None,
     min_share: float = 0.5,
+    view_slack: int = 1,
     min_support: int = 2,
     support_share: float = 0.2,
     support_plane: Any = None,
@@ -397,8 +415,11 @@ def find_subject_box(
         median pixel footprint at the volume's centre. The levels halve the top level's cube
         down to it.
     min_share : float, optional
-        Share of the most cameras that see any point of the volume that must see a cube, in
-        (0, 1] (at least two cameras).
+        Share of the most cameras that see any point of the volume that must find a cube (see
+        the module docstring), in (0, 1] (at least two cameras).
+    view_slack : int, optional
+        A cube must also be found by the most cameras that find any cube of its frame set
+        (at its level) less this many.
     min_support : int, optional
         Cameras in which a piece must alone explain silhouette pixels to be the subject's.
     support_share : float, optional
@@ -430,6 +451,8 @@ def find_subject_box(
         raise ValueError(f"tolerance must be a non-negative integer, got {tolerance!r}")
     if not (isinstance(min_share, (int, float)) and 0 < min_share <= 1):
         raise ValueError(f"min_share must be in (0, 1], got {min_share!r}")
+    if isinstance(view_slack, bool) or not isinstance(view_slack, (int, np.integer)) or view_slack < 0:
+        raise ValueError(f"view_slack must be a non-negative integer, got {view_slack!r}")
     if isinstance(min_support, bool) or not isinstance(min_support, (int, np.integer)) or min_support < 1:
         raise ValueError(f"min_support must be a positive integer, got {min_support!r}")
     if not (isinstance(support_share, (int, float)) and 0 < support_share <= 1):
@@ -450,7 +473,8 @@ def find_subject_box(
     n_top = np.maximum(1, np.ceil((bounds[1] - bounds[0]) / voxels[0] - 1e-9)).astype(np.int64)
     top = np.stack(np.meshgrid(*[np.arange(n) for n in n_top], indexing="ij"), axis=-1).reshape(-1, 3)
     min_views = max(2, math.ceil(min_share * _most_views(cams, bounds)))
-    opts = {"pooling": pooling, "tolerance": int(tolerance), "min_views": min_views, "min_support": int(min_support),
+    opts = {"pooling": pooling, "tolerance": int(tolerance), "min_views": min_views, "view_slack": int(view_slack),
+            "min_support": int(min_support),
             "support_share": float(support_share), "plane": plane}
     stats = {"frame_sets": n_sets, "with_subject": 0, "pieces_kept": 0, "pieces_rejected": 0, "phantoms_rejected": 0}
     lo, fine = bounds[0], voxels[-1]
@@ -476,4 +500,4 @@ def find_subject_box(
     log.info("subject box %s .. %s from %d of %d frame sets (levels %s)", box[0].round(1), box[1].round(1),
              stats["with_subject"], n_sets, [round(v, 1) for v in voxels])
     return SubjectBox(bounds=box, frame_boxes=frame_boxes, centres=centres, voxels=tuple(voxels), margin=fine,
-                      min_views=min_views, pooling=pooling, stats=stats)
+                      min_views=min_views, pooling=pooling, stats=stats, view_slack=int(view_slack))
