@@ -264,7 +264,7 @@ def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
 def test_masks_over_the_memory_budget_are_read_from_the_take(starfish, processed, tmp_path, monkeypatch):
     """Keyed masks beyond the budget kept in memory: the surface tasks read them from the take
     (as a resumed run does), with the same results."""
-    import pipeline.process as sp
+    import pipeline.process.steps as sp
 
     sim, path = starfish
     _, out, _ = processed
@@ -369,16 +369,13 @@ def test_steps_are_a_registry(starfish, processed, tmp_path):
 
     _, path = starfish
     seen = []
-    before = dict(sp._REGISTRY)
     try:
         sp.register_step("count", lambda ctx: seen.append((ctx.n_sets, ctx.steps)), after="surface")
         assert sp.STEPS.index("count") == sp.STEPS.index("surface") + 1
         res = process_take(path, tmp_path / "o", steps=("count",))
         assert seen == [(8, ("count",))] and res.steps == ("count",)
     finally:
-        sp._REGISTRY.clear()
-        sp._REGISTRY.update(before)
-        sp.STEPS = tuple(before)
+        sp.STEPS.remove("count")
     with pytest.raises(ValueError, match="name"):
         sp.register_step("not a name", lambda ctx: None)
     with pytest.raises(ValueError, match="after"):
@@ -423,35 +420,33 @@ def _burn(seconds: float) -> None:
         pass
 
 
-def test_cpu_seconds_of_a_thread_pool_count_once_and_parts_count_apart(monkeypatch):
+def test_cpu_seconds_of_a_thread_pool_count_once_and_parts_count_apart():
     """A thread pool's tasks run in this process: their CPU is the step's own, not added again as
     workers'; a part of a step (the surface step's grid) is counted on its own, not in the step."""
     import concurrent.futures as cf
     from functools import partial
     from pathlib import Path
 
-    from pipeline import process
+    from pipeline.run import Run
 
     def step(ctx):
         with ctx.part("inner"):
             _burn(0.1)
-        list(process._map_tasks(ctx, [partial(_burn, 0.1)]))
+        list(ctx.map_tasks([partial(_burn, 0.1)]))
 
-    monkeypatch.setitem(process._REGISTRY, "burn", process.Step("burn", step))
     with cf.ThreadPoolExecutor(1) as ex:
-        ctx = process.RunContext(take=Path("t.h5"), out=Path("out"), params=ProcessParams(), executor=ex, progress=None,
-                                 cancel=None, calibration=None, cameras=[], n_sets=0, fps=30.0, rig={}, need_key=False)
-        process._run_step(ctx, "burn")
+        ctx = Run(out=Path("out"), executor=ex)
+        ctx.run_step("burn", step)
     assert ctx.worker_cpu == {}
     assert 0.1 <= ctx.cpu["inner"] < 0.15 and ctx.timings["inner"] >= 0.1
     assert 0.1 <= ctx.cpu["burn"] < 0.15, ctx.cpu  # 0.3 before: the task counted twice, the part once more
 
 
-def test_a_part_run_several_times_counts_every_run(monkeypatch):
-    """``RunContext.part`` adds up: wall and CPU seconds of every run of a part, none of them in the step's."""
+def test_a_part_run_several_times_counts_every_run():
+    """``Run.part`` adds up: wall and CPU seconds of every run of a part, none of them in the step's."""
     from pathlib import Path
 
-    from pipeline import process
+    from pipeline.run import Run
 
     def step(ctx):
         for _ in range(2):
@@ -459,10 +454,8 @@ def test_a_part_run_several_times_counts_every_run(monkeypatch):
                 _burn(0.05)
         _burn(0.05)
 
-    ctx = process.RunContext(take=Path("t.h5"), out=Path("out"), params=ProcessParams(), executor=None, progress=None,
-                             cancel=None, calibration=None, cameras=[], n_sets=0, fps=30.0, rig={}, need_key=False)
-    monkeypatch.setitem(process._REGISTRY, "burn_twice", process.Step("burn_twice", step))
-    process._run_step(ctx, "burn_twice")
+    ctx = Run(out=Path("out"))
+    ctx.run_step("burn_twice", step)
     assert ctx.cpu["inner"] >= 0.1 and ctx.timings["inner"] >= 0.1, ctx.cpu  # 0.05: the last run only
     assert 0.05 <= ctx.cpu["burn_twice"] < 0.09, ctx.cpu
 

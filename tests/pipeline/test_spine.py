@@ -388,7 +388,7 @@ def test_limb_with_near_equal_maxima_keeps_its_most_consistent_tip():
 
 
 def test_alternates_survive_the_stored_records():
-    from pipeline.process import _load_skeleton, _skeleton_bytes
+    from pipeline.process.records import load_skeleton, skeleton_bytes
 
     fr = frame_skeleton(*forked_take(1)[0])
     assert len(fr.alternates) == 1
@@ -399,8 +399,8 @@ def test_alternates_survive_the_stored_records():
 
             with tempfile.TemporaryDirectory() as d:
                 p = Path(d) / "r.npz"
-                p.write_bytes(_skeleton_bytes({"index": 0, "status": "ok", "skeleton": fr}))
-                back = _load_skeleton(p)["skeleton"]
+                p.write_bytes(skeleton_bytes({"index": 0, "status": "ok", "skeleton": fr}))
+                back = load_skeleton(p)["skeleton"]
         a, b = fr.alternates[0], back.alternates[0]
         assert (a.tip, a.vertex) == (b.tip, b.vertex)
         np.testing.assert_array_equal(a.rings, b.rings)

@@ -499,7 +499,8 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     from types import SimpleNamespace
 
     from pipeline.armature import armature_results, remove_armature
-    from pipeline.process import ProcessParams, _step_track
+    from pipeline.process import ProcessParams
+    from pipeline.process.steps import _step_track
     from pipeline.report import write_report
     from pipeline.track import track_results
 

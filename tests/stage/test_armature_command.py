@@ -92,7 +92,8 @@ def test_invalid_input(capsys):
 
 
 def test_rig_step(tmp_path, caplog):
-    from pipeline.process import STEPS, ProcessError, _step_rig
+    from pipeline.process import STEPS, ProcessError
+    from pipeline.process.steps import _step_rig
 
     # the rig runs on what tracking wrote, so it comes after the spine and the tracking
     assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")

@@ -163,7 +163,8 @@ def _masks_dir(tmp_path, counts=None, size=(W, H)):
 
 
 def test_masks_imported_and_keying_skipped(footage, tmp_path, capsys):
-    from pipeline.process import ProcessParams, _open_context
+    from pipeline.process import ProcessParams
+    from pipeline.process.driver import _open_context
 
     d, cal = footage
     m = _masks_dir(tmp_path)

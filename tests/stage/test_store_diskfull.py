@@ -199,8 +199,8 @@ _RUN = """
 import sys
 mode, budget = sys.argv[1].split(":")
 if mode in ("unchecked", "mocked"):  # no up-front estimate: the full disk is met mid-run
-    import pipeline.process, stage.store.derived
-    pipeline.process.check_free_space = stage.store.derived.check_free_space = lambda *a, **k: None
+    import pipeline.process.driver, stage.store.derived
+    pipeline.process.driver.check_free_space = stage.store.derived.check_free_space = lambda *a, **k: None
 if mode == "mocked":  # no small filesystem: every file written from Python shares a byte budget
     import builtins, errno, io
     real_open, used = io.open, [0]

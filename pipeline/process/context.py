@@ -1,0 +1,74 @@
+"""What the steps of one :func:`pipeline.process.process_take` call share."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from calib.fileio import atomic_write, json_default
+from pipeline.process.params import ProcessParams
+from pipeline.process.records import frame_name
+from pipeline.run import Run, chunks
+
+__all__ = ["RunContext"]
+
+
+@dataclass(kw_only=True)
+class RunContext(Run):
+    """The runner's side of the run (:class:`pipeline.run.Run`: results directory, executor,
+    progress, cancel, timings, warnings), the take's facts, the job's options, and what earlier
+    steps left for later ones."""
+
+    # the take and the job
+    take: Path
+    params: ProcessParams
+    steps: tuple[str, ...] = ()
+    calibration: object
+    cameras: list[str]
+    n_sets: int
+    fps: float
+    rig: dict
+    need_key: bool
+    all_depth: bool = False  # every camera records depth
+    set_table: np.ndarray | None = None  # (S, C) frame row of every camera in every set
+    # made by the steps
+    key_choice: dict = field(default_factory=dict)  # the keying mode and layers of this run, and why
+    keyed: dict | None = field(default_factory=dict)  # camera -> (bit-packed masks, width, valid) keyed in this run
+    grid_choice: dict = field(default_factory=dict)
+    consistency: dict = field(default_factory=dict)  # per camera median silhouette IoU, and those below the threshold
+    skeletons: dict[int, object] = field(default_factory=dict)  # frame -> FrameSkeleton (None: none), as computed
+    tip_counts: list[int | None] = field(default_factory=list)
+    limb_count: dict = field(default_factory=dict)  # the spine's K and the rule that chose it
+    spine_path: Path | None = None
+    damaged: dict = field(default_factory=dict)  # skip_damaged: {"sets", "frames" per camera, "summary"} of the damage skipped
+
+    @property
+    def skipped_sets(self) -> frozenset[int]:
+        """Frame sets holding a damaged frame, skipped by this run (``skip_damaged``)."""
+        return frozenset(self.damaged.get("sets", ()))
+
+    def run_frames(self, step: str, task: Callable[..., list[dict]], done_dir: str, *, suffix: str = ".json",
+                   chunk_args: Callable[[list[int]], dict] | None = None) -> None:
+        """Run a per-frame ``task`` on every frame set without a result in ``OUT/done_dir``
+        (the one runner all per-frame steps share: chunks, executor, progress, cancel);
+        ``chunk_args(frames)`` adds keywords per chunk (e.g. its masks)."""
+        todo = [k for k in range(self.n_sets) if not (self.out / done_dir / f"{frame_name(k)}{suffix}").exists()]
+        done = self.n_sets - len(todo)
+        self.report_progress(step, done, self.n_sets)
+        tasks = [partial(task, ch, **(chunk_args(ch) if chunk_args else {})) for ch in chunks(todo, self.params.chunk)]
+        for finished in self.map_tasks(tasks):
+            done += len(finished)
+            for rec in finished:
+                if "skeleton" in rec:
+                    self.skeletons[rec["index"]] = rec.pop("skeleton")
+            self.report_progress(step, done, self.n_sets)
+
+    def add_to_record(self, **items) -> None:
+        """Add what a step decided (e.g. the grid and why) to ``process.json``."""
+        path = self.out / "process.json"
+        atomic_write(path, json.dumps({**json.loads(path.read_text()), **items}, indent=2, default=json_default))

@@ -1,0 +1,176 @@
+"""The options of :func:`pipeline.process.process_take` and the error it raises."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+__all__ = ["ProcessError", "ProcessParams", "ProcessResult", "TrackParams", "check_params"]
+
+
+class ProcessError(ValueError):
+    """A take that cannot be processed; the message says why and what to do."""
+
+
+class TrackParams(BaseModel):
+    """Options of the ``track`` step, as ``stage track RESULTS_DIR`` takes them (docs/tracking.md).
+
+    Parameters
+    ----------
+    carve : int
+        Rounds of surfaces carved across time with the tracked motion, each tracked again
+        (``--carve``; 0: the surfaces of ``stage process``).
+    carve_margin : float or None
+        Pixels every silhouette grows by in the carving (``--carve-margin``; default per camera
+        from its calibration, :func:`pipeline.carve.carve_results`).
+    shape_memory : bool
+        Keep the previous frame's shape in the rigid prior (``--shape-memory``).
+    colour : bool
+        Feature tracks from every camera's colour images (``--colour``).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    carve: Annotated[int, Field(ge=0, le=5)] = 0
+    carve_margin: Annotated[float, Field(ge=0, le=10)] | None = None
+    shape_memory: bool = False
+    colour: bool = False
+
+
+class ProcessParams(BaseModel):
+    """Options of :func:`process_take` (defaults scale with the subject and the rig).
+
+    Attributes
+    ----------
+    key_mode : {"chroma", "luma", "plate"} or None
+        Keying mode; default: the rig's backdrop, else chosen from the footage (a backdrop
+        colour covering a large share of the views: chroma with layers; none: a plate from
+        the take; :func:`stage.keying.take.choose_key_mode`). The choice and why are in
+        ``process.json`` (``key``).
+    key_layers : tuple of {"volume", "graphcut"} or None
+        Keying layers (docs/keying.md): ``volume``, pixels whose rays miss the volume
+        searched for the subject are background; ``graphcut``, the ``refine`` step cuts
+        every camera's silhouettes with colour models seeded by a first hull. Default: the
+        rig's, else the footage's choice.
+    rekey : bool
+        Key again even when the take already holds masks.
+    resolution : int or None
+        Voxels along the longest side of the subject's bounding box (the box is
+        found by a coarse carve of the whole capture volume). Default: from the rig,
+        a voxel of :data:`PIXELS_PER_VOXEL` times the median pixel footprint at the
+        subject over the cameras that see it (so a limb 4 pixels wide in most views is
+        2 voxels across), within :data:`MAX_VOXELS` and the memory the carver may use.
+    volume : (6,) floats or None
+        ``[xmin, ymin, zmin, xmax, ymax, zmax]`` to search for the subject; default the
+        rig's capture volume, else derived from the cameras.
+    tolerance : int
+        Cameras allowed to disagree before a voxel is carved.
+    silhouette_margin : int
+        Pixels every silhouette grows by before carving (a conservative hull): with
+        calibration and masks each a fraction of a pixel off, the intersection of many
+        exact silhouettes shaves thin parts that every camera only just sees.
+    support_plane : (4,) floats or None
+        ``(a, b, c, d)`` of the plane the subject stands on (kept where
+        ``a x + b y + c z + d >= 0``, world units). Cameras that all look down on the
+        subject cannot carve the cone under its base; the plane removes it. Our own
+        rigs need none (their capture volume starts at the floor); give it for imported
+        footage, e.g. a turntable or pedestal at a known height.
+    smooth_iterations : int
+        Taubin smoothing iterations of the surface.
+    face_budget : int or None
+        Decimate surfaces to at most this many faces before skeletons (their cost grows
+        with the faces; the tips and limbs do not need more). ``None``: never.
+    chunk : int
+        Frames per task sent to the executor.
+    depth : {"auto", "off"}
+        ``auto``: when every camera of the take delivers depth (RGB-D), fuse the depth
+        frames into a truncated signed distance volume intersected with the visual hull
+        and take its zero level set; ``off``: the visual hull alone.
+    photo_refine : bool
+        Move every hull surface's vertices along their normals to where the cameras'
+        colours agree (:func:`pipeline.photo_refine.refine_surface`): the hull's excess in
+        concavities that two cameras see is carved. Surfaces from fused depth are not refined.
+    spine : dict
+        Options of :class:`pipeline.spine.SpineParams`.
+    track : TrackParams
+        Options of the ``track`` step. They change the tracking alone: a run with other ones
+        tracks again (``tracked/track.json`` says what changed) and keeps every other result.
+    skip_damaged : bool
+        A take with damaged frames (a chunk failing its checksum, :func:`stage.store.verify.verify_take`)
+        is processed without the frame sets that hold them: no damaged frame is read, those sets
+        get no surface (``frames/`` records them as ``damaged``) and ``process.json``, the report and
+        the log list them. Off: such a take stops before any work, naming the damage. Damage outside
+        the frames (metadata, the set table) always stops.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    key_mode: Literal["chroma", "luma", "plate"] | None = None
+    key_layers: tuple[Literal["volume", "graphcut"], ...] | None = None
+    rekey: bool = False
+    resolution: Annotated[int, Field(ge=16, le=512)] | None = None
+    volume: tuple[float, float, float, float, float, float] | None = None
+    tolerance: Annotated[int, Field(ge=0)] = 0
+    silhouette_margin: Annotated[int, Field(ge=0, le=10)] = 1
+    support_plane: tuple[float, float, float, float] | None = None
+    smooth_iterations: Annotated[int, Field(ge=0, le=200)] = 10
+    face_budget: Annotated[int, Field(ge=100)] | None = 16000
+    chunk: Annotated[int, Field(ge=1)] = 4
+    depth: Literal["auto", "off"] = "auto"
+    photo_refine: bool = False
+    spine: dict = Field(default_factory=dict)
+    track: TrackParams = Field(default_factory=TrackParams)
+    skip_damaged: bool = False
+
+    @field_validator("volume")
+    @classmethod
+    def _check_volume(cls, v: tuple[float, float, float, float, float, float] | None):
+        if v is None:
+            return v
+        from pipeline.volume import check_bounds
+
+        lo_hi = check_bounds(np.reshape(np.asarray(v, float), (2, 3)), "volume")  # before any step runs
+        return tuple(float(x) for x in lo_hi.reshape(-1))
+
+    @field_validator("support_plane")
+    @classmethod
+    def _unit_plane(cls, v: tuple[float, float, float, float] | None) -> tuple[float, float, float, float] | None:
+        if v is None:
+            return v
+        from pipeline.volume import check_plane
+
+        a, b, c, d = check_plane(v).tolist()  # ValueError (a zero normal) becomes a ValidationError
+        return (a, b, c, d)
+
+
+@dataclass
+class ProcessResult:
+    out: Path
+    steps: tuple[str, ...]
+    frames: int
+    empty_frames: list[int] = field(default_factory=list)
+    spine_path: Path | None = None
+    report: dict = field(default_factory=dict)
+
+
+def check_params(params: ProcessParams | dict | None) -> ProcessParams:
+    if params is None:
+        params = ProcessParams()
+    elif isinstance(params, dict):
+        try:
+            params = ProcessParams(**params)
+        except ValidationError as exc:
+            raise ValueError(f"params: {exc}") from None
+    elif not isinstance(params, ProcessParams):
+        raise ValueError(f"params must be ProcessParams or a dict, got {type(params).__name__}")
+    try:
+        from pipeline.spine import SpineParams
+
+        SpineParams(**params.spine)
+    except ValidationError as exc:
+        raise ValueError(f"params.spine: {exc}") from None
+    return params

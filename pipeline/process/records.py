@@ -1,0 +1,124 @@
+"""The per-frame skeleton records of a results directory (``OUT/skeletons/frame_NNNNNN.npz``).
+
+A record holds one frame set's tips and skeletons (Brostow et al. 2004, 4.1) as binary arrays: a
+resumed run reads them back instead of computing them again. :data:`SKELETON_FORMAT` numbers the
+layout; a record of another format is recomputed (:func:`stale_skeletons`).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["SKELETON_FORMAT", "frame_name", "load_skeleton", "skeleton_bytes", "skeleton_path", "skeleton_record",
+           "stale_skeletons"]
+
+log = logging.getLogger("pipeline.process")
+
+
+def frame_name(k: int) -> str:
+    """The stem of frame set ``k``'s files in a results directory (``frame_000012``)."""
+    return f"frame_{k:06d}"
+
+
+def skeleton_path(out: Path, k: int) -> Path:
+    """Where frame set ``k``'s skeleton record goes in the results directory ``out``."""
+    return Path(out) / "skeletons" / f"{frame_name(k)}.npz"
+
+
+def skeleton_record(k: int, mesh, params, *, bodies: int | None = None) -> dict:
+    """Per-frame tips and skeletons (Brostow et al. 2004, 4.1) of one frame's surface
+    (``None``: an empty frame): ``{"index", "status", "skeleton"}`` (a :class:`FrameSkeleton`,
+    ``None`` unless ``ok``) or ``reason``. The mesh is taken as
+    :func:`pipeline.meshio.load_mesh` reads it back (its largest connected part); with
+    ``bodies == 1`` (the surface's quality counted its pieces) it is that part already."""
+    from pipeline.geodesic import largest_component
+    from pipeline.spine import frame_skeleton
+
+    if mesh is None:
+        return {"index": int(k), "status": "empty", "skeleton": None}
+    v, f = np.asarray(mesh[0], np.float64), np.asarray(mesh[1], np.int64)
+    if bodies != 1:
+        v2, f2, _ = largest_component(v, f, warn=False)
+        if len(f2) != len(f):
+            v, f = v2, f2
+    try:
+        return {"index": int(k), "status": "ok", "skeleton": frame_skeleton(v, f, params=params)}
+    except ValueError as exc:
+        log.warning("frame set %d: no skeleton: %s", k, exc)
+        return {"index": int(k), "status": "failed", "reason": str(exc), "skeleton": None}
+
+
+_TIP_FIELDS = ("seed", "nodes", "parent", "cost", "frame", "count", "level", "tip_nodes")
+_ALT_FIELDS = ("tip", "point", "vertex", "limb_points", "rings", "alt_rings")  # pipeline.spine.Alternate
+# format of a ``skeletons/`` record; 2: with the alternates. A record of another format (or none:
+# written before alternates existed, which reads as "no alternates") is recomputed on a resume.
+SKELETON_FORMAT = 2
+
+
+def skeleton_bytes(rec: dict) -> bytes:
+    """A ``skeletons/`` record as an uncompressed ``.npz`` (binary arrays: exact, and a
+    fraction of the time JSON takes for the ~10^4 floats of a frame's skeletons)."""
+    import io
+
+    arrays: dict[str, np.ndarray] = {"format": np.int64(SKELETON_FORMAT), "index": np.int64(rec["index"]),
+                                     "status": np.str_(rec["status"]), "reason": np.str_(rec.get("reason", ""))}
+    sk = rec.get("skeleton")
+    if sk is not None:
+        arrays.update(tips=sk.tips, tip_vertices=sk.tip_vertices, size=np.float64(sk.size), n_faces=np.int64(sk.n_faces),
+                      limb_points=sk.limb_points, n_skeletons=np.int64(len(sk.skeletons)))
+        for i, tip in enumerate(sk.skeletons):
+            arrays.update({f"skeleton{i}.{name}": np.asarray(getattr(tip, name)) for name in _TIP_FIELDS})
+        arrays["n_alternates"] = np.int64(len(sk.alternates))
+        for j, alt in enumerate(sk.alternates):
+            arrays.update({f"alternate{j}.{name}": np.asarray(getattr(alt, name)) for name in _ALT_FIELDS})
+            arrays.update({f"alternate{j}.skeleton.{name}": np.asarray(getattr(alt.skeleton, name)) for name in _TIP_FIELDS})
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def load_skeleton(path: Path) -> dict:
+    """A record written by :func:`skeleton_bytes`."""
+    from pipeline.spine import FrameSkeleton
+
+    with np.load(path, allow_pickle=False) as z:
+        rec = {"index": int(z["index"]), "status": str(z["status"]), "skeleton": None}
+        if str(z["reason"]):
+            rec["reason"] = str(z["reason"])
+        if "tips" in z:
+            d = {name: z[name] for name in ("tips", "tip_vertices", "size", "n_faces", "limb_points")}
+            d["skeletons"] = [{name: z[f"skeleton{i}.{name}"] for name in _TIP_FIELDS} for i in range(int(z["n_skeletons"]))]
+            n_alt = int(z["n_alternates"]) if "n_alternates" in z else 0  # an older record (see stale_skeletons)
+            d["alternates"] = [{**{name: z[f"alternate{j}.{name}"] for name in _ALT_FIELDS},
+                                "skeleton": {name: z[f"alternate{j}.skeleton.{name}"] for name in _TIP_FIELDS}}
+                               for j in range(n_alt)]
+            rec["skeleton"] = FrameSkeleton.from_dict(d)
+    return rec
+
+
+def stale_skeletons(out: Path, n: int) -> list[int]:
+    """Remove the ``skeletons/`` records of the first ``n`` frame sets written in another format
+    than :data:`SKELETON_FORMAT` (or unreadable), so the skeleton step recomputes them; their
+    frame indices. Reads only each archive's directory and one scalar."""
+    import zipfile
+
+    stale = []
+    for k in range(n):
+        path = out / "skeletons" / f"{frame_name(k)}.npz"
+        if not path.exists():
+            continue
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                current = "format" in z and int(z["format"]) == SKELETON_FORMAT
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile):  # EOFError: an empty or cut file
+            current = False
+        if not current:
+            path.unlink()
+            stale.append(k)
+    if stale:
+        log.info("%d skeleton records of an older format are recomputed", len(stale))
+    return stale
+

@@ -1,0 +1,386 @@
+"""The steps of :func:`pipeline.process.process_take`, in order (:data:`STEPS`).
+
+key -> refine -> surface -> spine, then (asked for) track -> rig. A step is a function of the
+run's :class:`~pipeline.process.context.RunContext`: it fans its per-frame tasks
+(:mod:`pipeline.process.tasks`) out over the executor, persists its results in the results
+directory, and leaves what later steps need on the context. A plug-in adds a step with
+:func:`register_step`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from functools import partial
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from calib.fileio import atomic_write
+from pipeline.process.context import RunContext
+from pipeline.process.grid import choose_grid, search_volume
+from pipeline.process.params import ProcessError
+from pipeline.process.records import frame_name, load_skeleton, skeleton_path, stale_skeletons
+from pipeline.process.tasks import (
+    frame_masks,
+    key_task,
+    mask_validity,
+    skeleton_task,
+    surface_task,
+    unpack_masks,
+    uses_depth,
+)
+from pipeline.run import StepList, forking_pool, pool_size
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+__all__ = ["DEFAULT_STEPS", "STEPS", "register_step"]
+
+log = logging.getLogger("pipeline.process")
+
+#: Masks stored per update of the take's derived data (bytes, unpacked).
+_STORE_BATCH_BYTES = 512 << 20
+#: Keyed masks kept in memory (bit-packed) for the surface tasks, at most (else they read the take).
+_KEEP_MASKS_BYTES = 1 << 30
+
+#: The steps' names in the order they run (one object: :func:`register_step` adds to it in place).
+STEPS = StepList()
+
+
+def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = "", after: str | None = None,
+                  totals: Callable[[RunContext], list[tuple[str, int]]] | None = None) -> None:
+    """Add a step to the pipeline (after ``after``, default at the end); :data:`STEPS` has it at once.
+    ``totals(ctx)``: the progress entries ``(name, total)`` the step reports, announced before
+    the run's first step (:meth:`pipeline.run.Run.announce`)."""
+    STEPS.register(name, run, doc=doc, after=after, totals=totals)
+
+
+def _step_key(ctx: RunContext) -> None:
+    """Key every camera of the take (unless it holds masks and ``rekey`` is off): tasks of a
+    few cameras on the executor (frames read once, in the worker), masks stored here."""
+    total = ctx.n_sets * len(ctx.cameras)
+    if not ctx.need_key:
+        ctx.report_progress("key", total, total)
+        return
+    from stage.keying.take import resolve_key_choice, store_camera_keys, take_key_params
+
+    t0 = time.perf_counter()
+    skip = ctx.damaged.get("frames") or None
+    choice = resolve_key_choice(ctx.take, ctx.rig, key_mode=ctx.params.key_mode, layers=ctx.params.key_layers, skip=skip)
+    ctx.key_choice = choice
+    ctx.add_to_record(key=choice)
+    if "graphcut" in choice["layers"] and "refine" in ctx.steps:
+        ctx.announce("refine", [("refine", total)])
+    base = take_key_params(ctx.rig, key_mode=choice["mode"]).to_dict()
+    volume = _volume_bounds(ctx).tolist() if "volume" in choice["layers"] else None
+    done = 0
+    ctx.report_progress("key", 0, total)
+    # OpenCV's thread pool does not survive fork(): forked workers key nothing, this process does
+    where = ctx if not forking_pool(ctx.executor) else replace(ctx, executor=None)
+    threads = 1 if where.executor else 2
+    # masks unpacked as each camera arrives; those done are stored once a worker falls idle
+    # (the last cameras still keying: a core is free then), the rest at the end: few updates of
+    # the derived data (each copies it), at most ~512 MB of masks a batch
+    groups = _camera_groups(ctx.cameras, where.executor)
+    pending = len(groups)
+    overlap_at = max(1, pool_size(where.executor) - 1) if where.executor is not None else 0
+    batch: list = []
+    for results in where.map_tasks([partial(key_task, str(ctx.take), g, base, threads, volume, skip) for g in groups]):
+        pending -= 1
+        for res in results:
+            if res["key"] is None:
+                continue
+            key = res["key"]
+            _keep_masks(ctx, key, res["shape"][-1])
+            key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).view(bool)
+            done += len(key.valid)
+            if batch and sum(k.masks.nbytes for k in batch) + key.masks.nbytes > _STORE_BATCH_BYTES:
+                store_camera_keys(ctx.take, batch)
+                batch = []
+            batch.append(key)
+        if batch and 0 < pending <= overlap_at:
+            store_camera_keys(ctx.take, batch)
+            batch = []
+        ctx.report_progress("key", min(done, total), total)
+    if batch:
+        store_camera_keys(ctx.take, batch)
+    ctx.timings["key"] = time.perf_counter() - t0
+
+
+def _step_refine(ctx: RunContext) -> None:
+    """The keying's ``graphcut`` layer: every camera's masks keyed in this run cut again with colour
+    models seeded by a first hull (:func:`pipeline.silhouette_refine.refine_take`), stored in place."""
+    layers = ctx.key_choice.get("layers", []) if ctx.key_choice else []
+    if "graphcut" not in layers or not ctx.need_key:
+        return
+    from pipeline.silhouette_refine import refine_take
+
+    t0 = time.perf_counter()
+    total = ctx.n_sets * len(ctx.cameras)
+    done = [0]
+
+    def tick(n: int) -> None:
+        done[0] += n
+        ctx.report_progress("refine", min(done[0], total), total)
+
+    info = refine_take(ctx.take, volume=_volume_bounds(ctx), progress=tick, skip_sets=ctx.skipped_sets)
+    ctx.keyed = None  # the masks in memory are the keyer's: the surface tasks read the refined ones
+    ctx.add_to_record(refine={"method": "graphcut", "masks": info["frames"], "first_hull_grid": info["grid"]})
+    ctx.timings["refine"] = time.perf_counter() - t0
+
+
+def _keep_masks(ctx: RunContext, key, width: int) -> None:
+    """Keep a camera's bit-packed masks for the surface step (within :data:`_KEEP_MASKS_BYTES`)."""
+    if ctx.keyed is None:
+        return
+    ctx.keyed[key.camera] = (key.masks, int(width), np.asarray(key.valid, bool))
+    if sum(m.nbytes for m, _, _ in ctx.keyed.values()) > _KEEP_MASKS_BYTES:
+        ctx.keyed = None  # a long take: the surface tasks read the masks from it
+
+
+def _kept_masks(ctx: RunContext) -> Callable[[list[int]], dict] | None:
+    """Per chunk of frame sets, its masks as keyed in this run (``surface_task(masks=)``), or
+    None when they are not all in memory (a resumed run, a long take)."""
+    if not ctx.keyed or set(ctx.keyed) != set(ctx.cameras) or ctx.set_table is None:
+        return None
+    kept = [ctx.keyed[c] for c in ctx.cameras]
+    widths = [w for _, w, _ in kept]
+    skipped = ctx.skipped_sets
+
+    def packed(k: int) -> list:
+        if k in skipped:
+            return [None] * len(kept)
+        out = []
+        for (m, _, valid), r in zip(kept, ctx.set_table[k]):
+            ok = 0 <= r < len(m) and (r >= len(valid) or valid[r])  # as frame_masks
+            out.append(m[r] if ok else None)
+        return out
+
+    return lambda frames: {"masks": {"widths": widths, "sets": {k: packed(k) for k in frames}}}
+
+
+
+def _camera_groups(cameras: Sequence[str], executor) -> list[list[str]]:
+    """Cameras per key task: two tasks per worker (each opens the take once; the last ones
+    still key while this process stores the others' masks); one camera a task in this process
+    (progress and cancellation are seen between tasks)."""
+    if executor is None:
+        return [[c] for c in cameras]
+    n = min(len(cameras), 2 * pool_size(executor))
+    return [list(cameras[i::n]) for i in range(n)]
+
+
+
+def _volume_bounds(ctx: RunContext) -> np.ndarray:
+    """Where to look for the subject: the job's volume, the rig's, else the cameras'."""
+    return search_volume(ctx.params, ctx.rig, ctx.calibration)[0]
+
+
+def _processing_grid(ctx: RunContext):
+    """The grid of the surfaces: ``OUT/grid.json`` when an earlier run chose it, else fitted
+    to the subject now (and written there)."""
+    from pipeline.volume import Grid
+    from stage.store import TakeReader
+
+    grid_path = ctx.out / "grid.json"
+    with TakeReader(ctx.take) as reader:
+        missing = sorted(set(ctx.cameras) - set(reader.masks_present()))
+        if missing:
+            raise ProcessError(f"{ctx.take}: cameras {missing} have no masks; run the key step")
+        if grid_path.exists():
+            grid = Grid.from_dict(json.loads(grid_path.read_text()))
+            ctx.grid_choice = json.loads(grid_path.read_text()).get("choice", {})
+            return grid
+        kept = _kept_masks(ctx)
+        if kept is not None:  # the masks keyed in this run, in memory
+            widths = [w for _, w, _ in (ctx.keyed[c] for c in ctx.cameras)]
+
+            def masks_of(k: int):
+                ms = unpack_masks(kept([k])["masks"]["sets"][k], widths)
+                return ms, [c for c, m in zip(ctx.cameras, ms) if m is None]
+        else:
+            validity = mask_validity(reader, ctx.cameras)
+            masks_of = partial(frame_masks, reader, ctx.cameras, validity=validity)
+        if ctx.skipped_sets:
+            masks_of = _without_sets(masks_of, ctx.skipped_sets, ctx.cameras)
+        grid, ctx.grid_choice, hint = choose_grid(masks_of, ctx.calibration, ctx.n_sets, ctx.params, ctx.rig,
+                                                  progress=lambda d, t: ctx.report_progress("box", d, t))
+    if hint:
+        log.warning("%s", hint)
+        ctx.warnings.append(hint)
+    atomic_write(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
+    return grid
+
+
+def _without_sets(masks_of: Callable, skipped: frozenset[int], cameras: Sequence[str]) -> Callable:
+    """``masks_of`` with no mask in the ``skipped`` frame sets (every camera skipped)."""
+
+    def masks(k: int):
+        return ([None] * len(cameras), list(cameras)) if k in skipped else masks_of(k)
+
+    return masks
+
+
+def _record_skipped(ctx: RunContext) -> None:
+    """``frames/`` records of the skipped frame sets (``status: damaged``), their results removed:
+    the surface and skeleton tasks pass them by, the report lists them."""
+    from pipeline.results import ResultsStore
+
+    store = ResultsStore(ctx.out)
+    for k in sorted(ctx.skipped_sets):
+        store.mesh_path(k).unlink(missing_ok=True)
+        skeleton_path(ctx.out, k).unlink(missing_ok=True)
+        cams = [c for c, r in zip(ctx.cameras, ctx.set_table[k]) if r in ctx.damaged["frames"].get(c, ())]
+        info = {"index": int(k), "status": "damaged", "skipped_cameras": list(ctx.cameras),
+                "reason": f"damaged frames of camera {', '.join(cams)} in the take: the set was skipped (--skip-damaged)"}
+        atomic_write(ctx.out / "frames" / f"{frame_name(k)}.json", json.dumps(info))
+
+
+def _step_surface(ctx: RunContext) -> None:
+    """Visual hull (and depth fusion) and a surface per frame set -> ``meshes/``, ``frames/``."""
+    _record_skipped(ctx)
+    with ctx.part("grid"):
+        grid = _processing_grid(ctx)
+        ctx.add_to_record(grid=ctx.grid_choice)
+    t0 = time.perf_counter()
+    task = partial(
+        surface_task,
+        str(ctx.take.resolve()),
+        calib_dict=ctx.calibration.to_dict(),
+        grid_dict=grid.to_dict(),
+        params=ctx.params.model_dump(),
+        out=str(ctx.out.resolve()),
+        # skeletons straight from the surfaces in memory when the spine step follows
+        spine_params=ctx.params.spine if "spine" in ctx.steps else None,
+        use_depth=uses_depth(ctx.params, all_depth=ctx.all_depth),
+    )
+    ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx))
+    _write_consistency(ctx)
+    ctx.timings["surface"] = time.perf_counter() - t0
+
+
+def _write_consistency(ctx: RunContext) -> None:
+    """``OUT/consistency.json`` from the frames' records: per camera and frame set the IoU of the
+    camera's mask and the projection of the surface (:mod:`pipeline.consistency`), each camera's
+    median; a camera whose median is below :data:`pipeline.consistency.CONSISTENCY_WARN` is named
+    in a warning."""
+    from pipeline.consistency import CONSISTENCY_WARN
+
+    iou = np.full((len(ctx.cameras), ctx.n_sets), np.nan)
+    for k in range(ctx.n_sets):
+        f = ctx.out / "frames" / f"{frame_name(k)}.json"
+        per_cam = json.loads(f.read_text()).get("consistency") if f.exists() else None
+        for i, cam in enumerate(ctx.cameras):
+            v = (per_cam or {}).get(cam)
+            iou[i, k] = np.nan if v is None else v
+    seen = np.isfinite(iou).any(axis=1)
+    median = {cam: (float(np.nanmedian(iou[i])) if seen[i] else None) for i, cam in enumerate(ctx.cameras)}
+    low = [cam for cam, m in median.items() if m is not None and m < CONSISTENCY_WARN]
+    doc = {"cameras": ctx.cameras, "threshold": CONSISTENCY_WARN, "median": median, "low": low,
+           "iou": [[None if not np.isfinite(x) else float(x) for x in row] for row in iou]}
+    atomic_write(ctx.out / "consistency.json", json.dumps(doc))
+    ctx.consistency = {"median": median, "low": low, "threshold": CONSISTENCY_WARN}
+    for cam in low:
+        msg = (f"camera {cam}: median silhouette consistency {median[cam]:.2f} (IoU of its masks and the projected "
+               f"hull) is below {CONSISTENCY_WARN}: check its keying and calibration (report: worst frames)")
+        log.warning("%s", msg)
+        ctx.warnings.append(msg)
+
+
+def _step_spine(ctx: RunContext) -> None:
+    """Per-frame skeletons -> ``skeletons/``, then their tips corresponded over time -> ``spine.json``."""
+    from pipeline.spine import FrameSkeleton, SpineParams, build_spine, write_spine
+
+    n = ctx.n_sets
+    if any(not (ctx.out / "frames" / f"{frame_name(k)}.json").exists() for k in range(n)):
+        raise ProcessError(f"{ctx.out}: surfaces are missing for some frames; run the surface step")
+    t0 = time.perf_counter()
+    for k in stale_skeletons(ctx.out, n):
+        ctx.skeletons.pop(k, None)
+    ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons",
+                   suffix=".npz")
+    skeletons: list[FrameSkeleton] = []
+    for k in range(n):
+        sk = ctx.skeletons[k] if k in ctx.skeletons else load_skeleton(skeleton_path(ctx.out, k))["skeleton"]
+        sk = FrameSkeleton.empty() if sk is None else sk
+        skeletons.append(sk)
+        ctx.tip_counts[k] = sk.n_tips
+    ctx.report_progress("spine", 0, 1)
+    spine = build_spine(skeletons, fps=float(ctx.fps), units=ctx.calibration.units, params=SpineParams(**ctx.params.spine))
+    ctx.spine_path = write_spine(ctx.out / "spine.json", spine)
+    # how K was chosen (the mode of the tip counts, or a borderline count decided): in the report
+    ctx.limb_count = {"K": int(spine.meta.get("K", len(spine.limb_ids))), "rule": spine.meta.get("count_rule", "mode")}
+    ctx.report_progress("spine", 1, 1)
+    ctx.timings["spine"] = time.perf_counter() - t0
+
+
+def _step_track(ctx: RunContext) -> None:
+    """The first surface tracked through the take -> ``tracked/`` (:func:`pipeline.carve.track_with_carving`
+    with ``ProcessParams.track``)."""
+    from pipeline.carve import track_with_carving
+
+    t0, opt = time.perf_counter(), ctx.params.track
+    rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress, executor=ctx.executor,
+                             colour=opt.colour, shape_memory=opt.shape_memory)
+    if rep.get("started_over"):  # frames of other settings, and the rig on them, removed: the job report says so
+        ctx.warnings.append(rep["started_over"])
+    ctx.worker_cpu["track"] = ctx.worker_cpu.get("track", 0.0) + rep.get("worker_cpu_seconds", 0.0)
+    ctx.timings["track"] = time.perf_counter() - t0
+
+
+def _surface_totals(ctx: RunContext) -> list[tuple[str, int]]:
+    box = [] if (ctx.out / "grid.json").exists() else [("box", ctx.n_sets)]  # the grid is chosen once
+    return [*box, ("surface", ctx.n_sets)]
+
+
+register_step("key", _step_key, doc="keying masks into the take", totals=lambda ctx: [("key", ctx.n_sets * len(ctx.cameras))])
+register_step("refine", _step_refine, doc="graph-cut refinement of the masks (the keying's graphcut layer)")  # announced by key
+register_step("surface", _step_surface, doc="visual hull and surface per frame set", totals=_surface_totals)
+register_step("spine", _step_spine, doc="per-frame skeletons and the take's spine",
+              totals=lambda ctx: [("skeleton", ctx.n_sets), ("spine", 1)])
+
+
+def _step_rig(ctx: RunContext) -> None:
+    """Articulated rig from the tracked template (``tracked/``) -> ``rig/``. Without a tracked
+    template the track step runs first (``ProcessParams.track``; a warning in the job report says so)."""
+    from pipeline.armature import NoTrackingError, armature_results, tracked_meshes
+
+    t0 = time.perf_counter()
+    try:
+        tracked_meshes(ctx.out)
+    except NoTrackingError:
+        if "track" not in ctx.steps:
+            msg = "rig: the take had no tracked template: the track step ran first (with the job's track parameters)"
+            ctx.warnings.append(msg)
+            log.warning("%s", msg)
+            if not any((ctx.out / "meshes").glob("frame_*.ply")):
+                raise ProcessError("rig: the take has no surfaces to track yet (meshes/frame_NNNNNN.ply): "
+                                   "run the surface step first") from None
+            _step_track(ctx)
+        t0 = time.perf_counter()
+    try:
+        armature_results(ctx.out, units=ctx.calibration.units, fps=float(ctx.fps),
+                         progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t))
+    except NoTrackingError as exc:
+        raise ProcessError(f"rig: {exc}") from None
+    ctx.timings["rig"] = time.perf_counter() - t0
+
+
+def _track_totals(ctx: RunContext) -> list[tuple[str, int]]:
+    """The tracking, then per round of carving the carve and the tracking again (:func:`pipeline.carve.track_with_carving`)."""
+    rounds = [(f"{what} round {r}", ctx.n_sets) for r in range(1, ctx.params.track.carve + 1) for what in ("carve", "track")]
+    return [("track", ctx.n_sets), *rounds]
+
+
+register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine",
+              totals=lambda ctx: [("rig segmentation", 1), ("rig skeleton", 1), ("rig fit", ctx.n_sets),
+                                  ("rig write", ctx.n_sets)])
+register_step("track", _step_track, doc="template tracking of the surfaces (only when asked for)", after="spine",
+              totals=_track_totals)
+# what runs when no steps are given: tracking and the rig on it are asked for (``stage track``,
+# ``stage rig`` or a job's steps); a plain run does not warn about a rig it was not asked for
+DEFAULT_STEPS: tuple[str, ...] = tuple(s for s in STEPS if s not in ("track", "rig"))

@@ -1,0 +1,19 @@
+"""The runner every step over a results directory shares.
+
+A *step* (:class:`Step`) is a named function of a run; a :class:`StepList` keeps a pipeline's
+steps in order (a plug-in adds one with :meth:`StepList.register`). A :class:`Run` is what the
+steps of one call share from the runner: the results directory, the executor their per-frame
+tasks fan out over (:meth:`Run.map_tasks`: results as they finish, cancellation between tasks,
+the workers' CPU seconds), progress, and the timings the report gives (wall and CPU seconds per
+step and per part of a step). :class:`BackgroundWriter` writes a task's files in order on a thread
+of their own (atomic and durable, :func:`calib.fileio.atomic_write`) while the task computes on.
+
+The steps themselves live with their pipeline: :mod:`pipeline.process` (key, refine, surface,
+spine, track, rig over a take).
+"""
+
+from pipeline.run.context import Run, chunks, forking_pool, pool_size
+from pipeline.run.steps import Step, StepList
+from pipeline.run.writer import BackgroundWriter
+
+__all__ = ["BackgroundWriter", "Run", "Step", "StepList", "chunks", "forking_pool", "pool_size"]

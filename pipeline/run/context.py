@@ -1,0 +1,128 @@
+"""What the steps of one run share from the runner: the executor, progress, cancellation, timings."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import os
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+__all__ = ["Run", "chunks", "forking_pool", "pool_size"]
+
+
+def chunks(items: Sequence[int], n: int) -> list[list[int]]:
+    """``items`` in consecutive lists of ``n`` (the last one shorter)."""
+    return [list(items[i : i + n]) for i in range(0, len(items), n)]
+
+
+def pool_size(executor) -> int:
+    """Tasks an executor runs at once (a process pool's workers; 2 when it does not say)."""
+    return int(getattr(executor, "_max_workers", 0) or 2)
+
+
+def forking_pool(executor) -> bool:
+    """A local process pool whose workers are forked from this process."""
+    ctx = getattr(executor, "_mp_context", None)
+    return isinstance(executor, cf.ProcessPoolExecutor) and (ctx is None or ctx.get_start_method(allow_none=False) == "fork")
+
+
+def _with_cpu(task: Callable[[], object]) -> tuple[object, float, int]:
+    """A task's result, the CPU seconds its process spent on it and that process's id (run in the worker)."""
+    t = time.process_time()
+    out = task()
+    return out, time.process_time() - t, os.getpid()
+
+
+@dataclass(kw_only=True)
+class Run:
+    """The runner's side of one run: where results go, where tasks run, who is told of progress,
+    how to stop, and the seconds every step and part took (for the report)."""
+
+    out: Path
+    executor: cf.Executor | None = None
+    progress: Callable[[str, int, int], None] | None = None
+    cancel: threading.Event | None = None
+    step: str = ""  # the step running
+    warnings: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)  # step or part -> wall seconds
+    cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds (this process and the workers)
+    worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks on the executor
+    part_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its parts counted on their own
+    reported: dict[str, tuple[int, int]] = field(default_factory=dict)  # progress name -> latest (done, total)
+    planned: dict[str, list[str]] = field(default_factory=dict)  # step -> progress names announced for it
+
+    @contextmanager
+    def part(self, name: str):
+        """Count a part of the running step on its own (e.g. the surface step's grid choice): its
+        wall and CPU seconds are added to ``timings[name]`` and ``cpu[name]`` (a part run several
+        times counts every run), not to the step's."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            cpu = time.process_time() - c0
+            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+            self.cpu[name] = self.cpu.get(name, 0.0) + cpu
+            self.part_cpu[self.step] = self.part_cpu.get(self.step, 0.0) + cpu
+
+    def report_progress(self, step: str, done: int, total: int) -> None:
+        self.reported[step] = (int(done), int(total))
+        if self.progress:
+            self.progress(step, done, total)
+
+    def announce(self, step: str, items: Sequence[tuple[str, int]]) -> None:
+        """Report the progress entries ``(name, total)`` a step will report as 0 done before it
+        runs, so the run's summed total counts every step it will run (a job never reads n/n while
+        steps are still to come); :meth:`complete` closes those the step did not report."""
+        for name, total in items:
+            self.planned.setdefault(step, []).append(name)
+            if name not in self.reported:
+                self.report_progress(name, 0, total)
+
+    def complete(self, step: str) -> None:
+        """The announced entries of a finished step at done == total (a resumed step reports none)."""
+        for name in self.planned.get(step, ()):
+            done, total = self.reported.get(name, (0, 0))
+            if done < total:
+                self.report_progress(name, total, total)
+
+    def check_cancel(self) -> None:
+        """``InterruptedError`` when the run was cancelled."""
+        if self.cancel is not None and self.cancel.is_set():
+            raise InterruptedError("cancelled")
+
+    def map_tasks(self, tasks: list[Callable[[], object]]) -> Iterator[object]:
+        """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
+        between tasks when cancelled. The CPU seconds of workers in other processes add to the
+        running step's (a thread pool's are already this process's)."""
+        if self.executor is None:
+            for task in tasks:
+                self.check_cancel()
+                yield task()
+            return
+        futures = [self.executor.submit(_with_cpu, task) for task in tasks]
+        try:
+            for fut in cf.as_completed(futures):
+                self.check_cancel()
+                out, cpu, pid = fut.result()
+                if pid != os.getpid():
+                    self.worker_cpu[self.step] = self.worker_cpu.get(self.step, 0.0) + cpu
+                yield out
+        finally:
+            for fut in futures:
+                fut.cancel()
+
+    def run_step(self, name: str, run: Callable[[Run], None]) -> None:
+        """Run one step; its CPU seconds (this process's and its tasks' in other processes) go to
+        :attr:`cpu`, less those of its parts counted on their own (:meth:`part`); its announced
+        progress entries end at done == total (:meth:`complete`)."""
+        self.step = name
+        t = time.process_time()
+        run(self)
+        self.complete(name)
+        own = time.process_time() - t - self.part_cpu.get(name, 0.0)
+        self.cpu[name] = own + self.worker_cpu.get(name, 0.0)
