@@ -114,7 +114,8 @@ def search_volume(params: ProcessParams, rig: dict, calibration) -> tuple[np.nda
 def _box_choice(sb, volume: np.ndarray, source: str) -> dict:
     """The subject's box and why, for ``process.json`` and the report."""
     st = sb.stats
-    why = (f"the pieces of the silhouettes' hull seen by at least {sb.min_views} cameras and explained by the "
+    why = (f"the pieces of the silhouettes' hull found by at least {sb.min_views} cameras (and by all but "
+           f"{sb.view_slack} of those that find the best-found part) and explained by the "
            f"silhouettes of at least 2, in {st['with_subject']} of {st['frame_sets']} frame sets, carved coarse to "
            f"fine in {' / '.join(f'{v:.3g}' for v in sb.voxels)} cubes inside {source}, grown by {sb.margin:.3g}")
     return {**sb.to_dict(), "search_volume": np.asarray(volume, float).reshape(2, 3).tolist(), "searched_in": source,

@@ -530,7 +530,8 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     track_results(tmp_path, template=(t.vertices, t.faces), predict=False)
     assert not caplog.records and (tmp_path / "rig" / "rig.glb").is_file()
     # `stage process ... steps track` (its defaults: predict on, the first frame's surface) starts over too
-    ctx = SimpleNamespace(out=tmp_path, progress=None, executor=None, worker_cpu={}, timings={}, warnings=[],
+    ctx = SimpleNamespace(out=tmp_path, progress=None, report_progress=lambda *a: None, executor=None, worker_cpu={}, timings={},
+                          warnings=[],
                           params=ProcessParams())
     (tmp_path / "rig" / "notes.txt").unlink()
     (tmp_path / "rig" / "posed" / "1_user.ply").unlink()
