@@ -13,10 +13,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import logging
-import multiprocessing
 import os
-import signal
-import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -90,40 +87,18 @@ class ExecutorHandle:
         self._closers.clear()
 
 
-def _exit_with(parent_pid: int, interval_s: float = 1.0) -> None:
-    """Pool-worker initializer: exit when the server process is gone (e.g. killed with SIGKILL).
-
-    Without it the workers of a killed server would live on, blocked on their queue. Ctrl-C
-    (SIGINT to the whole process group) is the server's to handle: a worker ignores it, finishes
-    its task and is joined at shutdown, instead of printing a traceback of its own.
-    """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-    def watch() -> None:
-        while True:
-            time.sleep(interval_s)
-            try:
-                os.kill(parent_pid, 0)
-            except ProcessLookupError:
-                os._exit(1)
-            except PermissionError:  # the pid was reused by another user's process: ours is gone
-                os._exit(1)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-
-
 def local_pool(workers: int | None = None) -> ExecutorHandle:
     """A process pool of ``workers`` processes (default: CPU count) started with ``forkserver``.
 
     ``forkserver`` (not ``fork``) because the server process runs threads. Workers
-    exit by themselves when the server process dies.
+    exit by themselves when the server process dies (:mod:`stage.workers`).
     """
+    from stage.workers import process_pool
+
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     n = workers or os.cpu_count() or 1
-    ctx = multiprocessing.get_context("forkserver")
-    pool = cf.ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_exit_with, initargs=(os.getpid(),))
-    return ExecutorHandle(pool, "local", f"local process pool ({n} workers)")
+    return ExecutorHandle(process_pool(n), "local", f"local process pool ({n} workers)")
 
 
 #: Environment of local Dask workers. Dask's nannies set ``MALLOC_TRIM_THRESHOLD_=65536``, which

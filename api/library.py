@@ -19,6 +19,7 @@ import numpy as np
 from api.errors import ConflictError, NotFoundError, UnavailableError, UploadTooLargeError
 from api.paths import check_take_id, confined, confined_entries, inside
 from calib.fileio import replace_durably
+from stage.workers import process_alive
 
 __all__ = ["TakeLibrary", "HDF5_SIGNATURE", "InvalidTakeError"]
 
@@ -83,16 +84,6 @@ def _jsonable(v: Any) -> Any:
 
         return _jsonable(dataclasses.asdict(v))
     return v
-
-
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process has the pid now
-        return False
-    return True
 
 
 class TakeLibrary:
@@ -186,7 +177,7 @@ class TakeLibrary:
         for p in self.takes_dir.glob(".upload-*.part"):
             parts = p.name[len(".upload-"):-len(".part")].split("-")
             pid = int(parts[0]) if len(parts) == 2 and parts[0].isdigit() else None
-            if pid is not None and pid != os.getpid() and _process_alive(pid):
+            if pid is not None and pid != os.getpid() and process_alive(pid):
                 continue
             try:
                 p.unlink()

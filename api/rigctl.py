@@ -219,7 +219,10 @@ class CaptureManager:
                                   stop=self._stop, on_set=self._on_set)
             state, err = ("stopped" if result.stopped in ("stopped", "interrupted") else "done"), None
         except Exception as exc:  # a capture failure becomes the state's error; the server goes on
-            log.exception("capture into %s failed", out.name)
+            if isinstance(exc, OSError):  # a full disk, a device gone: one line, not a traceback
+                log.error("capture into %s failed: %s", out.name, exc)
+            else:
+                log.exception("capture into %s failed", out.name)
             result, state, err = None, "failed", f"{type(exc).__name__}: {exc}".replace(str(out.parent), "DATA/takes")
         with self._lock:
             self._state.state = state
