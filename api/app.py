@@ -180,6 +180,8 @@ def create_app(settings: Settings | None = None, *, work: str | Callable[..., An
     app.state.capture = CaptureManager(settings.rig_path, settings.takes_dir, driver_factory=driver_factory,
                                        session=None if control is None else control.session)
     app.state.control = control
+    if control is not None and control.calibrations is None:  # the 3-D preview finds the calibrations made here
+        control.calibrations = app.state.calibrations
     install_handlers(app)
     app.add_middleware(BodySizeLimit, max_upload_bytes=settings.max_upload_bytes)
     for r in (rig.router, takes.router, calibrations.router, jobs.router, pages.router, control_routes.router):

@@ -228,6 +228,10 @@ class ControlRoom:
         The calibration board of board sessions (``stage serve --board``).
     calibration : Calibration, optional
         For the live 3-D preview; default: the one the cameras' drivers know (the simulator's).
+        A calibration the session makes (its board session's job) or is given later
+        (:meth:`use_calibration`) replaces it.
+    calibrations : CalibrationLibrary, optional
+        Where the calibration jobs put their results (the app sets it to its own).
     preview_width : int
         Previews are downscaled to at most this width.
     preview_fps : float
@@ -235,7 +239,7 @@ class ControlRoom:
     """
 
     def __init__(self, session, *, board=None, calibration=None, preview_width: int = 320,
-                 preview_fps: float = 5.0) -> None:
+                 preview_fps: float = 5.0, calibrations=None) -> None:
         if preview_width < 16:
             raise ValueError(f"preview_width must be >= 16, got {preview_width!r}")
         if not 0 < preview_fps <= 60:
@@ -253,18 +257,48 @@ class ControlRoom:
         self.board_session: BoardSession | None = None
         self.closing = threading.Event()  # set when the server shuts down: preview streams end
         self.live3d = None
+        self.calibrations = calibrations
         self._calibration = calibration
+        self.calibration_source = "given (--calibration)" if calibration is not None else None
+        self.calibration_version = 0  # grows with every calibration the session makes or is given
+        self._adopted: str | None = None  # the board session's job whose calibration is in use
 
     # -- calibration for the 3-D preview -----------------------------------------------------------
     def calibration(self):
-        """The calibration the 3-D preview uses (given, else the drivers' own), or None."""
+        """The calibration the 3-D preview uses: the newest the session made (its board session's
+        calibration job, once finished) or was given (:meth:`use_calibration`, ``--calibration``),
+        else the drivers' own (the simulator's), or None."""
+        self._adopt_board_calibration()
         if self._calibration is not None:
             return self._calibration
         for drv in self.session.drivers.values():
             cal = getattr(drv, "calibration", None)
             if cal is not None and hasattr(cal, "names"):
+                self.calibration_source = "the cameras' own"
                 return cal
         return None
+
+    def use_calibration(self, calibration, source: str) -> None:
+        """Make ``calibration`` the 3-D preview's from now on (its worker starts again with it)."""
+        with self._lock:
+            self._calibration = calibration
+            self.calibration_source = source
+            self.calibration_version += 1
+        log.info("the 3-D preview uses %s", source)
+
+    def _adopt_board_calibration(self) -> None:
+        """The board session's calibration, once its job has saved it (the newest the session made)."""
+        bs, lib = self.board_session, self.calibrations
+        job = getattr(bs, "job", None)
+        if job is None or job == self._adopted or lib is None or not lib.exists(job):
+            return
+        self._adopted = job
+        try:
+            cal = lib.load(job)
+        except (OSError, ValueError, LookupError) as exc:  # damaged or gone: said, the preview keeps its own
+            log.warning("calibration %s of the board session cannot be read: %s", job, exc)
+            return
+        self.use_calibration(cal, f"calibration {job} (board session)")
 
     # -- previews ------------------------------------------------------------------------------
     def preview(self, cid: str, *, mask: bool = False, board: bool = True, quality: int = 75) -> tuple[int, bytes | None, int]:

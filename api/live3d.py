@@ -150,10 +150,21 @@ class Live3D:
             self._latest = {**kw, "updates": self.updates}
 
     def _loop(self) -> None:
-        cal = self.room.calibration()
-        if cal is None:
-            self._set(state="unavailable", message="no calibration: start stage serve with --calibration CAL")
-            return
+        """A worker on the room's calibration; started again on the newest one whenever the session
+        makes or is given another (a board session's calibration job), until stopped."""
+        while not self._stop.is_set():
+            cal = self.room.calibration()
+            if cal is None:
+                self._set(state="unavailable", message="no calibration: run a board session and calibrate, or "
+                          "start stage serve with --calibration CAL")
+                self._stop.wait(1.0)
+                continue
+            version = self.room.calibration_version
+            self._run_worker(cal, version)
+            while self.room.calibration_version == version and not self._stop.wait(1.0):
+                self.room.calibration()  # the worker ended on its own (said in the state): wait for another
+
+    def _run_worker(self, cal, version: int) -> None:
         rig = self.room.session.rig
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe()
@@ -163,7 +174,7 @@ class Live3D:
         proc.start()
         self.process = proc
         try:
-            self._serve(parent, proc, rig)
+            self._serve(parent, proc, rig, version)
         finally:
             try:
                 parent.send(None)
@@ -184,16 +195,19 @@ class Live3D:
                 return None
         return None
 
-    def _serve(self, parent, proc, rig) -> None:
+    def _serve(self, parent, proc, rig, version: int) -> None:
         ready = self._answer(parent, proc)
         if ready is None or ready.get("state") != "ready":
             if ready is not None:
-                self._set(**ready)
+                self._set(**ready, calibration=self.room.calibration_source)
             return
         bounds = [list(map(float, b)) for b in rig.volume.bounds]
         last = None
         while not self._stop.is_set():
             t0 = time.monotonic()
+            self.room.calibration()  # a calibration the session made since: the worker starts again on it
+            if self.room.calibration_version != version:
+                return
             fs = self.room.session.latest_set()
             if fs is not None and fs.index != last:
                 last = fs.index
@@ -208,7 +222,7 @@ class Live3D:
                     with self._lock:
                         self._times.append(time.monotonic())
                         del self._times[:-50]
-                self._set(**out, bounds=bounds)
+                self._set(**out, bounds=bounds, calibration=self.room.calibration_source)
             self._stop.wait(max(0.0, self.period - (time.monotonic() - t0)))
 
 

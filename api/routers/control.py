@@ -21,7 +21,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from api.deps import LibraryDep, ReadAccess, RunnerDep, SettingsDep, StoreDep, WriteAccess
+from api.deps import CalibrationId, LibraryDep, ReadAccess, RunnerDep, SettingsDep, StoreDep, WriteAccess
 from api.errors import NotFoundError
 from api.paths import TAKE_ID, check_id, inside
 
@@ -239,6 +239,18 @@ async def board_calibrate(body: CalibrateRequest, room: ControlDep, store: Store
 
 
 # --------------------------------------------------------------------------- 3-D preview
+
+
+@router.put("/stage/calibration/{cal_id}", response_model=dict[str, Any],
+            responses={409: {"description": "the calibration has none of the rig's cameras"}})
+def choose_calibration(cal_id: CalibrationId, room: ControlDep, request: Request, _: WriteAccess) -> dict[str, Any]:
+    """Make calibration ``cal_id`` the live 3-D preview's (its worker starts again with it). A
+    board session's calibration becomes the preview's by itself once its job is done."""
+    cal = request.app.state.calibrations.load(cal_id)  # 404 when there is none
+    if not set(cal.names) & set(room.session.ids):
+        raise HTTPException(409, f"calibration {cal_id} has none of the rig's cameras ({', '.join(room.session.ids)})")
+    room.use_calibration(cal, f"calibration {cal_id}")
+    return {"calibration": room.calibration_source, "version": room.calibration_version}
 
 
 @router.get("/stage/live3d", response_model=dict[str, Any])

@@ -283,7 +283,7 @@
     try {
       const r = await api('GET', '/stage/live3d');
       if (r.ok){
-        live = r.data; window.__stage.lastLive3d = {state: live.state, updates: live.updates, points: (live.points || []).length,
+        live = r.data; window.__stage.lastLive3d = {state: live.state, updates: live.updates, points: (live.points || []).length, calibration: live.calibration,
                                                      segments: (live.segments || []).length};
         const now = performance.now();
         if (live.updates !== undefined && (!seen3d.length || seen3d[seen3d.length - 1][1] !== live.updates)) seen3d.push([now, live.updates]);
@@ -291,7 +291,7 @@
         const rate = seen3d.length > 1 ? (seen3d.length - 1) / ((seen3d[seen3d.length - 1][0] - seen3d[0][0]) / 1000) : 0;
         $('live3d-info').textContent = live.state === 'ok' ? ('frame set ' + live.set + ': ' + live.occupied + ' voxels of ' + fmt(live.voxel, 0) +
           ' mm, ' + live.segments.length + ' spine segments; ' + fmt(rate, 1) + ' updates/s shown (' + fmt(live.updates_per_s, 1) + ' computed), ' +
-          fmt(live.compute_ms, 0) + ' ms each') : (live.message || live.state);
+          fmt(live.compute_ms, 0) + ' ms each' + (live.calibration ? '; ' + live.calibration : '')) : (live.message || live.state);
       }
     } catch (e) {}
     setTimeout(poll3d, 250);
