@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.results import atomic_write_bytes, ply_bytes
+from pipeline.run.settings import changed_settings, file_digest, read_settings
 
 __all__ = ["carve_results", "carve_frames_task", "carved_path", "remove_carved", "track_with_carving", "CarveError",
            "CARVED_DIR"]
@@ -153,8 +154,6 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     """
     if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
         raise ValueError(f"window must be an integer >= 1 (frames), got {window!r}")
-    from pipeline.track import _file_digest
-
     root = Path(results_dir)
     tracks = _tracked(root)
     from pipeline.volume import Grid
@@ -163,7 +162,7 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     take, params = _take_path(root, process), process.get("params", {})
     grid = Grid.from_dict(_read_json(root / "grid.json", "carving needs the grid of `stage process`"))
     margin = _default_margins(take, float(params.get("silhouette_margin", 0))) if margin is None else float(margin)
-    report = {"tracked_sha256": _file_digest(root / "tracked" / "track.json"), "window": int(window),
+    report = {"tracked_sha256": file_digest(root / "tracked" / "track.json"), "window": int(window),
               "neighbours": int(neighbours), "band": float(band), "ignore": int(ignore), "margin_px": margin,
               "taubin_iterations": int(params.get("smooth_iterations", 10)), "frames": {}}
     settings = {k: report[k] for k in ("window", "neighbours", "band", "ignore", "margin_px", "taubin_iterations")}
@@ -341,12 +340,8 @@ def _write_report(root: Path, report: dict) -> None:
 def _start_over_if_changed(root: Path, report: dict) -> dict:
     """Per-frame figures of an earlier run with the same settings and motion (kept), else ``{}``
     and the old carved frames removed first."""
-    path = root / CARVED_DIR / "carve.json"
-    try:
-        old = json.loads(path.read_text())
-    except (OSError, ValueError):
-        old = None
-    if old is not None and all(old.get(k) == v for k, v in report.items() if k != "frames"):
+    old = read_settings(root / CARVED_DIR / "carve.json")
+    if old is not None and not changed_settings(old, report, results={"frames"}):
         return old.get("frames", {}) if isinstance(old.get("frames"), dict) else {}
     _remove_frames(root)
     return {}

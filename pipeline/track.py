@@ -31,6 +31,7 @@ import numpy as np
 
 from pipeline.mesh_primitives import mesh_volume, vertex_normals
 from pipeline.results import atomic_write_bytes, ply_bytes
+from pipeline.run.settings import array_digest, changed_settings, file_digest, read_settings
 from pipeline.tracking import TemplateTracker, TrackingError
 
 __all__ = ["track_results", "track_with_armature", "track_chain_task", "track_rgbd_take", "tracked_path", "remove_tracking",
@@ -257,16 +258,16 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     use_spine = skinned is not None and bool(spine_init)
     spine_start = "all" if use_spine else "choose" if skinned is not None and choose else "none"
     with _colour_take(root, bool(colour)) as take:  # opened once in this process (a worker opens its own)
-        report = {"mode": "multi-view", "template": source, "template_sha256": _mesh_digest(V0, F0),
+        report = {"mode": "multi-view", "template": source, "template_sha256": array_digest(V0, F0),
                   "vertices": int(len(V0)), "gamma": tracker.gamma,
                   "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
                   "reference_frame": frames[ref], "spine_init": use_spine, "spine_start": spine_start,
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
                   "surfaces": surfaces, "rig_rounds": 0, "skipped": [], "frames": {}}
         if surfaces == "carved":  # carved with an earlier tracking's motion: their digest says which
-            report["surfaces_sha256"] = _file_digest(root / surfaces / "carve.json")
+            report["surfaces_sha256"] = file_digest(root / surfaces / "carve.json")
         if spine_start != "none":  # every frame's start depends on the spine then
-            report["spine_sha256"] = _file_digest(root / "spine.json")
+            report["spine_sha256"] = file_digest(root / "spine.json")
         kept = _start_over_if_changed(root, report)
         chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
                  "spine_start": spine_start, "spine_template": loaded, "predict": bool(predict),
@@ -286,20 +287,6 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
 _RESULT_KEYS = frozenset({"skipped", "frames", "worker_cpu_seconds", "icp", "template", "started_over"})
 
 
-def _mesh_digest(V: np.ndarray, F: np.ndarray) -> str:
-    """SHA-256 of a mesh's vertices and faces (as float64 and int64)."""
-    import hashlib
-
-    return hashlib.sha256(np.ascontiguousarray(V, np.float64).tobytes() + np.ascontiguousarray(F, np.int64).tobytes()).hexdigest()
-
-
-def _file_digest(path: Path) -> str:
-    """SHA-256 of a file's bytes."""
-    import hashlib
-
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
     """Per-frame figures of the frames an earlier run of the same settings tracked (they are
     kept), or ``{}``: tracked frames of other settings are removed first, as ``stage process``
@@ -307,10 +294,7 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
     warning naming what changed (also in ``report["started_over"]``). The settings are written
     before any frame is tracked, so a killed run's frames keep theirs."""
     path = Path(out_dir) / "tracked" / "track.json"
-    try:
-        old = json.loads(path.read_text())
-    except (OSError, ValueError):
-        old = None
+    old = read_settings(path)
     kept = {}
     if old is not None:
         spine = Path(out_dir) / "spine.json"
@@ -319,7 +303,7 @@ def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
         def was(k):
             return _old_setting(old, k, report[k], spine_rewritten=newer)
 
-        changed = [k for k in report if k not in _RESULT_KEYS and was(k) != report[k]]
+        changed = changed_settings(old, report, results=_RESULT_KEYS, was=lambda _, k, __: was(k))
         if "surfaces" in changed:  # from meshes/ to carved/ (or back): their digest says nothing more
             changed = [k for k in changed if k != "surfaces_sha256"]
         if changed:
@@ -1076,7 +1060,7 @@ def track_rgbd_take(
         tracker = TemplateTracker(placed, F0, gamma=tracker.gamma, gate=tracker.gate, prior="previous")
         name = str(template) if not isinstance(template, (tuple, list)) else "array"
         report = {"mode": "rgbd", "take": str(Path(take_path).resolve()), "camera": cam_id, "template": name,
-                  "template_sha256": _mesh_digest(V0, F0),
+                  "template_sha256": array_digest(V0, F0),
                   "vertices": int(len(V0)), "gamma": tracker.gamma, "gate_mm": tracker.gate, "rounds": tracker.rounds,
                   "solver": tracker.system.backend, "remove_skin": bool(remove_skin), "contour": bool(contour),
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": bool(colour),

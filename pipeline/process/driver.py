@@ -19,6 +19,7 @@ from pipeline.process.params import ProcessError, ProcessParams, ProcessResult, 
 from pipeline.process.records import frame_name
 from pipeline.process.steps import DEFAULT_STEPS, STEPS
 from pipeline.process.tasks import every_camera_has_depth, warm_task
+from pipeline.run.settings import changed_settings, read_settings
 from stage.store.space import check_free_space, raise_disk_full
 
 __all__ = ["process_take"]
@@ -87,9 +88,10 @@ def _start_record(ctx: RunContext) -> None:
     if ctx.damaged:
         record["damaged"] = ctx.damaged
     prev = ctx.out / "process.json"
-    if prev.exists():
-        old = json.loads(prev.read_text())
-        if _compared(old.get("params")) != _compared(record["params"]) or old.get("take") != record["take"]:
+    if prev.exists():  # an unreadable one says nothing of its results: they are made again
+        old = read_settings(prev)
+        now = {"take": record["take"], "params": _compared(record["params"])}
+        if old is None or changed_settings(old, now, was=lambda o, k, _: _compared(o.get(k)) if k == "params" else o.get(k)):
             _start_over(ctx)
     atomic_write(prev, json.dumps(record, indent=2))
 

@@ -7,13 +7,17 @@ tasks fan out over (:meth:`Run.map_tasks`: results as they finish, cancellation 
 the workers' CPU seconds), progress, and the timings the report gives (wall and CPU seconds per
 step and per part of a step). :class:`BackgroundWriter` writes a task's files in order on a thread
 of their own (atomic and durable, :func:`calib.fileio.atomic_write`) while the task computes on.
+:mod:`pipeline.run.settings` holds the start-over rule: a step writes its settings and the digests
+of what it read before its results; a later run with other settings makes them again.
 
 The steps themselves live with their pipeline: :mod:`pipeline.process` (key, refine, surface,
 spine, track, rig over a take).
 """
 
 from pipeline.run.context import Run, chunks, forking_pool, pool_size
+from pipeline.run.settings import array_digest, changed_settings, file_digest, read_settings
 from pipeline.run.steps import Step, StepList
 from pipeline.run.writer import BackgroundWriter
 
-__all__ = ["BackgroundWriter", "Run", "Step", "StepList", "chunks", "forking_pool", "pool_size"]
+__all__ = ["BackgroundWriter", "Run", "Step", "StepList", "array_digest", "changed_settings", "chunks", "file_digest",
+           "forking_pool", "pool_size", "read_settings"]

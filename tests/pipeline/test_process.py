@@ -541,6 +541,24 @@ def test_starting_over_removes_the_tracking_and_rig_of_the_old_surfaces(small_tr
     assert not _said(caplog) and _warned(rep) == [] and (out / "tracked" / "000002.ply").is_file()
 
 
+def test_an_unreadable_process_json_starts_over(tmp_path):
+    """A ``process.json`` cut short (a full disk, a kill while an older version wrote it) says nothing of
+    the results beside it: the run starts over, in one warning, and writes its own."""
+    from pipeline.process import RunContext
+    from pipeline.process.driver import _start_record
+
+    out = tmp_path / "out"
+    (out / "meshes").mkdir(parents=True)
+    (out / "meshes" / "frame_000000.ply").write_text("of unknown parameters")
+    (out / "process.json").write_text('{"take": "t.h5", "par')
+    ctx = RunContext(take=tmp_path / "t.h5", out=out, params=ProcessParams(), calibration=None, cameras=["a"], n_sets=1,
+                     fps=30.0, rig={}, need_key=False)
+    _start_record(ctx)
+    assert not (out / "meshes" / "frame_000000.ply").exists()
+    assert len(ctx.warnings) == 1 and "starting over" in ctx.warnings[0], ctx.warnings
+    assert json.loads((out / "process.json").read_text())["params"] == ProcessParams().model_dump()
+
+
 def test_track_options_track_again_and_keep_every_other_result(small_tracked, tmp_path, caplog):
     """``ProcessParams.track`` (the API job's ``parameters.track``) is what ``stage track`` takes: with
     ``carve`` the surfaces are carved across time and tracked again, with ``shape_memory`` the prior keeps

@@ -1,0 +1,91 @@
+"""The runner every step over a results directory shares (pipeline.run): the step list, the
+executor fan-out with cancellation, and the start-over rule's settings and digests."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import threading
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.run import Run, StepList, array_digest, changed_settings, chunks, file_digest, read_settings
+
+
+def test_step_list_keeps_order_and_is_one_object():
+    steps = StepList()
+    seen = steps  # a name bound before a later registration sees it
+    steps.register("a", lambda r: None)
+    steps.register("c", lambda r: None)
+    steps.register("b", lambda r: None, after="a", doc="between", totals=lambda r: [("b", 1)])
+    assert tuple(seen) == ("a", "b", "c") and seen[:2] == ("a", "b") and seen.index("c") == 2 and "b" in seen
+    assert steps.step("b").doc == "between" and steps.step("b").totals(None) == [("b", 1)]
+    steps.register("a", lambda r: None, after="c")  # registered again: moved
+    assert tuple(steps) == ("b", "c", "a")
+    steps.remove("c")
+    assert tuple(steps) == ("b", "a") and len(steps) == 2
+
+
+def test_invalid_input():
+    steps = StepList()
+    with pytest.raises(ValueError, match="identifier"):
+        steps.register("not a name", lambda r: None)
+    with pytest.raises(ValueError, match="after: no step 'x'"):
+        steps.register("a", lambda r: None, after="x")
+    with pytest.raises(KeyError):
+        steps.remove("a")
+
+
+def test_map_tasks_here_and_on_a_pool_and_cancel_between_tasks(tmp_path):
+    tasks = [partial(int, k) for k in range(6)]
+    assert list(Run(out=tmp_path).map_tasks(tasks)) == list(range(6))
+    with cf.ThreadPoolExecutor(2) as ex:
+        assert sorted(Run(out=tmp_path, executor=ex).map_tasks(tasks)) == list(range(6))
+    cancel = threading.Event()
+    run = Run(out=tmp_path, cancel=cancel)
+    got = []
+    with pytest.raises(InterruptedError):
+        for x in run.map_tasks(tasks):
+            got.append(x)
+            cancel.set()
+    assert got == [0]
+
+
+def test_announced_progress_is_closed_when_the_step_ends(tmp_path):
+    calls = []
+    run = Run(out=tmp_path, progress=lambda *a: calls.append(a))
+    run.announce("s", [("s one", 4), ("s two", 2)])
+    run.run_step("s", lambda r: r.report_progress("s one", 4, 4))
+    assert calls == [("s one", 0, 4), ("s two", 0, 2), ("s one", 4, 4), ("s two", 2, 2)]
+    assert set(run.cpu) == {"s"}
+
+
+def test_chunks():
+    assert chunks([1, 2, 3, 4, 5], 2) == [[1, 2], [3, 4], [5]] and chunks([], 3) == []
+
+
+def test_digests_equal_the_reference(tmp_path):
+    p = tmp_path / "f.bin"
+    p.write_bytes(b"abc" * 100)
+    assert file_digest(p) == hashlib.sha256(b"abc" * 100).hexdigest()
+    V, F = np.arange(12, dtype=np.float32).reshape(4, 3), np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    ref = hashlib.sha256(V.astype(np.float64).tobytes() + F.astype(np.int64).tobytes()).hexdigest()
+    assert array_digest(V, F) == ref == array_digest(V.astype(np.float64), F.astype(np.int64))
+    assert array_digest(V + 1, F) != ref
+
+
+def test_settings_compare_all_but_results_and_read_old_keys(tmp_path):
+    old = {"a": 1, "b": 2, "frames": {"0": 1}}
+    assert changed_settings(old, {"a": 1, "b": 2, "frames": {}}, results={"frames"}) == []
+    assert changed_settings(old, {"b": 3, "a": 1, "c": 0}) == ["b", "c"]
+    # a key an earlier version did not write, read as what that version did
+    assert changed_settings(old, {"a": 1, "c": 0}, was=lambda o, k, new: o.get(k, 0)) == []
+    assert read_settings(tmp_path / "none.json") is None
+    for text in ("{not json", "[1, 2]", ""):
+        (tmp_path / "s.json").write_text(text)
+        assert read_settings(tmp_path / "s.json") is None  # unreadable or not settings: nothing kept
+    (tmp_path / "s.json").write_text('{"a": 1}')
+    assert read_settings(Path(tmp_path / "s.json")) == {"a": 1}
