@@ -30,6 +30,11 @@ class Frame:
     encoded : bytes or None
         The camera's own JPEG/MJPEG bytes when it delivered compressed frames; the
         take store keeps these as they arrived instead of re-encoding.
+    exposure_ms : float or None
+        The exposure time of this frame in milliseconds, where the device reports it.
+    gain : float or None
+        The sensor's gain for this frame where the device reports it, in the device's units
+        (``Granted.extra["gain_unit"]``: ISO sensitivity for OAK cameras, the V4L2 gain control).
     """
 
     image: np.ndarray
@@ -39,6 +44,8 @@ class Frame:
     host_timestamp_ns: int
     depth: np.ndarray | None = None
     encoded: bytes | None = None
+    exposure_ms: float | None = None
+    gain: float | None = None
 
     def __post_init__(self) -> None:
         img = self.image

@@ -334,8 +334,7 @@ class StageSession:
                 cams.append({
                     "id": cid, "state": live.state, "error": live.error, "fps": fps,
                     "delivered": live.delivered, "dropped": live.sequence_gaps,
-                    "exposure_ms": None if g is None else g.exposure,
-                    "gain": None if g is None else g.extra.get("gain"),
+                    **_levels(live.latest, g),
                     "width": None if g is None else g.width, "height": None if g is None else g.height,
                     "pixel_format": None if g is None else g.pixel_format,
                 })
@@ -448,6 +447,17 @@ class StageSession:
             last["elapsed_s"] = r["duration_s"]
             last["drops"] = sum(r["drops"].values())
         return last
+
+
+def _levels(frame: Frame | None, granted: Granted | None) -> dict[str, Any]:
+    """Exposure (ms) and gain of a camera as its latest frame says (devices that report them per
+    frame), else as the device granted them; None where the driver has neither."""
+    exposure = None if frame is None else frame.exposure_ms
+    gain = None if frame is None else frame.gain
+    if granted is not None:
+        exposure = granted.exposure if exposure is None else exposure
+        gain = granted.extra.get("gain") if gain is None else gain
+    return {"exposure_ms": exposure, "gain": gain, "gain_unit": None if granted is None else granted.extra.get("gain_unit")}
 
 
 def _spread_ms(spreads: list) -> dict[str, float | None]:

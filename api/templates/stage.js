@@ -89,7 +89,7 @@
       '· take: missing ' + c.take_missing + (c.take_queue_drops ? ' + ' + c.take_queue_drops + ' queue' : '') : '';
     const ex = [];
     if (c.exposure_ms !== null) ex.push('exposure ' + fmt(c.exposure_ms, 2) + ' ms'); else ex.push('exposure –');
-    ex.push(c.gain !== null && c.gain !== undefined ? 'gain ' + fmt(c.gain) : 'gain –');
+    ex.push(c.gain !== null && c.gain !== undefined ? 'gain ' + fmt(c.gain) + (c.gain_unit === 'ISO' ? ' ISO' : '') : 'gain –');
     role(c.id, 'exp').textContent = ex.join(' · ');
     role(c.id, 'bus').textContent = c.bus === null ? '· ' + fmt(c.stream_mbps, 0) + ' Mbit/s, not on a USB bus' :
       '· USB bus ' + c.bus + ': ' + fmt(c.bus_need_mbps, 0) + '/' + fmt(c.bus_budget_mbps, 0) + ' Mbit/s' + (c.oversubscribed ? ' OVERSUBSCRIBED' : '');

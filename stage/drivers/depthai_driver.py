@@ -209,6 +209,7 @@ def frame_from_messages(
             raise ValueError(f"depth_frame must be a depthai ImgFrame, got {type(depth_frame).__name__}")
         depth = _depth_image(depth_frame, image.shape[:2], camera_id)
     stamp = img_frame.getTimestamp() if clock == "synced" else img_frame.getTimestampDevice()
+    exposure_ms, iso = _exposure(img_frame)
     return Frame(
         image=image,
         camera_id=camera_id,
@@ -217,7 +218,20 @@ def frame_from_messages(
         host_timestamp_ns=int(host_ns),
         depth=depth,
         encoded=encoded,
+        exposure_ms=exposure_ms,
+        gain=iso,
     )
+
+
+def _exposure(img_frame: Any) -> tuple[float | None, float | None]:
+    """The frame's exposure time (ms) and ISO sensitivity as the sensor set them
+    (``getExposureTime`` / ``getSensitivity`` of an ``ImgFrame`` or ``EncodedFrame``); None where
+    the message has none (0: a frame the sensor did not stamp, e.g. one built on the host)."""
+    if not hasattr(img_frame, "getExposureTime"):
+        return None, None
+    exposure_ms = timedelta_to_ns(img_frame.getExposureTime()) / 1e6
+    iso = float(img_frame.getSensitivity()) if hasattr(img_frame, "getSensitivity") else 0.0
+    return (exposure_ms if exposure_ms > 0 else None), (iso if iso > 0 else None)
 
 
 # -- factory calibration -------------------------------------------------------------------------
@@ -550,7 +564,8 @@ class DepthAICamera:
         self._granted = Granted(
             width=size[0], height=size[1], fps=fps, pixel_format="MJPEG" if jpeg else "BGR", has_depth=cfg.depth,
             extra={"device_id": dev.getDeviceId(), "usb_speed": speed, "platform": dev.getPlatformAsString(),
-                   "product": _safe(dev.getProductName), "store": "jpeg" if jpeg else "raw", "clock": self.clock},
+                   "product": _safe(dev.getProductName), "store": "jpeg" if jpeg else "raw", "clock": self.clock,
+                   "gain_unit": "ISO"},  # every frame says its exposure and sensitivity (frame_from_messages)
         )
         return self._granted
 

@@ -287,6 +287,9 @@ class OpenCVCamera:
         self._last_ts = -1
         self._passthrough = False  # frames arrive as JPEG bytes
         self._fps = 0.0
+        self._manual_exposure = False
+        self._levels_at = -(10**18)  # when exposure and gain were last read (host ns)
+        self._level_cache: tuple[float | None, float | None] = (None, None)
 
     # -- lifecycle ----------------------------------------------------------
     def __enter__(self) -> "OpenCVCamera":
@@ -506,10 +509,37 @@ class OpenCVCamera:
         if cfg.exposure is not None and exposure is not None and abs(exposure - cfg.exposure) > max(0.05 * cfg.exposure, 0.1):
             log.warning("%s: requested exposure %.3g ms, the device granted %.3g ms", self.camera_id, cfg.exposure, exposure)
         self._passthrough = jpeg
-        return Granted(
-            width=w, height=h, fps=fps, pixel_format=fourcc or "BGR", exposure=exposure,
-            extra={"source": self.source.kind, "backend": backend, "fourcc": fourcc, "store": "jpeg" if jpeg else "raw"},
-        )
+        self._manual_exposure = exposure is not None
+        extra = {"source": self.source.kind, "backend": backend, "fourcc": fourcc, "store": "jpeg" if jpeg else "raw"}
+        gain = self._read_gain()
+        if gain is not None:
+            extra.update(gain=gain, gain_unit=f"{backend} gain")
+        return Granted(width=w, height=h, fps=fps, pixel_format=fourcc or "BGR", exposure=exposure, extra=extra)
+
+    def _read_gain(self) -> float | None:
+        """The device's gain (``CAP_PROP_GAIN``, in the backend's units), or None where it has none
+        (OpenCV answers -1 for a control the device lacks, 0 where the backend reads none)."""
+        with _quiet_opencv():
+            raw = self._cap.get(cv2.CAP_PROP_GAIN)
+        return float(raw) if raw is not None and np.isfinite(raw) and raw > 0 else None
+
+    def _read_exposure_ms(self) -> float | None:
+        """The device's exposure in ms while it is manual (an auto exposure's V4L2 control holds the
+        last value set, not the sensor's), else None."""
+        if not self._manual_exposure:
+            return None
+        with _quiet_opencv():
+            raw = self._cap.get(cv2.CAP_PROP_EXPOSURE)
+        if raw is None or not np.isfinite(raw) or raw < 0:
+            return None
+        return raw * _V4L2_EXPOSURE_UNIT_MS if self._cap.getBackendName() == "V4L2" else float(raw)
+
+    def _levels(self, host_ns: int) -> tuple[float | None, float | None]:
+        """(exposure ms, gain) of a device, read again at most once a second (one ioctl each)."""
+        if host_ns - self._levels_at >= 1_000_000_000:
+            self._levels_at = host_ns
+            self._level_cache = (self._read_exposure_ms(), self._read_gain())
+        return self._level_cache
 
     # -- grab ---------------------------------------------------------------
     def grab(self) -> Frame:
@@ -532,9 +562,10 @@ class OpenCVCamera:
             ts = self._file_timestamp()
         else:
             image, encoded, host, ts = self._grab_capture()
+        exposure_ms, gain = self._levels(host) if self.source.live else (None, None)
         frame = Frame(
             image=image, camera_id=self.camera_id, index=self._count, timestamp_ns=ts,
-            host_timestamp_ns=host, encoded=encoded,
+            host_timestamp_ns=host, encoded=encoded, exposure_ms=exposure_ms, gain=gain,
         )
         self._count += 1
         return unmirror(frame) if self.config.mirror else frame

@@ -103,6 +103,28 @@ def test_depth_at_other_size_is_resized_nearest():
     assert set(np.unique(f.depth)) <= set(np.unique(small))
 
 
+class _Metered(dai.ImgFrame):
+    """An ImgFrame as the sensor stamps it (depthai's Python API reads the exposure and the
+    sensitivity of a frame but offers no setter: a host-built frame has 0 for both)."""
+
+    def getExposureTime(self):
+        return dt.timedelta(microseconds=8333)
+
+    def getSensitivity(self):
+        return 400
+
+
+def test_exposure_and_iso_of_every_frame():
+    img = smooth_bgr()
+    plain = frame_from_messages("oak", img_msg(img, dai.ImgFrame.Type.BGR888i), host_ns=0)
+    assert plain.exposure_ms is None and plain.gain is None  # stamped by no sensor
+    msg = _Metered()
+    msg.setCvFrame(img, dai.ImgFrame.Type.BGR888i)
+    f = frame_from_messages("oak", msg, host_ns=0)
+    assert f.exposure_ms == pytest.approx(8.333) and f.gain == 400
+    np.testing.assert_array_equal(f.image, img)
+
+
 def test_mjpeg_bytes_from_encoder():
     img = smooth_bgr()
     ok, jpg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])

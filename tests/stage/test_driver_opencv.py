@@ -175,7 +175,8 @@ class FakeV4L2Capture:
     def __init__(self, target, api):
         assert api == cv2.CAP_V4L2
         self.props = {cv2.CAP_PROP_FOURCC: float(cv2.VideoWriter.fourcc(*"YUYV")), cv2.CAP_PROP_FPS: 30.0,
-                      cv2.CAP_PROP_CONVERT_RGB: 1.0, cv2.CAP_PROP_AUTO_EXPOSURE: 3.0, cv2.CAP_PROP_EXPOSURE: 156.0}
+                      cv2.CAP_PROP_CONVERT_RGB: 1.0, cv2.CAP_PROP_AUTO_EXPOSURE: 3.0, cv2.CAP_PROP_EXPOSURE: 156.0,
+                      cv2.CAP_PROP_GAIN: 32.0}
         self.n = 0
         self.msec = 0.0
 
@@ -248,10 +249,24 @@ def test_device_reports_what_it_granted(fake_v4l2, caplog):
         assert f.encoded is not None and f.encoded[:2] == b"\xff\xd8"
         assert f.image.shape == (480, 640, 3)
         assert abs(float(f.image.mean()) - 7 * i) < 2
+    # exposure and gain: granted, and read again from the device (at most once a second) with the frames
+    assert granted.extra["gain"] == 32.0 and granted.extra["gain_unit"] == "V4L2 gain"
+    assert all(f.exposure_ms == pytest.approx(10.2) and f.gain == 32.0 for f in frames)
     # the device clock (V4L2 buffer timestamps), not the host's, in ns
     ts = np.array([f.timestamp_ns for f in frames])
     assert ts[0] == 5_000_000_000_000
     np.testing.assert_allclose(np.diff(ts) / 1e6, [33.333, 33.333, 66.733, 33.333], atol=1e-3)
+
+
+def test_device_in_auto_exposure_without_a_gain_control(fake_v4l2):
+    cam = OpenCVCamera(cfg(4, width=640, height=480, fps=30))
+    cam.open()
+    del cam._cap.props[cv2.CAP_PROP_GAIN]  # OpenCV answers -1 for a control the device lacks
+    granted = cam.configure()
+    f = cam.grab()
+    cam.close()
+    assert granted.exposure is None and "gain" not in granted.extra  # auto: the control holds a stale value
+    assert f.exposure_ms is None and f.gain is None
 
 
 def test_device_disconnect_after_repeated_failures(fake_v4l2):

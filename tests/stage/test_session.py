@@ -3,6 +3,7 @@ a camera unplugged while recording; one take at a time."""
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import threading
 import time
@@ -71,6 +72,26 @@ def test_session_runs_and_records_from_the_running_cameras(tmp_path):
                         assert fs[c].shape == (H, W, 3) and int(fs[c][0, 0, 0]) == i * 50
             assert all(not d.closed for d in drivers.values())  # a take never closes the session's cameras
     assert all(d.closed for d in drivers.values())
+
+
+class Metered(PacedCamera):
+    """A paced camera whose frames say their exposure and gain (as OAK cameras do)."""
+
+    def configure(self):
+        return Granted(W, H, self.fps, exposure=5.0, extra={"gain": 1.0, "gain_unit": "ISO"})
+
+    def grab(self):
+        return dataclasses.replace(super().grab(), exposure_ms=4.0, gain=400.0)
+
+
+def test_exposure_and_gain_as_the_frames_or_the_device_say(tmp_path):
+    ids = ["m", "p"]
+    drivers = {**make_drivers(["p"]), "m": Metered("m", 1, 60.0)}
+    with StageSession(rig_for(ids), tmp_path / "takes", drivers=drivers) as s:
+        _wait(lambda: all(s.latest(c)[1] is not None for c in ids), what="frames")
+        cams = {c["id"]: c for c in s.figures()["cameras"]}
+    assert (cams["m"]["exposure_ms"], cams["m"]["gain"], cams["m"]["gain_unit"]) == (4.0, 400.0, "ISO")
+    assert (cams["p"]["exposure_ms"], cams["p"]["gain"], cams["p"]["gain_unit"]) == (None, None, None)  # none said
 
 
 def test_one_take_at_a_time(tmp_path):
