@@ -32,7 +32,7 @@ import numpy as np
 
 from fake_cameras.creatures import Creature, Pose, _rot, _unit, make_creature
 
-__all__ = ["MeshSequence", "rest_mesh", "mesh_sequence", "scan_opening"]
+__all__ = ["MeshSequence", "rest_mesh", "mesh_sequence", "scan_opening", "true_joints"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,6 +232,56 @@ def _segment_frames(creature: Creature, t: float, opening: dict | None = None):
     return mats, origins, joints
 
 
+def true_joints(creature: Creature, times, *, min_bend: float = math.radians(10.0)):
+    """A creature's joints over time: names, positions and which of them articulate.
+
+    Parameters
+    ----------
+    creature : Creature
+    times : (T,) float array_like
+        Seconds (a take's ``times``).
+    min_bend : float
+        A joint articulates when the relative rotation of the two parts it links varies by more
+        than this (radians) over ``times`` (the largest angle between any two frames').
+
+    Returns
+    -------
+    names : tuple of str
+        ``limb.i``, the joint at the start of limb segment ``i``.
+    positions : (T, K, 3) float ndarray
+    articulates : (K,) bool ndarray
+    """
+    t_arr = np.asarray(times, dtype=np.float64).reshape(-1)
+    if len(t_arr) == 0 or not np.all(np.isfinite(t_arr)):
+        raise ValueError(f"times must be a non-empty array of finite seconds, got {np.shape(times)}")
+    if not (min_bend >= 0 and np.isfinite(min_bend)):
+        raise ValueError(f"min_bend must be a finite angle >= 0 (radians), got {min_bend}")
+    joint_pos, rel = [], []
+    names = ()
+    for t in t_arr:
+        _, _, joints = _segment_frames(creature, float(t))
+        names = tuple(joints)
+        joint_pos.append(np.asarray([joints[k][0] for k in names]))
+        # relative rotation between the two parts a joint links
+        _, Rb = creature._body_transform(float(t))
+        r = []
+        for k in names:
+            limb, i = k.rsplit(".", 1)
+            i = int(i)
+            parent = Rb if i == 0 else joints[f"{limb}.{i - 1}"][1]
+            r.append(parent.T @ joints[k][1])
+        rel.append(np.asarray(r))
+    rel = np.asarray(rel)  # (T, K, 3, 3)
+    # largest angle between the relative rotations of any two frames
+    K = rel.shape[1]
+    spread = np.zeros(K)
+    for k in range(K):
+        Rk = rel[:, k]
+        cosang = (np.einsum("aij,bij->ab", Rk, Rk) - 1.0) / 2.0
+        spread[k] = float(np.arccos(np.clip(cosang, -1.0, 1.0)).max())
+    return names, np.asarray(joint_pos), spread > min_bend
+
+
 def mesh_sequence(
     name: str,
     *,
@@ -289,32 +339,12 @@ def mesh_sequence(
     org0_a = np.asarray(org0)
     local = np.einsum("vji,vj->vi", M0[capsule], v0 - org0_a[capsule])  # vertex in its capsule's frame
     verts = np.empty((len(times), len(v0), 3), dtype=dtype)
-    joint_pos, rel = [], []
-    names = None
     for ti, t in enumerate(times):
-        mats, org, joints = _segment_frames(cr, float(t))
+        mats, org, _ = _segment_frames(cr, float(t))
         M = np.asarray(mats)
         org_a = np.asarray(org)
         verts[ti] = np.einsum("vij,vj->vi", M[capsule], local) + org_a[capsule]
-        names = tuple(joints)
-        joint_pos.append(np.asarray([joints[k][0] for k in names]))
-        # relative rotation between the two parts a joint links
-        pos, Rb = cr._body_transform(float(t))
-        r = []
-        for k in names:
-            limb, i = k.rsplit(".", 1)
-            i = int(i)
-            parent = Rb if i == 0 else joints[f"{limb}.{i - 1}"][1]
-            r.append(parent.T @ joints[k][1])
-        rel.append(np.asarray(r))
-    rel = np.asarray(rel)  # (T, K, 3, 3)
-    # largest angle between the relative rotations of any two frames
-    K = rel.shape[1]
-    spread = np.zeros(K)
-    for k in range(K):
-        Rk = rel[:, k]
-        cosang = (np.einsum("aij,bij->ab", Rk, Rk) - 1.0) / 2.0
-        spread[k] = float(np.arccos(np.clip(cosang, -1.0, 1.0)).max())
+    names, joint_pos, articulates = true_joints(cr, times, min_bend=min_bend)
     n_body = len(cr.body)
     part = np.where(capsule < n_body, -1, 0)
     seg_ids = []
@@ -330,7 +360,7 @@ def mesh_sequence(
         times=times,
         joint_names=names,
         joints=np.asarray(joint_pos),
-        articulates=spread > min_bend,
+        articulates=articulates,
         part=part,
         size=size,
     )

@@ -596,7 +596,7 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
     """Merge adjacent segments whose union still moves rigidly (residual below ``tol``)."""
     rng = np.random.default_rng(0)
     lab = labels.copy()
-    frames = _some_frames(len(v))
+    vf = v[_some_frames(len(v))]  # gathered once: the rows of a segment are then one take
     members = {int(s): np.flatnonzero(lab == s) for s in np.unique(lab)}
     pick = {s: (m if len(m) <= per_segment else rng.choice(m, per_segment, replace=False)) for s, m in members.items()}
 
@@ -617,7 +617,7 @@ def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: floa
             if pr not in cache:
                 ids = np.r_[pick[pr[0]], pick[pr[1]]]
                 grp = np.r_[np.zeros(len(pick[pr[0]])), np.ones(len(pick[pr[1]]))]
-                cache[pr] = rigid_residual(v[frames[:, None], ids[None, :]], grp)
+                cache[pr] = rigid_residual(vf[:, ids], grp)
         best = min(pairs, key=lambda pr: cache[pr])
         if cache[best] >= tol:
             break
@@ -666,12 +666,12 @@ def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: n
 
     rng = np.random.default_rng(seed)
     lab = labels.copy()
-    frames = _some_frames(len(v))
+    vf = v[_some_frames(len(v))]
 
     def residual(ids):
         if len(ids) > per_segment:
             ids = rng.choice(ids, per_segment, replace=False)
-        return rigid_residual(v[frames[:, None], ids[None, :]])
+        return rigid_residual(vf[:, ids])
 
     todo = [(int(x), 0) for x in np.unique(lab)]
     while todo:
@@ -713,12 +713,21 @@ def relative_bend(motion_a, motion_b, *, most: int = 60) -> float:
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)).max()))
 
 
+def _gaps(motion, Y0: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """(F, n) distances of trajectories ``Y`` (F, n, 3) from where ``motion`` carries their first positions."""
+    R, t = motion
+    d = np.matmul(Y0[None], R.transpose(0, 2, 1))  # batched BLAS: R_t y for every frame
+    d += t[:, None]
+    d -= Y
+    return np.sqrt(np.einsum("tvi,tvi->tv", d, d))
+
+
 def _core_motion(Y: np.ndarray, *, keep: float = 0.5, rounds: int = 3):
     """The rigid motion of the most rigid ``keep`` of a point set's trajectories (trimmed least squares:
     refit on the points the last fit explains best), from frame 0; (R (T, 3, 3), t (T, 3))."""
     R, t = rigid_motions(Y)
     for _ in range(rounds):
-        r = np.linalg.norm(np.einsum("tij,vj->tvi", R, Y[0]) + t[:, None] - Y, axis=2).max(0)
+        r = _gaps((R, t), Y[0], Y).max(0)
         R, t = rigid_motions(Y[:, np.argsort(r)[: max(3, int(keep * len(r)))]])
     return R, t
 
@@ -732,17 +741,19 @@ def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: fl
     with its own motion, the body's core with the body's; a smooth bend is no part. Tracking noise
     can look like such a part (``peel_parts`` of :func:`motion_segmentation`)."""
     lab = labels.copy()
-    frames = _some_frames(len(v))
+    vf = v[_some_frames(len(v))]
     V = len(lab)
+    settled: set = set()  # segments looked at and left as they were: the same answer next time
     for _ in range(int(depth)):
         changed = False
         for sgm in np.unique(lab):
             ids = np.flatnonzero(lab == sgm)
-            if len(ids) < 2 * min_size:
+            if len(ids) < 2 * min_size or int(sgm) in settled:
                 continue
-            Y = v[frames][:, ids].astype(np.float64)
+            settled.add(int(sgm))
+            Y = vf[:, ids].astype(np.float64)
             R, t = _core_motion(Y)
-            gap = np.linalg.norm(np.einsum("tij,vj->tvi", R, Y[0]) + t[:, None] - Y, axis=2)  # (frames, vertices)
+            gap = _gaps((R, t), Y[0], Y)  # (frames, vertices)
             off = gap.max(0) > tol
             where = np.full(V, -1)
             where[ids] = np.arange(len(ids))
@@ -758,9 +769,10 @@ def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: fl
                 patch = np.flatnonzero(mask & (comp == c))
                 some = patch[:: max(1, len(patch) // 400)]
                 under_core = float(np.sqrt((gap[:, where[some]] ** 2).mean(1)).max())
-                if rigid_residual(v[frames][:, some]) > gain * under_core:
+                if rigid_residual(vf[:, some]) > gain * under_core:
                     continue  # no motion of its own (a smooth bend, a blend between two parts)
                 lab[patch] = int(lab.max()) + 1
+                settled.discard(int(sgm))
                 changed = True
         if not changed:
             break

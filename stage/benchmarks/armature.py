@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -33,12 +34,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--accuracy", action="store_true",
                    help="instead of the timings: where the rig goes wrong, stage by stage, on the cow, the pipe and "
                    "the simulated creatures (segments against the true rigid parts, joints on the true segments, "
-                   "the rig against the true articulations; a few minutes)")
+                   "the rig against the true articulations), then simulated takes through process, track and rig "
+                   "(tens of minutes)")
+    p.add_argument("--takes", default="starfish,quadruped,biped",
+                   help="with --accuracy: the simulated takes through process, track and rig (default "
+                   "starfish,quadruped,biped; 'none' for none)")
+    p.add_argument("--take-frames", type=int, default=30, help="with --accuracy: frames of each take (default 30)")
 
 
 def run(args: argparse.Namespace) -> int:
     if getattr(args, "accuracy", False):
+        takes = [t.strip() for t in str(getattr(args, "takes", "none")).split(",") if t.strip() not in ("", "none")]
+        bad = [t for t in takes if t not in ("starfish", "quadruped", "biped")]
+        if bad:
+            raise ValueError(f"--takes: unknown creature {bad[0]!r} (choose from starfish, quadruped, biped)")
+        if int(getattr(args, "take_frames", 30)) < 2:
+            raise ValueError(f"--take-frames must be >= 2, got {args.take_frames}")
         accuracy()
+        take_accuracy(takes, frames=int(getattr(args, "take_frames", 30)))
         return 0
     from fake_cameras.mesh_motion import mesh_sequence
     from pipeline.armature_fit import articulated_model, fit_sequence
@@ -208,3 +221,64 @@ def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped")) -> None:
               f"{int(truth.max()) + 1:>4} {pur:>6.2f} {comp:>6.2f} | {rpe(pl['paper']):>26} {rpe(pl['pivot']):>18} | "
               f"{sc['recall']:>6.2f} {sc['precision']:>5.2f} {100 * sc['error']:>5.1f} "
               f"{100 * rig.fit.errors.mean() / rig.size:>5.2f} {secs:>5.1f}", flush=True)
+
+
+def take_rig(name: str, root, *, frames: int = 30, n_cameras: int = 8, size=(640, 480), seed: int = 3,
+             fps: float = 30.0):
+    """A simulated take of ``name`` through ``process``, ``track`` and ``rig`` with their defaults, in
+    ``root``; -> (take, results directory, rig, seconds per step)."""
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
+    from pipeline.articulated_rig import rig_results
+    from pipeline.process import process_take
+
+    root = Path(root)
+    secs = {}
+    t0 = time.perf_counter()
+    sim = simulate_take(name, n_cameras=n_cameras, frames=frames, size=tuple(size), seed=seed, fps=fps)
+    res = root / "results"
+    process_take(record_take(sim, root / f"{name}.h5"), res, executor=None)
+    secs["process"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    process_take(root / f"{name}.h5", res, steps=("track",), executor=None)
+    secs["track"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rig = rig_results(res)
+    secs["rig"] = time.perf_counter() - t0
+    return sim, res, rig, secs
+
+
+def take_scores(sim, res, rig) -> dict:
+    """The rig of a simulated take against the creature's joints at the take's times (recall over the
+    joints whose parts turn against each other by 10 degrees or more), and the tracking it was built
+    on: distance of the tracked vertices from their true points and the motion the tracking invents
+    where the body is rigid (voxels, mean over vertices, worst frame)."""
+    from fake_cameras.mesh_motion import true_joints
+    from fake_cameras.surface_motion import invented_motion, tracking_errors
+    from pipeline.rig_score import articulation_scores
+
+    _, J, bending = true_joints(sim.creature, sim.times)
+    sc = articulation_scores(rig.fit.joints[:, rig.skeleton.articulation], J, size=rig.size, bending=bending)
+    err, _, _ = tracking_errors(sim.creature, sim.times, res)
+    sc["track_error"] = float(err.mean(axis=1).max())
+    sc["invented"] = float(np.max(invented_motion(sim.creature, sim.times, res)))
+    sc["joints"] = len(bending)
+    return sc
+
+
+def take_accuracy(names, *, frames: int = 30) -> None:
+    """Simulated takes (8 cameras, 640x480, seed 3) through process, track and rig, scored."""
+    import tempfile
+
+    if not names:
+        return
+    print(f"\n{'take':10} {'T':>3} {'track vx':>8} {'invent vx':>9} | {'segs':>4} {'arts':>4} {'bend':>4} | {'R':>5} "
+          f"{'P':>5} {'err%':>5} {'vert%':>5} | {'process s':>9} {'track s':>7} {'rig s':>5}")
+    for name in names:
+        with tempfile.TemporaryDirectory(prefix=f"bench-rig-{name}-") as tmp:
+            sim, res, rig, secs = take_rig(name, tmp, frames=frames)
+            sc = take_scores(sim, res, rig)
+        print(f"{name:10} {frames:>3} {sc['track_error']:>8.2f} {sc['invented']:>9.2f} | {rig.segmentation.n_segments:>4} "
+              f"{sc['found']:>4} {sc['bending']:>4} | {sc['recall']:>5.2f} {sc['precision']:>5.2f} "
+              f"{100 * sc['error']:>5.1f} {100 * rig.fit.errors.mean() / rig.size:>5.2f} | {secs['process']:>9.0f} "
+              f"{secs['track']:>7.0f} {secs['rig']:>5.0f}", flush=True)
