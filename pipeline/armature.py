@@ -195,8 +195,15 @@ def _check_count(n, name: str) -> None:
         raise ValueError(f"{name} must be a count (an integer >= 0), got {n!r}")
 
 
-def _check_one_part(n_vertices: int, faces) -> None:
-    """ValueError when the faces form several connected parts (vertices in no face are ignored)."""
+#: connected parts holding less than this share of the mesh's vertices are specks (surface debris):
+#: they follow their nearest bone; a larger second part is a second subject, an error
+SPECK = 0.005
+
+
+def _main_part(n_vertices: int, faces) -> np.ndarray | None:
+    """Mask of the subject's connected part when specks lie apart from it (a warning), None when the
+    mesh is one part; ValueError when a second part is larger than a speck (vertices in no face are
+    ignored)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
@@ -205,15 +212,22 @@ def _check_one_part(n_vertices: int, faces) -> None:
     e = mesh_edges(faces)
     n = int(n_vertices)
     _, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
-    sizes = np.bincount(comp[np.unique(np.asarray(faces).ravel())])
-    sizes = np.sort(sizes[sizes > 0])[::-1]
-    if len(sizes) > 1:
-        shown = ", ".join(map(str, sizes[:4])) + (", ..." if len(sizes) > 4 else "")
+    used = np.unique(np.asarray(faces).ravel())
+    sizes = np.bincount(comp[used], minlength=int(comp.max()) + 1)
+    parts = np.argsort(-sizes, kind="stable")
+    parts = parts[sizes[parts] > 0]
+    if len(parts) <= 1:
+        return None
+    if sizes[parts[1]] >= SPECK * len(used):
+        shown = ", ".join(map(str, sizes[parts[:4]])) + (", ..." if len(parts) > 4 else "")
         raise ValueError(
-            f"faces: the mesh has {len(sizes)} connected parts ({shown} vertices): a rig is found for one "
+            f"faces: the mesh has {len(parts)} connected parts ({shown} vertices): a rig is found for one "
             "connected subject; keep its part (the largest, as stage track's template does) or rig each part "
             "on its own"
         )
+    log.warning("the mesh has %s apart from the subject (%d vertices, each part under %g %% of them): they "
+                "follow their nearest bone", counted(len(parts) - 1, "speck"), int(sizes[parts[1:]].sum()), 100 * SPECK)
+    return comp == parts[0]
 
 
 def choose_reference(vertices, faces, *, candidates: int = 8) -> int:
@@ -282,7 +296,7 @@ def build_armature(
     T = len(v)
     if T < 2:
         raise ValueError("vertices: one frame: a rig is found from how the subject moves, give at least 2 frames")
-    _check_one_part(v.shape[1], f)
+    main = _main_part(v.shape[1], f)
     if not (fps > 0 and np.isfinite(fps)):
         raise ValueError(f"fps must be > 0, got {fps}")
     fi = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64).reshape(-1)
@@ -300,7 +314,7 @@ def build_armature(
         raise ValueError(f"reference must be within 0..{T - 1}, got {reference}")
     rest = v[ref]
     skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f), motion=v, reference=ref)
-    model = articulated_model(rest, f, skel)
+    model = articulated_model(rest, f, skel, active=main)
     timings["skeleton"] = time.perf_counter() - t0
     if progress:
         progress("skeleton", 1, 1)

@@ -216,10 +216,18 @@ def sample_vertices(points, n: int, *, start: int | None = None) -> np.ndarray:
     out = np.empty(n, dtype=np.int64)
     out[0] = first
     dmin = ((p - p[first]) ** 2).sum(1)
+    x, y, z = (np.ascontiguousarray(p[:, k]) for k in range(3))  # one coordinate at a time: no (V, 3) temporaries
+    d, w = np.empty(len(p)), np.empty(len(p))
     for i in range(1, n):
         nxt = int(np.argmax(dmin))
         out[i] = nxt
-        np.minimum(dmin, ((p - p[nxt]) ** 2).sum(1), out=dmin)
+        np.subtract(x, x[nxt], out=d)
+        np.multiply(d, d, out=d)
+        for c in (y, z):  # summed in the order of ``((p - q) ** 2).sum(1)``: the same distances
+            np.subtract(c, c[nxt], out=w)
+            np.multiply(w, w, out=w)
+            np.add(d, w, out=d)
+        np.minimum(dmin, d, out=dmin)
     return out
 
 
