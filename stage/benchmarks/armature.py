@@ -34,10 +34,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--accuracy", action="store_true",
                    help="instead of the timings: where the rig goes wrong, stage by stage, on the cow, the pipe and "
                    "the simulated creatures (segments against the true rigid parts, joints on the true segments, "
-                   "the rig against the true articulations), then simulated takes through process, track and rig "
+                   "the rig against the true articulations), then simulated takes through process, track and armature "
                    "(tens of minutes)")
     p.add_argument("--takes", default="starfish,quadruped,biped",
-                   help="with --accuracy: the simulated takes through process, track and rig (default "
+                   help="with --accuracy: the simulated takes through process, track and armature (default "
                    "starfish,quadruped,biped; 'none' for none)")
     p.add_argument("--take-frames", type=int, default=30, help="with --accuracy: frames of each take (default 30)")
 
@@ -223,13 +223,13 @@ def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped")) -> None:
               f"{100 * rig.fit.errors.mean() / rig.size:>5.2f} {secs:>5.1f}", flush=True)
 
 
-def take_rig(name: str, root, *, frames: int = 30, n_cameras: int = 8, size=(640, 480), seed: int = 3,
+def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size=(640, 480), seed: int = 3,
              fps: float = 30.0):
-    """A simulated take of ``name`` through ``process``, ``track`` and ``rig`` with their defaults, in
+    """A simulated take of ``name`` through ``process``, ``track`` and ``armature`` with their defaults, in
     ``root``; -> (take, results directory, rig, seconds per step)."""
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
-    from pipeline.articulated_rig import rig_results
+    from pipeline.armature import armature_results
     from pipeline.process import process_take
 
     root = Path(root)
@@ -243,7 +243,7 @@ def take_rig(name: str, root, *, frames: int = 30, n_cameras: int = 8, size=(640
     process_take(root / f"{name}.h5", res, steps=("track",), executor=None)
     secs["track"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rig = rig_results(res)
+    rig = armature_results(res)
     secs["rig"] = time.perf_counter() - t0
     return sim, res, rig, secs
 
@@ -255,7 +255,7 @@ def take_scores(sim, res, rig) -> dict:
     where the body is rigid (voxels, mean over vertices, worst frame)."""
     from fake_cameras.mesh_motion import true_joints
     from fake_cameras.surface_motion import invented_motion, tracking_errors
-    from pipeline.rig_score import articulation_scores
+    from pipeline.armature_score import articulation_scores
 
     _, J, bending = true_joints(sim.creature, sim.times)
     sc = articulation_scores(rig.fit.joints[:, rig.skeleton.articulation], J, size=rig.size, bending=bending)
@@ -267,7 +267,7 @@ def take_scores(sim, res, rig) -> dict:
 
 
 def take_accuracy(names, *, frames: int = 30) -> None:
-    """Simulated takes (8 cameras, 640x480, seed 3) through process, track and rig, scored."""
+    """Simulated takes (8 cameras, 640x480, seed 3) through process, track and armature, scored."""
     import tempfile
 
     if not names:
@@ -276,7 +276,7 @@ def take_accuracy(names, *, frames: int = 30) -> None:
           f"{'P':>5} {'err%':>5} {'vert%':>5} | {'process s':>9} {'track s':>7} {'rig s':>5}")
     for name in names:
         with tempfile.TemporaryDirectory(prefix=f"bench-rig-{name}-") as tmp:
-            sim, res, rig, secs = take_rig(name, tmp, frames=frames)
+            sim, res, rig, secs = take_armature(name, tmp, frames=frames)
             sc = take_scores(sim, res, rig)
         print(f"{name:10} {frames:>3} {sc['track_error']:>8.2f} {sc['invented']:>9.2f} | {rig.segmentation.n_segments:>4} "
               f"{sc['found']:>4} {sc['bending']:>4} | {sc['recall']:>5.2f} {sc['precision']:>5.2f} "
