@@ -339,9 +339,9 @@ def test_constant_velocity_prediction_is_exact_on_constant_velocity_motion(creat
 # --------------------------------------------------------------------------- the same creature, varied motion
 
 _VARIED = [
-    # (creature, frames, periods of the slowest limb): coarse, dense, and twice as fast a frame
+    # (creature, frames, periods of the slowest limb): coarse, twice as fast a frame, and dense (the
+    # segmentation's frame-rate invariance: test_motion_segmentation's five times the frame rate)
     ("biped", 16, 1.0),
-    ("biped", 64, 1.0),
     ("biped", 32, 2.0),
     ("quadruped", 100, 1.0),
 ]
@@ -357,7 +357,7 @@ def test_varied_frame_rate_and_speed_give_a_stable_rig(name, frames, periods):
     ms = mesh_sequence(name, frames=frames, duration=periods * period, voxel=10.0, dtype=np.float32)
     rig = build_armature(ms.vertices, ms.faces, lambda_thr=0.98)
     recall, precision, _ = _articulation_scores(rig, ms.joints, ms.articulates, ms.size)
-    # measured: biped 1.0 / 1.0 and 0.83-0.90 % in all three, quadruped 0.77 / 1.0 and 0.54 %
+    # measured: biped 1.0 / 1.0 and 0.83-0.90 % in both, quadruped 0.77 / 1.0 and 0.54 %
     assert recall >= 0.7
     assert precision >= 0.7
     assert rig.fit.errors.mean() <= 0.01 * ms.size
