@@ -15,7 +15,7 @@ ray (:meth:`pipeline.tracking.TemplateTracker.fit`, ``tracks=``); along it the l
 carries the depth's noise, and the depth pairs hold that direction.
 
 With the template's triangles and a prediction of the frame (``faces=``, ``predicted=``, what
-:func:`pipeline.track.track_rgbd_take` passes), every track is then refined with its window
+:func:`pipeline.track_rgbd.track_rgbd_take` passes), every track is then refined with its window
 warped by the prediction's local image motion (:func:`_local_warps`, :func:`_warped_lk`), on
 the object's pixels only: OpenCV's window only translates, and a part that turns within the
 image turns the texture inside it; the silhouette is no point of the surface (a round end's

@@ -1,19 +1,15 @@
-"""Template tracking of whole takes: ``tracked/NNNNNN.ply`` in the template's vertex order.
+"""Template tracking of a processed multi-view take: ``tracked/NNNNNN.ply`` in the template's vertex order.
 
-Two sources of data (Tzionas & Gall 2016, §3):
+:func:`track_results` (Tzionas & Gall 2016, §3): the template is the reference frame's surface (or
+a given mesh), the data every frame's surface ``meshes/frame_NNNNNN.ply`` (or the surfaces carved
+across time, ``carved/``); every template vertex may pair (the data are whole surfaces). The two
+halves from the reference frame run at once on an executor (:func:`track_chain_task`); the colour
+images of the take add feature tracks across every camera's viewing ray.
+:func:`track_with_armature` tracks a tracked take again with an armature as the articulated prior.
 
-- :func:`track_results`: a multi-view take already processed by ``stage process``; the
-  template is the reference frame's surface (or a given mesh), the data every frame's
-  surface ``meshes/frame_NNNNNN.ply``; every template vertex may pair (the data are whole
-  surfaces).
-- :func:`track_rgbd_take`: one RGB-D camera's take and a template from a static scan;
-  the template is placed on the first frame with depth by rigid ICP, then every frame is
-  preprocessed (:func:`pipeline.rgbd_preprocess.preprocess_depth`) and only the vertices
-  the camera and the data see get model->data pairs.
-
-Both write atomically, frame by frame, and resume: frames already in ``tracked/`` are kept,
-and tracking continues from the last one. ``tracked/track.json`` records the parameters,
-the skipped frames and per-frame fit figures.
+Frames are written and resumed as :mod:`pipeline.track_frames` does for both forms of tracking
+(one RGB-D camera: :mod:`pipeline.track_rgbd`); ``tracked/track.json`` records the settings, the
+skipped frames and per-frame fit figures.
 """
 
 from __future__ import annotations
@@ -30,126 +26,23 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.mesh_primitives import mesh_volume, vertex_normals
-from pipeline.results import atomic_write_bytes, ply_bytes
-from pipeline.run.settings import array_digest, changed_settings, file_digest, read_settings
+from pipeline.run.settings import array_digest, file_digest
+from pipeline.track_frames import (
+    LastRead,
+    load_template,
+    predictor,
+    remove_tracking,
+    run_frames,
+    start_over_if_changed,
+    tracked_path,
+    write_frame,
+    write_report,
+)
 from pipeline.tracking import TemplateTracker, TrackingError
 
-__all__ = ["track_results", "track_with_armature", "track_chain_task", "track_rgbd_take", "tracked_path", "remove_tracking",
-           "TrackingError"]
+__all__ = ["track_results", "track_with_armature", "track_chain_task", "tracked_path", "remove_tracking", "TrackingError"]
 
-log = logging.getLogger(__name__)
-
-
-def tracked_path(out_dir, frame: int) -> Path:
-    """``OUT/tracked/NNNNNN.ply``."""
-    return Path(out_dir) / "tracked" / f"{int(frame):06d}.ply"
-
-
-def _read_tracked(path: Path, n_vertices: int) -> np.ndarray | None:
-    from pipeline.meshio import load_mesh
-
-    try:
-        v, _ = load_mesh(path, largest=False)
-    except (ValueError, OSError) as exc:
-        log.warning("re-tracking %s: unreadable (%s)", path, exc)
-        return None
-    return v if v.shape == (n_vertices, 3) else None
-
-
-def _write_frame(out_dir: Path, frame: int, vertices: np.ndarray, faces: np.ndarray) -> None:
-    atomic_write_bytes(tracked_path(out_dir, frame), ply_bytes(vertices, faces))
-
-
-def _write_report(out_dir: Path, report: dict) -> None:
-    atomic_write_bytes(Path(out_dir) / "tracked" / "track.json", json.dumps(report, indent=1).encode())
-
-
-def _load_template(template) -> tuple[np.ndarray, np.ndarray]:
-    from pipeline.meshio import load_mesh
-
-    if isinstance(template, (tuple, list)) and len(template) == 2:
-        return np.asarray(template[0], float), np.asarray(template[1], np.int64)
-    v, f = load_mesh(template, largest=False)
-    if len(f) == 0:
-        raise ValueError(f"template {template}: the mesh has no triangles")
-    return v, f
-
-
-def _run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_for, progress, start, prev,
-                contour_for=None, init_for=None, total=None, prev_frame=None, predict=None, before=None, tracks_for=None,
-                choose=None):
-    """Track ``frames`` in order; ``data_for(k, previous_vertices)`` -> (points, normals, extra) or None (no data);
-    ``predict``, ``init_for``, ``choose``: where each frame's rounds start (:func:`_start_for`);
-    ``before``: (frame, vertices) before ``prev``;
-    ``tracks_for(k, previous_frame, previous_vertices, extra, start)`` -> feature tracks of frame ``k`` or None."""
-    V0 = tracker.template
-    vol0 = mesh_volume(V0, faces)
-    per = report.setdefault("frames", {})
-    done = 0
-    seen = None
-    for k in frames:
-        t0 = time.perf_counter()
-        existing = _read_tracked(tracked_path(out_dir, k), len(V0)) if tracked_path(out_dir, k).is_file() else None
-        if existing is not None:
-            before = (prev_frame, prev) if prev_frame is not None else None
-            prev, prev_frame = existing, k
-        else:
-            data = data_for(k, prev)
-            if data is None:
-                report["skipped"].append(int(k))
-            else:
-                pts, nrm, extra = data
-                contour = contour_for(extra) if contour_for is not None else None
-                init, from_spine = _start_for(k, prev_frame, prev, before, seen, pts, nrm, predict=predict,
-                                              init_for=init_for, choose=choose)
-                tracks = None
-                if tracks_for is not None and prev_frame is not None:
-                    tracks = tracks_for(k, prev_frame, prev, extra, init)
-                fit = tracker.fit(pts, nrm, previous=prev, init=init, visible=visible_for(extra), contour=contour,
-                                  tracks=tracks)
-                seen = fit.constrained
-                before = (prev_frame, prev) if prev_frame is not None else None
-                prev, prev_frame = fit.vertices, k
-                _write_frame(out_dir, k, prev, faces)
-                per[str(k)] = {
-                    "model_pairs": fit.model_pairs, "data_pairs": fit.data_pairs,
-                    "residual_mm": round(fit.residual, 4) if np.isfinite(fit.residual) else None,
-                    "volume_ratio": round(mesh_volume(prev, faces) / vol0, 5) if vol0 > 0 else None,
-                    "seconds": round(time.perf_counter() - t0, 4),
-                }
-                if tracks is not None:
-                    per[str(k)]["colour_tracks"] = int(len(tracks[0]))
-                if from_spine is not None:
-                    per[str(k)]["spine_start_patches"] = round(from_spine, 4)
-        done += 1
-        if progress is not None:
-            progress("track", start + done, total if total is not None else start + len(frames))
-    return prev
-
-
-def _start_for(k, prev_frame, prev, before, seen, points, normals, *, predict, init_for, choose):
-    """Where frame ``k``'s rounds start (None: the previous frame ``prev``) and the share of the
-    patches that took the second start (None without a choice). Each start is computed only
-    when it is used:
-
-    - ``init_for(k, previous_frame, previous_vertices)`` (the spine's skinned step) without
-      ``choose``: it, for every patch;
-    - with ``choose(candidates, points, normals)`` -> (start, share): per patch, the prediction
-      (or the previous frame) or ``init_for``'s start, whichever the frame's data explain;
-    - without ``init_for``: ``predict(previous, before, constrained)``, the start from the two
-      frames before, when both are the neighbouring frames of ``k`` (``before``: (frame,
-      vertices) before ``prev``; ``seen``: the previous fit's constrained motions).
-    """
-    if prev_frame is None:
-        return None, None
-    if init_for is not None and choose is None:
-        return init_for(k, prev_frame, prev), None
-    predicted = None
-    if predict is not None and before is not None and abs(k - prev_frame) == 1 and abs(prev_frame - before[0]) == 1:
-        predicted = predict(prev, before[1], seen)
-    if init_for is None:
-        return predicted, None
-    return choose([prev if predicted is None else predicted, init_for(k, prev_frame, prev)], points, normals)
+log = logging.getLogger("pipeline.track")
 
 
 def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
@@ -166,7 +59,7 @@ def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
         if spine.frame_count != len(frames):
             return None
         ref = reference_frame(spine)
-        V, F = load_mesh(by_frame[frames[ref]], largest=True) if template is None else _load_template(template)
+        V, F = load_mesh(by_frame[frames[ref]], largest=True) if template is None else load_template(template)
         return ref, rigged_model(spine, V, F, reference=ref)
     except (NoCompleteFrameError, ValueError, KeyError) as exc:
         log.warning("tracking without the spine's pose (%s)", exc)
@@ -246,7 +139,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         raise ValueError(f"surfaces must be 'meshes' or 'carved', got {surfaces!r}")
     root = Path(results_dir)
     frames, by_frame = _surface_meshes(root, surfaces)
-    loaded = None if template is None else _load_template(template)  # a bad template is the user's error, said once
+    loaded = None if template is None else load_template(template)  # a bad template is the user's error, said once
     name = None if template is None else ("array" if isinstance(template, (tuple, list)) else str(template))
     skinned = _spine_model(root, frames, by_frame, loaded)
     if skinned is None and (spine_init or not choose):  # asked of a spine the take does not have
@@ -268,7 +161,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
             report["surfaces_sha256"] = file_digest(root / surfaces / "carve.json")
         if spine_start != "none":  # every frame's start depends on the spine then
             report["spine_sha256"] = file_digest(root / "spine.json")
-        kept = _start_over_if_changed(root, report)
+        kept = start_over_if_changed(root, report)
         chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
                  "spine_start": spine_start, "spine_template": loaded, "predict": bool(predict),
                  "colour": report["colour_tracks"], "prior": prior, "surfaces": surfaces}
@@ -278,138 +171,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                       by_frame=by_frame, skinned=skinned, progress=progress, executor=executor, take=take)
     report["frames"] = {**kept, **report["frames"]}
     report["frames"] = {str(k): report["frames"][str(k)] for k in frames if str(k) in report["frames"]}
-    _write_report(root, report)
+    write_report(root, report)
     return report
-
-
-#: Report entries that are not settings: results (a resumed run may differ in them), the
-#: template's name as it was given (its content is ``template_sha256``) and what a start-over removed.
-_RESULT_KEYS = frozenset({"skipped", "frames", "worker_cpu_seconds", "icp", "template", "started_over"})
-
-
-def _start_over_if_changed(out_dir: Path, report: dict) -> dict:
-    """Per-frame figures of the frames an earlier run of the same settings tracked (they are
-    kept), or ``{}``: tracked frames of other settings are removed first, as ``stage process``
-    removes results of other parameters, and so is the rig built on them (``rig/``), with one
-    warning naming what changed (also in ``report["started_over"]``). The settings are written
-    before any frame is tracked, so a killed run's frames keep theirs."""
-    path = Path(out_dir) / "tracked" / "track.json"
-    old = read_settings(path)
-    kept = {}
-    if old is not None:
-        spine = Path(out_dir) / "spine.json"
-        newer = spine.is_file() and spine.stat().st_mtime_ns > path.stat().st_mtime_ns
-
-        def was(k):
-            return _old_setting(old, k, report[k], spine_rewritten=newer)
-
-        changed = changed_settings(old, report, results=_RESULT_KEYS, was=lambda _, k, __: was(k))
-        if "surfaces" in changed:  # from meshes/ to carved/ (or back): their digest says nothing more
-            changed = [k for k in changed if k != "surfaces_sha256"]
-        if changed:
-            _remove_tracked_frames(path.parent)
-            rig_note = _remove_stale_rig(Path(out_dir))
-            msg = (f"{path.parent} holds frames tracked with other settings "
-                   f"({', '.join(_change(k, was(k), report[k]) for k in changed)}); tracking again{rig_note}")
-            if set(changed) <= {"surfaces", "surfaces_sha256"} and not rig_note:
-                log.info("%s", msg)  # the rounds of --carve: each tracks the surfaces the last one carved
-            else:
-                report["started_over"] = msg
-                log.warning("%s", msg)
-        elif isinstance(old.get("frames"), dict):
-            kept = old["frames"]
-    _write_report(out_dir, {**report, "frames": kept})
-    return kept
-
-
-def _old_setting(old: dict, key: str, new, *, spine_rewritten: bool = False):
-    """A setting of an earlier run's ``track.json``, with the keys an earlier version did not
-    write read as what it did: without ``spine_start``, every patch started from the spine's
-    skinned step with ``spine_init`` and from the prediction without; without ``spine_sha256``,
-    the spine was not recorded: read as the current one (its frames are kept) unless
-    ``spine.json`` was written after ``track.json`` (``spine_rewritten``: the frames' starts
-    came from an earlier spine)."""
-    if key in old:
-        return old[key]
-    if key == "spine_start":
-        return "all" if old.get("spine_init") else "none"
-    if key == "spine_sha256":
-        return None if spine_rewritten else new
-    if key == "surfaces":  # before the carved surfaces, every run tracked meshes/
-        return "meshes"
-    if key == "rig_rounds":  # before the articulated prior, no run tracked with a rig
-        return 0
-    return None
-
-
-def remove_tracking(out_dir) -> str:
-    """Remove the tracking of ``out_dir`` and the rig built on it: what ``stage process`` does
-    when it starts over, since both follow the surfaces it removes.
-
-    ``tracked/NNNNNN.ply`` and ``tracked/track.json`` go (the folder too when that leaves it
-    empty; other files stay), the surfaces carved with the tracked motion (``carved/``,
-    :mod:`pipeline.carve`), then the rig as a tracking start-over removes it
-    (``rig/``, :func:`pipeline.armature.remove_armature`).
-
-    Parameters
-    ----------
-    out_dir : path
-        A results directory.
-
-    Returns
-    -------
-    str
-        What the start-over's warning says of it: ``""`` when there was nothing to remove, else
-        ``"; removed ..."`` naming each folder.
-    """
-    out = Path(out_dir)
-    tracked = out / "tracked"
-    files = _remove_tracked_frames(tracked)
-    if (tracked / "track.json").is_file():
-        (tracked / "track.json").unlink()
-        files += 1
-    with contextlib.suppress(OSError):  # not there, or not empty: kept
-        tracked.rmdir()
-    note = f"; removed the frames tracked on the old surfaces ({tracked})" if files else ""
-    from pipeline.carve import remove_carved
-
-    return note + remove_carved(out) + _remove_stale_rig(out)
-
-
-def _remove_tracked_frames(tracked: Path) -> int:
-    """Remove ``tracked/NNNNNN.ply``; -> how many there were."""
-    from pipeline.armature import FRAME_GLOB
-
-    files = list(tracked.glob(FRAME_GLOB))  # a user's 1_fixed.ply stays
-    for f in files:
-        f.unlink(missing_ok=True)
-    return len(files)
-
-
-def _remove_stale_rig(out_dir: Path) -> str:
-    """Remove the rig built on the frames that are tracked again (``OUT/rig/``,
-    :func:`pipeline.armature.remove_armature`); -> what the start-over's warning says of it."""
-    from pipeline.armature import remove_armature
-
-    if not remove_armature(out_dir / "rig"):
-        return ""
-    note = f"; removed the rig built on them ({out_dir / 'rig'})"
-    page = out_dir / "report.html"
-    try:
-        shown = '<section id="rig">' in page.read_text(encoding="utf-8", errors="replace")
-    except OSError:  # no report
-        shown = False
-    return note + (f"; {page} still shows it until `stage report` runs again" if shown else "")
-
-
-def _change(key: str, old, new) -> str:
-    if key == "template_sha256":
-        return "template mesh changed"
-    if key == "spine_sha256":
-        return "spine.json changed"
-    if key == "surfaces_sha256":
-        return "carved surfaces changed"
-    return f"{key} {old!r} -> {new!r}"
 
 
 def _multiview_template(frames: list[int], by_frame: dict, skinned, loaded, name):
@@ -431,7 +194,7 @@ def _track_reference(tracker, template: tuple, frame: int, root: Path, report: d
     """Fit the reference frame (or keep its tracked file); -> where both halves start: that fit,
     or the template when the frame has no surface (one warning says so)."""
     V0, F0 = template
-    first = _run_frames(tracker, [frame], root, F0, report, data_for=_mesh_data(by_frame),
+    first = run_frames(tracker, [frame], root, F0, report, data_for=_mesh_data(by_frame),
                         visible_for=lambda e: None, progress=progress, start=0, prev=V0.copy(), total=total)
     if frame in report["skipped"]:
         log.warning("reference frame %d has no surface (%s has no triangles): both halves start from the template",
@@ -612,9 +375,9 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     colour = contextlib.nullcontext(_multiview_tracks_for(*take, F0, tolerance, corners=corners)) if take is not None \
         else _multiview_colour(root, F0, tolerance, enabled=chain.get("colour", False), corners=corners)
     with colour as tracks_for:
-        _run_frames(tracker, list(chain["frames"]), root, F0, part, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
+        run_frames(tracker, list(chain["frames"]), root, F0, part, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
                     progress=progress, start=start, prev=np.asarray(chain["prev"], float), init_for=init_for, total=total,
-                    prev_frame=chain["prev_frame"], predict=_predictor(tracker, chain["predict"]), tracks_for=tracks_for,
+                    prev_frame=chain["prev_frame"], predict=predictor(tracker, chain["predict"]), tracks_for=tracks_for,
                     choose=_chooser(tracker) if chain["spine_start"] == "choose" else None)
     return part
 
@@ -688,7 +451,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int = 1,
         model = None
     report["rig_rounds"] = len(history)
     report["rig_prior"] = {"weight": float(weight), "rounds": history}
-    _write_report(root, report)
+    write_report(root, report)
     return report
 
 
@@ -719,7 +482,7 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
                     ([by_pose[k]] if k in by_pose else [])
                 fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands)
                 prev, before, pose = fit.vertices, pose, new_pose
-                _write_frame(root, k, prev, faces)
+                write_frame(root, k, prev, faces)
                 out["figures"][k] = {"rig_residual_mm": round(res, 4), "residual_mm": round(fit.residual, 4),
                                      "volume_ratio": round(mesh_volume(prev, faces) / vol0, 5) if vol0 > 0 else None,
                                      "seconds": round(time.perf_counter() - t0, 4)}
@@ -823,7 +586,7 @@ def _multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float
         along = np.einsum("ij,ij->i", start[idx] - cam.center, rays)
         return idx, cam.center + rays * along[:, None], rays
 
-    views = {cam_id: _LastRead(functools.partial(view, cam_id)) for cam_id in cameras}
+    views = {cam_id: LastRead(functools.partial(view, cam_id)) for cam_id in cameras}
 
     def tracks_for(k, k_prev, prev, extra, start):
         start = prev if start is None else start
@@ -879,202 +642,3 @@ def _merge_chain(report: dict, part: dict) -> None:
     report["frames"].update(part["frames"])
 
 
-def _predictor(tracker, predict: bool):
-    """``predict(previous, before, constrained)`` -> the next frame's start, or None
-    (:meth:`pipeline.tracking.TemplateTracker.predict`: its matrices built once per take)."""
-    if not predict:
-        return None
-    return lambda prev, before, seen: tracker.predict(prev, before, constrained=seen)
-
-
-def _colour_tracks_for(rd, cam_id, cam, faces, frames: dict, tolerance: float, *, corners=None):
-    """``tracks_for(k, k_prev, previous, frame, start)``: the previous frame's visible vertices
-    followed into frame ``k``'s colour image (``frames``: preprocessed depth frames by index;
-    ``corners``: the tracker's summing matrix of the face corners)."""
-    from pipeline.colour_tracks import colour_tracks
-    from pipeline.rgbd_preprocess import visible_vertices
-
-    images = _LastRead(lambda k: rd.frame(cam_id, k))
-
-    def tracks_for(k, k_prev, prev, fr, start):
-        seen = frames.get(k_prev)
-        vis = visible_vertices(prev, faces, cam, normals=vertex_normals(prev, faces, corners=corners), tolerance=tolerance,
-                               observed=None if seen is None else seen.valid)
-        masks = None if seen is None else (seen.valid, fr.valid)
-        before, now = images.pair(k_prev, k)
-        return colour_tracks(before, now, prev, vis, cam, fr.depth, masks=masks, predicted=start, faces=faces)
-
-    return tracks_for
-
-
-class _LastRead:
-    """One camera's reads by frame index (``read(k)``), keeping the last one: following the
-    previous frame into the current one reads each frame once, the RGB-D and the multi-view
-    colour tracks alike."""
-
-    def __init__(self, read):
-        self._read, self._k, self._value = read, None, None
-
-    def pair(self, k_prev: int, k: int):
-        """(what frame ``k_prev`` reads, what frame ``k`` reads); the second is kept for the next call."""
-        before = self._value if k_prev == self._k else self._read(k_prev)
-        now = self._value if k == self._k else self._read(k)
-        self._k, self._value = k, now
-        return before, now
-
-
-def _keep_last(cache: dict) -> None:
-    """Drop all but the latest preprocessed frame: the next frame's colour tracks start from it,
-    also across frames without data."""
-    for j in [j for j in cache if j != max(cache)]:
-        del cache[j]
-
-
-def _capture_bounds(reader, V: np.ndarray, margin: float):
-    rig = reader.rig or {}
-    vol = rig.get("volume") if isinstance(rig, dict) else None
-    if isinstance(vol, dict) and "center" in vol and "size" in vol:
-        c, s = np.asarray(vol["center"], float), np.asarray(vol["size"], float)
-        return c - s / 2, c + s / 2
-    return None if margin is None else (V.min(0) - margin, V.max(0) + margin)
-
-
-def track_rgbd_take(
-    take_path,
-    template,
-    out_dir,
-    *,
-    camera: str | None = None,
-    remove_skin: bool = False,
-    contour: bool = False,
-    bounds=None,
-    progress=None,
-    gamma=None,
-    gate=None,
-    predict: bool = True,
-    colour: bool = True,
-) -> dict:
-    """Track a template through one RGB-D camera's take.
-
-    Parameters
-    ----------
-    take_path : path
-        A take whose camera records depth (uint16 mm) and which holds a calibration.
-    template : path or (vertices, faces)
-        The object's mesh (mm, roughly placed in the world frame of the calibration).
-    out_dir : path
-        ``tracked/`` is written there.
-    camera : str, optional
-        The depth camera (default: the first camera with depth).
-    remove_skin : bool
-        Drop skin-coloured pixels (the hands) before tracking.
-    contour : bool
-        Add the contour term (depth edges, the paper's eq. 3).
-    bounds : ((3,), (3,)), optional
-        Capture volume; default the rig's volume, else, per frame, the box of the template's
-        previous frame grown by 15 % of its size (a fixed box around the rest pose cropped
-        away up to 30 % of a simulated pipe bent 75 degrees).
-    predict : bool
-        Start every frame from the constant-velocity prediction of the two frames before
-        (:func:`pipeline.tracking.predict_motion`; without it the simulated lamp, whose head
-        moves up to 37 mm a frame against a 15 mm gate, was tracked to 7.8 % instead of 2.0 %).
-    colour : bool
-        Follow the visible vertices in the colour images too (:func:`pipeline.colour_tracks.colour_tracks`):
-        the feature tracks see a round part's twist about its own axis, which depth does not.
-
-    Returns
-    -------
-    dict
-        The report written to ``tracked/track.json`` (``skipped``: frames without depth).
-
-    Raises
-    ------
-    TrackingError
-        The template cannot be placed on the data (nothing is written then).
-    """
-    from pipeline.rgbd_preprocess import contour_pairs, preprocess_depth, rigid_icp, visible_vertices
-    from stage.store import TakeReader
-
-    V0, F0 = _load_template(template)
-    out = Path(out_dir)
-    with TakeReader(take_path) as rd:
-        cams = [c for c in rd.cameras if rd.camera_info(c).get("has_depth")]
-        if camera is not None:
-            if camera not in rd.cameras:
-                raise ValueError(f"camera {camera!r} is not in the take (cameras: {', '.join(rd.cameras)})")
-            cams = [camera]
-        if not cams:
-            raise ValueError(f"{take_path}: no camera of the take records depth")
-        cam_id = cams[0]
-        calib = rd.calibration
-        if calib is None or cam_id not in calib.names:
-            raise ValueError(f"{take_path}: the take has no calibration of camera {cam_id} (run `stage calibrate`)")
-        cam = calib[calib.names.index(cam_id)]
-        size = float(np.linalg.norm(V0.max(0) - V0.min(0)))
-        fixed = bounds if bounds is not None else _capture_bounds(rd, V0, None)
-        lohi = fixed if fixed is not None else _capture_bounds(rd, V0, 0.15 * size)
-        n = rd.n_frames(cam_id)
-        tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate)
-        cache: dict = {}
-
-        def data_for(k, previous=None):
-            z = rd.depth(cam_id, k)
-            if z is None or not np.any(z):
-                return None
-            img = rd.frame(cam_id, k) if remove_skin else None
-            box = fixed if fixed is not None else (previous.min(0) - 0.15 * size, previous.max(0) + 0.15 * size)
-            fr = preprocess_depth(z, cam, bounds=box, image=img, remove_skin=remove_skin)
-            if len(fr.points) < 10:
-                return None
-            _keep_last(cache)
-            cache[k] = fr
-            return fr.points, fr.normals, fr
-
-        def visible_for(fr):
-            return lambda V, nrm: visible_vertices(V, F0, cam, normals=nrm, tolerance=0.3 * tracker.gate, observed=fr.valid)
-
-        def contour_for(fr):
-            return lambda V, nrm: contour_pairs(V, nrm, F0, cam, fr.contour, gate=tracker.gate)
-
-        # place the template on the first frame with depth (nothing written if it fails)
-        skipped = []
-        first = None
-        for k in range(n):
-            d = data_for(k, V0)
-            if d is not None:
-                first = (k, d)
-                break
-            skipped.append(k)
-        if first is None:
-            with_depth = [k for k in range(n) if np.any(rd.depth(cam_id, k))]
-            if with_depth:
-                raise TrackingError(
-                    f"{take_path}: rigid ICP cannot place the template: no depth point of camera {cam_id} lies in the "
-                    f"capture volume {np.round(lohi[0]).tolist()}..{np.round(lohi[1]).tolist()} mm around it "
-                    "(is the template roughly placed in the calibration's world frame, in mm?)"
-                )
-            raise TrackingError(f"{take_path}: no frame of camera {cam_id} has depth")
-        R, t, fit0 = rigid_icp(V0, F0, first[1][0], first[1][1], cam, gate=tracker.gate)
-        placed = V0 @ R.T + t
-        # a single view sees half the object: the prior keeps the previous frame's shape (see pipeline.tracking)
-        tracker = TemplateTracker(placed, F0, gamma=tracker.gamma, gate=tracker.gate, prior="previous")
-        name = str(template) if not isinstance(template, (tuple, list)) else "array"
-        report = {"mode": "rgbd", "take": str(Path(take_path).resolve()), "camera": cam_id, "template": name,
-                  "template_sha256": array_digest(V0, F0),
-                  "vertices": int(len(V0)), "gamma": tracker.gamma, "gate_mm": tracker.gate, "rounds": tracker.rounds,
-                  "solver": tracker.system.backend, "remove_skin": bool(remove_skin), "contour": bool(contour),
-                  "predict": bool(predict), "prior": tracker.prior, "colour_tracks": bool(colour),
-                  "icp": {"frame": first[0], "fit": round(fit0, 4), "R": R.tolist(), "t": t.tolist()},
-                  "skipped": list(skipped), "frames": {}}
-        kept = _start_over_if_changed(out, report)
-        (out / "tracked").mkdir(parents=True, exist_ok=True)
-        _run_frames(tracker, list(range(first[0], n)), out, F0, report, data_for=data_for, visible_for=visible_for,
-                    progress=progress, start=first[0], prev=placed, contour_for=contour_for if contour else None,
-                    predict=_predictor(tracker, predict),
-                    tracks_for=_colour_tracks_for(rd, cam_id, cam, F0, cache, 0.3 * tracker.gate,
-                                                  corners=tracker.corner_sum) if colour else None)
-    if report["skipped"]:
-        log.warning("frames without depth skipped: %s", ", ".join(map(str, report["skipped"])))
-    report["frames"] = dict(sorted({**kept, **report["frames"]}.items(), key=lambda kv: int(kv[0])))
-    _write_report(out, report)
-    return report

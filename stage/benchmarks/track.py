@@ -3,7 +3,7 @@
 Multi-view: the template is the simulated pipe's surface (marching cubes), the data each
 frame's surface of the bending pipe, every frame after the second started from the
 constant-velocity prediction, as in ``pipeline.track``. Single RGB-D: the simulated OAK-like
-take of the pipe recorded to a file and tracked by :func:`pipeline.track.track_rgbd_take`
+take of the pipe recorded to a file and tracked by :func:`pipeline.track_rgbd.track_rgbd_take`
 itself; the figure is its frames' own times (``tracked/track.json``: the take reads,
 preprocessing, z-buffer visibility, colour tracks, the rounds with the previous-shape prior and
 the ``tracked/`` file; not the rigid ICP placement, once per take), and the take reads of those
@@ -230,7 +230,7 @@ def accuracy(frames: int = 30) -> None:
     from pipeline.armature import armature_results, counted
     from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
-    from pipeline.track import track_rgbd_take
+    from pipeline.track_rgbd import track_rgbd_take
 
     expected = {"pipe_half": 1, "pipe_3q": 1, "lamp": 3}
     with tempfile.TemporaryDirectory() as tmp:
@@ -273,7 +273,7 @@ def real_pipe_accuracy() -> None:
     from pipeline.armature import armature_results, counted
     from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
-    from pipeline.track import track_rgbd_take
+    from pipeline.track_rgbd import track_rgbd_take
     d = np.load(path)
     J = d["joints"].astype(np.float64)
     length = float(np.linalg.norm(np.diff(J[0], axis=0), axis=1).sum())
@@ -319,7 +319,7 @@ def _spacing_for(obj, target):
 
 
 def _rgbd_seconds(take, out, *, colour: bool) -> tuple[float, float]:
-    """Seconds a frame of :func:`pipeline.track.track_rgbd_take` on a recorded take, and of them
+    """Seconds a frame of :func:`pipeline.track_rgbd.track_rgbd_take` on a recorded take, and of them
     the take reads.
 
     The frames' own times in ``tracked/track.json`` (the real frame loop: reading the frame's
@@ -329,7 +329,7 @@ def _rgbd_seconds(take, out, *, colour: bool) -> tuple[float, float]:
     the tracking alone is the first figure less the second.
     """
     from fake_cameras.rgbd import template_path
-    from pipeline.track import track_rgbd_take
+    from pipeline.track_rgbd import track_rgbd_take
     from stage.store import TakeReader
 
     rep = track_rgbd_take(take, template_path(take), out, colour=colour)
@@ -392,7 +392,7 @@ def run(args: argparse.Namespace) -> int:
             rg, rd = _rgbd_seconds(take, Path(tmp) / "out", colour=False)
             rgc, rdc = _rgbd_seconds(take, Path(tmp) / "out_colour", colour=True)
         print(f"{len(V):6d} vertices  single RGB-D: {rgc:6.3f} s per frame with colour tracks (the default), "
-              f"{rg:.3f} without (pipeline.track.track_rgbd_take's frame loop; of which reading the take "
+              f"{rg:.3f} without (pipeline.track_rgbd.track_rgbd_take's frame loop; of which reading the take "
               f"{1000 * rdc:.1f} and {1000 * rd:.1f} ms)")
         tr = TemplateTracker(V, T, prior="previous")
         tr.predict(prev, before, constrained=seen)  # its matrices, once per take

@@ -19,7 +19,7 @@ def run_rgbd(args: argparse.Namespace) -> int:
     from fake_cameras.rgbd import record_rgbd_take, simulate_rgbd_take, template_path
     from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
-    from pipeline.track import track_rgbd_take
+    from pipeline.track_rgbd import track_rgbd_take
     from stage.cli._progress import StepBars
 
     out = Path(args.out)

@@ -71,7 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from pipeline.armature import counted
-    from pipeline.track import TrackingError, track_rgbd_take
+    from pipeline.track_rgbd import TrackingError, track_rgbd_take
     from stage.cli import UserError
     from stage.cli._progress import StepBars
 

@@ -424,7 +424,7 @@ def test_cli_spine_options_without_a_spine_say_so(tmp_path, caplog, flag):
 
 
 def test_start_for_computes_only_the_start_it_uses():
-    from pipeline.track import _start_for
+    from pipeline.track_frames import start_for as _start_for
 
     def unused(*a):
         raise AssertionError("computed and thrown away")

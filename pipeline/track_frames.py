@@ -1,0 +1,295 @@
+"""The ``tracked/`` folder of a tracking and the frame loop both forms of tracking share.
+
+``tracked/NNNNNN.ply`` holds the template at every frame, in its vertex order; ``tracked/track.json``
+the settings, the skipped frames and per-frame fit figures. :func:`run_frames` tracks frames in
+order (Tzionas & Gall 2016, §3), writing each frame atomically as soon as it is fitted and keeping
+the frames a killed run already wrote. :func:`start_over_if_changed` is the start-over rule
+(:mod:`pipeline.run.settings`): frames tracked with other settings are removed first, with the
+rig built on them, in one warning. The two forms: :mod:`pipeline.track` (a processed multi-view
+take) and :mod:`pipeline.track_rgbd` (one RGB-D camera).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.mesh_primitives import mesh_volume
+from pipeline.results import atomic_write_bytes, ply_bytes
+from pipeline.run.settings import changed_settings, read_settings
+
+__all__ = ["LastRead", "load_template", "predictor", "read_tracked", "remove_tracking", "run_frames", "start_for",
+           "start_over_if_changed", "tracked_path", "write_frame", "write_report"]
+
+log = logging.getLogger("pipeline.track")
+
+
+def tracked_path(out_dir, frame: int) -> Path:
+    """``OUT/tracked/NNNNNN.ply``."""
+    return Path(out_dir) / "tracked" / f"{int(frame):06d}.ply"
+
+
+def read_tracked(path: Path, n_vertices: int) -> np.ndarray | None:
+    from pipeline.meshio import load_mesh
+
+    try:
+        v, _ = load_mesh(path, largest=False)
+    except (ValueError, OSError) as exc:
+        log.warning("re-tracking %s: unreadable (%s)", path, exc)
+        return None
+    return v if v.shape == (n_vertices, 3) else None
+
+
+def write_frame(out_dir: Path, frame: int, vertices: np.ndarray, faces: np.ndarray) -> None:
+    atomic_write_bytes(tracked_path(out_dir, frame), ply_bytes(vertices, faces))
+
+
+def write_report(out_dir: Path, report: dict) -> None:
+    atomic_write_bytes(Path(out_dir) / "tracked" / "track.json", json.dumps(report, indent=1).encode())
+
+
+def load_template(template) -> tuple[np.ndarray, np.ndarray]:
+    from pipeline.meshio import load_mesh
+
+    if isinstance(template, (tuple, list)) and len(template) == 2:
+        return np.asarray(template[0], float), np.asarray(template[1], np.int64)
+    v, f = load_mesh(template, largest=False)
+    if len(f) == 0:
+        raise ValueError(f"template {template}: the mesh has no triangles")
+    return v, f
+
+
+def run_frames(tracker, frames, out_dir, faces, report, *, data_for, visible_for, progress, start, prev,
+                contour_for=None, init_for=None, total=None, prev_frame=None, predict=None, before=None, tracks_for=None,
+                choose=None):
+    """Track ``frames`` in order; ``data_for(k, previous_vertices)`` -> (points, normals, extra) or None (no data);
+    ``predict``, ``init_for``, ``choose``: where each frame's rounds start (:func:`start_for`);
+    ``before``: (frame, vertices) before ``prev``;
+    ``tracks_for(k, previous_frame, previous_vertices, extra, start)`` -> feature tracks of frame ``k`` or None."""
+    V0 = tracker.template
+    vol0 = mesh_volume(V0, faces)
+    per = report.setdefault("frames", {})
+    done = 0
+    seen = None
+    for k in frames:
+        t0 = time.perf_counter()
+        existing = read_tracked(tracked_path(out_dir, k), len(V0)) if tracked_path(out_dir, k).is_file() else None
+        if existing is not None:
+            before = (prev_frame, prev) if prev_frame is not None else None
+            prev, prev_frame = existing, k
+        else:
+            data = data_for(k, prev)
+            if data is None:
+                report["skipped"].append(int(k))
+            else:
+                pts, nrm, extra = data
+                contour = contour_for(extra) if contour_for is not None else None
+                init, from_spine = start_for(k, prev_frame, prev, before, seen, pts, nrm, predict=predict,
+                                              init_for=init_for, choose=choose)
+                tracks = None
+                if tracks_for is not None and prev_frame is not None:
+                    tracks = tracks_for(k, prev_frame, prev, extra, init)
+                fit = tracker.fit(pts, nrm, previous=prev, init=init, visible=visible_for(extra), contour=contour,
+                                  tracks=tracks)
+                seen = fit.constrained
+                before = (prev_frame, prev) if prev_frame is not None else None
+                prev, prev_frame = fit.vertices, k
+                write_frame(out_dir, k, prev, faces)
+                per[str(k)] = {
+                    "model_pairs": fit.model_pairs, "data_pairs": fit.data_pairs,
+                    "residual_mm": round(fit.residual, 4) if np.isfinite(fit.residual) else None,
+                    "volume_ratio": round(mesh_volume(prev, faces) / vol0, 5) if vol0 > 0 else None,
+                    "seconds": round(time.perf_counter() - t0, 4),
+                }
+                if tracks is not None:
+                    per[str(k)]["colour_tracks"] = int(len(tracks[0]))
+                if from_spine is not None:
+                    per[str(k)]["spine_start_patches"] = round(from_spine, 4)
+        done += 1
+        if progress is not None:
+            progress("track", start + done, total if total is not None else start + len(frames))
+    return prev
+
+
+def start_for(k, prev_frame, prev, before, seen, points, normals, *, predict, init_for, choose):
+    """Where frame ``k``'s rounds start (None: the previous frame ``prev``) and the share of the
+    patches that took the second start (None without a choice). Each start is computed only
+    when it is used:
+
+    - ``init_for(k, previous_frame, previous_vertices)`` (the spine's skinned step) without
+      ``choose``: it, for every patch;
+    - with ``choose(candidates, points, normals)`` -> (start, share): per patch, the prediction
+      (or the previous frame) or ``init_for``'s start, whichever the frame's data explain;
+    - without ``init_for``: ``predict(previous, before, constrained)``, the start from the two
+      frames before, when both are the neighbouring frames of ``k`` (``before``: (frame,
+      vertices) before ``prev``; ``seen``: the previous fit's constrained motions).
+    """
+    if prev_frame is None:
+        return None, None
+    if init_for is not None and choose is None:
+        return init_for(k, prev_frame, prev), None
+    predicted = None
+    if predict is not None and before is not None and abs(k - prev_frame) == 1 and abs(prev_frame - before[0]) == 1:
+        predicted = predict(prev, before[1], seen)
+    if init_for is None:
+        return predicted, None
+    return choose([prev if predicted is None else predicted, init_for(k, prev_frame, prev)], points, normals)
+
+
+def predictor(tracker, predict: bool):
+    """``predict(previous, before, constrained)`` -> the next frame's start, or None
+    (:meth:`pipeline.tracking.TemplateTracker.predict`: its matrices built once per take)."""
+    if not predict:
+        return None
+    return lambda prev, before, seen: tracker.predict(prev, before, constrained=seen)
+
+
+class LastRead:
+    """One camera's reads by frame index (``read(k)``), keeping the last one: following the
+    previous frame into the current one reads each frame once, the RGB-D and the multi-view
+    colour tracks alike."""
+
+    def __init__(self, read):
+        self._read, self._k, self._value = read, None, None
+
+    def pair(self, k_prev: int, k: int):
+        """(what frame ``k_prev`` reads, what frame ``k`` reads); the second is kept for the next call."""
+        before = self._value if k_prev == self._k else self._read(k_prev)
+        now = self._value if k == self._k else self._read(k)
+        self._k, self._value = k, now
+        return before, now
+
+
+#: Report entries that are not settings: results (a resumed run may differ in them), the
+#: template's name as it was given (its content is ``template_sha256``) and what a start-over removed.
+RESULT_KEYS = frozenset({"skipped", "frames", "worker_cpu_seconds", "icp", "template", "started_over"})
+
+
+def start_over_if_changed(out_dir: Path, report: dict) -> dict:
+    """Per-frame figures of the frames an earlier run of the same settings tracked (they are
+    kept), or ``{}``: tracked frames of other settings are removed first, as ``stage process``
+    removes results of other parameters, and so is the rig built on them (``rig/``), with one
+    warning naming what changed (also in ``report["started_over"]``). The settings are written
+    before any frame is tracked, so a killed run's frames keep theirs."""
+    path = Path(out_dir) / "tracked" / "track.json"
+    old = read_settings(path)
+    kept = {}
+    if old is not None:
+        spine = Path(out_dir) / "spine.json"
+        newer = spine.is_file() and spine.stat().st_mtime_ns > path.stat().st_mtime_ns
+
+        def was(k):
+            return _old_setting(old, k, report[k], spine_rewritten=newer)
+
+        changed = changed_settings(old, report, results=RESULT_KEYS, was=lambda _, k, __: was(k))
+        if "surfaces" in changed:  # from meshes/ to carved/ (or back): their digest says nothing more
+            changed = [k for k in changed if k != "surfaces_sha256"]
+        if changed:
+            _remove_tracked_frames(path.parent)
+            rig_note = _remove_stale_rig(Path(out_dir))
+            msg = (f"{path.parent} holds frames tracked with other settings "
+                   f"({', '.join(_change(k, was(k), report[k]) for k in changed)}); tracking again{rig_note}")
+            if set(changed) <= {"surfaces", "surfaces_sha256"} and not rig_note:
+                log.info("%s", msg)  # the rounds of --carve: each tracks the surfaces the last one carved
+            else:
+                report["started_over"] = msg
+                log.warning("%s", msg)
+        elif isinstance(old.get("frames"), dict):
+            kept = old["frames"]
+    write_report(out_dir, {**report, "frames": kept})
+    return kept
+
+
+def _old_setting(old: dict, key: str, new, *, spine_rewritten: bool = False):
+    """A setting of an earlier run's ``track.json``, with the keys an earlier version did not
+    write read as what it did: without ``spine_start``, every patch started from the spine's
+    skinned step with ``spine_init`` and from the prediction without; without ``spine_sha256``,
+    the spine was not recorded: read as the current one (its frames are kept) unless
+    ``spine.json`` was written after ``track.json`` (``spine_rewritten``: the frames' starts
+    came from an earlier spine)."""
+    if key in old:
+        return old[key]
+    if key == "spine_start":
+        return "all" if old.get("spine_init") else "none"
+    if key == "spine_sha256":
+        return None if spine_rewritten else new
+    if key == "surfaces":  # before the carved surfaces, every run tracked meshes/
+        return "meshes"
+    if key == "rig_rounds":  # before the articulated prior, no run tracked with a rig
+        return 0
+    return None
+
+
+def remove_tracking(out_dir) -> str:
+    """Remove the tracking of ``out_dir`` and the rig built on it: what ``stage process`` does
+    when it starts over, since both follow the surfaces it removes.
+
+    ``tracked/NNNNNN.ply`` and ``tracked/track.json`` go (the folder too when that leaves it
+    empty; other files stay), the surfaces carved with the tracked motion (``carved/``,
+    :mod:`pipeline.carve`), then the rig as a tracking start-over removes it
+    (``rig/``, :func:`pipeline.armature.remove_armature`).
+
+    Parameters
+    ----------
+    out_dir : path
+        A results directory.
+
+    Returns
+    -------
+    str
+        What the start-over's warning says of it: ``""`` when there was nothing to remove, else
+        ``"; removed ..."`` naming each folder.
+    """
+    out = Path(out_dir)
+    tracked = out / "tracked"
+    files = _remove_tracked_frames(tracked)
+    if (tracked / "track.json").is_file():
+        (tracked / "track.json").unlink()
+        files += 1
+    with contextlib.suppress(OSError):  # not there, or not empty: kept
+        tracked.rmdir()
+    note = f"; removed the frames tracked on the old surfaces ({tracked})" if files else ""
+    from pipeline.carve import remove_carved
+
+    return note + remove_carved(out) + _remove_stale_rig(out)
+
+
+def _remove_tracked_frames(tracked: Path) -> int:
+    """Remove ``tracked/NNNNNN.ply``; -> how many there were."""
+    from pipeline.armature import FRAME_GLOB
+
+    files = list(tracked.glob(FRAME_GLOB))  # a user's 1_fixed.ply stays
+    for f in files:
+        f.unlink(missing_ok=True)
+    return len(files)
+
+
+def _remove_stale_rig(out_dir: Path) -> str:
+    """Remove the rig built on the frames that are tracked again (``OUT/rig/``,
+    :func:`pipeline.armature.remove_armature`); -> what the start-over's warning says of it."""
+    from pipeline.armature import remove_armature
+
+    if not remove_armature(out_dir / "rig"):
+        return ""
+    note = f"; removed the rig built on them ({out_dir / 'rig'})"
+    page = out_dir / "report.html"
+    try:
+        shown = '<section id="rig">' in page.read_text(encoding="utf-8", errors="replace")
+    except OSError:  # no report
+        shown = False
+    return note + (f"; {page} still shows it until `stage report` runs again" if shown else "")
+
+
+def _change(key: str, old, new) -> str:
+    if key == "template_sha256":
+        return "template mesh changed"
+    if key == "spine_sha256":
+        return "spine.json changed"
+    if key == "surfaces_sha256":
+        return "carved surfaces changed"
+    return f"{key} {old!r} -> {new!r}"
