@@ -41,10 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--grow", type=int, default=0, help="dilate masks by this many pixels (conservative hulls)")
     p.add_argument(
         "--fill-holes",
-        choices=("uncertain", "small", "none"),  # stage.keying.params.FILL_HOLES (not imported: CLI start-up)
+        choices=("uncertain", "small", "enclosed", "none"),  # stage.keying.params.FILL_HOLES (not imported: CLI start-up)
         default=None,
-        help="small holes to fill: 'uncertain' leaves gaps of clean backdrop colour open (default for chroma "
-        "and plate), 'small' fills all (default for luma: shadows look like a black backdrop), 'none'",
+        help="holes to fill: of the small ones, 'uncertain' leaves gaps of clean backdrop colour open (default "
+        "for chroma), 'small' fills all (default for luma: shadows look like a black backdrop); 'enclosed' fills "
+        "every hole the silhouette encloses (default for plate, which also closes gaps narrower than about a "
+        "limb's width), 'none'",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -10,7 +10,10 @@
    only if they contain a solid pixel (distance >= ``t_hi``) and are not smaller
    than ``min_area`` of the image; backdrop holes below that size are filled
    unless they have the backdrop's own colour (a gap between legs stays open).
-4. Optional closing (never opening, which would cut limb tips) and growing.
+4. Optional closing (never opening, which would cut limb tips): by a radius in pixels, and by
+   one relative to the subject's extent in the image (the plate mode's default: gaps narrower
+   than about a limb's width close, see :attr:`stage.keying.params.KeyParams.close_relative`),
+   then the holes the silhouette encloses may be filled (``fill_holes="enclosed"``); growing.
 """
 
 from __future__ import annotations
@@ -50,6 +53,53 @@ def _select_labels(labels: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return lut[labels]
 
 
+def _close_relative(mask: np.ndarray, labels: np.ndarray, largest: int, fraction: float, distance: np.ndarray,
+                    t_doubt: float) -> np.ndarray:
+    """``mask`` closed by a disc of ``fraction`` times the larger side of component ``largest``'s
+    bounding box (at least one pixel), on a padded region around the mask (the image border
+    neither opens nor closes anything); a pixel the closing adds is kept where its distance is
+    at least ``t_doubt``."""
+    x, y, bw, bh = cv2.boundingRect(cv2.compare(labels, float(largest), cv2.CMP_EQ))
+    r = max(1, int(round(fraction * max(bw, bh))))
+    x, y, bw, bh = cv2.boundingRect(mask.view(np.uint8))
+    h, w = mask.shape
+    x0, y0, x1, y1 = max(0, x - r), max(0, y - r), min(w, x + bw + r), min(h, y + bh + r)
+    roi = cv2.copyMakeBorder(np.ascontiguousarray(mask[y0:y1, x0:x1]).view(np.uint8), r, r, r, r,
+                             cv2.BORDER_CONSTANT, value=0)
+    closed = cv2.morphologyEx(roi, cv2.MORPH_CLOSE, _disk(r))[r:-r, r:-r].view(bool)
+    out = mask.copy()
+    out[y0:y1, x0:x1] |= closed & (distance[y0:y1, x0:x1] >= t_doubt)
+    return out
+
+
+def _fill_enclosed(mask: np.ndarray, distance: np.ndarray, t_doubt: float) -> tuple[np.ndarray, int]:
+    """Every hole of ``mask`` that it encloses (background not connected to the image's border,
+    4-connected) filled, unless the hole's median distance is below ``t_doubt`` (backdrop seen
+    through a gap)."""
+    x, y, bw, bh = cv2.boundingRect(mask.view(np.uint8))
+    roi = np.ascontiguousarray(mask[y : y + bh, x : x + bw])
+    n, lab = cv2.connectedComponents((~roi).view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
+    if n <= 1:
+        return mask, 0
+    inner = np.ones(n, bool)
+    inner[np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))] = False
+    inner[0] = False  # label 0: the silhouette itself
+    if inner.any() and t_doubt > 0:
+        sel = inner[lab]
+        labs, vals = lab[sel], distance[y : y + bh, x : x + bw][sel]
+        order = np.lexsort((vals, labs))  # by hole, then by distance: medians by index
+        labs, vals = labs[order], vals[order]
+        cand = np.flatnonzero(inner)
+        starts, ends = np.searchsorted(labs, cand), np.searchsorted(labs, cand, side="right")
+        med = 0.5 * (vals[(starts + ends - 1) // 2] + vals[(starts + ends) // 2])
+        inner[cand[med < t_doubt]] = False
+    if not inner.any():
+        return mask, 0
+    out = mask.copy()
+    out[y : y + bh, x : x + bw] |= _select_labels(lab, np.flatnonzero(inner).astype(np.int32))
+    return out, int(inner.sum())
+
+
 def mask_from_distance(
     distance: np.ndarray,
     *,
@@ -62,6 +112,8 @@ def mask_from_distance(
     coverage_fraction: float = 0.5,
     fill_holes: str = "uncertain",
     min_relative_area: float = 0.0,
+    close_relative: float = 0.0,
+    t_doubt: float = 0.0,
 ) -> tuple[np.ndarray, dict[str, float]]:
     """Silhouette from a backdrop-distance image.
 
@@ -79,13 +131,21 @@ def mask_from_distance(
         Odd window side for the 50 %-coverage rule (1 disables it).
     coverage_fraction : float
         Fraction of the local maximum a boundary pixel must reach.
-    fill_holes : {"uncertain", "small", "none"}
-        Which backdrop holes inside the subject smaller than ``min_area`` are filled:
-        ``uncertain`` those whose median distance is at least ``t_lo`` (mixed or
-        doubtful pixels; a hole of clean backdrop colour is a gap the camera sees
-        through), ``small`` all of them, ``none`` none.
+    fill_holes : {"uncertain", "small", "enclosed", "none"}
+        Which backdrop holes inside the subject are filled: of those smaller than
+        ``min_area``, ``uncertain`` those whose median distance is at least ``t_lo``
+        (mixed or doubtful pixels; a hole of clean backdrop colour is a gap the camera
+        sees through), ``small`` all of them; ``enclosed`` every hole the silhouette
+        encloses, whatever its size, whose median distance is at least ``t_doubt``; ``none`` none.
     min_relative_area : float
         Components smaller than this fraction of the largest kept one are dropped too.
+    close_relative : float
+        Radius of a closing of the chosen components, as a fraction of the larger side of
+        the largest one's bounding box (0 = none; at least one pixel otherwise); it adds only
+        pixels whose distance is at least ``t_doubt``.
+    t_doubt : float
+        The distance below which a pixel is backdrop within its noise, seen through a gap
+        (the relative closing and the ``enclosed`` holes leave it open).
 
     Returns
     -------
@@ -108,6 +168,7 @@ def mask_from_distance(
     # labels without stats (the stats pass costs more than the labelling itself);
     # areas and seed counts from the bounding box of the candidates only
     n, labels = cv2.connectedComponents(cand8, connectivity=8, ltype=cv2.CV_32S)
+    area = np.zeros(1, np.int64)
     if n > 1:
         x, y, bw, bh = cv2.boundingRect(cand8)
         lab_roi = labels[y : y + bh, x : x + bw]
@@ -122,8 +183,12 @@ def mask_from_distance(
     keep = np.flatnonzero(ok).astype(np.int32)
     dropped = int(n - 1 - keep.size)
     mask = _select_labels(labels, keep)
+    if close_relative > 0 and keep.size:
+        mask = _close_relative(mask, labels, int(keep[np.argmax(area[keep])]), close_relative, distance, t_doubt)
     holes = 0
-    if fill_holes != "none" and keep.size and min_px > 1:
+    if fill_holes == "enclosed" and keep.size:
+        mask, holes = _fill_enclosed(mask, distance, t_doubt)
+    elif fill_holes != "none" and keep.size and min_px > 1:
         x, y, bw, bh = cv2.boundingRect(mask.view(np.uint8))
         roi = mask[y : y + bh, x : x + bw]
         n2, lab2 = cv2.connectedComponents((~roi).view(np.uint8), connectivity=4, ltype=cv2.CV_32S)

@@ -17,12 +17,12 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from stage.keying._color import default_thresholds, sample_pixels, validate_frames
+from stage.keying._color import chi_radius, default_thresholds, sample_pixels, validate_frames
 from stage.keying.background import take_plate
 from stage.keying.chroma import chroma_distance, estimate_chroma_model
 from stage.keying.cleanup import estimate_coverage_fraction, mask_from_distance, soft_matte
 from stage.keying.luma import estimate_luma_model, luma_distance
-from stage.keying.params import KEY_MODES, KeyingError, KeyParams, KeyResult
+from stage.keying.params import KEY_MODES, PLATE_CLOSE_RELATIVE, KeyingError, KeyParams, KeyResult
 from stage.keying.plate import estimate_plate_model, plate_distance
 
 __all__ = ["key_frames", "estimate_model", "key_one"]
@@ -30,6 +30,10 @@ __all__ = ["key_frames", "estimate_model", "key_one"]
 log = logging.getLogger(__name__)
 
 _DOF = {"chroma": 2, "luma": 1, "plate": 1}
+#: Tail of the backdrop's distance beyond which a pixel is doubtful: gaps the plate mode closes
+#: and holes it fills keep the pixels the backdrop explains within its noise (below this tail's
+#: radius) open, as backdrop seen through the subject.
+DOUBT_TAIL = 0.05
 
 
 def _border_samples(frames: np.ndarray, stride: int) -> np.ndarray:
@@ -77,7 +81,9 @@ def estimate_model(
         When no backdrop model can be estimated (no usable frame, no backdrop colour).
     """
     if params.fill_holes is None:
-        params = params.replace(fill_holes="small" if params.mode == "luma" else "uncertain")
+        params = params.replace(fill_holes={"luma": "small", "plate": "enclosed"}.get(params.mode, "uncertain"))
+    if params.close_relative is None:
+        params = params.replace(close_relative=PLATE_CLOSE_RELATIVE if params.mode == "plate" else 0.0)
     d_lo, d_hi = default_thresholds(_DOF[params.mode])
     t_lo = params.t_lo if params.t_lo is not None else d_lo
     t_hi = params.t_hi if params.t_hi is not None else max(d_hi, t_lo * 1.2)
@@ -228,6 +234,8 @@ def key_one(image: np.ndarray, params: KeyParams) -> tuple[np.ndarray, np.ndarra
         min_relative_area=_relative_area(params),
         fill_holes=params.fill_holes,
         close_radius=params.close_radius,
+        close_relative=float(params.close_relative or 0.0),
+        t_doubt=chi_radius(DOUBT_TAIL, _DOF[params.mode]),
         grow=params.grow,
         coverage_window=params.coverage_window,
         coverage_fraction=params.coverage_fraction,

@@ -7,11 +7,14 @@ from typing import Any, Literal
 
 import numpy as np
 
-__all__ = ["KEY_MODES", "KEY_LAYERS", "FILL_HOLES", "KeyMode", "KeyParams", "KeyResult", "KeyingError"]
+__all__ = ["KEY_MODES", "KEY_LAYERS", "FILL_HOLES", "PLATE_CLOSE_RELATIVE", "KeyMode", "KeyParams", "KeyResult", "KeyingError"]
 
 KeyMode = Literal["chroma", "luma", "plate"]
 KEY_MODES: tuple[str, ...] = ("chroma", "luma", "plate")
-FILL_HOLES: tuple[str, ...] = ("uncertain", "small", "none")
+FILL_HOLES: tuple[str, ...] = ("uncertain", "small", "enclosed", "none")
+#: The plate mode's closing radius, as a fraction of the subject's extent in the image (see
+#: :attr:`KeyParams.close_relative`): gaps up to about 6 % of the subject (a limb's width) close.
+PLATE_CLOSE_RELATIVE = 0.03
 #: Layers combinable with any mode: ``volume`` (pixels whose rays miss the capture volume are
 #: background, :mod:`stage.keying.volume_prior`), ``graphcut`` (a per-camera graph cut seeded by
 #: the keyer's sure background and a first hull's projection, :mod:`pipeline.silhouette_refine`).
@@ -58,18 +61,30 @@ class KeyParams:
         Foreground components smaller than this fraction of the frame's largest one are
         dropped. ``None``: 0.02 in plate mode (without a backdrop, the small changes of a
         room are noise beside the subject), 0 otherwise.
-    fill_holes : {"uncertain", "small", "none"} or None
+    fill_holes : {"uncertain", "small", "enclosed", "none"} or None
         Holes below ``min_area``: ``uncertain`` fills those whose pixels do not match
         the backdrop (median distance >= ``t_lo``) and leaves gaps of clean backdrop
         colour open (a slit between legs, between arm and torso); ``small`` fills
         every small hole (safest for the hull when the subject has backdrop-coloured
-        patches); ``none`` fills nothing. ``None``: ``uncertain`` in the chroma and
-        plate modes (a subject rarely has the backdrop's hue, and the plate shows
-        what is backdrop), ``small`` in the luma mode (a shadow on the subject is as
-        dark as a black backdrop).
+        patches); ``enclosed`` fills every hole the silhouette encloses, whatever its
+        size; ``none`` fills nothing. ``None``: ``uncertain`` in the chroma mode (a
+        subject rarely has the backdrop's hue), ``small`` in the luma mode (a shadow on
+        the subject is as dark as a black backdrop), ``enclosed`` in the plate mode
+        (see ``close_relative``).
     close_radius : int
         Radius in pixels of the morphological closing applied to the final mask
         (0 = none). Closing never removes thin limbs; opening is not used.
+    close_relative : float or None
+        Radius of a closing after the components are chosen, as a fraction of the
+        subject's extent in the image (the larger side of the largest component's
+        bounding box). ``None``: :data:`PLATE_CLOSE_RELATIVE` in the plate mode, 0
+        otherwise. Without a backdrop the subject's own colours match what lies behind
+        it somewhere (skin before a pale wall, dark clothes before a dark machine), so
+        the plate keyer leaves holes and notches inside the subject; in a visual hull a
+        hole in one camera's silhouette removes the subject for every camera, while a
+        gap closed wrongly is carved away by the cameras that see through it. The plate
+        mode closes gaps narrower than about a limb's width (twice the radius) and fills
+        the holes the silhouette encloses.
     grow : int
         Dilate the final mask by this many pixels (conservative silhouettes).
     coverage_window : int
@@ -102,6 +117,7 @@ class KeyParams:
     min_relative_area: float | None = None
     fill_holes: Literal["uncertain", "small", "none"] | None = None
     close_radius: int = 0
+    close_relative: float | None = None
     grow: int = 0
     coverage_window: int = 3
     coverage_fraction: float | None = None
@@ -136,6 +152,8 @@ class KeyParams:
             raise ValueError(f"fill_holes must be one of {FILL_HOLES} or None, got {self.fill_holes!r}")
         if not 0 <= self.min_area < 0.5:
             raise ValueError(f"min_area must be in [0, 0.5), got {self.min_area!r}")
+        if self.close_relative is not None and not (np.isfinite(self.close_relative) and 0 <= self.close_relative < 0.5):
+            raise ValueError(f"close_relative must be in [0, 0.5) or None, got {self.close_relative!r}")
         if self.min_relative_area is not None and not 0 <= self.min_relative_area < 1:
             raise ValueError(f"min_relative_area must be in [0, 1) or None, got {self.min_relative_area!r}")
 
