@@ -21,12 +21,27 @@ models need no more), and its labels are brought back to full size.
 :func:`refine_silhouettes` is one frame set (arrays in and out); :func:`refine_take` runs
 it over a take and stores the refined masks in place of the keyed ones (the ``refine`` step
 of ``stage process``, ``stage key --key-layer graphcut``).
+
+:func:`subject_hull` is the surface step's hull of one frame set, from its silhouettes and
+the job's carving, without what the cameras do not agree is the subject:
+
+* **phantom pieces**: the hull's largest piece is the subject's; another piece is kept only
+  when as many cameras see it as see the largest, less ``view_slack`` (one). Where few
+  cameras see, few silhouette cones cross, and their crossings are phantoms (two opposite
+  cameras' cones cross along the whole line between them); a second real object seen by the
+  cameras that see the subject stays. The rule of :mod:`pipeline.subject_box`, on the hull.
+* **silhouette parts the subject does not explain**: a connected part of a camera's silhouette
+  that the largest piece (the subject, as the surface step keeps it) does not project onto (a
+  shadow, a reflection, a person outside the volume, a blob of noise) is no silhouette of the
+  subject; it is dropped, and the hull carved again when any was. The share of each camera's
+  silhouette dropped is returned (a keyer that keeps a wall shows there).
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from typing import Any, Callable, Collection, Sequence
 
 import cv2
@@ -36,7 +51,8 @@ from calib.calibration import Calibration
 from pipeline.hull import EmptyHullError, HullCarver
 from pipeline.volume import Grid, grid_from_volume, volume_from_cameras
 
-__all__ = ["refine_silhouette", "refine_silhouettes", "hull_projection", "refine_take", "MAX_CUT_PIXELS"]
+__all__ = ["refine_silhouette", "refine_silhouettes", "hull_projection", "refine_take", "subject_hull", "SubjectHull",
+           "MAX_CUT_PIXELS", "DROPPED_WARN"]
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +62,9 @@ MAX_CUT_PIXELS = 160_000
 _SPLAT_DILATE_MAX = 12
 #: Voxels along the longest side of the first hull's grid.
 FIRST_HULL_RESOLUTION = 72
+#: A camera whose keyed silhouettes hold more than this share of pixels the subject does not
+#: explain (median over the take, :func:`subject_hull`) is named in a warning.
+DROPPED_WARN = 0.2
 
 
 def _disk(r: int) -> np.ndarray:
@@ -294,3 +313,128 @@ def refine_take(
         arrays.append((f"cameras/{c}", "masks", masks[c], meta))
     write_arrays(take, arrays)
     return {"frames": done, "seconds": time.perf_counter() - t0, "grid": grid.to_dict()}
+
+
+@dataclass(frozen=True)
+class SubjectHull:
+    """One frame set's hull without phantom pieces, and the silhouettes it was carved from
+    (:func:`subject_hull`).
+
+    Attributes
+    ----------
+    occupancy : (nx, ny, nz) bool ndarray
+    masks : list of (H, W) bool ndarray or None
+        The silhouettes without the parts no kept piece explains.
+    dropped : (C,) float ndarray
+        Per camera, the share of its silhouette's pixels dropped (NaN without a mask).
+    pieces_dropped : int
+        Phantom pieces left out (of the last carving).
+    views : int
+        Cameras that see the largest piece.
+    """
+
+    occupancy: np.ndarray
+    masks: list
+    dropped: np.ndarray
+    pieces_dropped: int
+    views: int
+
+
+def _views(occ: np.ndarray, grid: Grid, calibration: Calibration) -> np.ndarray:
+    """Per occupied voxel (in ``np.argwhere`` order), the cameras whose image holds its centre."""
+    from pipeline.volume import pixel_index
+
+    centres = grid.lo + (np.argwhere(occ) + 0.5) * grid.voxel
+    return sum((pixel_index(cam, centres)[0] >= 0).astype(np.int32) for cam in calibration)
+
+
+def _kept_pieces(occ: np.ndarray, grid: Grid, calibration: Calibration,
+                 view_slack: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The pieces (26-connected) seen by as many cameras as the largest less ``view_slack``: the
+    occupancy, the largest piece, the pieces dropped, and the cameras that see the largest piece."""
+    from scipy import ndimage
+
+    lab, n = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
+    if n <= 1:
+        return occ, occ, 0, int(_views(occ, grid, calibration).max()) if n else 0
+    labels = lab[occ]  # argwhere order
+    views = _views(occ, grid, calibration)
+    best = np.zeros(n + 1, np.int32)
+    np.maximum.at(best, labels, views)
+    size = np.bincount(labels, minlength=n + 1)
+    size[0] = 0
+    largest = int(np.argmax(size))
+    v = int(best[largest])
+    keep = best >= v - view_slack
+    keep[0] = False
+    return keep[lab], lab == largest, int(n - keep[1:].sum()), v
+
+
+def _explained_parts(mask: np.ndarray, shadow: np.ndarray) -> np.ndarray:
+    """The connected parts (8-connected) of ``mask`` that ``shadow`` (the kept pieces' projection) touches."""
+    n, lab = cv2.connectedComponents(mask.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    if n <= 2:
+        return mask if n < 2 or (shadow & mask).any() else np.zeros_like(mask)
+    hit = np.zeros(n, bool)
+    hit[np.unique(lab[shadow & mask])] = True
+    hit[0] = False
+    return hit[lab]
+
+
+def subject_hull(
+    masks: Sequence[np.ndarray | None],
+    carver: HullCarver,
+    *,
+    tolerance: int = 0,
+    support_plane: Any = None,
+    margin: int = 0,
+    view_slack: int = 1,
+) -> SubjectHull:
+    """One frame set's hull without phantom pieces, from silhouettes without the parts no kept
+    piece explains (see module docstring).
+
+    Parameters
+    ----------
+    masks : sequence of (H, W) bool ndarray or None
+        One silhouette per camera of ``carver.calibration`` (None: no valid mask).
+    carver : HullCarver
+    tolerance, support_plane, margin
+        The job's carving (:meth:`pipeline.hull.HullCarver.carve`).
+    view_slack : int
+        A piece is kept when seen by at least the cameras that see the largest less this.
+
+    Returns
+    -------
+    SubjectHull
+
+    Raises
+    ------
+    pipeline.hull.EmptyHullError
+        Nothing left after carving.
+    ValueError
+        Bad masks or options.
+    """
+    if isinstance(view_slack, bool) or not isinstance(view_slack, (int, np.integer)) or view_slack < 0:
+        raise ValueError(f"view_slack must be a non-negative integer, got {view_slack!r}")
+    kw = {"tolerance": tolerance, "support_plane": support_plane, "margin": margin}
+    grid, cal = carver.grid, carver.calibration
+    occ, main, dropped_pieces, views = _kept_pieces(carver.carve(masks, **kw).occupancy, grid, cal, view_slack)
+    # the largest piece's image: its boundary voxels (the inside projects within it) as discs
+    from scipy import ndimage
+
+    shell = main & ~ndimage.binary_erosion(main)
+    proj, _ = hull_projection(shell, grid, cal)
+    out: list[np.ndarray | None] = []
+    share = np.full(len(masks), np.nan)
+    for i, m in enumerate(masks):
+        if m is None:
+            out.append(None)
+            continue
+        m = np.asarray(m, bool)
+        kept = _explained_parts(m, proj[i])
+        total = int(np.count_nonzero(m))
+        share[i] = 0.0 if total == 0 else 1.0 - np.count_nonzero(kept) / total
+        out.append(kept)
+    if np.nansum(share) > 0:
+        occ, _, dropped_pieces, views = _kept_pieces(carver.carve(out, **kw).occupancy, grid, cal, view_slack)
+    return SubjectHull(occupancy=occ, masks=out, dropped=share, pieces_dropped=dropped_pieces, views=views)

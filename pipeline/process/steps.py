@@ -267,26 +267,43 @@ def _write_consistency(ctx: RunContext) -> None:
     """``OUT/consistency.json`` from the frames' records: per camera and frame set the IoU of the
     camera's mask and the projection of the surface (:mod:`pipeline.consistency`), each camera's
     median; a camera whose median is below :data:`pipeline.consistency.CONSISTENCY_WARN` is named
-    in a warning."""
+    in a warning, and so is one whose keyed silhouettes held more than
+    :data:`pipeline.silhouette_refine.DROPPED_WARN` of pixels the subject does not explain (median
+    over the frame sets; dropped before carving, :func:`pipeline.silhouette_refine.subject_hull`)."""
     from pipeline.consistency import CONSISTENCY_WARN
+    from pipeline.silhouette_refine import DROPPED_WARN
 
     iou = np.full((len(ctx.cameras), ctx.n_sets), np.nan)
+    dropped = np.full((len(ctx.cameras), ctx.n_sets), np.nan)
     for k in range(ctx.n_sets):
         f = ctx.out / "frames" / f"{frame_name(k)}.json"
-        per_cam = json.loads(f.read_text()).get("consistency") if f.exists() else None
+        rec = json.loads(f.read_text()) if f.exists() else {}
+        per_cam, per_drop = rec.get("consistency") or {}, rec.get("dropped") or {}
         for i, cam in enumerate(ctx.cameras):
-            v = (per_cam or {}).get(cam)
+            v, d = per_cam.get(cam), per_drop.get(cam)
             iou[i, k] = np.nan if v is None else v
+            dropped[i, k] = np.nan if d is None else d
     seen = np.isfinite(iou).any(axis=1)
     median = {cam: (float(np.nanmedian(iou[i])) if seen[i] else None) for i, cam in enumerate(ctx.cameras)}
     low = [cam for cam, m in median.items() if m is not None and m < CONSISTENCY_WARN]
+    has_drop = np.isfinite(dropped).any(axis=1)
+    drop = {cam: (float(np.nanmedian(dropped[i])) if has_drop[i] else None) for i, cam in enumerate(ctx.cameras)}
+    dropping = [cam for cam, m in drop.items() if m is not None and m > DROPPED_WARN]
     doc = {"cameras": ctx.cameras, "threshold": CONSISTENCY_WARN, "median": median, "low": low,
-           "iou": [[None if not np.isfinite(x) else float(x) for x in row] for row in iou]}
+           "iou": [[None if not np.isfinite(x) else float(x) for x in row] for row in iou],
+           "dropped": drop, "dropping": dropping, "dropped_threshold": DROPPED_WARN}
     atomic_write(ctx.out / "consistency.json", json.dumps(doc))
-    ctx.consistency = {"median": median, "low": low, "threshold": CONSISTENCY_WARN}
+    ctx.consistency = {"median": median, "low": low, "threshold": CONSISTENCY_WARN, "dropped": drop,
+                       "dropping": dropping}
     for cam in low:
         msg = (f"camera {cam}: median silhouette consistency {median[cam]:.2f} (IoU of its masks and the projected "
                f"hull) is below {CONSISTENCY_WARN}: check its keying and calibration (report: worst frames)")
+        log.warning("%s", msg)
+        ctx.warnings.append(msg)
+    for cam in dropping:
+        msg = (f"camera {cam}: {100 * drop[cam]:.0f} % of its silhouette (median over the frame sets) is no part of "
+               f"the subject the other cameras see and was dropped before carving (silhouette consistency): check "
+               f"its keying (a wall, a shadow, a second person)")
         log.warning("%s", msg)
         ctx.warnings.append(msg)
 

@@ -147,18 +147,27 @@ def unpack_masks(packed: list, widths: Sequence[int]) -> list:
     return [None if p is None else np.unpackbits(p, axis=-1, count=w).view(bool) for p, w in zip(packed, widths)]
 
 
-def _surface_of(carver, masks, p: ProcessParams, depth=None, images=None):
-    """The frame set's surface and its source: the hull's, or with ``depth`` (a fuser and the
-    set's depth images) the depth fused inside the hull; with ``images`` (the set's colour
-    images, None for a missing camera) the hull's surface refined where the colours agree."""
+def _subject_hull(carver, masks, p: ProcessParams):
+    """The frame set's hull without phantom pieces, and the silhouettes without the parts the
+    subject does not explain (:func:`pipeline.silhouette_refine.subject_hull`), carved as the job says."""
+    from pipeline.silhouette_refine import subject_hull
+
+    return subject_hull(masks, carver, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
+
+
+def _surface_of(carver, masks, p: ProcessParams, depth=None, images=None, hull=None):
+    """The frame set's surface and its source: the hull's (``hull``: the occupancy, else
+    carved now), or with ``depth`` (a fuser and the set's depth images) the depth fused
+    inside the hull; with ``images`` (the set's colour images, None for a missing camera)
+    the hull's surface refined where the colours agree."""
     from pipeline.surface import surface_from_occupancy
 
-    hull = carve_hull(carver, masks, p)
+    occupancy = carve_hull(carver, masks, p).occupancy if hull is None else hull
     if depth is not None:
         fuser, depth_images = depth
-        fused = fuser.fuse(depth_images, hull=hull.occupancy)
+        fused = fuser.fuse(depth_images, hull=occupancy)
         return fused.surface(taubin_iterations=p.smooth_iterations, face_budget=p.face_budget), "depth+hull"
-    mesh = surface_from_occupancy(hull.occupancy, carver.grid, taubin_iterations=p.smooth_iterations,
+    mesh = surface_from_occupancy(occupancy, carver.grid, taubin_iterations=p.smooth_iterations,
                                   face_budget=p.face_budget)
     if images is None:
         return mesh, "hull"
@@ -242,7 +251,11 @@ def surface_task(
                         raise EmptyHullError("no camera has a valid mask in this frame set")
                     depth = (_fuser(calib_dict, grid_dict), _frame_depths(reader, cameras, k)) if use_depth else None
                     images = _frame_images(reader, cameras, k) if p.photo_refine and not use_depth else None
-                    mesh, info["source"] = _surface_of(carver, ms, p, depth, images)
+                    sh = _subject_hull(carver, ms, p)
+                    ms = sh.masks  # the hull's silhouettes: the consistency compares with them
+                    info["dropped"] = {c: (None if not np.isfinite(x) else round(float(x), 4))
+                                       for c, x in zip(cameras, sh.dropped)}
+                    mesh, info["source"] = _surface_of(carver, ms, p, depth, images, hull=sh.occupancy)
                     quality = surface_quality(mesh).to_dict()
                     info["consistency"] = _consistency(mesh, ms, carver.calibration, p.silhouette_margin)
                     writer.write(store.mesh_path(k), ply_bytes(mesh.vertices, mesh.faces))
