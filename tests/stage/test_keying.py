@@ -338,6 +338,37 @@ def test_small_holes_of_backdrop_colour_stay_open():
     assert key_frames(img, params=p.replace(mode="luma")).params.fill_holes == "small"
 
 
+def test_plate_mode_closes_doubtful_gaps_and_leaves_the_backdrop_open():
+    """The plate mode's closing and hole filling on a distance image (noise units): a subject of
+    80 x 60 px (distance 10) with a hole and a notch of doubtful pixels (2.6: beyond the 5 % tail
+    of 1.96, below the candidate threshold) and a hole and a slit of clean backdrop (0.5): the
+    doubtful ones close, the backdrop stays open; without the closing and filling the doubtful
+    ones stay open too. The keyer resolves the plate mode's defaults to this."""
+    from stage.keying.cleanup import mask_from_distance
+    from stage.keying.params import PLATE_CLOSE_RELATIVE
+
+    d = np.full((120, 160), 0.5, np.float32)
+    d[30:90, 40:120] = 10.0
+    doubtful_hole, clean_hole = (slice(50, 60), slice(50, 60)), (slice(50, 60), slice(95, 105))
+    doubtful_notch, clean_slit = (slice(30, 45), slice(70, 72)), (slice(60, 90), slice(85, 87))
+    for sl, v in ((doubtful_hole, 2.6), (clean_hole, 0.5), (doubtful_notch, 2.6), (clean_slit, 0.5)):
+        d[sl] = v
+    kw = {"t_lo": 3.29, "t_hi": 4.89, "min_area": 2e-4, "coverage_window": 1}
+    m, stats = mask_from_distance(d, **kw, fill_holes="enclosed", close_relative=PLATE_CLOSE_RELATIVE, t_doubt=1.96)
+    assert m[doubtful_hole].all() and m[31:45, 70:72].all() and stats["holes_filled"] >= 1  # the notch below its mouth
+    assert not m[clean_hole].any() and not m[clean_slit].any()
+    plain, _ = mask_from_distance(d, **kw, fill_holes="none")
+    assert not plain[doubtful_hole].any() and not plain[doubtful_notch].any()
+    rng = np.random.default_rng(1)
+    plate = rng.integers(60, 200, (40, 50, 3)).astype(np.uint8)
+    frame = plate.copy()
+    frame[10:30, 15:35] = (230, 40, 40)
+    p = key_frames(frame, mode="plate", plate=plate).params
+    assert p.close_relative == PLATE_CLOSE_RELATIVE and p.fill_holes == "enclosed"
+    p = key_frames(frame, mode="chroma", plate=plate).params
+    assert p.close_relative == 0.0 and p.fill_holes == "uncertain"
+
+
 def test_invalid_input():
     ok = np.zeros((2, 20, 20, 3), np.uint8)
     with pytest.raises(ValueError, match="frames"):
@@ -364,6 +395,8 @@ def test_invalid_input():
         KeyParams(coverage_window=4)
     with pytest.raises(ValueError, match="fill_holes"):
         KeyParams(fill_holes="all")
+    with pytest.raises(ValueError, match="close_relative"):
+        KeyParams(close_relative=0.7)
     with pytest.raises(ValueError, match="unknown keys"):
         KeyParams.from_dict({"colour": "green"})
     a = np.zeros((5, 5), bool)
