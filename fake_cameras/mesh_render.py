@@ -38,7 +38,7 @@ import numpy as np
 from calib.calibration import Calibration
 from calib.camera import Camera
 from fake_cameras.render import Backdrop, Hits, View, _scene, _texture, compose_view, studio_options
-from pipeline.mesh_primitives import vertex_normals
+from pipeline.mesh_primitives import check_mesh, vertex_normals
 
 __all__ = ["MeshScene", "render_mesh", "render_mesh_views"]
 
@@ -64,7 +64,7 @@ class MeshScene:
         from embreex import rtcore_scene
         from embreex.mesh_construction import TriangleMesh
 
-        self.vertices, self.faces = _check_mesh(vertices, faces)
+        self.vertices, self.faces = check_mesh(vertices, faces, min_vertices=3, min_faces=1)
         V, F = len(self.vertices), len(self.faces)
         tp = self.vertices if texture_points is None else np.asarray(texture_points, dtype=np.float64)
         if tp.shape != (V, 3) or not np.isfinite(tp).all():
@@ -116,18 +116,6 @@ class MeshScene:
     def interpolate(self, values: np.ndarray, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Per-vertex ``values`` (V, C) blended at hits ``(face, bary)``: (K, C)."""
         return np.einsum("kj,kjc->kc", bary, values[self.faces[face]])
-
-
-def _check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
-    v = np.asarray(vertices, dtype=np.float64)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.isfinite(v).all():
-        raise ValueError(f"vertices must be finite with shape (V >= 3, 3), got {v.shape}")
-    f = np.asarray(faces)
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
-        raise ValueError(f"faces must be integers with shape (F >= 1, 3), got {f.shape} {f.dtype}")
-    if f.min() < 0 or f.max() >= len(v):
-        raise ValueError(f"faces must index the {len(v)} vertices, got indices {f.min()}..{f.max()}")
-    return v, f.astype(np.int64)
 
 
 def render_mesh_views(

@@ -30,6 +30,7 @@ import numpy as np
 
 from calib.calibration import Calibration
 from calib.camera import Camera
+from pipeline.mesh_primitives import check_mesh
 
 __all__ = ["mesh_silhouette", "silhouette_iou", "silhouette_consistency", "CONSISTENCY_WARN"]
 
@@ -114,18 +115,6 @@ def _fill(out: np.ndarray, tri: np.ndarray, origin: tuple[int, int] = (0, 0)) ->
         cv2.fillConvexPoly(out, (p - shift).astype(np.int32), 1, cv2.LINE_8, _SHIFT)
 
 
-def _check_mesh(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray]:
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
-        raise ValueError(f"vertices must be a finite (V, 3) array, got shape {v.shape}")
-    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
-        raise ValueError(f"faces must be an integer (F, 3) array, got shape {f.shape} of {f.dtype}")
-    if f.size and (f.min() < 0 or f.max() >= len(v)):
-        raise ValueError("faces index vertices that do not exist")
-    return v, f.astype(np.int64)
-
-
 def _front_triangles(v: np.ndarray, f: np.ndarray, camera: Camera) -> np.ndarray:
     """(3, F', 2) pixel coordinates of the triangles that face the camera and may cover a pixel
     centre of its image (every vertex in front of it)."""
@@ -166,7 +155,7 @@ def mesh_silhouette(vertices: Any, faces: Any, camera: Camera) -> np.ndarray:
     """
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a Camera, got {type(camera).__name__}")
-    v, f = _check_mesh(vertices, faces)
+    v, f = check_mesh(vertices, faces)
     w, h = camera.size
     out = np.zeros((h, w), np.uint8)
     _fill(out, _front_triangles(v, f, camera))
@@ -239,7 +228,7 @@ def silhouette_consistency(vertices: Any, faces: Any, masks: Any, calibration: C
         raise ValueError(f"calibration must be a Calibration, got {type(calibration).__name__}")
     if len(masks) != len(calibration):
         raise ValueError(f"masks: expected one mask per camera ({len(calibration)}), got {len(masks)}")
-    v, f = _check_mesh(vertices, faces)
+    v, f = check_mesh(vertices, faces)
     if isinstance(margin, bool) or not isinstance(margin, (int, np.integer)) or margin < 0:
         raise ValueError(f"margin must be a non-negative integer (pixels), got {margin!r}")
     disk = None

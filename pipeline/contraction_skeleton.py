@@ -50,24 +50,11 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
+from pipeline.mesh_primitives import check_mesh
+
 __all__ = ["cotangent_laplacian", "contract_mesh", "contraction_skeleton"]
 
 log = logging.getLogger(__name__)
-
-
-def _check(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
-        raise ValueError(f"vertices must have shape (V, 3) with V >= 4, got {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("vertices must be finite")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
-        raise ValueError(f"faces must be an (F, 3) integer array with F > 0, got {f.shape} {f.dtype}")
-    f = f.astype(np.int64)
-    if f.min() < 0 or f.max() >= len(v):
-        raise ValueError("faces reference vertices that do not exist")
-    return v, f
 
 
 def cotangent_laplacian(vertices, faces, *, max_weight: float = 1e4) -> tuple[sp.csr_matrix, np.ndarray]:
@@ -84,7 +71,7 @@ def cotangent_laplacian(vertices, faces, *, max_weight: float = 1e4) -> tuple[sp
     areas : (V,) float ndarray
         A third of the area of the faces around every vertex.
     """
-    v, f = _check(vertices, faces)
+    v, f = check_mesh(vertices, faces, min_vertices=4, min_faces=1)
     V = len(v)
     rows, cols, w = [], [], []
     for k in range(3):
@@ -126,7 +113,7 @@ def contract_mesh(vertices, faces, *, iterations: int = 40, sl: float = 2.0, are
     (V, 3) float ndarray
         The contracted vertices (same order).
     """
-    v, f = _check(vertices, faces)
+    v, f = check_mesh(vertices, faces, min_vertices=4, min_faces=1)
     if int(iterations) < 1 or not sl > 1 or not 0 < area_ratio < 1 or not 0 < done <= 1:
         raise ValueError("iterations must be >= 1, sl > 1, area_ratio within (0, 1) and done within (0, 1]")
     size = float(np.linalg.norm(v.max(0) - v.min(0)))
@@ -247,7 +234,7 @@ def contraction_skeleton(
     edges : (E, 2) int ndarray
         A tree over ``points`` (the largest one when the mesh has several parts).
     """
-    v, f = _check(vertices, faces)
+    v, f = check_mesh(vertices, faces, min_vertices=4, min_faces=1)
     if not 0 < spacing < 0.5:
         raise ValueError(f"spacing must be within (0, 0.5), got {spacing}")
     if not min_branch >= 0:

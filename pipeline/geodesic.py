@@ -22,6 +22,8 @@ import scipy.sparse as sp
 import trimesh
 from scipy.sparse.csgraph import connected_components, dijkstra
 
+from pipeline.mesh_primitives import check_mesh
+
 __all__ = [
     "EmptyMeshError",
     "validate_mesh",
@@ -53,22 +55,7 @@ def validate_mesh(vertices, faces, *, allow_empty: bool = False) -> tuple[np.nda
     EmptyMeshError
         When there are no faces and ``allow_empty`` is False.
     """
-    v = np.asarray(vertices, dtype=np.float64)
-    if v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"vertices must have shape (V, 3), got {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("vertices must be finite")
-    f = np.asarray(faces)
-    if f.size == 0:
-        f = f.reshape(0, 3)
-    if f.ndim != 2 or f.shape[1] != 3:
-        raise ValueError(f"faces must have shape (F, 3), got {f.shape}")
-    if not np.issubdtype(f.dtype, np.integer):
-        if f.size and not np.all(np.equal(np.mod(f, 1), 0)):
-            raise ValueError("faces must hold integer vertex indices")
-    f = f.astype(np.int64)
-    if f.size and (f.min() < 0 or f.max() >= len(v)):
-        raise ValueError(f"faces index vertices outside 0..{len(v) - 1}")
+    v, f = check_mesh(vertices, faces, integral_faces=True)
     if len(f) == 0 and not allow_empty:
         raise EmptyMeshError("the mesh has no faces (empty frame)")
     return v, f

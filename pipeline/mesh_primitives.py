@@ -1,5 +1,6 @@
 """Mesh primitives the tracker, the motion segmentation, the exporter and the simulator share:
-vertex normals, enclosed volume, and the sparse sums over a mesh's face corners behind them.
+the one check of a mesh's arrays, vertex normals, enclosed volume, triangle areas, and the sums
+over a mesh's face corners behind them.
 
 A vertex in no face (an isolated vertex) has **no normal: zero**, not an arbitrary direction. Every
 user of a normal then treats it as "no surface here": the tracker's normal gate never pairs it,
@@ -18,7 +19,43 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["summing_matrix", "sum_by", "vertex_normals", "mesh_volume"]
+__all__ = ["check_mesh", "summing_matrix", "sum_by", "scatter_add", "triangle_areas", "vertex_normals", "mesh_volume"]
+
+
+def check_mesh(vertices, faces, *, min_vertices: int = 0, min_faces: int = 0,
+               integral_faces: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh's arrays checked and converted to ``(float64 (V, 3), int64 (F, 3))``.
+
+    Parameters
+    ----------
+    vertices : (V, 3) array-like
+        Finite, at least ``min_vertices`` of them.
+    faces : (F, 3) int array-like
+        At least ``min_faces`` triangles indexing ``vertices``; an empty array is ``(0, 3)``.
+    integral_faces : bool
+        Also accept a float array holding whole numbers (what some mesh readers return).
+
+    Raises
+    ------
+    ValueError
+        Naming ``vertices`` or ``faces``.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) < min_vertices:
+        raise ValueError(f"vertices must have shape (V >= {min_vertices}, 3), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("vertices must be finite")
+    f = np.asarray(faces)
+    if f.size == 0:
+        f = f.reshape(0, 3)
+    whole = np.issubdtype(f.dtype, np.integer) or (
+        integral_faces and np.issubdtype(f.dtype, np.number) and bool(np.all(np.mod(f, 1) == 0)))
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) < min_faces or not whole:
+        raise ValueError(f"faces must be an integer array of shape (F >= {min_faces}, 3), got {f.shape} {f.dtype}")
+    f = f.astype(np.int64)
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise ValueError(f"faces index vertices outside 0..{len(v) - 1}")
+    return v, f
 
 
 def summing_matrix(index, n: int) -> sp.csr_matrix:
@@ -35,6 +72,21 @@ def sum_by(S: sp.csr_matrix, values) -> np.ndarray:
     """``S @ values`` for (K,) or (K, d...) values (:func:`summing_matrix`)."""
     vals = np.asarray(values, dtype=np.float64)
     return (S @ vals.reshape(len(vals), -1)).reshape((S.shape[0],) + vals.shape[1:])
+
+
+def scatter_add(index: np.ndarray, values, n: int) -> np.ndarray:
+    """``out[index[k]] += values[k]`` for (K,) or (K, d...) values, by ``np.bincount`` (much faster than
+    ``np.add.at``; :func:`summing_matrix` gives the same sums when one index serves many calls)."""
+    vals = np.asarray(values, dtype=np.float64)
+    flat = vals.reshape(len(vals), -1)
+    out = np.stack([np.bincount(index, weights=flat[:, c], minlength=n) for c in range(flat.shape[1])], axis=1)
+    return out.reshape((n,) + vals.shape[1:])
+
+
+def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) areas of a mesh's triangles (checked arrays: :func:`check_mesh`)."""
+    v, f = vertices, faces
+    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
 
 
 def _unit_normals(v: np.ndarray, f: np.ndarray, corners: sp.csr_matrix) -> np.ndarray:

@@ -67,20 +67,13 @@ from typing import Any, Sequence
 import numpy as np
 
 from calib.camera import Camera
-from pipeline.mesh_primitives import vertex_normals
+from pipeline.mesh_primitives import check_mesh, vertex_normals
 
 __all__ = ["refine_surface"]
 
 
 def _check_inputs(vertices, faces, images, masks, cameras):
-    v = np.asarray(vertices, dtype=np.float64)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4 or not np.isfinite(v).all():
-        raise ValueError(f"vertices must be a finite (V, 3) array with V >= 4, got shape {np.shape(vertices)}")
-    f = np.asarray(faces)
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
-        raise ValueError(f"faces must be a non-empty (F, 3) integer array, got shape {np.shape(faces)}")
-    if f.min() < 0 or f.max() >= len(v):
-        raise ValueError("faces must index vertices (0 <= index < V)")
+    v, f = check_mesh(vertices, faces, min_vertices=4, min_faces=1)
     cams = list(cameras)
     if len(cams) < 2 or not all(isinstance(c, Camera) for c in cams):
         raise ValueError("cameras must be a sequence of at least two calib.camera.Camera")

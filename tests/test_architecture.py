@@ -33,14 +33,15 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
     1: ("ground", (
         "stage.drivers.*", "stage.sync", "stage.store.*", "stage.keying.*", "stage.discovery", "stage.capture", "stage.session",
         "stage.importer",
-        "pipeline", "pipeline.volume", "pipeline.geodesic", "pipeline.meshio", "pipeline.mesh_primitives",
+        "pipeline", "pipeline.volume", "pipeline.geodesic", "pipeline.meshio", "pipeline.mesh_primitives", "pipeline.cholesky",
     )),
     2: ("steps", (
         "pipeline.hull", "pipeline.subject_box", "pipeline.consistency",
         "pipeline.surface", "pipeline.photo_refine", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
         "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
         "pipeline.armature_spine", "pipeline.gltf_export", "pipeline.results",
-        "pipeline.tracking", "pipeline.rgbd_preprocess", "pipeline.colour_tracks", "pipeline.temporal_hull",
+        "pipeline.tracking", "pipeline.tracking_patches", "pipeline.rgbd_preprocess", "pipeline.colour_tracks",
+        "pipeline.temporal_hull",
         "pipeline.motion_segmentation",
         "pipeline.armature_skeleton", "pipeline.armature_fit", "pipeline.armature", "pipeline.armature_track",
         "pipeline.contraction_skeleton", "pipeline.armature_score", "pipeline.silhouette_refine",

@@ -352,8 +352,10 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from fake_cameras.rgbd import make_object, record_rgbd_take, simulate_rgbd_take, template_mesh
+    from pipeline.cholesky import CholeskySystem
     from pipeline.mesh_primitives import vertex_normals
-    from pipeline.tracking import CholeskySystem, TemplateTracker, predict_motion
+    from pipeline.tracking import TemplateTracker
+    from pipeline.tracking_patches import predict_motion
 
     F = max(2, int(args.frames))
     obj = make_object("pipe_half")

@@ -8,23 +8,22 @@ import scipy.sparse as sp
 import trimesh
 from scipy.sparse.linalg import spsolve
 
-from pipeline.mesh_primitives import mesh_volume, vertex_normals
+from pipeline.cholesky import CholeskySystem
+from pipeline.mesh_primitives import mesh_volume, scatter_add, sum_by, summing_matrix, vertex_normals
 from pipeline.tracking import (
-    CholeskySystem,
     TemplateTracker,
-    _scatter_add,
-    _sum_by,
-    _summing,
-    blended_align,
-    blended_patches,
     choose_gamma,
     choose_start,
     cotangent_laplacian,
     default_gate,
+    start_residuals,
+)
+from pipeline.tracking_patches import (
+    blended_align,
+    blended_patches,
     patch_align,
     patch_constraints,
     predict_motion,
-    start_residuals,
     surface_patches,
 )
 
@@ -132,12 +131,12 @@ def test_summing_matrix_adds_bit_for_bit_like_bincount():
     rng = np.random.default_rng(2)
     index = rng.integers(0, 40, 2000)
     values = rng.normal(size=(2000, 6, 6)) * 10.0 ** rng.uniform(-8, 8, (2000, 1, 1))
-    S = _summing(index, 45)  # the last rows without any value
-    assert np.array_equal(_sum_by(S, values), _scatter_add(index, values, 45))
-    assert np.array_equal(_sum_by(S, values[:, 0, 0]), _scatter_add(index, values[:, 0, 0], 45))
+    S = summing_matrix(index, 45)  # the last rows without any value
+    assert np.array_equal(sum_by(S, values), scatter_add(index, values, 45))
+    assert np.array_equal(sum_by(S, values[:, 0, 0]), scatter_add(index, values[:, 0, 0], 45))
     exact = np.zeros((45, 6, 6))
     np.add.at(exact, index, values)
-    np.testing.assert_allclose(_sum_by(S, values), exact, rtol=1e-12, atol=1e-12 * np.abs(values).max())
+    np.testing.assert_allclose(sum_by(S, values), exact, rtol=1e-12, atol=1e-12 * np.abs(values).max())
 
 
 def test_gamma_and_gate_follow_the_template():
@@ -234,27 +233,27 @@ def test_blended_patches_overlap_and_blended_align_is_rigid_where_the_target_is(
 
 
 def _blended_align_by_bincount(S, T, cover):
-    """:func:`blended_align` summing by bincount (``_scatter_add``) in every call: the sums the kept
+    """:func:`blended_align` summing by bincount (``scatter_add``) in every call: the sums the kept
     summing matrices must give bit for bit."""
     pp, vv, w = cover
     n_p = int(pp.max()) + 1
     sw = np.maximum(np.bincount(pp, weights=w, minlength=n_p), 1e-300)[:, None]
-    cs = _scatter_add(pp, w[:, None] * S[vv], n_p) / sw
-    ct = _scatter_add(pp, w[:, None] * T[vv], n_p) / sw
+    cs = scatter_add(pp, w[:, None] * S[vv], n_p) / sw
+    ct = scatter_add(pp, w[:, None] * T[vv], n_p) / sw
     a = S[vv] - cs[pp]
-    H = _scatter_add(pp, (w[:, None] * a)[:, :, None] * (T[vv] - ct[pp])[:, None, :], n_p)
+    H = scatter_add(pp, (w[:, None] * a)[:, :, None] * (T[vv] - ct[pp])[:, None, :], n_p)
     U, _, Wt = np.linalg.svd(H)
     D = np.ones((n_p, 3))
     D[:, 2] = np.sign(np.linalg.det(np.einsum("pij,pjk->pik", U, Wt)))
     R = np.einsum("pji,pj,pkj->pik", Wt, D, U)
-    return _scatter_add(vv, w[:, None] * (np.einsum("kij,kj->ki", R[pp], a) + ct[pp]), len(S))
+    return scatter_add(vv, w[:, None] * (np.einsum("kij,kj->ki", R[pp], a) + ct[pp]), len(S))
 
 
 def test_the_trackers_blended_align_keeps_its_sums_and_gives_the_same_bits():
     """The previous-shape prior's placement with the cover's summing matrices and patch weights
     built once per take (every round of every frame used to rebuild them by bincount): the same
     placement bit for bit, with and without the kept sums."""
-    from pipeline.tracking import _blended_align
+    from pipeline.tracking_patches import _blended_align
 
     m = trimesh.creation.capsule(height=200.0, radius=20.0, count=[24, 24])
     v, f = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=8.0)
@@ -515,7 +514,7 @@ def test_choose_start_takes_per_patch_the_start_the_data_explain():
     a, b = v, v + shift
     X, N = data, vertex_normals(data, f)
     start, chosen = choose_start([a, b], X, N, f, patches, gate=10.0, smoothing=0)
-    cx = _scatter_add(patches, v, patches.max() + 1)[:, 0] / np.bincount(patches)
+    cx = scatter_add(patches, v, patches.max() + 1)[:, 0] / np.bincount(patches)
     clear = np.abs(cx) > 15.0  # patches wholly on one side of the cut
     assert np.array_equal(chosen[clear], (cx[clear] > 0).astype(int))
     assert np.array_equal(start, np.where((chosen[patches] == 1)[:, None], b, a))
