@@ -18,11 +18,13 @@ import sqlite3
 import threading
 import time
 import uuid
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Literal
 
-__all__ = ["JobRecord", "JobStore", "JobNotFoundError", "JobStateError", "STATES", "TERMINAL"]
+from pydantic import BaseModel, ConfigDict, Field
+from typing_extensions import TypedDict
+
+__all__ = ["JobRecord", "StepProgress", "JobStore", "JobNotFoundError", "JobStateError", "STATES", "TERMINAL"]
 
 STATES = ("queued", "running", "done", "failed", "cancelled")
 TERMINAL = frozenset({"done", "failed", "cancelled"})
@@ -70,16 +72,24 @@ class JobStateError(ValueError):
     """The job is in a state that does not allow the operation (maps to 409)."""
 
 
-@dataclass(frozen=True)
-class JobRecord:
-    """One job as stored."""
+class StepProgress(TypedDict):
+    """Frames of one step done, and how many there are."""
+
+    done: int
+    total: int
+
+
+class JobRecord(BaseModel):
+    """One job as stored (the API's job status is this plus its links: ``api.routers.jobs.JobStatus``)."""
+
+    model_config = ConfigDict(frozen=True)
 
     id: str
     kind: str
     take: str
     steps: tuple[str, ...]
-    params: dict
-    state: str
+    params: dict[str, Any]
+    state: Literal["queued", "running", "done", "failed", "cancelled"]
     created: float
     started: float | None
     finished: float | None
@@ -87,10 +97,10 @@ class JobRecord:
     attempts: int
     error: str | None
     cancel_requested: bool
-    progress: dict[str, dict[str, int]] = field(default_factory=dict)
-    done: int = 0
+    progress: dict[str, StepProgress] = Field(default_factory=dict)
+    done: int = Field(0, description="frames done, summed over steps (the SSE event id)")
     total: int = 0
-    result: dict | None = None
+    result: dict[str, Any] | None = None
 
     @classmethod
     def _from_row(cls, row: sqlite3.Row) -> "JobRecord":
@@ -115,25 +125,7 @@ class JobRecord:
         )
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "kind": self.kind,
-            "take": self.take,
-            "steps": list(self.steps),
-            "params": self.params,
-            "state": self.state,
-            "created": self.created,
-            "started": self.started,
-            "finished": self.finished,
-            "heartbeat": self.heartbeat,
-            "attempts": self.attempts,
-            "error": self.error,
-            "cancel_requested": self.cancel_requested,
-            "progress": self.progress,
-            "done": self.done,
-            "total": self.total,
-            "result": self.result,
-        }
+        return {**self.model_dump(), "steps": list(self.steps)}
 
 
 class JobStore:

@@ -28,29 +28,9 @@ class JobCreate(BaseModel):
     parameters: dict[str, Any] = Field(default_factory=dict, description="pipeline.process.ProcessParams fields")
 
 
-class StepProgress(BaseModel):
-    done: int
-    total: int
+class JobStatus(JobRecord):
+    """A job's status: its record and where to follow it."""
 
-
-class JobStatus(BaseModel):
-    id: str
-    kind: str
-    take: str
-    steps: list[str]
-    params: dict[str, Any]
-    state: Literal["queued", "running", "done", "failed", "cancelled"]
-    created: float
-    started: float | None
-    finished: float | None
-    heartbeat: float | None
-    attempts: int
-    error: str | None
-    cancel_requested: bool
-    progress: dict[str, StepProgress]
-    done: int = Field(description="frames done, summed over steps (the SSE event id)")
-    total: int
-    result: dict[str, Any] | None = None
     links: dict[str, str] = Field(default_factory=dict)
 
 
