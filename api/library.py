@@ -18,7 +18,7 @@ import numpy as np
 
 from api.errors import ConflictError, NotFoundError, UnavailableError, UploadTooLargeError
 from api.paths import check_take_id, confined, confined_entries, inside
-from calib.fileio import replace_durably
+from calib.fileio import json_ready, replace_durably
 from stage.workers import process_alive
 
 __all__ = ["TakeLibrary", "HDF5_SIGNATURE", "InvalidTakeError"]
@@ -64,26 +64,6 @@ def _reading(path: Path, take_id: str):
             raise
         msg = str(exc).replace(f"{path}: ", "").replace(str(path), take_id)
         raise InvalidTakeError(f"take {take_id!r}: {msg}") from None
-
-
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, (np.integer, np.floating, np.bool_)):
-        return v.item()
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if hasattr(v, "to_dict"):
-        return _jsonable(v.to_dict())
-    if hasattr(v, "model_dump"):
-        return _jsonable(v.model_dump(mode="json"))
-    if hasattr(v, "__dataclass_fields__"):
-        import dataclasses
-
-        return _jsonable(dataclasses.asdict(v))
-    return v
 
 
 class TakeLibrary:
@@ -343,7 +323,7 @@ def _describe(r: Any) -> dict[str, Any]:
     cal = r.calibration
     return {
         "cameras": [
-            {"id": c, "frames": r.n_frames(c), **{k: _jsonable(v) for k, v in r.camera_info(c).items()}}
+            {"id": c, "frames": r.n_frames(c), **{k: json_ready(v) for k, v in r.camera_info(c).items()}}
             for c in r.cameras
         ],
         "frames": int(r.n_sets),
@@ -352,7 +332,7 @@ def _describe(r: Any) -> dict[str, Any]:
         "measured_fps": r.measured_fps(),
         "duration_s": r.duration_s,
         "compression": r.compression,
-        "sync": _jsonable(r.sync_stats),
+        "sync": json_ready(r.sync_stats),
         "masks": r.masks_present(),
         "calibration": cal.to_dict() if cal is not None else None,
     }

@@ -6,7 +6,7 @@ receives the session's latest frame set a few times a second, keys each camera's
 hull on a ``resolution``^3 grid over the rig's volume (:class:`pipeline.hull.HullCarver`: its
 lookup tables are built once, a carve is then a few milliseconds; one camera is allowed to
 disagree) and returns its surface voxels; when the subject is articulated (its surface has
-tips, :func:`pipeline.spine.frame_skeleton`), also the skeleton grown from the first tip as
+tips, :func:`pipeline.frame_skeleton.frame_skeleton`), also the skeleton grown from the first tip as
 segments. A thread of the server sends a set only when the worker is free (the newest one;
 sets in between are skipped) and keeps the last answer, which the page draws
 (:meth:`Live3D.latest`).
@@ -228,7 +228,7 @@ class Live3D:
 
 def _spine_segments(occ: np.ndarray, grid) -> list:
     """Segments ``[[x0, y0, z0], [x1, y1, z1]]`` of the skeleton grown from the surface's first tip."""
-    from pipeline.spine import frame_skeleton
+    from pipeline.frame_skeleton import frame_skeleton
     from pipeline.surface import EmptySurfaceError, surface_from_occupancy
 
     try:

@@ -14,6 +14,9 @@ that also flushes the folder, hence these few lines.
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -21,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "replace_durably", "fsync_dir", "json_default", "plain"]
+__all__ = ["atomic_write", "replace_durably", "fsync_dir", "json_default", "json_ready", "plain"]
 
 
 def fsync_dir(folder: str | os.PathLike) -> None:
@@ -90,21 +93,41 @@ def atomic_write(path: str | os.PathLike, data: bytes | str, *, parents: bool = 
 
 
 def json_default(o: Any) -> Any:
-    """``json.dumps(..., default=json_default)``: numpy scalars as Python numbers, arrays as lists."""
+    """``json.dumps(..., default=json_default)``: numpy scalars as Python numbers, arrays as lists, paths
+    as strings, and records as their dicts (``model_dump(mode="json")``, ``to_dict()``, a dataclass)."""
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, np.ndarray):
         return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    if hasattr(o, "model_dump"):
+        return o.model_dump(mode="json")
+    if hasattr(o, "to_dict"):
+        return o.to_dict()
+    if dataclasses.is_dataclass(o) and not isinstance(o, type):
+        return dataclasses.asdict(o)
     raise TypeError(f"not JSON serializable: {type(o).__name__}")
 
 
-def plain(x: Any) -> Any:
+def json_ready(x: Any) -> Any:
+    """``x`` as JSON reads it back after ``json.dumps(x, default=json_default)``: plain dicts, lists,
+    numbers and strings, records included (for a value kept or handed to another serializer)."""
+    return json.loads(json.dumps(x, default=json_default))
+
+
+def plain(x: Any, *, finite: bool = False) -> Any:
     """``x`` with every numpy value made a Python one, through dicts (keys as strings), lists and
-    tuples (as lists): what :func:`json_default` does at ``json.dumps`` time, for a value kept."""
+    tuples (as lists): what :func:`json_default` does at ``json.dumps`` time, for a value kept.
+    ``finite=True`` also makes a non-finite float ``None`` (JSON ``null``, where a format says so)."""
     if isinstance(x, dict):
-        return {str(k): plain(v) for k, v in x.items()}
+        return {str(k): plain(v, finite=finite) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [plain(v) for v in x]
-    if isinstance(x, (np.generic, np.ndarray)):
-        return json_default(x)
+        return [plain(v, finite=finite) for v in x]
+    if isinstance(x, np.ndarray):
+        return plain(x.tolist(), finite=True) if finite else x.tolist()
+    if isinstance(x, np.generic):
+        x = x.item()
+    if finite and isinstance(x, float) and not math.isfinite(x):
+        return None
     return x

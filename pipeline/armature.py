@@ -232,7 +232,7 @@ def _main_part(n_vertices: int, faces) -> np.ndarray | None:
 
 def choose_reference(vertices, faces, *, candidates: int = 8) -> int:
     """Frame (position) whose curve skeleton has the most tips among evenly spaced candidates."""
-    from pipeline.spine import frame_skeleton
+    from pipeline.frame_skeleton import frame_skeleton
 
     v = np.asarray(vertices)
     T = len(v)

@@ -20,7 +20,7 @@ The paper's curve skeleton is the mean curvature skeleton (Tagliasacchi et
 al. 2012). Here it is the spine's curve skeleton in the rest frame (where
 the rest frame shows no spine, fewer than two tips, the mesh contraction
 skeleton of :mod:`pipeline.contraction_skeleton`): the
-level-set skeleton of Brostow et al. 2004 (:func:`pipeline.spine.frame_skeleton`,
+level-set skeleton of Brostow et al. 2004 (:func:`pipeline.frame_skeleton.frame_skeleton`,
 merged over the tips), which runs through the middle of every limb and
 branches at the junctions -- the role the mean curvature skeleton plays. Any
 other curve skeleton can be passed as a :class:`CurveSkeleton`.
@@ -43,7 +43,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from pipeline.geodesic import mesh_edges
-from pipeline.motion_segmentation import relative_bend, rigid_motions
+from pipeline.rigid_parts import relative_bend, rigid_motions
 
 __all__ = [
     "CurveSkeleton", "ArticulatedSkeleton", "curve_skeleton", "articulated_skeleton", "segment_hits_mesh", "joint_residual",
@@ -143,7 +143,7 @@ def curve_skeleton(vertices, faces) -> CurveSkeleton:
     -------
     CurveSkeleton
     """
-    from pipeline.spine import frame_skeleton
+    from pipeline.frame_skeleton import frame_skeleton
 
     v = np.asarray(vertices, dtype=np.float64)
     pts, edges = [], []
@@ -285,7 +285,7 @@ def _boundary_joints(vertices, faces, labels, min_edges: int) -> list[tuple[tupl
 
 def _segment_motions(motion: np.ndarray, labels: np.ndarray, segments, reference: int, per_segment: int = 400):
     """Per segment, its best rigid motion from the reference frame to every frame
-    (:func:`pipeline.motion_segmentation.rigid_motions` of at most ``per_segment`` of its vertices).
+    (:func:`pipeline.rigid_parts.rigid_motions` of at most ``per_segment`` of its vertices).
 
     Returns dict segment -> (R (T, 3, 3), t (T, 3)) with ``x_t ~ R_t x_ref + t_t``.
     """

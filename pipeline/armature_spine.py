@@ -226,7 +226,7 @@ def reference_frame(spine, *, prefer=None) -> int:
 
     Parameters
     ----------
-    spine : pipeline.spine.Spine
+    spine : pipeline.spine_format.Spine
     prefer : int, optional
         A frame position to use if complete.
 
@@ -267,7 +267,7 @@ def armature_from_spine(spine, *, reference: int | None = None, segments: int | 
 
     Parameters
     ----------
-    spine : pipeline.spine.Spine
+    spine : pipeline.spine_format.Spine
         A take's spine (``capture-stage/spine@1``).
     reference : int, optional
         Position of the rest-pose frame (default: :func:`reference_frame`).
@@ -284,10 +284,10 @@ def armature_from_spine(spine, *, reference: int | None = None, segments: int | 
     NoCompleteFrameError
         When no frame has every limb (no rest pose).
     """
-    from pipeline.spine import Spine
+    from pipeline.spine_format import Spine
 
     if not isinstance(spine, Spine):
-        raise ValueError(f"spine must be a pipeline.spine.Spine, got {type(spine).__name__}")
+        raise ValueError(f"spine must be a pipeline.spine_format.Spine, got {type(spine).__name__}")
     if segments is not None and int(segments) < 1:
         raise ValueError(f"segments must be >= 1 or None, got {segments}")
     T = spine.frame_count
@@ -529,7 +529,7 @@ def rigged_model(
 
     Parameters
     ----------
-    spine : pipeline.spine.Spine
+    spine : pipeline.spine_format.Spine
     vertices : (V, 3) float ndarray
     faces : (F, 3) int ndarray
         The surface of the reference frame (see :func:`reference_frame`),

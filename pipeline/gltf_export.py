@@ -315,7 +315,7 @@ def spine_to_glb(spine, *, segments: int | None = 6, scale: float | None = None,
 
     Parameters
     ----------
-    spine : pipeline.spine.Spine or dict
+    spine : pipeline.spine_format.Spine or dict
         A spine, or a parsed ``spine.json``.
     segments : int or None
         Bones per axis (see :func:`pipeline.armature_spine.armature_from_spine`).
@@ -328,7 +328,7 @@ def spine_to_glb(spine, *, segments: int | None = 6, scale: float | None = None,
     -------
     bytes
     """
-    from pipeline.spine import Spine
+    from pipeline.spine_format import Spine
 
     if isinstance(spine, dict):
         spine = Spine.from_dict(spine)
@@ -383,7 +383,7 @@ def export_rig(
         The reference frame has no mesh file (never another frame in its place).
     """
     from pipeline.meshio import load_mesh
-    from pipeline.spine import read_spine
+    from pipeline.spine_format import read_spine
 
     d = Path(results_dir)
     if not d.is_dir():

@@ -49,7 +49,7 @@ def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
     """(reference position, RiggedModel) of the take's spine, or None without a usable spine."""
     from pipeline.armature_spine import NoCompleteFrameError, reference_frame, rigged_model
     from pipeline.meshio import load_mesh
-    from pipeline.spine import read_spine
+    from pipeline.spine_format import read_spine
 
     path = root / "spine.json"
     if not path.is_file():

@@ -38,11 +38,12 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
     2: ("steps", (
         "pipeline.hull", "pipeline.subject_box", "pipeline.consistency",
         "pipeline.surface", "pipeline.photo_refine", "pipeline.tsdf", "pipeline.skeleton", "pipeline.merge",
-        "pipeline.extremities", "pipeline.correspond", "pipeline.spine", "pipeline.skinning",
+        "pipeline.extremities", "pipeline.correspond", "pipeline.frame_skeleton", "pipeline.spine", "pipeline.spine_format",
+        "pipeline.skinning",
         "pipeline.armature_spine", "pipeline.gltf_export", "pipeline.results",
         "pipeline.tracking", "pipeline.tracking_patches", "pipeline.rgbd_preprocess", "pipeline.colour_tracks",
         "pipeline.temporal_hull",
-        "pipeline.motion_segmentation",
+        "pipeline.motion_segmentation", "pipeline.rigid_parts",
         "pipeline.armature_skeleton", "pipeline.armature_fit", "pipeline.armature", "pipeline.armature_track",
         "pipeline.contraction_skeleton", "pipeline.armature_score", "pipeline.silhouette_refine",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",
@@ -220,6 +221,96 @@ def test_every_floor_entry_is_a_module():
     modules, _ = _project_graph()
     stale = [p for _, patterns in FLOORS.values() for p in patterns if not any(_matches(m, p) for m in modules)]
     assert not stale, f"FLOORS names modules that do not exist: {stale}"
+
+
+# --------------------------------------------------------------------------- sizes
+
+
+#: One idea a module: no module of ``pipeline/`` is longer than this many lines.
+MAX_MODULE_LINES = 700
+#: One screen an idea: no function (or method) of the five packages is longer than this many lines,
+#: its docstring not counted (tests are not held to it).
+MAX_FUNCTION_LINES = 80
+#: Modules kept over the limit, and why (each must still be over it: the list only shrinks).
+LONG_MODULES: dict[str, str] = {
+    "pipeline/process.py": "the process runner; its split into parameters, tasks, grid choice and the step list "
+    "(issue 34, the one step runner) is under way",
+    "pipeline/track.py": "its two tracking modes are being split with the step runner (issue 34)",
+}
+#: Functions kept over the limit ("path:qualified name"), and why.
+LONG_FUNCTIONS: dict[str, str] = {
+    "calib/bundle.py:bundle_adjust": "one least-squares problem set up in sequence (parameter packing, sparsity, "
+    "robust loss, unpacking); splitting it passes a dozen arrays between pieces",
+    "calib/extrinsics.py:calibrate_extrinsics": "the rig's extrinsic calibration as one pipeline of stages "
+    "sharing the views and their poses",
+    "pipeline/track.py:track_rgbd_take": "the single-camera tracking driver; split with pipeline/track.py (issue 34)",
+    # not split yet (issue 34): each is a sequence of steps that can become functions of their own
+    "calib/intrinsics.py:calibrate_intrinsics": "not split yet",
+    "pipeline/hull.py:HullCarver.carve": "not split yet",
+    "pipeline/report/figures.py:spine_figure": "not split yet",
+    "fake_cameras/render.py:_Scene.__init__": "not split yet",
+    "fake_cameras/take.py:simulate_take": "not split yet",
+    "stage/cli/demo.py:run": "not split yet",
+    "stage/benchmarks/reconstruct.py:run": "not split yet",
+}
+
+
+def body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """Lines of a function from its ``def`` to its end, its docstring (and decorators) not counted."""
+    n = node.end_lineno - node.lineno + 1
+    first = node.body[0]
+    if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+        n -= first.end_lineno - first.lineno + 1
+    return n
+
+
+def long_functions(path: Path, root: Path, limit: int) -> dict[str, int]:
+    """``{"path:qualified name": lines}`` of the functions in ``path`` longer than ``limit``."""
+    found: dict[str, int] = {}
+    rel = path.relative_to(root).as_posix()
+
+    def walk(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                name = f"{prefix}{child.name}"
+                if not isinstance(child, ast.ClassDef) and body_lines(child) > limit:
+                    found[f"{rel}:{name}"] = body_lines(child)
+                walk(child, name + ".")
+
+    walk(ast.parse(path.read_text(encoding="utf-8")), "")
+    return found
+
+
+def _package_files() -> list[Path]:
+    return [p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))]
+
+
+def test_no_pipeline_module_is_over_the_limit():
+    sizes = {p.relative_to(ROOT).as_posix(): len(p.read_text(encoding="utf-8").splitlines())
+             for p in sorted((ROOT / "pipeline").rglob("*.py"))}
+    over = {m: n for m, n in sizes.items() if n > MAX_MODULE_LINES and m not in LONG_MODULES}
+    assert not over, f"modules over {MAX_MODULE_LINES} lines (split them by idea): {over}"
+    stale = [m for m in LONG_MODULES if sizes.get(m, 0) <= MAX_MODULE_LINES]
+    assert not stale, f"LONG_MODULES lists modules that are no longer over the limit: {stale}"
+
+
+def test_no_function_is_over_the_limit():
+    found: dict[str, int] = {}
+    for path in _package_files():
+        found.update(long_functions(path, ROOT, MAX_FUNCTION_LINES))
+    over = {f: n for f, n in found.items() if f not in LONG_FUNCTIONS}
+    assert not over, f"functions over {MAX_FUNCTION_LINES} lines, docstring aside (one screen an idea): {over}"
+    stale = [f for f in LONG_FUNCTIONS if f not in found]
+    assert not stale, f"LONG_FUNCTIONS lists functions that are no longer over the limit: {stale}"
+
+
+def test_the_size_checks_count_what_they_say(tmp_path):
+    five = "".join(f"    x{i} = {i}\n" for i in range(5))
+    text = ('def short():\n    """Doc\n\n    more doc\n    """\n' + five + "\n\n"
+            "class A:\n    def long(self):\n" + textwrap.indent(five + five, "    "))
+    (tmp_path / "m.py").write_text(text)
+    assert long_functions(tmp_path / "m.py", tmp_path, 6) == {"m.py:A.long": 11}
+    assert long_functions(tmp_path / "m.py", tmp_path, 5) == {"m.py:short": 6, "m.py:A.long": 11}
 
 
 # --------------------------------------------------------------------------- the checker itself

@@ -95,7 +95,7 @@ class ProcessParams(BaseModel):
         colours agree (:func:`pipeline.photo_refine.refine_surface`): the hull's excess in
         concavities that two cameras see is carved. Surfaces from fused depth are not refined.
     spine : dict
-        Options of :class:`pipeline.spine.SpineParams`.
+        Options of :class:`pipeline.frame_skeleton.SpineParams`.
     track : TrackParams
         Options of the ``track`` step. They change the tracking alone: a run with other ones
         tracks again (``tracked/track.json`` says what changed) and keeps every other result.
@@ -168,7 +168,7 @@ def check_params(params: ProcessParams | dict | None) -> ProcessParams:
     elif not isinstance(params, ProcessParams):
         raise ValueError(f"params must be ProcessParams or a dict, got {type(params).__name__}")
     try:
-        from pipeline.spine import SpineParams
+        from pipeline.frame_skeleton import SpineParams
 
         SpineParams(**params.spine)
     except ValidationError as exc:

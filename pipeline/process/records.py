@@ -34,8 +34,8 @@ def skeleton_record(k: int, mesh, params, *, bodies: int | None = None) -> dict:
     ``None`` unless ``ok``) or ``reason``. The mesh is taken as
     :func:`pipeline.meshio.load_mesh` reads it back (its largest connected part); with
     ``bodies == 1`` (the surface's quality counted its pieces) it is that part already."""
+    from pipeline.frame_skeleton import frame_skeleton
     from pipeline.geodesic import largest_component
-    from pipeline.spine import frame_skeleton
 
     if mesh is None:
         return {"index": int(k), "status": "empty", "skeleton": None}
@@ -52,7 +52,7 @@ def skeleton_record(k: int, mesh, params, *, bodies: int | None = None) -> dict:
 
 
 _TIP_FIELDS = ("seed", "nodes", "parent", "cost", "frame", "count", "level", "tip_nodes")
-_ALT_FIELDS = ("tip", "point", "vertex", "limb_points", "rings", "alt_rings")  # pipeline.spine.Alternate
+_ALT_FIELDS = ("tip", "point", "vertex", "limb_points", "rings", "alt_rings")  # pipeline.frame_skeleton.Alternate
 # format of a ``skeletons/`` record; 2: with the alternates. A record of another format (or none:
 # written before alternates existed, which reads as "no alternates") is recomputed on a resume.
 SKELETON_FORMAT = 2
@@ -82,7 +82,7 @@ def skeleton_bytes(rec: dict) -> bytes:
 
 def load_skeleton(path: Path) -> dict:
     """A record written by :func:`skeleton_bytes`."""
-    from pipeline.spine import FrameSkeleton
+    from pipeline.frame_skeleton import FrameSkeleton
 
     with np.load(path, allow_pickle=False) as z:
         rec = {"index": int(z["index"]), "status": str(z["status"]), "skeleton": None}

@@ -310,7 +310,9 @@ def _write_consistency(ctx: RunContext) -> None:
 
 def _step_spine(ctx: RunContext) -> None:
     """Per-frame skeletons -> ``skeletons/``, then their tips corresponded over time -> ``spine.json``."""
-    from pipeline.spine import FrameSkeleton, SpineParams, build_spine, write_spine
+    from pipeline.frame_skeleton import FrameSkeleton, SpineParams
+    from pipeline.spine import build_spine
+    from pipeline.spine_format import write_spine
 
     n = ctx.n_sets
     if any(not (ctx.out / "frames" / f"{frame_name(k)}.json").exists() for k in range(n)):

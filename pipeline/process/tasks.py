@@ -217,9 +217,9 @@ def surface_task(
     """
     from contextlib import nullcontext
 
+    from pipeline.frame_skeleton import SpineParams
     from pipeline.hull import EmptyHullError
     from pipeline.results import ResultsStore, ply_bytes
-    from pipeline.spine import SpineParams
     from pipeline.surface import EmptySurfaceError, surface_quality
     from stage.store import TakeReader
 
@@ -300,9 +300,9 @@ def uses_depth(p: ProcessParams, *, all_depth: bool) -> bool:
 
 def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
     """Per-frame tips and skeletons of some frames' stored meshes -> ``skeletons/``."""
+    from pipeline.frame_skeleton import SpineParams
     from pipeline.meshio import load_mesh
     from pipeline.results import ResultsStore
-    from pipeline.spine import SpineParams
 
     params = SpineParams(**spine_params)
     out_dir = Path(out)

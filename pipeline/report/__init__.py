@@ -273,7 +273,7 @@ def _read_results(d: Path):
         raise NothingToReportError(f"{d} has neither spine.json nor report.json: run `stage process` first")
     spine = None
     if has_spine:
-        from pipeline.spine import read_spine
+        from pipeline.spine_format import read_spine
 
         spine = read_spine(d / "spine.json")
     return spine, report

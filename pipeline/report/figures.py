@@ -1,7 +1,7 @@
 """Plotly figures and images of a processed take (reusable by the report and the API pages).
 
 Every function takes plain data (a :class:`~calib.calibration.Calibration`, a
-:class:`~pipeline.spine.Spine`, arrays, the ``report.json`` dict) and returns
+:class:`~pipeline.spine_format.Spine`, arrays, the ``report.json`` dict) and returns
 a ``plotly.graph_objects.Figure`` or an image; nothing here reads files.
 Embed a figure offline with :func:`figure_html` and :func:`plotly_js`.
 """
@@ -377,7 +377,7 @@ def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: 
 
     Parameters
     ----------
-    spine : pipeline.spine.Spine
+    spine : pipeline.spine_format.Spine
     mesh : (vertices (V, 3), faces (F, 3)), optional
         A static surface (e.g. the reference frame's mesh), drawn semi-transparent.
     model : pipeline.armature_spine.RiggedModel, optional

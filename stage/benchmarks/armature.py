@@ -94,7 +94,7 @@ def _truth_cow(root):
     motion, estimated from the vertices nearest to it, best predicts the vertex over the poses)."""
     from pipeline.armature import load_sequence
     from pipeline.armature_score import articulation_bends
-    from pipeline.motion_segmentation import rigid_motions
+    from pipeline.rigid_parts import rigid_motions
 
     d = root / "cow_poses"
     V, F, _ = load_sequence(sorted(d.glob("cow-*.obj")))

@@ -95,7 +95,7 @@ def _own_key(images: np.ndarray, plates: np.ndarray, rig: dict) -> dict[int, tup
 def _own_reconstruct(take: Path, out: Path) -> dict:
     """Per set: hull + surface on the process's grid and masks, then skeletons; and the reduce step."""
     from pipeline.consistency import silhouette_consistency
-    from pipeline.spine import SpineParams, frame_skeleton
+    from pipeline.frame_skeleton import SpineParams, frame_skeleton
     from pipeline.surface import surface_from_occupancy
 
     p, grid, carver, masks = _surface_inputs(take, out, None)
@@ -195,7 +195,7 @@ def _surface_inputs(take, out: Path, sets: list[int] | None):
 
 def _load_surface_part(take: str, out: Path, sets: list[int]):
     from pipeline.consistency import silhouette_consistency
-    from pipeline.spine import SpineParams, frame_skeleton
+    from pipeline.frame_skeleton import SpineParams, frame_skeleton
     from pipeline.surface import surface_from_occupancy
 
     p, grid, carver, masks = _surface_inputs(take, out, sets)

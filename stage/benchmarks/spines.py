@@ -85,7 +85,8 @@ def _skeletor_rows(v, f, truth, size):
 def run(args: argparse.Namespace) -> int:
     from fake_cameras.creatures import make_creature
     from pipeline.correspond import correspond_tips
-    from pipeline.spine import build_spine, frame_skeleton
+    from pipeline.frame_skeleton import frame_skeleton
+    from pipeline.spine import build_spine
 
     creature = make_creature("quadruped")
     pose = creature.pose(0.0)

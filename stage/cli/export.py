@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
             d, out=args.out, reference=args.reference, segments=args.segments, include_spine=not args.no_spine_tubes
         )
     else:
-        from pipeline.spine import read_spine
+        from pipeline.spine_format import read_spine
 
         if not (d / "spine.json").is_file():
             raise NoSpineError(f"{d} has no spine.json yet: run the spine stage (`stage process`) before exporting")

@@ -34,8 +34,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Also the implementation of ``stage process --meshes`` (which has no --bins/--min-protrusion)."""
+    from pipeline.frame_skeleton import SpineParams
     from pipeline.meshio import mesh_paths
-    from pipeline.spine import SpineParams, spine_from_meshes, write_spine
+    from pipeline.spine import spine_from_meshes
+    from pipeline.spine_format import write_spine
 
     paths = mesh_paths(args.meshes)
     given = {"n_bins": getattr(args, "bins", None), "min_protrusion": getattr(args, "min_protrusion", None)}

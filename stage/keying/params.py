@@ -7,6 +7,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from calib.fileio import plain
+
 __all__ = ["KEY_MODES", "KEY_LAYERS", "FILL_HOLES", "PLATE_CLOSE_RELATIVE", "KeyMode", "KeyParams", "KeyResult", "KeyingError"]
 
 KeyMode = Literal["chroma", "luma", "plate"]
@@ -183,7 +185,7 @@ class KeyParams:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serializable dict (numpy values converted to lists/floats)."""
-        return _jsonable(asdict(self))
+        return plain(asdict(self))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "KeyParams":
@@ -193,18 +195,6 @@ class KeyParams:
         if unknown:
             raise ValueError(f"KeyParams: unknown keys {unknown}")
         return cls(**data)
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
 
 
 @dataclass(frozen=True, eq=False)

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+
+from calib.fileio import json_default
 
 try:  # registers the Blosc/LZ4 filters with HDF5 (optional extra ``capture-stage[fast]``)
     import hdf5plugin
@@ -94,23 +95,7 @@ class CameraSpec:
 
 
 def to_json(obj: Any) -> str:
-    return json.dumps(obj, sort_keys=True, default=_json_default)
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, Path):
-        return str(o)
-    if hasattr(o, "model_dump"):
-        return o.model_dump(mode="json")
-    if hasattr(o, "to_dict"):
-        return o.to_dict()
-    raise TypeError(f"not JSON-serializable: {type(o).__name__}")
+    return json.dumps(obj, sort_keys=True, default=json_default)
 
 
 def attr_value(v: Any) -> Any:

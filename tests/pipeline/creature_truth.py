@@ -12,7 +12,7 @@ import functools
 import numpy as np
 
 from fake_cameras.creatures import make_creature
-from pipeline.spine import Spine
+from pipeline.spine_format import Spine
 
 FPS = 30.0
 

@@ -138,7 +138,7 @@ def horse(tmp_path_factory):
 def test_horse_legs_have_two_segments(horse):
     from scipy.spatial import cKDTree
 
-    from pipeline.spine import frame_skeleton
+    from pipeline.frame_skeleton import frame_skeleton
 
     V, F, rig, _ = horse
     rest = V[rig.reference]

@@ -12,7 +12,7 @@ import trimesh
 
 from pipeline.armature_spine import armature_from_spine, rigged_model
 from pipeline.gltf_export import NoSpineError, armature_to_glb, export_rig, find_frame_mesh, spine_to_glb, spine_tubes
-from pipeline.spine import write_spine
+from pipeline.spine_format import write_spine
 from tests.pipeline.creature_truth import FPS, creature_size, creature_take, surface, true_spine
 
 FRAMES = 12

@@ -11,11 +11,10 @@ from pipeline.motion_segmentation import (
     check_sequence,
     interval_length,
     motion_segmentation,
-    rigid_motions,
-    rigid_residual,
     spectral_clusters,
     trajectory_distances,
 )
+from pipeline.rigid_parts import rigid_motions, rigid_residual
 from tests.pipeline.shapes import two_bars
 
 
@@ -139,7 +138,8 @@ def test_two_hinged_parts_are_two_segments():
 
 def test_a_segment_that_does_not_move_rigidly_is_cut_at_its_joint():
     """The hinged bar as one label: the normalised cut of its samples splits it at the hinge; a rigid bar stays."""
-    from pipeline.motion_segmentation import _sample_normals, _split_nonrigid, sample_vertices
+    from pipeline.motion_segmentation import _sample_normals, sample_vertices
+    from pipeline.rigid_parts import _split_nonrigid
 
     V, F, right = two_bars()
     size = float(np.linalg.norm(np.ptp(V[0], axis=0)))

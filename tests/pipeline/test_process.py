@@ -194,8 +194,9 @@ def test_support_plane_and_margin_reach_the_carver(tmp_path):
 def _reference_results(sim, tmp_path, params: ProcessParams, grid_dict: dict):
     """The plain path, one call per part: key_take, then per frame set carve -> surface ->
     skeleton from files, then build_spine."""
+    from pipeline.frame_skeleton import SpineParams, frame_skeleton
     from pipeline.hull import HullCarver
-    from pipeline.spine import SpineParams, build_spine, frame_skeleton
+    from pipeline.spine import build_spine
     from pipeline.surface import surface_from_occupancy
     from pipeline.volume import Grid
     from stage.keying.take import key_take

@@ -24,7 +24,7 @@ from pipeline.report import (
     tip_count_figure,
     write_report,
 )
-from pipeline.spine import write_spine
+from pipeline.spine_format import write_spine
 from tests.browser import CHROMIUM, CHROMIUM_ARGS, sync_playwright_or_skip
 from tests.pipeline.creature_truth import creature_take, surface, true_spine
 

@@ -12,22 +12,12 @@ import logging
 import numpy as np
 import pytest
 
+from pipeline.correspond import NoLimbsError
+from pipeline.frame_skeleton import FrameSkeleton, SpineParams, frame_skeleton
 from pipeline.geodesic import edge_graph, geodesic_distance, mesh_edges, vertex_areas
 from pipeline.meshio import load_mesh, mesh_paths
-from pipeline.spine import (
-    FORMAT,
-    FrameSkeleton,
-    NoLimbsError,
-    Spine,
-    SpineFormatError,
-    SpineParams,
-    build_spine,
-    frame_skeleton,
-    read_spine,
-    spine_from_meshes,
-    validate_spine_dict,
-    write_spine,
-)
+from pipeline.spine import build_spine, spine_from_meshes
+from pipeline.spine_format import FORMAT, Spine, SpineFormatError, read_spine, validate_spine_dict, write_spine
 from tests.conftest import shared_dataset
 
 FPS = 30.0
@@ -353,8 +343,8 @@ def forked_take(frames=8):
 def test_limb_with_near_equal_maxima_keeps_its_most_consistent_tip():
     """Each frame's highest bump swaps; the spine keeps bump A (the one still in the limb's frame) in
     every frame, and an alternate standing in equals the frame computed with it as the tip."""
+    from pipeline.frame_skeleton import LIMB_FRACTIONS, with_alternates
     from pipeline.skeleton import grow_skeleton, limb_points
-    from pipeline.spine import LIMB_FRACTIONS, _stand_in
 
     meshes = forked_take()
     frames = [frame_skeleton(v, f) for v, f in meshes]
@@ -371,7 +361,7 @@ def test_limb_with_near_equal_maxima_keeps_its_most_consistent_tip():
         v, f = meshes[t]
         fr = frames[t]
         alt = fr.alternates[0]
-        got = _stand_in(fr, [0])
+        got = with_alternates(fr, [0])
         e = mesh_edges(f)
         tips = fr.tip_vertices.copy()
         tips[alt.tip] = alt.vertex

@@ -14,6 +14,7 @@ import pytest
 import trimesh
 
 from pipeline.extremities import find_extremities, local_maxima, protrudes
+from pipeline.frame_skeleton import SpineParams, frame_skeleton
 from pipeline.geodesic import (
     average_geodesic_distance,
     cluster_vertices,
@@ -22,7 +23,6 @@ from pipeline.geodesic import (
     proxy_average_geodesic_distance,
     vertex_areas,
 )
-from pipeline.spine import SpineParams, frame_skeleton
 from tests.conftest import shared_dataset
 
 TIP_TOL = 0.03  # tip shift, fraction of sqrt(surface area)

@@ -12,7 +12,8 @@ import pytest
 
 from fake_cameras.creatures import make_creature
 from pipeline.correspond import correspond_tips
-from pipeline.spine import build_spine, frame_skeleton
+from pipeline.frame_skeleton import frame_skeleton
+from pipeline.spine import build_spine
 
 T = 18
 VOXEL = 9.0

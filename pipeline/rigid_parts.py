@@ -1,0 +1,280 @@
+"""Rigid parts of a mesh sequence: rigid motions of vertex groups, and a segmentation refined into rigid parts.
+
+:func:`rigid_motions` gives a group of vertices' best rigid motion (Kabsch) from a reference frame to
+every frame, :func:`rigid_residual` how far the group is from moving rigidly, :func:`relative_bend`
+how far two groups turn against each other. The motion segmentation (:mod:`pipeline.motion_segmentation`,
+Tzionas & Gall 2016, section 4.1) refines its spectral clusters with them, in steps the paper is
+silent on (the reasons: that module's docstring): segments that move as one rigid body are merged
+(``_merge_rigid``), a segment that does not move rigidly is cut by the normalised cut of its samples
+(``_split_nonrigid``), and what does not move with a segment's rigid core is peeled off
+(``_peel_nonrigid``); those three are the segmentation's steps, not an API.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+__all__ = ["rigid_motions", "rigid_residual", "relative_bend"]
+
+def rigid_motions(points, *, reference: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The best rigid motion of a point set from one frame to every frame, all frames at once.
+
+    Least squares (Arun et al. 1987; the reflection case corrected), batched over frames:
+    one SVD of a 3x3 matrix per frame.
+
+    Parameters
+    ----------
+    points : (T, n, 3) float array_like
+        The same ``n`` points in ``T`` frames.
+    reference : int
+        The frame the motions start from.
+
+    Returns
+    -------
+    R : (T, 3, 3) float ndarray
+        Rotations (det +1).
+    t : (T, 3) float ndarray
+        ``points[k] ~ points[reference] @ R[k].T + t[k]``.
+    """
+    Y = np.asarray(points, dtype=np.float64)
+    if Y.ndim != 3 or Y.shape[2] != 3 or Y.shape[1] == 0:
+        raise ValueError(f"points must have shape (T, n, 3) with n >= 1, got {Y.shape}")
+    if isinstance(reference, bool) or not isinstance(reference, (int, np.integer)) or not 0 <= reference < len(Y):
+        raise ValueError(f"reference must be a frame index within 0..{len(Y) - 1}, got {reference!r}")
+    c = Y.mean(1)
+    Rt = _rotations_from(Y - c[:, None], int(reference))
+    R = Rt.transpose(0, 2, 1)
+    return R, c - np.einsum("tij,j->ti", R, c[reference])
+
+
+def _rotations_from(Yc: np.ndarray, reference: int) -> np.ndarray:
+    """(T, 3, 3) ``Q`` with ``Yc[reference] @ Q[k] ~ Yc[k]`` for centred point sets ``Yc`` (T, n, 3)."""
+    H = np.matmul(Yc[reference].T[None], Yc)  # (T, 3, 3)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.matmul(U, Vt)))
+    U[:, :, 2] *= d[:, None]
+    return np.matmul(U, Vt)
+
+
+def rigid_residual(points, groups=None) -> float:
+    """How far a set of trajectories is from one rigid motion.
+
+    Parameters
+    ----------
+    points : (T, n, 3) float ndarray
+    groups : (n,) int array_like, optional
+        Group of every point: the result is the largest over the groups of
+        their median residual, so a few stray points (labels propagated
+        across a boundary) do not hide a rigid union, and a small group that
+        moves on its own is not outvoted by a large one.
+
+    Returns
+    -------
+    float
+        The largest (over frames) RMS distance (median per group when
+        ``groups`` is given) after the best rigid transform from frame 0
+        (:func:`rigid_motions`).
+    """
+    Y = np.asarray(points, dtype=np.float64)
+    Y = Y - Y.mean(1, keepdims=True)
+    X = Y[0]
+    res = np.sqrt(((np.matmul(X[None], _rotations_from(Y, 0)) - Y) ** 2).sum(2))  # (T, n)
+    if groups is None:
+        return float(np.sqrt((res**2).mean(1)).max())
+    g = np.asarray(groups)
+    return float(max(np.median(res[:, g == k], axis=1).max() for k in np.unique(g)))
+
+
+def _some_frames(T: int, most: int = 120) -> np.ndarray:
+    """At most ``most`` evenly spaced frame positions (rigidity of smooth motion, checked on long sequences)."""
+    return np.unique(np.linspace(0, T - 1, min(int(T), most)).round().astype(np.int64))
+
+
+def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, per_segment: int = 400,
+                 min_edges: int = 3) -> np.ndarray:
+    """Merge adjacent segments whose union still moves rigidly (residual below ``tol``)."""
+    rng = np.random.default_rng(0)
+    lab = labels.copy()
+    vf = v[_some_frames(len(v))]  # gathered once: the rows of a segment are then one take
+    members = {int(s): np.flatnonzero(lab == s) for s in np.unique(lab)}
+    pick = {s: (m if len(m) <= per_segment else rng.choice(m, per_segment, replace=False)) for s, m in members.items()}
+
+    def adjacent_pairs():
+        la, lb = lab[edges[:, 0]], lab[edges[:, 1]]
+        c = la != lb
+        lo, hi = np.minimum(la[c], lb[c]), np.maximum(la[c], lb[c])
+        m = int(lab.max()) + 1
+        keys, counts = np.unique(lo * m + hi, return_counts=True)  # one integer per pair: a 1-D unique
+        return {(int(k // m), int(k % m)) for k, n in zip(keys, counts) if n >= min_edges}
+
+    cache: dict = {}
+    while True:
+        pairs = adjacent_pairs()
+        if not pairs:
+            break
+        for pr in pairs:
+            if pr not in cache:
+                ids = np.r_[pick[pr[0]], pick[pr[1]]]
+                grp = np.r_[np.zeros(len(pick[pr[0]])), np.ones(len(pick[pr[1]]))]
+                cache[pr] = rigid_residual(vf[:, ids], grp)
+        best = min(pairs, key=lambda pr: cache[pr])
+        if cache[best] >= tol:
+            break
+        a, b = best
+        lab[lab == b] = a
+        both = np.r_[pick[a], pick[b]]
+        pick[a] = both if len(both) <= per_segment else rng.choice(both, per_segment, replace=False)
+        pick.pop(b)
+        cache = {pr: r for pr, r in cache.items() if a not in pr and b not in pr}
+    return lab
+
+
+def _best_cut(A: np.ndarray, near: np.ndarray, ids: np.ndarray, residual, min_size: int, cuts: int = 19):
+    """The normalised cut of a segment's samples (a sweep of the Fiedler vector, Shi & Malik 2000) whose
+    halves move most rigidly; ``None`` when no cut leaves both halves ``min_size`` vertices.
+
+    Returns (len(ids),) 0/1 side of every vertex (its nearest sample's).
+    """
+    d = A.sum(1)
+    s = 1.0 / np.sqrt(np.maximum(d, 1e-300))
+    _, U = np.linalg.eigh(np.eye(len(A)) - s[:, None] * A * s[None, :])
+    fiedler = U[:, 1] * s  # the generalised eigenvector of (D - A, D)
+    best, best_res = None, np.inf
+    for q in np.linspace(0.05, 0.95, int(cuts)):
+        side = (fiedler > np.quantile(fiedler, q)).astype(np.int64)[near]
+        if min(int((side == 0).sum()), int((side == 1).sum())) < min_size:
+            continue
+        r = max(residual(ids[side == 0]), residual(ids[side == 1]))
+        if r < best_res:
+            best, best_res = side, r
+    return best
+
+
+def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: np.ndarray, tol: float, *,
+                    min_size: int, seed: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6) -> np.ndarray:
+    """Split segments that do not move rigidly in two, recursively (the spectral cut of their own samples).
+
+    The eigenvalue count ``k`` spends clusters on large parts and can leave a
+    small part fused to its neighbour (a tail on a body); a segment whose
+    rigid residual exceeds ``tol`` is cut in two along the Fiedler vector of
+    its samples' affinities (:func:`_best_cut`) when that leaves both halves
+    at most ``gain`` of its residual -- a joint inside it, not a
+    smooth deformation. Halves below ``min_size`` vertices are not made.
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    lab = labels.copy()
+    vf = v[_some_frames(len(v))]
+
+    def residual(ids):
+        if len(ids) > per_segment:
+            ids = rng.choice(ids, per_segment, replace=False)
+        return rigid_residual(vf[:, ids])
+
+    todo = [(int(x), 0) for x in np.unique(lab)]
+    while todo:
+        sgm, level = todo.pop()
+        ids = np.flatnonzero(lab == sgm)
+        own = samples[lab[samples] == sgm]
+        if level >= depth or len(own) < 8 or len(ids) < 2 * min_size:
+            continue
+        parent = residual(ids)
+        if parent <= tol:
+            continue
+        pos = np.searchsorted(samples, own) if np.all(np.diff(samples) > 0) else None
+        sub = np.flatnonzero(np.isin(samples, own)) if pos is None else pos
+        _, near = cKDTree(v[0, own]).query(v[0, ids])
+        side = _best_cut(A[np.ix_(sub, sub)], near, ids, residual, min_size)
+        if side is None or max(residual(ids[side == 0]), residual(ids[side == 1])) > gain * parent:
+            continue
+        new = int(lab.max()) + 1
+        lab[ids[side == 1]] = new
+        todo += [(sgm, level + 1), (new, level + 1)]
+    return lab
+
+
+def relative_bend(motion_a, motion_b, *, most: int = 60) -> float:
+    """Degrees two parts turn against each other: the largest angle between their relative rotations
+    in any two frames (at most ``most`` evenly spaced frames).
+
+    Parameters
+    ----------
+    motion_a, motion_b : tuple of (T, 3, 3) and (T, 3) float ndarray
+        ``x_t = R_t x + t_t`` of each part.
+    """
+    Ra, Rb = np.asarray(motion_a[0], dtype=np.float64), np.asarray(motion_b[0], dtype=np.float64)
+    if Ra.shape != Rb.shape or Ra.ndim != 3 or Ra.shape[1:] != (3, 3):
+        raise ValueError(f"motions must hold (T, 3, 3) rotations of one length, got {Ra.shape} and {Rb.shape}")
+    sel = np.unique(np.linspace(0, len(Ra) - 1, min(len(Ra), int(most))).round().astype(np.int64))
+    Rr = np.matmul(Ra[sel].transpose(0, 2, 1), Rb[sel])
+    cos = (np.einsum("aij,bij->ab", Rr, Rr) - 1.0) / 2.0  # trace(Rr_a^T Rr_b)
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)).max()))
+
+
+def _gaps(motion, Y0: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """(F, n) distances of trajectories ``Y`` (F, n, 3) from where ``motion`` carries their first positions."""
+    R, t = motion
+    d = np.matmul(Y0[None], R.transpose(0, 2, 1))  # batched BLAS: R_t y for every frame
+    d += t[:, None]
+    d -= Y
+    return np.sqrt(np.einsum("tvi,tvi->tv", d, d))
+
+
+def _core_motion(Y: np.ndarray, *, keep: float = 0.5, rounds: int = 3):
+    """The rigid motion of the most rigid ``keep`` of a point set's trajectories (trimmed least squares:
+    refit on the points the last fit explains best), from frame 0; (R (T, 3, 3), t (T, 3))."""
+    R, t = rigid_motions(Y)
+    for _ in range(rounds):
+        r = _gaps((R, t), Y[0], Y).max(0)
+        R, t = rigid_motions(Y[:, np.argsort(r)[: max(3, int(keep * len(r)))]])
+    return R, t
+
+
+def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, min_size: int,
+                   depth: int = 4, gain: float = 0.5) -> np.ndarray:
+    """Parts fused to a segment peeled off: the vertices its core motion (:func:`_core_motion`) leaves
+    more than ``tol`` away in some frame, as surface-connected patches of at least ``min_size`` vertices
+    that have a motion of their own (their own rigid residual at most ``gain`` of their residual under
+    the core's motion, the rule of :func:`_split_nonrigid`): a leg or a tail fused to the body moves
+    with its own motion, the body's core with the body's; a smooth bend is no part. Tracking noise
+    can look like such a part (``peel_parts`` of :func:`motion_segmentation`)."""
+    lab = labels.copy()
+    vf = v[_some_frames(len(v))]
+    V = len(lab)
+    settled: set = set()  # segments looked at and left as they were: the same answer next time
+    for _ in range(int(depth)):
+        changed = False
+        for sgm in np.unique(lab):
+            ids = np.flatnonzero(lab == sgm)
+            if len(ids) < 2 * min_size or int(sgm) in settled:
+                continue
+            settled.add(int(sgm))
+            Y = vf[:, ids].astype(np.float64)
+            R, t = _core_motion(Y)
+            gap = _gaps((R, t), Y[0], Y)  # (frames, vertices)
+            off = gap.max(0) > tol
+            where = np.full(V, -1)
+            where[ids] = np.arange(len(ids))
+            if off.sum() < min_size or (~off).sum() < min_size:
+                continue
+            mask = np.zeros(V, bool)
+            mask[ids[off]] = True
+            e = edges[mask[edges[:, 0]] & mask[edges[:, 1]]]
+            _, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(V, V)),
+                                           directed=False)
+            sizes = np.bincount(comp[mask], minlength=comp.max() + 1)
+            for c in np.flatnonzero(sizes >= min_size):
+                patch = np.flatnonzero(mask & (comp == c))
+                some = patch[:: max(1, len(patch) // 400)]
+                under_core = float(np.sqrt((gap[:, where[some]] ** 2).mean(1)).max())
+                if rigid_residual(vf[:, some]) > gain * under_core:
+                    continue  # no motion of its own (a smooth bend, a blend between two parts)
+                lab[patch] = int(lab.max()) + 1
+                settled.discard(int(sgm))
+                changed = True
+        if not changed:
+            break
+    return lab
