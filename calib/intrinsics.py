@@ -407,26 +407,12 @@ def calibrate_intrinsics(
         raise ValueError(f"distortion must be one of {DISTORTION_MODES}, got {distortion!r}")
     sigmas = _check_sigma(DISTORTION_SIGMA if distortion_sigma is None else distortion_sigma)
     dets = _usable_views(detections, name, min_views, max_views)
-    flags = 0
-    if fix_aspect_ratio:
-        flags |= cv2.CALIB_FIX_ASPECT_RATIO
-    if fix_k3:
-        flags |= cv2.CALIB_FIX_K3
-    if zero_tangent:
-        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    flags = _cv_flags(fix_aspect_ratio=fix_aspect_ratio, fix_k3=fix_k3, zero_tangent=zero_tangent)
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 
     def solve(views: list[Detection]):
         objp, imgp = _object_image_points(views, board)
-        if K_guess is not None:
-            K0 = np.asarray(K_guess, dtype=np.float64).reshape(3, 3).copy()
-            fl = flags | cv2.CALIB_USE_INTRINSIC_GUESS
-        elif fix_aspect_ratio:
-            K0 = np.eye(3)
-            fl = flags
-        else:
-            K0 = _initial_K(objp, imgp, size)
-            fl = flags | cv2.CALIB_USE_INTRINSIC_GUESS
+        K0, fl = _start(K_guess, objp, imgp, size, flags, fix_aspect_ratio=fix_aspect_ratio)
         out = cv2.calibrateCameraExtended(objp, imgp, size, K0, np.zeros(5), flags=fl, criteria=criteria)
         rms, K, dist, rvecs, tvecs, std_in, _std_ex, per_view = out
         return rms, K, dist.ravel()[:5], rvecs, tvecs, std_in.ravel(), per_view.ravel()
@@ -442,13 +428,8 @@ def calibrate_intrinsics(
     else:
         zcov = _zhang_covariance(kept, board, K, dist, rvecs, tvecs, fixed)
     cov = coverage_fraction(np.concatenate([d.corners for d in kept], axis=0), size)
-    std = {
-        "fx": float(std_in[0]),
-        "fy": float(std_in[1]),
-        "cx": float(std_in[2]),
-        "cy": float(std_in[3]),
-        "dist": np.asarray(std_in[4:9], dtype=np.float64),
-    }
+    std = {"fx": float(std_in[0]), "fy": float(std_in[1]), "cx": float(std_in[2]), "cy": float(std_in[3]),
+           "dist": np.asarray(std_in[4:9], dtype=np.float64)}
     warnings = _warnings(name, len(kept), cov, std_in, std["fx"] / K[0, 0])
     for w in warnings:
         log.debug(w)  # in the result's warnings / report
@@ -475,6 +456,32 @@ def calibrate_intrinsics(
         covariance=zcov,
         held=fixed,
     )
+
+
+def _start(K_guess, objp, imgp, size, flags: int, *, fix_aspect_ratio: bool) -> tuple[np.ndarray, int]:
+    """The camera matrix OpenCV starts from and the flags that say so: the caller's guess, else the
+    identity when the aspect ratio is held (OpenCV's own start), else Zhang's closed form."""
+    import cv2
+
+    if K_guess is not None:
+        return np.asarray(K_guess, dtype=np.float64).reshape(3, 3).copy(), flags | cv2.CALIB_USE_INTRINSIC_GUESS
+    if fix_aspect_ratio:
+        return np.eye(3), flags
+    return _initial_K(objp, imgp, size), flags | cv2.CALIB_USE_INTRINSIC_GUESS
+
+
+def _cv_flags(*, fix_aspect_ratio: bool, fix_k3: bool, zero_tangent: bool) -> int:
+    """OpenCV's calibration flags for the terms held."""
+    import cv2
+
+    flags = 0
+    if fix_aspect_ratio:
+        flags |= cv2.CALIB_FIX_ASPECT_RATIO
+    if fix_k3:
+        flags |= cv2.CALIB_FIX_K3
+    if zero_tangent:
+        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    return flags
 
 
 def _check_sigma(sigma) -> np.ndarray:

@@ -356,7 +356,11 @@ class _Scene:
         self.background *= self.vignette[:, :, None]
         self.key = _unit(bd.key_light)
         self.fill = _unit(bd.fill_light)
-        # image tiles: pixel indices (padded by repetition), centre ray and angular radius
+        self._tile_rays(w, h)
+        self._floor_in_light_space(w, h)
+
+    def _tile_rays(self, w: int, h: int) -> None:
+        """Image tiles: pixel indices (padded by repetition), centre ray and angular radius."""
         ts = _TILE
         ty, tx = -(-h // ts), -(-w // ts)
         grid = np.pad(np.arange(h * w).reshape(h, w), ((0, ty * ts - h), (0, tx * ts - w)), mode="edge")
@@ -366,7 +370,9 @@ class _Scene:
         tc /= np.linalg.norm(tc, axis=1, keepdims=True)
         self.tile_dir = tc
         self.tile_ang = np.arccos(np.clip(np.einsum("tpk,tk->tp", td, tc).min(1), -1.0, 1.0)) + 1e-6
-        # the floor in light space (orthographic along the key light), per pixel and per tile
+
+    def _floor_in_light_space(self, w: int, h: int) -> None:
+        """The floor in light space (orthographic along the key light), per pixel and per tile."""
         e1 = np.cross(self.key, [0.0, 0.0, 1.0] if abs(self.key[2]) < 0.9 else [1.0, 0.0, 0.0])
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(self.key, e1)

@@ -281,19 +281,8 @@ def simulate_take(
         volume=volume, n_cameras=n_cameras, size=size, seed=seed, distortion=distortion,
         calibration=calibration, backdrop=backdrop,
     )
-    creature = None
-    if subject != "empty":
-        creature = make_creature(
-            subject, scale=scale, seed=seed, tuck=tuck, spur=spur, origin=(vol.center[0], vol.center[1])
-        )
     times = np.arange(int(frames), dtype=np.float64) / fps_f
-    poses = [creature.pose(t) for t in times] if creature is not None else [None] * int(frames)
-    if travel is not None and creature is not None:
-        dx, dy = (float(v) for v in travel)
-        u = np.linspace(-0.5, 0.5, int(frames)) if frames > 1 else np.zeros(1)
-        poses = [make_creature(subject, scale=scale, seed=seed, tuck=tuck, spur=spur,
-                               origin=(vol.center[0] + a * dx, vol.center[1] + a * dy)).pose(t)
-                 for a, t in zip(u, times)]
+    creature, poses = _creature_poses(subject, times, vol, scale=scale, seed=seed, tuck=tuck, spur=spur, travel=travel)
     limb_names = tuple(creature.names) if creature is not None else ()
     params = dict(
         subject=subject,
@@ -335,6 +324,22 @@ def simulate_take(
         volume=vol,
         params=params,
     )
+
+
+def _creature_poses(subject: str, times: np.ndarray, vol: Volume, *, scale, seed, tuck, spur, travel):
+    """The creature standing at the volume's centre and its pose at every time (``travel``: walking
+    across the floor, its path centred there); ``(None, [None, ...])`` for the empty stage."""
+    if subject == "empty":
+        return None, [None] * len(times)
+    creature = make_creature(subject, scale=scale, seed=seed, tuck=tuck, spur=spur, origin=(vol.center[0], vol.center[1]))
+    if travel is None:
+        return creature, [creature.pose(t) for t in times]
+    dx, dy = (float(v) for v in travel)
+    u = np.linspace(-0.5, 0.5, len(times)) if len(times) > 1 else np.zeros(1)
+    poses = [make_creature(subject, scale=scale, seed=seed, tuck=tuck, spur=spur,
+                           origin=(vol.center[0] + a * dx, vol.center[1] + a * dy)).pose(t)
+             for a, t in zip(u, times)]
+    return creature, poses
 
 
 # -- the studio and the cache, shared by every kind of simulated take ------------------

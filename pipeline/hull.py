@@ -473,52 +473,61 @@ class HullCarver:
         above = None if support_plane is None else self._above(support_plane)
         use, ignored = _usable(ms, self.calibration)
         k, mv = _check_options(tolerance, min_views, len(use))
-        ext = []
-        for i in use:
-            e = np.empty(ms[i].size + 1, dtype=np.uint8)
-            e[:-1] = ms[i].ravel()
-            e[-1] = 2  # sentinel: voxel not seen by this camera
-            ext.append(e)
-        f3 = self._fine**3
-        nfb = self._lut.shape[1]
         stats: dict[str, Any] = {"blocks": []}
-        full_blocks: list[tuple[int, np.ndarray]] = []
         if coarse_to_fine and self._levels:
-            import cv2
-
-            integ = [cv2.integral(ms[i].view(np.uint8)).ravel() for i in use]
-            widths = [self.calibration[i].size[0] + 1 for i in use]
-            active = np.arange(int(np.prod(self._levels[0].dims)), dtype=np.int64)
-            for li, L in enumerate(self._levels):
-                stats["blocks"].append(int(active.size))
-                if active.size == 0:
-                    break
-                n_lo = np.zeros(active.size, dtype=np.int16)
-                n_hi = np.zeros(active.size, dtype=np.int16)
-                s_lo = np.zeros(active.size, dtype=np.int16)
-                s_hi = np.zeros(active.size, dtype=np.int16)
-                for j, i in enumerate(use):
-                    S = integ[j]
-                    i00 = L.i00[i, active]
-                    du = L.du[i, active].astype(np.int32)
-                    dv = L.dv[i, active].astype(np.int32) * widths[j]
-                    cnt = S[i00 + dv + du] - S[i00 + du] - S[i00 + dv] + S[i00]
-                    area = du * (dv // widths[j])
-                    va = L.vis_all[i, active]
-                    n_lo += va & (cnt == 0)
-                    n_hi += cnt < area
-                    s_lo += va
-                    s_hi += L.vis_any[i, active]
-                empty = (n_lo > k) | (s_hi < mv)
-                full = ~empty & (n_hi <= k) & (s_lo >= mv)
-                amb = ~(empty | full)
-                full_blocks.append((li, active[full]))
-                nxt = active[amb]
-                active = self._children(nxt, li)
-            fine_blocks = active
+            full_blocks, fine_blocks = self._sort_blocks(ms, use, k, mv, stats)
         else:
-            fine_blocks = np.arange(nfb, dtype=np.int64)
-        stats["refined"] = int(fine_blocks.size * f3)
+            full_blocks, fine_blocks = [], np.arange(self._lut.shape[1], dtype=np.int64)
+        stats["refined"] = int(fine_blocks.size * self._fine**3)
+        occ = self._occupancy(ms, use, k, mv, full_blocks, fine_blocks)
+        if above is not None:
+            occ &= above
+        n = int(np.count_nonzero(occ))
+        stats["voxels"] = n
+        if n == 0:
+            raise EmptyHullError("every voxel was carved: the silhouettes do not agree on any region")
+        return HullResult(occupancy=occ, grid=self.grid, ignored=ignored, stats=stats)
+
+    def _sort_blocks(self, ms, use, k: int, mv: int, stats: dict) -> tuple[list[tuple[int, np.ndarray]], np.ndarray]:
+        """Coarse to fine: every block that all its pixels' counts say is empty is dropped, one they say
+        is full is kept whole (``(level, blocks)`` pairs), the rest are refined; -> those and the finest
+        blocks left to carve voxel by voxel."""
+        import cv2
+
+        integ = [cv2.integral(ms[i].view(np.uint8)).ravel() for i in use]
+        widths = [self.calibration[i].size[0] + 1 for i in use]
+        active = np.arange(int(np.prod(self._levels[0].dims)), dtype=np.int64)
+        full_blocks: list[tuple[int, np.ndarray]] = []
+        for li, L in enumerate(self._levels):
+            stats["blocks"].append(int(active.size))
+            if active.size == 0:
+                break
+            n_lo = np.zeros(active.size, dtype=np.int16)
+            n_hi = np.zeros(active.size, dtype=np.int16)
+            s_lo = np.zeros(active.size, dtype=np.int16)
+            s_hi = np.zeros(active.size, dtype=np.int16)
+            for j, i in enumerate(use):
+                S = integ[j]
+                i00 = L.i00[i, active]
+                du = L.du[i, active].astype(np.int32)
+                dv = L.dv[i, active].astype(np.int32) * widths[j]
+                cnt = S[i00 + dv + du] - S[i00 + du] - S[i00 + dv] + S[i00]
+                area = du * (dv // widths[j])
+                va = L.vis_all[i, active]
+                n_lo += va & (cnt == 0)
+                n_hi += cnt < area
+                s_lo += va
+                s_hi += L.vis_any[i, active]
+            empty = (n_lo > k) | (s_hi < mv)
+            full = ~empty & (n_hi <= k) & (s_lo >= mv)
+            amb = ~(empty | full)
+            full_blocks.append((li, active[full]))
+            nxt = active[amb]
+            active = self._children(nxt, li)
+        return full_blocks, active
+
+    def _occupancy(self, ms, use, k: int, mv: int, full_blocks, fine_blocks: np.ndarray) -> np.ndarray:
+        """The grid's occupancy: the whole blocks, and the finest blocks carved voxel by voxel."""
         P = self._pgrid.shape
         occ = np.zeros(P, dtype=bool)
         for li, blocks in full_blocks:  # whole blocks, written at their own level
@@ -527,10 +536,14 @@ class HullCarver:
                 bx, by, bz = np.unravel_index(blocks, L.dims)
                 occ.reshape(L.dims[0], L.block, L.dims[1], L.block, L.dims[2], L.block)[bx, :, by, :, bz, :] = True
         if fine_blocks.size:
+            f3 = self._fine**3
             carve = np.zeros((fine_blocks.size, f3), dtype=np.uint8)
             seen = np.zeros((fine_blocks.size, f3), dtype=np.uint8)
-            for j, i in enumerate(use):
-                v = ext[j][self._lut[i][fine_blocks]]
+            for i in use:
+                e = np.empty(ms[i].size + 1, dtype=np.uint8)
+                e[:-1] = ms[i].ravel()
+                e[-1] = 2  # sentinel: voxel not seen by this camera
+                v = e[self._lut[i][fine_blocks]]
                 carve += v == 0
                 seen += v != 2
             keep = (carve <= k) & (seen >= mv)
@@ -542,13 +555,7 @@ class HullCarver:
         nx, ny, nz = self.grid.shape
         if (nx, ny, nz) != P:
             occ = np.ascontiguousarray(occ[:nx, :ny, :nz])
-        if above is not None:
-            occ &= above
-        n = int(np.count_nonzero(occ))
-        stats["voxels"] = n
-        if n == 0:
-            raise EmptyHullError("every voxel was carved: the silhouettes do not agree on any region")
-        return HullResult(occupancy=occ, grid=self.grid, ignored=ignored, stats=stats)
+        return occ
 
     def _above(self, plane: Any) -> np.ndarray:
         key = tuple(check_plane(plane).tolist())

@@ -244,14 +244,6 @@ LONG_FUNCTIONS: dict[str, str] = {
     "calib/extrinsics.py:calibrate_extrinsics": "the rig's extrinsic calibration as one pipeline of stages "
     "sharing the views and their poses",
     "pipeline/track.py:track_rgbd_take": "the single-camera tracking driver; split with pipeline/track.py (issue 34)",
-    # not split yet (issue 34): each is a sequence of steps that can become functions of their own
-    "calib/intrinsics.py:calibrate_intrinsics": "not split yet",
-    "pipeline/hull.py:HullCarver.carve": "not split yet",
-    "pipeline/report/figures.py:spine_figure": "not split yet",
-    "fake_cameras/render.py:_Scene.__init__": "not split yet",
-    "fake_cameras/take.py:simulate_take": "not split yet",
-    "stage/cli/demo.py:run": "not split yet",
-    "stage/benchmarks/reconstruct.py:run": "not split yet",
 }
 
 

@@ -372,6 +372,49 @@ def _spine_lines(spine, t: int) -> tuple[list, list, list]:
     return xs, ys, zs
 
 
+def _fixed_scene(spine, keys, surf_v, model) -> dict:
+    """Fixed axes over the whole take (the view does not jump between frames), equal scale."""
+    pts = [a[keys].reshape(-1, 3) for a in spine.axes.values()] + [spine.tips[keys].reshape(-1, 3)]
+    if surf_v is not None:
+        pts.append(surf_v)
+    P = np.concatenate(pts)
+    P = P[np.all(np.isfinite(P), axis=1)]
+    if model is not None:
+        P = np.concatenate([P, model.deform(int(keys[0])), model.deform(int(keys[-1]))])
+    lo, hi = (P.min(0), P.max(0)) if len(P) else (np.zeros(3), np.ones(3))
+    pad = 0.08 * float(np.max(hi - lo) or 1.0)
+    lo, hi = lo - pad, hi + pad
+    span = hi - lo
+    return dict(
+        xaxis=dict(range=[lo[0], hi[0]], title="x"),
+        yaxis=dict(range=[lo[1], hi[1]], title="y"),
+        zaxis=dict(range=[lo[2], hi[2]], title="z"),
+        aspectmode="manual",
+        aspectratio=dict(x=span[0] / span.max(), y=span[1] / span.max(), z=span[2] / span.max()),
+    )
+
+
+def _animation_controls(frame_indices, keys, step_ms: int) -> dict:
+    """A play/pause button and a frame slider over the animation keys (plotly layout entries)."""
+    fi = frame_indices
+    return dict(
+        updatemenus=[dict(
+            type="buttons", showactive=False, x=0.02, y=0.02, xanchor="left", yanchor="bottom",
+            buttons=[
+                dict(label="Play", method="animate",
+                     args=[None, dict(frame=dict(duration=step_ms, redraw=True), fromcurrent=True,
+                                      transition=dict(duration=0))]),
+                dict(label="Pause", method="animate",
+                     args=[[None], dict(frame=dict(duration=0, redraw=False), mode="immediate")]),
+            ])],
+        sliders=[dict(
+            active=0, x=0.12, len=0.86, y=0.02, yanchor="bottom", currentvalue=dict(prefix="frame "),
+            steps=[dict(method="animate", label=str(int(fi[t])),
+                        args=[[str(int(fi[t]))], dict(mode="immediate", frame=dict(duration=0, redraw=True),
+                                                      transition=dict(duration=0))]) for t in keys])],
+    )
+
+
 def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: str | None = None):
     """Interactive 3-D view: the spine animated over the take (slider and play button), with the surface.
 
@@ -428,25 +471,7 @@ def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: 
                                 marker=dict(size=5, color="#9467bd", symbol="diamond"), name="junctions"))
         return out
 
-    # fixed axes over the whole take so the view does not jump
-    pts = [a[keys].reshape(-1, 3) for a in spine.axes.values()] + [spine.tips[keys].reshape(-1, 3)]
-    if surf_v is not None:
-        pts.append(surf_v)
-    P = np.concatenate(pts)
-    P = P[np.all(np.isfinite(P), axis=1)]
-    if model is not None:
-        P = np.concatenate([P, model.deform(int(keys[0])), model.deform(int(keys[-1]))])
-    lo, hi = (P.min(0), P.max(0)) if len(P) else (np.zeros(3), np.ones(3))
-    pad = 0.08 * float(np.max(hi - lo) or 1.0)
-    lo, hi = lo - pad, hi + pad
-    span = hi - lo
-    scene = dict(
-        xaxis=dict(range=[lo[0], hi[0]], title="x"),
-        yaxis=dict(range=[lo[1], hi[1]], title="y"),
-        zaxis=dict(range=[lo[2], hi[2]], title="z"),
-        aspectmode="manual",
-        aspectratio=dict(x=span[0] / span.max(), y=span[1] / span.max(), z=span[2] / span.max()),
-    )
+    scene = _fixed_scene(spine, keys, surf_v, model)
     fi = spine.frame_indices
     frames = [go.Frame(data=traces(int(t)), name=str(int(fi[t]))) for t in keys]
     fig = go.Figure(data=traces(int(keys[0]), first=True), frames=frames)
@@ -457,26 +482,13 @@ def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: 
         height=620,
         margin=dict(l=0, r=0, t=40, b=0),
         uirevision="spine",
-        updatemenus=[dict(
-            type="buttons", showactive=False, x=0.02, y=0.02, xanchor="left", yanchor="bottom",
-            buttons=[
-                dict(label="Play", method="animate",
-                     args=[None, dict(frame=dict(duration=step_ms, redraw=True), fromcurrent=True,
-                                      transition=dict(duration=0))]),
-                dict(label="Pause", method="animate",
-                     args=[[None], dict(frame=dict(duration=0, redraw=False), mode="immediate")]),
-            ])],
-        sliders=[dict(
-            active=0, x=0.12, len=0.86, y=0.02, yanchor="bottom", currentvalue=dict(prefix="frame "),
-            steps=[dict(method="animate", label=str(int(fi[t])),
-                        args=[[str(int(fi[t]))], dict(mode="immediate", frame=dict(duration=0, redraw=True),
-                                                      transition=dict(duration=0))]) for t in keys])],
+        **_animation_controls(fi, keys, step_ms),
     )
     return fig
 
 
 def armature_figure(vertices, faces, labels, joints, parents, kinds, *, frame_indices=None, fps: float = 30.0,
-               max_frames: int = 120, max_faces: int = 20000):
+                    max_frames: int = 120, max_faces: int = 20000):
     """The armature: the rest surface coloured by motion segment, the joints animated over the take.
 
     Parameters
@@ -537,14 +549,7 @@ def armature_figure(vertices, faces, labels, joints, parents, kinds, *, frame_in
         title=f"Armature: {counted(int(lab.max()) + 1, 'motion segment')}, {counted(int(art.sum()), 'articulation')}, "
               f"{counted(len(par), 'joint')}",
         scene=dict(aspectmode="data"), height=620, margin=dict(l=0, r=0, t=40, b=0), uirevision="rig",
-        updatemenus=[dict(type="buttons", showactive=False, x=0.02, y=0.02, xanchor="left", yanchor="bottom",
-                          buttons=[dict(label="Play", method="animate",
-                                        args=[None, dict(frame=dict(duration=step_ms, redraw=True), fromcurrent=True,
-                                                         transition=dict(duration=0))])])],
-        sliders=[dict(active=0, x=0.12, len=0.86, y=0.02, yanchor="bottom", currentvalue=dict(prefix="frame "),
-                      steps=[dict(method="animate", label=str(int(fi[t])),
-                                  args=[[str(int(fi[t]))], dict(mode="immediate", frame=dict(duration=0, redraw=True),
-                                                                transition=dict(duration=0))]) for t in keys])],
+        **_animation_controls(fi, keys, step_ms),
     )
     return fig
 

@@ -47,10 +47,52 @@ def _ms(s: float) -> str:
     return f"{s * 1e3:8.1f} ms"
 
 
+def _timed_frames(carver, grid, take, args: argparse.Namespace):
+    """Carve and mesh the take's frames over and over for ``args.seconds`` (every frame at least once);
+    -> seconds per step summed, frames timed, voxels tested one by one, the last mesh, and the
+    distances to the true surface before and after the photo-consistent refinement (voxels)."""
+    from pipeline.photo_refine import refine_surface
+    from pipeline.surface import surface_from_occupancy
+
+    cal, masks = take.calibration, take.masks
+    steps = {"carve": 0.0, "prepare": 0.0, "marching_cubes": 0.0, "cleanup": 0.0}
+    if args.photo_refine:
+        steps["photo_refine"] = 0.0
+    before: list = []
+    after: list = []
+    n = 0
+    refined = 0
+    faces = 0
+    t_start = time.perf_counter()
+    while True:
+        m = masks[n % len(masks)]
+        t = time.perf_counter()
+        hull = carver.carve(m)
+        steps["carve"] += time.perf_counter() - t
+        tm: dict = {}
+        mesh = surface_from_occupancy(hull.occupancy, grid, timings=tm)
+        for k, v in tm.items():
+            steps[k] += v
+        if args.photo_refine:
+            t = time.perf_counter()
+            refined_v = refine_surface(mesh.vertices, mesh.faces, take.images[n % len(masks)], m, list(cal),
+                                       voxel=grid.voxel)
+            steps["photo_refine"] += time.perf_counter() - t
+            if n < len(masks):  # the accuracy once per simulated frame
+                pose = take.poses[n % len(masks)]
+                before.append(np.abs(pose.sdf(np.asarray(mesh.vertices))) / grid.voxel)
+                after.append(np.abs(pose.sdf(refined_v)) / grid.voxel)
+        refined += hull.stats["refined"]
+        faces += len(mesh.faces)
+        n += 1
+        if time.perf_counter() - t_start >= args.seconds and n >= len(masks):
+            break
+    return steps, n, refined, mesh, before, after
+
+
 def run(args: argparse.Namespace) -> int:
     from fake_cameras.take import simulate_take
     from pipeline.hull import HullCarver, carve_direct
-    from pipeline.photo_refine import refine_surface
     from pipeline.surface import surface_from_occupancy, surface_quality
     from pipeline.volume import grid_from_volume
     from stage.rig import Volume
@@ -83,38 +125,7 @@ def run(args: argparse.Namespace) -> int:
         build = time.perf_counter() - t0
         print(f"  lookup tables (once): {build:.2f} s, {carver.memory_bytes / 1024**3:.2f} GiB, levels {carver.levels}")
         surface_from_occupancy(carver.carve(masks[0]).occupancy, grid)  # warm up (imports, caches)
-        steps = {"carve": 0.0, "prepare": 0.0, "marching_cubes": 0.0, "cleanup": 0.0}
-        if args.photo_refine:
-            steps["photo_refine"] = 0.0
-        before: list = []
-        after: list = []
-        n = 0
-        refined = 0
-        faces = 0
-        t_start = time.perf_counter()
-        while True:
-            m = masks[n % len(masks)]
-            t = time.perf_counter()
-            hull = carver.carve(m)
-            steps["carve"] += time.perf_counter() - t
-            tm: dict = {}
-            mesh = surface_from_occupancy(hull.occupancy, grid, timings=tm)
-            for k, v in tm.items():
-                steps[k] += v
-            if args.photo_refine:
-                t = time.perf_counter()
-                refined_v = refine_surface(mesh.vertices, mesh.faces, take.images[n % len(masks)], m, list(cal),
-                                           voxel=grid.voxel)
-                steps["photo_refine"] += time.perf_counter() - t
-                if n < len(masks):  # the accuracy once per simulated frame
-                    pose = take.poses[n % len(masks)]
-                    before.append(np.abs(pose.sdf(np.asarray(mesh.vertices))) / grid.voxel)
-                    after.append(np.abs(pose.sdf(refined_v)) / grid.voxel)
-            refined += hull.stats["refined"]
-            faces += len(mesh.faces)
-            n += 1
-            if time.perf_counter() - t_start >= args.seconds and n >= len(masks):
-                break
+        steps, n, refined, mesh, before, after = _timed_frames(carver, grid, take, args)
         per = {k: v / n for k, v in steps.items()}
         total = sum(per.values())
         q = surface_quality(mesh)

@@ -123,14 +123,93 @@ def _transform_spine(spine: dict, R: np.ndarray, T: np.ndarray) -> dict:
     return out
 
 
+def _board_calibration(args: argparse.Namespace, size, out: Path, summary: dict):
+    """Record the board take, calibrate the rig from it, compare with the simulator's cameras and write
+    ``calibration.toml`` and ``calibration-report.txt``; -> the calibration (``summary`` gets its figures)."""
+    from calib.formats import write_calibration
+    from fake_cameras.device import take_for_rig
+    from fake_cameras.record import take_scene_frames
+    from fake_cameras.rigs import simulated_rig_dict
+
+    board_rig = simulated_rig_dict(
+        args.cameras, subject=f"board-{args.board}", frames=args.board_views, size=size, name="demo-board"
+    )
+    board_path = out / "board.h5"
+    rig, cap = _capture(board_rig, board_path, args.board_views, no_progress=args.no_progress, label="board")
+    print(f"board take: {cap.sets} frame sets from {args.cameras} cameras -> {board_path}")
+    views = take_for_rig(rig, size=size, fps=rig.fps)
+    # the simulated board lies on the floor at the world origin in scene frame 0
+    floor_sets = np.flatnonzero(take_scene_frames(board_path, views.images.shape[0]) == 0)
+    if floor_sets.size == 0:
+        raise ValueError("the board take missed the view of the board on the floor; record more --board-views")
+    rigcal = _calibrate(board_path, views.board, world_frame=int(floor_sets[0]), no_progress=args.no_progress)
+    (out / "calibration-report.txt").write_text(rigcal.report() + "\n")
+    ext = rigcal.extrinsics
+    calibration = rigcal.calibration
+    errs = _calibration_errors(calibration, views.calibration)
+    write_calibration(calibration, out / "calibration.toml", format="toml")
+    geom = ext.geometry
+    print(
+        f"calibration: RMS {ext.rms:.3f} px; "
+        f"board geometry error (corner pairs) RMS {geom.get('pairs_rms', float('nan')):.2f} mm; "
+        f"vs truth: focal <= {errs['focal_error_pct_max']:.2f} %, centres <= {errs['centre_error_mm_max']:.2f} mm, "
+        f"rotations <= {errs['rotation_error_deg_max']:.3f} deg -> {out / 'calibration.toml'}"
+    )
+    for w in dict.fromkeys(rigcal.warnings):  # the report file holds them too; the terminal must show them
+        print(f"  calibration warning: {w}")
+    summary["calibration"] = {"rms_px": ext.rms, "geometry": geom, **errs}
+    return calibration
+
+
+def _take_away(results: Path, take_path: Path, summary: dict, out: Path) -> None:
+    """The rigged model and the report of the processed take, and the closing lines."""
+    from pipeline.gltf_export import export_rig
+    from pipeline.report import write_report
+
+    glb = export_rig(results)
+    report = write_report(results, take=take_path)
+    print(f"rigged model (glTF, opens in Blender and three.js): {glb}")
+    print(f"report (open in a browser, works offline): {report}")
+    if "spine_in_true_frame" in summary:
+        a = summary["spine_in_true_frame"]
+        print(
+            f"  with the calibrated world aligned to the simulator's (camera centres, rigid): tips within 3 % in "
+            f"{100 * a['tip_within_tol']:.1f} % (median {100 * a['tip_error_median']:.2f} %), limb axes "
+            f"{100 * a['limb_axis_error_mean']:.2f} % of size"
+        )
+    print(f"demo finished in {summary['seconds']:.0f} s; everything is in {out}/ (summary.json)")
+
+
+def _accuracy(results: Path, sim, calibration, summary: dict) -> dict:
+    """The spine of ``results`` against the simulator's truth (``summary["spine"]``; with a calibration
+    of our own, also in the true frame: ``summary["spine_in_true_frame"]``)."""
+    from fake_cameras.evaluate import evaluate_spine
+
+    spine = json.loads((results / "spine.json").read_text())
+    tips = sim.tip_array()
+    axes = {name: np.stack([a[name] for a in sim.axes]) for name in sim.limb_names}
+    poses = sim.poses
+    acc = evaluate_spine(spine, tips, axes, list(sim.limb_names), poses=poses)
+    summary["spine"] = acc
+    if calibration is not None:
+        # the calibrated world (the board on the floor) sits a little off the simulator's world;
+        # measure the spine's shape in the true frame too, after the rigid motion that best maps
+        # the calibrated camera centres onto the true ones (Arun et al. 1987)
+        from pipeline.correspond import arun_alignment
+
+        R, T, _ = arun_alignment(calibration.centers(), sim.calibration.centers())
+        aligned = _transform_spine(spine, R, T)
+        acc_aligned = evaluate_spine(aligned, tips, axes, list(sim.limb_names), poses=poses)
+        summary["spine_in_true_frame"] = acc_aligned
+    return acc
+
+
 def run(args: argparse.Namespace) -> int:
     if args.rgbd:
         from stage.cli._demo_rgbd import run_rgbd
 
         return run_rgbd(args)
-    from calib.formats import write_calibration
     from fake_cameras.device import take_for_rig
-    from fake_cameras.evaluate import evaluate_spine
     from fake_cameras.record import take_scene_frames
     from fake_cameras.rigs import simulated_rig_dict
     from fake_cameras.take import write_ground_truth
@@ -152,36 +231,7 @@ def run(args: argparse.Namespace) -> int:
     summary: dict = {}
 
     # 1-2. board take and calibration
-    if args.true_calibration:
-        calibration = None
-    else:
-        board_rig = simulated_rig_dict(
-            args.cameras, subject=f"board-{args.board}", frames=args.board_views, size=size, name="demo-board"
-        )
-        board_path = out / "board.h5"
-        rig, cap = _capture(board_rig, board_path, args.board_views, no_progress=args.no_progress, label="board")
-        print(f"board take: {cap.sets} frame sets from {args.cameras} cameras -> {board_path}")
-        views = take_for_rig(rig, size=size, fps=rig.fps)
-        # the simulated board lies on the floor at the world origin in scene frame 0
-        floor_sets = np.flatnonzero(take_scene_frames(board_path, views.images.shape[0]) == 0)
-        if floor_sets.size == 0:
-            raise ValueError("the board take missed the view of the board on the floor; record more --board-views")
-        rigcal = _calibrate(board_path, views.board, world_frame=int(floor_sets[0]), no_progress=args.no_progress)
-        (out / "calibration-report.txt").write_text(rigcal.report() + "\n")
-        ext = rigcal.extrinsics
-        calibration = rigcal.calibration
-        errs = _calibration_errors(calibration, views.calibration)
-        write_calibration(calibration, out / "calibration.toml", format="toml")
-        geom = ext.geometry
-        print(
-            f"calibration: RMS {ext.rms:.3f} px; "
-            f"board geometry error (corner pairs) RMS {geom.get('pairs_rms', float('nan')):.2f} mm; "
-            f"vs truth: focal <= {errs['focal_error_pct_max']:.2f} %, centres <= {errs['centre_error_mm_max']:.2f} mm, "
-            f"rotations <= {errs['rotation_error_deg_max']:.3f} deg -> {out / 'calibration.toml'}"
-        )
-        for w in dict.fromkeys(rigcal.warnings):  # the report file holds them too; the terminal must show them
-            print(f"  calibration warning: {w}")
-        summary["calibration"] = {"rms_px": ext.rms, "geometry": geom, **errs}
+    calibration = None if args.true_calibration else _board_calibration(args, size, out, summary)
 
     # 3. creature take + ground truth
     creature_rig = simulated_rig_dict(args.cameras, subject=args.subject, frames=args.frames, size=size, name="demo")
@@ -212,22 +262,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"processed: {result.frames} frame sets in {result.report['total_seconds']:.1f} s -> {results}")
 
     # 5. accuracy
-    spine = json.loads((results / "spine.json").read_text())
-    tips = sim.tip_array()
-    axes = {name: np.stack([a[name] for a in sim.axes]) for name in sim.limb_names}
-    poses = sim.poses
-    acc = evaluate_spine(spine, tips, axes, list(sim.limb_names), poses=poses)
-    summary["spine"] = acc
-    if calibration is not None:
-        # the calibrated world (the board on the floor) sits a little off the simulator's world;
-        # measure the spine's shape in the true frame too, after the rigid motion that best maps
-        # the calibrated camera centres onto the true ones (Arun et al. 1987)
-        from pipeline.correspond import arun_alignment
-
-        R, T, _ = arun_alignment(calibration.centers(), sim.calibration.centers())
-        aligned = _transform_spine(spine, R, T)
-        acc_aligned = evaluate_spine(aligned, tips, axes, list(sim.limb_names), poses=poses)
-        summary["spine_in_true_frame"] = acc_aligned
+    acc = _accuracy(results, sim, calibration, summary)
     summary["seconds"] = time.perf_counter() - t_start
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
     print(
@@ -238,19 +273,5 @@ def run(args: argparse.Namespace) -> int:
         f"outside the body"
     )
     # 6. what users take away: a rigged, animated model and a page to look at
-    from pipeline.gltf_export import export_rig
-    from pipeline.report import write_report
-
-    glb = export_rig(results)
-    report = write_report(results, take=take_path)
-    print(f"rigged model (glTF, opens in Blender and three.js): {glb}")
-    print(f"report (open in a browser, works offline): {report}")
-    if "spine_in_true_frame" in summary:
-        a = summary["spine_in_true_frame"]
-        print(
-            f"  with the calibrated world aligned to the simulator's (camera centres, rigid): tips within 3 % in "
-            f"{100 * a['tip_within_tol']:.1f} % (median {100 * a['tip_error_median']:.2f} %), limb axes "
-            f"{100 * a['limb_axis_error_mean']:.2f} % of size"
-        )
-    print(f"demo finished in {summary['seconds']:.0f} s; everything is in {out}/ (summary.json)")
+    _take_away(results, take_path, summary, out)
     return 0
