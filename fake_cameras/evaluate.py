@@ -25,8 +25,7 @@ attachment point on the body and has no axis inside the body at all (the body is
 few fat capsules, not a chain). Measured over the whole spine axis, the stretch from
 the junction to where the limb leaves the body is therefore scored against the
 attachment end of the true axis: an error by construction that says nothing about
-the limb (on a 30-frame quadruped take about 3.5 % of the size, while outside the
-body the same axes agree to about 0.6 %).
+the limb (several times the error of the same axes outside the body).
 
 ``limb_axis_error`` therefore compares, per frame and matched limb, only the points
 outside every body capsule (``Pose.limb == -1``, signed distance > 0): both polylines

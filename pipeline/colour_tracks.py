@@ -310,8 +310,8 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
     masks : ((H, W) bool ndarray, (H, W) bool ndarray), optional
         The object's pixels on both images (the frames' :attr:`~pipeline.rgbd_preprocess.DepthFrame.valid`):
         everything else is filled with the object's mean grey level first, so the static
-        background inside a window does not hold the flow back (on thin parts, where every
-        window holds background, it did by about 7 % of the motion).
+        background inside a window does not hold the flow back (on thin parts every window
+        holds background; docs/tracking.md, "Colour feature tracks: measurements").
     predicted : (V, 3) float ndarray, optional
         A prediction of the current frame: the flow starts from its projection (fast motions).
     depth : (H, W) float ndarray

@@ -59,8 +59,8 @@ class SpineParams(BaseModel):
         Meshes of more than ``3 * agd_proxy`` vertices get their average
         geodesic distance on a proxy of about this many surface patches
         (:func:`pipeline.geodesic.proxy_average_geodesic_distance`): tips move
-        by about a patch (<= 3 % of ``sqrt(area)``, tested), the AGD costs
-        ~5x less. ``None``: always exact.
+        by about a patch (tests/pipeline/test_spine_fast.py bounds it), the AGD
+        costs several times less. ``None``: always exact.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")

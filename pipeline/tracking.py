@@ -593,10 +593,9 @@ def choose_start(candidates, points, normals, faces, patches, *, gate: float, ou
     The first candidate (the constant-velocity prediction) is kept by every patch the data
     are within its reach of: where fewer than ``out_of_reach`` of the patch's vertices have
     no data point within the gate, the fit's first round pairs the patch anyway, and a
-    closest-point residual cannot see what another start does along the surface (on the
-    simulated capsule quadruped the spine's skinned step is 5.6 voxels off a true step of
-    0.57, nearly all of it along the surface: taken by the residual alone, it cost 0.14
-    voxels of the mean). A patch out of reach (a galloping leg whose step is longer than the
+    closest-point residual cannot see what another start does along the surface (a start
+    that is off mostly along the surface scores as well as the right one: docs/tracking.md,
+    "Where the tracker departs from the paper"). A patch out of reach (a galloping leg whose step is longer than the
     gate) takes the candidate with the smallest gated residual. The choice (one weight per
     candidate and vertex) is averaged over ``smoothing`` rings of neighbours, so that patches
     taken from different candidates meet without a tear: the vertices of a patch within
