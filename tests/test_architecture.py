@@ -223,6 +223,15 @@ def test_every_floor_entry_is_a_module():
     assert not stale, f"FLOORS names modules that do not exist: {stale}"
 
 
+def test_the_architecture_doc_names_every_module():
+    """docs/architecture.md draws the layout in words: every module the floor map names is in it."""
+    doc = (ROOT / "docs" / "architecture.md").read_text(encoding="utf-8")
+    words = set(re.findall(r"[A-Za-z_]\w*", doc)) | set(re.findall(r"[A-Za-z_][\w.]*\w", doc))
+    missing = [p for _, patterns in FLOORS.values() for p in patterns
+               if p.removesuffix(".*") not in words and p.removesuffix(".*").rsplit(".", 1)[-1] not in words]
+    assert not missing, f"docs/architecture.md does not name: {missing}"
+
+
 # --------------------------------------------------------------------------- sizes
 
 
