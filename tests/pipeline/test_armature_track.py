@@ -6,7 +6,7 @@ of the steps over 4 voxels). Tracked again with the rig built from its default t
 prior (``stage track --armature-rounds 1``), every frame's template vertices must lie within 2 voxels
 (mean) and 4 voxels (95th percentile) of their true points
 (``fake_cameras.surface_motion.tracking_errors``). Figures, also of the larger fast takes and of a
-rig of the true motion, in docs/tracking.md ("Fast motion: the rig as the articulated prior").
+rig of the true motion, in docs/tracking.md ("Fast motion: the armature as the articulated prior").
 """
 
 from __future__ import annotations
