@@ -105,7 +105,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         (default). False: the prediction only.
     predict : bool
         Start every frame from the constant-velocity prediction of the two frames before
-        (:func:`pipeline.tracking.predict_motion`) instead of the previous frame.
+        (:func:`pipeline.tracking_patches.predict_motion`) instead of the previous frame.
     colour : bool
         Follow the template's visible vertices in every camera's images too (feature tracks
         across each camera's viewing ray, :func:`_multiview_colour`) when the take that

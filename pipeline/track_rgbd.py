@@ -161,7 +161,7 @@ def track_rgbd_take(
         that bends out of it).
     predict : bool
         Start every frame from the constant-velocity prediction of the two frames before
-        (:func:`pipeline.tracking.predict_motion`; docs/tracking.md: a part faster than the gate is lost without it).
+        (:func:`pipeline.tracking_patches.predict_motion`; docs/tracking.md: a part faster than the gate is lost without it).
     colour : bool
         Follow the visible vertices in the colour images too (:func:`pipeline.colour_tracks.colour_tracks`):
         the feature tracks see a round part's twist about its own axis, which depth does not.
