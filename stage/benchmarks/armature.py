@@ -144,16 +144,12 @@ def _truth_pipe(root):
                 part_parent=np.array([-1, 0]), part_bends=np.array([False, True]), units="mm", fps=30.0, lambda_thr=0.7)
 
 
-def _truth_creature(name, frames=40):
-    from fake_cameras.creatures import make_creature
-    from fake_cameras.mesh_motion import mesh_sequence
-
-    ms = mesh_sequence(name, frames=frames)
-    cr = make_creature(name)
-    names = list(ms.joint_names)
-    ids = sorted({int(p) for p in np.unique(ms.part)})  # -1 body, limb * 16 + segment
+def _parts(raw, creature, names, articulates):
+    """True parts from every vertex's capsule id (-1 body, limb * 16 + segment): the part index of every
+    vertex, every part's parent part and whether the joint above it bends."""
+    ids = sorted({int(p) for p in np.unique(raw)})
     index = {p: i for i, p in enumerate(ids)}
-    part = np.array([index[int(p)] for p in ms.part])
+    part = np.array([index[int(p)] for p in raw])
     parent, bends = np.full(len(ids), -1), np.zeros(len(ids), bool)
     for p in ids:
         if p < 0:
@@ -161,10 +157,41 @@ def _truth_creature(name, frames=40):
         li, i = divmod(p, 16)
         up = next((q for q in range(p - 1, li * 16 - 1, -1) if q in index), -1)  # the nearest part above with vertices
         parent[index[p]] = index.get(up, -1)
-        bends[index[p]] = bool(ms.articulates[names.index(f"{cr.limbs[li].name}.{i}")])
-    return dict(V=ms.vertices, F=ms.faces, joints=ms.joints, articulates=np.ones(len(names), bool),
+        bends[index[p]] = bool(articulates[list(names).index(f"{creature.limbs[li].name}.{i}")])
+    return part, parent, bends
+
+
+def _truth_creature(name, frames=40):
+    from fake_cameras.creatures import make_creature
+    from fake_cameras.mesh_motion import mesh_sequence
+
+    ms = mesh_sequence(name, frames=frames)
+    cr = make_creature(name)
+    part, parent, bends = _parts(ms.part, cr, ms.joint_names, ms.articulates)
+    return dict(V=ms.vertices, F=ms.faces, joints=ms.joints, articulates=np.ones(len(ms.joint_names), bool),
                 bending=np.asarray(ms.articulates, bool), part=part, part_parent=parent, part_bends=bends,
                 units="mm", fps=30.0, lambda_thr=0.98)
+
+
+def _truth_take(sim, rig, vertices, faces, reference: int):
+    """The truth of a simulated take's armature: the creature's joints at the tracked frames' times and the
+    true part of every tracked template vertex (the capsule nearest to it at the tracking's reference
+    frame ``reference``, a frame number, where the template is the surface)."""
+    from fake_cameras.mesh_motion import true_joints
+
+    cr = sim.creature
+    times = np.asarray(sim.times)[rig.frame_indices]
+    names, J, bending = true_joints(cr, times)
+    at = int(np.flatnonzero(rig.frame_indices == reference)[0])
+    cap = cr.pose(float(times[at])).capsule_sdf(np.asarray(vertices[at])).argmin(1)
+    seg_ids = np.array([li * 16 + i for li, lb in enumerate(cr.limbs) for i in range(len(lb.lengths))])
+    nb = len(cr.body)
+    raw = np.full(len(cap), -1)
+    limb = (cap >= nb) & (cap < nb + len(seg_ids))  # body capsules first, then the limbs' segments in order
+    raw[limb] = seg_ids[cap[limb] - nb]
+    part, parent, bends = _parts(raw, cr, names, bending)
+    return dict(V=vertices, F=faces, joints=J, articulates=np.ones(len(names), bool), bending=bending, part=part,
+                part_parent=parent, part_bends=bends)
 
 
 def _placements(tr, labels, ref):
@@ -253,12 +280,20 @@ def take_scores(sim, res, rig) -> dict:
     joints whose parts turn against each other by 10 degrees or more), and the tracking it was built
     on: distance of the tracked vertices from their true points and the motion the tracking invents
     where the body is rigid (voxels, mean over vertices, worst frame)."""
-    from fake_cameras.mesh_motion import true_joints
-    from fake_cameras.surface_motion import invented_motion, tracking_errors
-    from pipeline.armature_score import articulation_scores
+    import json
 
-    _, J, bending = true_joints(sim.creature, sim.times)
+    from fake_cameras.surface_motion import invented_motion, tracking_errors
+    from pipeline.armature import load_sequence, tracked_meshes
+    from pipeline.armature_score import articulation_scores, bending_parts, segment_agreement
+
+    V, F, _ = load_sequence(tracked_meshes(res))
+    tr = _truth_take(sim, rig, V, F, int(json.loads((Path(res) / "tracked" / "track.json").read_text())["reference_frame"]))
+    J, bending = tr["joints"], tr["bending"]
     sc = articulation_scores(rig.fit.joints[:, rig.skeleton.articulation], J, size=rig.size, bending=bending)
+    truth = bending_parts(tr["part"], tr["part_parent"], tr["part_bends"])
+    sc["purity"], sc["completeness"] = segment_agreement(rig.segmentation.labels, truth)
+    sc["true_parts"] = int(truth.max()) + 1
+    sc["placements"] = _placements(tr, truth, rig.reference)
     err, _, _ = tracking_errors(sim.creature, sim.times, res)
     sc["track_error"] = float(err.mean(axis=1).max())
     sc["invented"] = float(np.max(invented_motion(sim.creature, sim.times, res)))
@@ -272,13 +307,24 @@ def take_accuracy(names, *, frames: int = 30) -> None:
 
     if not names:
         return
-    print(f"\n{'take':10} {'T':>3} {'track vx':>8} {'invent vx':>9} | {'segs':>4} {'arts':>4} {'bend':>4} | {'R':>5} "
-          f"{'P':>5} {'err%':>5} {'vert%':>5} | {'process s':>9} {'track s':>7} {'rig s':>5}")
+    print(f"\n{'take':10} {'T':>3} {'track vx':>8} {'invent vx':>9} | {'segs':>4} {'true':>4} {'purity':>6} {'compl':>6} | "
+          f"{'true segs: paper R/P/err%':>26} {'pivot R/P/err%':>18} | {'arts':>4} {'bend':>4} {'R':>5} {'P':>5} "
+          f"{'err%':>5} {'vert%':>5} | {'process s':>9} {'track s':>7} {'rig s':>5}")
     for name in names:
         with tempfile.TemporaryDirectory(prefix=f"bench-rig-{name}-") as tmp:
             sim, res, rig, secs = take_armature(name, tmp, frames=frames)
             sc = take_scores(sim, res, rig)
-        print(f"{name:10} {frames:>3} {sc['track_error']:>8.2f} {sc['invented']:>9.2f} | {rig.segmentation.n_segments:>4} "
-              f"{sc['found']:>4} {sc['bending']:>4} | {sc['recall']:>5.2f} {sc['precision']:>5.2f} "
-              f"{100 * sc['error']:>5.1f} {100 * rig.fit.errors.mean() / rig.size:>5.2f} | {secs['process']:>9.0f} "
-              f"{secs['track']:>7.0f} {secs['rig']:>5.0f}", flush=True)
+        print(take_row(name, frames, rig, sc, secs), flush=True)
+
+
+def take_row(name: str, frames: int, rig, sc: dict, secs: dict) -> str:
+    """One line of :func:`take_accuracy`'s table."""
+    def rpe(s):
+        return f"{s['recall']:.2f}/{s['precision']:.2f}/{100 * s['error']:.1f}"
+
+    pl = sc["placements"]
+    return (f"{name:10} {frames:>3} {sc['track_error']:>8.2f} {sc['invented']:>9.2f} | {rig.segmentation.n_segments:>4} "
+            f"{sc['true_parts']:>4} {sc['purity']:>6.2f} {sc['completeness']:>6.2f} | {rpe(pl['paper']):>26} "
+            f"{rpe(pl['pivot']):>18} | {sc['found']:>4} {sc['bending']:>4} {sc['recall']:>5.2f} {sc['precision']:>5.2f} "
+            f"{100 * sc['error']:>5.1f} {100 * rig.fit.errors.mean() / rig.size:>5.2f} | {secs.get('process', 0):>9.0f} "
+            f"{secs.get('track', 0):>7.0f} {secs.get('rig', 0):>5.0f}")
