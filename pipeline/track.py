@@ -382,47 +382,106 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     return part
 
 
-def track_with_armature(results_dir, model=None, *, poses=None, rounds: int = 1, weight: float = 2.0,
-                   progress=None) -> dict:
-    """Track a tracked results directory again with a rig as the articulated prior.
+#: At most this many rounds of ``track_with_armature(rounds="auto")`` (``stage track --armature-rounds auto``).
+AUTO_RIG_ROUNDS = 4
+#: Rounds of the template fit from the armature's skinned pose (the default tracking's are
+#: :attr:`pipeline.tracking.TemplateTracker.rounds`): it starts on the surface, where the later rounds
+#: of a fit from the previous frame move nothing (docs/tracking.md, "Fast motion").
+ARMATURE_FIT_ROUNDS = 8
+
+
+def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | str = 1, weight: float = 2.0,
+                   lambda_thr: float = 0.98, progress=None) -> dict:
+    """Track a tracked results directory again with an armature as the articulated prior.
 
     Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
-    it, forwards and backwards, by :class:`pipeline.armature_track.ArmatureTracker`: the rig's pose
+    it, forwards and backwards, by :class:`pipeline.armature_track.ArmatureTracker`: the armature's pose
     fitted to the frame's surface from the previous frame's pose, its constant-velocity
-    prediction and the rig's own fit of the frame, then the template fitted from the skinned pose
-    and drawn towards it. Without ``model`` each round builds the rig from the current tracking
-    (:func:`pipeline.armature.build_armature`, rest frame the reference frame) and
-    tracks with it: the paper's first rig, then track, refit, repeat (``rounds``).
+    prediction, the previous pose moved by the spine's limb motion (``spine.json``, where the
+    prediction is wrong: a leg that turns) and the armature's own fit of the frame, then the template
+    fitted from the skinned pose and drawn towards it. Without ``model`` each round builds the
+    armature from the current tracking (:func:`pipeline.armature.build_armature`, rest frame the
+    reference frame) and tracks with it: the paper's first rig (armature), then track, refit, repeat while it helps. A round
+    helps when its armature explains the frames' surfaces better: the mean over frames of
+    ``rig_residual_mm`` (:func:`pipeline.armature_track.surface_residual` of the armature's pose
+    on each frame's surface; the surfaces, not the tracking the armature was built from, so the
+    figure does not improve merely because the tracking was drawn to the armature) falls by at least
+    ``1 %``. The rounds stop at the first that does not help, and the tracking of the best round
+    is kept.
 
     Parameters
     ----------
     results_dir : path
         A multi-view results directory tracked by :func:`track_results`.
     model : pipeline.armature_fit.ArticulatedModel, optional
-        A given rig, bound to a rest shape in the template's vertex order at the reference frame
+        A given armature, bound to a rest shape in the template's vertex order at the reference frame
         (one round with it).
     poses : dict int -> pipeline.armature_fit.Pose, optional
-        The given rig's poses by frame number (further starts of its fit).
-    rounds : int
-        Rounds of rig building and tracking (without ``model``).
+        The given armature's poses by frame number (further starts of its fit).
+    rounds : int or "auto"
+        At most this many rounds of armature building and tracking (without ``model``); ``"auto"``:
+        at most :data:`AUTO_RIG_ROUNDS`.
     weight : float
         Pull towards the skinned pose, in pairs.
+    lambda_thr : float
+        Eigenvalue threshold of the armature's motion segmentation. The default is the paper's
+        threshold for small parts with small motion, its finest: a prior tolerates a rigid part
+        cut in two, not two parts fused into one segment (a drifting first tracking fuses
+        limbs at the paper's 0.7).
     progress : callable(step, done, total), optional
 
     Returns
     -------
     dict
-        The report written to ``tracked/track.json``, with ``rig_rounds`` and per round the rig's
-        segments and its fit error (``rig_prior``), per frame ``rig_residual_mm``.
+        The report written to ``tracked/track.json``, with ``rig_rounds`` (the round kept) and
+        per round run the armature's segments, its fit error to the tracking it was built from and
+        the mean ``rig_residual_mm`` (``rig_prior``), per frame ``rig_residual_mm``.
     """
-    from pipeline.armature import build_armature, load_sequence, tracked_meshes
     from pipeline.armature_fit import ArticulatedModel
 
     root = Path(results_dir)
+    if rounds == "auto":
+        rounds = AUTO_RIG_ROUNDS
     if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 1:
-        raise ValueError(f"rounds must be a positive integer, got {rounds!r}")
+        raise ValueError(f"rounds must be a positive integer or 'auto', got {rounds!r}")
     if model is not None and not isinstance(model, ArticulatedModel):
         raise ValueError(f"model must be an ArticulatedModel, got {type(model).__name__}")
+    if isinstance(lambda_thr, bool) or not isinstance(lambda_thr, (int, float)) or not 0 < lambda_thr < 1:
+        raise ValueError(f"lambda_thr must be a number in (0, 1), got {lambda_thr!r}")
+    report, frames, by_frame, vs, faces, refi = _tracked_sequence(root)
+    tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
+                              rounds=ARMATURE_FIT_ROUNDS)
+    spine = _spine_steps(root, frames, by_frame, vs[refi])
+    history, best = [], None
+    for r in range(1 if model is not None else int(rounds)):
+        use, by_pose, entry = (model, dict(poses or {}), {"segments": None, "fit_error_mm": None}) if model is not None \
+            else _rig_of(vs, faces, frames, refi, lambda_thr)
+        per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine)
+        res = [f["rig_residual_mm"] for f in per["figures"].values()]
+        entry["residual_mm"] = round(float(np.mean(res)), 4) if res else None
+        history.append(entry)
+        if best is not None and not (entry["residual_mm"] is not None and entry["residual_mm"] < 0.99 * best[1]):
+            break
+        if best is None or (entry["residual_mm"] is not None and entry["residual_mm"] < best[1]):
+            best = (r, entry["residual_mm"] if entry["residual_mm"] is not None else np.inf, per)
+        vs = np.stack([per["vertices"][k] for k in frames])
+    kept, _, per = best
+    if kept != len(history) - 1:  # the last round did not help: the best round's tracking again
+        for k in per["figures"]:
+            write_frame(root, k, per["vertices"][k], faces)
+    report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
+    report["rig_rounds"] = kept + 1
+    report["rig_prior"] = {"weight": float(weight), "lambda_thr": float(lambda_thr), "max_rounds": int(rounds),
+                           "kept_round": kept + 1, "rounds": history}
+    write_report(root, report)
+    return report
+
+
+def _tracked_sequence(root: Path):
+    """(track.json, frames, surfaces by frame, tracked vertices (T, V, 3), faces, reference position) of a
+    tracked results directory; FileNotFoundError / ValueError when it is not tracked."""
+    from pipeline.armature import load_sequence, tracked_meshes
+
     try:
         report = json.loads((root / "tracked" / "track.json").read_text())
         ref = int(report["reference_frame"])
@@ -433,32 +492,24 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int = 1,
     if list(numbers) != list(frames) or ref not in frames:
         raise ValueError(f"{root}: tracked/ does not hold every frame of {report.get('surfaces', 'meshes')}/; "
                          "run `stage track` first")
-    refi = frames.index(ref)
-    tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"])
-    history = []
-    for r in range(1 if model is not None else int(rounds)):
-        if model is None or r > 0:
-            # with the peel: a prior tolerates parts cut in two (the paper's over-segmentation), not parts fused
-            rig = build_armature(vs, faces, reference=refi, peel_parts=True)
-            use, by_pose = rig.model, dict(zip(frames, rig.fit.poses))
-            history.append({"segments": int(rig.segmentation.n_segments), "fit_error_mm": round(float(rig.fit.errors.mean()), 4)})
-        else:
-            use, by_pose = model, dict(poses or {})
-            history.append({"segments": None, "fit_error_mm": None})
-        per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress)
-        vs = np.stack([per["vertices"][k] for k in frames])
-        report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
-        model = None
-    report["rig_rounds"] = len(history)
-    report["rig_prior"] = {"weight": float(weight), "rounds": history}
-    write_report(root, report)
-    return report
+    return report, frames, by_frame, vs, faces, frames.index(ref)
+
+
+def _rig_of(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, lambda_thr: float):
+    """The armature of a tracking, rest frame the reference: (model, poses by frame, its report entry)."""
+    from pipeline.armature import build_armature
+
+    # with the peel: a prior tolerates parts cut in two (the paper's over-segmentation), not parts fused
+    rig = build_armature(vs, faces, reference=refi, peel_parts=True, lambda_thr=lambda_thr)
+    entry = {"segments": int(rig.segmentation.n_segments), "fit_error_mm": round(float(rig.fit.errors.mean()), 4)}
+    return rig.model, dict(zip(frames, rig.fit.poses)), entry
 
 
 def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int], refi: int, by_frame: dict, root: Path,
-               faces: np.ndarray, weight: float, progress) -> dict:
+               faces: np.ndarray, weight: float, progress, spine=None) -> dict:
     """One tracking of every frame but the reference with ``model`` as the prior; -> {"vertices": frame -> (V, 3),
-    "figures": frame -> per-frame figures}."""
+    "figures": frame -> per-frame figures}. ``spine``: ``step(k, k_prev)`` -> the spine's skinned step of the
+    template from frame ``k_prev`` to ``k`` (:func:`_spine_steps`), or None."""
     from pipeline.armature_fit import predict_pose
     from pipeline.armature_track import ArmatureTracker, fit_pose_to_surface
 
@@ -473,15 +524,15 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
     done = 1
     vol0 = mesh_volume(vs[refi], faces)
     for part in (frames[refi + 1:], frames[:refi][::-1]):
-        prev, pose, before = vs[refi], ref_pose, None
+        prev, pose, before, prev_k = vs[refi], ref_pose, None, ref
         for k in part:
             t0 = time.perf_counter()
             data = data_for(k)
             if data is not None:
                 cands = [pose] + ([predict_pose(model, pose, before)] if before is not None else []) + \
-                    ([by_pose[k]] if k in by_pose else [])
+                    ([by_pose[k]] if k in by_pose else []) + _spine_pose(model, pose, spine, k, prev_k)
                 fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands)
-                prev, before, pose = fit.vertices, pose, new_pose
+                prev, before, pose, prev_k = fit.vertices, pose, new_pose, k
                 write_frame(root, k, prev, faces)
                 out["figures"][k] = {"rig_residual_mm": round(res, 4), "residual_mm": round(fit.residual, 4),
                                      "volume_ratio": round(mesh_volume(prev, faces) / vol0, 5) if vol0 > 0 else None,
@@ -491,6 +542,28 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
             if progress is not None:
                 progress("track with the rig", done, len(frames))
     return out
+
+
+def _spine_steps(root: Path, frames: list[int], by_frame: dict, template: np.ndarray):
+    """``step(k, k_prev)``: how the spine's skinned pose of the template moves from frame ``k_prev``
+    to ``k`` (the spine's limb motion, :func:`_spine_starts`), or None without a usable spine of
+    this template."""
+    skinned = _spine_model(root, frames, by_frame, None)
+    if skinned is None or skinned[1].vertices.shape != template.shape:
+        return None
+    starts = _spine_starts(skinned[1], frames)
+    zero = np.zeros_like(template)
+    return lambda k, k_prev: starts(k, k_prev, zero)
+
+
+def _spine_pose(model, pose, spine, k: int, k_prev: int) -> list:
+    """[the armature's pose fitted to its skinned ``pose`` moved by the spine's step to frame ``k``], or []
+    without a spine: a start where the constant-velocity prediction is wrong (a leg that turns)."""
+    from pipeline.armature_fit import fit_frame
+
+    if spine is None:
+        return []
+    return [fit_frame(model, model.deform(pose) + spine(k, k_prev), pose, iterations=3, max_points=2000)[0]]
 
 
 def _take_of(root: Path) -> Path | None:

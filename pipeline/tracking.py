@@ -449,6 +449,9 @@ class TemplateTracker:
             (:func:`pipeline.colour_tracks.colour_tracks`). Each enters, while within the gate, as
             two pairs across its ray (else along the vertex's tangent plane): they see what
             point-to-plane pairs cannot, a round part's twist about its own axis.
+        anchor : ((V, 3) float ndarray, float), optional
+            Positions every vertex is also drawn to and the pull's weight, in pairs (>= 0): an
+            articulated prior's skinned pose (:class:`pipeline.armature_track.ArmatureTracker`).
 
         Returns
         -------

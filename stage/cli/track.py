@@ -53,11 +53,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --carve: grow every silhouette by PX pixels (default, per camera: twice the reprojection error "
                    "its calibration records, at most the silhouette margin `stage process` carved the hulls with, "
                    "RESULTS_DIR/process.json; that margin where the calibration records none)")
-    p.add_argument("--armature-rounds", "--rig-rounds", dest="rig_rounds", type=int, default=0, metavar="ROUNDS",
+    p.add_argument("--armature-rounds", "--rig-rounds", dest="rig_rounds", type=_rig_rounds, default=0, metavar="ROUNDS",
                    help="multi-view: after tracking, build an armature from the tracked motion (as `stage armature` does, "
-                   "rest frame the template's) and track every frame again with it as the articulated prior (its skinned "
-                   "pose on each frame's surface as the start, every vertex drawn to it); ROUNDS times (default 0). Only as "
-                   "good as the armature's segments, see docs/tracking.md. --rig-rounds: the old name, kept for one release")
+                   "rest frame the template's, the finest segments) and track every frame again with it as the articulated "
+                   "prior (its skinned pose on each frame's surface as the start, every vertex drawn to it); build it again "
+                   "from that tracking and repeat while the armature explains the surfaces better, at most ROUNDS times, "
+                   "keeping the best round; 'auto' = at most 4 (default 0: off). Only as good as the armature's segments, "
+                   "see docs/tracking.md. --rig-rounds: the old name, kept for one release")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -109,13 +111,29 @@ def run(args: argparse.Namespace) -> int:
     if rep.get("mode") == "multi-view" and rep.get("prior") == "previous":
         print("shape memory: on (the previous frame's shape)")
     if rep.get("rig_rounds"):
-        rounds = rep["rig_prior"]["rounds"]
-        print(f"tracked again with an armature as the articulated prior: {counted(len(rounds), 'round')} (armature segments: "
-              f"{', '.join(str(r['segments']) for r in rounds)})")
+        prior = rep["rig_prior"]
+        rounds = prior["rounds"]
+        fits = ", ".join("-" if r.get("residual_mm") is None else f"{r['residual_mm']:.2f}" for r in rounds)
+        print(f"tracked again with an armature as the articulated prior: {counted(len(rounds), 'round')} (armature "
+              f"segments: {', '.join(str(r['segments']) for r in rounds)}; the armature on the surfaces: {fits} mm), "
+              f"kept round {prior.get('kept_round', len(rounds))}")
     if rep["skipped"]:
         print(f"skipped {counted(len(rep['skipped']), 'frame')} without data: {', '.join(map(str, rep['skipped']))}")
     print(f"wrote {Path(out) / 'tracked'}")
     return 0
+
+
+def _rig_rounds(text: str):
+    """``--armature-rounds``: a count >= 0 or ``auto``."""
+    if text == "auto":
+        return "auto"
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be a count >= 0 or 'auto', got {text!r}")
+    return n
 
 
 def _check_counts(args: argparse.Namespace) -> None:
@@ -126,8 +144,6 @@ def _check_counts(args: argparse.Namespace) -> None:
         raise UserError("--workers must be >= 0")
     if args.carve < 0:
         raise UserError("--carve must be >= 0 (rounds)")
-    if args.rig_rounds < 0:
-        raise UserError("--armature-rounds must be >= 0 (rounds)")
     if args.carve_margin is not None and (not args.carve or not args.carve_margin >= 0):
         raise UserError("--carve-margin needs --carve and a margin >= 0 (pixels)")
 
