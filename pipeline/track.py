@@ -296,9 +296,11 @@ def _surface_meshes(root: Path, folder: str = "meshes") -> tuple[list[int], dict
 
 
 def _check_no_gap(root: Path, mesh_dir: Path, frames: list[int]) -> None:
-    """Every frame of the run has its surface file: ``stage process`` writes one per frame set
-    (an empty one where nothing was seen), so a missing file is an error naming it, never a
-    frame tracked past in silence."""
+    """Every frame of the run has its surface file, or a record saying why it has none: ``stage
+    process`` writes a surface per frame set, and ``frames/frame_NNNNNN.json`` with status
+    ``empty`` (nothing seen) or ``damaged`` (a set ``--skip-damaged`` left out) where it wrote none;
+    those are tracked past with a warning naming them. Any other missing file is an error naming
+    it, never a frame tracked past in silence."""
     expected = None
     record = root / "process.json"
     if record.is_file():
@@ -308,10 +310,25 @@ def _check_no_gap(root: Path, mesh_dir: Path, frames: list[int]) -> None:
             expected = None
     want = range(expected) if expected else range(frames[0], frames[-1] + 1)
     missing = sorted(set(want) - set(frames))
+    why = {k: _no_surface_status(root, k) for k in missing}
+    passed = [k for k in missing if why[k] is not None]
+    if passed:
+        log.warning("%d frame sets have no surface and are tracked past: %s", len(passed),
+                    ", ".join(f"{k} ({why[k]})" for k in passed[:10]) + (" ..." if len(passed) > 10 else ""))
+    missing = [k for k in missing if why[k] is None]
     if missing:
         names = ", ".join(f"frame_{k:06d}.ply" for k in missing[:5]) + (" ..." if len(missing) > 5 else "")
         raise FileNotFoundError(f"{mesh_dir}: {len(missing)} of {len(want)} surfaces missing ({names}); "
                                 f"run `stage process` again to make them")
+
+
+def _no_surface_status(root: Path, k: int) -> str | None:
+    """``empty`` or ``damaged`` when ``stage process`` recorded that frame set ``k`` has no surface, else None."""
+    try:
+        status = json.loads((root / "frames" / f"frame_{k:06d}.json").read_text()).get("status")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return status if status in ("empty", "damaged") else None
 
 
 def _mesh_data(by_frame: dict):

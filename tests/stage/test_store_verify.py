@@ -152,6 +152,11 @@ def test_process_skip_damaged_skips_the_sets_and_lists_them(tmp_path, simulated,
     with TakeReader(bad) as r:  # the damaged frame was never keyed (nor read): its mask is marked invalid
         valid = r.read_array("cameras/cam02", "mask_valid")[0]
         assert not valid[1] and valid[0] and valid[2]
+    # the tracking goes past the skipped set, saying so (no "surfaces missing: run stage process again")
+    caplog.clear()
+    assert _stage("track", "r", "--workers", "0", "--no-progress", cwd=tmp_path).returncode == 0
+    assert any("tracked past: 1 (damaged)" in r.getMessage() for r in caplog.records)
+    assert not (out / "tracked" / "000001.ply").exists() and (out / "tracked" / "000002.ply").exists()
     # a resumed run still skips the set (the take keeps its damage), and says so again
     res = _stage("process", bad.name, "--out", "r", "--workers", "0", "--no-progress", "--until", "surface",
                  "--skip-damaged", cwd=tmp_path)
