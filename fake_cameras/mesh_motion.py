@@ -196,9 +196,7 @@ def rest_mesh(
     lo, hi = pose.bounds()
     lo, hi = lo - 2 * voxel, hi + 2 * voxel
     axes = [np.arange(lo[k], hi[k] + voxel, voxel) for k in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    sdf = pose.sdf(grid).reshape(len(axes[0]), len(axes[1]), len(axes[2]))
-    v, f, _, _ = marching_cubes(sdf, level=0.0, spacing=(voxel,) * 3)
+    v, f, _, _ = marching_cubes(pose.grid_sdf(axes), level=0.0, spacing=(voxel,) * 3)
     v = v + lo
     # marching cubes' faces wind inward for a negative-inside field: flip to outward normals
     return v.astype(np.float64), f[:, ::-1].astype(np.int64)

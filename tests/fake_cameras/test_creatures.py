@@ -96,6 +96,24 @@ def test_sdf_is_the_minimum_over_capsules():
     assert np.array_equal(p.label_at(pts, chunk=33), p.limb[per.argmin(1)])
 
 
+@pytest.mark.parametrize("name, voxel, coarse", [("quadruped", 6.0, 4), ("starfish", 9.0, 3), ("biped", 7.5, 5)])
+def test_grid_sdf_gives_the_mesh_of_every_point(name, voxel, coarse):
+    """Exact within two steps of the surface, the right sign elsewhere: marching cubes gives the
+    same mesh as from the distance at every grid point."""
+    from skimage.measure import marching_cubes
+
+    p = make_creature(name).pose(0.7)
+    lo, hi = p.bounds()
+    axes = [np.arange(lo[k] - 2 * voxel, hi[k] + 3 * voxel, voxel) for k in range(3)]
+    full = p.sdf(np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)).reshape([len(a) for a in axes])
+    fast = p.grid_sdf(axes, coarse=coarse)
+    near = np.abs(full) <= 2 * voxel
+    assert np.array_equal(fast[near], full[near]) and np.array_equal(np.sign(fast), np.sign(full))
+    assert (np.abs(full) > 4 * voxel).mean() > 0.5  # most of the grid is far from the surface
+    for a, b in zip(marching_cubes(full, 0.0)[:2], marching_cubes(fast, 0.0)[:2]):
+        assert np.array_equal(a, b)
+
+
 def test_tuck_presses_two_limbs_together_and_spur_adds_a_protrusion():
     plain = make_creature("quadruped")
     hard = make_creature("quadruped", tuck=(0.5, 1.0), spur=(0.2, 0.2 + 1 / 30))
@@ -137,6 +155,12 @@ def test_invalid_input():
     p = c.pose(0)
     with pytest.raises(ValueError, match="points"):
         p.sdf(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="axes"):
+        p.grid_sdf([np.arange(3.0), np.arange(3.0)])
+    with pytest.raises(ValueError, match="axes"):
+        p.grid_sdf([np.arange(3.0), np.zeros(0), np.arange(3.0)])
+    with pytest.raises(ValueError, match="coarse"):
+        p.grid_sdf([np.arange(3.0)] * 3, coarse=0)
     with pytest.raises(ValueError, match="points"):
         p.label_at(np.zeros(3))
     with pytest.raises(ValueError, match="radii"):

@@ -28,8 +28,7 @@ def _pose_mesh(pose, h=2.0):
     lo, hi = pose.bounds()
     lo, hi = lo - 2 * h, hi + 2 * h
     axes = [np.arange(lo[i], hi[i] + h, h) for i in range(3)]
-    G = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    v, f, _, _ = marching_cubes(pose.sdf(G).reshape([len(a) for a in axes]), 0.0, spacing=(h, h, h))
+    v, f, _, _ = marching_cubes(pose.grid_sdf(axes), 0.0, spacing=(h, h, h))
     return v + lo, f.astype(np.int64)
 
 

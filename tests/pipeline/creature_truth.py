@@ -36,8 +36,7 @@ def surface(pose, *, step: float) -> tuple[np.ndarray, np.ndarray]:
     hi = hi + 2 * step
     n = np.ceil((hi - lo) / step).astype(int) + 1
     axes = [lo[k] + step * np.arange(n[k]) for k in range(3)]
-    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    vol = pose.sdf(g).reshape(n)
+    vol = pose.grid_sdf(axes)
     v, f, _, _ = marching_cubes(vol, 0.0, spacing=(step, step, step))
     return v + lo, f.astype(np.int64)
 

@@ -35,9 +35,7 @@ def mesh_pose(pose, voxel):
     hi = hi + 2 * voxel
     n = np.ceil((hi - lo) / voxel).astype(int) + 1
     g = [lo[i] + voxel * np.arange(n[i]) for i in range(3)]
-    P = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
-    s = pose.sdf(P).reshape(n)
-    v, f, _, _ = marching_cubes(s, 0.0, spacing=(voxel,) * 3)
+    v, f, _, _ = marching_cubes(pose.grid_sdf(g), 0.0, spacing=(voxel,) * 3)
     return v + lo, f
 
 

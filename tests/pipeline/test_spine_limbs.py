@@ -30,8 +30,7 @@ def _mesh(pose):
     lo, hi = lo - 2 * VOXEL, hi + 2 * VOXEL
     n = np.ceil((hi - lo) / VOXEL).astype(int) + 1
     axes = [lo[i] + VOXEL * np.arange(n[i]) for i in range(3)]
-    P = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    v, f, _, _ = marching_cubes(pose.sdf(P).reshape(n), 0.0, spacing=(VOXEL,) * 3)
+    v, f, _, _ = marching_cubes(pose.grid_sdf(axes), 0.0, spacing=(VOXEL,) * 3)
     return v + lo, f
 
 
