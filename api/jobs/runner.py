@@ -19,7 +19,6 @@ If the function's module defines ``ProcessParams`` (a pydantic model) the job's
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 import json
 import logging
@@ -33,6 +32,7 @@ from typing import Any, Callable, Sequence
 from api.executors import ExecutorHandle, make_executor
 from api.jobs.store import JobRecord, JobStore
 from api.paths import confined, data_relative
+from calib.fileio import json_ready
 
 __all__ = ["JobRunner", "WorkSpec", "WorkUnavailableError", "load_work", "DEFAULT_STEPS"]
 
@@ -118,14 +118,14 @@ def load_work(spec: str | Callable[..., Any]) -> WorkSpec:
 
 
 def _jsonable(obj: Any) -> Any:
+    """What a work function returned, as JSON: numbers, arrays and records through
+    :func:`calib.fileio.json_default`; anything else as its ``str`` (the job's record never fails on it)."""
     if obj is None:
         return None
-    if hasattr(obj, "to_dict"):
-        obj = obj.to_dict()
-    elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        obj = dataclasses.asdict(obj)
-    elif hasattr(obj, "model_dump"):
-        obj = obj.model_dump(mode="json")
+    try:
+        return json_ready(obj)
+    except (TypeError, ValueError):
+        pass
     try:
         return json.loads(json.dumps(obj, default=str))
     except (TypeError, ValueError):
