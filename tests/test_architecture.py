@@ -78,11 +78,22 @@ def module_name(path: Path, root: Path) -> str:
     return ".".join(parts)
 
 
+@functools.cache
+def _parse_cached(path: str, mtime_ns: int, size: int) -> ast.Module:
+    return ast.parse(Path(path).read_text(encoding="utf-8"), filename=path)
+
+
+def parse(path: Path) -> ast.Module:
+    """The file's syntax tree, parsed once per version of the file (the import and the size checks share it)."""
+    st = path.stat()
+    return _parse_cached(str(path), st.st_mtime_ns, st.st_size)
+
+
 def imports_of(path: Path, root: Path, packages: tuple[str, ...]) -> list[Edge]:
     """Every import of one of ``packages`` in the file, at any depth, and whole import-path strings."""
     name = module_name(path, root)
     is_pkg = path.name == "__init__.py"
-    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    tree = parse(path)
     pattern = re.compile(r"^(?:%s)(?:\.[A-Za-z_]\w*)*(?::[A-Za-z_]\w*)?$" % "|".join(map(re.escape, packages)))
     out = []
     for node in ast.walk(tree):
@@ -276,7 +287,7 @@ def long_functions(path: Path, root: Path, limit: int) -> dict[str, int]:
                     found[f"{rel}:{name}"] = body_lines(child)
                 walk(child, name + ".")
 
-    walk(ast.parse(path.read_text(encoding="utf-8")), "")
+    walk(parse(path), "")
     return found
 
 
