@@ -88,7 +88,9 @@ def limb_map(spine, poses, names):
 @pytest.fixture(scope="module")
 def horse():
     d = shared_dataset("horse_gallop")
-    paths = mesh_paths(d / "0*.obj")  # all 48 frames of the take
+    # the first 24 of the 48 frames: the take is one 24-frame gait cycle twice (frames k and k + 24
+    # agree to 1e-4 of the mesh's units), so these are the whole motion at half the cost
+    paths = mesh_paths(d / "0*.obj")[:24]
     meshes = [load_mesh(p) for p in paths]
     frames = [frame_skeleton(v, f) for v, f in meshes]
     return meshes, frames
@@ -102,7 +104,7 @@ def test_horse_gallop_six_limbs_on_same_body_part(horse):
     vertex, measured on the reference mesh (vertex ids correspond across frames).
     """
     meshes, frames = horse
-    assert len(frames) == 48
+    assert len(frames) == 24
     spine = build_spine(frames, fps=FPS, units="m")
     assert spine.K == 6
     r = spine.meta["references"][0]
@@ -117,7 +119,7 @@ def test_horse_gallop_six_limbs_on_same_body_part(horse):
             if np.all(np.isfinite(spine.tips[t, k])):
                 nv = int(np.argmin(np.linalg.norm(vt - spine.tips[t, k], axis=1)))
                 same[t, k] = D[k, nv] < radius
-    assert same.mean(axis=0).min() >= 0.95, same.mean(axis=0)  # measured 1.0 for every limb (48 frames)
+    assert same.mean(axis=0).min() >= 0.95, same.mean(axis=0)  # measured 1.0 for every limb (24 frames; 48 as well)
 
 
 def test_cat_poses_six_tips_every_pose():
