@@ -253,6 +253,8 @@ MAX_MODULE_LINES = 700
 MAX_FUNCTION_LINES = 80
 #: Modules kept over the limit, and why (each must still be over it: the list only shrinks).
 LONG_MODULES: dict[str, str] = {
+    "pipeline/track.py": "grew past the limit with --armature-rounds auto and the frames without a surface as this "
+    "check landed; tracking with the armature as the prior (track_with_armature) is the piece to move out",
 }
 #: Functions kept over the limit ("path:qualified name"), and why.
 LONG_FUNCTIONS: dict[str, str] = {
