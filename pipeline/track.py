@@ -34,6 +34,7 @@ from pipeline.track_frames import (
     remove_tracking,
     run_frames,
     start_over_if_changed,
+    surface_meshes,
     tracked_path,
     write_frame,
     write_report,
@@ -138,7 +139,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     if surfaces not in ("meshes", "carved"):
         raise ValueError(f"surfaces must be 'meshes' or 'carved', got {surfaces!r}")
     root = Path(results_dir)
-    frames, by_frame = _surface_meshes(root, surfaces)
+    frames, by_frame = surface_meshes(root, surfaces)
     loaded = None if template is None else load_template(template)  # a bad template is the user's error, said once
     name = None if template is None else ("array" if isinstance(template, (tuple, list)) else str(template))
     skinned = _spine_model(root, frames, by_frame, loaded)
@@ -282,55 +283,6 @@ def _written_count(root: Path, frames: list[int]):
     return count
 
 
-def _surface_meshes(root: Path, folder: str = "meshes") -> tuple[list[int], dict]:
-    """The per-frame surfaces of a results directory: frame numbers in order, and their
-    ``meshes/frame_NNNNNN.ply`` (``folder="carved"``: the surfaces carved across time)."""
-    mesh_dir = root / folder
-    paths = sorted(mesh_dir.glob("frame_*.ply"))
-    if not paths:
-        run = "`stage track --carve`" if folder != "meshes" else "`stage process`"
-        raise FileNotFoundError(f"{mesh_dir}: no frame_NNNNNN.ply meshes (run {run} first)")
-    frames = [int(p.stem.split("_")[1]) for p in paths]
-    _check_no_gap(root, mesh_dir, frames)
-    return frames, dict(zip(frames, paths))
-
-
-def _check_no_gap(root: Path, mesh_dir: Path, frames: list[int]) -> None:
-    """Every frame of the run has its surface file, or a record saying why it has none: ``stage
-    process`` writes a surface per frame set, and ``frames/frame_NNNNNN.json`` with status
-    ``empty`` (nothing seen) or ``damaged`` (a set ``--skip-damaged`` left out) where it wrote none;
-    those are tracked past with a warning naming them. Any other missing file is an error naming
-    it, never a frame tracked past in silence."""
-    expected = None
-    record = root / "process.json"
-    if record.is_file():
-        try:
-            expected = int(json.loads(record.read_text()).get("frames"))
-        except (ValueError, TypeError, OSError, AttributeError):
-            expected = None
-    want = range(expected) if expected else range(frames[0], frames[-1] + 1)
-    missing = sorted(set(want) - set(frames))
-    why = {k: _no_surface_status(root, k) for k in missing}
-    passed = [k for k in missing if why[k] is not None]
-    if passed:
-        log.warning("%d frame sets have no surface and are tracked past: %s", len(passed),
-                    ", ".join(f"{k} ({why[k]})" for k in passed[:10]) + (" ..." if len(passed) > 10 else ""))
-    missing = [k for k in missing if why[k] is None]
-    if missing:
-        names = ", ".join(f"frame_{k:06d}.ply" for k in missing[:5]) + (" ..." if len(missing) > 5 else "")
-        raise FileNotFoundError(f"{mesh_dir}: {len(missing)} of {len(want)} surfaces missing ({names}); "
-                                f"run `stage process` again to make them")
-
-
-def _no_surface_status(root: Path, k: int) -> str | None:
-    """``empty`` or ``damaged`` when ``stage process`` recorded that frame set ``k`` has no surface, else None."""
-    try:
-        status = json.loads((root / "frames" / f"frame_{k:06d}.json").read_text()).get("status")
-    except (OSError, ValueError, AttributeError):
-        return None
-    return status if status in ("empty", "damaged") else None
-
-
 def _mesh_data(by_frame: dict):
     """``data_for(k, previous)`` of a multi-view take: frame ``k``'s surface and its normals (None: no surface)."""
     from pipeline.meshio import load_mesh
@@ -378,7 +330,7 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     root = Path(chain["root"])
     V0, F0 = chain["template"]
     if by_frame is None:
-        frame_list, by_frame = _surface_meshes(root, chain.get("surfaces", "meshes"))
+        frame_list, by_frame = surface_meshes(root, chain.get("surfaces", "meshes"))
     if tracker is None:
         tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"], prior=chain["prior"])
     init_for = None
@@ -504,7 +456,7 @@ def _tracked_sequence(root: Path):
         ref = int(report["reference_frame"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise FileNotFoundError(f"{root}: no readable tracked/track.json ({exc}); run `stage track` first") from None
-    frames, by_frame = _surface_meshes(root, report.get("surfaces", "meshes"))
+    frames, by_frame = surface_meshes(root, report.get("surfaces", "meshes"))
     vs, faces, numbers = load_sequence(tracked_meshes(root))
     if list(numbers) != list(frames) or ref not in frames:
         raise ValueError(f"{root}: tracked/ does not hold every frame of {report.get('surfaces', 'meshes')}/; "

@@ -5,8 +5,9 @@ the settings, the skipped frames and per-frame fit figures. :func:`run_frames` t
 order (Tzionas & Gall 2016, §3), writing each frame atomically as soon as it is fitted and keeping
 the frames a killed run already wrote. :func:`start_over_if_changed` is the start-over rule
 (:mod:`pipeline.run.settings`): frames tracked with other settings are removed first, with the
-rig built on them, in one warning. The two forms: :mod:`pipeline.track` (a processed multi-view
-take) and :mod:`pipeline.track_rgbd` (one RGB-D camera).
+rig built on them, in one warning. :func:`surface_meshes` lists the surfaces a tracking follows
+(every frame set has one, or a record of why not). The two forms: :mod:`pipeline.track` (a
+processed multi-view take) and :mod:`pipeline.track_rgbd` (one RGB-D camera).
 """
 
 from __future__ import annotations
@@ -293,3 +294,53 @@ def _change(key: str, old, new) -> str:
     if key == "surfaces_sha256":
         return "carved surfaces changed"
     return f"{key} {old!r} -> {new!r}"
+
+
+def surface_meshes(root: Path, folder: str = "meshes") -> tuple[list[int], dict]:
+    """The per-frame surfaces of a results directory: frame numbers in order, and their
+    ``meshes/frame_NNNNNN.ply`` (``folder="carved"``: the surfaces carved across time); a frame
+    without one is an error unless ``stage process`` recorded why (:func:`_check_no_gap`)."""
+    mesh_dir = root / folder
+    paths = sorted(mesh_dir.glob("frame_*.ply"))
+    if not paths:
+        run = "`stage track --carve`" if folder != "meshes" else "`stage process`"
+        raise FileNotFoundError(f"{mesh_dir}: no frame_NNNNNN.ply meshes (run {run} first)")
+    frames = [int(p.stem.split("_")[1]) for p in paths]
+    _check_no_gap(root, mesh_dir, frames)
+    return frames, dict(zip(frames, paths))
+
+
+def _check_no_gap(root: Path, mesh_dir: Path, frames: list[int]) -> None:
+    """Every frame of the run has its surface file, or a record saying why it has none: ``stage
+    process`` writes a surface per frame set, and ``frames/frame_NNNNNN.json`` with status
+    ``empty`` (nothing seen) or ``damaged`` (a set ``--skip-damaged`` left out) where it wrote none;
+    those are tracked past with a warning naming them. Any other missing file is an error naming
+    it, never a frame tracked past in silence."""
+    expected = None
+    record = root / "process.json"
+    if record.is_file():
+        try:
+            expected = int(json.loads(record.read_text()).get("frames"))
+        except (ValueError, TypeError, OSError, AttributeError):
+            expected = None
+    want = range(expected) if expected else range(frames[0], frames[-1] + 1)
+    missing = sorted(set(want) - set(frames))
+    why = {k: _no_surface_status(root, k) for k in missing}
+    passed = [k for k in missing if why[k] is not None]
+    if passed:
+        log.warning("%d frame sets have no surface and are tracked past: %s", len(passed),
+                    ", ".join(f"{k} ({why[k]})" for k in passed[:10]) + (" ..." if len(passed) > 10 else ""))
+    missing = [k for k in missing if why[k] is None]
+    if missing:
+        names = ", ".join(f"frame_{k:06d}.ply" for k in missing[:5]) + (" ..." if len(missing) > 5 else "")
+        raise FileNotFoundError(f"{mesh_dir}: {len(missing)} of {len(want)} surfaces missing ({names}); "
+                                f"run `stage process` again to make them")
+
+
+def _no_surface_status(root: Path, k: int) -> str | None:
+    """``empty`` or ``damaged`` when ``stage process`` recorded that frame set ``k`` has no surface, else None."""
+    try:
+        status = json.loads((root / "frames" / f"frame_{k:06d}.json").read_text()).get("status")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return status if status in ("empty", "damaged") else None
