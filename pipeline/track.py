@@ -453,7 +453,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
 def _tracked_sequence(root: Path):
     """(track.json, frames, surfaces by frame, tracked vertices (T, V, 3), faces, reference position) of a
     tracked results directory; FileNotFoundError / ValueError when it is not tracked."""
-    from pipeline.armature import load_sequence, tracked_meshes
+    from pipeline.armature_files import load_sequence, tracked_meshes
 
     try:
         report = json.loads((root / "tracked" / "track.json").read_text())

@@ -233,7 +233,7 @@ def remove_tracking(out_dir) -> str:
     ``tracked/NNNNNN.ply`` and ``tracked/track.json`` go (the folder too when that leaves it
     empty; other files stay), the surfaces carved with the tracked motion (``carved/``,
     :mod:`pipeline.carve`), then the rig as a tracking start-over removes it
-    (``rig/``, :func:`pipeline.armature.remove_armature`).
+    (``rig/``, :func:`pipeline.armature_files.remove_armature`).
 
     Parameters
     ----------
@@ -262,7 +262,7 @@ def remove_tracking(out_dir) -> str:
 
 def _remove_tracked_frames(tracked: Path) -> int:
     """Remove ``tracked/NNNNNN.ply``; -> how many there were."""
-    from pipeline.armature import FRAME_GLOB
+    from pipeline.armature_files import FRAME_GLOB
 
     files = list(tracked.glob(FRAME_GLOB))  # a user's 1_fixed.ply stays
     for f in files:
@@ -272,8 +272,8 @@ def _remove_tracked_frames(tracked: Path) -> int:
 
 def _remove_stale_rig(out_dir: Path) -> str:
     """Remove the rig built on the frames that are tracked again (``OUT/rig/``,
-    :func:`pipeline.armature.remove_armature`); -> what the start-over's warning says of it."""
-    from pipeline.armature import remove_armature
+    :func:`pipeline.armature_files.remove_armature`); -> what the start-over's warning says of it."""
+    from pipeline.armature_files import remove_armature
 
     if not remove_armature(out_dir / "rig"):
         return ""

@@ -366,7 +366,7 @@ register_step("spine", _step_spine, doc="per-frame skeletons and the take's spin
 def _step_rig(ctx: RunContext) -> None:
     """Articulated rig from the tracked template (``tracked/``) -> ``rig/``. Without a tracked
     template the track step runs first (``ProcessParams.track``; a warning in the job report says so)."""
-    from pipeline.armature import NoTrackingError, armature_results, tracked_meshes
+    from pipeline.armature_files import NoTrackingError, armature_results, tracked_meshes
 
     t0 = time.perf_counter()
     try:

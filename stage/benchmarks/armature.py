@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
 def _truth_cow(root):
     """The cow's 7 poses, its rigging skeleton and the true part of every vertex (the bone whose rigid
     motion, estimated from the vertices nearest to it, best predicts the vertex over the poses)."""
-    from pipeline.armature import load_sequence
+    from pipeline.armature_files import load_sequence
     from pipeline.armature_score import articulation_bends
     from pipeline.rigid_parts import rigid_motions
 
@@ -256,7 +256,7 @@ def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size
     ``root``; -> (take, results directory, rig, seconds per step)."""
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
-    from pipeline.armature import armature_results
+    from pipeline.armature_files import armature_results
     from pipeline.process import process_take
 
     root = Path(root)
@@ -283,7 +283,7 @@ def take_scores(sim, res, rig) -> dict:
     import json
 
     from fake_cameras.surface_motion import invented_motion, tracking_errors
-    from pipeline.armature import load_sequence, tracked_meshes
+    from pipeline.armature_files import load_sequence, tracked_meshes
     from pipeline.armature_score import articulation_scores, bending_parts, segment_agreement
 
     V, F, _ = load_sequence(tracked_meshes(res))

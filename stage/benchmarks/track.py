@@ -234,7 +234,8 @@ def accuracy(frames: int = 30) -> None:
     from pathlib import Path
 
     from fake_cameras.rgbd import OBJECTS, record_rgbd_take, simulate_rgbd_take, template_path
-    from pipeline.armature import armature_results, counted
+    from pipeline.armature import counted
+    from pipeline.armature_files import armature_results
     from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
     from pipeline.track_rgbd import track_rgbd_take
@@ -277,7 +278,8 @@ def real_pipe_accuracy() -> None:
     from pathlib import Path
 
     from fake_cameras.rgbd import record_rgbd_take, simulate_sensor_rgbd_take, template_path
-    from pipeline.armature import armature_results, counted
+    from pipeline.armature import counted
+    from pipeline.armature_files import armature_results
     from pipeline.mesh_primitives import mesh_volume
     from pipeline.meshio import load_mesh
     from pipeline.track_rgbd import track_rgbd_take

@@ -37,7 +37,8 @@ def run_rgbd(args: argparse.Namespace) -> int:
         v, f = load_mesh(out / "results" / "tracked" / f"{k:06d}.ply", largest=False)
         err.append(np.linalg.norm(v - tk.truth[k], axis=1).mean())
         vol.append(mesh_volume(v, f) / mesh_volume(tk.template_vertices, tk.template_faces))
-    from pipeline.armature import armature_results, counted
+    from pipeline.armature import counted
+    from pipeline.armature_files import armature_results
 
     arm = armature_results(out / "results")
     n = int(arm.skeleton.articulation.sum())

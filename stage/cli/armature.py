@@ -60,7 +60,7 @@ def _spine_meta(results: Path) -> dict:
 
 def _track_first(d: Path, *, quiet: bool) -> list:
     """``stage track d`` with its defaults, for a processed take without a tracked template; its tracked meshes."""
-    from pipeline.armature import tracked_meshes
+    from pipeline.armature_files import tracked_meshes
     from stage.cli import build_parser
 
     print(f"{d} has no tracked template (tracked/NNNNNN.ply): tracking the template through the take first, "
@@ -71,14 +71,8 @@ def _track_first(d: Path, *, quiet: bool) -> list:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.armature import (
-        NoTrackingError,
-        armature_counts,
-        build_armature,
-        load_sequence,
-        tracked_meshes,
-        write_armature,
-    )
+    from pipeline.armature import armature_counts, build_armature
+    from pipeline.armature_files import NoTrackingError, load_sequence, tracked_meshes, write_armature
     from pipeline.meshio import mesh_paths
     from stage.cli import UserError
     from stage.cli._progress import StepBars

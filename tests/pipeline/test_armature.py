@@ -18,10 +18,8 @@ from pipeline.armature import (
     build_armature,
     bvh_text,
     counted,
-    load_sequence,
-    remove_armature,
-    write_armature,
 )
+from pipeline.armature_files import load_sequence, remove_armature, write_armature
 from pipeline.armature_fit import fit_frame
 from tests.conftest import SHARED_DATA
 from tests.pipeline.bvh import parse_bvh
@@ -444,7 +442,7 @@ def test_an_undefined_joint_in_a_frame_still_gives_valid_files(pipe, tmp_path, c
 
 def test_tracked_meshes_are_the_six_digit_frames_only(tmp_path):
     """``tracked/NNNNNN.ply`` in frame order; a user's file beside them is not read as a frame."""
-    from pipeline.armature import NoTrackingError, tracked_meshes
+    from pipeline.armature_files import NoTrackingError, tracked_meshes
 
     (tmp_path / "tracked").mkdir()
     (tmp_path / "tracked" / "1_fixed.ply").write_text("the user's")

@@ -18,7 +18,7 @@ def test_starfish_take_through_process_track_and_armature(tmp_path):
     from fake_cameras.mesh_motion import true_joints
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
-    from pipeline.armature import armature_results
+    from pipeline.armature_files import armature_results
     from pipeline.armature_score import articulation_scores
     from pipeline.process import process_take
 

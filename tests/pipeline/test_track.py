@@ -165,7 +165,7 @@ def test_rgbd_bent_objects_tracked_to_one_percent(name, bent_tracks):
     ("lamp", 3),  # measured: 3 articulations, 7.5, 6.8 and 6.7 mm from the joints (limit 28 mm)
 ])
 def test_rgbd_bent_objects_rigged(name, articulations, bent_tracks):
-    from pipeline.armature import armature_results
+    from pipeline.armature_files import armature_results
 
     tk, out, _, _ = bent_tracks(name)
     rig = armature_results(out)
@@ -498,7 +498,7 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     `stage process` does the same and puts the warning in the job report."""
     from types import SimpleNamespace
 
-    from pipeline.armature import armature_results, remove_armature
+    from pipeline.armature_files import armature_results, remove_armature
     from pipeline.process import ProcessParams
     from pipeline.process.steps import _step_track
     from pipeline.report import write_report

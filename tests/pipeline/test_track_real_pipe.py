@@ -4,7 +4,7 @@
 the original RGB-D sensor's camera frame) is rendered by the OAK-like camera at that sensor's
 pose (:func:`fake_cameras.rgbd.simulate_sensor_rgbd_take`), tracked by ``stage track TAKE.h5
 --template TAKE.template.ply --out DIR`` and rigged by ``stage armature``'s
-:func:`pipeline.armature.armature_results`; every vertex is its own ground truth.
+:func:`pipeline.armature_files.armature_results`; every vertex is its own ground truth.
 
 The subsample's frames are 6.7 original frames apart: the true motion is up to 19.6 mm a frame
 on average over the vertices (28 mm at most; frames 15..27 and 41..46) against the 12 mm gate,
@@ -88,7 +88,7 @@ def test_real_pipe_tracked_to_one_percent_without_thinning(real_pipe):
 
 @pytest.mark.slow
 def test_real_pipe_rigged_with_one_articulation_at_the_true_joint(real_pipe):
-    from pipeline.armature import armature_results
+    from pipeline.armature_files import armature_results
 
     tk, out = real_pipe
     rig = armature_results(out)

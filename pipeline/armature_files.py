@@ -1,0 +1,185 @@
+"""The armature of a results directory: its tracked template read in, ``rig/`` written and removed.
+
+:func:`armature_results` builds the armature (:func:`pipeline.armature.build_armature`, arrays in
+and out) of the template tracked through a take (``tracked/NNNNNN.ply``, :func:`tracked_meshes`,
+:func:`load_sequence`) and writes the rig directory (``docs/armature-format.md``) with
+:func:`write_armature`, every file atomically and durably:
+
+``rig.json``         capture-stage/rig@1: joints, joint positions per frame, fit errors
+``segments.npy``     (V,) motion segment of every template vertex
+``posed/NNNNNN.ply`` the fitted model at every frame, in the template's vertex order
+``rig.glb``          glTF 2.0: skinned template, joints at the articulations, one key per frame
+``rig.bvh``          BVH motion capture: the same joints and local rotations
+
+:func:`remove_armature` removes them when the frames they were built on are tracked again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.armature import Armature, armature_dict, build_armature, bvh_text, glb_bytes
+from pipeline.results import atomic_write_bytes, ply_bytes
+
+__all__ = ["FRAME_GLOB", "NoTrackingError", "armature_results", "load_sequence", "remove_armature", "tracked_meshes",
+           "write_armature"]
+
+
+class NoTrackingError(FileNotFoundError):
+    """A results directory without a tracked template (``tracked/NNNNNN.ply``)."""
+
+
+def tracked_meshes(results_dir) -> list[Path]:
+    """The tracked template's meshes of a results directory, in frame order.
+
+    Raises
+    ------
+    NoTrackingError
+        When ``RESULTS_DIR/tracked/`` holds no ``NNNNNN.ply``.
+    """
+    d = Path(results_dir)
+    paths = sorted((d / "tracked").glob(FRAME_GLOB)) if (d / "tracked").is_dir() else []
+    if not paths:
+        raise NoTrackingError(
+            f"{d} has no tracked/NNNNNN.ply: the per-frame surfaces of a take do not share connectivity, "
+            f"so the template must be tracked through the take first (stage track {d})"
+        )
+    return paths
+
+
+def load_sequence(paths) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices (T, V, 3), faces (F, 3) and frame numbers (T,) of a mesh sequence with shared connectivity.
+
+    Frame numbers are the last number in each file name (positions when
+    they are missing or repeated).
+
+    Raises
+    ------
+    ValueError
+        When the meshes do not share connectivity (vertex counts or faces differ).
+    """
+    import re
+
+    from pipeline.meshio import load_mesh
+
+    paths = [Path(p) for p in paths]
+    verts, faces, numbers = [], None, []
+    for i, p in enumerate(paths):
+        v, f = load_mesh(p, largest=False)
+        if len(f) == 0:
+            raise ValueError(f"{p.name}: empty mesh (no faces)")
+        if faces is None:
+            faces = f
+        elif len(v) != len(verts[0]):
+            raise ValueError(
+                f"{p.name} has {len(v)} vertices, {paths[0].name} has {len(verts[0])}: the meshes do not share "
+                "connectivity; track the template through the take first (stage track)"
+            )
+        elif f.shape != faces.shape or not np.array_equal(f, faces):
+            raise ValueError(
+                f"{p.name}: its faces differ from {paths[0].name}'s: the meshes do not share connectivity; "
+                "track the template through the take first (stage track)"
+            )
+        verts.append(v)
+        m = re.findall(r"\d+", p.stem)
+        numbers.append(int(m[-1]) if m else i)
+    if len(set(numbers)) != len(numbers):
+        numbers = list(range(len(paths)))
+    return np.asarray(verts), faces, np.asarray(numbers, dtype=np.int64)
+
+
+def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=None, progress=None, **options):
+    """Build the armature of a results directory from its tracked template; writes ``RESULTS_DIR/rig/`` (or ``out``).
+
+    Returns
+    -------
+    Armature
+    """
+    vertices, faces, numbers = load_sequence(tracked_meshes(results_dir))
+    options.setdefault("peel_parts", False)  # a tracked template: its tracking noise is no part
+    rig = build_armature(vertices, faces, units=units, fps=fps, frame_indices=numbers, progress=progress,
+                                **options)
+    write_armature(rig, Path(out) if out is not None else Path(results_dir) / "rig", progress=progress)
+    return rig
+
+
+def write_armature(rig: Armature, out_dir, *, progress=None) -> dict:
+    """Write the rig directory (``rig.json``, ``segments.npy``, ``posed/``, ``rig.glb``, ``rig.bvh``).
+
+    Every file is written atomically (temporary file, then rename).
+
+    Returns
+    -------
+    dict
+        Name -> path.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    posed = out / "posed"
+    posed.mkdir(exist_ok=True)
+    for t in range(rig.n_frames):
+        atomic_write_bytes(posed / f"{int(rig.frame_indices[t]):06d}.ply", ply_bytes(rig.posed(t), rig.model.faces))
+        if progress:
+            progress("write", t + 1, rig.n_frames)
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, rig.segmentation.labels.astype(np.int32))
+    paths = {
+        "segments": atomic_write_bytes(out / "segments.npy", buf.getvalue()),
+        "rig_json": atomic_write_bytes(out / "rig.json", json.dumps(armature_dict(rig), indent=1).encode()),
+        "bvh": atomic_write_bytes(out / "rig.bvh", bvh_text(rig).encode()),
+        "glb": atomic_write_bytes(out / "rig.glb", glb_bytes(rig)),
+        "posed": posed,
+    }
+    return paths
+
+
+#: The files :func:`write_armature` writes in a rig directory, besides ``posed/NNNNNN.ply``.
+RIG_FILES = ("rig.json", "segments.npy", "rig.bvh", "rig.glb")
+
+
+#: A frame's file in ``tracked/`` and ``posed/``: ``NNNNNN.ply``, exactly six digits (a user's
+#: ``1_fixed.ply`` beside them is not a frame: not read as one, not removed).
+FRAME_GLOB = "[0-9]" * 6 + ".ply"
+
+
+#: The names of the frames :func:`write_armature` writes in ``posed/``, and nothing else.
+POSED_GLOB = FRAME_GLOB
+
+
+def remove_armature(out_dir) -> bool:
+    """Remove what :func:`write_armature` wrote in ``out_dir``: a rig of frames that were tracked
+    again belongs to other frames.
+
+    ``rig.json``, ``segments.npy``, ``rig.bvh``, ``rig.glb`` and ``posed/NNNNNN.ply`` go; the
+    folders too when that leaves them empty. Other files stay.
+
+    Parameters
+    ----------
+    out_dir : str or os.PathLike
+        The rig directory (``OUT/rig``); it need not exist.
+
+    Returns
+    -------
+    bool
+        Whether there was a rig file to remove.
+    """
+    if not isinstance(out_dir, (str, os.PathLike)):
+        raise ValueError(f"out_dir must be a path, got {type(out_dir).__name__}")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out_dir must be a rig directory, got the file {out}")
+    posed = sorted((out / "posed").glob(POSED_GLOB))  # exactly six digits: a user's 1_fixed.ply stays
+    files = [out / name for name in RIG_FILES if (out / name).is_file()] + posed
+    for f in files:
+        f.unlink(missing_ok=True)
+    for d in (out / "posed", out):
+        with contextlib.suppress(OSError):  # not there, or not empty: kept
+            d.rmdir()
+    return bool(files)
