@@ -583,7 +583,7 @@ def test_multiview_colour_tracks_without_the_take_or_masks_are_off(tmp_path):
 
 def test_agreeing_rays_equal_a_per_vertex_reference():
     """Vectorised ray check against a per-vertex loop (least-squares point of the rays, 3x median)."""
-    from pipeline.track import _agreeing_rays
+    from pipeline.track_colour import agreeing_rays as _agreeing_rays
 
     rng = np.random.default_rng(4)
     n = 40
@@ -664,7 +664,8 @@ def test_multiview_colour_tracks_skip_an_unreadable_view_with_one_warning(tmp_pa
     tracks are those of a run without it."""
     import logging
 
-    from pipeline.track import _colour_cameras, _multiview_tracks_for
+    from pipeline.track_colour import colour_cameras as _colour_cameras
+    from pipeline.track_colour import multiview_tracks_for as _multiview_tracks_for
     from stage.store import TakeError, TakeReader
 
     res, _ = turning_sphere_results(tmp_path, frames=3, size=(160, 120))
