@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -25,6 +26,9 @@ from stage.store._format import FORMAT, RESERVED, TakeError, attr_value
 from stage.store.derived import derived_path, open_derived
 from stage.store.h5repair import open_h5
 from stage.store.jpeg import decode_jpeg
+
+# waits (s) before reading again a chunk that failed to read on a take still being written
+_LIVE_RETRIES = (0.01, 0.03, 0.1, 0.3)
 
 __all__ = ["TakeReader"]
 
@@ -326,6 +330,21 @@ class TakeReader:
         return str(self._f["cameras"][self._check_camera(camera)].attrs["storage"])
 
     def _read(self, ds: h5py.Dataset, sel: Any, what: str) -> Any:
+        """``ds[sel]``; a read error is a :class:`TakeError` naming ``what``.
+
+        A take still being written shares chunks between committed and new records (the JPEG
+        stream, the offsets, the set table): the writer rewrites such a chunk in place, and a
+        read that meets the rewrite sees a mix of old and new bytes, which fails the chunk's
+        checksum although the committed records are intact. On a live take a failed read is
+        therefore tried again after a short wait (``_LIVE_RETRIES``); damage that persists is
+        reported as on a closed take.
+        """
+        for wait in _LIVE_RETRIES if self._swmr and not self._complete else ():
+            try:
+                return ds[sel]
+            except OSError:
+                time.sleep(wait)
+                ds.refresh()
         try:
             return ds[sel]
         except OSError as exc:

@@ -190,6 +190,59 @@ def test_reader_while_writer_runs(tmp_path):
         proc.wait()
 
 
+class _TornChunk:
+    """A dataset whose first ``fails`` reads fail as a chunk rewritten during the read does."""
+
+    def __init__(self, ds, fails: int) -> None:
+        self.ds, self.fails, self.refreshed = ds, fails, 0
+
+    def __getitem__(self, sel):
+        if self.fails:
+            self.fails -= 1
+            raise OSError("Can't synchronously read data (filter returned failure during read)")
+        return self.ds[sel]
+
+    def refresh(self) -> None:
+        self.refreshed += 1
+
+
+def test_live_reads_meet_chunks_being_rewritten(tmp_path):
+    # the writer rewrites a chunk that holds committed and new records (the JPEG stream) in place;
+    # a read during the rewrite fails the chunk's checksum: on a live take the read is tried again
+    path = tmp_path / "live.h5"
+    proc = _start_writer(path, 0.0)
+    try:
+        _wait_sets(proc, 3)
+        with TakeReader(path) as r:
+            torn = _TornChunk(r._f["sets/frames"], 2)
+            np.testing.assert_array_equal(r._read(torn, 0, "set 0"), r._f["sets/frames"][0])
+            assert torn.refreshed == 2
+            with pytest.raises(TakeError, match="cannot read set 0: .*filter returned failure"):
+                r._read(_TornChunk(r._f["sets/frames"], 99), 0, "set 0")
+            # and the real thing: the newest frames read while the writer runs flat out
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 3.0:
+                n = r.refresh()
+                _check_frames_from(r, max(0, n - 4), n)
+    finally:
+        proc.kill()
+        proc.wait()
+    # a complete take's damage is not transient: no second try
+    done = tmp_path / "done.h5"
+    with TakeWriter(done, [CameraSpec("a", W, H)], compression="none") as w:
+        w.write_set({"a": make_frame("a", 0, 0)})
+    with TakeReader(done) as r:
+        assert r.complete
+        with pytest.raises(TakeError, match="cannot read set 0"):
+            r._read(_TornChunk(r._f["sets/frames"], 1), 0, "set 0")
+
+
+def _check_frames_from(r: TakeReader, start: int, stop: int) -> None:
+    for k in range(start, stop):
+        np.testing.assert_array_equal(r.frame("a", k), make_image(0, k))
+        assert r.encoded("b", k) == make_frame("b", 1, k, jpeg=True).encoded
+
+
 def test_sigkill_mid_take_keeps_flushed_sets(tmp_path):
     path = tmp_path / "killed.h5"
     proc = _start_writer(path, 0.0)
