@@ -306,6 +306,60 @@ def _write_consistency(ctx: RunContext) -> None:
                f"its keying (a wall, a shadow, a second person)")
         log.warning("%s", msg)
         ctx.warnings.append(msg)
+    _name_missing(ctx, iou, doc)
+
+
+#: Frame sets (those of lowest median consistency) a hull is carved without each camera in.
+MISSING_SETS = 3
+
+
+def _name_missing(ctx: RunContext, iou: np.ndarray, doc: dict) -> None:
+    """The cameras whose silhouettes miss part of the subject (:func:`pipeline.consistency.leave_one_out_gain`
+    on the :data:`MISSING_SETS` frame sets of lowest median consistency, the surface step's
+    silhouettes): ``missing`` (median gain per camera) and ``misses`` in ``consistency.json``, a
+    warning naming each camera above :data:`pipeline.consistency.MISSING_WARN`."""
+    from pipeline.consistency import MISSING_WARN, leave_one_out_gain
+    from pipeline.hull import EmptyHullError, HullCarver
+    from pipeline.silhouette_refine import subject_hull
+    from pipeline.volume import Grid
+    from stage.store import TakeReader
+
+    with np.errstate(all="ignore"):
+        med = np.nanmedian(np.where(np.isfinite(iou), iou, np.nan), axis=0) if iou.size else np.zeros(0)
+    sets = [int(k) for k in np.argsort(np.where(np.isfinite(med), med, np.inf))[:MISSING_SETS] if np.isfinite(med[k])]
+    grid_path = ctx.out / "grid.json"
+    if len(ctx.cameras) < 3 or not sets or not grid_path.exists():
+        return
+    p = ctx.params
+    carver = HullCarver(ctx.calibration, Grid.from_dict(json.loads(grid_path.read_text())))
+    gains = []
+    with TakeReader(ctx.take) as reader:
+        validity = mask_validity(reader, ctx.cameras)
+        for k in sets:
+            ms, _ = frame_masks(reader, ctx.cameras, k, validity)
+            try:
+                used = subject_hull(ms, carver, tolerance=p.tolerance, support_plane=p.support_plane,
+                                    margin=p.silhouette_margin).masks
+            except EmptyHullError:
+                continue
+            gains.append(leave_one_out_gain(used, carver, tolerance=p.tolerance, support_plane=p.support_plane,
+                                            margin=p.silhouette_margin))
+    if not gains:
+        return
+    g = np.array(gains)
+    has = np.isfinite(g).any(axis=0)
+    with np.errstate(all="ignore"):
+        gain = {cam: (float(np.nanmedian(g[:, i])) if has[i] else None) for i, cam in enumerate(ctx.cameras)}
+    misses = [cam for cam, v in gain.items() if v is not None and v > MISSING_WARN]
+    doc.update(missing=gain, misses=misses, missing_sets=sets, missing_threshold=MISSING_WARN)
+    atomic_write(ctx.out / "consistency.json", json.dumps(doc))
+    ctx.consistency.update(missing=gain, misses=misses)
+    for cam in misses:
+        msg = (f"camera {cam}: the hull carved without it explains the other cameras' silhouettes better (their "
+               f"silhouette consistency {gain[cam]:+.2f}, median over frame sets {sets}): its silhouettes miss part of "
+               f"the subject; check its keying and calibration")
+        log.warning("%s", msg)
+        ctx.warnings.append(msg)
 
 
 def _step_spine(ctx: RunContext) -> None:
