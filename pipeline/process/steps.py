@@ -306,7 +306,8 @@ def _write_consistency(ctx: RunContext) -> None:
                f"its keying (a wall, a shadow, a second person)")
         log.warning("%s", msg)
         ctx.warnings.append(msg)
-    _name_missing(ctx, iou, doc)
+    if low:  # (when every camera is explained, none cut much from the hull)
+        _name_missing(ctx, iou, doc)
 
 
 #: Frame sets (those of lowest median consistency) a hull is carved without each camera in.
@@ -317,7 +318,9 @@ def _name_missing(ctx: RunContext, iou: np.ndarray, doc: dict) -> None:
     """The cameras whose silhouettes miss part of the subject (:func:`pipeline.consistency.leave_one_out_gain`
     on the :data:`MISSING_SETS` frame sets of lowest median consistency, the surface step's
     silhouettes): ``missing`` (median gain per camera) and ``misses`` in ``consistency.json``, a
-    warning naming each camera above :data:`pipeline.consistency.MISSING_WARN`."""
+    warning naming each camera above :data:`pipeline.consistency.MISSING_WARN`. Run when some
+    camera's median consistency is low: a camera that cuts a part of the subject the others see
+    lowers their consistency."""
     from pipeline.consistency import MISSING_WARN, leave_one_out_gain
     from pipeline.hull import EmptyHullError, HullCarver
     from pipeline.silhouette_refine import subject_hull
