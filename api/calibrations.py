@@ -9,7 +9,7 @@ Two ways to get one:
   defaults of ``stage calibrate``: the rig selects the views (every frame set seen by two or
   more cameras links them), intrinsics held by a prior from each camera's own calibration,
   5-fold held-out error in the report. Cameras whose board is found only in the flipped
-  image are found by :func:`calib.mirror.detect_take` (as ``stage calibrate`` does) and the
+  image are found by :func:`calib.take_detect.detect_take` (as ``stage calibrate`` does) and the
   rig decides whether each mirrors (``mirror = true`` in the calibration) or sees the board
   from behind; ``parameters.mirror`` forces it per camera.
 
@@ -176,8 +176,8 @@ def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[s
         Too few views / cameras that cannot be connected (a ValueError).
     """
     from calib.boards import parse_board
-    from calib.mirror import detect_take
     from calib.rig import calibrate_rig
+    from calib.take_detect import detect_take
 
     def on_set(done: int, total: int) -> None:
         if cancel is not None and cancel.is_set():

@@ -54,6 +54,8 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.process.*", "pipeline.run.*", "pipeline.report.*", "pipeline.track", "pipeline.track_frames",
         "pipeline.track_rgbd", "pipeline.track_colour", "pipeline.carve", "pipeline.armature_files",
         "fake_cameras.*",
+        # calibration run over a take
+        "calib.take_detect",
     )),
     4: ("service", ("api.*",)),
     5: ("composition root", ("stage.cli.*", "stage.benchmarks.*", "stage.__main__")),

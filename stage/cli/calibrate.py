@@ -289,11 +289,11 @@ def detect_take(path: Path, board, *, step: int = 1, min_change: float = 0.02, p
 
 
 def detect_take_flipped(path: Path, board, *, step: int = 1, progress: bool = True, mirror: list[str] | tuple = ()):
-    """:func:`detect_take`, also returning the flipped cameras and the notes (:func:`calib.mirror.detect_take`)."""
+    """:func:`detect_take`, also returning the flipped cameras and the notes (:func:`calib.take_detect.detect_take`)."""
     from tqdm import tqdm
 
     from calib.intrinsics import CalibrationError
-    from calib.mirror import detect_take as detect_in_take
+    from calib.take_detect import detect_take as detect_in_take
 
     bar = tqdm(desc="detect", unit="set", disable=not progress, dynamic_ncols=True, leave=False)
 

@@ -1,11 +1,12 @@
-"""calib.mirror: the per-camera mirror option and the take detection pass (the flipped-image
+"""calib.mirror and calib.take_detect: the per-camera mirror option and the take detection pass (the flipped-image
 path itself is tested on rendered takes in test_handheld.py and tests/api/test_calibrations.py)."""
 
 from __future__ import annotations
 
 import pytest
 
-from calib.mirror import detect_take, parse_mirror, sample_positions
+from calib.mirror import parse_mirror, sample_positions
+from calib.take_detect import detect_take
 
 
 def test_parse_mirror_items_and_mapping():
