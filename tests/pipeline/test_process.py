@@ -244,13 +244,25 @@ def _same_results(path, out, reference):
             np.testing.assert_allclose(np.asarray(a["tips"][name], float), np.asarray(b["tips"][name], float), atol=1e-9)
 
 
-def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
+@pytest.fixture(scope="module")
+def small_processed(tmp_path_factory):
+    """A smaller starfish take (6 cameras, 320x240, 4 frames: all 5 limbs found) processed as
+    :func:`processed` is, for the tests that process a take again and compare: the same code
+    paths at a fraction of the cost -> (sim, take, results directory)."""
+    sim = simulate_take("starfish", n_cameras=6, frames=4, size=(320, 240), seed=3)
+    path = record_take(sim, tmp_path_factory.mktemp("small_take") / "starfish.h5")
+    out = tmp_path_factory.mktemp("small_results")
+    process_take(path, out)
+    assert json.loads((out / "spine.json").read_text())["meta"]["K"] == 5
+    return sim, path, out
+
+
+def test_fast_path_equals_the_plain_path(small_processed, tmp_path):
     """In process and on 2 worker processes, `stage process` gives the masks, meshes and
     spine of the parts called one by one."""
     import concurrent.futures as cf
 
-    sim, path = starfish
-    _, out, _ = processed
+    sim, path, out = small_processed
     params = ProcessParams()
     reference = _reference_results(sim, tmp_path, params, json.loads((out / "grid.json").read_text()))
     _same_results(path, out, reference)
@@ -262,13 +274,12 @@ def test_fast_path_equals_the_plain_path(starfish, processed, tmp_path):
     _same_results(pooled, tmp_path / "pooled", reference)
 
 
-def test_masks_over_the_memory_budget_are_read_from_the_take(starfish, processed, tmp_path, monkeypatch):
+def test_masks_over_the_memory_budget_are_read_from_the_take(small_processed, tmp_path, monkeypatch):
     """Keyed masks beyond the budget kept in memory: the surface tasks read them from the take
     (as a resumed run does), with the same results."""
     import pipeline.process.steps as sp
 
-    sim, path = starfish
-    _, out, _ = processed
+    sim, _, out = small_processed
     monkeypatch.setattr(sp, "_KEEP_MASKS_BYTES", 1)
     seen = []
     real = sp.surface_task
