@@ -34,7 +34,8 @@ the job's carving, without what the cameras do not agree is the subject:
   that the largest piece (the subject, as the surface step keeps it) does not project onto (a
   shadow, a reflection, a person outside the volume, a blob of noise) is no silhouette of the
   subject; it is dropped, and the hull carved again when any was. The share of each camera's
-  silhouette dropped is returned (a keyer that keeps a wall shows there).
+  silhouette dropped is returned (a keyer that keeps a wall shows there). A silhouette of one
+  part stays whole (whether the subject explains it is the consistency's to judge).
 """
 
 from __future__ import annotations
@@ -340,11 +341,16 @@ class SubjectHull:
     views: int
 
 
-def _views(occ: np.ndarray, grid: Grid, calibration: Calibration) -> np.ndarray:
-    """Per occupied voxel (in ``np.argwhere`` order), the cameras whose image holds its centre."""
+#: Voxels of a piece whose views are counted at most (evenly spaced): the most cameras seeing a
+#: piece of thousands of voxels does not need every one of them.
+_VIEW_SAMPLE = 4096
+
+
+def _views(idx: np.ndarray, grid: Grid, calibration: Calibration) -> np.ndarray:
+    """Per voxel index (K, 3), the cameras whose image holds its centre."""
     from pipeline.volume import pixel_index
 
-    centres = grid.lo + (np.argwhere(occ) + 0.5) * grid.voxel
+    centres = grid.lo + (idx + 0.5) * grid.voxel
     return sum((pixel_index(cam, centres)[0] >= 0).astype(np.int32) for cam in calibration)
 
 
@@ -355,15 +361,20 @@ def _kept_pieces(occ: np.ndarray, grid: Grid, calibration: Calibration,
     from scipy import ndimage
 
     lab, n = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
+    idx = np.argwhere(occ)
     if n <= 1:
-        return occ, occ, 0, int(_views(occ, grid, calibration).max()) if n else 0
+        step = max(1, len(idx) // _VIEW_SAMPLE)
+        return occ, occ, 0, int(_views(idx[::step], grid, calibration).max()) if n else 0
     labels = lab[occ]  # argwhere order
-    views = _views(occ, grid, calibration)
-    best = np.zeros(n + 1, np.int32)
-    np.maximum.at(best, labels, views)
     size = np.bincount(labels, minlength=n + 1)
     size[0] = 0
     largest = int(np.argmax(size))
+    # every voxel of the other pieces, an even sample of the largest
+    sample = np.flatnonzero(labels != largest)
+    big = np.flatnonzero(labels == largest)
+    sample = np.concatenate([sample, big[:: max(1, len(big) // _VIEW_SAMPLE)]])
+    best = np.zeros(n + 1, np.int32)
+    np.maximum.at(best, labels[sample], _views(idx[sample], grid, calibration))
     v = int(best[largest])
     keep = best >= v - view_slack
     keep[0] = False
@@ -419,22 +430,23 @@ def subject_hull(
     kw = {"tolerance": tolerance, "support_plane": support_plane, "margin": margin}
     grid, cal = carver.grid, carver.calibration
     occ, main, dropped_pieces, views = _kept_pieces(carver.carve(masks, **kw).occupancy, grid, cal, view_slack)
+    out: list[np.ndarray | None] = [None if m is None else np.asarray(m, bool) for m in masks]
+    share = np.array([np.nan if m is None else 0.0 for m in out])
+    parts = [0 if m is None else cv2.connectedComponents(m.view(np.uint8), connectivity=8)[0] - 1 for m in out]
+    if max(parts, default=0) <= 1:  # a camera's only silhouette part stays (the consistency judges it)
+        return SubjectHull(occupancy=occ, masks=out, dropped=share, pieces_dropped=dropped_pieces, views=views)
     # the largest piece's image: its boundary voxels (the inside projects within it) as discs
     from scipy import ndimage
 
     shell = main & ~ndimage.binary_erosion(main)
     proj, _ = hull_projection(shell, grid, cal)
-    out: list[np.ndarray | None] = []
-    share = np.full(len(masks), np.nan)
-    for i, m in enumerate(masks):
-        if m is None:
-            out.append(None)
+    for i, m in enumerate(out):
+        if m is None or parts[i] <= 1:
             continue
-        m = np.asarray(m, bool)
         kept = _explained_parts(m, proj[i])
         total = int(np.count_nonzero(m))
         share[i] = 0.0 if total == 0 else 1.0 - np.count_nonzero(kept) / total
-        out.append(kept)
+        out[i] = kept
     if np.nansum(share) > 0:
         occ, _, dropped_pieces, views = _kept_pieces(carver.carve(out, **kw).occupancy, grid, cal, view_slack)
     return SubjectHull(occupancy=occ, masks=out, dropped=share, pieces_dropped=dropped_pieces, views=views)
