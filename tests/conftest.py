@@ -49,24 +49,23 @@ def pytest_configure(config):
 #: pytest-xdist they start before any other, so that no worker is left running one alone at the end.
 #: A file missing from the list is only scheduled later, after these.
 FIRST = (
+    "test_armature.py",  # about 60 s
+    "test_rig_sim.py",  # about 52 s
     "test_spine_pipeline.py",  # the spine_takes group: two 30-frame takes processed (34 s), one tracked
-    "test_armature.py",  # about 55 s
-    "test_process.py",  # about 48 s
-    "test_control_browser.py",
-    "test_rig_sim.py",  # about 35 s
+    "test_process.py",  # about 45 s
+    "test_control_browser.py",  # about 40 s of wall time
     "test_track_real_pipe.py",  # about 37 s
+    "test_importer.py",  # about 28 s
     "test_store_diskfull.py",  # about 26 s
-    "test_tracking_carved.py",  # about 25 s
-    "test_importer.py",
-    "test_spine.py",
+    "test_tracking_carved.py",  # about 24 s
     "test_caliscope.py",  # about 23 s
     "test_cli.py",  # tests/calib: about 23 s
     "test_handheld.py",  # about 22 s
+    "test_spine.py",  # about 22 s
     "test_armature_track.py",  # about 21 s
-    "test_browser_served.py",
+    "test_browser_served.py",  # about 21 s of wall time
+    "test_horse_take.py",  # about 20 s
     "test_photo_refine.py",  # about 17 s
-    "test_horse_take.py",
-    "test_keying_stages.py",
 )
 
 
