@@ -10,6 +10,13 @@ frame) and checks that both give the same occupancy. With ``--photo-refine`` it 
 the photo-consistent refinement of every surface (:func:`pipeline.photo_refine.refine_surface`)
 and prints the surfaces' distance to the simulator's true surface before and after it.
 
+With ``--accuracy`` it runs ``stage process`` at its defaults on the takes whose grid the tests
+check on fewer frames or a coarser grid, and prints their figures instead of the timings: the
+thin-tailed quadruped (:func:`fake_cameras.rigs.thin_tail_setup`, 24 frames; the limbs seen per
+frame at the default grid and at voxels of 5.3 and 6.5 pixel footprints) and the Middlebury dino
+(``../shared/data``, all 16 views, the plane it stands on; its surface box against the published
+one, at the default grid and at 120 voxels).
+
 Targets on a 2-core machine, 12 cameras at 640x480: >= 10 frames/s at 128^3 and >= 2 frames/s
 at 256^3 (keying excluded).
 """
@@ -38,6 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--seconds", type=float, default=3.0, help="minimum timed seconds per resolution (default 3)")
     p.add_argument("--no-direct", action="store_true", help="skip the plain numpy carving baseline")
+    p.add_argument("--accuracy", action="store_true",
+                   help="instead of the timings: the thin-tail take (24 frames) and the Middlebury dino through "
+                   "stage process at the default grid, the figures the tests check on smaller runs (about a minute)")
     p.add_argument("--photo-refine", action="store_true",
                    help="also time the photo-consistent refinement of each surface and print its distance to the "
                    "true surface before and after (voxels)")
@@ -90,7 +100,71 @@ def _timed_frames(carver, grid, take, args: argparse.Namespace):
     return steps, n, refined, mesh, before, after
 
 
+def _limbs_seen(results) -> list[int]:
+    import json
+
+    spine = json.loads((results / "spine.json").read_text())
+    return [sum(v is not None for v in fr["tips"].values()) for fr in spine["frames"]]
+
+
+def _thin_tail(tmp) -> None:
+    """The thin-tail take at the default grid and at coarser voxels over the same box."""
+    import json
+
+    from fake_cameras.record import record_take
+    from fake_cameras.rigs import thin_tail_setup
+    from fake_cameras.take import simulate_take
+    from pipeline.process import process_take
+
+    sim = simulate_take(frames=24, seed=0, **thin_tail_setup())
+    take = record_take(sim, tmp / "tail.h5")
+    process_take(take, tmp / "tail")
+    g = json.loads((tmp / "tail" / "process.json").read_text())["grid"]
+    seen = _limbs_seen(tmp / "tail")
+    print(f"thin tail, 24 frames: pixel footprint {g['pixel_footprint']:.2f} mm, default voxel {g['voxel']:.2f} mm; "
+          f"6 limbs in {seen.count(6)} of {len(seen)} frames")
+    for px in (5.3, 6.5):
+        res = int(np.ceil(max(g["box"]["size"]) / (px * g["pixel_footprint"])))
+        process_take(take, tmp / f"tail{px}", steps=("key", "surface", "spine"), params={"resolution": res})
+        seen = _limbs_seen(tmp / f"tail{px}")
+        print(f"  voxels of {px} pixel footprints ({res} along the box): 6 limbs in {seen.count(6)} of {len(seen)} frames")
+
+
+def _dino(tmp) -> None:
+    """The Middlebury dino's surface box against the published one, default grid and 120 voxels."""
+    from pipeline.process import process_take
+    from pipeline.results import ResultsStore
+    from stage.benchmarks._data import SHARED_DATA
+    from stage.importer import import_take
+
+    root = SHARED_DATA / "middlebury_dino_sparse_ring"
+    if not root.is_dir():
+        print(f"Middlebury dino: skipped, {root} not found")
+        return
+    take = import_take(root, root / "dinoSR_par.txt", tmp / "dino.h5", max_frames=1).path
+    box = np.array([[-0.061897, -0.018874, -0.057845], [0.010897, 0.068227, 0.015495]])  # its README.txt
+    for extra in ({}, {"resolution": 120}):
+        params = {"key_mode": "luma", "support_plane": (0.0, 1.0, 0.0, -box[0, 1]), **extra}
+        out = tmp / f"dino{len(extra)}"
+        r = process_take(take, out, steps=("key", "surface"), params=params)
+        rel = 100 * (np.ptp(ResultsStore(out).read_mesh(0).bounds, axis=0) / (box[1] - box[0]) - 1)
+        print(f"Middlebury dino, {extra.get('resolution', 'default')} grid (voxel {r.report['grid']['voxel'] * 1000:.2f} mm): "
+              f"surface box against the published one {', '.join(f'{v:+.1f} %' for v in rel)}")
+
+
+def accuracy() -> int:
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        _thin_tail(Path(tmp))
+        _dino(Path(tmp))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.accuracy:
+        return accuracy()
     from fake_cameras.take import simulate_take
     from pipeline.hull import HullCarver, carve_direct
     from pipeline.surface import surface_from_occupancy, surface_quality

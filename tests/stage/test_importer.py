@@ -93,8 +93,9 @@ def test_middlebury_dino_processed_end_to_end(tmp_path):
     warns that the cameras all look down on the dino; with the plane it stands on, the surface box
     is within 5 % of the published one.
 
-    The grid is about twice the default's voxel (0.82 mm against 0.44 mm, 4 pixel footprints
-    against 2), at half the cost: the box is measured as at the default (-0.6 %, -0.2 %, +0.4 %)."""
+    The grid's voxel is about twice the default's (0.76 mm against 0.42 mm), at half the cost: the
+    box is measured as at the default (-0.6 %, -0.2 %, +0.4 %; both from `stage bench reconstruct
+    --accuracy`, docs/reconstruction.md)."""
     from pipeline.process import process_take
     from pipeline.results import ResultsStore
 
