@@ -327,8 +327,11 @@ def _name_missing(ctx: RunContext, iou: np.ndarray, doc: dict) -> None:
     from pipeline.volume import Grid
     from stage.store import TakeReader
 
-    with np.errstate(all="ignore"):
-        med = np.nanmedian(np.where(np.isfinite(iou), iou, np.nan), axis=0) if iou.size else np.zeros(0)
+    finite = np.isfinite(iou)
+    has = finite.any(axis=0)  # sets with no consistency at all (skipped, empty) have no median
+    med = np.full(has.shape, np.nan)
+    if has.any():
+        med[has] = np.nanmedian(np.where(finite, iou, np.nan)[:, has], axis=0)
     sets = [int(k) for k in np.argsort(np.where(np.isfinite(med), med, np.inf))[:MISSING_SETS] if np.isfinite(med[k])]
     grid_path = ctx.out / "grid.json"
     if len(ctx.cameras) < 3 or not sets or not grid_path.exists():
