@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
@@ -14,6 +15,8 @@ from calib.fileio import atomic_write, json_default
 from pipeline.process.params import ProcessParams
 from pipeline.process.records import frame_name
 from pipeline.run import Run, chunks
+
+log = logging.getLogger("pipeline.process")
 
 __all__ = ["RunContext"]
 
@@ -67,6 +70,11 @@ class RunContext(Run):
                 if "skeleton" in rec:
                     self.skeletons[rec["index"]] = rec.pop("skeleton")
             self.report_progress(step, done, self.n_sets)
+
+    def warn(self, msg: str) -> None:
+        """Log ``msg`` as a warning and keep it for the report and the job (``warnings``)."""
+        log.warning("%s", msg)
+        self.warnings.append(msg)
 
     def add_to_record(self, **items) -> None:
         """Add what a step decided (e.g. the grid and why) to ``process.json``."""

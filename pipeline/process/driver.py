@@ -125,8 +125,7 @@ def _start_over(ctx: RunContext) -> None:
         said.append(f"{counted(len(exported), 'exported mesh file')} ({ctx.out / 'export'})")
     note = f"; removed {', '.join(said)}" if said else ""
     msg = f"{ctx.out} holds results of other parameters or another take; starting over{note}{remove_tracking(ctx.out)}"
-    log.warning("%s", msg)
-    ctx.warnings.append(msg)
+    ctx.warn(msg)
 
 
 #: Files of a results directory made from its frames and spine, removed when it starts over.

@@ -210,8 +210,7 @@ def _processing_grid(ctx: RunContext):
         grid, ctx.grid_choice, hint = choose_grid(masks_of, ctx.calibration, ctx.n_sets, ctx.params, ctx.rig,
                                                   progress=lambda d, t: ctx.report_progress("box", d, t))
     if hint:
-        log.warning("%s", hint)
-        ctx.warnings.append(hint)
+        ctx.warn(hint)
     atomic_write(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
     return grid
 
@@ -298,14 +297,12 @@ def _write_consistency(ctx: RunContext) -> None:
     for cam in low:
         msg = (f"camera {cam}: median silhouette consistency {median[cam]:.2f} (IoU of its masks and the projected "
                f"hull) is below {CONSISTENCY_WARN}: check its keying and calibration (report: worst frames)")
-        log.warning("%s", msg)
-        ctx.warnings.append(msg)
+        ctx.warn(msg)
     for cam in dropping:
         msg = (f"camera {cam}: {100 * drop[cam]:.0f} % of its silhouette (median over the frame sets) is no part of "
                f"the subject the other cameras see and was dropped before carving (silhouette consistency): check "
                f"its keying (a wall, a shadow, a second person)")
-        log.warning("%s", msg)
-        ctx.warnings.append(msg)
+        ctx.warn(msg)
     if low:  # (when every camera is explained, none cut much from the hull)
         _name_missing(ctx, iou, doc)
 
@@ -364,8 +361,7 @@ def _name_missing(ctx: RunContext, iou: np.ndarray, doc: dict) -> None:
         msg = (f"camera {cam}: the hull carved without it explains the other cameras' silhouettes better (their "
                f"silhouette consistency {gain[cam]:+.2f}, median over frame sets {sets}): its silhouettes miss part of "
                f"the subject; check its keying and calibration")
-        log.warning("%s", msg)
-        ctx.warnings.append(msg)
+        ctx.warn(msg)
 
 
 def _step_spine(ctx: RunContext) -> None:
