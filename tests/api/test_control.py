@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import threading
 import time
+from functools import partial
 from pathlib import Path
 
 import httpx
@@ -18,6 +19,7 @@ from api.settings import Settings
 from stage.session import StageSession
 from stage.store import TakeReader
 from tests.browser import artifacts_dir
+from tests.polling import wait_until
 from tests.stage.paced import make_drivers, rig_for
 
 TOKEN = "control-token"
@@ -64,14 +66,7 @@ class LiveServer:
         assert self.room.session.closed  # the app closed the session at shutdown
 
 
-def _wait(cond, timeout=15.0, what="condition"):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        v = cond()
-        if v:
-            return v
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+_wait = partial(wait_until, timeout=15.0, poll=0.05)
 
 
 def test_tokens_and_read_protection(tmp_path):

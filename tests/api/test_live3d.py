@@ -4,6 +4,7 @@ calibration job has saved it), or one chosen later (``PUT /stage/calibration/{id
 from __future__ import annotations
 
 import time
+from functools import partial
 from types import SimpleNamespace
 
 import pytest
@@ -15,6 +16,7 @@ from api.control import ControlRoom
 from api.live3d import Live3D
 from api.settings import Settings
 from stage.session import StageSession
+from tests.polling import wait_until
 from tests.stage.frames import calibration
 from tests.stage.paced import make_drivers, rig_for
 
@@ -22,14 +24,7 @@ IDS = ["c0", "c1"]
 JOB = "ab" * 16  # a calibration job's id: its calibration is saved under it
 
 
-def _wait(cond, timeout=60.0, what="condition"):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        v = cond()
-        if v:
-            return v
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
+_wait = partial(wait_until, timeout=60.0, poll=0.1)
 
 
 @pytest.fixture

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import shutil
 import threading
-import time
+from functools import partial
 
 import numpy as np
 import pytest
@@ -15,6 +15,7 @@ from stage.capture import TakeRecorder
 from stage.drivers.base import CameraDisconnectedError, CameraError, Granted
 from stage.session import NoRecordingError, RecordingBusyError, StageSession, recording_rate_bytes
 from stage.store import TakeReader
+from tests.polling import wait_until
 from tests.stage.paced import H, PacedCamera, W, make_drivers, pattern, rig_for
 
 
@@ -31,13 +32,7 @@ class Unpluggable(PacedCamera):
         return super().grab()
 
 
-def _wait(cond, timeout=10.0, what="condition"):
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if cond():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
+_wait = partial(wait_until, timeout=10.0, poll=0.02)
 
 
 def test_session_runs_and_records_from_the_running_cameras(tmp_path):
