@@ -167,8 +167,8 @@ def _wait_sets(proc: subprocess.Popen, n: int, timeout: float = 30.0) -> int:
     return last
 
 
-def _check_frames(r: TakeReader, n: int) -> None:
-    for k in range(n):
+def _check_frames(r: TakeReader, n: int, start: int = 0) -> None:
+    for k in range(start, n):
         np.testing.assert_array_equal(r.frame("a", k), make_image(0, k))
         assert r.encoded("b", k) == make_frame("b", 1, k, jpeg=True).encoded
 
@@ -223,7 +223,7 @@ def test_live_reads_meet_chunks_being_rewritten(tmp_path):
             t0 = time.monotonic()
             while time.monotonic() - t0 < 3.0:
                 n = r.refresh()
-                _check_frames_from(r, max(0, n - 4), n)
+                _check_frames(r, n, start=max(0, n - 4))
     finally:
         proc.kill()
         proc.wait()
@@ -235,12 +235,6 @@ def test_live_reads_meet_chunks_being_rewritten(tmp_path):
         assert r.complete
         with pytest.raises(TakeError, match="cannot read set 0"):
             r._read(_TornChunk(r._f["sets/frames"], 1), 0, "set 0")
-
-
-def _check_frames_from(r: TakeReader, start: int, stop: int) -> None:
-    for k in range(start, stop):
-        np.testing.assert_array_equal(r.frame("a", k), make_image(0, k))
-        assert r.encoded("b", k) == make_frame("b", 1, k, jpeg=True).encoded
 
 
 def test_sigkill_mid_take_keeps_flushed_sets(tmp_path):
