@@ -261,8 +261,6 @@ LONG_FUNCTIONS: dict[str, str] = {
     "robust loss, unpacking); splitting it passes a dozen arrays between pieces",
     "calib/extrinsics.py:calibrate_extrinsics": "the rig's extrinsic calibration as one pipeline of stages "
     "sharing the views and their poses",
-    "stage/keying/cleanup.py:mask_from_distance": "being changed by the keying work as this check landed; "
-    "to split into its cleanup stages",
 }
 
 

@@ -157,7 +157,30 @@ def mask_from_distance(
         raise ValueError(f"fill_holes must be one of {FILL_HOLES}, got {fill_holes!r}")
     h, w = distance.shape
     min_px = max(1, int(round(min_area * h * w)))
-    # OpenCV comparisons (uint8 0/255, no GIL) rather than NumPy boolean arrays
+    cand8, seeds8 = _candidates(distance, t_lo=t_lo, t_hi=t_hi, close_radius=close_radius,
+                                coverage_window=coverage_window, coverage_fraction=coverage_fraction)
+    n, labels, area, keep = _kept_components(cand8, seeds8, min_px=min_px, min_relative_area=min_relative_area)
+    dropped = int(n - 1 - keep.size)
+    mask = _select_labels(labels, keep)
+    if close_relative > 0 and keep.size:
+        mask = _close_relative(mask, labels, int(keep[np.argmax(area[keep])]), close_relative, distance, t_doubt)
+    holes = 0
+    if fill_holes == "enclosed" and keep.size:
+        mask, holes = _fill_enclosed(mask, distance, t_doubt)
+    elif fill_holes != "none" and keep.size and min_px > 1:
+        holes = _fill_small_holes(mask, distance, min_px=min_px, uncertain_only=fill_holes == "uncertain", t_lo=t_lo)
+    if grow > 0:
+        mask = cv2.dilate(mask.view(np.uint8), _disk(grow)).view(bool)
+    return mask, {"components_dropped": float(dropped), "holes_filled": float(holes)}
+
+
+def _candidates(distance: np.ndarray, *, t_lo: float, t_hi: float, close_radius: int, coverage_window: int,
+                coverage_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate pixels (distance >= ``t_lo``, the coverage rule, the closing) and, among
+    them, the solid seeds (distance >= ``t_hi``), both (H, W) uint8 0/255.
+
+    OpenCV comparisons (uint8 0/255, no GIL) rather than NumPy boolean arrays.
+    """
     cand8 = cv2.compare(distance, float(t_lo), cv2.CMP_GE)
     if coverage_window > 1:
         local = cv2.dilate(distance, np.ones((coverage_window, coverage_window), np.uint8))
@@ -165,8 +188,18 @@ def mask_from_distance(
     if close_radius > 0:
         cand8 = cv2.morphologyEx(cand8, cv2.MORPH_CLOSE, _disk(close_radius))
     seeds8 = cv2.bitwise_and(cand8, cv2.compare(distance, float(t_hi), cv2.CMP_GE))
-    # labels without stats (the stats pass costs more than the labelling itself);
-    # areas and seed counts from the bounding box of the candidates only
+    return cand8, seeds8
+
+
+def _kept_components(cand8: np.ndarray, seeds8: np.ndarray, *, min_px: int,
+                     min_relative_area: float) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """Hysteresis: the candidate components that hold a seed and are large enough.
+
+    Returns the number of labels (background included), the (H, W) int32 labels, the area of
+    each label (a single 0 when there is no component) and the kept label ids (int32).
+    Labels are found without stats (the stats pass costs more than the labelling itself);
+    areas and seed counts come from the candidates' bounding box only.
+    """
     n, labels = cv2.connectedComponents(cand8, connectivity=8, ltype=cv2.CV_32S)
     area = np.zeros(1, np.int64)
     if n > 1:
@@ -180,47 +213,48 @@ def mask_from_distance(
             ok &= area >= min_relative_area * area[ok].max()
     else:
         ok = np.zeros(1, bool)
-    keep = np.flatnonzero(ok).astype(np.int32)
-    dropped = int(n - 1 - keep.size)
-    mask = _select_labels(labels, keep)
-    if close_relative > 0 and keep.size:
-        mask = _close_relative(mask, labels, int(keep[np.argmax(area[keep])]), close_relative, distance, t_doubt)
-    holes = 0
-    if fill_holes == "enclosed" and keep.size:
-        mask, holes = _fill_enclosed(mask, distance, t_doubt)
-    elif fill_holes != "none" and keep.size and min_px > 1:
-        x, y, bw, bh = cv2.boundingRect(mask.view(np.uint8))
-        roi = mask[y : y + bh, x : x + bw]
-        n2, lab2 = cv2.connectedComponents((~roi).view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
-        if n2 > 1:
-            area2 = np.bincount(lab2[~roi], minlength=n2)
-            border = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
-            small = area2 < min_px
-            small[0] = False
-            small[border] = False
-            if fill_holes == "uncertain" and small.any():
-                # a hole of backdrop colour (median distance below t_lo) is backdrop seen
-                # through a gap (between legs, arm and torso); only holes the model is unsure
-                # of (mixed pixels, specks the coverage rule rejected) are subject
-                cand = np.flatnonzero(small)
-                d_roi = distance[y : y + bh, x : x + bw]
-                is_cand = np.zeros(n2, bool)
-                is_cand[cand] = True
-                sel = is_cand[lab2]  # pixels of the small holes (one pass; the holes are few and small)
-                labs, vals = lab2[sel], d_roi[sel]
-                order = np.lexsort((vals, labs))  # by hole, then by distance: medians by index
-                labs, vals = labs[order], vals[order]
-                starts = np.searchsorted(labs, cand)
-                ends = np.searchsorted(labs, cand, side="right")
-                med = 0.5 * (vals[(starts + ends - 1) // 2] + vals[(starts + ends) // 2])
-                small[cand[med < t_lo]] = False
-            fill = np.flatnonzero(small).astype(np.int32)
-            if fill.size:
-                roi |= _select_labels(lab2, fill)
-                holes = int(fill.size)
-    if grow > 0:
-        mask = cv2.dilate(mask.view(np.uint8), _disk(grow)).view(bool)
-    return mask, {"components_dropped": float(dropped), "holes_filled": float(holes)}
+    return n, labels, area, np.flatnonzero(ok).astype(np.int32)
+
+
+def _fill_small_holes(mask: np.ndarray, distance: np.ndarray, *, min_px: int, uncertain_only: bool,
+                      t_lo: float) -> int:
+    """Fill, in place, the backdrop holes of ``mask`` smaller than ``min_px`` pixels that do not
+    touch its bounding box's border; with ``uncertain_only`` only those whose median distance
+    is at least ``t_lo``. Returns how many holes were filled."""
+    x, y, bw, bh = cv2.boundingRect(mask.view(np.uint8))
+    roi = mask[y : y + bh, x : x + bw]
+    n2, lab2 = cv2.connectedComponents((~roi).view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
+    if n2 <= 1:
+        return 0
+    area2 = np.bincount(lab2[~roi], minlength=n2)
+    border = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
+    small = area2 < min_px
+    small[0] = False
+    small[border] = False
+    if uncertain_only and small.any():
+        # a hole of backdrop colour (median distance below t_lo) is backdrop seen
+        # through a gap (between legs, arm and torso); only holes the model is unsure
+        # of (mixed pixels, specks the coverage rule rejected) are subject
+        cand = np.flatnonzero(small)
+        small[cand[_median_distances(lab2, distance[y : y + bh, x : x + bw], cand) < t_lo]] = False
+    fill = np.flatnonzero(small).astype(np.int32)
+    if fill.size:
+        roi |= _select_labels(lab2, fill)
+    return int(fill.size)
+
+
+def _median_distances(labels: np.ndarray, distance: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Median of ``distance`` over the pixels of each label in ``wanted`` (sorted label ids),
+    in one pass (the holes are few and small)."""
+    is_wanted = np.zeros(int(labels.max()) + 1, bool)
+    is_wanted[wanted] = True
+    sel = is_wanted[labels]
+    labs, vals = labels[sel], distance[sel]
+    order = np.lexsort((vals, labs))  # by label, then by distance: medians by index
+    labs, vals = labs[order], vals[order]
+    starts = np.searchsorted(labs, wanted)
+    ends = np.searchsorted(labs, wanted, side="right")
+    return 0.5 * (vals[(starts + ends - 1) // 2] + vals[(starts + ends) // 2])
 
 
 def estimate_coverage_fraction(
