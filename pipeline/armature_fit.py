@@ -209,13 +209,28 @@ def _skew_batch(a: np.ndarray) -> np.ndarray:
     return out
 
 
+def _rotations(M: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) the nearest rotations (polar decomposition by SVD)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.ones(M.shape[:-1])
+    D[..., 2] = np.sign(np.linalg.det(U @ Vt))
+    return (U * D[..., None, :]) @ Vt
+
+
 def _forward(model: ArticulatedModel, root_R, root_t, local: np.ndarray) -> Pose:
-    """Global part transforms from the root motion and the local rotations."""
+    """Global part transforms from the root motion and the local rotations.
+
+    Every rotation is first projected onto the rotations: a pose is carried from frame to frame
+    and iteration to iteration through ``_local`` (``R_parent^T R_p``), and along a chain of tens of
+    parts the rounding of ``R_parent^T`` as the inverse would otherwise grow with every pass
+    (the deepest parts shear and scale).
+    """
     sk = model.skeleton
     P = sk.n_parts
+    local = _rotations(np.asarray(local, dtype=np.float64))
     R = np.empty((P, 3, 3))
     t = np.empty((P, 3))
-    R[0], t[0] = root_R, root_t
+    R[0], t[0] = _rotations(np.asarray(root_R, dtype=np.float64)), root_t
     c = model.pivots
     for p in range(1, P):  # parents come first
         q = sk.part_parent[p]
