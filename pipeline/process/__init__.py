@@ -37,7 +37,7 @@ Output directory layout::
     OUT/report.json               summary: steps, timings, per-frame quality, tip counts, how K was chosen
 """
 
-from pipeline.process.context import RunContext
+from pipeline.process.context import Made, RunContext, TakeFacts
 from pipeline.process.driver import process_take
 from pipeline.process.grid import MAX_VOXELS, MIN_RESOLUTION, PIXELS_PER_VOXEL
 from pipeline.process.params import ProcessError, ProcessParams, ProcessResult, TrackParams
@@ -46,7 +46,7 @@ from pipeline.process.tasks import key_task, skeleton_task, surface_task, warm_t
 from pipeline.run import Step
 
 __all__ = [
-    "DEFAULT_STEPS", "MAX_VOXELS", "MIN_RESOLUTION", "PIXELS_PER_VOXEL", "STEPS", "ProcessError", "ProcessParams",
-    "ProcessResult", "RunContext", "Step", "TrackParams", "key_task", "process_take", "register_step", "skeleton_task",
-    "surface_task", "warm_task",
+    "DEFAULT_STEPS", "MAX_VOXELS", "MIN_RESOLUTION", "PIXELS_PER_VOXEL", "STEPS", "Made", "ProcessError",
+    "ProcessParams", "ProcessResult", "RunContext", "Step", "TakeFacts", "TrackParams", "key_task", "process_take",
+    "register_step", "skeleton_task", "surface_task", "warm_task",
 ]

@@ -1,4 +1,10 @@
-"""What the steps of one :func:`pipeline.process.process_take` call share."""
+"""What the steps of one :func:`pipeline.process.process_take` call share.
+
+A :class:`RunContext` is the runner's side of the run (:class:`pipeline.run.Run`) and three
+groups of the process's own: the job (``params``, the ``steps`` asked for, and what they imply:
+``need_key``, ``damaged``), the take (:class:`TakeFacts`, read once when the run opens) and what
+the steps made for later steps and the report (:class:`Made`).
+"""
 
 from __future__ import annotations
 
@@ -18,37 +24,49 @@ from pipeline.run import Run, chunks
 
 log = logging.getLogger("pipeline.process")
 
-__all__ = ["RunContext"]
+__all__ = ["Made", "RunContext", "TakeFacts"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class TakeFacts:
+    """The take a run processes, as read when the run opens."""
+
+    path: Path
+    calibration: object  # calib.Calibration of ``cameras``, in their order
+    cameras: list[str]
+    n_sets: int  # frame sets
+    fps: float
+    rig: dict  # the rig file's contents stored with the take
+    all_depth: bool = False  # every camera records depth
+    set_table: np.ndarray | None = None  # (S, C) frame row of every camera in every set
+
+
+@dataclass(kw_only=True)
+class Made:
+    """What the steps of this run made for later steps and for the report."""
+
+    key_choice: dict = field(default_factory=dict)  # the keying mode and layers of this run, and why
+    keyed: dict | None = field(default_factory=dict)  # camera -> (bit-packed masks, width, valid) keyed in this run
+    grid_choice: dict = field(default_factory=dict)  # the grid and why
+    consistency: dict = field(default_factory=dict)  # per camera median silhouette IoU, and those below the threshold
+    skeletons: dict[int, object] = field(default_factory=dict)  # frame -> FrameSkeleton (None: none), as computed
+    tip_counts: list[int | None] = field(default_factory=list)  # per frame set
+    limb_count: dict = field(default_factory=dict)  # the spine's K and the rule that chose it
+    spine_path: Path | None = None
 
 
 @dataclass(kw_only=True)
 class RunContext(Run):
     """The runner's side of the run (:class:`pipeline.run.Run`: results directory, executor,
-    progress, cancel, timings, warnings), the take's facts, the job's options, and what earlier
-    steps left for later ones."""
+    progress, cancel, timings, warnings), the job, the take's facts and what the steps made."""
 
-    # the take and the job
-    take: Path
+    # the job: what it asks for and what that implies
     params: ProcessParams
     steps: tuple[str, ...] = ()
-    calibration: object
-    cameras: list[str]
-    n_sets: int
-    fps: float
-    rig: dict
-    need_key: bool
-    all_depth: bool = False  # every camera records depth
-    set_table: np.ndarray | None = None  # (S, C) frame row of every camera in every set
-    # made by the steps
-    key_choice: dict = field(default_factory=dict)  # the keying mode and layers of this run, and why
-    keyed: dict | None = field(default_factory=dict)  # camera -> (bit-packed masks, width, valid) keyed in this run
-    grid_choice: dict = field(default_factory=dict)
-    consistency: dict = field(default_factory=dict)  # per camera median silhouette IoU, and those below the threshold
-    skeletons: dict[int, object] = field(default_factory=dict)  # frame -> FrameSkeleton (None: none), as computed
-    tip_counts: list[int | None] = field(default_factory=list)
-    limb_count: dict = field(default_factory=dict)  # the spine's K and the rule that chose it
-    spine_path: Path | None = None
-    damaged: dict = field(default_factory=dict)  # skip_damaged: {"sets", "frames" per camera, "summary"} of the damage skipped
+    need_key: bool  # the key step runs (asked to key again, or a camera has no masks)
+    damaged: dict = field(default_factory=dict)  # skip_damaged: {"sets", "frames" per camera, "summary"} skipped
+    take: TakeFacts
+    made: Made = field(default_factory=Made)
 
     @property
     def skipped_sets(self) -> frozenset[int]:
@@ -60,16 +78,17 @@ class RunContext(Run):
         """Run a per-frame ``task`` on every frame set without a result in ``OUT/done_dir``
         (the one runner all per-frame steps share: chunks, executor, progress, cancel);
         ``chunk_args(frames)`` adds keywords per chunk (e.g. its masks)."""
-        todo = [k for k in range(self.n_sets) if not (self.out / done_dir / f"{frame_name(k)}{suffix}").exists()]
-        done = self.n_sets - len(todo)
-        self.report_progress(step, done, self.n_sets)
+        n_sets = self.take.n_sets
+        todo = [k for k in range(n_sets) if not (self.out / done_dir / f"{frame_name(k)}{suffix}").exists()]
+        done = n_sets - len(todo)
+        self.report_progress(step, done, n_sets)
         tasks = [partial(task, ch, **(chunk_args(ch) if chunk_args else {})) for ch in chunks(todo, self.params.chunk)]
         for finished in self.map_tasks(tasks):
             done += len(finished)
             for rec in finished:
                 if "skeleton" in rec:
-                    self.skeletons[rec["index"]] = rec.pop("skeleton")
-            self.report_progress(step, done, self.n_sets)
+                    self.made.skeletons[rec["index"]] = rec.pop("skeleton")
+            self.report_progress(step, done, n_sets)
 
     def warn(self, msg: str) -> None:
         """Log ``msg`` as a warning and keep it for the report and the job (``warnings``)."""

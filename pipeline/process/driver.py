@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from calib.fileio import atomic_write, json_default
-from pipeline.process.context import RunContext
+from pipeline.process.context import Made, RunContext, TakeFacts
 from pipeline.process.grid import MAX_VOXELS
 from pipeline.process.params import ProcessError, ProcessParams, ProcessResult, check_params
 from pipeline.process.records import frame_name
@@ -72,10 +72,10 @@ def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunC
     # skipping needs the damage's frame sets on a resumed run too (its surfaces read the take)
     damaged = _check_frames(take, skip=params.skip_damaged) if need_key or params.photo_refine or params.skip_damaged else {}
     calibration = type(calibration)(tuple(calibration[c] for c in cameras), units=calibration.units, meta=calibration.meta)
-    ctx = RunContext(
-        take=take, out=out, params=params, calibration=calibration, cameras=cameras, n_sets=n_sets,
-        fps=float(fps), rig=rig, need_key=need_key, all_depth=all_depth, tip_counts=[None] * n_sets, set_table=set_table, **hooks,
-    )
+    facts = TakeFacts(path=take, calibration=calibration, cameras=cameras, n_sets=n_sets, fps=float(fps), rig=rig,
+                      all_depth=all_depth, set_table=set_table)
+    ctx = RunContext(out=out, params=params, need_key=need_key, take=facts, made=Made(tip_counts=[None] * n_sets),
+                     **hooks)
     if damaged:
         ctx.damaged = damaged
         ctx.warnings.append(damaged["summary"])
@@ -84,7 +84,8 @@ def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunC
 
 def _start_record(ctx: RunContext) -> None:
     """Write ``process.json``; results of other parameters or another take are removed first."""
-    record = {"take": str(ctx.take.resolve()), "params": ctx.params.model_dump(), "frames": ctx.n_sets, "cameras": ctx.cameras}
+    record = {"take": str(ctx.take.path.resolve()), "params": ctx.params.model_dump(), "frames": ctx.take.n_sets,
+              "cameras": ctx.take.cameras}
     if ctx.damaged:
         record["damaged"] = ctx.damaged
     prev = ctx.out / "process.json"
@@ -134,34 +135,34 @@ _MADE_FROM_FRAMES = ("report.json", "report.html", "spine_rig.glb", "spine.glb",
 
 def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> ProcessResult:
     frame_infos: dict[int, dict] = {}
-    for k in range(ctx.n_sets):
+    for k in range(ctx.take.n_sets):
         f = ctx.out / "frames" / f"{frame_name(k)}.json"
         if f.exists():
             frame_infos[k] = json.loads(f.read_text())
     empty = sorted(k for k, i in frame_infos.items() if i.get("status") not in ("ok", "damaged"))
-    if not ctx.consistency and (ctx.out / "consistency.json").is_file():  # made by an earlier run's surface step
+    if not ctx.made.consistency and (ctx.out / "consistency.json").is_file():  # made by an earlier run's surface step
         doc = json.loads((ctx.out / "consistency.json").read_text())
-        ctx.consistency = {k: doc.get(k) for k in ("median", "low", "threshold")}
+        ctx.made.consistency = {k: doc.get(k) for k in ("median", "low", "threshold")}
     report = {
-        "take": str(ctx.take.resolve()),
-        "frames": ctx.n_sets,
-        "cameras": ctx.cameras,
+        "take": str(ctx.take.path.resolve()),
+        "frames": ctx.take.n_sets,
+        "cameras": ctx.take.cameras,
         "steps": list(steps),
         "seconds": ctx.timings,
         "cpu_seconds": ctx.cpu,
         "total_seconds": time.perf_counter() - t_start,
         "empty_frames": empty,
         "damaged_sets": sorted(ctx.skipped_sets),
-        "tip_counts": ctx.tip_counts,
-        "per_frame": [frame_infos.get(k) for k in range(ctx.n_sets)],
+        "tip_counts": ctx.made.tip_counts,
+        "per_frame": [frame_infos.get(k) for k in range(ctx.take.n_sets)],
         "warnings": ctx.warnings,
-        "grid": ctx.grid_choice,
-        "limb_count": ctx.limb_count,
-        "consistency": ctx.consistency,
+        "grid": ctx.made.grid_choice,
+        "limb_count": ctx.made.limb_count,
+        "consistency": ctx.made.consistency,
     }
     atomic_write(ctx.out / "report.json", json.dumps(report, indent=1, default=json_default))
     return ProcessResult(
-        out=ctx.out, steps=steps, frames=ctx.n_sets, empty_frames=empty, spine_path=ctx.spine_path, report=report
+        out=ctx.out, steps=steps, frames=ctx.take.n_sets, empty_frames=empty, spine_path=ctx.made.spine_path, report=report
     )
 
 
@@ -222,7 +223,7 @@ def process_take(
         need = _space_needed(ctx, steps)
         with raise_disk_full(out, "the processing results", need,
                              detail="the take is unchanged; free space and run again"):
-            check_free_space(out, need, f"processing {ctx.n_sets} frame sets of {take.name}")
+            check_free_space(out, need, f"processing {ctx.take.n_sets} frame sets of {take.name}")
             out.mkdir(parents=True, exist_ok=True)
             _start_record(ctx)
             for name in steps:  # the run's total counts every step it will run
@@ -243,12 +244,12 @@ def _space_needed(ctx: RunContext, steps: Sequence[str]) -> int:
 
     need = 1 << 20
     if "key" in steps and ctx.need_key:
-        with TakeReader(ctx.take) as r:
-            pixels = sum(r.n_frames(c) * int.__mul__(*r.image_size(c)) for c in ctx.cameras)
+        with TakeReader(ctx.take.path) as r:
+            pixels = sum(r.n_frames(c) * int.__mul__(*r.image_size(c)) for c in ctx.take.cameras)
             old = r.derived_path.stat().st_size if r.derived_path.exists() else 0
         need += pixels // 16 + old  # the derived file is rebuilt beside the old one
     if "surface" in steps or "spine" in steps:
         res = ctx.params.resolution or round(MAX_VOXELS ** (1 / 3))  # chosen later from the rig: at most this
-        need += ctx.n_sets * (64 * res**2 + (16 << 10))
+        need += ctx.take.n_sets * (64 * res**2 + (16 << 10))
     return need
 

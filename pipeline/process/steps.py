@@ -62,7 +62,7 @@ def register_step(name: str, run: Callable[[RunContext], None], *, doc: str = ""
 def _step_key(ctx: RunContext) -> None:
     """Key every camera of the take (unless it holds masks and ``rekey`` is off): tasks of a
     few cameras on the executor (frames read once, in the worker), masks stored here."""
-    total = ctx.n_sets * len(ctx.cameras)
+    total = ctx.take.n_sets * len(ctx.take.cameras)
     if not ctx.need_key:
         ctx.report_progress("key", total, total)
         return
@@ -70,12 +70,12 @@ def _step_key(ctx: RunContext) -> None:
 
     t0 = time.perf_counter()
     skip = ctx.damaged.get("frames") or None
-    choice = resolve_key_choice(ctx.take, ctx.rig, key_mode=ctx.params.key_mode, layers=ctx.params.key_layers, skip=skip)
-    ctx.key_choice = choice
+    choice = resolve_key_choice(ctx.take.path, ctx.take.rig, key_mode=ctx.params.key_mode, layers=ctx.params.key_layers, skip=skip)
+    ctx.made.key_choice = choice
     ctx.add_to_record(key=choice)
     if "graphcut" in choice["layers"] and "refine" in ctx.steps:
         ctx.announce("refine", [("refine", total)])
-    base = take_key_params(ctx.rig, key_mode=choice["mode"]).to_dict()
+    base = take_key_params(ctx.take.rig, key_mode=choice["mode"]).to_dict()
     volume = _volume_bounds(ctx).tolist() if "volume" in choice["layers"] else None
     done = 0
     ctx.report_progress("key", 0, total)
@@ -85,11 +85,11 @@ def _step_key(ctx: RunContext) -> None:
     # masks unpacked as each camera arrives; those done are stored once a worker falls idle
     # (the last cameras still keying: a core is free then), the rest at the end: few updates of
     # the derived data (each copies it), at most ~512 MB of masks a batch
-    groups = _camera_groups(ctx.cameras, where.executor)
+    groups = _camera_groups(ctx.take.cameras, where.executor)
     pending = len(groups)
     overlap_at = max(1, pool_size(where.executor) - 1) if where.executor is not None else 0
     batch: list = []
-    for results in where.map_tasks([partial(key_task, str(ctx.take), g, base, threads, volume, skip) for g in groups]):
+    for results in where.map_tasks([partial(key_task, str(ctx.take.path), g, base, threads, volume, skip) for g in groups]):
         pending -= 1
         for res in results:
             if res["key"] is None:
@@ -99,55 +99,55 @@ def _step_key(ctx: RunContext) -> None:
             key.masks = np.unpackbits(key.masks, axis=-1, count=res["shape"][-1]).view(bool)
             done += len(key.valid)
             if batch and sum(k.masks.nbytes for k in batch) + key.masks.nbytes > _STORE_BATCH_BYTES:
-                store_camera_keys(ctx.take, batch)
+                store_camera_keys(ctx.take.path, batch)
                 batch = []
             batch.append(key)
         if batch and 0 < pending <= overlap_at:
-            store_camera_keys(ctx.take, batch)
+            store_camera_keys(ctx.take.path, batch)
             batch = []
         ctx.report_progress("key", min(done, total), total)
     if batch:
-        store_camera_keys(ctx.take, batch)
+        store_camera_keys(ctx.take.path, batch)
     ctx.timings["key"] = time.perf_counter() - t0
 
 
 def _step_refine(ctx: RunContext) -> None:
     """The keying's ``graphcut`` layer: every camera's masks keyed in this run cut again with colour
     models seeded by a first hull (:func:`pipeline.silhouette_refine.refine_take`), stored in place."""
-    layers = ctx.key_choice.get("layers", []) if ctx.key_choice else []
+    layers = ctx.made.key_choice.get("layers", []) if ctx.made.key_choice else []
     if "graphcut" not in layers or not ctx.need_key:
         return
     from pipeline.silhouette_refine import refine_take
 
     t0 = time.perf_counter()
-    total = ctx.n_sets * len(ctx.cameras)
+    total = ctx.take.n_sets * len(ctx.take.cameras)
     done = [0]
 
     def tick(n: int) -> None:
         done[0] += n
         ctx.report_progress("refine", min(done[0], total), total)
 
-    info = refine_take(ctx.take, volume=_volume_bounds(ctx), progress=tick, skip_sets=ctx.skipped_sets)
-    ctx.keyed = None  # the masks in memory are the keyer's: the surface tasks read the refined ones
+    info = refine_take(ctx.take.path, volume=_volume_bounds(ctx), progress=tick, skip_sets=ctx.skipped_sets)
+    ctx.made.keyed = None  # the masks in memory are the keyer's: the surface tasks read the refined ones
     ctx.add_to_record(refine={"method": "graphcut", "masks": info["frames"], "first_hull_grid": info["grid"]})
     ctx.timings["refine"] = time.perf_counter() - t0
 
 
 def _keep_masks(ctx: RunContext, key, width: int) -> None:
     """Keep a camera's bit-packed masks for the surface step (within :data:`_KEEP_MASKS_BYTES`)."""
-    if ctx.keyed is None:
+    if ctx.made.keyed is None:
         return
-    ctx.keyed[key.camera] = (key.masks, int(width), np.asarray(key.valid, bool))
-    if sum(m.nbytes for m, _, _ in ctx.keyed.values()) > _KEEP_MASKS_BYTES:
-        ctx.keyed = None  # a long take: the surface tasks read the masks from it
+    ctx.made.keyed[key.camera] = (key.masks, int(width), np.asarray(key.valid, bool))
+    if sum(m.nbytes for m, _, _ in ctx.made.keyed.values()) > _KEEP_MASKS_BYTES:
+        ctx.made.keyed = None  # a long take: the surface tasks read the masks from it
 
 
 def _kept_masks(ctx: RunContext) -> Callable[[list[int]], dict] | None:
     """Per chunk of frame sets, its masks as keyed in this run (``surface_task(masks=)``), or
     None when they are not all in memory (a resumed run, a long take)."""
-    if not ctx.keyed or set(ctx.keyed) != set(ctx.cameras) or ctx.set_table is None:
+    if not ctx.made.keyed or set(ctx.made.keyed) != set(ctx.take.cameras) or ctx.take.set_table is None:
         return None
-    kept = [ctx.keyed[c] for c in ctx.cameras]
+    kept = [ctx.made.keyed[c] for c in ctx.take.cameras]
     widths = [w for _, w, _ in kept]
     skipped = ctx.skipped_sets
 
@@ -155,7 +155,7 @@ def _kept_masks(ctx: RunContext) -> Callable[[list[int]], dict] | None:
         if k in skipped:
             return [None] * len(kept)
         out = []
-        for (m, _, valid), r in zip(kept, ctx.set_table[k]):
+        for (m, _, valid), r in zip(kept, ctx.take.set_table[k]):
             ok = 0 <= r < len(m) and (r >= len(valid) or valid[r])  # as frame_masks
             out.append(m[r] if ok else None)
         return out
@@ -177,7 +177,7 @@ def _camera_groups(cameras: Sequence[str], executor) -> list[list[str]]:
 
 def _volume_bounds(ctx: RunContext) -> np.ndarray:
     """Where to look for the subject: the job's volume, the rig's, else the cameras'."""
-    return search_volume(ctx.params, ctx.rig, ctx.calibration)[0]
+    return search_volume(ctx.params, ctx.take.rig, ctx.take.calibration)[0]
 
 
 def _processing_grid(ctx: RunContext):
@@ -187,31 +187,31 @@ def _processing_grid(ctx: RunContext):
     from stage.store import TakeReader
 
     grid_path = ctx.out / "grid.json"
-    with TakeReader(ctx.take) as reader:
-        missing = sorted(set(ctx.cameras) - set(reader.masks_present()))
+    with TakeReader(ctx.take.path) as reader:
+        missing = sorted(set(ctx.take.cameras) - set(reader.masks_present()))
         if missing:
-            raise ProcessError(f"{ctx.take}: cameras {missing} have no masks; run the key step")
+            raise ProcessError(f"{ctx.take.path}: cameras {missing} have no masks; run the key step")
         if grid_path.exists():
             grid = Grid.from_dict(json.loads(grid_path.read_text()))
-            ctx.grid_choice = json.loads(grid_path.read_text()).get("choice", {})
+            ctx.made.grid_choice = json.loads(grid_path.read_text()).get("choice", {})
             return grid
         kept = _kept_masks(ctx)
         if kept is not None:  # the masks keyed in this run, in memory
-            widths = [w for _, w, _ in (ctx.keyed[c] for c in ctx.cameras)]
+            widths = [w for _, w, _ in (ctx.made.keyed[c] for c in ctx.take.cameras)]
 
             def masks_of(k: int):
                 ms = unpack_masks(kept([k])["masks"]["sets"][k], widths)
-                return ms, [c for c, m in zip(ctx.cameras, ms) if m is None]
+                return ms, [c for c, m in zip(ctx.take.cameras, ms) if m is None]
         else:
-            validity = mask_validity(reader, ctx.cameras)
-            masks_of = partial(frame_masks, reader, ctx.cameras, validity=validity)
+            validity = mask_validity(reader, ctx.take.cameras)
+            masks_of = partial(frame_masks, reader, ctx.take.cameras, validity=validity)
         if ctx.skipped_sets:
-            masks_of = _without_sets(masks_of, ctx.skipped_sets, ctx.cameras)
-        grid, ctx.grid_choice, hint = choose_grid(masks_of, ctx.calibration, ctx.n_sets, ctx.params, ctx.rig,
+            masks_of = _without_sets(masks_of, ctx.skipped_sets, ctx.take.cameras)
+        grid, ctx.made.grid_choice, hint = choose_grid(masks_of, ctx.take.calibration, ctx.take.n_sets, ctx.params, ctx.take.rig,
                                                   progress=lambda d, t: ctx.report_progress("box", d, t))
     if hint:
         ctx.warn(hint)
-    atomic_write(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.grid_choice}))
+    atomic_write(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.made.grid_choice}))
     return grid
 
 
@@ -233,8 +233,8 @@ def _record_skipped(ctx: RunContext) -> None:
     for k in sorted(ctx.skipped_sets):
         store.mesh_path(k).unlink(missing_ok=True)
         skeleton_path(ctx.out, k).unlink(missing_ok=True)
-        cams = [c for c, r in zip(ctx.cameras, ctx.set_table[k]) if r in ctx.damaged["frames"].get(c, ())]
-        info = {"index": int(k), "status": "damaged", "skipped_cameras": list(ctx.cameras),
+        cams = [c for c, r in zip(ctx.take.cameras, ctx.take.set_table[k]) if r in ctx.damaged["frames"].get(c, ())]
+        info = {"index": int(k), "status": "damaged", "skipped_cameras": list(ctx.take.cameras),
                 "reason": f"damaged frames of camera {', '.join(cams)} in the take: the set was skipped (--skip-damaged)"}
         atomic_write(ctx.out / "frames" / f"{frame_name(k)}.json", json.dumps(info))
 
@@ -244,18 +244,18 @@ def _step_surface(ctx: RunContext) -> None:
     _record_skipped(ctx)
     with ctx.part("grid"):
         grid = _processing_grid(ctx)
-        ctx.add_to_record(grid=ctx.grid_choice)
+        ctx.add_to_record(grid=ctx.made.grid_choice)
     t0 = time.perf_counter()
     task = partial(
         surface_task,
-        str(ctx.take.resolve()),
-        calib_dict=ctx.calibration.to_dict(),
+        str(ctx.take.path.resolve()),
+        calib_dict=ctx.take.calibration.to_dict(),
         grid_dict=grid.to_dict(),
         params=ctx.params.model_dump(),
         out=str(ctx.out.resolve()),
         # skeletons straight from the surfaces in memory when the spine step follows
         spine_params=ctx.params.spine if "spine" in ctx.steps else None,
-        use_depth=uses_depth(ctx.params, all_depth=ctx.all_depth),
+        use_depth=uses_depth(ctx.params, all_depth=ctx.take.all_depth),
     )
     ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx))
     _write_consistency(ctx)
@@ -272,27 +272,27 @@ def _write_consistency(ctx: RunContext) -> None:
     from pipeline.consistency import CONSISTENCY_WARN
     from pipeline.silhouette_refine import DROPPED_WARN
 
-    iou = np.full((len(ctx.cameras), ctx.n_sets), np.nan)
-    dropped = np.full((len(ctx.cameras), ctx.n_sets), np.nan)
-    for k in range(ctx.n_sets):
+    iou = np.full((len(ctx.take.cameras), ctx.take.n_sets), np.nan)
+    dropped = np.full((len(ctx.take.cameras), ctx.take.n_sets), np.nan)
+    for k in range(ctx.take.n_sets):
         f = ctx.out / "frames" / f"{frame_name(k)}.json"
         rec = json.loads(f.read_text()) if f.exists() else {}
         per_cam, per_drop = rec.get("consistency") or {}, rec.get("dropped") or {}
-        for i, cam in enumerate(ctx.cameras):
+        for i, cam in enumerate(ctx.take.cameras):
             v, d = per_cam.get(cam), per_drop.get(cam)
             iou[i, k] = np.nan if v is None else v
             dropped[i, k] = np.nan if d is None else d
     seen = np.isfinite(iou).any(axis=1)
-    median = {cam: (float(np.nanmedian(iou[i])) if seen[i] else None) for i, cam in enumerate(ctx.cameras)}
+    median = {cam: (float(np.nanmedian(iou[i])) if seen[i] else None) for i, cam in enumerate(ctx.take.cameras)}
     low = [cam for cam, m in median.items() if m is not None and m < CONSISTENCY_WARN]
     has_drop = np.isfinite(dropped).any(axis=1)
-    drop = {cam: (float(np.nanmedian(dropped[i])) if has_drop[i] else None) for i, cam in enumerate(ctx.cameras)}
+    drop = {cam: (float(np.nanmedian(dropped[i])) if has_drop[i] else None) for i, cam in enumerate(ctx.take.cameras)}
     dropping = [cam for cam, m in drop.items() if m is not None and m > DROPPED_WARN]
-    doc = {"cameras": ctx.cameras, "threshold": CONSISTENCY_WARN, "median": median, "low": low,
+    doc = {"cameras": ctx.take.cameras, "threshold": CONSISTENCY_WARN, "median": median, "low": low,
            "iou": [[None if not np.isfinite(x) else float(x) for x in row] for row in iou],
            "dropped": drop, "dropping": dropping, "dropped_threshold": DROPPED_WARN}
     atomic_write(ctx.out / "consistency.json", json.dumps(doc))
-    ctx.consistency = {"median": median, "low": low, "threshold": CONSISTENCY_WARN, "dropped": drop,
+    ctx.made.consistency = {"median": median, "low": low, "threshold": CONSISTENCY_WARN, "dropped": drop,
                        "dropping": dropping}
     for cam in low:
         msg = (f"camera {cam}: median silhouette consistency {median[cam]:.2f} (IoU of its masks and the projected "
@@ -331,15 +331,15 @@ def _name_missing(ctx: RunContext, iou: np.ndarray, doc: dict) -> None:
         med[has] = np.nanmedian(np.where(finite, iou, np.nan)[:, has], axis=0)
     sets = [int(k) for k in np.argsort(np.where(np.isfinite(med), med, np.inf))[:MISSING_SETS] if np.isfinite(med[k])]
     grid_path = ctx.out / "grid.json"
-    if len(ctx.cameras) < 3 or not sets or not grid_path.exists():
+    if len(ctx.take.cameras) < 3 or not sets or not grid_path.exists():
         return
     p = ctx.params
-    carver = HullCarver(ctx.calibration, Grid.from_dict(json.loads(grid_path.read_text())))
+    carver = HullCarver(ctx.take.calibration, Grid.from_dict(json.loads(grid_path.read_text())))
     gains = []
-    with TakeReader(ctx.take) as reader:
-        validity = mask_validity(reader, ctx.cameras)
+    with TakeReader(ctx.take.path) as reader:
+        validity = mask_validity(reader, ctx.take.cameras)
         for k in sets:
-            ms, _ = frame_masks(reader, ctx.cameras, k, validity)
+            ms, _ = frame_masks(reader, ctx.take.cameras, k, validity)
             try:
                 used = subject_hull(ms, carver, tolerance=p.tolerance, support_plane=p.support_plane,
                                     margin=p.silhouette_margin).masks
@@ -352,11 +352,11 @@ def _name_missing(ctx: RunContext, iou: np.ndarray, doc: dict) -> None:
     g = np.array(gains)
     has = np.isfinite(g).any(axis=0)
     with np.errstate(all="ignore"):
-        gain = {cam: (float(np.nanmedian(g[:, i])) if has[i] else None) for i, cam in enumerate(ctx.cameras)}
+        gain = {cam: (float(np.nanmedian(g[:, i])) if has[i] else None) for i, cam in enumerate(ctx.take.cameras)}
     misses = [cam for cam, v in gain.items() if v is not None and v > MISSING_WARN]
     doc.update(missing=gain, misses=misses, missing_sets=sets, missing_threshold=MISSING_WARN)
     atomic_write(ctx.out / "consistency.json", json.dumps(doc))
-    ctx.consistency.update(missing=gain, misses=misses)
+    ctx.made.consistency.update(missing=gain, misses=misses)
     for cam in misses:
         msg = (f"camera {cam}: the hull carved without it explains the other cameras' silhouettes better (their "
                f"silhouette consistency {gain[cam]:+.2f}, median over frame sets {sets}): its silhouettes miss part of "
@@ -370,25 +370,25 @@ def _step_spine(ctx: RunContext) -> None:
     from pipeline.spine import build_spine
     from pipeline.spine_format import write_spine
 
-    n = ctx.n_sets
+    n = ctx.take.n_sets
     if any(not (ctx.out / "frames" / f"{frame_name(k)}.json").exists() for k in range(n)):
         raise ProcessError(f"{ctx.out}: surfaces are missing for some frames; run the surface step")
     t0 = time.perf_counter()
     for k in stale_skeletons(ctx.out, n):
-        ctx.skeletons.pop(k, None)
+        ctx.made.skeletons.pop(k, None)
     ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons",
                    suffix=".npz")
     skeletons: list[FrameSkeleton] = []
     for k in range(n):
-        sk = ctx.skeletons[k] if k in ctx.skeletons else load_skeleton(skeleton_path(ctx.out, k))["skeleton"]
+        sk = ctx.made.skeletons[k] if k in ctx.made.skeletons else load_skeleton(skeleton_path(ctx.out, k))["skeleton"]
         sk = FrameSkeleton.empty() if sk is None else sk
         skeletons.append(sk)
-        ctx.tip_counts[k] = sk.n_tips
+        ctx.made.tip_counts[k] = sk.n_tips
     ctx.report_progress("spine", 0, 1)
-    spine = build_spine(skeletons, fps=float(ctx.fps), units=ctx.calibration.units, params=SpineParams(**ctx.params.spine))
-    ctx.spine_path = write_spine(ctx.out / "spine.json", spine)
+    spine = build_spine(skeletons, fps=float(ctx.take.fps), units=ctx.take.calibration.units, params=SpineParams(**ctx.params.spine))
+    ctx.made.spine_path = write_spine(ctx.out / "spine.json", spine)
     # how K was chosen (the mode of the tip counts, or a borderline count decided): in the report
-    ctx.limb_count = {"K": int(spine.meta.get("K", len(spine.limb_ids))), "rule": spine.meta.get("count_rule", "mode")}
+    ctx.made.limb_count = {"K": int(spine.meta.get("K", len(spine.limb_ids))), "rule": spine.meta.get("count_rule", "mode")}
     ctx.report_progress("spine", 1, 1)
     ctx.timings["spine"] = time.perf_counter() - t0
 
@@ -408,15 +408,16 @@ def _step_track(ctx: RunContext) -> None:
 
 
 def _surface_totals(ctx: RunContext) -> list[tuple[str, int]]:
-    box = [] if (ctx.out / "grid.json").exists() else [("box", ctx.n_sets)]  # the grid is chosen once
-    return [*box, ("surface", ctx.n_sets)]
+    box = [] if (ctx.out / "grid.json").exists() else [("box", ctx.take.n_sets)]  # the grid is chosen once
+    return [*box, ("surface", ctx.take.n_sets)]
 
 
-register_step("key", _step_key, doc="keying masks into the take", totals=lambda ctx: [("key", ctx.n_sets * len(ctx.cameras))])
+register_step("key", _step_key, doc="keying masks into the take",
+              totals=lambda ctx: [("key", ctx.take.n_sets * len(ctx.take.cameras))])
 register_step("refine", _step_refine, doc="graph-cut refinement of the masks (the keying's graphcut layer)")  # announced by key
 register_step("surface", _step_surface, doc="visual hull and surface per frame set", totals=_surface_totals)
 register_step("spine", _step_spine, doc="per-frame skeletons and the take's spine",
-              totals=lambda ctx: [("skeleton", ctx.n_sets), ("spine", 1)])
+              totals=lambda ctx: [("skeleton", ctx.take.n_sets), ("spine", 1)])
 
 
 def _step_rig(ctx: RunContext) -> None:
@@ -438,7 +439,7 @@ def _step_rig(ctx: RunContext) -> None:
             _step_track(ctx)
         t0 = time.perf_counter()
     try:
-        armature_results(ctx.out, units=ctx.calibration.units, fps=float(ctx.fps),
+        armature_results(ctx.out, units=ctx.take.calibration.units, fps=float(ctx.take.fps),
                          progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t))
     except NoTrackingError as exc:
         raise ProcessError(f"rig: {exc}") from None
@@ -447,13 +448,13 @@ def _step_rig(ctx: RunContext) -> None:
 
 def _track_totals(ctx: RunContext) -> list[tuple[str, int]]:
     """The tracking, then per round of carving the carve and the tracking again (:func:`pipeline.carve.track_with_carving`)."""
-    rounds = [(f"{what} round {r}", ctx.n_sets) for r in range(1, ctx.params.track.carve + 1) for what in ("carve", "track")]
-    return [("track", ctx.n_sets), *rounds]
+    rounds = [(f"{what} round {r}", ctx.take.n_sets) for r in range(1, ctx.params.track.carve + 1) for what in ("carve", "track")]
+    return [("track", ctx.take.n_sets), *rounds]
 
 
 register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine",
-              totals=lambda ctx: [("rig segmentation", 1), ("rig skeleton", 1), ("rig fit", ctx.n_sets),
-                                  ("rig write", ctx.n_sets)])
+              totals=lambda ctx: [("rig segmentation", 1), ("rig skeleton", 1), ("rig fit", ctx.take.n_sets),
+                                  ("rig write", ctx.take.n_sets)])
 register_step("track", _step_track, doc="template tracking of the surfaces (only when asked for)", after="spine",
               totals=_track_totals)
 # what runs when no steps are given: tracking and the rig on it are asked for (``stage track``,

@@ -384,7 +384,7 @@ def test_steps_are_a_registry(starfish, processed, tmp_path):
     _, path = starfish
     seen = []
     try:
-        sp.register_step("count", lambda ctx: seen.append((ctx.n_sets, ctx.steps)), after="surface")
+        sp.register_step("count", lambda ctx: seen.append((ctx.take.n_sets, ctx.steps)), after="surface")
         assert sp.STEPS.index("count") == sp.STEPS.index("surface") + 1
         res = process_take(path, tmp_path / "o", steps=("count",))
         assert seen == [(8, ("count",))] and res.steps == ("count",)
@@ -559,14 +559,15 @@ def test_an_unreadable_process_json_starts_over(tmp_path):
     """A ``process.json`` cut short (a full disk, a kill while an older version wrote it) says nothing of
     the results beside it: the run starts over, in one warning, and writes its own."""
     from pipeline.process import RunContext
+    from pipeline.process.context import TakeFacts
     from pipeline.process.driver import _start_record
 
     out = tmp_path / "out"
     (out / "meshes").mkdir(parents=True)
     (out / "meshes" / "frame_000000.ply").write_text("of unknown parameters")
     (out / "process.json").write_text('{"take": "t.h5", "par')
-    ctx = RunContext(take=tmp_path / "t.h5", out=out, params=ProcessParams(), calibration=None, cameras=["a"], n_sets=1,
-                     fps=30.0, rig={}, need_key=False)
+    take = TakeFacts(path=tmp_path / "t.h5", calibration=None, cameras=["a"], n_sets=1, fps=30.0, rig={})
+    ctx = RunContext(out=out, params=ProcessParams(), need_key=False, take=take)
     _start_record(ctx)
     assert not (out / "meshes" / "frame_000000.ply").exists()
     assert len(ctx.warnings) == 1 and "starting over" in ctx.warnings[0], ctx.warnings

@@ -97,7 +97,7 @@ def test_rig_step(tmp_path, caplog):
 
     # the rig runs on what tracking wrote, so it comes after the spine and the tracking
     assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")
-    ctx = SimpleNamespace(out=tmp_path, calibration=SimpleNamespace(units="mm"), fps=25.0, progress=None,
+    ctx = SimpleNamespace(out=tmp_path, take=SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0), progress=None,
                           report_progress=lambda *a: None,
                           steps=("rig",), warnings=[], timings={})
     # no tracked template and nothing to track: one line in the words of the job's steps, no CLI command
