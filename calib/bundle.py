@@ -344,66 +344,153 @@ def bundle_adjust(
     """
     obs_cam, obs_board, X, uv, intr0, crv, ctv, brv, btv = _observations(
         obs_cam, obs_board, obs_points, obs_uv, intrinsics, cam_rvec, cam_tvec, board_rvec, board_tvec)
-    M, C, B = obs_cam.shape[0], intr0.shape[0], brv.shape[0]
+    C = intr0.shape[0]
     _check_options(reference, loss, f_scale, solver, fixed_intrinsics, C)
     held = _held_mask(fixed_intrinsics, C)
     free_i = ~held.all(axis=0)  # estimated for at least one camera
-    NF = int(free_i.sum())
     held_f = held[:, free_i]  # (C, NF): entries a camera holds (zero Jacobian columns, no prior)
-    free_cams = np.array([c for c in range(C) if c != reference], dtype=np.int64)
-    cam_slot = -np.ones(C, dtype=np.int64)
-    cam_slot[free_cams] = np.arange(free_cams.size)
-    n_pose = 6 * free_cams.size
-    n_intr = NF * C if optimize_intrinsics else 0
-
-    def unpack(p: np.ndarray):
-        rv, tv = crv.copy(), ctv.copy()
-        poses = p[:n_pose].reshape(-1, 6)
-        rv[free_cams], tv[free_cams] = poses[:, :3], poses[:, 3:]
-        if optimize_intrinsics:
-            intr = intr0.copy()
-            intr[:, free_i] = p[n_pose : n_pose + n_intr].reshape(C, NF)
-        else:
-            intr = intr0
-        b = p[n_pose + n_intr :].reshape(B, 6)
-        return rv, tv, intr, b[:, :3], b[:, 3:]
-
-    def _forward(p: np.ndarray):
-        rv, tv, intr, bR, bT = unpack(p)
-        Rc = rodrigues_batch(rv)
-        Rb = rodrigues_batch(bR)
-        RbX = np.einsum("mij,mj->mi", Rb[obs_board], X)
-        Xw = RbX + bT[obs_board]
-        RcXw = np.einsum("mij,mj->mi", Rc[obs_cam], Xw)
-        Xc = RcXw + tv[obs_cam]
-        return rv, bR, intr, Rc, RbX, RcXw, Xc
-
     prior_rows = _prior_rows(prior_cov, C, free_i, prior_scale, held_f) if optimize_intrinsics else None
     mu = intr0 if prior_mean is None else np.asarray(prior_mean, dtype=np.float64)
     if mu.shape != intr0.shape or not np.all(np.isfinite(mu)):
         raise ValueError(f"prior_mean must be finite with shape {intr0.shape}, got {mu.shape}")
-
-    def residuals(p: np.ndarray) -> np.ndarray:
-        *_, intr, _Rc, _RbX, _RcXw, Xc = _forward(p)
-        r = (project_batch(Xc, intr[obs_cam]) - uv).ravel()
-        if prior_rows is None:
-            return r
-        d = (intr[:, free_i] - mu[:, free_i])  # (C, NF)
-        return np.concatenate([r, np.einsum("cij,cj->ci", prior_rows, d).ravel()])
-
-    x0 = np.concatenate(
-        [np.hstack([crv[free_cams], ctv[free_cams]]).ravel(), intr0[:, free_i].ravel() if optimize_intrinsics else [],
-         np.hstack([brv, btv]).ravel()]
+    unknowns = _Unknowns(intr0, crv, ctv, brv, btv, reference=reference, optimize_intrinsics=optimize_intrinsics,
+                         free_i=free_i)
+    problem = _Problem(unknowns, obs_cam, obs_board, X, uv, held_f=held_f, prior_rows=prior_rows, prior_mean=mu)
+    x0 = unknowns.pack()
+    M = obs_cam.shape[0]
+    if solver == "scipy":
+        res = least_squares(
+            problem.residuals, x0, jac=problem.jacobian, method="trf", loss=loss, f_scale=f_scale, x_scale="jac",
+            max_nfev=max_nfev, ftol=ftol, xtol=1e-12, gtol=1e-10, tr_solver="lsmr", verbose=_VERBOSE,
+        )
+    else:
+        res = _robust_lm(problem.residuals, problem.jacobian, x0, loss=loss, f_scale=f_scale,
+                         max_nfev=200 if max_nfev is None else max_nfev, ftol=ftol, n_robust=2 * M)
+    rv, tv, intr, bR, bT = unknowns.unpack(res.x)
+    log.debug("bundle adjustment: %s after %d evaluations", res.message, res.nfev)
+    icov, rcov, sigma = None, None, float("nan")
+    if covariance:
+        icov, rcov, sigma = _covariance(problem.jacobian(res.x), np.asarray(res.fun), 2 * M, loss, f_scale, C,
+                                        free_i, held_f, unknowns.n_pose, unknowns.n_intr, unknowns.free_cams, rv,
+                                        optimize_intrinsics, prior_scale)
+    return BundleResult(
+        cam_rvec=rv, cam_tvec=tv, intrinsics=np.array(intr, dtype=np.float64), board_rvec=bR, board_tvec=bT,
+        residuals=np.asarray(res.fun)[: 2 * M].reshape(-1, 2), success=bool(res.success), message=str(res.message),
+        nfev=int(res.nfev), cost=float(res.cost), intrinsics_cov=icov, sigma_px=sigma, rotation_cov=rcov,
     )
-    n = x0.size
-    # Jacobian layout: for every observation, 2 rows x (6 camera pose + the free intrinsics + 6 board pose) columns.
-    obs_cslot = cam_slot[obs_cam]
+
+
+class _Unknowns:
+    """The vector of unknowns: the free cameras' poses (6 each, every camera but the reference), the free
+    intrinsics of every camera (when optimized) and the board poses (6 each), in that order."""
+
+    def __init__(self, intr0, crv, ctv, brv, btv, *, reference: int, optimize_intrinsics: bool,
+                 free_i: np.ndarray):
+        self.intr0, self.crv, self.ctv, self.brv, self.btv = intr0, crv, ctv, brv, btv
+        self.C, self.B = intr0.shape[0], brv.shape[0]
+        self.optimize_intrinsics = optimize_intrinsics
+        self.free_i = free_i
+        self.NF = int(free_i.sum())
+        self.free_cams = np.array([c for c in range(self.C) if c != reference], dtype=np.int64)
+        self.cam_slot = -np.ones(self.C, dtype=np.int64)
+        self.cam_slot[self.free_cams] = np.arange(self.free_cams.size)
+        self.n_pose = 6 * self.free_cams.size
+        self.n_intr = self.NF * self.C if optimize_intrinsics else 0
+
+    def pack(self) -> np.ndarray:
+        """The starting vector."""
+        return np.concatenate(
+            [np.hstack([self.crv[self.free_cams], self.ctv[self.free_cams]]).ravel(),
+             self.intr0[:, self.free_i].ravel() if self.optimize_intrinsics else [],
+             np.hstack([self.brv, self.btv]).ravel()]
+        )
+
+    def unpack(self, p: np.ndarray):
+        """Camera rotation and translation vectors, intrinsics, board rotation and translation vectors."""
+        rv, tv = self.crv.copy(), self.ctv.copy()
+        n_pose, n_intr = self.n_pose, self.n_intr
+        poses = p[:n_pose].reshape(-1, 6)
+        rv[self.free_cams], tv[self.free_cams] = poses[:, :3], poses[:, 3:]
+        if self.optimize_intrinsics:
+            intr = self.intr0.copy()
+            intr[:, self.free_i] = p[n_pose : n_pose + n_intr].reshape(self.C, self.NF)
+        else:
+            intr = self.intr0
+        b = p[n_pose + n_intr :].reshape(self.B, 6)
+        return rv, tv, intr, b[:, :3], b[:, 3:]
+
+
+class _Problem:
+    """Residuals and sparse Jacobian of the bundle adjustment over :class:`_Unknowns`.
+
+    The Jacobian's sparsity is fixed by the observations, so its compressed-row layout is
+    found once; each evaluation only fills in the values.
+    """
+
+    def __init__(self, unknowns: _Unknowns, obs_cam, obs_board, X, uv, *, held_f, prior_rows, prior_mean):
+        self.u = unknowns
+        self.obs_cam, self.obs_board, self.X, self.uv = obs_cam, obs_board, X, uv
+        self.held_f, self.prior_rows, self.mu = held_f, prior_rows, prior_mean
+        self._layout = _jacobian_layout(unknowns, obs_cam, obs_board, with_prior=prior_rows is not None)
+
+    def forward(self, p: np.ndarray):
+        """The unknowns and the chain of points from the board to the camera frame."""
+        rv, tv, intr, bR, bT = self.u.unpack(p)
+        Rc = rodrigues_batch(rv)
+        Rb = rodrigues_batch(bR)
+        RbX = np.einsum("mij,mj->mi", Rb[self.obs_board], self.X)
+        Xw = RbX + bT[self.obs_board]
+        RcXw = np.einsum("mij,mj->mi", Rc[self.obs_cam], Xw)
+        Xc = RcXw + tv[self.obs_cam]
+        return rv, bR, intr, Rc, RbX, RcXw, Xc
+
+    def residuals(self, p: np.ndarray) -> np.ndarray:
+        """(2 M,) reprojection errors, then the prior rows (when there is a prior)."""
+        *_, intr, _Rc, _RbX, _RcXw, Xc = self.forward(p)
+        r = (project_batch(Xc, intr[self.obs_cam]) - self.uv).ravel()
+        if self.prior_rows is None:
+            return r
+        free_i = self.u.free_i
+        d = (intr[:, free_i] - self.mu[:, free_i])  # (C, NF)
+        return np.concatenate([r, np.einsum("cij,cj->ci", self.prior_rows, d).ravel()])
+
+    def jacobian(self, p: np.ndarray) -> csr_matrix:
+        """The residuals' Jacobian, (2 M [+ C NF], n) sparse."""
+        obs_cam, obs_board = self.obs_cam, self.obs_board
+        rv, bR, intr, Rc, RbX, RcXw, Xc = self.forward(p)
+        J_Xc, Ji = _projection_derivatives(Xc, intr[obs_cam])
+        J_cr = -J_Xc @ _skew(RcXw) @ _left_jacobian(rv)[obs_cam]
+        J_Xw = J_Xc @ Rc[obs_cam]
+        J_br = -J_Xw @ _skew(RbX) @ _left_jacobian(bR)[obs_board]
+        parts = [np.concatenate([J_cr, J_Xc], axis=2)]
+        if self.u.optimize_intrinsics:
+            parts.append(Ji[:, :, self.u.free_i] * ~self.held_f[obs_cam][:, None, :])
+        parts.append(np.concatenate([J_br, J_Xw], axis=2))
+        data = np.concatenate(parts, axis=2).reshape(-1)  # (M, 2, k) row-major
+        keep, order, indices, indptr, shape = self._layout
+        values = data[keep]
+        if self.prior_rows is not None:
+            values = np.concatenate([values, self.prior_rows.ravel()])
+        return csr_matrix((values[order], indices.copy(), indptr.copy()), shape=shape)
+
+
+def _jacobian_layout(u: _Unknowns, obs_cam: np.ndarray, obs_board: np.ndarray, *, with_prior: bool):
+    """The Jacobian's fixed sparsity as a compressed-row layout.
+
+    Every observation has 2 rows x (6 camera pose + the free intrinsics + 6 board pose) entries
+    (no pose entries for the reference camera), then the prior's (C NF) rows of NF entries each.
+    Returns ``keep`` (which of the dense (M, 2, k) values are entries), ``order`` (an index putting
+    the kept values, prior values appended, in compressed-row order), ``indices``, ``indptr`` and the shape:
+    ``csr_matrix((values[order], indices, indptr))`` equals the matrix built from coordinates.
+    """
+    M, C, NF, n_pose, n_intr = obs_cam.shape[0], u.C, u.NF, u.n_pose, u.n_intr
+    obs_cslot = u.cam_slot[obs_cam]
     has_pose = obs_cslot >= 0
     col_pose = np.where(has_pose, obs_cslot, 0)[:, None] * 6 + np.arange(6)
     col_intr = n_pose + obs_cam[:, None] * NF + np.arange(NF)
     col_board = n_pose + n_intr + obs_board[:, None] * 6 + np.arange(6)
     blocks = [col_pose]
-    if optimize_intrinsics:
+    if u.optimize_intrinsics:
         blocks.append(col_intr)
     blocks.append(col_board)
     cols = np.concatenate(blocks, axis=1)  # (M, k)
@@ -413,78 +500,58 @@ def bundle_adjust(
     keep_mask = np.ones((M, k), bool)
     keep_mask[:, :6] = has_pose[:, None]
     keep = np.repeat(keep_mask, 2, axis=0).ravel()
-
-    def jacobian(p: np.ndarray):
-        rv, bR, intr, Rc, RbX, RcXw, Xc = _forward(p)
-        ip = intr[obs_cam]
-        fx, fy = ip[:, 0], ip[:, 1]
-        k1, k2, p1, p2, k3 = ip[:, 4], ip[:, 5], ip[:, 6], ip[:, 7], ip[:, 8]
-        z = np.where(np.abs(Xc[:, 2]) < 1e-9, 1e-9, Xc[:, 2])
-        x, y = Xc[:, 0] / z, Xc[:, 1] / z
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        # d(u, v) / d(x, y)
-        dxd_dx = radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
-        dxd_dy = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
-        dyd_dy = radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
-        D = np.empty((M, 2, 2))
-        D[:, 0, 0], D[:, 0, 1] = fx * dxd_dx, fx * dxd_dy
-        D[:, 1, 0], D[:, 1, 1] = fy * dxd_dy, fy * dyd_dy
-        # d(x, y) / d Xc
-        P = np.zeros((M, 2, 3))
-        P[:, 0, 0] = 1.0 / z
-        P[:, 1, 1] = 1.0 / z
-        P[:, 0, 2] = -x / z
-        P[:, 1, 2] = -y / z
-        J_Xc = D @ P  # (M, 2, 3)
-        J_cr = -J_Xc @ _skew(RcXw) @ _left_jacobian(rv)[obs_cam]
-        J_Xw = J_Xc @ Rc[obs_cam]
-        J_br = -J_Xw @ _skew(RbX) @ _left_jacobian(bR)[obs_board]
-        parts = [np.concatenate([J_cr, J_Xc], axis=2)]
-        if optimize_intrinsics:
-            Ji = np.zeros((M, 2, N_INTR))
-            Ji[:, 0, 0] = xd
-            Ji[:, 1, 1] = yd
-            Ji[:, 0, 2] = 1.0
-            Ji[:, 1, 3] = 1.0
-            Ji[:, 0, 4], Ji[:, 1, 4] = fx * x * r2, fy * y * r2
-            Ji[:, 0, 5], Ji[:, 1, 5] = fx * x * r2 * r2, fy * y * r2 * r2
-            Ji[:, 0, 6], Ji[:, 1, 6] = fx * 2.0 * x * y, fy * (r2 + 2.0 * y * y)
-            Ji[:, 0, 7], Ji[:, 1, 7] = fx * (r2 + 2.0 * x * x), fy * 2.0 * x * y
-            Ji[:, 0, 8], Ji[:, 1, 8] = fx * x * r2**3, fy * y * r2**3
-            parts.append(Ji[:, :, free_i] * ~held_f[obs_cam][:, None, :])
-        parts.append(np.concatenate([J_br, J_Xw], axis=2))
-        data = np.concatenate(parts, axis=2).reshape(-1)  # (M, 2, k) row-major = row_idx order
-        if prior_rows is None:
-            return csr_matrix((data[keep], (row_idx[keep], col_idx[keep])), shape=(2 * M, n))
+    rows, columns, n_rows = row_idx[keep], col_idx[keep], 2 * M
+    if with_prior:
         pr = 2 * M + np.repeat(np.arange(C * NF), NF)
         pc = n_pose + (np.arange(C)[:, None, None] * NF + np.zeros((1, NF, 1), int) + np.arange(NF)).ravel()
-        return csr_matrix((np.concatenate([data[keep], prior_rows.ravel()]),
-                           (np.concatenate([row_idx[keep], pr]), np.concatenate([col_idx[keep], pc]))),
-                          shape=(2 * M + C * NF, n))
+        rows, columns, n_rows = np.concatenate([rows, pr]), np.concatenate([columns, pc]), n_rows + C * NF
+    shape = (n_rows, n_pose + n_intr + 6 * u.B)
+    # the position of every value, carried through the same conversion as the values themselves
+    # (no two values share a row and column, so none are summed)
+    where = csr_matrix((np.arange(1, rows.size + 1, dtype=np.float64), (rows, columns)), shape=shape)
+    order = where.data.astype(np.int64) - 1
+    if np.array_equal(order, np.arange(order.size)):
+        order = slice(None)  # the observations' rows come in order, columns ascending within each
+    return keep, order, where.indices, where.indptr, shape
 
-    if solver == "scipy":
-        res = least_squares(
-            residuals, x0, jac=jacobian, method="trf", loss=loss, f_scale=f_scale, x_scale="jac",
-            max_nfev=max_nfev, ftol=ftol, xtol=1e-12, gtol=1e-10, tr_solver="lsmr", verbose=_VERBOSE,
-        )
-    else:
-        res = _robust_lm(residuals, jacobian, x0, loss=loss, f_scale=f_scale,
-                         max_nfev=200 if max_nfev is None else max_nfev, ftol=ftol, n_robust=2 * M)
-    rv, tv, intr, bR, bT = unpack(res.x)
-    log.debug("bundle adjustment: %s after %d evaluations", res.message, res.nfev)
-    icov, rcov, sigma = None, None, float("nan")
-    if covariance:
-        icov, rcov, sigma = _covariance(jacobian(res.x), np.asarray(res.fun), 2 * M, loss, f_scale, C, free_i,
-                                        held_f, n_pose, n_intr, free_cams, rv, optimize_intrinsics, prior_scale)
-    return BundleResult(
-        cam_rvec=rv, cam_tvec=tv, intrinsics=np.array(intr, dtype=np.float64), board_rvec=bR, board_tvec=bT,
-        residuals=np.asarray(res.fun)[: 2 * M].reshape(-1, 2), success=bool(res.success), message=str(res.message),
-        nfev=int(res.nfev), cost=float(res.cost), intrinsics_cov=icov, sigma_px=sigma, rotation_cov=rcov,
-    )
+
+def _projection_derivatives(Xc: np.ndarray, ip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Derivatives of :func:`project_batch`: (M, 2, 3) by the camera-frame point and (M, 2, 9) by the
+    intrinsics ``ip`` (M, 9)."""
+    M = Xc.shape[0]
+    fx, fy = ip[:, 0], ip[:, 1]
+    k1, k2, p1, p2, k3 = ip[:, 4], ip[:, 5], ip[:, 6], ip[:, 7], ip[:, 8]
+    z = np.where(np.abs(Xc[:, 2]) < 1e-9, 1e-9, Xc[:, 2])
+    x, y = Xc[:, 0] / z, Xc[:, 1] / z
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    # d(u, v) / d(x, y)
+    dxd_dx = radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
+    dxd_dy = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dy = radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
+    D = np.empty((M, 2, 2))
+    D[:, 0, 0], D[:, 0, 1] = fx * dxd_dx, fx * dxd_dy
+    D[:, 1, 0], D[:, 1, 1] = fy * dxd_dy, fy * dyd_dy
+    # d(x, y) / d Xc
+    P = np.zeros((M, 2, 3))
+    P[:, 0, 0] = 1.0 / z
+    P[:, 1, 1] = 1.0 / z
+    P[:, 0, 2] = -x / z
+    P[:, 1, 2] = -y / z
+    Ji = np.zeros((M, 2, N_INTR))
+    Ji[:, 0, 0] = xd
+    Ji[:, 1, 1] = yd
+    Ji[:, 0, 2] = 1.0
+    Ji[:, 1, 3] = 1.0
+    Ji[:, 0, 4], Ji[:, 1, 4] = fx * x * r2, fy * y * r2
+    Ji[:, 0, 5], Ji[:, 1, 5] = fx * x * r2 * r2, fy * y * r2 * r2
+    Ji[:, 0, 6], Ji[:, 1, 6] = fx * 2.0 * x * y, fy * (r2 + 2.0 * y * y)
+    Ji[:, 0, 7], Ji[:, 1, 7] = fx * (r2 + 2.0 * x * x), fy * 2.0 * x * y
+    Ji[:, 0, 8], Ji[:, 1, 8] = fx * x * r2**3, fy * y * r2**3
+    return D @ P, Ji
 
 
 def _prior_rows(prior_cov, C: int, free_i: np.ndarray, scale: float, held_f: np.ndarray) -> np.ndarray | None:

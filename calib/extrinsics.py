@@ -494,66 +494,26 @@ def calibrate_extrinsics(
     """
     cams, names = _check_inputs(detections, cameras, board, world, min_corners)
     C = len(cams)
-    obj = board.object_points()
 
     # 1. per-view board poses
-    poses: list[dict[int, tuple[np.ndarray, np.ndarray, float]]] = []
-    for c in cams:
-        poses.append(board_poses(detections.get(c.name, ()), board, K=c.K, dist=c.dist, min_corners=min_corners))
+    poses = [board_poses(detections.get(c.name, ()), board, K=c.K, dist=c.dist, min_corners=min_corners)
+             for c in cams]
     frames_per_camera = [set(p) for p in poses]
-
     # 2. co-visibility graph and spanning tree
-    W = covisibility(frames_per_camera)
-    strength = W.sum(axis=1) - np.diag(W)
-    root = int(np.argmax(strength))
-    edges, labels = spanning_tree(W, root)
-    if len(set(labels.tolist())) > 1 or any(not f for f in frames_per_camera):
-        msg, bad = _unconnected_message(names, labels, root, frames_per_camera, W)
-        raise CalibrationError(f"could not connect every camera: {msg}", cameras=bad)
-
-    # 3. chain relative poses along the tree (T_c<-root)
+    root, edges = _spanning_tree_or_raise(frames_per_camera, names)
+    # 3. chain relative poses along the tree (T_c<-root), board poses in the root frame
     T, tree_report = _chain(edges, root, poses, frames_per_camera, names)
-    # board poses in the root frame: from the camera that saw the most corners
-    corners_count = {}
-    for ci, c in enumerate(cams):
-        for d in detections.get(c.name, ()):
-            if d is not None:
-                corners_count[(ci, int(d.frame))] = len(d)
-    all_frames = sorted(set().union(*frames_per_camera))
-    min_cams = 1 if optimize_intrinsics else 2
-    frame_cams = {f: [ci for ci in range(C) if f in frames_per_camera[ci]] for f in all_frames}
-    use_frames = [f for f in all_frames if len(frame_cams[f]) >= min_cams]
-    B_R, B_t = [], []
-    for f in use_frames:
-        ci = max(frame_cams[f], key=lambda k: corners_count.get((k, f), 0))
-        Rcb, tcb, _ = poses[ci][f]
-        B = _compose(*_inv(*T[ci]), Rcb, tcb)  # T_root<-board
-        B_R.append(B[0])
-        B_t.append(B[1])
-    frame_index = {f: i for i, f in enumerate(use_frames)}
-
-    # observations
-    oc, ob, op, ouv = [], [], [], []
-    for ci, c in enumerate(cams):
-        for d in detections.get(c.name, ()):
-            if d is None or int(d.frame) not in frame_index or int(d.frame) not in poses[ci]:
-                continue
-            n = len(d)
-            oc.append(np.full(n, ci))
-            ob.append(np.full(n, frame_index[int(d.frame)]))
-            op.append(obj[d.ids])
-            ouv.append(d.corners)
-    obs_cam = np.concatenate(oc)
-    obs_board = np.concatenate(ob)
+    views = _views(cams, detections, frames_per_camera, min_cams=1 if optimize_intrinsics else 2)
+    board_rvec, board_tvec = _boards_in_root(views, poses, T)
+    obs_cam, obs_board, obs_points, obs_uv = _observation_arrays(cams, detections, views.frame_index, poses,
+                                                                 board.object_points())
     intr0 = np.array([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist] for c in cams])
     cam_rvec = np.stack([matrix_to_rodrigues(T[ci][0]) for ci in range(C)])
     cam_tvec = np.stack([T[ci][1] for ci in range(C)])
-    board_rvec = np.stack([matrix_to_rodrigues(R) for R in B_R])
-    board_tvec = np.stack(B_t)
 
     # 4. bundle adjustment
     res = bundle_adjust(
-        obs_cam, obs_board, np.concatenate(op), np.concatenate(ouv),
+        obs_cam, obs_board, obs_points, obs_uv,
         intrinsics=intr0, cam_rvec=cam_rvec, cam_tvec=cam_tvec, board_rvec=board_rvec, board_tvec=board_tvec,
         reference=root, optimize_intrinsics=optimize_intrinsics,
         fixed_intrinsics=fixed_intrinsics if isinstance(fixed_intrinsics, np.ndarray) else tuple(fixed_intrinsics),
@@ -564,8 +524,79 @@ def calibrate_extrinsics(
     Rb_all = rodrigues_batch(res.board_rvec)
 
     # 5. world frame
-    W_from_root, wf = _world_from_root(world, world_frame, use_frames, frame_cams, corners_count, frame_index,
-                                       Rc_all, Rb_all, res)
+    W_from_root, wf = _world_from_root(world, world_frame, views.use_frames, views.frame_cams, views.corners_count,
+                                       views.frame_index, Rc_all, Rb_all, res)
+    out_cams, board_world = _in_world(cams, res, Rc_all, Rb_all, W_from_root, views.frame_index)
+    return _rig_result(res, out_cams, names, obs_cam, frames_per_camera, views, detections, board, world=world,
+                       world_frame=wf, board_world=board_world, tree_report=tree_report, reference=names[root])
+
+
+def _spanning_tree_or_raise(frames_per_camera: list[set[int]], names: list[str]) -> tuple[int, list]:
+    """The root camera (most shared views) and the strongest spanning tree's edges of the co-visibility
+    graph; CalibrationError naming every camera that cannot be connected."""
+    W = covisibility(frames_per_camera)
+    strength = W.sum(axis=1) - np.diag(W)
+    root = int(np.argmax(strength))
+    edges, labels = spanning_tree(W, root)
+    if len(set(labels.tolist())) > 1 or any(not f for f in frames_per_camera):
+        msg, bad = _unconnected_message(names, labels, root, frames_per_camera, W)
+        raise CalibrationError(f"could not connect every camera: {msg}", cameras=bad)
+    return root, edges
+
+
+@dataclass(frozen=True)
+class _Views:
+    """Which camera saw the board in which frame."""
+
+    corners_count: dict  # (camera index, frame) -> corners detected
+    frame_cams: dict  # frame -> indices of the cameras with a board pose in it
+    use_frames: list  # frames seen by enough cameras, in order (the adjustment's board poses)
+    frame_index: dict  # frame -> its board pose's index in the adjustment
+
+
+def _views(cams, detections, frames_per_camera, *, min_cams: int) -> _Views:
+    """The frames the adjustment uses: those with a board pose in at least ``min_cams`` cameras."""
+    corners_count = {}
+    for ci, c in enumerate(cams):
+        for d in detections.get(c.name, ()):
+            if d is not None:
+                corners_count[(ci, int(d.frame))] = len(d)
+    all_frames = sorted(set().union(*frames_per_camera))
+    frame_cams = {f: [ci for ci in range(len(cams)) if f in frames_per_camera[ci]] for f in all_frames}
+    use_frames = [f for f in all_frames if len(frame_cams[f]) >= min_cams]
+    return _Views(corners_count, frame_cams, use_frames, {f: i for i, f in enumerate(use_frames)})
+
+
+def _boards_in_root(views: _Views, poses, T) -> tuple[np.ndarray, np.ndarray]:
+    """(B, 3) rotation and translation vectors ``T_root<-board`` of every used frame, each from the
+    camera that saw the most of its corners."""
+    B_R, B_t = [], []
+    for f in views.use_frames:
+        ci = max(views.frame_cams[f], key=lambda k: views.corners_count.get((k, f), 0))
+        Rcb, tcb, _ = poses[ci][f]
+        B = _compose(*_inv(*T[ci]), Rcb, tcb)  # T_root<-board
+        B_R.append(B[0])
+        B_t.append(B[1])
+    return np.stack([matrix_to_rodrigues(R) for R in B_R]), np.stack(B_t)
+
+
+def _observation_arrays(cams, detections, frame_index, poses, obj):
+    """Camera index, board-pose index, board point and pixel of every corner the adjustment uses."""
+    oc, ob, op, ouv = [], [], [], []
+    for ci, c in enumerate(cams):
+        for d in detections.get(c.name, ()):
+            if d is None or int(d.frame) not in frame_index or int(d.frame) not in poses[ci]:
+                continue
+            n = len(d)
+            oc.append(np.full(n, ci))
+            ob.append(np.full(n, frame_index[int(d.frame)]))
+            op.append(obj[d.ids])
+            ouv.append(d.corners)
+    return np.concatenate(oc), np.concatenate(ob), np.concatenate(op), np.concatenate(ouv)
+
+
+def _in_world(cams, res, Rc_all, Rb_all, W_from_root, frame_index) -> tuple[list[Camera], dict]:
+    """The adjusted cameras and board poses in the world frame."""
     root_from_world = _inv(*W_from_root)
     out_cams = []
     for ci, c in enumerate(cams):
@@ -576,25 +607,30 @@ def calibrate_extrinsics(
     board_world = {}
     for f, i in frame_index.items():
         board_world[f] = _compose(*W_from_root, Rb_all[i], res.board_tvec[i])
+    return out_cams, board_world
 
-    # report
+
+def _rig_result(res, out_cams, names, obs_cam, frames_per_camera, views: _Views, detections, board, *, world: str,
+                world_frame, board_world: dict, tree_report: list, reference: str) -> ExtrinsicsResult:
+    """The calibration with its report: per-camera errors, the triangulated board's geometry, warnings."""
+    C = len(names)
     r2 = np.sum(res.residuals**2, axis=1)
     per_rms = {names[ci]: float(np.sqrt(np.mean(r2[obs_cam == ci]))) if np.any(obs_cam == ci) else float("nan")
                for ci in range(C)}
-    per_views = {names[ci]: int(len(frames_per_camera[ci] & set(use_frames))) for ci in range(C)}
+    per_views = {names[ci]: int(len(frames_per_camera[ci] & set(views.use_frames))) for ci in range(C)}
     calib = Calibration(cameras=tuple(out_cams), units="mm",
                         meta={"method": "capture-stage bundle adjustment", "board": board.to_dict(),
                               "rms_px": float(np.sqrt(np.mean(r2))), "world": world,
-                              **({"world_frame": wf} if wf is not None else {})})
+                              **({"world_frame": world_frame} if world_frame is not None else {})})
     geometry = triangulate_board_error(calib, detections, board)
     warnings = _warnings(res, per_rms, per_views)
     for w in warnings:
         log.debug(w)  # in the result's warnings / report
     return ExtrinsicsResult(
         calibration=calib, rms=float(np.sqrt(np.mean(r2))), per_camera_rms=per_rms, per_camera_views=per_views,
-        geometry=geometry, board_poses=board_world, tree=tree_report, world=world, world_frame=wf,
+        geometry=geometry, board_poses=board_world, tree=tree_report, world=world, world_frame=world_frame,
         warnings=tuple(warnings), meta={"bundle": {"nfev": res.nfev, "message": res.message,
                                                     "observations": int(obs_cam.size)},
                                         "intrinsics_cov": res.intrinsics_cov, "sigma_px": res.sigma_px,
-                                        "rotation_cov": res.rotation_cov, "reference": names[root]},
+                                        "rotation_cov": res.rotation_cov, "reference": reference},
     )
