@@ -1,8 +1,9 @@
 """Spines: one temporally consistent branching skeleton per take (Brostow et al. 2004).
 
-The take-level driver:
+Arrays in, a spine out (the per-frame skeletons are computed by the caller: :mod:`pipeline.process`
+over a take, :mod:`pipeline.spine_meshes` over a mesh sequence):
 
-1. per frame (in parallel): tips ``E_t`` (:mod:`pipeline.extremities`) and one
+1. per frame: tips ``E_t`` (:mod:`pipeline.extremities`) and one
    level-set skeleton per tip (:mod:`pipeline.skeleton`) ->
    :class:`~pipeline.frame_skeleton.FrameSkeleton` (:func:`~pipeline.frame_skeleton.frame_skeleton`);
 2. reduce: tip correspondence over time (:mod:`pipeline.correspond`,
@@ -14,7 +15,7 @@ The take-level driver:
 3. the ``capture-stage/spine@1`` JSON file: :mod:`pipeline.spine_format`
    (``docs/spine-format.md``).
 
-:func:`spine_from_meshes` runs all of it on a mesh sequence.
+:func:`pipeline.spine_meshes.spine_from_meshes` runs all of it on a mesh sequence.
 """
 
 from __future__ import annotations
@@ -22,19 +23,17 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
+from collections.abc import Sequence
 
 import numpy as np
 
 from pipeline.correspond import NoLimbsError, correspond_tips
-from pipeline.frame_skeleton import FrameSkeleton, SpineParams, frame_skeleton, with_alternates
+from pipeline.frame_skeleton import FrameSkeleton, SpineParams, with_alternates
 from pipeline.merge import MergedSkeleton, Topology, consensus_topology, merge_skeletons, skeleton_splits
 from pipeline.skeleton import limb_end
 from pipeline.spine_format import Spine
 
-__all__ = ["build_spine", "spine_from_meshes", "resample_polyline"]
+__all__ = ["build_spine", "resample_polyline"]
 
 log = logging.getLogger(__name__)
 
@@ -332,82 +331,3 @@ def build_spine(
         axes=axes,
         meta=meta,
     )
-
-
-# --------------------------------------------------------------------------- driver
-
-
-def _frame_task(item, params_dict: dict) -> dict:
-    """Top-level (picklable) per-frame work: load if needed, skeletonize, serialise."""
-    params = SpineParams(**params_dict)
-    if isinstance(item, (str, Path)):
-        from pipeline.meshio import load_mesh
-
-        v, f = load_mesh(item)
-    else:
-        v, f = item
-    return frame_skeleton(v, f, params=params).to_dict()
-
-
-def spine_from_meshes(
-    meshes,
-    *,
-    fps: float = 30.0,
-    units: str = "mm",
-    workers: int = 2,
-    progress: bool | Callable[[Iterable], Iterable] = False,
-    params: SpineParams | None = None,
-) -> Spine:
-    """Spine of a mesh sequence: per-frame skeletons in parallel, then the reduce step.
-
-    Parameters
-    ----------
-    meshes : str, Path, sequence of paths, or sequence of (vertices, faces)
-        A glob such as ``'DIR/*.obj'`` or a directory (files sorted by name),
-        explicit files (OBJ, PLY, OFF), or in-memory meshes; one per frame,
-        in take order.
-    fps : float
-    units : str
-        The meshes' units (written to the spine as given).
-    workers : int
-        Processes for the per-frame work (``<= 1``: in this process).
-    progress : bool or callable
-        ``True`` shows a tqdm bar; a callable wraps the frame iterator.
-    params : SpineParams, optional
-
-    Returns
-    -------
-    Spine
-    """
-    from pipeline.meshio import mesh_paths
-
-    params = params or SpineParams()
-    if not isinstance(params, SpineParams):
-        raise ValueError(f"params must be a SpineParams, got {type(params).__name__}")
-    if isinstance(meshes, (str, Path)):
-        items: list = list(mesh_paths(meshes))
-    else:
-        items = list(meshes)
-        if items and isinstance(items[0], (str, Path)):
-            items = list(mesh_paths(items))
-    if not items:
-        raise ValueError("meshes must hold at least one frame")
-    if int(workers) < 0:
-        raise ValueError(f"workers must be >= 0, got {workers}")
-    pd = params.model_dump()
-    wrap = progress if callable(progress) else None
-    if progress is True:
-        from tqdm import tqdm
-
-        def wrap(it):
-            return tqdm(it, total=len(items), desc="skeletons", unit="frame")
-
-    if int(workers) <= 1 or len(items) == 1:
-        it = (_frame_task(x, pd) for x in items)
-        results = list(wrap(it) if wrap else it)
-    else:
-        with ProcessPoolExecutor(max_workers=int(workers)) as ex:
-            it = ex.map(_frame_task, items, [pd] * len(items), chunksize=1)
-            results = list(wrap(it) if wrap else it)
-    frames = [FrameSkeleton.from_dict(r) for r in results]
-    return build_spine(frames, fps=fps, units=units, params=params)

@@ -34,23 +34,24 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Also the implementation of ``stage process --meshes`` (which has no --bins/--min-protrusion)."""
+    from concurrent.futures import ProcessPoolExecutor
+    from contextlib import nullcontext
+
     from pipeline.frame_skeleton import SpineParams
     from pipeline.meshio import mesh_paths
-    from pipeline.spine import spine_from_meshes
     from pipeline.spine_format import write_spine
+    from pipeline.spine_meshes import spine_from_meshes
 
+    if args.workers < 0:
+        raise ValueError(f"--workers must be >= 0, got {args.workers}")
     paths = mesh_paths(args.meshes)
     given = {"n_bins": getattr(args, "bins", None), "min_protrusion": getattr(args, "min_protrusion", None)}
     params = SpineParams(**{k: v for k, v in given.items() if v is not None})
     print(f"{len(paths)} meshes from {paths[0].parent}")
-    spine = spine_from_meshes(
-        paths,
-        fps=args.fps,
-        units=args.units,
-        workers=args.workers,
-        progress=not getattr(args, "no_progress", False),
-        params=params,
-    )
+    pool = ProcessPoolExecutor(max_workers=args.workers) if args.workers > 1 and len(paths) > 1 else nullcontext()
+    with pool as executor:
+        spine = spine_from_meshes(paths, fps=args.fps, units=args.units, executor=executor,
+                                  progress=not getattr(args, "no_progress", False), params=params)
     out = write_spine(Path(args.out) / "spine.json", spine)
     counts = spine.meta["tip_counts"]
     seen = (~__import__("numpy").isnan(spine.tips[..., 0])).mean()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
@@ -16,8 +17,9 @@ from pipeline.correspond import NoLimbsError
 from pipeline.frame_skeleton import FrameSkeleton, SpineParams, frame_skeleton
 from pipeline.geodesic import edge_graph, geodesic_distance, mesh_edges, vertex_areas
 from pipeline.meshio import load_mesh, mesh_paths
-from pipeline.spine import build_spine, spine_from_meshes
+from pipeline.spine import build_spine
 from pipeline.spine_format import FORMAT, Spine, SpineFormatError, read_spine, validate_spine_dict, write_spine
+from pipeline.spine_meshes import spine_from_meshes
 from tests.conftest import shared_dataset
 
 FPS = 30.0
@@ -296,8 +298,9 @@ def test_spine_from_meshes_parallel_matches_serial(tmp_path):
         q = tmp_path / f"{i:04d}.ply"
         trimesh.Trimesh(v, f, process=False).export(q)
         paths.append(q)
-    a = spine_from_meshes(str(tmp_path / "*.ply"), workers=2, fps=24, units="mm")
-    b = spine_from_meshes([load_mesh(q) for q in paths], workers=1, fps=24, units="mm")
+    with ProcessPoolExecutor(2) as ex:
+        a = spine_from_meshes(str(tmp_path / "*.ply"), executor=ex, fps=24, units="mm")
+    b = spine_from_meshes([load_mesh(q) for q in paths], fps=24, units="mm")
     assert a.K == b.K == 5 and a.fps == 24
     np.testing.assert_allclose(a.tips, b.tips)
 
@@ -322,8 +325,8 @@ def test_invalid_input():
         read_spine("/nonexistent/spine.json")
     with pytest.raises(FileNotFoundError):
         spine_from_meshes("/nonexistent/*.obj")
-    with pytest.raises(ValueError, match="workers"):
-        spine_from_meshes([(v, f)], workers=-1)
+    with pytest.raises(ValueError, match="executor"):
+        spine_from_meshes([(v, f)], executor=2)
     with pytest.raises(SpineFormatError):
         Spine.from_dict({"format": FORMAT})
 
