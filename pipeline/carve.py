@@ -15,11 +15,13 @@ import contextlib
 import json
 import logging
 from concurrent.futures import BrokenExecutor
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.results import atomic_write_bytes, ply_bytes
+from pipeline.run.context import submit_aside
 from pipeline.run.settings import changed_settings, file_digest, read_settings
 
 __all__ = ["carve_results", "carve_frames_task", "carved_path", "remove_carved", "track_with_carving", "CarveError",
@@ -181,11 +183,14 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
 
     here, there = (todo[: (len(todo) + 1) // 2], todo[(len(todo) + 1) // 2:]) if executor is not None else (todo, [])
     job = {"root": str(root), "take": str(take), "grid": grid.to_dict(), "frames": there, "settings": settings}
-    future = executor.submit(carve_frames_task, job) if there else None
+    aside = submit_aside(executor if there else None, partial(carve_frames_task, job),
+                         unavailable="carving: the worker process is not available ({exc}); carving its frames here")
+    if aside is None:
+        here, there = todo, []
     _carve_frames(root, take, grid, here, tracks, settings, record)
-    if future is not None:
+    if aside is not None:
         try:
-            figures = future.result()
+            figures = aside.result()
         except BrokenExecutor as exc:  # the worker died: its frames are carved here
             log.warning("carving: the worker process failed (%s); carving its frames here", exc)
             figures = _carve_frames(root, take, grid, [k for k in there if not carved_path(root, k).is_file()], tracks,

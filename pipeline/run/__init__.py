@@ -5,7 +5,9 @@ steps in order (a plug-in adds one with :meth:`StepList.register`). A :class:`Ru
 steps of one call share from the runner: the results directory, the executor their per-frame
 tasks fan out over (:meth:`Run.map_tasks`: results as they finish, cancellation between tasks,
 the workers' CPU seconds), progress, and the timings the report gives (wall and CPU seconds per
-step and per part of a step). :class:`BackgroundWriter` writes a task's files in order on a thread
+step and per part of a step). :func:`submit_aside` runs one task on the executor while this process
+works on (tracking's and carving's second half of a take), with its CPU seconds and a broken pool
+said once. :class:`BackgroundWriter` writes a task's files in order on a thread
 of their own (atomic and durable, :func:`calib.fileio.atomic_write`) while the task computes on.
 :mod:`pipeline.run.settings` holds the start-over rule: a step writes its settings and the digests
 of what it read before its results; a later run with other settings makes them again.
@@ -14,10 +16,10 @@ The steps themselves live with their pipeline: :mod:`pipeline.process` (key, ref
 spine, track, rig over a take).
 """
 
-from pipeline.run.context import Run, chunks, forking_pool, pool_size
+from pipeline.run.context import Aside, Run, chunks, forking_pool, pool_size, submit_aside
 from pipeline.run.settings import array_digest, changed_settings, file_digest, read_settings
 from pipeline.run.steps import Step, StepList
 from pipeline.run.writer import BackgroundWriter
 
-__all__ = ["BackgroundWriter", "Run", "Step", "StepList", "array_digest", "changed_settings", "chunks", "file_digest",
-           "forking_pool", "pool_size", "read_settings"]
+__all__ = ["Aside", "BackgroundWriter", "Run", "Step", "StepList", "array_digest", "changed_settings", "chunks",
+           "file_digest", "forking_pool", "pool_size", "read_settings", "submit_aside"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures as cf
+import logging
 import os
 import threading
 import time
@@ -11,7 +12,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Run", "chunks", "forking_pool", "pool_size"]
+__all__ = ["Aside", "Run", "chunks", "forking_pool", "pool_size", "submit_aside"]
+
+log = logging.getLogger(__name__)
 
 
 def chunks(items: Sequence[int], n: int) -> list[list[int]]:
@@ -35,6 +38,40 @@ def _with_cpu(task: Callable[[], object]) -> tuple[object, float, int]:
     t = time.process_time()
     out = task()
     return out, time.process_time() - t, os.getpid()
+
+
+class Aside:
+    """One task running on an executor while this process works on (:func:`submit_aside`)."""
+
+    def __init__(self, future: cf.Future):
+        self._future = future
+        #: CPU seconds the task took in another process (0 when it ran in this one: a thread's are already ours)
+        self.cpu_seconds = 0.0
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait at most ``timeout`` seconds; True once the task has finished (or failed)."""
+        return bool(cf.wait([self._future], timeout=timeout).done)
+
+    def result(self) -> object:
+        """The task's result; ``concurrent.futures.BrokenExecutor`` when its worker process died."""
+        out, cpu, pid = self._future.result()
+        if pid != os.getpid():
+            self.cpu_seconds = cpu
+        return out
+
+
+def submit_aside(executor: cf.Executor | None, task: Callable[[], object], *, unavailable: str) -> Aside | None:
+    """Start ``task`` (picklable for a process pool: a top-level function or a ``functools.partial`` of
+    one) on ``executor`` while this process does other work, as tracking and carving split a take
+    in two halves; None when there is no executor, or when its pool is broken or shut down (then
+    ``unavailable``, with ``{exc}`` for the reason, is logged as a warning and the caller does the work)."""
+    if executor is None:
+        return None
+    try:
+        return Aside(executor.submit(_with_cpu, task))
+    except (cf.BrokenExecutor, RuntimeError) as exc:  # a broken or shut-down pool
+        log.warning(unavailable.format(exc=exc))
+        return None
 
 
 @dataclass(kw_only=True)

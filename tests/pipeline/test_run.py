@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.run import Run, StepList, array_digest, changed_settings, chunks, file_digest, read_settings
+from pipeline.run import Run, StepList, array_digest, changed_settings, chunks, file_digest, read_settings, submit_aside
 
 
 def test_step_list_keeps_order_and_is_one_object():
@@ -52,6 +52,24 @@ def test_map_tasks_here_and_on_a_pool_and_cancel_between_tasks(tmp_path):
             got.append(x)
             cancel.set()
     assert got == [0]
+
+
+def _squares(n: int) -> int:
+    return sum(i * i for i in range(n))
+
+
+def test_a_task_aside_runs_on_the_executor_and_says_when_it_cannot(caplog):
+    said = "the pool is gone ({exc}); the work is done here"
+    assert submit_aside(None, partial(int, 3), unavailable=said) is None  # no executor: the caller does it
+    with cf.ThreadPoolExecutor(1) as ex:
+        aside = submit_aside(ex, partial(int, 3), unavailable=said)
+        assert aside.wait(10) and aside.result() == 3 and aside.cpu_seconds == 0.0  # a thread's seconds are ours
+    with cf.ProcessPoolExecutor(1) as ex:
+        aside = submit_aside(ex, partial(_squares, 300_000), unavailable=said)
+        assert aside.result() == _squares(300_000) and aside.cpu_seconds > 0.0
+    with caplog.at_level("WARNING"):
+        assert submit_aside(ex, partial(int, 3), unavailable=said) is None  # shut down
+    assert "the pool is gone (cannot schedule new futures after shutdown); the work is done here" in caplog.text
 
 
 def test_announced_progress_is_closed_when_the_step_ends(tmp_path):
