@@ -184,7 +184,8 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     here, there = (todo[: (len(todo) + 1) // 2], todo[(len(todo) + 1) // 2:]) if executor is not None else (todo, [])
     job = {"root": str(root), "take": str(take), "grid": grid.to_dict(), "frames": there, "settings": settings}
     aside = submit_aside(executor if there else None, partial(carve_frames_task, job),
-                         unavailable="carving: the worker process is not available ({exc}); carving its frames here")
+                         unavailable="carving: the worker process is not available ({exc}); carving its frames here",
+                         logger=log)
     if aside is None:
         here, there = todo, []
     _carve_frames(root, take, grid, here, tracks, settings, record)

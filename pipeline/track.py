@@ -18,13 +18,14 @@ import concurrent.futures as cf
 import contextlib
 import json
 import logging
-import os
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.mesh_primitives import mesh_volume, vertex_normals
+from pipeline.run.context import submit_aside
 from pipeline.run.settings import array_digest, file_digest
 from pipeline.track_colour import colour_take, multiview_colour, multiview_tracks_for
 from pipeline.track_frames import (
@@ -211,7 +212,9 @@ def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tra
     (:func:`pipeline.track_colour.colour_take`), or None."""
     forward, backward = frames[ref + 1:], frames[:ref][::-1]
     total = len(frames)
-    later = _submit(executor, {**chain, "frames": backward}) if backward and executor is not None else None
+    later = submit_aside(executor if backward else None, partial(track_chain_task, {**chain, "frames": backward}),
+                         unavailable="the second tracking process is not available ({exc}); tracking the frames "
+                                     "before the reference here", logger=log)
     worker_done = _written_count(Path(chain["root"]), backward) if later is not None else (lambda: 0)
 
     def progress_both(step, done, n):
@@ -226,29 +229,19 @@ def _track_halves(chain: dict, frames: list[int], ref: int, report: dict, *, tra
         _merge_chain(report, here(backward, 1 + len(forward), progress))
     if later is None:
         return
-    while not cf.wait([later], timeout=_POLL_SECONDS).done:
+    while not later.wait(_POLL_SECONDS):
         if progress is not None:
             progress_both("track", 1 + len(forward), total)
     try:
         part = later.result()
     except cf.BrokenExecutor as exc:  # the worker process was killed: its frames are tracked here (resuming its files)
         log.warning("the second tracking process stopped (%s); tracking the frames before frame %d here", exc, frames[ref])
-        part = {**here(backward, 1 + len(forward), progress), "cpu": (0.0, os.getpid())}
-    cpu, pid = part.pop("cpu")
-    if pid != os.getpid():  # a thread's CPU seconds are already this process's
-        report["worker_cpu_seconds"] = round(cpu, 3)
+        part = here(backward, 1 + len(forward), progress)
+    if later.cpu_seconds is not None:  # a thread's CPU seconds are already this process's
+        report["worker_cpu_seconds"] = round(later.cpu_seconds, 3)
     _merge_chain(report, part)
     if progress is not None:
         progress("track", total, total)
-
-
-def _submit(executor, chain: dict):
-    """The backward half's future on ``executor``, or None (tracked here) when the pool is broken."""
-    try:
-        return executor.submit(track_chain_task, chain)
-    except (cf.BrokenExecutor, RuntimeError) as exc:  # a broken or shut-down pool
-        log.warning("the second tracking process is not available (%s); tracking the frames before the reference here", exc)
-        return None
 
 
 #: Seconds between two looks at the worker's tracked files while this process waits for it.
@@ -539,11 +532,8 @@ def _spine_pose(model, pose, spine, k: int, k_prev: int) -> list:
 
 
 def track_chain_task(chain: dict) -> dict:
-    """One half of a multi-view take tracked in a worker process (see :func:`track_results`);
-    also the CPU seconds it took there and that process's id (``cpu``)."""
-    c0 = time.process_time()
-    part = _track_chain(chain)
-    return {**part, "cpu": (time.process_time() - c0, os.getpid())}
+    """One half of a multi-view take tracked in a worker process (see :func:`track_results`)."""
+    return _track_chain(chain)
 
 
 def _merge_chain(report: dict, part: dict) -> None:

@@ -45,8 +45,9 @@ class Aside:
 
     def __init__(self, future: cf.Future):
         self._future = future
-        #: CPU seconds the task took in another process (0 when it ran in this one: a thread's are already ours)
-        self.cpu_seconds = 0.0
+        #: CPU seconds the task took in another process; None until it has, or when it ran in this
+        #: one (a thread's seconds are already this process's)
+        self.cpu_seconds: float | None = None
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait at most ``timeout`` seconds; True once the task has finished (or failed)."""
@@ -60,17 +61,18 @@ class Aside:
         return out
 
 
-def submit_aside(executor: cf.Executor | None, task: Callable[[], object], *, unavailable: str) -> Aside | None:
+def submit_aside(executor: cf.Executor | None, task: Callable[[], object], *, unavailable: str,
+                 logger: logging.Logger = log) -> Aside | None:
     """Start ``task`` (picklable for a process pool: a top-level function or a ``functools.partial`` of
     one) on ``executor`` while this process does other work, as tracking and carving split a take
     in two halves; None when there is no executor, or when its pool is broken or shut down (then
-    ``unavailable``, with ``{exc}`` for the reason, is logged as a warning and the caller does the work)."""
+    ``unavailable``, with ``{exc}`` for the reason, is a warning on ``logger`` and the caller does the work)."""
     if executor is None:
         return None
     try:
         return Aside(executor.submit(_with_cpu, task))
     except (cf.BrokenExecutor, RuntimeError) as exc:  # a broken or shut-down pool
-        log.warning(unavailable.format(exc=exc))
+        logger.warning("%s", unavailable.format(exc=exc))
         return None
 
 
