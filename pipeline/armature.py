@@ -134,7 +134,7 @@ def _main_part(n_vertices: int, faces) -> np.ndarray | None:
     if sizes[parts[1]] >= SPECK * len(used):
         shown = ", ".join(map(str, sizes[parts[:4]])) + (", ..." if len(parts) > 4 else "")
         raise ValueError(
-            f"faces: the mesh has {len(parts)} connected parts ({shown} vertices): a rig is found for one "
+            f"faces: the mesh has {len(parts)} connected parts ({shown} vertices): an armature is found for one "
             "connected subject; keep its part (the largest, as stage track's template does) or rig each part "
             "on its own"
         )
@@ -208,7 +208,7 @@ def build_armature(
     v, f = check_sequence(vertices, faces)
     T = len(v)
     if T < 2:
-        raise ValueError("vertices: one frame: a rig is found from how the subject moves, give at least 2 frames")
+        raise ValueError("vertices: one frame: an armature is found from how the subject moves, give at least 2 frames")
     main = _main_part(v.shape[1], f)
     if not (fps > 0 and np.isfinite(fps)):
         raise ValueError(f"fps must be > 0, got {fps}")

@@ -75,7 +75,7 @@ def _export_bvh(d: Path, out) -> Path:
     if doc_path is None:
         if not d.is_dir():
             raise FileNotFoundError(f"results directory not found: {d}")
-        raise UserError(f"{d} has no rig/rig.json: build the rig first (stage armature {d})")
+        raise UserError(f"{d} has no rig/rig.json: build the armature first (stage armature {d})")
     try:
         doc = json.loads(doc_path.read_text())
     except (OSError, ValueError) as exc:

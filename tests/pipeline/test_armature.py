@@ -218,12 +218,12 @@ def test_one_frame_sequence():
     from fake_cameras.mesh_motion import mesh_sequence
 
     ms = mesh_sequence("starfish", frames=1, voxel=14.0)
-    with pytest.raises(ValueError, match="one frame: a rig is found from how the subject moves"):
+    with pytest.raises(ValueError, match="one frame: an armature is found from how the subject moves"):
         build_armature(ms.vertices, ms.faces)
 
 
 def test_several_components_are_a_clear_error(pipe, caplog):
-    """A second, separate part: an error naming the parts (a rig is found for one connected subject);
+    """A second, separate part: an error naming the parts (an armature is found for one connected subject);
     a speck apart from the subject (surface debris, under 0.5 % of the vertices) follows its nearest bone."""
     import trimesh
 
