@@ -311,8 +311,8 @@ def bundle_adjust(
         ``"lm"``: Levenberg-Marquardt on the normal equations with iteratively
         reweighted robust loss (same objective as ``least_squares``; the sparse
         normal equations, ``6 C + 9 C + 6 B`` unknowns, are solved directly by
-        sparse LU — about a hundred times faster than ``least_squares``' LSMR
-        trust-region steps on this poorly conditioned problem). ``"scipy"``:
+        sparse LU, which copes with this poorly conditioned problem where
+        ``least_squares``' LSMR trust-region steps crawl: docs/calibration.md). ``"scipy"``:
         ``scipy.optimize.least_squares`` (TRF, sparse analytic Jacobian,
         ``x_scale='jac'``), the reference (its robust loss also bends the prior rows).
     prior_cov : (C, 9, 9) float ndarray, optional

@@ -333,8 +333,8 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
         warped by the prediction's local image motion (a turn, foreshortening: least squares
         over the edges of the vertex's triangles), and the forward-backward check runs
         on the refined tracks, backwards through the inverse warp. Lucas-Kanade's window is
-        otherwise translated only: on the simulated lamp's head, turning 6 degrees a frame,
-        that moved the tracks 0.8 mm off across the ray (0.46 mm warped, from the true motion).
+        otherwise translated only, which moves the tracks of a turning part off across the ray
+        (docs/tracking.md, "Colour feature tracks: measurements").
         With ``masks`` too, the high-pass and the refinement use the object's pixels only.
     cell : float
         Pixel cell, px (0: every vertex its own window). Vertices a pixel or two apart see
