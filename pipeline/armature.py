@@ -171,6 +171,7 @@ def build_armature(
     reference: int | None = None,
     progress=None,
     peel_parts: bool = True,
+    min_gap: float | None = None,
 ) -> Armature:
     """An articulated, skinned model fitted to every frame of a mesh sequence.
 
@@ -198,6 +199,9 @@ def build_armature(
     peel_parts : bool
         See :func:`pipeline.motion_segmentation.motion_segmentation` (off for a tracked template:
         :func:`pipeline.armature_files.armature_results`, ``stage armature RESULTS_DIR``).
+    min_gap : float or None
+        See :func:`pipeline.motion_segmentation.motion_segmentation` (:data:`~pipeline.motion_segmentation.MIN_GAP`
+        for a tracked template, ``None`` for a mesh sequence).
 
     Returns
     -------
@@ -217,7 +221,8 @@ def build_armature(
         raise ValueError(f"frame_indices must have {T} entries, got {len(fi)}")
     timings = {}
     t0 = time.perf_counter()
-    seg = motion_segmentation(v, f, lambda_thr=lambda_thr, n_samples=n_samples, peel_parts=peel_parts)
+    seg = motion_segmentation(v, f, lambda_thr=lambda_thr, n_samples=n_samples, peel_parts=peel_parts,
+                              min_gap=min_gap)
     timings["segmentation"] = time.perf_counter() - t0
     if progress:
         progress("segmentation", 1, 1)

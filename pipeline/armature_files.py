@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.armature import Armature, armature_dict, build_armature, bvh_text, glb_bytes
+from pipeline.motion_segmentation import MIN_GAP
 from pipeline.results import atomic_write_bytes, ply_bytes
 
 __all__ = ["FRAME_GLOB", "NoTrackingError", "armature_results", "load_sequence", "remove_armature", "tracked_meshes",
@@ -102,6 +103,7 @@ def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=N
     """
     vertices, faces, numbers = load_sequence(tracked_meshes(results_dir))
     options.setdefault("peel_parts", False)  # a tracked template: its tracking noise is no part
+    options.setdefault("min_gap", MIN_GAP)  # and the eigengap tells many small joints from a few large ones
     rig = build_armature(vertices, faces, units=units, fps=fps, frame_indices=numbers, progress=progress,
                                 **options)
     write_armature(rig, Path(out) if out is not None else Path(results_dir) / "rig", progress=progress)

@@ -86,6 +86,8 @@ from pipeline.rigid_parts import (
 
 __all__ = [
     "REFERENCE_SIZE",
+    "SMALL_MOTION_THR",
+    "MIN_GAP",
     "Segmentation",
     "check_sequence",
     "subject_size",
@@ -105,6 +107,9 @@ WINDOW_FRAMES = 32  # frames per interval at least, when a long interval lets eq
 #: the paper's eigenvalue threshold for small parts undergoing a small motion (section 5), used when the
 #: one asked for finds a single cluster in a subject that does not move as one rigid body
 SMALL_MOTION_THR = 0.98
+#: the gap between the eigenvalues either side of ``lambda_thr`` below which the spectrum is read as having no
+#: cluster structure there (``min_gap`` of :func:`motion_segmentation`, on for tracked templates)
+MIN_GAP = 0.2
 
 
 @dataclass(frozen=True, eq=False)
@@ -530,6 +535,27 @@ def _connected_segments(labels: np.ndarray, edges: np.ndarray, n_vertices: int, 
     return rank[inv].astype(np.int64)
 
 
+def _small_motion(v, samples, size, eig, k, thr, rigid_tol, min_gap) -> str | None:
+    """Why the paper's small-motion threshold should replace ``thr`` (None: it should not).
+
+    One cluster while the subject does not move as one rigid body; or (``min_gap`` given) the
+    eigenvalues crossing ``thr`` without a gap: the spectrum has no cluster structure at that scale
+    (von Luxburg 2007, the eigengap), so the count below ``thr`` is no count of parts.
+    """
+    if thr >= SMALL_MOTION_THR or rigid_tol is None:
+        return None
+    if k == 1:
+        res = rigid_residual(v[_some_frames(len(v))][:, samples])
+        if res > float(rigid_tol) * size:
+            return (f"one eigenvalue below lambda_thr={thr:g}, yet the subject does not move rigidly "
+                    f"({100 * res / size:.2f} % of its size)")
+        return None
+    if min_gap is not None and k < len(eig) and eig[k] - eig[k - 1] < float(min_gap):
+        return (f"the eigenvalues cross lambda_thr={thr:g} without a gap ({eig[k - 1]:.3f} -> {eig[k]:.3f}, "
+                f"less than min_gap={float(min_gap):g})")
+    return None
+
+
 def motion_segmentation(
     vertices,
     faces,
@@ -545,6 +571,7 @@ def motion_segmentation(
     max_clusters: int = 64,
     seed: int = 0,
     peel_parts: bool = True,
+    min_gap: float | None = None,
 ) -> Segmentation:
     """Segment a mesh sequence into rigidly moving parts (Tzionas & Gall 2016, section 4.1).
 
@@ -581,6 +608,12 @@ def motion_segmentation(
         ``rigid_tol`` away, surface patches with a motion of their own). On for animated and scanned
         sequences; off for a tracked template, whose tracking noise it reads as parts (the two-bar
         hinge tracked through its surfaces: 3 segments with it, 2 without).
+    min_gap : float or None
+        When the eigenvalues cross ``lambda_thr`` with a smaller gap than this (``lambda_{k+1} -
+        lambda_k``), the spectrum has no cluster structure at that threshold and the paper's
+        small-motion threshold (``SMALL_MOTION_THR``) is used, with a warning. ``None`` (the default):
+        only the one-cluster case does that. :data:`MIN_GAP` for a tracked template
+        (:func:`pipeline.armature_files.armature_results`; docs/armature-format.md, "The eigengap").
 
     Returns
     -------
@@ -592,11 +625,12 @@ def motion_segmentation(
 
     with threadpool_limits(1, "blas"):  # many small products: threads only contend on a busy machine
         return _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals,
-                                    min_segment, rigid_tol, interval_motion, max_clusters, seed, bool(peel_parts))
+                                    min_segment, rigid_tol, interval_motion, max_clusters, seed, bool(peel_parts),
+                                    min_gap)
 
 
 def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals, min_segment,
-                         rigid_tol, interval_motion, max_clusters, seed, peel_parts) -> Segmentation:
+                         rigid_tol, interval_motion, max_clusters, seed, peel_parts, min_gap) -> Segmentation:
     v, f = check_sequence(vertices, faces)
     if not (lam > 0 and np.isfinite(lam)):
         raise ValueError(f"lam must be > 0, got {lam}")
@@ -606,6 +640,8 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         raise ValueError(f"n_samples must be >= 2, got {n_samples}")
     if not 0 <= min_segment < 0.5:
         raise ValueError(f"min_segment must be within [0, 0.5), got {min_segment}")
+    if min_gap is not None and not 0 < min_gap < 2:
+        raise ValueError(f"min_gap must be within (0, 2) or None, got {min_gap}")
     T, V, _ = v.shape
     size = subject_size(v)
     if not size > 0:
@@ -628,16 +664,13 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
     A = np.exp(-lam_units * d.astype(np.float64))
     sample_labels, eig, k = spectral_clusters(A, lambda_thr=lambda_thr, max_clusters=max_clusters, seed=seed)
     thr = float(lambda_thr)
-    if k == 1 and rigid_tol is not None and thr < SMALL_MOTION_THR:
-        # one cluster, yet the subject does not move as one rigid body: small parts with a small motion
-        # (the paper's spray handle; a starfish curling its arms), the paper's threshold for them
-        res = rigid_residual(v[_some_frames(T)][:, samples])
-        if res > float(rigid_tol) * size:
-            log.warning("one eigenvalue below lambda_thr=%g, yet the subject does not move rigidly (%.2f %% of its "
-                        "size): small parts with small motion, lambda_thr=%g used", thr, 100 * res / size,
-                        SMALL_MOTION_THR)
-            thr = SMALL_MOTION_THR
-            sample_labels, eig, k = spectral_clusters(A, lambda_thr=thr, max_clusters=max_clusters, seed=seed)
+    reason = _small_motion(v, samples, size, eig, k, thr, rigid_tol, min_gap)
+    if reason:
+        # the paper's threshold for small parts with a small motion (its spray handle; a starfish curling
+        # its arms); the merge then folds what moves as one rigid body
+        log.warning("%s: small parts with small motion, lambda_thr=%g used", reason, SMALL_MOTION_THR)
+        thr = SMALL_MOTION_THR
+        sample_labels, eig, k = spectral_clusters(A, lambda_thr=thr, max_clusters=max_clusters, seed=seed)
     if k == 1:
         log.warning("nothing bends in this sequence (one eigenvalue below lambda_thr=%g): one segment", thr)
         return Segmentation(np.zeros(V, dtype=np.int64), samples, sample_labels, eig, 1, dt, lam_units, thr)

@@ -74,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.armature import armature_counts, build_armature
     from pipeline.armature_files import NoTrackingError, load_sequence, tracked_meshes, write_armature
     from pipeline.meshio import mesh_paths
+    from pipeline.motion_segmentation import MIN_GAP
     from stage.cli import UserError
     from stage.cli._progress import StepBars
 
@@ -111,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
             vertices, faces, units=units, fps=float(fps), frame_indices=numbers, lambda_thr=args.lambda_thr,
             n_samples=args.samples, reference=args.reference, progress=bars,
             peel_parts=args.meshes is not None,  # a tracked template: its tracking noise is no part
+            min_gap=None if args.meshes is not None else MIN_GAP,  # a tracked template: the eigengap rule
         )
         write_armature(rig, out, progress=bars)
     sk = rig.skeleton

@@ -6,6 +6,7 @@ import logging
 
 import numpy as np
 import pytest
+import trimesh
 
 from pipeline.motion_segmentation import (
     check_sequence,
@@ -239,3 +240,44 @@ def test_a_small_bend_that_one_cluster_hides_uses_the_small_motion_threshold(cap
     assert len(np.unique(seg.labels[far & right])) == 1 and len(np.unique(seg.labels[far & ~right])) == 1
     seg = motion_segmentation(bent(3), F, n_samples=300)
     assert seg.n_segments == 1 and seg.lambda_thr == 0.7
+
+
+def _hinged_chain(parts, deg, T=12, length=300.0):
+    """A bar of ``parts`` parts hinged about z in a chain; hinge j turns by up to ``deg`` degrees, out of phase."""
+    m = trimesh.creation.box(extents=(length, 20, 20))
+    for _ in range(4):
+        m = m.subdivide()
+    v0 = np.asarray(m.vertices)
+    hinge = np.linspace(-length / 2, length / 2, parts + 1)[1:-1]
+    part = np.searchsorted(hinge, v0[:, 0])
+    frames = np.repeat(v0[None], T, axis=0)
+    for t in range(T):
+        for j, x in enumerate(hinge):
+            a = np.radians(deg) * np.sin(np.pi * t / (T - 1) + j)
+            R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+            out = part > j
+            frames[t, out] = (frames[t, out] - [x, 0, 0]) @ R.T + [x, 0, 0]
+    return frames, np.asarray(m.faces), part
+
+
+def test_eigenvalues_crossing_lambda_thr_without_a_gap_use_the_small_motion_threshold(caplog):
+    """A chain of six parts whose hinges turn by 10 degrees: the eigenvalues rise without a gap past 0.7 (0.63,
+    0.77, ...), so their count there is no count of parts; with ``min_gap`` (a tracked template's default) the
+    small-motion threshold is used, says so, and every part is one segment. The hinged bar bent by 60 degrees has
+    its gap at 0.7 (0.30 -> 0.97) and keeps the paper's threshold and its two segments."""
+    import logging
+
+    from pipeline.motion_segmentation import MIN_GAP, SMALL_MOTION_THR
+
+    V, F, part = _hinged_chain(6, 10.0)
+    assert motion_segmentation(V, F, n_samples=300).lambda_thr == 0.7  # the rule is off by default
+    with caplog.at_level(logging.WARNING):
+        seg = motion_segmentation(V, F, n_samples=300, min_gap=MIN_GAP)
+    assert seg.lambda_thr == SMALL_MOTION_THR and "without a gap" in caplog.text
+    assert seg.n_segments == 6
+    assert all(len(np.unique(seg.labels[part == p])) == 1 for p in range(6))  # measured: each part one segment
+    V, F, right = two_bars(12)
+    seg = motion_segmentation(V, F, n_samples=300, min_gap=MIN_GAP)
+    assert seg.lambda_thr == 0.7 and seg.n_segments == 2
+    with pytest.raises(ValueError, match="min_gap"):
+        motion_segmentation(V, F, min_gap=0.0)
