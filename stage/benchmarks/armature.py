@@ -287,7 +287,8 @@ def take_scores(sim, res, rig) -> dict:
     from pipeline.armature_score import articulation_scores, bending_parts, segment_agreement
 
     V, F, _ = load_sequence(tracked_meshes(res))
-    tr = _truth_take(sim, rig, V, F, int(json.loads((Path(res) / "tracked" / "track.json").read_text())["reference_frame"]))
+    reference = int(json.loads((Path(res) / "tracked" / "track.json").read_text())["reference_frame"])
+    tr = _truth_take(sim, rig, V, F, reference)
     J, bending = tr["joints"], tr["bending"]
     sc = articulation_scores(rig.fit.joints[:, rig.skeleton.articulation], J, size=rig.size, bending=bending)
     truth = bending_parts(tr["part"], tr["part_parent"], tr["part_bends"])
@@ -298,6 +299,31 @@ def take_scores(sim, res, rig) -> dict:
     sc["track_error"] = float(err.mean(axis=1).max())
     sc["invented"] = float(np.max(invented_motion(sim.creature, sim.times, res)))
     sc["joints"] = len(bending)
+    sc["true_tracks"] = true_track_scores(sim, rig, V, F, tr, reference)
+    return sc
+
+
+def true_track_scores(sim, rig, vertices, faces, truth: dict, reference: int) -> dict:
+    """The armature built, as ``stage armature RESULTS_DIR`` builds it, on the simulator's *true* tracks of the
+    same template vertices (every vertex carried by the capsule it lies on at the tracking's reference frame
+    ``reference``, a frame number, :func:`fake_cameras.surface_motion.surface_point_tracks`), scored as the
+    tracked one (``truth``: :func:`_truth_take`): what the
+    segmentation and the joints reach when the tracking is exact."""
+    from fake_cameras.surface_motion import surface_point_tracks
+    from pipeline.armature import build_armature
+    from pipeline.armature_score import articulation_scores, bending_parts, segment_agreement
+    from pipeline.motion_segmentation import MIN_GAP
+
+    times = np.asarray(sim.times)[rig.frame_indices]
+    at = int(np.flatnonzero(rig.frame_indices == reference)[0])
+    V = surface_point_tracks(sim.creature, np.asarray(vertices[at], dtype=np.float64), [times[at], *times])[1:]
+    arm = build_armature(V, faces, frame_indices=rig.frame_indices, peel_parts=False, min_gap=MIN_GAP)
+    sc = articulation_scores(arm.fit.joints[:, arm.skeleton.articulation], truth["joints"], size=arm.size,
+                             bending=truth["bending"])
+    parts = bending_parts(truth["part"], truth["part_parent"], truth["part_bends"])
+    sc["purity"], sc["completeness"] = segment_agreement(arm.segmentation.labels, parts)
+    sc["segments"], sc["lambda_thr"] = arm.segmentation.n_segments, arm.segmentation.lambda_thr
+    sc["vertex_error"] = float(arm.fit.errors.mean() / arm.size)
     return sc
 
 
@@ -322,9 +348,13 @@ def take_row(name: str, frames: int, rig, sc: dict, secs: dict) -> str:
     def rpe(s):
         return f"{s['recall']:.2f}/{s['precision']:.2f}/{100 * s['error']:.1f}"
 
-    pl = sc["placements"]
+    pl, tt = sc["placements"], sc["true_tracks"]
     return (f"{name:10} {frames:>3} {sc['track_error']:>8.2f} {sc['invented']:>9.2f} | {rig.segmentation.n_segments:>4} "
             f"{sc['true_parts']:>4} {sc['purity']:>6.2f} {sc['completeness']:>6.2f} | {rpe(pl['paper']):>26} "
             f"{rpe(pl['pivot']):>18} | {sc['found']:>4} {sc['bending']:>4} {sc['recall']:>5.2f} {sc['precision']:>5.2f} "
             f"{100 * sc['error']:>5.1f} {100 * rig.fit.errors.mean() / rig.size:>5.2f} | {secs.get('process', 0):>9.0f} "
-            f"{secs.get('track', 0):>7.0f} {secs.get('rig', 0):>5.0f}")
+            f"{secs.get('track', 0):>7.0f} {secs.get('rig', 0):>5.0f}\n"
+            f"{'  true':10} {'':>3} {'tracks':>8} {'thr ' + format(tt['lambda_thr'], '.2f'):>9} | {tt['segments']:>4} "
+            f"{sc['true_parts']:>4} "
+            f"{tt['purity']:>6.2f} {tt['completeness']:>6.2f} | {'':>26} {'':>18} | {tt['found']:>4} {tt['bending']:>4} "
+            f"{tt['recall']:>5.2f} {tt['precision']:>5.2f} {100 * tt['error']:>5.1f} {100 * tt['vertex_error']:>5.2f} |")
