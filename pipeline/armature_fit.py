@@ -19,7 +19,9 @@ increment ``omega_p`` (world frame, about the part's current joint) is
 Levenberg-Marquardt damping (Marquardt's diagonal scaling, dimensionless)
 keeps every step descending, and the iterations stop once the linear model
 promises less than 1e-4 of the residual. The normal equations are formed
-from ``A`` directly (never the 3V x 3(P+1) Jacobian), with batched products.
+without the 3V x 3(P+1) Jacobian: from the influences' moments summed per
+pair of parts and then over subtrees (:func:`_normal_equations`), and every
+rotation of a pose is kept a rotation (:func:`_forward`).
 :func:`fit_sequence` initialises every frame from the previous one (the
 paper's tracking) or from its constant-velocity prediction from the two
 previous frames (:func:`predict_pose`), whichever fits better, and, as a
@@ -324,31 +326,11 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
     sub = model.subset(max_points)
     x = model.vertices[sub]
     y = y[sub]
-    V = len(y)
     size = float(np.linalg.norm(x.max(0) - x.min(0))) or 1.0
-    vp, w_row, WkT, Wsum = _lsq_weights(model, max_points)
-    n_par = 3 * (P + 1)
+    lsq = _lsq_weights(model, max_points)
 
     def linearise(pose):
-        q = np.einsum("vkij,vj->vki", pose.R[vp], x) + pose.t[vp]  # (V, k, 3)
-        r = (w_row @ q)[:, 0] - y
-        cw = np.einsum("pij,pj->pi", pose.R, model.pivots) + pose.t  # carried joints
-        # columns: root translation, root rotation (about the root joint), one rotation per part >= 1
-        A = WkT @ q - Wsum[..., None] * cw[None]  # (V, P, 3)
-        # normal equations of J = [I, -[A_v0]_x, ..., -[A_vP-1]_x] without forming J:
-        # [a]_x^T [b]_x = (a.b) I - b a^T
-        A2 = A.reshape(V, 3 * P)
-        M = (A2.T @ A2).reshape(P, 3, P, 3)  # sum_v A_vp,i A_vq,j
-        tr = np.einsum("piqi->pq", M)
-        Hww = tr[:, None, :, None] * np.eye(3)[None, :, None, :] - M.transpose(0, 3, 2, 1)
-        H = np.empty((n_par, n_par))
-        H[:3, :3] = V * np.eye(3)
-        H[:3, 3:] = -_skew_batch(A.sum(0)).transpose(1, 0, 2).reshape(3, 3 * P)
-        H[3:, :3] = H[:3, 3:].T
-        H[3:, 3:] = Hww.reshape(3 * P, 3 * P)
-        C = (A2.T @ r).reshape(P, 3, 3)  # sum_v A_vp r_v^T; its antisymmetric part is sum_v A_vp x r_v
-        g = np.r_[r.sum(0), np.stack([C[:, 1, 2] - C[:, 2, 1], C[:, 2, 0] - C[:, 0, 2], C[:, 0, 1] - C[:, 1, 0]], 1).ravel()]
-        return float((r * r).sum()), H, g, cw
+        return _normal_equations(model, pose, x, y, lsq)
 
     def step(pose, delta, cw):
         dt, om = delta[:3], delta[3:].reshape(P, 3)
@@ -392,21 +374,88 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
     return pose, err
 
 
-def _lsq_weights(model: ArticulatedModel, max_points: int | None):
+def _lsq_weights(model: ArticulatedModel, max_points: int | None) -> dict:
     """Per-subset arrays of the normal equations, cached on the model.
 
-    ``vp`` (V, k) parts of the influences, ``w_row`` (V, 1, k) weights,
-    ``WkT`` (V, P, k) weight of influence k on the rotation of part p (the
-    influence's part is p or below it), ``Wsum`` (V, P) its sum over k.
+    ``vp`` (V, k) parts of the influences, ``w`` (V, k) their weights, ``below`` (P, P) float
+    (``below[a, p]``: part ``a`` is ``p`` or in its subtree), ``one`` (P, V k) and ``pair`` (P P, V k k)
+    sparse sums of the weighted influences by part and of the products of two influences' weights by
+    pair of parts, ``n1`` (P,) and ``n2`` (P, P) those sums of the weights alone, and the pairs'
+    influence indices ``ii``, ``jj``.
     """
+    from scipy import sparse
+
     key = ("lsq", max_points)
     if key not in model._cache:
         sub = model.subset(max_points)
         vp = model.vertex_parts[sub]
         w = model.weights[sub]
-        Wk = w[..., None] * model.below[vp]  # (V, k, P)
-        model._cache[key] = (vp, w[:, None, :], np.ascontiguousarray(Wk.transpose(0, 2, 1)), Wk.sum(1))
+        V, k = vp.shape
+        P = model.skeleton.n_parts
+        one = sparse.csr_matrix((w.ravel(), (vp.ravel(), np.arange(V * k))), shape=(P, V * k))
+        ii, jj = np.repeat(np.arange(k), k), np.tile(np.arange(k), k)
+        ww = (w[:, ii] * w[:, jj]).ravel()
+        pair = sparse.csr_matrix((ww, ((vp[:, ii] * P + vp[:, jj]).ravel(), np.arange(V * k * k))),
+                                 shape=(P * P, V * k * k))
+        model._cache[key] = {"vp": vp, "w": w, "below": model.below.astype(np.float64), "one": one, "pair": pair,
+                             "n1": np.asarray(one.sum(1)).ravel(), "n2": np.asarray(pair.sum(1)), "ii": ii, "jj": jj}
     return model._cache[key]
+
+
+def _subtree_sums(below: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``Z[p, q] = sum_{a below p, b below q} X[a, b]`` for (P, P, F) ``X``; (P, F) ``X``: ``Z[p] = sum_{a below p} X[a]``."""
+    Y = np.tensordot(below, X, axes=(0, 0))  # (p, b, f) or (p, f)
+    if X.ndim == 2:
+        return Y
+    return np.tensordot(Y, below, axes=(1, 0)).transpose(0, 2, 1)  # (p, q, f)
+
+
+def _normal_equations(model: ArticulatedModel, pose: Pose, x: np.ndarray, y: np.ndarray, lsq: dict):
+    """Gauss-Newton normal equations of the skinned fit at ``pose``: (sum of squares, H, g, carried joints).
+
+    The Jacobian of a rotation increment ``omega_p`` about the part's carried joint ``c_p`` is
+    ``-[A_vp]_x`` with ``A_vp = sum_k w_vk [part_k below p] (q_vk - c_p)`` (``q_vk`` the vertex
+    moved by its influence ``k``). ``J^T J`` needs ``sum_v A_vp A_vq^T`` for every pair of parts: a
+    vertex's ``A`` is not zero for every ancestor of its influences, so on a deep tree most pairs
+    are filled. Expanded, ``A_vp A_vq^T`` is a sum over pairs of influences ``(k, l)`` of
+    ``w_k w_l (q_k - c_p)(q_l - c_q)^T`` wherever part_k is below p and part_l below q: the moments
+    ``sum w_k w_l [1, q_k, q_l, q_k q_l^T]`` are summed once per pair of parts (a sparse product over
+    the vertices' influences) and then over subtrees (``below^T X below``), so the cost grows with
+    ``V k^2 + P^3`` instead of ``V (3P)^2``; the same for ``sum_v A_vp`` and ``sum_v A_vp r_v^T``.
+    """
+    P = model.skeleton.n_parts
+    vp, w, below = lsq["vp"], lsq["w"], lsq["below"]
+    V, k = vp.shape
+    q = np.einsum("vkij,vj->vki", pose.R[vp], x) + pose.t[vp]  # (V, k, 3)
+    r = np.einsum("vk,vki->vi", w, q) - y
+    cw = np.einsum("pij,pj->pi", pose.R, model.pivots) + pose.t  # carried joints
+    qi, qj = q[:, lsq["ii"]], q[:, lsq["jj"]]  # (V, k k, 3)
+    F2 = np.concatenate([qi, qj, np.einsum("vni,vnj->vnij", qi, qj).reshape(V, k * k, 9)], axis=2).reshape(-1, 15)
+    X2 = np.concatenate([lsq["n2"], lsq["pair"] @ F2], axis=1).reshape(P, P, 16)
+    Z2 = _subtree_sums(below, X2)
+    n, m, mq = Z2[..., 0], Z2[..., 1:4], Z2[..., 4:7]
+    S = Z2[..., 7:].reshape(P, P, 3, 3)
+    Mpq = (S - np.einsum("pi,pqj->pqij", cw, mq) - np.einsum("pqi,qj->pqij", m, cw)
+           + n[..., None, None] * np.einsum("pi,qj->pqij", cw, cw))
+    M = Mpq.transpose(0, 2, 1, 3)  # M[p, i, q, j] = sum_v A_vp,i A_vq,j
+    qf = q.reshape(-1, 3)
+    rf = np.repeat(r, k, axis=0)
+    F1 = np.concatenate([qf, rf, np.einsum("ni,nj->nij", qf, rf).reshape(-1, 9)], axis=1)
+    Z1 = _subtree_sums(below, lsq["one"] @ F1)  # (P, 15)
+    n1 = below.T @ lsq["n1"]
+    Asum = Z1[:, :3] - n1[:, None] * cw
+    C = Z1[:, 6:].reshape(P, 3, 3) - np.einsum("pi,pj->pij", cw, Z1[:, 3:6])  # sum_v A_vp r_v^T
+    # normal equations of J = [I, -[A_v0]_x, ..., -[A_vP-1]_x]: [a]_x^T [b]_x = (a.b) I - b a^T
+    tr = np.einsum("piqi->pq", M)
+    Hww = tr[:, None, :, None] * np.eye(3)[None, :, None, :] - M.transpose(0, 3, 2, 1)
+    n_par = 3 * (P + 1)
+    H = np.empty((n_par, n_par))
+    H[:3, :3] = V * np.eye(3)
+    H[:3, 3:] = -_skew_batch(Asum).transpose(1, 0, 2).reshape(3, 3 * P)
+    H[3:, :3] = H[:3, 3:].T
+    H[3:, 3:] = Hww.reshape(3 * P, 3 * P)
+    g = np.r_[r.sum(0), np.stack([C[:, 1, 2] - C[:, 2, 1], C[:, 2, 0] - C[:, 0, 2], C[:, 0, 1] - C[:, 1, 0]], 1).ravel()]
+    return float((r * r).sum()), H, g, cw
 
 
 def predict_pose(model: ArticulatedModel, pose: Pose, before: Pose) -> Pose:

@@ -186,7 +186,7 @@ class ArmatureTracker:
         previous : (V, 3) float ndarray
             The template on the previous frame.
         candidates : sequence of Pose
-            Starts of the articulated ICP (at least one).
+            Starts of the articulated ICP (at least one; a start given twice is fitted once).
 
         Returns
         -------
@@ -196,7 +196,12 @@ class ArmatureTracker:
             The chosen pose's :func:`surface_residual`.
         """
         X, N = _check_points(points, normals)
-        cands = list(candidates)
+        cands = []
+        for c in candidates:  # the same start twice (a zero spine step gives the previous pose back) is fitted once
+            if not isinstance(c, Pose) or c.R.shape != (self.model.skeleton.n_parts, 3, 3):
+                raise ValueError(f"candidates must be Poses of the model's {self.model.skeleton.n_parts} parts")
+            if not any(c is d or (np.array_equal(c.R, d.R) and np.array_equal(c.t, d.t)) for d in cands):
+                cands.append(c)
         if not cands:
             raise ValueError("candidates must hold at least one Pose")
         tree = cKDTree(X)

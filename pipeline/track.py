@@ -417,8 +417,28 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
                               rounds=ARMATURE_FIT_ROUNDS)
     spine = _spine_steps(root, frames, by_frame, vs[refi])
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, "blas"):  # the articulated fits' small dense products: threads only contend
+        history, best = _armature_rounds(model, poses, int(rounds), vs, faces, frames, refi, by_frame, root, tracker,
+                                         weight, lambda_thr, progress, spine)
+    kept, _, per = best
+    if kept != len(history) - 1:  # the last round did not help: the best round's tracking again
+        for k in per["figures"]:
+            write_frame(root, k, per["vertices"][k], faces)
+    report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
+    report["rig_rounds"] = kept + 1
+    report["rig_prior"] = {"weight": float(weight), "lambda_thr": float(lambda_thr), "max_rounds": int(rounds),
+                           "kept_round": kept + 1, "rounds": history}
+    write_report(root, report)
+    return report
+
+
+def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_frame, root, tracker, weight, lambda_thr,
+                     progress, spine):
+    """The rounds of :func:`track_with_armature`: -> (history, (kept round, its residual, its tracking))."""
     history, best = [], None
-    for r in range(1 if model is not None else int(rounds)):
+    for r in range(1 if model is not None else rounds):
         use, by_pose, entry = (model, dict(poses or {}), {"segments": None, "fit_error_mm": None}) if model is not None \
             else _rig_of(vs, faces, frames, refi, lambda_thr)
         per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine)
@@ -430,16 +450,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         if best is None or (entry["residual_mm"] is not None and entry["residual_mm"] < best[1]):
             best = (r, entry["residual_mm"] if entry["residual_mm"] is not None else np.inf, per)
         vs = np.stack([per["vertices"][k] for k in frames])
-    kept, _, per = best
-    if kept != len(history) - 1:  # the last round did not help: the best round's tracking again
-        for k in per["figures"]:
-            write_frame(root, k, per["vertices"][k], faces)
-    report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
-    report["rig_rounds"] = kept + 1
-    report["rig_prior"] = {"weight": float(weight), "lambda_thr": float(lambda_thr), "max_rounds": int(rounds),
-                           "kept_round": kept + 1, "rounds": history}
-    write_report(root, report)
-    return report
+    return history, best
 
 
 def _tracked_sequence(root: Path):

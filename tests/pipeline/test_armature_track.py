@@ -101,6 +101,8 @@ def test_invalid_input(sequence):
         ArmatureTracker(small, rig.model)
     with pytest.raises(ValueError, match="candidates"):
         ArmatureTracker(tr, rig.model).fit(X, N, previous=ms.vertices[0], candidates=[])
+    with pytest.raises(ValueError, match="candidates"):
+        ArmatureTracker(tr, rig.model).fit(X, N, previous=ms.vertices[0], candidates=[pose, "pose"])
     with pytest.raises(ValueError, match="anchor"):
         tr.fit(X, N, previous=ms.vertices[0], anchor=(X[:3], 1.0))
     with pytest.raises(ValueError, match="anchor weight"):
