@@ -36,6 +36,21 @@ the job's carving, without what the cameras do not agree is the subject:
   subject; it is dropped, and the hull carved again when any was. The share of each camera's
   silhouette dropped is returned (a keyer that keeps a wall shows there). A silhouette of one
   part stays whole (whether the subject explains it is the consistency's to judge).
+* **one camera's miss** (``bridge_gaps``, for silhouettes whose keyer cannot tell the subject
+  from the room where their colours match: a plate without a backdrop): a voxel carved by
+  exactly one camera is kept when that camera's pixel lies in a gap of its own silhouette (inside
+  the silhouette closed by a disc of ``bridge_gaps`` times its larger bounding-box side) and
+  every other camera sees it on its silhouette; that camera's silhouette is then keyed again
+  there (the kept voxels' image inside the gap is added to it). Black shorts before a black
+  floor, missed in one view, otherwise cut the legs off the body for every camera, and a hole in
+  one view's torso tunnels through the hull. The price: a real gap narrower than the closing that
+  only one camera sees through (two limbs close together) is bridged too, so ``stage process``
+  uses the keyer's own closing radius, the gaps it could not decide by colour.
+* **specks**: a piece other than the largest is kept only when, in at least two cameras, its
+  image alone (outside the largest piece's) covers silhouette pixels, at least a fifth of the
+  silhouette it covers there (the rule of :mod:`pipeline.subject_box`): a few voxels beside the
+  body that every camera sees within the body's outline explain nothing; a second real object
+  (or a limb the hull cut off) explains its own pixels.
 """
 
 from __future__ import annotations
@@ -66,6 +81,9 @@ FIRST_HULL_RESOLUTION = 72
 #: A camera whose keyed silhouettes hold more than this share of pixels the subject does not
 #: explain (median over the take, :func:`subject_hull`) is named in a warning.
 DROPPED_WARN = 0.2
+#: A piece other than the largest explains a camera's silhouette when its image alone covers at
+#: least this share of the silhouette pixels it covers there (:func:`subject_hull`, specks).
+_ALONE_SHARE = 0.2
 
 
 def _disk(r: int) -> np.ndarray:
@@ -329,9 +347,11 @@ class SubjectHull:
     dropped : (C,) float ndarray
         Per camera, the share of its silhouette's pixels dropped (NaN without a mask).
     pieces_dropped : int
-        Phantom pieces left out (of the last carving).
+        Phantom pieces and specks left out (of the last carving).
     views : int
         Cameras that see the largest piece.
+    bridged : int
+        Voxels kept although one camera's silhouette missed them (``bridge_gaps``).
     """
 
     occupancy: np.ndarray
@@ -339,6 +359,7 @@ class SubjectHull:
     dropped: np.ndarray
     pieces_dropped: int
     views: int
+    bridged: int = 0
 
 
 #: Voxels of a piece whose views are counted at most (evenly spaced): the most cameras seeing a
@@ -392,6 +413,66 @@ def _explained_parts(mask: np.ndarray, shadow: np.ndarray) -> np.ndarray:
     return hit[lab]
 
 
+def _closed(mask: np.ndarray, relative: float) -> np.ndarray:
+    """``mask`` closed by a disc of ``relative`` times its larger bounding-box side (the image's
+    border does not close it)."""
+    _, _, w, h = cv2.boundingRect(mask.view(np.uint8))
+    r = max(1, int(round(relative * max(w, h))))
+    pad = r + 1
+    m = cv2.copyMakeBorder(mask.view(np.uint8), pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+    return cv2.morphologyEx(m, cv2.MORPH_CLOSE, _disk(r))[pad:-pad, pad:-pad].view(bool)
+
+
+def _bridged(occ: np.ndarray, masks: list, carver: HullCarver, kw: dict,
+             relative: float) -> tuple[np.ndarray, list, np.ndarray]:
+    """The hull with the voxels one camera alone carves inside a gap of its silhouette, the
+    silhouettes keyed again there, and the voxels added (see module docstring)."""
+    closed = [None if m is None else _closed(m, relative) for m in masks]
+    one_miss = carver.carve(masks, **{**kw, "tolerance": kw["tolerance"] + 1}).occupancy
+    in_gaps = carver.carve(closed, **kw).occupancy
+    added = one_miss & in_gaps & ~occ
+    if not added.any():
+        return occ, masks, added
+    proj, _ = hull_projection(added, carver.grid, carver.calibration)
+    out = [None if m is None else m | (p & c) for m, p, c in zip(masks, proj, closed)]
+    return occ | added, out, added
+
+
+def _without_specks(occ: np.ndarray, masks: list, grid: Grid, calibration: Calibration) -> tuple[np.ndarray, int]:
+    """The occupancy without the pieces (other than the largest) whose image alone explains
+    silhouette pixels in fewer than two cameras, and how many were left out."""
+    from scipy import ndimage
+
+    lab, n = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
+    if n <= 1:
+        return occ, 0
+    size = np.bincount(lab.ravel())
+    size[0] = 0
+    largest = int(np.argmax(size))
+    main = lab == largest
+    main_img, _ = hull_projection(main & ~ndimage.binary_erosion(main), grid, calibration)
+    keep = main
+    dropped = 0
+    for j, box in enumerate(ndimage.find_objects(lab), start=1):
+        if j == largest or box is None:
+            continue
+        piece = np.zeros_like(occ)
+        piece[box] = lab[box] == j
+        img, _ = hull_projection(piece, grid, calibration)
+        support = 0
+        for m, a, b in zip(masks, img, main_img):
+            if m is None:
+                continue
+            covered = np.count_nonzero(a & m)
+            alone = np.count_nonzero(a & m & ~b)
+            support += alone >= 2 and alone >= _ALONE_SHARE * covered
+        if support >= 2:
+            keep = keep | piece
+        else:
+            dropped += 1
+    return keep, dropped
+
+
 def subject_hull(
     masks: Sequence[np.ndarray | None],
     carver: HullCarver,
@@ -400,6 +481,7 @@ def subject_hull(
     support_plane: Any = None,
     margin: int = 0,
     view_slack: int = 1,
+    bridge_gaps: float = 0.0,
 ) -> SubjectHull:
     """One frame set's hull without phantom pieces, from silhouettes without the parts no kept
     piece explains (see module docstring).
@@ -413,6 +495,12 @@ def subject_hull(
         The job's carving (:meth:`pipeline.hull.HullCarver.carve`).
     view_slack : int
         A piece is kept when seen by at least the cameras that see the largest less this.
+    bridge_gaps : float
+        0 (off), or the closing disc's radius as a share of each silhouette's larger
+        bounding-box side within which one camera's miss is bridged (see module docstring;
+        ``stage process`` gives plate-keyed silhouettes the keyer's own closing radius,
+        :data:`stage.keying.params.PLATE_CLOSE_RELATIVE`). Needs at least ``tolerance + 3``
+        cameras with a silhouette (two others to agree), else off.
 
     Returns
     -------
@@ -427,26 +515,36 @@ def subject_hull(
     """
     if isinstance(view_slack, bool) or not isinstance(view_slack, (int, np.integer)) or view_slack < 0:
         raise ValueError(f"view_slack must be a non-negative integer, got {view_slack!r}")
+    if isinstance(bridge_gaps, bool) or not isinstance(bridge_gaps, (int, float)) or not 0 <= bridge_gaps <= 0.5:
+        raise ValueError(f"bridge_gaps must be a number in [0, 0.5], got {bridge_gaps!r}")
     kw = {"tolerance": tolerance, "support_plane": support_plane, "margin": margin}
     grid, cal = carver.grid, carver.calibration
-    occ, main, dropped_pieces, views = _kept_pieces(carver.carve(masks, **kw).occupancy, grid, cal, view_slack)
+    hull = carver.carve(masks, **kw).occupancy
     out: list[np.ndarray | None] = [None if m is None else np.asarray(m, bool) for m in masks]
+    occ, main, dropped_pieces, views = _kept_pieces(hull, grid, cal, view_slack)
     share = np.array([np.nan if m is None else 0.0 for m in out])
     parts = [0 if m is None else cv2.connectedComponents(m.view(np.uint8), connectivity=8)[0] - 1 for m in out]
-    if max(parts, default=0) <= 1:  # a camera's only silhouette part stays (the consistency judges it)
-        return SubjectHull(occupancy=occ, masks=out, dropped=share, pieces_dropped=dropped_pieces, views=views)
-    # the largest piece's image: its boundary voxels (the inside projects within it) as discs
-    from scipy import ndimage
+    if max(parts, default=0) > 1:
+        # the largest piece's image: its boundary voxels (the inside projects within it) as discs
+        from scipy import ndimage
 
-    shell = main & ~ndimage.binary_erosion(main)
-    proj, _ = hull_projection(shell, grid, cal)
-    for i, m in enumerate(out):
-        if m is None or parts[i] <= 1:
-            continue
-        kept = _explained_parts(m, proj[i])
-        total = int(np.count_nonzero(m))
-        share[i] = 0.0 if total == 0 else 1.0 - np.count_nonzero(kept) / total
-        out[i] = kept
-    if np.nansum(share) > 0:
-        occ, _, dropped_pieces, views = _kept_pieces(carver.carve(out, **kw).occupancy, grid, cal, view_slack)
-    return SubjectHull(occupancy=occ, masks=out, dropped=share, pieces_dropped=dropped_pieces, views=views)
+        shell = main & ~ndimage.binary_erosion(main)
+        proj, _ = hull_projection(shell, grid, cal)
+        for i, m in enumerate(out):
+            if m is None or parts[i] <= 1:
+                continue
+            kept = _explained_parts(m, proj[i])
+            total = int(np.count_nonzero(m))
+            share[i] = 0.0 if total == 0 else 1.0 - np.count_nonzero(kept) / total
+            out[i] = kept
+        if np.nansum(share) > 0:
+            hull = carver.carve(out, **kw).occupancy
+    bridged = 0
+    if bridge_gaps > 0 and sum(m is not None for m in out) >= int(tolerance) + 3:
+        hull, out, added = _bridged(hull, out, carver, kw, float(bridge_gaps))
+        bridged = int(np.count_nonzero(added))
+    if bridged or np.nansum(share) > 0:
+        occ, main, dropped_pieces, views = _kept_pieces(hull, grid, cal, view_slack)
+    occ, specks = _without_specks(occ, out, grid, cal) if np.count_nonzero(occ) > np.count_nonzero(main) else (occ, 0)
+    return SubjectHull(occupancy=occ, masks=out, dropped=share, pieces_dropped=dropped_pieces + specks, views=views,
+                       bridged=bridged)

@@ -256,10 +256,30 @@ def _step_surface(ctx: RunContext) -> None:
         # skeletons straight from the surfaces in memory when the spine step follows
         spine_params=ctx.params.spine if "spine" in ctx.steps else None,
         use_depth=uses_depth(ctx.params, all_depth=ctx.take.all_depth),
+        bridge_gaps=_bridge_gaps(ctx),
     )
     ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx))
     _write_consistency(ctx)
     ctx.timings["surface"] = time.perf_counter() - t0
+
+
+def _bridge_gaps(ctx: RunContext) -> float:
+    """The surface step's bridging of one camera's miss (:func:`pipeline.silhouette_refine.subject_hull`):
+    when every camera's masks were keyed against a plate, the gaps the keyer's closing could not
+    decide by colour (the plate explains them within its noise, ``close_relative``) are bridged where
+    the other cameras see the subject; off for a backdrop's keyer (its colour is chosen unlike the
+    subject's) and for masks made elsewhere. Recorded in ``process.json`` (``bridge_gaps``)."""
+    from stage.store import TakeReader
+
+    with TakeReader(ctx.take.path) as r:
+        keys = [(r.mask_params(c) or {}).get("key") or {} for c in ctx.take.cameras]
+    plate = all(k.get("mode") == "plate" for k in keys)
+    value = float(min(k.get("close_relative") or 0.0 for k in keys)) if plate and keys else 0.0
+    why = ("every camera's masks keyed against a plate: the gaps of its closing (close_relative) that the plate "
+           "explains are bridged where the other cameras see the subject" if value > 0 else
+           "the masks were not all keyed against a plate with a closing (a backdrop's keyer or masks made elsewhere)")
+    ctx.add_to_record(bridge_gaps={"relative": value, "why": why})
+    return value
 
 
 def _write_consistency(ctx: RunContext) -> None:

@@ -147,12 +147,14 @@ def unpack_masks(packed: list, widths: Sequence[int]) -> list:
     return [None if p is None else np.unpackbits(p, axis=-1, count=w).view(bool) for p, w in zip(packed, widths)]
 
 
-def _subject_hull(carver, masks, p: ProcessParams):
+def _subject_hull(carver, masks, p: ProcessParams, bridge_gaps: float = 0.0):
     """The frame set's hull without phantom pieces, and the silhouettes without the parts the
-    subject does not explain (:func:`pipeline.silhouette_refine.subject_hull`), carved as the job says."""
+    subject does not explain (:func:`pipeline.silhouette_refine.subject_hull`), carved as the job says;
+    ``bridge_gaps``: one camera's miss bridged inside its silhouette's gaps (plate-keyed masks)."""
     from pipeline.silhouette_refine import subject_hull
 
-    return subject_hull(masks, carver, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin)
+    return subject_hull(masks, carver, tolerance=p.tolerance, support_plane=p.support_plane, margin=p.silhouette_margin,
+                        bridge_gaps=bridge_gaps)
 
 
 def _surface_of(carver, masks, p: ProcessParams, depth=None, images=None, hull=None):
@@ -204,6 +206,7 @@ def surface_task(
     spine_params: dict | None = None,
     masks: dict | None = None,
     use_depth: bool | None = None,
+    bridge_gaps: float = 0.0,
 ) -> list[dict]:
     """Visual hull + surface of some frame sets; writes ``meshes/`` and ``frames/`` (and,
     with ``spine_params``, the frames' skeletons to ``skeletons/`` from the mesh in memory).
@@ -212,7 +215,8 @@ def surface_task(
     "sets": {k: [bit-packed (H, W/8) rows or None per camera]}}``; without it they are read
     from the take. ``use_depth``: fuse depth (default: when ``params.depth`` is ``auto`` and
     every camera has depth); with masks given, no depth and no ``params.photo_refine``, the
-    take is not opened at all.
+    take is not opened at all. ``bridge_gaps``: :func:`pipeline.silhouette_refine.subject_hull`'s
+    (0: off; the driver turns it on for plate-keyed masks).
     Top level (picklable) so it runs in a process pool or on a Dask worker.
     """
     from contextlib import nullcontext
@@ -251,10 +255,11 @@ def surface_task(
                         raise EmptyHullError("no camera has a valid mask in this frame set")
                     depth = (_fuser(calib_dict, grid_dict), _frame_depths(reader, cameras, k)) if use_depth else None
                     images = _frame_images(reader, cameras, k) if p.photo_refine and not use_depth else None
-                    sh = _subject_hull(carver, ms, p)
+                    sh = _subject_hull(carver, ms, p, bridge_gaps)
                     ms = sh.masks  # the hull's silhouettes: the consistency compares with them
                     info["dropped"] = {c: (None if not np.isfinite(x) else round(float(x), 4))
                                        for c, x in zip(cameras, sh.dropped)}
+                    info["bridged"] = sh.bridged
                     mesh, info["source"] = _surface_of(carver, ms, p, depth, images, hull=sh.occupancy)
                     quality = surface_quality(mesh).to_dict()
                     info["consistency"] = _consistency(mesh, ms, carver.calibration, p.silhouette_margin)

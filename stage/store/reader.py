@@ -530,9 +530,19 @@ class TakeReader:
         return self._read(ds, i, f"mask {i} of {camera}").astype(bool)
 
     def mask_params(self, camera: str) -> dict | None:
-        if not self.has_array(f"cameras/{camera}", "masks"):
+        """The parameters stored with one camera's masks (the keyer's), None if not keyed; the
+        masks themselves are not read."""
+        key = f"cameras/{camera}/masks"
+        ds = self._dataset(key)
+        if ds is None:
             return None
-        return self.read_array(f"cameras/{camera}", "masks")[1].get("params")
+        v = ds.attrs.get("params")
+        if v is None:
+            return None
+        try:
+            return json.loads(v)
+        except ValueError as exc:
+            raise TakeError(f"{self.path}: parameters of {key} are not JSON: {exc}") from None
 
     def masks_present(self) -> list[str]:
         return [c for c in self.cameras if self.has_array(f"cameras/{c}", "masks")]

@@ -175,13 +175,17 @@ def test_plates_from_an_empty_take(tmp_path, capsys):
 
 def test_cli_layers_and_plate(tmp_path, capsys):
     """`stage key --key-layer volume --key-layer graphcut --volume ...` and `stage process --plate`
-    run the layers the functions above test, and say so."""
+    run the layers the functions above test, and say so; the surface step bridges one camera's
+    miss with the keyer's closing radius for plate-keyed masks only."""
     import json
+    from types import SimpleNamespace
 
     from fake_cameras.dome import make_dome
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take, stage_backdrop
+    from pipeline.process.steps import _bridge_gaps
     from stage.cli import main
+    from stage.keying.params import PLATE_CLOSE_RELATIVE
     from stage.rig import Volume
     from stage.store import TakeReader
 
@@ -198,6 +202,10 @@ def test_cli_layers_and_plate(tmp_path, capsys):
     assert "mode chroma + volume, graphcut" in out and "graph-cut refinement: 12 masks refined" in out
     with TakeReader(take) as r:
         assert r.mask_params("cam00")["refined"]["method"] == "graphcut"
+        cameras = list(r.cameras)
+    said: dict = {}
+    ctx = SimpleNamespace(take=SimpleNamespace(path=take, cameras=cameras), add_to_record=said.update)
+    assert _bridge_gaps(ctx) == 0.0 and said["bridge_gaps"]["relative"] == 0.0
     empty = record_take(simulate_take("empty", calibration=calib, frames=4, volume=vol, seed=3,
                                       backdrop=stage_backdrop("floor", calibration=calib, volume=vol)), tmp_path / "e.h5")
     assert main(["process", str(take), "--out", str(tmp_path / "res"), "--plate", str(empty), "--until", "key",
@@ -205,3 +213,4 @@ def test_cli_layers_and_plate(tmp_path, capsys):
     assert "plates from" in capsys.readouterr().out
     record = json.loads((tmp_path / "res" / "process.json").read_text())
     assert record["params"]["key_mode"] == "plate" and record["key"]["mode"] == "plate"
+    assert _bridge_gaps(ctx) == PLATE_CLOSE_RELATIVE and "plate" in said["bridge_gaps"]["why"]
