@@ -11,10 +11,8 @@ mask, depth, label).
 Why ray casting with Embree (``embreex``, through which ``trimesh`` also casts rays) rather than
 a z-buffer rasteriser: a rasteriser draws straight-edged triangles in the undistorted image, so a
 distorted camera of a real calibration would need per-pixel rays anyway. Embree's scene (with the
-vertex normals) is built in about 11 ms for the 12 700 triangles of the real pipe
-(``../shared/data/tzionas_pipe``) and answers all 256 000 pixel rays of a 640x400 camera in about
-20 ms (a whole frame, 30 ms; this machine), and one scene per frame serves any number of cameras
-(:func:`render_mesh_views`: 0.28 s for a 17 000-triangle horse in 8 dome cameras of 640x480).
+vertex normals) is built once per frame and serves any number of cameras (:func:`render_mesh_views`);
+its speed is measured by ``stage bench render`` (docs/tracking.md, "The renderer's speed").
 Only the rays of image tiles (16 px, as in :mod:`fake_cameras.render`) that can see the mesh's
 bounding sphere are cast.
 
