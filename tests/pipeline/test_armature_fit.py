@@ -6,23 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pipeline.armature_fit import ArticulatedModel, _forward, fit_frame, predict_pose
-from pipeline.armature_skeleton import ArticulatedSkeleton
-
-
-def _chain(parts: int = 40, per: int = 6) -> ArticulatedModel:
-    """A straight chain of ``parts`` parts 10 apart (the finest segmentations give chains of tens of
-    parts), ``per`` vertices on a ring around every part, each bound to its part alone."""
-    J = parts + 1
-    rest = np.c_[np.arange(J) * 10.0, np.zeros(J), np.zeros(J)]
-    sk = ArticulatedSkeleton(names=("root", *(f"joint{i}" for i in range(1, parts)), "aux0"),
-                             parents=np.arange(J) - 1, rest=rest,
-                             articulation=np.r_[False, np.ones(parts - 1, bool), False], segment_pairs=(None,) * J,
-                             part=np.r_[np.arange(parts), parts - 1], part_joint=np.arange(parts),
-                             part_parent=np.arange(parts) - 1, bones=np.c_[np.arange(parts), np.arange(1, J)])
-    angles = np.linspace(0, 2 * np.pi, per, endpoint=False)
-    ring = 3.0 * np.c_[np.zeros(per), np.cos(angles), np.sin(angles)]
-    v = np.concatenate([rest[p] + ring + [5.0, 0.0, 0.0] for p in range(parts)])
-    return ArticulatedModel(v, np.zeros((0, 3), int), sk, np.repeat(np.arange(parts), per)[:, None], np.ones((len(v), 1)))
+from tests.pipeline.armature_chain import chain_model
 
 
 def test_a_pose_tracked_along_a_deep_chain_stays_rotations():
@@ -31,7 +15,7 @@ def test_a_pose_tracked_along_a_deep_chain_stays_rotations():
     1e-9) and the fit lands on the frame (mean error under 1 % of a part's length). Carried through
     ``R_parent^T R_p`` without projection, the rounding grew with every pass along the chain: the
     rotations were 1e-3 from rotations at the second frame and NaN at the eighth."""
-    m = _chain()
+    m = chain_model()
     P = m.skeleton.n_parts
     om = np.random.default_rng(0).normal(scale=0.05, size=(P, 3))
     pose, before = m.identity(), None
@@ -70,7 +54,7 @@ def test_normal_equations_match_the_dense_jacobian():
     of the dense Jacobian, on a 12-part chain with three influences a vertex (1e-9 relative)."""
     from pipeline.armature_fit import _lsq_weights, _normal_equations
 
-    base = _chain(12, 4)
+    base = chain_model(12, 4)
     P, V = base.skeleton.n_parts, len(base.vertices)
     rng = np.random.default_rng(2)
     part = base.influences[:, 0]

@@ -218,9 +218,9 @@ def test_carry_twist_keeps_the_axis_and_takes_the_twist():
 
     from pipeline.armature_fit import _forward
     from pipeline.armature_track import _carry_twist, _part_axes
-    from tests.pipeline.test_armature_fit import _chain
+    from tests.pipeline.armature_chain import chain_model
 
-    m = _chain(4, 6)
+    m = chain_model(4, 6)
     a = _part_axes(m)
     np.testing.assert_allclose(a[1:], np.tile([1.0, 0.0, 0.0], (3, 1)), atol=1e-12)
     swing = Rotation.from_rotvec([0.0, 0.0, 0.4]).as_matrix()
