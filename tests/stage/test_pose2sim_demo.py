@@ -27,6 +27,7 @@ from pipeline.silhouette_refine import subject_hull
 from pipeline.subject_box import find_subject_box
 from pipeline.volume import grid_from_volume, volume_from_cameras
 from stage.importer import import_take
+from stage.keying.params import PLATE_CLOSE_RELATIVE
 from stage.keying.take import key_take
 from stage.store import TakeReader
 from tests.conftest import shared_dataset
@@ -81,12 +82,13 @@ def test_pose2sim_demo_keys_with_a_plate_from_the_take_and_the_cones_meet(tmp_pa
     assert np.all(sb.bounds[1] - sb.bounds[0] <= 0.5 * (shared[1] - shared[0])), (sb.bounds, shared)
     # the surface step's hull on a grid of 64 voxels over the box: the largest piece is the person
     # in every sampled set and holds at least 95 % of the hull's voxels in most (measured: median
-    # 0.985, least 0.74 of 10 sets); silhouette parts the person does not explain are dropped
+    # 0.999, least 0.72 of 10 sets); silhouette parts the person does not explain are dropped
     grid = grid_from_volume(sb.bounds, 64)
     carver = HullCarver(calib, grid)
     shares = []
     for f in sets:
-        sh = subject_hull([m[f] for m in masks], carver, margin=1)
+        # as stage process carves plate-keyed masks: one camera's miss bridged in the keyer's gaps
+        sh = subject_hull([m[f] for m in masks], carver, margin=1, bridge_gaps=PLATE_CLOSE_RELATIVE)
         lab, _ = ndimage.label(sh.occupancy, structure=np.ones((3, 3, 3), bool))
         count = np.bincount(lab.ravel())[1:]
         pts = grid.lo + (np.argwhere(lab == np.argmax(count) + 1) + 0.5) * grid.voxel
