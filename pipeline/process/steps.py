@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from collections.abc import Callable
 from dataclasses import replace
 from functools import partial
@@ -68,7 +67,6 @@ def _step_key(ctx: RunContext) -> None:
         return
     from stage.keying.take import resolve_key_choice, store_camera_keys, take_key_params
 
-    t0 = time.perf_counter()
     skip = ctx.damaged.get("frames") or None
     choice = resolve_key_choice(ctx.take.path, ctx.take.rig, key_mode=ctx.params.key_mode, layers=ctx.params.key_layers, skip=skip)
     ctx.made.key_choice = choice
@@ -108,7 +106,6 @@ def _step_key(ctx: RunContext) -> None:
         ctx.report_progress("key", min(done, total), total)
     if batch:
         store_camera_keys(ctx.take.path, batch)
-    ctx.timings["key"] = time.perf_counter() - t0
 
 
 def _step_refine(ctx: RunContext) -> None:
@@ -119,7 +116,6 @@ def _step_refine(ctx: RunContext) -> None:
         return
     from pipeline.silhouette_refine import refine_take
 
-    t0 = time.perf_counter()
     total = ctx.take.n_sets * len(ctx.take.cameras)
     done = [0]
 
@@ -130,7 +126,6 @@ def _step_refine(ctx: RunContext) -> None:
     info = refine_take(ctx.take.path, volume=_volume_bounds(ctx), progress=tick, skip_sets=ctx.skipped_sets)
     ctx.made.keyed = None  # the masks in memory are the keyer's: the surface tasks read the refined ones
     ctx.add_to_record(refine={"method": "graphcut", "masks": info["frames"], "first_hull_grid": info["grid"]})
-    ctx.timings["refine"] = time.perf_counter() - t0
 
 
 def _keep_masks(ctx: RunContext, key, width: int) -> None:
@@ -245,7 +240,6 @@ def _step_surface(ctx: RunContext) -> None:
     with ctx.part("grid"):
         grid = _processing_grid(ctx)
         ctx.add_to_record(grid=ctx.made.grid_choice)
-    t0 = time.perf_counter()
     task = partial(
         surface_task,
         str(ctx.take.path.resolve()),
@@ -260,7 +254,6 @@ def _step_surface(ctx: RunContext) -> None:
     )
     ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx))
     _write_consistency(ctx)
-    ctx.timings["surface"] = time.perf_counter() - t0
 
 
 def _bridge_gaps(ctx: RunContext) -> float:
@@ -393,7 +386,6 @@ def _step_spine(ctx: RunContext) -> None:
     n = ctx.take.n_sets
     if any(not (ctx.out / "frames" / f"{frame_name(k)}.json").exists() for k in range(n)):
         raise ProcessError(f"{ctx.out}: surfaces are missing for some frames; run the surface step")
-    t0 = time.perf_counter()
     for k in stale_skeletons(ctx.out, n):
         ctx.made.skeletons.pop(k, None)
     ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons",
@@ -410,7 +402,6 @@ def _step_spine(ctx: RunContext) -> None:
     # how K was chosen (the mode of the tip counts, or a borderline count decided): in the report
     ctx.made.limb_count = {"K": int(spine.meta.get("K", len(spine.limb_ids))), "rule": spine.meta.get("count_rule", "mode")}
     ctx.report_progress("spine", 1, 1)
-    ctx.timings["spine"] = time.perf_counter() - t0
 
 
 def _step_track(ctx: RunContext) -> None:
@@ -418,13 +409,12 @@ def _step_track(ctx: RunContext) -> None:
     with ``ProcessParams.track``)."""
     from pipeline.carve import track_with_carving
 
-    t0, opt = time.perf_counter(), ctx.params.track
+    opt = ctx.params.track
     rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress, executor=ctx.executor,
                              colour=opt.colour, shape_memory=opt.shape_memory)
     if rep.get("started_over"):  # frames of other settings, and the rig on them, removed: the job report says so
         ctx.warnings.append(rep["started_over"])
-    ctx.worker_cpu["track"] = ctx.worker_cpu.get("track", 0.0) + rep.get("worker_cpu_seconds", 0.0)
-    ctx.timings["track"] = time.perf_counter() - t0
+    ctx.clock.add_worker_cpu("track", rep.get("worker_cpu_seconds", 0.0))
 
 
 def _surface_totals(ctx: RunContext) -> list[tuple[str, int]]:
@@ -445,7 +435,6 @@ def _step_rig(ctx: RunContext) -> None:
     template the track step runs first (``ProcessParams.track``; a warning in the job report says so)."""
     from pipeline.armature_files import NoTrackingError, armature_results, tracked_meshes
 
-    t0 = time.perf_counter()
     try:
         tracked_meshes(ctx.out)
     except NoTrackingError:
@@ -456,14 +445,13 @@ def _step_rig(ctx: RunContext) -> None:
             if not any((ctx.out / "meshes").glob("frame_*.ply")):
                 raise ProcessError("rig: the take has no surfaces to track yet (meshes/frame_NNNNNN.ply): "
                                    "run the surface step first") from None
-            _step_track(ctx)
-        t0 = time.perf_counter()
+            with ctx.part("track"):  # its seconds are the tracking's, not the rig's
+                _step_track(ctx)
     try:
         armature_results(ctx.out, units=ctx.take.calibration.units, fps=float(ctx.take.fps),
                          progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t))
     except NoTrackingError as exc:
         raise ProcessError(f"rig: {exc}") from None
-    ctx.timings["rig"] = time.perf_counter() - t0
 
 
 def _track_totals(ctx: RunContext) -> list[tuple[str, int]]:

@@ -16,10 +16,10 @@ The steps themselves live with their pipeline: :mod:`pipeline.process` (key, ref
 spine, track, rig over a take).
 """
 
-from pipeline.run.context import Aside, Run, chunks, forking_pool, pool_size, submit_aside
+from pipeline.run.context import Aside, Clock, Run, chunks, forking_pool, pool_size, submit_aside
 from pipeline.run.settings import array_digest, changed_settings, file_digest, read_settings
 from pipeline.run.steps import Step, StepList
 from pipeline.run.writer import BackgroundWriter
 
-__all__ = ["Aside", "BackgroundWriter", "Run", "Step", "StepList", "array_digest", "changed_settings", "chunks",
+__all__ = ["Aside", "BackgroundWriter", "Clock", "Run", "Step", "StepList", "array_digest", "changed_settings", "chunks",
            "file_digest", "forking_pool", "pool_size", "read_settings", "submit_aside"]

@@ -12,7 +12,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Aside", "Run", "chunks", "forking_pool", "pool_size", "submit_aside"]
+__all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "pool_size", "submit_aside"]
 
 log = logging.getLogger(__name__)
 
@@ -76,40 +76,55 @@ def submit_aside(executor: cf.Executor | None, task: Callable[[], object], *, un
         return None
 
 
+@dataclass
+class Clock:
+    """The seconds every step and part of a run took (the report's ``seconds`` and ``cpu_seconds``)."""
+
+    wall: dict[str, float] = field(default_factory=dict)  # step or part -> wall seconds
+    cpu: dict[str, float] = field(default_factory=dict)  # step or part -> CPU seconds (this process and the workers)
+    worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks in other processes
+    in_parts: dict[str, tuple[float, float]] = field(default_factory=dict)  # step -> (wall, CPU) of its parts
+
+    def add_part(self, step: str, name: str, wall: float, cpu: float) -> None:
+        """A part of ``step`` counted on its own (not in the step's seconds)."""
+        self.wall[name] = self.wall.get(name, 0.0) + wall
+        self.cpu[name] = self.cpu.get(name, 0.0) + cpu
+        w, c = self.in_parts.get(step, (0.0, 0.0))
+        self.in_parts[step] = (w + wall, c + cpu)
+
+    def add_worker_cpu(self, step: str, cpu: float) -> None:
+        """CPU seconds a task of ``step`` spent in another process."""
+        self.worker_cpu[step] = self.worker_cpu.get(step, 0.0) + cpu
+
+
 @dataclass(kw_only=True)
 class Run:
     """The runner's side of one run: where results go, where tasks run, who is told of progress,
-    how to stop, and the seconds every step and part took (for the report)."""
+    how to stop, what to warn of, and the seconds every step and part took (for the report)."""
 
     out: Path
     executor: cf.Executor | None = None
     progress: Callable[[str, int, int], None] | None = None
     cancel: threading.Event | None = None
-    step: str = ""  # the step running
     warnings: list[str] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)  # step or part -> wall seconds
-    cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds (this process and the workers)
-    worker_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its tasks on the executor
-    part_cpu: dict[str, float] = field(default_factory=dict)  # step -> CPU seconds of its parts counted on their own
-    reported: dict[str, tuple[int, int]] = field(default_factory=dict)  # progress name -> latest (done, total)
-    planned: dict[str, list[str]] = field(default_factory=dict)  # step -> progress names announced for it
+    clock: Clock = field(default_factory=Clock)
+    step: str = ""  # the step running
+    _reported: dict[str, tuple[int, int]] = field(default_factory=dict, init=False, repr=False)  # progress name -> (done, total)
+    _planned: dict[str, list[str]] = field(default_factory=dict, init=False, repr=False)  # step -> progress names announced
 
     @contextmanager
     def part(self, name: str):
         """Count a part of the running step on its own (e.g. the surface step's grid choice): its
-        wall and CPU seconds are added to ``timings[name]`` and ``cpu[name]`` (a part run several
-        times counts every run), not to the step's."""
+        wall and CPU seconds are added to ``clock.wall[name]`` and ``clock.cpu[name]`` (a part run
+        several times counts every run), not to the step's."""
         t0, c0 = time.perf_counter(), time.process_time()
         try:
             yield
         finally:
-            cpu = time.process_time() - c0
-            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
-            self.cpu[name] = self.cpu.get(name, 0.0) + cpu
-            self.part_cpu[self.step] = self.part_cpu.get(self.step, 0.0) + cpu
+            self.clock.add_part(self.step, name, time.perf_counter() - t0, time.process_time() - c0)
 
     def report_progress(self, step: str, done: int, total: int) -> None:
-        self.reported[step] = (int(done), int(total))
+        self._reported[step] = (int(done), int(total))
         if self.progress:
             self.progress(step, done, total)
 
@@ -118,14 +133,14 @@ class Run:
         runs, so the run's summed total counts every step it will run (a job never reads n/n while
         steps are still to come); :meth:`complete` closes those the step did not report."""
         for name, total in items:
-            self.planned.setdefault(step, []).append(name)
-            if name not in self.reported:
+            self._planned.setdefault(step, []).append(name)
+            if name not in self._reported:
                 self.report_progress(name, 0, total)
 
     def complete(self, step: str) -> None:
         """The announced entries of a finished step at done == total (a resumed step reports none)."""
-        for name in self.planned.get(step, ()):
-            done, total = self.reported.get(name, (0, 0))
+        for name in self._planned.get(step, ()):
+            done, total = self._reported.get(name, (0, 0))
             if done < total:
                 self.report_progress(name, total, total)
 
@@ -149,19 +164,21 @@ class Run:
                 self.check_cancel()
                 out, cpu, pid = fut.result()
                 if pid != os.getpid():
-                    self.worker_cpu[self.step] = self.worker_cpu.get(self.step, 0.0) + cpu
+                    self.clock.add_worker_cpu(self.step, cpu)
                 yield out
         finally:
             for fut in futures:
                 fut.cancel()
 
     def run_step(self, name: str, run: Callable[[Run], None]) -> None:
-        """Run one step; its CPU seconds (this process's and its tasks' in other processes) go to
-        :attr:`cpu`, less those of its parts counted on their own (:meth:`part`); its announced
-        progress entries end at done == total (:meth:`complete`)."""
+        """Run one step; its wall seconds go to ``clock.wall[name]`` and its CPU seconds (this
+        process's and its tasks' in other processes) to ``clock.cpu[name]``, less those of its parts
+        counted on their own (:meth:`part`); its announced progress entries end at done == total
+        (:meth:`complete`)."""
         self.step = name
-        t = time.process_time()
+        w, t = time.perf_counter(), time.process_time()
         run(self)
         self.complete(name)
-        own = time.process_time() - t - self.part_cpu.get(name, 0.0)
-        self.cpu[name] = own + self.worker_cpu.get(name, 0.0)
+        part_wall, part_cpu = self.clock.in_parts.get(name, (0.0, 0.0))
+        self.clock.wall[name] = time.perf_counter() - w - part_wall
+        self.clock.cpu[name] = time.process_time() - t - part_cpu + self.clock.worker_cpu.get(name, 0.0)

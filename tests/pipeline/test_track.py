@@ -502,6 +502,7 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     from pipeline.process import ProcessParams
     from pipeline.process.steps import _step_track
     from pipeline.report import write_report
+    from pipeline.run import Clock
     from pipeline.track import track_results
 
     t = _sphere_results(tmp_path, frames=3)
@@ -530,9 +531,8 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     track_results(tmp_path, template=(t.vertices, t.faces), predict=False)
     assert not caplog.records and (tmp_path / "rig" / "rig.glb").is_file()
     # `stage process ... steps track` (its defaults: predict on, the first frame's surface) starts over too
-    ctx = SimpleNamespace(out=tmp_path, progress=None, report_progress=lambda *a: None, executor=None, worker_cpu={}, timings={},
-                          warnings=[],
-                          params=ProcessParams())
+    ctx = SimpleNamespace(out=tmp_path, progress=None, report_progress=lambda *a: None, executor=None, clock=Clock(),
+                          warnings=[], params=ProcessParams())
     (tmp_path / "rig" / "notes.txt").unlink()
     (tmp_path / "rig" / "posed" / "1_user.ply").unlink()
     _step_track(ctx)

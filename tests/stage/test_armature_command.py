@@ -99,7 +99,7 @@ def test_rig_step(tmp_path, caplog):
     assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")
     ctx = SimpleNamespace(out=tmp_path, take=SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0), progress=None,
                           report_progress=lambda *a: None,
-                          steps=("rig",), warnings=[], timings={})
+                          steps=("rig",), warnings=[])
     # no tracked template and nothing to track: one line in the words of the job's steps, no CLI command
     with caplog.at_level(logging.WARNING), pytest.raises(ProcessError, match="run the surface step first") as exc:
         _step_rig(ctx)
