@@ -403,8 +403,8 @@ def _inside(point: np.ndarray, v: np.ndarray, normals: np.ndarray, tree: cKDTree
 
 
 def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, dict]:
-    """Articulations moved to their centre of rotation where it is determined, inside the boundary's
-    cross-section and inside the mesh; how every articulation was placed, and why."""
+    """Articulations moved to their centre of rotation where it is determined and inside the mesh, however far
+    from the boundary's centroid; how every articulation was placed, and why."""
     if motions is None:
         return {}, {}
     from pipeline.mesh_primitives import vertex_normals
@@ -429,8 +429,6 @@ def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, d
             info["reason"] = (f"bends {bend:.1f} degrees: its centre of rotation is ill-determined (uncertain by "
                               f"{info['uncertainty']:.2f} of the boundary's radius), the boundary's centroid on the "
                               "curve skeleton is kept")
-        elif np.linalg.norm(c - P[node]) > radius[(a, b)]:
-            info["reason"] = "the centre of rotation lies outside the cross-section where the two parts meet"
         elif not _inside(c, v, normals, tree):
             info["reason"] = "the centre of rotation lies outside the mesh"
         else:
