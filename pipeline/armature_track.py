@@ -14,11 +14,7 @@ first tracking), every frame is tracked with it:
    frame's pose, its constant-velocity prediction in joint angles, the rig's own fit of the frame
    from the tracking it was built on): a third of the rounds from each, within twice the gate,
    and the rest from the one whose skinned surface the frame's surface explains best
-   (:func:`surface_residual`), every part turned about its own axis as in the fit from the
-   previous frame's pose. A round limb turned about its axis leaves the surface as it was, so
-   the residual cannot choose its twist: the start that explains the surface best for its other
-   motions (often the armature's own fit of a first tracking) would bring along whatever twist it
-   has, and the twist is instead carried from frame to frame (:func:`_carry_twist`).
+   (:func:`surface_residual`).
 2. **The skinned pose as the start and as a regulariser** (:class:`ArmatureTracker`): the template
    tracking of :class:`pipeline.tracking.TemplateTracker` starts from the skinned pose and every
    vertex is drawn towards it with ``weight`` (in pairs, ``fit(anchor=)``), so within a rigid
@@ -148,53 +144,6 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
     return pose, surface_residual(model.deform(pose), X, gate=g, tree=tree)
 
 
-def _part_axes(model: ArticulatedModel) -> np.ndarray:
-    """(P, 3) unit rest axis of every part, from its joint to the centroid of the vertices it
-    drives most (zero for a part that drives none, and for the root)."""
-    if "axes" not in model._cache:
-        P = model.skeleton.n_parts
-        dom = model.vertex_parts[:, 0]
-        cnt = np.bincount(dom, minlength=P).astype(np.float64)
-        cen = np.stack([np.bincount(dom, weights=model.vertices[:, c], minlength=P) for c in range(3)], 1)
-        d = cen / np.maximum(cnt, 1.0)[:, None] - model.pivots
-        n = np.linalg.norm(d, axis=1)
-        ok = (cnt > 0) & (n > 0)
-        ok[0] = False
-        model._cache["axes"] = np.where(ok[:, None], d / np.where(ok, n, 1.0)[:, None], 0.0)
-    return model._cache["axes"]
-
-
-def _carry_twist(model: ArticulatedModel, pose: Pose, other: Pose) -> Pose:
-    """``pose`` with every part's twist about its own axis (:func:`_part_axes`) taken from ``other``.
-
-    Every part's rotation relative to ``other``'s, ``D = R_other^T R_pose`` (rest frame), is split
-    into a swing that moves the part's axis and a twist about it (``D = S T``, the twist's quaternion
-    the projection of ``D``'s onto the axis); the part's rotation becomes ``R_other S``: its axis
-    where ``pose`` puts it, turned about it as ``other`` is. The root (and a part without an axis)
-    keeps ``pose``'s rotation; the translations follow from the joints (:func:`pipeline.armature_fit._forward`).
-    """
-    from scipy.spatial.transform import Rotation
-
-    from pipeline.armature_fit import _forward
-
-    axes = _part_axes(model)
-    D = np.einsum("pji,pjk->pik", other.R, pose.R)  # pose = other D, D in the rest frame
-    q = Rotation.from_matrix(D).as_quat()  # (x, y, z, w)
-    v = np.einsum("pi,pi->p", q[:, :3], axes)[:, None] * axes
-    t = np.c_[v, q[:, 3]]
-    nrm = np.linalg.norm(t, axis=1, keepdims=True)
-    t = np.where(nrm > 1e-12, t / np.maximum(nrm, 1e-12), [0.0, 0.0, 0.0, 1.0])
-    swing = (Rotation.from_quat(q) * Rotation.from_quat(t).inv()).as_matrix()
-    R = np.einsum("pij,pjk->pik", other.R, swing)  # the axis where pose puts it, the twist about it other's
-    keep = ~np.any(axes != 0, axis=1)
-    R[keep] = pose.R[keep]
-    sk = model.skeleton
-    L = np.tile(np.eye(3), (sk.n_parts, 1, 1))
-    for p in range(1, sk.n_parts):
-        L[p] = R[sk.part_parent[p]].T @ R[p]
-    return _forward(model, R[0], pose.t[0], L)
-
-
 class ArmatureTracker:
     """Tracks a template frame by frame with a rig as the articulated prior.
 
@@ -258,15 +207,12 @@ class ArmatureTracker:
         tree = cKDTree(X)
         kw = dict(iterations=self.iterations, max_points=self.max_points, tree=tree)
         coarse = max(1, self.rounds // 3)  # every candidate's first rounds at twice the gate, then the best one on
-        best, first = None, None
+        best = None
         for c in cands:
             pose, res = fit_pose_to_surface(self.model, c, X, N, gate=2.0 * self.tracker.gate, rounds=coarse, **kw)
-            first = pose if first is None else first
             if best is None or res < best[1]:
                 best = (pose, res)
-        # the surface cannot see a round limb turn about its own axis: each part's twist is the previous pose's
-        start = best[0] if best[0] is first else _carry_twist(self.model, best[0], first)
-        pose, res = fit_pose_to_surface(self.model, start, X, N, gate=self.tracker.gate, rounds=self.rounds - coarse,
+        pose, res = fit_pose_to_surface(self.model, best[0], X, N, gate=self.tracker.gate, rounds=self.rounds - coarse,
                                         **kw)
         skinned = self.model.deform(pose)
         fit = self.tracker.fit(X, N, previous=previous, init=skinned, anchor=(skinned, self.weight))

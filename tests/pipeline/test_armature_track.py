@@ -210,28 +210,3 @@ def test_track_with_rig_invalid_input(tmp_path):
     with pytest.raises(SystemExit):  # argparse: "must be a count >= 0 or 'auto'"
         main(["-q", "track", str(res), "--armature-rounds", "-1"])
 
-
-def test_carry_twist_keeps_the_axis_and_takes_the_twist():
-    """A part turned about its own axis by 90 degrees on top of a swing: carried from the untwisted
-    pose, its axis stays where the swing put it and its twist is gone; a swing alone is unchanged."""
-    from scipy.spatial.transform import Rotation
-
-    from pipeline.armature_fit import _forward
-    from pipeline.armature_track import _carry_twist, _part_axes
-    from tests.pipeline.armature_chain import chain_model
-
-    m = chain_model(4, 6)
-    a = _part_axes(m)
-    np.testing.assert_allclose(a[1:], np.tile([1.0, 0.0, 0.0], (3, 1)), atol=1e-12)
-    swing = Rotation.from_rotvec([0.0, 0.0, 0.4]).as_matrix()
-    twist = Rotation.from_rotvec([np.pi / 2, 0.0, 0.0]).as_matrix()
-    local = np.tile(np.eye(3), (4, 1, 1))
-    local[2] = swing
-    plain = _forward(m, np.eye(3), np.zeros(3), local)
-    local[2] = swing @ twist
-    twisted = _forward(m, np.eye(3), np.zeros(3), local)
-    out = _carry_twist(m, twisted, m.identity())
-    np.testing.assert_allclose(out.R, plain.R, atol=1e-9)
-    np.testing.assert_allclose(m.deform(out), m.deform(plain), atol=1e-9)
-    same = _carry_twist(m, plain, m.identity())
-    np.testing.assert_allclose(same.R, plain.R, atol=1e-9)
