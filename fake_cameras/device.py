@@ -1,7 +1,8 @@
 """A simulated camera device behind the driver interface (``driver = "fake"``).
 
-Frames are rendered ahead (:func:`fake_cameras.take.simulate_take`, cached on
-disk and shared by every camera of the process) and replayed in real time:
+Frames are rendered ahead (:func:`fake_cameras.take.simulate_take`, or the board
+views of :func:`fake_cameras.boards.render_board_views` for a board subject; cached
+on disk and shared by every camera of the process) and replayed in real time:
 frame ``k`` is captured at ``epoch + k / fps`` on the host's monotonic clock and
 shows scene frame ``k mod F``. ``grab()`` sleeps until the next capture time.
 The cameras of one rig share the epoch, like a genlocked rig: it is set one
@@ -30,6 +31,8 @@ Like a real device each camera
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import threading
 import time
@@ -96,9 +99,16 @@ _SESSIONS: dict[int, _Session] = {}
 _SESSIONS_LOCK = threading.Lock()
 
 
+#: the arrays of fake_cameras.boards.BoardViews kept in the disk cache
+_BOARD_ARRAYS = ("images", "poses", "object_points", "corners_3d", "corners_2d", "visible")
+#: bump when the board views' rendering changes: invalidates cached views
+BOARD_RENDER_VERSION = 1
+
+
 def _board_source(kind: str, calibration, frames: int, seed: int, noise: float, volume):
     from calib.boards import Charuco, Chessboard
-    from fake_cameras.boards import board_poses, floor_pose, render_board_views
+    from fake_cameras.boards import BoardViews, board_poses, floor_pose, render_board_views
+    from fake_cameras.take import RENDER_VERSION, cached_render
 
     board = (
         Chessboard(corners=(9, 6), square_mm=50.0)
@@ -109,8 +119,22 @@ def _board_source(kind: str, calibration, frames: int, seed: int, noise: float, 
     # when calibrating with world_frame=0); the rest move through most of the volume, where
     # the subject will be (a calibration only holds where the board has been)
     waved = board_poses(board, calibration, max(frames - 1, 0), seed=seed, volume=volume, spread=0.9)
-    poses = np.concatenate([floor_pose()[None], waved])
-    return render_board_views(board, calibration, frames, seed=seed, noise_sigma=noise, volume=volume, poses=poses[:frames])
+    poses = np.concatenate([floor_pose()[None], waved])[:frames]
+    # rendered once per machine: the views' arrays are kept in the simulator's disk cache
+    # (fake_cameras.take.cache_dir) under every input of the rendering
+    key = json.dumps({
+        "kind": "board-views", "version": [RENDER_VERSION, BOARD_RENDER_VERSION], "board": board.to_dict(),
+        "calibration": calibration.to_dict(), "frames": int(frames), "seed": int(seed), "noise": float(noise),
+        "volume": [list(volume.center), list(volume.size)],
+        "poses": hashlib.sha1(np.round(poses, 6).tobytes()).hexdigest(),
+    }, sort_keys=True, default=float)
+
+    def render() -> dict:
+        bv = render_board_views(board, calibration, frames, seed=seed, noise_sigma=noise, volume=volume, poses=poses)
+        return {name: getattr(bv, name) for name in _BOARD_ARRAYS}
+
+    arrays = cached_render(key, render, names=_BOARD_ARRAYS)
+    return BoardViews(board=board, calibration=calibration, **arrays)
 
 
 def take_for_rig(rig: Rig, *, size: tuple[int, int], fps: float, depth: bool = False):

@@ -344,6 +344,8 @@ def _creature_poses(subject: str, times: np.ndarray, vol: Volume, *, scale, seed
 
 # -- the studio and the cache, shared by every kind of simulated take ------------------
 
+_ARRAYS = ("images", "masks", "labels", "depth", "plate")
+
 
 def check_fps(fps) -> float:
     """``fps`` as a float within (0, 1000] (ValueError naming ``fps`` otherwise)."""
@@ -445,16 +447,16 @@ def stage_backdrop(kind: str, *, calibration: Calibration, volume: Volume) -> Ba
     return Backdrop(**base, **lab, floor_color=(110.0, 115.0, 120.0), floor_texture=0.8)
 
 
-def cached_render(key_src: str, render, *, cache: bool = True) -> dict:
-    """The arrays of a take (``images``, ``masks``, ``labels``, ``depth``, ``plate``): read from the
-    on-disk cache under the digest of ``key_src`` (every parameter of the take), else ``render()``
-    and stored."""
+def cached_render(key_src: str, render, *, cache: bool = True, names: tuple[str, ...] = _ARRAYS) -> dict:
+    """The arrays of a take (``names``; by default ``images``, ``masks``, ``labels``, ``depth``,
+    ``plate``): read from the on-disk cache under the digest of ``key_src`` (every parameter of the
+    take), else ``render()`` and stored. ``depth`` may be None."""
     key = hashlib.sha1(key_src.encode()).hexdigest()[:20]
-    arrays = _load_cached(key) if cache else None
+    arrays = _load_cached(key, names) if cache else None
     if arrays is None:
         arrays = render()
         if cache:
-            _store_cached(key, arrays, key_src)
+            _store_cached(key, arrays, key_src, names)
     return arrays
 
 
@@ -491,9 +493,6 @@ def _render_all(calib: Calibration, poses: list, backdrop: Backdrop, seed: int, 
     return {"images": images, "masks": masks, "labels": labels, "depth": dep, "plate": plate}
 
 
-_ARRAYS = ("images", "masks", "labels", "depth", "plate")
-
-
 def _poses_digest(poses: list) -> str:
     """A digest of the posed capsules: the cache key follows the creature's shape and motion,
     not only its name (a changed creature is rendered anew)."""
@@ -510,13 +509,13 @@ def _poses_digest(poses: list) -> str:
     return h.hexdigest()
 
 
-def _load_cached(key: str) -> dict | None:
+def _load_cached(key: str, names: tuple[str, ...] = _ARRAYS) -> dict | None:
     d = cache_dir() / key
     if not (d / "done").is_file():
         return None
     try:
         out = {}
-        for name in _ARRAYS:
+        for name in names:
             p = d / f"{name}.npy"
             if name == "depth" and not p.is_file():
                 out[name] = None
@@ -535,13 +534,13 @@ def _load_cached(key: str) -> dict | None:
         return None
 
 
-def _store_cached(key: str, arrays: dict, key_src: str) -> None:
+def _store_cached(key: str, arrays: dict, key_src: str, names: tuple[str, ...] = _ARRAYS) -> None:
     root = cache_dir()
     final = root / key
     try:
         root.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=root))
-        for name in _ARRAYS:
+        for name in names:
             a = arrays[name]
             if a is None:
                 continue

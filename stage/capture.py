@@ -211,7 +211,8 @@ class _Capture:
 
     def __init__(self, rig: Rig, out: Path, drivers: dict[str, CameraDriver], *, frames: int | None,
                  duration_s: float | None, stop: threading.Event, stall_timeout_s: float, queue_seconds: float,
-                 progress: Callable[[CaptureProgress], None] | None, on_set: Callable[[int], None] | None) -> None:
+                 progress: Callable[[CaptureProgress], None] | None, on_set: Callable[[int], None] | None,
+                 sync_window: int = 30) -> None:
         self.rig, self.out, self.drivers = rig, out, drivers
         self.frames, self.duration_s, self.stall_timeout_s = frames, duration_s, stall_timeout_s
         self.progress, self.on_set, self.stop = progress, on_set, stop
@@ -219,7 +220,7 @@ class _Capture:
         period_ns = int(round(1e9 / rig.fps))
         # a late camera is waited for half a second (GIL or disk stalls), then marked missing
         self.grouper = StreamGrouper(self.ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns,
-                                     timeout_ns=max(4 * period_ns, 500_000_000))
+                                     timeout_ns=max(4 * period_ns, 500_000_000), window=sync_window)
         self.stored = SetStatsAccumulator(self.ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns)
         self.queue: queue.Queue = queue.Queue(maxsize=max(8, int(len(self.ids) * rig.fps * queue_seconds)))
         self.queue_drops = {c: 0 for c in self.ids}
@@ -467,6 +468,14 @@ class TakeRecorder(_Capture):
         As in :func:`capture_take`.
     disconnected : mapping of camera id -> str, optional
         Cameras already gone when recording starts: missing from the first set on.
+
+    Notes
+    -----
+    The grouper trusts the cameras' clock offsets after one second of frames (at least 8, at most
+    :func:`capture_take`'s 30; :class:`stage.sync.StreamGrouper`'s ``window``) and holds the first
+    sets until then. Someone watches a session's take as it is written (its figures, the board
+    session's guidance, the live 3-D preview): at a board take's few frames a second, 30 frames
+    would hold them back for several seconds. The offsets go on improving with every frame.
     """
 
     def __init__(self, rig: Rig, out: str | os.PathLike, *, granted: Mapping[str, Granted],
@@ -484,7 +493,7 @@ class TakeRecorder(_Capture):
             raise FileExistsError(f"{out}: take already exists")
         super().__init__(rig, out, {c.id: None for c in rig.cameras}, frames=frames, duration_s=duration_s,  # type: ignore[misc]
                          stop=threading.Event(), stall_timeout_s=stall_timeout_s, queue_seconds=queue_seconds,
-                         progress=None, on_set=on_set)
+                         progress=None, on_set=on_set, sync_window=max(8, min(30, round(rig.fps))))
         self.granted = dict(granted)
         self._compression, self._calibration = compression, calibration
         self._gone_at_start = dict(disconnected or {})

@@ -251,31 +251,37 @@
   }
 
   // ---- live 3-D: surface voxels of the coarse hull and the spine, turning slowly
-  const cv3 = $('live3d'); const ctx3 = cv3.getContext('2d'); let live = null;
+  const cv3 = $('live3d'); const ctx3 = cv3.getContext('2d'); let live = null; let idleText = null;
   function draw3d(){
-    const W = cv3.width, H = cv3.height; ctx3.fillStyle = '#102027'; ctx3.fillRect(0, 0, W, H);
-    if (live && live.state === 'ok'){
-      // framed on the hull (at least a quarter of the capture volume across)
-      const [vlo, vhi] = live.bounds; const P = live.points.length ? live.points : [vlo, vhi];
-      const lo = [0, 1, 2].map((i) => Math.min(...P.map((p) => p[i]))), hi = [0, 1, 2].map((i) => Math.max(...P.map((p) => p[i])));
-      const c = [0, 1, 2].map((i) => (lo[i] + hi[i]) / 2);
-      const ext = Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], 0.25 * Math.max(vhi[0] - vlo[0], vhi[1] - vlo[1], vhi[2] - vlo[2])) * 1.3;
-      const a = performance.now() / 4000, ca = Math.cos(a), sa = Math.sin(a), el = 0.45, ce = Math.cos(el), se = Math.sin(el);
-      const s = 0.8 * Math.min(W, H) / ext;
-      const proj = (p) => { const x = p[0] - c[0], y = p[1] - c[1], z = p[2] - c[2];
-        const u = ca * x - sa * y, v = sa * x + ca * y; return [W / 2 + s * u, H / 2 - s * (ce * z - se * v), ce * v + se * z]; };
-      const pts = live.points.map(proj).sort((p, q) => q[2] - p[2]);
-      const r = Math.max(1.5, s * live.voxel * 0.6);
-      for (const p of pts){ const k = Math.round(120 + 100 * Math.max(-1, Math.min(1, -p[2] / ext * 2)));
-        ctx3.fillStyle = 'rgb(' + k + ',' + Math.round(k * 0.8) + ',90)'; ctx3.fillRect(p[0] - r / 2, p[1] - r / 2, r, r); }
-      ctx3.strokeStyle = '#4fc3f7'; ctx3.lineWidth = 3; ctx3.beginPath();
-      for (const [p, q] of live.segments){ const P = proj(p), Q = proj(q); ctx3.moveTo(P[0], P[1]); ctx3.lineTo(Q[0], Q[1]); }
-      ctx3.stroke();
-      window.__stage.live3dDraws++;
-    } else {
-      ctx3.fillStyle = '#cfd8dc'; ctx3.font = '14px sans-serif';
-      ctx3.fillText(live ? (live.message || live.state) : 'waiting for the first frame set', 16, 28);
+    const W = cv3.width, H = cv3.height;
+    if (!(live && live.state === 'ok')){
+      // nothing turns: the message is drawn when it changes, not on every animation frame
+      const text = live ? (live.message || live.state) : 'waiting for the first frame set';
+      if (text !== idleText){
+        idleText = text; ctx3.fillStyle = '#102027'; ctx3.fillRect(0, 0, W, H);
+        ctx3.fillStyle = '#cfd8dc'; ctx3.font = '14px sans-serif'; ctx3.fillText(text, 16, 28);
+      }
+      setTimeout(() => requestAnimationFrame(draw3d), 250);
+      return;
     }
+    idleText = null; ctx3.fillStyle = '#102027'; ctx3.fillRect(0, 0, W, H);
+    // framed on the hull (at least a quarter of the capture volume across)
+    const [vlo, vhi] = live.bounds; const P = live.points.length ? live.points : [vlo, vhi];
+    const lo = [0, 1, 2].map((i) => Math.min(...P.map((p) => p[i]))), hi = [0, 1, 2].map((i) => Math.max(...P.map((p) => p[i])));
+    const c = [0, 1, 2].map((i) => (lo[i] + hi[i]) / 2);
+    const ext = Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], 0.25 * Math.max(vhi[0] - vlo[0], vhi[1] - vlo[1], vhi[2] - vlo[2])) * 1.3;
+    const a = performance.now() / 4000, ca = Math.cos(a), sa = Math.sin(a), el = 0.45, ce = Math.cos(el), se = Math.sin(el);
+    const s = 0.8 * Math.min(W, H) / ext;
+    const proj = (p) => { const x = p[0] - c[0], y = p[1] - c[1], z = p[2] - c[2];
+      const u = ca * x - sa * y, v = sa * x + ca * y; return [W / 2 + s * u, H / 2 - s * (ce * z - se * v), ce * v + se * z]; };
+    const pts = live.points.map(proj).sort((p, q) => q[2] - p[2]);
+    const r = Math.max(1.5, s * live.voxel * 0.6);
+    for (const p of pts){ const k = Math.round(120 + 100 * Math.max(-1, Math.min(1, -p[2] / ext * 2)));
+      ctx3.fillStyle = 'rgb(' + k + ',' + Math.round(k * 0.8) + ',90)'; ctx3.fillRect(p[0] - r / 2, p[1] - r / 2, r, r); }
+    ctx3.strokeStyle = '#4fc3f7'; ctx3.lineWidth = 3; ctx3.beginPath();
+    for (const [p, q] of live.segments){ const P = proj(p), Q = proj(q); ctx3.moveTo(P[0], P[1]); ctx3.lineTo(Q[0], Q[1]); }
+    ctx3.stroke();
+    window.__stage.live3dDraws++;
     requestAnimationFrame(draw3d);
   }
   let seen3d = [];

@@ -289,3 +289,35 @@ def test_simulated_take_select_invalid_input(take):
     with pytest.raises(ValueError, match="frames"):
         take.select([[0]])
     assert take.select([2, 0]).images.shape[0] == 2
+
+
+
+def test_board_views_are_rendered_once_and_read_back_from_the_disk_cache(tmp_path, monkeypatch):
+    """A board rig's views (``subject = "board-charuco"``) go to the simulator's disk cache: a second
+    process (the in-process memo cleared) reads back every array of the views as rendered; another
+    noise level is rendered anew."""
+    monkeypatch.setenv("CAPTURE_STAGE_CACHE", str(tmp_path))
+    import fake_cameras.boards as boards
+    from fake_cameras import device
+
+    renders = []
+    render = boards.render_board_views
+    monkeypatch.setattr(boards, "render_board_views", lambda *a, **k: renders.append(1) or render(*a, **k))
+    table = {"subject": "board-charuco", "n_cameras": 4, "frames": 2, "noise": 1.0}
+    cams = [{"id": f"cam{i}", "driver": "fake", "index": i, "width": 96, "height": 72} for i in range(4)]
+
+    def views(**sim):
+        monkeypatch.setattr(device, "_TAKES", {})  # a new process
+        rig = parse_rig({"fps": 4, "simulation": {**table, **sim}, "cameras": cams})
+        return device.take_for_rig(rig, size=(96, 72), fps=4.0)
+
+    first = views()
+    assert isinstance(first, boards.BoardViews) and first.images.shape == (2, 4, 72, 96, 3) and len(renders) == 1
+    again = views()
+    assert again is not first and again.board == first.board and len(renders) == 1
+    for name in ("images", "poses", "object_points", "corners_3d", "corners_2d", "visible"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(first, name), err_msg=name)
+    assert again.calibration.to_dict() == first.calibration.to_dict()
+    quiet = views(noise=0.0)
+    assert len(renders) == 2 and not np.array_equal(quiet.images, first.images)
+    assert len(list((tmp_path / "sim").iterdir())) == 2
