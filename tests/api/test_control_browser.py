@@ -212,14 +212,14 @@ def test_board_session_to_calibration_report(tmp_path):
     12 cameras: corners drawn on the tiles, the meters fill to "enough views", then the calibration job's
     report (every warning, the held-out errors) is on the page.
 
-    320x240 at 8 fps (each of the 36 simulated views held 125 ms) round a 400 mm volume: the dome's
+    320x240 at 6 fps (each of the 36 simulated views held 167 ms) round a 400 mm volume: the dome's
     cameras stand about 0.8 m from its centre, close enough for the board's markers to be found at
     320x240 (round the default 750 mm volume they need 640x480, four times the pixels to render,
     record and detect)."""
     sync_playwright = sync_playwright_or_skip()
     pytest.importorskip("fake_cameras.device")
     art = artifacts_dir(tmp_path, "control")
-    rig = rig_toml(12, subject="board-charuco", size=(320, 240), fps=8, frames=36, volume_mm=400.0)
+    rig = rig_toml(12, subject="board-charuco", size=(320, 240), fps=6, frames=36, volume_mm=400.0)
     t0 = time.monotonic()
     steps = {}
     with StageServer(tmp_path, rig, board=BOARD, extra=("--no-live3d", "--preview-fps", "1")) as srv, sync_playwright() as p:
