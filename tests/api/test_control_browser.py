@@ -222,6 +222,8 @@ def test_board_session_to_calibration_report(tmp_path):
     rig = rig_toml(12, subject="board-charuco", size=(320, 240), fps=6, frames=36, volume_mm=400.0)
     t0 = time.monotonic()
     steps = {}
+    # one preview a second per camera: this test reads the meters and the report (the twelve-camera
+    # test watches the previews), and Chromium decoding 12 previews at 5/s doubled the test's CPU
     with StageServer(tmp_path, rig, board=BOARD, extra=("--no-live3d", "--preview-fps", "1")) as srv, sync_playwright() as p:
         steps["server up (renders the board views)"] = time.monotonic() - t0
         browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
