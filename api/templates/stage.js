@@ -7,7 +7,10 @@
   const tokenBox = $('token');
   tokenBox.value = sessionStorage.getItem('stage-token') || '';
   tokenBox.addEventListener('change', () => sessionStorage.setItem('stage-token', tokenBox.value.trim()));
-  window.__stage = {parts: {}, live3dDraws: 0, lastLive3d: null};
+  window.__stage = {parts: {}, shown: {}, live3dDraws: 0, lastLive3d: null};
+  for (const [cid, t] of Object.entries(tiles)){  // previews decoded and shown, per camera
+    t.querySelector('img').addEventListener('load', () => { window.__stage.shown[cid] = (window.__stage.shown[cid] || 0) + 1; });
+  }
 
   async function api(method, url, body){
     const h = {'Accept': 'application/json'};

@@ -121,7 +121,9 @@ def test_control_room_with_twelve_cameras(tmp_path):
             assert page.locator(".tile").count() == 12
             # every tile shows its camera, and the pictures change (the simulated starfish moves)
             page.wait_for_function("() => CAMERAS.every((c) => (window.__stage.parts[c] || 0) >= 3)", timeout=30_000)
-            assert page.evaluate("() => Array.from(document.querySelectorAll('.tile img')).every((i) => i.naturalWidth > 0)")
+            # every tile has shown a decoded preview (at one moment, a tile whose next preview is
+            # still decoding has no picture: naturalWidth 0)
+            page.wait_for_function("() => CAMERAS.every((c) => (window.__stage.shown[c] || 0) >= 1)", timeout=10_000)
             tile = page.locator('.tile[data-cam="cam03"] img')
             import cv2
 
