@@ -393,6 +393,10 @@ def _articulation_pairs(v, f, lab, min_edges, motion, reference) -> tuple[list, 
 #: hinge, i.e. residual / bend) exceeds this fraction of the mean radius of the boundary where the two
 #: parts meet -- the centre could then be anywhere in that cross-section
 PIVOT_UNCERTAINTY = 1.0
+#: ... and it keeps it too when the centre lies beyond the cross-section where the two parts meet (farther from
+#: the boundary's centroid than the boundary's mean radius) and its uncertainty exceeds this fraction of that
+#: radius: a centre far from where the parts meet is taken only when the motion determines it well
+PIVOT_FAR_UNCERTAINTY = 0.1
 
 
 def _inside(point: np.ndarray, v: np.ndarray, normals: np.ndarray, tree: cKDTree, k: int = 8) -> bool:
@@ -403,8 +407,9 @@ def _inside(point: np.ndarray, v: np.ndarray, normals: np.ndarray, tree: cKDTree
 
 
 def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, dict]:
-    """Articulations moved to their centre of rotation where it is determined and inside the mesh, however far
-    from the boundary's centroid; how every articulation was placed, and why."""
+    """Articulations moved to their centre of rotation where it is determined (:data:`PIVOT_UNCERTAINTY`; beyond
+    the cross-section where the two parts meet, :data:`PIVOT_FAR_UNCERTAINTY`) and inside the mesh; how every
+    articulation was placed, and why."""
     if motions is None:
         return {}, {}
     from pipeline.mesh_primitives import vertex_normals
@@ -429,6 +434,10 @@ def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, d
             info["reason"] = (f"bends {bend:.1f} degrees: its centre of rotation is ill-determined (uncertain by "
                               f"{info['uncertainty']:.2f} of the boundary's radius), the boundary's centroid on the "
                               "curve skeleton is kept")
+        elif np.linalg.norm(c - P[node]) > radius[(a, b)] and sigma > PIVOT_FAR_UNCERTAINTY * radius[(a, b)]:
+            info["reason"] = (f"the centre of rotation lies outside the cross-section where the two parts meet and is "
+                              f"not determined well enough to move that far (uncertain by {info['uncertainty']:.2f} of "
+                              f"the boundary's radius, more than {PIVOT_FAR_UNCERTAINTY:g})")
         elif not _inside(c, v, normals, tree):
             info["reason"] = "the centre of rotation lies outside the mesh"
         else:
