@@ -28,7 +28,7 @@ from stage.rig import Rig
 from stage.store import CameraSpec, TakeWriter
 from stage.sync import SetStatsAccumulator, StreamGrouper, SyncStats
 
-__all__ = ["CaptureProgress", "CaptureResult", "TakeRecorder", "capture_take"]
+__all__ = ["CaptureProgress", "CaptureResult", "TakeRecorder", "capture_take", "live_sync_window"]
 
 log = logging.getLogger(__name__)
 
@@ -446,6 +446,13 @@ def _close_quietly(cid: str, driver: CameraDriver) -> None:
         log.warning("camera %s: error while closing: %s", cid, exc)
 
 
+def live_sync_window(fps: float) -> int:
+    """Frames of each camera a grouper watched live holds before trusting its clock offset
+    (:class:`stage.sync.StreamGrouper`'s ``window``): one second of frames, at least 8, at most
+    :func:`capture_take`'s 30 (see :class:`TakeRecorder`)."""
+    return max(8, min(30, round(float(fps))))
+
+
 class TakeRecorder(_Capture):
     """A take recorded from cameras that are already running (a stage session's).
 
@@ -493,7 +500,7 @@ class TakeRecorder(_Capture):
             raise FileExistsError(f"{out}: take already exists")
         super().__init__(rig, out, {c.id: None for c in rig.cameras}, frames=frames, duration_s=duration_s,  # type: ignore[misc]
                          stop=threading.Event(), stall_timeout_s=stall_timeout_s, queue_seconds=queue_seconds,
-                         progress=None, on_set=on_set, sync_window=max(8, min(30, round(rig.fps))))
+                         progress=None, on_set=on_set, sync_window=live_sync_window(rig.fps))
         self.granted = dict(granted)
         self._compression, self._calibration = compression, calibration
         self._gone_at_start = dict(disconnected or {})

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from stage.capture import CaptureResult, TakeRecorder
+from stage.capture import CaptureResult, TakeRecorder, live_sync_window
 from stage.drivers.base import CameraDriver, CameraError, Granted
 from stage.frame import Frame
 from stage.rig import Rig
@@ -134,8 +134,9 @@ class StageSession:
         period_ns = int(round(1e9 / rig.fps))
         self._period_ns = period_ns
         self._live_q: queue.Queue = queue.Queue(maxsize=max(64, 4 * len(self.ids)))
+        # figures from the first second on, also at a board session's few frames a second
         self._grouper = StreamGrouper(self.ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns,
-                                      timeout_ns=max(4 * period_ns, 500_000_000))
+                                      timeout_ns=max(4 * period_ns, 500_000_000), window=live_sync_window(rig.fps))
         self._spreads: collections.deque = collections.deque(maxlen=30)
         self._latest_set: FrameSet | None = None
         self._sets = 0

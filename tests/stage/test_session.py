@@ -188,3 +188,25 @@ def test_invalid_input(tmp_path):
     (tmp_path / "y.h5").write_bytes(b"")
     with pytest.raises(FileExistsError):
         TakeRecorder(rig_for(ids), tmp_path / "y.h5", granted=g)
+
+
+def test_a_session_take_groups_after_one_second_of_frames(tmp_path):
+    """At a board take's few frames a second a session take's grouper trusts the clock offsets after
+    one second of frames (at least 8), not capture_take's 30 frames: its first set is decided by the
+    eighth frame of every camera at 4 fps, and 30 frames stay the window at 30 fps and above."""
+    from stage.capture import live_sync_window
+    from stage.frame import Frame
+
+    assert [live_sync_window(f) for f in (1.0, 4.0, 15.0, 30.0, 120.0)] == [8, 8, 15, 30, 30]
+    ids = ["a", "b"]
+    rec = TakeRecorder(rig_for(ids, fps=4.0), tmp_path / "t.h5", granted={c: Granted(W, H, 4.0) for c in ids},
+                       frames=10)
+    period = 250_000_000
+    decided = []
+    for k in range(8):
+        for i, c in enumerate(ids):
+            t = 10**12 + k * period
+            f = Frame(image=pattern(i, k), camera_id=c, index=k, timestamp_ns=t + 7_000_000 * i, host_timestamp_ns=t + 2_000_000)
+            decided += rec.grouper.push(f, now_ns=f.host_timestamp_ns)
+        assert bool(decided) == (k == 7), (k, len(decided))  # sets once every camera has 8 frames
+    assert [sorted(fs.frames) for fs in decided] == [ids] * len(decided) and decided[0].frames["a"].index == 0
