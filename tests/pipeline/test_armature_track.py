@@ -131,8 +131,9 @@ def fast_take(tmp_path_factory):
 
 @pytest.mark.slow
 def test_fast_take_tracked_with_its_rig(fast_take):
-    """``stage track --armature-rounds 1`` on the fast take: the rig built from the default tracking, every
-    frame tracked again with it; every frame within 2 voxels (mean) and 4 (95th percentile)."""
+    """``stage track --armature-rounds auto`` on the fast take: the armature built from the default
+    tracking, every frame tracked again with it, built again from that tracking while it explains the
+    surfaces better; every frame within 2 voxels (mean) and 4 (95th percentile)."""
     from fake_cameras.surface_motion import surface_point_tracks, tracking_errors
     from pipeline.meshio import load_mesh
     from pipeline.track import track_with_armature
@@ -144,11 +145,11 @@ def test_fast_take_tracked_with_its_rig(fast_take):
     truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
     steps = np.linalg.norm(np.diff(truth, axis=0), axis=2) / voxel
     assert np.percentile(steps, 95) >= 3.0  # the take is fast: measured 4.46 voxels (mean 1.73, at most 8.4)
-    rep = track_with_armature(res, rounds=1)
-    assert rep["rig_rounds"] == 1 and rep["rig_prior"]["rounds"][0]["segments"] > 1
+    rep = track_with_armature(res, rounds="auto")
+    assert rep["rig_rounds"] >= 1 and rep["rig_prior"]["rounds"][0]["segments"] > 1
     err, vols, _ = tracking_errors(sim.creature, sim.times, res)
-    # measured: every frame 0.76..1.54 mean, 1.80..2.96 at the 95th percentile (the default tracking:
-    # 0.76..1.84 and 1.80..5.36)
+    # measured: every frame 0.76..1.51 mean, 1.80..3.04 at the 95th percentile (frame 0's 3.61 after two
+    # rounds, 4.26 after one; the default tracking: 0.76..1.85 and 1.80..5.38)
     assert err.mean(axis=1).max() <= 2.0, err.mean(axis=1)
     assert np.percentile(err, 95, axis=1).max() <= 4.0, np.percentile(err, 95, axis=1)
     assert np.all(np.abs(vols - 1) <= 0.1), vols
