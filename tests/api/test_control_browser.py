@@ -234,9 +234,12 @@ def test_board_session_to_calibration_report(tmp_path):
             page = browser.new_page(viewport={"width": 1300, "height": 1000})
             page.on("pageerror", lambda e: errors.append(str(e)))
             _login(page, srv.url)
-            page.fill("#min-views", "6")  # every held-out fold (3) then calibrates each camera on 4 or more
+            page.fill("#min-views", "6")
             page.fill("#min-shared", "2")
-            page.fill("#holdout", "3")
+            # the page's 5 held-out folds: a fold fails when it leaves a camera fewer than 4 usable views,
+            # and a camera with 5 or more fails 2 folds at most; with 3 folds two weak cameras could
+            # fail all of them (no held-out errors), as one of 10 runs here failed one fold
+            page.fill("#holdout", "5")
             page.click("#board-start")
             page.wait_for_function("() => document.getElementById('board-msg').dataset.enough === 'true'", timeout=60_000)
             steps["enough views"] = time.monotonic() - t0
