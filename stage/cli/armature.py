@@ -40,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fps", type=float, help="frame rate (default: the spine's, else 30)")
     p.add_argument("--lambda-thr", type=float, default=0.7, metavar="T",
                    help="eigenvalue threshold: 0.7 (default) for pronounced motion of reasonably sized parts, "
-                   "0.98 for small parts with small motion (over-segments)")
+                   "0.98 for small parts with small motion (over-segments); for RESULTS_DIR, 0.98 is used (and "
+                   "said) when the eigenvalues cross the threshold without a gap")
     p.add_argument("--samples", type=int, default=1000, metavar="N", help="sampled vertices for the segmentation (default 1000)")
     p.add_argument("--reference", type=int, metavar="POS",
                    help="position (0-based) of the rest frame (default: the frame showing the most limb tips)")
