@@ -45,7 +45,12 @@ the job's carving, without what the cameras do not agree is the subject:
   floor, missed in one view, otherwise cut the legs off the body for every camera, and a hole in
   one view's torso tunnels through the hull. The price: a real gap narrower than the closing that
   only one camera sees through (two limbs close together) is bridged too, so ``stage process``
-  uses the keyer's own closing radius, the gaps it could not decide by colour.
+  uses the keyer's own closing radius, the gaps it could not decide by colour. A piece the hull
+  still holds apart from the largest (legs cut off at the shorts) is then joined to it across
+  gaps twice as wide, by the voxels of the same kind on the shortest paths between the two only
+  (within two steps of the shortest, :func:`_geodesic`): no webbing elsewhere. This runs before
+  the silhouette parts the largest piece does not explain are dropped, so a joined piece's
+  parts stay.
 * **specks**: a piece other than the largest is kept only when, in at least two cameras, its
   image alone (outside the largest piece's) covers silhouette pixels, at least a fifth of the
   silhouette it covers there (the rule of :mod:`pipeline.subject_box`): a few voxels beside the
@@ -438,6 +443,88 @@ def _bridged(occ: np.ndarray, masks: list, carver: HullCarver, kw: dict,
     return occ | added, out, added
 
 
+def _geodesic(seed: np.ndarray, allowed: np.ndarray, steps: int) -> np.ndarray:
+    """Steps (26-neighbour moves through ``allowed``) from ``seed`` to every voxel of ``allowed``
+    within ``steps`` (inf beyond; 0 on the seed): a breadth-first search on the graph of the
+    allowed voxels (``scipy.sparse.csgraph``), which are few beside the box."""
+    from scipy import ndimage
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    dist = np.full(seed.shape, np.inf)
+    dist[seed] = 0
+    flat = np.flatnonzero(allowed & ~seed)
+    if flat.size == 0:
+        return dist
+    n = flat.size
+    lut = np.full(seed.size, -1, np.int64)
+    lut[flat] = np.arange(n)
+    at = np.stack(np.unravel_index(flat, seed.shape), axis=1)
+    rows, cols = [], []
+    for off in np.argwhere(np.ones((3, 3, 3), bool)) - 1:
+        if not off.any():
+            continue
+        nb = at + off
+        ok = np.all((nb >= 0) & (nb < seed.shape), axis=1)
+        k = lut[np.ravel_multi_index(tuple(nb[ok].T), seed.shape)]
+        rows.append(np.flatnonzero(ok)[k >= 0])
+        cols.append(k[k >= 0])
+    first = np.flatnonzero(ndimage.binary_dilation(seed, np.ones((3, 3, 3), bool)).ravel()[flat])
+    rows += [np.full(first.size, n)]
+    cols += [first]
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = csr_matrix((np.ones(r.size), (r, c)), shape=(n + 1, n + 1))
+    d = shortest_path(graph, unweighted=True, indices=n)[:n]
+    d[d > steps] = np.inf
+    dist.ravel()[flat] = d
+    return dist
+
+
+def _joined(occ: np.ndarray, masks: list, carver: HullCarver, kw: dict,
+            relative: float) -> tuple[np.ndarray, list, int]:
+    """Every other piece joined to the largest by the voxels one camera alone carves inside gaps of
+    its silhouette ``relative`` wide, only those on the shortest paths through them between the two
+    (within 2 steps of the shortest); the silhouettes keyed again there; the voxels added."""
+    from scipy import ndimage
+
+    lab, n = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
+    if n <= 1:
+        return occ, masks, 0
+    closed = [None if m is None else _closed(m, relative) for m in masks]
+    extra = carver.carve(masks, **{**kw, "tolerance": kw["tolerance"] + 1}).occupancy & ~occ
+    extra &= carver.carve(closed, **kw).occupancy
+    if not extra.any():
+        return occ, masks, 0
+    idx = np.argwhere(occ)
+    lo, hi = np.maximum(idx.min(0) - 2, 0), np.minimum(idx.max(0) + 3, occ.shape)
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    sub, ex = lab[box], extra[box]
+    size = np.bincount(sub.ravel())
+    size[0] = 0
+    largest = int(np.argmax(size))
+    reach, _ = ndimage.label((sub > 0) | ex, structure=np.ones((3, 3, 3), bool))
+    home = reach[sub == largest][0]
+    joining = [j for j in range(1, n + 1) if j != largest and reach[sub == j][0] == home]
+    if not joining:
+        return occ, masks, 0
+    # a path through the bridging voxels at most twice the straight gap (and 4 steps) long
+    to_main = ndimage.distance_transform_edt(sub != largest)
+    steps = {j: int(2 * to_main[sub == j].min()) + 4 for j in joining}
+    from_main = _geodesic(sub == largest, ex, max(steps.values()))
+    add = np.zeros_like(ex)
+    for j in joining:
+        total = from_main + _geodesic(sub == j, ex, steps[j])
+        if np.isfinite(total).any():
+            add |= ex & (total <= total[ex].min() + 2)
+    if not add.any():
+        return occ, masks, 0
+    added = np.zeros_like(occ)
+    added[box] = add
+    proj, _ = hull_projection(added, carver.grid, carver.calibration)
+    out = [None if m is None else m | (q & c) for m, q, c in zip(masks, proj, closed)]
+    return occ | added, out, int(np.count_nonzero(add))
+
+
 def _without_specks(occ: np.ndarray, masks: list, grid: Grid, calibration: Calibration) -> tuple[np.ndarray, int]:
     """The occupancy without the pieces (other than the largest) whose image alone explains
     silhouette pixels in fewer than two cameras, and how many were left out."""
@@ -521,30 +608,50 @@ def subject_hull(
     grid, cal = carver.grid, carver.calibration
     hull = carver.carve(masks, **kw).occupancy
     out: list[np.ndarray | None] = [None if m is None else np.asarray(m, bool) for m in masks]
-    occ, main, dropped_pieces, views = _kept_pieces(hull, grid, cal, view_slack)
-    share = np.array([np.nan if m is None else 0.0 for m in out])
-    parts = [0 if m is None else cv2.connectedComponents(m.view(np.uint8), connectivity=8)[0] - 1 for m in out]
-    if max(parts, default=0) > 1:
-        # the largest piece's image: its boundary voxels (the inside projects within it) as discs
-        from scipy import ndimage
-
-        shell = main & ~ndimage.binary_erosion(main)
-        proj, _ = hull_projection(shell, grid, cal)
-        for i, m in enumerate(out):
-            if m is None or parts[i] <= 1:
-                continue
-            kept = _explained_parts(m, proj[i])
-            total = int(np.count_nonzero(m))
-            share[i] = 0.0 if total == 0 else 1.0 - np.count_nonzero(kept) / total
-            out[i] = kept
-        if np.nansum(share) > 0:
-            hull = carver.carve(out, **kw).occupancy
     bridged = 0
     if bridge_gaps > 0 and sum(m is not None for m in out) >= int(tolerance) + 3:
-        hull, out, added = _bridged(hull, out, carver, kw, float(bridge_gaps))
-        bridged = int(np.count_nonzero(added))
-    if bridged or np.nansum(share) > 0:
-        occ, main, dropped_pieces, views = _kept_pieces(hull, grid, cal, view_slack)
+        hull, out, bridged = _bridge(hull, out, carver, kw, float(bridge_gaps), view_slack)
+    occ, main, dropped_pieces, views = _kept_pieces(hull, grid, cal, view_slack)
+    out, share = _drop_unexplained(out, main, grid, cal)
+    if np.nansum(share) > 0:
+        occ, main, dropped_pieces, views = _kept_pieces(carver.carve(out, **kw).occupancy, grid, cal, view_slack)
     occ, specks = _without_specks(occ, out, grid, cal) if np.count_nonzero(occ) > np.count_nonzero(main) else (occ, 0)
     return SubjectHull(occupancy=occ, masks=out, dropped=share, pieces_dropped=dropped_pieces + specks, views=views,
                        bridged=bridged)
+
+
+def _bridge(hull: np.ndarray, masks: list, carver: HullCarver, kw: dict, relative: float,
+            view_slack: int) -> tuple[np.ndarray, list, int]:
+    """One camera's miss bridged inside the keyer's gaps (:func:`_bridged`), then the kept pieces
+    joined to the largest across gaps twice as wide (:func:`_joined`): the hull, the silhouettes
+    keyed again, the voxels added."""
+    hull, masks, added = _bridged(hull, masks, carver, kw, relative)
+    bridged = int(np.count_nonzero(added))
+    occ, main, _, _ = _kept_pieces(hull, carver.grid, carver.calibration, view_slack)
+    if np.count_nonzero(occ) > np.count_nonzero(main):
+        occ, masks, joined = _joined(occ, masks, carver, kw, 2 * relative)
+        hull = hull | occ
+        bridged += joined
+    return hull, masks, bridged
+
+
+def _drop_unexplained(masks: list, main: np.ndarray, grid: Grid, calibration: Calibration) -> tuple[list, np.ndarray]:
+    """The silhouettes without the parts the largest piece does not project onto (a silhouette of
+    one part stays whole), and the share of each dropped (NaN without a mask)."""
+    out = list(masks)
+    share = np.array([np.nan if m is None else 0.0 for m in out])
+    parts = [0 if m is None else cv2.connectedComponents(m.view(np.uint8), connectivity=8)[0] - 1 for m in out]
+    if max(parts, default=0) <= 1:
+        return out, share
+    # the largest piece's image: its boundary voxels (the inside projects within it) as discs
+    from scipy import ndimage
+
+    proj, _ = hull_projection(main & ~ndimage.binary_erosion(main), grid, calibration)
+    for i, m in enumerate(out):
+        if m is None or parts[i] <= 1:
+            continue
+        kept = _explained_parts(m, proj[i])
+        total = int(np.count_nonzero(m))
+        share[i] = 0.0 if total == 0 else 1.0 - np.count_nonzero(kept) / total
+        out[i] = kept
+    return out, share

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy import ndimage
 
 from pipeline.consistency import mesh_silhouette
 from pipeline.hull import HullCarver
@@ -55,8 +56,8 @@ def test_one_cameras_miss_inside_a_gap_is_bridged():
     black floor): carved as it is, the hull loses what the band's rays cross for every camera;
     with ``bridge_gaps`` the voxels only camera 1 carves inside its silhouette's gap come back
     (the hull within 1 % of the clean one's voxels) and camera 1's silhouette is keyed again
-    there, inside its true silhouette only. Clean silhouettes bridge nothing, and a band wider
-    than the gaps bridged (8 pixels) is left carved."""
+    there, inside its true silhouette only. A band of 4 pixels that cuts the hull in two is
+    joined across; clean silhouettes bridge nothing, and a band of 8 pixels is left carved."""
     cal, masks, carver = _scene()
     clean = carver.carve(masks, margin=0).occupancy
     sh = subject_hull(masks, carver, margin=0, bridge_gaps=BRIDGE_GAPS)
@@ -74,6 +75,15 @@ def test_one_cameras_miss_inside_a_gap_is_bridged():
     assert np.count_nonzero(sh.masks[1] & gap) > 0.75 * gap.sum()
     assert not (sh.masks[1] & ~masks[1]).any()
     assert all(np.array_equal(a, b) for i, (a, b) in enumerate(zip(sh.masks, masks)) if i != 1)
+    # a band of 4 cuts the hull in two: the lower piece is joined across (gaps twice as wide,
+    # on the shortest paths only) instead of being left out with camera 1's lower silhouette part
+    split = [m.copy() for m in masks]
+    split[1][mid - 2:mid + 2] = False
+    assert ndimage.label(carver.carve(split).occupancy, structure=np.ones((3, 3, 3)))[1] == 2
+    sh = subject_hull(split, carver, margin=0, bridge_gaps=BRIDGE_GAPS)
+    assert sh.bridged > 0 and np.count_nonzero(sh.occupancy ^ clean) < 0.03 * clean.sum()
+    assert ndimage.label(sh.occupancy, structure=np.ones((3, 3, 3)))[1] == 1
+    assert not (sh.masks[1] & ~masks[1]).any()
     wide = [m.copy() for m in masks]
     wide[1][mid - 4:mid + 4] = False
     assert subject_hull(wide, carver, margin=0, bridge_gaps=BRIDGE_GAPS).bridged == 0
