@@ -81,8 +81,9 @@ def test_pose2sim_demo_keys_with_a_plate_from_the_take_and_the_cones_meet(tmp_pa
     assert np.all(sb.bounds[0] <= person[0]) and np.all(person[1] <= sb.bounds[1]), sb.bounds
     assert np.all(sb.bounds[1] - sb.bounds[0] <= 0.5 * (shared[1] - shared[0])), (sb.bounds, shared)
     # the surface step's hull on a grid of 64 voxels over the box: the largest piece is the person
-    # in every sampled set and holds at least 95 % of the hull's voxels in most (measured: median
-    # 0.999, least 0.72 of 10 sets); silhouette parts the person does not explain are dropped
+    # in every sampled set and holds at least 90 % of the hull's voxels in each (measured: 1.0 in 8 of
+    # 10 sets, least 0.943; 0.72 before the cut-off pieces were joined); silhouette parts the person
+    # does not explain are dropped
     grid = grid_from_volume(sb.bounds, 64)
     carver = HullCarver(calib, grid)
     shares = []
@@ -95,4 +96,4 @@ def test_pose2sim_demo_keys_with_a_plate_from_the_take_and_the_cones_meet(tmp_pa
         centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
         assert np.all(centre >= person[0] - 300) and np.all(centre <= person[1] + 300), (f, centre)
         shares.append(count.max() / count.sum())
-    assert np.median(shares) >= 0.95 and min(shares) >= 0.5, np.round(shares, 3)
+    assert np.median(shares) >= 0.95 and min(shares) >= 0.9, np.round(shares, 3)
