@@ -5,7 +5,8 @@ a given mesh), the data every frame's surface ``meshes/frame_NNNNNN.ply`` (or th
 across time, ``carved/``); every template vertex may pair (the data are whole surfaces). The two
 halves from the reference frame run at once on an executor (:func:`track_chain_task`); the colour
 images of the take add feature tracks across every camera's viewing ray.
-:func:`track_with_armature` tracks a tracked take again with an armature as the articulated prior.
+:func:`pipeline.track_armature.track_with_armature` tracks a tracked take again with an armature as the
+articulated prior.
 
 Frames are written and resumed as :mod:`pipeline.track_frames` does for both forms of tracking
 (one RGB-D camera: :mod:`pipeline.track_rgbd`); ``tracked/track.json`` records the settings, the
@@ -16,15 +17,13 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import json
 import logging
-import time
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.mesh_primitives import mesh_volume, vertex_normals
+from pipeline.mesh_primitives import vertex_normals
 from pipeline.run.context import submit_aside
 from pipeline.run.settings import array_digest, file_digest
 from pipeline.track_colour import colour_take, multiview_colour, multiview_tracks_for
@@ -36,17 +35,17 @@ from pipeline.track_frames import (
     start_over_if_changed,
     surface_meshes,
     tracked_path,
-    write_frame,
     write_report,
 )
 from pipeline.tracking import TemplateTracker, TrackingError
 
-__all__ = ["track_results", "track_with_armature", "track_chain_task", "tracked_path", "remove_tracking", "TrackingError"]
+__all__ = ["track_results", "track_chain_task", "spine_model", "spine_starts", "mesh_data", "tracked_path",
+           "remove_tracking", "TrackingError"]
 
 log = logging.getLogger("pipeline.track")
 
 
-def _spine_model(root: Path, frames: list[int], by_frame: dict, template):
+def spine_model(root: Path, frames: list[int], by_frame: dict, template):
     """(reference position, RiggedModel) of the take's spine, or None without a usable spine."""
     from pipeline.armature_spine import NoCompleteFrameError, reference_frame, rigged_model
     from pipeline.meshio import load_mesh
@@ -142,7 +141,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     frames, by_frame = surface_meshes(root, surfaces)
     loaded = None if template is None else load_template(template)  # a bad template is the user's error, said once
     name = None if template is None else ("array" if isinstance(template, (tuple, list)) else str(template))
-    skinned = _spine_model(root, frames, by_frame, loaded)
+    skinned = spine_model(root, frames, by_frame, loaded)
     if skinned is None and (spine_init or not choose):  # asked of a spine the take does not have
         log.warning("%s has no effect: no usable spine.json in %s, every frame starts from the prediction",
                     "spine_init (--spine-init)" if spine_init else "choose=False (--prediction-only)", root)
@@ -195,7 +194,7 @@ def _track_reference(tracker, template: tuple, frame: int, root: Path, report: d
     """Fit the reference frame (or keep its tracked file); -> where both halves start: that fit,
     or the template when the frame has no surface (one warning says so)."""
     V0, F0 = template
-    first = run_frames(tracker, [frame], root, F0, report, data_for=_mesh_data(by_frame),
+    first = run_frames(tracker, [frame], root, F0, report, data_for=mesh_data(by_frame),
                         visible_for=lambda e: None, progress=progress, start=0, prev=V0.copy(), total=total)
     if frame in report["skipped"]:
         log.warning("reference frame %d has no surface (%s has no triangles): both halves start from the template",
@@ -275,7 +274,7 @@ def _written_count(root: Path, frames: list[int]):
     return count
 
 
-def _mesh_data(by_frame: dict):
+def mesh_data(by_frame: dict):
     """``data_for(k, previous)`` of a multi-view take: frame ``k``'s surface and its normals (None: no surface)."""
     from pipeline.meshio import load_mesh
 
@@ -288,7 +287,7 @@ def _mesh_data(by_frame: dict):
     return data_for
 
 
-def _spine_starts(model, frames: list[int]):
+def spine_starts(model, frames: list[int]):
     """``init_for(k, k_prev, prev)``: the previous frame moved as the spine's skinned pose of the template moves."""
     pos = {k: i for i, k in enumerate(frames)}
     lbs: dict = {}
@@ -328,218 +327,19 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     init_for = None
     if chain["spine_start"] in ("all", "choose"):
         if skinned is None:
-            skinned = _spine_model(root, frame_list, by_frame, chain["spine_template"])
-        init_for = _spine_starts(skinned[1], frame_list) if skinned is not None else None
+            skinned = spine_model(root, frame_list, by_frame, chain["spine_template"])
+        init_for = spine_starts(skinned[1], frame_list) if skinned is not None else None
     part = {"skipped": [], "frames": {}}
     tolerance = 0.3 * tracker.gate
     corners = tracker.corner_sum
     colour = contextlib.nullcontext(multiview_tracks_for(*take, F0, tolerance, corners=corners)) if take is not None \
         else multiview_colour(root, F0, tolerance, enabled=chain.get("colour", False), corners=corners)
     with colour as tracks_for:
-        run_frames(tracker, list(chain["frames"]), root, F0, part, data_for=_mesh_data(by_frame), visible_for=lambda e: None,
+        run_frames(tracker, list(chain["frames"]), root, F0, part, data_for=mesh_data(by_frame), visible_for=lambda e: None,
                     progress=progress, start=start, prev=np.asarray(chain["prev"], float), init_for=init_for, total=total,
                     prev_frame=chain["prev_frame"], predict=predictor(tracker, chain["predict"]), tracks_for=tracks_for,
                     choose=_chooser(tracker) if chain["spine_start"] == "choose" else None)
     return part
-
-
-#: At most this many rounds of ``track_with_armature(rounds="auto")`` (``stage track --armature-rounds auto``).
-AUTO_RIG_ROUNDS = 4
-#: Rounds of the template fit from the armature's skinned pose (the default tracking's are
-#: :attr:`pipeline.tracking.TemplateTracker.rounds`): it starts on the surface, where the later rounds
-#: of a fit from the previous frame move nothing (docs/tracking.md, "Fast motion").
-ARMATURE_FIT_ROUNDS = 8
-#: Vertices the articulated ICP pairs and fits a frame's pose with (:class:`pipeline.armature_track.ArmatureTracker`):
-#: a pose of 60 parts is determined many times over by 1000 (the same accuracy as 2000, a sixth less CPU;
-#: docs/tracking.md, "Fast motion").
-ARMATURE_ICP_POINTS = 1000
-
-
-def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | str = 1, weight: float = 2.0,
-                   lambda_thr: float = 0.98, progress=None) -> dict:
-    """Track a tracked results directory again with an armature as the articulated prior.
-
-    Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
-    it, forwards and backwards, by :class:`pipeline.armature_track.ArmatureTracker`: the armature's pose
-    fitted to the frame's surface from the previous frame's pose, its constant-velocity
-    prediction, the previous pose moved by the spine's limb motion (``spine.json``, where the
-    prediction is wrong: a leg that turns) and the armature's own fit of the frame, then the template
-    fitted from the skinned pose and drawn towards it. Without ``model`` each round builds the
-    armature from the current tracking (:func:`pipeline.armature.build_armature`, rest frame the
-    reference frame) and tracks with it: the paper's first rig (armature), then track, refit, repeat while it helps. A round
-    helps when its armature explains the frames' surfaces better: the mean over frames of
-    ``rig_residual_mm`` (:func:`pipeline.armature_track.surface_residual` of the armature's pose
-    on each frame's surface; the surfaces, not the tracking the armature was built from, so the
-    figure does not improve merely because the tracking was drawn to the armature) falls by at least
-    ``1 %``. The rounds stop at the first that does not help, and the tracking of the best round
-    is kept.
-
-    Parameters
-    ----------
-    results_dir : path
-        A multi-view results directory tracked by :func:`track_results`.
-    model : pipeline.armature_fit.ArticulatedModel, optional
-        A given armature, bound to a rest shape in the template's vertex order at the reference frame
-        (one round with it).
-    poses : dict int -> pipeline.armature_fit.Pose, optional
-        The given armature's poses by frame number (further starts of its fit).
-    rounds : int or "auto"
-        At most this many rounds of armature building and tracking (without ``model``); ``"auto"``:
-        at most :data:`AUTO_RIG_ROUNDS`.
-    weight : float
-        Pull towards the skinned pose, in pairs.
-    lambda_thr : float
-        Eigenvalue threshold of the armature's motion segmentation. The default is the paper's
-        threshold for small parts with small motion, its finest: a prior tolerates a rigid part
-        cut in two, not two parts fused into one segment (a drifting first tracking fuses
-        limbs at the paper's 0.7).
-    progress : callable(step, done, total), optional
-
-    Returns
-    -------
-    dict
-        The report written to ``tracked/track.json``, with ``rig_rounds`` (the round kept) and
-        per round run the armature's segments, its fit error to the tracking it was built from and
-        the mean ``rig_residual_mm`` (``rig_prior``), per frame ``rig_residual_mm``.
-    """
-    from pipeline.armature_fit import ArticulatedModel
-
-    root = Path(results_dir)
-    if rounds == "auto":
-        rounds = AUTO_RIG_ROUNDS
-    if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 1:
-        raise ValueError(f"rounds must be a positive integer or 'auto', got {rounds!r}")
-    if model is not None and not isinstance(model, ArticulatedModel):
-        raise ValueError(f"model must be an ArticulatedModel, got {type(model).__name__}")
-    if isinstance(lambda_thr, bool) or not isinstance(lambda_thr, (int, float)) or not 0 < lambda_thr < 1:
-        raise ValueError(f"lambda_thr must be a number in (0, 1), got {lambda_thr!r}")
-    report, frames, by_frame, vs, faces, refi = _tracked_sequence(root)
-    tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
-                              rounds=ARMATURE_FIT_ROUNDS)
-    spine = _spine_steps(root, frames, by_frame, vs[refi])
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(1, "blas"):  # the articulated fits' small dense products: threads only contend
-        history, best = _armature_rounds(model, poses, int(rounds), vs, faces, frames, refi, by_frame, root, tracker,
-                                         weight, lambda_thr, progress, spine)
-    kept, _, per = best
-    if kept != len(history) - 1:  # the last round did not help: the best round's tracking again
-        for k in per["figures"]:
-            write_frame(root, k, per["vertices"][k], faces)
-    report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
-    report["rig_rounds"] = kept + 1
-    report["rig_prior"] = {"weight": float(weight), "lambda_thr": float(lambda_thr), "max_rounds": int(rounds),
-                           "kept_round": kept + 1, "rounds": history}
-    write_report(root, report)
-    return report
-
-
-def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_frame, root, tracker, weight, lambda_thr,
-                     progress, spine):
-    """The rounds of :func:`track_with_armature`: -> (history, (kept round, its residual, its tracking))."""
-    history, best = [], None
-    for r in range(1 if model is not None else rounds):
-        use, by_pose, entry = (model, dict(poses or {}), {"segments": None, "fit_error_mm": None}) if model is not None \
-            else _rig_of(vs, faces, frames, refi, lambda_thr)
-        per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine)
-        res = [f["rig_residual_mm"] for f in per["figures"].values()]
-        entry["residual_mm"] = round(float(np.mean(res)), 4) if res else None
-        history.append(entry)
-        if best is not None and not (entry["residual_mm"] is not None and entry["residual_mm"] < 0.99 * best[1]):
-            break
-        if best is None or (entry["residual_mm"] is not None and entry["residual_mm"] < best[1]):
-            best = (r, entry["residual_mm"] if entry["residual_mm"] is not None else np.inf, per)
-        vs = np.stack([per["vertices"][k] for k in frames])
-    return history, best
-
-
-def _tracked_sequence(root: Path):
-    """(track.json, frames, surfaces by frame, tracked vertices (T, V, 3), faces, reference position) of a
-    tracked results directory; FileNotFoundError / ValueError when it is not tracked."""
-    from pipeline.armature_files import load_sequence, tracked_meshes
-
-    try:
-        report = json.loads((root / "tracked" / "track.json").read_text())
-        ref = int(report["reference_frame"])
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise FileNotFoundError(f"{root}: no readable tracked/track.json ({exc}); run `stage track` first") from None
-    frames, by_frame = surface_meshes(root, report.get("surfaces", "meshes"))
-    vs, faces, numbers = load_sequence(tracked_meshes(root))
-    if list(numbers) != list(frames) or ref not in frames:
-        raise ValueError(f"{root}: tracked/ does not hold every frame of {report.get('surfaces', 'meshes')}/; "
-                         "run `stage track` first")
-    return report, frames, by_frame, vs, faces, frames.index(ref)
-
-
-def _rig_of(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, lambda_thr: float):
-    """The armature of a tracking, rest frame the reference: (model, poses by frame, its report entry)."""
-    from pipeline.armature import build_armature
-
-    # with the peel: a prior tolerates parts cut in two (the paper's over-segmentation), not parts fused
-    rig = build_armature(vs, faces, reference=refi, peel_parts=True, lambda_thr=lambda_thr)
-    entry = {"segments": int(rig.segmentation.n_segments), "fit_error_mm": round(float(rig.fit.errors.mean()), 4)}
-    return rig.model, dict(zip(frames, rig.fit.poses)), entry
-
-
-def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int], refi: int, by_frame: dict, root: Path,
-               faces: np.ndarray, weight: float, progress, spine=None) -> dict:
-    """One tracking of every frame but the reference with ``model`` as the prior; -> {"vertices": frame -> (V, 3),
-    "figures": frame -> per-frame figures}. ``spine``: ``step(k, k_prev)`` -> the spine's skinned step of the
-    template from frame ``k_prev`` to ``k`` (:func:`_spine_steps`), or None."""
-    from pipeline.armature_fit import predict_pose
-    from pipeline.armature_track import ArmatureTracker, fit_pose_to_surface
-
-    rig = ArmatureTracker(tracker, model, weight=weight, max_points=ARMATURE_ICP_POINTS)
-    data_for = _mesh_data(by_frame)
-    ref = frames[refi]
-    out = {"vertices": {ref: vs[refi]}, "figures": {}}
-    ref_data = data_for(ref)
-    start = by_pose.get(ref, model.identity())
-    ref_pose = start if ref_data is None else fit_pose_to_surface(model, start, ref_data[0], ref_data[1],
-                                                                  gate=tracker.gate)[0]
-    done = 1
-    vol0 = mesh_volume(vs[refi], faces)
-    for part in (frames[refi + 1:], frames[:refi][::-1]):
-        prev, pose, before, prev_k = vs[refi], ref_pose, None, ref
-        for k in part:
-            t0 = time.perf_counter()
-            data = data_for(k)
-            if data is not None:
-                cands = [pose] + ([predict_pose(model, pose, before)] if before is not None else []) + \
-                    ([by_pose[k]] if k in by_pose else []) + _spine_pose(model, pose, spine, k, prev_k)
-                fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands)
-                prev, before, pose, prev_k = fit.vertices, pose, new_pose, k
-                write_frame(root, k, prev, faces)
-                out["figures"][k] = {"rig_residual_mm": round(res, 4), "residual_mm": round(fit.residual, 4),
-                                     "volume_ratio": round(mesh_volume(prev, faces) / vol0, 5) if vol0 > 0 else None,
-                                     "seconds": round(time.perf_counter() - t0, 4)}
-            out["vertices"][k] = prev
-            done += 1
-            if progress is not None:
-                progress("track with the rig", done, len(frames))
-    return out
-
-
-def _spine_steps(root: Path, frames: list[int], by_frame: dict, template: np.ndarray):
-    """``step(k, k_prev)``: how the spine's skinned pose of the template moves from frame ``k_prev``
-    to ``k`` (the spine's limb motion, :func:`_spine_starts`), or None without a usable spine of
-    this template."""
-    skinned = _spine_model(root, frames, by_frame, None)
-    if skinned is None or skinned[1].vertices.shape != template.shape:
-        return None
-    starts = _spine_starts(skinned[1], frames)
-    zero = np.zeros_like(template)
-    return lambda k, k_prev: starts(k, k_prev, zero)
-
-
-def _spine_pose(model, pose, spine, k: int, k_prev: int) -> list:
-    """[the armature's pose fitted to its skinned ``pose`` moved by the spine's step to frame ``k``], or []
-    without a spine: a start where the constant-velocity prediction is wrong (a leg that turns)."""
-    from pipeline.armature_fit import fit_frame
-
-    if spine is None:
-        return []
-    return [fit_frame(model, model.deform(pose) + spine(k, k_prev), pose, iterations=3, max_points=2000)[0]]
 
 
 def track_chain_task(chain: dict) -> dict:

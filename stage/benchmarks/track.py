@@ -104,7 +104,7 @@ FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16), ("quadruped", 30.
 
 def fast_accuracy() -> None:
     """Fast takes (and a slow one): the default tracking, then tracked again with an armature as
-    the articulated prior (:func:`pipeline.track.track_with_armature`): the armature built from the
+    the articulated prior (:func:`pipeline.track_armature.track_with_armature`): the armature built from the
     tracking (``stage track --armature-rounds auto``), and the armature of the true motion, with
     and without its true poses among the starts (what the tracking gives with the right segments,
     and with the right starts too); the worst frame's mean and 95th percentile, the invented motion
@@ -119,7 +119,8 @@ def fast_accuracy() -> None:
     from pipeline.armature import build_armature
     from pipeline.meshio import load_mesh
     from pipeline.process import process_take
-    from pipeline.track import track_results, track_with_armature
+    from pipeline.track import track_results
+    from pipeline.track_armature import track_with_armature
 
     with tempfile.TemporaryDirectory() as tmp:
         for name, fps, frames in FAST_TAKES:

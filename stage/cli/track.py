@@ -165,7 +165,7 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
         with worker_pool(1) as ex:  # one task: the half before the reference frame
             rep = _rounds(src, args.carve, margin=args.carve_margin, executor=ex, **kw)
     if args.rig_rounds:
-        from pipeline.track import track_with_armature
+        from pipeline.track_armature import track_with_armature
 
         rep = track_with_armature(src, rounds=args.rig_rounds, progress=bars)
     return rep

@@ -1,4 +1,4 @@
-"""Tracking with a rig as the articulated prior (pipeline.armature_track, pipeline.track.track_with_armature).
+"""Tracking with a rig as the articulated prior (pipeline.armature_track, pipeline.track_armature.track_with_armature).
 
 The fast take: the simulated quadruped filmed at 5 frames a second (6 cameras, 320x240, 8 frames,
 11.7 mm voxels), so its limbs move 3 voxels a frame or more (its true surface points: 95th percentile
@@ -137,7 +137,7 @@ def test_fast_take_tracked_with_its_rig(fast_take):
     (mean) and 4 (95th percentile)."""
     from fake_cameras.surface_motion import surface_point_tracks, tracking_errors
     from pipeline.meshio import load_mesh
-    from pipeline.track import track_with_armature
+    from pipeline.track_armature import track_with_armature
 
     sim, res = fast_take
     voxel = float(json.loads((res / "grid.json").read_text())["voxel"])
@@ -196,7 +196,7 @@ def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
 
 
 def test_track_with_rig_invalid_input(tmp_path):
-    from pipeline.track import track_with_armature
+    from pipeline.track_armature import track_with_armature
     from stage.cli import main
 
     res = _sphere_results(tmp_path, frames=2)

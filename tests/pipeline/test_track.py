@@ -187,7 +187,7 @@ def test_multiview_halves_in_a_worker_process_equal_the_frames_tracked_in_order(
     from pipeline import track
 
     t = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
-    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [6.0, 0, 0], t.faces, 3, [2.0, 0, 0]))
+    monkeypatch.setattr(track, "spine_model", _fake_spine(t.vertices + [6.0, 0, 0], t.faces, 3, [2.0, 0, 0]))
     monkeypatch.setattr(track, "_POLL_SECONDS", 0.01)
     forward_done = threading.Event()
 
@@ -304,7 +304,7 @@ def _sphere_results(root, frames=5):
 
 
 def _fake_spine(V, F, ref, step):
-    """``_spine_model``'s stand-in: reference ``ref``, the template ``V`` and a skinned pose moving by ``step`` a frame."""
+    """``spine_model``'s stand-in: reference ``ref``, the template ``V`` and a skinned pose moving by ``step`` a frame."""
     from types import SimpleNamespace
 
     V = np.asarray(V, float)
@@ -316,7 +316,7 @@ def test_rebuilt_spine_starts_over_with_one_warning_and_the_same_spine_resumes(t
     from pipeline import track
 
     t = _sphere_results(tmp_path, frames=3)
-    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    monkeypatch.setattr(track, "spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
     (tmp_path / "spine.json").write_text('{"frames": 3}')
     first = track.track_results(tmp_path)
     assert first["spine_start"] == "choose" and len(first["spine_sha256"]) == 64
@@ -350,14 +350,14 @@ def test_track_json_of_the_earlier_version_without_spine_start_keeps_frames_of_t
     older(tmp_path / "no_spine")
     t = _sphere_results(tmp_path / "spine_init", frames=3)
     (tmp_path / "spine_init" / "spine.json").write_text('{"frames": 3}')
-    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    monkeypatch.setattr(track, "spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
     init = track.track_results(tmp_path / "spine_init", spine_init=True)
     older(tmp_path / "spine_init")
     monkeypatch.undo()
     stamps = {d: track.tracked_path(tmp_path / d, 2).stat().st_mtime_ns for d in ("no_spine", "spine_init")}
     with caplog.at_level("WARNING", logger="pipeline.track"):
         assert track.track_results(tmp_path / "no_spine")["frames"] == first["frames"]
-        monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+        monkeypatch.setattr(track, "spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
         assert track.track_results(tmp_path / "spine_init", spine_init=True)["frames"] == init["frames"]
         assert not caplog.records
         assert all(track.tracked_path(tmp_path / d, 2).stat().st_mtime_ns == s for d, s in stamps.items())
@@ -375,7 +375,7 @@ def test_track_json_of_the_earlier_version_starts_over_when_the_spine_was_rewrit
 
     t = _sphere_results(tmp_path, frames=3)
     (tmp_path / "spine.json").write_text('{"frames": 3}')
-    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    monkeypatch.setattr(track, "spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
     track.track_results(tmp_path, spine_init=True)
     path = tmp_path / "tracked" / "track.json"
     rep = json.loads(path.read_text())
@@ -397,7 +397,7 @@ def test_cli_prediction_only_never_starts_from_the_spine(tmp_path, monkeypatch, 
     from pipeline import track
 
     t = _sphere_results(tmp_path, frames=3)
-    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    monkeypatch.setattr(track, "spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
     assert main(["-q", "track", str(tmp_path), "--spine-init", "--prediction-only"]) == 2
     assert "exclude each other" in capsys.readouterr().err and not (tmp_path / "tracked").exists()
     with caplog.at_level("WARNING", logger="pipeline.track"):
@@ -464,7 +464,7 @@ def test_killed_worker_process_frames_are_tracked_here(tmp_path, monkeypatch, ca
     runs = {}
     for how, ex in (("in_order", None), ("killed", Killed()), ("broken", Broken())):
         t = _sphere_results(tmp_path / how)
-        monkeypatch.setattr(track, "_spine_model", lambda *a, t=t: (2, SimpleNamespace(vertices=t.vertices, faces=t.faces)))
+        monkeypatch.setattr(track, "spine_model", lambda *a, t=t: (2, SimpleNamespace(vertices=t.vertices, faces=t.faces)))
         with caplog.at_level("WARNING", logger="pipeline.track"):
             rep = track.track_results(tmp_path / how, executor=ex, choose=False)
         assert list(rep["frames"]) == [str(k) for k in range(5)] and "worker_cpu_seconds" not in rep
@@ -620,7 +620,7 @@ def test_multiview_colour_halves_in_a_worker_process_equal_the_frames_tracked_in
 
     res, _ = turning_sphere_results(tmp_path, frames=5, size=(160, 120))
     V0, F0 = load_mesh(res / "meshes" / "frame_000002.ply", largest=False)
-    monkeypatch.setattr(track, "_spine_model", lambda *a: (2, SimpleNamespace(vertices=V0, faces=F0)))
+    monkeypatch.setattr(track, "spine_model", lambda *a: (2, SimpleNamespace(vertices=V0, faces=F0)))
     runs = {}
     for how in ("in_order", "pool"):
         if how == "pool":
@@ -651,7 +651,7 @@ def test_multiview_colour_tracks_open_the_take_once_in_this_process(tmp_path, mo
 
     res, _ = turning_sphere_results(tmp_path, frames=3, size=(160, 120))
     V0, F0 = load_mesh(res / "meshes" / "frame_000001.ply", largest=False)
-    monkeypatch.setattr(track, "_spine_model", lambda *a: (1, SimpleNamespace(vertices=V0, faces=F0)))
+    monkeypatch.setattr(track, "spine_model", lambda *a: (1, SimpleNamespace(vertices=V0, faces=F0)))
     monkeypatch.setattr(stage.store, "TakeReader", Counting)
     rep = track.track_results(res, colour=True, choose=False)
     assert rep["colour_tracks"] is True and all("colour_tracks" in rep["frames"][str(k)] for k in (0, 2))
@@ -711,7 +711,7 @@ def test_multiview_shape_memory_in_both_halves(tmp_path, monkeypatch, caplog):
     from pipeline import track
 
     t = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
-    monkeypatch.setattr(track, "_spine_model", _fake_spine(t.vertices + [6.0, 0, 0], t.faces, 3, [2.0, 0, 0]))
+    monkeypatch.setattr(track, "spine_model", _fake_spine(t.vertices + [6.0, 0, 0], t.faces, 3, [2.0, 0, 0]))
     runs = {}
     for how in ("in_order", "pool"):
         root = tmp_path / how
