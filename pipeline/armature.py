@@ -97,7 +97,7 @@ def counted(n: int, noun: str) -> str:
 
 
 def armature_counts(segments: int, articulations: int, joints: int) -> str:
-    """What a rig is summed up by: ``"2 segments, 1 articulation, 2 joints"`` (counts, integers >= 0)."""
+    """What an armature is summed up by: ``"2 segments, 1 articulation, 2 joints"`` (counts, integers >= 0)."""
     for n, name in ((segments, "segments"), (articulations, "articulations"), (joints, "joints")):
         _check_count(n, name)
     return ", ".join(counted(n, w) for n, w in ((segments, "segment"), (articulations, "articulation"), (joints, "joint")))
@@ -135,8 +135,8 @@ def _main_part(n_vertices: int, faces) -> np.ndarray | None:
         shown = ", ".join(map(str, sizes[parts[:4]])) + (", ..." if len(parts) > 4 else "")
         raise ValueError(
             f"faces: the mesh has {len(parts)} connected parts ({shown} vertices): an armature is found for one "
-            "connected subject; keep its part (the largest, as stage track's template does) or rig each part "
-            "on its own"
+            "connected subject; keep its part (the largest, as stage track's template does) or build an armature "
+            "of each part on its own"
         )
     log.warning("the mesh has %s apart from the subject (%d vertices, each part under %g %% of them): they "
                 "follow their nearest bone", counted(len(parts) - 1, "speck"), int(sizes[parts[1:]].sum()), 100 * SPECK)
@@ -241,7 +241,7 @@ def build_armature(
     timings["fit"] = time.perf_counter() - t0
     size = subject_size(rest[None])
     log.info(
-        "rig: %s; mean vertex error %.3g %s (%.2f %% of size)",
+        "armature: %s; mean vertex error %.3g %s (%.2f %% of size)",
         armature_counts(seg.n_segments, int(skel.articulation.sum()), skel.n_joints), fit.errors.mean(), units,
         100 * fit.errors.mean() / size,
     )
@@ -251,11 +251,11 @@ def build_armature(
 # --------------------------------------------------------------------------- local transforms
 
 
-def _local_motion(rig: Armature) -> tuple[np.ndarray, np.ndarray]:
+def _local_motion(armature: Armature) -> tuple[np.ndarray, np.ndarray]:
     """Local rotations (T, J, 3, 3) and translations (T, J, 3) of every joint per frame."""
-    sk = rig.skeleton
-    G = np.stack([pose.R[sk.part] for pose in rig.fit.poses])  # (T, J, 3, 3) global rotation of every joint
-    return _local_from_global(sk.parents, sk.rest, G, np.asarray(rig.fit.joints, dtype=np.float64))
+    sk = armature.skeleton
+    G = np.stack([pose.R[sk.part] for pose in armature.fit.poses])  # (T, J, 3, 3) global rotation of every joint
+    return _local_from_global(sk.parents, sk.rest, G, np.asarray(armature.fit.joints, dtype=np.float64))
 
 
 def _local_from_global(parents, rest, G: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -304,9 +304,9 @@ def _quats(R: np.ndarray) -> np.ndarray:
     return q
 
 
-def armature_dict(rig: Armature) -> dict:
+def armature_dict(armature: Armature) -> dict:
     """The ``rig.json`` document (capture-stage/rig@1, docs/armature-format.md)."""
-    sk = rig.skeleton
+    sk = armature.skeleton
     names = list(sk.names)
     kinds = ["root" if p < 0 else ("joint" if a else "aux") for p, a in zip(sk.parents, sk.articulation)]
     joints = [
@@ -321,36 +321,36 @@ def armature_dict(rig: Armature) -> dict:
         for j, n in enumerate(names)
     ]
     frames = []
-    for t in range(rig.n_frames):
-        P = rig.fit.joints[t]
-        G = rig.fit.poses[t].R[sk.part]
+    for t in range(armature.n_frames):
+        P = armature.fit.joints[t]
+        G = armature.fit.poses[t].R[sk.part]
         ok = np.isfinite(G).all(axis=(1, 2)) & (np.abs(np.linalg.det(np.nan_to_num(G)) - 1.0) < 1e-3)
         q = Rotation.from_matrix(np.where(ok[:, None, None], G, np.eye(3))).as_quat()
         frames.append({
-            "index": int(rig.frame_indices[t]),
+            "index": int(armature.frame_indices[t]),
             "joints": {n: ([float(x) for x in P[j]] if np.all(np.isfinite(P[j])) else None) for j, n in enumerate(names)},
             "rotations": {n: ([round(float(x), 9) for x in q[j]] if ok[j] else None) for j, n in enumerate(names)},
         })
-    err = rig.fit.errors
-    seg = rig.segmentation
+    err = armature.fit.errors
+    seg = armature.segmentation
     return {
         "format": RIG_FORMAT,
-        "units": rig.units,
-        "fps": rig.fps,
-        "frame_count": rig.n_frames,
-        "reference_frame": int(rig.frame_indices[rig.reference]),
-        "size": rig.size,
+        "units": armature.units,
+        "fps": armature.fps,
+        "frame_count": armature.n_frames,
+        "reference_frame": int(armature.frame_indices[armature.reference]),
+        "size": armature.size,
         "joints": joints,
         "frames": frames,
         "fit": {
             "vertex_error": [float(e) for e in err],
-            "vertex_error_percent": [float(100 * e / rig.size) for e in err],
+            "vertex_error_percent": [float(100 * e / armature.size) for e in err],
             "mean_vertex_error": float(err.mean()),
         },
         "segmentation": {
             "segments": seg.n_segments,
             "clusters": seg.k,
-            "lambda_thr": seg.lambda_thr if np.isfinite(seg.lambda_thr) else rig.lambda_thr,
+            "lambda_thr": seg.lambda_thr if np.isfinite(seg.lambda_thr) else armature.lambda_thr,
             "lambda": seg.lam,
             "interval": seg.interval,
             "samples": int(len(seg.samples)),
@@ -359,11 +359,11 @@ def armature_dict(rig: Armature) -> dict:
     }
 
 
-def bvh_text(rig: Armature) -> str:
-    """The rig as a BVH file (one ROOT/JOINT per joint; leaves carry an ``End Site``)."""
-    sk = rig.skeleton
-    R, tr = _local_motion(rig)
-    return _bvh(sk.names, sk.parents, sk.rest, R, tr, rig.fps)
+def bvh_text(armature: Armature) -> str:
+    """The armature as a BVH file (one ROOT/JOINT per joint; leaves carry an ``End Site``)."""
+    sk = armature.skeleton
+    R, tr = _local_motion(armature)
+    return _bvh(sk.names, sk.parents, sk.rest, R, tr, armature.fps)
 
 
 def bvh_from_rig_json(doc: dict) -> str:
@@ -371,12 +371,12 @@ def bvh_from_rig_json(doc: dict) -> str:
 
     The joints, their rest positions, the per-frame global joint positions and
     rotations (xyzw quaternions) of ``rig.json`` give the same file
-    :func:`bvh_text` writes for the rig itself.
+    :func:`bvh_text` writes for the armature itself.
 
     Raises
     ------
     ValueError
-        When ``doc`` is not a rig document, or its frames carry no rotations
+        When ``doc`` is not an armature document (``rig.json``), or its frames carry no rotations
         (a ``rig.json`` written before they were stored: run ``stage armature`` again).
     """
     if not isinstance(doc, dict) or doc.get("format") != RIG_FORMAT:
@@ -452,16 +452,16 @@ def _bvh(names, parents, rest, R: np.ndarray, tr: np.ndarray, fps: float) -> str
     return "\n".join(lines) + "\n"
 
 
-def glb_bytes(rig: Armature, *, scale: float | None = None) -> bytes:
-    """The rig as GLB: the skinned rest mesh, joints at the articulations, one key per frame."""
+def glb_bytes(armature: Armature, *, scale: float | None = None) -> bytes:
+    """The armature as GLB: the skinned rest mesh, joints at the articulations, one key per frame."""
     from pipeline.armature_spine import RiggedModel, SpineArmature
     from pipeline.gltf_export import armature_to_glb
 
-    sk = rig.skeleton
-    R, tr = _local_motion(rig)
-    times = (rig.frame_indices - rig.frame_indices[0]) / rig.fps
-    if rig.n_frames > 1 and np.any(np.diff(times) <= 0):
-        times = np.arange(rig.n_frames) / rig.fps
+    sk = armature.skeleton
+    R, tr = _local_motion(armature)
+    times = (armature.frame_indices - armature.frame_indices[0]) / armature.fps
+    if armature.n_frames > 1 and np.any(np.diff(times) <= 0):
+        times = np.arange(armature.n_frames) / armature.fps
     element = tuple(
         "root" if p < 0 else (f"segments {sk.segment_pairs[j][0]}-{sk.segment_pairs[j][1]}" if sk.articulation[j] else "aux")
         for j, p in enumerate(sk.parents)
@@ -475,11 +475,11 @@ def glb_bytes(rig: Armature, *, scale: float | None = None) -> bytes:
         rotations=_quats(R),
         translations=tr,
         times=times.astype(np.float64),
-        frame_indices=rig.frame_indices.copy(),
-        reference=rig.reference,
-        units=rig.units,
+        frame_indices=armature.frame_indices.copy(),
+        reference=armature.reference,
+        units=armature.units,
     )
-    m = rig.model
+    m = armature.model
     if len(sk.bones):
         joints = sk.bones[m.influences, 0]
     else:

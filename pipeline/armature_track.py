@@ -1,17 +1,17 @@
-"""Template tracking with a rig as the articulated prior (Tzionas & Gall 2016, sections 1 and 5).
+"""Template tracking with an armature as the articulated prior (Tzionas & Gall 2016, sections 1 and 5).
 
 The paper's chicken-and-egg: with a rigged model the mesh motion is tracked accurately, and with
-the mesh motion the rig is found. Once a first rig exists (:mod:`pipeline.armature` on a
+the mesh motion the armature is found. Once a first armature exists (:mod:`pipeline.armature` on a
 first tracking), every frame is tracked with it:
 
-1. **The rig's pose on the frame's surface** (:func:`fit_pose_to_surface`): articulated ICP.
+1. **The armature's pose on the frame's surface** (:func:`fit_pose_to_surface`): articulated ICP.
    Each round pairs the skinned model with the surface (gated closest points both ways, normals
    within 45 degrees, as the template tracking pairs), moves every paired vertex along the data
    normals onto the surface (point-to-plane) and refits the pose to those targets by the
    articulated least squares of :func:`pipeline.armature_fit.fit_frame`. The first half of the
    rounds pairs within twice the gate (a limb several voxels from its last place is still
    caught), the second within the gate. It starts from every candidate pose given (the previous
-   frame's pose, its constant-velocity prediction in joint angles, the rig's own fit of the frame
+   frame's pose, its constant-velocity prediction in joint angles, the armature's own fit of the frame
    from the tracking it was built on): a third of the rounds from each, within twice the gate,
    and the rest from the one whose skinned surface the frame's surface explains best
    (:func:`surface_residual`).
@@ -19,7 +19,7 @@ first tracking), every frame is tracked with it:
    tracking of :class:`pipeline.tracking.TemplateTracker` starts from the skinned pose and every
    vertex is drawn towards it with ``weight`` (in pairs, ``fit(anchor=)``), so within a rigid
    part the surface cannot slide along itself, while the data and the Laplacian still shape what
-   the rig does not (the skinning's error at the joints, non-rigid parts).
+   the armature does not (the skinning's error at the joints, non-rigid parts).
 
 A pose fitted in joint angles extrapolates a limb's swing where the vertices' constant velocity
 cannot (a rotating limb's points move on circles). Why the ICP is written here: the articulated
@@ -86,7 +86,7 @@ def surface_residual(vertices, points, *, gate: float, tree=None) -> float:
 
 def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *, gate: float, rounds: int = 6,
                         iterations: int = 3, max_points: int = 2000, tree=None) -> tuple[Pose, float]:
-    """The rig's pose on a surface: articulated ICP, point-to-plane (see the module docstring).
+    """The armature's pose on a surface: articulated ICP, point-to-plane (see the module docstring).
 
     Parameters
     ----------
@@ -145,14 +145,14 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
 
 
 class ArmatureTracker:
-    """Tracks a template frame by frame with a rig as the articulated prior.
+    """Tracks a template frame by frame with an armature as the articulated prior.
 
     Parameters
     ----------
     tracker : TemplateTracker
         The template tracker; its template is the model's vertex order.
     model : ArticulatedModel
-        The rig, bound to a rest shape in the template's vertex order.
+        The armature, bound to a rest shape in the template's vertex order.
     weight : float
         How strongly every vertex is drawn to the skinned pose, in pairs (``fit(anchor=)``).
     rounds, iterations, max_points : int
