@@ -147,7 +147,8 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     Returns
     -------
     dict
-        The report written to ``carved/carve.json``.
+        The report written to ``carved/carve.json`` (``worker_cpu_seconds``: the CPU seconds of the
+        frames carved in another process).
 
     Raises
     ------
@@ -200,6 +201,9 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
             if str(k) in figures:
                 record(k, figures[str(k)])
     report["frames"] = {str(k): report["frames"][str(k)] for k in frames if str(k) in report["frames"]}
+    # a thread's CPU seconds are already this process's; None: no worker carved
+    report["worker_cpu_seconds"] = round(aside.cpu_seconds, 3) if aside is not None and aside.cpu_seconds is not None \
+        else 0.0
     _write_report(root, report)
     return report
 
@@ -246,7 +250,8 @@ def track_with_carving(results_dir, rounds: int, *, margin: float | None = None,
     Returns
     -------
     dict
-        The last tracking's report (``tracked/track.json``).
+        The last tracking's report (``tracked/track.json``), its ``worker_cpu_seconds`` the CPU
+        seconds of every tracking's and carving's task in other processes.
 
     Raises
     ------
@@ -258,14 +263,16 @@ def track_with_carving(results_dir, rounds: int, *, margin: float | None = None,
     if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 0:
         raise ValueError(f"rounds must be an integer >= 0, got {rounds!r}")
     rep = track_results(results_dir, progress=progress, executor=executor, **track_options)
+    worker_cpu = rep.get("worker_cpu_seconds", 0.0)
     for r in range(1, int(rounds) + 1):
         named = _in_round(progress, r)
         try:
-            carve_results(results_dir, margin=margin, progress=named, executor=executor)
+            carved = carve_results(results_dir, margin=margin, progress=named, executor=executor)
         except ValueError as exc:
             raise CarveError(str(exc)) from None
         rep = track_results(results_dir, surfaces="carved", progress=named, executor=executor, **track_options)
-    return rep
+        worker_cpu += carved.get("worker_cpu_seconds", 0.0) + rep.get("worker_cpu_seconds", 0.0)
+    return {**rep, "worker_cpu_seconds": round(worker_cpu, 3)}
 
 
 def _in_round(progress, r: int):

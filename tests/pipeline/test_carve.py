@@ -204,3 +204,16 @@ def test_an_unreadable_mask_carves_nothing_with_one_warning(tmp_path, monkeypatc
     lines = [r.getMessage() for r in caplog.records if r.name == "pipeline.carve"]
     assert len(lines) == 1 and "cam00" in lines[0] and "corrupt mask" in lines[0], lines
     assert sorted(rep["frames"]) == ["0", "1", "2"] and all(f["vertices"] > 100 for f in rep["frames"].values())
+
+
+def test_track_with_carving_sums_every_workers_cpu_seconds(tmp_path, monkeypatch):
+    """The ``track`` step's CPU seconds: every tracking's and carving's task in another process, not the last's."""
+    import pipeline.carve as carve
+    import pipeline.track as track
+
+    trackings = iter([1.5, 0.25, 2.0])
+    monkeypatch.setattr(track, "track_results", lambda *a, **k: {"frames": {}, "worker_cpu_seconds": next(trackings)})
+    monkeypatch.setattr(carve, "carve_results", lambda *a, **k: {"worker_cpu_seconds": 0.5})
+    rep = track_with_carving(tmp_path, 2)
+    assert rep["worker_cpu_seconds"] == pytest.approx(1.5 + 0.5 + 0.25 + 0.5 + 2.0, abs=1e-9)
+    assert rep["frames"] == {}
