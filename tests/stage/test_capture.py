@@ -92,7 +92,7 @@ CHILD = textwrap.dedent(
     from tests.stage.paced import make_drivers, rig_for
     from stage.capture import capture_take
     ids = ["a", "b", "c"]
-    capture_take(rig_for(ids, fps=60.0), {path!r}, frames=100000, drivers=make_drivers(ids, fps=60.0),
+    capture_take(rig_for(ids, fps=60.0), {path!r}, frames=3000, drivers=make_drivers(ids, fps=60.0),
                  on_set=lambda n: print(n, flush=True))
     """
 )
