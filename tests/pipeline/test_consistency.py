@@ -156,21 +156,13 @@ def test_process_names_the_camera_with_corrupted_masks(tmp_path, caplog, capsys)
     IoU per frame set (of the silhouettes the hull was carved from) and the dropped shares,
     ``report.json`` the medians, and the report plots them with the worst frames."""
     from pipeline.report import render_report
-    from stage.cli import main
-    from stage.store import write_masks
 
-    sim = simulate_take("starfish", n_cameras=8, frames=3, size=(320, 240), seed=2)
-    path = record_take(sim, tmp_path / "take.h5")
+    def grow(m):
+        m[:, 40:200, :100] = True
+
+    sim, path, out = _processed_with_one_camera_edited(tmp_path, caplog, 2, grow, n_cameras=8, frames=3,
+                                                        size=(320, 240), seed=2)
     names = list(sim.calibration.names)
-    for c, name in enumerate(names):
-        m = sim.masks[:, c].copy()
-        if c == 2:
-            m[:, 40:200, :100] = True
-        write_masks(path, name, m, params={"source": "ground truth"})
-    out = tmp_path / "out"
-    with caplog.at_level(logging.WARNING, logger="pipeline.process"):
-        assert main(["process", str(path), "--out", str(out), "--until", "surface", "--workers", "0",
-                     "--no-progress"]) == 0
     doc = json.loads((out / "consistency.json").read_text())
     assert doc["cameras"] == names and len(doc["iou"]) == 8 and all(len(r) == 3 for r in doc["iou"])
     assert doc["low"] == [] and doc["dropping"] == [names[2]]
@@ -193,29 +185,42 @@ def test_process_names_the_camera_whose_masks_miss_part_of_the_subject(tmp_path,
     every camera, so the others' IoU drops and its own does not; the hull carved without it
     explains the others' silhouettes better (:func:`pipeline.consistency.leave_one_out_gain`), and
     ``stage process`` names camera 4 -- and only it -- as missing part of the subject."""
-    from stage.cli import main
-    from stage.store import write_masks
 
-    sim = simulate_take("starfish", n_cameras=6, frames=2, size=(240, 180), seed=3)
-    path = record_take(sim, tmp_path / "take.h5")
+    def lose_the_upper_half(m):
+        for f in range(len(m)):
+            rows = np.flatnonzero(m[f].any(axis=1))
+            m[f, : rows[len(rows) // 2]] = False
+
+    sim, _, out = _processed_with_one_camera_edited(tmp_path, caplog, 4, lose_the_upper_half, n_cameras=6, frames=2,
+                                                    size=(240, 180), seed=3)
     names = list(sim.calibration.names)
-    for c, name in enumerate(names):
-        m = sim.masks[:, c].copy()
-        if c == 4:
-            for f in range(len(m)):
-                rows = np.flatnonzero(m[f].any(axis=1))
-                m[f, : rows[len(rows) // 2]] = False
-        write_masks(path, name, m, params={"source": "ground truth"})
-    out = tmp_path / "out"
-    with caplog.at_level(logging.WARNING, logger="pipeline.process"):
-        assert main(["process", str(path), "--out", str(out), "--until", "surface", "--workers", "0",
-                     "--no-progress"]) == 0
     doc = json.loads((out / "consistency.json").read_text())
     assert doc["misses"] == [names[4]], doc["missing"]
     # measured: camera 4 +0.048, the others -0.004 .. +0.001 (mean over the other cameras' IoU)
     assert doc["missing"][names[4]] > 0.03 and max(v for n, v in doc["missing"].items() if n != names[4]) < 0.01
     said = [r.getMessage() for r in caplog.records if "miss part of the subject" in r.getMessage()]
     assert len(said) == 1 and names[4] in said[0]
+
+
+def _processed_with_one_camera_edited(tmp_path, caplog, camera: int, edit, **take):
+    """A simulated starfish take (``take``: :func:`simulate_take`'s keywords) with true masks, camera
+    ``camera``'s edited in place by ``edit(masks)``, processed to the surface with warnings caught:
+    -> (the simulation, the take's path, the results directory)."""
+    from stage.cli import main
+    from stage.store import write_masks
+
+    sim = simulate_take("starfish", **take)
+    path = record_take(sim, tmp_path / "take.h5")
+    for c, name in enumerate(sim.calibration.names):
+        m = sim.masks[:, c].copy()
+        if c == camera:
+            edit(m)
+        write_masks(path, name, m, params={"source": "ground truth"})
+    out = tmp_path / "out"
+    with caplog.at_level(logging.WARNING, logger="pipeline.process"):
+        assert main(["process", str(path), "--out", str(out), "--until", "surface", "--workers", "0",
+                     "--no-progress"]) == 0
+    return sim, path, out
 
 
 def test_leave_one_out_invalid_input():
