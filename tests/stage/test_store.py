@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -155,6 +156,17 @@ def _start_writer(path: Path, sleep: float) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
 
 
+@contextlib.contextmanager
+def _running_writer(path: Path, sleep: float):
+    """The writer child (:func:`_start_writer`), killed when the block ends."""
+    proc = _start_writer(path, sleep)
+    try:
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 def _wait_sets(proc: subprocess.Popen, n: int, timeout: float = 30.0) -> int:
     t0 = time.monotonic()
     last = 0
@@ -175,8 +187,7 @@ def _check_frames(r: TakeReader, n: int, start: int = 0) -> None:
 
 def test_reader_while_writer_runs(tmp_path):
     path = tmp_path / "live.h5"
-    proc = _start_writer(path, 0.02)
-    try:
+    with _running_writer(path, 0.02) as proc:
         _wait_sets(proc, 3)
         with TakeReader(path) as r:
             n0 = len(r)
@@ -185,9 +196,6 @@ def test_reader_while_writer_runs(tmp_path):
             n1 = _wait_sets(proc, n0 + 5)
             assert r.refresh() >= n0 + 5 - 1 and n1 >= n0 + 5
             _check_frames(r, len(r))
-    finally:
-        proc.kill()
-        proc.wait()
 
 
 class _TornChunk:
@@ -210,8 +218,7 @@ def test_live_reads_meet_chunks_being_rewritten(tmp_path):
     # the writer rewrites a chunk that holds committed and new records (the JPEG stream) in place;
     # a read during the rewrite fails the chunk's checksum: on a live take the read is tried again
     path = tmp_path / "live.h5"
-    proc = _start_writer(path, 0.0)
-    try:
+    with _running_writer(path, 0.0) as proc:
         _wait_sets(proc, 3)
         with TakeReader(path) as r:
             torn = _TornChunk(r._f["sets/frames"], 2)
@@ -224,9 +231,6 @@ def test_live_reads_meet_chunks_being_rewritten(tmp_path):
             while time.monotonic() - t0 < 3.0:
                 n = r.refresh()
                 _check_frames(r, n, start=max(0, n - 4))
-    finally:
-        proc.kill()
-        proc.wait()
     # a complete take's damage is not transient: no second try
     done = tmp_path / "done.h5"
     with TakeWriter(done, [CameraSpec("a", W, H)], compression="none") as w:
