@@ -428,19 +428,29 @@ def _closed(mask: np.ndarray, relative: float) -> np.ndarray:
     return cv2.morphologyEx(m, cv2.MORPH_CLOSE, _disk(r))[pad:-pad, pad:-pad].view(bool)
 
 
+def _gap_voxels(occ: np.ndarray, masks: list, carver: HullCarver, kw: dict,
+                relative: float) -> tuple[np.ndarray, list]:
+    """The voxels outside ``occ`` that one camera alone carves, with that camera's pixel inside a gap
+    of its silhouette ``relative`` wide, and the silhouettes closed by that gap (see module docstring)."""
+    closed = [None if m is None else _closed(m, relative) for m in masks]
+    one_miss = carver.carve(masks, **{**kw, "tolerance": kw["tolerance"] + 1}).occupancy
+    return one_miss & carver.carve(closed, **kw).occupancy & ~occ, closed
+
+
+def _keyed_again(masks: list, added: np.ndarray, carver: HullCarver, closed: list) -> list:
+    """The silhouettes with the image of the ``added`` voxels inside their ``closed`` gaps."""
+    proj, _ = hull_projection(added, carver.grid, carver.calibration)
+    return [None if m is None else m | (p & c) for m, p, c in zip(masks, proj, closed)]
+
+
 def _bridged(occ: np.ndarray, masks: list, carver: HullCarver, kw: dict,
              relative: float) -> tuple[np.ndarray, list, np.ndarray]:
     """The hull with the voxels one camera alone carves inside a gap of its silhouette, the
     silhouettes keyed again there, and the voxels added (see module docstring)."""
-    closed = [None if m is None else _closed(m, relative) for m in masks]
-    one_miss = carver.carve(masks, **{**kw, "tolerance": kw["tolerance"] + 1}).occupancy
-    in_gaps = carver.carve(closed, **kw).occupancy
-    added = one_miss & in_gaps & ~occ
+    added, closed = _gap_voxels(occ, masks, carver, kw, relative)
     if not added.any():
         return occ, masks, added
-    proj, _ = hull_projection(added, carver.grid, carver.calibration)
-    out = [None if m is None else m | (p & c) for m, p, c in zip(masks, proj, closed)]
-    return occ | added, out, added
+    return occ | added, _keyed_again(masks, added, carver, closed), added
 
 
 def _geodesic(seed: np.ndarray, allowed: np.ndarray, steps: int) -> np.ndarray:
@@ -490,9 +500,7 @@ def _joined(occ: np.ndarray, masks: list, carver: HullCarver, kw: dict,
     lab, n = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
     if n <= 1:
         return occ, masks, 0
-    closed = [None if m is None else _closed(m, relative) for m in masks]
-    extra = carver.carve(masks, **{**kw, "tolerance": kw["tolerance"] + 1}).occupancy & ~occ
-    extra &= carver.carve(closed, **kw).occupancy
+    extra, closed = _gap_voxels(occ, masks, carver, kw, relative)
     if not extra.any():
         return occ, masks, 0
     idx = np.argwhere(occ)
@@ -520,9 +528,7 @@ def _joined(occ: np.ndarray, masks: list, carver: HullCarver, kw: dict,
         return occ, masks, 0
     added = np.zeros_like(occ)
     added[box] = add
-    proj, _ = hull_projection(added, carver.grid, carver.calibration)
-    out = [None if m is None else m | (q & c) for m, q, c in zip(masks, proj, closed)]
-    return occ | added, out, int(np.count_nonzero(add))
+    return occ | added, _keyed_again(masks, added, carver, closed), int(np.count_nonzero(add))
 
 
 def _without_specks(occ: np.ndarray, masks: list, grid: Grid, calibration: Calibration) -> tuple[np.ndarray, int]:
