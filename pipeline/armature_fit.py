@@ -234,18 +234,28 @@ def _forward(model: ArticulatedModel, root_R, root_t, local: np.ndarray) -> Pose
     t = np.empty((P, 3))
     R[0], t[0] = _rotations(np.asarray(root_R, dtype=np.float64)), root_t
     c = model.pivots
-    for p in range(1, P):  # parents come first
-        q = sk.part_parent[p]
-        R[p] = R[q] @ local[p]
-        t[p] = R[q] @ c[p] + t[q] - R[p] @ c[p]
+    for level in _levels(model):  # the parts one step deeper than the last level, all at once
+        q = sk.part_parent[level]
+        R[level] = R[q] @ local[level]
+        t[level] = (R[q] @ c[level][:, :, None])[:, :, 0] + t[q] - (R[level] @ c[level][:, :, None])[:, :, 0]
     return Pose(R, t)
 
 
+def _levels(model: ArticulatedModel) -> list:
+    """The parts but the root by depth in the part tree (the root's children first), cached on the model."""
+    if "levels" not in model._cache:
+        parent = model.skeleton.part_parent
+        depth = np.zeros(model.skeleton.n_parts, dtype=np.int64)
+        for p in range(1, len(depth)):  # parents come first
+            depth[p] = depth[parent[p]] + 1
+        model._cache["levels"] = [np.flatnonzero(depth == d) for d in range(1, int(depth.max(initial=0)) + 1)]
+    return model._cache["levels"]
+
+
 def _local(model: ArticulatedModel, pose: Pose) -> np.ndarray:
-    sk = model.skeleton
-    L = np.tile(np.eye(3), (sk.n_parts, 1, 1))
-    for p in range(1, sk.n_parts):
-        L[p] = pose.R[sk.part_parent[p]].T @ pose.R[p]
+    L = np.empty_like(pose.R)
+    L[0] = np.eye(3)
+    L[1:] = pose.R[model.skeleton.part_parent[1:]].transpose(0, 2, 1) @ pose.R[1:]
     return L
 
 
@@ -339,9 +349,8 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
         g0 = cw[0]  # the root turns about its carried joint, then translates
         root_R = Rinc[0] @ pose.R[0]
         root_t = Rinc[0] @ (pose.t[0] - g0) + g0 + dt
-        for p in range(1, P):
-            qpar = sk.part_parent[p]
-            local[p] = pose.R[qpar].T @ Rinc[p] @ pose.R[qpar] @ local[p]
+        Rq = pose.R[sk.part_parent[1:]]
+        local[1:] = Rq.transpose(0, 2, 1) @ Rinc[1:] @ Rq @ local[1:]
         return _forward(model, root_R, root_t, local)
 
     sse, H, g, cw = linearise(pose)
@@ -375,79 +384,86 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
 
 
 def _lsq_weights(model: ArticulatedModel, max_points: int | None) -> dict:
-    """Per-subset arrays of the normal equations, cached on the model.
+    """Per-subset constants of the normal equations, cached on the model.
 
-    ``vp`` (V, k) parts of the influences, ``w`` (V, k) their weights, ``below`` (P, P) float
-    (``below[a, p]``: part ``a`` is ``p`` or in its subtree), ``one`` (P, V k) and ``pair`` (P P, V k k)
-    sparse sums of the weighted influences by part and of the products of two influences' weights by
-    pair of parts, ``n1`` (P,) and ``n2`` (P, P) those sums of the weights alone, and the pairs'
-    influence indices ``ii``, ``jj``.
+    ``W`` (V, P) sparse skinning weight of every part (:attr:`ArticulatedModel.part_weights` of the
+    subset's rows) and ``WT`` its transpose; the rest vertices' moments by part, ``n1`` (P,) and ``m1``
+    (P, 3), the sums of ``W[v, a] [1, x_v]``, and by pair of parts ``(a, b)`` that share a vertex,
+    ``a``, ``b`` (N,) and ``n2`` (N,), ``m2`` (N, 3), ``s2`` (N, 3, 3), the sums of
+    ``W[v, a] W[v, b] [1, x_v, x_v x_v^T]``; the subtree sums as sparse matrices: ``below`` (P, P)
+    (``below[p, a]``: part ``a`` is ``p`` or in its subtree) and ``pairs`` (P P, N) (``pairs[p P + q, i]``:
+    ``a_i`` below ``p`` and ``b_i`` below ``q``).
     """
     from scipy import sparse
 
     key = ("lsq", max_points)
     if key not in model._cache:
         sub = model.subset(max_points)
-        vp = model.vertex_parts[sub]
-        w = model.weights[sub]
-        V, k = vp.shape
+        x = model.vertices[sub]
+        W = sparse.csr_matrix(model.part_weights[sub])
+        WT = sparse.csr_matrix(W.T)
         P = model.skeleton.n_parts
-        one = sparse.csr_matrix((w.ravel(), (vp.ravel(), np.arange(V * k))), shape=(P, V * k))
-        ii, jj = np.repeat(np.arange(k), k), np.tile(np.arange(k), k)
-        ww = (w[:, ii] * w[:, jj]).ravel()
-        pair = sparse.csr_matrix((ww, ((vp[:, ii] * P + vp[:, jj]).ravel(), np.arange(V * k * k))),
-                                 shape=(P * P, V * k * k))
-        model._cache[key] = {"vp": vp, "w": w, "below": model.below.astype(np.float64), "one": one, "pair": pair,
-                             "n1": np.asarray(one.sum(1)).ravel(), "n2": np.asarray(pair.sum(1)), "ii": ii, "jj": jj}
+        n2 = (WT @ W).toarray()
+        a, b = np.nonzero(n2)
+        m2 = np.stack([(WT @ W.multiply(x[:, [i]])).toarray()[a, b] for i in range(3)], axis=1)
+        s2 = np.stack([(WT @ W.multiply((x[:, i] * x[:, j])[:, None])).toarray()[a, b]
+                       for i in range(3) for j in range(3)], axis=1).reshape(-1, 3, 3)
+        up = [np.flatnonzero(row) for row in model.below]  # the parts every part is below: itself and its ancestors
+        rows = [(p * P + q, i) for i in range(len(a)) for p in up[a[i]] for q in up[b[i]]]
+        r, c = np.array(rows, dtype=np.int64).reshape(-1, 2).T
+        pairs = sparse.csr_matrix((np.ones(len(r)), (r, c)), shape=(P * P, len(a)))
+        model._cache[key] = {"W": W, "WT": WT, "below": sparse.csr_matrix(model.below.T.astype(np.float64)),
+                             "pairs": pairs, "a": a, "b": b, "n1": np.asarray(WT.sum(1)).ravel(), "m1": WT @ x,
+                             "n2": n2[a, b], "m2": m2, "s2": s2}
     return model._cache[key]
-
-
-def _subtree_sums(below: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """``Z[p, q] = sum_{a below p, b below q} X[a, b]`` for (P, P, F) ``X``; (P, F) ``X``: ``Z[p] = sum_{a below p} X[a]``."""
-    Y = np.tensordot(below, X, axes=(0, 0))  # (p, b, f) or (p, f)
-    if X.ndim == 2:
-        return Y
-    return np.tensordot(Y, below, axes=(1, 0)).transpose(0, 2, 1)  # (p, q, f)
 
 
 def _normal_equations(model: ArticulatedModel, pose: Pose, x: np.ndarray, y: np.ndarray, lsq: dict):
     """Gauss-Newton normal equations of the skinned fit at ``pose``: (sum of squares, H, g, carried joints).
 
+    ``x``: the rest vertices of the subset ``lsq`` was made for (:func:`_lsq_weights`), ``y`` their targets.
     The Jacobian of a rotation increment ``omega_p`` about the part's carried joint ``c_p`` is
-    ``-[A_vp]_x`` with ``A_vp = sum_k w_vk [part_k below p] (q_vk - c_p)`` (``q_vk`` the vertex
-    moved by its influence ``k``). ``J^T J`` needs ``sum_v A_vp A_vq^T`` for every pair of parts: a
-    vertex's ``A`` is not zero for every ancestor of its influences, so on a deep tree most pairs
-    are filled. Expanded, ``A_vp A_vq^T`` is a sum over pairs of influences ``(k, l)`` of
-    ``w_k w_l (q_k - c_p)(q_l - c_q)^T`` wherever part_k is below p and part_l below q: the moments
-    ``sum w_k w_l [1, q_k, q_l, q_k q_l^T]`` are summed once per pair of parts (a sparse product over
-    the vertices' influences) and then over subtrees (``below^T X below``), so the cost grows with
-    ``V k^2 + P^3`` instead of ``V (3P)^2``; the same for ``sum_v A_vp`` and ``sum_v A_vp r_v^T``.
+    ``-[A_vp]_x`` with ``A_vp = sum_a W_va [a below p] (q_va - c_p)`` (``q_va = R_a x_v + t_a``, the
+    vertex moved by part ``a``, ``W_va`` its skinning weight). ``J^T J`` needs ``sum_v A_vp A_vq^T``
+    for every pair of parts: a vertex's ``A`` is not zero for every ancestor of its parts, so on a
+    deep tree most pairs are filled. Expanded, ``A_vp A_vq^T`` is a sum over pairs of parts ``(a, b)``
+    of ``W_va W_vb (q_va - c_p)(q_vb - c_q)^T`` wherever ``a`` is below ``p`` and ``b`` below ``q``. The
+    moments ``sum_v W_va W_vb [1, q_va, q_vb, q_va q_vb^T]`` are those of the rest vertices
+    (``[1, x, x x^T]``, constant, :func:`_lsq_weights`) moved by the parts' current motions: a few
+    small products per pair of parts that share a vertex, not a pass over the vertices; then summed
+    over subtrees (one sparse product). The same for ``sum_v A_vp`` and ``sum_v A_vp r_v^T``, which
+    need one pass over the vertices for the residuals ``r``. The cost grows with ``V P`` and the
+    pairs' subtrees instead of ``V (3P)^2``.
     """
     P = model.skeleton.n_parts
-    vp, w, below = lsq["vp"], lsq["w"], lsq["below"]
-    V, k = vp.shape
-    q = np.einsum("vkij,vj->vki", pose.R[vp], x) + pose.t[vp]  # (V, k, 3)
-    r = np.einsum("vk,vki->vi", w, q) - y
-    cw = np.einsum("pij,pj->pi", pose.R, model.pivots) + pose.t  # carried joints
-    qi, qj = q[:, lsq["ii"]], q[:, lsq["jj"]]  # (V, k k, 3)
-    F2 = np.concatenate([qi, qj, np.einsum("vni,vnj->vnij", qi, qj).reshape(V, k * k, 9)], axis=2).reshape(-1, 15)
-    X2 = np.concatenate([lsq["n2"], lsq["pair"] @ F2], axis=1).reshape(P, P, 16)
-    Z2 = _subtree_sums(below, X2)
+    R, t = pose.R, pose.t
+    T = lsq["W"] @ np.concatenate([R.reshape(P, 9), t], 1)  # every vertex's blended affine map
+    r = np.einsum("vij,vj->vi", T[:, :9].reshape(-1, 3, 3), x) + T[:, 9:] - y
+    cw = np.einsum("pij,pj->pi", R, model.pivots) + t  # carried joints
+    Ra, Rb, ta, tb, n2 = R[lsq["a"]], R[lsq["b"]], t[lsq["a"]], t[lsq["b"]], lsq["n2"][:, None]
+    ma = (Ra @ lsq["m2"][:, :, None])[:, :, 0]  # sum W_a W_b R_a x
+    mb = (Rb @ lsq["m2"][:, :, None])[:, :, 0]
+    S = Ra @ lsq["s2"] @ Rb.transpose(0, 2, 1) + ma[:, :, None] * tb[:, None, :] + ta[:, :, None] * mb[:, None, :] \
+        + n2[:, :, None] * (ta[:, :, None] * tb[:, None, :])
+    X2 = np.concatenate([n2, ma + n2 * ta, mb + n2 * tb, S.reshape(-1, 9)], axis=1)  # (pairs, 16)
+    Z2 = (lsq["pairs"] @ X2).reshape(P, P, 16)  # summed over subtrees
     n, m, mq = Z2[..., 0], Z2[..., 1:4], Z2[..., 4:7]
     S = Z2[..., 7:].reshape(P, P, 3, 3)
-    Mpq = (S - np.einsum("pi,pqj->pqij", cw, mq) - np.einsum("pqi,qj->pqij", m, cw)
-           + n[..., None, None] * np.einsum("pi,qj->pqij", cw, cw))
+    Mpq = (S - cw[:, None, :, None] * mq[:, :, None, :] - m[..., :, None] * cw[None, :, None, :]
+           + n[..., None, None] * (cw[:, None, :, None] * cw[None, :, None, :]))
     M = Mpq.transpose(0, 2, 1, 3)  # M[p, i, q, j] = sum_v A_vp,i A_vq,j
-    qf = q.reshape(-1, 3)
-    rf = np.repeat(r, k, axis=0)
-    F1 = np.concatenate([qf, rf, np.einsum("ni,nj->nij", qf, rf).reshape(-1, 9)], axis=1)
-    Z1 = _subtree_sums(below, lsq["one"] @ F1)  # (P, 15)
-    n1 = below.T @ lsq["n1"]
+    # per part a: sum_v W_va [q_va, r_v, q_va r_v^T], q_va r_v^T = R_a x_v r_v^T + t_a r_v^T
+    F1 = lsq["WT"] @ np.concatenate([r, (x[:, :, None] * r[:, None, :]).reshape(-1, 9)], axis=1)  # (P, 12)
+    qsum = np.einsum("aij,aj->ai", R, lsq["m1"]) + lsq["n1"][:, None] * t
+    qr = np.einsum("aij,ajk->aik", R, F1[:, 3:].reshape(P, 3, 3)) + t[:, :, None] * F1[:, None, :3]
+    Z1 = lsq["below"] @ np.concatenate([qsum, F1[:, :3], qr.reshape(P, 9)], axis=1)  # (P, 15), summed over subtrees
+    n1 = lsq["below"] @ lsq["n1"]
     Asum = Z1[:, :3] - n1[:, None] * cw
-    C = Z1[:, 6:].reshape(P, 3, 3) - np.einsum("pi,pj->pij", cw, Z1[:, 3:6])  # sum_v A_vp r_v^T
+    C = Z1[:, 6:].reshape(P, 3, 3) - cw[:, :, None] * Z1[:, None, 3:6]  # sum_v A_vp r_v^T
     # normal equations of J = [I, -[A_v0]_x, ..., -[A_vP-1]_x]: [a]_x^T [b]_x = (a.b) I - b a^T
     tr = np.einsum("piqi->pq", M)
     Hww = tr[:, None, :, None] * np.eye(3)[None, :, None, :] - M.transpose(0, 3, 2, 1)
+    V = len(x)
     n_par = 3 * (P + 1)
     H = np.empty((n_par, n_par))
     H[:3, :3] = V * np.eye(3)
