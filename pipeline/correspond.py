@@ -39,6 +39,18 @@ Choices the paper leaves open, made here:
   extra limb is the same limb throughout, for ``K`` when it is not: aligned onto the
   reference by the other limbs, its tip stays within ``0.4`` x the RMS radius of the
   reference tips of its mean position.
+* Hidden limbs: a limb fused with the body in some frames (arms at the sides of a
+  standing person filmed by few cameras, legs together) is hidden there, not absent,
+  and its tip is missing from those frames' counts; when such frames are many, the
+  mode undercounts. A frame's *clear* tips (those that protrude by at least 1.5 times
+  the tip threshold, :data:`pipeline.extremities.CLEAR`) are limbs for sure, so their
+  count is a lower bound of ``K`` in that frame. When the clear tips are given, ``K``
+  is raised above the mode (never lowered) to the largest clear count that at least
+  ``HIDDEN_SHARE`` (a tenth) of the frames with tips reach, a frame with that many
+  tips being there to serve as the reference: one frame's phantom does not add a limb,
+  a limb seen clearly in a tenth of the take does. Tips that barely protrude (a ragged
+  hand split in two, a fold of the hull) still take part in the correspondence but
+  never raise ``K``.
   :attr:`Correspondence.count_rule` says which rule chose ``K``.
 * A tip whose residual after alignment to its temporal neighbour exceeds
   ``gate`` times the RMS radius of the reference tips is dropped (its limb
@@ -222,7 +234,7 @@ class Correspondence:
     error : (T,) float ndarray
         Alignment residual of the chosen mapping (nan for frames without tips).
     count_rule : str
-        How ``K`` was chosen: ``"given"``, ``"mode"`` or the borderline decision.
+        How ``K`` was chosen: ``"given"``, ``"mode"``, the borderline decision or the hidden limbs.
     """
 
     K: int
@@ -232,6 +244,9 @@ class Correspondence:
     count_rule: str = "given"
 
 
+#: A count of clear tips that at least this share of the frames with tips reach raises ``K`` to it
+#: (module docstring: hidden limbs).
+HIDDEN_SHARE = 0.1
 #: A count seen in this share of the frames with tips (beside the mode) is borderline.
 BORDERLINE = (0.4, 0.6)
 #: The extra limb of a borderline count is "the same limb" when its aligned tip stays
@@ -369,6 +384,7 @@ def correspond_tips(
     tips,
     *,
     features=None,
+    clear=None,
     K: int | None = None,
     reference_span: int = 150,
     max_permutations: int = 40320,
@@ -385,8 +401,12 @@ def correspond_tips(
         Further points that move with each tip (points along its limb, see
         :func:`pipeline.skeleton.limb_points`); aligned together with the
         tips, so whole skeletons are aligned rather than tips alone.
+    clear : sequence of (n_t,) bool array-like, optional
+        Which tips of each frame protrude clearly
+        (:attr:`pipeline.extremities.Extremities.clear`); lets hidden limbs count
+        (module docstring).
     K : int, optional
-        Number of limbs; default ``mode n_t``.
+        Number of limbs; default ``mode n_t`` (raised by the clear tips, when given).
     reference_span : int
         One reference frame per this many frames.
     max_permutations : int
@@ -414,10 +434,15 @@ def correspond_tips(
     if not gate > 0:
         raise ValueError(f"gate must be > 0, got {gate}")
     pts = _tip_points(frames, features)
+    clear_counts = _clear_counts(frames, clear)
     opts = dict(reference_span=reference_span, max_permutations=max_permutations, gate=gate,
                 reference_weight=reference_weight)
     if K is None:
-        return _with_counted_K(frames, pts, opts)
+        corr = _with_counted_K(frames, pts, opts)
+        hidden = _hidden_limbs(frames, clear_counts, corr.K)
+        if hidden is None:
+            return corr
+        return _correspond(frames, pts, hidden[0], hidden[1], **opts)
     return _correspond(frames, pts, int(K), "given", **opts)
 
 
@@ -435,6 +460,40 @@ def _check_tips(tips) -> list[np.ndarray]:
     if not frames:
         raise ValueError("tips must hold at least one frame")
     return frames
+
+
+def _clear_counts(frames: list[np.ndarray], clear) -> np.ndarray | None:
+    """Clear tips per frame, or None when ``clear`` is not given."""
+    if clear is None:
+        return None
+    clear = list(clear)
+    if len(clear) != len(frames):
+        raise ValueError(f"clear must have one entry per frame ({len(frames)}), got {len(clear)}")
+    out = []
+    for i, (a, c) in enumerate(zip(frames, clear)):
+        c = np.asarray(c)
+        if c.shape != (len(a),) or not (c.dtype == bool or np.isin(c, (0, 1)).all()):
+            raise ValueError(f"clear[{i}] must hold one bool per tip ({len(a)}), got shape {c.shape}")
+        out.append(int(np.count_nonzero(c)))
+    return np.asarray(out, dtype=np.int64)
+
+
+def _hidden_limbs(frames, clear_counts, K: int) -> tuple[int, str] | None:
+    """``(K, rule)`` raised by the clear tips (module docstring: hidden limbs), or None to keep ``K``."""
+    if clear_counts is None:
+        return None
+    counts = np.asarray([len(a) for a in frames])
+    with_tips = counts > 0
+    if not with_tips.any():
+        return None
+    cc = clear_counts[with_tips]
+    for n in range(int(cc.max()), K, -1):
+        share = float(np.mean(cc >= n))
+        if share >= HIDDEN_SHARE and n in counts:
+            rule = (f"hidden limbs: {n} clear tips in {100 * share:.0f} % of the frames with tips (at least "
+                    f"{100 * HIDDEN_SHARE:.0f} %); the mode count {K} misses limbs fused with the body elsewhere")
+            return n, rule
+    return None
 
 
 def _tip_points(frames: list[np.ndarray], features) -> list[np.ndarray]:

@@ -27,6 +27,14 @@ Two tests, cheapest first:
 Ties are broken by vertex index (simulation of simplicity), so flat regions
 give one maximum, not none.
 
+*Clear tips*: a tip that protrudes by at least ``CLEAR * h`` (the same
+persistence test at 1.5 times the threshold: ``0.15 sqrt(area)`` by default, the
+least that the horse's and the cat's genuine limbs protrude) is *clear*: a limb
+for sure, where a tip that barely passes ``h`` may be a bump, a fold of a carved
+hull or a ragged hand split in two. The take-level count of limbs uses it
+(:mod:`pipeline.correspond`: a limb fused with the body in some frames is hidden
+there, not absent).
+
 *Near-equal maxima*: a candidate that passes test 1 (the maximum of its own
 geodesic ``h``-ball, so at least ``h`` from any other such maximum) but fails
 test 2 is a sub-protrusion of a limb that ends in several near-equal maxima (a
@@ -53,7 +61,10 @@ from pipeline.geodesic import (
     vertex_areas,
 )
 
-__all__ = ["Extremities", "find_extremities", "local_maxima", "protrudes"]
+__all__ = ["CLEAR", "Extremities", "find_extremities", "local_maxima", "protrudes"]
+
+#: A tip that protrudes by at least this many times the threshold ``h`` is clear (module docstring).
+CLEAR = 1.5
 
 
 @dataclass(frozen=True)
@@ -76,6 +87,8 @@ class Extremities:
         Per tip, the near-equal maxima of its limb (the maxima of their own
         ``h``-ball inside the tip's ``h``-superlevel component), by decreasing
         AGD; empty arrays when the limb ends in one maximum.
+    clear : (n,) bool ndarray
+        Tips that protrude by at least ``CLEAR * threshold`` (module docstring).
     """
 
     vertices: np.ndarray
@@ -84,6 +97,7 @@ class Extremities:
     base: np.ndarray
     threshold: float
     alternates: tuple = ()
+    clear: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.vertices)
@@ -205,7 +219,11 @@ def find_extremities(
                            else _persists(agd, rank, edges, m, h))], dtype=np.int64)
     rejected = np.asarray([m for m in survivors if m not in set(tips.tolist())], dtype=np.int64)
     alternates = _alternates(agd, edges, tips, rejected, h)
-    return Extremities(vertices=tips, points=v[tips], agd=agd, base=base, threshold=h, alternates=alternates)
+    spread = float(agd[finite].max() - agd[finite].min())
+    clear = np.array([spread >= CLEAR * h if m == top else _persists(agd, rank, edges, int(m), CLEAR * h)
+                      for m in tips], dtype=bool)
+    return Extremities(vertices=tips, points=v[tips], agd=agd, base=base, threshold=h, alternates=alternates,
+                       clear=clear)
 
 
 # --------------------------------------------------------------------------- find_extremities, step by step

@@ -167,6 +167,9 @@ class FrameSkeleton:
         The near-equal maxima of the tips' limbs
         (:attr:`pipeline.extremities.Extremities.alternates`), each with the
         skeleton grown from it; :func:`build_spine` picks one per limb and take.
+    clear : (n,) bool ndarray or None
+        Tips that protrude clearly (:attr:`pipeline.extremities.Extremities.clear`); ``None``
+        when not known (a record written before it existed).
     """
 
     tips: np.ndarray
@@ -176,6 +179,7 @@ class FrameSkeleton:
     n_faces: int
     limb_points: np.ndarray
     alternates: tuple = ()
+    clear: np.ndarray | None = None
 
     @property
     def n_tips(self) -> int:
@@ -203,6 +207,7 @@ class FrameSkeleton:
             "n_faces": int(self.n_faces),
             "limb_points": self.limb_points.tolist(),
             "alternates": [a.to_dict() for a in self.alternates],
+            "clear": None if self.clear is None else np.asarray(self.clear, dtype=bool).tolist(),
         }
 
     @classmethod
@@ -215,11 +220,13 @@ class FrameSkeleton:
             n_faces=int(d["n_faces"]),
             limb_points=np.asarray(d["limb_points"], dtype=np.float64).reshape(len(d["tips"]), -1, 3),
             alternates=tuple(Alternate.from_dict(a) for a in d.get("alternates", ())),
+            clear=None if d.get("clear") is None else np.asarray(d["clear"], dtype=bool).reshape(len(d["tips"])),
         )
 
     @classmethod
     def empty(cls) -> "FrameSkeleton":
-        return cls(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), (), 0.0, 0, np.zeros((0, len(LIMB_FRACTIONS), 3)))
+        return cls(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), (), 0.0, 0, np.zeros((0, len(LIMB_FRACTIONS), 3)),
+                   clear=np.zeros(0, dtype=bool))
 
 
 def _alternate_skeletons(grow: Callable, v: np.ndarray, kept: np.ndarray, alt: list, every: np.ndarray,
@@ -313,4 +320,5 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
         n_faces=len(f),
         limb_points=lp,
         alternates=alternates,
+        clear=ext.clear.copy(),
     )

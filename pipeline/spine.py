@@ -298,6 +298,7 @@ def build_spine(
     corr = correspond_tips(
         [f.tips for f in frames],
         features=[f.limb_points for f in frames],
+        clear=None if any(f.clear is None for f in frames) else [f.clear for f in frames],
         reference_span=params.reference_span,
         max_permutations=params.max_permutations,
         gate=params.gate,

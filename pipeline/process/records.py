@@ -53,9 +53,9 @@ def skeleton_record(k: int, mesh, params, *, bodies: int | None = None) -> dict:
 
 _TIP_FIELDS = ("seed", "nodes", "parent", "cost", "frame", "count", "level", "tip_nodes")
 _ALT_FIELDS = ("tip", "point", "vertex", "limb_points", "rings", "alt_rings")  # pipeline.frame_skeleton.Alternate
-# format of a ``skeletons/`` record; 2: with the alternates. A record of another format (or none:
-# written before alternates existed, which reads as "no alternates") is recomputed on a resume.
-SKELETON_FORMAT = 2
+# format of a ``skeletons/`` record; 2: with the alternates; 3: with the clear tips. A record of another
+# format (or none: written before alternates existed, which reads as "no alternates") is recomputed on a resume.
+SKELETON_FORMAT = 3
 
 
 def skeleton_bytes(rec: dict) -> bytes:
@@ -69,6 +69,8 @@ def skeleton_bytes(rec: dict) -> bytes:
     if sk is not None:
         arrays.update(tips=sk.tips, tip_vertices=sk.tip_vertices, size=np.float64(sk.size), n_faces=np.int64(sk.n_faces),
                       limb_points=sk.limb_points, n_skeletons=np.int64(len(sk.skeletons)))
+        if sk.clear is not None:
+            arrays["clear"] = np.asarray(sk.clear, dtype=bool)
         for i, tip in enumerate(sk.skeletons):
             arrays.update({f"skeleton{i}.{name}": np.asarray(getattr(tip, name)) for name in _TIP_FIELDS})
         arrays["n_alternates"] = np.int64(len(sk.alternates))
@@ -95,6 +97,7 @@ def load_skeleton(path: Path) -> dict:
             d["alternates"] = [{**{name: z[f"alternate{j}.{name}"] for name in _ALT_FIELDS},
                                 "skeleton": {name: z[f"alternate{j}.skeleton.{name}"] for name in _TIP_FIELDS}}
                                for j in range(n_alt)]
+            d["clear"] = z["clear"] if "clear" in z else None  # an older record: not known
             rec["skeleton"] = FrameSkeleton.from_dict(d)
     return rec
 
