@@ -95,6 +95,49 @@ def test_spurious_tip_culled_and_missing_limb_null():
     np.testing.assert_array_equal(np.argsort(truth[7])[idx[c.assignment[7][seen]]], ref_lab[seen])
 
 
+def _hidden_take(T=30):
+    """The 6-tip take with limbs 1 and 4 hidden (fused with the body) in the first and last 11
+    frames, the others clear; frames 11-18 show all six clear, and a weak bump (not clear) beside
+    limb 0 in 6 of them; frame 15 adds a clear phantom. -> tips, clear flags, and per frame the
+    index of each limb's tip (-1 hidden)."""
+    tips, truth = take(T=T)
+    clear, where = [], []
+    for t in range(T):
+        keep = np.ones(6, dtype=bool)
+        if t < 11 or t >= 19:
+            keep[truth[t][[1, 4]]] = False
+        new = np.cumsum(keep) - 1  # old tip index -> new
+        where.append(np.where(keep[truth[t]], new[truth[t]], -1))
+        X, c = tips[t][keep], np.ones(int(keep.sum()), dtype=bool)
+        if 11 <= t < 17:
+            X, c = np.vstack([X, tips[t][truth[t][0]] + [0.0, 30.0, 0.0]]), np.append(c, False)
+        if t == 15:
+            X, c = np.vstack([X, [[400.0, -300.0, 200.0]]]), np.append(c, True)
+        tips[t] = X
+        clear.append(c)
+    return tips, clear, where
+
+
+def test_hidden_limbs_counted_from_clear_tips():
+    """Limbs fused with the body in most frames are hidden there, not absent: the clear tips of
+    a quarter of the take raise K from the mode (4) to 6, never to a weak bump's or a one-frame
+    phantom's count; every limb keeps its identity and the hidden ones are null."""
+    tips, clear, truth = _hidden_take()
+    assert limb_count([len(x) for x in tips]) == 4
+    assert correspond_tips(tips).K == 4  # without the clear tips: the paper's mode
+    c = correspond_tips(tips, clear=clear)
+    assert c.K == 6 and c.count_rule.startswith("hidden limbs: 6 clear tips in 27 %")
+    r = c.references[0]
+    lab = {int(np.flatnonzero(truth[r] == c.assignment[r, k])[0]) for k in range(6)}
+    assert lab == set(range(6))
+    for k in range(6):
+        limb = int(np.flatnonzero(truth[r] == c.assignment[r, k])[0])
+        for t in range(len(tips)):
+            assert c.assignment[t, k] == truth[t][limb], (t, k)
+    # clear tips never lower K: all flags off leaves the mode
+    assert correspond_tips(tips, clear=[np.zeros(len(x), dtype=bool) for x in tips]).count_rule == "mode"
+
+
 def test_large_K_uses_local_search():
     X = RNG.normal(size=(9, 3)) * 100
     p = RNG.permutation(9)
@@ -115,6 +158,10 @@ def test_invalid_input():
         correspond_tips([BASE], features=[np.zeros((2, 1, 3))])
     with pytest.raises(ValueError, match="gate"):
         correspond_tips([BASE], gate=0)
+    with pytest.raises(ValueError, match="clear"):
+        correspond_tips([BASE], clear=[np.ones(5, dtype=bool)])
+    with pytest.raises(ValueError, match="clear"):
+        correspond_tips([BASE, BASE], clear=[np.ones(6, dtype=bool)])
     with pytest.raises(ValueError, match="A and B"):
         arun_alignment(np.zeros((3, 3)), np.zeros((4, 3)))
     with pytest.raises(ValueError, match="B"):

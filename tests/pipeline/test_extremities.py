@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.extremities import find_extremities, local_maxima, protrudes
+from pipeline.extremities import CLEAR, find_extremities, local_maxima, protrudes
 from pipeline.geodesic import mesh_edges
 from tests.pipeline.shapes import capsule, forked_capsule
 
@@ -60,6 +60,23 @@ def test_fast_tests_agree_with_persistence_definition():
         if c not in set(ext.vertices.tolist()):
             assert not protrudes(ext.agd, e, int(c), ext.threshold)
     assert len(ext) == 2
+
+
+def test_clear_tips_match_the_persistence_definition_at_1_5_h():
+    """``clear`` = the slow exact persistence test at ``CLEAR * h``; a bump on a capsule's side
+    that passes ``h`` but not ``1.5 h`` is a tip that is not clear, the capsule's ends are."""
+    m = capsule()
+    v, f = np.asarray(m.vertices).copy(), np.asarray(m.faces)
+    v[:, 0] += 0.8 * (v[:, 0] > 0) * np.exp(-(v[:, 2] ** 2 + v[:, 1] ** 2) / 0.25**2)
+    e = mesh_edges(f)
+    for mp in (0.04, 0.07, 0.1, 0.15):
+        ext = find_extremities(v, f, min_protrusion=mp)
+        assert ext.clear.shape == (len(ext),) and ext.clear.dtype == bool
+        ref = [protrudes(ext.agd, e, int(t), CLEAR * ext.threshold) for t in ext.vertices]
+        assert ext.clear.tolist() == ref, mp
+    ext = find_extremities(v, f, min_protrusion=0.07)
+    bump = np.abs(ext.points[:, 2]) < 0.5
+    assert bump.sum() == 1 and not ext.clear[bump].any() and ext.clear[~bump].all()
 
 
 def test_sphere_has_no_tips_capsule_two():

@@ -381,6 +381,8 @@ def test_limb_with_near_equal_maxima_keeps_its_most_consistent_tip():
 
 
 def test_alternates_survive_the_stored_records():
+    """Alternates and clear tips survive the JSON dict and the skeleton record; a record without
+    clear tips (an older format) reads as not known."""
     from pipeline.process.records import load_skeleton, skeleton_bytes
 
     fr = frame_skeleton(*forked_take(1)[0])
@@ -395,8 +397,16 @@ def test_alternates_survive_the_stored_records():
                 p.write_bytes(skeleton_bytes({"index": 0, "status": "ok", "skeleton": fr}))
                 back = load_skeleton(p)["skeleton"]
         a, b = fr.alternates[0], back.alternates[0]
+        assert back.clear.dtype == bool and back.clear.tolist() == fr.clear.tolist()  # the clear tips too
         assert (a.tip, a.vertex) == (b.tip, b.vertex)
         np.testing.assert_array_equal(a.rings, b.rings)
         np.testing.assert_array_equal(a.alt_rings, b.alt_rings)
         np.testing.assert_allclose(a.skeleton.nodes, b.skeleton.nodes)
         np.testing.assert_allclose(a.limb_points, b.limb_points)
+    from dataclasses import replace
+
+    assert FrameSkeleton.from_dict({**fr.to_dict(), "clear": None}).clear is None
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "old.npz"
+        p.write_bytes(skeleton_bytes({"index": 0, "status": "ok", "skeleton": replace(fr, clear=None)}))
+        assert load_skeleton(p)["skeleton"].clear is None
