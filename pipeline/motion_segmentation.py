@@ -58,6 +58,10 @@ that does not move rigidly is cut in two by the normalised cut of its own
 samples when both halves are then at most half as far from rigid (the
 eigenvalue count spends clusters on large parts and can leave a small part,
 a tail, fused to its neighbour), recursively, before the merge runs again.
+Last, a segment between exactly two others whose vertices follow a per-vertex
+blend of those two segments' motions more closely than a rigid motion of
+their own is a joint's blend zone on a skinned surface, not a part, and is
+dissolved into the two (``_dissolve_blends`` of :mod:`pipeline.rigid_parts`).
 Labels are renumbered by decreasing size.
 
 Hand-written because no library computes trajectory distances; the
@@ -77,6 +81,7 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 
 from pipeline.geodesic import edge_graph, mesh_edges
 from pipeline.rigid_parts import (
+    _dissolve_blends,
     _merge_rigid,
     _peel_nonrigid,
     _some_frames,
@@ -687,6 +692,8 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
             labels = _peel_nonrigid(labels, v, edges, 2.0 * tol, min_size=min_size)
             labels = _connected_segments(labels, edges, V, min_size)
         labels = _merge_rigid(labels, v, edges, tol)
+        labels = _dissolve_blends(_connected_segments(labels, edges, V, 1), v, edges)
+        labels = _merge_rigid(_connected_segments(labels, edges, V, min_size), v, edges, tol)
         labels = _connected_segments(labels, edges, V, 1)
     if labels.max() == 0:
         log.warning("nothing bends in this sequence (the segments move rigidly together): one segment")

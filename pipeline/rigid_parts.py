@@ -6,8 +6,9 @@ how far two groups turn against each other. The motion segmentation (:mod:`pipel
 Tzionas & Gall 2016, section 4.1) refines its spectral clusters with them, in steps the paper is
 silent on (the reasons: that module's docstring): segments that move as one rigid body are merged
 (``_merge_rigid``), a segment that does not move rigidly is cut by the normalised cut of its samples
-(``_split_nonrigid``), and what does not move with a segment's rigid core is peeled off
-(``_peel_nonrigid``); those three are the segmentation's steps, not an API.
+(``_split_nonrigid``), what does not move with a segment's rigid core is peeled off
+(``_peel_nonrigid``), and a segment that is the blend zone of a joint between two others is dissolved
+into them (``_dissolve_blends``); those four are the segmentation's steps, not an API.
 """
 
 from __future__ import annotations
@@ -277,4 +278,80 @@ def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: fl
                 changed = True
         if not changed:
             break
+    return lab
+
+
+def _blend_gaps(Y: np.ndarray, Pa: np.ndarray, Pb: np.ndarray) -> np.ndarray:
+    """(n,) RMS over the frames of the distance of trajectories ``Y`` (F, n, 3) from their best blend of two
+    predictions, ``min over w in [0, 1] of |w Pa + (1 - w) Pb - Y|`` per point (closed form): the linear blend
+    skinning of a point between two bones, one weight per point."""
+    d = Pa - Pb  # Y ~ Pb + w (Pa - Pb)
+    e = Y - Pb
+    w = np.clip(np.einsum("fni,fni->n", d, e) / np.maximum(np.einsum("fni,fni->n", d, d), 1e-300), 0.0, 1.0)
+    r = e - w[None, :, None] * d
+    return np.sqrt(np.einsum("fni,fni->n", r, r) / len(Y))
+
+
+def _dissolve_blends(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, *, min_edges: int = 3,
+                     per_segment: int = 400) -> np.ndarray:
+    """Segments that are a joint's blend zone, not a part, dissolved into the two parts they join.
+
+    Skinned surfaces bend smoothly: near a joint every vertex follows a blend of the two bones' motions, in
+    proportions that change along the surface, so it follows neither bone rigidly, and the spectral step can
+    cut such a zone off as a segment of its own (a sliver whose two boundaries both become joints). A segment
+    that touches exactly two others and whose vertices follow a per-vertex blend of those two segments'
+    motions (:func:`_blend_gaps`, their core motions, :func:`_core_motion`) more closely than any one rigid
+    motion of their own (median over its vertices of the RMS distance over the frames) is such a zone: each
+    of its vertices joins the neighbour whose core motion carries it closest. A rigid part between two others
+    (a finger's middle phalanx, a limb segment) follows its own rigid motion exactly and stays; a segment
+    touching three or more is where several parts meet (a hub), whose motion carries them, and stays. The
+    zone furthest from rigid against its blend goes first, and the motions are looked at again.
+    """
+    rng = np.random.default_rng(0)
+    lab = labels.copy()
+    vf = v[_some_frames(len(v))].astype(np.float64)
+    cores: dict = {}
+    samples: dict = {}
+
+    def sample(s):
+        if s not in samples:
+            ids = np.flatnonzero(lab == s)
+            samples[s] = ids if len(ids) <= per_segment else np.sort(rng.choice(ids, per_segment, replace=False))
+        return samples[s]
+
+    def core(s):
+        if s not in cores:
+            cores[s] = _core_motion(vf[:, sample(s)])
+        return cores[s]
+
+    def predict(s, X0):
+        R, t = core(s)
+        return np.matmul(X0[None], R.transpose(0, 2, 1)) + t[:, None]
+
+    for _ in range(int(lab.max()) + 1):
+        la, lb = lab[edges[:, 0]], lab[edges[:, 1]]
+        c = la != lb
+        keys, counts = np.unique(np.c_[np.minimum(la[c], lb[c]), np.maximum(la[c], lb[c])], axis=0,
+                                 return_counts=True)
+        keys = keys[counts >= min_edges]
+        worst, worst_ratio = None, 1.0
+        for s in np.unique(lab):
+            s = int(s)
+            nb = sorted({int(b) for a, b in keys if a == s} | {int(a) for a, b in keys if b == s})
+            if len(nb) != 2:
+                continue
+            Y = vf[:, sample(s)]
+            own = float(np.median(np.sqrt((_gaps(rigid_motions(Y), Y[0], Y) ** 2).mean(0))))
+            blend = float(np.median(_blend_gaps(Y, predict(nb[0], Y[0]), predict(nb[1], Y[0]))))
+            if own > worst_ratio * blend:
+                worst, worst_ratio, pair = s, own / max(blend, 1e-300), nb
+        if worst is None:
+            break
+        ids = np.flatnonzero(lab == worst)
+        Y = vf[:, ids]
+        near = np.stack([np.sqrt((_gaps(core(n), Y[0], Y) ** 2).mean(0)) for n in pair]).argmin(0)
+        lab[ids] = np.asarray(pair)[near]
+        for s in (worst, *pair):  # their members changed: sampled and fitted again when next asked
+            samples.pop(s, None)
+            cores.pop(s, None)
     return lab

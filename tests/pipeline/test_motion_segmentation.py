@@ -157,6 +157,66 @@ def test_a_segment_that_does_not_move_rigidly_is_cut_at_its_joint():
     assert (same == 0).all()
 
 
+def _bar_chain(kind, T=8):
+    """A 300 mm bar along x cut at x = -20 and 20 mm into three labels, its right end turning by up to 60
+    degrees: ``"skinned"`` one hinge at the origin whose skinning blends the two bones' motions across the
+    middle label (linear blend skinning, weights rising smoothly from x = -20 to 20); ``"rigid"`` two hinges
+    at x = -20 and 20, the middle label a rigid part turning by half as much (a uniform curl)."""
+    from pipeline.geodesic import mesh_edges
+
+    m = trimesh.creation.box(extents=(300, 20, 20))
+    for _ in range(3):
+        m = m.subdivide()
+    x0 = np.asarray(m.vertices)
+    lab = np.digitize(x0[:, 0], [-20.0, 20.0]).astype(np.int64)
+
+    def turn(p, ang, about):
+        c, s = np.cos(ang), np.sin(ang)
+        return (p - about) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + about
+
+    frames = []
+    for ang in np.linspace(0, np.pi / 3, T):
+        if kind == "skinned":
+            u = np.clip((x0[:, :1] + 20.0) / 40.0, 0.0, 1.0)
+            w = u * u * (3 - 2 * u)
+            frames.append((1 - w) * x0 + w * turn(x0, ang, np.zeros(3)))
+        else:
+            v = x0.copy()
+            a, b = np.array([-20.0, 0, 0]), np.array([20.0, 0, 0])
+            v[lab == 1] = turn(x0[lab == 1], ang / 2, a)
+            v[lab == 2] = turn(turn(x0[lab == 2], ang / 2, b), ang / 2, a)
+            frames.append(v)
+    return np.asarray(frames), mesh_edges(np.asarray(m.faces)), lab
+
+
+def test_blend_gaps_match_a_search_over_the_weight():
+    from pipeline.rigid_parts import _blend_gaps
+
+    rng = np.random.default_rng(5)
+    Pa, Pb = rng.normal(size=(2, 6, 40, 3))
+    w = rng.uniform(-0.5, 1.5, size=40)  # some outside [0, 1]: the weight is clipped there
+    Y = w[None, :, None] * Pa + (1 - w[None, :, None]) * Pb + rng.normal(scale=0.1, size=(6, 40, 3))
+    grid = np.linspace(0, 1, 4001)
+    slow = [np.sqrt(((grid[:, None, None] * Pa[:, i] + (1 - grid[:, None, None]) * Pb[:, i] - Y[:, i]) ** 2)
+                    .sum(2).mean(1)).min() for i in range(40)]
+    np.testing.assert_allclose(_blend_gaps(Y, Pa, Pb), slow, rtol=1e-5, atol=1e-6)
+
+
+def test_a_joints_blend_zone_is_dissolved_a_rigid_part_between_two_is_not():
+    """A skinned hinge's blend zone cut off as a segment joins the two parts, each vertex the one whose motion
+    carries it closest; a rigid middle part of a uniform curl (the same labels) stays."""
+    from pipeline.rigid_parts import _dissolve_blends
+
+    V, E, lab = _bar_chain("skinned")
+    out = _dissolve_blends(lab, V, E)
+    x = V[0][:, 0]
+    assert set(np.unique(out)) == {0, 2}
+    assert (out[x < -20] == 0).all() and (out[x > 20] == 2).all()
+    assert (out[x < -8] == 0).all() and (out[x > 8] == 2).all()  # the zone split near its middle
+    V, E, lab = _bar_chain("rigid")
+    np.testing.assert_array_equal(_dissolve_blends(lab, V, E), lab)
+
+
 def test_rigid_sequence_is_one_segment(caplog):
     V, F, _ = two_bars(8)
     Vr = np.repeat(V[:1], 8, axis=0) + np.linspace(0, 80, 8)[:, None, None]  # translates, nothing bends
