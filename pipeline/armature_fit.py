@@ -46,7 +46,8 @@ from scipy.spatial.transform import Rotation
 from pipeline.armature_skeleton import ArticulatedSkeleton
 from pipeline.skinning import bone_heat_weights, limit_influences
 
-__all__ = ["ArticulatedModel", "Pose", "articulated_model", "fit_frame", "fit_sequence", "predict_pose", "FitResult"]
+__all__ = ["ArticulatedModel", "Pose", "articulated_model", "fit_frame", "fit_subset", "fit_sequence", "predict_pose",
+           "FitResult"]
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +158,27 @@ class ArticulatedModel:
         P = self.skeleton.n_parts
         T = W @ np.concatenate([pose.R.reshape(P, 9), pose.t], 1)  # (V, 12)
         return np.einsum("vij,vj->vi", T[:, :9].reshape(-1, 3, 3), x) + T[:, 9:]
+
+    def posed_subset(self, pose: Pose, n: int | None) -> tuple[np.ndarray, np.ndarray]:
+        """The vertices ``subset(n)`` posed, (S, 3), and their unit area-weighted normals in the posed
+        mesh, (S, 3): :func:`pipeline.mesh_primitives.vertex_normals` of the whole posed mesh at those
+        rows, from the faces around them alone (the same sums in the same order)."""
+        key = ("ring", n)
+        if key not in self._cache:
+            from pipeline.mesh_primitives import summing_matrix
+
+            rows = self.subset(n)
+            faces = self.faces[np.isin(self.faces, rows).any(axis=1)]
+            ring = np.unique(faces)
+            local = np.searchsorted(ring, faces)
+            corners = summing_matrix(local.ravel(), len(ring))[np.searchsorted(ring, rows)]
+            self._cache[key] = (ring, local, corners, np.searchsorted(ring, rows))
+        ring, f, corners, at = self._cache[key]
+        v = self.deform(pose, ring)
+        fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        nrm = corners @ np.repeat(fn, 3, axis=0)
+        nn = np.linalg.norm(nrm, axis=1, keepdims=True)
+        return v[at], nrm / np.where(nn > 0, nn, 1.0)
 
     def joint_positions(self, pose: Pose) -> np.ndarray:
         """(J, 3) joints in a pose."""
@@ -330,12 +352,41 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
     if y.shape != model.vertices.shape:
         raise ValueError(f"target must have shape {model.vertices.shape}, got {y.shape}")
     pose = procrustes_pose(model, y) if start is None else start
+    pose = fit_subset(model, y[model.subset(max_points)], pose, iterations=iterations, tol=tol, max_points=max_points)
+    act = None if model.active is None else model.subset(None)
+    err = float(np.linalg.norm(model.deform(pose, act) - (y if act is None else y[act]), axis=1).mean())
+    return pose, err
+
+
+def fit_subset(model: ArticulatedModel, target, start: Pose, *, iterations: int = 10, tol: float = 1e-5,
+               max_points: int | None = 3000) -> Pose:
+    """:func:`fit_frame` given only the targets of its least-squares subset (``model.subset(max_points)``,
+    in that order), without the error over all vertices: what an articulated ICP needs, whose
+    targets exist only where it paired vertices.
+
+    Parameters
+    ----------
+    model : ArticulatedModel
+    target : (S, 3) float ndarray
+        Targets of the vertices ``model.subset(max_points)``.
+    start : Pose
+    iterations, tol, max_points
+        As :func:`fit_frame`'s.
+
+    Returns
+    -------
+    Pose
+    """
+    sub = model.subset(max_points)
+    y = np.asarray(target, dtype=np.float64)
+    if y.shape != (len(sub), 3):
+        raise ValueError(f"target must have shape {(len(sub), 3)} (the subset's vertices), got {y.shape}")
+    if not isinstance(start, Pose):
+        raise ValueError(f"start must be a Pose, got {type(start).__name__}")
+    pose = start
     sk = model.skeleton
     P = sk.n_parts
-    y_all = y
-    sub = model.subset(max_points)
     x = model.vertices[sub]
-    y = y[sub]
     size = float(np.linalg.norm(x.max(0) - x.min(0))) or 1.0
     lsq = _lsq_weights(model, max_points)
 
@@ -378,9 +429,7 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
             mu *= 4.0
             if mu > 1e8:
                 break
-    act = None if model.active is None else model.subset(None)
-    err = float(np.linalg.norm(model.deform(pose, act) - (y_all if act is None else y_all[act]), axis=1).mean())
-    return pose, err
+    return pose
 
 
 def _lsq_weights(model: ArticulatedModel, max_points: int | None) -> dict:

@@ -34,8 +34,7 @@ import numbers
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.armature_fit import ArticulatedModel, Pose, fit_frame
-from pipeline.mesh_primitives import vertex_normals
+from pipeline.armature_fit import ArticulatedModel, Pose, fit_subset
 from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs
 
 __all__ = ["fit_pose_to_surface", "surface_residual", "ArmatureTracker"]
@@ -122,16 +121,14 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
     tree = cKDTree(X) if tree is None else tree
-    sub = model.subset(int(max_points))
-    n = len(model.vertices)
+    n = len(model.subset(int(max_points)))
     pose = start
     for r in range(int(rounds)):
         gr = 2.0 * g if r < int(rounds) // 2 else g
-        S = model.deform(pose)
-        vn = vertex_normals(S, model.faces)
-        i, j = closest_pairs(S[sub], vn[sub], tree, N, gate=gr)
-        jd, iv = closest_pairs(X, N, cKDTree(S[sub]), vn[sub], gate=gr)
-        pv = sub[np.concatenate([i, iv])]
+        S, vn = model.posed_subset(pose, int(max_points))  # only the paired vertices are posed
+        i, j = closest_pairs(S, vn, tree, N, gate=gr)
+        jd, iv = closest_pairs(X, N, cKDTree(S), vn, gate=gr)
+        pv = np.concatenate([i, iv])
         px = np.concatenate([X[j], X[jd]])
         pn = np.concatenate([N[j], N[jd]])
         if len(pv) == 0:
@@ -140,7 +137,7 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
         count = np.bincount(pv, minlength=n).astype(np.float64)
         moved = np.stack([np.bincount(pv, weights=shift[:, c], minlength=n) for c in range(3)], axis=1)
         target = S + moved / np.maximum(count, 1.0)[:, None]  # unpaired vertices stay where they are
-        pose, _ = fit_frame(model, target, pose, iterations=int(iterations), max_points=int(max_points))
+        pose = fit_subset(model, target, pose, iterations=int(iterations), max_points=int(max_points))
     return pose, surface_residual(model.deform(pose), X, gate=g, tree=tree)
 
 

@@ -69,3 +69,24 @@ def test_normal_equations_match_the_dense_jacobian():
     assert abs(sse - sse0) <= 1e-9 * sse0
     np.testing.assert_allclose(H, H0, rtol=0, atol=1e-9 * np.abs(H0).max())
     np.testing.assert_allclose(g, g0, rtol=0, atol=1e-9 * np.abs(g0).max())
+
+
+def test_fit_subset_is_fit_frame_on_its_rows():
+    """``fit_subset`` given the least-squares subset's targets lands on the pose ``fit_frame`` finds from the
+    whole frame (the same iterations), and says what is wrong with its input."""
+    import pytest
+
+    from pipeline.armature_fit import fit_subset
+
+    m = chain_model(12, 6)
+    P = m.skeleton.n_parts
+    R = Rotation.from_rotvec(np.random.default_rng(3).normal(scale=0.1, size=(P, 3))).as_matrix()
+    target = m.deform(_forward(m, R[0], np.zeros(3), R))
+    pose, _ = fit_frame(m, target, m.identity(), iterations=4, max_points=40)
+    alone = fit_subset(m, target[m.subset(40)], m.identity(), iterations=4, max_points=40)
+    np.testing.assert_array_equal(alone.R, pose.R)
+    np.testing.assert_array_equal(alone.t, pose.t)
+    with pytest.raises(ValueError, match="target"):
+        fit_subset(m, target, m.identity(), max_points=40)
+    with pytest.raises(ValueError, match="start"):
+        fit_subset(m, target[m.subset(40)], "pose", max_points=40)

@@ -49,6 +49,18 @@ def test_pose_on_the_surface_matches_the_fit_by_correspondence(sequence):
         assert res == pytest.approx(surface_residual(rig.model.deform(pose), X, gate=20.0))
 
 
+def test_posed_subset_is_the_posed_mesh_at_those_rows(sequence):
+    """The ICP's posed subset and its normals, from the faces around it alone, equal the whole posed
+    mesh's vertices and vertex normals at those rows."""
+    _, rig = sequence
+    m, pose = rig.model, rig.fit.poses[5]
+    S, vn = m.posed_subset(pose, 300)
+    full = m.deform(pose)
+    rows = m.subset(300)
+    np.testing.assert_allclose(S, full[rows], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(vn, vertex_normals(full, m.faces)[rows], rtol=0, atol=1e-12)
+
+
 def test_surface_residual_exact():
     V = np.array([[0.0, 0, 0], [10.0, 0, 0]])
     X = np.array([[0.0, 0, 1.0], [0.0, 0, 50.0]])
