@@ -9,7 +9,8 @@ preprocessing, z-buffer visibility, colour tracks, the rounds with the previous-
 the ``tracked/`` file; not the rigid ICP placement, once per take), and the take reads of those
 frames, timed apart, are printed beside it. Also times the solver backends (one numeric
 refactorisation + solve of the 15 per frame), and the prediction and one round's solve with the
-previous-shape prior on the multi-view loop's last frames. With ``--accuracy`` the simulated
+previous-shape prior on the multi-view loop's last frames, and the armature mode's CPU seconds a frame
+at 6k vertices (:func:`armature_seconds`). With ``--accuracy`` the simulated
 multi-view takes are also tracked on their true surfaces
 (:func:`fake_cameras.surface_motion.true_surface`), the tracker's error apart from the surfaces',
 and on their surfaces carved across time (:mod:`pipeline.carve`, two rounds).
@@ -29,7 +30,8 @@ NAME = "track"
 # degrees a frame on average (up to 31 frames; the simulator's bend is at most 150): the pipe bends at one rate
 # whatever --frames is, since the work of a frame grows with its motion
 BEND_PER_FRAME = 5.0
-HELP = "seconds per frame of template tracking for 6k / 25k-vertex templates (multi-view and single RGB-D)"
+HELP = ("seconds per frame of template tracking for 6k / 25k-vertex templates (multi-view and single RGB-D), "
+        "and of the armature mode at 6k")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -150,6 +152,42 @@ def fast_accuracy() -> None:
                 track_with_armature(res, rig.model, poses=poses)
                 _fast_row(f"{name}, the armature of the true motion {label}", sim, res, frames,
                           (time.process_time() - t0) / frames)
+
+
+#: Voxels along the subject of the take :func:`armature_seconds` times: its template has about 6,000
+#: vertices (6,018), the size the armature mode's cost is budgeted at (1 CPU s a frame).
+ARMATURE_RESOLUTION = 67
+
+
+def armature_seconds(frames: int = 16) -> None:
+    """CPU seconds a frame of the armature mode at 6k vertices: the fast quadruped of :data:`FAST_TAKES`
+    (10 fps, 8 cameras, 640x480), processed on a grid of :data:`ARMATURE_RESOLUTION` voxels along the
+    subject, tracked with the defaults (``stage track``), then tracked again with its armature, one
+    round (``stage track --armature-rounds 1``): the process CPU time of
+    :func:`pipeline.track_armature.track_with_armature` (building the armature, the spine's starts, every
+    frame's articulated ICP and template fit; one BLAS thread) over the frames, and its wall time."""
+    import tempfile
+    from pathlib import Path
+
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
+    from pipeline.process import process_take
+    from pipeline.track import track_results
+    from pipeline.track_armature import track_with_armature
+
+    with tempfile.TemporaryDirectory() as tmp:
+        sim = simulate_take("quadruped", n_cameras=8, frames=frames, size=(640, 480), seed=3, fps=10.0)
+        take = record_take(sim, Path(tmp) / "quadruped.h5")
+        res = Path(tmp) / "results"
+        process_take(take, res, params={"resolution": ARMATURE_RESOLUTION}, executor=None)
+        t0 = time.process_time()
+        rep = track_results(res)
+        default = (time.process_time() - t0) / frames
+        t0, w0 = time.process_time(), time.perf_counter()
+        track_with_armature(res, rounds=1)
+        cpu, wall = (time.process_time() - t0) / frames, (time.perf_counter() - w0) / frames
+    print(f"{rep['vertices']:6d} vertices  armature mode (fast quadruped, 10 fps, {frames} frames): {cpu:.2f} CPU s per frame "
+          f"a round (--armature-rounds 1; {wall:.2f} s wall), on top of the default tracking's {default:.2f}")
 
 
 def _fast_row(label: str, sim, res, frames: int, cpu: float) -> None:
@@ -420,6 +458,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{len(V):6d} vertices  of which: prediction {1000 * (t1 - t0) / 5:.1f} ms a frame "
               f"({1000 * (t2 - t1) / 5:.1f} building its matrices in the call), "
               f"one round's solve with the previous-shape prior {1000 * (time.perf_counter() - t2) / 5:.1f} ms")
+    armature_seconds()
     if args.accuracy:
         accuracy()
         real_pipe_accuracy()
