@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 from pipeline.armature_fit import ArticulatedModel, Pose, fit_subset
 from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs
 
-__all__ = ["fit_pose_to_surface", "surface_residual", "ArmatureTracker"]
+__all__ = ["fit_pose_to_surface", "surface_residual", "mark_points", "mark_residual", "ArmatureTracker"]
 
 
 def _check_points(points, normals) -> tuple[np.ndarray, np.ndarray]:
@@ -84,7 +84,7 @@ def surface_residual(vertices, points, *, gate: float, tree=None) -> float:
 
 
 def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *, gate: float, rounds: int = 6,
-                        iterations: int = 3, max_points: int = 2000, tree=None) -> tuple[Pose, float]:
+                        iterations: int = 3, max_points: int = 2000, tree=None, marks=None) -> tuple[Pose, float]:
     """The armature's pose on a surface: articulated ICP, point-to-plane (see the module docstring).
 
     Parameters
@@ -104,6 +104,10 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
         Vertices paired and fitted (a fixed, evenly drawn subset, :meth:`ArticulatedModel.subset`).
     tree : scipy.spatial.cKDTree, optional
         Over ``points``.
+    marks : ((M,) int, (M, 3) float) ndarrays, optional
+        Where the images say some vertices went (:func:`mark_points`): each round, a marked vertex
+        within the round's gate of its mark has its target moved halfway to it (the surface pairs
+        cannot see a round part's turn about its own axis; the images can).
 
     Returns
     -------
@@ -120,6 +124,7 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
     for value, name in ((rounds, "rounds"), (iterations, "iterations"), (max_points, "max_points")):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    marks = _subset_marks(_check_marks(marks, len(model.vertices)), model.subset(int(max_points)))
     tree = cKDTree(X) if tree is None else tree
     n = len(model.subset(int(max_points)))
     pose = start
@@ -137,8 +142,64 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
         count = np.bincount(pv, minlength=n).astype(np.float64)
         moved = np.stack([np.bincount(pv, weights=shift[:, c], minlength=n) for c in range(3)], axis=1)
         target = S + moved / np.maximum(count, 1.0)[:, None]  # unpaired vertices stay where they are
+        if marks is not None:
+            _pull_to_marks(target, S, marks, gr)
         pose = fit_subset(model, target, pose, iterations=int(iterations), max_points=int(max_points))
     return pose, surface_residual(model.deform(pose), X, gate=g, tree=tree)
+
+
+def _check_marks(marks, n: int):
+    if marks is None:
+        return None
+    try:
+        v, x = np.asarray(marks[0]), np.asarray(marks[1], dtype=np.float64)
+    except (TypeError, IndexError, ValueError):
+        raise ValueError("marks must be a pair ((M,) vertex indices, (M, 3) points)") from None
+    if v.ndim != 1 or not np.issubdtype(v.dtype, np.integer) or x.shape != (len(v), 3) or len(v) == 0 \
+            or v.min() < 0 or v.max() >= n or not np.isfinite(x).all():
+        raise ValueError(f"marks must be a pair ((M,) vertex indices in 0..{n - 1}, (M, 3) finite points), M > 0, "
+                         f"got shapes {v.shape} and {x.shape}")
+    return v, x
+
+
+def _subset_marks(marks, sub: np.ndarray):
+    """The marks of the vertices in ``sub`` (sorted vertex indices), as positions in it (None without any)."""
+    if marks is None:
+        return None
+    pos = np.minimum(np.searchsorted(sub, marks[0]), len(sub) - 1)
+    hit = sub[pos] == marks[0]
+    return (pos[hit], marks[1][hit]) if hit.any() else None
+
+
+def mark_points(tracks, n: int):
+    """Colour feature tracks (``(idx, targets, rays)``, :func:`pipeline.track_colour.multiview_tracks_for`) as marks:
+    ((M,) int vertices, (M, 3) float points), every vertex with two rays or more at the point nearest them."""
+    from pipeline.colour_tracks import ray_points
+
+    if tracks is None or len(tracks[0]) == 0:
+        return None
+    ok, x = ray_points(*tracks[:3], n)
+    v = np.flatnonzero(ok)
+    return (v, x[v]) if len(v) else None
+
+
+#: How far a marked vertex's target moves from the surface pairs' towards its mark, each round of the ICP.
+MARK_PULL = 0.5
+
+
+def _pull_to_marks(target: np.ndarray, S: np.ndarray, marks, gate: float) -> None:
+    """Move the targets of the marked vertices within ``gate`` of their mark :data:`MARK_PULL` of the way to it."""
+    v, x = marks
+    near = np.linalg.norm(x - S[v], axis=1) <= gate
+    target[v[near]] += MARK_PULL * (x[near] - target[v[near]])
+
+
+def mark_residual(vertices, marks, *, gate: float) -> float:
+    """Mean distance of the marked vertices from their marks, each clipped at ``gate`` (0 without marks)."""
+    if marks is None:
+        return 0.0
+    v, x = marks
+    return float(np.minimum(np.linalg.norm(np.asarray(vertices)[v] - x, axis=1), gate).mean())
 
 
 class ArmatureTracker:
@@ -173,7 +234,7 @@ class ArmatureTracker:
                 raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
         self.rounds, self.iterations, self.max_points = int(rounds), int(iterations), int(max_points)
 
-    def fit(self, points, normals, *, previous, candidates) -> tuple[FrameFit, Pose, float]:
+    def fit(self, points, normals, *, previous, candidates, tracks=None) -> tuple[FrameFit, Pose, float]:
         """One frame: the best candidate's pose on the surface, then the template fitted from its
         skinned pose and drawn towards it.
 
@@ -184,6 +245,11 @@ class ArmatureTracker:
             The template on the previous frame.
         candidates : sequence of Pose
             Starts of the articulated ICP (at least one; a start given twice is fitted once).
+        tracks : ((T,) int, (T, 3) float, (T, 3) float) ndarrays, optional
+            Colour feature tracks across the take's cameras (vertices, a point on each track's ray,
+            the ray; :func:`pipeline.track_colour.multiview_tracks_for`): as marks (:func:`mark_points`)
+            in the ICP and in the choice of its start (the surface residual plus
+            :func:`mark_residual`), and as the template fit's ``tracks``.
 
         Returns
         -------
@@ -202,15 +268,19 @@ class ArmatureTracker:
         if not cands:
             raise ValueError("candidates must hold at least one Pose")
         tree = cKDTree(X)
-        kw = dict(iterations=self.iterations, max_points=self.max_points, tree=tree)
+        marks = mark_points(tracks, len(self.model.vertices))
+        kw = dict(iterations=self.iterations, max_points=self.max_points, tree=tree, marks=marks)
         coarse = max(1, self.rounds // 3)  # every candidate's first rounds at twice the gate, then the best one on
         best = None
+        g2 = 2.0 * self.tracker.gate
         for c in cands:
-            pose, res = fit_pose_to_surface(self.model, c, X, N, gate=2.0 * self.tracker.gate, rounds=coarse, **kw)
-            if best is None or res < best[1]:
-                best = (pose, res)
+            pose, res = fit_pose_to_surface(self.model, c, X, N, gate=g2, rounds=coarse, **kw)
+            score = res + (mark_residual(self.model.deform(pose), marks, gate=g2) if marks is not None else 0.0)
+            if best is None or score < best[1]:
+                best = (pose, score)
         pose, res = fit_pose_to_surface(self.model, best[0], X, N, gate=self.tracker.gate, rounds=self.rounds - coarse,
                                         **kw)
         skinned = self.model.deform(pose)
-        fit = self.tracker.fit(X, N, previous=previous, init=skinned, anchor=(skinned, self.weight))
+        fit = self.tracker.fit(X, N, previous=previous, init=skinned, anchor=(skinned, self.weight),
+                               tracks=None if marks is None else tracks)
         return fit, pose, res

@@ -42,7 +42,7 @@ import numpy as np
 
 from calib.camera import Camera
 
-__all__ = ["colour_tracks"]
+__all__ = ["colour_tracks", "ray_points"]
 
 
 def _gray(image) -> np.ndarray:
@@ -405,3 +405,39 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
     ok &= lifted
     rays = pts[ok] - camera.center
     return idx[ok], pts[ok], rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+
+
+def ray_points(idx, targets, rays, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex, the point nearest all its tracks' viewing rays (least squares).
+
+    Parameters
+    ----------
+    idx : (T,) int ndarray
+        The vertex of every track.
+    targets : (T, 3) float ndarray
+        A point on every track's ray.
+    rays : (T, 3) float ndarray
+        Unit directions of the rays.
+    n : int
+        Vertices.
+
+    Returns
+    -------
+    ok : (n,) bool ndarray
+        Vertices with two rays or more that are not parallel (their point is determined).
+    points : (n, 3) float ndarray
+        The point of every ``ok`` vertex (zero elsewhere).
+    """
+    idx = np.asarray(idx, dtype=np.int64)
+    targets = np.asarray(targets, dtype=np.float64)
+    rays = np.asarray(rays, dtype=np.float64)
+    P = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]  # projectors across each ray
+    A = np.zeros((n, 3, 3))
+    b = np.zeros((n, 3))
+    np.add.at(A, idx, P)
+    np.add.at(b, idx, np.einsum("tij,tj->ti", P, targets))
+    ok = np.bincount(idx, minlength=n) >= 2
+    ok[ok] = np.linalg.cond(A[ok]) < 1e6
+    x = np.zeros((n, 3))
+    x[ok] = np.linalg.solve(A[ok], b[ok][:, :, None])[:, :, 0]
+    return ok, x

@@ -37,7 +37,7 @@ ARMATURE_ICP_POINTS = 1000
 
 
 def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | str = 1, weight: float = 2.0,
-                   lambda_thr: float = 0.98, progress=None) -> dict:
+                   lambda_thr: float = 0.98, colour: bool = False, progress=None) -> dict:
     """Track a tracked results directory again with an armature as the articulated prior.
 
     Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
@@ -74,6 +74,13 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         threshold for small parts with small motion, its finest: a prior tolerates a rigid part
         cut in two, not two parts fused into one segment (a drifting first tracking fuses
         limbs at the paper's 0.7).
+    colour : bool
+        Follow the template in every camera's colour images too (``stage track --colour``,
+        :func:`pipeline.track_colour.multiview_colour`, started from the skinned constant-velocity
+        prediction): the tracks pull the articulated ICP's vertices, count in the choice of its start
+        and enter the template fit (:meth:`pipeline.armature_track.ArmatureTracker.fit`, ``tracks``). The
+        surfaces cannot see a round limb's turn about its own axis; the images can. Without the take's
+        images, masks or calibration one line says so and the surfaces alone are used.
     progress : callable(step, done, total), optional
 
     Returns
@@ -100,9 +107,13 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     spine = _spine_steps(root, frames, by_frame, vs[refi])
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(1, "blas"):  # the articulated fits' small dense products: threads only contend
+    from pipeline.track_colour import multiview_colour
+
+    with threadpool_limits(1, "blas"), \
+            multiview_colour(root, faces, 0.3 * tracker.gate, enabled=bool(colour), corners=tracker.corner_sum) as tracks_for:
+        # (the articulated fits' small dense products: threads only contend)
         history, best = _armature_rounds(model, poses, int(rounds), vs, faces, frames, refi, by_frame, root, tracker,
-                                         weight, lambda_thr, progress, spine)
+                                         weight, lambda_thr, progress, spine, tracks_for)
     kept, _, per = best
     if kept != len(history) - 1:  # the last round did not help: the best round's tracking again
         for k in per["figures"]:
@@ -110,19 +121,20 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
     report["rig_rounds"] = kept + 1
     report["rig_prior"] = {"weight": float(weight), "lambda_thr": float(lambda_thr), "max_rounds": int(rounds),
-                           "kept_round": kept + 1, "rounds": history}
+                           "kept_round": kept + 1, "colour_tracks": tracks_for is not None, "rounds": history}
     write_report(root, report)
     return report
 
 
 def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_frame, root, tracker, weight, lambda_thr,
-                     progress, spine):
+                     progress, spine, tracks_for=None):
     """The rounds of :func:`track_with_armature`: -> (history, (kept round, its residual, its tracking))."""
     history, best = [], None
     for r in range(1 if model is not None else rounds):
         use, by_pose, entry = (model, dict(poses or {}), {"segments": None, "fit_error_mm": None}) if model is not None \
             else _rig_of(vs, faces, frames, refi, lambda_thr)
-        per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine)
+        per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine,
+                         tracks_for=tracks_for)
         res = [f["rig_residual_mm"] for f in per["figures"].values()]
         entry["residual_mm"] = round(float(np.mean(res)), 4) if res else None
         history.append(entry)
@@ -163,10 +175,11 @@ def _rig_of(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, lam
 
 
 def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int], refi: int, by_frame: dict, root: Path,
-               faces: np.ndarray, weight: float, progress, spine=None) -> dict:
+               faces: np.ndarray, weight: float, progress, spine=None, tracks_for=None) -> dict:
     """One tracking of every frame but the reference with ``model`` as the prior; -> {"vertices": frame -> (V, 3),
     "figures": frame -> per-frame figures}. ``spine``: ``step(k, k_prev)`` -> the spine's skinned step of the
-    template from frame ``k_prev`` to ``k`` (:func:`_spine_steps`), or None."""
+    template from frame ``k_prev`` to ``k`` (:func:`_spine_steps`), or None. ``tracks_for``: the colour
+    tracks (:func:`pipeline.track_colour.multiview_tracks_for`), or None."""
     from pipeline.armature_fit import predict_pose
     from pipeline.armature_track import ArmatureTracker, fit_pose_to_surface
 
@@ -188,7 +201,10 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
             if data is not None:
                 cands = [pose] + ([predict_pose(model, pose, before)] if before is not None else []) + \
                     ([by_pose[k]] if k in by_pose else []) + _spine_pose(model, pose, spine, k, prev_k)
-                fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands)
+                tracks = None
+                if tracks_for is not None:  # followed from the previous frame, started at the skinned prediction
+                    tracks = tracks_for(k, prev_k, prev, None, model.deform(cands[1]) if before is not None else prev)
+                fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands, tracks=tracks)
                 prev, before, pose, prev_k = fit.vertices, pose, new_pose, k
                 write_frame(root, k, prev, faces)
                 out["figures"][k] = {"rig_residual_mm": round(res, 4), "residual_mm": round(fit.residual, 4),

@@ -144,16 +144,10 @@ def agreeing_rays(idx: np.ndarray, targets: np.ndarray, rays: np.ndarray, n: int
     times the median such distance of that point. A single camera's track cannot be checked
     and is dropped: a track held back by the static shading, or caught on a shadow, has no
     second view to contradict it."""
+    from pipeline.colour_tracks import ray_points
+
+    ok, x = ray_points(idx, targets, rays, n)
     P = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]  # projectors across each ray
-    A = np.zeros((n, 3, 3))
-    b = np.zeros((n, 3))
-    np.add.at(A, idx, P)
-    np.add.at(b, idx, np.einsum("tij,tj->ti", P, targets))
-    count = np.bincount(idx, minlength=n)
-    ok = count >= 2
-    ok[ok] = np.linalg.cond(A[ok]) < 1e6
-    x = np.zeros((n, 3))
-    x[ok] = np.linalg.solve(A[ok], b[ok][:, :, None])[:, :, 0]
     keep = ok[idx]
     dist = np.linalg.norm(np.einsum("tij,tj->ti", P, x[idx] - targets), axis=1)
     if keep.any():

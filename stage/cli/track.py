@@ -58,8 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "rest frame the template's, the finest segments) and track every frame again with it as the articulated "
                    "prior (its skinned pose on each frame's surface as the start, every vertex drawn to it); build it again "
                    "from that tracking and repeat while the armature explains the surfaces better, at most ROUNDS times, "
-                   "keeping the best round; 'auto' = at most 4 (default 0: off). Only as good as the armature's segments, "
-                   "see docs/tracking.md. --rig-rounds: the old name, kept for one release")
+                   "keeping the best round; 'auto' = at most 4 (default 0: off). With --colour the colour tracks pull the "
+                   "armature's pose too (they see a round limb's turn about its own axis, which the surfaces cannot). Only as "
+                   "good as the armature's segments, see docs/tracking.md. --rig-rounds: the old name, kept for one release")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -167,7 +168,7 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
     if args.rig_rounds:
         from pipeline.track_armature import track_with_armature
 
-        rep = track_with_armature(src, rounds=args.rig_rounds, progress=bars)
+        rep = track_with_armature(src, rounds=args.rig_rounds, colour=args.colour, progress=bars)
     return rep
 
 

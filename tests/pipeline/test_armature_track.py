@@ -97,6 +97,10 @@ def test_invalid_input(sequence):
         fit_pose_to_surface(rig.model, pose, X, N, gate=0.0)
     with pytest.raises(ValueError, match="rounds"):
         fit_pose_to_surface(rig.model, pose, X, N, gate=10.0, rounds=0)
+    with pytest.raises(ValueError, match="marks"):
+        fit_pose_to_surface(rig.model, pose, X, N, gate=10.0, marks=(np.array([0, len(X) + 5]), X[:2]))
+    with pytest.raises(ValueError, match="marks"):
+        fit_pose_to_surface(rig.model, pose, X, N, gate=10.0, marks=(np.array([0]), X[:2]))
     with pytest.raises(ValueError, match="gate"):
         surface_residual(X, X, gate=-1.0)
     with pytest.raises(ValueError, match="vertices"):
@@ -225,3 +229,73 @@ def test_track_with_rig_invalid_input(tmp_path):
     with pytest.raises(SystemExit):  # argparse: "must be a count >= 0 or 'auto'"
         main(["-q", "track", str(res), "--armature-rounds", "-1"])
 
+
+
+def _tube(rings: int = 9, per: int = 8, length: float = 80.0, radius: float = 6.0):
+    """A tube along x of ``rings`` rings of ``per`` vertices, bound to two parts that meet halfway (a joint)."""
+    from pipeline.armature_fit import ArticulatedModel
+    from pipeline.armature_skeleton import ArticulatedSkeleton
+
+    a = np.linspace(0, 2 * np.pi, per, endpoint=False)
+    xs = np.linspace(0, length, rings)
+    v = np.concatenate([np.c_[np.full(per, x), radius * np.cos(a), radius * np.sin(a)] for x in xs])
+    f = []
+    for r in range(rings - 1):
+        for i in range(per):
+            p, q = r * per + i, r * per + (i + 1) % per
+            f += [[p, q, q + per], [p, q + per, p + per]]
+    sk = ArticulatedSkeleton(names=("root", "joint1", "aux0"), parents=np.array([-1, 0, 1]),
+                             rest=np.array([[0.0, 0, 0], [length / 2, 0, 0], [length, 0, 0]]),
+                             articulation=np.array([False, True, False]), segment_pairs=(None,) * 3,
+                             part=np.array([0, 1, 1]), part_joint=np.array([0, 1]), part_parent=np.array([-1, 0]),
+                             bones=np.array([[0, 1], [1, 2]]))
+    part = (v[:, 0] > length / 2).astype(np.int64)
+    return ArticulatedModel(v, np.array(f), sk, part[:, None], np.ones((len(v), 1))), part
+
+
+def test_marks_turn_a_round_part_the_surface_cannot():
+    """A tube's half turned about its own axis by one vertex spacing lies on the same surface (the
+    residual is 0): the ICP alone keeps the turn; with marks (where the images say half of its
+    vertices went) the half turns back towards its place. Reference: the rest shape, exact."""
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.armature_fit import _forward
+    from pipeline.armature_track import mark_points, mark_residual
+
+    model, part = _tube()
+    X, N = model.vertices, vertex_normals(model.vertices, model.faces)
+    turned = _forward(model, np.eye(3), np.zeros(3), np.stack([np.eye(3), Rotation.from_rotvec([np.pi / 4, 0, 0]).as_matrix()]))
+    start_gap = np.linalg.norm(model.deform(turned) - X, axis=1)[part == 1].mean()
+    assert surface_residual(model.deform(turned), X, gate=10.0) == pytest.approx(0.0, abs=1e-9) and start_gap > 4.0
+    alone, _ = fit_pose_to_surface(model, turned, X, N, gate=10.0)
+    assert np.linalg.norm(model.deform(alone) - X, axis=1)[part == 1].mean() > 0.9 * start_gap
+    ids = np.flatnonzero(part == 1)[::2]  # half of the turned part's vertices followed
+    marks = (ids, X[ids])
+    assert mark_residual(model.deform(turned), marks, gate=100.0) == pytest.approx(start_gap)
+    pose, _ = fit_pose_to_surface(model, turned, X, N, gate=10.0, marks=marks)
+    # measured 0.15 of the turn left after the six rounds (0.03 after twelve)
+    assert np.linalg.norm(model.deform(pose) - X, axis=1)[part == 1].mean() < 0.25 * start_gap
+    # tracks as the cameras give them: two rays through every followed vertex -> the same marks
+    rays = np.tile([[0.0, 0.6, 0.8], [0.6, 0.8, 0.0]], (len(ids), 1))
+    tr = (np.repeat(ids, 2), np.repeat(X[ids], 2, axis=0) + 30.0 * rays, rays)
+    mv, mx = mark_points(tr, len(X))
+    assert np.array_equal(mv, ids) and np.allclose(mx, X[ids]) and mark_points((ids[:0], X[:0], X[:0]), len(X)) is None
+
+
+def test_ray_points_equal_a_per_vertex_reference():
+    from pipeline.colour_tracks import ray_points
+
+    rng = np.random.default_rng(5)
+    n = 12
+    truth = rng.normal(size=(n, 3)) * 50
+    idx = np.r_[np.arange(n), np.arange(0, n, 2), np.arange(0, n, 3)]  # 1..3 rays a vertex
+    rays = rng.normal(size=(len(idx), 3))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    targets = truth[idx] + rng.normal(size=(len(idx), 3)) + rays * rng.uniform(-40, 40, (len(idx), 1))
+    ok, x = ray_points(idx, targets, rays, n)
+    for v in range(n):
+        t = np.flatnonzero(idx == v)
+        assert ok[v] == (len(t) >= 2)
+        if ok[v]:
+            P = [np.eye(3) - np.outer(rays[j], rays[j]) for j in t]
+            assert np.allclose(x[v], np.linalg.solve(sum(P), sum(p @ targets[j] for p, j in zip(P, t))))
