@@ -107,7 +107,8 @@ FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16), ("quadruped", 30.
 def fast_accuracy() -> None:
     """Fast takes (and a slow one): the default tracking, then tracked again with an armature as
     the articulated prior (:func:`pipeline.track_armature.track_with_armature`): the armature built from the
-    tracking (``stage track --armature-rounds auto``), and the armature of the true motion, with
+    tracking (``stage track --armature-rounds auto``), one round of it with the colour tracks pulling its pose
+    (``colour=True``), and the armature of the true motion, with
     and without its true poses among the starts (what the tracking gives with the right segments,
     and with the right starts too); the worst frame's mean and 95th percentile, the invented motion
     (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame."""
@@ -140,6 +141,13 @@ def fast_accuracy() -> None:
             kept = rep["rig_prior"]["kept_round"]
             _fast_row(f"{name}, --armature-rounds auto (kept round {kept} of {len(rep['rig_prior']['rounds'])}; segments "
                       f"{rep['rig_prior']['rounds'][kept - 1]['segments']})", sim, res, frames,
+                      (time.process_time() - t0) / frames)
+            shutil.rmtree(res / "tracked")
+            shutil.copytree(base / "tracked", res / "tracked")
+            t0 = time.process_time()
+            rep = track_with_armature(res, rounds=1, colour=True)
+            _fast_row(f"{name}, --armature-rounds 1 with the colour tracks (from the default tracking; colour tracks "
+                      f"{'on' if rep['rig_prior']['colour_tracks'] else 'OFF'})", sim, res, frames,
                       (time.process_time() - t0) / frames)
             ref = int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"])
             V0, F0 = load_mesh(base / "tracked" / f"{ref:06d}.ply", largest=False)
