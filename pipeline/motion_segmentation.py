@@ -58,10 +58,8 @@ that does not move rigidly is cut in two by the normalised cut of its own
 samples when both halves are then at most half as far from rigid (the
 eigenvalue count spends clusters on large parts and can leave a small part,
 a tail, fused to its neighbour), recursively, before the merge runs again.
-Last, a segment between exactly two others whose vertices follow a per-vertex
-blend of those two segments' motions more closely than a rigid motion of
-their own is a joint's blend zone on a skinned surface, not a part, and is
-dissolved into the two (``_dissolve_blends`` of :mod:`pipeline.rigid_parts`).
+Last (with the peel), a skinned joint's blend zone cut off as a segment is
+dissolved into its neighbours (``_dissolve_blends`` of :mod:`pipeline.rigid_parts`).
 Labels are renumbered by decreasing size.
 
 Hand-written because no library computes trajectory distances; the
@@ -610,9 +608,9 @@ def motion_segmentation(
     seed : int
     peel_parts : bool
         Peel parts fused to a segment off it (vertices its trimmed core motion leaves twice
-        ``rigid_tol`` away, surface patches with a motion of their own). On for animated and scanned
-        sequences; off for a tracked template, whose tracking noise it reads as parts (the two-bar
-        hinge tracked through its surfaces: 3 segments with it, 2 without).
+        ``rigid_tol`` away, surface patches with a motion of their own), and dissolve skinned joints'
+        blend zones cut off as segments. On for animated and scanned sequences; off for a tracked
+        template, whose tracking noise both read as parts (docs/armature-format.md).
     min_gap : float or None
         When the eigenvalues cross ``lambda_thr`` with a smaller gap than this (``lambda_{k+1} -
         lambda_k``), the spectrum has no cluster structure at that threshold and the paper's
@@ -692,8 +690,9 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
             labels = _peel_nonrigid(labels, v, edges, 2.0 * tol, min_size=min_size)
             labels = _connected_segments(labels, edges, V, min_size)
         labels = _merge_rigid(labels, v, edges, tol)
-        labels = _dissolve_blends(_connected_segments(labels, edges, V, 1), v, edges)
-        labels = _merge_rigid(_connected_segments(labels, edges, V, min_size), v, edges, tol)
+        if peel_parts:
+            labels = _dissolve_blends(_connected_segments(labels, edges, V, 1), v, edges)
+            labels = _merge_rigid(_connected_segments(labels, edges, V, min_size), v, edges, tol)
         labels = _connected_segments(labels, edges, V, 1)
     if labels.max() == 0:
         log.warning("nothing bends in this sequence (the segments move rigidly together): one segment")

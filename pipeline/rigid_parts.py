@@ -7,8 +7,8 @@ Tzionas & Gall 2016, section 4.1) refines its spectral clusters with them, in st
 silent on (the reasons: that module's docstring): segments that move as one rigid body are merged
 (``_merge_rigid``), a segment that does not move rigidly is cut by the normalised cut of its samples
 (``_split_nonrigid``), what does not move with a segment's rigid core is peeled off
-(``_peel_nonrigid``), and a segment that is the blend zone of a joint between two others is dissolved
-into them (``_dissolve_blends``); those four are the segmentation's steps, not an API.
+(``_peel_nonrigid``), and a segment that is the blend zone of a skinned joint is dissolved
+into its neighbours (``_dissolve_blends``); those four are the segmentation's steps, not an API.
 """
 
 from __future__ import annotations
@@ -294,18 +294,19 @@ def _blend_gaps(Y: np.ndarray, Pa: np.ndarray, Pb: np.ndarray) -> np.ndarray:
 
 def _dissolve_blends(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, *, min_edges: int = 3,
                      per_segment: int = 400) -> np.ndarray:
-    """Segments that are a joint's blend zone, not a part, dissolved into the two parts they join.
+    """Segments that are a joint's blend zone, not a part, dissolved into the parts they join.
 
     Skinned surfaces bend smoothly: near a joint every vertex follows a blend of the two bones' motions, in
     proportions that change along the surface, so it follows neither bone rigidly, and the spectral step can
-    cut such a zone off as a segment of its own (a sliver whose two boundaries both become joints). A segment
-    that touches exactly two others and whose vertices follow a per-vertex blend of those two segments'
-    motions (:func:`_blend_gaps`, their core motions, :func:`_core_motion`) more closely than any one rigid
-    motion of their own (median over its vertices of the RMS distance over the frames) is such a zone: each
-    of its vertices joins the neighbour whose core motion carries it closest. A rigid part between two others
-    (a finger's middle phalanx, a limb segment) follows its own rigid motion exactly and stays; a segment
-    touching three or more is where several parts meet (a hub), whose motion carries them, and stays. The
-    zone furthest from rigid against its blend goes first, and the motions are looked at again.
+    cut such a zone off as a segment of its own (a sliver whose boundaries all become joints). A segment
+    smaller than each of its neighbours (a band round a joint is narrower than the parts it joins) whose
+    vertices follow a per-vertex blend of two neighbouring segments' motions (:func:`_blend_gaps`, their core
+    motions, :func:`_core_motion`, the best pair per vertex) more closely than any one rigid motion of their
+    own (median over its vertices of the RMS distance over the frames) is such a zone: each of its vertices
+    joins the neighbour whose core motion carries it closest. A rigid part between others (a finger's middle
+    phalanx, a limb segment) follows its own rigid motion exactly and stays; a segment with a smaller
+    neighbour is a part that carries others (a hub) and stays. The zone furthest from rigid against its
+    blend goes first, and the motions are looked at again.
     """
     rng = np.random.default_rng(0)
     lab = labels.copy()
@@ -334,15 +335,18 @@ def _dissolve_blends(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, *, mi
         keys, counts = np.unique(np.c_[np.minimum(la[c], lb[c]), np.maximum(la[c], lb[c])], axis=0,
                                  return_counts=True)
         keys = keys[counts >= min_edges]
+        sizes = np.bincount(lab)
         worst, worst_ratio = None, 1.0
         for s in np.unique(lab):
             s = int(s)
             nb = sorted({int(b) for a, b in keys if a == s} | {int(a) for a, b in keys if b == s})
-            if len(nb) != 2:
+            if len(nb) < 2 or sizes[s] >= sizes[nb].min():
                 continue
             Y = vf[:, sample(s)]
             own = float(np.median(np.sqrt((_gaps(rigid_motions(Y), Y[0], Y) ** 2).mean(0))))
-            blend = float(np.median(_blend_gaps(Y, predict(nb[0], Y[0]), predict(nb[1], Y[0]))))
+            P = [predict(n, Y[0]) for n in nb]
+            blend = float(np.median(np.min([_blend_gaps(Y, P[i], P[j]) for i in range(len(P))
+                                            for j in range(i + 1, len(P))], axis=0)))
             if own > worst_ratio * blend:
                 worst, worst_ratio, pair = s, own / max(blend, 1e-300), nb
         if worst is None:

@@ -40,6 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --accuracy: the simulated takes through process, track and armature (default "
                    "starfish,quadruped,biped; 'none' for none)")
     p.add_argument("--take-frames", type=int, default=30, help="with --accuracy: frames of each take (default 30)")
+    p.add_argument("--skinned", default="2",
+                   help="with --accuracy: the creatures' posed sequences also skinned, vertices blending the parts' "
+                   "motions over these widths (%% of the size; default 2; 'none' for none)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -50,7 +53,14 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--takes: unknown creature {bad[0]!r} (choose from starfish, quadruped, biped)")
         if int(getattr(args, "take_frames", 30)) < 2:
             raise ValueError(f"--take-frames must be >= 2, got {args.take_frames}")
-        accuracy()
+        skinned = str(getattr(args, "skinned", "none")).strip()
+        try:
+            widths = [] if skinned == "none" else [float(x) / 100 for x in skinned.split(",") if x.strip()]
+        except ValueError:
+            raise ValueError(f"--skinned must be widths in % of the size (e.g. 1,2,3) or 'none', got {skinned!r}") from None
+        if any(not 0 < w < 1 for w in widths):
+            raise ValueError(f"--skinned widths must be within (0, 100) %, got {skinned!r}")
+        accuracy(skinned=tuple(widths))
         take_accuracy(takes, frames=int(getattr(args, "take_frames", 30)))
         return 0
     from fake_cameras.mesh_motion import mesh_sequence
@@ -173,6 +183,30 @@ def _truth_creature(name, frames=40):
                 units="mm", fps=30.0, lambda_thr=0.98)
 
 
+def _truth_skinned(name, sigma: float, frames=40):
+    """The creature's posed sequence skinned (motion the segmentation was not made on): every vertex moved
+    by a blend of the true parts' rigid motions, weights ``exp(-d_p / s)`` over its rest distance ``d_p`` to
+    each part beyond the nearest one's, cut at ``4 s``, normalised; ``s`` = ``sigma`` of the size."""
+    from scipy.spatial import cKDTree
+
+    from pipeline.rigid_parts import rigid_motions
+
+    tr = _truth_creature(name, frames)
+    V = np.asarray(tr["V"], dtype=np.float64)
+    X = V[0]
+    parts = np.unique(tr["part"])
+    D = np.stack([cKDTree(X[tr["part"] == p]).query(X)[0] for p in parts], 1)
+    D -= D.min(1, keepdims=True)
+    s = float(sigma) * float(np.linalg.norm(np.ptp(X, axis=0)))
+    W = np.where(D <= 4 * s, np.exp(-D / s), 0.0)
+    W /= W.sum(1, keepdims=True)
+    out = np.zeros_like(V)
+    for k, p in enumerate(parts):
+        R, t = rigid_motions(V[:, tr["part"] == p])
+        out += W[None, :, k, None] * (np.einsum("tij,vj->tvi", R, X) + t[:, None])
+    return dict(tr, V=out)
+
+
 def _truth_take(sim, rig, vertices, faces, reference: int):
     """The truth of a simulated take's armature: the creature's joints at the tracked frames' times and the
     true part of every tracked template vertex (the capsule nearest to it at the tracking's reference
@@ -214,22 +248,26 @@ def _placements(tr, labels, ref):
     return out
 
 
-def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped")) -> None:
+def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped"), skinned=(0.02,)) -> None:
     """Per stage: the segmentation against the true rigid parts, the joints placed on the true segments
-    (the paper's placement and the centre of rotation), and the whole rig against the true articulations."""
+    (the paper's placement and the centre of rotation), and the whole rig against the true articulations;
+    then the creatures skinned with blends of ``skinned`` (fractions of the size, :func:`_truth_skinned`)."""
     from pipeline.armature import build_armature
     from pipeline.armature_score import articulation_scores, bending_parts, segment_agreement
     from stage.benchmarks._data import SHARED_DATA
 
-    print(f"{'subject':10} {'V':>6} {'T':>4} {'bend':>4} | {'segs':>4} {'true':>4} {'purity':>6} {'compl':>6} | "
+    print(f"{'subject':12} {'V':>6} {'T':>4} {'bend':>4} | {'segs':>4} {'true':>4} {'purity':>6} {'compl':>6} | "
           f"{'true segs: paper R/P/err%':>26} {'pivot R/P/err%':>18} | {'rig: R':>6} {'P':>5} {'err%':>5} {'vert%':>5} "
           f"{'s':>5}")
-    for name in names:
+    creatures = [n for n in names if n not in ("cow", "pipe")]
+    for name in [*names, *(f"{n}~{100 * sg:g}%" for sg in skinned for n in creatures)]:
         if name in ("cow", "pipe"):
             if not (SHARED_DATA / ("cow_poses" if name == "cow" else "tzionas_pipe")).is_dir():
-                print(f"{name:10} skipped: {SHARED_DATA} is absent")
+                print(f"{name:12} skipped: {SHARED_DATA} is absent")
                 continue
             tr = (_truth_cow if name == "cow" else _truth_pipe)(SHARED_DATA)
+        elif "~" in name:  # skinned: blends of the true parts' motions, sigma in % of the size
+            tr = _truth_skinned(name.split("~")[0], float(name.split("~")[1][:-1]) / 100)
         else:
             tr = _truth_creature(name)
         t0 = time.perf_counter()
@@ -244,7 +282,7 @@ def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped")) -> None:
         def rpe(s):
             return f"{s['recall']:.2f}/{s['precision']:.2f}/{100 * s['error']:.1f}"
 
-        print(f"{name:10} {tr['V'].shape[1]:>6} {len(tr['V']):>4} {sc['bending']:>4} | {rig.segmentation.n_segments:>4} "
+        print(f"{name:12} {tr['V'].shape[1]:>6} {len(tr['V']):>4} {sc['bending']:>4} | {rig.segmentation.n_segments:>4} "
               f"{int(truth.max()) + 1:>4} {pur:>6.2f} {comp:>6.2f} | {rpe(pl['paper']):>26} {rpe(pl['pivot']):>18} | "
               f"{sc['recall']:>6.2f} {sc['precision']:>5.2f} {100 * sc['error']:>5.1f} "
               f"{100 * rig.fit.errors.mean() / rig.size:>5.2f} {secs:>5.1f}", flush=True)

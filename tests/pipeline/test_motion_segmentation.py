@@ -158,17 +158,17 @@ def test_a_segment_that_does_not_move_rigidly_is_cut_at_its_joint():
 
 
 def _bar_chain(kind, T=8):
-    """A 300 mm bar along x cut at x = -20 and 20 mm into three labels, its right end turning by up to 60
+    """A 300 mm bar along x cut at x = -40 and 40 mm into three labels, its right end turning by up to 60
     degrees: ``"skinned"`` one hinge at the origin whose skinning blends the two bones' motions across the
-    middle label (linear blend skinning, weights rising smoothly from x = -20 to 20); ``"rigid"`` two hinges
-    at x = -20 and 20, the middle label a rigid part turning by half as much (a uniform curl)."""
+    middle label (linear blend skinning, weights rising smoothly from x = -40 to 40); ``"rigid"`` two hinges
+    at x = -40 and 40, the middle label a rigid part turning by half as much (a uniform curl)."""
     from pipeline.geodesic import mesh_edges
 
     m = trimesh.creation.box(extents=(300, 20, 20))
-    for _ in range(3):
+    for _ in range(4):
         m = m.subdivide()
     x0 = np.asarray(m.vertices)
-    lab = np.digitize(x0[:, 0], [-20.0, 20.0]).astype(np.int64)
+    lab = np.digitize(x0[:, 0], [-40.0, 40.0]).astype(np.int64)
 
     def turn(p, ang, about):
         c, s = np.cos(ang), np.sin(ang)
@@ -177,12 +177,12 @@ def _bar_chain(kind, T=8):
     frames = []
     for ang in np.linspace(0, np.pi / 3, T):
         if kind == "skinned":
-            u = np.clip((x0[:, :1] + 20.0) / 40.0, 0.0, 1.0)
+            u = np.clip((x0[:, :1] + 40.0) / 80.0, 0.0, 1.0)
             w = u * u * (3 - 2 * u)
             frames.append((1 - w) * x0 + w * turn(x0, ang, np.zeros(3)))
         else:
             v = x0.copy()
-            a, b = np.array([-20.0, 0, 0]), np.array([20.0, 0, 0])
+            a, b = np.array([-40.0, 0, 0]), np.array([40.0, 0, 0])
             v[lab == 1] = turn(x0[lab == 1], ang / 2, a)
             v[lab == 2] = turn(turn(x0[lab == 2], ang / 2, b), ang / 2, a)
             frames.append(v)
@@ -204,15 +204,19 @@ def test_blend_gaps_match_a_search_over_the_weight():
 
 def test_a_joints_blend_zone_is_dissolved_a_rigid_part_between_two_is_not():
     """A skinned hinge's blend zone cut off as a segment joins the two parts, each vertex the one whose motion
-    carries it closest; a rigid middle part of a uniform curl (the same labels) stays."""
+    carries it closest; a rigid middle part of a uniform curl (the same labels) stays, and so does the blend
+    zone when a neighbour is smaller than it (a segment that carries a smaller part is no joint's band)."""
     from pipeline.rigid_parts import _dissolve_blends
 
     V, E, lab = _bar_chain("skinned")
     out = _dissolve_blends(lab, V, E)
     x = V[0][:, 0]
     assert set(np.unique(out)) == {0, 2}
-    assert (out[x < -20] == 0).all() and (out[x > 20] == 2).all()
-    assert (out[x < -8] == 0).all() and (out[x > 8] == 2).all()  # the zone split near its middle
+    assert (out[x < -40] == 0).all() and (out[x > 40] == 2).all()
+    assert (out[x < -10] == 0).all() and (out[x > 10] == 2).all()  # the zone split at its middle
+    small = lab.copy()
+    small[x < -80] = 3  # the zone's left neighbour now two rings of the bar, smaller than the zone
+    np.testing.assert_array_equal(_dissolve_blends(small, V, E), small)
     V, E, lab = _bar_chain("rigid")
     np.testing.assert_array_equal(_dissolve_blends(lab, V, E), lab)
 
