@@ -106,8 +106,8 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
         Over ``points``.
     marks : ((M,) int, (M, 3) float) ndarrays, optional
         Where the images say some vertices went (:func:`mark_points`): each round, a marked vertex
-        within the round's gate of its mark has its target moved halfway to it (the surface pairs
-        cannot see a round part's turn about its own axis; the images can).
+        within the round's gate of its mark has its mark as its target (:data:`MARK_PULL`; the surface
+        pairs cannot see a round part's turn about its own axis, the images can).
 
     Returns
     -------
@@ -183,8 +183,9 @@ def mark_points(tracks, n: int):
     return (v, x[v]) if len(v) else None
 
 
-#: How far a marked vertex's target moves from the surface pairs' towards its mark, each round of the ICP.
-MARK_PULL = 0.5
+#: How far a marked vertex's target moves from its surface pairs' towards its mark, each round of the ICP (1: the
+#: mark is the target; 0.5 followed less of a turn the surface cannot see, docs/tracking.md, "Fast motion").
+MARK_PULL = 1.0
 
 
 def _pull_to_marks(target: np.ndarray, S: np.ndarray, marks, gate: float) -> None:

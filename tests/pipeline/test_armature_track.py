@@ -198,7 +198,7 @@ def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
     """``stage track RESULTS --armature-rounds 1`` on a rigid turning sphere: one segment, the frames tracked
     again, every vertex still on the sphere (within a voxel), the rounds recorded. The turn itself the
     surface cannot show: the armature's pose stays put (all of the turn left), unless the colour tracks
-    pull it (``colour=True``, with the rigid armature given; measured 0.36, 0.53 of the turn left on frames 1, 2)."""
+    pull it (``colour=True``, with the rigid armature given; measured 0.25, 0.41 of the turn left on frames 1, 2)."""
     from pipeline.armature_fit import articulated_model
     from pipeline.armature_skeleton import ArticulatedSkeleton
     from pipeline.meshio import load_mesh
@@ -225,7 +225,7 @@ def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
         articulation=np.array([False, False]), segment_pairs=(None, None), part=np.array([0, 0]), part_joint=np.array([0]),
         part_parent=np.array([-1]), bones=np.array([[0, 1]])))
     assert track_with_armature(res, rigid, colour=True)["rig_prior"]["colour_tracks"]
-    assert max(left()) <= 0.8, left()
+    assert max(left()) <= 0.65, left()
     for k in range(3):
         assert _sphere_error(res / "tracked" / f"{k:06d}.ply").mean() < 1.0
     # tracking again without the rig starts over: other settings
@@ -277,7 +277,7 @@ def _tube(rings: int = 9, per: int = 8, length: float = 80.0, radius: float = 6.
 def test_marks_turn_a_round_part_the_surface_cannot():
     """A tube's half turned about its own axis by one vertex spacing lies on the same surface (the
     residual is 0): the ICP alone keeps the turn; with marks (where the images say half of its
-    vertices went) the half turns back towards its place. Reference: the rest shape, exact."""
+    vertices went) the half turns back to its place. Reference: the rest shape, exact."""
     from scipy.spatial.transform import Rotation
 
     from pipeline.armature_fit import _forward
@@ -294,8 +294,8 @@ def test_marks_turn_a_round_part_the_surface_cannot():
     marks = (ids, X[ids])
     assert mark_residual(model.deform(turned), marks, gate=100.0) == pytest.approx(start_gap)
     pose, _ = fit_pose_to_surface(model, turned, X, N, gate=10.0, marks=marks)
-    # measured 0.15 of the turn left after the six rounds (0.03 after twelve)
-    assert np.linalg.norm(model.deform(pose) - X, axis=1)[part == 1].mean() < 0.25 * start_gap
+    # measured 0.017 of the turn left after the six rounds (0.15 with the targets moved halfway to the marks)
+    assert np.linalg.norm(model.deform(pose) - X, axis=1)[part == 1].mean() < 0.05 * start_gap
     # tracks as the cameras give them: two rays through every followed vertex -> the same marks
     rays = np.tile([[0.0, 0.6, 0.8], [0.6, 0.8, 0.0]], (len(ids), 1))
     tr = (np.repeat(ids, 2), np.repeat(X[ids], 2, axis=0) + 30.0 * rays, rays)
