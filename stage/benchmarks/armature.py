@@ -337,8 +337,69 @@ def take_scores(sim, res, rig) -> dict:
     sc["track_error"] = float(err.mean(axis=1).max())
     sc["invented"] = float(np.max(invented_motion(sim.creature, sim.times, res)))
     sc["joints"] = len(bending)
+    sc["noise"] = segmentation_noise(V, F, truth)
     sc["true_tracks"] = true_track_scores(sim, rig, V, F, tr, reference)
     return sc
+
+
+def segmentation_noise(vertices, faces, parts, *, n_samples: int = 1000) -> dict:
+    """How much the motion segmentation's distances see where the body is rigid: eqs. 8-9 of Tzionas & Gall
+    2016 (:func:`pipeline.motion_segmentation.trajectory_distances`, the segmentation's samples, interval and
+    reference millimetres) between samples of one true part and of two, and the eigenvalues below the
+    small-motion threshold.
+
+    Parameters
+    ----------
+    vertices : (T, V, 3) float ndarray
+    faces : (F, 3) int ndarray
+    parts : (V,) int ndarray
+        True part of every vertex (parts joined across joints that do not bend,
+        :func:`pipeline.armature_score.bending_parts`).
+    n_samples : int
+
+    Returns
+    -------
+    dict
+        ``dv_within``, ``dv_across``: median ``d^v`` (reference mm) over the sample pairs of one part and of two
+        parts; ``dn_within``, ``dn_across``: the same of ``d^n`` (degrees); ``below_small_motion``: eigenvalues of
+        the normalised Laplacian below :data:`pipeline.motion_segmentation.SMALL_MOTION_THR` (at most
+        ``max_clusters`` + 1 = 65 are computed).
+    """
+    from pipeline.mesh_primitives import vertex_normals
+    from pipeline.motion_segmentation import (
+        REFERENCE_SIZE,
+        SMALL_MOTION_THR,
+        check_sequence,
+        interval_length,
+        sample_vertices,
+        spectral_clusters,
+        subject_size,
+        trajectory_distances,
+    )
+
+    v, f = check_sequence(vertices, faces)
+    parts = np.asarray(parts)
+    if parts.shape != (v.shape[1],):
+        raise ValueError(f"parts must have one entry per vertex ({v.shape[1]}), got shape {parts.shape}")
+    if v.shape[0] < 2:
+        raise ValueError("vertices: one frame has no motion to measure")
+    to_ref = REFERENCE_SIZE / subject_size(v)
+    s = sample_vertices(v[0], n_samples)
+    dt = interval_length(v[:, s], to_reference=to_ref)
+    normals = np.stack([vertex_normals(np.asarray(x, dtype=np.float64), f)[s] for x in v])
+    dv, dn = trajectory_distances(v[:, s], normals, interval=dt)
+    lam = 0.1 * to_ref  # the segmentation's affinity (lambda = 0.1 per reference mm)
+    _, eig, _ = spectral_clusters(np.exp(-lam * (dv * (dn + 1.0)).astype(np.float64)), lambda_thr=SMALL_MOTION_THR,
+                                  restarts=1)
+    iu = np.triu_indices(len(s), 1)
+    same = (parts[s][:, None] == parts[s][None])[iu]
+
+    def med(x, m):
+        return float(np.median(x[iu][m])) if m.any() else float("nan")
+
+    return {"dv_within": med(dv * to_ref, same), "dv_across": med(dv * to_ref, ~same),
+            "dn_within": med(np.degrees(dn), same), "dn_across": med(np.degrees(dn), ~same),
+            "below_small_motion": int((eig < SMALL_MOTION_THR).sum())}
 
 
 def true_track_scores(sim, rig, vertices, faces, truth: dict, reference: int) -> dict:
@@ -362,6 +423,7 @@ def true_track_scores(sim, rig, vertices, faces, truth: dict, reference: int) ->
     sc["purity"], sc["completeness"] = segment_agreement(arm.segmentation.labels, parts)
     sc["segments"], sc["lambda_thr"] = arm.segmentation.n_segments, arm.segmentation.lambda_thr
     sc["vertex_error"] = float(arm.fit.errors.mean() / arm.size)
+    sc["noise"] = segmentation_noise(V, faces, parts)
     return sc
 
 
@@ -395,4 +457,15 @@ def take_row(name: str, frames: int, rig, sc: dict, secs: dict) -> str:
             f"{'  true':10} {'':>3} {'tracks':>8} {'thr ' + format(tt['lambda_thr'], '.2f'):>9} | {tt['segments']:>4} "
             f"{sc['true_parts']:>4} "
             f"{tt['purity']:>6.2f} {tt['completeness']:>6.2f} | {'':>26} {'':>18} | {tt['found']:>4} {tt['bending']:>4} "
-            f"{tt['recall']:>5.2f} {tt['precision']:>5.2f} {100 * tt['error']:>5.1f} {100 * tt['vertex_error']:>5.2f} |")
+            f"{tt['recall']:>5.2f} {tt['precision']:>5.2f} {100 * tt['error']:>5.1f} {100 * tt['vertex_error']:>5.2f} |\n"
+            f"{'  noise':10} {_noise(sc['noise'], tt['noise'])}")
+
+
+def _noise(tracked: dict, true: dict) -> str:
+    """The segmentation's distances within one part and across two (:func:`segmentation_noise`), tracked / true."""
+    def two(key, fmt):
+        return f"{format(tracked[key], fmt)}/{format(true[key], fmt)}"
+
+    return (f"tracked/true: d^v within {two('dv_within', '.1f')} across {two('dv_across', '.1f')} ref mm; "
+            f"d^n within {two('dn_within', '.0f')} across {two('dn_across', '.0f')} deg; "
+            f"eigenvalues below 0.98 {tracked['below_small_motion']}/{true['below_small_motion']}")
