@@ -88,7 +88,8 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     dict
         The report written to ``tracked/track.json``, with ``rig_rounds`` (the round kept) and
         per round run the armature's segments, its fit error to the tracking it was built from and
-        the mean ``rig_residual_mm`` (``rig_prior``), per frame ``rig_residual_mm``.
+        the mean ``rig_residual_mm`` (``rig_prior``; ``rig_prior.colour_tracks``: whether the colour
+        tracks were used), per frame ``rig_residual_mm``.
     """
     from pipeline.armature_fit import ArticulatedModel
 
