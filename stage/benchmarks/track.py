@@ -99,10 +99,11 @@ def multiview_accuracy(frames: int = 30) -> None:
 
 #: The fast takes: the simulated creatures filmed at 10 frames a second (8 cameras, 640x480): their
 #: limbs move 3 voxels a frame and more (the quadruped's legs 2.5 on average, up to 4.6 on a frame,
-#: feet up to 8.9; the surface points' 95th percentile 4.4 voxels a frame); and the quadruped, the
-#: starfish and the biped at 30 frames a second, the slow takes the armature mode must do no worse on.
-FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16), ("quadruped", 30.0, 16), ("starfish", 30.0, 16),
-              ("biped", 30.0, 16))
+#: feet up to 8.9; the surface points' 95th percentile 4.4 voxels a frame; the biped's forearms 3.8..4.1
+#: on average, up to 8.8); and the quadruped, the starfish and the biped at 30 frames a second, the slow
+#: takes the armature mode must do no worse on.
+FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16), ("biped", 10.0, 16), ("quadruped", 30.0, 16),
+              ("starfish", 30.0, 16), ("biped", 30.0, 16))
 
 
 def fast_accuracy() -> None:
