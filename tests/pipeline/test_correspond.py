@@ -138,6 +138,35 @@ def test_hidden_limbs_counted_from_clear_tips():
     assert correspond_tips(tips, clear=[np.zeros(len(x), dtype=bool) for x in tips]).count_rule == "mode"
 
 
+def _swing_take(*, bumps: bool, seed: int, T: int = 30):
+    """Five tips moving rigidly and a sixth swinging 250 wide through +-75 degrees beside them
+    (an arm by the body), hidden in frames 9-21 (6 tips in 57 % of the frames: a borderline
+    count); with ``bumps`` the sixth is a bump at a random place (normal, 120) instead."""
+    rng = np.random.default_rng(seed)
+    five, tips = BASE[:5], []
+    for t in range(T):
+        R = Rotation.from_rotvec([0, 0, 0.05 * t]).as_matrix()
+        a = 1.3 * np.sin(2 * np.pi * t / T)
+        sixth = five.mean(0) + [0, 0, 100] + 250 * np.array([np.cos(a), np.sin(a), 0.0])
+        if bumps:
+            sixth = five.mean(0) + rng.normal(scale=120.0, size=3)
+        X = np.vstack([five, sixth]) @ R.T + [3.0 * t, 0, 0] + rng.normal(scale=1.0, size=(6, 3))
+        X = X[:5] if 9 <= t < 22 else X
+        tips.append(X[rng.permutation(len(X))])
+    return tips
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_borderline_limb_that_moves_continuously_is_a_limb(seed):
+    """A limb that swings far (spread 0.85 of the tip radius, beyond 0.4) but a little each frame is
+    the same limb throughout: K = 6. Bumps at random places in the same frames are not (their step
+    0.47-0.77 of a random place's, limit 0.35): K = 5."""
+    c = correspond_tips(_swing_take(bumps=False, seed=seed))
+    assert c.K == 6 and "is the same limb" in c.count_rule and "spread 0.85" in c.count_rule
+    c = correspond_tips(_swing_take(bumps=True, seed=seed))
+    assert c.K == 5 and "is not the same limb" in c.count_rule
+
+
 def test_large_K_uses_local_search():
     X = RNG.normal(size=(9, 3)) * 100
     p = RNG.permutation(9)
