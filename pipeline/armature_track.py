@@ -35,6 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.armature_fit import ArticulatedModel, Pose, fit_subset
+from pipeline.colour_tracks import ray_points
 from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs
 
 __all__ = ["fit_pose_to_surface", "surface_residual", "mark_points", "mark_residual", "ArmatureTracker"]
@@ -124,9 +125,10 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
     for value, name in ((rounds, "rounds"), (iterations, "iterations"), (max_points, "max_points")):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    marks = _subset_marks(_check_marks(marks, len(model.vertices)), model.subset(int(max_points)))
+    sub = model.subset(int(max_points))
+    marks = _subset_marks(_check_marks(marks, len(model.vertices)), sub)
     tree = cKDTree(X) if tree is None else tree
-    n = len(model.subset(int(max_points)))
+    n = len(sub)
     pose = start
     for r in range(int(rounds)):
         gr = 2.0 * g if r < int(rounds) // 2 else g
@@ -174,8 +176,6 @@ def _subset_marks(marks, sub: np.ndarray):
 def mark_points(tracks, n: int):
     """Colour feature tracks (``(idx, targets, rays)``, :func:`pipeline.track_colour.multiview_tracks_for`) as marks:
     ((M,) int vertices, (M, 3) float points), every vertex with two rays or more at the point nearest them."""
-    from pipeline.colour_tracks import ray_points
-
     if tracks is None or len(tracks[0]) == 0:
         return None
     ok, x = ray_points(*tracks[:3], n)

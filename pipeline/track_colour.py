@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.colour_tracks import colour_tracks, ray_points
 from pipeline.mesh_primitives import vertex_normals
 from pipeline.track_frames import LastRead
 
@@ -87,7 +88,6 @@ def multiview_colour(root: Path, faces: np.ndarray, tolerance: float, *, enabled
 def multiview_tracks_for(rd, cameras: dict, faces: np.ndarray, tolerance: float, *, corners=None):
     """``tracks_for(k, k_prev, previous, extra, start)`` over every camera (see :func:`multiview_colour`);
     ``corners``: the tracker's summing matrix of the face corners (:attr:`TemplateTracker.corner_sum`)."""
-    from pipeline.colour_tracks import colour_tracks
     from pipeline.rgbd_preprocess import visible_vertices
     from stage.store import TakeError
 
@@ -144,8 +144,6 @@ def agreeing_rays(idx: np.ndarray, targets: np.ndarray, rays: np.ndarray, n: int
     times the median such distance of that point. A single camera's track cannot be checked
     and is dropped: a track held back by the static shading, or caught on a shadow, has no
     second view to contradict it."""
-    from pipeline.colour_tracks import ray_points
-
     ok, x = ray_points(idx, targets, rays, n)
     P = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]  # projectors across each ray
     keep = ok[idx]
