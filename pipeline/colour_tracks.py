@@ -407,6 +407,27 @@ def colour_tracks(previous_image, image, vertices, visible, camera: Camera, dept
     return idx[ok], pts[ok], rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
 
 
+def _check_rays(idx, targets, rays, n):
+    """``ray_points``' arguments as arrays, or ValueError naming the one that is wrong."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise ValueError(f"n must be an integer >= 0, got {n!r}")
+    i = np.asarray(idx)
+    if i.ndim != 1 or not (np.issubdtype(i.dtype, np.integer) or i.size == 0):
+        raise ValueError(f"idx must be a (T,) integer array, got shape {i.shape} and dtype {i.dtype}")
+    i = i.astype(np.int64)
+    if i.size and (i.min() < 0 or i.max() >= n):
+        raise ValueError(f"idx must lie in 0..n-1 = 0..{n - 1}, got values in {i.min()}..{i.max()}")
+    t = np.asarray(targets, dtype=np.float64)
+    if t.shape != (len(i), 3) or not np.isfinite(t).all():
+        raise ValueError(f"targets must be a finite ({len(i)}, 3) array (one point a track), got shape {t.shape}")
+    r = np.asarray(rays, dtype=np.float64)
+    if r.shape != (len(i), 3) or not np.isfinite(r).all():
+        raise ValueError(f"rays must be a finite ({len(i)}, 3) array (one direction a track), got shape {r.shape}")
+    if r.size and np.abs(np.linalg.norm(r, axis=1) - 1.0).max() > 1e-6:
+        raise ValueError("rays must be unit directions (norm 1 within 1e-6)")
+    return i, t, r, int(n)
+
+
 def ray_points(idx, targets, rays, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Per vertex, the point nearest all its tracks' viewing rays (least squares).
 
@@ -427,10 +448,14 @@ def ray_points(idx, targets, rays, n: int) -> tuple[np.ndarray, np.ndarray]:
         Vertices with two rays or more that are not parallel (their point is determined).
     points : (n, 3) float ndarray
         The point of every ``ok`` vertex (zero elsewhere).
+
+    Raises
+    ------
+    ValueError
+        Naming the argument: ``n`` not an integer >= 0, ``idx`` not (T,) integers in 0..n-1,
+        ``targets`` or ``rays`` not finite (T, 3), ``rays`` not of norm 1.
     """
-    idx = np.asarray(idx, dtype=np.int64)
-    targets = np.asarray(targets, dtype=np.float64)
-    rays = np.asarray(rays, dtype=np.float64)
+    idx, targets, rays, n = _check_rays(idx, targets, rays, n)
     P = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]  # projectors across each ray
     A = np.zeros((n, 3, 3))
     b = np.zeros((n, 3))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calib.camera import Camera
-from pipeline.colour_tracks import _cell_groups, _local_warps, _warped_lk, colour_tracks
+from pipeline.colour_tracks import _cell_groups, _local_warps, _warped_lk, colour_tracks, ray_points
 
 
 def _camera(w=160, h=120, f=150.0):
@@ -184,6 +184,21 @@ def test_invalid_input():
                      ({"max_jump": -1.0}, "max_jump"), ({"highpass": -1.0}, "highpass"), ({"cell": -1.0}, "cell")):
         with pytest.raises(ValueError, match=name):
             colour_tracks(a, a, V, np.ones(1, bool), cam, depth, **kw)
+
+
+def test_ray_points_invalid_input():
+    idx = np.array([0, 0, 1])
+    targets = np.zeros((3, 3))
+    rays = np.tile([0.0, 0.0, 1.0], (3, 1))
+    ok, x = ray_points(idx[:0], targets[:0], rays[:0], 2)  # no tracks: nothing determined
+    assert not ok.any() and x.shape == (2, 3)
+    for args, name in (((idx, targets, rays, -1), "n must"), ((idx, targets, rays, 2.0), "n must"),
+                       ((idx, targets, rays, 1), "idx must lie"), ((idx - 1, targets, rays, 2), "idx must lie"),
+                       ((idx * 1.0, targets, rays, 2), "idx must be"), ((idx[:, None], targets, rays, 2), "idx must be"),
+                       ((idx, targets[:2], rays, 2), "targets"), ((idx, targets + np.nan, rays, 2), "targets"),
+                       ((idx, targets, rays[:, :2], 2), "rays must be a finite"), ((idx, targets, 2 * rays, 2), "unit")):
+        with pytest.raises(ValueError, match=name):
+            ray_points(*args)
 
 
 def test_warped_tracks_with_a_prediction_one_period_off_are_rejected_or_right():
