@@ -43,7 +43,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.armature_spine", "pipeline.gltf_export", "pipeline.results",
         "pipeline.tracking", "pipeline.tracking_patches", "pipeline.rgbd_preprocess", "pipeline.colour_tracks",
         "pipeline.temporal_hull",
-        "pipeline.motion_segmentation", "pipeline.rigid_parts",
+        "pipeline.motion_segmentation", "pipeline.trajectory_distances", "pipeline.rigid_parts",
         "pipeline.armature_skeleton", "pipeline.armature_fit", "pipeline.armature", "pipeline.armature_track",
         "pipeline.contraction_skeleton", "pipeline.armature_score", "pipeline.silhouette_refine",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",

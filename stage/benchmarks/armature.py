@@ -344,7 +344,7 @@ def take_scores(sim, res, rig) -> dict:
 
 def segmentation_noise(vertices, faces, parts, *, n_samples: int = 1000) -> dict:
     """How much the motion segmentation's distances see where the body is rigid: eqs. 8-9 of Tzionas & Gall
-    2016 (:func:`pipeline.motion_segmentation.trajectory_distances`, the segmentation's samples, interval and
+    2016 (:func:`pipeline.trajectory_distances.trajectory_distances`, the segmentation's samples, interval and
     reference millimetres) between samples of one true part and of two, and the eigenvalues below the
     small-motion threshold.
 
@@ -374,8 +374,8 @@ def segmentation_noise(vertices, faces, parts, *, n_samples: int = 1000) -> dict
         sample_vertices,
         spectral_clusters,
         subject_size,
-        trajectory_distances,
     )
+    from pipeline.trajectory_distances import trajectory_distances
 
     v, f = check_sequence(vertices, faces)
     parts = np.asarray(parts)

@@ -13,37 +13,10 @@ from pipeline.motion_segmentation import (
     interval_length,
     motion_segmentation,
     spectral_clusters,
-    trajectory_distances,
 )
 from pipeline.rigid_parts import rigid_motions, rigid_residual
+from pipeline.trajectory_distances import trajectory_distances
 from tests.pipeline.shapes import two_bars
-
-
-def _slow_distances(X, N, dt):
-    T, n, _ = X.shape
-    dv = np.zeros((n, n))
-    dn = np.zeros((n, n))
-    for i in range(n):
-        for j in range(n):
-            d = [np.linalg.norm(X[t, i] - X[t, j]) for t in range(T)]
-            a = [np.arccos(np.clip(N[t, i] @ N[t, j], -1, 1)) for t in range(T)]
-            for t in range(T):
-                for s in range(t, min(T, t + dt + 1)):
-                    dv[i, j] = max(dv[i, j], abs(d[s] - d[t]))
-                    dn[i, j] = max(dn[i, j], abs(a[s] - a[t]))
-    return dv, dn
-
-
-@pytest.mark.parametrize("T, dt", [(9, 1), (9, 3), (9, 20), (40, 16), (41, 13)])
-def test_trajectory_distances_match_the_definition(T, dt):
-    rng = np.random.default_rng(3)
-    X = rng.normal(size=(T, 7, 3)) * 50
-    N = rng.normal(size=(T, 7, 3))
-    N /= np.linalg.norm(N, axis=2, keepdims=True)
-    dv, dn = trajectory_distances(X, N, interval=dt, block_elements=100)  # several row blocks
-    rv, rn = _slow_distances(X, N, dt)
-    np.testing.assert_allclose(dv, rv, atol=2e-3 * 50)
-    np.testing.assert_allclose(dn, rn, atol=2e-3)
 
 
 def test_interval_length_literal_eq7_is_twice_the_largest_step():
