@@ -10,18 +10,25 @@ writes them, over the ``tracked/`` folder :func:`pipeline.track.track_results` m
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import json
+import logging
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.armature_track import ArmatureTracker
 from pipeline.mesh_primitives import mesh_volume
+from pipeline.run.context import submit_aside
 from pipeline.track import mesh_data, spine_model, spine_starts
 from pipeline.track_frames import surface_meshes, write_frame, write_report
 from pipeline.tracking import TemplateTracker
 
-__all__ = ["track_with_armature", "AUTO_RIG_ROUNDS", "ARMATURE_FIT_ROUNDS", "ARMATURE_ICP_POINTS"]
+__all__ = ["track_with_armature", "armature_half_task", "AUTO_RIG_ROUNDS", "ARMATURE_FIT_ROUNDS", "ARMATURE_ICP_POINTS"]
+
+log = logging.getLogger("pipeline.track")
 
 
 #: At most this many rounds of ``track_with_armature(rounds="auto")`` (``stage track --armature-rounds auto``).
@@ -37,7 +44,7 @@ ARMATURE_ICP_POINTS = 1000
 
 
 def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | str = 1, weight: float = 2.0,
-                   lambda_thr: float = 0.98, colour: bool = False, progress=None) -> dict:
+                   lambda_thr: float = 0.98, colour: bool = False, progress=None, executor=None) -> dict:
     """Track a tracked results directory again with an armature as the articulated prior.
 
     Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
@@ -82,6 +89,11 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         surfaces cannot see a round limb's turn about its own axis; the images can. Without the take's
         images, masks or calibration one line says so and the surfaces alone are used.
     progress : callable(step, done, total), optional
+    executor : concurrent.futures.Executor, optional
+        Tracks each round's frames before the reference frame (a process pool: :func:`armature_half_task`
+        is its task) while this process tracks those after it, as :func:`pipeline.track.track_results`
+        splits the take; the same frames as in order here (the two halves depend only on the reference
+        frame's pose).
 
     Returns
     -------
@@ -89,7 +101,8 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         The report written to ``tracked/track.json``, with ``rig_rounds`` (the round kept) and
         per round run the armature's segments, its fit error to the tracking it was built from and
         the mean ``rig_residual_mm`` (``rig_prior``; ``rig_prior.colour_tracks``: whether the colour
-        tracks were used), per frame ``rig_residual_mm``.
+        tracks were used; ``rig_prior.worker_cpu_seconds``: the other process's CPU seconds, with
+        ``executor``), per frame ``rig_residual_mm``.
     """
     from pipeline.armature_fit import ArticulatedModel
 
@@ -110,11 +123,14 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
 
     from pipeline.track_colour import multiview_colour
 
+    aside = None if executor is None else (executor, {"surfaces": report.get("surfaces", "meshes"), "gamma": report["gamma"],
+                                                      "gate": report["gate_mm"], "prior": report["prior"],
+                                                      "colour": bool(colour)})
     with threadpool_limits(1, "blas"), \
             multiview_colour(root, faces, 0.3 * tracker.gate, enabled=bool(colour), corners=tracker.corner_sum) as tracks_for:
         # (the articulated fits' small dense products: threads only contend)
         history, best = _armature_rounds(model, poses, int(rounds), vs, faces, frames, refi, by_frame, root, tracker,
-                                         weight, lambda_thr, progress, spine, tracks_for)
+                                         weight, lambda_thr, progress, spine, tracks_for, aside)
     kept, _, per = best
     if kept != len(history) - 1:  # the last round did not help: the best round's tracking again
         for k in per["figures"]:
@@ -123,19 +139,23 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     report["rig_rounds"] = kept + 1
     report["rig_prior"] = {"weight": float(weight), "lambda_thr": float(lambda_thr), "max_rounds": int(rounds),
                            "kept_round": kept + 1, "colour_tracks": tracks_for is not None, "rounds": history}
+    worker = [r.pop("worker_cpu_seconds") for r in history if r.get("worker_cpu_seconds") is not None]
+    if worker:
+        report["rig_prior"]["worker_cpu_seconds"] = round(float(sum(worker)), 3)
     write_report(root, report)
     return report
 
 
 def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_frame, root, tracker, weight, lambda_thr,
-                     progress, spine, tracks_for=None):
+                     progress, spine, tracks_for=None, aside=None):
     """The rounds of :func:`track_with_armature`: -> (history, (kept round, its residual, its tracking))."""
     history, best = [], None
     for r in range(1 if model is not None else rounds):
         use, by_pose, entry = (model, dict(poses or {}), {"segments": None, "fit_error_mm": None}) if model is not None \
             else _rig_of(vs, faces, frames, refi, lambda_thr)
         per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine,
-                         tracks_for=tracks_for)
+                         tracks_for=tracks_for, aside=aside)
+        entry["worker_cpu_seconds"] = per.pop("worker_cpu_seconds", None)
         res = [f["rig_residual_mm"] for f in per["figures"].values()]
         entry["residual_mm"] = round(float(np.mean(res)), 4) if res else None
         history.append(entry)
@@ -176,46 +196,108 @@ def _rig_of(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, lam
 
 
 def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int], refi: int, by_frame: dict, root: Path,
-               faces: np.ndarray, weight: float, progress, spine=None, tracks_for=None) -> dict:
+               faces: np.ndarray, weight: float, progress, spine=None, tracks_for=None, aside=None) -> dict:
     """One tracking of every frame but the reference with ``model`` as the prior; -> {"vertices": frame -> (V, 3),
     "figures": frame -> per-frame figures}. ``spine``: ``step(k, k_prev)`` -> the spine's skinned step of the
     template from frame ``k_prev`` to ``k`` (:func:`_spine_steps`), or None. ``tracks_for``: the colour
-    tracks (:func:`pipeline.track_colour.multiview_tracks_for`), or None."""
-    from pipeline.armature_fit import predict_pose
-    from pipeline.armature_track import ArmatureTracker, fit_pose_to_surface
+    tracks (:func:`pipeline.track_colour.multiview_tracks_for`), or None. ``aside``: (executor, the half's
+    settings for :func:`armature_half_task`): the frames before the reference are tracked there meanwhile."""
+    from pipeline.armature_track import fit_pose_to_surface
 
-    rig = ArmatureTracker(tracker, model, weight=weight, max_points=ARMATURE_ICP_POINTS)
     data_for = mesh_data(by_frame)
     ref = frames[refi]
-    out = {"vertices": {ref: vs[refi]}, "figures": {}}
     ref_data = data_for(ref)
     start = by_pose.get(ref, model.identity())
     ref_pose = start if ref_data is None else fit_pose_to_surface(model, start, ref_data[0], ref_data[1],
                                                                   gate=tracker.gate)[0]
-    done = 1
-    vol0 = mesh_volume(vs[refi], faces)
-    for part in (frames[refi + 1:], frames[:refi][::-1]):
-        prev, pose, before, prev_k = vs[refi], ref_pose, None, ref
-        for k in part:
-            t0 = time.perf_counter()
-            data = data_for(k)
-            if data is not None:
-                cands = [pose] + ([predict_pose(model, pose, before)] if before is not None else []) + \
-                    ([by_pose[k]] if k in by_pose else []) + _spine_pose(model, pose, spine, k, prev_k)
-                tracks = None
-                if tracks_for is not None:  # followed from the previous frame, started at the skinned prediction
-                    tracks = tracks_for(k, prev_k, prev, None, model.deform(cands[1]) if before is not None else prev)
-                fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands, tracks=tracks)
-                prev, before, pose, prev_k = fit.vertices, pose, new_pose, k
-                write_frame(root, k, prev, faces)
-                out["figures"][k] = {"rig_residual_mm": round(res, 4), "residual_mm": round(fit.residual, 4),
-                                     "volume_ratio": round(mesh_volume(prev, faces) / vol0, 5) if vol0 > 0 else None,
-                                     "seconds": round(time.perf_counter() - t0, 4)}
-            out["vertices"][k] = prev
-            done += 1
-            if progress is not None:
-                progress("track with the rig", done, len(frames))
+    forward, backward = frames[refi + 1:], frames[:refi][::-1]
+    half = {"prev": vs[refi], "pose": ref_pose, "ref": ref, "faces": faces, "root": str(root), "weight": weight}
+    later = None
+    if aside is not None and backward:
+        later = submit_aside(aside[0], partial(armature_half_task, {**aside[1], **half, "model": model, "by_pose": by_pose,
+                                                                   "frames": backward}),
+                             unavailable="the second tracking process is not available ({exc}); tracking the frames "
+                                         "before the reference here", logger=log)
+    rig = ArmatureTracker(tracker, model, weight=weight, max_points=ARMATURE_ICP_POINTS)
+    here = partial(_track_half, rig, by_pose, data_for, spine=spine, tracks_for=tracks_for, **half)
+    count = {"done": 1}
+
+    def tick():
+        count["done"] += 1
+        if progress is not None:
+            progress("track with the rig", count["done"], len(frames))
+
+    out = {"vertices": {ref: vs[refi]}, "figures": {}}
+    for part in (forward, *([] if later is not None else [backward])):
+        _merge(out, here(part, tick=tick))
+    if later is not None:
+        try:
+            part = later.result()
+        except cf.BrokenExecutor as exc:  # the worker process was killed: its frames are tracked here
+            log.warning("the second tracking process stopped (%s); tracking the frames before frame %d here", exc, ref)
+            part = here(backward, tick=tick)
+        _merge(out, part)
+        out["worker_cpu_seconds"] = later.cpu_seconds
+        if progress is not None:
+            progress("track with the rig", len(frames), len(frames))
     return out
+
+
+def _merge(out: dict, part: dict) -> None:
+    out["vertices"].update(part["vertices"])
+    out["figures"].update(part["figures"])
+
+
+def _track_half(rig, by_pose: dict, data_for, frames: list[int], *, prev: np.ndarray, pose, ref: int, faces: np.ndarray,
+                root, weight: float, spine=None, tracks_for=None, tick=None) -> dict:
+    """``frames`` tracked in order from the reference frame ``ref`` (its fit ``prev``, its pose ``pose``) with
+    ``rig`` (:class:`pipeline.armature_track.ArmatureTracker`); -> {"vertices": ..., "figures": ...} of them."""
+    from pipeline.armature_fit import predict_pose
+
+    model = rig.model
+    out = {"vertices": {}, "figures": {}}
+    vol0 = mesh_volume(prev, faces)
+    before, prev_k = None, ref
+    for k in frames:
+        t0 = time.perf_counter()
+        data = data_for(k)
+        if data is not None:
+            cands = [pose] + ([predict_pose(model, pose, before)] if before is not None else []) + \
+                ([by_pose[k]] if k in by_pose else []) + _spine_pose(model, pose, spine, k, prev_k)
+            tracks = None
+            if tracks_for is not None:  # followed from the previous frame, started at the skinned prediction
+                tracks = tracks_for(k, prev_k, prev, None, model.deform(cands[1]) if before is not None else prev)
+            fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands, tracks=tracks)
+            prev, before, pose, prev_k = fit.vertices, pose, new_pose, k
+            write_frame(Path(root), k, prev, faces)
+            out["figures"][k] = {"rig_residual_mm": round(res, 4), "residual_mm": round(fit.residual, 4),
+                                 "volume_ratio": round(mesh_volume(prev, faces) / vol0, 5) if vol0 > 0 else None,
+                                 "seconds": round(time.perf_counter() - t0, 4)}
+        out["vertices"][k] = prev
+        if tick is not None:
+            tick()
+    return out
+
+
+def armature_half_task(half: dict) -> dict:
+    """The frames before the reference frame of one round of :func:`track_with_armature`, tracked in a worker
+    process (``executor``): the tracker, the surfaces, the spine's steps and the colour tracks set up here
+    as that process sets them up, then :func:`_track_half`."""
+    from threadpoolctl import threadpool_limits
+
+    from pipeline.track_colour import multiview_colour
+
+    root, faces = Path(half["root"]), half["faces"]
+    frames, by_frame = surface_meshes(root, half["surfaces"])
+    tracker = TemplateTracker(half["prev"], faces, gamma=half["gamma"], gate=half["gate"], prior=half["prior"],
+                              rounds=ARMATURE_FIT_ROUNDS)
+    spine = _spine_steps(root, frames, by_frame, half["prev"])
+    rig = ArmatureTracker(tracker, half["model"], weight=half["weight"], max_points=ARMATURE_ICP_POINTS)
+    with threadpool_limits(1, "blas"), multiview_colour(root, faces, 0.3 * tracker.gate, enabled=half["colour"],
+                                                        corners=tracker.corner_sum) as tracks_for:
+        return _track_half(rig, half["by_pose"], mesh_data(by_frame), half["frames"], prev=half["prev"], pose=half["pose"],
+                           ref=half["ref"], faces=faces, root=root, weight=half["weight"], spine=spine,
+                           tracks_for=tracks_for)
 
 
 def _spine_steps(root: Path, frames: list[int], by_frame: dict, template: np.ndarray):

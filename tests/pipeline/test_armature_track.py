@@ -11,7 +11,9 @@ rig of the true motion, in docs/tracking.md ("Fast motion: the armature as the a
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import json
+import pickle
 from types import SimpleNamespace
 
 import numpy as np
@@ -194,6 +196,13 @@ def _sphere_error(path):
     return np.abs(np.linalg.norm(v - CENTRE, axis=1) - RADIUS) / 10.0  # voxels
 
 
+class _PicklingThreads(cf.ThreadPoolExecutor):
+    """A thread pool whose tasks go through pickle first, as a process pool's do."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        return super().submit(*pickle.loads(pickle.dumps((fn, *args))), **kwargs)
+
+
 def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
     """``stage track RESULTS --armature-rounds 1`` on a rigid turning sphere: one segment, the frames tracked
     again, every vertex still on the sphere (within a voxel), the rounds recorded. The turn itself the
@@ -226,6 +235,16 @@ def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
         part_parent=np.array([-1]), bones=np.array([[0, 1]])))
     assert track_with_armature(res, rigid, colour=True)["rig_prior"]["colour_tracks"]
     assert max(left()) <= 0.65, left()
+    # the frames before the reference frame on an executor (a task that survives pickling, as a process pool's):
+    # the same frames as in order here (with frame 1 as the reference, so that there are frames before it)
+    rep = json.loads((res / "tracked" / "track.json").read_text())
+    (res / "tracked" / "track.json").write_text(json.dumps({**rep, "reference_frame": 1}))
+    track_with_armature(res, rigid, colour=True)
+    tracked = [load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)[0] for k in range(3)]
+    with _PicklingThreads(max_workers=1) as ex:
+        track_with_armature(res, rigid, colour=True, executor=ex)
+    for k in range(3):
+        assert np.array_equal(load_mesh(res / "tracked" / f"{k:06d}.ply", largest=False)[0], tracked[k])
     for k in range(3):
         assert _sphere_error(res / "tracked" / f"{k:06d}.ply").mean() < 1.0
     # tracking again without the rig starts over: other settings
