@@ -172,9 +172,9 @@ def _warped_lk(src, dst, p_src, p_dst, warps, *, window: int = 15, iterations: i
     """
     import cv2
 
-    def sample(img, q):  # bilinear, q (n, K, 2) float32 pixel positions; OpenCV maps have fewer than 2**15 rows
-        parts = [cv2.remap(img, q[i:i + 32000], None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                 for i in range(0, max(len(q), 1), 32000)]
+    def sample(img, qx, qy):  # bilinear at (n, K) float32 x and y maps; OpenCV maps have fewer than 2**15 rows
+        parts = [cv2.remap(img, qx[i:i + 32000], qy[i:i + 32000], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                 for i in range(0, max(len(qx), 1), 32000)]
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     s, d = np.asarray(src, np.float32), np.asarray(dst, np.float32)
@@ -183,22 +183,26 @@ def _warped_lk(src, dst, p_src, p_dst, warps, *, window: int = 15, iterations: i
     ws = np.ones_like(s) if weights is None else np.asarray(weights[0], np.float32)
     r = (int(window) - 1) / 2
     grid = np.stack(np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1)), -1).reshape(-1, 2).astype(np.float32)
-    # window pixels in float32, as the maps are: a pixel position of at most 2**15 is kept to 0.004 px
-    t = sample(cv2.merge([s, gx, gy, ws]), np.asarray(p_src, np.float32)[:, None, :] + grid[None])  # (T, K, 4)
+    # window pixels in float32, as the maps are: a pixel position of at most 2**15 is kept to 0.004 px; x and y
+    # apart, (T, K) each (a trailing axis of 2 makes every elementwise pass a loop of two)
+    ps = np.asarray(p_src, np.float32)
+    t = sample(cv2.merge([s, gx, gy, ws]), ps[:, :1] + grid[:, 0], ps[:, 1:] + grid[:, 1])  # (T, K, 4)
     tmpl, jx, jy, w = (np.ascontiguousarray(t[..., c]) for c in range(4))
     A = np.asarray(warps, np.float64)
-    off = grid @ A.astype(np.float32).transpose(0, 2, 1)  # (T, K, 2): A @ x
+    Af = A.astype(np.float32)
     p = np.asarray(p_dst, np.float64).copy()
-    q0 = p.astype(np.float32)[:, None, :] + off
+    pf = p.astype(np.float32)
+    off = grid @ Af.transpose(0, 2, 1)  # (T, K, 2): A @ x
+    qx, qy = pf[:, :1] + off[..., 0], pf[:, 1:] + off[..., 1]  # the window's pixels on dst at the start
     if weights is not None:
-        w = w * sample(np.asarray(weights[1], np.float32), q0)
+        w = w * sample(np.asarray(weights[1], np.float32), qx, qy)
     wx, wy = w * jx, w * jy
     hxx, hxy, hyy = (np.einsum("tk,tk->t", a, b).astype(np.float64) for a, b in ((wx, jx), (wx, jy), (wy, jy)))
     det = hxx * hyy - hxy * hxy
     ok = det > 1e-9 * np.maximum(hxx + hyy, 1e-12) ** 2
     inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
     live = np.flatnonzero(ok)  # the windows still iterating, and their arrays
-    arrays = [q0, tmpl, wx, wy, hxx, hxy, hyy, inv, A]
+    arrays = [qx, qy, tmpl, wx, wy, hxx, hxy, hyy, inv, A]
     if len(live) < len(p):  # copies of the windows that can iterate only when some cannot
         arrays = [x[live] for x in arrays]
     dp = np.zeros((len(live), 2))
@@ -206,8 +210,9 @@ def _warped_lk(src, dst, p_src, p_dst, warps, *, window: int = 15, iterations: i
     for it in range(int(iterations)):
         if len(live) == 0:
             break
-        q, tm, ax, ay, h11, h12, h22, iv, Al = arrays
-        e = sample(d, q + dp[:, None, :].astype(np.float32)) - tm
+        q1, q2, tm, ax, ay, h11, h12, h22, iv, Al = arrays
+        df = dp.astype(np.float32)
+        e = sample(d, q1 + df[:, :1], q2 + df[:, 1:]) - tm
         bx, by = np.einsum("tk,tk->t", ax, e).astype(np.float64), np.einsum("tk,tk->t", ay, e).astype(np.float64)
         dx, dy = (h22 * bx - h12 * by) * iv, (h11 * by - h12 * bx) * iv
         step = -np.stack([Al[:, 0, 0] * dx + Al[:, 0, 1] * dy, Al[:, 1, 0] * dx + Al[:, 1, 1] * dy], axis=1)
