@@ -90,10 +90,10 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         images, masks or calibration one line says so and the surfaces alone are used.
     progress : callable(step, done, total), optional
     executor : concurrent.futures.Executor, optional
-        Tracks each round's frames before the reference frame (a process pool: :func:`armature_half_task`
-        is its task) while this process tracks those after it, as :func:`pipeline.track.track_results`
-        splits the take; the same frames as in order here (the two halves depend only on the reference
-        frame's pose).
+        Tracks the longer of each round's two halves (the frames after the reference frame, or those
+        before it; a process pool: :func:`armature_half_task` is its task) while this process tracks the
+        other, as :func:`pipeline.track.track_results` splits the take; the same frames as in order here
+        (the two halves depend only on the reference frame's pose).
 
     Returns
     -------
@@ -201,7 +201,8 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
     "figures": frame -> per-frame figures}. ``spine``: ``step(k, k_prev)`` -> the spine's skinned step of the
     template from frame ``k_prev`` to ``k`` (:func:`_spine_steps`), or None. ``tracks_for``: the colour
     tracks (:func:`pipeline.track_colour.multiview_tracks_for`), or None. ``aside``: (executor, the half's
-    settings for :func:`armature_half_task`): the frames before the reference are tracked there meanwhile."""
+    settings for :func:`armature_half_task`): the longer half (from the reference frame forwards or backwards) is
+    tracked there meanwhile."""
     from pipeline.armature_track import fit_pose_to_surface
 
     data_for = mesh_data(by_frame)
@@ -210,14 +211,17 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
     start = by_pose.get(ref, model.identity())
     ref_pose = start if ref_data is None else fit_pose_to_surface(model, start, ref_data[0], ref_data[1],
                                                                   gate=tracker.gate)[0]
-    forward, backward = frames[refi + 1:], frames[:refi][::-1]
+    # the longer half aside (this process built the armature first), or both here in order
+    halves = sorted((frames[refi + 1:], frames[:refi][::-1]), key=len) if aside is not None else \
+        (frames[refi + 1:], frames[:refi][::-1])
+    mine, other = halves
     half = {"prev": vs[refi], "pose": ref_pose, "ref": ref, "faces": faces, "root": str(root), "weight": weight}
     later = None
-    if aside is not None and backward:
+    if aside is not None and other:
         later = submit_aside(aside[0], partial(armature_half_task, {**aside[1], **half, "model": model, "by_pose": by_pose,
-                                                                   "frames": backward}),
-                             unavailable="the second tracking process is not available ({exc}); tracking the frames "
-                                         "before the reference here", logger=log)
+                                                                   "frames": other}),
+                             unavailable="the second tracking process is not available ({exc}); tracking both "
+                                         "halves here", logger=log)
     rig = ArmatureTracker(tracker, model, weight=weight, max_points=ARMATURE_ICP_POINTS)
     here = partial(_track_half, rig, by_pose, data_for, spine=spine, tracks_for=tracks_for, **half)
     count = {"done": 1}
@@ -228,14 +232,15 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
             progress("track with the rig", count["done"], len(frames))
 
     out = {"vertices": {ref: vs[refi]}, "figures": {}}
-    for part in (forward, *([] if later is not None else [backward])):
+    for part in (mine, *([] if later is not None else [other])):
         _merge(out, here(part, tick=tick))
     if later is not None:
         try:
             part = later.result()
         except cf.BrokenExecutor as exc:  # the worker process was killed: its frames are tracked here
-            log.warning("the second tracking process stopped (%s); tracking the frames before frame %d here", exc, ref)
-            part = here(backward, tick=tick)
+            log.warning("the second tracking process stopped (%s); tracking its frames (%d..%d) here", exc, other[0],
+                        other[-1])
+            part = here(other, tick=tick)
         _merge(out, part)
         out["worker_cpu_seconds"] = later.cpu_seconds
         if progress is not None:
@@ -280,7 +285,7 @@ def _track_half(rig, by_pose: dict, data_for, frames: list[int], *, prev: np.nda
 
 
 def armature_half_task(half: dict) -> dict:
-    """The frames before the reference frame of one round of :func:`track_with_armature`, tracked in a worker
+    """One half of the frames of a round of :func:`track_with_armature` (from the reference frame), tracked in a worker
     process (``executor``): the tracker, the surfaces, the spine's steps and the colour tracks set up here
     as that process sets them up, then :func:`_track_half`."""
     from threadpoolctl import threadpool_limits

@@ -170,12 +170,16 @@ ARMATURE_RESOLUTION = 67
 
 
 def armature_seconds(frames: int = 16) -> None:
-    """CPU seconds a frame of the armature mode at 6k vertices: the fast quadruped of :data:`FAST_TAKES`
+    """Seconds a frame of the armature mode at 6k vertices: the fast quadruped of :data:`FAST_TAKES`
     (10 fps, 8 cameras, 640x480), processed on a grid of :data:`ARMATURE_RESOLUTION` voxels along the
     subject, tracked with the defaults (``stage track``), then tracked again with its armature, one
-    round (``stage track --armature-rounds 1``): the process CPU time of
-    :func:`pipeline.track_armature.track_with_armature` (building the armature, the spine's starts, every
-    frame's articulated ICP and template fit; one BLAS thread) over the frames, and its wall time."""
+    round (``stage track --armature-rounds 1``), without and with the colour tracks (``--colour``): the
+    CPU time of :func:`pipeline.track_armature.track_with_armature` (building the armature, the spine's
+    starts, every frame's colour tracks, articulated ICP and template fit; one BLAS thread) over the
+    frames, this process's and the second process's together, and its wall time in order in one process
+    and with the frames before the reference frame in a second process (``stage track --workers 2``, the
+    default), each from the same default tracking."""
+    import shutil
     import tempfile
     from pathlib import Path
 
@@ -184,8 +188,9 @@ def armature_seconds(frames: int = 16) -> None:
     from pipeline.process import process_take
     from pipeline.track import track_results
     from pipeline.track_armature import track_with_armature
+    from stage.workers import process_pool
 
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, process_pool(1) as pool:
         sim = simulate_take("quadruped", n_cameras=8, frames=frames, size=(640, 480), seed=3, fps=10.0)
         take = record_take(sim, Path(tmp) / "quadruped.h5")
         res = Path(tmp) / "results"
@@ -193,11 +198,23 @@ def armature_seconds(frames: int = 16) -> None:
         t0 = time.process_time()
         rep = track_results(res)
         default = (time.process_time() - t0) / frames
-        t0, w0 = time.process_time(), time.perf_counter()
-        track_with_armature(res, rounds=1)
-        cpu, wall = (time.process_time() - t0) / frames, (time.perf_counter() - w0) / frames
-    print(f"{rep['vertices']:6d} vertices  armature mode (fast quadruped, 10 fps, {frames} frames): {cpu:.2f} CPU s per frame "
-          f"a round (--armature-rounds 1; {wall:.2f} s wall), on top of the default tracking's {default:.2f}")
+        base = Path(tmp) / "default"
+        shutil.copytree(res / "tracked", base)
+        pool.submit(int, 0).result()  # the second process started, as after `stage track`'s own tracking
+        figures = {}
+        for colour in (False, True):
+            for ex in (None, pool):
+                shutil.rmtree(res / "tracked")
+                shutil.copytree(base, res / "tracked")
+                t0, w0 = time.process_time(), time.perf_counter()
+                out = track_with_armature(res, rounds=1, colour=colour, executor=ex)
+                cpu = time.process_time() - t0 + out["rig_prior"].get("worker_cpu_seconds", 0.0)
+                figures[colour, ex is not None] = (cpu / frames, (time.perf_counter() - w0) / frames)
+    for colour, label in ((False, "--armature-rounds 1"), (True, "--armature-rounds 1 --colour")):
+        (cpu, wall), (cpu2, wall2) = figures[colour, False], figures[colour, True]
+        print(f"{rep['vertices']:6d} vertices  armature mode (fast quadruped, 10 fps, {frames} frames), {label}: "
+              f"{cpu:.2f} CPU s per frame a round ({wall:.2f} s wall) in one process; with a second process "
+              f"{cpu2:.2f} CPU s ({wall2:.2f} s wall); the default tracking {default:.2f} CPU s before it")
 
 
 def _fast_row(label: str, sim, res, frames: int, cpu: float) -> None:

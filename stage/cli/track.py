@@ -67,8 +67,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
     p.add_argument("--gate", type=float, default=None, help="pair distance gate, mm (default 10 mm scaled with the template's size)")
     p.add_argument("--workers", type=int, default=None,
-                   help="multi-view: with 2 or more, the half of the take before the reference frame is tracked in a "
-                   "second process while this one tracks the half after it, in the tracking and in every armature round "
+                   help="multi-view: with 2 or more, one half of the take from the reference frame is tracked in a "
+                   "second process while this one tracks the other half, in the tracking and in every armature round "
                    "(default 2; 0 or 1 = in order, in process)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -163,7 +163,7 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
               choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour,
               shape_memory=args.shape_memory)
     with worker_pool(1) if (2 if args.workers is None else args.workers) >= 2 else contextlib.nullcontext() as ex:
-        # one task at a time: the half before the reference frame, of the tracking and of every armature round
+        # one task at a time: one half of the take, of the tracking and of every armature round
         rep = _rounds(src, args.carve, margin=args.carve_margin, executor=ex, **kw)
         if args.rig_rounds:
             from pipeline.track_armature import track_with_armature
