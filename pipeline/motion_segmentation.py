@@ -74,7 +74,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.cluster.vq import kmeans2
+from scipy.cluster.vq import kmeans, kmeans2, vq
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from pipeline.geodesic import edge_graph, mesh_edges
@@ -308,7 +308,7 @@ def interval_length(vertices, *, to_reference: float = 1.0, motion: float | None
 
 
 def spectral_clusters(
-    affinity, *, lambda_thr: float = 0.7, max_clusters: int = 64, seed: int = 0, restarts: int = 8,
+    affinity, *, lambda_thr: float = 0.7, max_clusters: int = 64, seed: int = 0, restarts: int = 32,
     k: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Spectral clustering with the number of clusters from the eigenvalues (Ng et al. 2002).
@@ -324,7 +324,9 @@ def spectral_clusters(
     seed : int
         k-means seed (deterministic results).
     restarts : int
-        k-means runs; the one with the smallest within-cluster distortion wins.
+        k-means runs (k-means++ seeding, Lloyd's steps until the distortion stops falling); the one
+        with the smallest within-cluster distortion wins, so that the seed does not choose among
+        local minima.
     k : int, optional
         The number of clusters, in place of the eigenvalue count.
 
@@ -354,7 +356,9 @@ def spectral_clusters(
     rng = np.random.default_rng(seed)
     best, best_cost = None, np.inf
     for _ in range(max(1, int(restarts))):
-        cent, lab = kmeans2(F, k, minit="++", seed=rng)
+        cent, _ = kmeans2(F, k, minit="++", seed=rng)  # k-means++ seeding, 10 Lloyd steps
+        cent, _ = kmeans(F, cent, thresh=1e-9)  # Lloyd's steps on until the distortion stops falling
+        lab, _ = vq(F, cent)
         cost = float(((F - cent[lab]) ** 2).sum())
         if cost < best_cost:
             best, best_cost = lab, cost
@@ -571,7 +575,7 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         tol = float(rigid_tol) * size
         min_size = max(1, int(round(min_segment * V)))
         labels = _merge_rigid(labels, v, edges, tol)
-        labels = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, seed=seed)
+        labels = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size)
         labels = _connected_segments(labels, edges, V, min_size)
         if peel_parts:
             labels = _peel_nonrigid(labels, v, edges, 2.0 * tol, min_size=min_size)

@@ -93,6 +93,11 @@ def _some_frames(T: int, most: int = 120) -> np.ndarray:
     return np.unique(np.linspace(0, T - 1, min(int(T), most)).round().astype(np.int64))
 
 
+def _spread(ids: np.ndarray, most: int) -> np.ndarray:
+    """At most ``most`` of ``ids``, evenly spread over them (every k-th): a deterministic subset."""
+    return ids if len(ids) <= most else ids[np.linspace(0, len(ids) - 1, most).round().astype(np.int64)]
+
+
 def _merge_rigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, per_segment: int = 400,
                  min_edges: int = 3) -> np.ndarray:
     """Merge adjacent segments whose union still moves rigidly (residual below ``tol``)."""
@@ -154,7 +159,7 @@ def _best_cut(A: np.ndarray, near: np.ndarray, ids: np.ndarray, residual, min_si
 
 
 def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: np.ndarray, tol: float, *,
-                    min_size: int, seed: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6) -> np.ndarray:
+                    min_size: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6) -> np.ndarray:
     """Split segments that do not move rigidly in two, recursively (the spectral cut of their own samples).
 
     The eigenvalue count ``k`` spends clusters on large parts and can leave a
@@ -166,14 +171,11 @@ def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: n
     """
     from scipy.spatial import cKDTree
 
-    rng = np.random.default_rng(seed)
     lab = labels.copy()
     vf = v[_some_frames(len(v))]
 
-    def residual(ids):
-        if len(ids) > per_segment:
-            ids = rng.choice(ids, per_segment, replace=False)
-        return rigid_residual(vf[:, ids])
+    def residual(ids):  # on evenly spread members (every k-th): the same answer whatever the seed
+        return rigid_residual(vf[:, _spread(ids, per_segment)])
 
     todo = [(int(x), 0) for x in np.unique(lab)]
     while todo:

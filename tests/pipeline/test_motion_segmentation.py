@@ -7,6 +7,7 @@ import logging
 import numpy as np
 import pytest
 import trimesh
+from threadpoolctl import threadpool_limits
 
 from pipeline.motion_segmentation import (
     check_sequence,
@@ -79,6 +80,21 @@ def test_five_times_the_frame_rate_gives_the_same_segments():
     assert lit < b.interval / 3
 
 
+def test_spectral_clusters_do_not_depend_on_the_seed():
+    """Overlapping clusters give k-means local minima of nearly equal cost: with Lloyd run to convergence and
+    32 restarts the best is the same for every seed (8 restarts of 10 Lloyd steps each differed)."""
+    rng = np.random.default_rng(1)
+    centres = rng.normal(size=(5, 2)) * 3
+    P = centres[rng.integers(5, size=300)] + rng.normal(size=(300, 2))
+    A = np.exp(-((P[:, None] - P[None]) ** 2).sum(2) / 4.0)
+    with threadpool_limits(1, "blas"):  # small products: threads only contend
+        first = spectral_clusters(A, k=5, seed=0)[0]
+        labels = [spectral_clusters(A, k=5, seed=seed)[0] for seed in range(1, 6)]
+    for seed, lab in enumerate(labels, 1):
+        pairs = set(zip(first.tolist(), lab.tolist()))
+        assert len(pairs) == len(set(first.tolist())) == len(set(lab.tolist())), seed  # the same up to names
+
+
 def test_spectral_clusters_find_blocks():
     lab = np.repeat([0, 1, 2], [30, 20, 10])
     A = np.where(lab[:, None] == lab[None, :], 1.0, 0.02)
@@ -121,13 +137,13 @@ def test_a_segment_that_does_not_move_rigidly_is_cut_at_its_joint():
     samples = np.sort(sample_vertices(V[0], 200))
     dv, dn = trajectory_distances(V[:, samples], _sample_normals(V, F, samples), interval=len(V) - 1)
     A = np.exp(-0.1 * (300.0 / size) * dv * (dn + 1.0))
-    lab = _split_nonrigid(np.zeros(len(V[0]), dtype=np.int64), V, samples, A, 0.005 * size, min_size=10, seed=0)
+    lab = _split_nonrigid(np.zeros(len(V[0]), dtype=np.int64), V, samples, A, 0.005 * size, min_size=10)
     far = np.abs(V[0][:, 0]) > 15  # more than one mesh edge (12.5 mm) from the hinge; measured: cut at 12.5 mm
     assert len(np.unique(lab)) == 2
     assert len(np.unique(lab[far & right])) == 1 and len(np.unique(lab[far & ~right])) == 1
     assert lab[far & right][0] != lab[far & ~right][0]
     rigid = np.repeat(V[:1], len(V), axis=0)
-    same = _split_nonrigid(np.zeros(len(V[0]), dtype=np.int64), rigid, samples, A, 0.005 * size, min_size=10, seed=0)
+    same = _split_nonrigid(np.zeros(len(V[0]), dtype=np.int64), rigid, samples, A, 0.005 * size, min_size=10)
     assert (same == 0).all()
 
 
