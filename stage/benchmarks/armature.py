@@ -156,7 +156,8 @@ def _truth_pipe(root):
 
 def _parts(raw, creature, names, articulates):
     """True parts from every vertex's capsule id (-1 body, limb * 16 + segment): the part index of every
-    vertex, every part's parent part and whether the joint above it bends."""
+    vertex, every part's parent part and whether it bends against its parent (any joint between them
+    does)."""
     ids = sorted({int(p) for p in np.unique(raw)})
     index = {p: i for i, p in enumerate(ids)}
     part = np.array([index[int(p)] for p in raw])
@@ -167,7 +168,11 @@ def _parts(raw, creature, names, articulates):
         li, i = divmod(p, 16)
         up = next((q for q in range(p - 1, li * 16 - 1, -1) if q in index), -1)  # the nearest part above with vertices
         parent[index[p]] = index.get(up, -1)
-        bends[index[p]] = bool(articulates[list(names).index(f"{creature.limbs[li].name}.{i}")])
+        # every joint between the part above and this one (a capsule with no vertex of its own, such as a
+        # neck hidden between the body and the head, leaves two): the part bends when any of them does
+        first = up % 16 + 1 if up >= li * 16 else 0
+        bends[index[p]] = any(bool(articulates[list(names).index(f"{creature.limbs[li].name}.{k}")])
+                              for k in range(first, i + 1))
     return part, parent, bends
 
 
