@@ -399,6 +399,20 @@ PIVOT_UNCERTAINTY = 1.0
 PIVOT_FAR_UNCERTAINTY = 0.1
 
 
+def _drawn_centre(motion_a, motion_b, point, *, residual: float, radius: float) -> np.ndarray:
+    """The centre of rotation of two rigid motions drawn towards ``point`` as far as it is uncertain: the
+    most probable centre when ``point`` (the boundary's, on the curve skeleton) is right to within
+    ``radius`` and the motions carry the centre apart by ``residual`` (their noise). The frames' gaps are
+    not independent (a tracked surface's noise is smooth in time: docs/armature-format.md), so the prior
+    weighs as much as all of them: ``argmin_c sum_t ||(R_a,t - R_b,t) c - (t_b,t - t_a,t)||^2 +
+    T (residual / radius)^2 ||c - point||^2``."""
+    (Ra, ta), (Rb, tb) = motion_a, motion_b
+    M = Ra - Rb
+    w = len(M) * (float(residual) / max(float(radius), 1e-300)) ** 2
+    A = np.einsum("tji,tjk->ik", M, M) + w * np.eye(3)
+    return np.linalg.solve(A, np.einsum("tji,tj->i", M, tb - ta) + w * np.asarray(point, dtype=np.float64))
+
+
 def _inside(point: np.ndarray, v: np.ndarray, normals: np.ndarray, tree: cKDTree, k: int = 8) -> bool:
     """Whether ``point`` lies inside the surface: behind the normals of most of its ``k`` nearest vertices."""
     _, nn = tree.query(point, k=min(k, len(v)))
@@ -438,6 +452,11 @@ def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, d
             info["reason"] = (f"the centre of rotation lies outside the cross-section where the two parts meet and is "
                               f"not determined well enough to move that far (uncertain by {info['uncertainty']:.2f} of "
                               f"the boundary's radius, more than {PIVOT_FAR_UNCERTAINTY:g})")
+            drawn = _drawn_centre(motions[a], motions[b], P[node], residual=res, radius=radius[(a, b)])
+            if _inside(drawn, v, normals, tree):
+                out[node] = drawn
+                info["method"] = "centre of rotation, drawn to the boundary"
+                info["reason"] += "; the centre drawn towards the boundary's point by as much"
         elif not _inside(c, v, normals, tree):
             info["reason"] = "the centre of rotation lies outside the mesh"
         else:

@@ -527,3 +527,35 @@ def test_a_determined_centre_of_rotation_away_from_the_boundary_is_the_joint():
     j = int(np.flatnonzero(sk.articulation)[0])
     assert sk.placement[j]["method"] == "centre of rotation", sk.placement[j]
     assert np.linalg.norm(sk.rest[j][:2] - pivot[:2]) < 1.0  # measured: on the axis
+
+
+def test_an_uncertain_centre_beyond_the_boundary_is_drawn_towards_it():
+    """The same far hinge turned by 20 degrees with 2 mm of noise on every vertex: the centre is uncertain by a
+    quarter of the boundary's radius (more than PIVOT_FAR_UNCERTAINTY), so the joint is the centre drawn towards the
+    boundary's point, nearer the hinge than the boundary (measured 3.2 mm from it, 30 mm before); the drawn centre
+    equals the stacked least-squares problem solved by lstsq (slow reference) and the pivot without noise (up to a ridge of 1e-6 mm)."""
+    from pipeline.armature_skeleton import _drawn_centre, articulated_skeleton
+    from pipeline.rigid_parts import rigid_motions
+    from tests.pipeline.shapes import two_bars
+
+    V, F, right = two_bars(12)
+    W = np.repeat(V[:1], 12, axis=0)
+    pivot = np.array([-30.0, 0.0, 0.0])
+    for t, a in enumerate(np.radians(np.linspace(0, 20, 12))):
+        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        W[t, right] = (V[0, right] - pivot) @ R.T + pivot
+    X = W + np.random.default_rng(0).normal(scale=2.0, size=W.shape)
+    sk = articulated_skeleton(V[0], F, right.astype(np.int64), motion=X, reference=0)
+    j = int(np.flatnonzero(sk.articulation)[0])
+    assert sk.placement[j]["method"] == "centre of rotation, drawn to the boundary", sk.placement[j]
+    assert np.linalg.norm(sk.rest[j][:2] - pivot[:2]) < 6.0
+    (Ra, ta), (Rb, tb) = rigid_motions(X[:, ~right]), rigid_motions(X[:, right])
+    point = np.array([0.0, 1.0, 2.0])
+    got = _drawn_centre((Ra, ta), (Rb, tb), point, residual=3.0, radius=12.0)
+    w = np.sqrt(len(Ra)) * 3.0 / 12.0
+    A = np.concatenate([*(Ra - Rb), w * np.eye(3)])
+    rhs = np.concatenate([*(tb - ta), w * point])
+    np.testing.assert_allclose(got, np.linalg.lstsq(A, rhs, rcond=None)[0], atol=1e-9)
+    (Ra, ta), (Rb, tb) = rigid_motions(W[:, ~right]), rigid_motions(W[:, right])
+    exact = _drawn_centre((Ra, ta), (Rb, tb), point, residual=1e-6, radius=12.0)
+    np.testing.assert_allclose(exact[:2], pivot[:2], atol=1e-6)
