@@ -533,7 +533,8 @@ def test_an_uncertain_centre_beyond_the_boundary_is_drawn_towards_it():
     """The same far hinge turned by 20 degrees with 2 mm of noise on every vertex: the centre is uncertain by a
     quarter of the boundary's radius (more than PIVOT_FAR_UNCERTAINTY), so the joint is the centre drawn towards the
     boundary's point, nearer the hinge than the boundary (measured 3.2 mm from it, 30 mm before); the drawn centre
-    equals the stacked least-squares problem solved by lstsq (slow reference) and the pivot without noise (up to a ridge of 1e-6 mm)."""
+    equals the stacked least-squares problem solved by lstsq (slow reference) and the pivot without
+    noise (up to a ridge of 1e-6 mm)."""
     from pipeline.armature_skeleton import _drawn_centre, articulated_skeleton
     from pipeline.rigid_parts import rigid_motions
     from tests.pipeline.shapes import two_bars
