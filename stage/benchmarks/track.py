@@ -14,6 +14,7 @@ at 6k vertices (:func:`armature_seconds`). With ``--accuracy`` the simulated
 multi-view takes are also tracked on their true surfaces
 (:func:`fake_cameras.surface_motion.true_surface`), the tracker's error apart from the surfaces',
 and on their surfaces carved across time (:mod:`pipeline.carve`, two rounds).
+:func:`skeleton_oracle` tracks a fast take with the simulator's own skeleton as the armature.
 """
 
 from __future__ import annotations
@@ -162,6 +163,87 @@ def fast_accuracy() -> None:
                 track_with_armature(res, rig.model, poses=poses)
                 _fast_row(f"{name}, the armature of the true motion {label}", sim, res, frames,
                           (time.process_time() - t0) / frames)
+
+
+def simulator_armature(creature, time_s: float, vertices, faces):
+    """The simulator's own skeleton as an armature of a template (the oracle of the armature mode).
+
+    Parts: the creature's body (every body capsule) and every limb capsule that carries template vertices
+    (each vertex on the capsule nearest to it at ``time_s``); every limb part hangs from the part before it on
+    its limb (from the body for the first), its joint at the start of its capsule chain; every vertex moves
+    rigidly with its part (one influence).
+    """
+    from pipeline.armature_fit import ArticulatedModel
+    from pipeline.armature_skeleton import ArticulatedSkeleton
+
+    V = np.asarray(vertices, dtype=np.float64)
+    pose = creature.pose(float(time_s))
+    cap = pose.capsule_sdf(V).argmin(axis=1)
+    limb = pose.limb
+    caps = [c for c in np.unique(cap) if limb[c] >= 0]
+    part_of_cap = {c: 0 for c in np.flatnonzero(limb < 0)}
+    parent, rest = [-1], [V[limb[cap] < 0].mean(0)]
+    for c in caps:  # capsules in limb order: the one before on the limb with vertices is the parent
+        before = [d for d in caps if d < c and limb[d] == limb[c]]
+        parent.append(part_of_cap[before[-1]] if before else 0)
+        first = (before[-1] + 1) if before else int(np.flatnonzero(limb == limb[c])[0])
+        rest.append(pose.p0[first])
+        part_of_cap[c] = len(parent) - 1
+    P = len(parent)
+    tips = [V[np.isin(cap, [c for c, q in part_of_cap.items() if q == p])].mean(0) for p in range(P)]
+    joints = np.array(rest + tips)  # a joint per part, then a tip per part: every part drives one bone
+    parents = np.array([-1] + [parent[p] for p in range(1, P)] + list(range(P)))
+    part = np.r_[np.arange(P), np.arange(P)]
+    bones = np.array([(parents[j], j) for j in range(1, 2 * P)])
+    names = tuple(["root"] + [f"joint{p}" for p in range(1, P)] + [f"aux{p}" for p in range(P)])
+    sk = ArticulatedSkeleton(names=names, parents=parents, rest=joints, articulation=np.r_[False, np.ones(P - 1, bool),
+                             np.zeros(P, bool)], segment_pairs=(None,) * (2 * P), part=part,
+                             part_joint=np.arange(P), part_parent=np.array(parent), bones=bones,
+                             placement=(None,) * (2 * P))
+    vpart = np.array([part_of_cap[c] for c in cap])
+    return ArticulatedModel(V, np.asarray(faces, dtype=np.int64), sk, (P - 1 + vpart)[:, None], np.ones((len(V), 1)))
+
+
+def skeleton_oracle(name: str = "biped", fps: float = 10.0, frames: int = 16) -> None:
+    """A take of :data:`FAST_TAKES` tracked with the defaults, then one round of the armature mode with the
+    simulator's own skeleton as the armature (:func:`simulator_armature`), without and with its poses fitted
+    to the true tracks among the starts, and with the armature built from the tracking
+    (``--armature-rounds 1``): what the mode gives with a right armature, apart from building it."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from fake_cameras.record import record_take
+    from fake_cameras.surface_motion import surface_point_tracks
+    from fake_cameras.take import simulate_take
+    from pipeline.armature_fit import fit_sequence
+    from pipeline.meshio import load_mesh
+    from pipeline.process import process_take
+    from pipeline.track import track_results
+    from pipeline.track_armature import track_with_armature
+
+    with tempfile.TemporaryDirectory() as tmp:
+        sim = simulate_take(name, n_cameras=8, frames=frames, size=(640, 480), seed=3, fps=fps)
+        res = Path(tmp) / "results"
+        process_take(record_take(sim, Path(tmp) / "take.h5"), res, executor=None)
+        t0 = time.process_time()
+        track_results(res)
+        _fast_row(f"{name} at {fps:g} fps, default", sim, res, frames, (time.process_time() - t0) / frames)
+        base = Path(tmp) / "default"
+        shutil.copytree(res / "tracked", base)
+        ref = int(json.loads((base / "track.json").read_text())["reference_frame"])
+        V0, F0 = load_mesh(base / f"{ref:06d}.ply", largest=False)
+        model = simulator_armature(sim.creature, sim.times[ref], V0, F0)
+        truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times[:frames]])[1:]
+        poses = dict(enumerate(fit_sequence(model, truth).poses))
+        for label, kw in (("the simulator's skeleton", dict(model=model)),
+                          ("the simulator's skeleton with its true poses", dict(model=model, poses=poses)),
+                          ("--armature-rounds 1", {})):
+            shutil.rmtree(res / "tracked")
+            shutil.copytree(base, res / "tracked")
+            t0 = time.process_time()
+            track_with_armature(res, **kw)
+            _fast_row(f"{name}, {label}", sim, res, frames, (time.process_time() - t0) / frames)
 
 
 #: Voxels along the subject of the take :func:`armature_seconds` times: its template has about 6,000
