@@ -217,7 +217,7 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
     mine, other = halves
     half = {"prev": vs[refi], "pose": ref_pose, "ref": ref, "faces": faces, "root": str(root), "weight": weight}
     later = None
-    if aside is not None and other:
+    if aside is not None and other and mine:  # (one half only: here, without a second set-up)
         later = submit_aside(aside[0], partial(armature_half_task, {**aside[1], **half, "model": model, "by_pose": by_pose,
                                                                    "frames": other}),
                              unavailable="the second tracking process is not available ({exc}); tracking both "
