@@ -18,7 +18,8 @@ turn against each other do not. The paper's steps:
 5. normalised graph Laplacian ``L = I - D^-1/2 Phi D^-1/2`` (Ng, Jordan &
    Weiss 2002); ``k`` = number of eigenvalues below ``lambda_thr``;
 6. k-means on the rows of the first ``k`` eigenvectors (rows normalised to
-   unit length, as Ng et al.);
+   unit length, as Ng et al.; started from centres as orthogonal as possible, their
+   initialisation, from 32 deterministic starts, the least distortion kept);
 7. every other vertex takes the label of its nearest sample along the surface.
 
 Units and size. The paper's constants are for millimetres and objects of
@@ -74,7 +75,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.cluster.vq import kmeans, kmeans2, vq
+from scipy.cluster.vq import kmeans, vq
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from pipeline.geodesic import edge_graph, mesh_edges
@@ -307,8 +308,19 @@ def interval_length(vertices, *, to_reference: float = 1.0, motion: float | None
     return int(np.clip(round(float(motion) / step), 1, T - 1))
 
 
+def _max_min(F: np.ndarray, first: int, m: int) -> np.ndarray:
+    """``m`` rows of ``F`` spread out: ``first``, then each time the row farthest from those chosen
+    (for unit rows: the one most nearly orthogonal to them)."""
+    out = [int(first)]
+    dmin = ((F - F[first]) ** 2).sum(1)
+    for _ in range(1, int(m)):
+        out.append(int(np.argmax(dmin)))
+        np.minimum(dmin, ((F - F[out[-1]]) ** 2).sum(1), out=dmin)
+    return np.asarray(out, dtype=np.int64)
+
+
 def spectral_clusters(
-    affinity, *, lambda_thr: float = 0.7, max_clusters: int = 64, seed: int = 0, restarts: int = 32,
+    affinity, *, lambda_thr: float = 0.7, max_clusters: int = 64, restarts: int = 32,
     k: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Spectral clustering with the number of clusters from the eigenvalues (Ng et al. 2002).
@@ -321,12 +333,12 @@ def spectral_clusters(
         ``k`` = number of eigenvalues of ``I - D^-1/2 A D^-1/2`` below it.
     max_clusters : int
         Upper bound of ``k``.
-    seed : int
-        k-means seed (deterministic results).
     restarts : int
-        k-means runs (k-means++ seeding, Lloyd's steps until the distortion stops falling); the one
-        with the smallest within-cluster distortion wins, so that the seed does not choose among
-        local minima.
+        k-means runs, each from its own deterministic start (Ng et al.'s initialisation: centres
+        as orthogonal as possible, here the rows farthest apart, :func:`_max_min`, begun at each
+        of the first ``restarts`` rows in farthest-point order), Lloyd's steps until the distortion
+        stops falling; the one with the smallest within-cluster distortion wins. No random draw:
+        the same affinities give the same clusters.
     k : int, optional
         The number of clusters, in place of the eigenvalue count.
 
@@ -353,11 +365,9 @@ def spectral_clusters(
         return np.zeros(n, dtype=np.int64), w[:m], 1
     F = U[:, :k]
     F = F / np.maximum(np.linalg.norm(F, axis=1, keepdims=True), 1e-12)
-    rng = np.random.default_rng(seed)
     best, best_cost = None, np.inf
-    for _ in range(max(1, int(restarts))):
-        cent, _ = kmeans2(F, k, minit="++", seed=rng)  # k-means++ seeding, 10 Lloyd steps
-        cent, _ = kmeans(F, cent, thresh=1e-9)  # Lloyd's steps on until the distortion stops falling
+    for first in _max_min(F, int(np.argmax(((F - F.mean(0)) ** 2).sum(1))), min(max(1, int(restarts)), n)):
+        cent, _ = kmeans(F, F[_max_min(F, int(first), k)], thresh=1e-9)  # Lloyd until the distortion stops falling
         lab, _ = vq(F, cent)
         cost = float(((F - cent[lab]) ** 2).sum())
         if cost < best_cost:
@@ -463,7 +473,6 @@ def motion_segmentation(
     rigid_tol: float | None = 0.005,
     interval_motion: float | None = INTERVAL_MOTION,
     max_clusters: int = 64,
-    seed: int = 0,
     peel_parts: bool = True,
     min_gap: float | None = None,
 ) -> Segmentation:
@@ -496,7 +505,6 @@ def motion_segmentation(
         this many reference millimetres (:func:`interval_length`); ``None``:
         eq. 7 as written (twice the largest step, millimetres as frames).
     max_clusters : int
-    seed : int
     peel_parts : bool
         Peel parts fused to a segment off it (vertices its trimmed core motion leaves twice
         ``rigid_tol`` away, surface patches with a motion of their own), and dissolve skinned joints'
@@ -519,12 +527,12 @@ def motion_segmentation(
 
     with threadpool_limits(1, "blas"):  # many small products: threads only contend on a busy machine
         return _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals,
-                                    min_segment, rigid_tol, interval_motion, max_clusters, seed, bool(peel_parts),
+                                    min_segment, rigid_tol, interval_motion, max_clusters, bool(peel_parts),
                                     min_gap)
 
 
 def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_size, use_normals, min_segment,
-                         rigid_tol, interval_motion, max_clusters, seed, peel_parts, min_gap) -> Segmentation:
+                         rigid_tol, interval_motion, max_clusters, peel_parts, min_gap) -> Segmentation:
     v, f = check_sequence(vertices, faces)
     if not (lam > 0 and np.isfinite(lam)):
         raise ValueError(f"lam must be > 0, got {lam}")
@@ -556,7 +564,7 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
     dv, dn = trajectory_distances(v[frames][:, samples], normals, interval=max(1, int(round(dt / stride))))
     d = dv * (dn + 1.0) if use_normals else dv
     A = np.exp(-lam_units * d.astype(np.float64))
-    sample_labels, eig, k = spectral_clusters(A, lambda_thr=lambda_thr, max_clusters=max_clusters, seed=seed)
+    sample_labels, eig, k = spectral_clusters(A, lambda_thr=lambda_thr, max_clusters=max_clusters)
     thr = float(lambda_thr)
     reason = _small_motion(v, samples, size, eig, k, thr, rigid_tol, min_gap)
     if reason:
@@ -564,7 +572,7 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         # its arms); the merge then folds what moves as one rigid body
         log.warning("%s: small parts with small motion, lambda_thr=%g used", reason, SMALL_MOTION_THR)
         thr = SMALL_MOTION_THR
-        sample_labels, eig, k = spectral_clusters(A, lambda_thr=thr, max_clusters=max_clusters, seed=seed)
+        sample_labels, eig, k = spectral_clusters(A, lambda_thr=thr, max_clusters=max_clusters)
     if k == 1:
         log.warning("nothing bends in this sequence (one eigenvalue below lambda_thr=%g): one segment", thr)
         return Segmentation(np.zeros(V, dtype=np.int64), samples, sample_labels, eig, 1, dt, lam_units, thr)
