@@ -59,55 +59,11 @@ def spine_model(root: Path, frames: list[int], by_frame: dict, template):
         if spine.frame_count != len(frames):
             return None
         ref = reference_frame(spine)
-        if template is None:
-            ref = _fewest_handles(spine, frames, by_frame, ref)
         V, F = load_mesh(by_frame[frames[ref]], largest=True) if template is None else load_template(template)
         return ref, rigged_model(spine, V, F, reference=ref)
     except (NoCompleteFrameError, ValueError, KeyError) as exc:
         log.warning("tracking without the spine's pose (%s)", exc)
         return None
-
-
-def _handles(path) -> int | None:
-    """Handles (genus) of a frame's surface, its largest piece as the template takes it; None: not closed."""
-    import trimesh
-
-    from pipeline.meshio import load_mesh
-    from pipeline.surface import surface_quality
-
-    v, f = load_mesh(path, largest=True)
-    return surface_quality(trimesh.Trimesh(v, f, process=False)).genus if len(f) else None
-
-
-def _fewest_handles(spine, frames: list[int], by_frame: dict, ref: int) -> int:
-    """Position of the template's frame: the spine's reference ``ref``, unless its surface has handles and
-    another frame that the spine finds complete has fewer; then the nearest of those with the fewest
-    (the earlier of two as near).
-
-    Where two limbs, or a limb and the body, touch in a frame, that frame's surface joins them, and
-    every such contact between two branches of the body is one more handle (genus). A template
-    cut from that surface keeps them joined in every frame, and the tracking cannot pull them
-    apart when they part: a forearm welded to a thigh is dragged along with it
-    (docs/tracking.md, "The template's frame").
-    """
-    from pipeline.armature_spine import NoCompleteFrameError, reference_frame
-
-    best = (_handles(by_frame[frames[ref]]), ref)
-    if not best[0]:  # no handle (or not a closed surface: nothing to compare)
-        return ref
-    for i in sorted(range(len(frames)), key=lambda i: abs(i - ref)):
-        if i == ref:
-            continue
-        try:
-            reference_frame(spine, prefer=i)
-        except NoCompleteFrameError:
-            continue
-        h = _handles(by_frame[frames[i]])
-        if h is not None and h < best[0]:
-            best = (h, i)
-            if h == 0:
-                break
-    return best[1]
 
 
 def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False,
@@ -116,9 +72,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     """Track a template through the surfaces of a processed multi-view take.
 
     With the take's spine (``spine.json``) the template is the spine's reference frame's
-    surface (or, when that surface has handles, limbs touching there, the nearest frame the
-    spine finds complete whose surface has the fewest) and tracking runs from that frame
-    forwards and backwards. Every frame has two
+    surface and tracking runs from that frame forwards and backwards. Every frame has two
     starts then: the constant-velocity prediction (or the previous frame) and the previous
     frame moved as the spine's skinned pose of the template moves (linear blend skinning);
     each patch of the template starts from the one this frame's surface explains better

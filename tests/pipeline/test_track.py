@@ -753,29 +753,3 @@ def test_cli_shape_memory_says_so_and_records_the_prior(tmp_path, capsys):
     assert main(["track", str(tmp_path), "--workers", "0", "--no-progress"]) == 0
     assert "shape memory" not in capsys.readouterr().out
     assert json.loads((tmp_path / "tracked" / "track.json").read_text())["prior"] == "round"
-
-
-def test_template_frame_has_the_fewest_handles_of_the_frames_the_spine_finds_complete(tmp_path):
-    """Limbs touching in a frame join its surface (one handle per contact) and a template cut from it keeps
-    them joined: the template is the nearest complete frame with the fewest handles (a torus has one, a ball none)."""
-    from types import SimpleNamespace
-
-    from pipeline.track import _fewest_handles
-
-    torus, ball = trimesh.creation.torus(60.0, 20.0), trimesh.creation.icosphere(subdivisions=2, radius=60.0)
-
-    def take(shapes, missing=()):
-        by_frame = {}
-        for k, m in enumerate(shapes):
-            by_frame[k] = tmp_path / f"{len(shapes)}_{missing}_{k}.ply"
-            atomic_write_bytes(by_frame[k], ply_bytes(m.vertices, m.faces))
-        axes = np.zeros((len(shapes), 2, 3))
-        axes[list(missing)] = np.nan  # a limb the spine did not see there
-        spine = SimpleNamespace(frame_count=len(shapes), axes={"limb": axes}, junctions=np.zeros((0,)), meta={})
-        return spine, list(range(len(shapes))), by_frame
-
-    spine, frames, by_frame = take([torus, torus, torus, ball, ball], missing=(3,))
-    assert _fewest_handles(spine, frames, by_frame, 1) == 4  # frame 3 has no handle but is not complete
-    assert _fewest_handles(spine, frames, by_frame, 4) == 4  # no handle: the spine's reference stays
-    assert _fewest_handles(*take([ball, torus, ball]), 1) == 0  # as near either way: the earlier
-    assert _fewest_handles(*take([torus, torus]), 0) == 0  # none has fewer
