@@ -81,6 +81,7 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 from pipeline.geodesic import edge_graph, mesh_edges
 from pipeline.rigid_parts import (
     _dissolve_blends,
+    _max_min,
     _merge_rigid,
     _peel_nonrigid,
     _some_frames,
@@ -306,17 +307,6 @@ def interval_length(vertices, *, to_reference: float = 1.0, motion: float | None
     if step <= 0:
         return T - 1
     return int(np.clip(round(float(motion) / step), 1, T - 1))
-
-
-def _max_min(F: np.ndarray, first: int, m: int) -> np.ndarray:
-    """``m`` rows of ``F`` spread out: ``first``, then each time the row farthest from those chosen
-    (for unit rows: the one most nearly orthogonal to them)."""
-    out = [int(first)]
-    dmin = ((F - F[first]) ** 2).sum(1)
-    for _ in range(1, int(m)):
-        out.append(int(np.argmax(dmin)))
-        np.minimum(dmin, ((F - F[out[-1]]) ** 2).sum(1), out=dmin)
-    return np.asarray(out, dtype=np.int64)
 
 
 def spectral_clusters(

@@ -93,6 +93,17 @@ def _some_frames(T: int, most: int = 120) -> np.ndarray:
     return np.unique(np.linspace(0, T - 1, min(int(T), most)).round().astype(np.int64))
 
 
+def _max_min(F: np.ndarray, first: int, m: int) -> np.ndarray:
+    """``m`` rows of ``F`` spread out: ``first``, then each time the row farthest from those chosen
+    (for unit rows: the one most nearly orthogonal to them)."""
+    out = [int(first)]
+    dmin = ((F - F[first]) ** 2).sum(1)
+    for _ in range(1, int(m)):
+        out.append(int(np.argmax(dmin)))
+        np.minimum(dmin, ((F - F[out[-1]]) ** 2).sum(1), out=dmin)
+    return np.asarray(out, dtype=np.int64)
+
+
 def _spread(ids: np.ndarray, most: int) -> np.ndarray:
     """At most ``most`` of ``ids``, evenly spread over them (every k-th): a deterministic subset."""
     return ids if len(ids) <= most else ids[np.linspace(0, len(ids) - 1, most).round().astype(np.int64)]
@@ -236,14 +247,43 @@ def _core_motion(Y: np.ndarray, *, keep: float = 0.5, rounds: int = 3):
     return R, t
 
 
+def _consensus_motion(Y: np.ndarray, tol: float, patch: int, *, hypotheses: int = 24, most: int = 1000,
+                      rounds: int = 3):
+    """The rigid motion the most trajectories of ``Y`` (F, n, 3) follow within ``tol`` in every frame (maximum
+    consensus): hypotheses are the rigid motions of the ``patch`` points nearest to each of ``hypotheses``
+    farthest-point seeds of the first frame (:func:`_max_min`), counted on at most ``most`` evenly spread
+    points; the best is refitted on the points it carries within ``tol``, ``rounds`` times. No random draw."""
+    from scipy.spatial import cKDTree
+
+    n = Y.shape[1]
+    sub = _spread(np.arange(n), most)
+    tree = cKDTree(Y[0])
+    best, best_count = None, -1
+    for s in _max_min(Y[0], int(np.argmax(((Y[0] - Y[0].mean(0)) ** 2).sum(1))), min(int(hypotheses), n)):
+        _, nb = tree.query(Y[0, s], k=min(max(4, int(patch)), n))
+        motion = rigid_motions(Y[:, np.atleast_1d(nb)])
+        count = int((_gaps(motion, Y[0, sub], Y[:, sub]).max(0) <= tol).sum())
+        if count > best_count:
+            best, best_count = motion, count
+    for _ in range(int(rounds)):
+        inliers = _gaps(best, Y[0], Y).max(0) <= tol
+        if inliers.sum() < 4:
+            break
+        best = rigid_motions(Y[:, inliers])
+    return best
+
+
 def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, min_size: int,
                    depth: int = 4, gain: float = 0.5) -> np.ndarray:
     """Parts fused to a segment peeled off: the vertices its core motion (:func:`_core_motion`) leaves
     more than ``tol`` away in some frame, as surface-connected patches of at least ``min_size`` vertices
     that have a motion of their own (their own rigid residual at most ``gain`` of their residual under
     the core's motion, the rule of :func:`_split_nonrigid`): a leg or a tail fused to the body moves
-    with its own motion, the body's core with the body's; a smooth bend is no part. Tracking noise
-    can look like such a part (``peel_parts`` of :func:`motion_segmentation`)."""
+    with its own motion, the body's core with the body's; a smooth bend is no part. When the trimmed core
+    leaves fewer than ``min_size`` vertices within ``tol`` (a segment of several parts, none of them half
+    of it: the trimmed fit mixes them and fits none), the core is the motion most of its vertices follow
+    (:func:`_consensus_motion`). Tracking noise can look like such a part (``peel_parts`` of
+    :func:`motion_segmentation`)."""
     lab = labels.copy()
     vf = v[_some_frames(len(v))]
     V = len(lab)
@@ -259,6 +299,10 @@ def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: fl
             R, t = _core_motion(Y)
             gap = _gaps((R, t), Y[0], Y)  # (frames, vertices)
             off = gap.max(0) > tol
+            if (~off).sum() < min_size:  # the trimmed core fits no part (none holds half the segment)
+                R, t = _consensus_motion(Y, tol, min_size)
+                gap = _gaps((R, t), Y[0], Y)
+                off = gap.max(0) > tol
             where = np.full(V, -1)
             where[ids] = np.arange(len(ids))
             if off.sum() < min_size or (~off).sum() < min_size:

@@ -16,7 +16,7 @@ from pipeline.motion_segmentation import (
     motion_segmentation,
     spectral_clusters,
 )
-from pipeline.rigid_parts import rigid_motions, rigid_residual
+from pipeline.rigid_parts import _consensus_motion, _core_motion, _gaps, rigid_motions, rigid_residual
 from pipeline.trajectory_distances import trajectory_distances
 from tests.pipeline.shapes import two_bars
 
@@ -350,3 +350,27 @@ def test_eigenvalues_crossing_lambda_thr_without_a_gap_use_the_small_motion_thre
     assert seg.lambda_thr == 0.7 and seg.n_segments == 2
     with pytest.raises(ValueError, match="min_gap"):
         motion_segmentation(V, F, min_gap=0.0)
+
+
+def test_consensus_motion_is_the_largest_rigid_group_where_the_trimmed_core_fits_none():
+    """Three blobs turning apart, none half of the points: the trimmed core (the half it fits best) mixes
+    them, the consensus motion is the largest blob's own (``_peel_nonrigid`` falls back to it)."""
+    rng = np.random.default_rng(5)
+    sizes, centres = (40, 33, 27), np.array([[0.0, 0, 0], [30, 0, 0], [0, 30, 0]])
+    X0 = np.concatenate([c + rng.normal(size=(n, 3)) * 4 for n, c in zip(sizes, centres)])
+    group = np.repeat(np.arange(3), sizes)
+    frames = []
+    for t in np.linspace(0.0, 1.0, 12):
+        x = X0.copy()
+        for g, axis in ((1, np.array([0.0, 0, 1])), (2, np.array([1.0, 0, 0]))):
+            a = 0.8 * t * (1 if g == 1 else -1)
+            K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+            R = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+            x[group == g] = (X0[group == g] - centres[0]) @ R.T + centres[0]
+        frames.append(x + [5.0 * t, 0, 0])
+    Y = np.stack(frames)
+    tol = 0.5
+    trimmed = _gaps(_core_motion(Y), Y[0], Y).max(0) <= tol
+    assert trimmed.sum() < 0.5 * sizes[0]  # the trimmed core fits no blob
+    within = _gaps(_consensus_motion(Y, tol, 8), Y[0], Y).max(0) <= tol
+    assert within.tolist() == (group == 0).tolist()  # exactly the largest blob
