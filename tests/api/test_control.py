@@ -11,6 +11,7 @@ from functools import partial
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from api.app import create_app
@@ -220,6 +221,8 @@ def test_unplugged_camera_in_the_browser(tmp_path):
             assert len(t) == sets and t.complete
             assert counts["cam2"] < min(counts[c] for c in ("cam0", "cam1", "cam3")) - 10, counts
             gap = table[:, 2] < 0
-            first = int(gap.argmax())
-            assert gap[first:].all()  # missing from the unplugging to the end: the take records the gap
+            # Missing from the unplugging to the end: the take records the gap. A set before it may
+            # miss cam2 too (a frame late on a loaded machine is marked missing by the sync).
+            trailing = len(gap) - 1 - int(np.flatnonzero(~gap).max())  # sets missing cam2 at the end
+            assert trailing > 10, gap
             assert t.sync_stats["cameras"]["cam2"]["missing"] == int(gap.sum())
