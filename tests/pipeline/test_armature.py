@@ -509,20 +509,28 @@ def test_a_joint_that_barely_bends_keeps_the_boundary_placement_and_says_so():
         assert ("placement" in jd) == (jd["kind"] == "joint")
 
 
+def _far_hinge(degrees: float):
+    """Two bars (12 frames) whose right half (x > 0) turns by ``degrees`` about a z axis through (-30, 0, 0),
+    inside the left half, 30 mm from where they meet: -> V, F, right, the motion W (12, n, 3), the pivot."""
+    from tests.pipeline.shapes import two_bars
+
+    V, F, right = two_bars(12)
+    W = np.repeat(V[:1], 12, axis=0)
+    pivot = np.array([-30.0, 0.0, 0.0])
+    for t, a in enumerate(np.radians(np.linspace(0, degrees, 12))):
+        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        W[t, right] = (V[0, right] - pivot) @ R.T + pivot
+    return V, F, right, W, pivot
+
+
 def test_a_determined_centre_of_rotation_away_from_the_boundary_is_the_joint():
     """The bar's right half (x > 0) turns by 60 degrees about a z axis through (-30, 0, 0), inside the left
     half, 30 mm from where the two segments meet (the boundary's radius is about 12 mm), as a limb whose
     template touches the body along its length turns about a shoulder away from that boundary: the joint is
     the centre of rotation, not the boundary's centroid."""
     from pipeline.armature_skeleton import articulated_skeleton
-    from tests.pipeline.shapes import two_bars
 
-    V, F, right = two_bars(12)
-    W = np.repeat(V[:1], 12, axis=0)
-    pivot = np.array([-30.0, 0.0, 0.0])
-    for t, a in enumerate(np.radians(np.linspace(0, 60, 12))):
-        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-        W[t, right] = (V[0, right] - pivot) @ R.T + pivot
+    V, F, right, W, pivot = _far_hinge(60)
     sk = articulated_skeleton(V[0], F, right.astype(np.int64), motion=W, reference=0)
     j = int(np.flatnonzero(sk.articulation)[0])
     assert sk.placement[j]["method"] == "centre of rotation", sk.placement[j]
@@ -537,14 +545,8 @@ def test_an_uncertain_centre_beyond_the_boundary_is_drawn_towards_it():
     noise (up to a ridge of 1e-6 mm)."""
     from pipeline.armature_skeleton import _drawn_centre, articulated_skeleton
     from pipeline.rigid_parts import rigid_motions
-    from tests.pipeline.shapes import two_bars
 
-    V, F, right = two_bars(12)
-    W = np.repeat(V[:1], 12, axis=0)
-    pivot = np.array([-30.0, 0.0, 0.0])
-    for t, a in enumerate(np.radians(np.linspace(0, 20, 12))):
-        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-        W[t, right] = (V[0, right] - pivot) @ R.T + pivot
+    V, F, right, W, pivot = _far_hinge(20)
     X = W + np.random.default_rng(0).normal(scale=2.0, size=W.shape)
     sk = articulated_skeleton(V[0], F, right.astype(np.int64), motion=X, reference=0)
     j = int(np.flatnonzero(sk.articulation)[0])
