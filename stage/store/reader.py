@@ -63,6 +63,7 @@ class TakeReader:
         self._derived: h5py.File | None = None
         self._derived_key: tuple | None = None
         self._swmr = bool(self._f.swmr_mode)
+        self._complete = False  # until the commit counter is read: a live take's reads are tried again
         try:
             fmt = self._f.attrs.get("format")
             if isinstance(fmt, bytes):
@@ -143,9 +144,9 @@ class TakeReader:
     def _refresh(self) -> int:
         try:
             self._commit_ds.refresh()
-            commit = np.asarray(self._commit_ds[()], dtype=np.int64)
         except OSError as exc:
             raise TakeError(f"{self.path}: cannot read the commit counter: {exc}") from None
+        commit = np.asarray(self._read(self._commit_ds, (), "the commit counter"), dtype=np.int64)
         if commit.shape != (2 + len(self.cameras),):
             raise TakeError(f"{self.path}: damaged take layout: commit counter has shape {commit.shape}")
         self._n_sets = int(commit[0])
@@ -183,7 +184,9 @@ class TakeReader:
             g = self._f["cameras"][c]
             checks = [(g["image"], (n - 1, 0, 0, 0))] if "image" in g else []
             if "jpeg" in g:
-                end = int(g["jpeg_offset"][n - 1] + g["jpeg_length"][n - 1])
+                # (the offsets' chunk is rewritten in place while the writer runs: read as every live read)
+                end = int(self._read(g["jpeg_offset"], n - 1, f"camera {c}'s frame offsets")
+                          + self._read(g["jpeg_length"], n - 1, f"camera {c}'s frame lengths"))
                 if end:
                     checks.append((g["jpeg"], ((end - 1) // g["jpeg"].chunks[0] * g["jpeg"].chunks[0],)))
             if "depth" in g:

@@ -214,7 +214,7 @@ class _TornChunk:
         self.refreshed += 1
 
 
-def test_live_reads_meet_chunks_being_rewritten(tmp_path):
+def test_live_reads_meet_chunks_being_rewritten(tmp_path, monkeypatch):
     # the writer rewrites a chunk that holds committed and new records (the JPEG stream) in place;
     # a read during the rewrite fails the chunk's checksum: on a live take the read is tried again
     path = tmp_path / "live.h5"
@@ -226,6 +226,18 @@ def test_live_reads_meet_chunks_being_rewritten(tmp_path):
             assert torn.refreshed == 2
             with pytest.raises(TakeError, match="cannot read set 0: .*filter returned failure"):
                 r._read(_TornChunk(r._f["sets/frames"], 99), 0, "set 0")
+            # refresh's own reads (the commit counter, the JPEG offsets and lengths) are live reads too
+            torn_once, read = {"/sets/commit", "/cameras/b/jpeg_offset", "/cameras/b/jpeg_length"}, h5py.Dataset.__getitem__
+
+            def tearing(ds, sel):
+                if ds.name in torn_once:
+                    torn_once.discard(ds.name)
+                    raise OSError("Can't synchronously read data (filter returned failure during read)")
+                return read(ds, sel)
+
+            with monkeypatch.context() as m:
+                m.setattr(h5py.Dataset, "__getitem__", tearing)
+                assert r.refresh() >= 3 and not torn_once
             # and the real thing: the newest frames read while the writer runs flat out
             t0 = time.monotonic()
             while time.monotonic() - t0 < 3.0:
