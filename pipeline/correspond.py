@@ -279,7 +279,7 @@ def _extra_limb_track(frames, corr: "Correspondence") -> tuple[float, float, int
     others = [k for k in range(K) if k != extra]
     r0 = corr.references[0]
     ref = frames[r0][A[r0]]
-    radius = float(np.sqrt(np.mean(np.sum((ref - ref.mean(0)) ** 2, axis=1)))) or 1.0
+    radius = _rms_spread(ref) or 1.0
     seen, left = {}, {}
     for t in np.flatnonzero(np.all(A[:, others] >= 0, axis=1)):
         if len(frames[t]) != K and A[t, extra] < 0:
@@ -299,6 +299,7 @@ def _extra_limb_track(frames, corr: "Correspondence") -> tuple[float, float, int
 
 
 def _rms_spread(points) -> float:
+    """RMS distance of ``points`` (n, 3) to their mean."""
     X = np.asarray(points)
     return float(np.sqrt(np.mean(np.sum((X - X.mean(0)) ** 2, axis=1))))
 
@@ -598,7 +599,7 @@ def _correspond(frames, pts, K: int, rule: str, *, reference_span, max_permutati
     err[refs[0]] = 0.0
     _sweep(pts, counts, refs, assign, err, max_permutations=max_permutations, reference_weight=reference_weight)
     ref_tips = frames[refs[0]]
-    radius = float(np.sqrt(np.mean(np.sum((ref_tips - ref_tips.mean(0)) ** 2, axis=1))))
+    radius = _rms_spread(ref_tips)
     _gate(frames, counts, refs[0], assign, gate * max(radius, 1e-12))
     return Correspondence(K=K, assignment=assign, references=list(refs), error=err, count_rule=rule)
 
