@@ -356,8 +356,8 @@ def spectral_clusters(
     F = U[:, :k]
     F = F / np.maximum(np.linalg.norm(F, axis=1, keepdims=True), 1e-12)
     best, best_cost = None, np.inf
-    for first in _max_min(F, int(np.argmax(((F - F.mean(0)) ** 2).sum(1))), min(max(1, int(restarts)), n)):
-        cent, _ = kmeans(F, F[_max_min(F, int(first), k)], thresh=1e-9)  # Lloyd until the distortion stops falling
+    for first in _max_min(F, min(max(1, int(restarts)), n)):
+        cent, _ = kmeans(F, F[_max_min(F, k, first)], thresh=1e-9)  # Lloyd until the distortion stops falling
         lab, _ = vq(F, cent)
         cost = float(((F - cent[lab]) ** 2).sum())
         if cost < best_cost:

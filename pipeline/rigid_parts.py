@@ -93,10 +93,11 @@ def _some_frames(T: int, most: int = 120) -> np.ndarray:
     return np.unique(np.linspace(0, T - 1, min(int(T), most)).round().astype(np.int64))
 
 
-def _max_min(F: np.ndarray, first: int, m: int) -> np.ndarray:
-    """``m`` rows of ``F`` spread out: ``first``, then each time the row farthest from those chosen
-    (for unit rows: the one most nearly orthogonal to them)."""
-    out = [int(first)]
+def _max_min(F: np.ndarray, m: int, first: int | None = None) -> np.ndarray:
+    """``m`` rows of ``F`` spread out: ``first`` (default: the row farthest from their mean), then each time
+    the row farthest from those chosen (for unit rows: the one most nearly orthogonal to them)."""
+    first = int(np.argmax(((F - F.mean(0)) ** 2).sum(1))) if first is None else int(first)
+    out = [first]
     dmin = ((F - F[first]) ** 2).sum(1)
     for _ in range(1, int(m)):
         out.append(int(np.argmax(dmin)))
@@ -259,7 +260,7 @@ def _consensus_motion(Y: np.ndarray, tol: float, patch: int, *, hypotheses: int 
     sub = _spread(np.arange(n), most)
     tree = cKDTree(Y[0])
     best, best_count = None, -1
-    for s in _max_min(Y[0], int(np.argmax(((Y[0] - Y[0].mean(0)) ** 2).sum(1))), min(int(hypotheses), n)):
+    for s in _max_min(Y[0], min(int(hypotheses), n)):
         _, nb = tree.query(Y[0, s], k=min(max(4, int(patch)), n))
         motion = rigid_motions(Y[:, np.atleast_1d(nb)])
         count = int((_gaps(motion, Y[0, sub], Y[:, sub]).max(0) <= tol).sum())

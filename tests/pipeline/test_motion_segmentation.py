@@ -102,7 +102,7 @@ def test_spectral_clusters_do_not_depend_on_the_order_of_the_samples():
 
 def test_max_min_rows_are_farthest_from_those_chosen():
     F = np.random.default_rng(2).normal(size=(40, 3))
-    got = _max_min(F, 7, 6)
+    got = _max_min(F, 6, 7)
     chosen = [7]
     for _ in range(5):
         d = np.min([[np.linalg.norm(F[i] - F[j]) for j in chosen] for i in range(40)], axis=1)
