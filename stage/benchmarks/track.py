@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import time
 
 import numpy as np
@@ -54,7 +55,6 @@ def multiview_accuracy(frames: int = 30) -> None:
     import concurrent.futures as cf
     import json
     import multiprocessing
-    import shutil
     import tempfile
     from pathlib import Path
 
@@ -115,7 +115,6 @@ def fast_accuracy() -> None:
     and without its true poses among the starts (what the tracking gives with the right segments,
     and with the right starts too); the worst frame's mean and 95th percentile, the invented motion
     (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame."""
-    import shutil
     import tempfile
     from pathlib import Path
 
@@ -145,8 +144,7 @@ def fast_accuracy() -> None:
             _fast_row(f"{name}, --armature-rounds auto (kept round {kept} of {len(rep['rig_prior']['rounds'])}; segments "
                       f"{rep['rig_prior']['rounds'][kept - 1]['segments']})", sim, res, frames,
                       (time.process_time() - t0) / frames)
-            shutil.rmtree(res / "tracked")
-            shutil.copytree(base / "tracked", res / "tracked")
+            _restore(res, base / "tracked")
             t0 = time.process_time()
             rep = track_with_armature(res, rounds=1, colour=True)
             _fast_row(f"{name}, --armature-rounds 1 with the colour tracks (from the default tracking; colour tracks "
@@ -157,8 +155,7 @@ def fast_accuracy() -> None:
             truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
             rig = build_armature(truth, F0, reference=ref)
             for poses, label in ((dict(enumerate(rig.fit.poses)), "with its poses"), (None, "without its poses")):
-                shutil.rmtree(res / "tracked")
-                shutil.copytree(base / "tracked", res / "tracked")
+                _restore(res, base / "tracked")
                 t0 = time.process_time()
                 track_with_armature(res, rig.model, poses=poses)
                 _fast_row(f"{name}, the armature of the true motion {label}", sim, res, frames,
@@ -209,7 +206,6 @@ def skeleton_oracle(name: str = "biped", fps: float = 10.0, frames: int = 16) ->
     simulator's own skeleton as the armature (:func:`simulator_armature`), without and with its poses fitted
     to the true tracks among the starts, and with the armature built from the tracking
     (``--armature-rounds 1``): what the mode gives with a right armature, apart from building it."""
-    import shutil
     import tempfile
     from pathlib import Path
 
@@ -239,8 +235,7 @@ def skeleton_oracle(name: str = "biped", fps: float = 10.0, frames: int = 16) ->
         for label, kw in (("the simulator's skeleton", dict(model=model)),
                           ("the simulator's skeleton with its true poses", dict(model=model, poses=poses)),
                           ("--armature-rounds 1", {})):
-            shutil.rmtree(res / "tracked")
-            shutil.copytree(base, res / "tracked")
+            _restore(res, base)
             t0 = time.process_time()
             track_with_armature(res, **kw)
             _fast_row(f"{name}, {label}", sim, res, frames, (time.process_time() - t0) / frames)
@@ -261,7 +256,6 @@ def armature_seconds(frames: int = 16) -> None:
     frames, this process's and the second process's together (and the first's alone: on two free cores the
     wall time comes near it), and its wall time in order in one process and with one half of the frames in a
     second process (``stage track --workers 2``, the default), each from the same default tracking."""
-    import shutil
     import tempfile
     from pathlib import Path
 
@@ -286,8 +280,7 @@ def armature_seconds(frames: int = 16) -> None:
         figures = {}
         for colour in (False, True):
             for ex in (None, pool):
-                shutil.rmtree(res / "tracked")
-                shutil.copytree(base, res / "tracked")
+                _restore(res, base)
                 t0, w0 = time.process_time(), time.perf_counter()
                 out = track_with_armature(res, rounds=1, colour=colour, executor=ex)
                 here = time.process_time() - t0
@@ -299,6 +292,12 @@ def armature_seconds(frames: int = 16) -> None:
               f"{cpu:.2f} CPU s per frame a round ({wall:.2f} s wall) in one process; with a second process "
               f"{cpu2:.2f} CPU s, {here:.2f} of them in the first ({wall2:.2f} s wall); the default tracking "
               f"{default:.2f} CPU s before it")
+
+
+def _restore(res, tracked) -> None:
+    """The tracking in ``tracked`` (a copy of a ``tracked/`` folder) put back as ``res``'s own, for the next run."""
+    shutil.rmtree(res / "tracked")
+    shutil.copytree(tracked, res / "tracked")
 
 
 def _fast_row(label: str, sim, res, frames: int, cpu: float) -> None:
@@ -316,7 +315,6 @@ def _carved_rounds(sim, res, frames: int, rounds: int = 2) -> None:
     memory and colour tracks on the surfaces of ``stage process``, then twice carved across time
     with the tracked motion (:func:`pipeline.carve.carve_results`) and tracked on the carved
     surfaces; each round's figures and seconds."""
-    import shutil
 
     from pipeline.carve import carve_results
     from pipeline.track import track_results
@@ -356,7 +354,6 @@ def _tracker_apart_from_surfaces(sim, res, frames: int) -> None:
     on the take's grid, in place of the hull's): what is left is the tracker's own error. Default,
     ``shape_memory`` and ``shape_memory`` with the colour tracks."""
     import json
-    import shutil
 
     from fake_cameras.surface_motion import true_surface
     from pipeline.results import atomic_write_bytes, ply_bytes
