@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pipeline.armature_fit import ArticulatedModel, FitResult, articulated_model, fit_sequence
+from pipeline.armature_limbs import BODY, VertexLimbs, segment_limbs
 from pipeline.armature_skeleton import ArticulatedSkeleton, articulated_skeleton, curve_skeleton
 from pipeline.motion_segmentation import Segmentation, check_sequence, motion_segmentation, subject_size
 
@@ -62,6 +63,9 @@ class Armature:
     lambda_thr : float
     timings : dict
         Seconds per step.
+    spine : dict or None
+        What the take's spine decided (``rig.json``'s ``spine``; None without its limbs): the limb of
+        every segment and the pairs on two limbs left out of the kinematic tree.
     """
 
     segmentation: Segmentation
@@ -75,6 +79,7 @@ class Armature:
     size: float
     lambda_thr: float
     timings: dict
+    spine: dict | None = None
 
     @property
     def n_frames(self) -> int:
@@ -172,6 +177,7 @@ def build_armature(
     progress=None,
     peel_parts: bool = True,
     min_gap: float | None = None,
+    limbs=None,
 ) -> Armature:
     """An articulated, skinned model fitted to every frame of a mesh sequence.
 
@@ -202,6 +208,10 @@ def build_armature(
     min_gap : float or None
         See :func:`pipeline.motion_segmentation.motion_segmentation` (:data:`~pipeline.motion_segmentation.MIN_GAP`
         for a tracked template, ``None`` for a mesh sequence).
+    limbs : pipeline.armature_limbs.VertexLimbs, optional
+        The take's spine limb of every vertex (a tracked take with a spine:
+        :func:`pipeline.armature_files.armature_results`): see ``limbs`` of
+        :func:`pipeline.armature_skeleton.articulated_skeleton`.
 
     Returns
     -------
@@ -231,7 +241,10 @@ def build_armature(
     if not 0 <= ref < T:
         raise ValueError(f"reference must be within 0..{T - 1}, got {reference}")
     rest = v[ref]
-    skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f), motion=v, reference=ref)
+    if limbs is not None and not isinstance(limbs, VertexLimbs):
+        raise ValueError(f"limbs must be a pipeline.armature_limbs.VertexLimbs, got {type(limbs).__name__}")
+    skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f), motion=v, reference=ref,
+                                limbs=None if limbs is None else limbs.limb)
     model = articulated_model(rest, f, skel, active=main)
     timings["skeleton"] = time.perf_counter() - t0
     if progress:
@@ -245,7 +258,19 @@ def build_armature(
         armature_counts(seg.n_segments, int(skel.articulation.sum()), skel.n_joints), fit.errors.mean(), units,
         100 * fit.errors.mean() / size,
     )
-    return Armature(seg, skel, model, fit, ref, fi, str(units), float(fps), size, float(lambda_thr), timings)
+    return Armature(seg, skel, model, fit, ref, fi, str(units), float(fps), size, float(lambda_thr), timings,
+                    None if limbs is None else _spine_decisions(limbs, seg.labels, skel))
+
+
+def _spine_decisions(limbs: VertexLimbs, labels, skeleton: ArticulatedSkeleton) -> dict:
+    """``rig.json``'s ``spine``: the spine limb most of every segment lies on (``"body"`` for the body) and the
+    adjacent pairs on two limbs that the kinematic tree left out (contacts, not joints)."""
+    sl = segment_limbs(labels, limbs.limb)
+    return {
+        "limbs": list(limbs.names),
+        "segment_limbs": ["body" if x == BODY else limbs.names[x] for x in sl],
+        "limb_contacts": [[int(a), int(b)] for a, b in skeleton.limb_contacts],
+    }
 
 
 # --------------------------------------------------------------------------- local transforms
@@ -356,6 +381,7 @@ def armature_dict(armature: Armature) -> dict:
             "samples": int(len(seg.samples)),
             "eigenvalues": [float(x) for x in seg.eigenvalues[:16]],
         },
+        **({"spine": armature.spine} if armature.spine is not None else {}),
     }
 
 

@@ -24,11 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.armature import Armature, armature_dict, build_armature, bvh_text, glb_bytes
+from pipeline.armature_limbs import VertexLimbs, vertex_limbs
 from pipeline.motion_segmentation import MIN_GAP
 from pipeline.results import atomic_write_bytes, ply_bytes
 
-__all__ = ["FRAME_GLOB", "NoTrackingError", "armature_results", "load_sequence", "remove_armature", "tracked_meshes",
-           "write_armature"]
+__all__ = ["FRAME_GLOB", "NoTrackingError", "armature_results", "load_sequence", "remove_armature", "spine_limbs",
+           "tracked_meshes", "write_armature"]
 
 
 class NoTrackingError(FileNotFoundError):
@@ -97,6 +98,10 @@ def load_sequence(paths) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=None, progress=None, **options):
     """Build the armature of a results directory from its tracked template; writes ``RESULTS_DIR/rig/`` (or ``out``).
 
+    With the take's spine (``spine.json``), the spine's limbs (:func:`spine_limbs`) keep a segment on one
+    limb from being hung from a segment on another (``limbs`` of :func:`pipeline.armature.build_armature`;
+    ``rig.json``'s ``spine`` says what it decided); ``limbs=None`` builds it without them.
+
     Returns
     -------
     Armature
@@ -104,10 +109,40 @@ def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=N
     vertices, faces, numbers = load_sequence(tracked_meshes(results_dir))
     options.setdefault("peel_parts", False)  # a tracked template: its tracking noise is no part
     options.setdefault("min_gap", MIN_GAP)  # and the eigengap tells many small joints from a few large ones
+    if "limbs" not in options:
+        options["limbs"] = spine_limbs(results_dir, vertices, faces, numbers)
     rig = build_armature(vertices, faces, units=units, fps=fps, frame_indices=numbers, progress=progress,
                                 **options)
     write_armature(rig, Path(out) if out is not None else Path(results_dir) / "rig", progress=progress)
     return rig
+
+
+def spine_limbs(results_dir, vertices, faces, numbers) -> VertexLimbs | None:
+    """The spine limb of every tracked template vertex (:func:`pipeline.armature_limbs.vertex_limbs`), or None
+    when the results directory has no spine of these frames (a mesh sequence, a spine of other frames, no
+    frame with every limb).
+
+    The spine's rest frame must be a tracked frame; the template is bound to the spine there (bone heat
+    weights, :func:`pipeline.armature_spine.rigged_model`).
+    """
+    import logging
+
+    from pipeline.armature_spine import NoCompleteFrameError, reference_frame, rigged_model
+    from pipeline.spine_format import read_spine
+
+    path = Path(results_dir) / "spine.json"
+    if not path.is_file():
+        return None
+    try:
+        spine = read_spine(path)
+        ref = reference_frame(spine)
+        at = np.flatnonzero(np.asarray(numbers) == int(spine.frame_indices[ref]))
+        if len(at) == 0:
+            raise ValueError(f"the spine's rest frame {int(spine.frame_indices[ref])} is not tracked")
+        return vertex_limbs(rigged_model(spine, vertices[int(at[0])], faces, reference=ref))
+    except (NoCompleteFrameError, ValueError, KeyError) as exc:
+        logging.getLogger(__name__).warning("the armature is built without the spine's limbs (%s)", exc)
+        return None
 
 
 def write_armature(rig: Armature, out_dir, *, progress=None) -> dict:

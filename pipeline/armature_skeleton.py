@@ -35,13 +35,14 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
+from pipeline.armature_limbs import check_limbs, limbs_last
 from pipeline.geodesic import mesh_edges
 from pipeline.rigid_parts import relative_bend, rigid_motions
 
@@ -97,6 +98,8 @@ class ArticulatedSkeleton:
         For every joint, how an articulation was placed (``None`` for the others, or without the
         motion): ``{"method": "centre of rotation" | "boundary", "bend_degrees": float,
         "reason": str}`` (``reason`` says why the centre of rotation was not used).
+    limb_contacts : tuple
+        Adjacent segment pairs on two limbs of the take's spine left out of the tree (contacts, not joints).
     """
 
     names: tuple
@@ -109,6 +112,7 @@ class ArticulatedSkeleton:
     part_parent: np.ndarray
     bones: np.ndarray
     placement: tuple = ()
+    limb_contacts: tuple = ()
 
     @property
     def n_joints(self) -> int:
@@ -356,10 +360,10 @@ def _kinematic_tree(candidates, residual, *, index=None) -> list:
     return [c for c in candidates if c[0] in keep]
 
 
-def _articulation_pairs(v, f, lab, min_edges, motion, reference) -> tuple[list, dict | None]:
+def _articulation_pairs(v, f, lab, min_edges, motion, reference, limbs=None) -> tuple[list, dict | None, list]:
     """Boundary centroids of adjacent segments, reduced to a tree, and the segments' rigid motions.
-
-    Returns ``[(pair, centroid, radius)]`` and ``{segment: (R, t)}`` (None without ``motion``).
+    Returns ``[(pair, centroid, radius)]``, ``{segment: (R, t)}`` (None without ``motion``) and the pairs on two
+    ``limbs`` that the tree, taking them last (:func:`pipeline.armature_limbs.limbs_last`), left out.
     """
     cand = _boundary_joints(v, f, lab, min_edges)
     segs = sorted({x for pair, _, _ in cand for x in pair})
@@ -374,18 +378,19 @@ def _articulation_pairs(v, f, lab, min_edges, motion, reference) -> tuple[list, 
     g = sp.csr_matrix((np.ones(len(cand)), ([idx[p[0]] for p, _, _ in cand], [idx[p[1]] for p, _, _ in cand])),
                       shape=(n, n))
     if len(cand) == 0 or len(cand) - n + connected_components(g, directed=False)[0] == 0:
-        return cand, motions  # no cycle: a tree (or a forest) already
+        return cand, motions, []  # no cycle: a tree (or a forest) already
     if motions is not None:
         residual = {pair: joint_residual(motions[pair[0]], motions[pair[1]], c)[0] for pair, c, _ in cand}
     else:
         e = mesh_edges(f)
         la, lb = np.sort(np.c_[lab[e[:, 0]], lab[e[:, 1]]], axis=1).T
         residual = {pair: -float(((la == pair[0]) & (lb == pair[1])).sum()) for pair, _, _ in cand}
+    residual, across = (residual, set()) if limbs is None else limbs_last(residual, lab, limbs)
     kept = _kinematic_tree(cand, residual, index=idx)
     if len(kept) < len(cand):
         log.info("%d adjacent segment pairs are contacts, not joints (the kinematic tree keeps %d)",
                  len(cand) - len(kept), len(kept))
-    return kept, motions
+    return kept, motions, sorted(across - {pair for pair, _, _ in kept})
 
 
 #: an articulation keeps the paper's placement when its centre of rotation is ill-determined: when the
@@ -477,6 +482,7 @@ def articulated_skeleton(
     motion=None,
     reference: int = 0,
     refine_joints: bool = True,
+    limbs=None,
 ) -> ArticulatedSkeleton:
     """Joints and bones of an articulated model (Tzionas & Gall 2016, section 4.2).
 
@@ -512,6 +518,9 @@ def articulated_skeleton(
         (``PIVOT_UNCERTAINTY``), and the centre lies within the mean radius of their shared
         boundary from the curve point and inside the mesh; otherwise it stays
         (``placement`` says which, and why).
+    limbs : (V,) int array_like, optional
+        The spine limb of every vertex (-1: the body; :func:`pipeline.armature_limbs.vertex_limbs`): a segment
+        is hung from one on another limb only when nothing else closes the tree (``limb_contacts``).
 
     Returns
     -------
@@ -542,7 +551,8 @@ def articulated_skeleton(
     # 1. articulations: boundary centroids moved to the curve skeleton
     ptree = cKDTree(P)
     joint_pairs: dict[int, list] = defaultdict(list)
-    cand, motions = _articulation_pairs(v, f, lab, min_boundary_edges, motion, reference)
+    cand, motions, contacts = _articulation_pairs(v, f, lab, min_boundary_edges, motion, reference,
+                                                  None if limbs is None else check_limbs(limbs, len(v)))
     for pair, c, _ in cand:
         _, node = ptree.query(c)
         joint_pairs[int(node)].append(pair)
@@ -573,7 +583,7 @@ def articulated_skeleton(
     P = P.copy()
     for node, c in pivots.items():
         P[node] = c
-    return _hang(P, bones, joint_pairs, node_seg, lab, how)
+    return replace(_hang(P, bones, joint_pairs, node_seg, lab, how), limb_contacts=tuple(contacts))
 
 
 def _key_bones(adj, key) -> list:

@@ -10,6 +10,8 @@ one that can fail (at 320x240 the arms are a few voxels thick and it finds 3-4 s
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 
@@ -33,3 +35,5 @@ def test_starfish_take_through_process_track_and_armature(tmp_path):
     assert s["recall"] >= 0.7, s
     assert s["precision"] >= 0.6, s
     assert (res / "rig" / "rig.json").is_file()
+    spine = json.loads((res / "rig" / "rig.json").read_text())["spine"]  # the take's spine: its limbs were used
+    assert len(spine["segment_limbs"]) == rig.segmentation.n_segments and len(spine["limbs"]) >= 5
