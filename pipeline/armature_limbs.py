@@ -3,7 +3,8 @@
 A take's spine (Brostow et al. 2004, :mod:`pipeline.spine`) is built from every frame's visual hull, so
 it does not share the tracking's drift. Bound to the tracked template by bone heat weights
 (:func:`pipeline.armature_spine.rigged_model`), it says which limb every vertex lies on: the spine axis of
-its heaviest bone, or the *body* (the root junction and the axes between junctions).
+its heaviest bone, or the *body*: the axes between junctions, and the first bone of every limb, which
+starts at a junction (where the limbs' level sets meet, in the middle of the body).
 
 :func:`pipeline.armature_skeleton.articulated_skeleton` uses it (``limbs``) where the segments' adjacency
 closes a cycle (parts that touch): a segment on one limb is never hung from a segment on another limb
@@ -52,8 +53,8 @@ def vertex_limbs(model) -> VertexLimbs:
     Returns
     -------
     VertexLimbs
-        Joints whose name is their element (the root and the junctions) and the axes they name are
-        the body; every other axis is a limb.
+        Joints whose name is their element (the root and the junctions), the axes they name and the
+        first bone below each of them are the body; every other axis is a limb.
     """
     from pipeline.armature_spine import RiggedModel
 
@@ -64,6 +65,8 @@ def vertex_limbs(model) -> VertexLimbs:
     names = tuple(sorted({e for e in rig.element if e not in body}))
     index = {n: i for i, n in enumerate(names)}
     of_joint = np.array([index.get(e, BODY) for e in rig.element], dtype=np.int64)
+    # a limb's first bone starts at a junction, in the middle of the body: its vertices are the body's
+    of_joint[[p >= 0 and rig.names[p] == rig.element[p] for p in rig.parents]] = BODY
     return VertexLimbs(of_joint[np.asarray(model.joints)[:, 0]], names)
 
 

@@ -55,20 +55,23 @@ def test_segment_limbs_is_the_majority_vote():
 
 
 def test_vertex_limbs_takes_the_heaviest_bones_axis():
+    """Two junctions (j0, j1) joined by the body's axis, a two-bone limb below each: a vertex lies on the
+    limb of its heaviest bone, on the body when that bone is the body's or a limb's first (at a junction)."""
     from pipeline.armature_limbs import BODY, vertex_limbs
     from pipeline.armature_spine import RiggedModel, SpineArmature
 
-    names = ("j0", "limb0.0", "limb0.tip", "j1.0", "j1", "limb1.0", "limb1.tip")
-    element = ("j0", "limb0", "limb0", "j1", "j1", "limb1", "limb1")
-    rig = SpineArmature(names=names, parents=np.array([-1, 0, 1, 0, 3, 4, 5]), element=element,
-                        rest=np.zeros((7, 3)), bones=np.array([[1, 2], [3, 4], [5, 6]]),
-                        rotations=np.zeros((1, 7, 4)), translations=np.zeros((1, 7, 3)), times=np.zeros(1),
+    names = ("j0", "limb0.0", "limb0.1", "limb0.tip", "j1.0", "j1", "limb1.0", "limb1.1", "limb1.tip")
+    element = ("j0", "limb0", "limb0", "limb0", "j1", "j1", "limb1", "limb1", "limb1")
+    J = len(names)
+    rig = SpineArmature(names=names, parents=np.array([-1, 0, 1, 2, 0, 4, 5, 6, 7]), element=element,
+                        rest=np.zeros((J, 3)), bones=np.array([[1, 2], [2, 3], [4, 5], [6, 7], [7, 8]]),
+                        rotations=np.zeros((1, J, 4)), translations=np.zeros((1, J, 3)), times=np.zeros(1),
                         frame_indices=np.zeros(1, dtype=np.int64), reference=0)
-    joints = np.array([[1, 3], [3, 1], [5, 3]])
-    model = RiggedModel(np.zeros((3, 3)), np.array([[0, 1, 2]]), joints, np.full((3, 2), 0.5), rig)
+    joints = np.array([[2, 1], [4, 2], [7, 6], [1, 2], [6, 7]])  # heaviest first
+    model = RiggedModel(np.zeros((5, 3)), np.array([[0, 1, 2]]), joints, np.full((5, 2), 0.5), rig)
     got = vertex_limbs(model)
     assert got.names == ("limb0", "limb1")
-    np.testing.assert_array_equal(got.limb, [0, BODY, 1])
+    np.testing.assert_array_equal(got.limb, [0, BODY, 1, BODY, BODY])
 
 
 def test_invalid_input():
