@@ -73,7 +73,7 @@ def _track_first(d: Path, *, quiet: bool) -> list:
 
 def run(args: argparse.Namespace) -> int:
     from pipeline.armature import armature_counts, build_armature
-    from pipeline.armature_files import NoTrackingError, load_sequence, tracked_meshes, write_armature
+    from pipeline.armature_files import NoTrackingError, load_sequence, spine_limbs, tracked_meshes, write_armature
     from pipeline.meshio import mesh_paths
     from pipeline.motion_segmentation import MIN_GAP
     from stage.cli import UserError
@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 < args.lambda_thr < 2:
         raise ValueError(f"--lambda-thr must be within (0, 2), got {args.lambda_thr}")
     vertices, faces, numbers = load_sequence(paths)
+    limbs = None if args.meshes is not None else spine_limbs(d, vertices, faces, numbers)  # a take's spine, if any
     units = args.units or meta.get("units") or "mm"
     fps = args.fps or meta.get("fps") or 30.0
     with StepBars(disable=args.no_progress) as bars:
@@ -114,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
             n_samples=args.samples, reference=args.reference, progress=bars,
             peel_parts=args.meshes is not None,  # a tracked template: its tracking noise is no part
             min_gap=None if args.meshes is not None else MIN_GAP,  # a tracked template: the eigengap rule
+            limbs=limbs,
         )
         write_armature(rig, out, progress=bars)
     sk = rig.skeleton

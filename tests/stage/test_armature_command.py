@@ -20,13 +20,16 @@ def _write_seq(d, V, F):
         (d / f"{i:06d}.ply").write_bytes(ply_bytes(v, F))
 
 
-def test_rig_meshes_writes_the_rig(tmp_path, capsys):
+def test_rig_meshes_writes_the_rig(tmp_path, capsys, monkeypatch):
+    import pipeline.armature_files as files
+
+    monkeypatch.setattr(files, "spine_limbs", None)  # a mesh sequence has no take's spine: never asked
     V, F, _ = two_bars(10)
     _write_seq(tmp_path / "seq", V, F)
     out = tmp_path / "rig"
     assert main(["-q", "armature", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(out), "--samples", "300"]) == 0
     doc = json.loads((out / "rig.json").read_text())
-    assert doc["format"] == "capture-stage/rig@1" and doc["frame_count"] == 10
+    assert doc["format"] == "capture-stage/rig@1" and doc["frame_count"] == 10 and "spine" not in doc
     assert sum(j["kind"] == "joint" for j in doc["joints"]) == 1
     assert (out / "rig.glb").stat().st_size > 0 and (out / "rig.bvh").is_file()
     assert len(list((out / "posed").glob("*.ply"))) == 10
@@ -63,9 +66,15 @@ def test_rig_results_dir_needs_tracking(tmp_path, capsys):
     assert "tracked" in err and "stage track" in err
 
 
-def test_rig_results_dir_tracks_first(tmp_path, capsys):
-    """A processed take without a tracked template: ``stage armature`` tracks it first (and says so), then rigs it."""
-    V, F, _ = two_bars(12)
+def test_rig_results_dir_tracks_first(tmp_path, capsys, monkeypatch):
+    """A processed take without a tracked template: ``stage armature`` tracks it first (and says so), then rigs it
+    with the take's spine limbs (:func:`pipeline.armature_files.spine_limbs`; rig.json says what they decided)."""
+    import pipeline.armature_files as files
+    from pipeline.armature_limbs import VertexLimbs
+
+    V, F, right = two_bars(12)
+    limbs = VertexLimbs(right.astype(np.int64) - 1, ("limb0",))  # the left bar the body, the right one a limb
+    monkeypatch.setattr(files, "spine_limbs", lambda d, v, f, n: limbs)
     (tmp_path / "meshes").mkdir()
     for i, v in enumerate(V):
         (tmp_path / "meshes" / f"frame_{i:06d}.ply").write_bytes(ply_bytes(v, F))
@@ -75,6 +84,7 @@ def test_rig_results_dir_tracks_first(tmp_path, capsys):
     assert len(list((tmp_path / "tracked").glob("0*.ply"))) == 12
     doc = json.loads((tmp_path / "rig" / "rig.json").read_text())
     assert sum(j["kind"] == "joint" for j in doc["joints"]) == 1 and "1 articulation" in out
+    assert doc["spine"]["limbs"] == ["limb0"] and sorted(doc["spine"]["segment_limbs"]) == ["body", "limb0"]
 
 
 def test_rig_meshes_without_shared_connectivity(tmp_path, capsys):
