@@ -87,3 +87,18 @@ def test_invalid_input():
     V, F, lab = _thighs(3)
     with pytest.raises(ValueError, match="limbs"):
         articulated_skeleton(V[0], F, lab, motion=V, limbs=np.zeros(3, dtype=np.int64))
+
+
+def test_spine_limbs_without_a_usable_spine_is_none(tmp_path, caplog):
+    """No spine.json: None (a mesh sequence); a damaged one: None and a warning saying the armature is built
+    without the spine's limbs."""
+    import logging
+
+    from pipeline.armature_files import spine_limbs
+
+    V, F, _ = _thighs(2)
+    assert spine_limbs(tmp_path, V, F, np.arange(2)) is None
+    (tmp_path / "spine.json").write_text("{not json")
+    with caplog.at_level(logging.WARNING):
+        assert spine_limbs(tmp_path, V, F, np.arange(2)) is None
+    assert "without the spine's limbs" in caplog.text
