@@ -226,6 +226,8 @@ def build_armature(
     main = _main_part(v.shape[1], f)
     if not (fps > 0 and np.isfinite(fps)):
         raise ValueError(f"fps must be > 0, got {fps}")
+    if limbs is not None and not isinstance(limbs, VertexLimbs):
+        raise ValueError(f"limbs must be a pipeline.armature_limbs.VertexLimbs, got {type(limbs).__name__}")
     fi = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64).reshape(-1)
     if len(fi) != T:
         raise ValueError(f"frame_indices must have {T} entries, got {len(fi)}")
@@ -241,8 +243,6 @@ def build_armature(
     if not 0 <= ref < T:
         raise ValueError(f"reference must be within 0..{T - 1}, got {reference}")
     rest = v[ref]
-    if limbs is not None and not isinstance(limbs, VertexLimbs):
-        raise ValueError(f"limbs must be a pipeline.armature_limbs.VertexLimbs, got {type(limbs).__name__}")
     skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f), motion=v, reference=ref,
                                 limbs=None if limbs is None else limbs.limb)
     model = articulated_model(rest, f, skel, active=main)

@@ -22,7 +22,7 @@ import numpy as np
 
 __all__ = ["VertexLimbs", "BODY", "vertex_limbs", "segment_limbs", "limb_pairs", "limbs_last", "check_limbs"]
 
-#: the limb index of the body (the root junction and the axes between junctions)
+#: the limb index of the body (the junctions, the axes between them and every limb's first bone)
 BODY = -1
 
 

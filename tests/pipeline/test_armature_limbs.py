@@ -87,6 +87,10 @@ def test_invalid_input():
     V, F, lab = _thighs(3)
     with pytest.raises(ValueError, match="limbs"):
         articulated_skeleton(V[0], F, lab, motion=V, limbs=np.zeros(3, dtype=np.int64))
+    from pipeline.armature import build_armature
+
+    with pytest.raises(ValueError, match="VertexLimbs"):
+        build_armature(V, F, limbs=lab - 1)
 
 
 def test_spine_limbs_without_a_usable_spine_is_none(tmp_path, caplog):
