@@ -115,6 +115,8 @@ SMALL_MOTION_THR = 0.98
 #: the gap between the eigenvalues either side of ``lambda_thr`` below which the spectrum is read as having no
 #: cluster structure there (``min_gap`` of :func:`motion_segmentation`, on for tracked templates)
 MIN_GAP = 0.2
+#: cuts deep the split looks, after the peel, into a segment of several parts (``_split_nonrigid``'s ``ahead``)
+DEEPER_CUTS = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -576,8 +578,15 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         labels = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size)
         labels = _connected_segments(labels, edges, V, min_size)
         if peel_parts:
-            labels = _peel_nonrigid(labels, v, edges, 2.0 * tol, min_size=min_size)
-            labels = _connected_segments(labels, edges, V, min_size)
+            labels = _connected_segments(_peel_nonrigid(labels, v, edges, 2.0 * tol, min_size=min_size), edges, V,
+                                         min_size)
+            # what the peel left of several parts with no core (parts on both sides of every cut) cut deeper,
+            # and the pieces peeled
+            deeper = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, ahead=DEEPER_CUTS)
+            if np.any(deeper != labels):
+                deeper = _connected_segments(deeper, edges, V, min_size)
+                labels = _connected_segments(_peel_nonrigid(deeper, v, edges, 2.0 * tol, min_size=min_size), edges,
+                                             V, min_size)
         labels = _merge_rigid(labels, v, edges, tol)
         if peel_parts:
             labels = _dissolve_blends(_connected_segments(labels, edges, V, 1), v, edges)

@@ -171,43 +171,70 @@ def _best_cut(A: np.ndarray, near: np.ndarray, ids: np.ndarray, residual, min_si
 
 
 def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: np.ndarray, tol: float, *,
-                    min_size: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6) -> np.ndarray:
-    """Split segments that do not move rigidly in two, recursively (the spectral cut of their own samples).
+                    min_size: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6,
+                    ahead: int = 1) -> np.ndarray:
+    """Split segments that do not move rigidly, recursively (the spectral cuts of their own samples).
 
     The eigenvalue count ``k`` spends clusters on large parts and can leave a
     small part fused to its neighbour (a tail on a body); a segment whose
     rigid residual exceeds ``tol`` is cut in two along the Fiedler vector of
     its samples' affinities (:func:`_best_cut`) when that leaves both halves
     at most ``gain`` of its residual -- a joint inside it, not a
-    smooth deformation. Halves below ``min_size`` vertices are not made.
+    smooth deformation. With ``ahead`` > 1, when neither half is within that (parts on both
+    sides of the cut: a segment of several, the count short by one), the halves are cut
+    again, at most ``ahead`` cuts deep, and the segment is cut when every piece is within it;
+    a cut that leaves one half within and the other not is beside a joint, and is not made.
+    Pieces below ``min_size`` vertices are not made.
     """
     from scipy.spatial import cKDTree
 
     lab = labels.copy()
     vf = v[_some_frames(len(v))]
+    inside = np.zeros(len(lab), dtype=bool)
 
     def residual(ids):  # on evenly spread members (every k-th): the same answer whatever the seed
         return rigid_residual(vf[:, _spread(ids, per_segment)])
+
+    def cut(ids):
+        inside[:] = False
+        inside[ids] = True
+        sub = np.flatnonzero(inside[samples])
+        if len(sub) < 8 or len(ids) < 2 * min_size:
+            return None
+        _, near = cKDTree(v[0, samples[sub]]).query(v[0, ids])
+        return _best_cut(A[np.ix_(sub, sub)], near, ids, residual, min_size)
+
+    def pieces(ids, bound, levels):  # ids cut until every piece is within bound; None if not so in levels
+        side = cut(ids) if levels > 0 else None
+        if side is None:
+            return None
+        halves = [ids[side == 0], ids[side == 1]]
+        within = [residual(h) <= bound for h in halves]
+        if all(within):
+            return halves
+        if any(within):
+            return None  # one half is within, the other not: a cut beside the joint, not parts on both sides
+        a = pieces(halves[0], bound, levels - 1)
+        b = None if a is None else pieces(halves[1], bound, levels - 1)
+        return None if b is None else a + b
 
     todo = [(int(x), 0) for x in np.unique(lab)]
     while todo:
         sgm, level = todo.pop()
         ids = np.flatnonzero(lab == sgm)
-        own = samples[lab[samples] == sgm]
-        if level >= depth or len(own) < 8 or len(ids) < 2 * min_size:
+        if level >= depth or len(ids) < 2 * min_size:
             continue
         parent = residual(ids)
         if parent <= tol:
             continue
-        pos = np.searchsorted(samples, own) if np.all(np.diff(samples) > 0) else None
-        sub = np.flatnonzero(np.isin(samples, own)) if pos is None else pos
-        _, near = cKDTree(v[0, own]).query(v[0, ids])
-        side = _best_cut(A[np.ix_(sub, sub)], near, ids, residual, min_size)
-        if side is None or max(residual(ids[side == 0]), residual(ids[side == 1])) > gain * parent:
+        got = pieces(ids, gain * parent, int(ahead))
+        if got is None or len(got) < 2:
             continue
-        new = int(lab.max()) + 1
-        lab[ids[side == 1]] = new
-        todo += [(sgm, level + 1), (new, level + 1)]
+        todo.append((sgm, level + 1))
+        for piece in got[1:]:
+            new = int(lab.max()) + 1
+            lab[piece] = new
+            todo.append((new, level + 1))
     return lab
 
 
