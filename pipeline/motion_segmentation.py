@@ -59,6 +59,11 @@ that does not move rigidly is cut in two by the normalised cut of its own
 samples when both halves are then at most half as far from rigid (the
 eigenvalue count spends clusters on large parts and can leave a small part,
 a tail, fused to its neighbour), recursively, before the merge runs again.
+With the peel (below), what it leaves of several parts -- a segment whose best cut leaves
+parts on both sides, neither half rigid nor half as far from rigid, as when the count
+falls one short on an eigenvalue at ``lambda_thr`` -- is cut deeper (its halves cut
+again, up to ``DEEPER_CUTS`` cuts) when every piece is then at most half as far from
+rigid, and the pieces are peeled.
 Last (with the peel), a skinned joint's blend zone cut off as a segment is
 dissolved into its neighbours (``_dissolve_blends`` of :mod:`pipeline.rigid_parts`).
 Labels are renumbered by decreasing size.
@@ -584,9 +589,11 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
             # and the pieces peeled
             deeper = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, ahead=DEEPER_CUTS)
             if np.any(deeper != labels):
+                cut = np.isin(labels, labels[deeper != labels])  # the vertices of the segments cut
                 deeper = _connected_segments(deeper, edges, V, min_size)
-                labels = _connected_segments(_peel_nonrigid(deeper, v, edges, 2.0 * tol, min_size=min_size), edges,
-                                             V, min_size)
+                settled = set(np.unique(deeper[~cut]).tolist()) - set(np.unique(deeper[cut]).tolist())
+                labels = _connected_segments(_peel_nonrigid(deeper, v, edges, 2.0 * tol, min_size=min_size,
+                                                            settled=settled), edges, V, min_size)
         labels = _merge_rigid(labels, v, edges, tol)
         if peel_parts:
             labels = _dissolve_blends(_connected_segments(labels, edges, V, 1), v, edges)

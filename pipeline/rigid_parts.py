@@ -209,11 +209,12 @@ def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: n
         if side is None:
             return None
         halves = [ids[side == 0], ids[side == 1]]
-        within = [residual(h) <= bound for h in halves]
+        res = [residual(h) for h in halves]
+        within = [r <= bound for r in res]
         if all(within):
             return halves
-        if any(within):
-            return None  # one half is within, the other not: a cut beside the joint, not parts on both sides
+        if any(within) or min(res) <= tol:
+            return None  # a half is within or rigid: no parts on both sides (a cut beside a joint, a smooth bend)
         a = pieces(halves[0], bound, levels - 1)
         b = None if a is None else pieces(halves[1], bound, levels - 1)
         return None if b is None else a + b
@@ -302,7 +303,7 @@ def _consensus_motion(Y: np.ndarray, tol: float, patch: int, *, hypotheses: int 
 
 
 def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: float, *, min_size: int,
-                   depth: int = 4, gain: float = 0.5) -> np.ndarray:
+                   depth: int = 4, gain: float = 0.5, settled: set | None = None) -> np.ndarray:
     """Parts fused to a segment peeled off: the vertices its core motion (:func:`_core_motion`) leaves
     more than ``tol`` away in some frame, as surface-connected patches of at least ``min_size`` vertices
     that have a motion of their own (their own rigid residual at most ``gain`` of their residual under
@@ -311,11 +312,11 @@ def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: fl
     leaves fewer than ``min_size`` vertices within ``tol`` (a segment of several parts, none of them half
     of it: the trimmed fit mixes them and fits none), the core is the motion most of its vertices follow
     (:func:`_consensus_motion`). Tracking noise can look like such a part (``peel_parts`` of
-    :func:`motion_segmentation`)."""
+    :func:`motion_segmentation`). Segments in ``settled`` are not looked at (peeled already)."""
     lab = labels.copy()
     vf = v[_some_frames(len(v))]
     V = len(lab)
-    settled: set = set()  # segments looked at and left as they were: the same answer next time
+    settled = set() if settled is None else set(settled)  # segments looked at and left as they were
     for _ in range(int(depth)):
         changed = False
         for sgm in np.unique(lab):
