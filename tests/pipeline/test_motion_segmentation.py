@@ -162,6 +162,46 @@ def test_a_segment_that_does_not_move_rigidly_is_cut_at_its_joint():
     assert (same == 0).all()
 
 
+def test_a_segment_with_parts_on_both_sides_of_its_cut_is_cut_deeper(monkeypatch):
+    """Four blobs in two columns, each turning its own way, as one label, cut across the widest extent (the
+    left column from the right, then each column top from bottom): neither column is within half the whole's
+    residual, so one cut is not made; looking three cuts deep, every blob is a piece of its own. With the
+    right column rigid the halves are a rigid part and the rest (the peel's case): no deeper cut."""
+    import pipeline.rigid_parts as rp
+
+    def blobs(turning):
+        rng = np.random.default_rng(5)
+        centres = np.array([[0.0, 0, 0], [0, 40, 0], [100, 0, 0], [100, 40, 0]])
+        X0 = np.concatenate([c + rng.normal(size=(30, 3)) * 4 for c in centres])
+        blob = np.repeat(np.arange(4), 30)
+        frames = []
+        for t in np.linspace(0.0, 1.0, 12):
+            x = X0.copy()
+            for g, axis in turning:
+                k = np.eye(3)[axis]
+                K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+                R = np.eye(3) + np.sin(0.8 * t) * K + (1 - np.cos(0.8 * t)) * K @ K
+                x[blob == g] = (X0[blob == g] - centres[g]) @ R.T + centres[g]
+            frames.append(x)
+        return np.stack(frames), blob
+
+    def widest(A, near, ids, residual, min_size, cuts=19):  # the median cut across the widest extent
+        p = X[0, ids]
+        axis = int(np.argmax(np.ptp(p, axis=0)))
+        return (p[:, axis] > np.median(p[:, axis])).astype(np.int64)
+
+    monkeypatch.setattr(rp, "_best_cut", widest)
+    for turning, parts in ((((1, 2), (2, 0), (3, 1)), 4), (((0, 2), (1, 0)), 1)):
+        X, blob = blobs(turning)
+        tol = 0.005 * float(np.linalg.norm(np.ptp(X[0], axis=0)))
+        one = np.zeros(len(blob), dtype=np.int64)
+        args = (X, np.arange(len(blob)), np.ones((len(blob), len(blob))), tol)
+        assert (rp._split_nonrigid(one, *args, min_size=10) == 0).all()  # one cut: not made
+        lab = rp._split_nonrigid(one, *args, min_size=10, ahead=3)
+        assert len(np.unique(lab)) == parts
+        assert all(len(np.unique(blob[lab == s])) == 1 for s in np.unique(lab)) or parts == 1
+
+
 def _bar_chain(kind, T=8):
     """A 300 mm bar along x cut at x = -40 and 40 mm into three labels, its right end turning by up to 60
     degrees: ``"skinned"`` one hinge at the origin whose skinning blends the two bones' motions across the
