@@ -580,14 +580,15 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
         tol = float(rigid_tol) * size
         min_size = max(1, int(round(min_segment * V)))
         labels = _merge_rigid(labels, v, edges, tol)
-        labels = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size)
+        memo: dict = {}  # the split's cuts and residuals, for its second look below
+        labels = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, memo=memo)
         labels = _connected_segments(labels, edges, V, min_size)
         if peel_parts:
             labels = _connected_segments(_peel_nonrigid(labels, v, edges, 2.0 * tol, min_size=min_size), edges, V,
                                          min_size)
             # what the peel left of several parts with no core (parts on both sides of every cut) cut deeper,
             # and the pieces peeled
-            deeper = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, ahead=DEEPER_CUTS)
+            deeper = _split_nonrigid(labels, v, samples, A, tol, min_size=min_size, ahead=DEEPER_CUTS, memo=memo)
             if np.any(deeper != labels):
                 cut = np.isin(labels, labels[deeper != labels])  # the vertices of the segments cut
                 deeper = _connected_segments(deeper, edges, V, min_size)

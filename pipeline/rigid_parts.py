@@ -170,9 +170,19 @@ def _best_cut(A: np.ndarray, near: np.ndarray, ids: np.ndarray, residual, min_si
     return best
 
 
+def _memoised(memo: dict, kind: str, ids: np.ndarray, compute):
+    """``memo``'s value for ``kind`` of the vertex set ``ids``, ``compute()`` when it has none."""
+    import hashlib
+
+    k = kind, hashlib.blake2b(np.ascontiguousarray(ids, dtype=np.int64).tobytes(), digest_size=16).digest()
+    if k not in memo:
+        memo[k] = compute()
+    return memo[k]
+
+
 def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: np.ndarray, tol: float, *,
                     min_size: int, gain: float = 0.5, per_segment: int = 400, depth: int = 6,
-                    ahead: int = 1) -> np.ndarray:
+                    ahead: int = 1, memo: dict | None = None) -> np.ndarray:
     """Split segments that do not move rigidly, recursively (the spectral cuts of their own samples).
 
     The eigenvalue count ``k`` spends clusters on large parts and can leave a
@@ -184,18 +194,20 @@ def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: n
     sides of the cut: a segment of several, the count short by one), the halves are cut
     again, at most ``ahead`` cuts deep, and the segment is cut when every piece is within it;
     a cut that leaves one half within and the other not is beside a joint, and is not made.
-    Pieces below ``min_size`` vertices are not made.
+    Pieces below ``min_size`` vertices are not made. ``memo``: residuals and cuts by vertex set, kept
+    between calls on the same sequence, samples and affinities (a second call redoes no cut of the first).
     """
     from scipy.spatial import cKDTree
 
     lab = labels.copy()
     vf = v[_some_frames(len(v))]
     inside = np.zeros(len(lab), dtype=bool)
+    memo = {} if memo is None else memo
 
     def residual(ids):  # on evenly spread members (every k-th): the same answer whatever the seed
-        return rigid_residual(vf[:, _spread(ids, per_segment)])
+        return _memoised(memo, "residual", ids, lambda: rigid_residual(vf[:, _spread(ids, per_segment)]))
 
-    def cut(ids):
+    def cut_of(ids):
         inside[:] = False
         inside[ids] = True
         sub = np.flatnonzero(inside[samples])
@@ -203,6 +215,9 @@ def _split_nonrigid(labels: np.ndarray, v: np.ndarray, samples: np.ndarray, A: n
             return None
         _, near = cKDTree(v[0, samples[sub]]).query(v[0, ids])
         return _best_cut(A[np.ix_(sub, sub)], near, ids, residual, min_size)
+
+    def cut(ids):
+        return _memoised(memo, "cut", ids, lambda: cut_of(ids))
 
     def pieces(ids, bound, levels):  # ids cut until every piece is within bound; None if not so in levels
         side = cut(ids) if levels > 0 else None
