@@ -26,7 +26,8 @@ from pipeline.track import mesh_data, spine_model, spine_starts
 from pipeline.track_frames import surface_meshes, write_frame, write_report
 from pipeline.tracking import TemplateTracker
 
-__all__ = ["track_with_armature", "armature_half_task", "AUTO_RIG_ROUNDS", "ARMATURE_FIT_ROUNDS", "ARMATURE_ICP_POINTS"]
+__all__ = ["track_with_armature", "armature_half_task", "spine_armature", "AUTO_RIG_ROUNDS", "ARMATURE_FIT_ROUNDS",
+           "ARMATURE_ICP_POINTS", "SPINE_BONES"]
 
 log = logging.getLogger("pipeline.track")
 
@@ -41,10 +42,15 @@ ARMATURE_FIT_ROUNDS = 8
 #: a pose of 60 parts is determined many times over by 1000 (the same accuracy as 2000, a sixth less CPU;
 #: docs/tracking.md, "Fast motion").
 ARMATURE_ICP_POINTS = 1000
+#: Bones per spine axis (limb, or the axis between two junctions) of the first round's armature
+#: (:func:`spine_armature`): a limb's two halves turn on their own (six or three bones a limb track the fast
+#: biped worse; docs/tracking.md, "Fast motion").
+SPINE_BONES = 2
 
 
 def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | str = 1, weight: float = 2.0,
-                   lambda_thr: float = 0.98, colour: bool = False, progress=None, executor=None) -> dict:
+                        lambda_thr: float = 0.98, colour: bool = False, spine: bool = False, progress=None,
+                        executor=None) -> dict:
     """Track a tracked results directory again with an armature as the articulated prior.
 
     Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
@@ -54,7 +60,10 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     prediction is wrong: a leg that turns) and the armature's own fit of the frame, then the template
     fitted from the skinned pose and drawn towards it. Without ``model`` each round builds the
     armature from the current tracking (:func:`pipeline.armature.build_armature`, rest frame the
-    reference frame) and tracks with it: the paper's first rig (armature), then track, refit, repeat while it helps. A round
+    reference frame) and tracks with it: the paper's first rig (armature), then track, refit, repeat
+    while it helps; with ``spine`` a round with the take's spine as the armature comes first
+    (:func:`spine_armature`: built from the visual hulls frame by frame, so it does not inherit the
+    tracking's drift). A round
     helps when its armature explains the frames' surfaces better: the mean over frames of
     ``rig_residual_mm`` (:func:`pipeline.armature_track.surface_residual` of the armature's pose
     on each frame's surface; the surfaces, not the tracking the armature was built from, so the
@@ -72,8 +81,8 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     poses : dict int -> pipeline.armature_fit.Pose, optional
         The given armature's poses by frame number (further starts of its fit).
     rounds : int or "auto"
-        At most this many rounds of armature building and tracking (without ``model``); ``"auto"``:
-        at most :data:`AUTO_RIG_ROUNDS`.
+        At most this many rounds of armature building and tracking (without ``model``; after the
+        spine's round, with ``spine``); ``"auto"``: at most :data:`AUTO_RIG_ROUNDS`.
     weight : float
         Pull towards the skinned pose, in pairs.
     lambda_thr : float
@@ -81,6 +90,12 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         threshold for small parts with small motion, its finest: a prior tolerates a rigid part
         cut in two, not two parts fused into one segment (a drifting first tracking fuses
         limbs at the paper's 0.7).
+    spine : bool
+        Without ``model``: the first round's armature is the take's spine rig (``spine.json``,
+        :data:`SPINE_BONES` bones an axis, :func:`spine_armature`) when the take has a spine with
+        every limb seen in the reference frame (else one line says so), then ``rounds`` rounds
+        build it from the tracking (``stage track --spine-armature``). Off by default: better on the
+        fast biped, worse on a fast quadruped (docs/tracking.md, "A first armature from the spine").
     colour : bool
         Follow the template in every camera's colour images too (``stage track --colour``,
         :func:`pipeline.track_colour.multiview_colour`, started from the skinned constant-velocity
@@ -99,7 +114,8 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     -------
     dict
         The report written to ``tracked/track.json``, with ``rig_rounds`` (the round kept) and
-        per round run the armature's segments, its fit error to the tracking it was built from and
+        per round run where its armature came from (``armature``: ``"spine"``, ``"tracking"`` or
+        ``"given"``), its segments (the spine's: its parts), its fit error to the tracking it was built from and
         the mean ``rig_residual_mm`` (``rig_prior``; ``rig_prior.colour_tracks``: whether the colour
         tracks were used; ``rig_prior.worker_cpu_seconds``: the other process's CPU seconds, with
         ``executor``), per frame ``rig_residual_mm``.
@@ -115,10 +131,13 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         raise ValueError(f"model must be an ArticulatedModel, got {type(model).__name__}")
     if isinstance(lambda_thr, bool) or not isinstance(lambda_thr, (int, float)) or not 0 < lambda_thr < 1:
         raise ValueError(f"lambda_thr must be a number in (0, 1), got {lambda_thr!r}")
+    if not isinstance(spine, (bool, np.bool_)):
+        raise ValueError(f"spine must be True or False, got {spine!r}")
     report, frames, by_frame, vs, faces, refi = _tracked_sequence(root)
+    first = _spine_rig(root, frames, vs[refi], faces, refi) if spine and model is None else None
     tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
                               rounds=ARMATURE_FIT_ROUNDS)
-    spine = _spine_steps(root, frames, by_frame, vs[refi])
+    steps = _spine_steps(root, frames, by_frame, vs[refi])
     from threadpoolctl import threadpool_limits
 
     from pipeline.track_colour import multiview_colour
@@ -129,8 +148,9 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     with threadpool_limits(1, "blas"), \
             multiview_colour(root, faces, 0.3 * tracker.gate, enabled=bool(colour), corners=tracker.corner_sum) as tracks_for:
         # (the articulated fits' small dense products: threads only contend)
-        history, best = _armature_rounds(model, poses, int(rounds), vs, faces, frames, refi, by_frame, root, tracker,
-                                         weight, lambda_thr, progress, spine, tracks_for, aside)
+        history, best = _armature_rounds(model if first is None else first, poses, int(rounds), vs, faces, frames, refi,
+                                         by_frame, root, tracker, weight, lambda_thr, progress, steps, tracks_for, aside,
+                                         given=model is not None)
     kept, _, per = best
     if kept != len(history) - 1:  # the last round did not help: the best round's tracking again
         for k in per["figures"]:
@@ -147,12 +167,17 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
 
 
 def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_frame, root, tracker, weight, lambda_thr,
-                     progress, spine, tracks_for=None, aside=None):
-    """The rounds of :func:`track_with_armature`: -> (history, (kept round, its residual, its tracking))."""
+                     progress, spine, tracks_for=None, aside=None, given: bool = True):
+    """The rounds of :func:`track_with_armature`: -> (history, (kept round, its residual, its tracking)).
+    ``model``: the first round's armature (the only round's when ``given``), or None: every round's built."""
     history, best = [], None
-    for r in range(1 if model is not None else rounds):
-        use, by_pose, entry = (model, dict(poses or {}), {"segments": None, "fit_error_mm": None}) if model is not None \
-            else _rig_of(vs, faces, frames, refi, lambda_thr)
+    for r in range(1 if given else rounds + (model is not None)):  # (the spine's round comes before ``rounds``)
+        if r == 0 and model is not None:
+            use, by_pose = model, dict(poses or {})
+            entry = {"armature": "given", "segments": None, "fit_error_mm": None} if given else \
+                {"armature": "spine", "segments": int(model.skeleton.n_parts), "fit_error_mm": None}
+        else:
+            use, by_pose, entry = _rig_of(vs, faces, frames, refi, lambda_thr)
         per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine,
                          tracks_for=tracks_for, aside=aside)
         entry["worker_cpu_seconds"] = per.pop("worker_cpu_seconds", None)
@@ -191,7 +216,8 @@ def _rig_of(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, lam
 
     # with the peel: a prior tolerates parts cut in two (the paper's over-segmentation), not parts fused
     rig = build_armature(vs, faces, reference=refi, peel_parts=True, lambda_thr=lambda_thr)
-    entry = {"segments": int(rig.segmentation.n_segments), "fit_error_mm": round(float(rig.fit.errors.mean()), 4)}
+    entry = {"armature": "tracking", "segments": int(rig.segmentation.n_segments),
+             "fit_error_mm": round(float(rig.fit.errors.mean()), 4)}
     return rig.model, dict(zip(frames, rig.fit.poses)), entry
 
 
@@ -305,6 +331,24 @@ def armature_half_task(half: dict) -> dict:
                            tracks_for=tracks_for)
 
 
+def _spine_rig(root: Path, frames: list[int], template: np.ndarray, faces: np.ndarray, refi: int):
+    """The take's spine rig as the first round's armature (:func:`spine_armature`, rest: ``template`` at
+    the reference position ``refi``), or None (one line says why) without a spine of every frame with
+    every limb seen there."""
+    from pipeline.armature_spine import NoCompleteFrameError, rigged_model
+    from pipeline.spine_format import SpineFormatError, read_spine
+
+    path = root / "spine.json"
+    try:
+        spine = read_spine(path)
+        if spine.frame_count != len(frames):
+            raise ValueError(f"it has {spine.frame_count} frames, the take {len(frames)}")
+        return spine_armature(rigged_model(spine, template, faces, reference=refi, segments=SPINE_BONES))
+    except (OSError, SpineFormatError, NoCompleteFrameError, ValueError) as exc:
+        log.warning("the first armature is built from the tracking: no usable spine in %s (%s)", path, exc)
+        return None
+
+
 def _spine_steps(root: Path, frames: list[int], by_frame: dict, template: np.ndarray):
     """``step(k, k_prev)``: how the spine's skinned pose of the template moves from frame ``k_prev``
     to ``k`` (the spine's limb motion, :func:`spine_starts`), or None without a usable spine of
@@ -325,3 +369,66 @@ def _spine_pose(model, pose, spine, k: int, k_prev: int) -> list:
     if spine is None:
         return []
     return [fit_frame(model, model.deform(pose) + spine(k, k_prev), pose, iterations=3, max_points=2000)[0]]
+
+
+def spine_armature(rigged):
+    """The take's spine rig as an armature: the first round's of :func:`track_with_armature`.
+
+    The spine (Brostow et al. 2004) is built from every frame's visual hull, so its armature does not
+    inherit a tracking's drift, and its parts follow the limbs (a forearm that touches a thigh in the
+    reference frame still belongs to the arm's axis).
+
+    Parts: one per bone of the rig (:class:`pipeline.armature_spine.RiggedModel`: every spine axis cut into
+    equal bones), turning about the bone's first joint; a part hangs from the part of the nearest bone joint
+    above its joint in the rig's joint tree, or from the root (the root junction's rigid motion). Weights:
+    rigid; every vertex moves with one bone, the nearest in the rest pose (distance to the bone's segment)
+    of the spine axis that carries the largest share of its bone heat weights (heat weights themselves
+    spread a limb's bones over the body and over a touching limb).
+
+    Parameters
+    ----------
+    rigged : pipeline.armature_spine.RiggedModel
+        The spine's rig bound to the template at its rest (reference) frame.
+
+    Returns
+    -------
+    pipeline.armature_fit.ArticulatedModel
+    """
+    from pipeline.armature_fit import ArticulatedModel
+    from pipeline.armature_skeleton import ArticulatedSkeleton
+    from pipeline.armature_spine import RiggedModel
+    from pipeline.skinning import segment_distances
+
+    if not isinstance(rigged, RiggedModel):
+        raise ValueError(f"rigged must be a RiggedModel, got {type(rigged).__name__}")
+    rig = rigged.rig
+    bones = np.asarray(rig.bones, dtype=np.int64).reshape(-1, 2)
+    if len(bones) == 0:
+        raise ValueError("rigged has no bones")
+    bone_of = np.full(rig.n_joints, -1)
+    bone_of[bones[:, 0]] = np.arange(len(bones))
+    part = np.zeros(rig.n_joints, dtype=np.int64)  # parents come first: a joint's part is known before its children's
+    part_joint = [0]
+    for j in range(1, rig.n_joints):
+        if bone_of[j] >= 0:
+            part_joint.append(j)
+            part[j] = len(part_joint) - 1
+        else:
+            part[j] = part[rig.parents[j]]
+    part_joint = np.asarray(part_joint)
+    part_parent = np.r_[-1, part[rig.parents[part_joint[1:]]]]
+    articulation = np.zeros(rig.n_joints, dtype=bool)
+    articulation[part_joint[1:]] = True
+    skeleton = ArticulatedSkeleton(names=tuple(rig.names), parents=np.asarray(rig.parents), rest=np.asarray(rig.rest, float),
+                                   articulation=articulation, segment_pairs=(None,) * rig.n_joints, part=part,
+                                   part_joint=part_joint, part_parent=part_parent, bones=bones,
+                                   placement=(None,) * rig.n_joints)
+    axes = sorted(set(rig.element[j] for j in bones[:, 0]))
+    axis = np.array([axes.index(rig.element[j]) for j in bones[:, 0]])
+    share = np.zeros((len(rigged.vertices), len(axes)))
+    np.add.at(share, (np.repeat(np.arange(len(share)), rigged.joints.shape[1]), axis[bone_of[rigged.joints]].ravel()),
+              rigged.weights.ravel())
+    dist = segment_distances(rigged.vertices, rig.rest[bones[:, 0]], rig.rest[bones[:, 1]])
+    dist[axis[None, :] != share.argmax(axis=1)[:, None]] = np.inf
+    return ArticulatedModel(np.asarray(rigged.vertices, float), np.asarray(rigged.faces, np.int64), skeleton,
+                            dist.argmin(axis=1)[:, None], np.ones((len(share), 1)))

@@ -110,8 +110,9 @@ FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16), ("biped", 10.0, 1
 def fast_accuracy() -> None:
     """Fast takes (and slow ones): the default tracking, then tracked again with an armature as
     the articulated prior (:func:`pipeline.track_armature.track_with_armature`): the armature built from the
-    tracking (``stage track --armature-rounds auto``), one round of it with the colour tracks pulling its pose
-    (``colour=True``), and the armature of the true motion, with
+    tracking (``stage track --armature-rounds auto``), the take's spine as the first round's armature and then
+    one or ``auto`` rounds built from the tracking (``spine=True``, ``--spine-armature``), one round of it with
+    the colour tracks pulling its pose (``colour=True``), and the armature of the true motion, with
     and without its true poses among the starts (what the tracking gives with the right segments,
     and with the right starts too); the worst frame's mean and 95th percentile, the invented motion
     (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame."""
@@ -144,6 +145,12 @@ def fast_accuracy() -> None:
             _fast_row(f"{name}, --armature-rounds auto (kept round {kept} of {len(rep['rig_prior']['rounds'])}; segments "
                       f"{rep['rig_prior']['rounds'][kept - 1]['segments']})", sim, res, frames,
                       (time.process_time() - t0) / frames)
+            for rounds in (1, "auto"):  # the spine's armature first (``--spine-armature``), then built from the tracking
+                _restore(res, base / "tracked")
+                t0 = time.process_time()
+                rep = track_with_armature(res, rounds=rounds, spine=True)
+                _fast_row(f"{name}, --armature-rounds {rounds} --spine-armature (kept round {rep['rig_prior']['kept_round']} "
+                          f"of {len(rep['rig_prior']['rounds'])})", sim, res, frames, (time.process_time() - t0) / frames)
             _restore(res, base / "tracked")
             t0 = time.process_time()
             rep = track_with_armature(res, rounds=1, colour=True)

@@ -62,6 +62,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "keeping the best round; 'auto' = at most 4 (default 0: off). With --colour the colour tracks pull the "
                    "armature's pose too (they see a round limb's turn about its own axis, which the surfaces cannot). Only as "
                    "good as the armature's segments, see docs/tracking.md. --rig-rounds: the old name, kept for one release")
+    p.add_argument("--spine-armature", action="store_true",
+                   help="multi-view, with --armature-rounds: the first round's armature is the take's spine (RESULTS_DIR/"
+                   "spine.json, built from every frame's visual hull, so it does not inherit the tracking's drift; two "
+                   "bones a limb), then the ROUNDS rounds build it from the tracking; better on the fast biped, worse on "
+                   "one fast quadruped, see docs/tracking.md")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -117,8 +122,10 @@ def run(args: argparse.Namespace) -> int:
         prior = rep["rig_prior"]
         rounds = prior["rounds"]
         fits = ", ".join("-" if r.get("residual_mm") is None else f"{r['residual_mm']:.2f}" for r in rounds)
+        segments = ", ".join(f"the spine's {r['segments']} parts" if r.get("armature") == "spine" else str(r["segments"])
+                             for r in rounds)
         print(f"tracked again with an armature as the articulated prior: {counted(len(rounds), 'round')} (armature "
-              f"segments: {', '.join(str(r['segments']) for r in rounds)}; the armature on the surfaces: {fits} mm), "
+              f"segments: {segments}; the armature on the surfaces: {fits} mm), "
               f"kept round {prior.get('kept_round', len(rounds))}")
     if rep["skipped"]:
         print(f"skipped {counted(len(rep['skipped']), 'frame')} without data: {', '.join(map(str, rep['skipped']))}")
@@ -149,6 +156,8 @@ def _check_counts(args: argparse.Namespace) -> None:
         raise UserError("--carve must be >= 0 (rounds)")
     if args.carve_margin is not None and (not args.carve or not args.carve_margin >= 0):
         raise UserError("--carve-margin needs --carve and a margin >= 0 (pixels)")
+    if args.spine_armature and not args.rig_rounds:
+        raise UserError("--spine-armature needs --armature-rounds (it is the first of the armature rounds)")
 
 
 def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
@@ -168,7 +177,8 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
         if args.rig_rounds:
             from pipeline.track_armature import track_with_armature
 
-            rep = track_with_armature(src, rounds=args.rig_rounds, colour=args.colour, progress=bars, executor=ex)
+            rep = track_with_armature(src, rounds=args.rig_rounds, colour=args.colour, spine=args.spine_armature,
+                                      progress=bars, executor=ex)
     return rep
 
 
@@ -187,7 +197,8 @@ def _rounds(src: Path, rounds: int, *, margin=None, **kw) -> dict:
 _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
               ("--contour", "contour", False), ("--no-colour", "no_colour", False))
 _RESULTS_ONLY = (("--carve", "carve", 0), ("--armature-rounds", "rig_rounds", 0), ("--carve-margin", "carve_margin", None),
-                 ("--colour", "colour", False), ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
+                 ("--spine-armature", "spine_armature", False), ("--colour", "colour", False),
+                 ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
                  ("--prediction-only", "prediction_only", False), ("--workers", "workers", None))
 
 

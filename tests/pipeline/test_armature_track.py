@@ -178,6 +178,7 @@ def test_fast_take_tracked_with_its_rig(fast_take):
         rep = track_with_armature(res, rounds=2, executor=ex)
     assert ex.submitted >= 1  # (the halves depend only on the reference frame: the same frames as in order)
     assert rep["rig_rounds"] >= 1 and rep["rig_prior"]["rounds"][0]["segments"] > 1
+    assert {r["armature"] for r in rep["rig_prior"]["rounds"]} == {"tracking"}  # (the spine's round is opt-in)
     err, vols, _ = tracking_errors(sim.creature, sim.times, res)
     # measured: every frame 0.76..1.46 mean, 1.80..3.22 at the 95th percentile (3.61 at worst with the joints
     # of 7ff3729; one round leaves frame 0 at 3.66..4.26; `auto`, four rounds, 3.04; the default tracking:
@@ -185,6 +186,25 @@ def test_fast_take_tracked_with_its_rig(fast_take):
     assert err.mean(axis=1).max() <= 2.0, err.mean(axis=1)
     assert np.percentile(err, 95, axis=1).max() <= 4.0, np.percentile(err, 95, axis=1)
     assert np.all(np.abs(vols - 1) <= 0.1), vols
+
+
+def test_the_spine_rig_of_a_take_is_bound_to_its_tracked_template(fast_take):
+    """``track_with_armature(spine=True)``'s first armature: the take's spine rig (two bones an axis) on the
+    tracked template at the reference frame, its limb vertices each on a bone of their own limb."""
+    from pipeline.armature_files import load_sequence, tracked_meshes
+    from pipeline.spine_format import read_spine
+    from pipeline.track_armature import SPINE_BONES, _spine_rig
+    from pipeline.track_frames import surface_meshes
+
+    sim, res = fast_take
+    frames, _ = surface_meshes(res, "meshes")
+    vs, faces, _ = load_sequence(tracked_meshes(res))
+    refi = frames.index(int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"]))
+    model = _spine_rig(res, frames, vs[refi], faces, refi)
+    spine = read_spine(res / "spine.json")
+    assert model.skeleton.n_parts == 1 + SPINE_BONES * len(spine.axes)
+    np.testing.assert_array_equal(model.vertices, vs[refi])
+    assert _spine_rig(res, frames[:-1], vs[refi], faces, refi) is None  # a spine of other frames: built from the tracking
 
 
 CENTRE, RADIUS = np.array([0.0, 0.0, 300.0]), 150.0
@@ -247,7 +267,7 @@ def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
     assert json.loads((res / "tracked" / "track.json").read_text())["rig_rounds"] == 0
 
 
-def test_track_with_rig_invalid_input(tmp_path):
+def test_track_with_rig_invalid_input(tmp_path, capsys):
     from pipeline.track_armature import track_with_armature
     from stage.cli import main
 
@@ -260,10 +280,14 @@ def test_track_with_rig_invalid_input(tmp_path):
         track_with_armature(res, lambda_thr=1.5)
     with pytest.raises(ValueError, match="model"):
         track_with_armature(res, model=object())
+    with pytest.raises(ValueError, match="spine"):
+        track_with_armature(res, spine="yes")
     with pytest.raises(FileNotFoundError, match="stage track"):
         track_with_armature(res)  # not tracked yet
     with pytest.raises(SystemExit):  # argparse: "must be a count >= 0 or 'auto'"
         main(["-q", "track", str(res), "--armature-rounds", "-1"])
+    assert main(["-q", "track", str(res), "--spine-armature"]) == 2
+    assert "--spine-armature needs --armature-rounds" in capsys.readouterr().err
 
 
 def _tube(rings: int = 9, per: int = 8, length: float = 80.0, radius: float = 6.0):
