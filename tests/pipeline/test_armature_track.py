@@ -188,6 +188,7 @@ def test_fast_take_tracked_with_its_rig(fast_take):
     assert np.all(np.abs(vols - 1) <= 0.1), vols
 
 
+@pytest.mark.slow
 def test_the_spine_rig_of_a_take_is_bound_to_its_tracked_template(fast_take):
     """``track_with_armature(spine=True)``'s first armature: the take's spine rig (two bones an axis) on the
     tracked template at the reference frame, its limb vertices each on a bone of their own limb."""
