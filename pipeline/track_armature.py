@@ -44,7 +44,7 @@ ARMATURE_FIT_ROUNDS = 8
 ARMATURE_ICP_POINTS = 1000
 #: Bones per spine axis (limb, or the axis between two junctions) of the first round's armature
 #: (:func:`spine_armature`): a limb's two halves turn on their own (six or three bones a limb track the fast
-#: biped worse; docs/tracking.md, "Fast motion").
+#: biped worse; docs/tracking.md, "The take's spine as the first armature").
 SPINE_BONES = 2
 
 
@@ -95,7 +95,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         :data:`SPINE_BONES` bones an axis, :func:`spine_armature`) when the take has a spine with
         every limb seen in the reference frame (else one line says so), then ``rounds`` rounds
         build it from the tracking (``stage track --spine-armature``). Off by default: better on the
-        fast biped, worse on a fast quadruped (docs/tracking.md, "A first armature from the spine").
+        fast biped, worse on a fast quadruped (docs/tracking.md, "The take's spine as the first armature").
     colour : bool
         Follow the template in every camera's colour images too (``stage track --colour``,
         :func:`pipeline.track_colour.multiview_colour`, started from the skinned constant-velocity
