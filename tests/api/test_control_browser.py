@@ -260,6 +260,7 @@ def test_board_session_to_calibration_report(tmp_path):
         board = httpx.get(srv.url + "/stage/board", timeout=10).json()
         report = httpx.get(srv.url + f"/jobs/{board['job']}/results/report.json", timeout=10).json()
         cal = httpx.get(srv.url + f"/calibrations/{board['job']}.json", timeout=10)
+        sync = httpx.get(srv.url + f"/takes/{board['take']}", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10).json()["sync"]
     print("\nboard session, seconds from the start: " + ", ".join(f"{k} {v:.1f}" for k, v in steps.items())
           + f"; {report['evaluation']['held_out'].get('frames')} frame sets, failed folds: "
           f"{report['evaluation']['held_out'].get('failed_folds')}")
@@ -272,7 +273,16 @@ def test_board_session_to_calibration_report(tmp_path):
     held = report["evaluation"]["held_out"]["per_camera"]
     assert [r[0] for r in rows] == list(held)
     for r in rows:
-        assert float(r[1]) == pytest.approx(held[r[0]]["rms"], abs=1e-3) and float(r[1]) < 2.0
+        assert float(r[1]) == pytest.approx(held[r[0]]["rms"], abs=1e-3)
+    # the simulated cameras are genlocked (their sets' spread is their 0.5 ms jitter), unless a camera's
+    # reader lagged a whole period through the sync's first window (a starved machine): its frames then go
+    # a set late until a faster delivery shows it, sets hold two views of the moving board, and the take
+    # says so (spread near one period); the calibration must then name a camera far above the rest
+    print(f"sync spread max {sync['spread_max_ms']:.2f} ms, held-out px {[r[1] for r in rows]}")
+    if sync["spread_max_ms"] < 1000 / 6 / 4:
+        assert all(float(r[1]) < 2.0 for r in rows), rows
+    else:
+        assert any("is far above the rest" in w for w in report["warnings"]), (sync, report["warnings"])
 
 
 def test_ctrl_c_with_a_preview_open(tmp_path):
