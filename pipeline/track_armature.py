@@ -94,9 +94,9 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         Without ``model``: the first round's armature is the take's spine rig (``spine.json``,
         :data:`SPINE_BONES` bones an axis, :func:`spine_armature`) when the take has a spine with
         every limb seen in the reference frame (else one line says so), then ``rounds`` rounds
-        build it from the tracking (``stage track --spine-armature``). Off by default: better on the
-        fast biped and quadruped, worse on the fast starfish, the slow quadruped and another fast
-        quadruped (docs/tracking.md, "The take's spine as the first armature").
+        build it from the tracking (``stage track --spine-armature``). Off by default: better on one
+        fast biped and quadruped, worse on the fast starfish, the slow quadruped and other fast
+        quadrupeds (docs/tracking.md, "The take's spine as the first armature").
     colour : bool
         Follow the template in every camera's colour images too (``stage track --colour``,
         :func:`pipeline.track_colour.multiview_colour`, started from the skinned constant-velocity

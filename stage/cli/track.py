@@ -65,8 +65,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spine-armature", action="store_true",
                    help="multi-view, with --armature-rounds: the first round's armature is the take's spine (RESULTS_DIR/"
                    "spine.json, built from every frame's visual hull, so it does not inherit the tracking's drift; two "
-                   "bones a limb), then the ROUNDS rounds build it from the tracking; better on the fast biped and "
-                   "quadruped, worse on the fast starfish and the slow quadruped, see docs/tracking.md")
+                   "bones a limb), then the ROUNDS rounds build it from the tracking; better on some fast bipeds and "
+                   "quadrupeds, worse on others, on the fast starfish and the slow quadruped, see docs/tracking.md")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
