@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 from pathlib import Path
 
@@ -30,6 +31,8 @@ from pipeline.results import atomic_write_bytes, ply_bytes
 
 __all__ = ["FRAME_GLOB", "NoTrackingError", "armature_results", "load_sequence", "remove_armature", "spine_limbs",
            "tracked_meshes", "write_armature"]
+
+log = logging.getLogger(__name__)
 
 
 class NoTrackingError(FileNotFoundError):
@@ -125,8 +128,6 @@ def spine_limbs(results_dir, vertices, faces, numbers) -> VertexLimbs | None:
     The spine's rest frame must be a tracked frame; the template is bound to the spine there (bone heat
     weights, :func:`pipeline.armature_spine.rigged_model`).
     """
-    import logging
-
     from pipeline.armature_spine import NoCompleteFrameError, reference_frame, rigged_model
     from pipeline.spine_format import read_spine
 
@@ -141,7 +142,7 @@ def spine_limbs(results_dir, vertices, faces, numbers) -> VertexLimbs | None:
             raise ValueError(f"the spine's rest frame {int(spine.frame_indices[ref])} is not tracked")
         return vertex_limbs(rigged_model(spine, vertices[int(at[0])], faces, reference=ref))
     except (NoCompleteFrameError, ValueError, KeyError) as exc:
-        logging.getLogger(__name__).warning("the armature is built without the spine's limbs (%s)", exc)
+        log.warning("the armature is built without the spine's limbs (%s)", exc)
         return None
 
 

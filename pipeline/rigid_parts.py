@@ -13,6 +13,8 @@ into its neighbours (``_dissolve_blends``); those four are the segmentation's st
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
@@ -172,8 +174,6 @@ def _best_cut(A: np.ndarray, near: np.ndarray, ids: np.ndarray, residual, min_si
 
 def _memoised(memo: dict, kind: str, ids: np.ndarray, compute):
     """``memo``'s value for ``kind`` of the vertex set ``ids``, ``compute()`` when it has none."""
-    import hashlib
-
     k = kind, hashlib.blake2b(np.ascontiguousarray(ids, dtype=np.int64).tobytes(), digest_size=16).digest()
     if k not in memo:
         memo[k] = compute()
