@@ -1,0 +1,221 @@
+"""Which limb of a take's spine every vertex of a template lies on, or the body: cut where the section narrows.
+
+A take's spine (Brostow et al. 2004, :mod:`pipeline.spine`) is built from every frame's visual hull, so it
+does not share the tracking's drift; but each limb axis starts at a junction in the middle of the body, so
+the nearest axis (or the heaviest bone, :func:`pipeline.armature_limbs.vertex_limbs`) hands the limbs much
+of the body. :func:`template_labels` finds where each limb leaves the body from the template's own shape:
+
+1. Stations along every limb axis, one mesh edge apart; at each, rays in the plane normal to the axis give
+   the distance to the surface all round (the section's radii; a station outside the mesh has none).
+2. The body's radius ``R`` is the sections' median radius within one limb radius of the junction, the
+   limb's ``r`` the median over the distal half of its axis. Walking in from the tip, the limb ends at the
+   first station whose section (median over one limb radius of stations) is no longer nearer to the limb's
+   radius than to the body's (above the geometric mean ``sqrt(R r)``), or that lies outside the mesh.
+3. A vertex is on the limb when its nearest point on the axis lies beyond that cut and it is no further
+   from the axis than the widest section within one limb radius of that point (the template's own
+   section there); on two limbs, the one it is relatively nearer to. Every limb keeps its largest
+   connected piece of the template; everything else is the body.
+
+The cut follows the subject: the limb's and the body's radii come from the template, the window from the
+limb's radius, the step from the mesh. Written by hand: sections of a mesh along a curved axis and the
+walk from the tip are no library's; the rays are trimesh's (Embree when installed).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["BODY", "template_labels"]
+
+#: the label of a vertex on the body (no limb)
+BODY = -1
+
+_RAYS = 16  # directions of every section (a hull's section has about as many sides as twice the cameras)
+
+
+def template_labels(spine, vertices, faces, *, reference: int | None = None) -> np.ndarray:
+    """The spine limb of every template vertex, or :data:`BODY`.
+
+    Parameters
+    ----------
+    spine : pipeline.spine_format.Spine or path
+        The take's spine, its ``spine.json`` or the results directory that holds it.
+    vertices : (V, 3) float array_like
+        The template, in the spine's units and in the pose of the spine's frame ``reference``
+        (a tracked template: the reference frame's surface, :func:`pipeline.track.track_results`).
+    faces : (F, 3) int array_like
+        Its triangles (a closed surface: a station's inside is told by its rays).
+    reference : int, optional
+        Position of the template's frame in the spine (default:
+        :func:`pipeline.armature_spine.reference_frame`); every limb axis must be seen there.
+
+    Returns
+    -------
+    (V,) int64 ndarray
+        Index into ``spine.limb_ids``, or :data:`BODY`.
+
+    Raises
+    ------
+    ValueError
+        Naming the parameter: not a spine, a mesh that is not (V, 3) / (F, 3) or indexes past its vertices,
+        a reference outside the spine or without every limb
+        (:class:`pipeline.armature_spine.NoCompleteFrameError`).
+    """
+    import trimesh
+
+    from pipeline.armature_spine import reference_frame
+
+    spine = _spine(spine)
+    V, F = _mesh(vertices, faces)
+    if reference is not None and (isinstance(reference, bool) or not isinstance(reference, (int, np.integer))):
+        raise ValueError(f"reference must be a frame position (int) or None, got {reference!r}")
+    ref = reference_frame(spine, prefer=reference)
+    mesh = trimesh.Trimesh(V, F, process=False)
+    step = float(np.median(mesh.edges_unique_length))
+    if not step > 0:
+        raise ValueError("vertices and faces must make a surface with edges of non-zero length")
+    K = len(spine.limb_ids)
+    relative = np.full((len(V), K), np.inf)  # distance to the limb's axis over its section's radius
+    for k, lid in enumerate(spine.limb_ids):
+        s, d, reach = _limb_reach(mesh, np.asarray(spine.axes[lid][ref], dtype=np.float64), V, step)
+        on = np.isfinite(reach) & (d <= reach)
+        relative[on, k] = d[on] / np.maximum(reach[on], 1e-12)
+    labels = np.where(np.isfinite(relative).any(1), relative.argmin(1), BODY).astype(np.int64)
+    return _largest_pieces(labels, mesh.edges_unique, K)
+
+
+def _spine(spine):
+    """A Spine from a Spine, a spine.json or a results directory; ValueError naming ``spine``."""
+    from pipeline.spine_format import Spine, read_spine
+
+    if isinstance(spine, Spine):
+        return spine
+    if isinstance(spine, (str, Path)):
+        path = Path(spine)
+        path = path / "spine.json" if path.is_dir() else path
+        if not path.is_file():
+            raise ValueError(f"spine: no spine file at {path}")
+        return read_spine(path)
+    raise ValueError(f"spine must be a pipeline.spine_format.Spine or a path, got {type(spine).__name__}")
+
+
+def _mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    V = np.asarray(vertices, dtype=np.float64)
+    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0 or not np.all(np.isfinite(V)):
+        raise ValueError(f"vertices must be a non-empty finite (V, 3) array, got shape {V.shape}")
+    F = np.asarray(faces)
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or not np.issubdtype(F.dtype, np.integer):
+        raise ValueError(f"faces must be a non-empty (F, 3) integer array, got shape {F.shape}")
+    if F.min() < 0 or F.max() >= len(V):
+        raise ValueError(f"faces must index vertices 0..{len(V) - 1}")
+    return V, F.astype(np.int64)
+
+
+def _limb_reach(mesh, axis: np.ndarray, V: np.ndarray, step: float):
+    """(s, d, reach) of every vertex for one limb axis: arc length of its nearest axis point, its distance
+    to the axis, and how far from the axis the limb reaches there (nan: before the cut, not the limb)."""
+    ss, P, T = _stations(axis, step)
+    R = _section_radii(mesh, P, T)
+    with np.errstate(all="ignore"):
+        med = _nan_stat(R, np.nanmedian)
+        widest = _nan_stat(R, np.nanmax)
+    length = ss[-1]
+    r_limb = _nan_stat(med[ss >= length / 2], np.nanmedian)
+    r_body = _nan_stat(med[ss <= r_limb], np.nanmedian) if np.isfinite(r_limb) else np.nan
+    s, d = _nearest_on_polyline(V, axis)
+    if not (np.isfinite(r_limb) and np.isfinite(r_body)):
+        return s, d, np.full(len(V), np.nan)
+    window = max(1, int(round(r_limb / step)))
+    smooth = _running(med, window, np.nanmedian)
+    wide = ~(smooth <= np.sqrt(r_body * r_limb))  # nearer the body's radius, or outside the mesh
+    wide &= ss < length - r_limb  # the tip's cap narrows to nothing: never a cut
+    cut = ss[np.flatnonzero(wide)[-1]] + step / 2 if wide.any() else 0.0
+    reach_st = _running(np.where(ss >= cut, widest, np.nan), window, np.nanmax)
+    reach = np.interp(s, ss, np.nan_to_num(reach_st, nan=-1.0))
+    reach[(s < cut) | (reach < 0)] = np.nan
+    return s, d, reach
+
+
+def _stations(axis: np.ndarray, step: float):
+    """(arc length, point, unit tangent) every ``step`` along a polyline."""
+    seg = np.linalg.norm(np.diff(axis, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    ss = np.arange(0.0, arc[-1] + step / 2, step) if arc[-1] > 0 else np.zeros(1)
+    P = np.stack([np.interp(ss, arc, axis[:, c]) for c in range(3)], axis=1)
+    T = np.gradient(P, axis=0) if len(P) > 1 else np.zeros_like(P)
+    n = np.linalg.norm(T, axis=1, keepdims=True)
+    T = np.where(n > 0, T / np.maximum(n, 1e-12), [[0.0, 0.0, 1.0]])
+    return ss, P, T
+
+
+def _section_radii(mesh, P: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(n, rays) distance from every station to the surface in its normal plane; nan rows outside the mesh."""
+    n = len(P)
+    helper = np.where(np.abs(T[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    U = np.cross(T, helper)
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    W = np.cross(T, U)
+    th = np.linspace(0.0, 2 * np.pi, _RAYS, endpoint=False)
+    D = (np.cos(th)[None, :, None] * U[:, None] + np.sin(th)[None, :, None] * W[:, None]).reshape(-1, 3)
+    origins = np.repeat(P, _RAYS, axis=0)
+    loc, ray, _ = mesh.ray.intersects_location(origins, D, multiple_hits=False)
+    R = np.full(n * _RAYS, np.nan)
+    R[ray] = np.linalg.norm(loc - origins[ray], axis=1)
+    R = R.reshape(n, _RAYS)
+    R[~mesh.ray.contains_points(P)] = np.nan
+    return R
+
+
+def _nan_stat(x, fn):
+    """fn over the finite entries of x (along the last axis for 2-D); nan where there are none."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 1:
+        return float(fn(x)) if np.isfinite(x).any() else np.nan
+    out = np.full(len(x), np.nan)
+    ok = np.isfinite(x).any(1)
+    out[ok] = fn(x[ok], axis=1)
+    return out
+
+
+def _running(x: np.ndarray, half: int, fn) -> np.ndarray:
+    """fn over the finite entries of every window ``[i - half, i + half]``; nan where there are none."""
+    pad = np.concatenate([np.full(half, np.nan), x, np.full(half, np.nan)])
+    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half + 1)
+    return _nan_stat(win, fn)
+
+
+def _nearest_on_polyline(X: np.ndarray, axis: np.ndarray):
+    """(arc length, distance) of every point's nearest point on a polyline (K >= 2 points)."""
+    A, B = axis[:-1], axis[1:]
+    D = B - A
+    L2 = np.maximum((D * D).sum(1), 1e-12)
+    start = np.concatenate([[0.0], np.cumsum(np.sqrt((D * D).sum(1)))])[:-1]
+    best_d = np.full(len(X), np.inf)
+    best_s = np.zeros(len(X))
+    for b in range(len(A)):  # one segment at a time: (V,) arrays, whatever the template's size
+        t = np.clip((X - A[b]) @ D[b] / L2[b], 0.0, 1.0)
+        dist = np.linalg.norm(X - (A[b] + t[:, None] * D[b]), axis=1)
+        better = dist < best_d
+        best_d[better] = dist[better]
+        best_s[better] = start[b] + t[better] * np.sqrt(L2[b])
+    return best_s, best_d
+
+
+def _largest_pieces(labels: np.ndarray, edges: np.ndarray, K: int) -> np.ndarray:
+    """Every limb keeps its largest edge-connected piece; its other pieces become the body."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(labels)
+    same = labels[edges[:, 0]] == labels[edges[:, 1]]
+    graph = coo_matrix((np.ones(int(same.sum())), (edges[same, 0], edges[same, 1])), shape=(n, n))
+    _, piece = connected_components(graph, directed=False)
+    out = labels.copy()
+    for k in range(K):
+        idx = np.flatnonzero(labels == k)
+        if len(idx):
+            keep = np.bincount(piece[idx]).argmax()
+            out[idx[piece[idx] != keep]] = BODY
+    return out

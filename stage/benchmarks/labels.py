@@ -1,0 +1,114 @@
+"""``stage bench labels``: the limb/body labels of a tracked template against the simulator's, on processed takes.
+
+Every take is a directory holding the simulation (``sim.pkl``, the pickled
+:func:`fake_cameras.take.simulate_take` result) and its processed ``results/``; a missing one is simulated,
+recorded and processed there first (minutes). The template is what :func:`pipeline.track.track_results`
+tracks: the surface of the spine's reference frame (its largest component). The simulator's label of a
+vertex is the limb of the capsule nearest to it at that frame (-1: the body). Printed per take, for the
+spine's bone heat weights (:func:`pipeline.armature_limbs.vertex_limbs`) and for
+:func:`pipeline.template_labels.template_labels`: the fraction of vertices whose label is right (each label
+mapped to the true limb most of its vertices lie on, the body to the body), the body's recall and precision,
+and CPU seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import time
+from pathlib import Path
+
+import numpy as np
+
+NAME = "labels"
+HELP = "the template's limb/body labels against the simulator's on processed simulated takes"
+
+DEFAULT_TAKES = ",".join(f"{n}:{fps}:{s}:16" for n in ("biped", "quadruped", "starfish") for fps in (10, 30)
+                         for s in (3, 4)) + "," + ",".join(f"{n}:30:{s}:30" for n in ("biped", "quadruped", "starfish")
+                                                             for s in (3, 5))
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--root", default="/tmp/takes", help="directory of the take directories (default /tmp/takes)")
+    p.add_argument("--takes", default=DEFAULT_TAKES,
+                   help="NAME:FPS:SEED:FRAMES,... (8 cameras, 640x480); directory ROOT/NAME_FPS_sSEED_fFRAMES "
+                   "(default: biped, quadruped, starfish at 10 and 30 fps, seeds 3 and 4, 16 frames; and 30 frames "
+                   "at 30 fps, seeds 3 and 5)")
+
+
+def label_scores(pred, true) -> tuple[float, float, float]:
+    """(fraction right, body recall, body precision): every limb label mapped to the true limb most of its
+    vertices lie on (a label on the body alone is wrong everywhere), -1 the body."""
+    pred, true = np.asarray(pred), np.asarray(true)
+    mapped = np.full(len(pred), -1)
+    for k in np.unique(pred[pred >= 0]):
+        on = true[pred == k]
+        on = on[on >= 0]
+        mapped[pred == k] = np.bincount(on).argmax() if len(on) else -2
+    pb, tb = pred < 0, true < 0
+    both = float((pb & tb).sum())
+    return float((mapped == true).mean()), both / max(int(tb.sum()), 1), both / max(int(pb.sum()), 1)
+
+
+def take_dir(root: Path, spec: str) -> Path:
+    """The take directory of ``NAME:FPS:SEED:FRAMES`` under ``root``, simulated and processed if missing."""
+    name, fps, seed, frames = spec.split(":")
+    d = root / f"{name}_{float(fps):g}_s{int(seed)}_f{int(frames)}"
+    if (d / "results" / "spine.json").is_file() and (d / "sim.pkl").is_file():
+        return d
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
+    from pipeline.process import process_take
+
+    d.mkdir(parents=True, exist_ok=True)
+    sim = simulate_take(name, n_cameras=8, frames=int(frames), size=(640, 480), seed=int(seed), fps=float(fps))
+    with open(d / "sim.pkl", "wb") as fh:
+        pickle.dump(sim, fh)
+    process_take(record_take(sim, d / "take.h5"), d / "results", executor=None)
+    return d
+
+
+def take_labels(d: Path) -> dict:
+    """Template, the simulator's labels, the heat weights' and template_labels' of one take directory."""
+    from pipeline.armature_limbs import vertex_limbs
+    from pipeline.armature_spine import reference_frame, rigged_model
+    from pipeline.meshio import load_mesh
+    from pipeline.spine_format import read_spine
+    from pipeline.template_labels import template_labels
+    from pipeline.track_frames import surface_meshes
+
+    root = d / "results"
+    frames, by_frame = surface_meshes(root, "meshes")
+    spine = read_spine(root / "spine.json")
+    ref = reference_frame(spine)
+    V, F = load_mesh(by_frame[frames[ref]], largest=True)
+    with open(d / "sim.pkl", "rb") as fh:
+        sim = pickle.load(fh)
+    pose = sim.creature.pose(float(sim.times[frames[ref]]))
+    true = pose.limb[pose.capsule_sdf(V).argmin(1)]
+    t0 = time.process_time()
+    vl = vertex_limbs(rigged_model(spine, V, F, reference=ref))
+    heat_s = time.process_time() - t0
+    t0 = time.process_time()
+    ours = template_labels(spine, V, F, reference=ref)
+    ours_s = time.process_time() - t0
+    return {"vertices": len(V), "true": true, "heat": vl.limb, "heat_s": heat_s, "labels": ours, "labels_s": ours_s}
+
+
+def run(args: argparse.Namespace) -> int:
+    root = Path(args.root)
+    print("| take | vertices | heat weights: right / body recall / body precision | template_labels | CPU s (heat, "
+          "labels) |")
+    print("| --- | --- | --- | --- | --- |")
+    rows = []
+    for spec in [s for s in args.takes.split(",") if s]:
+        d = take_dir(root, spec)
+        r = take_labels(d)
+        h, t = label_scores(r["heat"], r["true"]), label_scores(r["labels"], r["true"])
+        rows.append(h + t)
+        print(f"| {d.name} | {r['vertices']} | {h[0]:.3f} / {h[1]:.3f} / {h[2]:.3f} | {t[0]:.3f} / {t[1]:.3f} / "
+              f"{t[2]:.3f} | {r['heat_s']:.2f}, {r['labels_s']:.2f} |", flush=True)
+    if rows:
+        m = np.mean(rows, axis=0)
+        print(f"| mean | | {m[0]:.3f} / {m[1]:.3f} / {m[2]:.3f} | {m[3]:.3f} / {m[4]:.3f} / {m[5]:.3f} | |")
+    return 0
