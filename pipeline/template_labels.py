@@ -46,7 +46,7 @@ def template_labels(spine, vertices, faces, *, reference: int | None = None) -> 
         The template, in the spine's units and in the pose of the spine's frame ``reference``
         (a tracked template: the reference frame's surface, :func:`pipeline.track.track_results`).
     faces : (F, 3) int array_like
-        Its triangles (a closed surface: a station's inside is told by its rays).
+        Its triangles (a closed surface: a station is inside it when most of its rays leave through it).
     reference : int, optional
         Position of the template's frame in the spine (default:
         :func:`pipeline.armature_spine.reference_frame`); every limb axis must be seen there.
@@ -160,11 +160,15 @@ def _section_radii(mesh, P: np.ndarray, T: np.ndarray) -> np.ndarray:
     th = np.linspace(0.0, 2 * np.pi, _RAYS, endpoint=False)
     D = (np.cos(th)[None, :, None] * U[:, None] + np.sin(th)[None, :, None] * W[:, None]).reshape(-1, 3)
     origins = np.repeat(P, _RAYS, axis=0)
-    loc, ray, _ = mesh.ray.intersects_location(origins, D, multiple_hits=False)
+    tri, ray, loc = mesh.ray.intersects_id(origins, D, multiple_hits=False, return_locations=True)
     R = np.full(n * _RAYS, np.nan)
     R[ray] = np.linalg.norm(loc - origins[ray], axis=1)
+    # inside a closed surface every ray leaves through it: its first face turns away from the station
+    outward = 1.0 if mesh.volume >= 0 else -1.0
+    leaves = np.zeros(n * _RAYS, dtype=bool)
+    leaves[ray] = outward * np.einsum("ij,ij->i", mesh.face_normals[tri], D[ray]) > 0
     R = R.reshape(n, _RAYS)
-    R[~mesh.ray.contains_points(P)] = np.nan
+    R[leaves.reshape(n, _RAYS).sum(1) <= _RAYS // 2] = np.nan
     return R
 
 
