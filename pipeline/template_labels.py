@@ -7,18 +7,21 @@ of the body. :func:`template_labels` finds where each limb leaves the body from 
 
 1. Stations along every limb axis, one mesh edge apart; at each, rays in the plane normal to the axis give
    the distance to the surface all round (the section's radii; a station outside the mesh has none).
-2. The body's radius ``R`` is the sections' median radius within one limb radius of the junction, the
-   limb's ``r`` the median over the distal half of its axis. Walking in from the tip, the limb ends at the
-   first station whose section (median over one limb radius of stations) is no longer nearer to the limb's
-   radius than to the body's (above the geometric mean ``sqrt(R r)``), or that lies outside the mesh.
+2. The body's sections are those within one limb radius of the junction, the limb's those of the distal
+   half of its axis. Walking in from the tip, the limb ends at the first station whose section is nearer
+   the body's than the limb's just distal of it (above the geometric mean of the two) in its median radius
+   (smoothed over one limb radius of stations: the section widens into the body) or in its widest radius
+   (scaled by the limb's own widest over median: the section reaches into the body, as where a starfish's
+   arm meets the lobes of its disc), or that lies outside the mesh.
 3. A vertex is on the limb when its nearest point on the axis lies beyond that cut and it is no further
    from the axis than the widest section within one limb radius of that point (the template's own
    section there); on two limbs, the one it is relatively nearer to. Every limb keeps its largest
    connected piece of the template; everything else is the body.
 
 The cut follows the subject: the limb's and the body's radii come from the template, the window from the
-limb's radius, the step from the mesh. Written by hand: sections of a mesh along a curved axis and the
-walk from the tip are no library's; the rays are trimesh's (Embree when installed).
+limb's radius, the step from the mesh; no length or ratio is set by hand (the geometric mean is the
+midpoint of two radii on a scale of ratios). Written by hand: sections of a mesh along a curved axis and
+the walk from the tip are no library's; the rays are trimesh's (Embree when installed).
 """
 
 from __future__ import annotations
@@ -118,24 +121,48 @@ def _limb_reach(mesh, axis: np.ndarray, V: np.ndarray, step: float):
     to the axis, and how far from the axis the limb reaches there (nan: before the cut, not the limb)."""
     ss, P, T = _stations(axis, step)
     R = _section_radii(mesh, P, T)
-    with np.errstate(all="ignore"):
-        med = _nan_stat(R, np.nanmedian)
-        widest = _nan_stat(R, np.nanmax)
-    length = ss[-1]
-    r_limb = _nan_stat(med[ss >= length / 2], np.nanmedian)
-    r_body = _nan_stat(med[ss <= r_limb], np.nanmedian) if np.isfinite(r_limb) else np.nan
     s, d = _nearest_on_polyline(V, axis)
-    if not (np.isfinite(r_limb) and np.isfinite(r_body)):
+    cut, window = _cut(ss, R)
+    if cut is None:
         return s, d, np.full(len(V), np.nan)
-    window = max(1, int(round(r_limb / step)))
-    smooth = _running(med, window, np.nanmedian)
-    wide = ~(smooth <= np.sqrt(r_body * r_limb))  # nearer the body's radius, or outside the mesh
-    wide &= ss < length - r_limb  # the tip's cap narrows to nothing: never a cut
-    cut = ss[np.flatnonzero(wide)[-1]] + step / 2 if wide.any() else 0.0
+    with np.errstate(all="ignore"):
+        widest = _nan_stat(R, np.nanmax)
     reach_st = _running(np.where(ss >= cut, widest, np.nan), window, np.nanmax)
     reach = np.interp(s, ss, np.nan_to_num(reach_st, nan=-1.0))
     reach[(s < cut) | (reach < 0)] = np.nan
     return s, d, reach
+
+
+def _cut(ss: np.ndarray, R: np.ndarray):
+    """(arc length where the limb starts, window in stations) from the sections' radii R (n, rays);
+    (None, 0) when the axis has no section inside the mesh near its junction or over its distal half."""
+    with np.errstate(all="ignore"):
+        med = _nan_stat(R, np.nanmedian)
+        widest = _nan_stat(R, np.nanmax)
+    length = ss[-1]
+    distal = ss >= length / 2
+    r_limb = _nan_stat(med[distal], np.nanmedian)
+    if not np.isfinite(r_limb):
+        return None, 0
+    near = ss <= r_limb  # within one limb radius of the junction: the body's sections
+    r_body, w_body = _nan_stat(med[near], np.nanmedian), _nan_stat(widest[near], np.nanmedian)
+    with np.errstate(all="ignore"):
+        round_limb = _nan_stat((widest / med)[distal], np.nanmedian)  # the limb's own widest over median radius
+    if not (np.isfinite(r_body) and np.isfinite(w_body) and np.isfinite(round_limb)):
+        return None, 0
+    step = ss[1] - ss[0] if len(ss) > 1 else 1.0
+    window = max(1, int(round(r_limb / step)))
+    smooth = _running(med, window, np.nanmedian)
+    n = len(ss)
+    # the limb's radius just distal of every station: its smoothed sections one to two windows further out
+    ahead = np.array([_nan_stat(smooth[i + window:i + 2 * window + 1], np.nanmedian) if i + window < n else np.nan
+                      for i in range(n)])
+    ahead = np.where(np.isfinite(ahead), ahead, r_limb)
+    # a section nearer the body's than the limb's (geometric mean), in its median or its widest radius; or
+    # a station outside the mesh (nan)
+    wide = ~(smooth <= np.sqrt(r_body * ahead)) | ~(widest <= np.sqrt(w_body * round_limb * ahead))
+    wide &= ss < length - r_limb  # the tip's cap narrows to nothing: never a cut
+    return (ss[np.flatnonzero(wide)[-1]] + step / 2 if wide.any() else 0.0), window
 
 
 def _stations(axis: np.ndarray, step: float):
