@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BODY", "template_labels"]
+__all__ = ["BODY", "template_labels", "axis_labels"]
 
 #: the label of a vertex on the body (no limb)
 BODY = -1
@@ -66,8 +66,6 @@ def template_labels(spine, vertices, faces, *, reference: int | None = None) -> 
         a reference outside the spine or without every limb
         (:class:`pipeline.armature_spine.NoCompleteFrameError`).
     """
-    import trimesh
-
     from pipeline.armature_spine import reference_frame
 
     spine = _spine(spine)
@@ -75,14 +73,42 @@ def template_labels(spine, vertices, faces, *, reference: int | None = None) -> 
     if reference is not None and (isinstance(reference, bool) or not isinstance(reference, (int, np.integer))):
         raise ValueError(f"reference must be a frame position (int) or None, got {reference!r}")
     ref = reference_frame(spine, prefer=reference)
+    return axis_labels([np.asarray(spine.axes[lid][ref], dtype=np.float64) for lid in spine.limb_ids], V, F)
+
+
+def axis_labels(axes, vertices, faces) -> np.ndarray:
+    """:func:`template_labels` with the limb axes given: polylines from their junction to their tip.
+
+    Parameters
+    ----------
+    axes : sequence of (n_k, 3) float array_like
+        One polyline per limb (n_k >= 2 points), from the junction in the body to the tip, in the pose of
+        the template.
+    vertices : (V, 3) float array_like
+    faces : (F, 3) int array_like
+
+    Returns
+    -------
+    (V,) int64 ndarray
+        Index into ``axes``, or :data:`BODY`.
+    """
+    import trimesh
+
+    V, F = _mesh(vertices, faces)
+    polylines = []
+    for a in axes:
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim != 2 or a.shape[0] < 2 or a.shape[1] != 3 or not np.all(np.isfinite(a)):
+            raise ValueError(f"axes must be finite (n, 3) polylines of at least 2 points, got shape {a.shape}")
+        polylines.append(a)
     mesh = trimesh.Trimesh(V, F, process=False)
     step = float(np.median(mesh.edges_unique_length))
     if not step > 0:
         raise ValueError("vertices and faces must make a surface with edges of non-zero length")
-    K = len(spine.limb_ids)
+    K = len(polylines)
     relative = np.full((len(V), K), np.inf)  # distance to the limb's axis over its section's radius
-    for k, lid in enumerate(spine.limb_ids):
-        s, d, reach = _limb_reach(mesh, np.asarray(spine.axes[lid][ref], dtype=np.float64), V, step)
+    for k, axis in enumerate(polylines):
+        s, d, reach = _limb_reach(mesh, axis, V, step)
         on = np.isfinite(reach) & (d <= reach)
         relative[on, k] = d[on] / np.maximum(reach[on], 1e-12)
     labels = np.where(np.isfinite(relative).any(1), relative.argmin(1), BODY).astype(np.int64)

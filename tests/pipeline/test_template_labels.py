@@ -52,17 +52,18 @@ def test_limbs_leave_the_body_where_their_section_narrows(name):
 
 def test_a_spine_file_or_results_directory_gives_the_same_labels(tmp_path):
     from pipeline.spine_format import write_spine
-    from pipeline.template_labels import template_labels
+    from pipeline.template_labels import axis_labels, template_labels
 
     spine, V, F, _ = _creature_template("quadruped", voxel=10.0)
     write_spine(tmp_path / "spine.json", spine)
     got = template_labels(spine, V, F, reference=0)
     np.testing.assert_array_equal(template_labels(tmp_path, V, F), got)
     np.testing.assert_array_equal(template_labels(tmp_path / "spine.json", V, F), got)
+    np.testing.assert_array_equal(axis_labels([spine.axes[lid][0] for lid in spine.limb_ids], V, F), got)
 
 
 def test_invalid_input(tmp_path):
-    from pipeline.template_labels import template_labels
+    from pipeline.template_labels import axis_labels, template_labels
 
     spine, V, F, _ = _creature_template("quadruped", voxel=12.0)
     with pytest.raises(ValueError, match="spine"):
@@ -81,3 +82,9 @@ def test_invalid_input(tmp_path):
         template_labels(spine, V, F, reference=1)
     with pytest.raises(ValueError, match="reference"):
         template_labels(spine, V, F, reference=0.5)
+    with pytest.raises(ValueError, match="axes"):
+        axis_labels([np.zeros((1, 3))], V, F)
+    with pytest.raises(ValueError, match="axes"):
+        axis_labels([np.full((3, 3), np.nan)], V, F)
+    with pytest.raises(ValueError, match="faces"):
+        axis_labels([np.eye(3)], V, F[:, :2])
