@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import hashlib
 import logging
 from functools import partial
 from pathlib import Path
@@ -68,7 +69,7 @@ def spine_model(root: Path, frames: list[int], by_frame: dict, template):
 
 def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False,
                   choose: bool = True, predict: bool = True, colour: bool = False, shape_memory: bool = False,
-                  surfaces: str = "meshes", executor=None) -> dict:
+                  surfaces: str = "meshes", executor=None, labels=None) -> dict:
     """Track a template through the surfaces of a processed multi-view take.
 
     With the take's spine (``spine.json``) the template is the spine's reference frame's
@@ -126,6 +127,12 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         (``carved/``, :func:`pipeline.carve.carve_results`; ``stage track --carve``).
     executor : concurrent.futures.Executor, optional
         Runs the backward half (a process pool: :func:`track_chain_task` is its task).
+    labels : (V,) int ndarray or callable, optional
+        The template's limb (``0, 1, ...``) or body (``-1``) of every vertex, or
+        ``labels(vertices, faces, frame)`` giving them for the template this call picks (``frame``
+        its source frame): the template's rigid patches then never span two parts, the body is one
+        patch and every limb is cut on its own grid (``TemplateTracker(patch_labels=)``). Default:
+        the patches follow the grid alone.
 
     Returns
     -------
@@ -147,7 +154,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                     "spine_init (--spine-init)" if spine_init else "choose=False (--prediction-only)", root)
     ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, loaded, name)
     prior = "previous" if shape_memory else "round"
-    tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate, prior=prior)
+    patch_labels = _patch_labels(labels, V0, F0, frames[ref])
+    tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate, prior=prior, patch_labels=patch_labels)
     use_spine = skinned is not None and bool(spine_init)
     spine_start = "all" if use_spine else "choose" if skinned is not None and choose else "none"
     with colour_take(root, bool(colour)) as take:  # opened once in this process (a worker opens its own)
@@ -156,7 +164,10 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                   "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
                   "reference_frame": frames[ref], "spine_init": use_spine, "spine_start": spine_start,
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
-                  "surfaces": surfaces, "rig_rounds": 0, "skipped": [], "frames": {}}
+                  "surfaces": surfaces, "rig_rounds": 0,
+                  "patch_labels": None if patch_labels is None else "given", "skipped": [], "frames": {}}
+        if patch_labels is not None:  # the patches, and so every frame, depend on them
+            report["patch_labels_sha256"] = hashlib.sha256(patch_labels.tobytes()).hexdigest()
         if surfaces == "carved":  # carved with an earlier tracking's motion: their digest says which
             report["surfaces_sha256"] = file_digest(root / surfaces / "carve.json")
         if spine_start != "none":  # every frame's start depends on the spine then
@@ -164,7 +175,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         kept = start_over_if_changed(root, report)
         chain = {"root": str(root), "template": (V0, F0), "gamma": tracker.gamma, "gate": tracker.gate,
                  "spine_start": spine_start, "spine_template": loaded, "predict": bool(predict),
-                 "colour": report["colour_tracks"], "prior": prior, "surfaces": surfaces}
+                 "colour": report["colour_tracks"], "prior": prior, "surfaces": surfaces,
+                 "patch_labels": patch_labels}
         first = _track_reference(tracker, (V0, F0), frames[ref], root, report, by_frame=by_frame, progress=progress,
                                  total=len(frames))
         _track_halves({**chain, "prev": first, "prev_frame": frames[ref]}, frames, ref, report, tracker=tracker,
@@ -173,6 +185,18 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     report["frames"] = {str(k): report["frames"][str(k)] for k in frames if str(k) in report["frames"]}
     write_report(root, report)
     return report
+
+
+def _patch_labels(labels, vertices, faces, frame: int):
+    """The template's (V,) labels of :func:`track_results` (``labels`` given or called), or None."""
+    if labels is None:
+        return None
+    out = labels(vertices, faces, frame) if callable(labels) else labels
+    out = np.asarray(out)
+    if out.shape != (len(vertices),) or not np.issubdtype(out.dtype, np.integer) or (out.size and out.min() < -1):
+        raise ValueError(f"labels must give one integer per template vertex (-1 the body, 0, 1, ... a limb), "
+                         f"shape ({len(vertices)},), got shape {out.shape} of {out.dtype}")
+    return out.astype(np.int64)
 
 
 def _multiview_template(frames: list[int], by_frame: dict, skinned, loaded, name):
@@ -323,7 +347,8 @@ def _track_chain(chain: dict, *, tracker=None, by_frame=None, frame_list=None, s
     if by_frame is None:
         frame_list, by_frame = surface_meshes(root, chain.get("surfaces", "meshes"))
     if tracker is None:
-        tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"], prior=chain["prior"])
+        tracker = TemplateTracker(V0, F0, gamma=chain["gamma"], gate=chain["gate"], prior=chain["prior"],
+                                  patch_labels=chain.get("patch_labels"))
     init_for = None
     if chain["spine_start"] in ("all", "choose"):
         if skinned is None:

@@ -89,6 +89,7 @@ from pipeline.skinning import cotangent_laplacian as stiffness_laplacian
 from pipeline.tracking_patches import (
     _blended_align,
     _blended_patches,
+    _check_labels,
     _cover_sums,
     _patch_align,
     _patch_rigid_motion,
@@ -288,6 +289,10 @@ class TemplateTracker:
         Overlapping, blended patches place the previous frame's shape (:func:`blended_align`,
         default True) instead of a partition (:func:`patch_align`, False); only with
         ``prior="previous"``, and only the one chosen is built.
+    patch_labels : (V,) int ndarray, optional
+        The template's limb (``0, 1, ...``) or body (``-1``) of every vertex: no rigid patch spans
+        two parts, the body is one patch and every limb is cut on its own grid
+        (:func:`surface_patches`, ``labels``). Default: the patches follow the grid alone.
 
     Notes
     -----
@@ -308,7 +313,7 @@ class TemplateTracker:
     def __init__(self, vertices, faces, *, gamma: float | None = None, gate: float | None = None,
                  rounds: int = ROUNDS, backend: str = "auto", point_to_plane: bool = True, rigidity: float = 0.5,
                  patch_size: float | None = None, prior: str = "round", align_size: float | None = None,
-                 blend: bool = True):
+                 blend: bool = True, patch_labels=None):
         v, f = check_mesh(vertices, faces, min_vertices=4, min_faces=1)
         if prior not in ("round", "previous"):
             raise ValueError(f"prior must be 'round' or 'previous', got {prior!r}")
@@ -339,7 +344,8 @@ class TemplateTracker:
         self.system = CholeskySystem(self.LtL, backend=backend)
         size = float(np.linalg.norm(np.ptp(v, axis=0)))
         self.patch_size = float(patch_size) if patch_size is not None else 0.25 * size
-        self.patches, self.patch_component = surface_patches(v, f, self.patch_size)
+        self.patch_labels = None if patch_labels is None else _check_labels(patch_labels, len(v), "patch_labels")
+        self.patches, self.patch_component = surface_patches(v, f, self.patch_size, labels=self.patch_labels)
         self.align_size = float(align_size) if align_size is not None else 0.15 * size
         # the previous shape's placement: blended patches, or a partition (only what is used is built)
         self.align_cover = _blended_patches(v, f, self.align_size) if prior == "previous" and self.blend else None

@@ -5,7 +5,8 @@ into patches and works with their rigid motions where the paper works with singl
 reasons: :mod:`pipeline.tracking`'s docstring and docs/tracking.md, "Where the tracker departs from
 the paper"):
 
-* :func:`surface_patches`: patches of about a given size, never across two connected parts;
+* :func:`surface_patches`: patches of about a given size, never across two connected parts (nor,
+  given the template's limb/body labels, across two of them: the body one patch);
 * :func:`patch_rigid_motion`: each patch's rigid motion onto its pairs (point-to-plane), only in the
   directions the pairs constrain;
 * :func:`patch_align`, :func:`blended_patches`, :func:`blended_align`: the previous frame's shape
@@ -44,13 +45,27 @@ __all__ = [
 ]
 
 
-def surface_patches(vertices, faces, size: float) -> tuple[np.ndarray, np.ndarray]:
-    """Patches of about ``size`` across, never spanning two connected components.
+def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.ndarray, np.ndarray]:
+    """Patches of about ``size`` across, never spanning two connected components (nor two labels).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+    faces : (F, 3) int ndarray
+    size : float
+        Patch diameter, mm.
+    labels : (V,) int ndarray, optional
+        The template's parts: a limb (``0, 1, ...``) or the body (``-1``) of every vertex.
+        No patch spans two parts; the body of each
+        connected component is one rigid patch, and every limb is cut on a ``size`` grid of its
+        own, its cells counted from the limb's own corner (the template's grid would leave
+        fragments of a few vertices where a limb just enters a cell).
 
     Returns
     -------
     patch : (V,) int ndarray
-        Patch of every vertex (seeds: one vertex per ``size`` grid cell, per component).
+        Patch of every vertex (seeds: one vertex per ``size`` grid cell, per component, or per
+        component and limb; every vertex joins the nearest seed of its component and part).
     component : (n_patches,) int ndarray
         Connected component of every patch.
     """
@@ -61,6 +76,8 @@ def surface_patches(vertices, faces, size: float) -> tuple[np.ndarray, np.ndarra
     n = len(v)
     adj = sp.coo_matrix((np.ones(3 * len(f)), (f.ravel(), np.roll(f, 1, axis=1).ravel())), shape=(n, n))
     _, comp = connected_components(adj, directed=False)
+    if labels is not None:
+        return _labelled_patches(v, comp, _check_labels(labels, n), size)
     cell = np.floor((v - v.min(0)) / max(size, 1e-9)).astype(np.int64)
     key = np.concatenate([comp[:, None], cell], axis=1)
     _, first = np.unique(key, axis=0, return_index=True)
@@ -71,6 +88,37 @@ def surface_patches(vertices, faces, size: float) -> tuple[np.ndarray, np.ndarra
         s_c = seeds[comp[seeds] == c]
         patch[mine] = np.searchsorted(seeds, s_c)[cKDTree(v[s_c]).query(v[mine])[1]]
     return patch, comp[seeds]
+
+
+def _check_labels(labels, n: int, name: str = "labels") -> np.ndarray:
+    """``labels`` as (n,) int64 (-1 the body, 0.. a limb), or a ValueError naming ``name``."""
+    lab = np.asarray(labels)
+    if lab.shape != (n,) or not np.issubdtype(lab.dtype, np.integer):
+        raise ValueError(f"{name} must be one integer per vertex (a limb 0, 1, ... or the body -1), shape ({n},), "
+                         f"got shape {lab.shape} of {lab.dtype}")
+    if n and lab.min() < -1:
+        raise ValueError(f"{name} must be -1 (the body) or a limb 0, 1, ..., got {int(lab.min())}")
+    return lab.astype(np.int64)
+
+
+def _labelled_patches(v: np.ndarray, comp: np.ndarray, lab: np.ndarray, size: float):
+    """:func:`surface_patches` with labels: per (component, part), the body one patch, a limb cut on its own grid."""
+    _, group = np.unique(np.stack([comp, lab], 1), axis=0, return_inverse=True)
+    group = group.ravel()
+    patch = np.empty(len(v), np.int64)
+    component = []
+    for g in range(int(group.max()) + 1 if len(v) else 0):
+        mine = np.flatnonzero(group == g)
+        if lab[mine[0]] < 0:  # the body: rigid as a whole
+            patch[mine] = len(component)
+            component.append(comp[mine[0]])
+            continue
+        cell = np.floor((v[mine] - v[mine].min(0)) / max(size, 1e-9)).astype(np.int64)
+        _, first = np.unique(cell, axis=0, return_index=True)
+        seeds = np.sort(mine[first])
+        patch[mine] = len(component) + cKDTree(v[seeds]).query(v[mine])[1]
+        component.extend([comp[mine[0]]] * len(seeds))
+    return patch, np.asarray(component, dtype=np.int64)
 
 
 def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_pairs: int = 12,

@@ -492,6 +492,54 @@ def test_tracking_again_with_other_settings_starts_over_and_same_settings_keep_f
     assert tracked_path(tmp_path, 1).stat().st_mtime_ns != stamp  # fitted again
 
 
+def test_multiview_labels_cut_the_patches_of_both_halves_and_other_labels_start_over(tmp_path, monkeypatch, caplog):
+    """``labels`` (a callable of the template this call picks, or its array) reach the tracker of this process
+    and the worker's half; the same labels again resume, other labels (or none) start over with one warning."""
+    import concurrent.futures as cf
+
+    from pipeline import track
+
+    t = _sphere_results(tmp_path, frames=3)
+    monkeypatch.setattr(track, "spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    (tmp_path / "spine.json").write_text('{"frames": 3}')
+    built, asked = [], []
+    real = track.TemplateTracker
+
+    class Recorder(real):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            built.append(self.patches)
+
+    monkeypatch.setattr(track, "TemplateTracker", Recorder)
+    upper = np.where(t.vertices[:, 2] > 0, 0, -1)
+
+    def labels(vertices, faces, frame):
+        asked.append((frame, np.array_equal(vertices, t.vertices + [1.5, 0, 0]), len(faces)))
+        return upper
+
+    for bad in (upper[:-1], upper - 1, lambda *a: upper.astype(float)):
+        with pytest.raises(ValueError, match="labels must give one integer per template vertex"):
+            track.track_results(tmp_path, labels=bad)
+    assert not (tmp_path / "tracked").exists()
+    built.clear()
+    with cf.ThreadPoolExecutor(max_workers=1) as ex:  # the frame before the reference: the worker's half
+        first = track.track_results(tmp_path, labels=labels, executor=ex)
+    assert asked == [(1, True, len(t.faces))] and first["patch_labels"] == "given"
+    assert len(built) == 2 and all(np.array_equal(p, built[0]) for p in built)
+    assert len(set(built[0][upper == -1])) == 1 and not set(built[0][upper == -1]) & set(built[0][upper == 0])
+    assert list(first["frames"]) == ["0", "1", "2"]
+    stamp = track.tracked_path(tmp_path, 2).stat().st_mtime_ns
+    assert track.track_results(tmp_path, labels=upper)["frames"] == first["frames"]  # the same labels: resumed
+    assert track.tracked_path(tmp_path, 2).stat().st_mtime_ns == stamp
+    for other in (np.where(t.vertices[:, 0] > 0, 0, -1), None):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="pipeline.track"):
+            rep = track.track_results(tmp_path, labels=other)
+        assert len(caplog.records) == 1 and "patch_labels" in caplog.records[0].getMessage()
+        assert rep["patch_labels"] == (None if other is None else "given")
+    assert "patch_labels_sha256" not in rep
+
+
 def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_frames(tmp_path, caplog):
     """A start-over removes the rig of the old frames (rig.json, GLB, BVH, segments, posed/NNNNNN.ply) in
     the same warning, which names a report still showing it; other files in rig/ stay (posed/1_user.ply too). The `track` step of
