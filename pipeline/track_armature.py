@@ -22,7 +22,7 @@ import numpy as np
 from pipeline.armature_track import ArmatureTracker
 from pipeline.mesh_primitives import mesh_volume
 from pipeline.run.context import submit_aside
-from pipeline.track import mesh_data, spine_model, spine_starts
+from pipeline.track import _patch_labels, mesh_data, spine_model, spine_starts
 from pipeline.track_frames import surface_meshes, write_frame, write_report
 from pipeline.tracking import TemplateTracker
 
@@ -50,7 +50,7 @@ SPINE_BONES = 2
 
 def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | str = 1, weight: float = 2.0,
                         lambda_thr: float = 0.98, colour: bool = False, spine: bool = False, progress=None,
-                        executor=None) -> dict:
+                        executor=None, labels=None) -> dict:
     """Track a tracked results directory again with an armature as the articulated prior.
 
     Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
@@ -110,6 +110,11 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         before it; a process pool: :func:`armature_half_task` is its task) while this process tracks the
         other, as :func:`pipeline.track.track_results` splits the take; the same frames as in order here
         (the two halves depend only on the reference frame's pose).
+    labels : (V,) int ndarray or callable, optional
+        The template's limb (``0, 1, ...``) or body (``-1``) of every vertex, or ``labels(vertices, faces,
+        frame)`` giving them for the reference frame's tracked template (as ``track_results(labels=)``):
+        the template fit's rigid patches follow them (``TemplateTracker(patch_labels=)``) and every round's
+        armature keeps a segment on one limb (``build_armature(limbs=)``).
 
     Returns
     -------
@@ -135,9 +140,10 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     if not isinstance(spine, (bool, np.bool_)):
         raise ValueError(f"spine must be True or False, got {spine!r}")
     report, frames, by_frame, vs, faces, refi = _tracked_sequence(root)
+    patch_labels = _patch_labels(labels, vs[refi], faces, frames[refi])
     first = _spine_rig(root, frames, vs[refi], faces, refi) if spine and model is None else None
     tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
-                              rounds=ARMATURE_FIT_ROUNDS)
+                              rounds=ARMATURE_FIT_ROUNDS, patch_labels=patch_labels)
     steps = _spine_steps(root, frames, by_frame, vs[refi])
     from threadpoolctl import threadpool_limits
 
@@ -145,13 +151,13 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
 
     aside = None if executor is None else (executor, {"surfaces": report.get("surfaces", "meshes"), "gamma": report["gamma"],
                                                       "gate": report["gate_mm"], "prior": report["prior"],
-                                                      "colour": bool(colour)})
+                                                      "colour": bool(colour), "patch_labels": patch_labels})
     with threadpool_limits(1, "blas"), \
             multiview_colour(root, faces, 0.3 * tracker.gate, enabled=bool(colour), corners=tracker.corner_sum) as tracks_for:
         # (the articulated fits' small dense products: threads only contend)
         history, best = _armature_rounds(model if first is None else first, poses, int(rounds), vs, faces, frames, refi,
                                          by_frame, root, tracker, weight, lambda_thr, progress, steps, tracks_for, aside,
-                                         given=model is not None)
+                                         given=model is not None, limbs=_limbs(patch_labels))
     kept, _, per = best
     if kept != len(history) - 1:  # the last round did not help: the best round's tracking again
         for k in per["figures"]:
@@ -159,7 +165,8 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
     report["rig_rounds"] = kept + 1
     report["rig_prior"] = {"weight": float(weight), "lambda_thr": float(lambda_thr), "max_rounds": int(rounds),
-                           "kept_round": kept + 1, "colour_tracks": tracks_for is not None, "rounds": history}
+                           "patch_labels": None if patch_labels is None else "given", "kept_round": kept + 1,
+                           "colour_tracks": tracks_for is not None, "rounds": history}
     worker = [r.pop("worker_cpu_seconds") for r in history if r.get("worker_cpu_seconds") is not None]
     if worker:
         report["rig_prior"]["worker_cpu_seconds"] = round(float(sum(worker)), 3)
@@ -168,9 +175,10 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
 
 
 def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_frame, root, tracker, weight, lambda_thr,
-                     progress, spine, tracks_for=None, aside=None, given: bool = True):
+                     progress, spine, tracks_for=None, aside=None, given: bool = True, limbs=None):
     """The rounds of :func:`track_with_armature`: -> (history, (kept round, its residual, its tracking)).
-    ``model``: the first round's armature (the only round's when ``given``), or None: every round's built."""
+    ``model``: the first round's armature (the only round's when ``given``), or None: every round's built.
+    ``limbs``: the template's limbs (:class:`pipeline.armature_limbs.VertexLimbs`) the built armatures keep, or None."""
     history, best = [], None
     for r in range(1 if given else rounds + (model is not None)):  # (the spine's round comes before ``rounds``)
         if r == 0 and model is not None:
@@ -178,7 +186,7 @@ def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_fram
             entry = {"armature": "given", "segments": None, "fit_error_mm": None} if given else \
                 {"armature": "spine", "segments": int(model.skeleton.n_parts), "fit_error_mm": None}
         else:
-            use, by_pose, entry = _rig_of(vs, faces, frames, refi, lambda_thr)
+            use, by_pose, entry = _rig_of(vs, faces, frames, refi, lambda_thr, limbs=limbs)
         per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine,
                          tracks_for=tracks_for, aside=aside)
         entry["worker_cpu_seconds"] = per.pop("worker_cpu_seconds", None)
@@ -211,12 +219,22 @@ def _tracked_sequence(root: Path):
     return report, frames, by_frame, vs, faces, frames.index(ref)
 
 
-def _rig_of(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, lambda_thr: float):
-    """The armature of a tracking, rest frame the reference: (model, poses by frame, its report entry)."""
+def _limbs(labels):
+    """The template's labels (-1 the body, 0.. a limb) as the armature's :class:`pipeline.armature_limbs.VertexLimbs`."""
+    if labels is None:
+        return None
+    from pipeline.armature_limbs import VertexLimbs
+
+    return VertexLimbs(np.asarray(labels, dtype=np.int64), tuple(f"limb{i}" for i in range(int(labels.max()) + 1)))
+
+
+def _rig_of(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, lambda_thr: float, limbs=None):
+    """The armature of a tracking, rest frame the reference: (model, poses by frame, its report entry).
+    ``limbs``: every vertex's limb (no segment spans two, :func:`pipeline.armature.build_armature`), or None."""
     from pipeline.armature import build_armature
 
     # with the peel: a prior tolerates parts cut in two (the paper's over-segmentation), not parts fused
-    rig = build_armature(vs, faces, reference=refi, peel_parts=True, lambda_thr=lambda_thr)
+    rig = build_armature(vs, faces, reference=refi, peel_parts=True, lambda_thr=lambda_thr, limbs=limbs)
     entry = {"armature": "tracking", "segments": int(rig.segmentation.n_segments),
              "fit_error_mm": round(float(rig.fit.errors.mean()), 4)}
     return rig.model, dict(zip(frames, rig.fit.poses)), entry
@@ -322,7 +340,7 @@ def armature_half_task(half: dict) -> dict:
     root, faces = Path(half["root"]), half["faces"]
     frames, by_frame = surface_meshes(root, half["surfaces"])
     tracker = TemplateTracker(half["prev"], faces, gamma=half["gamma"], gate=half["gate"], prior=half["prior"],
-                              rounds=ARMATURE_FIT_ROUNDS)
+                              rounds=ARMATURE_FIT_ROUNDS, patch_labels=half.get("patch_labels"))
     spine = _spine_steps(root, frames, by_frame, half["prev"])
     rig = ArmatureTracker(tracker, half["model"], weight=half["weight"], max_points=ARMATURE_ICP_POINTS)
     with threadpool_limits(1, "blas"), multiview_colour(root, faces, 0.3 * tracker.gate, enabled=half["colour"],

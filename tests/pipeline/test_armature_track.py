@@ -268,6 +268,50 @@ def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
     assert json.loads((res / "tracked" / "track.json").read_text())["rig_rounds"] == 0
 
 
+def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armature(tmp_path, monkeypatch):
+    """``track_with_armature(labels=)``: the template fit's patches follow the labels (the body one patch) in
+    this process and in the worker's half, and the round's armature is built with them as its limbs."""
+    import trimesh
+
+    import pipeline.armature as armature
+    import pipeline.track as track
+    import pipeline.track_armature as ta
+    from pipeline.results import atomic_write_bytes, ply_bytes
+
+    t = trimesh.creation.icosphere(subdivisions=2, radius=60.0)
+    for k in range(4):
+        atomic_write_bytes(tmp_path / "meshes" / f"frame_{k:06d}.ply", ply_bytes(t.vertices + [3.0 * k, 0, 0], t.faces))
+    (tmp_path / "spine.json").write_text('{"frames": 4}')
+    ref = t.vertices + [3.0, 0, 0]  # a spine's stand-in: reference frame 1, so both halves have frames
+    fake = SimpleNamespace(vertices=ref, faces=t.faces, deform=lambda i: ref + [3.0 * (i - 1), 0, 0])
+    monkeypatch.setattr(track, "spine_model", lambda *a: (1, fake))
+    monkeypatch.setattr(ta, "spine_model", lambda *a: (1, fake))
+    upper = np.where(t.vertices[:, 2] > 0, 0, -1)
+    track.track_results(tmp_path, labels=upper)
+    patches, limbs = [], []
+    real_tracker, real_build = ta.TemplateTracker, armature.build_armature
+
+    class Recorder(real_tracker):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            patches.append(self.patches)
+
+    def build(*a, **k):
+        limbs.append(k.get("limbs"))
+        return real_build(*a, **k)
+
+    monkeypatch.setattr(ta, "TemplateTracker", Recorder)
+    monkeypatch.setattr(armature, "build_armature", build)
+    with cf.ThreadPoolExecutor(max_workers=1) as ex:
+        rep = ta.track_with_armature(tmp_path, rounds=1, labels=lambda v, f, frame: upper, executor=ex)
+    assert rep["rig_prior"]["patch_labels"] == "given" and rep["rig_rounds"] == 1 and rep["reference_frame"] == 1
+    assert len(patches) == 2 and all(np.array_equal(p, patches[0]) for p in patches)  # here and the worker's half
+    assert len(set(patches[0][upper < 0])) == 1 and not set(patches[0][upper < 0]) & set(patches[0][upper == 0])
+    assert len(limbs) == 1 and np.array_equal(limbs[0].limb, upper) and limbs[0].names == ("limb0",)
+    with pytest.raises(ValueError, match="labels"):
+        ta.track_with_armature(tmp_path, labels=upper[1:])
+
+
 def test_track_with_rig_invalid_input(tmp_path, capsys):
     from pipeline.track_armature import track_with_armature
     from stage.cli import main
