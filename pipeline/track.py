@@ -127,12 +127,14 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         (``carved/``, :func:`pipeline.carve.carve_results`; ``stage track --carve``).
     executor : concurrent.futures.Executor, optional
         Runs the backward half (a process pool: :func:`track_chain_task` is its task).
-    labels : (V,) int ndarray or callable, optional
+    labels : "spine", (V,) int ndarray or callable, optional
         The template's limb (``0, 1, ...``) or body (``-1``) of every vertex, or
         ``labels(vertices, faces, frame)`` giving them for the template this call picks (``frame``
         its source frame): the template's rigid patches then never span two parts, the body is one
-        patch and every limb is cut on its own grid (``TemplateTracker(patch_labels=)``). Default:
-        the patches follow the grid alone.
+        patch and every limb is cut on its own grid (``TemplateTracker(patch_labels=)``).
+        ``"spine"``: the labels of the take's spine and the template's own sections
+        (:func:`pipeline.template_labels.template_labels`; ``stage track --labels``) when the take has a
+        usable spine, else none (one line says so). Default: the patches follow the grid alone.
 
     Returns
     -------
@@ -154,6 +156,9 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                     "spine_init (--spine-init)" if spine_init else "choose=False (--prediction-only)", root)
     ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, loaded, name)
     prior = "previous" if shape_memory else "round"
+    source_of_labels = labels if isinstance(labels, str) else None if labels is None else "given"
+    if isinstance(labels, str):
+        labels = _spine_labels(root, labels, None if skinned is None else skinned[0])
     patch_labels = _patch_labels(labels, V0, F0, frames[ref])
     tracker = TemplateTracker(V0, F0, gamma=gamma, gate=gate, prior=prior, patch_labels=patch_labels)
     use_spine = skinned is not None and bool(spine_init)
@@ -165,7 +170,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                   "reference_frame": frames[ref], "spine_init": use_spine, "spine_start": spine_start,
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
                   "surfaces": surfaces, "rig_rounds": 0,
-                  "patch_labels": None if patch_labels is None else "given", "skipped": [], "frames": {}}
+                  "patch_labels": None if patch_labels is None else source_of_labels, "skipped": [], "frames": {}}
         if patch_labels is not None:  # the patches, and so every frame, depend on them
             report["patch_labels_sha256"] = hashlib.sha256(patch_labels.tobytes()).hexdigest()
         if surfaces == "carved":  # carved with an earlier tracking's motion: their digest says which
@@ -187,11 +192,36 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     return report
 
 
+def _spine_labels(root: Path, labels: str, reference: int | None):
+    """``labels="spine"``: the callable giving the template's labels from the take's spine
+    (:func:`pipeline.template_labels.template_labels`, the template in the pose of the spine's frame
+    ``reference``), or None without a usable spine (``reference`` None; said once)."""
+    if labels != "spine":
+        raise ValueError(f"labels must be 'spine', an array or a callable, got {labels!r}")
+    if reference is None:
+        log.warning("labels='spine' (--labels) has no effect: no usable spine.json in %s, the patches follow the grid",
+                    root)
+        return None
+
+    def spine_labels(vertices, faces, frame):
+        from pipeline.template_labels import template_labels
+
+        try:
+            return template_labels(root, vertices, faces, reference=reference)
+        except ValueError as exc:
+            log.warning("the template's patches follow the grid: no labels from the spine (%s)", exc)
+            return None
+
+    return spine_labels
+
+
 def _patch_labels(labels, vertices, faces, frame: int):
     """The template's (V,) labels of :func:`track_results` (``labels`` given or called), or None."""
     if labels is None:
         return None
     out = labels(vertices, faces, frame) if callable(labels) else labels
+    if out is None:  # the callable found none
+        return None
     out = np.asarray(out)
     if out.shape != (len(vertices),) or not np.issubdtype(out.dtype, np.integer) or (out.size and out.min() < -1):
         raise ValueError(f"labels must give one integer per template vertex (-1 the body, 0, 1, ... a limb), "

@@ -22,7 +22,7 @@ import numpy as np
 from pipeline.armature_track import ArmatureTracker
 from pipeline.mesh_primitives import mesh_volume
 from pipeline.run.context import submit_aside
-from pipeline.track import _patch_labels, mesh_data, spine_model, spine_starts
+from pipeline.track import _patch_labels, _spine_labels, mesh_data, spine_model, spine_starts
 from pipeline.track_frames import surface_meshes, write_frame, write_report
 from pipeline.tracking import TemplateTracker
 
@@ -110,9 +110,10 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         before it; a process pool: :func:`armature_half_task` is its task) while this process tracks the
         other, as :func:`pipeline.track.track_results` splits the take; the same frames as in order here
         (the two halves depend only on the reference frame's pose).
-    labels : (V,) int ndarray or callable, optional
+    labels : "spine", (V,) int ndarray or callable, optional
         The template's limb (``0, 1, ...``) or body (``-1``) of every vertex, or ``labels(vertices, faces,
-        frame)`` giving them for the reference frame's tracked template (as ``track_results(labels=)``):
+        frame)`` giving them for the reference frame's tracked template, or ``"spine"`` (as
+        ``track_results(labels=)``):
         the template fit's rigid patches follow them (``TemplateTracker(patch_labels=)``) and every round's
         armature keeps a segment on one limb (``build_armature(limbs=)``).
 
@@ -140,6 +141,9 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     if not isinstance(spine, (bool, np.bool_)):
         raise ValueError(f"spine must be True or False, got {spine!r}")
     report, frames, by_frame, vs, faces, refi = _tracked_sequence(root)
+    source_of_labels = labels if isinstance(labels, str) else "given"
+    if isinstance(labels, str):  # the tracking's template frame is the spine's reference frame when it has one
+        labels = _spine_labels(root, labels, refi if report.get("spine_start", "none") != "none" else None)
     patch_labels = _patch_labels(labels, vs[refi], faces, frames[refi])
     first = _spine_rig(root, frames, vs[refi], faces, refi) if spine and model is None else None
     tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
@@ -165,7 +169,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
     report["rig_rounds"] = kept + 1
     report["rig_prior"] = {"weight": float(weight), "lambda_thr": float(lambda_thr), "max_rounds": int(rounds),
-                           "patch_labels": None if patch_labels is None else "given", "kept_round": kept + 1,
+                           "patch_labels": None if patch_labels is None else source_of_labels, "kept_round": kept + 1,
                            "colour_tracks": tracks_for is not None, "rounds": history}
     worker = [r.pop("worker_cpu_seconds") for r in history if r.get("worker_cpu_seconds") is not None]
     if worker:

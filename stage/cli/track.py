@@ -67,6 +67,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "spine.json, built from every frame's visual hull, so it does not inherit the tracking's drift; two "
                    "bones a limb), then the ROUNDS rounds build it from the tracking; better on some fast bipeds and "
                    "quadrupeds, worse on others, on the fast starfish and the slow quadruped, see docs/tracking.md")
+    p.add_argument("--labels", action="store_true",
+                   help="multi-view: cut the template's rigid patches at its limbs: every template vertex on a limb of the "
+                   "take's spine or on the body (from the spine and the template's own sections), the body one patch and "
+                   "every limb on its own grid; the armature rounds keep a segment on one limb too. Needs RESULTS_DIR/"
+                   "spine.json (without one, one line says so). Off by default, see docs/tracking.md")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
     p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
@@ -170,7 +175,7 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
         raise UserError("--spine-init and --prediction-only exclude each other (the skinned step for every patch, or never)")
     kw = dict(template=args.template, progress=bars, gamma=args.gamma, gate=args.gate, spine_init=args.spine_init,
               choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour,
-              shape_memory=args.shape_memory)
+              shape_memory=args.shape_memory, labels="spine" if args.labels else None)
     with worker_pool(1) if (2 if args.workers is None else args.workers) >= 2 else contextlib.nullcontext() as ex:
         # one task at a time: one half of the take, of the tracking and of every armature round
         rep = _rounds(src, args.carve, margin=args.carve_margin, executor=ex, **kw)
@@ -178,7 +183,7 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
             from pipeline.track_armature import track_with_armature
 
             rep = track_with_armature(src, rounds=args.rig_rounds, colour=args.colour, spine=args.spine_armature,
-                                      progress=bars, executor=ex)
+                                      progress=bars, executor=ex, labels="spine" if args.labels else None)
     return rep
 
 
@@ -199,7 +204,7 @@ _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-s
 _RESULTS_ONLY = (("--carve", "carve", 0), ("--armature-rounds", "rig_rounds", 0), ("--carve-margin", "carve_margin", None),
                  ("--spine-armature", "spine_armature", False), ("--colour", "colour", False),
                  ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
-                 ("--prediction-only", "prediction_only", False), ("--workers", "workers", None))
+                 ("--prediction-only", "prediction_only", False), ("--workers", "workers", None), ("--labels", "labels", False))
 
 
 def _check_mode(args: argparse.Namespace, *, take: bool) -> None:

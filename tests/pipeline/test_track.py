@@ -95,7 +95,8 @@ def test_invalid_input(tmp_path, capsys):
                       ([str(f), "--template", str(f), "--colour"], "--colour applies to a results directory"),
                       ([str(f), "--template", str(f), "--shape-memory"], "--shape-memory applies to a results directory"),
                       ([str(f), "--template", str(f), "--prediction-only"],
-                       "--prediction-only applies to a results directory")):
+                       "--prediction-only applies to a results directory"),
+                      ([str(f), "--template", str(f), "--labels"], "--labels applies to a results directory")):
         assert main(["track", *args]) == 2  # a flag of the other mode would be ignored
         assert msg in capsys.readouterr().err
     assert main(["track", str(f), "--template", str(f), "--workers", "2"]) == 2
@@ -538,6 +539,52 @@ def test_multiview_labels_cut_the_patches_of_both_halves_and_other_labels_start_
         assert len(caplog.records) == 1 and "patch_labels" in caplog.records[0].getMessage()
         assert rep["patch_labels"] == (None if other is None else "given")
     assert "patch_labels_sha256" not in rep
+
+
+def test_multiview_labels_from_the_takes_spine(tmp_path, monkeypatch, caplog):
+    """``labels="spine"`` (``stage track --labels``): the template's labels from the take's spine and its own
+    sections (``template_labels``) cut the patches; without a usable spine one line says so and the grid alone cuts them."""
+    from dataclasses import replace
+
+    from pipeline import track
+    from pipeline.spine_format import write_spine
+    from pipeline.template_labels import template_labels
+    from pipeline.tracking_patches import surface_patches
+    from tests.pipeline.test_template_labels import _creature_template
+
+    spine, V, F, _ = _creature_template("quadruped", voxel=20.0)
+    step = np.array([4.0, 0, 0])
+    for k in range(3):
+        atomic_write_bytes(tmp_path / "meshes" / f"frame_{k:06d}.ply", ply_bytes(V + k * step, F))
+    moved = [k * step for k in range(3)]
+    write_spine(tmp_path / "spine.json", replace(
+        spine, frame_indices=np.arange(3), tips=np.concatenate([spine.tips + d for d in moved]),
+        junctions=np.concatenate([spine.junctions + d for d in moved]),
+        axes={lid: np.concatenate([a + d for d in moved]) for lid, a in spine.axes.items()}))
+    built = []
+    real = track.TemplateTracker
+
+    class Recorder(real):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            built.append((self.template, self.patches, self.patch_size))
+
+    monkeypatch.setattr(track, "TemplateTracker", Recorder)
+    assert main(["-q", "track", str(tmp_path), "--labels", "--workers", "0"]) == 0  # `stage track --labels`
+    rep = json.loads((tmp_path / "tracked" / "track.json").read_text())
+    assert rep["patch_labels"] == "spine" and rep["spine_start"] == "choose" and list(rep["frames"]) == ["0", "1", "2"]
+    V0, patches, size = built[0]
+    ref = rep["reference_frame"]
+    expected = template_labels(tmp_path, V0, F, reference=ref)
+    assert len(set(expected.tolist())) == spine.K + 1  # every limb and the body
+    assert np.array_equal(patches, surface_patches(V0, F, size, labels=expected)[0])
+    (tmp_path / "spine.json").unlink()
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        rep = track.track_results(tmp_path, labels="spine")
+    assert rep["patch_labels"] is None
+    assert any("labels='spine' (--labels) has no effect" in r.getMessage() for r in caplog.records)
+    with pytest.raises(ValueError, match="labels must be 'spine'"):
+        track.track_results(tmp_path, labels="heat")
 
 
 def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_frames(tmp_path, caplog):
