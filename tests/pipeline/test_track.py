@@ -544,23 +544,13 @@ def test_multiview_labels_cut_the_patches_of_both_halves_and_other_labels_start_
 def test_multiview_labels_from_the_takes_spine(tmp_path, monkeypatch, caplog):
     """``labels="spine"`` (``stage track --labels``): the template's labels from the take's spine and its own
     sections (``template_labels``) cut the patches; without a usable spine one line says so and the grid alone cuts them."""
-    from dataclasses import replace
-
     from pipeline import track
-    from pipeline.spine_format import write_spine
     from pipeline.template_labels import template_labels
     from pipeline.tracking_patches import surface_patches
-    from tests.pipeline.test_template_labels import _creature_template
+    from tests.pipeline.tracking_takes import creature_spine_results
 
-    spine, V, F, _ = _creature_template("quadruped", voxel=20.0)
-    step = np.array([4.0, 0, 0])
-    for k in range(3):
-        atomic_write_bytes(tmp_path / "meshes" / f"frame_{k:06d}.ply", ply_bytes(V + k * step, F))
-    moved = [k * step for k in range(3)]
-    write_spine(tmp_path / "spine.json", replace(
-        spine, frame_indices=np.arange(3), tips=np.concatenate([spine.tips + d for d in moved]),
-        junctions=np.concatenate([spine.junctions + d for d in moved]),
-        axes={lid: np.concatenate([a + d for d in moved]) for lid, a in spine.axes.items()}))
+    _, F = creature_spine_results(tmp_path)
+    limbs = 4  # the quadruped's
     built = []
     real = track.TemplateTracker
 
@@ -576,7 +566,7 @@ def test_multiview_labels_from_the_takes_spine(tmp_path, monkeypatch, caplog):
     V0, patches, size = built[0]
     ref = rep["reference_frame"]
     expected = template_labels(tmp_path, V0, F, reference=ref)
-    assert len(set(expected.tolist())) == spine.K + 1  # every limb and the body
+    assert len(set(expected.tolist())) == limbs + 1  # every limb and the body
     assert np.array_equal(patches, surface_patches(V0, F, size, labels=expected)[0])
     (tmp_path / "spine.json").unlink()
     with caplog.at_level("WARNING", logger="pipeline.track"):
