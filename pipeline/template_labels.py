@@ -18,10 +18,21 @@ of the body. :func:`template_labels` finds where each limb leaves the body from 
    section there); on two limbs, the one it is relatively nearer to. Every limb keeps its largest
    connected piece of the template; everything else is the body.
 
+With every frame's surface (``surfaces=``: the take's per-frame surfaces, free of the tracking's drift),
+the body is also split by its motion near the limbs: the body-labelled template follows each frame's
+surface as one rigid piece (trimmed ICP, frame to frame from the template's frame), and so does the
+proximal half of every limb (its vertices nearer the body than the limb's median). A body vertex that
+the body's motion does not keep on the surfaces (its root mean square distance over the frames above one
+mesh edge, the surfaces' resolution) and that the motion of the limb nearest to it keeps nearer goes to
+that limb (the outer hip and shoulder, an arm hanging against the body); then every limb keeps
+its largest connected piece again.
+
 The cut follows the subject: the limb's and the body's radii come from the template, the window from the
 limb's radius, the step from the mesh; no length or ratio is set by hand (the geometric mean is the
-midpoint of two radii on a scale of ratios). Written by hand: sections of a mesh along a curved axis and
-the walk from the tip are no library's; the rays are trimesh's (Embree when installed).
+midpoint of two radii on a scale of ratios); the motion split's threshold is the mesh's edge and its one
+fixed choice the share of nearest pairs a rigid fit keeps (80 %). Written by hand: sections of a mesh along a curved axis and
+the walk from the tip are no library's; the rays are trimesh's (Embree when installed), the nearest
+points scipy's KD-tree; the rigid fit is Kabsch's (the trimmed ICP around it is a few lines).
 """
 
 from __future__ import annotations
@@ -35,10 +46,12 @@ __all__ = ["BODY", "template_labels", "axis_labels"]
 #: the label of a vertex on the body (no limb)
 BODY = -1
 
+_KEEP = 0.8  # the nearest pairs a rigid fit keeps (the rest: where the piece's surface moved apart from it)
+_ITERATIONS = 30  # ICP rounds a frame at most
 _RAYS = 16  # directions of every section (a hull's section has about as many sides as twice the cameras)
 
 
-def template_labels(spine, vertices, faces, *, reference: int | None = None) -> np.ndarray:
+def template_labels(spine, vertices, faces, *, reference: int | None = None, surfaces=None) -> np.ndarray:
     """The spine limb of every template vertex, or :data:`BODY`.
 
     Parameters
@@ -53,6 +66,11 @@ def template_labels(spine, vertices, faces, *, reference: int | None = None) -> 
     reference : int, optional
         Position of the template's frame in the spine (default:
         :func:`pipeline.armature_spine.reference_frame`); every limb axis must be seen there.
+    surfaces : sequence of (n_f, 3) float array_like, optional
+        The vertices of the take's surface at every frame of the spine, in its order (a results
+        directory's ``meshes/``, :func:`pipeline.track_frames.surface_meshes`); the template's frame is the
+        one at ``reference``. With them the body is also split by its motion (module docstring); without
+        them (default) the labels come from the template's shape alone.
 
     Returns
     -------
@@ -64,7 +82,8 @@ def template_labels(spine, vertices, faces, *, reference: int | None = None) -> 
     ValueError
         Naming the parameter: not a spine, a mesh that is not (V, 3) / (F, 3) or indexes past its vertices,
         a reference outside the spine or without every limb
-        (:class:`pipeline.armature_spine.NoCompleteFrameError`).
+        (:class:`pipeline.armature_spine.NoCompleteFrameError`), surfaces that are not one (n, 3) point
+        array for every frame of the spine.
     """
     from pipeline.armature_spine import reference_frame
 
@@ -73,10 +92,14 @@ def template_labels(spine, vertices, faces, *, reference: int | None = None) -> 
     if reference is not None and (isinstance(reference, bool) or not isinstance(reference, (int, np.integer))):
         raise ValueError(f"reference must be a frame position (int) or None, got {reference!r}")
     ref = reference_frame(spine, prefer=reference)
-    return axis_labels([np.asarray(spine.axes[lid][ref], dtype=np.float64) for lid in spine.limb_ids], V, F)
+    if surfaces is not None and len(surfaces) != len(spine.frame_indices):
+        raise ValueError(f"surfaces must hold one surface for each of the spine's {len(spine.frame_indices)} frames, "
+                         f"got {len(surfaces)}")
+    return axis_labels([np.asarray(spine.axes[lid][ref], dtype=np.float64) for lid in spine.limb_ids], V, F,
+                       surfaces=surfaces, frame=ref)
 
 
-def axis_labels(axes, vertices, faces) -> np.ndarray:
+def axis_labels(axes, vertices, faces, *, surfaces=None, frame: int = 0) -> np.ndarray:
     """:func:`template_labels` with the limb axes given: polylines from their junction to their tip.
 
     Parameters
@@ -86,6 +109,10 @@ def axis_labels(axes, vertices, faces) -> np.ndarray:
         the template.
     vertices : (V, 3) float array_like
     faces : (F, 3) int array_like
+    surfaces : sequence of (n_f, 3) float array_like, optional
+        Every frame's surface vertices (:func:`template_labels`); the template's is ``surfaces[frame]``.
+    frame : int
+        Position of the template's frame in ``surfaces``.
 
     Returns
     -------
@@ -112,7 +139,99 @@ def axis_labels(axes, vertices, faces) -> np.ndarray:
         on = np.isfinite(reach) & (d <= reach)
         relative[on, k] = d[on] / np.maximum(reach[on], 1e-12)
     labels = np.where(np.isfinite(relative).any(1), relative.argmin(1), BODY).astype(np.int64)
-    return _largest_pieces(labels, mesh.edges_unique, K)
+    labels = _largest_pieces(labels, mesh.edges_unique, K)
+    if surfaces is None:
+        return labels
+    moved = _motion_split(V, labels, _surfaces(surfaces, frame), frame, K, step)
+    return _largest_pieces(moved, mesh.edges_unique, K)
+
+
+def _surfaces(surfaces, frame) -> list[np.ndarray]:
+    out = []
+    for S in surfaces:
+        S = np.asarray(S, dtype=np.float64)
+        if S.ndim != 2 or S.shape[1] != 3 or len(S) == 0 or not np.all(np.isfinite(S)):
+            raise ValueError(f"surfaces must be non-empty finite (n, 3) point arrays, got shape {S.shape}")
+        out.append(S)
+    if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or not 0 <= frame < len(out):
+        raise ValueError(f"frame must be a position in surfaces (0..{len(out) - 1}), got {frame!r}")
+    return out
+
+
+def _motion_split(V: np.ndarray, labels: np.ndarray, surfaces: list, ref: int, K: int, step: float) -> np.ndarray:
+    """Body vertices that the body's rigid motion keeps further than one mesh edge ``step`` (root mean
+    square over the frames) from the surfaces, and the nearest limb's proximal half's motion nearer, go to
+    that limb."""
+    from scipy.spatial import cKDTree
+
+    body = labels == BODY
+    limbs = [np.flatnonzero(labels == k) for k in range(K)]
+    if body.sum() < 3 or not any(len(i) >= 3 for i in limbs):
+        return labels
+    trees = [cKDTree(S) for S in surfaces]
+    motion = _follow(V[body], trees, ref)
+    sb = _mean_square(V[body], trees, motion)
+    near = np.stack([cKDTree(V[i]).query(V[body])[0] if len(i) else np.full(body.sum(), np.inf) for i in limbs],
+                    1).argmin(1)  # every body vertex's nearest limb
+    sk = np.full(len(sb), np.inf)
+    btree = cKDTree(V[body])
+    for k, idx in enumerate(limbs):
+        on = near == k
+        if len(idx) < 3 or not on.any():
+            continue
+        gap = btree.query(V[idx])[0]
+        proximal = idx[gap <= np.median(gap)]
+        sk[on] = _mean_square(V[body][on], trees, _follow(V[proximal], trees, ref, start=motion))
+    move = (sk < sb) & (sb > step ** 2)
+    out = labels.copy()
+    out[np.flatnonzero(body)[move]] = near[move]
+    return out
+
+
+def _follow(X: np.ndarray, trees: list, ref: int, start=None):
+    """(R (n, 3, 3), t (n, 3)): the rigid motion carrying points X of frame ``ref`` onto every frame's
+    surface, frame to frame out from ``ref``; with ``start`` (another piece's motions) each frame also tries
+    that one's and keeps the closer fit."""
+    n = len(trees)
+    R, t = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
+    for order in (range(ref + 1, n), range(ref - 1, -1, -1)):
+        r, s = np.eye(3), np.zeros(3)
+        for f in order:
+            fits = [_icp(X, trees[f], r, s)]
+            if start is not None:
+                fits.append(_icp(X, trees[f], start[0][f], start[1][f]))
+            r, s, _ = min(fits, key=lambda x: x[2])
+            R[f], t[f] = r, s
+    return R, t
+
+
+def _icp(X: np.ndarray, tree, R: np.ndarray, t: np.ndarray):
+    """Trimmed point-to-point ICP from (R, t): (R, t, mean squared distance of the nearest pairs kept)."""
+    for _ in range(_ITERATIONS):
+        Y = X @ R.T + t
+        d, j = tree.query(Y)
+        keep = d <= np.quantile(d, _KEEP)
+        R2, t2 = _kabsch(Y[keep], tree.data[j[keep]])
+        R, t = R2 @ R, R2 @ t + t2
+        if np.linalg.norm(t2) < 1e-3 and np.abs(R2 - np.eye(3)).max() < 1e-5:
+            break
+    d = np.sort(tree.query(X @ R.T + t)[0])
+    return R, t, float(np.mean(d[:max(1, int(_KEEP * len(d)))] ** 2))
+
+
+def _kabsch(A: np.ndarray, B: np.ndarray):
+    """The rotation and translation that carry points A nearest to B (least squares, no reflection)."""
+    ca, cb = A.mean(0), B.mean(0)
+    U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cb - R @ ca
+
+
+def _mean_square(X: np.ndarray, trees: list, motion) -> np.ndarray:
+    """(len(X),) every point's mean over the frames of its squared distance to the surface under ``motion``."""
+    R, t = motion
+    return np.mean([trees[f].query(X @ R[f].T + t[f])[0] ** 2 for f in range(len(trees))], axis=0)
 
 
 def _spine(spine):

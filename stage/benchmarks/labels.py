@@ -6,7 +6,8 @@ recorded and processed there first (minutes). The template is what :func:`pipeli
 tracks: the surface of the spine's reference frame (its largest component). The simulator's label of a
 vertex is the limb of the capsule nearest to it at that frame (-1: the body). Printed per take, for the
 spine's bone heat weights (:func:`pipeline.armature_limbs.vertex_limbs`) and for
-:func:`pipeline.template_labels.template_labels`: the fraction of vertices whose label is right (each label
+:func:`pipeline.template_labels.template_labels` from the template's shape alone and with every frame's surface
+(``surfaces=``, the results' ``meshes/``): the fraction of vertices whose label is right (each label
 mapped to the true limb most of its vertices lie on, the body to the body), the body's recall and precision,
 and CPU seconds.
 """
@@ -92,23 +93,28 @@ def take_labels(d: Path) -> dict:
     t0 = time.process_time()
     ours = template_labels(spine, V, F, reference=ref)
     ours_s = time.process_time() - t0
-    return {"vertices": len(V), "true": true, "heat": vl.limb, "heat_s": heat_s, "labels": ours, "labels_s": ours_s}
+    surfaces = [load_mesh(by_frame[f], largest=False)[0] for f in frames]
+    t0 = time.process_time()
+    moving = template_labels(spine, V, F, reference=ref, surfaces=surfaces)
+    moving_s = time.process_time() - t0
+    return {"vertices": len(V), "true": true, "heat": vl.limb, "heat_s": heat_s, "labels": ours, "labels_s": ours_s,
+            "motion": moving, "motion_s": moving_s}
 
 
 def run(args: argparse.Namespace) -> int:
     root = Path(args.root)
-    print("| take | vertices | heat weights: right / body recall / body precision | template_labels | CPU s (heat, "
-          "labels) |")
-    print("| --- | --- | --- | --- | --- |")
+    print("| take | vertices | heat weights: right / body recall / body precision | template_labels | "
+          "template_labels(surfaces=) | CPU s (heat, labels, surfaces=) |")
+    print("| --- | --- | --- | --- | --- | --- |")
     rows = []
     for spec in [s for s in args.takes.split(",") if s]:
         d = take_dir(root, spec)
         r = take_labels(d)
-        h, t = label_scores(r["heat"], r["true"]), label_scores(r["labels"], r["true"])
-        rows.append(h + t)
-        print(f"| {d.name} | {r['vertices']} | {h[0]:.3f} / {h[1]:.3f} / {h[2]:.3f} | {t[0]:.3f} / {t[1]:.3f} / "
-              f"{t[2]:.3f} | {r['heat_s']:.2f}, {r['labels_s']:.2f} |", flush=True)
+        scores = [label_scores(r[key], r["true"]) for key in ("heat", "labels", "motion")]
+        rows.append(sum(scores, ()))
+        print(f"| {d.name} | {r['vertices']} | " + " | ".join(f"{a:.3f} / {b:.3f} / {c:.3f}" for a, b, c in scores)
+              + f" | {r['heat_s']:.2f}, {r['labels_s']:.2f}, {r['motion_s']:.2f} |", flush=True)
     if rows:
         m = np.mean(rows, axis=0)
-        print(f"| mean | | {m[0]:.3f} / {m[1]:.3f} / {m[2]:.3f} | {m[3]:.3f} / {m[4]:.3f} / {m[5]:.3f} | |")
+        print("| mean | | " + " | ".join(f"{m[i]:.3f} / {m[i + 1]:.3f} / {m[i + 2]:.3f}" for i in (0, 3, 6)) + " | |")
     return 0

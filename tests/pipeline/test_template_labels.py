@@ -2,32 +2,43 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
 
-def _creature_template(name: str, voxel: float = 6.0):
-    """A simulated creature's surface (marching cubes of its exact distance), a one-junction spine whose limb
-    axes run from the body's centre through the creature's limb axes, and the simulator's labels (the
-    nearest capsule's limb, -1 the body; the spine's limb k is the creature's limb k)."""
+@functools.lru_cache(maxsize=4)
+def _creature_template(name: str, voxel: float = 6.0, times: tuple = (0.3,)):
+    """A simulated creature's surface at ``times[0]`` (marching cubes of its exact distance), a one-junction
+    spine of ``len(times)`` frames whose limb axes run from the body's centre through the creature's limb axes
+    at ``times[0]``, the simulator's labels (the nearest capsule's limb, -1 the body; the spine's limb k is the
+    creature's limb k) and the creature's surface vertices at every time."""
     from skimage.measure import marching_cubes
 
     from fake_cameras.creatures import make_creature
     from pipeline.spine_format import Spine
 
-    pose = make_creature(name).pose(0.3)
-    lo, hi = pose.bounds()
-    lo, hi = lo - 2 * voxel, hi + 2 * voxel
-    sdf = pose.grid_sdf([np.arange(lo[i], hi[i] + voxel, voxel) for i in range(3)])
-    V, F, _, _ = marching_cubes(sdf, 0.0, spacing=(voxel,) * 3)
-    V, F = V + lo, F[:, ::-1].copy()  # outward normals
+    def surface(pose):
+        lo, hi = pose.bounds()
+        lo, hi = lo - 2 * voxel, hi + 2 * voxel
+        sdf = pose.grid_sdf([np.arange(lo[i], hi[i] + voxel, voxel) for i in range(3)])
+        V, F, _, _ = marching_cubes(sdf, 0.0, spacing=(voxel,) * 3)
+        return V + lo, F[:, ::-1].copy()  # outward normals
+
+    creature = make_creature(name)
+    poses = [creature.pose(t) for t in times]
+    pose, n = poses[0], len(times)
+    surfaces = [surface(p) for p in poses]
+    V, F = surfaces[0]
     body = pose.limb < 0
     centre = ((pose.p0[body] + pose.p1[body]) / 2).mean(0)
-    axes = {f"limb{k}": np.vstack([centre, pose.axes[n]])[None] for k, n in enumerate(pose.names)}
-    spine = Spine(units="mm", fps=30.0, frame_indices=np.array([0]), limb_ids=list(axes), junction_ids=["j0"],
+    axes = {f"limb{k}": np.repeat(np.vstack([centre, pose.axes[m]])[None], n, 0) for k, m in enumerate(pose.names)}
+    spine = Spine(units="mm", fps=30.0, frame_indices=np.arange(n), limb_ids=list(axes), junction_ids=["j0"],
                   parents={"j0": None, **{lid: "j0" for lid in axes}},
-                  tips=np.array([[pose.axes[n][-1] for n in pose.names]]), junctions=centre[None, None], axes=axes)
-    return spine, V, F, pose.limb[pose.capsule_sdf(V).argmin(1)]
+                  tips=np.repeat(np.array([[pose.axes[m][-1] for m in pose.names]]), n, 0),
+                  junctions=np.repeat(centre[None, None], n, 0), axes=axes)
+    return spine, V, F, pose.limb[pose.capsule_sdf(V).argmin(1)], [S for S, _ in surfaces]
 
 
 @pytest.mark.parametrize("name", ["starfish", "quadruped", "biped"])
@@ -38,7 +49,7 @@ def test_limbs_leave_the_body_where_their_section_narrows(name):
     joins the body's)."""
     from pipeline.template_labels import BODY, template_labels
 
-    spine, V, F, true = _creature_template(name)
+    spine, V, F, true, _ = _creature_template(name)
     got = template_labels(spine, V, F)
     assert got.shape == (len(V),) and got.dtype == np.int64
     assert set(np.unique(got)) <= {BODY, *range(spine.K)}
@@ -50,11 +61,34 @@ def test_limbs_leave_the_body_where_their_section_narrows(name):
         assert (got == k).sum() > 0 and np.mean(true[got == k] == k) >= 0.75
 
 
+def test_the_body_split_by_its_motion_gives_the_limbs_their_roots():
+    """Where a limb's root is joined to the body (the biped's upper arms hanging against it, its hips), the
+    body's rigid motion over the frames does not keep the root's vertices on the surfaces and the limb's
+    does: with every frame's surface the labels are right at 3 points more of the vertices, the body's
+    precision 4 points higher, its recall no more than 1 point lower."""
+    from pipeline.template_labels import template_labels
+
+    spine, V, F, true, surfaces = _creature_template("biped", times=(0.3, 0.45, 0.6, 0.75, 0.9))
+    shape = template_labels(spine, V, F)
+    moving = template_labels(spine, V, F, surfaces=surfaces)
+    np.testing.assert_array_equal(template_labels(spine, V, F, surfaces=surfaces[:1] * len(surfaces)), shape)
+
+    def scores(got):
+        body, true_body = got == -1, true == -1
+        both = (body & true_body).sum()
+        return (got == true).mean(), both / true_body.sum(), both / body.sum()
+
+    (right0, recall0, precision0), (right, recall, precision) = scores(shape), scores(moving)
+    assert right >= right0 + 0.03
+    assert precision >= precision0 + 0.04
+    assert recall >= recall0 - 0.01
+
+
 def test_a_spine_file_or_results_directory_gives_the_same_labels(tmp_path):
     from pipeline.spine_format import write_spine
     from pipeline.template_labels import axis_labels, template_labels
 
-    spine, V, F, _ = _creature_template("quadruped", voxel=10.0)
+    spine, V, F, _, _ = _creature_template("quadruped", voxel=10.0)
     write_spine(tmp_path / "spine.json", spine)
     got = template_labels(spine, V, F, reference=0)
     np.testing.assert_array_equal(template_labels(tmp_path, V, F), got)
@@ -65,7 +99,7 @@ def test_a_spine_file_or_results_directory_gives_the_same_labels(tmp_path):
 def test_invalid_input(tmp_path):
     from pipeline.template_labels import axis_labels, template_labels
 
-    spine, V, F, _ = _creature_template("quadruped", voxel=12.0)
+    spine, V, F, _, _ = _creature_template("quadruped", voxel=10.0)
     with pytest.raises(ValueError, match="spine"):
         template_labels(object(), V, F)
     with pytest.raises(ValueError, match="spine"):
@@ -88,3 +122,9 @@ def test_invalid_input(tmp_path):
         axis_labels([np.full((3, 3), np.nan)], V, F)
     with pytest.raises(ValueError, match="faces"):
         axis_labels([np.eye(3)], V, F[:, :2])
+    with pytest.raises(ValueError, match="surfaces"):
+        template_labels(spine, V, F, surfaces=[V, V])
+    with pytest.raises(ValueError, match="surfaces"):
+        template_labels(spine, V, F, surfaces=[V[:, :2]])
+    with pytest.raises(ValueError, match="frame"):
+        axis_labels([spine.axes[lid][0] for lid in spine.limb_ids], V, F, surfaces=[V], frame=1)
