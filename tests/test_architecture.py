@@ -45,7 +45,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
         "pipeline.temporal_hull",
         "pipeline.motion_segmentation", "pipeline.trajectory_distances", "pipeline.rigid_parts",
         "pipeline.armature_skeleton", "pipeline.armature_fit", "pipeline.armature", "pipeline.armature_track",
-        "pipeline.armature_limbs", "pipeline.template_labels",
+        "pipeline.armature_limbs", "pipeline.template_labels", "pipeline.limb_segments",
         "pipeline.contraction_skeleton", "pipeline.armature_score", "pipeline.silhouette_refine",
         "calib.detect", "calib.intrinsics", "calib.extrinsics", "calib.bundle", "calib.rig", "calib.synthetic",
         "calib.evaluate", "calib.timestamps", "calib.mirror",

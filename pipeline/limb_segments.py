@@ -1,0 +1,262 @@
+"""Rigid parts of a tracked template cut along its limb axes: every limb a chain of intervals.
+
+A motion segmentation over the surface (Tzionas & Gall 2016, :mod:`pipeline.motion_segmentation`) reads
+a tracking's non-rigid noise as bending and cuts it into segments. But a limb is a chain: its rigid parts
+are intervals along its axis. :func:`limb_segments` therefore
+
+1. keeps the body (label :data:`pipeline.template_labels.BODY`) one segment;
+2. orders every limb's vertices by the arc length of their nearest point on the limb's axis (junction to
+   tip, at the template's frame) and puts candidate cuts at ``candidates`` positions evenly along it (a
+   candidate interval holds at least :data:`MIN_VERTICES` vertices: a rigid motion needs three points
+   off a line);
+3. gives an interval the rigid residual of its vertices over the frames (squared distance of every
+   vertex from the best rigid motion of the interval's vertices from the template's frame: Kabsch /
+   Umeyama from the interval's moment sums, so every one of the ``O(candidates**2)`` intervals costs
+   one 3x3 SVD a frame), and finds the best cut into ``k`` intervals for every ``k`` by dynamic
+   programming (Bellman 1961, the optimal segmentation of a sequence);
+4. keeps a cut only when it lowers the residual by more than the tracking's noise lets one cut of a rigid
+   piece lower it: the noise ratio ``rho`` is measured on the body, one rigid part, as the largest
+   fraction of its residual that the best single cut along any of its principal axes removes (with the
+   same number of candidate positions). A limb keeps cutting while the next cut (or the next two
+   together) removes more than ``rho`` (``1 - (1 - rho)**2``) of the remaining residual.
+
+No length or count is set for a creature: the cut positions follow the limb's own extent, the threshold
+the take's own noise. Written by hand: an interval segmentation of a chain by rigid residual is no
+library's (scipy has the SVDs).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["MIN_VERTICES", "limb_segments", "chain_cuts", "noise_ratio"]
+
+#: the fewest vertices of a candidate interval
+MIN_VERTICES = 4
+
+
+def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int = 32,
+                  rho: float | None = None) -> np.ndarray:
+    """The rigid part of every template vertex: the body one segment, every limb a chain of intervals.
+
+    Parameters
+    ----------
+    vertices : (T, V, 3) float array_like
+        The tracked template (shared connectivity), T >= 2.
+    labels : (V,) int array_like
+        Limb of every vertex (index into ``axes``) or -1 for the body
+        (:func:`pipeline.template_labels.template_labels`).
+    axes : sequence of (n_k, 3) float array_like
+        Every limb's axis, a polyline from its junction to its tip, at frame ``reference``.
+    reference : int
+        The frame of ``axes`` (the template's frame), ``0 .. T-1``.
+    candidates : int
+        Candidate cut positions along a limb (evenly along the extent of its vertices), >= 2.
+    rho : float, optional
+        The fraction of a rigid piece's residual one cut removes by noise alone, in [0, 1). Default:
+        measured on the body (:func:`noise_ratio`), which must then hold at least ``2 * MIN_VERTICES``
+        vertices.
+
+    Returns
+    -------
+    (V,) int64 ndarray
+        Segment of every vertex: 0 the body (when it has vertices), then every limb's intervals from
+        its junction to its tip, limb by limb.
+
+    Raises
+    ------
+    ValueError
+        Naming the parameter: shapes, a label outside ``-1 .. len(axes)-1``, an axis that is not a finite
+        polyline, ``reference`` outside the frames, ``candidates < 2``, ``rho`` outside [0, 1), a body
+        too small to measure the noise on.
+    """
+    V = np.asarray(vertices, dtype=np.float64)
+    if V.ndim != 3 or V.shape[2] != 3 or V.shape[0] < 2 or V.shape[1] == 0 or not np.isfinite(V).all():
+        raise ValueError(f"vertices must be a finite (T, V, 3) array with T >= 2, got shape {V.shape}")
+    lab = np.asarray(labels)
+    if lab.shape != (V.shape[1],) or not np.issubdtype(lab.dtype, np.integer):
+        raise ValueError(f"labels must be ({V.shape[1]},) integers, got {lab.dtype} shape {lab.shape}")
+    ax = [np.asarray(a, dtype=np.float64) for a in axes]
+    for a in ax:
+        if a.ndim != 2 or a.shape[1] != 3 or len(a) < 2 or not np.isfinite(a).all():
+            raise ValueError(f"axes must be finite (n, 3) polylines of at least 2 points, got shape {a.shape}")
+    if len(lab) and (lab.min() < -1 or lab.max() >= len(ax)):
+        raise ValueError(f"labels must be in -1 .. {len(ax) - 1}, got {lab.min()} .. {lab.max()}")
+    if isinstance(reference, bool) or not isinstance(reference, (int, np.integer)) or not 0 <= reference < len(V):
+        raise ValueError(f"reference must be a frame in 0 .. {len(V) - 1}, got {reference!r}")
+    if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 2:
+        raise ValueError(f"candidates must be an int >= 2, got {candidates!r}")
+    body = np.flatnonzero(lab == -1)
+    if rho is None:
+        if len(body) < 2 * MIN_VERTICES:
+            raise ValueError(f"labels: the body has {len(body)} vertices, too few to measure the noise on; give rho")
+        rho = noise_ratio(V[:, body], reference=int(reference), candidates=int(candidates))
+    elif not (0 <= rho < 1):
+        raise ValueError(f"rho must be in [0, 1), got {rho!r}")
+    out = np.full(V.shape[1], -1, dtype=np.int64)
+    nxt = 0
+    if len(body):
+        out[body] = 0
+        nxt = 1
+    for k, a in enumerate(ax):
+        idx = np.flatnonzero(lab == k)
+        if len(idx) == 0:
+            continue
+        s = _arc_length(V[reference, idx], a)
+        piece = chain_cuts(V[:, idx], s, reference=int(reference), candidates=int(candidates), rho=float(rho))
+        out[idx] = nxt + piece
+        nxt += int(piece.max()) + 1
+    return out
+
+
+def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, rho: float) -> np.ndarray:
+    """Cut a chain of vertices into intervals of ``position``: the best cut for every count, the count kept
+    while a cut removes more than ``rho`` of the residual (see the module docstring).
+
+    Parameters
+    ----------
+    vertices : (T, n, 3) float ndarray
+    position : (n,) float ndarray
+        Every vertex's position along the chain.
+    reference, candidates : int
+        As :func:`limb_segments`.
+    rho : float
+        The noise ratio, in [0, 1).
+
+    Returns
+    -------
+    (n,) int64 ndarray
+        Interval of every vertex, 0 at the lowest positions.
+    """
+    E, bounds, order, starts = _dp(vertices, position, reference, candidates)
+    k = _choose(E, rho)
+    out = np.empty(len(position), dtype=np.int64)
+    for p, (i, j) in enumerate(bounds[k]):
+        out[order[starts[i]:starts[j]]] = p
+    return out
+
+
+def noise_ratio(vertices, *, reference: int = 0, candidates: int = 32) -> float:
+    """The largest fraction of a rigid piece's residual that its best single cut removes, over cuts along its
+    three principal axes at frame ``reference``.
+
+    Parameters
+    ----------
+    vertices : (T, n, 3) float ndarray
+        One rigid part's tracked vertices (the body), n >= ``2 * MIN_VERTICES``.
+    reference, candidates : int
+        As :func:`limb_segments`.
+
+    Returns
+    -------
+    float
+        In [0, 1).
+    """
+    X = np.asarray(vertices, dtype=np.float64)
+    P = X[reference] - X[reference].mean(0)
+    _, _, Vt = np.linalg.svd(P, full_matrices=False)
+    best = 0.0
+    for d in Vt:
+        E, _, _, _ = _dp(X, P @ d, reference, candidates, k_max=2)
+        if len(E) > 1 and E[0] > 0:
+            best = max(best, (E[0] - E[1]) / E[0])
+    return float(min(best, 1.0 - 1e-9))
+
+
+def _choose(E: np.ndarray, rho: float) -> int:
+    """The number of cuts: stop where neither the next cut nor the next two remove enough."""
+    k = 0
+    while k + 1 < len(E):
+        one = E[k + 1] < (1 - rho) * E[k]
+        two = k + 2 < len(E) and E[k + 2] < (1 - rho) ** 2 * E[k]
+        if not (one or two):
+            break
+        k += 2 if (two and not one) else 1
+    return k
+
+
+def _bins(position: np.ndarray, candidates: int):
+    """Vertices sorted by position, and the start of every candidate interval (each >= MIN_VERTICES)."""
+    order = np.argsort(position, kind="stable")
+    s = position[order]
+    n = len(s)
+    edges = np.linspace(s[0], s[-1], candidates + 1)[1:-1]
+    cut = np.searchsorted(s, edges, side="right")
+    starts = [0]
+    for c in cut:
+        if c - starts[-1] >= MIN_VERTICES and n - c >= MIN_VERTICES:
+            starts.append(int(c))
+    starts.append(n)
+    return order, np.asarray(starts)
+
+
+def _dp(vertices, position, reference: int, candidates: int, k_max: int | None = None):
+    """Best residual with 1.. pieces (E[k] = k cuts), the pieces' bin bounds, the order and bin starts."""
+    X = np.asarray(vertices, dtype=np.float64)
+    order, starts = _bins(np.asarray(position, dtype=np.float64), candidates)
+    C = _interval_costs(X[:, order], starts, reference)
+    B = len(starts) - 1
+    K = B if k_max is None else min(B, k_max)
+    D = np.full((K, B + 1), np.inf)
+    arg = np.zeros((K, B + 1), dtype=np.int64)
+    D[0, 1:] = C[0, 1:]
+    for k in range(1, K):
+        for j in range(k + 1, B + 1):
+            cand = D[k - 1, k:j] + C[k:j, j]
+            i = int(np.argmin(cand))
+            D[k, j], arg[k, j] = cand[i], k + i
+    E = D[:, B]
+    bounds = []
+    for k in range(K):
+        b, j = [], B
+        for kk in range(k, 0, -1):
+            i = int(arg[kk, j])
+            b.append((i, j))
+            j = i
+        b.append((0, j))
+        bounds.append(b[::-1])
+    return E, bounds, order, starts
+
+
+def _interval_costs(X: np.ndarray, starts: np.ndarray, reference: int) -> np.ndarray:
+    """C[i, j]: the rigid residual over frames of bins i .. j-1 (sum of squared distances)."""
+    P = X[reference]
+    cs = lambda a: np.concatenate([np.zeros((1,) + a.shape[1:]), np.cumsum(a, axis=0)])[starts]  # noqa: E731
+    n = starts.astype(np.float64)
+    sP = cs(P)                                              # (B+1, 3)
+    sPP = cs((P * P).sum(1))                                # (B+1,)
+    Q = np.moveaxis(X, 1, 0)                                # (n, T, 3)
+    sQ = cs(Q)                                              # (B+1, T, 3)
+    sQQ = cs((Q * Q).sum(2))                                # (B+1, T)
+    sPQ = cs(P[:, None, :, None] * Q[:, :, None, :])        # (B+1, T, 3, 3)
+    B = len(starts) - 1
+    i, j = np.triu_indices(B + 1, k=1)
+    m = (n[j] - n[i])[:, None]
+    dP = sP[j] - sP[i]
+    dQ = sQ[j] - sQ[i]
+    ssP = (sPP[j] - sPP[i])[:, None] - (dP * dP).sum(1)[:, None] / m
+    ssQ = (sQQ[j] - sQQ[i]) - (dQ * dQ).sum(2) / m
+    M = (sPQ[j] - sPQ[i]) - dP[:, None, :, None] * dQ[:, :, None, :] / m[:, :, None, None]
+    sv = np.linalg.svd(M, compute_uv=False)                 # (pairs, T, 3)
+    sign = np.sign(np.linalg.det(M))
+    sign[sign == 0] = 1
+    fit = sv[..., 0] + sv[..., 1] + sign * sv[..., 2]
+    res = np.clip(ssP + ssQ - 2 * fit, 0, None)
+    res[:, reference] = 0.0
+    C = np.zeros((B + 1, B + 1))
+    C[i, j] = res.sum(1)
+    return C
+
+
+def _arc_length(X: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Arc length along ``axis`` of every point's nearest point on it."""
+    a, b = axis[:-1], axis[1:]
+    d = b - a
+    L = np.linalg.norm(d, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(L)])
+    t = np.einsum("nsk,sk->ns", X[:, None, :] - a[None], d) / np.maximum(L * L, 1e-300)
+    t = np.clip(t, 0, 1)
+    near = a[None] + t[..., None] * d[None]
+    dist = np.linalg.norm(X[:, None, :] - near, axis=2)
+    s = np.argmin(dist, axis=1)
+    return cum[s] + t[np.arange(len(X)), s] * L[s]

@@ -1,0 +1,90 @@
+"""pipeline.limb_segments: a synthetic limb chain with known cuts, the interval costs against Kabsch per interval."""
+
+import numpy as np
+import pytest
+
+from pipeline.limb_segments import _interval_costs, chain_cuts, limb_segments
+
+BODY = 400
+AXIS = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+
+
+def _rot(axis, angle):
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _chain(cuts, *, seed=0, frames=20, n=300, noise=0.05):
+    """A box body and one limb along x whose parts turn about joints at ``cuts``; every frame adds a small rigid
+    jitter to every unit patch (a tracking's noise) and per-vertex noise."""
+    rng = np.random.default_rng(seed)
+    body = rng.uniform([-4, -2, -2], [0, 2, 2], (BODY, 3))
+    s = rng.uniform(0, 10, n)
+    X = np.r_[body, np.c_[s, rng.normal(0, 0.4, (n, 2))]]
+    part = np.r_[np.full(BODY, -1), np.searchsorted(cuts, s)]
+    V = np.repeat(X[None], frames, axis=0)
+    for t in range(frames):
+        for k in range(len(cuts) - 1, -1, -1):  # distal joints first, about their rest positions
+            m = part >= k + 1
+            j = np.array([cuts[k], 0.0, 0.0])
+            V[t, m] = (V[t, m] - j) @ _rot([0, k % 2, 1 - k % 2], 0.6 * np.sin(t / 3 + k)).T + j
+    patch = np.floor(X[:, 0]).astype(int) * 7 + np.floor(X[:, 1]).astype(int)
+    _, patch = np.unique(patch, return_inverse=True)
+    V += rng.normal(0, noise, (frames, patch.max() + 1, 3))[:, patch] + rng.normal(0, noise, V.shape)
+    return V, np.r_[np.full(BODY, -1), np.zeros(n, int)], part
+
+
+@pytest.mark.parametrize("cuts", [(4.0, 7.0), (2.0, 4.0, 6.0, 8.0)])
+def test_a_limb_chain_is_cut_where_it_bends(cuts):
+    V, labels, part = _chain(cuts)
+    seg = limb_segments(V, labels, [AXIS], reference=0)
+    assert (seg[:BODY] == 0).all()
+    limb, true = seg[BODY:], part[BODY:]
+    assert len(np.unique(limb)) == len(cuts) + 1
+    # every found interval lies on one true part (a vertex within noise of a joint may fall either side)
+    agree = sum(np.bincount(true[limb == p]).max() for p in np.unique(limb)) / len(limb)
+    assert agree > 0.9
+
+
+def test_interval_costs_are_the_rigid_residual_of_the_interval():
+    V, _, _ = _chain((4.0, 7.0), frames=5, n=60)
+    X = V[:, BODY:][:, np.argsort(V[2, BODY:, 0])]
+    starts = np.array([0, 10, 25, 40, 60])
+    C = _interval_costs(X, starts, 2)
+    for i in range(4):
+        for j in range(i + 1, 5):
+            P = X[2, starts[i]:starts[j]]
+            ref = 0.0
+            for Q in X[:, starts[i]:starts[j]]:
+                U, _, Wt = np.linalg.svd((P - P.mean(0)).T @ (Q - Q.mean(0)))
+                D = np.diag([1, 1, np.sign(np.linalg.det(U @ Wt))])
+                R = (U @ D @ Wt).T
+                ref += ((Q - Q.mean(0) - (P - P.mean(0)) @ R.T) ** 2).sum()
+            assert C[i, j] == pytest.approx(ref, rel=1e-6, abs=1e-9)
+
+
+def test_a_rigid_chain_needs_no_cut_without_noise():
+    V, _, _ = _chain((), noise=0.0)
+    s = V[0, BODY:, 0]
+    assert (chain_cuts(V[:, BODY:], s, rho=0.1) == 0).all()
+
+
+def test_invalid_input():
+    V, labels, _ = _chain((4.0,), frames=3, n=40)
+    with pytest.raises(ValueError, match="vertices"):
+        limb_segments(V[:1], labels, [AXIS])
+    with pytest.raises(ValueError, match="labels"):
+        limb_segments(V, labels[:-1], [AXIS])
+    with pytest.raises(ValueError, match="labels"):
+        limb_segments(V, labels + 1, [AXIS])
+    with pytest.raises(ValueError, match="axes"):
+        limb_segments(V, labels, [AXIS[:1]])
+    with pytest.raises(ValueError, match="reference"):
+        limb_segments(V, labels, [AXIS], reference=3)
+    with pytest.raises(ValueError, match="candidates"):
+        limb_segments(V, labels, [AXIS], candidates=1)
+    with pytest.raises(ValueError, match="rho"):
+        limb_segments(V, labels, [AXIS], rho=1.0)
+    with pytest.raises(ValueError, match="labels: the body"):
+        limb_segments(V[:, BODY:], labels[BODY:], [AXIS])
