@@ -279,9 +279,9 @@ def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armatur
     from pipeline.results import atomic_write_bytes, ply_bytes
 
     t = trimesh.creation.icosphere(subdivisions=2, radius=60.0)
-    for k in range(4):
+    for k in range(3):
         atomic_write_bytes(tmp_path / "meshes" / f"frame_{k:06d}.ply", ply_bytes(t.vertices + [3.0 * k, 0, 0], t.faces))
-    (tmp_path / "spine.json").write_text('{"frames": 4}')
+    (tmp_path / "spine.json").write_text('{"frames": 3}')
     ref = t.vertices + [3.0, 0, 0]  # a spine's stand-in: reference frame 1, so both halves have frames
     fake = SimpleNamespace(vertices=ref, faces=t.faces, deform=lambda i: ref + [3.0 * (i - 1), 0, 0])
     monkeypatch.setattr(track, "spine_model", lambda *a: (1, fake))
