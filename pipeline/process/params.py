@@ -31,6 +31,9 @@ class TrackParams(BaseModel):
         Keep the previous frame's shape in the rigid prior (``--shape-memory``).
     colour : bool
         Feature tracks from every camera's colour images (``--colour``).
+    labels : bool
+        Cut the template's rigid patches at the limbs of the take's spine (``--labels``,
+        :func:`pipeline.template_labels.template_labels`): the body one patch, every limb on its own grid.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -39,6 +42,7 @@ class TrackParams(BaseModel):
     carve_margin: Annotated[float, Field(ge=0, le=10)] | None = None
     shape_memory: bool = False
     colour: bool = False
+    labels: bool = False
 
 
 class ProcessParams(BaseModel):

@@ -411,7 +411,7 @@ def _step_track(ctx: RunContext) -> None:
 
     opt = ctx.params.track
     rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress, executor=ctx.executor,
-                             colour=opt.colour, shape_memory=opt.shape_memory)
+                             colour=opt.colour, shape_memory=opt.shape_memory, labels="spine" if opt.labels else None)
     if rep.get("started_over"):  # frames of other settings, and the rig on them, removed: the job report says so
         ctx.warnings.append(rep["started_over"])
     ctx.clock.add_worker_cpu("track", rep.get("worker_cpu_seconds", 0.0))

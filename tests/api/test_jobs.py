@@ -177,9 +177,10 @@ def test_a_process_job_checks_its_track_options(make_client, data_root):
     for bad in ({"carve": -1}, {"carve": 99}, {"carve_margin": -1}, {"shape_memory": "sometimes"}, {"rounds": 2}):
         r = c.post("/jobs", json={"take": "t", "steps": ["track"], "parameters": {"track": bad}}, headers=AUTH)
         assert r.status_code == 400 and "track" in r.json()["detail"], (bad, r.json())
-    ok = {"track": {"carve": 2, "shape_memory": True, "colour": True}}
+    ok = {"track": {"carve": 2, "shape_memory": True, "colour": True, "labels": True}}
     r = c.post("/jobs", json={"take": "t", "steps": ["track"], "parameters": ok}, headers=AUTH)
     assert r.status_code in (200, 201, 202) and r.json()["params"]["track"]["carve"] == 2, r.json()
+    assert r.json()["params"]["track"]["labels"] is True
 
 
 def test_a_job_on_results_of_other_parameters_starts_over_without_their_tracking_and_rig(make_client, tmp_path):

@@ -581,7 +581,8 @@ def test_an_unreadable_process_json_starts_over(tmp_path):
 def test_track_options_track_again_and_keep_every_other_result(small_tracked, tmp_path, caplog):
     """``ProcessParams.track`` (the API job's ``parameters.track``) is what ``stage track`` takes: with
     ``carve`` the surfaces are carved across time and tracked again, with ``shape_memory`` the prior keeps
-    the previous shape. Changing them tracks again (track.json says so) and starts nothing else over."""
+    the previous shape, with ``labels`` the template's patches follow the limbs of the take's spine. Changing
+    them tracks again (track.json says so) and starts nothing else over."""
     import shutil
 
     take, first = small_tracked
@@ -590,9 +591,11 @@ def test_track_options_track_again_and_keep_every_other_result(small_tracked, tm
     surfaces = _files_under(out, "meshes", "frames")
     with caplog.at_level("WARNING"):
         res = process_take(take, out, steps=("track",),
-                           params={**_SMALL, "track": {"carve": 1, "shape_memory": True, "carve_margin": 0.5}})
+                           params={**_SMALL, "track": {"carve": 1, "shape_memory": True, "carve_margin": 0.5,
+                                                       "labels": True}})
     rep = json.loads((out / "tracked" / "track.json").read_text())
     assert rep["surfaces"] == "carved" and rep["prior"] == "previous" and sorted(rep["frames"]) == ["0", "1", "2"]
+    assert rep["patch_labels"] == "spine" and "patch_labels_sha256" in rep
     assert json.loads((out / "carved" / "carve.json").read_text())["margin_px"] == 0.5
     assert _files_under(out, "meshes", "frames") == surfaces  # the surfaces were not made again
     said = [r.getMessage() for r in caplog.records]
@@ -600,7 +603,8 @@ def test_track_options_track_again_and_keep_every_other_result(small_tracked, tm
     assert res.report["warnings"] and "tracked" in res.report["warnings"][0]  # the tracking started over, said once
     assert json.loads((out / "process.json").read_text())["params"]["track"]["carve"] == 1
     # the options are checked before any step runs
-    for bad in ({"carve": -1}, {"carve": "two"}, {"colour": "maybe"}, {"carve_margin": -0.5}, {"rounds": 2}):
+    for bad in ({"carve": -1}, {"carve": "two"}, {"colour": "maybe"}, {"carve_margin": -0.5}, {"rounds": 2},
+                {"labels": "heat"}):
         with pytest.raises(ValueError, match="track"):
             process_take(take, out, steps=("track",), params={**_SMALL, "track": bad})
 
