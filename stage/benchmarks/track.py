@@ -114,7 +114,8 @@ def fast_accuracy() -> None:
     one or ``auto`` rounds built from the tracking (``spine=True``, ``--spine-armature``), one round of it with
     the colour tracks pulling its pose (``colour=True``), and the armature of the true motion, with
     and without its true poses among the starts (what the tracking gives with the right segments,
-    and with the right starts too); the worst frame's mean and 95th percentile, the invented motion
+    and with the right starts too), and the same take tracked with the template's limb/body labels
+    (:func:`_labels_rows`); the worst frame's mean and 95th percentile, the invented motion
     (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame."""
     import tempfile
     from pathlib import Path
@@ -167,6 +168,23 @@ def fast_accuracy() -> None:
                 track_with_armature(res, rig.model, poses=poses)
                 _fast_row(f"{name}, the armature of the true motion {label}", sim, res, frames,
                           (time.process_time() - t0) / frames)
+            _labels_rows(name, sim, res, frames)
+
+
+def _labels_rows(name: str, sim, res, frames: int) -> None:
+    """Rows of :func:`fast_accuracy` with the template's limb/body labels (``stage track --labels``): the
+    tracking alone, then with the colour tracks and one colour round of the armature mode (``--labels
+    --colour --armature-rounds 1``); each tracks ``res`` again from its surfaces."""
+    from pipeline.track import track_results
+    from pipeline.track_armature import track_with_armature
+
+    t0 = time.process_time()
+    track_results(res, labels="spine")
+    _fast_row(f"{name}, --labels", sim, res, frames, (time.process_time() - t0) / frames)
+    t0 = time.process_time()
+    track_results(res, labels="spine", colour=True)
+    track_with_armature(res, rounds=1, colour=True, labels="spine")
+    _fast_row(f"{name}, --labels --colour --armature-rounds 1", sim, res, frames, (time.process_time() - t0) / frames)
 
 
 def simulator_armature(creature, time_s: float, vertices, faces):
