@@ -39,6 +39,7 @@ from pipeline.track_frames import (
     write_report,
 )
 from pipeline.tracking import TemplateTracker, TrackingError
+from pipeline.tracking_patches import _check_labels
 
 __all__ = ["track_results", "track_chain_task", "spine_model", "spine_starts", "mesh_data", "tracked_path",
            "remove_tracking", "TrackingError"]
@@ -222,11 +223,7 @@ def _patch_labels(labels, vertices, faces, frame: int):
     out = labels(vertices, faces, frame) if callable(labels) else labels
     if out is None:  # the callable found none
         return None
-    out = np.asarray(out)
-    if out.shape != (len(vertices),) or not np.issubdtype(out.dtype, np.integer) or (out.size and out.min() < -1):
-        raise ValueError(f"labels must give one integer per template vertex (-1 the body, 0, 1, ... a limb), "
-                         f"shape ({len(vertices)},), got shape {out.shape} of {out.dtype}")
-    return out.astype(np.int64)
+    return _check_labels(out, len(vertices))
 
 
 def _multiview_template(frames: list[int], by_frame: dict, skinned, loaded, name):

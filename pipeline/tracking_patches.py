@@ -94,10 +94,11 @@ def _check_labels(labels, n: int, name: str = "labels") -> np.ndarray:
     """``labels`` as (n,) int64 (-1 the body, 0.. a limb), or a ValueError naming ``name``."""
     lab = np.asarray(labels)
     if lab.shape != (n,) or not np.issubdtype(lab.dtype, np.integer):
-        raise ValueError(f"{name} must be one integer per vertex (a limb 0, 1, ... or the body -1), shape ({n},), "
-                         f"got shape {lab.shape} of {lab.dtype}")
+        raise ValueError(f"{name} must give one integer per template vertex (-1 the body, 0, 1, ... a limb), "
+                         f"shape ({n},), got shape {lab.shape} of {lab.dtype}")
     if n and lab.min() < -1:
-        raise ValueError(f"{name} must be -1 (the body) or a limb 0, 1, ..., got {int(lab.min())}")
+        raise ValueError(f"{name} must give one integer per template vertex (-1 the body, 0, 1, ... a limb), "
+                         f"got {int(lab.min())}")
     return lab.astype(np.int64)
 
 
