@@ -1,6 +1,7 @@
 """Mesh primitives the tracker, the motion segmentation, the exporter and the simulator share:
-the one check of a mesh's arrays, vertex normals, enclosed volume, triangle areas, and the sums
-over a mesh's face corners behind them.
+the one check of a mesh's arrays, vertex normals, enclosed volume, triangle areas, the sums
+over a mesh's face corners behind them, and the rigid motion that best carries one point set onto
+another (:func:`rigid_fit`).
 
 A vertex in no face (an isolated vertex) has **no normal: zero**, not an arbitrary direction. Every
 user of a normal then treats it as "no surface here": the tracker's normal gate never pairs it,
@@ -19,7 +20,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["check_mesh", "summing_matrix", "sum_by", "scatter_add", "triangle_areas", "vertex_normals", "mesh_volume"]
+__all__ = ["check_mesh", "summing_matrix", "sum_by", "scatter_add", "triangle_areas", "vertex_normals", "mesh_volume",
+           "rigid_fit"]
 
 
 def check_mesh(vertices, faces, *, min_vertices: int = 0, min_faces: int = 0,
@@ -137,3 +139,24 @@ def mesh_volume(vertices, faces) -> float:
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
     return float(abs(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum()) / 6.0)
+
+
+def rigid_fit(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """R, t minimising ``sum ||R a + t - b||^2`` over paired points (Kabsch / Arun et al. 1987; no reflection).
+
+    Parameters
+    ----------
+    A, B : (n, 3) float ndarray
+        Paired points.
+
+    Returns
+    -------
+    R : (3, 3) ndarray
+    t : (3,) ndarray
+    """
+    ca, cb = A.mean(0), B.mean(0)
+    H = (A - ca).T @ (B - cb)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cb - R @ ca

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calib.camera import Camera, cached_pixel_grid_rays, cached_pixel_ray_depths
-from pipeline.mesh_primitives import vertex_normals
+from pipeline.mesh_primitives import rigid_fit, vertex_normals
 from pipeline.tracking import TrackingError, closest_pairs
 
 __all__ = [
@@ -459,16 +459,6 @@ def visible_vertices(vertices, faces, camera: Camera, *, tolerance: float = 3.0,
     return vis
 
 
-def _kabsch(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R, t minimising sum ||R a + t - b||^2."""
-    ca, cb = A.mean(0), B.mean(0)
-    H = (A - ca).T @ (B - cb)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, cb - R @ ca
-
-
 def rigid_icp(
     vertices,
     faces,
@@ -519,7 +509,7 @@ def rigid_icp(
                 f"rigid ICP cannot place the template: no template point lies within {g:.0f} mm of the data "
                 "(is the template roughly placed in the camera's world frame, in mm?)"
             )
-        dR, dt = _kabsch(A, B)
+        dR, dt = rigid_fit(A, B)
         R, t = dR @ R, dR @ t + dt
         if it >= 5 and g > gate:
             g = max(gate, g / 2)

@@ -41,6 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.mesh_primitives import check_mesh, rigid_fit
+
 __all__ = ["BODY", "template_labels", "axis_labels"]
 
 #: the label of a vertex on the body (no limb)
@@ -88,7 +90,7 @@ def template_labels(spine, vertices, faces, *, reference: int | None = None, sur
     from pipeline.armature_spine import reference_frame
 
     spine = _spine(spine)
-    V, F = _mesh(vertices, faces)
+    V, F = check_mesh(vertices, faces, min_vertices=1, min_faces=1)
     if reference is not None and (isinstance(reference, bool) or not isinstance(reference, (int, np.integer))):
         raise ValueError(f"reference must be a frame position (int) or None, got {reference!r}")
     ref = reference_frame(spine, prefer=reference)
@@ -121,7 +123,7 @@ def axis_labels(axes, vertices, faces, *, surfaces=None, frame: int = 0) -> np.n
     """
     import trimesh
 
-    V, F = _mesh(vertices, faces)
+    V, F = check_mesh(vertices, faces, min_vertices=1, min_faces=1)
     polylines = []
     for a in axes:
         a = np.asarray(a, dtype=np.float64)
@@ -211,21 +213,12 @@ def _icp(X: np.ndarray, tree, R: np.ndarray, t: np.ndarray):
         Y = X @ R.T + t
         d, j = tree.query(Y)
         keep = d <= np.quantile(d, _KEEP)
-        R2, t2 = _kabsch(Y[keep], tree.data[j[keep]])
+        R2, t2 = rigid_fit(Y[keep], tree.data[j[keep]])
         R, t = R2 @ R, R2 @ t + t2
         if np.linalg.norm(t2) < 1e-3 and np.abs(R2 - np.eye(3)).max() < 1e-5:
             break
     d = np.sort(tree.query(X @ R.T + t)[0])
     return R, t, float(np.mean(d[:max(1, int(_KEEP * len(d)))] ** 2))
-
-
-def _kabsch(A: np.ndarray, B: np.ndarray):
-    """The rotation and translation that carry points A nearest to B (least squares, no reflection)."""
-    ca, cb = A.mean(0), B.mean(0)
-    U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, cb - R @ ca
 
 
 def _mean_square(X: np.ndarray, trees: list, motion) -> np.ndarray:
@@ -247,18 +240,6 @@ def _spine(spine):
             raise ValueError(f"spine: no spine file at {path}")
         return read_spine(path)
     raise ValueError(f"spine must be a pipeline.spine_format.Spine or a path, got {type(spine).__name__}")
-
-
-def _mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
-    V = np.asarray(vertices, dtype=np.float64)
-    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0 or not np.all(np.isfinite(V)):
-        raise ValueError(f"vertices must be a non-empty finite (V, 3) array, got shape {V.shape}")
-    F = np.asarray(faces)
-    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or not np.issubdtype(F.dtype, np.integer):
-        raise ValueError(f"faces must be a non-empty (F, 3) integer array, got shape {F.shape}")
-    if F.min() < 0 or F.max() >= len(V):
-        raise ValueError(f"faces must index vertices 0..{len(V) - 1}")
-    return V, F.astype(np.int64)
 
 
 def _limb_reach(mesh, axis: np.ndarray, V: np.ndarray, step: float):

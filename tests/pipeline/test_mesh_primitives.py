@@ -77,3 +77,20 @@ def test_invalid_input():
         vertex_normals(v[:5], f)
     with pytest.raises(ValueError, match="corners"):
         vertex_normals(v, f, corners=np.eye(3))
+
+
+def test_rigid_fit_recovers_a_known_motion_and_never_a_reflection():
+    """``rigid_fit``: the exact rotation and translation of paired points (to 1e-9), and a proper rotation
+    (det +1) for points that a mirror would pair better."""
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.mesh_primitives import rigid_fit
+
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(50, 3))
+    R = Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix()
+    t = np.array([5.0, -2.0, 0.5])
+    R2, t2 = rigid_fit(A, A @ R.T + t)
+    assert np.allclose(R2, R, atol=1e-9) and np.allclose(t2, t, atol=1e-9)
+    Rm, _ = rigid_fit(A, A * [-1.0, 1.0, 1.0])
+    assert np.isclose(np.linalg.det(Rm), 1.0)
