@@ -53,8 +53,11 @@ def label_scores(pred, true) -> tuple[float, float, float]:
 
 def take_dir(root: Path, spec: str) -> Path:
     """The take directory of ``NAME:FPS:SEED:FRAMES`` under ``root``, simulated and processed if missing."""
-    name, fps, seed, frames = spec.split(":")
-    d = root / f"{name}_{float(fps):g}_s{int(seed)}_f{int(frames)}"
+    try:
+        name, fps, seed, frames = spec.split(":")
+        d = root / f"{name}_{float(fps):g}_s{int(seed)}_f{int(frames)}"
+    except ValueError:
+        raise ValueError(f"--takes: every take is NAME:FPS:SEED:FRAMES (e.g. biped:10:3:16), got {spec!r}") from None
     if (d / "results" / "spine.json").is_file() and (d / "sim.pkl").is_file():
         return d
     from fake_cameras.record import record_take
