@@ -38,7 +38,7 @@ from pipeline.armature_fit import ArticulatedModel, Pose, fit_subset
 from pipeline.colour_tracks import ray_points
 from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs
 
-__all__ = ["fit_pose_to_surface", "surface_residual", "mark_points", "mark_residual", "ArmatureTracker"]
+__all__ = ["fit_pose_to_surface", "surface_residual", "mark_points", "mark_residual", "ArmatureTracker", "segment_armature"]
 
 
 def _check_points(points, normals) -> tuple[np.ndarray, np.ndarray]:
@@ -285,3 +285,115 @@ class ArmatureTracker:
         fit = self.tracker.fit(X, N, previous=previous, init=skinned, anchor=(skinned, self.weight),
                                tracks=None if marks is None else tracks)
         return fit, pose, res
+
+
+def segment_armature(vertices, faces, segments, parents, *, motion=None, reference: int = 0) -> ArticulatedModel:
+    """An armature whose parts are given rigid segments, every vertex moving with its own segment.
+
+    Every segment but the root turns about one joint with its parent segment: the two segments'
+    centre of rotation over ``motion`` (:func:`pipeline.armature_skeleton.joint_residual` of their rigid
+    motions, :func:`pipeline.rigid_parts.rigid_motions`), drawn towards their boundary as far as it is
+    uncertain (the prior weighs as much as all frames when the two motions carry the centre apart by the
+    boundary's radius), or without ``motion`` the boundary: the centroid of the vertices on the edges
+    between the two, or of the child's vertices nearest the parent's when they share none.
+    Rigid weights: a vertex's skinned position is its segment's rigid motion, so a limb's bone
+    carries no torso and a touching limb carries nothing of another (bone heat weights spread a
+    limb's bones over the body; docs/tracking.md, "Fast motion").
+
+    Parameters
+    ----------
+    vertices : (V, 3) float array_like
+        The rest shape (the template at its reference frame).
+    faces : (F, 3) int array_like
+    segments : (V,) int array_like
+        Segment of every vertex, ``0 .. S-1``, each with a vertex.
+    parents : (S,) int array_like
+        Parent segment of every segment, -1 for the one root; a tree.
+    motion : (T, V, 3) float array_like, optional
+        The segments' motion (the tracked template) that places the joints; without it they sit on the
+        boundaries.
+    reference : int
+        The frame of ``motion`` that is the rest shape.
+
+    Returns
+    -------
+    ArticulatedModel
+        Part 0 the root segment's rigid motion, then one part per other segment, parents first;
+        ``influences`` one bone of the vertex's segment, ``weights`` 1.
+    """
+    from pipeline.armature_skeleton import ArticulatedSkeleton, joint_residual
+    from pipeline.rigid_parts import rigid_motions
+
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0 or not np.isfinite(v).all():
+        raise ValueError(f"vertices must be a finite (V, 3) array, got shape {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or (f.size and (f.min() < 0 or f.max() >= len(v))):
+        raise ValueError(f"faces must be (F, 3) indices into the {len(v)} vertices")
+    seg = np.asarray(segments)
+    if seg.shape != (len(v),) or not np.issubdtype(seg.dtype, np.integer) or seg.min() < 0:
+        raise ValueError(f"segments must be ({len(v)},) integers >= 0, got {seg.dtype} shape {seg.shape}")
+    S = int(seg.max()) + 1
+    if len(np.unique(seg)) != S:
+        raise ValueError("segments must number the segments 0 .. S-1, each with a vertex")
+    par = np.asarray(parents)
+    if par.shape != (S,) or not np.issubdtype(par.dtype, np.integer) or par.min() < -1 or par.max() >= S \
+            or (par == -1).sum() != 1:
+        raise ValueError(f"parents must be ({S},) segment indices with one root (-1), got {par.tolist()}")
+    order = [int(np.flatnonzero(par == -1)[0])]
+    for s in order:  # parents first (breadth first); a cycle leaves segments out
+        order.extend(int(c) for c in np.flatnonzero(par == s))
+    if len(order) != S:
+        raise ValueError(f"parents must form a tree, got {par.tolist()}")
+    mot = None
+    if motion is not None:
+        mot = np.asarray(motion, dtype=np.float64)
+        if mot.ndim != 3 or mot.shape[1:] != v.shape or not np.isfinite(mot).all():
+            raise ValueError(f"motion must be a finite (T, {len(v)}, 3) array, got shape {mot.shape}")
+        if isinstance(reference, bool) or not isinstance(reference, (int, np.integer)) or not 0 <= reference < len(mot):
+            raise ValueError(f"reference must be a frame in 0 .. {len(mot) - 1}, got {reference!r}")
+    centroid = np.stack([v[seg == s].mean(0) for s in range(S)])
+    part_of = np.empty(S, dtype=np.int64)
+    part_of[order] = np.arange(S)
+    pivots = [centroid[order[0]]]
+    for s in order[1:]:
+        pivots.append(_segment_pivot(v, f, seg, s, int(par[s]), mot, reference, joint_residual, rigid_motions))
+    # joints: the root, one articulation per other part, one end per part (its bone's second joint)
+    rest = np.vstack([np.asarray(pivots), centroid[order]])
+    parent_part = np.r_[-1, part_of[par[order[1:]]]]
+    parents_j = np.r_[-1, parent_part[1:], np.arange(S)]
+    part = np.r_[np.arange(S), np.arange(S)]
+    names = ("root",) + tuple(f"joint{p}" for p in range(1, S)) + tuple(f"aux{p}" for p in range(S))
+    skeleton = ArticulatedSkeleton(names=names, parents=parents_j, rest=rest,
+                                   articulation=np.r_[False, np.ones(S - 1, bool), np.zeros(S, bool)],
+                                   segment_pairs=(None,) + tuple((int(s), int(par[s])) for s in order[1:]) + (None,) * S,
+                                   part=part, part_joint=np.arange(S), part_parent=parent_part,
+                                   bones=np.stack([np.arange(S), S + np.arange(S)], 1), placement=(None,) * (2 * S))
+    return ArticulatedModel(v, f, skeleton, part_of[seg][:, None], np.ones((len(v), 1)))
+
+
+def _segment_pivot(v, f, seg, child: int, parent: int, motion, reference, joint_residual, rigid_motions):
+    """The joint of segment ``child`` with ``parent`` (:func:`segment_armature`): the centre of rotation drawn
+    towards the boundary as far as the motion leaves it uncertain."""
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    a, b = seg[e[:, 0]], seg[e[:, 1]]
+    cross = e[((a == child) & (b == parent)) | ((a == parent) & (b == child))]
+    if len(cross):
+        ring = v[np.unique(cross)]
+    else:  # no shared edge: the child's vertices nearest the parent's
+        mine = np.flatnonzero(seg == child)
+        d, _ = cKDTree(v[seg == parent]).query(v[mine])
+        ring = v[mine[d <= np.quantile(d, 0.1)]]
+    boundary = ring.mean(0)
+    if motion is None:
+        return boundary
+    radius = max(float(np.linalg.norm(ring - boundary, axis=1).mean()), 1e-9)
+    rng = np.random.default_rng(0)
+    motions = []
+    for s in (child, parent):
+        ids = np.flatnonzero(seg == s)
+        ids = rng.choice(ids, min(len(ids), 400), replace=False)
+        motions.append(rigid_motions(motion[:, ids], reference=int(reference)))
+    res, _ = joint_residual(motions[0], motions[1], boundary)
+    # the prior weighs as much as all frames when the motions carry the centre apart by the boundary's radius
+    return joint_residual(motions[0], motions[1], boundary, ridge=max((res / radius) ** 2, 1e-3))[1]

@@ -50,7 +50,7 @@ SPINE_BONES = 2
 
 def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | str = 1, weight: float = 2.0,
                         lambda_thr: float = 0.98, colour: bool = False, spine: bool = False, progress=None,
-                        executor=None, labels=None) -> dict:
+                        executor=None, labels=None, parts: str = "motion") -> dict:
     """Track a tracked results directory again with an armature as the articulated prior.
 
     Every frame but the reference frame (``tracked/track.json``) is tracked again, in order from
@@ -116,6 +116,15 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         ``track_results(labels=)``):
         the template fit's rigid patches follow them (``TemplateTracker(patch_labels=)``) and every round's
         armature keeps a segment on one limb (``build_armature(limbs=)``).
+    parts : {"motion", "limbs"}
+        Where every round's armature (without ``model``) gets its parts. ``"motion"``: the motion segmentation
+        of the tracking, hung on its curve skeleton, bone heat weights (:func:`pipeline.armature.build_armature`).
+        ``"limbs"``: from ``labels`` and the take's spine (``spine.json``, its limb axes at the reference frame,
+        which the labels' limbs index): the body one part, every limb a chain of the intervals along its axis
+        that :func:`pipeline.limb_segments.limb_segments` cuts from the tracking, every vertex moving rigidly
+        with its part (:func:`pipeline.armature_track.segment_armature`); without labels or a usable spine one
+        line says so and the parts come from the motion. Only as good as the labels' body: a limb the labels
+        give the body moves with it (docs/tracking.md, "The round's armature from the labels").
 
     Returns
     -------
@@ -140,11 +149,14 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         raise ValueError(f"lambda_thr must be a number in (0, 1), got {lambda_thr!r}")
     if not isinstance(spine, (bool, np.bool_)):
         raise ValueError(f"spine must be True or False, got {spine!r}")
+    if parts not in ("motion", "limbs"):
+        raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")
     report, frames, by_frame, vs, faces, refi = _tracked_sequence(root)
     source_of_labels = labels if isinstance(labels, str) else "given"
     if isinstance(labels, str):  # the tracking's template frame is the spine's reference frame when it has one
         labels = _spine_labels(root, labels, refi if report.get("spine_start", "none") != "none" else None)
     patch_labels = _patch_labels(labels, vs[refi], faces, frames[refi])
+    chain = _limb_chain(root, patch_labels, refi, len(frames)) if parts == "limbs" and model is None else None
     first = _spine_rig(root, frames, vs[refi], faces, refi) if spine and model is None else None
     tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
                               rounds=ARMATURE_FIT_ROUNDS, patch_labels=patch_labels)
@@ -161,7 +173,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         # (the articulated fits' small dense products: threads only contend)
         history, best = _armature_rounds(model if first is None else first, poses, int(rounds), vs, faces, frames, refi,
                                          by_frame, root, tracker, weight, lambda_thr, progress, steps, tracks_for, aside,
-                                         given=model is not None, limbs=_limbs(patch_labels))
+                                         given=model is not None, limbs=_limbs(patch_labels), chain=chain)
     kept, _, per = best
     if kept != len(history) - 1:  # the last round did not help: the best round's tracking again
         for k in per["figures"]:
@@ -169,6 +181,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     report["frames"].update({str(k): {**report["frames"].get(str(k), {}), **v} for k, v in per["figures"].items()})
     report["rig_rounds"] = kept + 1
     report["rig_prior"] = {"weight": float(weight), "lambda_thr": float(lambda_thr), "max_rounds": int(rounds),
+                           "parts": "limbs" if chain is not None else "motion",
                            "patch_labels": None if patch_labels is None else source_of_labels, "kept_round": kept + 1,
                            "colour_tracks": tracks_for is not None, "rounds": history}
     worker = [r.pop("worker_cpu_seconds") for r in history if r.get("worker_cpu_seconds") is not None]
@@ -179,16 +192,19 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
 
 
 def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_frame, root, tracker, weight, lambda_thr,
-                     progress, spine, tracks_for=None, aside=None, given: bool = True, limbs=None):
+                     progress, spine, tracks_for=None, aside=None, given: bool = True, limbs=None, chain=None):
     """The rounds of :func:`track_with_armature`: -> (history, (kept round, its residual, its tracking)).
     ``model``: the first round's armature (the only round's when ``given``), or None: every round's built.
-    ``limbs``: the template's limbs (:class:`pipeline.armature_limbs.VertexLimbs`) the built armatures keep, or None."""
+    ``limbs``: the template's limbs (:class:`pipeline.armature_limbs.VertexLimbs`) the built armatures keep, or None.
+    ``chain``: (labels, limb axes) the built armatures' parts follow (:func:`_limb_rig`), or None: the motion's."""
     history, best = [], None
     for r in range(1 if given else rounds + (model is not None)):  # (the spine's round comes before ``rounds``)
         if r == 0 and model is not None:
             use, by_pose = model, dict(poses or {})
             entry = {"armature": "given", "segments": None, "fit_error_mm": None} if given else \
                 {"armature": "spine", "segments": int(model.skeleton.n_parts), "fit_error_mm": None}
+        elif chain is not None:
+            use, by_pose, entry = _limb_rig(vs, faces, frames, refi, *chain)
         else:
             use, by_pose, entry = _rig_of(vs, faces, frames, refi, lambda_thr, limbs=limbs)
         per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine,
@@ -242,6 +258,51 @@ def _rig_of(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, lam
     entry = {"armature": "tracking", "segments": int(rig.segmentation.n_segments),
              "fit_error_mm": round(float(rig.fit.errors.mean()), 4)}
     return rig.model, dict(zip(frames, rig.fit.poses)), entry
+
+
+def _limb_chain(root: Path, labels, refi: int, n_frames: int):
+    """``parts="limbs"``: (labels, the spine's limb axes at the reference position ``refi``), or None (one line
+    says why) without labels or a spine of the take's frames that sees every limb there."""
+    from pipeline.spine_format import SpineFormatError, read_spine
+
+    why = None
+    if labels is None:
+        why = "no labels"
+    else:
+        try:
+            spine = read_spine(root / "spine.json")
+            if spine.frame_count != n_frames:
+                raise ValueError(f"it has {spine.frame_count} frames, the take {n_frames}")
+            axes = [np.asarray(spine.axes[lid][refi], dtype=np.float64) for lid in spine.limb_ids]
+            axes = [a[np.isfinite(a).all(axis=1)] for a in axes]
+            if len(axes) <= int(labels.max()) or any(len(a) < 2 for a in axes):
+                raise ValueError("a limb of the labels has no axis at the reference frame")
+            if (labels == -1).sum() < 8:
+                raise ValueError("the labels' body has too few vertices")
+            return labels, axes
+        except (OSError, SpineFormatError, ValueError) as exc:
+            why = f"no usable spine.json ({exc})"
+    log.warning("parts='limbs': the armature's parts come from the motion: %s", why)
+    return None
+
+
+def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, labels: np.ndarray, axes: list):
+    """The armature of a tracking from the template's labels: the body one part, every limb a chain of the intervals
+    :func:`pipeline.limb_segments.limb_segments` cuts along its axis, rigid; -> as :func:`_rig_of`."""
+    from pipeline.armature_fit import fit_sequence
+    from pipeline.armature_track import segment_armature
+    from pipeline.limb_segments import limb_segments
+
+    seg = limb_segments(vs, labels, axes, reference=refi)
+    parents = np.zeros(int(seg.max()) + 1, dtype=np.int64)
+    parents[0] = -1  # the body; a limb's first interval hangs from it, every other from the one before
+    for k in range(len(axes)):
+        mine = np.unique(seg[labels == k])
+        parents[mine[1:]] = mine[:-1]
+    model = segment_armature(vs[refi], faces, seg, parents, motion=vs, reference=refi)
+    fit = fit_sequence(model, vs)
+    entry = {"armature": "limbs", "segments": len(parents), "fit_error_mm": round(float(fit.errors.mean()), 4)}
+    return model, dict(zip(frames, fit.poses)), entry
 
 
 def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int], refi: int, by_frame: dict, root: Path,

@@ -310,6 +310,42 @@ def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armatur
     assert len(limbs) == 1 and np.array_equal(limbs[0].limb, upper) and limbs[0].names == ("limb0",)
     with pytest.raises(ValueError, match="labels"):
         ta.track_with_armature(tmp_path, labels=upper[1:])
+    # parts="limbs": the armature from the labels and the spine's limb axis (the body one part), no motion segmentation
+    import pipeline.spine_format as spine_format
+
+    axis = np.array([[3.0, 0, 0], [3.0, 0, 30.0], [3.0, 0, 60.0]])  # the upper half's axis at the reference frame
+    spine = SimpleNamespace(frame_count=3, limb_ids=["a"], axes={"a": np.stack([axis + [3.0 * (k - 1), 0, 0] for k in range(3)])})
+    monkeypatch.setattr(spine_format, "read_spine", lambda path: spine)
+    rep = ta.track_with_armature(tmp_path, rounds=1, labels=upper, parts="limbs")
+    entry = rep["rig_prior"]["rounds"][0]
+    assert rep["rig_prior"]["parts"] == "limbs" and entry["armature"] == "limbs" and entry["segments"] >= 2
+    assert len(limbs) == 1  # (build_armature not called)
+    monkeypatch.setattr(spine_format, "read_spine", lambda path: SimpleNamespace(frame_count=2))
+    rep = ta.track_with_armature(tmp_path, rounds=1, labels=upper, parts="limbs")  # no usable spine: the motion's
+    assert rep["rig_prior"]["parts"] == "motion" and len(limbs) == 2
+
+
+def test_segment_armature_invalid_input():
+    from pipeline.armature_track import segment_armature
+
+    model, part = _tube()
+    v, f = model.vertices, model.faces
+    with pytest.raises(ValueError, match="vertices"):
+        segment_armature(v[:, :2], f, part, np.array([-1, 0]))
+    with pytest.raises(ValueError, match="faces"):
+        segment_armature(v, f + len(v), part, np.array([-1, 0]))
+    with pytest.raises(ValueError, match="segments"):
+        segment_armature(v, f, part[1:], np.array([-1, 0]))
+    with pytest.raises(ValueError, match="segments"):
+        segment_armature(v, f, part * 2, np.array([-1, 0, 0]))  # segment 1 has no vertex
+    with pytest.raises(ValueError, match="parents"):
+        segment_armature(v, f, part, np.array([-1, -1]))
+    with pytest.raises(ValueError, match="parents"):
+        segment_armature(v, f, np.r_[part[:-1], 2], np.array([-1, 2, 1]))  # 1 and 2 a cycle
+    with pytest.raises(ValueError, match="motion"):
+        segment_armature(v, f, part, np.array([-1, 0]), motion=v[None, :5])
+    with pytest.raises(ValueError, match="reference"):
+        segment_armature(v, f, part, np.array([-1, 0]), motion=np.stack([v, v]), reference=2)
 
 
 def test_track_with_rig_invalid_input(tmp_path, capsys):
@@ -327,6 +363,8 @@ def test_track_with_rig_invalid_input(tmp_path, capsys):
         track_with_armature(res, model=object())
     with pytest.raises(ValueError, match="spine"):
         track_with_armature(res, spine="yes")
+    with pytest.raises(ValueError, match="parts"):
+        track_with_armature(res, parts="bones")
     with pytest.raises(FileNotFoundError, match="stage track"):
         track_with_armature(res)  # not tracked yet
     with pytest.raises(SystemExit):  # argparse: "must be a count >= 0 or 'auto'"
@@ -355,6 +393,50 @@ def _tube(rings: int = 9, per: int = 8, length: float = 80.0, radius: float = 6.
                              bones=np.array([[0, 1], [1, 2]]))
     part = (v[:, 0] > length / 2).astype(np.int64)
     return ArticulatedModel(v, np.array(f), sk, part[:, None], np.ones((len(v), 1))), part
+
+
+def _rot(axis, angle):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(axis, float) / np.linalg.norm(axis) * angle).as_matrix()
+
+
+def test_segment_armature_turns_every_segment_about_its_centre_of_rotation():
+    """A tube of three rigid segments in a chain, each turning about a pivot 4 mm into the next segment past
+    the middle of their two boundary rings: with the motion every joint is its centre of rotation (to 0.05 mm), without it the
+    ring's centroid; every vertex moves with its own segment's part alone, and the true motion's per-part
+    poses skin every frame exactly."""
+    from pipeline.armature_track import segment_armature
+
+    model, _ = _tube(rings=13, length=120.0)
+    v, f = model.vertices, model.faces
+    seg = np.searchsorted([45.0, 85.0], v[:, 0])  # rings at x = 0, 10, .. 120: the boundaries' rings at 40, 50 and 80, 90
+    pivots = np.array([[49.0, 0, 0], [89.0, 0, 0]])
+    T = 6
+    frames = np.empty((T, len(v), 3))
+    for t in range(T):  # the root's rigid motion, then every segment turned about its pivot (ball joints)
+        G = [(_rot([0, 0, 1], 0.1 * t), np.array([2.0 * t, 0, 0]))]
+        for j, axis in enumerate(([np.cos(t), np.sin(t), 0.5], [0.5, np.cos(2 * t), np.sin(2 * t)])):
+            R = G[-1][0] @ _rot(axis, 0.2 + 0.1 * t * (j + 1))
+            c = pivots[j]
+            G.append((R, G[-1][0] @ c + G[-1][1] - R @ c))
+        frames[t] = np.stack([G[s][0] @ x + G[s][1] for x, s in zip(v, seg)])
+        if t == 0:  # the pivots where the rest frame has them
+            at_rest = np.stack([G[j][0] @ c + G[j][1] for j, c in enumerate(pivots)])
+    arm = segment_armature(frames[0], f, seg, np.array([-1, 0, 1]), motion=frames, reference=0)
+    assert arm.skeleton.n_parts == 3 and list(arm.skeleton.part_parent) == [-1, 0, 1]
+    assert np.abs(arm.pivots[1:] - at_rest).max() < 0.05
+    assert arm.influences.shape == (len(v), 1) and np.array_equal(arm.vertex_parts[:, 0], seg)
+    assert np.allclose(arm.weights, 1.0)
+    from pipeline.armature_fit import Pose
+    from pipeline.rigid_parts import rigid_motions
+
+    motions = [rigid_motions(frames[:, seg == s]) for s in range(3)]
+    for t in (1, T - 1):  # the segments' own rigid motions skin every vertex with its segment's alone
+        pose = Pose(np.stack([m[0][t] for m in motions]), np.stack([m[1][t] for m in motions]))
+        assert np.abs(arm.deform(pose) - frames[t]).max() < 1e-9
+    still = segment_armature(v, f, seg, np.array([-1, 0, 1]))
+    assert np.allclose(still.pivots[1:], [[45.0, 0, 0], [85.0, 0, 0]], atol=1e-9)
 
 
 def test_marks_turn_a_round_part_the_surface_cannot():
