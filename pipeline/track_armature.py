@@ -120,11 +120,13 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         Where every round's armature (without ``model``) gets its parts. ``"motion"``: the motion segmentation
         of the tracking, hung on its curve skeleton, bone heat weights (:func:`pipeline.armature.build_armature`).
         ``"limbs"``: from ``labels`` and the take's spine (``spine.json``, its limb axes at the reference frame,
-        which the labels' limbs index): the body one part, every limb a chain of the intervals along its axis
-        that :func:`pipeline.limb_segments.limb_segments` cuts from the tracking, every vertex moving rigidly
-        with its part (:func:`pipeline.armature_track.segment_armature`); without labels or a usable spine one
-        line says so and the parts come from the motion. Only as good as the labels' body: a limb the labels
-        give the body moves with it (docs/tracking.md, "The round's armature from the labels").
+        which the labels' limbs index; with ``labels="spine"`` the armature's labels also split the body by its
+        motion on every frame's surface, ``template_labels(surfaces=)``): the body one part, every limb a chain
+        of the intervals along its axis that :func:`pipeline.limb_segments.limb_segments` cuts from the
+        tracking, every vertex moving rigidly with its part (:func:`pipeline.armature_track.segment_armature`);
+        without labels or a usable spine one line says so and the parts come from the motion. Only as good as
+        the labels' body: a limb the labels give the body moves with it (docs/tracking.md, "The round's
+        armature from the labels").
 
     Returns
     -------
@@ -156,7 +158,11 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     if isinstance(labels, str):  # the tracking's template frame is the spine's reference frame when it has one
         labels = _spine_labels(root, labels, refi if report.get("spine_start", "none") != "none" else None)
     patch_labels = _patch_labels(labels, vs[refi], faces, frames[refi])
-    chain = _limb_chain(root, patch_labels, refi, len(frames)) if parts == "limbs" and model is None else None
+    chain = None
+    if parts == "limbs" and model is None:
+        limb_labels = patch_labels if source_of_labels != "spine" or patch_labels is None else \
+            _surface_labels(root, vs[refi], faces, refi, frames, by_frame, patch_labels)
+        chain = _limb_chain(root, limb_labels, refi, len(frames))
     first = _spine_rig(root, frames, vs[refi], faces, refi) if spine and model is None else None
     tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
                               rounds=ARMATURE_FIT_ROUNDS, patch_labels=patch_labels)
@@ -284,6 +290,21 @@ def _limb_chain(root: Path, labels, refi: int, n_frames: int):
             why = f"no usable spine.json ({exc})"
     log.warning("parts='limbs': the armature's parts come from the motion: %s", why)
     return None
+
+
+def _surface_labels(root: Path, template: np.ndarray, faces: np.ndarray, refi: int, frames: list[int], by_frame: dict,
+                    fallback: np.ndarray) -> np.ndarray:
+    """``labels="spine"`` for the armature's parts: :func:`pipeline.template_labels.template_labels` with every frame's
+    surface (the body also split by its motion there), or ``fallback`` (one line says why)."""
+    from pipeline.meshio import load_mesh
+    from pipeline.template_labels import template_labels
+
+    try:
+        surfaces = [load_mesh(by_frame[k], largest=False)[0] for k in frames]
+        return np.asarray(template_labels(root, template, faces, reference=refi, surfaces=surfaces), dtype=np.int64)
+    except (OSError, ValueError) as exc:
+        log.warning("parts='limbs': the armature's labels are the tracking's (no labels from the surfaces: %s)", exc)
+        return fallback
 
 
 def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, labels: np.ndarray, axes: list):

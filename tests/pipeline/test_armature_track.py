@@ -310,19 +310,56 @@ def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armatur
     assert len(limbs) == 1 and np.array_equal(limbs[0].limb, upper) and limbs[0].names == ("limb0",)
     with pytest.raises(ValueError, match="labels"):
         ta.track_with_armature(tmp_path, labels=upper[1:])
-    # parts="limbs": the armature from the labels and the spine's limb axis (the body one part), no motion segmentation
     import pipeline.spine_format as spine_format
 
-    axis = np.array([[3.0, 0, 0], [3.0, 0, 30.0], [3.0, 0, 60.0]])  # the upper half's axis at the reference frame
-    spine = SimpleNamespace(frame_count=3, limb_ids=["a"], axes={"a": np.stack([axis + [3.0 * (k - 1), 0, 0] for k in range(3)])})
-    monkeypatch.setattr(spine_format, "read_spine", lambda path: spine)
-    rep = ta.track_with_armature(tmp_path, rounds=1, labels=upper, parts="limbs")
-    entry = rep["rig_prior"]["rounds"][0]
-    assert rep["rig_prior"]["parts"] == "limbs" and entry["armature"] == "limbs" and entry["segments"] >= 2
-    assert len(limbs) == 1  # (build_armature not called)
     monkeypatch.setattr(spine_format, "read_spine", lambda path: SimpleNamespace(frame_count=2))
     rep = ta.track_with_armature(tmp_path, rounds=1, labels=upper, parts="limbs")  # no usable spine: the motion's
     assert rep["rig_prior"]["parts"] == "motion" and len(limbs) == 2
+
+
+def test_armature_round_from_the_labels_and_the_spines_limb_axes(tmp_path, monkeypatch):
+    """``parts="limbs"`` with ``labels="spine"``: the round's armature is cut by ``limb_segments`` from the labels with
+    every frame's surface (``template_labels(surfaces=)``) along the spine's limb axes, the body one part hung above
+    every limb's chain, every vertex on its own part; no motion segmentation."""
+    import pipeline.armature as armature
+    import pipeline.limb_segments as limb_segments
+    import pipeline.track as track
+    import pipeline.track_armature as ta
+    from pipeline.armature_files import load_sequence, tracked_meshes
+    from pipeline.meshio import load_mesh
+    from pipeline.spine_format import read_spine
+    from pipeline.template_labels import template_labels
+    from tests.pipeline.tracking_takes import creature_spine_results
+
+    creature_spine_results(tmp_path)
+    track.track_results(tmp_path, labels="spine")
+    cut, models = [], []
+    real_cut, real_armature = limb_segments.limb_segments, ta._limb_rig
+
+    def record(*a, **k):
+        cut.append((a, k))
+        return real_cut(*a, **k)
+
+    def rig(*a, **k):
+        models.append(real_armature(*a, **k))
+        return models[-1]
+
+    monkeypatch.setattr(limb_segments, "limb_segments", record)
+    monkeypatch.setattr(ta, "_limb_rig", rig)
+    monkeypatch.setattr(armature, "build_armature", lambda *a, **k: pytest.fail("the motion's armature was built"))
+    vs, faces, _ = load_sequence(tracked_meshes(tmp_path))
+    rep = ta.track_with_armature(tmp_path, rounds=1, labels="spine", parts="limbs")
+    assert rep["rig_prior"]["parts"] == "limbs" and rep["rig_prior"]["rounds"][0]["armature"] == "limbs"
+    ref = rep["reference_frame"]
+    surfaces = [load_mesh(tmp_path / "meshes" / f"frame_{k:06d}.ply", largest=False)[0] for k in range(3)]
+    (tracked, labels, axes), kw = cut[0]
+    assert np.array_equal(labels, template_labels(tmp_path, vs[ref], faces, reference=ref, surfaces=surfaces))
+    spine = read_spine(tmp_path / "spine.json")
+    assert len(axes) == len(spine.limb_ids) and all(np.allclose(a, spine.axes[lid][ref]) for a, lid in zip(axes, spine.limb_ids))
+    model = models[0][0]
+    seg = real_cut(tracked, labels, axes, **kw)
+    assert model.skeleton.n_parts == seg.max() + 1 and model.skeleton.part_parent[0] == -1
+    assert np.array_equal(model.vertex_parts[:, 0] == 0, labels == -1)  # the body one part, the root
 
 
 def test_segment_armature_invalid_input():
