@@ -15,8 +15,17 @@ of the body. :func:`template_labels` finds where each limb leaves the body from 
    arm meets the lobes of its disc), or that lies outside the mesh.
 3. A vertex is on the limb when its nearest point on the axis lies beyond that cut and it is no further
    from the axis than the widest section within one limb radius of that point (the template's own
-   section there); on two limbs, the one it is relatively nearer to. Every limb keeps its largest
-   connected piece of the template; everything else is the body.
+   section there); on two limbs, the one it is relatively nearer to.
+4. Proximal of the cut the limb may still lie beside the body (an upper arm hanging against the torso, an
+   outer hip, an arm's root in a disc), where the section around the spine's axis is the body's and the axis
+   itself may run along the crease rather than through the limb. The limb's own centre line goes on from
+   the cut inward, one mesh edge a step, in the limb's own frame: the rays of each section that stay within
+   the limb's diameter (its free side) are fitted a circle and the centre moves to it. The walk stops where
+   those rays do not cover one contiguous half of the directions (inside the body; a flat body bounded by
+   its two faces only), where the circle is nearer the body's radius than the limb's (geometric mean, as
+   the cut), outside the mesh, or as far in as the axis's own cut. A vertex within that circle of the
+   centre line (and one mesh edge: the circle runs through the surface) is on the limb too. Every limb
+   keeps its largest connected piece of the template; everything else is the body.
 
 With every frame's surface (``surfaces=``: the take's per-frame surfaces, free of the tracking's drift),
 the body is also split by its motion near the limbs: the body-labelled template follows each frame's
@@ -29,7 +38,8 @@ its largest connected piece again.
 
 The cut follows the subject: the limb's and the body's radii come from the template, the window from the
 limb's radius, the step from the mesh; no length or ratio is set by hand (the geometric mean is the
-midpoint of two radii on a scale of ratios); the motion split's threshold is the mesh's edge and its one
+midpoint of two radii on a scale of ratios; a ray from inside a round section crosses at most its diameter;
+a limb beside the body shows at least half its round); the motion split's threshold is the mesh's edge and its one
 fixed choice the share of nearest pairs a rigid fit keeps (80 %). Written by hand: sections of a mesh along a curved axis and
 the walk from the tip are no library's; the rays are trimesh's (Embree when installed), the nearest
 points scipy's KD-tree; the rigid fit is Kabsch's (the trimmed ICP around it is a few lines).
@@ -244,7 +254,7 @@ def _spine(spine):
 
 def _limb_reach(mesh, axis: np.ndarray, V: np.ndarray, step: float):
     """(s, d, reach) of every vertex for one limb axis: arc length of its nearest axis point, its distance
-    to the axis, and how far from the axis the limb reaches there (nan: before the cut, not the limb)."""
+    to the limb's axis, and how far from that axis the limb reaches there (nan: not the limb)."""
     ss, P, T = _stations(axis, step)
     R = _section_radii(mesh, P, T)
     s, d = _nearest_on_polyline(V, axis)
@@ -256,7 +266,78 @@ def _limb_reach(mesh, axis: np.ndarray, V: np.ndarray, step: float):
     reach_st = _running(np.where(ss >= cut, widest, np.nan), window, np.nanmax)
     reach = np.interp(s, ss, np.nan_to_num(reach_st, nan=-1.0))
     reach[(s < cut) | (reach < 0)] = np.nan
+    i0 = int(np.flatnonzero(ss >= cut)[0])
+    C, r = _root(mesh, ss, P, R, i0, window, step)
+    if len(C):  # the limb's root beside the body: within its own section of its own centre line
+        line = np.vstack([C[::-1], P[i0]])
+        s2, d2 = _nearest_on_polyline(V, line)
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+        # the fitted circle passes through the surface: a vertex within one mesh edge of it is on it
+        r2 = np.interp(s2, arc, np.concatenate([r[::-1], r[:1]])) + step
+        on = (s2 > 0) & (s2 < arc[-1]) & (d2 <= r2) & ~(d <= reach)
+        d, reach = np.where(on, d2, d), np.where(on, r2, reach)
     return s, d, reach
+
+
+def _root(mesh, ss: np.ndarray, P: np.ndarray, R: np.ndarray, i0: int, window: int, step: float):
+    """(centres (m, 3), radii (m,)) of the limb's own sections proximal of its cut (station ``i0``), one mesh
+    edge apart from the cut inward: the limb's root where it lies beside the body (an upper arm against the
+    torso, an outer hip, an arm's root in a disc), which the spine's axis does not run through.
+
+    Each step goes on along the limb's own centre line; the section there keeps the rays that stay within
+    the limb's diameter (twice its radius just distal of the cut: the far side of its own section), fits
+    them a circle (the limb's section, its free side) and moves the centre to it. The walk stops where
+    those rays do not cover one contiguous half of the directions (the limb no longer shows a free side:
+    it is inside the body, or in a flat body whose section only the two faces bound), where the fitted
+    radius is nearer the body's than the limb's (above their geometric mean, as :func:`_cut`), outside the
+    mesh, or after as many steps as the axis has before its cut."""
+    with np.errstate(all="ignore"):
+        med = _nan_stat(R, np.nanmedian)
+    r_limb = _nan_stat(_running(med, window, np.nanmedian)[i0:i0 + window + 1], np.nanmedian)
+    r_body = _nan_stat(med[ss <= _nan_stat(med[ss >= ss[-1] / 2], np.nanmedian)], np.nanmedian)
+    j = min(len(ss) - 1, i0 + 2 * window)
+    c, t = P[i0].copy(), P[i0] - P[j]
+    if not (np.isfinite(r_limb) and np.isfinite(r_body)) or not np.linalg.norm(t) > 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    t /= np.linalg.norm(t)
+    th = np.linspace(0.0, 2 * np.pi, _RAYS, endpoint=False)
+    centres, radii = [], []
+    while len(centres) < i0:
+        nxt = c + step * t
+        Rr = _section_radii(mesh, nxt[None], t[None])[0]
+        own = Rr <= 2 * r_limb
+        if not np.isfinite(Rr).any() or _longest_run(own) < _RAYS / 2:
+            break
+        U, W = _section_frame(t[None])
+        x, y, r = _circle(Rr[own] * np.cos(th[own]), Rr[own] * np.sin(th[own]))
+        if not r <= np.sqrt(r_limb * r_body):
+            break
+        if np.hypot(x, y) <= r:  # the predicted centre lies in the fitted section: move it to its centre
+            nxt = nxt + x * U[0] + y * W[0]
+        move = nxt - c
+        t = t + move / np.linalg.norm(move)
+        t /= np.linalg.norm(t)
+        c = nxt
+        centres.append(c)
+        radii.append(r)
+    return np.array(centres).reshape(-1, 3), np.array(radii)
+
+
+def _longest_run(x: np.ndarray) -> int:
+    """The longest circular run of True in a boolean array."""
+    if x.all():
+        return len(x)
+    x = np.roll(x, -int(np.flatnonzero(~x)[0]))  # start on a False: no run wraps round
+    runs = np.diff(np.flatnonzero(np.diff(np.concatenate([[0], x.astype(np.int8), [0]]))))[::2]
+    return int(runs.max()) if len(runs) else 0
+
+
+def _circle(x: np.ndarray, y: np.ndarray):
+    """(cx, cy, r): the least-squares circle through points (x, y) (Kasa's algebraic fit)."""
+    A = np.stack([x, y, np.ones_like(x)], axis=1)
+    (a, b, c), *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
+    cx, cy = a / 2, b / 2
+    return cx, cy, float(np.sqrt(max(c + cx * cx + cy * cy, 0.0)))
 
 
 def _cut(ss: np.ndarray, R: np.ndarray):
@@ -306,10 +387,7 @@ def _stations(axis: np.ndarray, step: float):
 def _section_radii(mesh, P: np.ndarray, T: np.ndarray) -> np.ndarray:
     """(n, rays) distance from every station to the surface in its normal plane; nan rows outside the mesh."""
     n = len(P)
-    helper = np.where(np.abs(T[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    U = np.cross(T, helper)
-    U /= np.linalg.norm(U, axis=1, keepdims=True)
-    W = np.cross(T, U)
+    U, W = _section_frame(T)
     th = np.linspace(0.0, 2 * np.pi, _RAYS, endpoint=False)
     D = (np.cos(th)[None, :, None] * U[:, None] + np.sin(th)[None, :, None] * W[:, None]).reshape(-1, 3)
     origins = np.repeat(P, _RAYS, axis=0)
@@ -323,6 +401,15 @@ def _section_radii(mesh, P: np.ndarray, T: np.ndarray) -> np.ndarray:
     R = R.reshape(n, _RAYS)
     R[leaves.reshape(n, _RAYS).sum(1) <= _RAYS // 2] = np.nan
     return R
+
+
+def _section_frame(T: np.ndarray):
+    """(U, W): unit vectors spanning the plane normal to every unit tangent T (n, 3); ray k of a section
+    points along cos(2 pi k / rays) U + sin(2 pi k / rays) W."""
+    helper = np.where(np.abs(T[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    U = np.cross(T, helper)
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    return U, np.cross(T, U)
 
 
 def _nan_stat(x, fn):
