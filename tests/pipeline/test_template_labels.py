@@ -44,19 +44,22 @@ def _creature_template(name: str, voxel: float = 6.0, times: tuple = (0.3,)):
 @pytest.mark.parametrize("name", ["starfish", "quadruped", "biped"])
 def test_limbs_leave_the_body_where_their_section_narrows(name):
     """On the creature's own surface and limb axes, which run from the body's centre, a limb takes its own
-    vertices and leaves the body to the body: the simulator's labels at 78 % of the vertices or more, the body
-    at 85 % recall and 60 % precision or more (the biped's upper arms hang against its body: their surface
-    joins the body's)."""
+    vertices and leaves the body to the body: the simulator's labels at 85 % of the vertices or more, the body
+    at 75 % recall and 75 % precision or more. The biped's upper arms hang against its body and its hips bulge
+    from it (their surface joins the body's): their sections are the body's, and only the limb's own centre
+    line walked in from the cut gives them to the limb (without it the biped's are 0.82 right and 0.63
+    precise); the starfish's arm roots are wide lobes of its disc, where the simulator's capsules split the
+    surface between arm and body (recall 0.78)."""
     from pipeline.template_labels import BODY, template_labels
 
     spine, V, F, true, _ = _creature_template(name)
     got = template_labels(spine, V, F)
     assert got.shape == (len(V),) and got.dtype == np.int64
     assert set(np.unique(got)) <= {BODY, *range(spine.K)}
-    assert (got == true).mean() >= 0.78
+    assert (got == true).mean() >= 0.85
     body, true_body = got == BODY, true == BODY
-    assert (body & true_body).sum() >= 0.85 * true_body.sum()
-    assert (body & true_body).sum() >= 0.6 * body.sum()
+    assert (body & true_body).sum() >= 0.75 * true_body.sum()
+    assert (body & true_body).sum() >= 0.75 * body.sum()
     for k in range(spine.K):  # every limb found, each one connected piece on its own limb
         assert (got == k).sum() > 0 and np.mean(true[got == k] == k) >= 0.75
 
@@ -64,8 +67,9 @@ def test_limbs_leave_the_body_where_their_section_narrows(name):
 def test_the_body_split_by_its_motion_gives_the_limbs_their_roots():
     """Where a limb's root is joined to the body (the biped's upper arms hanging against it, its hips), the
     body's rigid motion over the frames does not keep the root's vertices on the surfaces and the limb's
-    does: with every frame's surface the labels are right at 3 points more of the vertices, the body's
-    precision 4 points higher, its recall no more than 1 point lower."""
+    does: with every frame's surface the labels are right at no fewer of the vertices, the body's precision
+    2 points higher, its recall no more than 2 points lower (the shape alone already gives the limbs most
+    of their roots, :func:`test_limbs_leave_the_body_where_their_section_narrows`)."""
     from pipeline.template_labels import template_labels
 
     spine, V, F, true, surfaces = _creature_template("biped", times=(0.3, 0.45, 0.6, 0.75, 0.9))
@@ -79,9 +83,9 @@ def test_the_body_split_by_its_motion_gives_the_limbs_their_roots():
         return (got == true).mean(), both / true_body.sum(), both / body.sum()
 
     (right0, recall0, precision0), (right, recall, precision) = scores(shape), scores(moving)
-    assert right >= right0 + 0.03
-    assert precision >= precision0 + 0.04
-    assert recall >= recall0 - 0.01
+    assert right >= right0
+    assert precision >= precision0 + 0.02
+    assert recall >= recall0 - 0.02
 
 
 def test_a_spine_file_or_results_directory_gives_the_same_labels(tmp_path):
@@ -128,3 +132,19 @@ def test_invalid_input(tmp_path):
         template_labels(spine, V, F, surfaces=[V[:, :2]])
     with pytest.raises(ValueError, match="frame"):
         axis_labels([spine.axes[lid][0] for lid in spine.limb_ids], V, F, surfaces=[V], frame=1)
+
+
+def test_the_roots_circle_and_free_side():
+    """The circle fitted to a limb's section is the exact circle through points on it (to 1e-9), and the free
+    side's extent is the longest circular run of rays, as a slow count of every start gives it."""
+    from pipeline.template_labels import _circle, _longest_run
+
+    rng = np.random.default_rng(0)
+    th = rng.uniform(0.0, np.pi, 7)  # half a circle: the free side of a limb beside the body
+    cx, cy, r = _circle(3.0 + 20.0 * np.cos(th), -2.0 + 20.0 * np.sin(th))
+    np.testing.assert_allclose([cx, cy, r], [3.0, -2.0, 20.0], atol=1e-9)
+    for _ in range(200):
+        x = rng.random(16) < rng.uniform(0.2, 0.9)
+        slow = max(next((n for n in range(16) if not x[(i + n) % 16]), 16) for i in range(16))
+        assert _longest_run(x) == slow
+    assert _longest_run(np.zeros(16, bool)) == 0 and _longest_run(np.ones(16, bool)) == 16
