@@ -23,7 +23,8 @@ of the body. :func:`template_labels` finds where each limb leaves the body from 
    the limb's diameter (its free side) are fitted a circle and the centre moves to it. The walk stops where
    those rays do not cover one contiguous half of the directions (inside the body; a flat body bounded by
    its two faces only), where the circle is nearer the body's radius than the limb's (geometric mean, as
-   the cut), outside the mesh, or as far in as the axis's own cut. A vertex within that circle of the
+   the cut) or grows by more than the step (the surface turns more across the limb than along it: the
+   body's, which the limb meets there), outside the mesh, or as far in as the axis's own cut. A vertex within that circle of the
    centre line (and one mesh edge: the circle runs through the surface) is on the limb too. Every limb
    keeps its largest connected piece of the template; everything else is the body.
 
@@ -39,7 +40,8 @@ its largest connected piece again.
 The cut follows the subject: the limb's and the body's radii come from the template, the window from the
 limb's radius, the step from the mesh; no length or ratio is set by hand (the geometric mean is the
 midpoint of two radii on a scale of ratios; a ray from inside a round section crosses at most its diameter;
-a limb beside the body shows at least half its round); the motion split's threshold is the mesh's edge and its one
+a limb beside the body shows at least half its round; a surface steeper than 45 degrees to the axis is
+turning away from it); the motion split's threshold is the mesh's edge and its one
 fixed choice the share of nearest pairs a rigid fit keeps (80 %). Written by hand: sections of a mesh along a curved axis and
 the walk from the tip are no library's; the rays are trimesh's (Embree when installed), the nearest
 points scipy's KD-tree; the rigid fit is Kabsch's (the trimmed ICP around it is a few lines).
@@ -289,8 +291,9 @@ def _root(mesh, ss: np.ndarray, P: np.ndarray, R: np.ndarray, i0: int, window: i
     them a circle (the limb's section, its free side) and moves the centre to it. The walk stops where
     those rays do not cover one contiguous half of the directions (the limb no longer shows a free side:
     it is inside the body, or in a flat body whose section only the two faces bound), where the fitted
-    radius is nearer the body's than the limb's (above their geometric mean, as :func:`_cut`), outside the
-    mesh, or after as many steps as the axis has before its cut."""
+    radius is nearer the body's than the limb's (above their geometric mean, as :func:`_cut`) or grows by
+    more than the step from the last section's (the cut's: the limb's radius just distal of it), outside
+    the mesh, or after as many steps as the axis has before its cut."""
     with np.errstate(all="ignore"):
         med = _nan_stat(R, np.nanmedian)
     r_limb = _nan_stat(_running(med, window, np.nanmedian)[i0:i0 + window + 1], np.nanmedian)
@@ -302,6 +305,7 @@ def _root(mesh, ss: np.ndarray, P: np.ndarray, R: np.ndarray, i0: int, window: i
     t /= np.linalg.norm(t)
     th = np.linspace(0.0, 2 * np.pi, _RAYS, endpoint=False)
     centres, radii = [], []
+    last = r_limb
     while len(centres) < i0:
         nxt = c + step * t
         Rr = _section_radii(mesh, nxt[None], t[None])[0]
@@ -310,11 +314,12 @@ def _root(mesh, ss: np.ndarray, P: np.ndarray, R: np.ndarray, i0: int, window: i
             break
         U, W = _section_frame(t[None])
         x, y, r = _circle(Rr[own] * np.cos(th[own]), Rr[own] * np.sin(th[own]))
-        if not r <= np.sqrt(r_limb * r_body):
+        if not r <= min(np.sqrt(r_limb * r_body), last + step):
             break
+        last = r
         if np.hypot(x, y) <= r:  # the predicted centre lies in the fitted section: move it to its centre
             nxt = nxt + x * U[0] + y * W[0]
-        move = nxt - c
+        move = nxt - c  # the direction turns half-way to the last step's: the centre line bends with the limb
         t = t + move / np.linalg.norm(move)
         t /= np.linalg.norm(t)
         c = nxt
