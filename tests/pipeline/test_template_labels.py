@@ -47,9 +47,9 @@ def test_limbs_leave_the_body_where_their_section_narrows(name):
     vertices and leaves the body to the body: the simulator's labels at 85 % of the vertices or more, the body
     at 75 % recall and 75 % precision or more. The biped's upper arms hang against its body and its hips bulge
     from it (their surface joins the body's): their sections are the body's, and only the limb's own centre
-    line walked in from the cut gives them to the limb (without it the biped's are 0.82 right and 0.63
-    precise); the starfish's arm roots are wide lobes of its disc, where the simulator's capsules split the
-    surface between arm and body (recall 0.78)."""
+    line walked in from the cut gives them to the limb (without it the biped's body is below these bounds);
+    the starfish's arm roots are wide lobes of its disc, where the simulator's capsules split the surface
+    between arm and body."""
     from pipeline.template_labels import BODY, template_labels
 
     spine, V, F, true, _ = _creature_template(name)
