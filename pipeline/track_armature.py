@@ -120,13 +120,14 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         Where every round's armature (without ``model``) gets its parts. ``"motion"``: the motion segmentation
         of the tracking, hung on its curve skeleton, bone heat weights (:func:`pipeline.armature.build_armature`).
         ``"limbs"``: from ``labels`` and the take's spine (``spine.json``, its limb axes at the reference frame,
-        which the labels' limbs index; with ``labels="spine"`` the armature's labels also split the body by its
-        motion on every frame's surface, ``template_labels(surfaces=)``): the body one part, every limb a chain
-        of the intervals along its axis that :func:`pipeline.limb_segments.limb_segments` cuts from the
-        tracking, every vertex moving rigidly with its part (:func:`pipeline.armature_track.segment_armature`);
-        without labels or a usable spine one line says so and the parts come from the motion. Only as good as
-        the labels' body: a limb the labels give the body moves with it (docs/tracking.md, "The round's
-        armature from the labels").
+        which the labels' limbs index): the body one part, every limb a chain of the intervals along its axis
+        that :func:`pipeline.limb_segments.limb_segments` cuts from the tracking, every vertex moving rigidly with
+        its part (:func:`pipeline.armature_track.segment_armature`). With ``labels="spine"`` the armature's
+        labels also split the body by its motion on every frame's surface (``template_labels(surfaces=)``), and
+        a piece of the body that the body's motion carries off the surfaces becomes a limb of its own (a limb
+        the spine has no axis for, :func:`_unclaimed_limbs`). Without labels or a usable spine one line says so
+        and the parts come from the motion. Only as good as the labels' body: a limb the labels give the body
+        moves with it (docs/tracking.md, "The round's armature from the labels").
 
     Returns
     -------
@@ -160,9 +161,12 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     patch_labels = _patch_labels(labels, vs[refi], faces, frames[refi])
     chain = None
     if parts == "limbs" and model is None:
-        limb_labels = patch_labels if source_of_labels != "spine" or patch_labels is None else \
-            _surface_labels(root, vs[refi], faces, refi, frames, by_frame, patch_labels)
+        surfaces = _surface_points(by_frame, frames) if source_of_labels == "spine" and patch_labels is not None else None
+        limb_labels = patch_labels if surfaces is None else _surface_labels(root, vs[refi], faces, refi, surfaces,
+                                                                            patch_labels)
         chain = _limb_chain(root, limb_labels, refi, len(frames))
+        if chain is not None and surfaces is not None:  # (labels="spine": a limb the spine has no axis for)
+            chain = _unclaimed_limbs(vs, faces, *chain, surfaces, reference=refi)
     first = _spine_rig(root, frames, vs[refi], faces, refi) if spine and model is None else None
     tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
                               rounds=ARMATURE_FIT_ROUNDS, patch_labels=patch_labels)
@@ -292,19 +296,104 @@ def _limb_chain(root: Path, labels, refi: int, n_frames: int):
     return None
 
 
-def _surface_labels(root: Path, template: np.ndarray, faces: np.ndarray, refi: int, frames: list[int], by_frame: dict,
+def _surface_points(by_frame: dict, frames: list[int]):
+    """Every frame's surface vertices in ``frames`` order, or None (one line says why)."""
+    from pipeline.meshio import load_mesh
+
+    try:
+        return [load_mesh(by_frame[k], largest=False)[0] for k in frames]
+    except (OSError, ValueError) as exc:
+        log.warning("parts='limbs': the surfaces cannot be read (%s); the armature's labels are the tracking's", exc)
+        return None
+
+
+def _surface_labels(root: Path, template: np.ndarray, faces: np.ndarray, refi: int, surfaces: list,
                     fallback: np.ndarray) -> np.ndarray:
     """``labels="spine"`` for the armature's parts: :func:`pipeline.template_labels.template_labels` with every frame's
     surface (the body also split by its motion there), or ``fallback`` (one line says why)."""
-    from pipeline.meshio import load_mesh
     from pipeline.template_labels import template_labels
 
     try:
-        surfaces = [load_mesh(by_frame[k], largest=False)[0] for k in frames]
         return np.asarray(template_labels(root, template, faces, reference=refi, surfaces=surfaces), dtype=np.int64)
-    except (OSError, ValueError) as exc:
+    except ValueError as exc:
         log.warning("parts='limbs': the armature's labels are the tracking's (no labels from the surfaces: %s)", exc)
         return fallback
+
+
+def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int = 0, keep: float = 0.5,
+                    rounds: int = 3) -> tuple[np.ndarray, list]:
+    """Pieces of the body that do not move with it, as limbs of their own (a limb the spine has no axis for).
+
+    The body's rigid motion (the best rigid motion of its tracked vertices from the ``reference`` frame,
+    :func:`pipeline.rigid_parts.rigid_motions`, refitted ``rounds`` times to the ``keep`` share of them it
+    carries best) is applied to every body vertex; those it keeps further than one mesh edge (the mean edge of the
+    template; root mean square over the frames) from the frame's surface form connected pieces over the mesh, and a
+    piece with at least as many vertices as the smallest labelled limb becomes a limb, its axis the line from
+    the centroid of its vertices next to the rest of the body to its vertex farthest from there.
+
+    Parameters
+    ----------
+    vertices : (T, V, 3) float ndarray
+        The tracked template.
+    faces : (F, 3) int ndarray
+    labels : (V,) int ndarray
+        Limb of every vertex (index into ``axes``) or -1 for the body.
+    axes : list of (n, 3) float ndarray
+        Every limb's axis at frame ``reference``.
+    surfaces : list of (n_t, 3) float ndarray
+        Every frame's surface vertices.
+    reference : int
+    keep : float
+        Share of the body's vertices its motion is refitted to.
+    rounds : int
+
+    Returns
+    -------
+    labels : (V,) int64 ndarray
+        With the new limbs numbered after the given ones.
+    axes : list of (n, 3) float ndarray
+        The given axes, then the new limbs'.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from pipeline.rigid_parts import rigid_motions
+
+    vs, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+    out, axes = np.asarray(labels, dtype=np.int64).copy(), list(axes)
+    body = np.flatnonzero(out == -1)
+    sizes = np.bincount(out[out >= 0], minlength=len(axes))
+    if len(body) < 8 or not (sizes > 0).any() or len(surfaces) != len(vs):
+        return out, axes
+    V = vs[reference]
+    ids = body
+    for _ in range(rounds):  # the body's motion, from the share of its vertices that follows it best
+        R, t = rigid_motions(vs[:, ids], reference=reference)
+        gap = np.linalg.norm(np.einsum("tij,vj->tvi", R, V[body]) + t[:, None] - vs[:, body], axis=2).mean(0)
+        ids = body[np.argsort(gap)[:max(3, int(keep * len(body)))]]
+    R, t = rigid_motions(vs[:, ids], reference=reference)
+    carried = np.einsum("tij,vj->tvi", R, V[body]) + t[:, None]
+    rms = np.sqrt(np.mean([cKDTree(S).query(c)[0] ** 2 for S, c in zip(surfaces, carried)], axis=0))
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    off = np.zeros(len(V), dtype=bool)
+    off[body[rms > np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).mean()]] = True
+    inner = e[off[e[:, 0]] & off[e[:, 1]]]
+    _, piece = connected_components(coo_matrix((np.ones(len(inner)), (inner[:, 0], inner[:, 1])), shape=(len(V),) * 2),
+                                    directed=False)
+    rest = (out == -1) & ~off
+    for p in np.unique(piece[off]):
+        mine = off & (piece == p)
+        if mine.sum() < sizes[sizes > 0].min():
+            continue
+        next_to_body = np.unique(e[mine[e[:, 0]] & rest[e[:, 1]], 0])
+        if len(next_to_body) == 0:
+            continue
+        root = V[next_to_body].mean(0)
+        far = V[mine][np.argmax(np.linalg.norm(V[mine] - root, axis=1))]
+        out[mine] = len(axes)
+        axes.append(np.stack([root, far]))
+    return out, axes
 
 
 def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, labels: np.ndarray, axes: list):

@@ -476,6 +476,34 @@ def test_segment_armature_turns_every_segment_about_its_centre_of_rotation():
     assert np.allclose(still.pivots[1:], [[45.0, 0, 0], [85.0, 0, 0]], atol=1e-9)
 
 
+def test_a_body_piece_that_does_not_move_with_the_body_becomes_a_limb():
+    """``parts="limbs"``: a piece the labels give the body (an arm the spine has no axis for) that the body's motion
+    carries off the surfaces becomes a limb of its own, its axis from where it meets the body to its far end; a body
+    that moves as one gains nothing."""
+    import pipeline.track_armature as ta
+
+    tube, _ = _tube(rings=13, length=120.0)
+    v, f = tube.vertices, tube.faces
+    other = v[:16] + [0.0, 40.0, 0]  # a labelled limb of two rings beside it
+    V = np.vstack([v, other])
+    F = np.vstack([f, _tube(rings=2, length=10.0)[0].faces + len(v)])
+    labels = np.r_[np.full(len(v), -1), np.zeros(len(other), dtype=np.int64)]
+    axes = [np.array([[0.0, 40, 0], [10.0, 40, 0]])]
+    arm = v[:, 0] >= 90.0  # turns about (90, 0, 0) while the rest stands
+    T = 4
+    frames = np.repeat(V[None], T, axis=0)
+    for t in range(T):
+        R = _rot([0, 0, 1], 0.6 * t)
+        frames[t, :len(v)][arm] = (v[arm] - [90.0, 0, 0]) @ R.T + [90.0, 0, 0]
+    out, ax = ta._unclaimed_limbs(frames, F, labels, axes, list(frames), reference=0)
+    assert len(ax) == 2 and set(out[:len(v)][~arm]) == {-1} and np.array_equal(out[len(v):], labels[len(v):])
+    new = out == 1
+    assert new[:len(v)][v[:, 0] >= 110.0].all() and not new[:len(v)][v[:, 0] < 90.0].any()  # its far rings
+    assert 90.0 <= ax[1][0, 0] <= 110.0 and ax[1][1, 0] == 120.0
+    still, ax2 = ta._unclaimed_limbs(np.repeat(V[None], T, axis=0), F, labels, axes, [V] * T, reference=0)
+    assert np.array_equal(still, labels) and len(ax2) == 1
+
+
 def test_marks_turn_a_round_part_the_surface_cannot():
     """A tube's half turned about its own axis by one vertex spacing lies on the same surface (the
     residual is 0): the ICP alone keeps the turn; with marks (where the images say half of its
