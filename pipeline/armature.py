@@ -178,6 +178,7 @@ def build_armature(
     peel_parts: bool = True,
     min_gap: float | None = None,
     limbs=None,
+    parts=None,
 ) -> Armature:
     """An articulated, skinned model fitted to every frame of a mesh sequence.
 
@@ -212,6 +213,11 @@ def build_armature(
         The take's spine limb of every vertex (a tracked take with a spine:
         :func:`pipeline.armature_files.armature_results`): see ``limbs`` of
         :func:`pipeline.armature_skeleton.articulated_skeleton`.
+    parts : (V,) int array_like or (V,) int array_like and str, optional
+        The rigid part of every vertex when it is known, in place of the motion segmentation (``lambda_thr``,
+        ``n_samples``, ``peel_parts`` and ``min_gap`` then do nothing): ``(labels, source)``, ``source`` saying
+        where they came from (``rig.json``'s ``segmentation.source``; :func:`pipeline.armature_files.limb_parts`
+        gives ``"limbs"``), or the labels alone (``"given"``). Parts are renumbered by decreasing size.
 
     Returns
     -------
@@ -233,8 +239,11 @@ def build_armature(
         raise ValueError(f"frame_indices must have {T} entries, got {len(fi)}")
     timings = {}
     t0 = time.perf_counter()
-    seg = motion_segmentation(v, f, lambda_thr=lambda_thr, n_samples=n_samples, peel_parts=peel_parts,
-                              min_gap=min_gap)
+    if parts is None:
+        seg = motion_segmentation(v, f, lambda_thr=lambda_thr, n_samples=n_samples, peel_parts=peel_parts,
+                                  min_gap=min_gap)
+    else:
+        seg = given_segmentation(parts, v.shape[1])
     timings["segmentation"] = time.perf_counter() - t0
     if progress:
         progress("segmentation", 1, 1)
@@ -260,6 +269,23 @@ def build_armature(
     )
     return Armature(seg, skel, model, fit, ref, fi, str(units), float(fps), size, float(lambda_thr), timings,
                     None if limbs is None else _spine_decisions(limbs, seg.labels, skel))
+
+
+def given_segmentation(parts, n_vertices: int) -> Segmentation:
+    """A :class:`~pipeline.motion_segmentation.Segmentation` of given parts (``parts`` of :func:`build_armature`):
+    ``(labels, source)`` or labels alone, (V,) non-negative integers, renumbered ``0 .. k-1`` by decreasing size."""
+    labels, source = (parts[0], str(parts[1])) if isinstance(parts, tuple) and len(parts) == 2 else (parts, "given")
+    lab = np.asarray(labels)
+    if lab.shape != (n_vertices,) or not np.issubdtype(lab.dtype, np.integer) or (len(lab) and lab.min() < 0):
+        raise ValueError(f"parts must give a non-negative integer part of every one of the {n_vertices} vertices, "
+                         f"got {lab.dtype} shape {lab.shape}")
+    _, inv, counts = np.unique(lab, return_inverse=True, return_counts=True)
+    rank = np.empty(len(counts), dtype=np.int64)
+    rank[np.argsort(-counts, kind="stable")] = np.arange(len(counts))
+    out = rank[inv.ravel()]
+    k = len(counts)
+    empty = np.zeros(0, dtype=np.int64)
+    return Segmentation(out, empty, empty, np.zeros(0), k, 0, float("nan"), float("nan"), source)
 
 
 def _spine_decisions(limbs: VertexLimbs, labels, skeleton: ArticulatedSkeleton) -> dict:
@@ -372,7 +398,7 @@ def armature_dict(armature: Armature) -> dict:
             "vertex_error_percent": [float(100 * e / armature.size) for e in err],
             "mean_vertex_error": float(err.mean()),
         },
-        "segmentation": {
+        "segmentation": {"segments": seg.n_segments, "source": seg.source} if seg.source != "motion" else {
             "segments": seg.n_segments,
             "clusters": seg.k,
             "lambda_thr": seg.lambda_thr if np.isfinite(seg.lambda_thr) else armature.lambda_thr,

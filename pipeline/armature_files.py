@@ -29,7 +29,8 @@ from pipeline.armature_limbs import VertexLimbs, vertex_limbs
 from pipeline.motion_segmentation import MIN_GAP
 from pipeline.results import atomic_write_bytes, ply_bytes
 
-__all__ = ["FRAME_GLOB", "NoTrackingError", "armature_results", "load_sequence", "remove_armature", "spine_limbs",
+__all__ = ["FRAME_GLOB", "NoTrackingError", "armature_results", "limb_parts", "load_sequence", "remove_armature",
+           "spine_limbs",
            "tracked_meshes", "write_armature"]
 
 log = logging.getLogger(__name__)
@@ -98,12 +99,19 @@ def load_sequence(paths) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.asarray(verts), faces, np.asarray(numbers, dtype=np.int64)
 
 
-def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=None, progress=None, **options):
+def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=None, progress=None, parts=None,
+                     **options):
     """Build the armature of a results directory from its tracked template; writes ``RESULTS_DIR/rig/`` (or ``out``).
 
     With the take's spine (``spine.json``), the spine's limbs (:func:`spine_limbs`) keep a segment on one
     limb from being hung from a segment on another (``limbs`` of :func:`pipeline.armature.build_armature`;
     ``rig.json``'s ``spine`` says what it decided); ``limbs=None`` builds it without them.
+
+    ``parts="limbs"``: when the template was tracked with its limb/body labels (``stage track --labels``), the
+    parts are the labels' body and every limb cut along its spine axis (:func:`limb_parts`) in place of the
+    motion segmentation (``rig.json``'s ``segmentation.source`` says which; off by default:
+    docs/armature-format.md, "Segments along the limb axes"). Without such labels one line says so and the
+    motion segmentation is used.
 
     Returns
     -------
@@ -114,6 +122,12 @@ def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=N
     options.setdefault("min_gap", MIN_GAP)  # and the eigengap tells many small joints from a few large ones
     if "limbs" not in options:
         options["limbs"] = spine_limbs(results_dir, vertices, faces, numbers)
+    if parts not in (None, "limbs"):
+        raise ValueError(f"parts must be None or 'limbs', got {parts!r}")
+    if parts == "limbs":
+        found = limb_parts(results_dir, vertices, faces, numbers)
+        if found is not None:
+            options["parts"] = (found, "limbs")
     rig = build_armature(vertices, faces, units=units, fps=fps, frame_indices=numbers, progress=progress,
                                 **options)
     write_armature(rig, Path(out) if out is not None else Path(results_dir) / "rig", progress=progress)
@@ -143,6 +157,49 @@ def spine_limbs(results_dir, vertices, faces, numbers) -> VertexLimbs | None:
         return vertex_limbs(rigged_model(spine, vertices[int(at[0])], faces, reference=ref))
     except (NoCompleteFrameError, ValueError, KeyError) as exc:
         log.warning("the armature is built without the spine's limbs (%s)", exc)
+        return None
+
+
+def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
+    """The rigid parts of a template tracked with its limb/body labels: the body one part, every limb cut along
+    its spine axis (:func:`pipeline.limb_segments.limb_segments`), or None (one line says why).
+
+    The labels are the ones the tracking used (``tracked/track.json``'s ``patch_labels`` ``"spine"``:
+    :func:`pipeline.template_labels.template_labels` of the take's spine at its rest frame, which must be
+    tracked), checked against the tracking's digest of them (``patch_labels_sha256``); the limbs' axes are the
+    spine's at that frame.
+    """
+    import hashlib
+
+    from pipeline.armature_spine import reference_frame
+    from pipeline.limb_segments import MIN_VERTICES, limb_segments
+    from pipeline.spine_format import SpineFormatError, read_spine
+    from pipeline.template_labels import template_labels
+
+    root = Path(results_dir)
+    try:
+        report = json.loads((root / "tracked" / "track.json").read_text())
+        if report.get("patch_labels") != "spine":
+            raise ValueError("the template was not tracked with the spine's labels (stage track --labels)")
+        spine = read_spine(root / "spine.json")
+        ref = reference_frame(spine)
+        at = np.flatnonzero(np.asarray(numbers) == int(spine.frame_indices[ref]))
+        if len(at) == 0:
+            raise ValueError(f"the spine's rest frame {int(spine.frame_indices[ref])} is not tracked")
+        at = int(at[0])
+        labels = np.asarray(template_labels(spine, vertices[at], faces, reference=ref), dtype=np.int64)
+        if hashlib.sha256(labels.tobytes()).hexdigest() != report.get("patch_labels_sha256"):
+            raise ValueError("the spine's labels are not the ones the template was tracked with")
+        axes = [np.asarray(spine.axes[lid][ref], dtype=np.float64) for lid in spine.limb_ids]
+        axes = [a[np.isfinite(a).all(axis=1)] for a in axes]
+        if any(len(axes[k]) < 2 for k in np.unique(labels[labels >= 0])):
+            raise ValueError("a limb of the labels has no axis at the spine's rest frame")
+        if (labels == -1).sum() < 2 * MIN_VERTICES:
+            raise ValueError("the labels' body has too few vertices")
+        axes = [a if len(a) >= 2 else np.zeros((2, 3)) for a in axes]  # a limb without vertices: never read
+        return limb_segments(vertices, labels, axes, reference=at)
+    except (OSError, SpineFormatError, ValueError, KeyError) as exc:
+        log.warning("parts='limbs': the armature's parts come from the motion segmentation: %s", exc)
         return None
 
 

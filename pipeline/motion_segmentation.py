@@ -147,6 +147,10 @@ class Segmentation:
     lambda_thr : float
         The eigenvalue threshold used (``SMALL_MOTION_THR`` when the one asked for found one cluster
         in a subject that does not move rigidly; nan when not recorded).
+    source : str
+        ``"motion"`` (this module's spectral segmentation) or where given segments came from (``"limbs"``:
+        :func:`pipeline.limb_segments.limb_segments`, :func:`pipeline.armature_files.limb_parts`); given
+        segments have no samples, eigenvalues, ``interval`` or ``lam`` (0, nan).
     """
 
     labels: np.ndarray
@@ -157,6 +161,7 @@ class Segmentation:
     interval: int
     lam: float
     lambda_thr: float = float("nan")
+    source: str = "motion"
 
     @property
     def n_segments(self) -> int:
