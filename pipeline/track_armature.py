@@ -328,7 +328,8 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     :func:`pipeline.rigid_parts.rigid_motions`, refitted ``rounds`` times to the ``keep`` share of them it
     carries best) is applied to every body vertex; those it keeps further than one mesh edge (the mean edge of the
     template; root mean square over the frames) from the frame's surface form connected pieces over the mesh, and a
-    piece with at least as many vertices as the smallest labelled limb becomes a limb, its axis the line from
+    piece with at least as many vertices as the smallest labelled limb (and leaving the body at least 8, to measure
+    its noise on) becomes a limb, its axis the line from
     the centroid of its vertices next to the rest of the body to its vertex farthest from there.
 
     Parameters
@@ -384,7 +385,7 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     rest = (out == -1) & ~off
     for p in np.unique(piece[off]):
         mine = off & (piece == p)
-        if mine.sum() < sizes[sizes > 0].min():
+        if mine.sum() < sizes[sizes > 0].min() or (out == -1).sum() - mine.sum() < 8:  # (the body keeps its noise)
             continue
         next_to_body = np.unique(e[mine[e[:, 0]] & rest[e[:, 1]], 0])
         if len(next_to_body) == 0:
