@@ -167,7 +167,8 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
     The labels are the ones the tracking used (``tracked/track.json``'s ``patch_labels`` ``"spine"``:
     :func:`pipeline.template_labels.template_labels` of the take's spine at its rest frame, which must be
     tracked), checked against the tracking's digest of them (``patch_labels_sha256``); the limbs' axes are the
-    spine's at that frame.
+    spine's at that frame; every limb's noise is measured on the limb (``rho="limb"``: the body is tracked as
+    one patch, the limbs on a grid, so the body's noise is not theirs).
     """
     import hashlib
 
@@ -197,7 +198,7 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
         if (labels == -1).sum() < 2 * MIN_VERTICES:
             raise ValueError("the labels' body has too few vertices")
         axes = [a if len(a) >= 2 else np.zeros((2, 3)) for a in axes]  # a limb without vertices: never read
-        return limb_segments(vertices, labels, axes, reference=at)
+        return limb_segments(vertices, labels, axes, reference=at, rho="limb")
     except (OSError, SpineFormatError, ValueError, KeyError) as exc:
         log.warning("parts='limbs': the armature's parts come from the motion segmentation: %s", exc)
         return None

@@ -20,6 +20,13 @@ are intervals along its axis. :func:`limb_segments` therefore
    same number of candidate positions). A limb keeps cutting while the next cut (or the next two
    together) removes more than ``rho`` (``1 - (1 - rho)**2``) of the remaining residual.
 
+``rho="limb"`` measures the noise on every limb itself instead: its DP's cuts far beyond any limb's joints
+(the 7th to the 16th, :data:`LIMB_TAIL`) remove noise alone, and a cut is kept while it removes more than
+:data:`LIMB_FACTOR` times their mean fraction. It follows the tracking's noise where the limb is and the
+limb's own size (the body's noise is another's when the body is tracked as one patch and the limbs on a
+grid); the factor is the one that cuts a synthetic chain of 0, 1, 2 and 4 joints (rigid jitter per patch,
+noise per vertex) into its parts.
+
 No length or count is set for a creature: the cut positions follow the limb's own extent, the threshold
 the take's own noise. Written by hand: an interval segmentation of a chain by rigid residual is no
 library's (scipy has the SVDs).
@@ -29,14 +36,18 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["MIN_VERTICES", "limb_segments", "chain_cuts", "noise_ratio"]
+__all__ = ["LIMB_FACTOR", "LIMB_TAIL", "MIN_VERTICES", "limb_segments", "chain_cuts", "limb_noise", "noise_ratio"]
 
 #: the fewest vertices of a candidate interval
 MIN_VERTICES = 4
+#: ``rho="limb"``: the cuts (1-based, first and last) whose mean removed fraction is a limb's noise
+LIMB_TAIL = (7, 16)
+#: ``rho="limb"``: a cut is kept while it removes more than this many times the limb's noise
+LIMB_FACTOR = 6.0
 
 
 def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int = 32,
-                  rho: float | None = None) -> np.ndarray:
+                  rho: float | str | None = None) -> np.ndarray:
     """The rigid part of every template vertex: the body one segment, every limb a chain of intervals.
 
     Parameters
@@ -52,10 +63,10 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
         The frame of ``axes`` (the template's frame), ``0 .. T-1``.
     candidates : int
         Candidate cut positions along a limb (evenly along the extent of its vertices), >= 2.
-    rho : float, optional
+    rho : float or "limb", optional
         The fraction of a rigid piece's residual one cut removes by noise alone, in [0, 1). Default:
         measured on the body (:func:`noise_ratio`), which must then hold at least ``2 * MIN_VERTICES``
-        vertices.
+        vertices. ``"limb"``: measured on every limb itself (:func:`limb_noise`).
 
     Returns
     -------
@@ -87,12 +98,7 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
     if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 2:
         raise ValueError(f"candidates must be an int >= 2, got {candidates!r}")
     body = np.flatnonzero(lab == -1)
-    if rho is None:
-        if len(body) < 2 * MIN_VERTICES:
-            raise ValueError(f"labels: the body has {len(body)} vertices, too few to measure the noise on; give rho")
-        rho = noise_ratio(V[:, body], reference=int(reference), candidates=int(candidates))
-    elif not (0 <= rho < 1):
-        raise ValueError(f"rho must be in [0, 1), got {rho!r}")
+    rho = _noise(rho, V, body, int(reference), int(candidates))
     out = np.full(V.shape[1], -1, dtype=np.int64)
     nxt = 0
     if len(body):
@@ -103,13 +109,28 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
         if len(idx) == 0:
             continue
         s = _arc_length(V[reference, idx], a)
-        piece = chain_cuts(V[:, idx], s, reference=int(reference), candidates=int(candidates), rho=float(rho))
+        piece = chain_cuts(V[:, idx], s, reference=int(reference), candidates=int(candidates), rho=rho)
         out[idx] = nxt + piece
         nxt += int(piece.max()) + 1
     return out
 
 
-def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, rho: float) -> np.ndarray:
+def _noise(rho, V: np.ndarray, body: np.ndarray, reference: int, candidates: int) -> float | str:
+    """``rho`` of :func:`limb_segments` checked: a float, ``"limb"``, or None measured on the body."""
+    if isinstance(rho, str):
+        if rho != "limb":
+            raise ValueError(f"rho must be a float in [0, 1), None or 'limb', got {rho!r}")
+        return rho
+    if rho is None:
+        if len(body) < 2 * MIN_VERTICES:
+            raise ValueError(f"labels: the body has {len(body)} vertices, too few to measure the noise on; give rho")
+        return noise_ratio(V[:, body], reference=reference, candidates=candidates)
+    if not (0 <= rho < 1):
+        raise ValueError(f"rho must be in [0, 1), got {rho!r}")
+    return float(rho)
+
+
+def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, rho: float | str) -> np.ndarray:
     """Cut a chain of vertices into intervals of ``position``: the best cut for every count, the count kept
     while a cut removes more than ``rho`` of the residual (see the module docstring).
 
@@ -120,8 +141,8 @@ def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, 
         Every vertex's position along the chain.
     reference, candidates : int
         As :func:`limb_segments`.
-    rho : float
-        The noise ratio, in [0, 1).
+    rho : float or "limb"
+        The noise ratio, in [0, 1), or ``"limb"``: :func:`limb_noise` of this chain's own cuts.
 
     Returns
     -------
@@ -129,7 +150,7 @@ def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, 
         Interval of every vertex, 0 at the lowest positions.
     """
     E, bounds, order, starts = _dp(vertices, position, reference, candidates)
-    k = _choose(E, rho)
+    k = _choose(E, limb_noise(E) if isinstance(rho, str) else rho)
     out = np.empty(len(position), dtype=np.int64)
     for p, (i, j) in enumerate(bounds[k]):
         out[order[starts[i]:starts[j]]] = p
@@ -161,6 +182,30 @@ def noise_ratio(vertices, *, reference: int = 0, candidates: int = 32) -> float:
         if len(E) > 1 and E[0] > 0:
             best = max(best, (E[0] - E[1]) / E[0])
     return float(min(best, 1.0 - 1e-9))
+
+
+def limb_noise(E) -> float:
+    """``rho="limb"``: :data:`LIMB_FACTOR` times the mean fraction of the residual that the chain's cuts
+    :data:`LIMB_TAIL` remove (the last half of its cuts when it has fewer), at most 1 - 1e-9.
+
+    Parameters
+    ----------
+    E : (K,) float array_like
+        The chain's best residual with ``0 .. K-1`` cuts (non-increasing).
+
+    Returns
+    -------
+    float
+        In [0, 1); 0 for a chain of one candidate interval (no cut to make). A chain of two has its one cut as
+        its own noise: it is not cut.
+    """
+    E = np.asarray(E, dtype=np.float64)
+    r = 1.0 - E[1:] / np.maximum(E[:-1], 1e-300)
+    lo, hi = LIMB_TAIL
+    tail = r[lo - 1:hi] if len(r) >= lo else r[len(r) // 2:]
+    if len(tail) == 0:
+        return 0.0
+    return float(min(LIMB_FACTOR * max(float(tail.mean()), 0.0), 1.0 - 1e-9))
 
 
 def _choose(E: np.ndarray, rho: float) -> int:

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.limb_segments import _interval_costs, chain_cuts, limb_segments
+from pipeline.limb_segments import LIMB_FACTOR, _interval_costs, chain_cuts, limb_noise, limb_segments
 
 BODY = 400
 AXIS = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
@@ -35,10 +35,11 @@ def _chain(cuts, *, seed=0, frames=20, n=300, noise=0.05):
     return V, np.r_[np.full(BODY, -1), np.zeros(n, int)], part
 
 
-@pytest.mark.parametrize("cuts", [(4.0, 7.0), (2.0, 4.0, 6.0, 8.0)])
-def test_a_limb_chain_is_cut_where_it_bends(cuts):
+@pytest.mark.parametrize(("cuts", "rho"), [((4.0, 7.0), None), ((2.0, 4.0, 6.0, 8.0), None), ((5.0,), "limb"),
+                                         ((4.0, 7.0), "limb"), ((2.0, 4.0, 6.0, 8.0), "limb")])
+def test_a_limb_chain_is_cut_where_it_bends(cuts, rho):
     V, labels, part = _chain(cuts)
-    seg = limb_segments(V, labels, [AXIS], reference=0)
+    seg = limb_segments(V, labels, [AXIS], reference=0, rho=rho)
     assert (seg[:BODY] == 0).all()
     limb, true = seg[BODY:], part[BODY:]
     assert len(np.unique(limb)) == len(cuts) + 1
@@ -64,6 +65,15 @@ def test_interval_costs_are_the_rigid_residual_of_the_interval():
             assert C[i, j] == pytest.approx(ref, rel=1e-6, abs=1e-9)
 
 
+def test_the_limbs_noise_is_the_mean_fraction_its_far_cuts_remove():
+    r = np.r_[0.5, 0.3, 0.2, 0.1, 0.05, 0.04, np.full(10, 0.01), np.full(5, 0.5)]  # cuts 7-16 remove 1 % each
+    E = np.cumprod(np.r_[1.0, 1.0 - r])
+    assert limb_noise(E) == pytest.approx(LIMB_FACTOR * 0.01)
+    short = np.cumprod(np.r_[1.0, 1.0 - np.array([0.5, 0.1, 0.02, 0.04])])  # fewer cuts: the last half of them
+    assert limb_noise(short) == pytest.approx(LIMB_FACTOR * 0.03)
+    assert limb_noise([1.0]) == 0.0
+
+
 def test_a_rigid_chain_needs_no_cut_without_noise():
     V, _, _ = _chain((), noise=0.0)
     s = V[0, BODY:, 0]
@@ -86,5 +96,7 @@ def test_invalid_input():
         limb_segments(V, labels, [AXIS], candidates=1)
     with pytest.raises(ValueError, match="rho"):
         limb_segments(V, labels, [AXIS], rho=1.0)
+    with pytest.raises(ValueError, match="rho"):
+        limb_segments(V, labels, [AXIS], rho="body")
     with pytest.raises(ValueError, match="labels: the body"):
         limb_segments(V[:, BODY:], labels[BODY:], [AXIS])
