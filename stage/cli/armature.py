@@ -43,6 +43,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "0.98 for small parts with small motion (over-segments); for RESULTS_DIR, 0.98 is used (and "
                    "said) when the eigenvalues cross the threshold without a gap")
     p.add_argument("--samples", type=int, default=1000, metavar="N", help="sampled vertices for the segmentation (default 1000)")
+    p.add_argument("--parts", choices=("motion", "limbs"), default="motion",
+                   help="the rigid parts: 'motion' (default) the motion segmentation; 'limbs' for RESULTS_DIR "
+                   "tracked with the template's limb/body labels (stage track --labels): the labels' body one part, "
+                   "every limb cut along its spine axis (docs/armature-format.md, 'Segments along the limb axes'; "
+                   "without such labels one line says so and the motion segmentation is used)")
     p.add_argument("--reference", type=int, metavar="POS",
                    help="position (0-based) of the rest frame (default: the frame showing the most limb tips)")
     p.set_defaults(func=run)
@@ -73,7 +78,14 @@ def _track_first(d: Path, *, quiet: bool) -> list:
 
 def run(args: argparse.Namespace) -> int:
     from pipeline.armature import armature_counts, build_armature
-    from pipeline.armature_files import NoTrackingError, load_sequence, spine_limbs, tracked_meshes, write_armature
+    from pipeline.armature_files import (
+        NoTrackingError,
+        limb_parts,
+        load_sequence,
+        spine_limbs,
+        tracked_meshes,
+        write_armature,
+    )
     from pipeline.meshio import mesh_paths
     from pipeline.motion_segmentation import MIN_GAP
     from stage.cli import UserError
@@ -81,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
 
     if (args.results is None) == (args.meshes is None):
         raise UserError("give either RESULTS_DIR or --meshes GLOB (see stage armature --help)")
+    if args.parts == "limbs" and args.meshes is not None:
+        raise UserError("--parts limbs needs RESULTS_DIR (a take tracked with stage track --labels), not --meshes")
     meta = {}
     if args.meshes is not None:
         if args.out is None:
@@ -107,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--lambda-thr must be within (0, 2), got {args.lambda_thr}")
     vertices, faces, numbers = load_sequence(paths)
     limbs = None if args.meshes is not None else spine_limbs(d, vertices, faces, numbers)  # a take's spine, if any
+    found = limb_parts(d, vertices, faces, numbers) if args.parts == "limbs" else None
     units = args.units or meta.get("units") or "mm"
     fps = args.fps or meta.get("fps") or 30.0
     with StepBars(disable=args.no_progress) as bars:
@@ -115,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
             n_samples=args.samples, reference=args.reference, progress=bars,
             peel_parts=args.meshes is not None,  # a tracked template: its tracking noise is no part
             min_gap=None if args.meshes is not None else MIN_GAP,  # a tracked template: the eigengap rule
-            limbs=limbs,
+            limbs=limbs, parts=None if found is None else (found, "limbs"),
         )
         write_armature(rig, out, progress=bars)
     sk = rig.skeleton

@@ -95,6 +95,20 @@ def test_rig_meshes_without_shared_connectivity(tmp_path, capsys):
     assert "share connectivity" in capsys.readouterr().err
 
 
+def test_armature_parts_limbs_of_a_take_tracked_with_labels(tmp_path, capsys):
+    from tests.pipeline.test_armature_limb_parts import _results
+
+    res, labels = _results(tmp_path)
+    assert main(["-q", "armature", str(res), "--parts", "limbs"]) == 0
+    doc = json.loads((res / "rig" / "rig.json").read_text())
+    assert doc["segmentation"]["source"] == "limbs"
+    seg = np.load(res / "rig" / "segments.npy")
+    assert all(len(np.unique(labels[seg == s])) == 1 for s in np.unique(seg))  # no part spans two labels
+    assert main(["-q", "armature", "--meshes", str(res / "tracked" / "*.ply"), "--out", str(tmp_path / "o"),
+                 "--parts", "limbs"]) == 2
+    assert "--parts limbs needs RESULTS_DIR" in capsys.readouterr().err
+
+
 def test_invalid_input(capsys):
     assert main(["armature"]) == 2
     assert main(["armature", "--meshes", "x/*.ply"]) == 2  # no --out
