@@ -67,6 +67,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "spine.json, built from every frame's visual hull, so it does not inherit the tracking's drift; two "
                    "bones a limb), then the ROUNDS rounds build it from the tracking; better on some fast bipeds and "
                    "quadrupeds, worse on others, on the fast starfish and the slow quadruped, see docs/tracking.md")
+    p.add_argument("--armature-parts", choices=("motion", "limbs"), default="motion",
+                   help="multi-view, with --armature-rounds and --labels: where every round's armature gets its parts; "
+                   "'motion' (default): the motion segmentation of the tracking, as `stage armature`; 'limbs': the labels' "
+                   "body one part and every limb cut along its spine axis where its tracked motion bends, each vertex rigid "
+                   "with its part. Better on some fast bipeds, mixed elsewhere, see docs/tracking.md")
     p.add_argument("--labels", action="store_true",
                    help="multi-view: cut the template's rigid patches at its limbs: every template vertex on a limb of the "
                    "take's spine or on the body (from the spine and the template's own sections), the body one patch and "
@@ -127,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
         prior = rep["rig_prior"]
         rounds = prior["rounds"]
         fits = ", ".join("-" if r.get("residual_mm") is None else f"{r['residual_mm']:.2f}" for r in rounds)
-        segments = ", ".join(f"the spine's {r['segments']} parts" if r.get("armature") == "spine" else str(r["segments"])
+        segments = ", ".join(f"the spine's {r['segments']} parts" if r.get("armature") == "spine" else
+                             f"{r['segments']} from the limbs" if r.get("armature") == "limbs" else str(r["segments"])
                              for r in rounds)
         print(f"tracked again with an armature as the articulated prior: {counted(len(rounds), 'round')} (armature "
               f"segments: {segments}; the armature on the surfaces: {fits} mm), "
@@ -163,6 +169,9 @@ def _check_counts(args: argparse.Namespace) -> None:
         raise UserError("--carve-margin needs --carve and a margin >= 0 (pixels)")
     if args.spine_armature and not args.rig_rounds:
         raise UserError("--spine-armature needs --armature-rounds (it is the first of the armature rounds)")
+    if args.armature_parts != "motion" and not (args.rig_rounds and args.labels):
+        raise UserError(f"--armature-parts {args.armature_parts} needs --armature-rounds and --labels (its parts are the "
+                        "labels' body and limbs)")
 
 
 def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
@@ -183,7 +192,8 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
             from pipeline.track_armature import track_with_armature
 
             rep = track_with_armature(src, rounds=args.rig_rounds, colour=args.colour, spine=args.spine_armature,
-                                      progress=bars, executor=ex, labels="spine" if args.labels else None)
+                                      progress=bars, executor=ex, labels="spine" if args.labels else None,
+                                      parts=args.armature_parts)
     return rep
 
 
@@ -204,7 +214,8 @@ _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-s
 _RESULTS_ONLY = (("--carve", "carve", 0), ("--armature-rounds", "rig_rounds", 0), ("--carve-margin", "carve_margin", None),
                  ("--spine-armature", "spine_armature", False), ("--colour", "colour", False),
                  ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
-                 ("--prediction-only", "prediction_only", False), ("--workers", "workers", None), ("--labels", "labels", False))
+                 ("--prediction-only", "prediction_only", False), ("--workers", "workers", None), ("--labels", "labels", False),
+                 ("--armature-parts", "armature_parts", "motion"))
 
 
 def _check_mode(args: argparse.Namespace, *, take: bool) -> None:

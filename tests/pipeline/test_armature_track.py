@@ -362,6 +362,25 @@ def test_armature_round_from_the_labels_and_the_spines_limb_axes(tmp_path, monke
     assert np.array_equal(model.vertex_parts[:, 0] == 0, labels == -1)  # the body one part, the root
 
 
+def test_cli_armature_parts_reach_the_rounds(tmp_path, monkeypatch, capsys):
+    """``stage track RESULTS --labels --armature-rounds 1 --armature-parts limbs`` runs the rounds with
+    ``parts="limbs"`` and the labels; without the flag, ``parts="motion"``."""
+    import pipeline.carve as carve
+    import pipeline.track_armature as ta
+    from stage.cli import main
+
+    calls = []
+    report = {"frames": {}, "vertices": 8, "gamma": 0.05, "gate_mm": 10.0, "solver": "cg", "skipped": []}
+    monkeypatch.setattr(carve, "track_with_carving", lambda *a, **k: report)
+    rounds = {**report, "rig_rounds": 1, "rig_prior": {"rounds": [{"armature": "limbs", "segments": 7, "residual_mm": 1.5}]}}
+    monkeypatch.setattr(ta, "track_with_armature", lambda src, **k: calls.append(k) or rounds)
+    (tmp_path / "meshes").mkdir()
+    for extra in (["--armature-parts", "limbs"], []):
+        assert main(["-q", "track", str(tmp_path), "--labels", "--armature-rounds", "1", *extra]) == 0
+        assert "armature segments: 7 from the limbs" in capsys.readouterr().out
+    assert [(k["parts"], k["labels"], k["rounds"]) for k in calls] == [("limbs", "spine", 1), ("motion", "spine", 1)]
+
+
 def test_segment_armature_invalid_input():
     from pipeline.armature_track import segment_armature
 
@@ -408,6 +427,12 @@ def test_track_with_rig_invalid_input(tmp_path, capsys):
         main(["-q", "track", str(res), "--armature-rounds", "-1"])
     assert main(["-q", "track", str(res), "--spine-armature"]) == 2
     assert "--spine-armature needs --armature-rounds" in capsys.readouterr().err
+    assert main(["-q", "track", str(res), "--armature-parts", "limbs", "--labels"]) == 2
+    assert "--armature-parts limbs needs --armature-rounds and --labels" in capsys.readouterr().err
+    assert main(["-q", "track", str(res), "--armature-parts", "limbs", "--armature-rounds", "1"]) == 2
+    assert "--armature-parts limbs needs --armature-rounds and --labels" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse: "invalid choice"
+        main(["-q", "track", str(res), "--armature-parts", "bones"])
 
 
 def _tube(rings: int = 9, per: int = 8, length: float = 80.0, radius: float = 6.0):
