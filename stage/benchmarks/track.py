@@ -174,7 +174,8 @@ def fast_accuracy() -> None:
 def _labels_rows(name: str, sim, res, frames: int) -> None:
     """Rows of :func:`fast_accuracy` with the template's limb/body labels (``stage track --labels``): the
     tracking alone, then with the colour tracks and one colour round of the armature mode (``--labels
-    --colour --armature-rounds 1``); each tracks ``res`` again from its surfaces."""
+    --colour --armature-rounds 1``), and the same with the round's armature from the labels (``--armature-parts
+    limbs``); each tracks ``res`` again from its surfaces."""
     from pipeline.track import track_results
     from pipeline.track_armature import track_with_armature
 
@@ -185,6 +186,11 @@ def _labels_rows(name: str, sim, res, frames: int) -> None:
     track_results(res, labels="spine", colour=True)
     track_with_armature(res, rounds=1, colour=True, labels="spine")
     _fast_row(f"{name}, --labels --colour --armature-rounds 1", sim, res, frames, (time.process_time() - t0) / frames)
+    t0 = time.process_time()
+    track_results(res, labels="spine", colour=True)
+    track_with_armature(res, rounds=1, colour=True, labels="spine", parts="limbs")
+    _fast_row(f"{name}, --labels --colour --armature-rounds 1 --armature-parts limbs", sim, res, frames,
+              (time.process_time() - t0) / frames)
 
 
 def simulator_armature(creature, time_s: float, vertices, faces):
