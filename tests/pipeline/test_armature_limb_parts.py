@@ -3,74 +3,19 @@
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import json
 import logging
 
 import numpy as np
 import pytest
 
-
-@functools.lru_cache(maxsize=1)
-def _take(voxel: float = 12.0, times: tuple = (0.2, 0.35, 0.5, 0.65, 0.8)):
-    """The simulated quadruped's surface at the middle time (marching cubes of its exact distance, the spine's
-    rest frame) carried through ``times`` by its capsules (a tracked template), and a one-junction spine of
-    those frames whose limb axes run from the body's centre through the creature's limb axes at that time."""
-    from skimage.measure import marching_cubes
-
-    from fake_cameras.creatures import make_creature
-    from fake_cameras.surface_motion import surface_point_tracks
-    from pipeline.spine_format import Spine
-
-    creature = make_creature("quadruped")
-    mid = len(times) // 2
-    pose = creature.pose(times[mid])
-    lo, hi = pose.bounds()
-    lo, hi = lo - 2 * voxel, hi + 2 * voxel
-    sdf = pose.grid_sdf([np.arange(lo[i], hi[i] + voxel, voxel) for i in range(3)])
-    V, F, _, _ = marching_cubes(sdf, 0.0, spacing=(voxel,) * 3)
-    V, F = V + lo, F[:, ::-1].copy()
-    order = [mid, *range(mid), *range(mid + 1, len(times))]
-    tracks = np.empty((len(times), len(V), 3))
-    tracks[order] = surface_point_tracks(creature, V, np.asarray(times)[order])
-    n = len(times)
-    body = pose.limb < 0
-    centre = ((pose.p0[body] + pose.p1[body]) / 2).mean(0)
-    axes = {f"limb{k}": np.repeat(np.vstack([centre, pose.axes[m]])[None], n, 0) for k, m in enumerate(pose.names)}
-    spine = Spine(units="mm", fps=30.0, frame_indices=np.arange(n), limb_ids=list(axes), junction_ids=["j0"],
-                  parents={"j0": None, **{lid: "j0" for lid in axes}},
-                  tips=np.repeat(np.array([[pose.axes[m][-1] for m in pose.names]]), n, 0),
-                  junctions=np.repeat(centre[None, None], n, 0), axes=axes)
-    return tracks, F, spine
-
-
-def _results(tmp_path, *, labels_digest=True):
-    """A results directory: the tracked template (tracked/NNNNNN.ply), its track.json (tracked with the spine's
-    labels, their digest right or not) and spine.json."""
-    from pipeline.armature_spine import reference_frame
-    from pipeline.results import ply_bytes
-    from pipeline.spine_format import write_spine
-    from pipeline.template_labels import template_labels
-
-    tracks, F, spine = _take()
-    res = tmp_path / "results"
-    (res / "tracked").mkdir(parents=True)
-    for t, v in enumerate(tracks):
-        (res / "tracked" / f"{t:06d}.ply").write_bytes(ply_bytes(v, F))
-    write_spine(res / "spine.json", spine)
-    ref = reference_frame(spine)
-    labels = np.asarray(template_labels(spine, tracks[ref], F, reference=ref), dtype=np.int64)
-    digest = hashlib.sha256(labels.tobytes()).hexdigest() if labels_digest else "0" * 64
-    (res / "tracked" / "track.json").write_text(json.dumps({"reference_frame": ref, "patch_labels": "spine",
-                                                            "patch_labels_sha256": digest}))
-    return res, labels
+from tests.pipeline.labelled_take import labelled_results, quadruped_take
 
 
 def test_the_parts_are_the_labels_body_and_every_limb_cut_along_its_axis(tmp_path):
     from pipeline.armature_files import armature_results
 
-    res, labels = _results(tmp_path)
+    res, labels = labelled_results(tmp_path)
     rig = armature_results(res, parts="limbs")
     seg = rig.segmentation
     assert seg.source == "limbs"
@@ -85,7 +30,7 @@ def test_the_parts_are_the_labels_body_and_every_limb_cut_along_its_axis(tmp_pat
 def test_without_the_trackings_labels_the_parts_come_from_the_motion(tmp_path, caplog):
     from pipeline.armature_files import limb_parts, load_sequence, tracked_meshes
 
-    res, _ = _results(tmp_path, labels_digest=False)
+    res, _ = labelled_results(tmp_path, labels_digest=False)
     V, F, numbers = load_sequence(tracked_meshes(res))
     with caplog.at_level(logging.WARNING):
         assert limb_parts(res, V, F, numbers) is None
@@ -100,10 +45,10 @@ def test_invalid_input(tmp_path):
     from pipeline.armature import build_armature
     from pipeline.armature_files import armature_results
 
-    res, labels = _results(tmp_path)
+    res, labels = labelled_results(tmp_path)
     with pytest.raises(ValueError, match="parts"):
         armature_results(res, parts="motion")
-    tracks, F, _ = _take()
+    tracks, F, _ = quadruped_take()
     with pytest.raises(ValueError, match="parts"):
         build_armature(tracks, F, parts=labels[:-1] + 1)
     with pytest.raises(ValueError, match="parts"):

@@ -96,9 +96,9 @@ def test_rig_meshes_without_shared_connectivity(tmp_path, capsys):
 
 
 def test_armature_parts_limbs_of_a_take_tracked_with_labels(tmp_path, capsys):
-    from tests.pipeline.test_armature_limb_parts import _results
+    from tests.pipeline.labelled_take import labelled_results
 
-    res, labels = _results(tmp_path)
+    res, labels = labelled_results(tmp_path)
     assert main(["-q", "armature", str(res), "--parts", "limbs"]) == 0
     doc = json.loads((res / "rig" / "rig.json").read_text())
     assert doc["segmentation"]["source"] == "limbs"
