@@ -15,31 +15,17 @@ def quadruped_take(voxel: float = 12.0, times: tuple = (0.2, 0.35, 0.5, 0.65, 0.
     """The simulated quadruped's surface at the middle time (marching cubes of its exact distance, the spine's
     rest frame) carried through ``times`` by its capsules (a tracked template), and a one-junction spine of
     those frames whose limb axes run from the body's centre through the creature's limb axes at that time."""
-    from skimage.measure import marching_cubes
-
     from fake_cameras.creatures import make_creature
     from fake_cameras.surface_motion import surface_point_tracks
-    from pipeline.spine_format import Spine
+    from tests.pipeline.tracking_takes import pose_surface, still_spine
 
     creature = make_creature("quadruped")
     mid = len(times) // 2
-    pose = creature.pose(times[mid])
-    lo, hi = pose.bounds()
-    lo, hi = lo - 2 * voxel, hi + 2 * voxel
-    sdf = pose.grid_sdf([np.arange(lo[i], hi[i] + voxel, voxel) for i in range(3)])
-    V, F, _, _ = marching_cubes(sdf, 0.0, spacing=(voxel,) * 3)
-    V, F = V + lo, F[:, ::-1].copy()
+    V, F = pose_surface(creature.pose(times[mid]), voxel)
     order = [mid, *range(mid), *range(mid + 1, len(times))]
     tracks = np.empty((len(times), len(V), 3))
     tracks[order] = surface_point_tracks(creature, V, np.asarray(times)[order])
-    n = len(times)
-    body = pose.limb < 0
-    centre = ((pose.p0[body] + pose.p1[body]) / 2).mean(0)
-    axes = {f"limb{k}": np.repeat(np.vstack([centre, pose.axes[m]])[None], n, 0) for k, m in enumerate(pose.names)}
-    spine = Spine(units="mm", fps=30.0, frame_indices=np.arange(n), limb_ids=list(axes), junction_ids=["j0"],
-                  parents={"j0": None, **{lid: "j0" for lid in axes}},
-                  tips=np.repeat(np.array([[pose.axes[m][-1] for m in pose.names]]), n, 0),
-                  junctions=np.repeat(centre[None, None], n, 0), axes=axes)
+    spine = still_spine(creature.pose(times[mid]), len(times))
     return tracks, F, spine
 
 

@@ -14,30 +14,14 @@ def _creature_template(name: str, voxel: float = 6.0, times: tuple = (0.3,)):
     spine of ``len(times)`` frames whose limb axes run from the body's centre through the creature's limb axes
     at ``times[0]``, the simulator's labels (the nearest capsule's limb, -1 the body; the spine's limb k is the
     creature's limb k) and the creature's surface vertices at every time."""
-    from skimage.measure import marching_cubes
-
     from fake_cameras.creatures import make_creature
-    from pipeline.spine_format import Spine
+    from tests.pipeline.tracking_takes import pose_surface, still_spine
 
-    def surface(pose):
-        lo, hi = pose.bounds()
-        lo, hi = lo - 2 * voxel, hi + 2 * voxel
-        sdf = pose.grid_sdf([np.arange(lo[i], hi[i] + voxel, voxel) for i in range(3)])
-        V, F, _, _ = marching_cubes(sdf, 0.0, spacing=(voxel,) * 3)
-        return V + lo, F[:, ::-1].copy()  # outward normals
-
-    creature = make_creature(name)
-    poses = [creature.pose(t) for t in times]
-    pose, n = poses[0], len(times)
-    surfaces = [surface(p) for p in poses]
+    poses = [make_creature(name).pose(t) for t in times]
+    pose = poses[0]
+    surfaces = [pose_surface(p, voxel) for p in poses]
     V, F = surfaces[0]
-    body = pose.limb < 0
-    centre = ((pose.p0[body] + pose.p1[body]) / 2).mean(0)
-    axes = {f"limb{k}": np.repeat(np.vstack([centre, pose.axes[m]])[None], n, 0) for k, m in enumerate(pose.names)}
-    spine = Spine(units="mm", fps=30.0, frame_indices=np.arange(n), limb_ids=list(axes), junction_ids=["j0"],
-                  parents={"j0": None, **{lid: "j0" for lid in axes}},
-                  tips=np.repeat(np.array([[pose.axes[m][-1] for m in pose.names]]), n, 0),
-                  junctions=np.repeat(centre[None, None], n, 0), axes=axes)
+    spine = still_spine(pose, len(times))
     return spine, V, F, pose.limb[pose.capsule_sdf(V).argmin(1)], [S for S, _ in surfaces]
 
 

@@ -49,6 +49,31 @@ def turning_sphere_results(root, *, frames=6, degrees=2.0, size=(320, 240), cali
     return res, [m.vertices @ R.T + c for R in turns]
 
 
+def pose_surface(pose, voxel: float):
+    """Marching cubes of a simulated creature pose's exact distance at ``voxel`` mm, outward normals: (V, F)."""
+    from skimage.measure import marching_cubes
+
+    lo, hi = pose.bounds()
+    lo, hi = lo - 2 * voxel, hi + 2 * voxel
+    sdf = pose.grid_sdf([np.arange(lo[i], hi[i] + voxel, voxel) for i in range(3)])
+    V, F, _, _ = marching_cubes(sdf, 0.0, spacing=(voxel,) * 3)
+    return V + lo, F[:, ::-1].copy()
+
+
+def still_spine(pose, frames: int):
+    """A spine of ``frames`` equal frames: one junction at the centre of the pose's body capsules, limb ``k``'s axis
+    from there through the pose's limb ``k`` (its capsules' axis)."""
+    from pipeline.spine_format import Spine
+
+    body = pose.limb < 0
+    centre = ((pose.p0[body] + pose.p1[body]) / 2).mean(0)
+    axes = {f"limb{k}": np.repeat(np.vstack([centre, pose.axes[m]])[None], frames, 0) for k, m in enumerate(pose.names)}
+    return Spine(units="mm", fps=30.0, frame_indices=np.arange(frames), limb_ids=list(axes), junction_ids=["j0"],
+                 parents={"j0": None, **{lid: "j0" for lid in axes}},
+                 tips=np.repeat(np.array([[pose.axes[m][-1] for m in pose.names]]), frames, 0),
+                 junctions=np.repeat(centre[None, None], frames, 0), axes=axes)
+
+
 def creature_spine_results(root, name: str = "quadruped", *, frames: int = 3, voxel: float = 20.0,
                            step=(4.0, 0.0, 0.0)):
     """A simulated creature's surface (marching cubes of its exact distance) moving by ``step`` a frame, written
@@ -56,23 +81,12 @@ def creature_spine_results(root, name: str = "quadruped", *, frames: int = 3, vo
     run through the creature's limb axes. -> (vertices, faces) of frame 0."""
     from dataclasses import replace
 
-    from skimage.measure import marching_cubes
-
     from fake_cameras.creatures import make_creature
-    from pipeline.spine_format import Spine, write_spine
+    from pipeline.spine_format import write_spine
 
     pose = make_creature(name).pose(0.3)
-    lo, hi = pose.bounds()
-    lo, hi = lo - 2 * voxel, hi + 2 * voxel
-    sdf = pose.grid_sdf([np.arange(lo[i], hi[i] + voxel, voxel) for i in range(3)])
-    V, F, _, _ = marching_cubes(sdf, 0.0, spacing=(voxel,) * 3)
-    V, F = V + lo, F[:, ::-1].copy()  # outward normals
-    body = pose.limb < 0
-    centre = ((pose.p0[body] + pose.p1[body]) / 2).mean(0)
-    axes = {f"limb{k}": np.vstack([centre, pose.axes[n]])[None] for k, n in enumerate(pose.names)}
-    spine = Spine(units="mm", fps=30.0, frame_indices=np.array([0]), limb_ids=list(axes), junction_ids=["j0"],
-                  parents={"j0": None, **{lid: "j0" for lid in axes}},
-                  tips=np.array([[pose.axes[n][-1] for n in pose.names]]), junctions=centre[None, None], axes=axes)
+    V, F = pose_surface(pose, voxel)
+    spine = still_spine(pose, 1)
     moved = [k * np.asarray(step, float) for k in range(frames)]
     for k in range(frames):
         atomic_write_bytes(root / "meshes" / f"frame_{k:06d}.ply", ply_bytes(V + moved[k], F))
