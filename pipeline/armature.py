@@ -243,7 +243,7 @@ def build_armature(
         seg = motion_segmentation(v, f, lambda_thr=lambda_thr, n_samples=n_samples, peel_parts=peel_parts,
                                   min_gap=min_gap)
     else:
-        seg = given_segmentation(parts, v.shape[1])
+        seg = _given_segmentation(parts, v.shape[1])
     timings["segmentation"] = time.perf_counter() - t0
     if progress:
         progress("segmentation", 1, 1)
@@ -271,10 +271,13 @@ def build_armature(
                     None if limbs is None else _spine_decisions(limbs, seg.labels, skel))
 
 
-def given_segmentation(parts, n_vertices: int) -> Segmentation:
+def _given_segmentation(parts, n_vertices: int) -> Segmentation:
     """A :class:`~pipeline.motion_segmentation.Segmentation` of given parts (``parts`` of :func:`build_armature`):
     ``(labels, source)`` or labels alone, (V,) non-negative integers, renumbered ``0 .. k-1`` by decreasing size."""
-    labels, source = (parts[0], str(parts[1])) if isinstance(parts, tuple) and len(parts) == 2 else (parts, "given")
+    pair = isinstance(parts, (tuple, list)) and len(parts) == 2 and isinstance(parts[1], str)
+    labels, source = (parts[0], parts[1]) if pair else (parts, "given")
+    if source == "motion":
+        raise ValueError("parts: 'motion' is the motion segmentation's source, not one of given parts")
     lab = np.asarray(labels)
     if lab.shape != (n_vertices,) or not np.issubdtype(lab.dtype, np.integer) or (len(lab) and lab.min() < 0):
         raise ValueError(f"parts must give a non-negative integer part of every one of the {n_vertices} vertices, "

@@ -111,7 +111,10 @@ def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=N
     parts are the labels' body and every limb cut along its spine axis (:func:`limb_parts`) in place of the
     motion segmentation (``rig.json``'s ``segmentation.source`` says which; off by default:
     docs/armature-format.md, "Segments along the limb axes"). Without such labels one line says so and the
-    motion segmentation is used.
+    motion segmentation is used; ``parts=None`` or ``"motion"``: the motion segmentation. The labels are those
+    of the spine at its rest frame on the tracked template there, checked against the digest the tracking
+    recorded: a tracking from another template (``stage track --template``) or one whose labels came out
+    otherwise falls back (one line says so).
 
     Returns
     -------
@@ -122,8 +125,8 @@ def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=N
     options.setdefault("min_gap", MIN_GAP)  # and the eigengap tells many small joints from a few large ones
     if "limbs" not in options:
         options["limbs"] = spine_limbs(results_dir, vertices, faces, numbers)
-    if parts not in (None, "limbs"):
-        raise ValueError(f"parts must be None or 'limbs', got {parts!r}")
+    if not (parts is None or (isinstance(parts, str) and parts in ("motion", "limbs"))):
+        raise ValueError(f"parts must be None, 'motion' or 'limbs', got {parts!r}")
     if parts == "limbs":
         found = limb_parts(results_dir, vertices, faces, numbers)
         if found is not None:
@@ -173,7 +176,7 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
     import hashlib
 
     from pipeline.armature_spine import reference_frame
-    from pipeline.limb_segments import MIN_VERTICES, limb_segments
+    from pipeline.limb_segments import limb_segments
     from pipeline.spine_format import SpineFormatError, read_spine
     from pipeline.template_labels import template_labels
 
@@ -191,17 +194,23 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
         labels = np.asarray(template_labels(spine, vertices[at], faces, reference=ref), dtype=np.int64)
         if hashlib.sha256(labels.tobytes()).hexdigest() != report.get("patch_labels_sha256"):
             raise ValueError("the spine's labels are not the ones the template was tracked with")
-        axes = [np.asarray(spine.axes[lid][ref], dtype=np.float64) for lid in spine.limb_ids]
-        axes = [a[np.isfinite(a).all(axis=1)] for a in axes]
-        if any(len(axes[k]) < 2 for k in np.unique(labels[labels >= 0])):
-            raise ValueError("a limb of the labels has no axis at the spine's rest frame")
-        if (labels == -1).sum() < 2 * MIN_VERTICES:
-            raise ValueError("the labels' body has too few vertices")
-        axes = [a if len(a) >= 2 else np.zeros((2, 3)) for a in axes]  # a limb without vertices: never read
-        return limb_segments(vertices, labels, axes, reference=at, rho="limb")
+        return limb_segments(vertices, labels, spine_limb_axes(spine, labels, ref), reference=at, rho="limb")
     except (OSError, SpineFormatError, ValueError, KeyError) as exc:
         log.warning("parts='limbs': the armature's parts come from the motion segmentation: %s", exc)
         return None
+
+
+def spine_limb_axes(spine, labels, reference: int) -> list:
+    """Every limb's axis of ``spine`` at its frame ``reference`` (its finite points), as
+    :func:`pipeline.limb_segments.limb_segments` takes them for the template's ``labels`` (-1 the body, ``k`` the
+    spine's limb ``k``; a limb without vertices gets a stand-in it never reads); ValueError (one line) when a
+    limb of the labels has no axis there."""
+    labels = np.asarray(labels)
+    axes = [np.asarray(spine.axes[lid][reference], dtype=np.float64) for lid in spine.limb_ids]
+    axes = [a[np.isfinite(a).all(axis=1)] for a in axes]
+    if len(axes) <= int(labels.max()) or any(len(axes[k]) < 2 for k in np.unique(labels[labels >= 0])):
+        raise ValueError(f"a limb of the labels has no axis at the spine's frame {reference}")
+    return [a if len(a) >= 2 else np.zeros((2, 3)) for a in axes]
 
 
 def write_armature(rig: Armature, out_dir, *, progress=None) -> dict:

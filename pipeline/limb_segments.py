@@ -24,11 +24,13 @@ are intervals along its axis. :func:`limb_segments` therefore
 (the 7th to the 16th, :data:`LIMB_TAIL`) remove noise alone, and a cut is kept while it removes more than
 :data:`LIMB_FACTOR` times their mean fraction. It follows the tracking's noise where the limb is and the
 limb's own size (the body's noise is another's when the body is tracked as one patch and the limbs on a
-grid); the factor is the one that cuts a synthetic chain of 0, 1, 2 and 4 joints (rigid jitter per patch,
-noise per vertex) into its parts.
+grid); the factor is one of the two (5 and 6) that cut a synthetic chain of 0, 1, 2 and 4 joints (rigid
+jitter per patch, noise per vertex) into its parts but once (docs/armature-format.md). Its limit: a limb of
+more than six joints (a tail, a tentacle) has real joints among those far cuts and is cut too little; a
+limb whose far cuts remove nothing (a noiseless tracking) has noise 0 and keeps every cut.
 
-No length or count is set for a creature: the cut positions follow the limb's own extent, the threshold
-the take's own noise. Written by hand: an interval segmentation of a chain by rigid residual is no
+Otherwise no length or count is set for a creature: the cut positions follow the limb's own extent, the
+threshold the take's own noise. Written by hand: an interval segmentation of a chain by rigid residual is no
 library's (scipy has the SVDs).
 """
 
@@ -149,6 +151,9 @@ def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, 
     (n,) int64 ndarray
         Interval of every vertex, 0 at the lowest positions.
     """
+    if isinstance(rho, str) and rho != "limb" or not isinstance(rho, str) and not (
+            isinstance(rho, (int, float, np.floating)) and 0 <= rho < 1):
+        raise ValueError(f"rho must be a float in [0, 1) or 'limb', got {rho!r}")
     E, bounds, order, starts = _dp(vertices, position, reference, candidates)
     k = _choose(E, limb_noise(E) if isinstance(rho, str) else rho)
     out = np.empty(len(position), dtype=np.int64)
@@ -200,6 +205,8 @@ def limb_noise(E) -> float:
         its own noise: it is not cut.
     """
     E = np.asarray(E, dtype=np.float64)
+    if E.ndim != 1 or len(E) == 0 or not np.isfinite(E).all() or (E < 0).any():
+        raise ValueError(f"E must be a non-empty (K,) array of finite residuals >= 0, got shape {E.shape}")
     r = 1.0 - E[1:] / np.maximum(E[:-1], 1e-300)
     lo, hi = LIMB_TAIL
     tail = r[lo - 1:hi] if len(r) >= lo else r[len(r) // 2:]

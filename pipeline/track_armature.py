@@ -152,7 +152,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         raise ValueError(f"lambda_thr must be a number in (0, 1), got {lambda_thr!r}")
     if not isinstance(spine, (bool, np.bool_)):
         raise ValueError(f"spine must be True or False, got {spine!r}")
-    if parts not in ("motion", "limbs"):
+    if not (isinstance(parts, str) and parts in ("motion", "limbs")):
         raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")
     report, frames, by_frame, vs, faces, refi = _tracked_sequence(root)
     source_of_labels = labels if isinstance(labels, str) else "given"
@@ -272,7 +272,9 @@ def _rig_of(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, lam
 
 def _limb_chain(root: Path, labels, refi: int, n_frames: int):
     """``parts="limbs"``: (labels, the spine's limb axes at the reference position ``refi``), or None (one line
-    says why) without labels or a spine of the take's frames that sees every limb there."""
+    says why) without labels or a spine of the take's frames that sees every limb of the labels there."""
+    from pipeline.armature_files import spine_limb_axes
+    from pipeline.limb_segments import MIN_VERTICES
     from pipeline.spine_format import SpineFormatError, read_spine
 
     why = None
@@ -283,13 +285,9 @@ def _limb_chain(root: Path, labels, refi: int, n_frames: int):
             spine = read_spine(root / "spine.json")
             if spine.frame_count != n_frames:
                 raise ValueError(f"it has {spine.frame_count} frames, the take {n_frames}")
-            axes = [np.asarray(spine.axes[lid][refi], dtype=np.float64) for lid in spine.limb_ids]
-            axes = [a[np.isfinite(a).all(axis=1)] for a in axes]
-            if len(axes) <= int(labels.max()) or any(len(a) < 2 for a in axes):
-                raise ValueError("a limb of the labels has no axis at the reference frame")
-            if (labels == -1).sum() < 8:
+            if (labels == -1).sum() < 2 * MIN_VERTICES:  # (the round's limb_segments measures the noise on the body)
                 raise ValueError("the labels' body has too few vertices")
-            return labels, axes
+            return labels, spine_limb_axes(spine, labels, refi)
         except (OSError, SpineFormatError, ValueError) as exc:
             why = f"no usable spine.json ({exc})"
     log.warning("parts='limbs': the armature's parts come from the motion: %s", why)
@@ -359,13 +357,14 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
+    from pipeline.limb_segments import MIN_VERTICES
     from pipeline.rigid_parts import rigid_motions
 
     vs, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
     out, axes = np.asarray(labels, dtype=np.int64).copy(), list(axes)
     body = np.flatnonzero(out == -1)
     sizes = np.bincount(out[out >= 0], minlength=len(axes))
-    if len(body) < 8 or not (sizes > 0).any() or len(surfaces) != len(vs):
+    if len(body) < 2 * MIN_VERTICES or not (sizes > 0).any() or len(surfaces) != len(vs):
         return out, axes
     V = vs[reference]
     ids = body
@@ -385,7 +384,7 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     rest = (out == -1) & ~off
     for p in np.unique(piece[off]):
         mine = off & (piece == p)
-        if mine.sum() < sizes[sizes > 0].min() or (out == -1).sum() - mine.sum() < 8:  # (the body keeps its noise)
+        if mine.sum() < sizes[sizes > 0].min() or (out == -1).sum() - mine.sum() < 2 * MIN_VERTICES:  # (the body keeps its noise)
             continue
         next_to_body = np.unique(e[mine[e[:, 0]] & rest[e[:, 1]], 0])
         if len(next_to_body) == 0:

@@ -41,15 +41,40 @@ def test_without_the_trackings_labels_the_parts_come_from_the_motion(tmp_path, c
     assert "stage track --labels" in caplog.text
 
 
+def test_the_limb_axes_are_the_spines_at_its_frame():
+    """``spine_limb_axes``: every limb's finite axis points at the frame, a stand-in for a limb the labels leave
+    empty; a limb of the labels without an axis there is one ValueError."""
+    from dataclasses import replace
+
+    from pipeline.armature_files import spine_limb_axes
+
+    _, _, spine = quadruped_take()
+    labels = np.r_[np.full(8, -1), np.arange(spine.K)]
+    axes = spine_limb_axes(spine, labels, 2)
+    assert len(axes) == spine.K and all(np.array_equal(a, spine.axes[lid][2]) for a, lid in zip(axes, spine.limb_ids))
+    lid = spine.limb_ids[1]
+    unseen = {**spine.axes, lid: spine.axes[lid].copy()}
+    unseen[lid][2, 1:] = np.nan  # one point left at frame 2
+    unseen = replace(spine, axes=unseen)
+    assert np.array_equal(spine_limb_axes(unseen, labels[labels != 1], 2)[1], np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="no axis at the spine's frame 2"):
+        spine_limb_axes(unseen, labels, 2)
+    with pytest.raises(ValueError, match="no axis"):
+        spine_limb_axes(spine, np.r_[labels, spine.K], 2)
+
+
 def test_invalid_input(tmp_path):
     from pipeline.armature import build_armature
     from pipeline.armature_files import armature_results
 
     res, labels = labelled_results(tmp_path)
-    with pytest.raises(ValueError, match="parts"):
-        armature_results(res, parts="motion")
+    for parts in ("bones", labels):
+        with pytest.raises(ValueError, match="parts"):
+            armature_results(res, parts=parts)
     tracks, F, _ = quadruped_take()
     with pytest.raises(ValueError, match="parts"):
         build_armature(tracks, F, parts=labels[:-1] + 1)
     with pytest.raises(ValueError, match="parts"):
         build_armature(tracks, F, parts=labels)  # the body's -1
+    with pytest.raises(ValueError, match="parts: 'motion'"):
+        build_armature(tracks, F, parts=[labels + 1, "motion"])

@@ -100,3 +100,10 @@ def test_invalid_input():
         limb_segments(V, labels, [AXIS], rho="body")
     with pytest.raises(ValueError, match="labels: the body"):
         limb_segments(V[:, BODY:], labels[BODY:], [AXIS])
+    with pytest.raises(ValueError, match="rho"):
+        chain_cuts(V, V[0, :, 0], rho="body")
+    with pytest.raises(ValueError, match="rho"):
+        chain_cuts(V, V[0, :, 0], rho=-0.1)
+    for E in (np.ones((2, 3)), [], [1.0, np.nan], [1.0, -1.0]):
+        with pytest.raises(ValueError, match="E must"):
+            limb_noise(E)
