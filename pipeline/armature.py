@@ -403,6 +403,7 @@ def armature_dict(armature: Armature) -> dict:
         },
         "segmentation": {"segments": seg.n_segments, "source": seg.source} if seg.source != "motion" else {
             "segments": seg.n_segments,
+            "source": "motion",
             "clusters": seg.k,
             "lambda_thr": seg.lambda_thr if np.isfinite(seg.lambda_thr) else armature.lambda_thr,
             "lambda": seg.lam,

@@ -160,6 +160,8 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         labels = _spine_labels(root, labels, refi if report.get("spine_start", "none") != "none" else None)
     patch_labels = _patch_labels(labels, vs[refi], faces, frames[refi])
     chain = None
+    if parts == "limbs" and model is not None:
+        log.warning("parts='limbs' does nothing with a given model: its round tracks with the model's parts")
     if parts == "limbs" and model is None:
         surfaces = _surface_points(by_frame, frames) if source_of_labels == "spine" and patch_labels is not None else None
         limb_labels = patch_labels if surfaces is None else _surface_labels(root, vs[refi], faces, refi, surfaces,
@@ -398,7 +400,10 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
 
 def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, labels: np.ndarray, axes: list):
     """The armature of a tracking from the template's labels: the body one part, every limb a chain of the intervals
-    :func:`pipeline.limb_segments.limb_segments` cuts along its axis, rigid; -> as :func:`_rig_of`."""
+    :func:`pipeline.limb_segments.limb_segments` cuts along its axis, rigid; -> as :func:`_rig_of`. The cuts' noise
+    ratio is measured on the body (``limb_segments``' default, what the round was measured with in docs/tracking.md,
+    "The round's armature from the labels"); ``stage armature --parts limbs`` measures it on every limb
+    (``rho="limb"``), which the round has not been measured with."""
     from pipeline.armature_fit import fit_sequence
     from pipeline.armature_track import segment_armature
     from pipeline.limb_segments import limb_segments

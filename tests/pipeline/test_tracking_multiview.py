@@ -34,12 +34,11 @@ def _tracking_errors(name, options, tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name, options", [
-    # the default tracking; measured: mean 0.87 voxels, 95th percentile 1.92, volume 0.99..1.01
-    # (--colour: 0.84 / 1.92; --carve 2 --shape-memory --colour: 0.50 / 1.24; the default with its patches'
-    # grid moved by half a cell 1.00 / 2.34, --labels 0.90 / 2.03: docs/tracking.md, "Where the starfish
-    # loses with the labels"). The quadruped's default
-    # (1.47 / 3.38) is over the targets: its accurate mode is tests/pipeline/test_tracking_carved.py
-    # on a short take, and `stage bench track --accuracy` on this one (docs/tracking.md)
+    # the default tracking; its measured figures, and this take's with --colour, --carve, --labels and
+    # the patches' grid moved by half a cell (which would fail here), are in docs/tracking.md ("Where the
+    # starfish loses with the labels"). The quadruped's default is over these targets: its accurate mode
+    # is tests/pipeline/test_tracking_carved.py on a short take, and `stage bench track --accuracy` on
+    # this one (docs/tracking.md)
     ("starfish", ()),
 ])
 def test_multiview_tracking_follows_every_surface_point(name, options, tmp_path_factory):
