@@ -98,8 +98,9 @@ def _start_record(ctx: RunContext) -> None:
 
 
 def _compared(params) -> object:
-    """The parameters a start-over compares: all but the ``track`` step's (the tracking compares its own)."""
-    return {k: v for k, v in params.items() if k != "track"} if isinstance(params, dict) else params
+    """The parameters a start-over compares: all but the ``track`` and ``rig`` steps' (the tracking compares its
+    own; the rig is built again every run)."""
+    return {k: v for k, v in params.items() if k not in ("track", "rig")} if isinstance(params, dict) else params
 
 
 def _start_over(ctx: RunContext) -> None:

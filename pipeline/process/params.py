@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-__all__ = ["ProcessError", "ProcessParams", "ProcessResult", "TrackParams", "check_params"]
+__all__ = ["ProcessError", "ProcessParams", "ProcessResult", "RigParams", "TrackParams", "check_params"]
 
 
 class ProcessError(ValueError):
@@ -43,6 +43,22 @@ class TrackParams(BaseModel):
     shape_memory: bool = False
     colour: bool = False
     labels: bool = False
+
+
+class RigParams(BaseModel):
+    """Options of the ``rig`` step, as ``stage armature RESULTS_DIR`` takes them (docs/armature-format.md).
+
+    Parameters
+    ----------
+    parts : {"motion", "limbs"}
+        Where the armature's rigid parts come from (``--parts``): ``"motion"`` the motion segmentation;
+        ``"limbs"`` for a template tracked with its limb/body labels (``TrackParams.labels``): the labels'
+        body one part, every limb cut along its spine axis (:func:`pipeline.armature_files.limb_parts`).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    parts: Literal["motion", "limbs"] = "motion"
 
 
 class ProcessParams(BaseModel):
@@ -103,6 +119,8 @@ class ProcessParams(BaseModel):
     track : TrackParams
         Options of the ``track`` step. They change the tracking alone: a run with other ones
         tracks again (``tracked/track.json`` says what changed) and keeps every other result.
+    rig : RigParams
+        Options of the ``rig`` step. They change the rig alone (the step builds it again every run).
     skip_damaged : bool
         A take with damaged frames (a chunk failing its checksum, :func:`stage.store.verify.verify_take`)
         is processed without the frame sets that hold them: no damaged frame is read, those sets
@@ -128,6 +146,7 @@ class ProcessParams(BaseModel):
     photo_refine: bool = False
     spine: dict = Field(default_factory=dict)
     track: TrackParams = Field(default_factory=TrackParams)
+    rig: RigParams = Field(default_factory=RigParams)
     skip_damaged: bool = False
 
     @field_validator("volume")

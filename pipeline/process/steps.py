@@ -406,12 +406,14 @@ def _step_spine(ctx: RunContext) -> None:
 
 def _step_track(ctx: RunContext) -> None:
     """The first surface tracked through the take -> ``tracked/`` (:func:`pipeline.carve.track_with_carving`
-    with ``ProcessParams.track``)."""
+    with ``ProcessParams.track``; with the template's limb/body labels too when the job's rig takes its parts from
+    them, ``rig.parts="limbs"``)."""
     from pipeline.carve import track_with_carving
 
     opt = ctx.params.track
+    labels = opt.labels or ("rig" in ctx.steps and ctx.params.rig.parts == "limbs")
     rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress, executor=ctx.executor,
-                             colour=opt.colour, shape_memory=opt.shape_memory, labels="spine" if opt.labels else None)
+                             colour=opt.colour, shape_memory=opt.shape_memory, labels="spine" if labels else None)
     if rep.get("started_over"):  # frames of other settings, and the rig on them, removed: the job report says so
         ctx.warnings.append(rep["started_over"])
     ctx.clock.add_worker_cpu("track", rep.get("worker_cpu_seconds", 0.0))
@@ -431,15 +433,19 @@ register_step("spine", _step_spine, doc="per-frame skeletons and the take's spin
 
 
 def _step_rig(ctx: RunContext) -> None:
-    """Articulated rig from the tracked template (``tracked/``) -> ``rig/``. Without a tracked
-    template the track step runs first (``ProcessParams.track``; a warning in the job report says so)."""
+    """Articulated rig from the tracked template (``tracked/``) -> ``rig/`` (``ProcessParams.rig``). Without a
+    tracked template the track step runs first (:func:`_step_track`; a warning in the job report says so); parts
+    from the limbs that fall back to the motion segmentation (a template tracked without its labels) are one
+    warning there too."""
     from pipeline.armature_files import NoTrackingError, armature_results, tracked_meshes
 
+    limbs = ctx.params.rig.parts == "limbs"
     try:
         tracked_meshes(ctx.out)
     except NoTrackingError:
         if "track" not in ctx.steps:
-            msg = "rig: the take had no tracked template: the track step ran first (with the job's track parameters)"
+            msg = "rig: the take had no tracked template: the track step ran first (with the job's track parameters" + \
+                  (" and the template's labels, for rig parts 'limbs')" if limbs else ")")
             ctx.warnings.append(msg)
             log.warning("%s", msg)
             if not any((ctx.out / "meshes").glob("frame_*.ply")):
@@ -448,10 +454,13 @@ def _step_rig(ctx: RunContext) -> None:
             with ctx.part("track"):  # its seconds are the tracking's, not the rig's
                 _step_track(ctx)
     try:
-        armature_results(ctx.out, units=ctx.take.calibration.units, fps=float(ctx.take.fps),
-                         progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t))
+        rig = armature_results(ctx.out, units=ctx.take.calibration.units, fps=float(ctx.take.fps),
+                               progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t), parts=ctx.params.rig.parts)
     except NoTrackingError as exc:
         raise ProcessError(f"rig: {exc}") from None
+    if limbs and rig.segmentation.source != "limbs":
+        ctx.warn("rig: parts 'limbs' need a template tracked with its labels (parameters track.labels) and the take's "
+                 "spine: the motion segmentation was used")
 
 
 def _track_totals(ctx: RunContext) -> list[tuple[str, int]]:

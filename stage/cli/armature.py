@@ -29,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(docs/armature-format.md; the files keep their names: a results format). `stage rig` is the old name of this "
         "command, kept as an alias for one release. The per-frame surfaces of a processed take do not share connectivity: "
         "a results directory's armature is built from its tracked template (tracked/NNNNNN.ply); when there is none, "
-        "the template is tracked through the take first (`stage track RESULTS_DIR` with its defaults).",
+        "the template is tracked through the take first (`stage track RESULTS_DIR` with its defaults, and --labels "
+        "with --parts limbs).",
     )
     p.add_argument("results", type=Path, nargs="?", metavar="RESULTS_DIR",
                    help="results directory of `stage process` (writes RESULTS_DIR/rig/; tracks the template first "
@@ -47,7 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the rigid parts: 'motion' (default) the motion segmentation; 'limbs' for RESULTS_DIR "
                    "tracked with the template's limb/body labels (stage track --labels): the labels' body one part, "
                    "every limb cut along its spine axis (docs/armature-format.md, 'Segments along the limb axes'; "
-                   "without such labels one line says so and the motion segmentation is used)")
+                   "an untracked RESULTS_DIR is tracked with --labels first; without such labels one line says so "
+                   "and the motion segmentation is used)")
     p.add_argument("--reference", type=int, metavar="POS",
                    help="position (0-based) of the rest frame (default: the frame showing the most limb tips)")
     p.set_defaults(func=run)
@@ -64,14 +66,16 @@ def _spine_meta(results: Path) -> dict:
         return {}
 
 
-def _track_first(d: Path, *, quiet: bool) -> list:
-    """``stage track d`` with its defaults, for a processed take without a tracked template; its tracked meshes."""
+def _track_first(d: Path, *, quiet: bool, labels: bool = False) -> list:
+    """``stage track d`` with its defaults (and ``--labels`` with ``labels``: the parts from the limbs need them),
+    for a processed take without a tracked template; its tracked meshes."""
     from pipeline.armature_files import tracked_meshes
     from stage.cli import build_parser
 
+    command = ["track", str(d), *(["--labels"] if labels else [])]
     print(f"{d} has no tracked template (tracked/NNNNNN.ply): tracking the template through the take first, "
-          f"as `stage track {d}` does with its defaults")
-    targs = build_parser().parse_args((["-q"] if quiet else []) + ["track", str(d)])
+          f"as `stage {' '.join(command)}` does")
+    targs = build_parser().parse_args((["-q"] if quiet else []) + command)
     targs.func(targs)
     return tracked_meshes(d)
 
@@ -110,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         except NoTrackingError as exc:
             if not any((d / "meshes").glob("frame_*.ply")):
                 raise UserError(str(exc)) from None
-            paths = _track_first(d, quiet=args.quiet)
+            paths = _track_first(d, quiet=args.quiet, labels=args.parts == "limbs")
         meta = _spine_meta(d)
         out = args.out or d / "rig"
     if len(paths) < 1:

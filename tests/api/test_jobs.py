@@ -181,6 +181,10 @@ def test_a_process_job_checks_its_track_options(make_client, data_root):
     r = c.post("/jobs", json={"take": "t", "steps": ["track"], "parameters": ok}, headers=AUTH)
     assert r.status_code in (200, 201, 202) and r.json()["params"]["track"]["carve"] == 2, r.json()
     assert r.json()["params"]["track"]["labels"] is True
+    r = c.post("/jobs", json={"take": "t", "steps": ["rig"], "parameters": {"rig": {"parts": "bones"}}}, headers=AUTH)
+    assert r.status_code == 400 and "rig" in r.json()["detail"], r.json()
+    r = c.post("/jobs", json={"take": "t", "steps": ["rig"], "parameters": {"rig": {"parts": "limbs"}}}, headers=AUTH)
+    assert r.status_code in (200, 201, 202) and r.json()["params"]["rig"]["parts"] == "limbs", r.json()
 
 
 def test_a_job_on_results_of_other_parameters_starts_over_without_their_tracking_and_rig(make_client, tmp_path):

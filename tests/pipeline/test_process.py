@@ -609,6 +609,26 @@ def test_track_options_track_again_and_keep_every_other_result(small_tracked, tm
             process_take(take, out, steps=("track",), params={**_SMALL, "track": bad})
 
 
+def test_rig_parts_from_the_limbs_track_with_the_labels_and_say_when_they_cannot(small_tracked, tmp_path):
+    """``ProcessParams.rig`` (the API job's ``parameters.rig``) is what ``stage armature`` takes: ``parts="limbs"``
+    on a template tracked without its labels is one warning and the motion segmentation; a job that tracks
+    too tracks with the labels; neither starts the other results over."""
+    import shutil
+
+    take, first = small_tracked
+    out = tmp_path / "out"
+    shutil.copytree(first, out)
+    surfaces = _files_under(out, "meshes", "frames")
+    res = process_take(take, out, steps=("rig",), params={**_SMALL, "rig": {"parts": "limbs"}})
+    assert any("parts 'limbs' need a template tracked with its labels" in w for w in res.report["warnings"])
+    assert json.loads((out / "rig" / "rig.json").read_text())["segmentation"]["source"] == "motion"
+    process_take(take, out, steps=("track", "rig"), params={**_SMALL, "rig": {"parts": "limbs"}})
+    assert json.loads((out / "tracked" / "track.json").read_text())["patch_labels"] == "spine"
+    assert _files_under(out, "meshes", "frames") == surfaces
+    with pytest.raises(ValueError, match="rig"):
+        process_take(take, out, steps=("rig",), params={**_SMALL, "rig": {"parts": "bones"}})
+
+
 def test_a_resume_with_the_same_parameters_keeps_the_tracking_and_rig(small_tracked, tmp_path, caplog):
     """The same parameters (a run stopped after some surfaces): tracked/ and rig/ are not touched."""
     import shutil

@@ -87,6 +87,18 @@ def test_rig_results_dir_tracks_first(tmp_path, capsys, monkeypatch):
     assert doc["spine"]["limbs"] == ["limb0"] and sorted(doc["spine"]["segment_limbs"]) == ["body", "limb0"]
 
 
+def test_armature_parts_limbs_of_an_untracked_take_track_with_the_labels_first(tmp_path, capsys):
+    """``stage armature RESULTS_DIR --parts limbs`` on a processed take without a tracked template tracks it with
+    the template's labels first (``stage track --labels``, said), so its parts come from the limbs."""
+    from tests.pipeline.tracking_takes import creature_spine_results
+
+    creature_spine_results(tmp_path, frames=3)
+    assert main(["-q", "armature", str(tmp_path), "--parts", "limbs"]) == 0
+    assert f"stage track {tmp_path} --labels" in capsys.readouterr().out
+    assert json.loads((tmp_path / "tracked" / "track.json").read_text())["patch_labels"] == "spine"
+    assert json.loads((tmp_path / "rig" / "rig.json").read_text())["segmentation"]["source"] == "limbs"
+
+
 def test_rig_meshes_without_shared_connectivity(tmp_path, capsys):
     V, F, _ = two_bars(3)
     _write_seq(tmp_path / "seq", V, F)
@@ -116,14 +128,14 @@ def test_invalid_input(capsys):
 
 
 def test_rig_step(tmp_path, caplog):
-    from pipeline.process import STEPS, ProcessError
+    from pipeline.process import STEPS, ProcessError, ProcessParams
     from pipeline.process.steps import _step_rig
 
     # the rig runs on what tracking wrote, so it comes after the spine and the tracking
     assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")
     ctx = SimpleNamespace(out=tmp_path, take=SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0), progress=None,
                           report_progress=lambda *a: None,
-                          steps=("rig",), warnings=[])
+                          steps=("rig",), warnings=[], params=ProcessParams())
     # no tracked template and nothing to track: one line in the words of the job's steps, no CLI command
     with caplog.at_level(logging.WARNING), pytest.raises(ProcessError, match="run the surface step first") as exc:
         _step_rig(ctx)
