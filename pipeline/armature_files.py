@@ -167,18 +167,19 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
     """The rigid parts of a template tracked with its limb/body labels: the body one part, every limb cut along
     its spine axis (:func:`pipeline.limb_segments.limb_segments`), or None (one line says why).
 
-    The labels are the ones the tracking used (``tracked/track.json``'s ``patch_labels`` ``"spine"``:
-    :func:`pipeline.template_labels.template_labels` of the take's spine at its rest frame, which must be
-    tracked), checked against the tracking's digest of them (``patch_labels_sha256``); the limbs' axes are the
-    spine's at that frame; every limb's noise is measured on the limb (``rho="limb"``: the body is tracked as
-    one patch, the limbs on a grid, so the body's noise is not theirs).
+    The labels are the ones the tracking used (``tracked/track.json``'s ``patch_labels`` ``"spine"``), read
+    from ``tracked/labels.npy`` (:func:`pipeline.track_frames.read_labels`, checked against the tracking's
+    digest of them, ``patch_labels_sha256``, and the template's vertex count). A tracking of an earlier version
+    wrote no such file: :func:`pipeline.template_labels.template_labels` of the take's spine at its rest frame
+    then gives them again, checked against the digest; a file that is not the tracking's labels is one line and
+    the same recomputation. The limbs' axes are the spine's at its rest frame, which must be tracked; every
+    limb's noise is measured on the limb (``rho="limb"``: the body is tracked as one patch, the limbs on a grid,
+    so the body's noise is not theirs).
     """
-    import hashlib
-
     from pipeline.armature_spine import reference_frame
     from pipeline.limb_segments import limb_segments
     from pipeline.spine_format import SpineFormatError, read_spine
-    from pipeline.template_labels import template_labels
+    from pipeline.track_frames import read_labels
 
     root = Path(results_dir)
     try:
@@ -191,13 +192,31 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
         if len(at) == 0:
             raise ValueError(f"the spine's rest frame {int(spine.frame_indices[ref])} is not tracked")
         at = int(at[0])
-        labels = np.asarray(template_labels(spine, vertices[at], faces, reference=ref), dtype=np.int64)
-        if hashlib.sha256(labels.tobytes()).hexdigest() != report.get("patch_labels_sha256"):
-            raise ValueError("the spine's labels are not the ones the template was tracked with")
+        try:
+            labels, bad = read_labels(root, report, len(vertices[at])), ""
+        except ValueError as exc:
+            labels, bad = None, f"{exc}; "
+        if labels is None:
+            labels = _recomputed_labels(spine, vertices[at], faces, ref, report, bad)
         return limb_segments(vertices, labels, spine_limb_axes(spine, labels, ref), reference=at, rho="limb")
     except (OSError, SpineFormatError, ValueError, KeyError) as exc:
         log.warning("parts='limbs': the armature's parts come from the motion segmentation: %s", exc)
         return None
+
+
+def _recomputed_labels(spine, template, faces, reference: int, report: dict, bad: str = "") -> np.ndarray:
+    """:func:`limb_parts`'s labels of a tracking without its ``tracked/labels.npy`` (``bad``: why the file was not
+    used, said once here when the labels come out as the tracking's): the spine's at its frame ``reference``,
+    ValueError unless they are the ones the tracking's digest names."""
+    from pipeline.template_labels import template_labels
+    from pipeline.track_frames import labels_digest
+
+    labels = np.asarray(template_labels(spine, template, faces, reference=reference), dtype=np.int64)
+    if labels_digest(labels) != report.get("patch_labels_sha256"):
+        raise ValueError(f"{bad}the spine's labels are not the ones the template was tracked with")
+    if bad:
+        log.warning("parts='limbs': %sthe labels are the spine's again, the ones the template was tracked with", bad)
+    return labels
 
 
 def spine_limb_axes(spine, labels, reference: int) -> list:

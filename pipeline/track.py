@@ -10,14 +10,14 @@ articulated prior.
 
 Frames are written and resumed as :mod:`pipeline.track_frames` does for both forms of tracking
 (one RGB-D camera: :mod:`pipeline.track_rgbd`); ``tracked/track.json`` records the settings, the
-skipped frames and per-frame fit figures.
+skipped frames and per-frame fit figures, ``tracked/labels.npy`` the template's labels when it was tracked
+with them (``labels=``; :func:`pipeline.track_frames.read_labels` reads them back).
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import hashlib
 import logging
 from functools import partial
 from pathlib import Path
@@ -29,13 +29,16 @@ from pipeline.run.context import submit_aside
 from pipeline.run.settings import array_digest, file_digest
 from pipeline.track_colour import colour_take, multiview_colour, multiview_tracks_for
 from pipeline.track_frames import (
+    labels_digest,
     load_template,
     predictor,
+    read_labels,
     remove_tracking,
     run_frames,
     start_over_if_changed,
     surface_meshes,
     tracked_path,
+    write_labels,
     write_report,
 )
 from pipeline.tracking import TemplateTracker, TrackingError
@@ -173,7 +176,8 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                   "surfaces": surfaces, "rig_rounds": 0,
                   "patch_labels": None if patch_labels is None else source_of_labels, "skipped": [], "frames": {}}
         if patch_labels is not None:  # the patches, and so every frame, depend on them
-            report["patch_labels_sha256"] = hashlib.sha256(patch_labels.tobytes()).hexdigest()
+            report["patch_labels_sha256"] = labels_digest(patch_labels)
+        write_labels(root, patch_labels)  # what later readers use (tracked/labels.npy), none: an old file goes
         if surfaces == "carved":  # carved with an earlier tracking's motion: their digest says which
             report["surfaces_sha256"] = file_digest(root / surfaces / "carve.json")
         if spine_start != "none":  # every frame's start depends on the spine then
@@ -214,6 +218,19 @@ def _spine_labels(root: Path, labels: str, reference: int | None):
             return None
 
     return spine_labels
+
+
+def _tracked_labels(root: Path, report: dict, labels, n_vertices: int):
+    """``labels="spine"`` of a tracking tracked again: the labels its ``track.json`` (``report``) says it used with
+    ``"spine"``, read back (``tracked/labels.npy``, :func:`pipeline.track_frames.read_labels`), or None: the
+    caller computes them again (:func:`_spine_labels`; a file that is not them is one line)."""
+    if not (isinstance(labels, str) and labels == "spine" and report.get("patch_labels") == "spine"):
+        return None
+    try:
+        return read_labels(root, report, n_vertices)
+    except ValueError as exc:
+        log.warning("the template's labels are computed again from the spine: %s", exc)
+        return None
 
 
 def _patch_labels(labels, vertices, faces, frame: int):

@@ -22,7 +22,7 @@ import numpy as np
 from pipeline.armature_track import ArmatureTracker
 from pipeline.mesh_primitives import mesh_volume
 from pipeline.run.context import submit_aside
-from pipeline.track import _patch_labels, _spine_labels, mesh_data, spine_model, spine_starts
+from pipeline.track import _patch_labels, _spine_labels, _tracked_labels, mesh_data, spine_model, spine_starts
 from pipeline.track_frames import surface_meshes, write_frame, write_report
 from pipeline.tracking import TemplateTracker
 
@@ -113,7 +113,8 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     labels : "spine", (V,) int ndarray or callable, optional
         The template's limb (``0, 1, ...``) or body (``-1``) of every vertex, or ``labels(vertices, faces,
         frame)`` giving them for the reference frame's tracked template, or ``"spine"`` (as
-        ``track_results(labels=)``):
+        ``track_results(labels=)``; the labels the tracking wrote, ``tracked/labels.npy``, when it was tracked
+        with ``"spine"``, else computed again on the reference frame's tracked template):
         the template fit's rigid patches follow them (``TemplateTracker(patch_labels=)``) and every round's
         armature keeps a segment on one limb (``build_armature(limbs=)``).
     parts : {"motion", "limbs"}
@@ -156,7 +157,10 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")
     report, frames, by_frame, vs, faces, refi = _tracked_sequence(root)
     source_of_labels = labels if isinstance(labels, str) else "given"
-    if isinstance(labels, str):  # the tracking's template frame is the spine's reference frame when it has one
+    kept_labels = _tracked_labels(root, report, labels, len(vs[refi]))  # the ones the tracking wrote
+    if kept_labels is not None:
+        labels = kept_labels
+    elif isinstance(labels, str):  # the tracking's template frame is the spine's reference frame when it has one
         labels = _spine_labels(root, labels, refi if report.get("spine_start", "none") != "none" else None)
     patch_labels = _patch_labels(labels, vs[refi], faces, frames[refi])
     chain = None

@@ -1,7 +1,8 @@
 """The ``tracked/`` folder of a tracking and the frame loop both forms of tracking share.
 
 ``tracked/NNNNNN.ply`` holds the template at every frame, in its vertex order; ``tracked/track.json``
-the settings, the skipped frames and per-frame fit figures. :func:`run_frames` tracks frames in
+the settings, the skipped frames and per-frame fit figures; ``tracked/labels.npy`` the template's limb/body
+labels a tracking with labels cut its patches at (:func:`write_labels`, :func:`read_labels`). :func:`run_frames` tracks frames in
 order (Tzionas & Gall 2016, §3), writing each frame atomically as soon as it is fitted and keeping
 the frames a killed run already wrote. :func:`start_over_if_changed` is the start-over rule
 (:mod:`pipeline.run.settings`): frames tracked with other settings are removed first, with the
@@ -13,6 +14,8 @@ processed multi-view take) and :mod:`pipeline.track_rgbd` (one RGB-D camera).
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import io
 import json
 import logging
 import time
@@ -24,8 +27,9 @@ from pipeline.mesh_primitives import mesh_volume
 from pipeline.results import atomic_write_bytes, ply_bytes
 from pipeline.run.settings import changed_settings, read_settings
 
-__all__ = ["LastRead", "load_template", "predictor", "read_tracked", "remove_tracking", "run_frames", "start_for",
-           "start_over_if_changed", "tracked_path", "write_frame", "write_report"]
+__all__ = ["LABELS_FILE", "LastRead", "labels_digest", "load_template", "predictor", "read_labels", "read_tracked", "remove_tracking",
+           "run_frames", "start_for", "start_over_if_changed", "tracked_path", "write_frame", "write_labels",
+           "write_report"]
 
 log = logging.getLogger("pipeline.track")
 
@@ -52,6 +56,55 @@ def write_frame(out_dir: Path, frame: int, vertices: np.ndarray, faces: np.ndarr
 
 def write_report(out_dir: Path, report: dict) -> None:
     atomic_write_bytes(Path(out_dir) / "tracked" / "track.json", json.dumps(report, indent=1).encode())
+
+
+#: The template's limb (0, 1, ...) / body (-1) labels a tracking cut its rigid patches at: (V,) int64, in
+#: ``tracked/``; ``track.json``'s ``patch_labels_sha256`` is the digest of their bytes.
+LABELS_FILE = "labels.npy"
+
+
+def labels_digest(labels: np.ndarray) -> str:
+    """``track.json``'s ``patch_labels_sha256`` of the (V,) int64 ``labels``."""
+    return hashlib.sha256(np.ascontiguousarray(labels, dtype=np.int64).tobytes()).hexdigest()
+
+
+def write_labels(out_dir, labels: np.ndarray | None) -> None:
+    """Write the labels a tracking uses to ``tracked/labels.npy`` atomically (None: a tracking without labels
+    removes an earlier one's file)."""
+    path = Path(out_dir) / "tracked" / LABELS_FILE
+    if labels is None:
+        path.unlink(missing_ok=True)
+        return
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(labels, dtype=np.int64), allow_pickle=False)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def read_labels(out_dir, report: dict, n_vertices: int) -> np.ndarray | None:
+    """The template's (V,) int64 labels the tracking of ``out_dir`` cut its patches at (``report``: its
+    ``track.json``), or None when it wrote none (a tracking without labels, or of an earlier version: the
+    caller computes them again).
+
+    Raises
+    ------
+    ValueError
+        One line naming the file, when it cannot be read, is not ``n_vertices`` integers or is not the labels
+        whose digest ``track.json`` records (``patch_labels_sha256``).
+    """
+    path = Path(out_dir) / "tracked" / LABELS_FILE
+    if not report.get("patch_labels_sha256") or not path.is_file():
+        return None
+    try:
+        labels = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{path} cannot be read ({exc})") from None
+    if not isinstance(labels, np.ndarray):
+        raise ValueError(f"{path} is not one array (.npy)")
+    if labels.shape != (n_vertices,) or labels.dtype != np.int64:
+        raise ValueError(f"{path} holds {labels.dtype} of shape {labels.shape}, not the template's {n_vertices} labels")
+    if labels_digest(labels) != report["patch_labels_sha256"]:
+        raise ValueError(f"{path} is not the labels track.json's patch_labels_sha256 names")
+    return labels
 
 
 def load_template(template) -> tuple[np.ndarray, np.ndarray]:
@@ -230,7 +283,7 @@ def remove_tracking(out_dir) -> str:
     """Remove the tracking of ``out_dir`` and the rig built on it: what ``stage process`` does
     when it starts over, since both follow the surfaces it removes.
 
-    ``tracked/NNNNNN.ply`` and ``tracked/track.json`` go (the folder too when that leaves it
+    ``tracked/NNNNNN.ply``, ``tracked/track.json`` and ``tracked/labels.npy`` go (the folder too when that leaves it
     empty; other files stay), the surfaces carved with the tracked motion (``carved/``,
     :mod:`pipeline.carve`), then the rig as a tracking start-over removes it
     (``rig/``, :func:`pipeline.armature_files.remove_armature`).
@@ -249,9 +302,10 @@ def remove_tracking(out_dir) -> str:
     out = Path(out_dir)
     tracked = out / "tracked"
     files = _remove_tracked_frames(tracked)
-    if (tracked / "track.json").is_file():
-        (tracked / "track.json").unlink()
-        files += 1
+    for name in ("track.json", LABELS_FILE):
+        if (tracked / name).is_file():
+            (tracked / name).unlink()
+            files += 1
     with contextlib.suppress(OSError):  # not there, or not empty: kept
         tracked.rmdir()
     note = f"; removed the frames tracked on the old surfaces ({tracked})" if files else ""
