@@ -29,13 +29,16 @@ def quadruped_take(voxel: float = 12.0, times: tuple = (0.2, 0.35, 0.5, 0.65, 0.
     return tracks, F, spine
 
 
-def labelled_results(tmp_path, *, labels_digest=True):
+def labelled_results(tmp_path, *, labels_digest=True, tracked_labels=None):
     """A results directory: the tracked template (tracked/NNNNNN.ply), its track.json (tracked with the spine's
-    labels, their digest right or not) and spine.json."""
+    labels, their digest right or not) and spine.json; -> (the directory, the spine's labels of the template).
+    ``tracked_labels``: the labels the tracking wrote (``tracked/labels.npy``, their digest in track.json), or
+    None: a tracking of an earlier version, which wrote none."""
     from pipeline.armature_spine import reference_frame
     from pipeline.results import ply_bytes
     from pipeline.spine_format import write_spine
     from pipeline.template_labels import template_labels
+    from pipeline.track_frames import write_labels
 
     tracks, F, spine = quadruped_take()
     res = tmp_path / "results"
@@ -45,7 +48,10 @@ def labelled_results(tmp_path, *, labels_digest=True):
     write_spine(res / "spine.json", spine)
     ref = reference_frame(spine)
     labels = np.asarray(template_labels(spine, tracks[ref], F, reference=ref), dtype=np.int64)
-    digest = hashlib.sha256(labels.tobytes()).hexdigest() if labels_digest else "0" * 64
+    used = labels if tracked_labels is None else np.asarray(tracked_labels, dtype=np.int64)
+    digest = hashlib.sha256(used.tobytes()).hexdigest() if labels_digest else "0" * 64
+    if tracked_labels is not None:
+        write_labels(res, used)
     (res / "tracked" / "track.json").write_text(json.dumps({"reference_frame": ref, "patch_labels": "spine",
                                                             "patch_labels_sha256": digest}))
     return res, labels

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 
@@ -15,7 +16,8 @@ from tests.pipeline.labelled_take import labelled_results, quadruped_take
 def test_the_parts_are_the_labels_body_and_every_limb_cut_along_its_axis(tmp_path):
     from pipeline.armature_files import armature_results
 
-    res, labels = labelled_results(tmp_path)
+    res, labels = labelled_results(tmp_path)  # a tracking of an earlier version: the labels computed again
+    assert not (res / "tracked" / "labels.npy").exists()
     rig = armature_results(res, parts="limbs")
     seg = rig.segmentation
     assert seg.source == "limbs"
@@ -39,6 +41,54 @@ def test_without_the_trackings_labels_the_parts_come_from_the_motion(tmp_path, c
     with caplog.at_level(logging.WARNING):
         assert limb_parts(res, V, F, numbers) is None
     assert "stage track --labels" in caplog.text
+
+
+def test_the_parts_follow_the_labels_the_tracking_wrote(tmp_path, caplog):
+    """``tracked/labels.npy``: the labels the tracking cut its patches at, though the spine's labels of the tracked
+    template are others (``stage track --template``, or the recomputation differing), are the parts' labels."""
+    from pipeline.armature_files import limb_parts, load_sequence, tracked_meshes
+
+    _, spines = labelled_results(tmp_path / "a")
+    used = spines.copy()
+    used[spines == 0] = -1  # limb 0 the body's
+    res, _ = labelled_results(tmp_path / "b", tracked_labels=used)
+    V, F, numbers = load_sequence(tracked_meshes(res))
+    with caplog.at_level(logging.WARNING):
+        seg = limb_parts(res, V, F, numbers)
+    assert seg is not None and not caplog.records
+    assert len(np.unique(seg[used == -1])) == 1  # the body, limb 0 with it, one part
+    for s in np.unique(seg):
+        assert len(np.unique(used[seg == s])) == 1
+
+
+def test_a_labels_file_that_is_not_the_trackings_is_one_line(tmp_path, caplog):
+    """A truncated ``tracked/labels.npy``, one of another vertex count or not the digest's: one warning naming the
+    file, and the labels are computed again (the parts when they are the tracking's, else the motion's)."""
+    from pipeline.armature_files import limb_parts, load_sequence, tracked_meshes
+
+    res, labels = labelled_results(tmp_path / "a", tracked_labels=None)
+    V, F, numbers = load_sequence(tracked_meshes(res))
+    other = labels.copy()
+    other[labels == 0] = -1
+    path = res / "tracked" / "labels.npy"
+    buf = io.BytesIO()
+    np.save(buf, labels)
+    for bad, why in ((buf.getvalue()[:100], "cannot be read"), (b"", "cannot be read"), (other, "patch_labels_sha256"),
+                     (labels[:-1], "not the template's"), (labels.astype(np.int32), "not the template's")):
+        if isinstance(bad, bytes):
+            path.write_bytes(bad)
+        else:
+            np.save(path, bad)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            assert limb_parts(res, V, F, numbers) is not None  # the spine's labels again are the tracking's
+        assert len(caplog.records) == 1 and "labels.npy" in caplog.text and why in caplog.text, caplog.text
+    res, _ = labelled_results(tmp_path / "b", tracked_labels=other)  # the spine's are not the tracking's
+    (res / "tracked" / "labels.npy").write_bytes(buf.getvalue()[:100])
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert limb_parts(res, V, F, numbers) is None
+    assert len(caplog.records) == 1 and "cannot be read" in caplog.text and "motion segmentation" in caplog.text
 
 
 def test_the_limb_axes_are_the_spines_at_its_frame():

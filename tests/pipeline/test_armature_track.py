@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import json
+import logging
 import pickle
 from types import SimpleNamespace
 
@@ -268,9 +269,10 @@ def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
     assert json.loads((res / "tracked" / "track.json").read_text())["rig_rounds"] == 0
 
 
-def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armature(tmp_path, monkeypatch):
+def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armature(tmp_path, monkeypatch, caplog):
     """``track_with_armature(labels=)``: the template fit's patches follow the labels (the body one patch) in
-    this process and in the worker's half, and the round's armature is built with them as its limbs."""
+    this process and in the worker's half, and the round's armature is built with them as its limbs;
+    ``labels="spine"`` of a tracking with the spine's labels takes the ones it wrote (``tracked/labels.npy``)."""
     import trimesh
 
     import pipeline.armature as armature
@@ -315,6 +317,22 @@ def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armatur
     monkeypatch.setattr(spine_format, "read_spine", lambda path: SimpleNamespace(frame_count=2))
     rep = ta.track_with_armature(tmp_path, rounds=1, labels=upper, parts="limbs")  # no usable spine: the motion's
     assert rep["rig_prior"]["parts"] == "motion" and len(limbs) == 2
+    # labels="spine" of a tracking with the spine's labels: the ones it wrote (tracked/labels.npy), though the spine
+    # gives none now (as with `stage track --template`, its labels are not the tracked template's)
+    path = tmp_path / "tracked" / "track.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "patch_labels": "spine"}))
+    rep = ta.track_with_armature(tmp_path, rounds=1, labels="spine")
+    assert rep["rig_prior"]["patch_labels"] == "spine" and np.array_equal(patches[-1], patches[0])
+    (tmp_path / "tracked" / "labels.npy").write_bytes(b"\x93NUMPY")  # truncated: one line, computed again (none here)
+
+    def no_spine(path):
+        raise spine_format.SpineFormatError(f"{path}: not a spine")
+
+    monkeypatch.setattr(spine_format, "read_spine", no_spine)
+    with caplog.at_level(logging.WARNING):
+        rep = ta.track_with_armature(tmp_path, rounds=1, labels="spine")
+    assert rep["rig_prior"]["patch_labels"] is None
+    assert sum("labels.npy cannot be read" in r.getMessage() for r in caplog.records) == 1
 
 
 def test_armature_round_from_the_labels_and_the_spines_limb_axes(tmp_path, monkeypatch):

@@ -526,6 +526,11 @@ def test_multiview_labels_cut_the_patches_of_both_halves_and_other_labels_start_
     with cf.ThreadPoolExecutor(max_workers=1) as ex:  # the frame before the reference: the worker's half
         first = track.track_results(tmp_path, labels=labels, executor=ex)
     assert asked == [(1, True, len(t.faces))] and first["patch_labels"] == "given"
+    written = np.load(tmp_path / "tracked" / "labels.npy")  # the labels used, beside their digest
+    assert written.dtype == np.int64 and np.array_equal(written, upper)
+    from pipeline.track_frames import read_labels
+
+    assert np.array_equal(read_labels(tmp_path, first, len(upper)), upper)
     assert len(built) == 2 and all(np.array_equal(p, built[0]) for p in built)
     assert len(set(built[0][upper == -1])) == 1 and not set(built[0][upper == -1]) & set(built[0][upper == 0])
     assert list(first["frames"]) == ["0", "1", "2"]
@@ -538,7 +543,26 @@ def test_multiview_labels_cut_the_patches_of_both_halves_and_other_labels_start_
             rep = track.track_results(tmp_path, labels=other)
         assert len(caplog.records) == 1 and "patch_labels" in caplog.records[0].getMessage()
         assert rep["patch_labels"] == (None if other is None else "given")
-    assert "patch_labels_sha256" not in rep
+        assert other is None or np.array_equal(np.load(tmp_path / "tracked" / "labels.npy"), other)
+    assert "patch_labels_sha256" not in rep and not (tmp_path / "tracked" / "labels.npy").exists()
+
+
+def test_removing_a_tracking_removes_its_labels(tmp_path):
+    """``remove_tracking`` (``stage process`` starting over) removes ``tracked/labels.npy`` with the frames and
+    track.json; a file of the user's stays."""
+    from pipeline.track import remove_tracking
+    from pipeline.track_frames import labels_digest, read_labels, write_frame, write_labels, write_report
+
+    t = trimesh.creation.icosahedron()
+    labels = np.where(t.vertices[:, 2] > 0, 0, -1)
+    write_frame(tmp_path, 0, t.vertices, t.faces)
+    write_labels(tmp_path, labels)
+    write_report(tmp_path, {"patch_labels": "given", "patch_labels_sha256": labels_digest(labels)})
+    assert np.array_equal(read_labels(tmp_path, {"patch_labels_sha256": labels_digest(labels)}, len(labels)), labels)
+    assert read_labels(tmp_path, {}, len(labels)) is None  # track.json names no labels
+    (tmp_path / "tracked" / "notes.txt").write_text("the user's")
+    assert "removed the frames" in remove_tracking(tmp_path)
+    assert sorted(p.name for p in (tmp_path / "tracked").iterdir()) == ["notes.txt"]
 
 
 def test_multiview_labels_from_the_takes_spine(tmp_path, monkeypatch, caplog):
