@@ -405,9 +405,9 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
 def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, labels: np.ndarray, axes: list):
     """The armature of a tracking from the template's labels: the body one part, every limb a chain of the intervals
     :func:`pipeline.limb_segments.limb_segments` cuts along its axis, rigid; -> as :func:`_rig_of`. The cuts' noise
-    ratio is measured on the body (``limb_segments``' default, what the round was measured with in docs/tracking.md,
-    "The round's armature from the labels"); ``stage armature --parts limbs`` measures it on every limb
-    (``rho="limb"``), which the round has not been measured with."""
+    ratio is measured on the body (``limb_segments``' default); ``stage armature --parts limbs`` measures it on every
+    limb (``rho="limb"``), which is not better for the round on every take (docs/tracking.md, "The round's armature
+    from the labels")."""
     from pipeline.armature_fit import fit_sequence
     from pipeline.armature_track import segment_armature
     from pipeline.limb_segments import limb_segments
