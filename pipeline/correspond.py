@@ -73,6 +73,8 @@ from itertools import permutations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from pipeline.mesh_primitives import rigid_fit
+
 __all__ = [
     "NoLimbsError",
     "arun_alignment",
@@ -110,13 +112,7 @@ def arun_alignment(A, B):
         raise ValueError(f"A and B must both have shape (k, 3), got {A.shape} and {B.shape}")
     if len(A) == 0:
         raise ValueError("A and B must not be empty")
-    ca, cb = A.mean(0), B.mean(0)
-    H = (A - ca).T @ (B - cb)  # eq. 7: sum A_k B_k^T
-    U, S, Vt = np.linalg.svd(H)
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    R = Vt.T @ D @ U.T  # eq. 8 (with the reflection fix of Arun et al., section IV)
-    T = cb - R @ ca
+    R, T = rigid_fit(A, B)  # eqs. 7-8, with the reflection fix of Arun et al., section IV
     err = float(np.sum((B - A @ R.T - T) ** 2))
     return R, T, err
 

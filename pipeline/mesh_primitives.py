@@ -157,6 +157,6 @@ def rigid_fit(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ca, cb = A.mean(0), B.mean(0)
     H = (A - ca).T @ (B - cb)
     U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])  # (a degenerate set: no reflection either)
     R = Vt.T @ D @ U.T
     return R, cb - R @ ca
