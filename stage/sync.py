@@ -67,6 +67,7 @@ __all__ = [
     "StreamGrouper",
     "group_frames",
     "estimate_period_ns",
+    "relock_warnings",
 ]
 
 T = TypeVar("T")
@@ -95,12 +96,17 @@ class FrameSet(Generic[T]):
         Every camera of the grouper; ``None`` = missing in this set.
     times_ns : dict of str -> int
         Mapped (host-clock) time of every present frame.
+    relocked : tuple of str
+        Cameras whose frame here left their chain: placed by its mapped time in
+        another set than the camera's previous frame and device clock said (see
+        :class:`CameraSyncStats`).
     """
 
     index: int
     time_ns: int
     frames: dict[str, T | None]
     times_ns: dict[str, int]
+    relocked: tuple[str, ...] = ()
 
     @property
     def missing(self) -> list[str]:
@@ -126,7 +132,11 @@ class CameraSyncStats:
     ``missing``: sets without this camera; ``sequence_gaps``: frames the device
     itself reported as skipped (jumps in its sequence numbers); ``unused``:
     frames delivered but not placed in any set; ``offset_ns``: last estimated
-    device -> host clock offset.
+    device -> host clock offset; ``relocks``: frames placed by their mapped time
+    in another set than the camera's chain said (its clock offset corrected by a
+    period or more, or a camera slipping a period against the rig's rate), and
+    ``first_relock_set`` the index of the first such set (-1: none). Sets before
+    a re-lock may hold this camera's frame of another instant.
     """
 
     frames: int = 0
@@ -134,6 +144,8 @@ class CameraSyncStats:
     sequence_gaps: int = 0
     unused: int = 0
     offset_ns: int = 0
+    relocks: int = 0
+    first_relock_set: int = -1
 
     @property
     def drops(self) -> int:
@@ -181,6 +193,8 @@ class SyncStats:
                     "sequence_gaps": s.sequence_gaps,
                     "unused": s.unused,
                     "offset_ns": s.offset_ns,
+                    "relocks": s.relocks,
+                    "first_relock_set": s.first_relock_set,
                 }
                 for c, s in self.cameras.items()
             },
@@ -198,6 +212,18 @@ class SyncStats:
             period_ns=int(data.get("period_ns", 0)),
             tolerance_ns=int(data.get("tolerance_ns", 0)),
         )
+
+
+def relock_warnings(sync: Mapping[str, Any]) -> list[str]:
+    """One line per camera whose frames left their chain (``SyncStats.to_dict()``'s form, as a take stores it)."""
+    out = []
+    for c, cs in (sync.get("cameras") or {}).items():
+        n, first = int(cs.get("relocks", 0)), int(cs.get("first_relock_set", -1))
+        if n:
+            out.append(f"{c}: its frames left their sync chain {n} time(s), first in set {first}: its clock offset "
+                       f"was corrected by a period or more (or it slipped a period against the rig's rate); "
+                       f"the sets before set {first} may pair its frames with another instant")
+    return out
 
 
 class SetStatsAccumulator:
@@ -245,6 +271,10 @@ class _StatsAccumulator:
         for c, f in fs.frames.items():
             if f is None:
                 self.cams[c].missing += 1
+        for c in fs.relocked:
+            s = self.cams[c]
+            s.relocks += 1
+            s.first_relock_set = self.sets - 1 if s.first_relock_set < 0 else s.first_relock_set
         if len(fs.times_ns) >= 2:
             self.spreads.append(fs.spread_ns)
 
@@ -664,6 +694,7 @@ class StreamGrouper(Generic[T]):
         """Pop window ``k``'s frames (the one nearest its time per camera) into a frame set."""
         frames: dict[str, Any] = {}
         times: dict[str, int] = {}
+        relocked: list[str] = []
         for c, cam in self._cams.items():
             cand = []
             while cam.queue:
@@ -677,9 +708,11 @@ class StreamGrouper(Generic[T]):
                 best = min(range(len(cand)), key=lambda i: (abs(cand[i][0] - T), i))
                 frames[c] = cand[best][1]
                 times[c] = cand[best][0]
+                if self._off_chain(cam, cand[best][2], k):
+                    relocked.append(c)
                 cam.last_k, cam.last_d = k, cand[best][2]
                 self._pending_unused[c] += len(cand) - 1
-        fs = FrameSet(index=self._next_index, time_ns=int(T), frames=frames, times_ns=times)
+        fs = FrameSet(index=self._next_index, time_ns=int(T), frames=frames, times_ns=times, relocked=tuple(relocked))
         self._next_index += 1
         assert self._acc is not None
         self._acc.add_set(fs)
@@ -687,6 +720,11 @@ class StreamGrouper(Generic[T]):
             if cam.n:
                 self._acc.cams[c].offset_ns = 0 if self._clock == "device" else int(cam.offset)
         return fs, times
+
+    def _off_chain(self, cam: _Cam, dev: int, k: int) -> bool:
+        """A frame placed in window ``k`` off its camera's chain (the chain would put it in another window)."""
+        assert self._period is not None
+        return cam.last_k is not None and cam.last_k + _round_div(dev - cam.last_d, self._period) != k
 
 
 def _initial_time(heads: Sequence[int], period: int) -> int:

@@ -97,6 +97,11 @@
     role(c.id, 'bus').textContent = c.bus === null ? '· ' + fmt(c.stream_mbps, 0) + ' Mbit/s, not on a USB bus' :
       '· USB bus ' + c.bus + ': ' + fmt(c.bus_need_mbps, 0) + '/' + fmt(c.bus_budget_mbps, 0) + ' Mbit/s' + (c.oversubscribed ? ' OVERSUBSCRIBED' : '');
   }
+  function relocked(sync){  // cameras whose frames left their sync chain (stage info's warning)
+    const cams = Object.entries(sync.cameras || {}).filter(([, c]) => c.relocks > 0);
+    return cams.length ? '; sync re-locked (sets before may pair instants): ' +
+      cams.map(([id, c]) => id + ' at set ' + c.first_relock_set).join(', ') : '';
+  }
   function showRecording(rec){
     recState = rec.state || 'idle';
     $('rec-state').textContent = recState + (rec.take ? ' (' + rec.take + ')' : '');
@@ -111,7 +116,7 @@
       if (recState === 'done' && lastShown !== rec.take){
         lastShown = rec.take;
         say($('rec-msg'), 'take ' + rec.take + ': ' + rec.result.sets + ' frame sets (' + s.sets_complete + ' complete), sync spread median ' +
-            fmt(s.spread_median_ms, 2) + ' ms, max ' + fmt(s.spread_max_ms, 2) + ' ms' +
+            fmt(s.spread_median_ms, 2) + ' ms, max ' + fmt(s.spread_max_ms, 2) + ' ms' + relocked(s) +
             (Object.keys(rec.result.disconnected || {}).length ? '; disconnected: ' + Object.keys(rec.result.disconnected).join(', ') : ''), 'good');
         takes();
       }
@@ -332,7 +337,7 @@
         td1.textContent = i.data.frames;
         td4.textContent = (sync.sets_complete !== undefined ? sync.sets_complete + ' complete sets, ' : '') +
           (sync.spread_median_ms !== undefined ? 'sync spread median ' + fmt(sync.spread_median_ms, 2) + ' ms' : '') +
-          (i.data.complete === false ? ' (being written)' : '');
+          relocked(sync) + (i.data.complete === false ? ' (being written)' : '');
       });
     }
   }

@@ -39,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
     import fake_cameras  # noqa: F401 (registers the simulated rig's "fake" driver)
     from stage.capture import capture_take
     from stage.rig import load_rig
+    from stage.sync import relock_warnings
 
     if args.frames is None and args.duration is None:
         raise ValueError("give --frames N and/or --duration S")
@@ -89,4 +90,6 @@ def run(args: argparse.Namespace) -> int:
             f"  {cid}: {n} frames, missing in {cs.missing} sets, device gaps {cs.sequence_gaps}, "
             f"writer drops {res.queue_drops.get(cid, 0)}{extra}"
         )
+    for line in relock_warnings(st.to_dict()):
+        print(f"  warning: {line}")
     return 1 if res.disconnected else 0

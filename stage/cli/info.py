@@ -79,6 +79,8 @@ def _summarize(path: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from stage.sync import relock_warnings
+
     s = summarize(args.take)
     if args.json:
         import json
@@ -110,6 +112,8 @@ def run(args: argparse.Namespace) -> int:
             inv = f", {v['invalid']} invalid" if v["invalid"] else ""
             print(f"  {c}: {v['size'][0]}x{v['size'][1]} {v['storage']}{' +depth' if v['depth'] else ''}, "
                   f"{v['frames']} frames{inv}{drops}")
+        for line in relock_warnings(sync):
+            print(f"  warning: {line}")
     if args.recover is not None:
         from stage.store import recover_take
 

@@ -63,3 +63,21 @@ def test_key_names_the_derived_file(take, capsys):
     assert main(["key", str(take), "--no-progress", "--workers", "1"]) == 0
     out = capsys.readouterr().out
     assert f"masks stored in {take.with_name('t.derived.h5')}" in out
+
+
+def test_info_warns_of_a_sync_relock(tmp_path, capsys):
+    """`stage info` names a camera whose frames left their sync chain, and from which set on."""
+    from stage.store import CameraSpec, TakeWriter
+    from tests.stage.frames import H, W, make_frame
+
+    path = tmp_path / "t.h5"
+    with TakeWriter(path, [CameraSpec(c, W, H) for c in "ab"], fps=30) as w:
+        for k in range(3):
+            w.write_set({c: make_frame(c, i, k) for i, c in enumerate("ab")})
+        cams = {c: {"frames": 3, "missing": 0, "sequence_gaps": 0, "unused": 0, "offset_ns": 0} for c in "ab"}
+        cams["b"].update(relocks=1, first_relock_set=2)
+        w.update_sync_stats({"sets": 3, "sets_complete": 3, "cameras": cams})
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "warning: b: its frames left their sync chain 1 time(s), first in set 2" in out
+    assert "warning: a" not in out

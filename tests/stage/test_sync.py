@@ -5,7 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stage.sync import FrameSet, Stamp, StreamGrouper, SyncStats, estimate_period_ns, group_frames
+from stage.sync import (
+    FrameSet,
+    SetStatsAccumulator,
+    Stamp,
+    StreamGrouper,
+    SyncStats,
+    estimate_period_ns,
+    group_frames,
+    relock_warnings,
+)
 
 P = 33_333_333  # 30 fps
 
@@ -76,6 +85,7 @@ def test_batch_groups_with_offsets_jitter_drops(seed):
         last = max(s.index for s in stamps if s.camera_id == c)
         assert stats.cameras[c].sequence_gaps == sum(1 for k in dropped[c] if k < last)
         assert stats.cameras[c].unused == 0
+        assert stats.cameras[c].relocks == 0  # gaps and drift are followed on the chain
         assert stats.cameras[c].frames == n - len(dropped[c])
     n_complete = sum(1 for k in range(n) if all(k not in dropped[c] for c in cams))
     assert stats.sets == n and stats.sets_complete == n_complete and stats.sets_incomplete == n - n_complete
@@ -162,11 +172,49 @@ def test_estimated_period_and_free_running_phases():
     check_sets(sets, cams, truth, dropped, 100)
 
 
+def late_reader(n_frames=90, *, late_frames=40):
+    """Three cameras on one instant grid; camera b's reader stays one period behind for its first
+    ``late_frames`` frames (longer than the grouper's offset window), then catches up."""
+    stamps, truth = [], {}
+    for i, c in enumerate("abc"):
+        for k in range(n_frames):
+            true = 2e9 + k * P
+            late = P if c == "b" and k < late_frames else 0
+            s = Stamp(c, k, int(true) + i * 10**9, int(true + 3e6 + late))
+            stamps.append(s)
+            truth[id(s)] = k
+    return list("abc"), stamps, truth
+
+
+def test_relock_after_a_late_first_window_is_counted_and_named():
+    # b's offset is first estimated one period too high: its frames go one set late until the
+    # faster deliveries correct the offset; the re-lock is counted at the first set that is right
+    # again, and the take's statistics name it (nothing silently wrong)
+    cams, stamps, truth = late_reader()
+    sets, st = group_frames(stamps, cams, period_ns=P)
+    mixed = [fs.index for fs in sets if len({truth[id(f)] for f in fs.frames.values() if f is not None}) > 1]
+    assert mixed and st.cameras["b"].relocks == 1
+    assert st.cameras["b"].first_relock_set == mixed[-1] + 1
+    assert st.cameras["a"].relocks == st.cameras["c"].relocks == 0
+    assert sets[mixed[-1] + 1].relocked == ("b",)
+    assert SyncStats.from_dict(st.to_dict()).cameras["b"].first_relock_set == mixed[-1] + 1
+    (line,) = relock_warnings(st.to_dict())
+    assert line.startswith("b: ") and f"set {mixed[-1] + 1}" in line
+    # the statistics of the stored sets count them in the stored sets' own numbering
+    stored = SetStatsAccumulator(cams, period_ns=P, tolerance_ns=P // 2)
+    for fs in sets[5:]:
+        stored.add(fs)
+    assert stored.stats(st).cameras["b"].first_relock_set == mixed[-1] + 1 - 5
+    # a take without the counters (written before them) reads as none
+    assert relock_warnings({"cameras": {"b": {"missing": 0}}}) == []
+
+
 def test_stats_roundtrip():
     cams, stamps, *_ = synth(n_cams=2, n_frames=30)
     _, st = group_frames(stamps, cams, period_ns=P)
     assert SyncStats.from_dict(st.to_dict()).to_dict() == st.to_dict()
     assert isinstance(st.drops, dict)
+    assert all(c.relocks == 0 and c.first_relock_set == -1 for c in st.cameras.values())
 
 
 def test_invalid_input():
