@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
             print("  sync: no statistics recorded yet")
         for c, v in s["cameras"].items():
             cs = (sync.get("cameras") or {}).get(c, {})
-            drops = f", missing in {cs['missing']} sets, device gaps {cs['sequence_gaps']}" if cs else ""
+            drops = f", missing in {cs.get('missing', 0)} sets, device gaps {cs.get('sequence_gaps', 0)}" if cs else ""
             inv = f", {v['invalid']} invalid" if v["invalid"] else ""
             print(f"  {c}: {v['size'][0]}x{v['size'][1]} {v['storage']}{' +depth' if v['depth'] else ''}, "
                   f"{v['frames']} frames{inv}{drops}")
