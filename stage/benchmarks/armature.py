@@ -40,6 +40,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --accuracy: the simulated takes through process, track and armature (default "
                    "starfish,quadruped,biped; 'none' for none)")
     p.add_argument("--take-frames", type=int, default=30, help="with --accuracy: frames of each take (default 30)")
+    p.add_argument("--take-seeds", default="3", help="with --accuracy: the simulator's seeds of each take (default 3)")
+    p.add_argument("--parts", choices=("motion", "limbs"), default="motion",
+                   help="with --accuracy: the takes' armature parts: 'motion' (default) as `stage track` then `stage "
+                   "armature` with their defaults; 'limbs' as `stage track --labels` then `stage armature --parts limbs`")
     p.add_argument("--skinned", default="2",
                    help="with --accuracy: the creatures' posed sequences also skinned, vertices blending the parts' "
                    "motions over these widths (%% of the size; default 2; 'none' for none)")
@@ -53,6 +57,15 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--takes: unknown creature {bad[0]!r} (choose from starfish, quadruped, biped)")
         if int(getattr(args, "take_frames", 30)) < 2:
             raise ValueError(f"--take-frames must be >= 2, got {args.take_frames}")
+        parts = str(getattr(args, "parts", "motion"))
+        if parts not in ("motion", "limbs"):
+            raise ValueError(f"--parts must be 'motion' or 'limbs', got {parts!r}")
+        try:
+            seeds = [int(x) for x in str(getattr(args, "take_seeds", "3")).split(",") if x.strip()]
+        except ValueError:
+            raise ValueError(f"--take-seeds must be integers (e.g. 3,5), got {args.take_seeds!r}") from None
+        if not seeds:
+            raise ValueError("--take-seeds: give at least one seed")
         skinned = str(getattr(args, "skinned", "none")).strip()
         try:
             widths = [] if skinned == "none" else [float(x) / 100 for x in skinned.split(",") if x.strip()]
@@ -61,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         if any(not 0 < w < 1 for w in widths):
             raise ValueError(f"--skinned widths must be within (0, 100) %, got {skinned!r}")
         accuracy(skinned=tuple(widths))
-        take_accuracy(takes, frames=int(getattr(args, "take_frames", 30)))
+        take_accuracy(takes, frames=int(getattr(args, "take_frames", 30)), seeds=tuple(seeds), parts=parts)
         return 0
     from fake_cameras.mesh_motion import mesh_sequence
     from pipeline.armature_fit import articulated_model, fit_sequence
@@ -294,9 +307,13 @@ def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped"), skinned=(0
 
 
 def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size=(640, 480), seed: int = 3,
-             fps: float = 30.0):
+             fps: float = 30.0, parts: str = "motion"):
     """A simulated take of ``name`` through ``process``, ``track`` and ``armature`` with their defaults, in
-    ``root``; -> (take, results directory, rig, seconds per step)."""
+    ``root``; -> (take, results directory, rig, seconds per step). ``parts="limbs"``: tracked with the template's
+    limb/body labels (``stage track --labels``) and the armature's parts from them (``stage armature --parts
+    limbs``)."""
+    if parts not in ("motion", "limbs"):
+        raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
     from pipeline.armature_files import armature_results
@@ -310,10 +327,11 @@ def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size
     process_take(record_take(sim, root / f"{name}.h5"), res, executor=None)
     secs["process"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    process_take(root / f"{name}.h5", res, steps=("track",), executor=None)
+    labels = {"params": {"track": {"labels": True}}} if parts == "limbs" else {}
+    process_take(root / f"{name}.h5", res, steps=("track",), executor=None, **labels)
     secs["track"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rig = armature_results(res)
+    rig = armature_results(res, parts="limbs") if parts == "limbs" else armature_results(res)
     secs["rig"] = time.perf_counter() - t0
     return sim, res, rig, secs
 
@@ -432,20 +450,25 @@ def true_track_scores(sim, rig, vertices, faces, truth: dict, reference: int) ->
     return sc
 
 
-def take_accuracy(names, *, frames: int = 30) -> None:
-    """Simulated takes (8 cameras, 640x480, seed 3) through process, track and armature, scored."""
+def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion") -> None:
+    """Simulated takes (8 cameras, 640x480, each of ``seeds``) through process, track and armature, scored
+    (``parts``: as :func:`take_armature`)."""
     import tempfile
 
     if not names:
         return
+    if parts != "motion":
+        print(f"\nthe takes tracked with their limb/body labels, the armature's parts --parts {parts}")
     print(f"\n{'take':10} {'T':>3} {'track vx':>8} {'invent vx':>9} | {'segs':>4} {'true':>4} {'purity':>6} {'compl':>6} | "
           f"{'true segs: paper R/P/err%':>26} {'pivot R/P/err%':>18} | {'arts':>4} {'bend':>4} {'R':>5} {'P':>5} "
           f"{'err%':>5} {'vert%':>5} | {'process s':>9} {'track s':>7} {'rig s':>5}")
-    for name in names:
-        with tempfile.TemporaryDirectory(prefix=f"bench-rig-{name}-") as tmp:
-            sim, res, rig, secs = take_armature(name, tmp, frames=frames)
-            sc = take_scores(sim, res, rig)
-        print(take_row(name, frames, rig, sc, secs), flush=True)
+    for seed in seeds:
+        for name in names:
+            with tempfile.TemporaryDirectory(prefix=f"bench-rig-{name}-") as tmp:
+                sim, res, rig, secs = take_armature(name, tmp, frames=frames, seed=int(seed), parts=parts)
+                sc = take_scores(sim, res, rig)
+            label = name if tuple(seeds) == (3,) else f"{name} s{seed}"
+            print(take_row(label, frames, rig, sc, secs), flush=True)
 
 
 def take_row(name: str, frames: int, rig, sc: dict, secs: dict) -> str:

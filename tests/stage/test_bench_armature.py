@@ -42,3 +42,43 @@ def test_invalid_input():
         segmentation_noise(V, F, right[:-1].astype(int))
     with pytest.raises(ValueError, match="one frame"):
         segmentation_noise(V[:1], F, right.astype(int))
+
+
+def test_take_armature_tracks_with_the_labels_for_the_limbs_parts(monkeypatch, tmp_path):
+    """`stage bench armature --accuracy --parts limbs`: the take is tracked as `stage track --labels` tracks it
+    (the track step with ``parameters.track.labels``) and its armature built as `stage armature --parts limbs`
+    builds it; the default tracks and builds with the defaults. The steps stand in for the minutes-long ones."""
+    import fake_cameras.record
+    import fake_cameras.take
+    import pipeline.armature_files
+    import pipeline.process
+    from stage.benchmarks.armature import take_armature
+
+    calls = []
+    monkeypatch.setattr(fake_cameras.take, "simulate_take", lambda name, **kw: ("sim", name, kw["seed"]))
+    monkeypatch.setattr(fake_cameras.record, "record_take", lambda sim, path: path)
+    monkeypatch.setattr(pipeline.process, "process_take",
+                        lambda take, res, **kw: calls.append(("process", kw.get("steps"), kw.get("params"))))
+    monkeypatch.setattr(pipeline.armature_files, "armature_results", lambda res, **kw: calls.append(("armature", kw)))
+    sim, _, _, _ = take_armature("biped", tmp_path, seed=5, parts="limbs")
+    assert sim == ("sim", "biped", 5)
+    assert calls == [("process", None, None), ("process", ("track",), {"track": {"labels": True}}),
+                     ("armature", {"parts": "limbs"})]
+    calls.clear()
+    take_armature("biped", tmp_path)
+    assert calls == [("process", None, None), ("process", ("track",), None), ("armature", {})]
+    with pytest.raises(ValueError, match="parts"):
+        take_armature("biped", tmp_path, parts="spine")
+
+
+@pytest.mark.parametrize("option, value, match", [("parts", "spine", "--parts"), ("take_seeds", "3,x", "--take-seeds"),
+                                                  ("take_seeds", ",", "--take-seeds")])
+def test_the_take_options_are_checked_before_any_work(option, value, match):
+    from argparse import Namespace
+
+    from stage.benchmarks.armature import run
+
+    args = Namespace(accuracy=True, takes="biped", take_frames=30, take_seeds="3", parts="motion", skinned="2")
+    setattr(args, option, value)
+    with pytest.raises(ValueError, match=match):
+        run(args)
