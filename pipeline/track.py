@@ -135,10 +135,10 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         The template's limb (``0, 1, ...``) or body (``-1``) of every vertex, or
         ``labels(vertices, faces, frame)`` giving them for the template this call picks (``frame``
         its source frame): the template's rigid patches then never span two parts, the body is one
-        patch and every limb is cut on its own grid (``TemplateTracker(patch_labels=)``).
+        patch and every limb is seeded on its own (``TemplateTracker(patch_labels=)``).
         ``"spine"``: the labels of the take's spine and the template's own sections
         (:func:`pipeline.template_labels.template_labels`; ``stage track --labels``) when the take has a
-        usable spine, else none (one line says so). Default: the patches follow the grid alone.
+        usable spine, else none (one line says so). Default: the patches follow the surface alone.
 
     Returns
     -------
@@ -204,7 +204,7 @@ def _spine_labels(root: Path, labels: str, reference: int | None):
     if labels != "spine":
         raise ValueError(f"labels must be 'spine', an array or a callable, got {labels!r}")
     if reference is None:
-        log.warning("labels='spine' (--labels) has no effect: no usable spine.json in %s, the patches follow the grid",
+        log.warning("labels='spine' (--labels) has no effect: no usable spine.json in %s, the patches follow the surface alone",
                     root)
         return None
 
@@ -214,7 +214,7 @@ def _spine_labels(root: Path, labels: str, reference: int | None):
         try:
             return template_labels(root, vertices, faces, reference=reference)
         except ValueError as exc:
-            log.warning("the template's patches follow the grid: no labels from the spine (%s)", exc)
+            log.warning("the template's patches follow the surface alone: no labels from the spine (%s)", exc)
             return None
 
     return spine_labels

@@ -48,6 +48,12 @@ __all__ = [
 def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.ndarray, np.ndarray]:
     """Patches of about ``size`` across, never spanning two connected components (nor two labels).
 
+    The seeds follow the surface, not a grid of the world: per connected component (and part),
+    farthest-point sampling (:func:`farthest_seeds`) from the vertex farthest from the component's
+    centroid, until every vertex is within ``SEED_RADIUS * size`` of a seed; every vertex joins
+    its nearest seed. The patches do not change when the template is moved or turned (a grid's
+    cells did, and with them the tracking: docs/tracking.md, "Patches that follow the surface").
+
     Parameters
     ----------
     vertices : (V, 3) float ndarray
@@ -56,16 +62,13 @@ def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.nd
         Patch diameter, mm.
     labels : (V,) int ndarray, optional
         The template's parts: a limb (``0, 1, ...``) or the body (``-1``) of every vertex.
-        No patch spans two parts; the body of each
-        connected component is one rigid patch, and every limb is cut on a ``size`` grid of its
-        own, its cells counted from the limb's own corner (the template's grid would leave
-        fragments of a few vertices where a limb just enters a cell).
+        No patch spans two parts; the body of each connected component is one rigid patch, and
+        every limb is seeded on its own.
 
     Returns
     -------
     patch : (V,) int ndarray
-        Patch of every vertex (seeds: one vertex per ``size`` grid cell, per component, or per
-        component and limb; every vertex joins the nearest seed of its component and part).
+        Patch of every vertex (numbered by component, then part, then seed order).
     component : (n_patches,) int ndarray
         Connected component of every patch.
     """
@@ -76,18 +79,60 @@ def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.nd
     n = len(v)
     adj = sp.coo_matrix((np.ones(3 * len(f)), (f.ravel(), np.roll(f, 1, axis=1).ravel())), shape=(n, n))
     _, comp = connected_components(adj, directed=False)
-    if labels is not None:
-        return _labelled_patches(v, comp, _check_labels(labels, n), size)
-    cell = np.floor((v - v.min(0)) / max(size, 1e-9)).astype(np.int64)
-    key = np.concatenate([comp[:, None], cell], axis=1)
-    _, first = np.unique(key, axis=0, return_index=True)
-    seeds = np.sort(first)
+    lab = np.full(n, 0, np.int64) if labels is None else _check_labels(labels, n)
+    _, group = np.unique(np.stack([comp, lab], 1), axis=0, return_inverse=True)
+    group = group.ravel()
     patch = np.empty(n, np.int64)
-    for c in np.unique(comp):
-        mine = np.flatnonzero(comp == c)
-        s_c = seeds[comp[seeds] == c]
-        patch[mine] = np.searchsorted(seeds, s_c)[cKDTree(v[s_c]).query(v[mine])[1]]
-    return patch, comp[seeds]
+    component = []
+    radius = SEED_RADIUS * max(float(size), 1e-9)
+    for g in range(int(group.max()) + 1 if n else 0):
+        mine = np.flatnonzero(group == g)
+        if labels is not None and lab[mine[0]] < 0:  # the body: rigid as a whole
+            seeds = mine[:1]
+        else:
+            seeds = mine[farthest_seeds(v[mine], radius)]
+        patch[mine] = len(component) + cKDTree(v[seeds]).query(v[mine])[1]
+        component.extend([comp[mine[0]]] * len(seeds))
+    return patch, np.asarray(component, dtype=np.int64)
+
+
+SEED_RADIUS = 0.6
+"""The seeds' covering radius, in patch sizes: about as many patches as a ``size`` grid's cells held on
+average over where the grid fell (0.5, 0.6 and 0.7 measured: docs/tracking.md, "Patches that follow the
+surface")."""
+
+
+def farthest_seeds(points, radius: float) -> np.ndarray:
+    """Farthest-point sampling: indices of seeds such that every point is within ``radius`` of one.
+
+    The first seed is the point farthest from the points' centroid (the lowest index among
+    equals); each next one the point farthest from all seeds so far, until none is further than
+    ``radius``. The seeds depend on the points' shape only, not on where they lie or how they
+    are turned, and are at least ``radius`` apart.
+
+    Parameters
+    ----------
+    points : (N >= 1, 3) float ndarray
+    radius : float
+        Covering radius (> 0), in the points' unit.
+
+    Returns
+    -------
+    (S,) int ndarray
+        Seed indices into ``points``, in the order chosen.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 1:
+        raise ValueError(f"points must have shape (N >= 1, 3), got {p.shape}")
+    if isinstance(radius, bool) or not (isinstance(radius, (int, float, np.integer, np.floating))
+                                        and math.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius must be a positive number, got {radius!r}")
+    seeds = [int(np.argmax(((p - p.mean(0)) ** 2).sum(1)))]
+    d = np.linalg.norm(p - p[seeds[0]], axis=1)
+    while d.max() > radius:
+        seeds.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(p - p[seeds[-1]], axis=1))
+    return np.asarray(seeds, dtype=np.int64)
 
 
 def _check_labels(labels, n: int, name: str = "labels") -> np.ndarray:
@@ -100,26 +145,6 @@ def _check_labels(labels, n: int, name: str = "labels") -> np.ndarray:
         raise ValueError(f"{name} must give one integer per template vertex (-1 the body, 0, 1, ... a limb), "
                          f"got {int(lab.min())}")
     return lab.astype(np.int64)
-
-
-def _labelled_patches(v: np.ndarray, comp: np.ndarray, lab: np.ndarray, size: float):
-    """:func:`surface_patches` with labels: per (component, part), the body one patch, a limb cut on its own grid."""
-    _, group = np.unique(np.stack([comp, lab], 1), axis=0, return_inverse=True)
-    group = group.ravel()
-    patch = np.empty(len(v), np.int64)
-    component = []
-    for g in range(int(group.max()) + 1 if len(v) else 0):
-        mine = np.flatnonzero(group == g)
-        if lab[mine[0]] < 0:  # the body: rigid as a whole
-            patch[mine] = len(component)
-            component.append(comp[mine[0]])
-            continue
-        cell = np.floor((v[mine] - v[mine].min(0)) / max(size, 1e-9)).astype(np.int64)
-        _, first = np.unique(cell, axis=0, return_index=True)
-        seeds = np.sort(mine[first])
-        patch[mine] = len(component) + cKDTree(v[seeds]).query(v[mine])[1]
-        component.extend([comp[mine[0]]] * len(seeds))
-    return patch, np.asarray(component, dtype=np.int64)
 
 
 def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_pairs: int = 12,
@@ -522,3 +547,4 @@ def predict_motion(previous, before, faces, patches, *, constrained=None, smooth
     for _ in range(int(smoothing)):
         step = smoother @ step
     return P + step
+

@@ -19,8 +19,10 @@ from pipeline.tracking import (
     start_residuals,
 )
 from pipeline.tracking_patches import (
+    SEED_RADIUS,
     blended_align,
     blended_patches,
+    farthest_seeds,
     patch_align,
     patch_constraints,
     predict_motion,
@@ -211,47 +213,73 @@ def _blended_align_reference(src, dst, cover):
     return out
 
 
-def _labelled_patches_reference(v, comp, lab, size):
-    """The labelled patches by a loop over parts and cells: the body one patch, a limb's cells (from its own
-    corner) seeded by their first vertex."""
+def _patches_reference(v, comp, lab, size, labelled=True):
+    """The patches by loops: per component and part, the body one patch (with labels), else seeds by
+    farthest-point sampling (the first the vertex farthest from the centroid, then the vertex farthest from
+    every seed, while it is further than the covering radius) and every vertex with its nearest seed."""
+    radius = SEED_RADIUS * size
     out = np.empty(len(v), np.int64)
     n = 0
     for c, part in sorted({(int(a), int(b)) for a, b in zip(comp, lab)}):
         mine = np.flatnonzero((comp == c) & (lab == part))
-        if part < 0:
+        if labelled and part < 0:
             out[mine], n = n, n + 1
             continue
-        cells = {}
-        for i in mine:
-            cells.setdefault(tuple(np.floor((v[i] - v[mine].min(0)) / size).astype(int)), []).append(i)
-        seeds = sorted(c_[0] for c_ in cells.values())
+        centre = v[mine].mean(0)
+        seeds = [max(mine, key=lambda i: (np.sum((v[i] - centre) ** 2), -i))]
+        far = {i: np.inf for i in mine}  # every vertex's distance to its nearest seed so far
+        while True:
+            far = {i: min(far[i], np.linalg.norm(v[i] - v[seeds[-1]])) for i in mine}
+            nxt = max(mine, key=lambda i: (far[i], -i))
+            if far[nxt] <= radius:
+                break
+            seeds.append(nxt)
         for i in mine:
             out[i] = n + int(np.argmin([np.linalg.norm(v[i] - v[s]) for s in seeds]))
         n += len(seeds)
     return out
 
 
+def _same_partition(a, b):
+    return len(set(zip(a.tolist(), b.tolist()))) == len(set(a.tolist())) == len(set(b.tolist()))
+
+
+def test_surface_patches_follow_the_surface_not_where_it_lies():
+    """The patches are seeded by farthest-point sampling on the surface: the same partition (as a loop gives)
+    wherever the template lies and however it is turned; every vertex within the covering radius of its seed,
+    the seeds at least that far apart. A world grid's cells moved with the template (5 patches here, 6 moved and turned)."""
+    m = trimesh.creation.capsule(height=200.0, radius=20.0, count=[12, 12])
+    v, f = (np.asarray(x) for x in trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=14.0))
+    v = v + np.random.default_rng(0).normal(0.0, 0.5, v.shape)  # no two vertices equally far: one answer
+    patch, component = surface_patches(v, f, 60.0)
+    assert _same_partition(patch, _patches_reference(v, np.zeros(len(v), int), np.zeros(len(v), int), 60.0, False))
+    moved, _ = surface_patches(v @ _rotation([1, 2, 3], 35).T + [30.0, -7.0, 12.0], f, 60.0)
+    assert np.array_equal(moved, patch) and patch.max() + 1 == len(component) > 4
+    seeds = farthest_seeds(v, SEED_RADIUS * 60.0)
+    assert np.array_equal(np.unique(patch[seeds]), np.arange(len(seeds)))
+    d = np.linalg.norm(v[:, None] - v[seeds][None], axis=2)
+    assert d.min(1).max() <= SEED_RADIUS * 60.0 and np.sort(d[seeds], 1)[:, 1].min() >= SEED_RADIUS * 60.0
+
+
 def test_labelled_patches_never_span_two_parts_and_match_a_per_part_reference():
-    """With the template's labels every component's body is one patch and every limb is cut on a grid from
-    its own corner (the same partition as a loop)."""
+    """With the template's labels every component's body is one patch and every limb is seeded on its own
+    (the same partition as a loop)."""
     a = trimesh.creation.capsule(height=200.0, radius=20.0, count=[12, 12])
     av, af = trimesh.remesh.subdivide_to_size(a.vertices, a.faces, max_edge=14.0)
     b = trimesh.creation.capsule(height=90.0, radius=15.0, count=[8, 8])
     v = np.concatenate([av, b.vertices + [100.0, 0, 0]])
+    v = v + np.random.default_rng(1).normal(0.0, 0.5, v.shape)
     f = np.concatenate([af, b.faces + len(av)])
     comp = np.repeat([0, 1], [len(av), len(b.vertices)])
     # component 0: body below z = -5, limb 0 above; component 1: limb 1 and a body end
     lab = np.where(comp == 0, np.where(v[:, 2] > -5, 0, -1), np.where(v[:, 2] > -40, 1, -1))
     patch, component = surface_patches(v, f, 60.0, labels=lab)
-    ref = _labelled_patches_reference(v, comp, lab, 60.0)
-    pairs = set(zip(patch.tolist(), ref.tolist()))  # the same partition (up to the patches' numbers)
-    assert len(pairs) == len(set(patch.tolist())) == len(set(ref.tolist())) == patch.max() + 1 == len(component)
+    ref = _patches_reference(v, comp, lab, 60.0)
+    assert _same_partition(patch, ref) and patch.max() + 1 == len(component)
     for p in range(patch.max() + 1):
         assert len(set(lab[patch == p])) == 1 and set(comp[patch == p]) == {component[p]}
     assert [len(set(patch[(comp == c) & (lab < 0)])) for c in (0, 1)] == [1, 1]
-    # the template's grid leaves fragments of a few vertices where a part just enters a cell; the parts' own do not
-    assert len(set(patch[lab == 0])) == 3 and np.bincount(patch).min() >= 30
-    assert np.bincount(surface_patches(v, f, 60.0)[0]).min() < 10
+    assert len(set(patch[lab == 0])) > 1 and np.bincount(patch).min() >= 30
     # no labels, or every vertex the body: one patch per component
     assert np.array_equal(surface_patches(v, f, 1e4)[0], surface_patches(v, f, 60.0, labels=np.full(len(v), -1))[0])
 
@@ -403,6 +431,10 @@ def test_invalid_input():
             TemplateTracker(v, f, patch_labels=labels)
     with pytest.raises(ValueError, match="labels"):
         surface_patches(v, f, 10.0, labels=np.zeros((len(v), 2), int))
+    for pts, radius, msg in ((v[:, :2], 5.0, "points"), (np.zeros((0, 3)), 5.0, "points"), (v, 0.0, "radius"),
+                             (v, float("nan"), "radius"), (v, True, "radius"), (v, "5", "radius")):
+        with pytest.raises(ValueError, match=msg):
+            farthest_seeds(pts, radius)
     tr = TemplateTracker(v, f)
     with pytest.raises(ValueError, match="points and normals"):
         tr.fit(np.zeros((5, 3)), np.zeros((4, 3)), previous=v)
@@ -517,7 +549,10 @@ def _rotz(deg):
 @pytest.mark.parametrize("with_rays", [False, True])
 def test_feature_tracks_see_a_cylinders_twist_which_depth_pairs_do_not(with_rays):
     """A cylinder turned 3 degrees about its own axis: its surface is unchanged, so depth pairs keep
-    it where it was; tracks of a third of its side vertices give most of the turn (exact: R @ v)."""
+    it where it was; tracks of a third of its side vertices give most of the turn of its side (exact:
+    R @ v). The flat ends have no tracks and their turn is invisible to their pairs: an end turns only
+    where a rigid patch holds it together with tracked side, which depends on where the patches fall,
+    so the side is what is scored."""
     m = trimesh.creation.cylinder(radius=20.0, height=120.0, sections=48)
     m = m.subdivide().subdivide()
     v, f = np.asarray(m.vertices), np.asarray(m.faces)
@@ -530,11 +565,11 @@ def test_feature_tracks_see_a_cylinders_twist_which_depth_pairs_do_not(with_rays
     rays = np.tile([0.0, 1.0, 0.0], (len(side), 1))  # a camera looking along +y
     tracks = (side, truth[side], rays) if with_rays else (side, truth[side])
     fit = tr.fit(d.vertices, d.vertex_normals, previous=v, tracks=tracks)
-    moved = np.linalg.norm(truth - v, axis=1).mean()  # 1 mm at the radius
-    assert np.linalg.norm(plain.vertices - truth, axis=1).mean() > 0.8 * moved  # depth alone: the turn is lost
-    # measured 0.35 of the turn left (one frame; the Laplacian term against the previous frame is
-    # not rotation-invariant and holds some of it back)
-    assert np.linalg.norm(fit.vertices - truth, axis=1).mean() < 0.5 * moved
+    on = np.abs(v[:, 2]) < 59.0  # the side
+    moved = np.linalg.norm(truth - v, axis=1)[on].mean()  # 1 mm at the radius
+    assert np.linalg.norm(plain.vertices - truth, axis=1)[on].mean() > 0.8 * moved  # depth alone: the turn is lost
+    # measured 0.001 of the turn left (one frame)
+    assert np.linalg.norm(fit.vertices - truth, axis=1)[on].mean() < 0.5 * moved
 
 
 def _slow_start_residuals(V, vn, X, N, patches, gate):
