@@ -135,7 +135,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
         The template's limb (``0, 1, ...``) or body (``-1``) of every vertex, or
         ``labels(vertices, faces, frame)`` giving them for the template this call picks (``frame``
         its source frame): the template's rigid patches then never span two parts, the body is one
-        patch and every limb is seeded on its own (``TemplateTracker(patch_labels=)``).
+        patch and every limb is cut on its own grid (``TemplateTracker(patch_labels=)``).
         ``"spine"``: the labels of the take's spine and the template's own sections
         (:func:`pipeline.template_labels.template_labels`; ``stage track --labels``) when the take has a
         usable spine, else none (one line says so). Default: the patches follow the surface alone.

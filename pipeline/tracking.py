@@ -291,7 +291,7 @@ class TemplateTracker:
         ``prior="previous"``, and only the one chosen is built.
     patch_labels : (V,) int ndarray, optional
         The template's limb (``0, 1, ...``) or body (``-1``) of every vertex: no rigid patch spans
-        two parts, the body is one patch and every limb is seeded on its own
+        two parts, the body is one patch and every limb is cut on its own grid
         (:func:`surface_patches`, ``labels``). Default: the patches follow the surface alone.
 
     Notes

@@ -48,7 +48,7 @@ __all__ = [
 def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.ndarray, np.ndarray]:
     """Patches of about ``size`` across, never spanning two connected components (nor two labels).
 
-    The seeds follow the surface, not a grid of the world: per connected component (and part),
+    The seeds follow the surface, not a grid of the world: per connected component,
     farthest-point sampling (:func:`farthest_seeds`) from the vertex farthest from the component's
     centroid, until every vertex is within ``SEED_RADIUS * size`` of a seed; every vertex joins
     its nearest seed. The patches do not change when the template is moved or turned (a grid's
@@ -63,12 +63,15 @@ def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.nd
     labels : (V,) int ndarray, optional
         The template's parts: a limb (``0, 1, ...``) or the body (``-1``) of every vertex.
         No patch spans two parts; the body of each connected component is one rigid patch, and
-        every limb is seeded on its own.
+        every limb is cut on a ``size`` grid of its own, its cells counted from the limb's own
+        corner (seeded on the surface, the limbs tracked worse: docs/tracking.md, "Patches that
+        follow the surface").
 
     Returns
     -------
     patch : (V,) int ndarray
-        Patch of every vertex (numbered by component, then part, then seed order).
+        Patch of every vertex (numbered by component, then seed order; with labels, by component
+        and part, a limb's seeds one per cell, every vertex with its part's nearest seed).
     component : (n_patches,) int ndarray
         Connected component of every patch.
     """
@@ -79,20 +82,16 @@ def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.nd
     n = len(v)
     adj = sp.coo_matrix((np.ones(3 * len(f)), (f.ravel(), np.roll(f, 1, axis=1).ravel())), shape=(n, n))
     _, comp = connected_components(adj, directed=False)
-    lab = np.full(n, 0, np.int64) if labels is None else _check_labels(labels, n)
-    _, group = np.unique(np.stack([comp, lab], 1), axis=0, return_inverse=True)
-    group = group.ravel()
+    if labels is not None:
+        return _labelled_patches(v, comp, _check_labels(labels, n), size)
     patch = np.empty(n, np.int64)
     component = []
     radius = SEED_RADIUS * max(float(size), 1e-9)
-    for g in range(int(group.max()) + 1 if n else 0):
-        mine = np.flatnonzero(group == g)
-        if labels is not None and lab[mine[0]] < 0:  # the body: rigid as a whole
-            seeds = mine[:1]
-        else:
-            seeds = mine[farthest_seeds(v[mine], radius)]
+    for c in range(int(comp.max()) + 1 if n else 0):
+        mine = np.flatnonzero(comp == c)
+        seeds = mine[farthest_seeds(v[mine], radius)]
         patch[mine] = len(component) + cKDTree(v[seeds]).query(v[mine])[1]
-        component.extend([comp[mine[0]]] * len(seeds))
+        component.extend([c] * len(seeds))
     return patch, np.asarray(component, dtype=np.int64)
 
 
@@ -145,6 +144,26 @@ def _check_labels(labels, n: int, name: str = "labels") -> np.ndarray:
         raise ValueError(f"{name} must give one integer per template vertex (-1 the body, 0, 1, ... a limb), "
                          f"got {int(lab.min())}")
     return lab.astype(np.int64)
+
+
+def _labelled_patches(v: np.ndarray, comp: np.ndarray, lab: np.ndarray, size: float):
+    """:func:`surface_patches` with labels: per (component, part), the body one patch, a limb cut on its own grid."""
+    _, group = np.unique(np.stack([comp, lab], 1), axis=0, return_inverse=True)
+    group = group.ravel()
+    patch = np.empty(len(v), np.int64)
+    component = []
+    for g in range(int(group.max()) + 1 if len(v) else 0):
+        mine = np.flatnonzero(group == g)
+        if lab[mine[0]] < 0:  # the body: rigid as a whole
+            patch[mine] = len(component)
+            component.append(comp[mine[0]])
+            continue
+        cell = np.floor((v[mine] - v[mine].min(0)) / max(size, 1e-9)).astype(np.int64)
+        _, first = np.unique(cell, axis=0, return_index=True)
+        seeds = np.sort(mine[first])
+        patch[mine] = len(component) + cKDTree(v[seeds]).query(v[mine])[1]
+        component.extend([comp[mine[0]]] * len(seeds))
+    return patch, np.asarray(component, dtype=np.int64)
 
 
 def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_pairs: int = 12,

@@ -33,7 +33,7 @@ class TrackParams(BaseModel):
         Feature tracks from every camera's colour images (``--colour``).
     labels : bool
         Cut the template's rigid patches at the limbs of the take's spine (``--labels``,
-        :func:`pipeline.template_labels.template_labels`): the body one patch, every limb seeded on its own.
+        :func:`pipeline.template_labels.template_labels`): the body one patch, every limb on its own grid.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)

@@ -75,7 +75,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--labels", action="store_true",
                    help="multi-view: cut the template's rigid patches at its limbs: every template vertex on a limb of the "
                    "take's spine or on the body (from the spine and the template's own sections), the body one patch and "
-                   "every limb seeded on its own; the armature rounds keep a segment on one limb too. Needs RESULTS_DIR/"
+                   "every limb on its own grid; the armature rounds keep a segment on one limb too. Needs RESULTS_DIR/"
                    "spine.json (without one, one line says so); the labels used are written to tracked/labels.npy. Off by "
                    "default, see docs/tracking.md")
     p.add_argument("--no-colour", action="store_true",
