@@ -30,7 +30,9 @@ DEFAULT_TAKES = ",".join(f"{n}:{fps}:{s}:16" for n in ("biped", "quadruped", "st
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--root", default="/tmp/takes", help="directory of the take directories (default /tmp/takes)")
+    p.add_argument("--root", default=None, help="directory of the take directories, each simulated and processed "
+                   "when missing (default: the simulated takes' cache, $CAPTURE_STAGE_CACHE/takes or "
+                   "~/.cache/capture-stage/takes)")
     p.add_argument("--takes", default=DEFAULT_TAKES,
                    help="NAME:FPS:SEED:FRAMES,... (8 cameras, 640x480); directory ROOT/NAME_FPS_sSEED_fFRAMES "
                    "(default: biped, quadruped, starfish at 10 and 30 fps, seeds 3 and 4, 16 frames; and 30 frames "
@@ -49,6 +51,13 @@ def label_scores(pred, true) -> tuple[float, float, float]:
     pb, tb = pred < 0, true < 0
     both = float((pb & tb).sum())
     return float((mapped == true).mean()), both / max(int(tb.sum()), 1), both / max(int(pb.sum()), 1)
+
+
+def takes_root(root: str | None) -> Path:
+    """``--root``, or the processed takes' cache beside the simulated takes' (``fake_cameras.take.cache_dir``)."""
+    from fake_cameras.take import cache_dir
+
+    return Path(root) if root else cache_dir().parent / "takes"
 
 
 def take_dir(root: Path, spec: str) -> Path:
@@ -105,7 +114,7 @@ def take_labels(d: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    root = Path(args.root)
+    root = takes_root(args.root)
     print("| take | vertices | heat weights: right / body recall / body precision | template_labels | "
           "template_labels(surfaces=) | CPU s (heat, labels, surfaces=) |")
     print("| --- | --- | --- | --- | --- | --- |")

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stage.benchmarks.labels import take_dir
+from stage.benchmarks.labels import take_dir, takes_root
 
 NAME = "patches"
 HELP = "the default tracking of the fast and slow simulated takes, with its patches and with a grid's"
@@ -36,7 +36,8 @@ DEFAULT_TAKES = ",".join(f"{n}:{fps}:{s}:16" for n in ("biped", "quadruped", "st
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--root", default="/tmp/takes", help="directory of the take directories (default /tmp/takes)")
+    p.add_argument("--root", default=None, help="directory of the take directories, each simulated and processed "
+                   "when missing (default: as stage bench labels)")
     p.add_argument("--takes", default=DEFAULT_TAKES,
                    help="NAME:FPS:SEED:FRAMES,... (8 cameras, 640x480); directory ROOT/NAME_FPS_sSEED_fFRAMES "
                    "(default: biped, quadruped, starfish at 10 and 30 fps, seeds 3 and 4, 16 frames; and the "
@@ -127,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
     means = {name: [] for name, _, _ in cases}
     with tempfile.TemporaryDirectory() as tmp:
         for spec in [s for s in args.takes.split(",") if s]:
-            d = take_dir(Path(args.root), spec)
+            d = take_dir(takes_root(args.root), spec)
             for name, labels, offset in cases:
                 r = track_row(d, Path(tmp), labels=labels, offset=offset)
                 means[name].append(r["mean"])

@@ -32,3 +32,12 @@ def test_grid_patches_move_with_the_grid_and_the_trackers_do_not_move_with_the_t
         assert np.array_equal(tracking.surface_patches(v, f, size, labels=labels)[0],
                               surface_patches(v, f, size, labels=labels)[0])
     assert tracking.surface_patches is own and len(counts) == 2
+
+
+def test_takes_root_is_the_cache_unless_given(monkeypatch, tmp_path):
+    """`stage bench labels` / `patches` keep their processed takes beside the simulated takes' cache, not in /tmp."""
+    from stage.benchmarks.labels import takes_root
+
+    monkeypatch.setenv("CAPTURE_STAGE_CACHE", str(tmp_path))
+    assert takes_root(None) == tmp_path / "takes"
+    assert takes_root(str(tmp_path / "mine")) == tmp_path / "mine"
