@@ -134,9 +134,10 @@ class CameraSyncStats:
     frames delivered but not placed in any set; ``offset_ns``: last estimated
     device -> host clock offset; ``relocks``: frames placed by their mapped time
     in another set than the camera's chain said (its clock offset corrected by a
-    period or more, or a camera slipping a period against the rig's rate), and
-    ``first_relock_set`` the index of the first such set (-1: none). Sets before
-    a re-lock may hold this camera's frame of another instant.
+    period or more, or a camera slipping a period against the rig's rate);
+    ``first_relock_set`` / ``last_relock_set`` the indices of the first and last
+    such sets (-1: none). The offset only ever decreases, so every set before the
+    last re-lock may hold this camera's frame of another instant.
     """
 
     frames: int = 0
@@ -146,6 +147,7 @@ class CameraSyncStats:
     offset_ns: int = 0
     relocks: int = 0
     first_relock_set: int = -1
+    last_relock_set: int = -1
 
     @property
     def drops(self) -> int:
@@ -195,6 +197,7 @@ class SyncStats:
                     "offset_ns": s.offset_ns,
                     "relocks": s.relocks,
                     "first_relock_set": s.first_relock_set,
+                    "last_relock_set": s.last_relock_set,
                 }
                 for c, s in self.cameras.items()
             },
@@ -215,14 +218,24 @@ class SyncStats:
 
 
 def relock_warnings(sync: Mapping[str, Any]) -> list[str]:
-    """One line per camera whose frames left their chain (``SyncStats.to_dict()``'s form, as a take stores it)."""
+    """One line per camera whose frames left their chain (``SyncStats.to_dict()``'s form, as a take stores it).
+
+    Statistics without the counters (takes written before them) give none; an entry that is not
+    statistics (hand-edited, damaged) is skipped, not an error: this only adds warnings to a summary.
+    """
+    cams = sync.get("cameras") if isinstance(sync, Mapping) else None
     out = []
-    for c, cs in (sync.get("cameras") or {}).items():
-        n, first = int(cs.get("relocks", 0)), int(cs.get("first_relock_set", -1))
-        if n:
-            out.append(f"{c}: its frames left their sync chain {n} time(s), first in set {first}: its clock offset "
-                       f"was corrected by a period or more (or it slipped a period against the rig's rate); "
-                       f"the sets before set {first} may pair its frames with another instant")
+    for c, cs in (cams.items() if isinstance(cams, Mapping) else ()):
+        try:
+            n, first = int(cs.get("relocks", 0)), int(cs.get("first_relock_set", -1))
+            last = int(cs.get("last_relock_set", first))
+        except (AttributeError, TypeError, ValueError):
+            continue
+        if n > 0:
+            where = f"in set {first}" if n == 1 or last == first else f"first in set {first}, last in set {last}"
+            out.append(f"{c}: its frames left their sync chain {n} time(s), {where}: its clock offset was "
+                       f"corrected by a period or more (or it slipped a period against the rig's rate); the sets "
+                       f"before set {last} may pair its frames with another instant")
     return out
 
 
@@ -275,6 +288,7 @@ class _StatsAccumulator:
             s = self.cams[c]
             s.relocks += 1
             s.first_relock_set = self.sets - 1 if s.first_relock_set < 0 else s.first_relock_set
+            s.last_relock_set = self.sets - 1
         if len(fs.times_ns) >= 2:
             self.spreads.append(fs.spread_ns)
 

@@ -100,8 +100,9 @@
   function relocked(sync){  // cameras whose frames left their sync chain (stage info's warning)
     const cams = Object.entries(sync.cameras || {}).filter(([, c]) => c.relocks > 0);
     return cams.length ? '; sync re-locked (sets before may pair instants): ' +
-      cams.map(([id, c]) => id + ' at set ' + c.first_relock_set).join(', ') : '';
+      cams.map(([id, c]) => id + ' before set ' + (c.last_relock_set ?? c.first_relock_set)).join(', ') : '';
   }
+  window.__stage.relocked = relocked;  // the page's own wording, read by its browser test
   function showRecording(rec){
     recState = rec.state || 'idle';
     $('rec-state').textContent = recState + (rec.take ? ' (' + rec.take + ')' : '');

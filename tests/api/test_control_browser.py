@@ -184,6 +184,11 @@ def test_control_room_with_twelve_cameras(tmp_path):
             page.wait_for_function("(n) => document.querySelector('#take-list tr[data-take=\"three\"] td:nth-child(2)')"
                                    ".textContent === String(n)", arg=sets, timeout=10_000)  # stage info's figures
             page.screenshot(path=str(art / "stage_page.png"), full_page=True)
+            # a take whose camera left its sync chain says so, naming the set before which it may pair instants
+            relock = page.evaluate("() => window.__stage.relocked({cameras: {cam01: {relocks: 0}, "
+                                   "cam03: {relocks: 2, first_relock_set: 4, last_relock_set: 9}}})")
+            assert "cam03 before set 9" in relock and "cam01" not in relock, relock
+            assert page.evaluate("() => window.__stage.relocked({cameras: {cam01: {relocks: 0}}})") == ""
         finally:
             browser.close()
         status = httpx.get(srv.url + "/stage", timeout=10).json()

@@ -80,5 +80,5 @@ def test_info_warns_of_a_sync_relock(tmp_path, capsys):
         w.update_sync_stats({"sets": 3, "sets_complete": 3, "cameras": cams})
     assert main(["info", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "warning: b: its frames left their sync chain 1 time(s), first in set 2" in out
+    assert "warning: b: its frames left their sync chain 1 time(s), in set 2" in out
     assert "warning: a" not in out and "a: 160x120 raw, 3 frames, missing in 0 sets, device gaps 0" in out

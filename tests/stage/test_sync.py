@@ -172,14 +172,15 @@ def test_estimated_period_and_free_running_phases():
     check_sets(sets, cams, truth, dropped, 100)
 
 
-def late_reader(n_frames=90, *, late_frames=40):
+def late_reader(n_frames=90, *, late_frames=40, twice_late=0):
     """Three cameras on one instant grid; camera b's reader stays one period behind for its first
-    ``late_frames`` frames (longer than the grouper's offset window), then catches up."""
+    ``late_frames`` frames (longer than the grouper's offset window), two periods for the first
+    ``twice_late`` of them, then catches up."""
     stamps, truth = [], {}
     for i, c in enumerate("abc"):
         for k in range(n_frames):
             true = 2e9 + k * P
-            late = P if c == "b" and k < late_frames else 0
+            late = ((k < late_frames) + (k < twice_late)) * P if c == "b" else 0
             s = Stamp(c, k, int(true) + i * 10**9, int(true + 3e6 + late))
             stamps.append(s)
             truth[id(s)] = k
@@ -207,6 +208,26 @@ def test_relock_after_a_late_first_window_is_counted_and_named():
     assert stored.stats(st).cameras["b"].first_relock_set == mixed[-1] + 1 - 5
     # a take without the counters (written before them) reads as none
     assert relock_warnings({"cameras": {"b": {"missing": 0}}}) == []
+
+
+def test_relocked_twice_warns_up_to_the_last_relock():
+    # b two periods late, then one, then on time: two re-locks; every set before the last one may
+    # pair b with another instant, so the warning names the last
+    cams, stamps, truth = late_reader(late_frames=70, twice_late=40)
+    sets, st = group_frames(stamps, cams, period_ns=P)
+    mixed = [fs.index for fs in sets if len({truth[id(f)] for f in fs.frames.values() if f is not None}) > 1]
+    b = st.cameras["b"]
+    assert b.relocks == 2 and b.first_relock_set < b.last_relock_set == mixed[-1] + 1
+    (line,) = relock_warnings(st.to_dict())
+    assert f"first in set {b.first_relock_set}, last in set {b.last_relock_set}" in line
+    assert f"the sets before set {mixed[-1] + 1} may pair" in line
+
+
+def test_invalid_input_relock_warnings():
+    # damaged or hand-edited statistics add no warning instead of failing the summary they belong to
+    assert relock_warnings({}) == [] and relock_warnings({"cameras": ["b"]}) == []
+    assert relock_warnings({"cameras": {"b": None, "c": {"relocks": None}, "d": {"relocks": "x"}}}) == []
+    assert relock_warnings(None) == []
 
 
 def test_stats_roundtrip():
