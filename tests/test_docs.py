@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 REPO_PATH = re.compile(r"(?<![\w/.~-])((?:docs|tests|pipeline|stage|fake_cameras|calib|api)/[\w./-]+\.(?:py|md|toml|json|sh))")
-OUTSIDE = re.compile(r"/tmp/|/work/notes")
+OUTSIDE = re.compile(r"/tmp/|/work/|/home/|/root/")
 
 
 def anchors(path: Path) -> set[str]:
