@@ -317,8 +317,10 @@ class TemplateTracker:
         v, f = check_mesh(vertices, faces, min_vertices=4, min_faces=1)
         if prior not in ("round", "previous"):
             raise ValueError(f"prior must be 'round' or 'previous', got {prior!r}")
-        if align_size is not None and not (isinstance(align_size, (int, float)) and align_size > 0):
-            raise ValueError(f"align_size must be a positive number (mm), got {align_size!r}")
+        for name, value in (("patch_size", patch_size), ("align_size", align_size)):
+            if value is not None and (isinstance(value, bool) or not (isinstance(value, (int, float, np.integer,
+                                      np.floating)) and math.isfinite(value) and value > 0)):
+                raise ValueError(f"{name} must be a positive number (mm), got {value!r}")
         if not isinstance(blend, (bool, np.bool_)):
             raise ValueError(f"blend must be True or False, got {blend!r}")
         self.prior = prior

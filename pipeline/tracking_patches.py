@@ -5,8 +5,9 @@ into patches and works with their rigid motions where the paper works with singl
 reasons: :mod:`pipeline.tracking`'s docstring and docs/tracking.md, "Where the tracker departs from
 the paper"):
 
-* :func:`surface_patches`: patches of about a given size, never across two connected parts (nor,
-  given the template's limb/body labels, across two of them: the body one patch);
+* :func:`surface_patches`, :func:`farthest_seeds`: patches of about a given size, seeded by
+  farthest-point sampling on the surface, never across two connected parts (nor, given the
+  template's limb/body labels, across two of them: the body one patch);
 * :func:`patch_rigid_motion`: each patch's rigid motion onto its pairs (point-to-plane), only in the
   directions the pairs constrain;
 * :func:`patch_align`, :func:`blended_patches`, :func:`blended_align`: the previous frame's shape
@@ -18,7 +19,10 @@ the paper"):
 The underscored variants take the summing matrices and smoother that
 :class:`pipeline.tracking.TemplateTracker` builds once per take (the same sums, bit for bit); they
 are the tracker's fast paths, not an API. Hand-written: no maintained package offers patch-wise
-constrained point-to-plane motion; the sums are numpy/scipy.
+constrained point-to-plane motion; the sums are numpy/scipy. Farthest-point sampling is a dozen
+lines here because the packages that offer it sample a given number of points, where the patches
+need a covering radius, and break ties by rounding, where the patches must not change when the
+template is moved.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from pipeline.mesh_primitives import summing_matrix as _summing
 
 __all__ = [
     "surface_patches",
+    "farthest_seeds",
     "patch_rigid_motion",
     "patch_align",
     "blended_patches",
@@ -51,8 +56,9 @@ def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.nd
     The seeds follow the surface, not a grid of the world: per connected component,
     farthest-point sampling (:func:`farthest_seeds`) from the vertex farthest from the component's
     centroid, until every vertex is within ``SEED_RADIUS * size`` of a seed; every vertex joins
-    its nearest seed. The patches do not change when the template is moved or turned (a grid's
-    cells did, and with them the tracking: docs/tracking.md, "Patches that follow the surface").
+    its nearest seed (the earlier seed among equally near ones). The patches do not change when
+    the template is moved or turned, also where its shape is symmetric: distances equal to within
+    rounding count as equal (docs/tracking.md, "Patches that follow the surface").
 
     Parameters
     ----------
@@ -64,8 +70,8 @@ def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.nd
         The template's parts: a limb (``0, 1, ...``) or the body (``-1``) of every vertex.
         No patch spans two parts; the body of each connected component is one rigid patch, and
         every limb is cut on a ``size`` grid of its own, its cells counted from the limb's own
-        corner (seeded on the surface, the limbs tracked worse: docs/tracking.md, "Patches that
-        follow the surface").
+        corner, not seeded on the surface (docs/tracking.md, "Patches that follow the surface",
+        says why).
 
     Returns
     -------
@@ -77,8 +83,10 @@ def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.nd
     """
     from scipy.sparse.csgraph import connected_components
 
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
+    v, f = check_mesh(vertices, faces)
+    if isinstance(size, bool) or not (isinstance(size, (int, float, np.integer, np.floating)) and math.isfinite(size)
+                                      and size > 0):
+        raise ValueError(f"size must be a positive number (mm), got {size!r}")
     n = len(v)
     adj = sp.coo_matrix((np.ones(3 * len(f)), (f.ravel(), np.roll(f, 1, axis=1).ravel())), shape=(n, n))
     _, comp = connected_components(adj, directed=False)
@@ -86,28 +94,44 @@ def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.nd
         return _labelled_patches(v, comp, _check_labels(labels, n), size)
     patch = np.empty(n, np.int64)
     component = []
-    radius = SEED_RADIUS * max(float(size), 1e-9)
+    radius = SEED_RADIUS * float(size)
     for c in range(int(comp.max()) + 1 if n else 0):
         mine = np.flatnonzero(comp == c)
         seeds = mine[farthest_seeds(v[mine], radius)]
-        patch[mine] = len(component) + cKDTree(v[seeds]).query(v[mine])[1]
+        patch[mine] = len(component) + _nearest_seed(v[seeds], v[mine])
         component.extend([c] * len(seeds))
     return patch, np.asarray(component, dtype=np.int64)
 
 
 SEED_RADIUS = 0.6
-"""The seeds' covering radius, in patch sizes: about as many patches as a ``size`` grid's cells held on
-average over where the grid fell (0.5, 0.6 and 0.7 measured: docs/tracking.md, "Patches that follow the
-surface")."""
+"""The seeds' covering radius, in patch sizes: about as many patches as a ``size`` grid's cells hold
+(docs/tracking.md, "Patches that follow the surface", says how it was chosen)."""
+
+_TIE = 1e-9
+"""Relative difference under which two distances count as equal (rounding, not shape)."""
+
+
+def _first_max(d: np.ndarray) -> int:
+    """Index of the largest value, the lowest index among values equal to it within rounding."""
+    return int(np.flatnonzero(d >= d.max() * (1.0 - _TIE))[0])
+
+
+def _nearest_seed(seeds: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Every point's nearest seed (index into ``seeds``), the earlier seed among equally near ones."""
+    if len(seeds) == 1:
+        return np.zeros(len(points), np.int64)
+    d, i = cKDTree(seeds).query(points, k=min(8, len(seeds)))  # a vertex equally near more (a cap's centre)
+    tie = d <= d[:, :1] * (1.0 + _TIE) + 1e-12
+    return np.where(tie, i, len(seeds)).min(1).astype(np.int64)
 
 
 def farthest_seeds(points, radius: float) -> np.ndarray:
     """Farthest-point sampling: indices of seeds such that every point is within ``radius`` of one.
 
-    The first seed is the point farthest from the points' centroid (the lowest index among
-    equals); each next one the point farthest from all seeds so far, until none is further than
-    ``radius``. The seeds depend on the points' shape only, not on where they lie or how they
-    are turned, and are at least ``radius`` apart.
+    The first seed is the point farthest from the points' centroid; each next one the point
+    farthest from all seeds so far, until none is further than ``radius``; among points equally
+    far (within rounding), the lowest index. The seeds depend on the points' shape only, not on
+    where they lie or how they are turned, and are at least ``radius`` apart.
 
     Parameters
     ----------
@@ -126,10 +150,10 @@ def farthest_seeds(points, radius: float) -> np.ndarray:
     if isinstance(radius, bool) or not (isinstance(radius, (int, float, np.integer, np.floating))
                                         and math.isfinite(radius) and radius > 0):
         raise ValueError(f"radius must be a positive number, got {radius!r}")
-    seeds = [int(np.argmax(((p - p.mean(0)) ** 2).sum(1)))]
+    seeds = [_first_max(np.linalg.norm(p - p.mean(0), axis=1))]
     d = np.linalg.norm(p - p[seeds[0]], axis=1)
     while d.max() > radius:
-        seeds.append(int(np.argmax(d)))
+        seeds.append(_first_max(d))
         d = np.minimum(d, np.linalg.norm(p - p[seeds[-1]], axis=1))
     return np.asarray(seeds, dtype=np.int64)
 
@@ -566,4 +590,3 @@ def predict_motion(previous, before, faces, patches, *, constrained=None, smooth
     for _ in range(int(smoothing)):
         step = smoother @ step
     return P + step
-

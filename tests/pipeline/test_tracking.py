@@ -278,6 +278,18 @@ def test_surface_patches_follow_the_surface_not_where_it_lies():
     assert d.min(1).max() <= SEED_RADIUS * 60.0 and np.sort(d[seeds], 1)[:, 1].min() >= SEED_RADIUS * 60.0
 
 
+def test_surface_patches_of_a_symmetric_template_do_not_depend_on_where_it_lies():
+    """An exactly symmetric template (a cylinder: many vertices equally far from its centroid, from a seed, cap
+    centres equally near several seeds): equal distances go to the lowest index, so rounding under a rigid
+    motion does not decide the patches."""
+    m = trimesh.creation.cylinder(radius=20.0, height=120.0, sections=32)
+    v, f = (np.asarray(x) for x in trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=10.0))
+    patch = surface_patches(v, f, 40.0)[0]
+    for k in range(6):
+        moved = v @ _rotation([1, k, 3 - k], 17.0 + 29.0 * k).T + [300.0 * k, -70.0, 12.0 * k]
+        assert np.array_equal(surface_patches(moved, f, 40.0)[0], patch), k
+
+
 def test_labelled_patches_never_span_two_parts_and_match_a_per_part_reference():
     """With the template's labels every component's body is one patch and every limb is cut on a grid from
     its own corner (the same partition as a loop)."""
@@ -450,6 +462,15 @@ def test_invalid_input():
             TemplateTracker(v, f, patch_labels=labels)
     with pytest.raises(ValueError, match="labels"):
         surface_patches(v, f, 10.0, labels=np.zeros((len(v), 2), int))
+    for size in (0.0, -1.0, float("nan"), float("inf"), True, "10"):
+        with pytest.raises(ValueError, match="size"):
+            surface_patches(v, f, size)
+        with pytest.raises(ValueError, match="patch_size"):
+            TemplateTracker(v, f, patch_size=size)
+    with pytest.raises(ValueError, match="vertices"):
+        surface_patches(v[:, :2], f, 10.0)
+    with pytest.raises(ValueError, match="faces"):
+        surface_patches(v, f[:, :2], 10.0)
     for pts, radius, msg in ((v[:, :2], 5.0, "points"), (np.zeros((0, 3)), 5.0, "points"), (v, 0.0, "radius"),
                              (v, float("nan"), "radius"), (v, True, "radius"), (v, "5", "radius")):
         with pytest.raises(ValueError, match=msg):
