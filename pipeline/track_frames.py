@@ -265,7 +265,7 @@ def _old_setting(old: dict, key: str, new, *, spine_rewritten: bool = False):
     skinned step with ``spine_init`` and from the prediction without; without ``spine_sha256``,
     the spine was not recorded: read as the current one (its frames are kept) unless
     ``spine.json`` was written after ``track.json`` (``spine_rewritten``: the frames' starts
-    came from an earlier spine)."""
+    came from an earlier spine); without ``patches``, the patches were a grid's cells (``"grid"``)."""
     if key in old:
         return old[key]
     if key == "spine_start":
@@ -276,6 +276,8 @@ def _old_setting(old: dict, key: str, new, *, spine_rewritten: bool = False):
         return "meshes"
     if key == "rig_rounds":  # before the articulated prior, no run tracked with a rig
         return 0
+    if key == "patches":  # before the patches that follow the surface, they were a grid's cells
+        return "grid"
     return None
 
 

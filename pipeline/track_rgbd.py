@@ -103,7 +103,8 @@ def _settings(tracker, V0: np.ndarray, F0: np.ndarray, **options) -> dict:
     return {"template_sha256": array_digest(V0, F0), "vertices": int(len(V0)), "gamma": tracker.gamma,
             "gate_mm": tracker.gate, "rounds": tracker.rounds, "solver": tracker.system.backend,
             "remove_skin": bool(options["remove_skin"]), "contour": bool(options["contour"]),
-            "predict": bool(options["predict"]), "prior": tracker.prior, "colour_tracks": bool(options["colour"])}
+            "predict": bool(options["predict"]), "prior": tracker.prior, "colour_tracks": bool(options["colour"]),
+            "patches": tracker.patch_rule}
 
 
 def _first_with_depth(rd, cam_id: str, n: int, data_for, V0: np.ndarray, take_path, lohi):

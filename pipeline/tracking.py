@@ -310,6 +310,11 @@ class TemplateTracker:
     motions are redone.
     """
 
+    #: How the rigid patches are cut (:func:`pipeline.tracking_patches.surface_patches`): recorded in
+    #: ``track.json``, so that frames tracked with an earlier rule (``"grid"``: one seed per cell of a
+    #: grid from the template's lowest corner) are tracked again rather than resumed or reused.
+    patch_rule = "surface"
+
     def __init__(self, vertices, faces, *, gamma: float | None = None, gate: float | None = None,
                  rounds: int = ROUNDS, backend: str = "auto", point_to_plane: bool = True, rigidity: float = 0.5,
                  patch_size: float | None = None, prior: str = "round", align_size: float | None = None,

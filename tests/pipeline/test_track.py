@@ -313,6 +313,26 @@ def _fake_spine(V, F, ref, step):
     return lambda *a: (ref, model)
 
 
+def test_frames_tracked_with_the_grids_patches_are_tracked_again(tmp_path, caplog):
+    """A track.json without ``patches`` was written when the patches were a grid's cells: its frames
+    (and a rig built on them) are not resumed under the patches that follow the surface."""
+    import json
+
+    from pipeline import track
+
+    _sphere_results(tmp_path, frames=3)
+    first = track.track_results(tmp_path)
+    assert first["patches"] == "surface"
+    path = tmp_path / "tracked" / "track.json"
+    old = json.loads(path.read_text())
+    del old["patches"]
+    path.write_text(json.dumps(old))
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        again = track.track_results(tmp_path)
+    assert "patches 'grid' -> 'surface'" in again["started_over"]
+    assert [r.getMessage() for r in caplog.records] == [again["started_over"]]
+
+
 def test_rebuilt_spine_starts_over_with_one_warning_and_the_same_spine_resumes(tmp_path, monkeypatch, caplog):
     from pipeline import track
 
