@@ -15,6 +15,7 @@ and CPU seconds.
 from __future__ import annotations
 
 import argparse
+import math
 import pickle
 import time
 from pathlib import Path
@@ -60,13 +61,32 @@ def takes_root(root: str | None) -> Path:
     return Path(root) if root else cache_dir().parent / "takes"
 
 
-def take_dir(root: Path, spec: str) -> Path:
-    """The take directory of ``NAME:FPS:SEED:FRAMES`` under ``root``, simulated and processed if missing."""
+def take_specs(takes: str) -> list[str]:
+    """``--takes``' entries, every one checked before any take is simulated or tracked (a ValueError naming it)."""
+    specs = [t for t in str(takes).split(",") if t.strip()]
+    for spec in specs:
+        _parse_take(spec)
+    if not specs:
+        raise ValueError(f"--takes: give at least one NAME:FPS:SEED:FRAMES, got {takes!r}")
+    return specs
+
+
+def _parse_take(spec: str) -> tuple[str, float, int, int]:
     try:
         name, fps, seed, frames = spec.split(":")
-        d = root / f"{name}_{float(fps):g}_s{int(seed)}_f{int(frames)}"
+        out = name, float(fps), int(seed), int(frames)
     except ValueError:
         raise ValueError(f"--takes: every take is NAME:FPS:SEED:FRAMES (e.g. biped:10:3:16), got {spec!r}") from None
+    if not name or not (math.isfinite(out[1]) and out[1] > 0) or out[3] < 2:
+        raise ValueError(f"--takes: every take is NAME:FPS:SEED:FRAMES with a positive FPS and at least 2 frames, "
+                         f"got {spec!r}")
+    return out
+
+
+def take_dir(root: Path, spec: str) -> Path:
+    """The take directory of ``NAME:FPS:SEED:FRAMES`` under ``root``, simulated and processed if missing."""
+    name, fps, seed, frames = _parse_take(spec)
+    d = root / f"{name}_{fps:g}_s{seed}_f{frames}"
     if (d / "results" / "spine.json").is_file() and (d / "sim.pkl").is_file():
         return d
     from fake_cameras.record import record_take
@@ -114,12 +134,12 @@ def take_labels(d: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    root = takes_root(args.root)
+    root, specs = takes_root(args.root), take_specs(args.takes)
     print("| take | vertices | heat weights: right / body recall / body precision | template_labels | "
           "template_labels(surfaces=) | CPU s (heat, labels, surfaces=) |")
     print("| --- | --- | --- | --- | --- | --- |")
     rows = []
-    for spec in [s for s in args.takes.split(",") if s]:
+    for spec in specs:
         d = take_dir(root, spec)
         r = take_labels(d)
         scores = [label_scores(r[key], r["true"]) for key in ("heat", "labels", "motion")]

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import shutil
 import tempfile
 import time
@@ -26,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stage.benchmarks.labels import take_dir, takes_root
+from stage.benchmarks.labels import take_dir, take_specs, takes_root
 
 NAME = "patches"
 HELP = "the default tracking of the fast and slow simulated takes, with its patches and with a grid's"
@@ -119,15 +120,26 @@ def track_row(d: Path, tmp: Path, *, labels=None, offset: float | None = None) -
             "patches": counts[0] if counts else 0, "cpu": cpu}
 
 
+def grid_offsets(text: str) -> list[float]:
+    """``--grid``'s offsets (finite numbers of cells), or a ValueError naming it."""
+    try:
+        offsets = [float(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        offsets = [math.nan]
+    if not all(math.isfinite(o) for o in offsets):
+        raise ValueError(f"--grid: comma-separated offsets in cells (e.g. 0,0.25,0.5,0.75), got {text!r}")
+    return offsets
+
+
 def run(args: argparse.Namespace) -> int:
-    offsets = [float(x) for x in args.grid.split(",") if x.strip()]
+    offsets, specs = grid_offsets(args.grid), take_specs(args.takes)
     cases = [("default", None, None)] + ([("--labels", "spine", None)] if args.labels else []) \
         + [(f"grid moved {o:g} cell", None, o) for o in offsets]
     print("| take | tracking | mean / 95th percentile; worst frame | patches | CPU s a frame |")
     print("| --- | --- | --- | --- | --- |")
     means = {name: [] for name, _, _ in cases}
     with tempfile.TemporaryDirectory() as tmp:
-        for spec in [s for s in args.takes.split(",") if s]:
+        for spec in specs:
             d = take_dir(takes_root(args.root), spec)
             for name, labels, offset in cases:
                 r = track_row(d, Path(tmp), labels=labels, offset=offset)

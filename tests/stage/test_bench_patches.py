@@ -41,3 +41,20 @@ def test_takes_root_is_the_cache_unless_given(monkeypatch, tmp_path):
     monkeypatch.setenv("CAPTURE_STAGE_CACHE", str(tmp_path))
     assert takes_root(None) == tmp_path / "takes"
     assert takes_root(str(tmp_path / "mine")) == tmp_path / "mine"
+
+
+def test_invalid_input():
+    """The options are checked before any take is simulated or tracked, each error naming its option."""
+    import pytest
+
+    from stage.benchmarks.labels import take_specs
+    from stage.benchmarks.patches import grid_offsets
+
+    assert grid_offsets("0, 0.5,") == [0.0, 0.5] and grid_offsets("") == []
+    for bad in ("x", "0,nan", "inf"):
+        with pytest.raises(ValueError, match="--grid"):
+            grid_offsets(bad)
+    assert take_specs("biped:10:3:16,starfish:30:3:30") == ["biped:10:3:16", "starfish:30:3:30"]
+    for bad in ("bogus", "biped:10:3", "biped:x:3:16", "biped:0:3:16", "biped:10:3:1", ":10:3:16", ","):
+        with pytest.raises(ValueError, match="--takes"):
+            take_specs(bad)
