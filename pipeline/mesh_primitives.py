@@ -1,7 +1,8 @@
 """Mesh primitives the tracker, the motion segmentation, the exporter and the simulator share:
 the one check of a mesh's arrays, vertex normals, enclosed volume, triangle areas, the sums
 over a mesh's face corners behind them, and the rigid motion that best carries one point set onto
-another (:func:`rigid_fit`).
+another (:func:`rigid_fit`), and the connected components of a mesh or of an edge list
+(:func:`mesh_components`, :func:`edge_components`).
 
 A vertex in no face (an isolated vertex) has **no normal: zero**, not an arbitrary direction. Every
 user of a normal then treats it as "no surface here": the tracker's normal gate never pairs it,
@@ -21,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 __all__ = ["check_mesh", "summing_matrix", "sum_by", "scatter_add", "triangle_areas", "vertex_normals", "mesh_volume",
-           "rigid_fit"]
+           "rigid_fit", "edge_components", "mesh_components"]
 
 
 def check_mesh(vertices, faces, *, min_vertices: int = 0, min_faces: int = 0,
@@ -160,3 +161,79 @@ def rigid_fit(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])  # (a degenerate set: no reflection either)
     R = Vt.T @ D @ U.T
     return R, cb - R @ ca
+
+
+def _vertex_count(n) -> int:
+    """``n`` as an int, or a ValueError naming ``n``."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise ValueError(f"n must be a whole number >= 0 (the number of vertices), got {n!r}")
+    return int(n)
+
+
+def edge_components(edges, n) -> np.ndarray:
+    """Connected component of every vertex of an undirected graph given by its edges.
+
+    Parameters
+    ----------
+    edges : (E, 2) int array-like
+        Vertex pairs within ``0..n-1``; an edge's direction, repeated edges and loops do not matter.
+    n : int
+        Number of vertices (>= 0); a vertex in no edge is a component of its own.
+
+    Returns
+    -------
+    (n,) int64 ndarray
+        Component of every vertex, ``0..C-1``, numbered by their lowest vertex: vertex 0's component
+        is 0, the component of the lowest vertex not in it 1, and so on (the labels of
+        ``scipy.sparse.csgraph.connected_components``).
+
+    Raises
+    ------
+    ValueError
+        Naming ``edges`` or ``n``.
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    n = _vertex_count(n)
+    e = np.asarray(edges)
+    if e.size == 0:
+        e = e.reshape(0, 2)
+    if e.ndim != 2 or e.shape[1] != 2 or not np.issubdtype(e.dtype, np.integer):
+        raise ValueError(f"edges must be an integer array of shape (E, 2), got {e.shape} {e.dtype}")
+    if e.size and (e.min() < 0 or e.max() >= n):
+        raise ValueError(f"edges index vertices outside 0..{n - 1}")
+    if n == 0:
+        return np.zeros(0, np.int64)
+    graph = sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1].astype(np.int64)
+
+
+def mesh_components(faces, n) -> np.ndarray:
+    """Connected component of every vertex of a triangle mesh: vertices joined by a face's edges.
+
+    Parameters
+    ----------
+    faces : (F, 3) int array-like
+        Triangles indexing ``0..n-1``.
+    n : int
+        Number of vertices (>= 0); a vertex in no face is a component of its own.
+
+    Returns
+    -------
+    (n,) int64 ndarray
+        Component of every vertex, numbered by their lowest vertex (:func:`edge_components`).
+
+    Raises
+    ------
+    ValueError
+        Naming ``faces`` or ``n``.
+    """
+    f = np.asarray(faces)
+    if f.size == 0:
+        f = f.reshape(0, 3)
+    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"faces must be an integer array of shape (F, 3), got {f.shape} {f.dtype}")
+    n = _vertex_count(n)
+    if f.size and (f.min() < 0 or f.max() >= n):
+        raise ValueError(f"faces index vertices outside 0..{n - 1}")
+    return edge_components(np.stack([f.ravel(), np.roll(f, 1, axis=1).ravel()], axis=1), n)

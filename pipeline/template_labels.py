@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.mesh_primitives import check_mesh, rigid_fit
+from pipeline.mesh_primitives import check_mesh, edge_components, rigid_fit
 
 __all__ = ["BODY", "template_labels", "axis_labels"]
 
@@ -454,13 +454,8 @@ def _nearest_on_polyline(X: np.ndarray, axis: np.ndarray):
 
 def _largest_pieces(labels: np.ndarray, edges: np.ndarray, K: int) -> np.ndarray:
     """Every limb keeps its largest edge-connected piece; its other pieces become the body."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    n = len(labels)
     same = labels[edges[:, 0]] == labels[edges[:, 1]]
-    graph = coo_matrix((np.ones(int(same.sum())), (edges[same, 0], edges[same, 1])), shape=(n, n))
-    _, piece = connected_components(graph, directed=False)
+    piece = edge_components(edges[same], len(labels))
     out = labels.copy()
     for k in range(K):
         idx = np.flatnonzero(labels == k)

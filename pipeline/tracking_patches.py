@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from pipeline.mesh_primitives import check_mesh
+from pipeline.mesh_primitives import check_mesh, mesh_components
 from pipeline.mesh_primitives import scatter_add as _scatter_add
 from pipeline.mesh_primitives import sum_by as _sum_by
 from pipeline.mesh_primitives import summing_matrix as _summing
@@ -81,15 +81,12 @@ def surface_patches(vertices, faces, size: float, *, labels=None) -> tuple[np.nd
     component : (n_patches,) int ndarray
         Connected component of every patch.
     """
-    from scipy.sparse.csgraph import connected_components
-
     v, f = check_mesh(vertices, faces)
     if isinstance(size, bool) or not (isinstance(size, (int, float, np.integer, np.floating)) and math.isfinite(size)
                                       and size > 0):
         raise ValueError(f"size must be a positive number (mm), got {size!r}")
     n = len(v)
-    adj = sp.coo_matrix((np.ones(3 * len(f)), (f.ravel(), np.roll(f, 1, axis=1).ravel())), shape=(n, n))
-    _, comp = connected_components(adj, directed=False)
+    comp = mesh_components(f, n)
     if labels is not None:
         return _labelled_patches(v, comp, _check_labels(labels, n), size)
     patch = np.empty(n, np.int64)
@@ -182,12 +179,28 @@ def _labelled_patches(v: np.ndarray, comp: np.ndarray, lab: np.ndarray, size: fl
             patch[mine] = len(component)
             component.append(comp[mine[0]])
             continue
-        cell = np.floor((v[mine] - v[mine].min(0)) / max(size, 1e-9)).astype(np.int64)
-        _, first = np.unique(cell, axis=0, return_index=True)
-        seeds = np.sort(mine[first])
-        patch[mine] = len(component) + cKDTree(v[seeds]).query(v[mine])[1]
+        seeds, nearest = _grid_seeds(v[mine], max(size, 1e-9))
+        patch[mine] = len(component) + nearest
         component.extend([comp[mine[0]]] * len(seeds))
     return patch, np.asarray(component, dtype=np.int64)
+
+
+def _grid_seeds(points: np.ndarray, size: float, offset: float = 0.0, *, corner=None):
+    """The grid rule: cells of ``size`` counted from ``corner`` (default: the points' lowest corner) moved by
+    ``offset`` cells along every axis, the first point in each cell a seed, every point with its nearest seed.
+
+    Returns
+    -------
+    seeds : (S,) int ndarray
+        Indices into ``points``, ascending.
+    nearest : (N,) int ndarray
+        Every point's nearest seed, an index into ``seeds``.
+    """
+    lo = points.min(0) if corner is None else corner
+    cell = np.floor((points - lo + offset * size) / size).astype(np.int64)
+    _, first = np.unique(cell, axis=0, return_index=True)
+    seeds = np.sort(first)
+    return seeds, cKDTree(points[seeds]).query(points)[1]
 
 
 def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_pairs: int = 12,

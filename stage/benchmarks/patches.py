@@ -52,24 +52,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def grid_patches(vertices, faces, size: float, offset: float = 0.0):
     """The grid patches: per connected component, one seed per ``size`` cell (the first vertex in it), the
     cells counted from the template's lowest corner moved by ``offset`` cells along every axis; every vertex
-    with its component's nearest seed. -> (patch per vertex, component per patch), as ``surface_patches``."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
+    with its component's nearest seed (the grid rule of a limb's patches,
+    :func:`pipeline.tracking_patches._grid_seeds`). -> (patch per vertex, component per patch), as
+    ``surface_patches``."""
+    from pipeline.mesh_primitives import mesh_components
+    from pipeline.tracking_patches import _grid_seeds
 
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     n = len(v)
-    adj = sp.coo_matrix((np.ones(3 * len(f)), (f.ravel(), np.roll(f, 1, axis=1).ravel())), shape=(n, n))
-    _, comp = connected_components(adj, directed=False)
-    cell = np.floor((v - v.min(0) + offset * size) / size).astype(np.int64)
-    _, first = np.unique(np.concatenate([comp[:, None], cell], axis=1), axis=0, return_index=True)
-    seeds = np.sort(first)
-    patch = np.empty(n, np.int64)
+    comp = mesh_components(f, n)
+    lo = v.min(0)
+    per_component = []  # (its vertices, its seeds, every vertex's nearest among them)
     for c in np.unique(comp):
         mine = np.flatnonzero(comp == c)
-        s_c = seeds[comp[seeds] == c]
-        patch[mine] = np.searchsorted(seeds, s_c)[cKDTree(v[s_c]).query(v[mine])[1]]
+        s_c, nearest = _grid_seeds(v[mine], size, offset, corner=lo)
+        per_component.append((mine, mine[s_c], nearest))
+    seeds = np.sort(np.concatenate([s_c for _, s_c, _ in per_component]))
+    patch = np.empty(n, np.int64)
+    for mine, s_c, nearest in per_component:
+        patch[mine] = np.searchsorted(seeds, s_c)[nearest]
     return patch, comp[seeds]
 
 

@@ -1,4 +1,4 @@
-"""pipeline.mesh_primitives: vertex normals (zero for a vertex in no face), volume, corner sums."""
+"""pipeline.mesh_primitives: vertex normals (zero for a vertex in no face), volume, corner sums, connected components."""
 
 from __future__ import annotations
 
@@ -7,7 +7,14 @@ import pytest
 import trimesh
 
 from pipeline.gltf_export import _unit_normals
-from pipeline.mesh_primitives import mesh_volume, sum_by, summing_matrix, vertex_normals
+from pipeline.mesh_primitives import (
+    edge_components,
+    mesh_components,
+    mesh_volume,
+    sum_by,
+    summing_matrix,
+    vertex_normals,
+)
 
 
 def _slow_normals(v, f):
@@ -77,6 +84,20 @@ def test_invalid_input():
         vertex_normals(v[:5], f)
     with pytest.raises(ValueError, match="corners"):
         vertex_normals(v, f, corners=np.eye(3))
+    with pytest.raises(ValueError, match="faces"):
+        mesh_components(f[:, :2], len(v))
+    with pytest.raises(ValueError, match="faces"):
+        mesh_components(f, 5)
+    with pytest.raises(ValueError, match="n must"):
+        mesh_components(f, -1)
+    with pytest.raises(ValueError, match="edges"):
+        edge_components(f, len(v))
+    with pytest.raises(ValueError, match="edges"):
+        edge_components(np.array([[0, 1.5]]), 3)
+    with pytest.raises(ValueError, match="edges"):
+        edge_components(np.array([[0, 3]]), 3)
+    with pytest.raises(ValueError, match="n must"):
+        edge_components(np.array([[0, 1]]), 2.0)
 
 
 def test_rigid_fit_recovers_a_known_motion_and_never_a_reflection():
@@ -94,3 +115,49 @@ def test_rigid_fit_recovers_a_known_motion_and_never_a_reflection():
     assert np.allclose(R2, R, atol=1e-9) and np.allclose(t2, t, atol=1e-9)
     Rm, _ = rigid_fit(A, A * [-1.0, 1.0, 1.0])
     assert np.isclose(np.linalg.det(Rm), 1.0)
+
+
+def _slow_components(edges, n):
+    """Breadth-first search from every vertex not reached yet, in vertex order: the components numbered
+    by their lowest vertex."""
+    nbrs = [set() for _ in range(n)]
+    for a, b in edges:
+        nbrs[a].add(b)
+        nbrs[b].add(a)
+    lab = np.full(n, -1)
+    for s in range(n):
+        if lab[s] >= 0:
+            continue
+        lab[s] = c = lab.max() + 1
+        todo = [s]
+        while todo:
+            for w in nbrs[todo.pop()]:
+                if lab[w] < 0:
+                    lab[w] = c
+                    todo.append(w)
+    return lab
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_components_equal_a_breadth_first_search_label_for_label(seed):
+    """On random meshes and edge lists of many pieces, with vertices in no face or edge: the same labels
+    exactly (not only the same partition), numbered by their lowest vertex."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 80))
+    f = rng.integers(0, n, (int(rng.integers(0, n // 2 + 1)), 3))
+    f_edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    got = mesh_components(f, n)
+    assert got.dtype == np.int64 and np.array_equal(got, _slow_components(f_edges, n))
+    e = rng.integers(0, n, (int(rng.integers(0, n)), 2))
+    assert np.array_equal(edge_components(e, n), _slow_components(e, n))
+    assert np.array_equal(edge_components(e[:, ::-1], n), edge_components(e, n))  # direction does not matter
+
+
+def test_components_of_empty_and_separate_meshes():
+    a = trimesh.creation.icosphere(subdivisions=1)
+    n = len(a.vertices)
+    f = np.concatenate([a.faces + n, a.faces])  # the second sphere's faces first: numbering by lowest vertex
+    lab = mesh_components(f, 2 * n + 1)
+    assert np.array_equal(lab, np.r_[np.zeros(n), np.ones(n), 2])
+    assert mesh_components(np.zeros((0, 3), np.int64), 0).shape == (0,)
+    assert np.array_equal(edge_components(np.zeros((0, 2), np.int64), 3), [0, 1, 2])
