@@ -122,14 +122,10 @@ def _main_part(n_vertices: int, faces) -> np.ndarray | None:
     """Mask of the subject's connected part when specks lie apart from it (a warning), None when the
     mesh is one part; ValueError when a second part is larger than a speck (vertices in no face are
     ignored)."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
-
     from pipeline.geodesic import mesh_edges
+    from pipeline.mesh_primitives import edge_components
 
-    e = mesh_edges(faces)
-    n = int(n_vertices)
-    _, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    comp = edge_components(mesh_edges(faces), int(n_vertices))
     used = np.unique(np.asarray(faces).ravel())
     sizes = np.bincount(comp[used], minlength=int(comp.max()) + 1)
     parts = np.argsort(-sizes, kind="stable")

@@ -39,11 +39,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+from scipy.sparse.csgraph import minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from pipeline.armature_limbs import check_limbs, limbs_last
 from pipeline.geodesic import mesh_edges
+from pipeline.mesh_primitives import edge_components
 from pipeline.rigid_parts import relative_bend, rigid_motions
 
 __all__ = [
@@ -224,8 +225,8 @@ def _densify(cs: CurveSkeleton, step: float) -> tuple[np.ndarray, np.ndarray]:
     G = sp.csr_matrix((w, (E[:, 0], E[:, 1])), shape=(n, n))
     T = minimum_spanning_tree(G + G.T).tocoo()  # a tree (cycles dropped)
     E = np.c_[T.row, T.col]
-    nc, comp = connected_components(sp.csr_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)), directed=False)
-    if nc > 1:
+    comp = edge_components(E, n)
+    if comp.max() > 0:
         keep = comp == np.bincount(comp).argmax()
         remap = np.full(n, -1)
         remap[keep] = np.arange(keep.sum())
@@ -375,9 +376,8 @@ def _articulation_pairs(v, f, lab, min_edges, motion, reference, limbs=None) -> 
         motions = _segment_motions(mo, lab, segs, int(reference))
     idx = {x: i for i, x in enumerate(segs)}
     n = len(segs)
-    g = sp.csr_matrix((np.ones(len(cand)), ([idx[p[0]] for p, _, _ in cand], [idx[p[1]] for p, _, _ in cand])),
-                      shape=(n, n))
-    if len(cand) == 0 or len(cand) - n + connected_components(g, directed=False)[0] == 0:
+    pairs = np.array([(idx[p[0]], idx[p[1]]) for p, _, _ in cand], dtype=np.int64)
+    if len(cand) == 0 or len(cand) - n + int(edge_components(pairs, n).max()) + 1 == 0:
         return cand, motions, []  # no cycle: a tree (or a forest) already
     if motions is not None:
         residual = {pair: joint_residual(motions[pair[0]], motions[pair[1]], c)[0] for pair, c, _ in cand}

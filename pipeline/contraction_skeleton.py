@@ -46,11 +46,11 @@ import logging
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+from scipy.sparse.csgraph import minimum_spanning_tree
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
-from pipeline.mesh_primitives import check_mesh
+from pipeline.mesh_primitives import check_mesh, edge_components
 
 __all__ = ["cotangent_laplacian", "contract_mesh", "contraction_skeleton"]
 
@@ -255,9 +255,8 @@ def contraction_skeleton(
     w = np.linalg.norm(pts[ge[:, 0]] - pts[ge[:, 1]], axis=1) + 1e-12 * size
     T = minimum_spanning_tree(sp.csr_matrix((w, (ge[:, 0], ge[:, 1])), shape=(n, n))).tocoo()
     E = np.c_[T.row, T.col].astype(np.int64)
-    nc, comp = connected_components(sp.csr_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)),
-                                    directed=False)
-    if nc > 1:
+    comp = edge_components(E, n)
+    if comp.max() > 0:
         big = np.bincount(comp, weights=counts).argmax()
         keep = comp == big
         remap = np.full(n, -1, dtype=np.int64)

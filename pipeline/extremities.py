@@ -50,7 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.sparse.csgraph import dijkstra
 
 from pipeline.geodesic import (
     average_geodesic_distance,
@@ -60,6 +60,7 @@ from pipeline.geodesic import (
     validate_mesh,
     vertex_areas,
 )
+from pipeline.mesh_primitives import edge_components
 
 __all__ = ["CLEAR", "Extremities", "find_extremities", "local_maxima", "protrudes"]
 
@@ -147,9 +148,7 @@ def protrudes(values: np.ndarray, edges: np.ndarray, vertex: int, height: float)
         return bool(values.max() - values.min() >= height)
     keep = values >= values[vertex] - height
     ee = e[keep[e[:, 0]] & keep[e[:, 1]]]
-    n = len(values)
-    adj = sp.csr_matrix((np.ones(len(ee)), (ee[:, 0], ee[:, 1])), shape=(n, n))
-    _, lab = connected_components(adj, directed=False)
+    lab = edge_components(ee, len(values))
     comp = lab == lab[vertex]
     return not bool(np.any(rank[comp] > rank[vertex]))
 
@@ -283,8 +282,7 @@ def _superlevel_labels(agd: np.ndarray, edges: np.ndarray, level: float) -> np.n
     n = len(agd)
     keep = agd >= level
     ee = edges[keep[edges[:, 0]] & keep[edges[:, 1]]]
-    adj = sp.csr_matrix((np.ones(len(ee)), (ee[:, 0], ee[:, 1])), shape=(n, n))
-    return connected_components(adj, directed=False)[1]
+    return edge_components(ee, n)
 
 
 def _persists(agd: np.ndarray, rank: np.ndarray, edges: np.ndarray, m: int, h: float) -> bool:

@@ -15,13 +15,12 @@ from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
-import scipy.sparse as sp
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.sparse.csgraph import connected_components
 
 from pipeline.extremities import find_extremities
 from pipeline.geodesic import edge_graph, largest_component, mesh_edges, validate_mesh, vertex_areas
 from pipeline.merge import MergedSkeleton, Topology, consensus_topology, merge_skeletons, skeleton_splits
+from pipeline.mesh_primitives import edge_components
 from pipeline.skeleton import TipSkeleton, grow_skeleton, limb_points
 
 __all__ = ["SpineParams", "FrameSkeleton", "Alternate", "frame_skeleton", "with_alternates", "LIMB_FRACTIONS"]
@@ -274,11 +273,7 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
         log.warning("empty frame (no faces)")
         return FrameSkeleton.empty()
     edges = mesh_edges(f)
-    n_comp, _ = connected_components(
-        sp.csr_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v))),
-        directed=False,
-    )
-    if n_comp == 1:
+    if edge_components(edges, len(v)).max() == 0:  # one part
         kept = np.arange(len(v))
     else:  # several parts (or unreferenced vertices): keep the largest part
         v, f, kept = largest_component(v, f, warn=True)

@@ -20,9 +20,9 @@ import logging
 import numpy as np
 import scipy.sparse as sp
 import trimesh
-from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.sparse.csgraph import dijkstra
 
-from pipeline.mesh_primitives import check_mesh
+from pipeline.mesh_primitives import check_mesh, edge_components, mesh_components
 
 __all__ = [
     "EmptyMeshError",
@@ -148,7 +148,7 @@ def largest_component(vertices, faces, *, warn: bool = True) -> tuple[np.ndarray
     """
     v, f = validate_mesh(vertices, faces)
     n = len(v)
-    labels = trimesh.graph.connected_component_labels(mesh_edges(f), node_count=n)
+    labels = mesh_components(f, n)
     n_comp = int(labels.max()) + 1 if n else 0
     face_label = labels[f[:, 0]]
     counts = np.bincount(face_label, minlength=n_comp)
@@ -317,9 +317,7 @@ def cluster_vertices(vertices, edges, n_target: int) -> np.ndarray:
     dims = q.max(axis=0) + 1
     key = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
     same = e[key[e[:, 0]] == key[e[:, 1]]]
-    adj = sp.csr_matrix((np.ones(len(same), dtype=np.int8), (same[:, 0], same[:, 1])), shape=(n, n))
-    _, lab = connected_components(adj, directed=False)
-    return lab.astype(np.int64)
+    return edge_components(same, n)
 
 
 def proxy_average_geodesic_distance(

@@ -79,11 +79,11 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.cluster.vq import kmeans, vq
-from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.sparse.csgraph import dijkstra
 
 from pipeline.geodesic import edge_graph, mesh_edges
+from pipeline.mesh_primitives import edge_components
 from pipeline.rigid_parts import (
     _dissolve_blends,
     _max_min,
@@ -409,9 +409,7 @@ def propagate_labels(points, faces, samples, sample_labels) -> np.ndarray:
 def _connected_segments(labels: np.ndarray, edges: np.ndarray, n_vertices: int, min_size: int) -> np.ndarray:
     """Split labels into surface-connected patches, merge tiny patches, renumber by size."""
     same = labels[edges[:, 0]] == labels[edges[:, 1]]
-    e = edges[same]
-    g = sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))
-    _, comp = connected_components(g, directed=False)
+    comp = edge_components(edges[same], n_vertices)
     for _ in range(50):
         sizes = np.bincount(comp)
         small = np.flatnonzero((sizes > 0) & (sizes < min_size))

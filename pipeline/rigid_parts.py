@@ -16,8 +16,8 @@ from __future__ import annotations
 import hashlib
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
+
+from pipeline.mesh_primitives import edge_components
 
 __all__ = ["rigid_motions", "rigid_residual", "relative_bend"]
 
@@ -354,8 +354,7 @@ def _peel_nonrigid(labels: np.ndarray, v: np.ndarray, edges: np.ndarray, tol: fl
             mask = np.zeros(V, bool)
             mask[ids[off]] = True
             e = edges[mask[edges[:, 0]] & mask[edges[:, 1]]]
-            _, comp = connected_components(sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(V, V)),
-                                           directed=False)
+            comp = edge_components(e, V)
             sizes = np.bincount(comp[mask], minlength=comp.max() + 1)
             for c in np.flatnonzero(sizes >= min_size):
                 patch = np.flatnonzero(mask & (comp == c))

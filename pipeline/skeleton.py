@@ -19,7 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.sparse.csgraph import dijkstra
+
+from pipeline.mesh_primitives import edge_components
 
 __all__ = ["TipSkeleton", "level_set_rings", "ring_statistics", "grow_skeleton", "limb_quality", "limb_end", "limb_points"]
 
@@ -139,8 +141,7 @@ def level_set_rings(distance: np.ndarray, edges: np.ndarray, *, n_bins: int = 10
         own_id = inv[: len(own)]
         iu = inv[len(own) : len(own) + len(rep)]
         iv = inv[len(own) + len(rep) :]
-    adj = sp.csr_matrix((np.ones(len(iu), dtype=np.int8), (iu, iv)), shape=(m, m))
-    _, lab = connected_components(adj, directed=False)
+    lab = edge_components(np.stack([iu, iv], axis=1), m)
     lab_own = lab[own_id]
     # rings: components holding at least one vertex of their own bin, numbered by (bin, component)
     comp_ids, first = np.unique(lab_own, return_index=True)

@@ -289,10 +289,10 @@ def _decimate(mesh, f, level, off, grid, face_budget, taubin_iterations, keep_la
 
 def _face_components(mesh) -> np.ndarray:
     """Connected-component label of every face of a trimesh (faces sharing a vertex are connected)."""
-    import trimesh
+    from pipeline.mesh_primitives import mesh_components
 
-    labels = trimesh.graph.connected_component_labels(mesh.edges, node_count=len(mesh.vertices))
-    return labels[np.asarray(mesh.faces, dtype=np.int64)[:, 0]]
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    return mesh_components(faces, len(mesh.vertices))[faces[:, 0]]
 
 
 def clean_mesh(mesh, *, taubin_iterations: int = 10, keep_largest: bool = True):
@@ -383,9 +383,7 @@ def surface_quality(mesh) -> SurfaceQuality:
 
 def _edge_components(i: np.ndarray, j: np.ndarray, n: int, face_vertex: np.ndarray) -> int:
     """Connected pieces of the faces (one vertex per face in ``face_vertex``) of an edge graph."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    from pipeline.mesh_primitives import edge_components
 
-    g = coo_matrix((np.ones(len(i), np.int8), (i, j)), shape=(n, n)).tocsr()
-    _, labels = connected_components(g, directed=False)
+    labels = edge_components(np.stack([i, j], axis=1), n)
     return int(np.unique(labels[face_vertex]).size)

@@ -359,11 +359,10 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     axes : list of (n, 3) float ndarray
         The given axes, then the new limbs'.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     from pipeline.limb_segments import MIN_VERTICES
+    from pipeline.mesh_primitives import edge_components
     from pipeline.rigid_parts import rigid_motions
 
     vs, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
@@ -385,8 +384,7 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     off = np.zeros(len(V), dtype=bool)
     off[body[rms > np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).mean()]] = True
     inner = e[off[e[:, 0]] & off[e[:, 1]]]
-    _, piece = connected_components(coo_matrix((np.ones(len(inner)), (inner[:, 0], inner[:, 1])), shape=(len(V),) * 2),
-                                    directed=False)
+    piece = edge_components(inner, len(V))
     rest = (out == -1) & ~off
     for p in np.unique(piece[off]):
         mine = off & (piece == p)
