@@ -8,9 +8,9 @@ distances over-estimate true geodesics by a few percent on irregular meshes,
 uniformly enough that level sets and extrema are unaffected.
 
 All functions are free functions on arrays: ``vertices (V, 3) float``,
-``faces (F, 3) int``. Edges and connected components come from trimesh
-(``trimesh.geometry.faces_to_edges``, ``trimesh.graph.connected_component_labels``);
-what is written here is the edge-graph geometry trimesh does not have.
+``faces (F, 3) int``. Edges come from trimesh (``trimesh.geometry.faces_to_edges``),
+connected components from :func:`pipeline.mesh_primitives.mesh_components`; what is
+written here is the edge-graph geometry trimesh does not have.
 """
 
 from __future__ import annotations

@@ -51,36 +51,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if getattr(args, "accuracy", False):
-        takes = [t.strip() for t in str(getattr(args, "takes", "none")).split(",") if t.strip() not in ("", "none")]
-        bad = [t for t in takes if t not in ("starfish", "quadruped", "biped")]
-        if bad:
-            raise ValueError(f"--takes: unknown creature {bad[0]!r} (choose from starfish, quadruped, biped)")
-        if int(getattr(args, "take_frames", 30)) < 2:
-            raise ValueError(f"--take-frames must be >= 2, got {args.take_frames}")
-        parts = str(getattr(args, "parts", "motion"))
-        if parts not in ("motion", "limbs"):
-            raise ValueError(f"--parts must be 'motion' or 'limbs', got {parts!r}")
-        try:
-            seeds = [int(x) for x in str(getattr(args, "take_seeds", "3")).split(",") if x.strip()]
-        except ValueError:
-            raise ValueError(f"--take-seeds must be integers (e.g. 3,5), got {args.take_seeds!r}") from None
-        if not seeds:
-            raise ValueError("--take-seeds: give at least one seed")
-        skinned = str(getattr(args, "skinned", "none")).strip()
-        try:
-            widths = [] if skinned == "none" else [float(x) / 100 for x in skinned.split(",") if x.strip()]
-        except ValueError:
-            raise ValueError(f"--skinned must be widths in % of the size (e.g. 1,2,3) or 'none', got {skinned!r}") from None
-        if any(not 0 < w < 1 for w in widths):
-            raise ValueError(f"--skinned widths must be within (0, 100) %, got {skinned!r}")
-        accuracy(skinned=tuple(widths))
-        take_accuracy(takes, frames=int(getattr(args, "take_frames", 30)), seeds=tuple(seeds), parts=parts)
+        takes, frames, seeds, parts, widths = _accuracy_options(args)
+        accuracy(skinned=widths)
+        take_accuracy(takes, frames=frames, seeds=seeds, parts=parts)
         return 0
-    from fake_cameras.mesh_motion import mesh_sequence
-    from pipeline.armature_fit import articulated_model, fit_sequence
-    from pipeline.armature_skeleton import articulated_skeleton
-    from pipeline.motion_segmentation import motion_segmentation
-
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
     lengths = [int(x) for x in args.frames.split(",") if x.strip()]
     bad = [s for s in sizes if s not in VOXELS]
@@ -90,23 +64,61 @@ def run(args: argparse.Namespace) -> int:
           f"{'skeleton s':>11} {'cpu s':>6} {'fit ms/frame':>13} {'cpu ms':>7}")
     for size in sizes:
         for T in lengths:
-            ms = mesh_sequence("quadruped", frames=T, voxel=VOXELS[size], dtype=np.float32)
-            V = ms.vertices
-            t0, c0 = time.perf_counter(), time.process_time()
-            seg = motion_segmentation(V, ms.faces, n_samples=args.samples, lambda_thr=0.98)
-            t_seg, c_seg = time.perf_counter() - t0, time.process_time() - c0
-            t0, c0 = time.perf_counter(), time.process_time()
-            sk = articulated_skeleton(np.asarray(V[0], dtype=np.float64), ms.faces, seg.labels, motion=V, reference=0)
-            model = articulated_model(np.asarray(V[0], dtype=np.float64), ms.faces, sk)
-            t_sk, c_sk = time.perf_counter() - t0, time.process_time() - c0
-            n_fit = min(int(args.fit_frames), T)
-            t0, c0 = time.perf_counter(), time.process_time()
-            fit_sequence(model, np.asarray(V[:n_fit], dtype=np.float64))
-            t_fit, c_fit = (time.perf_counter() - t0) / n_fit * 1e3, (time.process_time() - c0) / n_fit * 1e3
-            print(f"{V.shape[1]:>9} {T:>7} {t_seg:>10.2f} {c_seg:>6.2f} {seg.interval:>4} {seg.k:>4} {seg.n_segments:>9} "
-                  f"{t_sk:>11.2f} {c_sk:>6.2f} {t_fit:>13.1f} {c_fit:>7.1f}", flush=True)
-            del ms, V
+            _timing_row(size, T, samples=args.samples, fit_frames=int(args.fit_frames))
     return 0
+
+
+def _accuracy_options(args: argparse.Namespace):
+    """``--accuracy``'s options checked before any work, each error naming its option: -> (takes, take frames,
+    seeds, parts, skinning widths as fractions of the size)."""
+    takes = [t.strip() for t in str(getattr(args, "takes", "none")).split(",") if t.strip() not in ("", "none")]
+    bad = [t for t in takes if t not in ("starfish", "quadruped", "biped")]
+    if bad:
+        raise ValueError(f"--takes: unknown creature {bad[0]!r} (choose from starfish, quadruped, biped)")
+    if int(getattr(args, "take_frames", 30)) < 2:
+        raise ValueError(f"--take-frames must be >= 2, got {args.take_frames}")
+    parts = str(getattr(args, "parts", "motion"))
+    if parts not in ("motion", "limbs"):
+        raise ValueError(f"--parts must be 'motion' or 'limbs', got {parts!r}")
+    try:
+        seeds = [int(x) for x in str(getattr(args, "take_seeds", "3")).split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"--take-seeds must be integers (e.g. 3,5), got {args.take_seeds!r}") from None
+    if not seeds:
+        raise ValueError("--take-seeds: give at least one seed")
+    skinned = str(getattr(args, "skinned", "none")).strip()
+    try:
+        widths = [] if skinned == "none" else [float(x) / 100 for x in skinned.split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"--skinned must be widths in % of the size (e.g. 1,2,3) or 'none', got {skinned!r}") from None
+    if any(not 0 < w < 1 for w in widths):
+        raise ValueError(f"--skinned widths must be within (0, 100) %, got {skinned!r}")
+    return takes, int(getattr(args, "take_frames", 30)), tuple(seeds), parts, tuple(widths)
+
+
+def _timing_row(size: str, T: int, *, samples: int, fit_frames: int) -> None:
+    """One row of the timings: the quadruped of ``size`` over ``T`` frames segmented, its skeleton and model
+    built, and ``fit_frames`` of its frames fitted; wall and CPU seconds of each."""
+    from fake_cameras.mesh_motion import mesh_sequence
+    from pipeline.armature_fit import articulated_model, fit_sequence
+    from pipeline.armature_skeleton import articulated_skeleton
+    from pipeline.motion_segmentation import motion_segmentation
+
+    ms = mesh_sequence("quadruped", frames=T, voxel=VOXELS[size], dtype=np.float32)
+    V = ms.vertices
+    t0, c0 = time.perf_counter(), time.process_time()
+    seg = motion_segmentation(V, ms.faces, n_samples=samples, lambda_thr=0.98)
+    t_seg, c_seg = time.perf_counter() - t0, time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
+    sk = articulated_skeleton(np.asarray(V[0], dtype=np.float64), ms.faces, seg.labels, motion=V, reference=0)
+    model = articulated_model(np.asarray(V[0], dtype=np.float64), ms.faces, sk)
+    t_sk, c_sk = time.perf_counter() - t0, time.process_time() - c0
+    n_fit = min(fit_frames, T)
+    t0, c0 = time.perf_counter(), time.process_time()
+    fit_sequence(model, np.asarray(V[:n_fit], dtype=np.float64))
+    t_fit, c_fit = (time.perf_counter() - t0) / n_fit * 1e3, (time.process_time() - c0) / n_fit * 1e3
+    print(f"{V.shape[1]:>9} {T:>7} {t_seg:>10.2f} {c_seg:>6.2f} {seg.interval:>4} {seg.k:>4} {seg.n_segments:>9} "
+          f"{t_sk:>11.2f} {c_sk:>6.2f} {t_fit:>13.1f} {c_fit:>7.1f}", flush=True)
 
 
 # --------------------------------------------------------------------------- where it goes wrong, stage by stage
