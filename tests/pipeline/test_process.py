@@ -454,7 +454,7 @@ def test_cpu_seconds_of_a_thread_pool_count_once_and_parts_count_apart():
     clock = ctx.clock
     assert clock.worker_cpu == {}
     assert 0.1 <= clock.cpu["inner"] < 0.15 and clock.wall["inner"] >= 0.1
-    assert 0.1 <= clock.cpu["burn"] < 0.15, clock.cpu  # 0.3 before: the task counted twice, the part once more
+    assert 0.1 <= clock.cpu["burn"] < 0.15, clock.cpu  # the task counted once (twice, and its part again: 0.3)
     assert clock.wall["burn"] >= 0.1 and clock.in_parts["burn"][0] >= 0.1  # the step's own wall seconds, apart
 
 

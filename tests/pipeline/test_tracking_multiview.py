@@ -34,8 +34,7 @@ def _tracking_errors(name, options, tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name, options", [
-    # the default tracking; its measured figures (0.88 / 1.93), and those of the grid patches it replaced at four
-    # origins (three of which would fail here), are in docs/tracking.md ("Patches that follow the surface"); with
+    # the default tracking; its figures are in docs/tracking.md ("Patches that follow the surface"), those with
     # --colour, --carve and --labels in its decisions file. The quadruped's default is over these targets: its accurate mode
     # is tests/pipeline/test_tracking_carved.py on a short take, and `stage bench track --accuracy` on
     # this one (docs/tracking.md)

@@ -81,9 +81,8 @@ def test_pose2sim_demo_keys_with_a_plate_from_the_take_and_the_cones_meet(tmp_pa
     assert np.all(sb.bounds[0] <= person[0]) and np.all(person[1] <= sb.bounds[1]), sb.bounds
     assert np.all(sb.bounds[1] - sb.bounds[0] <= 0.5 * (shared[1] - shared[0])), (sb.bounds, shared)
     # the surface step's hull on a grid of 64 voxels over the box: the largest piece is the person
-    # in every sampled set and holds at least 90 % of the hull's voxels in each (measured: 1.0 in 8 of
-    # 10 sets, least 0.943; 0.72 before the cut-off pieces were joined); silhouette parts the person
-    # does not explain are dropped
+    # in every sampled set and holds at least 90 % of the hull's voxels in each (the figures: docs/keying.md);
+    # silhouette parts the person does not explain are dropped
     grid = grid_from_volume(sb.bounds, 64)
     carver = HullCarver(calib, grid)
     shares = []
