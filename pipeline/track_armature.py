@@ -331,7 +331,9 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     The body's rigid motion (the best rigid motion of its tracked vertices from the ``reference`` frame,
     :func:`pipeline.rigid_parts.rigid_motions`, refitted ``rounds`` times to the ``keep`` share of them it
     carries best) is applied to every body vertex; those it keeps further than one mesh edge (the mean edge of the
-    template; root mean square over the frames) from the frame's surface form connected pieces over the mesh, and a
+    template; root mean square over the frames) from the frame's surface, and that the motion of their nearest
+    labelled limb does not keep within one mesh edge either (:func:`_claimed`: a limb the piece touches, as a forearm
+    lying against a thigh, is not fused into it), form connected pieces over the mesh, and a
     piece with at least as many vertices as the smallest labelled limb (and leaving the body at least 8, to measure
     its noise on) becomes a limb, its axis the line from
     the centroid of its vertices next to the rest of the body to its vertex farthest from there.
@@ -381,8 +383,10 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     carried = np.einsum("tij,vj->tvi", R, V[body]) + t[:, None]
     rms = np.sqrt(np.mean([cKDTree(S).query(c)[0] ** 2 for S, c in zip(surfaces, carried)], axis=0))
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    edge = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).mean()
     off = np.zeros(len(V), dtype=bool)
-    off[body[rms > np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).mean()]] = True
+    off[body[rms > edge]] = True
+    off[body[_claimed(vs, out, body, surfaces, reference, edge)]] = False
     inner = e[off[e[:, 0]] & off[e[:, 1]]]
     piece = edge_components(inner, len(V))
     rest = (out == -1) & ~off
@@ -398,6 +402,38 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
         out[mine] = len(axes)
         axes.append(np.stack([root, far]))
     return out, axes
+
+
+def _claimed(vs: np.ndarray, labels: np.ndarray, body: np.ndarray, surfaces: list, reference: int,
+             edge: float) -> np.ndarray:
+    """(len(body),) bool: the body vertices ``body`` that the rigid motion of their nearest labelled limb keeps within
+    ``edge`` of every frame's surface (root mean square over the frames). A limb's motion is that of its proximal
+    half (its vertices nearer the body than the limb's median), as :func:`pipeline.template_labels.template_labels`
+    takes it, fitted to its tracked vertices ``vs`` (T, V, 3) from frame ``reference``."""
+    from scipy.spatial import cKDTree
+
+    from pipeline.rigid_parts import rigid_motions
+
+    V = vs[reference]
+    limbs = [np.flatnonzero(labels == k) for k in range(int(labels.max()) + 1)]
+    limbs = [idx if len(idx) >= 3 else np.zeros(0, dtype=np.int64) for idx in limbs]
+    out = np.zeros(len(body), dtype=bool)
+    if len(body) == 0 or not any(len(idx) for idx in limbs):
+        return out
+    near = np.stack([cKDTree(V[idx]).query(V[body])[0] if len(idx) else np.full(len(body), np.inf) for idx in limbs],
+                    1).argmin(1)
+    to_body = cKDTree(V[body])
+    trees = [cKDTree(S) for S in surfaces]
+    for k, idx in enumerate(limbs):
+        mine = np.flatnonzero(near == k)
+        if len(idx) == 0 or len(mine) == 0:
+            continue
+        gap = to_body.query(V[idx])[0]
+        R, t = rigid_motions(vs[:, idx[gap <= np.median(gap)]], reference=reference)
+        carried = np.einsum("tij,vj->tvi", R, V[body[mine]]) + t[:, None]
+        rms = np.sqrt(np.mean([tree.query(c)[0] ** 2 for tree, c in zip(trees, carried)], axis=0))
+        out[mine[rms <= edge]] = True
+    return out
 
 
 def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, labels: np.ndarray, axes: list):

@@ -546,6 +546,34 @@ def test_a_body_piece_that_does_not_move_with_the_body_becomes_a_limb():
     assert np.array_equal(still, labels) and len(ax2) == 1
 
 
+def test_a_body_piece_is_not_fused_with_the_labelled_limb_it_moves_with():
+    """``parts="limbs"``: a piece of the body that moves with the labelled limb beside it (a thigh's root the labels
+    give the body, which a forearm touches) is not taken into the new limb that turns on its own beyond it; the new
+    limb starts where the piece leaves that limb's motion (exact rigid motions, the surfaces the frames themselves)."""
+    import pipeline.track_armature as ta
+
+    tube, _ = _tube(rings=25, length=240.0)
+    v, f = tube.vertices, tube.faces
+    side, _ = _tube(rings=3, length=20.0)
+    other = side.vertices + [150.0, 20.0, 0]  # a labelled limb beside the tube's rings at x = 150, 160, 170
+    V, F = np.vstack([v, other]), np.vstack([f, side.faces + len(v)])
+    labels = np.r_[np.full(len(v), -1), np.zeros(len(other), dtype=np.int64)]
+    axes = [np.array([[150.0, 20, 0], [170.0, 20, 0]])]
+    touch = (v[:, 0] >= 150.0) & (v[:, 0] < 180.0)  # moves with the labelled limb
+    arm = v[:, 0] >= 180.0  # and beyond it turns about (180, 0, 0) too; the rest stands
+    frames = np.repeat(V[None], 4, axis=0)
+    for t in range(4):
+        shift = np.array([0.0, 0.0, 30.0 * t])
+        frames[t, len(v):] = other + shift
+        frames[t, :len(v)][touch] = v[touch] + shift
+        frames[t, :len(v)][arm] = (v[arm] - [180.0, 0, 0]) @ _rot([0, 1, 0], 0.6 * t).T + [180.0, 0, 0] + shift
+    out, ax = ta._unclaimed_limbs(frames, F, labels, axes, list(frames), reference=0)
+    assert len(ax) == 2 and np.array_equal(out[len(v):], labels[len(v):])
+    new = out[:len(v)] == 1
+    assert not new[~arm].any() and new[v[:, 0] >= 200.0].all()  # the far rings, nothing of the piece beside the limb
+    assert 180.0 <= ax[1][0, 0] <= 200.0 and ax[1][1, 0] == 240.0
+
+
 def test_marks_turn_a_round_part_the_surface_cannot():
     """A tube's half turned about its own axis by one vertex spacing lies on the same surface (the
     residual is 0): the ICP alone keeps the turn; with marks (where the images say half of its
