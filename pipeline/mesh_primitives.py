@@ -196,8 +196,8 @@ def edge_components(edges, n) -> np.ndarray:
 
     n = _vertex_count(n)
     e = np.asarray(edges)
-    if e.size == 0:
-        e = e.reshape(0, 2)
+    if e.size == 0:  # any empty input, an empty list too (a float array)
+        e = np.zeros((0, 2), np.int64)
     if e.ndim != 2 or e.shape[1] != 2 or not np.issubdtype(e.dtype, np.integer):
         raise ValueError(f"edges must be an integer array of shape (E, 2), got {e.shape} {e.dtype}")
     if e.size and (e.min() < 0 or e.max() >= n):
@@ -230,7 +230,7 @@ def mesh_components(faces, n) -> np.ndarray:
     """
     f = np.asarray(faces)
     if f.size == 0:
-        f = f.reshape(0, 3)
+        f = np.zeros((0, 3), np.int64)
     if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
         raise ValueError(f"faces must be an integer array of shape (F, 3), got {f.shape} {f.dtype}")
     n = _vertex_count(n)

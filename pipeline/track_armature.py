@@ -379,14 +379,14 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
         R, t = rigid_motions(vs[:, ids], reference=reference)
         gap = np.linalg.norm(np.einsum("tij,vj->tvi", R, V[body]) + t[:, None] - vs[:, body], axis=2).mean(0)
         ids = body[np.argsort(gap)[:max(3, int(keep * len(body)))]]
-    R, t = rigid_motions(vs[:, ids], reference=reference)
-    carried = np.einsum("tij,vj->tvi", R, V[body]) + t[:, None]
-    rms = np.sqrt(np.mean([cKDTree(S).query(c)[0] ** 2 for S, c in zip(surfaces, carried)], axis=0))
+    trees = [cKDTree(S) for S in surfaces]
+    rms = _surface_rms(*rigid_motions(vs[:, ids], reference=reference), V[body], trees)
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     edge = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).mean()
     off = np.zeros(len(V), dtype=bool)
     off[body[rms > edge]] = True
-    off[body[_claimed(vs, out, body, surfaces, reference, edge)]] = False
+    candidates = np.flatnonzero(off)
+    off[candidates[_claimed(vs, out, candidates, trees, reference, edge)]] = False
     inner = e[off[e[:, 0]] & off[e[:, 1]]]
     piece = edge_components(inner, len(V))
     rest = (out == -1) & ~off
@@ -404,12 +404,13 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     return out, axes
 
 
-def _claimed(vs: np.ndarray, labels: np.ndarray, body: np.ndarray, surfaces: list, reference: int,
+def _claimed(vs: np.ndarray, labels: np.ndarray, body: np.ndarray, trees: list, reference: int,
              edge: float) -> np.ndarray:
     """(len(body),) bool: the body vertices ``body`` that the rigid motion of their nearest labelled limb keeps within
-    ``edge`` of every frame's surface (root mean square over the frames). A limb's motion is that of its proximal
-    half (its vertices nearer the body than the limb's median), as :func:`pipeline.template_labels.template_labels`
-    takes it, fitted to its tracked vertices ``vs`` (T, V, 3) from frame ``reference``."""
+    ``edge`` of every frame's surface (KD-trees ``trees``; root mean square over the frames). A limb's motion is that
+    of its proximal half (its vertices nearer the body than the limb's median), as
+    :func:`pipeline.template_labels.template_labels` takes it, fitted to its tracked vertices ``vs`` (T, V, 3) from
+    frame ``reference``."""
     from scipy.spatial import cKDTree
 
     from pipeline.rigid_parts import rigid_motions
@@ -422,18 +423,23 @@ def _claimed(vs: np.ndarray, labels: np.ndarray, body: np.ndarray, surfaces: lis
         return out
     near = np.stack([cKDTree(V[idx]).query(V[body])[0] if len(idx) else np.full(len(body), np.inf) for idx in limbs],
                     1).argmin(1)
-    to_body = cKDTree(V[body])
-    trees = [cKDTree(S) for S in surfaces]
+    to_body = cKDTree(V[labels == -1])
     for k, idx in enumerate(limbs):
         mine = np.flatnonzero(near == k)
         if len(idx) == 0 or len(mine) == 0:
             continue
         gap = to_body.query(V[idx])[0]
-        R, t = rigid_motions(vs[:, idx[gap <= np.median(gap)]], reference=reference)
-        carried = np.einsum("tij,vj->tvi", R, V[body[mine]]) + t[:, None]
-        rms = np.sqrt(np.mean([tree.query(c)[0] ** 2 for tree, c in zip(trees, carried)], axis=0))
+        rms = _surface_rms(*rigid_motions(vs[:, idx[gap <= np.median(gap)]], reference=reference), V[body[mine]],
+                           trees)
         out[mine[rms <= edge]] = True
     return out
+
+
+def _surface_rms(R: np.ndarray, t: np.ndarray, X: np.ndarray, trees: list) -> np.ndarray:
+    """(n,): the distance of the points ``X`` carried by the rigid motions ``R`` (T, 3, 3), ``t`` (T, 3) from every
+    frame's surface (KD-trees ``trees``), root mean square over the frames."""
+    carried = np.einsum("tij,vj->tvi", R, X) + t[:, None]
+    return np.sqrt(np.mean([tree.query(c)[0] ** 2 for tree, c in zip(trees, carried)], axis=0))
 
 
 def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, labels: np.ndarray, axes: list):

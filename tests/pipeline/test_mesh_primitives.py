@@ -161,3 +161,4 @@ def test_components_of_empty_and_separate_meshes():
     assert np.array_equal(lab, np.r_[np.zeros(n), np.ones(n), 2])
     assert mesh_components(np.zeros((0, 3), np.int64), 0).shape == (0,)
     assert np.array_equal(edge_components(np.zeros((0, 2), np.int64), 3), [0, 1, 2])
+    assert np.array_equal(edge_components([], 2), [0, 1]) and np.array_equal(mesh_components([], 2), [0, 1])
