@@ -182,7 +182,7 @@ def test_fast_take_tracked_with_its_rig(fast_take):
     assert {r["armature"] for r in rep["rig_prior"]["rounds"]} == {"tracking"}  # (the spine's round is opt-in)
     err, vols, _ = tracking_errors(sim.creature, sim.times, res)
     # every frame within 2 voxels on average and 4 at the 95th percentile (the figures, with the prior and
-    # without: docs/notes/tracking-decisions.md)
+    # without: docs/tracking.md, "Accuracy")
     assert err.mean(axis=1).max() <= 2.0, err.mean(axis=1)
     assert np.percentile(err, 95, axis=1).max() <= 4.0, np.percentile(err, 95, axis=1)
     assert np.all(np.abs(vols - 1) <= 0.1), vols
