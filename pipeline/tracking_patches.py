@@ -41,6 +41,7 @@ from pipeline.mesh_primitives import summing_matrix as _summing
 __all__ = [
     "surface_patches",
     "farthest_seeds",
+    "grid_seeds",
     "patch_rigid_motion",
     "patch_align",
     "blended_patches",
@@ -179,15 +180,28 @@ def _labelled_patches(v: np.ndarray, comp: np.ndarray, lab: np.ndarray, size: fl
             patch[mine] = len(component)
             component.append(comp[mine[0]])
             continue
-        seeds, nearest = _grid_seeds(v[mine], max(size, 1e-9))
+        seeds, nearest = grid_seeds(v[mine], size)
         patch[mine] = len(component) + nearest
         component.extend([comp[mine[0]]] * len(seeds))
     return patch, np.asarray(component, dtype=np.int64)
 
 
-def _grid_seeds(points: np.ndarray, size: float, offset: float = 0.0, *, corner=None):
-    """The grid rule: cells of ``size`` counted from ``corner`` (default: the points' lowest corner) moved by
-    ``offset`` cells along every axis, the first point in each cell a seed, every point with its nearest seed.
+def grid_seeds(points, size: float, *, offset: float = 0.0, corner=None) -> tuple[np.ndarray, np.ndarray]:
+    """The grid rule of a limb's patches (``--labels``): one seed per cell of a world grid.
+
+    Cells of ``size`` are counted from ``corner`` (default: the points' lowest corner), moved by ``offset``
+    cells along every axis; the first point in each cell is a seed, and every point joins its nearest seed.
+    Unlike :func:`farthest_seeds`, the seeds depend on where the points lie.
+
+    Parameters
+    ----------
+    points : (N >= 1, 3) float ndarray
+    size : float
+        The cells' edge (> 0), in the points' unit.
+    offset : float
+        The grid's shift, in cells (finite).
+    corner : (3,) float array-like, optional
+        Where the cells are counted from.
 
     Returns
     -------
@@ -196,11 +210,20 @@ def _grid_seeds(points: np.ndarray, size: float, offset: float = 0.0, *, corner=
     nearest : (N,) int ndarray
         Every point's nearest seed, an index into ``seeds``.
     """
-    lo = points.min(0) if corner is None else corner
-    cell = np.floor((points - lo + offset * size) / size).astype(np.int64)
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 1 or not np.all(np.isfinite(p)):
+        raise ValueError(f"points must be finite with shape (N >= 1, 3), got {p.shape}")
+    for name, value, low in (("size", size, 0.0), ("offset", offset, None)):
+        if isinstance(value, bool) or not (isinstance(value, (int, float, np.integer, np.floating))
+                                           and math.isfinite(value) and (low is None or value > low)):
+            raise ValueError(f"{name} must be a {'positive' if low is not None else 'finite'} number, got {value!r}")
+    lo = p.min(0) if corner is None else np.asarray(corner, dtype=np.float64)
+    if lo.shape != (3,) or not np.all(np.isfinite(lo)):
+        raise ValueError(f"corner must be a finite point (3,), got {corner!r}")
+    cell = np.floor((p - lo + offset * size) / size).astype(np.int64)
     _, first = np.unique(cell, axis=0, return_index=True)
     seeds = np.sort(first)
-    return seeds, cKDTree(points[seeds]).query(points)[1]
+    return seeds, cKDTree(p[seeds]).query(p)[1]
 
 
 def patch_rigid_motion(V, pv, px, pn, patches, *, fallback, component=None, min_pairs: int = 12,

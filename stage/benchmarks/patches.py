@@ -53,10 +53,10 @@ def grid_patches(vertices, faces, size: float, offset: float = 0.0):
     """The grid patches: per connected component, one seed per ``size`` cell (the first vertex in it), the
     cells counted from the template's lowest corner moved by ``offset`` cells along every axis; every vertex
     with its component's nearest seed (the grid rule of a limb's patches,
-    :func:`pipeline.tracking_patches._grid_seeds`). -> (patch per vertex, component per patch), as
+    :func:`pipeline.tracking_patches.grid_seeds`). -> (patch per vertex, component per patch), as
     ``surface_patches``."""
     from pipeline.mesh_primitives import mesh_components
-    from pipeline.tracking_patches import _grid_seeds
+    from pipeline.tracking_patches import grid_seeds
 
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -66,7 +66,7 @@ def grid_patches(vertices, faces, size: float, offset: float = 0.0):
     per_component = []  # (its vertices, its seeds, every vertex's nearest among them)
     for c in np.unique(comp):
         mine = np.flatnonzero(comp == c)
-        s_c, nearest = _grid_seeds(v[mine], size, offset, corner=lo)
+        s_c, nearest = grid_seeds(v[mine], size, offset=offset, corner=lo)
         per_component.append((mine, mine[s_c], nearest))
     seeds = np.sort(np.concatenate([s_c for _, s_c, _ in per_component]))
     patch = np.empty(n, np.int64)

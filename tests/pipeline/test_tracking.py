@@ -23,6 +23,7 @@ from pipeline.tracking_patches import (
     blended_align,
     blended_patches,
     farthest_seeds,
+    grid_seeds,
     patch_align,
     patch_constraints,
     predict_motion,
@@ -278,6 +279,22 @@ def test_surface_patches_follow_the_surface_not_where_it_lies():
     assert d.min(1).max() <= SEED_RADIUS * 60.0 and np.sort(d[seeds], 1)[:, 1].min() >= SEED_RADIUS * 60.0
 
 
+def test_grid_seeds_equal_a_loop_over_the_cells():
+    """grid_seeds against a plain loop: the first point met in every cell a seed, every point with its nearest
+    seed by brute force (random points: no ties), for the points' own corner and a given one, moved or not."""
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-40.0, 90.0, (300, 3))
+    for size, offset, corner in ((25.0, 0.0, None), (25.0, 0.4, None), (17.0, 0.75, (-60.0, -50.0, -45.0))):
+        lo = p.min(0) if corner is None else np.asarray(corner)
+        first = {}
+        for i, x in enumerate(p):
+            first.setdefault(tuple(int(c) for c in np.floor((x - lo) / size + offset)), i)
+        ref = np.sort(list(first.values()))
+        seeds, nearest = grid_seeds(p, size, offset=offset, corner=corner)
+        assert np.array_equal(seeds, ref)
+        assert np.array_equal(nearest, np.linalg.norm(p[:, None] - p[ref][None], axis=2).argmin(1))
+
+
 def test_surface_patches_of_a_symmetric_template_do_not_depend_on_where_it_lies():
     """An exactly symmetric template (a cylinder: many vertices equally far from its centroid, from a seed, cap
     centres equally near several seeds): equal distances go to the lowest index, so rounding under a rigid
@@ -475,6 +492,14 @@ def test_invalid_input():
                              (v, float("nan"), "radius"), (v, True, "radius"), (v, "5", "radius")):
         with pytest.raises(ValueError, match=msg):
             farthest_seeds(pts, radius)
+    for kwargs, msg in (({"points": v[:, :2]}, "points"), ({"points": np.zeros((0, 3))}, "points"),
+                        ({"points": np.r_[v, [[np.nan, 0, 0]]]}, "points"), ({"size": 0.0}, "size"),
+                        ({"size": float("inf")}, "size"), ({"size": True}, "size"), ({"offset": float("nan")}, "offset"),
+                        ({"offset": "0.5"}, "offset"), ({"corner": [0.0, 0.0]}, "corner"),
+                        ({"corner": [np.inf, 0, 0]}, "corner")):
+        args = {"points": v, "size": 10.0, **kwargs}
+        with pytest.raises(ValueError, match=msg):
+            grid_seeds(args.pop("points"), args.pop("size"), **args)
     tr = TemplateTracker(v, f)
     with pytest.raises(ValueError, match="points and normals"):
         tr.fit(np.zeros((5, 3)), np.zeros((4, 3)), previous=v)
