@@ -174,6 +174,7 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
                   "reference_frame": frames[ref], "spine_init": use_spine, "spine_start": spine_start,
                   "predict": bool(predict), "prior": tracker.prior, "colour_tracks": take is not None,
                   "surfaces": surfaces, "rig_rounds": 0, "patches": tracker.patch_rule,
+                  "slowed_starts": spine_start == "choose",
                   "patch_labels": None if patch_labels is None else source_of_labels, "skipped": [], "frames": {}}
         if patch_labels is not None:  # the patches, and so every frame, depend on them
             report["patch_labels_sha256"] = labels_digest(patch_labels)

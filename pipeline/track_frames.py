@@ -28,7 +28,7 @@ from pipeline.results import atomic_write_bytes, ply_bytes
 from pipeline.run.settings import changed_settings, read_settings
 
 __all__ = ["LABELS_FILE", "LastRead", "labels_digest", "load_template", "predictor", "read_labels", "read_tracked", "remove_tracking",
-           "run_frames", "start_for", "start_over_if_changed", "tracked_path", "write_frame", "write_labels",
+           "run_frames", "slowed_starts", "start_for", "start_over_if_changed", "tracked_path", "write_frame", "write_labels",
            "write_report"]
 
 log = logging.getLogger("pipeline.track")
@@ -178,7 +178,9 @@ def start_for(k, prev_frame, prev, before, seen, points, normals, *, predict, in
     - ``init_for(k, previous_frame, previous_vertices)`` (the spine's skinned step) without
       ``choose``: it, for every patch;
     - with ``choose(candidates, points, normals)`` -> (start, share): per patch, the prediction
-      (or the previous frame) or ``init_for``'s start, whichever the frame's data explain;
+      (or the previous frame) or ``init_for``'s start, whichever the frame's data explain; with
+      a prediction also the previous frame itself and half the prediction's step (a swinging
+      limb slows and turns back where constant velocity would carry it on: :func:`slowed_starts`);
     - without ``init_for``: ``predict(previous, before, constrained)``, the start from the two
       frames before, when both are the neighbouring frames of ``k`` (``before``: (frame,
       vertices) before ``prev``; ``seen``: the previous fit's constrained motions).
@@ -192,7 +194,38 @@ def start_for(k, prev_frame, prev, before, seen, points, normals, *, predict, in
         predicted = predict(prev, before[1], seen)
     if init_for is None:
         return predicted, None
-    return choose([prev if predicted is None else predicted, init_for(k, prev_frame, prev)], points, normals)
+    if predicted is None:
+        return choose([prev, init_for(k, prev_frame, prev)], points, normals)
+    return choose([predicted, init_for(k, prev_frame, prev), *slowed_starts(prev, predicted)], points, normals)
+
+
+def slowed_starts(previous, predicted) -> list[np.ndarray]:
+    """The starts of a frame that take less than the predicted step: the previous frame itself and
+    half the step from it to ``predicted``.
+
+    The constant-velocity prediction carries a swinging limb on where it slows and turns back (on
+    the fast biped a forearm stepping 6..7 voxels a frame moves 0.7 on the frame it turns, and
+    its predicted start lands out of the gate's reach); a patch whose prediction is out of reach
+    takes, among these and the spine's skinned step, the start the frame's data explain best
+    (:func:`pipeline.tracking.choose_start`).
+
+    Parameters
+    ----------
+    previous, predicted : (V, 3) float ndarray
+        The previous frame's vertices and the frame's predicted start.
+
+    Returns
+    -------
+    list of two (V, 3) float ndarrays
+        ``previous`` (a copy) and ``(previous + predicted) / 2``.
+    """
+    a = np.asarray(previous, dtype=np.float64)
+    b = np.asarray(predicted, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1:] != (3,) or b.shape != a.shape:
+        raise ValueError(f"previous and predicted must both have shape (V, 3), got {a.shape} and {b.shape}")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise ValueError("previous and predicted must be finite")
+    return [a.copy(), 0.5 * (a + b)]
 
 
 def predictor(tracker, predict: bool):
@@ -265,7 +298,8 @@ def _old_setting(old: dict, key: str, new, *, spine_rewritten: bool = False):
     skinned step with ``spine_init`` and from the prediction without; without ``spine_sha256``,
     the spine was not recorded: read as the current one (its frames are kept) unless
     ``spine.json`` was written after ``track.json`` (``spine_rewritten``: the frames' starts
-    came from an earlier spine); without ``patches``, the patches were a grid's cells (``"grid"``)."""
+    came from an earlier spine); without ``patches``, the patches were a grid's cells (``"grid"``);
+    without ``slowed_starts``, no patch could start from the previous frame or half the step (False)."""
     if key in old:
         return old[key]
     if key == "spine_start":
@@ -278,6 +312,8 @@ def _old_setting(old: dict, key: str, new, *, spine_rewritten: bool = False):
         return 0
     if key == "patches":  # before the patches that follow the surface, they were a grid's cells
         return "grid"
+    if key == "slowed_starts":  # before them, a patch out of reach had the prediction and the skinned step only
+        return False
     return None
 
 

@@ -653,12 +653,15 @@ def choose_start(candidates, points, normals, faces, patches, *, gate: float, ou
     if len(C) == 1:
         return C[0].copy(), np.zeros(int(np.max(patches)) + 1, np.int64)
     tree = cKDTree(np.asarray(points, float)) if len(points) else None
-    R = np.stack([start_residuals(c, points, normals, faces, patches, gate=gate, tree=tree, corners=corners) for c in C])
-    chosen = np.argmin(R, axis=0)
+    n_p = int(np.max(patches)) + 1
     if tree is not None:  # the first candidate stays wherever the data are within the gate's reach of it
         d, _ = tree.query(C[0], distance_upper_bound=gate)
-        n_p = len(chosen)
         out = np.bincount(patches, weights=~np.isfinite(d), minlength=n_p) / np.maximum(np.bincount(patches, minlength=n_p), 1)
+        if not np.any(out >= out_of_reach):  # nothing to choose: the residuals are not computed
+            return C[0].copy(), np.zeros(n_p, np.int64)
+    R = np.stack([start_residuals(c, points, normals, faces, patches, gate=gate, tree=tree, corners=corners) for c in C])
+    chosen = np.argmin(R, axis=0)
+    if tree is not None:
         chosen[out < out_of_reach] = 0
     if np.all(chosen == chosen[0]):  # one start for all: itself, to the bit
         return C[int(chosen[0])].copy(), chosen

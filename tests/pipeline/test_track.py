@@ -459,6 +459,78 @@ def test_start_for_computes_only_the_start_it_uses():
     assert np.array_equal(picked[0], prev + 2.0) and picked[1] == 1.0
 
 
+def test_a_patch_out_of_reach_may_start_where_the_limb_slowed_or_stopped():
+    """A sphere of radius 60 mm stepping 150 mm a frame stops (or halves its step): the prediction and the
+    spine's skinned step are both out of the gate's (10 mm) reach of the data on every patch, so before
+    the slowed starts the frame started 75..150 mm off; it now starts from the previous frame itself (or
+    half the step), exactly."""
+    from pipeline.track_frames import slowed_starts, start_for
+    from pipeline.tracking import choose_start
+    from pipeline.tracking_patches import surface_patches
+
+    t = trimesh.creation.icosphere(subdivisions=3, radius=60.0)
+    v, f = np.asarray(t.vertices, float), np.asarray(t.faces)
+    patches, _ = surface_patches(v, f, 30.0)
+    step = np.array([150.0, 0.0, 0.0])
+    before = (1, v - step)
+
+    def predict(p, b, s):
+        return p + (p - b)
+
+    def choose(cands, x, n):
+        start, chosen = choose_start(cands, x, n, f, patches, gate=10.0, smoothing=0)
+        return start, float(np.mean(chosen == 1))
+
+    for data, want in ((v, v), (v + step / 2, v + step / 2)):
+        start, share = start_for(3, 2, v, before, None, data, t.vertex_normals, predict=predict,
+                                 init_for=lambda k, kp, p: p + [0.0, 150.0, 0.0], choose=choose)
+        np.testing.assert_allclose(start, want, rtol=0, atol=1e-12)
+        assert share == 0.0
+    stopped, half = slowed_starts(v, v + step)
+    assert np.array_equal(stopped, v) and stopped is not v
+    np.testing.assert_allclose(half, v + step / 2, rtol=0, atol=1e-12)
+
+
+def test_slowed_starts_invalid_input():
+    from pipeline.track_frames import slowed_starts
+
+    v = np.zeros((4, 3))
+    for a, b in ((v, np.zeros((5, 3))), (np.zeros((4, 2)), np.zeros((4, 2))), (np.zeros(3), np.zeros(3)),
+                 (v, np.full((4, 3), np.nan))):
+        with pytest.raises(ValueError, match="previous and predicted"):
+            slowed_starts(a, b)
+
+
+def test_frames_tracked_without_the_slowed_starts_are_tracked_again(tmp_path, monkeypatch, caplog):
+    """With a spine, track.json records the slowed starts; a tracking written before them (no such
+    entry) is tracked again with one warning; without a spine it has none to record and resumes."""
+    from pipeline import track
+
+    def older(root):
+        path = root / "tracked" / "track.json"
+        rep = json.loads(path.read_text())
+        del rep["slowed_starts"]
+        path.write_text(json.dumps(rep))
+
+    plain = _sphere_results(tmp_path / "no_spine", frames=3)
+    assert track.track_results(tmp_path / "no_spine")["slowed_starts"] is False
+    older(tmp_path / "no_spine")
+    t = _sphere_results(tmp_path / "spine", frames=3)
+    (tmp_path / "spine" / "spine.json").write_text('{"frames": 3}')
+    monkeypatch.setattr(track, "spine_model", _fake_spine(t.vertices + [1.5, 0, 0], t.faces, 1, [1.5, 0, 0]))
+    first = track.track_results(tmp_path / "spine")
+    assert first["spine_start"] == "choose" and first["slowed_starts"] is True
+    older(tmp_path / "spine")
+    with caplog.at_level("WARNING", logger="pipeline.track"):
+        again = track.track_results(tmp_path / "spine")
+    assert "slowed_starts False -> True" in again["started_over"]
+    assert [r.getMessage() for r in caplog.records] == [again["started_over"]]
+    monkeypatch.setattr(track, "spine_model", lambda *a: None)
+    stamp = track.tracked_path(tmp_path / "no_spine", 2).stat().st_mtime_ns
+    assert "started_over" not in track.track_results(tmp_path / "no_spine") and len(plain.vertices)
+    assert track.tracked_path(tmp_path / "no_spine", 2).stat().st_mtime_ns == stamp
+
+
 def test_killed_worker_process_frames_are_tracked_here(tmp_path, monkeypatch, caplog):
     """A backward half whose process died (BrokenProcessPool) is tracked in this process, with one
     warning; the vertices are those of a run in order."""
