@@ -56,7 +56,9 @@ docs/tracking.md, "Where the tracker departs from the paper"; the patch function
   frame (:func:`patch_constraints`), since along unseen directions an error would repeat and grow.
 - *A second start where the prediction is out of reach* (:func:`choose_start`, multi-view with a
   spine): patches with many vertices out of the gate's reach take, when the frame's data explain
-  it better (:func:`start_residuals`), the previous frame moved by the spine's skinned step.
+  it better (:func:`start_residuals`), the previous frame moved by the spine's skinned step, the
+  previous frame itself or half the predicted step (a swinging limb slows and turns back where
+  constant velocity carries it on; :func:`pipeline.track_frames.slowed_starts`).
 - *Vertices the data sees.* Model->data pairs only for vertices that project onto a pixel with
   data (:func:`pipeline.rgbd_preprocess.visible_vertices`): near the silhouette a depth camera
   returns nothing usable.
