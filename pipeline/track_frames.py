@@ -203,9 +203,8 @@ def slowed_starts(previous, predicted) -> list[np.ndarray]:
     """The starts of a frame that take less than the predicted step: the previous frame itself and
     half the step from it to ``predicted``.
 
-    The constant-velocity prediction carries a swinging limb on where it slows and turns back (on
-    the fast biped a forearm stepping 6..7 voxels a frame moves 0.7 on the frame it turns, and
-    its predicted start lands out of the gate's reach); a patch whose prediction is out of reach
+    The constant-velocity prediction carries a swinging limb on where it slows and turns back, and
+    its predicted start lands out of the gate's reach; a patch whose prediction is out of reach
     takes, among these and the spine's skinned step, the start the frame's data explain best
     (:func:`pipeline.tracking.choose_start`).
 
