@@ -55,7 +55,7 @@ import numpy as np
 
 from pipeline.mesh_primitives import check_mesh, edge_components, rigid_fit
 
-__all__ = ["BODY", "template_labels", "axis_labels"]
+__all__ = ["BODY", "template_labels", "axis_labels", "nearest_limb", "proximal_half"]
 
 #: the label of a vertex on the body (no limb)
 BODY = -1
@@ -185,21 +185,91 @@ def _motion_split(V: np.ndarray, labels: np.ndarray, surfaces: list, ref: int, K
     trees = [cKDTree(S) for S in surfaces]
     motion = _follow(V[body], trees, ref)
     sb = _mean_square(V[body], trees, motion)
-    near = np.stack([cKDTree(V[i]).query(V[body])[0] if len(i) else np.full(body.sum(), np.inf) for i in limbs],
-                    1).argmin(1)  # every body vertex's nearest limb
+    near = nearest_limb(V[body], V, labels)
     sk = np.full(len(sb), np.inf)
-    btree = cKDTree(V[body])
     for k, idx in enumerate(limbs):
         on = near == k
         if len(idx) < 3 or not on.any():
             continue
-        gap = btree.query(V[idx])[0]
-        proximal = idx[gap <= np.median(gap)]
-        sk[on] = _mean_square(V[body][on], trees, _follow(V[proximal], trees, ref, start=motion))
+        sk[on] = _mean_square(V[body][on], trees, _follow(V[proximal_half(V, labels, k)], trees, ref, start=motion))
     move = (sk < sb) & (sb > step ** 2)
     out = labels.copy()
     out[np.flatnonzero(body)[move]] = near[move]
     return out
+
+
+def nearest_limb(points, vertices, labels, *, min_vertices: int = 1) -> np.ndarray:
+    """The limb nearest to every point: the limb whose nearest vertex is nearest.
+
+    Parameters
+    ----------
+    points : (n, 3) float array_like
+    vertices : (V, 3) float array_like
+        The template's vertices.
+    labels : (V,) int array_like
+        Limb of every vertex (0, 1, ...) or :data:`BODY`.
+    min_vertices : int, keyword-only
+        Limbs with fewer vertices are never nearest.
+
+    Returns
+    -------
+    (n,) int64 ndarray
+        The nearest limb's label, or :data:`BODY` for every point when no limb has ``min_vertices``.
+    """
+    from scipy.spatial import cKDTree
+
+    X, V, lab = _points(points, "points"), _points(vertices, "vertices"), _labels(labels, vertices)
+    if int(min_vertices) < 1:
+        raise ValueError(f"min_vertices must be >= 1, got {min_vertices}")
+    limbs = [np.flatnonzero(lab == k) for k in range(int(lab.max(initial=BODY)) + 1)]
+    limbs = [idx if len(idx) >= min_vertices else idx[:0] for idx in limbs]
+    if not any(len(idx) for idx in limbs) or len(X) == 0:
+        return np.full(len(X), BODY, dtype=np.int64)
+    gaps = np.stack([cKDTree(V[idx]).query(X)[0] if len(idx) else np.full(len(X), np.inf) for idx in limbs], 1)
+    return gaps.argmin(1).astype(np.int64)
+
+
+def proximal_half(vertices, labels, limb: int) -> np.ndarray:
+    """The vertices of one limb nearer the body than the limb's median: the part that moves about its root.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float array_like
+    labels : (V,) int array_like
+        Limb of every vertex or :data:`BODY`; the body must have a vertex.
+    limb : int
+        The limb's label.
+
+    Returns
+    -------
+    (m,) int64 ndarray
+        Indices of the limb's vertices whose distance to the nearest body vertex is at most the median of its
+        vertices' (at least half of them; empty for a limb with no vertex).
+    """
+    from scipy.spatial import cKDTree
+
+    V, lab = _points(vertices, "vertices"), _labels(labels, vertices)
+    if not (lab == BODY).any():
+        raise ValueError("labels: the body has no vertex")
+    idx = np.flatnonzero(lab == int(limb))
+    if len(idx) == 0:
+        return idx
+    gap = cKDTree(V[lab == BODY]).query(V[idx])[0]
+    return idx[gap <= np.median(gap)]
+
+
+def _points(x, name: str) -> np.ndarray:
+    X = np.asarray(x, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] != 3 or not np.isfinite(X).all():
+        raise ValueError(f"{name} must be a finite (n, 3) array, got shape {X.shape}")
+    return X
+
+
+def _labels(labels, vertices) -> np.ndarray:
+    lab = np.asarray(labels)
+    if lab.shape != (len(np.asarray(vertices)),) or not np.issubdtype(lab.dtype, np.integer) or (lab < BODY).any():
+        raise ValueError(f"labels must be ({len(np.asarray(vertices))},) integers >= {BODY}, got shape {lab.shape}")
+    return lab.astype(np.int64)
 
 
 def _follow(X: np.ndarray, trees: list, ref: int, start=None):

@@ -407,29 +407,19 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
 def _claimed(vs: np.ndarray, labels: np.ndarray, body: np.ndarray, trees: list, reference: int,
              edge: float) -> np.ndarray:
     """(len(body),) bool: the body vertices ``body`` that the rigid motion of their nearest labelled limb keeps within
-    ``edge`` of every frame's surface (KD-trees ``trees``; root mean square over the frames). A limb's motion is that
-    of its proximal half (its vertices nearer the body than the limb's median), as
-    :func:`pipeline.template_labels.template_labels` takes it, fitted to its tracked vertices ``vs`` (T, V, 3) from
-    frame ``reference``."""
-    from scipy.spatial import cKDTree
-
+    ``edge`` of every frame's surface (KD-trees ``trees``; root mean square over the frames); a limb of fewer than 3
+    vertices is nobody's nearest. A limb's motion is that of its proximal half
+    (:func:`pipeline.template_labels.proximal_half`, as :func:`pipeline.template_labels.template_labels` takes it),
+    fitted to its tracked vertices ``vs`` (T, V, 3) from frame ``reference``."""
     from pipeline.rigid_parts import rigid_motions
+    from pipeline.template_labels import nearest_limb, proximal_half
 
     V = vs[reference]
-    limbs = [np.flatnonzero(labels == k) for k in range(int(labels.max()) + 1)]
-    limbs = [idx if len(idx) >= 3 else np.zeros(0, dtype=np.int64) for idx in limbs]
+    near = nearest_limb(V[body], V, labels, min_vertices=3)
     out = np.zeros(len(body), dtype=bool)
-    if len(body) == 0 or not any(len(idx) for idx in limbs):
-        return out
-    near = np.stack([cKDTree(V[idx]).query(V[body])[0] if len(idx) else np.full(len(body), np.inf) for idx in limbs],
-                    1).argmin(1)
-    to_body = cKDTree(V[labels == -1])
-    for k, idx in enumerate(limbs):
+    for k in np.unique(near[near >= 0]):
         mine = np.flatnonzero(near == k)
-        if len(idx) == 0 or len(mine) == 0:
-            continue
-        gap = to_body.query(V[idx])[0]
-        rms = _surface_rms(*rigid_motions(vs[:, idx[gap <= np.median(gap)]], reference=reference), V[body[mine]],
+        rms = _surface_rms(*rigid_motions(vs[:, proximal_half(V, labels, k)], reference=reference), V[body[mine]],
                            trees)
         out[mine[rms <= edge]] = True
     return out

@@ -118,6 +118,52 @@ def test_invalid_input(tmp_path):
         axis_labels([spine.axes[lid][0] for lid in spine.limb_ids], V, F, surfaces=[V], frame=1)
 
 
+def test_nearest_limb_and_proximal_half_against_a_loop():
+    """The nearest limb of every point and a limb's proximal half, against a loop over every pair of points (exact:
+    the same distances, ties broken towards the lower label as the loop does); a limb under ``min_vertices`` is
+    nobody's nearest, and without any limb every point is the body's."""
+    from pipeline.template_labels import BODY, nearest_limb, proximal_half
+
+    rng = np.random.default_rng(0)
+    V, X = rng.normal(size=(120, 3)), rng.normal(size=(40, 3))
+    labels = rng.integers(-1, 4, size=len(V))
+    labels[labels == 2] = -1  # limb 2 has no vertex
+    labels[np.flatnonzero(labels == 3)[2:]] = 0  # limb 3 has two
+    for min_vertices in (1, 3):
+        ok = [k for k in range(4) if (labels == k).sum() >= min_vertices]
+        want = [min(ok, key=lambda k: min(np.linalg.norm(x - v) for v in V[labels == k])) for x in X]
+        assert np.array_equal(nearest_limb(X, V, labels, min_vertices=min_vertices), want)
+    assert np.array_equal(nearest_limb(X, V, np.full(len(V), BODY)), np.full(len(X), BODY))
+    body = V[labels == BODY]
+    for k in range(4):
+        idx = np.flatnonzero(labels == k)
+        gap = np.array([min(np.linalg.norm(V[i] - b) for b in body) for i in idx])
+        assert np.array_equal(proximal_half(V, labels, k), idx[gap <= np.median(gap)] if len(idx) else idx)
+        assert len(idx) == 0 or 2 * len(proximal_half(V, labels, k)) >= len(idx)
+
+
+def test_invalid_input_of_the_limb_helpers():
+    from pipeline.template_labels import nearest_limb, proximal_half
+
+    V, labels = np.eye(3), np.array([-1, 0, 0])
+    with pytest.raises(ValueError, match="points"):
+        nearest_limb(np.zeros((2, 2)), V, labels)
+    with pytest.raises(ValueError, match="vertices"):
+        nearest_limb(V, V[:, :2], labels)
+    with pytest.raises(ValueError, match="labels"):
+        nearest_limb(V, V, labels[:2])
+    with pytest.raises(ValueError, match="labels"):
+        nearest_limb(V, V, np.array([-2, 0, 0]))
+    with pytest.raises(ValueError, match="labels"):
+        nearest_limb(V, V, labels.astype(float))
+    with pytest.raises(ValueError, match="min_vertices"):
+        nearest_limb(V, V, labels, min_vertices=0)
+    with pytest.raises(ValueError, match="vertices"):
+        proximal_half(np.full((3, 3), np.nan), labels, 0)
+    with pytest.raises(ValueError, match="labels"):
+        proximal_half(V, np.zeros(3, dtype=int), 0)
+
+
 def test_the_roots_circle_and_free_side():
     """The circle fitted to a limb's section is the exact circle through points on it (to 1e-9), and the free
     side's extent is the longest circular run of rays, as a slow count of every start gives it."""
