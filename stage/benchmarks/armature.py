@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stage.benchmarks import seeds_option
+
 NAME = "armature"
 ALIASES = ("rig",)  # the old name, kept for one release
 HELP = ("seconds for segmentation, skeleton and per-frame fit on ~6k/50k vertices, 60/500 frames "
@@ -80,12 +82,7 @@ def _accuracy_options(args: argparse.Namespace):
     parts = str(getattr(args, "parts", "motion"))
     if parts not in ("motion", "limbs"):
         raise ValueError(f"--parts must be 'motion' or 'limbs', got {parts!r}")
-    try:
-        seeds = [int(x) for x in str(getattr(args, "take_seeds", "3")).split(",") if x.strip()]
-    except ValueError:
-        raise ValueError(f"--take-seeds must be integers (e.g. 3,5), got {args.take_seeds!r}") from None
-    if not seeds:
-        raise ValueError("--take-seeds: give at least one seed")
+    seeds = seeds_option(getattr(args, "take_seeds", "3"))
     skinned = str(getattr(args, "skinned", "none")).strip()
     try:
         widths = [] if skinned == "none" else [float(x) / 100 for x in skinned.split(",") if x.strip()]

@@ -20,12 +20,14 @@ and on their surfaces carved across time (:mod:`pipeline.carve`, two rounds).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import shutil
 import time
 
 import numpy as np
 
+from stage.benchmarks import seeds_option
 from stage.benchmarks._data import SHARED_DATA
 
 NAME = "track"
@@ -47,6 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "fast takes at 10 fps, limbs 3+ voxels a frame, also tracked with a rig as the articulated prior), "
                    "and print the vertex errors against the truth, "
                    "the volume and what `stage armature` finds (several minutes)")
+    p.add_argument("--take-seeds", default="3",
+                   help="with --accuracy: the simulator's seeds of the fast and slow takes (default 3; e.g. 3,4)")
 
 
 def multiview_accuracy(frames: int = 30) -> None:
@@ -107,7 +111,7 @@ FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16), ("biped", 10.0, 1
               ("starfish", 30.0, 16), ("biped", 30.0, 16))
 
 
-def fast_accuracy() -> None:
+def fast_accuracy(seeds=(3,)) -> None:
     """Fast takes (and slow ones): the default tracking, then tracked again with an armature as
     the articulated prior (:func:`pipeline.track_armature.track_with_armature`): the armature built from the
     tracking (``stage track --armature-rounds auto``), the take's spine as the first round's armature and then
@@ -116,7 +120,8 @@ def fast_accuracy() -> None:
     and without its true poses among the starts (what the tracking gives with the right segments,
     and with the right starts too), and the same take tracked with the template's limb/body labels
     (:func:`_labels_rows`); the worst frame's mean and 95th percentile, the invented motion
-    (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame."""
+    (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame; every take once for each of the
+    simulator's ``seeds``."""
     import tempfile
     from pathlib import Path
 
@@ -130,10 +135,11 @@ def fast_accuracy() -> None:
     from pipeline.track_armature import track_with_armature
 
     with tempfile.TemporaryDirectory() as tmp:
-        for name, fps, frames in FAST_TAKES:
-            sim = simulate_take(name, n_cameras=8, frames=frames, size=(640, 480), seed=3, fps=fps)
-            take = record_take(sim, Path(tmp) / f"{name}_{fps:g}.h5")
-            res = Path(tmp) / f"{name}_{fps:g}_results"
+        for seed, (creature, fps, frames) in itertools.product(seeds, FAST_TAKES):
+            sim = simulate_take(creature, n_cameras=8, frames=frames, size=(640, 480), seed=seed, fps=fps)
+            name = f"{creature} seed {seed}"
+            take = record_take(sim, Path(tmp) / f"{creature}_{fps:g}_s{seed}.h5")
+            res = Path(tmp) / f"{creature}_{fps:g}_s{seed}_results"
             process_take(take, res, executor=None)
             t0 = time.process_time()
             track_results(res)
@@ -534,7 +540,9 @@ def _rgbd_seconds(take, out, *, colour: bool) -> tuple[float, float]:
     return per_frame, reads
 
 
-def run(args: argparse.Namespace) -> int:
+def _timings(F: int) -> None:
+    """Seconds a frame of the solver, the multi-view and single RGB-D tracking and the prediction, at 6k and 25k
+    vertices (``F`` frames timed)."""
     import tempfile
     from pathlib import Path
 
@@ -544,7 +552,6 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.tracking import TemplateTracker
     from pipeline.tracking_patches import predict_motion
 
-    F = max(2, int(args.frames))
     obj = make_object("pipe_half")
     for target in (6000, 25000):
         s = _spacing_for(obj, target)
@@ -597,12 +604,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"{len(V):6d} vertices  of which: prediction {1000 * (t1 - t0) / 5:.1f} ms a frame "
               f"({1000 * (t2 - t1) / 5:.1f} building its matrices in the call), "
               f"one round's solve with the previous-shape prior {1000 * (time.perf_counter() - t2) / 5:.1f} ms")
+
+
+def run(args: argparse.Namespace) -> int:
+    seeds = seeds_option(getattr(args, "take_seeds", "3")) if args.accuracy else None
+    _timings(max(2, int(args.frames)))
     armature_seconds()
     if args.accuracy:
         accuracy()
         real_pipe_accuracy()
         multiview_accuracy()
-        fast_accuracy()
+        fast_accuracy(seeds)
     print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl), "
           "the patches and the summing matrices of the per-round sums (vertex normals, patch centroids and Kabsch), "
           "the prediction's averaging matrix, "
