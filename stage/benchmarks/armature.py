@@ -46,6 +46,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--parts", choices=("motion", "limbs"), default="motion",
                    help="with --accuracy: the takes' armature parts: 'motion' (default) as `stage track` then `stage "
                    "armature` with their defaults; 'limbs' as `stage track --labels` then `stage armature --parts limbs`")
+    p.add_argument("--labels", action="store_true",
+                   help="with --accuracy: the takes tracked with the template's limb/body labels (as `stage track "
+                   "--labels`; --parts limbs implies it)")
+    p.add_argument("--colour", action="store_true",
+                   help="with --accuracy: the takes tracked with the colour tracks (as `stage track --colour`)")
+    p.add_argument("--armature-rounds", type=int, default=0, metavar="ROUNDS",
+                   help="with --accuracy: the takes tracked again with this many rounds of the armature mode (as "
+                   "`stage track --armature-rounds`; default 0)")
+    p.add_argument("--armature-parts", default="motion",
+                   help="with --accuracy, --armature-rounds and the labels: where every round's armature gets its "
+                   "parts, 'motion' (default) or 'limbs' (as `stage track --armature-parts`)")
     p.add_argument("--skinned", default="2",
                    help="with --accuracy: the creatures' posed sequences also skinned, vertices blending the parts' "
                    "motions over these widths (%% of the size; default 2; 'none' for none)")
@@ -53,9 +64,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if getattr(args, "accuracy", False):
-        takes, frames, seeds, parts, widths = _accuracy_options(args)
+        takes, frames, seeds, parts, widths, tracking = _accuracy_options(args)
         accuracy(skinned=widths)
-        take_accuracy(takes, frames=frames, seeds=seeds, parts=parts)
+        take_accuracy(takes, frames=frames, seeds=seeds, parts=parts, **tracking)
         return 0
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
     lengths = [int(x) for x in args.frames.split(",") if x.strip()]
@@ -72,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _accuracy_options(args: argparse.Namespace):
     """``--accuracy``'s options checked before any work, each error naming its option: -> (takes, take frames,
-    seeds, parts, skinning widths as fractions of the size)."""
+    seeds, parts, skinning widths as fractions of the size, the takes' tracking as keywords of
+    :func:`take_armature`)."""
     takes = [t.strip() for t in str(getattr(args, "takes", "none")).split(",") if t.strip() not in ("", "none")]
     bad = [t for t in takes if t not in ("starfish", "quadruped", "biped")]
     if bad:
@@ -90,7 +102,30 @@ def _accuracy_options(args: argparse.Namespace):
         raise ValueError(f"--skinned must be widths in % of the size (e.g. 1,2,3) or 'none', got {skinned!r}") from None
     if any(not 0 < w < 1 for w in widths):
         raise ValueError(f"--skinned widths must be within (0, 100) %, got {skinned!r}")
-    return takes, int(getattr(args, "take_frames", 30)), tuple(seeds), parts, tuple(widths)
+    rounds = getattr(args, "armature_rounds", 0)
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
+        raise ValueError(f"--armature-rounds must be an integer >= 0, got {rounds!r}")
+    tracking = dict(labels=bool(getattr(args, "labels", False)), colour=bool(getattr(args, "colour", False)),
+                    armature_rounds=rounds, armature_parts=str(getattr(args, "armature_parts", "motion")))
+    if tracking["armature_parts"] not in ("motion", "limbs"):
+        raise ValueError(f"--armature-parts must be 'motion' or 'limbs', got {tracking['armature_parts']!r}")
+    if tracking["armature_parts"] == "limbs" and not (rounds and (tracking["labels"] or parts == "limbs")):
+        raise ValueError("--armature-parts limbs needs --armature-rounds and --labels (or --parts limbs): its parts are "
+                         "the labels' body and limbs")
+    return takes, int(getattr(args, "take_frames", 30)), tuple(seeds), parts, tuple(widths), tracking
+
+
+def _check_tracking(*, parts: str, labels: bool, colour: bool, armature_rounds: int, armature_parts: str) -> None:
+    """The tracking options of :func:`take_armature`, or a ValueError that starts with the parameter's name."""
+    if parts not in ("motion", "limbs"):
+        raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")
+    if isinstance(armature_rounds, bool) or not isinstance(armature_rounds, int) or armature_rounds < 0:
+        raise ValueError(f"armature_rounds must be an integer >= 0, got {armature_rounds!r}")
+    if armature_parts not in ("motion", "limbs"):
+        raise ValueError(f"armature_parts must be 'motion' or 'limbs', got {armature_parts!r}")
+    if armature_parts == "limbs" and not (armature_rounds and (labels or parts == "limbs")):
+        raise ValueError("armature_parts 'limbs' needs armature_rounds >= 1 and the template's labels (labels=True or "
+                         "parts='limbs'): its parts are the labels' body and limbs")
 
 
 def _timing_row(size: str, T: int, *, samples: int, fit_frames: int) -> None:
@@ -316,13 +351,19 @@ def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped"), skinned=(0
 
 
 def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size=(640, 480), seed: int = 3,
-             fps: float = 30.0, parts: str = "motion"):
+                  fps: float = 30.0, parts: str = "motion", labels: bool = False, colour: bool = False,
+                  armature_rounds: int = 0, armature_parts: str = "motion"):
     """A simulated take of ``name`` through ``process``, ``track`` and ``armature`` with their defaults, in
     ``root``; -> (take, results directory, rig, seconds per step). ``parts="limbs"``: tracked with the template's
     limb/body labels (``stage track --labels``) and the armature's parts from them (``stage armature --parts
-    limbs``)."""
-    if parts not in ("motion", "limbs"):
-        raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")
+    limbs``).
+
+    The tracking's options as ``stage track RESULTS_DIR`` takes them: ``labels`` (``--labels``, implied by
+    ``parts="limbs"``), ``colour`` (``--colour``), ``armature_rounds`` (``--armature-rounds``: the take tracked
+    again with this many rounds of :func:`pipeline.track_armature.track_with_armature`) and ``armature_parts``
+    (``--armature-parts``; ``"limbs"`` needs ``armature_rounds`` and the labels)."""
+    _check_tracking(parts=parts, labels=labels, colour=colour, armature_rounds=armature_rounds,
+                    armature_parts=armature_parts)
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
     from pipeline.armature_files import armature_results
@@ -336,8 +377,14 @@ def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size
     process_take(record_take(sim, root / f"{name}.h5"), res, executor=None)
     secs["process"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    labels = {"params": {"track": {"labels": True}}} if parts == "limbs" else {}
-    process_take(root / f"{name}.h5", res, steps=("track",), executor=None, **labels)
+    labels = labels or parts == "limbs"
+    track = {key: True for key, on in (("labels", labels), ("colour", colour)) if on}
+    process_take(root / f"{name}.h5", res, steps=("track",), executor=None, **({"params": {"track": track}} if track else {}))
+    if armature_rounds:
+        from pipeline.track_armature import track_with_armature
+
+        track_with_armature(res, rounds=armature_rounds, colour=colour, labels="spine" if labels else None,
+                            parts=armature_parts)
     secs["track"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rig = armature_results(res, parts="limbs") if parts == "limbs" else armature_results(res)
@@ -459,22 +506,26 @@ def true_track_scores(sim, rig, vertices, faces, truth: dict, reference: int) ->
     return sc
 
 
-def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion") -> None:
+def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion", **tracking) -> None:
     """Simulated takes (8 cameras, 640x480, each of ``seeds``) through process, track and armature, scored
-    (``parts``: as :func:`take_armature`)."""
+    (``parts`` and the ``tracking`` keywords ``labels``, ``colour``, ``armature_rounds``, ``armature_parts``: as
+    :func:`take_armature`)."""
     import tempfile
 
     if not names:
         return
-    if parts != "motion":
-        print(f"\nthe takes tracked with their limb/body labels, the armature's parts --parts {parts}")
+    flags = [f"--{key.replace('_', '-')}" + ("" if value is True else f" {value}") for key, value in tracking.items()
+             if value and not (key == "armature_parts" and value == "motion")]
+    if parts != "motion" or flags:
+        how = " ".join(["--labels" if parts == "limbs" and "--labels" not in flags else "", *flags]).strip()
+        print(f"\nthe takes tracked as `stage track {how}`".rstrip() + f", the armature's parts --parts {parts}")
     print(f"\n{'take':10} {'T':>3} {'track vx':>8} {'invent vx':>9} | {'segs':>4} {'true':>4} {'purity':>6} {'compl':>6} | "
           f"{'true segs: paper R/P/err%':>26} {'pivot R/P/err%':>18} | {'arts':>4} {'bend':>4} {'R':>5} {'P':>5} "
           f"{'err%':>5} {'vert%':>5} | {'process s':>9} {'track s':>7} {'rig s':>5}")
     for seed in seeds:
         for name in names:
             with tempfile.TemporaryDirectory(prefix=f"bench-rig-{name}-") as tmp:
-                sim, res, rig, secs = take_armature(name, tmp, frames=frames, seed=int(seed), parts=parts)
+                sim, res, rig, secs = take_armature(name, tmp, frames=frames, seed=int(seed), parts=parts, **tracking)
                 sc = take_scores(sim, res, rig)
             label = name if tuple(seeds) == (3,) else f"{name} s{seed}"
             print(take_row(label, frames, rig, sc, secs), flush=True)

@@ -67,18 +67,94 @@ def test_take_armature_tracks_with_the_labels_for_the_limbs_parts(monkeypatch, t
     calls.clear()
     take_armature("biped", tmp_path)
     assert calls == [("process", None, None), ("process", ("track",), None), ("armature", {})]
-    with pytest.raises(ValueError, match="parts"):
-        take_armature("biped", tmp_path, parts="spine")
 
 
-@pytest.mark.parametrize("option, value, match", [("parts", "spine", "--parts"), ("take_seeds", "3,x", "--take-seeds"),
-                                                  ("take_seeds", ",", "--take-seeds")])
-def test_the_take_options_are_checked_before_any_work(option, value, match):
+def test_take_armature_tracks_as_stage_track_with_the_armature_mode(monkeypatch, tmp_path):
+    """`stage bench armature --accuracy --labels --colour --armature-rounds 1 --armature-parts limbs`: the track
+    step with the labels and the colour tracks (``parameters.track``), then the armature mode's rounds as `stage
+    track RESULTS_DIR` runs them (``track_with_armature`` with the same colour, labels and parts), then the armature
+    with its parts. The steps stand in for the minutes-long ones."""
+    import fake_cameras.record
+    import fake_cameras.take
+    import pipeline.armature_files
+    import pipeline.process
+    import pipeline.track_armature
+    from stage.benchmarks.armature import take_armature
+
+    calls = []
+    monkeypatch.setattr(fake_cameras.take, "simulate_take", lambda name, **kw: "sim")
+    monkeypatch.setattr(fake_cameras.record, "record_take", lambda sim, path: path)
+    monkeypatch.setattr(pipeline.process, "process_take",
+                        lambda take, res, **kw: calls.append(("process", kw.get("steps"), kw.get("params"))))
+    monkeypatch.setattr(pipeline.track_armature, "track_with_armature",
+                        lambda res, **kw: calls.append(("rounds", res == tmp_path / "results", kw)))
+    monkeypatch.setattr(pipeline.armature_files, "armature_results", lambda res, **kw: calls.append(("armature", kw)))
+    take_armature("biped", tmp_path, labels=True, colour=True, armature_rounds=1, armature_parts="limbs")
+    assert calls == [("process", None, None), ("process", ("track",), {"track": {"labels": True, "colour": True}}),
+                     ("rounds", True, {"rounds": 1, "colour": True, "labels": "spine", "parts": "limbs"}),
+                     ("armature", {})]
+    calls.clear()
+    take_armature("biped", tmp_path, colour=True, armature_rounds=2, parts="limbs")
+    assert calls == [("process", None, None), ("process", ("track",), {"track": {"labels": True, "colour": True}}),
+                     ("rounds", True, {"rounds": 2, "colour": True, "labels": "spine", "parts": "motion"}),
+                     ("armature", {"parts": "limbs"})]
+    calls.clear()
+    take_armature("biped", tmp_path, colour=True, armature_rounds=1)
+    assert calls == [("process", None, None), ("process", ("track",), {"track": {"colour": True}}),
+                     ("rounds", True, {"rounds": 1, "colour": True, "labels": None, "parts": "motion"}),
+                     ("armature", {})]
+
+
+@pytest.mark.parametrize("kw, match", [({"parts": "spine"}, "^parts"), ({"armature_rounds": -1}, "^armature_rounds"),
+                                       ({"armature_rounds": 1.5}, "^armature_rounds"),
+                                       ({"armature_rounds": True}, "^armature_rounds"),
+                                       ({"armature_parts": "spine"}, "^armature_parts"),
+                                       ({"armature_parts": "limbs", "labels": True}, "^armature_parts"),
+                                       ({"armature_parts": "limbs", "armature_rounds": 1}, "^armature_parts")])
+def test_invalid_input_take_armature(kw, match, monkeypatch, tmp_path):
+    """Options checked before any work: the simulator is never reached."""
+    import fake_cameras.take
+    from stage.benchmarks.armature import take_armature
+
+    monkeypatch.setattr(fake_cameras.take, "simulate_take", lambda name, **kw: pytest.fail("simulated"))
+    with pytest.raises(ValueError, match=match):
+        take_armature("biped", tmp_path, **kw)
+
+
+@pytest.mark.parametrize("options, match", [({"parts": "spine"}, "--parts"), ({"take_seeds": "3,x"}, "--take-seeds"),
+                                            ({"take_seeds": ","}, "--take-seeds"),
+                                            ({"armature_rounds": -1}, "--armature-rounds"),
+                                            ({"armature_parts": "spine"}, "--armature-parts"),
+                                            ({"armature_parts": "limbs", "labels": True}, "--armature-parts"),
+                                            ({"armature_parts": "limbs", "armature_rounds": 1}, "--armature-parts")])
+def test_the_take_options_are_checked_before_any_work(options, match, monkeypatch):
     from argparse import Namespace
 
-    from stage.benchmarks.armature import run
+    import stage.benchmarks.armature as bench
 
-    args = Namespace(accuracy=True, takes="biped", take_frames=30, take_seeds="3", parts="motion", skinned="2")
-    setattr(args, option, value)
+    monkeypatch.setattr(bench, "accuracy", lambda **kw: pytest.fail("ran"))
+    args = Namespace(accuracy=True, takes="biped", take_frames=30, take_seeds="3", parts="motion", skinned="2",
+                     labels=False, colour=False, armature_rounds=0, armature_parts="motion")
+    for option, value in options.items():
+        setattr(args, option, value)
     with pytest.raises(ValueError, match=match):
-        run(args)
+        bench.run(args)
+
+
+def test_the_take_options_reach_the_takes(monkeypatch):
+    """`--labels --colour --armature-rounds 1 --armature-parts limbs` parsed and handed to every take, as
+    :func:`take_armature`'s keywords."""
+    import argparse
+
+    import stage.benchmarks.armature as bench
+
+    seen = []
+    monkeypatch.setattr(bench, "accuracy", lambda **kw: None)
+    monkeypatch.setattr(bench, "take_accuracy", lambda names, **kw: seen.append((names, kw)))
+    p = argparse.ArgumentParser()
+    bench.add_arguments(p)
+    args = p.parse_args(["--accuracy", "--takes", "biped", "--take-seeds", "3,5", "--labels", "--colour",
+                         "--armature-rounds", "1", "--armature-parts", "limbs"])
+    assert bench.run(args) == 0
+    assert seen == [(["biped"], {"frames": 30, "seeds": (3, 5), "parts": "motion", "labels": True, "colour": True,
+                                 "armature_rounds": 1, "armature_parts": "limbs"})]
