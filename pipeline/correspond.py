@@ -255,9 +255,10 @@ BORDERLINE = (0.4, 0.6)
 SAME_LIMB_SPREAD = 0.4
 #: ... or when it moves continuously: over at least ``SMOOTH_PAIRS`` pairs of consecutive frames,
 #: its RMS step is at most ``SMOOTH`` times what positions drawn independently would give
-#: (``sqrt(2)`` times its spread). A bump at a random place each frame scores about 1 (least 0.46
-#: over 70 simulated takes with bumps in 40-60 % of the frames), an arm swinging by the body
-#: 0.19-0.21 at 30 frames a second (docs/spine-format.md).
+#: (``sqrt(2)`` times its spread). A bump at a random place each frame scores about 1, an arm
+#: swinging by the body about 0.2 at 30 frames a second; a few bumps score as low as an arm, more
+#: of them over few pairs (docs/notes/tracking-decisions.md, "The spine's borderline count at 10
+#: frames a second", has the figures).
 SMOOTH = 0.35
 SMOOTH_PAIRS = 5
 
