@@ -204,8 +204,9 @@ def nearest_limb(points, vertices, labels, *, min_vertices: int = 1) -> np.ndarr
     Parameters
     ----------
     points : (n, 3) float array_like
+        The points to label (finite).
     vertices : (V, 3) float array_like
-        The template's vertices.
+        The template's vertices (finite).
     labels : (V,) int array_like
         Limb of every vertex (0, 1, ...) or :data:`BODY`.
     min_vertices : int, keyword-only
@@ -219,8 +220,8 @@ def nearest_limb(points, vertices, labels, *, min_vertices: int = 1) -> np.ndarr
     from scipy.spatial import cKDTree
 
     X, V, lab = _points(points, "points"), _points(vertices, "vertices"), _labels(labels, vertices)
-    if int(min_vertices) < 1:
-        raise ValueError(f"min_vertices must be >= 1, got {min_vertices}")
+    if not _is_int(min_vertices) or min_vertices < 1:
+        raise ValueError(f"min_vertices must be an integer >= 1, got {min_vertices!r}")
     limbs = [np.flatnonzero(lab == k) for k in range(int(lab.max(initial=BODY)) + 1)]
     limbs = [idx if len(idx) >= min_vertices else idx[:0] for idx in limbs]
     if not any(len(idx) for idx in limbs) or len(X) == 0:
@@ -235,10 +236,11 @@ def proximal_half(vertices, labels, limb: int) -> np.ndarray:
     Parameters
     ----------
     vertices : (V, 3) float array_like
+        The template's vertices (finite).
     labels : (V,) int array_like
         Limb of every vertex or :data:`BODY`; the body must have a vertex.
     limb : int
-        The limb's label.
+        The limb's label (>= 0).
 
     Returns
     -------
@@ -249,6 +251,8 @@ def proximal_half(vertices, labels, limb: int) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     V, lab = _points(vertices, "vertices"), _labels(labels, vertices)
+    if not _is_int(limb) or limb < 0:
+        raise ValueError(f"limb must be a limb's label (an integer >= 0), got {limb!r}")
     if not (lab == BODY).any():
         raise ValueError("labels: the body has no vertex")
     idx = np.flatnonzero(lab == int(limb))
@@ -256,6 +260,10 @@ def proximal_half(vertices, labels, limb: int) -> np.ndarray:
         return idx
     gap = cKDTree(V[lab == BODY]).query(V[idx])[0]
     return idx[gap <= np.median(gap)]
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 
 
 def _points(x, name: str) -> np.ndarray:

@@ -9,4 +9,8 @@ def seeds_option(text: str, option: str = "--take-seeds") -> list[int]:
         raise ValueError(f"{option} must be integers (e.g. 3,5), got {text!r}") from None
     if not seeds:
         raise ValueError(f"{option}: give at least one seed")
+    if min(seeds) < 0:
+        raise ValueError(f"{option} must be seeds >= 0, got {text!r}")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"{option}: a seed given twice in {text!r}")
     return seeds

@@ -51,10 +51,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "--labels`; --parts limbs implies it)")
     p.add_argument("--colour", action="store_true",
                    help="with --accuracy: the takes tracked with the colour tracks (as `stage track --colour`)")
-    p.add_argument("--armature-rounds", type=int, default=0, metavar="ROUNDS",
-                   help="with --accuracy: the takes tracked again with this many rounds of the armature mode (as "
-                   "`stage track --armature-rounds`; default 0)")
-    p.add_argument("--armature-parts", default="motion",
+    p.add_argument("--armature-rounds", type=_rounds, default=0, metavar="ROUNDS",
+                   help="with --accuracy: the takes tracked again with this many rounds of the armature mode, or "
+                   "'auto' (as `stage track --armature-rounds`; default 0)")
+    p.add_argument("--armature-parts", choices=("motion", "limbs"), default="motion",
                    help="with --accuracy, --armature-rounds and the labels: where every round's armature gets its "
                    "parts, 'motion' (default) or 'limbs' (as `stage track --armature-parts`)")
     p.add_argument("--skinned", default="2",
@@ -92,8 +92,6 @@ def _accuracy_options(args: argparse.Namespace):
     if int(getattr(args, "take_frames", 30)) < 2:
         raise ValueError(f"--take-frames must be >= 2, got {args.take_frames}")
     parts = str(getattr(args, "parts", "motion"))
-    if parts not in ("motion", "limbs"):
-        raise ValueError(f"--parts must be 'motion' or 'limbs', got {parts!r}")
     seeds = seeds_option(getattr(args, "take_seeds", "3"))
     skinned = str(getattr(args, "skinned", "none")).strip()
     try:
@@ -102,30 +100,33 @@ def _accuracy_options(args: argparse.Namespace):
         raise ValueError(f"--skinned must be widths in % of the size (e.g. 1,2,3) or 'none', got {skinned!r}") from None
     if any(not 0 < w < 1 for w in widths):
         raise ValueError(f"--skinned widths must be within (0, 100) %, got {skinned!r}")
-    rounds = getattr(args, "armature_rounds", 0)
-    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 0:
-        raise ValueError(f"--armature-rounds must be an integer >= 0, got {rounds!r}")
     tracking = dict(labels=bool(getattr(args, "labels", False)), colour=bool(getattr(args, "colour", False)),
-                    armature_rounds=rounds, armature_parts=str(getattr(args, "armature_parts", "motion")))
-    if tracking["armature_parts"] not in ("motion", "limbs"):
-        raise ValueError(f"--armature-parts must be 'motion' or 'limbs', got {tracking['armature_parts']!r}")
-    if tracking["armature_parts"] == "limbs" and not (rounds and (tracking["labels"] or parts == "limbs")):
-        raise ValueError("--armature-parts limbs needs --armature-rounds and --labels (or --parts limbs): its parts are "
-                         "the labels' body and limbs")
+                    armature_rounds=getattr(args, "armature_rounds", 0),
+                    armature_parts=str(getattr(args, "armature_parts", "motion")))
+    _check_tracking(parts=parts, **tracking, name=lambda p: "--" + p.replace("_", "-"))
     return takes, int(getattr(args, "take_frames", 30)), tuple(seeds), parts, tuple(widths), tracking
 
 
-def _check_tracking(*, parts: str, labels: bool, colour: bool, armature_rounds: int, armature_parts: str) -> None:
-    """The tracking options of :func:`take_armature`, or a ValueError that starts with the parameter's name."""
+def _rounds(text: str):
+    """``--armature-rounds``: a count or ``auto``, as ``stage track`` takes it."""
+    return text if text == "auto" else int(text)
+
+
+def _check_tracking(*, parts: str, labels: bool, colour: bool, armature_rounds, armature_parts: str,
+                    name=lambda p: p) -> None:
+    """The tracking options of :func:`take_armature`, or a ValueError that starts with the parameter's name
+    (``name`` spells it: the bench's options are the same rules under their command-line names)."""
     if parts not in ("motion", "limbs"):
-        raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")
-    if isinstance(armature_rounds, bool) or not isinstance(armature_rounds, int) or armature_rounds < 0:
-        raise ValueError(f"armature_rounds must be an integer >= 0, got {armature_rounds!r}")
+        raise ValueError(f"{name('parts')} must be 'motion' or 'limbs', got {parts!r}")
+    if armature_rounds != "auto" and (isinstance(armature_rounds, bool) or not isinstance(armature_rounds, int)
+                                      or armature_rounds < 0):
+        raise ValueError(f"{name('armature_rounds')} must be an integer >= 0 or 'auto', got {armature_rounds!r}")
     if armature_parts not in ("motion", "limbs"):
-        raise ValueError(f"armature_parts must be 'motion' or 'limbs', got {armature_parts!r}")
+        raise ValueError(f"{name('armature_parts')} must be 'motion' or 'limbs', got {armature_parts!r}")
     if armature_parts == "limbs" and not (armature_rounds and (labels or parts == "limbs")):
-        raise ValueError("armature_parts 'limbs' needs armature_rounds >= 1 and the template's labels (labels=True or "
-                         "parts='limbs'): its parts are the labels' body and limbs")
+        raise ValueError(f"{name('armature_parts')} 'limbs' needs {name('armature_rounds')} (>= 1 or 'auto') and the "
+                         f"template's labels ({name('labels')} or {name('parts')} 'limbs'): its parts are the labels' "
+                         "body and limbs")
 
 
 def _timing_row(size: str, T: int, *, samples: int, fit_frames: int) -> None:
@@ -352,7 +353,7 @@ def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped"), skinned=(0
 
 def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size=(640, 480), seed: int = 3,
                   fps: float = 30.0, parts: str = "motion", labels: bool = False, colour: bool = False,
-                  armature_rounds: int = 0, armature_parts: str = "motion"):
+                  armature_rounds=0, armature_parts: str = "motion"):
     """A simulated take of ``name`` through ``process``, ``track`` and ``armature`` with their defaults, in
     ``root``; -> (take, results directory, rig, seconds per step). ``parts="limbs"``: tracked with the template's
     limb/body labels (``stage track --labels``) and the armature's parts from them (``stage armature --parts
@@ -506,12 +507,14 @@ def true_track_scores(sim, rig, vertices, faces, truth: dict, reference: int) ->
     return sc
 
 
-def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion", **tracking) -> None:
+def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion", labels: bool = False,
+                  colour: bool = False, armature_rounds=0, armature_parts: str = "motion") -> None:
     """Simulated takes (8 cameras, 640x480, each of ``seeds``) through process, track and armature, scored
-    (``parts`` and the ``tracking`` keywords ``labels``, ``colour``, ``armature_rounds``, ``armature_parts``: as
-    :func:`take_armature`)."""
+    (``parts``, ``labels``, ``colour``, ``armature_rounds``, ``armature_parts``: as :func:`take_armature`)."""
     import tempfile
 
+    tracking = dict(labels=labels, colour=colour, armature_rounds=armature_rounds, armature_parts=armature_parts)
+    _check_tracking(parts=parts, **tracking)
     if not names:
         return
     flags = [f"--{key.replace('_', '-')}" + ("" if value is True else f" {value}") for key, value in tracking.items()
@@ -519,7 +522,7 @@ def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion",
     if parts != "motion" or flags:
         how = " ".join(["--labels" if parts == "limbs" and "--labels" not in flags else "", *flags]).strip()
         print(f"\nthe takes tracked as `stage track {how}`".rstrip() + f", the armature's parts --parts {parts}")
-    print(f"\n{'take':10} {'T':>3} {'track vx':>8} {'invent vx':>9} | {'segs':>4} {'true':>4} {'purity':>6} {'compl':>6} | "
+    print(f"\n{'take':12} {'T':>3} {'track vx':>8} {'invent vx':>9} | {'segs':>4} {'true':>4} {'purity':>6} {'compl':>6} | "
           f"{'true segs: paper R/P/err%':>26} {'pivot R/P/err%':>18} | {'arts':>4} {'bend':>4} {'R':>5} {'P':>5} "
           f"{'err%':>5} {'vert%':>5} | {'process s':>9} {'track s':>7} {'rig s':>5}")
     for seed in seeds:
@@ -537,16 +540,16 @@ def take_row(name: str, frames: int, rig, sc: dict, secs: dict) -> str:
         return f"{s['recall']:.2f}/{s['precision']:.2f}/{100 * s['error']:.1f}"
 
     pl, tt = sc["placements"], sc["true_tracks"]
-    return (f"{name:10} {frames:>3} {sc['track_error']:>8.2f} {sc['invented']:>9.2f} | {rig.segmentation.n_segments:>4} "
+    return (f"{name:12} {frames:>3} {sc['track_error']:>8.2f} {sc['invented']:>9.2f} | {rig.segmentation.n_segments:>4} "
             f"{sc['true_parts']:>4} {sc['purity']:>6.2f} {sc['completeness']:>6.2f} | {rpe(pl['paper']):>26} "
             f"{rpe(pl['pivot']):>18} | {sc['found']:>4} {sc['bending']:>4} {sc['recall']:>5.2f} {sc['precision']:>5.2f} "
             f"{100 * sc['error']:>5.1f} {100 * rig.fit.errors.mean() / rig.size:>5.2f} | {secs.get('process', 0):>9.0f} "
             f"{secs.get('track', 0):>7.0f} {secs.get('rig', 0):>5.0f}\n"
-            f"{'  true':10} {'':>3} {'tracks':>8} {'thr ' + format(tt['lambda_thr'], '.2f'):>9} | {tt['segments']:>4} "
+            f"{'  true':12} {'':>3} {'tracks':>8} {'thr ' + format(tt['lambda_thr'], '.2f'):>9} | {tt['segments']:>4} "
             f"{sc['true_parts']:>4} "
             f"{tt['purity']:>6.2f} {tt['completeness']:>6.2f} | {'':>26} {'':>18} | {tt['found']:>4} {tt['bending']:>4} "
             f"{tt['recall']:>5.2f} {tt['precision']:>5.2f} {100 * tt['error']:>5.1f} {100 * tt['vertex_error']:>5.2f} |\n"
-            f"{'  noise':10} {_noise(sc['noise'], tt['noise'])}")
+            f"{'  noise':12} {_noise(sc['noise'], tt['noise'])}")
 
 
 def _noise(tracked: dict, true: dict) -> str:

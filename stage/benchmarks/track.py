@@ -111,7 +111,7 @@ FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16), ("biped", 10.0, 1
               ("starfish", 30.0, 16), ("biped", 30.0, 16))
 
 
-def fast_accuracy(seeds=(3,)) -> None:
+def fast_accuracy(*, seeds=(3,)) -> None:
     """Fast takes (and slow ones): the default tracking, then tracked again with an armature as
     the articulated prior (:func:`pipeline.track_armature.track_with_armature`): the armature built from the
     tracking (``stage track --armature-rounds auto``), the take's spine as the first round's armature and then
@@ -125,6 +125,16 @@ def fast_accuracy(seeds=(3,)) -> None:
     import tempfile
     from pathlib import Path
 
+    if isinstance(seeds, str) or not all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) for x in seeds):
+        raise ValueError(f"seeds must be a sequence of integers, got {seeds!r}")
+    seeds = seeds_option(",".join(map(str, seeds)), "seeds")
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed, (creature, fps, frames) in itertools.product(seeds, FAST_TAKES):
+            _fast_take(creature, fps, frames, seed=seed, root=Path(tmp))
+
+
+def _fast_take(creature: str, fps: float, frames: int, *, seed: int, root) -> None:
+    """:func:`fast_accuracy`'s rows of one take, simulated, recorded and processed in ``root``."""
     from fake_cameras.record import record_take
     from fake_cameras.surface_motion import surface_point_tracks
     from fake_cameras.take import simulate_take
@@ -134,47 +144,45 @@ def fast_accuracy(seeds=(3,)) -> None:
     from pipeline.track import track_results
     from pipeline.track_armature import track_with_armature
 
-    with tempfile.TemporaryDirectory() as tmp:
-        for seed, (creature, fps, frames) in itertools.product(seeds, FAST_TAKES):
-            sim = simulate_take(creature, n_cameras=8, frames=frames, size=(640, 480), seed=seed, fps=fps)
-            name = f"{creature} seed {seed}"
-            take = record_take(sim, Path(tmp) / f"{creature}_{fps:g}_s{seed}.h5")
-            res = Path(tmp) / f"{creature}_{fps:g}_s{seed}_results"
-            process_take(take, res, executor=None)
-            t0 = time.process_time()
-            track_results(res)
-            _fast_row(f"{name} at {fps:g} fps, default", sim, res, frames, (time.process_time() - t0) / frames)
-            base = res.with_name(res.name + "_default")
-            shutil.copytree(res, base)
-            t0 = time.process_time()
-            rep = track_with_armature(res, rounds="auto")
-            kept = rep["rig_prior"]["kept_round"]
-            _fast_row(f"{name}, --armature-rounds auto (kept round {kept} of {len(rep['rig_prior']['rounds'])}; segments "
-                      f"{rep['rig_prior']['rounds'][kept - 1]['segments']})", sim, res, frames,
-                      (time.process_time() - t0) / frames)
-            for rounds in (1, "auto"):  # the spine's armature first (``--spine-armature``), then built from the tracking
-                _restore(res, base / "tracked")
-                t0 = time.process_time()
-                rep = track_with_armature(res, rounds=rounds, spine=True)
-                _fast_row(f"{name}, --armature-rounds {rounds} --spine-armature (kept round {rep['rig_prior']['kept_round']} "
-                          f"of {len(rep['rig_prior']['rounds'])})", sim, res, frames, (time.process_time() - t0) / frames)
-            _restore(res, base / "tracked")
-            t0 = time.process_time()
-            rep = track_with_armature(res, rounds=1, colour=True)
-            _fast_row(f"{name}, --armature-rounds 1 with the colour tracks (from the default tracking; colour tracks "
-                      f"{'on' if rep['rig_prior']['colour_tracks'] else 'OFF'})", sim, res, frames,
-                      (time.process_time() - t0) / frames)
-            ref = int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"])
-            V0, F0 = load_mesh(base / "tracked" / f"{ref:06d}.ply", largest=False)
-            truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
-            rig = build_armature(truth, F0, reference=ref)
-            for poses, label in ((dict(enumerate(rig.fit.poses)), "with its poses"), (None, "without its poses")):
-                _restore(res, base / "tracked")
-                t0 = time.process_time()
-                track_with_armature(res, rig.model, poses=poses)
-                _fast_row(f"{name}, the armature of the true motion {label}", sim, res, frames,
-                          (time.process_time() - t0) / frames)
-            _labels_rows(name, sim, res, frames)
+    sim = simulate_take(creature, n_cameras=8, frames=frames, size=(640, 480), seed=seed, fps=fps)
+    name = f"{creature} s{seed}"
+    take = record_take(sim, root / f"{creature}_{fps:g}_s{seed}.h5")
+    res = root / f"{creature}_{fps:g}_s{seed}_results"
+    process_take(take, res, executor=None)
+    t0 = time.process_time()
+    track_results(res)
+    _fast_row(f"{name} at {fps:g} fps, default", sim, res, frames, (time.process_time() - t0) / frames)
+    base = res.with_name(res.name + "_default")
+    shutil.copytree(res, base)
+    t0 = time.process_time()
+    rep = track_with_armature(res, rounds="auto")
+    kept = rep["rig_prior"]["kept_round"]
+    _fast_row(f"{name}, --armature-rounds auto (kept round {kept} of {len(rep['rig_prior']['rounds'])}; segments "
+              f"{rep['rig_prior']['rounds'][kept - 1]['segments']})", sim, res, frames,
+              (time.process_time() - t0) / frames)
+    for rounds in (1, "auto"):  # the spine's armature first (``--spine-armature``), then built from the tracking
+        _restore(res, base / "tracked")
+        t0 = time.process_time()
+        rep = track_with_armature(res, rounds=rounds, spine=True)
+        _fast_row(f"{name}, --armature-rounds {rounds} --spine-armature (kept round {rep['rig_prior']['kept_round']} "
+                  f"of {len(rep['rig_prior']['rounds'])})", sim, res, frames, (time.process_time() - t0) / frames)
+    _restore(res, base / "tracked")
+    t0 = time.process_time()
+    rep = track_with_armature(res, rounds=1, colour=True)
+    _fast_row(f"{name}, --armature-rounds 1 with the colour tracks (from the default tracking; colour tracks "
+              f"{'on' if rep['rig_prior']['colour_tracks'] else 'OFF'})", sim, res, frames,
+              (time.process_time() - t0) / frames)
+    ref = int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"])
+    V0, F0 = load_mesh(base / "tracked" / f"{ref:06d}.ply", largest=False)
+    truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
+    rig = build_armature(truth, F0, reference=ref)
+    for poses, label in ((dict(enumerate(rig.fit.poses)), "with its poses"), (None, "without its poses")):
+        _restore(res, base / "tracked")
+        t0 = time.process_time()
+        track_with_armature(res, rig.model, poses=poses)
+        _fast_row(f"{name}, the armature of the true motion {label}", sim, res, frames,
+                  (time.process_time() - t0) / frames)
+    _labels_rows(name, sim, res, frames)
 
 
 def _labels_rows(name: str, sim, res, frames: int) -> None:
@@ -607,14 +615,14 @@ def _timings(F: int) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    seeds = seeds_option(getattr(args, "take_seeds", "3")) if args.accuracy else None
+    seeds = seeds_option(getattr(args, "take_seeds", "3"))
     _timings(max(2, int(args.frames)))
     armature_seconds()
     if args.accuracy:
         accuracy()
         real_pipe_accuracy()
         multiview_accuracy()
-        fast_accuracy(seeds)
+        fast_accuracy(seeds=seeds)
     print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl), "
           "the patches and the summing matrices of the per-round sums (vertex normals, patch centroids and Kabsch), "
           "the prediction's averaging matrix, "

@@ -156,8 +156,12 @@ def test_invalid_input_of_the_limb_helpers():
         nearest_limb(V, V, np.array([-2, 0, 0]))
     with pytest.raises(ValueError, match="labels"):
         nearest_limb(V, V, labels.astype(float))
-    with pytest.raises(ValueError, match="min_vertices"):
-        nearest_limb(V, V, labels, min_vertices=0)
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="min_vertices"):
+            nearest_limb(V, V, labels, min_vertices=bad)
+    for bad in (-1, 0.5, True):
+        with pytest.raises(ValueError, match="limb"):
+            proximal_half(V, labels, bad)
     with pytest.raises(ValueError, match="vertices"):
         proximal_half(np.full((3, 3), np.nan), labels, 0)
     with pytest.raises(ValueError, match="labels"):

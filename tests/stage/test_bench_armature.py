@@ -103,11 +103,17 @@ def test_take_armature_tracks_as_stage_track_with_the_armature_mode(monkeypatch,
     assert calls == [("process", None, None), ("process", ("track",), {"track": {"colour": True}}),
                      ("rounds", True, {"rounds": 1, "colour": True, "labels": None, "parts": "motion"}),
                      ("armature", {})]
+    calls.clear()
+    take_armature("biped", tmp_path, armature_rounds="auto")
+    assert calls == [("process", None, None), ("process", ("track",), None),
+                     ("rounds", True, {"rounds": "auto", "colour": False, "labels": None, "parts": "motion"}),
+                     ("armature", {})]
 
 
 @pytest.mark.parametrize("kw, match", [({"parts": "spine"}, "^parts"), ({"armature_rounds": -1}, "^armature_rounds"),
                                        ({"armature_rounds": 1.5}, "^armature_rounds"),
                                        ({"armature_rounds": True}, "^armature_rounds"),
+                                       ({"armature_rounds": "often"}, "^armature_rounds"),
                                        ({"armature_parts": "spine"}, "^armature_parts"),
                                        ({"armature_parts": "limbs", "labels": True}, "^armature_parts"),
                                        ({"armature_parts": "limbs", "armature_rounds": 1}, "^armature_parts")])
@@ -121,8 +127,24 @@ def test_invalid_input_take_armature(kw, match, monkeypatch, tmp_path):
         take_armature("biped", tmp_path, **kw)
 
 
+def test_invalid_input_take_accuracy(monkeypatch, capsys):
+    """The table's options checked before its header is printed or a take is made."""
+    import stage.benchmarks.armature as bench
+
+    monkeypatch.setattr(bench, "take_armature", lambda *a, **kw: pytest.fail("made a take"))
+    for kw, match in (({"armature_rounds": -1}, "^armature_rounds"), ({"parts": "spine"}, "^parts"),
+                      ({"armature_parts": "limbs"}, "^armature_parts")):
+        with pytest.raises(ValueError, match=match):
+            bench.take_accuracy(["biped"], **kw)
+    with pytest.raises(TypeError):
+        bench.take_accuracy(["biped"], lables=True)
+    assert capsys.readouterr().out == ""
+
+
 @pytest.mark.parametrize("options, match", [({"parts": "spine"}, "--parts"), ({"take_seeds": "3,x"}, "--take-seeds"),
-                                            ({"take_seeds": ","}, "--take-seeds"),
+                                            ({"take_seeds": ","}, "--take-seeds"), ({"take_seeds": "-1"}, "--take-seeds"),
+                                            ({"take_seeds": "3,3"}, "--take-seeds"),
+                                            ({"armature_rounds": "often"}, "--armature-rounds"),
                                             ({"armature_rounds": -1}, "--armature-rounds"),
                                             ({"armature_parts": "spine"}, "--armature-parts"),
                                             ({"armature_parts": "limbs", "labels": True}, "--armature-parts"),
@@ -158,3 +180,6 @@ def test_the_take_options_reach_the_takes(monkeypatch):
     assert bench.run(args) == 0
     assert seen == [(["biped"], {"frames": 30, "seeds": (3, 5), "parts": "motion", "labels": True, "colour": True,
                                  "armature_rounds": 1, "armature_parts": "limbs"})]
+    seen.clear()
+    assert bench.run(p.parse_args(["--accuracy", "--takes", "biped", "--labels", "--armature-rounds", "auto"])) == 0
+    assert seen[0][1]["armature_rounds"] == "auto"
