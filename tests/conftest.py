@@ -33,6 +33,7 @@ def pytest_configure(config):
     """A pytest-xdist worker shares the cores with the other workers: its BLAS and OpenCV run in one
     thread, as do the worker processes its tests start (the variables), instead of as many threads
     as cores in every process, which only wait on each other."""
+    _import_anyio_now()
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         return
     import cv2
@@ -42,6 +43,24 @@ def pytest_configure(config):
         os.environ[var] = "1"
     threadpool_limits(1)
     cv2.setNumThreads(1)
+
+
+def _import_anyio_now() -> None:
+    """anyio (under FastAPI's test client and the API's file responses) imports most of its modules on first
+    use, parsing their source into an AST as it does (its lazy importer, and pytest's assertion rewriting, which
+    covers anyio as a pytest plugin). In Python 3.11 two threads parsing at once can fail with "SystemError: AST
+    constructor recursion depth mismatch": the test client's event-loop thread importing ``anyio.open_file``'s
+    module while a job's thread parses too. Every such import is done here, in the main thread, before any test
+    starts a thread."""
+    import importlib
+
+    import anyio
+
+    for name in dir(anyio):
+        getattr(anyio, name)
+    for module in ("anyio.from_thread", "anyio._backends._asyncio", "anyio.streams.buffered", "anyio.streams.text",
+                   "anyio.streams.file"):
+        importlib.import_module(module)
 
 
 #: Test files whose groups take the longest, the longest first (CPU seconds of the group measured
