@@ -19,6 +19,12 @@ import numpy as np
 
 from stage.benchmarks import seeds_option
 
+#: How far (mm, standard deviation per coordinate) ``--copies`` moves every tracked vertex: a tracking re-run on
+#: another machine (another BLAS, another order of sums) differs by about as much, so an armature that changes
+#: under it is one draw among several (docs/notes/armature-decisions.md, "How reproducible the armature of a
+#: tracking is").
+COPY_SIGMA = 0.001
+
 NAME = "armature"
 ALIASES = ("rig",)  # the old name, kept for one release
 HELP = ("seconds for segmentation, skeleton and per-frame fit on ~6k/50k vertices, 60/500 frames "
@@ -57,6 +63,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--armature-parts", choices=("motion", "limbs"), default="motion",
                    help="with --accuracy, --armature-rounds and the labels: where every round's armature gets its "
                    "parts, 'motion' (default) or 'limbs' (as `stage track --armature-parts`)")
+    p.add_argument("--copies", type=int, default=0, metavar="N",
+                   help="with --accuracy: every take's armature also built on N copies of its tracking, every vertex "
+                   f"moved by N(0, {1000 * COPY_SIGMA:g} um) (a tracking re-run elsewhere differs by about as much), and "
+                   "the spread of their recall / precision printed (default 0)")
     p.add_argument("--skinned", default="2",
                    help="with --accuracy: the creatures' posed sequences also skinned, vertices blending the parts' "
                    "motions over these widths (%% of the size; default 2; 'none' for none)")
@@ -65,8 +75,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if getattr(args, "accuracy", False):
         takes, frames, seeds, parts, widths, tracking = _accuracy_options(args)
+        copies = getattr(args, "copies", 0)
+        if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
+            raise ValueError(f"--copies must be an integer >= 0, got {copies!r}")
         accuracy(skinned=widths)
-        take_accuracy(takes, frames=frames, seeds=seeds, parts=parts, **tracking)
+        take_accuracy(takes, frames=frames, seeds=seeds, parts=parts, copies=copies, **tracking)
         return 0
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
     lengths = [int(x) for x in args.frames.split(",") if x.strip()]
@@ -508,13 +521,16 @@ def true_track_scores(sim, rig, vertices, faces, truth: dict, reference: int) ->
 
 
 def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion", labels: bool = False,
-                  colour: bool = False, armature_rounds=0, armature_parts: str = "motion") -> None:
+                  colour: bool = False, armature_rounds=0, armature_parts: str = "motion", copies: int = 0) -> None:
     """Simulated takes (8 cameras, 640x480, each of ``seeds``) through process, track and armature, scored
-    (``parts``, ``labels``, ``colour``, ``armature_rounds``, ``armature_parts``: as :func:`take_armature`)."""
+    (``parts``, ``labels``, ``colour``, ``armature_rounds``, ``armature_parts``: as :func:`take_armature`); with
+    ``copies``, each take's armature also on that many moved copies of its tracking (:func:`copies_scores`)."""
     import tempfile
 
     tracking = dict(labels=labels, colour=colour, armature_rounds=armature_rounds, armature_parts=armature_parts)
     _check_tracking(parts=parts, **tracking)
+    if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
+        raise ValueError(f"copies must be an integer >= 0, got {copies!r}")
     if not names:
         return
     flags = [f"--{key.replace('_', '-')}" + ("" if value is True else f" {value}") for key, value in tracking.items()
@@ -530,8 +546,83 @@ def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion",
             with tempfile.TemporaryDirectory(prefix=f"bench-rig-{name}-") as tmp:
                 sim, res, rig, secs = take_armature(name, tmp, frames=frames, seed=int(seed), parts=parts, **tracking)
                 sc = take_scores(sim, res, rig)
+                spread = copies_scores(sim, res, rig, copies=copies, parts=parts) if copies else None
             label = name if tuple(seeds) == (3,) else f"{name} s{seed}"
             print(take_row(label, frames, rig, sc, secs), flush=True)
+            if spread:
+                print(copies_row(sc, spread), flush=True)
+
+
+def copies_scores(sim, res, rig, *, copies: int, parts: str = "motion", sigma: float = COPY_SIGMA) -> list[dict]:
+    """The armature of moved copies of a take's tracking, built and scored as the take's own.
+
+    Every copy is the results directory ``res`` with its tracked template's vertices moved by N(0, ``sigma``) mm
+    per coordinate (seeds 1..``copies``); its armature is built by :func:`pipeline.armature_files.armature_results`
+    (``parts`` as :func:`take_armature` takes it) and scored against the creature's joints as :func:`take_scores`
+    scores ``rig``, the armature of the tracking itself.
+
+    Returns
+    -------
+    list of dict
+        One per copy: ``recall``, ``precision``, ``segments`` and ``same`` (True when its segmentation is
+        ``rig``'s, up to the segments' numbering).
+    """
+    import json
+    import shutil
+    import tempfile
+
+    from pipeline.armature_files import armature_results, load_sequence, tracked_meshes
+    from pipeline.armature_score import articulation_scores
+    from pipeline.meshio import load_mesh
+    from pipeline.results import atomic_write_bytes, ply_bytes
+
+    if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
+        raise ValueError(f"copies must be an integer >= 0, got {copies!r}")
+    if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a number > 0 (mm), got {sigma!r}")
+    if parts not in ("motion", "limbs"):
+        raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")
+    res = Path(res)
+    reference = int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"])
+    out = []
+    for seed in range(1, copies + 1):
+        rng = np.random.default_rng(seed)
+        with tempfile.TemporaryDirectory(prefix="bench-rig-copy-") as tmp:
+            copy = Path(tmp) / "results"
+            copy.mkdir()
+            for entry in res.iterdir():
+                if entry.name not in ("tracked", "rig"):
+                    (copy / entry.name).symlink_to(entry.resolve())
+            shutil.copytree(res / "tracked", copy / "tracked")
+            for path in sorted((copy / "tracked").glob("*.ply")):
+                v, f = load_mesh(path, largest=False)
+                atomic_write_bytes(path, ply_bytes(v + rng.normal(scale=sigma, size=v.shape), f))
+            moved = armature_results(copy, parts="limbs") if parts == "limbs" else armature_results(copy)
+            V, F, _ = load_sequence(tracked_meshes(copy))
+        tr = _truth_take(sim, moved, V, F, reference)
+        sc = articulation_scores(moved.fit.joints[:, moved.skeleton.articulation], tr["joints"], size=moved.size,
+                                 bending=tr["bending"])
+        out.append({"recall": sc["recall"], "precision": sc["precision"], "segments": moved.segmentation.n_segments,
+                    "same": _same_partition(rig.segmentation.labels, moved.segmentation.labels)})
+    return out
+
+
+def copies_row(sc: dict, spread: list[dict]) -> str:
+    """The line under a take's row: its recall / precision with those of its moved copies, mean (least..most)."""
+    def stat(key):
+        x = [sc[key], *(c[key] for c in spread)]
+        return f"{np.mean(x):.2f} ({min(x):.2f}..{max(x):.2f})"
+
+    segs = [c["segments"] for c in spread]
+    return (f"{'  copies':12} the tracking and {len(spread)} copies moved by {1000 * COPY_SIGMA:g} um: recall "
+            f"{stat('recall')}, precision {stat('precision')}; segments {min(segs)}..{max(segs)}, the tracking's "
+            f"segmentation in {sum(c['same'] for c in spread)} of {len(spread)}")
+
+
+def _same_partition(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two labellings of the same vertices make the same segments (whatever their numbers)."""
+    pairs = np.unique(np.stack([np.asarray(a), np.asarray(b)], 1), axis=0)
+    return len(pairs) == len(np.unique(a)) == len(np.unique(b))
 
 
 def take_row(name: str, frames: int, rig, sc: dict, secs: dict) -> str:

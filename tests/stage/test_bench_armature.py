@@ -145,6 +145,7 @@ def test_invalid_input_take_accuracy(monkeypatch, capsys):
                                             ({"take_seeds": ","}, "--take-seeds"), ({"take_seeds": "-1"}, "--take-seeds"),
                                             ({"take_seeds": "3,3"}, "--take-seeds"),
                                             ({"armature_rounds": "often"}, "--armature-rounds"),
+                                            ({"copies": -1}, "--copies"),
                                             ({"armature_rounds": -1}, "--armature-rounds"),
                                             ({"armature_parts": "spine"}, "--armature-parts"),
                                             ({"armature_parts": "limbs", "labels": True}, "--armature-parts"),
@@ -156,7 +157,7 @@ def test_the_take_options_are_checked_before_any_work(options, match, monkeypatc
 
     monkeypatch.setattr(bench, "accuracy", lambda **kw: pytest.fail("ran"))
     args = Namespace(accuracy=True, takes="biped", take_frames=30, take_seeds="3", parts="motion", skinned="2",
-                     labels=False, colour=False, armature_rounds=0, armature_parts="motion")
+                     labels=False, colour=False, armature_rounds=0, armature_parts="motion", copies=0)
     for option, value in options.items():
         setattr(args, option, value)
     with pytest.raises(ValueError, match=match):
@@ -176,10 +177,89 @@ def test_the_take_options_reach_the_takes(monkeypatch):
     p = argparse.ArgumentParser()
     bench.add_arguments(p)
     args = p.parse_args(["--accuracy", "--takes", "biped", "--take-seeds", "3,5", "--labels", "--colour",
-                         "--armature-rounds", "1", "--armature-parts", "limbs"])
+                         "--armature-rounds", "1", "--armature-parts", "limbs", "--copies", "4"])
     assert bench.run(args) == 0
     assert seen == [(["biped"], {"frames": 30, "seeds": (3, 5), "parts": "motion", "labels": True, "colour": True,
-                                 "armature_rounds": 1, "armature_parts": "limbs"})]
+                                 "armature_rounds": 1, "armature_parts": "limbs", "copies": 4})]
     seen.clear()
     assert bench.run(p.parse_args(["--accuracy", "--takes", "biped", "--labels", "--armature-rounds", "auto"])) == 0
     assert seen[0][1]["armature_rounds"] == "auto"
+
+
+def _tracked_results(root, T=3, V=50):
+    """A results directory with a tracked template of ``T`` frames (random vertices, one face) and its track.json."""
+    import json
+
+    from pipeline.results import ply_bytes
+
+    rng = np.random.default_rng(0)
+    (root / "tracked").mkdir(parents=True)
+    verts = rng.normal(scale=100.0, size=(T, V, 3))
+    for t in range(T):
+        (root / "tracked" / f"{t:06d}.ply").write_bytes(ply_bytes(verts[t], np.array([[0, 1, 2]])))
+    (root / "tracked" / "track.json").write_text(json.dumps({"reference_frame": 1}))
+    (root / "spine.json").write_text("{}")
+    return verts
+
+
+def test_copies_are_the_tracking_moved_by_sigma(tmp_path, monkeypatch):
+    """Every copy is the tracking moved by N(0, sigma) per coordinate (its sample standard deviation within 10 %
+    of sigma over 450 coordinates), seeded (the same copies twice), the other files the take's own, and the
+    results directory itself untouched; the armature is built and scored on each copy."""
+    from types import SimpleNamespace
+
+    import stage.benchmarks.armature as bench
+    from pipeline.armature_files import load_sequence, tracked_meshes
+
+    verts = _tracked_results(tmp_path / "res")
+    before = {p.name: p.read_bytes() for p in (tmp_path / "res" / "tracked").iterdir()}
+    built = []
+
+    def build(copy, **kw):
+        assert (copy / "spine.json").read_text() == "{}" and "parts" not in kw
+        V, _, _ = load_sequence(tracked_meshes(copy))
+        built.append(V)
+        return SimpleNamespace(segmentation=SimpleNamespace(labels=np.arange(V.shape[1]) // 10, n_segments=5),
+                               fit=SimpleNamespace(joints=np.zeros((3, 2, 3))), skeleton=SimpleNamespace(
+                                   articulation=np.array([True, False])), size=1.0)
+
+    import pipeline.armature_files
+    import pipeline.armature_score
+
+    monkeypatch.setattr(pipeline.armature_files, "armature_results", build)
+    monkeypatch.setattr(bench, "_truth_take", lambda sim, rig, V, F, ref: {"joints": None, "bending": None})
+    monkeypatch.setattr(pipeline.armature_score, "articulation_scores",
+                        lambda found, true, size, bending: {"recall": 0.5, "precision": 0.25})
+    rig = SimpleNamespace(segmentation=SimpleNamespace(labels=(np.arange(50) // 10 + 3) % 5))
+    got = bench.copies_scores(None, tmp_path / "res", rig, copies=2, sigma=0.01)
+    assert got == [{"recall": 0.5, "precision": 0.25, "segments": 5, "same": True}] * 2
+    first = list(built)
+    bench.copies_scores(None, tmp_path / "res", rig, copies=2, sigma=0.01)
+    for a, b in zip(first, built[2:]):
+        assert np.array_equal(a, b)
+    assert not np.array_equal(first[0], first[1])
+    for moved in first:
+        assert abs(np.std(moved - verts) / 0.01 - 1) < 0.1
+    assert {p.name: p.read_bytes() for p in (tmp_path / "res" / "tracked").iterdir()} == before
+
+
+def test_same_partition_against_a_loop():
+    """Two labellings make the same segments when every pair of vertices is together in both or apart in both."""
+    from stage.benchmarks.armature import _same_partition
+
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        a = rng.integers(0, 4, 12)
+        b = rng.permutation(7)[a] if rng.random() < 0.5 else rng.integers(0, 4, 12)
+        want = all((a[i] == a[j]) == (b[i] == b[j]) for i in range(12) for j in range(12))
+        assert _same_partition(a, b) == want
+
+
+def test_invalid_input_copies_scores(tmp_path):
+    from stage.benchmarks.armature import copies_scores
+
+    for kw, match in (({"copies": -1}, "^copies"), ({"copies": 1.5}, "^copies"), ({"copies": True}, "^copies"),
+                      ({"copies": 1, "sigma": 0}, "^sigma"), ({"copies": 1, "sigma": float("nan")}, "^sigma"),
+                      ({"copies": 1, "parts": "spine"}, "^parts")):
+        with pytest.raises(ValueError, match=match):
+            copies_scores(None, tmp_path, None, **kw)
