@@ -75,9 +75,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if getattr(args, "accuracy", False):
         takes, frames, seeds, parts, widths, tracking = _accuracy_options(args)
-        copies = getattr(args, "copies", 0)
-        if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
-            raise ValueError(f"--copies must be an integer >= 0, got {copies!r}")
+        copies = _check_copies(getattr(args, "copies", 0), name="--copies")
         accuracy(skinned=widths)
         take_accuracy(takes, frames=frames, seeds=seeds, parts=parts, copies=copies, **tracking)
         return 0
@@ -123,6 +121,13 @@ def _accuracy_options(args: argparse.Namespace):
 def _rounds(text: str):
     """``--armature-rounds``: a count or ``auto``, as ``stage track`` takes it."""
     return text if text == "auto" else int(text)
+
+
+def _check_copies(copies, *, name: str = "copies") -> int:
+    """``copies`` (moved copies of a tracking, :func:`copies_scores`), or a ValueError naming ``name``."""
+    if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
+        raise ValueError(f"{name} must be an integer >= 0, got {copies!r}")
+    return copies
 
 
 def _check_tracking(*, parts: str, labels: bool, colour: bool, armature_rounds, armature_parts: str,
@@ -529,8 +534,7 @@ def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion",
 
     tracking = dict(labels=labels, colour=colour, armature_rounds=armature_rounds, armature_parts=armature_parts)
     _check_tracking(parts=parts, **tracking)
-    if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
-        raise ValueError(f"copies must be an integer >= 0, got {copies!r}")
+    _check_copies(copies)
     if not names:
         return
     flags = [f"--{key.replace('_', '-')}" + ("" if value is True else f" {value}") for key, value in tracking.items()
@@ -576,8 +580,7 @@ def copies_scores(sim, res, rig, *, copies: int, parts: str = "motion", sigma: f
     from pipeline.meshio import load_mesh
     from pipeline.results import atomic_write_bytes, ply_bytes
 
-    if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
-        raise ValueError(f"copies must be an integer >= 0, got {copies!r}")
+    _check_copies(copies)
     if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be a number > 0 (mm), got {sigma!r}")
     if parts not in ("motion", "limbs"):
