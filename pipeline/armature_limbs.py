@@ -116,10 +116,11 @@ def limbs_last(residual: dict, labels, limbs) -> tuple[dict, set]:
     return {pair: r + last if pair in across else r for pair, r in residual.items()}, across
 
 
-def check_limbs(limbs, n: int) -> np.ndarray:
-    """``limbs`` as an (n,) int array (the limb of every vertex, :data:`BODY` or an index); ValueError naming it."""
+def check_limbs(limbs, n: int, *, name: str = "limbs") -> np.ndarray:
+    """``limbs`` as an (n,) int array (the limb of every vertex, :data:`BODY` or an index); ValueError naming it
+    ``name``."""
     lb = np.asarray(limbs)
     if lb.shape != (n,) or not np.issubdtype(lb.dtype, np.integer) or (len(lb) and lb.min() < BODY):
-        raise ValueError(f"limbs must hold the spine limb of every vertex ({n},) as integers >= {BODY}, got "
+        raise ValueError(f"{name} must hold the spine limb of every vertex ({n},) as integers >= {BODY}, got "
                          f"shape {lb.shape}")
     return lb

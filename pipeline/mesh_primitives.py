@@ -21,8 +21,16 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["check_mesh", "summing_matrix", "sum_by", "scatter_add", "triangle_areas", "vertex_normals", "mesh_volume",
+__all__ = ["check_mesh", "check_points", "summing_matrix", "sum_by", "scatter_add", "triangle_areas", "vertex_normals", "mesh_volume",
            "rigid_fit", "edge_components", "mesh_components"]
+
+
+def check_points(points, *, name: str = "points") -> np.ndarray:
+    """``points`` as a finite float64 (N, 3) array, or a ValueError naming it ``name``."""
+    X = np.asarray(points, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] != 3 or not np.isfinite(X).all():
+        raise ValueError(f"{name} must be a finite (N, 3) array, got shape {X.shape}")
+    return X
 
 
 def check_mesh(vertices, faces, *, min_vertices: int = 0, min_faces: int = 0,

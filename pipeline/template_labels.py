@@ -53,12 +53,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.mesh_primitives import check_mesh, edge_components, rigid_fit
+from pipeline.armature_limbs import BODY, check_limbs
+from pipeline.mesh_primitives import check_mesh, check_points, edge_components, rigid_fit
 
 __all__ = ["BODY", "template_labels", "axis_labels", "nearest_limb", "proximal_half"]
 
-#: the label of a vertex on the body (no limb)
-BODY = -1
 
 _KEEP = 0.8  # the nearest pairs a rigid fit keeps (the rest: where the piece's surface moved apart from it)
 _ITERATIONS = 30  # ICP rounds a frame at most
@@ -219,7 +218,8 @@ def nearest_limb(points, vertices, labels, *, min_vertices: int = 1) -> np.ndarr
     """
     from scipy.spatial import cKDTree
 
-    X, V, lab = _points(points, "points"), _points(vertices, "vertices"), _labels(labels, vertices)
+    X, V = check_points(points), check_points(vertices, name="vertices")
+    lab = check_limbs(labels, len(V), name="labels").astype(np.int64)
     if not _is_int(min_vertices) or min_vertices < 1:
         raise ValueError(f"min_vertices must be an integer >= 1, got {min_vertices!r}")
     limbs = [np.flatnonzero(lab == k) for k in range(int(lab.max(initial=BODY)) + 1)]
@@ -250,7 +250,8 @@ def proximal_half(vertices, labels, limb: int) -> np.ndarray:
     """
     from scipy.spatial import cKDTree
 
-    V, lab = _points(vertices, "vertices"), _labels(labels, vertices)
+    V = check_points(vertices, name="vertices")
+    lab = check_limbs(labels, len(V), name="labels").astype(np.int64)
     if not _is_int(limb) or limb < 0:
         raise ValueError(f"limb must be a limb's label (an integer >= 0), got {limb!r}")
     if not (lab == BODY).any():
@@ -264,20 +265,6 @@ def proximal_half(vertices, labels, limb: int) -> np.ndarray:
 
 def _is_int(x) -> bool:
     return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
-
-
-def _points(x, name: str) -> np.ndarray:
-    X = np.asarray(x, dtype=np.float64)
-    if X.ndim != 2 or X.shape[1] != 3 or not np.isfinite(X).all():
-        raise ValueError(f"{name} must be a finite (n, 3) array, got shape {X.shape}")
-    return X
-
-
-def _labels(labels, vertices) -> np.ndarray:
-    lab = np.asarray(labels)
-    if lab.shape != (len(np.asarray(vertices)),) or not np.issubdtype(lab.dtype, np.integer) or (lab < BODY).any():
-        raise ValueError(f"labels must be ({len(np.asarray(vertices))},) integers >= {BODY}, got shape {lab.shape}")
-    return lab.astype(np.int64)
 
 
 def _follow(X: np.ndarray, trees: list, ref: int, start=None):

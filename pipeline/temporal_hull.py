@@ -31,6 +31,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from calib.camera import Camera
+from pipeline.mesh_primitives import check_points
 from pipeline.volume import Grid
 
 __all__ = ["carve_across_time", "local_motions", "signed_distance_image", "silhouette_distance"]
@@ -60,13 +61,6 @@ def signed_distance_image(mask) -> np.ndarray:
     inside = cv2.distanceTransform(u, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     outside = cv2.distanceTransform(1 - u, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     return (inside - outside).astype(np.float32)
-
-
-def _check_points(points, name: str = "points") -> np.ndarray:
-    X = np.asarray(points, dtype=np.float64)
-    if X.ndim != 2 or X.shape[1] != 3 or not np.isfinite(X).all():
-        raise ValueError(f"{name} must be a finite (N, 3) array, got shape {X.shape}")
-    return X
 
 
 def _camera_values(X: np.ndarray, image: np.ndarray, cam: Camera, margin: float = 0.0) -> np.ndarray:
@@ -111,7 +105,7 @@ def silhouette_distance(points, images: Sequence, cameras: Sequence[Camera], *, 
         (depth over the focal length); positive inside the silhouette, ``+inf`` where the camera
         has no mask or does not see the point (behind it, outside its image).
     """
-    X = _check_points(points)
+    X = check_points(points)
     if len(images) != len(cameras):
         raise ValueError(f"images must have one entry per camera ({len(cameras)}), got {len(images)}")
     margins = _margins(margin, len(cameras))
@@ -157,7 +151,7 @@ def local_motions(before, after, *, neighbours: int = 100) -> tuple[np.ndarray, 
     c0, c1 : (V, 3) float ndarray
         A point ``x`` near vertex ``i`` moves to ``R[i] @ (x - c0[i]) + c1[i]``.
     """
-    P, Q = _check_points(before, "before"), _check_points(after, "after")
+    P, Q = check_points(before, name="before"), check_points(after, name="after")
     if P.shape != Q.shape:
         raise ValueError(f"after must have the shape of before {P.shape}, got {Q.shape}")
     return _kabsch(P, Q, _neighbourhoods(P, neighbours))
@@ -243,7 +237,7 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
         raise ValueError(f"band must be a positive number of voxels, got {band!r}")
     if isinstance(ignore, bool) or not isinstance(ignore, (int, np.integer)) or ignore < 0:
         raise ValueError(f"ignore must be a non-negative integer, got {ignore!r}")
-    V = _check_points(tracks[frame], f"tracks[{frame}]")
+    V = check_points(tracks[frame], name=f"tracks[{frame}]")
     margin = _margins(margin, len(cameras))
     C = grid.centers()
     own = silhouette_distance(C, images[frame], cameras, margin=margin)  # (cameras, voxels)
@@ -264,7 +258,7 @@ def carve_across_time(grid: Grid, frame: int, tracks: Mapping[int, np.ndarray], 
         W = _neighbourhoods(V, neighbours)[used]
         values = [own[:, near]]
         for s in others:
-            Q = _check_points(tracks[s], f"tracks[{s}]")
+            Q = check_points(tracks[s], name=f"tracks[{s}]")
             if Q.shape != V.shape:
                 raise ValueError(f"tracks[{s}] must have the shape of tracks[{frame}] {V.shape}, got {Q.shape}")
             R, c0, c1 = _kabsch(V, Q, W)

@@ -75,7 +75,13 @@ def test_volume_of_a_sphere_and_the_exporter_gets_unit_normals():
 
 
 def test_invalid_input():
+    from pipeline.mesh_primitives import check_points
+
     v, f = _mesh_with_an_isolated_vertex()
+    assert check_points(v.tolist()).dtype == np.float64 and np.array_equal(check_points(v), v)
+    for bad in (v[:, :2], v[0], np.where(np.arange(len(v))[:, None] == 1, np.inf, v)):
+        with pytest.raises(ValueError, match="^corners must be a finite"):
+            check_points(bad, name="corners")
     with pytest.raises(ValueError, match="vertices"):
         vertex_normals(v[:, :2], f)
     with pytest.raises(ValueError, match="faces"):
