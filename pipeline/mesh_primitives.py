@@ -25,11 +25,13 @@ __all__ = ["check_mesh", "check_points", "summing_matrix", "sum_by", "scatter_ad
            "rigid_fit", "edge_components", "mesh_components"]
 
 
-def check_points(points, *, name: str = "points") -> np.ndarray:
-    """``points`` as a finite float64 (N, 3) array, or a ValueError naming it ``name``."""
+def check_points(points, *, name: str = "points", min_points: int = 0) -> np.ndarray:
+    """``points`` as a finite float64 (N, 3) array of at least ``min_points`` rows, or a ValueError naming it
+    ``name``."""
     X = np.asarray(points, dtype=np.float64)
-    if X.ndim != 2 or X.shape[1] != 3 or not np.isfinite(X).all():
-        raise ValueError(f"{name} must be a finite (N, 3) array, got shape {X.shape}")
+    if X.ndim != 2 or X.shape[1] != 3 or len(X) < min_points or not np.isfinite(X).all():
+        least = f" of at least {min_points} points" if min_points else ""
+        raise ValueError(f"{name} must be a finite (N, 3) array{least}, got shape {X.shape}")
     return X
 
 

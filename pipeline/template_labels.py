@@ -137,10 +137,7 @@ def axis_labels(axes, vertices, faces, *, surfaces=None, frame: int = 0) -> np.n
     V, F = check_mesh(vertices, faces, min_vertices=1, min_faces=1)
     polylines = []
     for a in axes:
-        a = np.asarray(a, dtype=np.float64)
-        if a.ndim != 2 or a.shape[0] < 2 or a.shape[1] != 3 or not np.all(np.isfinite(a)):
-            raise ValueError(f"axes must be finite (n, 3) polylines of at least 2 points, got shape {a.shape}")
-        polylines.append(a)
+        polylines.append(check_points(a, name="axes", min_points=2))
     mesh = trimesh.Trimesh(V, F, process=False)
     step = float(np.median(mesh.edges_unique_length))
     if not step > 0:
@@ -160,12 +157,7 @@ def axis_labels(axes, vertices, faces, *, surfaces=None, frame: int = 0) -> np.n
 
 
 def _surfaces(surfaces, frame) -> list[np.ndarray]:
-    out = []
-    for S in surfaces:
-        S = np.asarray(S, dtype=np.float64)
-        if S.ndim != 2 or S.shape[1] != 3 or len(S) == 0 or not np.all(np.isfinite(S)):
-            raise ValueError(f"surfaces must be non-empty finite (n, 3) point arrays, got shape {S.shape}")
-        out.append(S)
+    out = [check_points(S, name="surfaces", min_points=1) for S in surfaces]
     if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or not 0 <= frame < len(out):
         raise ValueError(f"frame must be a position in surfaces (0..{len(out) - 1}), got {frame!r}")
     return out

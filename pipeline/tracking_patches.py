@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from pipeline.mesh_primitives import check_mesh, mesh_components
+from pipeline.mesh_primitives import check_mesh, check_points, mesh_components
 from pipeline.mesh_primitives import scatter_add as _scatter_add
 from pipeline.mesh_primitives import sum_by as _sum_by
 from pipeline.mesh_primitives import summing_matrix as _summing
@@ -210,9 +210,7 @@ def grid_seeds(points, size: float, *, offset: float = 0.0, corner=None) -> tupl
     nearest : (N,) int ndarray
         Every point's nearest seed, an index into ``seeds``.
     """
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 1 or not np.all(np.isfinite(p)):
-        raise ValueError(f"points must be finite with shape (N >= 1, 3), got {p.shape}")
+    p = check_points(points, min_points=1)
     for name, value, low in (("size", size, 0.0), ("offset", offset, None)):
         if isinstance(value, bool) or not (isinstance(value, (int, float, np.integer, np.floating))
                                            and math.isfinite(value) and (low is None or value > low)):

@@ -82,6 +82,9 @@ def test_invalid_input():
     for bad in (v[:, :2], v[0], np.where(np.arange(len(v))[:, None] == 1, np.inf, v)):
         with pytest.raises(ValueError, match="^corners must be a finite"):
             check_points(bad, name="corners")
+    with pytest.raises(ValueError, match=f"^corners must be a finite .* at least {len(v) + 1} points"):
+        check_points(v, name="corners", min_points=len(v) + 1)
+    assert len(check_points(v, min_points=len(v))) == len(v)
     with pytest.raises(ValueError, match="vertices"):
         vertex_normals(v[:, :2], f)
     with pytest.raises(ValueError, match="faces"):
