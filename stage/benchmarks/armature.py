@@ -551,8 +551,7 @@ def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion",
                 sim, res, rig, secs = take_armature(name, tmp, frames=frames, seed=int(seed), parts=parts, **tracking)
                 sc = take_scores(sim, res, rig)
                 spread = copies_scores(sim, res, rig, copies=copies, parts=parts) if copies else None
-            label = name if tuple(seeds) == (3,) else f"{name} s{seed}"
-            print(take_row(label, frames, rig, sc, secs), flush=True)
+            print(take_row(f"{name} s{seed}", frames, rig, sc, secs), flush=True)
             if spread:
                 print(copies_row(sc, spread), flush=True)
 

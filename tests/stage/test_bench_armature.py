@@ -263,3 +263,17 @@ def test_invalid_input_copies_scores(tmp_path):
                       ({"copies": 1, "parts": "spine"}, "^parts")):
         with pytest.raises(ValueError, match=match):
             copies_scores(None, tmp_path, None, **kw)
+
+
+def test_take_rows_are_named_with_their_seed(monkeypatch, capsys):
+    """Every take row names its seed, the default's too, as `stage bench track --accuracy` names its rows
+    ("biped s3"), so the two benches' rows of one take read alike."""
+    import stage.benchmarks.armature as bench
+
+    monkeypatch.setattr(bench, "take_armature", lambda name, tmp, *, seed, **kw: (("sim", name, seed), tmp, "rig", {}))
+    monkeypatch.setattr(bench, "take_scores", lambda sim, res, rig: {})
+    monkeypatch.setattr(bench, "take_row", lambda label, frames, rig, sc, secs: f"row {label}")
+    bench.take_accuracy(["biped", "starfish"], seeds=(3,))
+    bench.take_accuracy(["biped"], seeds=(3, 5))
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("row ")]
+    assert rows == ["row biped s3", "row starfish s3", "row biped s3", "row biped s5"]
