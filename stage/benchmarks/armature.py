@@ -17,13 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stage.benchmarks import seeds_option
-
-#: How far (mm, standard deviation per coordinate) ``--copies`` moves every tracked vertex: a tracking re-run on
-#: another machine (another BLAS, another order of sums) differs by about as much, so an armature that changes
-#: under it is one draw among several (docs/notes/armature-decisions.md, "How reproducible the armature of a
-#: tracking is").
-COPY_SIGMA = 0.001
+from stage.benchmarks import COPY_SIGMA, check_copies, seeds_option
 
 NAME = "armature"
 ALIASES = ("rig",)  # the old name, kept for one release
@@ -75,7 +69,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if getattr(args, "accuracy", False):
         takes, frames, seeds, parts, widths, tracking = _accuracy_options(args)
-        copies = _check_copies(getattr(args, "copies", 0), name="--copies")
+        copies = check_copies(getattr(args, "copies", 0), name="--copies")
         accuracy(skinned=widths)
         take_accuracy(takes, frames=frames, seeds=seeds, parts=parts, copies=copies, **tracking)
         return 0
@@ -121,13 +115,6 @@ def _accuracy_options(args: argparse.Namespace):
 def _rounds(text: str):
     """``--armature-rounds``: a count or ``auto``, as ``stage track`` takes it."""
     return text if text == "auto" else int(text)
-
-
-def _check_copies(copies, *, name: str = "copies") -> int:
-    """``copies`` (moved copies of a tracking, :func:`copies_scores`), or a ValueError naming ``name``."""
-    if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
-        raise ValueError(f"{name} must be an integer >= 0, got {copies!r}")
-    return copies
 
 
 def _check_tracking(*, parts: str, labels: bool, colour: bool, armature_rounds, armature_parts: str,
@@ -534,7 +521,7 @@ def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion",
 
     tracking = dict(labels=labels, colour=colour, armature_rounds=armature_rounds, armature_parts=armature_parts)
     _check_tracking(parts=parts, **tracking)
-    _check_copies(copies)
+    check_copies(copies)
     if not names:
         return
     flags = [f"--{key.replace('_', '-')}" + ("" if value is True else f" {value}") for key, value in tracking.items()
@@ -579,7 +566,7 @@ def copies_scores(sim, res, rig, *, copies: int, parts: str = "motion", sigma: f
     from pipeline.meshio import load_mesh
     from pipeline.results import atomic_write_bytes, ply_bytes
 
-    _check_copies(copies)
+    check_copies(copies)
     if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be a number > 0 (mm), got {sigma!r}")
     if parts not in ("motion", "limbs"):

@@ -13,8 +13,10 @@ previous-shape prior on the multi-view loop's last frames, and the armature mode
 at 6k vertices (:func:`armature_seconds`). With ``--accuracy`` the simulated
 multi-view takes are also tracked on their true surfaces
 (:func:`fake_cameras.surface_motion.true_surface`), the tracker's error apart from the surfaces',
-and on their surfaces carved across time (:mod:`pipeline.carve`, two rounds).
-:func:`skeleton_oracle` tracks a fast take with the simulator's own skeleton as the armature.
+and on their surfaces carved across time (:mod:`pipeline.carve`, two rounds); ``--copies N`` tracks every
+fast and slow take also on N copies whose surfaces are moved by 0.001 mm and prints every row's figures as
+mean (least..most) under it (:func:`fast_accuracy`). :func:`skeleton_oracle` tracks a fast take with the
+simulator's own skeleton as the armature.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import time
 
 import numpy as np
 
-from stage.benchmarks import seeds_option
+from stage.benchmarks import COPY_SIGMA, check_copies, seeds_option
 from stage.benchmarks._data import SHARED_DATA
 
 NAME = "track"
@@ -51,6 +53,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "the volume and what `stage armature` finds (several minutes)")
     p.add_argument("--take-seeds", default="3",
                    help="with --accuracy: the simulator's seeds of the fast and slow takes (default 3; e.g. 3,4)")
+    p.add_argument("--copies", type=int, default=0, metavar="N",
+                   help="with --accuracy: every fast and slow take also tracked on N copies of its results, every vertex "
+                   f"of every surface moved by N(0, {1000 * COPY_SIGMA:g} um) (a re-run elsewhere differs by about as "
+                   "much), and every row's figures printed as mean (least..most) over the take and its copies under "
+                   "it (default 0)")
 
 
 def multiview_accuracy(frames: int = 30) -> None:
@@ -111,7 +118,7 @@ FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16), ("biped", 10.0, 1
               ("starfish", 30.0, 16), ("biped", 30.0, 16))
 
 
-def fast_accuracy(*, seeds=(3,)) -> None:
+def fast_accuracy(*, seeds=(3,), copies: int = 0) -> None:
     """Fast takes (and slow ones): the default tracking, then tracked again with an armature as
     the articulated prior (:func:`pipeline.track_armature.track_with_armature`): the armature built from the
     tracking (``stage track --armature-rounds auto``), the take's spine as the first round's armature and then
@@ -121,37 +128,62 @@ def fast_accuracy(*, seeds=(3,)) -> None:
     and with the right starts too), and the same take tracked with the template's limb/body labels
     (:func:`_labels_rows`); the worst frame's mean and 95th percentile, the invented motion
     (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame; every take once for each of the
-    simulator's ``seeds``."""
+    simulator's ``seeds``. With ``copies`` (an integer >= 0) every take's rows are also tracked on that many copies
+    of its processed results whose surfaces are moved by 0.001 mm
+    (:func:`stage.benchmarks.patches.moved_surfaces`, seeds 1..``copies``), and under every row its figures over
+    the take and the copies, each mean (least..most) (:func:`stage.benchmarks.patches.spread_figures`): the
+    row's run-to-run spread."""
     import tempfile
     from pathlib import Path
 
     if isinstance(seeds, str) or not all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) for x in seeds):
         raise ValueError(f"seeds must be a sequence of integers, got {seeds!r}")
     seeds = seeds_option(",".join(map(str, seeds)), "seeds")
+    check_copies(copies)
     with tempfile.TemporaryDirectory() as tmp:
         for seed, (creature, fps, frames) in itertools.product(seeds, FAST_TAKES):
-            _fast_take(creature, fps, frames, seed=seed, root=Path(tmp))
+            _fast_take(creature, fps, frames, seed=seed, root=Path(tmp), copies=copies)
 
 
-def _fast_take(creature: str, fps: float, frames: int, *, seed: int, root) -> None:
-    """:func:`fast_accuracy`'s rows of one take, simulated, recorded and processed in ``root``."""
+def _fast_take(creature: str, fps: float, frames: int, *, seed: int, root, copies: int = 0) -> None:
+    """:func:`fast_accuracy`'s rows of one take, simulated, recorded and processed in ``root``; with ``copies``,
+    every row followed by its figures over the take and that many copies moved by 0.001 mm."""
     from fake_cameras.record import record_take
-    from fake_cameras.surface_motion import surface_point_tracks
     from fake_cameras.take import simulate_take
-    from pipeline.armature import build_armature
-    from pipeline.meshio import load_mesh
     from pipeline.process import process_take
-    from pipeline.track import track_results
-    from pipeline.track_armature import track_with_armature
+    from stage.benchmarks.patches import moved_surfaces, spread_figures
 
     sim = simulate_take(creature, n_cameras=8, frames=frames, size=(640, 480), seed=seed, fps=fps)
-    name = f"{creature} s{seed}"
     take = record_take(sim, root / f"{creature}_{fps:g}_s{seed}.h5")
     res = root / f"{creature}_{fps:g}_s{seed}_results"
     process_take(take, res, executor=None)
+    moved = [moved_surfaces(res, res.with_name(f"{res.name}_copy{k}"), seed=k) for k in range(1, copies + 1)]
+    rows = [] if copies else None  # printed as they come without copies
+    _take_rows(f"{creature} s{seed}", fps, sim, res, frames, rows=rows)
+    if not copies:
+        return
+    per_copy = []
+    for copy in moved:
+        per_copy.append([])
+        _take_rows(f"{creature} s{seed}", fps, sim, copy, frames, rows=per_copy[-1])
+    for i, row in enumerate(rows):
+        print(row["line"])
+        print(f"    the take and {copies} copies moved by {1000 * COPY_SIGMA:g} um, mean (least..most): "
+              f"{spread_figures([row, *(c[i] for c in per_copy)])}", flush=True)
+
+
+def _take_rows(name: str, fps: float, sim, res, frames: int, *, rows=None) -> None:
+    """The rows of :func:`_fast_take` tracked from the surfaces of the processed results ``res``; printed, or
+    appended to ``rows`` (:func:`_fast_row`)."""
+    from fake_cameras.surface_motion import surface_point_tracks
+    from pipeline.armature import build_armature
+    from pipeline.meshio import load_mesh
+    from pipeline.track import track_results
+    from pipeline.track_armature import track_with_armature
+
     t0 = time.process_time()
     track_results(res)
-    _fast_row(f"{name} at {fps:g} fps, default", sim, res, frames, (time.process_time() - t0) / frames)
+    _fast_row(f"{name} at {fps:g} fps, default", sim, res, frames, (time.process_time() - t0) / frames, rows=rows)
     base = res.with_name(res.name + "_default")
     shutil.copytree(res, base)
     t0 = time.process_time()
@@ -159,19 +191,19 @@ def _fast_take(creature: str, fps: float, frames: int, *, seed: int, root) -> No
     kept = rep["rig_prior"]["kept_round"]
     _fast_row(f"{name}, --armature-rounds auto (kept round {kept} of {len(rep['rig_prior']['rounds'])}; segments "
               f"{rep['rig_prior']['rounds'][kept - 1]['segments']})", sim, res, frames,
-              (time.process_time() - t0) / frames)
+              (time.process_time() - t0) / frames, rows=rows)
     for rounds in (1, "auto"):  # the spine's armature first (``--spine-armature``), then built from the tracking
         _restore(res, base / "tracked")
         t0 = time.process_time()
         rep = track_with_armature(res, rounds=rounds, spine=True)
         _fast_row(f"{name}, --armature-rounds {rounds} --spine-armature (kept round {rep['rig_prior']['kept_round']} "
-                  f"of {len(rep['rig_prior']['rounds'])})", sim, res, frames, (time.process_time() - t0) / frames)
+                  f"of {len(rep['rig_prior']['rounds'])})", sim, res, frames, (time.process_time() - t0) / frames, rows=rows)
     _restore(res, base / "tracked")
     t0 = time.process_time()
     rep = track_with_armature(res, rounds=1, colour=True)
     _fast_row(f"{name}, --armature-rounds 1 with the colour tracks (from the default tracking; colour tracks "
               f"{'on' if rep['rig_prior']['colour_tracks'] else 'OFF'})", sim, res, frames,
-              (time.process_time() - t0) / frames)
+              (time.process_time() - t0) / frames, rows=rows)
     ref = int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"])
     V0, F0 = load_mesh(base / "tracked" / f"{ref:06d}.ply", largest=False)
     truth = surface_point_tracks(sim.creature, V0, [sim.times[ref], *sim.times])[1:]
@@ -181,30 +213,30 @@ def _fast_take(creature: str, fps: float, frames: int, *, seed: int, root) -> No
         t0 = time.process_time()
         track_with_armature(res, rig.model, poses=poses)
         _fast_row(f"{name}, the armature of the true motion {label}", sim, res, frames,
-                  (time.process_time() - t0) / frames)
-    _labels_rows(name, sim, res, frames)
+                  (time.process_time() - t0) / frames, rows=rows)
+    _labels_rows(name, sim, res, frames, rows=rows)
 
 
-def _labels_rows(name: str, sim, res, frames: int) -> None:
+def _labels_rows(name: str, sim, res, frames: int, *, rows=None) -> None:
     """Rows of :func:`fast_accuracy` with the template's limb/body labels (``stage track --labels``): the
     tracking alone, then with the colour tracks and one colour round of the armature mode (``--labels
     --colour --armature-rounds 1``), and the same with the round's armature from the labels (``--armature-parts
-    limbs``); each tracks ``res`` again from its surfaces."""
+    limbs``); each tracks ``res`` again from its surfaces. ``rows``: as :func:`_fast_row`."""
     from pipeline.track import track_results
     from pipeline.track_armature import track_with_armature
 
     t0 = time.process_time()
     track_results(res, labels="spine")
-    _fast_row(f"{name}, --labels", sim, res, frames, (time.process_time() - t0) / frames)
+    _fast_row(f"{name}, --labels", sim, res, frames, (time.process_time() - t0) / frames, rows=rows)
     t0 = time.process_time()
     track_results(res, labels="spine", colour=True)
     track_with_armature(res, rounds=1, colour=True, labels="spine")
-    _fast_row(f"{name}, --labels --colour --armature-rounds 1", sim, res, frames, (time.process_time() - t0) / frames)
+    _fast_row(f"{name}, --labels --colour --armature-rounds 1", sim, res, frames, (time.process_time() - t0) / frames, rows=rows)
     t0 = time.process_time()
     track_results(res, labels="spine", colour=True)
     track_with_armature(res, rounds=1, colour=True, labels="spine", parts="limbs")
     _fast_row(f"{name}, --labels --colour --armature-rounds 1 --armature-parts limbs", sim, res, frames,
-              (time.process_time() - t0) / frames)
+              (time.process_time() - t0) / frames, rows=rows)
 
 
 def simulator_armature(creature, time_s: float, vertices, faces):
@@ -345,14 +377,20 @@ def _restore(res, tracked) -> None:
     shutil.copytree(tracked, res / "tracked")
 
 
-def _fast_row(label: str, sim, res, frames: int, cpu: float) -> None:
+def _fast_row(label: str, sim, res, frames: int, cpu: float, *, rows=None) -> None:
+    """A row of :func:`fast_accuracy`: the tracking in ``res`` scored; printed, or appended to ``rows`` (its
+    ``line`` and the figures ``mean``, ``p95`` and ``worst``, as :func:`stage.benchmarks.patches.track_row`'s)."""
     from fake_cameras.surface_motion import invented_motion
 
     _, (means, p95s, vols, pooled) = _multiview_scores(sim, res, frames)
     inv = invented_motion(sim.creature, sim.times, res, frames=frames)
-    print(f"  {label}: {pooled[0]:.3f} / {pooled[1]:.3f} voxels (mean / 95th percentile over all vertices and frames), "
-          f"worst frame {max(means):.2f} / {max(p95s):.2f}; volume {min(vols):.3f}..{max(vols):.3f}; invented motion "
-          f"{np.mean(inv):.2f} voxels (worst frame {max(inv):.2f}); {cpu:.2f} CPU s/frame")
+    line = (f"  {label}: {pooled[0]:.3f} / {pooled[1]:.3f} voxels (mean / 95th percentile over all vertices and frames), "
+            f"worst frame {max(means):.2f} / {max(p95s):.2f}; volume {min(vols):.3f}..{max(vols):.3f}; invented motion "
+            f"{np.mean(inv):.2f} voxels (worst frame {max(inv):.2f}); {cpu:.2f} CPU s/frame")
+    if rows is None:
+        print(line, flush=True)
+    else:
+        rows.append({"line": line, "mean": pooled[0], "p95": pooled[1], "worst": (max(means), max(p95s))})
 
 
 def _carved_rounds(sim, res, frames: int, rounds: int = 2) -> None:
@@ -616,13 +654,14 @@ def _timings(F: int) -> None:
 
 def run(args: argparse.Namespace) -> int:
     seeds = seeds_option(getattr(args, "take_seeds", "3"))
+    copies = check_copies(getattr(args, "copies", 0), name="--copies")
     _timings(max(2, int(args.frames)))
     armature_seconds()
     if args.accuracy:
         accuracy()
         real_pipe_accuracy()
         multiview_accuracy()
-        fast_accuracy(seeds=seeds)
+        fast_accuracy(seeds=seeds, copies=copies)
     print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl), "
           "the patches and the summing matrices of the per-round sums (vertex normals, patch centroids and Kabsch), "
           "the prediction's averaging matrix, "

@@ -58,3 +58,114 @@ def test_invalid_input():
     for bad in ("bogus", "biped:10:3", "biped:x:3:16", "biped:0:3:16", "biped:10:3:1", ":10:3:16", ","):
         with pytest.raises(ValueError, match="--takes"):
             take_specs(bad)
+
+
+def _processed_results(root, T=3, V=200):
+    """A results directory of ``T`` surfaces (random vertices, one face each), a spine and a tracking."""
+    from pipeline.results import ply_bytes
+
+    rng = np.random.default_rng(0)
+    (root / "meshes").mkdir(parents=True)
+    verts = rng.normal(scale=100.0, size=(T, V, 3))
+    for t in range(T):
+        (root / "meshes" / f"frame_{t:06d}.ply").write_bytes(ply_bytes(verts[t], np.array([[0, 1, 2]])))
+    (root / "spine.json").write_text('{"spine": 1}')
+    (root / "grid.json").write_text('{"voxel": 2.0}')
+    for folder in ("tracked", "rig"):
+        (root / folder).mkdir()
+        (root / folder / "x.json").write_text("{}")
+    return verts
+
+
+def _surfaces(res):
+    from pipeline.meshio import load_mesh
+
+    return np.stack([load_mesh(p, largest=False)[0] for p in sorted((res / "meshes").glob("frame_*.ply"))])
+
+
+def test_moved_surfaces_are_the_surfaces_moved_by_sigma(tmp_path):
+    """Every surface's every vertex is moved by N(0, sigma) per coordinate (the sample standard deviation within
+    10 % of sigma over 1800 coordinates, the mean within 4 standard errors of 0), seeded (the same copy twice,
+    another seed another copy); the other files are the results' own, tracked/ and rig/ are left out, a copy
+    already there is replaced and the results directory is untouched."""
+    from stage.benchmarks.patches import moved_surfaces
+
+    res = tmp_path / "res"
+    verts = _processed_results(res)
+    before = {p: p.read_bytes() for p in res.rglob("*") if p.is_file()}
+    copy = moved_surfaces(res, tmp_path / "copy", seed=1, sigma=0.01)
+    assert copy == tmp_path / "copy"
+    moved = _surfaces(copy) - verts
+    assert abs(moved.std() / 0.01 - 1) < 0.1 and abs(moved.mean()) < 4 * 0.01 / np.sqrt(moved.size)
+    assert np.array_equal(_surfaces(moved_surfaces(res, tmp_path / "copy", seed=1, sigma=0.01)) - verts, moved)
+    assert not np.allclose(_surfaces(moved_surfaces(res, tmp_path / "other", seed=2, sigma=0.01)) - verts, moved)
+    assert (copy / "spine.json").read_text() == '{"spine": 1}' and (copy / "grid.json").is_file()
+    assert not (copy / "tracked").exists() and not (copy / "rig").exists()
+    assert {p: p.read_bytes() for p in res.rglob("*") if p.is_file()} == before
+
+
+def test_spread_figures_against_a_loop():
+    """Every figure's mean (least..most) over the tracking and its copies, in the row's order."""
+    from stage.benchmarks.patches import spread_figures
+
+    rows = [{"mean": 1.0, "p95": 3.0, "worst": (2.0, 5.0)}, {"mean": 1.5, "p95": 2.5, "worst": (2.25, 6.0)},
+            {"mean": 1.25, "p95": 3.25, "worst": (1.5, 4.0)}]
+    assert spread_figures(rows) == "1.250 (1.000..1.500) / 2.917 (2.500..3.250); 1.92 (1.50..2.25) / 5.00 (4.00..6.00)"
+    assert spread_figures(rows[:1]) == "1.000 (1.000..1.000) / 3.000 (3.000..3.000); 2.00 (2.00..2.00) / 5.00 (5.00..5.00)"
+
+
+def test_copies_rows_track_the_moved_surfaces(tmp_path, monkeypatch, capsys):
+    """`--copies 2`: every take is tracked on itself and on copies 1 and 2 of its surfaces (the tracking sees
+    the moved vertices), and the row under the take's is the spread of the three trackings' figures."""
+    import argparse
+    import pickle
+    from types import SimpleNamespace
+
+    import fake_cameras.surface_motion
+    import pipeline.track
+    import stage.benchmarks.patches as bench
+
+    d = tmp_path / "biped_10_s3_f3"
+    verts = _processed_results(d / "results")
+    (d / "sim.pkl").write_bytes(pickle.dumps(SimpleNamespace(times=np.arange(3) / 10.0, creature=None)))
+    tracked = []
+    monkeypatch.setattr(pipeline.track, "track_results", lambda res, labels=None: tracked.append(_surfaces(res)))
+    # the "error" of a vertex: how far its surfaces are from the take's own, in 0.001 mm
+    monkeypatch.setattr(fake_cameras.surface_motion, "tracking_errors", lambda creature, times, res, frames: (
+        1000 * np.linalg.norm(tracked[-1] - verts, axis=2), None, None))
+    monkeypatch.setattr(bench, "take_dir", lambda root, spec: d)
+    args = argparse.Namespace(root=str(tmp_path), takes="biped:10:3:3", labels=False, grid="", copies=2)
+    assert bench.run(args) == 0
+    assert len(tracked) == 3 and np.array_equal(tracked[0], verts)
+    figures = []
+    for k, surfaces in enumerate(tracked):
+        moved = surfaces - verts
+        assert (k == 0) == (np.abs(moved).max() == 0) and (k == 0 or abs(moved.std() / 0.001 - 1) < 0.1)
+        err = 1000 * np.linalg.norm(moved, axis=2)
+        figures.append({"mean": err.mean(), "p95": np.percentile(err, 95),
+                        "worst": (err.mean(1).max(), np.percentile(err, 95, axis=1).max())})
+    out = capsys.readouterr().out.splitlines()
+    at = next(i for i, line in enumerate(out) if line.startswith("| biped_10_s3_f3 | default |"))
+    assert out[at].startswith("| biped_10_s3_f3 | default | 0.000 / 0.000; 0.00 / 0.00 |")
+    assert out[at + 1] == (f"| biped_10_s3_f3 | default and 2 copies moved by 1 um: mean (least..most) | "
+                           f"{bench.spread_figures(figures)} | | |")
+    assert "(0.000.." in out[at + 1] and not out[at + 1].endswith("(0.000..0.000) | | |")
+
+
+def test_invalid_input_copies():
+    """`--copies` is checked before any take is tracked; moved_surfaces and spread_figures name their parameter."""
+    import argparse
+
+    import pytest
+
+    import stage.benchmarks.patches as bench
+
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="^--copies"):
+            bench.run(argparse.Namespace(root=None, takes="biped:10:3:16", labels=False, grid="", copies=bad))
+    for kw, match in (({"seed": -1}, "^seed"), ({"seed": 1.0}, "^seed"), ({"seed": 1, "sigma": 0}, "^sigma"),
+                      ({"seed": 1, "sigma": float("nan")}, "^sigma"), ({"seed": 1}, "^results")):
+        with pytest.raises(ValueError, match=match):
+            bench.moved_surfaces("no-such-results", "copy", **kw)
+    with pytest.raises(ValueError, match="^rows"):
+        bench.spread_figures([])
