@@ -53,7 +53,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "whose origin is moved by that much")
     p.add_argument("--copies", type=int, default=0, metavar="N",
                    help="every tracking also on N copies of the take's results, every vertex of every surface moved by "
-                   f"N(0, {1000 * COPY_SIGMA:g} um) (a re-run elsewhere differs by about as much), and every figure's "
+                   f"N(0, {1000 * COPY_SIGMA:g} um) (far below a voxel: what moves then is noise), and every figure's "
                    "mean (least..most) over the tracking and its copies printed under its row (default 0)")
 
 

@@ -55,8 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --accuracy: the simulator's seeds of the fast and slow takes (default 3; e.g. 3,4)")
     p.add_argument("--copies", type=int, default=0, metavar="N",
                    help="with --accuracy: every fast and slow take also tracked on N copies of its results, every vertex "
-                   f"of every surface moved by N(0, {1000 * COPY_SIGMA:g} um) (a re-run elsewhere differs by about as "
-                   "much), and every row's figures printed as mean (least..most) over the take and its copies under "
+                   f"of every surface moved by N(0, {1000 * COPY_SIGMA:g} um) (far below a voxel: what moves then is "
+                   "noise), and every row's figures printed as mean (least..most) over the take and its copies under "
                    "it (default 0)")
 
 
