@@ -2,9 +2,9 @@
 
 #: How far (mm, standard deviation per coordinate) a ``--copies`` copy moves every vertex of what it copies (a
 #: tracking for ``stage bench armature``, the surfaces for ``stage bench track`` and ``patches``): far below a
-#: voxel and the reconstruction's own error (a tracking re-run on another machine differs by about as much), so a
-#: figure that changes under it is one draw among several (docs/notes/armature-decisions.md, "How reproducible the armature of a tracking
-#: is"; docs/notes/tracking-decisions.md, "How reproducible the tracking figures are").
+#: voxel (a tracking re-run on another machine differs by about as much), so a figure that changes under it is
+#: one draw among several (docs/notes/armature-decisions.md, "How reproducible the armature of a tracking is";
+#: docs/notes/tracking-decisions.md, "How reproducible the tracking figures are").
 COPY_SIGMA = 0.001
 
 
