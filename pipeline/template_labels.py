@@ -56,12 +56,14 @@ import numpy as np
 from pipeline.armature_limbs import BODY, check_limbs
 from pipeline.mesh_primitives import check_mesh, check_points, edge_components, rigid_fit
 
-__all__ = ["BODY", "template_labels", "axis_labels", "nearest_limb", "proximal_half"]
+__all__ = ["BODY", "template_labels", "axis_labels", "nearest_limb", "proximal_half", "root_tubes"]
 
 
 _KEEP = 0.8  # the nearest pairs a rigid fit keeps (the rest: where the piece's surface moved apart from it)
 _ITERATIONS = 30  # ICP rounds a frame at most
 _RAYS = 16  # directions of every section (a hull's section has about as many sides as twice the cameras)
+_COS45 = np.sqrt(0.5)  # a surface steeper than 45 degrees to a tube's radial direction turns across the tube; a root's
+# axis further than that from its limb's runs across the limb
 
 
 def template_labels(spine, vertices, faces, *, reference: int | None = None, surfaces=None) -> np.ndarray:
@@ -253,6 +255,110 @@ def proximal_half(vertices, labels, limb: int) -> np.ndarray:
         return idx
     gap = cKDTree(V[lab == BODY]).query(V[idx])[0]
     return idx[gap <= np.median(gap)]
+
+
+def root_tubes(vertices, faces, labels) -> np.ndarray:
+    """Body vertices on a limb's root, where the surface merged the limb into the body, given to the limb.
+
+    A limb's root is its vertices within two of its radii of the body (its radius: their median distance to
+    the principal axis of all its vertices); its tube is the principal axis of the root, pointing from the
+    limb into the body, the tube's radius the root's median distance to that axis; a root whose axis lies more
+    than 45 degrees from the limb's is about as wide as it is long and has no tube. A body vertex goes to the
+    limb when its projection on the axis lies past the root's centroid and no more than one tube radius past
+    the root's farthest vertex, it lies within the tube's radius and one mesh edge (the median edge) of the
+    axis, and its normal is within 45 degrees of pointing away from the axis (the limb's own surface; a
+    surface turning across the tube is the body's). In two tubes it goes to the one it is relatively nearer
+    the axis of (distance over radius); then every limb keeps its largest connected piece of the mesh.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float array_like
+        The template (finite).
+    faces : (F, 3) int array_like
+        Its triangles, all wound the same way (a closed surface: its normals are turned out of it, whichever way
+        the triangles wind).
+    labels : (V,) int array_like
+        Limb of every vertex (0, 1, ...) or :data:`BODY`.
+
+    Returns
+    -------
+    (V,) int64 ndarray
+        The labels with those body vertices given to their limb. A limb whose root has fewer than 3 vertices
+        (or no body) has no tube either.
+
+    Raises
+    ------
+    ValueError
+        Naming the parameter: a mesh that is not (V, 3) / (F, 3) or indexes past its vertices, labels that
+        are not an integer >= :data:`BODY` for every vertex.
+    """
+    import trimesh
+
+    from pipeline.mesh_primitives import vertex_normals
+
+    V, F = check_mesh(vertices, faces, min_vertices=1, min_faces=1)
+    lab = check_limbs(labels, len(V), name="labels").astype(np.int64)
+    K = int(lab.max(initial=BODY)) + 1
+    mesh = trimesh.Trimesh(V, F, process=False)
+    step = float(np.median(mesh.edges_unique_length))
+    normals = vertex_normals(V, F) * _outward(V, F)
+    relative = np.full((len(V), max(K, 1)), np.inf)
+    for k in range(K):
+        tube = _root_tube(V, lab, k)
+        if tube is not None:
+            relative[:, k] = _in_tube(V, normals, lab == BODY, *tube, step)
+    give = np.isfinite(relative).any(1)
+    out = lab.copy()
+    out[give] = relative[give].argmin(1)
+    return _largest_pieces(out, mesh.edges_unique, K)
+
+
+def _root_tube(V: np.ndarray, labels: np.ndarray, k: int):
+    """Limb ``k``'s root tube: (the root's centroid, the unit axis into the body, the radius, how far along the
+    axis the root reaches), or None when the root has fewer than 3 vertices or its axis lies more than 45 degrees
+    from the limb's."""
+    from scipy.spatial import cKDTree
+
+    idx, body = np.flatnonzero(labels == k), labels == BODY
+    if len(idx) < 3 or not body.any():
+        return None
+    gap = cKDTree(V[body]).query(V[idx])[0]
+    centre, along = _principal_axis(V[idx])
+    radius = np.median(np.linalg.norm(np.cross(V[idx] - centre, along), axis=1))
+    root = V[idx[gap <= 2 * radius]]
+    if len(root) < 3:
+        return None
+    centre, axis = _principal_axis(root)
+    if abs(axis @ along) < _COS45:  # a root about as wide as it is long: its axis is no direction of the limb's
+        return None
+    if (V[idx].mean(0) - centre) @ axis > 0:  # into the body: away from the limb
+        axis = -axis
+    radius = float(np.median(np.linalg.norm(np.cross(root - centre, axis), axis=1)))
+    return centre, axis, radius, float(((root - centre) @ axis).max())
+
+
+def _in_tube(V: np.ndarray, normals: np.ndarray, body: np.ndarray, centre: np.ndarray, axis: np.ndarray,
+             radius: float, reach: float, step: float) -> np.ndarray:
+    """(V,): every body vertex's distance to the tube's axis over its radius where :func:`root_tubes` puts it in
+    the tube, inf elsewhere."""
+    along = (V - centre) @ axis
+    radial = (V - centre) - along[:, None] * axis
+    d = np.linalg.norm(radial, axis=1)
+    facing = (d > 0) & (np.einsum("ij,ij->i", normals, radial) >= _COS45 * d)
+    inside = body & (along > 0) & (along <= reach + radius) & (d <= radius + step) & facing
+    return np.where(inside, d / max(radius, 1e-12), np.inf)
+
+
+def _outward(V: np.ndarray, F: np.ndarray) -> float:
+    """1.0 when the triangles wind with their normals out of the closed surface (its signed volume positive), else
+    -1.0."""
+    return 1.0 if np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() >= 0 else -1.0
+
+
+def _principal_axis(X: np.ndarray):
+    """(centroid, unit direction of largest spread) of the points ``X``."""
+    centre = X.mean(0)
+    return centre, np.linalg.svd(X - centre, full_matrices=False)[2][0]
 
 
 def _is_int(x) -> bool:

@@ -173,6 +173,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         chain = _limb_chain(root, limb_labels, refi, len(frames))
         if chain is not None and surfaces is not None:  # (labels="spine": a limb the spine has no axis for)
             chain = _unclaimed_limbs(vs, faces, *chain, surfaces, reference=refi)
+            chain = (_rooted(vs[refi], faces, chain[0]), chain[1])
     first = _spine_rig(root, frames, vs[refi], faces, refi) if spine and model is None else None
     tracker = TemplateTracker(vs[refi], faces, gamma=report["gamma"], gate=report["gate_mm"], prior=report["prior"],
                               rounds=ARMATURE_FIT_ROUNDS, patch_labels=patch_labels)
@@ -402,6 +403,17 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
         out[mine] = len(axes)
         axes.append(np.stack([root, far]))
     return out, axes
+
+
+def _rooted(template: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """The armature's labels with the limbs' roots the body holds given back
+    (:func:`pipeline.template_labels.root_tubes`), unless the body would keep too few vertices to measure the cuts'
+    noise on (:func:`_limb_chain`)."""
+    from pipeline.limb_segments import MIN_VERTICES
+    from pipeline.template_labels import root_tubes
+
+    out = root_tubes(template, faces, labels)
+    return out if (out == -1).sum() >= 2 * MIN_VERTICES else labels
 
 
 def _claimed(vs: np.ndarray, labels: np.ndarray, body: np.ndarray, trees: list, reference: int,

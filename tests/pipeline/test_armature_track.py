@@ -336,8 +336,9 @@ def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armatur
 
 def test_armature_round_from_the_labels_and_the_spines_limb_axes(tmp_path, monkeypatch):
     """``parts="limbs"`` with ``labels="spine"``: the round's armature is cut by ``limb_segments`` from the labels with
-    every frame's surface (``template_labels(surfaces=)``) along the spine's limb axes, the body one part hung above
-    every limb's chain, every vertex on its own part; no motion segmentation."""
+    every frame's surface (``template_labels(surfaces=)``, the limbs' roots given back by ``root_tubes``) along the
+    spine's limb axes, the body one part hung above every limb's chain, every vertex on its own part; no motion
+    segmentation."""
     import pipeline.armature as armature
     import pipeline.limb_segments as limb_segments
     import pipeline.track as track
@@ -345,7 +346,7 @@ def test_armature_round_from_the_labels_and_the_spines_limb_axes(tmp_path, monke
     from pipeline.armature_files import load_sequence, tracked_meshes
     from pipeline.meshio import load_mesh
     from pipeline.spine_format import read_spine
-    from pipeline.template_labels import template_labels
+    from pipeline.template_labels import root_tubes, template_labels
     from tests.pipeline.tracking_takes import creature_spine_results
 
     creature_spine_results(tmp_path)
@@ -370,7 +371,8 @@ def test_armature_round_from_the_labels_and_the_spines_limb_axes(tmp_path, monke
     ref = rep["reference_frame"]
     surfaces = [load_mesh(tmp_path / "meshes" / f"frame_{k:06d}.ply", largest=False)[0] for k in range(3)]
     (tracked, labels, axes), kw = cut[0]
-    assert np.array_equal(labels, template_labels(tmp_path, vs[ref], faces, reference=ref, surfaces=surfaces))
+    assert np.array_equal(labels, root_tubes(vs[ref], faces, template_labels(tmp_path, vs[ref], faces, reference=ref,
+                                                                        surfaces=surfaces)))
     spine = read_spine(tmp_path / "spine.json")
     assert len(axes) == len(spine.limb_ids) and all(np.allclose(a, spine.axes[lid][ref]) for a, lid in zip(axes, spine.limb_ids))
     model = models[0][0]

@@ -182,3 +182,117 @@ def test_the_roots_circle_and_free_side():
         slow = max(next((n for n in range(16) if not x[(i + n) % 16]), 16) for i in range(16))
         assert _longest_run(x) == slow
     assert _longest_run(np.zeros(16, bool)) == 0 and _longest_run(np.ones(16, bool)) == 16
+
+
+def _slow_root_tubes(V, F, labels):
+    """:func:`pipeline.template_labels.root_tubes` as a loop over every limb and vertex (principal axes from the
+    covariance's eigenvectors, distances one point at a time, the pieces by a walk over the edges)."""
+    from pipeline.mesh_primitives import vertex_normals
+
+    edges = sorted({tuple(sorted((int(a), int(b)))) for f in F for a, b in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0]))})
+    step = np.median([np.linalg.norm(V[a] - V[b]) for a, b in edges])
+    signed = sum(V[a] @ np.cross(V[b], V[c]) for a, b, c in F)
+    N = vertex_normals(V, F) * (1.0 if signed >= 0 else -1.0)
+    body = [i for i in range(len(V)) if labels[i] == -1]
+
+    def axis_of(X):
+        c = X.mean(0)
+        w, U = np.linalg.eigh((X - c).T @ (X - c))
+        return c, U[:, np.argmax(w)]
+
+    def radial(x, c, a):
+        return (x - c) - ((x - c) @ a) * a
+
+    best = {}
+    for k in range(int(labels.max()) + 1):
+        limb = [i for i in range(len(V)) if labels[i] == k]
+        if len(limb) < 3 or not body:
+            continue
+        c, a0 = axis_of(V[limb])
+        r0 = np.median([np.linalg.norm(radial(V[i], c, a0)) for i in limb])
+        root = [i for i in limb if np.linalg.norm(V[body] - V[i], axis=1).min() <= 2 * r0]
+        if len(root) < 3:
+            continue
+        c, a = axis_of(V[root])
+        if np.degrees(np.arccos(min(abs(a @ a0), 1.0))) > 45:
+            continue
+        if (V[limb].mean(0) - c) @ a > 0:
+            a = -a
+        r = np.median([np.linalg.norm(radial(V[i], c, a)) for i in root])
+        reach = max((V[i] - c) @ a for i in root)
+        for i in body:
+            u = radial(V[i], c, a)
+            d = np.linalg.norm(u)
+            if 0 < (V[i] - c) @ a <= reach + r and d <= r + step and d > 0 and N[i] @ u >= np.sqrt(0.5) * d \
+                    and d / r < best.get(i, (np.inf, k))[0]:
+                best[i] = (d / r, k)
+    out = labels.copy()
+    for i, (_, k) in best.items():
+        out[i] = k
+    return _slow_largest_pieces(out, edges, int(labels.max()) + 1)
+
+
+def _slow_largest_pieces(out, edges, K):
+    """Every limb's vertices outside its largest piece (a walk over the edges) given to the body."""
+    near = {i: [] for i in range(len(out))}
+    for a, b in edges:
+        near[a].append(b)
+        near[b].append(a)
+    final = out.copy()
+    for k in range(K):
+        pieces, seen = [], set()
+        for s in np.flatnonzero(out == k):
+            if s in seen:
+                continue
+            piece, todo = [], [s]
+            seen.add(s)
+            while todo:
+                i = todo.pop()
+                piece.append(i)
+                for j in near[i]:
+                    if out[j] == k and j not in seen:
+                        seen.add(j)
+                        todo.append(j)
+            pieces.append(piece)
+        for piece in pieces:
+            if len(piece) < max(map(len, pieces)):
+                final[piece] = -1
+    return final
+
+
+@pytest.mark.parametrize("name", ["biped", "quadruped"])
+def test_root_tubes_against_a_loop(name):
+    """The limbs' root tubes give back body vertices as a loop over every limb and vertex does (exact), on the
+    creature's surface with its own labels and with every limb vertex within two voxels of the body given to
+    the body (a root the surface merged into it); there they give back at least 10 vertices and only limb
+    vertices; the same whichever way the triangles wind; a limb's vertex is never taken."""
+    from scipy.spatial import cKDTree
+
+    from pipeline.template_labels import BODY, root_tubes
+
+    _, V, F, true, _ = _creature_template(name, voxel=10.0)
+    gap = cKDTree(V[true == BODY]).query(V)[0]
+    merged = np.where((true >= 0) & (gap <= 20.0), BODY, true)
+    for labels in (true, merged):
+        got = root_tubes(V, F, labels)
+        np.testing.assert_array_equal(got, _slow_root_tubes(V, F, labels))
+        np.testing.assert_array_equal(root_tubes(V, F[:, ::-1], labels), got)
+        assert np.array_equal(got[labels >= 0], labels[labels >= 0])
+    given = got != merged
+    assert given.sum() >= 10 and np.array_equal(got[given], true[given])
+
+
+def test_invalid_input_of_root_tubes():
+    from pipeline.template_labels import root_tubes
+
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    labels = np.array([-1, -1, 0, 0])
+    assert root_tubes(V, F, labels).tolist() == labels.tolist()  # a limb of 2 vertices has no tube
+    with pytest.raises(ValueError, match="vertices"):
+        root_tubes(V[:, :2], F, labels)
+    with pytest.raises(ValueError, match="faces"):
+        root_tubes(V, F + 4, labels)
+    for bad in (labels[:3], labels - 1, labels.astype(float)):
+        with pytest.raises(ValueError, match="labels"):
+            root_tubes(V, F, bad)
