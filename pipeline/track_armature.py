@@ -126,7 +126,8 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         its part (:func:`pipeline.armature_track.segment_armature`). With ``labels="spine"`` the armature's
         labels also split the body by its motion on every frame's surface (``template_labels(surfaces=)``), and
         a piece of the body that the body's motion carries off the surfaces becomes a limb of its own (a limb
-        the spine has no axis for, :func:`_unclaimed_limbs`). Without labels or a usable spine one line says so
+        the spine has no axis for, :func:`_unclaimed_limbs`); then every limb takes back the body's vertices on
+        its root tube (:func:`pipeline.template_labels.root_tubes`). Without labels or a usable spine one line says so
         and the parts come from the motion. Only as good as the labels' body: a limb the labels give the body
         moves with it (docs/tracking.md, "The round's armature from the labels").
 
