@@ -227,6 +227,7 @@ def simulate_take(
     distortion: bool = True,
     workers: int | None = None,
     travel: tuple[float, float] | None = None,
+    start: float = 0.0,
 ) -> SimulatedTake:
     """Render a take of a simulated subject with ground truth.
 
@@ -236,7 +237,7 @@ def simulate_take(
     n_cameras : int, optional
         Cameras of the dome, 4..24 (ignored when ``calibration`` is given).
     frames : int, optional
-        Number of frames (1..10000); frame ``f`` shows time ``f / fps``.
+        Number of frames (1..10000); frame ``f`` shows time ``start + f / fps``.
     fps : float, optional
     size : (int, int), optional
         Image (width, height) (ignored when ``calibration`` is given).
@@ -266,6 +267,14 @@ def simulate_take(
         The creature walks across the floor by ``(dx, dy)`` mm over the take, at constant
         speed, its path centred on the volume's centre (a subject that leaves every pixel
         for a while, as a plate from the take needs).
+    start : float, optional
+        Time of the first frame, seconds, >= 0: the take starts ``start`` seconds into the
+        creature's motion, so its frame 0 shows the pose the default take (``start=0``) shows at
+        time ``start``, and ``SimulatedTake.times`` are ``start + f / fps`` (the scores evaluate the
+        creature at them). A time, not a phase: a creature's limbs and body move at different
+        periods (the biped's limbs swing at 0.8 Hz, a quarter cycle is 0.3125 s; its body sways
+        over 4 s). ``tuck`` and ``spur`` are times of the same clock; the texture stays painted on
+        the body as at time 0. Default 0: the takes and their cache keys are those made without it.
 
     Returns
     -------
@@ -277,11 +286,16 @@ def simulate_take(
         raise ValueError(f"frames must be an integer within 1..10000, got {frames!r}")
     fps_f = check_fps(fps)
     check_noise(noise_sigma)
+    if isinstance(start, bool) or not isinstance(start, (int, float, np.integer, np.floating)) or not (
+            math.isfinite(start) and start >= 0):
+        raise ValueError(f"start must be a finite number of seconds >= 0, got {start!r}")
     vol, calib, backdrop = studio(
         volume=volume, n_cameras=n_cameras, size=size, seed=seed, distortion=distortion,
         calibration=calibration, backdrop=backdrop,
     )
     times = np.arange(int(frames), dtype=np.float64) / fps_f
+    if start:
+        times = float(start) + times
     creature, poses = _creature_poses(subject, times, vol, scale=scale, seed=seed, tuck=tuck, spur=spur, travel=travel)
     limb_names = tuple(creature.names) if creature is not None else ()
     params = dict(
@@ -296,6 +310,7 @@ def simulate_take(
         spur=list(creature.spur) if creature is not None and creature.spur else None,
         volume={"center": list(vol.center), "size": list(vol.size)},
         **({"travel": [float(v) for v in travel]} if travel is not None else {}),
+        **({"start": float(start)} if start else {}),
     )
     key_src = json.dumps(
         {"v": RENDER_VERSION, "params": params, "calibration": calib.to_dict(), "backdrop": repr(backdrop),

@@ -129,6 +129,26 @@ def test_empty_subject_and_hard_cases(tmp_path):
     assert all(np.array_equal(g.rest, p.rest) for g, p in zip(load_ground_truth(tmp_path / "h.npz")["poses"], hard.poses))
 
 
+def test_start_shows_the_default_takes_later_poses():
+    """A take started ``start`` seconds in shows at frame 0 exactly the pose (capsules, rest motions, tips,
+    axes, silhouettes) the default take shows at that time; the default take's times and parameters carry no
+    offset (its cache key is the one made without it)."""
+    kw = dict(n_cameras=4, size=(64, 48), seed=3, fps=10.0, cache=False)
+    default = simulate_take("biped", frames=3, **kw)
+    assert "start" not in default.params and np.array_equal(default.times, np.arange(3) / 10.0)
+    later = simulate_take("biped", frames=1, start=0.2, **kw)
+    assert later.params["start"] == 0.2 and later.times[0] == default.times[2] == 0.2
+    a, b = later.poses[0], default.poses[2]
+    for k in ("p0", "p1", "r0", "r1", "limb", "rest"):
+        assert np.array_equal(getattr(a, k), getattr(b, k)), k
+    assert all(np.array_equal(a.tips[n], b.tips[n]) and np.array_equal(a.axes[n], b.axes[n]) for n in later.limb_names)
+    assert np.array_equal(later.masks[0], default.masks[2]) and np.array_equal(later.labels[0], default.labels[2])
+    quarter = simulate_take("biped", frames=1, start=0.3125, **kw)  # between frames: the creature's own clock
+    q, ref = quarter.poses[0], quarter.creature.pose(0.3125)
+    assert np.array_equal(q.p0, ref.p0) and np.array_equal(q.p1, ref.p1) and np.array_equal(q.rest, ref.rest)
+    assert not np.allclose(q.p1, default.poses[0].p1, atol=1.0)
+
+
 def test_invalid_input():
     with pytest.raises(ValueError, match="subject"):
         simulate_take("dragon")
@@ -144,6 +164,9 @@ def test_invalid_input():
         simulate_take(noise_sigma=-2)
     with pytest.raises(ValueError, match="calibration"):
         simulate_take(calibration="dome")
+    for bad in (-0.1, float("nan"), float("inf"), "1", True):
+        with pytest.raises(ValueError, match="start"):
+            simulate_take(start=bad)
     with pytest.raises(ValueError, match="take"):
         write_ground_truth("take", "x.npz")
     with pytest.raises(FileNotFoundError):
