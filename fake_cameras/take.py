@@ -286,16 +286,14 @@ def simulate_take(
         raise ValueError(f"frames must be an integer within 1..10000, got {frames!r}")
     fps_f = check_fps(fps)
     check_noise(noise_sigma)
-    if isinstance(start, bool) or not isinstance(start, (int, float, np.integer, np.floating)) or not (
-            math.isfinite(start) and start >= 0):
-        raise ValueError(f"start must be a finite number of seconds >= 0, got {start!r}")
+    start = _check_start(start)
     vol, calib, backdrop = studio(
         volume=volume, n_cameras=n_cameras, size=size, seed=seed, distortion=distortion,
         calibration=calibration, backdrop=backdrop,
     )
     times = np.arange(int(frames), dtype=np.float64) / fps_f
     if start:
-        times = float(start) + times
+        times = start + times
     creature, poses = _creature_poses(subject, times, vol, scale=scale, seed=seed, tuck=tuck, spur=spur, travel=travel)
     limb_names = tuple(creature.names) if creature is not None else ()
     params = dict(
@@ -310,7 +308,7 @@ def simulate_take(
         spur=list(creature.spur) if creature is not None and creature.spur else None,
         volume={"center": list(vol.center), "size": list(vol.size)},
         **({"travel": [float(v) for v in travel]} if travel is not None else {}),
-        **({"start": float(start)} if start else {}),
+        **({"start": start} if start else {}),
     )
     key_src = json.dumps(
         {"v": RENDER_VERSION, "params": params, "calibration": calib.to_dict(), "backdrop": repr(backdrop),
@@ -339,6 +337,14 @@ def simulate_take(
         volume=vol,
         params=params,
     )
+
+
+def _check_start(start) -> float:
+    """``start`` as a float: a finite number of seconds >= 0."""
+    if isinstance(start, bool) or not isinstance(start, (int, float, np.integer, np.floating)) or not (
+            math.isfinite(start) and start >= 0):
+        raise ValueError(f"start must be a finite number of seconds >= 0, got {start!r}")
+    return float(start)
 
 
 def _creature_poses(subject: str, times: np.ndarray, vol: Volume, *, scale, seed, tuck, spur, travel):
