@@ -119,7 +119,8 @@ def moved_surfaces(results, dst, *, seed: int, sigma: float = COPY_SIGMA) -> Pat
     results : path
         A ``stage process`` results directory.
     dst : path
-        Where the copy goes (replaced when it is there).
+        Where the copy goes (replaced when it is there); neither ``results`` itself nor inside it, nor a directory
+        that holds ``results``.
     seed : int
         The draws' seed (>= 0): the same seed moves every vertex the same way.
     sigma : float
@@ -129,6 +130,13 @@ def moved_surfaces(results, dst, *, seed: int, sigma: float = COPY_SIGMA) -> Pat
     -------
     Path
         ``dst``.
+
+    Raises
+    ------
+    ValueError
+        Naming ``seed`` or ``sigma`` when out of range, ``results`` when it is not a processed results directory,
+        and ``dst`` when it is ``results``, lies inside it or holds it (replacing it would delete the results);
+        nothing is touched then.
     """
     from pipeline.meshio import load_mesh
     from pipeline.results import atomic_write_bytes, ply_bytes
@@ -140,6 +148,9 @@ def moved_surfaces(results, dst, *, seed: int, sigma: float = COPY_SIGMA) -> Pat
     results, dst = Path(results), Path(dst)
     if not (results / "meshes").is_dir():
         raise ValueError(f"results must be a processed results directory (with meshes/), got {str(results)!r}")
+    src, out = results.resolve(), dst.resolve()
+    if out == src or src in out.parents or out in src.parents:
+        raise ValueError(f"dst must lie outside results and not hold it, got {str(dst)!r} for {str(results)!r}")
     shutil.rmtree(dst, ignore_errors=True)
     shutil.copytree(results, dst, ignore=shutil.ignore_patterns("tracked", "rig"))
     rng = np.random.default_rng(int(seed))

@@ -169,3 +169,20 @@ def test_invalid_input_copies():
             bench.moved_surfaces("no-such-results", "copy", **kw)
     with pytest.raises(ValueError, match="^rows"):
         bench.spread_figures([])
+
+
+def test_moved_surfaces_refuse_a_copy_over_its_results(tmp_path):
+    """A ``dst`` that is ``results`` (also by another spelling), lies inside it or holds it is refused, naming
+    ``dst``, before anything is written or removed: the results directory is the same file by file afterwards."""
+    import pytest
+
+    from stage.benchmarks.patches import moved_surfaces
+
+    res = tmp_path / "takes" / "res"
+    _processed_results(res)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    for dst in (res, res / ".." / "res", res / "meshes", res / "copy", res.parent, tmp_path):
+        with pytest.raises(ValueError, match="^dst"):
+            moved_surfaces(res, dst, seed=1)
+        assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+    assert not (res / "copy").exists()
