@@ -1,4 +1,12 @@
-"""Benchmarks run by ``stage bench NAME``; one module per benchmark."""
+"""Benchmarks run by ``stage bench NAME``; one module per benchmark, and here the pieces several of them share."""
+
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
 
 #: How far (mm, standard deviation per coordinate) a ``--copies`` copy moves every vertex of what it copies (a
 #: tracking for ``stage bench armature``, the surfaces for ``stage bench track`` and ``patches``): far below a
@@ -13,6 +21,108 @@ def check_copies(copies, *, name: str = "copies") -> int:
     if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
         raise ValueError(f"{name} must be an integer >= 0, got {copies!r}")
     return copies
+
+
+def _check_seed(seed) -> int:
+    """A draws' seed (an integer >= 0, numpy's too, not a bool), or a ValueError naming ``seed``."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    return int(seed)
+
+
+def check_sigma(sigma, *, name: str = "sigma") -> float:
+    """How far a copy moves every coordinate (mm, a number > 0, not a bool), or a ValueError naming ``name``."""
+    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not (math.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"{name} must be a number > 0 (mm), got {sigma!r}")
+    return sigma
+
+
+def move_meshes(paths, *, seed: int, sigma: float = COPY_SIGMA) -> None:
+    """Move every vertex of the PLY meshes ``paths`` by N(0, ``sigma``) mm per coordinate, in place.
+
+    The draws come from ``numpy.random.default_rng(seed)``, mesh after mesh in the order of ``paths``: the same
+    seed and paths move every vertex the same way. Every mesh is rewritten whole (its faces as they were), each
+    write atomic.
+
+    Parameters
+    ----------
+    paths : iterable of path
+        The meshes, in the order they draw.
+    seed : int
+        The draws' seed (>= 0).
+    sigma : float
+        Standard deviation of every coordinate's move, mm (> 0).
+
+    Raises
+    ------
+    ValueError
+        Naming ``seed`` or ``sigma`` when out of range, before any mesh is read.
+    """
+    from pipeline.meshio import load_mesh
+    from pipeline.results import atomic_write_bytes, ply_bytes
+
+    rng = np.random.default_rng(_check_seed(seed))
+    check_sigma(sigma)
+    for path in paths:
+        v, f = load_mesh(path, largest=False)
+        atomic_write_bytes(path, ply_bytes(v + rng.normal(scale=sigma, size=v.shape), f))
+
+
+def moved_surfaces(results, dst, *, seed: int, sigma: float = COPY_SIGMA) -> Path:
+    """A copy of a processed results directory whose surfaces are moved by round-off-sized amounts.
+
+    ``results`` is copied to ``dst`` without ``tracked/`` and ``rig/``, and every vertex of every surface
+    (``meshes/frame_NNNNNN.ply``: the data the tracking tracks, and its template) is moved by N(0, ``sigma``) mm
+    per coordinate, drawn by ``numpy.random.default_rng(seed)`` surface after surface in frame order
+    (:func:`move_meshes`). The spine, the grid and the take the colour tracks read stay the take's own.
+
+    Parameters
+    ----------
+    results : path
+        A ``stage process`` results directory.
+    dst : path
+        Where the copy goes (replaced when it is there); neither ``results`` itself nor inside it, nor a directory
+        that holds ``results``.
+    seed : int
+        The draws' seed (>= 0): the same seed moves every vertex the same way.
+    sigma : float
+        Standard deviation of every coordinate's move, mm (> 0).
+
+    Returns
+    -------
+    Path
+        ``dst``.
+
+    Raises
+    ------
+    ValueError
+        Naming ``seed`` or ``sigma`` when out of range, ``results`` when it is not a processed results directory,
+        and ``dst`` when it is ``results``, lies inside it or holds it (replacing it would delete the results);
+        nothing is touched then.
+    """
+    _check_seed(seed)
+    check_sigma(sigma)
+    results, dst = Path(results), Path(dst)
+    if not (results / "meshes").is_dir():
+        raise ValueError(f"results must be a processed results directory (with meshes/), got {str(results)!r}")
+    src, out = results.resolve(), dst.resolve()
+    if out == src or src in out.parents or out in src.parents:
+        raise ValueError(f"dst must lie outside results and not hold it, got {str(dst)!r} for {str(results)!r}")
+    shutil.rmtree(dst, ignore_errors=True)
+    shutil.copytree(results, dst, ignore=shutil.ignore_patterns("tracked", "rig"))
+    move_meshes(sorted((dst / "meshes").glob("frame_*.ply")), seed=seed, sigma=sigma)
+    return dst
+
+
+def spread_figures(rows: list[dict]) -> str:
+    """A tracking's four figures over itself and its moved copies (``rows``: :func:`stage.benchmarks.patches.track_row`'s dicts, the
+    tracking's first), each as mean (least..most): "mean / 95th percentile; worst frame's mean / 95th
+    percentile"."""
+    if not rows:
+        raise ValueError("rows must hold at least one tracking's figures")
+    figures = np.array([[r["mean"], r["p95"], *r["worst"]] for r in rows], dtype=np.float64)
+    cells = [f"{f.mean():.{d}f} ({f.min():.{d}f}..{f.max():.{d}f})" for f, d in zip(figures.T, (3, 3, 2, 2))]
+    return f"{cells[0]} / {cells[1]}; {cells[2]} / {cells[3]}"
 
 
 def seeds_option(text: str, option: str = "--take-seeds") -> list[int]:

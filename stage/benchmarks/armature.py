@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stage.benchmarks import COPY_SIGMA, check_copies, seeds_option
+from stage.benchmarks import COPY_SIGMA, check_copies, check_sigma, move_meshes, seeds_option
 
 NAME = "armature"
 ALIASES = ("rig",)  # the old name, kept for one release
@@ -563,19 +563,15 @@ def copies_scores(sim, res, rig, *, copies: int, parts: str = "motion", sigma: f
 
     from pipeline.armature_files import armature_results, load_sequence, tracked_meshes
     from pipeline.armature_score import articulation_scores
-    from pipeline.meshio import load_mesh
-    from pipeline.results import atomic_write_bytes, ply_bytes
 
     check_copies(copies)
-    if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"sigma must be a number > 0 (mm), got {sigma!r}")
+    check_sigma(sigma)
     if parts not in ("motion", "limbs"):
         raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")
     res = Path(res)
     reference = int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"])
     out = []
     for seed in range(1, copies + 1):
-        rng = np.random.default_rng(seed)
         with tempfile.TemporaryDirectory(prefix="bench-rig-copy-") as tmp:
             copy = Path(tmp) / "results"
             copy.mkdir()
@@ -583,9 +579,7 @@ def copies_scores(sim, res, rig, *, copies: int, parts: str = "motion", sigma: f
                 if entry.name not in ("tracked", "rig"):
                     (copy / entry.name).symlink_to(entry.resolve())
             shutil.copytree(res / "tracked", copy / "tracked")
-            for path in sorted((copy / "tracked").glob("*.ply")):
-                v, f = load_mesh(path, largest=False)
-                atomic_write_bytes(path, ply_bytes(v + rng.normal(scale=sigma, size=v.shape), f))
+            move_meshes(sorted((copy / "tracked").glob("*.ply")), seed=seed, sigma=sigma)
             moved = armature_results(copy, parts="limbs") if parts == "limbs" else armature_results(copy)
             V, F, _ = load_sequence(tracked_meshes(copy))
         tr = _truth_take(sim, moved, V, F, reference)

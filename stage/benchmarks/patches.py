@@ -13,9 +13,10 @@ frame.
 followed the surface: the cells of a grid of the patch size whose origin is the template's lowest corner moved
 by that many cells along every axis (:func:`grid_patches`); how much the figures move with the offset is what
 the patches of :func:`pipeline.tracking_patches.surface_patches` no longer depend on. ``--copies N`` tracks
-every take also on N copies of its results whose surfaces are moved by 0.001 mm (:func:`moved_surfaces`) and
-prints, under the take's row, every figure's mean (least..most) over the take and its copies
-(:func:`spread_figures`): how far the figure moves when nothing but round-off does.
+every take also on N copies of its results whose surfaces are moved by 0.001 mm
+(:func:`stage.benchmarks.moved_surfaces`) and prints, under the take's row, every figure's mean (least..most)
+over the take and its copies (:func:`stage.benchmarks.spread_figures`): how far the figure moves when nothing
+but round-off does.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stage.benchmarks import COPY_SIGMA, check_copies
+from stage.benchmarks import COPY_SIGMA, check_copies, moved_surfaces, spread_figures
 from stage.benchmarks.labels import take_dir, take_specs, takes_root
 
 NAME = "patches"
@@ -106,63 +107,9 @@ def _patches(offset: float | None, counts: list):
         tracking.surface_patches = own
 
 
-def moved_surfaces(results, dst, *, seed: int, sigma: float = COPY_SIGMA) -> Path:
-    """A copy of a processed results directory whose surfaces are moved by round-off-sized amounts.
-
-    ``results`` is copied to ``dst`` without ``tracked/`` and ``rig/``, and every vertex of every surface
-    (``meshes/frame_NNNNNN.ply``: the data the tracking tracks, and its template) is moved by N(0, ``sigma``) mm
-    per coordinate, drawn by ``numpy.random.default_rng(seed)`` surface after surface in frame order. The spine,
-    the grid and the take the colour tracks read stay the take's own.
-
-    Parameters
-    ----------
-    results : path
-        A ``stage process`` results directory.
-    dst : path
-        Where the copy goes (replaced when it is there); neither ``results`` itself nor inside it, nor a directory
-        that holds ``results``.
-    seed : int
-        The draws' seed (>= 0): the same seed moves every vertex the same way.
-    sigma : float
-        Standard deviation of every coordinate's move, mm (> 0).
-
-    Returns
-    -------
-    Path
-        ``dst``.
-
-    Raises
-    ------
-    ValueError
-        Naming ``seed`` or ``sigma`` when out of range, ``results`` when it is not a processed results directory,
-        and ``dst`` when it is ``results``, lies inside it or holds it (replacing it would delete the results);
-        nothing is touched then.
-    """
-    from pipeline.meshio import load_mesh
-    from pipeline.results import atomic_write_bytes, ply_bytes
-
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
-    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not (math.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"sigma must be a number > 0 (mm), got {sigma!r}")
-    results, dst = Path(results), Path(dst)
-    if not (results / "meshes").is_dir():
-        raise ValueError(f"results must be a processed results directory (with meshes/), got {str(results)!r}")
-    src, out = results.resolve(), dst.resolve()
-    if out == src or src in out.parents or out in src.parents:
-        raise ValueError(f"dst must lie outside results and not hold it, got {str(dst)!r} for {str(results)!r}")
-    shutil.rmtree(dst, ignore_errors=True)
-    shutil.copytree(results, dst, ignore=shutil.ignore_patterns("tracked", "rig"))
-    rng = np.random.default_rng(int(seed))
-    for path in sorted((dst / "meshes").glob("frame_*.ply")):
-        v, f = load_mesh(path, largest=False)
-        atomic_write_bytes(path, ply_bytes(v + rng.normal(scale=sigma, size=v.shape), f))
-    return dst
-
-
 def track_row(d: Path, tmp: Path, *, labels=None, offset: float | None = None, copy: int = 0) -> dict:
     """Track a copy of take directory ``d``'s results (``copy`` k > 0: with its surfaces moved,
-    :func:`moved_surfaces` with seed k); -> errors and CPU seconds a frame."""
+    :func:`stage.benchmarks.moved_surfaces` with seed k); -> errors and CPU seconds a frame."""
     import pickle
 
     from fake_cameras.surface_motion import tracking_errors
@@ -186,17 +133,6 @@ def track_row(d: Path, tmp: Path, *, labels=None, offset: float | None = None, c
     m, p95 = err.mean(1), np.percentile(err, 95, 1)
     return {"mean": float(err.mean()), "p95": float(np.percentile(err, 95)), "worst": (float(m.max()), float(p95.max())),
             "patches": counts[0] if counts else 0, "cpu": cpu}
-
-
-def spread_figures(rows: list[dict]) -> str:
-    """A tracking's four figures over itself and its moved copies (``rows``: :func:`track_row`'s dicts, the
-    tracking's first), each as mean (least..most): "mean / 95th percentile; worst frame's mean / 95th
-    percentile"."""
-    if not rows:
-        raise ValueError("rows must hold at least one tracking's figures")
-    figures = np.array([[r["mean"], r["p95"], *r["worst"]] for r in rows], dtype=np.float64)
-    cells = [f"{f.mean():.{d}f} ({f.min():.{d}f}..{f.max():.{d}f})" for f, d in zip(figures.T, (3, 3, 2, 2))]
-    return f"{cells[0]} / {cells[1]}; {cells[2]} / {cells[3]}"
 
 
 def grid_offsets(text: str) -> list[float]:

@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from stage.benchmarks import COPY_SIGMA, check_copies, seeds_option
+from stage.benchmarks import COPY_SIGMA, check_copies, moved_surfaces, seeds_option, spread_figures
 from stage.benchmarks._data import SHARED_DATA
 
 NAME = "track"
@@ -130,8 +130,8 @@ def fast_accuracy(*, seeds=(3,), copies: int = 0) -> None:
     (:func:`fake_cameras.surface_motion.invented_motion`) and CPU seconds a frame; every take once for each of the
     simulator's ``seeds``. With ``copies`` (an integer >= 0) every take's rows are also tracked on that many copies
     of its processed results whose surfaces are moved by 0.001 mm
-    (:func:`stage.benchmarks.patches.moved_surfaces`, seeds 1..``copies``), and under every row its figures over
-    the take and the copies, each mean (least..most) (:func:`stage.benchmarks.patches.spread_figures`): the
+    (:func:`stage.benchmarks.moved_surfaces`, seeds 1..``copies``), and under every row its figures over
+    the take and the copies, each mean (least..most) (:func:`stage.benchmarks.spread_figures`): the
     row's run-to-run spread."""
     import tempfile
     from pathlib import Path
@@ -151,7 +151,6 @@ def _fast_take(creature: str, fps: float, frames: int, *, seed: int, root, copie
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
     from pipeline.process import process_take
-    from stage.benchmarks.patches import moved_surfaces, spread_figures
 
     sim = simulate_take(creature, n_cameras=8, frames=frames, size=(640, 480), seed=seed, fps=fps)
     take = record_take(sim, root / f"{creature}_{fps:g}_s{seed}.h5")

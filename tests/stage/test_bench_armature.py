@@ -260,6 +260,7 @@ def test_invalid_input_copies_scores(tmp_path):
 
     for kw, match in (({"copies": -1}, "^copies"), ({"copies": 1.5}, "^copies"), ({"copies": True}, "^copies"),
                       ({"copies": 1, "sigma": 0}, "^sigma"), ({"copies": 1, "sigma": float("nan")}, "^sigma"),
+                      ({"copies": 1, "sigma": True}, "^sigma"),
                       ({"copies": 1, "parts": "spine"}, "^parts")):
         with pytest.raises(ValueError, match=match):
             copies_scores(None, tmp_path, None, **kw)

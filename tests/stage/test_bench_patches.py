@@ -88,7 +88,7 @@ def test_moved_surfaces_are_the_surfaces_moved_by_sigma(tmp_path):
     10 % of sigma over 1800 coordinates, the mean within 4 standard errors of 0), seeded (the same copy twice,
     another seed another copy); the other files are the results' own, tracked/ and rig/ are left out, a copy
     already there is replaced and the results directory is untouched."""
-    from stage.benchmarks.patches import moved_surfaces
+    from stage.benchmarks import moved_surfaces
 
     res = tmp_path / "res"
     verts = _processed_results(res)
@@ -106,7 +106,7 @@ def test_moved_surfaces_are_the_surfaces_moved_by_sigma(tmp_path):
 
 def test_spread_figures_against_a_loop():
     """Every figure's mean (least..most) over the tracking and its copies, in the row's order."""
-    from stage.benchmarks.patches import spread_figures
+    from stage.benchmarks import spread_figures
 
     rows = [{"mean": 1.0, "p95": 3.0, "worst": (2.0, 5.0)}, {"mean": 1.5, "p95": 2.5, "worst": (2.25, 6.0)},
             {"mean": 1.25, "p95": 3.25, "worst": (1.5, 4.0)}]
@@ -124,6 +124,7 @@ def test_copies_rows_track_the_moved_surfaces(tmp_path, monkeypatch, capsys):
     import fake_cameras.surface_motion
     import pipeline.track
     import stage.benchmarks.patches as bench
+    from stage.benchmarks import spread_figures
 
     d = tmp_path / "biped_10_s3_f3"
     verts = _processed_results(d / "results")
@@ -148,27 +149,37 @@ def test_copies_rows_track_the_moved_surfaces(tmp_path, monkeypatch, capsys):
     at = next(i for i, line in enumerate(out) if line.startswith("| biped_10_s3_f3 | default |"))
     assert out[at].startswith("| biped_10_s3_f3 | default | 0.000 / 0.000; 0.00 / 0.00 |")
     assert out[at + 1] == (f"| biped_10_s3_f3 | default and 2 copies moved by 1 um: mean (least..most) | "
-                           f"{bench.spread_figures(figures)} | | |")
+                           f"{spread_figures(figures)} | | |")
     assert "(0.000.." in out[at + 1] and not out[at + 1].endswith("(0.000..0.000) | | |")
 
 
-def test_invalid_input_copies():
-    """`--copies` is checked before any take is tracked; moved_surfaces and spread_figures name their parameter."""
+def test_invalid_input_copies(tmp_path):
+    """`--copies` is checked before any take is tracked; moved_surfaces, move_meshes (before any mesh is read),
+    check_sigma and spread_figures name their parameter."""
     import argparse
 
     import pytest
 
+    import stage.benchmarks as shared
     import stage.benchmarks.patches as bench
 
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match="^--copies"):
             bench.run(argparse.Namespace(root=None, takes="biped:10:3:16", labels=False, grid="", copies=bad))
-    for kw, match in (({"seed": -1}, "^seed"), ({"seed": 1.0}, "^seed"), ({"seed": 1, "sigma": 0}, "^sigma"),
-                      ({"seed": 1, "sigma": float("nan")}, "^sigma"), ({"seed": 1}, "^results")):
+    for kw, match in (({"seed": -1}, "^seed"), ({"seed": 1.0}, "^seed"), ({"seed": True}, "^seed"),
+                      ({"seed": 1, "sigma": 0}, "^sigma"), ({"seed": 1, "sigma": float("nan")}, "^sigma"),
+                      ({"seed": 1, "sigma": True}, "^sigma"), ({"seed": 1}, "^results")):
         with pytest.raises(ValueError, match=match):
-            bench.moved_surfaces("no-such-results", "copy", **kw)
+            shared.moved_surfaces("no-such-results", "copy", **kw)
+        if match != "^results":
+            with pytest.raises(ValueError, match=match):
+                shared.move_meshes([tmp_path / "no-such-mesh.ply"], **kw)
+    for bad in (0, -0.1, float("inf"), float("nan"), True, "0.1", None):
+        with pytest.raises(ValueError, match="^width"):
+            shared.check_sigma(bad, name="width")
+    assert shared.check_sigma(2) == 2 and shared.check_sigma(0.5) == 0.5
     with pytest.raises(ValueError, match="^rows"):
-        bench.spread_figures([])
+        shared.spread_figures([])
 
 
 def test_moved_surfaces_refuse_a_copy_over_its_results(tmp_path):
@@ -176,7 +187,7 @@ def test_moved_surfaces_refuse_a_copy_over_its_results(tmp_path):
     ``dst``, before anything is written or removed: the results directory is the same file by file afterwards."""
     import pytest
 
-    from stage.benchmarks.patches import moved_surfaces
+    from stage.benchmarks import moved_surfaces
 
     res = tmp_path / "takes" / "res"
     _processed_results(res)

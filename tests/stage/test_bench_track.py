@@ -51,7 +51,7 @@ def test_every_row_has_its_copies_spread_under_it(tmp_path, monkeypatch, capsys)
     import stage.benchmarks.track as bench
     from pipeline.meshio import load_mesh
     from pipeline.results import ply_bytes
-    from stage.benchmarks.patches import spread_figures
+    from stage.benchmarks import spread_figures
 
     verts = np.random.default_rng(0).normal(scale=100.0, size=(2, 100, 3))
 
