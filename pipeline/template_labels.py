@@ -141,9 +141,7 @@ def axis_labels(axes, vertices, faces, *, surfaces=None, frame: int = 0) -> np.n
     for a in axes:
         polylines.append(check_points(a, name="axes", min_points=2))
     mesh = trimesh.Trimesh(V, F, process=False)
-    step = float(np.median(mesh.edges_unique_length))
-    if not step > 0:
-        raise ValueError("vertices and faces must make a surface with edges of non-zero length")
+    step = _edge_step(mesh)
     K = len(polylines)
     relative = np.full((len(V), K), np.inf)  # distance to the limb's axis over its section's radius
     for k, axis in enumerate(polylines):
@@ -283,14 +281,15 @@ def root_tubes(vertices, faces, labels) -> np.ndarray:
     Returns
     -------
     (V,) int64 ndarray
-        The labels with those body vertices given to their limb. A limb whose root has fewer than 3 vertices
-        (or no body) has no tube either.
+        The labels with those body vertices given to their limb, and every limb vertex outside its limb's largest
+        connected piece given to the body. A limb whose root has fewer than 3 vertices (or no body) has no tube
+        either.
 
     Raises
     ------
     ValueError
-        Naming the parameter: a mesh that is not (V, 3) / (F, 3) or indexes past its vertices, labels that
-        are not an integer >= :data:`BODY` for every vertex.
+        Naming the parameter: a mesh that is not (V, 3) / (F, 3) or indexes past its vertices, edges whose median
+        length is zero, labels that are not an integer >= :data:`BODY` for every vertex.
     """
     import trimesh
 
@@ -300,7 +299,7 @@ def root_tubes(vertices, faces, labels) -> np.ndarray:
     lab = check_limbs(labels, len(V), name="labels").astype(np.int64)
     K = int(lab.max(initial=BODY)) + 1
     mesh = trimesh.Trimesh(V, F, process=False)
-    step = float(np.median(mesh.edges_unique_length))
+    step = _edge_step(mesh)
     normals = vertex_normals(V, F) * _outward(V, F)
     relative = np.full((len(V), max(K, 1)), np.inf)
     for k in range(K):
@@ -311,6 +310,14 @@ def root_tubes(vertices, faces, labels) -> np.ndarray:
     out = lab.copy()
     out[give] = relative[give].argmin(1)
     return _largest_pieces(out, mesh.edges_unique, K)
+
+
+def _edge_step(mesh) -> float:
+    """The median length of the mesh's edges (its resolution); ValueError when that is zero."""
+    step = float(np.median(mesh.edges_unique_length))
+    if not step > 0:
+        raise ValueError("vertices and faces must make a surface with edges of non-zero length")
+    return step
 
 
 def _root_tube(V: np.ndarray, labels: np.ndarray, k: int):

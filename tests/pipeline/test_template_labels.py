@@ -293,6 +293,8 @@ def test_invalid_input_of_root_tubes():
         root_tubes(V[:, :2], F, labels)
     with pytest.raises(ValueError, match="faces"):
         root_tubes(V, F + 4, labels)
+    with pytest.raises(ValueError, match="non-zero length"):  # every edge of length zero
+        root_tubes(np.zeros_like(V), F, labels)
     for bad in (labels[:3], labels - 1, labels.astype(float)):
         with pytest.raises(ValueError, match="labels"):
             root_tubes(V, F, bad)
