@@ -431,12 +431,9 @@ def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, d
     articulation was placed, and why."""
     if motions is None:
         return {}, {}
-    from pipeline.mesh_primitives import vertex_normals
+    from pipeline.mesh_primitives import outward_normals
 
-    normals = vertex_normals(v, f)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    if np.einsum("ij,ij->i", a, np.cross(b, c)).sum() < 0:  # faces wound inwards: normals point in
-        normals = -normals
+    normals = outward_normals(v, f)  # (whichever way the faces wind)
     radius = {pair: r for pair, _, r in cand}
     out, how = {}, {}
     for node, pairs in joint_pairs.items():

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 __all__ = ["check_mesh", "check_points", "summing_matrix", "sum_by", "scatter_add", "triangle_areas", "vertex_normals", "mesh_volume",
-           "rigid_fit", "edge_components", "mesh_components"]
+           "outward_normals", "rigid_fit", "edge_components", "mesh_components"]
 
 
 def check_points(points, *, name: str = "points", min_points: int = 0) -> np.ndarray:
@@ -145,11 +145,35 @@ def vertex_normals(vertices, faces, *, corners: sp.spmatrix | None = None) -> np
     return np.stack([_unit_normals(frame, f, corners) for frame in v]) if len(v) else np.zeros_like(v)
 
 
-def mesh_volume(vertices, faces) -> float:
-    """Enclosed volume (divergence theorem; exact for closed, consistently oriented meshes)."""
+def mesh_volume(vertices, faces, *, signed: bool = False) -> float:
+    """Enclosed volume (divergence theorem; exact for closed, consistently oriented meshes); ``signed``: positive
+    when the triangles wind with their normals out of the surface, negative when they wind into it."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
-    return float(abs(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum()) / 6.0)
+    volume = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0
+    return float(volume if signed else abs(volume))
+
+
+def outward_normals(vertices, faces) -> np.ndarray:
+    """:func:`vertex_normals` of a closed surface turned out of it, whichever way its triangles wind (all the same
+    way): negated when its signed volume (:func:`mesh_volume`) is negative.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float array_like
+    faces : (F, 3) int array_like
+
+    Returns
+    -------
+    (V, 3) float64 ndarray
+
+    Raises
+    ------
+    ValueError
+        As :func:`check_mesh`.
+    """
+    v, f = check_mesh(vertices, faces)
+    return vertex_normals(v, f) * (1.0 if mesh_volume(v, f, signed=True) >= 0 else -1.0)
 
 
 def rigid_fit(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

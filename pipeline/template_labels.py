@@ -293,14 +293,14 @@ def root_tubes(vertices, faces, labels) -> np.ndarray:
     """
     import trimesh
 
-    from pipeline.mesh_primitives import vertex_normals
+    from pipeline.mesh_primitives import outward_normals
 
     V, F = check_mesh(vertices, faces, min_vertices=1, min_faces=1)
     lab = check_limbs(labels, len(V), name="labels").astype(np.int64)
     K = int(lab.max(initial=BODY)) + 1
     mesh = trimesh.Trimesh(V, F, process=False)
     step = _edge_step(mesh)
-    normals = vertex_normals(V, F) * _outward(V, F)
+    normals = outward_normals(V, F)
     relative = np.full((len(V), max(K, 1)), np.inf)
     for k in range(K):
         tube = _root_tube(V, lab, k)
@@ -354,12 +354,6 @@ def _in_tube(V: np.ndarray, normals: np.ndarray, body: np.ndarray, centre: np.nd
     facing = (d > 0) & (np.einsum("ij,ij->i", normals, radial) >= _COS45 * d)
     inside = body & (along > 0) & (along <= reach + radius) & (d <= radius + step) & facing
     return np.where(inside, d / max(radius, 1e-12), np.inf)
-
-
-def _outward(V: np.ndarray, F: np.ndarray) -> float:
-    """1.0 when the triangles wind with their normals out of the closed surface (its signed volume positive), else
-    -1.0."""
-    return 1.0 if np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() >= 0 else -1.0
 
 
 def _principal_axis(X: np.ndarray):

@@ -11,6 +11,7 @@ from pipeline.mesh_primitives import (
     edge_components,
     mesh_components,
     mesh_volume,
+    outward_normals,
     sum_by,
     summing_matrix,
     vertex_normals,
@@ -74,6 +75,20 @@ def test_volume_of_a_sphere_and_the_exporter_gets_unit_normals():
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
 
 
+def test_signed_volume_and_outward_normals_whichever_way_the_faces_wind():
+    """The signed volume is trimesh's volume with the faces wound outward and its negative wound inward; the outward
+    normals are the outward-wound mesh's vertex normals both ways (exact)."""
+    m = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    assert mesh_volume(v, f, signed=True) == pytest.approx(m.volume, rel=1e-12)
+    assert mesh_volume(v, f[:, ::-1], signed=True) == pytest.approx(-m.volume, rel=1e-12)
+    assert mesh_volume(v, f[:, ::-1]) == mesh_volume(v, f)
+    assert np.array_equal(outward_normals(v, f), vertex_normals(v, f))
+    assert np.array_equal(outward_normals(v, f[:, ::-1]), -vertex_normals(v, f[:, ::-1]))
+    np.testing.assert_allclose(outward_normals(v, f[:, ::-1]), vertex_normals(v, f), atol=1e-12)
+    assert (np.einsum("ij,ij->i", outward_normals(v, f[:, ::-1]), v) > 0).all()  # out of the sphere
+
+
 def test_invalid_input():
     from pipeline.mesh_primitives import check_points
 
@@ -93,6 +108,12 @@ def test_invalid_input():
         vertex_normals(v[:5], f)
     with pytest.raises(ValueError, match="corners"):
         vertex_normals(v, f, corners=np.eye(3))
+    with pytest.raises(ValueError, match="vertices"):
+        outward_normals(np.stack([v, v]), f)  # one mesh, not frames
+    with pytest.raises(ValueError, match="faces"):
+        outward_normals(v, f[:, :2])
+    with pytest.raises(ValueError, match="faces"):
+        outward_normals(v[:5], f)
     with pytest.raises(ValueError, match="faces"):
         mesh_components(f[:, :2], len(v))
     with pytest.raises(ValueError, match="faces"):
