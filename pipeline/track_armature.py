@@ -282,7 +282,6 @@ def _limb_chain(root: Path, labels, refi: int, n_frames: int):
     """``parts="limbs"``: (labels, the spine's limb axes at the reference position ``refi``), or None (one line
     says why) without labels or a spine of the take's frames that sees every limb of the labels there."""
     from pipeline.armature_files import spine_limb_axes
-    from pipeline.limb_segments import MIN_VERTICES
     from pipeline.spine_format import SpineFormatError, read_spine
 
     why = None
@@ -293,7 +292,7 @@ def _limb_chain(root: Path, labels, refi: int, n_frames: int):
             spine = read_spine(root / "spine.json")
             if spine.frame_count != n_frames:
                 raise ValueError(f"it has {spine.frame_count} frames, the take {n_frames}")
-            if (labels == -1).sum() < 2 * MIN_VERTICES:  # (the round's limb_segments measures the noise on the body)
+            if not _body_measurable(labels):
                 raise ValueError("the labels' body has too few vertices")
             return labels, spine_limb_axes(spine, labels, refi)
         except (OSError, SpineFormatError, ValueError) as exc:
@@ -365,7 +364,6 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     """
     from scipy.spatial import cKDTree
 
-    from pipeline.limb_segments import MIN_VERTICES
     from pipeline.mesh_primitives import edge_components
     from pipeline.rigid_parts import rigid_motions
 
@@ -373,7 +371,7 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     out, axes = np.asarray(labels, dtype=np.int64).copy(), list(axes)
     body = np.flatnonzero(out == -1)
     sizes = np.bincount(out[out >= 0], minlength=len(axes))
-    if len(body) < 2 * MIN_VERTICES or not (sizes > 0).any() or len(surfaces) != len(vs):
+    if not _body_measurable(out) or not (sizes > 0).any() or len(surfaces) != len(vs):
         return out, axes
     V = vs[reference]
     ids = body
@@ -394,7 +392,7 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
     rest = (out == -1) & ~off
     for p in np.unique(piece[off]):
         mine = off & (piece == p)
-        if mine.sum() < sizes[sizes > 0].min() or (out == -1).sum() - mine.sum() < 2 * MIN_VERTICES:  # (the body keeps its noise)
+        if mine.sum() < sizes[sizes > 0].min() or not _body_measurable(np.where(mine, len(axes), out)):
             continue
         next_to_body = np.unique(e[mine[e[:, 0]] & rest[e[:, 1]], 0])
         if len(next_to_body) == 0:
@@ -409,12 +407,20 @@ def _unclaimed_limbs(vertices, faces, labels, axes, surfaces, *, reference: int 
 def _rooted(template: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """The armature's labels with the limbs' roots the body holds given back
     (:func:`pipeline.template_labels.root_tubes`), unless the body would keep too few vertices to measure the cuts'
-    noise on (:func:`_limb_chain`)."""
-    from pipeline.limb_segments import MIN_VERTICES
+    noise on (:func:`_body_measurable`)."""
     from pipeline.template_labels import root_tubes
 
     out = root_tubes(template, faces, labels)
-    return out if (out == -1).sum() >= 2 * MIN_VERTICES else labels
+    return out if _body_measurable(out) else labels
+
+
+def _body_measurable(labels: np.ndarray) -> bool:
+    """Whether the labels' body keeps enough vertices (twice :data:`pipeline.limb_segments.MIN_VERTICES`) for the
+    round's :func:`pipeline.limb_segments.limb_segments` to measure the cuts' noise on."""
+    from pipeline.armature_limbs import BODY
+    from pipeline.limb_segments import MIN_VERTICES
+
+    return bool((np.asarray(labels) == BODY).sum() >= 2 * MIN_VERTICES)
 
 
 def _claimed(vs: np.ndarray, labels: np.ndarray, body: np.ndarray, trees: list, reference: int,
