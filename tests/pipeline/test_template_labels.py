@@ -282,6 +282,62 @@ def test_root_tubes_against_a_loop(name):
     assert given.sum() >= 10 and np.array_equal(got[given], true[given])
 
 
+def _revolved(profile, sections: int = 16):
+    """A closed surface of revolution about the x axis: one ring of ``sections`` vertices for each (x, radius) of
+    ``profile`` (in order), a vertex on the axis closing each end; (vertices, faces, the ring's x and radius of every
+    vertex)."""
+    t = np.linspace(0.0, 2 * np.pi, sections, endpoint=False)
+    rings = np.array(profile, dtype=float)
+    V = np.concatenate([np.c_[np.full(sections, x), r * np.cos(t), r * np.sin(t)] for x, r in rings]
+                       + [[[rings[0, 0], 0.0, 0.0], [rings[-1, 0], 0.0, 0.0]]])
+    F = []
+    for j in range(len(rings) - 1):
+        for i in range(sections):
+            p, q = j * sections + i, j * sections + (i + 1) % sections
+            F += [[p, q, q + sections], [p, q + sections, p + sections]]
+    first, last, top = len(rings) * sections, len(rings) * sections + 1, (len(rings) - 1) * sections
+    for i in range(sections):
+        F += [[first, (i + 1) % sections, i], [last, top + i, top + (i + 1) % sections]]
+    ring = np.concatenate([np.repeat(rings, sections, axis=0), [[rings[0, 0], 0.0], [rings[-1, 0], 0.0]]])
+    return V, np.array(F), ring[:, 0], ring[:, 1]
+
+
+#: The body: a cylinder of radius 10 along x from -20 to its end face at x = 0 (rings 10, 7 and 4 on the face).
+_BODY_PROFILE = [(x, 10.0) for x in np.arange(-20.0, 0.5, 2.0)] + [(0.0, 7.0), (0.0, 4.0)]
+
+
+def test_root_tubes_on_a_club_limb_out_of_a_body():
+    """Exact sets by the geometry. A neck of radius 1.25 (rings 0.5 apart) leaves the body's end face and the body
+    holds it up to x = 3; then a club of radius 5 from x = 14 to 34, so the limb's radius (the median distance to
+    its axis) is 5. The root is the neck within two limb radii (10) of the body, its rings at x = 3.5 .. 13; the tube
+    runs along the neck into the body (towards -x), its radius the neck's, and reaches one radius past the root's
+    end at 3.5: the neck's rings at x = 3 and 2.5, which the body holds, go to the limb; the ring at 2 (1.5 past) and
+    the end face (its normals along the tube, not away from it) stay the body's. Either winding gives the same."""
+    from pipeline.template_labels import BODY, root_tubes
+
+    neck = [(x, 1.25) for x in np.arange(0.0, 14.25, 0.5)]
+    club = [(x, 5.0) for x in np.arange(14.0, 34.25, 0.5)]
+    V, F, x, r = _revolved(_BODY_PROFILE + neck + club)
+    on_limb = (x > 0) | ((x == 0) & (r == 1.25))
+    labels = np.where(on_limb & (x > 3.0), 0, BODY)
+    expected = np.where(on_limb & (x >= 2.5), 0, BODY)
+    assert (expected != labels).sum() == 2 * 16
+    np.testing.assert_array_equal(root_tubes(V, F, labels), expected)
+    np.testing.assert_array_equal(root_tubes(V, F[:, ::-1], labels), expected)
+
+
+def test_a_root_as_wide_as_it_is_long_has_no_tube():
+    """A limb of radius 4 (rings 0.5 apart) out of the body's end face, held by the body up to x = 1: its root (the
+    limb within two of its radii of the body, x = 1.5 .. 9) spreads more across the limb (radius 4) than along it
+    (length 7.5), so its principal axis lies across the limb's (90 degrees): no tube, nothing given back."""
+    from pipeline.template_labels import BODY, _root_tube, root_tubes
+
+    V, F, x, r = _revolved(_BODY_PROFILE[:-1] + [(x, 4.0) for x in np.arange(0.0, 30.25, 0.5)])
+    labels = np.where(((x > 0) | (r == 4.0)) & (x > 1.0), 0, BODY)
+    assert _root_tube(V, labels, 0) is None
+    np.testing.assert_array_equal(root_tubes(V, F, labels), labels)
+
+
 def test_invalid_input_of_root_tubes():
     from pipeline.template_labels import root_tubes
 
