@@ -114,6 +114,35 @@ def moved_surfaces(results, dst, *, seed: int, sigma: float = COPY_SIGMA) -> Pat
     return dst
 
 
+def spread_cell(values, digits: int) -> str:
+    """A figure over a run and its moved copies as "mean (least..most)", each with ``digits`` decimals.
+
+    Parameters
+    ----------
+    values : sequence of float
+        The figure of every run (at least one).
+    digits : int
+        Decimals printed (>= 0).
+
+    Returns
+    -------
+    str
+        E.g. ``"1.25 (1.00..1.50)"`` for 1.0, 1.5 and 1.25 with 2 decimals.
+
+    Raises
+    ------
+    ValueError
+        Naming ``values`` when it is empty, ``digits`` when it is not an integer >= 0.
+    """
+    if isinstance(digits, bool) or not isinstance(digits, (int, np.integer)) or digits < 0:
+        raise ValueError(f"digits must be an integer >= 0, got {digits!r}")
+    x = np.asarray(values, dtype=np.float64).ravel()
+    if not len(x):
+        raise ValueError("values must hold at least one figure")
+    d = int(digits)
+    return f"{x.mean():.{d}f} ({x.min():.{d}f}..{x.max():.{d}f})"
+
+
 def spread_figures(rows: list[dict]) -> str:
     """A tracking's four figures over itself and its moved copies (``rows``: :func:`stage.benchmarks.patches.track_row`'s dicts, the
     tracking's first), each as mean (least..most): "mean / 95th percentile; worst frame's mean / 95th
@@ -121,7 +150,7 @@ def spread_figures(rows: list[dict]) -> str:
     if not rows:
         raise ValueError("rows must hold at least one tracking's figures")
     figures = np.array([[r["mean"], r["p95"], *r["worst"]] for r in rows], dtype=np.float64)
-    cells = [f"{f.mean():.{d}f} ({f.min():.{d}f}..{f.max():.{d}f})" for f, d in zip(figures.T, (3, 3, 2, 2))]
+    cells = [spread_cell(f, d) for f, d in zip(figures.T, (3, 3, 2, 2))]
     return f"{cells[0]} / {cells[1]}; {cells[2]} / {cells[3]}"
 
 

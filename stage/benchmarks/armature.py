@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stage.benchmarks import COPY_SIGMA, check_copies, check_sigma, move_meshes, seeds_option
+from stage.benchmarks import COPY_SIGMA, check_copies, check_sigma, move_meshes, seeds_option, spread_cell
 
 NAME = "armature"
 ALIASES = ("rig",)  # the old name, kept for one release
@@ -593,8 +593,7 @@ def copies_scores(sim, res, rig, *, copies: int, parts: str = "motion", sigma: f
 def copies_row(sc: dict, spread: list[dict]) -> str:
     """The line under a take's row: its recall / precision with those of its moved copies, mean (least..most)."""
     def stat(key):
-        x = [sc[key], *(c[key] for c in spread)]
-        return f"{np.mean(x):.2f} ({min(x):.2f}..{max(x):.2f})"
+        return spread_cell([sc[key], *(c[key] for c in spread)], 2)
 
     segs = [c["segments"] for c in spread]
     return (f"{'  copies':12} the tracking and {len(spread)} copies moved by {1000 * COPY_SIGMA:g} um: recall "

@@ -243,6 +243,18 @@ def test_copies_are_the_tracking_moved_by_sigma(tmp_path, monkeypatch):
     assert {p.name: p.read_bytes() for p in (tmp_path / "res" / "tracked").iterdir()} == before
 
 
+def test_copies_row_prints_the_spread_of_recall_and_precision():
+    """The line under a take's row: recall and precision as mean (least..most) over the tracking and its copies,
+    the copies' least and most segments, and in how many of them the tracking's segmentation came back."""
+    from stage.benchmarks.armature import copies_row
+
+    spread = [{"recall": 0.5, "precision": 0.75, "segments": 6, "same": True},
+              {"recall": 0.25, "precision": 1.0, "segments": 4, "same": False}]
+    assert copies_row({"recall": 0.75, "precision": 0.5}, spread) == (
+        "  copies     the tracking and 2 copies moved by 1 um: recall 0.50 (0.25..0.75), precision 0.75 (0.50..1.00); "
+        "segments 4..6, the tracking's segmentation in 1 of 2")
+
+
 def test_same_partition_against_a_loop():
     """Two labellings make the same segments when every pair of vertices is together in both or apart in both."""
     from stage.benchmarks.armature import _same_partition

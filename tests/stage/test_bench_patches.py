@@ -114,6 +114,22 @@ def test_spread_figures_against_a_loop():
     assert spread_figures(rows[:1]) == "1.000 (1.000..1.000) / 3.000 (3.000..3.000); 2.00 (2.00..2.00) / 5.00 (5.00..5.00)"
 
 
+def test_spread_cell_against_the_formula():
+    """mean (least..most) of the figures, by the sum over their number and a loop for the least and the most, at
+    every precision; one figure gives itself three times."""
+    from stage.benchmarks import spread_cell
+
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 5):
+        x = rng.normal(scale=3.0, size=n).tolist()
+        least = most = x[0]
+        for v in x[1:]:
+            least, most = min(least, v), max(most, v)
+        for d in (0, 2, 3):
+            assert spread_cell(x, d) == f"{sum(x) / n:.{d}f} ({least:.{d}f}..{most:.{d}f})"
+    assert spread_cell([1.0, 1.5, 1.25], 2) == "1.25 (1.00..1.50)" and spread_cell((2,), 1) == "2.0 (2.0..2.0)"
+
+
 def test_copies_rows_track_the_moved_surfaces(tmp_path, monkeypatch, capsys):
     """`--copies 2`: every take is tracked on itself and on copies 1 and 2 of its surfaces (the tracking sees
     the moved vertices), and the row under the take's is the spread of the three trackings' figures."""
@@ -180,6 +196,11 @@ def test_invalid_input_copies(tmp_path):
     assert shared.check_sigma(2) == 2 and shared.check_sigma(0.5) == 0.5
     with pytest.raises(ValueError, match="^rows"):
         shared.spread_figures([])
+    with pytest.raises(ValueError, match="^values"):
+        shared.spread_cell([], 2)
+    for bad in (-1, 1.5, True, None):
+        with pytest.raises(ValueError, match="^digits"):
+            shared.spread_cell([1.0], bad)
 
 
 def test_moved_surfaces_refuse_a_copy_over_its_results(tmp_path):
