@@ -17,10 +17,28 @@ COPY_SIGMA = 0.001
 
 
 def check_copies(copies, *, name: str = "copies") -> int:
-    """A count of moved copies (an integer >= 0), or a ValueError naming ``name`` (the option or the parameter)."""
-    if isinstance(copies, bool) or not isinstance(copies, int) or copies < 0:
+    """A count of moved copies, checked.
+
+    Parameters
+    ----------
+    copies : int
+        How many moved copies: an integer >= 0 (numpy's integers too, as the seeds; not a bool).
+    name : str
+        What the error calls it: the parameter or the command-line option.
+
+    Returns
+    -------
+    int
+        ``copies`` as a Python int.
+
+    Raises
+    ------
+    ValueError
+        Naming ``name`` when ``copies`` is not an integer >= 0.
+    """
+    if isinstance(copies, bool) or not isinstance(copies, (int, np.integer)) or copies < 0:
         raise ValueError(f"{name} must be an integer >= 0, got {copies!r}")
-    return copies
+    return int(copies)
 
 
 def _check_seed(seed) -> int:
@@ -144,9 +162,26 @@ def spread_cell(values, digits: int) -> str:
 
 
 def spread_figures(rows: list[dict]) -> str:
-    """A tracking's four figures over itself and its moved copies (``rows``: :func:`stage.benchmarks.patches.track_row`'s dicts, the
-    tracking's first), each as mean (least..most): "mean / 95th percentile; worst frame's mean / 95th
-    percentile"."""
+    """A tracking's four figures over itself and its moved copies, each as mean (least..most).
+
+    Parameters
+    ----------
+    rows : list of dict
+        The figures of the tracking and of each copy (the tracking's first), as
+        :func:`stage.benchmarks.patches.track_row` gives them: ``mean``, ``p95`` and ``worst`` (the worst frame's
+        mean and 95th percentile).
+
+    Returns
+    -------
+    str
+        "mean / 95th percentile; worst frame's mean / 95th percentile", each cell :func:`spread_cell`'s (three
+        decimals, then two).
+
+    Raises
+    ------
+    ValueError
+        Naming ``rows`` when it is empty.
+    """
     if not rows:
         raise ValueError("rows must hold at least one tracking's figures")
     figures = np.array([[r["mean"], r["p95"], *r["worst"]] for r in rows], dtype=np.float64)

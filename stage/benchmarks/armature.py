@@ -521,7 +521,7 @@ def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion",
 
     tracking = dict(labels=labels, colour=colour, armature_rounds=armature_rounds, armature_parts=armature_parts)
     _check_tracking(parts=parts, **tracking)
-    check_copies(copies)
+    copies = check_copies(copies)
     if not names:
         return
     flags = [f"--{key.replace('_', '-')}" + ("" if value is True else f" {value}") for key, value in tracking.items()
@@ -564,7 +564,7 @@ def copies_scores(sim, res, rig, *, copies: int, parts: str = "motion", sigma: f
     from pipeline.armature_files import armature_results, load_sequence, tracked_meshes
     from pipeline.armature_score import articulation_scores
 
-    check_copies(copies)
+    copies = check_copies(copies)
     check_sigma(sigma)
     if parts not in ("motion", "limbs"):
         raise ValueError(f"parts must be 'motion' or 'limbs', got {parts!r}")

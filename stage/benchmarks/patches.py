@@ -115,6 +115,7 @@ def track_row(d: Path, tmp: Path, *, labels=None, offset: float | None = None, c
     from fake_cameras.surface_motion import tracking_errors
     from pipeline.track import track_results
 
+    check_copies(copy, name="copy")
     res = tmp / "results"
     if copy:
         moved_surfaces(d / "results", res, seed=copy)

@@ -139,7 +139,7 @@ def fast_accuracy(*, seeds=(3,), copies: int = 0) -> None:
     if isinstance(seeds, str) or not all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) for x in seeds):
         raise ValueError(f"seeds must be a sequence of integers, got {seeds!r}")
     seeds = seeds_option(",".join(map(str, seeds)), "seeds")
-    check_copies(copies)
+    copies = check_copies(copies)
     with tempfile.TemporaryDirectory() as tmp:
         for seed, (creature, fps, frames) in itertools.product(seeds, FAST_TAKES):
             _fast_take(creature, fps, frames, seed=seed, root=Path(tmp), copies=copies)
@@ -654,6 +654,8 @@ def _timings(F: int) -> None:
 def run(args: argparse.Namespace) -> int:
     seeds = seeds_option(getattr(args, "take_seeds", "3"))
     copies = check_copies(getattr(args, "copies", 0), name="--copies")
+    if copies and not args.accuracy:
+        raise ValueError("--copies needs --accuracy (it copies the fast and slow takes that --accuracy tracks)")
     _timings(max(2, int(args.frames)))
     armature_seconds()
     if args.accuracy:

@@ -196,6 +196,12 @@ def test_invalid_input_copies(tmp_path):
     assert shared.check_sigma(2) == 2 and shared.check_sigma(0.5) == 0.5
     with pytest.raises(ValueError, match="^rows"):
         shared.spread_figures([])
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "kept.txt").write_text("kept")
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="^copy "):
+            bench.track_row(tmp_path / "no-such-take", tmp_path, copy=bad)
+    assert (tmp_path / "results" / "kept.txt").read_text() == "kept"
     with pytest.raises(ValueError, match="^values"):
         shared.spread_cell([], 2)
     for bad in (-1, 1.5, True, None):

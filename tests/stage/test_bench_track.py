@@ -112,3 +112,19 @@ def test_invalid_input(monkeypatch):
             bench.run(argparse.Namespace(frames=5, accuracy=True, take_seeds="3", copies=copies))
         with pytest.raises(ValueError, match="^copies"):
             bench.fast_accuracy(copies=copies)
+    with pytest.raises(ValueError, match="^--copies needs --accuracy"):
+        bench.run(argparse.Namespace(frames=5, accuracy=False, take_seeds="3", copies=2))
+
+
+def test_the_copies_count_takes_numpys_integers_as_the_seeds_do(monkeypatch):
+    """``copies`` is an integer >= 0 as ``seeds`` are: numpy's integers too, handed on as Python ints."""
+    import stage.benchmarks.track as bench
+    from stage.benchmarks import check_copies
+
+    for n in (np.int64(2), np.uint8(0), 3):
+        assert check_copies(n) == n and type(check_copies(n)) is int
+    made = []
+    monkeypatch.setattr(bench, "_fast_take", lambda creature, fps, frames, *, seed, root, copies: made.append(
+        (seed, copies)))
+    bench.fast_accuracy(seeds=[np.int64(4)], copies=np.int64(1))
+    assert made == [(4, 1)] * len(bench.FAST_TAKES) and type(made[0][1]) is int
