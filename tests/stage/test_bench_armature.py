@@ -5,6 +5,7 @@ import pytest
 
 from stage.benchmarks.armature import _parts, segmentation_noise
 from tests.pipeline.shapes import two_bars
+from tests.stage.surfaces import random_surfaces
 
 
 def test_segmentation_noise_is_zero_within_a_rigid_part_and_grows_with_noise():
@@ -190,13 +191,7 @@ def _tracked_results(root, T=3, V=50):
     """A results directory with a tracked template of ``T`` frames (random vertices, one face) and its track.json."""
     import json
 
-    from pipeline.results import ply_bytes
-
-    rng = np.random.default_rng(0)
-    (root / "tracked").mkdir(parents=True)
-    verts = rng.normal(scale=100.0, size=(T, V, 3))
-    for t in range(T):
-        (root / "tracked" / f"{t:06d}.ply").write_bytes(ply_bytes(verts[t], np.array([[0, 1, 2]])))
+    verts = random_surfaces(root / "tracked", "{:06d}.ply", T=T, V=V)
     (root / "tracked" / "track.json").write_text(json.dumps({"reference_frame": 1}))
     (root / "spine.json").write_text("{}")
     return verts

@@ -5,6 +5,7 @@ import trimesh
 
 from pipeline.tracking_patches import surface_patches
 from stage.benchmarks.patches import _patches, grid_patches
+from tests.stage.surfaces import random_surfaces
 
 
 def _same_partition(a, b):
@@ -62,13 +63,7 @@ def test_invalid_input():
 
 def _processed_results(root, T=3, V=200):
     """A results directory of ``T`` surfaces (random vertices, one face each), a spine and a tracking."""
-    from pipeline.results import ply_bytes
-
-    rng = np.random.default_rng(0)
-    (root / "meshes").mkdir(parents=True)
-    verts = rng.normal(scale=100.0, size=(T, V, 3))
-    for t in range(T):
-        (root / "meshes" / f"frame_{t:06d}.ply").write_bytes(ply_bytes(verts[t], np.array([[0, 1, 2]])))
+    verts = random_surfaces(root / "meshes", "frame_{:06d}.ply", T=T, V=V)
     (root / "spine.json").write_text('{"spine": 1}')
     (root / "grid.json").write_text('{"voxel": 2.0}')
     for folder in ("tracked", "rig"):
