@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
         accuracy(skinned=widths)
         take_accuracy(takes, frames=frames, seeds=seeds, parts=parts, copies=copies, **tracking)
         return 0
+    _refuse_accuracy_options(args)
     sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
     lengths = [int(x) for x in args.frames.split(",") if x.strip()]
     bad = [s for s in sizes if s not in VOXELS]
@@ -84,6 +85,17 @@ def run(args: argparse.Namespace) -> int:
         for T in lengths:
             _timing_row(size, T, samples=args.samples, fit_frames=int(args.fit_frames))
     return 0
+
+
+def _refuse_accuracy_options(args: argparse.Namespace) -> None:
+    """Without ``--accuracy``, an option whose help begins "with --accuracy" that is not at its default is refused
+    (the timings would ignore it): ValueError naming it."""
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    for action in p._actions:
+        if (action.help or "").startswith("with --accuracy") and hasattr(args, action.dest) \
+                and getattr(args, action.dest) != action.default:
+            raise ValueError(f"{action.option_strings[0]} needs --accuracy (the timings do not use it)")
 
 
 def _accuracy_options(args: argparse.Namespace):

@@ -285,3 +285,22 @@ def test_take_rows_are_named_with_their_seed(monkeypatch, capsys):
     bench.take_accuracy(["biped"], seeds=(3, 5))
     rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("row ")]
     assert rows == ["row biped s3", "row starfish s3", "row biped s3", "row biped s5"]
+
+
+@pytest.mark.parametrize("argv", [["--copies", "2"], ["--labels"], ["--take-seeds", "3,5"], ["--skinned", "1,2"],
+                                  ["--armature-parts", "limbs"]])
+def test_accuracy_options_without_accuracy_are_refused(argv, monkeypatch):
+    """`stage bench armature --copies 2` (no --accuracy) would run the timings and ignore the option: refused in
+    one line naming it, before any work."""
+    import argparse
+
+    import stage.benchmarks.armature as bench
+
+    monkeypatch.setattr(bench, "_timing_row", lambda *a, **kw: pytest.fail("timed"))
+    p = argparse.ArgumentParser()
+    bench.add_arguments(p)
+    with pytest.raises(ValueError, match=f"^{argv[0]} needs --accuracy"):
+        bench.run(p.parse_args(argv))
+    seen = []
+    monkeypatch.setattr(bench, "_timing_row", lambda size, T, **kw: seen.append((size, T)))
+    assert bench.run(p.parse_args(["--sizes", "6k", "--frames", "60"])) == 0 and seen == [("6k", 60)]

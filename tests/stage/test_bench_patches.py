@@ -99,7 +99,7 @@ def test_moved_surfaces_are_the_surfaces_moved_by_sigma(tmp_path):
     assert {p: p.read_bytes() for p in res.rglob("*") if p.is_file()} == before
 
 
-def test_spread_figures_against_a_loop():
+def test_spread_figures_against_hand_written_rows():
     """Every figure's mean (least..most) over the tracking and its copies, in the row's order."""
     from stage.benchmarks import spread_figures
 
