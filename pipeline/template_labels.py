@@ -259,8 +259,10 @@ def root_tubes(vertices, faces, labels) -> np.ndarray:
     """Body vertices on a limb's root, where the surface merged the limb into the body, given to the limb.
 
     A limb's root is its vertices within two of its radii of the body (its radius: their median distance to
-    the principal axis of all its vertices); its tube is the principal axis of the root, pointing from the
-    limb into the body, the tube's radius the root's median distance to that axis; a root whose axis lies more
+    the principal axis of all its vertices); its tube is the principal axis of the root, pointing into the body:
+    from the limb's centroid towards the centroid of the body vertices nearest the root's vertices (beside the
+    body the limb sets the direction; where the root is all of the limb, the body does). The tube's radius is the
+    root's median distance to that axis; a root whose axis lies more
     than 45 degrees from the limb's is about as wide as it is long and has no tube. A body vertex goes to the
     limb when its projection on the axis lies past the root's centroid and no more than one tube radius past
     the root's farthest vertex, it lies within the tube's radius and one mesh edge (the median edge) of the
@@ -326,19 +328,20 @@ def _root_tube(V: np.ndarray, labels: np.ndarray, k: int):
     from the limb's."""
     from scipy.spatial import cKDTree
 
-    idx, body = np.flatnonzero(labels == k), labels == BODY
-    if len(idx) < 3 or not body.any():
+    idx, body = np.flatnonzero(labels == k), np.flatnonzero(labels == BODY)
+    if len(idx) < 3 or not len(body):
         return None
-    gap = cKDTree(V[body]).query(V[idx])[0]
+    gap, nearest = cKDTree(V[body]).query(V[idx])
     centre, along = _principal_axis(V[idx])
     radius = np.median(np.linalg.norm(np.cross(V[idx] - centre, along), axis=1))
-    root = V[idx[gap <= 2 * radius]]
+    near = gap <= 2 * radius
+    root = V[idx[near]]
     if len(root) < 3:
         return None
     centre, axis = _principal_axis(root)
     if abs(axis @ along) < _COS45:  # a root about as wide as it is long: its axis is no direction of the limb's
         return None
-    if (V[idx].mean(0) - centre) @ axis > 0:  # into the body: away from the limb
+    if (V[body[nearest[near]]].mean(0) - V[idx].mean(0)) @ axis < 0:  # from the limb to the body nearest its root
         axis = -axis
     radius = float(np.median(np.linalg.norm(np.cross(root - centre, axis), axis=1)))
     return centre, axis, radius, float(((root - centre) @ axis).max())

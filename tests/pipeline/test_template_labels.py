@@ -216,7 +216,8 @@ def _slow_root_tubes(V, F, labels):
         c, a = axis_of(V[root])
         if np.degrees(np.arccos(min(abs(a @ a0), 1.0))) > 45:
             continue
-        if (V[limb].mean(0) - c) @ a > 0:
+        nearest = [body[int(np.argmin(np.linalg.norm(V[body] - V[i], axis=1)))] for i in root]
+        if (V[nearest].mean(0) - V[limb].mean(0)) @ a < 0:  # from the limb towards the body nearest the root
             a = -a
         r = np.median([np.linalg.norm(radial(V[i], c, a)) for i in root])
         reach = max((V[i] - c) @ a for i in root)
@@ -321,6 +322,27 @@ def test_root_tubes_on_a_club_limb_out_of_a_body():
     on_limb = (x > 0) | ((x == 0) & (r == 1.25))
     labels = np.where(on_limb & (x > 3.0), 0, BODY)
     expected = np.where(on_limb & (x >= 2.5), 0, BODY)
+    assert (expected != labels).sum() == 2 * 16
+    np.testing.assert_array_equal(root_tubes(V, F, labels), expected)
+    np.testing.assert_array_equal(root_tubes(V, F[:, ::-1], labels), expected)
+
+
+def test_root_tubes_where_the_root_is_all_of_the_limb():
+    """A neck of radius 1.25 (rings 0.5 apart, x = 0 .. 8) stands in a sleeve of the body whose inner wall, radius
+    2.1, runs from the sleeve's floor at x = 0 to its rim at x = 10; the body holds the neck up to x = 1. Every
+    neck vertex lies within two limb radii (2.5) of the body, so the root is all of the limb and has the limb's
+    centroid. The body nearest the root (the wall beside it, the held rings below it) lies towards -x: the tube
+    runs that way and gives back the held rings at x = 1 and 0.5, within one radius of the root's end at 1.5; the
+    wall (its normals point at the axis) and the floor stay the body's. Either winding gives the same."""
+    from pipeline.template_labels import BODY, root_tubes
+
+    neck = [(x, 1.25) for x in np.arange(0.0, 8.25, 0.5)]
+    sleeve = [(x, 10.0) for x in np.arange(-20.0, 10.5, 2.0)] + [(10.0, 7.0), (10.0, 4.0)] \
+        + [(x, 2.1) for x in np.arange(10.0, -0.25, -0.5)]
+    V, F, x, r = _revolved(sleeve + neck)
+    on_neck = np.arange(len(V)) >= len(V) - (len(neck) * 16 + 1)  # its rings and the vertex closing it
+    labels = np.where(on_neck & (x > 1.0), 0, BODY)
+    expected = np.where(on_neck & (x >= 0.5), 0, BODY)
     assert (expected != labels).sum() == 2 * 16
     np.testing.assert_array_equal(root_tubes(V, F, labels), expected)
     np.testing.assert_array_equal(root_tubes(V, F[:, ::-1], labels), expected)
