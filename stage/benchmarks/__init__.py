@@ -202,3 +202,60 @@ def seeds_option(text: str, option: str = "--take-seeds") -> list[int]:
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"{option}: a seed given twice in {text!r}")
     return seeds
+
+
+def check_starts(starts, *, name: str = "starts") -> list[float]:
+    """Simulated takes' start times, checked.
+
+    Parameters
+    ----------
+    starts : sequence of float
+        Seconds into the creature's motion each take starts at (``fake_cameras.take.simulate_take(start=)``): at
+        least one, each a finite number >= 0 (numpy's numbers too; not a bool), none given twice.
+    name : str
+        What the error calls it: the parameter or the command-line option.
+
+    Returns
+    -------
+    list of float
+        ``starts`` as Python floats, in their order.
+
+    Raises
+    ------
+    ValueError
+        Naming ``name`` when ``starts`` is a string or not a sequence, is empty, or holds a value that is not a
+        finite number >= 0 or is given twice.
+    """
+    try:
+        if isinstance(starts, (str, bytes)):
+            raise TypeError
+        values = list(starts)
+    except TypeError:
+        raise ValueError(f"{name} must be a sequence of seconds >= 0, got {starts!r}") from None
+    if not values:
+        raise ValueError(f"{name}: give at least one start")
+    for s in values:
+        if isinstance(s, bool) or not isinstance(s, (int, float, np.integer, np.floating)) or not (
+                math.isfinite(s) and s >= 0):
+            raise ValueError(f"{name} must be finite numbers of seconds >= 0, got {starts!r}")
+    out = [float(s) for s in values]
+    if len(set(out)) != len(out):
+        raise ValueError(f"{name}: a start given twice in {starts!r}")
+    return out
+
+
+def starts_option(text: str, option: str = "--take-starts") -> list[float]:
+    """The take starts of a comma-separated option (``"0,0.3125"`` -> ``[0.0, 0.3125]``), checked as
+    :func:`check_starts` checks them; ``ValueError`` names ``option``."""
+    try:
+        starts = [float(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"{option} must be numbers of seconds (e.g. 0,0.3125), got {text!r}") from None
+    if not starts:
+        raise ValueError(f"{option}: give at least one start")
+    if not all(math.isfinite(s) and s >= 0 for s in starts):
+        raise ValueError(f"{option} must be finite numbers of seconds >= 0, got {text!r}")
+    if len(set(starts)) != len(starts):
+        raise ValueError(f"{option}: a start given twice in {text!r}")
+    return starts
+

@@ -15,7 +15,8 @@ multi-view takes are also tracked on their true surfaces
 (:func:`fake_cameras.surface_motion.true_surface`), the tracker's error apart from the surfaces',
 and on their surfaces carved across time (:mod:`pipeline.carve`, two rounds); ``--copies N`` tracks every
 fast and slow take also on N copies whose surfaces are moved by 0.001 mm and prints every row's figures as
-mean (least..most) under it (:func:`fast_accuracy`). :func:`skeleton_oracle` tracks a fast take with the
+mean (least..most) under it (:func:`fast_accuracy`); ``--take-starts 0,0.3125,...`` simulates them also starting
+that many seconds into the creature's motion. :func:`skeleton_oracle` tracks a fast take with the
 simulator's own skeleton as the armature.
 """
 
@@ -29,7 +30,15 @@ import time
 
 import numpy as np
 
-from stage.benchmarks import COPY_SIGMA, check_copies, moved_surfaces, seeds_option, spread_figures
+from stage.benchmarks import (
+    COPY_SIGMA,
+    check_copies,
+    check_starts,
+    moved_surfaces,
+    seeds_option,
+    spread_figures,
+    starts_option,
+)
 from stage.benchmarks._data import SHARED_DATA
 
 NAME = "track"
@@ -53,6 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "the volume and what `stage armature` finds (several minutes)")
     p.add_argument("--take-seeds", default="3",
                    help="with --accuracy: the simulator's seeds of the fast and slow takes (default 3; e.g. 3,4)")
+    p.add_argument("--take-starts", default="0", metavar="S1,S2,...",
+                   help="with --accuracy: the fast and slow takes of every seed also simulated starting at each of these "
+                   "seconds into the creature's motion (default 0; e.g. 0,0.3125,0.625); a row's name shows its "
+                   "start when it is not 0 (e.g. 'biped s3 t0.3125')")
     p.add_argument("--copies", type=int, default=0, metavar="N",
                    help="with --accuracy: every fast and slow take also tracked on N copies of its results, every vertex "
                    f"of every surface moved by N(0, {1000 * COPY_SIGMA:g} um) (far below a voxel: what moves then is "
@@ -118,7 +131,7 @@ FAST_TAKES = (("quadruped", 10.0, 16), ("starfish", 10.0, 16), ("biped", 10.0, 1
               ("starfish", 30.0, 16), ("biped", 30.0, 16))
 
 
-def fast_accuracy(*, seeds=(3,), copies: int = 0) -> None:
+def fast_accuracy(*, seeds=(3,), copies: int = 0, starts=(0.0,)) -> None:
     """Fast takes (and slow ones): the default tracking, then tracked again with an armature as
     the articulated prior (:func:`pipeline.track_armature.track_with_armature`): the armature built from the
     tracking (``stage track --armature-rounds auto``), the take's spine as the first round's armature and then
@@ -132,7 +145,25 @@ def fast_accuracy(*, seeds=(3,), copies: int = 0) -> None:
     of its processed results whose surfaces are moved by 0.001 mm
     (:func:`stage.benchmarks.moved_surfaces`, seeds 1..``copies``), and under every row its figures over
     the take and the copies, each mean (least..most) (:func:`stage.benchmarks.spread_figures`): the
-    row's run-to-run spread."""
+    row's run-to-run spread. With ``starts`` every take of every seed is simulated starting at each of those
+    seconds into the creature's motion (:func:`fake_cameras.take.simulate_take`'s ``start``).
+
+    Parameters
+    ----------
+    seeds : sequence of int
+        The simulator's seeds (>= 0, none twice): every take once for each, in their order.
+    copies : int
+        Moved copies of every take's processed results (an integer >= 0).
+    starts : sequence of float
+        Seconds into the creature's motion the takes start at (finite, >= 0, none twice): every take of every
+        seed once for each, the starts of a seed in their order; a row's name shows its start when it is not 0
+        (``"biped s3 t0.3125"``). The default, 0 alone, is the takes as they were before starts.
+
+    Raises
+    ------
+    ValueError
+        Naming ``seeds``, ``copies`` or ``starts`` when out of range, before any take is simulated.
+    """
     import tempfile
     from pathlib import Path
 
@@ -140,31 +171,40 @@ def fast_accuracy(*, seeds=(3,), copies: int = 0) -> None:
         raise ValueError(f"seeds must be a sequence of integers, got {seeds!r}")
     seeds = seeds_option(",".join(map(str, seeds)), "seeds")
     copies = check_copies(copies)
+    starts = check_starts(starts)
     with tempfile.TemporaryDirectory() as tmp:
-        for seed, (creature, fps, frames) in itertools.product(seeds, FAST_TAKES):
-            _fast_take(creature, fps, frames, seed=seed, root=Path(tmp), copies=copies)
+        for seed, start, (creature, fps, frames) in itertools.product(seeds, starts, FAST_TAKES):
+            _fast_take(creature, fps, frames, seed=seed, root=Path(tmp), copies=copies, start=start)
 
 
-def _fast_take(creature: str, fps: float, frames: int, *, seed: int, root, copies: int = 0) -> None:
-    """:func:`fast_accuracy`'s rows of one take, simulated, recorded and processed in ``root``; with ``copies``,
-    every row followed by its figures over the take and that many copies moved by 0.001 mm."""
+def _start_tag(start: float) -> str:
+    """How a take's name shows its start (seconds): nothing at 0, else e.g. ``" t0.3125"``."""
+    return f" t{start:.15g}" if start else ""
+
+
+def _fast_take(creature: str, fps: float, frames: int, *, seed: int, root, copies: int = 0, start: float = 0.0) -> None:
+    """:func:`fast_accuracy`'s rows of one take, simulated (``start`` seconds into the motion), recorded and
+    processed in ``root``; with ``copies``, every row followed by its figures over the take and that many copies
+    moved by 0.001 mm."""
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
     from pipeline.process import process_take
 
-    sim = simulate_take(creature, n_cameras=8, frames=frames, size=(640, 480), seed=seed, fps=fps)
-    take = record_take(sim, root / f"{creature}_{fps:g}_s{seed}.h5")
-    res = root / f"{creature}_{fps:g}_s{seed}_results"
+    sim = simulate_take(creature, n_cameras=8, frames=frames, size=(640, 480), seed=seed, fps=fps, start=start)
+    stem = f"{creature}_{fps:g}_s{seed}{_start_tag(start).replace(' ', '_')}"
+    take = record_take(sim, root / f"{stem}.h5")
+    res = root / f"{stem}_results"
     process_take(take, res, executor=None)
     moved = [moved_surfaces(res, res.with_name(f"{res.name}_copy{k}"), seed=k) for k in range(1, copies + 1)]
     rows = [] if copies else None  # printed as they come without copies
-    _take_rows(f"{creature} s{seed}", fps, sim, res, frames, rows=rows)
+    name = f"{creature} s{seed}{_start_tag(start)}"
+    _take_rows(name, fps, sim, res, frames, rows=rows)
     if not copies:
         return
     per_copy = []
     for copy in moved:
         per_copy.append([])
-        _take_rows(f"{creature} s{seed}", fps, sim, copy, frames, rows=per_copy[-1])
+        _take_rows(name, fps, sim, copy, frames, rows=per_copy[-1])
     for i, row in enumerate(rows):
         print(row["line"])
         print(f"    the take and {copies} copies moved by {1000 * COPY_SIGMA:g} um, mean (least..most): "
@@ -654,15 +694,18 @@ def _timings(F: int) -> None:
 def run(args: argparse.Namespace) -> int:
     seeds = seeds_option(getattr(args, "take_seeds", "3"))
     copies = check_copies(getattr(args, "copies", 0), name="--copies")
+    starts = starts_option(getattr(args, "take_starts", "0"))
     if copies and not args.accuracy:
         raise ValueError("--copies needs --accuracy (it copies the fast and slow takes that --accuracy tracks)")
+    if starts != [0.0] and not args.accuracy:
+        raise ValueError("--take-starts needs --accuracy (it starts the fast and slow takes that --accuracy tracks)")
     _timings(max(2, int(args.frames)))
     armature_seconds()
     if args.accuracy:
         accuracy()
         real_pipe_accuracy()
         multiview_accuracy()
-        fast_accuracy(seeds=seeds, copies=copies)
+        fast_accuracy(seeds=seeds, copies=copies, starts=starts)
     print("reused per take: Laplacian, L^T L and its pattern, the LDL^T ordering and elimination tree (qdldl), "
           "the patches and the summing matrices of the per-round sums (vertex normals, patch centroids and Kabsch), "
           "the prediction's averaging matrix, "
