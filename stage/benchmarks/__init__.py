@@ -245,17 +245,10 @@ def check_starts(starts, *, name: str = "starts") -> list[float]:
 
 
 def starts_option(text: str, option: str = "--take-starts") -> list[float]:
-    """The take starts of a comma-separated option (``"0,0.3125"`` -> ``[0.0, 0.3125]``), checked as
-    :func:`check_starts` checks them; ``ValueError`` names ``option``."""
+    """The take starts of a comma-separated option (``"0,0.3125"`` -> ``[0.0, 0.3125]``), checked by
+    :func:`check_starts`; ``ValueError`` names ``option``."""
     try:
         starts = [float(x) for x in str(text).split(",") if x.strip()]
     except ValueError:
         raise ValueError(f"{option} must be numbers of seconds (e.g. 0,0.3125), got {text!r}") from None
-    if not starts:
-        raise ValueError(f"{option}: give at least one start")
-    if not all(math.isfinite(s) and s >= 0 for s in starts):
-        raise ValueError(f"{option} must be finite numbers of seconds >= 0, got {text!r}")
-    if len(set(starts)) != len(starts):
-        raise ValueError(f"{option}: a start given twice in {text!r}")
-    return starts
-
+    return check_starts(starts, name=option)
