@@ -30,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from api.errors import NotFoundError, UnavailableError
 from api.paths import JOB_ID, check_id, confined_entries, inside
-from calib.fileio import atomic_write
+from calib.fileio import atomic_write, plain
 
 __all__ = ["CalibrationLibrary", "CalibrateParams", "calibrate_take", "calibrate_take_work", "FORMATS", "MEDIA"]
 
@@ -224,8 +224,10 @@ def calibrate_take_work(calibrations_dir: Path) -> Callable[..., Any]:
         calib = type(calib)(cameras=calib.cameras, units=calib.units,
                             meta={**calib.meta, "take": take_id, "source": "board"})
         CalibrationLibrary(calibrations_dir).save(calib, job_id)
-        if hasattr(result, "to_dict"):
-            (out / "report.json").write_text(json.dumps(result.to_dict(), indent=1, default=str), encoding="utf-8")
+        if hasattr(result, "to_dict"):  # strict JSON: a figure with nothing to measure (a camera without
+            # held-out views) is null, not NaN, which browsers' JSON.parse and other tools refuse
+            report = json.dumps(plain(result.to_dict(), finite=True), indent=1, default=str, allow_nan=False)
+            (out / "report.json").write_text(report, encoding="utf-8")
         return {"calibration": job_id, "cameras": list(calib.names), "links": {"json": f"/calibrations/{job_id}.json"}}
 
     return work

@@ -234,6 +234,7 @@
       if (j.state === 'done'){
         const rep = await api('GET', '/jobs/' + calibJob + '/results/report.json');
         showReport(j, rep.ok ? rep.data : null);
+        if (!rep.ok || !rep.data) $('calib-summary').textContent = 'the report could not be read: ' + (rep.ok ? 'not JSON' : detail(rep));
         return;
       }
       if (j.state === 'failed' || j.state === 'cancelled') return;

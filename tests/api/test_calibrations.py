@@ -243,3 +243,39 @@ def test_calibrate_take_finds_a_mirrored_camera(make_client, mirrored_take):
     r = client.post("/calibrations", json={"take": "mir", "parameters": {"board": CHARUCO,
                                                                         "mirror": {"cam01": "sometimes"}}}, headers=AUTH)
     assert r.status_code == 400 and "parameters" in r.json()["detail"], r.text
+
+
+def test_board_report_is_strict_json_when_a_camera_has_no_held_out_views(client, tmp_path, monkeypatch):
+    """A held-out fold can leave a camera without views: its held-out error is NaN in the calibrator's report.
+    The job's ``report.json`` must still be JSON that a browser's ``JSON.parse`` reads (the control room's page
+    waits on it): NaN is written as null, and the other figures as they were."""
+    import json
+
+    import api.calibrations as mod
+
+    cal = small_calibration(2)
+
+    class Result:
+        calibration = cal
+
+        def to_dict(self):
+            return {"summary": "2 cameras", "evaluation": {"held_out": {"per_camera": {
+                "cam00": {"rms": float("nan"), "views": 0}, "cam01": {"rms": np.float64(0.25), "views": 3}},
+                "rms": np.float64(np.nan)}}, "covariance": np.array([[1.0, np.inf]])}
+
+    monkeypatch.setattr(mod, "_find_rig_calibrator", lambda: lambda take, **kw: Result())
+    _put(client, tmp_path, "b")
+    r = client.post("/calibrations", json={"take": "b", "parameters": {"board": BOARD}}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    jid = r.json()["job"]
+    assert wait_job(client, jid)["state"] == "done"
+    got = client.get(f"/jobs/{jid}/results/report.json")
+    assert got.status_code == 200, got.text
+
+    def refuse(name):
+        raise ValueError(f"not strict JSON: {name}")
+
+    report = json.loads(got.text, parse_constant=refuse)
+    held = report["evaluation"]["held_out"]
+    assert held["per_camera"] == {"cam00": {"rms": None, "views": 0}, "cam01": {"rms": 0.25, "views": 3}}
+    assert held["rms"] is None and report["covariance"] == [[1.0, None]] and report["summary"] == "2 cameras"
