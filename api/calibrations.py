@@ -30,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from api.errors import NotFoundError, UnavailableError
 from api.paths import JOB_ID, check_id, confined_entries, inside
-from calib.fileio import atomic_write, plain
+from calib.fileio import atomic_write, strict_json
 
 __all__ = ["CalibrationLibrary", "CalibrateParams", "calibrate_take", "calibrate_take_work", "FORMATS", "MEDIA"]
 
@@ -226,8 +226,7 @@ def calibrate_take_work(calibrations_dir: Path) -> Callable[..., Any]:
         CalibrationLibrary(calibrations_dir).save(calib, job_id)
         if hasattr(result, "to_dict"):  # strict JSON: a figure with nothing to measure (a camera without
             # held-out views) is null, not NaN, which browsers' JSON.parse and other tools refuse
-            report = json.dumps(plain(result.to_dict(), finite=True), indent=1, default=str, allow_nan=False)
-            (out / "report.json").write_text(report, encoding="utf-8")
+            (out / "report.json").write_text(strict_json(result.to_dict()), encoding="utf-8")
         return {"calibration": job_id, "cameras": list(calib.names), "links": {"json": f"/calibrations/{job_id}.json"}}
 
     return work

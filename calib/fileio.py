@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_write", "replace_durably", "fsync_dir", "json_default", "json_ready", "plain"]
+__all__ = ["atomic_write", "replace_durably", "fsync_dir", "json_default", "json_ready", "plain", "strict_json"]
 
 
 def fsync_dir(folder: str | os.PathLike) -> None:
@@ -131,3 +131,17 @@ def plain(x: Any, *, finite: bool = False) -> Any:
     if finite and isinstance(x, float) and not math.isfinite(x):
         return None
     return x
+
+
+def strict_json(x: Any, *, indent: int | None = 1) -> str:
+    """``x`` as strict JSON text, as browsers' ``JSON.parse`` and other tools read it: numpy values plain, a
+    non-finite number (a figure with nothing to measure) ``null`` rather than ``NaN``, and any other object
+    through :func:`json_default` (else its ``str``)."""
+
+    def default(o: Any) -> Any:
+        try:
+            return plain(json_default(o), finite=True)
+        except TypeError:
+            return str(o)
+
+    return json.dumps(plain(x, finite=True), indent=indent, default=default, allow_nan=False)

@@ -351,8 +351,7 @@ def _check_args(args: argparse.Namespace) -> None:
 
 def _write(args: argparse.Namespace, result, detections) -> None:
     """Everything computed: now write (nothing is written when anything before fails)."""
-    import json
-
+    from calib.fileio import strict_json
     from calib.formats import write_calibration
 
     calib = result.calibration
@@ -367,7 +366,7 @@ def _write(args: argparse.Namespace, result, detections) -> None:
             cv2.imwrite(str(args.coverage / f"coverage_{name}.png"), img)
         print(f"coverage pictures in {args.coverage}")
     if args.report is not None:
-        args.report.write_text(json.dumps(result.to_dict(), indent=1))
+        args.report.write_text(strict_json(result.to_dict()))  # a camera without held-out views: null
     if args.out is not None:
         write_calibration(calib, args.out)
         print(f"wrote {args.out}")

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from calib.fileio import atomic_write, fsync_dir, json_default, plain, replace_durably
+from calib.fileio import atomic_write, fsync_dir, json_default, plain, replace_durably, strict_json
 
 
 def test_atomic_write_replaces_whole_files_and_leaves_no_temporary(tmp_path):
@@ -62,3 +62,25 @@ def test_invalid_input(tmp_path):
     with pytest.raises(FileNotFoundError):
         atomic_write(tmp_path / "no" / "dir" / "z", "1", parents=False)
     assert not (tmp_path / "no").exists()
+
+
+def test_strict_json_writes_non_finite_numbers_as_null():
+    """What JSON.parse reads: NaN and infinities (Python's and numpy's, in arrays and records too) become null,
+    every other value as ``json_default`` writes it; the text never holds NaN or Infinity."""
+    from dataclasses import dataclass
+    from pathlib import Path
+
+    @dataclass
+    class Record:
+        rms: float
+
+    x = {"a": float("nan"), "b": [1.5, np.float32(2.5), np.inf], "c": np.array([[0.0, -np.inf]]), 3: np.int64(7),
+         "rec": Record(float("nan")), "path": Path("x/y"), "other": object}
+
+    def refuse(name):
+        raise ValueError(f"not strict JSON: {name}")
+
+    back = json.loads(strict_json(x), parse_constant=refuse)
+    assert back == {"a": None, "b": [1.5, 2.5, None], "c": [[0.0, None]], "3": 7, "rec": {"rms": None},
+                    "path": "x/y", "other": str(object)}
+    assert json.loads(strict_json({"k": 1}, indent=None)) == {"k": 1} and "\n" not in strict_json([1, 2], indent=None)
