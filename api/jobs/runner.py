@@ -32,7 +32,7 @@ from typing import Any, Callable, Sequence
 from api.executors import ExecutorHandle, make_executor
 from api.jobs.store import JobRecord, JobStore
 from api.paths import confined, data_relative
-from calib.fileio import json_ready
+from calib.fileio import json_ready, plain
 
 __all__ = ["JobRunner", "WorkSpec", "WorkUnavailableError", "load_work", "DEFAULT_STEPS"]
 
@@ -119,15 +119,16 @@ def load_work(spec: str | Callable[..., Any]) -> WorkSpec:
 
 def _jsonable(obj: Any) -> Any:
     """What a work function returned, as JSON: numbers, arrays and records through
-    :func:`calib.fileio.json_default`; anything else as its ``str`` (the job's record never fails on it)."""
+    :func:`calib.fileio.json_default`; anything else as its ``str``; a non-finite number as None (the job's record
+    never fails on it, nor does the API's strict JSON when it serves the record)."""
     if obj is None:
         return None
     try:
-        return json_ready(obj)
+        return plain(json_ready(obj), finite=True)
     except (TypeError, ValueError):
         pass
     try:
-        return json.loads(json.dumps(obj, default=str))
+        return plain(json.loads(json.dumps(obj, default=str)), finite=True)
     except (TypeError, ValueError):
         return {"repr": repr(obj)}
 

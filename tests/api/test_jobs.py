@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 from api.jobs.store import JobStore
 from tests.api.conftest import AUTH, add_take, wait_job
 
@@ -267,3 +269,17 @@ def test_tracked_and_rig_files_are_listed_and_served(client, data_root):
     assert client.get(listing["tracked_url"].format(index=3)).content[:3] == b"ply"
     for bad in ("tracked/000099.ply", "rig/posed/000099.ply", "tracked/3.ply", "rig/other.json", "rig/posed/rig.json"):
         assert client.get(f"/jobs/{jid}/results/{bad}").status_code in (400, 404, 422), bad
+
+
+def test_a_work_result_with_non_finite_numbers_is_served_as_strict_json():
+    """A work function's result holding NaN or an infinity (a figure with nothing to measure) is kept with null
+    there: the API serves job records as strict JSON (no NaN), which would otherwise fail on every GET of the job;
+    every other value is kept as JSON reads it back."""
+    from api.jobs.runner import _jsonable
+
+    got = _jsonable({"rms": float("nan"), "per": [1.5, np.float32(np.inf)], "arr": np.array([0.0, -np.inf]),
+                     "n": np.int64(3)})
+    assert got == {"rms": None, "per": [1.5, None], "arr": [0.0, None], "n": 3}
+    json.dumps(got, allow_nan=False)
+    odd = _jsonable({"other": object, "rms": float("-inf")})  # no JSON form: its str, the number null all the same
+    assert odd == {"other": str(object), "rms": None}
