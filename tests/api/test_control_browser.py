@@ -277,15 +277,18 @@ def test_board_session_to_calibration_report(tmp_path):
     assert summary == report["summary"] and "held-out" in summary
     held = report["evaluation"]["held_out"]["per_camera"]
     assert [r[0] for r in rows] == list(held)
-    for r in rows:
-        assert float(r[1]) == pytest.approx(held[r[0]]["rms"], abs=1e-3)
+    for r in rows:  # a camera that the held-out folds left without views has no held-out error: null, shown "–"
+        rms = held[r[0]]["rms"]
+        assert r[1] == "–" if rms is None else float(r[1]) == pytest.approx(rms, abs=1e-3), (r, rms)
+    measured = [float(r[1]) for r in rows if r[1] != "–"]
+    assert measured, rows
     # the simulated cameras are genlocked (their sets' spread is their 0.5 ms jitter), unless a camera's
     # reader lagged a whole period through the sync's first window (a starved machine): its frames then go
     # a set late until a faster delivery shows it, sets hold two views of the moving board, and the take
     # says so (spread near one period); the calibration must then name a camera far above the rest
     print(f"sync spread max {sync['spread_max_ms']:.2f} ms, held-out px {[r[1] for r in rows]}")
     if sync["spread_max_ms"] < 1000 / 6 / 4:
-        assert all(float(r[1]) < 2.0 for r in rows), rows
+        assert all(px < 2.0 for px in measured), rows
     else:
         assert any("is far above the rest" in w for w in report["warnings"]), (sync, report["warnings"])
 
