@@ -36,16 +36,15 @@ def check_copies(copies, *, name: str = "copies") -> int:
     ValueError
         Naming ``name`` when ``copies`` is not an integer >= 0.
     """
-    if isinstance(copies, bool) or not isinstance(copies, (int, np.integer)) or copies < 0:
-        raise ValueError(f"{name} must be an integer >= 0, got {copies!r}")
-    return int(copies)
+    return _whole(copies, name)
 
 
-def _check_seed(seed) -> int:
-    """A draws' seed (an integer >= 0, numpy's too, not a bool), or a ValueError naming ``seed``."""
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
-    return int(seed)
+def _whole(x, name: str) -> int:
+    """``x`` as a Python int when it is an integer >= 0 (numpy's too, not a bool), else a ValueError naming
+    ``name``: the one check of the copies' count, the draws' seed and the printed digits."""
+    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < 0:
+        raise ValueError(f"{name} must be an integer >= 0, got {x!r}")
+    return int(x)
 
 
 def check_sigma(sigma, *, name: str = "sigma") -> float:
@@ -79,7 +78,7 @@ def move_meshes(paths, *, seed: int, sigma: float = COPY_SIGMA) -> None:
     from pipeline.meshio import load_mesh
     from pipeline.results import atomic_write_bytes, ply_bytes
 
-    rng = np.random.default_rng(_check_seed(seed))
+    rng = np.random.default_rng(_whole(seed, "seed"))
     check_sigma(sigma)
     for path in paths:
         v, f = load_mesh(path, largest=False)
@@ -118,7 +117,7 @@ def moved_surfaces(results, dst, *, seed: int, sigma: float = COPY_SIGMA) -> Pat
         and ``dst`` when it is ``results``, lies inside it or holds it (replacing it would delete the results);
         nothing is touched then.
     """
-    _check_seed(seed)
+    _whole(seed, "seed")
     check_sigma(sigma)
     results, dst = Path(results), Path(dst)
     if not (results / "meshes").is_dir():
@@ -152,8 +151,7 @@ def spread_cell(values, digits: int) -> str:
     ValueError
         Naming ``values`` when it is empty, ``digits`` when it is not an integer >= 0.
     """
-    if isinstance(digits, bool) or not isinstance(digits, (int, np.integer)) or digits < 0:
-        raise ValueError(f"digits must be an integer >= 0, got {digits!r}")
+    _whole(digits, "digits")
     x = np.asarray(values, dtype=np.float64).ravel()
     if not len(x):
         raise ValueError("values must hold at least one figure")
