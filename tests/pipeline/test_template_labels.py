@@ -283,6 +283,16 @@ def test_root_tubes_against_a_loop(name):
     assert given.sum() >= 10 and np.array_equal(got[given], true[given])
 
 
+def _gives_back_two_rings(V, F, labels, expected):
+    """``root_tubes`` gives ``expected``, two rings of 16 vertices more on the limb than ``labels``, whichever way
+    the triangles wind."""
+    from pipeline.template_labels import root_tubes
+
+    assert (expected != labels).sum() == 2 * 16
+    np.testing.assert_array_equal(root_tubes(V, F, labels), expected)
+    np.testing.assert_array_equal(root_tubes(V, F[:, ::-1], labels), expected)
+
+
 def _revolved(profile, sections: int = 16):
     """A closed surface of revolution about the x axis: one ring of ``sections`` vertices for each (x, radius) of
     ``profile`` (in order), a vertex on the axis closing each end; (vertices, faces, the ring's x and radius of every
@@ -314,7 +324,7 @@ def test_root_tubes_on_a_club_limb_out_of_a_body():
     runs along the neck into the body (towards -x), its radius the neck's, and reaches one radius past the root's
     end at 3.5: the neck's rings at x = 3 and 2.5, which the body holds, go to the limb; the ring at 2 (1.5 past) and
     the end face (its normals along the tube, not away from it) stay the body's. Either winding gives the same."""
-    from pipeline.template_labels import BODY, root_tubes
+    from pipeline.template_labels import BODY
 
     neck = [(x, 1.25) for x in np.arange(0.0, 14.25, 0.5)]
     club = [(x, 5.0) for x in np.arange(14.0, 34.25, 0.5)]
@@ -322,9 +332,7 @@ def test_root_tubes_on_a_club_limb_out_of_a_body():
     on_limb = (x > 0) | ((x == 0) & (r == 1.25))
     labels = np.where(on_limb & (x > 3.0), 0, BODY)
     expected = np.where(on_limb & (x >= 2.5), 0, BODY)
-    assert (expected != labels).sum() == 2 * 16
-    np.testing.assert_array_equal(root_tubes(V, F, labels), expected)
-    np.testing.assert_array_equal(root_tubes(V, F[:, ::-1], labels), expected)
+    _gives_back_two_rings(V, F, labels, expected)
 
 
 def test_root_tubes_where_the_root_is_all_of_the_limb():
@@ -334,7 +342,7 @@ def test_root_tubes_where_the_root_is_all_of_the_limb():
     centroid. The body nearest the root (the wall beside it, the held rings below it) lies towards -x: the tube
     runs that way and gives back the held rings at x = 1 and 0.5, within one radius of the root's end at 1.5; the
     wall (its normals point at the axis) and the floor stay the body's. Either winding gives the same."""
-    from pipeline.template_labels import BODY, root_tubes
+    from pipeline.template_labels import BODY
 
     neck = [(x, 1.25) for x in np.arange(0.0, 8.25, 0.5)]
     sleeve = [(x, 10.0) for x in np.arange(-20.0, 10.5, 2.0)] + [(10.0, 7.0), (10.0, 4.0)] \
@@ -343,9 +351,7 @@ def test_root_tubes_where_the_root_is_all_of_the_limb():
     on_neck = np.arange(len(V)) >= len(V) - (len(neck) * 16 + 1)  # its rings and the vertex closing it
     labels = np.where(on_neck & (x > 1.0), 0, BODY)
     expected = np.where(on_neck & (x >= 0.5), 0, BODY)
-    assert (expected != labels).sum() == 2 * 16
-    np.testing.assert_array_equal(root_tubes(V, F, labels), expected)
-    np.testing.assert_array_equal(root_tubes(V, F[:, ::-1], labels), expected)
+    _gives_back_two_rings(V, F, labels, expected)
 
 
 def test_a_root_as_wide_as_it_is_long_has_no_tube():
