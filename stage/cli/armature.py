@@ -66,9 +66,10 @@ def _spine_meta(results: Path) -> dict:
         return {}
 
 
-def _track_first(d: Path, *, quiet: bool, labels: bool = False) -> list:
+def _track_first(d: Path, *, quiet: bool, no_progress: bool, labels: bool = False) -> list:
     """``stage track d`` with its defaults (and ``--labels`` with ``labels``: the parts from the limbs need them),
-    for a processed take without a tracked template; its tracked meshes."""
+    for a processed take without a tracked template, its progress bars shown as this command's are
+    (``no_progress``); its tracked meshes."""
     from pipeline.armature_files import tracked_meshes
     from stage.cli import build_parser
 
@@ -76,6 +77,7 @@ def _track_first(d: Path, *, quiet: bool, labels: bool = False) -> list:
     print(f"{d} has no tracked template (tracked/NNNNNN.ply): tracking the template through the take first, "
           f"as `stage {' '.join(command)}` does")
     targs = build_parser().parse_args((["-q"] if quiet else []) + command)
+    targs.no_progress = no_progress  # as stage.cli.main decided for this command (a terminal, --progress)
     targs.func(targs)
     return tracked_meshes(d)
 
@@ -114,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         except NoTrackingError as exc:
             if not any((d / "meshes").glob("frame_*.ply")):
                 raise UserError(str(exc)) from None
-            paths = _track_first(d, quiet=args.quiet, labels=args.parts == "limbs")
+            paths = _track_first(d, quiet=args.quiet, no_progress=args.no_progress, labels=args.parts == "limbs")
         meta = _spine_meta(d)
         out = args.out or d / "rig"
     if len(paths) < 1:

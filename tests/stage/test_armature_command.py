@@ -87,6 +87,19 @@ def test_rig_results_dir_tracks_first(tmp_path, capsys, monkeypatch):
     assert doc["spine"]["limbs"] == ["limb0"] and sorted(doc["spine"]["segment_limbs"]) == ["body", "limb0"]
 
 
+@pytest.mark.parametrize("progress", [False, True])
+def test_the_tracking_of_stage_armature_shows_progress_bars_as_the_command_does(tmp_path, capsys, progress):
+    """The tracking ``stage armature RESULTS_DIR`` runs first draws its progress bars as the command's own are
+    drawn: not when stderr is no terminal (here: captured), unless ``--progress`` is given."""
+    V, F, _ = two_bars(4)
+    (tmp_path / "meshes").mkdir()
+    for i, v in enumerate(V):
+        (tmp_path / "meshes" / f"frame_{i:06d}.ply").write_bytes(ply_bytes(v, F))
+    assert main(["armature", str(tmp_path), "--samples", "300", *(["--progress"] if progress else [])]) == 0
+    err = capsys.readouterr().err
+    assert ("track: 100%" in err) == progress and ("write: 100%" in err) == progress, err
+
+
 def test_armature_parts_limbs_of_an_untracked_take_track_with_the_labels_first(tmp_path, capsys):
     """``stage armature RESULTS_DIR --parts limbs`` on a processed take without a tracked template tracks it with
     the template's labels first (``stage track --labels``, said), so its parts come from the limbs."""
