@@ -493,7 +493,7 @@ def find_subject_box(
     if not found.any():
         raise EmptyHullError(
             f"no subject found in any of the {n_sets} frame sets: no piece of the silhouettes' hull is seen by "
-            f"{min_views} cameras and explained by {min_support} (check the masks: `stage key --preview`)"
+            f"{min_views} cameras and explained by {min_support}"
         )
     box = np.stack([np.maximum(frame_boxes[found, 0].min(axis=0) - fine, bounds[0]),
                     np.minimum(frame_boxes[found, 1].max(axis=0) + fine, bounds[1])])

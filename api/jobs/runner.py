@@ -335,7 +335,8 @@ class JobRunner:
             self._after_stop_or_fail(jid, cancel, f"worker pool broke: {exc}", requeue=True)
             return
         except (ValueError, FileNotFoundError, WorkUnavailableError) as exc:
-            self._after_stop_or_fail(jid, cancel, str(exc))
+            # a work function's error said in a job's words (pipeline.process.ProcessError.job_message), if it has them
+            self._after_stop_or_fail(jid, cancel, str(getattr(exc, "job_message", None) or exc))
             return
         except Exception as exc:  # any failure of the work must end the job with a message, not kill the runner
             log.exception("job %s failed", jid)

@@ -38,8 +38,11 @@ def _check_frames(take: Path, *, skip: bool) -> dict:
     if damage.ok:
         return {}
     if not skip or not damage.skippable:
-        hint = "" if skip else "; --skip-damaged processes the other frame sets"
-        raise ProcessError(f"{damage.summary()}; nothing was processed (`stage verify {take}` lists the damage){hint}")
+        said = f"{damage.summary()}; nothing was processed"
+        raise ProcessError(f"{said} (`stage verify {take}` lists the damage)"
+                           + ("" if skip else "; --skip-damaged processes the other frame sets"),
+                           job_message=said + ("" if skip else "; parameters.skip_damaged = true processes the other "
+                                               "frame sets"))
     msg = f"{damage.summary()}: these frame sets are skipped (no surface, no skeleton)"
     log.warning("%s", msg)
     return {"sets": list(damage.sets), "frames": {c: list(v) for c, v in damage.frames.items()}, "summary": msg}
@@ -51,7 +54,9 @@ def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunC
 
     with TakeReader(take) as reader:
         if not reader.has_calibration:
-            raise ProcessError(f"{take}: the take has no calibration; run `stage calibrate` first")
+            raise ProcessError(f"{take}: the take has no calibration; run `stage calibrate` first",
+                               job_message=f"{take}: the take has no calibration; a job processes a take recorded or "
+                               "imported with its calibration")
         calibration = reader.calibration
         cameras = list(reader.cameras)
         missing_cal = [c for c in cameras if c not in calibration.names]

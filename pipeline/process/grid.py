@@ -48,11 +48,17 @@ def subject_grid(masks_of: Callable, calibration, n_sets: int, p: ProcessParams,
     """The subject's box over the whole take (:func:`pipeline.subject_box.find_subject_box`, every
     frame set carved coarse to fine inside ``volume_bounds``). ``masks_of(k)`` gives the masks of
     set ``k`` and the cameras skipped (:func:`pipeline.process.tasks.frame_masks`)."""
+    from pipeline.hull import EmptyHullError
     from pipeline.subject_box import find_subject_box
 
     volume_bounds = np.asarray(volume_bounds, float).reshape(2, 3)
-    return find_subject_box(_SetMasks(masks_of, n_sets), calibration, volume_bounds, tolerance=p.tolerance,
-                            support_plane=p.support_plane, progress=progress)
+    try:
+        return find_subject_box(_SetMasks(masks_of, n_sets), calibration, volume_bounds, tolerance=p.tolerance,
+                                support_plane=p.support_plane, progress=progress)
+    except EmptyHullError as exc:  # said with where to look at the masks
+        raise ProcessError(f"{exc} (check the masks: `stage key --preview`)",
+                           job_message=f"{exc} (check the masks: /takes/{{take}}/frames/{{index}}/{{camera}}/mask.png)"
+                           ) from None
 
 
 def rig_resolution(calibration, box: np.ndarray, p: ProcessParams, centres: np.ndarray | None = None) -> tuple[int, dict]:
@@ -72,7 +78,8 @@ def rig_resolution(calibration, box: np.ndarray, p: ProcessParams, centres: np.n
     seen = np.isfinite(fp)
     at = seen.any(axis=0)
     if not at.any():
-        raise ProcessError("no camera sees the centre of the subject's box; check the calibration or pass --resolution")
+        said = "no camera sees the centre of the subject's box; check the calibration or"
+        raise ProcessError(f"{said} pass --resolution", job_message=f"{said} give parameters.resolution")
     footprint = float(np.median(np.nanmedian(fp[:, at], axis=0)))
     n_seeing = int(np.median(seen[:, at].sum(axis=0)))
     wanted = int(np.ceil(longest / (PIXELS_PER_VOXEL * footprint)))

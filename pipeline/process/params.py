@@ -13,7 +13,21 @@ __all__ = ["ProcessError", "ProcessParams", "ProcessResult", "RigParams", "Track
 
 
 class ProcessError(ValueError):
-    """A take that cannot be processed; the message says why and what to do."""
+    """A take that cannot be processed; the message says why and what to do.
+
+    Parameters
+    ----------
+    message : str
+        In the words of ``stage process``: its options (``--resolution``), other ``stage`` commands.
+    job_message : str, optional
+        The same in the words of a job of the REST API, where ``message`` names a command line option or
+        command: the job's ``parameters`` (``parameters.resolution``), the API's endpoints. The API shows this
+        one (:attr:`job_message`; ``message`` when not given).
+    """
+
+    def __init__(self, message: str, *, job_message: str | None = None) -> None:
+        super().__init__(message)
+        self.job_message = message if job_message is None else job_message
 
 
 class TrackParams(BaseModel):

@@ -230,7 +230,7 @@ def _record_skipped(ctx: RunContext) -> None:
         skeleton_path(ctx.out, k).unlink(missing_ok=True)
         cams = [c for c, r in zip(ctx.take.cameras, ctx.take.set_table[k]) if r in ctx.damaged["frames"].get(c, ())]
         info = {"index": int(k), "status": "damaged", "skipped_cameras": list(ctx.take.cameras),
-                "reason": f"damaged frames of camera {', '.join(cams)} in the take: the set was skipped (--skip-damaged)"}
+                "reason": f"damaged frames of camera {', '.join(cams)} in the take: the set was skipped, as asked"}
         atomic_write(ctx.out / "frames" / f"{frame_name(k)}.json", json.dumps(info))
 
 

@@ -283,3 +283,56 @@ def test_a_work_result_with_non_finite_numbers_is_served_as_strict_json():
     json.dumps(got, allow_nan=False)
     odd = _jsonable({"other": object, "rms": float("-inf")})  # no JSON form: its str, the number null all the same
     assert odd == {"other": str(object), "rms": None}
+
+
+def _ring_calibration(n: int):
+    """``n`` 32x24 pinhole cameras on a ring of 1000 mm around the origin, looking at it."""
+    from calib.calibration import Calibration
+    from calib.camera import Camera
+
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        R = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]])
+        K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+        cams.append(Camera(f"cam{i:02d}", K, np.zeros(5), R, np.array([0, 0, 1000.0]), size=(32, 24)))
+    return Calibration(tuple(cams))
+
+
+def test_a_process_job_that_cannot_run_says_what_to_do_in_the_words_of_a_job(make_client, data_root):
+    """The API's job path (the real work) on takes it cannot process: no calibration, a damaged frame, masks
+    without a subject. The job's error names the job's parameters and the API, never a command line option or
+    ``stage`` command; ``stage process`` (the same ProcessError) keeps its own words."""
+    import h5py
+    import pytest
+
+    from pipeline.process import ProcessError, process_take
+    from stage.store import write_masks
+    from tests.api.fakework import make_take_file, small_calibration
+
+    takes = data_root / "takes"
+    takes.mkdir(parents=True)
+    make_take_file(takes / "nocal.h5", 2)
+    bad = make_take_file(takes / "bad.h5", 3, calibration=small_calibration())
+    with h5py.File(bad, "r") as f:  # flip 16 bytes in the middle of camera cam01's frame 1
+        info = f["cameras/cam01/image"].id.get_chunk_info_by_coord((1, 0, 0, 0))
+    with open(bad, "r+b") as fh:
+        fh.seek(info.byte_offset + info.size // 2)
+        data = fh.read(16)
+        fh.seek(info.byte_offset + info.size // 2)
+        fh.write(bytes(x ^ 0xFF for x in data))
+    empty = make_take_file(takes / "empty.h5", 2, cameras=3, calibration=_ring_calibration(3))
+    for cam in ("cam00", "cam01", "cam02"):
+        write_masks(empty, cam, np.zeros((2, 24, 32), bool))
+    c = make_client(work="pipeline.process:process_take")
+    cases = {"nocal": (None, "a job processes a take recorded or imported with its calibration", "`stage calibrate`"),
+             "bad": (None, "parameters.skip_damaged = true processes", "--skip-damaged"),
+             "empty": (["surface"], "/takes/{take}/frames/{index}/{camera}/mask.png", "`stage key --preview`")}
+    for take, (steps, job_words, cli_words) in cases.items():
+        jid = c.post("/jobs", json={"take": take, "steps": steps}, headers=AUTH).json()["id"]
+        st = wait_job(c, jid, timeout=60)
+        assert st["state"] == "failed" and job_words in st["error"], st
+        assert "--" not in st["error"] and "stage " not in st["error"] and "\n" not in st["error"], st["error"]
+        with pytest.raises(ProcessError) as exc:
+            process_take(takes / f"{take}.h5", data_root / "cli" / take, steps=steps)
+        assert cli_words in str(exc.value) and exc.value.job_message == st["error"].replace("DATA/", f"{data_root}/")

@@ -147,6 +147,7 @@ def test_process_skip_damaged_skips_the_sets_and_lists_them(tmp_path, simulated,
     report = json.loads((out / "report.json").read_text())
     assert report["damaged_sets"] == [1] and any("cam02" in w for w in report["warnings"])
     assert report["per_frame"][1]["status"] == "damaged" and "cam02" in report["per_frame"][1]["reason"]
+    assert report["per_frame"][1]["reason"].endswith("the set was skipped, as asked")  # no option: a job's report too
     assert [report["per_frame"][k]["status"] for k in (0, 2)] == ["ok", "ok"] and report["tip_counts"][1] == 0
     assert not (out / "meshes" / "frame_000001.ply").exists() and (out / "meshes" / "frame_000002.ply").exists()
     with TakeReader(bad) as r:  # the damaged frame was never keyed (nor read): its mask is marked invalid
