@@ -404,12 +404,21 @@ def _step_spine(ctx: RunContext) -> None:
     ctx.report_progress("spine", 1, 1)
 
 
+def _need_surfaces(ctx: RunContext, step: str) -> None:
+    """The surfaces the track step follows (``meshes/frame_NNNNNN.ply``), or a ProcessError in the words of the
+    steps (the job's and ``stage process --until``'s alike)."""
+    if not any((ctx.out / "meshes").glob("frame_*.ply")):
+        raise ProcessError(f"{step}: the take has no surfaces to track yet (meshes/frame_NNNNNN.ply): "
+                           "run the surface step first")
+
+
 def _step_track(ctx: RunContext) -> None:
     """The first surface tracked through the take -> ``tracked/`` (:func:`pipeline.carve.track_with_carving`
     with ``ProcessParams.track``; with the template's limb/body labels too when the job's rig takes its parts from
     them, ``rig.parts="limbs"``)."""
     from pipeline.carve import track_with_carving
 
+    _need_surfaces(ctx, "track")
     opt = ctx.params.track
     labels = opt.labels or ("rig" in ctx.steps and ctx.params.rig.parts == "limbs")
     rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress, executor=ctx.executor,
@@ -448,9 +457,7 @@ def _step_rig(ctx: RunContext) -> None:
                   (" and the template's labels, for rig parts 'limbs')" if limbs else ")")
             ctx.warnings.append(msg)
             log.warning("%s", msg)
-            if not any((ctx.out / "meshes").glob("frame_*.ply")):
-                raise ProcessError("rig: the take has no surfaces to track yet (meshes/frame_NNNNNN.ply): "
-                                   "run the surface step first") from None
+            _need_surfaces(ctx, "rig")
             with ctx.part("track"):  # its seconds are the tracking's, not the rig's
                 _step_track(ctx)
     try:

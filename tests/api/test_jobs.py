@@ -325,14 +325,16 @@ def test_a_process_job_that_cannot_run_says_what_to_do_in_the_words_of_a_job(mak
     for cam in ("cam00", "cam01", "cam02"):
         write_masks(empty, cam, np.zeros((2, 24, 32), bool))
     c = make_client(work="pipeline.process:process_take")
-    cases = {"nocal": (None, "a job processes a take recorded or imported with its calibration", "`stage calibrate`"),
-             "bad": (None, "parameters.skip_damaged = true processes", "--skip-damaged"),
-             "empty": (["surface"], "/takes/{take}/frames/{index}/{camera}/mask.png", "`stage key --preview`")}
-    for take, (steps, job_words, cli_words) in cases.items():
+    cases = [("nocal", None, "a job processes a take recorded or imported with its calibration", "`stage calibrate`"),
+             ("bad", None, "parameters.skip_damaged = true processes", "--skip-damaged"),
+             ("empty", ["surface"], "/takes/{take}/frames/{index}/{camera}/mask.png", "`stage key --preview`"),
+             # the steps' own words: the same for stage process --until track
+             ("empty", ["track"], "track: the take has no surfaces to track yet", "run the surface step first")]
+    for take, steps, job_words, cli_words in cases:
         jid = c.post("/jobs", json={"take": take, "steps": steps}, headers=AUTH).json()["id"]
         st = wait_job(c, jid, timeout=60)
         assert st["state"] == "failed" and job_words in st["error"], st
         assert "--" not in st["error"] and "stage " not in st["error"] and "\n" not in st["error"], st["error"]
         with pytest.raises(ProcessError) as exc:
-            process_take(takes / f"{take}.h5", data_root / "cli" / take, steps=steps)
+            process_take(takes / f"{take}.h5", data_root / "cli" / f"{take}-{steps}", steps=steps)
         assert cli_words in str(exc.value) and exc.value.job_message == st["error"].replace("DATA/", f"{data_root}/")
