@@ -131,7 +131,8 @@ def _box_choice(sb, volume: np.ndarray, source: str) -> dict:
 
 
 def blind_side_hint(calibration, grid) -> str:
-    """A warning when every camera looks down on the subject (imported footage, no support plane)."""
+    """A warning when every camera looks down on the subject (imported footage, no support plane); it names the
+    support plane as ``stage process`` and a job both call it (``--support-plane``, ``parameters.support_plane``)."""
     from pipeline.volume import view_elevation
 
     centre = (grid.lo + grid.hi) / 2
@@ -142,7 +143,8 @@ def blind_side_hint(calibration, grid) -> str:
         f"all {len(calibration)} cameras sit at least {elev:.1f} deg above the subject (seen from direction "
         f"{up[0]:.2f} {up[1]:.2f} {up[2]:.2f}): no silhouette can carve under its base, so the hull reaches about "
         f"{np.tan(np.radians(elev)):.2f} x the base's half-width below it. If the subject stands on a support, "
-        f"pass its plane: --support-plane {up[0]:.3f} {up[1]:.3f} {up[2]:.3f} D (kept where a*x + b*y + c*z + D >= 0)"
+        f"give its plane, the support plane a b c D: {' '.join(f'{x:.3f}' for x in np.round(up, 3) + 0.0)} D (kept where "
+        "a*x + b*y + c*z + D >= 0)"
     )
 
 

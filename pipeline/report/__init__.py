@@ -342,7 +342,7 @@ def _grid_choice(g: dict) -> str:
     if g.get("source") == "rig":
         return (f"{head}: {g['pixels_per_voxel']:g} x the median pixel footprint at the subject "
                 f"({g['pixel_footprint']:.3g} over {g['cameras_seeing_subject']} cameras), limited by {g['limited_by']}")
-    return f"{head}: --resolution {g.get('resolution')}"
+    return f"{head}: resolution {g.get('resolution')}, as given"  # stage process's or a job's: no option named
 
 
 def _view_section(d: Path, spine, *, max_frames: int, view_faces: int) -> dict:

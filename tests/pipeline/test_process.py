@@ -167,6 +167,25 @@ def test_rgbd_take_fuses_depth(tmp_path):
     assert np.percentile(d, 95) < np.percentile(errors(tmp_path / "hull"), 95)
 
 
+def test_the_blind_side_warning_names_the_support_plane_as_command_and_job_both_call_it():
+    """Every camera 500 mm above a ring of 1000 mm (26.6 degrees down on the subject): the warning gives the plane
+    (0, 0, 1: the cameras' side) as the support plane, which ``stage process --support-plane`` and a job's
+    ``parameters.support_plane`` both are, and names neither's spelling."""
+    from types import SimpleNamespace
+
+    from calib.calibration import Calibration
+    from calib.camera import Camera
+    from pipeline.process.grid import blind_side_hint
+
+    K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+    centres = [(1000 * np.cos(a), 1000 * np.sin(a), 500.0) for a in np.linspace(0, 2 * np.pi, 4, endpoint=False)]
+    cal = Calibration(tuple(Camera(f"cam{i}", K, np.zeros(5), np.eye(3), -np.asarray(c), size=(32, 24))
+                            for i, c in enumerate(centres)))
+    w = blind_side_hint(cal, SimpleNamespace(lo=np.full(3, -100.0), hi=np.full(3, 100.0)))
+    assert "at least 26.6 deg above" in w and "the support plane a b c D: 0.000 0.000 1.000 D" in w
+    assert "--" not in w and "parameters" not in w
+
+
 def test_support_plane_and_margin_reach_the_carver(tmp_path):
     """``stage process --support-plane A B C D --margin M``: no surface below the plane."""
     from pipeline.results import ResultsStore

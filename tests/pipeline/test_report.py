@@ -290,3 +290,7 @@ def test_grid_choice_reaches_the_page(results, tmp_path):
     (only / "report.json").write_text(json.dumps({"frames": 3, "grid": grid}))
     html = render_report(only)
     assert "5.86 (115 x 55 x 75 voxels): 2 x the median pixel footprint at the subject (2.94 over 10 cameras)" in html
+    # a resolution given (stage process --resolution, a job's parameters.resolution): said without an option
+    grid = {"source": "resolution option", "resolution": 32, "voxel": 17.6, "shape": [32, 32, 16]}
+    (only / "report.json").write_text(json.dumps({"frames": 3, "grid": grid}))
+    assert "17.6 (32 x 32 x 16 voxels): resolution 32, as given" in render_report(only)

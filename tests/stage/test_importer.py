@@ -106,7 +106,7 @@ def test_middlebury_dino_processed_end_to_end(tmp_path):
     luma = {"key_mode": "luma", "resolution": 120}
     r1 = process_take(res.path, tmp_path / "free", steps=("key", "surface"), params=luma)
     (w,) = r1.report["warnings"]
-    assert "--support-plane" in w and "16 cameras" in w
+    assert "the support plane a b c D" in w and "16 cameras" in w
     params = {**luma, "support_plane": (0.0, 1.0, 0.0, -box[0, 1])}
     r2 = process_take(res.path, tmp_path / "cut", steps=("key", "surface"), params=params)
     assert r2.report["warnings"] == []
