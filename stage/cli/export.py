@@ -8,6 +8,9 @@ from pathlib import Path
 ORDER = 62
 
 FORMATS = ("glb", "spine-glb", "bvh")
+SEGMENTS = 6  # bones per limb of the glb formats
+#: the options of the formats that use them: any other format refuses them (it would ignore them)
+FORMAT_OPTIONS = {"reference": ("glb", "spine-glb"), "segments": ("glb", "spine-glb"), "no_spine_tubes": ("glb",)}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,14 +24,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         "Format 'bvh' writes the armature of `stage armature` (DIR/rig/rig.json) as BVH motion capture: "
         "its joints, rest offsets and local rotations per frame, in the rig's units.",
     )
-    p.add_argument("results", type=Path, metavar="DIR", help="results directory (spine.json, meshes/frame_NNNNNN.ply)")
+    p.add_argument("results", type=Path, metavar="DIR",
+                   help="results directory (spine.json, meshes/frame_NNNNNN.ply; for bvh its rig/rig.json, or the rig "
+                   "directory itself)")
     p.add_argument("--format", choices=FORMATS, default="glb",
                    help="glb: rigged mesh (default); spine-glb: spine only; bvh: the armature of `stage armature`")
     p.add_argument("--out", type=Path, metavar="FILE", help="output file (default DIR/spine_rig.glb, DIR/spine.glb or DIR/rig.bvh)")
     p.add_argument("--reference", type=int, metavar="FRAME",
-                   help="take frame number of the rest pose (default: the spine's reference)")
-    p.add_argument("--segments", type=int, default=6, metavar="N", help="bones per limb (default 6)")
-    p.add_argument("--no-spine-tubes", action="store_true", help="do not add the spine tubes to the rigged mesh")
+                   help="take frame number of the rest pose (default: the spine's reference; glb, spine-glb)")
+    p.add_argument("--segments", type=int, metavar="N", help="bones per limb (default 6; glb, spine-glb)")
+    p.add_argument("--no-spine-tubes", action="store_true", help="do not add the spine tubes to the rigged mesh (glb)")
     p.set_defaults(func=run)
 
 
@@ -36,6 +41,9 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.gltf_export import NoSpineError, export_rig, spine_to_glb
 
     d = Path(args.results)
+    _check_format_options(args)
+    if args.segments is None:
+        args.segments = SEGMENTS
     if args.segments < 1:
         raise ValueError(f"--segments must be >= 1, got {args.segments}")
     if args.format == "bvh":
@@ -61,6 +69,18 @@ def run(args: argparse.Namespace) -> int:
         path.write_bytes(spine_to_glb(spine, segments=args.segments, reference=ref))
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
     return 0
+
+
+def _check_format_options(args: argparse.Namespace) -> None:
+    """An option the chosen format does not use is refused in one line naming it (it would be ignored: the BVH's
+    rest pose, say, is the armature's, chosen by ``stage armature --reference``)."""
+    from stage.cli import UserError
+
+    given = [f"--{name.replace('_', '-')}" for name, formats in FORMAT_OPTIONS.items()
+             if getattr(args, name) not in (None, False) and args.format not in formats]
+    if given:
+        why = " (its rest pose and bones are the armature's: stage armature --reference POS)" if args.format == "bvh" else ""
+        raise UserError(f"{', '.join(given)}: not an option of --format {args.format}{why}")
 
 
 def _export_bvh(d: Path, out) -> Path:

@@ -227,3 +227,15 @@ def test_export_bvh_needs_a_rig(tmp_path, capsys):
     (tmp_path / "rig" / "rig.json").write_text("{not json")
     assert main(["export", str(tmp_path), "--format", "bvh"]) == 2
     assert "unreadable" in capsys.readouterr().err
+
+
+def test_export_refuses_the_options_its_format_does_not_use(tmp_path, capsys):
+    """``stage export --format bvh --reference 3`` would write the armature's own rest pose and say nothing: an
+    option the format does not use is refused in one line naming it, before anything is read."""
+    for fmt, options, named in (("bvh", ["--reference", "3"], "--reference"),
+                                ("bvh", ["--segments", "6", "--no-spine-tubes"], "--segments, --no-spine-tubes"),
+                                ("spine-glb", ["--no-spine-tubes"], "--no-spine-tubes")):
+        assert main(["export", str(tmp_path), "--format", fmt, *options]) == 2
+        err = capsys.readouterr().err
+        assert f"error: {named}: not an option of --format {fmt}" in err and len(err.splitlines()) == 1, err
+        assert ("stage armature --reference POS" in err) == (fmt == "bvh"), err  # where the BVH's rest pose is chosen
