@@ -233,6 +233,8 @@ def build_armature(
     fi = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64).reshape(-1)
     if len(fi) != T:
         raise ValueError(f"frame_indices must have {T} entries, got {len(fi)}")
+    if reference is not None and not 0 <= int(reference) < T:  # before the segmentation's seconds
+        raise ValueError(f"reference must be within 0..{T - 1}, got {reference}")
     timings = {}
     t0 = time.perf_counter()
     if parts is None:
@@ -245,8 +247,6 @@ def build_armature(
         progress("segmentation", 1, 1)
     t0 = time.perf_counter()
     ref = choose_reference(v, f) if reference is None else int(reference)
-    if not 0 <= ref < T:
-        raise ValueError(f"reference must be within 0..{T - 1}, got {reference}")
     rest = v[ref]
     skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f), motion=v, reference=ref,
                                 limbs=None if limbs is None else limbs.limb)

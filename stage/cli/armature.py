@@ -82,6 +82,20 @@ def _track_first(d: Path, *, quiet: bool, no_progress: bool, labels: bool = Fals
     return tracked_meshes(d)
 
 
+def _check_options(args: argparse.Namespace) -> None:
+    """The options' values, in their names (``--reference``'s upper end once the frames are known)."""
+    import math
+
+    if args.samples < 2:
+        raise ValueError(f"--samples must be >= 2, got {args.samples}")
+    if not 0 < args.lambda_thr < 2:
+        raise ValueError(f"--lambda-thr must be within (0, 2), got {args.lambda_thr}")
+    if args.fps is not None and not (args.fps > 0 and math.isfinite(args.fps)):
+        raise ValueError(f"--fps must be > 0, got {args.fps}")
+    if args.reference is not None and args.reference < 0:
+        raise ValueError(f"--reference must be a position >= 0 (0-based), got {args.reference}")
+
+
 def run(args: argparse.Namespace) -> int:
     from pipeline.armature import armature_counts, build_armature
     from pipeline.armature_files import (
@@ -101,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("give either RESULTS_DIR or --meshes GLOB (see stage armature --help)")
     if args.parts == "limbs" and args.meshes is not None:
         raise UserError("--parts limbs needs RESULTS_DIR (a take tracked with stage track --labels), not --meshes")
+    _check_options(args)  # before any work: the tracking a results directory may need first takes minutes
     meta = {}
     if args.meshes is not None:
         if args.out is None:
@@ -121,10 +136,9 @@ def run(args: argparse.Namespace) -> int:
         out = args.out or d / "rig"
     if len(paths) < 1:
         raise UserError("no meshes")
-    if args.samples < 2:
-        raise ValueError(f"--samples must be >= 2, got {args.samples}")
-    if not 0 < args.lambda_thr < 2:
-        raise ValueError(f"--lambda-thr must be within (0, 2), got {args.lambda_thr}")
+    if args.reference is not None and args.reference >= len(paths):
+        raise ValueError(f"--reference must be a position within 0..{len(paths) - 1} (the sequence has {len(paths)} "
+                         f"frames), got {args.reference}")
     vertices, faces, numbers = load_sequence(paths)
     limbs = None if args.meshes is not None else spine_limbs(d, vertices, faces, numbers)  # a take's spine, if any
     found = limb_parts(d, vertices, faces, numbers) if args.parts == "limbs" else None

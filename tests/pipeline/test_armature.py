@@ -247,13 +247,19 @@ def test_several_components_are_a_clear_error(pipe, caplog):
     assert np.isfinite(rig.posed(1)).all()
 
 
-def test_invalid_input(tmp_path):
+def test_invalid_input(tmp_path, monkeypatch):
+    import pipeline.armature as armature
     from pipeline.results import ply_bytes
 
     V = np.random.default_rng(0).normal(size=(2, 10, 3))
     F = np.array([[0, 1, 2], [2, 3, 4]])
     with pytest.raises(ValueError, match="fps"):
         build_armature(V, F, fps=0)
+    with monkeypatch.context() as m:  # the rest frame is checked before the segmentation's work
+        m.setattr(armature, "motion_segmentation", lambda *a, **k: pytest.fail("segmented before checking reference"))
+        for bad in (2, -1):
+            with pytest.raises(ValueError, match=r"reference must be within 0\.\.1, got"):
+                build_armature(V, F, reference=bad)
     with pytest.raises(ValueError, match="frame_indices"):
         build_armature(V, F, frame_indices=[1, 2, 3])
     with pytest.raises(ValueError, match="shape"):

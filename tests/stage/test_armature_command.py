@@ -134,10 +134,27 @@ def test_armature_parts_limbs_of_a_take_tracked_with_labels(tmp_path, capsys):
     assert "--parts limbs needs RESULTS_DIR" in capsys.readouterr().err
 
 
-def test_invalid_input(capsys):
+def test_invalid_input(tmp_path, capsys, monkeypatch):
+    import pipeline.armature
+    import stage.cli.armature as command
+
     assert main(["armature"]) == 2
     assert main(["armature", "--meshes", "x/*.ply"]) == 2  # no --out
     assert "--out" in capsys.readouterr().err
+    # the options' values before any work, in their names: an untracked take is not tracked first
+    monkeypatch.setattr(command, "_track_first", lambda *a, **k: pytest.fail("tracked before the options were checked"))
+    V, F, _ = two_bars(3)
+    (tmp_path / "res" / "meshes").mkdir(parents=True)
+    (tmp_path / "res" / "meshes" / "frame_000000.ply").write_bytes(ply_bytes(V[0], F))
+    for bad in (["--samples", "1"], ["--lambda-thr", "2"], ["--fps", "0"], ["--fps", "nan"], ["--reference", "-1"]):
+        assert main(["armature", str(tmp_path / "res"), *bad]) == 2
+        assert f"stage armature: error: {bad[0]} must be" in capsys.readouterr().err
+    # --reference past the sequence's end: said in the option's words before the segmentation
+    monkeypatch.setattr(pipeline.armature, "build_armature", lambda *a, **k: pytest.fail("built before the check"))
+    _write_seq(tmp_path / "seq", V, F)
+    assert main(["armature", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(tmp_path / "o"),
+                 "--reference", "3"]) == 2
+    assert "error: --reference must be a position within 0..2 (the sequence has 3 frames), got 3" in capsys.readouterr().err
 
 
 def test_rig_step(tmp_path, caplog):
