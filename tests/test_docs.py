@@ -66,3 +66,25 @@ def test_the_checks_fail_on_what_they_look_for(tmp_path):
     doc.write_text("# Title\n[a](missing.md) [b](#title) [c](#nowhere) [d](https://example.org) `tests/none_such.py`\n")
     assert broken_links(doc) == ["missing.md", "#nowhere", "tests/none_such.py"]
     assert OUTSIDE.search("driver `/tmp/x/run.py`") and OUTSIDE.search("/work/notes/a.md")
+
+
+def day_at_the_stage(text: str) -> list[list[str]]:
+    """The commands of README.md's "A day at the stage" block, each as its words (comments dropped)."""
+    import shlex
+
+    block = text.split("## A day at the stage", 1)[1].split("```bash", 1)[1].split("```", 1)[0]
+    return [shlex.split(line.split("  #", 1)[0]) for line in block.splitlines() if line.startswith("stage ")]
+
+
+def test_a_day_at_the_stage_runs_in_its_order():
+    """README's day at the stage is the take's path a newcomer follows: every command parses with the CLI as written,
+    and the results directory's armature (``stage armature results/``) is built before its BVH is exported from it
+    (``stage export results/ --format bvh`` needs ``results/rig/rig.json``)."""
+    from stage.cli import build_parser
+
+    commands = day_at_the_stage((ROOT / "README.md").read_text(encoding="utf-8"))
+    parser = build_parser()
+    for words in commands:
+        parser.parse_args(words[1:])  # exits (SystemExit) on an option the command does not have
+    at = {" ".join(w[1:3]): i for i, w in enumerate(commands)}
+    assert at["armature results/"] < next(i for i, w in enumerate(commands) if w[1] == "export" and "bvh" in w)
