@@ -156,6 +156,11 @@ def test_jobs_pages(client_data):
     assert "&lt;script&gt;alert(1)&lt;/script&gt; went wrong" in page and "<script>alert(1)" not in page
     page = _html(client.get(f"/ui/jobs/{ids['done']}"))
     assert f'id="report" href="/ui/jobs/{ids["done"]}/report">' in page
+    assert "/results/rig/" not in page  # a job without the rig step has no armature to download
+    rig = client.app.state.store.create(kind="process", take="cal", steps=["spine", "track", "rig"], params={}).id
+    page = _html(client.get(f"/ui/jobs/{rig}"))  # the armature's files (docs/armature-format.md), linked
+    for name in ("rig.glb", "rig.bvh", "rig.json"):
+        assert f'<a href="/jobs/{rig}/results/rig/{name}">{name}</a>' in page
     # the page's own status endpoint exists and says what the script reads
     st = client.get(f"/jobs/{ids['running']}").json()
     assert st["done"] == 3 and st["total"] == 5 and st["progress"]["key"] == {"done": 3, "total": 5}
