@@ -14,7 +14,7 @@ from typing import Any
 from api.errors import NotFoundError, UnavailableError
 from api.paths import JOB_ID, check_id, confined, confined_entries, inside
 
-__all__ = ["listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb", "frame_file", "rig_file", "rig_summary"]
+__all__ = ["listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb", "frame_file", "rig_file"]
 
 _MESH = re.compile(r"^(?:frame_)?([0-9]{1,6})\.(ply|glb)$")
 _FRAME = re.compile(r"^([0-9]{6})\.ply$")  # tracked/ and rig/posed/: exactly six digits
@@ -54,26 +54,10 @@ def listing(jobs_dir: Path, job_id: str) -> dict[str, Any]:
     out["files"] = files + [f"rig/{n}" for n in rig]
     links.update({f"rig/{n}": f"/jobs/{job_id}/results/rig/{n}" for n in rig})
     if "rig.json" in rig:
-        out["rig"] = rig_summary(d / "rig" / "rig.json")
+        from pipeline.armature_files import armature_summary
+
+        out["rig"] = armature_summary(d / "rig" / "rig.json")
     return out
-
-
-def rig_summary(path: Path) -> dict[str, Any] | None:
-    """Segments and joints of a ``rig.json`` (None when it cannot be read): what the job's rig is."""
-    import json
-
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-        joints = [{k: j.get(k) for k in ("name", "parent", "kind", "segments", "rest", "placement")} for j in doc["joints"]]
-        return {
-            "segments": int(doc["segmentation"]["segments"]),
-            "articulations": sum(j["kind"] == "joint" for j in joints),
-            "joints": joints,
-            "mean_vertex_error": doc.get("fit", {}).get("mean_vertex_error"),
-            "units": doc.get("units"),
-        }
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
 
 
 def frame_file(jobs_dir: Path, job_id: str, folder: str, name: str) -> Path:

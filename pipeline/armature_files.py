@@ -29,9 +29,8 @@ from pipeline.armature_limbs import VertexLimbs, vertex_limbs
 from pipeline.motion_segmentation import MIN_GAP
 from pipeline.results import atomic_write_bytes, ply_bytes
 
-__all__ = ["FRAME_GLOB", "NoTrackingError", "armature_results", "limb_parts", "load_sequence", "remove_armature",
-           "spine_limbs",
-           "tracked_meshes", "write_armature"]
+__all__ = ["FRAME_GLOB", "NoTrackingError", "armature_results", "armature_summary", "limb_parts", "load_sequence",
+           "remove_armature", "spine_limbs", "tracked_meshes", "write_armature"]
 
 log = logging.getLogger(__name__)
 
@@ -275,6 +274,42 @@ FRAME_GLOB = "[0-9]" * 6 + ".ply"
 
 #: The names of the frames :func:`write_armature` writes in ``posed/``, and nothing else.
 POSED_GLOB = FRAME_GLOB
+
+
+def armature_summary(path) -> dict | None:
+    """Segments and joints of a ``rig.json``: what a job's armature is (its report and its results' listing).
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``rig.json`` (capture-stage/rig@1).
+
+    Returns
+    -------
+    dict or None
+        ``segments``, ``articulations`` (joints of kind ``joint``), ``joints`` (``name``, ``parent``, ``kind``,
+        ``segments``, ``rest``, ``placement`` of each), ``mean_vertex_error`` and ``units``; None when the file
+        is missing or cannot be read as one.
+
+    Raises
+    ------
+    ValueError
+        When ``path`` is not a path.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path must be a path to a rig.json, got {type(path).__name__}")
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+        joints = [{k: j.get(k) for k in ("name", "parent", "kind", "segments", "rest", "placement")} for j in doc["joints"]]
+        return {
+            "segments": int(doc["segmentation"]["segments"]),
+            "articulations": sum(j["kind"] == "joint" for j in joints),
+            "joints": joints,
+            "mean_vertex_error": doc.get("fit", {}).get("mean_vertex_error"),
+            "units": doc.get("units"),
+        }
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
 
 
 def remove_armature(out_dir) -> bool:

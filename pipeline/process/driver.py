@@ -166,6 +166,10 @@ def _write_report(ctx: RunContext, steps: tuple[str, ...], t_start: float) -> Pr
         "limb_count": ctx.made.limb_count,
         "consistency": ctx.made.consistency,
     }
+    if "rig" in steps:  # the job's armature: its segments and joints (the results' listing shows the same)
+        from pipeline.armature_files import armature_summary
+
+        report["rig"] = armature_summary(ctx.out / "rig" / "rig.json")
     atomic_write(ctx.out / "report.json", json.dumps(report, indent=1, default=json_default))
     return ProcessResult(
         out=ctx.out, steps=steps, frames=ctx.take.n_sets, empty_frames=empty, spine_path=ctx.made.spine_path, report=report

@@ -19,7 +19,7 @@ from pipeline.armature import (
     bvh_text,
     counted,
 )
-from pipeline.armature_files import load_sequence, remove_armature, write_armature
+from pipeline.armature_files import armature_summary, load_sequence, remove_armature, write_armature
 from pipeline.armature_fit import fit_frame
 from tests.conftest import SHARED_DATA
 from tests.pipeline.bvh import parse_bvh
@@ -283,6 +283,10 @@ def test_invalid_input(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="joints"):
         armature_counts(1, 1, "2")
     assert armature_counts(np.int64(2), 1, 3) == "2 segments, 1 articulation, 3 joints"  # numpy integers count
+    # armature_summary: a path; a file that is no rig.json gives None
+    with pytest.raises(ValueError, match="path must be a path"):
+        armature_summary(None)
+    assert armature_summary(tmp_path / "absent.json") is None and armature_summary(tmp_path / "000000.ply") is None
     # remove_armature: a path to a directory, which need not exist
     with pytest.raises(ValueError, match="out_dir must be a path"):
         remove_armature(None)

@@ -648,6 +648,26 @@ def test_rig_parts_from_the_limbs_track_with_the_labels_and_say_when_they_cannot
         process_take(take, out, steps=("rig",), params={**_SMALL, "rig": {"parts": "bones"}})
 
 
+def test_the_report_of_a_run_with_the_rig_step_shows_its_segments_and_joints(small_tracked, tmp_path):
+    """report.json (a job's ``result.report``) of a run with the rig step holds the armature's segments and joints
+    as rig.json has them; a run without the step says nothing of a rig."""
+    import shutil
+
+    take, first = small_tracked
+    out = tmp_path / "out"
+    shutil.copytree(first, out)
+    res = process_take(take, out, steps=("rig",), params=_SMALL)
+    doc = json.loads((out / "rig" / "rig.json").read_text())
+    rig = res.report["rig"]
+    assert rig["segments"] == doc["segmentation"]["segments"] == len(np.unique(np.load(out / "rig" / "segments.npy")))
+    assert [j["name"] for j in rig["joints"]] == [j["name"] for j in doc["joints"]]
+    assert rig["articulations"] == sum(j["kind"] == "joint" for j in doc["joints"]) >= 1
+    assert [j["rest"] for j in rig["joints"]] == [j["rest"] for j in doc["joints"]] and rig["units"] == "mm"
+    assert rig["mean_vertex_error"] == doc["fit"]["mean_vertex_error"]
+    assert json.loads((out / "report.json").read_text())["rig"] == rig
+    assert "rig" not in process_take(take, out, steps=("spine",), params=_SMALL).report
+
+
 def test_a_resume_with_the_same_parameters_keeps_the_tracking_and_rig(small_tracked, tmp_path, caplog):
     """The same parameters (a run stopped after some surfaces): tracked/ and rig/ are not touched."""
     import shutil
