@@ -49,7 +49,8 @@ from calib.fileio import plain
 from calib.intrinsics import DISTORTION_MODES, CalibrationError, IntrinsicsResult, calibrate_intrinsics
 
 __all__ = ["RigCalibration", "calibrate_rig", "resolve_flipped", "rotation_sigma", "fold_rotation_spread",
-           "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA", "CORNER_WARN_PX", "FOLD_WARN_RATIO", "FOLD_WARN_DEG"]
+           "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA", "CORNER_WARN_PX", "FOLD_WARN_RATIO", "FOLD_WARN_DEG",
+           "corner_warnings"]
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +158,28 @@ class RigCalibration:
             "evaluation": plain({k: v for k, v in self.evaluation.items() if k != "detections"}),
             "warnings": self.warnings,
         }
+
+
+def corner_warnings(uncertainty: dict) -> list[str]:
+    """One warning per camera whose projection at the image corners is uncertain by more than
+    :data:`CORNER_WARN_PX` (``uncertainty``: camera -> ``{"centre": px, corner: px, ...}``). It names the
+    remedy as ``stage calibrate`` (``--fix-k3``) and a calibration job (``parameters.fix_k3``) both call it.
+
+    Raises
+    ------
+    ValueError
+        When ``uncertainty`` is not such a mapping.
+    """
+    if not isinstance(uncertainty, dict) or not all(isinstance(u, dict) and len(u) > 1 for u in uncertainty.values()):
+        raise ValueError("uncertainty must map every camera to its pixels at the centre and the corners")
+    warn = []
+    for name, u in uncertainty.items():
+        corner = max(v for k, v in u.items() if k != "centre")
+        if corner > CORNER_WARN_PX:
+            warn.append(f"camera {name}: its projection is uncertain by {_px(corner)} px (1 sigma) at the image "
+                        f"corners: the lens distortion there is extrapolated from the board's views; film the board "
+                        f"near the corners of {name}'s image (or fix k3 at zero for a mild lens)")
+    return warn
 
 
 def _px(v: float) -> str:
@@ -461,12 +484,7 @@ def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_f
             warn.append(f"camera {name}: the bundle adjustment moved " + ", ".join(
                 f"{k} by {v:+.1f} sigma" for k, v in far.items()) + " from its own calibration; the rig data "
                 "disagrees with what this camera saw alone (a moved camera, a bent board, or too few views of it)")
-    for name, u in ev["uncertainty"].items():
-        corner = max(v for k, v in u.items() if k != "centre")
-        if corner > CORNER_WARN_PX:
-            warn.append(f"camera {name}: its projection is uncertain by {_px(corner)} px (1 sigma) at the image "
-                        f"corners: the lens distortion there is extrapolated from the board's views; film the board "
-                        f"near the corners of {name}'s image (or use --fix-k3 for a mild lens)")
+    warn += corner_warnings(ev["uncertainty"])
     ev["held_out"] = _held_out(dets, sizes, board, names, holdout_folds, solve_kw) if holdout_folds else None
     if ev["held_out"] is not None:
         warn += [f"held-out {f}" for f in ev["held_out"]["failed_folds"]]

@@ -262,3 +262,17 @@ def test_invalid_input(small, truth):
         triangulate_board_error(truth, dets, "board")
     with pytest.raises(ValueError, match="max_views"):
         calibrate_intrinsics(dets["cam00"], board, (640, 480), max_views=2)
+def test_corner_warnings_name_the_remedy_without_a_command_line_option():
+    """A camera uncertain by more than CORNER_WARN_PX at a corner is one warning; it reaches a calibration job's
+    report too, so it names fixing k3 as ``stage calibrate --fix-k3`` and ``parameters.fix_k3`` both read it."""
+    from calib.rig import CORNER_WARN_PX, corner_warnings
+
+    points = ("centre", "top-left", "top-right", "bottom-left", "bottom-right")
+    got = corner_warnings({"cam0": dict(zip(points, (0.3, 2.5, 1.0, 1.0, 1.0))),
+                           "cam1": dict(zip(points, (0.2, CORNER_WARN_PX, 1.0, 1.0, 1.0)))})  # at the threshold: none
+    assert got == ["camera cam0: its projection is uncertain by 2.500 px (1 sigma) at the image corners: the lens "
+                   "distortion there is extrapolated from the board's views; film the board near the corners of "
+                   "cam0's image (or fix k3 at zero for a mild lens)"]
+    for bad in ({"cam0": 3.0}, {"cam0": {"centre": 0.3}}, [("cam0", {})]):
+        with pytest.raises(ValueError, match="uncertainty"):
+            corner_warnings(bad)
