@@ -445,7 +445,7 @@ def _step_rig(ctx: RunContext) -> None:
     """Articulated rig from the tracked template (``tracked/``) -> ``rig/`` (``ProcessParams.rig``). Without a
     tracked template the track step runs first (:func:`_step_track`; a warning in the job report says so); parts
     from the limbs that fall back to the motion segmentation (a template tracked without its labels) are one
-    warning there too."""
+    warning there too, and so is an armature of one segment (nothing bends)."""
     from pipeline.armature_files import NoTrackingError, armature_results, tracked_meshes
 
     limbs = ctx.params.rig.parts == "limbs"
@@ -468,6 +468,8 @@ def _step_rig(ctx: RunContext) -> None:
     if limbs and rig.segmentation.source != "limbs":
         ctx.warn("rig: parts 'limbs' need a template tracked with its labels (parameters track.labels) and the take's "
                  "spine: the motion segmentation was used")
+    if rig.segmentation.n_segments == 1:  # as stage armature says it: the report's one segment is no failure
+        ctx.warn("rig: nothing bends in this take: one segment, the armature moves rigidly")
 
 
 def _track_totals(ctx: RunContext) -> list[tuple[str, int]]:

@@ -178,6 +178,23 @@ def test_rig_step(tmp_path, caplog):
     assert np.isfinite(doc["fit"]["mean_vertex_error"])
 
 
+def test_the_rig_step_of_a_rigid_take_says_one_segment(tmp_path):
+    """A job's take that moves rigidly: the rig step's armature is one segment, and the job's report says why in one
+    warning, as ``stage armature`` does (nothing bends), not only a count of one."""
+    from pipeline.process import ProcessParams
+    from pipeline.process.steps import _step_rig
+
+    V, F, _ = two_bars(6)
+    _write_seq(tmp_path / "tracked", np.repeat(V[:1], 6, axis=0) + np.linspace(0, 30, 6)[:, None, None], F)
+    warnings = []
+    ctx = SimpleNamespace(out=tmp_path, take=SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0),
+                          report_progress=lambda *a: None, steps=("rig",), warnings=warnings, warn=warnings.append,
+                          params=ProcessParams())
+    _step_rig(ctx)
+    assert json.loads((tmp_path / "rig" / "rig.json").read_text())["segmentation"]["segments"] == 1
+    assert warnings == ["rig: nothing bends in this take: one segment, the armature moves rigidly"]
+
+
 def test_report_shows_the_rig(tmp_path):
     from pipeline.report import render_report
 
