@@ -162,7 +162,8 @@ def _board_calibration(args: argparse.Namespace, size, out: Path, summary: dict)
 
 
 def _take_away(results: Path, take_path: Path, summary: dict, out: Path) -> None:
-    """The rigged model and the report of the processed take, and the closing lines."""
+    """The rigged model and the report of the processed take, and the closing lines (the last: the command that
+    builds the take's armature next)."""
     from pipeline.gltf_export import export_rig
     from pipeline.report import write_report
 
@@ -178,6 +179,8 @@ def _take_away(results: Path, take_path: Path, summary: dict, out: Path) -> None
             f"{100 * a['limb_axis_error_mean']:.2f} % of size"
         )
     print(f"demo finished in {summary['seconds']:.0f} s; everything is in {out}/ (summary.json)")
+    print(f"next, the armature (segments, joints where the creature bends): stage armature {results} "
+          "(tracks the template through the take first; docs/armature-format.md)")
 
 
 def _accuracy(results: Path, sim, calibration, summary: dict) -> dict:

@@ -82,3 +82,22 @@ def test_info_warns_of_a_sync_relock(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "warning: b: its frames left their sync chain 1 time(s), in set 2" in out
     assert "warning: a" not in out and "a: 160x120 raw, 3 frames, missing in 0 sets, device gaps 0" in out
+
+
+def test_the_demo_ends_with_the_command_that_builds_the_armature(tmp_path, capsys, monkeypatch):
+    """The demo's last line names the next step of a take's path, its armature, as a command that runs on the demo's
+    results (``stage armature RESULTS_DIR``, which tracks first)."""
+    import shlex
+
+    import pipeline.gltf_export
+    import pipeline.report
+    from stage.cli.demo import _take_away
+
+    monkeypatch.setattr(pipeline.gltf_export, "export_rig", lambda d: d / "spine_rig.glb")  # the files: not this test's
+    monkeypatch.setattr(pipeline.report, "write_report", lambda d, take: d / "report.html")
+    results = tmp_path / "demo-out" / "starfish-results"
+    _take_away(results, tmp_path / "demo-out" / "starfish.h5", {"seconds": 12.0}, tmp_path / "demo-out")
+    last = capsys.readouterr().out.splitlines()[-1]
+    command = shlex.split(last.split(": ", 1)[1].split(" (", 1)[0])
+    assert command == ["stage", "armature", str(results)], last
+    assert build_parser().parse_args(command[1:]).results == results
