@@ -16,7 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Template tracking (Tzionas & Gall 2016, section 3). Two forms:\n"
         "  stage track RESULTS_DIR [--template MESH]      multi-view, after `stage process`: the data are\n"
         "                                                 RESULTS_DIR/meshes/frame_*.ply; the template is the\n"
-        "                                                 first frame's surface unless given\n"
+        "                                                 surface of the spine's reference frame, tracked\n"
+        "                                                 forwards and backwards from it (without spine.json:\n"
+        "                                                 the first frame's), unless given\n"
         "  stage track TAKE.h5 --template MESH --out DIR  one RGB-D camera: the template (mm, roughly placed)\n"
         "                                                 is placed by rigid ICP on the first frame with depth\n"
         "Writes tracked/NNNNNN.ply in the template's vertex order and tracked/track.json; resumes "
@@ -24,7 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("source", type=Path, help="a results directory of `stage process`, or a take file (.h5)")
-    p.add_argument("--template", type=Path, default=None, help="template mesh (.ply/.obj/.off, mm); required for a take")
+    p.add_argument("--template", type=Path, default=None,
+                   help="template mesh (.ply/.obj/.off, mm); required for a take (default for RESULTS_DIR: the surface "
+                   "of the spine's reference frame)")
     p.add_argument("--out", type=Path, default=None, help="output directory for a take (default: beside the take, TAKE_results)")
     p.add_argument("--camera", default=None, help="depth camera of the take (default: the first with depth)")
     p.add_argument("--remove-skin", action="store_true", help="drop skin-coloured pixels (hands) before tracking")

@@ -101,3 +101,17 @@ def test_the_demo_ends_with_the_command_that_builds_the_armature(tmp_path, capsy
     command = shlex.split(last.split(": ", 1)[1].split(" (", 1)[0])
     assert command == ["stage", "armature", str(results)], last
     assert build_parser().parse_args(command[1:]).results == results
+
+
+def test_track_help_names_the_template_frame_it_tracks_from(tmp_path, capsys):
+    """``stage track --help`` names the template a results directory gets, the surface of the spine's reference frame
+    (tracked/track.json's ``reference_frame``, ``template``), not the first frame's, which it is only without a
+    spine."""
+    import re
+
+    with pytest.raises(SystemExit):
+        main(["track", "--help"])
+    text = re.sub(r"\s+", " ", capsys.readouterr().out)
+    assert "the template is the surface of the spine's reference frame, tracked forwards and backwards from it " \
+           "(without spine.json: the first frame's), unless given" in text
+    assert "(default for RESULTS_DIR: the surface of the spine's reference frame)" in text
