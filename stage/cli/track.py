@@ -9,20 +9,26 @@ from pathlib import Path
 ORDER = 56
 
 
+#: ``stage track --help``'s description (its two forms in columns)
+DESCRIPTION = (
+    "Template tracking (Tzionas & Gall 2016, section 3). Two forms:\n"
+    "  stage track RESULTS_DIR [--template MESH]      multi-view, after `stage process`: the data are\n"
+    "                                                 RESULTS_DIR/meshes/frame_*.ply; the template is the\n"
+    "                                                 surface of the spine's reference frame, tracked\n"
+    "                                                 forwards and backwards from it (without spine.json:\n"
+    "                                                 the first frame's), unless given\n"
+    "  stage track TAKE.h5 --template MESH --out DIR  one RGB-D camera: the template (mm, roughly placed)\n"
+    "                                                 is placed by rigid ICP on the first frame with depth\n"
+    "Writes tracked/NNNNNN.ply in the template's vertex order and tracked/track.json; resumes "
+    "where a killed run stopped. Frames without depth are skipped and listed."
+)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "track",
         help="deform a template mesh frame by frame onto a take (Tzionas & Gall 2016)",
-        description="Template tracking (Tzionas & Gall 2016, section 3). Two forms:\n"
-        "  stage track RESULTS_DIR [--template MESH]      multi-view, after `stage process`: the data are\n"
-        "                                                 RESULTS_DIR/meshes/frame_*.ply; the template is the\n"
-        "                                                 surface of the spine's reference frame, tracked\n"
-        "                                                 forwards and backwards from it (without spine.json:\n"
-        "                                                 the first frame's), unless given\n"
-        "  stage track TAKE.h5 --template MESH --out DIR  one RGB-D camera: the template (mm, roughly placed)\n"
-        "                                                 is placed by rigid ICP on the first frame with depth\n"
-        "Writes tracked/NNNNNN.ply in the template's vertex order and tracked/track.json; resumes "
-        "where a killed run stopped. Frames without depth are skipped and listed.",
+        description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("source", type=Path, help="a results directory of `stage process`, or a take file (.h5)")
