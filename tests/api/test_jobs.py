@@ -338,3 +338,31 @@ def test_a_process_job_that_cannot_run_says_what_to_do_in_the_words_of_a_job(mak
         with pytest.raises(ProcessError) as exc:
             process_take(takes / f"{take}.h5", data_root / "cli" / f"{take}-{steps}", steps=steps)
         assert cli_words in str(exc.value) and exc.value.job_message == st["error"].replace("DATA/", f"{data_root}/")
+
+
+def test_every_process_error_that_names_a_command_says_it_in_a_jobs_words_too():
+    """Every ``ProcessError(...)`` of pipeline/process whose message names a command line option or a ``stage``
+    command gives ``job_message`` (what a job's error shows), and that one names neither: a new error of the
+    processing cannot send an API user to the command line (the messages read from the source)."""
+    import ast
+    from pathlib import Path
+
+    import pipeline.process
+
+    def text(node) -> str:  # the literal parts of a message (f-strings' too; concatenations)
+        return " ".join(n.value for n in ast.walk(node) if isinstance(n, ast.Constant) and isinstance(n.value, str))
+
+    def cli(s: str) -> bool:
+        return "--" in s or "`stage " in s or "stage calibrate" in s or "stage verify" in s
+
+    seen, bad = 0, []
+    for path in sorted(Path(pipeline.process.__file__).parent.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "ProcessError" and node.args:
+                seen += 1
+                job = [k.value for k in node.keywords if k.arg == "job_message"]
+                if cli(text(node.args[0])) and (not job or cli(text(job[0]))):
+                    bad.append(f"{path.name}:{node.lineno}")
+                if job and cli(text(job[0])):
+                    bad.append(f"{path.name}:{node.lineno} (job_message)")
+    assert seen >= 8 and not bad, (seen, bad)
