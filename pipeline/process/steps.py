@@ -449,6 +449,9 @@ def _step_rig(ctx: RunContext) -> None:
     from pipeline.armature_files import NoTrackingError, armature_results, tracked_meshes
 
     limbs = ctx.params.rig.parts == "limbs"
+    if ctx.take.n_sets < 2:  # before any tracking, which could not help
+        raise ProcessError("rig: the take has one frame set: an armature is found from how the subject moves; it needs "
+                           "2 frame sets or more")
     try:
         tracked_meshes(ctx.out)
     except NoTrackingError:

@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 
 ORDER = 63
+ONE_FRAME = "an armature is found from how the subject moves; it needs 2 frames or more"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -129,13 +130,18 @@ def run(args: argparse.Namespace) -> int:
         try:
             paths = tracked_meshes(d)
         except NoTrackingError as exc:
-            if not any((d / "meshes").glob("frame_*.ply")):
+            surfaces = list((d / "meshes").glob("frame_*.ply"))
+            if not surfaces:
                 raise UserError(str(exc)) from None
+            if len(surfaces) == 1:  # said before the tracking, which could not help
+                raise UserError(f"{d} has one frame (meshes/{surfaces[0].name}): {ONE_FRAME}") from None
             paths = _track_first(d, quiet=args.quiet, no_progress=args.no_progress, labels=args.parts == "limbs")
         meta = _spine_meta(d)
         out = args.out or d / "rig"
     if len(paths) < 1:
         raise UserError("no meshes")
+    if len(paths) == 1:
+        raise UserError(f"{paths[0]} is the only frame: {ONE_FRAME}")
     if args.reference is not None and args.reference >= len(paths):
         raise ValueError(f"--reference must be a position within 0..{len(paths) - 1} (the sequence has {len(paths)} "
                          f"frames), got {args.reference}")

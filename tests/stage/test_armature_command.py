@@ -112,6 +112,25 @@ def test_armature_parts_limbs_of_an_untracked_take_track_with_the_labels_first(t
     assert json.loads((tmp_path / "rig" / "rig.json").read_text())["segmentation"]["source"] == "limbs"
 
 
+def test_a_sequence_of_one_frame_is_one_line_before_any_work(tmp_path, capsys, monkeypatch):
+    """One frame has no motion to find an armature from: ``--meshes`` matching one file, and a results directory of
+    one surface, are one line naming it, before the results directory's tracking (which could not help)."""
+    import stage.cli.armature as command
+
+    monkeypatch.setattr(command, "_track_first", lambda *a, **k: pytest.fail("tracked a take of one frame"))
+    V, F, _ = two_bars(1)
+    _write_seq(tmp_path / "seq", V, F)
+    assert main(["armature", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"stage armature: error: {tmp_path / 'seq' / '000000.ply'} is the only frame: an armature is found "
+                   "from how the subject moves; it needs 2 frames or more\n"), err
+    (tmp_path / "res" / "meshes").mkdir(parents=True)
+    (tmp_path / "res" / "meshes" / "frame_000004.ply").write_bytes(ply_bytes(V[0], F))
+    assert main(["rig", str(tmp_path / "res")]) == 2
+    assert capsys.readouterr().err == (f"stage rig: error: {tmp_path / 'res'} has one frame (meshes/frame_000004.ply): an "
+                                       "armature is found from how the subject moves; it needs 2 frames or more\n")
+
+
 def test_rig_meshes_without_shared_connectivity(tmp_path, capsys):
     V, F, _ = two_bars(3)
     _write_seq(tmp_path / "seq", V, F)
@@ -163,9 +182,15 @@ def test_rig_step(tmp_path, caplog):
 
     # the rig runs on what tracking wrote, so it comes after the spine and the tracking
     assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")
-    ctx = SimpleNamespace(out=tmp_path, take=SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0), progress=None,
-                          report_progress=lambda *a: None,
+    take = SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0, n_sets=1)
+    ctx = SimpleNamespace(out=tmp_path, take=take, progress=None, report_progress=lambda *a: None,
                           steps=("rig",), warnings=[], params=ProcessParams())
+    # a take of one frame set: nothing moves, said before any tracking (no warning that the track step ran)
+    with pytest.raises(ProcessError, match="rig: the take has one frame set: an armature is found from how the "
+                       "subject moves; it needs 2 frame sets or more"):
+        _step_rig(ctx)
+    assert ctx.warnings == []
+    take.n_sets = 8
     # no tracked template and nothing to track: one line in the words of the job's steps, no CLI command
     with caplog.at_level(logging.WARNING), pytest.raises(ProcessError, match="run the surface step first") as exc:
         _step_rig(ctx)
@@ -187,7 +212,7 @@ def test_the_rig_step_of_a_rigid_take_says_one_segment(tmp_path):
     V, F, _ = two_bars(6)
     _write_seq(tmp_path / "tracked", np.repeat(V[:1], 6, axis=0) + np.linspace(0, 30, 6)[:, None, None], F)
     warnings = []
-    ctx = SimpleNamespace(out=tmp_path, take=SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0),
+    ctx = SimpleNamespace(out=tmp_path, take=SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0, n_sets=6),
                           report_progress=lambda *a: None, steps=("rig",), warnings=warnings, warn=warnings.append,
                           params=ProcessParams())
     _step_rig(ctx)
