@@ -406,7 +406,7 @@ def _step_spine(ctx: RunContext) -> None:
 
 def _need_surfaces(ctx: RunContext, step: str) -> None:
     """The surfaces the track step follows (``meshes/frame_NNNNNN.ply``), or a ProcessError in the words of the
-    steps (the job's and ``stage process --until``'s alike)."""
+    steps (a job's, and process_take's with these steps), which name no command."""
     if not any((ctx.out / "meshes").glob("frame_*.ply")):
         raise ProcessError(f"{step}: the take has no surfaces to track yet (meshes/frame_NNNNNN.ply): "
                            "run the surface step first")

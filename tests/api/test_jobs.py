@@ -328,7 +328,7 @@ def test_a_process_job_that_cannot_run_says_what_to_do_in_the_words_of_a_job(mak
     cases = [("nocal", None, "a job processes a take recorded or imported with its calibration", "`stage calibrate`"),
              ("bad", None, "parameters.skip_damaged = true processes", "--skip-damaged"),
              ("empty", ["surface"], "/takes/{take}/frames/{index}/{camera}/mask.png", "`stage key --preview`"),
-             # the steps' own words: the same for stage process --until track
+             # the steps' own words: the same for process_take(steps=("track",))
              ("empty", ["track"], "track: the take has no surfaces to track yet", "run the surface step first")]
     for take, steps, job_words, cli_words in cases:
         jid = c.post("/jobs", json={"take": take, "steps": steps}, headers=AUTH).json()["id"]
