@@ -398,15 +398,17 @@ def _armature_section(d: Path, *, max_frames: int, warnings: list[str]) -> dict 
         parents = np.array([idx[j["parent"]] if j["parent"] is not None else -1 for j in doc["joints"]])
         P = np.array([[fr["joints"][n] if fr["joints"][n] is not None else [np.nan] * 3 for n in names]
                       for fr in doc["frames"]], dtype=float)
+        # the parts' source: the motion segmentation, or the limbs (stage armature --parts limbs)
+        segment = "limb segment" if doc.get("segmentation", {}).get("source") == "limbs" else "motion segment"
         fig = armature_figure(v, f, labels, P, parents, [j["kind"] for j in doc["joints"]],
                          frame_indices=[fr["index"] for fr in doc["frames"]], fps=float(doc["fps"]),
-                         max_frames=max_frames)
+                         max_frames=max_frames, segment=segment)
     except (OSError, KeyError, ValueError, TypeError) as exc:
         warnings.append(f"rig/ could not be shown: {exc}")
         return None
     err = doc.get("fit", {}).get("mean_vertex_error")
     note = (f"Mean vertex error of the fitted model {err:.3g} {doc.get('units', '')}." if err is not None else "")
-    return {"id": "rig", "title": "Armature: motion segments and joints", "note": note,
+    return {"id": "rig", "title": f"Armature: {segment}s and joints", "note": note, "parts": f"{segment}s",
             "figure": figure_html(fig, div_id="rig-view")}
 
 

@@ -488,8 +488,8 @@ def spine_figure(spine, *, mesh=None, model=None, max_frames: int = 120, title: 
 
 
 def armature_figure(vertices, faces, labels, joints, parents, kinds, *, frame_indices=None, fps: float = 30.0,
-                    max_frames: int = 120, max_faces: int = 20000):
-    """The armature: the rest surface coloured by motion segment, the joints animated over the take.
+                    max_frames: int = 120, max_faces: int = 20000, segment: str = "motion segment"):
+    """The armature: the rest surface coloured by segment, the joints animated over the take.
 
     Parameters
     ----------
@@ -508,6 +508,9 @@ def armature_figure(vertices, faces, labels, joints, parents, kinds, *, frame_in
         Animation keys (evenly subsampled above this).
     max_faces : int
         Faces drawn at most (an even subset of them above this).
+    segment : str
+        What a segment is, in the title: ``"motion segment"`` (the motion segmentation's) or ``"limb segment"``
+        (parts from the limbs, rig.json's ``segmentation.source``).
     """
     from pipeline.armature import counted
 
@@ -546,7 +549,7 @@ def armature_figure(vertices, faces, labels, joints, parents, kinds, *, frame_in
     fig = go.Figure(data=[surface] + joint_traces(int(keys[0])), frames=frames)
     step_ms = max(1, int(round(1000.0 / fps * max(1, (T - 1) / max(1, len(keys) - 1)))))
     fig.update_layout(
-        title=f"Armature: {counted(int(lab.max()) + 1, 'motion segment')}, {counted(int(art.sum()), 'articulation')}, "
+        title=f"Armature: {counted(int(lab.max()) + 1, segment)}, {counted(int(art.sum()), 'articulation')}, "
               f"{counted(len(par), 'joint')}",
         scene=dict(aspectmode="data"), height=620, margin=dict(l=0, r=0, t=40, b=0), uirevision="rig",
         **_animation_controls(fi, keys, step_ms),

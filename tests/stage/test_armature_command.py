@@ -231,6 +231,14 @@ def test_report_shows_the_rig(tmp_path):
     html = render_report(tmp_path / "res")
     assert 'id="rig"' in html and "rig-view" in html
     assert "Armature: 2 motion segments, 1 articulation, " in html
+    assert "Colours: motion segments;" in html and "limb segment" not in html
+    # parts from the limbs (stage armature --parts limbs): named so, not as the motion segmentation's
+    doc = json.loads((tmp_path / "res" / "rig" / "rig.json").read_text())
+    doc["segmentation"]["source"] = "limbs"
+    (tmp_path / "res" / "rig" / "rig.json").write_text(json.dumps(doc))
+    html = render_report(tmp_path / "res")
+    assert "Armature: 2 limb segments, 1 articulation, " in html and "Armature: limb segments and joints" in html
+    assert "Colours: limb segments;" in html and "motion segment" not in html
 
 
 def test_export_bvh_of_a_rig(tmp_path, capsys):
