@@ -421,9 +421,6 @@ def export_rig(
     log.info("rigging %s (frame %d) to %s", mp.name, fi[pos], d / "spine.json")
     model = rigged_model(spine, v, f, reference=pos, segments=segments)
     data = armature_to_glb(model, include_spine=include_spine)
-    target = Path(out) if out is not None else d / "spine_rig.glb"
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_suffix(target.suffix + ".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(target)
-    return target
+    from calib.fileio import atomic_write  # the project's one atomic write: its own temporary name, none left behind
+
+    return atomic_write(Path(out) if out is not None else d / "spine_rig.glb", data)

@@ -9,6 +9,7 @@ ORDER = 62
 
 FORMATS = ("glb", "spine-glb", "bvh")
 SEGMENTS = 6  # bones per limb of the glb formats
+DEFAULT_NAMES = {"glb": "spine_rig.glb", "spine-glb": "spine.glb", "bvh": "rig.bvh"}  # the file each writes in DIR
 #: the options of the formats that use them: any other format refuses them (it would ignore them)
 FORMAT_OPTIONS = {"reference": ("glb", "spine-glb"), "segments": ("glb", "spine-glb"), "no_spine_tubes": ("glb",)}
 
@@ -42,6 +43,11 @@ def run(args: argparse.Namespace) -> int:
 
     d = Path(args.results)
     _check_format_options(args)
+    if args.out is not None and Path(args.out).is_dir():
+        from stage.cli import UserError
+
+        raise UserError(f"--out {args.out} is a directory: give the file to write (e.g. "
+                        f"{Path(args.out) / DEFAULT_NAMES[args.format]})")
     if args.segments is None:
         args.segments = SEGMENTS
     if args.segments < 1:

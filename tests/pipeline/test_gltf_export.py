@@ -228,6 +228,22 @@ def test_cli_export(results_dir, tmp_path_factory, capsys):
     assert out.is_file() and str(out) in capsys.readouterr().out
 
 
+def test_export_to_a_directory_is_one_line_and_leaves_nothing_behind(results_dir, tmp_path, capsys):
+    """``--out`` naming a directory: one line naming it and the file to give, for every format, before any work;
+    ``export_rig(out=a directory)`` fails without leaving its temporary file (it left ``DIR.tmp``)."""
+    from stage.cli import main
+
+    target = tmp_path / "o" / "exports"
+    target.mkdir(parents=True)
+    for fmt, name in (("glb", "spine_rig.glb"), ("spine-glb", "spine.glb"), ("bvh", "rig.bvh")):
+        assert main(["export", str(results_dir), "--format", fmt, "--out", str(target)]) == 2
+        assert capsys.readouterr().err == (f"stage export: error: --out {target} is a directory: give the file to "
+                                           f"write (e.g. {target / name})\n")
+    with pytest.raises(IsADirectoryError):
+        export_rig(results_dir, out=target)
+    assert [p.name for p in (tmp_path / "o").iterdir()] == ["exports"] and not any(target.iterdir())
+
+
 def test_export_without_spine_is_a_clear_error(tmp_path, capsys):
     from stage.cli import main
 
