@@ -95,6 +95,8 @@ def _check_options(args: argparse.Namespace) -> None:
         raise ValueError(f"--fps must be > 0, got {args.fps}")
     if args.reference is not None and args.reference < 0:
         raise ValueError(f"--reference must be a position >= 0 (0-based), got {args.reference}")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        raise ValueError(f"--out {args.out} is a file: give the directory to write the armature into")
 
 
 def run(args: argparse.Namespace) -> int:

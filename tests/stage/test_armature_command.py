@@ -165,9 +165,13 @@ def test_invalid_input(tmp_path, capsys, monkeypatch):
     V, F, _ = two_bars(3)
     (tmp_path / "res" / "meshes").mkdir(parents=True)
     (tmp_path / "res" / "meshes" / "frame_000000.ply").write_bytes(ply_bytes(V[0], F))
-    for bad in (["--samples", "1"], ["--lambda-thr", "2"], ["--fps", "0"], ["--fps", "nan"], ["--reference", "-1"]):
+    (tmp_path / "a-file").write_text("not a directory")
+    for bad, said in ((["--samples", "1"], "--samples must be"), (["--lambda-thr", "2"], "--lambda-thr must be"),
+                      (["--fps", "0"], "--fps must be"), (["--fps", "nan"], "--fps must be"),
+                      (["--reference", "-1"], "--reference must be"),
+                      (["--out", str(tmp_path / "a-file")], f"--out {tmp_path / 'a-file'} is a file: give the directory")):
         assert main(["armature", str(tmp_path / "res"), *bad]) == 2
-        assert f"stage armature: error: {bad[0]} must be" in capsys.readouterr().err
+        assert f"stage armature: error: {said}" in capsys.readouterr().err
     # --reference past the sequence's end: said in the option's words before the segmentation
     monkeypatch.setattr(pipeline.armature, "build_armature", lambda *a, **k: pytest.fail("built before the check"))
     _write_seq(tmp_path / "seq", V, F)
