@@ -14,7 +14,8 @@ Hook for tests and plug-ins: ``JobRunner(..., work=fn)`` or the setting
     fn(take, out, *, steps, params, executor, progress, cancel) -> result
 
 If the function's module defines ``ProcessParams`` (a pydantic model) the job's
-``parameters`` are validated into it, and ``STEPS`` (a tuple) lists the allowed steps.
+``parameters`` are validated into it, ``STEPS`` (a tuple) lists the allowed steps, and
+``check_job_steps(steps)`` (raising ValueError) refuses steps a job could not run from its empty folder.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ class WorkSpec:
     steps: tuple[str, ...] = DEFAULT_STEPS
     params_model: Any = None
     defaults: tuple[str, ...] | None = None  # steps of a job that names none (default: all)
+    check_steps: Callable[[tuple[str, ...]], None] | None = None  # the module's check_job_steps, if any
 
     def validate(self, steps: Sequence[str] | None, params: dict | None) -> tuple[tuple[str, ...], dict]:
         """Check ``steps`` and ``params``; return them normalized (steps in canonical order, params as JSON dict).
@@ -70,6 +72,8 @@ class WorkSpec:
             raise ValueError(f"steps: unknown step(s) {unknown}; allowed: {list(self.steps)}")
         if len(set(steps)) != len(steps):
             raise ValueError("steps: duplicate steps")
+        if self.check_steps is not None:
+            self.check_steps(steps)
         params = dict(params or {})
         if self.params_model is not None:
             from pydantic import ValidationError
@@ -114,7 +118,9 @@ def load_work(spec: str | Callable[..., Any]) -> WorkSpec:
     if model is not None and not hasattr(model, "model_validate"):
         model = None
     defaults = tuple(getattr(mod, "DEFAULT_STEPS", steps)) if mod is not None else None
-    return WorkSpec(fn=fn, steps=steps, params_model=model, defaults=defaults)
+    check = getattr(mod, "check_job_steps", None) if mod is not None else None
+    return WorkSpec(fn=fn, steps=steps, params_model=model, defaults=defaults,
+                    check_steps=check if callable(check) else None)
 
 
 def _jsonable(obj: Any) -> Any:

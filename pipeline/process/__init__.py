@@ -41,12 +41,13 @@ from pipeline.process.context import Made, RunContext, TakeFacts
 from pipeline.process.driver import process_take
 from pipeline.process.grid import MAX_VOXELS, MIN_RESOLUTION, PIXELS_PER_VOXEL
 from pipeline.process.params import ProcessError, ProcessParams, ProcessResult, TrackParams
-from pipeline.process.steps import DEFAULT_STEPS, STEPS, register_step
+from pipeline.process.steps import DEFAULT_STEPS, STEPS, check_job_steps, register_step
 from pipeline.process.tasks import key_task, skeleton_task, surface_task, warm_task
 from pipeline.run import Step
 
 __all__ = [
     "DEFAULT_STEPS", "MAX_VOXELS", "MIN_RESOLUTION", "PIXELS_PER_VOXEL", "STEPS", "Made", "ProcessError",
-    "ProcessParams", "ProcessResult", "RunContext", "Step", "TakeFacts", "TrackParams", "key_task", "process_take",
+    "ProcessParams", "ProcessResult", "RunContext", "Step", "TakeFacts", "TrackParams", "check_job_steps", "key_task",
+    "process_take",
     "register_step", "skeleton_task", "surface_task", "warm_task",
 ]

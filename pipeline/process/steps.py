@@ -37,7 +37,7 @@ from pipeline.run import StepList, forking_pool, pool_size
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-__all__ = ["DEFAULT_STEPS", "STEPS", "register_step"]
+__all__ = ["DEFAULT_STEPS", "STEPS", "check_job_steps", "register_step"]
 
 log = logging.getLogger("pipeline.process")
 
@@ -489,3 +489,27 @@ register_step("track", _step_track, doc="template tracking of the surfaces (only
 # what runs when no steps are given: tracking and the rig on it are asked for (``stage track``,
 # ``stage rig`` or a job's steps); a plain run does not warn about a rig it was not asked for
 DEFAULT_STEPS: tuple[str, ...] = tuple(s for s in STEPS if s not in ("track", "rig"))
+
+
+def check_job_steps(steps) -> None:
+    """The steps of a job of the API, whose results folder starts empty: a step that works on the surfaces
+    (``spine``, ``track``, ``rig``) needs the ``surface`` step in the same job, or it could only fail.
+
+    Parameters
+    ----------
+    steps : list or tuple of str
+        Names in :data:`STEPS`.
+
+    Raises
+    ------
+    ValueError
+        Naming ``steps``, what needs the surfaces and the steps to give instead.
+    """
+    if not isinstance(steps, (list, tuple)) or not all(isinstance(s, str) for s in steps):
+        raise ValueError(f"steps must be a sequence of step names, got {steps!r}")
+    given = set(steps)
+    need = [s for s in STEPS if s in given and s in ("spine", "track", "rig")]
+    if need and "surface" not in given:
+        example = [s for s in STEPS if s != "refine" and (s in given or s in DEFAULT_STEPS)]
+        raise ValueError(f"steps: {', '.join(need)} {'works' if len(need) == 1 else 'work'} on the surfaces the job "
+                         f"makes itself (a job's results start empty): add the surface step, e.g. steps {example}")

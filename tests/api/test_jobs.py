@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -177,15 +178,15 @@ def test_a_process_job_checks_its_track_options(make_client, data_root):
     add_take(data_root, "t", frames=2)
     c = make_client(work="pipeline.process:process_take")
     for bad in ({"carve": -1}, {"carve": 99}, {"carve_margin": -1}, {"shape_memory": "sometimes"}, {"rounds": 2}):
-        r = c.post("/jobs", json={"take": "t", "steps": ["track"], "parameters": {"track": bad}}, headers=AUTH)
+        r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"], "parameters": {"track": bad}}, headers=AUTH)
         assert r.status_code == 400 and "track" in r.json()["detail"], (bad, r.json())
     ok = {"track": {"carve": 2, "shape_memory": True, "colour": True, "labels": True}}
-    r = c.post("/jobs", json={"take": "t", "steps": ["track"], "parameters": ok}, headers=AUTH)
+    r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"], "parameters": ok}, headers=AUTH)
     assert r.status_code in (200, 201, 202) and r.json()["params"]["track"]["carve"] == 2, r.json()
     assert r.json()["params"]["track"]["labels"] is True
-    r = c.post("/jobs", json={"take": "t", "steps": ["rig"], "parameters": {"rig": {"parts": "bones"}}}, headers=AUTH)
+    r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": {"rig": {"parts": "bones"}}}, headers=AUTH)
     assert r.status_code == 400 and "rig" in r.json()["detail"], r.json()
-    r = c.post("/jobs", json={"take": "t", "steps": ["rig"], "parameters": {"rig": {"parts": "limbs"}}}, headers=AUTH)
+    r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": {"rig": {"parts": "limbs"}}}, headers=AUTH)
     assert r.status_code in (200, 201, 202) and r.json()["params"]["rig"]["parts"] == "limbs", r.json()
 
 
@@ -327,16 +328,14 @@ def test_a_process_job_that_cannot_run_says_what_to_do_in_the_words_of_a_job(mak
     c = make_client(work="pipeline.process:process_take")
     cases = [("nocal", None, "a job processes a take recorded or imported with its calibration", "`stage calibrate`"),
              ("bad", None, "parameters.skip_damaged = true processes", "--skip-damaged"),
-             ("empty", ["surface"], "/takes/{take}/frames/{index}/{camera}/mask.png", "`stage key --preview`"),
-             # the steps' own words: the same for process_take(steps=("track",))
-             ("empty", ["track"], "track: the take has no surfaces to track yet", "run the surface step first")]
+             ("empty", ["surface"], "/takes/{take}/frames/{index}/{camera}/mask.png", "`stage key --preview`")]
     for take, steps, job_words, cli_words in cases:
         jid = c.post("/jobs", json={"take": take, "steps": steps}, headers=AUTH).json()["id"]
         st = wait_job(c, jid, timeout=60)
         assert st["state"] == "failed" and job_words in st["error"], st
         assert "--" not in st["error"] and "stage " not in st["error"] and "\n" not in st["error"], st["error"]
         with pytest.raises(ProcessError) as exc:
-            process_take(takes / f"{take}.h5", data_root / "cli" / f"{take}-{steps}", steps=steps)
+            process_take(takes / f"{take}.h5", data_root / "cli" / take, steps=steps)
         assert cli_words in str(exc.value) and exc.value.job_message == st["error"].replace("DATA/", f"{data_root}/")
 
 
@@ -366,3 +365,31 @@ def test_every_process_error_that_names_a_command_says_it_in_a_jobs_words_too():
                 if job and cli(text(job[0])):
                     bad.append(f"{path.name}:{node.lineno} (job_message)")
     assert seen >= 8 and not bad, (seen, bad)
+
+
+def test_a_job_whose_steps_need_surfaces_it_does_not_make_is_refused_when_submitted(make_client, data_root):
+    """A job's results start in an empty folder: spine, track or rig without the surface step could only fail (a
+    surface job's results are another job's). Refused at once (400), naming the steps to give; with the surface step
+    the same job is queued. The track step run on a folder without surfaces still says which step makes them."""
+    import pytest
+
+    from pipeline.process import ProcessParams, check_job_steps
+    from pipeline.process.steps import _step_track
+
+    add_take(data_root, "t", frames=2)
+    c = make_client(work="pipeline.process:process_take")
+    for steps, need in ((["rig"], "rig works"), (["track", "rig"], "track, rig work"), (["spine"], "spine works"),
+                        (["key", "track"], "track works")):
+        r = c.post("/jobs", json={"take": "t", "steps": steps}, headers=AUTH)
+        assert r.status_code == 400, r.json()
+        assert r.json()["detail"].startswith(f"steps: {need} on the surfaces the job makes itself (a job's results "
+                                             "start empty): add the surface step, e.g. steps ['key', 'surface', 'spine'")
+    assert c.get("/jobs").json() == []  # nothing of the refused ones was queued
+    r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track", "rig"]}, headers=AUTH)
+    assert r.status_code == 202 and r.json()["steps"] == ["surface", "track", "rig"]
+    for bad in ("rig", ["rig", 3], None):
+        with pytest.raises(ValueError, match="steps must be a sequence of step names"):
+            check_job_steps(bad)
+    ctx = SimpleNamespace(out=data_root / "empty", params=ProcessParams(), steps=("track",))
+    with pytest.raises(ValueError, match="track: the take has no surfaces to track yet .*: run the surface step first"):
+        _step_track(ctx)
