@@ -113,7 +113,7 @@ def test_track_is_an_opt_in_step_of_process_and_of_api_jobs():
     assert "track" in STEPS and "track" not in DEFAULT_STEPS
     spec = load_work("pipeline.process:process_take")
     assert spec.validate(None, {})[0] == DEFAULT_STEPS
-    assert spec.validate(["track", "spine"], {})[0] == ("spine", "track")
+    assert spec.validate(["track", "spine", "surface"], {})[0] == ("surface", "spine", "track")  # in the steps' order
 
 
 def test_demo_rgbd_runs_the_single_camera_path_end_to_end(tmp_path, capsys):
