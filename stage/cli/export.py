@@ -82,8 +82,8 @@ def _check_format_options(args: argparse.Namespace) -> None:
     rest pose, say, is the armature's, chosen by ``stage armature --reference``)."""
     from stage.cli import UserError
 
-    given = [f"--{name.replace('_', '-')}" for name, formats in FORMAT_OPTIONS.items()
-             if getattr(args, name) not in (None, False) and args.format not in formats]
+    given = [f"--{name.replace('_', '-')}" for name, formats in FORMAT_OPTIONS.items()  # given: not None, not False
+             if getattr(args, name) is not None and getattr(args, name) is not False and args.format not in formats]
     if given:
         why = " (its rest pose and bones are the armature's: stage armature --reference POS)" if args.format == "bvh" else ""
         raise UserError(f"{', '.join(given)}: not an option of --format {args.format}{why}")

@@ -304,6 +304,8 @@ def test_export_refuses_the_options_its_format_does_not_use(tmp_path, capsys):
     """``stage export --format bvh --reference 3`` would write the armature's own rest pose and say nothing: an
     option the format does not use is refused in one line naming it, before anything is read."""
     for fmt, options, named in (("bvh", ["--reference", "3"], "--reference"),
+                                ("bvh", ["--reference", "0"], "--reference"),  # frame 0 is given too (0 == False)
+                                ("bvh", ["--segments", "0"], "--segments"),
                                 ("bvh", ["--segments", "6", "--no-spine-tubes"], "--segments, --no-spine-tubes"),
                                 ("spine-glb", ["--no-spine-tubes"], "--no-spine-tubes")):
         assert main(["export", str(tmp_path), "--format", fmt, *options]) == 2
