@@ -160,3 +160,17 @@ def small_calibration(n: int = 2):
         K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
         cams.append(Camera(f"cam{i:02d}", K, np.zeros(5), np.eye(3), np.array([i * 100.0, 0, 1000]), size=(32, 24)))
     return Calibration(tuple(cams))
+
+
+def ring_calibration(n: int = 3):
+    """``n`` 32x24 pinhole cameras on a ring of 1000 mm around the origin, looking at it."""
+    from calib.calibration import Calibration
+    from calib.camera import Camera
+
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        R = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]])
+        K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+        cams.append(Camera(f"cam{i:02d}", K, np.zeros(5), R, np.array([0, 0, 1000.0]), size=(32, 24)))
+    return Calibration(tuple(cams))

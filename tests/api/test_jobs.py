@@ -286,20 +286,6 @@ def test_a_work_result_with_non_finite_numbers_is_served_as_strict_json():
     assert odd == {"other": str(object), "rms": None}
 
 
-def _ring_calibration(n: int):
-    """``n`` 32x24 pinhole cameras on a ring of 1000 mm around the origin, looking at it."""
-    from calib.calibration import Calibration
-    from calib.camera import Camera
-
-    cams = []
-    for i in range(n):
-        a = 2 * np.pi * i / n
-        R = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]])
-        K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
-        cams.append(Camera(f"cam{i:02d}", K, np.zeros(5), R, np.array([0, 0, 1000.0]), size=(32, 24)))
-    return Calibration(tuple(cams))
-
-
 def test_a_process_job_that_cannot_run_says_what_to_do_in_the_words_of_a_job(make_client, data_root):
     """The API's job path (the real work) on takes it cannot process: no calibration, a damaged frame, masks
     without a subject. The job's error names the job's parameters and the API, never a command line option or
@@ -309,7 +295,7 @@ def test_a_process_job_that_cannot_run_says_what_to_do_in_the_words_of_a_job(mak
 
     from pipeline.process import ProcessError, process_take
     from stage.store import write_masks
-    from tests.api.fakework import make_take_file, small_calibration
+    from tests.api.fakework import make_take_file, ring_calibration, small_calibration
 
     takes = data_root / "takes"
     takes.mkdir(parents=True)
@@ -322,7 +308,7 @@ def test_a_process_job_that_cannot_run_says_what_to_do_in_the_words_of_a_job(mak
         data = fh.read(16)
         fh.seek(info.byte_offset + info.size // 2)
         fh.write(bytes(x ^ 0xFF for x in data))
-    empty = make_take_file(takes / "empty.h5", 2, cameras=3, calibration=_ring_calibration(3))
+    empty = make_take_file(takes / "empty.h5", 2, cameras=3, calibration=ring_calibration(3))
     for cam in ("cam00", "cam01", "cam02"):
         write_masks(empty, cam, np.zeros((2, 24, 32), bool))
     c = make_client(work="pipeline.process:process_take")

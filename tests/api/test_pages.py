@@ -7,7 +7,6 @@ import json
 import re
 from pathlib import Path
 
-import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -15,25 +14,12 @@ from api.app import create_app
 from api.routers.pages import REPORT_CACHE
 from tests.api import fakework
 from tests.api.conftest import AUTH, make_settings
-from tests.api.fakework import make_take_file
+from tests.api.fakework import make_take_file, ring_calibration
 
 UNKNOWN_JOB = "0" * 32
 # an external resource: <script src=http...>, <link href=http...>, <img src=http...>, CSS url(http...)
 _EXTERNAL = re.compile(r"<(?:script|link|img|iframe|source)\b[^>]*\b(?:src|href)\s*=\s*[\"']?\s*(?:https?:)?//"
                        r"|url\(\s*[\"']?\s*(?:https?:)?//", re.I)
-
-
-def _calibration(n: int = 3):
-    from calib.calibration import Calibration
-    from calib.camera import Camera
-
-    cams = []
-    for i in range(n):
-        a = 2 * np.pi * i / n
-        R = np.array([[np.cos(a), 0, -np.sin(a)], [0, 1, 0], [np.sin(a), 0, np.cos(a)]])
-        K = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
-        cams.append(Camera(f"cam{i:02d}", K, np.zeros(5), R, np.array([0, 0, 1000.0]), size=(32, 24)))
-    return Calibration(tuple(cams))
 
 
 def _report_json(d: Path) -> None:
@@ -53,7 +39,7 @@ def app_factory(tmp_path):
     def make(**kw):
         data = tmp_path / f"data{len(made)}"
         (data / "takes").mkdir(parents=True)
-        make_take_file(data / "takes" / "cal.h5", 5, cameras=3, calibration=_calibration(3), masks=True)
+        make_take_file(data / "takes" / "cal.h5", 5, cameras=3, calibration=ring_calibration(3), masks=True)
         make_take_file(data / "takes" / "plain.h5", 2)
         app = create_app(make_settings(data, **kw), work=fakework.process_take, start_runner=False)
         c = TestClient(app, raise_server_exceptions=False)
