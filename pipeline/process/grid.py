@@ -48,17 +48,11 @@ def subject_grid(masks_of: Callable, calibration, n_sets: int, p: ProcessParams,
     """The subject's box over the whole take (:func:`pipeline.subject_box.find_subject_box`, every
     frame set carved coarse to fine inside ``volume_bounds``). ``masks_of(k)`` gives the masks of
     set ``k`` and the cameras skipped (:func:`pipeline.process.tasks.frame_masks`)."""
-    from pipeline.hull import EmptyHullError
     from pipeline.subject_box import find_subject_box
 
     volume_bounds = np.asarray(volume_bounds, float).reshape(2, 3)
-    try:
-        return find_subject_box(_SetMasks(masks_of, n_sets), calibration, volume_bounds, tolerance=p.tolerance,
-                                support_plane=p.support_plane, progress=progress)
-    except EmptyHullError as exc:  # said with where to look at the masks
-        raise ProcessError(f"{exc} (check the masks: `stage key --preview`)",
-                           job_message=f"{exc} (check the masks: /takes/{{take}}/frames/{{index}}/{{camera}}/mask.png)"
-                           ) from None
+    return find_subject_box(_SetMasks(masks_of, n_sets), calibration, volume_bounds, tolerance=p.tolerance,
+                            support_plane=p.support_plane, progress=progress)
 
 
 def rig_resolution(calibration, box: np.ndarray, p: ProcessParams, centres: np.ndarray | None = None) -> tuple[int, dict]:

@@ -178,6 +178,7 @@ def _volume_bounds(ctx: RunContext) -> np.ndarray:
 def _processing_grid(ctx: RunContext):
     """The grid of the surfaces: ``OUT/grid.json`` when an earlier run chose it, else fitted
     to the subject now (and written there)."""
+    from pipeline.hull import EmptyHullError
     from pipeline.volume import Grid
     from stage.store import TakeReader
 
@@ -202,8 +203,14 @@ def _processing_grid(ctx: RunContext):
             masks_of = partial(frame_masks, reader, ctx.take.cameras, validity=validity)
         if ctx.skipped_sets:
             masks_of = _without_sets(masks_of, ctx.skipped_sets, ctx.take.cameras)
-        grid, ctx.made.grid_choice, hint = choose_grid(masks_of, ctx.take.calibration, ctx.take.n_sets, ctx.params, ctx.take.rig,
-                                                  progress=lambda d, t: ctx.report_progress("box", d, t))
+        try:
+            grid, ctx.made.grid_choice, hint = choose_grid(masks_of, ctx.take.calibration, ctx.take.n_sets, ctx.params,
+                                                      ctx.take.rig, progress=lambda d, t: ctx.report_progress("box", d, t))
+        except EmptyHullError as exc:  # said with where to look at the masks (a job's take id is its file's stem)
+            take = ctx.take.path.stem
+            raise ProcessError(f"{exc} (check the masks: `stage key --preview`)",
+                               job_message=f"{exc} (check the masks: /ui/takes/{take} shows each camera's, e.g. "
+                               f"/takes/{take}/frames/0/{ctx.take.cameras[0]}/mask.png)") from None
     if hint:
         ctx.warn(hint)
     atomic_write(grid_path, json.dumps({**grid.to_dict(), "choice": ctx.made.grid_choice}))

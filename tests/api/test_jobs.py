@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -314,12 +315,15 @@ def test_a_process_job_that_cannot_run_says_what_to_do_in_the_words_of_a_job(mak
     c = make_client(work="pipeline.process:process_take")
     cases = [("nocal", None, "a job processes a take recorded or imported with its calibration", "`stage calibrate`"),
              ("bad", None, "parameters.skip_damaged = true processes", "--skip-damaged"),
-             ("empty", ["surface"], "/takes/{take}/frames/{index}/{camera}/mask.png", "`stage key --preview`")]
+             ("empty", ["surface"], "check the masks: /ui/takes/empty shows each camera's, e.g. "
+              "/takes/empty/frames/0/cam00/mask.png)", "`stage key --preview`")]
     for take, steps, job_words, cli_words in cases:
         jid = c.post("/jobs", json={"take": take, "steps": steps}, headers=AUTH).json()["id"]
         st = wait_job(c, jid, timeout=60)
         assert st["state"] == "failed" and job_words in st["error"], st
         assert "--" not in st["error"] and "stage " not in st["error"] and "\n" not in st["error"], st["error"]
+        for url in re.findall(r"(?<!\w)/(?:ui/)?takes/[^\s,)]+", st["error"]):  # the error's links answer (no placeholder)
+            assert c.get(url, headers=AUTH).status_code == 200, (url, st["error"])
         with pytest.raises(ProcessError) as exc:
             process_take(takes / f"{take}.h5", data_root / "cli" / take, steps=steps)
         assert cli_words in str(exc.value) and exc.value.job_message == st["error"].replace("DATA/", f"{data_root}/")
