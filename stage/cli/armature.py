@@ -99,6 +99,12 @@ def _check_options(args: argparse.Namespace) -> None:
         raise ValueError(f"--out {args.out} is a file: give the directory to write the armature into")
 
 
+def _check_reference(reference: int | None, n: int) -> None:
+    """``--reference``'s upper end, for a sequence of ``n`` frames (the lower one: :func:`_check_options`)."""
+    if reference is not None and reference >= n:
+        raise ValueError(f"--reference must be a position within 0..{n - 1} (the sequence has {n} frames), got {reference}")
+
+
 def run(args: argparse.Namespace) -> int:
     from pipeline.armature import armature_counts, build_armature
     from pipeline.armature_files import (
@@ -137,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
                 raise UserError(str(exc)) from None
             if len(surfaces) == 1:  # said before the tracking, which could not help
                 raise UserError(f"{d} has one frame (meshes/{surfaces[0].name}): {ONE_FRAME}") from None
+            _check_reference(args.reference, len(surfaces))  # the tracking follows these frames, none more
             paths = _track_first(d, quiet=args.quiet, no_progress=args.no_progress, labels=args.parts == "limbs")
         meta = _spine_meta(d)
         out = args.out or d / "rig"
@@ -144,9 +151,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("no meshes")
     if len(paths) == 1:
         raise UserError(f"{paths[0]} is the only frame: {ONE_FRAME}")
-    if args.reference is not None and args.reference >= len(paths):
-        raise ValueError(f"--reference must be a position within 0..{len(paths) - 1} (the sequence has {len(paths)} "
-                         f"frames), got {args.reference}")
+    _check_reference(args.reference, len(paths))
     vertices, faces, numbers = load_sequence(paths)
     limbs = None if args.meshes is not None else spine_limbs(d, vertices, faces, numbers)  # a take's spine, if any
     found = limb_parts(d, vertices, faces, numbers) if args.parts == "limbs" else None

@@ -178,6 +178,11 @@ def test_invalid_input(tmp_path, capsys, monkeypatch):
     assert main(["armature", "--meshes", str(tmp_path / "seq" / "*.ply"), "--out", str(tmp_path / "o"),
                  "--reference", "3"]) == 2
     assert "error: --reference must be a position within 0..2 (the sequence has 3 frames), got 3" in capsys.readouterr().err
+    # ... and before an untracked take's tracking, whose frames are its surfaces (still _track_first failing the test)
+    for i in (1, 2):
+        (tmp_path / "res" / "meshes" / f"frame_{i:06d}.ply").write_bytes(ply_bytes(V[i], F))
+    assert main(["armature", str(tmp_path / "res"), "--reference", "3"]) == 2
+    assert "error: --reference must be a position within 0..2 (the sequence has 3 frames), got 3" in capsys.readouterr().err
 
 
 def test_rig_step(tmp_path, caplog):
