@@ -70,9 +70,10 @@ def run(args: argparse.Namespace) -> int:
             if args.reference not in fi:
                 raise ValueError(f"--reference must be a frame number of the take, got {args.reference}")
             ref = fi.index(args.reference)
-        path = Path(args.out) if args.out else d / "spine.glb"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_bytes(spine_to_glb(spine, segments=args.segments, reference=ref))
+        from pipeline.results import atomic_write_bytes  # as glb and bvh: never a half-written file
+
+        path = atomic_write_bytes(Path(args.out) if args.out else d / "spine.glb",
+                                  spine_to_glb(spine, segments=args.segments, reference=ref))
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
     return 0
 

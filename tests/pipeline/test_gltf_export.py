@@ -244,6 +244,29 @@ def test_export_to_a_directory_is_one_line_and_leaves_nothing_behind(results_dir
     assert [p.name for p in (tmp_path / "o").iterdir()] == ["exports"] and not any(target.iterdir())
 
 
+def test_an_export_that_cannot_be_written_leaves_the_earlier_file_whole(results_dir, tmp_path, monkeypatch, capsys):
+    """Nothing lost: a disk that fails the write (ENOSPC when the bytes are flushed) leaves the file an earlier
+    export wrote as it was, and no temporary file beside it, for each format of a results directory."""
+    import errno
+    import os
+
+    from stage.cli import main
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    for fmt in ("glb", "spine-glb"):
+        out = tmp_path / fmt / "model.glb"
+        out.parent.mkdir()
+        out.write_bytes(b"the earlier export")
+        with monkeypatch.context() as m:
+            m.setattr(os, "fsync", full)
+            assert main(["export", str(results_dir), "--format", fmt, "--out", str(out)]) != 0
+        assert out.read_bytes() == b"the earlier export" and [p.name for p in out.parent.iterdir()] == ["model.glb"]
+        err = capsys.readouterr().err
+        assert "No space left on device" in err and len(err.splitlines()) == 1, err
+
+
 def test_export_without_spine_is_a_clear_error(tmp_path, capsys):
     from stage.cli import main
 
