@@ -517,6 +517,6 @@ def check_job_steps(steps) -> None:
     given = set(steps)
     need = [s for s in STEPS if s in given and s in ("spine", "track", "rig")]
     if need and "surface" not in given:
-        example = [s for s in STEPS if s != "refine" and (s in given or s in DEFAULT_STEPS)]
+        example = [s for s in STEPS if s in given or (s in DEFAULT_STEPS and s != "refine")]  # all the job gave
         raise ValueError(f"steps: {', '.join(need)} {'works' if len(need) == 1 else 'work'} on the surfaces the job "
                          f"makes itself (a job's results start empty): add the surface step, e.g. steps {example}")

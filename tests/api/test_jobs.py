@@ -374,6 +374,8 @@ def test_a_job_whose_steps_need_surfaces_it_does_not_make_is_refused_when_submit
         assert r.status_code == 400, r.json()
         assert r.json()["detail"].startswith(f"steps: {need} on the surfaces the job makes itself (a job's results "
                                              "start empty): add the surface step, e.g. steps ['key', 'surface', 'spine'")
+    r = c.post("/jobs", json={"take": "t", "steps": ["refine", "rig"]}, headers=AUTH)  # the example keeps what was given
+    assert r.status_code == 400 and r.json()["detail"].endswith("e.g. steps ['key', 'refine', 'surface', 'spine', 'rig']")
     assert c.get("/jobs").json() == []  # nothing of the refused ones was queued
     r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track", "rig"]}, headers=AUTH)
     assert r.status_code == 202 and r.json()["steps"] == ["surface", "track", "rig"]
