@@ -105,6 +105,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         surfaces cannot see a round limb's turn about its own axis; the images can. Without the take's
         images, masks or calibration one line says so and the surfaces alone are used.
     progress : callable(step, done, total), optional
+        Every round's tracking is its own step, ``"track with the rig round N"`` (``N`` from 1, as ``kept_round``).
     executor : concurrent.futures.Executor, optional
         Tracks the longer of each round's two halves (the frames after the reference frame, or those
         before it; a process pool: :func:`armature_half_task` is its task) while this process tracks the
@@ -225,7 +226,8 @@ def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_fram
             use, by_pose, entry = _limb_rig(vs, faces, frames, refi, *chain)
         else:
             use, by_pose, entry = _rig_of(vs, faces, frames, refi, lambda_thr, limbs=limbs)
-        per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight, progress, spine=spine,
+        per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight,
+                         None if progress is None else partial(_round_progress, progress, r + 1), spine=spine,
                          tracks_for=tracks_for, aside=aside)
         entry["worker_cpu_seconds"] = per.pop("worker_cpu_seconds", None)
         res = [f["rig_residual_mm"] for f in per["figures"].values()]
@@ -237,6 +239,11 @@ def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_fram
             best = (r, entry["residual_mm"] if entry["residual_mm"] is not None else np.inf, per)
         vs = np.stack([per["vertices"][k] for k in frames])
     return history, best
+
+
+def _round_progress(progress, r: int, step: str, done: int, total: int) -> None:
+    """``progress`` of round ``r`` (1-based, as ``rig_prior.kept_round`` counts): every round its own entry."""
+    progress(f"{step} round {r}", done, total)
 
 
 def _tracked_sequence(root: Path):

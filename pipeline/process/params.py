@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 __all__ = ["ProcessError", "ProcessParams", "ProcessResult", "RigParams", "TrackParams", "check_params"]
 
@@ -48,6 +48,17 @@ class TrackParams(BaseModel):
     labels : bool
         Cut the template's rigid patches at the limbs of the take's spine (``--labels``,
         :func:`pipeline.template_labels.template_labels`): the body one patch, every limb on its own grid.
+    armature_rounds : int or "auto"
+        After the tracking, at most this many rounds of an armature built from the tracked motion and the
+        take tracked again with it as the articulated prior, the best round kept (``--armature-rounds``,
+        :func:`pipeline.track_armature.track_with_armature`); ``"auto"``: at most
+        :data:`pipeline.track_armature.AUTO_RIG_ROUNDS`; 0 (default): none.
+    spine_armature : bool
+        The first armature round's armature is the take's spine (``--spine-armature``); needs
+        ``armature_rounds``.
+    armature_parts : {"motion", "limbs"}
+        Where every round's armature gets its parts (``--armature-parts``): ``"motion"`` the motion
+        segmentation, ``"limbs"`` the labels' body and limbs; ``"limbs"`` needs ``armature_rounds`` and ``labels``.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -57,6 +68,19 @@ class TrackParams(BaseModel):
     shape_memory: bool = False
     colour: bool = False
     labels: bool = False
+    armature_rounds: Annotated[int, Field(ge=0, le=4)] | Literal["auto"] = 0
+    spine_armature: bool = False
+    armature_parts: Literal["motion", "limbs"] = "motion"
+
+    @model_validator(mode="after")
+    def _armature_options(self) -> TrackParams:
+        """``stage track``'s rules of the armature rounds, in the parameters' names."""
+        if self.spine_armature and not self.armature_rounds:
+            raise ValueError("spine_armature needs armature_rounds (it is the first of the armature rounds)")
+        if self.armature_parts != "motion" and not (self.armature_rounds and self.labels):
+            raise ValueError(f"armature_parts {self.armature_parts!r} needs armature_rounds and labels (its parts are "
+                             "the labels' body and limbs)")
+        return self
 
 
 class RigParams(BaseModel):

@@ -422,7 +422,8 @@ def _need_surfaces(ctx: RunContext, step: str) -> None:
 def _step_track(ctx: RunContext) -> None:
     """The first surface tracked through the take -> ``tracked/`` (:func:`pipeline.carve.track_with_carving`
     with ``ProcessParams.track``; with the template's limb/body labels too when the job's rig takes its parts from
-    them, ``rig.parts="limbs"``)."""
+    them, ``rig.parts="limbs"``), then tracked again with an armature as the articulated prior for
+    ``track.armature_rounds`` (:func:`pipeline.track_armature.track_with_armature`), as ``stage track`` does."""
     from pipeline.carve import track_with_carving
 
     _need_surfaces(ctx, "track")
@@ -433,6 +434,13 @@ def _step_track(ctx: RunContext) -> None:
     if rep.get("started_over"):  # frames of other settings, and the rig on them, removed: the job report says so
         ctx.warnings.append(rep["started_over"])
     ctx.clock.add_worker_cpu("track", rep.get("worker_cpu_seconds", 0.0))
+    if opt.armature_rounds:
+        from pipeline.track_armature import track_with_armature
+
+        rep = track_with_armature(ctx.out, rounds=opt.armature_rounds, colour=opt.colour, spine=opt.spine_armature,
+                                  progress=ctx.report_progress, executor=ctx.executor,
+                                  labels="spine" if labels else None, parts=opt.armature_parts)
+        ctx.clock.add_worker_cpu("track", rep["rig_prior"].get("worker_cpu_seconds", 0.0))
 
 
 def _surface_totals(ctx: RunContext) -> list[tuple[str, int]]:
@@ -483,9 +491,17 @@ def _step_rig(ctx: RunContext) -> None:
 
 
 def _track_totals(ctx: RunContext) -> list[tuple[str, int]]:
-    """The tracking, then per round of carving the carve and the tracking again (:func:`pipeline.carve.track_with_carving`)."""
-    rounds = [(f"{what} round {r}", ctx.take.n_sets) for r in range(1, ctx.params.track.carve + 1) for what in ("carve", "track")]
-    return [("track", ctx.take.n_sets), *rounds]
+    """The tracking, then per round of carving the carve and the tracking again (:func:`pipeline.carve.track_with_carving`),
+    then every armature round that may run (:func:`pipeline.track_armature.track_with_armature`; those that do
+    not, the rounds stop when one does not help, are closed when the step ends)."""
+    from pipeline.track_armature import AUTO_RIG_ROUNDS
+
+    opt = ctx.params.track
+    rounds = [(f"{what} round {r}", ctx.take.n_sets) for r in range(1, opt.carve + 1) for what in ("carve", "track")]
+    most = 0 if not opt.armature_rounds else (AUTO_RIG_ROUNDS if opt.armature_rounds == "auto" else opt.armature_rounds)
+    most += bool(most and opt.spine_armature)  # the spine's round comes first
+    rig = [(f"track with the rig round {r}", ctx.take.n_sets) for r in range(1, most + 1)]
+    return [("track", ctx.take.n_sets), *rounds, *rig]
 
 
 register_step("rig", _step_rig, doc="articulated rig from the tracked template (Tzionas & Gall 2016)", after="spine",

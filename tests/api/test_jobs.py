@@ -181,10 +181,21 @@ def test_a_process_job_checks_its_track_options(make_client, data_root):
     for bad in ({"carve": -1}, {"carve": 99}, {"carve_margin": -1}, {"shape_memory": "sometimes"}, {"rounds": 2}):
         r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"], "parameters": {"track": bad}}, headers=AUTH)
         assert r.status_code == 400 and "track" in r.json()["detail"], (bad, r.json())
+    # the armature rounds: bounds, and stage track's rules in the parameters' names
+    for bad, said in (({"armature_rounds": 9}, "track.armature_rounds"), ({"armature_rounds": "often"}, "armature_rounds"),
+                      ({"spine_armature": True}, "spine_armature needs armature_rounds"),
+                      ({"armature_rounds": 1, "armature_parts": "limbs"}, "armature_parts 'limbs' needs armature_rounds "
+                                                                          "and labels")):
+        r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"], "parameters": {"track": bad}}, headers=AUTH)
+        assert r.status_code == 400 and r.json()["detail"].startswith("parameters: track") and said in r.json()["detail"], \
+            (bad, r.json())
     ok = {"track": {"carve": 2, "shape_memory": True, "colour": True, "labels": True}}
     r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"], "parameters": ok}, headers=AUTH)
     assert r.status_code in (200, 201, 202) and r.json()["params"]["track"]["carve"] == 2, r.json()
     assert r.json()["params"]["track"]["labels"] is True
+    fast = {"track": {"labels": True, "colour": True, "armature_rounds": 1, "armature_parts": "limbs"}}  # docs/tracking.md
+    r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"], "parameters": fast}, headers=AUTH)
+    assert r.status_code == 202 and r.json()["params"] == fast, r.json()
     r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": {"rig": {"parts": "bones"}}}, headers=AUTH)
     assert r.status_code == 400 and "rig" in r.json()["detail"], r.json()
     r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": {"rig": {"parts": "limbs"}}}, headers=AUTH)
