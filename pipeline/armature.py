@@ -34,7 +34,7 @@ from pipeline.motion_segmentation import Segmentation, check_sequence, motion_se
 
 __all__ = [
     "RIG_FORMAT", "Armature", "build_armature", "armature_dict", "bvh_text", "bvh_from_rig_json", "glb_bytes",
-    "choose_reference", "counted", "armature_counts",
+    "choose_reference", "counted", "armature_counts", "check_armature_options",
 ]
 
 log = logging.getLogger(__name__)
@@ -158,6 +158,45 @@ def choose_reference(vertices, faces, *, candidates: int = 8) -> int:
         except ValueError:
             tips.append(-1)
     return int(cand[int(np.argmax(tips))])
+
+
+def check_armature_options(*, lambda_thr: float | None = None, n_samples: int | None = None, reference: int | None = None,
+                           frames: int | None = None, names: dict[str, str] | None = None) -> None:
+    """The bounds of :func:`build_armature`'s options, checked before any work (a results directory's armature may
+    track the take first): ``stage armature``'s ``--lambda-thr``, ``--samples``, ``--reference`` and an API job's
+    ``parameters.rig`` check theirs here. An option left ``None`` is not checked.
+
+    Parameters
+    ----------
+    lambda_thr : float, optional
+        Within ``(0, 2)``.
+    n_samples : int, optional
+        At least 2.
+    reference : int, optional
+        A position ``>= 0``; below ``frames`` when given.
+    frames : int, optional
+        Frames of the sequence (known once the take is tracked, or its surfaces counted).
+    names : dict, optional
+        The caller's name of each option (``{"n_samples": "--samples"}``) in the messages; default its keyword.
+
+    Raises
+    ------
+    ValueError
+        Naming the option as the caller does, with its bounds and the value given.
+    """
+    name = {"lambda_thr": "lambda_thr", "n_samples": "n_samples", "reference": "reference", **(names or {})}
+    if n_samples is not None and (isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer))
+                                  or n_samples < 2):
+        raise ValueError(f"{name['n_samples']} must be >= 2, got {n_samples}")
+    if lambda_thr is not None and (isinstance(lambda_thr, bool) or not isinstance(lambda_thr, (int, float, np.floating))
+                                   or not 0 < lambda_thr < 2):
+        raise ValueError(f"{name['lambda_thr']} must be within (0, 2), got {lambda_thr}")
+    if reference is not None:
+        if isinstance(reference, bool) or not isinstance(reference, (int, np.integer)) or reference < 0:
+            raise ValueError(f"{name['reference']} must be a position >= 0 (0-based), got {reference}")
+        if frames is not None and reference >= frames:
+            raise ValueError(f"{name['reference']} must be a position within 0..{frames - 1} (the sequence has {frames} "
+                             f"frames), got {reference}")
 
 
 def build_armature(

@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-__all__ = ["ProcessError", "ProcessParams", "ProcessResult", "RigParams", "TrackParams", "check_params"]
+__all__ = ["MAX_RIG_SAMPLES", "ProcessError", "ProcessParams", "ProcessResult", "RigParams", "TrackParams", "check_params"]
 
 
 class ProcessError(ValueError):
@@ -83,6 +83,10 @@ class TrackParams(BaseModel):
         return self
 
 
+#: the most sampled vertices a job's rig segmentation takes (``RigParams.samples``)
+MAX_RIG_SAMPLES = 5000
+
+
 class RigParams(BaseModel):
     """Options of the ``rig`` step, as ``stage armature RESULTS_DIR`` takes them (docs/armature-format.md).
 
@@ -92,11 +96,34 @@ class RigParams(BaseModel):
         Where the armature's rigid parts come from (``--parts``): ``"motion"`` the motion segmentation;
         ``"limbs"`` for a template tracked with its limb/body labels (``TrackParams.labels``): the labels'
         body one part, every limb cut along its spine axis (:func:`pipeline.armature_files.limb_parts`).
+    lambda_thr : float
+        Eigenvalue threshold of the motion segmentation (``--lambda-thr``), within (0, 2): 0.7 (default) for
+        pronounced motion of reasonably sized parts, 0.98 for small parts with small motion.
+    samples : int
+        Sampled vertices of the segmentation (``--samples``), 2 or more; at most :data:`MAX_RIG_SAMPLES` in a job
+        (the segmentation's cost grows with their square).
+    reference : int or None
+        Position (0-based) of the rest frame among the tracked frames (``--reference``; default: the frame showing
+        the most limb tips); past the last surface it is refused before the take is tracked.
+
+    The bounds are :func:`pipeline.armature.check_armature_options`', as ``stage armature`` checks them.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     parts: Literal["motion", "limbs"] = "motion"
+    lambda_thr: float = 0.7
+    samples: Annotated[int, Field(le=MAX_RIG_SAMPLES)] = 1000
+    reference: int | None = None
+
+    @field_validator("lambda_thr", "samples", "reference")
+    @classmethod
+    def _armature_bounds(cls, v, info):
+        from pipeline.armature import check_armature_options
+
+        option = {"samples": "n_samples"}.get(info.field_name, info.field_name)
+        check_armature_options(**{option: v}, names={"n_samples": "samples"})  # ValueError -> ValidationError
+        return v
 
 
 class ProcessParams(BaseModel):

@@ -427,6 +427,8 @@ def _step_track(ctx: RunContext) -> None:
     from pipeline.carve import track_with_carving
 
     _need_surfaces(ctx, "track")
+    if "rig" in ctx.steps:  # a rest frame past the surfaces is said before the tracking, which could not help
+        _check_rig_reference(ctx, len(list((ctx.out / "meshes").glob("frame_*.ply"))))
     opt = ctx.params.track
     labels = opt.labels or ("rig" in ctx.steps and ctx.params.rig.parts == "limbs")
     rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress, executor=ctx.executor,
@@ -478,9 +480,12 @@ def _step_rig(ctx: RunContext) -> None:
             _need_surfaces(ctx, "rig")
             with ctx.part("track"):  # its seconds are the tracking's, not the rig's
                 _step_track(ctx)
+    opt = ctx.params.rig
     try:
+        _check_rig_reference(ctx, len(tracked_meshes(ctx.out)))
         rig = armature_results(ctx.out, units=ctx.take.calibration.units, fps=float(ctx.take.fps),
-                               progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t), parts=ctx.params.rig.parts)
+                               progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t), parts=opt.parts,
+                               lambda_thr=opt.lambda_thr, n_samples=opt.samples, reference=opt.reference)
     except NoTrackingError as exc:
         raise ProcessError(f"rig: {exc}") from None
     if limbs and rig.segmentation.source != "limbs":
@@ -488,6 +493,17 @@ def _step_rig(ctx: RunContext) -> None:
                  "spine: the motion segmentation was used")
     if rig.segmentation.n_segments == 1:  # as stage armature says it: the report's one segment is no failure
         ctx.warn("rig: nothing bends in this take: one segment, the armature moves rigidly")
+
+
+def _check_rig_reference(ctx: RunContext, frames: int) -> None:
+    """``rig.reference`` within the ``frames`` the armature is built from (the surfaces before the tracking, the
+    tracked frames after it), as ``stage armature --reference`` is (:func:`pipeline.armature.check_armature_options`)."""
+    from pipeline.armature import check_armature_options
+
+    try:
+        check_armature_options(reference=ctx.params.rig.reference, frames=frames, names={"reference": "rig.reference"})
+    except ValueError as exc:
+        raise ProcessError(f"rig: {exc}") from None
 
 
 def _track_totals(ctx: RunContext) -> list[tuple[str, int]]:

@@ -83,26 +83,29 @@ def _track_first(d: Path, *, quiet: bool, no_progress: bool, labels: bool = Fals
     return tracked_meshes(d)
 
 
+#: the options of :func:`pipeline.armature.check_armature_options`, as this command names them
+OPTION_NAMES = {"lambda_thr": "--lambda-thr", "n_samples": "--samples", "reference": "--reference"}
+
+
 def _check_options(args: argparse.Namespace) -> None:
     """The options' values, in their names (``--reference``'s upper end once the frames are known)."""
     import math
 
-    if args.samples < 2:
-        raise ValueError(f"--samples must be >= 2, got {args.samples}")
-    if not 0 < args.lambda_thr < 2:
-        raise ValueError(f"--lambda-thr must be within (0, 2), got {args.lambda_thr}")
+    from pipeline.armature import check_armature_options
+
+    check_armature_options(lambda_thr=args.lambda_thr, n_samples=args.samples, reference=args.reference,
+                           names=OPTION_NAMES)
     if args.fps is not None and not (args.fps > 0 and math.isfinite(args.fps)):
         raise ValueError(f"--fps must be > 0, got {args.fps}")
-    if args.reference is not None and args.reference < 0:
-        raise ValueError(f"--reference must be a position >= 0 (0-based), got {args.reference}")
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise ValueError(f"--out {args.out} is a file: give the directory to write the armature into")
 
 
 def _check_reference(reference: int | None, n: int) -> None:
     """``--reference``'s upper end, for a sequence of ``n`` frames (the lower one: :func:`_check_options`)."""
-    if reference is not None and reference >= n:
-        raise ValueError(f"--reference must be a position within 0..{n - 1} (the sequence has {n} frames), got {reference}")
+    from pipeline.armature import check_armature_options
+
+    check_armature_options(reference=reference, frames=n, names=OPTION_NAMES)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,16 +1,18 @@
-"""The ``track`` step's armature rounds (``ProcessParams.track``, an API job's ``parameters.track``): the options of
-``stage track RESULTS_DIR`` checked by the same rules, and handed to the same functions with the same arguments."""
+"""The options of the ``track`` and ``rig`` steps (``ProcessParams.track``, ``.rig``: an API job's ``parameters``): those
+of ``stage track RESULTS_DIR`` (the armature rounds) and ``stage armature RESULTS_DIR`` (``--lambda-thr``,
+``--samples``, ``--reference``), checked by the same rules and handed to the same functions with the same arguments."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from pipeline.process import ProcessParams, TrackParams
-from pipeline.process.params import check_params
+from pipeline.process import ProcessError, ProcessParams, TrackParams
+from pipeline.process.params import RigParams, check_params
 
 
 @pytest.mark.parametrize("bad, said", [
@@ -154,3 +156,108 @@ def test_a_job_tracks_a_take_again_with_its_armature(tmp_path):
     assert rep["rig_rounds"] == 1 and rep["rig_prior"]["max_rounds"] == 1 and sorted(rep["frames"]) == ["0", "1", "2"]
     assert {s for s, _, _ in seen} == {"track", "track with the rig round 1"}
     assert ("track with the rig round 1", 3, 3) in seen
+
+
+@pytest.mark.parametrize("bad, said", [
+    ({"samples": 1}, "rig.samples.* samples must be >= 2, got 1"),
+    ({"samples": 5001}, "rig.samples.* less than or equal to 5000"),  # a job's: the segmentation grows with its square
+    ({"samples": "many"}, "rig.samples.* valid integer"),
+    ({"lambda_thr": 0}, r"rig.lambda_thr.* lambda_thr must be within \(0, 2\), got 0"),
+    ({"lambda_thr": 2}, r"rig.lambda_thr.* lambda_thr must be within \(0, 2\), got 2"),
+    ({"lambda_thr": "nan"}, r"rig.lambda_thr.* lambda_thr must be within \(0, 2\), got nan"),
+    ({"reference": -1}, r"rig.reference.* reference must be a position >= 0 \(0-based\), got -1"),
+    ({"reference": 1.5}, "rig.reference.* fractional part"),
+])
+def test_invalid_rig_input(bad, said):
+    """``stage armature``'s bounds of ``--samples``, ``--lambda-thr``, ``--reference``, in the parameters' names."""
+    with pytest.raises(ValueError, match=f"(?s){said}"):
+        check_params({"rig": bad})
+
+
+def test_check_armature_options_invalid_input():
+    """The one check of the bounds ``stage armature`` and a job's rig parameters share, naming the option as the caller
+    does; an option not given is not checked."""
+    from pipeline.armature import check_armature_options
+
+    check_armature_options()
+    check_armature_options(lambda_thr=0.98, n_samples=2, reference=0, frames=1)
+    for kw, said in (({"n_samples": 1}, "n_samples must be >= 2, got 1"), ({"n_samples": 2.0}, "n_samples must be"),
+                     ({"lambda_thr": float("inf")}, r"lambda_thr must be within \(0, 2\), got inf"),
+                     ({"lambda_thr": True}, "lambda_thr must be"), ({"reference": -2}, "reference must be a position >= 0"),
+                     ({"reference": 3, "frames": 3}, r"reference must be a position within 0..2 \(the sequence has 3 "
+                                                     r"frames\), got 3"),
+                     ({"n_samples": 0, "names": {"n_samples": "--samples"}}, "^--samples must be >= 2")):
+        with pytest.raises(ValueError, match=said):
+            check_armature_options(**kw)
+    assert RigParams(lambda_thr=0.98, samples=5000, reference=3) == check_params(
+        {"rig": {"lambda_thr": 0.98, "samples": 5000, "reference": 3}}).rig
+
+
+def _tracked_bars(root, frames=8):
+    from pipeline.results import ply_bytes
+    from tests.pipeline.shapes import two_bars
+
+    V, F, _ = two_bars(frames)
+    (root / "tracked").mkdir(parents=True)
+    for i, v in enumerate(V):
+        (root / "tracked" / f"{i:06d}.ply").write_bytes(ply_bytes(v, F))
+    return root
+
+
+def _rig_ctx(out, rig: dict, steps=("rig",), n_sets=8):
+    seen, warned = [], []
+    take = SimpleNamespace(n_sets=n_sets, calibration=SimpleNamespace(units="mm"), fps=30.0)
+    return SimpleNamespace(out=out, report_progress=lambda *a: seen.append(a), executor=None, warnings=warned,
+                           warn=warned.append, params=ProcessParams(rig=rig), steps=steps, take=take,
+                           part=lambda name: contextlib.nullcontext())
+
+
+def test_the_rig_step_builds_the_armature_as_stage_armature_does(tmp_path, monkeypatch):
+    """``parameters.rig`` ``lambda_thr``, ``samples`` and ``reference`` reach the armature as ``stage armature
+    --lambda-thr --samples --reference`` gives them (every argument but the progress callback the same)."""
+    import pipeline.armature as armature
+    import pipeline.armature_files as armature_files
+    from pipeline.process.steps import _step_rig
+    from stage.cli import main
+
+    calls, real = [], armature.build_armature
+
+    def build(*a, **k):
+        calls.append(k)
+        return real(*a, **k)
+
+    monkeypatch.setattr(armature, "build_armature", build)
+    monkeypatch.setattr(armature_files, "build_armature", build)
+    res = _tracked_bars(tmp_path / "cli")
+    assert main(["-q", "armature", str(res), "--samples", "300", "--lambda-thr", "0.98", "--reference", "2"]) == 0
+    job = _tracked_bars(tmp_path / "job")
+    _step_rig(_rig_ctx(job, {"samples": 300, "lambda_thr": 0.98, "reference": 2}))
+    assert len(calls) == 2
+    for k in calls:
+        k.pop("progress")
+    assert set(calls[0]) - set(calls[1]) == {"parts"} and calls[0]["parts"] is None  # (build_armature's default)
+    assert all(np.array_equal(calls[0][k], calls[1][k]) for k in calls[1]), calls
+    assert calls[1]["n_samples"] == 300 and calls[1]["lambda_thr"] == 0.98
+    assert calls[1]["reference"] == 2
+    assert json.loads((job / "rig" / "rig.json").read_text()) == json.loads((res / "rig" / "rig.json").read_text())
+
+
+def test_a_rest_frame_past_the_take_is_refused_before_the_tracking(tmp_path, monkeypatch):
+    """``rig.reference`` past the surfaces stops a job that tracks before the tracking (as ``stage armature
+    --reference`` does), and past the tracked frames before the armature."""
+    import pipeline.carve as carve
+    from pipeline.process.steps import _step_rig, _step_track
+
+    monkeypatch.setattr(carve, "track_with_carving", lambda *a, **k: pytest.fail("tracked"))
+    (tmp_path / "meshes").mkdir()
+    for k in range(3):
+        (tmp_path / "meshes" / f"frame_{k:06d}.ply").write_text("ply")
+    ctx = _rig_ctx(tmp_path, {"reference": 3}, steps=("track", "rig"), n_sets=3)
+    said = r"rig: rig.reference must be a position within 0..2 \(the sequence has 3 frames\), got 3"
+    with pytest.raises(ProcessError, match=said):
+        _step_track(ctx)
+    with pytest.raises(ProcessError, match=said):  # an untracked take: the rig step's tracking first
+        _step_rig(_rig_ctx(tmp_path, {"reference": 3}, n_sets=3))
+    _tracked_bars(tmp_path)
+    with pytest.raises(ProcessError, match=r"rig: rig.reference must be a position within 0..7 \(the sequence has 8"):
+        _step_rig(_rig_ctx(tmp_path, {"reference": 8}))
