@@ -1,7 +1,9 @@
 """Result files of a job (``DATA/jobs/<job>/``): listing and safe lookup, PLY -> GLB conversion.
 
 What :func:`pipeline.process.process_take` writes: ``spine.json``, ``report.json``,
-``meshes/frame_NNNNNN.ply``; the ``track`` step ``tracked/NNNNNN.ply``; the ``rig`` step
+``meshes/frame_NNNNNN.ply``; the ``track`` step ``tracked/NNNNNN.ply``, ``tracked/track.json`` (what the tracking
+did: its options, reference frame, the armature round kept) and ``tracked/labels.npy`` (a tracking with the
+template's labels); the ``rig`` step
 ``rig/rig.json``, ``rig/rig.glb``, ``rig/rig.bvh``, ``rig/segments.npy`` and ``rig/posed/NNNNNN.ply``.
 """
 
@@ -14,13 +16,15 @@ from typing import Any
 from api.errors import NotFoundError, UnavailableError
 from api.paths import JOB_ID, check_id, confined, confined_entries, inside
 
-__all__ = ["listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb", "frame_file", "rig_file"]
+__all__ = ["listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb", "frame_file", "rig_file", "tracked_file"]
 
 _MESH = re.compile(r"^(?:frame_)?([0-9]{1,6})\.(ply|glb)$")
 _FRAME = re.compile(r"^([0-9]{6})\.ply$")  # tracked/ and rig/posed/: exactly six digits
 #: the files of ``rig/`` served as they are, and their media types
 RIG_FILES = {"rig.json": "application/json", "rig.glb": "model/gltf-binary", "rig.bvh": "text/plain",
              "segments.npy": "application/octet-stream"}
+#: the files of ``tracked/`` beside its frames, served as they are, and their media types
+TRACKED_FILES = {"track.json": "application/json", "labels.npy": "application/octet-stream"}
 #: folders of per-frame meshes in the template's vertex order
 FRAME_FOLDERS = {"tracked": ("tracked",), "posed": ("rig", "posed")}
 
@@ -50,10 +54,11 @@ def listing(jobs_dir: Path, job_id: str) -> dict[str, Any]:
         out[key] = idx
         if idx:
             out[f"{key}_url"] = f"/jobs/{job_id}/results/{'/'.join(parts)}/{{index:06d}}.ply"
-    rig = [n for n in RIG_FILES if (d / "rig" / n).is_file() and confined(d / "rig" / n, d)]
-    out["files"] = files + [f"rig/{n}" for n in rig]
-    links.update({f"rig/{n}": f"/jobs/{job_id}/results/rig/{n}" for n in rig})
-    if "rig.json" in rig:
+    tracked = [f"tracked/{n}" for n in TRACKED_FILES if (d / "tracked" / n).is_file() and confined(d / "tracked" / n, d)]
+    rig = [f"rig/{n}" for n in RIG_FILES if (d / "rig" / n).is_file() and confined(d / "rig" / n, d)]
+    out["files"] = files + tracked + rig
+    links.update({n: f"/jobs/{job_id}/results/{n}" for n in tracked + rig})
+    if "rig/rig.json" in rig:
         from pipeline.armature_files import armature_summary
 
         out["rig"] = armature_summary(d / "rig" / "rig.json")
@@ -86,6 +91,23 @@ def rig_file(jobs_dir: Path, job_id: str, name: str) -> tuple[Path, str]:
     if not p.is_file():
         raise NotFoundError(f"rig/{name} is not available (yet): the job's steps did not include the rig, or it has not run")
     return p, RIG_FILES[name]
+
+
+def tracked_file(jobs_dir: Path, job_id: str, name: str) -> tuple[Path, str]:
+    """``tracked/<name>`` of a job (``track.json``, ``labels.npy``) and its media type.
+
+    Raises
+    ------
+    NotFoundError
+        When the job has no such file (yet): no ``track`` step, or a tracking without the template's labels.
+    """
+    if name not in TRACKED_FILES:
+        raise ValueError(f"unknown tracking file {name!r} (one of {', '.join(TRACKED_FILES)})")
+    p = inside(_job_dir(jobs_dir, job_id), "tracked", name)
+    if not p.is_file():
+        why = "the tracking used no labels" if name == "labels.npy" else "the job's steps did not include the track step"
+        raise NotFoundError(f"tracked/{name} is not available (yet): {why}, or it has not run")
+    return p, TRACKED_FILES[name]
 
 
 def result_file(jobs_dir: Path, job_id: str, name: str) -> Path | None:

@@ -154,13 +154,20 @@ def get_mesh(_: ReadAccess, job: Job, name: MeshName, settings: SettingsDep) -> 
 
 
 FrameName = Annotated[str, Path(pattern=r"^[0-9]{6}\.ply$", examples=["000003.ply"])]
+TrackedName = Annotated[str, Path(pattern=r"^([0-9]{6}\.ply|track\.json|labels\.npy)$",
+                                  examples=["000003.ply", "track.json"])]
 RigName = Annotated[str, Path(pattern=r"^(rig\.json|rig\.glb|rig\.bvh|segments\.npy)$")]
 
 
 @router.get("/{job_id}/results/tracked/{name}", response_class=FileResponse,
-            responses={200: {"content": {"application/octet-stream": {}}}})
-def get_tracked(_: ReadAccess, job: Job, name: FrameName, settings: SettingsDep) -> Response:
-    """One frame of the tracked template (the ``track`` step): ``000003.ply``, in the template's vertex order."""
+            responses={200: {"content": {"application/octet-stream": {}, "application/json": {}}}})
+def get_tracked(_: ReadAccess, job: Job, name: TrackedName, settings: SettingsDep) -> Response:
+    """What the ``track`` step wrote: one frame of the tracked template, ``000003.ply`` (the template's vertex
+    order); ``track.json``, what the tracking did (its options, reference frame, the armature round kept);
+    ``labels.npy``, the template's limb/body labels of a tracking with them."""
+    if name in results.TRACKED_FILES:
+        path, media = results.tracked_file(settings.jobs_dir, job.id, name)
+        return FileResponse(path, media_type=media, filename=name)
     path = results.frame_file(settings.jobs_dir, job.id, "tracked", name)
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import re
 from types import SimpleNamespace
@@ -292,6 +293,40 @@ def test_tracked_and_rig_files_are_listed_and_served(client, data_root):
     assert client.get(listing["tracked_url"].format(index=3)).content[:3] == b"ply"
     for bad in ("tracked/000099.ply", "rig/posed/000099.ply", "tracked/3.ply", "rig/other.json", "rig/posed/rig.json"):
         assert client.get(f"/jobs/{jid}/results/{bad}").status_code in (400, 404, 422), bad
+
+
+def test_what_the_tracking_did_is_listed_and_served(client, data_root):
+    """``tracked/track.json`` (the tracking's options, reference frame, kept armature round) and ``tracked/labels.npy``
+    (a tracking with the template's labels): listed under /results/ once written, served as they are with their
+    media types; absent, 404; other names under tracked/ are refused."""
+    add_take(data_root, "take1", frames=2)
+    jid = client.post("/jobs", json={"take": "take1", "steps": ["key", "surface"]}, headers=AUTH).json()["id"]
+    assert wait_job(client, jid)["state"] == "done"
+    base = f"/jobs/{jid}/results"
+    for name in ("track.json", "labels.npy"):
+        r = client.get(f"{base}/tracked/{name}")
+        assert r.status_code == 404 and f"tracked/{name} is not available" in r.json()["detail"], r.json()
+    assert not any(f.startswith("tracked/") for f in client.get(f"{base}/").json()["files"])
+    tracked = data_root / "jobs" / jid / "tracked"
+    tracked.mkdir()
+    report = {"mode": "multi-view", "reference_frame": 1, "colour_tracks": True, "rig_rounds": 1,
+              "rig_prior": {"kept_round": 1, "parts": "limbs"}, "frames": {"0": {}, "1": {}}}
+    (tracked / "track.json").write_text(json.dumps(report))
+    listing = client.get(f"{base}/").json()
+    assert "tracked/track.json" in listing["files"] and "tracked/labels.npy" not in listing["files"]
+    r = client.get(listing["links"]["tracked/track.json"])
+    assert r.status_code == 200 and r.headers["content-type"].startswith("application/json") and r.json() == report
+    assert client.get(f"{base}/tracked/labels.npy").status_code == 404  # a tracking without labels
+    labels = np.array([-1, 0, 0, 1], dtype=np.int64)
+    with (tracked / "labels.npy").open("wb") as f:
+        np.save(f, labels)
+    listing = client.get(f"{base}/").json()
+    assert {"tracked/track.json", "tracked/labels.npy"} <= set(listing["files"])
+    r = client.get(listing["links"]["tracked/labels.npy"])
+    assert r.status_code == 200 and r.headers["content-type"] == "application/octet-stream"
+    assert np.array_equal(np.load(io.BytesIO(r.content)), labels)
+    for bad in ("other.json", "track.json.bak", "labels.npz", "rig.json"):
+        assert client.get(f"{base}/tracked/{bad}").status_code in (400, 404), bad
 
 
 def test_a_work_result_with_non_finite_numbers_is_served_as_strict_json():
