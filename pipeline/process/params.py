@@ -40,7 +40,7 @@ class TrackParams(BaseModel):
         (``--carve``; 0: the surfaces of ``stage process``).
     carve_margin : float or None
         Pixels every silhouette grows by in the carving (``--carve-margin``; default per camera
-        from its calibration, :func:`pipeline.carve.carve_results`).
+        from its calibration, :func:`pipeline.carve.carve_results`); needs ``carve``.
     shape_memory : bool
         Keep the previous frame's shape in the rigid prior (``--shape-memory``).
     colour : bool
@@ -74,7 +74,10 @@ class TrackParams(BaseModel):
 
     @model_validator(mode="after")
     def _armature_options(self) -> TrackParams:
-        """``stage track``'s rules of the armature rounds, in the parameters' names."""
+        """``stage track``'s rules of the carving's margin and the armature rounds, in the parameters' names (an
+        option that would do nothing is refused, not ignored)."""
+        if self.carve_margin is not None and not self.carve:
+            raise ValueError("carve_margin needs carve (the margin of the carving's silhouettes)")
         if self.spine_armature and not self.armature_rounds:
             raise ValueError("spine_armature needs armature_rounds (it is the first of the armature rounds)")
         if self.armature_parts != "motion" and not (self.armature_rounds and self.labels):

@@ -185,6 +185,7 @@ def test_a_process_job_checks_its_track_options(make_client, data_root):
     # the armature rounds: bounds, and stage track's rules in the parameters' names
     for bad, said in (({"armature_rounds": 9}, "track.armature_rounds"), ({"armature_rounds": "often"}, "armature_rounds"),
                       ({"spine_armature": True}, "spine_armature needs armature_rounds"),
+                      ({"carve_margin": 1.0}, "carve_margin needs carve"),
                       ({"armature_rounds": 1, "armature_parts": "limbs"}, "armature_parts 'limbs' needs armature_rounds "
                                                                           "and labels")):
         r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"], "parameters": {"track": bad}}, headers=AUTH)

@@ -22,6 +22,8 @@ from pipeline.process.params import RigParams, check_params
     ({"armature_rounds": 1.5}, "track.armature_rounds.* fractional part"),
     ({"spine_armature": "maybe"}, "track.spine_armature.* valid boolean"),
     ({"armature_parts": "bones"}, "track.armature_parts.* 'motion' or 'limbs'"),
+    ({"carve_margin": 0.5}, "track.* carve_margin needs carve"),  # stage track --carve-margin without --carve
+    ({"carve_margin": 0.5, "carve": 0}, "track.* carve_margin needs carve"),
     ({"spine_armature": True}, "track.* spine_armature needs armature_rounds"),
     ({"spine_armature": True, "armature_rounds": 0}, "track.* spine_armature needs armature_rounds"),
     ({"armature_parts": "limbs", "labels": True}, "track.* armature_parts 'limbs' needs armature_rounds and labels"),
@@ -34,7 +36,7 @@ def test_invalid_input(bad, said):
 
 
 def test_the_rules_accept_what_stage_track_accepts():
-    for ok in ({"armature_rounds": "auto"}, {"armature_rounds": 4, "spine_armature": True},
+    for ok in ({"armature_rounds": "auto"}, {"carve": 1, "carve_margin": 0.0}, {"armature_rounds": 4, "spine_armature": True},
                {"labels": True, "colour": True, "armature_rounds": 1, "armature_parts": "limbs"}):
         assert check_params({"track": ok}).track == TrackParams(**ok)
     assert TrackParams().armature_rounds == 0 and not TrackParams().spine_armature
