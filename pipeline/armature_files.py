@@ -199,7 +199,11 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
             labels = _recomputed_labels(spine, vertices[at], faces, ref, report, bad)
         return limb_segments(vertices, labels, spine_limb_axes(spine, labels, ref), reference=at, rho="limb")
     except (OSError, SpineFormatError, ValueError, KeyError) as exc:
-        log.warning("parts='limbs': the armature's parts come from the motion segmentation: %s", exc)
+        # (the job's words for the one command this function names: the tracking's labels)
+        job = str(exc).replace("stage track --labels", "parameters track.labels")
+        log.warning("parts='limbs': the armature's parts come from the motion segmentation: %s", exc,
+                    extra={"job_message": f"parameters rig.parts 'limbs': the armature's parts come from the motion "
+                           f"segmentation: {job}"})
         return None
 
 
@@ -214,7 +218,9 @@ def _recomputed_labels(spine, template, faces, reference: int, report: dict, bad
     if labels_digest(labels) != report.get("patch_labels_sha256"):
         raise ValueError(f"{bad}the spine's labels are not the ones the template was tracked with")
     if bad:
-        log.warning("parts='limbs': %sthe labels are the spine's again, the ones the template was tracked with", bad)
+        log.warning("parts='limbs': %sthe labels are the spine's again, the ones the template was tracked with", bad,
+                    extra={"job_message": f"parameters rig.parts 'limbs': {bad}the labels are the spine's again, the "
+                           "ones the template was tracked with"})
     return labels
 
 

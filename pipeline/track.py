@@ -156,8 +156,11 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     name = None if template is None else ("array" if isinstance(template, (tuple, list)) else str(template))
     skinned = spine_model(root, frames, by_frame, loaded)
     if skinned is None and (spine_init or not choose):  # asked of a spine the take does not have
+        asked = "spine_init" if spine_init else "choose=False"
         log.warning("%s has no effect: no usable spine.json in %s, every frame starts from the prediction",
-                    "spine_init (--spine-init)" if spine_init else "choose=False (--prediction-only)", root)
+                    f"{asked} (--spine-init)" if spine_init else f"{asked} (--prediction-only)", root,
+                    extra={"job_message": f"{asked} has no effect: no usable spine.json in {root}, every frame starts "
+                           "from the prediction"})
     ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, loaded, name)
     prior = "previous" if shape_memory else "round"
     source_of_labels = labels if isinstance(labels, str) else None if labels is None else "given"
@@ -206,7 +209,9 @@ def _spine_labels(root: Path, labels: str, reference: int | None):
         raise ValueError(f"labels must be 'spine', an array or a callable, got {labels!r}")
     if reference is None:
         log.warning("labels='spine' (--labels) has no effect: no usable spine.json in %s, the patches follow the surface alone",
-                    root)
+                    root, extra={"job_message": f"the template's labels (parameters track.labels, or rig.parts "
+                                 f"'limbs') are not used: no usable spine.json in {root}, the patches follow the "
+                                 "surface alone"})
         return None
 
     def spine_labels(vertices, faces, frame):

@@ -46,6 +46,7 @@ ARMATURE_ICP_POINTS = 1000
 #: (:func:`spine_armature`): a limb's two halves turn on their own (six or three bones a limb track the fast
 #: biped worse; docs/tracking.md, "The take's spine as the first armature").
 SPINE_BONES = 2
+_JOB_PARTS = "parameters track.armature_parts 'limbs'"  # parts="limbs" in a job's words (a warning's job_message)
 
 
 def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | str = 1, weight: float = 2.0,
@@ -167,7 +168,8 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
     patch_labels = _patch_labels(labels, vs[refi], faces, frames[refi])
     chain = None
     if parts == "limbs" and model is not None:
-        log.warning("parts='limbs' does nothing with a given model: its round tracks with the model's parts")
+        log.warning("parts='limbs' does nothing with a given model: its round tracks with the model's parts",
+                    extra={"job_message": f"{_JOB_PARTS} does nothing with a given model"})
     if parts == "limbs" and model is None:
         surfaces = _surface_points(by_frame, frames) if source_of_labels == "spine" and patch_labels is not None else None
         limb_labels = patch_labels if surfaces is None else _surface_labels(root, vs[refi], faces, refi, surfaces,
@@ -304,7 +306,8 @@ def _limb_chain(root: Path, labels, refi: int, n_frames: int):
             return labels, spine_limb_axes(spine, labels, refi)
         except (OSError, SpineFormatError, ValueError) as exc:
             why = f"no usable spine.json ({exc})"
-    log.warning("parts='limbs': the armature's parts come from the motion: %s", why)
+    log.warning("parts='limbs': the armature's parts come from the motion: %s", why,
+                extra={"job_message": f"{_JOB_PARTS}: the armature's parts come from the motion: {why}"})
     return None
 
 
@@ -315,7 +318,8 @@ def _surface_points(by_frame: dict, frames: list[int]):
     try:
         return [load_mesh(by_frame[k], largest=False)[0] for k in frames]
     except (OSError, ValueError) as exc:
-        log.warning("parts='limbs': the surfaces cannot be read (%s); the armature's labels are the tracking's", exc)
+        log.warning("parts='limbs': the surfaces cannot be read (%s); the armature's labels are the tracking's", exc,
+                    extra={"job_message": f"{_JOB_PARTS}: the surfaces are unreadable ({exc}): the tracking's labels"})
         return None
 
 
@@ -328,7 +332,8 @@ def _surface_labels(root: Path, template: np.ndarray, faces: np.ndarray, refi: i
     try:
         return np.asarray(template_labels(root, template, faces, reference=refi, surfaces=surfaces), dtype=np.int64)
     except ValueError as exc:
-        log.warning("parts='limbs': the armature's labels are the tracking's (no labels from the surfaces: %s)", exc)
+        log.warning("parts='limbs': the armature's labels are the tracking's (no labels from the surfaces: %s)", exc,
+                    extra={"job_message": f"{_JOB_PARTS}: the tracking's labels (none from the surfaces: {exc})"})
         return fallback
 
 
@@ -604,7 +609,9 @@ def _spine_rig(root: Path, frames: list[int], template: np.ndarray, faces: np.nd
             raise ValueError(f"it has {spine.frame_count} frames, the take {len(frames)}")
         return spine_armature(rigged_model(spine, template, faces, reference=refi, segments=SPINE_BONES))
     except (OSError, SpineFormatError, NoCompleteFrameError, ValueError) as exc:
-        log.warning("the first armature is built from the tracking: no usable spine in %s (%s)", path, exc)
+        log.warning("the first armature is built from the tracking: no usable spine in %s (%s)", path, exc,
+                    extra={"job_message": f"parameters track.spine_armature: the first armature is built from the "
+                           f"tracking: no usable spine in {path} ({exc})"})
         return None
 
 

@@ -9,9 +9,11 @@ directory, and leaves what later steps need on the context. A plug-in adds a ste
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from functools import partial
 from typing import TYPE_CHECKING
@@ -411,6 +413,45 @@ def _step_spine(ctx: RunContext) -> None:
     ctx.report_progress("spine", 1, 1)
 
 
+class _StepWarnings(logging.Handler):
+    """The ``pipeline`` loggers' warnings said in this thread, kept in ``ctx.warnings`` (:func:`_job_warnings`)."""
+
+    def __init__(self, ctx: RunContext, step: str) -> None:
+        super().__init__(logging.WARNING)
+        self.ctx, self.step, self.thread = ctx, step, threading.get_ident()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread != self.thread or record.name == log.name or record.name.startswith(f"{log.name}."):
+            return  # another job's thread; the processing's own (ctx.warn keeps those itself)
+        msg = f"{self.step}: {getattr(record, 'job_message', None) or record.getMessage()}"
+        if msg not in self.ctx.warnings:  # (a round's armature says what the round before said)
+            self.ctx.warnings.append(msg)
+
+
+@contextlib.contextmanager
+def _job_warnings(ctx: RunContext, step: str) -> Iterator[None]:
+    """While the step runs, every warning the ``pipeline`` loggers say in this thread is also one of the job's
+    ``warnings`` (and ``report.json``'s), as ``"{step}: ..."``, once: what the tracking and the armature only
+    logged (the spine unusable for the spine armature, ``armature_parts`` 'limbs' falling back to the motion's
+    parts, the frames of other settings tracked again...) reaches an API user, who sees no log.
+
+    The warnings are caught as they are said rather than derived from the reports the functions return
+    (``track.json``): one mechanism for every message, with its reason, and a warning added to these functions
+    later reaches the job without a change here; a report says what was used, not always why nor every fallback
+    (the first of ``carve`` rounds' trackings' start-over is in no returned report). A message that names a
+    command line option or a function's keyword says it in the job's parameters in the record's ``job_message``
+    (``log.warning(..., extra={"job_message": ...})``, as :class:`~pipeline.process.params.ProcessError`'s
+    ``job_message``), which is kept instead. Only this thread's records (a server runs several jobs at once);
+    what a worker process logs (a camera's unreadable mask while it carves its frames) stays in its log."""
+    keep = _StepWarnings(ctx, step)
+    logger = logging.getLogger("pipeline")
+    logger.addHandler(keep)
+    try:
+        yield
+    finally:
+        logger.removeHandler(keep)
+
+
 def _need_surfaces(ctx: RunContext, step: str) -> None:
     """The surfaces the track step follows (``meshes/frame_NNNNNN.ply``), or a ProcessError in the words of the
     steps (a job's, and process_take's with these steps), which name no command."""
@@ -423,7 +464,9 @@ def _step_track(ctx: RunContext) -> None:
     """The first surface tracked through the take -> ``tracked/`` (:func:`pipeline.carve.track_with_carving`
     with ``ProcessParams.track``; with the template's limb/body labels too when the job's rig takes its parts from
     them, ``rig.parts="limbs"``), then tracked again with an armature as the articulated prior for
-    ``track.armature_rounds`` (:func:`pipeline.track_armature.track_with_armature`), as ``stage track`` does."""
+    ``track.armature_rounds`` (:func:`pipeline.track_armature.track_with_armature`), as ``stage track`` does. What
+    these functions warn of (frames of other settings tracked again, a fallback of the armature rounds...) is in the
+    job report too (:func:`_job_warnings`)."""
     from pipeline.carve import track_with_carving
 
     _need_surfaces(ctx, "track")
@@ -431,18 +474,18 @@ def _step_track(ctx: RunContext) -> None:
         _check_rig_reference(ctx, len(list((ctx.out / "meshes").glob("frame_*.ply"))))
     opt = ctx.params.track
     labels = opt.labels or ("rig" in ctx.steps and ctx.params.rig.parts == "limbs")
-    rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress, executor=ctx.executor,
-                             colour=opt.colour, shape_memory=opt.shape_memory, labels="spine" if labels else None)
-    if rep.get("started_over"):  # frames of other settings, and the rig on them, removed: the job report says so
-        ctx.warnings.append(rep["started_over"])
-    ctx.clock.add_worker_cpu("track", rep.get("worker_cpu_seconds", 0.0))
-    if opt.armature_rounds:
-        from pipeline.track_armature import track_with_armature
+    with _job_warnings(ctx, "track"):  # (the start-over of frames of other settings, a fallback of the rounds...)
+        rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress,
+                                 executor=ctx.executor, colour=opt.colour, shape_memory=opt.shape_memory,
+                                 labels="spine" if labels else None)
+        ctx.clock.add_worker_cpu("track", rep.get("worker_cpu_seconds", 0.0))
+        if opt.armature_rounds:
+            from pipeline.track_armature import track_with_armature
 
-        rep = track_with_armature(ctx.out, rounds=opt.armature_rounds, colour=opt.colour, spine=opt.spine_armature,
-                                  progress=ctx.report_progress, executor=ctx.executor,
-                                  labels="spine" if labels else None, parts=opt.armature_parts)
-        ctx.clock.add_worker_cpu("track", rep["rig_prior"].get("worker_cpu_seconds", 0.0))
+            rep = track_with_armature(ctx.out, rounds=opt.armature_rounds, colour=opt.colour, spine=opt.spine_armature,
+                                      progress=ctx.report_progress, executor=ctx.executor,
+                                      labels="spine" if labels else None, parts=opt.armature_parts)
+            ctx.clock.add_worker_cpu("track", rep["rig_prior"].get("worker_cpu_seconds", 0.0))
 
 
 def _surface_totals(ctx: RunContext) -> list[tuple[str, int]]:
@@ -460,9 +503,10 @@ register_step("spine", _step_spine, doc="per-frame skeletons and the take's spin
 
 def _step_rig(ctx: RunContext) -> None:
     """Articulated rig from the tracked template (``tracked/``) -> ``rig/`` (``ProcessParams.rig``). Without a
-    tracked template the track step runs first (:func:`_step_track`; a warning in the job report says so); parts
-    from the limbs that fall back to the motion segmentation (a template tracked without its labels) are one
-    warning there too, and so is an armature of one segment (nothing bends)."""
+    tracked template the track step runs first (:func:`_step_track`; a warning in the job report says so); what
+    the armature's building warns of (parts from the limbs that fall back to the motion segmentation, and why:
+    a template tracked without its labels...) is in the job report too (:func:`_job_warnings`), and so is an
+    armature of one segment (nothing bends)."""
     from pipeline.armature_files import NoTrackingError, armature_results, tracked_meshes
 
     limbs = ctx.params.rig.parts == "limbs"
@@ -483,14 +527,12 @@ def _step_rig(ctx: RunContext) -> None:
     opt = ctx.params.rig
     try:
         _check_rig_reference(ctx, len(tracked_meshes(ctx.out)))
-        rig = armature_results(ctx.out, units=ctx.take.calibration.units, fps=float(ctx.take.fps),
-                               progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t), parts=opt.parts,
-                               lambda_thr=opt.lambda_thr, n_samples=opt.samples, reference=opt.reference)
+        with _job_warnings(ctx, "rig"):  # (parts 'limbs' falling back to the motion segmentation, and why...)
+            rig = armature_results(ctx.out, units=ctx.take.calibration.units, fps=float(ctx.take.fps),
+                                   progress=lambda s, d, t: ctx.report_progress(f"rig {s}", d, t), parts=opt.parts,
+                                   lambda_thr=opt.lambda_thr, n_samples=opt.samples, reference=opt.reference)
     except NoTrackingError as exc:
         raise ProcessError(f"rig: {exc}") from None
-    if limbs and rig.segmentation.source != "limbs":
-        ctx.warn("rig: parts 'limbs' need a template tracked with its labels (parameters track.labels) and the take's "
-                 "spine: the motion segmentation was used")
     if rig.segmentation.n_segments == 1:  # as stage armature says it: the report's one segment is no failure
         ctx.warn("rig: nothing bends in this take: one segment, the armature moves rigidly")
 

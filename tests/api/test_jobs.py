@@ -214,6 +214,45 @@ def test_a_process_job_checks_its_track_options(make_client, data_root):
     assert r.status_code == 202 and r.json()["params"] == rig, r.json()
 
 
+def test_a_jobs_warnings_say_what_its_tracking_fell_back_to(make_client, tmp_path, monkeypatch):
+    """An API user who asked for ``armature_parts`` 'limbs' and ``spine_armature`` and got neither reads it in the
+    job's warnings, in its parameters, as ``stage track`` prints it to the terminal: the job runs in the runner's
+    thread, whose warnings the track step keeps (the tracking stands in: the armature rounds' real fallbacks)."""
+    import pipeline.carve as carve
+    import pipeline.track_armature as ta
+    from fake_cameras.record import record_take
+    from fake_cameras.take import simulate_take
+
+    def carving(src, rounds, **k):
+        return {"frames": {}, "skipped": []}
+
+    def rounds(src, **k):
+        ta._spine_rig(src, [0, 1], np.zeros((3, 3)), np.zeros((1, 3), np.int64), 0)  # spine.json of other frames
+        ta._limb_chain(src, None, 0, 2)  # no labels from the spine
+        return {"frames": {}, "rig_prior": {}}
+
+    monkeypatch.setattr(carve, "track_with_carving", carving)
+    monkeypatch.setattr(ta, "track_with_armature", rounds)
+    data = tmp_path / "data"
+    (data / "takes").mkdir(parents=True)
+    record_take(simulate_take("starfish", n_cameras=4, frames=2, size=(160, 120), seed=3), data / "takes" / "t.h5")
+    c = make_client(work="pipeline.process:process_take", data=data)
+    fast = {"resolution": 32, "track": {"labels": True, "armature_rounds": 1, "spine_armature": True,
+                                        "armature_parts": "limbs"}}
+    jid = c.post("/jobs", json={"take": "t", "steps": ["key", "surface", "track"], "parameters": fast},
+                 headers=AUTH).json()["id"]
+    st = wait_job(c, jid, timeout=120)
+    assert st["state"] == "done", st
+    said = [w for w in st["result"]["report"]["warnings"] if w.startswith("track: ")]
+    assert len(said) == 2 and said[0].startswith("track: parameters track.spine_armature: the first armature is built "
+                                                 "from the tracking: no usable spine in "), said
+    assert said[1] == ("track: parameters track.armature_parts 'limbs': the armature's parts come from the motion: "
+                       "no labels")
+    assert f"no usable spine in DATA/jobs/{jid}/spine.json" in said[0]  # (the server's folders as the job's results)
+    report = json.loads((data / "jobs" / jid / "report.json").read_text())
+    assert any(w.startswith("track: ") for w in report["warnings"])
+
+
 def test_a_job_on_results_of_other_parameters_starts_over_without_their_tracking_and_rig(make_client, tmp_path):
     """The API's job path (the real work): a job whose folder holds results of other parameters
     removes the tracked frames and the rig built on them, and its result carries the one warning;

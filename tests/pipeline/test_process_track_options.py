@@ -263,3 +263,104 @@ def test_a_rest_frame_past_the_take_is_refused_before_the_tracking(tmp_path, mon
     _tracked_bars(tmp_path)
     with pytest.raises(ProcessError, match=r"rig: rig.reference must be a position within 0..7 \(the sequence has 8"):
         _step_rig(_rig_ctx(tmp_path, {"reference": 8}))
+
+
+# ----------------------------------------------------------------------------- what the steps' functions warn of
+
+def test_what_the_tracking_warns_of_is_in_the_jobs_warnings(tmp_path, monkeypatch):
+    """The track step's functions say a fallback only in the log (the spine armature not used, the armature's parts
+    from the motion when ``armature_parts`` 'limbs' was asked for, the first of the carve rounds' trackings starting
+    over): the job's ``warnings`` hold each once, in the job's parameters; not the processing's own warnings (kept
+    by ``ctx.warn``), nor another thread's (another job's), nor a warning said after the step."""
+    import logging
+    import threading
+
+    import pipeline.carve as carve
+    import pipeline.track_armature as ta
+    from pipeline.process.steps import _step_track
+
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "frame_000000.ply").write_text("ply")
+    report = {"frames": {}, "skipped": [], "worker_cpu_seconds": 0.0}
+    track_log = logging.getLogger("pipeline.track")
+
+    def carving(src, rounds, **k):
+        track_log.warning("%s holds frames tracked with other settings (prior); tracking again", src)
+        logging.getLogger("pipeline.process").warning("the processing's own")
+        other = threading.Thread(target=track_log.warning, args=("another job's",))
+        other.start()
+        other.join()
+        return report
+
+    def rounds(src, **k):  # the real fallbacks: no spine.json for the spine armature, no labels for the limbs' parts
+        assert ta._spine_rig(src, [0, 1, 2], np.zeros((3, 3)), np.zeros((1, 3), np.int64), 0) is None
+        for _ in range(2):  # (a later round says it again)
+            assert ta._limb_chain(src, None, 0, 3) is None
+        return {**report, "rig_prior": {"worker_cpu_seconds": 0.0}}
+
+    monkeypatch.setattr(carve, "track_with_carving", carving)
+    monkeypatch.setattr(ta, "track_with_armature", rounds)
+    handlers = list(logging.getLogger("pipeline").handlers)
+    ctx, _ = _ctx(tmp_path, {"labels": True, "armature_rounds": 2, "spine_armature": True, "armature_parts": "limbs"})
+    _step_track(ctx)
+    track_log.warning("said after the step")
+    assert logging.getLogger("pipeline").handlers == handlers
+    assert len(ctx.warnings) == 3, ctx.warnings
+    assert ctx.warnings[0] == f"track: {tmp_path} holds frames tracked with other settings (prior); tracking again"
+    assert ctx.warnings[1].startswith("track: parameters track.spine_armature: the first armature is built from the "
+                                      f"tracking: no usable spine in {tmp_path / 'spine.json'} (")
+    assert ctx.warnings[2] == ("track: parameters track.armature_parts 'limbs': the armature's parts come from the "
+                               "motion: no labels")
+    assert not any("--" in w or "='" in w for w in ctx.warnings), ctx.warnings  # the job's words, not the command's
+
+
+def test_what_the_armature_warns_of_is_in_the_jobs_warnings(tmp_path, monkeypatch):
+    """The rig step: ``rig.parts`` 'limbs' on a template tracked without its labels falls back to the motion
+    segmentation; the job's warnings say so, and why, in the job's parameters (not ``stage track --labels``)."""
+    import pipeline.armature_files as armature_files
+    from pipeline.process.steps import _step_rig
+
+    _tracked_bars(tmp_path)
+    (tmp_path / "tracked" / "track.json").write_text(json.dumps({"patch_labels": None}))
+
+    def build(root, *, parts, **k):
+        assert parts == "limbs" and armature_files.limb_parts(root, None, None, None) is None  # the real fallback
+        return SimpleNamespace(segmentation=SimpleNamespace(source="motion", n_segments=3))
+
+    monkeypatch.setattr(armature_files, "armature_results", build)
+    ctx = _rig_ctx(tmp_path, {"parts": "limbs"})
+    _step_rig(ctx)
+    assert ctx.warnings == ["rig: parameters rig.parts 'limbs': the armature's parts come from the motion "
+                            "segmentation: the template was not tracked with the spine's labels (parameters "
+                            "track.labels)"]
+
+
+def test_every_warning_of_the_pipeline_that_names_an_option_says_it_in_a_jobs_words_too():
+    """Every ``log.warning`` of the pipeline (but the processing's own, pipeline/process) whose message names a command
+    line option, a ``stage`` command or a function's keyword (``parts='limbs'``) gives ``extra={"job_message": ...}``
+    naming none: what a job's warnings show (:func:`pipeline.process.steps._job_warnings`; read from the source)."""
+    import ast
+    from pathlib import Path
+
+    import pipeline
+
+    def text(node) -> str:  # the literal parts of a message (f-strings' too; the arguments' conditional literals)
+        return " ".join(n.value for n in ast.walk(node) if isinstance(n, ast.Constant) and isinstance(n.value, str))
+
+    def named(s: str) -> bool:
+        return "--" in s or "`stage " in s or "stage track" in s or "='" in s
+
+    root = Path(pipeline.__file__).parent
+    seen, bad = 0, []
+    for path in sorted(root.rglob("*.py")):
+        if path.relative_to(root).parts[0] == "process":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "warning" and node.args):
+                continue
+            seen += 1
+            extra = [k.value for k in node.keywords if k.arg == "extra" and isinstance(k.value, ast.Dict)]
+            job = [v for d in extra for key, v in zip(d.keys, d.values) if getattr(key, "value", None) == "job_message"]
+            if named(" ".join(text(a) for a in node.args)) and (not job or named(text(job[0]))):
+                bad.append(f"{path.relative_to(root)}:{node.lineno}")
+    assert seen >= 30 and not bad, (seen, bad)
