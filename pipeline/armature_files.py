@@ -173,12 +173,14 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
     then gives them again, checked against the digest; a file that is not the tracking's labels is one line and
     the same recomputation. The limbs' axes are the spine's at its rest frame, which must be tracked; every
     limb's noise is measured on the limb (``rho="limb"``: the body is tracked as one patch, the limbs on a grid,
-    so the body's noise is not theirs).
+    so the body's noise is not theirs). A tracking whose kept armature round tracked with a limbs armature
+    (``tracked/rig_segments.npy``, :func:`pipeline.track_frames.read_round_segments`) gives its segments as the
+    cuts' ``seams``: no candidate cut within half a spacing of where two of them meet.
     """
     from pipeline.armature_spine import reference_frame
     from pipeline.limb_segments import limb_segments
     from pipeline.spine_format import SpineFormatError, read_spine
-    from pipeline.track_frames import read_labels
+    from pipeline.track_frames import read_labels, read_round_segments
 
     root = Path(results_dir)
     try:
@@ -197,7 +199,9 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
             labels, bad = None, f"{exc}; "
         if labels is None:
             labels = _recomputed_labels(spine, vertices[at], faces, ref, report, bad)
-        return limb_segments(vertices, labels, spine_limb_axes(spine, labels, ref), reference=at, rho="limb")
+        seams = read_round_segments(root, report, len(vertices[at]))
+        return limb_segments(vertices, labels, spine_limb_axes(spine, labels, ref), reference=at, rho="limb",
+                             faces=None if seams is None else faces, seams=seams)
     except (OSError, SpineFormatError, ValueError, KeyError) as exc:
         # (the job's words for the one command this function names: the tracking's labels)
         job = str(exc).replace("stage track --labels", "parameters track.labels")

@@ -29,6 +29,13 @@ jitter per patch, noise per vertex) into its parts but once (docs/armature-forma
 more than six joints (a tail, a tentacle) has real joints among those far cuts and is cut too little; a
 limb whose far cuts remove nothing (a noiseless tracking) has noise 0 and keeps every cut.
 
+Given the parts a tracking held rigid (``seams``: the segments of the armature its kept round tracked with,
+``tracked/rig_segments.npy``), the candidate cuts keep off where two of them meet along a limb: the round's
+skinned pose moves every vertex rigidly with its segment, so the tracked surface is stretched in a band at every
+such boundary, and the cut search would slice that band out as a sliver one candidate wide. Every candidate
+cut within half a candidate spacing of a seam (the median position of the limb's vertices on the mesh edges
+between the two parts) is moved to half a spacing from it (docs/armature-format.md has the figures).
+
 Otherwise no length or count is set for a creature: the cut positions follow the limb's own extent, the
 threshold the take's own noise. Written by hand: an interval segmentation of a chain by rigid residual is no
 library's (scipy has the SVDs).
@@ -38,7 +45,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LIMB_FACTOR", "LIMB_TAIL", "MIN_VERTICES", "limb_segments", "chain_cuts", "limb_noise", "noise_ratio"]
+__all__ = ["LIMB_FACTOR", "LIMB_TAIL", "MIN_VERTICES", "limb_segments", "chain_cuts", "limb_noise", "noise_ratio",
+           "seam_positions"]
 
 #: the fewest vertices of a candidate interval
 MIN_VERTICES = 4
@@ -49,7 +57,7 @@ LIMB_FACTOR = 6.0
 
 
 def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int = 32,
-                  rho: float | str | None = None) -> np.ndarray:
+                  rho: float | str | None = None, faces=None, seams=None) -> np.ndarray:
     """The rigid part of every template vertex: the body one segment, every limb a chain of intervals.
 
     Parameters
@@ -69,6 +77,12 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
         The fraction of a rigid piece's residual one cut removes by noise alone, in [0, 1). Default:
         measured on the body (:func:`noise_ratio`), which must then hold at least ``2 * MIN_VERTICES``
         vertices. ``"limb"``: measured on every limb itself (:func:`limb_noise`).
+    faces : (F, 3) int array_like, optional
+        The template's triangles (indices into the V vertices); needed with ``seams``.
+    seams : (V,) int array_like, optional
+        The parts the tracking moved rigidly (the segments of its armature round): no candidate cut lies within
+        half a candidate spacing of where two of them meet along a limb (:func:`seam_positions`; the module
+        docstring says why).
 
     Returns
     -------
@@ -81,7 +95,8 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
     ValueError
         Naming the parameter: shapes, a label outside ``-1 .. len(axes)-1``, an axis that is not a finite
         polyline, ``reference`` outside the frames, ``candidates < 2``, ``rho`` outside [0, 1), a body
-        too small to measure the noise on.
+        too small to measure the noise on, ``seams`` not one integer a vertex or without ``faces``, ``faces`` not
+        triangles of the vertices.
     """
     V = np.asarray(vertices, dtype=np.float64)
     if V.ndim != 3 or V.shape[2] != 3 or V.shape[0] < 2 or V.shape[1] == 0 or not np.isfinite(V).all():
@@ -99,6 +114,7 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
         raise ValueError(f"reference must be a frame in 0 .. {len(V) - 1}, got {reference!r}")
     if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 2:
         raise ValueError(f"candidates must be an int >= 2, got {candidates!r}")
+    tri, parts = _check_seams(faces, seams, V.shape[1])
     body = np.flatnonzero(lab == -1)
     rho = _noise(rho, V, body, int(reference), int(candidates))
     out = np.full(V.shape[1], -1, dtype=np.int64)
@@ -111,10 +127,74 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
         if len(idx) == 0:
             continue
         s = _arc_length(V[reference, idx], a)
-        piece = chain_cuts(V[:, idx], s, reference=int(reference), candidates=int(candidates), rho=rho)
+        avoid = None
+        if parts is not None:
+            position = np.full(V.shape[1], np.nan)
+            position[idx] = s
+            avoid = seam_positions(tri, parts, position)
+        piece = chain_cuts(V[:, idx], s, reference=int(reference), candidates=int(candidates), rho=rho, avoid=avoid)
         out[idx] = nxt + piece
         nxt += int(piece.max()) + 1
     return out
+
+
+def _check_seams(faces, seams, n: int):
+    """``faces`` and ``seams`` of :func:`limb_segments` checked: (triangles, parts), or (None, None) without seams."""
+    if seams is None:
+        return None, None
+    if faces is None:
+        raise ValueError("faces must be given with seams (the mesh edges where two parts meet)")
+    parts = np.asarray(seams)
+    if parts.shape != (n,) or not np.issubdtype(parts.dtype, np.integer):
+        raise ValueError(f"seams must be ({n},) integers, got {parts.dtype} shape {parts.shape}")
+    tri = np.asarray(faces)
+    if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer) or (
+            tri.size and (tri.min() < 0 or tri.max() >= n)):
+        raise ValueError(f"faces must be (F, 3) integers in 0 .. {n - 1}, got {tri.dtype} shape {tri.shape}")
+    return tri.astype(np.int64), parts.astype(np.int64)
+
+
+def seam_positions(faces, parts, position) -> np.ndarray:
+    """Where two parts meet along a chain: per pair of ``parts`` that share a mesh edge with an end on the chain,
+    the median ``position`` of the chain's vertices on such edges.
+
+    Parameters
+    ----------
+    faces : (F, 3) int ndarray
+        The template's triangles.
+    parts : (V,) int ndarray
+        Part of every vertex.
+    position : (V,) float ndarray
+        Every vertex's position along the chain, NaN off the chain.
+
+    Returns
+    -------
+    (m,) float ndarray
+        The seams' positions, ascending.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    p = np.asarray(parts, dtype=np.int64)
+    s = np.asarray(position, dtype=np.float64)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"faces must be (F, 3), got shape {f.shape}")
+    if p.ndim != 1 or s.shape != p.shape or (f.size and f.max() >= len(p)):
+        raise ValueError(f"parts and position must be (V,) for the faces' vertices, got {p.shape} and {s.shape}")
+    e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    e = e[p[e[:, 0]] != p[e[:, 1]]]
+    pair = np.sort(p[e], axis=1)
+    ends = np.concatenate([e[:, 0], e[:, 1]])
+    keys = np.concatenate([pair, pair])
+    on = np.isfinite(s[ends])
+    if not on.any():
+        return np.zeros(0)
+    ends, keys = ends[on], keys[on]
+    _, which = np.unique(keys, axis=0, return_inverse=True)
+    which = which.ravel()
+    out = []
+    for g in range(int(which.max()) + 1):
+        mine = np.unique(ends[which == g])  # a vertex on two edges of the seam counts once
+        out.append(float(np.median(s[mine])))
+    return np.sort(np.asarray(out))
 
 
 def _noise(rho, V: np.ndarray, body: np.ndarray, reference: int, candidates: int) -> float | str:
@@ -132,7 +212,8 @@ def _noise(rho, V: np.ndarray, body: np.ndarray, reference: int, candidates: int
     return float(rho)
 
 
-def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, rho: float | str) -> np.ndarray:
+def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, rho: float | str,
+               avoid=None) -> np.ndarray:
     """Cut a chain of vertices into intervals of ``position``: the best cut for every count, the count kept
     while a cut removes more than ``rho`` of the residual (see the module docstring).
 
@@ -145,6 +226,9 @@ def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, 
         As :func:`limb_segments`.
     rho : float or "limb"
         The noise ratio, in [0, 1), or ``"limb"``: :func:`limb_noise` of this chain's own cuts.
+    avoid : (m,) float array_like, optional
+        Positions no candidate cut comes within half a candidate spacing of (:func:`seam_positions`): a candidate
+        nearer one is moved to half a spacing from it, on its own side.
 
     Returns
     -------
@@ -154,7 +238,10 @@ def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, 
     if isinstance(rho, str) and rho != "limb" or not isinstance(rho, str) and not (
             isinstance(rho, (int, float, np.floating)) and 0 <= rho < 1):
         raise ValueError(f"rho must be a float in [0, 1) or 'limb', got {rho!r}")
-    E, bounds, order, starts = _dp(vertices, position, reference, candidates)
+    avoid = np.zeros(0) if avoid is None else np.asarray(avoid, dtype=np.float64).ravel()
+    if not np.isfinite(avoid).all():
+        raise ValueError("avoid must be finite positions")
+    E, bounds, order, starts = _dp(vertices, position, reference, candidates, avoid=avoid)
     k = _choose(E, limb_noise(E) if isinstance(rho, str) else rho)
     out = np.empty(len(position), dtype=np.int64)
     for p, (i, j) in enumerate(bounds[k]):
@@ -227,12 +314,19 @@ def _choose(E: np.ndarray, rho: float) -> int:
     return k
 
 
-def _bins(position: np.ndarray, candidates: int):
-    """Vertices sorted by position, and the start of every candidate interval (each >= MIN_VERTICES)."""
+def _bins(position: np.ndarray, candidates: int, avoid=()):
+    """Vertices sorted by position, and the start of every candidate interval (each >= MIN_VERTICES); no
+    candidate edge within half a spacing of a position in ``avoid`` (moved to half a spacing from it)."""
     order = np.argsort(position, kind="stable")
     s = position[order]
     n = len(s)
     edges = np.linspace(s[0], s[-1], candidates + 1)[1:-1]
+    half = 0.5 * (s[-1] - s[0]) / candidates
+    for c in avoid:
+        d = edges - c
+        near = np.abs(d) < half
+        edges[near] = c + np.where(d[near] >= 0, half, -half)
+    edges = np.sort(edges)
     cut = np.searchsorted(s, edges, side="right")
     starts = [0]
     for c in cut:
@@ -242,10 +336,10 @@ def _bins(position: np.ndarray, candidates: int):
     return order, np.asarray(starts)
 
 
-def _dp(vertices, position, reference: int, candidates: int, k_max: int | None = None):
+def _dp(vertices, position, reference: int, candidates: int, k_max: int | None = None, avoid=()):
     """Best residual with 1.. pieces (E[k] = k cuts), the pieces' bin bounds, the order and bin starts."""
     X = np.asarray(vertices, dtype=np.float64)
-    order, starts = _bins(np.asarray(position, dtype=np.float64), candidates)
+    order, starts = _bins(np.asarray(position, dtype=np.float64), candidates, avoid)
     C = _interval_costs(X[:, order], starts, reference)
     B = len(starts) - 1
     K = B if k_max is None else min(B, k_max)

@@ -107,6 +107,50 @@ def read_labels(out_dir, report: dict, n_vertices: int) -> np.ndarray | None:
     return labels
 
 
+#: The rigid segments of the limbs armature a tracking's kept armature round tracked with
+#: (:func:`pipeline.track_armature.track_with_armature`, ``parts="limbs"``): (V,) int64, in ``tracked/``;
+#: ``track.json``'s ``rig_prior.segments_sha256`` is the digest of their bytes. Where two meet, the round's skinned
+#: pose tore the surface and the template fit stretched it (:func:`pipeline.limb_segments.limb_segments`, ``seams``).
+ROUND_SEGMENTS_FILE = "rig_segments.npy"
+
+
+def write_round_segments(out_dir, segments: np.ndarray | None) -> None:
+    """Write the kept armature round's segments to ``tracked/rig_segments.npy`` atomically (None: a round without
+    them removes an earlier one's file)."""
+    path = Path(out_dir) / "tracked" / ROUND_SEGMENTS_FILE
+    if segments is None:
+        path.unlink(missing_ok=True)
+        return
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(segments, dtype=np.int64), allow_pickle=False)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def read_round_segments(out_dir, report: dict, n_vertices: int) -> np.ndarray | None:
+    """The (V,) int64 segments of the armature the kept round of ``out_dir``'s tracking tracked with (``report``:
+    its ``track.json``), or None when it names none (no limbs armature round).
+
+    Raises
+    ------
+    ValueError
+        One line naming the file, when it cannot be read, is not ``n_vertices`` integers or is not the segments
+        whose digest ``track.json`` records (``rig_prior.segments_sha256``).
+    """
+    digest = (report.get("rig_prior") or {}).get("segments_sha256")
+    path = Path(out_dir) / "tracked" / ROUND_SEGMENTS_FILE
+    if not digest:
+        return None
+    try:
+        seg = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{path} cannot be read ({exc})") from None
+    if not isinstance(seg, np.ndarray) or seg.shape != (n_vertices,) or seg.dtype != np.int64:
+        raise ValueError(f"{path} is not the template's {n_vertices} segments (int64)")
+    if labels_digest(seg) != digest:
+        raise ValueError(f"{path} is not the segments track.json's rig_prior.segments_sha256 names")
+    return seg
+
+
 def load_template(template) -> tuple[np.ndarray, np.ndarray]:
     from pipeline.meshio import load_mesh
 
@@ -320,8 +364,8 @@ def remove_tracking(out_dir) -> str:
     """Remove the tracking of ``out_dir`` and the rig built on it: what ``stage process`` does
     when it starts over, since both follow the surfaces it removes.
 
-    ``tracked/NNNNNN.ply``, ``tracked/track.json`` and ``tracked/labels.npy`` go (the folder too when that leaves it
-    empty; other files stay), the surfaces carved with the tracked motion (``carved/``,
+    ``tracked/NNNNNN.ply``, ``tracked/track.json``, ``tracked/labels.npy`` and ``tracked/rig_segments.npy`` go
+    (the folder too when that leaves it empty; other files stay), the surfaces carved with the tracked motion (``carved/``,
     :mod:`pipeline.carve`), then the rig as a tracking start-over removes it
     (``rig/``, :func:`pipeline.armature_files.remove_armature`).
 
@@ -339,7 +383,7 @@ def remove_tracking(out_dir) -> str:
     out = Path(out_dir)
     tracked = out / "tracked"
     files = _remove_tracked_frames(tracked)
-    for name in ("track.json", LABELS_FILE):
+    for name in ("track.json", LABELS_FILE, ROUND_SEGMENTS_FILE):
         if (tracked / name).is_file():
             (tracked / name).unlink()
             files += 1

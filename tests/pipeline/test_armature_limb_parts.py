@@ -61,6 +61,38 @@ def test_the_parts_follow_the_labels_the_tracking_wrote(tmp_path, caplog):
         assert len(np.unique(used[seg == s])) == 1
 
 
+def test_the_armature_rounds_segments_are_the_cuts_seams(tmp_path, caplog):
+    """A tracking whose kept armature round tracked with a limbs armature (``tracked/rig_segments.npy``, its digest in
+    ``rig_prior``): its segments are the cuts' ``seams``; a file that is not the one track.json names is one line."""
+    from pipeline.armature_files import limb_parts, load_sequence, spine_limb_axes, tracked_meshes
+    from pipeline.armature_spine import reference_frame
+    from pipeline.limb_segments import limb_segments
+    from pipeline.spine_format import read_spine
+    from pipeline.track_frames import labels_digest, write_round_segments
+
+    res, labels = labelled_results(tmp_path)
+    V, F, numbers = load_sequence(tracked_meshes(res))
+    spine = read_spine(res / "spine.json")
+    ref = reference_frame(spine)
+    axes = spine_limb_axes(spine, labels, ref)
+    plain = limb_segments(V, labels, axes, reference=ref, rho="limb")
+    rounds = np.where(labels < 0, 0, 1 + labels * 2 + (V[ref, :, 2] > np.median(V[ref, :, 2])))  # a made-up round
+    write_round_segments(res, rounds)
+    report = json.loads((res / "tracked" / "track.json").read_text())
+    (res / "tracked" / "track.json").write_text(json.dumps({**report, "rig_prior": {"segments_sha256": "0" * 64}}))
+    with caplog.at_level(logging.WARNING):
+        assert limb_parts(res, V, F, numbers) is None  # not the file track.json names
+    assert "rig_segments.npy is not the segments" in caplog.text
+    (res / "tracked" / "track.json").write_text(json.dumps({**report, "rig_prior": {
+        "segments_sha256": labels_digest(rounds)}}))
+    seg = limb_parts(res, V, F, numbers)
+    assert not np.array_equal(seg, plain)
+    assert np.array_equal(seg, limb_segments(V, labels, axes, reference=ref, rho="limb", faces=F, seams=rounds))
+    assert np.array_equal(limb_parts(res, V, F, numbers), seg)
+    (res / "tracked" / "track.json").write_text(json.dumps(report))  # no round: the file is not read
+    assert np.array_equal(limb_parts(res, V, F, numbers), plain)
+
+
 def test_a_labels_file_that_is_not_the_trackings_is_one_line(tmp_path, caplog):
     """A truncated ``tracked/labels.npy``, one of another vertex count or not the digest's: one warning naming the
     file, and the labels are computed again (the parts when they are the tracking's, else the motion's)."""

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.limb_segments import LIMB_FACTOR, _interval_costs, chain_cuts, limb_noise, limb_segments
+from pipeline.limb_segments import LIMB_FACTOR, _interval_costs, chain_cuts, limb_noise, limb_segments, seam_positions
 
 BODY = 400
 AXIS = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
@@ -80,6 +80,55 @@ def test_a_rigid_chain_needs_no_cut_without_noise():
     assert (chain_cuts(V[:, BODY:], s, rho=0.1) == 0).all()
 
 
+def _torn(seam, *, seed=0, angle=0.3):
+    """``_chain`` with one joint at 7 and a tear at ``seam``: the limb beyond it turned by up to ``angle`` about it
+    (a tracking's seam between two parts it moved rigidly), smoothed over a band of 0.03; and a strip of triangles
+    along the limb, two parts meeting at the seam."""
+    V, labels, _ = _chain((7.0,), seed=seed)
+    x = V[0, :, 0]
+    w = np.where(labels < 0, 0.0, 1 / (1 + np.exp(-(x - seam) / 0.03)))
+    j = np.array([seam, 0.0, 0.0])
+    for t in range(len(V)):
+        V[t] += w[:, None] * ((V[t] - j) @ _rot([0, 0, 1], angle * np.sin(t / 2)).T + j - V[t])
+    o = BODY + np.argsort(x[BODY:])
+    faces = np.c_[o[:-2], o[1:-1], o[2:]]
+    parts = np.where(labels < 0, 0, np.where(x < seam, 1, 2))
+    return V, labels, faces, parts
+
+
+def _cuts(seg, x):
+    limb = seg[BODY:]
+    return np.sort([x[BODY:][limb == p].min() for p in np.unique(limb)])[1:]
+
+
+def test_the_cuts_keep_off_the_seams_of_the_tracking():
+    seam = 10.0 * 10 / 32  # a candidate cut of the 32 lies on it
+    V, labels, faces, parts = _torn(seam)
+    x = V[0, :, 0]
+    half = 0.5 * np.ptp(x[BODY:]) / 32
+    plain = _cuts(limb_segments(V, labels, [AXIS], rho="limb"), x)
+    assert np.abs(plain - seam).min() < 0.05  # the tear is cut where it is
+    kept = _cuts(limb_segments(V, labels, [AXIS], rho="limb", faces=faces, seams=parts), x)
+    assert len(kept) == len(plain)
+    assert np.abs(kept - seam).min() >= half - 0.05  # (the cut's first vertex: within a vertex spacing)
+    assert np.abs(kept - 7.0).min() < 0.4  # the joint is still found
+
+
+def test_a_seam_is_the_median_position_of_the_vertices_on_its_edges():
+    rng = np.random.default_rng(3)
+    faces = rng.integers(0, 40, (60, 3))
+    parts = rng.integers(0, 3, 40)
+    position = np.where(rng.random(40) < 0.7, rng.uniform(0, 5, 40), np.nan)
+    by_pair = {}
+    for f in faces:
+        for a, b in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])):
+            if a != b and parts[a] != parts[b]:
+                key = tuple(sorted((parts[a], parts[b])))
+                by_pair.setdefault(key, set()).update(v for v in (a, b) if np.isfinite(position[v]))
+    ref = np.sort([np.median(position[sorted(v)]) for v in by_pair.values() if v])
+    assert seam_positions(faces, parts, position) == pytest.approx(ref, abs=1e-12)
+
+
 def test_invalid_input():
     V, labels, _ = _chain((4.0,), frames=3, n=40)
     with pytest.raises(ValueError, match="vertices"):
@@ -98,6 +147,16 @@ def test_invalid_input():
         limb_segments(V, labels, [AXIS], rho=1.0)
     with pytest.raises(ValueError, match="rho"):
         limb_segments(V, labels, [AXIS], rho="body")
+    with pytest.raises(ValueError, match="faces"):
+        limb_segments(V, labels, [AXIS], seams=np.zeros(len(labels), int))
+    with pytest.raises(ValueError, match="seams"):
+        limb_segments(V, labels, [AXIS], faces=[[0, 1, 2]], seams=np.zeros(3, int))
+    with pytest.raises(ValueError, match="faces"):
+        limb_segments(V, labels, [AXIS], faces=[[0, 1, len(labels)]], seams=np.zeros(len(labels), int))
+    with pytest.raises(ValueError, match="avoid"):
+        chain_cuts(V, V[0, :, 0], rho=0.1, avoid=[np.nan])
+    with pytest.raises(ValueError, match="parts"):
+        seam_positions([[0, 1, 2]], np.zeros(3, int), np.zeros(4))
     with pytest.raises(ValueError, match="labels: the body"):
         limb_segments(V[:, BODY:], labels[BODY:], [AXIS])
     with pytest.raises(ValueError, match="rho"):
