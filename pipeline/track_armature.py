@@ -23,7 +23,7 @@ from pipeline.armature_track import ArmatureTracker
 from pipeline.mesh_primitives import mesh_volume
 from pipeline.run.context import submit_aside
 from pipeline.track import _patch_labels, _spine_labels, _tracked_labels, mesh_data, spine_model, spine_starts
-from pipeline.track_frames import labels_digest, surface_meshes, write_frame, write_report, write_round_segments
+from pipeline.track_frames import surface_meshes, write_frame, write_report, write_round_segments
 from pipeline.tracking import TemplateTracker
 
 __all__ = ["track_with_armature", "armature_half_task", "spine_armature", "AUTO_RIG_ROUNDS", "ARMATURE_FIT_ROUNDS",
@@ -205,20 +205,12 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
                            "parts": "limbs" if chain is not None else "motion",
                            "patch_labels": None if patch_labels is None else source_of_labels, "kept_round": kept + 1,
                            "colour_tracks": tracks_for is not None, "rounds": history}
-    _keep_segments(root, report, per.get("segments"))
+    write_round_segments(root, [r.pop("cut", None) for r in history][kept], report["rig_prior"])  # limbs rounds' parts
     worker = [r.pop("worker_cpu_seconds") for r in history if r.get("worker_cpu_seconds") is not None]
     if worker:
         report["rig_prior"]["worker_cpu_seconds"] = round(float(sum(worker)), 3)
     write_report(root, report)
     return report
-
-
-def _keep_segments(root: Path, report: dict, segments) -> None:
-    """The kept round's limbs segments to ``tracked/rig_segments.npy`` and their digest to ``report["rig_prior"]``
-    (:data:`pipeline.track_frames.ROUND_SEGMENTS_FILE`); None: an earlier file goes."""
-    write_round_segments(root, segments)
-    if segments is not None:
-        report["rig_prior"]["segments_sha256"] = labels_digest(segments)
 
 
 def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_frame, root, tracker, weight, lambda_thr,
@@ -229,20 +221,18 @@ def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_fram
     ``chain``: (labels, limb axes) the built armatures' parts follow (:func:`_limb_rig`), or None: the motion's."""
     history, best = [], None
     for r in range(1 if given else rounds + (model is not None)):  # (the spine's round comes before ``rounds``)
-        segments = None
         if r == 0 and model is not None:
             use, by_pose = model, dict(poses or {})
             entry = {"armature": "given", "segments": None, "fit_error_mm": None} if given else \
                 {"armature": "spine", "segments": int(model.skeleton.n_parts), "fit_error_mm": None}
         elif chain is not None:
-            use, by_pose, entry, segments = _limb_rig(vs, faces, frames, refi, *chain)
+            use, by_pose, entry = _limb_rig(vs, faces, frames, refi, *chain)
         else:
             use, by_pose, entry = _rig_of(vs, faces, frames, refi, lambda_thr, limbs=limbs)
         per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight,
                          None if progress is None else partial(_round_progress, progress, r + 1), spine=spine,
                          tracks_for=tracks_for, aside=aside)
         entry["worker_cpu_seconds"] = per.pop("worker_cpu_seconds", None)
-        per["segments"] = segments  # the limbs armature's rigid parts: the seams of the tracking it made
         res = [f["rig_residual_mm"] for f in per["figures"].values()]
         entry["residual_mm"] = round(float(np.mean(res)), 4) if res else None
         history.append(entry)
@@ -476,11 +466,9 @@ def _surface_rms(R: np.ndarray, t: np.ndarray, X: np.ndarray, trees: list) -> np
 
 def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, labels: np.ndarray, axes: list):
     """The armature of a tracking from the template's labels: the body one part, every limb a chain of the intervals
-    :func:`pipeline.limb_segments.limb_segments` cuts along its axis, rigid; -> as :func:`_rig_of`, and the (V,)
-    segments. The cuts' noise
-    ratio is measured on the body (``limb_segments``' default); ``stage armature --parts limbs`` measures it on every
-    limb (``rho="limb"``), which is not better for the round on every take (docs/tracking.md, "The round's armature
-    from the labels")."""
+    :func:`pipeline.limb_segments.limb_segments` cuts along its axis, rigid (``entry["cut"]``); -> as :func:`_rig_of`. The
+    cuts' noise ratio is measured on the body (``limb_segments``' default); ``stage armature --parts limbs`` measures it on
+    every limb (``rho="limb"``), not better for the round on every take (docs/tracking.md, "The round's armature from the labels")."""
     from pipeline.armature_fit import fit_sequence
     from pipeline.armature_track import segment_armature
     from pipeline.limb_segments import limb_segments
@@ -493,8 +481,8 @@ def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, l
         parents[mine[1:]] = mine[:-1]
     model = segment_armature(vs[refi], faces, seg, parents, motion=vs, reference=refi)
     fit = fit_sequence(model, vs)
-    entry = {"armature": "limbs", "segments": len(parents), "fit_error_mm": round(float(fit.errors.mean()), 4)}
-    return model, dict(zip(frames, fit.poses)), entry, seg
+    entry = {"armature": "limbs", "segments": len(parents), "fit_error_mm": round(float(fit.errors.mean()), 4), "cut": seg}
+    return model, dict(zip(frames, fit.poses)), entry
 
 
 def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int], refi: int, by_frame: dict, root: Path,

@@ -114,13 +114,14 @@ def read_labels(out_dir, report: dict, n_vertices: int) -> np.ndarray | None:
 ROUND_SEGMENTS_FILE = "rig_segments.npy"
 
 
-def write_round_segments(out_dir, segments: np.ndarray | None) -> None:
-    """Write the kept armature round's segments to ``tracked/rig_segments.npy`` atomically (None: a round without
-    them removes an earlier one's file)."""
+def write_round_segments(out_dir, segments: np.ndarray | None, rig_prior: dict) -> None:
+    """Write the kept armature round's segments to ``tracked/rig_segments.npy`` atomically and their digest to
+    ``rig_prior["segments_sha256"]`` (``track.json``'s; None: a round without them removes an earlier one's file)."""
     path = Path(out_dir) / "tracked" / ROUND_SEGMENTS_FILE
     if segments is None:
         path.unlink(missing_ok=True)
         return
+    rig_prior["segments_sha256"] = labels_digest(segments)
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(segments, dtype=np.int64), allow_pickle=False)
     atomic_write_bytes(path, buf.getvalue())

@@ -77,14 +77,15 @@ def test_the_armature_rounds_segments_are_the_cuts_seams(tmp_path, caplog):
     axes = spine_limb_axes(spine, labels, ref)
     plain = limb_segments(V, labels, axes, reference=ref, rho="limb")
     rounds = np.where(labels < 0, 0, 1 + labels * 2 + (V[ref, :, 2] > np.median(V[ref, :, 2])))  # a made-up round
-    write_round_segments(res, rounds)
+    prior = {}
+    write_round_segments(res, rounds, prior)
+    assert prior == {"segments_sha256": labels_digest(rounds)}
     report = json.loads((res / "tracked" / "track.json").read_text())
     (res / "tracked" / "track.json").write_text(json.dumps({**report, "rig_prior": {"segments_sha256": "0" * 64}}))
     with caplog.at_level(logging.WARNING):
         assert limb_parts(res, V, F, numbers) is None  # not the file track.json names
     assert "rig_segments.npy is not the segments" in caplog.text
-    (res / "tracked" / "track.json").write_text(json.dumps({**report, "rig_prior": {
-        "segments_sha256": labels_digest(rounds)}}))
+    (res / "tracked" / "track.json").write_text(json.dumps({**report, "rig_prior": prior}))
     seg = limb_parts(res, V, F, numbers)
     assert not np.array_equal(seg, plain)
     assert np.array_equal(seg, limb_segments(V, labels, axes, reference=ref, rho="limb", faces=F, seams=rounds))
