@@ -175,7 +175,8 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
     limb's noise is measured on the limb (``rho="limb"``: the body is tracked as one patch, the limbs on a grid,
     so the body's noise is not theirs). A tracking whose kept armature round tracked with a limbs armature
     (``tracked/rig_segments.npy``, :func:`pipeline.track_frames.read_round_segments`) gives its segments as the
-    cuts' ``seams``: no candidate cut within half a spacing of where two of them meet.
+    cuts' ``seams``: no candidate cut within half a spacing of where two of them meet (a file that is not the one
+    ``track.json`` names is one line, and the cuts are made without).
     """
     from pipeline.armature_spine import reference_frame
     from pipeline.limb_segments import limb_segments
@@ -199,7 +200,11 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
             labels, bad = None, f"{exc}; "
         if labels is None:
             labels = _recomputed_labels(spine, vertices[at], faces, ref, report, bad)
-        seams = read_round_segments(root, report, len(vertices[at]))
+        try:
+            seams = read_round_segments(root, report, len(vertices[at]))
+        except ValueError as exc:  # the cuts as without a round
+            log.warning("parts='limbs': the cuts do not keep off the armature round's seams: %s", exc)
+            seams = None
         return limb_segments(vertices, labels, spine_limb_axes(spine, labels, ref), reference=at, rho="limb",
                              faces=None if seams is None else faces, seams=seams)
     except (OSError, SpineFormatError, ValueError, KeyError) as exc:

@@ -63,7 +63,8 @@ def test_the_parts_follow_the_labels_the_tracking_wrote(tmp_path, caplog):
 
 def test_the_armature_rounds_segments_are_the_cuts_seams(tmp_path, caplog):
     """A tracking whose kept armature round tracked with a limbs armature (``tracked/rig_segments.npy``, its digest in
-    ``rig_prior``): its segments are the cuts' ``seams``; a file that is not the one track.json names is one line."""
+    ``rig_prior``): its segments are the cuts' ``seams``; a file that is not the one track.json names is one line, and
+    the cuts are made without it."""
     from pipeline.armature_files import limb_parts, load_sequence, spine_limb_axes, tracked_meshes
     from pipeline.armature_spine import reference_frame
     from pipeline.limb_segments import limb_segments
@@ -83,8 +84,8 @@ def test_the_armature_rounds_segments_are_the_cuts_seams(tmp_path, caplog):
     report = json.loads((res / "tracked" / "track.json").read_text())
     (res / "tracked" / "track.json").write_text(json.dumps({**report, "rig_prior": {"segments_sha256": "0" * 64}}))
     with caplog.at_level(logging.WARNING):
-        assert limb_parts(res, V, F, numbers) is None  # not the file track.json names
-    assert "rig_segments.npy is not the segments" in caplog.text
+        assert np.array_equal(limb_parts(res, V, F, numbers), plain)  # not the file track.json names: cut without
+    assert "do not keep off the armature round's seams" in caplog.text and "rig_segments.npy is not the segments" in caplog.text
     (res / "tracked" / "track.json").write_text(json.dumps({**report, "rig_prior": prior}))
     seg = limb_parts(res, V, F, numbers)
     assert not np.array_equal(seg, plain)
