@@ -203,7 +203,9 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
         try:
             seams = read_round_segments(root, report, len(vertices[at]))
         except ValueError as exc:  # the cuts as without a round
-            log.warning("parts='limbs': the cuts do not keep off the armature round's seams: %s", exc)
+            log.warning("parts='limbs': the cuts do not keep off the armature round's seams: %s", exc,
+                        extra={"job_message": f"parameters rig.parts 'limbs': the cuts do not keep off the armature "
+                               f"round's seams: {exc}"})
             seams = None
         return limb_segments(vertices, labels, spine_limb_axes(spine, labels, ref), reference=at, rho="limb",
                              faces=None if seams is None else faces, seams=seams)

@@ -86,6 +86,8 @@ def test_the_armature_rounds_segments_are_the_cuts_seams(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         assert np.array_equal(limb_parts(res, V, F, numbers), plain)  # not the file track.json names: cut without
     assert "do not keep off the armature round's seams" in caplog.text and "rig_segments.npy is not the segments" in caplog.text
+    job = [getattr(r, "job_message", "") for r in caplog.records if "seams" in r.getMessage()]
+    assert job[0].startswith("parameters rig.parts 'limbs': the cuts do not keep off") and "parts='" not in job[0]
     (res / "tracked" / "track.json").write_text(json.dumps({**report, "rig_prior": prior}))
     seg = limb_parts(res, V, F, numbers)
     assert not np.array_equal(seg, plain)
