@@ -306,8 +306,10 @@ def start_over_if_changed(out_dir: Path, report: dict) -> dict:
     kept), or ``{}``: tracked frames of other settings are removed first, as ``stage process``
     removes results of other parameters, and so is the rig built on them (``rig/``), with one
     warning naming what changed (also in ``report["started_over"]``). The settings are written
-    before any frame is tracked, so a killed run's frames keep theirs."""
+    before any frame is tracked, so a killed run's frames keep theirs; ``report`` names no armature round's
+    segments, so an earlier round's ``tracked/rig_segments.npy`` goes."""
     path = Path(out_dir) / "tracked" / "track.json"
+    (path.parent / ROUND_SEGMENTS_FILE).unlink(missing_ok=True)  # (the armature rounds write theirs after)
     old = read_settings(path)
     kept = {}
     if old is not None:

@@ -329,6 +329,27 @@ def test_frames_tracked_with_the_grids_patches_are_tracked_again(tmp_path, caplo
     assert [r.getMessage() for r in caplog.records] == [again["started_over"]]
 
 
+def test_a_tracking_without_armature_rounds_removes_an_earlier_rounds_segments(tmp_path):
+    """``tracked/rig_segments.npy`` belongs to the armature round whose digest ``track.json`` records: a tracking
+    without armature rounds (its ``track.json`` names none) removes an earlier one's file, resumed or started over."""
+    import json
+
+    from pipeline import track
+    from pipeline.track_frames import write_round_segments
+
+    t = _sphere_results(tmp_path, frames=3)
+    track.track_results(tmp_path)
+    path, seg = tmp_path / "tracked" / "track.json", tmp_path / "tracked" / "rig_segments.npy"
+    plain = json.loads(path.read_text())
+    for report in (plain, {**plain, "rig_rounds": 1}):  # resumed (a killed round's file), started over
+        prior = {}
+        write_round_segments(tmp_path, np.zeros(len(t.vertices), np.int64), prior)
+        path.write_text(json.dumps({**report, "rig_prior": prior}))
+        again = track.track_results(tmp_path)
+        assert not seg.exists() and "rig_prior" not in json.loads(path.read_text())
+        assert ("started_over" in again) == (report is not plain)
+
+
 def test_rebuilt_spine_starts_over_with_one_warning_and_the_same_spine_resumes(tmp_path, monkeypatch, caplog):
     from pipeline import track
 
