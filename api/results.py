@@ -2,8 +2,9 @@
 
 What :func:`pipeline.process.process_take` writes: ``spine.json``, ``report.json``,
 ``meshes/frame_NNNNNN.ply``; the ``track`` step ``tracked/NNNNNN.ply``, ``tracked/track.json`` (what the tracking
-did: its options, reference frame, the armature round kept) and ``tracked/labels.npy`` (a tracking with the
-template's labels); the ``rig`` step
+did: its options, reference frame, the armature round kept), ``tracked/labels.npy`` (a tracking with the
+template's labels) and ``tracked/rig_segments.npy`` (the segments of the limbs armature its kept armature round
+tracked with); the ``rig`` step
 ``rig/rig.json``, ``rig/rig.glb``, ``rig/rig.bvh``, ``rig/segments.npy`` and ``rig/posed/NNNNNN.ply``.
 """
 
@@ -24,7 +25,11 @@ _FRAME = re.compile(r"^([0-9]{6})\.ply$")  # tracked/ and rig/posed/: exactly si
 RIG_FILES = {"rig.json": "application/json", "rig.glb": "model/gltf-binary", "rig.bvh": "text/plain",
              "segments.npy": "application/octet-stream"}
 #: the files of ``tracked/`` beside its frames, served as they are, and their media types
-TRACKED_FILES = {"track.json": "application/json", "labels.npy": "application/octet-stream"}
+TRACKED_FILES = {"track.json": "application/json", "labels.npy": "application/octet-stream",
+                 "rig_segments.npy": "application/octet-stream"}
+#: why a file of :data:`TRACKED_FILES` is absent when the tracking ran
+_NO_TRACKED_FILE = {"labels.npy": "the tracking used no labels",
+                    "rig_segments.npy": "the tracking kept no armature round with the limbs' parts"}
 #: folders of per-frame meshes in the template's vertex order
 FRAME_FOLDERS = {"tracked": ("tracked",), "posed": ("rig", "posed")}
 
@@ -94,18 +99,19 @@ def rig_file(jobs_dir: Path, job_id: str, name: str) -> tuple[Path, str]:
 
 
 def tracked_file(jobs_dir: Path, job_id: str, name: str) -> tuple[Path, str]:
-    """``tracked/<name>`` of a job (``track.json``, ``labels.npy``) and its media type.
+    """``tracked/<name>`` of a job (``track.json``, ``labels.npy``, ``rig_segments.npy``) and its media type.
 
     Raises
     ------
     NotFoundError
-        When the job has no such file (yet): no ``track`` step, or a tracking without the template's labels.
+        When the job has no such file (yet): no ``track`` step, a tracking without the template's labels, or
+        without an armature round with the limbs' parts.
     """
     if name not in TRACKED_FILES:
         raise ValueError(f"unknown tracking file {name!r} (one of {', '.join(TRACKED_FILES)})")
     p = inside(_job_dir(jobs_dir, job_id), "tracked", name)
     if not p.is_file():
-        why = "the tracking used no labels" if name == "labels.npy" else "the job's steps did not include the track step"
+        why = _NO_TRACKED_FILE.get(name, "the job's steps did not include the track step")
         raise NotFoundError(f"tracked/{name} is not available (yet): {why}, or it has not run")
     return p, TRACKED_FILES[name]
 

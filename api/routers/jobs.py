@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import shutil
 from typing import Annotated, Any, AsyncIterator, Literal
 
@@ -154,7 +155,7 @@ def get_mesh(_: ReadAccess, job: Job, name: MeshName, settings: SettingsDep) -> 
 
 
 FrameName = Annotated[str, Path(pattern=r"^[0-9]{6}\.ply$", examples=["000003.ply"])]
-TrackedName = Annotated[str, Path(pattern=r"^([0-9]{6}\.ply|track\.json|labels\.npy)$",
+TrackedName = Annotated[str, Path(pattern=rf"^([0-9]{{6}}\.ply|{'|'.join(map(re.escape, results.TRACKED_FILES))})$",
                                   examples=["000003.ply", "track.json"])]
 RigName = Annotated[str, Path(pattern=r"^(rig\.json|rig\.glb|rig\.bvh|segments\.npy)$")]
 
@@ -164,7 +165,8 @@ RigName = Annotated[str, Path(pattern=r"^(rig\.json|rig\.glb|rig\.bvh|segments\.
 def get_tracked(_: ReadAccess, job: Job, name: TrackedName, settings: SettingsDep) -> Response:
     """What the ``track`` step wrote: one frame of the tracked template, ``000003.ply`` (the template's vertex
     order); ``track.json``, what the tracking did (its options, reference frame, the armature round kept);
-    ``labels.npy``, the template's limb/body labels of a tracking with them."""
+    ``labels.npy``, the template's limb/body labels of a tracking with them; ``rig_segments.npy``, the segments of
+    the limbs armature its kept armature round tracked with."""
     if name in results.TRACKED_FILES:
         path, media = results.tracked_file(settings.jobs_dir, job.id, name)
         return FileResponse(path, media_type=media, filename=name)

@@ -336,14 +336,15 @@ def test_tracked_and_rig_files_are_listed_and_served(client, data_root):
 
 
 def test_what_the_tracking_did_is_listed_and_served(client, data_root):
-    """``tracked/track.json`` (the tracking's options, reference frame, kept armature round) and ``tracked/labels.npy``
-    (a tracking with the template's labels): listed under /results/ once written, served as they are with their
-    media types; absent, 404; other names under tracked/ are refused."""
+    """``tracked/track.json`` (the tracking's options, reference frame, kept armature round), ``tracked/labels.npy``
+    (a tracking with the template's labels) and ``tracked/rig_segments.npy`` (the kept round's limbs armature's
+    segments): listed under /results/ once written, served as they are with their media types; absent, 404; other
+    names under tracked/ are refused."""
     add_take(data_root, "take1", frames=2)
     jid = client.post("/jobs", json={"take": "take1", "steps": ["key", "surface"]}, headers=AUTH).json()["id"]
     assert wait_job(client, jid)["state"] == "done"
     base = f"/jobs/{jid}/results"
-    for name in ("track.json", "labels.npy"):
+    for name in ("track.json", "labels.npy", "rig_segments.npy"):
         r = client.get(f"{base}/tracked/{name}")
         assert r.status_code == 404 and f"tracked/{name} is not available" in r.json()["detail"], r.json()
     assert not any(f.startswith("tracked/") for f in client.get(f"{base}/").json()["files"])
@@ -365,7 +366,18 @@ def test_what_the_tracking_did_is_listed_and_served(client, data_root):
     r = client.get(listing["links"]["tracked/labels.npy"])
     assert r.status_code == 200 and r.headers["content-type"] == "application/octet-stream"
     assert np.array_equal(np.load(io.BytesIO(r.content)), labels)
-    for bad in ("other.json", "track.json.bak", "labels.npz", "rig.json"):
+    r = client.get(f"{base}/tracked/rig_segments.npy")  # a tracking without a limbs armature round
+    assert r.status_code == 404 and "no armature round with the limbs' parts" in r.json()["detail"], r.json()
+    assert "tracked/rig_segments.npy" not in listing["files"]
+    segments = np.array([0, 0, 1, 2], dtype=np.int64)
+    with (tracked / "rig_segments.npy").open("wb") as f:
+        np.save(f, segments)
+    listing = client.get(f"{base}/").json()
+    assert {"tracked/track.json", "tracked/labels.npy", "tracked/rig_segments.npy"} <= set(listing["files"])
+    r = client.get(listing["links"]["tracked/rig_segments.npy"])
+    assert r.status_code == 200 and r.headers["content-type"] == "application/octet-stream"
+    assert np.array_equal(np.load(io.BytesIO(r.content)), segments)
+    for bad in ("other.json", "track.json.bak", "labels.npz", "rig.json", "segments.npy", "rig_segments.npyx"):
         assert client.get(f"{base}/tracked/{bad}").status_code in (400, 404), bad
 
 
