@@ -45,7 +45,7 @@ from pipeline.tracking import TemplateTracker, TrackingError
 from pipeline.tracking_patches import _check_labels
 
 __all__ = ["track_results", "track_chain_task", "spine_model", "spine_starts", "mesh_data", "tracked_path",
-           "remove_tracking", "TrackingError"]
+           "remove_tracking", "TrackingError", "check_track_options"]
 
 log = logging.getLogger("pipeline.track")
 
@@ -69,6 +69,47 @@ def spine_model(root: Path, frames: list[int], by_frame: dict, template):
     except (NoCompleteFrameError, ValueError, KeyError) as exc:
         log.warning("tracking without the spine's pose (%s)", exc)
         return None
+
+
+def check_track_options(*, carve: int = 0, carve_margin: float | None = None, armature_rounds: int | str = 0,
+                        spine_armature: bool = False, armature_parts: str = "motion", labels: bool = False,
+                        names: dict[str, str] | None = None) -> None:
+    """The rules between ``stage track RESULTS_DIR``'s options, checked before any work: an option that would do
+    nothing is refused, not ignored. ``stage track`` and an API job's ``parameters.track`` check theirs here.
+
+    Parameters
+    ----------
+    carve : int
+        Rounds of the carving (``--carve``).
+    carve_margin : float, optional
+        The carving's silhouettes' margin (``--carve-margin``): needs ``carve``.
+    armature_rounds : int or "auto"
+        Armature rounds (``--armature-rounds``).
+    spine_armature : bool
+        The take's spine as the first round's armature (``--spine-armature``): needs ``armature_rounds``.
+    armature_parts : str
+        Where every round's armature gets its parts (``--armature-parts``): other than ``"motion"`` needs
+        ``armature_rounds`` and ``labels``.
+    labels : bool
+        The template's limb/body labels (``--labels``).
+    names : dict, optional
+        The caller's name of each option (``{"carve": "--carve"}``) in the messages; default its keyword.
+
+    Raises
+    ------
+    ValueError
+        One line naming the options as the caller does.
+    """
+    name = {k: k for k in ("carve", "carve_margin", "armature_rounds", "spine_armature", "armature_parts", "labels")}
+    name.update(names or {})
+    if carve_margin is not None and not carve:
+        raise ValueError(f"{name['carve_margin']} needs {name['carve']} (the margin of the carving's silhouettes)")
+    if spine_armature and not armature_rounds:
+        raise ValueError(f"{name['spine_armature']} needs {name['armature_rounds']} (it is the first of the armature "
+                         "rounds)")
+    if armature_parts != "motion" and not (armature_rounds and labels):
+        raise ValueError(f"{name['armature_parts']} {armature_parts!r} needs {name['armature_rounds']} and "
+                         f"{name['labels']} (its parts are the labels' body and limbs)")
 
 
 def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False,

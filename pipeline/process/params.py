@@ -76,13 +76,10 @@ class TrackParams(BaseModel):
     def _armature_options(self) -> TrackParams:
         """``stage track``'s rules of the carving's margin and the armature rounds, in the parameters' names (an
         option that would do nothing is refused, not ignored)."""
-        if self.carve_margin is not None and not self.carve:
-            raise ValueError("carve_margin needs carve (the margin of the carving's silhouettes)")
-        if self.spine_armature and not self.armature_rounds:
-            raise ValueError("spine_armature needs armature_rounds (it is the first of the armature rounds)")
-        if self.armature_parts != "motion" and not (self.armature_rounds and self.labels):
-            raise ValueError(f"armature_parts {self.armature_parts!r} needs armature_rounds and labels (its parts are "
-                             "the labels' body and limbs)")
+        from pipeline.track import check_track_options
+
+        check_track_options(carve=self.carve, carve_margin=self.carve_margin, armature_rounds=self.armature_rounds,
+                            spine_armature=self.spine_armature, armature_parts=self.armature_parts, labels=self.labels)
         return self
 
 

@@ -168,6 +168,10 @@ def _rig_rounds(text: str):
     return n
 
 
+#: the options :func:`pipeline.track.check_track_options` checks, as its keywords (the flags: ``--carve-margin``...)
+_TRACK_RULES = ("carve", "carve_margin", "armature_rounds", "spine_armature", "armature_parts", "labels")
+
+
 def _check_counts(args: argparse.Namespace) -> None:
     """Counts and margins out of range are one clear line."""
     from stage.cli import UserError
@@ -176,13 +180,16 @@ def _check_counts(args: argparse.Namespace) -> None:
         raise UserError("--workers must be >= 0")
     if args.carve < 0:
         raise UserError("--carve must be >= 0 (rounds)")
-    if args.carve_margin is not None and (not args.carve or not args.carve_margin >= 0):
-        raise UserError("--carve-margin needs --carve and a margin >= 0 (pixels)")
-    if args.spine_armature and not args.rig_rounds:
-        raise UserError("--spine-armature needs --armature-rounds (it is the first of the armature rounds)")
-    if args.armature_parts != "motion" and not (args.rig_rounds and args.labels):
-        raise UserError(f"--armature-parts {args.armature_parts} needs --armature-rounds and --labels (its parts are the "
-                        "labels' body and limbs)")
+    if args.carve_margin is not None and not args.carve_margin >= 0:
+        raise UserError("--carve-margin must be >= 0 (pixels)")
+    from pipeline.track import check_track_options
+
+    try:
+        check_track_options(carve=args.carve, carve_margin=args.carve_margin, armature_rounds=args.rig_rounds,
+                            spine_armature=args.spine_armature, armature_parts=args.armature_parts, labels=args.labels,
+                            names={k: f"--{k.replace('_', '-')}" for k in _TRACK_RULES})
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:

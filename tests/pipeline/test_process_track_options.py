@@ -43,6 +43,27 @@ def test_the_rules_accept_what_stage_track_accepts():
     assert TrackParams().armature_parts == "motion"
 
 
+def test_check_track_options_invalid_input():
+    """The one check of the rules ``stage track`` and a job's track parameters share, naming the options as the caller
+    does (the command's flags, the job's parameters)."""
+    from pipeline.track import check_track_options
+
+    check_track_options()
+    check_track_options(carve=1, carve_margin=0.0, armature_rounds="auto", spine_armature=True, armature_parts="limbs",
+                        labels=True)
+    flags = {"carve": "--carve", "carve_margin": "--carve-margin", "armature_rounds": "--armature-rounds",
+             "labels": "--labels", "armature_parts": "--armature-parts"}
+    for kw, said in (({"carve_margin": 0.0}, r"^carve_margin needs carve \(the margin"),
+                     ({"carve_margin": 1.0, "names": flags}, "^--carve-margin needs --carve "),
+                     ({"spine_armature": True}, "^spine_armature needs armature_rounds "),
+                     ({"armature_parts": "limbs", "armature_rounds": 2}, "^armature_parts 'limbs' needs armature_rounds "
+                                                                         "and labels "),
+                     ({"armature_parts": "limbs", "labels": True, "names": flags},
+                      "^--armature-parts 'limbs' needs --armature-rounds and --labels ")):
+        with pytest.raises(ValueError, match=said):
+            check_track_options(**kw)
+
+
 def _recording(monkeypatch):
     """The tracking's two functions replaced by recorders: -> the calls, ``(name, kwargs)``."""
     import pipeline.carve as carve
