@@ -75,9 +75,30 @@ def write_labels(out_dir, labels: np.ndarray | None) -> None:
     if labels is None:
         path.unlink(missing_ok=True)
         return
+    _write_vertex_values(path, labels)
+
+
+def _write_vertex_values(path: Path, values: np.ndarray) -> None:
+    """``values`` (V,) as int64 to the ``.npy`` file ``path``, atomically."""
     buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(labels, dtype=np.int64), allow_pickle=False)
+    np.save(buf, np.ascontiguousarray(values, dtype=np.int64), allow_pickle=False)
     atomic_write_bytes(path, buf.getvalue())
+
+
+def _read_vertex_values(path: Path, digest: str, n_vertices: int, what: str, key: str) -> np.ndarray:
+    """The (V,) int64 ``what`` of the ``.npy`` file ``path``, checked against ``n_vertices`` and ``track.json``'s
+    ``digest`` (its ``key``); ValueError, one line naming the file, when they are not."""
+    try:
+        values = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{path} cannot be read ({exc})") from None
+    if not isinstance(values, np.ndarray):
+        raise ValueError(f"{path} is not one array (.npy)")
+    if values.shape != (n_vertices,) or values.dtype != np.int64:
+        raise ValueError(f"{path} holds {values.dtype} of shape {values.shape}, not the template's {n_vertices} {what}")
+    if labels_digest(values) != digest:
+        raise ValueError(f"{path} is not the {what} track.json's {key} names")
+    return values
 
 
 def read_labels(out_dir, report: dict, n_vertices: int) -> np.ndarray | None:
@@ -94,17 +115,7 @@ def read_labels(out_dir, report: dict, n_vertices: int) -> np.ndarray | None:
     path = Path(out_dir) / "tracked" / LABELS_FILE
     if not report.get("patch_labels_sha256") or not path.is_file():
         return None
-    try:
-        labels = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path} cannot be read ({exc})") from None
-    if not isinstance(labels, np.ndarray):
-        raise ValueError(f"{path} is not one array (.npy)")
-    if labels.shape != (n_vertices,) or labels.dtype != np.int64:
-        raise ValueError(f"{path} holds {labels.dtype} of shape {labels.shape}, not the template's {n_vertices} labels")
-    if labels_digest(labels) != report["patch_labels_sha256"]:
-        raise ValueError(f"{path} is not the labels track.json's patch_labels_sha256 names")
-    return labels
+    return _read_vertex_values(path, report["patch_labels_sha256"], n_vertices, "labels", "patch_labels_sha256")
 
 
 #: The rigid segments of the limbs armature a tracking's kept armature round tracked with
@@ -122,9 +133,7 @@ def write_round_segments(out_dir, segments: np.ndarray | None, rig_prior: dict) 
         path.unlink(missing_ok=True)
         return
     rig_prior["segments_sha256"] = labels_digest(segments)
-    buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(segments, dtype=np.int64), allow_pickle=False)
-    atomic_write_bytes(path, buf.getvalue())
+    _write_vertex_values(path, segments)
 
 
 def read_round_segments(out_dir, report: dict, n_vertices: int) -> np.ndarray | None:
@@ -138,18 +147,10 @@ def read_round_segments(out_dir, report: dict, n_vertices: int) -> np.ndarray | 
         whose digest ``track.json`` records (``rig_prior.segments_sha256``).
     """
     digest = (report.get("rig_prior") or {}).get("segments_sha256")
-    path = Path(out_dir) / "tracked" / ROUND_SEGMENTS_FILE
     if not digest:
         return None
-    try:
-        seg = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path} cannot be read ({exc})") from None
-    if not isinstance(seg, np.ndarray) or seg.shape != (n_vertices,) or seg.dtype != np.int64:
-        raise ValueError(f"{path} is not the template's {n_vertices} segments (int64)")
-    if labels_digest(seg) != digest:
-        raise ValueError(f"{path} is not the segments track.json's rig_prior.segments_sha256 names")
-    return seg
+    path = Path(out_dir) / "tracked" / ROUND_SEGMENTS_FILE
+    return _read_vertex_values(path, digest, n_vertices, "segments", "rig_prior.segments_sha256")
 
 
 def load_template(template) -> tuple[np.ndarray, np.ndarray]:
