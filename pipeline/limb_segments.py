@@ -34,7 +34,8 @@ Given the parts a tracking held rigid (``seams``: the segments of the armature i
 skinned pose moves every vertex rigidly with its segment, so the tracked surface is stretched in a band at every
 such boundary, and the cut search would slice that band out as a sliver one candidate wide. Every candidate
 cut within half a candidate spacing of a seam (the median position of the limb's vertices on the mesh edges
-between the two parts) is moved to half a spacing from it (docs/armature-format.md has the figures).
+between the two parts) is moved to half a spacing from it, seam by seam: of two seams less than a spacing apart,
+a candidate moved off one may end within half a spacing of the other (docs/armature-format.md has the figures).
 
 Otherwise no length or count is set for a creature: the cut positions follow the limb's own extent, the
 threshold the take's own noise. Written by hand: an interval segmentation of a chain by rigid residual is no
@@ -80,9 +81,9 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
     faces : (F, 3) int array_like, optional
         The template's triangles (indices into the V vertices); needed with ``seams``.
     seams : (V,) int array_like, optional
-        The parts the tracking moved rigidly (the segments of its armature round): no candidate cut lies within
-        half a candidate spacing of where two of them meet along a limb (:func:`seam_positions`; the module
-        docstring says why).
+        The parts the tracking moved rigidly (the segments of its armature round): a candidate cut within half a
+        candidate spacing of where two of them meet along a limb (:func:`seam_positions`) is moved to half a spacing
+        from it, seam by seam (:func:`chain_cuts`' ``avoid``; the module docstring says why).
 
     Returns
     -------
@@ -227,8 +228,9 @@ def chain_cuts(vertices, position, *, reference: int = 0, candidates: int = 32, 
     rho : float or "limb"
         The noise ratio, in [0, 1), or ``"limb"``: :func:`limb_noise` of this chain's own cuts.
     avoid : (m,) float array_like, optional
-        Positions no candidate cut comes within half a candidate spacing of (:func:`seam_positions`): a candidate
-        nearer one is moved to half a spacing from it, on its own side.
+        Positions the candidate cuts keep off (:func:`seam_positions`): a candidate within half a candidate spacing
+        of one is moved to half a spacing from it, on its own side, one position after the other; of two positions
+        less than a spacing apart, a candidate moved off one may end within half a spacing of the other.
 
     Returns
     -------
@@ -315,8 +317,9 @@ def _choose(E: np.ndarray, rho: float) -> int:
 
 
 def _bins(position: np.ndarray, candidates: int, avoid=()):
-    """Vertices sorted by position, and the start of every candidate interval (each >= MIN_VERTICES); no
-    candidate edge within half a spacing of a position in ``avoid`` (moved to half a spacing from it)."""
+    """Vertices sorted by position, and the start of every candidate interval (each >= MIN_VERTICES); a candidate
+    edge within half a spacing of a position in ``avoid`` is moved to half a spacing from it, one position after
+    the other (of two less than a spacing apart, the second can move it back near the first)."""
     order = np.argsort(position, kind="stable")
     s = position[order]
     n = len(s)
