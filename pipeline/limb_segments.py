@@ -172,6 +172,12 @@ def seam_positions(faces, parts, position) -> np.ndarray:
     -------
     (m,) float ndarray
         The seams' positions, ascending.
+
+    Raises
+    ------
+    ValueError
+        Naming the parameter: ``faces`` not (F, 3), ``parts`` and ``position`` not one value for every vertex
+        the faces name.
     """
     f = np.asarray(faces, dtype=np.int64)
     p = np.asarray(parts, dtype=np.int64)
