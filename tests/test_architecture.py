@@ -53,6 +53,7 @@ FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
     3: ("orchestration", (
         # processing, tracking and the report run the pipeline over a take
         "pipeline.process.*", "pipeline.run.*", "pipeline.report.*", "pipeline.track", "pipeline.track_armature",
+        "pipeline.track_armature_round", "pipeline.track_armature_models", "pipeline.track_armature_labels",
         "pipeline.track_frames",
         "pipeline.track_rgbd", "pipeline.track_colour", "pipeline.carve", "pipeline.armature_files", "pipeline.spine_meshes",
         "fake_cameras.*",

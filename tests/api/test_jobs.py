@@ -222,13 +222,15 @@ def test_a_jobs_warnings_say_what_its_tracking_fell_back_to(make_client, tmp_pat
     import pipeline.track_armature as ta
     from fake_cameras.record import record_take
     from fake_cameras.take import simulate_take
+    from pipeline.track_armature_labels import _limb_chain
+    from pipeline.track_armature_models import _spine_rig
 
     def carving(src, rounds, **k):
         return {"frames": {}, "skipped": []}
 
     def rounds(src, **k):
-        ta._spine_rig(src, [0, 1], np.zeros((3, 3)), np.zeros((1, 3), np.int64), 0)  # spine.json of other frames
-        ta._limb_chain(src, None, 0, 2)  # no labels from the spine
+        _spine_rig(src, [0, 1], np.zeros((3, 3)), np.zeros((1, 3), np.int64), 0)  # spine.json of other frames
+        _limb_chain(src, None, 0, 2)  # no labels from the spine
         return {"frames": {}, "rig_prior": {}}
 
     monkeypatch.setattr(carve, "track_with_carving", carving)

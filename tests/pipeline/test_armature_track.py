@@ -194,7 +194,7 @@ def test_the_spine_rig_of_a_take_is_bound_to_its_tracked_template(fast_take):
     tracked template at the reference frame, its limb vertices each on a bone of their own limb."""
     from pipeline.armature_files import load_sequence, tracked_meshes
     from pipeline.spine_format import read_spine
-    from pipeline.track_armature import SPINE_BONES, _spine_rig
+    from pipeline.track_armature_models import SPINE_BONES, _spine_rig
     from pipeline.track_frames import surface_meshes
 
     sim, res = fast_take
@@ -277,6 +277,7 @@ def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armatur
     import pipeline.armature as armature
     import pipeline.track as track
     import pipeline.track_armature as ta
+    import pipeline.track_armature_round as tr
     from pipeline.results import atomic_write_bytes, ply_bytes
 
     t = trimesh.creation.icosphere(subdivisions=2, radius=60.0)
@@ -286,7 +287,7 @@ def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armatur
     ref = t.vertices + [3.0, 0, 0]  # a spine's stand-in: reference frame 1, so both halves have frames
     fake = SimpleNamespace(vertices=ref, faces=t.faces, deform=lambda i: ref + [3.0 * (i - 1), 0, 0])
     monkeypatch.setattr(track, "spine_model", lambda *a: (1, fake))
-    monkeypatch.setattr(ta, "spine_model", lambda *a: (1, fake))
+    monkeypatch.setattr(tr, "spine_model", lambda *a: (1, fake))
     upper = np.where(t.vertices[:, 2] > 0, 0, -1)
     track.track_results(tmp_path, labels=upper)
     patches, limbs = [], []
@@ -302,6 +303,7 @@ def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armatur
         return real_build(*a, **k)
 
     monkeypatch.setattr(ta, "TemplateTracker", Recorder)
+    monkeypatch.setattr(tr, "TemplateTracker", Recorder)  # (the worker's half)
     monkeypatch.setattr(armature, "build_armature", build)
     with cf.ThreadPoolExecutor(max_workers=1) as ex:
         rep = ta.track_with_armature(tmp_path, rounds=1, labels=lambda v, f, frame: upper, executor=ex)
@@ -527,7 +529,7 @@ def test_a_body_piece_that_does_not_move_with_the_body_becomes_a_limb():
     """``parts="limbs"``: a piece the labels give the body (an arm the spine has no axis for) that the body's motion
     carries off the surfaces becomes a limb of its own, its axis from where it meets the body to its far end; a body
     that moves as one gains nothing."""
-    import pipeline.track_armature as ta
+    import pipeline.track_armature_labels as tl
 
     tube, _ = _tube(rings=13, length=120.0)
     v, f = tube.vertices, tube.faces
@@ -542,12 +544,12 @@ def test_a_body_piece_that_does_not_move_with_the_body_becomes_a_limb():
     for t in range(T):
         R = _rot([0, 0, 1], 0.6 * t)
         frames[t, :len(v)][arm] = (v[arm] - [90.0, 0, 0]) @ R.T + [90.0, 0, 0]
-    out, ax = ta._unclaimed_limbs(frames, F, labels, axes, list(frames), reference=0)
+    out, ax = tl._unclaimed_limbs(frames, F, labels, axes, list(frames), reference=0)
     assert len(ax) == 2 and set(out[:len(v)][~arm]) == {-1} and np.array_equal(out[len(v):], labels[len(v):])
     new = out == 1
     assert new[:len(v)][v[:, 0] >= 110.0].all() and not new[:len(v)][v[:, 0] < 90.0].any()  # its far rings
     assert 90.0 <= ax[1][0, 0] <= 110.0 and ax[1][1, 0] == 120.0
-    still, ax2 = ta._unclaimed_limbs(np.repeat(V[None], T, axis=0), F, labels, axes, [V] * T, reference=0)
+    still, ax2 = tl._unclaimed_limbs(np.repeat(V[None], T, axis=0), F, labels, axes, [V] * T, reference=0)
     assert np.array_equal(still, labels) and len(ax2) == 1
 
 
@@ -555,7 +557,7 @@ def test_a_body_piece_is_not_fused_with_the_labelled_limb_it_moves_with():
     """``parts="limbs"``: a piece of the body that moves with the labelled limb beside it (a thigh's root the labels
     give the body, which a forearm touches) is not taken into the new limb that turns on its own beyond it; the new
     limb starts where the piece leaves that limb's motion (exact rigid motions, the surfaces the frames themselves)."""
-    import pipeline.track_armature as ta
+    import pipeline.track_armature_labels as tl
 
     tube, _ = _tube(rings=25, length=240.0)
     v, f = tube.vertices, tube.faces
@@ -572,7 +574,7 @@ def test_a_body_piece_is_not_fused_with_the_labelled_limb_it_moves_with():
         frames[t, len(v):] = other + shift
         frames[t, :len(v)][touch] = v[touch] + shift
         frames[t, :len(v)][arm] = (v[arm] - [180.0, 0, 0]) @ _rot([0, 1, 0], 0.6 * t).T + [180.0, 0, 0] + shift
-    out, ax = ta._unclaimed_limbs(frames, F, labels, axes, list(frames), reference=0)
+    out, ax = tl._unclaimed_limbs(frames, F, labels, axes, list(frames), reference=0)
     assert len(ax) == 2 and np.array_equal(out[len(v):], labels[len(v):])
     new = out[:len(v)] == 1
     assert not new[~arm].any() and new[v[:, 0] >= 200.0].all()  # the far rings, nothing of the piece beside the limb

@@ -299,6 +299,8 @@ def test_what_the_tracking_warns_of_is_in_the_jobs_warnings(tmp_path, monkeypatc
     import pipeline.carve as carve
     import pipeline.track_armature as ta
     from pipeline.process.steps import _step_track
+    from pipeline.track_armature_labels import _limb_chain
+    from pipeline.track_armature_models import _spine_rig
 
     (tmp_path / "meshes").mkdir()
     (tmp_path / "meshes" / "frame_000000.ply").write_text("ply")
@@ -314,9 +316,9 @@ def test_what_the_tracking_warns_of_is_in_the_jobs_warnings(tmp_path, monkeypatc
         return report
 
     def rounds(src, **k):  # the real fallbacks: no spine.json for the spine armature, no labels for the limbs' parts
-        assert ta._spine_rig(src, [0, 1, 2], np.zeros((3, 3)), np.zeros((1, 3), np.int64), 0) is None
+        assert _spine_rig(src, [0, 1, 2], np.zeros((3, 3)), np.zeros((1, 3), np.int64), 0) is None
         for _ in range(2):  # (a later round says it again)
-            assert ta._limb_chain(src, None, 0, 3) is None
+            assert _limb_chain(src, None, 0, 3) is None
         return {**report, "rig_prior": {"worker_cpu_seconds": 0.0}}
 
     monkeypatch.setattr(carve, "track_with_carving", carving)

@@ -1,4 +1,4 @@
-"""The take's spine rig as the armature mode's first armature (pipeline.track_armature.spine_armature)."""
+"""The take's spine rig as the armature mode's first armature (pipeline.track_armature_models.spine_armature)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.armature_fit import Pose
 from pipeline.armature_spine import armature_from_spine, reference_frame, rigged_model
-from pipeline.track_armature import SPINE_BONES, spine_armature
+from pipeline.track_armature_models import SPINE_BONES, spine_armature
 from tests.pipeline.creature_truth import creature_take, surface, true_spine
 
 
