@@ -34,7 +34,7 @@ from pipeline.process.tasks import (
     unpack_masks,
     uses_depth,
 )
-from pipeline.run import StepList, forking_pool, pool_size
+from pipeline.run import StepList, forking_pool, pool_size, submitted_by
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -421,8 +421,8 @@ class _StepWarnings(logging.Handler):
         self.ctx, self.step, self.thread = ctx, step, threading.get_ident()
 
     def emit(self, record: logging.LogRecord) -> None:
-        if record.thread != self.thread or record.name == log.name or record.name.startswith(f"{log.name}."):
-            return  # another job's thread; the processing's own (ctx.warn keeps those itself)
+        if submitted_by(record.thread) != self.thread or record.name == log.name or record.name.startswith(f"{log.name}."):
+            return  # another job's thread (or its task's); the processing's own (ctx.warn keeps those itself)
         msg = f"{self.step}: {getattr(record, 'job_message', None) or record.getMessage()}"
         if msg not in self.ctx.warnings:  # (a round's armature says what the round before said)
             self.ctx.warnings.append(msg)
@@ -441,8 +441,11 @@ def _job_warnings(ctx: RunContext, step: str) -> Iterator[None]:
     (the first of ``carve`` rounds' trackings' start-over is in no returned report). A message that names a
     command line option or a function's keyword says it in the job's parameters in the record's ``job_message``
     (``log.warning(..., extra={"job_message": ...})``, as :class:`~pipeline.process.params.ProcessError`'s
-    ``job_message``), which is kept instead. Only this thread's records (a server runs several jobs at once);
-    what a worker process logs (a camera's unreadable mask while it carves its frames) stays in its log."""
+    ``job_message``), which is kept instead. Only this thread's records (a server runs several jobs at once) and
+    those of the tasks it submits: a task in a worker process (the carve's and the tracking's half aside, a Dask
+    worker's) has its warnings said again in this thread when its result is taken (:func:`pipeline.run.submit_aside`,
+    :meth:`pipeline.run.Run.map_tasks`), a task in a thread pool's thread is this thread's
+    (:func:`pipeline.run.submitted_by`)."""
     keep = _StepWarnings(ctx, step)
     logger = logging.getLogger("pipeline")
     logger.addHandler(keep)

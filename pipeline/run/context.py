@@ -12,7 +12,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "pool_size", "submit_aside"]
+__all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "pool_size", "submit_aside", "submitted_by"]
 
 log = logging.getLogger(__name__)
 
@@ -33,11 +33,70 @@ def forking_pool(executor) -> bool:
     return isinstance(executor, cf.ProcessPoolExecutor) and (ctx is None or ctx.get_start_method(allow_none=False) == "fork")
 
 
-def _with_cpu(task: Callable[[], object]) -> tuple[object, float, int]:
-    """A task's result, the CPU seconds its process spent on it and that process's id (run in the worker)."""
+#: a thread of this process running a task (:func:`_with_cpu`) -> the thread that submitted it
+_SUBMITTED_BY: dict[int, int] = {}
+
+
+def submitted_by(thread: int) -> int:
+    """The thread that submitted the task thread ``thread`` of this process runs now (a thread pool's worker, through
+    :func:`submit_aside` or :meth:`Run.map_tasks`), or ``thread`` itself: whose work a log record of that thread is
+    (``logging.LogRecord.thread``)."""
+    return _SUBMITTED_BY.get(thread, thread)
+
+
+class _KeptWarnings(logging.Handler):
+    """The warnings the ``pipeline`` loggers say in this thread, kept as ``(logger, level, message, job_message)``."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.thread, self.said = threading.get_ident(), []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread != self.thread:  # (a Dask worker runs other tasks in its other threads)
+            return
+        try:
+            self.said.append((record.name, record.levelno, record.getMessage(), getattr(record, "job_message", None)))
+        except Exception:  # a message that cannot be formatted: said as logging says it
+            self.handleError(record)
+
+
+def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None) -> tuple[object, float, int, list]:
+    """A task's result, the CPU seconds its process spent on it, that process's id and the warnings the ``pipeline``
+    loggers said in it (run in the worker). ``origin``: (process id, thread) of the caller that submitted the task.
+
+    In another process the warnings are kept (in place of the worker's stderr, where a process pool's records go)
+    and returned, for :func:`_say_again` to say them in the caller's thread; in a thread of the caller's process its
+    records reach the process's handlers as they are said, and :func:`submitted_by` names the caller's thread."""
     t = time.process_time()
-    out = task()
-    return out, time.process_time() - t, os.getpid()
+    if origin is not None and origin[0] == os.getpid():
+        me = threading.get_ident()
+        _SUBMITTED_BY[me] = origin[1]
+        try:
+            out = task()
+        finally:
+            _SUBMITTED_BY.pop(me, None)
+        return out, time.process_time() - t, os.getpid(), []
+    keep = _KeptWarnings()
+    logger = logging.getLogger("pipeline")
+    logger.addHandler(keep)
+    try:
+        out = task()
+    finally:
+        logger.removeHandler(keep)
+    return out, time.process_time() - t, os.getpid(), keep.said
+
+
+def _origin() -> tuple[int, int]:
+    return os.getpid(), threading.get_ident()
+
+
+def _say_again(said: list) -> None:
+    """The warnings a task said in another process (:func:`_with_cpu`), said again here, on their loggers, in this
+    thread: the job's warnings (``pipeline.process.steps._job_warnings``) and the command's terminal get them as
+    they get this process's own."""
+    for name, level, message, job_message in said:
+        logging.getLogger(name).log(level, "%s", message, extra=None if job_message is None else
+                                    {"job_message": job_message})
 
 
 class Aside:
@@ -48,16 +107,21 @@ class Aside:
         #: CPU seconds the task took in another process; None until it has, or when it ran in this
         #: one (a thread's seconds are already this process's)
         self.cpu_seconds: float | None = None
+        self._said = False
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait at most ``timeout`` seconds; True once the task has finished (or failed)."""
         return bool(cf.wait([self._future], timeout=timeout).done)
 
     def result(self) -> object:
-        """The task's result; ``concurrent.futures.BrokenExecutor`` when its worker process died."""
-        out, cpu, pid = self._future.result()
+        """The task's result; ``concurrent.futures.BrokenExecutor`` when its worker process died. The warnings
+        the task said in another process are said again in this thread, the first time (:func:`_say_again`)."""
+        out, cpu, pid, said = self._future.result()
         if pid != os.getpid():
             self.cpu_seconds = cpu
+            if not self._said:
+                self._said = True
+                _say_again(said)
         return out
 
 
@@ -66,11 +130,13 @@ def submit_aside(executor: cf.Executor | None, task: Callable[[], object], *, un
     """Start ``task`` (picklable for a process pool: a top-level function or a ``functools.partial`` of
     one) on ``executor`` while this process does other work, as tracking and carving split a take
     in two halves; None when there is no executor, or when its pool is broken or shut down (then
-    ``unavailable``, with ``{exc}`` for the reason, is a warning on ``logger`` and the caller does the work)."""
+    ``unavailable``, with ``{exc}`` for the reason, is a warning on ``logger`` and the caller does the work).
+    What the task's ``pipeline`` loggers warn of in another process is said again in the thread that takes its
+    result (:meth:`Aside.result`); in a thread of this process, :func:`submitted_by` names the submitting thread."""
     if executor is None:
         return None
     try:
-        return Aside(executor.submit(_with_cpu, task))
+        return Aside(executor.submit(_with_cpu, task, _origin()))
     except (cf.BrokenExecutor, RuntimeError) as exc:  # a broken or shut-down pool
         logger.warning("%s", unavailable.format(exc=exc))
         return None
@@ -152,19 +218,21 @@ class Run:
     def map_tasks(self, tasks: list[Callable[[], object]]) -> Iterator[object]:
         """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
         between tasks when cancelled. The CPU seconds of workers in other processes add to the
-        running step's (a thread pool's are already this process's)."""
+        running step's (a thread pool's are already this process's), and the warnings they said are said
+        again in this thread (:func:`_say_again`)."""
         if self.executor is None:
             for task in tasks:
                 self.check_cancel()
                 yield task()
             return
-        futures = [self.executor.submit(_with_cpu, task) for task in tasks]
+        futures = [self.executor.submit(_with_cpu, task, _origin()) for task in tasks]
         try:
             for fut in cf.as_completed(futures):
                 self.check_cancel()
-                out, cpu, pid = fut.result()
+                out, cpu, pid, said = fut.result()
                 if pid != os.getpid():
                     self.clock.add_worker_cpu(self.step, cpu)
+                    _say_again(said)
                 yield out
         finally:
             for fut in futures:

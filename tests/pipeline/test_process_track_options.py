@@ -337,6 +337,51 @@ def test_what_the_tracking_warns_of_is_in_the_jobs_warnings(tmp_path, monkeypatc
     assert not any("--" in w or "='" in w for w in ctx.warnings), ctx.warnings  # the job's words, not the command's
 
 
+@pytest.mark.parametrize("pool", ["process", "thread"])
+def test_what_the_tracking_warns_of_in_a_worker_is_in_the_jobs_warnings(tmp_path, monkeypatch, pool):
+    """What the track step's functions say in their tasks on the job's executor (the carve's and the tracking's half
+    of the frames aside) is in the job's warnings as what they say in the step's thread: a worker process's (the
+    server's pool: started by forkserver, no handler of this process) and a thread pool's thread's; the tasks here are
+    the armature rounds' real fallbacks, run on the executor."""
+    import concurrent.futures as cf
+    from functools import partial
+
+    import pipeline.carve as carve
+    import pipeline.track_armature as ta
+    from pipeline.process.steps import _step_track
+    from pipeline.run import submit_aside
+    from pipeline.track_armature_labels import _limb_chain
+    from pipeline.track_armature_models import _spine_rig
+    from stage.workers import process_pool
+
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "frame_000000.ply").write_text("ply")
+    report = {"frames": {}, "skipped": [], "worker_cpu_seconds": 0.0}
+
+    def aside(k, task):
+        return submit_aside(k["executor"], task, unavailable="no pool ({exc})").result()
+
+    def carving(src, rounds, **k):
+        assert aside(k, partial(_spine_rig, src, [0, 1, 2], np.zeros((3, 3)), np.zeros((1, 3), np.int64), 0)) is None
+        return report
+
+    def rounds(src, **k):
+        assert aside(k, partial(_limb_chain, src, None, 0, 3)) is None
+        return {**report, "rig_prior": {"worker_cpu_seconds": 0.0}}
+
+    monkeypatch.setattr(carve, "track_with_carving", carving)
+    monkeypatch.setattr(ta, "track_with_armature", rounds)
+    with (process_pool(1) if pool == "process" else cf.ThreadPoolExecutor(1)) as ex:
+        ctx, _ = _ctx(tmp_path, {"labels": True, "armature_rounds": 1, "spine_armature": True,
+                                 "armature_parts": "limbs"}, executor=ex)
+        _step_track(ctx)
+    assert len(ctx.warnings) == 2, ctx.warnings
+    assert ctx.warnings[0].startswith("track: parameters track.spine_armature: the first armature is built from the "
+                                      f"tracking: no usable spine in {tmp_path / 'spine.json'} (")
+    assert ctx.warnings[1] == ("track: parameters track.armature_parts 'limbs': the armature's parts come from the "
+                               "motion: no labels")
+
+
 def test_what_the_armature_warns_of_is_in_the_jobs_warnings(tmp_path, monkeypatch):
     """The rig step: ``rig.parts`` 'limbs' on a template tracked without its labels falls back to the motion
     segmentation; the job's warnings say so, and why, in the job's parameters (not ``stage track --labels``)."""

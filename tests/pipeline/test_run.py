@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import hashlib
+import logging
 import threading
 from functools import partial
 from pathlib import Path
@@ -12,7 +13,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.run import Run, StepList, array_digest, changed_settings, chunks, file_digest, read_settings, submit_aside
+from pipeline.run import (
+    Run,
+    StepList,
+    array_digest,
+    changed_settings,
+    chunks,
+    file_digest,
+    read_settings,
+    submit_aside,
+    submitted_by,
+)
 
 
 def test_step_list_keeps_order_and_is_one_object():
@@ -70,6 +81,49 @@ def test_a_task_aside_runs_on_the_executor_and_says_when_it_cannot(caplog):
     with caplog.at_level("WARNING"):
         assert submit_aside(ex, partial(int, 3), unavailable=said) is None  # shut down
     assert "the pool is gone (cannot schedule new futures after shutdown); the work is done here" in caplog.text
+
+
+def _warns(k: int) -> int:
+    logging.getLogger("pipeline.carve").warning("camera %d: no mask", k, extra={"job_message": f"camera {k} in a job"})
+    logging.getLogger("pipeline.carve").info("not a warning")
+    return k
+
+
+class _Heard(logging.Handler):
+    """The ``pipeline`` loggers' records: (the thread whose work each is, its message, its job_message)."""
+
+    def __init__(self):
+        super().__init__(logging.INFO)
+        self.heard = []
+
+    def emit(self, record):
+        self.heard.append((submitted_by(record.thread), record.levelno, record.getMessage(),
+                           getattr(record, "job_message", None)))
+
+
+@pytest.mark.parametrize("pool", [cf.ProcessPoolExecutor, cf.ThreadPoolExecutor])
+def test_what_a_task_warns_of_on_a_worker_is_said_in_the_callers_thread(tmp_path, pool):
+    """A task aside or a mapped task that warns on the ``pipeline`` loggers: in a worker process its warnings (not its
+    lower records) are said again in the thread that takes its result, once, with their ``job_message``; in a thread
+    pool's thread its records are the submitting thread's work (``submitted_by``)."""
+    heard, logger = _Heard(), logging.getLogger("pipeline")
+    logger.addHandler(heard)
+    level = logger.level
+    logger.setLevel(logging.INFO)
+    me = threading.get_ident()
+    try:
+        with pool(1) as ex:
+            aside = submit_aside(ex, partial(_warns, 3), unavailable="{exc}")
+            assert aside.result() == 3 and aside.result() == 3
+            assert sorted(Run(out=tmp_path, executor=ex).map_tasks([partial(_warns, k) for k in (4, 5)])) == [4, 5]
+    finally:
+        logger.removeHandler(heard)
+        logger.setLevel(level)
+    warned = [(t, m, j) for t, lv, m, j in heard.heard if lv == logging.WARNING]
+    assert sorted(warned) == [(me, f"camera {k}: no mask", f"camera {k} in a job") for k in (3, 4, 5)]
+    # a thread's lower records reach this process's handlers as they are said; a process's do not come back
+    assert sum(lv < logging.WARNING for _, lv, _, _ in heard.heard) == (3 if pool is cf.ThreadPoolExecutor else 0)
+    assert submitted_by(me) == me
 
 
 def test_announced_progress_is_closed_when_the_step_ends(tmp_path):
