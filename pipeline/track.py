@@ -91,14 +91,15 @@ def check_track_options(*, carve: int = 0, carve_margin: float | None = None, ar
         Where every round's armature gets its parts (``--armature-parts``): other than ``"motion"`` needs
         ``armature_rounds`` and ``labels``.
     labels : bool
-        The template's limb/body labels (``--labels``).
+        Whether the tracking has the template's limb/body labels (``--labels``; a job's ``track.labels``, or its
+        ``rig.parts`` "limbs", whose tracking takes them: :attr:`pipeline.process.ProcessParams.track_labels`).
     names : dict, optional
         The caller's name of each option (``{"carve": "--carve"}``) in the messages; default its keyword.
 
     Raises
     ------
     ValueError
-        One line naming the options as the caller does.
+        One line naming the options as the caller does; a rule's missing option is named alone (what to add).
     """
     name = {k: k for k in ("carve", "carve_margin", "armature_rounds", "spine_armature", "armature_parts", "labels")}
     name.update(names or {})
@@ -108,8 +109,10 @@ def check_track_options(*, carve: int = 0, carve_margin: float | None = None, ar
         raise ValueError(f"{name['spine_armature']} needs {name['armature_rounds']} (it is the first of the armature "
                          "rounds)")
     if armature_parts != "motion" and not (armature_rounds and labels):
-        raise ValueError(f"{name['armature_parts']} {armature_parts!r} needs {name['armature_rounds']} and "
-                         f"{name['labels']} (its parts are the labels' body and limbs)")
+        missing = " and ".join(name[k] for k, given in (("armature_rounds", armature_rounds), ("labels", labels))
+                               if not given)
+        raise ValueError(f"{name['armature_parts']} {armature_parts!r} needs {missing} (its parts are the labels' body "
+                         "and limbs)")
 
 
 def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False,

@@ -81,7 +81,9 @@ class WorkSpec:
             try:
                 model = self.params_model.model_validate(params)
             except ValidationError as exc:
-                msgs = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'parameters'}: {e['msg']}" for e in exc.errors())
+                # (a rule between parameters is the model's: no location, its message names them)
+                msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" if e["loc"] else e["msg"]
+                                 for e in exc.errors())
                 raise ValueError(f"parameters: {msgs}") from None
             params = json.loads(model.model_dump_json(exclude_defaults=True))
         return tuple(s for s in self.steps if s in steps), params

@@ -47,7 +47,8 @@ class TrackParams(BaseModel):
         Feature tracks from every camera's colour images (``--colour``).
     labels : bool
         Cut the template's rigid patches at the limbs of the take's spine (``--labels``,
-        :func:`pipeline.template_labels.template_labels`): the body one patch, every limb on its own grid.
+        :func:`pipeline.template_labels.template_labels`): the body one patch, every limb on its own grid. A job
+        whose ``rig.parts`` is "limbs" tracks with them too (:attr:`ProcessParams.track_labels`).
     armature_rounds : int or "auto"
         After the tracking, at most this many rounds of an armature built from the tracked motion and the
         take tracked again with it as the articulated prior, the best round kept (``--armature-rounds``,
@@ -58,7 +59,10 @@ class TrackParams(BaseModel):
         ``armature_rounds``.
     armature_parts : {"motion", "limbs"}
         Where every round's armature gets its parts (``--armature-parts``): ``"motion"`` the motion
-        segmentation, ``"limbs"`` the labels' body and limbs; ``"limbs"`` needs ``armature_rounds`` and ``labels``.
+        segmentation, ``"limbs"`` the labels' body and limbs; ``"limbs"`` needs ``armature_rounds`` and the labels
+        (``labels``, or ``rig.parts`` "limbs").
+
+    The rules between these options are ``stage track``'s, checked by :class:`ProcessParams` (which sees ``rig.parts``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -71,16 +75,6 @@ class TrackParams(BaseModel):
     armature_rounds: Annotated[int, Field(ge=0, le=4)] | Literal["auto"] = 0
     spine_armature: bool = False
     armature_parts: Literal["motion", "limbs"] = "motion"
-
-    @model_validator(mode="after")
-    def _armature_options(self) -> TrackParams:
-        """``stage track``'s rules of the carving's margin and the armature rounds, in the parameters' names (an
-        option that would do nothing is refused, not ignored)."""
-        from pipeline.track import check_track_options
-
-        check_track_options(carve=self.carve, carve_margin=self.carve_margin, armature_rounds=self.armature_rounds,
-                            spine_armature=self.spine_armature, armature_parts=self.armature_parts, labels=self.labels)
-        return self
 
 
 #: the most sampled vertices a job's rig segmentation takes (``RigParams.samples``)
@@ -213,6 +207,27 @@ class ProcessParams(BaseModel):
     track: TrackParams = Field(default_factory=TrackParams)
     rig: RigParams = Field(default_factory=RigParams)
     skip_damaged: bool = False
+
+    @property
+    def track_labels(self) -> bool:
+        """Whether the ``track`` step tracks with the template's limb/body labels: ``track.labels``, or ``rig.parts``
+        "limbs" (the rig's parts from the labels need a tracking with them, as ``stage armature --parts limbs`` tracks
+        an untracked take with ``--labels``)."""
+        return self.track.labels or self.rig.parts == "limbs"
+
+    @model_validator(mode="after")
+    def _track_options(self) -> ProcessParams:
+        """``stage track``'s rules of the carving's margin and the armature rounds (:func:`pipeline.track.check_track_options`),
+        in the parameters' names (an option that would do nothing is refused, not ignored), with the labels the
+        tracking has (:attr:`track_labels`)."""
+        from pipeline.track import check_track_options
+
+        t = self.track
+        check_track_options(carve=t.carve, carve_margin=t.carve_margin, armature_rounds=t.armature_rounds,
+                            spine_armature=t.spine_armature, armature_parts=t.armature_parts, labels=self.track_labels,
+                            names={k: f"track.{k}" for k in ("carve", "carve_margin", "armature_rounds", "spine_armature",
+                                                             "armature_parts", "labels")})
+        return self
 
     @field_validator("volume")
     @classmethod

@@ -466,8 +466,9 @@ def _need_surfaces(ctx: RunContext, step: str) -> None:
 def _step_track(ctx: RunContext) -> None:
     """The first surface tracked through the take -> ``tracked/`` (:func:`pipeline.carve.track_with_carving`
     with ``ProcessParams.track``; with the template's limb/body labels too when the job's rig takes its parts from
-    them, ``rig.parts="limbs"``), then tracked again with an armature as the articulated prior for
-    ``track.armature_rounds`` (:func:`pipeline.track_armature.track_with_armature`), as ``stage track`` does. What
+    them, ``rig.parts="limbs"``: :attr:`~pipeline.process.ProcessParams.track_labels`), then tracked again with an
+    armature as the articulated prior for ``track.armature_rounds`` (:func:`pipeline.track_armature.track_with_armature`),
+    as ``stage track`` does. What
     these functions warn of (frames of other settings tracked again, a fallback of the armature rounds...) is in the
     job report too (:func:`_job_warnings`)."""
     from pipeline.carve import track_with_carving
@@ -476,7 +477,7 @@ def _step_track(ctx: RunContext) -> None:
     if "rig" in ctx.steps:  # a rest frame past the surfaces is said before the tracking, which could not help
         _check_rig_reference(ctx, len(list((ctx.out / "meshes").glob("frame_*.ply"))))
     opt = ctx.params.track
-    labels = opt.labels or ("rig" in ctx.steps and ctx.params.rig.parts == "limbs")
+    labels = ctx.params.track_labels  # (track.labels, or the rig's parts from the labels)
     with _job_warnings(ctx, "track"):  # (the start-over of frames of other settings, a fallback of the rounds...)
         rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress,
                                  executor=ctx.executor, colour=opt.colour, shape_memory=opt.shape_memory,

@@ -184,13 +184,18 @@ def test_a_process_job_checks_its_track_options(make_client, data_root):
         assert r.status_code == 400 and "track" in r.json()["detail"], (bad, r.json())
     # the armature rounds: bounds, and stage track's rules in the parameters' names
     for bad, said in (({"armature_rounds": 9}, "track.armature_rounds"), ({"armature_rounds": "often"}, "armature_rounds"),
-                      ({"spine_armature": True}, "spine_armature needs armature_rounds"),
-                      ({"carve_margin": 1.0}, "carve_margin needs carve"),
-                      ({"armature_rounds": 1, "armature_parts": "limbs"}, "armature_parts 'limbs' needs armature_rounds "
-                                                                          "and labels")):
+                      ({"spine_armature": True}, "track.spine_armature needs track.armature_rounds ("),
+                      ({"carve_margin": 1.0}, "track.carve_margin needs track.carve ("),
+                      ({"armature_rounds": 1, "armature_parts": "limbs"}, "track.armature_parts 'limbs' needs "
+                                                                          "track.labels (")):
         r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"], "parameters": {"track": bad}}, headers=AUTH)
-        assert r.status_code == 400 and r.json()["detail"].startswith("parameters: track") and said in r.json()["detail"], \
+        assert r.status_code == 400 and r.json()["detail"].startswith("parameters: ") and said in r.json()["detail"], \
             (bad, r.json())
+        assert "parameters: parameters" not in r.json()["detail"]
+    # the rig's parts from the limbs: the tracking has the labels, so the rounds may take their parts from them too
+    limbs = {"track": {"armature_rounds": 1, "armature_parts": "limbs"}, "rig": {"parts": "limbs"}}
+    r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track", "rig"], "parameters": limbs}, headers=AUTH)
+    assert r.status_code == 202 and r.json()["params"] == limbs, r.json()
     ok = {"track": {"carve": 2, "shape_memory": True, "colour": True, "labels": True}}
     r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"], "parameters": ok}, headers=AUTH)
     assert r.status_code in (200, 201, 202) and r.json()["params"]["track"]["carve"] == 2, r.json()

@@ -452,9 +452,11 @@ def test_track_with_rig_invalid_input(tmp_path, capsys):
     assert main(["-q", "track", str(res), "--spine-armature"]) == 2
     assert "--spine-armature needs --armature-rounds" in capsys.readouterr().err
     assert main(["-q", "track", str(res), "--armature-parts", "limbs", "--labels"]) == 2
-    assert "--armature-parts 'limbs' needs --armature-rounds and --labels" in capsys.readouterr().err
+    assert "--armature-parts 'limbs' needs --armature-rounds (" in capsys.readouterr().err  # what to add, alone
     assert main(["-q", "track", str(res), "--armature-parts", "limbs", "--armature-rounds", "1"]) == 2
-    assert "--armature-parts 'limbs' needs --armature-rounds and --labels" in capsys.readouterr().err
+    assert "--armature-parts 'limbs' needs --labels (" in capsys.readouterr().err
+    assert main(["-q", "track", str(res), "--armature-parts", "limbs"]) == 2
+    assert "--armature-parts 'limbs' needs --armature-rounds and --labels (" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # argparse: "invalid choice"
         main(["-q", "track", str(res), "--armature-parts", "bones"])
 

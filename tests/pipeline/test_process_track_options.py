@@ -22,12 +22,13 @@ from pipeline.process.params import RigParams, check_params
     ({"armature_rounds": 1.5}, "track.armature_rounds.* fractional part"),
     ({"spine_armature": "maybe"}, "track.spine_armature.* valid boolean"),
     ({"armature_parts": "bones"}, "track.armature_parts.* 'motion' or 'limbs'"),
-    ({"carve_margin": 0.5}, "track.* carve_margin needs carve"),  # stage track --carve-margin without --carve
-    ({"carve_margin": 0.5, "carve": 0}, "track.* carve_margin needs carve"),
-    ({"spine_armature": True}, "track.* spine_armature needs armature_rounds"),
-    ({"spine_armature": True, "armature_rounds": 0}, "track.* spine_armature needs armature_rounds"),
-    ({"armature_parts": "limbs", "labels": True}, "track.* armature_parts 'limbs' needs armature_rounds and labels"),
-    ({"armature_parts": "limbs", "armature_rounds": 1}, "track.* armature_parts 'limbs' needs armature_rounds and labels"),
+    ({"carve_margin": 0.5}, r"track.carve_margin needs track.carve \("),  # stage track --carve-margin without --carve
+    ({"carve_margin": 0.5, "carve": 0}, r"track.carve_margin needs track.carve \("),
+    ({"spine_armature": True}, r"track.spine_armature needs track.armature_rounds \("),
+    ({"spine_armature": True, "armature_rounds": 0}, r"track.spine_armature needs track.armature_rounds \("),
+    ({"armature_parts": "limbs", "labels": True}, r"track.armature_parts 'limbs' needs track.armature_rounds \("),
+    ({"armature_parts": "limbs", "armature_rounds": 1}, r"track.armature_parts 'limbs' needs track.labels \("),
+    ({"armature_parts": "limbs"}, r"track.armature_parts 'limbs' needs track.armature_rounds and track.labels \("),
 ])
 def test_invalid_input(bad, said):
     """Every bound and every rule of ``stage track``'s armature options is an error naming the parameter."""
@@ -56,10 +57,11 @@ def test_check_track_options_invalid_input():
     for kw, said in (({"carve_margin": 0.0}, r"^carve_margin needs carve \(the margin"),
                      ({"carve_margin": 1.0, "names": flags}, "^--carve-margin needs --carve "),
                      ({"spine_armature": True}, "^spine_armature needs armature_rounds "),
-                     ({"armature_parts": "limbs", "armature_rounds": 2}, "^armature_parts 'limbs' needs armature_rounds "
-                                                                         "and labels "),
+                     ({"armature_parts": "limbs", "armature_rounds": 2}, r"^armature_parts 'limbs' needs labels \("),
+                     ({"armature_parts": "limbs", "names": flags},
+                      r"^--armature-parts 'limbs' needs --armature-rounds and --labels \("),
                      ({"armature_parts": "limbs", "labels": True, "names": flags},
-                      "^--armature-parts 'limbs' needs --armature-rounds and --labels ")):
+                      r"^--armature-parts 'limbs' needs --armature-rounds \(")):
         with pytest.raises(ValueError, match=said):
             check_track_options(**kw)
 
@@ -147,6 +149,41 @@ def test_the_track_step_runs_no_rounds_unless_asked(tmp_path, monkeypatch):
     _step_track(ctx)
     assert [(name, k["labels"]) for name, k in calls] == [("track_with_carving", "spine"), ("track_with_armature", "spine")]
     assert calls[1][1]["rounds"] == 2 and calls[1][1]["parts"] == "motion"
+
+
+def test_a_rig_from_the_limbs_gives_the_armature_rounds_their_labels(tmp_path, monkeypatch, capsys):
+    """``track.armature_parts`` 'limbs' without ``track.labels`` in a job whose ``rig.parts`` is 'limbs': its tracking
+    has the labels (the rig's parts need them), so the rounds run as ``stage track --labels --armature-rounds 1
+    --armature-parts limbs`` runs them (then ``stage armature --parts limbs``); without the rig's limbs it is refused
+    naming ``track.labels``, as the command names ``--labels``."""
+    from pipeline.process.steps import _step_track
+    from stage.cli import main
+
+    calls = _recording(monkeypatch)
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "frame_000000.ply").write_text("ply")
+    track = {"armature_rounds": 1, "armature_parts": "limbs"}
+    params = check_params({"track": track, "rig": {"parts": "limbs"}})
+    assert params.track_labels and not params.track.labels
+    assert main(["-q", "track", str(tmp_path), "--workers", "0", "--no-progress", "--labels", "--armature-rounds", "1",
+                 "--armature-parts", "limbs"]) == 0
+    cli = calls[:]
+    calls.clear()
+    ctx, _ = _ctx(tmp_path, {}, steps=("track", "rig"))
+    ctx.params = params
+    _step_track(ctx)
+    assert [name for name, _ in calls] == [name for name, _ in cli] == ["track_with_carving", "track_with_armature"]
+    defaults = {"template": None, "gamma": None, "gate": None, "spine_init": False, "choose": True, "predict": True}
+    for (name, job), (_, by_cli) in zip(calls, cli):
+        job.pop("progress"), by_cli.pop("progress")
+        if name == "track_with_carving":  # options of stage track a job does not have, at their defaults
+            assert {k: by_cli.pop(k) for k in defaults} == defaults
+        assert job == by_cli, name
+    assert calls[1][1]["parts"] == "limbs" and calls[1][1]["labels"] == "spine"
+    with pytest.raises(ValueError, match=r"track.armature_parts 'limbs' needs track.labels \("):
+        check_params({"track": track})
+    assert main(["-q", "track", str(tmp_path), "--armature-rounds", "1", "--armature-parts", "limbs"]) == 2
+    assert "--armature-parts 'limbs' needs --labels (" in capsys.readouterr().err
 
 
 def test_the_track_step_announces_every_round_that_may_run():
