@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="results directory of `stage process` (writes RESULTS_DIR/rig/; tracks the template first "
                    "when there is no tracked/NNNNNN.ply)")
     p.add_argument("--meshes", metavar="GLOB", help="mesh sequence with shared connectivity (e.g. 'seq/*.obj')")
-    p.add_argument("--out", type=Path, metavar="DIR", help="output directory (default RESULTS_DIR/rig)")
+    p.add_argument("--out", type=Path, metavar="DIR", help="output directory (default RESULTS_DIR/rig; required with --meshes)")
     p.add_argument("--units", help="units of the meshes (default: the spine's, else mm)")
     p.add_argument("--fps", type=float, help="frame rate (default: the spine's, else 30)")
     p.add_argument("--lambda-thr", type=float, default=0.7, metavar="T",

@@ -19,8 +19,11 @@ DESCRIPTION = (
     "                                                 the first frame's), unless given\n"
     "  stage track TAKE.h5 --template MESH --out DIR  one RGB-D camera: the template (mm, roughly placed)\n"
     "                                                 is placed by rigid ICP on the first frame with depth\n"
-    "Writes tracked/NNNNNN.ply in the template's vertex order and tracked/track.json; resumes "
-    "where a killed run stopped. Frames without depth are skipped and listed."
+    "Writes tracked/NNNNNN.ply in the template's vertex order and tracked/track.json; resumes where a killed\n"
+    "run stopped. Frames without depth are skipped and listed.\n"
+    "Limbs that move fast (3 voxels a frame or more): docs/tracking.md, 'Fast motion', has an opt-in, slower chain\n"
+    "that tracks every frame again with an armature of the template's limbs as the articulated prior:\n"
+    "  stage track RESULTS_DIR --labels --colour --armature-rounds 1 --armature-parts limbs"
 )
 
 
@@ -90,7 +93,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "default, see docs/tracking.md")
     p.add_argument("--no-colour", action="store_true",
                    help="single RGB-D: use depth alone, not the colour images' feature tracks (which see a round part's twist)")
-    p.add_argument("--gamma", type=float, default=None, help="data weight (default from the template's triangle areas: 0.05 / 0.005)")
+    p.add_argument("--gamma", type=float, default=None,
+                   help="data weight (default: 0.05 when the template's mean triangle area is above 10 mm^2, else 0.005; "
+                   "the paper's finding)")
     p.add_argument("--gate", type=float, default=None, help="pair distance gate, mm (default 10 mm scaled with the template's size)")
     p.add_argument("--workers", type=int, default=None,
                    help="multi-view: with 2 or more, one half of the take from the reference frame is tracked in a "

@@ -115,3 +115,62 @@ def test_track_help_names_the_template_frame_it_tracks_from(tmp_path, capsys):
     assert "the template is the surface of the spine's reference frame, tracked forwards and backwards from it " \
            "(without spine.json: the first frame's), unless given" in text
     assert "(default for RESULTS_DIR: the surface of the spine's reference frame)" in text
+
+
+def test_track_help_says_how_the_data_weight_is_chosen(capsys):
+    """``stage track --help``'s default ``--gamma`` is the rule :func:`pipeline.tracking.choose_gamma` applies: its two
+    values either side of the stated mean triangle area (a square of two triangles, area side^2 / 2 each)."""
+    import re
+
+    import numpy as np
+
+    from pipeline.tracking import choose_gamma
+
+    with pytest.raises(SystemExit):
+        main(["track", "--help"])
+    text = re.sub(r"\s+", " ", capsys.readouterr().out)
+    found = re.search(r"--gamma GAMMA data weight \(default: ([\d.]+) when the template's mean triangle area is above "
+                      r"([\d.]+) mm\^2, else ([\d.]+);", text)
+    assert found, text
+    above, area, below = map(float, found.groups())
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    for scale, want in ((1.01, above), (0.99, below)):
+        side = np.sqrt(2 * area * scale)
+        square = np.array([[0, 0, 0], [side, 0, 0], [side, side, 0], [0, side, 0]], dtype=float)
+        assert choose_gamma(square, faces) == want
+
+
+def test_the_fast_motion_chain_is_the_same_in_the_help_the_readme_and_the_docs(capsys):
+    """The opt-in chain for fast limbs, as ``stage track --help`` and README's day at the stage give it, is the job
+    parameters docs/tracking.md gives for it, option by option."""
+    import json
+    import re
+    import shlex
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    with pytest.raises(SystemExit):
+        main(["track", "--help"])
+    helped = re.search(r"^ +(stage track RESULTS_DIR --labels .*)$", capsys.readouterr().out, re.M)
+    readme = [line.split("  #", 1)[0] for line in (root / "README.md").read_text(encoding="utf-8").splitlines()
+              if line.startswith("stage track results/ --labels")]
+    docs = re.search(r"the chain for fast motion below is\s+`(\{.*?\})`", (root / "docs" / "tracking.md").read_text(
+        encoding="utf-8"), re.S)
+    assert helped and len(readme) == 1 and docs
+    job = json.loads(docs.group(1))
+    for line in (helped.group(1), readme[0]):
+        args = build_parser().parse_args(shlex.split(line)[1:])
+        assert {"labels": args.labels, "colour": args.colour, "armature_rounds": args.rig_rounds,
+                "armature_parts": args.armature_parts} == job, line
+
+
+def test_armature_help_says_meshes_need_an_out_directory(tmp_path, capsys):
+    """``stage armature --out``'s help says it is required with ``--meshes``, as the command then says."""
+    import re
+
+    with pytest.raises(SystemExit):
+        main(["armature", "--help"])
+    assert "(default RESULTS_DIR/rig; required with --meshes)" in re.sub(r"\s+", " ", capsys.readouterr().out)
+    assert main(["armature", "--meshes", str(tmp_path / "*.obj")]) == 2
+    assert "--meshes needs --out DIR" in capsys.readouterr().err
+
