@@ -88,3 +88,25 @@ def test_a_day_at_the_stage_runs_in_its_order():
         parser.parse_args(words[1:])  # exits (SystemExit) on an option the command does not have
     at = {" ".join(w[1:3]): i for i, w in enumerate(commands)}
     assert at["armature results/"] < next(i for i, w in enumerate(commands) if w[1] == "export" and "bvh" in w)
+
+
+def test_the_days_exports_name_the_files_they_write():
+    """Every ``stage export`` of README's day at the stage names the file it writes (``stage export``'s default name
+    for its format, in ``results/``), and the day's trackings after the first say they are its alternatives (each
+    tracks the take again: a tracking with other options starts over)."""
+    import shlex
+
+    from stage.cli import build_parser
+    from stage.cli.export import DEFAULT_NAMES
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    block = text.split("## A day at the stage", 1)[1].split("```bash", 1)[1].split("```", 1)[0]
+    lines = [line for line in block.splitlines() if line.startswith("stage export results/")]
+    assert lines
+    for line in lines:
+        command, comment = line.split("  #", 1)
+        fmt = build_parser().parse_args(shlex.split(command)[1:]).format
+        assert f"results/{DEFAULT_NAMES[fmt]}" in comment, line
+    tracks = [line.split("  #", 1)[1].strip() for line in block.splitlines() if line.startswith("stage track results/")]
+    assert len(tracks) >= 2 and all(c.startswith("or, ") for c in tracks[1:]), tracks
+
