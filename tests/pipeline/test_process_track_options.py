@@ -36,6 +36,23 @@ def test_invalid_input(bad, said):
         check_params({"track": bad})
 
 
+def test_docs_tracking_lists_every_rule_between_the_options():
+    """docs/tracking.md's messages name every rule of :func:`pipeline.track.check_track_options` as ``stage track``
+    says it (the option, then what it needs)."""
+    from pathlib import Path
+
+    from pipeline.track import check_track_options
+    from stage.cli.track import _TRACK_RULES
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "tracking.md").read_text(encoding="utf-8")
+    messages = doc.split("## Messages", 1)[1].split("\n## ", 1)[0]
+    flags = {k: f"--{k.replace('_', '-')}" for k in _TRACK_RULES}
+    for kw in ({"carve_margin": 1.0}, {"spine_armature": True}, {"armature_parts": "limbs", "armature_rounds": 1}):
+        with pytest.raises(ValueError) as said:
+            check_track_options(**kw, names=flags)
+        assert f"`{str(said.value).split(' (', 1)[0]} (...)`" in messages, said.value
+
+
 def test_the_rules_accept_what_stage_track_accepts():
     for ok in ({"armature_rounds": "auto"}, {"carve": 1, "carve_margin": 0.0}, {"armature_rounds": 4, "spine_armature": True},
                {"labels": True, "colour": True, "armature_rounds": 1, "armature_parts": "limbs"}):
