@@ -97,8 +97,9 @@ class RigParams(BaseModel):
         Sampled vertices of the segmentation (``--samples``), 2 or more; at most :data:`MAX_RIG_SAMPLES` in a job
         (the segmentation's cost grows with their square).
     reference : int or None
-        Position (0-based) of the rest frame among the tracked frames (``--reference``; default: the frame showing
-        the most limb tips); past the last surface it is refused before the take is tracked.
+        Position (0-based) of the rest frame among the tracked frames (``--reference``; default: of 8 evenly
+        spaced frames, the one whose curve skeleton shows the most tips, :func:`pipeline.armature.choose_reference`);
+        past the last surface it is refused before the take is tracked.
 
     The bounds are :func:`pipeline.armature.check_armature_options`', as ``stage armature`` checks them.
     """

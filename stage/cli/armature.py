@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "an untracked RESULTS_DIR is tracked with --labels first; without such labels one line says so "
                    "and the motion segmentation is used)")
     p.add_argument("--reference", type=int, metavar="POS",
-                   help="position (0-based) of the rest frame (default: the frame showing the most limb tips)")
+                   help="position (0-based) of the rest frame (default: of 8 evenly spaced frames, the one whose curve "
+                   "skeleton shows the most tips)")
     p.set_defaults(func=run)
 
 

@@ -174,3 +174,20 @@ def test_armature_help_says_meshes_need_an_out_directory(tmp_path, capsys):
     assert main(["armature", "--meshes", str(tmp_path / "*.obj")]) == 2
     assert "--meshes needs --out DIR" in capsys.readouterr().err
 
+
+def test_armature_help_says_which_rest_frame_it_chooses(capsys):
+    """``stage armature --reference``'s default is :func:`pipeline.armature.choose_reference`'s: of as many evenly
+    spaced frames as its ``candidates``, the one whose curve skeleton shows the most tips."""
+    import inspect
+    import re
+
+    from pipeline.armature import choose_reference
+
+    with pytest.raises(SystemExit):
+        main(["armature", "--help"])
+    text = re.sub(r"\s+", " ", capsys.readouterr().out)
+    found = re.search(r"--reference POS position \(0-based\) of the rest frame \(default: of (\d+) evenly spaced "
+                      r"frames, the one whose curve skeleton shows the most tips\)", text)
+    assert found, text
+    assert int(found.group(1)) == inspect.signature(choose_reference).parameters["candidates"].default
+
