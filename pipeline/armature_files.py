@@ -176,7 +176,8 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
     so the body's noise is not theirs). A tracking whose kept armature round tracked with a limbs armature
     (``tracked/rig_segments.npy``, :func:`pipeline.track_frames.read_round_segments`) gives its segments as the
     cuts' ``seams``: no candidate cut within half a spacing of where two of them meet (a file that is not the one
-    ``track.json`` names is one line, and the cuts are made without).
+    ``track.json`` names is one line, and the cuts are made without). A cut is kept only where its two intervals'
+    centre of rotation lies within the limb (``centres=True``).
     """
     from pipeline.armature_spine import reference_frame
     from pipeline.limb_segments import limb_segments
@@ -208,7 +209,7 @@ def limb_parts(results_dir, vertices, faces, numbers) -> np.ndarray | None:
                                f"round's seams: {exc}"})
             seams = None
         return limb_segments(vertices, labels, spine_limb_axes(spine, labels, ref), reference=at, rho="limb",
-                             faces=None if seams is None else faces, seams=seams)
+                             faces=None if seams is None else faces, seams=seams, centres=True)
     except (OSError, SpineFormatError, ValueError, KeyError) as exc:
         # (the job's words for the one command this function names: the tracking's labels)
         job = str(exc).replace("stage track --labels", "parameters track.labels")

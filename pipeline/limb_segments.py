@@ -37,6 +37,16 @@ cut within half a candidate spacing of a seam (the median position of the limb's
 between the two parts) is moved to half a spacing from it, seam by seam: of two seams less than a spacing apart,
 a candidate moved off one may end within half a spacing of the other (docs/armature-format.md has the figures).
 
+With ``centres`` a cut is kept only where a joint can be: at a joint the two neighbouring parts' rigid motions carry
+one point (the centre of rotation) to the same place in every frame, and that point lies inside the limb, near its
+axis at the cut. A cut whose centre of rotation (:func:`pipeline.armature_skeleton.joint_residual` of the rigid
+motions of the intervals on its two sides, drawn towards the axis at the cut only where the motions leave it free)
+lies farther from the limb's axis, across it, than the limb's radius (the median distance of the limb's vertices
+from its axis) by more than twice its uncertainty (the pivot's residual over the relative rotation's second
+singular value, as the placement measures it) is dropped, its two intervals merged, the worst such cut first, until
+every cut passes: across a sliver or a stretched band the relative motion is a stretch or a shear, and its centre
+lies outside the limb (docs/armature-format.md has the figures).
+
 Otherwise no length or count is set for a creature: the cut positions follow the limb's own extent, the
 threshold the take's own noise. Written by hand: an interval segmentation of a chain by rigid residual is no
 library's (scipy has the SVDs).
@@ -58,7 +68,7 @@ LIMB_FACTOR = 6.0
 
 
 def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int = 32,
-                  rho: float | str | None = None, faces=None, seams=None) -> np.ndarray:
+                  rho: float | str | None = None, faces=None, seams=None, centres: bool = False) -> np.ndarray:
     """The rigid part of every template vertex: the body one segment, every limb a chain of intervals.
 
     Parameters
@@ -84,6 +94,10 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
         The parts the tracking moved rigidly (the segments of its armature round): a candidate cut within half a
         candidate spacing of where two of them meet along a limb (:func:`seam_positions`) is moved to half a spacing
         from it, seam by seam (:func:`chain_cuts`' ``avoid``; the module docstring says why).
+    centres : bool
+        Drop every cut whose two intervals' centre of rotation lies off the limb's axis by more than the limb's
+        radius beyond twice its uncertainty, the worst first, merging its intervals (the module docstring says
+        how and why).
 
     Returns
     -------
@@ -97,7 +111,7 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
         Naming the parameter: shapes, a label outside ``-1 .. len(axes)-1``, an axis that is not a finite
         polyline, ``reference`` outside the frames, ``candidates < 2``, ``rho`` outside [0, 1), a body
         too small to measure the noise on, ``seams`` not one integer a vertex or without ``faces``, ``faces`` not
-        triangles of the vertices.
+        triangles of the vertices, ``centres`` not a bool.
     """
     V = np.asarray(vertices, dtype=np.float64)
     if V.ndim != 3 or V.shape[2] != 3 or V.shape[0] < 2 or V.shape[1] == 0 or not np.isfinite(V).all():
@@ -116,6 +130,8 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
     if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 2:
         raise ValueError(f"candidates must be an int >= 2, got {candidates!r}")
     tri, parts = _check_seams(faces, seams, V.shape[1])
+    if not isinstance(centres, (bool, np.bool_)):
+        raise ValueError(f"centres must be True or False, got {centres!r}")
     body = np.flatnonzero(lab == -1)
     rho = _noise(rho, V, body, int(reference), int(candidates))
     out = np.full(V.shape[1], -1, dtype=np.int64)
@@ -134,9 +150,53 @@ def limb_segments(vertices, labels, axes, *, reference: int = 0, candidates: int
             position[idx] = s
             avoid = seam_positions(tri, parts, position)
         piece = chain_cuts(V[:, idx], s, reference=int(reference), candidates=int(candidates), rho=rho, avoid=avoid)
+        if centres:
+            piece = _centred_cuts(V[:, idx], s, piece, a, int(reference))
         out[idx] = nxt + piece
         nxt += int(piece.max()) + 1
     return out
+
+
+def _axis_points(axis: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points of the polyline ``axis`` at arc lengths ``s`` (clamped to its ends) and its unit direction there."""
+    d = np.diff(axis, axis=0)
+    L = np.linalg.norm(d, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(L)])
+    i = np.clip(np.searchsorted(cum, s) - 1, 0, len(L) - 1)
+    u = d[i] / np.maximum(L[i], 1e-300)[:, None]
+    return axis[i] + (np.asarray(s) - cum[i])[:, None] * u, u
+
+
+def _centred_cuts(X: np.ndarray, s: np.ndarray, piece: np.ndarray, axis: np.ndarray, reference: int) -> np.ndarray:
+    """``centres`` of :func:`limb_segments` on one limb: its intervals ``piece`` (0 .. at the lowest ``s``) with every
+    cut whose centre of rotation lies off the axis by more than the radius beyond twice its uncertainty merged away,
+    the worst first; intervals renumbered 0 .. from the lowest ``s``."""
+    from pipeline.armature_skeleton import joint_residual
+    from pipeline.rigid_parts import rigid_motions
+
+    near, _ = _axis_points(axis, s)
+    radius = float(np.median(np.linalg.norm(X[reference] - near, axis=1)))
+    piece = piece.copy()
+    while True:
+        groups = np.unique(piece)  # ascending = along the limb (chain_cuts' order; merging keeps it)
+        if len(groups) < 2:
+            break
+        motions = [rigid_motions(X[:, piece == g], reference=reference) for g in groups]
+        off = np.empty(len(groups) - 1)
+        for i in range(len(groups) - 1):
+            cut = 0.5 * (float(s[piece == groups[i]].max()) + float(s[piece == groups[i + 1]].min()))
+            p, u = _axis_points(axis, np.array([cut]))
+            res, c = joint_residual(motions[i], motions[i + 1], p[0])
+            M = motions[i][0] - motions[i + 1][0]
+            e = np.linalg.eigvalsh(np.einsum("tji,tjk->ik", M, M) / len(M))  # ascending; e[0] ~ 0 along a hinge
+            sigma = res / np.sqrt(max(float(e[1]), 1e-300))
+            d = c - p[0]
+            off[i] = float(np.linalg.norm(d - (d @ u[0]) * u[0])) - 2.0 * sigma
+        worst = int(np.argmax(off))
+        if off[worst] <= radius:
+            break
+        piece[piece == groups[worst + 1]] = groups[worst]
+    return np.unique(piece, return_inverse=True)[1].astype(np.int64)
 
 
 def _check_seams(faces, seams, n: int):

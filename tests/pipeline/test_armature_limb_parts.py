@@ -76,7 +76,7 @@ def test_the_armature_rounds_segments_are_the_cuts_seams(tmp_path, caplog):
     spine = read_spine(res / "spine.json")
     ref = reference_frame(spine)
     axes = spine_limb_axes(spine, labels, ref)
-    plain = limb_segments(V, labels, axes, reference=ref, rho="limb")
+    plain = limb_segments(V, labels, axes, reference=ref, rho="limb", centres=True)
     rounds = np.where(labels < 0, 0, 1 + labels * 2 + (V[ref, :, 2] > np.median(V[ref, :, 2])))  # a made-up round
     prior = {}
     write_round_segments(res, rounds, prior)
@@ -91,7 +91,8 @@ def test_the_armature_rounds_segments_are_the_cuts_seams(tmp_path, caplog):
     (res / "tracked" / "track.json").write_text(json.dumps({**report, "rig_prior": prior}))
     seg = limb_parts(res, V, F, numbers)
     assert not np.array_equal(seg, plain)
-    assert np.array_equal(seg, limb_segments(V, labels, axes, reference=ref, rho="limb", faces=F, seams=rounds))
+    assert np.array_equal(seg, limb_segments(V, labels, axes, reference=ref, rho="limb", faces=F, seams=rounds,
+                                             centres=True))
     assert np.array_equal(limb_parts(res, V, F, numbers), seg)
     (res / "tracked" / "track.json").write_text(json.dumps(report))  # no round: the file is not read
     assert np.array_equal(limb_parts(res, V, F, numbers), plain)

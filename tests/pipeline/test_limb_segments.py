@@ -15,9 +15,10 @@ def _rot(axis, angle):
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
-def _chain(cuts, *, seed=0, frames=20, n=300, noise=0.05):
+def _chain(cuts, *, seed=0, frames=20, n=300, noise=0.05, off=None):
     """A box body and one limb along x whose parts turn about joints at ``cuts``; every frame adds a small rigid
-    jitter to every unit patch (a tracking's noise) and per-vertex noise."""
+    jitter to every unit patch (a tracking's noise) and per-vertex noise. With ``off`` (one offset a joint) the
+    joints turn about ``cuts`` moved by it, and frame 0 is the rest pose (unturned)."""
     rng = np.random.default_rng(seed)
     body = rng.uniform([-4, -2, -2], [0, 2, 2], (BODY, 3))
     s = rng.uniform(0, 10, n)
@@ -27,8 +28,9 @@ def _chain(cuts, *, seed=0, frames=20, n=300, noise=0.05):
     for t in range(frames):
         for k in range(len(cuts) - 1, -1, -1):  # distal joints first, about their rest positions
             m = part >= k + 1
-            j = np.array([cuts[k], 0.0, 0.0])
-            V[t, m] = (V[t, m] - j) @ _rot([0, k % 2, 1 - k % 2], 0.6 * np.sin(t / 3 + k)).T + j
+            j = np.array([cuts[k], 0.0, 0.0]) + (0.0 if off is None else np.asarray(off[k], float))
+            angle = 0.6 * np.sin(t / 3 + k) - (0.0 if off is None else 0.6 * np.sin(k))
+            V[t, m] = (V[t, m] - j) @ _rot([0, k % 2, 1 - k % 2], angle).T + j
     patch = np.floor(X[:, 0]).astype(int) * 7 + np.floor(X[:, 1]).astype(int)
     _, patch = np.unique(patch, return_inverse=True)
     V += rng.normal(0, noise, (frames, patch.max() + 1, 3))[:, patch] + rng.normal(0, noise, V.shape)
@@ -46,6 +48,25 @@ def test_a_limb_chain_is_cut_where_it_bends(cuts, rho):
     # every found interval lies on one true part (a vertex within noise of a joint may fall either side)
     agree = sum(np.bincount(true[limb == p]).max() for p in np.unique(limb)) / len(limb)
     assert agree > 0.9
+
+
+@pytest.mark.parametrize("seed", [0, 1, 3])
+def test_a_cut_whose_centre_lies_off_the_limb_is_dropped(seed):
+    # joints at 4 and 7; the second turns about a point 1.5 (about 3 of the limb's radii, 0.44-0.46) off the axis,
+    # across its hinge (about y: off in z), so its parts' relative motion has its centre outside the limb. (With
+    # seed 2 the cuts there hold a sliver of 12 vertices whose centre is ill-determined, and are kept: the rule
+    # drops only centres determined to lie off the limb.)
+    V, labels, _ = _chain((4.0, 7.0), seed=seed, off=[(0.0, 0.0, 0.0), (0.0, 0.0, 1.5)])
+    x = V[0, :, 0]
+    plain = _cuts(limb_segments(V, labels, [AXIS], rho="limb"), x)
+    assert np.abs(plain - 7.0).min() < 0.4 and np.abs(plain - 4.0).min() < 0.4  # cut there without the rule
+    kept = _cuts(limb_segments(V, labels, [AXIS], rho="limb", centres=True), x)
+    assert len(kept) == 1 and abs(kept[0] - 4.0) < 0.4
+    # on the axis, or half a radius off it, both joints are kept
+    for o in (0.0, 0.25):
+        V, labels, _ = _chain((4.0, 7.0), seed=seed, off=[(0.0, 0.0, 0.0), (0.0, 0.0, o)])
+        near = _cuts(limb_segments(V, labels, [AXIS], rho="limb", centres=True), V[0, :, 0])
+        assert len(near) == 2 and np.abs(near - 4.0).min() < 0.4 and np.abs(near - 7.0).min() < 0.4
 
 
 def test_interval_costs_are_the_rigid_residual_of_the_interval():
@@ -153,6 +174,8 @@ def test_invalid_input():
         limb_segments(V, labels, [AXIS], faces=[[0, 1, 2]], seams=np.zeros(3, int))
     with pytest.raises(ValueError, match="faces"):
         limb_segments(V, labels, [AXIS], faces=[[0, 1, len(labels)]], seams=np.zeros(len(labels), int))
+    with pytest.raises(ValueError, match="centres"):
+        limb_segments(V, labels, [AXIS], centres="yes")
     with pytest.raises(ValueError, match="avoid"):
         chain_cuts(V, V[0, :, 0], rho=0.1, avoid=[np.nan])
     with pytest.raises(ValueError, match="parts"):
