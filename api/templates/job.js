@@ -29,6 +29,11 @@
     const err = document.getElementById('error');
     err.textContent = j.error || '';
     if (j.state === 'done' && j.kind === 'process') document.getElementById('report').hidden = false;
+    const warned = ((j.result || {}).report || {}).warnings || [];  // what the run warned of (its report's warnings)
+    const ul = document.getElementById('warning-list'); ul.replaceChildren();
+    for (const w of warned){ const li = document.createElement('li'); li.textContent = w; ul.appendChild(li); }
+    document.getElementById('nwarn').textContent = warned.length;
+    document.getElementById('warnings').hidden = !warned.length;
     return !TERMINAL.includes(j.state);
   }
   async function poll(){

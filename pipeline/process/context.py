@@ -20,7 +20,7 @@ import numpy as np
 from calib.fileio import atomic_write, json_default
 from pipeline.process.params import ProcessParams
 from pipeline.process.records import frame_name
-from pipeline.run import Run, chunks
+from pipeline.run import Run, chunks, frames_said
 
 log = logging.getLogger("pipeline.process")
 
@@ -77,23 +77,34 @@ class RunContext(Run):
                    chunk_args: Callable[[list[int]], dict] | None = None) -> None:
         """Run a per-frame ``task`` on every frame set without a result in ``OUT/done_dir``
         (the one runner all per-frame steps share: chunks, executor, progress, cancel);
-        ``chunk_args(frames)`` adds keywords per chunk (e.g. its masks)."""
+        ``chunk_args(frames)`` adds keywords per chunk (e.g. its masks). What the frames warned of (a result's
+        ``said``, :func:`pipeline.run.frame_warnings`) is said once per kind of message, with the count of frame
+        sets and the first of them (:func:`pipeline.run.frames_said`), as ``"{step}: ..."``, in the warnings."""
         n_sets = self.take.n_sets
         todo = [k for k in range(n_sets) if not (self.out / done_dir / f"{frame_name(k)}{suffix}").exists()]
         done = n_sets - len(todo)
         self.report_progress(step, done, n_sets)
         tasks = [partial(task, ch, **(chunk_args(ch) if chunk_args else {})) for ch in chunks(todo, self.params.chunk)]
-        for finished in self.map_tasks(tasks):
-            done += len(finished)
-            for rec in finished:
-                if "skeleton" in rec:
-                    self.made.skeletons[rec["index"]] = rec.pop("skeleton")
-            self.report_progress(step, done, n_sets)
+        said: dict[int, list] = {}
+        try:
+            for finished in self.map_tasks(tasks):
+                done += len(finished)
+                for rec in finished:
+                    if "skeleton" in rec:
+                        self.made.skeletons[rec["index"]] = rec.pop("skeleton")
+                    if rec.get("said"):
+                        said[rec["index"]] = [tuple(x) for x in rec["said"]]
+                    rec.pop("said", None)
+                self.report_progress(step, done, n_sets)
+        finally:  # (a cancelled or failed run says what its finished frames warned of too)
+            for msg, job_message in frames_said(step, said):
+                self.warn(msg, job_message=job_message)
 
-    def warn(self, msg: str) -> None:
-        """Log ``msg`` as a warning and keep it for the report and the job (``warnings``)."""
+    def warn(self, msg: str, *, job_message: str | None = None) -> None:
+        """Log ``msg`` as a warning and keep it for the report and the job (``warnings``), said as ``job_message``
+        there when given (a message naming a command line option names the job's parameter instead)."""
         log.warning("%s", msg)
-        self.warnings.append(msg)
+        self.warnings.append(msg if job_message is None else job_message)
 
     def add_to_record(self, **items) -> None:
         """Add what a step decided (e.g. the grid and why) to ``process.json``."""

@@ -17,7 +17,7 @@ from pipeline.process.context import Made, RunContext, TakeFacts
 from pipeline.process.grid import MAX_VOXELS
 from pipeline.process.params import ProcessError, ProcessParams, ProcessResult, check_params
 from pipeline.process.records import frame_name
-from pipeline.process.steps import DEFAULT_STEPS, STEPS
+from pipeline.process.steps import DEFAULT_STEPS, STEPS, _job_warnings
 from pipeline.process.tasks import every_camera_has_depth, warm_task
 from pipeline.run.settings import changed_settings, read_settings
 from stage.store.space import check_free_space, raise_disk_full
@@ -240,7 +240,8 @@ def process_take(
                 if STEPS.step(name).totals is not None:
                     ctx.announce(name, STEPS.step(name).totals(ctx))
             for name in steps:
-                ctx.run_step(name, STEPS.step(name).run)
+                with _job_warnings(ctx, name):  # what the step's functions warn of is the run's warnings too
+                    ctx.run_step(name, STEPS.step(name).run)
             return _write_report(ctx, steps, t_start)
     except Exception:
         if created and out.is_dir():  # a failed run leaves no results folder it made itself

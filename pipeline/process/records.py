@@ -47,7 +47,7 @@ def skeleton_record(k: int, mesh, params, *, bodies: int | None = None) -> dict:
     try:
         return {"index": int(k), "status": "ok", "skeleton": frame_skeleton(v, f, params=params)}
     except ValueError as exc:
-        log.warning("frame set %d: no skeleton: %s", k, exc)
+        log.warning("no skeleton: %s", exc)  # (a per-frame task names the frame set: pipeline.run.frame_warnings)
         return {"index": int(k), "status": "failed", "reason": str(exc), "skeleton": None}
 
 

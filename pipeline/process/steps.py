@@ -10,6 +10,7 @@ directory, and leaves what later steps need on the context. A plug-in adds a ste
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import json
 import logging
 import threading
@@ -34,7 +35,7 @@ from pipeline.process.tasks import (
     unpack_masks,
     uses_depth,
 )
-from pipeline.run import StepList, forking_pool, pool_size, submitted_by
+from pipeline.run import StepList, forking_pool, frame_warnings, pool_size, submitted_by
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -361,14 +362,15 @@ def _name_missing(ctx: RunContext, iou: np.ndarray, doc: dict) -> None:
     with TakeReader(ctx.take.path) as reader:
         validity = mask_validity(reader, ctx.take.cameras)
         for k in sets:
-            ms, _ = frame_masks(reader, ctx.take.cameras, k, validity)
-            try:
-                used = subject_hull(ms, carver, tolerance=p.tolerance, support_plane=p.support_plane,
-                                    margin=p.silhouette_margin).masks
-            except EmptyHullError:
-                continue
-            gains.append(leave_one_out_gain(used, carver, tolerance=p.tolerance, support_plane=p.support_plane,
-                                            margin=p.silhouette_margin))
+            with frame_warnings(k):  # (what the surface's tasks said of these frame sets already: kept at DEBUG)
+                ms, _ = frame_masks(reader, ctx.take.cameras, k, validity)
+                try:
+                    used = subject_hull(ms, carver, tolerance=p.tolerance, support_plane=p.support_plane,
+                                        margin=p.silhouette_margin).masks
+                except EmptyHullError:
+                    continue
+                gains.append(leave_one_out_gain(used, carver, tolerance=p.tolerance, support_plane=p.support_plane,
+                                                margin=p.silhouette_margin))
     if not gains:
         return
     g = np.array(gains)
@@ -414,7 +416,8 @@ def _step_spine(ctx: RunContext) -> None:
 
 
 class _StepWarnings(logging.Handler):
-    """The ``pipeline`` loggers' warnings said in this thread, kept in ``ctx.warnings`` (:func:`_job_warnings`)."""
+    """The ``pipeline`` and ``stage`` loggers' warnings said in this thread, kept in ``ctx.warnings``
+    (:func:`_job_warnings`)."""
 
     def __init__(self, ctx: RunContext, step: str) -> None:
         super().__init__(logging.WARNING)
@@ -430,10 +433,15 @@ class _StepWarnings(logging.Handler):
 
 @contextlib.contextmanager
 def _job_warnings(ctx: RunContext, step: str) -> Iterator[None]:
-    """While the step runs, every warning the ``pipeline`` loggers say in this thread is also one of the job's
-    ``warnings`` (and ``report.json``'s), as ``"{step}: ..."``, once: what the tracking and the armature only
-    logged (the spine unusable for the spine armature, ``armature_parts`` 'limbs' falling back to the motion's
-    parts, the frames of other settings tracked again...) reaches an API user, who sees no log.
+    """While the step runs, every warning the ``pipeline`` and ``stage`` loggers say in this thread is also one of
+    the job's ``warnings`` (and ``report.json``'s), as ``"{step}: ..."``, once: what the tracking and the armature
+    only logged (the spine unusable for the spine armature, ``armature_parts`` 'limbs' falling back to the motion's
+    parts, the frames of other settings tracked again...), what the keying says of a camera (a plate from the take
+    that is unreliable, a camera without frames), reaches an API user, who sees no log. Every step runs in one
+    (:func:`pipeline.process.process_take`); a step run by another (the rig's tracking) says its own name. What a
+    per-frame task warns of while it works on a frame set is not said here one frame at a time: the step says it
+    once per kind, with the frame sets (:func:`pipeline.run.frame_warnings`,
+    :meth:`~pipeline.process.context.RunContext.run_frames`).
 
     The warnings are caught as they are said rather than derived from the reports the functions return
     (``track.json``): one mechanism for every message, with its reason, and a warning added to these functions
@@ -446,13 +454,29 @@ def _job_warnings(ctx: RunContext, step: str) -> Iterator[None]:
     worker's) has its warnings said again in this thread when its result is taken (:func:`pipeline.run.submit_aside`,
     :meth:`pipeline.run.Run.map_tasks`), a task in a thread pool's thread is this thread's
     (:func:`pipeline.run.submitted_by`)."""
+    active = _STEP_WARNINGS.get()
+    if active is not None and active.ctx is ctx:  # a step within a step (the rig's tracking): said as the inner one
+        was, active.step = active.step, step
+        try:
+            yield
+        finally:
+            active.step = was
+        return
     keep = _StepWarnings(ctx, step)
-    logger = logging.getLogger("pipeline")
-    logger.addHandler(keep)
+    token = _STEP_WARNINGS.set(keep)
+    loggers = [logging.getLogger(name) for name in ("pipeline", "stage")]
+    for logger in loggers:
+        logger.addHandler(keep)
     try:
         yield
     finally:
-        logger.removeHandler(keep)
+        for logger in loggers:
+            logger.removeHandler(keep)
+        _STEP_WARNINGS.reset(token)
+
+
+#: the handler of the step running in this thread (:func:`_job_warnings`)
+_STEP_WARNINGS: contextvars.ContextVar[_StepWarnings | None] = contextvars.ContextVar("step_warnings", default=None)
 
 
 def _need_surfaces(ctx: RunContext, step: str) -> None:

@@ -21,7 +21,7 @@ import numpy as np
 from calib.fileio import atomic_write
 from pipeline.process.params import ProcessParams
 from pipeline.process.records import frame_name, skeleton_bytes, skeleton_path, skeleton_record
-from pipeline.run import BackgroundWriter
+from pipeline.run import BackgroundWriter, frame_warnings
 
 __all__ = ["carve_hull", "every_camera_has_depth", "frame_masks", "key_task", "mask_validity", "skeleton_task", "surface_task",
            "unpack_masks", "uses_depth", "warm_task"]
@@ -216,7 +216,9 @@ def surface_task(
     from the take. ``use_depth``: fuse depth (default: when ``params.depth`` is ``auto`` and
     every camera has depth); with masks given, no depth and no ``params.photo_refine``, the
     take is not opened at all. ``bridge_gaps``: :func:`pipeline.silhouette_refine.subject_hull`'s
-    (0: off; the driver turns it on for plate-keyed masks).
+    (0: off; the driver turns it on for plate-keyed masks). What a frame set warns of (a camera's mask all
+    foreground, an empty frame...) is kept in its record (``warnings``) and its result (``said``) rather than said
+    at once (:func:`pipeline.run.frame_warnings`): the step says each kind once, with the frame sets.
     Top level (picklable) so it runs in a process pool or on a Dask worker.
     """
     from contextlib import nullcontext
@@ -242,40 +244,46 @@ def surface_task(
                 use_depth = uses_depth(p, all_depth=every_camera_has_depth(reader, cameras))
             validity = mask_validity(reader, cameras) if masks is None else None
             for k in frames:
-                t0 = time.perf_counter()
-                if masks is None:
-                    ms, skipped = frame_masks(reader, cameras, k, validity)
-                else:
-                    ms = unpack_masks(masks["sets"][k], masks["widths"])
-                    skipped = [c for c, m in zip(cameras, ms) if m is None]
-                info: dict = {"index": int(k), "skipped_cameras": skipped}
-                mesh = quality = None
-                try:
-                    if len(skipped) == len(cameras):
-                        raise EmptyHullError("no camera has a valid mask in this frame set")
-                    depth = (_fuser(calib_dict, grid_dict), _frame_depths(reader, cameras, k)) if use_depth else None
-                    images = _frame_images(reader, cameras, k) if p.photo_refine and not use_depth else None
-                    sh = _subject_hull(carver, ms, p, bridge_gaps)
-                    ms = sh.masks  # the hull's silhouettes: the consistency compares with them
-                    info["dropped"] = {c: (None if not np.isfinite(x) else round(float(x), 4))
-                                       for c, x in zip(cameras, sh.dropped)}
-                    info["bridged"] = sh.bridged
-                    mesh, info["source"] = _surface_of(carver, ms, p, depth, images, hull=sh.occupancy)
-                    quality = surface_quality(mesh).to_dict()
-                    info["consistency"] = _consistency(mesh, ms, carver.calibration, p.silhouette_margin)
-                    writer.write(store.mesh_path(k), ply_bytes(mesh.vertices, mesh.faces))
-                    info.update(status="ok", quality=quality)
-                except (EmptyHullError, EmptySurfaceError) as exc:
-                    mesh = None
-                    info.update(status="empty", reason=str(exc))
-                    log.warning("frame set %d: %s", k, exc)
-                info["seconds"] = time.perf_counter() - t0
-                res = dict(info)
+                with frame_warnings(k) as said:  # said once per kind by the step, with the frame sets
+                    t0 = time.perf_counter()
+                    if masks is None:
+                        ms, skipped = frame_masks(reader, cameras, k, validity)
+                    else:
+                        ms = unpack_masks(masks["sets"][k], masks["widths"])
+                        skipped = [c for c, m in zip(cameras, ms) if m is None]
+                    info: dict = {"index": int(k), "skipped_cameras": skipped}
+                    mesh = quality = None
+                    try:
+                        if len(skipped) == len(cameras):
+                            raise EmptyHullError("no camera has a valid mask in this frame set")
+                        depth = (_fuser(calib_dict, grid_dict), _frame_depths(reader, cameras, k)) if use_depth else None
+                        images = _frame_images(reader, cameras, k) if p.photo_refine and not use_depth else None
+                        sh = _subject_hull(carver, ms, p, bridge_gaps)
+                        ms = sh.masks  # the hull's silhouettes: the consistency compares with them
+                        info["dropped"] = {c: (None if not np.isfinite(x) else round(float(x), 4))
+                                           for c, x in zip(cameras, sh.dropped)}
+                        info["bridged"] = sh.bridged
+                        mesh, info["source"] = _surface_of(carver, ms, p, depth, images, hull=sh.occupancy)
+                        quality = surface_quality(mesh).to_dict()
+                        info["consistency"] = _consistency(mesh, ms, carver.calibration, p.silhouette_margin)
+                        writer.write(store.mesh_path(k), ply_bytes(mesh.vertices, mesh.faces))
+                        info.update(status="ok", quality=quality)
+                    except (EmptyHullError, EmptySurfaceError) as exc:
+                        mesh = None
+                        info.update(status="empty", reason=str(exc))
+                        log.warning("%s", exc)
+                    info["seconds"] = time.perf_counter() - t0
+                    skeleton = None
+                    if sp is not None:
+                        rec = skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp,
+                                               bodies=None if quality is None else quality["bodies"])
+                        writer.write(skeleton_path(out_dir, k), skeleton_bytes(rec))
+                        skeleton = rec["skeleton"]
+                if said:  # the frame's record keeps them (the report's per_frame); the step says them once
+                    info["warnings"] = list(dict.fromkeys(m for m, _ in said))
+                res = {**info, "said": said}
                 if sp is not None:
-                    rec = skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp,
-                                           bodies=None if quality is None else quality["bodies"])
-                    writer.write(skeleton_path(out_dir, k), skeleton_bytes(rec))
-                    res["skeleton"] = rec["skeleton"]  # travels back: the spine step need not read it again
+                    res["skeleton"] = skeleton  # travels back: the spine step need not read it again
                 # written last: a frame with its record has its mesh (and skeletons) on disk
                 writer.write(out_dir / "frames" / f"{frame_name(k)}.json", json.dumps(info))
                 results.append(res)
@@ -304,7 +312,8 @@ def uses_depth(p: ProcessParams, *, all_depth: bool) -> bool:
 
 
 def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[dict]:
-    """Per-frame tips and skeletons of some frames' stored meshes -> ``skeletons/``."""
+    """Per-frame tips and skeletons of some frames' stored meshes -> ``skeletons/``; each frame's result says what
+    the frame warned of (``said``, :func:`pipeline.run.frame_warnings`)."""
     from pipeline.frame_skeleton import SpineParams
     from pipeline.meshio import load_mesh
     from pipeline.results import ResultsStore
@@ -314,10 +323,11 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
     store = ResultsStore(out_dir)
     done = []
     for k in frames:
-        mesh_path = store.mesh_path(k)
-        rec = skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
+        with frame_warnings(k) as said:  # said once per kind by the step, with the frame sets
+            mesh_path = store.mesh_path(k)
+            rec = skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
         atomic_write(skeleton_path(out_dir, k), skeleton_bytes(rec))
-        done.append({"index": int(k), "status": rec["status"], "skeleton": rec["skeleton"]})
+        done.append({"index": int(k), "status": rec["status"], "skeleton": rec["skeleton"], "said": said})
     return done
 
 

@@ -9,10 +9,12 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "pool_size", "submit_aside", "submitted_by"]
+__all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "frame_warnings", "frames_said", "pool_size", "submit_aside",
+           "submitted_by"]
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +47,8 @@ def submitted_by(thread: int) -> int:
 
 
 class _KeptWarnings(logging.Handler):
-    """The warnings the ``pipeline`` loggers say in this thread, kept as ``(logger, level, message, job_message)``."""
+    """The warnings the ``pipeline`` and ``stage`` loggers say in this thread, kept as ``(logger, level, message,
+    job_message)``."""
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
@@ -58,6 +61,117 @@ class _KeptWarnings(logging.Handler):
             self.said.append((record.name, record.levelno, record.getMessage(), getattr(record, "job_message", None)))
         except Exception:  # a message that cannot be formatted: said as logging says it
             self.handleError(record)
+
+
+#: the loggers whose warnings a frame keeps (:func:`frame_warnings`) and a worker process returns (:func:`_with_cpu`)
+_WARNING_LOGGERS = ("pipeline", "stage")
+
+#: the frame this thread (or asyncio task) works on and the warnings said in it (:func:`frame_warnings`)
+_FRAME: ContextVar[tuple[int, list] | None] = ContextVar("pipeline_frame_warnings", default=None)
+
+
+class _FrameWarnings(logging.Handler):
+    """First handler of the ``pipeline`` and ``stage`` loggers: a warning said while this thread works on a frame
+    (:func:`frame_warnings`) is kept for the frame, then goes on as a DEBUG record naming the frame, below the level
+    of every other handler (a terminal's, a job's, a worker's): the frame's warnings are said once per kind by
+    the step that ran the frames, not one frame at a time."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        kept = _FRAME.get()
+        if kept is None or record.levelno != logging.WARNING:
+            return
+        frame, said = kept
+        try:
+            message = record.getMessage()
+        except Exception:  # a message that cannot be formatted: said as logging says it
+            self.handleError(record)
+            return
+        said.append((message, getattr(record, "job_message", None)))
+        record.msg, record.args = f"frame set {frame}: {message}", None
+        record.levelno, record.levelname = logging.DEBUG, logging.getLevelName(logging.DEBUG)
+
+
+_FRAME_HANDLER = _FrameWarnings()
+
+
+def _first_handler() -> None:
+    """:data:`_FRAME_HANDLER` first on the loggers of :data:`_WARNING_LOGGERS` (again, should logging have been
+    set up anew since)."""
+    for name in _WARNING_LOGGERS:
+        handlers = logging.getLogger(name).handlers
+        if not handlers or handlers[0] is not _FRAME_HANDLER:
+            if _FRAME_HANDLER in handlers:
+                handlers.remove(_FRAME_HANDLER)
+            handlers.insert(0, _FRAME_HANDLER)
+
+
+_first_handler()
+
+
+@contextmanager
+def frame_warnings(frame: int) -> Iterator[list[tuple[str, str | None]]]:
+    """Keep the warnings the ``pipeline`` and ``stage`` loggers say in this thread while the block works on frame
+    set ``frame``, for the task to return with the frame's result, instead of saying them now.
+
+    A per-frame task runs each frame in one (:func:`pipeline.process.tasks.surface_task`); the step that ran the
+    frames says each kind of message once, with the count of frame sets and the first of them (:func:`frames_said`),
+    in the run's warnings (a job's, ``report.json``'s) and on the terminal. Each frame's warning is still logged,
+    at DEBUG level and prefixed with ``frame set N:``, where the log keeps it.
+
+    Parameters
+    ----------
+    frame : int
+        The frame set the block works on (named in the DEBUG records).
+
+    Yields
+    ------
+    list of (str, str or None)
+        Filled as warnings are said: the message and its ``job_message`` (``extra={"job_message": ...}``; None
+        when it gave none), in the order said, repeats included.
+    """
+    _first_handler()
+    said: list[tuple[str, str | None]] = []
+    token = _FRAME.set((int(frame), said))
+    try:
+        yield said
+    finally:
+        _FRAME.reset(token)
+
+
+#: frame sets a summary of a message names (:func:`frames_said`), the rest counted
+FRAMES_NAMED = 5
+
+
+def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]]) -> list[tuple[str, str]]:
+    """One warning per kind of message the frames said (:func:`frame_warnings`): ``"{step}: {message} (N frame
+    sets: a, b, c, ...)"``, the first :data:`FRAMES_NAMED` frame sets named, in the order the messages were first
+    said (by frame set).
+
+    Parameters
+    ----------
+    step : str
+        What ran the frames (the warnings' prefix).
+    said : dict of int to list of (str, str or None)
+        Per frame set, what :func:`frame_warnings` kept.
+
+    Returns
+    -------
+    list of (str, str)
+        Per kind of message, the warning in the log's words and in a job's (the ``job_message``, where given).
+    """
+    frames: dict[tuple[str, str | None], list[int]] = {}
+    for k in sorted(said):
+        for kind in dict.fromkeys(said[k]):
+            frames.setdefault(kind, []).append(int(k))
+    out = []
+    for (message, job_message), ks in frames.items():
+        named = ", ".join(str(k) for k in ks[:FRAMES_NAMED]) + (", ..." if len(ks) > FRAMES_NAMED else "")
+        where = f" ({len(ks)} frame set{'s' if len(ks) != 1 else ''}: {named})"
+        out.append((f"{step}: {message}{where}", f"{step}: {job_message or message}{where}"))
+    return out
 
 
 def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None) -> tuple[object, float, int, list]:
@@ -77,12 +191,13 @@ def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None)
             _SUBMITTED_BY.pop(me, None)
         return out, time.process_time() - t, os.getpid(), []
     keep = _KeptWarnings()
-    logger = logging.getLogger("pipeline")
-    logger.addHandler(keep)
+    for name in _WARNING_LOGGERS:
+        logging.getLogger(name).addHandler(keep)
     try:
         out = task()
     finally:
-        logger.removeHandler(keep)
+        for name in _WARNING_LOGGERS:
+            logging.getLogger(name).removeHandler(keep)
     return out, time.process_time() - t, os.getpid(), keep.said
 
 

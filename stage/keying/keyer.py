@@ -270,6 +270,37 @@ def _check_layers(frames: np.ndarray, plate, plate_noise, roi) -> None:
             raise ValueError(f"{name} must be an array of shape {frames.shape[1:3]}, got {getattr(arr, 'shape', arr)!r}")
 
 
+#: frames a warning of invalid masks names (:func:`say_invalid_masks`), the rest counted
+FRAMES_NAMED = 5
+
+
+def say_invalid_masks(rows: Any, reasons: Any, *, camera: str = "") -> None:
+    """One warning per reason of the invalid masks (``reasons[i]`` non-empty): how many frames, the first
+    :data:`FRAMES_NAMED` of ``rows`` (the frames' numbers) and the reason; each frame at DEBUG level.
+
+    Parameters
+    ----------
+    rows : sequence of int
+        The frames' numbers, one per reason.
+    reasons : sequence of str
+        Per frame, why its mask is invalid ("" when it is valid).
+    camera : str
+        Camera name, the warnings' prefix.
+    """
+    rows, reasons = [int(r) for r in rows], list(reasons)
+    if len(rows) != len(reasons):
+        raise ValueError(f"rows: one per reason ({len(reasons)}), got {len(rows)}")
+    prefix = f"{camera}: " if camera else ""
+    frames: dict[str, list[int]] = {}
+    for i, why in zip(rows, reasons):
+        if why:
+            log.debug("%sframe %d: mask invalid: %s", prefix, i, why)
+            frames.setdefault(why, []).append(i)
+    for why, ks in frames.items():
+        named = ", ".join(str(k) for k in ks[:FRAMES_NAMED]) + (", ..." if len(ks) > FRAMES_NAMED else "")
+        log.warning("%smask invalid in %d frame%s (%s): %s", prefix, len(ks), "s" if len(ks) != 1 else "", named, why)
+
+
 def key_frames(
     frames: np.ndarray,
     *,
@@ -281,6 +312,7 @@ def key_frames(
     workers: int = 1,
     camera: str = "",
     progress: Callable[[int], Any] | None = None,
+    rows: Any = None,
 ) -> KeyResult:
     """Key one camera's frames against its backdrop.
 
@@ -306,6 +338,9 @@ def key_frames(
         Camera name, used in log messages.
     progress : callable or None
         Called with the number of frames finished after each frame (e.g. ``tqdm.update``).
+    rows : sequence of int or None
+        The frames' numbers in the take, named in the warning of invalid masks (default ``0 .. N-1``); ``False``:
+        no warning (a caller keying a camera in chunks says them once, :func:`say_invalid_masks`).
 
     Returns
     -------
@@ -352,9 +387,8 @@ def key_frames(
             for _ in ex.map(work, range(n)):
                 if progress is not None:
                     progress(1)
-    for i, r in enumerate(reasons):
-        if r:
-            log.warning("%sframe %d: mask invalid: %s", f"{camera}: " if camera else "", i, r)
+    if rows is not False:
+        say_invalid_masks(range(n) if rows is None else rows, reasons, camera=camera)
     valid = np.array([not r for r in reasons], bool)
     model = {k: v for k, v in (resolved.model or {}).items() if not k.startswith("_")}
     return KeyResult(

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from stage.keying.keyer import estimate_model, key_frames
+from stage.keying.keyer import estimate_model, key_frames, say_invalid_masks
 from stage.keying.params import KeyParams, KeyResult
 from stage.keying.preview import contact_sheet
 
@@ -210,7 +210,8 @@ def key_camera(
             (frames, rows), first = (first, None) if start == 0 else (_read_frames(r, camera, start, stop, skip), None)
             if len(rows) == 0:
                 continue
-            res = key_frames(frames, params=params, plate=plate, workers=workers, camera=camera, progress=progress)
+            res = key_frames(frames, params=params, plate=plate, workers=workers, camera=camera, progress=progress,
+                             rows=False)  # (said once for the camera, below)
             masks[rows] = res.masks
             valid[rows] = res.valid
             for i, why in zip(rows, res.reasons):
@@ -220,6 +221,7 @@ def key_camera(
                 keep += [i for i in np.linspace(0, len(rows) - 1, 3).round().astype(int) if i not in keep]
                 for i in keep:
                     preview_frames.append((frames[i], res.masks[i], res.matte[i], res.valid[i], res.reasons[i], int(rows[i])))
+    say_invalid_masks(range(n), ["" if i in skip else why for i, why in enumerate(reasons)], camera=camera)
     return CameraKey(camera, masks, valid, reasons, res.params, preview_frames)
 
 
@@ -233,7 +235,11 @@ def _warn_stuck(camera: str, params: KeyParams) -> None:
         log.warning("%s: the plate from the take is unreliable on %.2f %% of the image (no colour held there in a "
                     "quarter of the frames sampled across the take: the subject, or something else that moves, never "
                     "leaves those pixels); they are keyed as uncertain. An empty take gives a clean plate: "
-                    "--plate EMPTY_TAKE", camera, 100 * frac)
+                    "--plate EMPTY_TAKE", camera, 100 * frac,
+                    extra={"job_message": f"{camera}: the plate from the take is unreliable on {100 * frac:.2f} % of "
+                           "the image (no colour held there in a quarter of the frames sampled across the take: the "
+                           "subject, or something else that moves, never leaves those pixels); they are keyed as "
+                           "uncertain. An empty take's plates, stored with the take, give a clean plate"})
 
 
 def store_plates(take: str | Path, empty: str | Path, *, frames: int = 25) -> dict[str, float]:

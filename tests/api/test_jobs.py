@@ -260,6 +260,31 @@ def test_a_jobs_warnings_say_what_its_tracking_fell_back_to(make_client, tmp_pat
     assert any(w.startswith("track: ") for w in report["warnings"])
 
 
+def test_a_jobs_warnings_and_page_say_what_its_frames_warned_of_once_per_kind(make_client, tmp_path):
+    """A take whose camera cam02's masks are all foreground in frame sets 1-3 and whose frame set 4 is empty: the
+    job's record (``result.report.warnings``) and its page say each once, with the frame sets, as ``stage process``
+    says it (tests/pipeline/test_process.py); the page's list is the record's, in order."""
+    import html
+
+    from tests.pipeline.hull_scenes import take_with_failed_masks
+    from tests.pipeline.test_process import FAILED_MASKS_SAID
+
+    data = tmp_path / "data"
+    (data / "takes").mkdir(parents=True)
+    take_with_failed_masks(data / "takes" / "t.h5")
+    c = make_client(work="pipeline.process:process_take", data=data)
+    jid = c.post("/jobs", json={"take": "t", "steps": ["surface"], "parameters": {"resolution": 32}},
+                 headers=AUTH).json()["id"]
+    st = wait_job(c, jid, timeout=120)
+    assert st["state"] == "done", st
+    warned = st["result"]["report"]["warnings"]
+    assert [w for w in warned if "silhouette consistency" not in w] == FAILED_MASKS_SAID, warned
+    page = c.get(f"/ui/jobs/{jid}", headers=AUTH).text
+    shown = re.search(r'<ul id="warning-list">(.*?)</ul>', page, re.S).group(1)
+    assert [html.unescape(w) for w in re.findall(r"<li>(.*?)</li>", shown)] == warned
+    assert f'<span id="nwarn">{len(warned)}</span>' in page
+
+
 def test_a_job_on_results_of_other_parameters_starts_over_without_their_tracking_and_rig(make_client, tmp_path):
     """The API's job path (the real work): a job whose folder holds results of other parameters
     removes the tracked frames and the rig built on them, and its result carries the one warning;

@@ -28,3 +28,21 @@ def sim_take():
 
 def sim_grid(res: int = 48) -> Grid:
     return grid_from_volume(Volume().bounds, res)
+
+
+def take_with_failed_masks(path):
+    """A small simulated starfish take (4 cameras, 6 frame sets, 160x120) holding the simulator's masks, but camera
+    ``cam02``'s all foreground in frame sets 1, 2 and 3 (a keying gone wrong) and every camera's empty in frame set
+    4 (no subject): the take's path."""
+    from fake_cameras.record import record_take
+    from stage.store import write_masks
+
+    sim = simulate_take("starfish", n_cameras=4, frames=6, size=(160, 120), seed=3)
+    take = record_take(sim, path)
+    for c, cam in enumerate(sim.calibration.cameras):
+        m = sim.masks[:, c].copy()
+        if cam.name == "cam02":
+            m[1:4] = True
+        m[4] = False
+        write_masks(take, cam.name, m)
+    return take

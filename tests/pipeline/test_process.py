@@ -1,5 +1,6 @@
 """The whole pipeline on a simulated take: keying -> hull -> surface -> spine, resumable."""
 
+import contextlib
 import json
 import time
 
@@ -685,3 +686,50 @@ def test_a_resume_with_the_same_parameters_keeps_the_tracking_and_rig(small_trac
     assert not _said(caplog) and _warned(res) == []
     assert _files_under(out, "tracked", "rig") == before and len(before) >= 9  # 3 frames, track.json, 5 rig files
     assert (out / "report.html").is_file() and (out / "spine_rig.glb").is_file()
+
+
+#: what the surface step says of tests.pipeline.hull_scenes.take_with_failed_masks, once per kind of message
+FAILED_MASKS_SAID = ["surface: camera cam02: mask is all foreground (keying failed?); ignored for this frame "
+                     "(3 frame sets: 1, 2, 3)",
+                     "surface: no foreground in any camera's mask: the frame is empty (1 frame set: 4)"]
+
+
+@pytest.mark.parametrize("pool", [None, "threads"])
+def test_what_the_frames_warn_of_is_said_once_per_kind_with_the_frame_sets(tmp_path, caplog, pool):
+    """A camera whose masks are all foreground in three frame sets, a frame set with no subject: the run's warnings
+    (a job's, report.json's) and its log say each once, with how many frame sets and which, not one line per frame
+    set; each frame set's record keeps its own (the report's ``per_frame``), the log has each at DEBUG."""
+    import concurrent.futures as cf
+    import logging
+
+    from tests.pipeline.hull_scenes import take_with_failed_masks
+
+    take = take_with_failed_masks(tmp_path / "t.h5")
+    with (cf.ThreadPoolExecutor(2) if pool else contextlib.nullcontext()) as ex, caplog.at_level(logging.DEBUG):
+        res = process_take(take, tmp_path / "out", steps=["surface", "spine"], params={"resolution": 32}, executor=ex)
+    warned = [w for w in res.report["warnings"] if "silhouette consistency" not in w]  # (cam02's, rightly)
+    assert warned == FAILED_MASKS_SAID
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert [m for m in said if "foreground" in m] == FAILED_MASKS_SAID, said
+    per_frame = res.report["per_frame"]
+    assert [f.get("warnings") for f in per_frame] == [None] + [[
+        "camera cam02: mask is all foreground (keying failed?); ignored for this frame"]] * 3 + [[
+        "no foreground in any camera's mask: the frame is empty"], None]
+    debug = {r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG and r.name.startswith("pipeline")}
+    assert {f"frame set {k}: camera cam02: mask is all foreground (keying failed?); ignored for this frame"
+            for k in (1, 2, 3)} | {"frame set 4: no foreground in any camera's mask: the frame is empty"} <= debug
+
+
+def test_what_the_keying_says_of_a_camera_is_in_the_runs_warnings_once_per_reason(tmp_path, caplog):
+    """Camera cam01's frames 2 and 3 black: the key step's warnings (a job's, report.json's) and its log say its
+    invalid masks once, with the take's frame numbers and the reason (the keyer said one line per frame)."""
+    import logging
+
+    sim = simulate_take("starfish", n_cameras=4, frames=6, size=(160, 120), seed=3)
+    sim.images[2:4, 1] = 0
+    take = record_take(sim, tmp_path / "t.h5")
+    with caplog.at_level(logging.WARNING):
+        res = process_take(take, tmp_path / "out", steps=["key"])
+    said = "cam01: mask invalid in 2 frames (2, 3): frame is black (99.5th-percentile luma 0.0 < black_level 12)"
+    assert res.report["warnings"] == [f"key: {said}"]
+    assert [r.getMessage() for r in caplog.records if "mask invalid" in r.getMessage()] == [said]

@@ -4,6 +4,7 @@ executor fan-out with cancellation, and the start-over rule's settings and diges
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import hashlib
 import logging
 import threading
@@ -20,6 +21,8 @@ from pipeline.run import (
     changed_settings,
     chunks,
     file_digest,
+    frame_warnings,
+    frames_said,
     read_settings,
     submit_aside,
     submitted_by,
@@ -161,3 +164,56 @@ def test_settings_compare_all_but_results_and_read_old_keys(tmp_path):
         assert read_settings(tmp_path / "s.json") is None  # unreadable or not settings: nothing kept
     (tmp_path / "s.json").write_text('{"a": 1}')
     assert read_settings(Path(tmp_path / "s.json")) == {"a": 1}
+
+
+def _frames_warn(frames: list[int]) -> list[tuple[int, list]]:
+    out = []
+    for k in frames:
+        with frame_warnings(k) as said:
+            if k % 2:
+                logging.getLogger("pipeline.hull").warning("camera %s: mask is all foreground", "cam02")
+                logging.getLogger("pipeline.hull").warning("camera %s: mask is all foreground", "cam02")  # (again)
+            if k == 4:
+                logging.getLogger("stage.keying").warning("cam01: see --plate", extra={"job_message": "cam01: see plate"})
+        out.append((k, said))
+    logging.getLogger("pipeline.hull").warning("after the frames")
+    return out
+
+
+@pytest.mark.parametrize("pool", [None, cf.ProcessPoolExecutor, cf.ThreadPoolExecutor])
+def test_what_a_frame_warns_of_comes_back_with_it_and_is_said_once_per_kind(tmp_path, pool):
+    """Warnings said on the ``pipeline`` and ``stage`` loggers while a task works on a frame set (``frame_warnings``)
+    come back with the task's result, wherever it ran, and reach no handler at WARNING level (a terminal's, a job's):
+    in this process they are DEBUG records naming the frame set; ``frames_said`` says each kind once, with the count
+    of frame sets and the first five, in the log's words and the job's. A warning outside a frame is said as ever."""
+    heard = _Heard()
+    heard.setLevel(logging.DEBUG)
+    loggers = [logging.getLogger(n) for n in ("pipeline", "stage")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.addHandler(heard)
+        lg.setLevel(logging.DEBUG)
+    try:
+        with pool(2) if pool else contextlib.nullcontext() as ex:
+            got = [r for rs in Run(out=tmp_path, executor=ex).map_tasks([partial(_frames_warn, ch)
+                                                                         for ch in chunks(range(13), 4)]) for r in rs]
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.removeHandler(heard)
+            lg.setLevel(level)
+    said = dict(got)
+    assert sorted(said) == list(range(13)) and said[0] == [] and said[2] == []
+    assert said[3] == [("camera cam02: mask is all foreground", None)] * 2
+    assert said[4] == [("cam01: see --plate", "cam01: see plate")]
+    assert [m for _, lv, m, _ in heard.heard if lv == logging.WARNING] == ["after the frames"] * 4  # one per task
+    debug = [m for _, lv, m, _ in heard.heard if lv == logging.DEBUG]
+    if pool is cf.ProcessPoolExecutor:
+        assert debug == []  # (a worker process's stay in its own log)
+    else:
+        assert sorted(debug) == sorted([f"frame set {k}: camera cam02: mask is all foreground" for k in range(1, 13, 2)
+                                        for _ in range(2)] + ["frame set 4: cam01: see --plate"])
+    mask = "camera cam02: mask is all foreground (6 frame sets: 1, 3, 5, 7, 9, ...)"
+    assert frames_said("surface", said) == [(f"surface: {mask}", f"surface: {mask}"),
+                                            ("surface: cam01: see --plate (1 frame set: 4)",
+                                             "surface: cam01: see plate (1 frame set: 4)")]
+    assert frames_said("surface", {}) == []
