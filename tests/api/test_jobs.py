@@ -266,8 +266,7 @@ def test_a_jobs_warnings_and_page_say_what_its_frames_warned_of_once_per_kind(ma
     says it (tests/pipeline/test_process.py); the page's list is the record's, in order."""
     import html
 
-    from tests.pipeline.hull_scenes import take_with_failed_masks
-    from tests.pipeline.test_process import FAILED_MASKS_SAID
+    from tests.pipeline.hull_scenes import FAILED_MASKS_SAID, take_with_failed_masks
 
     data = tmp_path / "data"
     (data / "takes").mkdir(parents=True)

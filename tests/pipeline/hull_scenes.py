@@ -46,3 +46,9 @@ def take_with_failed_masks(path):
         m[4] = False
         write_masks(take, cam.name, m)
     return take
+
+
+#: what the surface step says of :func:`take_with_failed_masks`, once per kind of message
+FAILED_MASKS_SAID = ["surface: camera cam02: mask is all foreground (keying failed?); ignored for this frame "
+                     "(3 frame sets: 1, 2, 3)",
+                     "surface: no foreground in any camera's mask: the frame is empty (1 frame set: 4)"]

@@ -688,12 +688,6 @@ def test_a_resume_with_the_same_parameters_keeps_the_tracking_and_rig(small_trac
     assert (out / "report.html").is_file() and (out / "spine_rig.glb").is_file()
 
 
-#: what the surface step says of tests.pipeline.hull_scenes.take_with_failed_masks, once per kind of message
-FAILED_MASKS_SAID = ["surface: camera cam02: mask is all foreground (keying failed?); ignored for this frame "
-                     "(3 frame sets: 1, 2, 3)",
-                     "surface: no foreground in any camera's mask: the frame is empty (1 frame set: 4)"]
-
-
 @pytest.mark.parametrize("pool", [None, "threads"])
 def test_what_the_frames_warn_of_is_said_once_per_kind_with_the_frame_sets(tmp_path, caplog, pool):
     """A camera whose masks are all foreground in three frame sets, a frame set with no subject: the run's warnings
@@ -702,7 +696,7 @@ def test_what_the_frames_warn_of_is_said_once_per_kind_with_the_frame_sets(tmp_p
     import concurrent.futures as cf
     import logging
 
-    from tests.pipeline.hull_scenes import take_with_failed_masks
+    from tests.pipeline.hull_scenes import FAILED_MASKS_SAID, take_with_failed_masks
 
     take = take_with_failed_masks(tmp_path / "t.h5")
     with (cf.ThreadPoolExecutor(2) if pool else contextlib.nullcontext()) as ex, caplog.at_level(logging.DEBUG):
