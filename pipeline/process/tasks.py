@@ -273,17 +273,15 @@ def surface_task(
                         info.update(status="empty", reason=str(exc))
                         log.warning("%s", exc)
                     info["seconds"] = time.perf_counter() - t0
-                    skeleton = None
-                    if sp is not None:
-                        rec = skeleton_record(k, None if mesh is None else (mesh.vertices, mesh.faces), sp,
-                                               bodies=None if quality is None else quality["bodies"])
-                        writer.write(skeleton_path(out_dir, k), skeleton_bytes(rec))
-                        skeleton = rec["skeleton"]
+                    rec = None if sp is None else skeleton_record(
+                        k, None if mesh is None else (mesh.vertices, mesh.faces), sp,
+                        bodies=None if quality is None else quality["bodies"])
                 if said:  # the frame's record keeps them (the report's per_frame); the step says them once
                     info["warnings"] = list(dict.fromkeys(m for m, _ in said))
                 res = {**info, "said": said}
-                if sp is not None:
-                    res["skeleton"] = skeleton  # travels back: the spine step need not read it again
+                if rec is not None:
+                    writer.write(skeleton_path(out_dir, k), skeleton_bytes(rec))
+                    res["skeleton"] = rec["skeleton"]  # travels back: the spine step need not read it again
                 # written last: a frame with its record has its mesh (and skeletons) on disk
                 writer.write(out_dir / "frames" / f"{frame_name(k)}.json", json.dumps(info))
                 results.append(res)
