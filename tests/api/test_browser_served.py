@@ -1,6 +1,7 @@
 """A real browser on a real server: ``python -m stage serve`` processes a small simulated take over HTTP;
 headless Chromium (Playwright, Debian's chromium) follows the job's live progress page, then opens the
-report and the take's page from the server, waits for the plotly 3-D views and checks they are not blank.
+report and the take's page from the server, waits for the plotly 3-D views and checks they are not blank;
+a second job, over a take whose masks failed in some frame sets, lists its warnings on its page.
 
 Screenshots are kept under ``$STAGE_TEST_ARTIFACTS`` (else the test's tmp dir); the path is printed.
 """
@@ -18,6 +19,7 @@ from fake_cameras.record import record_take
 from fake_cameras.take import simulate_take
 from tests.api.served import AUTH, Server
 from tests.browser import CHROMIUM, CHROMIUM_ARGS, not_blank, sync_playwright_or_skip
+from tests.pipeline.hull_scenes import FAILED_MASKS_SAID, take_with_failed_masks
 
 pytestmark = [pytest.mark.slow]
 try:  # pytest-timeout is in the [test] extra
@@ -51,12 +53,17 @@ def test_browser_on_served_pages(tmp_path):
     t0 = time.monotonic()
     data = tmp_path / "data"
     _take(data / "takes" / "sim.h5")
+    take_with_failed_masks(data / "takes" / "failed.h5")
     art = _artifacts(tmp_path)
     srv = Server(data).start()
     try:
         r = httpx.post(f"{srv.url}/jobs", json={"take": "sim"}, headers=AUTH, timeout=30)
         assert r.status_code == 202, r.text
         jid = r.json()["id"]
+        r = httpx.post(f"{srv.url}/jobs", json={"take": "failed", "steps": ["surface"], "parameters": {"resolution": 32}},
+                       headers=AUTH, timeout=30)
+        assert r.status_code == 202, r.text
+        failed = r.json()["id"]
         errors: list[str] = []
         requests: list[str] = []
         with sync_playwright() as p:
@@ -106,6 +113,13 @@ def test_browser_on_served_pages(tmp_path):
                 page.wait_for_function("() => Array.from(document.images).every(i => i.complete)", timeout=30_000)
                 loaded = page.evaluate("() => Array.from(document.images).map(i => i.naturalWidth)")
                 page.screenshot(path=str(art / "take_page.png"), full_page=True)
+
+                # a job whose frames warned: its page lists the job's warnings (its worker processes carved them)
+                page.goto(f"{srv.url}/ui/jobs/{failed}", wait_until="load", timeout=30_000)
+                page.wait_for_function("() => document.getElementById('state').textContent === 'done'", timeout=60_000)
+                shown = page.eval_on_selector_all("#warning-list li", "els => els.map(e => e.textContent)")
+                shown_count, shown_visible = page.text_content("#nwarn"), page.is_visible("#warnings")
+                warned = httpx.get(f"{srv.url}/jobs/{failed}", timeout=10).json()["result"]["report"]["warnings"]
             finally:
                 browser.close()
     finally:
@@ -118,3 +132,7 @@ def test_browser_on_served_pages(tmp_path):
     not_blank(frusta_png, "take frusta")
     assert n_cams == CAMERAS
     assert len(loaded) == 3 * CAMERAS * 2 and all(w == SIZE[0] for w in loaded), loaded  # frames and masks
+    # the failed masks' job: each kind of warning once, with its frame sets, on its page as in its record
+    assert [w for w in warned if "silhouette consistency" not in w] == FAILED_MASKS_SAID, warned
+    assert shown == warned and shown_count == str(len(warned)) and shown_visible
+
