@@ -397,7 +397,9 @@ def key_take(
     base = take_key_params(rig, key_mode=choice["mode"], grow=grow, fill_holes=fill_holes)
     vol = volume if volume is not None else rig_volume(rig)
     if "volume" in choice["layers"] and vol is None:
-        log.warning("volume layer: the take's rig has no capture volume and none was given (--volume); layer skipped")
+        log.warning("volume layer: the take's rig has no capture volume and none was given (--volume); layer skipped",
+                    extra={"job_message": "volume layer: the take's rig has no capture volume and none was given "
+                           "(parameters.volume); layer skipped"})
     vol = vol if "volume" in choice["layers"] else None
     preview_dir = Path(preview) if preview is not None else None
     if preview_dir is not None:

@@ -714,10 +714,15 @@ def test_what_the_frames_warn_of_is_said_once_per_kind_with_the_frame_sets(tmp_p
             for k in (1, 2, 3)} | {"frame set 4: no foreground in any camera's mask: the frame is empty"} <= debug
 
 
-def test_what_the_keying_says_of_a_camera_is_in_the_runs_warnings_once_per_reason(tmp_path, caplog):
+def test_what_the_keying_says_of_a_camera_is_in_the_runs_warnings_once_per_reason(tmp_path, caplog, monkeypatch):
     """Camera cam01's frames 2 and 3 black: the key step's warnings (a job's, report.json's) and its log say its
-    invalid masks once, with the take's frame numbers and the reason (the keyer said one line per frame)."""
+    invalid masks once, with the take's frame numbers and the reason (the keyer said one line per frame, numbered
+    within its chunk of frames: here 2 frames a chunk)."""
     import logging
+
+    import stage.keying.take
+
+    monkeypatch.setattr(stage.keying.take, "_CHUNK", 2)
 
     sim = simulate_take("starfish", n_cameras=4, frames=6, size=(160, 120), seed=3)
     sim.images[2:4, 1] = 0

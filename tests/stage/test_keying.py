@@ -19,6 +19,7 @@ from stage.keying import (
     mask_boundary,
 )
 from stage.keying.chroma import estimate_chroma_model
+from stage.keying.keyer import say_invalid_masks
 from tests.conftest import shared_dataset
 
 # -- reference implementations ------------------------------------------------
@@ -237,6 +238,30 @@ def test_bad_frames_marked_invalid_rest_keyed(caplog):
     for i in (0, 4):
         assert iou(res.masks[i], tk.masks[i, 0]) >= 0.95
     assert sum("mask invalid" in r.message for r in caplog.records) == 3
+
+
+def test_invalid_masks_are_said_once_per_reason_with_the_frames_numbers(caplog):
+    """Two black frames and one frame of a grey wall: one warning per reason, with the count and the frames' numbers
+    (``rows``: the take's; by default their positions), each frame at DEBUG; ``rows=False`` says nothing."""
+    frames = _small_sim().images[:, 0].copy()
+    frames[1] = frames[3] = 0
+    rng = np.random.default_rng(0)
+    frames[2] = np.clip(cv2.GaussianBlur(rng.normal(100, 30, frames.shape[1:]).astype(np.float32), (0, 0), 4.0), 0, 255)
+    for rows, named in ((None, ("1, 3", "2")), ([10, 11, 12, 13, 14], ("11, 13", "12")), (False, None)):
+        caplog.clear()
+        with caplog.at_level(logging.DEBUG, logger="stage.keying"):
+            res = key_frames(frames, camera="cam00", rows=rows)
+        said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        if named is None:
+            assert said == []
+            continue
+        assert said == [f"cam00: mask invalid in 2 frames ({named[0]}): {res.reasons[1]}",
+                        f"cam00: mask invalid in 1 frame ({named[1]}): {res.reasons[2]}"], said
+        assert res.reasons[1] == res.reasons[3] != res.reasons[2]
+        each = [r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG and "mask invalid" in r.getMessage()]
+        assert len(each) == 3
+    with pytest.raises(ValueError, match="rows"):
+        say_invalid_masks([1, 2], ["black"])
 
 
 def test_no_backdrop_anywhere_raises_clear_error():
