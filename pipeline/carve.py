@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.results import atomic_write_bytes, ply_bytes
-from pipeline.run.context import submit_aside
+from pipeline.run.context import frame_warnings, frames_said, submit_aside
 from pipeline.run.settings import changed_settings, file_digest, read_settings
 
 __all__ = ["carve_results", "carve_frames_task", "carved_path", "remove_carved", "track_with_carving", "CarveError",
@@ -148,7 +148,9 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
     -------
     dict
         The report written to ``carved/carve.json`` (``worker_cpu_seconds``: the CPU seconds of the
-        frames carved in another process).
+        frames carved in another process). What a frame's carving warns of (its carved surface left
+        out...) is in its figures (``warnings``) and said once per kind for the frames carved now, with
+        the frame sets (:func:`pipeline.run.frame_warnings`).
 
     Raises
     ------
@@ -201,6 +203,10 @@ def carve_results(results_dir, *, window: int = 15, neighbours: int = 100, band:
             if str(k) in figures:
                 record(k, figures[str(k)])
     report["frames"] = {str(k): report["frames"][str(k)] for k in frames if str(k) in report["frames"]}
+    said = {k: [(m, None) for m in report["frames"][str(k)].get("warnings", ())] for k in todo
+            if str(k) in report["frames"]}
+    for msg, _ in frames_said("carving", said):  # what the frames carved now warned of, once per kind
+        log.warning("%s", msg)
     # a thread's CPU seconds are already this process's; None: no worker carved
     report["worker_cpu_seconds"] = round(aside.cpu_seconds, 3) if aside is not None and aside.cpu_seconds is not None \
         else 0.0
@@ -317,18 +323,22 @@ def _carve_frames(root: Path, take: Path, grid, todo: list, tracks: dict, settin
             for s in near:
                 if s not in cache:
                     cache[s] = images_of(s)
-            field = carve_across_time(grid, k, {s: tracks[s] for s in near}, cache, cameras, band=settings["band"],
-                                      neighbours=settings["neighbours"], ignore=settings["ignore"], margin=margin)
-            try:
-                mesh = surface_from_field(field, grid, level=0.0, inside="above",
-                                          taubin_iterations=settings["taubin_iterations"])
-            except EmptySurfaceError as exc:
-                log.warning("carved frame %d: %s; its surface is left out", k, exc)
-                out[str(k)] = {"vertices": 0}
-            else:
-                V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-                atomic_write_bytes(carved_path(root, k), ply_bytes(V, F))
-                out[str(k)] = {"vertices": int(len(V)), "volume_mm3": float(mesh_volume(V, F))}
+            with frame_warnings(k) as said:  # said once per kind by carve_results, with the frame sets
+                field = carve_across_time(grid, k, {s: tracks[s] for s in near}, cache, cameras,
+                                          band=settings["band"], neighbours=settings["neighbours"],
+                                          ignore=settings["ignore"], margin=margin)
+                try:
+                    mesh = surface_from_field(field, grid, level=0.0, inside="above",
+                                              taubin_iterations=settings["taubin_iterations"])
+                except EmptySurfaceError as exc:
+                    log.warning("%s; the carved surface is left out", exc)
+                    out[str(k)] = {"vertices": 0}
+                else:
+                    V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+                    atomic_write_bytes(carved_path(root, k), ply_bytes(V, F))
+                    out[str(k)] = {"vertices": int(len(V)), "volume_mm3": float(mesh_volume(V, F))}
+            if said:
+                out[str(k)]["warnings"] = list(dict.fromkeys(m for m, _ in said))
             if record is not None:
                 record(k, out[str(k)])
     return out

@@ -206,6 +206,41 @@ def test_an_unreadable_mask_carves_nothing_with_one_warning(tmp_path, monkeypatc
     assert sorted(rep["frames"]) == ["0", "1", "2"] and all(f["vertices"] > 100 for f in rep["frames"].values())
 
 
+def test_frames_whose_carved_surface_is_left_out_are_said_once_with_their_frame_sets(tmp_path, monkeypatch, caplog):
+    """Frames 1 and 2 carve no surface: one warning says so with the frame sets (the ``track`` step's, and so a
+    job's: ``track: carving: ...``), not one per frame; each frame's figures keep theirs, the log has each at DEBUG;
+    a carving that resumes says nothing of the frames it keeps."""
+    import logging
+
+    import pipeline.surface
+    from pipeline.track import track_results
+
+    res = _results(tmp_path, frames=4)
+    track_results(res)
+    real = pipeline.surface.surface_from_field
+    carving = [0]
+
+    def empty_at_1_and_2(*a, **k):  # (the frames are carved in order: 0, 1, 2, 3)
+        carving[0] += 1
+        if carving[0] in (2, 3):
+            raise pipeline.surface.EmptySurfaceError("nothing inside the carved field")
+        return real(*a, **k)
+
+    monkeypatch.setattr(pipeline.surface, "surface_from_field", empty_at_1_and_2)
+    with caplog.at_level(logging.DEBUG, logger="pipeline.carve"):
+        rep = carve_results(res)
+    said = [r.getMessage() for r in caplog.records if r.name == "pipeline.carve" and r.levelno == logging.WARNING]
+    left_out = "nothing inside the carved field; the carved surface is left out"
+    assert said == [f"carving: {left_out} (2 frame sets: 1, 2)"], said
+    assert [rep["frames"][str(k)].get("warnings") for k in range(4)] == [None, [left_out], [left_out], None]
+    assert [f"frame set {k}: {left_out}" for k in (1, 2)] == [
+        r.getMessage() for r in caplog.records if r.name == "pipeline.carve" and r.levelno == logging.DEBUG]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pipeline.carve"):
+        carve_results(res)
+    assert not caplog.records
+
+
 def test_track_with_carving_sums_every_workers_cpu_seconds(tmp_path, monkeypatch):
     """The ``track`` step's CPU seconds: every tracking's and carving's task in another process, not the last's."""
     import pipeline.carve as carve
