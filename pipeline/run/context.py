@@ -74,7 +74,8 @@ class _FrameWarnings(logging.Handler):
     """First handler of the ``pipeline`` and ``stage`` loggers: a warning said while this thread works on a frame
     (:func:`frame_warnings`) is kept for the frame, then goes on as a DEBUG record naming the frame, below the level
     of every other handler (a terminal's, a job's, a worker's): the frame's warnings are said once per kind by
-    the step that ran the frames, not one frame at a time."""
+    the step that ran the frames, not one frame at a time. Any other record it leaves to the others; with none
+    (logging not set up) it hands it to ``logging.lastResort``, as logging would without this handler."""
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
@@ -82,6 +83,9 @@ class _FrameWarnings(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         kept = _FRAME.get()
         if kept is None or record.levelno != logging.WARNING:
+            last = logging.lastResort  # what logging does when no handler is there (this one aside)
+            if last is not None and record.levelno >= last.level and not self._others(record.name):
+                last.handle(record)
             return
         frame, said = kept
         try:
@@ -93,6 +97,15 @@ class _FrameWarnings(logging.Handler):
         record.msg, record.args = f"frame set {frame}: {message}", None
         record.levelno, record.levelname = logging.DEBUG, logging.getLevelName(logging.DEBUG)
 
+    def _others(self, name: str) -> bool:
+        """A handler other than this one takes the records of logger ``name`` (its own or an ancestor's)."""
+        c: logging.Logger | None = logging.getLogger(name)
+        while c is not None:
+            if any(h is not self for h in c.handlers):
+                return True
+            c = c.parent if c.propagate else None
+        return False
+
 
 _FRAME_HANDLER = _FrameWarnings()
 
@@ -101,11 +114,9 @@ def _first_handler() -> None:
     """:data:`_FRAME_HANDLER` first on the loggers of :data:`_WARNING_LOGGERS` (again, should logging have been
     set up anew since)."""
     for name in _WARNING_LOGGERS:
-        handlers = logging.getLogger(name).handlers
-        if not handlers or handlers[0] is not _FRAME_HANDLER:
-            if _FRAME_HANDLER in handlers:
-                handlers.remove(_FRAME_HANDLER)
-            handlers.insert(0, _FRAME_HANDLER)
+        logger = logging.getLogger(name)
+        if not logger.handlers or logger.handlers[0] is not _FRAME_HANDLER:  # (a new list: a thread logging meanwhile
+            logger.handlers = [_FRAME_HANDLER, *(h for h in logger.handlers if h is not _FRAME_HANDLER)]  # reads the old)
 
 
 _first_handler()

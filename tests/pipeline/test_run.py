@@ -217,3 +217,22 @@ def test_what_a_frame_warns_of_comes_back_with_it_and_is_said_once_per_kind(tmp_
                                             ("surface: cam01: see --plate (1 frame set: 4)",
                                              "surface: cam01: see plate (1 frame set: 4)")]
     assert frames_said("surface", {}) == []
+
+
+def test_with_no_handler_set_up_a_warning_outside_a_frame_still_reaches_loggings_last_resort(monkeypatch):
+    """The frames' handler on the ``pipeline`` and ``stage`` loggers does not silence a program that set no logging
+    up: a warning outside a frame reaches ``logging.lastResort`` (stderr) as it would without that handler; one in
+    a frame is kept for the frame."""
+    from pipeline.run.context import _FRAME_HANDLER
+
+    heard = _Heard()
+    heard.setLevel(logging.WARNING)
+    monkeypatch.setattr(logging, "lastResort", heard)
+    for name in ("", "pipeline", "stage", "pipeline.hull", "stage.keying"):
+        lg = logging.getLogger(name)
+        monkeypatch.setattr(lg, "handlers", [_FRAME_HANDLER] if name in ("pipeline", "stage") else [])
+    logging.getLogger("pipeline.hull").warning("outside")
+    logging.getLogger("stage.keying").info("below the last resort's level")
+    with frame_warnings(3) as said:
+        logging.getLogger("stage.keying").warning("inside")
+    assert [m for _, _, m, _ in heard.heard] == ["outside"] and said == [("inside", None)]
