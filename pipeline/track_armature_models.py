@@ -48,7 +48,9 @@ def _limb_rig(vs: np.ndarray, faces: np.ndarray, frames: list[int], refi: int, l
     """The armature of a tracking from the template's labels: the body one part, every limb a chain of the intervals
     :func:`pipeline.limb_segments.limb_segments` cuts along its axis, rigid (``entry["cut"]``); -> as :func:`_rig_of`. The
     cuts' noise ratio is measured on the body (``limb_segments``' default); ``stage armature --parts limbs`` measures it on
-    every limb (``rho="limb"``), not better for the round on every take (docs/tracking.md, "The round's armature from the labels")."""
+    every limb (``rho="limb"``), not better for the round on every take (docs/tracking.md, "The round's armature from the labels").
+    The cuts keep ``limb_segments``' default ``centres=False``: a cut ``armature_results(parts="limbs")`` drops as no joint
+    still gives the round's skinned pose a freedom the surfaces use (the same section)."""
     from pipeline.armature_fit import fit_sequence
     from pipeline.armature_track import segment_armature
     from pipeline.limb_segments import limb_segments
