@@ -13,6 +13,8 @@ from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 __all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "frame_warnings", "frames_said", "pool_size", "submit_aside",
            "submitted_by"]
 
@@ -142,7 +144,14 @@ def frame_warnings(frame: int) -> Iterator[list[tuple[str, str | None]]]:
     list of (str, str or None)
         Filled as warnings are said: the message and its ``job_message`` (``extra={"job_message": ...}``; None
         when it gave none), in the order said, repeats included.
+
+    Raises
+    ------
+    ValueError
+        ``frame`` is not an integer.
     """
+    if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)):
+        raise ValueError(f"frame must be an integer (a frame set), got {frame!r}")
     _first_handler()
     said: list[tuple[str, str | None]] = []
     token = _FRAME.set((int(frame), said))
@@ -172,7 +181,16 @@ def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]]) -> lis
     -------
     list of (str, str)
         Per kind of message, the warning in the log's words and in a job's (the ``job_message``, where given).
+
+    Raises
+    ------
+    ValueError
+        ``step`` is not a string, or ``said`` not a dict of frame sets to lists.
     """
+    if not isinstance(step, str):
+        raise ValueError(f"step must be a string, got {step!r}")
+    if not isinstance(said, dict) or not all(isinstance(v, (list, tuple)) for v in said.values()):
+        raise ValueError(f"said must map frame sets to lists of (message, job_message), got {type(said).__name__}")
     frames: dict[tuple[str, str | None], list[int]] = {}
     for k in sorted(said):
         for kind in dict.fromkeys(said[k]):

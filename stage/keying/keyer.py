@@ -286,6 +286,11 @@ def say_invalid_masks(rows: Any, reasons: Any, *, camera: str = "") -> None:
         Per frame, why its mask is invalid ("" when it is valid).
     camera : str
         Camera name, the warnings' prefix.
+
+    Raises
+    ------
+    ValueError
+        ``rows`` and ``reasons`` of different lengths.
     """
     rows, reasons = [int(r) for r in rows], list(reasons)
     if len(rows) != len(reasons):

@@ -51,6 +51,17 @@ def test_invalid_input():
         steps.register("a", lambda r: None, after="x")
     with pytest.raises(KeyError):
         steps.remove("a")
+    for bad in (1.5, True, "3", None):
+        with pytest.raises(ValueError, match="frame must be an integer"):
+            with frame_warnings(bad):
+                pass
+    with pytest.raises(ValueError, match="step must be a string"):
+        frames_said(None, {})
+    with pytest.raises(ValueError, match="said must map frame sets"):
+        frames_said("surface", {1: "camera cam02: ..."})
+    with frame_warnings(np.int64(2)) as said:  # (a frame number from NumPy is one)
+        pass
+    assert said == []
 
 
 def test_map_tasks_here_and_on_a_pool_and_cancel_between_tasks(tmp_path):
