@@ -629,3 +629,41 @@ def test_ray_points_equal_a_per_vertex_reference():
         if ok[v]:
             P = [np.eye(3) - np.outer(rays[j], rays[j]) for j in t]
             assert np.allclose(x[v], np.linalg.solve(sum(P), sum(p @ targets[j] for p, j in zip(P, t))))
+
+
+def test_round_colour_tracks_from_the_reference_frame_first():
+    """A round's colour tracks of a frame (``_colour_tracks``): those followed from the reference frame's images
+    (from the template as fitted there), then, for the vertices those miss, those from the previous frame's;
+    next to the reference frame one set; without either set the other. Reference: per vertex, by hand."""
+    from pipeline.track_armature_round import _colour_tracks
+
+    rng = np.random.default_rng(3)
+    n, ref, template, prev, start = 30, 4, rng.normal(size=(30, 3)), rng.normal(size=(30, 3)), rng.normal(size=(30, 3))
+    calls = []
+
+    def tracks_for(k, k_prev, where, extra, begin):
+        calls.append((k, k_prev))
+        assert extra is None and begin is start and where is (template if k_prev == ref else prev)
+        if k_prev == 99:
+            return None
+        idx = np.flatnonzero(np.arange(n) % (2 if k_prev == ref else 3) == 0)
+        idx = np.repeat(idx, 2)  # two cameras
+        return idx, np.full((len(idx), 3), float(k_prev)), np.tile([0.0, 0.0, 1.0], (len(idx), 1))
+
+    idx, targets, rays = _colour_tracks(tracks_for, 6, 5, prev, ref, template, start)
+    assert calls == [(6, ref), (6, 5)]
+    for v in range(n):
+        mine = targets[idx == v, 0]
+        if v % 2 == 0:  # followed from the reference frame: only those
+            assert len(mine) == 2 and np.all(mine == ref)
+        elif v % 3 == 0:  # missed there, followed from the previous frame
+            assert len(mine) == 2 and np.all(mine == 5)
+        else:
+            assert len(mine) == 0
+    assert np.all(rays == [0.0, 0.0, 1.0])
+    calls.clear()
+    near = _colour_tracks(tracks_for, 5, ref, template, ref, template, start)
+    assert calls == [(5, ref)] and set(near[0].tolist()) == set(range(0, n, 2))
+    alone = _colour_tracks(tracks_for, 6, 99, prev, ref, template, start)
+    assert set(alone[0].tolist()) == set(range(0, n, 2))
+    assert _colour_tracks(lambda *a: None, 6, 5, prev, ref, template, start) is None
