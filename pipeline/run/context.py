@@ -114,11 +114,16 @@ _FRAME_HANDLER = _FrameWarnings()
 
 def _first_handler() -> None:
     """:data:`_FRAME_HANDLER` first on the loggers of :data:`_WARNING_LOGGERS` (again, should logging have been
-    set up anew since)."""
+    set up anew since). The list is made anew under logging's own lock, the one ``Logger.addHandler`` and
+    ``removeHandler`` hold: a job's handler added or removed meanwhile in another thread is not lost (a server runs
+    several jobs at once); a thread logging meanwhile reads the old list."""
     for name in _WARNING_LOGGERS:
         logger = logging.getLogger(name)
-        if not logger.handlers or logger.handlers[0] is not _FRAME_HANDLER:  # (a new list: a thread logging meanwhile
-            logger.handlers = [_FRAME_HANDLER, *(h for h in logger.handlers if h is not _FRAME_HANDLER)]  # reads the old)
+        if logger.handlers and logger.handlers[0] is _FRAME_HANDLER:  # (every call but after logging was set up anew)
+            continue
+        with logging._lock:  # (the handler lists' lock; logging has no public one)
+            if not logger.handlers or logger.handlers[0] is not _FRAME_HANDLER:
+                logger.handlers = [_FRAME_HANDLER, *(h for h in logger.handlers if h is not _FRAME_HANDLER)]
 
 
 _first_handler()
