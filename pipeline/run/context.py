@@ -43,8 +43,8 @@ _SUBMITTED_BY: dict[int, int] = {}
 
 def submitted_by(thread: int) -> int:
     """The thread that submitted the task thread ``thread`` of this process runs now (a thread pool's worker, through
-    :func:`submit_aside` or :meth:`Run.map_tasks`), or ``thread`` itself: whose work a log record of that thread is
-    (``logging.LogRecord.thread``)."""
+    :func:`submit_aside` or :meth:`Run.map_tasks`; of a task a task submitted, the first submitter), or ``thread``
+    itself: whose work a log record of that thread is (``logging.LogRecord.thread``)."""
     return _SUBMITTED_BY.get(thread, thread)
 
 
@@ -236,7 +236,9 @@ def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None)
 
 
 def _origin() -> tuple[int, int]:
-    return os.getpid(), threading.get_ident()
+    """(process id, thread) of the caller submitting a task: the thread whose work the caller's is
+    (:func:`submitted_by`), so that a task a thread pool's task submits is the first submitter's work too."""
+    return os.getpid(), submitted_by(threading.get_ident())
 
 
 def _say_again(said: list) -> None:

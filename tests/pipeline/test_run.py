@@ -140,6 +140,24 @@ def test_what_a_task_warns_of_on_a_worker_is_said_in_the_callers_thread(tmp_path
     assert submitted_by(me) == me
 
 
+def _warns_aside(ex, k: int) -> int:
+    return submit_aside(ex, partial(_warns, k), unavailable="{exc}").result()
+
+
+def test_a_task_a_thread_pools_task_submits_is_the_first_submitters_work():
+    """A task aside on a thread pool that itself submits a task aside on it: the inner task's records are the work
+    of the thread that submitted the outer one (``submitted_by``), whose job's warnings keep them."""
+    heard, logger = _Heard(), logging.getLogger("pipeline")
+    logger.addHandler(heard)
+    me = threading.get_ident()
+    try:
+        with cf.ThreadPoolExecutor(2) as ex:
+            assert submit_aside(ex, partial(_warns_aside, ex, 6), unavailable="{exc}").result() == 6
+    finally:
+        logger.removeHandler(heard)
+    assert [(t, m) for t, lv, m, _ in heard.heard if lv == logging.WARNING] == [(me, "camera 6: no mask")]
+
+
 def test_announced_progress_is_closed_when_the_step_ends(tmp_path):
     calls = []
     run = Run(out=tmp_path, progress=lambda *a: calls.append(a))
