@@ -177,11 +177,15 @@ def _centred_cuts(X: np.ndarray, s: np.ndarray, piece: np.ndarray, axis: np.ndar
     near, _ = _axis_points(axis, s)
     radius = float(np.median(np.linalg.norm(X[reference] - near, axis=1)))
     piece = piece.copy()
+    motion: dict = {}  # interval -> its rigid motions; a merge changes only the merged interval's
     while True:
         groups = np.unique(piece)  # ascending = along the limb (chain_cuts' order; merging keeps it)
         if len(groups) < 2:
             break
-        motions = [rigid_motions(X[:, piece == g], reference=reference) for g in groups]
+        for g in groups:
+            if g not in motion:
+                motion[g] = rigid_motions(X[:, piece == g], reference=reference)
+        motions = [motion[g] for g in groups]
         off = np.empty(len(groups) - 1)
         for i in range(len(groups) - 1):
             cut = 0.5 * (float(s[piece == groups[i]].max()) + float(s[piece == groups[i + 1]].min()))
@@ -196,6 +200,7 @@ def _centred_cuts(X: np.ndarray, s: np.ndarray, piece: np.ndarray, axis: np.ndar
         if off[worst] <= radius:
             break
         piece[piece == groups[worst + 1]] = groups[worst]
+        del motion[groups[worst]], motion[groups[worst + 1]]
     return np.unique(piece, return_inverse=True)[1].astype(np.int64)
 
 
