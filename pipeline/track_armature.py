@@ -227,12 +227,9 @@ def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_fram
             use, by_pose, entry = _limb_rig(vs, faces, frames, refi, *chain)
         else:
             use, by_pose, entry = _rig_of(vs, faces, frames, refi, lambda_thr, limbs=limbs)
-        # the motion's armature of a tracking without labels follows the colour tracks from the reference frame first;
-        # the others from the previous frame (docs/tracking.md, "Colour tracks from the reference frame")
         per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight,
                          None if progress is None else partial(_round_progress, progress, r + 1), spine=spine,
-                         tracks_for=tracks_for, aside=aside,
-                         reference_tracks=not (r == 0 and model is not None) and chain is None and limbs is None)
+                         tracks_for=tracks_for, aside=aside)
         entry["worker_cpu_seconds"] = per.pop("worker_cpu_seconds", None)
         res = [f["rig_residual_mm"] for f in per["figures"].values()]
         entry["residual_mm"] = round(float(np.mean(res)), 4) if res else None

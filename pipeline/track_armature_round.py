@@ -38,15 +38,13 @@ ARMATURE_ICP_POINTS = 1000
 
 
 def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int], refi: int, by_frame: dict, root: Path,
-               faces: np.ndarray, weight: float, progress, spine=None, tracks_for=None, aside=None,
-               reference_tracks: bool = False) -> dict:
+               faces: np.ndarray, weight: float, progress, spine=None, tracks_for=None, aside=None) -> dict:
     """One tracking of every frame but the reference with ``model`` as the prior; -> {"vertices": frame -> (V, 3),
     "figures": frame -> per-frame figures}. ``spine``: ``step(k, k_prev)`` -> the spine's skinned step of the
     template from frame ``k_prev`` to ``k`` (:func:`_spine_steps`), or None. ``tracks_for``: the colour
     tracks (:func:`pipeline.track_colour.multiview_tracks_for`), or None. ``aside``: (executor, the half's
     settings for :func:`armature_half_task`): the longer half (from the reference frame forwards or backwards) is
-    tracked there meanwhile. ``reference_tracks``: the colour tracks are followed from the reference frame's images
-    first (:func:`_colour_tracks`), else from the previous frame's alone."""
+    tracked there meanwhile."""
     from pipeline.armature_track import fit_pose_to_surface
 
     data_for = mesh_data(by_frame)
@@ -59,8 +57,7 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
     halves = sorted((frames[refi + 1:], frames[:refi][::-1]), key=len) if aside is not None else \
         (frames[refi + 1:], frames[:refi][::-1])
     mine, other = halves
-    half = {"prev": vs[refi], "pose": ref_pose, "ref": ref, "faces": faces, "root": str(root), "weight": weight,
-            "reference_tracks": bool(reference_tracks)}
+    half = {"prev": vs[refi], "pose": ref_pose, "ref": ref, "faces": faces, "root": str(root), "weight": weight}
     later = None
     if aside is not None and other and mine:  # (one half only: here, without a second set-up)
         later = submit_aside(aside[0], partial(armature_half_task, {**aside[1], **half, "model": model, "by_pose": by_pose,
@@ -99,16 +96,14 @@ def _merge(out: dict, part: dict) -> None:
 
 
 def _track_half(rig, by_pose: dict, data_for, frames: list[int], *, prev: np.ndarray, pose, ref: int, faces: np.ndarray,
-                root, weight: float, spine=None, tracks_for=None, tick=None, reference_tracks: bool = False) -> dict:
+                root, weight: float, spine=None, tracks_for=None, tick=None) -> dict:
     """``frames`` tracked in order from the reference frame ``ref`` (its fit ``prev``, its pose ``pose``) with
-    ``rig`` (:class:`pipeline.armature_track.ArmatureTracker`); -> {"vertices": ..., "figures": ...} of them.
-    ``reference_tracks``: the colour tracks of a frame from the reference frame's images first (:func:`_colour_tracks`)."""
+    ``rig`` (:class:`pipeline.armature_track.ArmatureTracker`); -> {"vertices": ..., "figures": ...} of them."""
     from pipeline.armature_fit import predict_pose
 
     model = rig.model
     out = {"vertices": {}, "figures": {}}
     vol0 = mesh_volume(prev, faces)
-    template = prev
     before, prev_k = None, ref
     for k in frames:
         t0 = time.perf_counter()
@@ -117,10 +112,8 @@ def _track_half(rig, by_pose: dict, data_for, frames: list[int], *, prev: np.nda
             cands = [pose] + ([predict_pose(model, pose, before)] if before is not None else []) + \
                 ([by_pose[k]] if k in by_pose else []) + _spine_pose(model, pose, spine, k, prev_k)
             tracks = None
-            if tracks_for is not None:  # started at the skinned prediction
-                begin = model.deform(cands[1]) if before is not None else prev
-                tracks = _colour_tracks(tracks_for, k, prev_k, prev, ref, template, begin) if reference_tracks else \
-                    tracks_for(k, prev_k, prev, None, begin)
+            if tracks_for is not None:  # followed from the previous frame, started at the skinned prediction
+                tracks = tracks_for(k, prev_k, prev, None, model.deform(cands[1]) if before is not None else prev)
             fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands, tracks=tracks)
             prev, before, pose, prev_k = fit.vertices, pose, new_pose, k
             write_frame(Path(root), k, prev, faces)
@@ -131,22 +124,6 @@ def _track_half(rig, by_pose: dict, data_for, frames: list[int], *, prev: np.nda
         if tick is not None:
             tick()
     return out
-
-
-def _colour_tracks(tracks_for, k: int, k_prev: int, prev: np.ndarray, ref: int, template: np.ndarray, start: np.ndarray):
-    """The colour tracks of frame ``k`` (``tracks_for``, :func:`pipeline.track_colour.multiview_tracks_for`): followed
-    from the reference frame's images, where the template is where it was fitted (``template``), and for the vertices
-    those do not follow, from the previous frame's (``k_prev``, the previous fit ``prev``); both started at ``start``.
-    Tracks from the previous frame follow the template's place there, so they carry its drift on; those from the
-    reference frame pin it where the reference frame's texture is still found (docs/tracking.md, "Fast motion")."""
-    first = tracks_for(k, ref, template, None, start)
-    if k_prev == ref:
-        return first
-    then = tracks_for(k, k_prev, prev, None, start)
-    if first is None or then is None:
-        return then if first is None else first
-    keep = ~np.isin(then[0], first[0])
-    return tuple(np.concatenate([a, b[keep]]) for a, b in zip(first, then))
 
 
 def armature_half_task(half: dict) -> dict:
@@ -167,7 +144,7 @@ def armature_half_task(half: dict) -> dict:
                                                         corners=tracker.corner_sum) as tracks_for:
         return _track_half(rig, half["by_pose"], mesh_data(by_frame), half["frames"], prev=half["prev"], pose=half["pose"],
                            ref=half["ref"], faces=faces, root=root, weight=half["weight"], spine=spine,
-                           tracks_for=tracks_for, reference_tracks=half.get("reference_tracks", False))
+                           tracks_for=tracks_for)
 
 
 def _spine_steps(root: Path, frames: list[int], by_frame: dict, template: np.ndarray):
