@@ -134,6 +134,7 @@ def test_jobs_pages(client_data):
 
     page = _html(client.get(f"/ui/jobs/{ids['running']}"))
     assert '<progress id="bar-all" max="5" value="3">' in page
+    assert "/results/spine" not in page  # a job without the spine step has no spine to download
     assert 'data-step="key"' in page and "fetch('/jobs/' + JOB_ID" in page
     assert f'const JOB_ID = "{ids["running"]}"' in page
     assert "&lt;b&gt;x&lt;/b&gt;" in page and "<b>x</b>" not in page  # parameters escaped
@@ -143,6 +144,8 @@ def test_jobs_pages(client_data):
     page = _html(client.get(f"/ui/jobs/{ids['done']}"))
     assert f'id="report" href="/ui/jobs/{ids["done"]}/report">' in page
     assert "/results/rig/" not in page  # a job without the rig step has no armature to download
+    for name in ("spine.json", "spine_rig.glb"):  # the spine step's files, linked
+        assert f'<a href="/jobs/{ids["done"]}/results/{name}">{name}</a>' in page
     rig = client.app.state.store.create(kind="process", take="cal", steps=["spine", "track", "rig"], params={}).id
     page = _html(client.get(f"/ui/jobs/{rig}"))  # the armature's files (docs/armature-format.md), linked
     for name in ("rig.glb", "rig.bvh", "rig.json"):
