@@ -12,6 +12,15 @@ import pytest
 from stage.cli import _progress_bars, build_parser, main
 
 
+def _help_text(capsys, command: str) -> str:
+    """``stage COMMAND --help`` as one line (argparse wraps its help to the terminal's width)."""
+    import re
+
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    return re.sub(r"\s+", " ", capsys.readouterr().out)
+
+
 @pytest.fixture(scope="module")
 def take(tmp_path_factory):
     import os
@@ -107,11 +116,7 @@ def test_track_help_names_the_template_frame_it_tracks_from(tmp_path, capsys):
     """``stage track --help`` names the template a results directory gets, the surface of the spine's reference frame
     (tracked/track.json's ``reference_frame``, ``template``), not the first frame's, which it is only without a
     spine."""
-    import re
-
-    with pytest.raises(SystemExit):
-        main(["track", "--help"])
-    text = re.sub(r"\s+", " ", capsys.readouterr().out)
+    text = _help_text(capsys, "track")
     assert "the template is the surface of the spine's reference frame, tracked forwards and backwards from it " \
            "(without spine.json: the first frame's), unless given" in text
     assert "(default for RESULTS_DIR: the surface of the spine's reference frame)" in text
@@ -126,9 +131,7 @@ def test_track_help_says_how_the_data_weight_is_chosen(capsys):
 
     from pipeline.tracking import choose_gamma
 
-    with pytest.raises(SystemExit):
-        main(["track", "--help"])
-    text = re.sub(r"\s+", " ", capsys.readouterr().out)
+    text = _help_text(capsys, "track")
     found = re.search(r"--gamma GAMMA data weight \(default: ([\d.]+) when the template's mean triangle area is above "
                       r"([\d.]+) mm\^2, else ([\d.]+);", text)
     assert found, text
@@ -166,11 +169,7 @@ def test_the_fast_motion_chain_is_the_same_in_the_help_the_readme_and_the_docs(c
 
 def test_armature_help_says_meshes_need_an_out_directory(tmp_path, capsys):
     """``stage armature --out``'s help says it is required with ``--meshes``, as the command then says."""
-    import re
-
-    with pytest.raises(SystemExit):
-        main(["armature", "--help"])
-    assert "(default RESULTS_DIR/rig; required with --meshes)" in re.sub(r"\s+", " ", capsys.readouterr().out)
+    assert "(default RESULTS_DIR/rig; required with --meshes)" in _help_text(capsys, "armature")
     assert main(["armature", "--meshes", str(tmp_path / "*.obj")]) == 2
     assert "--meshes needs --out DIR" in capsys.readouterr().err
 
@@ -183,9 +182,7 @@ def test_armature_help_says_which_rest_frame_it_chooses(capsys):
 
     from pipeline.armature import choose_reference
 
-    with pytest.raises(SystemExit):
-        main(["armature", "--help"])
-    text = re.sub(r"\s+", " ", capsys.readouterr().out)
+    text = _help_text(capsys, "armature")
     found = re.search(r"--reference POS position \(0-based\) of the rest frame \(default: of (\d+) evenly spaced "
                       r"frames, the one whose curve skeleton shows the most tips\)", text)
     assert found, text
