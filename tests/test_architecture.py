@@ -28,7 +28,7 @@ PACKAGES = ("stage", "calib", "pipeline", "api", "fake_cameras")
 FLOORS: dict[int, tuple[str, tuple[str, ...]]] = {
     0: ("model", (
         "calib", "calib.camera", "calib.calibration", "calib.boards", "calib.formats", "calib._toml", "calib.fileio",
-        "stage", "stage.frame", "stage.rig", "stage.workers",
+        "stage", "stage.frame", "stage.rig", "stage.workers", "stage.messages",
     )),
     1: ("ground", (
         "stage.drivers.*", "stage.sync", "stage.store.*", "stage.keying.*", "stage.discovery", "stage.capture", "stage.session",

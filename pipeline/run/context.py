@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stage.messages import frames_named
+
 __all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "frame_warnings", "frames_said", "pool_size", "submit_aside",
            "submitted_by"]
 
@@ -166,14 +168,10 @@ def frame_warnings(frame: int) -> Iterator[list[tuple[str, str | None]]]:
         _FRAME.reset(token)
 
 
-#: frame sets a summary of a message names (:func:`frames_said`), the rest counted
-FRAMES_NAMED = 5
-
-
 def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]]) -> list[tuple[str, str]]:
     """One warning per kind of message the frames said (:func:`frame_warnings`): ``"{step}: {message} (N frame
-    sets: a, b, c, ...)"``, the first :data:`FRAMES_NAMED` frame sets named, in the order the messages were first
-    said (by frame set).
+    sets: a, b, c, ...)"``, the first :data:`stage.messages.FRAMES_NAMED` frame sets named
+    (:func:`stage.messages.frames_named`), in the order the messages were first said (by frame set).
 
     Parameters
     ----------
@@ -202,8 +200,7 @@ def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]]) -> lis
             frames.setdefault(kind, []).append(int(k))
     out = []
     for (message, job_message), ks in frames.items():
-        named = ", ".join(str(k) for k in ks[:FRAMES_NAMED]) + (", ..." if len(ks) > FRAMES_NAMED else "")
-        where = f" ({len(ks)} frame set{'s' if len(ks) != 1 else ''}: {named})"
+        where = f" ({len(ks)} frame set{'s' if len(ks) != 1 else ''}: {frames_named(ks)})"
         out.append((f"{step}: {message}{where}", f"{step}: {job_message or message}{where}"))
     return out
 

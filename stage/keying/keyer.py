@@ -24,6 +24,7 @@ from stage.keying.cleanup import estimate_coverage_fraction, mask_from_distance,
 from stage.keying.luma import estimate_luma_model, luma_distance
 from stage.keying.params import KEY_MODES, PLATE_CLOSE_RELATIVE, KeyingError, KeyParams, KeyResult
 from stage.keying.plate import estimate_plate_model, plate_distance
+from stage.messages import frames_named
 
 __all__ = ["key_frames", "estimate_model", "key_one"]
 
@@ -270,13 +271,9 @@ def _check_layers(frames: np.ndarray, plate, plate_noise, roi) -> None:
             raise ValueError(f"{name} must be an array of shape {frames.shape[1:3]}, got {getattr(arr, 'shape', arr)!r}")
 
 
-#: frames a warning of invalid masks names (:func:`say_invalid_masks`), the rest counted
-FRAMES_NAMED = 5
-
-
 def say_invalid_masks(rows: Any, reasons: Any, *, camera: str = "") -> None:
     """One warning per reason of the invalid masks (``reasons[i]`` non-empty): how many frames, the first
-    :data:`FRAMES_NAMED` of ``rows`` (the frames' numbers) and the reason; each frame at DEBUG level.
+    :data:`stage.messages.FRAMES_NAMED` of ``rows`` (the frames' numbers) and the reason; each frame at DEBUG level.
 
     Parameters
     ----------
@@ -302,8 +299,8 @@ def say_invalid_masks(rows: Any, reasons: Any, *, camera: str = "") -> None:
             log.debug("%sframe %d: mask invalid: %s", prefix, i, why)
             frames.setdefault(why, []).append(i)
     for why, ks in frames.items():
-        named = ", ".join(str(k) for k in ks[:FRAMES_NAMED]) + (", ..." if len(ks) > FRAMES_NAMED else "")
-        log.warning("%smask invalid in %d frame%s (%s): %s", prefix, len(ks), "s" if len(ks) != 1 else "", named, why)
+        log.warning("%smask invalid in %d frame%s (%s): %s", prefix, len(ks), "s" if len(ks) != 1 else "",
+                    frames_named(ks), why)
 
 
 def key_frames(
