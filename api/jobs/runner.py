@@ -11,7 +11,12 @@ and run again.
 Hook for tests and plug-ins: ``JobRunner(..., work=fn)`` or the setting
 ``work = "module:function"``; ``fn`` has the signature of ``process_take``::
 
-    fn(take, out, *, steps, params, executor, progress, cancel) -> result
+    fn(take, out, *, steps, params, executor, progress, cancel[, warn]) -> result
+
+A work function that takes ``warn`` is handed ``warn(message)``, to call as each of its warnings is said: the job's
+record keeps them (``warnings``) in every state, a failed or cancelled job those said before it stopped. A done
+job's record has the warnings of its result too (``result.report.warnings``, else ``result.warnings``): all of
+them for a work function without ``warn``.
 
 If the function's module defines ``ProcessParams`` (a pydantic model) the job's
 ``parameters`` are validated into it, ``STEPS`` (a tuple) lists the allowed steps, and
@@ -21,6 +26,7 @@ If the function's module defines ``ProcessParams`` (a pydantic model) the job's
 from __future__ import annotations
 
 import importlib
+import inspect
 import json
 import logging
 import threading
@@ -31,7 +37,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from api.executors import ExecutorHandle, make_executor
-from api.jobs.store import JobRecord, JobStore
+from api.jobs.store import JobRecord, JobStore, result_warnings
 from api.paths import confined, data_relative
 from calib.fileio import json_ready, plain
 
@@ -123,6 +129,15 @@ def load_work(spec: str | Callable[..., Any]) -> WorkSpec:
     check = getattr(mod, "check_job_steps", None) if mod is not None else None
     return WorkSpec(fn=fn, steps=steps, params_model=model, defaults=defaults,
                     check_steps=check if callable(check) else None)
+
+
+def _takes_warn(fn: Callable[..., Any]) -> bool:
+    """The work function takes ``warn`` (by name, or any keyword)."""
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):  # (a callable without a signature)
+        return False
+    return any((p.name == "warn" and p.kind != p.POSITIONAL_ONLY) or p.kind == p.VAR_KEYWORD for p in params)
 
 
 def _jsonable(obj: Any) -> Any:
@@ -324,15 +339,23 @@ class JobRunner:
             def progress(step: str, done: int, total: int) -> None:
                 self.store.progress(jid, str(step), int(done), int(total))
 
+            def warn(message: str) -> None:  # kept as said: a job that fails next still has it
+                try:
+                    self.store.add_warnings(jid, [data_relative(str(message), self.takes_dir.parent)])
+                except Exception:  # (a warning never fails the job: the report keeps it if the job ends well)
+                    log.exception("job %s: a warning could not be kept: %s", jid, message)
+
             if rec.kind == "process":
                 spec = self.work_spec()
                 result = spec.fn(
                     take, out, steps=tuple(rec.steps), params=spec.to_params(rec.params),
                     executor=self.executor().executor, progress=progress, cancel=cancel,
+                    **({"warn": warn} if _takes_warn(spec.fn) else {}),
                 )
             elif rec.kind in self.handlers:
-                result = self.handlers[rec.kind](take, out, params=rec.params, progress=progress, cancel=cancel,
-                                                 job_id=jid, take_id=rec.take)
+                handler = self.handlers[rec.kind]
+                result = handler(take, out, params=rec.params, progress=progress, cancel=cancel, job_id=jid,
+                                 take_id=rec.take, **({"warn": warn} if _takes_warn(handler) else {}))
             else:
                 raise ValueError(f"unknown job kind {rec.kind!r}")
         except InterruptedError:  # the work stopped on the cancel event
@@ -350,12 +373,16 @@ class JobRunner:
             log.exception("job %s failed", jid)
             self._after_stop_or_fail(jid, cancel, f"internal error: {type(exc).__name__}: {exc}")
             return
-        if cancel.is_set() and not self._user_cancelled(jid):
+        stopped = cancel.is_set()  # (read once: a stop of the server meanwhile does not make a done job cancelled)
+        if stopped and not self._user_cancelled(jid):
             self._requeue(jid)
-        elif cancel.is_set():
-            self.store.finish(jid, "cancelled", result=self._public(result))
+            return
+        public = self._public(result)
+        self.store.add_warnings(jid, result_warnings(public))  # (a work function without ``warn``: all of them)
+        if stopped:
+            self.store.finish(jid, "cancelled", result=public)
         else:
-            self.store.finish(jid, "done", result=self._public(result))
+            self.store.finish(jid, "done", result=public)
             log.info("job %s done", jid)
 
     def _public(self, result: Any) -> Any:

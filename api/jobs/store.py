@@ -1,7 +1,8 @@
 """Durable job records in SQLite (WAL mode) under the data root.
 
 One row per job: kind, take, steps, parameters, state, progress per step,
-heartbeat, attempts, error, cancel flag. Progress events (one per increase of the
+heartbeat, attempts, error, cancel flag, and the warnings the job said (each once, in the order said, kept as
+they are said: a failed or cancelled job keeps those said before it stopped). Progress events (one per increase of the
 number of frames done, summed over steps) are kept in a second table so that a
 Server-Sent-Events client that reconnects with ``Last-Event-ID: N`` receives the
 events it missed.
@@ -48,7 +49,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     progress TEXT NOT NULL DEFAULT '{}',
     done INTEGER NOT NULL DEFAULT 0,
     total INTEGER NOT NULL DEFAULT 0,
-    result TEXT
+    result TEXT,
+    warnings TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state, created);
 CREATE TABLE IF NOT EXISTS events (
@@ -101,6 +103,9 @@ class JobRecord(BaseModel):
     done: int = Field(0, description="frames done, summed over steps (the SSE event id)")
     total: int = 0
     result: dict[str, Any] | None = None
+    warnings: list[str] = Field(default_factory=list, description=(
+        "what the job warned of, each once, in the order said, in every state: kept as they are said, so a failed "
+        "or cancelled job keeps those said before it stopped (a done job's are its report's too)"))
 
     @classmethod
     def _from_row(cls, row: sqlite3.Row) -> "JobRecord":
@@ -122,10 +127,30 @@ class JobRecord(BaseModel):
             done=row["done"],
             total=row["total"],
             result=json.loads(row["result"]) if row["result"] else None,
+            warnings=_warnings_of(row),
         )
 
     def to_dict(self) -> dict[str, Any]:
         return {**self.model_dump(), "steps": list(self.steps)}
+
+
+def result_warnings(result: Any) -> list[str]:
+    """The warnings a work function's result (as JSON) holds: ``result.report.warnings`` (a processing job's
+    report), else ``result.warnings``; none for any other result."""
+    if not isinstance(result, dict):
+        return []
+    report = result.get("report")
+    said = report.get("warnings") if isinstance(report, dict) else None
+    said = result.get("warnings") if said is None else said
+    return [w for w in said if isinstance(w, str)] if isinstance(said, list) else []
+
+
+def _warnings_of(row: sqlite3.Row) -> list[str]:
+    """A row's warnings; a row written before the store kept them (``NULL``) has its result's
+    (:func:`result_warnings`): a done job's, none for a failed or cancelled one."""
+    if row["warnings"] is not None:
+        return json.loads(row["warnings"])
+    return result_warnings(json.loads(row["result"]) if row["result"] else None)
 
 
 class JobStore:
@@ -144,6 +169,7 @@ class JobStore:
         con = self._con()
         con.execute("PRAGMA journal_mode=WAL")
         con.executescript(_SCHEMA)
+        self._add_column(con, "warnings", "TEXT")  # a store written before the job records kept their warnings
 
     # -- connections -------------------------------------------------------------------------
     def _con(self) -> sqlite3.Connection:
@@ -163,6 +189,17 @@ class JobStore:
             con.close()
             self._local.con = None
 
+    @staticmethod
+    def _add_column(con: sqlite3.Connection, name: str, kind: str) -> None:
+        """Add a column the jobs table of an older store lacks (its rows read ``NULL`` there)."""
+        if name in {r["name"] for r in con.execute("PRAGMA table_info(jobs)")}:
+            return
+        try:
+            con.execute(f"ALTER TABLE jobs ADD COLUMN {name} {kind}")
+        except sqlite3.OperationalError as exc:  # another process opening the store added it meanwhile
+            if "duplicate column" not in str(exc):
+                raise
+
     def _tx(self, fn, *, immediate: bool = True):
         con = self._con()
         con.execute("BEGIN IMMEDIATE" if immediate else "BEGIN")
@@ -180,7 +217,8 @@ class JobStore:
         jid = job_id or uuid.uuid4().hex
         now = time.time()
         self._con().execute(
-            "INSERT INTO jobs (id, kind, take, steps, params, state, created) VALUES (?, ?, ?, ?, ?, 'queued', ?)",
+            "INSERT INTO jobs (id, kind, take, steps, params, state, created, warnings) "
+            "VALUES (?, ?, ?, ?, ?, 'queued', ?, '[]')",
             (jid, kind, take, json.dumps(list(steps)), json.dumps(params, sort_keys=True), now),
         )
         return self.get(jid)
@@ -297,6 +335,41 @@ class JobStore:
                 "INSERT OR IGNORE INTO events (job, seq, time, data) VALUES (?, ?, ?, ?)",
                 (job_id, sdone, time.time(), json.dumps(data, sort_keys=True)),
             )
+
+        self._tx(fn)
+
+    def add_warnings(self, job_id: str, messages: Iterable[str]) -> None:
+        """Keep ``messages`` among the job's warnings, after those it has, each once (a message it has already,
+        said again by a step or by the job's next attempt, is not added twice).
+
+        Parameters
+        ----------
+        job_id : str
+            The job.
+        messages : iterable of str
+            What the job warned of, in the order said.
+
+        Raises
+        ------
+        ValueError
+            ``messages`` is a string, or holds something other than strings.
+        JobNotFoundError
+            No job ``job_id``.
+        """
+        if isinstance(messages, (str, bytes)):
+            raise ValueError("messages must be an iterable of strings, got one string")
+        said = list(messages)
+        if not all(isinstance(m, str) for m in said):
+            raise ValueError(f"messages must be strings, got {[type(m).__name__ for m in said]}")
+
+        def fn(con: sqlite3.Connection):
+            row = con.execute("SELECT warnings, result FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                raise JobNotFoundError(f"no job {job_id!r}")
+            kept = _warnings_of(row)
+            new = [m for m in dict.fromkeys(said) if m not in kept]
+            if new or row["warnings"] is None:
+                con.execute("UPDATE jobs SET warnings = ? WHERE id = ?", (json.dumps(kept + new), job_id))
 
         self._tx(fn)
 

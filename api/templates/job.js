@@ -29,7 +29,7 @@
     const err = document.getElementById('error');
     err.textContent = j.error || '';
     if (j.state === 'done' && j.kind === 'process') document.getElementById('report').hidden = false;
-    const warned = ((j.result || {}).report || {}).warnings || [];  // what the run warned of (its report's warnings)
+    const warned = j.warnings || [];  // what the job warned of, in every state (a failed job's before it stopped)
     const ul = document.getElementById('warning-list'); ul.replaceChildren();
     for (const w of warned){ const li = document.createElement('li'); li.textContent = w; ul.appendChild(li); }
     document.getElementById('nwarn').textContent = warned.length;

@@ -104,7 +104,7 @@ class RunContext(Run):
         """Log ``msg`` as a warning and keep it for the report and the job (``warnings``), said as ``job_message``
         there when given (a message naming a command line option names the job's parameter instead)."""
         log.warning("%s", msg)
-        self.warnings.append(msg if job_message is None else job_message)
+        self.keep_warning(msg if job_message is None else job_message)
 
     def add_to_record(self, **items) -> None:
         """Add what a step decided (e.g. the grid and why) to ``process.json``."""

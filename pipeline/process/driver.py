@@ -83,7 +83,7 @@ def _open_context(take: Path, out: Path, params: ProcessParams, **hooks) -> RunC
                      **hooks)
     if damaged:
         ctx.damaged = damaged
-        ctx.warnings.append(damaged["summary"])
+        ctx.keep_warning(damaged["summary"])
     return ctx
 
 
@@ -185,6 +185,7 @@ def process_take(
     executor: cf.Executor | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     cancel: threading.Event | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> ProcessResult:
     """Run keying, reconstruction and spines on a take; resumable.
 
@@ -204,6 +205,9 @@ def process_take(
         ``progress(step, done, total)`` after every finished chunk of frames.
     cancel : threading.Event, optional
         Set it to stop between chunks (``InterruptedError``); finished frames stay.
+    warn : callable, optional
+        ``warn(message)`` as each of the run's warnings is said (those of ``report.json``, in its words): a caller
+        keeps those said before a step fails or the run is cancelled, which no report holds (a job's record does).
 
     Returns
     -------
@@ -218,6 +222,8 @@ def process_take(
         steps = (*steps, "refine")  # keying's graphcut layer (a no-op without it)
     steps = tuple(s for s in STEPS if s in steps)
     params = check_params(params)
+    if warn is not None and not callable(warn):
+        raise ValueError(f"warn must be a callable taking a message, or None, got {type(warn).__name__}")
     if not take.is_file():
         raise FileNotFoundError(f"{take}: take not found")
     if out.resolve() == take.resolve() or out.suffix in (".h5", ".hdf5"):
@@ -228,7 +234,7 @@ def process_take(
         for _ in range(2):
             executor.submit(warm_task)  # workers import while this process reads the take
     try:
-        ctx = _open_context(take, out, params, executor=executor, progress=progress, cancel=cancel)
+        ctx = _open_context(take, out, params, executor=executor, progress=progress, cancel=cancel, on_warning=warn)
         ctx.steps = steps
         need = _space_needed(ctx, steps)
         with raise_disk_full(out, "the processing results", need,

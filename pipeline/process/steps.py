@@ -428,7 +428,7 @@ class _StepWarnings(logging.Handler):
             return  # another job's thread (or its task's); the processing's own (ctx.warn keeps those itself)
         msg = f"{self.step}: {getattr(record, 'job_message', None) or record.getMessage()}"
         if msg not in self.ctx.warnings:  # (a round's armature says what the round before said)
-            self.ctx.warnings.append(msg)
+            self.ctx.keep_warning(msg)
 
 
 @contextlib.contextmanager
@@ -547,7 +547,7 @@ def _step_rig(ctx: RunContext) -> None:
         if "track" not in ctx.steps:
             msg = "rig: the take had no tracked template: the track step ran first (with the job's track parameters" + \
                   (" and the template's labels, for rig parts 'limbs')" if limbs else ")")
-            ctx.warnings.append(msg)
+            ctx.keep_warning(msg)
             log.warning("%s", msg)
             _need_surfaces(ctx, "rig")
             with ctx.part("track"):  # its seconds are the tracking's, not the rig's

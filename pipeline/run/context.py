@@ -321,6 +321,9 @@ class Run:
     progress: Callable[[str, int, int], None] | None = None
     cancel: threading.Event | None = None
     warnings: list[str] = field(default_factory=list)
+    #: ``on_warning(message)`` as each warning is kept (:meth:`keep_warning`): a caller keeps those said before a
+    #: step fails or the run is cancelled, which no report holds
+    on_warning: Callable[[str], None] | None = None
     clock: Clock = field(default_factory=Clock)
     step: str = ""  # the step running
     _reported: dict[str, tuple[int, int]] = field(default_factory=dict, init=False, repr=False)  # progress name -> (done, total)
@@ -336,6 +339,12 @@ class Run:
             yield
         finally:
             self.clock.add_part(self.step, name, time.perf_counter() - t0, time.process_time() - c0)
+
+    def keep_warning(self, message: str) -> None:
+        """Keep ``message`` in the run's ``warnings`` (the report's, a job's) and tell ``on_warning`` at once."""
+        self.warnings.append(message)
+        if self.on_warning is not None:
+            self.on_warning(message)
 
     def report_progress(self, step: str, done: int, total: int) -> None:
         self._reported[step] = (int(done), int(total))

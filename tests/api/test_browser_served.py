@@ -1,7 +1,8 @@
 """A real browser on a real server: ``python -m stage serve`` processes a small simulated take over HTTP;
 headless Chromium (Playwright, Debian's chromium) follows the job's live progress page, then opens the
 report and the take's page from the server, waits for the plotly 3-D views and checks they are not blank;
-a second job, over a take whose masks failed in some frame sets, lists its warnings on its page.
+a second job, over a take whose masks failed in some frame sets, which then fails (its rig's rest frame is past
+the surfaces), lists on its page the warnings said before it failed.
 
 Screenshots are kept under ``$STAGE_TEST_ARTIFACTS`` (else the test's tmp dir); the path is printed.
 """
@@ -60,7 +61,8 @@ def test_browser_on_served_pages(tmp_path):
         r = httpx.post(f"{srv.url}/jobs", json={"take": "sim"}, headers=AUTH, timeout=30)
         assert r.status_code == 202, r.text
         jid = r.json()["id"]
-        r = httpx.post(f"{srv.url}/jobs", json={"take": "failed", "steps": ["surface"], "parameters": {"resolution": 32}},
+        r = httpx.post(f"{srv.url}/jobs", json={"take": "failed", "steps": ["surface", "track", "rig"],
+                                                "parameters": {"resolution": 32, "rig": {"reference": 50}}},
                        headers=AUTH, timeout=30)
         assert r.status_code == 202, r.text
         failed = r.json()["id"]
@@ -114,12 +116,16 @@ def test_browser_on_served_pages(tmp_path):
                 loaded = page.evaluate("() => Array.from(document.images).map(i => i.naturalWidth)")
                 page.screenshot(path=str(art / "take_page.png"), full_page=True)
 
-                # a job whose frames warned: its page lists the job's warnings (its worker processes carved them)
+                # a job whose frames warned, then failed: its page lists the warnings said before it failed (its
+                # worker processes carved the frames), with its error
                 page.goto(f"{srv.url}/ui/jobs/{failed}", wait_until="load", timeout=30_000)
-                page.wait_for_function("() => document.getElementById('state').textContent === 'done'", timeout=60_000)
+                page.wait_for_function("() => document.getElementById('state').textContent === 'failed'",
+                                       timeout=60_000)
                 shown = page.eval_on_selector_all("#warning-list li", "els => els.map(e => e.textContent)")
                 shown_count, shown_visible = page.text_content("#nwarn"), page.is_visible("#warnings")
-                warned = httpx.get(f"{srv.url}/jobs/{failed}", timeout=10).json()["result"]["report"]["warnings"]
+                shown_error = page.text_content("#error")
+                page.screenshot(path=str(art / "failed_job_page.png"), full_page=True)
+                st = httpx.get(f"{srv.url}/jobs/{failed}", timeout=10).json()
             finally:
                 browser.close()
     finally:
@@ -132,7 +138,11 @@ def test_browser_on_served_pages(tmp_path):
     not_blank(frusta_png, "take frusta")
     assert n_cams == CAMERAS
     assert len(loaded) == 3 * CAMERAS * 2 and all(w == SIZE[0] for w in loaded), loaded  # frames and masks
-    # the failed masks' job: each kind of warning once, with its frame sets, on its page as in its record
+    # the failed masks' job: each kind of warning once, with its frame sets, on its page as in its record, and the
+    # error that stopped it after them
+    assert st["state"] == "failed" and st["result"] is None, st
+    assert shown_error == st["error"] and "rig.reference" in shown_error, shown_error
+    warned = st["warnings"]
     assert [w for w in warned if "silhouette consistency" not in w] == FAILED_MASKS_SAID, warned
     assert shown == warned and shown_count == str(len(warned)) and shown_visible
 

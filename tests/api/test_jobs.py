@@ -278,9 +278,36 @@ def test_a_jobs_warnings_and_page_say_what_its_frames_warned_of_once_per_kind(ma
     assert st["state"] == "done", st
     warned = st["result"]["report"]["warnings"]
     assert [w for w in warned if "silhouette consistency" not in w] == FAILED_MASKS_SAID, warned
+    assert st["warnings"] == warned  # (the record's own, in every state)
     page = c.get(f"/ui/jobs/{jid}", headers=AUTH).text
     shown = re.search(r'<ul id="warning-list">(.*?)</ul>', page, re.S).group(1)
     assert [html.unescape(w) for w in re.findall(r"<li>(.*?)</li>", shown)] == warned
+    assert f'<span id="nwarn">{len(warned)}</span>' in page
+
+
+def test_a_failed_jobs_record_and_page_keep_the_warnings_said_before_it_stopped(make_client, tmp_path):
+    """The surface step warns of the failed masks' frame sets, then the rig's rest frame past the surfaces stops the
+    job before it tracks: the failed job (no result, no report) has those warnings in its record, in the order said,
+    and its page lists them, as a done job's."""
+    import html
+
+    from tests.pipeline.hull_scenes import FAILED_MASKS_SAID, take_with_failed_masks
+
+    data = tmp_path / "data"
+    (data / "takes").mkdir(parents=True)
+    take_with_failed_masks(data / "takes" / "t.h5")
+    c = make_client(work="pipeline.process:process_take", data=data)
+    jid = c.post("/jobs", json={"take": "t", "steps": ["surface", "track", "rig"],
+                                "parameters": {"resolution": 32, "rig": {"reference": 50}}}, headers=AUTH).json()["id"]
+    st = wait_job(c, jid, timeout=120)
+    assert st["state"] == "failed" and "rig.reference" in st["error"] and st["result"] is None, st
+    warned = st["warnings"]
+    assert [w for w in warned if "silhouette consistency" not in w] == FAILED_MASKS_SAID, warned
+    assert c.get("/jobs", params={"state": "failed"}).json()[0]["warnings"] == warned
+    page = c.get(f"/ui/jobs/{jid}", headers=AUTH).text
+    shown = re.search(r'<section id="warnings"([^>]*)>.*?<ul id="warning-list">(.*?)</ul>', page, re.S)
+    assert "hidden" not in shown.group(1)
+    assert [html.unescape(w) for w in re.findall(r"<li>(.*?)</li>", shown.group(2))] == warned
     assert f'<span id="nwarn">{len(warned)}</span>' in page
 
 

@@ -110,6 +110,11 @@ def test_invalid_input(tmp_path):
         store.delete(j.id)  # still queued
     with pytest.raises(ValueError, match="state"):
         store.finish(j.id, "running")
+    for bad in ("one string", [1], [None, "a"]):
+        with pytest.raises(ValueError, match="messages must be"):
+            store.add_warnings(j.id, bad)
+    with pytest.raises(JobNotFoundError):
+        store.add_warnings("0" * 32, ["a warning"])
     with pytest.raises(ValueError, match="stale_after_s"):
         JobRunner(store, takes_dir=tmp_path, jobs_dir=tmp_path, heartbeat_s=1, stale_after_s=0.5)
     with pytest.raises(ValueError, match="module:function"):
@@ -185,3 +190,87 @@ def test_start_stop_under_stress_loses_no_job_and_joins_every_thread(tmp_path):
     finally:
         runner.stop()
     assert {store.get(j).state for j in ids} == {"done"}
+
+
+def test_a_jobs_warnings_are_kept_as_said_in_every_state(tmp_path):
+    """A work function's warnings are in the job's record as it says them: a job that fails or is cancelled next
+    keeps them (no result holds them); each once, the server's paths as ``DATA/...``; a done job has its result's
+    too, and a work function that takes no ``warn`` has its result's alone."""
+    from tests.polling import wait_until
+
+    takes, jobs = tmp_path / "takes", tmp_path / "jobs"
+    takes.mkdir()
+    fakework.make_take_file(takes / "t.h5", 1)
+    store = JobStore(tmp_path / "jobs.sqlite")
+
+    def fails(take, out, *, params, progress, cancel, job_id, take_id, warn):
+        warn("surface: camera cam02: mask is all foreground (3 frame sets: 1, 2, 3)")
+        warn(f"surface: {out} holds results of other parameters")
+        warn("surface: camera cam02: mask is all foreground (3 frame sets: 1, 2, 3)")  # said again: kept once
+        raise ValueError("the step broke")
+
+    def cancelled(take, out, *, params, progress, cancel, job_id, take_id, warn):
+        warn("key: cam01: mask invalid in 2 frames (2, 3): black")
+        cancel.wait(20)
+        raise InterruptedError
+
+    def done(take, out, *, params, progress, cancel, job_id, take_id, warn):
+        warn("track: said while running")
+        return {"report": {"warnings": ["track: said while running", "rig: in the report alone"]}}
+
+    def no_warn(take, out, *, params, progress, cancel, job_id, take_id):
+        return {"warnings": ["in the result"]}
+
+    runner = JobRunner(store, takes_dir=takes, jobs_dir=jobs, heartbeat_s=0.05, stale_after_s=0.2, poll_s=0.01,
+                       max_concurrent=4, handlers={"fails": fails, "cancelled": cancelled, "done": done,
+                                                   "no_warn": no_warn})
+    ids = {k: store.create(kind=k, take="t", steps=[k], params={}).id for k in ("fails", "cancelled", "done", "no_warn")}
+    runner.start()
+    try:
+        wait_until(lambda: store.get(ids["cancelled"]).warnings, timeout=20, what="the cancelled job's warning")
+        store.request_cancel(ids["cancelled"])
+        wait_until(lambda: all(store.get(j).state in ("done", "failed", "cancelled") for j in ids.values()),
+                   timeout=20, what="every job finished")
+    finally:
+        runner.stop()
+    st = {k: store.get(j) for k, j in ids.items()}
+    assert st["fails"].state == "failed" and st["fails"].error == "the step broke" and st["fails"].result is None
+    assert st["fails"].warnings == ["surface: camera cam02: mask is all foreground (3 frame sets: 1, 2, 3)",
+                                    f"surface: DATA/jobs/{ids['fails']} holds results of other parameters"]
+    assert st["cancelled"].state == "cancelled"
+    assert st["cancelled"].warnings == ["key: cam01: mask invalid in 2 frames (2, 3): black"]
+    assert st["done"].state == "done" and st["done"].warnings == ["track: said while running", "rig: in the report alone"]
+    assert st["no_warn"].state == "done" and st["no_warn"].warnings == ["in the result"]
+    assert JobStore(tmp_path / "jobs.sqlite").get(ids["fails"]).warnings == st["fails"].warnings  # (durable)
+
+
+def test_a_store_written_before_the_warnings_were_kept_still_loads(tmp_path):
+    """A store whose jobs table has no ``warnings`` (written by an earlier version) opens: a done job's warnings are
+    its report's, a failed job's none; warnings said now are kept for its jobs too, after the report's."""
+    import sqlite3
+
+    path = tmp_path / "jobs.sqlite"
+    con = sqlite3.connect(path)
+    con.executescript("""
+        CREATE TABLE jobs (id TEXT PRIMARY KEY, kind TEXT NOT NULL, take TEXT NOT NULL, steps TEXT NOT NULL,
+            params TEXT NOT NULL, state TEXT NOT NULL, created REAL NOT NULL, started REAL, finished REAL,
+            heartbeat REAL, attempts INTEGER NOT NULL DEFAULT 0, error TEXT, cancel INTEGER NOT NULL DEFAULT 0,
+            owner TEXT, progress TEXT NOT NULL DEFAULT '{}', done INTEGER NOT NULL DEFAULT 0,
+            total INTEGER NOT NULL DEFAULT 0, result TEXT);
+        CREATE TABLE events (job TEXT NOT NULL, seq INTEGER NOT NULL, time REAL NOT NULL, data TEXT NOT NULL,
+            PRIMARY KEY (job, seq));
+    """)
+    report = {"report": {"warnings": ["surface: an old warning", 3]}}
+    for jid, state, result in (("a" * 32, "done", json.dumps(report)), ("b" * 32, "failed", None),
+                               ("c" * 32, "done", json.dumps({"report": {"frames": 2}}))):
+        con.execute("INSERT INTO jobs (id, kind, take, steps, params, state, created, attempts, result) "
+                    "VALUES (?, 'process', 't', '[\"key\"]', '{}', ?, 1.0, 1, ?)", (jid, state, result))
+    con.commit()
+    con.close()
+    store = JobStore(path)
+    assert store.get("a" * 32).warnings == ["surface: an old warning"]
+    assert store.get("b" * 32).warnings == [] and store.get("c" * 32).warnings == []
+    store.add_warnings("a" * 32, ["rig: a new one", "surface: an old warning"])
+    assert JobStore(path).get("a" * 32).warnings == ["surface: an old warning", "rig: a new one"]
+    assert store.create(kind="process", take="t", steps=["key"], params={}).warnings == []
+    assert [j.id for j in store.list(state="done")] == ["a" * 32, "c" * 32]

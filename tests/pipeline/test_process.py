@@ -112,6 +112,8 @@ def test_invalid_input(starfish, tmp_path):
         process_take(path, tmp_path / "o", steps=("carve",))
     with pytest.raises(ValueError, match="params"):
         process_take(path, tmp_path / "o", params={"resolution": 3})
+    with pytest.raises(ValueError, match="warn must be a callable"):
+        process_take(path, tmp_path / "o", warn=["a list"])
     with pytest.raises(FileNotFoundError):
         process_take(tmp_path / "missing.h5", tmp_path / "o")
     with pytest.raises(ValueError, match="out"):

@@ -111,9 +111,10 @@ def _recording(monkeypatch):
 def _ctx(out, track: dict, steps=("track",), executor=None):
     from pipeline.run import Clock
 
-    seen = []
+    seen, warned = [], []
     return SimpleNamespace(out=out, report_progress=lambda *a: seen.append(a), executor=executor, clock=Clock(),
-                           warnings=[], params=ProcessParams(track=track), steps=steps), seen
+                           warnings=warned, keep_warning=warned.append, params=ProcessParams(track=track),
+                           steps=steps), seen
 
 
 @pytest.mark.parametrize("flags, track", [
@@ -285,7 +286,7 @@ def _rig_ctx(out, rig: dict, steps=("rig",), n_sets=8):
     seen, warned = [], []
     take = SimpleNamespace(n_sets=n_sets, calibration=SimpleNamespace(units="mm"), fps=30.0)
     return SimpleNamespace(out=out, report_progress=lambda *a: seen.append(a), executor=None, warnings=warned,
-                           warn=warned.append, params=ProcessParams(rig=rig), steps=steps, take=take,
+                           warn=warned.append, keep_warning=warned.append, params=ProcessParams(rig=rig), steps=steps, take=take,
                            part=lambda name: contextlib.nullcontext())
 
 

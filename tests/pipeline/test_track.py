@@ -749,8 +749,9 @@ def test_tracking_again_with_other_settings_removes_the_rig_built_on_the_old_fra
     track_results(tmp_path, template=(t.vertices, t.faces), predict=False)
     assert not caplog.records and (tmp_path / "rig" / "rig.glb").is_file()
     # `stage process ... steps track` (its defaults: predict on, the first frame's surface) starts over too
+    warned = []
     ctx = SimpleNamespace(out=tmp_path, progress=None, report_progress=lambda *a: None, executor=None, clock=Clock(),
-                          warnings=[], params=ProcessParams(), steps=("track",))
+                          warnings=warned, keep_warning=warned.append, params=ProcessParams(), steps=("track",))
     (tmp_path / "rig" / "notes.txt").unlink()
     (tmp_path / "rig" / "posed" / "1_user.ply").unlink()
     _step_track(ctx)

@@ -192,8 +192,9 @@ def test_rig_step(tmp_path, caplog):
     # the rig runs on what tracking wrote, so it comes after the spine and the tracking
     assert STEPS.index("rig") > STEPS.index("track") > STEPS.index("spine")
     take = SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0, n_sets=1)
+    warned = []
     ctx = SimpleNamespace(out=tmp_path, take=take, progress=None, report_progress=lambda *a: None,
-                          steps=("rig",), warnings=[], params=ProcessParams())
+                          steps=("rig",), warnings=warned, keep_warning=warned.append, params=ProcessParams())
     # a take of one frame set: nothing moves, said before any tracking (no warning that the track step ran)
     with pytest.raises(ProcessError, match="rig: the take has one frame set: an armature is found from how the "
                        "subject moves; it needs 2 frame sets or more"):
@@ -223,7 +224,7 @@ def test_the_rig_step_of_a_rigid_take_says_one_segment(tmp_path):
     warnings = []
     ctx = SimpleNamespace(out=tmp_path, take=SimpleNamespace(calibration=SimpleNamespace(units="mm"), fps=25.0, n_sets=6),
                           report_progress=lambda *a: None, steps=("rig",), warnings=warnings, warn=warnings.append,
-                          params=ProcessParams())
+                          keep_warning=warnings.append, params=ProcessParams())
     _step_rig(ctx)
     assert json.loads((tmp_path / "rig" / "rig.json").read_text())["segmentation"]["segments"] == 1
     assert warnings == ["rig: nothing bends in this sequence (one eigenvalue below lambda_thr=0.7): one segment",
