@@ -74,12 +74,18 @@ _WARNING_LOGGERS = ("pipeline", "stage")
 _FRAME: ContextVar[tuple[int, list] | None] = ContextVar("pipeline_frame_warnings", default=None)
 
 
+#: a level below every handler's (``logging.NOTSET`` is 0): a record of this level reaches none
+_NO_HANDLER = -1
+
+
 class _FrameWarnings(logging.Handler):
     """First handler of the ``pipeline`` and ``stage`` loggers: a warning said while this thread works on a frame
-    (:func:`frame_warnings`) is kept for the frame, then goes on as a DEBUG record naming the frame, below the level
-    of every other handler (a terminal's, a job's, a worker's): the frame's warnings are said once per kind by
-    the step that ran the frames, not one frame at a time. Any other record it leaves to the others; with none
-    (logging not set up) it hands it to ``logging.lastResort``, as logging would without this handler."""
+    (:func:`frame_warnings`) is kept for the frame, then goes on as a DEBUG record naming the frame where its logger
+    logs DEBUG (``stage -vv``), and reaches no other handler elsewhere, as a DEBUG record would not be made there:
+    a handler of no level of its own (``logging.basicConfig(level=logging.INFO)``'s) takes every record that reaches
+    it. The frame's warnings are said once per kind by the step that ran the frames, not one frame at a time, on a
+    terminal, in a job, in a worker. Any other record it leaves to the others; with none (logging not set up) it
+    hands it to ``logging.lastResort``, as logging would without this handler."""
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
@@ -99,7 +105,8 @@ class _FrameWarnings(logging.Handler):
             return
         said.append((message, getattr(record, "job_message", None)))
         record.msg, record.args = f"frame set {frame}: {message}", None
-        record.levelno, record.levelname = logging.DEBUG, logging.getLevelName(logging.DEBUG)
+        debug = logging.getLogger(record.name).isEnabledFor(logging.DEBUG)
+        record.levelno, record.levelname = (logging.DEBUG if debug else _NO_HANDLER), logging.getLevelName(logging.DEBUG)
 
     def _others(self, name: str) -> bool:
         """A handler other than this one takes the records of logger ``name`` (its own or an ancestor's)."""
@@ -139,7 +146,8 @@ def frame_warnings(frame: int) -> Iterator[list[tuple[str, str | None]]]:
     A per-frame task runs each frame in one (:func:`pipeline.process.tasks.surface_task`); the step that ran the
     frames says each kind of message once, with the count of frame sets and the first of them (:func:`frames_said`),
     in the run's warnings (a job's, ``report.json``'s) and on the terminal. Each frame's warning is still logged,
-    at DEBUG level and prefixed with ``frame set N:``, where the log keeps it.
+    at DEBUG level and prefixed with ``frame set N:``, where its logger logs DEBUG (``stage -vv``); where it does not
+    (``logging.basicConfig(level=logging.INFO)``, ``stage -v``), it reaches no handler.
 
     Parameters
     ----------

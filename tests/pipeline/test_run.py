@@ -265,3 +265,70 @@ def test_with_no_handler_set_up_a_warning_outside_a_frame_still_reaches_loggings
     with frame_warnings(3) as said:
         logging.getLogger("stage.keying").warning("inside")
     assert [m for _, _, m, _ in heard.heard] == ["outside"] and said == [("inside", None)]
+
+
+class _BasicConfig(logging.Handler):
+    """What ``logging.basicConfig(level=...)`` installs: a handler of no level of its own on the root logger, the
+    level on the root logger (the ``pipeline`` and ``stage`` loggers have none of their own)."""
+
+    def __init__(self, level: int):
+        super().__init__(logging.NOTSET)
+        self.level_asked, self.lines = level, []
+
+    def emit(self, record):
+        self.lines.append((record.levelno, record.name, record.getMessage()))
+
+    def __enter__(self):
+        root = logging.getLogger()
+        self._was = root.level, [(lg, lg.level) for lg in map(logging.getLogger, ("pipeline", "stage"))]
+        for lg, _ in self._was[1]:
+            lg.setLevel(logging.NOTSET)
+        root.setLevel(self.level_asked)
+        root.addHandler(self)
+        return self
+
+    def __exit__(self, *exc):
+        root = logging.getLogger()
+        root.removeHandler(self)
+        root.setLevel(self._was[0])
+        for lg, level in self._was[1]:
+            lg.setLevel(level)
+
+
+@pytest.mark.parametrize("pool", [None, cf.ThreadPoolExecutor])
+def test_a_frames_warnings_reach_a_basic_config_at_info_not_at_all_and_at_debug_once_each(tmp_path, pool):
+    """``logging.basicConfig(level=logging.INFO)`` (or ``stage -v``): what a frame warns of reaches its handler not at
+    all, at no level (the step says each kind once); at DEBUG (``stage -vv``) each frame's, as a DEBUG record naming
+    the frame set. A warning outside a frame reaches it either way."""
+    tasks = [partial(_frames_warn, ch) for ch in chunks(range(13), 4)]
+    for level in (logging.INFO, logging.DEBUG):
+        with _BasicConfig(level) as basic, pool(2) if pool else contextlib.nullcontext() as ex:
+            said = dict(r for rs in Run(out=tmp_path, executor=ex).map_tasks(tasks) for r in rs)
+        assert said[3] == [("camera cam02: mask is all foreground", None)] * 2  # (kept for the frame either way)
+        heard = [(lv, m) for lv, name, m in basic.lines if name.startswith(("pipeline", "stage"))]
+        assert [m for lv, m in heard if lv >= logging.INFO] == ["after the frames"] * 4, heard
+        debug = sorted(m for lv, m in heard if lv < logging.INFO)
+        assert debug == ([] if level == logging.INFO else sorted(
+            [f"frame set {k}: camera cam02: mask is all foreground" for k in range(1, 13, 2) for _ in range(2)]
+            + ["frame set 4: cam01: see --plate"])), debug
+
+
+def test_a_python_user_at_info_sees_each_kind_of_a_steps_frame_warnings_once(tmp_path):
+    """``process_take`` under ``logging.basicConfig(level=logging.INFO)`` on a take whose camera cam02's masks are
+    all foreground in frame sets 1-3 and whose frame set 4 is empty (surface, spine, track): each kind of what the
+    frames warn of is said once, with its frame sets, and no line of the run names one frame set or is said for
+    several (the per-frame lines are DEBUG, and DEBUG is off)."""
+    import re
+
+    from pipeline.process import process_take
+    from tests.pipeline.hull_scenes import FAILED_MASKS_SAID, take_with_failed_masks
+
+    take = take_with_failed_masks(tmp_path / "t.h5")
+    with _BasicConfig(logging.INFO) as basic:
+        process_take(take, tmp_path / "out", steps=["surface", "spine", "track"], params={"resolution": 32})
+    lines = [m for lv, name, m in basic.lines if name.startswith(("pipeline", "stage"))]
+    assert all(lv >= logging.INFO for lv, _, _ in basic.lines), basic.lines
+    assert [m for m in lines if "foreground" in m] == FAILED_MASKS_SAID, lines
+    assert not [m for m in lines if re.match(r"frame set \d+: ", m)], lines
+    kinds = [re.sub(r"\d+", "#", m) for m in lines]
+    assert not [k for k in set(kinds) if kinds.count(k) > 2], lines  # (no line said for frame sets 1, 2 and 3)
