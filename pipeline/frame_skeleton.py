@@ -217,7 +217,8 @@ class FrameSkeleton:
             skeletons=tuple(TipSkeleton.from_dict(s) for s in d["skeletons"]),
             size=float(d["size"]),
             n_faces=int(d["n_faces"]),
-            limb_points=np.asarray(d["limb_points"], dtype=np.float64).reshape(len(d["tips"]), -1, 3),
+            limb_points=np.asarray(d["limb_points"], dtype=np.float64).reshape(len(d["tips"]), -1, 3)
+            if len(d["tips"]) else np.zeros((0, len(LIMB_FRACTIONS), 3)),  # (an empty frame's: no tips, no points)
             alternates=tuple(Alternate.from_dict(a) for a in d.get("alternates", ())),
             clear=None if d.get("clear") is None else np.asarray(d["clear"], dtype=bool).reshape(len(d["tips"])),
         )

@@ -7,27 +7,47 @@ reduce is :func:`pipeline.spine.build_spine`, arrays in, a spine out.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterable
 from concurrent.futures import Executor
 from pathlib import Path
 
 from pipeline.frame_skeleton import FrameSkeleton, SpineParams, frame_skeleton
+from pipeline.run import frame_warnings, frames_said
 from pipeline.spine import build_spine
 from pipeline.spine_format import Spine
 
 __all__ = ["spine_from_meshes", "frame_task"]
 
+log = logging.getLogger(__name__)
+
 
 def frame_task(item, params_dict: dict) -> dict:
-    """One frame's skeleton, serialised (picklable, for a worker): a mesh file is loaded there."""
+    """One frame's skeleton, serialised (picklable, for a worker): a mesh file is loaded there, its largest
+    connected part kept (:func:`pipeline.meshio.load_mesh`; the others dropped with a warning that names no frame,
+    the file and the faces dropped at DEBUG)."""
     params = SpineParams(**params_dict)
     if isinstance(item, (str, Path)):
+        from pipeline.geodesic import largest_component
         from pipeline.meshio import load_mesh
 
-        v, f = load_mesh(item)
+        v, f = load_mesh(item, largest=False)
+        v2, f2, _ = largest_component(v, f, warn=False) if len(f) else (v, f, None)
+        if len(f2) != len(f):  # (one part: the file's vertex numbering kept, as load_mesh keeps it)
+            log.debug("%s: %d faces in other connected parts dropped", Path(item).name, len(f) - len(f2))
+            log.warning("faces in other connected parts dropped (the largest part kept)")
+            v, f = v2, f2
     else:
         v, f = item
     return frame_skeleton(v, f, params=params).to_dict()
+
+
+def _frame_said(item, params_dict: dict, frame: int) -> tuple[dict, list]:
+    """:func:`frame_task` and what frame ``frame`` warned of (:func:`pipeline.run.frame_warnings`), for the
+    caller to say once per kind."""
+    with frame_warnings(frame) as said:
+        out = frame_task(item, params_dict)
+    return out, said
 
 
 def spine_from_meshes(
@@ -85,9 +105,11 @@ def spine_from_meshes(
             return tqdm(it, total=len(items), desc="skeletons", unit="frame")
 
     if executor is None or len(items) == 1:
-        it = (frame_task(x, pd) for x in items)
+        it = (_frame_said(x, pd, k) for k, x in enumerate(items))
     else:
-        it = executor.map(frame_task, items, [pd] * len(items), chunksize=1)
+        it = executor.map(_frame_said, items, [pd] * len(items), range(len(items)), chunksize=1)
     results = list(wrap(it) if wrap else it)
-    frames = [FrameSkeleton.from_dict(r) for r in results]
+    for msg, _ in frames_said("skeletons", {k: said for k, (_, said) in enumerate(results) if said}, unit="frame"):
+        log.warning("%s", msg)
+    frames = [FrameSkeleton.from_dict(r) for r, _ in results]
     return build_spine(frames, fps=fps, units=units, params=params)

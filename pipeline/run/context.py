@@ -176,7 +176,8 @@ def frame_warnings(frame: int) -> Iterator[list[tuple[str, str | None]]]:
         _FRAME.reset(token)
 
 
-def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]]) -> list[tuple[str, str]]:
+def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]], *,
+                unit: str = "frame set") -> list[tuple[str, str]]:
     """One warning per kind of message the frames said (:func:`frame_warnings`): ``"{step}: {message} (N frame
     sets: a, b, c, ...)"``, the first :data:`stage.messages.FRAMES_NAMED` frame sets named
     (:func:`stage.messages.frames_named`), in the order the messages were first said (by frame set).
@@ -187,6 +188,9 @@ def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]]) -> lis
         What ran the frames (the warnings' prefix).
     said : dict of int to list of (str, str or None)
         Per frame set, what :func:`frame_warnings` kept.
+    unit : str
+        What the numbers count: ``"frame set"`` (a take's), ``"frame"`` (a mesh sequence's); an ``s`` is added for
+        more than one.
 
     Returns
     -------
@@ -196,10 +200,12 @@ def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]]) -> lis
     Raises
     ------
     ValueError
-        ``step`` is not a string, or ``said`` not a dict of frame sets to lists.
+        ``step`` or ``unit`` is not a string (``unit`` empty), or ``said`` not a dict of frame sets to lists.
     """
     if not isinstance(step, str):
         raise ValueError(f"step must be a string, got {step!r}")
+    if not isinstance(unit, str) or not unit:
+        raise ValueError(f"unit must be a non-empty string, got {unit!r}")
     if not isinstance(said, dict) or not all(isinstance(v, (list, tuple)) for v in said.values()):
         raise ValueError(f"said must map frame sets to lists of (message, job_message), got {type(said).__name__}")
     frames: dict[tuple[str, str | None], list[int]] = {}
@@ -208,7 +214,7 @@ def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]]) -> lis
             frames.setdefault(kind, []).append(int(k))
     out = []
     for (message, job_message), ks in frames.items():
-        where = f" ({len(ks)} frame set{'s' if len(ks) != 1 else ''}: {frames_named(ks)})"
+        where = f" ({len(ks)} {unit}{'s' if len(ks) != 1 else ''}: {frames_named(ks)})"
         out.append((f"{step}: {message}{where}", f"{step}: {job_message or message}{where}"))
     return out
 

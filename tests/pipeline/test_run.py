@@ -59,6 +59,9 @@ def test_invalid_input():
         frames_said(None, {})
     with pytest.raises(ValueError, match="said must map frame sets"):
         frames_said("surface", {1: "camera cam02: ..."})
+    for unit in ("", None, 1):
+        with pytest.raises(ValueError, match="unit must be a non-empty string"):
+            frames_said("surface", {}, unit=unit)
     with frame_warnings(np.int64(2)) as said:  # (a frame number from NumPy is one)
         pass
     assert said == []
@@ -246,6 +249,8 @@ def test_what_a_frame_warns_of_comes_back_with_it_and_is_said_once_per_kind(tmp_
                                             ("surface: cam01: see --plate (1 frame set: 4)",
                                              "surface: cam01: see plate (1 frame set: 4)")]
     assert frames_said("surface", {}) == []
+    assert frames_said("skeletons", {2: [("empty", None)], 5: [("empty", None)]}, unit="frame") == [
+        ("skeletons: empty (2 frames: 2, 5)",) * 2]
 
 
 def test_with_no_handler_set_up_a_warning_outside_a_frame_still_reaches_loggings_last_resort(monkeypatch):

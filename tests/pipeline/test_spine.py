@@ -6,6 +6,7 @@ creature's capsules in the first frame.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 from concurrent.futures import ProcessPoolExecutor
@@ -286,6 +287,34 @@ def test_frame_skeleton_dict_roundtrip():
     np.testing.assert_allclose(back.limb_points, fs.limb_points)
     assert back.topology() == fs.topology()
     assert len(back.skeletons) == fs.n_tips
+
+
+@pytest.mark.parametrize("pool", [False, True])
+def test_what_a_mesh_sequences_frames_warn_of_is_said_once_per_kind(tmp_path, caplog, pool):
+    """A sequence whose frames 0, 1 and 3 hold a speck beside the subject and whose frame 2 is empty: each kind is
+    said once, naming its frames (not one line per frame, nor from a worker process's own log), and the spine is
+    that of the frames without the specks (the largest part kept)."""
+    import trimesh
+
+    c, poses, size, frames = simulated("starfish", frames=4)
+    clean, specked = tmp_path / "clean", tmp_path / "specked"
+    for d in (clean, specked):
+        d.mkdir()
+    for i, p in enumerate(poses[:4]):
+        v, f = mesh_pose(p, size / 40) if i != 2 else (np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+        trimesh.Trimesh(v, f, process=False).export(clean / f"{i:04d}.ply")
+        if i != 2:
+            speck = trimesh.creation.icosphere(subdivisions=1, radius=size / 50)
+            v, f = np.vstack([v, speck.vertices + v.max(0) + size / 5]), np.vstack([f, speck.faces + len(v)])
+        trimesh.Trimesh(v, f, process=False).export(specked / f"{i:04d}.ply")
+    with ProcessPoolExecutor(2) if pool else contextlib.nullcontext() as ex, caplog.at_level(logging.INFO):
+        a = spine_from_meshes(str(specked / "*.ply"), executor=ex)
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.INFO and r.name.startswith("pipeline")]
+    assert said == ["skeletons: faces in other connected parts dropped (the largest part kept) (3 frames: 0, 1, 3)",
+                    "skeletons: empty frame (no faces) (1 frame: 2)"], said
+    b = spine_from_meshes(str(clean / "*.ply"))
+    assert a.K == b.K == 5
+    np.testing.assert_allclose(a.tips, b.tips)
 
 
 def test_spine_from_meshes_parallel_matches_serial(tmp_path):
