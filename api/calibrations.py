@@ -227,6 +227,8 @@ def calibrate_take_work(calibrations_dir: Path) -> Callable[..., Any]:
         if hasattr(result, "to_dict"):  # strict JSON: a figure with nothing to measure (a camera without
             # held-out views) is null, not NaN, which browsers' JSON.parse and other tools refuse
             (out / "report.json").write_text(strict_json(result.to_dict()), encoding="utf-8")
-        return {"calibration": job_id, "cameras": list(calib.names), "links": {"json": f"/calibrations/{job_id}.json"}}
+        said = list(dict.fromkeys(str(w) for w in getattr(result, "warnings", None) or ()))  # (the job's record's too)
+        return {"calibration": job_id, "cameras": list(calib.names), "links": {"json": f"/calibrations/{job_id}.json"},
+                "warnings": said}
 
     return work

@@ -248,7 +248,8 @@ def test_calibrate_take_finds_a_mirrored_camera(make_client, mirrored_take):
 def test_board_report_is_strict_json_when_a_camera_has_no_held_out_views(client, tmp_path, monkeypatch):
     """A held-out fold can leave a camera without views: its held-out error is NaN in the calibrator's report.
     The job's ``report.json`` must still be JSON that a browser's ``JSON.parse`` reads (the control room's page
-    waits on it): NaN is written as null, and the other figures as they were."""
+    waits on it): NaN is written as null, and the other figures as they were. The calibration's warnings are the
+    job record's, each once."""
     import json
 
     import api.calibrations as mod
@@ -257,6 +258,7 @@ def test_board_report_is_strict_json_when_a_camera_has_no_held_out_views(client,
 
     class Result:
         calibration = cal
+        warnings = ["cam00: no held-out views", "cam00: no held-out views"]
 
         def to_dict(self):
             return {"summary": "2 cameras", "evaluation": {"held_out": {"per_camera": {
@@ -268,7 +270,8 @@ def test_board_report_is_strict_json_when_a_camera_has_no_held_out_views(client,
     r = client.post("/calibrations", json={"take": "b", "parameters": {"board": BOARD}}, headers=AUTH)
     assert r.status_code == 202, r.text
     jid = r.json()["job"]
-    assert wait_job(client, jid)["state"] == "done"
+    st = wait_job(client, jid)
+    assert st["state"] == "done" and st["warnings"] == ["cam00: no held-out views"], st  # (its record's, once)
     got = client.get(f"/jobs/{jid}/results/report.json")
     assert got.status_code == 200, got.text
 

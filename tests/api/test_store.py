@@ -244,6 +244,21 @@ def test_a_jobs_warnings_are_kept_as_said_in_every_state(tmp_path):
     assert JobStore(tmp_path / "jobs.sqlite").get(ids["fails"]).warnings == st["fails"].warnings  # (durable)
 
 
+def test_a_job_queued_again_keeps_the_warnings_of_its_earlier_attempt(tmp_path):
+    """A server killed mid-job: the job queued again keeps what its first attempt said; said again by the second,
+    each is kept once."""
+    store = JobStore(tmp_path / "jobs.sqlite")
+    j = store.create(kind="process", take="t", steps=["key"], params={})
+    store.claim("dead-server")
+    store.add_warnings(j.id, ["surface: first"])
+    _age(store, j.id, 3600)
+    assert store.requeue_stale(stale_after_s=10, max_attempts=5) == [j.id]
+    assert store.claim("next-server").warnings == ["surface: first"]
+    store.add_warnings(j.id, ["surface: first", "track: second"])
+    store.finish(j.id, "done", result={"report": {"warnings": ["surface: first", "track: second"]}})
+    assert store.get(j.id).warnings == ["surface: first", "track: second"]
+
+
 def test_a_store_written_before_the_warnings_were_kept_still_loads(tmp_path):
     """A store whose jobs table has no ``warnings`` (written by an earlier version) opens: a done job's warnings are
     its report's, a failed job's none; warnings said now are kept for its jobs too, after the report's."""
