@@ -354,8 +354,20 @@ class Run:
         finally:
             self.clock.add_part(self.step, name, time.perf_counter() - t0, time.process_time() - c0)
 
+    def __post_init__(self) -> None:
+        if self.on_warning is not None and not callable(self.on_warning):
+            raise ValueError(f"on_warning must be a callable taking a message, or None, got {self.on_warning!r}")
+
     def keep_warning(self, message: str) -> None:
-        """Keep ``message`` in the run's ``warnings`` (the report's, a job's) and tell ``on_warning`` at once."""
+        """Keep ``message`` in the run's ``warnings`` (the report's, a job's) and tell ``on_warning`` at once.
+
+        Raises
+        ------
+        ValueError
+            ``message`` is not a string.
+        """
+        if not isinstance(message, str):
+            raise ValueError(f"message must be a string, got {message!r}")
         self.warnings.append(message)
         if self.on_warning is not None:
             self.on_warning(message)

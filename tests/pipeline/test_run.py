@@ -59,12 +59,36 @@ def test_invalid_input():
         frames_said(None, {})
     with pytest.raises(ValueError, match="said must map frame sets"):
         frames_said("surface", {1: "camera cam02: ..."})
+    with pytest.raises(ValueError, match="on_warning must be a callable"):
+        Run(out=Path("."), on_warning="print")
+    with pytest.raises(ValueError, match="message must be a string"):
+        Run(out=Path(".")).keep_warning(None)
     for unit in ("", None, 1):
         with pytest.raises(ValueError, match="unit must be a non-empty string"):
             frames_said("surface", {}, unit=unit)
     with frame_warnings(np.int64(2)) as said:  # (a frame number from NumPy is one)
         pass
     assert said == []
+
+
+def test_a_kept_warning_is_handed_on_as_it_is_kept(tmp_path):
+    """``keep_warning`` keeps a message in the run's warnings and hands it to ``on_warning`` at once, in order
+    (a job's record keeps what a step said before it raised); without ``on_warning`` it is kept alone."""
+    heard = []
+
+    def step(run):
+        run.keep_warning("surface: first")
+        assert heard == ["surface: first"]  # (before the step goes on)
+        run.keep_warning("surface: second")
+        raise ValueError("the step broke")
+
+    run = Run(out=tmp_path, on_warning=heard.append)
+    with pytest.raises(ValueError, match="broke"):
+        run.run_step("surface", step)
+    assert heard == run.warnings == ["surface: first", "surface: second"]
+    alone = Run(out=tmp_path)
+    alone.keep_warning("key: third")
+    assert alone.warnings == ["key: third"]
 
 
 def test_map_tasks_here_and_on_a_pool_and_cancel_between_tasks(tmp_path):
