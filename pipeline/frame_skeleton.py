@@ -28,6 +28,8 @@ __all__ = ["SpineParams", "FrameSkeleton", "Alternate", "frame_skeleton", "with_
 log = logging.getLogger(__name__)
 
 LIMB_FRACTIONS = (0.25, 0.5, 0.75)  # points along each limb used to align skeletons over time
+#: the warning of a frame whose mesh has other connected parts than its largest (dropped)
+PARTS_DROPPED = "faces in other connected parts dropped (the largest part kept)"
 
 
 class SpineParams(BaseModel):
@@ -277,7 +279,11 @@ def frame_skeleton(vertices, faces, *, params: SpineParams | None = None) -> Fra
     if edge_components(edges, len(v)).max() == 0:  # one part
         kept = np.arange(len(v))
     else:  # several parts (or unreferenced vertices): keep the largest part
-        v, f, kept = largest_component(v, f, warn=True)
+        n_faces = len(f)
+        v, f, kept = largest_component(v, f, warn=False)
+        if len(f) < n_faces:  # (one wording a frame: a sequence's frames say it once, pipeline.run.frames_said)
+            log.debug("%d of %d faces in other connected parts dropped", n_faces - len(f), n_faces)
+            log.warning("%s", PARTS_DROPPED)
         edges = mesh_edges(f)
     graph = edge_graph(v, edges)
     areas = vertex_areas(v, f)

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import Executor
 from pathlib import Path
 
-from pipeline.frame_skeleton import FrameSkeleton, SpineParams, frame_skeleton
+from pipeline.frame_skeleton import PARTS_DROPPED, FrameSkeleton, SpineParams, frame_skeleton
 from pipeline.run import frame_warnings, frames_said
 from pipeline.spine import build_spine
 from pipeline.spine_format import Spine
@@ -35,7 +35,7 @@ def frame_task(item, params_dict: dict) -> dict:
         v2, f2, _ = largest_component(v, f, warn=False) if len(f) else (v, f, None)
         if len(f2) != len(f):  # (one part: the file's vertex numbering kept, as load_mesh keeps it)
             log.debug("%s: %d faces in other connected parts dropped", Path(item).name, len(f) - len(f2))
-            log.warning("faces in other connected parts dropped (the largest part kept)")
+            log.warning("%s", PARTS_DROPPED)
             v, f = v2, f2
     else:
         v, f = item

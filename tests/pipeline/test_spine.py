@@ -307,14 +307,20 @@ def test_what_a_mesh_sequences_frames_warn_of_is_said_once_per_kind(tmp_path, ca
             speck = trimesh.creation.icosphere(subdivisions=1, radius=size / 50)
             v, f = np.vstack([v, speck.vertices + v.max(0) + size / 5]), np.vstack([f, speck.faces + len(v)])
         trimesh.Trimesh(v, f, process=False).export(specked / f"{i:04d}.ply")
-    with ProcessPoolExecutor(2) if pool else contextlib.nullcontext() as ex, caplog.at_level(logging.INFO):
-        a = spine_from_meshes(str(specked / "*.ply"), executor=ex)
-    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.INFO and r.name.startswith("pipeline")]
-    assert said == ["skeletons: faces in other connected parts dropped (the largest part kept) (3 frames: 0, 1, 3)",
-                    "skeletons: empty frame (no faces) (1 frame: 2)"], said
-    b = spine_from_meshes(str(clean / "*.ply"))
-    assert a.K == b.K == 5
-    np.testing.assert_allclose(a.tips, b.tips)
+    in_memory = [load_mesh(q, largest=False) for q in sorted(specked.glob("*.ply"))]  # (numbered as given)
+    said = []
+    with ProcessPoolExecutor(2) if pool else contextlib.nullcontext() as ex:
+        for meshes in (str(specked / "*.ply"), in_memory):
+            caplog.clear()
+            with caplog.at_level(logging.INFO):
+                got = spine_from_meshes(meshes, executor=ex)
+            said.append([r.getMessage() for r in caplog.records
+                         if r.levelno >= logging.INFO and r.name.startswith("pipeline")])
+            b = spine_from_meshes(str(clean / "*.ply"))
+            assert got.K == b.K == 5
+            np.testing.assert_allclose(got.tips, b.tips)
+    assert said == [["skeletons: faces in other connected parts dropped (the largest part kept) (3 frames: 0, 1, 3)",
+                     "skeletons: empty frame (no faces) (1 frame: 2)"]] * 2, said
 
 
 def test_spine_from_meshes_parallel_matches_serial(tmp_path):
