@@ -17,7 +17,8 @@ from typing import Any
 from api.errors import NotFoundError, UnavailableError
 from api.paths import JOB_ID, check_id, confined, confined_entries, inside
 
-__all__ = ["listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb", "frame_file", "rig_file", "tracked_file"]
+__all__ = ["RESULT_STEPS", "listing", "result_file", "mesh", "spine_glb", "rig_glb", "ply_to_glb", "frame_file",
+           "rig_file", "tracked_file"]
 
 _MESH = re.compile(r"^(?:frame_)?([0-9]{1,6})\.(ply|glb)$")
 _FRAME = re.compile(r"^([0-9]{6})\.ply$")  # tracked/ and rig/posed/: exactly six digits
@@ -32,6 +33,9 @@ _NO_TRACKED_FILE = {"labels.npy": "the tracking used no labels",
                     "rig_segments.npy": "the tracking kept no armature round with the limbs' parts"}
 #: folders of per-frame meshes in the template's vertex order
 FRAME_FOLDERS = {"tracked": ("tracked",), "posed": ("rig", "posed")}
+#: the steps whose results are in a job's folder, in the pipeline's order (``key`` writes the take's masks, beside
+#: the take): ``surface`` ``meshes/``, ``spine`` ``spine.json``, ``track`` ``tracked/``, ``rig`` ``rig/``
+RESULT_STEPS = ("surface", "spine", "track", "rig")
 
 
 def _job_dir(jobs_dir: Path, job_id: str) -> Path:
@@ -40,7 +44,30 @@ def _job_dir(jobs_dir: Path, job_id: str) -> Path:
 
 
 def listing(jobs_dir: Path, job_id: str) -> dict[str, Any]:
-    """``{"files": [...], "meshes": [frame indices], "links": {...}}`` of what exists now."""
+    """What a job's folder holds now.
+
+    Parameters
+    ----------
+    jobs_dir : Path
+        The folder of the jobs' folders.
+    job_id : str
+        The job (a 32-hex id).
+
+    Returns
+    -------
+    dict
+        ``files`` (the named files written, e.g. ``spine.json``, ``rig/rig.glb``), ``links`` (a URL for each of
+        them, and for ``spine.glb`` and ``spine_rig.glb`` once ``spine.json`` is written), ``meshes``, ``tracked``,
+        ``posed`` (frame indices of ``meshes/``, ``tracked/``, ``rig/posed/``, with ``mesh_url`` and, when there are
+        any, ``tracked_url``, ``posed_url``: ``{index:06d}`` marks the frame), ``rig`` (the summary of
+        ``rig/rig.json``, once written) and ``written_by``: the steps of :data:`RESULT_STEPS` whose files are there,
+        in the pipeline's order. Nothing that is not there is linked.
+
+    Raises
+    ------
+    ValueError
+        When ``job_id`` is not a job id.
+    """
     d = _job_dir(jobs_dir, job_id)
     files = [n for n in ("spine.json", "report.json") if (d / n).is_file() and confined(d / n, d)]
     meshes = []
@@ -63,6 +90,9 @@ def listing(jobs_dir: Path, job_id: str) -> dict[str, Any]:
     rig = [f"rig/{n}" for n in RIG_FILES if (d / "rig" / n).is_file() and confined(d / "rig" / n, d)]
     out["files"] = files + tracked + rig
     links.update({n: f"/jobs/{job_id}/results/{n}" for n in tracked + rig})
+    wrote = {"surface": bool(meshes), "spine": "spine.json" in files, "track": bool(out["tracked"] or tracked),
+             "rig": bool(out["posed"] or rig)}
+    out["written_by"] = [step for step in RESULT_STEPS if wrote[step]]
     if "rig/rig.json" in rig:
         from pipeline.armature_files import armature_summary
 

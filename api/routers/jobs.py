@@ -140,7 +140,9 @@ MeshName = Annotated[str, Path(pattern=r"^(frame_)?[0-9]{1,6}\.(ply|glb)$", exam
 
 @router.get("/{job_id}/results/", response_model=dict[str, Any])
 def list_results(_: ReadAccess, job: Job, settings: SettingsDep) -> dict[str, Any]:
-    """The result files of a job (those written so far)."""
+    """The result files of a job, those written so far (and only those): ``files`` with their ``links``, the
+    frames of ``meshes``, ``tracked`` and ``posed``, and ``written_by``, the steps whose results are there (a
+    failed job's step that wrote nothing is not among them)."""
     return results.listing(settings.jobs_dir, job.id)
 
 

@@ -33,6 +33,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 
+from api import results
 from api.deps import JobId, LibraryDep, ReadAccess, SettingsDep, StoreDep, TakeId
 from api.errors import NotFoundError
 from api.jobs.store import JobNotFoundError, JobRecord
@@ -179,14 +180,44 @@ def jobs_page(request: Request, store: StoreDep, _: ReadAccess) -> HTMLResponse:
 
 
 @router.get("/ui/jobs/{job_id}", response_class=HTMLResponse)
-def job_page(request: Request, job_id: JobId, store: StoreDep, _: ReadAccess) -> HTMLResponse:
-    """One job: state, progress per step (live), error, links to its results and report."""
+def job_page(request: Request, job_id: JobId, store: StoreDep, settings: SettingsDep, _: ReadAccess) -> HTMLResponse:
+    """One job: state, progress per step (live), error, links to the results it has written (live: the page asks
+    ``/jobs/{id}/results/`` as the job runs) and its report."""
     try:
         j = store.get(job_id)
     except JobNotFoundError as exc:
         return _not_found(request, str(exc))
+    written = results.listing(settings.jobs_dir, j.id) if j.kind == "process" else None
     return _page(request, "job.html", f"Job {j.id[:8]}", job=j,
+                 result_links=_result_links(written) if written else [],
+                 unwritten=_unwritten(j, written) if written else "",
+                 result_steps=results.RESULT_STEPS, frame_links=_FRAME_LINKS,
                  parameters=json.dumps(j.params) if j.params else "–")
+
+
+#: a job's per-frame results on its page: the listing's frames, the key of their URL, what the link says
+_FRAME_LINKS = (("meshes", "mesh_url", "surface meshes"), ("tracked", "tracked_url", "tracked frames"),
+                ("posed", "posed_url", "posed frames"))
+
+
+def _result_links(written: dict[str, Any]) -> list[tuple[str, str]]:
+    """``(text, url)`` of each file a job has written (its listing, :func:`api.results.listing`), and of the first
+    frame of each of its per-frame results (job.js makes the same from the listing as the job runs)."""
+    links = list(written["links"].items())
+    for key, url, text in _FRAME_LINKS:
+        if frames := written.get(key):
+            links.append((f"{text} ({len(frames)})", written[url].format(index=frames[0])))
+    return links
+
+
+def _unwritten(job: JobRecord, written: dict[str, Any]) -> str:
+    """What a failed or cancelled job's page says of its steps that wrote nothing (job.js says it alike)."""
+    steps = [s for s in job.steps if s in results.RESULT_STEPS and s not in written["written_by"]]
+    if job.state not in ("failed", "cancelled") or not steps:
+        return ""
+    named = steps[0] if len(steps) == 1 else ", ".join(steps[:-1]) + " and " + steps[-1]
+    return (f"The job {'failed' if job.state == 'failed' else 'was cancelled'}: "
+            f"the {named} step{'s' if len(steps) > 1 else ''} wrote nothing.")
 
 
 def _report_html(job: JobRecord, job_dir: Path, take: Path | None, data_root: Path) -> str:

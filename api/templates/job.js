@@ -1,6 +1,32 @@
-{#- follows one job: polls /jobs/{id} every second until it is finished (JOB_ID, INITIAL_STATE: set by the page) -#}
+{#- follows one job: polls /jobs/{id} every second until it is finished, and for a processing job its results'
+    listing (/jobs/{id}/results/): links to what it has written so far, never to what it has not (JOB_ID,
+    INITIAL_STATE, RESULT_STEPS, FRAME_LINKS: set by the page; pages.py _result_links, _unwritten say it alike) -#}
 (function(){
   const TERMINAL = ["done", "failed", "cancelled"];
+  function renderResults(j, l){
+    const span = document.getElementById('results');
+    if (!span) return;
+    const links = Object.entries(l.links || {});
+    for (const [key, url, text] of FRAME_LINKS){
+      const frames = l[key] || [];
+      if (frames.length) links.push([text + ' (' + frames.length + ')',
+                                     l[url].replace('{index:06d}', String(frames[0]).padStart(6, '0'))]);
+    }
+    span.replaceChildren();
+    for (const [text, url] of links){
+      const a = document.createElement('a'); a.href = url; a.textContent = text;
+      span.appendChild(document.createTextNode(' · ')); span.appendChild(a);
+    }
+    const steps = j.steps.filter(s => RESULT_STEPS.includes(s) && !(l.written_by || []).includes(s));
+    const p = document.getElementById('unwritten');
+    p.textContent = '';
+    if ((j.state === 'failed' || j.state === 'cancelled') && steps.length){
+      const named = steps.length === 1 ? steps[0] : steps.slice(0, -1).join(', ') + ' and ' + steps[steps.length - 1];
+      p.textContent = 'The job ' + (j.state === 'failed' ? 'failed' : 'was cancelled') + ': the ' + named + ' step'
+        + (steps.length > 1 ? 's' : '') + ' wrote nothing.';
+    }
+    p.hidden = !p.textContent;
+  }
   function render(j){
     const st = document.getElementById('state');
     st.textContent = j.state + (j.cancel_requested && !TERMINAL.includes(j.state) ? ' (cancel requested)' : '');
@@ -39,7 +65,14 @@
   async function poll(){
     try {
       const r = await fetch('/jobs/' + JOB_ID, {headers: {'Accept': 'application/json'}});
-      if (r.ok && !render(await r.json())) return;
+      if (r.ok){
+        const j = await r.json();
+        if (j.kind === 'process'){  // (asked after the status: a job just finished has all its files listed)
+          const l = await fetch('/jobs/' + JOB_ID + '/results/', {headers: {'Accept': 'application/json'}});
+          if (l.ok) renderResults(j, await l.json());
+        }
+        if (!render(j)) return;  // (the state last: a page that reads "done" has its results' links)
+      }
     } catch (e) {}
     setTimeout(poll, 1000);
   }

@@ -2,7 +2,8 @@
 headless Chromium (Playwright, Debian's chromium) follows the job's live progress page, then opens the
 report and the take's page from the server, waits for the plotly 3-D views and checks they are not blank;
 a second job, over a take whose masks failed in some frame sets, which then fails (its rig's rest frame is past
-the surfaces), lists on its page the warnings said before it failed.
+the surfaces), lists on its page the warnings said before it failed. Each job's page links only the result files
+the job wrote (each answers 200), the failed one saying which of its steps wrote nothing.
 
 Screenshots are kept under ``$STAGE_TEST_ARTIFACTS`` (else the test's tmp dir); the path is printed.
 """
@@ -49,6 +50,13 @@ def _take(path: Path) -> Path:
     return record_take(simulate_take("starfish", n_cameras=CAMERAS, frames=FRAMES, size=SIZE, seed=0), path)
 
 
+def _result_links(page, url: str) -> dict[str, int]:
+    """The results a job's page links (its listing's files, the first frame of its meshes), each with the status
+    the server answers it with."""
+    hrefs = page.eval_on_selector_all("#results a", "els => els.map(e => e.getAttribute('href'))")
+    return {h: httpx.get(url + h, timeout=60).status_code for h in hrefs}
+
+
 def test_browser_on_served_pages(tmp_path):
     sync_playwright = sync_playwright_or_skip()  # skips with the reason when chromium or playwright is missing
     t0 = time.monotonic()
@@ -90,6 +98,7 @@ def test_browser_on_served_pages(tmp_path):
                     assert page.evaluate("() => window.__seen.length") > 0
                 assert "UTC" in page.text_content("#finished")
                 page.screenshot(path=str(art / "job_page.png"), full_page=True)
+                done_links = _result_links(page, srv.url)
                 st = httpx.get(f"{srv.url}/jobs/{jid}", timeout=10).json()
                 assert st["state"] == "done", f"{st}\n{srv.logtext()}"
 
@@ -124,6 +133,8 @@ def test_browser_on_served_pages(tmp_path):
                 shown = page.eval_on_selector_all("#warning-list li", "els => els.map(e => e.textContent)")
                 shown_count, shown_visible = page.text_content("#nwarn"), page.is_visible("#warnings")
                 shown_error = page.text_content("#error")
+                failed_links = _result_links(page, srv.url)
+                unwritten, unwritten_visible = page.text_content("#unwritten"), page.is_visible("#unwritten")
                 page.screenshot(path=str(art / "failed_job_page.png"), full_page=True)
                 st = httpx.get(f"{srv.url}/jobs/{failed}", timeout=10).json()
             finally:
@@ -145,4 +156,12 @@ def test_browser_on_served_pages(tmp_path):
     warned = st["warnings"]
     assert [w for w in warned if "silhouette consistency" not in w] == FAILED_MASKS_SAID, warned
     assert shown == warned and shown_count == str(len(warned)) and shown_visible
+    # each job's page links the files it wrote, each there (200), as the job's page followed it: the done job its
+    # spine's and surfaces', the failed one its surfaces alone, saying its track and rig steps wrote nothing
+    assert set(done_links.values()) == {200}, done_links
+    assert {h.rsplit("/results/", 1)[1] for h in done_links} == {
+        "spine.json", "report.json", "spine.glb", "spine_rig.glb", "meshes/frame_000000.ply"}, done_links
+    assert set(failed_links.values()) == {200} and len(failed_links) == 1, failed_links
+    assert "/results/meshes/frame_" in next(iter(failed_links)), failed_links
+    assert unwritten == "The job failed: the track and rig steps wrote nothing." and unwritten_visible, unwritten
 

@@ -88,6 +88,14 @@ def _html(r) -> str:
     return text
 
 
+def _result_hrefs(client: TestClient, page: str, job_id: str) -> list[str]:
+    """The links of a job's page to its result files (not the listing), each checked to answer 200."""
+    hrefs = re.findall(rf'href="(/jobs/{job_id}/results/[^"]+)"', page)
+    for href in hrefs:
+        assert client.get(href).status_code == 200, href
+    return hrefs
+
+
 def test_index_and_takes(client_data):
     client, _ = client_data
     page = _html(client.get("/"))
@@ -143,13 +151,36 @@ def test_jobs_pages(client_data):
     assert "&lt;script&gt;alert(1)&lt;/script&gt; went wrong" in page and "<script>alert(1)" not in page
     page = _html(client.get(f"/ui/jobs/{ids['done']}"))
     assert f'id="report" href="/ui/jobs/{ids["done"]}/report">' in page
-    assert "/results/rig/" not in page  # a job without the rig step has no armature to download
-    for name in ("spine.json", "spine_rig.glb"):  # the spine step's files, linked
-        assert f'<a href="/jobs/{ids["done"]}/results/{name}">{name}</a>' in page
-    rig = client.app.state.store.create(kind="process", take="cal", steps=["spine", "track", "rig"], params={}).id
-    page = _html(client.get(f"/ui/jobs/{rig}"))  # the armature's files (docs/armature-format.md), linked
-    for name in ("rig.glb", "rig.bvh", "rig.json"):
-        assert f'<a href="/jobs/{rig}/results/rig/{name}">{name}</a>' in page
+    # what the job wrote (its report.json), not what its spine step would have written (spine.json: 404)
+    assert _result_hrefs(client, page, ids["done"]) == [f"/jobs/{ids['done']}/results/report.json"]
+    assert '<p id="unwritten" class="err" hidden></p>' in page
+    # (a failed job's key step writes the take's masks, not its folder's)
+    assert '<p id="unwritten" class="err" hidden></p>' in _html(client.get(f"/ui/jobs/{ids['failed']}"))
+    # a job that failed after its surfaces: their first frame linked, its track and rig steps said to have written
+    # nothing (their files, 404, not linked)
+    store = client.app.state.store
+    rig = store.create(kind="process", take="cal", steps=["surface", "track", "rig"], params={}).id
+    (data / "jobs" / rig / "meshes").mkdir(parents=True)
+    for i in (0, 1):
+        (data / "jobs" / rig / "meshes" / f"frame_00000{i}.ply").write_bytes(b"ply\n")
+    store.finish(rig, "failed", error="stopped")
+    page = _html(client.get(f"/ui/jobs/{rig}"))
+    assert _result_hrefs(client, page, rig) == [f"/jobs/{rig}/results/meshes/frame_000000.ply"]
+    assert ">surface meshes (2)</a>" in page and client.get(f"/jobs/{rig}/results/rig/rig.glb").status_code == 404
+    assert '<p id="unwritten" class="err">The job failed: the track and rig steps wrote nothing.</p>' in page
+    assert client.get(f"/jobs/{rig}/results/").json()["written_by"] == ["surface"]
+    # once the armature's files are there (docs/armature-format.md), they are linked, and no step is said unwritten
+    (data / "jobs" / rig / "rig").mkdir()
+    for name in ("rig.glb", "rig.bvh"):
+        (data / "jobs" / rig / "rig" / name).write_bytes(b"x")
+    (data / "jobs" / rig / "tracked").mkdir()
+    (data / "jobs" / rig / "tracked" / "000000.ply").write_bytes(b"ply\n")
+    page = _html(client.get(f"/ui/jobs/{rig}"))
+    assert _result_hrefs(client, page, rig) == [f"/jobs/{rig}/results/{n}" for n in (
+        "rig/rig.glb", "rig/rig.bvh", "meshes/frame_000000.ply", "tracked/000000.ply")]
+    assert '<a href="/jobs/{rig}/results/rig/rig.glb">rig/rig.glb</a>'.format(rig=rig) in page
+    assert '<p id="unwritten" class="err" hidden></p>' in page
+    assert client.get(f"/jobs/{rig}/results/").json()["written_by"] == ["surface", "track", "rig"]
     # the page's own status endpoint exists and says what the script reads
     st = client.get(f"/jobs/{ids['running']}").json()
     assert st["done"] == 3 and st["total"] == 5 and st["progress"]["key"] == {"done": 3, "total": 5}
