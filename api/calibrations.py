@@ -29,6 +29,7 @@ from typing import Annotated, Any, Callable, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from api.errors import NotFoundError, UnavailableError
+from api.jobs.runner import _takes_warn
 from api.paths import JOB_ID, check_id, confined_entries, inside
 from calib.fileio import atomic_write, strict_json
 
@@ -161,15 +162,30 @@ class CalibrateParams(BaseModel):
 
 
 def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[str, int, int], None] | None = None,
-                   cancel: threading.Event | None = None):
+                   cancel: threading.Event | None = None, warn: Callable[[str], None] | None = None):
     """Detect the board in every camera's frames of ``take`` and calibrate the rig with
     :func:`calib.rig.calibrate_rig`; returns its ``RigCalibration``.
 
     Every detection goes to :func:`calib.rig.calibrate_rig`, which selects the views for the rig
     (thinning each camera alone would drop the frames that link the cameras).
 
+    Parameters
+    ----------
+    take : Path
+        The take (``.h5``) of the board waved through the rig.
+    params : CalibrateParams
+    progress : callable, optional
+        ``progress(step, done, total)``: ``detect`` per frame set, then ``calibrate``.
+    cancel : threading.Event, optional
+        Set it to stop (between frame sets).
+    warn : callable, optional
+        ``warn(message)`` as each of the calibration's warnings is said (``calibrate_rig(warn=)``): a job keeps those
+        said before the calibration fails.
+
     Raises
     ------
+    ValueError
+        Naming ``warn`` when it is not callable.
     InterruptedError
         When ``cancel`` is set.
     calib.intrinsics.CalibrationError
@@ -178,6 +194,9 @@ def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[s
     from calib.boards import parse_board
     from calib.rig import calibrate_rig
     from calib.take_detect import detect_take
+
+    if warn is not None and not callable(warn):
+        raise ValueError(f"warn must be a callable taking a message, or None, got {type(warn).__name__}")
 
     def on_set(done: int, total: int) -> None:
         if cancel is not None and cancel.is_set():
@@ -195,7 +214,7 @@ def calibrate_take(take: Path, *, params: CalibrateParams, progress: Callable[[s
     result = calibrate_rig(detections, sizes, board, cameras=cams, world=params.world, world_frame=params.world_frame,
                            intrinsics=params.intrinsics, fix_k3=params.fix_k3, min_change=params.min_change,
                            distortion=params.distortion,
-                           holdout_folds=params.holdout, flipped=flipped)
+                           holdout_folds=params.holdout, flipped=flipped, warn=warn)
     if progress is not None:
         progress("calibrate", 1, 1)
     return result
@@ -212,12 +231,15 @@ def _find_rig_calibrator() -> Callable[..., Any]:
 
 
 def calibrate_take_work(calibrations_dir: Path) -> Callable[..., Any]:
-    """Job work for kind ``calibrate``: board views of the take -> ``DATA/calibrations/<job>.json``."""
+    """Job work for kind ``calibrate``: board views of the take -> ``DATA/calibrations/<job>.json``; the job's
+    ``warn`` goes to the calibrator (when it takes one), so a calibration that fails keeps the warnings said before."""
 
     def work(take: Path, out: Path, *, params: dict, progress: Callable[[str, int, int], None],
-             cancel: threading.Event, job_id: str, take_id: str, **_: Any) -> dict:
+             cancel: threading.Event, job_id: str, take_id: str, warn: Callable[[str], None] | None = None,
+             **_: Any) -> dict:
         fn = _find_rig_calibrator()
-        result = fn(take, params=CalibrateParams.model_validate(params), progress=progress, cancel=cancel)
+        hook = {"warn": warn} if warn is not None and _takes_warn(fn) else {}  # (kept as said: a failure keeps them)
+        result = fn(take, params=CalibrateParams.model_validate(params), progress=progress, cancel=cancel, **hook)
         calib = getattr(result, "calibration", result)
         if not hasattr(calib, "to_dict"):
             raise ValueError("the calibrator returned no calibration")

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -201,8 +201,9 @@ def _thin(frames: list[int], budget: int) -> list[int]:
 
 
 def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, reject_outliers, min_views, solver,
-           max_intrinsic_views, min_change, max_sets, min_corners, distortion):
-    """One calibration (intrinsics, then the bundle adjustment) without the evaluation."""
+           max_intrinsic_views, min_change, max_sets, min_corners, distortion, warn=None):
+    """One calibration (intrinsics, then the bundle adjustment) without the evaluation; ``warn(message)`` as each
+    camera's intrinsics and then the bundle adjustment give their warnings (before a later one can fail)."""
     seen: dict[int, int] = {}
     for n in names:
         for f in {d.frame for d in dets[n]}:
@@ -216,6 +217,8 @@ def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, rejec
             intr[n] = calibrate_intrinsics(views, board, tuple(sizes[n]), name=n, fix_k3=fix_k3,
                                            reject_outliers=reject_outliers, min_views=min_views,
                                            max_views=max_intrinsic_views, distortion=distortion)
+            for w in intr[n].warnings if warn is not None else ():
+                warn(w)
         except CalibrationError as exc:
             if not dets[n]:
                 problems.append(
@@ -256,6 +259,8 @@ def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, rejec
         fixed_intrinsics=held,  # what each camera's own calibration held, the bundle keeps
         intrinsics_prior=prior, prior_scale=max(sigma, 1e-3),
     )
+    for w in ext.warnings if warn is not None else ():
+        warn(w)
     return intr, ext, len(sets)
 
 
@@ -544,6 +549,7 @@ def calibrate_rig(
     mirrored: Sequence[str] = (),
     flipped: Sequence[str] = (),
     distortion: str = "prior",
+    warn: Callable[[str], None] | None = None,
 ) -> RigCalibration:
     """Intrinsics of every camera (:func:`calib.intrinsics.calibrate_intrinsics`), then
     one bundle adjustment of the rig (:func:`calib.extrinsics.calibrate_extrinsics`),
@@ -590,6 +596,11 @@ def calibrate_rig(
     flipped : sequence of str
         Cameras whose board was found only in the flipped image (detections made on it):
         :func:`resolve_flipped` decides whether each mirrors or sees the board from behind.
+    warn : callable, optional
+        ``warn(message)`` as each of the result's warnings (:attr:`RigCalibration.warnings`, in their order) is
+        known: each camera's once its intrinsics are solved, the bundle adjustment's, then the evaluation's. A
+        caller keeps those said before the calibration fails (a later camera, the bundle adjustment), which no
+        result holds.
 
     Returns
     -------
@@ -602,6 +613,8 @@ def calibrate_rig(
         Naming every camera that has too few views or cannot be connected, with
         what to do. Nothing is written anywhere.
     """
+    if warn is not None and not callable(warn):
+        raise ValueError(f"warn must be a callable taking a message, or None, got {type(warn).__name__}")
     if optimize_intrinsics is False:
         intrinsics = "fixed"
     names = _check(detections, sizes, board, cameras, intrinsics, max_sets, holdout_folds, min_change,
@@ -620,7 +633,7 @@ def calibrate_rig(
                     reject_outliers=reject_outliers, min_views=min_views, solver=solver,
                     max_intrinsic_views=max_intrinsic_views, min_change=min_change, max_sets=max_sets,
                     min_corners=min_corners)
-    intr, ext, n_sets = _solve(dets, sizes, board, names, **solve_kw)
+    intr, ext, n_sets = _solve(dets, sizes, board, names, **solve_kw, warn=warn)
     mirror = set(mirrored)
 
     def mark(cam):
@@ -633,7 +646,9 @@ def calibrate_rig(
                               {"mode": intrinsics, "sets": 0, "flipped": flip_notes, "mirrored": sorted(mirror),
                                "detections": dets})
     calib = Calibration(tuple(mark(c) for c in ext.calibration.cameras), units="mm", meta=dict(ext.calibration.meta))
-    ev, warn = _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_folds, solve_kw)
+    ev, evaluated = _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_folds, solve_kw)
+    for w in evaluated if warn is not None else ():
+        warn(w)
     ev.update({"sets": n_sets, "flipped": flip_notes, "mirrored": sorted(mirror), "detections": dets})
     meta = dict(calib.meta)
     meta["per_camera_rms_px"] = dict(ext.per_camera_rms)
@@ -643,4 +658,4 @@ def calibrate_rig(
         meta["held_out_rms_px"] = {n: v["rms"] for n, v in ev["held_out"]["per_camera"].items()}
     meta["all_frames_rms_px"] = {n: v["rms"] for n, v in ev["all_frames"]["per_camera"].items()}
     calib = Calibration(calib.cameras, units="mm", meta=meta)
-    return RigCalibration(calib, intr, ext, ev, tuple(warn))
+    return RigCalibration(calib, intr, ext, ev, tuple(evaluated))

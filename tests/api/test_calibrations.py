@@ -18,6 +18,29 @@ def _put(client, tmp_path, name, **kw):
     assert r.status_code == 201, r.text
 
 
+def _board_take(path, images, names):
+    """A take of board images (views x cameras x H x W) through stage.store."""
+    from stage.frame import Frame
+    from stage.store import CameraSpec, TakeWriter
+
+    h, w = images.shape[2:4]
+    with TakeWriter(path, [CameraSpec(c, w, h) for c in names], fps=30.0) as tw:
+        for v in range(images.shape[0]):
+            t = 10**9 + v * 33_333_333
+            tw.write_set({c: Frame(np.ascontiguousarray(images[v, j]), c, v, t, t) for j, c in enumerate(names)},
+                         time_ns=t)
+    return path
+
+
+def _calibrate_job(client, name, path, board) -> dict:
+    """Upload the take at ``path`` as ``name``, calibrate it from its ``board`` views (a job): the job's status."""
+    r = client.put(f"/takes/{name}", content=path.read_bytes(), headers={**AUTH, "Content-Type": "application/x-hdf5"})
+    assert r.status_code == 201, r.text
+    r = client.post("/calibrations", json={"take": name, "parameters": {"board": board}}, headers=AUTH)
+    assert r.status_code == 202, r.text
+    return wait_job(client, r.json()["job"], timeout=120)
+
+
 def test_from_take_and_download_formats(client, tmp_path):
     cal = small_calibration(3)
     _put(client, tmp_path, "board", cameras=3, calibration=cal)
@@ -68,6 +91,9 @@ def test_invalid_input(client, tmp_path, monkeypatch):
     import api.calibrations as mod
     from api.errors import UnavailableError
 
+    with pytest.raises(ValueError, match="warn"):
+        mod.calibrate_take(tmp_path / "any.h5", params=mod.CalibrateParams(board=BOARD), warn=["not", "callable"])
+
     _put(client, tmp_path, "nocal")
     assert client.post("/calibrations", json={"take": "nocal", "source": "take"}).status_code == 401
     assert client.post("/calibrations", json={"take": "nocal", "source": "take"},
@@ -105,22 +131,12 @@ def test_calibrate_rendered_board_take(make_client, tmp_path):
     from calib.boards import parse_board
     from fake_cameras.boards import render_board_views
     from fake_cameras.dome import make_dome
-    from stage.frame import Frame
-    from stage.store import CameraSpec, TakeWriter
 
     truth = make_dome(4, size=(320, 240), seed=0)
     views = render_board_views(parse_board(BOARD), truth, 20, seed=0)
     path = tmp_path / "board.h5"
-    with TakeWriter(path, [CameraSpec(c, 320, 240) for c in truth.names], fps=30.0) as tw:
-        for v in range(views.images.shape[0]):
-            t = 10**9 + v * 33_333_333
-            tw.write_set({c: Frame(np.ascontiguousarray(views.images[v, j]), c, v, t, t)
-                          for j, c in enumerate(truth.names)}, time_ns=t)
-    r = client.put("/takes/board", content=path.read_bytes(), headers={**AUTH, "Content-Type": "application/x-hdf5"})
-    assert r.status_code == 201
-    r = client.post("/calibrations", json={"take": "board", "parameters": {"board": BOARD}}, headers=AUTH)
-    assert r.status_code == 202, r.text
-    st = wait_job(client, r.json()["job"], timeout=120)
+    _board_take(path, views.images, truth.names)
+    st = _calibrate_job(client, "board", path, BOARD)
     assert st["state"] == "done", st
     assert st["progress"]["detect"] == {"done": 20, "total": 20}  # frame sets
     got = client.get(f"/calibrations/{st['id']}.json").json()
@@ -142,18 +158,12 @@ def test_calibrate_take_passes_every_detection_with_the_cli_defaults(tmp_path, m
     from calib.detect import detect_board
     from fake_cameras.boards import render_board_views
     from fake_cameras.dome import make_dome
-    from stage.frame import Frame
-    from stage.store import CameraSpec, TakeWriter
 
     truth = make_dome(4, size=(320, 240), seed=0)
     views = render_board_views(parse_board(BOARD), truth, 4, seed=0)
     images = np.repeat(views.images, 2, axis=0)  # each pose held for two frames
     path = tmp_path / "still.h5"
-    with TakeWriter(path, [CameraSpec(c, 320, 240) for c in truth.names], fps=30.0) as tw:
-        for v in range(images.shape[0]):
-            t = 10**9 + v * 33_333_333
-            tw.write_set({c: Frame(np.ascontiguousarray(images[v, j]), c, v, t, t)
-                          for j, c in enumerate(truth.names)}, time_ns=t)
+    _board_take(path, images, truth.names)
     seen = {}
 
     def spy(detections, sizes, board, **kw):
@@ -175,6 +185,33 @@ def test_calibrate_take_passes_every_detection_with_the_cli_defaults(tmp_path, m
         CalibrateParams(board=BOARD, intrinsics="loose")
 
 
+def test_a_calibration_job_that_warns_and_then_fails_keeps_its_warnings(make_client, tmp_path):
+    """A board waved past two cameras of a dome, then past the other two: each camera's intrinsics warn (few views,
+    little of the image covered), then the bundle adjustment fails (the pairs never see the board at once). The
+    failed job's record keeps the warnings said before it failed, as calibrate_take says them in this process."""
+    from api.calibrations import CalibrateParams, calibrate_take
+    from calib.boards import parse_board
+    from calib.intrinsics import CalibrationError
+    from fake_cameras.boards import render_board_views
+    from fake_cameras.dome import make_dome
+
+    truth = make_dome(4, size=(320, 240), seed=0)
+    images = render_board_views(parse_board(BOARD), truth, 32, seed=0).images.copy()
+    images[16:, :2] = np.median(images[16:, :2])  # cam00, cam01: no board in the second half
+    images[:16, 2:] = np.median(images[:16, 2:])  # cam02, cam03: none in the first
+    path = _board_take(tmp_path / "apart.h5", images, truth.names)
+    said: list[str] = []
+    with pytest.raises(CalibrationError, match="could not connect every camera"):
+        calibrate_take(path, params=CalibrateParams(board=BOARD), warn=said.append)
+    assert {w.split(":")[0] for w in said if "board views; 10-20 views" in w} == {f"camera {n}" for n in truth.names}
+
+    client = make_client(max_upload_bytes=64 << 20)
+    st = _calibrate_job(client, "apart", path, BOARD)
+    assert st["state"] == "failed" and "could not connect every camera" in st["error"], st
+    assert st["warnings"] == said, st
+    assert client.get("/jobs", params={"state": "failed"}).json()[0]["warnings"] == said
+
+
 CHARUCO = {"type": "charuco", "squares": [7, 6], "square_mm": 100.0, "marker_mm": 75.0, "dictionary": "DICT_4X4_50"}
 
 
@@ -185,19 +222,13 @@ def mirrored_take(tmp_path_factory):
     from calib.boards import parse_board
     from fake_cameras.boards import render_board_views
     from fake_cameras.dome import make_dome
-    from stage.frame import Frame
-    from stage.store import CameraSpec, TakeWriter
 
     truth = make_dome(4, size=(640, 480), seed=0)
     views = render_board_views(parse_board(CHARUCO), truth, 24, seed=0)
     images = views.images.copy()
     images[:, 1] = images[:, 1, :, ::-1]  # what the mirroring webcam delivers
     path = tmp_path_factory.mktemp("mirror") / "mirrored.h5"
-    with TakeWriter(path, [CameraSpec(c, 640, 480) for c in truth.names], fps=30.0) as tw:
-        for v in range(images.shape[0]):
-            t = 10**9 + v * 33_333_333
-            tw.write_set({c: Frame(np.ascontiguousarray(images[v, j]), c, v, t, t)
-                          for j, c in enumerate(truth.names)}, time_ns=t)
+    _board_take(path, images, truth.names)
     return truth, path
 
 
@@ -212,11 +243,7 @@ def test_calibrate_take_finds_a_mirrored_camera(make_client, mirrored_take):
 
     truth, path = mirrored_take
     client = make_client(max_upload_bytes=128 << 20)
-    r = client.put("/takes/mir", content=path.read_bytes(), headers={**AUTH, "Content-Type": "application/x-hdf5"})
-    assert r.status_code == 201, r.text
-    r = client.post("/calibrations", json={"take": "mir", "parameters": {"board": CHARUCO}}, headers=AUTH)
-    assert r.status_code == 202, r.text
-    st = wait_job(client, r.json()["job"], timeout=120)
+    st = _calibrate_job(client, "mir", path, CHARUCO)
     assert st["state"] == "done", st
     got = client.get(f"/calibrations/{st['id']}.json").json()
     cal = Calibration.from_dict(got)

@@ -186,6 +186,29 @@ def test_camera_sharing_no_view(small, truth):
     assert ei.value.cameras == ("cam05",)
 
 
+def test_warn_hands_on_each_warning_as_it_is_known_and_before_a_failure(small, truth, monkeypatch):
+    """``calibrate_rig(warn=)`` is handed the result's warnings, in their order, each once; when the bundle
+    adjustment then fails, every camera's intrinsics warnings have been handed on before it raised (those the
+    same detections' successful calibration has)."""
+    import calib.rig
+
+    board, dets = small
+    sizes = {c.name: c.size for c in truth}
+    said: list[str] = []
+    res = calibrate_rig(dets, sizes, board, cameras=truth.names, warn=said.append)
+    assert said == res.warnings and len(said) >= len(truth.names), said  # (25 views: every camera warns of them)
+    intrinsics_said = [w for r in res.intrinsics.values() for w in r.warnings]
+
+    def fails(*args, **kw):
+        raise CalibrationError("could not connect every camera: cam05")
+
+    monkeypatch.setattr(calib.rig, "calibrate_extrinsics", fails)
+    said.clear()
+    with pytest.raises(CalibrationError, match="cam05"):
+        calibrate_rig(dets, sizes, board, cameras=truth.names, warn=said.append)
+    assert said == intrinsics_said
+
+
 def test_wrong_board_definition(truth):
     """The classic mistake: the board file counts squares (8 x 6) instead of inner corners (7 x 5).
 
@@ -258,6 +281,8 @@ def test_invalid_input(small, truth):
                       cam_tvec=np.zeros((1, 3)), board_rvec=np.zeros((1, 3)), board_tvec=np.zeros((1, 3)))
     with pytest.raises(ValueError, match="noise_px"):
         synthetic_detections(truth, board, [], noise_px=-1)
+    with pytest.raises(ValueError, match="warn"):
+        calibrate_rig(dets, sizes, board, warn="print")
     with pytest.raises(ValueError, match="board"):
         triangulate_board_error(truth, dets, "board")
     with pytest.raises(ValueError, match="max_views"):
