@@ -239,7 +239,10 @@ def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, rejec
         for d in kept[n]:
             count[d.frame] = count.get(d.frame, 0) + 1
     sets = set(_thin(sorted(f for f, k in count.items() if k >= 2), max_sets))
-    ba = {n: [d for d in kept[n] if d.frame in sets] for n in names}
+    # a camera that never saw the board at the same time as another keeps its views: the bundle adjustment's check
+    # then says so, where with none it would say the camera never saw the board
+    ba = {n: [d for d in kept[n] if d.frame in sets] if any(count[d.frame] >= 2 for d in kept[n]) else kept[n]
+          for n in names}
     held = np.array([[k in intr[n].held for k in INTRINSIC_NAMES] for n in names])
     prior = None
     if mode == "prior":

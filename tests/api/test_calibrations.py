@@ -208,6 +208,7 @@ def test_a_calibration_job_that_warns_and_then_fails_keeps_its_warnings(make_cli
     client = make_client(max_upload_bytes=64 << 20)
     st = _calibrate_job(client, "apart", path, BOARD)
     assert st["state"] == "failed" and "could not connect every camera" in st["error"], st
+    assert "but never at the same time as a camera connected to the rest" in st["error"], st  # (not "never detected")
     assert st["warnings"] == said, st
     assert client.get("/jobs", params={"state": "failed"}).json()[0]["warnings"] == said
 

@@ -209,6 +209,19 @@ def test_warn_hands_on_each_warning_as_it_is_known_and_before_a_failure(small, t
     assert said == intrinsics_said
 
 
+def test_calibrate_rig_says_a_camera_saw_the_board_but_never_with_another(small, truth):
+    """Through calibrate_rig (the bundle adjustment gets the frame sets two cameras share), a camera that saw the
+    board only in frames nobody else saw is said to have seen it, every view counted, but never at the same time as
+    the rest, not to have never seen it."""
+    board, dets = small
+    dets = dict(dets)
+    dets["cam05"] = [Detection(d.ids, d.corners, frame=1000 + d.frame) for d in dets["cam05"]]
+    with pytest.raises(CalibrationError, match=rf"could not connect every camera: camera cam05: saw the board in "
+                                               rf"{len(dets['cam05'])} view\(s\) but never at the same time") as ei:
+        calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names)
+    assert ei.value.cameras == ("cam05",) and "never detected" not in str(ei.value)
+
+
 def test_wrong_board_definition(truth):
     """The classic mistake: the board file counts squares (8 x 6) instead of inner corners (7 x 5).
 
