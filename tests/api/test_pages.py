@@ -181,6 +181,13 @@ def test_jobs_pages(client_data):
     assert '<a href="/jobs/{rig}/results/rig/rig.glb">rig/rig.glb</a>'.format(rig=rig) in page
     assert '<p id="unwritten" class="err" hidden></p>' in page
     assert client.get(f"/jobs/{rig}/results/").json()["written_by"] == ["surface", "track", "rig"]
+    # a cancelled job that had written nothing; one step said alone
+    for steps, said in ((["surface", "spine"], "The job was cancelled: the surface and spine steps wrote nothing."),
+                        (["rig"], "The job was cancelled: the rig step wrote nothing.")):
+        jid = store.create(kind="process", take="cal", steps=steps, params={}).id
+        store.finish(jid, "cancelled")
+        page = _html(client.get(f"/ui/jobs/{jid}"))
+        assert _result_hrefs(client, page, jid) == [] and f'<p id="unwritten" class="err">{said}</p>' in page
     # the page's own status endpoint exists and says what the script reads
     st = client.get(f"/jobs/{ids['running']}").json()
     assert st["done"] == 3 and st["total"] == 5 and st["progress"]["key"] == {"done": 3, "total": 5}
