@@ -5,7 +5,8 @@
 * ``GET /ui/takes/{take}``: a take's cameras as frusta (when it has a calibration) and
   a few frames and masks per camera (``<img>`` tags on ``/takes/{take}/frames/...``);
 * ``GET /ui/jobs``, ``GET /ui/jobs/{id}``: jobs with live progress bars (a small inline
-  script polls ``/jobs`` / ``/jobs/{id}`` every second while a job is active);
+  script polls ``/jobs`` / ``/jobs/{id}`` every second while a job is active); a job's page links the result
+  files it has written (``/jobs/{id}/results/``, polled with it), never those its steps would write;
 * ``GET /ui/jobs/{id}/report``: the HTML report of a finished job
   (:func:`pipeline.report.render_report`, cached as ``DATA/jobs/<id>/report.html``).
 
