@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.results import atomic_write_bytes, ply_bytes
-from pipeline.run.context import frame_warnings, frames_said, submit_aside
+from pipeline.run.context import frame_warnings, frames_said, once_per_run, submit_aside
 from pipeline.run.settings import changed_settings, file_digest, read_settings
 
 __all__ = ["carve_results", "carve_frames_task", "carved_path", "remove_carved", "track_with_carving", "CarveError",
@@ -234,6 +234,7 @@ def _default_margins(take: Path, hull_margin: float) -> dict:
     return {n: min(hull_margin, MARGIN_PER_RMS * known[n]) if n in known else hull_margin for n in calib.names}
 
 
+@once_per_run()  # (what every round's tracking says of the surfaces: once)
 def track_with_carving(results_dir, rounds: int, *, margin: float | None = None, progress=None, executor=None,
                        **track_options) -> dict:
     """Track the surfaces of ``stage process``, then ``rounds`` times carve them across time with

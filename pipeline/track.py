@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.mesh_primitives import vertex_normals
-from pipeline.run.context import submit_aside
+from pipeline.run.context import once_per_run, submit_aside, warn_once
 from pipeline.run.settings import array_digest, file_digest
 from pipeline.track_colour import colour_take, multiview_colour, multiview_tracks_for
 from pipeline.track_frames import (
@@ -115,6 +115,7 @@ def check_track_options(*, carve: int = 0, carve_margin: float | None = None, ar
                          "and limbs)")
 
 
+@once_per_run()  # (what its halves say again of the surfaces: once)
 def track_results(results_dir, *, template=None, progress=None, gamma=None, gate=None, spine_init: bool = False,
                   choose: bool = True, predict: bool = True, colour: bool = False, shape_memory: bool = False,
                   surfaces: str = "meshes", executor=None, labels=None) -> dict:
@@ -201,10 +202,10 @@ def track_results(results_dir, *, template=None, progress=None, gamma=None, gate
     skinned = spine_model(root, frames, by_frame, loaded)
     if skinned is None and (spine_init or not choose):  # asked of a spine the take does not have
         asked = "spine_init" if spine_init else "choose=False"
-        log.warning("%s has no effect: no usable spine.json in %s, every frame starts from the prediction",
-                    f"{asked} (--spine-init)" if spine_init else f"{asked} (--prediction-only)", root,
-                    extra={"job_message": f"{asked} has no effect: no usable spine.json in {root}, every frame starts "
-                           "from the prediction"})
+        warn_once(log, "%s has no effect: no usable spine.json in %s, every frame starts from the prediction",
+                  f"{asked} (--spine-init)" if spine_init else f"{asked} (--prediction-only)", root,
+                  extra={"job_message": f"{asked} has no effect: no usable spine.json in {root}, every frame starts "
+                         "from the prediction"})
     ref, V0, F0, source = _multiview_template(frames, by_frame, skinned, loaded, name)
     prior = "previous" if shape_memory else "round"
     source_of_labels = labels if isinstance(labels, str) else None if labels is None else "given"
@@ -252,10 +253,10 @@ def _spine_labels(root: Path, labels: str, reference: int | None):
     if labels != "spine":
         raise ValueError(f"labels must be 'spine', an array or a callable, got {labels!r}")
     if reference is None:
-        log.warning("labels='spine' (--labels) has no effect: no usable spine.json in %s, the patches follow the surface alone",
-                    root, extra={"job_message": f"the template's labels (parameters track.labels, or rig.parts "
-                                 f"'limbs') are not used: no usable spine.json in {root}, the patches follow the "
-                                 "surface alone"})
+        warn_once(log, "labels='spine' (--labels) has no effect: no usable spine.json in %s, the patches follow the "
+                  "surface alone", root, extra={"job_message": f"the template's labels (parameters track.labels, or "
+                                                f"rig.parts 'limbs') are not used: no usable spine.json in {root}, the "
+                                                "patches follow the surface alone"})
         return None
 
     def spine_labels(vertices, faces, frame):

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.run.context import once_per_run
 from pipeline.track import _patch_labels, _spine_labels, _tracked_labels
 from pipeline.track_armature_labels import (
     _JOB_PARTS,
@@ -45,6 +46,7 @@ log = logging.getLogger("pipeline.track")
 AUTO_RIG_ROUNDS = 4
 
 
+@once_per_run()  # (what every round's halves say of the surfaces: once)
 def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | str = 1, weight: float = 2.0,
                         lambda_thr: float = 0.98, colour: bool = False, spine: bool = False, progress=None,
                         executor=None, labels=None, parts: str = "motion") -> dict:

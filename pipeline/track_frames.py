@@ -25,6 +25,7 @@ import numpy as np
 
 from pipeline.mesh_primitives import mesh_volume
 from pipeline.results import atomic_write_bytes, ply_bytes
+from pipeline.run.context import warn_once
 from pipeline.run.settings import changed_settings, read_settings
 
 __all__ = ["LABELS_FILE", "LastRead", "labels_digest", "load_template", "predictor", "read_labels", "read_tracked", "remove_tracking",
@@ -467,7 +468,7 @@ def _check_no_gap(root: Path, mesh_dir: Path, frames: list[int]) -> None:
     why = {k: _no_surface_status(root, k) for k in missing}
     passed = [k for k in missing if why[k] is not None]
     if passed:
-        log.warning("%d frame sets have no surface and are tracked past: %s", len(passed),
+        warn_once(log, "%d frame sets have no surface and are tracked past: %s", len(passed),
                     ", ".join(f"{k} ({why[k]})" for k in passed[:10]) + (" ..." if len(passed) > 10 else ""))
     missing = [k for k in missing if why[k] is None]
     if missing:

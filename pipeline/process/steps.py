@@ -35,7 +35,7 @@ from pipeline.process.tasks import (
     unpack_masks,
     uses_depth,
 )
-from pipeline.run import StepList, forking_pool, frame_warnings, pool_size, submitted_by
+from pipeline.run import StepList, forking_pool, frame_warnings, once_per_run, pool_size, submitted_by
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -502,7 +502,8 @@ def _step_track(ctx: RunContext) -> None:
         _check_rig_reference(ctx, len(list((ctx.out / "meshes").glob("frame_*.ply"))))
     opt = ctx.params.track
     labels = ctx.params.track_labels  # (track.labels, or the rig's parts from the labels)
-    with _job_warnings(ctx, "track"):  # (the start-over of frames of other settings, a fallback of the rounds...)
+    # (one run: what the first tracking, each carve round and each armature round say of the surfaces, once)
+    with _job_warnings(ctx, "track"), once_per_run():  # (the start-over of frames of other settings, a fallback...)
         rep = track_with_carving(ctx.out, opt.carve, margin=opt.carve_margin, progress=ctx.report_progress,
                                  executor=ctx.executor, colour=opt.colour, shape_memory=opt.shape_memory,
                                  labels="spine" if labels else None)

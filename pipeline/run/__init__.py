@@ -10,7 +10,8 @@ works on (tracking's and carving's second half of a take), with its CPU seconds 
 said once; what a task's ``pipeline`` and ``stage`` loggers warn of in a worker process is said again in the thread that
 takes its result, so that a job's warnings and a command's terminal have it; what they warn of while a task works on
 one frame set is kept for the frame (:func:`frame_warnings`) and said once per kind of message with the frame sets
-that said it (:func:`frames_said`). :class:`BackgroundWriter` writes a task's files in order on a thread
+that said it (:func:`frames_said`); what every part of a run would say again (its rounds) is said once in it
+(:func:`once_per_run`, :func:`warn_once`). :class:`BackgroundWriter` writes a task's files in order on a thread
 of their own (atomic and durable, :func:`calib.fileio.atomic_write`) while the task computes on.
 :mod:`pipeline.run.settings` holds the start-over rule: a step writes its settings and the digests
 of what it read before its results; a later run with other settings makes them again.
@@ -27,14 +28,16 @@ from pipeline.run.context import (
     forking_pool,
     frame_warnings,
     frames_said,
+    once_per_run,
     pool_size,
     submit_aside,
     submitted_by,
+    warn_once,
 )
 from pipeline.run.settings import array_digest, changed_settings, file_digest, read_settings
 from pipeline.run.steps import Step, StepList
 from pipeline.run.writer import BackgroundWriter
 
 __all__ = ["Aside", "BackgroundWriter", "Clock", "Run", "Step", "StepList", "array_digest", "changed_settings", "chunks",
-           "file_digest", "forking_pool", "frame_warnings", "frames_said", "pool_size", "read_settings", "submit_aside",
-           "submitted_by"]
+           "file_digest", "forking_pool", "frame_warnings", "frames_said", "once_per_run", "pool_size", "read_settings",
+           "submit_aside", "submitted_by", "warn_once"]

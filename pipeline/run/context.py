@@ -17,8 +17,8 @@ import numpy as np
 
 from stage.messages import frames_named
 
-__all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "frame_warnings", "frames_said", "pool_size", "submit_aside",
-           "submitted_by"]
+__all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "frame_warnings", "frames_said", "once_per_run", "pool_size",
+           "submit_aside", "submitted_by", "warn_once"]
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ def submitted_by(thread: int) -> int:
 
 class _KeptWarnings(logging.Handler):
     """The warnings the ``pipeline`` and ``stage`` loggers say in this thread, kept as ``(logger, level, message,
-    job_message)``."""
+    job_message, once)`` (``once``: said by :func:`warn_once`)."""
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
@@ -62,7 +62,8 @@ class _KeptWarnings(logging.Handler):
         if record.thread != self.thread:  # (a Dask worker runs other tasks in its other threads)
             return
         try:
-            self.said.append((record.name, record.levelno, record.getMessage(), getattr(record, "job_message", None)))
+            self.said.append((record.name, record.levelno, record.getMessage(), getattr(record, "job_message", None),
+                              bool(getattr(record, "said_once", False))))
         except Exception:  # a message that cannot be formatted: said as logging says it
             self.handleError(record)
 
@@ -219,6 +220,85 @@ def frames_said(step: str, said: dict[int, list[tuple[str, str | None]]], *,
     return out
 
 
+#: the thread running a run (:func:`once_per_run`) -> what :func:`warn_once` said in it, as (logger, message)
+_SAID_ONCE: dict[int, set[tuple[str, str]]] = {}
+_SAID_ONCE_LOCK = threading.Lock()
+
+
+def _no_run_said() -> None:
+    """In a process forked from this one (a pool's worker): no run, and a lock no other thread holds. A worker's
+    one thread has the id of the thread that forked it, whose run's messages would otherwise silence the worker's
+    in later runs (a server's pool outlives its jobs)."""
+    global _SAID_ONCE_LOCK
+    _SAID_ONCE_LOCK = threading.Lock()
+    _SAID_ONCE.clear()
+
+
+os.register_at_fork(after_in_child=_no_run_said)
+
+
+@contextmanager
+def once_per_run() -> Iterator[None]:
+    """A run in which a warning said with :func:`warn_once` is said once, however many of its parts say it: the
+    tracking's surfaces that have frame sets without one are read again by every carve round and armature round
+    of one ``stage track`` or track step, which say it once. A run within a run (the rounds' own) is the outer
+    one; the tasks the run submits (a thread pool's, :func:`submitted_by`; a worker process's, said again in this
+    thread) are the run's.
+
+    Yields
+    ------
+    None
+    """
+    me = submitted_by(threading.get_ident())
+    with _SAID_ONCE_LOCK:
+        outer = me in _SAID_ONCE
+        if not outer:
+            _SAID_ONCE[me] = set()
+    try:
+        yield
+    finally:
+        if not outer:
+            with _SAID_ONCE_LOCK:
+                _SAID_ONCE.pop(me, None)
+
+
+def warn_once(logger: logging.Logger, msg: str, *args: object, **kwargs: object) -> None:
+    """``logger.warning(msg, *args, **kwargs)``, unless the run this thread works for (:func:`once_per_run`) has
+    said the same message on ``logger`` already; outside a run, always. In a worker process the record is said, and
+    once per run in the thread that takes the task's result (:func:`submit_aside`, :meth:`Run.map_tasks`).
+
+    Parameters
+    ----------
+    logger : logging.Logger
+        Where it is said.
+    msg : str
+        The message, with ``args`` as :meth:`logging.Logger.warning` takes them (``extra``, ``exc_info``...).
+
+    Raises
+    ------
+    ValueError
+        ``logger`` is not a logger, ``msg`` not a string, or ``extra`` not a dict.
+    """
+    if not isinstance(logger, logging.Logger):
+        raise ValueError(f"logger must be a logging.Logger, got {type(logger).__name__}")
+    if not isinstance(msg, str):
+        raise ValueError(f"msg must be a string, got {type(msg).__name__}")
+    extra = kwargs.pop("extra", None) or {}
+    if not isinstance(extra, dict):
+        raise ValueError(f"extra must be a dict, got {type(extra).__name__}")
+    with _SAID_ONCE_LOCK:
+        said = _SAID_ONCE.get(submitted_by(threading.get_ident()))
+        if said is not None:
+            try:
+                key = (logger.name, msg % args if args else msg)
+            except (TypeError, ValueError):  # (a message that cannot be formatted: said as logging says it)
+                key = (logger.name, f"{msg} {args!r}")
+            if key in said:
+                return
+            said.add(key)
+    logger.warning(msg, *args, extra={**extra, "said_once": True}, **kwargs)
+
+
 def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None) -> tuple[object, float, int, list]:
     """A task's result, the CPU seconds its process spent on it, that process's id and the warnings the ``pipeline``
     loggers said in it (run in the worker). ``origin``: (process id, thread) of the caller that submitted the task.
@@ -256,9 +336,12 @@ def _say_again(said: list) -> None:
     """The warnings a task said in another process (:func:`_with_cpu`), said again here, on their loggers, in this
     thread: the job's warnings (``pipeline.process.steps._job_warnings``) and the command's terminal get them as
     they get this process's own."""
-    for name, level, message, job_message in said:
-        logging.getLogger(name).log(level, "%s", message, extra=None if job_message is None else
-                                    {"job_message": job_message})
+    for name, level, message, job_message, once in said:
+        extra = None if job_message is None else {"job_message": job_message}
+        if once:  # (said once per run here too: the worker's run is this thread's)
+            warn_once(logging.getLogger(name), "%s", message, extra=extra)
+        else:
+            logging.getLogger(name).log(level, "%s", message, extra=extra)
 
 
 class Aside:

@@ -208,7 +208,11 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
     kw = dict(template=args.template, progress=bars, gamma=args.gamma, gate=args.gate, spine_init=args.spine_init,
               choose=not args.prediction_only, predict=not args.no_predict, colour=args.colour,
               shape_memory=args.shape_memory, labels="spine" if args.labels else None)
-    with worker_pool(1) if (2 if args.workers is None else args.workers) >= 2 else contextlib.nullcontext() as ex:
+    from pipeline.run import once_per_run
+
+    # one run: what the first tracking, each carve round and each armature round say of the surfaces, said once
+    with worker_pool(1) if (2 if args.workers is None else args.workers) >= 2 else contextlib.nullcontext() as ex, \
+            once_per_run():
         # one task at a time: one half of the take, of the tracking and of every armature round
         rep = _rounds(src, args.carve, margin=args.carve_margin, executor=ex, **kw)
         if args.rig_rounds:

@@ -459,9 +459,9 @@ def test_what_the_armature_warns_of_is_in_the_jobs_warnings(tmp_path, monkeypatc
 
 
 def test_every_warning_of_the_pipeline_that_names_an_option_says_it_in_a_jobs_words_too():
-    """Every ``log.warning`` of the pipeline (but the processing's own, pipeline/process), the keying and the take
-    store whose message names a command line option, a ``stage`` command or a function's keyword (``parts='limbs'``)
-    gives ``extra={"job_message": ...}`` naming none: what a job's warnings show
+    """Every ``log.warning`` (or ``warn_once``) of the pipeline (but the processing's own, pipeline/process), the
+    keying and the take store whose message names a command line option, a ``stage`` command or a function's keyword
+    (``parts='limbs'``) gives ``extra={"job_message": ...}`` naming none: what a job's warnings show
     (:func:`pipeline.process.steps._job_warnings`; read from the source)."""
     import ast
     from pathlib import Path
@@ -482,11 +482,13 @@ def test_every_warning_of_the_pipeline_that_names_an_option_says_it_in_a_jobs_wo
         if path.is_relative_to(root) and path.relative_to(root).parts[0] == "process":
             continue
         for node in ast.walk(ast.parse(path.read_text())):
-            if not (isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "warning" and node.args):
+            once = isinstance(node, ast.Call) and getattr(node.func, "id", None) == "warn_once"  # (logger, msg, ...)
+            if not (isinstance(node, ast.Call) and (getattr(node.func, "attr", None) == "warning" or once)
+                    and len(node.args) > once):
                 continue
             seen += 1
             extra = [k.value for k in node.keywords if k.arg == "extra" and isinstance(k.value, ast.Dict)]
             job = [v for d in extra for key, v in zip(d.keys, d.values) if getattr(key, "value", None) == "job_message"]
-            if named(" ".join(text(a) for a in node.args)) and (not job or named(text(job[0]))):
+            if named(" ".join(text(a) for a in node.args[once:])) and (not job or named(text(job[0]))):
                 bad.append(f"{path.relative_to(root.parent)}:{node.lineno}")
     assert seen >= 30 and not bad, (seen, bad)

@@ -23,9 +23,11 @@ from pipeline.run import (
     file_digest,
     frame_warnings,
     frames_said,
+    once_per_run,
     read_settings,
     submit_aside,
     submitted_by,
+    warn_once,
 )
 
 
@@ -69,6 +71,12 @@ def test_invalid_input():
     with frame_warnings(np.int64(2)) as said:  # (a frame number from NumPy is one)
         pass
     assert said == []
+    with pytest.raises(ValueError, match="logger must be a logging.Logger"):
+        warn_once("pipeline.track", "a message")
+    with pytest.raises(ValueError, match="msg must be a string"):
+        warn_once(logging.getLogger("pipeline.track"), None)
+    with pytest.raises(ValueError, match="extra must be a dict"):
+        warn_once(logging.getLogger("pipeline.track"), "a message", extra=["job_message"])
 
 
 def test_a_kept_warning_is_handed_on_as_it_is_kept(tmp_path):
@@ -361,3 +369,93 @@ def test_a_python_user_at_info_sees_each_kind_of_a_steps_frame_warnings_once(tmp
     assert not [m for m in lines if re.match(r"frame set \d+: ", m)], lines
     kinds = [re.sub(r"\d+", "#", m) for m in lines]
     assert not [k for k in set(kinds) if kinds.count(k) > 2], lines  # (no line said for frame sets 1, 2 and 3)
+
+
+def _warns_once(k: int) -> int:
+    """Says the message every part of a run says alike, and one of its own, once per run."""
+    logger = logging.getLogger("pipeline.track")
+    warn_once(logger, "%d frame sets have no surface and are tracked past", 1, extra={"job_message": "in a job"})
+    warn_once(logger, "part %d: its own", k)
+    return k
+
+
+@pytest.mark.parametrize("pool", [None, "fork", cf.ThreadPoolExecutor])
+def test_a_warning_said_once_per_run_is_said_once_by_the_run_and_its_tasks(tmp_path, pool):
+    """``warn_once`` in a run (``once_per_run``): a message the run's parts say alike is said once, with its
+    ``job_message``, whether said here, in a run within the run (its rounds), in a task aside or mapped on a thread
+    pool or in a worker process (said again in this thread, once); outside a run, each time; the next run says it
+    again, also when its task runs in a worker process forked during the run before (a pool outlives its runs)."""
+    heard, logger = _Heard(), logging.getLogger("pipeline")
+    logger.addHandler(heard)
+    level = logger.level
+    logger.setLevel(logging.INFO)
+    make = None if pool is None else partial(cf.ProcessPoolExecutor, mp_context=__import__("multiprocessing").get_context(
+        "fork")) if pool == "fork" else pool
+
+    def tasks(ex, ks):
+        if ex is None:
+            return [_warns_once(k) for k in ks]
+        aside = submit_aside(ex, partial(_warns_once, ks[0]), unavailable="{exc}")
+        return [aside.result(), *sorted(Run(out=tmp_path, executor=ex).map_tasks([partial(_warns_once, k)
+                                                                                   for k in ks[1:]]))]
+
+    def said():
+        out = [(m, j) for _, lv, m, j in heard.heard if lv == logging.WARNING]
+        heard.heard.clear()
+        return out
+
+    gap = ("1 frame sets have no surface and are tracked past", "in a job")
+    try:
+        assert [_warns_once(k) for k in (0, 0)] == [0, 0]
+        assert said() == [gap, ("part 0: its own", None)] * 2  # outside a run: each time
+        with make() if make else contextlib.nullcontext() as ex:
+            with once_per_run():
+                _warns_once(1)
+                with once_per_run():  # (a round's own run: the outer one)
+                    _warns_once(2)
+                assert tasks(ex, [3, 4, 5]) == [3, 4, 5]
+                in_run = said()
+            with once_per_run():  # the next run, on the same pool
+                assert tasks(ex, [6, 7]) == [6, 7]
+                next_run = said()
+    finally:
+        logger.removeHandler(heard)
+        logger.setLevel(level)
+    assert in_run[:3] == [gap, ("part 1: its own", None), ("part 2: its own", None)], in_run
+    assert sorted(in_run[3:]) == [(f"part {k}: its own", None) for k in (3, 4, 5)], in_run
+    assert next_run.count(gap) == 1 and sorted(next_run) == sorted([gap, ("part 6: its own", None),
+                                                                    ("part 7: its own", None)]), next_run
+
+
+def test_one_tracking_run_says_what_every_round_says_of_the_surfaces_once(tmp_path):
+    """``process_take`` with the track step (a carve round, the template's labels, an armature round) on a take
+    whose frame set 4 has no surface and whose spine is unusable, under ``logging.basicConfig(level=logging.INFO)``:
+    the frame set tracked past and the labels that have no effect are said once (the first tracking, the carve
+    round and the armature round each read the surfaces and the spine), and kept once in the report; then
+    ``stage track`` of the same results with a carve round, two armature rounds and ``--labels``: once each too."""
+    import json
+
+    from pipeline.process import process_take
+    from stage.cli import main
+    from tests.pipeline.hull_scenes import take_with_failed_masks
+
+    take = take_with_failed_masks(tmp_path / "t.h5")
+    track = {"carve": 1, "labels": True, "armature_rounds": 1}
+    with _BasicConfig(logging.INFO) as basic:
+        process_take(take, tmp_path / "out", steps=["surface", "spine", "track"],
+                     params={"resolution": 32, "track": track})
+    lines = [m for lv, name, m in basic.lines if name == "pipeline.track" and lv == logging.WARNING]
+    gap = [m for m in lines if "have no surface and are tracked past" in m]
+    labels = [m for m in lines if m.startswith("labels='spine' (--labels) has no effect")]
+    assert gap == ["1 frame sets have no surface and are tracked past: 4 (empty)"] and len(labels) == 1, lines
+    warned = json.loads((tmp_path / "out" / "report.json").read_text())["warnings"]
+    assert sum("tracked past" in w for w in warned) == 1 and sum("labels" in w for w in warned) == 1, warned
+    heard, logger = _Heard(), logging.getLogger("pipeline.track")
+    logger.addHandler(heard)
+    try:
+        assert main(["-q", "track", str(tmp_path / "out"), "--carve", "1", "--armature-rounds", "2", "--labels",
+                     "--workers", "0", "--no-progress"]) == 0
+    finally:
+        logger.removeHandler(heard)
+    said = [m for _, lv, m, _ in heard.heard if lv == logging.WARNING]
+    assert sum("tracked past" in m for m in said) == 1 and sum("(--labels) has no effect" in m for m in said) == 1, said
