@@ -8,7 +8,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -320,6 +320,10 @@ def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None)
         logging.getLogger(name).addHandler(keep)
     try:
         out = task()
+    except Exception as exc:  # what it said before it failed goes back with its error (:func:`_said_before`)
+        with suppress(AttributeError):  # (an exception without a __dict__ of its own: none)
+            exc.pipeline_said = keep.said
+        raise
     finally:
         for name in _WARNING_LOGGERS:
             logging.getLogger(name).removeHandler(keep)
@@ -330,6 +334,12 @@ def _origin() -> tuple[int, int]:
     """(process id, thread) of the caller submitting a task: the thread whose work the caller's is
     (:func:`submitted_by`), so that a task a thread pool's task submits is the first submitter's work too."""
     return os.getpid(), submitted_by(threading.get_ident())
+
+
+def _said_before(exc: BaseException) -> list:
+    """What a task that raised ``exc`` in another process said before it failed (:func:`_with_cpu`)."""
+    said = getattr(exc, "pipeline_said", None)
+    return said if isinstance(said, list) else []
 
 
 def _say_again(said: list) -> None:
@@ -360,8 +370,15 @@ class Aside:
 
     def result(self) -> object:
         """The task's result; ``concurrent.futures.BrokenExecutor`` when its worker process died. The warnings
-        the task said in another process are said again in this thread, the first time (:func:`_say_again`)."""
-        out, cpu, pid, said = self._future.result()
+        the task said in another process are said again in this thread, the first time (:func:`_say_again`); those
+        of a task that raised, before its error is raised here."""
+        try:
+            out, cpu, pid, said = self._future.result()
+        except Exception as exc:
+            if not self._said:
+                self._said = True
+                _say_again(_said_before(exc))
+            raise
         if pid != os.getpid():
             self.cpu_seconds = cpu
             if not self._said:
@@ -485,7 +502,7 @@ class Run:
         """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
         between tasks when cancelled. The CPU seconds of workers in other processes add to the
         running step's (a thread pool's are already this process's), and the warnings they said are said
-        again in this thread (:func:`_say_again`)."""
+        again in this thread (:func:`_say_again`), a failed task's before its error is raised here."""
         if self.executor is None:
             for task in tasks:
                 self.check_cancel()
@@ -495,7 +512,11 @@ class Run:
         try:
             for fut in cf.as_completed(futures):
                 self.check_cancel()
-                out, cpu, pid, said = fut.result()
+                try:
+                    out, cpu, pid, said = fut.result()
+                except Exception as exc:  # (what the task said before it failed: a failed job keeps it)
+                    _say_again(_said_before(exc))
+                    raise
                 if pid != os.getpid():
                     self.clock.add_worker_cpu(self.step, cpu)
                     _say_again(said)

@@ -175,6 +175,37 @@ def test_what_a_task_warns_of_on_a_worker_is_said_in_the_callers_thread(tmp_path
     assert submitted_by(me) == me
 
 
+def _warns_then_fails(k: int) -> int:
+    _warns(k)
+    raise ValueError(f"task {k} failed")
+
+
+@pytest.mark.parametrize("pool", [cf.ProcessPoolExecutor, cf.ThreadPoolExecutor])
+def test_what_a_task_warned_of_before_it_failed_is_said_in_the_callers_thread(tmp_path, pool):
+    """A task aside or a mapped task that warns and then raises: in a worker process its warnings are said again in
+    the thread that takes its result, once, with their ``job_message``, before its error is raised there (a job
+    that fails keeps what its steps said before, :func:`pipeline.process.steps._job_warnings`); in a thread pool's
+    thread they were said as they were said."""
+    heard, logger = _Heard(), logging.getLogger("pipeline")
+    logger.addHandler(heard)
+    level = logger.level
+    logger.setLevel(logging.INFO)
+    me = threading.get_ident()
+    try:
+        with pool(1) as ex:
+            aside = submit_aside(ex, partial(_warns_then_fails, 3), unavailable="{exc}")
+            for _ in range(2):
+                with pytest.raises(ValueError, match="task 3 failed"):
+                    aside.result()
+            with pytest.raises(ValueError, match="task 4 failed"):
+                list(Run(out=tmp_path, executor=ex).map_tasks([partial(_warns_then_fails, 4)]))
+    finally:
+        logger.removeHandler(heard)
+        logger.setLevel(level)
+    warned = [(t, m, j) for t, lv, m, j in heard.heard if lv == logging.WARNING]
+    assert warned == [(me, f"camera {k}: no mask", f"camera {k} in a job") for k in (3, 4)], warned
+
+
 def _warns_aside(ex, k: int) -> int:
     return submit_aside(ex, partial(_warns, k), unavailable="{exc}").result()
 
