@@ -418,22 +418,33 @@ def _drawn_centre(motion_a, motion_b, point, *, residual: float, radius: float) 
     return np.linalg.solve(A, np.einsum("tji,tj->i", M, tb - ta) + w * np.asarray(point, dtype=np.float64))
 
 
-def _inside(point: np.ndarray, v: np.ndarray, normals: np.ndarray, tree: cKDTree, k: int = 8) -> bool:
-    """Whether ``point`` lies inside the surface: behind the normals of most of its ``k`` nearest vertices."""
-    _, nn = tree.query(point, k=min(k, len(v)))
-    nn = np.atleast_1d(nn)
-    return bool((((point - v[nn]) * normals[nn]).sum(1) < 0).mean() > 0.5)
+def _winding_number(point: np.ndarray, v: np.ndarray, f: np.ndarray) -> float:
+    """The generalized winding number of the triangles ``f`` of ``v`` about ``point`` (Jacobson et al. 2013): their
+    signed solid angles at ``point`` (van Oosterom & Strackee 1983) summed over ``4 pi``. About a closed surface it is
+    1 inside and 0 outside (-1 inside when the faces wind inwards); a hole lowers it by the solid angle it leaves open,
+    and a sheet of the surface pushed through another part (a tracked limb pressed into the body) adds its own turns
+    only about the points it encloses."""
+    a, b, c = v[f[:, 0]] - point, v[f[:, 1]] - point, v[f[:, 2]] - point
+    la, lb, lc = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1), np.linalg.norm(c, axis=1)
+    num = np.einsum("ij,ij->i", a, np.cross(b, c))
+    den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
+           + np.einsum("ij,ij->i", c, a) * lb)
+    return float(np.arctan2(num, den).sum() / (2.0 * np.pi))
 
 
-def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, dict]:
+def _inside(point: np.ndarray, v: np.ndarray, f: np.ndarray) -> bool:
+    """Whether ``point`` lies inside the surface: its winding number (:func:`_winding_number`, either way the faces
+    wind) exceeds one half. The outward normals of the nearest vertices are no test where the surface folds or
+    passes through itself: a sheet pushed into the body faces the points beside it."""
+    return abs(_winding_number(np.asarray(point, dtype=np.float64), v, f)) > 0.5
+
+
+def _pivot_positions(P, joint_pairs, cand, motions, v, f) -> tuple[dict, dict]:
     """Articulations moved to their centre of rotation where it is determined (:data:`PIVOT_UNCERTAINTY`; beyond
-    the cross-section where the two parts meet, :data:`PIVOT_FAR_UNCERTAINTY`) and inside the mesh; how every
-    articulation was placed, and why."""
+    the cross-section where the two parts meet, :data:`PIVOT_FAR_UNCERTAINTY`) and inside the mesh
+    (:func:`_inside`); how every articulation was placed, and why."""
     if motions is None:
         return {}, {}
-    from pipeline.mesh_primitives import outward_normals
-
-    normals = outward_normals(v, f)  # (whichever way the faces wind)
     radius = {pair: r for pair, _, r in cand}
     out, how = {}, {}
     for node, pairs in joint_pairs.items():
@@ -455,11 +466,11 @@ def _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) -> tuple[dict, d
                               f"not determined well enough to move that far (uncertain by {info['uncertainty']:.2f} of "
                               f"the boundary's radius, more than {PIVOT_FAR_UNCERTAINTY:g})")
             drawn = _drawn_centre(motions[a], motions[b], P[node], residual=res, radius=radius[(a, b)])
-            if _inside(drawn, v, normals, tree):
+            if _inside(drawn, v, f):
                 out[node] = drawn
                 info["method"] = "centre of rotation, drawn to the boundary"
                 info["reason"] += "; the centre drawn towards the boundary's point by as much"
-        elif not _inside(c, v, normals, tree):
+        elif not _inside(c, v, f):
             info["reason"] = "the centre of rotation lies outside the mesh"
         else:
             out[node] = c
@@ -513,7 +524,7 @@ def articulated_skeleton(
         pulled towards the curve point along a hinge's axis) when the two
         segments turn against each other enough for it to be determined
         (``PIVOT_UNCERTAINTY``), and the centre lies within the mean radius of their shared
-        boundary from the curve point and inside the mesh; otherwise it stays
+        boundary from the curve point and inside the mesh (its winding number); otherwise it stays
         (``placement`` says which, and why).
     limbs : (V,) int array_like, optional
         The spine limb of every vertex (-1: the body; :func:`pipeline.armature_limbs.vertex_limbs`): a segment
@@ -553,7 +564,7 @@ def articulated_skeleton(
     for pair, c, _ in cand:
         _, node = ptree.query(c)
         joint_pairs[int(node)].append(pair)
-    pivots, how = _pivot_positions(P, joint_pairs, cand, motions, v, f, tree) if refine_joints else ({}, {})
+    pivots, how = _pivot_positions(P, joint_pairs, cand, motions, v, f) if refine_joints else ({}, {})
     # 2. auxiliary joints at ends and branches
     key = set(joint_pairs) | {i for i in range(n) if len(adj[i]) != 2}
     if not key:

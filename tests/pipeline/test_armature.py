@@ -547,6 +547,63 @@ def test_a_determined_centre_of_rotation_away_from_the_boundary_is_the_joint():
     assert np.linalg.norm(sk.rest[j][:2] - pivot[:2]) < 1.0  # measured: on the axis
 
 
+def test_winding_number_against_the_solid_angles_of_a_cube():
+    """The winding number of a closed cube (Jacobson et al. 2013) is 1 about points inside, 0 about points outside and
+    -1 with its faces reversed; one face's two triangles subtend a sixth of the sphere at the centre, so their winding
+    number there is exactly 1/6 (to 1e-12); ``_inside`` is the test that it exceeds one half either way."""
+    import trimesh
+
+    from pipeline.armature_skeleton import _inside, _winding_number
+
+    m = trimesh.creation.box(extents=(2.0, 2.0, 2.0)).subdivide()
+    v, f = np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+    for point in ([0.0, 0.0, 0.0], [0.9, -0.8, 0.95], [-0.99, 0.0, 0.3]):
+        assert _winding_number(np.array(point), v, f) == pytest.approx(1.0, abs=1e-12)
+        assert _winding_number(np.array(point), v, f[:, ::-1]) == pytest.approx(-1.0, abs=1e-12)
+        assert _inside(np.array(point), v, f) and _inside(np.array(point), v, f[:, ::-1])
+    for point in ([1.01, 0.0, 0.0], [3.0, 2.0, -1.0], [0.0, 0.0, -1.5]):
+        assert _winding_number(np.array(point), v, f) == pytest.approx(0.0, abs=1e-12)
+        assert not _inside(np.array(point), v, f)
+    c = v[f].mean(1)
+    top = f[c[:, 2] > 0.999]  # the face z = 1, in its triangles
+    assert _winding_number(np.zeros(3), v, top) == pytest.approx(1.0 / 6.0, abs=1e-12)
+
+
+def test_a_centre_beside_a_sheet_pushed_into_the_body_is_the_joint():
+    """The far hinge (the bar's right half turns by 60 degrees about a z axis through (-30, 0, 0), 30 mm inside the
+    left half from where the labels start the right one), with a small closed box pushed into the left half 3 mm
+    beside the hinge, as a tracked limb pressed into the body: the hinge's eight nearest vertices lie on that box and
+    their outward normals all face it, yet it lies inside the surface (winding number 1). The joint is the centre of
+    rotation, at the hinge to within 1 mm (measured 0.1 mm; the boundary is 37 mm from it)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from pipeline.armature_skeleton import CurveSkeleton, articulated_skeleton
+    from pipeline.mesh_primitives import outward_normals
+
+    V, F, right, W, pivot = _far_hinge(60)
+    box = trimesh.creation.box(extents=(8.0, 8.0, 6.0))
+    for _ in range(3):
+        box = box.subdivide()
+    bv = np.asarray(box.vertices) + pivot + np.array([0.0, 0.0, 6.0])  # z from 3 to 9, inside the bar (|z| < 10)
+    n = V.shape[1]
+    rest = np.concatenate([V[0], bv])
+    faces = np.concatenate([F, np.asarray(box.faces) + n])
+    motion = np.concatenate([W, np.repeat(bv[None], len(W), axis=0)], axis=1)  # it moves with the left half
+    labels = np.concatenate([right, np.zeros(len(bv), bool)]).astype(np.int64)
+    _, nn = cKDTree(rest).query(pivot, k=8)
+    assert (nn >= n).all()
+    normals = outward_normals(rest, faces)
+    assert ((((pivot - rest[nn]) * normals[nn]).sum(1) > 0)).all()  # every nearest normal faces the hinge
+    line = np.c_[np.linspace(-100.0, 100.0, 41), np.zeros(41), np.zeros(41)]
+    curve = CurveSkeleton(line, np.c_[np.arange(40), np.arange(1, 41)])
+    sk = articulated_skeleton(rest, faces, labels, curve, motion=motion, reference=0)
+    j = int(np.flatnonzero(sk.articulation)[0])
+    assert int(sk.articulation.sum()) == 1
+    assert sk.placement[j]["method"] == "centre of rotation", sk.placement[j]
+    assert np.linalg.norm(sk.rest[j] - pivot) < 1.0
+
+
 def test_an_uncertain_centre_beyond_the_boundary_is_drawn_towards_it():
     """The same far hinge turned by 20 degrees with 2 mm of noise on every vertex: the centre is uncertain by a
     quarter of the boundary's radius (more than PIVOT_FAR_UNCERTAINTY), so the joint is the centre drawn towards the
