@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.armature_limbs import check_limbs, limbs_last
 from pipeline.geodesic import mesh_edges
-from pipeline.mesh_primitives import edge_components
+from pipeline.mesh_primitives import edge_components, winding_number
 from pipeline.rigid_parts import relative_bend, rigid_motions
 
 __all__ = [
@@ -418,25 +418,10 @@ def _drawn_centre(motion_a, motion_b, point, *, residual: float, radius: float) 
     return np.linalg.solve(A, np.einsum("tji,tj->i", M, tb - ta) + w * np.asarray(point, dtype=np.float64))
 
 
-def _winding_number(point: np.ndarray, v: np.ndarray, f: np.ndarray) -> float:
-    """The generalized winding number of the triangles ``f`` of ``v`` about ``point`` (Jacobson et al. 2013): their
-    signed solid angles at ``point`` (van Oosterom & Strackee 1983) summed over ``4 pi``. About a closed surface it is
-    1 inside and 0 outside (-1 inside when the faces wind inwards); a hole lowers it by the solid angle it leaves open,
-    and a sheet of the surface pushed through another part (a tracked limb pressed into the body) adds its own turns
-    only about the points it encloses."""
-    a, b, c = v[f[:, 0]] - point, v[f[:, 1]] - point, v[f[:, 2]] - point
-    la, lb, lc = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1), np.linalg.norm(c, axis=1)
-    num = np.einsum("ij,ij->i", a, np.cross(b, c))
-    den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
-           + np.einsum("ij,ij->i", c, a) * lb)
-    return float(np.arctan2(num, den).sum() / (2.0 * np.pi))
-
-
 def _inside(point: np.ndarray, v: np.ndarray, f: np.ndarray) -> bool:
-    """Whether ``point`` lies inside the surface: its winding number (:func:`_winding_number`, either way the faces
-    wind) exceeds one half. The outward normals of the nearest vertices are no test where the surface folds or
-    passes through itself: a sheet pushed into the body faces the points beside it."""
-    return abs(_winding_number(np.asarray(point, dtype=np.float64), v, f)) > 0.5
+    """Whether ``point`` lies inside the surface: its winding number (:func:`pipeline.mesh_primitives.winding_number`,
+    either way the faces wind) exceeds one half; the nearest vertices' normals face a point beside a fold."""
+    return abs(winding_number(point, v, f)) > 0.5
 
 
 def _pivot_positions(P, joint_pairs, cand, motions, v, f) -> tuple[dict, dict]:

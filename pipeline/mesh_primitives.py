@@ -1,8 +1,8 @@
 """Mesh primitives the tracker, the motion segmentation, the exporter and the simulator share:
 the one check of a mesh's arrays, vertex normals, enclosed volume, triangle areas, the sums
 over a mesh's face corners behind them, and the rigid motion that best carries one point set onto
-another (:func:`rigid_fit`), and the connected components of a mesh or of an edge list
-(:func:`mesh_components`, :func:`edge_components`).
+another (:func:`rigid_fit`), the connected components of a mesh or of an edge list
+(:func:`mesh_components`, :func:`edge_components`), and whether a point lies inside a surface (:func:`winding_number`).
 
 A vertex in no face (an isolated vertex) has **no normal: zero**, not an arbitrary direction. Every
 user of a normal then treats it as "no surface here": the tracker's normal gate never pairs it,
@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 __all__ = ["check_mesh", "check_points", "summing_matrix", "sum_by", "scatter_add", "triangle_areas", "vertex_normals", "mesh_volume",
-           "outward_normals", "rigid_fit", "edge_components", "mesh_components"]
+           "outward_normals", "winding_number", "rigid_fit", "edge_components", "mesh_components"]
 
 
 def check_points(points, *, name: str = "points", min_points: int = 0) -> np.ndarray:
@@ -174,6 +174,42 @@ def outward_normals(vertices, faces) -> np.ndarray:
     """
     v, f = check_mesh(vertices, faces)
     return vertex_normals(v, f) * (1.0 if mesh_volume(v, f, signed=True) >= 0 else -1.0)
+
+
+def winding_number(point, vertices, faces) -> float:
+    """The generalized winding number of a mesh about ``point`` (Jacobson et al. 2013): the triangles' signed solid
+    angles at ``point`` (van Oosterom & Strackee 1983) summed over ``4 pi``.
+
+    About a closed surface it is 1 inside and 0 outside (-1 inside when the faces wind inwards); a hole lowers it by
+    the solid angle it leaves open, and a sheet of the surface pushed through another part (a tracked limb pressed
+    into the body) adds its own turns only about the points it encloses, where the nearest vertices' normals face the
+    point beside it.
+
+    Parameters
+    ----------
+    point : (3,) float array_like
+    vertices : (V, 3) float array_like
+    faces : (F, 3) int array_like
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    ValueError
+        Naming ``point`` (not three finite coordinates), or as :func:`check_mesh`.
+    """
+    p = np.asarray(point, dtype=np.float64)
+    if p.shape != (3,) or not np.isfinite(p).all():
+        raise ValueError(f"point must be three finite coordinates, got shape {p.shape}")
+    v, f = check_mesh(vertices, faces)
+    a, b, c = v[f[:, 0]] - p, v[f[:, 1]] - p, v[f[:, 2]] - p
+    la, lb, lc = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1), np.linalg.norm(c, axis=1)
+    num = np.einsum("ij,ij->i", a, np.cross(b, c))
+    den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
+           + np.einsum("ij,ij->i", c, a) * lb)
+    return float(np.arctan2(num, den).sum() / (2.0 * np.pi))
 
 
 def rigid_fit(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -547,28 +547,6 @@ def test_a_determined_centre_of_rotation_away_from_the_boundary_is_the_joint():
     assert np.linalg.norm(sk.rest[j][:2] - pivot[:2]) < 1.0  # measured: on the axis
 
 
-def test_winding_number_against_the_solid_angles_of_a_cube():
-    """The winding number of a closed cube (Jacobson et al. 2013) is 1 about points inside, 0 about points outside and
-    -1 with its faces reversed; one face's two triangles subtend a sixth of the sphere at the centre, so their winding
-    number there is exactly 1/6 (to 1e-12); ``_inside`` is the test that it exceeds one half either way."""
-    import trimesh
-
-    from pipeline.armature_skeleton import _inside, _winding_number
-
-    m = trimesh.creation.box(extents=(2.0, 2.0, 2.0)).subdivide()
-    v, f = np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
-    for point in ([0.0, 0.0, 0.0], [0.9, -0.8, 0.95], [-0.99, 0.0, 0.3]):
-        assert _winding_number(np.array(point), v, f) == pytest.approx(1.0, abs=1e-12)
-        assert _winding_number(np.array(point), v, f[:, ::-1]) == pytest.approx(-1.0, abs=1e-12)
-        assert _inside(np.array(point), v, f) and _inside(np.array(point), v, f[:, ::-1])
-    for point in ([1.01, 0.0, 0.0], [3.0, 2.0, -1.0], [0.0, 0.0, -1.5]):
-        assert _winding_number(np.array(point), v, f) == pytest.approx(0.0, abs=1e-12)
-        assert not _inside(np.array(point), v, f)
-    c = v[f].mean(1)
-    top = f[c[:, 2] > 0.999]  # the face z = 1, in its triangles
-    assert _winding_number(np.zeros(3), v, top) == pytest.approx(1.0 / 6.0, abs=1e-12)
-
-
 def test_a_centre_beside_a_sheet_pushed_into_the_body_is_the_joint():
     """The far hinge (the bar's right half turns by 60 degrees about a z axis through (-30, 0, 0), 30 mm inside the
     left half from where the labels start the right one), with a small closed box pushed into the left half 3 mm

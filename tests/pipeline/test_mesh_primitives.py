@@ -15,6 +15,7 @@ from pipeline.mesh_primitives import (
     sum_by,
     summing_matrix,
     vertex_normals,
+    winding_number,
 )
 
 
@@ -114,6 +115,13 @@ def test_invalid_input():
         outward_normals(v, f[:, :2])
     with pytest.raises(ValueError, match="faces"):
         outward_normals(v[:5], f)
+    for bad in (np.zeros(2), [0.0, np.nan, 0.0], np.zeros((1, 3))):
+        with pytest.raises(ValueError, match="^point must be three finite"):
+            winding_number(bad, v, f)
+    with pytest.raises(ValueError, match="faces"):
+        winding_number(np.zeros(3), v, f[:, :2])
+    with pytest.raises(ValueError, match="vertices"):
+        winding_number(np.zeros(3), v[:, :2], f)
     with pytest.raises(ValueError, match="faces"):
         mesh_components(f[:, :2], len(v))
     with pytest.raises(ValueError, match="faces"):
@@ -192,3 +200,18 @@ def test_components_of_empty_and_separate_meshes():
     assert mesh_components(np.zeros((0, 3), np.int64), 0).shape == (0,)
     assert np.array_equal(edge_components(np.zeros((0, 2), np.int64), 3), [0, 1, 2])
     assert np.array_equal(edge_components([], 2), [0, 1]) and np.array_equal(mesh_components([], 2), [0, 1])
+
+
+def test_winding_number_against_the_solid_angles_of_a_cube():
+    """The winding number of a closed cube (Jacobson et al. 2013) is 1 about points inside, 0 about points outside and
+    -1 with its faces reversed; one face's triangles subtend a sixth of the sphere at the centre, so their winding
+    number there is exactly 1/6 (all to 1e-12)."""
+    m = trimesh.creation.box(extents=(2.0, 2.0, 2.0)).subdivide()
+    v, f = np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+    for point in ([0.0, 0.0, 0.0], [0.9, -0.8, 0.95], [-0.99, 0.0, 0.3]):
+        assert winding_number(point, v, f) == pytest.approx(1.0, abs=1e-12)
+        assert winding_number(point, v, f[:, ::-1]) == pytest.approx(-1.0, abs=1e-12)
+    for point in ([1.01, 0.0, 0.0], [3.0, 2.0, -1.0], [0.0, 0.0, -1.5]):
+        assert winding_number(point, v, f) == pytest.approx(0.0, abs=1e-12)
+    top = f[v[f].mean(1)[:, 2] > 0.999]  # the face z = 1, in its triangles
+    assert winding_number(np.zeros(3), v, top) == pytest.approx(1.0 / 6.0, abs=1e-12)
