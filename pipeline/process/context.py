@@ -20,7 +20,7 @@ import numpy as np
 from calib.fileio import atomic_write, json_default
 from pipeline.process.params import ProcessParams
 from pipeline.process.records import frame_name
-from pipeline.run import Run, chunks, frames_said
+from pipeline.run import Run, chunks, frames_said, frames_said_before
 
 log = logging.getLogger("pipeline.process")
 
@@ -79,7 +79,8 @@ class RunContext(Run):
         (the one runner all per-frame steps share: chunks, executor, progress, cancel);
         ``chunk_args(frames)`` adds keywords per chunk (e.g. its masks). What the frames warned of (a result's
         ``said``, :func:`pipeline.run.frame_warnings`) is said once per kind of message, with the count of frame
-        sets and the first of them (:func:`pipeline.run.frames_said`), as ``"{step}: ..."``, in the warnings."""
+        sets and the first of them (:func:`pipeline.run.frames_said`), as ``"{step}: ..."``, in the warnings; those of
+        a task that failed too, before its error goes on (:func:`pipeline.run.frames_said_before`)."""
         n_sets = self.take.n_sets
         todo = [k for k in range(n_sets) if not (self.out / done_dir / f"{frame_name(k)}{suffix}").exists()]
         done = n_sets - len(todo)
@@ -96,6 +97,10 @@ class RunContext(Run):
                         said[rec["index"]] = [tuple(x) for x in rec["said"]]
                     rec.pop("said", None)
                 self.report_progress(step, done, n_sets)
+        except Exception as exc:  # (a task that failed: what its frames said before, the one it failed on too)
+            for k, kept in frames_said_before(exc).items():
+                said.setdefault(k, kept)
+            raise
         finally:  # (a cancelled or failed run says what its finished frames warned of too)
             for msg, job_message in frames_said(step, said):
                 self.warn(msg, job_message=job_message)

@@ -27,6 +27,7 @@ from pipeline.run.context import (
     forking_pool,
     frame_warnings,
     frames_said,
+    frames_said_before,
     once_per_run,
     pool_size,
     submit_aside,
@@ -38,5 +39,5 @@ from pipeline.run.steps import Step, StepList
 from pipeline.run.writer import BackgroundWriter
 
 __all__ = ["Aside", "BackgroundWriter", "Clock", "Run", "Step", "StepList", "array_digest", "changed_settings", "chunks",
-           "file_digest", "forking_pool", "frame_warnings", "frames_said", "once_per_run", "pool_size", "read_settings",
-           "submit_aside", "submitted_by", "warn_once"]
+           "file_digest", "forking_pool", "frame_warnings", "frames_said", "frames_said_before", "once_per_run",
+           "pool_size", "read_settings", "submit_aside", "submitted_by", "warn_once"]

@@ -17,8 +17,8 @@ import numpy as np
 
 from stage.messages import frames_named
 
-__all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "frame_warnings", "frames_said", "once_per_run", "pool_size",
-           "submit_aside", "submitted_by", "warn_once"]
+__all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "frame_warnings", "frames_said", "frames_said_before",
+           "once_per_run", "pool_size", "submit_aside", "submitted_by", "warn_once"]
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +73,9 @@ _WARNING_LOGGERS = ("pipeline", "stage")
 
 #: the frame this thread (or asyncio task) works on and the warnings said in it (:func:`frame_warnings`)
 _FRAME: ContextVar[tuple[int, list] | None] = ContextVar("pipeline_frame_warnings", default=None)
+#: the frames the task running in this thread has worked on (:func:`frame_warnings`) and what each said: a task that
+#: raises hands them on with its error (:func:`_task`, :func:`frames_said_before`)
+_TASK_FRAMES: ContextVar[dict[int, list] | None] = ContextVar("pipeline_task_frames", default=None)
 
 
 #: a level below every handler's (``logging.NOTSET`` is 0): a record of this level reaches none
@@ -170,6 +173,9 @@ def frame_warnings(frame: int) -> Iterator[list[tuple[str, str | None]]]:
         raise ValueError(f"frame must be an integer (a frame set), got {frame!r}")
     _first_handler()
     said: list[tuple[str, str | None]] = []
+    task = _TASK_FRAMES.get()
+    if task is not None:
+        task[int(frame)] = said
     token = _FRAME.set((int(frame), said))
     try:
         yield said
@@ -299,6 +305,47 @@ def warn_once(logger: logging.Logger, msg: str, *args: object, **kwargs: object)
     logger.warning(msg, *args, extra={**extra, "said_once": True}, **kwargs)
 
 
+def _task(task: Callable[[], object]) -> object:
+    """``task()``; when it raises, what its frames said before (:func:`frame_warnings`: the frames it finished and the
+    one it failed on) goes on with the error (``pipeline_frames_said``, :func:`frames_said_before`)."""
+    token = _TASK_FRAMES.set({})
+    try:
+        return task()
+    except Exception as exc:
+        frames = {k: said for k, said in (_TASK_FRAMES.get() or {}).items() if said}
+        with suppress(AttributeError):  # (an exception without a __dict__ of its own: none)
+            exc.pipeline_frames_said = {**frames, **frames_said_before(exc)}  # (a task's task's first)
+        raise
+    finally:
+        _TASK_FRAMES.reset(token)
+
+
+def frames_said_before(exc: BaseException) -> dict[int, list[tuple[str, str | None]]]:
+    """What the frames of a per-frame task that raised ``exc`` said before it failed (:func:`frame_warnings`): the
+    frames it finished, whose results are lost with the task's, and the one it failed on. The task ran through
+    :meth:`Run.map_tasks` or :func:`submit_aside`, here, on a thread or in another process.
+
+    Parameters
+    ----------
+    exc : BaseException
+        The task's error.
+
+    Returns
+    -------
+    dict of int to list of (str, str or None)
+        Per frame set, what :func:`frame_warnings` kept (none: ``{}``), for :func:`frames_said`.
+
+    Raises
+    ------
+    ValueError
+        ``exc`` is not an exception.
+    """
+    if not isinstance(exc, BaseException):
+        raise ValueError(f"exc must be an exception, got {type(exc).__name__}")
+    said = getattr(exc, "pipeline_frames_said", None)
+    return {int(k): [tuple(x) for x in v] for k, v in said.items()} if isinstance(said, dict) else {}
+
+
 def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None) -> tuple[object, float, int, list]:
     """A task's result, the CPU seconds its process spent on it, that process's id and the warnings the ``pipeline``
     loggers said in it (run in the worker). ``origin``: (process id, thread) of the caller that submitted the task.
@@ -311,7 +358,7 @@ def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None)
         me = threading.get_ident()
         _SUBMITTED_BY[me] = origin[1]
         try:
-            out = task()
+            out = _task(task)
         finally:
             _SUBMITTED_BY.pop(me, None)
         return out, time.process_time() - t, os.getpid(), []
@@ -319,7 +366,7 @@ def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None)
     for name in _WARNING_LOGGERS:
         logging.getLogger(name).addHandler(keep)
     try:
-        out = task()
+        out = _task(task)
     except Exception as exc:  # what it said before it failed goes back with its error (:func:`_said_before`)
         with suppress(AttributeError):  # (an exception without a __dict__ of its own: none)
             exc.pipeline_said = keep.said
@@ -506,7 +553,7 @@ class Run:
         if self.executor is None:
             for task in tasks:
                 self.check_cancel()
-                yield task()
+                yield _task(task)
             return
         futures = [self.executor.submit(_with_cpu, task, _origin()) for task in tasks]
         try:

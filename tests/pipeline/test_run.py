@@ -23,6 +23,7 @@ from pipeline.run import (
     file_digest,
     frame_warnings,
     frames_said,
+    frames_said_before,
     once_per_run,
     read_settings,
     submit_aside,
@@ -71,6 +72,9 @@ def test_invalid_input():
     with frame_warnings(np.int64(2)) as said:  # (a frame number from NumPy is one)
         pass
     assert said == []
+    with pytest.raises(ValueError, match="exc must be an exception"):
+        frames_said_before("frame set 4: unreadable")
+    assert frames_said_before(ValueError("no frames")) == {}
     with pytest.raises(ValueError, match="logger must be a logging.Logger"):
         warn_once("pipeline.track", "a message")
     with pytest.raises(ValueError, match="msg must be a string"):
@@ -490,3 +494,46 @@ def test_one_tracking_run_says_what_every_round_says_of_the_surfaces_once(tmp_pa
         logger.removeHandler(heard)
     said = [m for _, lv, m, _ in heard.heard if lv == logging.WARNING]
     assert sum("tracked past" in m for m in said) == 1 and sum("(--labels) has no effect" in m for m in said) == 1, said
+
+
+def _frames_then_fail(frames: list[int], *, fail: int) -> list[dict]:
+    """A per-frame task (as ``surface_task``): every frame set warns of camera cam02's mask; frame set ``fail`` warns
+    of its own, then raises."""
+    out = []
+    for k in frames:
+        with frame_warnings(k) as said:
+            logging.getLogger("pipeline.hull").warning("camera cam02: mask is all foreground")
+            if k == fail:
+                logging.getLogger("pipeline.hull").warning("its images are unreadable")
+                raise ValueError(f"frame set {k}: unreadable")
+        out.append({"index": k, "said": said})
+    return out
+
+
+@pytest.mark.parametrize("pool", [None, cf.ProcessPoolExecutor, cf.ThreadPoolExecutor])
+def test_what_the_frames_of_a_task_that_failed_said_goes_on_with_its_error(tmp_path, pool):
+    """A per-frame task that raises on its third frame set: what its frames said before (the two it finished, whose
+    results are lost with the task's, and the one it failed on) goes on with its error, here, on a thread and from
+    a worker process (``frames_said_before``)."""
+    with pool(1) if pool else contextlib.nullcontext() as ex:
+        with pytest.raises(ValueError, match="frame set 4: unreadable") as raised:
+            list(Run(out=tmp_path, executor=ex).map_tasks([partial(_frames_then_fail, [2, 3, 4], fail=4)]))
+    mask, own = ("camera cam02: mask is all foreground", None), ("its images are unreadable", None)
+    assert frames_said_before(raised.value) == {2: [mask], 3: [mask], 4: [mask, own]}
+
+
+def test_a_step_whose_task_failed_says_what_its_frames_said_before(tmp_path):
+    """``RunContext.run_frames`` over six frame sets in chunks of three, the second chunk failing on frame set 4:
+    the step says what every frame set said before the error, the failed chunk's 3 and 4 too, once per kind (a job
+    that fails keeps them), and the error goes on."""
+    from pipeline.process import ProcessParams, RunContext
+    from pipeline.process.context import TakeFacts
+
+    take = TakeFacts(path=tmp_path / "t.h5", calibration=None, cameras=["cam02"], n_sets=6, fps=30.0, rig={})
+    kept = []
+    ctx = RunContext(out=tmp_path, params=ProcessParams(chunk=3), need_key=False, take=take, on_warning=kept.append)
+    with pytest.raises(ValueError, match="frame set 4: unreadable"):
+        ctx.run_frames("surface", partial(_frames_then_fail, fail=4), "meshes")
+    assert ctx.warnings == kept == [
+        "surface: camera cam02: mask is all foreground (5 frame sets: 0, 1, 2, 3, 4)",
+        "surface: its images are unreadable (1 frame set: 4)"], ctx.warnings
