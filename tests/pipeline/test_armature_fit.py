@@ -90,3 +90,61 @@ def test_fit_subset_is_fit_frame_on_its_rows():
         fit_subset(m, target, m.identity(), max_points=40)
     with pytest.raises(ValueError, match="start"):
         fit_subset(m, target[m.subset(40)], "pose", max_points=40)
+
+
+def test_twist_prior_holds_a_parts_turn_about_its_axis_by_its_exact_optimum():
+    """Two parts on the x axis, a ring of radius 3 around each, the targets the rest with the second part turned
+    by 0.6 rad about the axis; the prior keeps the second part's turn relative to the first at rest (strength s; the
+    vertices have no normals, so every vertex's whole motion counts).
+    The root turns by ``alpha`` and the second part by ``tau`` relative to it, both about the axis, and the fit's
+    sum of squares is ``2 D (1 - cos alpha) + 2 D (1 - cos(alpha + tau - 0.6)) + s D tau^2`` (``D = 9 n``, n
+    vertices a ring): the fit's sum of squares is within 1e-4 of that minimum's (scipy's; the Levenberg-Marquardt stops
+    once a step promises less than 1e-4 of it) and its turns within 1e-3 rad of the minimum's. Its twist is
+    ``relative_twists``', and without the prior the part follows its targets (1e-9)."""
+    import pytest
+    from scipy.optimize import minimize
+
+    from pipeline.armature_fit import fit_subset
+    from pipeline.armature_twist import relative_twists, twist_prior
+
+    m = chain_model(2, 12)
+    turn = 0.6
+    R = Rotation.from_rotvec([[0.0, 0.0, 0.0], [turn, 0.0, 0.0]]).as_matrix()
+    target = m.deform(_forward(m, R[0], np.zeros(3), R))
+    free = fit_subset(m, target, m.identity(), iterations=50, tol=1e-12, max_points=None)
+    assert np.abs(free.R - R).max() < 1e-9
+    for s in (0.5, 2.0):
+        prior = twist_prior(m, m.identity(), s, max_points=None)
+        assert prior.weights[1] == pytest.approx(s * 9.0 * 12)
+        pose = fit_subset(m, target, m.identity(), iterations=50, tol=1e-12, max_points=None, twist=prior)
+        def f(z, s=s, D=9.0 * 12):
+            return 2 * D * (1 - np.cos(z[0])) + 2 * D * (1 - np.cos(z[0] + z[1] - turn)) + s * D * z[1] ** 2
+
+        alpha, tau = minimize(f, [0.0, 0.0], method="BFGS", options={"gtol": 1e-12}).x
+        got_alpha = np.arctan2(pose.R[0][2, 1], pose.R[0][1, 1])
+        local = pose.R[0].T @ pose.R[1]
+        got_tau = np.arctan2(local[2, 1], local[1, 1])
+        assert f([got_alpha, got_tau]) <= (1 + 1e-4) * f([alpha, tau])
+        assert abs(got_alpha - alpha) < 1e-3 and abs(got_tau - tau) < 1e-3, (s, got_alpha, alpha, got_tau, tau)
+        assert relative_twists(m, pose, prior)[1] == pytest.approx(got_tau, abs=1e-9)
+    # the weight counts the share of the turn that slides the surface along itself: a ring's radial normals see
+    # none of it (all 9 n counts), normals along the turn's motion all of it (nothing counts)
+    x = m.vertices - m.pivots[1]
+    radial = x - x[:, :1] * [1.0, 0.0, 0.0]
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    assert twist_prior(m, m.identity(), 2.0, normals=radial, max_points=None).weights[1] == pytest.approx(2.0 * 9 * 12)
+    along = np.cross([1.0, 0.0, 0.0], x)
+    along /= np.linalg.norm(along, axis=1, keepdims=True)
+    assert twist_prior(m, m.identity(), 2.0, normals=along, max_points=None).weights[1] == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError, match="normals"):
+        twist_prior(m, m.identity(), 1.0, normals=radial[:3])
+    with pytest.raises(ValueError, match="strength"):
+        twist_prior(m, m.identity(), 0.0)
+    with pytest.raises(ValueError, match="reference"):
+        twist_prior(m, "pose", 1.0)
+    with pytest.raises(ValueError, match="model"):
+        twist_prior(object(), m.identity(), 1.0)
+    with pytest.raises(ValueError, match="axes"):
+        twist_prior(m, m.identity(), 1.0, axes=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="twist"):
+        fit_subset(m, target, m.identity(), max_points=None, twist="prior")
