@@ -29,7 +29,7 @@ from typing import Annotated, Any, Callable, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from api.errors import NotFoundError, UnavailableError
-from api.jobs.runner import _takes_warn
+from api.jobs.runner import takes_warn
 from api.paths import JOB_ID, check_id, confined_entries, inside
 from calib.fileio import atomic_write, strict_json
 
@@ -238,7 +238,7 @@ def calibrate_take_work(calibrations_dir: Path) -> Callable[..., Any]:
              cancel: threading.Event, job_id: str, take_id: str, warn: Callable[[str], None] | None = None,
              **_: Any) -> dict:
         fn = _find_rig_calibrator()
-        hook = {"warn": warn} if warn is not None and _takes_warn(fn) else {}  # (kept as said: a failure keeps them)
+        hook = {"warn": warn} if warn is not None and takes_warn(fn) else {}  # (kept as said: a failure keeps them)
         result = fn(take, params=CalibrateParams.model_validate(params), progress=progress, cancel=cancel, **hook)
         calib = getattr(result, "calibration", result)
         if not hasattr(calib, "to_dict"):

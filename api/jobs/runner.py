@@ -41,7 +41,7 @@ from api.jobs.store import JobRecord, JobStore, result_warnings
 from api.paths import confined, data_relative
 from calib.fileio import json_ready, plain
 
-__all__ = ["JobRunner", "WorkSpec", "WorkUnavailableError", "load_work", "DEFAULT_STEPS"]
+__all__ = ["JobRunner", "WorkSpec", "WorkUnavailableError", "load_work", "takes_warn", "DEFAULT_STEPS"]
 
 log = logging.getLogger(__name__)
 
@@ -131,8 +131,27 @@ def load_work(spec: str | Callable[..., Any]) -> WorkSpec:
                     check_steps=check if callable(check) else None)
 
 
-def _takes_warn(fn: Callable[..., Any]) -> bool:
-    """The work function takes ``warn`` (by name, or any keyword)."""
+def takes_warn(fn: Callable[..., Any]) -> bool:
+    """Whether a work function or job handler takes ``warn`` (by name, or as any keyword).
+
+    Parameters
+    ----------
+    fn : callable
+        The work function (``process_take``'s signature) or a job kind's handler.
+
+    Returns
+    -------
+    bool
+        True when ``fn(..., warn=...)`` is accepted: the runner then hands it the job's ``warn(message)``.
+        A callable without a signature (a builtin) does not take it.
+
+    Raises
+    ------
+    ValueError
+        ``fn`` is not callable.
+    """
+    if not callable(fn):
+        raise ValueError(f"fn must be a callable, got {type(fn).__name__}")
     try:
         params = inspect.signature(fn).parameters.values()
     except (TypeError, ValueError):  # (a callable without a signature)
@@ -350,12 +369,12 @@ class JobRunner:
                 result = spec.fn(
                     take, out, steps=tuple(rec.steps), params=spec.to_params(rec.params),
                     executor=self.executor().executor, progress=progress, cancel=cancel,
-                    **({"warn": warn} if _takes_warn(spec.fn) else {}),
+                    **({"warn": warn} if takes_warn(spec.fn) else {}),
                 )
             elif rec.kind in self.handlers:
                 handler = self.handlers[rec.kind]
                 result = handler(take, out, params=rec.params, progress=progress, cancel=cancel, job_id=jid,
-                                 take_id=rec.take, **({"warn": warn} if _takes_warn(handler) else {}))
+                                 take_id=rec.take, **({"warn": warn} if takes_warn(handler) else {}))
             else:
                 raise ValueError(f"unknown job kind {rec.kind!r}")
         except InterruptedError:  # the work stopped on the cancel event

@@ -11,6 +11,7 @@ import pytest
 
 from api.executors import ExecutorHandle
 from api.jobs import JobNotFoundError, JobRunner, JobStateError, JobStore, load_work
+from api.jobs.runner import takes_warn
 from tests.api import fakework
 
 
@@ -129,6 +130,18 @@ def test_invalid_input(tmp_path):
     for steps, params in ((["x"], {}), ([], {}), (["key", "key"], {}), (None, {"delay_s": "slow"})):
         with pytest.raises(ValueError):
             spec.validate(steps, params)
+    with pytest.raises(ValueError, match="fn must be a callable"):
+        takes_warn("process_take")
+
+
+def test_takes_warn_reads_the_signature():
+    def named(take, out, *, warn=None): ...
+    def keywords(take, out, **hooks): ...
+    def without(take, out, *, steps=()): ...
+    def positional_only(warn, /): ...
+
+    assert [takes_warn(f) for f in (named, keywords, without, positional_only, len)] == [True, True, False, False,
+                                                                                         False]
 
 
 def test_graceful_stop_puts_the_running_job_back_in_the_queue(tmp_path):
