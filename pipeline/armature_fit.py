@@ -359,7 +359,7 @@ def fit_frame(model: ArticulatedModel, target, start: Pose | None = None, *, ite
 
 
 def fit_subset(model: ArticulatedModel, target, start: Pose, *, iterations: int = 10, tol: float = 1e-5,
-               max_points: int | None = 3000, twist=None) -> Pose:
+               max_points: int | None = 3000) -> Pose:
     """:func:`fit_frame` given only the targets of its least-squares subset (``model.subset(max_points)``,
     in that order), without the error over all vertices: what an articulated ICP needs, whose
     targets exist only where it paired vertices.
@@ -372,10 +372,6 @@ def fit_subset(model: ArticulatedModel, target, start: Pose, *, iterations: int 
     start : Pose
     iterations, tol, max_points
         As :func:`fit_frame`'s.
-    twist : pipeline.armature_twist.TwistPrior, optional
-        A prior on the parts' twists about their own axes relative to their parents
-        (:func:`pipeline.armature_twist.twist_prior`, made for this ``max_points``): its ``w_p tau_p^2`` joins the sum
-        of squares.
 
     Returns
     -------
@@ -394,18 +390,8 @@ def fit_subset(model: ArticulatedModel, target, start: Pose, *, iterations: int 
     size = float(np.linalg.norm(x.max(0) - x.min(0))) or 1.0
     lsq = _lsq_weights(model, max_points)
 
-    if twist is not None:
-        from pipeline.armature_twist import TwistPrior, twist_terms  # (it builds on this module's pose)
-
-        if not isinstance(twist, TwistPrior) or twist.weights.shape != (P,):
-            raise ValueError(f"twist must be a TwistPrior of the model's {P} parts")
-
     def linearise(pose):
-        sse, H, g, cw = _normal_equations(model, pose, x, y, lsq)
-        if twist is None:
-            return sse, H, g, cw
-        s2, H2, g2 = twist_terms(model, pose, twist)
-        return sse + s2, H + H2, g + g2, cw
+        return _normal_equations(model, pose, x, y, lsq)
 
     def step(pose, delta, cw):
         dt, om = delta[:3], delta[3:].reshape(P, 3)

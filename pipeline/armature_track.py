@@ -35,7 +35,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.armature_fit import ArticulatedModel, Pose, fit_subset
-from pipeline.armature_twist import TwistPrior, twist_prior
 from pipeline.colour_tracks import ray_points
 from pipeline.tracking import FrameFit, TemplateTracker, closest_pairs
 
@@ -86,8 +85,7 @@ def surface_residual(vertices, points, *, gate: float, tree=None) -> float:
 
 
 def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *, gate: float, rounds: int = 6,
-                        iterations: int = 3, max_points: int = 2000, tree=None, marks=None,
-                        twist: TwistPrior | None = None) -> tuple[Pose, float]:
+                        iterations: int = 3, max_points: int = 2000, tree=None, marks=None) -> tuple[Pose, float]:
     """The armature's pose on a surface: articulated ICP, point-to-plane (see the module docstring).
 
     Parameters
@@ -111,9 +109,6 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
         Where the images say some vertices went (:func:`mark_points`): each round, a marked vertex
         within the round's gate of its mark has its mark as its target (:data:`MARK_PULL`; the surface
         pairs cannot see a round part's turn about its own axis, the images can).
-    twist : TwistPrior, optional
-        A prior on every part's turn about its own axis relative to its parent
-        (:func:`pipeline.armature_twist.twist_prior`, made for ``max_points``) in every refit.
 
     Returns
     -------
@@ -151,7 +146,7 @@ def fit_pose_to_surface(model: ArticulatedModel, start: Pose, points, normals, *
         target = S + moved / np.maximum(count, 1.0)[:, None]  # unpaired vertices stay where they are
         if marks is not None:
             _pull_to_marks(target, S, marks, gr)
-        pose = fit_subset(model, target, pose, iterations=int(iterations), max_points=int(max_points), twist=twist)
+        pose = fit_subset(model, target, pose, iterations=int(iterations), max_points=int(max_points))
     return pose, surface_residual(model.deform(pose), X, gate=g, tree=tree)
 
 
@@ -221,13 +216,10 @@ class ArmatureTracker:
         How strongly every vertex is drawn to the skinned pose, in pairs (``fit(anchor=)``).
     rounds, iterations, max_points : int
         Of :func:`fit_pose_to_surface`.
-    twist : float, optional
-        With a ``reference`` pose in :meth:`fit`, the strength of a prior that keeps every part's turn about its own
-        axis relative to its parent at the reference's (:func:`pipeline.armature_twist.twist_prior`); None: no prior.
     """
 
     def __init__(self, tracker: TemplateTracker, model: ArticulatedModel, *, weight: float = 2.0, rounds: int = 6,
-                 iterations: int = 3, max_points: int = 2000, twist: float | None = None):
+                 iterations: int = 3, max_points: int = 2000):
         if not isinstance(tracker, TemplateTracker):
             raise ValueError(f"tracker must be a TemplateTracker, got {type(tracker).__name__}")
         if not isinstance(model, ArticulatedModel):
@@ -242,9 +234,8 @@ class ArmatureTracker:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
         self.rounds, self.iterations, self.max_points = int(rounds), int(iterations), int(max_points)
-        self.twist = None if twist is None else _check_positive(twist, "twist")
 
-    def fit(self, points, normals, *, previous, candidates, tracks=None, reference=None) -> tuple[FrameFit, Pose, float]:
+    def fit(self, points, normals, *, previous, candidates, tracks=None) -> tuple[FrameFit, Pose, float]:
         """One frame: the best candidate's pose on the surface, then the template fitted from its
         skinned pose and drawn towards it.
 
@@ -260,10 +251,6 @@ class ArmatureTracker:
             the ray; :func:`pipeline.track_colour.multiview_tracks_for`): as marks (:func:`mark_points`)
             in the ICP and in the choice of its start (the surface residual plus
             :func:`mark_residual`), and as the template fit's ``tracks``.
-        reference : Pose, optional
-            With the tracker's ``twist``: the pose (the previous frame's) whose parts' twists about their own axes,
-            relative to their parents, the prior keeps in the articulated ICP's rounds from the chosen start (the
-            candidates' first rounds, which choose it, go without the prior).
 
         Returns
         -------
@@ -281,8 +268,6 @@ class ArmatureTracker:
                 cands.append(c)
         if not cands:
             raise ValueError("candidates must hold at least one Pose")
-        if reference is not None and (not isinstance(reference, Pose) or reference.R.shape != cands[0].R.shape):
-            raise ValueError(f"reference must be a Pose of the model's {self.model.skeleton.n_parts} parts")
         tree = cKDTree(X)
         marks = mark_points(tracks, len(self.model.vertices))
         kw = dict(iterations=self.iterations, max_points=self.max_points, tree=tree, marks=marks)
@@ -294,11 +279,8 @@ class ArmatureTracker:
             score = res + (mark_residual(self.model.deform(pose), marks, gate=g2) if marks is not None else 0.0)
             if best is None or score < best[1]:
                 best = (pose, score)
-        # the twist prior in the chosen start's rounds only: the starts are chosen by what the surface and the images say
-        prior = None if self.twist is None or reference is None else \
-            twist_prior(self.model, reference, self.twist, max_points=self.max_points)
         pose, res = fit_pose_to_surface(self.model, best[0], X, N, gate=self.tracker.gate, rounds=self.rounds - coarse,
-                                        twist=prior, **kw)
+                                        **kw)
         skinned = self.model.deform(pose)
         fit = self.tracker.fit(X, N, previous=previous, init=skinned, anchor=(skinned, self.weight),
                                tracks=None if marks is None else tracks)

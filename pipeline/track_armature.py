@@ -33,7 +33,7 @@ from pipeline.track_armature_labels import (
     _unclaimed_limbs,
 )
 from pipeline.track_armature_models import _limb_rig, _limbs, _rig_of, _spine_rig
-from pipeline.track_armature_round import ARMATURE_FIT_ROUNDS, LIMB_TWIST, _rig_round, _spine_steps
+from pipeline.track_armature_round import ARMATURE_FIT_ROUNDS, _rig_round, _spine_steps
 from pipeline.track_frames import surface_meshes, write_frame, write_report, write_round_segments
 from pipeline.tracking import TemplateTracker
 
@@ -128,10 +128,7 @@ def track_with_armature(results_dir, model=None, *, poses=None, rounds: int | st
         labels also split the body by its motion on every frame's surface (``template_labels(surfaces=)``), and
         a piece of the body that the body's motion carries off the surfaces becomes a limb of its own (a limb
         the spine has no axis for, :func:`pipeline.track_armature_labels._unclaimed_limbs`); then every limb takes
-        back the body's vertices on its root tube (:func:`pipeline.template_labels.root_tubes`). Every frame's pose
-        keeps every part's turn about its axis, relative to its parent, near the previous frame's as far as the
-        surface does not see it (:data:`pipeline.track_armature_round.LIMB_TWIST`,
-        :func:`pipeline.armature_twist.twist_prior`). Without labels or a
+        back the body's vertices on its root tube (:func:`pipeline.template_labels.root_tubes`). Without labels or a
         usable spine one line says so and the parts come from the motion. Only as good as the labels' body: a limb
         the labels give the body moves with it (docs/tracking.md, "The round's armature from the labels").
 
@@ -224,19 +221,17 @@ def _armature_rounds(model, poses, rounds: int, vs, faces, frames, refi, by_fram
     or None: the motion's."""
     history, best = [], None
     for r in range(1 if given else rounds + (model is not None)):  # (the spine's round comes before ``rounds``)
-        twist = None  # the prior on the parts' twists: the limbs' armature's rounds only
         if r == 0 and model is not None:
             use, by_pose = model, dict(poses or {})
             entry = {"armature": "given", "segments": None, "fit_error_mm": None} if given else \
                 {"armature": "spine", "segments": int(model.skeleton.n_parts), "fit_error_mm": None}
         elif chain is not None:
             use, by_pose, entry = _limb_rig(vs, faces, frames, refi, *chain)
-            twist = LIMB_TWIST
         else:
             use, by_pose, entry = _rig_of(vs, faces, frames, refi, lambda_thr, limbs=limbs)
         per = _rig_round(tracker, use, by_pose, vs, frames, refi, by_frame, root, faces, weight,
                          None if progress is None else partial(_round_progress, progress, r + 1), spine=spine,
-                         tracks_for=tracks_for, aside=aside, twist=twist)
+                         tracks_for=tracks_for, aside=aside)
         entry["worker_cpu_seconds"] = per.pop("worker_cpu_seconds", None)
         res = [f["rig_residual_mm"] for f in per["figures"].values()]
         entry["residual_mm"] = round(float(np.mean(res)), 4) if res else None

@@ -23,7 +23,7 @@ from pipeline.track import mesh_data, spine_model, spine_starts
 from pipeline.track_frames import surface_meshes, write_frame
 from pipeline.tracking import TemplateTracker
 
-__all__ = ["armature_half_task", "ARMATURE_FIT_ROUNDS", "ARMATURE_ICP_POINTS", "LIMB_TWIST"]
+__all__ = ["armature_half_task", "ARMATURE_FIT_ROUNDS", "ARMATURE_ICP_POINTS"]
 
 log = logging.getLogger("pipeline.track")
 
@@ -35,21 +35,16 @@ ARMATURE_FIT_ROUNDS = 8
 #: a pose of 60 parts is determined many times over by 1000 (the same accuracy as 2000, a sixth less CPU;
 #: docs/tracking.md, "Fast motion").
 ARMATURE_ICP_POINTS = 1000
-#: The strength of the prior that keeps every part's turn about its own axis, relative to its parent, at the
-#: previous frame's in the rounds of the limbs' armature (``parts="limbs"``; :func:`pipeline.armature_twist.twist_prior`):
-#: a round limb's turn about its axis is what its surface pairs see least (docs/tracking.md, "The limbs' twists in the round").
-LIMB_TWIST = 1.0
 
 
 def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int], refi: int, by_frame: dict, root: Path,
-               faces: np.ndarray, weight: float, progress, spine=None, tracks_for=None, aside=None, twist=None) -> dict:
+               faces: np.ndarray, weight: float, progress, spine=None, tracks_for=None, aside=None) -> dict:
     """One tracking of every frame but the reference with ``model`` as the prior; -> {"vertices": frame -> (V, 3),
     "figures": frame -> per-frame figures}. ``spine``: ``step(k, k_prev)`` -> the spine's skinned step of the
     template from frame ``k_prev`` to ``k`` (:func:`_spine_steps`), or None. ``tracks_for``: the colour
     tracks (:func:`pipeline.track_colour.multiview_tracks_for`), or None. ``aside``: (executor, the half's
     settings for :func:`armature_half_task`): the longer half (from the reference frame forwards or backwards) is
-    tracked there meanwhile. ``twist``: the strength of the prior on the parts' twists relative to their parents
-    (:class:`pipeline.armature_track.ArmatureTracker`'s ``twist``), or None."""
+    tracked there meanwhile."""
     from pipeline.armature_track import fit_pose_to_surface
 
     data_for = mesh_data(by_frame)
@@ -62,17 +57,15 @@ def _rig_round(tracker, model, by_pose: dict, vs: np.ndarray, frames: list[int],
     halves = sorted((frames[refi + 1:], frames[:refi][::-1]), key=len) if aside is not None else \
         (frames[refi + 1:], frames[:refi][::-1])
     mine, other = halves
-    half = {"prev": vs[refi], "pose": ref_pose, "ref": ref, "faces": faces, "root": str(root), "weight": weight,
-            "twist": twist}
+    half = {"prev": vs[refi], "pose": ref_pose, "ref": ref, "faces": faces, "root": str(root), "weight": weight}
     later = None
     if aside is not None and other and mine:  # (one half only: here, without a second set-up)
         later = submit_aside(aside[0], partial(armature_half_task, {**aside[1], **half, "model": model, "by_pose": by_pose,
                                                                    "frames": other}),
                              unavailable="the second tracking process is not available ({exc}); tracking both "
                                          "halves here", logger=log)
-    rig = ArmatureTracker(tracker, model, weight=weight, max_points=ARMATURE_ICP_POINTS, twist=twist)
-    here = partial(_track_half, rig, by_pose, data_for, spine=spine, tracks_for=tracks_for,
-                   **{k: v for k, v in half.items() if k != "twist"})
+    rig = ArmatureTracker(tracker, model, weight=weight, max_points=ARMATURE_ICP_POINTS)
+    here = partial(_track_half, rig, by_pose, data_for, spine=spine, tracks_for=tracks_for, **half)
     count = {"done": 1}
 
     def tick():
@@ -121,7 +114,7 @@ def _track_half(rig, by_pose: dict, data_for, frames: list[int], *, prev: np.nda
             tracks = None
             if tracks_for is not None:  # followed from the previous frame, started at the skinned prediction
                 tracks = tracks_for(k, prev_k, prev, None, model.deform(cands[1]) if before is not None else prev)
-            fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands, tracks=tracks, reference=pose)
+            fit, new_pose, res = rig.fit(data[0], data[1], previous=prev, candidates=cands, tracks=tracks)
             prev, before, pose, prev_k = fit.vertices, pose, new_pose, k
             write_frame(Path(root), k, prev, faces)
             out["figures"][k] = {"rig_residual_mm": round(res, 4), "residual_mm": round(fit.residual, 4),
@@ -146,8 +139,7 @@ def armature_half_task(half: dict) -> dict:
     tracker = TemplateTracker(half["prev"], faces, gamma=half["gamma"], gate=half["gate"], prior=half["prior"],
                               rounds=ARMATURE_FIT_ROUNDS, patch_labels=half.get("patch_labels"))
     spine = _spine_steps(root, frames, by_frame, half["prev"])
-    rig = ArmatureTracker(tracker, half["model"], weight=half["weight"], max_points=ARMATURE_ICP_POINTS,
-                          twist=half["twist"])
+    rig = ArmatureTracker(tracker, half["model"], weight=half["weight"], max_points=ARMATURE_ICP_POINTS)
     with threadpool_limits(1, "blas"), multiview_colour(root, faces, 0.3 * tracker.gate, enabled=half["colour"],
                                                         corners=tracker.corner_sum) as tracks_for:
         return _track_half(rig, half["by_pose"], mesh_data(by_frame), half["frames"], prev=half["prev"], pose=half["pose"],

@@ -115,10 +115,6 @@ def test_invalid_input(sequence):
         ArmatureTracker(tr, object())
     with pytest.raises(ValueError, match="weight"):
         ArmatureTracker(tr, rig.model, weight=0.0)
-    with pytest.raises(ValueError, match="twist"):
-        ArmatureTracker(tr, rig.model, twist=0.0)
-    with pytest.raises(ValueError, match="reference"):
-        ArmatureTracker(tr, rig.model, twist=1.0).fit(X, N, previous=ms.vertices[0], candidates=[pose], reference="p")
     small = TemplateTracker(*_two_triangles())
     with pytest.raises(ValueError, match="connectivity"):
         ArmatureTracker(small, rig.model)
