@@ -154,24 +154,32 @@ class _Heard(logging.Handler):
                            getattr(record, "job_message", None)))
 
 
+@contextlib.contextmanager
+def _hearing(name: str = "pipeline", level: int | None = logging.INFO):
+    """A :class:`_Heard` on logger ``name`` (at ``level``, unless None) for the ``with`` block; the logger as before
+    after it."""
+    heard, logger = _Heard(), logging.getLogger(name)
+    logger.addHandler(heard)
+    before = logger.level
+    if level is not None:
+        logger.setLevel(level)
+    try:
+        yield heard
+    finally:
+        logger.removeHandler(heard)
+        logger.setLevel(before)
+
+
 @pytest.mark.parametrize("pool", [cf.ProcessPoolExecutor, cf.ThreadPoolExecutor])
 def test_what_a_task_warns_of_on_a_worker_is_said_in_the_callers_thread(tmp_path, pool):
     """A task aside or a mapped task that warns on the ``pipeline`` loggers: in a worker process its warnings (not its
     lower records) are said again in the thread that takes its result, once, with their ``job_message``; in a thread
     pool's thread its records are the submitting thread's work (``submitted_by``)."""
-    heard, logger = _Heard(), logging.getLogger("pipeline")
-    logger.addHandler(heard)
-    level = logger.level
-    logger.setLevel(logging.INFO)
     me = threading.get_ident()
-    try:
-        with pool(1) as ex:
-            aside = submit_aside(ex, partial(_warns, 3), unavailable="{exc}")
-            assert aside.result() == 3 and aside.result() == 3
-            assert sorted(Run(out=tmp_path, executor=ex).map_tasks([partial(_warns, k) for k in (4, 5)])) == [4, 5]
-    finally:
-        logger.removeHandler(heard)
-        logger.setLevel(level)
+    with _hearing() as heard, pool(1) as ex:
+        aside = submit_aside(ex, partial(_warns, 3), unavailable="{exc}")
+        assert aside.result() == 3 and aside.result() == 3
+        assert sorted(Run(out=tmp_path, executor=ex).map_tasks([partial(_warns, k) for k in (4, 5)])) == [4, 5]
     warned = [(t, m, j) for t, lv, m, j in heard.heard if lv == logging.WARNING]
     assert sorted(warned) == [(me, f"camera {k}: no mask", f"camera {k} in a job") for k in (3, 4, 5)]
     # a thread's lower records reach this process's handlers as they are said; a process's do not come back
@@ -190,22 +198,14 @@ def test_what_a_task_warned_of_before_it_failed_is_said_in_the_callers_thread(tm
     the thread that takes its result, once, with their ``job_message``, before its error is raised there (a job
     that fails keeps what its steps said before, :func:`pipeline.process.steps._job_warnings`); in a thread pool's
     thread they were said as they were said."""
-    heard, logger = _Heard(), logging.getLogger("pipeline")
-    logger.addHandler(heard)
-    level = logger.level
-    logger.setLevel(logging.INFO)
     me = threading.get_ident()
-    try:
-        with pool(1) as ex:
-            aside = submit_aside(ex, partial(_warns_then_fails, 3), unavailable="{exc}")
-            for _ in range(2):
-                with pytest.raises(ValueError, match="task 3 failed"):
-                    aside.result()
-            with pytest.raises(ValueError, match="task 4 failed"):
-                list(Run(out=tmp_path, executor=ex).map_tasks([partial(_warns_then_fails, 4)]))
-    finally:
-        logger.removeHandler(heard)
-        logger.setLevel(level)
+    with _hearing() as heard, pool(1) as ex:
+        aside = submit_aside(ex, partial(_warns_then_fails, 3), unavailable="{exc}")
+        for _ in range(2):
+            with pytest.raises(ValueError, match="task 3 failed"):
+                aside.result()
+        with pytest.raises(ValueError, match="task 4 failed"):
+            list(Run(out=tmp_path, executor=ex).map_tasks([partial(_warns_then_fails, 4)]))
     warned = [(t, m, j) for t, lv, m, j in heard.heard if lv == logging.WARNING]
     assert warned == [(me, f"camera {k}: no mask", f"camera {k} in a job") for k in (3, 4)], warned
 
@@ -217,14 +217,9 @@ def _warns_aside(ex, k: int) -> int:
 def test_a_task_a_thread_pools_task_submits_is_the_first_submitters_work():
     """A task aside on a thread pool that itself submits a task aside on it: the inner task's records are the work
     of the thread that submitted the outer one (``submitted_by``), whose job's warnings keep them."""
-    heard, logger = _Heard(), logging.getLogger("pipeline")
-    logger.addHandler(heard)
     me = threading.get_ident()
-    try:
-        with cf.ThreadPoolExecutor(2) as ex:
-            assert submit_aside(ex, partial(_warns_aside, ex, 6), unavailable="{exc}").result() == 6
-    finally:
-        logger.removeHandler(heard)
+    with _hearing(level=None) as heard, cf.ThreadPoolExecutor(2) as ex:
+        assert submit_aside(ex, partial(_warns_aside, ex, 6), unavailable="{exc}").result() == 6
     assert [(t, m) for t, lv, m, _ in heard.heard if lv == logging.WARNING] == [(me, "camera 6: no mask")]
 
 
