@@ -20,7 +20,7 @@ import numpy as np
 from calib.fileio import atomic_write, json_default
 from pipeline.process.params import ProcessParams
 from pipeline.process.records import frame_name
-from pipeline.run import Run, chunks, frames_said, frames_said_before
+from pipeline.run import Run, chunks, finished_before, frames_said, frames_said_before
 
 log = logging.getLogger("pipeline.process")
 
@@ -79,8 +79,10 @@ class RunContext(Run):
         (the one runner all per-frame steps share: chunks, executor, progress, cancel);
         ``chunk_args(frames)`` adds keywords per chunk (e.g. its masks). What the frames warned of (a result's
         ``said``, :func:`pipeline.run.frame_warnings`) is said once per kind of message, with the count of frame
-        sets and the first of them (:func:`pipeline.run.frames_said`), as ``"{step}: ..."``, in the warnings; those of
-        a task that failed too, before its error goes on (:func:`pipeline.run.frames_said_before`)."""
+        sets and the first of them (:func:`pipeline.run.frames_said`), as ``"{step}: ..."``, in the warnings; when a
+        task fails or the run is cancelled, before the error goes on, those of the failed task's frames
+        (:func:`pipeline.run.frames_said_before`) and of every task that finished (:func:`pipeline.run.finished_before`):
+        each frame set whose result is written has its warnings said."""
         n_sets = self.take.n_sets
         todo = [k for k in range(n_sets) if not (self.out / done_dir / f"{frame_name(k)}{suffix}").exists()]
         done = n_sets - len(todo)
@@ -97,7 +99,10 @@ class RunContext(Run):
                         said[rec["index"]] = [tuple(x) for x in rec["said"]]
                     rec.pop("said", None)
                 self.report_progress(step, done, n_sets)
-        except Exception as exc:  # (a task that failed: what its frames said before, the one it failed on too)
+        except Exception as exc:  # (stopped: what the frames of the tasks that finished, and of a failed one, said)
+            for rec in (r for finished in finished_before(exc) for r in finished):
+                if rec.get("said"):
+                    said.setdefault(rec["index"], [tuple(x) for x in rec["said"]])
             for k, kept in frames_said_before(exc).items():
                 said.setdefault(k, kept)
             raise

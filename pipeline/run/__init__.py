@@ -24,6 +24,7 @@ from pipeline.run.context import (
     Clock,
     Run,
     chunks,
+    finished_before,
     forking_pool,
     frame_warnings,
     frames_said,
@@ -39,5 +40,5 @@ from pipeline.run.steps import Step, StepList
 from pipeline.run.writer import BackgroundWriter
 
 __all__ = ["Aside", "BackgroundWriter", "Clock", "Run", "Step", "StepList", "array_digest", "changed_settings", "chunks",
-           "file_digest", "forking_pool", "frame_warnings", "frames_said", "frames_said_before", "once_per_run",
+           "file_digest", "finished_before", "forking_pool", "frame_warnings", "frames_said", "frames_said_before", "once_per_run",
            "pool_size", "read_settings", "submit_aside", "submitted_by", "warn_once"]

@@ -18,7 +18,7 @@ import numpy as np
 from stage.messages import frames_named
 
 __all__ = ["Aside", "Clock", "Run", "chunks", "forking_pool", "frame_warnings", "frames_said", "frames_said_before",
-           "once_per_run", "pool_size", "submit_aside", "submitted_by", "warn_once"]
+           "finished_before", "once_per_run", "pool_size", "submit_aside", "submitted_by", "warn_once"]
 
 log = logging.getLogger(__name__)
 
@@ -346,6 +346,31 @@ def frames_said_before(exc: BaseException) -> dict[int, list[tuple[str, str | No
     return {int(k): [tuple(x) for x in v] for k, v in said.items()} if isinstance(said, dict) else {}
 
 
+def finished_before(exc: BaseException) -> list:
+    """The results of the tasks :meth:`Run.map_tasks` had not yet handed out when it stopped on ``exc`` (a task that
+    failed, or the run cancelled) and that finished: a per-frame step says what their frames said.
+
+    Parameters
+    ----------
+    exc : BaseException
+        The error :meth:`Run.map_tasks` stopped on.
+
+    Returns
+    -------
+    list
+        The tasks' results, in no set order (none: ``[]``).
+
+    Raises
+    ------
+    ValueError
+        ``exc`` is not an exception.
+    """
+    if not isinstance(exc, BaseException):
+        raise ValueError(f"exc must be an exception, got {type(exc).__name__}")
+    finished = getattr(exc, "pipeline_finished", None)
+    return list(finished) if isinstance(finished, list) else []
+
+
 def _with_cpu(task: Callable[[], object], origin: tuple[int, int] | None = None) -> tuple[object, float, int, list]:
     """A task's result, the CPU seconds its process spent on it, that process's id and the warnings the ``pipeline``
     loggers said in it (run in the worker). ``origin``: (process id, thread) of the caller that submitted the task.
@@ -549,28 +574,62 @@ class Run:
         """Results of ``tasks`` as they finish (on the executor, or here one by one); stops
         between tasks when cancelled. The CPU seconds of workers in other processes add to the
         running step's (a thread pool's are already this process's), and the warnings they said are said
-        again in this thread (:func:`_say_again`), a failed task's before its error is raised here."""
+        again in this thread (:func:`_say_again`), a failed task's before its error is raised here.
+
+        When it stops (a task failed, or the run was cancelled), the tasks not yet started are cancelled and those
+        already running, which cannot be stopped, are waited for: what every task that finished said is said here
+        too, their results go on with the error (:func:`finished_before`) and what the frames of another task that
+        failed said joins :func:`frames_said_before`'s, so that every frame set whose result a task wrote has its
+        warnings said."""
         if self.executor is None:
             for task in tasks:
                 self.check_cancel()
                 yield _task(task)
             return
         futures = [self.executor.submit(_with_cpu, task, _origin()) for task in tasks]
+        left = set(futures)  # (not yet taken)
         try:
             for fut in cf.as_completed(futures):
                 self.check_cancel()
-                try:
-                    out, cpu, pid, said = fut.result()
-                except Exception as exc:  # (what the task said before it failed: a failed job keeps it)
-                    _say_again(_said_before(exc))
-                    raise
-                if pid != os.getpid():
-                    self.clock.add_worker_cpu(self.step, cpu)
-                    _say_again(said)
-                yield out
+                left.discard(fut)
+                yield self._taken(fut)
+        except Exception as exc:  # (stopped: the tasks that finish anyway are taken, with what they said)
+            self._take_left(left, exc)
+            raise
         finally:
             for fut in futures:
                 fut.cancel()
+
+    def _taken(self, fut: cf.Future) -> object:
+        """A finished task's result, what it said in another process said again here, its CPU seconds counted; a
+        failed task's error, raised after what it said before (a failed job keeps it)."""
+        try:
+            out, cpu, pid, said = fut.result()
+        except Exception as exc:
+            _say_again(_said_before(exc))
+            raise
+        if pid != os.getpid():
+            self.clock.add_worker_cpu(self.step, cpu)
+            _say_again(said)
+        return out
+
+    def _take_left(self, left: set[cf.Future], exc: Exception) -> None:
+        """The tasks of ``left`` (not taken when :meth:`map_tasks` stopped on ``exc``): those not started are
+        cancelled, the others waited for and taken; their results go on with ``exc`` (:func:`finished_before`), the
+        frames of those that failed join what ``exc``'s said (:func:`frames_said_before`)."""
+        for fut in left:
+            fut.cancel()
+        running = [fut for fut in left if not fut.cancelled()]
+        cf.wait(running)
+        finished, frames = [], {}
+        for fut in running:
+            try:
+                finished.append(self._taken(fut))
+            except Exception as other:  # (another task that failed: its own error is not raised)
+                frames.update(frames_said_before(other))
+        with suppress(AttributeError):  # (an exception without a __dict__ of its own: none)
+            exc.pipeline_finished = [*finished_before(exc), *finished]
+            exc.pipeline_frames_said = {**frames, **frames_said_before(exc)}
 
     def run_step(self, name: str, run: Callable[[Run], None]) -> None:
         """Run one step; its wall seconds go to ``clock.wall[name]`` and its CPU seconds (this

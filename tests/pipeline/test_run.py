@@ -21,6 +21,7 @@ from pipeline.run import (
     changed_settings,
     chunks,
     file_digest,
+    finished_before,
     frame_warnings,
     frames_said,
     frames_said_before,
@@ -75,6 +76,9 @@ def test_invalid_input():
     with pytest.raises(ValueError, match="exc must be an exception"):
         frames_said_before("frame set 4: unreadable")
     assert frames_said_before(ValueError("no frames")) == {}
+    with pytest.raises(ValueError, match="exc must be an exception"):
+        finished_before(["frame set 4"])
+    assert finished_before(InterruptedError("cancelled")) == []
     with pytest.raises(ValueError, match="logger must be a logging.Logger"):
         warn_once("pipeline.track", "a message")
     with pytest.raises(ValueError, match="msg must be a string"):
@@ -532,3 +536,72 @@ def test_a_step_whose_task_failed_says_what_its_frames_said_before(tmp_path):
     assert ctx.warnings == kept == [
         "surface: camera cam02: mask is all foreground (5 frame sets: 0, 1, 2, 3, 4)",
         "surface: its images are unreadable (1 frame set: 4)"], ctx.warnings
+
+
+def _wait_for(*paths: Path) -> None:
+    """Until every one of ``paths`` exists (a test's tasks wait for each other; 60 s at most)."""
+    for _ in range(6000):
+        if all(p.exists() for p in paths):
+            return
+        threading.Event().wait(0.01)
+    raise AssertionError(f"never written: {[str(p) for p in paths if not p.exists()]}")
+
+
+def _frame_that_finishes_late_or_fails(frames: list[int], *, marks: str, fail: int | None) -> list[dict]:
+    """A per-frame task (as ``surface_task``) of one frame set: each warns of camera cam02's mask and marks its
+    frame set done (``marks/done_K``) before it returns; frame set ``fail`` waits until the others have started,
+    marks ``marks/failing`` and raises, the others (with ``fail``) finish only once it has (and a little later: the
+    caller has seen it fail)."""
+    (k,) = frames
+    (Path(marks) / f"started_{k}").touch()
+    with frame_warnings(k) as said:
+        logging.getLogger("pipeline.hull").warning("camera cam02: mask is all foreground")
+        if k == fail:
+            logging.getLogger("pipeline.hull").warning("its images are unreadable")
+            _wait_for(*(Path(marks) / f"started_{j}" for j in range(3)))
+            (Path(marks) / "failing").touch()
+            raise ValueError(f"frame set {k}: unreadable")
+        if fail is not None:
+            _wait_for(Path(marks) / "failing")
+            threading.Event().wait(0.3)
+    logging.getLogger("pipeline.surface").warning("frame set %d's task ends", k)
+    (Path(marks) / f"done_{k}").touch()
+    return [{"index": k, "said": said}]
+
+
+@pytest.mark.parametrize("pool", [cf.ProcessPoolExecutor, cf.ThreadPoolExecutor])
+@pytest.mark.parametrize("stop", ["failed", "cancelled"])
+def test_a_step_that_stops_says_what_every_task_that_finished_said(tmp_path, pool, stop):
+    """``RunContext.run_frames`` over three frame sets, one per task, on a pool of three, stopping before it took
+    the other tasks' results: frame set 0's task fails while the others still run ("failed"), or the run is
+    cancelled once every task has finished but one was taken ("cancelled"). The step says what every frame set that
+    finished said (their results are written), and each task's own warnings, once per kind, before the error goes
+    on: a job's warnings have them all."""
+    from pipeline.process import ProcessParams, RunContext
+    from pipeline.process.context import TakeFacts
+
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    cancel = threading.Event()
+
+    def progress(step, done, total):
+        if stop == "cancelled" and done == 1:  # (the first task taken: the others finish, then the run is cancelled)
+            _wait_for(*(marks / f"done_{k}" for k in range(3)))
+            cancel.set()
+
+    take = TakeFacts(path=tmp_path / "t.h5", calibration=None, cameras=["cam02"], n_sets=3, fps=30.0, rig={})
+    kept = []
+    with pool(3) as ex, _hearing("pipeline.surface") as heard:
+        ctx = RunContext(out=tmp_path, params=ProcessParams(chunk=1), need_key=False, take=take, executor=ex,
+                         on_warning=kept.append, progress=progress, cancel=cancel)
+        with pytest.raises(ValueError if stop == "failed" else InterruptedError):
+            ctx.run_frames("surface", partial(_frame_that_finishes_late_or_fails, marks=str(marks),
+                                              fail=0 if stop == "failed" else None), "meshes")
+    finished = [1, 2] if stop == "failed" else [0, 1, 2]
+    assert all((marks / f"done_{k}").exists() for k in finished)
+    expected = ["surface: camera cam02: mask is all foreground (3 frame sets: 0, 1, 2)"]
+    if stop == "failed":
+        expected.append("surface: its images are unreadable (1 frame set: 0)")
+    assert ctx.warnings == kept == expected, ctx.warnings
+    ends = sorted(m for _, lv, m, _ in heard.heard if lv == logging.WARNING)
+    assert ends == [f"frame set {k}'s task ends" for k in finished]
