@@ -20,8 +20,10 @@ look at 1080p footage) and scales the intrinsics to match.
 
 Frame set ``k`` is the ``k``-th frame of every camera; a camera with fewer
 frames is missing from the later sets. Timestamps are synthetic
-(``k / fps``). JPEG images are stored byte for byte (nothing re-encoded) unless
-``storage="raw"``. The calibration keeps its own units (``Calibration.units``).
+(``k / fps``); without ``fps`` the rate is the videos' own (the median of the rates their
+files state, a warning when they differ by more than 1 %), else 30 for image folders.
+JPEG images are stored byte for byte (nothing re-encoded) unless ``storage="raw"``. The
+calibration keeps its own units (``Calibration.units``).
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from stage.frame import Frame
 from stage.rig import check_plane
 from stage.store import CameraSpec, DiskFullError, TakeReader, TakeWriter
 
-__all__ = ["ImportResult", "import_take", "import_masks", "check_mask_folders", "find_sources", "fit_to_footage",
+__all__ = ["ImportResult", "import_take", "import_masks", "check_mask_folders", "find_sources", "fit_to_footage", "footage_fps",
            "scaled_calibration", "IMAGE_EXTS", "VIDEO_EXTS"]
 
 log = logging.getLogger(__name__)
@@ -80,6 +82,8 @@ class ImportResult:
     frames: dict[str, int]
     storage: dict[str, str]
     units: str
+    fps: float = 30.0
+    fps_source: str = "given"
 
 
 def find_sources(images: str | os.PathLike, calibration: Calibration) -> dict[str, _Source]:
@@ -169,7 +173,7 @@ def import_take(
     calibration: str | os.PathLike | Calibration,
     out: str | os.PathLike,
     *,
-    fps: float = 30.0,
+    fps: float | None = None,
     storage: str = "auto",
     compression: str = "none",
     overwrite: bool = False,
@@ -190,8 +194,9 @@ def import_take(
         reads (aniposelib TOML, OpenCV YAML, Middlebury ``*_par.txt``, JSON).
     out : path
         Take to write.
-    fps : float
-        Frame rate of the synthetic timestamps.
+    fps : float, optional
+        Frame rate of the synthetic timestamps (default: the videos' own, :func:`footage_fps`; 30 when no
+        camera's footage is a video that states its rate).
     storage : {"auto", "raw", "jpeg"}
         ``auto``: JPEG bytes as they are for cameras whose frames are all JPEG
         files, raw otherwise.
@@ -221,17 +226,16 @@ def import_take(
         Missing entry for a camera, unreadable image or video, an image whose
         size differs from the calibration's, bad arguments.
     """
-    _check_options(fps=fps, storage=storage, max_frames=max_frames)
-    if not (isinstance(scale, (int, float)) and 0 < scale <= 1):
-        raise ValueError(f"scale must be in (0, 1], got {scale!r}")
-    rig: dict[str, Any] = {"name": "imported", "source": str(Path(images).resolve()), "fps": fps}
-    if support_plane is not None:
-        rig["support_plane"] = check_plane(support_plane).tolist()
+    _check_options(fps=fps, storage=storage, max_frames=max_frames, scale=scale)
+    plane = check_plane(support_plane).tolist() if support_plane is not None else None
     calib = _load_calibration(calibration)
     out = Path(out)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: take already exists (use --overwrite to replace it)")
     sources = find_sources(images, calib)
+    fps, fps_source = (float(fps), "given") if fps is not None else footage_fps(sources)
+    rig: dict[str, Any] = {"name": "imported", "source": str(Path(images).resolve()), "fps": fps,
+                           **({"support_plane": plane} if plane is not None else {})}
     footage = {c: _first_size(sources[c]) for c in calib.names}
     calib = fit_to_footage(calib, footage)
     if scale != 1:
@@ -285,7 +289,37 @@ def import_take(
         raise
     with TakeReader(out) as r:
         fc = r.frame_counts()
-    return ImportResult(path=out, sets=k, frames=fc, storage=kinds, units=calib.units)
+    return ImportResult(path=out, sets=k, frames=fc, storage=kinds, units=calib.units, fps=fps, fps_source=fps_source)
+
+
+def footage_fps(sources: dict[str, _Source]) -> tuple[float, str]:
+    """The frame rate of the footage (:func:`find_sources`' entries) -> (fps, where it comes from).
+
+    The median of the rates the cameras' video files state (OpenCV's ``CAP_PROP_FPS``; a rate outside
+    (0, 1000] is no rate), with a warning naming them when they differ by more than 1 % (frame set ``k``
+    is the ``k``-th frame of every camera: such videos are not in step); 30 when no camera's footage is a
+    video that states its rate (image folders, single images).
+    """
+    rates = {}
+    for name, src in sources.items():
+        if src.kind != "video":
+            continue
+        cap = cv2.VideoCapture(str(src.path))
+        try:
+            rate = float(cap.get(cv2.CAP_PROP_FPS))
+        finally:
+            cap.release()
+        if np.isfinite(rate) and 0 < rate <= 1000:
+            rates[name] = rate
+    if not rates:
+        return 30.0, "default"
+    values = np.array(list(rates.values()))
+    fps = float(np.median(values))
+    if values.max() > 1.01 * values.min():
+        log.warning("the videos' frame rates differ (%s): frame set k is the k-th frame of every camera, so they are "
+                    "not in step; the take's rate is their median, %g fps",
+                    ", ".join(f"{c} {r:g} fps" for c, r in rates.items()), fps)
+    return fps, "videos"
 
 
 def check_mask_folders(
@@ -452,8 +486,10 @@ def fit_to_footage(calib: Calibration, sizes: dict[str, tuple[int, int]]) -> Cal
     return Calibration(tuple(cams), units=calib.units, meta=dict(calib.meta))
 
 
-def _check_options(*, fps: float, storage: str, max_frames: int | None) -> None:
-    if not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):
+def _check_options(*, fps: float | None, storage: str, max_frames: int | None, scale: float = 1.0) -> None:
+    if not (isinstance(scale, (int, float)) and 0 < scale <= 1):
+        raise ValueError(f"scale must be in (0, 1], got {scale!r}")
+    if fps is not None and not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be positive, got {fps!r}")
     if storage not in ("auto", "raw", "jpeg"):
         raise ValueError(f"storage must be 'auto', 'raw' or 'jpeg', got {storage!r}")

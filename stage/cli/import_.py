@@ -23,7 +23,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--images", required=True, type=Path, metavar="DIR", help="folder with one entry per camera")
     p.add_argument("--calibration", required=True, type=Path, metavar="FILE", help="calibration file")
     p.add_argument("--out", required=True, type=Path, metavar="TAKE.h5", help="take file to write")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate for the synthetic timestamps (default 30)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="frame rate of the take (default: the videos' own; 30 for image folders)")
     p.add_argument("--storage", choices=("auto", "raw", "jpeg"), default="auto",
                    help="auto (default): keep JPEG files as they are, raw otherwise")
     p.add_argument("--compression", choices=("none", "lz4", "gzip"), default="none", help="filter for raw frames")
@@ -74,7 +75,9 @@ def run(args: argparse.Namespace) -> int:
         )
     finally:
         bar.close()
-    print(f"wrote {res.path}: {len(res.frames)} cameras, {res.sets} frame sets, calibration units {res.units!r}"
+    rate = {"given": "--fps", "videos": "the videos' own", "default": "no video states one: --fps gives it"}[res.fps_source]
+    print(f"wrote {res.path}: {len(res.frames)} cameras, {res.sets} frame sets at {res.fps:g} fps ({rate}), "
+          f"calibration units {res.units!r}"
           + (f"; masks from {args.masks} stored (keying skipped)" if args.masks is not None else ""))
     for c, n in res.frames.items():
         print(f"  {c}: {n} frames ({res.storage[c]})")

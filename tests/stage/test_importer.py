@@ -72,6 +72,47 @@ def test_import_cli(footage, tmp_path, capsys):
     assert "exists" in capsys.readouterr().err
 
 
+def _videos(d, rates):
+    """Every camera of the calibration as an MJPG video of 3 frames stating its rate."""
+    d.mkdir()
+    for (name, *_), rate in zip(CAMS, rates):
+        vw = cv2.VideoWriter(str(d / f"{name}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), rate, (W, H))
+        assert vw.isOpened()
+        for k in range(3):
+            vw.write(img(0, k))
+        vw.release()
+    return d
+
+
+def test_the_take_runs_at_the_videos_frame_rate_unless_told(footage, tmp_path, capsys, caplog):
+    """60 fps videos imported without --fps were a 30 fps take (spine, rig, BVH and GLB played at half speed)."""
+    _, cal = footage
+    d = _videos(tmp_path / "v60", (60, 60, 60))
+    assert main(["import", "--images", str(d), "--calibration", str(cal), "--out", str(tmp_path / "a.h5")]) == 0
+    assert "3 frame sets at 60 fps (the videos' own)" in capsys.readouterr().out
+    with TakeReader(tmp_path / "a.h5") as r:
+        assert r.fps == 60
+        np.testing.assert_array_equal(r.timestamps("left")["timestamp_ns"], np.round(np.arange(3) * 1e9 / 60))
+    # --fps wins
+    res = import_take(d, cal, tmp_path / "b.h5", fps=25)
+    assert (res.fps, res.fps_source) == (25, "given")
+    with TakeReader(res.path) as r:
+        assert r.fps == 25
+    # rates that differ: the median, and a warning naming them
+    d2 = _videos(tmp_path / "mixed", (30, 60, 60))
+    with caplog.at_level("WARNING", logger="stage.importer"):
+        res = import_take(d2, cal, tmp_path / "c.h5")
+    assert (res.fps, res.fps_source) == (60, "videos")
+    assert any("left 30 fps" in m and "not in step" in m for m in caplog.messages), caplog.messages
+    # image folders and single images state no rate: 30, as before, and said so
+    folders = tmp_path / "folders"
+    for name, *_ in CAMS:
+        (folders / name).mkdir(parents=True)
+        cv2.imwrite(str(folders / name / "0.png"), img(0, 0))
+    assert main(["import", "--images", str(folders), "--calibration", str(cal), "--out", str(tmp_path / "d.h5")]) == 0
+    assert "at 30 fps (no video states one: --fps gives it)" in capsys.readouterr().out
+
+
 def test_middlebury_dino():
     root = shared_dataset("middlebury_dino_sparse_ring")
     import tempfile
