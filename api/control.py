@@ -259,7 +259,7 @@ class ControlRoom:
         self.live3d = None
         self.calibrations = calibrations
         self._calibration = calibration
-        self.calibration_source = "given (--calibration)" if calibration is not None else None
+        self.calibration_source = "the calibration given (--calibration)" if calibration is not None else None
         self.calibration_version = 0  # grows with every calibration the session makes or is given
         self._adopted: str | None = None  # the board session's job whose calibration is in use
 
@@ -274,9 +274,26 @@ class ControlRoom:
         for drv in self.session.drivers.values():
             cal = getattr(drv, "calibration", None)
             if cal is not None and hasattr(cal, "names"):
-                self.calibration_source = "the cameras' own"
+                self.calibration_source = "the cameras' own calibration"
                 return cal
         return None
+
+    def take_calibration(self) -> tuple[Any, str]:
+        """The calibration a take recorded now stores (the 3-D preview's, :meth:`calibration`, cut to the
+        rig's cameras in rig order) and what the page says of it; ``(None, why)`` when there is none or
+        it lacks one of the rig's cameras (such a take cannot be processed until it is calibrated)."""
+        from calib.calibration import Calibration
+
+        cal = self.calibration()
+        if cal is None:
+            return None, ("takes are recorded without a calibration (none yet): run a board session and "
+                          "calibrate, or start stage serve with --calibration CAL")
+        missing = [c for c in self.session.ids if c not in cal.names]
+        if missing:
+            return None, (f"takes are recorded without a calibration: {self.calibration_source} has no camera "
+                          f"{', '.join(missing)}")
+        cut = Calibration(cameras=tuple(cal[c] for c in self.session.ids), units=cal.units, meta=dict(cal.meta))
+        return cut, f"takes are recorded with {self.calibration_source}"
 
     def use_calibration(self, calibration, source: str) -> None:
         """Make ``calibration`` the 3-D preview's from now on (its worker starts again with it)."""
@@ -381,6 +398,8 @@ class ControlRoom:
 
     def figures(self) -> dict[str, Any]:
         f = self.session.figures()
+        cal, said = self.take_calibration()
+        f["take_calibration"] = {"calibrated": cal is not None, "message": said}
         f["previews"] = {"streams": self.streams, "latency_ms": self.latency_ms(), "fps": self.preview_fps,
                          "width": self.preview_width}
         return f

@@ -31,6 +31,7 @@ Like a real device each camera
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -383,8 +384,19 @@ class FakeCamera:
 
     @property
     def calibration(self):
-        """The true calibration of the simulated rig (after :meth:`open`)."""
-        return None if self._take is None else self._take.calibration
+        """The true calibration of the simulated rig (after :meth:`open`), its cameras named as the rig
+        file names them: each simulated camera of the rig under its ``id`` (the simulated camera at its
+        ``index``), in the rig's order; without a rig, the simulated take's own names."""
+        if self._take is None:
+            return None
+        cal = self._take.calibration
+        if self.rig is None:
+            return cal
+        from calib.calibration import Calibration
+
+        cams = [dataclasses.replace(cal.cameras[c.index], name=c.id) for c in self.rig.cameras
+                if isinstance(c, FakeCameraConfig) and c.index < len(cal.cameras)]
+        return Calibration(cameras=tuple(cams), units=cal.units, meta=dict(cal.meta)) if cams else None
 
     def scene_frame(self, index: int) -> int:
         """Scene frame shown by device sequence number ``index``."""

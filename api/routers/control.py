@@ -106,8 +106,10 @@ def stage_figures(room: ControlDep, _: ReadAccess) -> dict[str, Any]:
 @router.post("/stage/record", status_code=status.HTTP_202_ACCEPTED, response_model=dict[str, Any],
              responses={409: {"description": "a take is being recorded / the take exists"}})
 def record(body: RecordRequest, room: ControlDep, settings: SettingsDep, _: WriteAccess) -> dict[str, Any]:
-    """Record a take from the running cameras (one at a time: a second request gets 409)."""
-    return _start(room, settings, body.take, frames=body.frames, duration_s=body.duration_s)
+    """Record a take from the running cameras (one at a time: a second request gets 409). The take stores the
+    calibration the live 3-D preview uses (``GET /stage``: ``take_calibration`` says which, or why none)."""
+    cal, _said = room.take_calibration()
+    return _start(room, settings, body.take, frames=body.frames, duration_s=body.duration_s, calibration=cal)
 
 
 @router.post("/stage/stop", response_model=dict[str, Any], responses={409: {"description": "nothing is recorded"}})

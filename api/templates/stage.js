@@ -137,6 +137,8 @@
         $('spread').textContent = s.median === null ? '–' : fmt(s.median, 2) + ' ms median, ' + fmt(s.max, 2) + ' ms max';
         const l = (f.previews || {}).latency_ms || {};
         $('latency').textContent = l.p50 === null || l.p50 === undefined ? '–' : fmt(l.p50, 0) + ' / ' + fmt(l.p99, 0) + ' ms';
+        const tc = f.take_calibration || {};  // what a take recorded now stores, or why nothing
+        say($('take-cal'), tc.message || '', tc.calibrated ? '' : 'bad');
         showRecording(f.recording || {});
         for (const c of f.cameras) showCamera(c);
       }
@@ -332,11 +334,17 @@
       });
       td3.appendChild(b);
       const td4 = document.createElement('td'); td4.className = 'muted';
-      tr.append(td0, td1, td2, td4, td3); tb.appendChild(tr);
+      const td5 = document.createElement('td'); td5.textContent = '…';
+      tr.append(td0, td1, td2, td4, td5, td3); tb.appendChild(tr);
       api('GET', '/takes/' + encodeURIComponent(t.id)).then((i) => {  // stage info's figures
         if (!i.ok) return;
         const sync = i.data.sync || {};
         td1.textContent = i.data.frames;
+        // a take without a calibration cannot be processed (its job would fail at once): said here, not later
+        td5.textContent = i.data.calibration ? 'yes' : 'none: cannot be processed';
+        td5.className = i.data.calibration ? '' : 'err';
+        b.disabled = !i.data.calibration;
+        if (!i.data.calibration) b.title = 'the take has no calibration';
         td4.textContent = (sync.sets_complete !== undefined ? sync.sets_complete + ' complete sets, ' : '') +
           (sync.spread_median_ms !== undefined ? 'sync spread median ' + fmt(sync.spread_median_ms, 2) + ' ms' : '') +
           relocked(sync) + (i.data.complete === false ? ' (being written)' : '');

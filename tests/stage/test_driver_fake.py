@@ -147,7 +147,31 @@ def test_rig_cameras_through_the_registry(tmp_path, monkeypatch):
     # real time: the host timestamps of one camera follow its frame period
     host = np.array([fs[1].host_timestamp_ns for fs in frames])
     assert np.all(np.diff(host) > 0.5e9 / 60)
-    assert cams[0].calibration is not None and len(cams[0].calibration) == 4
+    assert cams[0].calibration is not None and cams[0].calibration.names == ["cam0", "cam1"]  # the rig's cameras
+
+
+def test_the_calibration_names_the_rig_s_cameras(tmp_path, monkeypatch):
+    """The simulated rig's true calibration under the rig file's camera ids, each the simulated camera at
+    its index, in the rig's order (a take recorded from the cameras, and the live 3-D preview, name them so)."""
+    monkeypatch.setenv("CAPTURE_STAGE_CACHE", str(tmp_path))
+    from fake_cameras.device import take_for_rig
+
+    rig = parse_rig({"fps": 30, "simulation": {"subject": "starfish", "n_cameras": 4, "frames": 2},
+                     "cameras": [{"id": "left", "driver": "fake", "index": 2, "width": 80, "height": 60},
+                                 {"id": "right", "driver": "fake", "index": 0, "width": 80, "height": 60}]})
+    cam = FakeCamera(rig.cameras[0], rig)
+    assert cam.calibration is None  # before open
+    cam.open()
+    try:
+        cal = cam.calibration
+        true = take_for_rig(rig, size=(80, 60), fps=30.0).calibration
+        assert cal.names == ["left", "right"] and true.names[2] != "left"
+        for name, index in (("left", 2), ("right", 0)):
+            for key in ("K", "dist", "R", "t"):
+                np.testing.assert_array_equal(getattr(cal[name], key), getattr(true.cameras[index], key))
+            assert cal[name].size == true.cameras[index].size
+    finally:
+        cam.close()
 
 
 def test_invalid_input(take):
