@@ -79,7 +79,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "listed in the log, process.json and report.json (default: stop and name the damage)")
     p.add_argument("--workers", type=int, default=2, help="worker processes for per-frame work (default 2; 0 = in process)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of a mesh sequence (--meshes)")
-    p.add_argument("--units", default="mm", help="units of a mesh sequence (--meshes), written as given")
+    p.add_argument("--units", default=None, help="units of a mesh sequence (--meshes), written as given (default mm; "
+                   "a warning when the meshes span under 10 or over 100 000 units)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 

@@ -19,7 +19,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--meshes", required=True, help="glob such as 'DIR/*.obj' (quote it), or a directory")
     p.add_argument("--out", required=True, type=Path, help="output directory (spine.json is written there)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of the sequence (default 30)")
-    p.add_argument("--units", default="mm", help="units of the mesh coordinates (default mm)")
+    p.add_argument("--units", default=None,
+                   help="units of the mesh coordinates: m, cm, mm or um (default mm; a warning when the meshes "
+                   "span under 10 or over 100 000 units)")
     p.add_argument("--workers", type=int, default=2, help="worker processes for the per-frame work (default 2)")
     p.add_argument("--bins", type=int, default=None, help="level-set bins per skeleton (default 100)")
     p.add_argument(
@@ -45,12 +47,13 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 0:
         raise ValueError(f"--workers must be >= 0, got {args.workers}")
     paths = mesh_paths(args.meshes)
+    units = args.units or _assumed_units(paths[0])
     given = {"n_bins": getattr(args, "bins", None), "min_protrusion": getattr(args, "min_protrusion", None)}
     params = SpineParams(**{k: v for k, v in given.items() if v is not None})
     print(f"{len(paths)} meshes from {paths[0].parent}")
     pool = ProcessPoolExecutor(max_workers=args.workers) if args.workers > 1 and len(paths) > 1 else nullcontext()
     with pool as executor:
-        spine = spine_from_meshes(paths, fps=args.fps, units=args.units, executor=executor,
+        spine = spine_from_meshes(paths, fps=args.fps, units=units, executor=executor,
                                   progress=not getattr(args, "no_progress", False), params=params)
     out = write_spine(Path(args.out) / "spine.json", spine)
     counts = spine.meta["tip_counts"]
@@ -61,3 +64,16 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"wrote {out}")
     return 0
+
+
+def _assumed_units(first) -> str:
+    """The units of a sequence given none (:data:`MESH_UNITS_DEFAULT`), said when the first frame's span makes
+    them unlikely (:func:`units_warning`)."""
+    from pipeline.meshio import load_mesh
+    from stage.cli._args import MESH_UNITS_DEFAULT, units_warning
+
+    V, _ = load_mesh(first, largest=False)
+    hint = units_warning(float((V.max(axis=0) - V.min(axis=0)).max())) if len(V) else None
+    if hint:
+        print(hint)
+    return MESH_UNITS_DEFAULT

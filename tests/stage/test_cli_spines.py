@@ -10,8 +10,12 @@ def test_spines_and_process_meshes_agree(tmp_path, capsys):
     cat = shared_dataset("cat_poses")
     pattern = str(cat / "000[1-4].obj")
     assert main(["spines", "--meshes", pattern, "--out", str(tmp_path / "a"), "--workers", "0", "--no-progress"]) == 0
-    assert "K = 6 limbs" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "K = 6 limbs" in out
+    # the cat is scaled to a unit box: taken as millimetres, and said (one line; both commands)
+    assert "warning: the meshes span 1.798 units, taken as millimetres (no --units)" in out
     assert main(["process", "--meshes", pattern, "--out", str(tmp_path / "b"), "--workers", "0", "--no-progress"]) == 0
+    assert "warning: the meshes span 1.798 units" in capsys.readouterr().out
     a = json.loads((tmp_path / "a" / "spine.json").read_text())
     b = json.loads((tmp_path / "b" / "spine.json").read_text())
     assert a["graph"] == b["graph"] and a["frames"] == b["frames"]
