@@ -42,6 +42,8 @@
     return -1;
   }
   let streamAbort = null;
+  const lastPicture = {};  // camera -> when its last preview arrived (performance.now())
+  const pageOpened = performance.now();
   async function previews(){
     if (streamAbort) streamAbort.abort();
     const ctl = new AbortController(); streamAbort = ctl;
@@ -70,6 +72,7 @@
           img.src = URL.createObjectURL(new Blob([jpg], {type: 'image/jpeg'}));
           if (old.startsWith('blob:')) setTimeout(() => URL.revokeObjectURL(old), 1000);
           window.__stage.parts[cam] = (window.__stage.parts[cam] || 0) + 1;
+          lastPicture[cam] = performance.now();
         }
       }
     } catch (e) { if (ctl.signal.aborted) return; }
@@ -79,10 +82,18 @@
 
   // ---- figures
   let recState = 'idle';
+  let previewPeriod = 0.2;  // s between a camera's previews (the server's --preview-fps)
   function showCamera(c, board){
     const t = tiles[c.id]; if (!t) return;
     const gone = c.state === 'disconnected' || c.state === 'failed';
     t.classList.toggle('gone', gone);
+    // a picture that no longer changes is greyed and says so: a frozen frame must not pass for a live one
+    const age = (performance.now() - (lastPicture[c.id] || pageOpened)) / 1000;
+    const stale = gone || age > Math.max(3, 3 * previewPeriod);
+    t.classList.toggle('stale', stale);
+    role(c.id, 'stale').hidden = !stale;
+    role(c.id, 'stale').textContent = !lastPicture[c.id] ? 'no picture yet' :
+      gone ? 'last picture before it went away' : 'no new picture for ' + age.toFixed(0) + ' s';
     t.classList.toggle('recording', recState === 'recording' && !gone);
     role(c.id, 'state').textContent = gone ? (c.state === 'failed' ? 'failed to open' : 'DISCONNECTED') : c.state;
     role(c.id, 'error').textContent = c.error ? ' ' + c.error : '';
@@ -103,6 +114,17 @@
       cams.map(([id, c]) => id + ' before set ' + (c.last_relock_set ?? c.first_relock_set)).join(', ') : '';
   }
   window.__stage.relocked = relocked;  // the page's own wording, read by its browser test
+  function takeProblems(res){  // what makes a finished take worth a second look, first in its line (amber)
+    const s = res.sync || {}; const out = [];
+    const gone = Object.keys(res.disconnected || {});
+    if (gone.length) out.push(gone.join(', ') + ' disconnected');
+    // the first and last sets may miss a camera (cut by start and stop): more than those is a problem
+    const incomplete = res.sets - (s.sets_complete === undefined ? res.sets : s.sets_complete);
+    if (incomplete > 2) out.push(incomplete + ' of ' + res.sets + ' frame sets incomplete');
+    if (Object.values(s.cameras || {}).some((c) => c.relocks > 0)) out.push('sync re-locked');
+    return out;
+  }
+  window.__stage.takeProblems = takeProblems;
   function showRecording(rec){
     recState = rec.state || 'idle';
     $('rec-state').textContent = recState + (rec.take ? ' (' + rec.take + ')' : '');
@@ -116,9 +138,12 @@
       $('rec-state').dataset.setsComplete = s.sets_complete;
       if (recState === 'done' && lastShown !== rec.take){
         lastShown = rec.take;
-        say($('rec-msg'), 'take ' + rec.take + ': ' + rec.result.sets + ' frame sets (' + s.sets_complete + ' complete), sync spread median ' +
+        const problems = takeProblems(rec.result);
+        say($('rec-msg'), (problems.length ? 'take ' + rec.take + ' has problems: ' + problems.join('; ') + '. ' : 'take ' + rec.take + ': ') +
+            rec.result.sets + ' frame sets (' + s.sets_complete + ' complete), sync spread median ' +
             fmt(s.spread_median_ms, 2) + ' ms, max ' + fmt(s.spread_max_ms, 2) + ' ms' + relocked(s) +
-            (Object.keys(rec.result.disconnected || {}).length ? '; disconnected: ' + Object.keys(rec.result.disconnected).join(', ') : ''), 'good');
+            (Object.keys(rec.result.disconnected || {}).length ? '; disconnected: ' + Object.keys(rec.result.disconnected).join(', ') : ''),
+            problems.length ? 'warn' : 'good');
         takes();
       }
     }
@@ -139,6 +164,7 @@
         $('latency').textContent = l.p50 === null || l.p50 === undefined ? '–' : fmt(l.p50, 0) + ' / ' + fmt(l.p99, 0) + ' ms';
         const tc = f.take_calibration || {};  // what a take recorded now stores, or why nothing
         say($('take-cal'), tc.message || '', tc.calibrated ? '' : 'bad');
+        if ((f.previews || {}).fps) previewPeriod = 1 / f.previews.fps;
         showRecording(f.recording || {});
         for (const c of f.cameras) showCamera(c);
       }
