@@ -5,10 +5,10 @@ receives the session's latest frame set a few times a second, keys each camera's
 (:mod:`stage.keying`, the rig's backdrop; the model is estimated once per camera), carves a
 hull on a ``resolution``^3 grid over the rig's volume (:class:`pipeline.hull.HullCarver`: its
 lookup tables are built once, a carve is then a few milliseconds; one camera is allowed to
-disagree) and returns its surface voxels; when the subject is articulated (its surface has
-tips, :func:`pipeline.frame_skeleton.frame_skeleton`), also the skeleton grown from the first tip as
-segments. A thread of the server sends a set only when the worker is free (the newest one;
-sets in between are skipped) and keeps the last answer, which the page draws
+disagree) and returns its surface voxels and the sides of the volume it reaches (:func:`volume_edges`);
+when the subject is articulated (its surface has tips, :func:`pipeline.frame_skeleton.frame_skeleton`),
+also the skeleton grown from the first tip as segments. A thread of the server sends a set only when
+the worker is free (the newest one; sets in between are skipped) and keeps the last answer, which the page draws
 (:meth:`Live3D.latest`).
 """
 
@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Live3D"]
+__all__ = ["Live3D", "volume_edges"]
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +34,30 @@ def _surface_voxels(occ: np.ndarray) -> np.ndarray:
     full = (pad[:-2, 1:-1, 1:-1] & pad[2:, 1:-1, 1:-1] & pad[1:-1, :-2, 1:-1] & pad[1:-1, 2:, 1:-1]
             & pad[1:-1, 1:-1, :-2] & pad[1:-1, 1:-1, 2:])
     return np.argwhere(inner & ~full)
+
+
+#: the sides of the capture volume, as :func:`volume_edges` names them (axis, end)
+_SIDES = (("x min", 0, 0), ("x max", 0, -1), ("y min", 1, 0), ("y max", 1, -1), ("z max", 2, -1))
+
+
+def volume_edges(occupancy: np.ndarray) -> list[str]:
+    """The sides of the capture volume a hull reaches: where the subject may go on outside it.
+
+    Parameters
+    ----------
+    occupancy : (X, Y, Z) bool ndarray
+        The hull on a grid over the volume (x, y, z axes; z up).
+
+    Returns
+    -------
+    list of str
+        Of ``"x min"``, ``"x max"``, ``"y min"``, ``"y max"``, ``"z max"``: the sides with an occupied voxel
+        in the grid's outer layer. The floor (``z min``) is never named: a subject stands on it.
+    """
+    occ = np.asarray(occupancy)
+    if occ.ndim != 3 or occ.dtype != bool or min(occ.shape, default=0) < 1:
+        raise ValueError(f"occupancy must be a non-empty (X, Y, Z) bool array, got {occ.dtype} {occ.shape}")
+    return [name for name, axis, end in _SIDES if occ.take(end, axis=axis).any()]
 
 
 class _Worker:
@@ -74,6 +98,7 @@ class _Worker:
         segments = _spine_segments(occ, self.grid) if self.spine and vox.size else []
         pts = self.grid.lo + (vox + 0.5) * self.grid.voxel
         return {"state": "ok", "set": int(index), "voxel": float(self.grid.voxel), "occupied": int(occ.sum()),
+                "edges": volume_edges(occ),
                 "points": np.round(pts, 1).tolist(), "segments": segments,
                 "compute_ms": (time.perf_counter() - t0) * 1e3}
 

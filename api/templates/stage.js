@@ -303,15 +303,23 @@
       return;
     }
     idleText = null; ctx3.fillStyle = '#102027'; ctx3.fillRect(0, 0, W, H);
-    // framed on the hull (at least a quarter of the capture volume across)
-    const [vlo, vhi] = live.bounds; const P = live.points.length ? live.points : [vlo, vhi];
-    const lo = [0, 1, 2].map((i) => Math.min(...P.map((p) => p[i]))), hi = [0, 1, 2].map((i) => Math.max(...P.map((p) => p[i])));
-    const c = [0, 1, 2].map((i) => (lo[i] + hi[i]) / 2);
-    const ext = Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], 0.25 * Math.max(vhi[0] - vlo[0], vhi[1] - vlo[1], vhi[2] - vlo[2])) * 1.3;
+    // framed on the capture volume, drawn as a box: where the subject stands in it is what the view is for
+    const [vlo, vhi] = live.bounds;
+    const c = [0, 1, 2].map((i) => (vlo[i] + vhi[i]) / 2);
+    const ext = Math.max(vhi[0] - vlo[0], vhi[1] - vlo[1], vhi[2] - vlo[2]) * 1.25;
     const a = performance.now() / 4000, ca = Math.cos(a), sa = Math.sin(a), el = 0.45, ce = Math.cos(el), se = Math.sin(el);
     const s = 0.8 * Math.min(W, H) / ext;
     const proj = (p) => { const x = p[0] - c[0], y = p[1] - c[1], z = p[2] - c[2];
       const u = ca * x - sa * y, v = sa * x + ca * y; return [W / 2 + s * u, H / 2 - s * (ce * z - se * v), ce * v + se * z]; };
+    const corner = (i) => [i & 1 ? vhi[0] : vlo[0], i & 2 ? vhi[1] : vlo[1], i & 4 ? vhi[2] : vlo[2]];
+    for (const floor of [false, true]){  // the volume's 12 edges; the 4 of its floor brighter
+      ctx3.strokeStyle = floor ? '#b0bec5' : '#546e7a'; ctx3.lineWidth = floor ? 1.5 : 1; ctx3.beginPath();
+      for (let i = 0; i < 8; i++) for (const b of [1, 2, 4]){
+        const j = i | b; if (j === i || (floor !== !((i | j) & 4))) continue;
+        const P = proj(corner(i)), Q = proj(corner(j)); ctx3.moveTo(P[0], P[1]); ctx3.lineTo(Q[0], Q[1]);
+      }
+      ctx3.stroke();
+    }
     const pts = live.points.map(proj).sort((p, q) => q[2] - p[2]);
     const r = Math.max(1.5, s * live.voxel * 0.6);
     for (const p of pts){ const k = Math.round(120 + 100 * Math.max(-1, Math.min(1, -p[2] / ext * 2)));
@@ -333,6 +341,12 @@
         if (live.updates !== undefined && (!seen3d.length || seen3d[seen3d.length - 1][1] !== live.updates)) seen3d.push([now, live.updates]);
         seen3d = seen3d.filter((x) => x[0] > now - 5000);
         const rate = seen3d.length > 1 ? (seen3d.length - 1) / ((seen3d[seen3d.length - 1][0] - seen3d[0][0]) / 1000) : 0;
+        // the subject where the view cannot see it whole: one line, in amber, above the figures
+        const edges = live.state === 'ok' ? (live.edges || []) : [];
+        say($('live3d-edge'), live.state !== 'ok' ? '' : live.occupied === 0 ? 'nothing in the capture volume' :
+            edges.length ? 'the subject reaches the capture volume\'s ' + edges.map((e) => e === 'z max' ? 'top (z max)' : e).join(', ') + ' side' + (edges.length > 1 ? 's' : '') +
+            ': what is outside the volume is not reconstructed' : '', 'warn');
+        $('live3d-edge').dataset.edges = edges.join(',');
         $('live3d-info').textContent = live.state === 'ok' ? ('frame set ' + live.set + ': ' + live.occupied + ' voxels of ' + fmt(live.voxel, 0) +
           ' mm, ' + live.segments.length + ' spine segments; ' + fmt(rate, 1) + ' updates/s shown (' + fmt(live.updates_per_s, 1) + ' computed), ' +
           fmt(live.compute_ms, 0) + ' ms each' + (live.calibration ? '; ' + live.calibration : '')) : (live.message || live.state);

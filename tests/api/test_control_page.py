@@ -30,12 +30,13 @@ except ImportError:
 ROUND = (("north", 3), ("east", 1), ("south", 0), ("west", 2))
 
 
-def _sim_rig(cams, *, subject: str = "starfish", frames: int = 10):
+def _sim_rig(cams, *, subject: str = "starfish", frames: int = 10, volume: dict | None = None):
     """A simulated rig (fake_cameras) of small cameras ``(id, index)`` and its FakeCamera drivers."""
     from fake_cameras import device as fake
     from stage.rig import parse_rig
 
     rig = parse_rig({"name": "sim", "fps": 30, "simulation": {"subject": subject, "n_cameras": 4, "frames": frames},
+                     **({"volume": volume} if volume else {}),
                      "cameras": [{"id": cid, "driver": "fake", "index": i, "width": 160, "height": 120}
                                  for cid, i in cams]})
     return rig, {c.id: fake.FakeCamera(c, rig) for c in rig.cameras}
@@ -203,3 +204,34 @@ def test_a_picture_that_stops_changing_says_so(tmp_path):
         release.set()
     assert not errors, errors
     assert state == "running" and not a_stale, (state, a_stale)
+
+
+def test_the_live_view_says_when_the_subject_reaches_the_volume_s_edge(tmp_path):
+    """The biped (over half a metre tall) in a capture volume 250 mm high: the live 3-D view draws the volume
+    and says in one line that the subject reaches its top, whose outside is not reconstructed; the floor it
+    stands on is not named."""
+    from api.live3d import Live3D
+
+    sync_playwright = sync_playwright_or_skip()
+    rig, drivers = _sim_rig(ROUND, subject="biped", frames=4,
+                            volume={"center": [0.0, 0.0, 125.0], "size": [750.0, 750.0, 250.0]})
+    art = artifacts_dir(tmp_path, "control")
+    with LiveServer(tmp_path, StageSession(rig, tmp_path / "data" / "takes", drivers=drivers)) as srv, \
+            sync_playwright() as p:
+        srv.room.live3d = Live3D(srv.room, resolution=32).start()
+        browser, page, errors = _open(p, srv.url)
+        try:
+            page.wait_for_function("() => window.__stage.lastLive3d && window.__stage.lastLive3d.state === 'ok'",
+                                   timeout=60_000)
+            page.wait_for_function("() => document.getElementById('live3d-edge').textContent !== ''", timeout=10_000)
+            line = page.text_content("#live3d-edge")
+            edges = page.get_attribute("#live3d-edge", "data-edges").split(",")
+            kind = page.get_attribute("#live3d-edge", "class")
+            page.locator("#view3d").scroll_into_view_if_needed()
+            page.screenshot(path=str(art / "live3d_edge.png"), full_page=True)
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert "z max" in edges and "z min" not in edges, edges
+    assert line.startswith("the subject reaches the capture volume's ") and "z max" in line, line
+    assert line.endswith("what is outside the volume is not reconstructed") and "warn" in kind, (line, kind)

@@ -7,6 +7,7 @@ import time
 from functools import partial
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -69,3 +70,27 @@ def test_a_calibration_is_chosen_through_the_api(room, tmp_path):
         r = c.put(f"/stage/calibration/{'cd' * 16}", headers=auth)
         assert r.status_code == 409 and "none of the rig's cameras" in r.text
         assert c.put("/stage/calibration/not-an-id", headers=auth).status_code == 400
+
+
+def test_volume_edges_names_the_sides_a_hull_reaches():
+    """Against the sides set by hand: every side but the floor is named when the hull has a voxel in the
+    grid's outer layer there; one voxel inside the outer layer names nothing."""
+    from api.live3d import volume_edges
+
+    occ = np.zeros((6, 7, 8), bool)
+    occ[1:5, 1:6, 0:7] = True  # standing on the floor, inside every other side
+    assert volume_edges(occ) == []
+    for side, index in (("x min", (0, 3, 3)), ("x max", (5, 3, 3)), ("y min", (3, 0, 3)), ("y max", (3, 6, 3)),
+                        ("z max", (3, 3, 7))):
+        hit = occ.copy()
+        hit[index] = True
+        assert volume_edges(hit) == [side], side
+    assert volume_edges(np.ones((2, 2, 2), bool)) == ["x min", "x max", "y min", "y max", "z max"]
+
+
+def test_invalid_input():
+    from api.live3d import volume_edges
+
+    for bad in (np.zeros((3, 3), bool), np.zeros((3, 3, 3), np.uint8), np.zeros((0, 3, 3), bool)):
+        with pytest.raises(ValueError, match="occupancy"):
+            volume_edges(bad)
