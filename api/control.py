@@ -27,12 +27,28 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["ControlRoom", "BoardSession"]
+__all__ = ["ControlRoom", "BoardSession", "disk_state", "DISK_LOW_MINUTES", "DISK_FULL_MINUTES"]
 
 log = logging.getLogger(__name__)
 
 #: coverage map cells across x and y
 COVERAGE_CELLS = (8, 6)
+#: minutes of recording left (at the rig's raw data rate) under which the page warns, and says the disk is almost full
+DISK_LOW_MINUTES, DISK_FULL_MINUTES = 10.0, 2.0
+
+
+def disk_state(disk: dict[str, Any]) -> dict[str, str | None]:
+    """What the page says of the takes' disk: ``level`` None, ``"low"`` (under :data:`DISK_LOW_MINUTES` of
+    recording left) or ``"full"`` (under :data:`DISK_FULL_MINUTES`), and its ``message``."""
+    if not isinstance(disk, dict):
+        raise ValueError(f"disk must be a dict (StageSession.disk), got {type(disk).__name__}")
+    left = disk.get("minutes_left")
+    if left is None or left >= DISK_LOW_MINUTES:
+        return {"level": None, "message": None}
+    if left < DISK_FULL_MINUTES:
+        return {"level": "full", "message": f"disk almost full: {left:.1f} min of recording left; "
+                                            "free space where takes are written before recording"}
+    return {"level": "low", "message": f"disk low: {left:.0f} min of recording left at the rig's data rate"}
 
 
 class _Keyers:
@@ -398,6 +414,7 @@ class ControlRoom:
 
     def figures(self) -> dict[str, Any]:
         f = self.session.figures()
+        f["disk"] = {**f["disk"], **disk_state(f["disk"])}
         cal, said = self.take_calibration()
         f["take_calibration"] = {"calibrated": cal is not None, "message": said}
         f["previews"] = {"streams": self.streams, "latency_ms": self.latency_ms(), "fps": self.preview_fps,

@@ -158,6 +158,7 @@
         const d = f.disk || {};
         $('disk-free').textContent = d.free_bytes ? (d.free_bytes / 1e9).toFixed(1) + ' GB' : '–';
         $('minutes-left').textContent = fmt(d.minutes_left, 0);
+        say($('disk-msg'), d.message || '', d.level === 'full' ? 'bad' : d.level === 'low' ? 'warn' : '');
         const s = f.sync_spread_ms || {};
         $('spread').textContent = s.median === null ? '–' : fmt(s.median, 2) + ' ms median, ' + fmt(s.max, 2) + ' ms max';
         const l = (f.previews || {}).latency_ms || {};

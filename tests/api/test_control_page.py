@@ -235,3 +235,47 @@ def test_the_live_view_says_when_the_subject_reaches_the_volume_s_edge(tmp_path)
     assert "z max" in edges and "z min" not in edges, edges
     assert line.startswith("the subject reaches the capture volume's ") and "z max" in line, line
     assert line.endswith("what is outside the volume is not reconstructed") and "warn" in kind, (line, kind)
+
+
+def test_disk_state_warns_under_ten_minutes_and_calls_two_almost_full():
+    from api.control import DISK_FULL_MINUTES, DISK_LOW_MINUTES, disk_state
+
+    assert (DISK_LOW_MINUTES, DISK_FULL_MINUTES) == (10.0, 2.0)
+    assert disk_state({"minutes_left": None}) == {"level": None, "message": None}
+    assert disk_state({"minutes_left": 10.0})["level"] is None
+    low = disk_state({"minutes_left": 9.6})
+    assert low == {"level": "low", "message": "disk low: 10 min of recording left at the rig's data rate"}
+    assert disk_state({"minutes_left": 2.0})["level"] == "low"
+    full = disk_state({"minutes_left": 1.94})
+    assert full["level"] == "full" and full["message"].startswith("disk almost full: 1.9 min of recording left")
+
+
+def test_invalid_input():
+    from api.control import disk_state
+
+    with pytest.raises(ValueError, match="disk"):
+        disk_state([1.0])
+
+
+def test_a_disk_running_out_is_said_at_the_top(tmp_path):
+    """The takes' disk with 6, then 1 minute of recording left: the top line says so, amber then red."""
+    sync_playwright = sync_playwright_or_skip()
+    ids = ["a", "b"]
+    with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=make_drivers(ids))) as srv, \
+            sync_playwright() as p:
+        session = srv.room.session
+        rate = session.disk()["rate_mb_s"]
+        said = []
+        browser, page, errors = _open(p, srv.url)
+        try:
+            for minutes in (6.0, 1.0):
+                session.disk = lambda m=minutes: {"free_bytes": m * 60 * rate * 1e6, "minutes_left": m, "rate_mb_s": rate}
+                page.wait_for_function("(m) => document.getElementById('minutes-left').textContent === String(m)",
+                                       arg=int(minutes), timeout=10_000)
+                page.wait_for_timeout(100)
+                said.append((page.text_content("#disk-msg"), page.get_attribute("#disk-msg", "class")))
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert said[0] == ("disk low: 6 min of recording left at the rig's data rate", "msg warn"), said
+    assert said[1][0].startswith("disk almost full: 1.0 min of recording left") and said[1][1] == "msg bad", said
