@@ -6,7 +6,8 @@
   a few frames and masks per camera (``<img>`` tags on ``/takes/{take}/frames/...``);
 * ``GET /ui/jobs``, ``GET /ui/jobs/{id}``: jobs with live progress bars (a small inline
   script polls ``/jobs`` / ``/jobs/{id}`` every second while a job is active); a job's page links the result
-  files it has written (``/jobs/{id}/results/``, polled with it), never those its steps would write;
+  files it has written (``/jobs/{id}/results/``, polled with it, and once more until it answers after the job
+  ends), every frame of its per-frame folders in a collapsed list, never those its steps would write;
 * ``GET /ui/jobs/{id}/report``: the HTML report of a finished job
   (:func:`pipeline.report.render_report`, cached as ``DATA/jobs/<id>/report.html``).
 
@@ -190,25 +191,29 @@ def job_page(request: Request, job_id: JobId, store: StoreDep, settings: Setting
         return _not_found(request, str(exc))
     written = results.listing(settings.jobs_dir, j.id) if j.kind == "process" else None
     return _page(request, "job.html", f"Job {j.id[:8]}", job=j,
-                 result_links=_result_links(written) if written else [],
+                 result_links=list(written["links"].items()) if written else [],
+                 frame_lists=_frame_lists(written) if written else [],
                  unwritten=_unwritten(j, written) if written else "",
                  result_steps=results.RESULT_STEPS, frame_links=_FRAME_LINKS,
                  parameters=json.dumps(j.params) if j.params else "–")
 
 
-#: a job's per-frame results on its page: the listing's frames, the key of their URL, what the link says
-_FRAME_LINKS = (("meshes", "mesh_url", "surface meshes"), ("tracked", "tracked_url", "tracked frames"),
-                ("posed", "posed_url", "posed frames"))
+#: a job's per-frame results on its page: the listing's frames, the key of their URL, what the list is called
+_FRAME_LINKS = (("meshes", "mesh_url", "surface meshes"), ("tracked", "tracked_url", "tracked meshes"),
+                ("posed", "posed_url", "posed meshes"))
 
 
-def _result_links(written: dict[str, Any]) -> list[tuple[str, str]]:
-    """``(text, url)`` of each file a job has written (its listing, :func:`api.results.listing`), and of the first
-    frame of each of its per-frame results (job.js makes the same from the listing as the job runs)."""
-    links = list(written["links"].items())
+def _frame_lists(written: dict[str, Any]) -> list[tuple[str, str, list[tuple[int, str]]]]:
+    """Per folder of per-frame results a job has written (its listing, :func:`api.results.listing`), in the order
+    of :data:`_FRAME_LINKS`: its key, what its list says (``"surface meshes (6 frame sets)"``) and ``(frame set,
+    url)`` of every frame in it. The page shows each as a collapsed list of every frame (job.js makes the same from
+    the listing as the job runs)."""
+    out = []
     for key, url, text in _FRAME_LINKS:
         if frames := written.get(key):
-            links.append((f"{text} ({len(frames)})", written[url].format(index=frames[0])))
-    return links
+            said = f"{text} ({len(frames)} frame set{'s' if len(frames) != 1 else ''})"
+            out.append((key, said, [(k, written[url].format(index=k)) for k in frames]))
+    return out
 
 
 def _unwritten(job: JobRecord, written: dict[str, Any]) -> str:

@@ -1,22 +1,42 @@
 {#- follows one job: polls /jobs/{id} every second until it is finished, and for a processing job its results'
-    listing (/jobs/{id}/results/): links to what it has written so far, never to what it has not (JOB_ID,
-    INITIAL_STATE, RESULT_STEPS, FRAME_LINKS: set by the page; pages.py _result_links, _unwritten say it alike) -#}
+    listing (/jobs/{id}/results/): links to what it has written so far, never to what it has not, every frame of
+    its per-frame folders in a collapsed list; a listing that cannot be read is said, and asked again, a finished
+    job's until it answers (JOB_ID, INITIAL_STATE, RESULT_STEPS, FRAME_LINKS: set by the page; pages.py
+    _frame_lists, _unwritten say it alike) -#}
 (function(){
   const TERMINAL = ["done", "failed", "cancelled"];
+  function renderFrames(l){
+    const div = document.getElementById('frames');
+    for (const [key, url, text] of FRAME_LINKS){
+      const frames = l[key] || [];
+      let d = div.querySelector('details[data-key="' + key + '"]');
+      if (!frames.length){ if (d) d.remove(); continue; }
+      if (!d){  // (a list the user opened stays open as the job runs)
+        d = document.createElement('details'); d.dataset.key = key;
+        d.appendChild(document.createElement('summary'));
+        const p = document.createElement('p'); p.className = 'frames'; d.appendChild(p);
+      }
+      div.appendChild(d);  // (in FRAME_LINKS' order)
+      d.querySelector('summary').textContent = text + ' (' + frames.length + ' frame set' + (frames.length === 1 ? '' : 's') + ')';
+      if (d.dataset.frames === frames.join(',')) continue;
+      d.dataset.frames = frames.join(',');
+      const p = d.querySelector('p.frames'); p.replaceChildren();
+      for (const k of frames){
+        const a = document.createElement('a'); a.textContent = String(k); a.title = 'frame set ' + k;
+        a.href = l[url].replace('{index:06d}', String(k).padStart(6, '0'));
+        p.appendChild(a); p.appendChild(document.createTextNode(' '));
+      }
+    }
+  }
   function renderResults(j, l){
     const span = document.getElementById('results');
     if (!span) return;
-    const links = Object.entries(l.links || {});
-    for (const [key, url, text] of FRAME_LINKS){
-      const frames = l[key] || [];
-      if (frames.length) links.push([text + ' (' + frames.length + ')',
-                                     l[url].replace('{index:06d}', String(frames[0]).padStart(6, '0'))]);
-    }
     span.replaceChildren();
-    for (const [text, url] of links){
+    for (const [text, url] of Object.entries(l.links || {})){
       const a = document.createElement('a'); a.href = url; a.textContent = text;
       span.appendChild(document.createTextNode(' · ')); span.appendChild(a);
     }
+    renderFrames(l);
     const steps = j.steps.filter(s => RESULT_STEPS.includes(s) && !(l.written_by || []).includes(s));
     const p = document.getElementById('unwritten');
     p.textContent = '';
@@ -62,19 +82,33 @@
     document.getElementById('warnings').hidden = !warned.length;
     return !TERMINAL.includes(j.state);
   }
+  async function listed(j){
+    // (asked after the status: a job just finished has all its files listed); false when it could not be read
+    let l = null, why = 'no answer';
+    try {
+      const r = await fetch('/jobs/' + JOB_ID + '/results/', {headers: {'Accept': 'application/json'}});
+      if (r.ok) l = await r.json(); else why = 'HTTP ' + r.status;
+    } catch (e) {}
+    if (l) renderResults(j, l);
+    const p = document.getElementById('results-error');
+    p.textContent = l ? '' : 'The list of results could not be read (' + why + '): the links above may be out of'
+      + ' date; asking again.';
+    p.hidden = !!l;
+    return !!l;
+  }
   async function poll(){
+    let again = true;
     try {
       const r = await fetch('/jobs/' + JOB_ID, {headers: {'Accept': 'application/json'}});
       if (r.ok){
         const j = await r.json();
-        if (j.kind === 'process'){  // (asked after the status: a job just finished has all its files listed)
-          const l = await fetch('/jobs/' + JOB_ID + '/results/', {headers: {'Accept': 'application/json'}});
-          if (l.ok) renderResults(j, await l.json());
-        }
-        if (!render(j)) return;  // (the state last: a page that reads "done" has its results' links)
+        const ok = j.kind !== 'process' || await listed(j);
+        // (the state last: a page that reads "done" has its results' links, or says they may be out of date and
+        // asks again until the listing answers)
+        again = render(j) || !ok;
       }
     } catch (e) {}
-    setTimeout(poll, 1000);
+    if (again) setTimeout(poll, 1000);
   }
   if (!TERMINAL.includes(INITIAL_STATE)) setTimeout(poll, 1000);
 })();

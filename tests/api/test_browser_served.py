@@ -3,7 +3,9 @@ headless Chromium (Playwright, Debian's chromium) follows the job's live progres
 report and the take's page from the server, waits for the plotly 3-D views and checks they are not blank;
 a second job, over a take whose masks failed in some frame sets, which then fails (its rig's rest frame is past
 the surfaces), lists on its page the warnings said before it failed. Each job's page links only the result files
-the job wrote (each answers 200), the failed one saying which of its steps wrote nothing.
+the job wrote (each answers 200), every frame of its surfaces in a collapsed list, the failed one saying which of
+its steps wrote nothing; the done job's page, whose results' listing fails twice once the job is done, says so and
+asks again until it has the finished job's links.
 
 Screenshots are kept under ``$STAGE_TEST_ARTIFACTS`` (else the test's tmp dir); the path is printed.
 """
@@ -51,9 +53,9 @@ def _take(path: Path) -> Path:
 
 
 def _result_links(page, url: str) -> dict[str, int]:
-    """The results a job's page links (its listing's files, the first frame of its meshes), each with the status
+    """The results a job's page links (its listing's files, every frame of its meshes), each with the status
     the server answers it with."""
-    hrefs = page.eval_on_selector_all("#results a", "els => els.map(e => e.getAttribute('href'))")
+    hrefs = page.eval_on_selector_all("#results a, #frames a", "els => els.map(e => e.getAttribute('href'))")
     return {h: httpx.get(url + h, timeout=60).status_code for h in hrefs}
 
 
@@ -82,14 +84,34 @@ def test_browser_on_served_pages(tmp_path):
                 page = browser.new_page(viewport={"width": 1200, "height": 900})
                 page.on("pageerror", lambda e: errors.append(str(e)))
                 page.on("request", lambda q: requests.append(q.url))
+                unlisted = [2]  # the listing fails twice once the job is done (the poll that sees it done, the next)
+
+                def listing(route):
+                    if unlisted[0] and httpx.get(f"{srv.url}/jobs/{jid}", timeout=10).json()["state"] == "done":
+                        unlisted[0] -= 1
+                        route.fulfill(status=503, body="busy")
+                    else:
+                        route.continue_()
+
+                page.route(f"**/jobs/{jid}/results/", listing)
                 # the job page follows the job live until it is done, then shows the report link
                 page.goto(f"{srv.url}/ui/jobs/{jid}", wait_until="load", timeout=30_000)
                 initial = page.text_content("#state")
                 page.evaluate("() => { window.__seen = []; new MutationObserver(() => window.__seen.push("
                               "document.getElementById('count-all').textContent)).observe("
-                              "document.getElementById('count-all'), {childList: true, characterData: true, subtree: true}); }")
+                              "document.getElementById('count-all'), {childList: true, characterData: true, subtree: true});"
+                              " window.__unlisted = []; const e = document.getElementById('results-error');"
+                              " new MutationObserver(() => { if (!e.hidden) window.__unlisted.push(e.textContent); })"
+                              ".observe(e, {attributes: true, childList: true, characterData: true, subtree: true}); }")
                 page.wait_for_function("() => document.getElementById('state').textContent === 'done'",
                                        timeout=60_000)
+                # the page asks again until the listing answers: the finished job's links, the message gone
+                page.wait_for_function("() => document.getElementById('results-error').hidden"
+                                       " && !!document.querySelector('#results a[href$=\"/report.json\"]')",
+                                       timeout=20_000)
+                unlisted_said = page.evaluate("() => window.__unlisted")
+                frames_open = page.eval_on_selector_all("#frames details", "els => els.map(e => e.open)")
+                frames_said = page.eval_on_selector_all("#frames summary", "els => els.map(e => e.textContent)")
                 assert page.is_visible("#report"), "the report link did not appear"
                 counts = page.text_content("#count-all")
                 done, total = (int(x) for x in counts.split("/"))
@@ -134,6 +156,7 @@ def test_browser_on_served_pages(tmp_path):
                 shown_count, shown_visible = page.text_content("#nwarn"), page.is_visible("#warnings")
                 shown_error = page.text_content("#error")
                 failed_links = _result_links(page, srv.url)
+                failed_frames = page.eval_on_selector_all("#frames summary", "els => els.map(e => e.textContent)")
                 unwritten, unwritten_visible = page.text_content("#unwritten"), page.is_visible("#unwritten")
                 page.screenshot(path=str(art / "failed_job_page.png"), full_page=True)
                 st = httpx.get(f"{srv.url}/jobs/{failed}", timeout=10).json()
@@ -160,8 +183,15 @@ def test_browser_on_served_pages(tmp_path):
     # spine's and surfaces', the failed one its surfaces alone, saying its track and rig steps wrote nothing
     assert set(done_links.values()) == {200}, done_links
     assert {h.rsplit("/results/", 1)[1] for h in done_links} == {
-        "spine.json", "report.json", "spine.glb", "spine_rig.glb", "meshes/frame_000000.ply"}, done_links
-    assert set(failed_links.values()) == {200} and len(failed_links) == 1, failed_links
-    assert "/results/meshes/frame_" in next(iter(failed_links)), failed_links
+        "spine.json", "report.json", "spine.glb", "spine_rig.glb"} | {
+        f"meshes/frame_{k:06d}.ply" for k in range(FRAMES)}, done_links
+    assert frames_said == [f"surface meshes ({FRAMES} frame sets)"] and frames_open == [False], (frames_said,
+                                                                                             frames_open)
+    if initial != "done":  # the listing failed on the poll that saw the job done: said, then asked again
+        assert unlisted[0] == 0 and unlisted_said and all(
+            t.startswith("The list of results could not be read (HTTP 503)") for t in unlisted_said), unlisted_said
+    assert set(failed_links.values()) == {200} and failed_links, failed_links
+    assert all("/results/meshes/frame_" in h for h in failed_links), failed_links
+    assert failed_frames == [f"surface meshes ({len(failed_links)} frame sets)"], failed_frames
     assert unwritten == "The job failed: the track and rig steps wrote nothing." and unwritten_visible, unwritten
 

@@ -156,17 +156,20 @@ def test_jobs_pages(client_data):
     assert '<p id="unwritten" class="err" hidden></p>' in page
     # (a failed job's key step writes the take's masks, not its folder's)
     assert '<p id="unwritten" class="err" hidden></p>' in _html(client.get(f"/ui/jobs/{ids['failed']}"))
-    # a job that failed after its surfaces: their first frame linked, its track and rig steps said to have written
-    # nothing (their files, 404, not linked)
+    # a job that failed after its surfaces: every one of them linked, in a collapsed list saying how many (frame set
+    # 1 has none: no link), its track and rig steps said to have written nothing (their files, 404, not linked)
     store = client.app.state.store
     rig = store.create(kind="process", take="cal", steps=["surface", "track", "rig"], params={}).id
     (data / "jobs" / rig / "meshes").mkdir(parents=True)
-    for i in (0, 1):
+    for i in (0, 2, 3):
         (data / "jobs" / rig / "meshes" / f"frame_00000{i}.ply").write_bytes(b"ply\n")
     store.finish(rig, "failed", error="stopped")
     page = _html(client.get(f"/ui/jobs/{rig}"))
-    assert _result_hrefs(client, page, rig) == [f"/jobs/{rig}/results/meshes/frame_000000.ply"]
-    assert ">surface meshes (2)</a>" in page and client.get(f"/jobs/{rig}/results/rig/rig.glb").status_code == 404
+    meshes = [f"/jobs/{rig}/results/meshes/frame_00000{i}.ply" for i in (0, 2, 3)]
+    assert _result_hrefs(client, page, rig) == meshes
+    assert ('<details data-key="meshes" data-frames="0,2,3"><summary>surface meshes (3 frame sets)</summary>'
+            f'<p class="frames"><a href="{meshes[0]}" title="frame set 0">0</a> ') in page
+    assert client.get(f"/jobs/{rig}/results/rig/rig.glb").status_code == 404
     assert '<p id="unwritten" class="err">The job failed: the track and rig steps wrote nothing.</p>' in page
     assert client.get(f"/jobs/{rig}/results/").json()["written_by"] == ["surface"]
     # once the armature's files are there (docs/armature-format.md), they are linked, and no step is said unwritten
@@ -177,7 +180,8 @@ def test_jobs_pages(client_data):
     (data / "jobs" / rig / "tracked" / "000000.ply").write_bytes(b"ply\n")
     page = _html(client.get(f"/ui/jobs/{rig}"))
     assert _result_hrefs(client, page, rig) == [f"/jobs/{rig}/results/{n}" for n in (
-        "rig/rig.glb", "rig/rig.bvh", "meshes/frame_000000.ply", "tracked/000000.ply")]
+        "rig/rig.glb", "rig/rig.bvh")] + meshes + [f"/jobs/{rig}/results/tracked/000000.ply"]
+    assert "<summary>tracked meshes (1 frame set)</summary>" in page
     assert '<a href="/jobs/{rig}/results/rig/rig.glb">rig/rig.glb</a>'.format(rig=rig) in page
     assert '<p id="unwritten" class="err" hidden></p>' in page
     assert client.get(f"/jobs/{rig}/results/").json()["written_by"] == ["surface", "track", "rig"]
