@@ -149,7 +149,7 @@
     }
     if (recState === 'failed') say($('rec-msg'), 'take ' + rec.take + ' failed: ' + rec.error, 'bad');
   }
-  let lastShown = null;
+  let lastShown = null, answered = null;
   async function figures(){
     try {
       const r = await api('GET', '/stage');
@@ -168,8 +168,17 @@
         if ((f.previews || {}).fps) previewPeriod = 1 / f.previews.fps;
         showRecording(f.recording || {});
         for (const c of f.cameras) showCamera(c);
-      }
-    } catch (e) {}
+        // the cameras not running, named in one line at the top: a red tile may be scrolled out of view
+        const down = f.cameras.filter((c) => c.state === 'disconnected' || c.state === 'failed');
+        $('cams-msg').textContent = down.length ? down.length + ' of ' + f.cameras.length + ' cameras not running: ' +
+          down.map((c) => c.id + ' ' + (c.state === 'failed' ? 'failed to open' : 'disconnected') + (c.error ? ' (' + c.error + ')' : '')).join('; ') : '';
+        answered = new Date();
+        $('conn-msg').textContent = '';
+      } else throw new Error(String(r.status));
+    } catch (e) {  // the figures stop: said, with the time of the last ones, never left to pass for live
+      $('conn-msg').textContent = 'the server does not answer (' + (e.message || e) + '): the figures and pictures are from ' +
+        (answered ? answered.toLocaleTimeString() : 'nothing yet') + '; trying again';
+    }
     setTimeout(figures, 700);
   }
 
@@ -203,18 +212,23 @@
       ctx.fillRect(x * w, y * h, w - 1, h - 1);
     }
   }
-  function showPairs(st){
-    const cams = st.cameras; let html = '<table><tr><th></th>' + cams.map((c) => '<th>' + c + '</th>').join('') + '</tr>';
-    cams.forEach((a, i) => {
-      html += '<tr><th>' + a + '</th>' + cams.map((b, j) => {
-        if (i === j) return '<td>·</td>';
-        const n = st.shared[i][j]; const ok = n >= st.min_shared;
-        return '<td style="background:' + (ok ? '#c8e6c9' : n ? '#fff9c4' : '#ffcdd2') + '">' + n + '</td>';
-      }).join('') + '</tr>';
+  function showPairs(st){  // shared views per camera pair, built as elements (camera ids are text, never markup)
+    const cell = (tag, text) => { const e = document.createElement(tag); e.textContent = text; return e; };
+    const table = document.createElement('table');
+    const head = table.insertRow(); head.appendChild(cell('th', ''));
+    for (const c of st.cameras) head.appendChild(cell('th', c));
+    st.cameras.forEach((a, i) => {
+      const tr = table.insertRow(); tr.appendChild(cell('th', a));
+      st.cameras.forEach((b, j) => {
+        if (i === j){ tr.appendChild(cell('td', '·')); return; }
+        const n = st.shared[i][j]; const td = cell('td', n);
+        td.className = n >= st.min_shared ? 'link' : n ? 'some' : 'none';
+        td.title = a + ' and ' + b + ': ' + n + ' shared views' + (n >= st.min_shared ? ' (linked)' : '');
+        tr.appendChild(td);
+      });
     });
-    const box = $('pairs'); box.innerHTML = '';
-    const t = document.createElement('div'); t.innerHTML = '<p class="muted">shared views per camera pair (green: a link for the bundle adjustment)</p>' + html;
-    box.appendChild(t);
+    const note = cell('p', 'shared views per camera pair (green: a link for the bundle adjustment)'); note.className = 'muted';
+    $('pairs').replaceChildren(note, table);
   }
   let boardPoll = null, calibJob = null;
   async function board(){

@@ -144,6 +144,8 @@ def test_a_camera_that_goes_away_while_previewed_is_greyed_and_its_take_flagged(
             shown = page.is_visible('.tile[data-cam="east"] [data-role="stale"]')
             grey = page.evaluate("() => getComputedStyle(document.querySelector('.tile[data-cam=\"east\"] img')).filter")
             live = page.evaluate("() => Array.from(document.querySelectorAll('.tile:not(.stale)')).map((t) => t.dataset.cam)")
+            page.wait_for_function("() => document.getElementById('cams-msg').textContent !== ''", timeout=10_000)
+            top = page.text_content("#cams-msg")
             _record(page, "gap", 1.0)
             msg = page.text_content("#rec-msg")
             kind = page.get_attribute("#rec-msg", "class")
@@ -158,6 +160,7 @@ def test_a_camera_that_goes_away_while_previewed_is_greyed_and_its_take_flagged(
     assert note == "last picture before it went away" and shown, note
     assert "grayscale(1)" in grey, grey
     assert sorted(live) == ["north", "south", "west"], live
+    assert top == "1 of 4 cameras not running: east disconnected (camera 'east': simulated USB unplug)", top
     assert msg.startswith("take gap has problems: east disconnected"), msg
     assert "warn" in kind and "good" not in kind, kind
     assert fine == [] and short == ["3 of 30 frame sets incomplete"], (fine, short)
@@ -279,3 +282,71 @@ def test_a_disk_running_out_is_said_at_the_top(tmp_path):
     assert not errors, errors
     assert said[0] == ("disk low: 6 min of recording left at the rig's data rate", "msg warn"), said
     assert said[1][0].startswith("disk almost full: 1.0 min of recording left") and said[1][1] == "msg bad", said
+
+
+#: the WCAG 2 contrast ratio of every visible text element of the page against its first opaque background
+#: below 4.5 (AA for text under 18 pt): {"colour on background": [ratio, element]}
+_LOW_CONTRAST = """() => {
+  const parse = (c) => c.match(/[\\d.]+/g).map(Number);
+  const lum = (c) => { const f = (v) => { v /= 255; return v <= 0.03928 ? v / 12.92 : Math.pow((v + 0.055) / 1.055, 2.4); };
+                       const m = parse(c); return 0.2126 * f(m[0]) + 0.7152 * f(m[1]) + 0.0722 * f(m[2]); };
+  const bg = (e) => { for (; e; e = e.parentElement){ const c = getComputedStyle(e).backgroundColor; const m = parse(c);
+                        if (m.length < 4 || m[3] === 1) return c; } return 'rgb(255, 255, 255)'; };
+  const out = {};
+  for (const e of document.querySelectorAll('body *')){
+    if (![...e.childNodes].some((n) => n.nodeType === 3 && n.textContent.trim()) || !e.checkVisibility()) continue;
+    if (e.closest('.frame')) continue;  // the badges over the pictures: white on a dark veil over an image
+    const s = getComputedStyle(e); const a = lum(s.color), b = lum(bg(e));
+    const r = (Math.max(a, b) + 0.05) / (Math.min(a, b) + 0.05);
+    if (r < 4.5) out[s.color + ' on ' + bg(e)] = [Math.round(r * 100) / 100,
+                                                  e.tagName + '.' + e.className + ': ' + e.textContent.trim().slice(0, 40)];
+  }
+  return out;
+}"""
+
+#: the controls and pictures of the page without an accessible name (label, aria-label, alt or text)
+_UNNAMED = """() => [...document.querySelectorAll('input, button, select, progress, canvas, img')]
+  .filter((e) => !(e.labels && e.labels.length) && !e.getAttribute('aria-label') && !e.getAttribute('alt')
+                 && !(e.textContent || '').trim())
+  .map((e) => e.tagName + '#' + e.id + '.' + e.className)"""
+
+
+def test_the_page_reads_without_the_eyes_and_says_when_the_server_is_gone(tmp_path):
+    """With a board (every section shown): no text under 4.5:1 contrast, every control and picture named, the
+    controls reached by Tab in the order they are read; when the figures stop coming one red line says so
+    with the time of the last ones, and it goes when they come back."""
+    from calib.boards import parse_board
+
+    sync_playwright = sync_playwright_or_skip()
+    ids = ["a", "b"]
+    with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=make_drivers(ids))) as srv, \
+            sync_playwright() as p:
+        srv.room.board = parse_board({"type": "charuco", "squares": [7, 5], "square_mm": 70.0, "marker_mm": 52.0,
+                                          "dictionary": "DICT_4X4_50"})
+        browser, page, errors = _open(p, srv.url)
+        try:
+            _record(page, "seen", 0.5)  # the take list's row and its button too
+            _take_row(page, "seen")
+            low = page.evaluate(_LOW_CONTRAST)
+            unnamed = page.evaluate(_UNNAMED)
+            page.focus("#token")
+            order = []
+            for _ in range(12):
+                page.keyboard.press("Tab")
+                order.append(page.evaluate("() => document.activeElement.id"))
+            page.route("**/stage", lambda route: route.abort())
+            page.wait_for_function("() => document.getElementById('conn-msg').textContent !== ''", timeout=10_000)
+            gone = page.text_content("#conn-msg")
+            shown = page.is_visible("#conn-msg")
+            page.unroute("**/stage")
+            page.wait_for_function("() => document.getElementById('conn-msg').textContent === ''", timeout=10_000)
+            hidden = not page.is_visible("#conn-msg")
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert low == {}, low
+    assert unnamed == [], unnamed
+    assert order[:10] == ["take-name", "take-seconds", "record", "stop", "mask", "min-views", "min-shared", "board-start",
+                          "holdout", "cal-step"], order
+    assert gone.startswith("the server does not answer (") and "the figures and pictures are from " in gone, gone
+    assert shown and hidden
