@@ -74,7 +74,8 @@ class RunContext(Run):
         return frozenset(self.damaged.get("sets", ()))
 
     def run_frames(self, step: str, task: Callable[..., list[dict]], done_dir: str, *, suffix: str = ".json",
-                   chunk_args: Callable[[list[int]], dict] | None = None) -> None:
+                   chunk_args: Callable[[list[int]], dict] | None = None,
+                   said_before: Callable[[int], list[tuple[str, str | None]]] | None = None) -> None:
         """Run a per-frame ``task`` on every frame set without a result in ``OUT/done_dir``
         (the one runner all per-frame steps share: chunks, executor, progress, cancel);
         ``chunk_args(frames)`` adds keywords per chunk (e.g. its masks). What the frames warned of (a result's
@@ -82,13 +83,19 @@ class RunContext(Run):
         sets and the first of them (:func:`pipeline.run.frames_said`), as ``"{step}: ..."``, in the warnings; when a
         task fails or the run is cancelled, before the error goes on, those of the failed task's frames
         (:func:`pipeline.run.frames_said_before`) and of every task that finished (:func:`pipeline.run.finished_before`):
-        each frame set whose result is written has its warnings said."""
+        each frame set whose result is written has its warnings said. ``said_before(k)``: what frame set ``k``, done by
+        an earlier run (a resumed job, a command run again), said then, from its record: said with this run's, so
+        that the warnings (``report.json``'s) are those of one run that made every frame set."""
         n_sets = self.take.n_sets
         todo = [k for k in range(n_sets) if not (self.out / done_dir / f"{frame_name(k)}{suffix}").exists()]
         done = n_sets - len(todo)
         self.report_progress(step, done, n_sets)
         tasks = [partial(task, ch, **(chunk_args(ch) if chunk_args else {})) for ch in chunks(todo, self.params.chunk)]
         said: dict[int, list] = {}
+        if said_before is not None:
+            for k in sorted(set(range(n_sets)) - set(todo)):
+                if kept := said_before(k):
+                    said[k] = [tuple(x) for x in kept]
         try:
             for finished in self.map_tasks(tasks):
                 done += len(finished)

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SKELETON_FORMAT", "frame_name", "load_skeleton", "skeleton_bytes", "skeleton_path", "skeleton_record",
-           "stale_skeletons"]
+__all__ = ["SKELETON_FORMAT", "frame_name", "frame_said", "load_skeleton", "said_fields", "skeleton_bytes",
+           "skeleton_path", "skeleton_record", "skeleton_said", "stale_skeletons"]
 
 log = logging.getLogger("pipeline.process")
 
@@ -21,6 +21,77 @@ log = logging.getLogger("pipeline.process")
 def frame_name(k: int) -> str:
     """The stem of frame set ``k``'s files in a results directory (``frame_000012``)."""
     return f"frame_{k:06d}"
+
+
+def said_fields(said: list[tuple[str, str | None]]) -> dict:
+    """What a frame set warned of (:func:`pipeline.run.frame_warnings`) as its record keeps it: ``warnings`` (each
+    message once, in the order said) and, for those said in other words in a job, ``job_warnings`` (message ->
+    the job's words); ``{}`` when it said nothing. A later run that finds the frame done says them again
+    (:func:`frame_said`, :func:`skeleton_said`), as a run that made it would.
+
+    Raises
+    ------
+    ValueError
+        ``said`` is not a list of ``(message, job's words or None)``.
+    """
+    if not isinstance(said, (list, tuple)) or not all(
+            isinstance(x, (list, tuple)) and len(x) == 2 and isinstance(x[0], str) and isinstance(x[1], (str, type(None)))
+            for x in said):
+        raise ValueError(f"said must be a list of (message, job's words or None), got {said!r}")
+    if not said:
+        return {}
+    out: dict = {"warnings": list(dict.fromkeys(m for m, _ in said))}
+    job = {m: j for m, j in said if j is not None and j != m}
+    if job:
+        out["job_warnings"] = job
+    return out
+
+
+def _said_of(warnings, job_warnings) -> list[tuple[str, str | None]]:
+    """The ``(message, job's words or None)`` of a record's :func:`said_fields`."""
+    job = job_warnings if isinstance(job_warnings, dict) else {}
+    return [(str(m), job.get(str(m))) for m in (warnings or [])]
+
+
+def frame_said(out: Path, k: int) -> list[tuple[str, str | None]]:
+    """What frame set ``k`` warned of when its surface was made, as its record ``OUT/frames/frame_NNNNNN.json`` keeps
+    it (:func:`said_fields`); none when it has no record or an unreadable one.
+
+    Raises
+    ------
+    ValueError
+        ``k`` is not an integer.
+    """
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
+        raise ValueError(f"k must be an integer (a frame set), got {k!r}")
+    import json
+
+    try:
+        rec = json.loads((Path(out) / "frames" / f"{frame_name(k)}.json").read_text())
+    except (OSError, ValueError):
+        return []
+    return _said_of(rec.get("warnings"), rec.get("job_warnings")) if isinstance(rec, dict) else []
+
+
+def skeleton_said(out: Path, k: int) -> list[tuple[str, str | None]]:
+    """What frame set ``k`` warned of when the skeleton step made its record (:func:`skeleton_bytes` of a record with
+    ``said``); none when it has none (one made by the surface step keeps its warnings in the frame's record).
+
+    Raises
+    ------
+    ValueError
+        ``k`` is not an integer.
+    """
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
+        raise ValueError(f"k must be an integer (a frame set), got {k!r}")
+    try:
+        with np.load(skeleton_path(out, k), allow_pickle=False) as z:
+            if "warnings" not in z:
+                return []
+            job = dict(zip(z["warnings"].tolist(), z["job_warnings"].tolist())) if "job_warnings" in z else {}
+            return _said_of(z["warnings"].tolist(), {m: j for m, j in job.items() if j})
+    except (OSError, ValueError, KeyError):
+        return []
 
 
 def skeleton_path(out: Path, k: int) -> Path:
@@ -77,6 +148,10 @@ def skeleton_bytes(rec: dict) -> bytes:
         for j, alt in enumerate(sk.alternates):
             arrays.update({f"alternate{j}.{name}": np.asarray(getattr(alt, name)) for name in _ALT_FIELDS})
             arrays.update({f"alternate{j}.skeleton.{name}": np.asarray(getattr(alt.skeleton, name)) for name in _TIP_FIELDS})
+    if fields := said_fields(rec.get("said") or []):  # (what the frame warned of, said again by a later run)
+        job = fields.get("job_warnings", {})
+        arrays.update(warnings=np.array(fields["warnings"], dtype=np.str_),
+                      job_warnings=np.array([job.get(m, "") for m in fields["warnings"]], dtype=np.str_))
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()

@@ -25,7 +25,14 @@ from calib.fileio import atomic_write
 from pipeline.process.context import RunContext
 from pipeline.process.grid import choose_grid, search_volume
 from pipeline.process.params import ProcessError
-from pipeline.process.records import frame_name, load_skeleton, skeleton_path, stale_skeletons
+from pipeline.process.records import (
+    frame_name,
+    frame_said,
+    load_skeleton,
+    skeleton_path,
+    skeleton_said,
+    stale_skeletons,
+)
 from pipeline.process.tasks import (
     frame_masks,
     key_task,
@@ -262,7 +269,7 @@ def _step_surface(ctx: RunContext) -> None:
         use_depth=uses_depth(ctx.params, all_depth=ctx.take.all_depth),
         bridge_gaps=_bridge_gaps(ctx),
     )
-    ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx))
+    ctx.run_frames("surface", task, "frames", chunk_args=_kept_masks(ctx), said_before=partial(frame_said, ctx.out))
     _write_consistency(ctx)
 
 
@@ -400,7 +407,7 @@ def _step_spine(ctx: RunContext) -> None:
     for k in stale_skeletons(ctx.out, n):
         ctx.made.skeletons.pop(k, None)
     ctx.run_frames("skeleton", partial(skeleton_task, str(ctx.out.resolve()), spine_params=ctx.params.spine), "skeletons",
-                   suffix=".npz")
+                   suffix=".npz", said_before=partial(skeleton_said, ctx.out))
     skeletons: list[FrameSkeleton] = []
     for k in range(n):
         sk = ctx.made.skeletons[k] if k in ctx.made.skeletons else load_skeleton(skeleton_path(ctx.out, k))["skeleton"]

@@ -20,7 +20,7 @@ import numpy as np
 
 from calib.fileio import atomic_write
 from pipeline.process.params import ProcessParams
-from pipeline.process.records import frame_name, skeleton_bytes, skeleton_path, skeleton_record
+from pipeline.process.records import frame_name, said_fields, skeleton_bytes, skeleton_path, skeleton_record
 from pipeline.run import BackgroundWriter, frame_warnings
 
 __all__ = ["carve_hull", "every_camera_has_depth", "frame_masks", "key_task", "mask_validity", "skeleton_task", "surface_task",
@@ -276,8 +276,9 @@ def surface_task(
                     rec = None if sp is None else skeleton_record(
                         k, None if mesh is None else (mesh.vertices, mesh.faces), sp,
                         bodies=None if quality is None else quality["bodies"])
-                if said:  # the frame's record keeps them (the report's per_frame); the step says them once
-                    info["warnings"] = list(dict.fromkeys(m for m, _ in said))
+                # the frame's record keeps them (the report's per_frame; a later run says them again); the step says
+                # them once
+                info.update(said_fields(said))
                 res = {**info, "said": said}
                 if rec is not None:
                     writer.write(skeleton_path(out_dir, k), skeleton_bytes(rec))
@@ -324,7 +325,7 @@ def skeleton_task(out: str, frames: Sequence[int], spine_params: dict) -> list[d
         with frame_warnings(k) as said:  # said once per kind by the step, with the frame sets
             mesh_path = store.mesh_path(k)
             rec = skeleton_record(k, load_mesh(mesh_path, largest=False) if mesh_path.exists() else None, params)
-        atomic_write(skeleton_path(out_dir, k), skeleton_bytes(rec))
+        atomic_write(skeleton_path(out_dir, k), skeleton_bytes({**rec, "said": said}))  # (said again by a later run)
         done.append({"index": int(k), "status": rec["status"], "skeleton": rec["skeleton"], "said": said})
     return done
 

@@ -114,6 +114,16 @@ def test_invalid_input(starfish, tmp_path):
         process_take(path, tmp_path / "o", params={"resolution": 3})
     with pytest.raises(ValueError, match="warn must be a callable"):
         process_take(path, tmp_path / "o", warn=["a list"])
+    from pipeline.process.records import frame_said, said_fields, skeleton_said
+
+    for said in ("mask all foreground", [("mask all foreground",)], [(None, None)]):
+        with pytest.raises(ValueError, match="said must be a list"):
+            said_fields(said)
+    for k in ("1", 1.0, True):
+        with pytest.raises(ValueError, match="k must be an integer"):
+            frame_said(tmp_path, k)
+        with pytest.raises(ValueError, match="k must be an integer"):
+            skeleton_said(tmp_path, k)
     with pytest.raises(FileNotFoundError):
         process_take(tmp_path / "missing.h5", tmp_path / "o")
     with pytest.raises(ValueError, match="out"):
@@ -714,6 +724,59 @@ def test_what_the_frames_warn_of_is_said_once_per_kind_with_the_frame_sets(tmp_p
     debug = {r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG and r.name.startswith("pipeline")}
     assert {f"frame set {k}: camera cam02: mask is all foreground (keying failed?); ignored for this frame"
             for k in (1, 2, 3)} | {"frame set 4: no foreground in any camera's mask: the frame is empty"} <= debug
+
+
+def _skeleton_warns_in_frame_sets_1_and_2(monkeypatch):
+    """The skeleton step's records (``skeleton_task``) warn of frame sets 1 and 2, once of them in a job's words."""
+    import logging
+
+    from pipeline.process import tasks
+
+    made = tasks.skeleton_record
+
+    def record(k, mesh, params, **kw):
+        if k in (1, 2):
+            logging.getLogger("pipeline.process").warning("its skeleton is thin (see --spine)",
+                                                          extra={"job_message": "its skeleton is thin (see spine)"})
+        return made(k, mesh, params, **kw)
+
+    monkeypatch.setattr(tasks, "skeleton_record", record)
+
+
+def test_a_resumed_run_says_what_the_frame_sets_made_before_it_said(tmp_path, monkeypatch):
+    """The failed-masks take's surface step, then its spine step (its skeletons warning of frame sets 1 and 2), each
+    stopped after its first chunk (frame sets 0 and 1) and run again on the folder: each second run's warnings (a
+    job's, report.json's) are those of one run that made every frame set, in the job's words, the frame sets made
+    by the run that stopped included; the frame's records keep them (``warnings``, ``job_warnings``)."""
+    import threading
+
+    from pipeline.process.records import frame_said, skeleton_said
+    from tests.pipeline.hull_scenes import take_with_failed_masks
+
+    _skeleton_warns_in_frame_sets_1_and_2(monkeypatch)
+    take = take_with_failed_masks(tmp_path / "t.h5")
+    params = {"resolution": 32, "chunk": 2}
+    whole = [process_take(take, tmp_path / "whole", steps=[step], params=params).report["warnings"]
+             for step in ("surface", "spine")]
+    assert whole[1] == ["skeleton: its skeleton is thin (see spine) (2 frame sets: 1, 2)"], whole
+    again = []
+    (tmp_path / "out").mkdir()  # (as a job's: a run stopped on a folder it made itself removes it)
+    for step, name in (("surface", "surface"), ("spine", "skeleton")):
+        cancel = threading.Event()
+
+        def stop(what, done, total, name=name, cancel=cancel):
+            if what == name and done >= 2:  # (the first chunk done)
+                cancel.set()
+
+        with pytest.raises(InterruptedError):
+            process_take(take, tmp_path / "out", steps=[step], params=params, progress=stop, cancel=cancel)
+        again.append(process_take(take, tmp_path / "out", steps=[step], params=params).report["warnings"])
+    assert again == whole, again
+    foreground = "camera cam02: mask is all foreground (keying failed?); ignored for this frame"
+    assert frame_said(tmp_path / "out", 1) == [(foreground, None)] and frame_said(tmp_path / "out", 0) == []
+    assert skeleton_said(tmp_path / "out", 1) == [("its skeleton is thin (see --spine)",
+                                                   "its skeleton is thin (see spine)")]
+    assert skeleton_said(tmp_path / "out", 0) == [] and skeleton_said(tmp_path / "nowhere", 1) == []
 
 
 def test_what_the_keying_says_of_a_camera_is_in_the_runs_warnings_once_per_reason(tmp_path, caplog, monkeypatch):
