@@ -27,7 +27,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["ControlRoom", "BoardSession", "disk_state", "DISK_LOW_MINUTES", "DISK_FULL_MINUTES"]
+__all__ = ["ControlRoom", "BoardSession", "disk_state", "image_figures", "DISK_LOW_MINUTES", "DISK_FULL_MINUTES",
+           "CLIPPED_PCT", "DARK_LEVEL"]
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,44 @@ log = logging.getLogger(__name__)
 COVERAGE_CELLS = (8, 6)
 #: minutes of recording left (at the rig's raw data rate) under which the page warns, and says the disk is almost full
 DISK_LOW_MINUTES, DISK_FULL_MINUTES = 10.0, 2.0
+
+
+#: a picture with more of its pixels clipped (a channel at 250 or more) than this percentage is called overexposed
+CLIPPED_PCT = 2.0
+#: a picture whose median luma (0-255) is under this is called dark
+DARK_LEVEL = 30.0
+#: seconds between two measures of one camera's picture (:meth:`ControlRoom.figures`)
+IMAGE_FIGURES_PERIOD_S = 1.0
+
+
+def image_figures(image: np.ndarray) -> dict[str, Any]:
+    """Exposure and focus as the picture itself shows them, whatever the driver reports.
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8 ndarray
+        BGR.
+
+    Returns
+    -------
+    dict
+        ``level``: the median luma (0-255); ``clipped_pct``: the percentage of pixels with a channel at 250 or
+        more; ``sharpness``: the variance of the luma's Laplacian (3x3, ``cv2.Laplacian``) over the picture's
+        central half (where the subject is), a figure to turn the focus ring up to (it depends on what is in
+        view: compare it on one view, not across cameras); ``exposure``: ``"overexposed"`` (more than
+        :data:`CLIPPED_PCT` % clipped), ``"dark"`` (level under :data:`DARK_LEVEL`) or None.
+    """
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8 or min(img.shape[:2]) < 4:
+        raise ValueError(f"image must be an (H, W, 3) uint8 array of at least 4x4, got {img.dtype} {img.shape}")
+    luma = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    h, w = luma.shape
+    centre = luma[h // 4: h - h // 4, w // 4: w - w // 4]
+    level = float(np.median(luma))
+    clipped = float((img >= 250).any(axis=2).mean() * 100.0)
+    sharpness = float(cv2.Laplacian(centre, cv2.CV_64F, ksize=1).var())
+    exposure = "overexposed" if clipped > CLIPPED_PCT else "dark" if level < DARK_LEVEL else None
+    return {"level": level, "clipped_pct": clipped, "sharpness": sharpness, "exposure": exposure}
 
 
 def disk_state(disk: dict[str, Any]) -> dict[str, str | None]:
@@ -266,6 +305,7 @@ class ControlRoom:
         self.preview_fps = float(preview_fps)
         self.keyers = _Keyers(session.rig)
         self._cache: dict[tuple, tuple[int, bytes, int]] = {}
+        self._measured: dict[str, tuple[int, float, dict | None]] = {}  # camera -> (seq, when, image figures)
         self._lock = threading.Lock()
         self.streams = 0
         self.latency_ns: collections.deque = collections.deque(maxlen=2000)
@@ -374,6 +414,20 @@ class ControlRoom:
             self.encode_s.append(time.perf_counter() - t0)
         return out
 
+    def _image_figures(self, cid: str) -> dict[str, Any] | None:
+        """:func:`image_figures` of a camera's latest picture, measured at most once per
+        :data:`IMAGE_FIGURES_PERIOD_S` whatever the number of pages asking; None before its first frame."""
+        seq, frame = self.session.latest(cid)
+        now = time.monotonic()
+        with self._lock:
+            hit = self._measured.get(cid)
+        if hit is not None and (hit[0] == seq or now - hit[1] < IMAGE_FIGURES_PERIOD_S):
+            return hit[2]
+        out = None if frame is None else image_figures(frame.image)
+        with self._lock:
+            self._measured[cid] = (seq, now, out)
+        return out
+
     def stream_opened(self) -> None:
         with self._lock:
             self.streams += 1
@@ -415,6 +469,8 @@ class ControlRoom:
     def figures(self) -> dict[str, Any]:
         f = self.session.figures()
         f["disk"] = {**f["disk"], **disk_state(f["disk"])}
+        for c in f["cameras"]:
+            c["image"] = self._image_figures(c["id"])
         cal, said = self.take_calibration()
         f["take_calibration"] = {"calibrated": cal is not None, "message": said}
         f["previews"] = {"streams": self.streams, "latency_ms": self.latency_ms(), "fps": self.preview_fps,

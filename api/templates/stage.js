@@ -101,6 +101,11 @@
     role(c.id, 'dropped').textContent = c.dropped;
     role(c.id, 'take').textContent = (c.take_missing !== undefined) ?
       '· take: missing ' + c.take_missing + (c.take_queue_drops ? ' + ' + c.take_queue_drops + ' queue' : '') : '';
+    const im = c.image;  // the picture's own exposure and focus figures (api.control.image_figures)
+    const imEl = role(c.id, 'image');
+    imEl.textContent = !im ? 'level – · clipped – · sharpness –' : (im.exposure ? im.exposure.toUpperCase() + ': ' : '') +
+      'level ' + fmt(im.level, 0) + ' · clipped ' + fmt(im.clipped_pct, 1) + ' % · sharpness ' + fmt(im.sharpness, 0);
+    imEl.className = im && im.exposure ? 'warn' : 'muted';
     const ex = [];
     if (c.exposure_ms !== null) ex.push('exposure ' + fmt(c.exposure_ms, 2) + ' ms'); else ex.push('exposure –');
     ex.push(c.gain !== null && c.gain !== undefined ? 'gain ' + fmt(c.gain) + (c.gain_unit === 'ISO' ? ' ISO' : '') : 'gain –');

@@ -4,8 +4,10 @@ that goes away while previewed, the live 3-D preview's capture volume, and the p
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
+import cv2
 import numpy as np
 import pytest
 
@@ -350,3 +352,82 @@ def test_the_page_reads_without_the_eyes_and_says_when_the_server_is_gone(tmp_pa
                           "holdout", "cal-step"], order
     assert gone.startswith("the server does not answer (") and "the figures and pictures are from " in gone, gone
     assert shown and hidden
+
+
+def _reference_figures(img: np.ndarray) -> dict:
+    """image_figures by hand: BT.601 luma, the 4-neighbour Laplacian with mirrored borders, percentages by counting."""
+    luma = np.round(img[..., 2] * 0.299 + img[..., 1] * 0.587 + img[..., 0] * 0.114)
+    h, w = luma.shape
+    c = luma[h // 4: h - h // 4, w // 4: w - w // 4]
+    p = np.pad(c, 1, mode="reflect")
+    lap = p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * p[1:-1, 1:-1]
+    clipped = sum(1 for row in img for px in row if max(px) >= 250) / (h * w) * 100
+    return {"level": float(np.median(luma)), "clipped_pct": clipped, "sharpness": float(lap.var())}
+
+
+def test_image_figures_against_a_count_by_hand():
+    from api.control import image_figures
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (40, 60, 3)).astype(np.uint8)
+    got, ref = image_figures(img), _reference_figures(img)
+    assert got["level"] == pytest.approx(ref["level"], abs=1.0)  # cv2 rounds the luma its own way
+    assert got["clipped_pct"] == pytest.approx(ref["clipped_pct"], abs=1e-9)
+    assert got["sharpness"] == pytest.approx(ref["sharpness"], rel=0.02)
+    flat = np.full((40, 60, 3), 120, np.uint8)
+    assert image_figures(flat) == {"level": 120.0, "clipped_pct": 0.0, "sharpness": 0.0, "exposure": None}
+    half = flat.copy()
+    half[:, :30] = 255
+    assert image_figures(half)["clipped_pct"] == 50.0 and image_figures(half)["exposure"] == "overexposed"
+    assert image_figures(np.full((8, 8, 3), 20, np.uint8))["exposure"] == "dark"
+    sharp = np.kron((np.indices((10, 15)).sum(0) % 2) * 200 + 20, np.ones((4, 4))).astype(np.uint8)[..., None].repeat(3, 2)
+    blurred = cv2.GaussianBlur(sharp, (9, 9), 3)
+    assert image_figures(blurred)["sharpness"] < image_figures(sharp)["sharpness"] / 4
+
+
+def test_image_figures_invalid_input():
+    from api.control import image_figures
+
+    for bad in (np.zeros((10, 10), np.uint8), np.zeros((10, 10, 3), np.float32), np.zeros((2, 10, 3), np.uint8)):
+        with pytest.raises(ValueError, match="image"):
+            image_figures(bad)
+
+
+class _FixedCamera(PacedCamera):
+    """A paced camera that shows one fixed picture."""
+
+    def __init__(self, *args, image: np.ndarray, **kw) -> None:
+        super().__init__(*args, **kw)
+        self.image = image
+
+    def grab(self):
+        return dataclasses.replace(super().grab(), image=self.image)
+
+
+def test_a_tile_shows_what_its_picture_says_of_exposure_and_focus(tmp_path):
+    """Two cameras whose drivers report no exposure: one sees a well-lit grey, the other a picture half burnt
+    out. Each tile shows the picture's own level, clipped share and sharpness, and the second says OVEREXPOSED
+    in amber."""
+    sync_playwright = sync_playwright_or_skip()
+    from tests.stage.paced import H, W
+
+    grey = np.full((H, W, 3), 120, np.uint8)
+    burnt = grey.copy()
+    burnt[:, : W // 2] = 255
+    ids = ["ok", "burnt"]
+    start: dict = {}
+    drivers = {c: _FixedCamera(c, i, 30.0, image=img, start=start) for i, (c, img) in enumerate(zip(ids, (grey, burnt)))}
+    with LiveServer(tmp_path, StageSession(rig_for(ids, fps=30.0), tmp_path / "data" / "takes", drivers=drivers)) as srv, \
+            sync_playwright() as p:
+        browser, page, errors = _open(p, srv.url)
+        try:
+            page.wait_for_function("() => !document.querySelector('.tile[data-cam=\"burnt\"] [data-role=\"image\"]')"
+                                   ".textContent.startsWith('level –')", timeout=15_000)
+            said = {c: page.text_content(f'.tile[data-cam="{c}"] [data-role="image"]') for c in ids}
+            kind = {c: page.get_attribute(f'.tile[data-cam="{c}"] [data-role="image"]', "class") for c in ids}
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert said["ok"] == "level 120 · clipped 0.0 % · sharpness 0" and kind["ok"] == "muted", said
+    assert said["burnt"].startswith("OVEREXPOSED: level ") and "clipped 50.0 %" in said["burnt"], said
+    assert kind["burnt"] == "warn", kind
