@@ -204,7 +204,8 @@ def process_take(
     progress : callable, optional
         ``progress(step, done, total)`` after every finished chunk of frames.
     cancel : threading.Event, optional
-        Set it to stop between chunks (``InterruptedError``); finished frames stay.
+        Set it to stop between chunks (``InterruptedError``); finished frames stay, in a folder this run made too
+        (a run that fails otherwise removes a folder it made), and a later run resumes from them.
     warn : callable, optional
         ``warn(message)`` as each of the run's warnings is said (those of ``report.json``, in its words): a caller
         keeps those said before a step fails or the run is cancelled, which no report holds (a job's record does).
@@ -249,8 +250,9 @@ def process_take(
                 with _job_warnings(ctx, name):  # what the step's functions warn of is the run's warnings too
                     ctx.run_step(name, STEPS.step(name).run)
             return _write_report(ctx, steps, t_start)
-    except Exception:
-        if created and out.is_dir():  # a failed run leaves no results folder it made itself
+    except Exception as exc:
+        # a failed run leaves no results folder it made itself; a cancelled one keeps its finished frames
+        if created and out.is_dir() and not isinstance(exc, InterruptedError):
             shutil.rmtree(out, ignore_errors=True)
         raise
 

@@ -747,7 +747,8 @@ def test_a_resumed_run_says_what_the_frame_sets_made_before_it_said(tmp_path, mo
     """The failed-masks take's surface step, then its spine step (its skeletons warning of frame sets 1 and 2), each
     stopped after its first chunk (frame sets 0 and 1) and run again on the folder: each second run's warnings (a
     job's, report.json's) are those of one run that made every frame set, in the job's words, the frame sets made
-    by the run that stopped included; the frame's records keep them (``warnings``, ``job_warnings``)."""
+    by the run that stopped included; the frame's records keep them (``warnings``, ``job_warnings``). The folder,
+    made by the first run, keeps the frame sets it finished before it was cancelled."""
     import threading
 
     from pipeline.process.records import frame_said, skeleton_said
@@ -760,7 +761,6 @@ def test_a_resumed_run_says_what_the_frame_sets_made_before_it_said(tmp_path, mo
              for step in ("surface", "spine")]
     assert whole[1] == ["skeleton: its skeleton is thin (see spine) (2 frame sets: 1, 2)"], whole
     again = []
-    (tmp_path / "out").mkdir()  # (as a job's: a run stopped on a folder it made itself removes it)
     for step, name in (("surface", "surface"), ("spine", "skeleton")):
         cancel = threading.Event()
 
@@ -770,6 +770,9 @@ def test_a_resumed_run_says_what_the_frame_sets_made_before_it_said(tmp_path, mo
 
         with pytest.raises(InterruptedError):
             process_take(take, tmp_path / "out", steps=[step], params=params, progress=stop, cancel=cancel)
+        if step == "surface":  # (a folder the cancelled run made keeps its finished frames, and no others)
+            assert sorted(p.name for p in (tmp_path / "out" / "frames").iterdir()) == [
+                "frame_000000.json", "frame_000001.json"]
         again.append(process_take(take, tmp_path / "out", steps=[step], params=params).report["warnings"])
     assert again == whole, again
     foreground = "camera cam02: mask is all foreground (keying failed?); ignored for this frame"
