@@ -51,6 +51,8 @@
     const st = document.getElementById('state');
     st.textContent = j.state + (j.cancel_requested && !TERMINAL.includes(j.state) ? ' (cancel requested)' : '');
     st.className = 'state state-' + j.state;
+    const box = document.getElementById('cancel-box');
+    if (box) box.hidden = TERMINAL.includes(j.state) || !!j.cancel_requested;
     const all = document.getElementById('bar-all');
     all.max = Math.max(j.total, 1); all.value = Math.min(j.done, all.max);
     document.getElementById('count-all').textContent = j.done + '/' + j.total;
@@ -109,6 +111,21 @@
       }
     } catch (e) {}
     if (again) setTimeout(poll, 1000);
+  }
+  const cancel = document.getElementById('cancel');
+  if (cancel){  // the token the control room keeps for this tab, else typed here
+    const tok = document.getElementById('token');
+    tok.value = sessionStorage.getItem('stage-token') || '';
+    tok.addEventListener('change', () => sessionStorage.setItem('stage-token', tok.value.trim()));
+    cancel.addEventListener('click', async () => {
+      const h = {'Accept': 'application/json'}; if (tok.value.trim()) h['Authorization'] = 'Bearer ' + tok.value.trim();
+      const r = await fetch('/jobs/' + JOB_ID + '/cancel', {method: 'POST', headers: h});
+      let d = null; try { d = await r.json(); } catch (e) {}
+      const msg = document.getElementById('cancel-msg');
+      if (r.ok){ msg.textContent = ''; render(d); return; }
+      const why = d && typeof d.detail === 'string' ? d.detail : String(r.status);
+      msg.textContent = 'not cancelled (' + r.status + '): ' + (r.status === 401 || r.status === 403 ? 'enter the API token. ' : '') + why;
+    });
   }
   if (!TERMINAL.includes(INITIAL_STATE)) setTimeout(poll, 1000);
 })();

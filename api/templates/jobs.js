@@ -8,6 +8,8 @@
       if (!tr) continue;
       const st = tr.querySelector('.state');
       st.textContent = j.state; st.className = 'state state-' + j.state;
+      // a failed job's first line of error beside its state: the list says why without a click
+      tr.querySelector('.why').textContent = j.state === 'failed' && j.error ? j.error.split('\n')[0] : '';
       const bar = tr.querySelector('progress');
       bar.max = Math.max(j.total, 1); bar.value = Math.min(j.done, bar.max);
       tr.querySelector('.count').textContent = j.done + '/' + j.total;

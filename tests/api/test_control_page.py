@@ -431,3 +431,44 @@ def test_a_tile_shows_what_its_picture_says_of_exposure_and_focus(tmp_path):
     assert said["ok"] == "level 120 · clipped 0.0 % · sharpness 0" and kind["ok"] == "muted", said
     assert said["burnt"].startswith("OVEREXPOSED: level ") and "clipped 50.0 %" in said["burnt"], said
     assert kind["burnt"] == "warn", kind
+
+
+def test_a_job_is_cancelled_from_its_page_and_a_failed_one_says_why_in_the_list(tmp_path):
+    """The job page of a queued job has a cancel button (refused without the token, said in one line; with the
+    token the job is cancelled and the button goes); the jobs list gives a failed job's first line of error
+    beside its state, when it fails while the list is open and when the list is loaded after."""
+    sync_playwright = sync_playwright_or_skip()
+    ids = ["a", "b"]
+    with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=make_drivers(ids))) as srv, \
+            sync_playwright() as p:
+        store = srv.app.state.store
+        queued = store.create(kind="process", take="t1", steps=["key"], params={}).id
+        failing = store.create(kind="process", take="t2", steps=["key"], params={}).id
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        errors: list[str] = []
+        try:
+            page = browser.new_page()
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(srv.url + f"/ui/jobs/{queued}", wait_until="load")
+            page.click("#cancel")
+            page.wait_for_function("() => document.getElementById('cancel-msg').textContent !== ''", timeout=10_000)
+            refused = page.text_content("#cancel-msg")
+            page.fill("#token", TOKEN)
+            page.click("#cancel")
+            page.wait_for_function("() => document.getElementById('state').textContent === 'cancelled'", timeout=10_000)
+            box_hidden = not page.is_visible("#cancel-box")
+            page.goto(srv.url + "/ui/jobs", wait_until="load")
+            store.finish(failing, "failed", error="DATA/takes/t2.h5: the take has no calibration\nTraceback ...")
+            sel = f'tr[data-job="{failing}"] .why'
+            page.wait_for_function("(s) => document.querySelector(s).textContent !== ''", arg=sel, timeout=10_000)
+            live_why = page.text_content(sel)
+            page.reload(wait_until="load")
+            loaded_why = page.text_content(sel)
+            cancelled_why = page.text_content(f'tr[data-job="{queued}"] .why')
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert refused.startswith("not cancelled (401): enter the API token."), refused
+    assert box_hidden and store.get(queued).state == "cancelled"
+    assert live_why == loaded_why == "DATA/takes/t2.h5: the take has no calibration", (live_why, loaded_why)
+    assert cancelled_why == ""
