@@ -87,8 +87,9 @@ class WorkSpec:
             try:
                 model = self.params_model.model_validate(params)
             except ValidationError as exc:
-                # (a rule between parameters is the model's: no location, its message names them)
-                msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" if e["loc"] else e["msg"]
+                # (a rule between parameters is the model's: no location, its message names them; without
+                # pydantic's "Value error, " before it)
+                msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {_said(e)}" if e["loc"] else _said(e)
                                  for e in exc.errors())
                 raise ValueError(f"parameters: {msgs}") from None
             params = json.loads(model.model_dump_json(exclude_defaults=True))
@@ -99,6 +100,15 @@ class WorkSpec:
         if self.params_model is None:
             return params or None
         return self.params_model.model_validate(params)
+
+
+def _said(error: dict) -> str:
+    """A pydantic error's message, a ValueError raised by a validator as it was raised (pydantic puts "Value error, "
+    before it)."""
+    msg = str(error.get("msg", ""))
+    if error.get("type") == "value_error" and msg.startswith("Value error, "):
+        return msg[len("Value error, "):]
+    return msg
 
 
 def load_work(spec: str | Callable[..., Any]) -> WorkSpec:

@@ -83,9 +83,10 @@ class RunContext(Run):
         sets and the first of them (:func:`pipeline.run.frames_said`), as ``"{step}: ..."``, in the warnings; when a
         task fails or the run is cancelled, before the error goes on, those of the failed task's frames
         (:func:`pipeline.run.frames_said_before`) and of every task that finished (:func:`pipeline.run.finished_before`):
-        each frame set whose result is written has its warnings said. ``said_before(k)``: what frame set ``k``, done by
-        an earlier run (a resumed job, a command run again), said then, from its record: said with this run's, so
-        that the warnings (``report.json``'s) are those of one run that made every frame set."""
+        each frame set whose result is written has its warnings said, and counts in the step's progress.
+        ``said_before(k)``: what frame set ``k``, done by an earlier run (a resumed job, a command run again), said
+        then, from its record: said with this run's, so that the warnings (``report.json``'s) are those of one run
+        that made every frame set."""
         n_sets = self.take.n_sets
         todo = [k for k in range(n_sets) if not (self.out / done_dir / f"{frame_name(k)}{suffix}").exists()]
         done = n_sets - len(todo)
@@ -106,8 +107,11 @@ class RunContext(Run):
                         said[rec["index"]] = [tuple(x) for x in rec["said"]]
                     rec.pop("said", None)
                 self.report_progress(step, done, n_sets)
-        except Exception as exc:  # (stopped: what the frames of the tasks that finished, and of a failed one, said)
-            for rec in (r for finished in finished_before(exc) for r in finished):
+        except Exception as exc:  # (stopped: the tasks that finished count, and what their frames, a failed one's too, said)
+            if finished := finished_before(exc):
+                done += sum(len(f) for f in finished)
+                self.report_progress(step, done, n_sets)
+            for rec in (r for f in finished for r in f):
                 if rec.get("said"):
                     said.setdefault(rec["index"], [tuple(x) for x in rec["said"]])
             for k, kept in frames_said_before(exc).items():

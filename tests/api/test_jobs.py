@@ -208,12 +208,18 @@ def test_a_process_job_checks_its_track_options(make_client, data_root):
     r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": {"rig": {"parts": "limbs"}}}, headers=AUTH)
     assert r.status_code in (200, 201, 202) and r.json()["params"]["rig"]["parts"] == "limbs", r.json()
     # stage armature's --lambda-thr, --samples, --reference, checked by its bounds in the parameters' names
-    for bad, said in (({"samples": 1}, "rig.samples: Value error, samples must be >= 2, got 1"),
+    # (a check's own message, as the command says it: without pydantic's "Value error, " before it)
+    for bad, said in (({"samples": 1}, "rig.samples: samples must be >= 2, got 1"),
                       ({"samples": 10**6}, "rig.samples: Input should be less than or equal to 5000"),
-                      ({"lambda_thr": 2.5}, "rig.lambda_thr: Value error, lambda_thr must be within (0, 2), got 2.5"),
-                      ({"reference": -1}, "rig.reference: Value error, reference must be a position >= 0")):
+                      ({"lambda_thr": 2.5}, "rig.lambda_thr: lambda_thr must be within (0, 2), got 2.5"),
+                      ({"reference": -1}, "rig.reference: reference must be a position >= 0")):
         r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": {"rig": bad}}, headers=AUTH)
         assert r.status_code == 400 and said in r.json()["detail"], (bad, r.json())
+        assert "Value error" not in r.json()["detail"], r.json()
+    r = c.post("/jobs", json={"take": "t", "steps": ["surface", "track"],
+                              "parameters": {"track": {"carve_margin": 2}}}, headers=AUTH)
+    assert r.status_code == 400 and r.json()["detail"] == (
+        "parameters: track.carve_margin needs track.carve (the margin of the carving's silhouettes)"), r.json()
     rig = {"rig": {"lambda_thr": 0.98, "samples": 300, "reference": 1}}
     r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": rig}, headers=AUTH)
     assert r.status_code == 202 and r.json()["params"] == rig, r.json()

@@ -576,7 +576,7 @@ def test_a_step_that_stops_says_what_every_task_that_finished_said(tmp_path, poo
     the other tasks' results: frame set 0's task fails while the others still run ("failed"), or the run is
     cancelled once every task has finished but one was taken ("cancelled"). The step says what every frame set that
     finished said (their results are written), and each task's own warnings, once per kind, before the error goes
-    on: a job's warnings have them all."""
+    on: a job's warnings have them all; its progress counts every frame set finished."""
     from pipeline.process import ProcessParams, RunContext
     from pipeline.process.context import TakeFacts
 
@@ -584,7 +584,10 @@ def test_a_step_that_stops_says_what_every_task_that_finished_said(tmp_path, poo
     marks.mkdir()
     cancel = threading.Event()
 
+    reported = []
+
     def progress(step, done, total):
+        reported.append((step, done, total))
         if stop == "cancelled" and done == 1:  # (the first task taken: the others finish, then the run is cancelled)
             _wait_for(*(marks / f"done_{k}" for k in range(3)))
             cancel.set()
@@ -605,3 +608,4 @@ def test_a_step_that_stops_says_what_every_task_that_finished_said(tmp_path, poo
     assert ctx.warnings == kept == expected, ctx.warnings
     ends = sorted(m for _, lv, m, _ in heard.heard if lv == logging.WARNING)
     assert ends == [f"frame set {k}'s task ends" for k in finished]
+    assert reported[-1] == ("surface", len(finished), 3), reported  # (the step's progress counts them all)
