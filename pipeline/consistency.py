@@ -38,7 +38,7 @@ from calib.camera import Camera
 from pipeline.mesh_primitives import check_mesh
 
 __all__ = ["mesh_silhouette", "silhouette_iou", "silhouette_consistency", "leave_one_out_gain", "CONSISTENCY_WARN",
-           "MISSING_WARN"]
+           "MISSING_WARN", "poor_sets", "walls_reached"]
 
 #: A camera whose median consistency over the take is below this is named in a warning.
 CONSISTENCY_WARN = 0.8
@@ -340,4 +340,95 @@ def leave_one_out_gain(masks: Any, carver, *, tolerance: int = 0, support_plane:
             continue
         imgs = _occupancy_images(occ, carver.grid, cal)
         out[c] = float(np.nanmean([silhouette_iou(masks[j], imgs[j]) - base[j] for j in others]))
+    return out
+
+
+def poor_sets(iou: Any, *, threshold: float = CONSISTENCY_WARN) -> tuple[list[int], np.ndarray]:
+    """The frame sets whose surface explains little of the silhouettes: the median over the cameras of their
+    consistency below ``threshold``.
+
+    Parameters
+    ----------
+    iou : (C, S) array_like
+        Consistency per camera and frame set (NaN: none, as ``consistency.json``'s ``iou``).
+    threshold : float
+        Default :data:`CONSISTENCY_WARN`, the per-camera rule's.
+
+    Returns
+    -------
+    sets : list of int
+        The frame sets below it, in order.
+    median : (S,) float ndarray
+        Every frame set's median over its cameras (NaN where no camera has one).
+
+    Raises
+    ------
+    ValueError
+        ``iou`` not a 2-D array of numbers within [0, 1] or NaN; ``threshold`` not within (0, 1].
+    """
+    a = np.asarray(iou, dtype=np.float64)
+    if a.ndim != 2 or np.any(np.isinf(a)) or np.any((a < 0) | (a > 1)):
+        raise ValueError(f"iou must be a (cameras, frame sets) array within [0, 1] or NaN, got shape {a.shape}")
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 < threshold <= 1:
+        raise ValueError(f"threshold must be within (0, 1], got {threshold!r}")
+    has = np.isfinite(a).any(axis=0)
+    median = np.full(a.shape[1], np.nan)
+    if has.any():
+        median[has] = np.nanmedian(a[:, has], axis=0)
+    return [int(k) for k in np.flatnonzero(has & (median < threshold))], median
+
+
+def walls_reached(bounds: Any, box: Any, volume: Any, *, sets, tol: float) -> dict[str, list[int]]:
+    """The walls of the capture volume that cut the subject in ``sets``: a side of the processing ``box`` that lies
+    on the side of the ``volume`` it was searched in (the volume cut the box there) and that the surfaces of
+    ``sets`` reach within ``tol``; a side the surfaces of at least three quarters of all the frame sets reach is
+    left out (the floor a subject stands on: a subject that goes beyond a wall does so for a while, not throughout).
+
+    Parameters
+    ----------
+    bounds : (S, 2, 3) array_like
+        Every frame set's surface, its lowest and highest coordinates (NaN: no surface).
+    box, volume : (2, 3) array_like
+        The processing box's ``[lo, hi]`` and the volume it was searched in.
+    sets : sequence of int
+        The frame sets judged (:func:`poor_sets`).
+    tol : float
+        How near a surface comes to a side to reach it (world units, > 0; a voxel or two).
+
+    Returns
+    -------
+    dict
+        ``"x = -375"`` (the side's axis and coordinate) -> the frame sets of ``sets`` whose surface reaches it, in
+        the order of the sides x, y, z, low before high.
+
+    Raises
+    ------
+    ValueError
+        Naming the parameter: shapes, a set outside ``bounds``, ``tol`` not positive.
+    """
+    b = np.asarray(bounds, dtype=np.float64)
+    bx, vol = np.asarray(box, dtype=np.float64), np.asarray(volume, dtype=np.float64)
+    if b.ndim != 3 or b.shape[1:] != (2, 3):
+        raise ValueError(f"bounds must be (frame sets, 2, 3), got shape {b.shape}")
+    for name, v in (("box", bx), ("volume", vol)):
+        if v.shape != (2, 3) or not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} must be a finite (2, 3) [lo, hi], got shape {v.shape}")
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be a positive number, got {tol!r}")
+    judged = sorted({int(k) for k in sets})
+    if any(not 0 <= k < len(b) for k in judged):
+        raise ValueError(f"sets must be frame sets within 0..{len(b) - 1}, got {list(sets)}")
+    surfaced = int(np.all(np.isfinite(b), axis=(1, 2)).sum())
+    out = {}
+    for axis in range(3):
+        for end in (0, 1):
+            wall = bx[end, axis]
+            if abs(wall - vol[end, axis]) > tol:
+                continue  # the box ends inside the volume here: a subject there is whole
+            reach = [k for k in range(len(b)) if np.isfinite(b[k, end, axis]) and abs(b[k, end, axis] - wall) <= tol]
+            if 4 * len(reach) >= 3 * surfaced:
+                continue
+            hit = [k for k in judged if k in reach]
+            if hit:
+                out[f"{'xyz'[axis]} = {wall:.4g}"] = hit
     return out

@@ -335,6 +335,49 @@ def _write_consistency(ctx: RunContext) -> None:
         ctx.warn(msg)
     if low:  # (when every camera is explained, none cut much from the hull)
         _name_missing(ctx, iou, doc)
+    _name_poor_sets(ctx, iou)
+
+
+def _name_poor_sets(ctx: RunContext, iou: np.ndarray) -> None:
+    """A warning naming the frame sets whose surface explains little of the silhouettes
+    (:func:`pipeline.consistency.poor_sets`; the per-camera medians over a take can hide a few), and the capture
+    volume's walls their surfaces reach (:func:`pipeline.consistency.walls_reached`): a subject that goes beyond
+    the volume is cut off there without another word."""
+    from pipeline.consistency import CONSISTENCY_WARN, poor_sets, walls_reached
+    from pipeline.meshio import load_mesh
+    from stage.messages import frames_named
+
+    sets, median = poor_sets(iou)
+    grid_path = ctx.out / "grid.json"
+    if not sets or not grid_path.exists():
+        return
+    g = json.loads(grid_path.read_text())
+    box = (g.get("choice") or {}).get("box") or {}
+    lo = np.asarray(g["lo"], float)
+    grid_bounds = np.stack([lo, lo + np.asarray(g["shape"], float) * float(g["voxel"])])
+    bounds = np.full((ctx.take.n_sets, 2, 3), np.nan)
+    for k in range(ctx.take.n_sets):
+        path = ctx.out / "meshes" / f"{frame_name(k)}.ply"
+        if path.exists():
+            v, _ = load_mesh(path, largest=False)
+            if len(v):
+                bounds[k] = v.min(axis=0), v.max(axis=0)
+    walls = walls_reached(bounds, [box["lo"], box["hi"]] if box else grid_bounds,
+                          box.get("search_volume", grid_bounds), sets=sets, tol=1.5 * float(g["voxel"]))
+    m = median[sets]
+    def named(ks):
+        return f"frame set{'s' if len(ks) > 1 else ''} {frames_named(ks)}"
+
+    head = (f"{named(sets)}: the surface explains little of the silhouettes (median IoU over the "
+            f"cameras {m.min():.2f}..{m.max():.2f}, below {CONSISTENCY_WARN})")
+    if not walls:
+        ctx.warn(f"{head}: check the keying and calibration of those frame sets (report: worst frames)")
+        return
+    where = ", ".join(f"{wall} ({named(ks)})" for wall, ks in walls.items())
+    msg = (f"{head} and reaches the capture volume's wall at {where}: the subject goes beyond the volume there and "
+           "is cut off; give a volume that holds it")
+    ctx.warn(f"{msg} (--volume XMIN YMIN ZMIN XMAX YMAX ZMAX, or the rig file's [volume])",
+             job_message=f"{msg} (the volume parameter, or the rig file's [volume])")
 
 
 #: Frame sets (those of lowest median consistency) a hull is carved without each camera in.

@@ -233,3 +233,73 @@ def test_leave_one_out_invalid_input():
     with pytest.raises(ValueError, match="one mask per camera"):
         leave_one_out_gain([None], carver)
     assert np.isnan(leave_one_out_gain([np.zeros((60, 80), bool)] * 3, carver)).all()  # nothing to carve
+
+
+def test_poor_sets_are_those_whose_median_over_the_cameras_is_low():
+    """The median over the cameras of every frame set (NaN skipped, a set with none NaN), against the threshold."""
+    from pipeline.consistency import poor_sets
+
+    iou = np.array([[0.9, 0.5, np.nan, 0.79, 0.95],
+                    [0.8, 0.4, np.nan, 0.81, np.nan],
+                    [0.2, 0.9, np.nan, 0.70, np.nan]])
+    sets, median = poor_sets(iou)
+    assert sets == [1, 3]  # 0.5 and 0.79 below 0.8; set 0's median 0.8 is not; set 2 has none
+    np.testing.assert_allclose(median, [0.8, 0.5, np.nan, 0.79, 0.95], equal_nan=True)
+    assert poor_sets(iou, threshold=0.6)[0] == [1]
+
+
+def test_walls_reached_are_the_volumes_sides_that_cut_the_subject_for_a_while():
+    """A box cut by the volume at x = -375, x = 375 and the floor z = 0, inside it along y. Frame sets 0 and 4
+    reach the x walls (0 and 1 the low one), every set the floor: the floor is left out, y (inside the volume)
+    is no wall even where a surface reaches the box's side, and only the sets judged are named."""
+    from pipeline.consistency import walls_reached
+
+    box = [[-375.0, -100.0, 0.0], [375.0, 150.0, 400.0]]
+    volume = [[-375.0, -375.0, 0.0], [375.0, 375.0, 750.0]]
+    bounds = np.array([[[-376.0, -50, 2], [-200, 100, 300]],
+                       [[-370.0, -50, 3], [100, 149, 300]],
+                       [[-200.0, -99, 1], [200, 100, 300]],
+                       [[np.nan] * 3, [np.nan] * 3],  # no surface
+                       [[250.0, -50, 0], [375, 100, 300]]])
+    assert walls_reached(bounds, box, volume, sets=[0, 4], tol=10.0) == {"x = -375": [0], "x = 375": [4]}
+    assert walls_reached(bounds, box, volume, sets=[2], tol=10.0) == {}  # y: the box ends inside the volume
+    # a box inside the volume everywhere: no wall
+    assert walls_reached(bounds, box, [[-500.0, -375, -10], [500, 375, 750]], sets=[0, 4], tol=10.0) == {}
+
+
+def test_poor_sets_and_walls_invalid_input():
+    from pipeline.consistency import poor_sets, walls_reached
+
+    for bad in (np.zeros(3), np.full((2, 2), 1.5), np.full((2, 2), np.inf)):
+        with pytest.raises(ValueError, match="iou"):
+            poor_sets(bad)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="threshold"):
+            poor_sets(np.ones((2, 2)), threshold=bad)
+    b, box = np.zeros((2, 2, 3)), np.array([[0.0] * 3, [1.0] * 3])
+    with pytest.raises(ValueError, match="bounds"):
+        walls_reached(np.zeros((2, 3)), box, box, sets=[0], tol=1.0)
+    with pytest.raises(ValueError, match="box"):
+        walls_reached(b, np.zeros(3), box, sets=[0], tol=1.0)
+    with pytest.raises(ValueError, match="volume"):
+        walls_reached(b, box, [[0, 0, 0], [1, 1, np.nan]], sets=[0], tol=1.0)
+    with pytest.raises(ValueError, match="sets"):
+        walls_reached(b, box, box, sets=[2], tol=1.0)
+    for bad in (0.0, -1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="tol"):
+            walls_reached(b, box, box, sets=[0], tol=bad)
+
+
+def test_process_says_the_frame_sets_a_capture_volume_cuts_the_subject_in(tmp_path):
+    """The quadruped walks 900 mm along x through the rig's 750 mm capture volume in 4 frame sets: in the first
+    and the last its front or back is beyond the volume's wall and the surfaces are cut flat there; every camera's
+    median over the take hides where. ``stage process`` names those frame sets and the walls (the floor it stands
+    on left out)."""
+    from pipeline.process import process_take
+
+    sim = simulate_take("quadruped", n_cameras=6, frames=4, size=(240, 180), seed=7, travel=(900.0, 0.0))
+    run = process_take(record_take(sim, tmp_path / "t.h5"), tmp_path / "r", steps=("key", "surface"), executor=None)
+    said = [w for w in run.report["warnings"] if "the surface explains little" in w]
+    assert len(said) == 1, run.report["warnings"]
+    assert said[0].startswith("frame sets 0, 3: ") and "wall at x = -375 (frame set 0), x = 375 (frame set 3)" in said[0]
+    assert "z = " not in said[0] and "give a volume that holds it" in said[0]
