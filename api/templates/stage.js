@@ -25,7 +25,9 @@
   function say(el, text, kind){ el.textContent = text; el.className = 'msg' + (kind ? ' ' + kind : ''); }
   function detail(res){
     const d = res.data && res.data.detail;
-    const text = typeof d === 'string' ? d : JSON.stringify(d);
+    // a validation error (422) is a list of {loc, msg}: said as "field: message", never as raw JSON
+    const text = typeof d === 'string' ? d : Array.isArray(d) ?
+      d.map((e) => ((e.loc || []).filter((x) => x !== 'body').join('.') || 'request') + ': ' + e.msg).join('; ') : JSON.stringify(d);
     if (res.status === 401) return 'refused (401): enter the API token above. ' + text;
     return '(' + res.status + ') ' + text;
   }
@@ -132,6 +134,9 @@
   window.__stage.takeProblems = takeProblems;
   function showRecording(rec){
     recState = rec.state || 'idle';
+    // stop only what runs; record stays pressable (a second take is refused by the server, which says why,
+    // as it does for another browser's press)
+    $('stop').disabled = recState !== 'recording';
     $('rec-state').textContent = recState + (rec.take ? ' (' + rec.take + ')' : '');
     $('rec-frames').textContent = rec.frames_written || 0;
     $('rec-drops').textContent = rec.drops || 0;
@@ -194,7 +199,12 @@
   }
   $('take-name').value = defaultName();
   $('record').addEventListener('click', async () => {
-    const body = {take: $('take-name').value.trim()};
+    const name = $('take-name');
+    if (!name.checkValidity()){  // said here, before asking the server
+      say($('rec-msg'), 'not recording: a take name is letters, digits, "_", "." and "-", starting with a letter or digit', 'bad');
+      name.focus(); return;
+    }
+    const body = {take: name.value.trim()};
     const secs = parseFloat($('take-seconds').value);
     if (secs > 0) body.duration_s = secs;
     const r = await api('POST', '/stage/record', body);

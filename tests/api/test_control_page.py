@@ -298,6 +298,7 @@ _LOW_CONTRAST = """() => {
   for (const e of document.querySelectorAll('body *')){
     if (![...e.childNodes].some((n) => n.nodeType === 3 && n.textContent.trim()) || !e.checkVisibility()) continue;
     if (e.closest('.frame')) continue;  // the badges over the pictures: white on a dark veil over an image
+    if (e.closest('button:disabled, input:disabled')) continue;  // inactive controls: exempt (WCAG 1.4.3)
     const s = getComputedStyle(e); const a = lum(s.color), b = lum(bg(e));
     const r = (Math.max(a, b) + 0.05) / (Math.min(a, b) + 0.05);
     if (r < 4.5) out[s.color + ' on ' + bg(e)] = [Math.round(r * 100) / 100,
@@ -348,8 +349,9 @@ def test_the_page_reads_without_the_eyes_and_says_when_the_server_is_gone(tmp_pa
     assert not errors, errors
     assert low == {}, low
     assert unnamed == [], unnamed
-    assert order[:10] == ["take-name", "take-seconds", "record", "stop", "mask", "min-views", "min-shared", "board-start",
-                          "holdout", "cal-step"], order
+    # (stop is disabled while nothing is recorded: Tab passes it)
+    assert order[:9] == ["take-name", "take-seconds", "record", "mask", "min-views", "min-shared", "board-start",
+                         "holdout", "cal-step"], order
     assert gone.startswith("the server does not answer (") and "the figures and pictures are from " in gone, gone
     assert shown and hidden
 
@@ -472,3 +474,43 @@ def test_a_job_is_cancelled_from_its_page_and_a_failed_one_says_why_in_the_list(
     assert box_hidden and store.get(queued).state == "cancelled"
     assert live_why == loaded_why == "DATA/takes/t2.h5: the take has no calibration", (live_why, loaded_why)
     assert cancelled_why == ""
+
+
+def test_the_recorder_refuses_a_bad_name_before_asking_and_says_a_refusal_plainly(tmp_path):
+    """A take name with a space is refused on the page, in words; a refusal of the server's checks (422) reads
+    "field: message", not JSON; stop is disabled while no take runs."""
+    sync_playwright = sync_playwright_or_skip()
+    ids = ["a", "b"]
+    with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=make_drivers(ids))) as srv, \
+            sync_playwright() as p:
+        browser, page, errors = _open(p, srv.url)
+        requests: list[str] = []
+        page.on("request", lambda q: requests.append(q.url) if q.url.endswith("/stage/record") else None)
+        try:
+            page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('idle')",
+                                   timeout=10_000)
+            idle = (page.is_enabled("#record"), page.is_enabled("#stop"))
+            page.fill("#take-name", "my take")
+            page.click("#record")
+            bad_name = page.text_content("#rec-msg")
+            asked = list(requests)
+            page.fill("#take-name", "long")
+            page.fill("#take-seconds", "100000")
+            page.click("#record")
+            page.wait_for_function("() => document.getElementById('rec-msg').textContent.includes('422')", timeout=10_000)
+            refused = page.text_content("#rec-msg")
+            page.fill("#take-seconds", "2")
+            page.click("#record")
+            page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('recording')",
+                                   timeout=10_000)
+            recording = (page.is_enabled("#record"), page.is_enabled("#stop"))
+            page.click("#stop")
+            page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('done')",
+                                   timeout=15_000)
+            done = (page.is_enabled("#record"), page.is_enabled("#stop"))
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert idle == (True, False) and recording == (True, True) and done == (True, False), (idle, recording, done)
+    assert bad_name.startswith("not recording: a take name is letters, digits") and asked == [], (bad_name, asked)
+    assert refused.startswith("not recording: (422) duration_s: ") and "[{" not in refused, refused
