@@ -59,6 +59,12 @@ class EmptyHullError(ValueError):
     """The silhouettes leave nothing: no foreground in any camera, or every voxel carved."""
 
 
+#: Every voxel carved: the cameras' silhouettes meet nowhere inside the grid (a subject beyond the capture volume
+#: meets them outside it).
+NO_AGREEMENT = ("every voxel was carved: the silhouettes do not agree on any region of the grid (a subject outside "
+                "the capture volume, or masks that miss it)")
+
+
 @dataclass(frozen=True)
 class HullResult:
     """A carved frame.
@@ -261,7 +267,7 @@ def carve_direct(
             carve[sl] += vis & ~fg
     occ = (carve <= k) & (seen >= mv)
     if not occ.any():
-        raise EmptyHullError("every voxel was carved: the silhouettes do not agree on any region")
+        raise EmptyHullError(NO_AGREEMENT)
     return occ.reshape(grid.shape)
 
 
@@ -485,7 +491,7 @@ class HullCarver:
         n = int(np.count_nonzero(occ))
         stats["voxels"] = n
         if n == 0:
-            raise EmptyHullError("every voxel was carved: the silhouettes do not agree on any region")
+            raise EmptyHullError(NO_AGREEMENT)
         return HullResult(occupancy=occ, grid=self.grid, ignored=ignored, stats=stats)
 
     def _sort_blocks(self, ms, use, k: int, mv: int, stats: dict) -> tuple[list[tuple[int, np.ndarray]], np.ndarray]:

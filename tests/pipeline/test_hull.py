@@ -158,6 +158,21 @@ def test_empty_masks_everywhere_report_an_empty_frame():
         hc.carve(disjoint)
 
 
+def test_a_subject_outside_the_grid_is_said_to_be_outside_it():
+    """The true silhouettes carved on a grid beside the subject (the capture volume moved 1.5 m along x): every
+    voxel carved, and the message says the subject may be outside the volume, not only that the silhouettes
+    disagree (a creature that walked out of the capture volume was said to have silhouettes that do not agree)."""
+    from pipeline.volume import grid_from_volume
+
+    take = sim_take()
+    lo, hi = np.asarray(Volume().bounds, dtype=float)
+    grid = grid_from_volume(np.stack([lo + [1500.0, 0, 0], hi + [1500.0, 0, 0]]), 32)
+    for carve in (lambda: HullCarver(take.calibration, grid).carve(take.masks[0]),
+                  lambda: carve_direct(take.masks[0], take.calibration, grid)):
+        with pytest.raises(EmptyHullError, match="every voxel was carved.*a subject outside the capture volume"):
+            carve()
+
+
 def test_voxels_outside_a_camera_are_not_carved_by_it():
     cal, creature, masks, _ = analytic()
     b = creature.bounds()
