@@ -134,7 +134,8 @@ async def job_events(_: ReadAccess, job: Job, request: Request, store: StoreDep,
 
 # -- results --------------------------------------------------------------------------------------
 
-ResultName = Annotated[str, Path(pattern=r"^(spine\.json|report\.json|spine\.glb|spine_rig\.glb)$")]
+#: the names these routes serve: a wrong one is a 400 naming them ("Input should be 'spine.json', ..."), not a pattern
+ResultName = Annotated[Literal["spine.json", "report.json", "spine.glb", "spine_rig.glb"], Path()]
 MeshName = Annotated[str, Path(pattern=r"^(frame_)?[0-9]{1,6}\.(ply|glb)$", examples=["frame_000000.ply", "3.glb"])]
 
 
@@ -159,7 +160,7 @@ def get_mesh(_: ReadAccess, job: Job, name: MeshName, settings: SettingsDep) -> 
 FrameName = Annotated[str, Path(pattern=r"^[0-9]{6}\.ply$", examples=["000003.ply"])]
 TrackedName = Annotated[str, Path(pattern=rf"^([0-9]{{6}}\.ply|{'|'.join(map(re.escape, results.TRACKED_FILES))})$",
                                   examples=["000003.ply", "track.json"])]
-RigName = Annotated[str, Path(pattern=r"^(rig\.json|rig\.glb|rig\.bvh|segments\.npy)$")]
+RigName = Annotated[Literal[tuple(results.RIG_FILES)], Path()]
 
 
 @router.get("/{job_id}/results/tracked/{name}", response_class=FileResponse,

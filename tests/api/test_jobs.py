@@ -397,6 +397,12 @@ def test_tracked_and_rig_files_are_listed_and_served(client, data_root):
     assert client.get(listing["tracked_url"].format(index=3)).content[:3] == b"ply"
     for bad in ("tracked/000099.ply", "rig/posed/000099.ply", "tracked/3.ply", "rig/other.json", "rig/posed/rig.json"):
         assert client.get(f"/jobs/{jid}/results/{bad}").status_code in (400, 404, 422), bad
+    # a name these routes do not serve is refused naming those they do, not with a pattern
+    for bad, said in (("rig/rig.fbx", "path.name: Input should be 'rig.json', 'rig.glb', 'rig.bvh' or 'segments.npy'"),
+                      ("report.html", "path.name: Input should be 'spine.json', 'report.json', 'spine.glb' or "
+                                      "'spine_rig.glb'")):
+        r = client.get(f"/jobs/{jid}/results/{bad}")
+        assert r.status_code == 400 and r.json()["detail"] == said, r.json()
 
 
 def test_what_the_tracking_did_is_listed_and_served(client, data_root):
