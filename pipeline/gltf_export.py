@@ -411,6 +411,11 @@ def export_rig(
         raise ValueError(f"{d / 'spine.json'}: no frame where the spine is complete")
     pos = candidates[0]
     mp = find_frame_mesh(d, fi[pos])
+    if mp is None and not (d / "meshes").is_dir():  # a spine of a mesh sequence (`stage spines --meshes`)
+        raise FileNotFoundError(
+            f"{d} has no meshes/ folder (the spine of a mesh sequence keeps none): the rigged mesh needs the rest "
+            f"frame's surface, meshes/frame_{fi[pos]:06d}.ply (spine.json's frame {fi[pos]}); or export the spine "
+            "alone (--format spine-glb)")
     if mp is None:  # `stage process` writes every frame's mesh: another frame would be another rest pose
         raise FileNotFoundError(
             f"{d / 'meshes'}: the reference frame's mesh frame_{fi[pos]:06d}.ply is missing; run `stage process` "

@@ -294,6 +294,12 @@ def test_invalid_input(tmp_path, results_dir, take):
     (results_dir / "meshes" / f"frame_{FRAMES // 2:06d}.ply").unlink()
     with pytest.raises(FileNotFoundError, match="mesh frame_.*is missing"):
         export_rig(results_dir)
+    # no meshes/ at all: the spine of a mesh sequence (`stage spines --meshes`); `stage process` would not make them
+    import shutil
+
+    shutil.rmtree(results_dir / "meshes")
+    with pytest.raises(FileNotFoundError, match=r"has no meshes/ folder .*meshes/frame_\d{6}\.ply.*--format spine-glb"):
+        export_rig(results_dir)
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "spine.json").write_text(json.dumps({"format": "capture-stage/spine@1"}))
