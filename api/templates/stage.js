@@ -398,14 +398,18 @@
       const td1 = document.createElement('td'); td1.textContent = t.frames === undefined ? '–' : t.frames;
       const td2 = document.createElement('td'); td2.textContent = (t.size_bytes / 1e6).toFixed(1) + ' MB';
       const td3 = document.createElement('td'); const b = document.createElement('button'); b.textContent = 'process';
-      b.addEventListener('click', async () => {
+      b.addEventListener('click', async () => {  // the job is followed in its row: the control room stays open
         const j = await api('POST', '/jobs', {take: t.id});
-        if (j.ok) window.location = '/ui/jobs/' + j.data.id; else say($('rec-msg'), 'process: ' + detail(j), 'bad');
+        if (!j.ok){ say($('rec-msg'), 'process: ' + detail(j), 'bad'); return; }
+        lastJobs[t.id] = j.data; showJob(tr, j.data);
+        say($('rec-msg'), 'processing take ' + t.id + ': job ' + j.data.id.slice(0, 8) + ' (followed in the take list)', '');
       });
       td3.appendChild(b);
       const td4 = document.createElement('td'); td4.className = 'muted';
       const td5 = document.createElement('td'); td5.textContent = '…';
-      tr.append(td0, td1, td2, td4, td5, td3); tb.appendChild(tr);
+      const td6 = document.createElement('td'); td6.className = 'job';
+      tr.append(td0, td1, td2, td4, td5, td3, td6); tb.appendChild(tr);
+      showJob(tr, lastJobs[t.id]);
       api('GET', '/takes/' + encodeURIComponent(t.id)).then((i) => {  // stage info's figures
         if (!i.ok) return;
         const sync = i.data.sync || {};
@@ -421,5 +425,35 @@
       });
     }
   }
-  previews(); figures(); poll3d(); takes(); requestAnimationFrame(draw3d);
+  // ---- each listed take's newest job: state, progress, report link, a failure's first line
+  let lastJobs = {};
+  function showJob(tr, j){
+    const td = tr.querySelector('td.job'); td.replaceChildren();
+    if (!j){ td.textContent = '–'; return; }
+    const a = document.createElement('a'); a.href = '/ui/jobs/' + j.id; a.textContent = j.kind + ' ' + j.id.slice(0, 8);
+    const active = j.state === 'queued' || j.state === 'running';
+    const st = document.createElement('span'); st.className = 'state state-' + j.state;
+    st.textContent = ' ' + j.state + (active ? ' ' + j.done + '/' + j.total : '');
+    td.append(a, st);
+    if (j.state === 'done' && j.kind === 'process'){
+      const r = document.createElement('a'); r.href = '/ui/jobs/' + j.id + '/report'; r.textContent = 'report';
+      td.append(' · ', r);
+    }
+    if (j.state === 'failed' && j.error){
+      const e = document.createElement('div'); e.className = 'err'; e.textContent = j.error.split('\n')[0]; td.append(e);
+    }
+  }
+  async function takeJobs(){
+    try {
+      const r = await api('GET', '/jobs?limit=200');
+      if (r.ok){
+        const newest = {};
+        for (const j of r.data) if (!(j.take in newest)) newest[j.take] = j;  // newest first
+        lastJobs = newest;
+        for (const tr of $('take-list').rows) showJob(tr, newest[tr.dataset.take]);
+      }
+    } catch (e) {}
+    setTimeout(takeJobs, 2000);
+  }
+  previews(); figures(); poll3d(); takes(); takeJobs(); requestAnimationFrame(draw3d);
 })();

@@ -514,3 +514,40 @@ def test_the_recorder_refuses_a_bad_name_before_asking_and_says_a_refusal_plainl
     assert idle == (True, False) and recording == (True, True) and done == (True, False), (idle, recording, done)
     assert bad_name.startswith("not recording: a take name is letters, digits") and asked == [], (bad_name, asked)
     assert refused.startswith("not recording: (422) duration_s: ") and "[{" not in refused, refused
+
+
+def test_a_take_is_processed_from_the_take_list_and_its_job_followed_there(tmp_path):
+    """"process" queues the take's job and the control room stays open: the take's row follows its newest job
+    (state, the page's link), then says a failure's first line, or links the report when it is done."""
+    sync_playwright = sync_playwright_or_skip()
+    rig, drivers = _sim_rig(ROUND)
+    with LiveServer(tmp_path, StageSession(rig, tmp_path / "data" / "takes", drivers=drivers)) as srv, \
+            sync_playwright() as p:
+        store = srv.app.state.store
+        browser, page, errors = _open(p, srv.url)
+        cell = 'document.querySelector(\'#take-list tr[data-take="{}"] td.job\').textContent'
+        try:
+            for name in ("one", "two"):
+                _record(page, name, 0.5)
+                _take_row(page, name)
+            jobs = {}
+            for name in ("one", "two"):
+                page.click(f'#take-list tr[data-take="{name}"] button')
+                page.wait_for_function(f"() => {cell.format(name)}.startsWith('process ')", timeout=10_000)
+                jobs[name] = store.list(take=name)[0].id
+            queued = page.evaluate(f"() => {cell.format('one')}")
+            url = page.url
+            store.finish(jobs["one"], "failed", error="DATA/takes/one.h5: the surface is empty\nmore lines")
+            store.finish(jobs["two"], "done")
+            page.wait_for_function(f"() => {cell.format('one')}.includes('failed')", timeout=10_000)
+            page.wait_for_function(f"() => {cell.format('two')}.includes('report')", timeout=10_000)
+            failed = page.evaluate(f"() => {cell.format('one')}")
+            link = page.get_attribute('#take-list tr[data-take="two"] td.job a[href$="/report"]', "href")
+            job_link = page.get_attribute('#take-list tr[data-take="one"] td.job a', "href")
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert url.endswith("/ui/stage")
+    assert queued == f"process {jobs['one'][:8]} queued 0/0", queued
+    assert failed == f"process {jobs['one'][:8]} failedDATA/takes/one.h5: the surface is empty", failed
+    assert link == f"/ui/jobs/{jobs['two']}/report" and job_link == f"/ui/jobs/{jobs['one']}", (link, job_link)
