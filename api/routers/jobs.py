@@ -58,10 +58,24 @@ def create_job(body: JobCreate, _: WriteAccess, store: StoreDep, runner: RunnerD
     library.path(body.take)  # 404 if the take does not exist
     spec = runner.work_spec()
     steps, params = spec.validate(body.steps, body.parameters)
+    _check_rest_frame(steps, params, body.take, library)
     rec = store.create(kind="process", take=body.take, steps=steps, params=params)
     runner.wake()
     response.headers["Location"] = f"/jobs/{rec.id}"
     return _status(rec)
+
+
+def _check_rest_frame(steps: tuple[str, ...], params: dict, take: str, library) -> None:
+    """A job whose rig's rest frame (``parameters.rig.reference``, a position among the tracked frames) is past the
+    take's frame sets is refused when submitted, not after its surfaces and tracking: ValueError (400). A position
+    within them can still be past the frame sets that get a surface (the rig step says so then)."""
+    reference = (params.get("rig") or {}).get("reference") if "rig" in steps and isinstance(params, dict) else None
+    if not isinstance(reference, int):
+        return
+    n = int(library.info(take).get("frames") or 0)
+    if reference >= n:
+        raise ValueError(f"parameters: rig.reference must be a position within 0..{n - 1} (take {take!r} has {n} "
+                         f"frame sets, the most frames a tracking has), got {reference}")
 
 
 @router.get("", response_model=list[JobStatus])

@@ -72,7 +72,7 @@ def test_browser_on_served_pages(tmp_path):
         assert r.status_code == 202, r.text
         jid = r.json()["id"]
         r = httpx.post(f"{srv.url}/jobs", json={"take": "failed", "steps": ["surface", "track", "rig"],
-                                                "parameters": {"resolution": 32, "rig": {"reference": 50}}},
+                                                "parameters": {"resolution": 32, "rig": {"reference": 5}}},
                        headers=AUTH, timeout=30)
         assert r.status_code == 202, r.text
         failed = r.json()["id"]

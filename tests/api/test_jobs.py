@@ -208,6 +208,16 @@ def test_a_process_job_checks_its_track_options(make_client, data_root):
     r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": {"rig": {"parts": "limbs"}}}, headers=AUTH)
     assert r.status_code in (200, 201, 202) and r.json()["params"]["rig"]["parts"] == "limbs", r.json()
     # stage armature's --lambda-thr, --samples, --reference, checked by its bounds in the parameters' names
+    # a rest frame past the take's frame sets (2) is refused when submitted, naming the parameter; one within them
+    # is queued
+    for reference, code in ((2, 400), (1, 202)):
+        r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": {"rig": {"reference": reference}}},
+                   headers=AUTH)
+        assert r.status_code == code, r.json()
+    assert r.json()["params"] == {"rig": {"reference": 1}}
+    r = c.post("/jobs", json={"take": "t", "steps": ["surface", "rig"], "parameters": {"rig": {"reference": 2}}}, headers=AUTH)
+    assert r.json()["detail"] == ("parameters: rig.reference must be a position within 0..1 (take 't' has 2 frame sets, "
+                                  "the most frames a tracking has), got 2"), r.json()
     # (a check's own message, as the command says it: without pydantic's "Value error, " before it)
     for bad, said in (({"samples": 1}, "rig.samples: samples must be >= 2, got 1"),
                       ({"samples": 10**6}, "rig.samples: Input should be less than or equal to 5000"),
@@ -292,9 +302,10 @@ def test_a_jobs_warnings_and_page_say_what_its_frames_warned_of_once_per_kind(ma
 
 
 def test_a_failed_jobs_record_and_page_keep_the_warnings_said_before_it_stopped(make_client, tmp_path):
-    """The surface step warns of the failed masks' frame sets, then the rig's rest frame past the surfaces stops the
-    job before it tracks: the failed job (no result, no report) has those warnings in its record, in the order said,
-    and its page lists them, as a done job's."""
+    """The surface step warns of the failed masks' frame sets, then the rig's rest frame past the surfaces (position
+    5 of the take's 6 frame sets, of which 5 get a surface) stops the job before it tracks: the failed job (no
+    result, no report) has those warnings in its record, in the order said, and its page lists them, as a done
+    job's."""
     import html
 
     from tests.pipeline.hull_scenes import FAILED_MASKS_SAID, take_with_failed_masks
@@ -304,7 +315,7 @@ def test_a_failed_jobs_record_and_page_keep_the_warnings_said_before_it_stopped(
     take_with_failed_masks(data / "takes" / "t.h5")
     c = make_client(work="pipeline.process:process_take", data=data)
     jid = c.post("/jobs", json={"take": "t", "steps": ["surface", "track", "rig"],
-                                "parameters": {"resolution": 32, "rig": {"reference": 50}}}, headers=AUTH).json()["id"]
+                                "parameters": {"resolution": 32, "rig": {"reference": 5}}}, headers=AUTH).json()["id"]
     st = wait_job(c, jid, timeout=120)
     assert st["state"] == "failed" and "rig.reference" in st["error"] and st["result"] is None, st
     warned = st["warnings"]
