@@ -138,6 +138,15 @@ def _frusta_html(calibration: dict) -> str:
     return figure_html(frusta_figure(Calibration.from_dict(calibration)), div_id="frusta")
 
 
+def _sync_rows(sync: dict[str, Any]) -> list[tuple[str, Any]]:
+    """A take's sync statistics as its page's summary rows (none for a take without them)."""
+    if not sync:
+        return []
+    med, mx = sync.get("spread_median_ms"), sync.get("spread_max_ms")
+    return [("complete frame sets", f"{sync.get('sets_complete')} of {sync.get('sets')}"),
+            ("sync spread (ms)", "–" if med is None else f"{med:.2f} median, {mx:.2f} max")]
+
+
 @router.get("/ui/takes/{take_id}", response_class=HTMLResponse)
 def take_page(request: Request, take_id: TakeId, library: LibraryDep, store: StoreDep,
               _: ReadAccess) -> HTMLResponse:
@@ -148,6 +157,7 @@ def take_page(request: Request, take_id: TakeId, library: LibraryDep, store: Sto
         return _not_found(request, str(exc))
     cams = info.get("cameras") or []
     n = int(info.get("frames") or 0)
+    sync = info.get("sync") or {}
     frusta = calibration_error = None
     if info.get("calibration"):
         try:
@@ -159,7 +169,8 @@ def take_page(request: Request, take_id: TakeId, library: LibraryDep, store: Sto
         request, "take.html", f"Take {take_id}", **extra,
         take_id=take_id,
         summary=[("frames (sets)", n), ("fps", info.get("fps")), ("duration (s)", info.get("duration_s")),
-                 ("complete", info.get("complete")), ("compression", info.get("compression"))],
+                 ("complete", info.get("complete")), ("compression", info.get("compression")), *_sync_rows(sync)],
+        sync_cameras=sync.get("cameras") or {},
         cameras=cams,
         masks=set(info.get("masks") or []),
         frusta=frusta,

@@ -170,7 +170,9 @@
         $('minutes-left').textContent = fmt(d.minutes_left, 0);
         say($('disk-msg'), d.message || '', d.level === 'full' ? 'bad' : d.level === 'low' ? 'warn' : '');
         const s = f.sync_spread_ms || {};
-        $('spread').textContent = s.median === null ? '–' : fmt(s.median, 2) + ' ms median, ' + fmt(s.max, 2) + ' ms max';
+        // against the tolerance frame sets are grouped within (half a frame period unless the rig sets it)
+        $('spread').textContent = (s.median === null ? '–' : fmt(s.median, 2) + ' ms median, ' + fmt(s.max, 2) + ' ms max') +
+          (f.tolerance_ms ? ' (sets group within ' + fmt(f.tolerance_ms, 1) + ' ms)' : '');
         const l = (f.previews || {}).latency_ms || {};
         $('latency').textContent = l.p50 === null || l.p50 === undefined ? '–' : fmt(l.p50, 0) + ' / ' + fmt(l.p99, 0) + ' ms';
         const tc = f.take_calibration || {};  // what a take recorded now stores, or why nothing

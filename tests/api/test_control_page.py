@@ -156,6 +156,13 @@ def test_a_camera_that_goes_away_while_previewed_is_greyed_and_its_take_flagged(
             # stop), more than those is a problem
             fine = page.evaluate("() => window.__stage.takeProblems({sets: 30, sync: {sets_complete: 28, cameras: {}}})")
             short = page.evaluate("() => window.__stage.takeProblems({sets: 30, sync: {sets_complete: 27, cameras: {}}})")
+            # the take's page says the same: its sets' completeness and the camera missing from them
+            page.goto(srv.url + "/ui/takes/gap", wait_until="load")
+            summary = {tr.locator("th").text_content(): tr.locator("td").text_content()
+                       for tr in page.locator("#summary table").first.locator("tr").all()}
+            missing = {c: (page.text_content(f'#take-cameras tr[data-cam="{c}"] td:nth-child(5)'),
+                           page.get_attribute(f'#take-cameras tr[data-cam="{c}"] td:nth-child(5)', "class"))
+                       for c, _ in ROUND}
         finally:
             browser.close()
     assert not errors, errors
@@ -166,6 +173,12 @@ def test_a_camera_that_goes_away_while_previewed_is_greyed_and_its_take_flagged(
     assert msg.startswith("take gap has problems: east disconnected"), msg
     assert "warn" in kind and "good" not in kind, kind
     assert fine == [] and short == ["3 of 30 frame sets incomplete"], (fine, short)
+    with TakeReader(srv.takes / "gap.h5") as t:
+        st = t.sync_stats
+    assert summary["complete frame sets"] == f"{st['sets_complete']} of {st['sets']}", summary
+    assert summary["sync spread (ms)"] == f"{st['spread_median_ms']:.2f} median, {st['spread_max_ms']:.2f} max", summary
+    assert missing["east"] == (str(st["cameras"]["east"]["missing"]), "err") and st["cameras"]["east"]["missing"] > 0, missing
+    assert all(missing[c] == ("0", None) for c in ("north", "south", "west")), missing
 
 
 class _StallingCamera(PacedCamera):
@@ -490,6 +503,7 @@ def test_the_recorder_refuses_a_bad_name_before_asking_and_says_a_refusal_plainl
             page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('idle')",
                                    timeout=10_000)
             idle = (page.is_enabled("#record"), page.is_enabled("#stop"))
+            spread = page.text_content("#spread")
             page.fill("#take-name", "my take")
             page.click("#record")
             bad_name = page.text_content("#rec-msg")
@@ -513,6 +527,7 @@ def test_the_recorder_refuses_a_bad_name_before_asking_and_says_a_refusal_plainl
     assert not errors, errors
     assert idle == (True, False) and recording == (True, True) and done == (True, False), (idle, recording, done)
     assert bad_name.startswith("not recording: a take name is letters, digits") and asked == [], (bad_name, asked)
+    assert spread.endswith(" (sets group within 8.3 ms)"), spread  # half the 60 fps rig's period
     assert refused.startswith("not recording: (422) duration_s: ") and "[{" not in refused, refused
 
 
