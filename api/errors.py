@@ -53,6 +53,37 @@ def _json(status: int, message: str, headers: dict | None = None, request: Reque
     return JSONResponse({"detail": message}, status_code=status, headers=headers)
 
 
+def _path_field(dependant, name: str):
+    """The ``FieldInfo`` of path parameter ``name`` of a route's dependant or of its dependencies' (``JobId`` is a
+    dependency's); None when it has none."""
+    if dependant is None:
+        return None
+    for p in dependant.path_params:
+        if p.name == name:
+            return p.field_info
+    for sub in dependant.dependencies:
+        if (found := _path_field(sub, name)) is not None:
+            return found
+    return None
+
+
+def _path_said(request: Request, error: dict, shown: dict) -> str:
+    """A path parameter's validation error in words: one that does not match its pattern is said as what the
+    parameter is (its description: ``'xyz' is not a job id (32 hex digits)``) or what it looks like (its examples:
+    ``'zero.ply' does not look like any of 'frame_000000.ply', '3.glb'``); any other error, or a parameter with neither,
+    as pydantic says it."""
+    if shown.get("type") != "string_pattern_mismatch" or len(shown["loc"]) < 2:
+        return shown["msg"]
+    field = _path_field(getattr(request.scope.get("route"), "dependant", None), str(shown["loc"][1]))
+    value = _scrub(request, repr(str(error.get("input", ""))))
+    if field is not None and field.description:
+        return f"{value} is not a {field.description}"
+    if field is not None and field.examples:
+        names = list(map(repr, field.examples))
+        return f"{value} does not look like {names[0] if len(names) == 1 else 'any of ' + ', '.join(names)}"
+    return shown["msg"]
+
+
 def install_handlers(app: FastAPI) -> None:
     """Register the exception handlers on ``app``."""
 
@@ -68,9 +99,11 @@ def install_handlers(app: FastAPI) -> None:
             loc = [p if isinstance(p, (str, int)) else str(p) for p in e.get("loc", ())]
             msg = _scrub(request, str(e.get("msg", "invalid")))
             detail.append({"loc": loc, "msg": msg, "type": str(e.get("type", "value_error"))})
-        # a malformed id in the URL (e.g. a path traversal attempt) is a bad request, not an unprocessable body
+        # a malformed id in the URL (e.g. a path traversal attempt) is a bad request, not an unprocessable body; its
+        # message says what the parameter is, not the regular expression it failed
         if detail and all(d["loc"][:1] == ["path"] for d in detail):
-            msg = "; ".join(f"{'.'.join(str(p) for p in d['loc'])}: {d['msg']}" for d in detail)
+            said = [_path_said(request, e, d) for e, d in zip(exc.errors(), detail)]
+            msg = "; ".join(f"{'.'.join(str(p) for p in d['loc'])}: {m}" for d, m in zip(detail, said))
             return JSONResponse({"detail": msg, "errors": detail}, status_code=400)
         return JSONResponse({"detail": detail}, status_code=422)
 

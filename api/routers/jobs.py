@@ -173,7 +173,7 @@ def get_mesh(_: ReadAccess, job: Job, name: MeshName, settings: SettingsDep) -> 
 
 FrameName = Annotated[str, Path(pattern=r"^[0-9]{6}\.ply$", examples=["000003.ply"])]
 TrackedName = Annotated[str, Path(pattern=rf"^([0-9]{{6}}\.ply|{'|'.join(map(re.escape, results.TRACKED_FILES))})$",
-                                  examples=["000003.ply", "track.json"])]
+                                  examples=["000003.ply", *results.TRACKED_FILES])]
 RigName = Annotated[Literal[tuple(results.RIG_FILES)], Path()]
 
 

@@ -55,7 +55,9 @@ def stop_capture(capture: CaptureDep, _: WriteAccess) -> dict[str, Any]:
 
 @router.get("/cameras/{camera_id}/preview.jpg", response_class=Response,
             responses={200: {"content": {"image/jpeg": {}}}, 404: {"description": "no such camera"}})
-def preview(camera_id: Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")], capture: CaptureDep, _: ReadAccess,
+def preview(camera_id: Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]{1,64}$",
+                                           description="camera id (1 to 64 letters, digits, _ . -)")],
+            capture: CaptureDep, _: ReadAccess,
             quality: Annotated[int, Query(ge=10, le=100)] = 80) -> Response:
     """A JPEG grabbed now from one camera."""
     return Response(capture.preview(camera_id, quality=quality), media_type="image/jpeg",

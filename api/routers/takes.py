@@ -62,7 +62,8 @@ def take_info(take_id: TakeId, library: LibraryDep, _: ReadAccess) -> dict:
     responses={200: {"content": {"image/png": {}, "image/jpeg": {}}}, 404: {"description": "no such frame/camera"}},
 )
 def take_image(take_id: TakeId, index: Annotated[int, Path(ge=0, le=10_000_000)],
-               camera: Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")],
+               camera: Annotated[str, Path(pattern=r"^[A-Za-z0-9_.\-]{1,64}$",
+                                           description="camera id (1 to 64 letters, digits, _ . -)")],
                name: Annotated[Literal["image.png", "image.jpg", "mask.png", "mask.jpg"], Path()],
                library: LibraryDep, _: ReadAccess) -> Response:
     """Frame ``index`` of ``camera`` (``image.png|jpg``) or its mask (``mask.png|jpg``)."""

@@ -126,3 +126,24 @@ def test_inside_counts_bytes(tmp_path):
         inside(tmp_path, "é" * 127 + ".h5")  # 257 bytes in 130 characters
     with pytest.raises(OutsideDataRootError):
         inside(tmp_path, "a\x00b")
+
+
+def test_a_malformed_path_parameter_is_said_as_what_it_is(client, data_root):
+    """A path parameter that fails its pattern is a 400 saying what the parameter is (its description) or what it
+    looks like (its examples), with the value sent, not the regular expression; ``errors`` keeps pydantic's."""
+    add_take(data_root, "take1")
+    jid = client.post("/jobs", json={"take": "take1", "steps": ["key"]}, headers=AUTH).json()["id"]
+    for url, said in (
+            ("/jobs/xyz", "path.job_id: 'xyz' is not a job id (32 hex digits)"),
+            ("/jobs/xyz/events", "path.job_id: 'xyz' is not a job id (32 hex digits)"),
+            ("/calibrations/zz.json", "path.cal_id: 'zz' is not a calibration id (32 hex digits)"),
+            ("/takes/take1/frames/0/cam%20x/image.png", "path.camera: 'cam x' is not a camera id (1 to 64 letters, "
+                                                        "digits, _ . -)"),
+            (f"/jobs/{jid}/results/meshes/zero.ply",
+             "path.name: 'zero.ply' does not look like any of 'frame_000000.ply', '3.glb'"),
+            (f"/jobs/{jid}/results/rig/posed/1.ply", "path.name: '1.ply' does not look like '000003.ply'"),
+            (f"/jobs/{jid}/results/tracked/3.ply", "path.name: '3.ply' does not look like any of '000003.ply', "
+                                                   "'track.json', 'labels.npy', 'rig_segments.npy'")):
+        r = client.get(url)
+        assert r.status_code == 400 and r.json()["detail"] == said, (url, r.json())
+        assert [e["type"] for e in r.json()["errors"]] == ["string_pattern_mismatch"], r.json()
