@@ -267,10 +267,15 @@ def live3d(room: ControlDep, _: ReadAccess) -> dict[str, Any]:
 
 
 @router.get("/ui/stage", response_class=HTMLResponse, include_in_schema=False)
-def stage_page(request: Request, room: ControlDep, _: ReadAccess) -> HTMLResponse:
-    """The control room: a tile per camera, record/stop, board session, 3-D preview, takes."""
-    from api.routers.pages import _page
+def stage_page(request: Request, _: ReadAccess) -> HTMLResponse:
+    """The control room: a tile per camera, record/stop, board session, 3-D preview, takes; without a stage
+    session, a page that says how to start one (the navigation links here from every page)."""
+    from api.routers.pages import _not_found, _page
 
+    room = getattr(request.app.state, "control", None)
+    if room is None:
+        return _not_found(request, "No stage session: this server was started without cameras. Start it with "
+                                   "stage serve --rig RIG.toml (docs/control-room.md) to see and record them here.")
     rig = room.session.rig
     return _page(request, "stage.html", f"Stage · {rig.name}", cameras=list(room.session.ids),
                  has_board=room.board is not None, fps=rig.fps)

@@ -566,3 +566,30 @@ def test_a_take_is_processed_from_the_take_list_and_its_job_followed_there(tmp_p
     assert queued == f"process {jobs['one'][:8]} queued 0/0", queued
     assert failed == f"process {jobs['one'][:8]} failedDATA/takes/one.h5: the surface is empty", failed
     assert link == f"/ui/jobs/{jobs['two']}/report" and job_link == f"/ui/jobs/{jobs['one']}", (link, job_link)
+
+
+def test_the_stage_link_of_a_server_without_cameras_says_how_to_start_one(tmp_path):
+    """``stage serve`` without a rig: the navigation's "stage" opens a page (not JSON) that says how to start
+    a stage session."""
+    from tests.api.served import Server
+
+    sync_playwright = sync_playwright_or_skip()
+    (tmp_path / "data").mkdir()
+    srv = Server(tmp_path / "data", workers=1).start()
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+            try:
+                page = browser.new_page()
+                page.goto(srv.url + "/", wait_until="load")
+                with page.expect_navigation():
+                    page.click("nav >> text=stage")
+                status = page.evaluate("() => performance.getEntriesByType('navigation')[0].responseStatus")
+                said = page.text_content("section")
+                kind = page.evaluate("() => document.contentType")
+            finally:
+                browser.close()
+    finally:
+        srv.cleanup()
+    assert kind == "text/html" and status == 404, (kind, status)
+    assert said.startswith("No stage session: this server was started without cameras.") and "--rig" in said, said
