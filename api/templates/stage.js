@@ -421,6 +421,7 @@
         td5.className = i.data.calibration ? '' : 'err';
         b.disabled = !i.data.calibration;
         if (!i.data.calibration) b.title = 'the take has no calibration';
+        showJob(tr, lastJobs[t.id]);  // (a board take's calibration cell reads by its job)
         td4.textContent = (sync.sets_complete !== undefined ? sync.sets_complete + ' complete sets, ' : '') +
           (sync.spread_median_ms !== undefined ? 'sync spread median ' + fmt(sync.spread_median_ms, 2) + ' ms' : '') +
           relocked(sync) + (i.data.complete === false ? ' (being written)' : '');
@@ -441,6 +442,9 @@
       const r = document.createElement('a'); r.href = '/ui/jobs/' + j.id + '/report'; r.textContent = 'report';
       td.append(' · ', r);
     }
+    // a board take (its newest job calibrates from it) is not a subject take: no alarm for its missing calibration
+    const cal = tr.cells[4];
+    if (j.kind === 'calibrate' && cal && cal.textContent.startsWith('none')){ cal.textContent = 'none: a board take'; cal.className = 'muted'; }
     if (j.state === 'failed' && j.error){
       const e = document.createElement('div'); e.className = 'err'; e.textContent = j.error.split('\n')[0]; td.append(e);
     }

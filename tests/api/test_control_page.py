@@ -112,11 +112,17 @@ def test_a_take_recorded_from_the_page_holds_the_calibration(tmp_path):
             _record(page, "plain", 0.5)
             row = _take_row(page, "plain")
             enabled = page.locator('#take-list tr[data-take="plain"] button').is_enabled()
+            # once a calibration job is made from it, it is a board take: its missing calibration is no alarm
+            srv.app.state.store.create(kind="calibrate", take="plain", steps=("detect", "calibrate"), params={})
+            page.wait_for_function("() => document.querySelector('#take-list tr[data-take=\"plain\"]').cells[4]"
+                                   ".textContent === 'none: a board take'", timeout=10_000)
+            board_kind = page.get_attribute('#take-list tr[data-take="plain"] td:nth-child(5)', "class")
         finally:
             browser.close()
     assert not errors, errors
     assert said.startswith("takes are recorded without a calibration") and "bad" in bad, (said, bad)
     assert row[4] == "none: cannot be processed" and not enabled, row
+    assert board_kind == "muted", board_kind
     with TakeReader(srv.takes / "plain.h5") as t:
         assert t.calibration is None
 
