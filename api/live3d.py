@@ -199,7 +199,7 @@ class Live3D:
         proc.start()
         self.process = proc
         try:
-            self._serve(parent, proc, rig, version)
+            self._serve(parent, proc, rig, version, [c for c in self.room.session.ids if c not in cal.names])
         finally:
             try:
                 parent.send(None)
@@ -220,7 +220,9 @@ class Live3D:
                 return None
         return None
 
-    def _serve(self, parent, proc, rig, version: int) -> None:
+    def _serve(self, parent, proc, rig, version: int, uncalibrated: list[str]) -> None:
+        """Sets to the worker and its answers to the page; ``uncalibrated``: the rig's cameras the calibration
+        lacks (the hull is carved without them, and the page says so)."""
         ready = self._answer(parent, proc)
         if ready is None or ready.get("state") != "ready":
             if ready is not None:
@@ -247,7 +249,7 @@ class Live3D:
                     with self._lock:
                         self._times.append(time.monotonic())
                         del self._times[:-50]
-                self._set(**out, bounds=bounds, calibration=self.room.calibration_source)
+                self._set(**out, bounds=bounds, calibration=self.room.calibration_source, uncalibrated=uncalibrated)
             self._stop.wait(max(0.0, self.period - (time.monotonic() - t0)))
 
 

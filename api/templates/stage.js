@@ -381,7 +381,9 @@
         $('live3d-edge').dataset.edges = edges.join(',');
         $('live3d-info').textContent = live.state === 'ok' ? ('frame set ' + live.set + ': ' + live.occupied + ' voxels of ' + fmt(live.voxel, 0) +
           ' mm, ' + live.segments.length + ' spine segments; ' + fmt(rate, 1) + ' updates/s shown (' + fmt(live.updates_per_s, 1) + ' computed), ' +
-          fmt(live.compute_ms, 0) + ' ms each' + (live.calibration ? '; ' + live.calibration : '')) : (live.message || live.state);
+          fmt(live.compute_ms, 0) + ' ms each' + (live.calibration ? '; ' + live.calibration : '') +
+          ((live.uncalibrated || []).length ? '; carved without ' + live.uncalibrated.join(', ') + ' (not in the calibration)' : '')) :
+          (live.message || live.state);
       }
     } catch (e) {}
     setTimeout(poll3d, 250);

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from calib.calibration import Calibration
 from fake_cameras.device import take_for_rig
 from stage.drivers.base import CameraDisconnectedError
 from stage.session import StageSession
@@ -253,12 +254,19 @@ def test_the_live_view_says_when_the_subject_reaches_the_volume_s_edge(tmp_path)
             kind = page.get_attribute("#live3d-edge", "class")
             page.locator("#view3d").scroll_into_view_if_needed()
             page.screenshot(path=str(art / "live3d_edge.png"), full_page=True)
+            # a calibration that lacks one of the rig's cameras: the hull is carved without it, and the view says so
+            cal = drivers["north"].calibration
+            srv.room.use_calibration(Calibration(cameras=tuple(c for c in cal if c.name != "west")), "a calibration")
+            page.wait_for_function("() => document.getElementById('live3d-info').textContent.includes('a calibration;')",
+                                   timeout=60_000)
+            info = page.text_content("#live3d-info")
         finally:
             browser.close()
     assert not errors, errors
     assert "z max" in edges and "z min" not in edges, edges
     assert line.startswith("the subject reaches the capture volume's ") and "z max" in line, line
     assert line.endswith("what is outside the volume is not reconstructed") and "warn" in kind, (line, kind)
+    assert info.endswith("; a calibration; carved without west (not in the calibration)"), info
 
 
 def test_disk_state_warns_under_ten_minutes_and_calls_two_almost_full():
