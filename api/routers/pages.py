@@ -7,7 +7,9 @@
 * ``GET /ui/jobs``, ``GET /ui/jobs/{id}``: jobs with live progress bars (a small inline
   script polls ``/jobs`` / ``/jobs/{id}`` every second while a job is active); a job's page links the result
   files it has written (``/jobs/{id}/results/``, polled with it, and once more until it answers after the job
-  ends), every frame of its per-frame folders in a collapsed list, never those its steps would write;
+  ends), every frame of its per-frame folders in a collapsed list, never those its steps would write; a
+  calibration job's page links its calibration (JSON, TOML, YAML) and report once made (the page is loaded again
+  when the job ends);
 * ``GET /ui/jobs/{id}/report``: the HTML report of a finished job
   (:func:`pipeline.report.render_report`, cached as ``DATA/jobs/<id>/report.html``).
 
@@ -202,6 +204,7 @@ def job_page(request: Request, job_id: JobId, store: StoreDep, settings: Setting
         return _not_found(request, str(exc))
     written = results.listing(settings.jobs_dir, j.id) if j.kind == "process" else None
     return _page(request, "job.html", f"Job {j.id[:8]}", job=j,
+                 calibration_links=_calibration_links(j, settings) if j.kind == "calibrate" else [],
                  result_links=list(written["links"].items()) if written else [],
                  frame_lists=_frame_lists(written) if written else [],
                  unwritten=_unwritten(j, written) if written else "",
@@ -225,6 +228,20 @@ def _frame_lists(written: dict[str, Any]) -> list[tuple[str, str, list[tuple[int
             said = f"{text} ({len(frames)} frame set{'s' if len(frames) != 1 else ''})"
             out.append((key, said, [(k, written[url].format(index=k)) for k in frames]))
     return out
+
+
+def _calibration_links(job: JobRecord, settings) -> list[tuple[str, str]]:
+    """``(text, url)`` of what a calibration job has made: its calibration in each format once it is saved (the
+    calibration's id is the job's), and its ``report.json`` once written; nothing that is not there (a failed job's,
+    a calibration deleted since)."""
+    from api.calibrations import FORMATS, CalibrationLibrary
+
+    links = []
+    if CalibrationLibrary(settings.calibrations_dir).exists(job.id):
+        links += [(f"calibration.{f}", f"/calibrations/{job.id}.{f}") for f in FORMATS]
+    if results.result_file(settings.jobs_dir, job.id, "report.json") is not None:
+        links.append(("report.json", f"/jobs/{job.id}/results/report.json"))
+    return links
 
 
 def _unwritten(job: JobRecord, written: dict[str, Any]) -> str:

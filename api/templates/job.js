@@ -1,8 +1,9 @@
 {#- follows one job: polls /jobs/{id} every second until it is finished, and for a processing job its results'
     listing (/jobs/{id}/results/): links to what it has written so far, never to what it has not, every frame of
     its per-frame folders in a collapsed list; a listing that cannot be read is said, and asked again, a finished
-    job's until it answers (JOB_ID, INITIAL_STATE, RESULT_STEPS, FRAME_LINKS: set by the page; pages.py
-    _frame_lists, _unwritten say it alike) -#}
+    job's until it answers; a calibration job's page is loaded again when the job ends, with what it made
+    (JOB_ID, INITIAL_STATE, RESULT_STEPS, FRAME_LINKS: set by the page; pages.py _frame_lists, _unwritten,
+    _calibration_links say it alike) -#}
 (function(){
   const TERMINAL = ["done", "failed", "cancelled"];
   function renderFrames(l){
@@ -108,6 +109,8 @@
         // (the state last: a page that reads "done" has its results' links, or says they may be out of date and
         // asks again until the listing answers)
         again = render(j) || !ok;
+        // (a calibration job's page shows what the job made as the server finds it: loaded again once it ends)
+        if (!again && j.kind === 'calibrate') location.reload();
       }
     } catch (e) {}
     if (again) setTimeout(poll, 1000);

@@ -271,3 +271,29 @@ def test_pages_are_not_in_the_openapi_schema(client_data):
     client, _ = client_data
     paths = client.get("/openapi.json").json()["paths"]
     assert not [p for p in paths if p == "/" or p.startswith("/ui")]
+
+
+def test_a_calibration_jobs_page_links_what_it_made(client_data):
+    """A calibration job's page links its calibration in each format once it is saved (its id is the job's) and its
+    report.json once written, each answering 200; before, and for a job that made none, it says so and links
+    nothing; a running one's page loads itself again when the job ends (job.js)."""
+    from api.calibrations import CalibrationLibrary
+    from tests.api.fakework import small_calibration
+
+    client, data = client_data
+    store, settings = client.app.state.store, client.app.state.settings
+    cid = store.create(kind="calibrate", take="cal", steps=["calibrate"], params={}).id
+    store._con().execute("UPDATE jobs SET state = 'running' WHERE id = ?", (cid,))
+    page = _html(client.get(f"/ui/jobs/{cid}"))
+    assert '<span id="no-calibration">none yet</span>' in page and "location.reload()" in page
+    assert not re.findall(r'href="(/calibrations/[^"]+)"', page)
+    store.finish(cid, "failed", error="could not connect every camera")
+    assert '<span id="no-calibration">none</span>' in _html(client.get(f"/ui/jobs/{cid}"))
+    CalibrationLibrary(settings.calibrations_dir).save(small_calibration(2), cid)
+    (data / "jobs" / cid).mkdir(parents=True)
+    (data / "jobs" / cid / "report.json").write_text("{}")
+    page = _html(client.get(f"/ui/jobs/{cid}"))
+    hrefs = re.findall(r'<a href="(/calibrations/[^"]+|/jobs/[^"]+/results/[^"]+)">', page)
+    assert hrefs == [f"/calibrations/{cid}.{f}" for f in ("json", "toml", "yaml")] + [
+        f"/jobs/{cid}/results/report.json"], hrefs
+    assert all(client.get(h).status_code == 200 for h in hrefs) and 'id="no-calibration"' not in page
