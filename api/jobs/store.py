@@ -321,19 +321,20 @@ class JobStore:
             row = con.execute("SELECT progress, state FROM jobs WHERE id = ?", (job_id,)).fetchone()
             if row is None:
                 return
-            prog = json.loads(row["progress"])
+            prog = json.loads(row["progress"])  # (in the order first reported: the pipeline's, as its steps announce
+            # their entries when the run starts; a page lists them so)
             prog[step] = {"done": int(done), "total": int(total)}
             sdone = sum(v["done"] for v in prog.values())
             stotal = sum(v["total"] for v in prog.values())
             con.execute(
                 "UPDATE jobs SET progress = ?, done = ?, total = ?, heartbeat = ? WHERE id = ?",
-                (json.dumps(prog, sort_keys=True), sdone, stotal, time.time(), job_id),
+                (json.dumps(prog), sdone, stotal, time.time(), job_id),
             )
             data = {"step": step, "step_done": int(done), "step_total": int(total), "done": sdone, "total": stotal,
                     "progress": prog, "state": row["state"]}
             con.execute(
                 "INSERT OR IGNORE INTO events (job, seq, time, data) VALUES (?, ?, ?, ?)",
-                (job_id, sdone, time.time(), json.dumps(data, sort_keys=True)),
+                (job_id, sdone, time.time(), json.dumps(data)),
             )
 
         self._tx(fn)

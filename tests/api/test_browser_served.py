@@ -114,6 +114,7 @@ def test_browser_on_served_pages(tmp_path):
                 frames_said = page.eval_on_selector_all("#frames summary", "els => els.map(e => e.textContent)")
                 assert page.is_visible("#report"), "the report link did not appear"
                 counts = page.text_content("#count-all")
+                rows = page.eval_on_selector_all("#steps tr", "els => els.map(e => e.dataset.step)")
                 done, total = (int(x) for x in counts.split("/"))
                 assert done == total > 0, counts
                 if initial != "done":  # the script updated the page while the job ran
@@ -185,6 +186,7 @@ def test_browser_on_served_pages(tmp_path):
     assert {h.rsplit("/results/", 1)[1] for h in done_links} == {
         "spine.json", "report.json", "spine.glb", "spine_rig.glb"} | {
         f"meshes/frame_{k:06d}.ply" for k in range(FRAMES)}, done_links
+    assert rows == ["key", "box", "surface", "skeleton", "spine"], rows  # (the steps' order, as they run)
     assert frames_said == [f"surface meshes ({FRAMES} frame sets)"] and frames_open == [False], (frames_said,
                                                                                              frames_open)
     if initial != "done":  # the listing failed on the poll that saw the job done: said, then asked again

@@ -57,6 +57,22 @@ def test_progress_events_are_monotonic_and_unique(tmp_path):
     assert store.get(j.id).progress == {"key": {"done": 1, "total": 2}, "surface": {"done": 2, "total": 2}}
 
 
+def test_progress_keeps_its_entries_in_the_order_first_reported(tmp_path):
+    """A job's progress entries, in its record and its events, in the order they were first reported (the pipeline's:
+    its steps announce them when the run starts), not sorted by name: a page lists key, box, surface, ... as they
+    run."""
+    store = JobStore(tmp_path / "jobs.sqlite")
+    j = store.create(kind="process", take="t", steps=["key", "surface", "spine"], params={})
+    order = ["key", "box", "surface", "skeleton", "spine"]
+    for step in order:
+        store.progress(j.id, step, 0, 2)
+    for step in reversed(order):
+        store.progress(j.id, step, 2, 2)
+    assert list(store.get(j.id).progress) == order
+    assert all(list(data["progress"]) == order for _, data in store.events(j.id)[1:])
+    assert list(JobStore(tmp_path / "jobs.sqlite").get(j.id).progress) == order  # (as read back from the file)
+
+
 def test_runner_resumes_an_interrupted_job_with_the_same_output(tmp_path):
     takes, jobs = tmp_path / "takes", tmp_path / "jobs"
     takes.mkdir()
