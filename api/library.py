@@ -116,6 +116,36 @@ class TakeLibrary:
             out.update(_describe(r))
         return out
 
+    def attach_calibration(self, take_id: str, calibration: Any) -> dict[str, Any]:
+        """Make ``calibration``, cut to the take's cameras, the take's (in its derived file, which readers
+        prefer: the recording is not rewritten); returns the take's description after.
+
+        Raises
+        ------
+        ValueError
+            ``calibration`` is not a Calibration.
+        ConflictError
+            It lacks one of the take's cameras, or the take is still being written.
+        """
+        from calib.calibration import Calibration
+        from stage.store import attach_calibration
+
+        if not isinstance(calibration, Calibration):
+            raise ValueError(f"calibration must be a calib.Calibration, got {type(calibration).__name__}")
+        p = self.path(take_id)
+        with _reading(p, take_id) as r:
+            cams, complete = list(r.cameras), bool(r.complete)
+        if not complete:
+            raise ConflictError(f"take {take_id!r} is still being written; calibrate it once it is closed")
+        missing = [c for c in cams if c not in calibration.names]
+        if missing:
+            raise ConflictError(f"the calibration has no camera {', '.join(missing)} of take {take_id!r} "
+                                f"(it has {', '.join(calibration.names)})")
+        attach_calibration(p, Calibration(cameras=tuple(calibration[c] for c in cams), units=calibration.units,
+                                          meta=dict(calibration.meta)))
+        log.info("take %s: calibration attached", take_id)
+        return self.info(take_id)
+
     def image(self, take_id: str, index: int, camera: str, *, kind: str, fmt: str) -> bytes:
         """Frame ``index`` of ``camera`` (``kind="image"``) or its mask (``"mask"``), encoded as PNG or JPEG."""
         import cv2

@@ -1,4 +1,5 @@
-"""``/takes``: list, describe, view frames and masks, import (upload or path in the data root), delete."""
+"""``/takes``: list, describe, view frames and masks, import (upload or path in the data root), give a take a
+calibration, delete."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from api.deps import LibraryDep, ReadAccess, StoreDep, TakeId, TakeRef, WriteAccess
 from api.errors import ConflictError
-from api.paths import TAKE_ID
+from api.paths import JOB_ID, TAKE_ID
 
 router = APIRouter(prefix="/takes", tags=["takes"])
 
@@ -129,6 +130,29 @@ async def upload_take_multipart(request: Request, library: LibraryDep, _: WriteA
 def import_take_path(body: ImportPath, library: LibraryDep, _: WriteAccess) -> dict:
     """Import a take file from a path inside the data root (e.g. copied there by rsync)."""
     return library.import_path(body.take, body.path, masks=body.masks)
+
+
+class TakeCalibration(BaseModel):
+    """A calibration of the server's (``GET /calibrations``) to make a take's."""
+
+    model_config = ConfigDict(extra="forbid")
+    calibration: Annotated[str, Field(pattern=JOB_ID, description="calibration id (32 hex digits)")]
+
+
+@router.put("/{take_id}/calibration", response_model=TakeInfo,
+            responses={404: {"description": "no such take or calibration"},
+                       409: {"description": "the calibration lacks a camera of the take / the take is being written or "
+                                            "used by active jobs"}})
+def put_take_calibration(take_id: TakeId, body: TakeCalibration, request: Request, library: LibraryDep,
+                         store: StoreDep, _: WriteAccess) -> dict:
+    """Make a calibration the take's (cut to its cameras; stored beside the recording, which is not rewritten): a
+    take recorded before the rig was calibrated can then be processed."""
+    library.path(take_id)
+    active = store.active_for_take(take_id)
+    if active:
+        raise ConflictError(f"take {take_id!r} is used by active job(s) {', '.join(active)}; wait for them or cancel them")
+    cal = request.app.state.calibrations.load(body.calibration)  # 404 when there is none
+    return library.attach_calibration(take_id, cal)
 
 
 @router.delete("/{take_id}", status_code=status.HTTP_204_NO_CONTENT, responses={409: {"description": "jobs still use it"}})

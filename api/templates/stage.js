@@ -423,6 +423,7 @@
         td5.className = i.data.calibration ? '' : 'err';
         b.disabled = !i.data.calibration;
         if (!i.data.calibration) b.title = 'the take has no calibration';
+        if (!i.data.calibration && i.data.complete !== false) offerCalibration(tr, t.id, td5);
         showJob(tr, lastJobs[t.id]);  // (a board take's calibration cell reads by its job)
         td4.textContent = (sync.sets_complete !== undefined ? sync.sets_complete + ' complete sets, ' : '') +
           (sync.spread_median_ms !== undefined ? 'sync spread median ' + fmt(sync.spread_median_ms, 2) + ' ms' : '') +
@@ -430,6 +431,23 @@
       });
     }
   }
+  // ---- a take recorded without a calibration can be given the newest one the server has (PUT /takes/{id}/calibration)
+  async function offerCalibration(tr, take, td){
+    const r = await api('GET', '/calibrations');
+    if (!r.ok || !r.data.length || td.textContent.startsWith('none: a board take')) return;
+    const newest = r.data[r.data.length - 1];  // (listed oldest first)
+    const b = document.createElement('button'); b.className = 'use-cal';
+    b.textContent = 'use calibration ' + newest.id.slice(0, 8);
+    b.title = 'make calibration ' + newest.id + ' (the newest on this server) this take\'s, so it can be processed';
+    b.addEventListener('click', async () => {
+      const p = await api('PUT', '/takes/' + encodeURIComponent(take) + '/calibration', {calibration: newest.id});
+      if (!p.ok){ say($('rec-msg'), 'take ' + take + ' not calibrated: ' + detail(p), 'bad'); return; }
+      say($('rec-msg'), 'take ' + take + ' now has calibration ' + newest.id.slice(0, 8), 'good');
+      takes();
+    });
+    td.append(' ', b);
+  }
+
   // ---- each listed take's newest job: state, progress, report link, a failure's first line
   let lastJobs = {};
   function showJob(tr, j){

@@ -5,7 +5,9 @@ that goes away while previewed, the live 3-D preview's capture volume, and the p
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -612,3 +614,51 @@ def test_the_stage_link_of_a_server_without_cameras_says_how_to_start_one(tmp_pa
         srv.cleanup()
     assert kind == "text/html" and status == 404, (kind, status)
     assert said.startswith("No stage session: this server was started without cameras.") and "--rig" in said, said
+
+
+def test_a_take_recorded_before_the_calibration_is_given_it_from_the_take_list(tmp_path):
+    """A take recorded without a calibration, then a calibration made on the server: the take's row offers the
+    newest one; pressed, the take has it (cut to its cameras, in order), the row says yes and "process" is enabled.
+    The API refuses a calibration lacking one of the take's cameras (409, naming it) and an unknown one (404)."""
+    import httpx
+
+    from tests.stage.frames import calibration
+
+    sync_playwright = sync_playwright_or_skip()
+    ids = ["a", "b"]
+    with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=make_drivers(ids))) as srv, \
+            sync_playwright() as p:
+        lib = srv.app.state.calibrations
+        browser, page, errors = _open(p, srv.url)
+        try:
+            _record(page, "early", 0.5)
+            assert _take_row(page, "early")[4] == "none: cannot be processed"
+            short = lib.save(calibration(["a"]))
+            made = calibration(["b", "x", "a"])  # more cameras than the take, in another order
+            cid = lib.save(made)
+            old = time.time() - 60  # the newest is the one offered: made, not short
+            os.utime(srv.app.state.settings.calibrations_dir / f"{short}.json", (old, old))
+            auth = {"Authorization": f"Bearer {TOKEN}"}
+            lacking = httpx.put(srv.url + "/takes/early/calibration", json={"calibration": short}, headers=auth, timeout=10)
+            unknown = httpx.put(srv.url + "/takes/early/calibration", json={"calibration": "0" * 32}, headers=auth,
+                                timeout=10)
+            page.reload(wait_until="load")  # (the token stays: the tab keeps it)
+            page.wait_for_selector('#take-list tr[data-take="early"] button.use-cal', timeout=10_000)
+            offer = page.text_content('#take-list tr[data-take="early"] button.use-cal')
+            page.click('#take-list tr[data-take="early"] button.use-cal')
+            page.wait_for_function("() => { const r = document.querySelector('#take-list tr[data-take=\"early\"]');"
+                                   " return r && r.cells[4].textContent === 'yes'; }", timeout=10_000)
+            enabled = page.locator('#take-list tr[data-take="early"] button').first.is_enabled()
+            said = page.text_content("#rec-msg")
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert lacking.status_code == 409 and "no camera b of take 'early'" in lacking.json()["detail"], lacking.text
+    assert unknown.status_code == 404, unknown.text
+    assert offer == f"use calibration {cid[:8]}" and enabled, offer
+    assert said == f"take early now has calibration {cid[:8]}", said
+    with TakeReader(srv.takes / "early.h5") as t:
+        cal = t.calibration
+    assert cal.names == ["a", "b"]
+    for n in ("a", "b"):
+        np.testing.assert_array_equal(cal[n].t, made[n].t)
