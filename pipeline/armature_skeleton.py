@@ -14,7 +14,8 @@ and a curve skeleton running inside it:
    its nearest surface vertices);
 5. a bone whose straight segment leaves the mesh (segment-triangle test) is
    split at the middle of the curve path between its ends, until every bone
-   is inside (at most ``max_splits`` rounds).
+   is inside (at most ``max_splits`` rounds); a bone whose curve path itself
+   crosses the mesh is left whole (no split brings it inside).
 
 The paper's curve skeleton is the mean curvature skeleton (Tagliasacchi et
 al. 2012). Here it is the spine's curve skeleton in the rest frame (where
@@ -559,11 +560,23 @@ def articulated_skeleton(
     # 4. drop end bones inside one segment
     bones = _drop_end_bones(bones, key, joint_pairs, node_seg)
     # 5. split bones that leave the mesh
-    for _ in range(int(max_splits)):
-        split = []
-        for i, (a, b, path) in enumerate(bones):
-            if len(path) > 2 and segment_hits_mesh(P[a], P[b], v, f):
-                split.append(i)
+    bones = _split_bones(bones, key, P, v, f, max_splits=int(max_splits))
+    P = P.copy()
+    for node, c in pivots.items():
+        P[node] = c
+    return replace(_hang(P, bones, joint_pairs, node_seg, lab, how), limb_contacts=tuple(contacts))
+
+
+def _split_bones(bones: list, key: set, P: np.ndarray, v, f, *, max_splits: int) -> list:
+    """Step 5 of :func:`articulated_skeleton`: every bone ``(a, b, path)`` whose straight segment leaves the mesh is
+    split at the middle of its curve ``path`` (the node added to ``key``), at most ``max_splits`` rounds. A bone
+    whose curve path itself crosses the mesh (a ragged surface's, a real four-camera hull's) is left whole: no split
+    brings it inside, and every round halved such bones again (docs/notes/armature-decisions.md, "Bones not split
+    where their curve path itself leaves the mesh")."""
+    for _ in range(max_splits):
+        split = [i for i, (a, b, path) in enumerate(bones)
+                 if len(path) > 2 and segment_hits_mesh(P[a], P[b], v, f)
+                 and not any(segment_hits_mesh(P[path[j]], P[path[j + 1]], v, f) for j in range(len(path) - 1))]
         if not split:
             break
         for i in sorted(split, reverse=True):
@@ -573,10 +586,7 @@ def articulated_skeleton(
             key.add(m)
             bones.append((a, m, path[: mid + 1]))
             bones.append((m, b, path[mid:]))
-    P = P.copy()
-    for node, c in pivots.items():
-        P[node] = c
-    return replace(_hang(P, bones, joint_pairs, node_seg, lab, how), limb_contacts=tuple(contacts))
+    return bones
 
 
 def _key_bones(adj, key) -> list:
