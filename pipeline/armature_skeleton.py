@@ -568,10 +568,8 @@ def articulated_skeleton(
 
 
 def _split_bones(bones: list, key: set, P: np.ndarray, v, f, *, max_splits: int) -> list:
-    """Step 5 of :func:`articulated_skeleton`: every bone ``(a, b, path)`` whose straight segment leaves the mesh is
-    split at the middle of its curve ``path`` (the node added to ``key``), at most ``max_splits`` rounds. A bone
-    whose curve path itself crosses the mesh (a ragged surface's, a real four-camera hull's) is left whole: no split
-    brings it inside, and every round halved such bones again (docs/notes/armature-decisions.md, "Bones not split
+    """Step 5 of :func:`articulated_skeleton` (``key`` gets the nodes added): a bone whose curve ``path`` itself
+    crosses the mesh is left whole, no split brings it inside (docs/notes/armature-decisions.md, "Bones not split
     where their curve path itself leaves the mesh")."""
     for _ in range(max_splits):
         split = [i for i, (a, b, path) in enumerate(bones)
@@ -582,10 +580,8 @@ def _split_bones(bones: list, key: set, P: np.ndarray, v, f, *, max_splits: int)
         for i in sorted(split, reverse=True):
             a, b, path = bones.pop(i)
             mid = len(path) // 2
-            m = path[mid]
-            key.add(m)
-            bones.append((a, m, path[: mid + 1]))
-            bones.append((m, b, path[mid:]))
+            key.add(path[mid])
+            bones += [(a, path[mid], path[: mid + 1]), (path[mid], b, path[mid:])]
     return bones
 
 
