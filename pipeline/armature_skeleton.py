@@ -14,8 +14,7 @@ and a curve skeleton running inside it:
    its nearest surface vertices);
 5. a bone whose straight segment leaves the mesh (segment-triangle test) is
    split at the middle of the curve path between its ends, until every bone
-   is inside (at most ``max_splits`` rounds); a bone whose curve path itself
-   crosses the mesh is left whole (no split brings it inside).
+   is inside (at most ``max_splits`` rounds).
 
 The paper's curve skeleton is the mean curvature skeleton (Tagliasacchi et
 al. 2012). Here it is the spine's curve skeleton in the rest frame (where
@@ -560,29 +559,24 @@ def articulated_skeleton(
     # 4. drop end bones inside one segment
     bones = _drop_end_bones(bones, key, joint_pairs, node_seg)
     # 5. split bones that leave the mesh
-    bones = _split_bones(bones, key, P, v, f, max_splits=int(max_splits))
-    P = P.copy()
-    for node, c in pivots.items():
-        P[node] = c
-    return replace(_hang(P, bones, joint_pairs, node_seg, lab, how), limb_contacts=tuple(contacts))
-
-
-def _split_bones(bones: list, key: set, P: np.ndarray, v, f, *, max_splits: int) -> list:
-    """Step 5 of :func:`articulated_skeleton` (``key`` gets the nodes added): a bone whose curve ``path`` itself
-    crosses the mesh is left whole, no split brings it inside (docs/notes/armature-decisions.md, "Bones not split
-    where their curve path itself leaves the mesh")."""
-    for _ in range(max_splits):
-        split = [i for i, (a, b, path) in enumerate(bones)
-                 if len(path) > 2 and segment_hits_mesh(P[a], P[b], v, f)
-                 and not any(segment_hits_mesh(P[path[j]], P[path[j + 1]], v, f) for j in range(len(path) - 1))]
+    for _ in range(int(max_splits)):
+        split = []
+        for i, (a, b, path) in enumerate(bones):
+            if len(path) > 2 and segment_hits_mesh(P[a], P[b], v, f):
+                split.append(i)
         if not split:
             break
         for i in sorted(split, reverse=True):
             a, b, path = bones.pop(i)
             mid = len(path) // 2
-            key.add(path[mid])
-            bones += [(a, path[mid], path[: mid + 1]), (path[mid], b, path[mid:])]
-    return bones
+            m = path[mid]
+            key.add(m)
+            bones.append((a, m, path[: mid + 1]))
+            bones.append((m, b, path[mid:]))
+    P = P.copy()
+    for node, c in pivots.items():
+        P[node] = c
+    return replace(_hang(P, bones, joint_pairs, node_seg, lab, how), limb_contacts=tuple(contacts))
 
 
 def _key_bones(adj, key) -> list:

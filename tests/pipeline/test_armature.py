@@ -607,37 +607,3 @@ def test_an_uncertain_centre_beyond_the_boundary_is_drawn_towards_it():
     (Ra, ta), (Rb, tb) = rigid_motions(W[:, ~right]), rigid_motions(W[:, right])
     exact = _drawn_centre((Ra, ta), (Rb, tb), point, residual=1e-6, radius=12.0)
     np.testing.assert_allclose(exact[:2], pivot[:2], atol=1e-6)
-
-
-def _l_bar():
-    """A watertight L-shaped bar 2 x 2 thick: along x from -1 to 11 (y within -1..1), then along y up to 11 (x within
-    9..11); z within -1..1."""
-    L = np.array([(-1, -1), (11, -1), (11, 11), (9, 11), (9, 1), (-1, 1)], float)
-    v = np.vstack([np.c_[L, np.full(6, -1.0)], np.c_[L, np.full(6, 1.0)]])
-    cap = [(4, 5, 0), (4, 0, 1), (4, 1, 2), (4, 2, 3)]
-    f = [t for t in cap] + [(a + 6, c + 6, b + 6) for a, b, c in cap]
-    for i in range(6):
-        j = (i + 1) % 6
-        f += [(i, j, j + 6), (i, j + 6, i + 6)]
-    return v, np.array(f)
-
-
-def test_a_bone_is_split_where_its_chord_leaves_the_mesh_and_its_curve_does_not():
-    """The L bar's axis as a bone from one end to the other: its chord cuts the corner out of the bar, its curve
-    stays inside: split at the curve's middle (the corner), once. The same bone whose curve leaves the bar (its
-    middle point pushed out below the bar, as a ragged surface's curve skeleton does) is left whole: a split cannot
-    bring it inside, and four rounds of halving gave a real take's armature 167 joints without a degree of freedom."""
-    from pipeline.armature_skeleton import _split_bones, segment_hits_mesh
-
-    v, f = _l_bar()
-    P = np.array([(0, 0, 0), (5, 0, 0), (10, 0, 0), (10, 5, 0), (10, 10, 0)], float)
-    assert segment_hits_mesh(P[0], P[4], v, f)
-    assert not any(segment_hits_mesh(P[j], P[j + 1], v, f) for j in range(4))
-    key = {0, 4}
-    bones = _split_bones([(0, 4, [0, 1, 2, 3, 4])], key, P, v, f, max_splits=4)
-    assert sorted((a, b) for a, b, _ in bones) == [(0, 2), (2, 4)] and key == {0, 2, 4}
-    out = P.copy()
-    out[2] = (10, -3, 0)  # the curve's corner below the bar
-    key = {0, 4}
-    bones = _split_bones([(0, 4, [0, 1, 2, 3, 4])], key, out, v, f, max_splits=4)
-    assert [(a, b) for a, b, _ in bones] == [(0, 4)] and key == {0, 4}
