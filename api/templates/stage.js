@@ -137,6 +137,7 @@
     // stop only what runs; record stays pressable (a second take is refused by the server, which says why,
     // as it does for another browser's press)
     $('stop').disabled = recState !== 'recording';
+    $('recorder').classList.toggle('recording', recState === 'recording');  // seen from across the room
     $('rec-state').textContent = recState + (rec.take ? ' (' + rec.take + ')' : '');
     $('rec-frames').textContent = rec.frames_written || 0;
     $('rec-drops').textContent = rec.drops || 0;
@@ -379,6 +380,7 @@
             edges.length ? 'the subject reaches the capture volume\'s ' + edges.map((e) => e === 'z max' ? 'top (z max)' : e).join(', ') + ' side' + (edges.length > 1 ? 's' : '') +
             ': what is outside the volume is not reconstructed' : '', 'warn');
         $('live3d-edge').dataset.edges = edges.join(',');
+        $('live3d-box').hidden = live.state !== 'ok';
         $('live3d-info').textContent = live.state === 'ok' ? ('frame set ' + live.set + ': ' + live.occupied + ' voxels of ' + fmt(live.voxel, 0) +
           ' mm, ' + live.segments.length + ' spine segments; ' + fmt(rate, 1) + ' updates/s shown (' + fmt(live.updates_per_s, 1) + ' computed), ' +
           fmt(live.compute_ms, 0) + ' ms each' + (live.calibration ? '; ' + live.calibration : '') +

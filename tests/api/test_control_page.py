@@ -254,6 +254,7 @@ def test_the_live_view_says_when_the_subject_reaches_the_volume_s_edge(tmp_path)
             line = page.text_content("#live3d-edge")
             edges = page.get_attribute("#live3d-edge", "data-edges").split(",")
             kind = page.get_attribute("#live3d-edge", "class")
+            box_note = page.is_visible("#live3d-box")
             page.locator("#view3d").scroll_into_view_if_needed()
             page.screenshot(path=str(art / "live3d_edge.png"), full_page=True)
             # a calibration that lacks one of the rig's cameras: the hull is carved without it, and the view says so
@@ -269,6 +270,7 @@ def test_the_live_view_says_when_the_subject_reaches_the_volume_s_edge(tmp_path)
     assert line.startswith("the subject reaches the capture volume's ") and "z max" in line, line
     assert line.endswith("what is outside the volume is not reconstructed") and "warn" in kind, (line, kind)
     assert info.endswith("; a calibration; carved without west (not in the calibration)"), info
+    assert box_note  # (said only while a hull is drawn)
 
 
 def test_disk_state_warns_under_ten_minutes_and_calls_two_almost_full():
@@ -539,14 +541,18 @@ def test_the_recorder_refuses_a_bad_name_before_asking_and_says_a_refusal_plainl
             page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('recording')",
                                    timeout=10_000)
             recording = (page.is_enabled("#record"), page.is_enabled("#stop"))
+            banner = page.evaluate("() => [document.getElementById('recorder').classList.contains('recording'), "
+                                   "getComputedStyle(document.getElementById('recorder')).borderLeftWidth]")
             page.click("#stop")
             page.wait_for_function("() => document.getElementById('rec-state').textContent.startsWith('done')",
                                    timeout=15_000)
             done = (page.is_enabled("#record"), page.is_enabled("#stop"))
+            banner_after = page.evaluate("() => document.getElementById('recorder').classList.contains('recording')")
         finally:
             browser.close()
     assert not errors, errors
     assert idle == (True, False) and recording == (True, True) and done == (True, False), (idle, recording, done)
+    assert banner == [True, "8px"] and not banner_after, (banner, banner_after)  # the recorder says it, across the room
     assert bad_name.startswith("not recording: a take name is letters, digits") and asked == [], (bad_name, asked)
     assert spread.endswith(" (sets group within 8.3 ms)"), spread  # half the 60 fps rig's period
     assert refused.startswith("not recording: (422) duration_s: ") and "[{" not in refused, refused
