@@ -178,7 +178,8 @@ def create_app(settings: Settings | None = None, *, work: str | Callable[..., An
     app.state.library = TakeLibrary(settings.takes_dir, max_upload_bytes=settings.max_upload_bytes, data_root=settings.data)
     app.state.calibrations = CalibrationLibrary(settings.calibrations_dir)
     app.state.capture = CaptureManager(settings.rig_path, settings.takes_dir, driver_factory=driver_factory,
-                                       session=None if control is None else control.session)
+                                       session=None if control is None else control.session,
+                                       take_calibration=None if control is None else control.take_calibration)
     app.state.control = control
     if control is not None and control.calibrations is None:  # the 3-D preview finds the calibrations made here
         control.calibrations = app.state.calibrations

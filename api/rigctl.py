@@ -51,10 +51,21 @@ class CaptureManager:
         The rig TOML file.
     takes_dir : Path
         Where takes are written.
+    driver_factory : callable, optional
+        ``(config, rig) -> CameraDriver``; default :func:`stage.drivers.open_driver`.
+    session : StageSession, optional
+        A running stage session: captures record from its cameras.
+    take_calibration : callable, optional
+        ``() -> (Calibration or None, message)``: what a take recorded from the session stores
+        (:meth:`api.control.ControlRoom.take_calibration`); None: no calibration.
     """
 
-    def __init__(self, rig_path: Path, takes_dir: Path, *, driver_factory: Any = None, session: Any = None) -> None:
+    def __init__(self, rig_path: Path, takes_dir: Path, *, driver_factory: Any = None, session: Any = None,
+                 take_calibration: Any = None) -> None:
+        if take_calibration is not None and not callable(take_calibration):
+            raise ValueError(f"take_calibration must be callable, got {type(take_calibration).__name__}")
         self.session = session  # a running stage.session.StageSession, or None
+        self.take_calibration = take_calibration
         self.driver_factory = driver_factory  # (config, rig) -> CameraDriver; default stage.drivers.open_driver
         self.rig_path = Path(rig_path)
         self.takes_dir = Path(takes_dir)
@@ -185,7 +196,8 @@ class CaptureManager:
         from stage.session import RecordingBusyError
 
         try:
-            self.session.start_recording(out, take=take, frames=frames, duration_s=duration_s)
+            cal = None if self.take_calibration is None else self.take_calibration()[0]
+            self.session.start_recording(out, take=take, frames=frames, duration_s=duration_s, calibration=cal)
         except (RecordingBusyError, FileExistsError) as exc:
             raise ConflictError(str(exc)) from None
         return self.status()

@@ -20,6 +20,7 @@ from stage.session import StageSession
 from stage.store import TakeReader
 from tests.api.liveserver import TOKEN, LiveServer
 from tests.browser import CHROMIUM, CHROMIUM_ARGS, artifacts_dir, sync_playwright_or_skip
+from tests.polling import wait_until
 from tests.stage.paced import PacedCamera, make_drivers, rig_for
 
 pytestmark = [pytest.mark.slow]
@@ -668,3 +669,30 @@ def test_a_take_recorded_before_the_calibration_is_given_it_from_the_take_list(t
     assert cal.names == ["a", "b"]
     for n in ("a", "b"):
         np.testing.assert_array_equal(cal[n].t, made[n].t)
+
+
+def test_a_rig_capture_through_the_session_holds_the_calibration_too(tmp_path):
+    """``POST /rig/capture`` on a server with a stage session records from its cameras and stores the same
+    calibration as the control room's record (it stored none)."""
+    import httpx
+
+    rig, drivers = _sim_rig(ROUND)
+    with LiveServer(tmp_path, StageSession(rig, tmp_path / "data" / "takes", drivers=drivers)) as srv:
+        r = httpx.post(srv.url + "/rig/capture", json={"take": "viarig", "frames": 5},
+                       headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10)
+        assert r.status_code == 202, r.text
+        wait_until(lambda: httpx.get(srv.url + "/rig/capture", timeout=10).json()["state"] == "done", timeout=20.0,
+                   poll=0.1, what="the capture")
+    true = take_for_rig(rig, size=(160, 120), fps=30.0).calibration
+    with TakeReader(srv.takes / "viarig.h5") as t:
+        cal = t.calibration
+    assert cal is not None and cal.names == [cid for cid, _ in ROUND]
+    for cid, index in ROUND:
+        np.testing.assert_array_equal(cal[cid].R, true.cameras[index].R)
+
+
+def test_capture_manager_invalid_input(tmp_path):
+    from api.rigctl import CaptureManager
+
+    with pytest.raises(ValueError, match="take_calibration"):
+        CaptureManager(tmp_path / "rig.toml", tmp_path, take_calibration=3)
