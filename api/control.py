@@ -55,8 +55,8 @@ def image_figures(image: np.ndarray) -> dict[str, Any]:
 
     Parameters
     ----------
-    image : (H, W, 3) or (H, W) uint8 ndarray
-        BGR, or grey (a mono camera's: its values are the luma).
+    image : (H, W, 3) uint8 ndarray
+        BGR.
 
     Returns
     -------
@@ -70,22 +70,16 @@ def image_figures(image: np.ndarray) -> dict[str, Any]:
         :data:`DARK_LEVEL`) or None.
     """
     img = np.asarray(image)
-    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3) or img.dtype != np.uint8 or min(img.shape[:2]) < 4:
-        raise ValueError(f"image must be an (H, W, 3) or (H, W) uint8 array of at least 4x4, got {img.dtype} {img.shape}")
-    if img.ndim == 2:
-        img = img[..., None]  # grey: one channel, itself the luma
-
-    def luma(a: np.ndarray) -> np.ndarray:
-        return a[..., 0] if a.shape[2] == 1 else cv2.cvtColor(np.ascontiguousarray(a), cv2.COLOR_BGR2GRAY)
-
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8 or min(img.shape[:2]) < 4:
+        raise ValueError(f"image must be an (H, W, 3) uint8 array of at least 4x4, got {img.dtype} {img.shape}")
     h, w = img.shape[:2]
     step = max(1, w // IMAGE_FIGURES_WIDTH)
     sub = img[::step, ::step]  # every step-th pixel: the level and the clipped share without averaging highlights away
-    level = float(np.median(luma(sub)))
+    level = float(np.median(cv2.cvtColor(sub, cv2.COLOR_BGR2GRAY)))
     clipped = float((sub >= 250).any(axis=2).mean() * 100.0)
     ch, cw = min(h - 2 * (h // 4), SHARPNESS_CROP), min(w - 2 * (w // 4), SHARPNESS_CROP)
     y0, x0 = (h - ch) // 2, (w - cw) // 2
-    centre = np.ascontiguousarray(luma(img[y0:y0 + ch, x0:x0 + cw]))
+    centre = cv2.cvtColor(np.ascontiguousarray(img[y0:y0 + ch, x0:x0 + cw]), cv2.COLOR_BGR2GRAY)
     sharpness = float(cv2.Laplacian(centre, cv2.CV_64F, ksize=1).var())
     exposure = "overexposed" if clipped > CLIPPED_PCT else "dark" if level < DARK_LEVEL else None
     return {"level": level, "clipped_pct": clipped, "sharpness": sharpness, "exposure": exposure}

@@ -419,9 +419,6 @@ def test_image_figures_against_a_count_by_hand():
     half[:, :30] = 255
     assert image_figures(half)["clipped_pct"] == 50.0 and image_figures(half)["exposure"] == "overexposed"
     assert image_figures(np.full((8, 8, 3), 20, np.uint8))["exposure"] == "dark"
-    # a mono camera's grey picture: its values are the luma (the same figures as a grey colour picture)
-    grey = rng.integers(0, 256, (60, 80)).astype(np.uint8)
-    assert image_figures(grey) == image_figures(np.repeat(grey[..., None], 3, axis=2))
     sharp = np.kron((np.indices((10, 15)).sum(0) % 2) * 200 + 20, np.ones((4, 4))).astype(np.uint8)[..., None].repeat(3, 2)
     blurred = cv2.GaussianBlur(sharp, (9, 9), 3)
     assert image_figures(blurred)["sharpness"] < image_figures(sharp)["sharpness"] / 4
@@ -430,8 +427,7 @@ def test_image_figures_against_a_count_by_hand():
 def test_image_figures_invalid_input():
     from api.control import image_figures
 
-    for bad in (np.zeros((10, 10, 4), np.uint8), np.zeros((10, 10, 3), np.float32), np.zeros((2, 10, 3), np.uint8),
-                np.zeros((10,), np.uint8)):
+    for bad in (np.zeros((10, 10), np.uint8), np.zeros((10, 10, 3), np.float32), np.zeros((2, 10, 3), np.uint8)):
         with pytest.raises(ValueError, match="image"):
             image_figures(bad)
 
