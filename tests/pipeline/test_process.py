@@ -2,7 +2,7 @@
 
 import contextlib
 import json
-import time
+import threading
 
 import numpy as np
 import pytest
@@ -460,15 +460,38 @@ def test_worker_pools_survive_opencv_threads_in_the_parent(tmp_path):
     assert run.returncode == 0 and "finished" in run.stdout, run.stderr[-2000:]
 
 
-def _burn(seconds: float) -> None:
-    c0 = time.process_time()
-    while time.process_time() - c0 < seconds:
-        pass
+class _Clock:
+    """The run's clocks (``time.perf_counter`` and ``time.process_time`` as ``pipeline.run.context`` reads them),
+    moved only by :meth:`burn`: the process's CPU seconds count every thread of the pytest process, so a real
+    clock's bounds fail whenever another test's thread is busy."""
+
+    def __init__(self):
+        self.now = 0.0
+        self.lock = threading.Lock()
+
+    def burn(self, seconds: float) -> None:
+        with self.lock:
+            self.now += seconds
+
+    def perf_counter(self) -> float:
+        return self.now
+
+    process_time = perf_counter
 
 
-def test_cpu_seconds_of_a_thread_pool_count_once_and_parts_count_apart():
+@pytest.fixture
+def clock(monkeypatch):
+    import pipeline.run.context as context
+
+    fake = _Clock()
+    monkeypatch.setattr(context, "time", fake)
+    return fake
+
+
+def test_cpu_seconds_of_a_thread_pool_count_once_and_parts_count_apart(clock):
     """A thread pool's tasks run in this process: their CPU is the step's own, not added again as
-    workers'; a part of a step (the surface step's grid) is counted on its own, not in the step."""
+    workers'; a part of a step (the surface step's grid) is counted on its own, not in the step.
+    Exact to 1e-9 s on the fake clock."""
     import concurrent.futures as cf
     from functools import partial
     from pathlib import Path
@@ -477,21 +500,23 @@ def test_cpu_seconds_of_a_thread_pool_count_once_and_parts_count_apart():
 
     def step(ctx):
         with ctx.part("inner"):
-            _burn(0.1)
-        list(ctx.map_tasks([partial(_burn, 0.1)]))
+            clock.burn(0.1)
+        list(ctx.map_tasks([partial(clock.burn, 0.1)]))
 
     with cf.ThreadPoolExecutor(1) as ex:
         ctx = Run(out=Path("out"), executor=ex)
         ctx.run_step("burn", step)
-    clock = ctx.clock
-    assert clock.worker_cpu == {}
-    assert 0.1 <= clock.cpu["inner"] < 0.15 and clock.wall["inner"] >= 0.1
-    assert 0.1 <= clock.cpu["burn"] < 0.15, clock.cpu  # the task counted once (twice, and its part again: 0.3)
-    assert clock.wall["burn"] >= 0.1 and clock.in_parts["burn"][0] >= 0.1  # the step's own wall seconds, apart
+    c = ctx.clock
+    assert c.worker_cpu == {}
+    assert c.cpu["inner"] == pytest.approx(0.1, abs=1e-9) and c.wall["inner"] == pytest.approx(0.1, abs=1e-9)
+    assert c.cpu["burn"] == pytest.approx(0.1, abs=1e-9), c.cpu  # the task counted once (twice, and its part again: 0.3)
+    assert c.wall["burn"] == pytest.approx(0.1, abs=1e-9)  # the step's own wall seconds, apart from its part's
+    assert c.in_parts["burn"] == pytest.approx((0.1, 0.1), abs=1e-9)
 
 
-def test_a_part_run_several_times_counts_every_run():
-    """``Run.part`` adds up: wall and CPU seconds of every run of a part, none of them in the step's."""
+def test_a_part_run_several_times_counts_every_run(clock):
+    """``Run.part`` adds up: wall and CPU seconds of every run of a part, none of them in the step's.
+    Exact to 1e-9 s on the fake clock."""
     from pathlib import Path
 
     from pipeline.run import Run
@@ -499,15 +524,16 @@ def test_a_part_run_several_times_counts_every_run():
     def step(ctx):
         for _ in range(2):
             with ctx.part("inner"):
-                _burn(0.05)
-        _burn(0.05)
+                clock.burn(0.05)
+        clock.burn(0.05)
 
     ctx = Run(out=Path("out"))
     ctx.run_step("burn_twice", step)
-    clock = ctx.clock
-    assert clock.cpu["inner"] >= 0.1 and clock.wall["inner"] >= 0.1, clock.cpu  # 0.05: the last run only
-    assert 0.05 <= clock.cpu["burn_twice"] < 0.09, clock.cpu
-    assert 0.05 <= clock.wall["burn_twice"] < clock.wall["inner"], clock.wall  # the parts' seconds not counted twice
+    c = ctx.clock
+    assert c.cpu["inner"] == pytest.approx(0.1, abs=1e-9), c.cpu  # 0.05: the last run only
+    assert c.wall["inner"] == pytest.approx(0.1, abs=1e-9), c.wall
+    assert c.cpu["burn_twice"] == pytest.approx(0.05, abs=1e-9), c.cpu  # the parts' seconds not counted twice
+    assert c.wall["burn_twice"] == pytest.approx(0.05, abs=1e-9), c.wall
 
 
 # ----------------------------------------------------------------------------- start-over and what follows the surfaces
