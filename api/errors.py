@@ -99,12 +99,13 @@ def install_handlers(app: FastAPI) -> None:
             loc = [p if isinstance(p, (str, int)) else str(p) for p in e.get("loc", ())]
             msg = _scrub(request, str(e.get("msg", "invalid")))
             detail.append({"loc": loc, "msg": msg, "type": str(e.get("type", "value_error"))})
-        # a malformed id in the URL (e.g. a path traversal attempt) is a bad request, not an unprocessable body; its
-        # message says what the parameter is, not the regular expression it failed
-        if detail and all(d["loc"][:1] == ["path"] for d in detail):
-            said = [_path_said(request, e, d) for e, d in zip(exc.errors(), detail)]
-            msg = "; ".join(f"{'.'.join(str(p) for p in d['loc'])}: {m}" for d, m in zip(detail, said))
-            return JSONResponse({"detail": msg, "errors": detail}, status_code=400)
+        # a malformed id in the URL (e.g. a path traversal attempt) is a bad request, not an unprocessable body,
+        # whatever the body (the URL names nothing, so the body is not judged); its message says what the parameter
+        # is, not the regular expression it failed
+        in_path = [(e, d) for e, d in zip(exc.errors(), detail) if d["loc"][:1] == ["path"]]
+        if in_path:
+            msg = "; ".join(f"{'.'.join(str(p) for p in d['loc'])}: {_path_said(request, e, d)}" for e, d in in_path)
+            return JSONResponse({"detail": msg, "errors": [d for _, d in in_path]}, status_code=400)
         return JSONResponse({"detail": detail}, status_code=422)
 
     @app.exception_handler(InvalidIdError)

@@ -37,6 +37,8 @@ def _routes():
 
 
 ROUTES = _routes()
+#: a valid JSON body for the routes that take one (the others get an empty raw body), so that what is judged is the id
+BODIES = {("PUT", "/takes/{take_id}/calibration"): {"calibration": "0" * 32}}
 
 
 def _quoted(form: str) -> str:
@@ -71,7 +73,11 @@ def test_every_id_form_on_every_route_is_400_or_404(client, data_root, tmp_path)
                 url = path
                 for p in params:
                     url = url.replace("{" + p + "}", _quoted(form) if p == param else VALID[p])
-                r = client.request(method, url, headers={**AUTH, "Content-Type": "application/x-hdf5"}, content=b"")
+                body = BODIES.get((method, path))
+                if body is None:
+                    r = client.request(method, url, headers={**AUTH, "Content-Type": "application/x-hdf5"}, content=b"")
+                else:
+                    r = client.request(method, url, headers=AUTH, json=body)
                 seen += 1
                 no_rig = path.startswith("/rig") and r.status_code == 503 and "no rig file" in r.text  # none set up
                 assert r.status_code < 500 or no_rig, (method, url, r.status_code, r.text[:200])
@@ -80,6 +86,9 @@ def test_every_id_form_on_every_route_is_400_or_404(client, data_root, tmp_path)
                         method == "PUT" and r.status_code in (400, 409)), (method, url, r.status_code, r.text[:200])
                 assert derived.is_file() and take.is_file(), (method, url)
     assert seen > 300
+    # a malformed id with a body that is wrong too is a bad request (the URL names nothing), not an unprocessable body
+    r = client.put("/takes/take1.derived/calibration", headers=AUTH, json={})
+    assert r.status_code == 400 and "take_id" in r.json()["detail"] and "body" not in r.text, r.text
     assert sorted(p.name for p in tmp_path.rglob("*") if not p.is_relative_to(data_root)) == before
     assert (outside / "passwd.h5").read_bytes() == b"secret"
     # the take's own routes still work: the rule refuses only what it must
