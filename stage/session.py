@@ -81,6 +81,10 @@ class CameraLive:
         return (len(t) - 1) / max(t[-1] - t[0], 1e-9)
 
 
+#: the window (s) of a camera's recent dropped frames in :meth:`StageSession.figures`
+RECENT_DROPS_S = 10.0
+
+
 def recording_rate_bytes(rig: Rig) -> float:
     """Bytes per second a take of ``rig`` needs (raw BGR frames; JPEG-stored ones a tenth)."""
     total = 0.0
@@ -138,6 +142,8 @@ class StageSession:
         self._grouper = StreamGrouper(self.ids, period_ns=period_ns, tolerance_ns=rig.tolerance_ns,
                                       timeout_ns=max(4 * period_ns, 500_000_000), window=live_sync_window(rig.fps))
         self._spreads: collections.deque = collections.deque(maxlen=30)
+        self._recent_sets: collections.deque = collections.deque(maxlen=30)  # the last sets' frame times
+        self._gaps: collections.deque = collections.deque()  # (clock, {camera: sequence gaps}) of the last 10 s
         self._latest_set: FrameSet | None = None
         self._sets = 0
         self._recorder: TakeRecorder | None = None
@@ -273,6 +279,7 @@ class StageSession:
         for fs in sets:
             with self._lock:
                 self._spreads.append(fs.spread_ns)
+                self._recent_sets.append(dict(fs.times_ns))
                 self._latest_set = fs
                 self._sets += 1
 
@@ -340,6 +347,15 @@ class StageSession:
                     "pixel_format": None if g is None else g.pixel_format,
                 })
             sets = self._sets
+            recent = list(self._recent_sets)
+            self._gaps.append((now, {c["id"]: c["dropped"] for c in cams}))
+            while self._gaps and self._gaps[0][0] < now - RECENT_DROPS_S:
+                self._gaps.popleft()
+            first = self._gaps[0][1]
+        offsets = sync_offsets(recent, cameras=self.ids)
+        for c in cams:
+            c["sync"] = {**offsets[c["id"]], "sets": len(recent)}
+            c["dropped_recent"] = c["dropped"] - first.get(c["id"], 0)
         snap = rec.get("live") or {}
         for c in cams:
             c.update(self._bus(c["id"]))
@@ -459,6 +475,44 @@ def _levels(frame: Frame | None, granted: Granted | None) -> dict[str, Any]:
         exposure = granted.exposure if exposure is None else exposure
         gain = granted.extra.get("gain") if gain is None else gain
     return {"exposure_ms": exposure, "gain": gain, "gain_unit": None if granted is None else granted.extra.get("gain_unit")}
+
+
+def sync_offsets(sets: list[Mapping[str, int]], *, cameras: list[str]) -> dict[str, dict[str, Any]]:
+    """How late each camera's frames are against the others' in frame sets.
+
+    Parameters
+    ----------
+    sets : list of dict of str -> int
+        The present frames' mapped (host-clock) times of each set, ns (:attr:`stage.sync.FrameSet.times_ns`).
+    cameras : list of str
+        The cameras to report, also those in no set.
+
+    Returns
+    -------
+    dict of str -> dict
+        Per camera ``offset_ms``: the median over the sets with it and at least one other camera of its
+        time minus the median time of the set's frames (positive: later than the others; None in no such
+        set), and ``missing``: the sets without it.
+    """
+    if not isinstance(cameras, (list, tuple)) or not all(isinstance(c, str) for c in cameras):
+        raise ValueError(f"cameras: a list of camera ids, got {cameras!r}")
+    if not isinstance(sets, (list, tuple)) or not all(isinstance(t, Mapping) for t in sets):
+        raise ValueError("sets: a list of {camera: time_ns} mappings")
+    per: dict[str, list[float]] = {c: [] for c in cameras}
+    for times in sets:
+        if len(times) < 2:
+            continue
+        v = sorted(times.values())
+        mid = (v[(len(v) - 1) // 2] + v[len(v) // 2]) / 2
+        for c, t in times.items():
+            if c in per:
+                per[c].append(t - mid)
+    out = {}
+    for c in cameras:
+        d = sorted(per[c])
+        med = None if not d else (d[(len(d) - 1) // 2] + d[len(d) // 2]) / 2 / 1e6
+        out[c] = {"offset_ms": med, "missing": sum(c not in t for t in sets)}
+    return out
 
 
 def _spread_ms(spreads: list) -> dict[str, float | None]:

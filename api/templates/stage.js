@@ -100,7 +100,17 @@
     role(c.id, 'state').textContent = gone ? (c.state === 'failed' ? 'failed to open' : 'DISCONNECTED') : c.state;
     role(c.id, 'error').textContent = c.error ? ' ' + c.error : '';
     role(c.id, 'fps').textContent = fmt(c.fps);
-    role(c.id, 'dropped').textContent = c.dropped;
+    role(c.id, 'dropped').textContent = c.dropped + (c.dropped_recent ? ' (' + c.dropped_recent + ' in the last 10 s)' : '');
+    role(c.id, 'dropped').className = c.dropped_recent ? 'warn' : '';
+    // how late this camera's frames are against the others' in the last frame sets; amber only for what was
+    // lost: sets without it (it is not in their 3-D), frames the device dropped just now
+    const sy = c.sync || {}; const syEl = role(c.id, 'sync');
+    const off = sy.offset_ms;
+    const miss = !gone && sy.missing ? 'MISSING from ' + sy.missing + ' of the last ' + sy.sets + ' frame sets; ' : '';
+    syEl.textContent = gone || !sy.sets ? 'sync –' : miss + (off === null || off === undefined ? 'sync: in no set with another camera' :
+      'sync: ' + (Math.abs(off) < 0.05 ? 'on time' : fmt(Math.abs(off), 1) + ' ms ' + (off > 0 ? 'late' : 'early')) +
+      ' against the others (median over ' + (sy.sets - sy.missing) + ' sets)');
+    syEl.className = miss ? 'warn' : 'muted';
     role(c.id, 'take').textContent = (c.take_missing !== undefined) ?
       '· take: missing ' + c.take_missing + (c.take_queue_drops ? ' + ' + c.take_queue_drops + ' queue' : '') : '';
     const im = c.image;  // the picture's own exposure and focus figures (api.control.image_figures)

@@ -696,3 +696,67 @@ def test_capture_manager_invalid_input(tmp_path):
 
     with pytest.raises(ValueError, match="take_calibration"):
         CaptureManager(tmp_path / "rig.toml", tmp_path, take_calibration=3)
+
+
+#: tiles a and c say their sync, b's dropped count reads 10
+_SYNC_SHOWN = """() => { const t = (c, r) => document.querySelector('figure[data-cam="' + c + '"] [data-role="' + r + '"]');
+  return ['a', 'c'].every((c) => t(c, 'sync') && t(c, 'sync').textContent.startsWith('sync: ')) &&
+         t('b', 'dropped').textContent.startsWith('10 '); }"""
+
+
+def test_each_tile_says_how_late_its_camera_is_and_what_it_just_dropped(tmp_path):
+    """Three paced cameras, c exposing 4 ms after a and b, b dropping ten frames a second in: c's tile says
+    "4.0 ms late" (muted: a lateness within the grouping is no loss), a's "on time"; b's dropped count is amber
+    with the frames of the last 10 s; nobody is missing from the sets."""
+    from stage.session import RECENT_DROPS_S
+
+    sync_playwright = sync_playwright_or_skip()
+    ids = ["a", "b", "c"]
+    t0 = time.monotonic_ns() + 300_000_000
+    drivers = {c: PacedCamera(c, i, 60.0, offset_ns=i * 1_234_567_891, jitter_ms=0.1, seed=i,
+                              start={"t0": t0 + (4_000_000 if c == "c" else 0)}, drop=range(60, 70) if c == "b" else ())
+               for i, c in enumerate(ids)}
+    with LiveServer(tmp_path, StageSession(rig_for(ids), tmp_path / "data" / "takes", drivers=drivers)) as srv, \
+            sync_playwright() as p:
+        browser, page, errors = _open(p, srv.url)
+        try:
+            page.wait_for_function(_SYNC_SHOWN, timeout=10_000)
+            page.wait_for_timeout(1500)  # the median over a full window of sets
+            sync = {c: (page.text_content(f'figure[data-cam="{c}"] [data-role="sync"]'),
+                        page.get_attribute(f'figure[data-cam="{c}"] [data-role="sync"]', "class")) for c in ids}
+            dropped = [(page.text_content(f'figure[data-cam="{c}"] [data-role="dropped"]'),
+                        page.get_attribute(f'figure[data-cam="{c}"] [data-role="dropped"]', "class")) for c in ids]
+        finally:
+            browser.close()
+    assert not errors, errors
+    late = sync["c"][0]
+    assert late.startswith("sync: ") and " ms late against the others" in late, sync
+    assert abs(float(late.split()[1]) - 4.0) <= 0.5, sync
+    assert sync["a"][0].startswith("sync: on time") or " ms early" in sync["a"][0], sync
+    assert all(cls == "muted" for _, cls in sync.values()), sync
+    assert dropped[1] == ("10 (10 in the last 10 s)", "warn") and RECENT_DROPS_S == 10.0, dropped
+    assert dropped[0] == ("0", "") and dropped[2] == ("0", ""), dropped
+
+
+def test_sync_offsets_against_the_median_of_each_set():
+    """Offsets counted by hand: each camera against the median of its set, the median over its sets."""
+    from stage.session import sync_offsets
+
+    ms = 1_000_000
+    sets = [{"a": 10 * ms, "b": 9 * ms, "c": 13 * ms}, {"a": 19 * ms, "c": 22 * ms}, {"b": 5 * ms}]
+    out = sync_offsets(sets, cameras=["a", "b", "c", "d"])
+    # set 1: median 10 -> a 0, b -1, c +3; set 2: median 20.5 -> a -1.5, c +1.5; set 3: one camera, no offset
+    assert out["a"] == {"offset_ms": pytest.approx(-0.75), "missing": 1}
+    assert out["b"] == {"offset_ms": pytest.approx(-1.0), "missing": 1}
+    assert out["c"] == {"offset_ms": pytest.approx(2.25), "missing": 1}
+    assert out["d"] == {"offset_ms": None, "missing": 3}
+    assert sync_offsets([], cameras=["a"]) == {"a": {"offset_ms": None, "missing": 0}}
+
+
+def test_sync_offsets_invalid_input():
+    from stage.session import sync_offsets
+
+    with pytest.raises(ValueError, match="cameras"):
+        sync_offsets([], cameras="a")
+    with pytest.raises(ValueError, match="sets"):
+        sync_offsets([[1, 2]], cameras=["a"])
