@@ -49,14 +49,16 @@ from calib.fileio import plain
 from calib.intrinsics import DISTORTION_MODES, CalibrationError, IntrinsicsResult, calibrate_intrinsics
 
 __all__ = ["RigCalibration", "calibrate_rig", "resolve_flipped", "rotation_sigma", "fold_rotation_spread",
-           "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_SIGMA", "CORNER_WARN_PX", "FOLD_WARN_RATIO", "FOLD_WARN_DEG",
+           "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_P", "intrinsics_moved", "CORNER_WARN_PX", "FOLD_WARN_RATIO", "FOLD_WARN_DEG",
            "corner_warnings"]
 
 log = logging.getLogger(__name__)
 
 INTRINSICS_MODES = ("prior", "fixed", "free")
 MAX_SETS = 300  # frame sets in the bundle adjustment above which they are evenly thinned
-MOVE_WARN_SIGMA = 3.0  # an intrinsic that moved further than this many Zhang sigmas is reported
+# the rig's false-alarm rate for "the bundle adjustment moved a camera's intrinsics": that of one 3-sigma number
+# (two-sided), shared by the cameras (intrinsics_moved)
+MOVE_WARN_P = 0.0027
 CORNER_WARN_PX = 2.0  # projection uncertainty at the image corners above which the report warns
 FOLD_WARN_RATIO = 2.0  # folds' rotation spread over the covariance's figure above which the report warns
 FOLD_WARN_DEG = 0.5  # ... when the spread is also above this
@@ -77,7 +79,8 @@ class RigCalibration:
         ``all_frames`` (:func:`calib.evaluate.reprojection_errors` over every frame with a
         detection), ``geometry_all`` (board geometry error over them), ``held_out``
         (k-fold, same layout plus ``folds``), ``uncertainty`` (name -> position -> px),
-        ``moved_sigma`` (name -> intrinsic -> signed move in Zhang sigmas), ``sets``
+        ``moved_sigma`` (name -> intrinsic -> signed move in Zhang sigmas), ``moved_test`` (name ->
+        :func:`intrinsics_moved`'s joint test of those moves), ``sets``
         (frame sets used by the bundle adjustment), ``rotation_sigma_deg``
         (:func:`rotation_sigma`) and, with held-out folds, ``rotation_folds_deg``
         (:func:`fold_rotation_spread`).
@@ -356,6 +359,67 @@ def _moved(intr: IntrinsicsResult, cam) -> dict:
     return out
 
 
+def intrinsics_moved(intrinsics: Mapping, calibration: Calibration) -> tuple[dict, list[str]]:
+    """Did the bundle adjustment move a camera's intrinsics further than its own calibration's uncertainty
+    allows? One test per camera, for the rig a false-alarm rate of :data:`MOVE_WARN_P`.
+
+    The move ``d`` of the camera's free intrinsics (fx, fy, cx, cy, k1, k2, p1, p2, k3 less those held) from
+    its own (Zhang) solution is judged jointly, by ``chi2 = d^T C^-1 d`` with ``C`` the Zhang covariance (its full
+    correlations), against the chi-square distribution with as many degrees of freedom as free intrinsics; a
+    camera is named when the chance of so large a move is below ``MOVE_WARN_P / cameras`` (Bonferroni). Judging
+    every number of every camera at 3 sigma instead makes about ``9 x cameras`` tests, each counting fx and fy
+    (correlated near 1) apart: a rig of accurate cameras then warns often. ``C`` leaves out the bundle
+    adjustment's own uncertainty, so the test errs towards silence, and a calibration the rig's data really
+    contradict moves its intrinsics by many of their standard deviations.
+
+    Parameters
+    ----------
+    intrinsics : mapping
+        Camera name -> :class:`~calib.intrinsics.IntrinsicsResult` (each camera's own solve, with its covariance).
+    calibration : Calibration
+        The bundle adjustment's cameras (every name of ``intrinsics`` among them).
+
+    Returns
+    -------
+    figures : dict
+        Name -> ``{"chi2", "dof", "p"}`` (cameras without a covariance left out).
+    warnings : list of str
+        One per camera whose move is unlikely (``p < MOVE_WARN_P / cameras``).
+
+    Raises
+    ------
+    ValueError
+        When ``intrinsics`` is not such a mapping or names a camera ``calibration`` lacks.
+    """
+    from scipy.stats import chi2
+
+    if not isinstance(intrinsics, Mapping) or not all(isinstance(r, IntrinsicsResult) for r in intrinsics.values()):
+        raise ValueError("intrinsics must map camera names to IntrinsicsResult")
+    if not isinstance(calibration, Calibration) or set(intrinsics) - set(calibration.names):
+        raise ValueError("calibration must be a Calibration holding every camera of intrinsics")
+    figures, warn = {}, []
+    for name, intr in intrinsics.items():
+        cov, cam = intr.covariance, calibration[name]
+        if cov is None:
+            continue
+        d = np.array([cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], *cam.dist]) - intr.params
+        free = np.flatnonzero(np.isfinite(np.diag(cov)) & (np.diag(cov) > 0))
+        if free.size == 0:
+            continue
+        C = cov[np.ix_(free, free)]
+        m = float(d[free] @ np.linalg.lstsq(C, d[free], rcond=None)[0])
+        figures[name] = {"chi2": m, "dof": int(free.size), "p": float(chi2.sf(m, free.size))}
+    for name, f in figures.items():
+        if f["p"] < MOVE_WARN_P / len(figures):
+            z = _moved(intrinsics[name], calibration[name])
+            far = sorted(z, key=lambda k: -abs(z[k]))[:2]
+            warn.append(f"camera {name}: the bundle adjustment moved its intrinsics further than its own calibration's "
+                        f"uncertainty allows (" + ", ".join(f"{k} {z[k]:+.1f} sigma" for k in far) +
+                        f"; together a chance of {f['p']:.1g}): the rig data disagrees with what this camera saw "
+                        "alone (a moved camera, a bent board, or too few views of it)")
+    return figures, warn
+
+
 def rotation_sigma(calibration: Calibration, rotation_cov: np.ndarray | None, reference: str | None) -> dict:
     """1-sigma uncertainty (deg) of every camera's rotation relative to ``reference`` and of every
     pair's relative rotation, from the bundle adjustment's covariance.
@@ -486,12 +550,8 @@ def _evaluate(calib, dets, sizes, board, names, intr, ext, intrinsics, holdout_f
     ev["moved_sigma"] = {} if intrinsics == "fixed" else {c.name: _moved(intr[c.name], c) for c in calib.cameras}
     ev["rotation_sigma_deg"] = rotation_sigma(calib, ext.meta.get("rotation_cov"), ext.meta.get("reference"))
     warn = []
-    for name, m in ev["moved_sigma"].items():
-        far = {k: v for k, v in m.items() if abs(v) > MOVE_WARN_SIGMA}
-        if far:
-            warn.append(f"camera {name}: the bundle adjustment moved " + ", ".join(
-                f"{k} by {v:+.1f} sigma" for k, v in far.items()) + " from its own calibration; the rig data "
-                "disagrees with what this camera saw alone (a moved camera, a bent board, or too few views of it)")
+    if intrinsics != "fixed":
+        ev["moved_test"], warn = intrinsics_moved(intr, calib)
     warn += corner_warnings(ev["uncertainty"])
     ev["held_out"] = _held_out(dets, sizes, board, names, holdout_folds, solve_kw) if holdout_folds else None
     if ev["held_out"] is not None:

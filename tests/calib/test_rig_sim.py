@@ -314,3 +314,63 @@ def test_corner_warnings_name_the_remedy_without_a_command_line_option():
     for bad in ({"cam0": 3.0}, {"cam0": {"centre": 0.3}}, [("cam0", {})]):
         with pytest.raises(ValueError, match="uncertainty"):
             corner_warnings(bad)
+
+
+# -- the bundle adjustment's moves of the intrinsics, judged (calib.rig.intrinsics_moved) ----------
+
+
+def _moved_to(calibration, name, params):
+    """``calibration`` with camera ``name``'s intrinsics (fx, fy, cx, cy, k1, k2, p1, p2, k3) set to ``params``."""
+    from calib.calibration import Calibration
+
+    K = np.array([[params[0], 0.0, params[2]], [0.0, params[1], params[3]], [0.0, 0.0, 1.0]])
+    return Calibration([c.replace(K=K, dist=np.asarray(params[4:], float)) if c.name == name else c
+                        for c in calibration.cameras])
+
+
+def test_intrinsics_moved_warns_at_its_rate_for_accurate_cameras_and_names_a_wrong_one(small, truth):
+    """Moves drawn from each camera's own uncertainty (accurate cameras: what the bundle adjustment of a rig the
+    cameras agree on may do) make a rig warn at MOVE_WARN_P (binomial 4-sigma bound over 400 rigs of 12 cameras),
+    where judging every intrinsic at 3 sigma warns for about one rig in five; a camera whose focal length the rig
+    moved by 2 % (4.5 of its standard deviations) is named, and only it. On the simulated dome (corners with
+    Gaussian noise, 25 views) the calibration warns of no camera."""
+    from calib.rig import MOVE_WARN_P, intrinsics_moved
+
+    board, dets = small
+    res = calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names, holdout_folds=0)
+    assert not any("bundle adjustment moved" in w for w in res.warnings)
+    figures, warn = intrinsics_moved(res.intrinsics, res.calibration)
+    assert warn == [] and set(figures) == set(truth.names)
+    rng = np.random.default_rng(0)
+    rigs, joint, each = 400, 0, 0
+    for _ in range(rigs):
+        cal = res.calibration
+        moved_far = False
+        for n, r in res.intrinsics.items():
+            free = np.isfinite(np.diag(r.covariance))
+            d = np.zeros(9)
+            C = r.covariance[np.ix_(free, free)]
+            d[free] = rng.multivariate_normal(np.zeros(free.sum()), C)
+            moved_far |= bool(np.any(np.abs(d[free]) > 3 * np.sqrt(np.diag(C))))
+            cal = _moved_to(cal, n, r.params + d)
+        joint += bool(intrinsics_moved(res.intrinsics, cal)[1])
+        each += moved_far
+    bound = MOVE_WARN_P * rigs + 4 * np.sqrt(MOVE_WARN_P * rigs)
+    assert joint <= bound < 10 and each > 40, (joint, each)
+    wrong = res.intrinsics["cam03"].params * np.r_[1.02, 1.02, np.ones(7)]
+    figures, warn = intrinsics_moved(res.intrinsics, _moved_to(res.calibration, "cam03", wrong))
+    assert len(warn) == 1 and warn[0].startswith("camera cam03: the bundle adjustment moved its intrinsics")
+    assert figures["cam03"]["p"] < MOVE_WARN_P / 12
+
+
+def test_intrinsics_moved_invalid_input(small, truth):
+    from calib.rig import intrinsics_moved
+
+    board, dets = small
+    res = calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names[:3], holdout_folds=0)
+    with pytest.raises(ValueError, match="intrinsics must map"):
+        intrinsics_moved({"cam00": 1.0}, res.calibration)
+    with pytest.raises(ValueError, match="calibration must be a Calibration"):
+        intrinsics_moved(res.intrinsics, None)
+    with pytest.raises(ValueError, match="calibration must be a Calibration"):
+        intrinsics_moved({"nope": res.intrinsics["cam00"]}, res.calibration)
