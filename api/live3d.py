@@ -168,6 +168,9 @@ class Live3D:
             out = dict(self._latest)
             t = [x for x in self._times if x > time.monotonic() - 5.0]
         out["updates_per_s"] = (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
+        # how old what the view shows is: from its frame set's time (host clock) to now
+        st = out.get("set_time_ns")
+        out["age_s"] = None if st is None else max(0.0, (time.monotonic_ns() - int(st)) / 1e9)
         return out
 
     def _set(self, **kw: Any) -> None:
@@ -249,7 +252,8 @@ class Live3D:
                     with self._lock:
                         self._times.append(time.monotonic())
                         del self._times[:-50]
-                self._set(**out, bounds=bounds, calibration=self.room.calibration_source, uncalibrated=uncalibrated)
+                self._set(**out, bounds=bounds, calibration=self.room.calibration_source, uncalibrated=uncalibrated,
+                          set_time_ns=int(fs.time_ns))
             self._stop.wait(max(0.0, self.period - (time.monotonic() - t0)))
 
 

@@ -391,9 +391,13 @@
             ': what is outside the volume is not reconstructed' : '', 'warn');
         $('live3d-edge').dataset.edges = edges.join(',');
         $('live3d-box').hidden = live.state !== 'ok';
-        $('live3d-info').textContent = live.state === 'ok' ? ('frame set ' + live.set + ': ' + live.occupied + ' voxels of ' + fmt(live.voxel, 0) +
-          ' mm, ' + live.segments.length + ' spine segments; ' + fmt(rate, 1) + ' updates/s shown (' + fmt(live.updates_per_s, 1) + ' computed), ' +
-          fmt(live.compute_ms, 0) + ' ms each' + (live.calibration ? '; ' + live.calibration : '') +
+        // in the rig's words: what it shows, how old that is, how often it is renewed
+        $('live3d-info').textContent = live.state === 'ok' ? ('frame set ' + live.set +
+          (live.age_s !== null && live.age_s !== undefined ? ', ' + fmt(live.age_s, 1) + ' s ago' : '') + ': ' +
+          live.occupied + ' voxels (' + fmt(live.voxel, 0) + ' mm cubes) in the hull' +
+          (live.segments.length ? ', a skeleton of ' + live.segments.length + ' segments' : '') +
+          '; the view is renewed ' + fmt(rate, 1) + ' times a second, each taking ' + fmt(live.compute_ms / 1000, 2) + ' s to build' +
+          (live.calibration ? '; ' + live.calibration : '') +
           ((live.uncalibrated || []).length ? '; carved without ' + live.uncalibrated.join(', ') + ' (not in the calibration)' : '')) :
           (live.message || live.state);
       }

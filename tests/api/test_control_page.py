@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import threading
 import time
 
@@ -271,6 +272,9 @@ def test_the_live_view_says_when_the_subject_reaches_the_volume_s_edge(tmp_path)
     assert line.startswith("the subject reaches the capture volume's ") and "z max" in line, line
     assert line.endswith("what is outside the volume is not reconstructed") and "warn" in kind, (line, kind)
     assert info.endswith("; a calibration; carved without west (not in the calibration)"), info
+    # in the rig's words: what it shows, how old, how often renewed (no "updates/s shown (computed)")
+    assert re.match(r"frame set \d+, \d+\.\d s ago: \d+ voxels \(\d+ mm cubes\) in the hull(, a skeleton of \d+ segments)?; "
+                    r"the view is renewed \d+\.\d times a second, each taking \d+\.\d\d s to build; a calibration;", info), info
     assert box_note  # (said only while a hull is drawn)
 
 

@@ -94,3 +94,15 @@ def test_invalid_input():
     for bad in (np.zeros((3, 3), bool), np.zeros((3, 3, 3), np.uint8), np.zeros((0, 3, 3), bool)):
         with pytest.raises(ValueError, match="occupancy"):
             volume_edges(bad)
+
+
+def test_the_view_says_how_old_its_frame_set_is(monkeypatch):
+    """latest()'s age_s: from the set's time (host monotonic clock) to now, exact on a fixed clock; none before
+    the first set."""
+    import api.live3d as live3d
+
+    live = Live3D(room=None)
+    assert live.latest()["age_s"] is None
+    live._set(state="ok", set=7, set_time_ns=10_000_000_000)
+    monkeypatch.setattr(live3d.time, "monotonic_ns", lambda: 10_450_000_000)
+    assert live.latest()["age_s"] == pytest.approx(0.45, abs=1e-12)
