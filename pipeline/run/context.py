@@ -580,7 +580,8 @@ class Run:
         already running, which cannot be stopped, are waited for: what every task that finished said is said here
         too, their results go on with the error (:func:`finished_before`) and what the frames of another task that
         failed said joins :func:`frames_said_before`'s, so that every frame set whose result a task wrote has its
-        warnings said."""
+        warnings said. A Dask executor's futures never say they run (``running()`` is False and a running task's
+        Dask status is "pending" like a queued one's), so there every task not taken is cancelled, none waited for."""
         if self.executor is None:
             for task in tasks:
                 self.check_cancel()
