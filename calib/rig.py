@@ -33,6 +33,7 @@ Detection (from images, takes or videos) is the caller's business (see
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
 
@@ -50,7 +51,7 @@ from calib.intrinsics import DISTORTION_MODES, CalibrationError, IntrinsicsResul
 
 __all__ = ["RigCalibration", "calibrate_rig", "resolve_flipped", "rotation_sigma", "fold_rotation_spread",
            "INTRINSICS_MODES", "MAX_SETS", "MOVE_WARN_P", "intrinsics_moved", "CORNER_WARN_PX", "FOLD_WARN_RATIO", "FOLD_WARN_DEG",
-           "corner_warnings"]
+           "corner_warnings", "group_warnings"]
 
 log = logging.getLogger(__name__)
 
@@ -117,8 +118,26 @@ class RigCalibration:
             return f"reprojection RMS over every detected frame (too few frame sets to hold any out), px: {per}"
         return "single camera: " + next(iter(self.intrinsics.values())).summary().splitlines()[0]
 
+    def verdict(self) -> str:
+        """One line: do the cameras and the rig's data agree (no camera's intrinsics moved beyond its own
+        uncertainty, no rotation varying between held-out folds beyond what corner noise explains, no
+        camera's fit far above the rest, the bundle adjustment converged), and which cameras are less certain where
+        the board did not go or the views were few (every other warning)."""
+        ws = self.warnings
+        doubt = sorted({_camera_of(w) or "the rig" for w in ws if any(k in w for k in _DOUBT)})
+        rest = sorted({_camera_of(w) or "the rig" for w in ws if not any(k in w for k in _DOUBT)})
+        ho = self.evaluation.get("held_out") or {}
+        fig = f"held-out reprojection {ho['rms']:.2f} px" if ho.get("rms") is not None else "no held-out figure"
+        if doubt:
+            return (f"verdict: check {', '.join(doubt)}: the rig's data disagree with what the cameras saw alone or "
+                    f"between held-out folds ({fig}; warnings below)")
+        if rest:
+            return (f"verdict: consistent ({fig}); less certain where the board did not go or with few views: "
+                    f"{', '.join(rest)} (warnings below)")
+        return f"verdict: consistent ({fig}), no warning"
+
     def report(self) -> str:
-        lines = [self.summary(), "intrinsics (per camera, Zhang):"]
+        lines = [self.verdict(), self.summary(), "intrinsics (per camera, Zhang):"]
         lines += ["  " + r.summary().replace("\n", "\n  ") for r in self.intrinsics.values()]
         if self.extrinsics is not None:
             ev = self.evaluation
@@ -150,7 +169,7 @@ class RigCalibration:
                 lines.append("  intrinsics moved from Zhang, in Zhang standard deviations:")
                 for name, m in moved.items():
                     lines.append("    " + f"{name:<12} " + "  ".join(f"{k} {v:+.1f}" for k, v in m.items()))
-        lines += [f"  warning: {w}" for w in self.extra_warnings]
+        lines += [f"  warning: {w}" for w in group_warnings(list(self.extra_warnings))]
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
@@ -183,6 +202,55 @@ def corner_warnings(uncertainty: dict) -> list[str]:
                         f"corners: the lens distortion there is extrapolated from the board's views; film the board "
                         f"near the corners of {name}'s image (or fix k3 at zero for a mild lens)")
     return warn
+
+
+# warnings that say the result may be wrong (the rest: less certain where the views were few)
+_DOUBT = ("the rig data disagrees", "between the held-out folds", "did not converge",
+          "far above the rest")
+_CAMERA = re.compile(r"^camera (\S+): (.*)$", re.S)
+_FIGURE = re.compile(r"[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?(?: ?(?:px|%|sigma|deg|mm)\b|%)?")
+
+
+def _camera_of(w: str) -> str | None:
+    m = _CAMERA.match(w)
+    return m.group(1) if m else None
+
+
+def _without(text: str, name: str, by: str = "") -> str:
+    """``text`` with the camera's name (as a whole word) replaced by ``by``."""
+    return re.sub(rf"(?<![\w-]){re.escape(name)}(?![\w-])", by, text)
+
+
+def group_warnings(warnings: Sequence[str]) -> list[str]:
+    """Each kind of per-camera warning once: ``"camera A: ..."`` messages that differ only in the camera's name
+    and their figures become the first one's words followed by ``"; the same for B (figures), C (figures)"`` (the
+    figures that differ from the first one's).
+    Other messages are kept; the order is that of each kind's first message, repeats said once.
+
+    Raises
+    ------
+    ValueError
+        When ``warnings`` is not a sequence of strings.
+    """
+    if isinstance(warnings, str) or not isinstance(warnings, Sequence) or not all(isinstance(w, str) for w in warnings):
+        raise ValueError("warnings must be a sequence of strings")
+    kinds: dict[str, list[tuple[str, str]]] = {}
+    for w in dict.fromkeys(warnings):
+        m = _CAMERA.match(w)
+        key = _FIGURE.sub("#", _without(m.group(2), m.group(1), "{camera}")) if m else w
+        kinds.setdefault(key, []).append((m.group(1) if m else "", w))
+    out = []
+    for group in kinds.values():
+        first = group[0][1]
+        if len(group) > 1:
+            base = _FIGURE.findall(_without(_CAMERA.match(first).group(2), group[0][0]))
+            said = []
+            for name, w in group[1:]:
+                figs = [f for f, b in zip(_FIGURE.findall(_without(_CAMERA.match(w).group(2), name)), base) if f != b]
+                said.append(f"{name} ({', '.join(figs)})" if figs else name)
+            first += "; the same for " + ", ".join(said)
+        out.append(first)
+    return out
 
 
 def _px(v: float) -> str:

@@ -406,7 +406,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from calib.boards import load_board
-    from calib.rig import calibrate_rig
+    from calib.rig import calibrate_rig, group_warnings
 
     _check_args(args)
     quiet = bool(getattr(args, "quiet", False))
@@ -423,13 +423,14 @@ def _run(args: argparse.Namespace) -> int:
     for line in result.evaluation.get("flipped", ()):
         print(f"  note: {line}")
     if quiet:
+        print(result.verdict())
         print(result.summary())
-        for w in dict.fromkeys(result.warnings):
+        for w in group_warnings(result.warnings):
             print(f"  warning: {w}")
     else:
         report = result.report()
         print(report)
-        shown = [w for w in dict.fromkeys(result.warnings) if f"warning: {w}" not in report]
+        shown = [w for w in group_warnings(result.warnings) if f"warning: {w}" not in report]
         if shown:  # every warning of the calibration, also those of the per-camera and bundle solves
             print(f"warnings ({len(shown)}):")
             for w in shown:

@@ -127,6 +127,7 @@ def _board_calibration(args: argparse.Namespace, size, out: Path, summary: dict)
     """Record the board take, calibrate the rig from it, compare with the simulator's cameras and write
     ``calibration.toml`` and ``calibration-report.txt``; -> the calibration (``summary`` gets its figures)."""
     from calib.formats import write_calibration
+    from calib.rig import group_warnings
     from fake_cameras.device import take_for_rig
     from fake_cameras.record import take_scene_frames
     from fake_cameras.rigs import simulated_rig_dict
@@ -155,7 +156,8 @@ def _board_calibration(args: argparse.Namespace, size, out: Path, summary: dict)
         f"vs truth: focal <= {errs['focal_error_pct_max']:.2f} %, centres <= {errs['centre_error_mm_max']:.2f} mm, "
         f"rotations <= {errs['rotation_error_deg_max']:.3f} deg -> {out / 'calibration.toml'}"
     )
-    for w in dict.fromkeys(rigcal.warnings):  # the report file holds them too; the terminal must show them
+    print(f"  calibration {rigcal.verdict()}")
+    for w in group_warnings(rigcal.warnings):  # the report file holds them too; the terminal must show them
         print(f"  calibration warning: {w}")
     summary["calibration"] = {"rms_px": ext.rms, "geometry": geom, **errs}
     return calibration

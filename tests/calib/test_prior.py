@@ -97,7 +97,7 @@ def test_report_figures(rig):
     truth, dets = rig
     res = calibrate_rig(dets, {c.name: c.size for c in truth}, HANDHELD_BOARD, cameras=truth.names, holdout_folds=3)
     ev = res.evaluation
-    assert res.report().splitlines()[0].startswith("held-out reprojection RMS (3-fold")
+    assert res.report().splitlines()[1].startswith("held-out reprojection RMS (3-fold")
     for n in truth.names:
         ho, af = ev["held_out"]["per_camera"][n]["rms"], ev["all_frames"]["per_camera"][n]["rms"]
         assert 0.3 < af < ho < 0.8  # noise 0.3 px per coordinate: sqrt(2) * 0.3 = 0.42 px in-sample

@@ -374,3 +374,30 @@ def test_intrinsics_moved_invalid_input(small, truth):
         intrinsics_moved(res.intrinsics, None)
     with pytest.raises(ValueError, match="calibration must be a Calibration"):
         intrinsics_moved({"nope": res.intrinsics["cam00"]}, res.calibration)
+
+
+def test_the_report_says_one_verdict_and_each_kind_of_warning_once(small, truth):
+    """The report's first line is the verdict: consistent on the accurate simulated rig, "check cam03" when the rig's
+    data disagree with cam03; per-camera warnings of one kind are said once, the other cameras named with the figure
+    that differs."""
+    import dataclasses
+
+    from calib.rig import group_warnings
+
+    board, dets = small
+    res = calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names[:4], holdout_folds=2)
+    assert res.report().splitlines()[0].startswith("verdict: consistent (held-out reprojection ")
+    bad = dataclasses.replace(res, extra_warnings=(
+        "camera cam03: the bundle adjustment moved its intrinsics further than its own calibration's uncertainty "
+        "allows (fx +4.5 sigma, fy +4.5 sigma; together a chance of 9e-07): the rig data disagrees with what this "
+        "camera saw alone (a moved camera, a bent board, or too few views of it)",))
+    assert bad.verdict().startswith("verdict: check cam03: ")
+    ws = [f"camera {n}: its projection is uncertain by {p} px (1 sigma) at the image corners: film the board near "
+          f"the corners of {n}'s image (or fix k3 at zero for a mild lens)" for n, p in (("cam_a", 2.5), ("cam_b", 3.25))]
+    assert group_warnings(ws + ["bundle adjustment did not converge: x", ws[0]]) == [
+        ws[0] + "; the same for cam_b (3.25 px)", "bundle adjustment did not converge: x"]
+    assert group_warnings([]) == []
+    with pytest.raises(ValueError, match="warnings must be a sequence of strings"):
+        group_warnings("camera a: x")
+    with pytest.raises(ValueError, match="warnings must be a sequence of strings"):
+        group_warnings([1])
