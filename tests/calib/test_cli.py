@@ -136,7 +136,7 @@ def test_calibrate_take_stores_calibration(stereo_dir, tmp_path, capsys):
     assert abs(np.linalg.norm(calib["right"].center) - 83.6) < 1.0
 
 
-def test_quiet_calibrate_prints_the_held_out_line_first(stereo_dir, tmp_path, capsys):
+def test_quiet_calibrate_prints_the_verdict_then_the_held_out_line(stereo_dir, tmp_path, capsys):
     import json
 
     out = tmp_path / "calib.toml"
@@ -145,7 +145,8 @@ def test_quiet_calibrate_prints_the_held_out_line_first(stereo_dir, tmp_path, ca
     assert rc == 0
     captured = capsys.readouterr()
     lines = [ln for ln in captured.out.splitlines() if not ln.startswith("  ")]
-    assert lines[0].startswith("held-out reprojection RMS (3-fold over 13 frame sets)")
+    assert lines[0].startswith("verdict: ")
+    assert lines[1].startswith("held-out reprojection RMS (3-fold over 13 frame sets)")
     assert "detect left" not in captured.err  # no progress bars under -q
     rep = json.loads((tmp_path / "r.json").read_text())
     assert set(rep["evaluation"]["held_out"]["per_camera"]) == {"left", "right"}
