@@ -214,6 +214,7 @@ def build_armature(
     min_gap: float | None = None,
     limbs=None,
     parts=None,
+    whole_crossing_paths: bool = False,
 ) -> Armature:
     """An articulated, skinned model fitted to every frame of a mesh sequence.
 
@@ -253,6 +254,13 @@ def build_armature(
         ``n_samples``, ``peel_parts`` and ``min_gap`` then do nothing): ``(labels, source)``, ``source`` saying
         where they came from (``rig.json``'s ``segmentation.source``; :func:`pipeline.armature_files.limb_parts`
         gives ``"limbs"``), or the labels alone (``"given"``). Parts are renumbered by decreasing size.
+    whole_crossing_paths : bool
+        A bone whose curve path itself crosses the mesh is not split (``whole_crossing_paths`` of
+        :func:`pipeline.armature_skeleton.articulated_skeleton`): on in the armature step (``stage armature``,
+        :func:`pipeline.armature_files.armature_results`), where a ragged surface (a real four-camera hull) otherwise
+        gets many auxiliary joints with no degree of freedom; off (the default) in the tracking's armature rounds,
+        whose armature is the tracking's prior and whose figures are measured without it
+        (docs/notes/armature-decisions.md, "Bones not split where their curve path itself leaves the mesh").
 
     Returns
     -------
@@ -267,6 +275,8 @@ def build_armature(
     main = _main_part(v.shape[1], f)
     if not (fps > 0 and np.isfinite(fps)):
         raise ValueError(f"fps must be > 0, got {fps}")
+    if not isinstance(whole_crossing_paths, (bool, np.bool_)):
+        raise ValueError(f"whole_crossing_paths must be True or False, got {whole_crossing_paths!r}")
     if limbs is not None and not isinstance(limbs, VertexLimbs):
         raise ValueError(f"limbs must be a pipeline.armature_limbs.VertexLimbs, got {type(limbs).__name__}")
     fi = np.arange(T) if frame_indices is None else np.asarray(frame_indices, dtype=np.int64).reshape(-1)
@@ -288,7 +298,7 @@ def build_armature(
     ref = choose_reference(v, f) if reference is None else int(reference)
     rest = v[ref]
     skel = articulated_skeleton(rest, f, seg.labels, curve_skeleton(rest, f), motion=v, reference=ref,
-                                limbs=None if limbs is None else limbs.limb)
+                                limbs=None if limbs is None else limbs.limb, whole_crossing_paths=whole_crossing_paths)
     model = articulated_model(rest, f, skel, active=main)
     timings["skeleton"] = time.perf_counter() - t0
     if progress:

@@ -104,7 +104,9 @@ def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=N
 
     With the take's spine (``spine.json``), the spine's limbs (:func:`spine_limbs`) keep a segment on one
     limb from being hung from a segment on another (``limbs`` of :func:`pipeline.armature.build_armature`;
-    ``rig.json``'s ``spine`` says what it decided); ``limbs=None`` builds it without them.
+    ``rig.json``'s ``spine`` says what it decided); ``limbs=None`` builds it without them. A bone whose curve path
+    itself crosses the mesh is not split (``whole_crossing_paths=True``, the armature step's; the tracking's armature
+    rounds leave it off).
 
     ``parts="limbs"``: when the template was tracked with its limb/body labels (``stage track --labels``), the
     parts are the labels' body and every limb cut along its spine axis (:func:`limb_parts`) in place of the
@@ -122,6 +124,7 @@ def armature_results(results_dir, *, units: str = "mm", fps: float = 30.0, out=N
     vertices, faces, numbers = load_sequence(tracked_meshes(results_dir))
     options.setdefault("peel_parts", False)  # a tracked template: its tracking noise is no part
     options.setdefault("min_gap", MIN_GAP)  # and the eigengap tells many small joints from a few large ones
+    options.setdefault("whole_crossing_paths", True)  # the armature step's rule (off in the tracking's rounds)
     if "limbs" not in options:
         options["limbs"] = spine_limbs(results_dir, vertices, faces, numbers)
     if not (parts is None or (isinstance(parts, str) and parts in ("motion", "limbs"))):

@@ -14,7 +14,8 @@ and a curve skeleton running inside it:
    its nearest surface vertices);
 5. a bone whose straight segment leaves the mesh (segment-triangle test) is
    split at the middle of the curve path between its ends, until every bone
-   is inside (at most ``max_splits`` rounds).
+   is inside (at most ``max_splits`` rounds); with ``whole_crossing_paths`` not
+   a bone whose curve path itself crosses the mesh (no split brings it inside).
 
 The paper's curve skeleton is the mean curvature skeleton (Tagliasacchi et
 al. 2012). Here it is the spine's curve skeleton in the rest frame (where
@@ -34,7 +35,7 @@ articulation at or above it; a bone belongs to the part of its first joint.
 from __future__ import annotations
 
 import logging
-from collections import defaultdict, deque
+from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -476,6 +477,7 @@ def articulated_skeleton(
     reference: int = 0,
     refine_joints: bool = True,
     limbs=None,
+    whole_crossing_paths: bool = False,
 ) -> ArticulatedSkeleton:
     """Joints and bones of an articulated model (Tzionas & Gall 2016, section 4.2).
 
@@ -514,6 +516,9 @@ def articulated_skeleton(
     limbs : (V,) int array_like, optional
         The spine limb of every vertex (-1: the body; :func:`pipeline.armature_limbs.vertex_limbs`): a segment
         is hung from one on another limb only when nothing else closes the tree (``limb_contacts``).
+    whole_crossing_paths : bool
+        A bone whose curve path itself crosses the mesh (a ragged surface's) is not split: off in the tracking's
+        armature rounds, on in the armature step (:func:`pipeline.armature.build_armature`).
 
     Returns
     -------
@@ -559,24 +564,27 @@ def articulated_skeleton(
     # 4. drop end bones inside one segment
     bones = _drop_end_bones(bones, key, joint_pairs, node_seg)
     # 5. split bones that leave the mesh
-    for _ in range(int(max_splits)):
-        split = []
-        for i, (a, b, path) in enumerate(bones):
-            if len(path) > 2 and segment_hits_mesh(P[a], P[b], v, f):
-                split.append(i)
+    bones = _split_bones(bones, key, P, v, f, max_splits=int(max_splits), whole=bool(whole_crossing_paths))
+    P = P.copy()
+    for node, c in pivots.items():
+        P[node] = c
+    return replace(_hang(P, bones, joint_pairs, node_seg, lab, how), limb_contacts=tuple(contacts))
+
+
+def _split_bones(bones: list, key: set, P: np.ndarray, v, f, *, max_splits: int, whole: bool) -> list:
+    """Step 5 of :func:`articulated_skeleton` (``key`` gets the nodes added); ``whole``: a bone whose curve ``path``
+    crosses the mesh is not split (docs/notes/armature-decisions.md, "Bones not split where their curve path...")."""
+    for _ in range(max_splits):
+        split = [i for i, (a, b, path) in enumerate(bones) if len(path) > 2 and segment_hits_mesh(P[a], P[b], v, f)
+                 and not (whole and any(segment_hits_mesh(P[j], P[k], v, f) for j, k in zip(path, path[1:])))]
         if not split:
             break
         for i in sorted(split, reverse=True):
             a, b, path = bones.pop(i)
             mid = len(path) // 2
-            m = path[mid]
-            key.add(m)
-            bones.append((a, m, path[: mid + 1]))
-            bones.append((m, b, path[mid:]))
-    P = P.copy()
-    for node, c in pivots.items():
-        P[node] = c
-    return replace(_hang(P, bones, joint_pairs, node_seg, lab, how), limb_contacts=tuple(contacts))
+            key.add(path[mid])
+            bones += [(a, path[mid], path[: mid + 1]), (path[mid], b, path[mid:])]
+    return bones
 
 
 def _key_bones(adj, key) -> list:
@@ -593,8 +601,7 @@ def _key_bones(adj, key) -> list:
                     break
                 prev, cur = cur, nxt[0]
                 path.append(cur)
-            seen.add((path[-1], path[-2]))
-            seen.add((s, nb))
+            seen |= {(path[-1], path[-2]), (s, nb)}
             if cur in key:
                 bones.append((s, cur, path))
     return bones
@@ -604,10 +611,7 @@ def _drop_end_bones(bones, key, joint_pairs, node_seg) -> list:
     changed = True
     while changed and len(bones) > 1:
         changed = False
-        deg = defaultdict(int)
-        for a, b, _ in bones:
-            deg[a] += 1
-            deg[b] += 1
+        deg = Counter(n for a, b, _ in bones for n in (a, b))
         for i, (a, b, _path) in enumerate(bones):
             for end, other in ((a, b), (b, a)):
                 if (deg[end] == 1 and end not in joint_pairs and other not in joint_pairs

@@ -321,7 +321,8 @@ def _placements(tr, labels, ref):
     size = float(np.linalg.norm(np.ptp(rest, axis=0)))
     out = {}
     for key, refine in (("paper", False), ("pivot", True)):
-        sk = articulated_skeleton(rest, F, labels, cs, motion=V, reference=ref, refine_joints=refine)
+        sk = articulated_skeleton(rest, F, labels, cs, motion=V, reference=ref, refine_joints=refine,
+                                  whole_crossing_paths=True)
         fit = fit_sequence(articulated_model(rest, F, sk), np.asarray(V, dtype=np.float64))
         out[key] = articulation_scores(fit.joints[:, sk.articulation], tr["joints"], size=size,
                                        articulates=tr["articulates"], bending=tr["bending"])
@@ -351,7 +352,8 @@ def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped"), skinned=(0
         else:
             tr = _truth_creature(name)
         t0 = time.perf_counter()
-        rig = build_armature(tr["V"], tr["F"], units=tr["units"], fps=tr["fps"], lambda_thr=tr["lambda_thr"])
+        rig = build_armature(tr["V"], tr["F"], units=tr["units"], fps=tr["fps"], lambda_thr=tr["lambda_thr"],
+                             whole_crossing_paths=True)  # as ``stage armature --meshes``
         secs = time.perf_counter() - t0
         truth = bending_parts(tr["part"], tr["part_parent"], tr["part_bends"])
         pur, comp = segment_agreement(rig.segmentation.labels, truth)
@@ -500,7 +502,8 @@ def segmentation_noise(vertices, faces, parts, *, n_samples: int = 1000) -> dict
 
 
 def true_track_scores(sim, rig, vertices, faces, truth: dict, reference: int) -> dict:
-    """The armature built, as ``stage armature RESULTS_DIR`` builds it, on the simulator's *true* tracks of the
+    """The armature built, as ``stage armature RESULTS_DIR`` builds it (but with every bone that leaves the mesh split,
+    ``whole_crossing_paths`` off), on the simulator's *true* tracks of the
     same template vertices (every vertex carried by the capsule it lies on at the tracking's reference frame
     ``reference``, a frame number, :func:`fake_cameras.surface_motion.surface_point_tracks`), scored as the
     tracked one (``truth``: :func:`_truth_take`): what the

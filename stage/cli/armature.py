@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
             n_samples=args.samples, reference=args.reference, progress=bars,
             peel_parts=args.meshes is not None,  # a tracked template: its tracking noise is no part
             min_gap=None if args.meshes is not None else MIN_GAP,  # a tracked template: the eigengap rule
-            limbs=limbs, parts=None if found is None else (found, "limbs"),
+            limbs=limbs, parts=None if found is None else (found, "limbs"), whole_crossing_paths=True,
         )
         write_armature(rig, out, progress=bars)
     sk = rig.skeleton

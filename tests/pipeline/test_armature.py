@@ -262,6 +262,9 @@ def test_invalid_input(tmp_path, monkeypatch):
                 build_armature(V, F, reference=bad)
     with pytest.raises(ValueError, match="frame_indices"):
         build_armature(V, F, frame_indices=[1, 2, 3])
+    for bad in ("yes", 1, None):
+        with pytest.raises(ValueError, match="whole_crossing_paths must be True or False"):
+            build_armature(V, F, whole_crossing_paths=bad)
     with pytest.raises(ValueError, match="shape"):
         build_armature(V[0], F)
     # files whose vertex counts differ: not a sequence with shared connectivity
@@ -607,3 +610,83 @@ def test_an_uncertain_centre_beyond_the_boundary_is_drawn_towards_it():
     (Ra, ta), (Rb, tb) = rigid_motions(W[:, ~right]), rigid_motions(W[:, right])
     exact = _drawn_centre((Ra, ta), (Rb, tb), point, residual=1e-6, radius=12.0)
     np.testing.assert_allclose(exact[:2], pivot[:2], atol=1e-6)
+
+
+def _l_bar():
+    """A watertight L-shaped bar 2 x 2 thick: along x from -1 to 11 (y within -1..1), then along y up to 11 (x within
+    9..11); z within -1..1."""
+    L = np.array([(-1, -1), (11, -1), (11, 11), (9, 11), (9, 1), (-1, 1)], float)
+    v = np.vstack([np.c_[L, np.full(6, -1.0)], np.c_[L, np.full(6, 1.0)]])
+    cap = [(4, 5, 0), (4, 0, 1), (4, 1, 2), (4, 2, 3)]
+    f = [*cap, *((a + 6, c + 6, b + 6) for a, b, c in cap)]
+    for i in range(6):
+        j = (i + 1) % 6
+        f += [(i, j, j + 6), (i, j + 6, i + 6)]
+    return v, np.array(f)
+
+
+def test_a_bone_whose_curve_path_leaves_the_mesh_is_not_split_with_whole_crossing_paths():
+    """The L bar's axis as its curve skeleton, one segment: one bone from end to end, whose chord cuts the corner out
+    of the bar. Its curve inside the bar: split where the chord leaves (more than the two ends), with or without
+    ``whole_crossing_paths``. The curve's corner pushed out below the bar (as a ragged surface's curve skeleton
+    leaves it): every split bone still leaves the mesh and is split again (today's rule, the tracking's rounds);
+    with ``whole_crossing_paths`` the bone stays whole (root and one end), no split can bring it inside."""
+    from pipeline.armature_skeleton import CurveSkeleton, articulated_skeleton, segment_hits_mesh
+
+    v, f = _l_bar()
+    labels = np.zeros(len(v), dtype=np.int64)
+    edges = np.array([(0, 1), (1, 2), (2, 3), (3, 4)])
+    inside = np.array([(0, 0, 0), (5, 0, 0), (10, 0, 0), (10, 5, 0), (10, 10, 0)], float)
+    outside = inside.copy()
+    outside[2] = (10, -3, 0)
+    assert segment_hits_mesh(inside[0], inside[4], v, f)
+    assert not any(segment_hits_mesh(inside[j], inside[j + 1], v, f) for j in range(4))
+    assert segment_hits_mesh(outside[1], outside[2], v, f)
+
+    def joints(points, whole):
+        sk = articulated_skeleton(v, f, labels, CurveSkeleton(points, edges), refine_joints=False,
+                                  whole_crossing_paths=whole)
+        assert not sk.articulation.any()
+        return sk.n_joints, sk.rest
+
+    (n_in, rest_in), (n_in_whole, rest_in_whole) = joints(inside, False), joints(inside, True)
+    assert n_in == n_in_whole > 2
+    np.testing.assert_array_equal(rest_in, rest_in_whole)
+    assert joints(outside, False)[0] > 2
+    n_out, rest_out = joints(outside, True)
+    assert n_out == 2
+    np.testing.assert_allclose(sorted(map(tuple, rest_out)), [(0, 0, 0), (10, 10, 0)], atol=1e-9)
+
+
+def test_the_armature_step_leaves_crossing_bones_whole_and_the_tracking_rounds_do_not(tmp_path, monkeypatch):
+    """``whole_crossing_paths``: on in the armature step (``armature_results``), off in the tracking's armature
+    rounds (``_rig_of``, the tracking's prior), and ``build_armature`` passes it on to the skeleton (default off)."""
+    import pipeline.armature as armature
+    import pipeline.armature_files as armature_files
+    from pipeline.results import ply_bytes
+    from pipeline.track_armature_models import _rig_of
+
+    seen = []
+
+    def stop(*a, **k):
+        seen.append(k.get("whole_crossing_paths", False))
+        raise RuntimeError("stop")
+
+    V = np.random.default_rng(0).normal(size=(2, 10, 3))
+    F = np.array([[0, 1, 2], [2, 3, 4]])
+    with monkeypatch.context() as m:
+        m.setattr(armature, "articulated_skeleton", stop)
+        for kw in ({}, {"whole_crossing_paths": True}):
+            with pytest.raises(RuntimeError, match="stop"):
+                build_armature(V, F, reference=0, parts=np.zeros(10, dtype=np.int64), **kw)
+    assert seen == [False, True]
+    seen.clear()
+    (tmp_path / "tracked").mkdir()
+    for i in range(2):
+        (tmp_path / "tracked" / f"{i:06d}.ply").write_bytes(ply_bytes(V[i], F))
+    monkeypatch.setattr(armature_files, "build_armature", stop)
+    monkeypatch.setattr(armature, "build_armature", stop)
+    for call in (lambda: armature_files.armature_results(tmp_path, limbs=None), lambda: _rig_of(V, F, [0, 1], 0, 0.7)):
+        with pytest.raises(RuntimeError, match="stop"):
+            call()
+    assert seen == [True, False]
