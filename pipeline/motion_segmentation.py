@@ -451,12 +451,12 @@ def _small_motion(v, samples, size, eig, k, thr, rigid_tol, min_gap) -> str | No
     if k == 1:
         res = rigid_residual(v[_some_frames(len(v))][:, samples])
         if res > float(rigid_tol) * size:
-            return (f"one eigenvalue below lambda_thr={thr:g}, yet the subject does not move rigidly "
+            return (f"one eigenvalue below the threshold {thr:g}, yet the subject does not move rigidly "
                     f"({100 * res / size:.2f} % of its size)")
         return None
     if min_gap is not None and k < len(eig) and eig[k] - eig[k - 1] < float(min_gap):
-        return (f"the eigenvalues cross lambda_thr={thr:g} without a gap ({eig[k - 1]:.3f} -> {eig[k]:.3f}, "
-                f"less than min_gap={float(min_gap):g})")
+        return (f"the eigenvalues cross the threshold {thr:g} without a gap ({eig[k - 1]:.3f} -> {eig[k]:.3f}, "
+                f"a gap under {float(min_gap):g})")
     return None
 
 
@@ -570,11 +570,16 @@ def _motion_segmentation(vertices, faces, n_samples, lam, lambda_thr, reference_
     if reason:
         # the paper's threshold for small parts with a small motion (its spray handle; a starfish curling
         # its arms); the merge then folds what moves as one rigid body
-        log.warning("%s: small parts with small motion, lambda_thr=%g used", reason, SMALL_MOTION_THR)
+        bend = rigid_residual(v[_some_frames(T)][:, samples]) / size
+        log.warning("the motion shows no parts at the eigenvalue threshold %g (%s): the threshold for small parts "
+                    "with small motion, %g, used instead; it finds parts in whatever little the surface bends, so the "
+                    "segments are only as sure as that motion: %d frames, the surface %.2f %% of its size from one "
+                    "rigid motion (median); more frames and more bending make them surer", thr, reason,
+                    SMALL_MOTION_THR, T, 100 * bend)
         thr = SMALL_MOTION_THR
         sample_labels, eig, k = spectral_clusters(A, lambda_thr=thr, max_clusters=max_clusters)
     if k == 1:
-        log.warning("nothing bends in this sequence (one eigenvalue below lambda_thr=%g): one segment", thr)
+        log.warning("nothing bends in this sequence (one eigenvalue below the threshold %g): one segment", thr)
         return Segmentation(np.zeros(V, dtype=np.int64), samples, sample_labels, eig, 1, dt, lam_units, thr)
     labels = propagate_labels(v[0], f, samples, sample_labels)
     edges = mesh_edges(f)

@@ -348,6 +348,15 @@ def test_a_small_bend_that_one_cluster_hides_uses_the_small_motion_threshold(cap
     with caplog.at_level(logging.WARNING):
         seg = motion_segmentation(bent(10), F, n_samples=300)
     assert seg.n_segments == 2 and seg.lambda_thr == 0.98 and "small parts with small motion" in caplog.text
+    # what it means, with the figures that say how sure the segments are, in words of no caller's parameter
+    from pipeline.motion_segmentation import subject_size
+    from pipeline.rigid_parts import rigid_residual
+
+    W = bent(10)
+    assert "the segments are only as sure as that motion: 12 frames, the surface " in caplog.text
+    assert "lambda_thr" not in caplog.text and "min_gap=" not in caplog.text
+    bend = float(caplog.text.split("12 frames, the surface ")[1].split(" %")[0])
+    assert abs(bend - 100 * rigid_residual(W[:, seg.samples]) / subject_size(W)) < 0.01  # its 2 decimals
     far = np.abs(V[0][:, 0]) > 10
     assert len(np.unique(seg.labels[far & right])) == 1 and len(np.unique(seg.labels[far & ~right])) == 1
     seg = motion_segmentation(bent(3), F, n_samples=300)
