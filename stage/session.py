@@ -143,7 +143,7 @@ class StageSession:
                                       timeout_ns=max(4 * period_ns, 500_000_000), window=live_sync_window(rig.fps))
         self._spreads: collections.deque = collections.deque(maxlen=30)
         self._recent_sets: collections.deque = collections.deque(maxlen=30)  # the last sets' frame times
-        self._gaps: collections.deque = collections.deque()  # (clock, {camera: sequence gaps}) of the last 10 s
+        self._gaps: collections.deque = collections.deque(maxlen=4096)  # (clock, camera, frames lost) of recent gaps
         self._latest_set: FrameSet | None = None
         self._sets = 0
         self._recorder: TakeRecorder | None = None
@@ -230,6 +230,7 @@ class StageSession:
             with self._lock:
                 if live.last_index is not None and frame.index > live.last_index + 1:
                     live.sequence_gaps += frame.index - live.last_index - 1
+                    self._gaps.append((now, cid, frame.index - live.last_index - 1))
                 live.last_index = frame.index
                 live.delivered += 1
                 live.times.append(now)
@@ -348,14 +349,15 @@ class StageSession:
                 })
             sets = self._sets
             recent = list(self._recent_sets)
-            self._gaps.append((now, {c["id"]: c["dropped"] for c in cams}))
             while self._gaps and self._gaps[0][0] < now - RECENT_DROPS_S:
                 self._gaps.popleft()
-            first = self._gaps[0][1]
+            recent_gaps = collections.Counter()
+            for _, cid, n in self._gaps:
+                recent_gaps[cid] += n
         offsets = sync_offsets(recent, cameras=self.ids)
         for c in cams:
             c["sync"] = {**offsets[c["id"]], "sets": len(recent)}
-            c["dropped_recent"] = c["dropped"] - first.get(c["id"], 0)
+            c["dropped_recent"] = recent_gaps[c["id"]]
         snap = rec.get("live") or {}
         for c in cams:
             c.update(self._bus(c["id"]))

@@ -108,8 +108,8 @@
     const off = sy.offset_ms;
     const miss = !gone && sy.missing ? 'MISSING from ' + sy.missing + ' of the last ' + sy.sets + ' frame sets; ' : '';
     syEl.textContent = gone || !sy.sets ? 'sync –' : miss + (off === null || off === undefined ? 'sync: in no set with another camera' :
-      'sync: ' + (Math.abs(off) < 0.05 ? 'on time' : fmt(Math.abs(off), 1) + ' ms ' + (off > 0 ? 'late' : 'early')) +
-      ' against the others (median over ' + (sy.sets - sy.missing) + ' sets)');
+      'sync: ' + (Math.abs(off) < 0.05 ? 'on time' : fmt(Math.abs(off), 1) + ' ms ' + (off > 0 ? 'late' : 'early')));
+    syEl.title = sy.sets ? 'against the median of the other cameras, over its last ' + (sy.sets - sy.missing) + ' frame sets' : '';
     syEl.className = miss ? 'warn' : 'muted';
     role(c.id, 'take').textContent = (c.take_missing !== undefined) ?
       '· take: missing ' + c.take_missing + (c.take_queue_drops ? ' + ' + c.take_queue_drops + ' queue' : '') : '';
