@@ -2,10 +2,10 @@
 (Tzionas & Gall 2016 section 4 on the path a lab takes): the starfish curling its arms, filmed by 6
 cameras at 480x360 for 8 frames (one second of its motion), against the simulator's joints.
 
-Measured (docs/armature-format.md, "Where it goes wrong"): recall 0.90, precision 0.90 over the 20
-joints that bend by 10 degrees or more; 29-107 s on a 2-core machine at load average 20 (the render
-cached). The larger takes of ``stage bench armature --accuracy`` are the figures; this is the cheap
-one that can fail (at 320x240 the arms are a few voxels thick and it finds 3-4 segments).
+Its figures (recall and precision over the joints that bend by 10 degrees or more) are in
+docs/armature-format.md, "Where it goes wrong", with the calls that print them. The larger takes of
+``stage bench armature --accuracy`` are the figures; this is the cheap one that can fail (at 320x240
+the arms are a few voxels thick and it finds 3-4 segments).
 """
 
 from __future__ import annotations
