@@ -314,18 +314,27 @@ def _write_consistency(ctx: RunContext) -> None:
             dropped[i, k] = np.nan if d is None else d
     seen = np.isfinite(iou).any(axis=1)
     median = {cam: (float(np.nanmedian(iou[i])) if seen[i] else None) for i, cam in enumerate(ctx.take.cameras)}
-    low = [cam for cam, m in median.items() if m is not None and m < CONSISTENCY_WARN]
+    # the frame sets where the capture volume's walls cut the subject are said once, by their own warning: a camera
+    # is judged on the others (its medians there would blame its keying and calibration for the walls)
+    walled = _name_poor_sets(ctx, iou)
+    within = np.ones(iou.shape[1], bool)
+    within[sorted(walled)] = False
+    judged = np.isfinite(iou[:, within]).any(axis=1)
+    median_within = {cam: (float(np.nanmedian(iou[i, within])) if judged[i] else None)
+                     for i, cam in enumerate(ctx.take.cameras)}
+    low = [cam for cam, m in median_within.items() if m is not None and m < CONSISTENCY_WARN]
     has_drop = np.isfinite(dropped).any(axis=1)
     drop = {cam: (float(np.nanmedian(dropped[i])) if has_drop[i] else None) for i, cam in enumerate(ctx.take.cameras)}
     dropping = [cam for cam, m in drop.items() if m is not None and m > DROPPED_WARN]
     doc = {"cameras": ctx.take.cameras, "threshold": CONSISTENCY_WARN, "median": median, "low": low,
+           "walled_sets": sorted(walled), "median_within_volume": median_within,
            "iou": [[None if not np.isfinite(x) else float(x) for x in row] for row in iou],
            "dropped": drop, "dropping": dropping, "dropped_threshold": DROPPED_WARN}
     atomic_write(ctx.out / "consistency.json", json.dumps(doc))
     ctx.made.consistency = {"median": median, "low": low, "threshold": CONSISTENCY_WARN, "dropped": drop,
                        "dropping": dropping}
     for cam in low:
-        msg = (f"camera {cam}: median silhouette consistency {median[cam]:.2f} (IoU of its masks and the projected "
+        msg = (f"camera {cam}: median silhouette consistency {median_within[cam]:.2f} (IoU of its masks and the projected "
                f"hull) is below {CONSISTENCY_WARN}: check its keying and calibration (report: worst frames)")
         ctx.warn(msg)
     for cam in dropping:
@@ -334,15 +343,14 @@ def _write_consistency(ctx: RunContext) -> None:
                f"its keying (a wall, a shadow, a second person)")
         ctx.warn(msg)
     if low:  # (when every camera is explained, none cut much from the hull)
-        _name_missing(ctx, iou, doc)
-    _name_poor_sets(ctx, iou)
+        _name_missing(ctx, np.where(within, iou, np.nan), doc)
 
 
-def _name_poor_sets(ctx: RunContext, iou: np.ndarray) -> None:
+def _name_poor_sets(ctx: RunContext, iou: np.ndarray) -> set[int]:
     """A warning naming the frame sets whose surface explains little of the silhouettes
     (:func:`pipeline.consistency.poor_sets`; the per-camera medians over a take can hide a few), and the capture
     volume's walls their surfaces reach (:func:`pipeline.consistency.walls_reached`): a subject that goes beyond
-    the volume is cut off there without another word."""
+    the volume is cut off there without another word. Returns the frame sets the walls explain."""
     from pipeline.consistency import CONSISTENCY_WARN, poor_sets, walls_reached
     from pipeline.meshio import load_mesh
     from stage.messages import frames_named
@@ -350,7 +358,7 @@ def _name_poor_sets(ctx: RunContext, iou: np.ndarray) -> None:
     sets, median = poor_sets(iou)
     grid_path = ctx.out / "grid.json"
     if not sets or not grid_path.exists():
-        return
+        return set()
     g = json.loads(grid_path.read_text())
     box = (g.get("choice") or {}).get("box") or {}
     lo = np.asarray(g["lo"], float)
@@ -372,12 +380,13 @@ def _name_poor_sets(ctx: RunContext, iou: np.ndarray) -> None:
             f"cameras {m.min():.2f}..{m.max():.2f}, below {CONSISTENCY_WARN})")
     if not walls:
         ctx.warn(f"{head}: check the keying and calibration of those frame sets (report: worst frames)")
-        return
+        return set()
     where = ", ".join(f"{wall} ({named(ks)})" for wall, ks in walls.items())
     msg = (f"{head} and reaches the capture volume's wall at {where}: the subject goes beyond the volume there and "
            "is cut off; give a volume that holds it")
     ctx.warn(f"{msg} (--volume XMIN YMIN ZMIN XMAX YMAX ZMAX, or the rig file's [volume])",
              job_message=f"{msg} (the volume parameter, or the rig file's [volume])")
+    return {k for ks in walls.values() for k in ks}
 
 
 #: Frame sets (those of lowest median consistency) a hull is carved without each camera in.

@@ -303,3 +303,28 @@ def test_process_says_the_frame_sets_a_capture_volume_cuts_the_subject_in(tmp_pa
     assert len(said) == 1, run.report["warnings"]
     assert said[0].startswith("frame sets 0, 3: ") and "wall at x = -375 (frame set 0), x = 375 (frame set 3)" in said[0]
     assert "z = " not in said[0] and "give a volume that holds it" in said[0]
+
+
+def test_a_camera_is_judged_without_the_frame_sets_the_capture_volumes_walls_explain(tmp_path, monkeypatch):
+    """Frame sets where the walls cut the subject are said once by their own warning; the per-camera warning judges a
+    camera on the others: cam1, poor only in the three walled sets of five, is not named; cam2, poor in every set, is
+    (with its median over the two others)."""
+    from types import SimpleNamespace
+
+    import pipeline.process.steps as steps
+    from pipeline.process.records import frame_name
+
+    iou = {"cam0": [0.95] * 5, "cam1": [0.5, 0.5, 0.5, 0.95, 0.95], "cam2": [0.6, 0.6, 0.6, 0.55, 0.55]}
+    (tmp_path / "frames").mkdir()
+    for k in range(5):
+        (tmp_path / "frames" / f"{frame_name(k)}.json").write_text(
+            json.dumps({"consistency": {c: v[k] for c, v in iou.items()}}))
+    said = []
+    ctx = SimpleNamespace(take=SimpleNamespace(cameras=list(iou), n_sets=5), out=tmp_path, warn=said.append,
+                          made=SimpleNamespace())
+    monkeypatch.setattr(steps, "_name_poor_sets", lambda ctx, iou: {0, 1, 2})
+    monkeypatch.setattr(steps, "_name_missing", lambda ctx, iou, doc: None)
+    steps._write_consistency(ctx)
+    assert [w.split(":")[0] for w in said] == ["camera cam2"] and "consistency 0.55 " in said[0], said
+    doc = json.loads((tmp_path / "consistency.json").read_text())
+    assert doc["walled_sets"] == [0, 1, 2] and doc["low"] == ["cam2"] and doc["median"]["cam1"] == 0.5
