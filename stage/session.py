@@ -358,6 +358,7 @@ class StageSession:
         for c in cams:
             c["sync"] = {**offsets[c["id"]], "sets": len(recent)}
             c["dropped_recent"] = recent_gaps[c["id"]]
+            c["dropped_recent_s"] = RECENT_DROPS_S
         snap = rec.get("live") or {}
         for c in cams:
             c.update(self._bus(c["id"]))

@@ -100,7 +100,7 @@
     role(c.id, 'state').textContent = gone ? (c.state === 'failed' ? 'failed to open' : 'DISCONNECTED') : c.state;
     role(c.id, 'error').textContent = c.error ? ' ' + c.error : '';
     role(c.id, 'fps').textContent = fmt(c.fps);
-    role(c.id, 'dropped').textContent = c.dropped + (c.dropped_recent ? ' (' + c.dropped_recent + ' in the last 10 s)' : '');
+    role(c.id, 'dropped').textContent = c.dropped + (c.dropped_recent ? ' (' + c.dropped_recent + ' in the last ' + c.dropped_recent_s + ' s)' : '');
     role(c.id, 'dropped').className = c.dropped_recent ? 'warn' : '';
     // how late this camera's frames are against the others' in the last frame sets; amber only for what was
     // lost: sets without it (it is not in their 3-D), frames the device dropped just now

@@ -716,12 +716,14 @@ _SYNC_SHOWN = """() => { const t = (c, r) => document.querySelector('figure[data
          t('b', 'dropped').textContent.startsWith('10 '); }"""
 
 
-def test_each_tile_says_how_late_its_camera_is_and_what_it_just_dropped(tmp_path):
+def test_each_tile_says_how_late_its_camera_is_and_what_it_just_dropped(tmp_path, monkeypatch):
     """Three paced cameras, c exposing 4 ms after a and b, b dropping ten frames a second in: c's tile says
     "4.0 ms late" (muted: a lateness within the grouping is no loss), a's "on time"; b's dropped count is amber
-    with the frames of the last 10 s; nobody is missing from the sets."""
-    from stage.session import RECENT_DROPS_S
+    with the frames of the recent window (made a minute here, so that a browser slow to start on a busy machine
+    still sees the drops as recent); nobody is missing from the sets."""
+    import stage.session
 
+    monkeypatch.setattr(stage.session, "RECENT_DROPS_S", 60.0)
     sync_playwright = sync_playwright_or_skip()
     ids = ["a", "b", "c"]
     t0 = time.monotonic_ns() + 300_000_000
@@ -746,7 +748,7 @@ def test_each_tile_says_how_late_its_camera_is_and_what_it_just_dropped(tmp_path
     assert abs(float(late.split()[1]) - 4.0) <= 0.5, sync
     assert sync["a"][0].startswith("sync: on time") or " ms early" in sync["a"][0], sync
     assert all(cls == "muted" for _, cls in sync.values()), sync
-    assert dropped[1] == ("10 (10 in the last 10 s)", "warn") and RECENT_DROPS_S == 10.0, dropped
+    assert dropped[1] == ("10 (10 in the last 60 s)", "warn"), dropped
     assert dropped[0] == ("0", "") and dropped[2] == ("0", ""), dropped
 
 
