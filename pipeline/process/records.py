@@ -53,6 +53,12 @@ def _said_of(warnings, job_warnings) -> list[tuple[str, str | None]]:
     return [(str(m), job.get(str(m))) for m in (warnings or [])]
 
 
+def _check_frame_set(k) -> None:
+    """``ValueError`` naming ``k`` unless it is an integer (a frame set)."""
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
+        raise ValueError(f"k must be an integer (a frame set), got {k!r}")
+
+
 def frame_said(out: Path, k: int) -> list[tuple[str, str | None]]:
     """What frame set ``k`` warned of when its surface was made, as its record ``OUT/frames/frame_NNNNNN.json`` keeps
     it (:func:`said_fields`); none when it has no record or an unreadable one.
@@ -62,8 +68,7 @@ def frame_said(out: Path, k: int) -> list[tuple[str, str | None]]:
     ValueError
         ``k`` is not an integer.
     """
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
-        raise ValueError(f"k must be an integer (a frame set), got {k!r}")
+    _check_frame_set(k)
     import json
 
     try:
@@ -82,8 +87,7 @@ def skeleton_said(out: Path, k: int) -> list[tuple[str, str | None]]:
     ValueError
         ``k`` is not an integer.
     """
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
-        raise ValueError(f"k must be an integer (a frame set), got {k!r}")
+    _check_frame_set(k)
     try:
         with np.load(skeleton_path(out, k), allow_pickle=False) as z:
             if "warnings" not in z:

@@ -320,6 +320,12 @@ def _task(task: Callable[[], object]) -> object:
         _TASK_FRAMES.reset(token)
 
 
+def _check_exception(exc) -> None:
+    """``ValueError`` naming ``exc`` unless it is an exception."""
+    if not isinstance(exc, BaseException):
+        raise ValueError(f"exc must be an exception, got {type(exc).__name__}")
+
+
 def frames_said_before(exc: BaseException) -> dict[int, list[tuple[str, str | None]]]:
     """What the frames of a per-frame task that raised ``exc`` said before it failed (:func:`frame_warnings`): the
     frames it finished, whose results are lost with the task's, and the one it failed on. The task ran through
@@ -340,8 +346,7 @@ def frames_said_before(exc: BaseException) -> dict[int, list[tuple[str, str | No
     ValueError
         ``exc`` is not an exception.
     """
-    if not isinstance(exc, BaseException):
-        raise ValueError(f"exc must be an exception, got {type(exc).__name__}")
+    _check_exception(exc)
     said = getattr(exc, "pipeline_frames_said", None)
     return {int(k): [tuple(x) for x in v] for k, v in said.items()} if isinstance(said, dict) else {}
 
@@ -365,8 +370,7 @@ def finished_before(exc: BaseException) -> list:
     ValueError
         ``exc`` is not an exception.
     """
-    if not isinstance(exc, BaseException):
-        raise ValueError(f"exc must be an exception, got {type(exc).__name__}")
+    _check_exception(exc)
     finished = getattr(exc, "pipeline_finished", None)
     return list(finished) if isinstance(finished, list) else []
 
