@@ -259,7 +259,7 @@ def test_the_rig_step_of_a_rigid_take_says_one_segment(tmp_path):
                           keep_warning=warnings.append, params=ProcessParams())
     _step_rig(ctx)
     assert json.loads((tmp_path / "rig" / "rig.json").read_text())["segmentation"]["segments"] == 1
-    assert warnings == ["rig: nothing bends in this sequence (one eigenvalue below lambda_thr=0.7): one segment",
+    assert warnings == ["rig: nothing bends in this sequence (one eigenvalue below the threshold 0.7): one segment",
                         "rig: nothing bends in this take: one segment, the armature moves rigidly"]  # (why, then what)
 
 
