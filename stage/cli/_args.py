@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["parse_size", "units_warning", "MESH_UNITS_DEFAULT"]
+__all__ = ["parse_size", "units_warning", "assumed_units", "MESH_UNITS_DEFAULT"]
 
 #: the units of a mesh sequence (``--meshes``) whose command was given none
 MESH_UNITS_DEFAULT = "mm"
@@ -47,3 +47,15 @@ def units_warning(span: float) -> str | None:
     return (f"warning: the meshes span {span:.4g} units, taken as millimetres (no --units): a {span:.4g} mm subject; "
             f"if they are in another unit, give it (--units {other[0]}: {other[1]}); the files written carry it "
             "(the GLB is in metres)")
+
+
+def assumed_units(vertices) -> str:
+    """The units of a mesh sequence given none (:data:`MESH_UNITS_DEFAULT`), said when its first frame's span
+    (``vertices``, (V, 3)) makes them unlikely (:func:`units_warning`)."""
+    import numpy as np
+
+    V = np.asarray(vertices, dtype=np.float64)
+    hint = units_warning(float((V.max(axis=0) - V.min(axis=0)).max())) if len(V) else None
+    if hint:
+        print(hint)
+    return MESH_UNITS_DEFAULT

@@ -57,17 +57,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _assumed_units(first) -> str:
-    """The units of a sequence given none (:data:`MESH_UNITS_DEFAULT`), said when the first frame's span makes
-    them unlikely (:func:`units_warning`)."""
-    from stage.cli._args import MESH_UNITS_DEFAULT, units_warning
-
-    hint = units_warning(float((first.max(axis=0) - first.min(axis=0)).max()))
-    if hint:
-        print(hint)
-    return MESH_UNITS_DEFAULT
-
-
 def _spine_meta(results: Path) -> dict:
     sp = results / "spine.json"
     if not sp.is_file():
@@ -133,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.meshio import mesh_paths
     from pipeline.motion_segmentation import MIN_GAP
     from stage.cli import UserError
+    from stage.cli._args import assumed_units
     from stage.cli._progress import StepBars
 
     if (args.results is None) == (args.meshes is None):
@@ -170,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     vertices, faces, numbers = load_sequence(paths)
     limbs = None if args.meshes is not None else spine_limbs(d, vertices, faces, numbers)  # a take's spine, if any
     found = limb_parts(d, vertices, faces, numbers) if args.parts == "limbs" else None
-    units = args.units or meta.get("units") or _assumed_units(vertices[0])
+    units = args.units or meta.get("units") or assumed_units(vertices[0])
     fps = args.fps or meta.get("fps") or 30.0
     with StepBars(disable=args.no_progress) as bars:
         rig = build_armature(

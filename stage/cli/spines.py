@@ -40,14 +40,15 @@ def run(args: argparse.Namespace) -> int:
     from contextlib import nullcontext
 
     from pipeline.frame_skeleton import SpineParams
-    from pipeline.meshio import mesh_paths
+    from pipeline.meshio import load_mesh, mesh_paths
     from pipeline.spine_format import write_spine
     from pipeline.spine_meshes import spine_from_meshes
+    from stage.cli._args import assumed_units
 
     if args.workers < 0:
         raise ValueError(f"--workers must be >= 0, got {args.workers}")
     paths = mesh_paths(args.meshes)
-    units = args.units or _assumed_units(paths[0])
+    units = args.units or assumed_units(load_mesh(paths[0], largest=False)[0])
     given = {"n_bins": getattr(args, "bins", None), "min_protrusion": getattr(args, "min_protrusion", None)}
     params = SpineParams(**{k: v for k, v in given.items() if v is not None})
     print(f"{len(paths)} meshes from {paths[0].parent}")
@@ -65,15 +66,3 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out}")
     return 0
 
-
-def _assumed_units(first) -> str:
-    """The units of a sequence given none (:data:`MESH_UNITS_DEFAULT`), said when the first frame's span makes
-    them unlikely (:func:`units_warning`)."""
-    from pipeline.meshio import load_mesh
-    from stage.cli._args import MESH_UNITS_DEFAULT, units_warning
-
-    V, _ = load_mesh(first, largest=False)
-    hint = units_warning(float((V.max(axis=0) - V.min(axis=0)).max())) if len(V) else None
-    if hint:
-        print(hint)
-    return MESH_UNITS_DEFAULT
