@@ -416,8 +416,14 @@ def resolve_flipped(detections, sizes, board, flipped, names, min_corners):
     return dets, mirrored, notes
 
 
+def _intrinsic_vector(cam) -> np.ndarray:
+    """The camera's intrinsics in :data:`INTRINSIC_NAMES`' order (fx, fy, cx, cy, then the distortion), as an
+    :class:`~calib.intrinsics.IntrinsicsResult`'s ``params``."""
+    return np.array([cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], *cam.dist])
+
+
 def _moved(intr: IntrinsicsResult, cam) -> dict:
-    new = np.array([cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], *cam.dist])
+    new = _intrinsic_vector(cam)
     cov = intr.covariance
     out = {}
     for i, k in enumerate(INTRINSIC_NAMES):
@@ -470,7 +476,7 @@ def intrinsics_moved(intrinsics: Mapping, calibration: Calibration) -> tuple[dic
         cov, cam = intr.covariance, calibration[name]
         if cov is None:
             continue
-        d = np.array([cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], *cam.dist]) - intr.params
+        d = _intrinsic_vector(cam) - intr.params
         free = np.flatnonzero(np.isfinite(np.diag(cov)) & (np.diag(cov) > 0))
         if free.size == 0:
             continue
