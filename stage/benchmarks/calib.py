@@ -59,6 +59,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "~/.cache/capture-stage/anipose-venv/bin/python if it exists; else the column is skipped "
                         "and the one-line setup command is printed)")
     p.add_argument("--no-anipose", action="store_true", help="skip the aniposelib column")
+    p.add_argument("--draws", type=int, default=0, metavar="N",
+                   help="instead: how honest the reported uncertainties are over N noise draws (seeds SEED..SEED+N-1, "
+                        "calibrate_rig defaults): per intrinsic the RMS of (estimate - truth) / reported sigma, the "
+                        "chi-square of each camera's intrinsics and of its rotation relative to the reference "
+                        "against their covariances, over their degrees of freedom (all 1 when honest)")
     p.add_argument("--anipose-timeout", type=float, default=1800.0, metavar="S",
                    help="give up on aniposelib after S seconds (default 1800)")
 
@@ -253,6 +258,74 @@ def run_real(root: Path, *, distortion: str = "prior") -> int:
     return 0
 
 
+def _board(name: str):
+    from calib.boards import Charuco, Chessboard
+
+    return Chessboard((11, 8), 50.0) if name == "chessboard" else Charuco((12, 9), 50.0, 37.0, dictionary="DICT_4X4_100")
+
+
+def run_draws(args: argparse.Namespace, truth) -> int:
+    """``--draws N``: the reported uncertainties against the errors they describe, over N noise draws."""
+    from scipy.spatial.transform import Rotation
+
+    from calib.bundle import INTRINSIC_NAMES
+    from calib.calibration import Calibration
+    from calib.intrinsics import CalibrationError
+    from calib.rig import calibrate_rig, intrinsics_moved
+    from calib.synthetic import random_board_poses, synthetic_detections
+
+    board = _board(args.board)
+    dist = float(np.median(np.linalg.norm(truth.centers() - truth.centers().mean(0), axis=1)))
+    true = {c.name: np.array([c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist]) for c in truth}
+    zz, zb, cz, cb, cr, dof, skipped = [], [], [], [], [], [], 0
+    moved, rigs_warned, named = [], 0, 0
+    for k in range(args.draws):
+        poses = random_board_poses(truth, board, args.views, seed=args.seed + k, spread=0.25 * dist)
+        dets = synthetic_detections(truth, board, poses, noise_px=args.noise, seed=args.seed + k + 10_000)
+        try:
+            res = calibrate_rig(dets, {c.name: c.size for c in truth}, board, cameras=truth.names,
+                                distortion=args.distortion)
+        except CalibrationError:  # a camera the draw's board poses left with too few views
+            skipped += 1
+            continue
+        meta = res.extrinsics.meta
+        figures, warned = intrinsics_moved(res.intrinsics, res.calibration)
+        moved += [f["chi2"] / f["dof"] for f in figures.values()]
+        rigs_warned += bool(warned)
+        ref = res.calibration[meta["reference"]]
+        for i, cam in enumerate(res.calibration.cameras):
+            zhang = res.intrinsics[cam.name]
+            free = np.isfinite(np.diag(zhang.covariance))
+            for est, cov, z, chi in ((zhang.params, zhang.covariance, zz, cz),
+                                     (np.array([cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], *cam.dist]),
+                                      meta["intrinsics_cov"][i], zb, cb)):
+                d, C = (est - true[cam.name])[free], cov[np.ix_(free, free)]
+                z.append(np.where(free, est - true[cam.name], np.nan) / np.sqrt(np.abs(np.diag(cov))))
+                chi.append(float(d @ np.linalg.solve(C, d)))
+            dof.append(int(free.sum()))
+            K = cam.K.copy()
+            K[0, 0], K[1, 1] = 1.02 * K[0, 0], 1.02 * K[1, 1]  # the focal length 2 % longer
+            wrong = cam.replace(K=K)
+            wrong_cal = Calibration(tuple(wrong if c.name == cam.name else c for c in res.calibration.cameras))
+            named += any(w.startswith(f"camera {cam.name}:") for w in intrinsics_moved(res.intrinsics, wrong_cal)[1])
+            if cam.name != ref.name:
+                rel = (cam.R @ ref.R.T) @ (truth[cam.name].R @ truth[ref.name].R.T).T
+                r = Rotation.from_matrix(rel).as_rotvec()
+                cr.append(float(r @ np.linalg.solve(meta["rotation_cov"][i, i], r)))
+    print(f"{args.draws} draws x {len(truth)} cameras x {args.views} board poses ({board.type}), noise {args.noise} px, "
+          f"--distortion {args.distortion}: (estimate - truth) / reported sigma, RMS over cameras and draws (1 when "
+          "the sigmas are honest)" + (f"; {skipped} draws skipped (a camera with too few views)" if skipped else ""))
+    print("  " + " " * 22 + "".join(f"{n:>7}" for n in INTRINSIC_NAMES) + "   chi2 / dof")
+    for name, z, chi in (("own calibration (Zhang)", zz, cz), ("rig (bundle adjustment)", zb, cb)):
+        rms = np.sqrt(np.nanmean(np.square(z), axis=0))
+        print(f"  {name:<22}" + "".join(f"{v:7.2f}" for v in rms) + f"   {np.sum(chi) / np.sum(dof):6.2f}")
+    print(f"  rotation relative to the reference camera: chi2 / 3 {np.mean(cr) / 3:.2f} ({len(cr)} cameras)")
+    print(f"  the rig's move from each camera's own intrinsics (intrinsics_moved): chi2 / dof {np.mean(moved):.2f}; "
+          f"rigs warned {rigs_warned} of {args.draws - skipped}; a focal length 2 % off named on {named} of "
+          f"{len(moved)} cameras")
+    return 0
+
+
 def _subset(calib, names):
     from calib.calibration import Calibration
 
@@ -265,8 +338,9 @@ def run(args: argparse.Namespace) -> int:
     if args.real is not None:
         logging.getLogger("calib").setLevel(logging.ERROR)
         return run_real(args.real, distortion=args.distortion)
+    if args.draws < 0:
+        raise ValueError(f"--draws must be >= 0, got {args.draws}")
 
-    from calib.boards import Charuco, Chessboard
     from calib.extrinsics import calibrate_extrinsics
     from calib.intrinsics import calibrate_intrinsics
     from calib.synthetic import random_board_poses, synthetic_detections
@@ -276,10 +350,11 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise ValueError(f"fake_cameras.dome is needed for this benchmark: {exc}") from None
     logging.getLogger("calib").setLevel(logging.ERROR)
+    if args.draws:
+        return run_draws(args, make_dome(args.cameras))
     python = None if args.no_anipose else _anipose_python(args.anipose_python)  # fail early on a bad path
     truth = make_dome(args.cameras)
-    board = Chessboard((11, 8), 50.0) if args.board == "chessboard" else Charuco((12, 9), 50.0, 37.0,
-                                                                                  dictionary="DICT_4X4_100")
+    board = _board(args.board)
     dist = float(np.median(np.linalg.norm(truth.centers() - truth.centers().mean(0), axis=1)))
     poses = random_board_poses(truth, board, args.views, seed=args.seed, spread=0.25 * dist)
     dets = synthetic_detections(truth, board, poses, noise_px=args.noise, seed=args.seed + 1)
