@@ -365,7 +365,20 @@ class Charuco(_BoardBase):
         return (0.0, 0.0, self.squares[0] * self.square_mm, self.squares[1] * self.square_mm)
 
     def _pattern(self, width: int, height: int) -> np.ndarray:
-        return self.to_cv().generateImage((width, height), marginSize=0, borderBits=1)
+        # OpenCV's generateImage places a marker one pixel past the pattern at some sizes and fails (a 7 x 5 board
+        # of 70 mm squares at 60 pixels a square); there the pattern is drawn at an integer multiple of the size
+        # and averaged down by whole blocks (INTER_AREA), which keeps every edge where the board has it
+        import cv2
+
+        board = self.to_cv()
+        for k in range(1, 5):
+            try:
+                img = board.generateImage((width * k, height * k), marginSize=0, borderBits=1)
+            except cv2.error:
+                continue
+            return img if k == 1 else cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+        raise BoardError(f"board: OpenCV cannot draw this ChArUco board at {width} x {height} pixels; "
+                         f"try another resolution")
 
     def to_dict(self) -> dict:
         return {

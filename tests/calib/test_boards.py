@@ -77,6 +77,23 @@ def test_charuco_detection_and_inverted_print(inverted):
     assert detect_board(img, other) is None
 
 
+def test_charuco_drawn_where_opencv_cannot_draw_it():
+    """At 60 pixels a square OpenCV's generateImage fails on this board (a marker one pixel past the pattern); the
+    board is then drawn at twice the size and averaged down: every corner is found where ``image_transform`` puts it,
+    within the 0.5 px the other sizes are held to."""
+    import cv2
+
+    c = Charuco((7, 5), 70.0, 52.0, dictionary="DICT_4X4_50")
+    with pytest.raises(cv2.error):  # the size is one OpenCV fails on (else this test checks nothing)
+        c.to_cv().generateImage((420, 300), marginSize=0, borderBits=1)
+    img = c.image(px_per_mm=60 / 70.0)
+    A = c.image_transform(px_per_mm=60 / 70.0)
+    assert img.shape == (300 + 2 * 60, 420 + 2 * 60) and np.allclose(A[:2, :2], np.eye(2) * 60 / 70.0)
+    d = detect_board(img, c)
+    assert d is not None and len(d) == c.n_corners
+    assert np.abs(d.corners - _expected(c, 60 / 70.0)[d.ids]).max() < 0.5
+
+
 def test_wrong_corner_count_not_detected():
     img = Chessboard((9, 6), 10).image(px_per_mm=3)
     assert detect_board(img, Chessboard((8, 6), 10)) is None
