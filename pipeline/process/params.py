@@ -53,7 +53,7 @@ class TrackParams(BaseModel):
         After the tracking, at most this many rounds of an armature built from the tracked motion and the
         take tracked again with it as the articulated prior, the best round kept (``--armature-rounds``,
         :func:`pipeline.track_armature.track_with_armature`); ``"auto"``: at most
-        :data:`pipeline.track_armature.AUTO_RIG_ROUNDS`; 0 (default): none.
+        :data:`pipeline.track_armature.AUTO_RIG_ROUNDS`; 1 (default): one round; 0: none, the tracking alone.
     spine_armature : bool
         The first armature round's armature is the take's spine (``--spine-armature``); needs
         ``armature_rounds``.
@@ -72,7 +72,7 @@ class TrackParams(BaseModel):
     shape_memory: bool = False
     colour: bool = False
     labels: bool = False
-    armature_rounds: Annotated[int, Field(ge=0, le=4)] | Literal["auto"] = 0
+    armature_rounds: Annotated[int, Field(ge=0, le=4)] | Literal["auto"] = 1
     spine_armature: bool = False
     armature_parts: Literal["motion", "limbs"] = "motion"
 

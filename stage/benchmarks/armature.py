@@ -51,9 +51,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "--labels`; --parts limbs implies it)")
     p.add_argument("--colour", action="store_true",
                    help="with --accuracy: the takes tracked with the colour tracks (as `stage track --colour`)")
-    p.add_argument("--armature-rounds", type=_rounds, default=0, metavar="ROUNDS",
+    p.add_argument("--armature-rounds", type=_rounds, default=None, metavar="ROUNDS",
                    help="with --accuracy: the takes tracked again with this many rounds of the armature mode, or "
-                   "'auto' (as `stage track --armature-rounds`; default 0)")
+                   "'auto' (as `stage track --armature-rounds`; default: `stage track`'s, one round; 0: the tracking "
+                   "alone)")
     p.add_argument("--armature-parts", choices=("motion", "limbs"), default="motion",
                    help="with --accuracy, --armature-rounds and the labels: where every round's armature gets its "
                    "parts, 'motion' (default) or 'limbs' (as `stage track --armature-parts`)")
@@ -118,7 +119,7 @@ def _accuracy_options(args: argparse.Namespace):
     if any(not 0 < w < 1 for w in widths):
         raise ValueError(f"--skinned widths must be within (0, 100) %, got {skinned!r}")
     tracking = dict(labels=bool(getattr(args, "labels", False)), colour=bool(getattr(args, "colour", False)),
-                    armature_rounds=getattr(args, "armature_rounds", 0),
+                    armature_rounds=getattr(args, "armature_rounds", None),
                     armature_parts=str(getattr(args, "armature_parts", "motion")))
     _check_tracking(parts=parts, **tracking, name=lambda p: "--" + p.replace("_", "-"))
     return takes, int(getattr(args, "take_frames", 30)), tuple(seeds), parts, tuple(widths), tracking
@@ -135,9 +136,13 @@ def _check_tracking(*, parts: str, labels: bool, colour: bool, armature_rounds, 
     (``name`` spells it: the bench's options are the same rules under their command-line names)."""
     if parts not in ("motion", "limbs"):
         raise ValueError(f"{name('parts')} must be 'motion' or 'limbs', got {parts!r}")
-    if armature_rounds != "auto" and (isinstance(armature_rounds, bool) or not isinstance(armature_rounds, int)
-                                      or armature_rounds < 0):
+    if armature_rounds is not None and armature_rounds != "auto" and (
+            isinstance(armature_rounds, bool) or not isinstance(armature_rounds, int) or armature_rounds < 0):
         raise ValueError(f"{name('armature_rounds')} must be an integer >= 0 or 'auto', got {armature_rounds!r}")
+    if armature_rounds is None:  # the track step's default
+        from pipeline.process.params import TrackParams
+
+        armature_rounds = TrackParams.model_fields["armature_rounds"].default
     if armature_parts not in ("motion", "limbs"):
         raise ValueError(f"{name('armature_parts')} must be 'motion' or 'limbs', got {armature_parts!r}")
     if armature_parts == "limbs" and not (armature_rounds and (labels or parts == "limbs")):
@@ -372,7 +377,7 @@ def accuracy(names=("cow", "pipe", "starfish", "quadruped", "biped"), skinned=(0
 
 def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size=(640, 480), seed: int = 3,
                   fps: float = 30.0, parts: str = "motion", labels: bool = False, colour: bool = False,
-                  armature_rounds=0, armature_parts: str = "motion"):
+                  armature_rounds=None, armature_parts: str = "motion"):
     """A simulated take of ``name`` through ``process``, ``track`` and ``armature`` with their defaults, in
     ``root``; -> (take, results directory, rig, seconds per step). ``parts="limbs"``: tracked with the template's
     limb/body labels (``stage track --labels``) and the armature's parts from them (``stage armature --parts
@@ -380,7 +385,8 @@ def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size
 
     The tracking's options as ``stage track RESULTS_DIR`` takes them: ``labels`` (``--labels``, implied by
     ``parts="limbs"``), ``colour`` (``--colour``), ``armature_rounds`` (``--armature-rounds``: the take tracked
-    again with this many rounds of :func:`pipeline.track_armature.track_with_armature`) and ``armature_parts``
+    again with this many rounds of :func:`pipeline.track_armature.track_with_armature`; None: the track step's
+    default, :class:`pipeline.process.TrackParams`) and ``armature_parts``
     (``--armature-parts``; ``"limbs"`` needs ``armature_rounds`` and the labels)."""
     _check_tracking(parts=parts, labels=labels, colour=colour, armature_rounds=armature_rounds,
                     armature_parts=armature_parts)
@@ -399,12 +405,11 @@ def take_armature(name: str, root, *, frames: int = 30, n_cameras: int = 8, size
     t0 = time.perf_counter()
     labels = labels or parts == "limbs"
     track = {key: True for key, on in (("labels", labels), ("colour", colour)) if on}
+    if armature_rounds is not None:
+        track["armature_rounds"] = armature_rounds
+    if armature_parts != "motion":
+        track["armature_parts"] = armature_parts
     process_take(root / f"{name}.h5", res, steps=("track",), executor=None, **({"params": {"track": track}} if track else {}))
-    if armature_rounds:
-        from pipeline.track_armature import track_with_armature
-
-        track_with_armature(res, rounds=armature_rounds, colour=colour, labels="spine" if labels else None,
-                            parts=armature_parts)
     secs["track"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rig = armature_results(res, parts="limbs") if parts == "limbs" else armature_results(res)
@@ -528,7 +533,7 @@ def true_track_scores(sim, rig, vertices, faces, truth: dict, reference: int) ->
 
 
 def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion", labels: bool = False,
-                  colour: bool = False, armature_rounds=0, armature_parts: str = "motion", copies: int = 0) -> None:
+                  colour: bool = False, armature_rounds=None, armature_parts: str = "motion", copies: int = 0) -> None:
     """Simulated takes (8 cameras, 640x480, each of ``seeds``) through process, track and armature, scored
     (``parts``, ``labels``, ``colour``, ``armature_rounds``, ``armature_parts``: as :func:`take_armature`); with
     ``copies``, each take's armature also on that many moved copies of its tracking (:func:`copies_scores`)."""
@@ -540,7 +545,8 @@ def take_accuracy(names, *, frames: int = 30, seeds=(3,), parts: str = "motion",
     if not names:
         return
     flags = [f"--{key.replace('_', '-')}" + ("" if value is True else f" {value}") for key, value in tracking.items()
-             if value and not (key == "armature_parts" and value == "motion")]
+             if (value or (key == "armature_rounds" and value is not None))
+             and not (key == "armature_parts" and value == "motion")]
     if parts != "motion" or flags:
         how = " ".join(["--labels" if parts == "limbs" and "--labels" not in flags else "", *flags]).strip()
         print(f"\nthe takes tracked as `stage track {how}`".rstrip() + f", the armature's parts --parts {parts}")

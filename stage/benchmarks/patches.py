@@ -1,4 +1,5 @@
-"""``stage bench patches``: the default tracking of the fast and slow simulated takes, and where its patches fall.
+"""``stage bench patches``: the tracking's first stage (``stage track --armature-rounds 0``, before the default's armature
+round) of the fast and slow simulated takes, and where its patches fall.
 
 Every take is a directory of :mod:`stage.benchmarks.labels` (``sim.pkl`` and the processed ``results/``; a
 missing one is simulated, recorded and processed there first, minutes). Its ``results/`` are copied without
@@ -35,7 +36,7 @@ from stage.benchmarks import COPY_SIGMA, check_copies, moved_surfaces, spread_fi
 from stage.benchmarks.labels import take_dir, take_specs, takes_root
 
 NAME = "patches"
-HELP = "the default tracking of the fast and slow simulated takes, with its patches and with a grid's"
+HELP = "the tracking alone (--armature-rounds 0) of the fast and slow simulated takes, with its patches and with a grid's"
 
 DEFAULT_TAKES = ",".join(f"{n}:{fps}:{s}:16" for n in ("biped", "quadruped", "starfish") for fps in (10, 30)
                          for s in (3, 4)) + ",starfish:30:3:30"

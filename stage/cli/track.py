@@ -21,8 +21,9 @@ DESCRIPTION = (
     "                                                 is placed by rigid ICP on the first frame with depth\n"
     "Writes tracked/NNNNNN.ply in the template's vertex order and tracked/track.json; resumes where a killed\n"
     "run stopped. Frames without depth are skipped and listed.\n"
-    "Limbs that move fast (3 voxels a frame or more): docs/tracking.md, 'Fast motion', has an opt-in, slower chain\n"
-    "that tracks every frame again with an armature of the template's limbs as the articulated prior:\n"
+    "Multi-view, the take is then tracked again with an armature built from that tracking as the articulated\n"
+    "prior (one round; --armature-rounds 0: the tracking alone). Limbs that move fast (3 voxels a frame or\n"
+    "more): docs/tracking.md, 'Fast motion', has an opt-in, slower chain with an armature of the template's limbs:\n"
     "  stage track RESULTS_DIR --labels --colour --armature-rounds 1 --armature-parts limbs"
 )
 
@@ -67,14 +68,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --carve: grow every silhouette by PX pixels (default, per camera: twice the reprojection error "
                    "its calibration records, at most the silhouette margin `stage process` carved the hulls with, "
                    "RESULTS_DIR/process.json; that margin where the calibration records none)")
-    p.add_argument("--armature-rounds", "--rig-rounds", dest="rig_rounds", type=_rig_rounds, default=0, metavar="ROUNDS",
+    p.add_argument("--armature-rounds", "--rig-rounds", dest="rig_rounds", type=_rig_rounds, default=None, metavar="ROUNDS",
                    help="multi-view: after tracking, build an armature from the tracked motion (as `stage armature` does, "
                    "rest frame the template's, the finest segments) and track every frame again with it as the articulated "
                    "prior (its skinned pose on each frame's surface as the start, every vertex drawn to it); build it again "
                    "from that tracking and repeat while the armature explains the surfaces better, at most ROUNDS times, "
-                   "keeping the best round; 'auto' = at most 4 (default 0: off). With --colour the colour tracks pull the "
-                   "armature's pose too (they see a round limb's turn about its own axis, which the surfaces cannot). Only as "
-                   "good as the armature's segments, see docs/tracking.md. --rig-rounds: the old name, kept for one release")
+                   "keeping the best round; 'auto' = at most 4 (default 1; 0: off, the tracking alone). With --colour "
+                   "the colour tracks pull the armature's pose too (they see a round limb's turn about its own axis, "
+                   "which the surfaces cannot). Only as good as the armature's segments, see docs/tracking.md. "
+                   "--rig-rounds: the old name, kept for one release")
     p.add_argument("--spine-armature", action="store_true",
                    help="multi-view, with --armature-rounds: the first round's armature is the take's spine (RESULTS_DIR/"
                    "spine.json, built from every frame's visual hull, so it does not inherit the tracking's drift; two "
@@ -173,6 +175,16 @@ def _rig_rounds(text: str):
     return n
 
 
+def armature_rounds(args: argparse.Namespace):
+    """``--armature-rounds`` of a results directory: as given, else the track step's default
+    (:class:`pipeline.process.TrackParams`: one round)."""
+    if args.rig_rounds is not None:
+        return args.rig_rounds
+    from pipeline.process.params import TrackParams
+
+    return TrackParams.model_fields["armature_rounds"].default
+
+
 #: the options :func:`pipeline.track.check_track_options` checks, as its keywords (the flags: ``--carve-margin``...)
 _TRACK_RULES = ("carve", "carve_margin", "armature_rounds", "spine_armature", "armature_parts", "labels")
 
@@ -190,7 +202,7 @@ def _check_counts(args: argparse.Namespace) -> None:
     from pipeline.track import check_track_options
 
     try:
-        check_track_options(carve=args.carve, carve_margin=args.carve_margin, armature_rounds=args.rig_rounds,
+        check_track_options(carve=args.carve, carve_margin=args.carve_margin, armature_rounds=armature_rounds(args),
                             spine_armature=args.spine_armature, armature_parts=args.armature_parts, labels=args.labels,
                             names={k: f"--{k.replace('_', '-')}" for k in _TRACK_RULES})
     except ValueError as exc:
@@ -215,10 +227,10 @@ def _track_results(args: argparse.Namespace, src: Path, bars) -> dict:
             once_per_run():
         # one task at a time: one half of the take, of the tracking and of every armature round
         rep = _rounds(src, args.carve, margin=args.carve_margin, executor=ex, **kw)
-        if args.rig_rounds:
+        if armature_rounds(args):
             from pipeline.track_armature import track_with_armature
 
-            rep = track_with_armature(src, rounds=args.rig_rounds, colour=args.colour, spine=args.spine_armature,
+            rep = track_with_armature(src, rounds=armature_rounds(args), colour=args.colour, spine=args.spine_armature,
                                       progress=bars, executor=ex, labels="spine" if args.labels else None,
                                       parts=args.armature_parts)
     return rep
@@ -238,7 +250,7 @@ def _rounds(src: Path, rounds: int, *, margin=None, **kw) -> dict:
 #: Options of one mode only: (flag, attribute, its default), for a take file and for a results directory.
 _TAKE_ONLY = (("--out", "out", None), ("--camera", "camera", None), ("--remove-skin", "remove_skin", False),
               ("--contour", "contour", False), ("--no-colour", "no_colour", False))
-_RESULTS_ONLY = (("--carve", "carve", 0), ("--armature-rounds", "rig_rounds", 0), ("--carve-margin", "carve_margin", None),
+_RESULTS_ONLY = (("--carve", "carve", 0), ("--armature-rounds", "rig_rounds", None), ("--carve-margin", "carve_margin", None),
                  ("--spine-armature", "spine_armature", False), ("--colour", "colour", False),
                  ("--shape-memory", "shape_memory", False), ("--spine-init", "spine_init", False),
                  ("--prediction-only", "prediction_only", False), ("--workers", "workers", None), ("--labels", "labels", False),

@@ -264,8 +264,11 @@ def test_cli_armature_rounds_on_a_turning_sphere(tmp_path, capsys):
     for k in range(3):
         assert _sphere_error(res / "tracked" / f"{k:06d}.ply").mean() < 1.0
     # tracking again without the rig starts over: other settings
-    assert main(["-q", "track", str(res), "--workers", "0"]) == 0
+    assert main(["-q", "track", str(res), "--workers", "0", "--armature-rounds", "0"]) == 0
     assert json.loads((res / "tracked" / "track.json").read_text())["rig_rounds"] == 0
+    # one round is the default
+    assert main(["-q", "track", str(res), "--workers", "0"]) == 0
+    assert json.loads((res / "tracked" / "track.json").read_text())["rig_rounds"] == 1
 
 
 def test_armature_rounds_take_the_templates_labels_for_their_patches_and_armature(tmp_path, monkeypatch, caplog):
@@ -449,13 +452,16 @@ def test_track_with_rig_invalid_input(tmp_path, capsys):
         track_with_armature(res)  # not tracked yet
     with pytest.raises(SystemExit):  # argparse: "must be a count >= 0 or 'auto'"
         main(["-q", "track", str(res), "--armature-rounds", "-1"])
-    assert main(["-q", "track", str(res), "--spine-armature"]) == 2
+    # one armature round is the default: its rules speak when the rounds are turned off
+    assert main(["-q", "track", str(res), "--spine-armature", "--armature-rounds", "0"]) == 2
     assert "--spine-armature needs --armature-rounds" in capsys.readouterr().err
-    assert main(["-q", "track", str(res), "--armature-parts", "limbs", "--labels"]) == 2
+    assert main(["-q", "track", str(res), "--armature-parts", "limbs", "--labels", "--armature-rounds", "0"]) == 2
     assert "--armature-parts 'limbs' needs --armature-rounds (" in capsys.readouterr().err  # what to add, alone
     assert main(["-q", "track", str(res), "--armature-parts", "limbs", "--armature-rounds", "1"]) == 2
     assert "--armature-parts 'limbs' needs --labels (" in capsys.readouterr().err
-    assert main(["-q", "track", str(res), "--armature-parts", "limbs"]) == 2
+    assert main(["-q", "track", str(res), "--armature-parts", "limbs"]) == 2  # the default round, without labels
+    assert "--armature-parts 'limbs' needs --labels (" in capsys.readouterr().err
+    assert main(["-q", "track", str(res), "--armature-parts", "limbs", "--armature-rounds", "0"]) == 2
     assert "--armature-parts 'limbs' needs --armature-rounds and --labels (" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # argparse: "invalid choice"
         main(["-q", "track", str(res), "--armature-parts", "bones"])

@@ -39,7 +39,7 @@ def _sphere_error(path):
 
 def test_cli_carve_tracks_the_carved_surfaces_and_records_them(tmp_path, capsys):
     res = _results(tmp_path)
-    assert main(["track", str(res), "--carve", "1", "--workers", "0", "--no-progress"]) == 0
+    assert main(["track", str(res), "--carve", "1", "--workers", "0", "--no-progress", "--armature-rounds", "0"]) == 0
     assert "surfaces: carved across time" in capsys.readouterr().out
     rep = json.loads((res / "tracked" / "track.json").read_text())
     carve = json.loads((res / "carved" / "carve.json").read_text())
@@ -177,7 +177,8 @@ def test_invalid_input(tmp_path):
 
 def test_cli_carve_margin_is_recorded(tmp_path):
     res = _results(tmp_path, frames=2)
-    assert main(["-q", "track", str(res), "--carve", "1", "--carve-margin", "0.5", "--workers", "0"]) == 0
+    assert main(["-q", "track", str(res), "--carve", "1", "--carve-margin", "0.5", "--workers", "0",
+                 "--armature-rounds", "0"]) == 0
     assert json.loads((res / "carved" / "carve.json").read_text())["margin_px"] == 0.5
 
 

@@ -24,11 +24,13 @@ from pipeline.process.params import RigParams, check_params
     ({"armature_parts": "bones"}, "track.armature_parts.* 'motion' or 'limbs'"),
     ({"carve_margin": 0.5}, r"track.carve_margin needs track.carve \("),  # stage track --carve-margin without --carve
     ({"carve_margin": 0.5, "carve": 0}, r"track.carve_margin needs track.carve \("),
-    ({"spine_armature": True}, r"track.spine_armature needs track.armature_rounds \("),
     ({"spine_armature": True, "armature_rounds": 0}, r"track.spine_armature needs track.armature_rounds \("),
-    ({"armature_parts": "limbs", "labels": True}, r"track.armature_parts 'limbs' needs track.armature_rounds \("),
+    ({"armature_parts": "limbs", "labels": True, "armature_rounds": 0},
+     r"track.armature_parts 'limbs' needs track.armature_rounds \("),
     ({"armature_parts": "limbs", "armature_rounds": 1}, r"track.armature_parts 'limbs' needs track.labels \("),
-    ({"armature_parts": "limbs"}, r"track.armature_parts 'limbs' needs track.armature_rounds and track.labels \("),
+    ({"armature_parts": "limbs"}, r"track.armature_parts 'limbs' needs track.labels \("),  # the default round
+    ({"armature_parts": "limbs", "armature_rounds": 0},
+     r"track.armature_parts 'limbs' needs track.armature_rounds and track.labels \("),
 ])
 def test_invalid_input(bad, said):
     """Every bound and every rule of ``stage track``'s armature options is an error naming the parameter."""
@@ -55,9 +57,11 @@ def test_docs_tracking_lists_every_rule_between_the_options():
 
 def test_the_rules_accept_what_stage_track_accepts():
     for ok in ({"armature_rounds": "auto"}, {"carve": 1, "carve_margin": 0.0}, {"armature_rounds": 4, "spine_armature": True},
-               {"labels": True, "colour": True, "armature_rounds": 1, "armature_parts": "limbs"}):
+               {"labels": True, "colour": True, "armature_rounds": 1, "armature_parts": "limbs"},
+               {"spine_armature": True}, {"labels": True, "armature_parts": "limbs"}, {"armature_rounds": 0}):
         assert check_params({"track": ok}).track == TrackParams(**ok)
-    assert TrackParams().armature_rounds == 0 and not TrackParams().spine_armature
+    # one armature round is the default (docs/tracking.md, "Options"); 0 turns it off
+    assert TrackParams().armature_rounds == 1 and not TrackParams().spine_armature
     assert TrackParams().armature_parts == "motion"
 
 
@@ -150,15 +154,20 @@ def test_the_track_step_runs_the_armature_rounds_as_stage_track_does(tmp_path, m
     assert ctx.clock.worker_cpu["track"] == pytest.approx(3.5)  # the tracking's and the rounds'
 
 
-def test_the_track_step_runs_no_rounds_unless_asked(tmp_path, monkeypatch):
-    """Without ``armature_rounds`` no round runs; a job whose rig takes its parts from the limbs tracks with the
-    labels and its rounds take them too."""
+def test_the_track_step_runs_one_round_unless_told_otherwise(tmp_path, monkeypatch):
+    """Without ``armature_rounds`` one round runs (the default, as ``stage track``'s), with 0 none; a job whose rig
+    takes its parts from the limbs tracks with the labels and its rounds take them too."""
     from pipeline.process.steps import _step_track
 
     calls = _recording(monkeypatch)
     (tmp_path / "meshes").mkdir()
     (tmp_path / "meshes" / "frame_000000.ply").write_text("ply")
     ctx, _ = _ctx(tmp_path, {"colour": True})
+    _step_track(ctx)
+    assert [name for name, _ in calls] == ["track_with_carving", "track_with_armature"]
+    assert calls[1][1]["rounds"] == 1 and calls[1][1]["colour"] is True and calls[1][1]["labels"] is None
+    calls.clear()
+    ctx, _ = _ctx(tmp_path, {"colour": True, "armature_rounds": 0})
     _step_track(ctx)
     assert [name for name, _ in calls] == ["track_with_carving"]
     calls.clear()
@@ -211,7 +220,8 @@ def test_the_track_step_announces_every_round_that_may_run():
     def totals(**track):
         return _track_totals(SimpleNamespace(params=ProcessParams(track=track), take=SimpleNamespace(n_sets=5)))
 
-    assert totals() == [("track", 5)]
+    assert totals() == [("track", 5), ("track with the rig round 1", 5)]  # the default round
+    assert totals(armature_rounds=0) == [("track", 5)]
     assert totals(armature_rounds=2, carve=1) == [("track", 5), ("carve round 1", 5), ("track round 1", 5),
                                                   ("track with the rig round 1", 5), ("track with the rig round 2", 5)]
     assert [n for n, _ in totals(armature_rounds="auto", spine_armature=True)][1:] == [

@@ -72,9 +72,9 @@ def test_take_armature_tracks_with_the_labels_for_the_limbs_parts(monkeypatch, t
 
 def test_take_armature_tracks_as_stage_track_with_the_armature_mode(monkeypatch, tmp_path):
     """`stage bench armature --accuracy --labels --colour --armature-rounds 1 --armature-parts limbs`: the track
-    step with the labels and the colour tracks (``parameters.track``), then the armature mode's rounds as `stage
-    track RESULTS_DIR` runs them (``track_with_armature`` with the same colour, labels and parts), then the armature
-    with its parts. The steps stand in for the minutes-long ones."""
+    step with the labels, the colour tracks and the armature mode's rounds (``parameters.track``, as `stage track
+    RESULTS_DIR` takes them; without ``armature_rounds`` the step's default, one round), then the armature with its
+    parts; no round run apart. The steps stand in for the minutes-long ones."""
     import fake_cameras.record
     import fake_cameras.take
     import pipeline.armature_files
@@ -91,23 +91,25 @@ def test_take_armature_tracks_as_stage_track_with_the_armature_mode(monkeypatch,
                         lambda res, **kw: calls.append(("rounds", res == tmp_path / "results", kw)))
     monkeypatch.setattr(pipeline.armature_files, "armature_results", lambda res, **kw: calls.append(("armature", kw)))
     take_armature("biped", tmp_path, labels=True, colour=True, armature_rounds=1, armature_parts="limbs")
-    assert calls == [("process", None, None), ("process", ("track",), {"track": {"labels": True, "colour": True}}),
-                     ("rounds", True, {"rounds": 1, "colour": True, "labels": "spine", "parts": "limbs"}),
+    assert calls == [("process", None, None),
+                     ("process", ("track",), {"track": {"labels": True, "colour": True, "armature_rounds": 1,
+                                                        "armature_parts": "limbs"}}),
                      ("armature", {})]
     calls.clear()
     take_armature("biped", tmp_path, colour=True, armature_rounds=2, parts="limbs")
-    assert calls == [("process", None, None), ("process", ("track",), {"track": {"labels": True, "colour": True}}),
-                     ("rounds", True, {"rounds": 2, "colour": True, "labels": "spine", "parts": "motion"}),
+    assert calls == [("process", None, None),
+                     ("process", ("track",), {"track": {"labels": True, "colour": True, "armature_rounds": 2}}),
                      ("armature", {"parts": "limbs"})]
     calls.clear()
-    take_armature("biped", tmp_path, colour=True, armature_rounds=1)
-    assert calls == [("process", None, None), ("process", ("track",), {"track": {"colour": True}}),
-                     ("rounds", True, {"rounds": 1, "colour": True, "labels": None, "parts": "motion"}),
-                     ("armature", {})]
+    take_armature("biped", tmp_path, colour=True)  # the step's default round
+    assert calls == [("process", None, None), ("process", ("track",), {"track": {"colour": True}}), ("armature", {})]
     calls.clear()
     take_armature("biped", tmp_path, armature_rounds="auto")
-    assert calls == [("process", None, None), ("process", ("track",), None),
-                     ("rounds", True, {"rounds": "auto", "colour": False, "labels": None, "parts": "motion"}),
+    assert calls == [("process", None, None), ("process", ("track",), {"track": {"armature_rounds": "auto"}}),
+                     ("armature", {})]
+    calls.clear()
+    take_armature("biped", tmp_path, armature_rounds=0)  # the tracking alone
+    assert calls == [("process", None, None), ("process", ("track",), {"track": {"armature_rounds": 0}}),
                      ("armature", {})]
 
 
@@ -116,7 +118,8 @@ def test_take_armature_tracks_as_stage_track_with_the_armature_mode(monkeypatch,
                                        ({"armature_rounds": True}, "^armature_rounds"),
                                        ({"armature_rounds": "often"}, "^armature_rounds"),
                                        ({"armature_parts": "spine"}, "^armature_parts"),
-                                       ({"armature_parts": "limbs", "labels": True}, "^armature_parts"),
+                                       ({"armature_parts": "limbs", "labels": True, "armature_rounds": 0},
+                                        "^armature_parts"),
                                        ({"armature_parts": "limbs", "armature_rounds": 1}, "^armature_parts")])
 def test_invalid_input_take_armature(kw, match, monkeypatch, tmp_path):
     """Options checked before any work: the simulator is never reached."""
