@@ -48,3 +48,31 @@ def artifacts_dir(tmp_path: Path, name: str) -> Path:
     d = Path(env) / name if env else tmp_path / "artifacts"
     d.mkdir(parents=True, exist_ok=True)
     return d
+
+
+#: the WCAG 2 contrast ratio of every visible text element of the page against its first opaque background
+#: below 4.5 (AA for text under 18 pt): {"colour on background": [ratio, element]}
+LOW_CONTRAST = """() => {
+  const parse = (c) => c.match(/[\\d.]+/g).map(Number);
+  const lum = (c) => { const f = (v) => { v /= 255; return v <= 0.03928 ? v / 12.92 : Math.pow((v + 0.055) / 1.055, 2.4); };
+                       const m = parse(c); return 0.2126 * f(m[0]) + 0.7152 * f(m[1]) + 0.0722 * f(m[2]); };
+  const bg = (e) => { for (; e; e = e.parentElement){ const c = getComputedStyle(e).backgroundColor; const m = parse(c);
+                        if (m.length < 4 || m[3] === 1) return c; } return 'rgb(255, 255, 255)'; };
+  const out = {};
+  for (const e of document.querySelectorAll('body *')){
+    if (![...e.childNodes].some((n) => n.nodeType === 3 && n.textContent.trim()) || !e.checkVisibility()) continue;
+    if (e.closest('.frame')) continue;  // the badges over the pictures: white on a dark veil over an image
+    if (e.closest('button:disabled, input:disabled')) continue;  // inactive controls: exempt (WCAG 1.4.3)
+    const s = getComputedStyle(e); const a = lum(s.color), b = lum(bg(e));
+    const r = (Math.max(a, b) + 0.05) / (Math.min(a, b) + 0.05);
+    if (r < 4.5) out[s.color + ' on ' + bg(e)] = [Math.round(r * 100) / 100,
+                                                  e.tagName + '.' + e.className + ': ' + e.textContent.trim().slice(0, 40)];
+  }
+  return out;
+}"""
+
+#: the controls and pictures of the page without an accessible name (label, aria-label, alt or text)
+UNNAMED = """() => [...document.querySelectorAll('input, button, select, progress, canvas, img')]
+  .filter((e) => !(e.labels && e.labels.length) && !e.getAttribute('aria-label') && !e.getAttribute('alt')
+                 && !(e.textContent || '').trim())
+  .map((e) => e.tagName + '#' + e.id + '.' + e.className)"""

@@ -365,8 +365,9 @@ class JobRunner:
             out = self.jobs_dir / jid
             out.mkdir(parents=True, exist_ok=True)
 
-            def progress(step: str, done: int, total: int) -> None:
-                self.store.progress(jid, str(step), int(done), int(total))
+            def progress(name: str, done: int, total: int, of_step: str | None = None) -> None:
+                # (of_step: the job's step the entry belongs to, as the pipeline announced it)
+                self.store.progress(jid, str(name), int(done), int(total), of_step=of_step)
 
             def warn(message: str) -> None:  # kept as said: a job that fails next still has it
                 try:

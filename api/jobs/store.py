@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, Iterable, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
-from typing_extensions import TypedDict
+from typing_extensions import NotRequired, TypedDict
 
 __all__ = ["JobRecord", "StepProgress", "JobStore", "JobNotFoundError", "JobStateError", "STATES", "TERMINAL"]
 
@@ -75,10 +75,13 @@ class JobStateError(ValueError):
 
 
 class StepProgress(TypedDict):
-    """Frames of one step done, and how many there are."""
+    """Frames of one progress entry done, how many there are, and the job's step it belongs to (the step that
+    announced it: :meth:`pipeline.run.Run.step_of`; the entry's own name where the work says none, and in records
+    kept before steps were)."""
 
     done: int
     total: int
+    step: NotRequired[str]
 
 
 class JobRecord(BaseModel):
@@ -314,8 +317,9 @@ class JobStore:
 
         return self._tx(fn)
 
-    def progress(self, job_id: str, step: str, done: int, total: int) -> None:
-        """Record ``done`` of ``total`` frames of ``step``; append an event when the summed count grows."""
+    def progress(self, job_id: str, step: str, done: int, total: int, *, of_step: str | None = None) -> None:
+        """Record ``done`` of ``total`` frames of the progress entry ``step``, a part of the job's step ``of_step``
+        (``step`` itself when not given); append an event when the summed count grows."""
 
         def fn(con: sqlite3.Connection):
             row = con.execute("SELECT progress, state FROM jobs WHERE id = ?", (job_id,)).fetchone()
@@ -323,7 +327,7 @@ class JobStore:
                 return
             prog = json.loads(row["progress"])  # (in the order first reported: the pipeline's, as its steps announce
             # their entries when the run starts; a page lists them so)
-            prog[step] = {"done": int(done), "total": int(total)}
+            prog[step] = {"done": int(done), "total": int(total), "step": str(of_step or step)}
             sdone = sum(v["done"] for v in prog.values())
             stotal = sum(v["total"] for v in prog.values())
             con.execute(

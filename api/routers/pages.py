@@ -196,8 +196,8 @@ def jobs_page(request: Request, store: StoreDep, _: ReadAccess) -> HTMLResponse:
 
 @router.get("/ui/jobs/{job_id}", response_class=HTMLResponse)
 def job_page(request: Request, job_id: JobId, store: StoreDep, settings: SettingsDep, _: ReadAccess) -> HTMLResponse:
-    """One job: state, progress per step (live), error, links to the results it has written (live: the page asks
-    ``/jobs/{id}/results/`` as the job runs) and its report."""
+    """One job: state, its steps each with its progress entries under it (live: :func:`step_groups`), error, links
+    to the results it has written (live: the page asks ``/jobs/{id}/results/`` as the job runs) and its report."""
     try:
         j = store.get(job_id)
     except JobNotFoundError as exc:
@@ -209,7 +209,31 @@ def job_page(request: Request, job_id: JobId, store: StoreDep, settings: Setting
                  frame_lists=_frame_lists(written) if written else [],
                  unwritten=_unwritten(j, written) if written else "",
                  result_steps=results.RESULT_STEPS, frame_links=_FRAME_LINKS,
+                 step_groups=step_groups(j), steps_key=steps_key(j.progress),
                  parameters=json.dumps(j.params) if j.params else "–")
+
+
+def step_groups(job: JobRecord) -> list[tuple[str, list[tuple[str, dict]]]]:
+    """The job's steps, each with its progress entries ``(name, entry)`` as the job's record says whose they are
+    (an entry's ``step``, the pipeline's announcement; an entry without one is a step of its own), in the order
+    they were first reported; a step the job asked for that reported nothing has no entries, after the step
+    asked before it. The job's page lists them so, one table."""
+    groups: dict[str, list[tuple[str, dict]]] = {}
+    for name, entry in (job.progress or {}).items():
+        groups.setdefault(entry.get("step") or name, []).append((name, entry))
+    order = list(groups)
+    for i, step in enumerate(job.steps):
+        if step not in groups:
+            before = [s for s in job.steps[:i] if s in order]
+            order.insert(order.index(before[-1]) + 1 if before else 0, step)
+            groups[step] = []
+    return [(step, groups[step]) for step in order]
+
+
+def steps_key(progress: dict) -> str:
+    """The progress entries and their steps, as job.js says them (``JSON.stringify``): the page's steps table is
+    laid out again (asked from the server) when the job's differ from those it was laid out for."""
+    return json.dumps([[name, e.get("step") or name] for name, e in (progress or {}).items()], separators=(",", ":"))
 
 
 #: a job's per-frame results on its page: the listing's frames, the key of their URL, what the list is called

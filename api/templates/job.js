@@ -3,7 +3,8 @@
     its per-frame folders in a collapsed list; a listing that cannot be read is said, and asked again, a finished
     job's until it answers; a calibration job's page is loaded again when the job ends, with what it made
     (JOB_ID, INITIAL_STATE, RESULT_STEPS, FRAME_LINKS: set by the page; pages.py _frame_lists, _unwritten,
-    _calibration_links say it alike) -#}
+    _calibration_links say it alike); the steps' table's bars follow the job's progress, and the table is asked
+    from the server again when the job's entries (and their steps) are not those it was laid out for -#}
 (function(){
   const TERMINAL = ["done", "failed", "cancelled"];
   function renderFrames(l){
@@ -48,6 +49,36 @@
     }
     p.hidden = !p.textContent;
   }
+  function setBar(tr, done, total){
+    const bar = tr && tr.querySelector('progress');
+    if (!bar) return;
+    bar.max = Math.max(total, 1); bar.value = Math.min(done, bar.max);
+    tr.querySelector('.count').textContent = done + '/' + total;
+  }
+  let relayout = null;  // (the steps table asked from the server, once at a time)
+  function renderSteps(j){
+    // every entry's row by data-step, every step's by data-group (the sum of its entries); entries the table was
+    // not laid out for (their steps as the record says: pages.steps_key) have the server lay it out again
+    const entries = Object.entries(j.progress || {});
+    const key = JSON.stringify(entries.map(([n, p]) => [n, p.step || n]));
+    let table = document.getElementById('steps');
+    if (table.dataset.key !== key && !relayout)
+      relayout = fetch(location.pathname, {headers: {'Accept': 'text/html'}})
+        .then(r => r.ok ? r.text() : null).then(t => {
+          const fresh = t && new DOMParser().parseFromString(t, 'text/html').getElementById('steps');
+          if (fresh) document.getElementById('steps').replaceWith(document.adoptNode(fresh));
+        }).catch(() => {}).finally(() => { relayout = null; });
+    table = document.getElementById('steps');
+    const sums = {};
+    for (const [name, p] of entries){
+      setBar(table.querySelector('tr[data-step="' + CSS.escape(name) + '"]'), p.done, p.total);
+      const s = sums[p.step || name] = sums[p.step || name] || [0, 0];
+      s[0] += p.done; s[1] += p.total;
+    }
+    for (const [step, [done, total]] of Object.entries(sums))
+      setBar(table.querySelector('tbody[data-group="' + CSS.escape(step) + '"] tr.step'), done, total);
+    return table.dataset.key === key;
+  }
   function render(j){
     const st = document.getElementById('state');
     st.textContent = j.state + (j.cancel_requested && !TERMINAL.includes(j.state) ? ' (cancel requested)' : '');
@@ -57,21 +88,7 @@
     const all = document.getElementById('bar-all');
     all.max = Math.max(j.total, 1); all.value = Math.min(j.done, all.max);
     document.getElementById('count-all').textContent = j.done + '/' + j.total;
-    const tbody = document.getElementById('steps');
-    for (const [step, p] of Object.entries(j.progress || {})){
-      let tr = tbody.querySelector('tr[data-step="' + CSS.escape(step) + '"]');
-      if (!tr){
-        tr = document.createElement('tr'); tr.dataset.step = step;
-        const td0 = document.createElement('td'); td0.textContent = step;
-        const td1 = document.createElement('td'); const bar = document.createElement('progress');
-        const sp = document.createElement('span'); sp.className = 'count';
-        td1.appendChild(bar); td1.appendChild(document.createTextNode(' ')); td1.appendChild(sp);
-        tr.appendChild(td0); tr.appendChild(td1); tbody.appendChild(tr);
-      }
-      const bar = tr.querySelector('progress');
-      bar.max = Math.max(p.total, 1); bar.value = Math.min(p.done, bar.max);
-      tr.querySelector('.count').textContent = p.done + '/' + p.total;
-    }
+    const laidOut = renderSteps(j);
     document.getElementById('attempts').textContent = j.attempts;
     for (const k of ['started', 'finished'])
       if (j[k]) document.getElementById(k).textContent = new Date(j[k] * 1000).toISOString().slice(0, 19).replace('T', ' ') + ' UTC';
@@ -83,7 +100,7 @@
     for (const w of warned){ const li = document.createElement('li'); li.textContent = w; ul.appendChild(li); }
     document.getElementById('nwarn').textContent = warned.length;
     document.getElementById('warnings').hidden = !warned.length;
-    return !TERMINAL.includes(j.state);
+    return !TERMINAL.includes(j.state) || !laidOut;  // (a finished job's until its steps' table is laid out)
   }
   async function listed(j){
     // (asked after the status: a job just finished has all its files listed); false when it could not be read

@@ -202,7 +202,9 @@ def process_take(
     executor : concurrent.futures.Executor, optional
         Where per-frame work runs; ``None`` runs it in this process.
     progress : callable, optional
-        ``progress(step, done, total)`` after every finished chunk of frames.
+        ``progress(name, done, total)`` after every finished chunk of frames, ``name`` a progress entry (a step's
+        part: ``box`` of ``surface``...); one that takes ``of_step`` is told the step the entry belongs to too
+        (the one that announced it: :meth:`pipeline.run.Run.step_of`).
     cancel : threading.Event, optional
         Set it to stop between chunks (``InterruptedError``); finished frames stay, in a folder this run made too
         (a run that fails otherwise removes a folder it made), and a later run resumes from them.

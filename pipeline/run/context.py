@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures as cf
+import inspect
 import logging
 import os
 import threading
@@ -501,6 +502,15 @@ class Clock:
         self.worker_cpu[step] = self.worker_cpu.get(step, 0.0) + cpu
 
 
+def _takes_of_step(fn: Callable) -> bool:
+    """Whether a progress callback takes ``of_step`` (by name, or as any keyword)."""
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):  # (a builtin without a signature: the three arguments alone)
+        return False
+    return any(p.name == "of_step" or p.kind is p.VAR_KEYWORD for p in params)
+
+
 @dataclass(kw_only=True)
 class Run:
     """The runner's side of one run: where results go, where tasks run, who is told of progress,
@@ -508,6 +518,8 @@ class Run:
 
     out: Path
     executor: cf.Executor | None = None
+    #: ``progress(name, done, total)`` as an entry's count changes; told ``of_step=`` too, the step the entry
+    #: belongs to (:meth:`step_of`), when it takes that keyword (or any keyword)
     progress: Callable[[str, int, int], None] | None = None
     cancel: threading.Event | None = None
     warnings: list[str] = field(default_factory=list)
@@ -518,6 +530,7 @@ class Run:
     step: str = ""  # the step running
     _reported: dict[str, tuple[int, int]] = field(default_factory=dict, init=False, repr=False)  # progress name -> (done, total)
     _planned: dict[str, list[str]] = field(default_factory=dict, init=False, repr=False)  # step -> progress names announced
+    _owner: dict[str, str] = field(default_factory=dict, init=False, repr=False)  # progress name -> its step
 
     @contextmanager
     def part(self, name: str):
@@ -548,10 +561,20 @@ class Run:
         if self.on_warning is not None:
             self.on_warning(message)
 
+    def step_of(self, name: str) -> str:
+        """The step a progress entry belongs to: the one that announced it (:meth:`announce`), else the step that
+        first reported it (the rig step's tracking, run within it), else the entry's own name (one reported
+        outside any step)."""
+        return self._owner.get(name) or self.step or name
+
     def report_progress(self, step: str, done: int, total: int) -> None:
+        self._owner.setdefault(step, self.step_of(step))
         self._reported[step] = (int(done), int(total))
         if self.progress:
-            self.progress(step, done, total)
+            if _takes_of_step(self.progress):
+                self.progress(step, done, total, of_step=self._owner[step])
+            else:
+                self.progress(step, done, total)
 
     def announce(self, step: str, items: Sequence[tuple[str, int]]) -> None:
         """Report the progress entries ``(name, total)`` a step will report as 0 done before it
@@ -559,6 +582,7 @@ class Run:
         steps are still to come); :meth:`complete` closes those the step did not report."""
         for name, total in items:
             self._planned.setdefault(step, []).append(name)
+            self._owner.setdefault(name, step)
             if name not in self._reported:
                 self.report_progress(name, 0, total)
 

@@ -4,15 +4,18 @@ report and the take's page from the server, waits for the plotly 3-D views and c
 a second job, over a take whose masks failed in some frame sets, which then fails (its rig's rest frame is past
 the surfaces), lists on its page the warnings said before it failed. Each job's page links only the result files
 the job wrote (each answers 200), every frame of its surfaces in a collapsed list, the failed one saying which of
-its steps wrote nothing; the done job's page, whose results' listing fails twice once the job is done, says so and
-asks again until it has the finished job's links.
+its steps wrote nothing; each job's steps are one table, every step with the progress entries it reports under it,
+laid out live by a page opened while the job was queued as the server lays it out; the done job's page, whose
+results' listing fails twice once the job is done, says so and asks again until it has the finished job's links.
 
 Screenshots are kept under ``$STAGE_TEST_ARTIFACTS`` (else the test's tmp dir); the path is printed.
 """
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import time
 from pathlib import Path
 
@@ -22,7 +25,7 @@ import pytest
 from fake_cameras.record import record_take
 from fake_cameras.take import simulate_take
 from tests.api.served import AUTH, Server
-from tests.browser import CHROMIUM, CHROMIUM_ARGS, not_blank, sync_playwright_or_skip
+from tests.browser import CHROMIUM, CHROMIUM_ARGS, LOW_CONTRAST, UNNAMED, not_blank, sync_playwright_or_skip
 from tests.pipeline.hull_scenes import FAILED_MASKS_SAID, take_with_failed_masks
 
 pytestmark = [pytest.mark.slow]
@@ -50,6 +53,19 @@ def _artifacts(tmp_path: Path) -> Path:
 def _take(path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     return record_take(simulate_take("starfish", n_cameras=CAMERAS, frames=FRAMES, size=SIZE, seed=0), path)
+
+
+# the job page's steps table: (step, progress entry or None for a step's own row) per row
+_STEP_ROWS = ("() => Array.from(document.querySelectorAll('#steps tbody tr'))"
+              ".map(e => [e.closest('tbody').dataset.group, e.dataset.step || null])")
+
+
+def _served_step_rows(url: str) -> list[list]:
+    """The steps table of a job's page as the server renders it now (as _STEP_ROWS reads it)."""
+    page = httpx.get(url, timeout=30).text
+    table = page.split('<table id="steps"', 1)[1].split("</table>", 1)[0]
+    return [[group, entry or None] for group, body in re.findall(r'<tbody data-group="([^"]*)">(.*?)</tbody>', table, re.S)
+            for entry in re.findall(r'<tr class="(?:step|part)"(?: data-step="([^"]*)")?>', body)]
 
 
 def _result_links(page, url: str) -> dict[str, int]:
@@ -97,6 +113,11 @@ def test_browser_on_served_pages(tmp_path):
                 # the job page follows the job live until it is done, then shows the report link
                 page.goto(f"{srv.url}/ui/jobs/{jid}", wait_until="load", timeout=30_000)
                 initial = page.text_content("#state")
+                # the second job's page, opened while it waits for the first: job.js lays out its steps as they come
+                live = browser.new_page(viewport={"width": 1200, "height": 900})
+                live.on("pageerror", lambda e: errors.append(str(e)))
+                live.goto(f"{srv.url}/ui/jobs/{failed}", wait_until="load", timeout=30_000)
+                live_initial, live_rows0 = live.text_content("#state"), live.evaluate(_STEP_ROWS)
                 page.evaluate("() => { window.__seen = []; new MutationObserver(() => window.__seen.push("
                               "document.getElementById('count-all').textContent)).observe("
                               "document.getElementById('count-all'), {childList: true, characterData: true, subtree: true});"
@@ -114,7 +135,7 @@ def test_browser_on_served_pages(tmp_path):
                 frames_said = page.eval_on_selector_all("#frames summary", "els => els.map(e => e.textContent)")
                 assert page.is_visible("#report"), "the report link did not appear"
                 counts = page.text_content("#count-all")
-                rows = page.eval_on_selector_all("#steps tr", "els => els.map(e => e.dataset.step)")
+                rows = page.evaluate(_STEP_ROWS)
                 done, total = (int(x) for x in counts.split("/"))
                 assert done == total > 0, counts
                 if initial != "done":  # the script updated the page while the job ran
@@ -148,6 +169,18 @@ def test_browser_on_served_pages(tmp_path):
                 loaded = page.evaluate("() => Array.from(document.images).map(i => i.naturalWidth)")
                 page.screenshot(path=str(art / "take_page.png"), full_page=True)
 
+                # the second job's live page, once it failed: its steps laid out as the server lays them out
+                live.wait_for_function("() => document.getElementById('state').textContent === 'failed'",
+                                       timeout=60_000)
+                served_rows = _served_step_rows(f"{srv.url}/ui/jobs/{failed}")
+                live.wait_for_function(f"(want) => JSON.stringify(({_STEP_ROWS})()) === want",
+                                       arg=json.dumps(served_rows, separators=(",", ":")), timeout=20_000)
+                live_rows = live.evaluate(_STEP_ROWS)
+                # the table reads as the other pages: AA contrast, every bar named
+                live_low, live_unnamed = live.evaluate(LOW_CONTRAST), live.evaluate(UNNAMED)
+                bar_names = live.eval_on_selector_all("#steps progress", "els => els.map(e => e.getAttribute('aria-label'))")
+                live.screenshot(path=str(art / "failed_job_live_page.png"), full_page=True)
+
                 # a job whose frames warned, then failed: its page lists the warnings said before it failed (its
                 # worker processes carved the frames), with its error
                 page.goto(f"{srv.url}/ui/jobs/{failed}", wait_until="load", timeout=30_000)
@@ -165,7 +198,8 @@ def test_browser_on_served_pages(tmp_path):
                 browser.close()
     finally:
         srv.cleanup()
-    print(f"\nscreenshots of the served pages: {art} ({time.monotonic() - t0:.1f} s)")
+    print(f"\nscreenshots of the served pages: {art} ({time.monotonic() - t0:.1f} s; the second job's live page opened"
+          f" {live_initial})")
     assert not errors, errors
     assert all(u.startswith((srv.url + "/", "data:", "about:", "blob:")) for u in requests), \
         [u for u in requests if not u.startswith(srv.url)]
@@ -186,7 +220,19 @@ def test_browser_on_served_pages(tmp_path):
     assert {h.rsplit("/results/", 1)[1] for h in done_links} == {
         "spine.json", "report.json", "spine.glb", "spine_rig.glb"} | {
         f"meshes/frame_{k:06d}.ply" for k in range(FRAMES)}, done_links
-    assert rows == ["key", "box", "surface", "skeleton", "spine"], rows  # (the steps' order, as they run)
+    # the steps' order, as they run, each step's entries under it (the key step's one entry is its row; the refine
+    # step, which the key step brings, reported nothing: keying without its graphcut layer)
+    assert rows == [["key", "key"], ["refine", None], ["surface", None], ["surface", "box"], ["surface", "surface"],
+                    ["spine", None], ["spine", "skeleton"], ["spine", "spine"]], rows
+    # the failed job's steps asked, each with what it reported, the rig step's parts announced before it failed
+    assert list(dict.fromkeys(g for g, _ in live_rows)) == ["surface", "track", "rig"], live_rows
+    assert [e for g, e in live_rows if g == "rig"] == [None, "rig segmentation", "rig skeleton", "rig fit",
+                                                       "rig write"], live_rows
+    assert ["track", "track"] in live_rows and live_rows == served_rows, (live_rows, served_rows)
+    assert not live_low and not live_unnamed, (live_low, live_unnamed)
+    assert bar_names[:3] == ["the surface step", "box (surface step)", "surface (surface step)"], bar_names
+    if live_initial == "queued":  # (laid out by job.js as the job ran: the server's first page had no entries)
+        assert live_rows0 == [["surface", None], ["track", None], ["rig", None]], live_rows0
     assert frames_said == [f"surface meshes ({FRAMES} frame sets)"] and frames_open == [False], (frames_said,
                                                                                              frames_open)
     if initial != "done":  # the listing failed on the poll that saw the job done: said, then asked again

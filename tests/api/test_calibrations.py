@@ -138,7 +138,7 @@ def test_calibrate_rendered_board_take(make_client, tmp_path):
     _board_take(path, views.images, truth.names)
     st = _calibrate_job(client, "board", path, BOARD)
     assert st["state"] == "done", st
-    assert st["progress"]["detect"] == {"done": 20, "total": 20}  # frame sets
+    assert st["progress"]["detect"] == {"done": 20, "total": 20, "step": "detect"}  # frame sets
     got = client.get(f"/calibrations/{st['id']}.json").json()
     from calib.calibration import Calibration
 

@@ -20,7 +20,7 @@ from stage.drivers.base import CameraDisconnectedError
 from stage.session import StageSession
 from stage.store import TakeReader
 from tests.api.liveserver import TOKEN, LiveServer
-from tests.browser import CHROMIUM, CHROMIUM_ARGS, artifacts_dir, sync_playwright_or_skip
+from tests.browser import CHROMIUM, CHROMIUM_ARGS, LOW_CONTRAST, UNNAMED, artifacts_dir, sync_playwright_or_skip
 from tests.polling import wait_until
 from tests.stage.paced import PacedCamera, make_drivers, rig_for
 
@@ -324,34 +324,6 @@ def test_a_disk_running_out_is_said_at_the_top(tmp_path):
     assert said[1][0].startswith("disk almost full: 1.0 min of recording left") and said[1][1] == "msg bad", said
 
 
-#: the WCAG 2 contrast ratio of every visible text element of the page against its first opaque background
-#: below 4.5 (AA for text under 18 pt): {"colour on background": [ratio, element]}
-_LOW_CONTRAST = """() => {
-  const parse = (c) => c.match(/[\\d.]+/g).map(Number);
-  const lum = (c) => { const f = (v) => { v /= 255; return v <= 0.03928 ? v / 12.92 : Math.pow((v + 0.055) / 1.055, 2.4); };
-                       const m = parse(c); return 0.2126 * f(m[0]) + 0.7152 * f(m[1]) + 0.0722 * f(m[2]); };
-  const bg = (e) => { for (; e; e = e.parentElement){ const c = getComputedStyle(e).backgroundColor; const m = parse(c);
-                        if (m.length < 4 || m[3] === 1) return c; } return 'rgb(255, 255, 255)'; };
-  const out = {};
-  for (const e of document.querySelectorAll('body *')){
-    if (![...e.childNodes].some((n) => n.nodeType === 3 && n.textContent.trim()) || !e.checkVisibility()) continue;
-    if (e.closest('.frame')) continue;  // the badges over the pictures: white on a dark veil over an image
-    if (e.closest('button:disabled, input:disabled')) continue;  // inactive controls: exempt (WCAG 1.4.3)
-    const s = getComputedStyle(e); const a = lum(s.color), b = lum(bg(e));
-    const r = (Math.max(a, b) + 0.05) / (Math.min(a, b) + 0.05);
-    if (r < 4.5) out[s.color + ' on ' + bg(e)] = [Math.round(r * 100) / 100,
-                                                  e.tagName + '.' + e.className + ': ' + e.textContent.trim().slice(0, 40)];
-  }
-  return out;
-}"""
-
-#: the controls and pictures of the page without an accessible name (label, aria-label, alt or text)
-_UNNAMED = """() => [...document.querySelectorAll('input, button, select, progress, canvas, img')]
-  .filter((e) => !(e.labels && e.labels.length) && !e.getAttribute('aria-label') && !e.getAttribute('alt')
-                 && !(e.textContent || '').trim())
-  .map((e) => e.tagName + '#' + e.id + '.' + e.className)"""
-
-
 def test_the_page_reads_without_the_eyes_and_says_when_the_server_is_gone(tmp_path):
     """With a board (every section shown): no text under 4.5:1 contrast, every control and picture named, the
     controls reached by Tab in the order they are read; when the figures stop coming one red line says so
@@ -368,8 +340,8 @@ def test_the_page_reads_without_the_eyes_and_says_when_the_server_is_gone(tmp_pa
         try:
             _record(page, "seen", 0.5)  # the take list's row and its button too
             _take_row(page, "seen")
-            low = page.evaluate(_LOW_CONTRAST)
-            unnamed = page.evaluate(_UNNAMED)
+            low = page.evaluate(LOW_CONTRAST)
+            unnamed = page.evaluate(UNNAMED)
             page.focus("#token")
             order = []
             for _ in range(12):

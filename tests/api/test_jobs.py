@@ -22,8 +22,9 @@ def test_job_runs_to_done_with_progress_and_results(client, data_root):
     assert job["state"] in ("queued", "running")
     st = wait_job(client, job["id"])
     assert st["state"] == "done", st
-    assert st["progress"] == {"key": {"done": 5, "total": 5}, "surface": {"done": 5, "total": 5},
-                              "spine": {"done": 5, "total": 5}}
+    assert st["progress"] == {"key": {"done": 5, "total": 5, "step": "key"},
+                              "surface": {"done": 5, "total": 5, "step": "surface"},
+                              "spine": {"done": 5, "total": 5, "step": "spine"}}
     assert st["done"] == st["total"] == 15
     assert st["attempts"] == 1 and st["error"] is None
     listing = client.get(f"/jobs/{job['id']}/results/").json()

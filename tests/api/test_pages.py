@@ -141,7 +141,7 @@ def test_jobs_pages(client_data):
     assert "setTimeout(poll, 1000)" in page and "fetch('/jobs?limit=" in page
 
     page = _html(client.get(f"/ui/jobs/{ids['running']}"))
-    assert '<progress id="bar-all" max="5" value="3">' in page
+    assert '<progress id="bar-all" aria-label="the job&#39;s progress" max="5" value="3">' in page
     assert "/results/spine" not in page  # a job without the spine step has no spine to download
     assert 'data-step="key"' in page and "fetch('/jobs/' + JOB_ID" in page
     assert f'const JOB_ID = "{ids["running"]}"' in page
@@ -194,7 +194,57 @@ def test_jobs_pages(client_data):
         assert _result_hrefs(client, page, jid) == [] and f'<p id="unwritten" class="err">{said}</p>' in page
     # the page's own status endpoint exists and says what the script reads
     st = client.get(f"/jobs/{ids['running']}").json()
-    assert st["done"] == 3 and st["total"] == 5 and st["progress"]["key"] == {"done": 3, "total": 5}
+    assert st["done"] == 3 and st["total"] == 5 and st["progress"]["key"] == {"done": 3, "total": 5, "step": "key"}
+
+
+def _step_rows(page: str) -> list[tuple[str, str | None, str]]:
+    """The job page's steps table: ``(group, entry, what its progress cell says)`` per row, in order; ``entry``
+    None for a step's own row that is not an entry's."""
+    table = page.split('<table id="steps"', 1)[1].split("</table>", 1)[0]
+    rows = []
+    for group, body in re.findall(r'<tbody data-group="([^"]*)">(.*?)</tbody>', table, re.S):
+        for entry, cell in re.findall(r'<tr class="(?:step|part)"(?: data-step="([^"]*)")?><th [^>]*>[^<]*</th>'
+                                      r'<td[^>]*>(.*?)</td></tr>', body, re.S):
+            rows.append((group, entry or None, re.sub(r"<[^>]+>", "", cell).strip()))
+    return rows
+
+
+def test_job_page_lists_each_step_with_its_progress_entries(client_data):
+    """One list of steps: each step the job asked for (or ran) with the progress entries the pipeline announced
+    for it indented under it (a step whose one entry is itself, one row; its own row the sum of its entries), a
+    step asked that reported nothing said so; an entry kept without its step (an older record's) is a step of its
+    own. The page's layout key is the one job.js computes from the job's record."""
+    client, _ = client_data
+    store = client.app.state.store
+    jid = store.create(kind="process", take="cal", steps=["key", "surface", "track", "rig"], params={}).id
+    for name, step, done, total in (("key", "key", 15, 15), ("box", "surface", 5, 5), ("surface", "surface", 4, 5),
+                                    ("refine", "refine", 5, 5), ("track", "track", 5, 5),
+                                    ("track with the rig round 1", "track", 2, 5)):
+        store.progress(jid, name, done, total, of_step=step)
+    store.finish(jid, "failed", error="rig: stopped")
+    page = _html(client.get(f"/ui/jobs/{jid}"))
+    assert _step_rows(page) == [
+        ("key", "key", "15/15"),
+        ("surface", None, "9/10"), ("surface", "box", "5/5"), ("surface", "surface", "4/5"),
+        ("refine", "refine", "5/5"),  # (ran for the key step, asked or not)
+        ("track", None, "7/10"), ("track", "track", "5/5"), ("track", "track with the rig round 1", "2/5"),
+        ("rig", None, "no progress reported")]
+    assert "<th>steps</th>" not in page  # (the steps are said once, in the table)
+    assert '<th scope="col">step</th><th scope="col">progress</th>' in page
+    assert '<th scope="rowgroup">track</th><td><progress aria-label="the track step" max="10" value="7">' in page
+    assert '<th scope="row">box</th><td><progress aria-label="box (surface step)" max="5" value="5">' in page
+    key = json.dumps([[n, e["step"]] for n, e in client.get(f"/jobs/{jid}").json()["progress"].items()],
+                     separators=(",", ":"))
+    assert f'data-key="{key.replace(chr(34), "&#34;")}"' in page
+    # a queued job: its steps asked, none reported yet; an entry without its step, a step of its own
+    qid = store.create(kind="process", take="cal", steps=["surface", "spine"], params={}).id
+    assert _step_rows(_html(client.get(f"/ui/jobs/{qid}"))) == [("surface", None, "no progress reported"),
+                                                                 ("spine", None, "no progress reported")]
+    store._con().execute("UPDATE jobs SET progress = ? WHERE id = ?",
+                         (json.dumps({"box": {"done": 1, "total": 2}, "spine": {"done": 0, "total": 1, "step": "spine"}}),
+                          qid))
+    assert _step_rows(_html(client.get(f"/ui/jobs/{qid}"))) == [
+        ("surface", None, "no progress reported"), ("box", "box", "1/2"), ("spine", "spine", "0/1")]
 
 
 def test_take_page_lists_its_jobs(client_data):

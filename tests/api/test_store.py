@@ -50,11 +50,13 @@ def test_progress_events_are_monotonic_and_unique(tmp_path):
     store = JobStore(tmp_path / "jobs.sqlite")
     j = store.create(kind="process", take="t", steps=["key", "surface"], params={})
     for step, done in (("key", 0), ("key", 1), ("surface", 1), ("key", 2), ("key", 1), ("surface", 2)):
-        store.progress(j.id, step, done, 2)
+        store.progress(j.id, step, done, 2, **({"of_step": "surface"} if step == "surface" else {}))
     ev = store.events(j.id)
     assert [s for s, _ in ev] == [0, 1, 2, 3]  # one event per new total; a lower total adds none
     assert store.events(j.id, after=2) == ev[3:]
-    assert store.get(j.id).progress == {"key": {"done": 1, "total": 2}, "surface": {"done": 2, "total": 2}}
+    # (an entry's step: the one told, else the entry's own name)
+    assert store.get(j.id).progress == {"key": {"done": 1, "total": 2, "step": "key"},
+                                        "surface": {"done": 2, "total": 2, "step": "surface"}}
 
 
 def test_progress_keeps_its_entries_in_the_order_first_reported(tmp_path):

@@ -236,6 +236,27 @@ def test_announced_progress_is_closed_when_the_step_ends(tmp_path):
     assert set(run.clock.cpu) == set(run.clock.wall) == {"s"}
 
 
+def test_a_progress_entry_is_told_with_the_step_that_announced_it(tmp_path):
+    """An entry belongs to the step that announced it, even reported while another runs; one not announced to
+    the step running when it is first reported; one reported outside any step to itself. A callback that does
+    not take ``of_step`` is told the three arguments alone."""
+    calls, plain = [], []
+    run = Run(out=tmp_path, progress=lambda name, done, total, of_step=None: calls.append((name, done, total, of_step)))
+    run.report_progress("loose", 0, 1)
+    run.announce("surface", [("box", 3), ("surface", 3)])
+    run.announce("refine", [("refine", 3)])
+    run.run_step("key", lambda r: (r.report_progress("key", 2, 2), r.report_progress("refine", 1, 3)))
+    run.run_step("rig", lambda r: (r.report_progress("track", 3, 3), r.report_progress("rig fit", 1, 3),
+                                   r.report_progress("track", 3, 3)))
+    assert calls == [("loose", 0, 1, "loose"), ("box", 0, 3, "surface"), ("surface", 0, 3, "surface"),
+                     ("refine", 0, 3, "refine"), ("key", 2, 2, "key"), ("refine", 1, 3, "refine"),
+                     ("track", 3, 3, "rig"), ("rig fit", 1, 3, "rig"), ("track", 3, 3, "rig")]
+    assert [run.step_of(n) for n in ("box", "refine", "track", "loose")] == ["surface", "refine", "rig", "loose"]
+    run = Run(out=tmp_path, progress=lambda *a: plain.append(a))
+    run.announce("surface", [("box", 3)])
+    assert plain == [("box", 0, 3)]
+
+
 def test_chunks():
     assert chunks([1, 2, 3, 4, 5], 2) == [[1, 2], [3, 4], [5]] and chunks([], 3) == []
 
