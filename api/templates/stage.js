@@ -472,10 +472,12 @@
     const a = document.createElement('a'); a.href = '/ui/jobs/' + j.id; a.textContent = j.kind + ' ' + j.id.slice(0, 8);
     const active = j.state === 'queued' || j.state === 'running';
     const st = document.createElement('span'); st.className = 'state state-' + j.state;
-    // the step at work: the first not finished, in the order the steps run (the progress keeps it)
+    // the step at work: the first entry not finished, in the order the steps run (the progress keeps it), named
+    // with its step when it is a part of one ("step surface: box 2/4")
     const at = active ? Object.entries(j.progress || {}).find(([, p]) => p.done < p.total) : null;
+    const part = at && at[1].step && at[1].step !== at[0] ? at[1].step + ': ' : '';
     st.textContent = ' ' + j.state + (active ? ' ' + j.done + '/' + j.total : '') +
-      (at ? ' · step ' + at[0] + ' ' + at[1].done + '/' + at[1].total : '');
+      (at ? ' · step ' + part + at[0] + ' ' + at[1].done + '/' + at[1].total : '');
     td.append(a, st);
     if (j.state === 'done' && j.kind === 'process'){
       const r = document.createElement('a'); r.href = '/ui/jobs/' + j.id + '/report'; r.textContent = 'report';

@@ -558,9 +558,10 @@ def test_a_take_is_processed_from_the_take_list_and_its_job_followed_there(tmp_p
                 jobs[name] = store.list(take=name)[0].id
             queued = page.evaluate(f"() => {cell.format('one')}")
             url = page.url
-            # its steps report as they run: the row names the first not finished, in run order (not by name)
-            for step, done, total in (("key", 8, 8), ("box", 2, 4), ("surface", 0, 4)):
-                store.progress(jobs["one"], step, done, total)
+            # its steps report as they run: the row names the first entry not finished, in run order (not by name),
+            # with its step (the surface step's box)
+            for name, done, total in (("key", 8, 8), ("box", 2, 4), ("surface", 0, 4)):
+                store.progress(jobs["one"], name, done, total, of_step="key" if name == "key" else "surface")
             page.wait_for_function(f"() => {cell.format('one')}.includes('step ')", timeout=10_000)
             at_work = page.evaluate(f"() => {cell.format('one')}")
             store.finish(jobs["one"], "failed", error="DATA/takes/one.h5: the surface is empty\nmore lines")
@@ -575,7 +576,7 @@ def test_a_take_is_processed_from_the_take_list_and_its_job_followed_there(tmp_p
     assert not errors, errors
     assert url.endswith("/ui/stage")
     assert queued == f"process {jobs['one'][:8]} queued 0/0", queued
-    assert at_work == f"process {jobs['one'][:8]} queued 10/16 · step box 2/4", at_work
+    assert at_work == f"process {jobs['one'][:8]} queued 10/16 · step surface: box 2/4", at_work
     assert failed == f"process {jobs['one'][:8]} failedDATA/takes/one.h5: the surface is empty", failed
     assert link == f"/ui/jobs/{jobs['two']}/report" and job_link == f"/ui/jobs/{jobs['one']}", (link, job_link)
 
