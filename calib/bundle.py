@@ -25,7 +25,8 @@ from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 
-__all__ = ["BundleResult", "bundle_adjust", "rodrigues_batch", "project_batch", "INTRINSIC_NAMES"]
+__all__ = ["BundleResult", "bundle_adjust", "rodrigues_batch", "project_batch", "INTRINSIC_NAMES",
+           "reduced_intrinsics_jacobian"]
 
 log = logging.getLogger(__name__)
 
@@ -279,6 +280,7 @@ def bundle_adjust(
     prior_scale: float = 1.0,
     prior_mean: np.ndarray | None = None,
     covariance: bool = False,
+    prior_jacobian: np.ndarray | None = None,
 ) -> BundleResult:
     """Jointly refine camera poses (and intrinsics) and board poses.
 
@@ -337,6 +339,16 @@ def bundle_adjust(
         cross-covariance of the small rotations ``d`` with ``R_a <- exp([d]_x) R_a``,
         in radians squared; the reference camera's blocks are zero, it is the gauge).
         The board poses are eliminated by their Schur complement.
+    prior_jacobian : (M, 2, 9) float ndarray, optional
+        With ``prior_cov`` from a solve that saw some of the same corners (each camera's own Zhang solve,
+        whose views are also frame-set views here): for every observation, the Jacobian of that solve's
+        reprojection error at the same corner in the intrinsics, its view's board pose projected out
+        (:func:`reduced_intrinsics_jacobian`); zero where that solve did not see the corner. The covariance
+        is then the sandwich ``A^-1 M A^-1`` of the estimator as it is (``A`` the normal matrix the solve
+        weights with, ``M`` the covariance of its right-hand side: the prior as the posterior it is, the
+        corners at the residuals' scale, and the cross terms of the corners both solves used, their noise
+        taken as the prior solve's), instead of ``A^-1``, which counts those corners' information twice and
+        comes out too small. The estimate does not change.
 
     Returns
     -------
@@ -358,6 +370,7 @@ def bundle_adjust(
     problem = _Problem(unknowns, obs_cam, obs_board, X, uv, held_f=held_f, prior_rows=prior_rows, prior_mean=mu)
     x0 = unknowns.pack()
     M = obs_cam.shape[0]
+    shared = _shared_prior(prior_jacobian, M, free_i, prior_rows)
     if solver == "scipy":
         res = least_squares(
             problem.residuals, x0, jac=problem.jacobian, method="trf", loss=loss, f_scale=f_scale, x_scale="jac",
@@ -372,7 +385,8 @@ def bundle_adjust(
     if covariance:
         icov, rcov, sigma = _covariance(problem.jacobian(res.x), np.asarray(res.fun), 2 * M, loss, f_scale, C,
                                         free_i, held_f, unknowns.n_pose, unknowns.n_intr, unknowns.free_cams, rv,
-                                        optimize_intrinsics, prior_scale)
+                                        optimize_intrinsics, prior_scale, shared=shared, obs_cam=obs_cam,
+                                        prior_rows=prior_rows)
     return BundleResult(
         cam_rvec=rv, cam_tvec=tv, intrinsics=np.array(intr, dtype=np.float64), board_rvec=bR, board_tvec=bT,
         residuals=np.asarray(res.fun)[: 2 * M].reshape(-1, 2), success=bool(res.success), message=str(res.message),
@@ -454,8 +468,9 @@ class _Problem:
         d = (intr[:, free_i] - self.mu[:, free_i])  # (C, NF)
         return np.concatenate([r, np.einsum("cij,cj->ci", self.prior_rows, d).ravel()])
 
-    def jacobian(self, p: np.ndarray) -> csr_matrix:
-        """The residuals' Jacobian, (2 M [+ C NF], n) sparse."""
+    def blocks(self, p: np.ndarray) -> np.ndarray:
+        """(M, 2, k) every observation's Jacobian entries: camera pose (6), free intrinsics (when
+        optimized), board pose (6)."""
         obs_cam, obs_board = self.obs_cam, self.obs_board
         rv, bR, intr, Rc, RbX, RcXw, Xc = self.forward(p)
         J_Xc, Ji = _projection_derivatives(Xc, intr[obs_cam])
@@ -466,7 +481,11 @@ class _Problem:
         if self.u.optimize_intrinsics:
             parts.append(Ji[:, :, self.u.free_i] * ~self.held_f[obs_cam][:, None, :])
         parts.append(np.concatenate([J_br, J_Xw], axis=2))
-        data = np.concatenate(parts, axis=2).reshape(-1)  # (M, 2, k) row-major
+        return np.concatenate(parts, axis=2)
+
+    def jacobian(self, p: np.ndarray) -> csr_matrix:
+        """The residuals' Jacobian, (2 M [+ C NF], n) sparse."""
+        data = self.blocks(p).reshape(-1)  # (M, 2, k) row-major
         keep, order, indices, indptr, shape = self._layout
         values = data[keep]
         if self.prior_rows is not None:
@@ -580,11 +599,12 @@ def _prior_rows(prior_cov, C: int, free_i: np.ndarray, scale: float, held_f: np.
     return rows
 
 
-def _camera_block_inverse(A, n_cam: int) -> np.ndarray:
+def _camera_block_inverse(A, n_cam: int, rhs: np.ndarray | None = None):
     """Inverse of the camera block (first ``n_cam`` unknowns) of the normal matrix ``A``.
 
     The board poses (6 x 6 diagonal blocks after the camera unknowns) are eliminated by their
-    Schur complement, so the cost is that of the cameras, not of the frame sets.
+    Schur complement, so the cost is that of the cameras, not of the frame sets. With ``rhs``
+    ((n, m) dense), also the camera rows of ``A^-1 rhs``.
     """
     A = A.tocsr()
     n = A.shape[0]
@@ -601,15 +621,72 @@ def _camera_block_inverse(A, n_cam: int) -> np.ndarray:
     Acb3 = Acb.reshape(n_cam, nb, 6).transpose(1, 0, 2)  # (nb, n_cam, 6)
     S = Acc - np.einsum("bik,bkl,bjl->ij", Acb3, inv_b, Acb3)
     try:
-        return np.linalg.inv(S)
+        Sinv = np.linalg.inv(S)
     except np.linalg.LinAlgError:
-        return np.linalg.pinv(S)
+        Sinv = np.linalg.pinv(S)
+    if rhs is None:
+        return Sinv
+    # camera rows of A^-1 rhs: S^-1 (rhs_c - Acb Abb^-1 rhs_b)
+    rb = rhs[n_cam:].reshape(nb, 6, -1)
+    return Sinv, Sinv @ (rhs[:n_cam] - np.einsum("bik,bkl,blm->im", Acb3, inv_b, rb))
+
+
+def _shared_prior(prior_jacobian, M: int, free_i, prior_rows):
+    """``prior_jacobian`` of :func:`bundle_adjust` over the free intrinsics, (M, 2, NF), or None."""
+    if prior_jacobian is None:
+        return None
+    if prior_rows is None:
+        raise ValueError("prior_jacobian needs prior_cov and optimize_intrinsics")
+    G = np.asarray(prior_jacobian, dtype=np.float64)
+    if G.shape != (M, 2, N_INTR) or not np.all(np.isfinite(G)):
+        raise ValueError(f"prior_jacobian must be finite with shape ({M}, 2, {N_INTR}), got {G.shape}")
+    return G[:, :, free_i]
+
+
+def _sandwich(Jd, w, sigma2, n_obs, prior_scale, n_pose, n_cam, held_cols, shared, obs_cam, prior_rows, C, NF):
+    """Camera block of ``A^-1 M A^-1`` (:func:`bundle_adjust`'s ``prior_jacobian``).
+
+    The solve's normal equations, divided by ``prior_scale**2``: ``A dx = J^T W e / s_p^2 + P^T C_Z^-1 dtheta_Z``
+    (``e`` the corners' errors, ``W`` the robust weights, ``P`` picks the intrinsics, ``C_Z`` the prior
+    covariance), with the prior's own move ``C_Z^-1 dtheta_Z = G^T e_Z / s_Z^2`` (``G`` its reduced Jacobian).
+    Its right-hand side's covariance, the rig's corners at ``sigma2`` and the prior solve's at ``s_Z^2``:
+    ``M = k A + (1 - k) P^T C_Z^-1 P + X + X^T`` with ``k = sigma2 / s_p^2`` (the prior's part taken as the
+    posterior it is, ``Cov(C_Z^-1 dtheta_Z) = C_Z^-1``, its own distortion prior included) and
+    ``X = J^T W S G P / s_p^2`` over the corners both used (``S``), whose shared noise is ``s_Z^2``.
+    A camera without a prior has zero prior rows and no ``G`` (its corners are the rig's alone).
+    """
+    from scipy.sparse import coo_matrix, diags
+
+    G = shared
+    ps2 = prior_scale**2
+    n = Jd.shape[1]
+    scale = np.full(Jd.shape[0], 1.0 / ps2)
+    scale[:n_obs] = w[:n_obs] / ps2
+    A = Jd.T @ Jd.multiply(scale[:, None]).tocsr()
+    if held_cols.size:
+        unit = np.zeros(n)
+        unit[held_cols] = 1.0
+        A = A + diags(unit)
+    m = C * NF
+    # S W G P / s_p^2 as a sparse (2 M, C NF): each pixel row in its camera's columns
+    rows = np.repeat(np.arange(n_obs), NF)
+    cols = (np.repeat(obs_cam, 2)[:, None] * NF + np.arange(NF)).ravel()
+    vals = (G.reshape(n_obs, NF) * (w[:n_obs] / ps2)[:, None]).ravel()
+    WG = coo_matrix((vals, (rows, cols)), shape=(n_obs, m)).tocsr()
+    K = np.asarray((Jd[:n_obs].T @ WG).todense())  # (n, C NF)
+    Ainv, Q = _camera_block_inverse(A, n_cam, K)
+    k = sigma2 / ps2
+    Y = Ainv[n_pose : n_pose + m]  # P A^-1, camera columns
+    Ci = np.einsum("cji,cjk->cik", prior_rows, prior_rows) / ps2  # the prior's inverse covariance
+    YC = np.einsum("cij,cjk->cik", Ci, Y.reshape(C, NF, -1)).reshape(m, -1)
+    QY = Q @ Y
+    return k * Ainv + (1.0 - k) * (Y.T @ YC) + QY + QY.T
 
 
 def _covariance(J, r, n_obs, loss, f_scale, C, free_i, held_f, n_pose, n_intr, free_cams, cam_rvec, optimized,
-                prior_scale):
+                prior_scale, *, shared=None, obs_cam=None, prior_rows=None):
     """Marginal (C, 9, 9) intrinsics covariance, (C, C, 3, 3) camera rotation covariance and the
-    residual scale (px) at a solution."""
+    residual scale (px) at a solution (with ``shared``, the estimator's sandwich: :func:`_sandwich`)."""
     cov = np.full((C, N_INTR, N_INTR), np.nan)
     f2 = f_scale * f_scale
     _, w = _robust_weights(r, loss, f2, n_obs)
@@ -617,19 +694,23 @@ def _covariance(J, r, n_obs, loss, f_scale, C, free_i, held_f, n_pose, n_intr, f
     dof = max(n_obs - n, 1)
     sigma2 = float(np.sum(w[:n_obs] * r[:n_obs] ** 2) / dof)
     Jd = J.tocsr()
-    # whitened: pixel rows by the residual scale, prior rows by the scale they were written in
-    scale = np.full(J.shape[0], 1.0 / prior_scale**2)
-    scale[:n_obs] = w[:n_obs] / sigma2
-    A = Jd.T @ Jd.multiply(scale[:, None]).tocsr()
     n_cam = n_pose + n_intr
     held_cols = n_pose + np.flatnonzero(held_f.ravel()) if optimized else np.zeros(0, np.int64)
-    if held_cols.size:  # held intrinsics: empty rows and columns, exactly known
-        from scipy.sparse import diags
+    if shared is not None and optimized:
+        Ainv = _sandwich(Jd, w, sigma2, n_obs, prior_scale, n_pose, n_cam, held_cols, shared, obs_cam, prior_rows,
+                         C, int(free_i.sum()))
+    else:
+        # whitened: pixel rows by the residual scale, prior rows by the scale they were written in
+        scale = np.full(J.shape[0], 1.0 / prior_scale**2)
+        scale[:n_obs] = w[:n_obs] / sigma2
+        A = Jd.T @ Jd.multiply(scale[:, None]).tocsr()
+        if held_cols.size:  # held intrinsics: empty rows and columns, exactly known
+            from scipy.sparse import diags
 
-        unit = np.zeros(n)
-        unit[held_cols] = 1.0
-        A = A + diags(unit)
-    Ainv = _camera_block_inverse(A, n_cam)
+            unit = np.zeros(n)
+            unit[held_cols] = 1.0
+            A = A + diags(unit)
+        Ainv = _camera_block_inverse(A, n_cam)
     # rotation vector -> left perturbation: d = J_l(r) dr
     Jl = _left_jacobian(cam_rvec[free_cams]) if free_cams.size else np.zeros((0, 3, 3))
     rcov = np.zeros((C, C, 3, 3))
@@ -648,3 +729,76 @@ def _covariance(J, r, n_obs, loss, f_scale, C, free_i, held_f, n_pose, n_intr, f
         cov[c][gone, :] = np.nan
         cov[c][:, gone] = np.nan
     return cov, rcov, float(np.sqrt(sigma2))
+
+
+def reduced_intrinsics_jacobian(
+    obs_board: np.ndarray,
+    obs_points: np.ndarray,
+    obs_uv: np.ndarray,
+    *,
+    intrinsics: np.ndarray,
+    board_rvec: np.ndarray,
+    board_tvec: np.ndarray,
+    held: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """One camera's reprojection errors at its own solution and their Jacobian in its intrinsics with
+    every view's board pose projected out (its Schur complement), as :func:`bundle_adjust`'s ``prior_jacobian``
+    needs for the corners of that camera's own solve.
+
+    Parameters
+    ----------
+    obs_board : (M,) int ndarray
+        View (board pose) index of every corner.
+    obs_points : (M, 3) float ndarray
+        The corner in the board frame.
+    obs_uv : (M, 2) float ndarray
+        Its observed pixel.
+    intrinsics : (9,) float ndarray
+        ``fx, fy, cx, cy, k1, k2, p1, p2, k3`` of the camera (its solution).
+    board_rvec, board_tvec : (V, 3) float ndarray
+        Board -> camera pose of every view (its solution).
+    held : (9,) bool ndarray, optional
+        Intrinsics the solve held (zero columns).
+
+    Returns
+    -------
+    residuals : (M, 2) float ndarray
+        Projection minus observation, px.
+    jacobian : (M, 2, 9) float ndarray
+        ``(I - J_b (J_b^T J_b)^-1 J_b^T) J_i`` per view (``J_i``, ``J_b``: the view's rows in the intrinsics
+        and its board pose), so that ``jacobian^T jacobian / sigma^2`` is the intrinsics' information from
+        these corners.
+    sigma : float
+        Residual scale per coordinate, px (degrees of freedom ``2 M`` less the free intrinsics and ``6 V``).
+
+    Raises
+    ------
+    ValueError
+        When the arrays' shapes disagree.
+    """
+    held = np.zeros(N_INTR, bool) if held is None else np.asarray(held, dtype=bool).reshape(-1)
+    if held.shape != (N_INTR,):
+        raise ValueError(f"held must be ({N_INTR},) bool, got {held.shape}")
+    intr = np.asarray(intrinsics, dtype=np.float64).reshape(-1)
+    if intr.shape != (N_INTR,):
+        raise ValueError(f"intrinsics must have shape ({N_INTR},), got {intr.shape}")
+    obs_cam = np.zeros(np.asarray(obs_board).reshape(-1).shape[0], np.int64)
+    oc, ob, X, uv, intr0, crv, ctv, brv, btv = _observations(obs_cam, obs_board, obs_points, obs_uv, intr[None],
+                                                            np.zeros(3), np.zeros(3), board_rvec, board_tvec)
+    free_i = ~held
+    u = _Unknowns(intr0, crv, ctv, brv, btv, reference=0, optimize_intrinsics=True, free_i=free_i)
+    problem = _Problem(u, oc, ob, X, uv, held_f=np.zeros((1, u.NF), bool), prior_rows=None, prior_mean=intr0)
+    p = u.pack()
+    D = problem.blocks(p)  # (M, 2, 6 + NF + 6); the camera pose's 6 are the reference's, not unknowns
+    Ji, Jb = D[:, :, 6 : 6 + u.NF], D[:, :, 6 + u.NF :]
+    V = brv.shape[0]
+    BB = np.zeros((V, 6, 6))
+    BI = np.zeros((V, 6, u.NF))
+    np.add.at(BB, ob, np.einsum("mak,mal->mkl", Jb, Jb))
+    np.add.at(BI, ob, np.einsum("mak,mal->mkl", Jb, Ji))
+    coef = np.linalg.solve(BB, BI)  # (V, 6, NF)
+    Jt = np.zeros((ob.shape[0], 2, N_INTR))
+    Jt[:, :, free_i] = Ji - Jb @ coef[ob]
+    r = problem.residuals(p).reshape(-1, 2)
+    dof = max(r.size - u.NF - 6 * V, 1)
+    return r, Jt, float(np.sqrt(np.sum(r**2) / dof))

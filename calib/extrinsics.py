@@ -443,6 +443,7 @@ def calibrate_extrinsics(
     solver: str = "lm",
     intrinsics_prior: np.ndarray | None = None,
     prior_scale: float = 1.0,
+    prior_jacobian: Mapping[str, Mapping[int, tuple[np.ndarray, np.ndarray]]] | None = None,
 ) -> ExtrinsicsResult:
     """Calibrate the poses of all cameras together (and refine their intrinsics).
 
@@ -477,6 +478,11 @@ def calibrate_extrinsics(
         given cameras' (``prior_cov`` of :func:`calib.bundle.bundle_adjust`).
     prior_scale : float
         Pixel noise the prior is expressed in (px per coordinate).
+    prior_jacobian : mapping str -> mapping int -> (ids (n,) int ndarray, rows (n, 2, 9) float ndarray), optional
+        With ``intrinsics_prior`` from each camera's own solve on some of the same views: per camera and frame,
+        the corners that solve used and its reduced Jacobian rows there
+        (:func:`calib.bundle.reduced_intrinsics_jacobian`), so that the covariance counts the corners both
+        solves used once (``prior_jacobian`` of :func:`calib.bundle.bundle_adjust`; the estimate is the same).
 
     Returns
     -------
@@ -510,6 +516,9 @@ def calibrate_extrinsics(
     intr0 = np.array([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist] for c in cams])
     cam_rvec = np.stack([matrix_to_rodrigues(T[ci][0]) for ci in range(C)])
     cam_tvec = np.stack([T[ci][1] for ci in range(C)])
+    shared = {}
+    if prior_jacobian is not None:
+        shared["prior_jacobian"] = _aligned_prior_jacobian(cams, detections, views.frame_index, poses, prior_jacobian)
 
     # 4. bundle adjustment
     res = bundle_adjust(
@@ -518,7 +527,7 @@ def calibrate_extrinsics(
         reference=root, optimize_intrinsics=optimize_intrinsics,
         fixed_intrinsics=fixed_intrinsics if isinstance(fixed_intrinsics, np.ndarray) else tuple(fixed_intrinsics),
         loss=loss, f_scale=f_scale, max_nfev=max_nfev,
-        solver=solver, prior_cov=intrinsics_prior, prior_scale=prior_scale, covariance=True,
+        solver=solver, prior_cov=intrinsics_prior, prior_scale=prior_scale, covariance=True, **shared,
     )
     Rc_all = rodrigues_batch(res.cam_rvec)
     Rb_all = rodrigues_batch(res.board_rvec)
@@ -593,6 +602,26 @@ def _observation_arrays(cams, detections, frame_index, poses, obj):
             op.append(obj[d.ids])
             ouv.append(d.corners)
     return np.concatenate(oc), np.concatenate(ob), np.concatenate(op), np.concatenate(ouv)
+
+
+def _aligned_prior_jacobian(cams, detections, frame_index, poses, prior_jacobian) -> np.ndarray:
+    """(M, 2, 9) the prior solve's reduced Jacobian row at every corner of :func:`_observation_arrays`, in its
+    order (zero where that solve did not use the corner)."""
+    out = []
+    for ci, c in enumerate(cams):
+        mine = prior_jacobian.get(c.name, {})
+        for d in detections.get(c.name, ()):
+            if d is None or int(d.frame) not in frame_index or int(d.frame) not in poses[ci]:
+                continue
+            rows = np.zeros((len(d), 2, 9))
+            if int(d.frame) in mine:
+                ids, J = mine[int(d.frame)]
+                where = {int(i): k for k, i in enumerate(np.asarray(ids).ravel())}
+                for k, i in enumerate(np.asarray(d.ids).ravel()):
+                    if int(i) in where:
+                        rows[k] = J[where[int(i)]]
+            out.append(rows)
+    return np.concatenate(out)
 
 
 def _in_world(cams, res, Rc_all, Rb_all, W_from_root, frame_index) -> tuple[list[Camera], dict]:

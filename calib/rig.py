@@ -40,7 +40,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from calib.boards import Board, Charuco, Chessboard
-from calib.bundle import INTRINSIC_NAMES
+from calib.bundle import INTRINSIC_NAMES, reduced_intrinsics_jacobian
 from calib.calibration import Calibration
 from calib.camera import rotation_angle_deg
 from calib.detect import Detection, select_views
@@ -282,8 +282,9 @@ def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, rejec
     linking = {f for f, k in seen.items() if k >= 2}
     intr: dict[str, IntrinsicsResult] = {}
     problems, bad = [], []
+    own: dict[str, list[Detection]] = {}
     for n in names:
-        views = _intrinsic_views(dets[n], tuple(sizes[n]), linking, min_change, min_corners)
+        views = own[n] = _intrinsic_views(dets[n], tuple(sizes[n]), linking, min_change, min_corners)
         try:
             intr[n] = calibrate_intrinsics(views, board, tuple(sizes[n]), name=n, fix_k3=fix_k3,
                                            reject_outliers=reject_outliers, min_views=min_views,
@@ -327,15 +328,42 @@ def _solve(dets, sizes, board, names, *, world, world_frame, mode, fix_k3, rejec
                                     world_frame=world_frame, optimize_intrinsics=False, solver=solver)
         if np.isfinite(ext0.meta.get("sigma_px", np.nan)):
             sigma = max(sigma, float(ext0.meta["sigma_px"]))
+    # the covariance counts the corners the Zhang solves share with the frame sets once
+    shared = _shared_corners(own, intr, names, board) if mode == "prior" else {}
     ext = calibrate_extrinsics(
         ba, [intr[n].camera() for n in names], board, world=world, world_frame=world_frame,
         optimize_intrinsics=mode != "fixed", solver=solver,
         fixed_intrinsics=held,  # what each camera's own calibration held, the bundle keeps
-        intrinsics_prior=prior, prior_scale=max(sigma, 1e-3),
+        intrinsics_prior=prior, prior_scale=max(sigma, 1e-3), **shared,
     )
     for w in ext.warnings if warn is not None else ():
         warn(w)
     return intr, ext, len(sets)
+
+
+def _shared_corners(own: dict, intr: dict, names, board) -> dict:
+    """``prior_jacobian`` of :func:`calib.extrinsics.calibrate_extrinsics` from each camera's own solve
+    (:func:`_own_jacobian`; nothing for a camera without a covariance)."""
+    return {"prior_jacobian": {n: _own_jacobian(own[n], intr[n], board) for n in names
+                               if intr[n].covariance is not None}}
+
+
+def _own_jacobian(views: list[Detection], result: IntrinsicsResult, board) -> dict:
+    """The camera's own (Zhang) solve at its solution: frame -> (corner ids, reduced Jacobian rows (n, 2, 9)) of
+    every view it kept (:func:`calib.bundle.reduced_intrinsics_jacobian`)."""
+    by_frame = {int(d.frame): d for d in views}
+    kept = [by_frame[int(f)] for f in result.frames]
+    obj = board.object_points()
+    ob = np.concatenate([np.full(len(d), i) for i, d in enumerate(kept)])
+    _, J, _ = reduced_intrinsics_jacobian(ob, np.concatenate([obj[d.ids] for d in kept]),
+                                          np.concatenate([d.corners for d in kept]), intrinsics=result.params,
+                                          board_rvec=result.rvecs, board_tvec=result.tvecs,
+                                          held=np.array([k in result.held for k in INTRINSIC_NAMES]))
+    rows, at = {}, 0
+    for d in kept:
+        rows[int(d.frame)] = (np.asarray(d.ids), J[at : at + len(d)])
+        at += len(d)
+    return rows
 
 
 def _unflip(dets: list[Detection], width: int) -> list[Detection]:
