@@ -136,6 +136,9 @@ def test_jobs_pages(client_data):
     page = _html(client.get("/ui/jobs"))
     for jid in ids.values():
         assert f'data-job="{jid}"' in page
+    # every job's bar has a name a screen reader says (each row's own)
+    bars = re.findall(r"<progress[^>]*>", page)
+    assert len(bars) == len(ids) and all(f'aria-label="job {jid[:8]}&#39;s progress"' in page for jid in ids.values())
     assert f'href="/ui/jobs/{ids["done"]}/report"' in page
     assert f'href="/ui/jobs/{ids["queued"]}/report"' not in page
     assert "setTimeout(poll, 1000)" in page and "fetch('/jobs?limit=" in page
