@@ -6,7 +6,8 @@ across time, ``carved/``); every template vertex may pair (the data are whole su
 halves from the reference frame run at once on an executor (:func:`track_chain_task`); the colour
 images of the take add feature tracks across every camera's viewing ray.
 :func:`pipeline.track_armature.track_with_armature` tracks a tracked take again with an armature as the
-articulated prior.
+articulated prior (``stage track RESULTS_DIR`` and a job's track step run one such round after this tracking by
+default; ``--armature-rounds 0``: this tracking alone).
 
 Frames are written and resumed as :mod:`pipeline.track_frames` does for both forms of tracking
 (one RGB-D camera: :mod:`pipeline.track_rgbd`); ``tracked/track.json`` records the settings, the

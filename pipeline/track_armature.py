@@ -5,7 +5,8 @@ armature built from the current tracking (:func:`pipeline.armature.build_armatur
 frame again (:class:`pipeline.armature_track.ArmatureTracker`), then the armature is built again
 from that tracking, while a round helps. The frames are written as :mod:`pipeline.track_frames`
 writes them, over the ``tracked/`` folder :func:`pipeline.track.track_results` made
-(``stage track --armature-rounds``); docs/tracking.md, "Fast motion", has the figures.
+(``stage track --armature-rounds``: one round by default, 0 the tracking alone); docs/tracking.md, "Fast motion"
+and "Which tracking is the default", have the figures.
 
 This module is the rounds: what a round tracks with comes from :mod:`pipeline.track_armature_models` (the
 armature of the motion, of the spine, of the labels' limbs; the labels those follow from

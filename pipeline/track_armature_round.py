@@ -27,7 +27,7 @@ __all__ = ["armature_half_task", "ARMATURE_FIT_ROUNDS", "ARMATURE_ICP_POINTS"]
 
 log = logging.getLogger("pipeline.track")
 
-#: Rounds of the template fit from the armature's skinned pose (the default tracking's are
+#: Rounds of the template fit from the armature's skinned pose (the first tracking's, before the rounds, are
 #: :attr:`pipeline.tracking.TemplateTracker.rounds`): it starts on the surface, where the later rounds
 #: of a fit from the previous frame move nothing (docs/tracking.md, "Fast motion").
 ARMATURE_FIT_ROUNDS = 8

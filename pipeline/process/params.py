@@ -177,7 +177,7 @@ class ProcessParams(BaseModel):
     spine : dict
         Options of :class:`pipeline.frame_skeleton.SpineParams`.
     track : TrackParams
-        Options of the ``track`` step. They change the tracking alone: a run with other ones
+        Options of the ``track`` step. They change only the tracking: a run with other ones
         tracks again (``tracked/track.json`` says what changed) and keeps every other result.
     rig : RigParams
         Options of the ``rig`` step. They change the rig alone (the step builds it again every run).

@@ -247,7 +247,7 @@ def _take_rows(name: str, fps: float, sim, res, frames: int, *, rows=None) -> No
     _restore(res, base / "tracked")
     t0 = time.process_time()
     rep = track_with_armature(res, rounds=1, colour=True)
-    _fast_row(f"{name}, --armature-rounds 1 with the colour tracks (from the default tracking; colour tracks "
+    _fast_row(f"{name}, --armature-rounds 1 with the colour tracks (from the tracking alone; colour tracks "
               f"{'on' if rep['rig_prior']['colour_tracks'] else 'OFF'})", sim, res, frames,
               (time.process_time() - t0) / frames, rows=rows)
     ref = int(json.loads((res / "tracked" / "track.json").read_text())["reference_frame"])
@@ -378,7 +378,8 @@ def armature_seconds(frames: int = 16) -> None:
     starts, every frame's colour tracks, articulated ICP and template fit; one BLAS thread) over the
     frames, this process's and the second process's together (and the first's alone: on two free cores the
     wall time comes near it), and its wall time in order in one process and with one half of the frames in a
-    second process (``stage track --workers 2``, the default), each from the same default tracking."""
+    second process (``stage track --workers 2``, the default), each from the same tracking alone
+    (``--armature-rounds 0``)."""
     import tempfile
     from pathlib import Path
 

@@ -30,8 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(docs/armature-format.md; the files keep their names: a results format). `stage rig` is the old name of this "
         "command, kept as an alias for one release. The per-frame surfaces of a processed take do not share connectivity: "
         "a results directory's armature is built from its tracked template (tracked/NNNNNN.ply); when there is none, "
-        "the template is tracked through the take first (`stage track RESULTS_DIR` with its defaults, and --labels "
-        "with --parts limbs).",
+        "the template is tracked through the take first (`stage track RESULTS_DIR` with its defaults: the tracking, "
+        "then one armature round; and --labels with --parts limbs; to track otherwise, run `stage track` first).",
     )
     p.add_argument("results", type=Path, nargs="?", metavar="RESULTS_DIR",
                    help="results directory of `stage process` (writes RESULTS_DIR/rig/; tracks the template first "
@@ -69,15 +69,15 @@ def _spine_meta(results: Path) -> dict:
 
 
 def _track_first(d: Path, *, quiet: bool, no_progress: bool, labels: bool = False) -> list:
-    """``stage track d`` with its defaults (and ``--labels`` with ``labels``: the parts from the limbs need them),
-    for a processed take without a tracked template, its progress bars shown as this command's are
+    """``stage track d`` with its defaults (the tracking, then one armature round; and ``--labels`` with ``labels``:
+    the parts from the limbs need them), for a processed take without a tracked template, its progress bars shown as this command's are
     (``no_progress``); its tracked meshes."""
     from pipeline.armature_files import tracked_meshes
     from stage.cli import build_parser
 
     command = ["track", str(d), *(["--labels"] if labels else [])]
     print(f"{d} has no tracked template (tracked/NNNNNN.ply): tracking the template through the take first, "
-          f"as `stage {' '.join(command)}` does")
+          f"as `stage {' '.join(command)}` does (the tracking, then one armature round)")
     targs = build_parser().parse_args((["-q"] if quiet else []) + command)
     targs.no_progress = no_progress  # as stage.cli.main decided for this command (a terminal, --progress)
     targs.func(targs)

@@ -1,4 +1,9 @@
-"""``stage track``: follow one template mesh through a take -> ``tracked/NNNNNN.ply``."""
+"""``stage track``: follow one template mesh through a take -> ``tracked/NNNNNN.ply``.
+
+Multi-view (``stage track RESULTS_DIR``), the take is then tracked again with one armature round by default
+(``--armature-rounds 1``, :func:`pipeline.track_armature.track_with_armature`); ``--armature-rounds 0`` is the
+tracking alone.
+"""
 
 from __future__ import annotations
 
