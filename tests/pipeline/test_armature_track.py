@@ -2,7 +2,7 @@
 
 The fast take: the simulated quadruped filmed at 5 frames a second (6 cameras, 320x240, 8 frames,
 11.7 mm voxels), so its limbs move 3 voxels a frame or more (its true surface points: 95th percentile
-of the steps over 4 voxels). Tracked again with the rig built from its default tracking as the
+of the steps over 4 voxels). Tracked again with the rig built from its first tracking (the tracking alone) as the
 prior (``stage track --armature-rounds 1``), every frame's template vertices must lie within 2 voxels
 (mean) and 4 voxels (95th percentile) of their true points
 (``fake_cameras.surface_motion.tracking_errors``). Figures, also of the larger fast takes and of a

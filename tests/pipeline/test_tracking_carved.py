@@ -1,7 +1,7 @@
 """Template tracking on surfaces carved across time (``stage track --carve``), on a short
 simulated quadruped take of its own (8 cameras, 640x480, the gait's first 6 frames).
 
-The hull's surfaces hold the default tracking back on the quadruped: on this take it scores
+The hull's surfaces hold the tracking alone (``--armature-rounds 0``) back on the quadruped: on this take it scores
 1.11 / 3.18 voxels (mean / 95th percentile over all vertices and frames), over the targets. One
 round of carving across time with shape memory (``--carve 1 --shape-memory``, through the CLI)
 brings it to 0.57 / 1.69 (volume 0.974..1.004). Tolerances, as the multi-view tracking test's:

@@ -34,8 +34,9 @@ def _tracking_errors(name, options, tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name, options", [
-    # the default tracking; its figures are in docs/tracking.md ("Patches that follow the surface"), those with
-    # --colour, --carve and --labels in its decisions file. The quadruped's default is over these targets: its accurate mode
+    # the default tracking (one armature round; its figures: docs/tracking.md, "Which tracking is the default"; the
+    # tracking alone's, --armature-rounds 0: "Patches that follow the surface"), those with --colour, --carve and
+    # --labels in its decisions file. The quadruped's tracking alone is over these targets: its accurate mode
     # is tests/pipeline/test_tracking_carved.py on a short take, and `stage bench track --accuracy` on
     # this one (docs/tracking.md)
     ("starfish", ()),
