@@ -56,10 +56,10 @@ class TrackParams(BaseModel):
         :data:`pipeline.track_armature.AUTO_RIG_ROUNDS`; 1 (default): one round; 0: none, the tracking alone.
     spine_armature : bool
         The first armature round's armature is the take's spine (``--spine-armature``); needs
-        ``armature_rounds``.
+        ``armature_rounds`` other than 0 (the default, one round, is).
     armature_parts : {"motion", "limbs"}
         Where every round's armature gets its parts (``--armature-parts``): ``"motion"`` the motion
-        segmentation, ``"limbs"`` the labels' body and limbs; ``"limbs"`` needs ``armature_rounds`` and the labels
+        segmentation, ``"limbs"`` the labels' body and limbs; ``"limbs"`` needs ``armature_rounds`` (not 0) and the labels
         (``labels``, or ``rig.parts`` "limbs").
 
     The rules between these options are ``stage track``'s, checked by :class:`ProcessParams` (which sees ``rig.parts``).

@@ -83,12 +83,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "which the surfaces cannot). Only as good as the armature's segments, see docs/tracking.md. "
                    "--rig-rounds: the old name, kept for one release")
     p.add_argument("--spine-armature", action="store_true",
-                   help="multi-view, with --armature-rounds: the first round's armature is the take's spine (RESULTS_DIR/"
+                   help="multi-view, with armature rounds (one by default; not with --armature-rounds 0): the first round's "
+                   "armature is the take's spine (RESULTS_DIR/"
                    "spine.json, built from every frame's visual hull, so it does not inherit the tracking's drift; two "
                    "bones a limb), then the ROUNDS rounds build it from the tracking; better on some fast bipeds and "
                    "quadrupeds, worse on others, on the fast starfish and the slow quadruped, see docs/tracking.md")
     p.add_argument("--armature-parts", choices=("motion", "limbs"), default="motion",
-                   help="multi-view, with --armature-rounds and --labels: where every round's armature gets its parts; "
+                   help="multi-view, with --labels and armature rounds (one by default; not with --armature-rounds 0): where "
+                   "every round's armature gets its parts; "
                    "'motion' (default): the motion segmentation of the tracking, as `stage armature`; 'limbs': the labels' "
                    "body one part and every limb cut along its spine axis where its tracked motion bends, each vertex rigid "
                    "with its part. Better on some fast bipeds, mixed elsewhere, see docs/tracking.md")
