@@ -643,6 +643,21 @@ def _shared_prior(prior_jacobian, M: int, free_i, prior_rows):
     return G[:, :, free_i]
 
 
+def _normal_matrix(Jd, w, n_obs: int, pixel_var: float, prior_scale: float, held_cols: np.ndarray):
+    """``J^T D J`` with the pixel rows weighted by their robust weights over ``pixel_var`` and the prior rows by
+    ``1 / prior_scale**2``; held intrinsics (empty rows and columns, exactly known) get a unit diagonal."""
+    from scipy.sparse import diags
+
+    scale = np.full(Jd.shape[0], 1.0 / prior_scale**2)
+    scale[:n_obs] = w[:n_obs] / pixel_var
+    A = Jd.T @ Jd.multiply(scale[:, None]).tocsr()
+    if held_cols.size:
+        unit = np.zeros(Jd.shape[1])
+        unit[held_cols] = 1.0
+        A = A + diags(unit)
+    return A
+
+
 def _sandwich(Jd, w, sigma2, n_obs, prior_scale, n_pose, n_cam, held_cols, shared, obs_cam, prior_rows, C, NF):
     """Camera block of ``A^-1 M A^-1`` (:func:`bundle_adjust`'s ``prior_jacobian``).
 
@@ -655,18 +670,11 @@ def _sandwich(Jd, w, sigma2, n_obs, prior_scale, n_pose, n_cam, held_cols, share
     ``X = J^T W S G P / s_p^2`` over the corners both used (``S``), whose shared noise is ``s_Z^2``.
     A camera without a prior has zero prior rows and no ``G`` (its corners are the rig's alone).
     """
-    from scipy.sparse import coo_matrix, diags
+    from scipy.sparse import coo_matrix
 
     G = shared
     ps2 = prior_scale**2
-    n = Jd.shape[1]
-    scale = np.full(Jd.shape[0], 1.0 / ps2)
-    scale[:n_obs] = w[:n_obs] / ps2
-    A = Jd.T @ Jd.multiply(scale[:, None]).tocsr()
-    if held_cols.size:
-        unit = np.zeros(n)
-        unit[held_cols] = 1.0
-        A = A + diags(unit)
+    A = _normal_matrix(Jd, w, n_obs, ps2, prior_scale, held_cols)
     m = C * NF
     # S W G P / s_p^2 as a sparse (2 M, C NF): each pixel row in its camera's columns
     rows = np.repeat(np.arange(n_obs), NF)
@@ -701,16 +709,7 @@ def _covariance(J, r, n_obs, loss, f_scale, C, free_i, held_f, n_pose, n_intr, f
                          C, int(free_i.sum()))
     else:
         # whitened: pixel rows by the residual scale, prior rows by the scale they were written in
-        scale = np.full(J.shape[0], 1.0 / prior_scale**2)
-        scale[:n_obs] = w[:n_obs] / sigma2
-        A = Jd.T @ Jd.multiply(scale[:, None]).tocsr()
-        if held_cols.size:  # held intrinsics: empty rows and columns, exactly known
-            from scipy.sparse import diags
-
-            unit = np.zeros(n)
-            unit[held_cols] = 1.0
-            A = A + diags(unit)
-        Ainv = _camera_block_inverse(A, n_cam)
+        Ainv = _camera_block_inverse(_normal_matrix(Jd, w, n_obs, sigma2, prior_scale, held_cols), n_cam)
     # rotation vector -> left perturbation: d = J_l(r) dr
     Jl = _left_jacobian(cam_rvec[free_cams]) if free_cams.size else np.zeros((0, 3, 3))
     rcov = np.zeros((C, C, 3, 3))

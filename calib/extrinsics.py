@@ -589,18 +589,23 @@ def _boards_in_root(views: _Views, poses, T) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([matrix_to_rodrigues(R) for R in B_R]), np.stack(B_t)
 
 
+def _used_detections(cams, detections, frame_index, poses):
+    """``(camera index, camera, detection)`` of every detection the adjustment uses, in its order."""
+    for ci, c in enumerate(cams):
+        for d in detections.get(c.name, ()):
+            if d is not None and int(d.frame) in frame_index and int(d.frame) in poses[ci]:
+                yield ci, c, d
+
+
 def _observation_arrays(cams, detections, frame_index, poses, obj):
     """Camera index, board-pose index, board point and pixel of every corner the adjustment uses."""
     oc, ob, op, ouv = [], [], [], []
-    for ci, c in enumerate(cams):
-        for d in detections.get(c.name, ()):
-            if d is None or int(d.frame) not in frame_index or int(d.frame) not in poses[ci]:
-                continue
-            n = len(d)
-            oc.append(np.full(n, ci))
-            ob.append(np.full(n, frame_index[int(d.frame)]))
-            op.append(obj[d.ids])
-            ouv.append(d.corners)
+    for ci, _, d in _used_detections(cams, detections, frame_index, poses):
+        n = len(d)
+        oc.append(np.full(n, ci))
+        ob.append(np.full(n, frame_index[int(d.frame)]))
+        op.append(obj[d.ids])
+        ouv.append(d.corners)
     return np.concatenate(oc), np.concatenate(ob), np.concatenate(op), np.concatenate(ouv)
 
 
@@ -608,19 +613,16 @@ def _aligned_prior_jacobian(cams, detections, frame_index, poses, prior_jacobian
     """(M, 2, 9) the prior solve's reduced Jacobian row at every corner of :func:`_observation_arrays`, in its
     order (zero where that solve did not use the corner)."""
     out = []
-    for ci, c in enumerate(cams):
+    for _, c, d in _used_detections(cams, detections, frame_index, poses):
+        rows = np.zeros((len(d), 2, 9))
         mine = prior_jacobian.get(c.name, {})
-        for d in detections.get(c.name, ()):
-            if d is None or int(d.frame) not in frame_index or int(d.frame) not in poses[ci]:
-                continue
-            rows = np.zeros((len(d), 2, 9))
-            if int(d.frame) in mine:
-                ids, J = mine[int(d.frame)]
-                where = {int(i): k for k, i in enumerate(np.asarray(ids).ravel())}
-                for k, i in enumerate(np.asarray(d.ids).ravel()):
-                    if int(i) in where:
-                        rows[k] = J[where[int(i)]]
-            out.append(rows)
+        if int(d.frame) in mine:
+            ids, J = mine[int(d.frame)]
+            where = {int(i): k for k, i in enumerate(np.asarray(ids).ravel())}
+            for k, i in enumerate(np.asarray(d.ids).ravel()):
+                if int(i) in where:
+                    rows[k] = J[where[int(i)]]
+        out.append(rows)
     return np.concatenate(out)
 
 
