@@ -85,9 +85,7 @@
     st.className = 'state state-' + j.state;
     const box = document.getElementById('cancel-box');
     if (box) box.hidden = TERMINAL.includes(j.state) || !!j.cancel_requested;
-    const all = document.getElementById('bar-all');
-    all.max = Math.max(j.total, 1); all.value = Math.min(j.done, all.max);
-    document.getElementById('count-all').textContent = j.done + '/' + j.total;
+    setBar(document.getElementById('bar-all').parentElement, j.done, j.total);
     const laidOut = renderSteps(j);
     document.getElementById('attempts').textContent = j.attempts;
     for (const k of ['started', 'finished'])
